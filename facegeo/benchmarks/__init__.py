@@ -1,0 +1,1 @@
+"""Registered benchmarks, one module per stage; :mod:`facegeo.bench` imports them all."""
