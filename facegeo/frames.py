@@ -59,14 +59,16 @@ def rotation_from_rvec(rvec) -> np.ndarray:
 def rvec_from_rotation(R) -> np.ndarray:
     """Inverse Rodrigues: rotation ``(3, 3)`` to axis-angle ``(3,)``, stable near 0 and π."""
     R = as_array(R, "R", shape=(3, 3))
-    cos_t = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(cos_t))
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    # atan2 keeps full precision at both ends, where arccos of the trace loses half the digits
+    theta = float(np.arctan2(0.5 * np.linalg.norm(w), 0.5 * (np.trace(R) - 1.0)))
     if theta < 1e-6:
         return 0.5 * w
     if np.pi - theta < 1e-4:
         # Near π: axis from the symmetric part, sign from w.
-        B = (R + np.eye(3)) / 2.0
+        # symmetric part: (R + Rᵀ)/2 = cos θ I + (1 − cos θ) k kᵀ
+        cos_t = np.cos(theta)
+        B = (0.5 * (R + R.T) - cos_t * np.eye(3)) / (1.0 - cos_t)
         axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
         i = int(np.argmax(axis))
         axis = B[i] / max(axis[i], 1e-12)

@@ -1,2 +1,26 @@
 """Synthetic light-stage capture: procedural or real heads, solid-texture skin, a reference
-renderer, and a writer that produces scans in exactly the format a real rig writes."""
+renderer, and a writer that produces scans in exactly the format a real rig writes.
+
+Public entry points (imported lazily so ``import facegeo.synth`` stays cheap):
+
+* :func:`facegeo.synth.capture.generate_scan` — write a scan directory (``facegeo synth``).
+* :data:`facegeo.synth.capture.PRESETS` — ``tiny``, ``small``, ``paper``.
+* :class:`facegeo.synth.render.ReferenceRenderer` — exact images from any camera under any
+  weighted set of lights (ground truth for novel views and relighting).
+"""
+
+from __future__ import annotations
+
+__all__ = ["generate_scan", "PRESETS", "ReferenceRenderer"]
+
+
+def __getattr__(name):
+    if name in ("generate_scan", "PRESETS"):
+        from facegeo.synth import capture
+
+        return getattr(capture, name)
+    if name == "ReferenceRenderer":
+        from facegeo.synth.render import ReferenceRenderer
+
+        return ReferenceRenderer
+    raise AttributeError(name)

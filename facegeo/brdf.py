@@ -1,0 +1,472 @@
+"""The skin reflectance model of Debevec et al. 2000, §4: a Torrance–Sparrow specular lobe with
+the colour of the light plus a diffuse term whose colour desaturates toward grazing angles.
+
+One implementation shared by the synthetic renderer (ground truth) and by the fitting /
+resynthesis stage. Every function works on unit direction vectors ``(..., 3)`` in one common
+frame (any frame, as long as ``n``, ``l`` and ``v`` share it) and broadcasts over leading axes:
+
+* ``n`` — surface normal, outward;
+* ``l`` — toward the light (the paper's incident direction, angle θ_i to ``n``);
+* ``v`` — toward the viewer (the paper's reflected direction, angle θ_r to ``n``);
+* ``h = (l + v)/|l + v|`` — the half vector, at angle θ_h to ``n`` and θ_d to ``l`` and ``v``.
+
+The model, per colour channel c (linear RGB)::
+
+    f_c = f_d,c + f_s                                                        (1/sr)
+    f_d,c = [α_0,c cos θ_i cos θ_r + α_1,c (1 − cos θ_i cos θ_r)] / π        diffuse ramp
+    f_s   = ρ_s F(θ_d) D(θ_h) G / (4 cos θ_i cos θ_r)                         Torrance–Sparrow
+
+with F the exact unpolarised Fresnel reflectance of a dielectric of index η, D the Beckmann
+microfacet distribution of RMS slope m and G the Torrance–Sparrow (V-cavity) shadowing and
+masking term. ``f`` is zero when the light or the viewer is at or below the horizon
+(``n·l <= 0`` or ``n·v <= 0``), where a BRDF is undefined; grazing inputs give finite values
+(never NaN or inf).
+
+Radiometry (DESIGN §3): :func:`olat_radiance` is the radiance one OLAT pixel holds under a light
+that delivers irradiance E at normal incidence, ``L_r = f · max(0, n·l) · E``; with that
+normalisation Σ_l R_l L_l δA_l approximates ∫ f L cos θ_i dω (Debevec et al. 2000, Eq. 4).
+
+References
+----------
+.. [1] P. Debevec, T. Hawkins, C. Tchou, H.-P. Duiker, W. Sarokin, M. Sagar, "Acquiring the
+   Reflectance Field of a Human Face", SIGGRAPH 2000, §4.
+.. [2] K. E. Torrance, E. M. Sparrow, "Theory for off-specular reflection from roughened
+   surfaces", JOSA 57(9), 1967.
+.. [3] R. L. Cook, K. E. Torrance, "A reflectance model for computer graphics", ACM TOG 1(1),
+   1982 (exact Fresnel form, Beckmann distribution, G term).
+.. [4] P. Beckmann, A. Spizzichino, *The Scattering of Electromagnetic Waves from Rough
+   Surfaces*, 1963.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facegeo.checks import as_array, check_unit_vectors
+from facegeo.errors import InputError
+
+__all__ = [
+    "ETA_SKIN",
+    "REC709_LUMINANCE",
+    "COS_FLOOR",
+    "fresnel_dielectric",
+    "beckmann_distribution",
+    "torrance_sparrow_geometry",
+    "specular_brdf",
+    "diffuse_chroma",
+    "diffuse_brdf",
+    "skin_brdf",
+    "olat_radiance",
+    "desaturate",
+]
+
+#: Index of refraction of the skin surface (oily stratum corneum) for the Fresnel term.
+ETA_SKIN = 1.4
+
+#: Rec. 709 / linear-sRGB relative luminance weights (R, G, B).
+REC709_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+#: Floor on the product cos θ_i · cos θ_r in the Torrance–Sparrow denominator (see
+#: :func:`specular_brdf`): the bound is active only when *both* directions lie within
+#: ≈ 89.4° of the normal's horizon (geometric-mean cosine < 0.01).
+COS_FLOOR = 1e-4
+
+#: Tolerance on |n|, |l|, |v| − 1 for the direction arguments.
+UNIT_TOL = 1e-6
+
+_TINY = 1e-300  # guards divisions whose result is masked out anyway
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _eta(eta) -> float:
+    try:
+        e = float(eta)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"eta: expected a number > 1, got {eta!r}") from exc
+    if not np.isfinite(e) or e <= 1.0:
+        raise InputError(
+            f"eta: expected a finite index of refraction > 1 (skin ≈ 1.4), got {eta!r}"
+        )
+    return e
+
+
+def _roughness(m) -> np.ndarray:
+    m = as_array(m, "m")
+    if np.any(m <= 0):
+        raise InputError(
+            f"m: Beckmann RMS slope must be > 0 everywhere; min is {float(np.min(m)):.6g}"
+        )
+    return m
+
+
+def _nonnegative(x, name: str) -> np.ndarray:
+    a = as_array(x, name)
+    if np.any(a < 0):
+        raise InputError(f"{name}: must be >= 0 everywhere; min is {float(np.min(a)):.6g}")
+    return a
+
+
+def _colour(x, name: str) -> np.ndarray:
+    return as_array(x, name, shape=(..., 3))
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("...i,...i->...", a, b)
+
+
+def _unit(x, name: str) -> np.ndarray:
+    """``(..., 3)`` unit vectors to within UNIT_TOL (same contract as ``check_unit_vectors``)."""
+    a = as_array(x, name, shape=(..., 3))
+    err = np.abs(_dot(a, a) - 1.0)
+    if np.any(err > 2.0 * UNIT_TOL):
+        return check_unit_vectors(a, name, tol=UNIT_TOL)  # raises with the offending index
+    return a
+
+
+def _directions(n, l, v):
+    return _unit(n, "n"), _unit(l, "l"), _unit(v, "v")
+
+
+# --------------------------------------------------------------------------- specular terms
+
+
+def fresnel_dielectric(cos_d, eta: float = ETA_SKIN) -> np.ndarray:
+    """Exact unpolarised Fresnel reflectance of a dielectric, F(θ_d).
+
+    Implements the exact Fresnel equations averaged over the s and p polarisations, in the form
+    of Cook & Torrance 1982::
+
+        g = sqrt(η² − 1 + c²),  c = cos θ_d
+        F = ½ (g − c)²/(g + c)² · [1 + ((c (g + c) − 1)/(c (g − c) + 1))²]
+
+    the Fresnel term of the Torrance–Sparrow lobe in Debevec et al. 2000, §4.
+
+    Parameters
+    ----------
+    cos_d : array_like (...) float64, dimensionless
+        Cosine of the angle between the light (or view) direction and the half vector,
+        ``l·h = v·h``. Values are clipped to [0, 1].
+    eta : float
+        Relative index of refraction, > 1 (1.4 for skin).
+
+    Returns
+    -------
+    (...) float64, dimensionless
+        Reflectance in [((η−1)/(η+1))², 1]: exactly ((η−1)/(η+1))² at cos_d = 1 and 1 at
+        cos_d = 0 (grazing), monotonically decreasing in cos_d. Always finite: ``g ≥ √(η²−1) > 0``
+        and ``c (g − c) + 1 ≥ 1`` for c ∈ [0, 1].
+    """
+    eta = _eta(eta)
+    c = np.clip(as_array(cos_d, "cos_d"), 0.0, 1.0)
+    g = np.sqrt(eta * eta - 1.0 + c * c)
+    a = (g - c) / (g + c)
+    b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
+    return 0.5 * a * a * (1.0 + b * b)
+
+
+def beckmann_distribution(cos_h, m) -> np.ndarray:
+    """Beckmann microfacet distribution D(θ_h).
+
+    Implements ``D = exp(−tan²θ_h / m²) / (π m² cos⁴θ_h)`` (Beckmann & Spizzichino 1963, in the
+    normalisation of Cook & Torrance 1982), normalised so that ``∫ D cos θ_h dω_h = 1`` over the
+    hemisphere: D is a density of microfacet normals per unit projected area.
+
+    Parameters
+    ----------
+    cos_h : array_like (...) float64, dimensionless
+        ``n·h``, cosine of the angle between the normal and the half vector.
+    m : array_like (...) float64, dimensionless, > 0
+        RMS microfacet slope (roughness); broadcasts with ``cos_h``.
+
+    Returns
+    -------
+    (...) float64, 1/sr
+        D, exactly 0 for ``cos_h <= 0`` (and, by underflow of the exponential, for
+        ``cos_h`` below ~1e-8 whatever m); finite everywhere.
+    """
+    c = np.clip(as_array(cos_h, "cos_h"), 0.0, 1.0)
+    m = _roughness(m)
+    ok = c > 1e-8
+    c_safe = np.where(ok, c, 1.0)
+    c2 = c_safe * c_safe
+    tan2 = (1.0 - c2) / c2
+    m2 = m * m
+    d = np.exp(-tan2 / m2) / (np.pi * m2 * c2 * c2)
+    return np.where(ok, d, 0.0)
+
+
+def torrance_sparrow_geometry(n_dot_l, n_dot_v, n_dot_h, v_dot_h) -> np.ndarray:
+    """Torrance–Sparrow (V-cavity) shadowing/masking term G.
+
+    Implements ``G = min(1, 2 (n·h)(n·v)/(v·h), 2 (n·h)(n·l)/(v·h))`` (Torrance & Sparrow 1967,
+    in the form of Cook & Torrance 1982), the G of the specular lobe in Debevec et al. 2000, §4.
+
+    Parameters
+    ----------
+    n_dot_l, n_dot_v, n_dot_h, v_dot_h : array_like (...) float64, dimensionless
+        Cosines; broadcast together. Negative cosines are clipped to 0.
+
+    Returns
+    -------
+    (...) float64, dimensionless, in [0, 1]
+        G. Symmetric in ``n_dot_l`` and ``n_dot_v`` (Helmholtz reciprocity). At ``v·h = 0``
+        (only possible for ``l = −v``) the two ratios are taken as +inf, so G = 1 when
+        ``n·h > 0`` and 0 otherwise — finite, never NaN.
+    """
+    nl = np.clip(as_array(n_dot_l, "n_dot_l"), 0.0, None)
+    nv = np.clip(as_array(n_dot_v, "n_dot_v"), 0.0, None)
+    nh = np.clip(as_array(n_dot_h, "n_dot_h"), 0.0, None)
+    vh = np.clip(as_array(v_dot_h, "v_dot_h"), 0.0, None)
+    pos = vh > 0
+    inv_vh = np.where(pos, 1.0 / np.where(pos, vh, 1.0), np.inf)
+    with np.errstate(invalid="ignore"):
+        g_v = np.nan_to_num(2.0 * nh * nv * inv_vh, nan=0.0, posinf=np.inf)
+        g_l = np.nan_to_num(2.0 * nh * nl * inv_vh, nan=0.0, posinf=np.inf)
+    return np.minimum(1.0, np.minimum(g_v, g_l))
+
+
+def _half_angle_cosines(nl, nv, l, v):
+    """``cos θ_h = n·h`` and ``cos θ_d = v·h`` from ``l + v`` without normalising h.
+
+    ``|l + v| = 2 cos θ_d`` and ``n·h = (n·l + n·v)/|l + v|``; both are exactly symmetric in
+    (l, v), which makes the specular lobe reciprocal to rounding.
+    """
+    s = l + v
+    two_cos_d = np.sqrt(_dot(s, s))
+    cos_d = 0.5 * two_cos_d
+    cos_h = (nl + nv) / np.maximum(two_cos_d, _TINY)
+    return np.clip(cos_h, 0.0, 1.0), np.clip(cos_d, 0.0, 1.0)
+
+
+def _specular_unchecked(nl, nv, cos_h, cos_d, rho_s, m, eta):
+    """Torrance–Sparrow value from cosines, zero below the horizon (no validation)."""
+    ok = (nl > 0) & (nv > 0) & (cos_h > 1e-8)
+    nl_s = np.where(ok, nl, 1.0)
+    nv_s = np.where(ok, nv, 1.0)
+    ch = np.where(ok, cos_h, 1.0)
+    # G / (4 n·l n·v) = min(1/(4 n·l n·v), n·h/(2 v·h n·l), n·h/(2 v·h n·v)): three finite
+    # ratios; the first is the only one that diverges (both directions grazing, G = 1) and is
+    # bounded by COS_FLOOR. min(t/n·l, t/n·v) = t/max(n·l, n·v) keeps it symmetric.
+    t = ch / (2.0 * np.maximum(cos_d, _TINY))
+    g_over = np.minimum(0.25 / np.maximum(nl_s * nv_s, COS_FLOOR), t / np.maximum(nl_s, nv_s))
+    # Fresnel (Cook & Torrance 1982 form), as in fresnel_dielectric.
+    c = cos_d
+    g = np.sqrt(eta * eta - 1.0 + c * c)
+    a = (g - c) / (g + c)
+    b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
+    F = 0.5 * a * a * (1.0 + b * b)
+    # Beckmann, as in beckmann_distribution.
+    ch2 = ch * ch
+    m2 = m * m
+    D = np.exp((ch2 - 1.0) / (ch2 * m2)) / (np.pi * m2 * ch2 * ch2)
+    return np.where(ok, rho_s * F * D * g_over, 0.0)
+
+
+def specular_brdf(n, l, v, rho_s, m, eta: float = ETA_SKIN) -> np.ndarray:
+    """Torrance–Sparrow specular BRDF of skin, f_s (the colour of the light).
+
+    Implements the specular lobe of the skin model of Debevec et al. 2000, §4 (Torrance &
+    Sparrow 1967 in the form of Cook & Torrance 1982)::
+
+        f_s = ρ_s F(θ_d) D(θ_h) G / (4 cos θ_i cos θ_r)
+
+    with F from :func:`fresnel_dielectric`, D from :func:`beckmann_distribution` and G from
+    :func:`torrance_sparrow_geometry`. ρ_s is a dimensionless scale on the physical Fresnel
+    term (ρ_s = 1: a clean dielectric of index η).
+
+    Deviation at grazing angles (DESIGN §7): ``G / (4 cos θ_i cos θ_r)`` is evaluated as
+    ``min(1/(4 max(cos θ_i cos θ_r, COS_FLOOR)), cos θ_h/(2 cos θ_d cos θ_i),
+    cos θ_h/(2 cos θ_d cos θ_r))``, which equals the textbook ratio whenever
+    ``cos θ_i cos θ_r >= COS_FLOOR`` (1e-4) and stays finite as either cosine → 0 (the G terms
+    cancel the vanishing cosine exactly). Only the first ratio, reached when both directions
+    graze in the mirror configuration, is bounded. The result is exactly symmetric in
+    ``l`` and ``v``.
+
+    Parameters
+    ----------
+    n, l, v : array_like (..., 3) float64, unit vectors, common frame
+        Normal, direction to the light, direction to the viewer; broadcast together.
+    rho_s : array_like (...) float64, dimensionless, >= 0
+        Specular scale.
+    m : array_like (...) float64, dimensionless, > 0
+        Beckmann RMS slope.
+    eta : float
+        Index of refraction (> 1).
+
+    Returns
+    -------
+    (...) float64, 1/sr
+        f_s, 0 where ``n·l <= 0`` or ``n·v <= 0``; finite everywhere.
+    """
+    n, l, v = _directions(n, l, v)
+    rho_s = _nonnegative(rho_s, "rho_s")
+    m = _roughness(m)
+    eta = _eta(eta)
+    nl = _dot(n, l)
+    nv = _dot(n, v)
+    cos_h, cos_d = _half_angle_cosines(nl, nv, l, v)
+    return _specular_unchecked(nl, nv, cos_h, cos_d, rho_s, m, eta)
+
+
+# --------------------------------------------------------------------------- diffuse ramp
+
+
+def diffuse_chroma(alpha_0, alpha_1, cos_i, cos_r) -> np.ndarray:
+    """The diffuse colour ramp f(θ_i, θ_r) of skin.
+
+    Implements Debevec et al. 2000, §4 (diffuse chromaticity ramp, Eqs. 6–7 as numbered in the
+    project's issue; the numbering is not verified against the paper)::
+
+        f(θ_i, θ_r) = α_0 (cos θ_i cos θ_r) + α_1 (1 − cos θ_i cos θ_r)
+
+    which blends from α_0 at normal incidence and view to α_1 at grazing angles: the paper
+    observed that skin's diffuse colour desaturates toward grazing angles.
+
+    Parameters
+    ----------
+    alpha_0, alpha_1 : array_like (..., 3) float64, linear RGB, dimensionless
+        Colour at normal incidence and view, and at grazing angles.
+    cos_i, cos_r : array_like (...) float64, dimensionless
+        cos θ_i = n·l and cos θ_r = n·v; clipped to [0, 1].
+
+    Returns
+    -------
+    (..., 3) float64, dimensionless
+        f, a colour (not yet divided by π). Symmetric in (cos_i, cos_r).
+    """
+    a0 = _colour(alpha_0, "alpha_0")
+    a1 = _colour(alpha_1, "alpha_1")
+    ci = np.clip(as_array(cos_i, "cos_i"), 0.0, 1.0)
+    cr = np.clip(as_array(cos_r, "cos_r"), 0.0, 1.0)
+    w = (ci * cr)[..., None]
+    return a0 * w + a1 * (1.0 - w)
+
+
+def _diffuse_unchecked(nl, nv, a0, a1):
+    valid = ((nl > 0) & (nv > 0))[..., None]
+    w = (np.clip(nl, 0.0, 1.0) * np.clip(nv, 0.0, 1.0))[..., None]
+    return np.where(valid, (a0 * w + a1 * (1.0 - w)) / np.pi, 0.0)
+
+
+def diffuse_brdf(n, l, v, alpha_0, alpha_1) -> np.ndarray:
+    """Diffuse BRDF of skin: Lambertian with the chroma ramp in place of the albedo.
+
+    Implements ``f_d = f(θ_i, θ_r)/π`` with f of :func:`diffuse_chroma` (Debevec et al. 2000,
+    §4, diffuse chromaticity ramp, Eqs. 6–7 as numbered in the issue). At normal incidence and
+    view it is exactly α_0/π; its directional albedo is
+    ``∫ f_d cos θ_i dω_i = α_1 + ⅔ cos θ_r (α_0 − α_1)``.
+
+    Parameters
+    ----------
+    n, l, v : array_like (..., 3) float64, unit vectors, common frame
+    alpha_0, alpha_1 : array_like (..., 3) float64, linear RGB, dimensionless
+
+    Returns
+    -------
+    (..., 3) float64, 1/sr
+        f_d, 0 where ``n·l <= 0`` or ``n·v <= 0``.
+    """
+    n, l, v = _directions(n, l, v)
+    a0 = _colour(alpha_0, "alpha_0")
+    a1 = _colour(alpha_1, "alpha_1")
+    return _diffuse_unchecked(_dot(n, l), _dot(n, v), a0, a1)
+
+
+# --------------------------------------------------------------------------- full model
+
+
+def skin_brdf(n, l, v, alpha_0, alpha_1, rho_s, m, eta: float = ETA_SKIN) -> np.ndarray:
+    """The full skin BRDF of Debevec et al. 2000, §4: diffuse ramp plus white specular lobe.
+
+    Implements ``f = f(θ_i, θ_r)/π + f_s · (1, 1, 1)``: :func:`diffuse_brdf` plus
+    :func:`specular_brdf` (the specular reflection has the colour of the light).
+
+    Parameters
+    ----------
+    n, l, v : array_like (..., 3) float64, unit vectors, common frame
+        Normal, toward the light, toward the viewer.
+    alpha_0, alpha_1 : array_like (..., 3) float64, linear RGB, dimensionless
+        Diffuse colour at normal incidence/view and at grazing angles.
+    rho_s : array_like (...) float64, dimensionless, >= 0
+        Specular scale on the Fresnel term.
+    m : array_like (...) float64, dimensionless, > 0
+        Beckmann RMS slope.
+    eta : float
+        Index of refraction (> 1).
+
+    Returns
+    -------
+    (..., 3) float64, 1/sr
+        f per RGB channel; 0 below either horizon; finite everywhere.
+    """
+    n, l, v = _directions(n, l, v)
+    a0 = _colour(alpha_0, "alpha_0")
+    a1 = _colour(alpha_1, "alpha_1")
+    rho_s = _nonnegative(rho_s, "rho_s")
+    m = _roughness(m)
+    eta = _eta(eta)
+    nl = _dot(n, l)
+    nv = _dot(n, v)
+    cos_h, cos_d = _half_angle_cosines(nl, nv, l, v)
+    spec = _specular_unchecked(nl, nv, cos_h, cos_d, rho_s, m, eta)
+    return _diffuse_unchecked(nl, nv, a0, a1) + spec[..., None]
+
+
+def olat_radiance(
+    n, l, v, alpha_0, alpha_1, rho_s, m, eta: float = ETA_SKIN, irradiance=1.0
+) -> np.ndarray:
+    """Radiance reflected toward ``v`` under one distant light: what one OLAT pixel holds.
+
+    Implements ``L_r = f(l, v) · max(0, n·l) · E`` with f from :func:`skin_brdf` and E the
+    irradiance the light delivers at normal incidence (DESIGN §3 radiometry). With this
+    normalisation Σ_l R_l L_l δA_l approximates ∫ f L cos θ_i dω, Debevec et al. 2000, Eq. 4.
+    Shadowing by other geometry is not modelled here (the renderer decides visibility).
+
+    Parameters
+    ----------
+    n, l, v, alpha_0, alpha_1, rho_s, m, eta
+        As in :func:`skin_brdf`.
+    irradiance : float or array_like broadcastable to (..., 3), W/m² (or any linear unit)
+        E at normal incidence, per channel if given with a trailing axis of 3; use
+        ``E[..., None]`` for a per-sample grey irradiance.
+
+    Returns
+    -------
+    (..., 3) float64, radiance in the unit of E per sr
+        0 where the light or viewer is below the horizon.
+    """
+    E = _nonnegative(irradiance, "irradiance")
+    n_ = _unit(n, "n")
+    l_ = _unit(l, "l")
+    f = skin_brdf(n_, l_, v, alpha_0, alpha_1, rho_s, m, eta)
+    cos_i = np.clip(_dot(n_, l_), 0.0, None)[..., None]
+    return f * cos_i * E
+
+
+def desaturate(alpha_0, amount) -> np.ndarray:
+    """Make a grazing colour α_1 by mixing α_0 toward its luminance.
+
+    ``α_1 = (1 − a) α_0 + a Y(α_0) (1, 1, 1)`` with ``Y = 0.2126 R + 0.7152 G + 0.0722 B``
+    (Rec. 709 linear luminance). Keeps the luminance of α_0; a = 0 returns α_0, a = 1 grey.
+    The paper fits α_1 per pixel (§4); this helper only builds plausible ground truth.
+
+    Parameters
+    ----------
+    alpha_0 : array_like (..., 3) float64, linear RGB
+    amount : float or array_like (...) float64, in [0, 1]
+
+    Returns
+    -------
+    (..., 3) float64, linear RGB
+    """
+    a0 = _colour(alpha_0, "alpha_0")
+    a = as_array(amount, "amount")
+    if np.any((a < 0) | (a > 1)):
+        raise InputError(
+            f"amount: expected values in [0, 1], got min {a.min():.6g}, max {a.max():.6g}"
+        )
+    Y = a0 @ REC709_LUMINANCE
+    a = a[..., None]
+    return (1.0 - a) * a0 + a * Y[..., None]

@@ -1,0 +1,835 @@
+"""Structured-light patterns and their decoding: Gray code (with inverses) and N-step phase shift.
+
+Debevec et al. 2000 (Sec. 3) build the face geometry from structured light projected by a video
+projector beside the cameras. This module makes the projector's patterns, samples them at
+continuous projector coordinates (for the synthetic renderer) and decodes camera frames into
+projector coordinates per camera pixel. Triangulation is a later stage.
+
+Conventions
+-----------
+* **Pixels** (DESIGN §3): ``(x, y)`` = (column, row); integer coordinates are projector pixel
+  *centres*; projector pixel ``c`` covers ``[c - 0.5, c + 0.5)``. Images are ``[row, col]``.
+* **Projection order** (:func:`pattern_names`)::
+
+      "white", "black",                                   if spec.white_black
+      "gray_x_00", "gray_x_00_inv", ..., "gray_x_{n-1}",  column bits, MSB first
+      "gray_y_00", "gray_y_00_inv", ...,                  row bits, MSB first
+      "phase_x_0", ..., "phase_x_{N-1}", "phase_y_0", ... for each axis in spec.phase_axes
+
+  The ``_inv`` frame follows its pattern only when ``spec.inverse``. With ``white_black=False``
+  and ``inverse=True`` the Gray frames are in exactly the order and polarity of OpenCV's
+  ``cv2.structured_light.GrayCodePattern.generate()`` (columns then rows, MSB first, each
+  pattern followed by its inverse; white = bit 1).
+* **Gray code**: bit ``i`` (``i = 0`` is the MSB) of frame ``gray_x_i`` is bit ``n-1-i`` of
+  ``gray_encode(col >> s)``, where ``s = max(ceil(log2(width)) - n_bits_x, 0)``. With the
+  default ``n_bits_x = ceil(log2(width))``, ``s = 0`` and every column has its own code; with
+  fewer bits the codes name stripes ``2**s`` pixels wide (the MSBs of the full code, since
+  ``gray(c) >> s == gray(c >> s)``) and the decoded coordinate is the stripe's centre.
+* **Phase shift**: frame ``phase_x_k`` is
+  ``0.5 + 0.5 cos(phi(x) - 2 pi k / N)`` with ``phi(x) = 2 pi P_x (x + 0.5) / width``,
+  ``P_x`` = ``phase_periods_x`` periods across the projector (rows and ``P_y`` for ``y``).
+  :func:`decode_phase` returns ``phi mod 2 pi``; :func:`unwrap_with_gray` picks the period from
+  the Gray-code decode and returns sub-pixel projector coordinates.
+* **Frames** are linear intensities (float, any positive scale; integer dtypes are accepted and
+  converted), ``(H, W)`` or ``(H, W, C)``; colour frames are reduced to the channel mean.
+  Thresholds (``min_contrast``, ``shadow_threshold``) are in the frames' units.
+
+References
+----------
+Debevec, Hawkins, Tchou, Duiker, Sarokin, Sagar. Acquiring the Reflectance Field of a Human
+Face. SIGGRAPH 2000, Sec. 3. — Inokuchi, Sato, Matsuda. Range imaging system for 3-D object
+recognition. ICPR 1984 (Gray-code structured light). — Srinivasan, Liu, Halioua. Automated
+phase-measuring profilometry of 3-D diffuse objects. Appl. Opt. 23(18), 1984 (N-step phase).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from facegeo.checks import as_array, check_choice
+from facegeo.errors import InputError, ShapeError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "PatternSpec",
+    "GrayDecode",
+    "PhaseDecode",
+    "gray_encode",
+    "gray_decode",
+    "pattern_names",
+    "pattern_image",
+    "pattern_value_at",
+    "decode_gray",
+    "decode_phase",
+    "unwrap_with_gray",
+]
+
+_MAX_BITS = 24
+_AXES = ("x", "y")
+# Pixels per processing chunk in decode_gray: keeps the per-bit temporaries in L2 cache.
+_CHUNK_PIXELS = 1 << 16
+
+
+# --------------------------------------------------------------------------- Gray code
+
+
+def gray_encode(n) -> np.ndarray:
+    """Binary-reflected Gray code of non-negative integers: ``g = n ^ (n >> 1)``.
+
+    Parameters
+    ----------
+    n : array_like of int, any shape, >= 0
+
+    Returns
+    -------
+    numpy.ndarray
+        Same shape, same integer dtype (int64 for Python ints).
+    """
+    a = _as_nonneg_int(n, "n")
+    return a ^ (a >> 1)
+
+
+def gray_decode(g) -> np.ndarray:
+    """Inverse of :func:`gray_encode`: the integer whose Gray code is ``g`` (prefix XOR).
+
+    Parameters
+    ----------
+    g : array_like of int, any shape, >= 0
+
+    Returns
+    -------
+    numpy.ndarray
+        Same shape, same integer dtype (int64 for Python ints).
+    """
+    a = _as_nonneg_int(g, "g").copy()
+    shift = 1
+    while shift < a.dtype.itemsize * 8:
+        a ^= a >> shift
+        shift *= 2
+    return a
+
+
+def _as_nonneg_int(x, name: str) -> np.ndarray:
+    a = np.asarray(x)
+    if a.dtype.kind not in "iu":
+        if a.dtype.kind == "O" or a.size == 0:
+            a = np.asarray(x, dtype=np.int64)
+        else:
+            raise InputError(f"{name}: expected integers, got dtype {a.dtype}")
+    if a.dtype.kind == "i" and a.size and int(a.min()) < 0:
+        raise InputError(f"{name}: expected non-negative integers, got min {int(a.min())}")
+    return a
+
+
+# --------------------------------------------------------------------------- pattern spec
+
+
+def _bits_for(size: int) -> int:
+    """ceil(log2(size)) for size >= 1 (0 for a single pixel)."""
+    return (int(size) - 1).bit_length()
+
+
+def _check_int(value: Any, name: str, lo: int, hi: int | None = None) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"PatternSpec.{name}: expected an integer, got {value!r}")
+    v = int(value)
+    if v < lo or (hi is not None and v > hi):
+        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise InputError(f"PatternSpec.{name}: expected an integer {rng}, got {v}")
+    return v
+
+
+def _check_bool(value: Any, name: str) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"PatternSpec.{name}: expected true or false, got {value!r}")
+    return bool(value)
+
+
+@dataclass(frozen=True)
+class PatternSpec:
+    """What the projector shows, in projection order (see :func:`pattern_names`).
+
+    Attributes
+    ----------
+    width, height : int
+        Projector resolution, pixels.
+    gray : bool
+        Project Gray-code bit planes.
+    n_bits_x, n_bits_y : int
+        Gray-code bits for columns / rows; default ``ceil(log2(width))`` / ``ceil(log2(height))``
+        (one code per pixel). Fewer bits code stripes ``2**(full - n)`` pixels wide; 0 skips
+        that axis.
+    inverse : bool
+        Follow each Gray frame by its inverse; the bit is then ``frame > inverse`` per pixel,
+        robust to albedo and ambient light.
+    white_black : bool
+        Project a full-white and a full-black frame first (shadow / albedo masks; the
+        threshold ``(white + black) / 2`` when there are no inverse frames).
+    phase_steps : int
+        N of the N-step phase shift (0 = none, else >= 3).
+    phase_periods_x, phase_periods_y : float
+        Sinusoid periods across the projector width / height. Default: a 16-pixel period
+        (``width / 16``), resolved when ``phase_steps > 0``.
+    phase_axes : tuple of {"x", "y"}
+        Axes that get phase-shift sequences, in projection order.
+
+    Raises
+    ------
+    InputError
+        Any field out of range or of the wrong type; a spec that produces no pattern.
+    """
+
+    width: int
+    height: int
+    gray: bool = True
+    n_bits_x: int | None = None
+    n_bits_y: int | None = None
+    inverse: bool = True
+    white_black: bool = True
+    phase_steps: int = 0
+    phase_periods_x: float | None = None
+    phase_periods_y: float | None = None
+    phase_axes: tuple[str, ...] = ("x",)
+
+    def __post_init__(self) -> None:
+        put = functools.partial(object.__setattr__, self)
+        put("width", _check_int(self.width, "width", 1))
+        put("height", _check_int(self.height, "height", 1))
+        for name in ("gray", "inverse", "white_black"):
+            put(name, _check_bool(getattr(self, name), name))
+        for axis, size in (("x", self.width), ("y", self.height)):
+            key = f"n_bits_{axis}"
+            val = getattr(self, key)
+            put(key, _bits_for(size) if val is None else _check_int(val, key, 0, _MAX_BITS))
+        if self.gray and self.n_bits_x == 0 and self.n_bits_y == 0:
+            raise InputError(
+                f"PatternSpec: gray=True but n_bits_x = n_bits_y = 0 for a "
+                f"{self.width}x{self.height} projector; set gray=False or give bits"
+            )
+        steps = _check_int(self.phase_steps, "phase_steps", 0, 64)
+        if steps in (1, 2):
+            raise InputError(
+                f"PatternSpec.phase_steps: expected 0 (no phase shift) or >= 3, got {steps} "
+                "(fewer than 3 steps cannot separate offset, amplitude and phase)"
+            )
+        put("phase_steps", steps)
+        axes = self.phase_axes
+        if isinstance(axes, str):
+            axes = (axes,)
+        try:
+            axes = tuple(axes)
+        except TypeError:
+            raise InputError(
+                f"PatternSpec.phase_axes: expected a list of 'x'/'y', got {self.phase_axes!r}"
+            ) from None
+        for a in axes:
+            check_choice(a, "PatternSpec.phase_axes", _AXES)
+        if len(set(axes)) != len(axes):
+            raise InputError(f"PatternSpec.phase_axes: repeated axis in {list(axes)}")
+        if steps and not axes:
+            raise InputError("PatternSpec.phase_axes: empty, but phase_steps > 0")
+        put("phase_axes", axes)
+        for axis, size in (("x", self.width), ("y", self.height)):
+            key = f"phase_periods_{axis}"
+            val = getattr(self, key)
+            if val is None:
+                if steps:
+                    put(key, float(size) / 16.0)
+                continue
+            if isinstance(val, (bool, np.bool_)):
+                raise InputError(f"PatternSpec.{key}: expected a number, got {val!r}")
+            try:
+                p = float(val)
+            except (TypeError, ValueError):
+                raise InputError(f"PatternSpec.{key}: expected a number, got {val!r}") from None
+            if not (math.isfinite(p) and p > 0):
+                raise InputError(f"PatternSpec.{key}: expected a finite number > 0, got {val!r}")
+            if steps and axis in axes and size / p < 2.0:
+                raise InputError(
+                    f"PatternSpec.{key}: {p} periods across {size} px is a period of "
+                    f"{size / p:.3g} px; the projector needs >= 2 px per period"
+                )
+            put(key, p)
+        if not (self.gray or self.white_black or steps):
+            raise InputError("PatternSpec: produces no pattern (gray, white_black and phase off)")
+
+    # ---------------------------------------------------------------- derived
+
+    def stripe_shift(self, axis: str) -> int:
+        """``s``: Gray codes on ``axis`` name stripes ``2**s`` projector pixels wide."""
+        check_choice(axis, "axis", _AXES)
+        size, n = (self.width, self.n_bits_x) if axis == "x" else (self.height, self.n_bits_y)
+        return max(_bits_for(size) - n, 0)
+
+    def n_bits(self, axis: str) -> int:
+        """Gray-code bits projected on ``axis`` (0 when ``gray`` is off)."""
+        check_choice(axis, "axis", _AXES)
+        if not self.gray:
+            return 0
+        return self.n_bits_x if axis == "x" else self.n_bits_y
+
+    def phase_periods(self, axis: str) -> float | None:
+        """Sinusoid periods across the projector along ``axis``."""
+        check_choice(axis, "axis", _AXES)
+        return self.phase_periods_x if axis == "x" else self.phase_periods_y
+
+    # ---------------------------------------------------------------- (de)serialisation
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain ints / bools / floats / lists, ready for JSON or TOML (``None`` omitted)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v is None:
+                continue
+            out[f.name] = list(v) if isinstance(v, tuple) else v
+        return out
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> PatternSpec:
+        """Build from a mapping as written by :meth:`to_dict`; unknown keys raise InputError."""
+        if not isinstance(d, Mapping):
+            raise InputError(f"PatternSpec.from_dict: expected a mapping, got {type(d).__name__}")
+        known = [f.name for f in fields(cls)]
+        unknown = sorted(set(d) - set(known))
+        if unknown:
+            raise InputError(
+                f"PatternSpec: unknown key(s) {unknown}; valid keys are {known}"
+            )
+        missing = [k for k in ("width", "height") if k not in d]
+        if missing:
+            raise InputError(f"PatternSpec: missing required key(s) {missing}")
+        return cls(**dict(d))
+
+
+class _Pattern(NamedTuple):
+    kind: str  # "white", "black", "gray", "phase"
+    axis: str | None
+    index: int  # bit (MSB = 0) or phase step
+    inverse: bool
+
+
+@functools.lru_cache(maxsize=64)
+def _pattern_table(spec: PatternSpec) -> dict[str, _Pattern]:
+    table: dict[str, _Pattern] = {}
+    if spec.white_black:
+        table["white"] = _Pattern("white", None, 0, False)
+        table["black"] = _Pattern("black", None, 0, False)
+    for axis in _AXES:
+        for i in range(spec.n_bits(axis)):
+            table[f"gray_{axis}_{i:02d}"] = _Pattern("gray", axis, i, False)
+            if spec.inverse:
+                table[f"gray_{axis}_{i:02d}_inv"] = _Pattern("gray", axis, i, True)
+    for axis in spec.phase_axes if spec.phase_steps else ():
+        for k in range(spec.phase_steps):
+            table[f"phase_{axis}_{k}"] = _Pattern("phase", axis, k, False)
+    return table
+
+
+def _check_spec(spec: Any) -> PatternSpec:
+    if not isinstance(spec, PatternSpec):
+        raise InputError(f"spec: expected a PatternSpec, got {type(spec).__name__}")
+    return spec
+
+
+def pattern_names(spec: PatternSpec) -> list[str]:
+    """Names of the patterns in projection order.
+
+    ``"white", "black"`` (if ``white_black``), then ``"gray_x_00"`` (column MSB),
+    ``"gray_x_00_inv"`` (if ``inverse``), ... ``"gray_x_{n-1}"`` (column LSB), then the same for
+    ``y`` (rows), then ``"phase_x_0" ... "phase_x_{N-1}"`` and ``"phase_y_*"`` in
+    ``spec.phase_axes`` order.
+
+    Parameters
+    ----------
+    spec : PatternSpec
+
+    Returns
+    -------
+    list of str
+    """
+    return list(_pattern_table(_check_spec(spec)))
+
+
+def _lookup(spec: PatternSpec, name: str) -> _Pattern:
+    table = _pattern_table(_check_spec(spec))
+    try:
+        return table[name]
+    except (KeyError, TypeError):
+        names = list(table)
+        shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
+        raise InputError(f"name: unknown pattern {name!r} for this spec; valid: {shown}") from None
+
+
+def _gray_bit(spec: PatternSpec, axis: str, bit: int, coord: np.ndarray) -> np.ndarray:
+    """Bit ``bit`` (0 = MSB) of the Gray code of integer projector coordinates ``coord``."""
+    n = spec.n_bits(axis)
+    stripe = coord >> spec.stripe_shift(axis)
+    return (gray_encode(stripe) >> (n - 1 - bit)) & 1
+
+
+def _phase_value(spec: PatternSpec, axis: str, k: int, coord: np.ndarray) -> np.ndarray:
+    size = spec.width if axis == "x" else spec.height
+    phi = (2.0 * np.pi * spec.phase_periods(axis) / size) * (coord + 0.5)
+    return 0.5 + 0.5 * np.cos(phi - 2.0 * np.pi * k / spec.phase_steps)
+
+
+def pattern_image(spec: PatternSpec, name: str) -> np.ndarray:
+    """The projector image of pattern ``name``, sampled at projector pixel centres.
+
+    Parameters
+    ----------
+    spec : PatternSpec
+    name : str
+        One of :func:`pattern_names` (``spec``).
+
+    Returns
+    -------
+    (height, width) float32 in [0, 1]
+        Gray frames are exactly 0 / 1 (1 = bit set, the ``_inv`` frame is ``1 - bit``); phase
+        frames follow the module docstring's sinusoid.
+    """
+    p = _lookup(spec, name)
+    shape = (spec.height, spec.width)
+    if p.kind in ("white", "black"):
+        return np.full(shape, 1.0 if p.kind == "white" else 0.0, dtype=np.float32)
+    size = spec.width if p.axis == "x" else spec.height
+    coord = np.arange(size, dtype=np.int64)
+    if p.kind == "gray":
+        line = _gray_bit(spec, p.axis, p.index, coord).astype(np.float32)
+        if p.inverse:
+            line = 1.0 - line
+    else:
+        line = _phase_value(spec, p.axis, p.index, coord.astype(np.float64)).astype(np.float32)
+    line = line[None, :] if p.axis == "x" else line[:, None]
+    return np.ascontiguousarray(np.broadcast_to(line, shape), dtype=np.float32)
+
+
+def pattern_value_at(spec: PatternSpec, name: str, q_proj) -> np.ndarray:
+    """Sample pattern ``name`` at continuous projector pixel coordinates.
+
+    Binary patterns (white, black, Gray) take the value of the projector pixel containing
+    ``q_proj`` (pixel ``c`` covers ``[c - 0.5, c + 0.5)``: projector pixels are hard-edged);
+    phase patterns evaluate the exact sinusoid at ``q_proj``. Points outside the projector image
+    ``[-0.5, width - 0.5) x [-0.5, height - 0.5)`` and non-finite points get 0 (no light).
+
+    Parameters
+    ----------
+    spec : PatternSpec
+    name : str
+        One of :func:`pattern_names` (``spec``).
+    q_proj : (..., 2) float, projector pixels (x = column, y = row)
+        NaN allowed (no light).
+
+    Returns
+    -------
+    (...,) float32 in [0, 1]
+    """
+    p = _lookup(spec, name)
+    q = as_array(q_proj, "q_proj", shape=(..., 2), finite=False)
+    x, y = q[..., 0], q[..., 1]
+    with np.errstate(invalid="ignore"):
+        inside = (x >= -0.5) & (x < spec.width - 0.5) & (y >= -0.5) & (y < spec.height - 0.5)
+    out = np.zeros(x.shape, dtype=np.float32)
+    if p.kind == "black" or not inside.any():
+        return out
+    if p.kind == "white":
+        out[inside] = 1.0
+        return out
+    c = (x if p.axis == "x" else y)[inside]
+    if p.kind == "gray":
+        ic = np.floor(c + 0.5).astype(np.int64)
+        v = _gray_bit(spec, p.axis, p.index, ic)
+        out[inside] = (1 - v) if p.inverse else v
+    else:
+        out[inside] = _phase_value(spec, p.axis, p.index, c)
+    return out
+
+
+# --------------------------------------------------------------------------- frames
+
+
+def _validated_frames(frames: Any, needed: list[str], what: str) -> dict[str, np.ndarray]:
+    """Check presence, dtype and equal shapes of ``frames[name]`` for ``needed`` names."""
+    if not isinstance(frames, Mapping):
+        raise InputError(f"frames: expected a mapping name -> image, got {type(frames).__name__}")
+    missing = [n for n in needed if n not in frames]
+    if missing:
+        have = sorted(map(str, frames))
+        raise InputError(
+            f"frames: missing {len(missing)} frame(s) needed for {what}: {missing}; "
+            f"frames given: {have if len(have) <= 12 else have[:12] + ['...']}"
+        )
+    out: dict[str, np.ndarray] = {}
+    shape0 = name0 = None
+    for n in needed:
+        a = np.asarray(frames[n])
+        if a.dtype.kind not in "fiu":
+            raise ShapeError(f"frames[{n!r}]: expected real numbers, got dtype {a.dtype}")
+        if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] < 1):
+            raise ShapeError(f"frames[{n!r}]: expected shape (H, W) or (H, W, C), got {a.shape}")
+        if shape0 is None:
+            shape0, name0 = a.shape, n
+        elif a.shape != shape0:
+            raise ShapeError(
+                f"frames[{n!r}]: shape {a.shape} differs from frames[{name0!r}] {shape0}; "
+                "all frames of one capture must have the same shape"
+            )
+        out[n] = a
+    return out
+
+
+def _load_chunk(a: np.ndarray, name: str, rows: slice) -> np.ndarray:
+    """Rows of one frame as float32 (H', W), channel mean for colour frames."""
+    c = a[rows]
+    if c.ndim == 3:
+        c = c.mean(axis=2, dtype=np.float32) if c.shape[2] > 1 else c[..., 0]
+    return np.asarray(c, dtype=np.float32)
+
+
+def _raise_if_nonfinite(a: np.ndarray, name: str, rows: slice) -> None:
+    """Raise :class:`InputError` naming the frame and the first NaN / inf in ``a[rows]``."""
+    if a.dtype.kind != "f":
+        return
+    ok = np.isfinite(a[rows])
+    if not ok.all():
+        idx = np.argwhere(~ok)[0]
+        raise InputError(
+            f"frames[{name!r}]: non-finite value (NaN or inf) at row "
+            f"{int(idx[0]) + (rows.start or 0)}, column {int(idx[1])}"
+        )
+
+
+def _check_chunk_finite(arrs: Mapping[str, np.ndarray], names: list[str], rows: slice) -> None:
+    for n in names:
+        _raise_if_nonfinite(arrs[n], n, rows)
+
+
+# --------------------------------------------------------------------------- Gray decoding
+
+
+@dataclass(frozen=True, eq=False)
+class GrayDecode:
+    """Result of :func:`decode_gray`: per camera pixel, the projector pixel it sees.
+
+    Attributes
+    ----------
+    proj_x : (H, W) float64, projector pixels (column)
+        Integer column index (or stripe centre for coarse codes); NaN where not ``valid``.
+        All NaN when the spec has no column bits.
+    proj_y : (H, W) float64, projector pixels (row)
+        Same for rows.
+    valid : (H, W) bool
+        Not shadow, contrast >= ``min_contrast`` and every decoded code inside the projector.
+    contrast : (H, W) float32, frame units
+        Confidence: the smallest ``|frame - inverse|`` over all bits (``2 |frame - threshold|``
+        without inverse frames), i.e. the weakest bit decision's margin.
+    shadow : (H, W) bool
+        The projector does not light the pixel: ``white - black < shadow_threshold`` (without
+        white/black frames, the largest bit amplitude over the Gray frames is below it).
+    """
+
+    proj_x: np.ndarray
+    proj_y: np.ndarray
+    valid: np.ndarray
+    contrast: np.ndarray
+    shadow: np.ndarray
+
+    @property
+    def q_proj(self) -> np.ndarray:
+        """(H, W, 2) float64 projector pixel coordinates (x, y), NaN where invalid."""
+        return np.stack([self.proj_x, self.proj_y], axis=-1)
+
+
+def decode_gray(
+    frames: Mapping[str, Any],
+    spec: PatternSpec,
+    *,
+    min_contrast: float = 0.01,
+    shadow_threshold: float = 0.02,
+    threshold: float | None = None,
+) -> GrayDecode:
+    """Decode Gray-code frames into projector column / row per camera pixel (vectorised).
+
+    Bit decision per pixel and bit:
+
+    * with inverse frames: ``frame > inverse``;
+    * else with white/black frames: ``frame > (white + black) / 2``;
+    * else ``frame > threshold`` if given, otherwise ``frame > (max + min) / 2`` of that pixel
+      over all Gray frames (both axes) — enough codes mix 0 and 1 bits for this to work except
+      at the all-zero corner codes, which are usually outside the lit area.
+
+    Gray bits (MSB first) are turned into binary by the running XOR ``b_i = b_{i-1} ^ g_i``.
+    Frames are processed in row chunks so each is read from memory once.
+
+    Parameters
+    ----------
+    frames : mapping str -> (H, W) or (H, W, C) array, linear intensity
+        Keys as :func:`pattern_names`; the Gray frames (and inverses, white, black as the spec
+        says) must be present; phase or extra frames are ignored.
+    spec : PatternSpec
+    min_contrast : float, frame units
+        Pixels whose weakest bit margin (see :class:`GrayDecode`) is below this are invalid.
+    shadow_threshold : float, frame units
+        Pixels lit by less than this (white - black) are shadow.
+    threshold : float, optional, frame units
+        Fixed bit threshold; only for specs without inverse frames.
+
+    Returns
+    -------
+    GrayDecode
+
+    Raises
+    ------
+    InputError
+        Missing frames (listed), NaN / inf in a frame (named, with its position), a spec
+        without Gray bits, bad thresholds.
+    ShapeError
+        Frames of different shapes or of a non-image shape.
+    """
+    spec = _check_spec(spec)
+    min_contrast = float(as_array(min_contrast, "min_contrast", shape=()))
+    shadow_threshold = float(as_array(shadow_threshold, "shadow_threshold", shape=()))
+    if threshold is not None:
+        threshold = float(as_array(threshold, "threshold", shape=()))
+        if spec.inverse:
+            raise InputError(
+                "threshold: the spec has inverse frames (bit = frame > inverse); a fixed "
+                "threshold applies only to specs with inverse=False"
+            )
+    axes = [(a, spec.n_bits(a)) for a in _AXES if spec.n_bits(a) > 0]
+    if not axes:
+        raise InputError("spec: has no Gray-code patterns to decode (gray=False or 0 bits)")
+    table = _pattern_table(spec)
+    needed = [n for n, p in table.items() if p.kind in ("white", "black", "gray")]
+    arrs = _validated_frames(frames, needed, "Gray decoding")
+    H, W = arrs[needed[0]].shape[:2]
+
+    proj = {a: np.full((H, W), np.nan) if not spec.n_bits(a) else np.empty((H, W)) for a in _AXES}
+    valid = np.empty((H, W), dtype=bool)
+    contrast = np.empty((H, W), dtype=np.float32)
+    shadow = np.empty((H, W), dtype=bool)
+    use_minmax = not spec.inverse and not spec.white_black and threshold is None
+    rows_per_chunk = max(1, _CHUNK_PIXELS // max(W, 1))
+
+    gray_names = [n for n, p in table.items() if p.kind == "gray"]
+    for r0 in range(0, H, rows_per_chunk):
+        rows = slice(r0, min(H, r0 + rows_per_chunk))
+        h = rows.stop - r0
+        cache: dict[str, np.ndarray] = {}
+
+        def load(name: str, rows: slice = rows, cache: dict = cache) -> np.ndarray:
+            c = cache.get(name)
+            return _load_chunk(arrs[name], name, rows) if c is None else c
+
+        # Reference level for the bit decision without inverse frames; shadow from white/black.
+        ref: np.ndarray | float | None = None
+        shadow_c = None
+        if spec.white_black:
+            wc, bc = load("white"), load("black")
+            lit = wc - bc
+            if not np.isfinite(lit).all():
+                _check_chunk_finite(arrs, ["white", "black"], rows)
+            shadow_c = ~(lit >= shadow_threshold)
+            if not spec.inverse:
+                ref = 0.5 * (wc + bc) if threshold is None else threshold
+        elif not spec.inverse:
+            if use_minmax:
+                for n in gray_names:
+                    cache[n] = _load_chunk(arrs[n], n, rows)
+                hi = cache[gray_names[0]].copy()
+                lo = hi.copy()
+                for n in gray_names[1:]:
+                    np.maximum(hi, cache[n], out=hi)
+                    np.minimum(lo, cache[n], out=lo)
+                span = hi - lo
+                if not np.isfinite(span).all():
+                    _check_chunk_finite(arrs, gray_names, rows)
+                shadow_c = ~(span >= shadow_threshold)
+                ref = 0.5 * (hi + lo)
+            else:
+                ref = threshold
+
+        # Per bit: d = frame - reference; bit = d > 0; binary b_i = b_{i-1} ^ g_i appended to
+        # the code; |d| folded into the running min (contrast) and max (amplitude; its
+        # finiteness also proves every Gray frame finite, NaN and inf both propagate).
+        d = np.empty((h, W), dtype=np.float32)
+        g = np.empty((h, W), dtype=bool)
+        cmin = np.full((h, W), np.inf, dtype=np.float32)
+        amax = np.zeros((h, W), dtype=np.float32)
+        ok = np.ones((h, W), dtype=bool)
+        codes = {}
+        for axis, n in axes:
+            # The binary code is built in uint8 bytes, MSB byte first (same-dtype ufuncs avoid
+            # numpy's slow casting loops), then assembled into one integer per pixel.
+            n_bytes = -(-n // 8)
+            pad = 8 * n_bytes - n
+            code_bytes = np.zeros((n_bytes, h, W), dtype=np.uint8)
+            b = np.zeros((h, W), dtype=bool)
+            b8 = b.view(np.uint8)
+            for i in range(n):
+                name = f"gray_{axis}_{i:02d}"
+                other = load(name + "_inv") if spec.inverse else ref
+                np.subtract(load(name), other, out=d)
+                np.greater(d, 0.0, out=g)
+                np.bitwise_xor(b, g, out=b)
+                byte = code_bytes[(i + pad) // 8]
+                np.add(byte, byte, out=byte)
+                np.bitwise_or(byte, b8, out=byte)
+                np.abs(d, out=d)
+                np.minimum(cmin, d, out=cmin)
+                np.maximum(amax, d, out=amax)
+            code = code_bytes[0].astype(np.uint32 if n > 16 else np.uint16)
+            for k in range(1, n_bytes):
+                code <<= 8
+                code |= code_bytes[k]
+            s = spec.stripe_shift(axis)
+            size = spec.width if axis == "x" else spec.height
+            ok &= code < -(-size // (1 << s))  # only stripes that exist on the projector
+            codes[axis] = code
+        if not np.isfinite(amax).all():
+            # Raises naming the frame; finite frames whose difference overflowed pass on.
+            _check_chunk_finite(arrs, [n for n in needed if n not in ("white", "black")], rows)
+        if not spec.inverse:
+            cmin *= 2.0
+            amax *= 2.0
+        if shadow_c is None:
+            shadow_c = ~(amax >= shadow_threshold)
+        ok &= ~shadow_c
+        ok &= cmin >= min_contrast
+        bad = ~ok
+        for axis, code in codes.items():
+            step = float(1 << spec.stripe_shift(axis))
+            out = proj[axis][rows]
+            np.copyto(out, code)
+            if step != 1.0:
+                out *= step
+                out += 0.5 * (step - 1.0)
+            np.copyto(out, np.nan, where=bad)
+        valid[rows] = ok
+        contrast[rows] = cmin
+        shadow[rows] = shadow_c
+
+    log.debug(
+        "decode_gray: %dx%d px, %d frames, %.1f %% valid",
+        W, H, len(needed), 100.0 * valid.mean() if valid.size else 0.0,
+    )
+    return GrayDecode(proj["x"], proj["y"], valid, contrast, shadow)
+
+
+# --------------------------------------------------------------------------- phase shift
+
+
+class PhaseDecode(NamedTuple):
+    """Result of :func:`decode_phase` (unpacks as ``phase, modulation = ...``).
+
+    Attributes
+    ----------
+    phase : (H, W) float64, radians in [0, 2 pi)
+        Wrapped phase ``phi mod 2 pi``; NaN where ``modulation <= min_modulation``.
+    modulation : (H, W) float32, frame units
+        Fringe amplitude ``B`` in ``I_k = A + B cos(phi - 2 pi k / N)``.
+    """
+
+    phase: np.ndarray
+    modulation: np.ndarray
+
+
+def decode_phase(
+    frames: Mapping[str, Any],
+    spec: PatternSpec,
+    axis: str = "x",
+    *,
+    min_modulation: float = 0.0,
+) -> PhaseDecode:
+    """Wrapped phase and modulation from N-step phase-shift frames (least squares, N >= 3).
+
+    With ``delta_k = 2 pi k / N``, ``S = sum_k I_k sin(delta_k)``, ``C = sum_k I_k cos(delta_k)``:
+    ``phi = atan2(S, C) mod 2 pi`` and ``B = (2 / N) sqrt(S^2 + C^2)`` (Srinivasan et al. 1984).
+
+    Parameters
+    ----------
+    frames : mapping str -> (H, W) or (H, W, C) array, linear intensity
+        Must hold ``"phase_{axis}_0" ... "phase_{axis}_{N-1}"``.
+    spec : PatternSpec
+        ``phase_steps`` > 0 and ``axis`` in ``phase_axes``.
+    axis : {"x", "y"}
+    min_modulation : float, frame units
+        Phase is NaN where the modulation is at or below this (default: only where it is 0,
+        where the phase is undefined).
+
+    Returns
+    -------
+    PhaseDecode
+        ``(phase, modulation)``.
+    """
+    spec = _check_spec(spec)
+    check_choice(axis, "axis", _AXES)
+    min_modulation = float(as_array(min_modulation, "min_modulation", shape=()))
+    if not spec.phase_steps or axis not in spec.phase_axes:
+        raise InputError(
+            f"spec: has no phase-shift patterns on axis {axis!r} "
+            f"(phase_steps={spec.phase_steps}, phase_axes={list(spec.phase_axes)})"
+        )
+    N = spec.phase_steps
+    names = [f"phase_{axis}_{k}" for k in range(N)]
+    arrs = _validated_frames(frames, names, f"{N}-step phase decoding on {axis}")
+    H, W = arrs[names[0]].shape[:2]
+    S = np.zeros((H, W), dtype=np.float64)
+    C = np.zeros((H, W), dtype=np.float64)
+    for k, n in enumerate(names):
+        _raise_if_nonfinite(arrs[n], n, slice(0, H))
+        f = _load_chunk(arrs[n], n, slice(0, H))
+        dk = 2.0 * np.pi * k / N
+        S += math.sin(dk) * f
+        C += math.cos(dk) * f
+    phase = np.mod(np.arctan2(S, C), 2.0 * np.pi)
+    phase[phase >= 2.0 * np.pi] = 0.0  # mod of -0.0 rounding
+    modulation = ((2.0 / N) * np.hypot(S, C)).astype(np.float32)
+    phase[~(modulation > min_modulation)] = np.nan
+    return PhaseDecode(phase, modulation)
+
+
+def unwrap_with_gray(wrapped, coarse_proj, spec: PatternSpec, *, axis: str = "x") -> np.ndarray:
+    """Sub-pixel projector coordinates from wrapped phase and a Gray-code decode.
+
+    The phase predicted by the coarse coordinate, ``phi_c = 2 pi P (x_c + 0.5) / size``, picks
+    the period: ``m = round((phi_c - phi) / 2 pi)``, ``x = (phi + 2 pi m) size / (2 pi P) - 0.5``.
+    Correct whenever the coarse coordinate is off by less than half a period
+    (``size / (2 P)`` pixels).
+
+    Parameters
+    ----------
+    wrapped : (H, W) float, radians
+        From :func:`decode_phase`; NaN allowed.
+    coarse_proj : (H, W) float, projector pixels
+        ``GrayDecode.proj_x`` (or ``proj_y`` for ``axis="y"``); NaN allowed.
+    spec : PatternSpec
+    axis : {"x", "y"}
+
+    Returns
+    -------
+    (H, W) float64, projector pixels
+        NaN where either input is NaN.
+    """
+    spec = _check_spec(spec)
+    check_choice(axis, "axis", _AXES)
+    P = spec.phase_periods(axis)
+    if not spec.phase_steps or P is None:
+        raise InputError(f"spec: has no phase-shift patterns on axis {axis!r}")
+    phi = as_array(wrapped, "wrapped", finite=False)
+    xc = as_array(coarse_proj, "coarse_proj", shape=phi.shape, finite=False)
+    if np.isinf(phi).any() or np.isinf(xc).any():
+        raise InputError("wrapped / coarse_proj: inf values (use NaN for missing pixels)")
+    size = spec.width if axis == "x" else spec.height
+    k = 2.0 * np.pi * P / size  # radians per projector pixel
+    m = np.round((k * (xc + 0.5) - phi) / (2.0 * np.pi))
+    return (phi + 2.0 * np.pi * m) / k - 0.5

@@ -1,0 +1,481 @@
+"""Synthetic light-stage capture: writes a scan directory exactly as a real rig would.
+
+``generate_scan(out, preset="small")`` builds (or loads) a head, a ground-truth skin field and a
+rig, then renders and writes, per camera:
+
+* ChArUco board views at varied poses seen by every camera at once (intrinsic and stereo
+  calibration), 8-bit sRGB PNG;
+* the board under every structured-light pattern at a few poses (projector calibration);
+* structured-light frames of the head (white/black, Gray code with inverse frames, phase
+  shift), with projector shadows and camera occlusion traced by Embree, 8-bit sRGB PNG;
+* one OLAT frame per light of the light stage in light-index order (the paper's capture order:
+  θ fastest), linear EXR;
+* ``ground_truth/``: mesh, rig, skin field (re-evaluable anywhere), per-vertex parameters,
+  per-camera geometry, reference renders including novel viewpoints.
+
+Frames are rendered and written one at a time, so memory stays bounded at any preset.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from facegeo.errors import InputError
+from facegeo.frames import Pose, look_at
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Preset", "PRESETS", "generate_scan", "SynthSummary", "build_rig", "build_head"]
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Size of a synthetic capture.
+
+    Attributes
+    ----------
+    name : str
+    camera_scale : float
+        Camera images relative to the default rig's 480 × 720.
+    n_theta, n_phi : int
+        Light-stage grid.
+    head_subdivisions : int
+        Procedural head resolution (icosphere subdivisions).
+    projector_size : (int, int)
+        Projector (width, height) in pixels.
+    calib_views, projector_views : int
+        Board poses for camera calibration / seen under the patterns for projector calibration.
+    phase_steps : int
+        Phase-shift frames per axis (0: none).
+    olat_half : bool
+        Store OLAT frames as float16 EXR (float32 otherwise).
+    """
+
+    name: str
+    camera_scale: float
+    n_theta: int
+    n_phi: int
+    head_subdivisions: int
+    projector_size: tuple[int, int]
+    calib_views: int
+    projector_views: int
+    phase_steps: int = 3
+    olat_half: bool = True
+
+
+PRESETS: dict[str, Preset] = {
+    "tiny": Preset("tiny", 1 / 6, 16, 8, 4, (256, 192), 3, 1, 3, olat_half=False),
+    "small": Preset("small", 1 / 2, 32, 16, 5, (512, 384), 10, 3, 3),
+    "paper": Preset("paper", 1.0, 64, 32, 6, (1024, 768), 15, 5, 3),
+}
+
+
+@dataclass
+class SynthSummary:
+    """What :func:`generate_scan` wrote, with timings."""
+
+    root: Path
+    preset: str
+    n_cameras: int
+    n_lights: int
+    image_size: tuple[int, int]
+    n_faces: int
+    frames_written: int = 0
+    seconds: dict = field(default_factory=dict)
+
+    @property
+    def frames_per_second(self) -> float:
+        t = sum(self.seconds.values())
+        return self.frames_written / t if t > 0 else float("nan")
+
+
+# ---------------------------------------------------------------------------- building blocks
+
+
+def build_head(head: str = "procedural", *, units: str = "cm", subdivisions: int = 5, seed: int = 0):
+    """The ground-truth head mesh: ``"procedural"`` or a path to a mesh file (OBJ/PLY/GLB)."""
+    from facegeo.synth.head import load_head_mesh, procedural_head
+
+    if head == "procedural":
+        return procedural_head(subdivisions, seed=seed)
+    p = Path(head)
+    if not p.exists():
+        raise InputError(f"--head: no such mesh file {p} (use 'procedural' or a path)")
+    return load_head_mesh(p, units=units)
+
+
+def build_rig(preset: Preset):
+    """The default rig (paper-shaped) resized to the preset."""
+    from facegeo.camera import Camera
+    from facegeo.rig import LightStage, Rig, default_rig
+
+    rig = default_rig()
+    if preset.camera_scale != 1.0:
+        rig = rig.scaled(preset.camera_scale)
+    proj = rig.projector
+    if proj is not None and (proj.width, proj.height) != tuple(preset.projector_size):
+        s = preset.projector_size[0] / proj.width
+        if abs(proj.height * s - preset.projector_size[1]) > 1e-9:
+            raise InputError("projector_size must keep the default projector's aspect ratio")
+        proj = proj.scaled(s)
+    lights = replace(rig.lights, n_theta=preset.n_theta, n_phi=preset.n_phi)
+    return Rig(cameras=list(rig.cameras), projector=proj, lights=lights)
+
+
+def _board_for_rig(rig):
+    """A ChArUco board sized to fill ~60 % of the narrowest camera view at the head."""
+    from facegeo.board import CharucoBoard
+
+    widths = []
+    for cam in rig.cameras:
+        z = float(np.linalg.norm(cam.center_world))
+        widths.append(cam.width * z / cam.fx)
+    target = 0.6 * min(widths)
+    squares_x, squares_y = 5, 4
+    square = round(target / squares_x / 0.004) * 0.004  # multiples of 4 mm: marker = ¾ exactly
+    return CharucoBoard(squares_x=squares_x, squares_y=squares_y, square_length=square,
+                        marker_length=square * 0.75, dictionary="DICT_4X4_50")
+
+
+def _board_poses(board, cameras, n, rng, *, max_tries=2000) -> list[Pose]:
+    """World poses ``T_world_board`` of a board seen whole by every camera in ``cameras``."""
+    w, h = board.size
+    corners_board = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], float)
+    # Board facing the cameras (+Z): board x → world +X, board y (down) → world -Y, z → -Z.
+    R0 = np.diag([1.0, -1.0, -1.0])
+    poses: list[Pose] = []
+    tries = 0
+    while len(poses) < n and tries < max_tries:
+        tries += 1
+        tilt = np.deg2rad(rng.uniform(12, 35)) * rng.choice([-1, 1], size=2)
+        roll = np.deg2rad(rng.uniform(-20, 20))
+        from facegeo.frames import rotation_from_rvec
+
+        R = rotation_from_rvec([tilt[0], tilt[1], roll]) @ R0
+        centre = np.array([rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), rng.uniform(-0.08, 0.12)])
+        t = centre - R @ np.array([w / 2, h / 2, 0.0])
+        T_world_board = Pose(R, t)
+        corners_world = T_world_board.apply(corners_board)
+        normal_world = R[:, 2]
+        ok = True
+        for cam in cameras:
+            q, front = cam.project(corners_world)
+            margin = 0.04 * cam.width
+            if not front.all() or not (
+                (q[:, 0] > margin).all() and (q[:, 0] < cam.width - 1 - margin).all()
+                and (q[:, 1] > margin).all() and (q[:, 1] < cam.height - 1 - margin).all()
+            ):
+                ok = False
+                break
+            # the camera must see the printed side: board z points away from the camera
+            if np.dot(normal_world, cam.center_world - T_world_board.apply(np.zeros(3))) > 0:
+                ok = False
+                break
+        if ok:
+            poses.append(T_world_board)
+    if len(poses) < n:
+        raise InputError(f"could not place {n} board views visible to every camera "
+                         f"({len(poses)} found in {max_tries} tries)")
+    return poses
+
+
+def _novel_cameras(rig) -> list:
+    """Viewpoints the light stage's cameras never saw, for novel-view ground truth."""
+    from facegeo.camera import Camera
+
+    ref = rig.cameras[0]
+    out = []
+    for name, eye in (("novel_front", (0.0, 0.03, 1.1)), ("novel_three_quarter", (-0.75, 0.12, 0.8)),
+                      ("novel_low", (0.25, -0.45, 1.0))):
+        T = look_at(np.array(eye), np.zeros(3))
+        out.append(Camera(name=name, width=ref.width, height=ref.height, K=ref.K.copy(),
+                          dist=np.zeros(5), T_cam_world=T))
+    return out
+
+
+# ---------------------------------------------------------------------------- main entry
+
+
+def generate_scan(
+    out: str | Path,
+    preset: str | Preset = "small",
+    *,
+    head: str = "procedural",
+    units: str = "cm",
+    seed: int = 0,
+    noise: float = 0.0,
+    overwrite: bool = False,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> SynthSummary:
+    """Synthesise a light-stage capture into the scan directory ``out``.
+
+    Parameters
+    ----------
+    out : path
+        Scan directory to create. Must not already hold a scan unless ``overwrite``.
+    preset : {"tiny", "small", "paper"} or Preset
+        Capture size (see :data:`PRESETS`).
+    head : str
+        ``"procedural"`` or a mesh path (OBJ/PLY/GLB, +Y up, facing +Z).
+    units : {"cm", "mm", "m"}
+        Units of a mesh file.
+    seed : int
+        Seeds the head details, skin field, board poses and noise.
+    noise : float
+        Sensor noise: standard deviation of additive Gaussian read noise as a fraction of the
+        frame's white level (0: noise-free). Photon noise scales with the square root of the
+        signal at the same level.
+    overwrite : bool
+        Replace an existing scan at ``out``.
+    progress : callable(stage, done, total), optional
+        Called as work proceeds (the CLI draws progress bars from it).
+
+    Returns
+    -------
+    SynthSummary
+    """
+    from facegeo import imageio, scan as scanmod
+    from facegeo.fsutil import atomic_path, atomic_write_text
+    from facegeo.structured_light import PatternSpec, pattern_names
+    from facegeo.synth.render import ReferenceRenderer
+    from facegeo.synth.skin import SkinField
+
+    if isinstance(preset, str):
+        if preset not in PRESETS:
+            raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
+        preset = PRESETS[preset]
+    if noise < 0 or not np.isfinite(noise):
+        raise InputError(f"noise: expected a finite number >= 0, got {noise!r}")
+    root = Path(out)
+    if (root / "scan.toml").exists() and not overwrite:
+        raise InputError(f"{root} already holds a scan (scan.toml); pass overwrite=True "
+                         "(--overwrite) to replace it")
+    root.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    tick = progress or (lambda stage, done, total: None)
+    seconds: dict[str, float] = {}
+    frames = 0
+
+    t0 = time.perf_counter()
+    mesh = build_head(head, units=units, subdivisions=preset.head_subdivisions, seed=seed)
+    # Ground truth is stored as PLY with float32 vertices: render exactly that geometry, so the
+    # mesh in ground_truth/ reproduces every frame bit for bit.
+    mesh.vertices = np.asarray(mesh.vertices, np.float32).astype(np.float64)
+    rig = build_rig(preset)
+    skin = SkinField.for_mesh(mesh, seed=seed)
+    renderer = ReferenceRenderer.from_mesh(mesh, skin)
+    board = _board_for_rig(rig)
+    spec = PatternSpec(width=rig.projector.width, height=rig.projector.height,
+                       phase_steps=preset.phase_steps)
+    sl_names = pattern_names(spec)
+    seconds["setup"] = time.perf_counter() - t0
+
+    manifest = scanmod.new_manifest(root.name, synthetic=True)
+    manifest["scan"]["description"] = (
+        f"facegeo synthetic capture, preset {preset.name}, head {head}, seed {seed}, noise {noise}"
+    )
+    rig.save(root / manifest["scan"]["rig"])
+    noise_rng = np.random.default_rng([seed, 1])
+
+    def _noisy(img, white):
+        if noise <= 0:
+            return img
+        sigma = noise * white * np.sqrt(np.clip(img / white, 0, None) + 0.05)
+        return img + sigma * noise_rng.standard_normal(img.shape).astype(np.float32)
+
+    # ---- calibration: board views (seen by all cameras at once) ----
+    t0 = time.perf_counter()
+    board_path = root / "calib" / "board.json"
+    board.save(board_path)
+    poses = _board_poses(board, rig.cameras, preset.calib_views, rng)
+    calib_files = scanmod.DEFAULT_FILES["calib"]
+    exposure = 3.0  # maps a white board under unit irradiance (0.85/π) to ≈ 0.81
+    n_total = len(poses) * len(rig.cameras)
+    done = 0
+    for vi, T_world_board in enumerate(poses):
+        for cam in rig.cameras:
+            bv = board.render(cam, cam.T_cam_world @ T_world_board)
+            img = exposure * (bv.reflectance / np.pi + 0.01)
+            img = _noisy(np.repeat(img[..., None], 3, axis=2).astype(np.float32), 1.0)
+            path = scanmod.frame_path(root, calib_files, camera=cam.name, view=vi)
+            imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
+            frames += 1
+            done += 1
+            tick("calib", done, n_total)
+    manifest["calib"] = {"board": "calib/board.json", "response": "srgb", "views": len(poses),
+                         "files": calib_files}
+
+    # ---- projector calibration: the board under every pattern ----
+    proj = rig.projector
+    proj_poses = _board_poses(board, list(rig.cameras) + [proj], preset.projector_views, rng)
+    proj_files = scanmod.DEFAULT_FILES["calib.projector"]
+    n_total = len(proj_poses) * len(rig.cameras) * len(sl_names)
+    done = 0
+    for vi, T_world_board in enumerate(proj_poses):
+        n_board = T_world_board.R[:, 2] * -1.0  # printed side faces -z_board
+        for cam in rig.cameras:
+            bv = board.render(cam, cam.T_cam_world @ T_world_board)
+            p = bv.p_world[bv.mask]
+            e_proj, q_proj = _projector_irradiance(proj, p, np.broadcast_to(n_board, p.shape))
+            base = bv.reflectance[bv.mask] / np.pi
+            for name in sl_names:
+                from facegeo.structured_light import pattern_value_at
+
+                pat = pattern_value_at(spec, name, q_proj)
+                val = np.zeros(bv.mask.shape, np.float32)
+                val[bv.mask] = exposure * base * (e_proj * pat + 0.02)
+                img = _noisy(np.repeat(val[..., None], 3, axis=2), 1.0)
+                path = scanmod.frame_path(root, proj_files, camera=cam.name, view=vi, frame=name)
+                imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
+                frames += 1
+                done += 1
+                tick("calib.projector", done, n_total)
+    manifest["calib"]["projector"] = {"views": len(proj_poses), "files": proj_files}
+    seconds["calib"] = time.perf_counter() - t0
+
+    # ---- structured light on the head ----
+    t0 = time.perf_counter()
+    sl_files = scanmod.DEFAULT_FILES["structured_light"]
+    n_total = len(rig.cameras) * len(sl_names)
+    done = 0
+    from facegeo.structured_light import pattern_value_at
+
+    for cam in rig.cameras:
+        view = renderer.surface_view(cam)
+        # Projector light: shade the skin BRDF under the projector as a point light, with
+        # projector shadows from Embree; the pattern modulates it per projector pixel.
+        unit = renderer.shade_point_light(view, proj.center_world, np.ones(3),
+                                          stage_radius=float(np.linalg.norm(proj.center_world)))
+        q_proj, in_front = proj.project(view.p_world)
+        ambient = 0.02 * view.alpha_0 / np.pi
+        for name in sl_names:
+            pat = np.where(in_front, pattern_value_at(spec, name, np.nan_to_num(q_proj, nan=-1e9)), 0.0)
+            rad = exposure * (unit * pat[:, None].astype(np.float32) + ambient)
+            img = _noisy(view.to_image(rad.astype(np.float32)), 1.0)
+            path = scanmod.frame_path(root, sl_files, camera=cam.name, frame=name)
+            imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
+            frames += 1
+            done += 1
+            tick("structured_light", done, n_total)
+    manifest["structured_light"] = {"response": "srgb", "projector": proj.name, "frames": sl_names,
+                                    "files": sl_files, "patterns": spec.to_dict()}
+    seconds["structured_light"] = time.perf_counter() - t0
+
+    # ---- OLAT ----
+    t0 = time.perf_counter()
+    olat_files = scanmod.DEFAULT_FILES["olat"]
+    n_total = len(rig.cameras) * rig.lights.n_lights
+    done = 0
+    uniform_renders = {}
+    solid = rig.lights.solid_angles
+    for cam in rig.cameras:
+        acc = np.zeros((cam.height, cam.width, 3), np.float64)
+        for l, img in renderer.olat_images(cam, rig.lights):
+            acc += solid[l] * img  # the uniform-environment reference (Eq. 4), noise-free
+            img = _noisy(img, 0.5)
+            path = scanmod.frame_path(root, olat_files, camera=cam.name, light=l)
+            imageio.write_image(path, img, half=preset.olat_half)
+            frames += 1
+            done += 1
+            tick("olat", done, n_total)
+        uniform_renders[cam.name] = acc.astype(np.float32)
+    manifest["olat"] = {"response": "linear", "n_lights": rig.lights.n_lights,
+                        "light_order": "theta-fastest", "files": olat_files}
+    seconds["olat"] = time.perf_counter() - t0
+
+    # ---- ground truth ----
+    t0 = time.perf_counter()
+    gt = _write_ground_truth(root, mesh, rig, skin, renderer, uniform_renders)
+    manifest["ground_truth"] = gt
+    seconds["ground_truth"] = time.perf_counter() - t0
+
+    scanmod.write_manifest(root, manifest, overwrite=overwrite)
+    return SynthSummary(root=root, preset=preset.name, n_cameras=len(rig.cameras),
+                        n_lights=rig.lights.n_lights, image_size=(rig.cameras[0].width,
+                                                                  rig.cameras[0].height),
+                        n_faces=len(mesh.faces), frames_written=frames, seconds=seconds)
+
+
+def _projector_irradiance(proj, p_world, n_world):
+    """Irradiance factor of the projector at points (unit at the projector's distance to the
+    origin, inverse-square falloff, cosine) and the projector pixel each point sees."""
+    c = proj.center_world
+    to_p = c[None, :] - p_world
+    d = np.linalg.norm(to_p, axis=1)
+    l = to_p / d[:, None]
+    cos = np.clip(np.einsum("pc,pc->p", l, n_world), 0, None)
+    e = cos * (np.linalg.norm(c) / d) ** 2
+    q, front = proj.project(p_world)
+    q = np.where(front[:, None], q, -1e9)
+    return e.astype(np.float32), q
+
+
+def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: dict) -> dict:
+    """Write ``ground_truth/`` and return its manifest table.
+
+    ``uniform_renders`` holds the capture cameras' uniform-environment renders, accumulated
+    during the OLAT pass (the same Eq. (4) sum :meth:`ReferenceRenderer.render_lights` computes),
+    so they are not shaded twice.
+    """
+    from facegeo import imageio
+    from facegeo.fsutil import atomic_path, atomic_write_text
+
+    gt = root / "ground_truth"
+    gt.mkdir(parents=True, exist_ok=True)
+    out: dict[str, str] = {}
+    with atomic_path(gt / "mesh.ply") as tmp:
+        mesh.export(tmp)
+    out["mesh"] = "ground_truth/mesh.ply"
+    rig.save(gt / "rig.json")
+    out["rig"] = "ground_truth/rig.json"
+    atomic_write_text(gt / "skin.json", json.dumps(skin.to_dict(), indent=2))
+    out["skin"] = "ground_truth/skin.json"
+    s = skin.evaluate(np.asarray(mesh.vertices))
+    with atomic_path(gt / "vertex_params.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, alpha_0=s.alpha_0, alpha_1=s.alpha_1, rho_s=s.rho_s,
+                                roughness=s.roughness, normals=renderer.vertex_normals)
+    out["vertex_params"] = "ground_truth/vertex_params.npz"
+    novel = _novel_cameras(rig)
+    atomic_write_text(gt / "novel_cameras.json", json.dumps([c.to_dict() for c in novel], indent=2))
+    out["novel_cameras"] = "ground_truth/novel_cameras.json"
+    # Per-camera geometry and reference renders: every capture camera and the novel ones.
+    lights = rig.lights
+    # A uniform white environment of radiance 1 (Eq. 4 weights L·δA) and a single key light.
+    uniform = np.repeat(lights.solid_angles[:, None], 3, axis=1)
+    key = np.zeros((lights.n_lights, 3))
+    from facegeo.frames import nearest_light_index
+
+    key_l = int(nearest_light_index(np.array([0.5, 0.45, 0.74]), lights.n_theta, lights.n_phi))
+    key[key_l] = 1.0
+    for cam in list(rig.cameras) + novel:
+        view = renderer.surface_view(cam)
+        with atomic_path(gt / f"geometry_{cam.name}.npz") as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, mask=view.mask, p_world=view.to_image(view.p_world, np.nan),
+                                    n_world=view.to_image(view.n_world, np.nan),
+                                    face=view.to_image(view.face, -1))
+        out[f"geometry_{cam.name}"] = f"ground_truth/geometry_{cam.name}.npz"
+        for tag, w in (("uniform", uniform), ("key", key)):
+            if tag == "uniform" and cam.name in uniform_renders:
+                img = uniform_renders[cam.name]
+            else:
+                img = renderer.render_lights(cam, lights, w)
+            rel = f"ground_truth/renders/{cam.name}_{tag}.exr"
+            imageio.write_image(root / rel, img)
+            out[f"render_{cam.name}_{tag}"] = rel
+    atomic_write_text(gt / "renders.json", json.dumps({
+        "uniform": "uniform white environment of radiance 1: weights[l] = δA_l (Eq. 4)",
+        "key": f"the single light-stage light {key_l} at full weight (an OLAT frame)",
+        "key_light": key_l,
+        "cameras": [c.name for c in rig.cameras] + [c.name for c in novel],
+    }, indent=2))
+    out["renders"] = "ground_truth/renders.json"
+    return out

@@ -1,0 +1,325 @@
+"""Reference renderer: exact images of a ground-truth head from any camera under any lights.
+
+This is the ground truth every later stage is measured against: the synthetic capture writes its
+OLAT frames with it, and novel views and relit images of the fitted model are compared with it.
+
+Model (Debevec et al. 2000, §4): per surface point, the skin BRDF of :mod:`facegeo.brdf` —
+Lambertian diffuse with the diffuse chromaticity ramp plus Torrance–Sparrow specular — with
+parameters from a solid-texture :class:`~facegeo.synth.skin.SkinField`, cast shadows by exact
+Embree shadow rays, no interreflection or subsurface transport (the paper's model has none
+either, so a perfect fit can reproduce these frames exactly).
+
+Radiometry (``docs/conventions.md``): an OLAT pixel is the radiance reflected toward the camera
+under a light that delivers irradiance ``E_l = |c_l|·(r/d)²`` at normal incidence, where ``c_l`` is
+the light colour, ``r`` the light-stage radius and ``d`` the light's distance from the surface
+point (``E_l = |c_l|`` for distant lights). Unit irradiance at the stage centre makes the paper's
+Eq. (4) sum ``Σ_l R_l L_l δA_l`` the Riemann sum of ``∫ f_r L cos θ dω``.
+
+Every pixel is sampled once, through its centre (OpenCV convention), so the reference is exact
+per sample, not box-filtered.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from facegeo.checks import as_array
+from facegeo.errors import InputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SurfaceView", "ReferenceRenderer", "smooth_vertex_normals"]
+
+
+def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals ``(V, 3)`` float64, unit length (zero-area fans give +Z).
+
+    Computed without merging vertices, so a mesh with UV seams keeps a crease along each seam
+    exactly as its own topology says.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # |fn| = 2·area
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    out = np.where(norm > 0, vn / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 1.0]))
+    return out
+
+
+@dataclass
+class SurfaceView:
+    """What one camera sees: per-pixel surface samples (pixel-centre rays).
+
+    Attributes
+    ----------
+    camera_name : str
+    shape : (int, int)
+        Image (height, width).
+    mask : (H, W) bool
+        The pixel's centre ray hits the head.
+    pixel_index : (P,) int64
+        Flat indices (row·W + col) of the masked pixels; every per-sample array below is (P, ...).
+    p_world : (P, 3) float64, metres, world frame
+        Hit points.
+    n_world : (P, 3) float64
+        Unit shading normals (vertex normals interpolated by barycentrics), facing the camera.
+    v_world : (P, 3) float64
+        Unit directions from the point toward the camera centre.
+    face : (P,) int64
+        Hit triangle.
+    alpha_0, alpha_1 : (P, 3) float32
+        Diffuse colour at normal incidence / at grazing (the chromaticity ramp).
+    rho_s, roughness : (P,) float32
+        Specular scale and Beckmann roughness m.
+    """
+
+    camera_name: str
+    shape: tuple[int, int]
+    mask: np.ndarray
+    pixel_index: np.ndarray
+    p_world: np.ndarray
+    n_world: np.ndarray
+    v_world: np.ndarray
+    face: np.ndarray
+    alpha_0: np.ndarray
+    alpha_1: np.ndarray
+    rho_s: np.ndarray
+    roughness: np.ndarray
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.pixel_index.size)
+
+    def to_image(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """Scatter per-sample values ``(P, ...)`` into an image ``(H, W, ...)``."""
+        h, w = self.shape
+        values = np.asarray(values)
+        out = np.full((h * w,) + values.shape[1:], fill, dtype=values.dtype)
+        out[self.pixel_index] = values
+        return out.reshape((h, w) + values.shape[1:])
+
+
+class ReferenceRenderer:
+    """Exact renderer of a head mesh with a solid-texture skin field.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64, metres, world frame
+    faces : (F, 3) int
+    skin : facegeo.synth.skin.SkinField
+        Ground-truth skin parameters as functions of position.
+    eta : float
+        Index of refraction of skin for the Fresnel term (1.4).
+    shadows : bool
+        Trace shadow rays (cast shadows). Off only for analytic tests.
+    """
+
+    def __init__(self, vertices, faces, skin, *, eta: float = 1.4, shadows: bool = True):
+        self.vertices = as_array(vertices, "vertices", shape=(None, 3))
+        self.faces = as_array(faces, "faces", shape=(None, 3), dtype=np.int64)
+        self.skin = skin
+        self.eta = float(eta)
+        self.shadows = bool(shadows)
+        self._views: dict[tuple, SurfaceView] = {}
+
+    @classmethod
+    def from_mesh(cls, mesh, skin, **kw) -> ReferenceRenderer:
+        """From a ``trimesh.Trimesh``."""
+        return cls(np.asarray(mesh.vertices), np.asarray(mesh.faces), skin, **kw)
+
+    @cached_property
+    def rays(self):
+        """The Embree scene (built on first use)."""
+        from facegeo.visibility import RayScene
+
+        return RayScene(self.vertices, self.faces)
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        """Smooth shading normals ``(V, 3)``."""
+        return smooth_vertex_normals(self.vertices, self.faces)
+
+    # ------------------------------------------------------------------ geometry
+
+    def surface_view(self, camera) -> SurfaceView:
+        """Per-pixel surface samples seen by ``camera`` (cached per camera)."""
+        key = (camera.name, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(),
+               camera.T_cam_world.R.tobytes(), camera.T_cam_world.t.tobytes())
+        if key in self._views:
+            return self._views[key]
+        o, d = camera.pixel_rays()
+        h, w = camera.height, camera.width
+        hits = self.rays.closest_hit(o.reshape(-1, 3), d.reshape(-1, 3), t_min=0.0)
+        idx = np.flatnonzero(hits.hit)
+        face = hits.face[idx]
+        bary = hits.bary[idx]
+        p = hits.point[idx]
+        n = np.einsum("pk,pkc->pc", bary, self.vertex_normals[self.faces[face]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        v = camera.center_world[None, :] - p
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        # Interpolated normals can face away from the camera near silhouettes; flip the
+        # component so shading stays defined (the geometric normal faces the camera).
+        cos_v = np.einsum("pc,pc->p", n, v)
+        back = cos_v < 1e-6
+        if back.any():
+            n[back] = n[back] - (cos_v[back] - 1e-6)[:, None] * v[back]
+            n[back] /= np.linalg.norm(n[back], axis=1, keepdims=True)
+        s = self.skin.evaluate(p)
+        mask = np.zeros(h * w, bool)
+        mask[idx] = True
+        view = SurfaceView(
+            camera_name=camera.name,
+            shape=(h, w),
+            mask=mask.reshape(h, w),
+            pixel_index=idx.astype(np.int64),
+            p_world=p,
+            n_world=n,
+            v_world=v,
+            face=face.astype(np.int64),
+            alpha_0=np.asarray(s.alpha_0, np.float32).reshape(-1, 3),
+            alpha_1=np.asarray(s.alpha_1, np.float32).reshape(-1, 3),
+            rho_s=np.asarray(s.rho_s, np.float32).reshape(-1),
+            roughness=np.asarray(s.roughness, np.float32).reshape(-1),
+        )
+        self._views[key] = view
+        return view
+
+    # ------------------------------------------------------------------ shading
+
+    def shade_point_light(self, view: SurfaceView, position, color, *, stage_radius: float,
+                          stage_center=(0.0, 0.0, 0.0), sel: np.ndarray | None = None) -> np.ndarray:
+        """Radiance ``(P, 3)`` float32 toward the camera under one near-field point light.
+
+        ``position`` is the light's world position; ``color`` (3,) linear RGB gives the
+        irradiance at normal incidence at ``stage_radius`` from the light (so a light on the
+        stage delivers ``color`` at the stage centre); the irradiance at a point at distance d is
+        ``color·(stage_radius/d)²``. ``sel`` restricts shading to a subset of samples.
+        """
+        pos = as_array(position, "position", shape=(3,))
+        col = as_array(color, "color", shape=(3,))
+        p = view.p_world if sel is None else view.p_world[sel]
+        to_l = pos[None, :] - p
+        dist = np.linalg.norm(to_l, axis=1)
+        if np.any(dist <= 0):
+            raise InputError("shade_point_light: the light lies on the surface")
+        l = to_l / dist[:, None]
+        falloff = (float(stage_radius) / dist) ** 2
+        return self._shade(view, l, falloff, col, sel=sel, light_pos=pos)
+
+    def shade_directional_light(self, view: SurfaceView, direction, color,
+                                sel: np.ndarray | None = None) -> np.ndarray:
+        """Radiance ``(P, 3)`` float32 under a distant light from unit ``direction`` (toward the
+        light) delivering irradiance ``color`` at normal incidence."""
+        d = as_array(direction, "direction", shape=(3,))
+        d = d / np.linalg.norm(d)
+        col = as_array(color, "color", shape=(3,))
+        n_p = view.n_samples if sel is None else int(np.count_nonzero(sel) if sel.dtype == bool else sel.size)
+        l = np.broadcast_to(d, (n_p, 3))
+        return self._shade(view, l, np.ones(n_p), col, sel=sel, light_dir=d)
+
+    def _shade(self, view, l, falloff, col, *, sel=None, light_pos=None, light_dir=None):
+        from facegeo.brdf import skin_brdf
+
+        pick = (lambda a: a) if sel is None else (lambda a: a[sel])
+        n = pick(view.n_world)
+        v = pick(view.v_world)
+        cos_i = np.einsum("pc,pc->p", n, l)
+        out = np.zeros((n.shape[0], 3), np.float32)
+        lit = cos_i > 0
+        if self.shadows and lit.any():
+            p = pick(view.p_world)[lit]
+            if light_pos is not None:
+                vis = self.rays.segment_visible(p, light_pos, normals=n[lit])
+            else:
+                far = np.full(p.shape[0], np.inf)
+                vis = ~self.rays.occluded(p + n[lit] * self.rays.eps, np.broadcast_to(light_dir, p.shape),
+                                          far)
+            lit_idx = np.flatnonzero(lit)
+            lit[lit_idx[~vis]] = False
+        if not lit.any():
+            return out
+        f = skin_brdf(
+            n[lit], l[lit], v[lit],
+            pick(view.alpha_0)[lit].astype(np.float64), pick(view.alpha_1)[lit].astype(np.float64),
+            pick(view.rho_s)[lit].astype(np.float64), pick(view.roughness)[lit].astype(np.float64),
+            eta=self.eta,
+        )
+        e = (cos_i[lit] * falloff[lit])[:, None] * col[None, :]
+        out[lit] = (f * e).astype(np.float32)
+        return out
+
+    # ------------------------------------------------------------------ images
+
+    def olat_images(self, camera, lights, indices=None) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(light index, image (H, W, 3) float32)`` for each light of a light stage.
+
+        ``lights`` is a :class:`facegeo.rig.LightStage`; near-field point lights when its radius
+        is finite, distant lights otherwise. Frames come in light-index order.
+        """
+        view = self.surface_view(camera)
+        idx = range(lights.n_lights) if indices is None else indices
+        dirs = lights.directions
+        color = np.asarray(lights.color, float)
+        finite = np.isfinite(lights.radius)
+        for l in idx:
+            if finite:
+                pos = np.asarray(lights.center, float) + lights.radius * dirs[l]
+                rad = self.shade_point_light(view, pos, color, stage_radius=lights.radius)
+            else:
+                rad = self.shade_directional_light(view, dirs[l], color)
+            yield int(l), view.to_image(rad)
+
+    def render_lights(self, camera, lights, weights, *, progress: Callable[[int], None] | None = None
+                      ) -> np.ndarray:
+        """Image ``(H, W, 3)`` float32 of the head lit by the light stage with RGB ``weights``.
+
+        ``weights`` is ``(L, 3)``: the image is ``Σ_l weights[l] ⊙ OLAT_l``. To light with an
+        environment of radiance ``L(ω)``, pass ``weights[l] = L(ω_l) · δA_l`` — Debevec et al.
+        2000 Eq. (4). Lights with zero weight are skipped (only lights that carry energy).
+        """
+        w = as_array(weights, "weights", shape=(lights.n_lights, 3))
+        view = self.surface_view(camera)
+        acc = np.zeros((view.n_samples, 3), np.float64)
+        active = np.flatnonzero(np.any(w != 0, axis=1))
+        for k, (l, _) in enumerate(zip(active, range(len(active)))):
+            if np.isfinite(lights.radius):
+                pos = np.asarray(lights.center, float) + lights.radius * lights.directions[l]
+                rad = self.shade_point_light(view, pos, np.asarray(lights.color, float),
+                                             stage_radius=lights.radius)
+            else:
+                rad = self.shade_directional_light(view, lights.directions[l],
+                                                   np.asarray(lights.color, float))
+            acc += rad * w[l][None, :]
+            if progress:
+                progress(k)
+        return view.to_image(acc.astype(np.float32))
+
+
+def load_ground_truth(scan) -> ReferenceRenderer:
+    """The reference renderer of a synthetic scan, rebuilt from its ``ground_truth/`` files.
+
+    Parameters
+    ----------
+    scan : facegeo.scan.Scan or path
+        A synthetic scan.
+    """
+    import json
+
+    import trimesh
+
+    from facegeo.scan import Scan, load_scan
+    from facegeo.synth.skin import SkinField
+
+    if not isinstance(scan, Scan):
+        scan = load_scan(scan)
+    mesh = trimesh.load(scan.ground_truth_path("mesh"), process=False, force="mesh")
+    skin = SkinField.from_dict(json.loads(scan.ground_truth_path("skin").read_text()))
+    return ReferenceRenderer.from_mesh(mesh, skin)

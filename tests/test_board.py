@@ -1,0 +1,297 @@
+"""facegeo.board: board geometry, exact synthetic views, and OpenCV detection / calibration on them.
+
+Measured on the fixture below (16 views, seed 7, 640 × 480, k1 = −0.12 ...): detected ChArUco
+corners vs projected true corners 0.072 px RMS (0.060–0.077 over seeds 0–9); calibrateCamera
+recovers fx, fy to 0.02 % (≤ 0.2 % over seeds) and cx, cy to 0.11 px (≤ 1 px over seeds).
+The floor is OpenCV's corner refinement (cornerSubPix in a window that the detector sizes up to
+the nearest marker corner), not the renderer: the renderer matches
+cv2.warpPerspective to 1e-3 (test_render_matches_warp_perspective).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from facegeo.board import BLACK_REFLECTANCE, WHITE_REFLECTANCE, CharucoBoard, random_board_poses
+from facegeo.camera import Camera
+from facegeo.errors import InputError, ScanFormatError
+from facegeo.frames import Pose, rotation_from_rvec
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Tolerances (named, with units).
+CORNERS_VS_CV2_MAX_M = 1e-7  # max |chessboard_corners − cv2 (float32)|, metres
+DETECT_RMS_PX = 0.1  # RMS |detected − projected true corner|, pixels
+DETECT_BIAS_PX = 0.03  # |mean(detected − true)| per axis: catches half-pixel convention errors
+CALIB_FOCAL_REL = 0.005  # |f_est / f − 1|, relative
+CALIB_CENTRE_PX = 2.0  # |c_est − c|, pixels
+WARP_P99 = 1e-3  # 99th percentile |render − cv2.warpPerspective| inside the board, reflectance
+WARP_MAX = 1e-2  # max of the same (OpenCV's fixed-point bilinear weights), reflectance
+ON_PLANE_MAX_M = 1e-12  # max |z_board| of rendered hit points, metres
+REPROJECT_MAX_PX = 1e-6  # max reprojection error of rendered hit points, pixels
+
+W, H = 640, 480
+K_ASYM = np.array([[612.4, 0.0, 331.7], [0.0, 610.6, 236.2], [0.0, 0.0, 1.0]])
+DIST = np.array([-0.12, 0.08, 4e-4, -3e-4, -0.01])
+# 16 views: with 10, calibrateCamera's principal point scatters by up to ~1.5 px over seeds
+# (0.07 px corner noise); with 16 it stays under ~1 px and the focal lengths under 0.2 %.
+N_VIEWS = 16
+SEED = 7
+# Boards filling 45–70 % of the image: below that, squares shrink under ~30 px and OpenCV's
+# refinement window (sized to the nearest marker corner) becomes the accuracy limit.
+FILL = (0.45, 0.7)
+
+
+def make_camera(dist=DIST) -> Camera:
+    pose = Pose.from_rvec_tvec([0.1, -0.2, 0.05], [0.02, 0.1, -0.3])
+    return Camera("calib_cam", W, H, K_ASYM, dist, pose)
+
+
+@pytest.fixture(scope="module")
+def board() -> CharucoBoard:
+    return CharucoBoard()
+
+
+@pytest.fixture(scope="module")
+def detections(board):
+    """Render N_VIEWS random views through a distorted camera and detect them with OpenCV."""
+    cam = make_camera()
+    poses = random_board_poses(cam, N_VIEWS, np.random.default_rng(SEED), board=board, fill=FILL)
+    detector = cv2.aruco.CharucoDetector(board.to_cv2())
+    obj = board.chessboard_corners()
+    out = []
+    for T in poses:
+        view = board.render(cam, T)
+        corners, ids, _, _ = detector.detectBoard(view.to_uint8())
+        assert ids is not None, "every view is detected"
+        ids = ids.ravel()
+        q_det = corners.reshape(-1, 2).astype(np.float64)
+        q_true, front = cam.project_cam(T.apply(obj[ids]))
+        assert front.all()
+        out.append((ids, q_det, q_true))
+    return cam, poses, out
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_chessboard_corners_match_opencv(board):
+    ours = board.chessboard_corners()
+    theirs = board.to_cv2().getChessboardCorners()
+    assert ours.shape == (24, 3) and ours.dtype == np.float64
+    err = np.abs(ours - theirs).max()
+    assert err <= CORNERS_VS_CV2_MAX_M, f"max |ours - cv2| = {err:.3g} m"
+    assert board.size == pytest.approx((0.28, 0.20), abs=1e-15)
+
+
+def test_texture_layout(board):
+    tex, m = board.texture(64)
+    assert tex.shape == (5 * 64, 7 * 64) and tex.dtype == np.float32
+    assert m == pytest.approx(0.04 / 64, rel=1e-15)
+    assert tex.min() == pytest.approx(BLACK_REFLECTANCE)
+    assert tex.max() == pytest.approx(WHITE_REFLECTANCE)
+    # The top-left square is black (OpenCV's pattern), its right neighbour white around a marker.
+    assert tex[:64, :64].max() == pytest.approx(BLACK_REFLECTANCE)
+    assert tex[2, 66] == pytest.approx(WHITE_REFLECTANCE)
+    # Square boundaries fall on multiples of px_per_square along x and y.
+    row = tex[2] > 0.4  # a texel row through the first square row, clear of the markers
+    assert (np.flatnonzero(np.diff(row)) + 1).tolist() == [64, 128, 192, 256, 320, 384]
+
+
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        ({"dictionary": "DICT_5X5_7"}, "dictionary"),
+        ({"marker_length": 0.04}, "marker_length"),
+        ({"squares_x": 12, "squares_y": 12, "dictionary": "DICT_4X4_50"}, "dictionary"),
+        ({"squares_x": 1}, "squares_x"),
+        ({"square_length": -0.04}, "square_length"),
+    ],
+)
+def test_bad_board_names_the_field(kwargs, field):
+    with pytest.raises(InputError) as info:
+        CharucoBoard(**kwargs)
+    assert str(info.value).startswith(field)
+
+
+def test_unknown_dictionary_lists_valid_names():
+    with pytest.raises(InputError, match="DICT_5X5_100"):
+        CharucoBoard(dictionary="DICT_5x5_100")
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+def test_render_matches_warp_perspective(board):
+    """Independent check of the geometry: without distortion and supersampling the render is the
+    texture warped by the plane homography built from the documented texel mapping."""
+    cam = make_camera(dist=None)
+    T = Pose(rotation_from_rvec([0.3, 0.1, 0.05]), [-0.13, -0.08, 0.62])
+    pps = 128
+    view = board.render(cam, T, supersample=1, px_per_square=pps)
+    tex, m = board.texture(pps)
+    A = np.array([[m, 0, 0.5 * m], [0, m, 0.5 * m], [0, 0, 1]])  # texel (col, row) -> board xy
+    Hmg = cam.K @ np.c_[T.R[:, 0], T.R[:, 1], T.t] @ A
+    ref = cv2.warpPerspective(tex, Hmg, (W, H), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    inner = cv2.erode(view.mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert inner.sum() > 0.1 * W * H
+    d = np.abs(view.reflectance - ref)[inner]
+    p99 = np.percentile(d, 99)
+    assert p99 <= WARP_P99, f"99th percentile |render - warp| = {p99:.3g}"
+    assert d.max() <= WARP_MAX, f"max |render - warp| = {d.max():.3g}"
+
+
+def test_render_hit_points_lie_on_board_and_reproject(board):
+    cam = make_camera()
+    T = random_board_poses(cam, 1, np.random.default_rng(3), board=board)[0]
+    view = board.render(cam, T)
+    assert view.reflectance.shape == (H, W) and view.reflectance.dtype == np.float32
+    assert view.mask.shape == (H, W) and view.p_world.shape == (H, W, 3)
+    assert view.mask.sum() > 0.05 * W * H
+    assert np.isnan(view.p_world[~view.mask]).all() and np.isfinite(view.p_world[view.mask]).all()
+    assert (view.reflectance[~view.mask & (view.reflectance > 0)].size < 4 * (W + H)), (
+        "off-board pixels are black except along the board's edge (supersampled coverage)"
+    )
+    p = view.p_world[view.mask]
+    T_board_world = T.inverse() @ cam.T_cam_world  # world -> camera -> board
+    p_board = T_board_world.apply(p)
+    z_err = np.abs(p_board[:, 2]).max()
+    assert z_err <= ON_PLANE_MAX_M, f"max |z_board| of hit points = {z_err:.3g} m"
+    bw, bh = board.size
+    assert p_board[:, 0].min() >= -1e-12 and p_board[:, 0].max() <= bw + 1e-12
+    assert p_board[:, 1].min() >= -1e-12 and p_board[:, 1].max() <= bh + 1e-12
+    q, _ = cam.project(p)
+    err = np.abs(q - cam.pixel_grid()[view.mask]).max()
+    assert err <= REPROJECT_MAX_PX, f"max reprojection error of hit points = {err:.3g} px"
+    # Away from the board's edge (where sub-pixel samples partly miss) values stay in range.
+    inner = cv2.erode(view.mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    lo, hi = view.reflectance[inner].min(), view.reflectance[inner].max()
+    assert BLACK_REFLECTANCE - 1e-6 <= lo and hi <= WHITE_REFLECTANCE + 1e-6
+
+
+def test_board_seen_from_behind_is_not_rendered(board):
+    cam = make_camera()
+    # Flip the board about its y axis: its printed face (−z_board) now looks away from the camera.
+    T_front = Pose(rotation_from_rvec([0.2, 0.1, 0.0]), [-0.14, -0.1, 0.6])
+    flip = Pose(rotation_from_rvec([0.0, math.pi, 0.0]), [board.size[0], 0.0, 0.0])
+    front = board.render(cam, T_front, supersample=1)
+    back = board.render(cam, T_front @ flip, supersample=1)
+    assert front.mask.sum() > 1000
+    assert not back.mask.any() and not back.reflectance.any() and np.isnan(back.p_world).all()
+
+
+# --------------------------------------------------------------------------- detection
+
+
+def test_detected_corners_match_truth(detections):
+    _, _, views = detections
+    d = np.concatenate([q_det - q_true for _, q_det, q_true in views])
+    n_corners = d.shape[0]
+    assert n_corners >= 0.9 * N_VIEWS * 24, f"only {n_corners} corners detected"
+    rms = float(np.sqrt((d**2).sum(axis=1).mean()))
+    bias = np.abs(d.mean(axis=0))
+    print(f"ChArUco detection: {n_corners} corners, RMS {rms:.4f} px, bias {bias.round(4)} px")
+    assert rms < DETECT_RMS_PX, f"RMS |detected - true| = {rms:.4f} px"
+    assert (bias < DETECT_BIAS_PX).all(), f"|mean(detected - true)| = {bias} px per axis"
+
+
+def test_calibrate_camera_recovers_intrinsics(detections, board):
+    cam, _, views = detections
+    obj = board.chessboard_corners().astype(np.float32)
+    obj_pts = [obj[ids] for ids, _, _ in views]
+    img_pts = [q.astype(np.float32) for _, q, _ in views]
+    rms, K, dist, _, _ = cv2.calibrateCamera(obj_pts, img_pts, (W, H), None, None)
+    ef = (K[0, 0] / cam.fx - 1.0, K[1, 1] / cam.fy - 1.0)
+    ec = (K[0, 2] - cam.cx, K[1, 2] - cam.cy)
+    print(f"calibrateCamera: reprojection RMS {rms:.4f} px, fx/fy rel err {ef[0]:+.5f} "
+          f"{ef[1]:+.5f}, cx/cy err {ec[0]:+.3f} {ec[1]:+.3f} px")
+    assert max(abs(e) for e in ef) < CALIB_FOCAL_REL, f"|f_est/f - 1| = {ef}"
+    assert max(abs(e) for e in ec) < CALIB_CENTRE_PX, f"|c_est - c| = {ec} px"
+
+
+# --------------------------------------------------------------------------- poses
+
+
+def test_random_board_poses_are_varied_and_well_conditioned(board):
+    cam = make_camera()
+    poses = random_board_poses(cam, 12, np.random.default_rng(11), board=board)
+    assert len(poses) == 12
+    again = random_board_poses(cam, 12, np.random.default_rng(11), board=board)
+    assert all(a == b for a, b in zip(poses, again)), "same seed, same poses"
+    outline = board.outline(16)
+    axes = []
+    for T in poses:
+        n = T.R[:, 2]  # board normal (away from the printed face), camera frame
+        tilt = math.degrees(math.acos(np.clip(n[2], -1, 1)))
+        assert 15.0 - 1e-9 <= tilt <= 45.0 + 1e-9, f"tilt {tilt:.2f} deg"
+        axes.append(math.atan2(-n[0], n[1]))  # direction of the tilt axis
+        q, front = cam.project_cam(T.apply(outline))
+        assert front.all() and cam.in_image(q).all(), "whole board inside the image"
+        span = q.max(0) - q.min(0)
+        fill = max(span[0] / W, span[1] / H)
+        assert 0.3 - 0.01 <= fill <= 0.7 + 0.01, f"board fills {fill:.3f} of the image"
+        assert float(n @ T.t) > 0, "printed face toward the camera"
+    # Tilt axes spread over the circle: every quadrant is used.
+    quadrants = {int((a % (2 * math.pi)) // (math.pi / 2)) for a in axes}
+    assert quadrants == {0, 1, 2, 3}, f"tilt axes in quadrants {sorted(quadrants)}"
+
+
+def test_random_board_poses_reports_impossible_requests(board):
+    cam = make_camera()
+    with pytest.raises(InputError, match="fill"):
+        random_board_poses(cam, 2, 0, board=board, fill=(0.99, 1.0), max_tries=20)
+    with pytest.raises(InputError, match="tilt_deg"):
+        random_board_poses(cam, 2, 0, board=board, tilt_deg=(50.0, 20.0))
+
+
+# --------------------------------------------------------------------------- files
+
+
+def test_board_json_round_trip(tmp_path, board):
+    p = board.save(tmp_path / "b.json")
+    assert CharucoBoard.load(p) == board
+    other = CharucoBoard(9, 6, 0.03, 0.022, "DICT_4X4_50")
+    assert CharucoBoard.from_dict(json.loads(json.dumps(other.to_dict()))) == other
+
+
+def test_shipped_board_file_equals_default_board():
+    """calib/charuco_board.json is what `python -m facegeo.rig` writes; it must not drift."""
+    path = REPO / "calib" / "charuco_board.json"
+    assert json.loads(path.read_text()) == CharucoBoard().to_dict()
+    assert CharucoBoard.load(path) == CharucoBoard()
+
+
+def test_malformed_board_file_names_file_and_field(tmp_path):
+    p = tmp_path / "bad_board.json"
+    d = CharucoBoard().to_dict()
+    d["dictionary"] = "DICT_9X9_1"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ScanFormatError) as info:
+        CharucoBoard.load(p)
+    assert "bad_board.json" in str(info.value) and info.value.key == "dictionary"
+    d = CharucoBoard().to_dict()
+    del d["marker_length"]
+    p.write_text(json.dumps(d))
+    with pytest.raises(ScanFormatError, match=r"\[marker_length\].*missing"):
+        CharucoBoard.load(p)
+    p.write_text("{")
+    with pytest.raises(ScanFormatError, match="not valid JSON"):
+        CharucoBoard.load(p)
+
+
+def test_texture_survives_opencv_roi_sizes():
+    """OpenCV's generateImage fails for a few px/square with non-round marker ratios; the
+    texture steps to the next size and reports the matching scale."""
+    from facegeo.board import CharucoBoard
+
+    b = CharucoBoard(squares_x=5, squares_y=4, square_length=0.029, marker_length=0.0218,
+                     dictionary="DICT_4X4_50")
+    tex, m = b.texture(62)
+    assert tex.shape[1] * m == pytest.approx(b.size[0], rel=1e-12)

@@ -1,0 +1,387 @@
+"""Image I/O and camera responses (facegeo.imageio)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facegeo.errors import InputError, ScanFormatError
+from facegeo.imageio import (
+    ImageReadError,
+    Response,
+    clipped_mask,
+    encode,
+    linear_to_srgb,
+    linearize,
+    parse_response,
+    read_image,
+    read_image_size,
+    saturated_mask,
+    srgb_to_linear,
+    write_image,
+)
+
+# Named tolerances.
+FLOAT32_EPS = float(np.finfo(np.float32).eps)  # relative rounding of a float32 linear value
+HDR_RGBE_REL = 1.0 / 128  # Radiance RGBE: 8-bit mantissa sharing one exponent
+
+
+def _rng(seed=0):
+    return np.random.default_rng(seed)
+
+
+# --------------------------------------------------------------------------- PNG
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("channels", [None, 3, 4])
+def test_png_round_trip_is_bit_exact_and_rgb_ordered(tmp_path, dtype, channels):
+    top = np.iinfo(dtype).max
+    shape = (16, 24) if channels is None else (16, 24, channels)
+    img = _rng().integers(0, top + 1, size=shape, dtype=dtype)
+    if channels:
+        img[0, 0, :3] = [top, 0, 0]  # a pure red pixel: a BGR swap would show as blue
+    p = write_image(tmp_path / "a.png", img)
+    back = read_image(p)
+    assert back.dtype == np.dtype(dtype)
+    assert back.shape == img.shape
+    assert np.array_equal(back, img)
+    assert read_image_size(p) == (24, 16)
+
+
+def test_png_channel_order_matches_opencv_bgr_on_disk(tmp_path):
+    import cv2
+
+    img = np.zeros((4, 5, 3), np.uint8)
+    img[..., 0] = 200  # red
+    write_image(tmp_path / "r.png", img)
+    bgr = cv2.imread(str(tmp_path / "r.png"), cv2.IMREAD_UNCHANGED)
+    assert bgr[0, 0].tolist() == [0, 0, 200]  # OpenCV sees red in its last channel
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int32])
+def test_png_refuses_non_integer_or_wide_dtypes(tmp_path, dtype):
+    with pytest.raises(InputError, match="PNG holds uint8 or uint16"):
+        write_image(tmp_path / "a.png", np.zeros((4, 4, 3), dtype))
+    assert not list(tmp_path.iterdir())  # nothing left behind
+
+
+def test_write_refuses_unknown_suffix_and_bad_shapes(tmp_path):
+    with pytest.raises(InputError, match="writable formats"):
+        write_image(tmp_path / "a.bmp", np.zeros((4, 4), np.uint8))
+    with pytest.raises(InputError, match="expected an image of shape"):
+        write_image(tmp_path / "a.png", np.zeros((4, 4, 2), np.uint8))
+    with pytest.raises(InputError, match="half=True only applies to .exr"):
+        write_image(tmp_path / "a.png", np.zeros((4, 4), np.uint8), half=True)
+
+
+# --------------------------------------------------------------------------- EXR
+
+
+@pytest.mark.parametrize("channels", [None, 3, 4])
+def test_exr_float32_round_trip_is_bit_exact(tmp_path, channels):
+    shape = (16, 24) if channels is None else (16, 24, channels)
+    img = (_rng(1).standard_normal(shape) * 1e3).astype(np.float32)
+    img.flat[0] = 34000.0
+    img.flat[1] = 1e-30  # a denormal-range value survives float32 storage
+    p = write_image(tmp_path / "a.exr", img)
+    back = read_image(p)
+    assert back.dtype == np.float32 and back.shape == img.shape
+    assert np.array_equal(back, img)
+    assert read_image_size(p) == (24, 16)
+
+
+def test_exr_half_round_trip_is_bit_exact(tmp_path):
+    img = (_rng(2).random((16, 24, 3)) * 60000).astype(np.float16)
+    p = write_image(tmp_path / "h.exr", img, half=True)
+    back = read_image(p)
+    assert back.dtype == np.float16
+    assert np.array_equal(back, img)
+    # float32 input stored as half: equal to numpy's own float16 rounding
+    x = (_rng(3).random((8, 8)) * 10).astype(np.float32)
+    back = read_image(write_image(tmp_path / "h2.exr", x, half=True))
+    assert back.shape == (8, 8) and np.array_equal(back, x.astype(np.float16))
+
+
+def test_exr_channel_names_and_compression(tmp_path):
+    import OpenEXR
+
+    write_image(tmp_path / "rgb.exr", np.ones((4, 6, 3), np.float32))
+    write_image(tmp_path / "y.exr", np.ones((4, 6), np.float32))
+    f = OpenEXR.File(str(tmp_path / "rgb.exr"), separate_channels=True)
+    assert set(f.channels()) == {"R", "G", "B"}
+    assert f.header()["compression"] == OpenEXR.ZIP_COMPRESSION
+    f = OpenEXR.File(str(tmp_path / "y.exr"), separate_channels=True)
+    assert set(f.channels()) == {"Y"}
+
+
+def test_exr_refuses_integers_and_half_overflow(tmp_path):
+    with pytest.raises(InputError, match="EXR holds float32 or float16, got uint16"):
+        write_image(tmp_path / "a.exr", np.zeros((4, 4, 3), np.uint16))
+    big = np.full((4, 4), 70000.0, np.float32)
+    with pytest.raises(InputError, match="exceed the half-float range"):
+        write_image(tmp_path / "a.exr", big, half=True)
+    assert not list(tmp_path.iterdir())
+
+
+def test_opencv_cannot_do_exr(tmp_path):
+    """Why EXR goes through the OpenEXR bindings: the OpenCV wheels have no EXR codec."""
+    import cv2
+
+    p = write_image(tmp_path / "a.exr", np.ones((4, 4, 3), np.float32))
+    if cv2.haveImageReader(str(p)):  # pragma: no cover - a future wheel may add it
+        pytest.skip("this OpenCV build reads EXR")
+    assert cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is None
+
+
+# --------------------------------------------------------------------------- HDR
+
+
+def test_radiance_hdr_round_trip_within_rgbe_precision(tmp_path):
+    img = (_rng(4).random((16, 24, 3)) * 100 + 0.01).astype(np.float32)
+    img[0, 0] = [5.0, 0.5, 0.05]  # channel order check
+    p = write_image(tmp_path / "a.hdr", img)
+    back = read_image(p)
+    assert back.dtype == np.float32 and back.shape == img.shape
+    # RGBE shares the exponent of the largest channel: error <= max channel / 128 per pixel
+    worst = (np.abs(back - img) / img.max(axis=-1, keepdims=True)).max()
+    assert worst <= HDR_RGBE_REL
+    assert back[0, 0, 0] > back[0, 0, 1] > back[0, 0, 2]
+    assert read_image_size(p) == (24, 16)
+
+
+def test_radiance_hdr_refuses_grey_and_negative(tmp_path):
+    with pytest.raises(InputError, match="RGB only"):
+        write_image(tmp_path / "a.hdr", np.ones((4, 4), np.float32))
+    with pytest.raises(InputError, match=">= 0"):
+        write_image(tmp_path / "a.hdr", -np.ones((4, 4, 3), np.float32))
+
+
+# --------------------------------------------------------------------------- read errors
+
+
+def test_missing_file_raises_scan_format_error_naming_it(tmp_path):
+    p = tmp_path / "nope.png"
+    with pytest.raises(ImageReadError, match="nope.png: image file not found"):
+        read_image(p)
+    with pytest.raises(ScanFormatError, match="nope.png"):
+        read_image_size(p)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".exr", ".jpg", ".hdr"])
+def test_garbage_file_raises(tmp_path, suffix):
+    p = tmp_path / f"bad{suffix}"
+    p.write_bytes(b"this is not an image at all" * 4)
+    with pytest.raises(ImageReadError, match=f"bad{suffix}"):
+        read_image(p)
+    with pytest.raises(ImageReadError, match=f"bad{suffix}"):
+        read_image_size(p)
+
+
+def test_truncated_png_and_exr_fail_on_decode_but_not_header(tmp_path):
+    png = write_image(tmp_path / "t.png", _rng().integers(0, 65535, (64, 64, 3), dtype=np.uint16))
+    exr = write_image(tmp_path / "t.exr", _rng().random((64, 64, 3)).astype(np.float32))
+    for p in (png, exr):
+        data = p.read_bytes()
+        p.write_bytes(data[: len(data) // 2])
+        assert read_image_size(p) == (64, 64)  # the header is intact
+        with pytest.raises(ImageReadError, match=p.name):
+            read_image(p)
+
+
+def test_empty_and_unsupported_files(tmp_path):
+    (tmp_path / "e.png").write_bytes(b"")
+    with pytest.raises(ImageReadError, match="e.png"):
+        read_image(tmp_path / "e.png")
+    (tmp_path / "x.gif").write_bytes(b"GIF89a")
+    with pytest.raises(ImageReadError, match="unsupported image format"):
+        read_image(tmp_path / "x.gif")
+    (tmp_path / "d.png").mkdir()
+    with pytest.raises(ImageReadError, match="directory"):
+        read_image(tmp_path / "d.png")
+
+
+def test_jpeg_header_size(tmp_path):
+    import cv2
+
+    p = tmp_path / "a.jpg"
+    cv2.imwrite(str(p), np.zeros((13, 29, 3), np.uint8))
+    assert read_image_size(p) == (29, 13)
+    assert read_image(p).shape == (13, 29, 3)
+
+
+# --------------------------------------------------------------------------- shared env maps
+
+
+@pytest.mark.shared_data
+def test_reads_the_shared_environment_maps(shared_data):
+    folder = shared_data / "envmaps"
+    files = sorted(folder.glob("*.exr")) if folder.is_dir() else []
+    if len(files) < 8:
+        pytest.skip(f"expected eight .exr maps in {folder}, found {len(files)}")
+    peaks = []
+    for p in files:
+        assert read_image_size(p) == (1024, 512), p.name
+        img = read_image(p)
+        assert img.shape == (512, 1024, 3) and img.dtype == np.float32, p.name
+        assert np.isfinite(img).all(), p.name
+        # DWAB-compressed sources carry small negative ringing (down to about -0.004):
+        # consumers (facegeo.envmap) must clip, the reader must not hide it.
+        assert img.min() > -0.01, p.name
+        peaks.append(float(img.max()))
+    # The brightest map peaks near the 32,000–34,000 clamp of its source.
+    assert 1e4 < max(peaks) < 4e4
+
+
+# --------------------------------------------------------------------------- responses
+
+
+def test_parse_response_values():
+    assert parse_response("linear").kind == "linear"
+    assert parse_response("srgb").kind == "srgb"
+    assert parse_response({"kind": "srgb"}).kind == "srgb"
+    r = parse_response({"kind": "gamma", "gamma": 2.2})
+    assert r.kind == "gamma" and r.gamma == 2.2
+    assert r.to_spec() == {"kind": "gamma", "gamma": 2.2}
+    with pytest.raises(ScanFormatError, match="unknown response 'sRGB'"):
+        parse_response("sRGB", key="olat.response")
+    with pytest.raises(ScanFormatError, match=r"\[olat.response.gamma\].*> 0"):
+        parse_response({"kind": "gamma", "gamma": -1}, key="olat.response")
+    with pytest.raises(ScanFormatError, match="unknown key"):
+        parse_response({"kind": "srgb", "gamma": 2})
+    with pytest.raises(ScanFormatError, match="needs key"):
+        parse_response({"kind": "gamma"})
+    with pytest.raises(ScanFormatError, match="unknown response kind"):
+        parse_response({"kind": "log"})
+
+
+def test_table_response_file(tmp_path):
+    t = np.linspace(0, 4, 256) ** 2  # arbitrary scale: normalised on load
+    np.save(tmp_path / "response.npy", t)
+    r = parse_response({"kind": "table", "file": "response.npy"}, base_dir=tmp_path)
+    assert r.kind == "table" and r.table.max() == 1.0
+    assert r.to_spec() == {"kind": "table", "file": "response.npy"}
+    np.save(tmp_path / "bad.npy", t[::-1])
+    with pytest.raises(ScanFormatError, match="bad.npy.*non-decreasing.*codes 0 and 1"):
+        parse_response({"kind": "table", "file": "bad.npy"}, base_dir=tmp_path)
+    with pytest.raises(ScanFormatError, match="missing.npy.*not found"):
+        parse_response({"kind": "table", "file": "missing.npy"}, base_dir=tmp_path)
+    with pytest.raises(InputError, match="256 levels but the frames are uint16"):
+        r.linearize(np.zeros((2, 2), np.uint16))
+
+
+def test_srgb_curve_reference_values():
+    # IEC 61966-2-1: the curve is continuous at the knee and maps 0.5 to 0.21404.
+    assert abs(float(srgb_to_linear(0.5)) - 0.214041) < 1e-6
+    assert abs(float(srgb_to_linear(0.04045)) - 0.04045 / 12.92) < 1e-12
+    x = np.linspace(0, 1, 1001)
+    assert np.abs(srgb_to_linear(linear_to_srgb(x)) - x).max() < 1e-12
+
+
+def test_linearize_known_values():
+    img = np.array([[0, 128, 255]], np.uint8)
+    assert np.allclose(linearize(img, "linear"), [[0, 128 / 255, 1]], rtol=0, atol=1e-7)
+    assert np.allclose(
+        linearize(img, {"kind": "gamma", "gamma": 2.0}), [[0, (128 / 255) ** 2, 1]], atol=1e-7
+    )
+    out = linearize(img, "srgb")
+    assert out.dtype == np.float32 and out[0, 0] == 0 and out[0, 2] == 1
+    img16 = np.array([0, 32768, 65535], np.uint16)
+    assert np.allclose(linearize(img16, "linear"), [0, 32768 / 65535, 1], atol=1e-7)
+
+
+def test_linearize_float_only_with_linear_response():
+    x = np.array([[0.5, 2.0]], np.float64)
+    out = linearize(x, "linear")
+    assert out.dtype == np.float32 and np.array_equal(out, x.astype(np.float32))
+    with pytest.raises(InputError, match="already linear"):
+        linearize(x.astype(np.float32), "srgb")
+    with pytest.raises(InputError, match="cannot encode"):
+        encode(x, "srgb", np.float32)
+
+
+def _round_trip_bound(resp: Response, codes: np.ndarray, code_max: int) -> np.ndarray:
+    """Half an LSB times the local slope: max(f(c+½) − f(c), f(c) − f(c−½))."""
+    f = resp._decode
+    c = codes.astype(np.float64)
+    up = f(np.clip((c + 0.5) / code_max, 0, 1)) - f(c / code_max)
+    down = f(c / code_max) - f(np.clip((c - 0.5) / code_max, 0, 1))
+    return np.maximum(up, down)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize(
+    "spec", ["linear", "srgb", {"kind": "gamma", "gamma": 2.2}, {"kind": "gamma", "gamma": 0.45}]
+)
+def test_encode_linearize_round_trip_within_half_lsb(dtype, spec):
+    """linearize(encode(x)) is within half an LSB of the encoded slope of x (worst case)."""
+    resp = parse_response(spec)
+    code_max = int(np.iinfo(dtype).max)
+    x = np.concatenate([_rng(5).random(20000), np.linspace(0, 1, 1001), [0.0, 1.0]])
+    codes = encode(x, resp, dtype)
+    assert codes.dtype == np.dtype(dtype)
+    back = linearize(codes, resp).astype(np.float64)
+    bound = _round_trip_bound(resp, codes, code_max) + 2 * FLOAT32_EPS
+    err = np.abs(back - x)
+    assert (err <= bound).all(), float((err - bound).max())
+    # and the codes themselves round-trip exactly
+    all_codes = np.arange(code_max + 1, dtype=dtype)
+    assert np.array_equal(encode(linearize(all_codes, resp), resp, dtype), all_codes)
+
+
+def test_encode_clips_out_of_range():
+    x = np.array([-1.0, 0.0, 1.0, 7.0])
+    assert encode(x, "srgb", np.uint8).tolist() == [0, 0, 255, 255]
+    with pytest.raises(InputError, match="non-finite"):
+        encode(np.array([np.nan]), "srgb", np.uint8)
+
+
+def test_table_response_round_trip_per_channel():
+    levels = 256
+    code = np.arange(levels) / (levels - 1)
+    table = np.stack([code**2.2, code**2.0, code**1.8], axis=-1) * 3.0
+    resp = Response.from_table(table)
+    x = _rng(6).random((100, 3))
+    codes = encode(x, resp, np.uint8)
+    back = linearize(codes, resp).astype(np.float64)
+    t = resp.table
+    # worst case: half the gap between neighbouring table entries around the chosen code
+    c = codes.astype(int)
+    gap = np.maximum(
+        t[np.minimum(c + 1, levels - 1), np.arange(3)] - t[c, np.arange(3)],
+        t[c, np.arange(3)] - t[np.maximum(c - 1, 0), np.arange(3)],
+    )
+    assert (np.abs(back - x) <= 0.5 * gap + 2 * FLOAT32_EPS).all()
+    with pytest.raises(InputError, match="one curve per channel"):
+        linearize(np.zeros((4, 4), np.uint8), resp)
+
+
+def test_response_table_rules():
+    with pytest.raises(InputError, match="non-decreasing"):
+        Response.from_table(np.array([0.0, 1.0, 0.5]))
+    with pytest.raises(InputError, match="finite"):
+        Response.from_table(np.array([0.0, np.nan, 1.0]))
+    with pytest.raises(InputError, match="shape"):
+        Response.from_table(np.zeros((4, 2)))
+    with pytest.raises(InputError, match="unknown kind"):
+        Response("log")
+
+
+# --------------------------------------------------------------------------- masks
+
+
+def test_saturated_and_clipped_masks():
+    img = np.full((2, 3, 3), 100, np.uint8)
+    img[0, 0, 1] = 255
+    img[1, 2, 2] = 0
+    sat = saturated_mask(img)
+    clip = clipped_mask(img)
+    assert sat.shape == (2, 3) and sat.tolist() == [[True, False, False], [False, False, False]]
+    assert clip.tolist() == [[False, False, False], [False, False, True]]
+    assert clipped_mask(img, low=100).all()
+    img16 = np.array([[65535, 65534]], np.uint16)
+    assert saturated_mask(img16).tolist() == [[True, False]]
+    f = np.array([[1.0, np.inf, 5.0]], np.float32)
+    assert saturated_mask(f).tolist() == [[False, True, False]]
+    assert saturated_mask(f, max_value=5.0).tolist() == [[False, True, True]]
+    assert clipped_mask(np.array([[0.0, 1e-3, np.nan]])).tolist() == [[True, False, True]]

@@ -1,0 +1,275 @@
+"""Synthetic capture generator and reference renderer."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from facegeo.camera import Camera
+from facegeo.frames import Pose, look_at
+from facegeo.synth.render import ReferenceRenderer
+
+LAMBERT_REL_TOL = 1e-5  # flat patch vs analytic value, max relative (float32 output)
+SPECULAR_REL_TOL = 1e-5  # renderer vs independent Torrance–Sparrow, max relative (float32)
+DECODE_EXACT_FRACTION = 0.98  # Gray-decoded projector column within 1 px of ground truth
+DECODE_PX_TOL = 1.0  # projector pixels
+
+
+@dataclass
+class _Sample:
+    alpha_0: np.ndarray
+    alpha_1: np.ndarray
+    rho_s: np.ndarray
+    roughness: np.ndarray
+
+
+class ConstantSkin:
+    """A skin field with the same parameters everywhere (analytic tests)."""
+
+    def __init__(self, alpha_0, alpha_1=None, rho_s=0.0, roughness=0.35):
+        self.a0 = np.asarray(alpha_0, float)
+        self.a1 = self.a0 if alpha_1 is None else np.asarray(alpha_1, float)
+        self.rho_s, self.m = rho_s, roughness
+
+    def evaluate(self, p):
+        n = np.asarray(p).shape[0]
+        return _Sample(np.tile(self.a0, (n, 1)), np.tile(self.a1, (n, 1)),
+                       np.full(n, self.rho_s), np.full(n, self.m))
+
+
+def flat_patch(size=0.2, y=0.0):
+    """Two triangles in the plane y = const, wound so the normal is +Y."""
+    s = size / 2
+    v = np.array([[-s, y, -s], [s, y, -s], [s, y, s], [-s, y, s]], float)
+    f = np.array([[0, 2, 1], [0, 3, 2]])
+    return v, f
+
+
+def top_camera(width=40, height=30):
+    K = np.array([[150.0, 0, 19.3], [0, 152.0, 14.6], [0, 0, 1]])
+    T = look_at(np.array([0.03, 0.6, 0.05]), np.array([0.0, 0.0, 0.0]), up=(0, 0, -1))
+    return Camera(name="top", width=width, height=height, K=K, dist=np.zeros(5), T_cam_world=T)
+
+
+def test_flat_lambertian_patch_equals_analytic():
+    v, f = flat_patch()
+    albedo = np.array([0.6, 0.4, 0.3])
+    r = ReferenceRenderer(v, f, ConstantSkin(albedo), shadows=True)
+    cam = top_camera()
+    view = r.surface_view(cam)
+    assert view.n_samples > 0.5 * cam.width * cam.height
+    light = np.array([0.4, 0.9, -0.3])
+    color = np.array([1.0, 0.8, 0.5])
+    rad = r.shade_point_light(view, light, color, stage_radius=1.5)
+    to_l = light[None] - view.p_world
+    d = np.linalg.norm(to_l, axis=1)
+    cos_i = to_l[:, 1] / d
+    expected = albedo[None] / np.pi * (cos_i * (1.5 / d) ** 2)[:, None] * color[None]
+    rel = np.abs(rad - expected).max() / expected.max()
+    assert rel < LAMBERT_REL_TOL, f"max relative error {rel:.2e}"
+    assert np.abs(view.n_world - [0, 1, 0]).max() < 1e-12
+
+
+def test_specular_matches_independent_torrance_sparrow():
+    v, f = flat_patch()
+    rho_s, m, eta = 0.8, 0.3, 1.4
+    r = ReferenceRenderer(v, f, ConstantSkin([0, 0, 0], rho_s=rho_s, roughness=m), eta=eta)
+    cam = top_camera()
+    view = r.surface_view(cam)
+    direction = np.array([-0.2, 1.0, 0.1])
+    direction /= np.linalg.norm(direction)
+    rad = r.shade_directional_light(view, direction, np.ones(3))
+    # independent evaluation from angles
+    n = np.array([0.0, 1.0, 0.0])
+    l = direction
+    vv = view.v_world
+    h = l[None] + vv
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    cos_i = l @ n
+    cos_r = vv @ n
+    cos_h = h @ n
+    cos_d = h @ l
+    tan2 = (1 - cos_h**2) / cos_h**2
+    D = np.exp(-tan2 / m**2) / (np.pi * m**2 * cos_h**4)
+    G = np.minimum(1, np.minimum(2 * cos_h * cos_r / cos_d, 2 * cos_h * cos_i / cos_d))
+    c = cos_d
+    g = np.sqrt(eta**2 - 1 + c**2)
+    F = 0.5 * ((g - c) / (g + c)) ** 2 * (1 + ((c * (g + c) - 1) / (c * (g - c) + 1)) ** 2)
+    expected = rho_s * F * D * G / (4 * cos_i * cos_r) * cos_i
+    rel = np.abs(rad[:, 0] - expected).max() / expected.max()
+    assert rel < SPECULAR_REL_TOL, f"max relative error {rel:.2e}"
+    assert np.array_equal(rad[:, 0], rad[:, 1])  # specular has the light's colour
+
+
+def test_cast_shadow_from_occluder():
+    """A small square above the patch shadows exactly the points whose ray to the light it blocks."""
+    v, f = flat_patch(0.4)
+    occ_v = np.array([[-0.03, 0.05, -0.03], [0.03, 0.05, -0.03], [0.03, 0.05, 0.03], [-0.03, 0.05, 0.03]])
+    occ_f = np.array([[0, 2, 1], [0, 3, 2]]) + 4
+    V = np.vstack([v, occ_v])
+    F = np.vstack([f, occ_f])
+    r = ReferenceRenderer(V, F, ConstantSkin([0.5, 0.5, 0.5]))
+    cam = top_camera(60, 45)
+    view = r.surface_view(cam)
+    on_floor = np.abs(view.p_world[:, 1]) < 1e-9
+    light = np.array([0.0, 1.5, 0.0])
+    rad = r.shade_point_light(view, light, np.ones(3), stage_radius=1.5)
+    # analytic: the segment from p to the light crosses y = 0.05 inside the square
+    p = view.p_world[on_floor]
+    s = 0.05 / (light[1] - p[:, 1])
+    x = p[:, 0] + s * (light[0] - p[:, 0])
+    z = p[:, 2] + s * (light[2] - p[:, 2])
+    shadow = (np.abs(x) < 0.03) & (np.abs(z) < 0.03)
+    margin = (np.abs(np.abs(x) - 0.03) > 1e-4) & (np.abs(np.abs(z) - 0.03) > 1e-4)
+    assert shadow.sum() > 5, "the test camera must see some shadow"
+    got = rad[on_floor, 0] == 0
+    assert np.array_equal(got[margin], shadow[margin])
+
+
+@pytest.fixture(scope="module")
+def tiny_scan(tmp_path_factory):
+    from facegeo.synth.capture import generate_scan
+
+    root = tmp_path_factory.mktemp("synth") / "tiny"
+    summary = generate_scan(root, "tiny", seed=3)
+    return root, summary
+
+
+def test_tiny_scan_loads_and_matches_renderer(tiny_scan):
+    from facegeo.rig import Rig
+    from facegeo.scan import load_scan
+    from facegeo.synth.render import load_ground_truth
+
+    root, summary = tiny_scan
+    scan = load_scan(root, check="full")
+    assert scan.synthetic
+    rig = scan.rig
+    assert rig.lights.n_lights == summary.n_lights == 16 * 8
+    # scan round trip: the OLAT frames on disk are the reference renderer's images, bit for bit
+    renderer = load_ground_truth(scan)
+    cam = rig.cameras[0]
+    for l, img in renderer.olat_images(cam, rig.lights, indices=[0, 37, rig.lights.n_lights - 1]):
+        disk = scan.olat_frame(cam.name, l)
+        assert disk.dtype == np.float32
+        assert np.array_equal(disk, img), f"light {l}: max |Δ| = {np.abs(disk - img).max()}"
+    # the head is lit by some light in every camera, and frames are finite and non-negative
+    for cam in rig.cameras:
+        total = sum(scan.olat_frame(cam.name, l) for l in range(0, rig.lights.n_lights, 8))
+        assert np.isfinite(total).all() and (total >= 0).all()
+        assert (total.sum(axis=2) > 0).mean() > 0.2
+
+
+def test_tiny_scan_is_deterministic(tiny_scan, tmp_path):
+    from facegeo.scan import load_scan
+    from facegeo.synth.capture import generate_scan
+
+    root, _ = tiny_scan
+    other = tmp_path / "again"
+    generate_scan(other, "tiny", seed=3)
+    a, b = load_scan(root), load_scan(other)
+    for cam in a.camera_names:
+        for l in (0, 50, 100):
+            assert np.array_equal(a.olat_frame(cam, l), b.olat_frame(cam, l))
+        for name in a.sl_frames[:4]:
+            assert np.array_equal(a.sl_frame(cam, name), b.sl_frame(cam, name))
+    c = tmp_path / "seed4"
+    generate_scan(c, "tiny", seed=4)
+    assert not np.array_equal(load_scan(c).olat_frame(a.camera_names[0], 50), a.olat_frame(a.camera_names[0], 50))
+
+
+def test_tiny_scan_refuses_to_overwrite(tiny_scan):
+    from facegeo.errors import InputError
+    from facegeo.synth.capture import generate_scan
+
+    root, _ = tiny_scan
+    before = (root / "scan.toml").read_bytes()
+    with pytest.raises(InputError, match="already holds a scan"):
+        generate_scan(root, "tiny", seed=3)
+    assert (root / "scan.toml").read_bytes() == before
+
+
+def test_structured_light_frames_decode_to_true_projector_pixels(tiny_scan):
+    """Decoding the synthetic Gray-code frames gives the projector pixel that the ground-truth
+    surface point projects to: the SL frames are geometrically right."""
+    from facegeo.scan import load_scan
+    from facegeo.structured_light import PatternSpec, decode_gray
+
+    root, _ = tiny_scan
+    scan = load_scan(root)
+    spec = PatternSpec.from_dict(scan.sl_patterns)
+    proj = scan.rig.projector
+    for cam in scan.camera_names:
+        frames = {name: scan.sl_frame(cam, name) for name in scan.sl_frames}
+        dec = decode_gray(frames, spec)
+        geo = np.load(scan.ground_truth_path(f"geometry_{cam}"))
+        q, front = proj.project(geo["p_world"])
+        ok = dec.valid & geo["mask"] & front
+        assert ok.sum() > 100
+        err = np.abs(dec.proj_x[ok] - np.floor(q[ok][:, 0] + 0.5))
+        frac = (err <= DECODE_PX_TOL).mean()
+        assert frac >= DECODE_EXACT_FRACTION, f"{cam}: {frac:.4f} of pixels within {DECODE_PX_TOL} px"
+
+
+def test_ground_truth_files_and_reference_renders(tiny_scan):
+    from facegeo import imageio
+    from facegeo.scan import load_scan
+
+    root, _ = tiny_scan
+    scan = load_scan(root)
+    meta = json.loads(scan.ground_truth_path("renders").read_text())
+    assert "novel_front" in meta["cameras"]
+    uni = imageio.read_image(scan.ground_truth_path("render_novel_front_uniform"))
+    assert uni.shape[2] == 3 and np.isfinite(uni).all() and uni.max() > 0
+    # the uniform render of a capture camera equals the Eq. (4) sum of its OLAT frames
+    cam = scan.camera_names[0]
+    rig = scan.rig
+    w = rig.lights.solid_angles
+    relit = sum(w[l] * scan.olat_frame(cam, l) for l in range(rig.lights.n_lights))
+    ref = imageio.read_image(scan.ground_truth_path(f"render_{cam}_uniform"))
+    assert np.abs(relit - ref).max() < 1e-5 * max(ref.max(), 1e-6)
+    # ... and equals the renderer's own weighted-lights render (an independent code path)
+    from facegeo.synth.render import load_ground_truth
+
+    direct = load_ground_truth(scan).render_lights(rig.camera(cam), rig.lights,
+                                                   np.repeat(w[:, None], 3, axis=1))
+    assert np.abs(direct - ref).max() < 1e-5 * max(ref.max(), 1e-6)
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("name,units", [("ict_facekit_generic_neutral.obj", "cm"),
+                                        ("mediapipe_canonical_face.obj", "cm")])
+def test_real_meshes_render(shared_data, name, units):
+    """The real heads in ../shared/data/faces load in metres and render from the rig's cameras."""
+    from conftest import shared_file
+    from facegeo.synth.capture import PRESETS, build_head, build_rig
+    from facegeo.synth.skin import SkinField
+
+    mesh = build_head(str(shared_file(shared_data, f"faces/{name}")), units=units)
+    rig = build_rig(PRESETS["tiny"])
+    r = ReferenceRenderer.from_mesh(mesh, SkinField.for_mesh(mesh, seed=0))
+    for cam in rig.cameras:
+        view = r.surface_view(cam)
+        assert view.n_samples > 0.1 * cam.width * cam.height, f"{name}: head too small in {cam.name}"
+        front = rig.lights.directions @ np.array([0.0, 0.0, 1.0])
+        weights = np.zeros((rig.lights.n_lights, 3))
+        weights[np.argmax(front)] = 1.0
+        img = r.render_lights(cam, rig.lights, weights)
+        assert np.isfinite(img).all() and (img >= 0).all()
+        lit = img[view.mask].sum(axis=1) > 0
+        assert lit.mean() > 0.5, f"{name}: only {lit.mean():.2f} of the head lit by the front light"
+
+
+@pytest.mark.shared_data
+@pytest.mark.slow
+def test_synth_scan_from_real_mesh(shared_data, tmp_path):
+    from conftest import shared_file
+    from facegeo.scan import load_scan
+    from facegeo.synth.capture import generate_scan
+
+    mesh = shared_file(shared_data, "faces/mediapipe_canonical_face.obj")
+    generate_scan(tmp_path / "mp", "tiny", head=str(mesh), units="cm", seed=1)
+    scan = load_scan(tmp_path / "mp", check="full")
+    assert scan.synthetic and len(scan.camera_names) == 2
