@@ -139,7 +139,7 @@ def _fmt(x) -> str:
         return "—"
     if isinstance(x, float):
         return f"{x:.4g}"
-    return str(x)
+    return str(x).replace("|", "\\|")  # a bare | would split a Markdown table cell
 
 
 def write_reports(rows: list[BenchRow], out_dir: str | Path) -> tuple[Path, Path]:
@@ -165,11 +165,12 @@ def write_reports(rows: list[BenchRow], out_dir: str | Path) -> tuple[Path, Path
         "|---|---|---|---|---|---|",
     ]
     for r in rows:
-        err = "—" if r.error is None else f"{_fmt(r.error)} ({r.error_unit})"
+        err = "—" if r.error is None else f"{_fmt(r.error)} ({_fmt(r.error_unit)})"
         ratios = ", ".join(f"{k}: {v:.3g}" for k, v in r.ratios.items()) or "—"
         extra = ", ".join(f"{k}={_fmt(v)}" for k, v in r.extra.items()) or ""
         lines.append(
-            f"| {r.benchmark} | {r.case} | {_fmt(r.speed)} {r.speed_unit} | {err} | {ratios} | {extra} |"
+            f"| {_fmt(r.benchmark)} | {_fmt(r.case)} | {_fmt(r.speed)} {_fmt(r.speed_unit)} | {err} "
+            f"| {ratios} | {extra} |"
         )
     mpath = out / "bench.md"
     atomic_write_text(mpath, "\n".join(lines) + "\n")

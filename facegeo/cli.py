@@ -44,7 +44,8 @@ def _cmd_synth(args) -> int:
     tick, close = _progress_factory(not args.quiet)
     try:
         summary = generate_scan(args.out, args.preset, head=args.head, units=args.units,
-                                seed=args.seed, noise=args.noise, overwrite=args.overwrite,
+                                seed=args.seed, noise=args.noise, skin=args.skin,
+                                overwrite=args.overwrite,
                                 progress=tick)
     finally:
         close()
@@ -121,6 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="'procedural' (default) or a mesh file (OBJ/PLY/GLB, +Y up, facing +Z)")
     s.add_argument("--units", default="cm", choices=["cm", "mm", "m"], help="units of --head mesh")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--skin", default="regional",
+                   help="ground-truth skin colour model: 'regional' (default) or "
+                        "'spectral[:light|medium|olive|dark]' (Donner & Jensen 2006)")
     s.add_argument("--noise", type=float, default=0.0,
                    help="sensor noise, fraction of white level (default 0: noise-free)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scan at OUT")

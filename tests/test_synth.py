@@ -273,3 +273,34 @@ def test_synth_scan_from_real_mesh(shared_data, tmp_path):
     generate_scan(tmp_path / "mp", "tiny", head=str(mesh), units="cm", seed=1)
     scan = load_scan(tmp_path / "mp", check="full")
     assert scan.synthetic and len(scan.camera_names) == 2
+
+
+def test_spectral_skin_scan_round_trips(tmp_path):
+    """``--skin spectral:dark``: the albedo comes from Donner & Jensen melanin/haemoglobin maps,
+    and ground_truth/skin.json re-creates the field in a fresh process."""
+    import subprocess
+    import sys
+
+    from facegeo.scan import load_scan
+    from facegeo.spectral import skin_rgb
+    from facegeo.synth.capture import generate_scan
+
+    root = tmp_path / "spec"
+    generate_scan(root, "tiny", seed=2, skin="spectral:dark")
+    scan = load_scan(root)
+    skin = json.loads(scan.ground_truth_path("skin").read_text())
+    assert skin["albedo_model"] == "spectral"
+    code = (
+        "import json, sys, numpy as np\n"
+        "from facegeo.synth.skin import SkinField\n"
+        "f = SkinField.from_dict(json.load(open(sys.argv[1])))\n"
+        "print(json.dumps(f.evaluate(np.zeros((1, 3))).alpha_0.tolist()))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(scan.ground_truth_path("skin"))],
+                         capture_output=True, text=True, check=True).stdout
+    alpha = np.array(json.loads(out))[0]
+    dark = skin_rgb(0.15, 0.5, 0.012)
+    assert np.all(alpha < 0.6) and np.linalg.norm(alpha - dark) < 0.1, (alpha, dark)
+    with pytest.raises(Exception, match="unknown spectral skin type"):
+        generate_scan(tmp_path / "bad", "tiny", skin="spectral:green")
+    assert not (tmp_path / "bad").exists()  # arguments are checked before anything is written

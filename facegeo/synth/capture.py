@@ -211,6 +211,7 @@ def generate_scan(
     units: str = "cm",
     seed: int = 0,
     noise: float = 0.0,
+    skin: str = "regional",
     overwrite: bool = False,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> SynthSummary:
@@ -228,6 +229,11 @@ def generate_scan(
         Units of a mesh file.
     seed : int
         Seeds the head details, skin field, board poses and noise.
+    skin : str
+        Diffuse colour model of the ground-truth skin field: ``"regional"`` (a parametric
+        linear-sRGB skin colour with regional variation) or ``"spectral"`` /
+        ``"spectral:<type>"`` (Donner & Jensen 2006 albedo from smooth maps of melanin and
+        haemoglobin, ``<type>`` one of ``facegeo.spectral.SKIN_TYPES``, default medium).
     noise : float
         Sensor noise: standard deviation of additive Gaussian read noise as a fraction of the
         frame's white level (0: noise-free). Photon noise scales with the square root of the
@@ -253,6 +259,11 @@ def generate_scan(
         preset = PRESETS[preset]
     if noise < 0 or not np.isfinite(noise):
         raise InputError(f"noise: expected a finite number >= 0, got {noise!r}")
+    skin_kwargs = _skin_model(skin)  # validate every argument before touching the disk
+    if head != "procedural" and not Path(head).is_file():
+        raise InputError(f"--head: no such mesh file {head} (use 'procedural' or a path)")
+    if units not in ("cm", "mm", "m"):
+        raise InputError(f"units: unknown {units!r}; expected one of 'cm', 'mm', 'm'")
     root = Path(out)
     if (root / "scan.toml").exists() and not overwrite:
         raise InputError(f"{root} already holds a scan (scan.toml); pass overwrite=True "
@@ -269,8 +280,8 @@ def generate_scan(
     # mesh in ground_truth/ reproduces every frame bit for bit.
     mesh.vertices = np.asarray(mesh.vertices, np.float32).astype(np.float64)
     rig = build_rig(preset)
-    skin = SkinField.for_mesh(mesh, seed=seed)
-    renderer = ReferenceRenderer.from_mesh(mesh, skin)
+    skin_field = SkinField.for_mesh(mesh, seed=seed, **skin_kwargs)
+    renderer = ReferenceRenderer.from_mesh(mesh, skin_field)
     board = _board_for_rig(rig)
     spec = PatternSpec(width=rig.projector.width, height=rig.projector.height,
                        phase_steps=preset.phase_steps)
@@ -279,7 +290,8 @@ def generate_scan(
 
     manifest = scanmod.new_manifest(root.name, synthetic=True)
     manifest["scan"]["description"] = (
-        f"facegeo synthetic capture, preset {preset.name}, head {head}, seed {seed}, noise {noise}"
+        f"facegeo synthetic capture, preset {preset.name}, head {head}, skin {skin}, seed {seed}, "
+        f"noise {noise}"
     )
     rig.save(root / manifest["scan"]["rig"])
     noise_rng = np.random.default_rng([seed, 1])
@@ -392,7 +404,7 @@ def generate_scan(
 
     # ---- ground truth ----
     t0 = time.perf_counter()
-    gt = _write_ground_truth(root, mesh, rig, skin, renderer, uniform_renders)
+    gt = _write_ground_truth(root, mesh, rig, skin_field, renderer, uniform_renders)
     manifest["ground_truth"] = gt
     seconds["ground_truth"] = time.perf_counter() - t0
 
@@ -401,6 +413,22 @@ def generate_scan(
                         n_lights=rig.lights.n_lights, image_size=(rig.cameras[0].width,
                                                                   rig.cameras[0].height),
                         n_faces=len(mesh.faces), frames_written=frames, seconds=seconds)
+
+
+def _skin_model(spec: str) -> dict:
+    """``SkinField`` keyword arguments for a ``--skin`` value."""
+    name, _, kind = str(spec).partition(":")
+    if name == "regional" and not kind:
+        return {"albedo_model": "regional"}
+    if name == "spectral":
+        from facegeo.spectral import SKIN_TYPES
+
+        kind = kind or "medium"
+        if kind not in SKIN_TYPES:
+            raise InputError(f"skin: unknown spectral skin type {kind!r}; expected one of "
+                             f"{', '.join(SKIN_TYPES)}")
+        return {"albedo_model": "spectral", "albedo_params": {"params": kind}}
+    raise InputError(f"skin: unknown model {spec!r}; expected 'regional' or 'spectral[:type]'")
 
 
 def _projector_irradiance(proj, p_world, n_world):

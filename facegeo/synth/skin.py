@@ -228,6 +228,18 @@ def regional_albedo(u, skin: SkinField, *, tone=(0.45, 0.30, 0.23), subject_vari
 #: Diffuse colour models by name: ``model(u, skin, **params) -> alpha_0 (..., 3)``.
 ALBEDO_MODELS: dict[str, Callable[..., np.ndarray]] = {"regional": regional_albedo}
 
+#: Models that register themselves on first use (module, registration function), so a
+#: ``skin.json`` naming them loads in a fresh process without importing them by hand.
+_LAZY_ALBEDO_MODELS = {"spectral": ("facegeo.spectral", "register_spectral_albedo")}
+
+
+def _ensure_albedo_model(name: str) -> None:
+    if name not in ALBEDO_MODELS and name in _LAZY_ALBEDO_MODELS:
+        import importlib
+
+        module, fn = _LAZY_ALBEDO_MODELS[name]
+        getattr(importlib.import_module(module), fn)()
+
 
 def register_albedo_model(name: str, model: Callable[..., np.ndarray], *,
                           overwrite: bool = False) -> None:
@@ -341,8 +353,10 @@ class SkinField:
         if int(self.seed) != self.seed:
             raise InputError(f"seed: expected an integer, got {self.seed!r}")
         object.__setattr__(self, "seed", int(self.seed))
+        if self.albedo_fn is None:
+            _ensure_albedo_model(self.albedo_model)
         if self.albedo_fn is None and self.albedo_model not in ALBEDO_MODELS:
-            known = ", ".join(sorted(ALBEDO_MODELS))
+            known = ", ".join(sorted(set(ALBEDO_MODELS) | set(_LAZY_ALBEDO_MODELS)))
             raise InputError(
                 f"albedo_model: unknown model {self.albedo_model!r}; registered: {known} "
                 "(add one with register_albedo_model)"

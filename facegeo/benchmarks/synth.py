@@ -1,0 +1,48 @@
+"""Benchmarks of the synthetic capture generator: frames per second per stage, with the storage
+error of the OLAT frames (disk against the reference renderer) as the error column."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from facegeo.bench import BenchRow, register
+
+
+@register("synth.generate")
+def bench_generate(quick: bool) -> list[BenchRow]:
+    from facegeo.scan import load_scan
+    from facegeo.synth.capture import generate_scan
+    from facegeo.synth.render import load_ground_truth
+
+    preset = "tiny" if quick else "small"
+    with tempfile.TemporaryDirectory(prefix="facegeo-bench-synth-") as tmp:
+        root = Path(tmp) / preset
+        t0 = time.perf_counter()
+        summary = generate_scan(root, preset, seed=0)
+        wall = time.perf_counter() - t0
+        scan = load_scan(root)
+        rig = scan.rig
+        cam = rig.cameras[0]
+        renderer = load_ground_truth(scan)
+        lights = np.linspace(0, rig.lights.n_lights - 1, 8).astype(int)
+        worst = 0.0
+        for l, ref in renderer.olat_images(cam, rig.lights, indices=lights):
+            disk = scan.olat_frame(cam.name, l)
+            scale = max(float(ref.max()), 1e-12)
+            worst = max(worst, float(np.abs(disk - ref).max()) / scale)
+    n_olat = summary.n_cameras * summary.n_lights
+    rows = [
+        BenchRow("synth.generate", f"{preset}: whole scan", summary.frames_written / wall, "frames/s",
+                 error=worst, error_unit="OLAT max abs(disk − reference) / max",
+                 extra={"frames": summary.frames_written, "seconds": round(wall, 2),
+                        "pixels": summary.image_size[0] * summary.image_size[1],
+                        "triangles": summary.n_faces}),
+        BenchRow("synth.generate", f"{preset}: OLAT stage", n_olat / summary.seconds["olat"], "frames/s",
+                 extra={"lights": summary.n_lights, "cameras": summary.n_cameras}),
+    ]
+    rows[0].extra.update({f"{k}_s": round(v, 2) for k, v in summary.seconds.items()})
+    return rows
