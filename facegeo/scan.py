@@ -19,36 +19,51 @@ validates a manifest against the schema *and* the files already on disk before w
 
 Loading never writes into the scan directory (only :attr:`Scan.out_dir` creates ``out/``, on
 demand).
+
+The schema (key tables, value and template checks, path-safety checks) lives in the private
+module :mod:`facegeo._scan_schema`, file resolution and the on-disk frame checks in
+:mod:`facegeo._scan_files`; every public name is importable from here.
 """
 
 from __future__ import annotations
 
 import copy
-import datetime as _dt
 import functools
 import logging
 import os
-import re
-import string
 import tomllib
 from collections.abc import Iterator, Mapping, Sequence
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from facegeo._scan_files import (
+    _check_group_files,
+    _format_template,
+    _Resolver,
+    _size_error,
+    frame_path,
+)
+from facegeo._scan_schema import (
+    DEFAULT_BOARD,
+    DEFAULT_FILES,
+    DEFAULT_RESPONSES,
+    DEFAULT_RIG,
+    FORMAT,
+    GROUPS,
+    LIGHT_ORDERS,
+    TEMPLATE_FIELDS,
+    VERSION,
+    _err,
+    _flatten_ground_truth,
+    validate_manifest,
+)
 from facegeo.checks import check_choice
 from facegeo.errors import FacegeoError, InputError, ScanFormatError
 from facegeo.fsutil import atomic_write_text
-from facegeo.imageio import (
-    READ_SUFFIXES,
-    Response,
-    clipped_mask,
-    parse_response,
-    read_image,
-    read_image_size,
-    saturated_mask,
-)
+from facegeo.imageio import read_image
+from facegeo.response import Response, clipped_mask, parse_response, saturated_mask
 
 __all__ = [
     "FORMAT",
@@ -73,445 +88,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-FORMAT = "facegeo-scan"
-VERSION = 1
 MANIFEST_NAME = "scan.toml"
-DEFAULT_RIG = "rig.json"
-DEFAULT_BOARD = "calib/board.json"
-
-#: Frame groups, in the order they are validated and summarised.
-GROUPS = ("calib", "calib.projector", "structured_light", "olat")
-
-#: Default path template of each frame group (relative to the scan directory).
-DEFAULT_FILES = {
-    "calib": "calib/{camera}/view_{view:03d}.png",
-    "calib.projector": "calib/projector/{camera}/view_{view:02d}_{frame}.png",
-    "structured_light": "structured_light/{camera}/{frame}.png",
-    "olat": "olat/{camera}/{light:04d}.exr",
-}
-
-#: The fields each group's template must use, every one of them.
-TEMPLATE_FIELDS = {
-    "calib": ("camera", "view"),
-    "calib.projector": ("camera", "view", "frame"),
-    "structured_light": ("camera", "frame"),
-    "olat": ("camera", "light"),
-}
-
-#: Default response of each section that declares one (calib.projector uses calib's).
-DEFAULT_RESPONSES = {"calib": "srgb", "structured_light": "srgb", "olat": "linear"}
-
-#: How OLAT file numbers map to the library's light index l = j·n_theta + i.
-LIGHT_ORDERS = ("theta-fastest", "phi-fastest")
 
 CHECKS = ("quick", "full")
-
-_FRAME_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
-_SAMPLE_FIELDS = {"camera": "cam", "view": 0, "frame": "white", "light": 0}
-
-
-# =========================================================================== schema
-
-# Each key: (kind, required, default). Kinds are checked by _check_value.
-_SCHEMA: dict[str, dict[str, tuple[str, bool, Any]]] = {
-    "scan": {
-        "format": ("format", True, None),
-        "version": ("version", True, None),
-        "name": ("text", True, None),
-        "synthetic": ("bool", False, False),
-        "description": ("str", False, ""),
-        "created": ("datetime", False, None),
-        "rig": ("path", False, DEFAULT_RIG),
-        "metadata": ("table", False, None),
-    },
-    "calib": {
-        "board": ("path", False, DEFAULT_BOARD),
-        "response": ("response", False, DEFAULT_RESPONSES["calib"]),
-        "views": ("count", True, None),
-        "files": ("template", False, DEFAULT_FILES["calib"]),
-        "projector": ("section", False, None),
-    },
-    "calib.projector": {
-        "views": ("count", True, None),
-        "files": ("template", False, DEFAULT_FILES["calib.projector"]),
-    },
-    "structured_light": {
-        "response": ("response", False, DEFAULT_RESPONSES["structured_light"]),
-        "projector": ("text", True, None),
-        "frames": ("frames", True, None),
-        "files": ("template", False, DEFAULT_FILES["structured_light"]),
-        "patterns": ("table", False, {}),
-    },
-    "olat": {
-        "response": ("response", False, DEFAULT_RESPONSES["olat"]),
-        "n_lights": ("count", True, None),
-        "light_order": ("light_order", False, LIGHT_ORDERS[0]),
-        "files": ("template", False, DEFAULT_FILES["olat"]),
-    },
-}
-_SECTIONS = ("scan", "calib", "structured_light", "olat", "ground_truth")
-
-
-def _err(message: str, *, key: str | None = None, path: Any = None) -> ScanFormatError:
-    return ScanFormatError(message, path=path, key=key)
-
-
-def _type_name(v: Any) -> str:
-    return type(v).__name__
-
-
-def _check_rel_path(rel: Any, key: str, where: Any) -> str:
-    """A relative POSIX path that cannot leave the scan directory (string-level check)."""
-    if not isinstance(rel, str) or not rel.strip():
-        raise _err(
-            f"expected a relative path (a non-empty string), got {rel!r}", key=key, path=where
-        )
-    if "\\" in rel:
-        raise _err(f"path {rel!r} contains a backslash; use forward slashes", key=key, path=where)
-    p = PurePosixPath(rel)
-    if p.is_absolute() or re.match(r"^[A-Za-z]:", rel):
-        raise _err(
-            f"path {rel!r} is absolute; paths in scan.toml are relative to the scan directory "
-            "and may not leave it",
-            key=key,
-            path=where,
-        )
-    if ".." in p.parts:
-        raise _err(
-            f"path {rel!r} contains '..'; paths must stay inside the scan directory",
-            key=key,
-            path=where,
-        )
-    return rel
-
-
-def _check_template(t: Any, group: str, key: str, where: Any) -> str:
-    if not isinstance(t, str) or not t:
-        raise _err(f"expected a path template string, got {t!r}", key=key, path=where)
-    need = TEMPLATE_FIELDS[group]
-    example = DEFAULT_FILES[group]
-    try:
-        parsed = list(string.Formatter().parse(t))
-    except ValueError as exc:
-        raise _err(
-            f"bad template {t!r} ({exc}); for example {example!r}", key=key, path=where
-        ) from exc
-    used = set()
-    for _, name, _, conv in parsed:
-        if name is None:
-            continue
-        if name not in need:
-            raise _err(
-                f"template {t!r} uses field {{{name}}}; valid fields here: "
-                + ", ".join("{" + n + "}" for n in need),
-                key=key,
-                path=where,
-            )
-        if conv is not None:
-            raise _err(
-                f"template {t!r}: conversions (!{conv}) are not allowed", key=key, path=where
-            )
-        used.add(name)
-    missing = [n for n in need if n not in used]
-    if missing:
-        raise _err(
-            f"template {t!r} must use every one of "
-            + ", ".join("{" + n + "}" for n in need)
-            + f" (missing {', '.join('{' + n + '}' for n in missing)}); for example {example!r}",
-            key=key,
-            path=where,
-        )
-    try:
-        sample = t.format(**_SAMPLE_FIELDS)
-    except (ValueError, TypeError, IndexError, KeyError) as exc:
-        raise _err(
-            f"template {t!r} cannot be formatted ({exc}); for example {example!r}",
-            key=key,
-            path=where,
-        ) from exc
-    _check_rel_path(sample, key, where)
-    if PurePosixPath(sample).suffix.lower() not in READ_SUFFIXES:
-        raise _err(
-            f"template {t!r} must end in an image suffix ({', '.join(READ_SUFFIXES)})",
-            key=key,
-            path=where,
-        )
-    return t
-
-
-def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
-    if kind == "format":
-        if v != FORMAT:
-            raise _err(
-                f"format is {v!r}; a facegeo scan says format = {FORMAT!r}", key=key, path=where
-            )
-        return v
-    if kind == "version":
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise _err(f"version must be an integer, got {v!r}", key=key, path=where)
-        if v != VERSION:
-            newer = " (newer than this facegeo; upgrade facegeo)" if v > VERSION else ""
-            raise _err(
-                f"unsupported version {v}{newer}; this facegeo reads version {VERSION}",
-                key=key,
-                path=where,
-            )
-        return v
-    if kind == "text":
-        if not isinstance(v, str) or not v.strip():
-            raise _err(f"expected a non-empty string, got {v!r}", key=key, path=where)
-        return v
-    if kind == "str":
-        if not isinstance(v, str):
-            raise _err(f"expected a string, got {_type_name(v)} {v!r}", key=key, path=where)
-        return v
-    if kind == "bool":
-        if not isinstance(v, bool):
-            raise _err(f"expected true or false, got {v!r}", key=key, path=where)
-        return v
-    if kind == "datetime":
-        if not isinstance(v, (str, _dt.datetime, _dt.date)):
-            raise _err(f"expected a TOML date-time or a string, got {v!r}", key=key, path=where)
-        return v
-    if kind == "count":
-        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-            raise _err(f"expected an integer > 0, got {v!r}", key=key, path=where)
-        return v
-    if kind == "path":
-        return _check_rel_path(v, key, where)
-    if kind == "template":
-        return _check_template(v, section, key, where)
-    if kind == "response":
-        if isinstance(v, str):
-            if v not in ("linear", "srgb"):
-                raise _err(
-                    f"unknown response {v!r}; expected \"linear\", \"srgb\", "
-                    "{kind = \"gamma\", gamma = 2.2} or {kind = \"table\", file = \"<file>.npy\"}",
-                    key=key,
-                    path=where,
-                )
-            return v
-        if isinstance(v, Mapping):
-            kind_ = v.get("kind")
-            if kind_ == "table":
-                extra = set(v) - {"kind", "file"}
-                if extra or "file" not in v:
-                    raise _err(
-                        "a table response is {kind = \"table\", file = \"<file>.npy\"}; "
-                        f"got keys {sorted(v)}",
-                        key=key,
-                        path=where,
-                    )
-                _check_rel_path(v["file"], f"{key}.file", where)
-                return dict(v)
-            resp = parse_response(v, key=key, path=where)  # checks gamma and the keys
-            return resp.to_spec()
-        raise _err(f"expected a response string or table, got {v!r}", key=key, path=where)
-    if kind == "light_order":
-        if v not in LIGHT_ORDERS:
-            raise _err(
-                f"unknown light_order {v!r}; expected one of "
-                + ", ".join(repr(o) for o in LIGHT_ORDERS),
-                key=key,
-                path=where,
-            )
-        return v
-    if kind == "frames":
-        if not isinstance(v, list) or not v:
-            raise _err(f"expected a non-empty array of frame names, got {v!r}", key=key, path=where)
-        seen = set()
-        for i, name in enumerate(v):
-            if not isinstance(name, str) or not _FRAME_NAME.match(name):
-                raise _err(
-                    f"frame {i} is {name!r}; frame names are letters, digits and _ . + - "
-                    "(starting with a letter or digit), since they become file names",
-                    key=key,
-                    path=where,
-                )
-            if name in seen:
-                raise _err(f"frame name {name!r} appears twice", key=key, path=where)
-            seen.add(name)
-        return list(v)
-    if kind == "table":
-        if not isinstance(v, Mapping):
-            raise _err(f"expected a table, got {_type_name(v)} {v!r}", key=key, path=where)
-        return copy.deepcopy(dict(v))
-    raise AssertionError(kind)  # pragma: no cover
-
-
-def _check_table(section: str, table: Any, where: Any) -> dict:
-    if not isinstance(table, Mapping):
-        raise _err(
-            f"expected a table [{section}], got {_type_name(table)}", key=section, path=where
-        )
-    spec = _SCHEMA[section]
-    unknown = sorted(set(table) - set(spec))
-    if unknown:
-        raise _err(
-            f"unknown key {unknown[0]!r} in [{section}]; valid keys: {', '.join(spec)}",
-            key=f"{section}.{unknown[0]}",
-            path=where,
-        )
-    out = {}
-    for k, (kind, required, default) in spec.items():
-        key = f"{section}.{k}"
-        if kind == "section":
-            continue
-        if k not in table:
-            if required:
-                raise _err(f"missing required key {k!r} in [{section}]", key=key, path=where)
-            if default is not None:
-                out[k] = copy.deepcopy(default)
-            continue
-        out[k] = _check_value(kind, table[k], key, where, section)
-    return out
-
-
-def _flatten_ground_truth(table: Any, prefix: str, where: Any, out: dict) -> dict:
-    if not isinstance(table, Mapping):
-        raise _err(f"expected a table, got {_type_name(table)}", key=prefix, path=where)
-    for k, v in table.items():
-        key = f"{prefix}.{k}"
-        if isinstance(v, Mapping):
-            _flatten_ground_truth(v, key, where, out)
-        else:
-            _check_rel_path(v, key, where)
-            out[key[len("ground_truth."):]] = v
-    return out
-
-
-def validate_manifest(manifest: Mapping[str, Any], *, path: Any = None) -> dict:
-    """Check a manifest against the schema (no file system access) and fill in defaults.
-
-    Parameters
-    ----------
-    manifest : dict
-        The parsed ``scan.toml``.
-    path : path-like, optional
-        Where it came from, for error messages.
-
-    Returns
-    -------
-    dict
-        A normalised deep copy: every optional key with a default is present.
-
-    Raises
-    ------
-    ScanFormatError
-        Unknown or missing key, wrong type or value; the message names the dotted key and says
-        what would be right.
-    """
-    if not isinstance(manifest, Mapping):
-        raise _err(f"a manifest is a table (dict), got {_type_name(manifest)}", path=path)
-    unknown = [k for k in manifest if k not in _SECTIONS]
-    if unknown:
-        raise _err(
-            f"unknown section [{unknown[0]}]; valid sections: "
-            + ", ".join(f"[{s}]" for s in _SECTIONS),
-            key=unknown[0],
-            path=path,
-        )
-    if "scan" not in manifest:
-        raise _err(
-            f"missing section [scan] (it needs at least format = {FORMAT!r}, version = {VERSION}, "
-            "name = \"...\")",
-            key="scan",
-            path=path,
-        )
-    out: dict[str, Any] = {"scan": _check_table("scan", manifest["scan"], path)}
-    if "calib" in manifest:
-        out["calib"] = _check_table("calib", manifest["calib"], path)
-        if "projector" in manifest["calib"]:
-            out["calib"]["projector"] = _check_table(
-                "calib.projector", manifest["calib"]["projector"], path
-            )
-    for section in ("structured_light", "olat"):
-        if section in manifest:
-            out[section] = _check_table(section, manifest[section], path)
-    if "projector" in out.get("calib", {}) and "structured_light" not in out:
-        raise _err(
-            "[calib.projector] names its frames after structured_light.frames, but there is no "
-            "[structured_light] section",
-            key="calib.projector",
-            path=path,
-        )
-    if "ground_truth" in manifest:
-        if not out["scan"]["synthetic"]:
-            raise _err(
-                "[ground_truth] is for synthetic scans only; set scan.synthetic = true or "
-                "remove it",
-                key="ground_truth",
-                path=path,
-            )
-        _flatten_ground_truth(manifest["ground_truth"], "ground_truth", path, {})
-        out["ground_truth"] = copy.deepcopy(dict(manifest["ground_truth"]))
-    return out
-
-
-# =========================================================================== paths
-
-
-def _format_template(template: str, fields: Mapping[str, Any]) -> str:
-    try:
-        return template.format(**fields)
-    except (KeyError, IndexError, ValueError, TypeError) as exc:
-        raise InputError(f"cannot fill template {template!r} with {dict(fields)!r}: {exc}") from exc
-
-
-class _Resolver:
-    """Joins relative paths to a root and refuses any that lead outside it (symlinks too)."""
-
-    def __init__(self, root: Path):
-        self.root = root
-        self.root_real = os.path.realpath(root)
-        self._dirs: dict[str, str] = {}
-
-    def __call__(self, rel: str, *, key: str | None = None, where: Any = None) -> Path:
-        _check_rel_path(rel, key or "path", where)
-        p = self.root / rel
-        parent = str(p.parent)
-        real_parent = self._dirs.get(parent)
-        if real_parent is None:
-            real_parent = os.path.realpath(parent)
-            self._dirs[parent] = real_parent
-        real = os.path.join(real_parent, p.name)
-        if os.path.islink(real):
-            real = os.path.realpath(real)
-        if real != self.root_real and not real.startswith(self.root_real + os.sep):
-            raise _err(
-                f"{rel!r} resolves to {real}, outside the scan directory {self.root_real} (a "
-                "symlink out of the scan); every scan file must live inside the scan directory",
-                key=key,
-                path=p,
-            )
-        return p
-
-
-def frame_path(root: str | os.PathLike, template: str, **fields: Any) -> Path:
-    """The path of one frame: ``root / template.format(**fields)``, checked to stay in ``root``.
-
-    Writers and the loader both call this, so they cannot disagree about where a frame lives.
-
-    Parameters
-    ----------
-    root : path-like
-        The scan directory.
-    template : str
-        A group's path template (:data:`DEFAULT_FILES` or the manifest's ``files``).
-    **fields
-        ``camera`` (str), ``view`` (int), ``frame`` (str), ``light`` (int, the *file* number in
-        capture order; see ``olat.light_order``).
-
-    Raises
-    ------
-    ScanFormatError
-        The filled path is absolute, contains ``..``, or resolves (through a symlink) outside
-        ``root``.
-    InputError
-        A field the template needs is missing or has the wrong type.
-    """
-    rel = _format_template(template, fields)
-    return _Resolver(Path(root))(rel, key="files")
 
 
 # =========================================================================== Scan
@@ -930,57 +509,8 @@ class Scan:
                            path=where)
         for group in self.groups:
             for cam in cameras:
-                self._check_group_files(group, cam, full=(check == "full"))
+                _check_group_files(self, group, cam, full=(check == "full"))
         return self
-
-    def _check_group_files(self, group: str, cam, *, full: bool) -> None:
-        files = self.expected_files(group, cam.name)
-        missing = [(label, p) for label, p in files if not p.is_file()]
-        if missing:
-            label, p = missing[0]
-            more = f" ({len(missing)} of {len(files)} {group} files of this camera are missing)"
-            raise _err(
-                f"missing {group} frame: camera {cam.name!r}, {label}; expected file {p}{more}",
-                key=f"{group}.files",
-                path=p,
-            )
-        expected = (cam.width, cam.height)
-        to_size = files if full else ([files[0], files[-1]] if len(files) > 1 else files)
-        for _, p in to_size:
-            size = read_image_size(p)
-            if size != expected:
-                raise _size_error(p, group, cam.name, size, expected)
-        if full:
-            response = self.response(group)
-            for _, p in files:
-                img = read_image(p)
-                h, w = img.shape[:2]
-                if (w, h) != expected:
-                    raise _size_error(p, group, cam.name, (w, h), expected)
-                if img.ndim == 3 and img.shape[2] not in (3, 4):
-                    raise _err(
-                        f"image has {img.shape[2]} channels; expected grey, RGB or RGBA",
-                        key=f"{group}.files",
-                        path=p,
-                    )
-                try:
-                    if img.dtype.kind == "f":
-                        response.linearize(img[:1, :1])
-                    else:
-                        response.lut(img.dtype)
-                except InputError as exc:
-                    sect = "calib" if group == "calib.projector" else group
-                    raise _err(f"{exc}", key=f"{sect}.response", path=p) from exc
-
-
-def _size_error(path: Path, group: str, camera: str, found, expected) -> ScanFormatError:
-    return _err(
-        f"image is {found[0]}×{found[1]} px but camera {camera!r} is {expected[0]}×{expected[1]} "
-        "px in the rig (width × height)",
-        key=f"{group}.files",
-        path=path,
-    )
-
 
 # =========================================================================== entry points
 
