@@ -150,7 +150,8 @@ def test_tiny_scan_loads_and_matches_renderer(tiny_scan):
     assert rig.lights.n_lights == summary.n_lights == 16 * 8
     # scan round trip: the OLAT frames on disk are the reference renderer's images, bit for bit
     renderer = load_ground_truth(scan)
-    cam = rig.cameras[0]
+    true_rig = renderer.rig
+    cam = true_rig.cameras[0]
     for l, img in renderer.olat_images(cam, rig.lights, indices=[0, 37, rig.lights.n_lights - 1]):
         disk = scan.olat_frame(cam.name, l)
         assert disk.dtype == np.float32
@@ -197,10 +198,12 @@ def test_structured_light_frames_decode_to_true_projector_pixels(tiny_scan):
     from facegeo.scan import load_scan
     from facegeo.structured_light import PatternSpec, decode_gray
 
+    from facegeo.rig import Rig
+
     root, _ = tiny_scan
     scan = load_scan(root)
     spec = PatternSpec.from_dict(scan.sl_patterns)
-    proj = scan.rig.projector
+    proj = Rig.load(scan.ground_truth_path("rig")).projector
     for cam in scan.camera_names:
         frames = {name: scan.sl_frame(cam, name) for name in scan.sl_frames}
         dec = decode_gray(frames, spec)
@@ -233,8 +236,8 @@ def test_ground_truth_files_and_reference_renders(tiny_scan):
     # ... and equals the renderer's own weighted-lights render (an independent code path)
     from facegeo.synth.render import load_ground_truth
 
-    direct = load_ground_truth(scan).render_lights(rig.camera(cam), rig.lights,
-                                                   np.repeat(w[:, None], 3, axis=1))
+    gt = load_ground_truth(scan)
+    direct = gt.render_lights(gt.rig.camera(cam), rig.lights, np.repeat(w[:, None], 3, axis=1))
     assert np.abs(direct - ref).max() < 1e-5 * max(ref.max(), 1e-6)
 
 
@@ -273,6 +276,13 @@ def test_synth_scan_from_real_mesh(shared_data, tmp_path):
     generate_scan(tmp_path / "mp", "tiny", head=str(mesh), units="cm", seed=1)
     scan = load_scan(tmp_path / "mp", check="full")
     assert scan.synthetic and len(scan.camera_names) == 2
+    # a mesh with UVs: the ground truth rebuilds (geometry-only PLY) and reproduces the frames
+    from facegeo.synth.render import load_ground_truth
+
+    gt = load_ground_truth(scan)
+    cam = gt.rig.cameras[1]
+    (l, img), = gt.olat_images(cam, gt.rig.lights, indices=[40])
+    assert np.array_equal(img, scan.olat_frame(cam.name, 40))
 
 
 def test_spectral_skin_scan_round_trips(tmp_path):
@@ -304,3 +314,79 @@ def test_spectral_skin_scan_round_trips(tmp_path):
     with pytest.raises(Exception, match="unknown spectral skin type"):
         generate_scan(tmp_path / "bad", "tiny", skin="spectral:green")
     assert not (tmp_path / "bad").exists()  # arguments are checked before anything is written
+
+
+def test_true_rig_differs_from_nominal_by_a_calibration_sized_error(tiny_scan):
+    """The scan's rig.json is the nominal rig; frames are rendered with the true (perturbed)
+    one in ground_truth/rig.json — millimetres and tenths of a degree apart."""
+    from facegeo.rig import Rig
+    from facegeo.scan import load_scan
+
+    root, _ = tiny_scan
+    scan = load_scan(root)
+    nominal, true = scan.rig, Rig.load(scan.ground_truth_path("rig"))
+    for a, b in zip(list(nominal.cameras) + [nominal.projector], list(true.cameras) + [true.projector]):
+        dc = np.linalg.norm(a.center_world - b.center_world)
+        df = abs(a.fx / b.fx - 1)
+        assert 1e-5 < dc < 0.02, f"{a.name}: centres {dc * 1e3:.2f} mm apart"
+        assert df < 0.03, f"{a.name}: focal lengths differ by {df:.3%}"
+    assert not np.array_equal(nominal.cameras[0].K, true.cameras[0].K)
+
+
+def test_overwrite_replaces_the_whole_scan(tmp_path):
+    from facegeo.scan import load_scan
+    from facegeo.synth.capture import generate_scan
+
+    root = tmp_path / "s"
+    generate_scan(root, "tiny", seed=0)
+    (root / "olat" / "cam_left" / "9999.exr").write_bytes(b"stale")
+    generate_scan(root, "tiny", seed=1, overwrite=True)
+    assert not (root / "olat" / "cam_left" / "9999.exr").exists()
+    assert "seed 1" in load_scan(root).description
+
+
+def test_extreme_distortion_leaves_unprojectable_pixels_out(tmp_path):
+    """Pixels whose undistortion cannot converge get no ray: they are left out of the mask
+    instead of crashing the renderer."""
+    from facegeo.synth.capture import PRESETS, build_head, build_rig
+    from facegeo.synth.skin import SkinField
+
+    cam = build_rig(PRESETS["tiny"]).cameras[0]
+    cam = cam.replace(dist=np.array([-60.0, 0.0, 0.0, 0.0, 0.0]))
+    mesh = build_head("procedural", subdivisions=3)
+    r = ReferenceRenderer.from_mesh(mesh, SkinField.for_mesh(mesh))
+    view = r.surface_view(cam)
+    assert view.n_samples > 0 and np.isfinite(view.p_world).all()
+    with pytest.raises(Exception, match="light indices"):
+        next(r.olat_images(cam, build_rig(PRESETS["tiny"]).lights, indices=[-1]))
+
+
+def test_head_units_checked(shared_data):
+    from conftest import shared_file
+    from facegeo.errors import InputError
+    from facegeo.synth.capture import build_head
+
+    path = shared_file(shared_data, "faces/mediapipe_canonical_face.obj")
+    with pytest.raises(InputError, match="check --units"):
+        build_head(str(path), units="m")
+
+
+def test_seam_vertices_share_normals():
+    """A UV seam (vertices duplicated at one position) does not crease the shading normals;
+    coincident vertices on opposite-facing surfaces keep their own."""
+    from facegeo.synth.render import smooth_vertex_normals
+
+    # a roof of two faces with the ridge vertices duplicated (a seam along the ridge)
+    # (slopes 26.6° each way: normals 53° apart, inside the 60° crease angle)
+    v = np.array([[0, 0.5, 0], [1, 0.5, 0], [0, 1, 1], [1, 1, 1],  # left slope; ridge = 2, 3
+                  [0, 1, 1], [1, 1, 1], [0, 0.5, 2], [1, 0.5, 2]], float)  # right; ridge = 4, 5
+    f = np.array([[0, 2, 1], [1, 2, 3], [4, 6, 5], [5, 6, 7]])
+    n = smooth_vertex_normals(v, f)
+    assert np.abs(n[2] - n[4]).max() < 1e-12 and np.abs(n[3] - n[5]).max() < 1e-12
+    slope_up = np.cos(np.arctan(0.5))  # each slope's normal · (0, 1, 0)
+    assert n[2] @ [0, 1, 0] > slope_up + 0.05  # the ridge normal lies between the two slopes
+    # a sheet and its back side at the same positions: opposite normals stay apart
+    v2 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    f2 = np.array([[0, 1, 2], [3, 5, 4]])
+    n2 = smooth_vertex_normals(v2, f2)
+    assert np.abs(n2[0] - [0, 0, 1]).max() < 1e-12 and np.abs(n2[3] - [0, 0, -1]).max() < 1e-12

@@ -56,6 +56,10 @@ class Preset:
         Phase-shift frames per axis (0: none).
     olat_half : bool
         Store OLAT frames as float16 EXR (float32 otherwise).
+    sl_supersample : int
+        Structured-light frames integrate s × s rays per pixel (a box-filtered pixel, so
+        stripes finer than a pixel blur as they would on a sensor); OLAT frames and the
+        reference renders sample the pixel centre exactly.
     """
 
     name: str
@@ -68,13 +72,22 @@ class Preset:
     projector_views: int
     phase_steps: int = 3
     olat_half: bool = True
+    sl_supersample: int = 3
 
 
 PRESETS: dict[str, Preset] = {
     "tiny": Preset("tiny", 1 / 6, 16, 8, 4, (256, 192), 3, 1, 3, olat_half=False),
     "small": Preset("small", 1 / 2, 32, 16, 5, (512, 384), 10, 3, 3),
-    "paper": Preset("paper", 1.0, 64, 32, 6, (1024, 768), 15, 5, 3),
+    "paper": Preset("paper", 1.0, 64, 32, 6, (1024, 768), 15, 5, 3, sl_supersample=2),
 }
+
+#: Bounding-box diagonal a head mesh must have once converted to metres (a real head is
+#: ≈ 0.3–0.45 m; a face-only mesh ≈ 0.2 m). Outside this the --units are almost surely wrong.
+HEAD_DIAGONAL_RANGE_M = (0.1, 1.0)
+
+#: How far the true rig departs from the nominal one (1 σ): what a calibration must recover.
+RIG_PERTURBATION = {"position_m": 0.002, "rotation_deg": 0.2, "focal_rel": 0.005,
+                    "principal_px": 3.0, "k1": 0.01}
 
 
 @dataclass
@@ -108,11 +121,53 @@ def build_head(head: str = "procedural", *, units: str = "cm", subdivisions: int
     p = Path(head)
     if not p.exists():
         raise InputError(f"--head: no such mesh file {p} (use 'procedural' or a path)")
-    return load_head_mesh(p, units=units)
+    mesh = load_head_mesh(p, units=units)
+    diag = float(np.linalg.norm(np.ptp(np.asarray(mesh.vertices), axis=0)))
+    lo, hi = HEAD_DIAGONAL_RANGE_M
+    if not lo <= diag <= hi:
+        raise InputError(
+            f"--head {p}: with --units {units} the mesh's bounding-box diagonal is {diag:.3g} m, "
+            f"outside the {lo}–{hi} m of a head; check --units (cm, mm or m)"
+        )
+    return mesh
+
+
+def perturbed_rig(rig, seed: int):
+    """The rig as built: the nominal ``rig`` with seeded errors of the sizes in
+    :data:`RIG_PERTURBATION` in every camera's and the projector's pose and intrinsics.
+
+    The synthetic capture renders with this true rig and writes the nominal one as the scan's
+    ``rig.json`` — what a real rig's owner knows before calibration — and the true one to
+    ``ground_truth/rig.json``, so calibration has something real to recover.
+    """
+    from facegeo.frames import Pose, rotation_from_rvec
+    from facegeo.rig import Rig
+
+    rng = np.random.default_rng([seed, 7])
+    P = RIG_PERTURBATION
+
+    def jitter(cam, *, distortion: bool):
+        K = cam.K.copy()
+        K[0, 0] *= 1 + P["focal_rel"] * rng.standard_normal()
+        K[1, 1] *= 1 + P["focal_rel"] * rng.standard_normal()
+        # principal_px is at a 480-px-wide image; scale to this image
+        K[:2, 2] += P["principal_px"] * (cam.width / 480.0) * rng.standard_normal(2)
+        dist = cam.dist.copy()
+        if distortion and dist.size:
+            dist[0] += P["k1"] * rng.standard_normal()
+        # perturb the camera's pose in the world: rotate about and move its centre
+        dR = rotation_from_rvec(np.deg2rad(P["rotation_deg"]) * rng.standard_normal(3))
+        c = cam.center_world + P["position_m"] * rng.standard_normal(3)
+        R = dR @ cam.T_cam_world.R
+        return cam.replace(K=K, dist=dist, T_cam_world=Pose(R, -R @ c))
+
+    cams = [jitter(c, distortion=True) for c in rig.cameras]
+    proj = None if rig.projector is None else jitter(rig.projector, distortion=False)
+    return Rig(cameras=cams, projector=proj, lights=rig.lights)
 
 
 def build_rig(preset: Preset):
-    """The default rig (paper-shaped) resized to the preset."""
+    """The nominal default rig (paper-shaped) resized to the preset."""
     from facegeo.camera import Camera
     from facegeo.rig import LightStage, Rig, default_rig
 
@@ -268,6 +323,15 @@ def generate_scan(
     if (root / "scan.toml").exists() and not overwrite:
         raise InputError(f"{root} already holds a scan (scan.toml); pass overwrite=True "
                          "(--overwrite) to replace it")
+    if overwrite and (root / "scan.toml").exists():
+        # Remove the manifest first: an interrupted run then leaves no scan.toml (an incomplete
+        # scan), never a valid-looking mix of two runs; then the products it described.
+        (root / "scan.toml").unlink()
+        import shutil
+
+        for sub in ("calib", "structured_light", "olat", "ground_truth", "out"):
+            if (root / sub).is_dir():
+                shutil.rmtree(root / sub)
     root.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     tick = progress or (lambda stage, done, total: None)
@@ -279,7 +343,8 @@ def generate_scan(
     # Ground truth is stored as PLY with float32 vertices: render exactly that geometry, so the
     # mesh in ground_truth/ reproduces every frame bit for bit.
     mesh.vertices = np.asarray(mesh.vertices, np.float32).astype(np.float64)
-    rig = build_rig(preset)
+    nominal_rig = build_rig(preset)
+    rig = perturbed_rig(nominal_rig, seed)  # the true rig: every frame is rendered with it
     skin_field = SkinField.for_mesh(mesh, seed=seed, **skin_kwargs)
     renderer = ReferenceRenderer.from_mesh(mesh, skin_field)
     board = _board_for_rig(rig)
@@ -293,14 +358,16 @@ def generate_scan(
         f"facegeo synthetic capture, preset {preset.name}, head {head}, skin {skin}, seed {seed}, "
         f"noise {noise}"
     )
-    rig.save(root / manifest["scan"]["rig"])
+    nominal_rig.save(root / manifest["scan"]["rig"])
     noise_rng = np.random.default_rng([seed, 1])
 
     def _noisy(img, white):
+        # read noise σ = noise·white plus photon noise σ = noise·√(white·signal) (equal to the
+        # read noise at the white level): σ_total = noise·white·√(1 + signal/white)
         if noise <= 0:
             return img
-        sigma = noise * white * np.sqrt(np.clip(img / white, 0, None) + 0.05)
-        return img + sigma * noise_rng.standard_normal(img.shape).astype(np.float32)
+        sigma = noise * white * np.sqrt(1.0 + np.clip(img / white, 0, None))
+        return img + (sigma * noise_rng.standard_normal(img.shape)).astype(np.float32)
 
     # ---- calibration: board views (seen by all cameras at once) ----
     t0 = time.perf_counter()
@@ -360,7 +427,7 @@ def generate_scan(
     from facegeo.structured_light import pattern_value_at
 
     for cam in rig.cameras:
-        view = renderer.surface_view(cam)
+        view = renderer.surface_view(cam, supersample=preset.sl_supersample)
         # Projector light: shade the skin BRDF under the projector as a point light, with
         # projector shadows from Embree; the pattern modulates it per projector pixel.
         unit = renderer.shade_point_light(view, proj.center_world, np.ones(3),
@@ -458,8 +525,11 @@ def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: 
     gt = root / "ground_truth"
     gt.mkdir(parents=True, exist_ok=True)
     out: dict[str, str] = {}
+    import trimesh
+
     with atomic_path(gt / "mesh.ply") as tmp:
-        mesh.export(tmp)
+        # geometry only: UVs and materials would make loaders try to load textures
+        trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False).export(tmp)
     out["mesh"] = "ground_truth/mesh.ply"
     rig.save(gt / "rig.json")
     out["rig"] = "ground_truth/rig.json"

@@ -10,9 +10,14 @@ Embree shadow rays, no interreflection or subsurface transport (the paper's mode
 either, so a perfect fit can reproduce these frames exactly).
 
 Radiometry (``docs/conventions.md``): an OLAT pixel is the radiance reflected toward the camera
-under a light that delivers irradiance ``E_l = |c_l|·(r/d)²`` at normal incidence, where ``c_l`` is
-the light colour, ``r`` the light-stage radius and ``d`` the light's distance from the surface
-point (``E_l = |c_l|`` for distant lights). Unit irradiance at the stage centre makes the paper's
+under a light that delivers irradiance ``E_l = c_l·(r/d)²`` (per RGB channel) at normal
+incidence, where ``c_l`` is the light colour, ``r`` the light-stage radius and ``d`` the light's
+distance from the surface point (``E_l = c_l`` for distant lights).
+
+Shadows are traced from the (faceted) mesh while shading uses interpolated normals, so on a
+coarse mesh a sample near the terminator can be shadowed by its own neighbouring triangles
+(≈ 2 % of lit samples on the ``small`` head): a mesh-resolution artefact, but one the frames and
+this renderer share exactly, so ground truth stays consistent. Unit irradiance at the stage centre makes the paper's
 Eq. (4) sum ``Σ_l R_l L_l δA_l`` the Riemann sum of ``∫ f_r L cos θ dω``.
 
 Every pixel is sampled once, through its centre (OpenCV convention), so the reference is exact
@@ -36,21 +41,49 @@ log = logging.getLogger(__name__)
 __all__ = ["SurfaceView", "ReferenceRenderer", "smooth_vertex_normals"]
 
 
-def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals ``(V, 3)`` float64, unit length (zero-area fans give +Z).
+def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray, *,
+                          crease_deg: float = 60.0) -> np.ndarray:
+    """Area-weighted vertex normals ``(V, 3)`` float64, unit length, smooth across UV seams.
 
-    Computed without merging vertices, so a mesh with UV seams keeps a crease along each seam
-    exactly as its own topology says.
+    A mesh with UV seams stores one vertex per (position, UV) pair, so its topology alone would
+    crease the shading along every seam — creases the real surface does not have and that a
+    reconstructed (seamless) mesh could not reproduce. Vertices at the same position therefore
+    share their face normals, unless their own normals differ by more than ``crease_deg``
+    (coincident vertices on genuinely different surfaces, e.g. an eyelid's two sides).
+    Vertices used only by zero-area faces get NaN (no hit can ever interpolate them: Embree never
+    reports a zero-area triangle).
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # |fn| = 2·area
-    vn = np.zeros_like(v)
+    own = np.zeros_like(v)
     for k in range(3):
-        np.add.at(vn, f[:, k], fn)
-    norm = np.linalg.norm(vn, axis=1, keepdims=True)
-    out = np.where(norm > 0, vn / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 1.0]))
-    return out
+        np.add.at(own, f[:, k], fn)
+    own_unit = _unit_or_nan(own)
+    # Weld by exact position: pair each vertex with the others at its position (few per seam).
+    _, inv, counts = np.unique(v, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    acc = own.copy()
+    if counts.max() > 1:
+        order = np.argsort(inv, kind="stable")
+        size = counts[inv[order]]
+        start = np.repeat(np.cumsum(counts) - counts, counts)
+        pos = np.arange(len(order)) - start
+        cos_crease = np.cos(np.deg2rad(crease_deg))
+        for k in range(1, int(counts.max())):
+            sel = size > k
+            me = order[sel]
+            partner = order[start[sel] + (pos[sel] + k) % size[sel]]
+            with np.errstate(invalid="ignore"):
+                ok = np.einsum("pc,pc->p", own_unit[me], own_unit[partner]) > cos_crease
+            np.add.at(acc, me[ok], own[partner[ok]])
+    return _unit_or_nan(acc)
+
+
+def _unit_or_nan(a: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(a, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(norm > 0, a / norm, np.nan)
 
 
 @dataclass
@@ -63,9 +96,10 @@ class SurfaceView:
     shape : (int, int)
         Image (height, width).
     mask : (H, W) bool
-        The pixel's centre ray hits the head.
+        The pixel's centre ray hits the head (with supersampling: at least one of its rays).
     pixel_index : (P,) int64
-        Flat indices (row·W + col) of the masked pixels; every per-sample array below is (P, ...).
+        Flat indices of the samples that hit: ``(row·W + col)·S + k`` for sub-sample k of S;
+        every per-sample array below is (P, ...).
     p_world : (P, 3) float64, metres, world frame
         Hit points.
     n_world : (P, 3) float64
@@ -92,18 +126,27 @@ class SurfaceView:
     alpha_1: np.ndarray
     rho_s: np.ndarray
     roughness: np.ndarray
+    samples_per_pixel: int = 1
 
     @property
     def n_samples(self) -> int:
         return int(self.pixel_index.size)
 
     def to_image(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
-        """Scatter per-sample values ``(P, ...)`` into an image ``(H, W, ...)``."""
+        """Scatter per-sample values ``(P, ...)`` into an image ``(H, W, ...)``.
+
+        With several samples per pixel the pixel is their mean (a box filter); samples that miss
+        the head count as ``fill``.
+        """
         h, w = self.shape
+        s = self.samples_per_pixel
         values = np.asarray(values)
-        out = np.full((h * w,) + values.shape[1:], fill, dtype=values.dtype)
+        out = np.full((h * w * s,) + values.shape[1:], fill, dtype=values.dtype)
         out[self.pixel_index] = values
-        return out.reshape((h, w) + values.shape[1:])
+        out = out.reshape((h, w, s) + values.shape[1:])
+        if s == 1:
+            return out[:, :, 0]
+        return out.mean(axis=2, dtype=np.float64).astype(values.dtype)
 
 
 class ReferenceRenderer:
@@ -128,6 +171,7 @@ class ReferenceRenderer:
         self.eta = float(eta)
         self.shadows = bool(shadows)
         self._views: dict[tuple, SurfaceView] = {}
+        self.rig = None  # the true rig, when rebuilt from a scan (load_ground_truth)
 
     @classmethod
     def from_mesh(cls, mesh, skin, **kw) -> ReferenceRenderer:
@@ -148,19 +192,38 @@ class ReferenceRenderer:
 
     # ------------------------------------------------------------------ geometry
 
-    def surface_view(self, camera) -> SurfaceView:
-        """Per-pixel surface samples seen by ``camera`` (cached per camera)."""
+    def surface_view(self, camera, *, supersample: int = 1) -> SurfaceView:
+        """Surface samples seen by ``camera`` (cached per camera).
+
+        ``supersample = s`` traces s × s rays per pixel on a regular sub-pixel grid (for frames
+        that should integrate over the pixel, like structured light); 1 traces the pixel centre.
+        """
+        s = int(supersample)
+        if s < 1 or s != supersample:
+            raise InputError(f"supersample: expected an integer >= 1, got {supersample!r}")
         key = (camera.name, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(),
-               camera.T_cam_world.R.tobytes(), camera.T_cam_world.t.tobytes())
+               camera.T_cam_world.R.tobytes(), camera.T_cam_world.t.tobytes(), s)
         if key in self._views:
             return self._views[key]
-        o, d = camera.pixel_rays()
         h, w = camera.height, camera.width
-        hits = self.rays.closest_hit(o.reshape(-1, 3), d.reshape(-1, 3), t_min=0.0)
-        idx = np.flatnonzero(hits.hit)
-        face = hits.face[idx]
-        bary = hits.bary[idx]
-        p = hits.point[idx]
+        if s == 1:
+            o, d = camera.pixel_rays()
+        else:
+            off = (np.arange(s) + 0.5) / s - 0.5
+            ox, oy = np.meshgrid(off, off)
+            sub = np.stack([ox.ravel(), oy.ravel()], axis=-1)  # (s², 2)
+            q = camera.pixel_grid()[:, :, None, :] + sub[None, None]
+            o, d = camera.pixel_rays(q)
+        o = o.reshape(-1, 3)
+        d = d.reshape(-1, 3)
+        # Pixels whose undistortion did not converge (extreme lenses) have no ray: leave them out.
+        finite = np.flatnonzero(np.isfinite(d).all(axis=1))
+        hits = self.rays.closest_hit(o[finite], d[finite], t_min=0.0)
+        sel = np.flatnonzero(hits.hit)
+        idx = finite[sel]
+        face = hits.face[sel]
+        bary = hits.bary[sel]
+        p = hits.point[sel]
         n = np.einsum("pk,pkc->pc", bary, self.vertex_normals[self.faces[face]])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         v = camera.center_world[None, :] - p
@@ -172,22 +235,23 @@ class ReferenceRenderer:
         if back.any():
             n[back] = n[back] - (cos_v[back] - 1e-6)[:, None] * v[back]
             n[back] /= np.linalg.norm(n[back], axis=1, keepdims=True)
-        s = self.skin.evaluate(p)
-        mask = np.zeros(h * w, bool)
+        skin = self.skin.evaluate(p)
+        mask = np.zeros(h * w * s * s, bool)
         mask[idx] = True
         view = SurfaceView(
             camera_name=camera.name,
             shape=(h, w),
-            mask=mask.reshape(h, w),
+            mask=mask.reshape(h, w, s * s).any(axis=2),
             pixel_index=idx.astype(np.int64),
             p_world=p,
             n_world=n,
             v_world=v,
             face=face.astype(np.int64),
-            alpha_0=np.asarray(s.alpha_0, np.float32).reshape(-1, 3),
-            alpha_1=np.asarray(s.alpha_1, np.float32).reshape(-1, 3),
-            rho_s=np.asarray(s.rho_s, np.float32).reshape(-1),
-            roughness=np.asarray(s.roughness, np.float32).reshape(-1),
+            alpha_0=np.asarray(skin.alpha_0, np.float32).reshape(-1, 3),
+            alpha_1=np.asarray(skin.alpha_1, np.float32).reshape(-1, 3),
+            rho_s=np.asarray(skin.rho_s, np.float32).reshape(-1),
+            roughness=np.asarray(skin.roughness, np.float32).reshape(-1),
+            samples_per_pixel=s * s,
         )
         self._views[key] = view
         return view
@@ -195,7 +259,7 @@ class ReferenceRenderer:
     # ------------------------------------------------------------------ shading
 
     def shade_point_light(self, view: SurfaceView, position, color, *, stage_radius: float,
-                          stage_center=(0.0, 0.0, 0.0), sel: np.ndarray | None = None) -> np.ndarray:
+                          sel: np.ndarray | None = None) -> np.ndarray:
         """Radiance ``(P, 3)`` float32 toward the camera under one near-field point light.
 
         ``position`` is the light's world position; ``color`` (3,) linear RGB gives the
@@ -265,7 +329,13 @@ class ReferenceRenderer:
         is finite, distant lights otherwise. Frames come in light-index order.
         """
         view = self.surface_view(camera)
-        idx = range(lights.n_lights) if indices is None else indices
+        if indices is None:
+            idx = range(lights.n_lights)
+        else:
+            idx = np.asarray(indices).reshape(-1)
+            if idx.dtype.kind not in "iu" or np.any((idx < 0) | (idx >= lights.n_lights)):
+                raise InputError(f"indices: expected light indices in [0, {lights.n_lights}), "
+                                 f"got {np.asarray(indices).tolist()!r:.80}")
         dirs = lights.directions
         color = np.asarray(lights.color, float)
         finite = np.isfinite(lights.radius)
@@ -306,6 +376,10 @@ class ReferenceRenderer:
 def load_ground_truth(scan) -> ReferenceRenderer:
     """The reference renderer of a synthetic scan, rebuilt from its ``ground_truth/`` files.
 
+    Its ``rig`` attribute holds the true rig the frames were rendered with
+    (``ground_truth/rig.json``); the scan's own ``rig.json`` is the nominal rig, which differs
+    from it by what a calibration must recover.
+
     Parameters
     ----------
     scan : facegeo.scan.Scan or path
@@ -314,12 +388,18 @@ def load_ground_truth(scan) -> ReferenceRenderer:
     import json
 
     import trimesh
+    import trimesh.exchange.ply
 
+    from facegeo.rig import Rig
     from facegeo.scan import Scan, load_scan
     from facegeo.synth.skin import SkinField
 
     if not isinstance(scan, Scan):
         scan = load_scan(scan)
-    mesh = trimesh.load(scan.ground_truth_path("mesh"), process=False, force="mesh")
+    with open(scan.ground_truth_path("mesh"), "rb") as fh:
+        data = trimesh.exchange.ply.load_ply(fh)  # geometry only: no material/texture loading
+    mesh = trimesh.Trimesh(data["vertices"], data["faces"], process=False)
     skin = SkinField.from_dict(json.loads(scan.ground_truth_path("skin").read_text()))
-    return ReferenceRenderer.from_mesh(mesh, skin)
+    renderer = ReferenceRenderer.from_mesh(mesh, skin)
+    renderer.rig = Rig.load(scan.ground_truth_path("rig"))
+    return renderer
