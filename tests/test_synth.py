@@ -390,3 +390,20 @@ def test_seam_vertices_share_normals():
     f2 = np.array([[0, 1, 2], [3, 5, 4]])
     n2 = smooth_vertex_normals(v2, f2)
     assert np.abs(n2[0] - [0, 0, 1]).max() < 1e-12 and np.abs(n2[3] - [0, 0, -1]).max() < 1e-12
+
+
+def test_threaded_shading_is_identical_to_serial(tiny_scan):
+    from facegeo.scan import load_scan
+    from facegeo.synth.render import load_ground_truth
+
+    root, _ = tiny_scan
+    gt = load_ground_truth(load_scan(root))
+    cam, lights = gt.rig.cameras[0], gt.rig.lights
+    idx = [5, 0, 77, 3, 127, 64]
+    serial = list(gt.olat_images(cam, lights, idx, workers=1))
+    threaded = list(gt.olat_images(cam, lights, idx, workers=2))
+    assert [l for l, _ in threaded] == idx
+    assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(serial, threaded))
+    w = np.random.default_rng(0).random((lights.n_lights, 3))
+    assert np.array_equal(gt.render_lights(cam, lights, w, workers=1),
+                          gt.render_lights(cam, lights, w, workers=3))

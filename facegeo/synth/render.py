@@ -322,55 +322,85 @@ class ReferenceRenderer:
 
     # ------------------------------------------------------------------ images
 
-    def olat_images(self, camera, lights, indices=None) -> Iterator[tuple[int, np.ndarray]]:
+    def shade_stage_light(self, view: SurfaceView, lights, l: int) -> np.ndarray:
+        """Radiance ``(P, 3)`` float32 under light ``l`` of a light stage: a near-field point light
+        when the stage radius is finite, a distant light otherwise."""
+        color = np.asarray(lights.color, float)
+        if np.isfinite(lights.radius):
+            pos = np.asarray(lights.center, float) + lights.radius * lights.directions[l]
+            return self.shade_point_light(view, pos, color, stage_radius=lights.radius)
+        return self.shade_directional_light(view, lights.directions[l], color)
+
+    def olat_images(self, camera, lights, indices=None, *, workers: int = 2
+                    ) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(light index, image (H, W, 3) float32)`` for each light of a light stage.
 
-        ``lights`` is a :class:`facegeo.rig.LightStage`; near-field point lights when its radius
-        is finite, distant lights otherwise. Frames come in light-index order.
+        ``lights`` is a :class:`facegeo.rig.LightStage`. Frames come in the order of
+        ``indices`` (default: light-index order). Lights are shaded ``workers`` at a time (numpy
+        and Embree release the GIL), with at most ``2·workers`` frames in flight, so memory stays
+        bounded; every frame is computed independently, so results do not depend on ``workers``.
         """
         view = self.surface_view(camera)
-        if indices is None:
-            idx = range(lights.n_lights)
-        else:
-            idx = np.asarray(indices).reshape(-1)
-            if idx.dtype.kind not in "iu" or np.any((idx < 0) | (idx >= lights.n_lights)):
-                raise InputError(f"indices: expected light indices in [0, {lights.n_lights}), "
-                                 f"got {np.asarray(indices).tolist()!r:.80}")
-        dirs = lights.directions
-        color = np.asarray(lights.color, float)
-        finite = np.isfinite(lights.radius)
-        for l in idx:
-            if finite:
-                pos = np.asarray(lights.center, float) + lights.radius * dirs[l]
-                rad = self.shade_point_light(view, pos, color, stage_radius=lights.radius)
-            else:
-                rad = self.shade_directional_light(view, dirs[l], color)
+        idx = self._check_indices(lights, indices)
+        for l, rad in _ordered_map(lambda l: self.shade_stage_light(view, lights, l), idx, workers):
             yield int(l), view.to_image(rad)
 
-    def render_lights(self, camera, lights, weights, *, progress: Callable[[int], None] | None = None
-                      ) -> np.ndarray:
+    def render_lights(self, camera, lights, weights, *, workers: int = 2,
+                      progress: Callable[[int], None] | None = None) -> np.ndarray:
         """Image ``(H, W, 3)`` float32 of the head lit by the light stage with RGB ``weights``.
 
         ``weights`` is ``(L, 3)``: the image is ``Σ_l weights[l] ⊙ OLAT_l``. To light with an
         environment of radiance ``L(ω)``, pass ``weights[l] = L(ω_l) · δA_l`` — Debevec et al.
-        2000 Eq. (4). Lights with zero weight are skipped (only lights that carry energy).
+        2000 Eq. (4). Lights with zero weight are skipped (only lights that carry energy). The
+        sum runs in light-index order in float64 whatever ``workers`` is.
         """
         w = as_array(weights, "weights", shape=(lights.n_lights, 3))
         view = self.surface_view(camera)
         acc = np.zeros((view.n_samples, 3), np.float64)
         active = np.flatnonzero(np.any(w != 0, axis=1))
-        for k, (l, _) in enumerate(zip(active, range(len(active)))):
-            if np.isfinite(lights.radius):
-                pos = np.asarray(lights.center, float) + lights.radius * lights.directions[l]
-                rad = self.shade_point_light(view, pos, np.asarray(lights.color, float),
-                                             stage_radius=lights.radius)
-            else:
-                rad = self.shade_directional_light(view, lights.directions[l],
-                                                   np.asarray(lights.color, float))
+        shade = lambda l: self.shade_stage_light(view, lights, l)  # noqa: E731
+        for k, (l, rad) in enumerate(_ordered_map(shade, active, workers)):
             acc += rad * w[l][None, :]
             if progress:
                 progress(k)
         return view.to_image(acc.astype(np.float32))
+
+    @staticmethod
+    def _check_indices(lights, indices):
+        if indices is None:
+            return np.arange(lights.n_lights)
+        idx = np.asarray(indices).reshape(-1)
+        if idx.dtype.kind not in "iu" or np.any((idx < 0) | (idx >= lights.n_lights)):
+            raise InputError(f"indices: expected light indices in [0, {lights.n_lights}), "
+                             f"got {np.asarray(indices).tolist()!r:.80}")
+        return idx
+
+
+def _ordered_map(fn, items, workers: int):
+    """Yield ``(item, fn(item))`` in order, computing up to ``2·workers`` items ahead on a thread
+    pool (bounded memory; ``workers <= 1`` runs inline)."""
+    items = list(items)
+    if workers <= 1 or len(items) <= 1:
+        for it in items:
+            yield it, fn(it)
+        return
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending: deque = deque()
+        it = iter(items)
+        for item in it:
+            pending.append((item, pool.submit(fn, item)))
+            if len(pending) >= 2 * workers:
+                break
+        done = object()
+        while pending:
+            item, fut = pending.popleft()
+            nxt = next(it, done)
+            if nxt is not done:
+                pending.append((nxt, pool.submit(fn, nxt)))
+            yield item, fut.result()
 
 
 def load_ground_truth(scan) -> ReferenceRenderer:
