@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from facegeo.camera import Camera
-from facegeo.frames import Pose, look_at
+from facegeo.frames import look_at
 from facegeo.synth.render import ReferenceRenderer
 
 LAMBERT_REL_TOL = 1e-5  # flat patch vs analytic value, max relative (float32 output)
@@ -139,7 +139,6 @@ def tiny_scan(tmp_path_factory):
 
 
 def test_tiny_scan_loads_and_matches_renderer(tiny_scan):
-    from facegeo.rig import Rig
     from facegeo.scan import load_scan
     from facegeo.synth.render import load_ground_truth
 

@@ -25,9 +25,9 @@ def bench_generate(quick: bool) -> list[BenchRow]:
         summary = generate_scan(root, preset, seed=0)
         wall = time.perf_counter() - t0
         scan = load_scan(root)
-        rig = scan.rig
-        cam = rig.cameras[0]
         renderer = load_ground_truth(scan)
+        rig = renderer.rig  # the true rig the frames were rendered with
+        cam = rig.cameras[0]
         lights = np.linspace(0, rig.lights.n_lights - 1, 8).astype(int)
         worst = 0.0
         for l, ref in renderer.olat_images(cam, rig.lights, indices=lights):

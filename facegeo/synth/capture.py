@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from facegeo.errors import InputError
-from facegeo.frames import Pose, look_at
+from facegeo.frames import Pose, look_at, rotation_from_rvec
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +140,6 @@ def perturbed_rig(rig, seed: int):
     ``rig.json`` — what a real rig's owner knows before calibration — and the true one to
     ``ground_truth/rig.json``, so calibration has something real to recover.
     """
-    from facegeo.frames import Pose, rotation_from_rvec
     from facegeo.rig import Rig
 
     rng = np.random.default_rng([seed, 7])
@@ -168,8 +167,7 @@ def perturbed_rig(rig, seed: int):
 
 def build_rig(preset: Preset):
     """The nominal default rig (paper-shaped) resized to the preset."""
-    from facegeo.camera import Camera
-    from facegeo.rig import LightStage, Rig, default_rig
+    from facegeo.rig import Rig, default_rig
 
     rig = default_rig()
     if preset.camera_scale != 1.0:
@@ -211,8 +209,6 @@ def _board_poses(board, cameras, n, rng, *, max_tries=2000) -> list[Pose]:
         tries += 1
         tilt = np.deg2rad(rng.uniform(12, 35)) * rng.choice([-1, 1], size=2)
         roll = np.deg2rad(rng.uniform(-20, 20))
-        from facegeo.frames import rotation_from_rvec
-
         R = rotation_from_rvec([tilt[0], tilt[1], roll]) @ R0
         centre = np.array([rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), rng.uniform(-0.08, 0.12)])
         t = centre - R @ np.array([w / 2, h / 2, 0.0])
@@ -290,9 +286,8 @@ def generate_scan(
         ``"spectral:<type>"`` (Donner & Jensen 2006 albedo from smooth maps of melanin and
         haemoglobin, ``<type>`` one of ``facegeo.spectral.SKIN_TYPES``, default medium).
     noise : float
-        Sensor noise: standard deviation of additive Gaussian read noise as a fraction of the
-        frame's white level (0: noise-free). Photon noise scales with the square root of the
-        signal at the same level.
+        Sensor noise σ as a fraction of the frame's white level (0: noise-free): read noise
+        σ·white plus photon noise σ·√(white·signal), i.e. σ·white·√(1 + signal/white).
     overwrite : bool
         Replace an existing scan at ``out``.
     progress : callable(stage, done, total), optional
@@ -303,8 +298,7 @@ def generate_scan(
     SynthSummary
     """
     from facegeo import imageio, scan as scanmod
-    from facegeo.fsutil import atomic_path, atomic_write_text
-    from facegeo.structured_light import PatternSpec, pattern_names
+    from facegeo.structured_light import PatternSpec, pattern_names, pattern_value_at
     from facegeo.synth.render import ReferenceRenderer
     from facegeo.synth.skin import SkinField
 
@@ -405,8 +399,6 @@ def generate_scan(
             e_proj, q_proj = _projector_irradiance(proj, p, np.broadcast_to(n_board, p.shape))
             base = bv.reflectance[bv.mask] / np.pi
             for name in sl_names:
-                from facegeo.structured_light import pattern_value_at
-
                 pat = pattern_value_at(spec, name, q_proj)
                 val = np.zeros(bv.mask.shape, np.float32)
                 val[bv.mask] = exposure * base * (e_proj * pat + 0.02)
@@ -424,8 +416,6 @@ def generate_scan(
     sl_files = scanmod.DEFAULT_FILES["structured_light"]
     n_total = len(rig.cameras) * len(sl_names)
     done = 0
-    from facegeo.structured_light import pattern_value_at
-
     for cam in rig.cameras:
         view = renderer.surface_view(cam, supersample=preset.sl_supersample)
         # Projector light: shade the skin BRDF under the projector as a point light, with
