@@ -28,9 +28,9 @@ import numpy as np
 
 from facegeo.camera import Camera
 from facegeo.checks import as_array, check_positive
-from facegeo.errors import InputError, ScanFormatError
+from facegeo.errors import InputError
 from facegeo.frames import Pose, rotation_from_rvec
-from facegeo.fsutil import atomic_write_text
+from facegeo.fsutil import atomic_write_text, load_json_file
 
 __all__ = [
     "CharucoBoard",
@@ -382,24 +382,7 @@ class CharucoBoard:
         facegeo.errors.ScanFormatError
             Unreadable file, invalid JSON, or a missing / unknown / bad field (named).
         """
-        path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ScanFormatError(f"cannot read board file ({exc.strerror})", path=path) from exc
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ScanFormatError(
-                f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", path=path
-            ) from exc
-        try:
-            return cls.from_dict(d)
-        except InputError as exc:
-            key, sep, rest = str(exc).partition(": ")
-            if not sep:
-                key, rest = None, str(exc)
-            raise ScanFormatError(f"malformed board: {rest}", path=path, key=key) from exc
+        return load_json_file(path, "board", cls.from_dict)
 
 
 # --------------------------------------------------------------------------- helpers

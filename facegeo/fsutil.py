@@ -61,3 +61,41 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "ut
     """Write ``text`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding=encoding)
+
+
+def load_json_file(path: str | os.PathLike, what: str, parse):
+    """Read a JSON file and build an object from it with ``parse(dict)``.
+
+    Every failure becomes a :class:`~facegeo.errors.ScanFormatError` naming the file: unreadable
+    file, invalid JSON (with line and column), or an :class:`~facegeo.errors.InputError` from
+    ``parse`` — whose ``"field: message"`` prefix becomes the error's ``key``.
+
+    Parameters
+    ----------
+    path : path-like
+    what : str
+        What the file holds, for messages (``"rig"``, ``"board"``).
+    parse : callable(object) -> T
+    """
+    import json
+
+    from facegeo.errors import InputError, ScanFormatError
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ScanFormatError(f"cannot read {what} file ({exc.strerror})", path=path) from exc
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ScanFormatError(
+            f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", path=path
+        ) from exc
+    try:
+        return parse(d)
+    except InputError as exc:
+        key, sep, rest = str(exc).partition(": ")
+        if not sep:
+            key, rest = None, str(exc)
+        raise ScanFormatError(f"malformed {what}: {rest}", path=path, key=key) from exc

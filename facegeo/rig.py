@@ -33,9 +33,9 @@ import numpy as np
 
 from facegeo.camera import Camera
 from facegeo.checks import as_array, check_positive
-from facegeo.errors import InputError, ScanFormatError
+from facegeo.errors import InputError
 from facegeo.frames import light_directions, light_solid_angles, look_at
-from facegeo.fsutil import atomic_write_text
+from facegeo.fsutil import atomic_write_text, load_json_file
 
 __all__ = [
     "LightStage",
@@ -346,24 +346,7 @@ class Rig:
             The file is missing, is not JSON, or has a missing / unknown / bad field; the message
             names the file and the field.
         """
-        path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ScanFormatError(f"cannot read rig file ({exc.strerror})", path=path) from exc
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ScanFormatError(
-                f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", path=path
-            ) from exc
-        try:
-            return cls.from_dict(d)
-        except InputError as exc:
-            key, sep, rest = str(exc).partition(": ")
-            if not sep:
-                key, rest = None, str(exc)
-            raise ScanFormatError(f"malformed rig: {rest}", path=path, key=key) from exc
+        return load_json_file(path, "rig", cls.from_dict)
 
     def __eq__(self, other) -> bool:
         return (
