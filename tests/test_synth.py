@@ -310,6 +310,15 @@ def test_spectral_skin_scan_round_trips(tmp_path):
     alpha = np.array(json.loads(out))[0]
     dark = skin_rgb(0.15, 0.5, 0.012)
     assert np.all(alpha < 0.6) and np.linalg.norm(alpha - dark) < 0.1, (alpha, dark)
+    # ρ_s comes from the model's oiliness map (D&J's fourth parameter), not the regional one
+    from facegeo.spectral import spectral_albedo_fn
+    from facegeo.synth.skin import SkinField
+
+    field = SkinField.from_dict(skin)
+    p = np.random.default_rng(0).uniform(-0.05, 0.05, (50, 3))
+    u = field.normalised(p)
+    want = spectral_albedo_fn("dark", seed=field.seed).parameter_maps(u).rho_s
+    assert np.allclose(field.evaluate(p).rho_s, want, rtol=1e-6, atol=0)
     with pytest.raises(Exception, match="unknown spectral skin type"):
         generate_scan(tmp_path / "bad", "tiny", skin="spectral:green")
     assert not (tmp_path / "bad").exists()  # arguments are checked before anything is written

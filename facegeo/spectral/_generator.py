@@ -223,6 +223,9 @@ def register_spectral_albedo(name: str = "spectral", *, overwrite: bool = False)
     from facegeo.synth.skin import register_albedo_model
 
     def model(u, skin, params="medium", variation=1.0):
-        return spectral_albedo_fn(params, seed=int(skin.seed), variation=variation)(u)
+        # α₀ from the melanin/haemoglobin maps and ρ_s from the oiliness map (D&J 2006's four
+        # parameters all drive the ground truth)
+        fn = spectral_albedo_fn(params, seed=int(skin.seed), variation=variation)
+        return {"alpha_0": fn(u), "rho_s": fn.parameter_maps(u).rho_s}
 
     register_albedo_model(name, model, overwrite=overwrite)

@@ -251,7 +251,10 @@ def register_albedo_model(name: str, model: Callable[..., np.ndarray], *,
         Key used in ``SkinField(albedo_model=name)`` and in ``skin.json``.
     model : callable
         ``model(u (..., 3) float64, skin: SkinField, **params) -> alpha_0 (..., 3)`` linear
-        sRGB; ``params`` come from ``SkinField.albedo_params`` (JSON-ready values).
+        sRGB; ``params`` come from ``SkinField.albedo_params`` (JSON-ready values). A model
+        that also knows the specular scale (the spectral model's oiliness map) may return a
+        mapping ``{"alpha_0": (..., 3), "rho_s": (...)}``; its ``rho_s`` then replaces the
+        field's regional one.
     overwrite : bool
         Replace an existing entry instead of raising.
     """
@@ -407,9 +410,10 @@ class SkinField:
         p = as_array(p_world, "p_world", shape=(..., 3))
         return (p - np.asarray(self.center)) / np.asarray(self.half_extent)
 
-    def _alpha_0(self, u: np.ndarray) -> np.ndarray:
+    def _alpha_0(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The colour model's α₀ at ``u`` and, when the model provides one, its ρ_s."""
         if self.albedo_fn is not None:
-            a = np.asarray(self.albedo_fn(u), dtype=float)
+            out = self.albedo_fn(u)
             name = "albedo_fn"
         else:
             if self.albedo_model not in ALBEDO_MODELS:
@@ -417,11 +421,22 @@ class SkinField:
                 raise InputError(
                     f"albedo_model: unknown model {self.albedo_model!r}; registered: {known}"
                 )
-            a = np.asarray(ALBEDO_MODELS[self.albedo_model](u, self, **self.albedo_params), float)
+            out = ALBEDO_MODELS[self.albedo_model](u, self, **self.albedo_params)
             name = f"albedo model {self.albedo_model!r}"
+        rho_s = None
+        if isinstance(out, dict):
+            if "alpha_0" not in out:
+                raise InputError(f"{name}: returned a mapping without 'alpha_0'")
+            if out.get("rho_s") is not None:
+                rho_s = np.asarray(out["rho_s"], dtype=float)
+                if rho_s.shape != u.shape[:-1] or not np.all(np.isfinite(rho_s) & (rho_s >= 0)):
+                    raise InputError(f"{name}: rho_s must be finite, >= 0 and of shape "
+                                     f"{u.shape[:-1]}, got shape {rho_s.shape}")
+            out = out["alpha_0"]
+        a = np.asarray(out, dtype=float)
         if a.shape != u.shape:
             raise InputError(f"{name}: returned shape {a.shape}, expected {u.shape}")
-        return a
+        return a, rho_s
 
     def evaluate(self, p_world) -> SkinSample:
         """Skin parameters at world points.
@@ -454,7 +469,7 @@ class SkinField:
         )
 
     def _evaluate_block(self, u: np.ndarray):
-        a0 = self._alpha_0(u)
+        a0, model_rho_s = self._alpha_0(u)
         # Grazing colour: desaturated toward luminance, a little lighter (Debevec et al. 2000 §4).
         a1 = np.minimum(desaturate(a0, self.grazing_desaturation) * self.grazing_lift, 0.95)
         w = region_weights(u)
@@ -474,6 +489,8 @@ class SkinField:
         y = (y0 + (y1 - y0) * oil + 0.6 * (y1 - y0) * moist
              - 0.5 * self.spec_noise * n[..., 0] + 0.5 * self.spec_noise * n[..., 1])
         m = 0.25 + 0.25 * _sigmoid(y)
+        if model_rho_s is not None:
+            rho_s = model_rho_s
         return a0, a1, rho_s, m
 
     def per_vertex(self, mesh) -> SkinSample:
