@@ -93,6 +93,7 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool, Any]]] = {
         "response": ("response", False, DEFAULT_RESPONSES["olat"]),
         "n_lights": ("count", True, None),
         "light_order": ("light_order", False, LIGHT_ORDERS[0]),
+        "exposure": ("positive", False, 1.0),
         "files": ("template", False, DEFAULT_FILES["olat"]),
     },
 }
@@ -224,6 +225,10 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
         if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
             raise _err(f"expected an integer > 0, got {v!r}", key=key, path=where)
         return v
+    if kind == "positive":
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < float("inf")):
+            raise _err(f"expected a finite number > 0, got {v!r}", key=key, path=where)
+        return float(v)
     if kind == "path":
         return _check_rel_path(v, key, where)
     if kind == "template":

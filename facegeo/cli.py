@@ -45,6 +45,7 @@ def _cmd_synth(args) -> int:
     try:
         summary = generate_scan(args.out, args.preset, head=args.head, units=args.units,
                                 seed=args.seed, noise=args.noise, skin=args.skin,
+                                olat_format=args.olat_format,
                                 overwrite=args.overwrite,
                                 progress=tick)
     finally:
@@ -125,6 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--skin", default="regional",
                    help="ground-truth skin colour model: 'regional' (default) or "
                         "'spectral[:light|medium|olive|dark]' (Donner & Jensen 2006)")
+    s.add_argument("--olat-format", default="exr", choices=["exr", "png16"],
+                   help="OLAT frames as linear EXR (default) or 16-bit sRGB PNG with an exposure")
     s.add_argument("--noise", type=float, default=0.0,
                    help="sensor noise, fraction of white level (default 0: noise-free)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scan at OUT")

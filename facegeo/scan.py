@@ -371,14 +371,18 @@ class Scan:
 
         Returns
         -------
-        frame : (H, W, 3) float32, linear
-            Grey frames are repeated to three channels; alpha is dropped.
+        frame : (H, W, 3) float32, linear radiance
+            The linearised pixel values divided by ``[olat] exposure``. Grey frames are
+            repeated to three channels; alpha is dropped.
         valid : (H, W) bool, only with ``return_mask``
             False where a sample is saturated or black-clipped (integer frames) or non-finite
             (float frames).
         """
         lin, valid = self._read("olat", camera, self.olat_path(camera, light),
                                 return_mask=return_mask)
+        exposure = float(self.manifest["olat"].get("exposure", 1.0))
+        if exposure != 1.0:
+            lin = lin / np.float32(exposure)
         if lin.ndim == 2:
             lin = np.repeat(lin[..., None], 3, axis=-1)
         elif lin.shape[-1] == 4:

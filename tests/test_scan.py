@@ -328,9 +328,9 @@ def test_toml_syntax_error_names_line(scan_dir):
          r"\[olat.response\]: unknown response 'log'"),
         ('response = "linear"', 'response = { kind = "gamma", gamma = 0 }',
          r"\[olat.response.gamma\]: .*> 0"),
-        ("n_lights = 4", "n_lights = 4\nexposure = 2.0",
-         r"\[olat.exposure\]: unknown key 'exposure' in \[olat\]; valid keys: response, n_lights, "
-         r"light_order, files"),
+        ("n_lights = 4", "n_lights = 4\ngain = 2.0",
+         r"\[olat.gain\]: unknown key 'gain' in \[olat\]; valid keys: response, n_lights, "
+         r"light_order, exposure, files"),
         ("[olat]", "[extra]\na = 1\n\n[olat]",
          r"\[extra\]: unknown section \[extra\]; valid sections: \[scan\], \[calib\]"),
         ("synthetic = true", "synthetic = false",
@@ -561,3 +561,17 @@ def test_documented_example_manifest_is_valid():
     m = validate_manifest(tomllib.loads(block))
     assert m["olat"]["n_lights"] == 2048 and m["calib"]["projector"]["views"] == 4
     assert m["structured_light"]["patterns"]["kind"] == "gray"
+
+
+def test_olat_exposure_must_be_positive_and_divides_frames(tmp_path):
+    """``[olat] exposure`` is validated (a finite number > 0, named in the error)."""
+    from facegeo._scan_schema import validate_manifest
+    from facegeo.errors import ScanFormatError
+    from facegeo.scan import new_manifest
+
+    m = new_manifest("x", synthetic=True)
+    m["olat"] = {"n_lights": 4, "exposure": 0.0}
+    with pytest.raises(ScanFormatError, match=r"\[olat.exposure\].*> 0"):
+        validate_manifest(m)
+    m["olat"]["exposure"] = 2
+    assert validate_manifest(m)["olat"]["exposure"] == 2.0

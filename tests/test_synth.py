@@ -415,3 +415,28 @@ def test_threaded_shading_is_identical_to_serial(tiny_scan):
     w = np.random.default_rng(0).random((lights.n_lights, 3))
     assert np.array_equal(gt.render_lights(cam, lights, w, workers=1),
                           gt.render_lights(cam, lights, w, workers=3))
+
+
+def test_png16_olat_frames_round_trip_within_quantisation(tmp_path):
+    """16-bit sRGB PNG OLAT frames with an exposure load back as radiance within the encoding's
+    quantisation; clipped highlights are masked."""
+    from facegeo.scan import load_scan
+    from facegeo.synth.capture import OLAT_PNG_EXPOSURE, generate_scan
+    from facegeo.synth.render import load_ground_truth
+
+    root = tmp_path / "png"
+    generate_scan(root, "tiny", seed=5, olat_format="png16")
+    scan = load_scan(root, check="full")
+    assert scan.manifest["olat"]["exposure"] == OLAT_PNG_EXPOSURE
+    gt = load_ground_truth(scan)
+    cam = gt.rig.cameras[0]
+    for l, ref in gt.olat_images(cam, gt.rig.lights, indices=[10, 60, 100]):
+        disk, valid = scan.olat_frame(cam.name, l, return_mask=True)
+        ok = valid[..., None] & (ref * OLAT_PNG_EXPOSURE < 1)
+        # half a 16-bit code times the sRGB curve's slope dL/de = max(1/12.92, 2.4/1.055·L^(1.4/2.4))
+        # at the encoded linear value L = radiance·exposure, back in radiance units (+ float32 eps)
+        x = ref * OLAT_PNG_EXPOSURE
+        slope = np.maximum(1 / 12.92, 2.4 / 1.055 * x ** (1.4 / 2.4))
+        tol = 0.5 / 65535 * slope / OLAT_PNG_EXPOSURE + 4 * np.finfo(np.float32).eps * ref
+        assert np.all(np.abs(disk - ref)[np.broadcast_to(ok, ref.shape)]
+                      <= tol[np.broadcast_to(ok, ref.shape)])

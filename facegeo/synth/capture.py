@@ -85,6 +85,10 @@ PRESETS: dict[str, Preset] = {
 #: ≈ 0.3–0.45 m; a face-only mesh ≈ 0.2 m). Outside this the --units are almost surely wrong.
 HEAD_DIAGONAL_RANGE_M = (0.1, 1.0)
 
+#: Exposure of 16-bit PNG OLAT frames (pixel = radiance × exposure before the sRGB curve): a
+#: white Lambertian surface facing a light (radiance 1/π) encodes at ≈ 0.64 of full scale.
+OLAT_PNG_EXPOSURE = 2.0
+
 #: How far the true rig departs from the nominal one (1 σ): what a calibration must recover.
 RIG_PERTURBATION = {"position_m": 0.002, "rotation_deg": 0.2, "focal_rel": 0.005,
                     "principal_px": 3.0, "k1": 0.01}
@@ -263,6 +267,7 @@ def generate_scan(
     seed: int = 0,
     noise: float = 0.0,
     skin: str = "regional",
+    olat_format: str = "exr",
     overwrite: bool = False,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> SynthSummary:
@@ -285,6 +290,10 @@ def generate_scan(
         linear-sRGB skin colour with regional variation) or ``"spectral"`` /
         ``"spectral:<type>"`` (Donner & Jensen 2006 albedo from smooth maps of melanin and
         haemoglobin, ``<type>`` one of ``facegeo.spectral.SKIN_TYPES``, default medium).
+    olat_format : {"exr", "png16"}
+        OLAT frames as linear EXR (float16 or float32 per preset) or as 16-bit PNG through the
+        sRGB response with exposure :data:`OLAT_PNG_EXPOSURE` (highlights above the white level
+        clip and are masked on load, as on a real sensor).
     noise : float
         Sensor noise σ as a fraction of the frame's white level (0: noise-free): read noise
         σ·white plus photon noise σ·√(white·signal), i.e. σ·white·√(1 + signal/white).
@@ -309,6 +318,8 @@ def generate_scan(
     if noise < 0 or not np.isfinite(noise):
         raise InputError(f"noise: expected a finite number >= 0, got {noise!r}")
     skin_kwargs = _skin_model(skin)  # validate every argument before touching the disk
+    if olat_format not in ("exr", "png16"):
+        raise InputError(f"olat_format: unknown {olat_format!r}; expected 'exr' or 'png16'")
     if head != "procedural" and not Path(head).is_file():
         raise InputError(f"--head: no such mesh file {head} (use 'procedural' or a path)")
     if units not in ("cm", "mm", "m"):
@@ -440,6 +451,8 @@ def generate_scan(
     # ---- OLAT ----
     t0 = time.perf_counter()
     olat_files = scanmod.DEFAULT_FILES["olat"]
+    if olat_format == "png16":
+        olat_files = olat_files.rsplit(".", 1)[0] + ".png"
     n_total = len(rig.cameras) * rig.lights.n_lights
     done = 0
     uniform_renders = {}
@@ -450,13 +463,19 @@ def generate_scan(
             acc += solid[l] * img  # the uniform-environment reference (Eq. 4), noise-free
             img = _noisy(img, 0.5)
             path = scanmod.frame_path(root, olat_files, camera=cam.name, light=l)
-            imageio.write_image(path, img, half=preset.olat_half)
+            if olat_format == "png16":
+                imageio.write_image(path, imageio.encode(np.clip(img * OLAT_PNG_EXPOSURE, 0, 1),
+                                                         "srgb", np.uint16))
+            else:
+                imageio.write_image(path, img, half=preset.olat_half)
             frames += 1
             done += 1
             tick("olat", done, n_total)
         uniform_renders[cam.name] = acc.astype(np.float32)
-    manifest["olat"] = {"response": "linear", "n_lights": rig.lights.n_lights,
-                        "light_order": "theta-fastest", "files": olat_files}
+    manifest["olat"] = {"response": "linear" if olat_format == "exr" else "srgb",
+                        "exposure": 1.0 if olat_format == "exr" else OLAT_PNG_EXPOSURE,
+                        "n_lights": rig.lights.n_lights, "light_order": "theta-fastest",
+                        "files": olat_files}
     seconds["olat"] = time.perf_counter() - t0
 
     # ---- ground truth ----
