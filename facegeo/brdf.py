@@ -301,9 +301,11 @@ def specular_brdf(n, l, v, rho_s, m, eta: float = ETA_SKIN) -> np.ndarray:
         f_s, 0 where ``n·l <= 0`` or ``n·v <= 0``; finite everywhere.
     """
     n, l, v = _directions(n, l, v)
-    rho_s = _nonnegative(rho_s, "rho_s")
-    m = _roughness(m)
-    eta = _eta(eta)
+    return _specular_from_directions(n, l, v, _nonnegative(rho_s, "rho_s"), _roughness(m),
+                                     _eta(eta))
+
+
+def _specular_from_directions(n, l, v, rho_s, m, eta):
     nl = _dot(n, l)
     nv = _dot(n, v)
     cos_h, cos_d = _half_angle_cosines(nl, nv, l, v)
@@ -402,16 +404,21 @@ def skin_brdf(n, l, v, alpha_0, alpha_1, rho_s, m, eta: float = ETA_SKIN) -> np.
         f per RGB channel; 0 below either horizon; finite everywhere.
     """
     n, l, v = _directions(n, l, v)
-    a0 = _colour(alpha_0, "alpha_0")
-    a1 = _colour(alpha_1, "alpha_1")
-    rho_s = _nonnegative(rho_s, "rho_s")
-    m = _roughness(m)
-    eta = _eta(eta)
+    return skin_brdf_unchecked(n, l, v, _colour(alpha_0, "alpha_0"), _colour(alpha_1, "alpha_1"),
+                               _nonnegative(rho_s, "rho_s"), _roughness(m), _eta(eta))
+
+
+def skin_brdf_unchecked(n, l, v, alpha_0, alpha_1, rho_s, m, eta: float = ETA_SKIN) -> np.ndarray:
+    """:func:`skin_brdf` without input validation, for hot loops over already-checked data.
+
+    The caller guarantees what :func:`skin_brdf` checks: ``n, l, v`` unit ``(..., 3)`` arrays,
+    finite colours, ``rho_s >= 0``, ``m > 0``, ``eta > 1``. Results are identical.
+    """
     nl = _dot(n, l)
     nv = _dot(n, v)
     cos_h, cos_d = _half_angle_cosines(nl, nv, l, v)
     spec = _specular_unchecked(nl, nv, cos_h, cos_d, rho_s, m, eta)
-    return _diffuse_unchecked(nl, nv, a0, a1) + spec[..., None]
+    return _diffuse_unchecked(nl, nv, alpha_0, alpha_1) + spec[..., None]
 
 
 def olat_radiance(

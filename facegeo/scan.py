@@ -195,12 +195,8 @@ class Scan:
         return [c.name for c in self.rig.cameras]
 
     def camera(self, name: str):
-        """The rig's :class:`facegeo.camera.Camera` called ``name``."""
-        for c in self.rig.cameras:
-            if c.name == name:
-                return c
-        check_choice(name, "camera", self.camera_names)
-        raise AssertionError  # pragma: no cover
+        """The rig's :class:`facegeo.camera.Camera` called ``name`` (error lists the valid ones)."""
+        return self.rig.camera(name)
 
     @functools.cached_property
     def board(self):

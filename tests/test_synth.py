@@ -440,3 +440,31 @@ def test_png16_olat_frames_round_trip_within_quantisation(tmp_path):
         tol = 0.5 / 65535 * slope / OLAT_PNG_EXPOSURE + 4 * np.finfo(np.float32).eps * ref
         assert np.all(np.abs(disk - ref)[np.broadcast_to(ok, ref.shape)]
                       <= tol[np.broadcast_to(ok, ref.shape)])
+
+
+def test_renderer_validates_inputs_once_per_view():
+    """The shading kernel trusts its inputs, so bad skin values and eta are refused up front."""
+    from facegeo.errors import InputError
+
+    v, f = flat_patch()
+    with pytest.raises(InputError, match="eta"):
+        ReferenceRenderer(v, f, ConstantSkin([0.5, 0.5, 0.5]), eta=1.0)
+    r = ReferenceRenderer(v, f, ConstantSkin([0.5, np.nan, 0.5]))
+    with pytest.raises(InputError, match="alpha_0 holds non-finite"):
+        r.surface_view(top_camera())
+    r = ReferenceRenderer(v, f, ConstantSkin([0.5, 0.5, 0.5], roughness=0.0))
+    with pytest.raises(InputError, match="roughness > 0"):
+        r.surface_view(top_camera())
+
+
+def test_unchecked_brdf_equals_checked():
+    from facegeo.brdf import skin_brdf, skin_brdf_unchecked
+
+    rng = np.random.default_rng(4)
+    def unit(x):
+        return x / np.linalg.norm(x, axis=1, keepdims=True)
+    n, l, v = (unit(rng.normal(size=(500, 3))) for _ in range(3))
+    a0, a1 = rng.random((500, 3)), rng.random((500, 3))
+    rho, m = rng.random(500), 0.2 + rng.random(500) * 0.3
+    assert np.array_equal(skin_brdf(n, l, v, a0, a1, rho, m),
+                          skin_brdf_unchecked(n, l, v, a0, a1, rho, m))

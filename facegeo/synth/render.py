@@ -169,6 +169,8 @@ class ReferenceRenderer:
         self.faces = as_array(faces, "faces", shape=(None, 3), dtype=np.int64)
         self.skin = skin
         self.eta = float(eta)
+        if not (np.isfinite(self.eta) and self.eta > 1.0):
+            raise InputError(f"eta: expected a finite index of refraction > 1, got {eta!r}")
         self.shadows = bool(shadows)
         self._views: dict[tuple, SurfaceView] = {}
         self.rig = None  # the true rig, when rebuilt from a scan (load_ground_truth)
@@ -236,6 +238,7 @@ class ReferenceRenderer:
             n[back] = n[back] - (cos_v[back] - 1e-6)[:, None] * v[back]
             n[back] /= np.linalg.norm(n[back], axis=1, keepdims=True)
         skin = self.skin.evaluate(p)
+        _check_skin_sample(skin, p.shape[0])
         mask = np.zeros(h * w * s * s, bool)
         mask[idx] = True
         view = SurfaceView(
@@ -290,7 +293,7 @@ class ReferenceRenderer:
         return self._shade(view, l, np.ones(n_p), col, sel=sel, light_dir=d)
 
     def _shade(self, view, l, falloff, col, *, sel=None, light_pos=None, light_dir=None):
-        from facegeo.brdf import skin_brdf
+        from facegeo.brdf import skin_brdf_unchecked
 
         pick = (lambda a: a) if sel is None else (lambda a: a[sel])
         n = pick(view.n_world)
@@ -310,11 +313,12 @@ class ReferenceRenderer:
             lit[lit_idx[~vis]] = False
         if not lit.any():
             return out
-        f = skin_brdf(
-            n[lit], l[lit], v[lit],
-            pick(view.alpha_0)[lit].astype(np.float64), pick(view.alpha_1)[lit].astype(np.float64),
-            pick(view.rho_s)[lit].astype(np.float64), pick(view.roughness)[lit].astype(np.float64),
-            eta=self.eta,
+        # Hot loop (once per light): the view's normals, directions and skin parameters were
+        # checked when the view was built, so the unchecked kernel skips re-validating them.
+        # float32 parameters promote exactly to float64 inside the arithmetic.
+        f = skin_brdf_unchecked(
+            n[lit], l[lit], v[lit], pick(view.alpha_0)[lit], pick(view.alpha_1)[lit],
+            pick(view.rho_s)[lit], pick(view.roughness)[lit], self.eta,
         )
         e = (cos_i[lit] * falloff[lit])[:, None] * col[None, :]
         out[lit] = (f * e).astype(np.float32)
@@ -374,6 +378,19 @@ class ReferenceRenderer:
             raise InputError(f"indices: expected light indices in [0, {lights.n_lights}), "
                              f"got {np.asarray(indices).tolist()!r:.80}")
         return idx
+
+
+def _check_skin_sample(skin, n: int) -> None:
+    """Validate a skin field's output once per view (the shading kernel then trusts it)."""
+    for name, shape in (("alpha_0", (n, 3)), ("alpha_1", (n, 3)), ("rho_s", (n,)),
+                        ("roughness", (n,))):
+        a = np.asarray(getattr(skin, name))
+        if a.size != int(np.prod(shape)):
+            raise InputError(f"skin field: {name} has {a.size} values, expected shape {shape}")
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"skin field: {name} holds non-finite values")
+    if np.any(np.asarray(skin.rho_s) < 0) or np.any(np.asarray(skin.roughness) <= 0):
+        raise InputError("skin field: expected rho_s >= 0 and roughness > 0 everywhere")
 
 
 def _ordered_map(fn, items, workers: int):
