@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo import spectral
+from facegeo.appearance import spectral
 
 
 def main(out_dir: Path) -> None:

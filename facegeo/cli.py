@@ -59,7 +59,7 @@ def _cmd_synth(args) -> int:
 
 
 def _cmd_info(args) -> int:
-    from facegeo.scan import load_scan, summarize
+    from facegeo.capture.scan import load_scan, summarize
 
     scan = load_scan(args.scan, check="full" if args.full else "quick")
     print(summarize(scan))
@@ -69,7 +69,7 @@ def _cmd_info(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from facegeo.bench import registered, run_benchmarks, write_reports
+    from facegeo.pipeline.bench import registered, run_benchmarks, write_reports
 
     if args.list:
         print("\n".join(registered()))
@@ -84,7 +84,7 @@ def _cmd_bench(args) -> int:
 
 def _cmd_demo(args) -> int:
     """Main job on the embedded default: synthesise the small scan (if absent) and summarise."""
-    from facegeo.scan import load_scan, summarize
+    from facegeo.capture.scan import load_scan, summarize
     from facegeo.synth.capture import generate_scan
 
     root = Path(args.scan)

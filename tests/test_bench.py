@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from facegeo.bench import BenchRow, register, registered, run_benchmarks, write_reports
+from facegeo.pipeline.bench import BenchRow, register, registered, run_benchmarks, write_reports
 from facegeo.errors import InputError
 
 

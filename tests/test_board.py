@@ -1,4 +1,4 @@
-"""facegeo.board: board geometry, exact synthetic views, and OpenCV detection / calibration on them.
+"""facegeo.geometry.board: board geometry, exact synthetic views, and OpenCV detection / calibration on them.
 
 Measured on the fixture below (16 views, seed 7, 640 × 480, k1 = −0.12 ...): detected ChArUco
 corners vs projected true corners 0.072 px RMS (0.060–0.077 over seeds 0–9); calibrateCamera
@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 import pytest
 
-from facegeo.board import BLACK_REFLECTANCE, WHITE_REFLECTANCE, CharucoBoard, random_board_poses
-from facegeo.camera import Camera
+from facegeo.geometry.board import BLACK_REFLECTANCE, WHITE_REFLECTANCE, CharucoBoard, random_board_poses
+from facegeo.geometry.camera import Camera
 from facegeo.errors import InputError, ScanFormatError
 from facegeo.frames import Pose, rotation_from_rvec
 
@@ -262,7 +262,7 @@ def test_board_json_round_trip(tmp_path, board):
 
 
 def test_shipped_board_file_equals_default_board():
-    """calib/charuco_board.json is what `python -m facegeo.rig` writes; it must not drift."""
+    """calib/charuco_board.json is what `python -m facegeo.geometry.rig` writes; it must not drift."""
     path = REPO / "calib" / "charuco_board.json"
     assert json.loads(path.read_text()) == CharucoBoard().to_dict()
     assert CharucoBoard.load(path) == CharucoBoard()
@@ -289,7 +289,7 @@ def test_malformed_board_file_names_file_and_field(tmp_path):
 def test_texture_survives_opencv_roi_sizes():
     """OpenCV's generateImage fails for a few px/square with non-round marker ratios; the
     texture steps to the next size and reports the matching scale."""
-    from facegeo.board import CharucoBoard
+    from facegeo.geometry.board import CharucoBoard
 
     b = CharucoBoard(squares_x=5, squares_y=4, square_length=0.029, marker_length=0.0218,
                      dictionary="DICT_4X4_50")

@@ -1,4 +1,4 @@
-"""Tests of facegeo.brdf: the skin reflectance model of Debevec et al. 2000, §4."""
+"""Tests of facegeo.appearance.brdf: the skin reflectance model of Debevec et al. 2000, §4."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from scipy import integrate
 from scipy.spatial.transform import Rotation
 
-from facegeo import brdf
+from facegeo.appearance import brdf
 from facegeo.errors import InputError, ShapeError
 
 # Named tolerances (dimensionless unless stated).

@@ -1,4 +1,4 @@
-"""facegeo.camera: projection against OpenCV, inverse pairs, rays, NaN handling, validation."""
+"""facegeo.geometry.camera: projection against OpenCV, inverse pairs, rays, NaN handling, validation."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from facegeo.camera import Camera
+from facegeo.geometry.camera import Camera
 from facegeo.errors import InputError, ShapeError
 from facegeo.frames import Pose
 

@@ -1,4 +1,4 @@
-"""Image I/O and camera responses (facegeo.imageio)."""
+"""Image I/O and camera responses (facegeo.capture.imageio)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from facegeo.errors import InputError, ScanFormatError
-from facegeo.imageio import (
+from facegeo.capture.imageio import (
     ImageReadError,
     Response,
     clipped_mask,

@@ -1,4 +1,4 @@
-"""facegeo.rig: the light stage, rig files, the default rig and its shipped JSON."""
+"""facegeo.geometry.rig: the light stage, rig files, the default rig and its shipped JSON."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from facegeo import frames
-from facegeo.camera import Camera
+from facegeo.geometry.camera import Camera
 from facegeo.errors import InputError, ScanFormatError
 from facegeo.frames import Pose
-from facegeo.rig import LightStage, Rig, default_rig, main
+from facegeo.geometry.rig import LightStage, Rig, default_rig, main
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RIG_FILE = REPO / "calib" / "default_rig.json"
@@ -106,10 +106,10 @@ def test_rig_without_projector_round_trips(tmp_path):
 
 
 def test_shipped_default_rig_file_equals_default_rig():
-    """calib/default_rig.json is what `python -m facegeo.rig` writes; it must not drift."""
+    """calib/default_rig.json is what `python -m facegeo.geometry.rig` writes; it must not drift."""
     shipped = _flatten(json.loads(DEFAULT_RIG_FILE.read_text()))
     code = _flatten(default_rig().to_dict())
-    assert shipped.keys() == code.keys(), "same fields (regenerate with `python -m facegeo.rig`)"
+    assert shipped.keys() == code.keys(), "same fields (regenerate with `python -m facegeo.geometry.rig`)"
     worst = 0.0
     for k, v in code.items():
         if isinstance(v, float):

@@ -1,4 +1,4 @@
-"""The scan directory format (facegeo.scan): write → load round trips and every way it can be wrong."""
+"""The scan directory format (facegeo.capture.scan): write → load round trips and every way it can be wrong."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from facegeo.errors import InputError, ScanFormatError
-from facegeo.imageio import encode, linearize, read_image, write_image
-from facegeo.scan import (
+from facegeo.capture.imageio import encode, linearize, read_image, write_image
+from facegeo.capture.scan import (
     DEFAULT_FILES,
     Scan,
     frame_path,
@@ -22,8 +22,8 @@ from facegeo.scan import (
     write_manifest,
 )
 
-rig_mod = pytest.importorskip("facegeo.rig", reason="facegeo.rig (Rig API) is not available yet")
-board_mod = pytest.importorskip("facegeo.board", reason="facegeo.board is not available yet")
+rig_mod = pytest.importorskip("facegeo.geometry.rig", reason="facegeo.geometry.rig (Rig API) is not available yet")
+board_mod = pytest.importorskip("facegeo.geometry.board", reason="facegeo.geometry.board is not available yet")
 
 # Tiny, asymmetric sizes: a transposed width/height fails.
 W, H = 24, 16
@@ -35,7 +35,7 @@ FLOAT32_EPS = float(np.finfo(np.float32).eps)
 
 
 def _make_rig():
-    from facegeo.camera import Camera
+    from facegeo.geometry.camera import Camera
     from facegeo.frames import look_at
 
     K0 = np.array([[30.0, 0, 11.7], [0, 30.4, 8.2], [0, 0, 1]])
@@ -565,9 +565,9 @@ def test_documented_example_manifest_is_valid():
 
 def test_olat_exposure_must_be_positive_and_divides_frames(tmp_path):
     """``[olat] exposure`` is validated (a finite number > 0, named in the error)."""
-    from facegeo._scan_schema import validate_manifest
+    from facegeo.capture._scan_schema import validate_manifest
     from facegeo.errors import ScanFormatError
-    from facegeo.scan import new_manifest
+    from facegeo.capture.scan import new_manifest
 
     m = new_manifest("x", synthetic=True)
     m["olat"] = {"n_lights": 4, "exposure": 0.0}

@@ -1,4 +1,4 @@
-"""Tests of facegeo.spectral: the Donner & Jensen 2006 spectral skin model, forward and inverse.
+"""Tests of facegeo.appearance.spectral: the Donner & Jensen 2006 spectral skin model, forward and inverse.
 
 Every comparison states its metric; tolerances are named below with their units.
 """
@@ -12,9 +12,9 @@ import warnings
 import numpy as np
 import pytest
 
-from facegeo import spectral
+from facegeo.appearance import spectral
 from facegeo.errors import InputError, ScanFormatError, ShapeError
-from facegeo.spectral import (
+from facegeo.appearance.spectral import (
     FLAG_C_H_UNIDENTIFIABLE,
     FLAG_DARK,
     FLAG_OUT_OF_GAMUT,
@@ -105,7 +105,7 @@ def test_absorption_equations_at_500nm():
 def test_haemoglobin_table_is_prahl(shared_data):
     """The package's 4 nm table equals Prahl's file; μa = ln10 · ε · 150/64500 / 10 mm⁻¹."""
     data = np.loadtxt(shared_file(shared_data, PRAHL), skiprows=1)
-    from facegeo.spectral._hemoglobin import HB_EPSILON_DEOXY, HB_EPSILON_OXY, HB_WAVELENGTHS_NM
+    from facegeo.appearance.spectral._hemoglobin import HB_EPSILON_DEOXY, HB_EPSILON_OXY, HB_WAVELENGTHS_NM
 
     rows = data[np.isin(data[:, 0], HB_WAVELENGTHS_NM)]
     assert rows.shape[0] == HB_WAVELENGTHS_NM.size == 101
@@ -238,7 +238,7 @@ def test_rho_dr_and_surface_term():
     assert rho == pytest.approx(0.0768, abs=5e-4)
     assert rho == pytest.approx(via_fit, abs=2e-3)
     assert spectral.subsurface_transmission() == pytest.approx(1.0 - rho)
-    from facegeo.brdf import specular_brdf
+    from facegeo.appearance.brdf import specular_brdf
 
     n = np.array([0.0, 0.0, 1.0])
     l = np.array([0.3, 0.1, 0.9486832980505138])
@@ -264,7 +264,7 @@ def test_forward_model_shapes_and_vectorisation():
     rgb = spectral.skin_rgb(C_m, 0.5, C_h)
     assert rgb.shape == (2, 3, 3) and rgb.dtype == np.float64
     # The table and the exact model agree through the same factorised path.
-    from facegeo.spectral._lut import layered_spectra_grid
+    from facegeo.appearance.spectral._lut import layered_spectra_grid
 
     g = layered_spectra_grid([0.01, 0.1], [0.5], [0.005, 0.02, 0.1], wl)
     np.testing.assert_allclose(g[:, 0], s, rtol=1e-12)
@@ -552,7 +552,7 @@ def test_edit_more_blood_reddens_and_noop_is_exact(caplog):
     params = spectral.regional_parameter_maps(u, "light", seed=4)
     direct = spectral.edit(params, C_m=0.2)
     assert np.all(direct.mean(axis=1) < albedo.mean(axis=1))  # more melanin: darker
-    with caplog.at_level(logging.WARNING, logger="facegeo.spectral._inverse"):
+    with caplog.at_level(logging.WARNING, logger="facegeo.appearance.spectral._inverse"):
         spectral.edit(params, C_h=lambda c: 100 * c)
     assert "clipped" in caplog.text
     with pytest.raises(InputError, match="non-finite"):
@@ -603,10 +603,9 @@ def test_spectral_albedo_fn_matches_exact_model_and_plugs_into_skin_field():
     sample = field.evaluate(u * np.array([0.1, 0.12, 0.1]))
     np.testing.assert_allclose(sample.alpha_0, a, rtol=1e-6)
     # As a named, serialisable model (the noise seed is the field's seed).
-    spectral.register_spectral_albedo("spectral-test", overwrite=True)
     named = skin.SkinField(
         center=(0.0, 0.0, 0.0), half_extent=(0.1, 0.12, 0.1), seed=9,
-        albedo_model="spectral-test", albedo_params={"params": "olive"},
+        albedo_model="spectral", albedo_params={"params": "olive"},
     )
     np.testing.assert_allclose(named.evaluate(u * np.array([0.1, 0.12, 0.1])).alpha_0, a, rtol=1e-6)
 

@@ -1,4 +1,4 @@
-"""Tests for facegeo.structured_light: patterns, Gray / phase decoding, real captures.
+"""Tests for facegeo.geometry.structured_light: patterns, Gray / phase decoding, real captures.
 
 Metrics are stated with each assertion: exact-integer fractions over lit pixels, RMS in
 projector pixels, neighbour-pair fractions on the real captures.
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from facegeo.errors import InputError, ShapeError
-from facegeo.structured_light import (
+from facegeo.geometry.structured_light import (
     PatternSpec,
     decode_gray,
     decode_phase,

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from facegeo.camera import Camera
+from facegeo.geometry.camera import Camera
 from facegeo.frames import look_at
 from facegeo.synth.render import ReferenceRenderer
 
@@ -139,7 +139,7 @@ def tiny_scan(tmp_path_factory):
 
 
 def test_tiny_scan_loads_and_matches_renderer(tiny_scan):
-    from facegeo.scan import load_scan
+    from facegeo.capture.scan import load_scan
     from facegeo.synth.render import load_ground_truth
 
     root, summary = tiny_scan
@@ -163,7 +163,7 @@ def test_tiny_scan_loads_and_matches_renderer(tiny_scan):
 
 
 def test_tiny_scan_is_deterministic(tiny_scan, tmp_path):
-    from facegeo.scan import load_scan
+    from facegeo.capture.scan import load_scan
     from facegeo.synth.capture import generate_scan
 
     root, _ = tiny_scan
@@ -194,10 +194,10 @@ def test_tiny_scan_refuses_to_overwrite(tiny_scan):
 def test_structured_light_frames_decode_to_true_projector_pixels(tiny_scan):
     """Decoding the synthetic Gray-code frames gives the projector pixel that the ground-truth
     surface point projects to: the SL frames are geometrically right."""
-    from facegeo.scan import load_scan
-    from facegeo.structured_light import PatternSpec, decode_gray
+    from facegeo.capture.scan import load_scan
+    from facegeo.geometry.structured_light import PatternSpec, decode_gray
 
-    from facegeo.rig import Rig
+    from facegeo.geometry.rig import Rig
 
     root, _ = tiny_scan
     scan = load_scan(root)
@@ -216,8 +216,8 @@ def test_structured_light_frames_decode_to_true_projector_pixels(tiny_scan):
 
 
 def test_ground_truth_files_and_reference_renders(tiny_scan):
-    from facegeo import imageio
-    from facegeo.scan import load_scan
+    from facegeo.capture import imageio
+    from facegeo.capture.scan import load_scan
 
     root, _ = tiny_scan
     scan = load_scan(root)
@@ -268,7 +268,7 @@ def test_real_meshes_render(shared_data, name, units):
 @pytest.mark.slow
 def test_synth_scan_from_real_mesh(shared_data, tmp_path):
     from conftest import shared_file
-    from facegeo.scan import load_scan
+    from facegeo.capture.scan import load_scan
     from facegeo.synth.capture import generate_scan
 
     mesh = shared_file(shared_data, "faces/mediapipe_canonical_face.obj")
@@ -290,8 +290,8 @@ def test_spectral_skin_scan_round_trips(tmp_path):
     import subprocess
     import sys
 
-    from facegeo.scan import load_scan
-    from facegeo.spectral import skin_rgb
+    from facegeo.capture.scan import load_scan
+    from facegeo.appearance.spectral import skin_rgb
     from facegeo.synth.capture import generate_scan
 
     root = tmp_path / "spec"
@@ -311,7 +311,7 @@ def test_spectral_skin_scan_round_trips(tmp_path):
     dark = skin_rgb(0.15, 0.5, 0.012)
     assert np.all(alpha < 0.6) and np.linalg.norm(alpha - dark) < 0.1, (alpha, dark)
     # ρ_s comes from the model's oiliness map (D&J's fourth parameter), not the regional one
-    from facegeo.spectral import spectral_albedo_fn
+    from facegeo.appearance.spectral import spectral_albedo_fn
     from facegeo.synth.skin import SkinField
 
     field = SkinField.from_dict(skin)
@@ -327,8 +327,8 @@ def test_spectral_skin_scan_round_trips(tmp_path):
 def test_true_rig_differs_from_nominal_by_a_calibration_sized_error(tiny_scan):
     """The scan's rig.json is the nominal rig; frames are rendered with the true (perturbed)
     one in ground_truth/rig.json — millimetres and tenths of a degree apart."""
-    from facegeo.rig import Rig
-    from facegeo.scan import load_scan
+    from facegeo.geometry.rig import Rig
+    from facegeo.capture.scan import load_scan
 
     root, _ = tiny_scan
     scan = load_scan(root)
@@ -342,7 +342,7 @@ def test_true_rig_differs_from_nominal_by_a_calibration_sized_error(tiny_scan):
 
 
 def test_overwrite_replaces_the_whole_scan(tmp_path):
-    from facegeo.scan import load_scan
+    from facegeo.capture.scan import load_scan
     from facegeo.synth.capture import generate_scan
 
     root = tmp_path / "s"
@@ -401,7 +401,7 @@ def test_seam_vertices_share_normals():
 
 
 def test_threaded_shading_is_identical_to_serial(tiny_scan):
-    from facegeo.scan import load_scan
+    from facegeo.capture.scan import load_scan
     from facegeo.synth.render import load_ground_truth
 
     root, _ = tiny_scan
@@ -420,7 +420,7 @@ def test_threaded_shading_is_identical_to_serial(tiny_scan):
 def test_png16_olat_frames_round_trip_within_quantisation(tmp_path):
     """16-bit sRGB PNG OLAT frames with an exposure load back as radiance within the encoding's
     quantisation; clipped highlights are masked."""
-    from facegeo.scan import load_scan
+    from facegeo.capture.scan import load_scan
     from facegeo.synth.capture import OLAT_PNG_EXPOSURE, generate_scan
     from facegeo.synth.render import load_ground_truth
 
@@ -458,7 +458,7 @@ def test_renderer_validates_inputs_once_per_view():
 
 
 def test_unchecked_brdf_equals_checked():
-    from facegeo.brdf import skin_brdf, skin_brdf_unchecked
+    from facegeo.appearance.brdf import skin_brdf, skin_brdf_unchecked
 
     rng = np.random.default_rng(4)
     def unit(x):

@@ -1,4 +1,4 @@
-"""Tests of facegeo.visibility: closest hit, occlusion and segment visibility.
+"""Tests of facegeo.surface.visibility: closest hit, occlusion and segment visibility.
 
 The independent reference is trimesh's pure-numpy ray–triangle test
 (``trimesh.ray.ray_triangle``, no Embree, float64). Its ``RayMeshIntersector`` wants an ``rtree``
@@ -14,7 +14,7 @@ import trimesh
 from trimesh.ray.ray_triangle import ray_triangle_id
 
 from facegeo.errors import InputError, ShapeError
-from facegeo.visibility import EPS_RELATIVE, Hits, RayScene
+from facegeo.surface.visibility import EPS_RELATIVE, Hits, RayScene
 
 # --------------------------------------------------------------------------- tolerances
 #: Relative distance agreement with the float64 reference (ours is float64-refined).

@@ -144,7 +144,7 @@ def perturbed_rig(rig, seed: int):
     ``rig.json`` — what a real rig's owner knows before calibration — and the true one to
     ``ground_truth/rig.json``, so calibration has something real to recover.
     """
-    from facegeo.rig import Rig
+    from facegeo.geometry.rig import Rig
 
     rng = np.random.default_rng([seed, 7])
     P = RIG_PERTURBATION
@@ -171,7 +171,7 @@ def perturbed_rig(rig, seed: int):
 
 def build_rig(preset: Preset):
     """The nominal default rig (paper-shaped) resized to the preset."""
-    from facegeo.rig import Rig, default_rig
+    from facegeo.geometry.rig import Rig, default_rig
 
     rig = default_rig()
     if preset.camera_scale != 1.0:
@@ -188,7 +188,7 @@ def build_rig(preset: Preset):
 
 def _board_for_rig(rig):
     """A ChArUco board sized to fill ~60 % of the narrowest camera view at the head."""
-    from facegeo.board import CharucoBoard
+    from facegeo.geometry.board import CharucoBoard
 
     widths = []
     for cam in rig.cameras:
@@ -243,7 +243,7 @@ def _board_poses(board, cameras, n, rng, *, max_tries=2000) -> list[Pose]:
 
 def _novel_cameras(rig) -> list:
     """Viewpoints the light stage's cameras never saw, for novel-view ground truth."""
-    from facegeo.camera import Camera
+    from facegeo.geometry.camera import Camera
 
     ref = rig.cameras[0]
     out = []
@@ -289,7 +289,7 @@ def generate_scan(
         Diffuse colour model of the ground-truth skin field: ``"regional"`` (a parametric
         linear-sRGB skin colour with regional variation) or ``"spectral"`` /
         ``"spectral:<type>"`` (Donner & Jensen 2006 albedo from smooth maps of melanin and
-        haemoglobin, ``<type>`` one of ``facegeo.spectral.SKIN_TYPES``, default medium).
+        haemoglobin, ``<type>`` one of ``facegeo.appearance.spectral.SKIN_TYPES``, default medium).
     olat_format : {"exr", "png16"}
         OLAT frames as linear EXR (float16 or float32 per preset) or as 16-bit PNG through the
         sRGB response with exposure :data:`OLAT_PNG_EXPOSURE` (highlights above the white level
@@ -306,8 +306,8 @@ def generate_scan(
     -------
     SynthSummary
     """
-    from facegeo import imageio, scan as scanmod
-    from facegeo.structured_light import PatternSpec, pattern_names, pattern_value_at
+    from facegeo.capture import imageio, scan as scanmod
+    from facegeo.geometry.structured_light import PatternSpec, pattern_names, pattern_value_at
     from facegeo.synth.render import ReferenceRenderer
     from facegeo.synth.skin import SkinField
 
@@ -497,7 +497,7 @@ def _skin_model(spec: str) -> dict:
     if name == "regional" and not kind:
         return {"albedo_model": "regional"}
     if name == "spectral":
-        from facegeo.spectral import SKIN_TYPES
+        from facegeo.appearance.spectral import SKIN_TYPES
 
         kind = kind or "medium"
         if kind not in SKIN_TYPES:
@@ -528,7 +528,7 @@ def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: 
     during the OLAT pass (the same Eq. (4) sum :meth:`ReferenceRenderer.render_lights` computes),
     so they are not shaded twice.
     """
-    from facegeo import imageio
+    from facegeo.capture import imageio
     from facegeo.fsutil import atomic_path, atomic_write_text
 
     gt = root / "ground_truth"

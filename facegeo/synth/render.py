@@ -3,7 +3,7 @@
 This is the ground truth every later stage is measured against: the synthetic capture writes its
 OLAT frames with it, and novel views and relit images of the fitted model are compared with it.
 
-Model (Debevec et al. 2000, §4): per surface point, the skin BRDF of :mod:`facegeo.brdf` —
+Model (Debevec et al. 2000, §4): per surface point, the skin BRDF of :mod:`facegeo.appearance.brdf` —
 Lambertian diffuse with the diffuse chromaticity ramp plus Torrance–Sparrow specular — with
 parameters from a solid-texture :class:`~facegeo.synth.skin.SkinField`, cast shadows by exact
 Embree shadow rays, no interreflection or subsurface transport (the paper's model has none
@@ -183,7 +183,7 @@ class ReferenceRenderer:
     @cached_property
     def rays(self):
         """The Embree scene (built on first use)."""
-        from facegeo.visibility import RayScene
+        from facegeo.surface.visibility import RayScene
 
         return RayScene(self.vertices, self.faces)
 
@@ -293,7 +293,7 @@ class ReferenceRenderer:
         return self._shade(view, l, np.ones(n_p), col, sel=sel, light_dir=d)
 
     def _shade(self, view, l, falloff, col, *, sel=None, light_pos=None, light_dir=None):
-        from facegeo.brdf import skin_brdf_unchecked
+        from facegeo.appearance.brdf import skin_brdf_unchecked
 
         pick = (lambda a: a) if sel is None else (lambda a: a[sel])
         n = pick(view.n_world)
@@ -339,7 +339,7 @@ class ReferenceRenderer:
                     ) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(light index, image (H, W, 3) float32)`` for each light of a light stage.
 
-        ``lights`` is a :class:`facegeo.rig.LightStage`. Frames come in the order of
+        ``lights`` is a :class:`facegeo.geometry.rig.LightStage`. Frames come in the order of
         ``indices`` (default: light-index order). Lights are shaded ``workers`` at a time (numpy
         and Embree release the GIL), with at most ``2·workers`` frames in flight, so memory stays
         bounded; every frame is computed independently, so results do not depend on ``workers``.
@@ -429,7 +429,7 @@ def load_ground_truth(scan) -> ReferenceRenderer:
 
     Parameters
     ----------
-    scan : facegeo.scan.Scan or path
+    scan : facegeo.capture.scan.Scan or path
         A synthetic scan.
     """
     import json
@@ -437,8 +437,8 @@ def load_ground_truth(scan) -> ReferenceRenderer:
     import trimesh
     import trimesh.exchange.ply
 
-    from facegeo.rig import Rig
-    from facegeo.scan import Scan, load_scan
+    from facegeo.geometry.rig import Rig
+    from facegeo.capture.scan import Scan, load_scan
     from facegeo.synth.skin import SkinField
 
     if not isinstance(scan, Scan):

@@ -1,6 +1,6 @@
 """Ground-truth skin parameters as solid textures: smooth functions of 3-D position.
 
-A :class:`SkinField` gives the parameters of the skin BRDF of :mod:`facegeo.brdf`
+A :class:`SkinField` gives the parameters of the skin BRDF of :mod:`facegeo.appearance.brdf`
 (Debevec et al. 2000, §4) at any point in space, so the ground truth can be evaluated at any
 texel of any reconstructed atlas, on any mesh:
 
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.brdf import desaturate
+from facegeo.appearance.brdf import desaturate
 from facegeo.checks import as_array
 from facegeo.errors import InputError
 
@@ -225,20 +225,25 @@ def regional_albedo(u, skin: SkinField, *, tone=(0.45, 0.30, 0.23), subject_vari
     return np.exp(log_a)
 
 
+def spectral_albedo(u, skin, params="medium", variation=1.0):
+    """Donner & Jensen 2006 skin as a diffuse colour model (``albedo_model="spectral"``).
+
+    α₀ comes from the melanin/haemoglobin maps and ρ_s from the oiliness map of
+    :func:`facegeo.appearance.spectral.spectral_albedo_fn` (all four parameters drive the
+    ground truth); the noise seed is the field's own ``seed``. Imported on first use, so the
+    spectral model's tables are built only for fields that ask for it.
+    """
+    from facegeo.appearance.spectral import spectral_albedo_fn
+
+    fn = spectral_albedo_fn(params, seed=int(skin.seed), variation=variation)
+    return {"alpha_0": fn(u), "rho_s": fn.parameter_maps(u).rho_s}
+
+
 #: Diffuse colour models by name: ``model(u, skin, **params) -> alpha_0 (..., 3)``.
-ALBEDO_MODELS: dict[str, Callable[..., np.ndarray]] = {"regional": regional_albedo}
-
-#: Models that register themselves on first use (module, registration function), so a
-#: ``skin.json`` naming them loads in a fresh process without importing them by hand.
-_LAZY_ALBEDO_MODELS = {"spectral": ("facegeo.spectral", "register_spectral_albedo")}
-
-
-def _ensure_albedo_model(name: str) -> None:
-    if name not in ALBEDO_MODELS and name in _LAZY_ALBEDO_MODELS:
-        import importlib
-
-        module, fn = _LAZY_ALBEDO_MODELS[name]
-        getattr(importlib.import_module(module), fn)()
+ALBEDO_MODELS: dict[str, Callable[..., np.ndarray]] = {
+    "regional": regional_albedo,
+    "spectral": spectral_albedo,
+}
 
 
 def register_albedo_model(name: str, model: Callable[..., np.ndarray], *,
@@ -356,10 +361,8 @@ class SkinField:
         if int(self.seed) != self.seed:
             raise InputError(f"seed: expected an integer, got {self.seed!r}")
         object.__setattr__(self, "seed", int(self.seed))
-        if self.albedo_fn is None:
-            _ensure_albedo_model(self.albedo_model)
         if self.albedo_fn is None and self.albedo_model not in ALBEDO_MODELS:
-            known = ", ".join(sorted(set(ALBEDO_MODELS) | set(_LAZY_ALBEDO_MODELS)))
+            known = ", ".join(sorted(ALBEDO_MODELS))
             raise InputError(
                 f"albedo_model: unknown model {self.albedo_model!r}; registered: {known} "
                 "(add one with register_albedo_model)"

@@ -9,7 +9,7 @@ header calls the third column ``ext_deo``; it is the *molar* extinction, like th
 Units: ε in cm⁻¹ M⁻¹ (decadic: absorbance per cm per mol/L), wavelengths in nm.
 
 Conversion to an absorption coefficient of whole blood (Prahl's convention, used by
-:func:`facegeo.spectral.haemoglobin_absorption`)::
+:func:`facegeo.appearance.spectral.haemoglobin_absorption`)::
 
     μa [cm⁻¹] = ln(10) · ε [cm⁻¹ M⁻¹] · c_Hb [M],   c_Hb = 150 g/L / 64 500 g/mol = 2.326 mM
     σ_a [mm⁻¹] = μa [cm⁻¹] / 10

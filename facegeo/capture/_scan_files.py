@@ -1,9 +1,9 @@
-"""Where a scan's files live, and whether they are there (private; used by :mod:`facegeo.scan`).
+"""Where a scan's files live, and whether they are there (private; used by :mod:`facegeo.capture.scan`).
 
 Filling a group's path template (:func:`_format_template`), joining the result to the scan
 directory while refusing anything that leads outside it, symlinks included (:class:`_Resolver`),
 the public :func:`frame_path` that writers and the loader share (re-exported by
-:mod:`facegeo.scan`), and the on-disk check of one frame group of one camera against the rig
+:mod:`facegeo.capture.scan`), and the on-disk check of one frame group of one camera against the rig
 (:func:`_check_group_files`: every file present, right size, decodable with the declared
 response).
 """
@@ -13,14 +13,11 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from facegeo._scan_schema import _check_rel_path, _err
+from facegeo.capture._scan_schema import _check_rel_path, _err
 from facegeo.errors import InputError, ScanFormatError
-from facegeo.imageio import read_image, read_image_size
-
-if TYPE_CHECKING:
-    from facegeo.scan import Scan
+from facegeo.capture.imageio import read_image, read_image_size
 
 
 def _format_template(template: str, fields: Mapping[str, Any]) -> str:
@@ -86,9 +83,12 @@ def frame_path(root: str | os.PathLike, template: str, **fields: Any) -> Path:
     return _Resolver(Path(root))(rel, key="files")
 
 
-def _check_group_files(scan: Scan, group: str, cam, *, full: bool) -> None:
-    """Check one frame group of one camera on disk; raise the first problem found."""
-    files = scan.expected_files(group, cam.name)
+def _check_group_files(files, response, group: str, cam, *, full: bool) -> None:
+    """Check one frame group of one camera on disk; raise the first problem found.
+
+    ``files`` is the group's ``[(label, path), …]`` for this camera (``Scan.expected_files``)
+    and ``response`` the group's :class:`~facegeo.capture.response.Response`.
+    """
     missing = [(label, p) for label, p in files if not p.is_file()]
     if missing:
         label, p = missing[0]
@@ -105,7 +105,6 @@ def _check_group_files(scan: Scan, group: str, cam, *, full: bool) -> None:
         if size != expected:
             raise _size_error(p, group, cam.name, size, expected)
     if full:
-        response = scan.response(group)
         for _, p in files:
             img = read_image(p)
             h, w = img.shape[:2]

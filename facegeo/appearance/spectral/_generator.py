@@ -5,8 +5,8 @@ u ∈ [−1, 1]³, the coordinates of :class:`facegeo.synth.skin.SkinField`) to 
 (C_m, β_m, C_h, ρ_s): a base skin type, regional multipliers (more blood in the lips, cheeks,
 nose tip and ears; oilier forehead, nose and chin; less melanin on the lips), and seeded
 smooth noise. :func:`spectral_albedo_fn` turns those maps into the linear-sRGB ``alpha_0`` the
-synthetic skin field takes as its ``albedo_fn``; :func:`register_spectral_albedo` registers it
-as a named, serialisable albedo model of :mod:`facegeo.synth.skin`.
+synthetic skin field takes as its ``albedo_fn``; :mod:`facegeo.synth.skin` serves it as
+its named, serialisable ``"spectral"`` albedo model.
 
 Everything is a pure function of (u, seed): the same point always gets the same skin.
 
@@ -25,15 +25,14 @@ import numpy as np
 
 from facegeo.checks import as_array, check_choice
 from facegeo.errors import InputError
-from facegeo.spectral._lut import SkinLUT, skin_lut
-from facegeo.spectral._model import PARAMETER_RANGES, SkinParameters
+from facegeo.appearance.spectral._lut import SkinLUT, skin_lut
+from facegeo.appearance.spectral._model import PARAMETER_RANGES, SkinParameters
 
 __all__ = [
     "SKIN_TYPES",
     "PARAMETER_REGIONS",
     "regional_parameter_maps",
     "spectral_albedo_fn",
-    "register_spectral_albedo",
 ]
 
 #: Base parameters of named skin types (see the module docstring for their source).
@@ -183,7 +182,7 @@ def spectral_albedo_fn(
     params, seed, variation
         As :func:`regional_parameter_maps`.
     lut : SkinLUT, optional
-        Table to interpolate (default :func:`facegeo.spectral.skin_lut` ()); its error is
+        Table to interpolate (default :func:`facegeo.appearance.spectral.skin_lut` ()); its error is
         ≤ 0.12 % relative.
     exact : bool
         Evaluate the spectral model at every point instead (≈ 100× slower).
@@ -203,7 +202,7 @@ def spectral_albedo_fn(
     def albedo(u) -> np.ndarray:
         p = parameter_maps(u)
         if exact:
-            from facegeo.spectral._model import skin_rgb
+            from facegeo.appearance.spectral._model import skin_rgb
 
             rgb = skin_rgb(p.C_m, p.beta_m, p.C_h)
         else:
@@ -212,20 +211,3 @@ def spectral_albedo_fn(
 
     albedo.parameter_maps = parameter_maps  # type: ignore[attr-defined]
     return albedo
-
-
-def register_spectral_albedo(name: str = "spectral", *, overwrite: bool = False) -> None:
-    """Register this model with :func:`facegeo.synth.skin.register_albedo_model`.
-
-    Afterwards ``SkinField(albedo_model="spectral", albedo_params={"params": "dark"})`` is a
-    serialisable spectral-skin field; the noise seed is the field's own ``seed``.
-    """
-    from facegeo.synth.skin import register_albedo_model
-
-    def model(u, skin, params="medium", variation=1.0):
-        # α₀ from the melanin/haemoglobin maps and ρ_s from the oiliness map (D&J 2006's four
-        # parameters all drive the ground truth)
-        fn = spectral_albedo_fn(params, seed=int(skin.seed), variation=variation)
-        return {"alpha_0": fn(u), "rho_s": fn.parameter_maps(u).rho_s}
-
-    register_albedo_model(name, model, overwrite=overwrite)

@@ -37,9 +37,9 @@ import numpy as np
 
 from facegeo.checks import as_array
 from facegeo.errors import InputError
-from facegeo.spectral._absorption import DEFAULT_EUMELANIN, check_wavelengths
-from facegeo.spectral._lut import LOG_FLOOR, SkinLUT, layered_spectra_grid, skin_lut
-from facegeo.spectral._model import (
+from facegeo.appearance.spectral._absorption import DEFAULT_EUMELANIN, check_wavelengths
+from facegeo.appearance.spectral._lut import LOG_FLOOR, SkinLUT, layered_spectra_grid, skin_lut
+from facegeo.appearance.spectral._model import (
     PARAMETER_RANGES,
     SkinParameters,
     check_skin_parameters,
@@ -284,9 +284,9 @@ def fit_albedo(
     ----------
     rgb : (..., 3) array_like float, linear sRGB
         Albedo under the white-reflector-is-(1, 1, 1) normalisation of
-        :func:`facegeo.spectral.skin_rgb`. Finite; channels ≤ 1e-4 are floored and flagged.
+        :func:`facegeo.appearance.spectral.skin_rgb`. Finite; channels ≤ 1e-4 are floored and flagged.
     lut : SkinLUT, optional
-        Default :func:`facegeo.spectral.skin_lut` ().
+        Default :func:`facegeo.appearance.spectral.skin_lut` ().
     refine : {"lut", "exact", "none"}
         Model inside the refinement: the table's interpolant (fast); the spectral model
         (after the table refinement, 3 more steps on the exact model, ~100× slower, for small

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from facegeo.bench import BenchRow, best_of, register
+from facegeo.pipeline.bench import BenchRow, best_of, register
 
 
 @register("structured_light.decode_gray")
 def bench_decode_gray(quick: bool) -> list[BenchRow]:
     import cv2
 
-    from facegeo.structured_light import PatternSpec, decode_gray, pattern_names, pattern_value_at
+    from facegeo.geometry.structured_light import PatternSpec, decode_gray, pattern_names, pattern_value_at
 
     w, h = (640, 512) if quick else (1280, 1024)
     spec = PatternSpec(width=1024, height=768, white_black=False)

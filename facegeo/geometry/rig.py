@@ -5,10 +5,10 @@ from a small JSON file (``calib/default_rig.json`` is :func:`default_rig` writte
 
 Regenerate the shipped calibration files (``calib/default_rig.json`` and
 ``calib/charuco_board.json``) after changing :func:`default_rig` or the default
-:class:`facegeo.board.CharucoBoard` with::
+:class:`facegeo.geometry.board.CharucoBoard` with::
 
-    python -m facegeo.rig            # writes <repo>/calib/
-    python -m facegeo.rig OUT_DIR    # writes OUT_DIR/
+    python -m facegeo.geometry.rig            # writes <repo>/calib/
+    python -m facegeo.geometry.rig OUT_DIR    # writes OUT_DIR/
 
 ``tests/test_rig.py`` and ``tests/test_board.py`` check that the shipped files equal what the code
 produces.
@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.camera import Camera
+from facegeo.geometry.camera import Camera
 from facegeo.checks import as_array, check_positive
 from facegeo.errors import InputError
 from facegeo.frames import light_directions, light_solid_angles, look_at
@@ -282,7 +282,7 @@ class Rig:
     def scaled(self, factor: float) -> Rig:
         """The rig with every camera image resized by ``factor`` (the projector is unchanged).
 
-        See :meth:`facegeo.camera.Camera.scaled`.
+        See :meth:`facegeo.geometry.camera.Camera.scaled`.
         """
         check_positive(factor, "factor")
         return Rig([c.scaled(factor) for c in self.cameras], self.projector, self.lights)
@@ -388,7 +388,7 @@ def default_rig() -> Rig:
     (under ~1 px at the image corners). Between them a 1024 × 768 projector slightly above the
     +Z axis, its own intrinsics, no distortion. Light stage: 64 × 32 lights at 1.5 m.
 
-    ``calib/default_rig.json`` is this rig written by ``python -m facegeo.rig``.
+    ``calib/default_rig.json`` is this rig written by ``python -m facegeo.geometry.rig``.
     """
     W, H = _DEFAULT["width"], _DEFAULT["height"]
     target = np.asarray(_DEFAULT["target"], dtype=np.float64)
@@ -405,13 +405,13 @@ def default_rig() -> Rig:
 
 
 def _repo_calib_dir() -> Path:
-    return Path(__file__).resolve().parents[1] / "calib"
+    return Path(__file__).resolve().parents[2] / "calib"
 
 
 def write_default_calib(out_dir=None) -> list[Path]:
     """Write ``default_rig.json`` and ``charuco_board.json`` to ``out_dir`` (default: the
     repository's ``calib/``). Returns the paths written."""
-    from facegeo.board import CharucoBoard  # local import: board needs cv2
+    from facegeo.geometry.board import CharucoBoard  # local import: board needs cv2
 
     out = _repo_calib_dir() if out_dir is None else Path(out_dir)
     return [
@@ -421,10 +421,10 @@ def write_default_calib(out_dir=None) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m facegeo.rig [OUT_DIR]``: regenerate the shipped calibration files."""
+    """``python -m facegeo.geometry.rig [OUT_DIR]``: regenerate the shipped calibration files."""
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) > 1 or (argv and argv[0] in ("-h", "--help")):
-        print("usage: python -m facegeo.rig [OUT_DIR]   (default: <repo>/calib)")
+        print("usage: python -m facegeo.geometry.rig [OUT_DIR]   (default: <repo>/calib)")
         return 0 if argv and argv[0] in ("-h", "--help") else 2
     for p in write_default_calib(argv[0] if argv else None):
         print(p)

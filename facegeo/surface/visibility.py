@@ -421,7 +421,7 @@ class RayScene:
                 from embreex.mesh_construction import TriangleMesh
             except ImportError as exc:  # pragma: no cover - embreex is a hard dependency
                 raise MissingDependencyError(
-                    "facegeo.visibility needs embreex: pip install embreex"
+                    "facegeo.surface.visibility needs embreex: pip install embreex"
                 ) from exc
             deg = self.degenerate
             if deg.all():

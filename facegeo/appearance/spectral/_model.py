@@ -3,19 +3,19 @@
 Implements Donner & Jensen 2006 with the choices below (each deviation is stated where made):
 
 1. Absorption and reduced scattering of the epidermis and dermis, Eqs. (3)–(8)
-   (:mod:`facegeo.spectral._absorption`).
+   (:mod:`facegeo.appearance.spectral._absorption`).
 2. The epidermis (0.25 mm) is a multipole slab, the dermis a dipole half-space, both of index
    η = 1.4 (Donner & Jensen 2005); their totals are combined by the adding relation
-   (:func:`~facegeo.spectral._diffusion.two_layer_total_reflectance`), the zero-frequency term
+   (:func:`~facegeo.appearance.spectral._diffusion.two_layer_total_reflectance`), the zero-frequency term
    of D&J 2005's frequency-domain layer combination. This gives the total diffuse
    reflectance of the subsurface term, the quantity the paper turns into colour.
 3. Light crosses the rough oily surface first: the surface term is Torrance–Sparrow with a
-   Beckmann distribution (m = 0.35) scaled by ρ_s (:func:`facegeo.brdf.specular_brdf`), and
+   Beckmann distribution (m = 0.35) scaled by ρ_s (:func:`facegeo.appearance.brdf.specular_brdf`), and
    the subsurface term is scaled by (1 − ρ_dr), ρ_dr the hemispherical (diffuse) Fresnel
    reflectance of the η = 1.4 surface, 0.0768 (D&J 2006 Eqs. 1–2, as given in issue #3).
 
 The albedo ``alpha_0`` of the synthetic skin is therefore ``(1 − ρ_dr) · R_ml(λ)`` integrated
-against D65 and the CIE 1931 2° observer (:mod:`facegeo.spectral._colour`).
+against D65 and the CIE 1931 2° observer (:mod:`facegeo.appearance.spectral._colour`).
 
 References
 ----------
@@ -33,7 +33,7 @@ import numpy as np
 
 from facegeo.checks import as_array
 from facegeo.errors import InputError, ShapeError
-from facegeo.spectral._absorption import (
+from facegeo.appearance.spectral._absorption import (
     DEFAULT_EUMELANIN,
     GAMMA_OXY,
     check_wavelengths,
@@ -42,8 +42,8 @@ from facegeo.spectral._absorption import (
     epidermis_absorption,
     epidermis_scattering,
 )
-from facegeo.spectral._colour import spectrum_to_rgb
-from facegeo.spectral._diffusion import two_layer_total_reflectance
+from facegeo.appearance.spectral._colour import spectrum_to_rgb
+from facegeo.appearance.spectral._diffusion import two_layer_total_reflectance
 
 __all__ = [
     "ETA_SKIN",
@@ -152,10 +152,10 @@ def rho_dr(eta: float = ETA_SKIN) -> float:
     """ρ_dr: hemispherical (cosine-weighted) Fresnel reflectance of a smooth dielectric (outside).
 
     ρ_dr = 2 ∫₀¹ F(μ) μ dμ with F the exact unpolarised Fresnel reflectance
-    (:func:`facegeo.brdf.fresnel_dielectric`), by 64-point Gauss–Legendre quadrature.
+    (:func:`facegeo.appearance.brdf.fresnel_dielectric`), by 64-point Gauss–Legendre quadrature.
     ρ_dr(1.4) = 0.0768; the fraction (1 − ρ_dr) of diffuse light enters the skin.
     """
-    from facegeo.brdf import fresnel_dielectric
+    from facegeo.appearance.brdf import fresnel_dielectric
 
     if not (np.isfinite(eta) and eta >= 1.0):
         raise InputError(f"eta: expected a relative index >= 1, got {eta!r}")
@@ -172,10 +172,10 @@ def subsurface_transmission(eta: float = ETA_SKIN) -> float:
 def surface_brdf(n, l, v, rho_s, *, m: float = BECKMANN_M, eta: float = ETA_SKIN) -> np.ndarray:
     """The surface term f_s = ρ_s · Torrance–Sparrow(Beckmann m = 0.35, η = 1.4) [1/sr].
 
-    D&J 2006 Eq. (1); delegates to :func:`facegeo.brdf.specular_brdf` (shared with the
+    D&J 2006 Eq. (1); delegates to :func:`facegeo.appearance.brdf.specular_brdf` (shared with the
     Debevec et al. 2000 skin model). ``n, l, v`` are (..., 3) unit vectors in one frame.
     """
-    from facegeo.brdf import specular_brdf
+    from facegeo.appearance.brdf import specular_brdf
 
     return specular_brdf(n, l, v, rho_s, m, eta)
 
@@ -210,7 +210,7 @@ def skin_spectrum(
     wavelengths : (L,) array_like float, nm, optional
         Inside 380–780 nm. Default :data:`DEFAULT_WAVELENGTHS_NM` (every 4 nm).
     convention : str
-        Eumelanin constant (see :data:`facegeo.spectral.EUMELANIN_COEFFICIENTS`).
+        Eumelanin constant (see :data:`facegeo.appearance.spectral.EUMELANIN_COEFFICIENTS`).
     gamma : float
         Haemoglobin oxygenation (0.75).
     thickness : float, mm

@@ -11,7 +11,7 @@ every (supersampled) pixel ray, so lens distortion is honoured exactly, and a bi
 the texture; :func:`random_board_poses` draws well-conditioned calibration views.
 
 ``calib/charuco_board.json`` is ``CharucoBoard()`` saved; regenerate it with
-``python -m facegeo.rig`` (see :mod:`facegeo.rig`).
+``python -m facegeo.geometry.rig`` (see :mod:`facegeo.geometry.rig`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from facegeo.camera import Camera
+from facegeo.geometry.camera import Camera
 from facegeo.checks import as_array, check_positive
 from facegeo.errors import InputError
 from facegeo.frames import Pose, rotation_from_rvec

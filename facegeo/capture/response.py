@@ -5,9 +5,9 @@ Radiometry (``docs/conventions.md``): every pixel value inside the library is li
 gamma, or a tabulated Debevec–Malik curve); saturated and black-clipped samples are flagged by
 :func:`saturated_mask` and :func:`clipped_mask` and must never be trusted.
 
-This module works on pixel arrays; image files are read and written by :mod:`facegeo.imageio`,
-which re-exports every public name here (``facegeo.imageio.linearize`` and
-``facegeo.response.linearize`` are the same function). The only file it reads is a response
+This module works on pixel arrays; image files are read and written by :mod:`facegeo.capture.imageio`,
+which re-exports every public name here (``facegeo.capture.imageio.linearize`` and
+``facegeo.capture.response.linearize`` are the same function). The only file it reads is a response
 table's ``.npy`` (:func:`load_response_table`).
 
 References

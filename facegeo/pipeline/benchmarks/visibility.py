@@ -1,9 +1,9 @@
-"""Benchmarks of :mod:`facegeo.visibility` against raw embreex and ``trimesh.ray``.
+"""Benchmarks of :mod:`facegeo.surface.visibility` against raw embreex and ``trimesh.ray``.
 
 ``visibility.closest_hit``: camera-coherent rays (a pinhole grid) against a displaced sphere of
 ~1.3 M triangles (quick: ~82 k), head-sized (radius 0.1 m) and seen from 0.5 m.
 ``visibility.occluded``: incoherent shadow rays from random surface points toward random
-directions (the worst case for memory locality; :class:`~facegeo.visibility.RayScene` sorts such
+directions (the worst case for memory locality; :class:`~facegeo.surface.visibility.RayScene` sorts such
 batches in Z-order on large meshes, and a row shows raw embreex on pre-sorted rays).
 
 Each row carries the ratio to raw embreex (one ``EmbreeScene.run`` call on the same float32
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from facegeo.bench import BenchRow, best_of, register
+from facegeo.pipeline.bench import BenchRow, best_of, register
 
 _RADIUS = 0.1  # metres, a head
 _CAMERA_DISTANCE = 0.5  # metres
@@ -55,7 +55,7 @@ def _trimesh_closest(mesh, o, d):
 
 @register("visibility.closest_hit")
 def bench_closest_hit(quick: bool) -> list[BenchRow]:
-    from facegeo.visibility import RayScene
+    from facegeo.surface.visibility import RayScene
 
     mesh = _mesh(quick)
     n_side = 448 if quick else 1000
@@ -130,7 +130,7 @@ def _surface_points(mesh, n: int, rng: np.random.Generator):
 
 @register("visibility.occluded")
 def bench_occluded(quick: bool) -> list[BenchRow]:
-    from facegeo.visibility import RayScene
+    from facegeo.surface.visibility import RayScene
 
     rng = np.random.default_rng(20000)
     mesh = _mesh(quick)
@@ -156,7 +156,7 @@ def bench_occluded(quick: bool) -> list[BenchRow]:
     t_raw, raw = best_of(lambda: emb.run(o32, d32, query="OCCLUDED", dists=far), repeat)
     diff_raw = float(np.mean(occ != (raw == 0)))
     # The ceiling for incoherent rays: raw embreex on the same rays in Z-order (sort untimed).
-    from facegeo.visibility import _morton_order
+    from facegeo.surface.visibility import _morton_order
 
     z = _morton_order(p, scene.bounds[0], scene.bounds[1])
     o32z, d32z = np.ascontiguousarray(o32[z]), np.ascontiguousarray(d32[z])

@@ -1,11 +1,11 @@
-"""The ``scan.toml`` schema (private; the public names are re-exported by :mod:`facegeo.scan`).
+"""The ``scan.toml`` schema (private; the public names are re-exported by :mod:`facegeo.capture.scan`).
 
 The format's constants (:data:`FORMAT`, :data:`VERSION`, the default paths, templates and
 responses of each frame group), the key table of every section, the type and value checks of
 each key, the path-template checks, the string-level path-safety check
 (:func:`_check_rel_path`: relative, forward slashes, no ``..``) and :func:`validate_manifest`,
 which applies them all to a parsed manifest. Nothing here touches the file system: that is
-:mod:`facegeo._scan_files` (and, for the rig, board and frames, :class:`facegeo.scan.Scan`).
+:mod:`facegeo.capture._scan_files` (and, for the rig, board and frames, :class:`facegeo.capture.scan.Scan`).
 Documented key by key in ``docs/scan-format.md``.
 """
 
@@ -20,8 +20,8 @@ from pathlib import PurePosixPath
 from typing import Any
 
 from facegeo.errors import ScanFormatError
-from facegeo.imageio import READ_SUFFIXES
-from facegeo.response import parse_response
+from facegeo.capture.imageio import READ_SUFFIXES
+from facegeo.capture.response import parse_response
 
 FORMAT = "facegeo-scan"
 VERSION = 1

@@ -4,7 +4,7 @@ A real light stage and the synthetic generator (:mod:`facegeo.synth`) write the 
 documented key by key in ``docs/scan-format.md``::
 
     <scan>/scan.toml                        the manifest (this module's schema, version 1)
-    <scan>/rig.json                         cameras, projector, light stage (facegeo.rig)
+    <scan>/rig.json                         cameras, projector, light stage (facegeo.geometry.rig)
     calib/board.json, calib/<camera>/view_000.png ...
     calib/projector/<camera>/view_00_<frame>.png
     structured_light/<camera>/<frame>.png
@@ -21,8 +21,8 @@ Loading never writes into the scan directory (only :attr:`Scan.out_dir` creates 
 demand).
 
 The schema (key tables, value and template checks, path-safety checks) lives in the private
-module :mod:`facegeo._scan_schema`, file resolution and the on-disk frame checks in
-:mod:`facegeo._scan_files`; every public name is importable from here.
+module :mod:`facegeo.capture._scan_schema`, file resolution and the on-disk frame checks in
+:mod:`facegeo.capture._scan_files`; every public name is importable from here.
 """
 
 from __future__ import annotations
@@ -38,14 +38,14 @@ from typing import Any
 
 import numpy as np
 
-from facegeo._scan_files import (
+from facegeo.capture._scan_files import (
     _check_group_files,
     _format_template,
     _Resolver,
     _size_error,
     frame_path,
 )
-from facegeo._scan_schema import (
+from facegeo.capture._scan_schema import (
     DEFAULT_BOARD,
     DEFAULT_FILES,
     DEFAULT_RESPONSES,
@@ -62,8 +62,8 @@ from facegeo._scan_schema import (
 from facegeo.checks import check_choice
 from facegeo.errors import FacegeoError, InputError, ScanFormatError
 from facegeo.fsutil import atomic_write_text
-from facegeo.imageio import read_image
-from facegeo.response import Response, clipped_mask, parse_response, saturated_mask
+from facegeo.capture.imageio import read_image
+from facegeo.capture.response import Response, clipped_mask, parse_response, saturated_mask
 
 __all__ = [
     "FORMAT",
@@ -171,8 +171,8 @@ class Scan:
 
     @functools.cached_property
     def rig(self):
-        """The scan's :class:`facegeo.rig.Rig` (loaded on first use)."""
-        from facegeo.rig import Rig
+        """The scan's :class:`facegeo.geometry.rig.Rig` (loaded on first use)."""
+        from facegeo.geometry.rig import Rig
 
         rel = self._m["scan"]["rig"]
         p = self._resolve(rel, key="scan.rig", where=self.manifest_path)
@@ -195,13 +195,13 @@ class Scan:
         return [c.name for c in self.rig.cameras]
 
     def camera(self, name: str):
-        """The rig's :class:`facegeo.camera.Camera` called ``name`` (error lists the valid ones)."""
+        """The rig's :class:`facegeo.geometry.camera.Camera` called ``name`` (error lists the valid ones)."""
         return self.rig.camera(name)
 
     @functools.cached_property
     def board(self):
-        """The calibration board (:class:`facegeo.board.CharucoBoard`, loaded on first use)."""
-        from facegeo.board import CharucoBoard
+        """The calibration board (:class:`facegeo.geometry.board.CharucoBoard`, loaded on first use)."""
+        from facegeo.geometry.board import CharucoBoard
 
         rel = self._section("calib")["board"]
         p = self._resolve(rel, key="calib.board", where=self.manifest_path)
@@ -215,7 +215,7 @@ class Scan:
             raise _err(f"cannot load the board: {exc}", key="calib.board", path=p) from exc
 
     def response(self, group: str) -> Response:
-        """The declared :class:`~facegeo.imageio.Response` of a frame group
+        """The declared :class:`~facegeo.capture.imageio.Response` of a frame group
         (``calib.projector`` frames use ``calib.response``)."""
         sect = "calib" if group == "calib.projector" else group
         r = self._responses.get(sect)
@@ -509,7 +509,10 @@ class Scan:
                            path=where)
         for group in self.groups:
             for cam in cameras:
-                _check_group_files(self, group, cam, full=(check == "full"))
+                _check_group_files(
+                    self.expected_files(group, cam.name), self.response(group), group, cam,
+                    full=(check == "full"),
+                )
         return self
 
 # =========================================================================== entry points

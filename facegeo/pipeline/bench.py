@@ -1,7 +1,7 @@
 """Benchmark registry: speed against error, never wall-clock asserts.
 
 A benchmark is a function registered with :func:`register`; it returns a list of
-:class:`BenchRow`. Benchmarks live in the modules of the :mod:`facegeo.benchmarks` package
+:class:`BenchRow`. Benchmarks live in the modules of the :mod:`facegeo.pipeline.benchmarks` package
 (one per stage); :func:`run_benchmarks` imports them all, runs the selected ones and
 :func:`write_reports` writes ``bench.json`` and ``bench.md``.
 
@@ -39,7 +39,7 @@ class BenchRow:
     benchmark : str
         Registered benchmark name (``"visibility.closest_hit"``).
     case : str
-        What was measured (``"facegeo.visibility, 2 threads"``).
+        What was measured (``"facegeo.surface.visibility, 2 threads"``).
     speed : float
         Throughput (higher is better).
     speed_unit : str
@@ -81,7 +81,7 @@ def register(name: str) -> Callable[[BenchFn], BenchFn]:
 
 
 def _discover() -> None:
-    import facegeo.benchmarks as pkg
+    import facegeo.pipeline.benchmarks as pkg
 
     for info in pkgutil.iter_modules(pkg.__path__):
         if not info.name.startswith("_"):

@@ -8,7 +8,7 @@ Layout of a map directory::
     parameter_maps.json                             format, shape, and every file's scale
 
 Scales (:data:`PNG_SCALES`): C_m 0.5, β_m 1, C_h 0.32, ρ_s 1, residual 0.1 — the upper ends of
-:data:`facegeo.spectral.PARAMETER_RANGES`, so a code step is 7.6e-6 in C_m (0.8 % of the
+:data:`facegeo.appearance.spectral.PARAMETER_RANGES`, so a code step is 7.6e-6 in C_m (0.8 % of the
 smallest C_m, 0.001) and 4.9e-6 in C_h. Values are rounded to the nearest code; the
 residual saturates at 0.1. With ``fmt="npy"`` the arrays are stored exactly as float64.
 """
@@ -23,12 +23,12 @@ import numpy as np
 
 from facegeo.errors import InputError, ScanFormatError
 from facegeo.fsutil import atomic_path, atomic_write_text
-from facegeo.spectral._inverse import AlbedoFit
-from facegeo.spectral._model import SkinParameters
+from facegeo.appearance.spectral._inverse import AlbedoFit
+from facegeo.appearance.spectral._model import SkinParameters
 
 __all__ = ["PNG_SCALES", "save_parameter_maps", "load_parameter_maps"]
 
-FORMAT = "facegeo.spectral.parameter_maps/1"
+FORMAT = "facegeo.appearance.spectral.parameter_maps/1"
 #: Physical value of PNG code 65535, per map.
 PNG_SCALES: dict[str, float] = {
     "C_m": 0.5,

@@ -16,10 +16,10 @@ Radiometry (``docs/conventions.md``): every pixel value inside the library is li
 8/16-bit frames are linearised by a declared :class:`Response` (``"linear"``, ``"srgb"``, a
 gamma, or a tabulated Debevec–Malik curve); saturated and black-clipped samples are flagged by
 :func:`saturated_mask` and :func:`clipped_mask` and must never be trusted. These live in
-:mod:`facegeo.response` and are re-exported here under the same names (``Response``,
+:mod:`facegeo.capture.response` and are re-exported here under the same names (``Response``,
 ``parse_response``, ``load_response_table``, ``linearize``, ``encode``, ``srgb_to_linear``,
 ``linear_to_srgb``, ``saturated_mask``, ``clipped_mask``, ``RESPONSE_KINDS``), so
-``from facegeo.imageio import linearize`` keeps working.
+``from facegeo.capture.imageio import linearize`` keeps working.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ import numpy as np
 
 from facegeo.errors import InputError, ScanFormatError
 from facegeo.fsutil import atomic_path
-from facegeo.response import (  # re-exported: part of this module's public API
+from facegeo.capture.response import (  # re-exported: part of this module's public API
     _INT_DTYPES,
     RESPONSE_KINDS,
     Response,
@@ -371,7 +371,7 @@ def write_image(path: str | os.PathLike, img: Any, *, half: bool = False) -> Pat
 
 def _write_png(path: Path, a: np.ndarray) -> None:
     if a.dtype not in _INT_DTYPES:
-        hint = " (encode it first: facegeo.imageio.encode)" if a.dtype.kind == "f" else ""
+        hint = " (encode it first: facegeo.capture.imageio.encode)" if a.dtype.kind == "f" else ""
         raise InputError(
             f"write_image: PNG holds uint8 or uint16, got {a.dtype}{hint} ({path})"
         )
@@ -387,7 +387,7 @@ def _write_exr(path: Path, a: np.ndarray, *, half: bool) -> None:
     if a.dtype.kind != "f" or a.dtype not in (np.dtype(np.float16), np.dtype(np.float32)):
         raise InputError(
             f"write_image: EXR holds float32 or float16, got {a.dtype}"
-            f"{' (linearise it first: facegeo.imageio.linearize)' if a.dtype.kind in 'ui' else ''}"
+            f"{' (linearise it first: facegeo.capture.imageio.linearize)' if a.dtype.kind in 'ui' else ''}"
             f" ({path})"
         )
     if half:

@@ -1,6 +1,6 @@
 """A lookup table of skin albedo over (C_m, β_m, C_h), its interpolant and a fast inverse seed.
 
-The table samples :func:`facegeo.spectral.skin_rgb` on a regular grid in the coordinates
+The table samples :func:`facegeo.appearance.spectral.skin_rgb` on a regular grid in the coordinates
 ``x = (∛C_m, β_m, ∛C_h)`` (cube-root axes, as Jimenez et al. 2010 index theirs: colour changes
 fastest at small fractions). Building it is cheap because the model factorises: the epidermis
 totals depend on (C_m, β_m, λ) only and the dermis total on (C_h, λ) only, so the
@@ -26,7 +26,7 @@ import numpy as np
 
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_path
-from facegeo.spectral._absorption import (
+from facegeo.appearance.spectral._absorption import (
     DEFAULT_EUMELANIN,
     GAMMA_OXY,
     dermis_absorption,
@@ -34,9 +34,9 @@ from facegeo.spectral._absorption import (
     epidermis_absorption,
     epidermis_scattering,
 )
-from facegeo.spectral._colour import rgb_weights
-from facegeo.spectral._diffusion import dipole_total_reflectance, multipole_totals
-from facegeo.spectral._model import (
+from facegeo.appearance.spectral._colour import rgb_weights
+from facegeo.appearance.spectral._diffusion import dipole_total_reflectance, multipole_totals
+from facegeo.appearance.spectral._model import (
     DEFAULT_WAVELENGTHS_NM,
     EPIDERMIS_THICKNESS_MM,
     ETA_SKIN,
@@ -67,7 +67,7 @@ def layered_spectra_grid(
 ) -> np.ndarray:
     """Spectra on the outer product of 1-D axes C_m (a,), β_m (b,), C_h (c,) → (a, b, c, L).
 
-    Same model as :func:`facegeo.spectral.skin_spectrum` (including the (1 − ρ_dr) factor),
+    Same model as :func:`facegeo.appearance.spectral.skin_spectrum` (including the (1 − ρ_dr) factor),
     evaluated through its factorisation into epidermis and dermis terms.
     """
     wl = np.asarray(wavelengths, dtype=np.float64)
@@ -94,9 +94,9 @@ class SkinLUT:
         0.03 % median, 0.12 % worst relative error of the exact model).
     ranges : dict, optional
         Closed intervals for ``"C_m"``, ``"beta_m"``, ``"C_h"`` (default
-        :data:`facegeo.spectral.PARAMETER_RANGES`; C_m and C_h must be > 0).
+        :data:`facegeo.appearance.spectral.PARAMETER_RANGES`; C_m and C_h must be > 0).
     convention : str
-        Eumelanin constant (:data:`facegeo.spectral.EUMELANIN_COEFFICIENTS`).
+        Eumelanin constant (:data:`facegeo.appearance.spectral.EUMELANIN_COEFFICIENTS`).
 
     Attributes
     ----------

@@ -1,4 +1,4 @@
-"""Benchmarks of facegeo.spectral: forward model throughput and inverse-fit throughput.
+"""Benchmarks of facegeo.appearance.spectral: forward model throughput and inverse-fit throughput.
 
 Throughput is measured on inputs made with the table's interpolant (fast to make at 1 M
 texels); the error column is measured on a separate sample whose albedo comes from the exact
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from facegeo.bench import BenchRow, best_of, register
+from facegeo.pipeline.bench import BenchRow, best_of, register
 
 
 def _parameters(n: int, seed: int):
@@ -22,7 +22,7 @@ def _parameters(n: int, seed: int):
 
 @register("spectral.forward")
 def bench_forward(quick: bool) -> list[BenchRow]:
-    from facegeo import spectral
+    from facegeo.appearance import spectral
 
     rows = []
     n = 2_000 if quick else 20_000
@@ -62,7 +62,7 @@ def bench_forward(quick: bool) -> list[BenchRow]:
 
 @register("spectral.inverse")
 def bench_inverse(quick: bool) -> list[BenchRow]:
-    from facegeo import spectral
+    from facegeo.appearance import spectral
 
     lut = spectral.skin_lut()
     lut.nearest(np.full((1, 3), 0.2))  # build the voxel index outside the timing

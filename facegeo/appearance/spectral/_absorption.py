@@ -31,7 +31,7 @@ import numpy as np
 
 from facegeo.checks import as_array, check_choice
 from facegeo.errors import InputError
-from facegeo.spectral._hemoglobin import HB_EPSILON_DEOXY, HB_EPSILON_OXY, HB_WAVELENGTHS_NM
+from facegeo.appearance.spectral._hemoglobin import HB_EPSILON_DEOXY, HB_EPSILON_OXY, HB_WAVELENGTHS_NM
 
 __all__ = [
     "EUMELANIN_COEFFICIENTS",

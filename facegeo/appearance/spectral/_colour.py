@@ -47,7 +47,7 @@ def _cie_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             import colour
     except ImportError as exc:  # pragma: no cover - a declared dependency
         raise MissingDependencyError(
-            "facegeo.spectral needs colour-science for the CIE tables: pip install colour-science"
+            "facegeo.appearance.spectral needs colour-science for the CIE tables: pip install colour-science"
         ) from exc
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
     wl = np.asarray(cmfs.wavelengths, dtype=np.float64)

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.bench import BenchRow, register
+from facegeo.pipeline.bench import BenchRow, register
 
 
 @register("synth.generate")
 def bench_generate(quick: bool) -> list[BenchRow]:
-    from facegeo.scan import load_scan
+    from facegeo.capture.scan import load_scan
     from facegeo.synth.capture import generate_scan
     from facegeo.synth.render import load_ground_truth
 

@@ -14,7 +14,7 @@ for relighting.
 Generator: smooth regional parameter maps over a head and the albedo function the synthetic
 skin field plugs in.
 
->>> from facegeo import spectral
+>>> from facegeo.appearance import spectral
 >>> rgb = spectral.skin_rgb(0.03, 0.05, 0.008)              # doctest: +SKIP
 >>> fit = spectral.fit_albedo(albedo_map)                      # doctest: +SKIP
 >>> flushed = spectral.edit(fit, C_h=lambda c: 1.5 * c)        # doctest: +SKIP
@@ -30,7 +30,7 @@ Jensen, H. W., Marschner, S. R., Levoy, M., Hanrahan, P. (2001). A Practical Mod
 Subsurface Light Transport. SIGGRAPH 2001.
 """
 
-from facegeo.spectral._absorption import (
+from facegeo.appearance.spectral._absorption import (
     EUMELANIN_COEFFICIENTS,
     GAMMA_OXY,
     HB_CONCENTRATION_G_PER_L,
@@ -45,8 +45,8 @@ from facegeo.spectral._absorption import (
     haemoglobin_absorption,
     pheomelanin_absorption,
 )
-from facegeo.spectral._colour import rgb_weights, spectrum_to_rgb, spectrum_to_xyz
-from facegeo.spectral._diffusion import (
+from facegeo.appearance.spectral._colour import rgb_weights, spectrum_to_rgb, spectrum_to_xyz
+from facegeo.appearance.spectral._diffusion import (
     boundary_coefficient,
     dipole_profile,
     dipole_total_reflectance,
@@ -55,14 +55,13 @@ from facegeo.spectral._diffusion import (
     multipole_totals,
     two_layer_total_reflectance,
 )
-from facegeo.spectral._generator import (
+from facegeo.appearance.spectral._generator import (
     PARAMETER_REGIONS,
     SKIN_TYPES,
     regional_parameter_maps,
-    register_spectral_albedo,
     spectral_albedo_fn,
 )
-from facegeo.spectral._inverse import (
+from facegeo.appearance.spectral._inverse import (
     FLAG_AT_BOUND,
     FLAG_BETA_M_UNIDENTIFIABLE,
     FLAG_C_H_UNIDENTIFIABLE,
@@ -76,9 +75,9 @@ from facegeo.spectral._inverse import (
     fit_albedo,
     fit_spectra,
 )
-from facegeo.spectral._lut import SkinLUT, default_cache_dir, skin_lut
-from facegeo.spectral._maps import PNG_SCALES, load_parameter_maps, save_parameter_maps
-from facegeo.spectral._model import (
+from facegeo.appearance.spectral._lut import SkinLUT, default_cache_dir, skin_lut
+from facegeo.appearance.spectral._maps import PNG_SCALES, load_parameter_maps, save_parameter_maps
+from facegeo.appearance.spectral._model import (
     BECKMANN_M,
     DEFAULT_WAVELENGTHS_NM,
     EPIDERMIS_THICKNESS_MM,
@@ -157,5 +156,4 @@ __all__ = [
     # generator
     "regional_parameter_maps",
     "spectral_albedo_fn",
-    "register_spectral_albedo",
 ]

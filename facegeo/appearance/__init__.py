@@ -1,0 +1,2 @@
+"""Appearance: the synthetic generator's own skin BRDF (:mod:`.brdf`) and Donner & Jensen's
+spectral skin model (:mod:`.spectral`)."""

@@ -1,1 +1,0 @@
-"""Registered benchmarks, one module per stage; :mod:`facegeo.bench` imports them all."""
