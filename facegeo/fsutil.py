@@ -25,7 +25,8 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "load_json_file",
-           "WRITTEN_RECORD", "read_written_record", "write_written_record", "list_files",
+           "WRITTEN_RECORD", "read_written_record", "write_written_record", "add_to_written_record",
+           "list_files",
            "remove_tree", "staging_dir", "swap_in_dir", "clean_stale_siblings", "carry_over"]
 
 log = logging.getLogger(__name__)
@@ -162,6 +163,16 @@ def write_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> P
     target = Path(root) / WRITTEN_RECORD
     atomic_write_text(target, _RECORD_HEADER + "".join(r + "\n" for r in paths))
     return target
+
+
+def add_to_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> Path:
+    """Add paths to the record of the files facegeo wrote in ``root`` (created if absent).
+
+    Stages that write products into a scan (``out/...``) call this after writing, so a later
+    ``facegeo synth --overwrite`` removes those products with the scan they were computed from
+    instead of carrying them over as the user's files.
+    """
+    return write_written_record(root, (read_written_record(root) or set()) | set(rel_paths))
 
 
 def list_files(root: str | os.PathLike) -> list[str]:

@@ -411,3 +411,14 @@ def test_killed_regeneration_leaves_old_scan_readable(old_scan):
     generate_scan(root, "tiny", seed=4, overwrite=True)
     assert "seed 4" in load_scan(root, check="full").description
     assert not leftovers(root.parent)
+
+
+def test_written_record_round_trip_and_add(tmp_path):
+    assert fsutil.read_written_record(tmp_path) is None
+    fsutil.write_written_record(tmp_path, ["b/c.exr", "a.json", fsutil.WRITTEN_RECORD])
+    assert fsutil.read_written_record(tmp_path) == {"a.json", "b/c.exr"}
+    fsutil.add_to_written_record(tmp_path, ["out/fit.npz"])
+    assert fsutil.read_written_record(tmp_path) == {"a.json", "b/c.exr", "out/fit.npz"}
+    with pytest.raises(ValueError, match="not a relative path"):
+        fsutil.write_written_record(tmp_path, ["../escape"])
+    assert fsutil.read_written_record(tmp_path) == {"a.json", "b/c.exr", "out/fit.npz"}
