@@ -426,3 +426,13 @@ def test_written_record_round_trip_and_add(tmp_path):
     with pytest.raises(ValueError, match="not a relative path"):
         fsutil.write_written_record(tmp_path, ["../escape"])
     assert fsutil.read_written_record(tmp_path) == {"a.json", "b/c.exr", "out/fit.npz"}
+
+
+def test_demo_regenerate_refuses_real_capture(old_scan, capsys):
+    """``facegeo demo --regenerate`` goes through the same checks as ``synth --overwrite``."""
+    _set_synthetic(old_scan, None)
+    before = tree_hashes(old_scan.parent)
+    rc = main(["demo", str(old_scan), "--preset", "tiny", "--regenerate", "-q"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "real capture" in err[0]
+    assert tree_hashes(old_scan.parent) == before
