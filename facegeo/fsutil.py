@@ -1,18 +1,45 @@
-"""Atomic file output: write to a temporary file beside the target, then rename.
+"""Safe file output: atomic files, staged directories, a record of what facegeo wrote.
 
-A reader never sees a half-written file, and a failure leaves the previous file (or nothing)
-in place.
+* :func:`atomic_path` / :func:`atomic_write_bytes` / :func:`atomic_write_text`: write to a
+  temporary file beside the target, then rename. A reader never sees a half-written file, and a
+  failure (an exception or Ctrl-C) leaves the previous file (or nothing) and no temporary file.
+* :func:`staging_dir` / :func:`swap_in_dir` / :func:`clean_stale_siblings`: build a whole
+  directory beside its destination (``.NAME.facegeo-tmp-PID-XXXX``) and swap it in only once
+  complete, so an interrupted or failing run leaves the old directory intact.
+* :func:`read_written_record` / :func:`write_written_record`: the list of files facegeo wrote in
+  a scan directory (:data:`WRITTEN_RECORD`), so that replacing a scan removes only those and
+  carries every other file over (:func:`carry_over`).
+* :func:`remove_tree`: deletes a directory tree without ever following a symlink.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
+import re
+import shutil
+import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "load_json_file",
+           "WRITTEN_RECORD", "read_written_record", "write_written_record", "add_to_written_record",
+           "list_files",
+           "remove_tree", "staging_dir", "swap_in_dir", "clean_stale_siblings", "carry_over"]
+
+log = logging.getLogger(__name__)
+
+#: Name of the record, at the top of a scan directory, of every file facegeo wrote there: a
+#: text file, one POSIX path relative to the scan directory per line, ``#`` lines are comments.
+WRITTEN_RECORD = ".facegeo-written"
+
+_RECORD_HEADER = (
+    "# facegeo: the files facegeo wrote in this scan directory, one relative POSIX path per line.\n"
+    "# Replacing the scan (facegeo synth --overwrite) removes only these; every other file is\n"
+    "# carried over into the new scan. Do not list your own files here.\n"
+)
 
 
 @contextlib.contextmanager
@@ -29,20 +56,21 @@ def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterat
 
     Notes
     -----
-    On an exception the temporary file is removed and ``path`` is untouched.
+    On an exception (``KeyboardInterrupt`` included) the temporary file is removed and
+    ``path`` is untouched.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(
         prefix=f".{path.name}.", suffix=path.suffix if suffix is None else suffix, dir=path.parent
     )
-    os.close(fd)
     tmp_path = Path(tmp)
-    # mkstemp creates 0600 files; give the result the permissions a plain open() would.
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp_path, 0o666 & ~umask)
-    try:
+    try:  # from here on, any exception or Ctrl-C removes the temporary file
+        os.close(fd)
+        # mkstemp creates 0600 files; give the result the permissions a plain open() would.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp_path, 0o666 & ~umask)
         yield tmp_path
         os.replace(tmp_path, path)
     except BaseException:
@@ -99,3 +127,279 @@ def load_json_file(path: str | os.PathLike, what: str, parse):
         if not sep:
             key, rest = None, str(exc)
         raise ScanFormatError(f"malformed {what}: {rest}", path=path, key=key) from exc
+
+
+# =========================================================================== written-files record
+
+
+def read_written_record(root: str | os.PathLike) -> set[str] | None:
+    """The relative POSIX paths listed in ``root / WRITTEN_RECORD``, or None if it is absent.
+
+    Raises
+    ------
+    OSError
+        The record exists but cannot be read.
+    """
+    p = Path(root) / WRITTEN_RECORD
+    if not p.is_file() or p.is_symlink():
+        return None
+    lines = p.read_text(encoding="utf-8").splitlines()
+    return {ln.strip() for ln in lines if ln.strip() and not ln.lstrip().startswith("#")}
+
+
+def write_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> Path:
+    """Write (atomically, replacing any previous one) the record of the files facegeo wrote.
+
+    Parameters
+    ----------
+    root : path-like
+        The scan directory.
+    rel_paths : iterable of str
+        POSIX paths relative to ``root``. The record itself is implied and left out.
+    """
+    paths = sorted({str(r) for r in rel_paths} - {WRITTEN_RECORD})
+    for r in paths:
+        if r.startswith("/") or ".." in r.split("/") or "\n" in r:
+            raise ValueError(f"written record: {r!r} is not a relative path inside the scan")
+    target = Path(root) / WRITTEN_RECORD
+    atomic_write_text(target, _RECORD_HEADER + "".join(r + "\n" for r in paths))
+    return target
+
+
+def add_to_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> Path:
+    """Add paths to the record of the files facegeo wrote in ``root`` (created if absent).
+
+    Stages that write products into a scan (``out/...``) call this after writing, so a later
+    ``facegeo synth --overwrite`` removes those products with the scan they were computed from
+    instead of carrying them over as the user's files.
+    """
+    return write_written_record(root, (read_written_record(root) or set()) | set(rel_paths))
+
+
+def list_files(root: str | os.PathLike) -> list[str]:
+    """Every non-directory entry under ``root`` (files and symlinks, never descending into a
+    symlinked directory), as sorted POSIX paths relative to ``root``."""
+    root = Path(root)
+    out: list[str] = []
+
+    def walk(d: Path, prefix: str) -> None:
+        with os.scandir(d) as it:
+            for e in it:
+                rel = prefix + e.name
+                if e.is_dir(follow_symlinks=False):
+                    walk(Path(e.path), rel + "/")
+                else:
+                    out.append(rel)
+
+    walk(root, "")
+    return sorted(out)
+
+
+# =========================================================================== deleting
+
+
+def remove_tree(path: str | os.PathLike) -> None:
+    """Delete ``path`` without following symlinks.
+
+    A symlink (to a file or a directory, dangling or not) is unlinked, never its target; a real
+    directory is removed with :func:`shutil.rmtree`, which unlinks the symlinks inside it
+    without descending into them; a file is unlinked. A missing ``path`` is not an error.
+    """
+    p = os.fspath(path)
+    if os.path.islink(p):
+        os.unlink(p)
+    elif os.path.isdir(p):
+        shutil.rmtree(p)
+    elif os.path.lexists(p):
+        os.unlink(p)
+
+
+# =========================================================================== staged directories
+
+_STAGE_KINDS = ("tmp", "old")
+
+
+def _sibling_pattern(target: Path, kind: str) -> re.Pattern:
+    return re.compile(rf"^\.{re.escape(target.name)}\.facegeo-{kind}-(\d+)-[A-Za-z0-9_]+$")
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    except OSError:
+        return True
+    return True
+
+
+def staging_dir(target: str | os.PathLike, kind: str = "tmp") -> Path:
+    """Create an empty directory beside ``target`` named ``.NAME.facegeo-KIND-PID-XXXX``.
+
+    The process id in the name lets :func:`clean_stale_siblings` tell a leftover of a killed
+    run from the directory of a run still going. The directory gets the permissions a plain
+    ``mkdir`` would give (``mkdtemp`` makes it private), or ``target``'s if it exists.
+    """
+    target = Path(target)
+    if kind not in _STAGE_KINDS:
+        raise ValueError(f"kind: expected one of {_STAGE_KINDS}, got {kind!r}")
+    d = Path(tempfile.mkdtemp(prefix=f".{target.name}.facegeo-{kind}-{os.getpid()}-",
+                              dir=target.parent))
+    if target.is_dir():
+        mode = stat.S_IMODE(os.stat(target).st_mode)
+    else:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o777 & ~umask
+    os.chmod(d, mode)
+    return d
+
+
+def clean_stale_siblings(target: str | os.PathLike) -> list[Path]:
+    """Tidy up after a run on ``target`` that was killed (SIGKILL, power loss).
+
+    * If ``target`` is missing but a stale ``.NAME.facegeo-old-PID-*`` exists (killed between
+      the two renames of :func:`swap_in_dir`), the newest one is renamed back to ``target``:
+      the old directory is restored, never deleted.
+    * Stale ``.NAME.facegeo-tmp-PID-*`` (an unfinished new directory) and, once ``target``
+      exists, stale ``.NAME.facegeo-old-PID-*`` (an old directory already swapped out) are
+      deleted with :func:`remove_tree`.
+
+    A sibling is stale when it is a real directory (not a symlink) whose name matches and whose
+    process id is no longer running on this machine; anything else is left alone.
+
+    Returns
+    -------
+    list of Path
+        What was removed or restored.
+    """
+    target = Path(target)
+    parent = target.parent
+    if not parent.is_dir():
+        return []
+    stale: dict[str, list[Path]] = {k: [] for k in _STAGE_KINDS}
+    for kind in _STAGE_KINDS:
+        pat = _sibling_pattern(target, kind)
+        with os.scandir(parent) as it:
+            for e in it:
+                m = pat.match(e.name)
+                if m and e.is_dir(follow_symlinks=False) and not _pid_alive(int(m.group(1))):
+                    stale[kind].append(Path(e.path))
+    done: list[Path] = []
+    if not os.path.lexists(target) and stale["old"]:
+        newest = max(stale["old"], key=lambda p: p.lstat().st_mtime)
+        os.rename(newest, target)
+        log.warning("restored %s from %s (left by an interrupted run)", target, newest.name)
+        stale["old"].remove(newest)
+        done.append(newest)
+    for p in stale["tmp"] + (stale["old"] if os.path.lexists(target) else []):
+        log.info("removing %s, left by an interrupted run", p)
+        remove_tree(p)
+        done.append(p)
+    return done
+
+
+def swap_in_dir(new: str | os.PathLike, target: str | os.PathLike) -> None:
+    """Put the complete directory ``new`` at ``target``; delete the old ``target`` after.
+
+    The old directory is renamed aside (``.NAME.facegeo-old-PID-XXXX``), ``new`` is renamed to
+    ``target``, then the old tree is removed with :func:`remove_tree`. If the second rename
+    fails the first is undone. ``new`` must be on the same file system (a sibling).
+    """
+    new, target = Path(new), Path(target)
+    if not os.path.lexists(target):
+        os.rename(new, target)
+        return
+    aside = staging_dir(target, "old")
+    os.rename(target, aside)  # replaces the empty directory just made
+    try:
+        os.rename(new, target)
+    except BaseException:
+        os.rename(aside, target)
+        raise
+    try:
+        remove_tree(aside)
+    except OSError as exc:  # the new scan is in place; the old one is only garbage now
+        log.warning("could not remove the replaced directory %s (%s); delete it by hand",
+                    aside, exc)
+
+
+def carry_over(old: str | os.PathLike, new: str | os.PathLike, ours: set[str]) -> list[str]:
+    """Bring every entry of directory ``old`` that is not in ``ours`` into directory ``new``.
+
+    Files are hard-linked (copied where the file system cannot link), so ``old`` is unchanged
+    and nothing is moved until the caller swaps ``new`` in; symlinks are recreated with the
+    same target and never followed; empty directories are recreated. An entry whose path the
+    new directory already uses is kept beside it as ``PATH.keep`` (``PATH.keep2``, …).
+
+    Parameters
+    ----------
+    old, new : path-like
+        The directory being replaced and its replacement (same file system).
+    ours : set of str
+        Relative POSIX paths of the entries facegeo wrote in ``old`` (not carried over).
+
+    Returns
+    -------
+    list of str
+        Relative paths (in ``new``) of the entries carried over.
+
+    Raises
+    ------
+    OSError
+        An entry that is neither a file, a directory nor a symlink (a socket, a FIFO), or a
+        file system error; ``old`` is untouched either way.
+    """
+    old, new = Path(old), Path(new)
+    carried: list[str] = []
+
+    def dest_for(rel: str) -> Path:
+        d = new / rel
+        n = 1
+        while os.path.lexists(d):
+            d = new / (rel + (".keep" if n == 1 else f".keep{n}"))
+            n += 1
+        if d != new / rel:
+            log.warning("%s: the new scan writes this path; your old entry is kept as %s",
+                        rel, d.relative_to(new).as_posix())
+        return d
+
+    def walk(d: Path, prefix: str) -> None:
+        with os.scandir(d) as it:
+            entries = sorted(it, key=lambda e: e.name)
+        if not entries and prefix and not os.path.lexists(new / prefix.rstrip("/")):
+            (new / prefix.rstrip("/")).mkdir(parents=True)
+            carried.append(prefix.rstrip("/"))
+        for e in entries:
+            rel = prefix + e.name
+            if e.is_symlink():
+                if rel in ours:
+                    continue
+                dst = dest_for(rel)
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                os.symlink(os.readlink(e.path), dst)
+                carried.append(dst.relative_to(new).as_posix())
+            elif e.is_dir(follow_symlinks=False):
+                if os.path.lexists(new / rel) and not (new / rel).is_dir():
+                    raise OSError(f"{old / rel}: a directory where the new scan has a file")
+                walk(Path(e.path), rel + "/")
+            elif e.is_file(follow_symlinks=False):
+                if rel in ours:
+                    continue
+                dst = dest_for(rel)
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    os.link(e.path, dst)
+                except OSError:
+                    shutil.copy2(e.path, dst)
+                carried.append(dst.relative_to(new).as_posix())
+            else:
+                raise OSError(f"{old / rel}: cannot carry over a special file (not a regular "
+                              "file, directory or symlink); move it out of the scan first")
+
+    walk(old, "")
+    return carried

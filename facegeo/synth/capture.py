@@ -18,8 +18,11 @@ Frames are rendered and written one at a time, so memory stays bounded at any pr
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import numbers
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -27,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facegeo import fsutil
 from facegeo.errors import InputError
 from facegeo.frames import Pose, look_at, rotation_from_rvec
 
@@ -106,6 +110,9 @@ class SynthSummary:
     n_faces: int
     frames_written: int = 0
     seconds: dict = field(default_factory=dict)
+    #: Files of the replaced scan that facegeo had not written, carried into the new one
+    #: (relative paths; ``PATH.keep`` where the new scan writes the same path).
+    kept: list = field(default_factory=list)
 
     @property
     def frames_per_second(self) -> float:
@@ -276,7 +283,9 @@ def generate_scan(
     Parameters
     ----------
     out : path
-        Scan directory to create. Must not already hold a scan unless ``overwrite``.
+        Scan directory to create: a new path, an empty directory, or (with ``overwrite``) a
+        synthetic scan to replace. A symlink to a directory is followed (the scan is written
+        where it points).
     preset : {"tiny", "small", "paper"} or Preset
         Capture size (see :data:`PRESETS`).
     head : str
@@ -298,51 +307,50 @@ def generate_scan(
         Sensor noise σ as a fraction of the frame's white level (0: noise-free): read noise
         σ·white plus photon noise σ·√(white·signal), i.e. σ·white·√(1 + signal/white).
     overwrite : bool
-        Replace an existing scan at ``out``.
+        Replace an existing **synthetic** scan at ``out`` (see *Data safety*).
     progress : callable(stage, done, total), optional
-        Called as work proceeds (the CLI draws progress bars from it).
+        Called as work proceeds, with stages ``"calib"``, ``"calib.projector"``,
+        ``"structured_light"``, ``"olat"`` and ``"ground_truth"`` (the CLI draws one progress
+        bar per stage).
 
     Returns
     -------
     SynthSummary
+
+    Raises
+    ------
+    InputError
+        An invalid argument; ``out`` is a file, not writable, a non-empty directory without a
+        manifest, a real capture (its ``scan.toml`` lacks ``scan.synthetic = true``), or a
+        scan and ``overwrite`` is false. Raised before anything is written.
+
+    Notes
+    -----
+    Data safety. Every argument is validated, and the head, rig and skin field are built,
+    before anything touches the disk. The scan is written into a sibling directory
+    ``.OUT.facegeo-tmp-PID-XXXX`` with a record of every file written
+    (:data:`facegeo.fsutil.WRITTEN_RECORD`, ``OUT/.facegeo-written``). Only when it is complete
+    are the files of the old scan that facegeo did not write (per the old record; for a scan
+    from before the record, per its manifest) hard-linked into it, the old directory renamed
+    aside, the new one renamed to ``OUT`` and the old tree deleted, never following a symlink.
+    An exception or Ctrl-C at any point removes the temporary directory (and any parent
+    directories this call created) and leaves the old scan as it was; leftovers of a killed
+    run are cleaned up (or an old scan restored) by the next run on the same ``OUT``.
     """
-    from facegeo.capture import imageio, scan as scanmod
-    from facegeo.geometry.structured_light import PatternSpec, pattern_names, pattern_value_at
+    from facegeo.geometry.structured_light import PatternSpec, pattern_names
     from facegeo.synth.render import ReferenceRenderer
     from facegeo.synth.skin import SkinField
 
-    if isinstance(preset, str):
-        if preset not in PRESETS:
-            raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
-        preset = PRESETS[preset]
-    if noise < 0 or not np.isfinite(noise):
-        raise InputError(f"noise: expected a finite number >= 0, got {noise!r}")
-    skin_kwargs = _skin_model(skin)  # validate every argument before touching the disk
-    if olat_format not in ("exr", "png16"):
-        raise InputError(f"olat_format: unknown {olat_format!r}; expected 'exr' or 'png16'")
-    if head != "procedural" and not Path(head).is_file():
-        raise InputError(f"--head: no such mesh file {head} (use 'procedural' or a path)")
-    if units not in ("cm", "mm", "m"):
-        raise InputError(f"units: unknown {units!r}; expected one of 'cm', 'mm', 'm'")
-    root = Path(out)
-    if (root / "scan.toml").exists() and not overwrite:
-        raise InputError(f"{root} already holds a scan (scan.toml); pass overwrite=True "
-                         "(--overwrite) to replace it")
-    if overwrite and (root / "scan.toml").exists():
-        # Remove the manifest first: an interrupted run then leaves no scan.toml (an incomplete
-        # scan), never a valid-looking mix of two runs; then the products it described.
-        (root / "scan.toml").unlink()
-        import shutil
-
-        for sub in ("calib", "structured_light", "olat", "ground_truth", "out"):
-            if (root / sub).is_dir():
-                shutil.rmtree(root / sub)
-    root.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
+    # 1. Validate every argument and the destination; nothing on disk is touched yet.
+    preset, skin_kwargs, root = _validate_arguments(
+        out, preset, head=head, units=units, seed=seed, noise=noise, skin=skin,
+        olat_format=olat_format, progress=progress)
+    _replaceable_files(root, overwrite=overwrite)  # read-only: refuse a real capture at once
     tick = progress or (lambda stage, done, total: None)
     seconds: dict[str, float] = {}
-    frames = 0
 
+    # 2. Everything that can fail on bad input and needs no disk: the head (a bad mesh or wrong
+    #    --units fails here), rig, skin field, renderer, board.
     t0 = time.perf_counter()
     mesh = build_head(head, units=units, subdivisions=preset.head_subdivisions, seed=seed)
     # Ground truth is stored as PLY with float32 vertices: render exactly that geometry, so the
@@ -358,7 +366,56 @@ def generate_scan(
     sl_names = pattern_names(spec)
     seconds["setup"] = time.perf_counter() - t0
 
-    manifest = scanmod.new_manifest(root.name, synthetic=True)
+    # 3. Tidy leftovers of a killed run, then decide what the old directory holds (refusing a
+    #    real capture) — still without modifying anything of it.
+    fsutil.clean_stale_siblings(root)
+    ours = _replaceable_files(root, overwrite=overwrite)
+
+    # 4. Write the new scan into a sibling directory; swap it in only when complete.
+    created_parents = _make_parents(root.parent)
+    tmp = None
+    try:
+        tmp = fsutil.staging_dir(root, "tmp")
+        frames = _write_scan(
+            tmp, name=root.name, preset=preset, head=head, skin=skin, seed=seed, noise=noise,
+            olat_format=olat_format, mesh=mesh, nominal_rig=nominal_rig, rig=rig,
+            skin_field=skin_field, renderer=renderer, board=board, spec=spec,
+            sl_names=sl_names, tick=tick, seconds=seconds)
+        fsutil.write_written_record(tmp, fsutil.list_files(tmp))
+        carried: list[str] = []
+        if ours is not None:
+            carried = fsutil.carry_over(root, tmp, ours)
+        fsutil.swap_in_dir(tmp, root)
+        tmp = None
+    except BaseException:
+        if tmp is not None:
+            fsutil.remove_tree(tmp)
+        for d in created_parents:  # deepest first; only if still empty
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        raise
+    if carried:
+        log.info("kept %d file(s) facegeo did not write: %s", len(carried),
+                 ", ".join(carried[:10]) + (" ..." if len(carried) > 10 else ""))
+    return SynthSummary(root=root, preset=preset.name, n_cameras=len(rig.cameras),
+                        n_lights=rig.lights.n_lights, image_size=(rig.cameras[0].width,
+                                                                  rig.cameras[0].height),
+                        n_faces=len(mesh.faces), frames_written=frames, seconds=seconds,
+                        kept=carried)
+
+
+def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_format, mesh,
+                nominal_rig, rig, skin_field, renderer, board, spec, sl_names, tick,
+                seconds) -> int:
+    """Render and write a whole scan into the (empty, staging) directory ``root``; the manifest
+    goes last. Returns the number of frames written."""
+    from facegeo.capture import imageio, scan as scanmod
+    from facegeo.geometry.structured_light import pattern_value_at
+
+    rng = np.random.default_rng(seed)
+    frames = 0
+
+    manifest = scanmod.new_manifest(name, synthetic=True)
     manifest["scan"]["description"] = (
         f"facegeo synthetic capture, preset {preset.name}, head {head}, skin {skin}, seed {seed}, "
         f"noise {noise}"
@@ -480,15 +537,196 @@ def generate_scan(
 
     # ---- ground truth ----
     t0 = time.perf_counter()
-    gt = _write_ground_truth(root, mesh, rig, skin_field, renderer, uniform_renders)
+    gt = _write_ground_truth(root, mesh, rig, skin_field, renderer, uniform_renders,
+                             tick=tick)
     manifest["ground_truth"] = gt
     seconds["ground_truth"] = time.perf_counter() - t0
 
-    scanmod.write_manifest(root, manifest, overwrite=overwrite)
-    return SynthSummary(root=root, preset=preset.name, n_cameras=len(rig.cameras),
-                        n_lights=rig.lights.n_lights, image_size=(rig.cameras[0].width,
-                                                                  rig.cameras[0].height),
-                        n_faces=len(mesh.faces), frames_written=frames, seconds=seconds)
+    scanmod.write_manifest(root, manifest)
+    return frames
+
+
+
+# ---------------------------------------------------------------------------- data safety
+
+#: How the generator marks the scans it may replace: ``scan.synthetic = true`` in the manifest.
+SYNTHETIC_KEY = ("scan", "synthetic")
+
+
+def _validate_arguments(out, preset, *, head, units, seed, noise, skin, olat_format, progress):
+    """Check every argument of :func:`generate_scan` and the destination, touching nothing.
+
+    Returns ``(preset, skin_kwargs, root)`` with ``root`` the absolute destination (a symlinked
+    destination is resolved to its directory, so the scan stays where the link points).
+    """
+    if isinstance(preset, str):
+        if preset not in PRESETS:
+            raise InputError(f"preset: unknown {preset!r}; expected one of {', '.join(PRESETS)}")
+        preset = PRESETS[preset]
+    elif not isinstance(preset, Preset):
+        raise InputError(f"preset: expected a preset name ({', '.join(PRESETS)}) or a Preset, "
+                         f"got {type(preset).__name__}")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise InputError(f"seed: expected an integer >= 0, got {seed!r}")
+    if (isinstance(noise, bool) or not isinstance(noise, numbers.Real)
+            or not np.isfinite(float(noise)) or float(noise) < 0):
+        raise InputError(f"noise: expected a finite number >= 0, got {noise!r}")
+    skin_kwargs = _skin_model(skin)
+    if olat_format not in ("exr", "png16"):
+        raise InputError(f"olat_format: unknown {olat_format!r}; expected 'exr' or 'png16'")
+    if units not in ("cm", "mm", "m"):
+        raise InputError(f"units: unknown {units!r}; expected one of 'cm', 'mm', 'm'")
+    if not isinstance(head, (str, os.PathLike)):
+        raise InputError(f"head: expected 'procedural' or a mesh path, got {type(head).__name__}")
+    if head != "procedural":
+        hp = Path(head)
+        if not hp.exists():
+            raise InputError(f"--head: no such mesh file {hp} (use 'procedural' or a path)")
+        if not hp.is_file():
+            raise InputError(f"--head: {hp} is not a file (expected a mesh: OBJ, PLY or GLB)")
+        if not os.access(hp, os.R_OK):
+            raise InputError(f"--head: cannot read {hp} (permission denied)")
+    if progress is not None and not callable(progress):
+        raise InputError("progress: expected a callable(stage, done, total) or None")
+    if not isinstance(out, (str, os.PathLike)) or not os.fspath(out):
+        raise InputError(f"out: expected a directory path, got {out!r}")
+    given = Path(os.path.abspath(out))
+    if given.is_symlink():
+        if not given.is_dir():
+            raise InputError(f"{given}: a symlink that does not point to a directory; expected "
+                             "a scan directory to create or replace")
+        root = Path(os.path.realpath(given))
+    else:
+        root = given
+    if root.parent == root:
+        raise InputError(f"{root}: cannot write a scan at the file-system root")
+    if root.exists() and not root.is_dir():
+        raise InputError(f"{root}: exists and is not a directory; expected a scan directory "
+                         "to create (or, with --overwrite, a synthetic scan to replace)")
+    anc = root.parent
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise InputError(f"{anc}: is not a directory, so {root} cannot be created in it")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise InputError(f"{anc}: not writable; cannot create the scan {root} "
+                         "(facegeo writes the new scan beside it, then swaps it in)")
+    return preset, skin_kwargs, root
+
+
+def _replaceable_files(root: Path, *, overwrite: bool) -> set[str] | None:
+    """What the existing directory ``root`` may lose when a new scan replaces it.
+
+    Returns None when ``root`` does not exist, an empty set for an empty directory, and for a
+    synthetic scan (``overwrite`` only) the relative paths facegeo wrote there: its written
+    record (:data:`facegeo.fsutil.WRITTEN_RECORD`) or, for a scan written before the record
+    existed, the files its manifest describes. Everything else is carried over.
+
+    Raises
+    ------
+    InputError
+        ``root`` holds a scan and ``overwrite`` is false; it holds a real capture (manifest
+        without ``scan.synthetic = true``) or files but no manifest; or its manifest cannot be
+        read. Nothing is modified.
+    """
+    import tomllib
+
+    if not root.exists():
+        return None
+    toml = root / "scan.toml"
+    if not os.path.lexists(toml):
+        with os.scandir(root) as it:
+            if next(it, None) is None:
+                return set()
+        raise InputError(
+            f"{root}: exists and holds files but no scan.toml (a capture in progress?); "
+            "facegeo synth writes only a new or empty directory or replaces a synthetic scan")
+    try:
+        manifest = tomllib.loads(toml.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"{toml}: cannot read the manifest ({exc}), so it cannot be confirmed "
+                         "synthetic; refusing to modify this scan") from exc
+    section = manifest.get("scan")
+    synthetic = section.get("synthetic") if isinstance(section, dict) else None
+    if synthetic is not True:
+        said = "scan.synthetic = false" if synthetic is False else "no scan.synthetic = true"
+        raise InputError(
+            f"{toml}: a real capture ({said}); facegeo synth never modifies a scan it did not "
+            "synthesise; choose another output directory")
+    if not overwrite:
+        raise InputError(f"{root} already holds a scan (scan.toml); pass overwrite=True "
+                         "(--overwrite) to replace it")
+    try:
+        ours = fsutil.read_written_record(root)
+    except OSError as exc:
+        raise InputError(f"{root / fsutil.WRITTEN_RECORD}: cannot read the record of the files "
+                         f"facegeo wrote ({exc}); refusing to replace the scan") from exc
+    if ours is None:
+        ours = _files_in_manifest(root)
+    return ours | {"scan.toml", fsutil.WRITTEN_RECORD}
+
+
+def _files_in_manifest(root: Path) -> set[str]:
+    """The relative paths a synthetic scan's manifest describes (rig, board, every frame,
+    ground truth): what facegeo wrote in a scan from before the written record."""
+    from facegeo.capture._scan_files import _format_template
+    from facegeo.capture.scan import GROUPS, Scan, _read_manifest
+    from facegeo.errors import FacegeoError
+
+    try:
+        scan = Scan(root, _read_manifest(root / "scan.toml"))
+        m = scan.manifest
+        rel = {m["scan"]["rig"]}
+        if "calib" in m:
+            rel.add(m["calib"]["board"])
+        cams = scan.camera_names
+        for group in GROUPS:
+            if not scan.has(group):
+                continue
+            for cam in cams:
+                rel.update(_expected_rel(scan, group, cam, _format_template))
+        for key in scan.ground_truth_keys:
+            flat = scan._gt[key]
+            rel.add(flat)
+            gdir = root / flat
+            if gdir.is_dir() and not gdir.is_symlink():
+                rel.update(f"{flat.rstrip('/')}/{f}" for f in fsutil.list_files(gdir))
+    except (FacegeoError, OSError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(
+            f"{root}: has no record of the files facegeo wrote ({fsutil.WRITTEN_RECORD}) and its "
+            f"manifest cannot tell them apart from yours ({exc}); refusing to replace it: move "
+            "your own files out and delete the scan by hand") from exc
+    return {str(Path(r).as_posix()) for r in rel}
+
+
+def _expected_rel(scan, group, camera, format_template):
+    """``Scan.expected_files`` as relative POSIX strings, without resolving symlinks (a frame
+    folder symlinked out of the scan must not make the old scan unreplaceable)."""
+    sect = scan._section(group)
+    t = sect["files"]
+    if group == "calib":
+        fields = [{"view": v} for v in range(sect["views"])]
+    elif group == "calib.projector":
+        fields = [{"view": v, "frame": f} for v in range(sect["views"]) for f in scan.sl_frames]
+    elif group == "structured_light":
+        fields = [{"frame": f} for f in scan.sl_frames]
+    else:
+        fields = [{"light": scan._olat_file_number(l)} for l in range(sect["n_lights"])]
+    return [format_template(t, {"camera": camera, **f}) for f in fields]
+
+
+def _make_parents(d: Path) -> list[Path]:
+    """``mkdir -p d``; returns the directories it created, deepest first (to undo it)."""
+    missing = []
+    while not d.exists():
+        missing.append(d)
+        d = d.parent
+    for m in reversed(missing):
+        try:
+            m.mkdir()
+        except OSError as exc:
+            raise InputError(f"{m}: cannot create the directory ({exc.strerror})") from exc
+    return missing
 
 
 def _skin_model(spec: str) -> dict:
@@ -521,8 +759,14 @@ def _projector_irradiance(proj, p_world, n_world):
     return e.astype(np.float32), q
 
 
-def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: dict) -> dict:
+def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: dict, *,
+                        tick=None) -> dict:
     """Write ``ground_truth/`` and return its manifest table.
+
+    Reports progress as stage ``"ground_truth"``: one step for the mesh and skin files, then,
+    per capture and novel camera, one for its geometry and one per reference render (the
+    renders not already accumulated during the OLAT pass are the slow part: a full Eq. (4)
+    sum over the lights each).
 
     ``uniform_renders`` holds the capture cameras' uniform-environment renders, accumulated
     during the OLAT pass (the same Eq. (4) sum :meth:`ReferenceRenderer.render_lights` computes),
@@ -534,6 +778,11 @@ def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: 
     gt = root / "ground_truth"
     gt.mkdir(parents=True, exist_ok=True)
     out: dict[str, str] = {}
+    tick = tick or (lambda stage, done, total: None)
+    cams = list(rig.cameras) + _novel_cameras(rig)
+    n_total = 1 + 3 * len(cams)
+    done = 0
+    tick("ground_truth", done, n_total)
     import trimesh
 
     with atomic_path(gt / "mesh.ply") as tmp:
@@ -553,6 +802,8 @@ def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: 
     novel = _novel_cameras(rig)
     atomic_write_text(gt / "novel_cameras.json", json.dumps([c.to_dict() for c in novel], indent=2))
     out["novel_cameras"] = "ground_truth/novel_cameras.json"
+    done += 1
+    tick("ground_truth", done, n_total)
     # Per-camera geometry and reference renders: every capture camera and the novel ones.
     lights = rig.lights
     # A uniform white environment of radiance 1 (Eq. 4 weights L·δA) and a single key light.
@@ -570,6 +821,8 @@ def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: 
                                     n_world=view.to_image(view.n_world, np.nan),
                                     face=view.to_image(view.face, -1))
         out[f"geometry_{cam.name}"] = f"ground_truth/geometry_{cam.name}.npz"
+        done += 1
+        tick("ground_truth", done, n_total)
         for tag, w in (("uniform", uniform), ("key", key)):
             if tag == "uniform" and cam.name in uniform_renders:
                 img = uniform_renders[cam.name]
@@ -578,6 +831,8 @@ def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: 
             rel = f"ground_truth/renders/{cam.name}_{tag}.exr"
             imageio.write_image(root / rel, img)
             out[f"render_{cam.name}_{tag}"] = rel
+            done += 1
+            tick("ground_truth", done, n_total)
     atomic_write_text(gt / "renders.json", json.dumps({
         "uniform": "uniform white environment of radiance 1: weights[l] = δA_l (Eq. 4)",
         "key": f"the single light-stage light {key_l} at full weight (an OLAT frame)",
