@@ -62,7 +62,7 @@ from facegeo.capture._scan_schema import (
     _flatten_ground_truth,
     validate_manifest,
 )
-from facegeo.checks import check_choice
+from facegeo.checks import check_choice, fmt_value
 from facegeo.errors import FacegeoError, InputError, ScanFormatError
 from facegeo.fsutil import atomic_write_text
 from facegeo.capture.imageio import read_image
@@ -261,7 +261,7 @@ class Scan:
 
     def _check_light(self, light: Any) -> int:
         if isinstance(light, (bool, np.bool_)) or not isinstance(light, (int, np.integer)):
-            raise InputError(f"light: expected an integer light index, got {light!r}")
+            raise InputError(f"light: expected an integer light index, got {fmt_value(light)}")
         n = self.n_lights
         if not 0 <= int(light) < n:
             raise InputError(f"light: index {int(light)} out of range [0, {n})")
@@ -295,7 +295,7 @@ class Scan:
         self._check_camera(camera)
         n = self._section("calib.projector")["views"]
         if isinstance(view, bool) or not isinstance(view, (int, np.integer)) or not 0 <= view < n:
-            raise InputError(f"view: expected an integer in [0, {n}), got {view!r}")
+            raise InputError(f"view: expected an integer in [0, {n}), got {fmt_value(view)}")
         return {
             f: self._path("calib.projector", camera=camera, view=int(view), frame=f)
             for f in self.sl_frames

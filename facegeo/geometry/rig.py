@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from facegeo.geometry.camera import Camera
-from facegeo.checks import as_array, check_positive
+from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import light_directions, light_solid_angles, look_at
 from facegeo.fsutil import atomic_write_text, load_json_file
@@ -162,14 +162,18 @@ class LightStage:
         for name in ("n_theta", "n_phi"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise InputError(f"{name}: expected a positive integer, got {v!r}")
+                raise InputError(f"{name}: expected a positive integer, got {fmt_value(v)}")
             object.__setattr__(self, name, int(v))
         try:
             r = float(self.radius)
         except (TypeError, ValueError):
-            raise InputError(f"radius: expected a number > 0 or inf, got {self.radius!r}") from None
+            raise InputError(
+                f"radius: expected a number > 0 or inf, got {fmt_value(self.radius)}"
+            ) from None
         if not r > 0:
-            raise InputError(f"radius: expected a number > 0 or inf, got {self.radius!r}")
+            raise InputError(
+                f"radius: expected a number > 0 or inf, got {fmt_value(self.radius)}"
+            )
         object.__setattr__(self, "radius", r)
         object.__setattr__(self, "center", _vec3(self.center, "center"))
         color = _vec3(self.color, "color")
@@ -243,7 +247,9 @@ class LightStage:
         if radius == "inf":
             radius = math.inf
         elif isinstance(radius, str) or isinstance(radius, bool):
-            raise InputError(f"{where}.radius: expected a number > 0 or \"inf\", got {radius!r}")
+            raise InputError(
+                f"{where}.radius: expected a number > 0 or \"inf\", got {fmt_value(radius)}"
+            )
         kwargs = {k: d[k] for k in ("center", "color") if k in d}
         try:
             return cls(d["n_theta"], d["n_phi"], radius, **kwargs)
