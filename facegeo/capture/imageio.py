@@ -11,6 +11,12 @@ Formats
 * OpenEXR goes through the ``OpenEXR`` Python bindings: the OpenCV 5.0 wheels are built without
   OpenEXR (verified: ``cv2.haveImageReader("x.exr")`` is False, ``cv2.imread`` returns None and
   ``cv2.imwrite`` raises "could not find a writer for the specified extension").
+* Headers (:func:`read_image_info`: size, channels, sample type, and whether the file holds all
+  its data) are read without decoding pixels: PNG, JPEG and TIFF through Pillow, OpenEXR by
+  parsing its documented header and chunk offset table (the bindings expose neither pixel types
+  nor the chunk table without decoding), Radiance HDR from its resolution line.
+* What OpenEXR and OpenCV print on their own while failing on a corrupt file is hidden (logged
+  at DEBUG level); the :class:`ImageReadError` raised names the file and the problem.
 
 Radiometry (``docs/conventions.md``): every pixel value inside the library is linear float32.
 8/16-bit frames are linearised by a declared :class:`Response` (``"linear"``, ``"srgb"``, a
