@@ -27,7 +27,48 @@ __all__ = [
     "check_choice",
     "check_unit_vectors",
     "format_shape",
+    "fmt_value",
 ]
+
+
+def fmt_value(x: Any) -> str:
+    """A value as a user should read it in an error message.
+
+    numpy scalars print as plain numbers (``0.5``, not ``np.float64(0.5)``, which is what
+    ``f"{x!r}"`` gives since numpy 2), floats with up to 6 significant digits unless their
+    shortest repr is already short (``0.1``, ``366.0``), strings quoted, ``bool`` as
+    ``True``/``False``, arrays and sequences element by element (long arrays summarised).
+
+    Examples
+    --------
+    >>> fmt_value(np.float64(0.5)), fmt_value(np.int64(3)), fmt_value("366")
+    ('0.5', '3', "'366'")
+    >>> fmt_value(np.array([1.0, np.nan])), fmt_value((np.float32(0.1), 2))
+    ('[1.0, nan]', '(0.1, 2)')
+    """
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, bool) or x is None:
+        return repr(x)
+    if isinstance(x, float):
+        r = repr(x)
+        return r if len(r) <= 10 else f"{x:.6g}"
+    if isinstance(x, int):
+        return str(x)
+    if isinstance(x, str):
+        return repr(x)
+    if isinstance(x, np.ndarray):
+        if x.size > 12:
+            return (f"array of shape {tuple(x.shape)} ({x.dtype}, min {fmt_value(np.nanmin(x))}"
+                    f", max {fmt_value(np.nanmax(x))})") if x.dtype.kind in "uif" else \
+                f"array of shape {tuple(x.shape)} ({x.dtype})"
+        return fmt_value(x.tolist())
+    if isinstance(x, list):
+        return "[" + ", ".join(fmt_value(v) for v in x) + "]"
+    if isinstance(x, tuple):
+        inner = ", ".join(fmt_value(v) for v in x)
+        return f"({inner},)" if len(x) == 1 else f"({inner})"
+    return repr(x)
 
 
 def format_shape(shape: Sequence[Any]) -> str:
@@ -126,10 +167,10 @@ def check_positive(value: Any, name: str, *, allow_zero: bool = False) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: expected a number, got {value!r}") from exc
+        raise InputError(f"{name}: expected a number, got {fmt_value(value)}") from exc
     if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
         rel = ">= 0" if allow_zero else "> 0"
-        raise InputError(f"{name}: expected a finite number {rel}, got {value!r}")
+        raise InputError(f"{name}: expected a finite number {rel}, got {fmt_value(value)}")
     return v
 
 
@@ -137,8 +178,8 @@ def check_choice(value: Any, name: str, choices: Iterable[Any]) -> Any:
     """Return ``value`` if it is one of ``choices``; else raise :class:`InputError` listing them."""
     choices = list(choices)
     if value not in choices:
-        listed = ", ".join(repr(c) for c in choices)
-        raise InputError(f"{name}: unknown value {value!r}; expected one of {listed}")
+        listed = ", ".join(fmt_value(c) for c in choices)
+        raise InputError(f"{name}: unknown value {fmt_value(value)}; expected one of {listed}")
     return value
 
 

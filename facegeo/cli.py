@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
+import tempfile
 import time
+import traceback
 from pathlib import Path
 
 from facegeo import __version__
@@ -38,9 +41,79 @@ def _progress_factory(enabled: bool):
     return tick, close
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr (exit status 2)."""
+
+    def __init__(self, *a, **kw):
+        kw.setdefault("formatter_class", argparse.ArgumentDefaultsHelpFormatter)
+        super().__init__(*a, **kw)
+
+    def error(self, message):  # noqa: D102 - argparse API
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def _nonneg_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {v}")
+    return v
+
+
+def _nonneg_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not math.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
+    return v
+
+
+def _check_output_dir(path: str | os.PathLike, what: str) -> Path:
+    """Check that ``path`` is, or can be created as, a writable directory; return it.
+
+    Run before any work starts, so a typo in an output path fails in a second instead of after
+    a long computation. The nearest existing ancestor must be a directory in which a file can
+    actually be created (a real probe, not ``os.access``: root ignores permission bits, and
+    read-only mounts or ``/proc`` refuse anyway).
+
+    Raises
+    ------
+    InputError
+        ``path`` (or an ancestor) is an existing file, or no file can be created there.
+    """
+    from facegeo.errors import InputError
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise InputError(f"{what}: {p} is an existing file; expected a directory (or a path to "
+                         "create one at)")
+    probe = p
+    while not probe.exists():
+        if probe.parent == probe:  # pragma: no cover - the root always exists
+            break
+        probe = probe.parent
+    if not probe.is_dir():
+        raise InputError(f"{what}: cannot create {p}: {probe} is a file, not a directory")
+    try:
+        tempfile.TemporaryFile(dir=probe).close()
+    except OSError as exc:
+        raise InputError(f"{what}: cannot write in {probe} ({exc.strerror or exc}); expected a "
+                         "writable directory") from exc
+    return p
+
+
 def _cmd_synth(args) -> int:
     from facegeo.synth.capture import generate_scan
 
+    _check_output_dir(args.out, "OUT")
     tick, close = _progress_factory(not args.quiet)
     try:
         summary = generate_scan(args.out, args.preset, head=args.head, units=args.units,
@@ -58,11 +131,32 @@ def _cmd_synth(args) -> int:
     return 0
 
 
+#: ``facegeo info`` lists at most this many frame warnings unless -v is given.
+_INFO_MAX_WARNINGS = 20
+
+
 def _cmd_info(args) -> int:
     from facegeo.capture.scan import load_scan, summarize
 
     scan = load_scan(args.scan, check="full" if args.full else "quick")
     print(summarize(scan))
+    fc = scan.frame_check
+    checked = f"checked headers of {fc.n_headers} frames (size, channels, sample type, truncation)"
+    if args.full:
+        checked += f"; decoded {fc.n_decoded} frames (NaN, inf, negative, all-black, saturated)"
+    print(checked)
+    warnings = fc.warnings
+    if warnings:
+        print(f"{len(warnings)} frame warning(s):")
+        shown = warnings if args.verbose else warnings[:_INFO_MAX_WARNINGS]
+        for w in shown:
+            try:
+                rel = w.path.relative_to(scan.root)
+            except ValueError:  # pragma: no cover - frame_path keeps files inside the root
+                rel = w.path
+            print(f"  warning: {rel}: {w.message}")
+        if len(shown) < len(warnings):
+            print(f"  ... and {len(warnings) - len(shown)} more (-v lists them all)")
     print("valid" + (" (every frame decoded)" if args.full else " (quick check: run with --full "
                                                               "to decode every frame)"))
     return 0
@@ -74,6 +168,7 @@ def _cmd_bench(args) -> int:
     if args.list:
         print("\n".join(registered()))
         return 0
+    _check_output_dir(args.out, "--out")
     rows = run_benchmarks(args.names or None, quick=args.quick,
                           progress=lambda n: print(f"running {n} ...", file=sys.stderr))
     jpath, mpath = write_reports(rows, args.out)
@@ -91,6 +186,7 @@ def _cmd_demo(args) -> int:
     if (root / "scan.toml").exists() and not args.regenerate:
         print(f"using the existing synthetic scan {root} (--regenerate to rebuild it)")
     else:
+        _check_output_dir(root, "SCAN")
         print(f"synthesising the default scan (preset {args.preset}) into {root} ...")
         tick, close = _progress_factory(not args.quiet)
         t0 = time.perf_counter()
@@ -104,74 +200,139 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _common_options() -> argparse.ArgumentParser:
+    """Options every subcommand accepts after its name (``facegeo info SCAN -v``)."""
+    c = argparse.ArgumentParser(add_help=False)
+    g = c.add_argument_group("logging")
+    # Own dests with default 0/False: a subparser's default would otherwise overwrite the value
+    # given before the command name; main() adds the two.
+    g.add_argument("-v", "--verbose", dest="sub_verbose", action="count", default=0,
+                   help="more logging (-vv: debug); a traceback for internal errors")
+    g.add_argument("--debug", dest="sub_debug", action="store_true",
+                   help="debug logging and a traceback for every error")
+    return c
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="facegeo",
         description="Light-stage face capture to a relightable, re-viewable reflectance field "
                     "(Debevec et al. 2000).",
     )
     p.add_argument("--version", action="version", version=f"facegeo {__version__}")
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug)")
-    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    p.add_argument("-v", "--verbose", action="count", default=0,
+                   help="more logging (-vv: debug); a traceback for internal errors")
+    p.add_argument("--debug", action="store_true",
+                   help="debug logging and a traceback for every error")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    common = [_common_options()]
 
-    s = sub.add_parser("synth", help="write a synthetic light-stage scan with ground truth")
-    s.add_argument("out", help="scan directory to create")
+    s = sub.add_parser("synth", parents=common,
+                       help="write a synthetic light-stage scan with ground truth")
+    s.add_argument("out", metavar="OUT", help="scan directory to create")
     s.add_argument("--preset", default="small", choices=["tiny", "small", "paper"],
                    help="capture size: tiny (seconds; test fixtures), small (demo default), "
                         "paper (2 cameras 480x720, 64x32 lights)")
     s.add_argument("--head", default="procedural",
-                   help="'procedural' (default) or a mesh file (OBJ/PLY/GLB, +Y up, facing +Z)")
+                   help="'procedural' or a mesh file (OBJ/PLY/GLB, +Y up, facing +Z)")
     s.add_argument("--units", default="cm", choices=["cm", "mm", "m"], help="units of --head mesh")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=_nonneg_int, default=0,
+                   help="seeds the head details, skin field, board poses and noise (integer >= 0)")
     s.add_argument("--skin", default="regional",
-                   help="ground-truth skin colour model: 'regional' (default) or "
+                   help="ground-truth skin colour model: 'regional' or "
                         "'spectral[:light|medium|olive|dark]' (Donner & Jensen 2006)")
     s.add_argument("--olat-format", default="exr", choices=["exr", "png16"],
-                   help="OLAT frames as linear EXR (default) or 16-bit sRGB PNG with an exposure")
-    s.add_argument("--noise", type=float, default=0.0,
-                   help="sensor noise, fraction of white level (default 0: noise-free)")
+                   help="OLAT frames as linear EXR or 16-bit sRGB PNG with an exposure")
+    s.add_argument("--noise", type=_nonneg_float, default=0.0,
+                   help="sensor noise, fraction of white level (0: noise-free)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scan at OUT")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_synth)
 
-    s = sub.add_parser("info", help="summarise and validate a scan directory")
-    s.add_argument("scan")
-    s.add_argument("--full", action="store_true", help="decode every frame (slower)")
+    s = sub.add_parser("info", parents=common, help="summarise and validate a scan directory")
+    s.add_argument("scan", metavar="SCAN", help="scan directory (or its scan.toml)")
+    s.add_argument("--full", action="store_true",
+                   help="decode every frame and check its pixels (slower)")
     s.set_defaults(func=_cmd_info)
 
-    s = sub.add_parser("bench", help="run registered benchmarks (speed against error)")
-    s.add_argument("names", nargs="*", help="benchmarks or prefixes (default: all)")
+    s = sub.add_parser("bench", parents=common,
+                       help="run registered benchmarks (speed against error)")
+    s.add_argument("names", nargs="*", default=[], help="benchmarks or prefixes (none: all)")
     s.add_argument("--quick", action="store_true", help="smaller problem sizes")
     s.add_argument("--out", default="bench-out", help="folder for bench.json and bench.md")
     s.add_argument("--list", action="store_true", help="list the registered benchmarks")
     s.set_defaults(func=_cmd_bench)
 
-    s = sub.add_parser("demo", help="the main job on the embedded default (a synthetic scan)")
-    s.add_argument("scan", nargs="?", default="scans/demo", help="scan directory (default scans/demo)")
-    s.add_argument("--preset", default="small", choices=["tiny", "small", "paper"])
-    s.add_argument("--seed", type=int, default=0)
+    s = sub.add_parser("demo", parents=common,
+                       help="the main job on the embedded default (a synthetic scan)")
+    s.add_argument("scan", metavar="SCAN", nargs="?", default="scans/demo", help="scan directory")
+    s.add_argument("--preset", default="small", choices=["tiny", "small", "paper"],
+                   help="capture size when the scan is synthesised")
+    s.add_argument("--seed", type=_nonneg_int, default=0, help="seed when the scan is synthesised")
     s.add_argument("--regenerate", action="store_true", help="rebuild the scan even if present")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_demo)
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
-                        format="%(levelname)s %(name)s: %(message)s")
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush cannot raise again."""
     try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # pragma: no cover - stdout without a file descriptor
+        pass
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text or type(exc).__name__
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; return the exit status.
+
+    Exit status: 0 success; 2 an error the user can act on (bad argument, bad or missing file,
+    a scan that fails validation), reported as one line ``facegeo CMD: error: ...`` on stderr;
+    1 an internal error (a bug), one line unless ``-v``/``--debug`` asks for the traceback;
+    130 interrupted (Ctrl-C); 141 stdout closed early (``facegeo ... | head``), silently.
+    """
+    command = "facegeo"
+    verbose, debug = 0, False
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        verbose = args.verbose + getattr(args, "sub_verbose", 0)
+        debug = args.debug or getattr(args, "sub_debug", False)
+        level = logging.DEBUG if debug or verbose >= 2 else (
+            logging.INFO if verbose == 1 else logging.WARNING)
+        logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return 2
+        command = f"facegeo {args.command}"
+        args.verbose, args.debug = verbose, debug
         return int(args.func(args) or 0)
-    except FacegeoError as exc:
-        print(f"facegeo {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    except BrokenPipeError:
+        _quiet_stdout()
+        return 141
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except (FacegeoError, OSError) as exc:
+        # OSError: the environment refused (disk full, permission denied); its message names the
+        # file. Both are the user's to act on, so no traceback unless --debug.
+        if debug:
+            traceback.print_exc()
+        print(f"{command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except Exception as exc:
+        if debug or verbose:
+            traceback.print_exc()
+        print(f"{command}: internal error: {type(exc).__name__}: {_one_line(exc)}; rerun with -v "
+              "for the traceback", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

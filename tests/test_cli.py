@@ -53,3 +53,328 @@ def test_synth_rejects_bad_arguments(tmp_path, capsys):
     assert main(["synth", str(tmp_path / "x"), "--preset", "tiny", "--head", str(tmp_path / "nope.obj"), "-q"]) == 2
     assert "no such mesh file" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()  # nothing written for bad arguments
+
+
+# =========================================================================== bad inputs
+#
+# Every bad input: exit status 2 (or the documented code), exactly one non-empty line on stderr
+# naming the value or file, and no traceback.
+
+import json
+import os
+import shutil
+
+import numpy as np
+
+from facegeo.capture.imageio import read_image, write_image
+from facegeo.checks import fmt_value
+
+
+@pytest.fixture(scope="module")
+def tiny_scan_master(tmp_path_factory):
+    """One tiny synthetic scan per module; tests copy it (``tiny_scan``) before breaking it."""
+    root = tmp_path_factory.mktemp("cli") / "tiny"
+    assert main(["synth", str(root), "--preset", "tiny", "-q"]) == 0
+    return root
+
+
+@pytest.fixture
+def tiny_scan(tiny_scan_master, tmp_path):
+    root = tmp_path / "scan"
+    shutil.copytree(tiny_scan_master, root)
+    return root
+
+
+def _unwritable_dir(tmp_path):
+    """A directory in which no file can be created, also for root (which ignores mode bits)."""
+    if os.geteuid() == 0:
+        return "/proc"  # procfs refuses new files even to root
+    d = tmp_path / "readonly"
+    d.mkdir()
+    d.chmod(0o500)
+    return str(d)
+
+
+def _stderr_lines(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.strip()]
+
+
+def _bad_inputs(tmp_path, scan):
+    """``[(argv, expected status, words the single stderr line must contain)]``."""
+    a_file = tmp_path / "a_file.txt"
+    a_file.write_text("not a directory")
+    ro = _unwritable_dir(tmp_path)
+    rig = json.loads((scan / "rig.json").read_text())
+    rig["cameras"][0]["K"][0][0] = "366"
+    (scan / "rig.json").write_text(json.dumps(rig))
+    return {
+        "seed -1": (["synth", str(tmp_path / "new"), "--seed", "-1", "-q"], 2,
+                    ["--seed", "-1", "integer >= 0"]),
+        "seed text": (["synth", str(tmp_path / "new"), "--seed", "x", "-q"], 2, ["--seed", "'x'"]),
+        "noise -0.1": (["synth", str(tmp_path / "new"), "--noise", "-0.1", "-q"], 2,
+                       ["--noise", "-0.1"]),
+        "OUT is a file": (["synth", str(a_file), "--preset", "tiny", "-q"], 2,
+                          ["OUT", str(a_file), "existing file"]),
+        "OUT under a file": (["synth", str(a_file / "sub"), "--preset", "tiny", "-q"], 2,
+                             ["OUT", str(a_file), "not a directory"]),
+        "OUT not writable": (["synth", f"{ro}/facegeo-scan", "--preset", "tiny", "-q"], 2,
+                             ["OUT", ro, "writable"]),
+        "bench --out is a file": (["bench", "--quick", "--out", str(a_file)], 2,
+                                  ["--out", str(a_file), "existing file"]),
+        "bench --out not writable": (["bench", "--quick", "--out", f"{ro}/bench"], 2,
+                                     ["--out", ro, "writable"]),
+        "rig string focal length": (["info", str(scan)], 2,
+                                    ["rig.json", "cameras[0].K[0][0]", "'366'", "JSON number"]),
+        "demo SCAN is a file": (["demo", str(a_file), "--preset", "tiny", "-q"], 2,
+                                ["SCAN", str(a_file)]),
+        "unknown preset": (["synth", str(tmp_path / "new"), "--preset", "huge"], 2,
+                           ["--preset", "'huge'"]),
+        "no such scan": (["info", str(tmp_path / "nowhere")], 2,
+                         [str(tmp_path / "nowhere"), "not found"]),
+    }
+
+
+BAD_INPUTS = ["seed -1", "seed text", "noise -0.1", "OUT is a file", "OUT under a file",
+              "OUT not writable", "bench --out is a file", "bench --out not writable",
+              "rig string focal length", "demo SCAN is a file", "unknown preset", "no such scan"]
+
+
+@pytest.mark.parametrize("case", BAD_INPUTS)
+def test_bad_input_gives_one_line_and_status_2(case, tmp_path, tiny_scan, capfd, monkeypatch):
+    import facegeo.pipeline.bench as bench
+    import facegeo.synth.capture as synth_capture
+
+    def must_not_run(*a, **k):
+        raise AssertionError("the work started before the arguments were checked")
+
+    # bad output paths must be caught before any benchmark runs or any scan is generated
+    monkeypatch.setattr(bench, "run_benchmarks", must_not_run)
+    monkeypatch.setattr(synth_capture, "generate_scan", must_not_run)
+    argv, status, words = _bad_inputs(tmp_path, tiny_scan)[case]
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse
+        code = exc.code
+    err = capfd.readouterr().err
+    lines = _stderr_lines(err)
+    assert code == status, err
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    assert lines[0].startswith("facegeo")
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert not (tmp_path / "new").exists()
+
+
+def _run(args, **kw):
+    return subprocess.run([sys.executable, "-m", "facegeo.cli", *args], capture_output=True,
+                          text=True, timeout=120, **kw)
+
+
+def test_not_an_exr_and_truncated_exr_in_a_scan_one_line_without_library_noise(tiny_scan):
+    # A subprocess, so that what the OpenEXR C library writes to fds 1 and 2 is captured too.
+    frames = sorted((tiny_scan / "olat" / "cam_left").glob("*.exr"))
+    fake = frames[40]
+    fake.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(300))
+    r = _run(["info", str(tiny_scan)])
+    lines = _stderr_lines(r.stderr)
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert fake.name in lines[0] and "not an OpenEXR file" in lines[0]
+    assert "parts" not in r.stderr and "EXR_ERR" not in r.stderr + r.stdout
+    # a middle frame whose compressed data is overwritten (header and chunk table intact):
+    # OpenEXR itself fails while decoding and prints its own warnings
+    write_image(fake, read_image(frames[41]))
+    data = bytearray(frames[60].read_bytes())
+    n = len(data) // 2
+    data[n:n + 400] = np.random.default_rng(0).integers(0, 255, 400, dtype=np.uint8).tobytes()
+    frames[60].write_bytes(bytes(data))
+    r = _run(["info", str(tiny_scan), "--full"])
+    lines = _stderr_lines(r.stderr)
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert frames[60].name in lines[0] and "corrupt OpenEXR file" in lines[0]
+    assert "Warning" not in r.stdout + r.stderr and "EXR_ERR" not in r.stdout + r.stderr
+
+
+@pytest.mark.parametrize("args, status", [
+    (["--help"], 0),  # argparse itself ignores a failed help write
+    (["synth", "--help"], 0),
+    (["info", "SCAN"], 141),  # was a BrokenPipeError traceback and status 1
+    (["info", "SCAN", "--full"], 141),
+])
+def test_output_into_a_closed_pipe_exits_quietly(args, status, tiny_scan):
+    # `facegeo ... | head -1`: the reader goes away before facegeo writes. Close our end of the
+    # pipe at once; facegeo's write then fails with EPIPE (BrokenPipeError in Python).
+    args = [str(tiny_scan) if a == "SCAN" else a for a in args]
+    p = subprocess.Popen([sys.executable, "-m", "facegeo.cli", *args], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    code = p.wait(timeout=120)
+    assert err.strip() == "", err  # no traceback, no "Exception ignored ... BrokenPipeError"
+    assert code == status
+
+
+def test_internal_error_is_one_line_and_traceback_only_with_v(tiny_scan, capfd, monkeypatch):
+    import facegeo.capture.scan as scanmod
+
+    def broken(scan):
+        return 1 / 0
+
+    monkeypatch.setattr(scanmod, "summarize", broken)
+    assert main(["info", str(tiny_scan)]) == 1
+    err = capfd.readouterr().err
+    lines = _stderr_lines(err)
+    assert len(lines) == 1 and "Traceback" not in err
+    assert lines[0] == ("facegeo info: internal error: ZeroDivisionError: division by zero; "
+                        "rerun with -v for the traceback")
+    # -v works after the subcommand too, and shows the traceback
+    for argv in (["info", str(tiny_scan), "-v"], ["-v", "info", str(tiny_scan)],
+                 ["info", "--debug", str(tiny_scan)]):
+        assert main(argv) == 1
+        err = capfd.readouterr().err
+        assert "Traceback" in err and "ZeroDivisionError" in err, argv
+
+
+def test_user_errors_show_a_traceback_only_with_debug(tiny_scan, capfd):
+    (tiny_scan / "rig.json").write_text("{")
+    assert main(["info", str(tiny_scan), "-v"]) == 2
+    assert "Traceback" not in capfd.readouterr().err
+    assert main(["info", str(tiny_scan), "--debug"]) == 2
+    err = capfd.readouterr().err
+    assert "Traceback" in err and err.rstrip().splitlines()[-1].startswith("facegeo info: error:")
+
+
+def test_keyboard_interrupt_is_130(tiny_scan, capfd, monkeypatch):
+    import facegeo.capture.scan as scanmod
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(scanmod, "load_scan", interrupted)
+    assert main(["info", str(tiny_scan)]) == 130
+    assert _stderr_lines(capfd.readouterr().err) == ["interrupted"]
+
+
+def test_verbose_counts_before_and_after_the_command_add_up():
+    from facegeo.cli import build_parser
+
+    args = build_parser().parse_args(["-v", "info", "x", "-v"])
+    assert args.verbose + args.sub_verbose == 2
+    args = build_parser().parse_args(["info", "x", "-vv"])
+    assert args.verbose + args.sub_verbose == 2
+    args = build_parser().parse_args(["-v", "info", "x"])
+    assert args.verbose + args.sub_verbose == 1  # the subparser's default does not reset it
+
+
+@pytest.mark.parametrize("cmd, shown", [
+    ("synth", ["(default: small)", "(default: procedural)", "(default: cm)", "(default: 0)",
+               "(default: regional)", "(default: exr)", "(default: 0.0)"]),
+    ("bench", ["(default: bench-out)"]),
+    ("demo", ["(default: scans/demo)", "(default: small)"]),
+])
+def test_help_shows_defaults(cmd, shown):
+    out = _run([cmd, "--help"]).stdout
+    flat = " ".join(out.split())
+    for s in shown:
+        assert s in flat, (s, out)
+
+
+def test_messages_print_plain_numbers():
+    assert fmt_value(np.float64(0.5)) == "0.5"
+    assert fmt_value(np.float32(0.1)) == "0.1"
+    assert fmt_value(np.int64(7)) == "7"
+    assert fmt_value(np.array([0.5, np.nan])) == "[0.5, nan]"
+    assert fmt_value("366") == "'366'"
+    from facegeo.checks import check_positive
+    from facegeo.errors import InputError
+
+    with pytest.raises(InputError) as info:
+        check_positive(np.float64(-0.5), "sigma")
+    assert str(info.value) == "sigma: expected a finite number > 0, got -0.5"
+
+
+# =========================================================================== info on frames
+
+
+def _info(scan, *extra):
+    return main(["info", str(scan), *extra])
+
+
+def test_info_checks_every_header_and_says_how_many(tiny_scan, capsys):
+    assert _info(tiny_scan) == 0
+    out = capsys.readouterr().out
+    n = sum(1 for p in tiny_scan.rglob("*") if p.suffix in (".png", ".exr")
+            and "ground_truth" not in p.parts)
+    assert f"checked headers of {n} frames" in out
+
+
+def test_info_quick_catches_a_truncated_middle_frame_by_name(tiny_scan, capfd):
+    victim = sorted((tiny_scan / "olat" / "cam_right").glob("*.exr"))[64]
+    data = victim.read_bytes()
+    victim.write_bytes(data[: len(data) - 100])  # header intact, last chunk cut
+    assert _info(tiny_scan) == 2
+    lines = _stderr_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and victim.name in lines[0] and "cam_right" in lines[0]
+    assert "truncated" in lines[0]
+    # a truncated PNG in the middle of the structured-light group too
+    write_image(victim, read_image(sorted(victim.parent.glob("*.exr"))[63]))
+    png = sorted((tiny_scan / "structured_light" / "cam_left").glob("*.png"))[18]
+    data = png.read_bytes()
+    png.write_bytes(data[: len(data) // 2])
+    assert _info(tiny_scan) == 2
+    lines = _stderr_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and png.name in lines[0] and "truncated" in lines[0]
+
+
+def test_info_full_catches_a_nan_frame_by_name(tiny_scan, capfd):
+    victim = sorted((tiny_scan / "olat" / "cam_left").glob("*.exr"))[70]
+    img = read_image(victim)
+    img[10, 20, 1] = np.nan
+    write_image(victim, img)
+    assert _info(tiny_scan) == 0  # the header is fine: quick passes
+    capfd.readouterr()
+    assert _info(tiny_scan, "--full") == 2
+    lines = _stderr_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and victim.name in lines[0] and "cam_left" in lines[0]
+    assert "1 pixel(s) are NaN" in lines[0] and "(10, 20)" in lines[0]
+    img[10, 20, 1] = np.inf
+    write_image(victim, img)
+    assert _info(tiny_scan, "--full") == 2
+    assert "infinite" in capfd.readouterr().err
+
+
+def test_info_full_warns_about_negative_and_black_frames_by_name(tiny_scan, capfd):
+    frames = sorted((tiny_scan / "olat" / "cam_left").glob("*.exr"))
+    neg, black = frames[20], frames[30]
+    img = read_image(neg)
+    img[5, 5] = -0.25
+    write_image(neg, img)
+    write_image(black, np.zeros_like(read_image(black)))
+    assert _info(tiny_scan) == 0
+    assert "warning" not in capfd.readouterr().out  # warnings need the pixels: --full only
+    assert _info(tiny_scan, "--full") == 0
+    out = capfd.readouterr().out
+    assert f"warning: olat/cam_left/{neg.name}: negative radiance in 1 pixel(s) (min -0.25)" in out
+    assert f"warning: olat/cam_left/{black.name}: all black" in out
+
+
+def test_info_full_warns_about_a_saturated_frame(tiny_scan, capfd):
+    png = sorted((tiny_scan / "structured_light" / "cam_right").glob("*.png"))[10]
+    img = read_image(png)
+    write_image(png, np.full_like(img, np.iinfo(img.dtype).max))
+    assert _info(tiny_scan, "--full") == 0
+    out = capfd.readouterr().out
+    assert f"warning: structured_light/cam_right/{png.name}: saturated: 100 %" in out
+
+
+def test_info_counts_hard_linked_files_once(tiny_scan, capsys):
+    assert _info(tiny_scan) == 0
+    before = [ln for ln in capsys.readouterr().out.splitlines() if "size on disk" in ln]
+    big = max((p for p in tiny_scan.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+    os.link(big, tiny_scan / "a_hard_link_of_the_biggest_file")
+    (tiny_scan / "out").mkdir(exist_ok=True)
+    os.link(big, tiny_scan / "out" / "another_link")
+    assert _info(tiny_scan) == 0
+    after = [ln for ln in capsys.readouterr().out.splitlines() if "size on disk" in ln]
+    assert after[0].split("(inputs)")[0] == before[0].split("(inputs)")[0]
+    assert after[0].endswith("0 B (out/)")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -15,6 +18,7 @@ from facegeo.capture.imageio import (
     linearize,
     parse_response,
     read_image,
+    read_image_info,
     read_image_size,
     saturated_mask,
     srgb_to_linear,
@@ -187,6 +191,112 @@ def test_truncated_png_and_exr_fail_on_decode_but_not_header(tmp_path):
         assert read_image_size(p) == (64, 64)  # the header is intact
         with pytest.raises(ImageReadError, match=p.name):
             read_image(p)
+
+
+def _image_cases(tmp_path):
+    """One file of every kind read_image_info must describe without decoding."""
+    import cv2
+
+    rng = _rng(3)
+    out = []
+    for dtype in (np.uint8, np.uint16):
+        for shape in ((13, 29), (13, 29, 3), (13, 29, 4)):
+            a = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype)
+            out.append(write_image(tmp_path / f"{dtype.__name__}_{len(shape)}_{shape[-1]}.png", a))
+    for half in (False, True):
+        for shape in ((13, 29), (13, 29, 3), (13, 29, 4)):
+            a = rng.random(shape).astype(np.float32)
+            out.append(write_image(tmp_path / f"h{int(half)}_{len(shape)}_{shape[-1]}.exr", a,
+                                   half=half))
+    out.append(write_image(tmp_path / "a.hdr", rng.random((13, 29, 3)).astype(np.float32)))
+    for name, shape in (("grey.jpg", (13, 29)), ("rgb.jpg", (13, 29, 3))):
+        cv2.imwrite(str(tmp_path / name), rng.integers(0, 255, shape, dtype=np.uint8))
+        out.append(tmp_path / name)
+    return out
+
+
+def test_image_info_equals_what_read_image_returns(tmp_path):
+    # Pillow / the EXR header parser replace the hand-written PNG and JPEG header readers: the
+    # header must agree exactly with the decoded array (size, channels, dtype).
+    for p in _image_cases(tmp_path):
+        img = read_image(p)
+        info = read_image_info(p)
+        got = (info.height, info.width, info.channels, info.dtype)
+        want = (img.shape[0], img.shape[1], 1 if img.ndim == 2 else img.shape[2], img.dtype)
+        assert got == want, p.name
+        assert read_image_size(p) == (img.shape[1], img.shape[0]), p.name
+        assert info.verified == (p.suffix != ".hdr"), p.name
+
+
+@pytest.mark.parametrize("suffix", [".exr", ".png"])
+def test_verify_catches_every_truncation(tmp_path, suffix):
+    # Every prefix of a valid file must be reported as broken by the header-only check
+    # (PNG: except a cut inside the final IEND CRC, which loses no pixel data).
+    rng = _rng(4)
+    if suffix == ".exr":
+        img = rng.random((40, 24, 3)).astype(np.float32)  # ZIP: 3 chunks of 16 rows
+        spare = 0
+    else:
+        img = rng.integers(0, 65535, (40, 24, 3), dtype=np.uint16)
+        spare = 4
+    p = write_image(tmp_path / f"full{suffix}", img)
+    data = p.read_bytes()
+    cut = tmp_path / f"cut{suffix}"
+    missed = []
+    # every cut in the header, chunk table and last 32 bytes; every 61st byte in between
+    ends = set(range(200)) | set(range(200, len(data), 61)) | set(range(len(data) - 32, len(data)))
+    for n in sorted(e for e in ends if e < len(data) - spare):
+        cut.write_bytes(data[:n])
+        try:
+            read_image_info(cut)
+        except ImageReadError as exc:
+            assert "cut" + suffix in str(exc)
+        else:
+            missed.append(n)
+    assert missed == []
+    cut.write_bytes(data)
+    assert read_image_info(cut).verified
+
+
+def test_not_an_exr_and_truncated_exr_are_one_clear_error_without_library_noise(tmp_path):
+    # Run in a subprocess: the OpenEXR C library writes to file descriptor 2 directly.
+    good = write_image(tmp_path / "good.exr", _rng().random((64, 64, 3)).astype(np.float32))
+    data = good.read_bytes()
+    (tmp_path / "short.exr").write_bytes(data[: len(data) // 2])
+    (tmp_path / "fake.exr").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
+    code = (
+        "import sys\n"
+        "from facegeo.capture.imageio import read_image, ImageReadError\n"
+        "for p in sys.argv[1:]:\n"
+        "    try:\n"
+        "        read_image(p)\n"
+        "    except ImageReadError as e:\n"
+        "        print(e)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "short.exr"),
+                        str(tmp_path / "fake.exr")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr == ""  # no "(EXR_ERR_...)" or "Warning: Exception raised ..." noise
+    lines = r.stdout.splitlines()
+    assert len(lines) == 2
+    assert "short.exr" in lines[0] and "truncated" in lines[0]
+    assert "fake.exr" in lines[1] and "not an OpenEXR file" in lines[1]
+    assert "76 2f 31 01" in lines[1]
+
+
+def test_native_noise_is_hidden_even_when_the_structure_check_passes(tmp_path, capfd):
+    # Overwrite the middle of the file (chunk leaders and data) but keep the header and chunk
+    # table intact: the OpenEXR library itself fails and prints "Warning: Exception raised
+    # reading pixel data" to std::cout; read_image must raise one error and keep fds 1, 2 clean.
+    good = write_image(tmp_path / "z.exr", _rng().random((64, 64, 3)).astype(np.float32))
+    data = bytearray(good.read_bytes())
+    n = len(data) // 2
+    data[n:n + 500] = _rng(1).integers(0, 255, 500, dtype=np.uint8).tobytes()
+    good.write_bytes(bytes(data))
+    with pytest.raises(ImageReadError, match="z.exr: corrupt OpenEXR file"):
+        read_image(good)
+    out = capfd.readouterr()
+    assert out.err == "" and out.out == ""
 
 
 def test_empty_and_unsupported_files(tmp_path):

@@ -476,12 +476,13 @@ def test_wrong_image_size_first_or_last_found_by_quick(scan_dir):
         load_scan(scan_dir)
 
 
-def test_wrong_image_size_in_the_middle_found_by_full(scan_dir):
+def test_wrong_image_size_in_the_middle_found_by_quick(scan_dir):
+    scan = load_scan(scan_dir)
     p = scan_dir / "structured_light" / "cam_b" / "black.png"  # neither first nor last
     write_image(p, np.zeros((H + 1, W, 3), np.uint16))
-    scan = load_scan(scan_dir)  # quick reads only the first and last headers
+    # quick reads every header, not only the first and last of a group
     with pytest.raises(ScanFormatError, match=r"black.png .*image is 24×17 px but camera 'cam_b'"):
-        load_scan(scan_dir, check="full")
+        load_scan(scan_dir)
     with pytest.raises(ScanFormatError, match=r"black.png .*image is 24×17 px"):
         scan.sl_frame("cam_b", "black")  # the lazy reader checks too
 
@@ -489,27 +490,38 @@ def test_wrong_image_size_in_the_middle_found_by_full(scan_dir):
 def test_corrupt_image(scan_dir):
     p = scan_dir / "olat" / "cam_a" / "0001.exr"  # middle: header intact, pixels truncated
     data = p.read_bytes()
-    p.write_bytes(data[: len(data) - 64])
     scan = load_scan(scan_dir)
-    with pytest.raises(ScanFormatError, match=r"0001.exr: cannot read OpenEXR pixel data"):
-        load_scan(scan_dir, check="full")
+    p.write_bytes(data[: len(data) - 64])
+    # the quick check compares the EXR chunk table with the file size
+    with pytest.raises(ScanFormatError, match=r"0001.exr \[olat.files\]: truncated OpenEXR file"):
+        load_scan(scan_dir)
     with pytest.raises(ScanFormatError, match=r"0001.exr"):
         scan.olat_frame("cam_a", 1)
     first = scan_dir / "calib" / "cam_b" / "view_000.png"
     first.write_bytes(b"garbage")
-    with pytest.raises(ScanFormatError, match=r"view_000.png: not a PNG file"):
+    with pytest.raises(ScanFormatError, match=r"view_000.png \[calib.files\]: not a PNG file"):
         load_scan(scan_dir)
 
 
 def test_float_frame_with_srgb_response_is_refused(scan_dir):
     m = load_scan(scan_dir).manifest
     m["olat"]["response"] = "srgb"
-    write_manifest(scan_dir, m, overwrite=True)
-    scan = load_scan(scan_dir)
+    # the quick check reads every header's sample type: write_manifest refuses, so does load_scan
     with pytest.raises(ScanFormatError, match=r"0000.exr \[olat.response\]: .*already linear"):
-        load_scan(scan_dir, check="full")
+        write_manifest(scan_dir, m, overwrite=True)
+    _write_toml(scan_dir, m)
+    with pytest.raises(ScanFormatError, match=r"0000.exr \[olat.response\]: .*already linear"):
+        load_scan(scan_dir)
+    scan = Scan(scan_dir, m)  # schema only, no file checks: the lazy reader refuses too
     with pytest.raises(ScanFormatError, match=r"\[olat.response\]"):
         scan.olat_frame("cam_a", 0)
+
+
+def _write_toml(root, manifest):
+    """Write scan.toml without write_manifest's validation (to test what load_scan refuses)."""
+    import tomli_w
+
+    (root / "scan.toml").write_text(tomli_w.dumps(manifest))
 
 
 def test_response_table_in_scan(scan_dir):
@@ -526,7 +538,7 @@ def test_response_table_in_scan(scan_dir):
     np.save(scan_dir / "calib" / "response.npy", np.linspace(0, 1, 65536))
     with pytest.raises(ScanFormatError, match=r"view_000.png \[calib.response\]: response table has "
                                               r"65536 levels but the frames are uint8"):
-        load_scan(scan_dir, check="full")
+        load_scan(scan_dir)
 
 
 def test_write_manifest_rejects_bad_dicts(tmp_path):

@@ -4,20 +4,27 @@ Filling a group's path template (:func:`_format_template`), joining the result t
 directory while refusing anything that leads outside it, symlinks included (:class:`_Resolver`),
 the public :func:`frame_path` that writers and the loader share (re-exported by
 :mod:`facegeo.capture.scan`), and the on-disk check of one frame group of one camera against the rig
-(:func:`_check_group_files`: every file present, right size, decodable with the declared
-response).
+(:func:`_check_group_files`: every file present; every header read for size, channels, sample
+type against the declared response and truncation; with ``full`` every frame decoded and its
+pixels checked for NaN, inf, negative radiance, all-black and saturated frames, collected in a
+:class:`FrameCheck`).
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from facegeo.capture._scan_schema import _check_rel_path, _err
+from facegeo.capture.imageio import read_image, read_image_info
+from facegeo.capture.response import saturated_mask
+from facegeo.checks import fmt_value
 from facegeo.errors import InputError, ScanFormatError
-from facegeo.capture.imageio import read_image, read_image_size
 
 
 def _format_template(template: str, fields: Mapping[str, Any]) -> str:
@@ -83,12 +90,100 @@ def frame_path(root: str | os.PathLike, template: str, **fields: Any) -> Path:
     return _Resolver(Path(root))(rel, key="files")
 
 
-def _check_group_files(files, response, group: str, cam, *, full: bool) -> None:
-    """Check one frame group of one camera on disk; raise the first problem found.
+#: A decoded frame is flagged as saturated when at least this fraction of its pixels has a
+#: channel at the top of the stored integer range (``saturated_mask``).
+SATURATED_FRAME_FRACTION = 0.25
+
+
+@dataclass(frozen=True)
+class FrameProblem:
+    """One problem with one frame file, found by :meth:`Scan.validate`.
+
+    Attributes
+    ----------
+    path : Path
+    key : str
+        The manifest key the file belongs to (``"olat.files"``).
+    label : str
+        Which frame it is (``"camera 'cam_left', light 50"``).
+    severity : {"error", "warning"}
+        Errors make the scan invalid; warnings are reported (``facegeo info``) but the frame
+        can still be used, through the validity masks of :meth:`Scan.olat_frame`.
+    message : str
+        What is wrong, without the path.
+    """
+
+    path: Path
+    key: str
+    label: str
+    severity: str
+    message: str
+
+
+@dataclass
+class FrameCheck:
+    """What :meth:`Scan.validate` checked on the frame files and what it found.
+
+    Attributes
+    ----------
+    n_headers : int
+        Frames whose header was read (size, channels, sample type, completeness).
+    n_decoded : int
+        Frames whose pixels were decoded and inspected (``check="full"`` only).
+    problems : list of FrameProblem
+        In scan order.
+    """
+
+    n_headers: int = 0
+    n_decoded: int = 0
+    problems: list[FrameProblem] = field(default_factory=list)
+
+    @property
+    def errors(self) -> list[FrameProblem]:
+        """The problems of severity ``"error"``."""
+        return [p for p in self.problems if p.severity == "error"]
+
+    @property
+    def warnings(self) -> list[FrameProblem]:
+        """The problems of severity ``"warning"``."""
+        return [p for p in self.problems if p.severity == "warning"]
+
+    def raise_first_error(self) -> None:
+        """Raise the first error as a :class:`ScanFormatError` naming its file (and how many
+        other frames failed); do nothing when there is none."""
+        errors = self.errors
+        if not errors:
+            return
+        e = errors[0]
+        more = ""
+        if len(errors) > 1:
+            names = ", ".join(f"{p.path.parent.name}/{p.path.name}" for p in errors[1:4])
+            more = (f"; {len(errors) - 1} more frame(s) fail the check too: {names}"
+                    f"{', ...' if len(errors) > 4 else ''}")
+        raise _err(f"{e.message} ({e.label}{more})", key=e.key, path=e.path)
+
+
+def _bare_message(exc: Exception, path: Path) -> str:
+    text = str(exc)
+    prefix = f"{path}: "
+    return text[len(prefix):] if text.startswith(prefix) else text
+
+
+def _check_group_files(files, response, group: str, cam, *, full: bool,
+                       report: FrameCheck | None = None) -> FrameCheck:
+    """Check one frame group of one camera on disk.
 
     ``files`` is the group's ``[(label, path), …]`` for this camera (``Scan.expected_files``)
     and ``response`` the group's :class:`~facegeo.capture.response.Response`.
+
+    A missing file raises at once (nothing else is worth checking). Otherwise every frame's
+    header is read (:func:`~facegeo.capture.imageio.read_image_info` with ``verify``: size,
+    channel count, sample type, a file that ends before its data does), and with ``full`` every
+    frame is decoded and its pixels inspected: NaN and inf are errors; negative radiance, an
+    all-black frame and a frame with at least :data:`SATURATED_FRAME_FRACTION` of its pixels
+    saturated are warnings. Problems are appended to ``report`` (returned), not raised.
     """
+    report = FrameCheck() if report is None else report
     missing = [(label, p) for label, p in files if not p.is_file()]
     if missing:
         label, p = missing[0]
@@ -98,38 +193,113 @@ def _check_group_files(files, response, group: str, cam, *, full: bool) -> None:
             key=f"{group}.files",
             path=p,
         )
+    key = f"{group}.files"
+    resp_key = f"{'calib' if group == 'calib.projector' else group}.response"
     expected = (cam.width, cam.height)
-    to_size = files if full else ([files[0], files[-1]] if len(files) > 1 else files)
-    for _, p in to_size:
-        size = read_image_size(p)
-        if size != expected:
-            raise _size_error(p, group, cam.name, size, expected)
-    if full:
-        for _, p in files:
-            img = read_image(p)
-            h, w = img.shape[:2]
-            if (w, h) != expected:
-                raise _size_error(p, group, cam.name, (w, h), expected)
-            if img.ndim == 3 and img.shape[2] not in (3, 4):
-                raise _err(
-                    f"image has {img.shape[2]} channels; expected grey, RGB or RGBA",
-                    key=f"{group}.files",
-                    path=p,
-                )
+    first: tuple[int, np.dtype, Path] | None = None
+    response_ok: dict[np.dtype, str | None] = {}
+    good: list[tuple[str, Path]] = []
+
+    def add(label, path, severity, message, k=key):
+        report.problems.append(
+            FrameProblem(path, k, f"camera {cam.name!r}, {label}", severity, message))
+
+    for label, p in files:
+        report.n_headers += 1
+        try:
+            info = read_image_info(p, verify=True)
+        except ScanFormatError as exc:
+            add(label, p, "error", _bare_message(exc, p))
+            continue
+        if info.size != expected:
+            add(label, p, "error", _size_message(group, cam.name, info.size, expected))
+            continue
+        if info.channels not in (1, 3, 4):
+            add(label, p, "error", f"image has {info.channels} channels; expected grey, RGB or "
+                                   "RGBA")
+            continue
+        if info.dtype not in response_ok:
             try:
-                if img.dtype.kind == "f":
-                    response.linearize(img[:1, :1])
+                if info.dtype.kind == "f":
+                    response.linearize(np.zeros((1, 1), info.dtype))
                 else:
-                    response.lut(img.dtype)
+                    response.lut(info.dtype)
+                response_ok[info.dtype] = None
             except InputError as exc:
-                sect = "calib" if group == "calib.projector" else group
-                raise _err(f"{exc}", key=f"{sect}.response", path=p) from exc
+                response_ok[info.dtype] = str(exc)
+        if response_ok[info.dtype] is not None:
+            add(label, p, "error", response_ok[info.dtype], resp_key)
+            continue
+        if first is None:
+            first = (info.channels, info.dtype, p)
+        elif (info.channels, info.dtype) != first[:2]:
+            add(label, p, "error",
+                f"image is {info.dtype} with {info.channels} channel(s) but the group's first "
+                f"frame {first[2].name} is {first[1]} with {first[0]}; a group's frames must "
+                "agree")
+            continue
+        good.append((label, p))
+    if full:
+        for label, p in good:
+            report.n_decoded += 1
+            try:
+                img = read_image(p)
+            except ScanFormatError as exc:
+                add(label, p, "error", _bare_message(exc, p))
+                continue
+            for severity, message in _pixel_problems(img):
+                add(label, p, severity, message)
+    return report
+
+
+def _pixel_problems(img: np.ndarray) -> list[tuple[str, str]]:
+    """``[(severity, message)]`` for one decoded frame (alpha ignored)."""
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    out = []
+    n_px = img.shape[0] * img.shape[1]
+    if img.dtype.kind == "f":
+        nan = np.isnan(img)
+        inf = np.isinf(img)
+        if nan.any():
+            n = int(_channel_any(nan).sum())
+            out.append(("error", f"{n} pixel(s) are NaN (first at row, col "
+                                 f"{_first_pixel(nan)})"))
+        if inf.any():
+            n = int(_channel_any(inf).sum())
+            out.append(("error", f"{n} pixel(s) are infinite (first at row, col "
+                                 f"{_first_pixel(inf)})"))
+        finite = img[np.isfinite(img)]
+        neg = finite < 0
+        if neg.any():
+            n = int(_channel_any(img < 0).sum())
+            out.append(("warning", f"negative radiance in {n} pixel(s) (min "
+                                   f"{fmt_value(float(finite.min()))})"))
+        if finite.size == 0 or not (finite > 0).any():
+            out.append(("warning", "all black (no pixel above 0)"))
+    else:
+        if not img.any():
+            out.append(("warning", "all black (every sample is 0)"))
+        sat = int(saturated_mask(img).sum())
+        if sat >= SATURATED_FRAME_FRACTION * n_px:
+            out.append(("warning", f"saturated: {100.0 * sat / n_px:.0f} % of pixels at the "
+                                   f"top of the {img.dtype} range"))
+    return out
+
+
+def _channel_any(mask: np.ndarray) -> np.ndarray:
+    return mask.any(axis=-1) if mask.ndim == 3 else mask
+
+
+def _first_pixel(mask: np.ndarray) -> tuple[int, int]:
+    r, c = np.argwhere(_channel_any(mask))[0]
+    return int(r), int(c)
+
+
+def _size_message(group: str, camera: str, found, expected) -> str:
+    return (f"image is {found[0]}×{found[1]} px but camera {camera!r} is {expected[0]}×"
+            f"{expected[1]} px in the rig (width × height)")
 
 
 def _size_error(path: Path, group: str, camera: str, found, expected) -> ScanFormatError:
-    return _err(
-        f"image is {found[0]}×{found[1]} px but camera {camera!r} is {expected[0]}×{expected[1]} "
-        "px in the rig (width × height)",
-        key=f"{group}.files",
-        path=path,
-    )
+    return _err(_size_message(group, camera, found, expected), key=f"{group}.files", path=path)

@@ -11,6 +11,12 @@ Formats
 * OpenEXR goes through the ``OpenEXR`` Python bindings: the OpenCV 5.0 wheels are built without
   OpenEXR (verified: ``cv2.haveImageReader("x.exr")`` is False, ``cv2.imread`` returns None and
   ``cv2.imwrite`` raises "could not find a writer for the specified extension").
+* Headers (:func:`read_image_info`: size, channels, sample type, and whether the file holds all
+  its data) are read without decoding pixels: PNG, JPEG and TIFF through Pillow, OpenEXR by
+  parsing its documented header and chunk offset table (the bindings expose neither pixel types
+  nor the chunk table without decoding), Radiance HDR from its resolution line.
+* What OpenEXR and OpenCV print on their own while failing on a corrupt file is hidden (logged
+  at DEBUG level); the :class:`ImageReadError` raised names the file and the problem.
 
 Radiometry (``docs/conventions.md``): every pixel value inside the library is linear float32.
 8/16-bit frames are linearised by a declared :class:`Response` (``"linear"``, ``"srgb"``, a
@@ -24,10 +30,16 @@ gamma, or a tabulated Debevec–Malik curve); saturated and black-clipped sample
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import logging
 import os
 import struct
-from collections.abc import Mapping
+import sys
+import tempfile
+import threading
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,11 +63,13 @@ from facegeo.capture.response import (  # re-exported: part of this module's pub
 
 __all__ = [
     "ImageReadError",
+    "ImageInfo",
     "READ_SUFFIXES",
     "WRITE_SUFFIXES",
     "RESPONSE_KINDS",
     "read_image",
     "read_image_size",
+    "read_image_info",
     "write_image",
     "Response",
     "parse_response",
@@ -133,7 +147,8 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         raise ImageReadError(f"cannot read file ({exc.strerror or exc})", path=path) from exc
     if data.size == 0:
         raise ImageReadError("file is empty", path=path)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    with _quiet_native_output():  # OpenCV warns on stderr about truncated files
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ImageReadError(
             f"cannot decode {path.suffix} image (truncated, corrupt, or not really "
@@ -150,17 +165,100 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+#: The first four bytes of every OpenEXR file.
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+
+@functools.lru_cache(maxsize=1)
+def _libc():
+    import ctypes
+
+    return ctypes.CDLL(None)
+
+
+def _flush_c_stdio() -> None:
+    """``fflush(NULL)``: push C stdio buffers (where ``std::cout`` lands) to their fds now."""
+    try:
+        _libc().fflush(None)
+    except Exception:  # pragma: no cover - no C library to ask
+        pass
+
+
+_quiet_lock = threading.Lock()
+_quiet_users = 0
+_quiet_saved: dict[int, int] = {}
+_quiet_streams: tuple = ()
+_quiet_sink: Any = None
+
+
+@contextlib.contextmanager
+def _quiet_native_output() -> Iterator[None]:
+    """Hide what a native image library prints while it runs; log it at DEBUG level instead.
+
+    The OpenEXR bindings print "Warning: Exception raised reading pixel data ..." through
+    Python's ``sys.stdout``, the OpenEXR core library writes "(EXR_ERR_BAD_CHUNK_LEADER) ..."
+    to file descriptor 2 past Python, and OpenCV warns about truncated PNGs on fd 2. The error
+    we raise already says what is wrong, so for the duration of the call fds 1 and 2 point at a
+    temporary file and ``sys.stdout`` / ``sys.stderr`` at string buffers. Nested and concurrent
+    uses share one redirection (reference-counted), so threads reading images at once are not
+    serialised; the price is that while any read runs, *anything* printed (a progress bar in
+    another thread, say) goes to the debug log, not the terminal.
+    """
+    global _quiet_users, _quiet_sink, _quiet_streams
+    import io
+
+    with _quiet_lock:
+        if _quiet_users == 0:
+            for stream in (sys.stdout, sys.stderr):
+                try:
+                    stream.flush()
+                except Exception:  # pragma: no cover - a closed or replaced stream
+                    pass
+            _flush_c_stdio()
+            try:
+                sink = _quiet_sink or tempfile.TemporaryFile()  # kept open and reused
+                for fd in (1, 2):
+                    _quiet_saved[fd] = os.dup(fd)
+                    os.dup2(sink.fileno(), fd)
+            except (OSError, ValueError):  # no usable fd 1/2: restore what was swapped
+                for fd, saved in _quiet_saved.items():
+                    os.dup2(saved, fd)
+                    os.close(saved)
+                _quiet_saved.clear()
+                sink = None
+            _quiet_sink = sink
+            _quiet_streams = (sys.stdout, sys.stderr)
+            sys.stdout, sys.stderr = io.StringIO(), io.StringIO()
+        _quiet_users += 1
+    try:
+        yield
+    finally:
+        with _quiet_lock:
+            _quiet_users -= 1
+            if _quiet_users == 0:
+                noise = sys.stdout.getvalue() + sys.stderr.getvalue()
+                sys.stdout, sys.stderr = _quiet_streams
+                _quiet_streams = ()
+                if _quiet_sink is not None:
+                    _flush_c_stdio()
+                    for fd, saved in _quiet_saved.items():
+                        os.dup2(saved, fd)
+                        os.close(saved)
+                    _quiet_saved.clear()
+                    _quiet_sink.seek(0)
+                    noise += _quiet_sink.read().decode("utf-8", "replace")
+                    _quiet_sink.seek(0)
+                    _quiet_sink.truncate()
+                if noise.strip():
+                    log.debug("native library output hidden: %s", noise.strip())
+
+
 def _exr_open(path: Path, *, header_only: bool):
     import OpenEXR  # deferred
 
+    _exr_structure(path)  # magic, header and chunk table, without OpenEXR's stderr noise
     try:
-        ok = OpenEXR.isOpenExrFile(str(path))
-    except Exception:  # pragma: no cover - binding quirk
-        ok = False
-    if not ok:
-        raise ImageReadError("not an OpenEXR file (bad magic number)", path=path)
-    try:
-        return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
+        with _quiet_native_output():
+            return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
     except Exception as exc:  # the bindings raise RuntimeError or ValueError on corrupt files
         what = "header" if header_only else "pixel data"
         raise ImageReadError(
@@ -177,6 +275,11 @@ def _exr_size(header: Mapping[str, Any], path: Path) -> tuple[int, int]:
 
 
 def _read_exr(path: Path) -> np.ndarray:
+    with _quiet_native_output():
+        return _read_exr_pixels(path)
+
+
+def _read_exr_pixels(path: Path) -> np.ndarray:
     f = _exr_open(path, header_only=False)
     try:
         channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
@@ -184,7 +287,10 @@ def _read_exr(path: Path) -> np.ndarray:
     except ImageReadError:
         raise
     except Exception as exc:
-        raise ImageReadError(f"cannot read OpenEXR pixel data ({exc})", path=path) from exc
+        raise ImageReadError(
+            f"corrupt OpenEXR file: the OpenEXR library cannot decode its pixel data ({exc})",
+            path=path,
+        ) from exc
     if not channels:
         raise ImageReadError("OpenEXR file has no channels (truncated or corrupt?)", path=path)
     for name, px in channels.items():
@@ -211,45 +317,232 @@ def _read_exr(path: Path) -> np.ndarray:
     return np.stack([channels[n].astype(dtype, copy=False) for n in order], axis=-1)
 
 
-# --------------------------------------------------------------------------- header sizes
+# --------------------------------------------------------------------------- headers
 
 
-def _png_size(path: Path) -> tuple[int, int]:
-    with open(path, "rb") as fh:
-        head = fh.read(24)
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        raise ImageReadError("not a PNG file (bad signature or missing IHDR chunk)", path=path)
-    width, height = struct.unpack(">II", head[16:24])
-    return int(width), int(height)
+@dataclass(frozen=True)
+class ImageInfo:
+    """What an image file's header says, as :func:`read_image` would return it.
+
+    Attributes
+    ----------
+    width, height : int, pixels
+    channels : int
+        1 (grey), 3 (RGB) or 4 (RGBA); the last axis :func:`read_image` returns, or 1 for
+        ``(H, W)``.
+    dtype : numpy.dtype
+        The stored sample type (uint8, uint16, float16, float32).
+    verified : bool
+        True when the file's structure was checked to hold all its data (PNG chunks and CRCs,
+        the OpenEXR chunk table, the JPEG end marker); False when only the header was read.
+    """
+
+    width: int
+    height: int
+    channels: int
+    dtype: np.dtype
+    verified: bool = False
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(width, height)``."""
+        return self.width, self.height
 
 
-def _jpeg_size(path: Path) -> tuple[int, int] | None:
-    sof = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-    with open(path, "rb") as fh:
-        if fh.read(2) != b"\xff\xd8":
-            raise ImageReadError("not a JPEG file (missing SOI marker)", path=path)
-        while True:
-            b = fh.read(1)
-            while b and b != b"\xff":
-                b = fh.read(1)
-            while b == b"\xff":
-                b = fh.read(1)
-            if not b:
-                return None
-            marker = b[0]
-            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-                continue
-            seg = fh.read(2)
-            if len(seg) < 2:
-                return None
-            (length,) = struct.unpack(">H", seg)
-            if marker in sof:
-                body = fh.read(5)
-                if len(body) < 5:
-                    return None
-                height, width = struct.unpack(">HH", body[1:5])
-                return int(width), int(height)
-            fh.seek(length - 2, os.SEEK_CUR)
+# OpenEXR scan lines per chunk by compression (OpenEXR file layout, "Scan Line Blocks").
+_EXR_LINES_PER_CHUNK = {0: 1, 1: 1, 2: 1, 3: 16, 4: 32, 5: 16, 6: 32, 7: 32, 8: 32, 9: 256}
+_EXR_PIXEL_DTYPES = {0: np.dtype(np.uint32), 1: np.dtype(np.float16), 2: np.dtype(np.float32)}
+
+
+def _exr_structure(path: Path, *, check_chunks: bool = True) -> dict:
+    """Parse an OpenEXR header and check that its chunk table fits the file.
+
+    The Python bindings give neither channel pixel types nor the chunk table without decoding
+    the pixels, and on a truncated file they fail with "file has 0 parts" plus native noise on
+    stderr; this reads the documented single-part layout directly: magic number, version
+    flags, attributes up to the empty name, then the offset table of ``ceil(height /
+    lines_per_chunk)`` uint64 offsets. The chunk at the largest offset must end inside the file
+    and every offset must point inside it (a writer that died leaves zeros or a short file).
+    Tiled, multi-part and deep files get the header check only.
+
+    Returns
+    -------
+    dict
+        ``width``, ``height``, ``channels`` (list of ``(name, dtype)``), ``compression`` (int),
+        ``verified`` (bool: the chunk table was checked).
+
+    Raises
+    ------
+    ImageReadError
+        Not an OpenEXR file (bad magic number), a header that cannot be parsed, or a file
+        shorter than its chunk table says (truncated).
+    """
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            if fh.read(4) != EXR_MAGIC:
+                raise ImageReadError(
+                    "not an OpenEXR file (bad magic number; an EXR starts with bytes 76 2f 31 01)",
+                    path=path,
+                )
+            (version,) = struct.unpack("<I", fh.read(4))
+            attrs: dict[str, tuple[str, bytes]] = {}
+            for _ in range(10_000):
+                name = _read_cstring(fh, path)
+                if name == "":
+                    break
+                type_name = _read_cstring(fh, path)
+                raw = fh.read(4)
+                if len(raw) < 4:
+                    raise ImageReadError("OpenEXR header is truncated", path=path)
+                (n,) = struct.unpack("<i", raw)
+                if n < 0 or n > size:
+                    raise ImageReadError(f"OpenEXR attribute {name!r} has a bad size {n}",
+                                         path=path)
+                value = fh.read(n)
+                if len(value) < n:
+                    raise ImageReadError("OpenEXR header is truncated", path=path)
+                attrs[name] = (type_name, value)
+            else:
+                raise ImageReadError("OpenEXR header has no end", path=path)
+            table_start = fh.tell()
+            if "dataWindow" not in attrs or "channels" not in attrs:
+                raise ImageReadError("OpenEXR header lacks dataWindow or channels", path=path)
+            x0, y0, x1, y1 = struct.unpack("<4i", attrs["dataWindow"][1][:16])
+            width, height = x1 - x0 + 1, y1 - y0 + 1
+            if width <= 0 or height <= 0:
+                raise ImageReadError(f"OpenEXR dataWindow is empty ({width}×{height})", path=path)
+            channels = _exr_channels(attrs["channels"][1], path)
+            compression = attrs["compression"][1][0] if "compression" in attrs else 0
+            single_scanline = not version & (0x200 | 0x800 | 0x1000)
+            lpc = _EXR_LINES_PER_CHUNK.get(compression)
+            verified = False
+            if check_chunks and single_scanline and lpc is not None:
+                n_chunks = -(-height // lpc)
+                table = fh.read(8 * n_chunks)
+                if len(table) < 8 * n_chunks:
+                    raise ImageReadError(
+                        f"truncated OpenEXR file: {size} bytes end inside the chunk offset table "
+                        f"({n_chunks} chunks from byte {table_start})",
+                        path=path,
+                    )
+                offsets = np.frombuffer(table, dtype="<u8")
+                data_start = table_start + 8 * n_chunks
+                bad = (offsets < data_start) | (offsets >= size)
+                if bad.any():
+                    raise ImageReadError(
+                        f"truncated or incomplete OpenEXR file: {int(bad.sum())} of {n_chunks} "
+                        f"chunk offsets point outside the file's {size} bytes",
+                        path=path,
+                    )
+                last = int(offsets.max())
+                fh.seek(last)
+                leader = fh.read(8)
+                end = last + 8 + (struct.unpack("<ii", leader)[1] if len(leader) == 8 else 0)
+                if len(leader) < 8 or end > size:
+                    raise ImageReadError(
+                        f"truncated OpenEXR file: its last chunk ends at byte {end} but the file "
+                        f"has {size} bytes",
+                        path=path,
+                    )
+                verified = True
+    except OSError as exc:
+        raise ImageReadError(f"cannot read file ({exc.strerror or exc})", path=path) from exc
+    except struct.error as exc:
+        raise ImageReadError(f"OpenEXR header is truncated or corrupt ({exc})", path=path) from exc
+    return {"width": width, "height": height, "channels": channels,
+            "compression": compression, "verified": verified}
+
+
+def _read_cstring(fh, path: Path, limit: int = 256) -> str:
+    out = bytearray()
+    while len(out) <= limit:
+        c = fh.read(1)
+        if not c:
+            raise ImageReadError("OpenEXR header is truncated", path=path)
+        if c == b"\0":
+            return out.decode("latin-1")
+        out += c
+    raise ImageReadError("OpenEXR header has an over-long name", path=path)
+
+
+def _exr_channels(raw: bytes, path: Path) -> list[tuple[str, np.dtype]]:
+    out, i = [], 0
+    while i < len(raw) and raw[i] != 0:
+        j = raw.index(b"\0", i)
+        name = raw[i:j].decode("latin-1")
+        (ptype,) = struct.unpack("<i", raw[j + 1:j + 5])
+        if ptype not in _EXR_PIXEL_DTYPES:
+            raise ImageReadError(f"OpenEXR channel {name!r} has unknown pixel type {ptype}",
+                                 path=path)
+        out.append((name, _EXR_PIXEL_DTYPES[ptype]))
+        i = j + 1 + 16
+    if not out:
+        raise ImageReadError("OpenEXR file has no channels", path=path)
+    return out
+
+
+def _exr_info(path: Path, verify: bool) -> ImageInfo:
+    h = _exr_structure(path, check_chunks=verify)
+    names = {n for n, _ in h["channels"]}
+    if {"R", "G", "B"} <= names:
+        used = ["R", "G", "B"] + (["A"] if "A" in names else [])
+    elif len(names) == 1:
+        used = list(names)
+    else:
+        raise ImageReadError(
+            f"OpenEXR channels {sorted(names)} are neither R,G,B[,A] nor a single channel",
+            path=path,
+        )
+    dtypes = {d for n, d in h["channels"] if n in used}
+    dtype = dtypes.pop() if len(dtypes) == 1 else np.dtype(np.float32)
+    return ImageInfo(h["width"], h["height"], len(used), dtype, h["verified"])
+
+
+# Pillow mode -> channels as read_image returns them (cv2 IMREAD_UNCHANGED), 8-bit unless the
+# tile's raw mode says 16.
+_PIL_CHANNELS = {"L": 1, "1": 1, "I;16": 1, "I;16B": 1, "I;16L": 1, "RGB": 3, "RGBA": 4,
+                 "LA": 4, "P": None}
+
+
+def _pillow_info(path: Path, verify: bool) -> ImageInfo | None:
+    """PNG / JPEG / TIFF header through Pillow (reads the header only; ``verify`` walks PNG
+    chunks and CRCs, or checks the JPEG end marker). None when the mode needs a decode to know
+    what :func:`read_image` returns (palettes, CMYK, ...)."""
+    from PIL import Image, UnidentifiedImageError  # deferred
+
+    suffix = path.suffix.lower()
+    try:
+        with Image.open(path) as im:
+            fmt = im.format
+            width, height = im.size
+            mode = im.mode
+            raw = str(im.tile[0].args[0] if isinstance(im.tile[0].args, tuple)
+                      else im.tile[0].args) if im.tile else mode
+            if verify and fmt == "PNG":
+                im.verify()
+    except UnidentifiedImageError as exc:
+        kind = suffix.lstrip(".").upper()
+        raise ImageReadError(f"not a {kind} file (unrecognised header)", path=path) from exc
+    except (OSError, SyntaxError, ValueError, struct.error) as exc:
+        raise ImageReadError(
+            f"truncated or corrupt {suffix.lstrip('.').upper()} file ({exc})", path=path
+        ) from exc
+    expected = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF"}
+    if fmt != expected.get(suffix):
+        raise ImageReadError(f"file suffix is {suffix} but the file is {fmt}", path=path)
+    verified = verify and fmt == "PNG"
+    if verify and fmt == "JPEG":
+        with open(path, "rb") as fh:
+            fh.seek(-2, os.SEEK_END)
+            if fh.read(2) != b"\xff\xd9":
+                raise ImageReadError("truncated JPEG file (no end-of-image marker)", path=path)
+        verified = True
+    channels = _PIL_CHANNELS.get(mode)
+    if channels is None:
+        return None
+    dtype = np.dtype(np.uint16) if (";16" in raw or mode.startswith("I;16")) else np.dtype(np.uint8)
+    return ImageInfo(int(width), int(height), channels, dtype, verified)
 
 
 def _hdr_size(path: Path) -> tuple[int, int] | None:
@@ -269,11 +562,57 @@ def _hdr_size(path: Path) -> tuple[int, int] | None:
     return None
 
 
-def read_image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """Width and height of an image file, from its header when the format allows.
+def read_image_info(path: str | os.PathLike, *, verify: bool = True) -> ImageInfo:
+    """Size, channel count and sample type of an image file, from its header.
 
-    PNG (IHDR chunk), JPEG (SOF marker), Radiance HDR (resolution line) and OpenEXR (data
-    window) are read without decoding pixels; other formats are decoded.
+    Cheap: no pixels are decoded for PNG, JPEG, TIFF (Pillow reads the header), OpenEXR (the
+    header and chunk table, see :func:`_exr_structure`) and Radiance HDR (its resolution line;
+    always RGB float32). Other cases fall back to :func:`read_image`.
+
+    Parameters
+    ----------
+    path : path-like
+    verify : bool
+        Also check that the file holds all its data, still without decoding: PNG chunk lengths
+        and CRCs (Pillow's ``verify``), the OpenEXR chunk table against the file size, the
+        JPEG end-of-image marker. Radiance HDR is not verified (run-length encoded rows have
+        no index). ``ImageInfo.verified`` says whether it was done.
+
+    Returns
+    -------
+    ImageInfo
+        Equal to what :func:`read_image` returns: ``(height, width[, channels])`` and dtype.
+
+    Raises
+    ------
+    ImageReadError
+        Missing file, unsupported format, a header that cannot be parsed, or (``verify``) a
+        truncated file; the message names the file.
+    """
+    path = Path(path)
+    _check_readable(path)
+    suffix = path.suffix.lower()
+    if suffix == ".exr":
+        return _exr_info(path, verify)
+    info = None
+    if suffix in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+        info = _pillow_info(path, verify)
+    elif suffix in (".hdr", ".pic"):
+        try:
+            size = _hdr_size(path)
+        except (OSError, ValueError) as exc:
+            raise ImageReadError(f"cannot read image header ({exc})", path=path) from exc
+        if size is not None:
+            info = ImageInfo(size[0], size[1], 3, np.dtype(np.float32), False)
+    if info is None:
+        img = read_image(path)
+        info = ImageInfo(int(img.shape[1]), int(img.shape[0]),
+                         1 if img.ndim == 2 else int(img.shape[2]), img.dtype, True)
+    return info
+
+
+def read_image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """Width and height of an image file, from its header (see :func:`read_image_info`).
 
     Returns
     -------
@@ -284,26 +623,7 @@ def read_image_size(path: str | os.PathLike) -> tuple[int, int]:
     ImageReadError
         Missing file, unsupported format, or a header that cannot be parsed.
     """
-    path = Path(path)
-    _check_readable(path)
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".png":
-            return _png_size(path)
-        if suffix == ".exr":
-            return _exr_size(_exr_open(path, header_only=True).header(), path)
-        if suffix in (".jpg", ".jpeg"):
-            size = _jpeg_size(path)
-        elif suffix in (".hdr", ".pic"):
-            size = _hdr_size(path)
-        else:
-            size = None
-    except (OSError, struct.error) as exc:
-        raise ImageReadError(f"cannot read image header ({exc})", path=path) from exc
-    if size is None:
-        img = read_image(path)
-        size = (int(img.shape[1]), int(img.shape[0]))
-    return size
+    return read_image_info(path, verify=False).size
 
 
 # --------------------------------------------------------------------------- writing

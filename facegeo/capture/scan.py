@@ -39,6 +39,9 @@ from typing import Any
 import numpy as np
 
 from facegeo.capture._scan_files import (
+    SATURATED_FRAME_FRACTION,
+    FrameCheck,
+    FrameProblem,
     _check_group_files,
     _format_template,
     _Resolver,
@@ -59,7 +62,7 @@ from facegeo.capture._scan_schema import (
     _flatten_ground_truth,
     validate_manifest,
 )
-from facegeo.checks import check_choice
+from facegeo.checks import check_choice, fmt_value
 from facegeo.errors import FacegeoError, InputError, ScanFormatError
 from facegeo.fsutil import atomic_write_text
 from facegeo.capture.imageio import read_image
@@ -77,6 +80,9 @@ __all__ = [
     "LIGHT_ORDERS",
     "GROUPS",
     "CHECKS",
+    "FrameCheck",
+    "FrameProblem",
+    "SATURATED_FRAME_FRACTION",
     "Scan",
     "load_scan",
     "validate_manifest",
@@ -121,6 +127,8 @@ class Scan:
         )
         self._resolve = _Resolver(self.root)
         self._responses: dict[str, Response] = {}
+        #: What the last :meth:`validate` found on the frame files (None before it ran).
+        self.frame_check: FrameCheck | None = None
 
     def __repr__(self) -> str:
         return f"Scan({self.name!r}, root={str(self.root)!r})"
@@ -253,7 +261,7 @@ class Scan:
 
     def _check_light(self, light: Any) -> int:
         if isinstance(light, (bool, np.bool_)) or not isinstance(light, (int, np.integer)):
-            raise InputError(f"light: expected an integer light index, got {light!r}")
+            raise InputError(f"light: expected an integer light index, got {fmt_value(light)}")
         n = self.n_lights
         if not 0 <= int(light) < n:
             raise InputError(f"light: index {int(light)} out of range [0, {n})")
@@ -287,7 +295,7 @@ class Scan:
         self._check_camera(camera)
         n = self._section("calib.projector")["views"]
         if isinstance(view, bool) or not isinstance(view, (int, np.integer)) or not 0 <= view < n:
-            raise InputError(f"view: expected an integer in [0, {n}), got {view!r}")
+            raise InputError(f"view: expected an integer in [0, {n}), got {fmt_value(view)}")
         return {
             f: self._path("calib.projector", camera=camera, view=int(view), frame=f)
             for f in self.sl_frames
@@ -437,10 +445,14 @@ class Scan:
         ----------
         check : {"quick", "full"}
             ``"quick"``: the rig (and its cross-checks), response tables, ground-truth entries,
-            that every expected frame exists inside the scan, and the header size of the first
-            and last frame of each (group, camera). ``"full"``: additionally the header size of
-            every frame, the board file, and a decode of every frame (corruption, dtype against
-            the declared response).
+            that every expected frame exists inside the scan, and the header of **every**
+            frame, read without decoding pixels: size against the rig, channel count, sample
+            type against the declared response and against the group's first frame, and a file
+            that ends before its data does (truncated; see
+            :func:`~facegeo.capture.imageio.read_image_info`). ``"full"``: additionally the
+            board file, and a decode of every frame whose pixels are checked: NaN or inf are
+            errors; negative radiance, an all-black frame and a mostly saturated one are
+            warnings, kept in :attr:`frame_check` and not raised.
 
         Returns
         -------
@@ -450,7 +462,14 @@ class Scan:
         Raises
         ------
         ScanFormatError
-            The first problem found, naming the file and/or key and what would be right.
+            The first problem found, naming the file and/or key and what would be right (with
+            the number and first names of the other frames that fail).
+
+        Notes
+        -----
+        After the frame checks ran, :attr:`frame_check` (a
+        :class:`~facegeo.capture._scan_files.FrameCheck`) says how many headers were read, how
+        many frames decoded, and lists every problem per frame, warnings included.
         """
         check_choice(check, "check", CHECKS)
         where = self.manifest_path
@@ -507,12 +526,15 @@ class Scan:
             if not p.exists():
                 raise _err(f"ground-truth file not found: {p}", key=f"ground_truth.{key}",
                            path=where)
+        report = FrameCheck()
         for group in self.groups:
             for cam in cameras:
                 _check_group_files(
                     self.expected_files(group, cam.name), self.response(group), group, cam,
-                    full=(check == "full"),
+                    full=(check == "full"), report=report,
                 )
+        self.frame_check = report
+        report.raise_first_error()
         return self
 
 # =========================================================================== entry points
@@ -657,8 +679,11 @@ def _fmt_bytes(n: float) -> str:
     return f"{n:.1f} TB"  # pragma: no cover
 
 
-def _du(path: Path, skip: Path | None = None) -> int:
+def _du(path: Path, skip: Path | None = None, seen: set | None = None) -> int:
+    """Bytes in the files under ``path`` (symlinks not followed), each inode counted once:
+    hard links (a scan that links frames from another, say) do not double the size."""
     total = 0
+    seen = set() if seen is None else seen
     for dirpath, dirnames, filenames in os.walk(path):
         if skip is not None:
             dirnames[:] = [d for d in dirnames if Path(dirpath, d) != skip]
@@ -667,6 +692,10 @@ def _du(path: Path, skip: Path | None = None) -> int:
                 st = os.lstat(os.path.join(dirpath, f))
             except OSError:
                 continue
+            ident = (st.st_dev, st.st_ino)
+            if ident in seen:
+                continue
+            seen.add(ident)
             total += st.st_size
     return total
 
@@ -729,7 +758,8 @@ def summarize(scan: Scan) -> str:
         for k, v in gt.items():
             lines.append(f"    {k} = {v}")
     out = scan.root / "out"
-    size_in = _du(scan.root, skip=out)
-    size_out = _du(out) if out.is_dir() else 0
+    seen: set = set()
+    size_in = _du(scan.root, skip=out, seen=seen)
+    size_out = _du(out, seen=seen) if out.is_dir() else 0
     lines.append(f"  size on disk: {_fmt_bytes(size_in)} (inputs), {_fmt_bytes(size_out)} (out/)")
     return "\n".join(lines)

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from facegeo.geometry.camera import Camera
-from facegeo.checks import as_array, check_positive
+from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import light_directions, light_solid_angles, look_at
 from facegeo.fsutil import atomic_write_text, load_json_file
@@ -61,6 +61,37 @@ _RIG_KEYS = ("format", "version", "cameras", "projector", "lights")
 def _vec3(value: Any, name: str) -> tuple[float, float, float]:
     a = as_array(value, name, shape=(3,))
     return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def _check_json_numbers(d: Any, where: str, keys: tuple[str, ...]) -> None:
+    """Reject non-numeric JSON values under ``keys`` of the mapping ``d``, naming the field.
+
+    ``numpy.asarray`` and ``int()`` would accept the JSON string ``"366"`` for a focal length (or
+    ``true`` for a width); a rig file must hold JSON numbers. Nested lists and mappings (``K``,
+    ``T_cam_world.R``) are walked; the error names the element, e.g.
+    ``cameras[0].K[0][0]: expected a JSON number, got the string '366'``.
+    """
+    if not isinstance(d, dict):
+        return  # the from_dict methods report the wrong type themselves
+
+    def walk(v: Any, name: str) -> None:
+        if isinstance(v, dict):
+            for k, x in v.items():
+                walk(x, f"{name}.{k}")
+        elif isinstance(v, list):
+            for i, x in enumerate(v):
+                walk(x, f"{name}[{i}]")
+        elif isinstance(v, bool) or not isinstance(v, (int, float)):
+            kind = {str: "the string", type(None): "null"}.get(type(v), type(v).__name__)
+            shown = "" if v is None else f" {v!r}"
+            raise InputError(f"{name}: expected a JSON number, got {kind}{shown}")
+
+    for k in keys:
+        if k in d:
+            walk(d[k], f"{where}.{k}" if where else k)
+
+
+_CAMERA_NUMERIC = ("width", "height", "K", "dist", "T_cam_world")
 
 
 def _json_text(obj: Any, level: int = 0) -> str:
@@ -131,14 +162,18 @@ class LightStage:
         for name in ("n_theta", "n_phi"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise InputError(f"{name}: expected a positive integer, got {v!r}")
+                raise InputError(f"{name}: expected a positive integer, got {fmt_value(v)}")
             object.__setattr__(self, name, int(v))
         try:
             r = float(self.radius)
         except (TypeError, ValueError):
-            raise InputError(f"radius: expected a number > 0 or inf, got {self.radius!r}") from None
+            raise InputError(
+                f"radius: expected a number > 0 or inf, got {fmt_value(self.radius)}"
+            ) from None
         if not r > 0:
-            raise InputError(f"radius: expected a number > 0 or inf, got {self.radius!r}")
+            raise InputError(
+                f"radius: expected a number > 0 or inf, got {fmt_value(self.radius)}"
+            )
         object.__setattr__(self, "radius", r)
         object.__setattr__(self, "center", _vec3(self.center, "center"))
         color = _vec3(self.color, "color")
@@ -202,6 +237,7 @@ class LightStage:
     def from_dict(cls, d: Any, *, where: str = "lights") -> LightStage:
         """Inverse of :meth:`to_dict`; errors name the field as ``<where>.<key>``."""
         _check_keys(d, where, ("n_theta", "n_phi", "radius"), _LIGHT_KEYS)
+        _check_json_numbers(d, where, ("n_theta", "n_phi", "center", "color"))
         order = d.get("light_order", LIGHT_ORDER)
         if order != LIGHT_ORDER:
             raise InputError(
@@ -211,7 +247,9 @@ class LightStage:
         if radius == "inf":
             radius = math.inf
         elif isinstance(radius, str) or isinstance(radius, bool):
-            raise InputError(f"{where}.radius: expected a number > 0 or \"inf\", got {radius!r}")
+            raise InputError(
+                f"{where}.radius: expected a number > 0 or \"inf\", got {fmt_value(radius)}"
+            )
         kwargs = {k: d[k] for k in ("center", "color") if k in d}
         try:
             return cls(d["n_theta"], d["n_phi"], radius, **kwargs)
@@ -320,8 +358,11 @@ class Rig:
         cams = d["cameras"]
         if not isinstance(cams, list):
             raise InputError(f"cameras: expected a list of cameras, got {type(cams).__name__}")
+        for i, c in enumerate(cams):
+            _check_json_numbers(c, f"cameras[{i}]", _CAMERA_NUMERIC)
         cameras = [Camera.from_dict(c, where=f"cameras[{i}]") for i, c in enumerate(cams)]
         proj = d.get("projector")
+        _check_json_numbers(proj, "projector", _CAMERA_NUMERIC)
         projector = None if proj is None else Camera.from_dict(proj, where="projector")
         lights = LightStage.from_dict(d["lights"], where="lights")
         return cls(cameras, projector, lights)
