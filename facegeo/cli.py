@@ -128,6 +128,9 @@ def _cmd_synth(args) -> int:
           f"{summary.image_size[0]}x{summary.image_size[1]}, {summary.n_lights} lights, "
           f"{summary.n_faces} triangles, {summary.frames_written} frames "
           f"({summary.frames_per_second:.1f} frames/s; {secs})")
+    if summary.kept:
+        print(f"kept {len(summary.kept)} file(s) facegeo did not write: "
+              f"{', '.join(summary.kept[:5])}{' ...' if len(summary.kept) > 5 else ''}")
     return 0
 
 
@@ -245,7 +248,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="OLAT frames as linear EXR or 16-bit sRGB PNG with an exposure")
     s.add_argument("--noise", type=_nonneg_float, default=0.0,
                    help="sensor noise, fraction of white level (0: noise-free)")
-    s.add_argument("--overwrite", action="store_true", help="replace an existing scan at OUT")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing synthetic scan at OUT (a real capture is refused; files "
+                        "facegeo did not write are kept)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_synth)
 
