@@ -344,3 +344,33 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
         assert (tmp_path / "out" / f"{name}.yml").exists()
         assert (tmp_path / "out" / f"residuals_{name}.png").exists()
     assert (tmp_path / "out" / "metrics.json").exists()
+    # one projector view cannot calibrate the projector: said in the metrics, rig keeps nominal
+    assert "need 3" in m["projector"]["error"]
+
+
+#: local-homography projector corners vs the exact map, Gray-quantised codes: worst, projector px
+PROJECTOR_CORNER_TOL_PX = 0.1
+
+
+def test_projector_corners_local_homography():
+    """A plane seen by camera and projector: decoded codes are the exact homography rounded to
+    integer projector pixels (Gray codes); the local fit recovers each corner sub-pixel, and a
+    corner whose window did not decode is flagged, not guessed."""
+    from facegeo.geometry.calibration import projector_corners
+
+    Hm = np.array([[1.31, 0.07, 12.0], [-0.05, 1.22, 30.0], [2e-5, -1e-5, 1.0]])
+    H, W = 200, 300
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    p = np.stack([xs, ys, np.ones_like(xs)], -1) @ Hm.T
+    q_proj = np.rint(p[..., :2] / p[..., 2:])
+    valid = np.ones((H, W), bool)
+    valid[100:140, 200:260] = False  # an undecodable patch
+    q_cam = np.array([[50.3, 60.7], [150.2, 80.9], [230.4, 120.1], [120.0, 150.5]])
+    qp, ok, n = projector_corners(q_cam, q_proj, valid)
+    truth = np.c_[q_cam, np.ones(4)] @ Hm.T
+    truth = truth[:, :2] / truth[:, 2:]
+    assert ok.tolist() == [True, True, False, True] and np.isnan(qp[2]).all()
+    assert np.abs(qp[ok] - truth[ok]).max() <= PROJECTOR_CORNER_TOL_PX
+    # the rounding is what the fit removes: reading the nearest code is ≈ 0.3 px off
+    assert np.abs(q_proj[np.rint(q_cam[ok, 1]).astype(int), np.rint(q_cam[ok, 0]).astype(int)]
+                  - truth[ok]).max() > 2 * PROJECTOR_CORNER_TOL_PX

@@ -9,6 +9,8 @@ The public namespace of three private modules:
   least squares over intrinsics, distortion and per-view poses; robust loss; outlier-view
   rejection; parameter standard deviations from ``σ² (JᵀJ)⁻¹``; mrcal-style projection
   uncertainty over the image).
+* :mod:`._calib_projector` — :func:`projector_corners`: board corners in projector pixels by
+  Moreno & Taubin's local homographies over the decoded structured light.
 * :mod:`._calib_rig` — :func:`calibrate_rig` (bundle adjustment of N cameras and the board
   poses, world frame from a camera, a board view or an alignment transform) and
   :func:`cross_validate` (two solves on disjoint halves, mrcal's check).
@@ -32,6 +34,9 @@ from facegeo.geometry._calib_detect import (
     detect_boards, detect_charuco, detect_chessboard, detect_circle_grid, detection_report,
     usable_detections,
 )
+from facegeo.geometry._calib_projector import (
+    PROJECTOR_MIN_PIXELS, PROJECTOR_WINDOW_PX, projector_corners,
+)
 from facegeo.geometry._calib_rig import RigCalibration, calibrate_rig, cross_validate
 from facegeo.geometry._calib_solve import (
     MODELS, CameraCalibration, calibrate_camera, project_points, rotate_rvec,
@@ -42,5 +47,6 @@ __all__ = [
     "BoardDetection", "ChessboardSpec", "CircleGridSpec", "CameraCalibration", "RigCalibration",
     "as_corner_lists", "detect_boards", "detect_charuco", "detect_chessboard",
     "detect_circle_grid", "detection_report", "usable_detections",
+    "PROJECTOR_MIN_PIXELS", "PROJECTOR_WINDOW_PX", "projector_corners",
     "calibrate_camera", "calibrate_rig", "cross_validate", "project_points", "rotate_rvec",
 ]

@@ -104,6 +104,53 @@ def _residual_plot(path: Path, size, r: np.ndarray, q: np.ndarray, title: str) -
         raise InputError(f"{path}: could not write the residual plot")
 
 
+def _projector_observations(scan, board, legacy):
+    """Board corners in projector pixels for every projector-calibration view (Moreno & Taubin
+    local homographies, averaged over the cameras that saw a corner), and the cameras' own
+    corners of those views (so the bundle adjustment ties the projector to the cameras)."""
+    from facegeo.capture.imageio import read_image
+    from facegeo.geometry.calibration import detect_charuco, projector_corners
+    from facegeo.geometry.structured_light import PatternSpec, decode_gray
+
+    spec = PatternSpec.from_dict(scan.sl_patterns)
+    resp = scan.response("calib.projector")
+    n_views = scan.manifest["calib"]["projector"]["views"]
+    proj_obs, cam_obs = {}, {n: {} for n in scan.camera_names}
+    skipped, n_corners = [], 0
+    for v in range(n_views):
+        acc: dict[int, list] = {}
+        for name in scan.camera_names:
+            paths = scan.projector_view_paths(name, v)
+            raw = {k: read_image(p) for k, p in paths.items()}
+            lin = {k: resp.linearize(a) for k, a in raw.items()}
+            lin = {k: a.mean(axis=-1) if a.ndim == 3 else a for k, a in lin.items()}
+            white = raw["white"] if "white" in raw else raw[next(iter(raw))]
+            det = detect_charuco(white, board, name=f"projector view {v} {name}", legacy=legacy)
+            if not det.found:
+                skipped.append(f"{det.name}: {det.reason}")
+                continue
+            dec = decode_gray(lin, spec)
+            qp, ok, _ = projector_corners(det.q, dec.q_proj, dec.valid)
+            if ok.sum() < 6:
+                skipped.append(f"projector view {v} {name}: only {int(ok.sum())} corners "
+                               "decodable (need 6)")
+                continue
+            cam_obs[name][f"p{v}"] = (det.p_board, det.q)
+            for i, q in zip(det.ids[ok], qp[ok]):
+                acc.setdefault(int(i), []).append(q)
+        if len(acc) >= 6:
+            ids = np.array(sorted(acc))
+            proj_obs[f"p{v}"] = (board.chessboard_corners()[ids],
+                                 np.array([np.mean(acc[i], axis=0) for i in ids]))
+            n_corners += len(ids)
+    if len(proj_obs) < 3:
+        raise InputError(
+            f"projector: {len(proj_obs)} of {n_views} projector views have ≥ 6 decodable "
+            f"corners, need 3" + (f" (skipped — {'; '.join(skipped)})" if skipped else ""))
+    return proj_obs, cam_obs, {"views_detected": len(proj_obs), "corners": n_corners,
+                               "skipped": skipped}
+
+
 def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: bool = False,
                   loss: str = "linear", reference: str | None = None,
                   cross_validation: bool = True, progress=None) -> dict:
@@ -196,19 +243,49 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: boo
         else:
             m["cross_validation_px"] = None
         metrics["cameras"][name] = m
+    proj_obs, proj_metrics = {}, None
+    if nominal.projector is not None and scan.has("calib.projector"):
+        say("projector corners")
+        try:
+            proj_obs, cam_extra, proj_metrics = _projector_observations(scan, board, legacy)
+            for n, o in cam_extra.items():
+                obs[n].update(o)
+        except InputError as exc:
+            proj_metrics = {"error": str(exc)}
+    init = {n: c.camera for n, c in calibs.items()}
+    proj_name = None
+    if proj_obs:
+        pj = nominal.projector
+        pmodel = {0: "pinhole", 4: "opencv4", 5: "opencv5", 8: "rational8"}[pj.dist.size]
+        try:
+            pc = calibrate_camera([p for p, _ in proj_obs.values()],
+                                  [q for _, q in proj_obs.values()], pj.size, model=pmodel,
+                                  name=pj.name, reject_views=False)
+            proj_name = pj.name
+            init[proj_name] = pc.camera
+            obs[proj_name] = proj_obs
+            proj_metrics.update({"views_used": pc.n_views_used, "separate_rms_px": pc.rms_px})
+        except InputError as exc:
+            proj_metrics["error"] = str(exc)
     say("bundle-adjust the rig")
-    rig_cal = calibrate_rig(obs, {n: c.camera for n, c in calibs.items()}, reference=reference,
-                            loss=loss)
-    T_rig_world = _align(rig_cal.cameras, nominal.cameras)
-    cams = [c.replace(T_cam_world=c.T_cam_world @ T_rig_world) for c in rig_cal.cameras]
-    rig = Rig(cams, nominal.projector, nominal.lights)
+    rig_cal = calibrate_rig(obs, init, reference=reference, loss=loss)
+    T_rig_world = _align([c for c in rig_cal.cameras if c.name != proj_name], nominal.cameras)
+    cams = [c.replace(T_cam_world=c.T_cam_world @ T_rig_world) for c in rig_cal.cameras
+            if c.name != proj_name]
+    projector = nominal.projector
+    if proj_name is not None:
+        pr = rig_cal.camera(proj_name)
+        projector = pr.replace(T_cam_world=pr.T_cam_world @ T_rig_world)
+    rig = Rig(cams, projector, nominal.lights)
     rig.save(out / "rig.json")
     truth = None
     if "rig" in scan.ground_truth_keys:
         truth = Rig.load(scan.ground_truth_path("rig"))
     if truth is not None:
-        T_gt = _align(rig_cal.cameras, truth.cameras)
+        T_gt = _align([c for c in rig_cal.cameras if c.name != proj_name], truth.cameras)
     for c in rig_cal.cameras:
+        if c.name == proj_name:
+            continue
         m = metrics["cameras"][c.name]
         m["reprojection_rms_px"] = rig_cal.rms_px[c.name]
         r, q = rig_cal.residuals[c.name]
@@ -228,7 +305,26 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: boo
             m["nominal_focal_rel_error"] = float(abs(n.fx / t.fx - 1))
             m["nominal_principal_point_error_px"] = float(np.hypot(n.cx - t.cx, n.cy - t.cy))
     metrics["rig_reference"] = rig_cal.reference
-    metrics["projector"] = "not calibrated (projector calibration not built yet)"
+    if proj_name is not None:
+        pr = rig_cal.camera(proj_name)
+        proj_metrics["reprojection_rms_px"] = rig_cal.rms_px[proj_name]
+        r, q = rig_cal.residuals[proj_name]
+        _residual_plot(out / f"residuals_{proj_name}.png", pr.size, r, q, proj_name)
+        _write_yaml(out / f"{proj_name}.yml", pr, rig_cal.rms_px[proj_name], [])
+        if truth is not None and truth.projector is not None:
+            t = truth.projector
+            T_est = pr.T_cam_world @ T_gt
+            sep = init[proj_name]
+            proj_metrics.update({
+                "focal_rel_error": float(max(abs(pr.fx / t.fx - 1), abs(pr.fy / t.fy - 1))),
+                "focal_rel_error_without_joint": float(
+                    max(abs(sep.fx / t.fx - 1), abs(sep.fy / t.fy - 1))),
+                "principal_point_error_px": float(np.hypot(pr.cx - t.cx, pr.cy - t.cy)),
+                "rotation_error_deg": _rot_deg(T_est.R, t.T_cam_world.R),
+                "translation_error_mm": float(
+                    np.linalg.norm(T_est.origin_of_a_in_b - t.center_world) * 1e3),
+            })
+    metrics["projector"] = proj_metrics
     metrics["seconds"] = time.perf_counter() - t0
     atomic_write_text(out / "detections.json", json.dumps(report, indent=1) + "\n")
     atomic_write_text(out / "metrics.json", json.dumps({"calibrate": metrics}, indent=1) + "\n")
