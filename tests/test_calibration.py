@@ -374,3 +374,44 @@ def test_projector_corners_local_homography():
     # the rounding is what the fit removes: reading the nearest code is ≈ 0.3 px off
     assert np.abs(q_proj[np.rint(q_cam[ok, 1]).astype(int), np.rint(q_cam[ok, 0]).astype(int)]
                   - truth[ok]).max() > 2 * PROJECTOR_CORNER_TOL_PX
+
+
+#: projector focal after the joint refinement: max |f/f_true − 1|
+PROJECTOR_FOCAL_REL_TOL = 2e-3
+
+
+@pytest.mark.slow
+def test_projector_joint_refinement():
+    """A pinhole projector seen through 4 board views (0.2 px noise on its corners) beside two
+    cameras with 14 views: the joint bundle adjustment recovers its focal within 0.2 %."""
+    rng = np.random.default_rng(21)
+    K_p = np.array([[997.0, 0.0, 257.1], [0.0, 989.5, 202.5], [0.0, 0.0, 1.0]])
+    proj = Camera("projector", 512, 384, K_p, None, look_at([0.02, -0.08, -0.55], [0, 0, 0.3]))
+    cams, obs = _rig_fixture()
+    cams = cams[:2]
+    obs = {c.name: obs[c.name] for c in cams}
+    P0 = BOARD.chessboard_corners()
+    obs["projector"] = {}
+    for v in range(4):
+        R = cv2.Rodrigues(rng.uniform(-0.35, 0.35, 3))[0]
+        T_wb = Pose(R, np.array([-0.13, -0.09, 0.3]) + rng.uniform(-0.02, 0.02, 3))
+        for c in cams + [proj]:
+            q, front = c.project(T_wb.apply(P0))
+            assert front.all()
+            if c is proj:
+                q = q + rng.normal(0, 0.2, q.shape)
+            obs[c.name][f"p{v}"] = (P0, q)
+    init = {}
+    for c in cams:
+        vs = list(obs[c.name].values())
+        init[c.name] = calibrate_camera([p for p, _ in vs], [q for _, q in vs], SIZE,
+                                        name=c.name).camera
+    vs = list(obs["projector"].values())
+    sep = calibrate_camera([p for p, _ in vs], [q for _, q in vs], (512, 384), model="pinhole",
+                           name="projector", reject_views=False).camera
+    init["projector"] = sep
+    rig = calibrate_rig(obs, init, reference="a")
+    est = rig.camera("projector")
+    err = max(abs(est.fx / 997.0 - 1), abs(est.fy / 989.5 - 1))
+    assert err <= PROJECTOR_FOCAL_REL_TOL  # measured 6.8e-4; the separate solve: 1.5e-2
+    assert np.isfinite(rig.rms_px["projector"]) and rig.rms_px["projector"] < 0.3

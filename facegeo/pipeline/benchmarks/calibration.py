@@ -61,3 +61,65 @@ def bench_camera(quick: bool) -> list[BenchRow]:
     finally:
         cv2.setNumThreads(prev)
     return rows
+
+
+@register("calibration.projector")
+def bench_projector(quick: bool) -> list[BenchRow]:
+    """Projector focal error with and without the joint refinement: a pinhole projector seen in
+    4 board views (0.2 px noise on its corners) beside two cameras with 12 views each."""
+    import cv2
+
+    from facegeo.frames import Pose, look_at
+    from facegeo.geometry.board import CharucoBoard
+    from facegeo.geometry.calibration import calibrate_camera, calibrate_rig
+    from facegeo.geometry.camera import Camera
+
+    rng = np.random.default_rng(21)
+    K = np.array([[1210.0, 0.0, 655.3], [0.0, 1190.0, 371.8], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.21, 0.09, 0.0012, -0.0007, -0.02])
+    cams = [Camera("a", 1280, 720, K, dist, look_at([0.0, 0.0, -0.5], [0, 0, 0.3])),
+            Camera("b", 1280, 720, K, dist, look_at([0.12, 0.02, -0.48], [0, 0, 0.3]))]
+    K_p = np.array([[997.0, 0.0, 257.1], [0.0, 989.5, 202.5], [0.0, 0.0, 1.0]])
+    proj = Camera("projector", 512, 384, K_p, None, look_at([0.02, -0.08, -0.55], [0, 0, 0.3]))
+    board = CharucoBoard(10, 7, 0.03, 0.022)
+    P0 = board.chessboard_corners()
+    obs = {"a": {}, "b": {}, "projector": {}}
+    n_cam_views = 8 if quick else 12
+    for v in range(n_cam_views):
+        T_wb = Pose(cv2.Rodrigues(rng.uniform(-0.4, 0.4, 3))[0],
+                    np.array([-0.13, -0.09, 0.3]) + rng.uniform(-0.03, 0.03, 3))
+        for c in cams + ([proj] if v < 4 else []):
+            q, front = c.project(T_wb.apply(P0))
+            if front.all() and c.in_image(q).all():
+                noise = 0.2 if c is proj else 0.1
+                obs[c.name][v] = (P0, q + rng.normal(0, noise, q.shape))
+    t0 = time.perf_counter()
+    init = {}
+    for c in cams:
+        vs = list(obs[c.name].values())
+        init[c.name] = calibrate_camera([p for p, _ in vs], [q for _, q in vs], c.size,
+                                        name=c.name, reject_views=False).camera
+    vs = list(obs["projector"].values())
+    sep = calibrate_camera([p for p, _ in vs], [q for _, q in vs], proj.size, model="pinhole",
+                           name="projector", reject_views=False).camera
+    t_sep = time.perf_counter() - t0
+    init["projector"] = sep
+    t0 = time.perf_counter()
+    rig = calibrate_rig(obs, init, reference="a")
+    t_joint = time.perf_counter() - t0
+    est = rig.camera("projector")
+
+    def ferr(c):
+        return float(max(abs(c.fx / K_p[0, 0] - 1), abs(c.fy / K_p[1, 1] - 1)))
+
+    views = len(obs["projector"])
+    return [
+        BenchRow("calibration.projector",
+                 "separate (projector as inverse camera; time includes both cameras' solves)",
+                 views / t_sep, "views/s", error=ferr(sep), error_unit="max |Δf|/f vs truth",
+                 extra={"projector_views": views, "seconds": round(t_sep, 3)}),
+        BenchRow("calibration.projector", "joint bundle adjustment with the cameras",
+                 views / t_joint, "views/s", error=ferr(est), error_unit="max |Δf|/f vs truth",
+                 extra={"projector_views": views, "seconds": round(t_joint, 3),
+                        "projector_rms_px": round(rig.rms_px["projector"], 4)}),
+    ]
