@@ -20,7 +20,7 @@ from facegeo.checks import check_choice, check_positive
 from facegeo.errors import InputError
 from facegeo.frames import Pose
 from facegeo.geometry._calib_solve import (
-    MODELS, CameraCalibration, _least_squares, _Model, calibrate_camera, project_points,
+    _least_squares, _Model, calibrate_camera, grouped_jacobian, project_points,
     rotate_rvec,
 )
 from facegeo.geometry.camera import Camera
@@ -208,8 +208,6 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
         return (q - q_all).ravel()
 
     # dense columns: intrinsics and camera poses (few); blocks: board poses
-    from facegeo.geometry._calib_solve import grouped_jacobian
-
     jac = grouped_jacobian(fun, n_intr + n_cam, view_idx, Vn, 6)
     res = _least_squares(fun, jac, x0, loss, f_scale)
     x = res.x
@@ -282,25 +280,27 @@ def cross_validate(object_points, image_points, image_size, *, grid=(16, 12), se
     ia, ib = np.sort(perm[: len(P) // 2]), np.sort(perm[len(P) // 2:])
     a = calibrate_camera([P[i] for i in ia], [Q[i] for i in ia], image_size, **kwargs)
     b = calibrate_camera([P[i] for i in ib], [Q[i] for i in ib], image_size, **kwargs)
-    ua = a.projection_uncertainty(grid=grid)
-    ub = b.projection_uncertainty(grid=grid)
-    q = ua["q"]
+    cam = a.camera
+    xs = np.linspace(0, cam.width - 1, int(grid[0]))
+    ys = np.linspace(0, cam.height - 1, int(grid[1]))
+    q = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
     va, ok_a = a.camera.unproject(q, return_valid=True)
     vb, ok_b = b.camera.unproject(q, return_valid=True)
-    ok = ok_a & ok_b
+    ok = ok_a & ok_b  # pixels whose ray exists in both solves
+    if ok.sum() < 3:
+        raise InputError("cross_validate: the two solves share fewer than 3 valid grid pixels")
+    q = q[ok]
     A = va[ok] / np.linalg.norm(va[ok], axis=-1, keepdims=True)
     B = vb[ok] / np.linalg.norm(vb[ok], axis=-1, keepdims=True)
     U, _, Vt = np.linalg.svd(B.T @ A)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
     R_ba = U @ D @ Vt
     qb, _ = b.camera.project_cam(A @ R_ba.T)
-    d = np.linalg.norm(qb - q[ok], axis=-1)
-    # predicted: both solves' uncertainties at the same grid pixels
-    sig_b = np.interp(np.arange(len(q)), np.arange(len(ub["sigma_px"])), ub["sigma_px"]) if len(
-        ub["sigma_px"]) != len(q) else ub["sigma_px"]
-    pred = np.sqrt(ua["sigma_px"][ok] ** 2 + sig_b[ok] ** 2)
+    d = np.linalg.norm(qb - q, axis=-1)
+    ua = a.projection_uncertainty(q=q)
+    ub = b.projection_uncertainty(q=q)
+    pred = np.sqrt(ua["sigma_px"] ** 2 + ub["sigma_px"] ** 2)
     return {"diff_rms_px": float(np.sqrt(np.mean(d**2))), "diff_max_px": float(d.max()),
             "predicted_rms_px": float(np.sqrt(np.mean(pred**2))), "a": a, "b": b}
 
 
-__all__ += ["MODELS", "CameraCalibration"]

@@ -9,8 +9,9 @@ reflective) refines intrinsics + distortion + every pose jointly, minimising
     Σ_views Σ_corners ‖ project(K, d, T_cam_board_v · p_board) − q ‖²
 
 (the course notes' calibration objective, `siggraph2000-course` §"camera calibration"), with an
-optional robust loss and a sparse Jacobian (each residual depends on the intrinsics and on one
-view's six pose parameters).
+optional robust loss and a block-sparse Jacobian (each residual depends on the intrinsics and on
+one view's six pose parameters), built by grouped central differences (:func:`grouped_jacobian`,
+``2 (n_intrinsics + 6)`` evaluations whatever the number of views) and stored dense.
 
 Uncertainty: ``Σ = σ² (JᵀJ)⁻¹`` at the solution with ``σ² = ‖r‖² / (m − n)``; the projection
 uncertainty follows mrcal (Kogan): a pixel's ray at a working distance is fixed in the frame of
@@ -199,7 +200,8 @@ class CameraCalibration:
         """Number of views in the final solve."""
         return int(self.views_used.sum())
 
-    def projection_uncertainty(self, *, grid=(16, 12), distance: float | None = None) -> dict:
+    def projection_uncertainty(self, *, grid=(16, 12), distance: float | None = None,
+                               q=None) -> dict:
         """mrcal-style projection uncertainty over the image.
 
         For each pixel of a ``grid`` (columns × rows) spanning the image, the point at
@@ -213,6 +215,8 @@ class CameraCalibration:
         grid : (int, int), optional
         distance : float, metres, optional
             Working distance; default the median distance of the board centres.
+        q : (G, 2) float64, pixels, optional
+            Evaluate at these pixels instead of the grid.
 
         Returns
         -------
@@ -221,10 +225,13 @@ class CameraCalibration:
             projection, pixels); ``rms_px``, ``max_px``; ``distance_m``.
         """
         cam = self.camera
-        gx, gy = int(grid[0]), int(grid[1])
-        xs = np.linspace(0, cam.width - 1, gx)
-        ys = np.linspace(0, cam.height - 1, gy)
-        q = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+        if q is None:
+            gx, gy = int(grid[0]), int(grid[1])
+            xs = np.linspace(0, cam.width - 1, gx)
+            ys = np.linspace(0, cam.height - 1, gy)
+            q = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+        else:
+            q = as_array(q, "q", shape=(None, 2))
         v, ok = cam.unproject(q, return_valid=True)
         q, v = q[ok], v[ok]  # pixels whose ray exists (a fold of the distortion has none)
         poses = self._poses

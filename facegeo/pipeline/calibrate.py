@@ -14,6 +14,9 @@ rig (:func:`~facegeo.geometry.calibration.calibrate_rig`) and writes
 * ``residuals_<camera>.png`` — residual vectors over the image (×``RESIDUAL_GAIN``) and a
   histogram of their lengths, drawn with OpenCV (matplotlib is not a dependency);
 * ``detections.json`` — the per-image detection report;
+* with ``calib/projector/`` views: the projector (Moreno & Taubin local homographies, then the
+  joint bundle adjustment), its YAML and residual plot; otherwise ``metrics["projector"]``
+  says why it was not calibrated and ``rig.json`` keeps the nominal projector;
 * ``metrics.json`` — ``{"calibrate": metrics}`` (the dict returned).
 """
 
@@ -181,8 +184,10 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: boo
         ``{"cameras": {name: {reprojection_rms_px, views_used, views_detected,
         cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
         std_px: {fx, fy, cx, cy}[, focal_rel_error, principal_point_error_px,
-        rotation_error_deg, translation_error_mm]}}, "rig_rms_px", "seconds", "projector":
-        "not calibrated (not built yet)"}``. Ground-truth errors (synthetic scans) compare with
+        rotation_error_deg, translation_error_mm]}}, "projector": {views_used,
+        reprojection_rms_px, separate_rms_px[, focal_rel_error, focal_rel_error_without_joint,
+        ...]} or {"error": why}, "seconds"}``. View k of every camera is taken to be the same
+        board pose (the scan format's ``calib`` views are simultaneous). Ground-truth errors (synthetic scans) compare with
         ``ground_truth/rig.json`` after the best rigid alignment of the whole rig (the world
         frame is a gauge choice); rotation/translation errors are those of each camera pose.
 
