@@ -1,0 +1,383 @@
+"""Board detection for calibration: ChArUco, plain chessboards and circle grids.
+
+Every detector returns a :class:`BoardDetection` per image — found or not, with the reason when
+not — so images without a board are listed, never silently dropped. Corners are sub-pixel:
+ChArUco corners are refined by OpenCV's ``CharucoDetector`` (``cornerSubPix`` on the chessboard
+saddle points), chessboards by ``findChessboardCornersSB`` (sub-pixel by construction) or, with
+``method="classic"``, by ``findChessboardCorners`` + ``cornerSubPix`` (11 × 11 window, as OpenCV's
+calibration sample does), circle centres by ``findCirclesGrid``'s blob centroids.
+
+Pixel convention: OpenCV's and facegeo's — integer coordinates are pixel centres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from facegeo.checks import as_array, check_choice, check_positive
+from facegeo.errors import InputError
+
+__all__ = [
+    "BoardDetection",
+    "ChessboardSpec",
+    "CircleGridSpec",
+    "detect_charuco",
+    "detect_chessboard",
+    "detect_circle_grid",
+    "detect_boards",
+    "usable_detections",
+    "detection_report",
+]
+
+#: Fewest corners a view needs to constrain a pose and contribute to intrinsics.
+MIN_CORNERS_PER_VIEW = 6
+
+
+@dataclass(frozen=True)
+class ChessboardSpec:
+    """A plain chessboard: ``cols × rows`` inner corners, ``square_size`` metres apart.
+
+    Board frame: origin at the first detected corner, x along a row (``cols`` direction), y along
+    the columns, z = 0 on the board (OpenCV's calibration sample convention).
+    """
+
+    cols: int
+    rows: int
+    square_size: float
+
+    def __post_init__(self):
+        for name in ("cols", "rows"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
+                raise InputError(f"{name}: expected an integer >= 2 inner corners, got {v!r}")
+        check_positive(self.square_size, "square_size")
+
+    def object_points(self) -> np.ndarray:
+        """``(cols·rows, 3)`` float64, metres, board frame, x fastest (OpenCV's corner order)."""
+        k = np.arange(self.cols * self.rows)
+        s = float(self.square_size)
+        return np.stack([(k % self.cols) * s, (k // self.cols) * s, np.zeros(k.size)], -1)
+
+
+@dataclass(frozen=True)
+class CircleGridSpec:
+    """A circle grid of ``cols × rows`` circles, centres ``spacing`` metres apart.
+
+    ``asymmetric=True`` is OpenCV's asymmetric grid (odd rows shifted by half a spacing; the
+    object points follow OpenCV's sample: ``((2 j + i % 2)·s, i·s, 0)`` with ``spacing = 2 s``
+    between circles of one row).
+    """
+
+    cols: int
+    rows: int
+    spacing: float
+    asymmetric: bool = False
+
+    def __post_init__(self):
+        for name in ("cols", "rows"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
+                raise InputError(f"{name}: expected an integer >= 2 circles, got {v!r}")
+        check_positive(self.spacing, "spacing")
+
+    def object_points(self) -> np.ndarray:
+        """``(cols·rows, 3)`` float64, metres, board frame, in ``findCirclesGrid``'s order."""
+        i, j = np.divmod(np.arange(self.cols * self.rows), self.cols)  # i row, j column
+        s = float(self.spacing)
+        if self.asymmetric:
+            x = (2 * j + i % 2) * (s / 2.0)
+            y = i * (s / 2.0)
+        else:
+            x, y = j * s, i * s
+        return np.stack([x, y, np.zeros(x.size)], -1).astype(np.float64)
+
+
+@dataclass
+class BoardDetection:
+    """What one image showed of a board.
+
+    Attributes
+    ----------
+    name : str
+        The image's label (file name or index).
+    image_size : (int, int)
+        ``(width, height)``, pixels.
+    found : bool
+        Enough corners were found to use the view (≥ :data:`MIN_CORNERS_PER_VIEW`).
+    reason : str
+        Empty when found; otherwise why the view is skipped.
+    ids : (N,) int64
+        Corner ids on the board (ChArUco ids; running index for chessboards and grids).
+    p_board : (N, 3) float64, metres, board frame
+        Object points of the detected corners.
+    q : (N, 2) float64, pixels
+        Sub-pixel image positions (x = column, y = row; integers are pixel centres).
+    """
+
+    name: str
+    image_size: tuple[int, int]
+    found: bool
+    reason: str = ""
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    p_board: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    q: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    @property
+    def n_corners(self) -> int:
+        """Number of corners detected."""
+        return int(self.q.shape[0])
+
+
+def _gray8(image, name: str) -> np.ndarray:
+    """An 8-bit single-channel view of ``image`` (uint8/uint16/float in [0, 1]; RGB → luma)."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        a = a[..., :3]
+        if a.dtype == np.uint8:
+            a = cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_RGB2GRAY)
+        else:
+            a = a.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    elif a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim != 2:
+        raise InputError(f"{name}: expected an (H, W) or (H, W, 3) image, got shape {a.shape}")
+    if a.dtype == np.uint8:
+        return np.ascontiguousarray(a)
+    if a.dtype == np.uint16:
+        return (a >> 8).astype(np.uint8)
+    if a.dtype.kind == "f":
+        f = np.nan_to_num(a.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+        return np.clip(np.rint(f * 255.0), 0, 255).astype(np.uint8)
+    raise InputError(f"{name}: unsupported image dtype {a.dtype} (use uint8, uint16 or float)")
+
+
+def _result(name, size, ids, p_board, q, *, min_corners: int, what: str) -> BoardDetection:
+    n = 0 if q is None else len(q)
+    if n < min_corners:
+        return BoardDetection(
+            name, size, False, f"{what}: {n} corner(s) found, need at least {min_corners}"
+        )
+    return BoardDetection(
+        name, size, True, "", np.asarray(ids, np.int64), np.asarray(p_board, np.float64),
+        np.asarray(q, np.float64).reshape(-1, 2),
+    )
+
+
+def detect_charuco(image, board, *, name: str = "image", legacy: bool = False,
+                   min_corners: int = MIN_CORNERS_PER_VIEW) -> BoardDetection:
+    """Detect a ChArUco board with OpenCV ≥ 4.7's ``cv2.aruco.CharucoDetector``.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) array, uint8, uint16 or float in [0, 1]
+        RGB channel order for colour images.
+    board : facegeo.geometry.board.CharucoBoard
+    name : str, optional
+        Label used in the report.
+    legacy : bool, optional
+        ``CharucoBoard.setLegacyPattern(True)``: boards printed by OpenCV < 4.6 with an even
+        number of rows start with a white square.
+    min_corners : int, optional
+
+    Returns
+    -------
+    BoardDetection
+        ``p_board`` from ``board.chessboard_corners()[ids]`` (float64, exact, not OpenCV's
+        float32 copy).
+    """
+    g = _gray8(image, name)
+    size = (g.shape[1], g.shape[0])
+    cvb = board.to_cv2()
+    if legacy:
+        cvb.setLegacyPattern(True)
+    det = cv2.aruco.CharucoDetector(cvb)
+    corners, ids, marker_corners, marker_ids = det.detectBoard(g)
+    if marker_ids is None or len(marker_ids) == 0:
+        return BoardDetection(
+            name, size, False,
+            f"no ArUco markers of {board.dictionary} found (wrong dictionary or board, or no "
+            "board in view)",
+        )
+    if ids is None or corners is None:
+        return BoardDetection(
+            name, size, False,
+            f"{len(marker_ids)} marker(s) found but no ChArUco corners interpolated (check "
+            "squares_x/squares_y and legacy pattern)",
+        )
+    ids = ids.ravel().astype(np.int64)
+    if ids.max() >= board.n_corners:
+        return BoardDetection(name, size, False, "corner ids exceed the board definition")
+    p_board = board.chessboard_corners()[ids]
+    return _result(name, size, ids, p_board, corners.reshape(-1, 2), min_corners=min_corners,
+                   what="ChArUco")
+
+
+def detect_chessboard(image, spec: ChessboardSpec, *, name: str = "image",
+                      method: str = "sb") -> BoardDetection:
+    """Detect a plain chessboard (all corners or none).
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) array
+    spec : ChessboardSpec
+    method : {"sb", "classic"}
+        ``"sb"``: ``cv2.findChessboardCornersSB`` (sector-based, sub-pixel accurate, with
+        ``CALIB_CB_EXHAUSTIVE | CALIB_CB_ACCURACY``); ``"classic"``: ``findChessboardCorners``
+        then ``cornerSubPix`` with an 11 × 11 window (OpenCV's calibration sample).
+
+    Returns
+    -------
+    BoardDetection
+    """
+    check_choice(method, "method", ("sb", "classic"))
+    g = _gray8(image, name)
+    size = (g.shape[1], g.shape[0])
+    pattern = (int(spec.cols), int(spec.rows))
+    if method == "sb":
+        ok, corners = cv2.findChessboardCornersSB(
+            g, pattern, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+        )
+    else:
+        ok, corners = cv2.findChessboardCorners(
+            g, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        )
+        if ok:
+            crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+            corners = cv2.cornerSubPix(g, corners, (11, 11), (-1, -1), crit)
+    if not ok or corners is None:
+        return BoardDetection(
+            name, size, False,
+            f"no {spec.cols}×{spec.rows} chessboard found (check the inner-corner counts)",
+        )
+    n = spec.cols * spec.rows
+    return _result(name, size, np.arange(n), spec.object_points(), corners.reshape(-1, 2),
+                   min_corners=1, what="chessboard")
+
+
+def detect_circle_grid(image, spec: CircleGridSpec, *, name: str = "image") -> BoardDetection:
+    """Detect a circle grid with ``cv2.findCirclesGrid`` (dark circles on a light board).
+
+    Returns
+    -------
+    BoardDetection
+    """
+    g = _gray8(image, name)
+    size = (g.shape[1], g.shape[0])
+    flags = cv2.CALIB_CB_ASYMMETRIC_GRID if spec.asymmetric else cv2.CALIB_CB_SYMMETRIC_GRID
+    ok, centres = cv2.findCirclesGrid(g, (int(spec.cols), int(spec.rows)), flags=flags)
+    if not ok or centres is None:
+        kind = "asymmetric" if spec.asymmetric else "symmetric"
+        return BoardDetection(name, size, False,
+                              f"no {spec.cols}×{spec.rows} {kind} circle grid found")
+    n = spec.cols * spec.rows
+    return _result(name, size, np.arange(n), spec.object_points(), centres.reshape(-1, 2),
+                   min_corners=1, what="circle grid")
+
+
+def detect_boards(images, board, *, names=None, legacy: bool = False,
+                  method: str = "sb") -> list[BoardDetection]:
+    """Detect a board in every image of one camera.
+
+    Parameters
+    ----------
+    images : sequence of arrays
+        One camera's views, all the same size.
+    board : CharucoBoard, ChessboardSpec or CircleGridSpec
+    names : sequence of str, optional
+        Labels for the report (default ``"view_000"``…).
+    legacy, method
+        Passed to :func:`detect_charuco` / :func:`detect_chessboard`.
+
+    Returns
+    -------
+    list of BoardDetection
+        One per image, in order (found or not).
+
+    Raises
+    ------
+    InputError
+        Images of different sizes (the message names the first odd one).
+    """
+    images = list(images)
+    names = [f"view_{i:03d}" for i in range(len(images))] if names is None else list(names)
+    if len(names) != len(images):
+        raise InputError(f"names: {len(names)} labels for {len(images)} images")
+    out: list[BoardDetection] = []
+    size0 = None
+    for img, nm in zip(images, names):
+        shape = np.shape(img)
+        size = (shape[1], shape[0]) if len(shape) >= 2 else None
+        if size0 is None:
+            size0 = size
+        elif size != size0:
+            raise InputError(
+                f"images: {nm} is {size[0]}×{size[1]} px but {names[0]} is {size0[0]}×"
+                f"{size0[1]} px; one camera's calibration views must share one image size"
+            )
+        if isinstance(board, ChessboardSpec):
+            out.append(detect_chessboard(img, board, name=nm, method=method))
+        elif isinstance(board, CircleGridSpec):
+            out.append(detect_circle_grid(img, board, name=nm))
+        elif hasattr(board, "to_cv2") and hasattr(board, "chessboard_corners"):
+            out.append(detect_charuco(img, board, name=nm, legacy=legacy))
+        else:
+            raise InputError(
+                "board: expected a CharucoBoard, ChessboardSpec or CircleGridSpec, got "
+                f"{type(board).__name__}"
+            )
+    return out
+
+
+def detection_report(detections) -> list[dict]:
+    """The per-image report: ``[{"name", "found", "corners", "reason"}, ...]`` (JSON-ready)."""
+    return [
+        {"name": d.name, "found": bool(d.found), "corners": d.n_corners, "reason": d.reason}
+        for d in detections
+    ]
+
+
+def usable_detections(detections, *, min_views: int = 3, what: str = "camera"):
+    """The found views, or an error listing why each image was skipped.
+
+    Returns
+    -------
+    list of BoardDetection
+        Only the found ones, in order.
+
+    Raises
+    ------
+    InputError
+        Fewer than ``min_views`` views have a board; the message lists every skipped image and
+        its reason.
+    """
+    found = [d for d in detections if d.found]
+    if len(found) < min_views:
+        skipped = "; ".join(f"{d.name}: {d.reason}" for d in detections if not d.found)
+        raise InputError(
+            f"{what}: only {len(found)} of {len(detections)} images have a usable board, need "
+            f"at least {min_views}" + (f" (skipped — {skipped})" if skipped else "")
+        )
+    return found
+
+
+def as_corner_lists(p_board_list, q_list):
+    """Validate corner lists: per view ``(N_i, 3)`` object points and ``(N_i, 2)`` pixels."""
+    if len(p_board_list) != len(q_list):
+        raise InputError(
+            f"object_points/image_points: {len(p_board_list)} views of object points but "
+            f"{len(q_list)} of image points"
+        )
+    P, Q = [], []
+    for i, (p, q) in enumerate(zip(p_board_list, q_list)):
+        p = as_array(p, f"object_points[{i}]", shape=(None, 3))
+        q = as_array(q, f"image_points[{i}]", shape=(None, 2))
+        if p.shape[0] != q.shape[0]:
+            raise InputError(
+                f"view {i}: {p.shape[0]} object points but {q.shape[0]} image points"
+            )
+        P.append(p)
+        Q.append(q)
+    return P, Q

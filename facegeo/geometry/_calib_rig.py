@@ -1,0 +1,306 @@
+"""Rig extrinsics by bundle adjustment, and cross-validation of a camera calibration.
+
+Rig: every camera ``c`` has a pose ``T_c_ref`` relative to a reference camera (identity for the
+reference) and every board view ``v`` a pose ``T_ref_board_v``; the residual of a corner seen by
+camera c in view v is ``project_c(T_c_ref · T_ref_board_v · p_board) − q``. All poses (and, if
+asked, every camera's intrinsics) are refined jointly by ``scipy.optimize.least_squares`` with a
+block-sparse Jacobian, so N cameras with different view counts and views seen by only some
+cameras work alike. Initial poses come from ``solvePnP`` per observation, chained through views
+seen by two cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from facegeo.checks import check_choice, check_positive
+from facegeo.errors import InputError
+from facegeo.frames import Pose
+from facegeo.geometry._calib_solve import (
+    _least_squares, _Model, calibrate_camera, grouped_jacobian, project_points,
+    rotate_rvec,
+)
+from facegeo.geometry.camera import Camera
+
+__all__ = ["RigCalibration", "calibrate_rig", "cross_validate"]
+
+
+@dataclass
+class RigCalibration:
+    """The result of :func:`calibrate_rig`.
+
+    Attributes
+    ----------
+    cameras : list of Camera
+        Refined cameras; ``T_cam_world`` in the chosen world frame.
+    T_world_board : dict
+        View id → board pose ``T_world_board`` (metres).
+    rms_px : dict
+        Camera name → RMS corner residual ``sqrt(mean ‖r‖²)``, pixels.
+    views_used : dict
+        Camera name → number of board views it contributed.
+    residuals : dict
+        Camera name → ``(N, 2)`` float64 residuals (pixels) and ``(N, 2)`` observed pixels, as
+        ``(r, q)``.
+    reference : str
+        The reference camera.
+    """
+
+    cameras: list
+    T_world_board: dict
+    rms_px: dict
+    views_used: dict
+    residuals: dict
+    reference: str
+
+    def camera(self, name: str) -> Camera:
+        """The refined camera called ``name``."""
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise InputError(f"camera: no camera named {name!r}")
+
+
+def _pose6(T: Pose) -> np.ndarray:
+    return np.concatenate([T.rvec, T.t])
+
+
+def _pose(x6) -> Pose:
+    return Pose.from_rvec_tvec(x6[:3], x6[3:])
+
+
+def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = None,
+                  refine_intrinsics: bool = True, loss: str = "linear", f_scale: float = 1.0,
+                  world: str | tuple = "reference") -> RigCalibration:
+    """Bundle-adjust a multi-camera rig over camera and board poses jointly.
+
+    Parameters
+    ----------
+    observations : dict
+        ``{camera_name: {view_id: (p_board (N, 3) metres, q (N, 2) pixels)}}``; a view id names
+        one physical board pose shared by every camera that saw it.
+    cameras : dict
+        ``{camera_name: Camera}`` initial intrinsics (each keeps its distortion length:
+        0, 4, 5 or 8 coefficients), e.g. from :func:`calibrate_camera`.
+    reference : str, optional
+        The camera whose frame is the rig frame (default: the first camera).
+    refine_intrinsics : bool
+        Refine every camera's intrinsics with the poses (else hold them fixed).
+    loss, f_scale
+        Robust loss of ``scipy.optimize.least_squares`` (see :func:`calibrate_camera`).
+    world : "reference", ("board", view_id) or Pose
+        The world frame: the reference camera's frame, the board frame of one view, or an
+        explicit ``T_ref_world`` (an alignment transform).
+
+    Returns
+    -------
+    RigCalibration
+
+    Raises
+    ------
+    InputError
+        A camera without observations or intrinsics, a camera sharing no view (directly or
+        through other cameras) with the reference, an unknown world view.
+    """
+    check_choice(loss, "loss", ("linear", "soft_l1", "huber", "cauchy", "arctan"))
+    check_positive(f_scale, "f_scale")
+    names = list(cameras)
+    if not names:
+        raise InputError("cameras: at least one camera is needed")
+    for n in names:
+        if n not in observations or not observations[n]:
+            raise InputError(f"observations: camera {n!r} has no board views")
+    ref = names[0] if reference is None else reference
+    if ref not in cameras:
+        raise InputError(f"reference: no camera {ref!r}; cameras: {', '.join(names)}")
+    names = [ref] + [n for n in names if n != ref]
+    # ---- per-observation PnP
+    T_cb = {}
+    for n in names:
+        cam = cameras[n]
+        for v, (p, q) in observations[n].items():
+            p = np.asarray(p, np.float64)
+            q = np.asarray(q, np.float64)
+            ok, rv, tv = cv2.solvePnP(p, q, cam.K, cam.dist)
+            if not ok:
+                raise InputError(f"observations[{n!r}][{v!r}]: no pose for this view")
+            T_cb[(n, v)] = Pose.from_rvec_tvec(rv, tv)
+    # ---- chain camera poses T_c_ref through shared views (BFS from the reference)
+    T_c_ref = {ref: Pose.identity()}
+    T_ref_b = {v: T for (n, v), T in T_cb.items() if n == ref}
+    changed = True
+    while changed:
+        changed = False
+        for n in names:
+            if n in T_c_ref:
+                continue
+            shared = [v for v in observations[n] if v in T_ref_b]
+            if shared:
+                v = shared[0]
+                T_c_ref[n] = T_cb[(n, v)] @ T_ref_b[v].inverse()
+                changed = True
+        for (n, v), T in T_cb.items():
+            if n in T_c_ref and v not in T_ref_b:
+                T_ref_b[v] = T_c_ref[n].inverse() @ T
+                changed = True
+    missing = [n for n in names if n not in T_c_ref]
+    if missing:
+        raise InputError(
+            f"observations: camera(s) {', '.join(missing)} share no board view with {ref!r} "
+            "(directly or through other cameras); the rig cannot be connected"
+        )
+    views = sorted(T_ref_b, key=str)
+    vpos = {v: i for i, v in enumerate(views)}
+    mdls = [_Model({0: "pinhole", 4: "opencv4", 5: "opencv5", 8: "rational8"}[
+        cameras[n].dist.size], None) for n in names]
+    off_i = np.cumsum([0] + [m.n for m in mdls]) if refine_intrinsics else np.zeros(
+        len(names) + 1, int)
+    n_intr = int(off_i[-1])
+    C, Vn = len(names), len(views)
+    # observation arrays
+    cam_idx, view_idx, Pl, Ql = [], [], [], []
+    for ci, n in enumerate(names):
+        for v, (p, q) in observations[n].items():
+            p = np.asarray(p, np.float64)
+            cam_idx.append(np.full(len(p), ci))
+            view_idx.append(np.full(len(p), vpos[v]))
+            Pl.append(p)
+            Ql.append(np.asarray(q, np.float64))
+    cam_idx = np.concatenate(cam_idx)
+    view_idx = np.concatenate(view_idx)
+    p_all = np.concatenate(Pl)
+    q_all = np.concatenate(Ql)
+    theta0 = [m.pack(cameras[n].K, cameras[n].dist) for m, n in zip(mdls, names)]
+    fixed = [
+        (cameras[n].fx, cameras[n].fy, cameras[n].cx, cameras[n].cy,
+         np.pad(cameras[n].dist, (0, 8 - cameras[n].dist.size))) for n in names
+    ]
+    parts = [np.concatenate(theta0)] if refine_intrinsics else []
+    parts += [_pose6(T_c_ref[n]) for n in names[1:]]
+    parts += [_pose6(T_ref_b[v]) for v in views]
+    x0 = np.concatenate(parts)
+    n_cam = 6 * (C - 1)
+
+    def unpack_intr(x):
+        fx = np.empty(C)
+        fy, cx, cy = np.empty(C), np.empty(C), np.empty(C)
+        d8 = np.empty((C, 8))
+        for ci, m in enumerate(mdls):
+            if refine_intrinsics:
+                fx[ci], fy[ci], cx[ci], cy[ci], d8[ci] = m.unpack(x[off_i[ci]: off_i[ci + 1]])
+            else:
+                fx[ci], fy[ci], cx[ci], cy[ci], d8[ci] = fixed[ci]
+        return fx, fy, cx, cy, d8
+
+    def fun(x):
+        fx, fy, cx, cy, d8 = unpack_intr(x)
+        cp = np.zeros((C, 6))
+        cp[1:] = x[n_intr: n_intr + n_cam].reshape(C - 1, 6)
+        bp = x[n_intr + n_cam:].reshape(Vn, 6)[view_idx]
+        p_ref = rotate_rvec(bp[:, :3], p_all) + bp[:, 3:]
+        c = cp[cam_idx]
+        p_cam = rotate_rvec(c[:, :3], p_ref) + c[:, 3:]
+        q = project_points(p_cam, fx[cam_idx], fy[cam_idx], cx[cam_idx], cy[cam_idx],
+                           d8[cam_idx])
+        return (q - q_all).ravel()
+
+    # dense columns: intrinsics and camera poses (few); blocks: board poses
+    jac = grouped_jacobian(fun, n_intr + n_cam, view_idx, Vn, 6)
+    res = _least_squares(fun, jac, x0, loss, f_scale)
+    x = res.x
+    r = fun(x).reshape(-1, 2)
+    fx, fy, cx, cy, d8 = unpack_intr(x)
+    cp = np.zeros((C, 6))
+    cp[1:] = x[n_intr: n_intr + n_cam].reshape(C - 1, 6)
+    bp = x[n_intr + n_cam:].reshape(Vn, 6)
+    # world frame
+    if isinstance(world, Pose):
+        T_ref_world = world
+    elif world == "reference":
+        T_ref_world = Pose.identity()
+    elif isinstance(world, tuple) and len(world) == 2 and world[0] == "board":
+        if world[1] not in vpos:
+            raise InputError(f"world: no board view {world[1]!r}; views: {views}")
+        T_ref_world = _pose(bp[vpos[world[1]]])  # T_ref_board with board := world
+    else:
+        raise InputError(f"world: expected 'reference', ('board', view_id) or a Pose, got "
+                         f"{world!r}")
+    T_world_ref = T_ref_world.inverse()
+    out_cams, rms, used, resid = [], {}, {}, {}
+    for ci, n in enumerate(names):
+        K = np.array([[fx[ci], 0, cx[ci]], [0, fy[ci], cy[ci]], [0, 0, 1.0]])
+        nd = mdls[ci].nd
+        T_cw = _pose(cp[ci]) @ T_ref_world
+        out_cams.append(Camera(n, cameras[n].width, cameras[n].height, K, d8[ci][:nd].copy(),
+                               T_cw))
+        sel = cam_idx == ci
+        rms[n] = float(np.sqrt(np.mean((r[sel] ** 2).sum(-1))))
+        used[n] = len(observations[n])
+        resid[n] = (r[sel], q_all[sel])
+    T_wb = {v: T_world_ref @ _pose(bp[i]) for v, i in vpos.items()}
+    # keep the caller's camera order
+    order = list(cameras)
+    out_cams.sort(key=lambda c: order.index(c.name))
+    return RigCalibration(out_cams, T_wb, rms, used, resid, ref)
+
+
+def cross_validate(object_points, image_points, image_size, *, grid=(16, 12), seed=0,
+                   **kwargs) -> dict:
+    """mrcal-style cross-validation: two solves on disjoint halves of the views.
+
+    The views are shuffled (``seed``) and split in two halves; each half is calibrated with
+    :func:`calibrate_camera` (``kwargs`` passed on). On a grid of pixels, the ray of solve A is
+    projected by solve B after the best rotation between the two camera frames (Kabsch on the
+    rays: a rotation of the whole camera is not an intrinsic difference, mrcal's "implied
+    transform" restricted to rotation); the difference is compared with the predicted
+    ``sqrt(σ_A² + σ_B²)`` from the two solves' projection uncertainties.
+
+    Returns
+    -------
+    dict
+        ``diff_rms_px``, ``diff_max_px`` (over the grid), ``predicted_rms_px`` and the two
+        :class:`CameraCalibration` results as ``a`` and ``b``.
+
+    Raises
+    ------
+    InputError
+        Fewer than 2 × ``min_views`` views.
+    """
+    from facegeo.geometry._calib_detect import as_corner_lists
+
+    P, Q = as_corner_lists(object_points, image_points)
+    min_views = int(kwargs.get("min_views", 3))
+    if len(P) < 2 * min_views:
+        raise InputError(f"cross_validate: {len(P)} views; need at least {2 * min_views} "
+                         "(two disjoint halves)")
+    perm = np.random.default_rng(seed).permutation(len(P))
+    ia, ib = np.sort(perm[: len(P) // 2]), np.sort(perm[len(P) // 2:])
+    a = calibrate_camera([P[i] for i in ia], [Q[i] for i in ia], image_size, **kwargs)
+    b = calibrate_camera([P[i] for i in ib], [Q[i] for i in ib], image_size, **kwargs)
+    cam = a.camera
+    xs = np.linspace(0, cam.width - 1, int(grid[0]))
+    ys = np.linspace(0, cam.height - 1, int(grid[1]))
+    q = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    va, ok_a = a.camera.unproject(q, return_valid=True)
+    vb, ok_b = b.camera.unproject(q, return_valid=True)
+    ok = ok_a & ok_b  # pixels whose ray exists in both solves
+    if ok.sum() < 3:
+        raise InputError("cross_validate: the two solves share fewer than 3 valid grid pixels")
+    q = q[ok]
+    A = va[ok] / np.linalg.norm(va[ok], axis=-1, keepdims=True)
+    B = vb[ok] / np.linalg.norm(vb[ok], axis=-1, keepdims=True)
+    U, _, Vt = np.linalg.svd(B.T @ A)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R_ba = U @ D @ Vt
+    qb, _ = b.camera.project_cam(A @ R_ba.T)
+    d = np.linalg.norm(qb - q, axis=-1)
+    ua = a.projection_uncertainty(q=q)
+    ub = b.projection_uncertainty(q=q)
+    pred = np.sqrt(ua["sigma_px"] ** 2 + ub["sigma_px"] ** 2)
+    return {"diff_rms_px": float(np.sqrt(np.mean(d**2))), "diff_max_px": float(d.max()),
+            "predicted_rms_px": float(np.sqrt(np.mean(pred**2))), "a": a, "b": b}
+
+

@@ -1,0 +1,336 @@
+"""The calibrate stage: cameras and rig from a scan's ChArUco views (issue 9).
+
+``run_calibrate(scan_dir, out_dir)`` reads every camera's ``calib/<camera>/`` views, detects the
+board (:func:`facegeo.geometry.calibration.detect_boards`), calibrates each camera
+(:func:`~facegeo.geometry.calibration.calibrate_camera`), cross-validates it, bundle-adjusts the
+rig (:func:`~facegeo.geometry.calibration.calibrate_rig`) and writes
+
+* ``rig.json`` — the scan's rig with the calibrated cameras (``Rig`` serialisation); the world
+  frame is the scan's: the calibrated rig is aligned to the nominal ``rig.json`` by the rigid
+  transform averaged over the cameras; the projector and the light stage are copied unchanged
+  (projector calibration is not built yet);
+* ``<camera>.yml`` — OpenCV FileStorage: ``camera_matrix``, ``distortion_coefficients``,
+  ``image_width``, ``image_height``, ``avg_reprojection_error``, ``per_view_reprojection_errors``;
+* ``residuals_<camera>.png`` — residual vectors over the image (×``RESIDUAL_GAIN``) and a
+  histogram of their lengths, drawn with OpenCV (matplotlib is not a dependency);
+* ``detections.json`` — the per-image detection report;
+* with ``calib/projector/`` views: the projector (Moreno & Taubin local homographies, then the
+  joint bundle adjustment), its YAML and residual plot; otherwise ``metrics["projector"]``
+  says why it was not calibrated and ``rig.json`` keeps the nominal projector;
+* ``metrics.json`` — ``{"calibrate": metrics}`` (the dict returned).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from facegeo.errors import InputError
+from facegeo.frames import Pose
+from facegeo.fsutil import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+__all__ = ["run_calibrate", "RESIDUAL_GAIN"]
+
+#: Residual vectors are drawn this many times longer than they are.
+RESIDUAL_GAIN = 100.0
+
+
+def _average_pose(poses: list[Pose]) -> Pose:
+    """Chordal mean of rotations (SVD projection of the summed matrices), mean translation."""
+    M = sum(p.R for p in poses)
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return Pose(R, np.mean([p.t for p in poses], axis=0))
+
+
+def _align(cameras, reference_cameras) -> Pose:
+    """``T_ref_world``: the rigid transform taking the rig frame to the frame of
+    ``reference_cameras`` (same names), averaged over the cameras."""
+    ref = {c.name: c for c in reference_cameras}
+    # T_c_world(ref) = T_c_rig @ T_rig_world  →  T_rig_world = T_c_rig⁻¹ @ T_c_world(ref)
+    return _average_pose([c.T_cam_world.inverse() @ ref[c.name].T_cam_world for c in cameras
+                          if c.name in ref])
+
+
+def _rot_deg(Ra, Rb) -> float:
+    c = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def _write_yaml(path: Path, cam, rms: float, per_view) -> None:
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", int(cam.width))
+    fs.write("image_height", int(cam.height))
+    fs.write("camera_matrix", np.asarray(cam.K, np.float64))
+    fs.write("distortion_coefficients", np.asarray(cam.dist, np.float64).reshape(-1, 1))
+    fs.write("avg_reprojection_error", float(rms))
+    fs.write("per_view_reprojection_errors", np.asarray(per_view, np.float64).reshape(-1, 1))
+    fs.release()
+
+
+def _residual_plot(path: Path, size, r: np.ndarray, q: np.ndarray, title: str) -> None:
+    """Residual vectors over the image (left) and a histogram of ‖r‖ (right), as a PNG."""
+    W, H = size
+    s = min(1.0, 640.0 / max(W, H))
+    w, h = max(int(W * s), 1), max(int(H * s), 1)
+    img = np.full((h + 40, w + 320, 3), 255, np.uint8)
+    cv2.rectangle(img, (0, 40), (w - 1, h + 39), (0, 0, 0), 1)
+    for (x, y), (dx, dy) in zip(q, r):
+        p0 = (int(round(x * s)), int(round(y * s)) + 40)
+        p1 = (int(round((x + RESIDUAL_GAIN * dx) * s)), int(round((y + RESIDUAL_GAIN * dy) * s))
+              + 40)
+        cv2.line(img, p0, p1, (200, 0, 0), 1, cv2.LINE_AA)
+        cv2.circle(img, p0, 1, (0, 0, 0), -1)
+    mag = np.linalg.norm(r, axis=-1)
+    hist, edges = np.histogram(mag, bins=30, range=(0.0, max(float(mag.max()), 1e-9)))
+    x0, y0, bw, bh = w + 20, 60, 280, h - 40
+    top = max(int(hist.max()), 1)
+    for i, c in enumerate(hist):
+        x = x0 + int(i * bw / len(hist))
+        cv2.rectangle(img, (x, y0 + bh - int(bh * c / top)), (x + int(bw / len(hist)) - 1,
+                                                                 y0 + bh), (0, 0, 200), -1)
+    cv2.line(img, (x0, y0 + bh), (x0 + bw, y0 + bh), (0, 0, 0), 1)
+    cv2.putText(img, f"|r| px: 0 .. {edges[-1]:.3g}", (x0, y0 + bh + 18),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, f"{title}  RMS {np.sqrt(np.mean(mag ** 2)):.3f} px  (vectors x"
+                f"{RESIDUAL_GAIN:g})", (5, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1,
+                cv2.LINE_AA)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), img[..., ::-1]):
+        raise InputError(f"{path}: could not write the residual plot")
+
+
+def _projector_observations(scan, board, legacy):
+    """Board corners in projector pixels for every projector-calibration view (Moreno & Taubin
+    local homographies, averaged over the cameras that saw a corner), and the cameras' own
+    corners of those views (so the bundle adjustment ties the projector to the cameras)."""
+    from facegeo.capture.imageio import read_image
+    from facegeo.geometry.calibration import detect_charuco, projector_corners
+    from facegeo.geometry.structured_light import PatternSpec, decode_gray
+
+    spec = PatternSpec.from_dict(scan.sl_patterns)
+    resp = scan.response("calib.projector")
+    n_views = scan.manifest["calib"]["projector"]["views"]
+    proj_obs, cam_obs = {}, {n: {} for n in scan.camera_names}
+    skipped, n_corners = [], 0
+    for v in range(n_views):
+        acc: dict[int, list] = {}
+        for name in scan.camera_names:
+            paths = scan.projector_view_paths(name, v)
+            raw = {k: read_image(p) for k, p in paths.items()}
+            lin = {k: resp.linearize(a) for k, a in raw.items()}
+            lin = {k: a.mean(axis=-1) if a.ndim == 3 else a for k, a in lin.items()}
+            white = raw["white"] if "white" in raw else raw[next(iter(raw))]
+            det = detect_charuco(white, board, name=f"projector view {v} {name}", legacy=legacy)
+            if not det.found:
+                skipped.append(f"{det.name}: {det.reason}")
+                continue
+            dec = decode_gray(lin, spec)
+            qp, ok, _ = projector_corners(det.q, dec.q_proj, dec.valid)
+            if ok.sum() < 6:
+                skipped.append(f"projector view {v} {name}: only {int(ok.sum())} corners "
+                               "decodable (need 6)")
+                continue
+            cam_obs[name][f"p{v}"] = (det.p_board, det.q)
+            for i, q in zip(det.ids[ok], qp[ok]):
+                acc.setdefault(int(i), []).append(q)
+        if len(acc) >= 6:
+            ids = np.array(sorted(acc))
+            proj_obs[f"p{v}"] = (board.chessboard_corners()[ids],
+                                 np.array([np.mean(acc[i], axis=0) for i in ids]))
+            n_corners += len(ids)
+    if len(proj_obs) < 3:
+        raise InputError(
+            f"projector: {len(proj_obs)} of {n_views} projector views have ≥ 6 decodable "
+            f"corners, need 3" + (f" (skipped — {'; '.join(skipped)})" if skipped else ""))
+    return proj_obs, cam_obs, {"views_detected": len(proj_obs), "corners": n_corners,
+                               "skipped": skipped}
+
+
+def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: bool = False,
+                  loss: str = "linear", reference: str | None = None,
+                  cross_validation: bool = True, progress=None) -> dict:
+    """Calibrate a scan's cameras and rig from its ChArUco ``calib/`` views.
+
+    Parameters
+    ----------
+    scan_dir : path-like
+        A scan directory (:func:`facegeo.capture.scan.load_scan`).
+    out_dir : path-like, optional
+        Where to write the products (default ``<scan>/out/calibrate``).
+    model : {"pinhole", "opencv4", "opencv5", "rational8"}
+        Distortion model of every camera.
+    legacy : bool
+        Boards printed by OpenCV < 4.6 (``setLegacyPattern``).
+    loss : str
+        Robust loss of the solves (``"linear"``, ``"soft_l1"``, ``"huber"``, ``"cauchy"``).
+    reference : str, optional
+        The camera the bundle adjustment holds fixed (default: the rig's first camera).
+    cross_validation : bool
+        Run the two-halves check per camera (needs ≥ 6 usable views).
+    progress : callable(str), optional
+        Called with a short message per step.
+
+    Returns
+    -------
+    dict
+        ``{"cameras": {name: {reprojection_rms_px, views_used, views_detected,
+        cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
+        std_px: {fx, fy, cx, cy}[, focal_rel_error, principal_point_error_px,
+        rotation_error_deg, translation_error_mm]}}, "projector": {views_used,
+        reprojection_rms_px, separate_rms_px[, focal_rel_error, focal_rel_error_without_joint,
+        ...]} or {"error": why}, "seconds"}``. View k of every camera is taken to be the same
+        board pose (the scan format's ``calib`` views are simultaneous). Ground-truth errors (synthetic scans) compare with
+        ``ground_truth/rig.json`` after the best rigid alignment of the whole rig (the world
+        frame is a gauge choice); rotation/translation errors are those of each camera pose.
+
+    Raises
+    ------
+    InputError, ScanFormatError
+        No calibration views in the scan, too few usable views in a camera (the message lists
+        every skipped image and why).
+    """
+    from facegeo.capture.imageio import read_image
+    from facegeo.capture.scan import load_scan
+    from facegeo.geometry.calibration import (
+        calibrate_camera, calibrate_rig, cross_validate, detect_boards, detection_report,
+        usable_detections,
+    )
+    from facegeo.geometry.rig import Rig
+
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    scan = load_scan(scan_dir)
+    if not scan.has("calib"):
+        raise InputError(f"{scan.root}: the scan has no [calib] section (no board views)")
+    out = Path(out_dir) if out_dir is not None else scan.out_dir / "calibrate"
+    out.mkdir(parents=True, exist_ok=True)
+    board = scan.board
+    nominal = scan.rig
+    metrics: dict = {"cameras": {}, "model": model}
+    report, obs, calibs = {}, {}, {}
+    for name in scan.camera_names:
+        say(f"detect {name}")
+        paths = scan.calib_view_paths(name)
+        dets = detect_boards([read_image(p) for p in paths], board, names=[p.name for p in paths],
+                             legacy=legacy)
+        report[name] = detection_report(dets)
+        found = usable_detections(dets, what=f"camera {name}")
+        cam0 = nominal.camera(name)
+        if dets[0].image_size != cam0.size:
+            raise InputError(f"camera {name}: views are {dets[0].image_size} px but rig.json says "
+                             f"{cam0.size}")
+        say(f"calibrate {name}")
+        c = calibrate_camera([d.p_board for d in found], [d.q for d in found], cam0.size,
+                             model=model, loss=loss, name=name)
+        calibs[name] = c
+        obs[name] = {d.name: (d.p_board, d.q) for d, u in zip(found, c.views_used) if u}
+        m = {"views_detected": len(found), "views_used": c.n_views_used,
+             "rejected": c.rejected, "camera_rms_px": c.rms_px,
+             "std_px": {k: c.std[k] for k in ("fx", "fy", "cx", "cy")}}
+        u = c.projection_uncertainty()
+        m["projection_uncertainty_rms_px"] = u["rms_px"]
+        m["projection_uncertainty_max_px"] = u["max_px"]
+        if cross_validation and len(found) >= 6:
+            say(f"cross-validate {name}")
+            cv = cross_validate([d.p_board for d in found], [d.q for d in found], cam0.size,
+                                model=model, loss=loss, reject_views=False)
+            m["cross_validation_px"] = cv["diff_rms_px"]
+            m["cross_validation_max_px"] = cv["diff_max_px"]
+            m["cross_validation_predicted_px"] = cv["predicted_rms_px"]
+        else:
+            m["cross_validation_px"] = None
+        metrics["cameras"][name] = m
+    proj_obs, proj_metrics = {}, None
+    if nominal.projector is not None and scan.has("calib.projector"):
+        say("projector corners")
+        try:
+            proj_obs, cam_extra, proj_metrics = _projector_observations(scan, board, legacy)
+            for n, o in cam_extra.items():
+                obs[n].update(o)
+        except InputError as exc:
+            proj_metrics = {"error": str(exc)}
+    init = {n: c.camera for n, c in calibs.items()}
+    proj_name = None
+    if proj_obs:
+        pj = nominal.projector
+        pmodel = {0: "pinhole", 4: "opencv4", 5: "opencv5", 8: "rational8"}[pj.dist.size]
+        try:
+            pc = calibrate_camera([p for p, _ in proj_obs.values()],
+                                  [q for _, q in proj_obs.values()], pj.size, model=pmodel,
+                                  name=pj.name, reject_views=False)
+            proj_name = pj.name
+            init[proj_name] = pc.camera
+            obs[proj_name] = proj_obs
+            proj_metrics.update({"views_used": pc.n_views_used, "separate_rms_px": pc.rms_px})
+        except InputError as exc:
+            proj_metrics["error"] = str(exc)
+    say("bundle-adjust the rig")
+    rig_cal = calibrate_rig(obs, init, reference=reference, loss=loss)
+    T_rig_world = _align([c for c in rig_cal.cameras if c.name != proj_name], nominal.cameras)
+    cams = [c.replace(T_cam_world=c.T_cam_world @ T_rig_world) for c in rig_cal.cameras
+            if c.name != proj_name]
+    projector = nominal.projector
+    if proj_name is not None:
+        pr = rig_cal.camera(proj_name)
+        projector = pr.replace(T_cam_world=pr.T_cam_world @ T_rig_world)
+    rig = Rig(cams, projector, nominal.lights)
+    rig.save(out / "rig.json")
+    truth = None
+    if "rig" in scan.ground_truth_keys:
+        truth = Rig.load(scan.ground_truth_path("rig"))
+    if truth is not None:
+        T_gt = _align([c for c in rig_cal.cameras if c.name != proj_name], truth.cameras)
+    for c in rig_cal.cameras:
+        if c.name == proj_name:
+            continue
+        m = metrics["cameras"][c.name]
+        m["reprojection_rms_px"] = rig_cal.rms_px[c.name]
+        r, q = rig_cal.residuals[c.name]
+        per_view = calibs[c.name].per_view_rms_px
+        _write_yaml(out / f"{c.name}.yml", c, rig_cal.rms_px[c.name],
+                    per_view[np.isfinite(per_view)])
+        _residual_plot(out / f"residuals_{c.name}.png", c.size, r, q, c.name)
+        if truth is not None:
+            t = truth.camera(c.name)
+            T_est = c.T_cam_world @ T_gt
+            m["focal_rel_error"] = float(max(abs(c.fx / t.fx - 1), abs(c.fy / t.fy - 1)))
+            m["principal_point_error_px"] = float(np.hypot(c.cx - t.cx, c.cy - t.cy))
+            m["rotation_error_deg"] = _rot_deg(T_est.R, t.T_cam_world.R)
+            m["translation_error_mm"] = float(
+                np.linalg.norm(T_est.origin_of_a_in_b - t.center_world) * 1e3)
+            n = nominal.camera(c.name)
+            m["nominal_focal_rel_error"] = float(abs(n.fx / t.fx - 1))
+            m["nominal_principal_point_error_px"] = float(np.hypot(n.cx - t.cx, n.cy - t.cy))
+    metrics["rig_reference"] = rig_cal.reference
+    if proj_name is not None:
+        pr = rig_cal.camera(proj_name)
+        proj_metrics["reprojection_rms_px"] = rig_cal.rms_px[proj_name]
+        r, q = rig_cal.residuals[proj_name]
+        _residual_plot(out / f"residuals_{proj_name}.png", pr.size, r, q, proj_name)
+        _write_yaml(out / f"{proj_name}.yml", pr, rig_cal.rms_px[proj_name], [])
+        if truth is not None and truth.projector is not None:
+            t = truth.projector
+            T_est = pr.T_cam_world @ T_gt
+            sep = init[proj_name]
+            proj_metrics.update({
+                "focal_rel_error": float(max(abs(pr.fx / t.fx - 1), abs(pr.fy / t.fy - 1))),
+                "focal_rel_error_without_joint": float(
+                    max(abs(sep.fx / t.fx - 1), abs(sep.fy / t.fy - 1))),
+                "principal_point_error_px": float(np.hypot(pr.cx - t.cx, pr.cy - t.cy)),
+                "rotation_error_deg": _rot_deg(T_est.R, t.T_cam_world.R),
+                "translation_error_mm": float(
+                    np.linalg.norm(T_est.origin_of_a_in_b - t.center_world) * 1e3),
+            })
+    metrics["projector"] = proj_metrics
+    metrics["seconds"] = time.perf_counter() - t0
+    atomic_write_text(out / "detections.json", json.dumps(report, indent=1) + "\n")
+    atomic_write_text(out / "metrics.json", json.dumps({"calibrate": metrics}, indent=1) + "\n")
+    return metrics

@@ -1,0 +1,417 @@
+"""Calibration (issue 9): detection report, facegeo's camera solver against truth and against
+OpenCV, uncertainty, cross-validation, rig bundle adjustment, real OpenCV chessboards, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+cv2 = pytest.importorskip("cv2")
+
+from facegeo.errors import InputError  # noqa: E402
+from facegeo.frames import Pose, look_at  # noqa: E402
+from facegeo.geometry.board import CharucoBoard, random_board_poses  # noqa: E402
+from facegeo.geometry.calibration import (  # noqa: E402
+    ChessboardSpec, calibrate_camera, calibrate_rig, cross_validate, detect_boards,
+    detect_charuco, detection_report, usable_detections,
+)
+from facegeo.geometry.camera import Camera  # noqa: E402
+
+# ---- named tolerances (metric stated with each)
+#: noise-free: |f − f_true| / f_true, worst of fx, fy
+FOCAL_REL_TOL = 5e-4
+#: noise-free: |c − c_true|, pixels, worst of cx, cy
+PRINCIPAL_TOL_PX = 0.2
+#: noise-free: rotation angle of R_est R_trueᵀ, degrees, worst view / camera
+ROTATION_TOL_DEG = 0.02
+#: noise-free: |t − t_true|, millimetres, worst view / camera
+TRANSLATION_TOL_MM = 0.2
+#: |per-axis residual RMS / injected σ − 1|
+RESIDUAL_NOISE_REL_TOL = 0.20
+#: reported σ against the spread over repeated runs: ratio within [1/1.5, 1.5]
+SIGMA_RATIO_TOL = 1.5
+#: facegeo vs cv2.calibrateCamera on the same corners: |Δ| on fx, fy, cx, cy, pixels
+OPENCV_AGREE_PX = 0.1
+#: facegeo's RMS may exceed OpenCV's by at most this relative amount (finite-difference
+#: Jacobian and stopping tolerances; "not worse")
+RMS_NOT_WORSE_REL = 1e-6
+#: left OpenCV chessboards vs OpenCV's shipped left_intrinsics.yml: |Δ| on fx, fy, cx, cy, px
+OPENCV_YML_PX = 0.5
+#: stereo baseline vs cv2.stereoCalibrate on the same corners: relative difference
+BASELINE_REL_TOL = 0.01
+#: ChArUco corners on an exact rendered view vs projected truth: RMS, pixels
+CHARUCO_RMS_PX = 0.25
+
+TRUE_K = np.array([[1210.0, 0.0, 655.3], [0.0, 1190.0, 371.8], [0.0, 0.0, 1.0]])
+TRUE_DIST = np.array([-0.21, 0.09, 0.0012, -0.0007, -0.02])
+SIZE = (1280, 720)
+BOARD = CharucoBoard(10, 7, 0.03, 0.022)
+
+
+def _camera(K=TRUE_K, dist=TRUE_DIST, name="cam", pose=None):
+    return Camera(name, SIZE[0], SIZE[1], K, dist, Pose.identity() if pose is None else pose)
+
+
+def _views(cam, n, seed):
+    P0 = BOARD.chessboard_corners()
+    poses = random_board_poses(cam, n, seed, board=BOARD)
+    Q = [cam.project_cam(T.apply(P0))[0] for T in poses]
+    return [P0] * n, Q, poses
+
+
+def _rot_deg(Ra, Rb):
+    c = (np.trace(Ra @ Rb.T) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return _views(_camera(), 12, 3)
+
+
+def test_noise_free_recovers_truth(clean):
+    P, Q, poses = clean
+    c = calibrate_camera(P, Q, SIZE)
+    cam = c.camera
+    assert max(abs(cam.fx / 1210.0 - 1), abs(cam.fy / 1190.0 - 1)) <= FOCAL_REL_TOL
+    assert max(abs(cam.cx - 655.3), abs(cam.cy - 371.8)) <= PRINCIPAL_TOL_PX
+    for T, T0 in zip(c.T_cam_board, poses):
+        assert _rot_deg(T.R, T0.R) <= ROTATION_TOL_DEG
+        assert np.linalg.norm(T.t - T0.t) * 1e3 <= TRANSLATION_TOL_MM
+    assert c.rms_px < 1e-6
+    assert c.n_views_used == 12
+
+
+def test_swapped_axes_fail(clean):
+    """Asymmetric fixture: transposing the corner coordinates must not give the same camera."""
+    P, Q, _ = clean
+    c = calibrate_camera(P, [q[:, ::-1] for q in Q], SIZE[::-1], reject_views=False)
+    assert abs(c.camera.cx - 655.3) > 10 * PRINCIPAL_TOL_PX or c.rms_px > 0.1
+
+
+def test_noisy_residual_matches_noise_and_opencv():
+    sigma = 0.2
+    P, Q, _ = _views(_camera(), 12, 5)
+    rng = np.random.default_rng(1)
+    # float32-representable corners, so OpenCV (float32 input) sees exactly the same data
+    Qn = [(q + rng.normal(0, sigma, q.shape)).astype(np.float32).astype(np.float64) for q in Q]
+    c = calibrate_camera(P, Qn, SIZE, reject_views=False)
+    per_axis = c.rms_px / np.sqrt(2)  # rms_px is OpenCV's 2-D per-corner RMS
+    assert abs(per_axis / sigma - 1) <= RESIDUAL_NOISE_REL_TOL
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    rms, K, dist, _, _ = cv2.calibrateCamera(
+        [p.astype(np.float32) for p in P], [q.astype(np.float32) for q in Qn], SIZE, None, None,
+        criteria=crit)
+    ours = c.camera
+    for a, b in ((ours.fx, K[0, 0]), (ours.fy, K[1, 1]), (ours.cx, K[0, 2]),
+                 (ours.cy, K[1, 2])):
+        assert abs(a - b) <= OPENCV_AGREE_PX
+    assert c.rms_px <= rms * (1 + RMS_NOT_WORSE_REL)
+
+
+@pytest.mark.slow
+def test_reported_sigma_predicts_spread():
+    """Over 20 noisy runs, the std of fx, fy, cx, cy is within ×1.5 of the mean reported σ."""
+    sigma = 0.3
+    P, Q, _ = _views(_camera(), 8, 11)
+    rng = np.random.default_rng(2)
+    est, rep = [], []
+    for _ in range(20):
+        Qn = [q + rng.normal(0, sigma, q.shape) for q in Q]
+        c = calibrate_camera(P, Qn, SIZE, K_init=TRUE_K, reject_views=False)
+        est.append([c.camera.fx, c.camera.fy, c.camera.cx, c.camera.cy])
+        rep.append([c.std["fx"], c.std["fy"], c.std["cx"], c.std["cy"]])
+    ratio = np.std(est, axis=0, ddof=1) / np.mean(rep, axis=0)
+    assert np.all(ratio <= SIGMA_RATIO_TOL) and np.all(ratio >= 1 / SIGMA_RATIO_TOL), ratio
+
+
+def test_projection_uncertainty_scales_with_noise():
+    P, Q, _ = _views(_camera(), 10, 7)
+    rng = np.random.default_rng(3)
+    out = []
+    for s in (0.1, 0.4):
+        Qn = [q + rng.normal(0, s, q.shape) for q in Q]
+        u = calibrate_camera(P, Qn, SIZE, reject_views=False).projection_uncertainty()
+        assert np.isfinite(u["rms_px"]) and u["max_px"] >= u["rms_px"] > 0
+        out.append(u["rms_px"])
+    assert 2.0 < out[1] / out[0] < 8.0  # ∝ noise: ideally 4
+
+
+def test_cross_validation_flags_wrong_model():
+    """Right model: halves agree within 3× the predicted uncertainty; a pinhole model on a
+    distorted lens disagrees by far more than it predicts."""
+    P, Q, _ = _views(_camera(), 16, 13)
+    rng = np.random.default_rng(4)
+    Qn = [q + rng.normal(0, 0.2, q.shape) for q in Q]
+    good = cross_validate(P, Qn, SIZE, reject_views=False)
+    assert good["diff_rms_px"] <= 3 * good["predicted_rms_px"]
+    bad = cross_validate(P, Qn, SIZE, model="pinhole", reject_views=False)
+    assert bad["diff_rms_px"] > 3 * bad["predicted_rms_px"]
+
+
+def test_outlier_view_rejected_and_occluded_board(clean):
+    P, Q, _ = clean
+    Q = [q.copy() for q in Q]
+    Q[4] = Q[4] + np.random.default_rng(5).normal(0, 5.0, Q[4].shape)  # a broken view
+    # occlusion: drop a 3 × 3 block of corners from three views
+    P = list(P)
+    ids = np.arange(BOARD.n_corners).reshape(6, 9)
+    drop = ids[1:4, 2:5].ravel()
+    keep = np.setdiff1d(np.arange(BOARD.n_corners), drop)
+    for i in (0, 1, 2):
+        P[i], Q[i] = P[i][keep], Q[i][keep]
+    c = calibrate_camera(P, Q, SIZE)
+    assert not c.views_used[4] and c.views_used.sum() == 11
+    assert any("view 4" in r for r in c.rejected)
+    assert abs(c.camera.fx / 1210.0 - 1) <= FOCAL_REL_TOL
+    assert abs(c.camera.cx - 655.3) <= PRINCIPAL_TOL_PX
+
+
+def test_bad_inputs(clean):
+    P, Q, _ = clean
+    with pytest.raises(InputError, match="usable"):
+        calibrate_camera(P[:2], Q[:2], SIZE)
+    line = np.stack([np.linspace(0, 0.2, 20), np.zeros(20), np.zeros(20)], -1)
+    with pytest.raises(InputError, match="collinear"):
+        calibrate_camera([line] * 4, [np.c_[np.linspace(10, 500, 20), np.full(20, 300.0)]] * 4,
+                         SIZE)
+    with pytest.raises(InputError, match="outside"):
+        calibrate_camera(P, Q, (640, 360))  # points of a 1280×720 image
+    with pytest.raises(InputError, match="model"):
+        calibrate_camera(P, Q, SIZE, model="fisheye")
+    with pytest.raises(InputError, match="share one image size"):
+        detect_boards([np.zeros((10, 12), np.uint8), np.zeros((11, 12), np.uint8)], BOARD)
+
+
+def test_charuco_detection_and_report():
+    cam = _camera().scaled(0.5)
+    T = random_board_poses(cam, 1, 9, board=BOARD)[0]
+    img = BOARD.render(cam, T).to_uint8()
+    d = detect_charuco(img, BOARD, name="good")
+    assert d.found and d.n_corners >= 24  # of 54; small markers at half scale
+    q_true = cam.project_cam(T.apply(d.p_board))[0]
+    assert np.sqrt(np.mean(np.sum((d.q - q_true) ** 2, -1))) <= CHARUCO_RMS_PX
+    wrong = CharucoBoard(10, 7, 0.03, 0.022, dictionary="DICT_4X4_50")
+    dets = detect_boards([img, np.full_like(img, 128)], BOARD, names=["good", "blank"])
+    rep = detection_report(dets)
+    assert rep[0]["found"] and not rep[1]["found"] and "no ArUco markers" in rep[1]["reason"]
+    bad = detect_boards([img] * 3, wrong)
+    with pytest.raises(InputError, match="only 0 of 3 images"):
+        usable_detections(bad)
+
+
+def _rig_fixture():
+    cams = [
+        _camera(name="a", pose=look_at([0.0, 0.0, -0.5], [0, 0, 0.3])),
+        _camera(TRUE_K * [[1.01], [1.0], [1]], TRUE_DIST * 0.5, name="b",
+                pose=look_at([0.12, 0.02, -0.48], [0.0, 0.0, 0.3])),
+        _camera(name="c", pose=look_at([-0.1, 0.05, -0.47], [0.0, 0.0, 0.3])),
+    ]
+    P0 = BOARD.chessboard_corners()
+    rng = np.random.default_rng(8)
+    obs = {c.name: {} for c in cams}
+    for v in range(14):
+        R = cv2.Rodrigues(rng.uniform(-0.4, 0.4, 3))[0] @ np.diag([1.0, 1.0, 1.0])
+        T_wb = Pose(R, np.array([-0.13, -0.09, 0.3]) + rng.uniform(-0.03, 0.03, 3))
+        for ci, c in enumerate(cams):
+            if v % 3 == ci and v > 2:  # some views unseen by some cameras
+                continue
+            q, front = c.project(T_wb.apply(P0))
+            if front.all() and c.in_image(q).all():
+                obs[c.name][v] = (P0, q)
+    return cams, obs
+
+
+def test_rig_bundle_adjustment_recovers_relative_poses():
+    cams, obs = _rig_fixture()
+    assert len({len(v) for v in obs.values()}) > 1  # different view counts
+    init = {}
+    for c in cams:
+        vs = list(obs[c.name].values())
+        init[c.name] = calibrate_camera([p for p, _ in vs], [q for _, q in vs], SIZE,
+                                        name=c.name).camera
+    rig = calibrate_rig(obs, init, reference="a")
+    T_a = cams[0].T_cam_world
+    for c in cams:
+        est = rig.camera(c.name)
+        T_true = c.T_cam_world @ T_a.inverse()  # T_c_a
+        assert _rot_deg(est.T_cam_world.R, T_true.R) <= ROTATION_TOL_DEG
+        assert np.linalg.norm(est.T_cam_world.t - T_true.t) * 1e3 <= TRANSLATION_TOL_MM
+        assert abs(est.fx / c.fx - 1) <= FOCAL_REL_TOL
+        assert rig.rms_px[c.name] < 1e-6
+
+
+# ------------------------------------------------------------------ real OpenCV chessboards
+
+
+def _opencv_chessboards(shared_data, side):
+    from tests.conftest import shared_file
+
+    d = shared_file(shared_data, "calibration/opencv_stereo_chessboards")
+    files = sorted(d.glob(f"{side}*.jpg"))
+    imgs = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+    spec = ChessboardSpec(9, 6, 0.025)  # assumed square size: 25 mm (left_intrinsics.yml)
+    return d, detect_boards(imgs, spec, names=[f.name for f in files], method="classic")
+
+
+def test_real_left_reproduces_opencv_yml(shared_data):
+    d, dets = _opencv_chessboards(shared_data, "left")
+    ok = usable_detections(dets)
+    fs = cv2.FileStorage(str(d / "left_intrinsics.yml"), cv2.FILE_STORAGE_READ)
+    K_ref = fs.getNode("camera_matrix").mat()
+    fs.release()
+    # OpenCV's flags in the yml: 2 = CALIB_FIX_ASPECT_RATIO with aspectRatio 1
+    c = calibrate_camera([x.p_board for x in ok], [x.q for x in ok], (640, 480),
+                         fix_aspect_ratio=1.0, reject_views=False)
+    for a, b in ((c.camera.fx, K_ref[0, 0]), (c.camera.fy, K_ref[1, 1]),
+                 (c.camera.cx, K_ref[0, 2]), (c.camera.cy, K_ref[1, 2])):
+        assert abs(a - b) <= OPENCV_YML_PX
+    with pytest.raises(InputError, match="only 0 of"):
+        usable_detections(detect_boards([cv2.imread(str(d / "left01.jpg"), 0)],
+                                        ChessboardSpec(10, 7, 0.025)), min_views=1)
+
+
+def test_real_stereo_baseline(shared_data):
+    _, dl = _opencv_chessboards(shared_data, "left")
+    _, dr = _opencv_chessboards(shared_data, "right")
+    obs = {"left": {x.name[-6:]: (x.p_board, x.q) for x in dl if x.found},
+           "right": {x.name[-6:]: (x.p_board, x.q) for x in dr if x.found}}
+    cams = {}
+    for n, o in obs.items():
+        c = calibrate_camera([p for p, _ in o.values()], [q for _, q in o.values()], (640, 480),
+                             fix_aspect_ratio=1.0, reject_views=False, name=n)
+        cams[n] = c.camera
+    rig = calibrate_rig(obs, cams, reference="left", refine_intrinsics=False)
+    b = np.linalg.norm(rig.camera("right").T_cam_world.t)
+    shared = sorted(set(obs["left"]) & set(obs["right"]))
+    L, R = cams["left"], cams["right"]
+    ret = cv2.stereoCalibrate(
+        [obs["left"][k][0].astype(np.float32) for k in shared],
+        [obs["left"][k][1].astype(np.float32) for k in shared],
+        [obs["right"][k][1].astype(np.float32) for k in shared],
+        np.array(L.K), np.array(L.dist), np.array(R.K), np.array(R.dist), (640, 480),
+        flags=cv2.CALIB_FIX_INTRINSIC)
+    b_cv = np.linalg.norm(ret[6])
+    assert abs(b / b_cv - 1) <= BASELINE_REL_TOL
+    # with 25 mm squares the pair is a few centimetres apart (≈ 3.3 squares)
+    assert 0.05 < b < 0.12
+
+
+# ------------------------------------------------------------------ scan-level stage
+
+
+def test_stage_helpers_write_yaml_plot_and_align(tmp_path):
+    from facegeo.pipeline.calibrate import _align, _residual_plot, _write_yaml
+
+    cam = _camera(pose=look_at([0.1, 0.0, -0.5], [0, 0, 0.2]))
+    _write_yaml(tmp_path / "cam.yml", cam, 0.25, [0.2, 0.3])
+    fs = cv2.FileStorage(str(tmp_path / "cam.yml"), cv2.FILE_STORAGE_READ)
+    assert np.array_equal(fs.getNode("camera_matrix").mat(), cam.K)
+    assert fs.getNode("distortion_coefficients").mat().ravel().tolist() == cam.dist.tolist()
+    fs.release()
+    rng = np.random.default_rng(0)
+    _residual_plot(tmp_path / "r.png", cam.size, rng.normal(0, 0.2, (50, 2)),
+                   rng.uniform(0, 700, (50, 2)), "cam")
+    assert cv2.imread(str(tmp_path / "r.png")) is not None
+    # a rig expressed in another frame is brought back exactly by the alignment
+    T = Pose(cv2.Rodrigues(np.array([0.1, -0.2, 0.3]))[0], np.array([0.01, 0.02, -0.03]))
+    cams = [cam, _camera(name="b", pose=look_at([-0.1, 0.02, -0.5], [0, 0, 0.2]))]
+    moved = [c.replace(T_cam_world=c.T_cam_world @ T) for c in cams]
+    T_back = _align(moved, cams)
+    for m, c in zip(moved, cams):
+        assert np.abs((m.T_cam_world @ T_back).matrix - c.T_cam_world.matrix).max() < 1e-12
+
+
+@pytest.mark.slow
+def test_run_calibrate_on_synthetic_scan(tmp_path):
+    """The whole stage on a small synthetic scan: products written, metrics complete, the
+    rig's reprojection RMS at the ChArUco detection noise (≈ 0.15 px)."""
+    from facegeo.geometry.rig import Rig
+    from facegeo.pipeline.calibrate import run_calibrate
+    from facegeo.synth.capture import Preset, generate_scan
+
+    preset = Preset("calibtest", 1 / 2, 4, 2, 3, (64, 48), 8, 1, 3, olat_half=False,
+                    sl_supersample=1)
+    generate_scan(tmp_path / "scan", preset, seed=0)
+    m = run_calibrate(tmp_path / "scan", tmp_path / "out")
+    rig = Rig.load(tmp_path / "out" / "rig.json")
+    for name in rig.camera_names:
+        cm = m["cameras"][name]
+        assert cm["views_used"] == 8 and cm["reprojection_rms_px"] < 0.3
+        for key in ("cross_validation_px", "focal_rel_error", "principal_point_error_px",
+                    "rotation_error_deg", "translation_error_mm"):
+            assert np.isfinite(cm[key]), key
+        assert (tmp_path / "out" / f"{name}.yml").exists()
+        assert (tmp_path / "out" / f"residuals_{name}.png").exists()
+    assert (tmp_path / "out" / "metrics.json").exists()
+    # one projector view cannot calibrate the projector: said in the metrics, rig keeps nominal
+    assert "need 3" in m["projector"]["error"]
+
+
+#: local-homography projector corners vs the exact map, Gray-quantised codes: worst, projector px
+PROJECTOR_CORNER_TOL_PX = 0.1
+
+
+def test_projector_corners_local_homography():
+    """A plane seen by camera and projector: decoded codes are the exact homography rounded to
+    integer projector pixels (Gray codes); the local fit recovers each corner sub-pixel, and a
+    corner whose window did not decode is flagged, not guessed."""
+    from facegeo.geometry.calibration import projector_corners
+
+    Hm = np.array([[1.31, 0.07, 12.0], [-0.05, 1.22, 30.0], [2e-5, -1e-5, 1.0]])
+    H, W = 200, 300
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    p = np.stack([xs, ys, np.ones_like(xs)], -1) @ Hm.T
+    q_proj = np.rint(p[..., :2] / p[..., 2:])
+    valid = np.ones((H, W), bool)
+    valid[100:140, 200:260] = False  # an undecodable patch
+    q_cam = np.array([[50.3, 60.7], [150.2, 80.9], [230.4, 120.1], [120.0, 150.5]])
+    qp, ok, n = projector_corners(q_cam, q_proj, valid)
+    truth = np.c_[q_cam, np.ones(4)] @ Hm.T
+    truth = truth[:, :2] / truth[:, 2:]
+    assert ok.tolist() == [True, True, False, True] and np.isnan(qp[2]).all()
+    assert np.abs(qp[ok] - truth[ok]).max() <= PROJECTOR_CORNER_TOL_PX
+    # the rounding is what the fit removes: reading the nearest code is ≈ 0.3 px off
+    assert np.abs(q_proj[np.rint(q_cam[ok, 1]).astype(int), np.rint(q_cam[ok, 0]).astype(int)]
+                  - truth[ok]).max() > 2 * PROJECTOR_CORNER_TOL_PX
+
+
+#: projector focal after the joint refinement: max |f/f_true − 1|
+PROJECTOR_FOCAL_REL_TOL = 2e-3
+
+
+@pytest.mark.slow
+def test_projector_joint_refinement():
+    """A pinhole projector seen through 4 board views (0.2 px noise on its corners) beside two
+    cameras with 14 views: the joint bundle adjustment recovers its focal within 0.2 %."""
+    rng = np.random.default_rng(21)
+    K_p = np.array([[997.0, 0.0, 257.1], [0.0, 989.5, 202.5], [0.0, 0.0, 1.0]])
+    proj = Camera("projector", 512, 384, K_p, None, look_at([0.02, -0.08, -0.55], [0, 0, 0.3]))
+    cams, obs = _rig_fixture()
+    cams = cams[:2]
+    obs = {c.name: obs[c.name] for c in cams}
+    P0 = BOARD.chessboard_corners()
+    obs["projector"] = {}
+    for v in range(4):
+        R = cv2.Rodrigues(rng.uniform(-0.35, 0.35, 3))[0]
+        T_wb = Pose(R, np.array([-0.13, -0.09, 0.3]) + rng.uniform(-0.02, 0.02, 3))
+        for c in cams + [proj]:
+            q, front = c.project(T_wb.apply(P0))
+            assert front.all()
+            if c is proj:
+                q = q + rng.normal(0, 0.2, q.shape)
+            obs[c.name][f"p{v}"] = (P0, q)
+    init = {}
+    for c in cams:
+        vs = list(obs[c.name].values())
+        init[c.name] = calibrate_camera([p for p, _ in vs], [q for _, q in vs], SIZE,
+                                        name=c.name).camera
+    vs = list(obs["projector"].values())
+    sep = calibrate_camera([p for p, _ in vs], [q for _, q in vs], (512, 384), model="pinhole",
+                           name="projector", reject_views=False).camera
+    init["projector"] = sep
+    rig = calibrate_rig(obs, init, reference="a")
+    est = rig.camera("projector")
+    err = max(abs(est.fx / 997.0 - 1), abs(est.fy / 989.5 - 1))
+    assert err <= PROJECTOR_FOCAL_REL_TOL  # measured 6.8e-4; the separate solve: 1.5e-2
+    assert np.isfinite(rig.rms_px["projector"]) and rig.rms_px["projector"] < 0.3
