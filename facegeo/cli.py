@@ -203,6 +203,33 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _cmd_calibrate(args) -> int:
+    """Calibrate the scan's cameras (and projector, when it has board views) from ``calib/``."""
+    from facegeo.pipeline.calibrate import run_calibrate
+
+    if args.out is not None:
+        _check_output_dir(args.out, "--out")
+    m = run_calibrate(args.scan, args.out, model=args.model, loss=args.loss,
+                      reference=args.reference, legacy=args.legacy_board,
+                      cross_validation=not args.no_cross_validation,
+                      progress=None if args.quiet else (lambda s: print(s, file=sys.stderr)))
+    cols = ("reprojection_rms_px", "views_used", "cross_validation_px",
+            "projection_uncertainty_rms_px", "focal_rel_error", "principal_point_error_px")
+    print("camera      " + "  ".join(f"{c:>14.14}" for c in cols))
+    for name, cm in m.get("cameras", {}).items():
+        cells = []
+        for c in cols:
+            v = cm.get(c)
+            cells.append(f"{v:>14.4g}" if isinstance(v, (int, float)) else f"{'-':>14}")
+        print(f"{name:<12}" + "  ".join(cells))
+    proj = m.get("projector", {})
+    if proj:
+        print("projector: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                         for k, v in proj.items() if not isinstance(v, dict)))
+    print(f"wrote {args.out or Path(args.scan) / 'out' / 'calibrate'}")
+    return 0
+
+
 def _common_options() -> argparse.ArgumentParser:
     """Options every subcommand accepts after its name (``facegeo info SCAN -v``)."""
     c = argparse.ArgumentParser(add_help=False)
@@ -266,6 +293,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="bench-out", help="folder for bench.json and bench.md")
     s.add_argument("--list", action="store_true", help="list the registered benchmarks")
     s.set_defaults(func=_cmd_bench)
+
+    s = sub.add_parser("calibrate", parents=common,
+                       help="calibrate cameras, rig and projector from the scan's board views")
+    s.add_argument("scan", metavar="SCAN", help="scan directory")
+    s.add_argument("--out", default=None, help="output folder (default: SCAN/out/calibrate)")
+    s.add_argument("--model", choices=["pinhole", "opencv4", "opencv5", "rational8"],
+                   default="opencv5", help="lens distortion model of every camera")
+    s.add_argument("--loss", choices=["linear", "soft_l1", "huber", "cauchy", "arctan"],
+                   default="linear", help="robust loss of the least-squares solves")
+    s.add_argument("--reference", default=None,
+                   help="camera held fixed in the bundle adjustment (default: the first)")
+    s.add_argument("--legacy-board", action="store_true",
+                   help="ChArUco board printed by OpenCV < 4.6 (setLegacyPattern)")
+    s.add_argument("--no-cross-validation", action="store_true",
+                   help="skip the two-halves cross-validation")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("demo", parents=common,
                        help="the main job on the embedded default (a synthetic scan)")
