@@ -140,15 +140,22 @@ def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta):
 
         L_vn = L_v0(l_q) · G(v_n, l_p, n) F(v_n·H) (v_0·n) / (G(v_0, l_q, n) F(v_0·H) (v_n·n))
 
-    Zero (no lobe) where l_p is shadowed (§4.4: never a specular lobe in a shadowed direction),
-    where l_q is below the horizon or shadowed in the source (lobe hidden in shadow: flagged),
+    Deviation, same equation: the interpolation on the light set is applied to the measured
+    samples divided by their own view's factors, ``S(l)(v_0·n)/(G(v_0, l, n) F(v_0·h_l))`` (the
+    microfacet distribution sampled at the nodes, Fig. 12 e), rather than to S itself; at a
+    node both are identical, between nodes the smooth distribution interpolates far better
+    than a lobe whose G and F fall to zero at grazing l.
+
+    Zero (no lobe) where l_p is occluded (§4.4: never a specular lobe in a shadowed direction),
+    where l_q is below the horizon; where l_q was occluded in the source the measured sample
+    (dark) is used as is and the function flagged (a lobe hidden in shadow is unrecoverable),
     where n·l_p ≤ 0 or n·v_n ≤ 0, and where H is undefined (l_p = −v_n). Denominators are
     floored at COS_FLOOR; results are finite.
 
     Parameters
     ----------
     sigma : (n, L) float64 — white-balanced specular sample per colour channel
-    shadow : (n, L) bool
+    shadow : (n, L) bool, occluded lights (``SkinFit.cast_shadow``)
     n, v0, vn : (n, 3) float64, unit
 
     Returns
@@ -157,32 +164,32 @@ def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta):
     hidden : (n,) bool — some l_q fell in a shadowed source direction with lit l_p
     """
     lp = lights.directions[None]
+    nv0 = _dot(n, v0)[:, None]
+    nvn = _dot(n, vn)[:, None]
+    nlp = n @ lights.directions.T  # (n, L)
+    # the measured samples as microfacet values ρ_s P(h_l) ∝ S_l (n·v_0)/(G F) on the nodes
+    h0 = normalize(lp + v0[:, None, :], fallback=n[:, None, :] * np.ones_like(lp))
+    nh0 = _dot(h0, n[:, None, :])
+    vh0 = _dot(h0, v0[:, None, :])
+    gf0 = torrance_sparrow_geometry(nlp, nv0, nh0, vh0) * fresnel_dielectric(vh0, eta)
+    good0 = gf0 > 1e-6
+    micro = np.where(good0, sigma * np.maximum(nv0, 0.0) / np.where(good0, gf0, 1.0), 0.0)
     hv = vn[:, None, :] + lp
     hn = np.linalg.norm(hv, axis=2)
     H = hv / np.maximum(hn, 1e-300)[..., None]
     Hv0 = _dot(H, v0[:, None, :])
     lq = 2.0 * Hv0[..., None] * H - v0[:, None, :]
     lq = normalize(lq, fallback=n[:, None, :] * np.ones_like(lq))
-    vals = interpolate_on_lights(np.stack([sigma, shadow.astype(np.float64)], axis=2), lights, lq)
-    s_q, sh_q = vals[..., 0], vals[..., 1] > 0.5
+    vals = interpolate_on_lights(np.stack([micro, shadow.astype(np.float64)], axis=2), lights, lq)
+    m_q, sh_q = vals[..., 0], vals[..., 1] > 0.5
     nH = _dot(H, n[:, None, :])
-    nlp = lp[0] @ n.T  # (L, n)
-    nlp = nlp.T
     nlq = _dot(lq, n[:, None, :])
-    nv0 = _dot(n, v0)[:, None]
-    nvn = _dot(n, vn)[:, None]
     vnH = _dot(H, vn[:, None, :])
     G_n = torrance_sparrow_geometry(nlp, nvn, nH, vnH)
-    G_0 = torrance_sparrow_geometry(nlq, nv0, nH, Hv0)
     F_n = fresnel_dielectric(vnH, eta)
-    F_0 = fresnel_dielectric(Hv0, eta)
-    num = G_n * F_n * np.maximum(nv0, 0.0)
-    den = G_0 * F_0 * np.maximum(nvn, COS_FLOOR)
     ok = (hn > 1e-9) & (nH > 0) & (nlp > 0) & (nlq > 0) & (nvn > 0) & (nv0 > 0) & ~shadow
-    ok &= den > 1e-12
-    hidden_l = ok & sh_q
-    ok &= ~sh_q
-    spec = np.where(ok, s_q * num / np.where(ok, den, 1.0), 0.0)
+    hidden_l = ok & sh_q  # the source saw these microfacets only through an occluded light
+    spec = np.where(ok, m_q * G_n * F_n / np.maximum(nvn, COS_FLOOR), 0.0)
     return np.maximum(spec, 0.0), hidden_l.any(axis=1)
 
 
@@ -235,7 +242,7 @@ def resynthesize(fit, v_n, *, view_independent_form: bool = False,
     S_new[todo] = 0.0
     ts = todo[do_spec]
     if ts.size:
-        spec, hidden = resynthesize_specular(sigma[do_spec], fit.shadow[ts], fit.normal[ts],
+        spec, hidden = resynthesize_specular(sigma[do_spec], fit.cast_shadow[ts], fit.normal[ts],
                                              fit.view[ts], vn[ts], fit.lights, fit.eta)
         S_new[ts] = spec[..., None] * E[None]
         flags[ts[hidden]] |= FLAG_SPECULAR_IN_SHADOW

@@ -78,9 +78,9 @@ __all__ = [
     "LightSet", "SkinParams", "SkinFit", "SearchDepth", "Resynthesis",
     "ramp_f", "ramp_chromaticity", "invert_ramp", "specular_sample", "paper_reflectance",
     "separate_colour", "shadow_map", "fit_reflectance", "resynthesize", "view_independent",
-    "direct_search", "flag_names", "FLAG_NAMES", "FLAG_BLACK", "FLAG_SINGULAR", "FLAG_SHADOWED",
+    "direct_search", "flag_names", "check_mask", "FLAG_NAMES", "FLAG_BLACK", "FLAG_SINGULAR", "FLAG_SHADOWED",
     "FLAG_SATURATED", "FLAG_SINGLE_CHANNEL", "FLAG_GRAZING_VIEW", "FLAG_SPECULAR_IN_SHADOW",
-    "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE",
+    "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
 ]
 
 #: Reflectance functions per chunk of the analysis (bounds the (chunk, candidates, L, 3)
@@ -115,7 +115,12 @@ class SkinFit:
     diffuse, specular : (N, L, C) float32
         D and S of the final separation, in the input's units (D + S = R).
     shadow : (N, L) bool
-        Shadow map (§4.4): thresholded brightness or the caller's visibility.
+        Shadow map (§4.4): thresholded brightness or the caller's visibility; the analysis
+        ignores these samples. Includes attached shadows (n·l ≤ 0) and the dark terminator.
+    cast_shadow : (N, L) bool
+        The part of ``shadow`` that the fitted diffuse lobe says should be lit (brighter than
+        twice the threshold), plus every light the caller's visibility hides: occluded lights.
+        Resynthesis puts no specular lobe there (§4.4).
     saturated : (N, L) bool
     flags : (N,) int32; valid : (N,) bool
     eta : float
@@ -137,6 +142,7 @@ class SkinFit:
     diffuse: np.ndarray
     specular: np.ndarray
     shadow: np.ndarray
+    cast_shadow: np.ndarray
     saturated: np.ndarray
     flags: np.ndarray
     valid: np.ndarray
@@ -255,14 +261,17 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     Rw = R / E[None]
     sat = (R >= float(saturation)).any(axis=2) if saturation is not None else np.zeros((N, L), bool)
     shadow = shadow_map(Rw, threshold=shadow_threshold, visibility=visibility, saturated=sat)
+    hidden = np.zeros((N, L), bool) if visibility is None else ~check_mask(
+        visibility, "visibility", N, L)
     if single:
         log.info("single-channel reflectance functions: colour separation is impossible; "
                  "fitting the diffuse lobe alone")
     out = {k: [] for k in ("n", "nm", "n1", "mm", "m1", "d0", "a0", "a1", "rd", "rs", "D", "S",
-                           "flags")}
+                           "flags", "cast")}
     for i in range(0, N, max(1, int(chunk))):
         sl = slice(i, min(N, i + int(chunk)))
         res = _fit_chunk(Rw[sl], v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
+                         shadow_threshold,
                          None if d_0 is None else d_0[sl], rounds)
         for k in out:
             out[k].append(res[k])
@@ -274,11 +283,12 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     return SkinFit(lights=lights, view=v, normal=cat["n"], normal_moment=cat["nm"],
                    normal_initial=cat["n1"], lobe_misfit_moment=cat["mm"], lobe_misfit=cat["m1"],
                    d_0=cat["d0"], alpha_0=cat["a0"], alpha_1=cat["a1"], rho_d=cat["rd"],
-                   rho_s=cat["rs"], diffuse=D, specular=S, shadow=shadow, saturated=sat,
+                   rho_s=cat["rs"], diffuse=D, specular=S, shadow=shadow,
+                   cast_shadow=cat["cast"] | hidden, saturated=sat,
                    flags=flags, valid=valid, eta=eta, single_channel=single)
 
 
-def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, d_0, rounds):
+def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, rounds):
     """§4.2 on one chunk of white-balanced functions R ``(n, L, C)``; see :func:`fit_reflectance`."""
     n_f, L, C = R.shape
     l = lights.directions
@@ -314,18 +324,16 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, d_0, rounds):
         n = n1
     else:
         n = n1
-        fine = SearchDepth(levels=max(1, depth.levels - 4), moves=depth.moves,
-                           normal_step=depth.normal_step / 16.0, alpha_step=depth.alpha_step,
-                           polish=depth.polish)
         for _ in range(max(1, int(rounds))):
-            a0, a1, n, _ = fit_ramp(R, w, lights, n, v, d0, depth)
-            nl = n @ l.T
-            nv = np.einsum("ni,ni->n", n, v)
+            # the polish moves the normal with the ramp; it only serves the ramp fit
+            a0, a1, n_ramp, _ = fit_ramp(R, w, lights, n, v, d0, depth)
+            nl = n_ramp @ l.T
+            nv = np.einsum("ni,ni->n", n_ramp, v)
             c = ramp_chromaticity(d0[:, None, :],
                                   ramp_f(nl, nv[:, None], a0[:, None], a1[:, None]))
             D, _, _, mu_s, _, sing2 = separate_colour(R, c, s)
             # normal recomputed from the final diffuse component (§4.2, Fig. 14 b)
-            n, _, _, _ = fit_lambertian_lobe(np.linalg.norm(D, axis=2), w, lights, n, fine)
+            n, _, _, _ = fit_lambertian_lobe(np.linalg.norm(D, axis=2), w, lights, n1, depth)
         sing_any = (flags & FLAG_SINGULAR) != 0
         a0 = np.where(sing_any, 0.0, a0)
         a1 = np.where(sing_any, 0.0, a1)
@@ -337,6 +345,8 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, d_0, rounds):
     sxx = np.sum(wd * x * x, axis=1)
     k = np.where(sxx > 0, np.sum(wd * y * x, axis=1) / np.where(sxx > 0, sxx, 1.0), 0.0)
     rho_d = np.pi * np.maximum(k, 0.0)[:, None] * d0
+    ref = np.percentile(np.where(sat, 0.0, np.linalg.norm(R, axis=2)), 99, axis=1)
+    cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
     nv = np.einsum("ni,ni->n", n, v)
     flags |= np.where(nv < GRAZING_COS, FLAG_GRAZING_VIEW, 0)
     rho_s = specular_energy(Smu, shadow, lights, n, v, eta) if not single else np.zeros(n_f)
@@ -347,4 +357,4 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, d_0, rounds):
     rho_d = np.where(bad[:, None], 0.0, rho_d)
     rho_s = np.where(bad, 0.0, rho_s)
     return {"n": n, "nm": nm, "n1": n1, "mm": mm, "m1": m1, "d0": d0, "a0": a0, "a1": a1,
-            "rd": rho_d, "rs": rho_s, "D": D, "S": R - D, "flags": flags}
+            "rd": rho_d, "rs": rho_s, "D": D, "S": R - D, "flags": flags, "cast": cast}
