@@ -75,8 +75,10 @@ class SearchDepth:
         Initial step of the normal search (tangent-plane offset).
     alpha_step : float
         Initial step of α_0, α_1 (and of the d_0 shift along the d_0–s line).
+    alpha_levels : int
+        Step halvings of the (α_0, α_1) search, which only has to land in the polish's basin.
     polish : int
-        Levenberg–Marquardt iterations after the search (0: search only). Deviation from the
+        Levenberg–Marquardt iterations after the ramp search (0: search only). Deviation from the
         paper's pure direct search: the ramp's three coordinates form a long shallow valley
         that a pattern search crawls along; a few Gauss–Newton steps reach the bottom.
     """
@@ -85,7 +87,8 @@ class SearchDepth:
     moves: int = 3
     normal_step: float = 0.1
     alpha_step: float = 0.25
-    polish: int = 15
+    polish: int = 10
+    alpha_levels: int = 4
 
 
 def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
@@ -366,6 +369,12 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     normal : (N, 3) float64, unit (the input normal when ``depth.polish`` is 0)
     misfit : (N,) float64
     """
+    # only lights some function of the chunk uses (the shadowed half of the sphere drops out)
+    used = np.flatnonzero(w.any(axis=0))
+    if used.size < lights.n_lights:
+        lights = LightSet(lights.directions[used], lights.solid_angles[used],
+                          lights.intensities[used], None)
+        R, w = R[:, used], w[:, used]
     l = lights.directions
     s = S_WHITE
     nv0 = np.einsum("ni,ni->n", n, v)
@@ -398,7 +407,7 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         return np.sum(r * r, axis=-1)
 
     x0 = np.zeros((n.shape[0], 2))
-    p, misfit = direct_search(objective, x0, depth.alpha_step, depth.levels, depth.moves)
+    p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves)
     n_out = n
     if depth.polish:
         p4 = np.concatenate([p, np.zeros_like(p)], axis=1)
