@@ -1,7 +1,8 @@
 """The paper's skin reflectance model (Debevec et al. 2000, §4): Eq. 6–9 pieces, exact recovery
 on paper-mode data, the mismatched generator's OLAT functions, a real face, and hard cases.
 
-Tolerances (named, with their metric):
+Tolerances are the named module constants below; each states its metric. Hard cases use seeded
+random inputs (hypothesis is not installed).
 """
 
 from __future__ import annotations
@@ -40,11 +41,11 @@ def _angle_deg(a, b):
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
 
 
-def _random_normals(rng, n, max_deg, around=V0):
+def _random_normals(rng, n, max_deg):
     ang = np.radians(rng.uniform(0.0, max_deg, n))
     az = rng.uniform(0.0, 2 * np.pi, n)
     loc = np.stack([np.sin(ang) * np.cos(az), np.sin(ang) * np.sin(az), np.cos(ang)], 1)
-    return loc  # around +Z
+    return loc  # within max_deg of +Z (the source view)
 
 
 def _paper_params(rng, n):

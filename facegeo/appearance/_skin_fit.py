@@ -382,6 +382,8 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     wm = 1.0 - np.exp(-(1.0 - r @ l.T) / MIRROR_SIGMA)
     wd = w * lights.solid_angles * wm
     Rs = R @ s  # (N, L)
+    Rd = np.einsum("nlc,nc->nl", R, d_0)
+    ds = d_0 @ s
     t1, t2 = _tangent_basis(n)
 
     def residuals(p):
@@ -393,13 +395,17 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
             nk = np.broadcast_to(n[:, None, :], p.shape[:2] + (3,))
         nl = np.maximum(np.einsum("nkc,lc->nkl", nk, l), 0.0)  # (N, K, L)
         nv = np.einsum("nkc,nc->nk", nk, v)[..., None]
-        f = ramp_f(nl, nv, p[..., 0:1], p[..., 1:2])
-        c = ramp_chromaticity(d_0[:, None, None, :], f, s)  # (N, K, L, 3)
-        Rc = np.einsum("nklc,nlc->nkl", c, R)
-        cs = c @ s
-        det = 1.0 - cs * cs
-        sing = det < SINGULAR_SIN2
-        mu_d = np.where(sing, Rc, (Rc - Rs[:, None, :] * cs) / np.where(sing, 1.0, det))
+        f = ramp_f(nl, nv, p[..., 0:1], p[..., 1:2])  # (N, K, L)
+        # Eq. 6 without 3-vectors: u = (1 + f) d_0 − f s, c = u/|u|; the separation of §4.2
+        # needs only R·c, c·s and |c × s|² = (1 + f)² |d_0 × s|² / |u|²
+        g = 1.0 + f
+        uR = g * Rd[:, None, :] - f * Rs[:, None, :]
+        us = g * ds[:, None, None] - f
+        uu = np.maximum(g * g - 2.0 * f * g * ds[:, None, None] + f * f, 1e-300)
+        cross2 = g * g * (1.0 - ds * ds)[:, None, None]  # |u × s|²
+        sing = cross2 < SINGULAR_SIN2 * uu
+        mu_d = np.where(sing, uR / np.sqrt(uu),
+                        np.sqrt(uu) * (uR - Rs[:, None, :] * us) / np.where(sing, 1.0, cross2))
         return _lobe_residuals(mu_d, wd, nl)
 
     def objective(p):
