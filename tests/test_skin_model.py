@@ -409,3 +409,21 @@ def test_real_face_yale_b01(shared_data):
     print(f"Yale B01, {len(px)} pixels, fit on {len(fit_l)} lights, relit {len(test_l)}: "
           f"relative RMSE ours {err_ours:.4f}, least-squares Lambertian {err_ls:.4f}")
     assert err_ours <= err_ls
+
+
+def test_negligible_specular_skips_specular_work():
+    rng = np.random.default_rng(9)
+    lights = skin.LightSet.from_grid(32, 16)
+    n = _random_normals(rng, 4, 20.0)
+    p = replace(_paper_params(rng, 4), rho_s=np.zeros(4))
+    R = skin.paper_reflectance(n, V0, lights, p)
+    fit = skin.fit_reflectance(R, V0, lights, d_0=skin.normalize(p.rho_d))
+    r = skin.resynthesize(fit, _view(30.0))
+    assert (r.flags & skin.FLAG_SPECULAR_SKIPPED).all()
+    assert np.all(r.specular == 0)
+    truth = skin.paper_reflectance(n, _view(30.0), lights, p)
+    # diffuse-only functions: the chroma shift alone reproduces the new view (relative RMSE)
+    assert np.sqrt(np.sum((r.reflectance - truth) ** 2) / np.sum(truth ** 2)) <= 1e-4
+    # a view below the horizon of every normal: flagged, zero, finite
+    back = skin.resynthesize(fit, -V0)
+    assert (back.flags & skin.FLAG_BACKFACING).all() and np.all(back.reflectance == 0)
