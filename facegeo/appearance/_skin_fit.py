@@ -78,7 +78,10 @@ class SearchDepth:
     alpha_levels : int
         Step halvings of the (α_0, α_1) search, which only has to land in the polish's basin.
     polish : int
-        Levenberg–Marquardt iterations after the ramp search (0: search only). Deviation from the
+        Levenberg–Marquardt iterations after the ramp search (0: search only).
+    polish_normal : bool
+        Polish the normal together with α_0, α_1 (exact recovery on paper-mode data); off,
+        the ramp is polished at the searched normal. Deviation from the
         paper's pure direct search: the ramp's three coordinates form a long shallow valley
         that a pattern search crawls along; a few Gauss–Newton steps reach the bottom.
     """
@@ -89,6 +92,7 @@ class SearchDepth:
     alpha_step: float = 0.25
     polish: int = 10
     alpha_levels: int = 4
+    polish_normal: bool = True
 
 
 def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
@@ -415,7 +419,9 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     x0 = np.zeros((n.shape[0], 2))
     p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves)
     n_out = n
-    if depth.polish:
+    if depth.polish and not depth.polish_normal:
+        p, misfit = gauss_newton_polish(residuals, p, iterations=depth.polish)
+    elif depth.polish:
         p4 = np.concatenate([p, np.zeros_like(p)], axis=1)
         p4, misfit = gauss_newton_polish(residuals, p4, iterations=depth.polish)
         p = p4[:, :2]
