@@ -207,7 +207,8 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     3. Normal: the closed-form first moment Σ D ω δA (Ma et al. 2007), then the Lambertian-lobe
        fit to |D| by coarse-to-fine direct search started from it (§4.2).
     4. α_0, α_1 (Eq. 7) by coarse-to-fine direct search with samples near the mirror direction
-       down-weighted (see :func:`facegeo.appearance._skin_fit.fit_ramp` for the criterion).
+       down-weighted, then a Levenberg–Marquardt polish of α_0, α_1 and the normal together
+       (see :func:`facegeo.appearance._skin_fit.fit_ramp` for the criterion and why).
     5. Final separation with the fitted ramp (Eq. 6 per sample), normal recomputed from the
        final D, albedo ρ_d and specular energy ρ_s (Fig. 14 b–d).
 
@@ -237,8 +238,8 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         ramp fit and the final separation. (d_0, α_0, α_1) are only weakly identifiable
         together, so α's are comparable only for the same d_0.
     rounds : int
-        Alternations of ramp fit → final separation → normal (the paper does one; a second
-        removes the initial normal's bias from the ramp).
+        Alternations of ramp fit → final separation → normal (the paper does one; with the
+        default joint polish a second changes little).
     chunk : int
         Functions per vectorised chunk.
 
