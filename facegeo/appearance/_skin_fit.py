@@ -1,0 +1,502 @@
+"""Fitting the paper's skin model to measured reflectance functions (Debevec et al. 2000, §4.2, §4.4).
+
+Private module behind :mod:`facegeo.appearance.skin`. Everything is vectorised over chunks of
+reflectance functions: the coarse-to-fine direct searches evaluate every candidate of every
+function of a chunk in one numpy expression.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from facegeo.appearance._skin_model import (
+    S_WHITE,
+    SINGULAR_SIN2,
+    LightSet,
+    normalize,
+    ramp_chromaticity,
+    ramp_f,
+    separate_colour,
+)
+from facegeo.appearance.brdf import fresnel_dielectric, torrance_sparrow_geometry
+from facegeo.checks import as_array, check_unit_vectors
+from facegeo.errors import InputError, ShapeError
+
+log = logging.getLogger(__name__)
+
+# flags (bit mask per reflectance function)
+FLAG_BLACK = 1  #: no light reaches the camera: parameters are fallbacks (normal = view)
+FLAG_SINGULAR = 2  #: diffuse colour ≈ light colour: separation fell back to diffuse only
+FLAG_SHADOWED = 4  #: fewer than MIN_SAMPLES unshadowed samples: normal is the fallback
+FLAG_SATURATED = 8  #: some samples were saturated and masked out
+FLAG_SINGLE_CHANNEL = 16  #: single-channel input: diffuse lobe only, no colour separation
+FLAG_GRAZING_VIEW = 32  #: n·v below GRAZING_COS: the view grazes the surface
+FLAG_SPECULAR_IN_SHADOW = 64  #: resynthesis: some specular samples came from shadowed lights
+FLAG_SPECULAR_SKIPPED = 128  #: resynthesis: negligible specular energy, specular not modelled
+FLAG_BACKFACING = 256  #: resynthesis: the novel view is at or below the surface's horizon
+
+FLAG_NAMES = {
+    FLAG_BLACK: "black", FLAG_SINGULAR: "singular", FLAG_SHADOWED: "shadowed",
+    FLAG_SATURATED: "saturated", FLAG_SINGLE_CHANNEL: "single_channel",
+    FLAG_GRAZING_VIEW: "grazing_view", FLAG_SPECULAR_IN_SHADOW: "specular_in_shadow",
+    FLAG_SPECULAR_SKIPPED: "specular_skipped", FLAG_BACKFACING: "backfacing",
+}
+
+#: Minimum number of unshadowed, unsaturated samples for a lobe fit.
+MIN_SAMPLES = 3
+#: Cosine below which a view counts as grazing (85°).
+GRAZING_COS = np.cos(np.radians(85.0))
+#: Brightness range, as fractions of the function's 90th-percentile brightness, whose samples
+#: give the initial diffuse chromaticity d_0 (§4.2: "values falling in a certain brightness range").
+D0_BRIGHTNESS_RANGE = (0.25, 1.0)
+#: Shadow map threshold (§4.4): a sample darker than this fraction of the function's
+#: 99th-percentile brightness is shadowed.
+SHADOW_THRESHOLD = 0.02
+#: Angular scale of the mirror down-weighting in the ramp fit: weight 1 − exp(−(1 − l·r)/σ),
+#: σ = 1 − cos(15°).
+MIRROR_SIGMA = 1.0 - np.cos(np.radians(15.0))
+
+
+@dataclass(frozen=True)
+class SearchDepth:
+    """Depth of the coarse-to-fine direct searches.
+
+    Attributes
+    ----------
+    levels : int
+        Step halvings (the search's depth); precision ≈ initial step / 2**levels.
+    moves : int
+        Compass moves per level.
+    normal_step : float, radians
+        Initial step of the normal search (tangent-plane offset).
+    alpha_step : float
+        Initial step of α_0, α_1 (and of the d_0 shift along the d_0–s line).
+    alpha_levels : int
+        Step halvings of the (α_0, α_1) search, which only has to land in the polish's basin.
+    polish : int
+        Levenberg–Marquardt iterations after the ramp search (0: search only).
+    polish_normal : bool
+        Polish the normal together with α_0, α_1 (exact recovery on paper-mode data); off,
+        the ramp is polished at the searched normal. Deviation from the
+        paper's pure direct search: the ramp's three coordinates form a long shallow valley
+        that a pattern search crawls along; a few Gauss–Newton steps reach the bottom.
+    """
+
+    levels: int = 10
+    moves: int = 3
+    normal_step: float = 0.1
+    alpha_step: float = 0.25
+    polish: int = 10
+    alpha_levels: int = 4
+    polish_normal: bool = True
+
+
+def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
+                  pattern: str = "grid"):
+    """Coarse-to-fine compass search, vectorised over N problems.
+
+    Pattern search: each iteration evaluates the candidates of the pattern around the centre
+    (``"grid"``: every point of {−1, 0, 1}^P × step, 3^P candidates, which follows diagonal
+    valleys; ``"compass"``: the centre and ±step along each axis, 2P + 1 candidates), move to
+    the best (one call of ``objective`` per iteration); a problem whose centre stays best
+    halves its step. Runs until every problem has halved ``levels`` times or after
+    ``levels · moves`` iterations. Ties keep the centre.
+
+    Parameters
+    ----------
+    objective : callable ``(N, K, P) -> (N, K)``
+        Non-finite values count as +inf.
+    x0 : (N, P) float64
+    step0 : (P,) float64
+    levels, moves : int
+
+    Returns
+    -------
+    x : (N, P) float64
+    value : (N,) float64
+        Objective at x.
+    """
+    x = np.array(x0, dtype=np.float64)
+    N, P = x.shape
+    step = np.broadcast_to(np.asarray(step0, np.float64), (P,))
+    step = np.tile(step, (N, 1))
+    if pattern == "compass":
+        offs = np.concatenate([np.zeros((1, P)), np.eye(P), -np.eye(P)])
+    elif pattern == "grid":
+        offs = np.stack(np.meshgrid(*([[0.0, -1.0, 1.0]] * P), indexing="ij"), -1).reshape(-1, P)
+    else:
+        raise ValueError(f"pattern: expected 'grid' or 'compass', got {pattern!r}")
+    rows = np.arange(N)
+    val = np.full(N, np.inf)
+    halvings = np.zeros(N, np.int64)
+    for _ in range(levels * moves):
+        if np.all(halvings >= levels):
+            break
+        cand = x[:, None, :] + offs[None] * step[:, None, :]
+        f = np.asarray(objective(cand), np.float64)
+        f = np.where(np.isfinite(f), f, np.inf)
+        best = np.argmin(f, axis=1)
+        x = cand[rows, best]
+        val = f[rows, best]
+        stay = (best == 0) & (halvings < levels)
+        step[stay] *= 0.5
+        halvings += stay
+    return x, val
+
+
+def _tangent_basis(n):
+    """Two unit vectors ``(N, 3)`` orthogonal to ``n`` and to each other."""
+    a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = normalize(np.cross(n, a))
+    t2 = np.cross(n, t1)
+    return t1, t2
+
+
+def _lobe_misfit(y, w, x):
+    """Relative weighted misfit of ``y ≈ k x`` with the best k ≥ 0: ``1 − <y,x>²/(|y|²|x|²)``.
+
+    ``y`` ``(N, [K,] L)``, ``w`` ``(N, L)``, ``x`` broadcastable; sums over the last axis.
+    """
+    if y.ndim == 3:
+        w = w[:, None, :]
+    syy = np.sum(w * y * y, axis=-1)
+    sxy = np.sum(w * y * x, axis=-1)
+    sxx = np.sum(w * x * x, axis=-1)
+    ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
+    den = np.where(ok, sxx * syy, 1.0)
+    return np.where(ok, 1.0 - sxy * sxy / den, 1.0)
+
+
+def _lobe_residuals(y, w, x):
+    """Residual vector whose squared sum is :func:`_lobe_misfit`: ``√w (y − k x)/√(Σ w y²)``."""
+    if y.ndim == 3:
+        w = w[:, None, :]
+    syy = np.sum(w * y * y, axis=-1, keepdims=True)
+    sxy = np.sum(w * y * x, axis=-1, keepdims=True)
+    sxx = np.sum(w * x * x, axis=-1, keepdims=True)
+    ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
+    k = np.where(ok, sxy / np.where(ok, sxx, 1.0), 0.0)
+    return np.sqrt(w) * (y - k * x) / np.sqrt(np.where(syy > 1e-300, syy, 1.0))
+
+
+def gauss_newton_polish(residuals, x0, *, iterations: int = 8, h: float = 1e-5):
+    """Levenberg–Marquardt polish of N small least-squares problems at once.
+
+    ``residuals(cand (N, K, P)) -> (N, K, M)``; the Jacobian is taken by central differences
+    (all 2P + 1 evaluations in one call). A step is kept only where it lowers the sum of
+    squares, so the polish never makes a search result worse.
+
+    Returns ``(x (N, P), value (N,))``.
+    """
+    x = np.array(x0, dtype=np.float64)
+    N, P = x.shape
+    offs = np.concatenate([np.zeros((1, P)), h * np.eye(P), -h * np.eye(P)])
+    lam = np.full(N, 1e-8)
+    rows = np.arange(N)
+    r = residuals(x[:, None, :])[:, 0]
+    val = np.sum(r * r, axis=-1)
+    for _ in range(iterations):
+        rr = residuals(x[:, None, :] + offs[None])
+        r = rr[:, 0]
+        J = (rr[:, 1:P + 1] - rr[:, P + 1:]) / (2.0 * h)  # (N, P, M)
+        JtJ = np.einsum("npm,nqm->npq", J, J)
+        g = np.einsum("npm,nm->np", J, r)
+        A = JtJ + lam[:, None, None] * (np.eye(P) * np.maximum(
+            np.einsum("npp->np", JtJ), 1e-30)[:, None, :])
+        try:
+            dx = -np.linalg.solve(A, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        dx = np.where(np.isfinite(dx), dx, 0.0)
+        xn = x + dx
+        rn = residuals(xn[:, None, :])[:, 0]
+        vn = np.sum(rn * rn, axis=-1)
+        better = np.isfinite(vn) & (vn < val)
+        x = np.where(better[:, None], xn, x)
+        val = np.where(better, vn, val)
+        lam = np.where(better, lam * 0.1, lam * 10.0)
+    del rows
+    return x, val
+
+
+def moment_normal(y, w, lights: LightSet, fallback):
+    """Closed-form normal from the first moment ``Σ_l D(ω_l) ω_l δA_l`` (Ma et al. 2007).
+
+    What spherical gradient illumination measures: for a clamped Lambertian lobe over the full
+    sphere the moment is parallel to n. Light sets covering part of the sphere, or masked
+    (shadowed) samples, bias it — the lobe search corrects that.
+
+    Parameters
+    ----------
+    y : (N, L) float64, diffuse brightness
+    w : (N, L) float64, 0/1 mask of usable samples
+    lights : LightSet
+    fallback : (N, 3) float64, unit, used where the moment vanishes
+
+    Returns
+    -------
+    (N, 3) float64, unit
+    """
+    m = (y * w * lights.solid_angles) @ lights.directions
+    nrm = np.linalg.norm(m, axis=1, keepdims=True)
+    ok = nrm > 1e-300
+    return np.where(ok, m / np.where(ok, nrm, 1.0), fallback)
+
+
+def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
+    """Lambertian-lobe fit ``y_l ≈ k max(0, n·l)`` by coarse-to-fine direct search (§4.2).
+
+    Minimises the relative weighted misfit (weights ``w δA``) over n, with the best k ≥ 0 in
+    closed form for each candidate; the search moves n in its tangent plane around
+    ``n_start`` (Debevec et al. 2000 §4.2: "fit a Lambertian lobe to the diffuse component,
+    using a coarse-to-fine direct search").
+
+    Returns
+    -------
+    n : (N, 3) float64, unit
+    k : (N,) float64, the lobe's scale (= albedo / π for a Lambertian surface)
+    misfit_start, misfit : (N,) float64
+        Relative misfit at ``n_start`` and at the result.
+    """
+    t1, t2 = _tangent_basis(n_start)
+    l = lights.directions
+    wd = w * lights.solid_angles
+
+    def normals(u):
+        return normalize(n_start[:, None, :] + u[..., :1] * t1[:, None, :]
+                         + u[..., 1:2] * t2[:, None, :])
+
+    def objective(u):
+        x = np.maximum(np.einsum("nkc,lc->nkl", normals(u), l), 0.0)
+        return _lobe_misfit(y[:, None, :], wd, x)
+
+    u0 = np.zeros((n_start.shape[0], 2))
+    misfit_start = objective(u0[:, None, :])[:, 0]
+    u, misfit = direct_search(objective, u0, depth.normal_step, depth.levels, depth.moves)
+    n = normals(u[:, None, :])[:, 0]
+    x = np.maximum(n @ l.T, 0.0)
+    sxx = np.sum(wd * x * x, axis=1)
+    k = np.where(sxx > 0, np.sum(wd * y * x, axis=1) / np.where(sxx > 0, sxx, 1.0), 0.0)
+    return n, np.maximum(k, 0.0), misfit_start, misfit
+
+
+def initial_diffuse_chromaticity(R, valid):
+    """Initial uniform diffuse chromaticity d_0 (§4.2).
+
+    The median of the red/green and of the green/blue ratios over the samples whose brightness
+    lies in :data:`D0_BRIGHTNESS_RANGE` times the function's 90th-percentile brightness;
+    ``d_0 = normalize(r/g, 1, 1/(g/b))``.
+
+    Parameters
+    ----------
+    R : (N, L, 3) float64, white balanced
+    valid : (N, L) bool, unshadowed and unsaturated
+
+    Returns
+    -------
+    d_0 : (N, 3) float64, unit; the light colour where no sample qualifies.
+    found : (N,) bool
+    """
+    b = R.sum(axis=2)
+    bv = np.where(valid, b, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        p90 = np.nan_to_num(np.nanpercentile(bv, 90, axis=1), nan=0.0)
+        lo, hi = D0_BRIGHTNESS_RANGE
+        sel = valid & (b >= lo * p90[:, None]) & (b <= hi * p90[:, None])
+        sel &= (R[..., 1] > 0) & (R[..., 2] > 0) & (R[..., 0] >= 0)
+        G = np.where(sel, R[..., 1], 1.0)
+        rg = np.where(sel, R[..., 0] / G, np.nan)
+        gb = np.where(sel, R[..., 1] / np.where(sel, R[..., 2], 1.0), np.nan)
+        mrg = np.nanmedian(rg, axis=1)
+        mgb = np.nanmedian(gb, axis=1)
+    found = np.isfinite(mrg) & np.isfinite(mgb) & (mgb > 0)
+    d = np.stack([np.where(found, mrg, 1.0), np.ones_like(mrg),
+                  np.where(found, 1.0 / np.where(found, mgb, 1.0), 1.0)], axis=1)
+    d = normalize(d, fallback=S_WHITE)
+    # Project onto the plane through s that the function's colours span (the plane of
+    # diffuse chromaticities and light colour, §4.1): the two medians come from different
+    # samples, so (r/g, 1, b/g) can sit slightly off it, and then no ramp of Eq. 6 reaches
+    # the data. The plane's normal e ⊥ s is the least-scatter direction of R in s's complement.
+    b1 = normalize(np.cross(S_WHITE, [1.0, 0.0, 0.0]))
+    b2 = np.cross(S_WHITE, b1)
+    w = valid.astype(np.float64)
+    u1, u2 = R @ b1, R @ b2
+    a, b, c = (np.sum(w * u1 * u1, 1), np.sum(w * u1 * u2, 1), np.sum(w * u2 * u2, 1))
+    # smallest-eigenvalue eigenvector of [[a, b], [b, c]]
+    lam = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    ex = np.where(np.abs(b) > 1e-300, b, np.where(a <= c, 1.0, 0.0))
+    ey = np.where(np.abs(b) > 1e-300, lam - a, np.where(a <= c, 0.0, 1.0))
+    e = normalize(ex[:, None] * b1 + ey[:, None] * b2, fallback=b1)
+    spread = (a + c) > 0
+    dp = normalize(d - np.sum(d * e, 1, keepdims=True) * e, fallback=S_WHITE)
+    d = np.where((found & spread)[:, None], dp, d)
+    return d, found
+
+
+def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
+    """α_0, α_1 of Eq. 7 by coarse-to-fine direct search (Debevec et al. 2000, §4.2).
+
+    d_0 stays fixed (the paper's representative chromaticity). For each candidate (α_0, α_1)
+    the function is separated with the ramp's per-sample chromaticity (Eq. 6 + §4.2) and the
+    candidate scored by how far the separated diffuse coefficient μ_d is from a Lambertian
+    lobe ``k max(0, n·l)`` (relative weighted misfit), with samples near the mirror direction
+    ``r = 2(n·v)n − v`` down-weighted by ``1 − exp(−(1 − l·r)/σ)``.
+
+    Deviation from the paper: the paper fits "the observed chromaticities in the original
+    unseparated reflectance function". Observed chromaticities include the specular lobe's
+    tails, which carry the light's colour and move along the very d_0–s line the ramp moves
+    along, so that fit is biased wherever the lobe is not negligible. Scoring the separation
+    the ramp implies uses the same chromaticities but is exact on data the model made (when
+    d_0 is the model's). Note that (d_0, α_0, α_1) are only weakly identifiable together:
+    shifting d_0 along the d_0–s line and α_1 by about the same amount changes the predicted
+    chromaticities at the 1e-5 level, so α's are only comparable for the same d_0.
+
+    Parameters
+    ----------
+    R : (N, L, 3) float64, white balanced
+    w : (N, L) float64, 0/1 usable samples
+    n, v : (N, 3) float64, unit
+    d_0 : (N, 3) float64, unit
+
+    The direct search runs at the given normal; the Levenberg–Marquardt polish
+    (``depth.polish`` iterations) refines α_0, α_1 and the normal together, since the ramp
+    and the lobe are coupled through cos θ_i (a normal error biases the ramp and vice versa).
+
+    Returns
+    -------
+    alpha_0, alpha_1 : (N,) float64
+    normal : (N, 3) float64, unit (the input normal when ``depth.polish`` is 0)
+    misfit : (N,) float64
+    """
+    # only lights some function of the chunk uses (the shadowed half of the sphere drops out)
+    used = np.flatnonzero(w.any(axis=0))
+    if used.size < lights.n_lights:
+        lights = LightSet(lights.directions[used], lights.solid_angles[used],
+                          lights.intensities[used], None)
+        R, w = R[:, used], w[:, used]
+    l = lights.directions
+    s = S_WHITE
+    nv0 = np.einsum("ni,ni->n", n, v)
+    r = 2.0 * nv0[:, None] * n - v
+    wm = 1.0 - np.exp(-(1.0 - r @ l.T) / MIRROR_SIGMA)
+    wd = w * lights.solid_angles * wm
+    Rs = R @ s  # (N, L)
+    Rd = np.einsum("nlc,nc->nl", R, d_0)
+    ds = d_0 @ s
+    t1, t2 = _tangent_basis(n)
+
+    def residuals(p):
+        # p = (α_0, α_1[, u, w]): optional tangent-plane offsets of the normal
+        if p.shape[-1] == 4:
+            nk = normalize(n[:, None, :] + p[..., 2:3] * t1[:, None, :]
+                           + p[..., 3:4] * t2[:, None, :])
+        else:
+            nk = np.broadcast_to(n[:, None, :], p.shape[:2] + (3,))
+        nl = np.maximum(np.einsum("nkc,lc->nkl", nk, l), 0.0)  # (N, K, L)
+        nv = np.einsum("nkc,nc->nk", nk, v)[..., None]
+        f = ramp_f(nl, nv, p[..., 0:1], p[..., 1:2])  # (N, K, L)
+        # Eq. 6 without 3-vectors: u = (1 + f) d_0 − f s, c = u/|u|; the separation of §4.2
+        # needs only R·c, c·s and |c × s|² = (1 + f)² |d_0 × s|² / |u|²
+        g = 1.0 + f
+        uR = g * Rd[:, None, :] - f * Rs[:, None, :]
+        us = g * ds[:, None, None] - f
+        uu = np.maximum(g * g - 2.0 * f * g * ds[:, None, None] + f * f, 1e-300)
+        cross2 = g * g * (1.0 - ds * ds)[:, None, None]  # |u × s|²
+        sing = cross2 < SINGULAR_SIN2 * uu
+        mu_d = np.where(sing, uR / np.sqrt(uu),
+                        np.sqrt(uu) * (uR - Rs[:, None, :] * us) / np.where(sing, 1.0, cross2))
+        return _lobe_residuals(mu_d, wd, nl)
+
+    def objective(p):
+        r = residuals(p)
+        return np.sum(r * r, axis=-1)
+
+    x0 = np.zeros((n.shape[0], 2))
+    p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves)
+    n_out = n
+    if depth.polish and not depth.polish_normal:
+        p, misfit = gauss_newton_polish(residuals, p, iterations=depth.polish)
+    elif depth.polish:
+        p4 = np.concatenate([p, np.zeros_like(p)], axis=1)
+        p4, misfit = gauss_newton_polish(residuals, p4, iterations=depth.polish)
+        p = p4[:, :2]
+        n_out = normalize(n + p4[:, 2:3] * t1 + p4[:, 3:4] * t2)
+    return p[:, 0], p[:, 1], n_out, misfit
+
+
+def specular_energy(S, shadow, lights: LightSet, n, v, eta):
+    """Total specular energy ρ_s (Fig. 14 d): the integral of the measured microfacet distribution.
+
+    Inverting Eq. 8 per sample, ``ρ_s P(h_l) = S_l · 4 (n·v)/(F G)``; with ``dω_l = 4 (v·h) dω_h``
+    the normalisation ``∫ P cos θ_h dω_h = 1`` gives
+
+        ρ_s = Σ_l S_l (n·v)(n·h_l) / (F G (v·h_l)) δA_l
+
+    over unshadowed lights with ``F G (v·h) > 1e-6`` (a lobe hidden in shadow is not counted).
+
+    Parameters
+    ----------
+    S : (N, L) float64, the specular sample per colour channel (μ_s⁺/√3)
+    shadow : (N, L) bool
+    n, v : (N, 3) float64, unit
+
+    Returns
+    -------
+    (N,) float64, ≥ 0
+    """
+    l = lights.directions[None]
+    h = normalize(l + v[:, None, :], fallback=n[:, None, :] * np.ones_like(l))
+    nl = n @ lights.directions.T
+    nv = np.einsum("ni,ni->n", n, v)[:, None]
+    nh = np.einsum("nlc,nc->nl", h, n)
+    vh = np.einsum("nlc,nc->nl", h, v)
+    F = fresnel_dielectric(vh, eta)
+    G = torrance_sparrow_geometry(nl, nv, nh, vh)
+    den = F * G * vh
+    ok = (~shadow) & (den > 1e-6) & (nl > 0) & (nv > 0)
+    val = np.where(ok, S * np.maximum(nv, 0.0) * np.maximum(nh, 0.0) / np.where(ok, den, 1.0), 0.0)
+    return np.maximum(val @ lights.solid_angles, 0.0)
+
+
+def check_reflectance(R, lights: LightSet):
+    """Validate reflectance functions: ``(N, L, 3)``, ``(N, L, 1)`` or ``(N, L)``, finite, ≥ 0.
+
+    Returns ``(R float64 (N, L, C), single_channel)``.
+    """
+    R = as_array(R, "R", dtype=None)
+    if R.ndim == 2:
+        R = R[..., None]
+    if R.ndim != 3 or R.shape[2] not in (1, 3):
+        raise ShapeError(f"R: expected shape (N, L, 3), (N, L, 1) or (N, L), got {R.shape}")
+    if R.shape[1] != lights.n_lights:
+        raise ShapeError(f"R: expected {lights.n_lights} lights on axis 1 (the light set's), "
+                         f"got shape {R.shape}")
+    R = R.astype(np.float64)
+    if np.any(R < 0):
+        raise InputError("R: reflectance must be >= 0 (subtract the ambient frame and clip)")
+    return R, R.shape[2] == 1
+
+
+def check_views(v, N):
+    v = as_array(v, "v")
+    if v.shape == (3,):
+        v = np.broadcast_to(v, (N, 3))
+    if v.shape != (N, 3):
+        raise ShapeError(f"v: expected shape (3,) or ({N}, 3), got {v.shape}")
+    return check_unit_vectors(v, "v")
+
+
+def check_mask(mask, name, N, L):
+    if mask is None:
+        return np.zeros((N, L), bool)
+    m = np.asarray(mask)
+    if m.dtype != bool:
+        raise InputError(f"{name}: expected a bool array, got dtype {m.dtype}")
+    if m.shape != (N, L):
+        raise ShapeError(f"{name}: expected shape ({N}, {L}), got {m.shape}")
+    return m

@@ -1,0 +1,263 @@
+"""Resynthesis of reflectance functions for novel views (Debevec et al. 2000, §4.3, Eq. 9).
+
+Private module behind :mod:`facegeo.appearance.skin`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from facegeo.appearance._skin_fit import (
+    FLAG_BACKFACING,
+    FLAG_SPECULAR_IN_SHADOW,
+    FLAG_SPECULAR_SKIPPED,
+    check_views,
+)
+from facegeo.appearance._skin_model import (
+    COS_FLOOR,
+    S_WHITE,
+    LightSet,
+    invert_ramp,
+    normalize,
+    ramp_chromaticity,
+    ramp_f,
+)
+from facegeo.appearance.brdf import fresnel_dielectric, torrance_sparrow_geometry
+
+#: Functions whose specular energy is below this fraction of their total energy skip the
+#: specular resynthesis (their specular part is dropped and flagged).
+SPECULAR_SKIP = 1e-4
+
+#: A v_n within this distance of v_0 counts as the source view: the measured function is
+#: returned unchanged (the paper's guarantee, without interpolation rounding).
+SAME_VIEW_TOL = 1e-12
+
+
+@dataclass
+class Resynthesis:
+    """Reflectance functions resynthesised for a novel view.
+
+    Attributes
+    ----------
+    reflectance : (N, L, C) float32 — diffuse + specular, input units
+    diffuse, specular : (N, L, C) float32
+    flags : (N,) int32 — the fit's flags plus FLAG_SPECULAR_IN_SHADOW / FLAG_SPECULAR_SKIPPED /
+        FLAG_BACKFACING
+    """
+
+    reflectance: np.ndarray
+    diffuse: np.ndarray
+    specular: np.ndarray
+    flags: np.ndarray
+
+
+def _dot(a, b):
+    return np.einsum("...i,...i->...", a, b)
+
+
+def interpolate_on_lights(values, lights: LightSet, dirs):
+    """Values of a function on the light set, interpolated at directions ``dirs``.
+
+    On the light-stage grid: bilinear in (θ, φ) grid coordinates (wrapping in θ, clamped at the
+    polar rows); exact at the grid's nodes up to rounding. On a free light list: inverse
+    angular-distance weighting of the 3 nearest lights.
+
+    Parameters
+    ----------
+    values : (n, L, K) float64
+    lights : LightSet
+    dirs : (n, M, 3) float64, unit
+
+    Returns
+    -------
+    (n, M, K) float64
+    """
+    n, M, _ = dirs.shape
+    if lights.grid is not None:
+        nt, npf = lights.grid
+        theta = np.mod(np.arctan2(dirs[..., 0], dirs[..., 2]), 2.0 * np.pi)
+        phi = np.arccos(np.clip(dirs[..., 1], -1.0, 1.0))
+        i = theta * nt / (2.0 * np.pi) - 0.5
+        j = phi * npf / np.pi - 0.5
+        i0 = np.floor(i)
+        j0 = np.floor(j)
+        fi = (i - i0)[..., None]
+        fj = (j - j0)[..., None]
+        i0 = i0.astype(np.int64)
+        j0 = j0.astype(np.int64)
+        ia, ib = np.mod(i0, nt), np.mod(i0 + 1, nt)
+        ja, jb = np.clip(j0, 0, npf - 1), np.clip(j0 + 1, 0, npf - 1)
+
+        def g(jj, ii):
+            return np.take_along_axis(values, (jj * nt + ii)[..., None], axis=1)
+
+        return ((1 - fj) * ((1 - fi) * g(ja, ia) + fi * g(ja, ib))
+                + fj * ((1 - fi) * g(jb, ia) + fi * g(jb, ib)))
+    cosang = np.clip(dirs @ lights.directions.T, -1.0, 1.0)  # (n, M, L)
+    k = min(3, lights.n_lights)
+    idx = np.argpartition(-cosang, k - 1, axis=2)[..., :k]
+    c = np.take_along_axis(cosang, idx, axis=2)
+    w = 1.0 / (1.0 - c + 1e-12)
+    w /= w.sum(axis=2, keepdims=True)
+    vals = np.take_along_axis(values[:, None, :, :], idx[..., None], axis=2)  # (n, M, k, K)
+    return np.einsum("nmk,nmkc->nmc", w, vals)
+
+
+def resynthesize_diffuse(D, E, n, v0, vn, alpha_0, alpha_1, lights):
+    """Diffuse component chroma-shifted from v_0 to v_n (§4.3).
+
+    For each sample, the chrominance shift of the original view is inverted (Eq. 6 inverted,
+    with the sample's own chromaticity in place of d_0) and that of the new view applied;
+    the brightness is kept (Lambertian: view-independent).
+
+    Parameters
+    ----------
+    D : (n, L, 3) float64, input units; E : (L, 3) light intensities
+    n, v0, vn : (n, 3) float64, unit; alpha_0, alpha_1 : (n,) float64
+
+    Returns
+    -------
+    (n, L, 3) float64
+    """
+    Dw = D / E[None]
+    b = np.linalg.norm(Dw, axis=2)
+    c = normalize(Dw, fallback=S_WHITE)
+    nl = n @ lights.directions.T
+    f0 = ramp_f(nl, _dot(n, v0)[:, None], alpha_0[:, None], alpha_1[:, None])
+    fn = ramp_f(nl, _dot(n, vn)[:, None], alpha_0[:, None], alpha_1[:, None])
+    d, _ = invert_ramp(c, f0)
+    return b[..., None] * ramp_chromaticity(d, fn) * E[None]
+
+
+def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta):
+    """Specular reflectance function for a novel view by Eq. 9 (Debevec et al. 2000, §4.3).
+
+    For each light l_p: ``H = normalize(v_n + l_p)``, the source light
+    ``l_q = 2 (H·v_0) H − v_0`` that saw the same microfacets from v_0, the measured sample at
+    l_q interpolated on the light set, and
+
+        L_vn = L_v0(l_q) · G(v_n, l_p, n) F(v_n·H) (v_0·n) / (G(v_0, l_q, n) F(v_0·H) (v_n·n))
+
+    Deviation, same equation: the interpolation on the light set is applied to the measured
+    samples divided by their own view's factors, ``S(l)(v_0·n)/(G(v_0, l, n) F(v_0·h_l))`` (the
+    microfacet distribution sampled at the nodes, Fig. 12 e), rather than to S itself; at a
+    node both are identical, between nodes the smooth distribution interpolates far better
+    than a lobe whose G and F fall to zero at grazing l.
+
+    Zero (no lobe) where l_p is occluded (§4.4: never a specular lobe in a shadowed direction),
+    where l_q is below the horizon; where l_q was occluded in the source the measured sample
+    (dark) is used as is and the function flagged (a lobe hidden in shadow is unrecoverable),
+    where n·l_p ≤ 0 or n·v_n ≤ 0, and where H is undefined (l_p = −v_n). Denominators are
+    floored at COS_FLOOR; results are finite.
+
+    Parameters
+    ----------
+    sigma : (n, L) float64 — white-balanced specular sample per colour channel
+    shadow : (n, L) bool, occluded lights (``SkinFit.cast_shadow``)
+    n, v0, vn : (n, 3) float64, unit
+
+    Returns
+    -------
+    spec : (n, L) float64
+    hidden : (n,) bool — some l_q fell in a shadowed source direction with lit l_p
+    """
+    lp = lights.directions[None]
+    nv0 = _dot(n, v0)[:, None]
+    nvn = _dot(n, vn)[:, None]
+    nlp = n @ lights.directions.T  # (n, L)
+    # the measured samples as microfacet values ρ_s P(h_l) ∝ S_l (n·v_0)/(G F) on the nodes
+    h0 = normalize(lp + v0[:, None, :], fallback=n[:, None, :] * np.ones_like(lp))
+    nh0 = _dot(h0, n[:, None, :])
+    vh0 = _dot(h0, v0[:, None, :])
+    gf0 = torrance_sparrow_geometry(nlp, nv0, nh0, vh0) * fresnel_dielectric(vh0, eta)
+    good0 = gf0 > 1e-6
+    micro = np.where(good0, sigma * np.maximum(nv0, 0.0) / np.where(good0, gf0, 1.0), 0.0)
+    hv = vn[:, None, :] + lp
+    hn = np.linalg.norm(hv, axis=2)
+    H = hv / np.maximum(hn, 1e-300)[..., None]
+    Hv0 = _dot(H, v0[:, None, :])
+    lq = 2.0 * Hv0[..., None] * H - v0[:, None, :]
+    lq = normalize(lq, fallback=n[:, None, :] * np.ones_like(lq))
+    vals = interpolate_on_lights(np.stack([micro, shadow.astype(np.float64)], axis=2), lights, lq)
+    m_q, sh_q = vals[..., 0], vals[..., 1] > 0.5
+    nH = _dot(H, n[:, None, :])
+    nlq = _dot(lq, n[:, None, :])
+    vnH = _dot(H, vn[:, None, :])
+    G_n = torrance_sparrow_geometry(nlp, nvn, nH, vnH)
+    F_n = fresnel_dielectric(vnH, eta)
+    ok = (hn > 1e-9) & (nH > 0) & (nlp > 0) & (nlq > 0) & (nvn > 0) & (nv0 > 0) & ~shadow
+    hidden_l = ok & sh_q  # the source saw these microfacets only through an occluded light
+    spec = np.where(ok, m_q * G_n * F_n / np.maximum(nvn, COS_FLOOR), 0.0)
+    return np.maximum(spec, 0.0), hidden_l.any(axis=1)
+
+
+def resynthesize(fit, v_n, *, view_independent_form: bool = False,
+                 specular_skip: float = SPECULAR_SKIP) -> Resynthesis:
+    """Reflectance functions as seen from a novel view v_n (Debevec et al. 2000, §4.3, Fig. 12).
+
+    Diffuse: chroma-shifted from v_0 to v_n (:func:`resynthesize_diffuse`). Specular: Eq. 9
+    (:func:`resynthesize_specular`). Functions whose v_n equals v_0 (within SAME_VIEW_TOL) get
+    the measured function back unchanged — the paper's guarantee. Functions whose specular
+    energy is below ``specular_skip`` of their total skip the specular work
+    (FLAG_SPECULAR_SKIPPED). With ``view_independent_form`` the functions are first
+    transformed to the view-independent form (v = n, Fig. 12 e; :func:`view_independent`) and
+    resynthesised from there. Single-channel fits keep their (diffuse) function unchanged.
+
+    Parameters
+    ----------
+    fit : SkinFit
+    v_n : (3,) or (N, 3) array_like, unit, the light set's frame
+
+    Returns
+    -------
+    Resynthesis
+    """
+    N, L, C = fit.diffuse.shape
+    vn = check_views(v_n, N)
+    if view_independent_form:
+        fit = view_independent(fit, specular_skip=specular_skip)
+    flags = fit.flags.astype(np.int32).copy()
+    D = fit.diffuse.astype(np.float64)
+    S = fit.specular.astype(np.float64)
+    same = np.linalg.norm(vn - fit.view, axis=1) <= SAME_VIEW_TOL
+    back = np.einsum("ni,ni->n", fit.normal, vn) <= 0
+    flags |= np.where(back, FLAG_BACKFACING, 0).astype(np.int32)
+    D_new = D.copy()
+    S_new = S.copy()
+    todo = np.flatnonzero(~same)
+    if fit.single_channel or todo.size == 0:
+        return Resynthesis((D_new + S_new).astype(np.float32), D_new.astype(np.float32),
+                           S_new.astype(np.float32), flags)
+    E = fit.lights.intensities
+    n, v0 = fit.normal[todo], fit.view[todo]
+    D_new[todo] = resynthesize_diffuse(D[todo], E, n, v0, vn[todo], fit.alpha_0[todo],
+                                       fit.alpha_1[todo], fit.lights)
+    sigma = (S[todo] / E[None]).mean(axis=2)
+    total = np.abs((D[todo] + S[todo]) / E[None]).mean(axis=2) @ fit.lights.solid_angles
+    energy = sigma @ fit.lights.solid_angles
+    do_spec = energy > specular_skip * np.maximum(total, 1e-300)
+    flags[todo[~do_spec]] |= FLAG_SPECULAR_SKIPPED
+    S_new[todo] = 0.0
+    ts = todo[do_spec]
+    if ts.size:
+        spec, hidden = resynthesize_specular(sigma[do_spec], fit.cast_shadow[ts], fit.normal[ts],
+                                             fit.view[ts], vn[ts], fit.lights, fit.eta)
+        S_new[ts] = spec[..., None] * E[None]
+        flags[ts[hidden]] |= FLAG_SPECULAR_IN_SHADOW
+    D_new[back] = 0.0
+    S_new[back] = 0.0
+    return Resynthesis((D_new + S_new).astype(np.float32), D_new.astype(np.float32),
+                       S_new.astype(np.float32), flags)
+
+
+def view_independent(fit, *, specular_skip: float = SPECULAR_SKIP):
+    """The fit's functions transformed to the view-independent form v = n (Fig. 12 e).
+
+    Returns a copy of ``fit`` whose view is the normal and whose diffuse and specular
+    components are those resynthesised for v_n = n; resynthesis from it no longer needs v_0.
+    """
+    r = resynthesize(fit, fit.normal, specular_skip=specular_skip)
+    return replace(fit, view=fit.normal.copy(), diffuse=r.diffuse, specular=r.specular,
+                   flags=r.flags)

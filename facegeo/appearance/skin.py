@@ -1,0 +1,361 @@
+"""The paper's skin reflectance model: separation, normals, chromaticity ramp, shadow maps and
+resynthesis of reflectance functions for novel views (Debevec et al. 2000, §4, Eq. 5–9).
+
+This is the paper's model implemented exactly — not the generator's deliberately mismatched
+BRDF of :mod:`facegeo.appearance.brdf` (whose RGB α's also change brightness). Pieces:
+
+* :func:`ramp_f`, :func:`ramp_chromaticity` — the diffuse chromaticity ramp, Eq. 6–7;
+* :func:`paper_reflectance` — the model evaluated exactly ("paper mode", forward);
+* :func:`separate_colour` — the colour-space separation of §4.2;
+* :func:`fit_reflectance` — the whole analysis of §4.2 with the shadow maps of §4.4;
+* :func:`resynthesize` — new reflectance functions for a novel view, §4.3 with Eq. 9.
+
+Reflectance functions are ``(N, L, 3)`` float32 (linear RGB OLAT radiance, one row per texel or
+pixel, one column per light of a :class:`LightSet`); directions are unit vectors in the light
+set's frame. Per-function numerical trouble never raises and never yields NaN or inf: results
+are finite fallbacks with bits set in ``flags`` (:data:`FLAG_NAMES`) and ``valid`` False.
+
+References
+----------
+.. [1] P. Debevec et al., "Acquiring the Reflectance Field of a Human Face", SIGGRAPH 2000, §4.
+.. [2] K. E. Torrance, E. M. Sparrow, "Theory for off-specular reflection from roughened
+   surfaces", JOSA 57(9), 1967.
+.. [3] W.-C. Ma et al., "Rapid Acquisition of Specular and Diffuse Normal Maps from Polarized
+   Spherical Gradient Illumination", EGSR 2007 (first-moment normals).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from facegeo.checks import as_array, check_unit_vectors
+
+from facegeo.appearance._skin_fit import (
+    FLAG_BACKFACING,
+    FLAG_BLACK,
+    FLAG_GRAZING_VIEW,
+    FLAG_NAMES,
+    FLAG_SATURATED,
+    FLAG_SHADOWED,
+    FLAG_SINGLE_CHANNEL,
+    FLAG_SINGULAR,
+    FLAG_SPECULAR_IN_SHADOW,
+    FLAG_SPECULAR_SKIPPED,
+    GRAZING_COS,
+    MIN_SAMPLES,
+    SHADOW_THRESHOLD,
+    SearchDepth,
+    check_mask,
+    check_reflectance,
+    check_views,
+    direct_search,
+    fit_lambertian_lobe,
+    fit_ramp,
+    initial_diffuse_chromaticity,
+    moment_normal,
+    specular_energy,
+)
+from facegeo.appearance._skin_model import (
+    S_WHITE,
+    LightSet,
+    SkinParams,
+    invert_ramp,
+    normalize,
+    paper_reflectance,
+    ramp_chromaticity,
+    ramp_f,
+    separate_colour,
+    specular_sample,
+)
+from facegeo.appearance._skin_resynth import Resynthesis, resynthesize, view_independent
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "LightSet", "SkinParams", "SkinFit", "SearchDepth", "Resynthesis",
+    "ramp_f", "ramp_chromaticity", "invert_ramp", "specular_sample", "paper_reflectance",
+    "separate_colour", "shadow_map", "fit_reflectance", "resynthesize", "view_independent",
+    "direct_search", "flag_names", "check_mask", "FLAG_NAMES", "FLAG_BLACK", "FLAG_SINGULAR", "FLAG_SHADOWED",
+    "FLAG_SATURATED", "FLAG_SINGLE_CHANNEL", "FLAG_GRAZING_VIEW", "FLAG_SPECULAR_IN_SHADOW",
+    "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
+]
+
+#: Reflectance functions per chunk of the analysis (bounds the (chunk, candidates, L, 3)
+#: temporaries of the ramp search to ≈ 60 MB at 2048 lights).
+CHUNK = 64
+
+
+@dataclass
+class SkinFit:
+    """Result of :func:`fit_reflectance` for N reflectance functions.
+
+    Attributes
+    ----------
+    lights : LightSet
+    view : (N, 3) float64, unit
+        v_0, toward the camera that measured each function.
+    normal : (N, 3) float64, unit
+        n_d: the Lambertian-lobe normal of the final diffuse component (Fig. 14 b).
+    normal_moment : (N, 3) float64, unit
+        Closed-form first-moment normal Σ D ω δA of the initial diffuse component (Ma 2007).
+    normal_initial : (N, 3) float64, unit
+        Lobe-search normal of the initial (uniform-d_0) separation, which the ramp fit used.
+    lobe_misfit_moment, lobe_misfit : (N,) float64
+        Relative misfit 1 − cos² of the Lambertian lobe to the initial diffuse brightness at
+        the moment normal and at the searched normal (how much the search improves).
+    d_0 : (N, 3) float64, unit; alpha_0, alpha_1 : (N,) float64
+        The chromaticity ramp (Eq. 6–7).
+    rho_d : (N, 3) float64
+        Diffuse albedo a·d_0 (Fig. 14 c), white-balanced.
+    rho_s : (N,) float64
+        Specular energy (Fig. 14 d).
+    diffuse, specular : (N, L, C) float32
+        D and S of the final separation, in the input's units (D + S = R).
+    shadow : (N, L) bool
+        Shadow map (§4.4): thresholded brightness or the caller's visibility; the analysis
+        ignores these samples. Includes attached shadows (n·l ≤ 0) and the dark terminator.
+    cast_shadow : (N, L) bool
+        The part of ``shadow`` that the fitted diffuse lobe says should be lit (brighter than
+        twice the threshold), plus every light the caller's visibility hides: occluded lights.
+        Resynthesis puts no specular lobe there (§4.4).
+    saturated : (N, L) bool
+    flags : (N,) int32; valid : (N,) bool
+    eta : float
+    single_channel : bool
+    """
+
+    lights: LightSet
+    view: np.ndarray
+    normal: np.ndarray
+    normal_moment: np.ndarray
+    normal_initial: np.ndarray
+    lobe_misfit_moment: np.ndarray
+    lobe_misfit: np.ndarray
+    d_0: np.ndarray
+    alpha_0: np.ndarray
+    alpha_1: np.ndarray
+    rho_d: np.ndarray
+    rho_s: np.ndarray
+    diffuse: np.ndarray
+    specular: np.ndarray
+    shadow: np.ndarray
+    cast_shadow: np.ndarray
+    saturated: np.ndarray
+    flags: np.ndarray
+    valid: np.ndarray
+    eta: float
+    single_channel: bool
+
+    @property
+    def reflectance(self) -> np.ndarray:
+        """D + S, ``(N, L, C)`` float32: the measured functions (the separation recombines)."""
+        return self.diffuse + self.specular
+
+
+def flag_names(flags: int) -> list[str]:
+    """Names of the bits set in one flags value."""
+    return [name for bit, name in FLAG_NAMES.items() if int(flags) & bit]
+
+
+def shadow_map(R, *, threshold: float = SHADOW_THRESHOLD, visibility=None, saturated=None):
+    """Shadow map of each reflectance function (§4.4), ``(N, L)`` bool, True = shadowed.
+
+    Brightness thresholding as in the paper (Fig. 13): a sample is shadowed when its brightness
+    (sum over channels) is below ``threshold`` times the function's 99th-percentile brightness
+    over unsaturated samples. Beyond the paper, an externally computed ``visibility`` ``(N, L)``
+    bool (e.g. Embree shadow rays toward each light; True = the light is visible) marks every
+    invisible light shadowed too. Attached shadows (n·l ≤ 0) are dark and come out shadowed.
+
+    Parameters
+    ----------
+    R : (N, L, C) array_like, ≥ 0
+    threshold : float in (0, 1)
+    visibility, saturated : (N, L) bool, optional
+    """
+    R = np.asarray(R, np.float64)
+    if R.ndim == 2:
+        R = R[..., None]
+    N, L = R.shape[:2]
+    if not 0.0 < float(threshold) < 1.0:
+        from facegeo.errors import InputError
+
+        raise InputError(f"threshold: expected a fraction in (0, 1), got {threshold!r}")
+    sat = check_mask(saturated, "saturated", N, L)
+    b = R.sum(axis=2)
+    ref = np.percentile(np.where(sat, 0.0, b), 99, axis=1)
+    shadow = b <= threshold * ref[:, None]
+    if visibility is not None:
+        shadow |= ~check_mask(visibility, "visibility", N, L)
+    return shadow
+
+
+def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: float | None = None,
+                    eta: float = 1.4, depth: SearchDepth | None = None,
+                    shadow_threshold: float = SHADOW_THRESHOLD, d_0=None, rounds: int = 1,
+                    chunk: int = CHUNK) -> SkinFit:
+    """Fit the paper's skin model to reflectance functions (Debevec et al. 2000, §4.2 and §4.4).
+
+    Steps, each vectorised over a chunk of functions:
+
+    1. White-balance by the light intensities; mask saturated samples; shadow map (§4.4,
+       :func:`shadow_map`); the analysis runs on unshadowed, unsaturated samples.
+    2. Initial uniform diffuse chromaticity d_0 from the median R/G and G/B ratios in a
+       brightness range, and a colour-space separation with it (§4.2, :func:`separate_colour`).
+    3. Normal: the closed-form first moment Σ D ω δA (Ma et al. 2007), then the Lambertian-lobe
+       fit to |D| by coarse-to-fine direct search started from it (§4.2).
+    4. α_0, α_1 (Eq. 7) by coarse-to-fine direct search with samples near the mirror direction
+       down-weighted, then a Levenberg–Marquardt polish of α_0, α_1 and the normal together
+       (see :func:`facegeo.appearance._skin_fit.fit_ramp` for the criterion and why).
+    5. Final separation with the fitted ramp (Eq. 6 per sample), normal recomputed from the
+       final D, albedo ρ_d and specular energy ρ_s (Fig. 14 b–d).
+
+    Single-channel input (``(N, L)`` or ``(N, L, 1)``) cannot be separated by colour: the whole
+    function is taken as diffuse, only the lobe is fitted (``FLAG_SINGLE_CHANNEL``; logged).
+
+    Parameters
+    ----------
+    R : (N, L, 3), (N, L, 1) or (N, L) array_like, linear radiance ≥ 0
+        Reflectance functions: OLAT frame values per function and light.
+    v : (3,) or (N, 3) array_like, unit, the light set's frame
+        Toward the camera (v_0).
+    lights : LightSet
+    visibility : (N, L) bool, optional
+        True where the light is visible from the point (shadow rays); False lights are shadowed.
+    saturation : float, optional
+        Samples with any channel ≥ this value (input units) are masked as saturated.
+    eta : float
+        Index of refraction for F (ρ_s estimate).
+    depth : SearchDepth, optional
+        Coarse-to-fine search depth (default ``SearchDepth()``).
+    shadow_threshold : float
+        Fraction of the 99th-percentile brightness below which a sample is shadowed.
+    d_0 : (N, 3) array_like, unit, optional
+        Known representative diffuse chromaticity (white balanced), e.g. from a
+        cross-polarised frame or the generator; replaces the median-ratio estimate for the
+        ramp fit and the final separation. (d_0, α_0, α_1) are only weakly identifiable
+        together, so α's are comparable only for the same d_0.
+    rounds : int
+        Alternations of ramp fit → final separation → normal (the paper does one; with the
+        default joint polish a second changes little).
+    chunk : int
+        Functions per vectorised chunk.
+
+    Returns
+    -------
+    SkinFit
+    """
+    R, single = check_reflectance(R, lights)
+    N, L, C = R.shape
+    v = check_views(v, N)
+    if d_0 is not None:
+        d_0 = check_unit_vectors(as_array(d_0, "d_0", shape=(N, 3)), "d_0", tol=1e-6)
+    depth = depth or SearchDepth()
+    eta = float(eta)
+    if not (np.isfinite(eta) and eta > 1.0):
+        from facegeo.errors import InputError
+
+        raise InputError(f"eta: expected an index of refraction > 1, got {eta!r}")
+    E = lights.intensities if not single else lights.intensities.mean(axis=1, keepdims=True)
+    Rw = R / E[None]
+    sat = (R >= float(saturation)).any(axis=2) if saturation is not None else np.zeros((N, L), bool)
+    shadow = shadow_map(Rw, threshold=shadow_threshold, visibility=visibility, saturated=sat)
+    hidden = np.zeros((N, L), bool) if visibility is None else ~check_mask(
+        visibility, "visibility", N, L)
+    if single:
+        log.info("single-channel reflectance functions: colour separation is impossible; "
+                 "fitting the diffuse lobe alone")
+    out = {k: [] for k in ("n", "nm", "n1", "mm", "m1", "d0", "a0", "a1", "rd", "rs", "D", "S",
+                           "flags", "cast")}
+    for i in range(0, N, max(1, int(chunk))):
+        sl = slice(i, min(N, i + int(chunk)))
+        res = _fit_chunk(Rw[sl], v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
+                         shadow_threshold,
+                         None if d_0 is None else d_0[sl], rounds)
+        for k in out:
+            out[k].append(res[k])
+    cat = {k: np.concatenate(val) if val else np.zeros((0,)) for k, val in out.items()}
+    flags = cat["flags"].astype(np.int32)
+    D = (cat["D"] * E[None]).astype(np.float32)
+    S = R.astype(np.float32) - D  # D + S = R up to one float32 rounding
+    valid = (flags & (FLAG_BLACK | FLAG_SHADOWED)) == 0
+    return SkinFit(lights=lights, view=v, normal=cat["n"], normal_moment=cat["nm"],
+                   normal_initial=cat["n1"], lobe_misfit_moment=cat["mm"], lobe_misfit=cat["m1"],
+                   d_0=cat["d0"], alpha_0=cat["a0"], alpha_1=cat["a1"], rho_d=cat["rd"],
+                   rho_s=cat["rs"], diffuse=D, specular=S, shadow=shadow,
+                   cast_shadow=cat["cast"] | hidden, saturated=sat,
+                   flags=flags, valid=valid, eta=eta, single_channel=single)
+
+
+def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, rounds):
+    """§4.2 on one chunk of white-balanced functions R ``(n, L, C)``; see :func:`fit_reflectance`."""
+    n_f, L, C = R.shape
+    l = lights.directions
+    flags = np.zeros(n_f, np.int64)
+    valid_s = ~shadow & ~sat
+    flags |= np.where(sat.any(axis=1), FLAG_SATURATED, 0)
+    b = R.sum(axis=2)
+    black = ~(np.where(sat, 0.0, b).max(axis=1) > 1e-12)
+    few = valid_s.sum(axis=1) < MIN_SAMPLES
+    flags |= np.where(black, FLAG_BLACK, 0)
+    flags |= np.where(few & ~black, FLAG_SHADOWED, 0)
+    w = valid_s.astype(np.float64)
+    s = S_WHITE
+    if single:
+        flags |= FLAG_SINGLE_CHANNEL
+        d0 = np.broadcast_to(s, (n_f, 3)).copy()
+        D0 = R
+        y0 = R[..., 0]
+    else:
+        d0, found = initial_diffuse_chromaticity(R, valid_s)
+        if d_0 is not None:
+            d0 = d_0
+        D0, _, _, _, _, sing = separate_colour(R, d0[:, None, :], s)
+        flags |= np.where(sing[:, 0], FLAG_SINGULAR, 0)
+        y0 = np.linalg.norm(D0, axis=2)
+    nm = moment_normal(y0, w, lights, v)
+    n1, _, mm, m1 = fit_lambertian_lobe(y0, w, lights, nm, depth)
+    if single:
+        a0 = np.zeros(n_f)
+        a1 = np.zeros(n_f)
+        D = R
+        Smu = np.zeros((n_f, L))
+        n = n1
+    else:
+        n = n1
+        for _ in range(max(1, int(rounds))):
+            # the polish moves the normal with the ramp; it only serves the ramp fit
+            a0, a1, n_ramp, _ = fit_ramp(R, w, lights, n, v, d0, depth)
+            nl = n_ramp @ l.T
+            nv = np.einsum("ni,ni->n", n_ramp, v)
+            c = ramp_chromaticity(d0[:, None, :],
+                                  ramp_f(nl, nv[:, None], a0[:, None], a1[:, None]))
+            D, _, _, mu_s, _, sing2 = separate_colour(R, c, s)
+            # normal recomputed from the final diffuse component (§4.2, Fig. 14 b)
+            n, _, _, _ = fit_lambertian_lobe(np.linalg.norm(D, axis=2), w, lights, n1, depth)
+        sing_any = (flags & FLAG_SINGULAR) != 0
+        a0 = np.where(sing_any, 0.0, a0)
+        a1 = np.where(sing_any, 0.0, a1)
+        flags |= np.where(sing2.any(axis=1), FLAG_SINGULAR, 0)
+        Smu = np.maximum(mu_s, 0.0) / np.sqrt(3.0)
+    y = np.linalg.norm(D, axis=2) if not single else D[..., 0]
+    wd = w * lights.solid_angles
+    x = np.maximum(n @ l.T, 0.0)
+    sxx = np.sum(wd * x * x, axis=1)
+    k = np.where(sxx > 0, np.sum(wd * y * x, axis=1) / np.where(sxx > 0, sxx, 1.0), 0.0)
+    rho_d = np.pi * np.maximum(k, 0.0)[:, None] * d0
+    ref = np.percentile(np.where(sat, 0.0, np.linalg.norm(R, axis=2)), 99, axis=1)
+    cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
+    nv = np.einsum("ni,ni->n", n, v)
+    flags |= np.where(nv < GRAZING_COS, FLAG_GRAZING_VIEW, 0)
+    rho_s = specular_energy(Smu, shadow, lights, n, v, eta) if not single else np.zeros(n_f)
+    # fallbacks for functions without enough data: finite, flagged
+    bad = black | few
+    n = np.where(bad[:, None], np.where(black[:, None], v, nm), n)
+    n1 = np.where(black[:, None], v, n1)
+    rho_d = np.where(bad[:, None], 0.0, rho_d)
+    rho_s = np.where(bad, 0.0, rho_s)
+    return {"n": n, "nm": nm, "n1": n1, "mm": mm, "m1": m1, "d0": d0, "a0": a0, "a1": a1,
+            "rd": rho_d, "rs": rho_s, "D": D, "S": R - D, "flags": flags, "cast": cast}

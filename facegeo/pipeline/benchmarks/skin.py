@@ -1,0 +1,94 @@
+"""Benchmarks of facegeo.appearance.skin (Debevec et al. 2000 §4): reflectance functions fitted
+per second at 2048 lights (the paper's 64 × 32 grid), resynthesis per second, and the
+coarse-to-fine search depth against the error it buys.
+
+Data are paper-mode functions (:func:`facegeo.appearance.skin.paper_reflectance`, the model
+that is fitted, so the error column is the fit's own error, not a model mismatch) on random
+normals within 25° of the view; the known d_0 is passed so that α errors are meaningful.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facegeo.pipeline.bench import BenchRow, best_of, register
+
+
+def _case(n: int, seed: int, n_theta: int = 64, n_phi: int = 32):
+    from facegeo.appearance import skin
+
+    rng = np.random.default_rng(seed)
+    lights = skin.LightSet.from_grid(n_theta, n_phi)
+    ang = np.radians(rng.uniform(0, 25, n))
+    az = rng.uniform(0, 2 * np.pi, n)
+    nrm = np.stack([np.sin(ang) * np.cos(az), np.sin(ang) * np.sin(az), np.cos(ang)], 1)
+    chroma = skin.normalize(np.array([0.8, 0.5, 0.35]) + rng.normal(0, 0.05, (n, 3)))
+    p = skin.SkinParams(rng.uniform(0.3, 0.7, (n, 1)) * chroma, rng.uniform(0.2, 0.4, n),
+                        rng.uniform(-0.5, -0.2, n), rng.uniform(0.3, 0.8, n),
+                        rng.uniform(0.3, 0.45, n))
+    v0 = np.array([0.0, 0.0, 1.0])
+    return lights, nrm, p, v0, skin.paper_reflectance(nrm, v0, lights, p)
+
+
+def _errors(fit, nrm, p):
+    ang = np.degrees(np.arccos(np.clip(np.sum(fit.normal * nrm, 1), -1, 1)))
+    return {
+        "normal median error, deg": float(np.median(ang)),
+        "normal max error, deg": float(np.max(ang)),
+        "alpha_0 max rel error": float(np.max(np.abs(fit.alpha_0 / p.alpha_0 - 1))),
+        "rho_s median rel error": float(np.median(np.abs(fit.rho_s / p.rho_s - 1))),
+        "moment normal median error, deg": float(np.median(np.degrees(np.arccos(
+            np.clip(np.sum(fit.normal_moment * nrm, 1), -1, 1))))),
+    }
+
+
+@register("skin.fit")
+def bench_fit(quick: bool) -> list[BenchRow]:
+    from facegeo.appearance import skin
+
+    n = 32 if quick else 128
+    lights, nrm, p, v0, R = _case(n, 1)
+    d0 = skin.normalize(p.rho_d)
+    rows = []
+    for levels, polish in ((4, 3), (7, 6), (10, 10), (14, 20)):
+        depth = skin.SearchDepth(levels=levels, alpha_levels=min(levels, 4), polish=polish)
+        t, fit = best_of(lambda: skin.fit_reflectance(R, v0, lights, d_0=d0, depth=depth),
+                         repeat=1)
+        e = _errors(fit, nrm, p)
+        rows.append(BenchRow(
+            "skin.fit", f"fit_reflectance, 2048 lights, depth {levels} levels + {polish} LM",
+            n / t, "functions/s", error=e["normal median error, deg"],
+            error_unit="median normal error, degrees (paper mode)",
+            extra={**e, "n": n, "seconds": t,
+                   "paper preset 200k texels, extrapolated minutes": 200_000 / (n / t) / 60},
+        ))
+    t, fit = best_of(lambda: skin.fit_reflectance(R, v0, lights), repeat=1)
+    e = _errors(fit, nrm, p)
+    rows.append(BenchRow(
+        "skin.fit", "fit_reflectance, 2048 lights, default depth, d_0 from median ratios",
+        n / t, "functions/s", error=e["normal median error, deg"],
+        error_unit="median normal error, degrees (paper mode)", extra={**e, "n": n}))
+    return rows
+
+
+@register("skin.resynthesize")
+def bench_resynthesize(quick: bool) -> list[BenchRow]:
+    from facegeo.appearance import skin
+
+    n = 32 if quick else 128
+    lights, nrm, p, v0, R = _case(n, 2)
+    fit = skin.fit_reflectance(R, v0, lights, d_0=skin.normalize(p.rho_d))
+    rows = []
+    for deg in (30.0, 60.0):
+        a = np.radians(deg)
+        vn = np.array([np.sin(a), 0.0, np.cos(a)])
+        truth = skin.paper_reflectance(nrm, vn, lights, p)
+        t, out = best_of(lambda: skin.resynthesize(fit, vn), repeat=2 if quick else 3)
+        rel = float(np.sqrt(np.sum((out.reflectance - truth) ** 2) / np.sum(truth ** 2)))
+        naive = float(np.sqrt(np.sum((R - truth) ** 2) / np.sum(truth ** 2)))
+        rows.append(BenchRow(
+            "skin.resynthesize", f"resynthesize (Eq. 9), 2048 lights, view {deg:.0f}° from source",
+            n / t, "functions/s", error=rel, error_unit="relative RMSE vs paper model at v_n",
+            ratios={"error vs naive (reuse source function)": rel / naive},
+            extra={"naive relative RMSE": naive, "n": n}))
+    return rows
