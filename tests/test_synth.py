@@ -458,7 +458,7 @@ def test_renderer_validates_inputs_once_per_view():
 
 
 def test_unchecked_brdf_equals_checked():
-    from facegeo.appearance.brdf import skin_brdf, skin_brdf_unchecked
+    from facegeo.appearance.brdf import synthetic_skin_brdf, synthetic_skin_brdf_unchecked
 
     rng = np.random.default_rng(4)
     def unit(x):
@@ -466,5 +466,5 @@ def test_unchecked_brdf_equals_checked():
     n, l, v = (unit(rng.normal(size=(500, 3))) for _ in range(3))
     a0, a1 = rng.random((500, 3)), rng.random((500, 3))
     rho, m = rng.random(500), 0.2 + rng.random(500) * 0.3
-    assert np.array_equal(skin_brdf(n, l, v, a0, a1, rho, m),
-                          skin_brdf_unchecked(n, l, v, a0, a1, rho, m))
+    assert np.array_equal(synthetic_skin_brdf(n, l, v, a0, a1, rho, m),
+                          synthetic_skin_brdf_unchecked(n, l, v, a0, a1, rho, m))
