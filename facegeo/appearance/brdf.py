@@ -382,23 +382,35 @@ def _rho_dr_table(eta: float):
     return s_nodes, logm, table
 
 
+def _m_weights(m, logm):
+    """Row index and weight of roughness ``m`` in the table (log-uniform nodes, clamped)."""
+    lm = np.log(np.clip(m, RHO_DR_M_RANGE[0], RHO_DR_M_RANGE[1]))
+    y = (lm - logm[0]) * (1.0 / (logm[1] - logm[0]))
+    with np.errstate(invalid="ignore"):  # NaN inputs: any index; the NaN propagates via fy
+        j = np.clip(y.astype(np.intp), 0, len(logm) - 2)
+    return j, y - j
+
+
+def _interp_mu(table, j, fy, mu):
+    """Bilinear table value at (sqrt(μ), row j + fy); μ clipped to [0, 1]."""
+    n_mu = table.shape[1]
+    x = np.sqrt(np.clip(mu, 0.0, 1.0)) * (n_mu - 1)
+    with np.errstate(invalid="ignore"):
+        i = np.clip(x.astype(np.intp), 0, n_mu - 2)
+    fx = x - i
+    flat = table.ravel()
+    k = j * n_mu + i
+    t0 = flat[k] + fx * (flat[k + 1] - flat[k])
+    k = k + n_mu
+    t1 = flat[k] + fx * (flat[k + 1] - flat[k])
+    return t0 + fy * (t1 - t0)
+
+
 def _rho_dr_unchecked(mu, m, eta):
     """Bilinear interpolation of the ρ_dr table in (sqrt(μ), log m); μ clipped to [0, 1]."""
-    s_nodes, logm, table = _rho_dr_table(float(eta))
-    s = np.sqrt(np.clip(mu, 0.0, 1.0))
-    x = s * (len(s_nodes) - 1)
-    lm = np.log(np.clip(m, RHO_DR_M_RANGE[0], RHO_DR_M_RANGE[1]))
-    y = (lm - logm[0]) / (logm[1] - logm[0])
-    with np.errstate(invalid="ignore"):  # NaN inputs: any index; the NaN propagates via fx, fy
-        i = np.clip(x.astype(np.intp), 0, len(s_nodes) - 2)
-        j = np.clip(y.astype(np.intp), 0, len(logm) - 2)
-    fx = x - i
-    fy = y - j
-    t00 = table[j, i]
-    t01 = table[j, i + 1]
-    t10 = table[j + 1, i]
-    t11 = table[j + 1, i + 1]
-    return (1.0 - fy) * ((1.0 - fx) * t00 + fx * t01) + fy * ((1.0 - fx) * t10 + fx * t11)
+    _, logm, table = _rho_dr_table(float(eta))
+    j, fy = _m_weights(m, logm)
+    return _interp_mu(table, j, fy, mu)
 
 
 def specular_albedo(cos_theta, rho_s, m, eta: float = ETA_SKIN) -> np.ndarray:
@@ -470,9 +482,11 @@ def _diffuse_unchecked(nl, nv, a0, a1, rho_s, m, eta):
     cr = np.clip(nv, 0.0, 1.0)
     w = (ci * cr)[..., None]
     # T(θ_i) T(θ_r): the energy the specular lobe leaves (D&J 2006 Eq. 2), clipped at 0 for
-    # ρ_s > 1/ρ_dr (outside the generator's range).
-    t_io = (np.clip(1.0 - rho_s * _rho_dr_unchecked(ci, m, eta), 0.0, 1.0)
-            * np.clip(1.0 - rho_s * _rho_dr_unchecked(cr, m, eta), 0.0, 1.0))[..., None]
+    # ρ_s > 1/ρ_dr (outside the generator's range). The roughness row is found once for both.
+    _, logm, table = _rho_dr_table(float(eta))
+    j, fy = _m_weights(m, logm)
+    t_io = (np.clip(1.0 - rho_s * _interp_mu(table, j, fy, ci), 0.0, 1.0)
+            * np.clip(1.0 - rho_s * _interp_mu(table, j, fy, cr), 0.0, 1.0))[..., None]
     return np.where(valid, t_io * (a0 * w + a1 * (1.0 - w)) / np.pi, 0.0)
 
 
