@@ -221,11 +221,12 @@ def _lm(
     skipped = np.zeros(len(x), np.int64)
     eye = np.eye(3)
     for _ in range(int(iterations)):
-        H = np.einsum("nmi,nmj->nij", J, J)
-        g = np.einsum("nmi,nm->ni", J, r)
-        d = np.einsum("nii->ni", H)
-        A = H + (lam[:, None] * d + 1e-12 + (~free) * 1.0)[:, :, None] * eye
-        step = -np.einsum("nij,nj->ni", _inv3(A), g)
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite rows: counted below
+            H = np.einsum("nmi,nmj->nij", J, J)
+            g = np.einsum("nmi,nm->ni", J, r)
+            d = np.einsum("nii->ni", H)
+            A = H + (lam[:, None] * d + 1e-12 + (~free) * 1.0)[:, :, None] * eye
+            step = -np.einsum("nij,nj->ni", _inv3(A), g)
         finite_step = np.all(np.isfinite(step), axis=1)
         step = np.where(finite_step[:, None], step, 0.0) * free
         x_new = np.clip(x + step, lo, hi)
