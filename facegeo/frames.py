@@ -311,11 +311,46 @@ def direction_angles(v) -> tuple[np.ndarray, np.ndarray]:
     return theta, phi
 
 
-def nearest_light_index(v, n_theta: int, n_phi: int) -> np.ndarray:
-    """Index of the grid cell containing each direction ``(..., 3)`` (int64; -1 for zero vectors)."""
+def nearest_light_index(v, n_theta: int, n_phi: int, *, return_valid: bool = False):
+    """Index of the light-grid cell containing each direction.
+
+    Parameters
+    ----------
+    v : array_like (..., 3) float64, world frame
+        Directions toward the light; need not be unit length.
+    n_theta, n_phi : int
+        The grid (DESIGN §3 light convention).
+    return_valid : bool
+        How directions that name no cell (a zero vector, or any NaN or ±inf component) are
+        reported. False (default): raise :class:`~facegeo.errors.InputError` naming how many
+        there are and the first one. True: return them flagged instead.
+
+    Returns
+    -------
+    index : (...) int64
+        ``l = j·n_theta + i`` of the cell. With ``return_valid=True`` invalid entries hold −1,
+        which is *not* a usable index (numpy would read it as the last light): always select
+        with ``valid`` first.
+    valid : (...) bool
+        Only with ``return_valid=True``: True where ``index`` names a cell.
+    """
     n_theta, n_phi = _check_grid(n_theta, n_phi)
-    theta, phi = direction_angles(v)
-    ok = np.isfinite(theta)
-    i = np.clip(np.floor(np.nan_to_num(theta) / (2 * np.pi) * n_theta), 0, n_theta - 1)
-    j = np.clip(np.floor(np.nan_to_num(phi) / np.pi * n_phi), 0, n_phi - 1)
-    return np.where(ok, (j * n_theta + i).astype(np.int64), -1)
+    a = as_array(v, "v", shape=(..., 3), finite=False)
+    theta, phi = direction_angles(a)
+    ok = np.all(np.isfinite(a), axis=-1) & np.isfinite(theta) & np.isfinite(phi)
+    if not return_valid and not np.all(ok):
+        bad = np.argwhere(~ok)
+        first = tuple(int(k) for k in bad[0]) if bad.shape[1] else ()
+        raise InputError(
+            f"v: {int(np.count_nonzero(~ok))} direction(s) name no light cell (zero, NaN or inf); "
+            f"first at index {first}: {np.asarray(a)[first].tolist()}; expected finite non-zero "
+            "vectors (or pass return_valid=True to get them flagged)"
+        )
+    th = np.where(ok, theta, 0.0)
+    ph = np.where(ok, phi, 0.0)
+    i = np.clip(np.floor(th / (2 * np.pi) * n_theta), 0, n_theta - 1)
+    j = np.clip(np.floor(ph / np.pi * n_phi), 0, n_phi - 1)
+    index = np.where(ok, (j * n_theta + i).astype(np.int64), -1)
+    if return_valid:
+        return index, ok
+    return index

@@ -1,4 +1,5 @@
-"""Tests of facegeo.appearance.brdf: the skin reflectance model of Debevec et al. 2000, §4."""
+"""Tests of facegeo.appearance.brdf: the synthetic generator's own skin BRDF (Torrance–Sparrow
+plus an energy-weighted diffuse colour blend; deliberately not the paper's §4 fitting model)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ REL_TOL_RECIPROCITY = 1e-12  # f(l, v) vs f(v, l), relative
 TOL_BECKMANN_NORM = 1e-4  # |∫ D cos θ_h dω − 1|
 TOL_QUADRATURE = 2e-4  # directional albedo quadrature error (checked against 2× finer grid)
 TOL_DIFFUSE_ALBEDO = 1e-12  # diffuse-ramp albedo vs analytic (quadrature exact for polynomials)
+TOL_RHO_DR_TABLE = 1e-3  # max abs error of the ρ_dr table (m in the generator's 0.25–0.5)
+TOL_RHO_DR_TABLE_SHARP = 5e-3  # the same for m down to RHO_DR_M_RANGE[0] = 0.05
 
 ETA = 1.4
 ALPHA_0 = np.array([0.45, 0.30, 0.23])  # linear-sRGB skin at normal incidence
@@ -106,12 +109,12 @@ def test_helmholtz_reciprocity():
     a1 = rng.uniform(0.05, 0.9, (N, 3))
     rho_s = rng.uniform(0.0, 1.0, N)
     m = rng.uniform(0.1, 0.8, N)
-    f_lv = brdf.skin_brdf(n, l, v, a0, a1, rho_s, m)
-    f_vl = brdf.skin_brdf(n, v, l, a0, a1, rho_s, m)
+    f_lv = brdf.synthetic_skin_brdf(n, l, v, a0, a1, rho_s, m)
+    f_vl = brdf.synthetic_skin_brdf(n, v, l, a0, a1, rho_s, m)
     rel = np.abs(f_lv - f_vl) / np.maximum(np.abs(f_lv), 1e-300)
     assert rel.max() <= REL_TOL_RECIPROCITY, f"max relative asymmetry {rel.max():.3g}"
-    ramp = brdf.diffuse_chroma(a0, a1, np.sum(n * l, -1), np.sum(n * v, -1))
-    ramp_swapped = brdf.diffuse_chroma(a0, a1, np.sum(n * v, -1), np.sum(n * l, -1))
+    ramp = brdf.grazing_colour_blend(a0, a1, np.sum(n * l, -1), np.sum(n * v, -1))
+    ramp_swapped = brdf.grazing_colour_blend(a0, a1, np.sum(n * v, -1), np.sum(n * l, -1))
     assert np.array_equal(ramp, ramp_swapped), "chroma ramp symmetric in (cos_i, cos_r), exact"
 
 
@@ -222,26 +225,124 @@ def test_specular_energy_bounded(m):
     assert np.all(np.diff(albedo) > 0), "specular albedo grows toward grazing (Fresnel)"
 
 
-def test_total_energy_bounded_for_skin_colours():
-    """Total (diffuse ramp + specular, ρ_s = 1) albedo ≤ 1 at every view angle for skin
-    colours. The paper's model is additive, so a diffuse albedo near 0.9 plus the grazing
-    Fresnel lobe (≈ 0.5 at 89°) would exceed 1; skin's α stays below ≈ 0.5."""
-    worst = 0.0
-    for m in (0.2, 0.35, 0.5):
-        for deg in VIEW_DEG:
-            a = _directional_albedo(
-                np.radians(deg),
-                lambda l, v: brdf.skin_brdf(N_UP, l, v, ALPHA_0, ALPHA_1, 1.0, m),
-            )
-            worst = max(worst, float(a.max()))
-    assert worst <= 1.0, f"max total albedo over views, m and channels: {worst:.4f}"
+def _albedo_over_views(theta_r, f_of_l, n_q=192):
+    """:func:`_directional_albedo` for many view angles at once: ``(V,)`` or ``(V, 3)``."""
+    mu, w_mu = _graded(n_q, 3)
+    s, w_s = _graded(n_q, 3)
+    phi, w_phi = np.pi * (1 - s), np.pi * w_s
+    MU, PHI = np.meshgrid(mu, phi, indexing="ij")
+    sn = np.sqrt(1 - MU**2)
+    l = np.stack([sn * np.cos(PHI), sn * np.sin(PHI), MU], -1)[None]
+    th = np.asarray(theta_r, float)
+    v = np.stack([np.sin(th), 0 * th, np.cos(th)], -1)[:, None, None, :]
+    f = f_of_l(l, v)
+    w = (2.0 * MU * w_mu[:, None] * w_phi[None, :])[None]
+    if f.ndim == 4:
+        w = w[..., None]
+    return np.sum(f * w, axis=(1, 2))
+
+
+#: View angles 0…89.9° (every 5°, then dense toward grazing), for the energy bound.
+VIEW_DEG_ALL = np.concatenate([np.arange(0.0, 85.0, 5.0), [85, 86, 87, 88, 89, 89.5, 89.9]])
+#: The generator's parameter ranges (facegeo.synth.skin: α ≤ 0.95, ρ_s in (0.3, 1.0),
+#: m in (0.25, 0.5); the spectral colour model keeps ρ_s ≤ 1).
+GEN_RHO_S = (0.3, 1.0)
+GEN_M = (0.25, 0.35, 0.5)
+N_Q_ENERGY = 128  # graded Gauss–Legendre nodes per axis for the energy bound
+
+
+def test_total_energy_bounded_over_generator_ranges():
+    """Directional albedo ∫ f cos θ_i dω ≤ 1 at every view angle 0…89.9° over the generator's
+    ρ_s and roughness ranges, with α_0 = α_1 = 1 (the physical limit, above the generator's
+    0.95): the albedo is linear and non-decreasing in α_0 and α_1, so α = 1 bounds every
+    colour. The unweighted sum reached 1.43 at 89.9° (see the next test).
+
+    Quadrature error: the worst case re-integrated on a grid twice as fine changes by
+    ``change`` (< TOL_QUADRATURE), which is added to the measured maximum."""
+    th = np.radians(VIEW_DEG_ALL)
+    one = np.ones(3)
+    worst, where = 0.0, None
+    for rho in GEN_RHO_S:
+        for m in GEN_M:
+            alb = _albedo_over_views(
+                th, lambda l, v: brdf.synthetic_skin_brdf(N_UP, l, v, one, one, rho, m),
+                n_q=N_Q_ENERGY)[:, 0]
+            k = int(np.argmax(alb))
+            if alb[k] > worst:
+                worst, where = float(alb[k]), (rho, m, float(VIEW_DEG_ALL[k]))
+    rho, m, deg = where
+    fine = _albedo_over_views(
+        np.radians([deg]), lambda l, v: brdf.synthetic_skin_brdf(N_UP, l, v, one, one, rho, m),
+        n_q=2 * N_Q_ENERGY)[0, 0]
+    change = abs(fine - worst)
+    assert change < TOL_QUADRATURE, f"quadrature change {change:.2g} at (ρ_s, m, view°) {where}"
+    assert worst + change <= 1.0, (f"max albedo {worst:.5f} (+ quadrature {change:.1g}) at "
+                                   f"(ρ_s, m, view°) = {where}")
+
+
+def test_unweighted_sum_would_exceed_one():
+    """The bug the weight fixes: diffuse α = 0.95 plus the ρ_s = 1 lobe at 89.9° (no (1 − ρ_dr)
+    weight) exceeds 1, so the bound above is not vacuous."""
+    spec = _albedo_over_views(np.radians([89.9]),
+                              lambda l, v: brdf.specular_brdf(N_UP, l, v, 1.0, 0.25))
+    assert 0.95 + spec[0] > 1.4, f"unweighted albedo {0.95 + spec[0]:.3f}"
+
+
+def test_specular_albedo_table_matches_quadrature():
+    """ρ_dr from the table (off its nodes in m and μ) against a 256 × 256 quadrature of Eq. 2;
+    max abs error ≤ TOL_RHO_DR_TABLE in the generator's m range, ≤ ..._SHARP at m = 0.07."""
+    deg = np.array([0.0, 23.0, 47.0, 61.0, 77.0, 83.3, 87.1, 89.0, 89.7])
+    for m, tol in [(0.25, TOL_RHO_DR_TABLE), (0.33, TOL_RHO_DR_TABLE),
+                   (0.5, TOL_RHO_DR_TABLE), (0.07, TOL_RHO_DR_TABLE_SHARP)]:
+        ref = _albedo_over_views(np.radians(deg),
+                                 lambda l, v: brdf.specular_brdf(N_UP, l, v, 1.0, m), n_q=256)
+        got = brdf.specular_albedo(np.cos(np.radians(deg)), 1.0, m)
+        err = np.abs(got - ref).max()
+        assert err < tol, f"max abs error of the ρ_dr table {err:.2g} (m = {m})"
+        assert np.allclose(brdf.specular_albedo(np.cos(np.radians(deg)), 0.4, m), 0.4 * got,
+                           rtol=1e-14, atol=0), "linear in ρ_s, relative"
+
+
+def test_diffuse_weight_is_one_minus_rho_dr_squared():
+    """f_d = (1 − ρ_dr(θ_i))(1 − ρ_dr(θ_r)) · blend/π, against the pieces."""
+    rng = np.random.default_rng(5)
+    n = _unit(rng.normal(size=(200, 3)))
+    l = _hemisphere(rng, n, (200,))
+    v = _hemisphere(rng, n, (200,))
+    rho_s, m = rng.uniform(0.3, 1.0, 200), rng.uniform(0.25, 0.5, 200)
+    ci, cr = np.sum(n * l, -1), np.sum(n * v, -1)
+    want = ((1 - brdf.specular_albedo(ci, rho_s, m)) * (1 - brdf.specular_albedo(cr, rho_s, m)))[
+        :, None] * brdf.grazing_colour_blend(ALPHA_0, ALPHA_1, ci, cr) / np.pi
+    got = brdf.synthetic_diffuse_brdf(n, l, v, ALPHA_0, ALPHA_1, rho_s, m)
+    assert np.allclose(got, want, rtol=1e-12, atol=0), "diffuse weight, relative"
+
+
+def test_unchecked_kernel_propagates_nan():
+    """A NaN in any input of the unchecked kernel gives NaN for that sample, never 0."""
+    n = np.tile([0.0, 0.0, 1.0], (5, 1))
+    l = np.tile(_unit(np.array([0.3, 0.1, 0.9])), (5, 1))
+    v = np.tile(_unit(np.array([-0.2, 0.3, 0.9])), (5, 1))
+    a0, a1 = np.tile(ALPHA_0, (5, 1)), np.tile(ALPHA_1, (5, 1))
+    rho, m = np.full(5, 0.5), np.full(5, 0.3)
+    n[0, 2] = np.nan
+    l[1, 0] = np.nan
+    a0[2, 1] = np.nan
+    rho[3] = np.nan
+    m[4] = np.nan
+    f = brdf.synthetic_skin_brdf_unchecked(n, l, v, a0, a1, rho, m)
+    assert np.all(np.isnan(f)), f"NaN in → NaN out for every sample, got {f}"
+    ok = brdf.synthetic_skin_brdf_unchecked(n[1:2] * 0 + [0, 0, 1], v[:1], v[:1], a0[:1], a1[:1],
+                                            rho[:1], m[:1])
+    assert np.all(np.isfinite(ok)), "finite inputs stay finite"
 
 
 @pytest.mark.parametrize("deg", VIEW_DEG)
 def test_diffuse_albedo_analytic(deg):
     th = np.radians(deg)
-    got = _directional_albedo(th, lambda l, v: brdf.diffuse_brdf(N_UP, l, v, ALPHA_0, ALPHA_1),
-                              n_mu=16, n_phi=16)
+    # ρ_s = 0: no specular lobe, so the (1 − ρ_dr) weight is 1 and the blend alone remains.
+    got = _directional_albedo(
+        th, lambda l, v: brdf.synthetic_diffuse_brdf(N_UP, l, v, ALPHA_0, ALPHA_1, 0.0, 0.3),
+        n_mu=16, n_phi=16)
     want = ALPHA_1 + (2.0 / 3.0) * np.cos(th) * (ALPHA_0 - ALPHA_1)
     err = np.abs(got - want).max()
     assert err < TOL_DIFFUSE_ALBEDO, f"max abs error vs α_1 + ⅔ cos θ_r (α_0 − α_1): {err:.3g}"
@@ -264,7 +365,7 @@ def test_grazing_and_below_horizon_are_finite():
     }
     for name, (l, v) in cases.items():
         for m in (0.05, 0.35):
-            f = brdf.skin_brdf(n, l, v, ALPHA_0, ALPHA_1, 1.0, m)
+            f = brdf.synthetic_skin_brdf(n, l, v, ALPHA_0, ALPHA_1, 1.0, m)
             r = brdf.olat_radiance(n, l, v, ALPHA_0, ALPHA_1, 1.0, m)
             assert np.all(np.isfinite(f)) and np.all(np.isfinite(r)), f"finite at {name}"
             assert np.all(f >= 0) and np.all(r >= 0), f"non-negative at {name}"
@@ -294,13 +395,15 @@ def test_grazing_limits_are_finite_and_continuous():
 
 def test_flat_patch_normal_incidence_is_alpha0_over_pi():
     n = np.array([0.0, 1.0, 0.0])  # +Y up, light straight above, viewer straight above
-    fd = brdf.diffuse_brdf(n, n, n, ALPHA_0, ALPHA_1)
-    assert np.array_equal(fd, ALPHA_0 / np.pi), "diffuse at normal incidence/view = α_0/π exactly"
+    fd = brdf.synthetic_diffuse_brdf(n, n, n, ALPHA_0, ALPHA_1, 0.0, 0.3)
+    assert np.array_equal(fd, ALPHA_0 / np.pi), "ρ_s = 0: diffuse at normal = α_0/π exactly"
     m, rho = 0.3, 0.7
-    f = brdf.skin_brdf(n, n, n, ALPHA_0, ALPHA_1, rho, m)
+    f = brdf.synthetic_skin_brdf(n, n, n, ALPHA_0, ALPHA_1, rho, m)
     f0 = ((ETA - 1) / (ETA + 1)) ** 2
     spec = rho * f0 / (np.pi * m**2) / 4.0  # F(0) D(0) G=1 / (4·1·1)
-    assert np.allclose(f - ALPHA_0 / np.pi, spec, rtol=1e-14, atol=0), "specular at normal, rel"
+    t = 1.0 - brdf.specular_albedo(1.0, rho, m)
+    assert np.allclose(f - t * t * ALPHA_0 / np.pi, spec, rtol=1e-13, atol=0), \
+        "specular at normal, relative (diffuse weighted by (1 − ρ_dr(0))²)"
     E = np.array([2.0, 1.0, 0.5])
     r = brdf.olat_radiance(n, n, n, ALPHA_0, ALPHA_1, rho, m, irradiance=E)
     assert np.allclose(r, f * E, rtol=1e-15, atol=0), "radiance = f · cos θ_i · E at cos = 1"
@@ -314,24 +417,25 @@ def test_olat_radiance_cosine_and_broadcast():
     rho_s = rng.uniform(0.3, 1.0, (4, 5))
     m = rng.uniform(0.25, 0.5, (4, 5))
     r = brdf.olat_radiance(n, l, v, ALPHA_0, ALPHA_1, rho_s, m, irradiance=3.0)
-    f = brdf.skin_brdf(n, l, v, ALPHA_0, ALPHA_1, rho_s, m)
+    f = brdf.synthetic_skin_brdf(n, l, v, ALPHA_0, ALPHA_1, rho_s, m)
     cos = np.clip(np.sum(n * l, -1), 0, None)[..., None]
     assert r.shape == (4, 5, 3), "output shape broadcasts over leading axes"
-    assert np.allclose(r, 3.0 * f * cos, rtol=1e-15, atol=0), "f · max(0, n·l) · E, relative"
+    # rtol 4 ulp: f·cos·E and E·f·cos round differently in the last bit.
+    assert np.allclose(r, 3.0 * f * cos, rtol=1e-15 * 4, atol=0), "f · max(0, n·l) · E, relative"
 
 
 def test_input_validation():
     n = np.array([0.0, 1.0, 0.0])
     with pytest.raises(InputError):
-        brdf.skin_brdf(n * 2, n, n, ALPHA_0, ALPHA_1, 1.0, 0.3)  # not unit
+        brdf.synthetic_skin_brdf(n * 2, n, n, ALPHA_0, ALPHA_1, 1.0, 0.3)  # not unit
     with pytest.raises(ShapeError):
-        brdf.skin_brdf(n[:2], n, n, ALPHA_0, ALPHA_1, 1.0, 0.3)
+        brdf.synthetic_skin_brdf(n[:2], n, n, ALPHA_0, ALPHA_1, 1.0, 0.3)
     with pytest.raises(InputError):
-        brdf.skin_brdf(n, n, n, ALPHA_0, ALPHA_1, -1.0, 0.3)  # rho_s < 0
+        brdf.synthetic_skin_brdf(n, n, n, ALPHA_0, ALPHA_1, -1.0, 0.3)  # rho_s < 0
     with pytest.raises(InputError):
-        brdf.skin_brdf(n, n, n, ALPHA_0, ALPHA_1, 1.0, 0.0)  # m = 0
+        brdf.synthetic_skin_brdf(n, n, n, ALPHA_0, ALPHA_1, 1.0, 0.0)  # m = 0
     with pytest.raises(InputError):
-        brdf.skin_brdf(n, np.array([np.nan, 1.0, 0.0]), n, ALPHA_0, ALPHA_1, 1.0, 0.3)
+        brdf.synthetic_skin_brdf(n, np.array([np.nan, 1.0, 0.0]), n, ALPHA_0, ALPHA_1, 1.0, 0.3)
 
 
 def test_desaturate():

@@ -265,3 +265,79 @@ def test_from_dict_errors_name_the_field():
     d["focal"] = 3
     with pytest.raises(InputError, match=r"camera\.focal: unknown field"):
         Camera.from_dict(d)
+
+
+# --------------------------------------------------------------------------- distortion fold
+
+FOLD_REL_STEP = 1e-6  # relative step either side of the fold radius, dimensionless
+
+
+def _radial_rd(dist, r):
+    """Distorted radius r·P(r²)/Q(r²) of the radial(+rational) model, by direct evaluation."""
+    d = np.zeros(8)
+    d[: len(dist)] = dist
+    k1, k2, _, _, k3, k4, k5, k6 = d
+    s = r * r
+    return r * (1 + k1 * s + k2 * s**2 + k3 * s**3) / (1 + k4 * s + k5 * s**2 + k6 * s**3)
+
+
+@pytest.mark.parametrize("dist", [np.array([-0.5, 0.0, 0.0, 0.0]), DIST5, DIST8],
+                         ids=["k1", "n5", "n8"])
+def test_fold_radius_is_where_the_radial_model_turns(dist):
+    cam = make_camera(dist)
+    r_f = cam.fold_radius()
+    assert np.isfinite(r_f) and r_f > 0
+    if dist.size == 4:
+        assert r_f == pytest.approx(np.sqrt(2 / 3), rel=1e-12), "k1 = -0.5: r_f = sqrt(2/3), rel"
+    # r_d increases up to r_f and decreases right after it (a maximum, not a plateau).
+    r = r_f * np.array([0.5, 1 - FOLD_REL_STEP, 1.0, 1 + FOLD_REL_STEP])
+    rd = _radial_rd(dist, r)
+    assert rd[0] < rd[1] < rd[2], "r_d increasing inside the fold"
+    assert rd[3] < rd[2], "r_d decreasing beyond the fold"
+    assert make_camera(np.zeros(0)).fold_radius() == np.inf
+    assert make_camera(np.array([0.1, 0.0, 0.0, 0.0])).fold_radius() == np.inf, "k1 > 0 never folds"
+
+
+def test_points_beyond_the_fold_are_invalid_not_inside_the_image():
+    """DESIGN §7: with DIST5 the model folds at ≈ 66° off-axis; points beyond it used to project
+    back inside the image. Now they are invalid (mask False, q NaN); points just inside stay
+    valid and finite."""
+    cam = make_camera(DIST5)
+    r_f = cam.fold_radius()
+    assert 60 < np.degrees(np.arctan(r_f)) < 70, "DIST5 folds ≈ 66° off-axis"
+    az = np.radians([10.0, 100.0, 200.0, 290.0])
+    # beyond the fold the raw model's radius falls back through 0 (the image centre) at r0
+    r_scan = r_f * np.linspace(1.01, 3.0, 4000)
+    r0 = r_scan[np.argmin(np.abs(_radial_rd(DIST5, r_scan)))]
+    scale = np.array([0.999, 1.0 + 1e-9, 1.0 + FOLD_REL_STEP, r0 / r_f, 2.0, 5.0])
+    R, A = np.meshgrid(r_f * scale, az, indexing="ij")
+    x_n = np.stack([R * np.cos(A), R * np.sin(A)], -1)
+    p_cam = np.concatenate([x_n, np.ones(x_n.shape[:-1] + (1,))], -1) * 0.7
+    q, ok = cam.project_cam(p_cam)
+    assert ok[0].all() and np.isfinite(q[0]).all(), "just inside the fold: valid"
+    assert not ok[1:].any() and np.isnan(q[1:]).all(), "at and beyond the fold: invalid, NaN"
+    # the bug this guards: the raw model puts some of those far-off-axis points in the image
+    q_raw = cam.distort(x_n[3]) * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+    assert cam.in_image(q_raw).all(), "without the check points beyond the fold land inside"
+    # the same through project (world frame)
+    p_world = cam.T_cam_world.inverse().apply(p_cam)
+    q_w, ok_w = cam.project(p_world)
+    assert np.array_equal(ok_w, ok), "project and project_cam agree on validity"
+
+
+def test_unproject_is_consistent_with_the_fold():
+    """Pixels whose undistortion lands beyond the fold are invalid; every valid pixel's ray
+    projects back to the pixel (round trip ≤ ROUND_TRIP_MAX_PX) and is inside the fold."""
+    cam = make_camera(np.array([-0.5, 0.0, 0.0, 0.0]))
+    r_f = cam.fold_radius()
+    xs = np.linspace(-1.5 * W, 2.5 * W, 161)
+    ys = np.linspace(-1.5 * H, 2.5 * H, 121)
+    q = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    v, ok = cam.unproject(q, return_valid=True)
+    assert ok.any() and (~ok).any(), "the grid spans both sides of the fold"
+    assert np.isnan(v[~ok]).all(), "invalid rays are NaN"
+    assert np.all(np.hypot(v[ok, 0], v[ok, 1]) < r_f), "valid rays inside the fold"
+    q2, ok2 = cam.project_cam(v[ok])
+    assert ok2.all(), "a valid ray projects validly"
+    err = np.abs(q2 - q[ok]).max()
+    assert err <= ROUND_TRIP_MAX_PX, f"max |project(unproject(q)) − q| = {err:.3g} px"

@@ -70,8 +70,21 @@ def test_light_grid_orientation():
     assert omega[1, 0] > 0 and omega[1, 2] < 0
 
 
-def test_nearest_light_zero_vector_flagged():
-    assert nearest_light_index(np.zeros(3), 8, 4) == -1
+@pytest.mark.parametrize("bad", [[0.0, 0.0, 0.0], [np.inf, 0.0, 0.0], [0.0, -np.inf, 1.0],
+                                 [np.nan, 1.0, 0.0], [np.inf, np.inf, np.inf]])
+def test_nearest_light_invalid_direction_is_flagged_or_refused(bad):
+    """Zero, NaN and inf directions name no cell: an InputError by default, or −1 with
+    valid = False on request — never a usable index (inf used to land in a real cell)."""
+    from facegeo.errors import InputError
+
+    v = np.array([[0.3, 0.5, 0.8], bad, [0.0, -1.0, 0.0]])
+    with pytest.raises(InputError, match=r"v: 1 direction\(s\) name no light cell.*index \(1,\)"):
+        nearest_light_index(v, 8, 4)
+    idx, valid = nearest_light_index(v, 8, 4, return_valid=True)
+    assert valid.tolist() == [True, False, True], "only the bad row is invalid"
+    assert idx[1] == -1, "invalid entries hold -1"
+    assert np.array_equal(idx[valid], nearest_light_index(v[valid], 8, 4)), "valid rows unchanged"
+    assert idx[2] // 8 == 3, "straight down is in the last row"
 
 
 def test_pose_apply_invert_compose():

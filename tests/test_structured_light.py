@@ -294,8 +294,36 @@ def test_decode_gray_colour_frames_and_integer_frames():
                          min_contrast=0.005)
     assert np.array_equal(colour.proj_x[lit], grey.proj_x[lit])
     u16 = {n: np.round(f * 60000).clip(0, 65535).astype(np.uint16) for n, f in frames.items()}
-    dec16 = decode_gray(u16, spec, min_contrast=600, shadow_threshold=1200)
+    dec16 = decode_gray(u16, spec, min_contrast=0.01 * 60000 / 65535)  # thresholds: full scale
     assert np.array_equal(dec16.proj_y[lit], grey.proj_y[lit])
+    same = decode_gray(u16, spec, full_scale=60000)  # the float frames' white level
+    assert np.array_equal(same.shadow, grey.shadow), "full_scale=60000 reads u16 as the floats"
+
+
+@pytest.mark.parametrize("spec_kw", [{}, {"inverse": False}, {"inverse": False,
+                                                             "white_black": False}],
+                         ids=["inverse", "white_black", "minmax"])
+def test_integer_and_float_frames_decode_identically(spec_kw):
+    """The same frames as uint8, uint16 (= uint8 · 257) and float32 (= uint8 / 255) give the
+    same codes, the same valid mask and the same non-trivial shadow mask: thresholds are
+    fractions of full scale for every dtype (they used to be absolute, so integer frames got
+    no shadow mask)."""
+    spec = PatternSpec(PROJ_W, PROJ_H, **spec_kw)
+    frames, q, lit, _ = _scene(spec, noise=0.002)
+    u8 = {n: np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for n, f in frames.items()}
+    u16 = {n: f.astype(np.uint16) * np.uint16(257) for n, f in u8.items()}
+    f32 = {n: f.astype(np.float32) / np.float32(255) for n, f in u8.items()}
+    d8, d16, df = (decode_gray(fr, spec) for fr in (u8, u16, f32))
+    assert df.shadow.any() and (~df.shadow).any(), "the scene has shadow and lit pixels"
+    assert (df.shadow == ~lit).mean() > 0.9, "the float decode's shadow mask is the real one"
+    for name, d in (("uint8", d8), ("uint16", d16)):
+        assert np.array_equal(d.shadow, df.shadow), f"{name}: same shadow mask as float32"
+        assert np.array_equal(d.valid, df.valid), f"{name}: same valid mask as float32"
+        assert np.array_equal(d.proj_x, df.proj_x, equal_nan=True), f"{name}: same columns"
+        assert np.array_equal(d.proj_y, df.proj_y, equal_nan=True), f"{name}: same rows"
+        assert np.abs(d.contrast - df.contrast).max() < 1e-6, f"{name}: contrast, full scale"
+    with pytest.raises(InputError, match="full_scale"):
+        decode_gray(u8, spec, full_scale=0)
 
 
 def test_decode_gray_fixed_threshold_and_single_axis():

@@ -28,6 +28,7 @@ References
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from numbers import Integral
 from typing import Any
@@ -73,6 +74,37 @@ def _dist8(dist: np.ndarray) -> np.ndarray:
     d = np.zeros(8)
     d[: dist.shape[0]] = dist
     return d
+
+
+@functools.lru_cache(maxsize=256)
+def _fold_radius(dist: tuple) -> float:
+    """Normalised radius r_fold where the radial(+rational) distortion stops increasing.
+
+    Along a ray of normalised radius r the distorted radius is ``r_d(r) = r·P(s)/Q(s)``,
+    ``s = r²``, ``P = 1 + k1 s + k2 s² + k3 s³``, ``Q = 1 + k4 s + k5 s² + k6 s³`` (the radial
+    part of the model in the module docstring). ``dr_d/dr = N(s)/Q(s)²`` with
+    ``N = P Q + 2 s (P′ Q − P Q′)``, so the model folds over (or meets the pole Q = 0) at the
+    smallest positive real root of N·Q; ``inf`` when there is none. Exact (polynomial roots,
+    once per coefficient tuple, cached). Deviation: the tangential terms p1, p2 are left out
+    (they are small and make the fold direction-dependent); the fold is then that of the
+    radial model.
+    """
+    d = np.zeros(8)
+    d[: len(dist)] = dist
+    k1, k2, _p1, _p2, k3, k4, k5, k6 = d
+    P = np.polynomial.Polynomial([1.0, k1, k2, k3])
+    Q = np.polynomial.Polynomial([1.0, k4, k5, k6])
+    s = np.polynomial.Polynomial([0.0, 1.0])
+    N = P * Q + 2.0 * s * (P.deriv() * Q - P * Q.deriv())
+    best = np.inf
+    for poly in (N, Q):
+        c = poly.trim(tol=0.0).coef
+        if len(c) < 2:
+            continue  # constant 1 (+ terms exactly 0): never 0
+        for root in np.roots(c[::-1]):
+            if abs(root.imag) <= 1e-12 * max(1.0, abs(root.real)) and root.real > 0:
+                best = min(best, float(root.real))
+    return float(np.sqrt(best)) if np.isfinite(best) else np.inf
 
 
 @dataclass(frozen=True, eq=False)
@@ -315,15 +347,22 @@ class Camera:
         Returns
         -------
         q : (..., 2) float64, pixels (x = column, y = row; integers are pixel centres)
-            NaN where the point is not in front of the camera (z ≤ 0 or non-finite).
+            NaN where the point is not validly projected (see ``in_front``).
         in_front : (...,) bool
-            ``z > 0`` and finite.
+            Valid projection: ``z > 0``, finite, and inside the fold radius of the distortion
+            (:meth:`fold_radius`); a point at or beyond the fold, where the model bends back
+            and would land inside the image, is invalid (DESIGN §7).
         """
         p = as_array(p_cam, "p_cam", shape=(..., 3), finite=False)
         z = p[..., 2]
         in_front = (z > 0) & np.isfinite(p).all(axis=-1)
         with np.errstate(divide="ignore", invalid="ignore"):
             x_n = p[..., :2] / z[..., None]
+        if self.has_distortion:
+            r_fold = self.fold_radius()
+            if np.isfinite(r_fold):
+                with np.errstate(invalid="ignore"):
+                    in_front &= np.einsum("...i,...i->...", x_n, x_n) < r_fold * r_fold
         x_n[~in_front] = np.nan
         x_d = self._distort(x_n, jacobian=False)[0] if self.has_distortion else x_n
         q = np.empty(x_d.shape)
@@ -340,11 +379,25 @@ class Camera:
 
         Returns
         -------
-        q : (..., 2) float64, pixels; NaN where the point is behind the camera (z ≤ 0)
+        q : (..., 2) float64, pixels; NaN where the projection is invalid
         in_front : (...,) bool
+            Valid: in front of the camera (z > 0), finite, and closer to the axis than the
+            distortion's fold (:meth:`project_cam`).
         """
         p = as_array(p_world, "p_world", shape=(..., 3), finite=False)
         return self.project_cam(self.T_cam_world.apply(p))
+
+    def fold_radius(self) -> float:
+        """Normalised radius ``r = |(X/Z, Y/Z)|`` where the radial distortion folds over.
+
+        The distorted radius increases with r up to this radius and not beyond; ``inf`` for a
+        camera without distortion or a model that never folds. Computed once per coefficient
+        set (cached). See :func:`_fold_radius` for the formula and the deviation (tangential
+        terms ignored).
+        """
+        if not self.has_distortion:
+            return np.inf
+        return _fold_radius(tuple(float(c) for c in self.dist))
 
     def unproject(self, q, *, return_valid: bool = False):
         """Ray direction through pixels, camera frame, scaled to ``z = 1``.
@@ -358,7 +411,8 @@ class Camera:
         Returns
         -------
         v_cam : (..., 3) float64, camera frame, ``v_cam[..., 2] == 1``; NaN where the
-            undistortion failed
+            undistortion failed or converged beyond the fold radius (:meth:`fold_radius`),
+            i.e. on the branch :meth:`project` rejects
         valid : (...,) bool
             Only if ``return_valid``.
         """
@@ -367,6 +421,11 @@ class Camera:
         x_d[..., 0] = (q[..., 0] - self.K[0, 2]) / self.K[0, 0]
         x_d[..., 1] = (q[..., 1] - self.K[1, 2]) / self.K[1, 1]
         x_n, ok = self.undistort(x_d, return_converged=True)
+        r_fold = self.fold_radius()
+        if np.isfinite(r_fold):
+            with np.errstate(invalid="ignore"):
+                ok = ok & (np.einsum("...i,...i->...", x_n, x_n) < r_fold * r_fold)
+            x_n = np.where(ok[..., None], x_n, np.nan)
         v = np.empty(q.shape[:-1] + (3,))
         v[..., :2] = x_n
         v[..., 2] = np.where(ok, 1.0, np.nan)

@@ -30,9 +30,16 @@ Conventions
   ``P_x`` = ``phase_periods_x`` periods across the projector (rows and ``P_y`` for ``y``).
   :func:`decode_phase` returns ``phi mod 2 pi``; :func:`unwrap_with_gray` picks the period from
   the Gray-code decode and returns sub-pixel projector coordinates.
-* **Frames** are linear intensities (float, any positive scale; integer dtypes are accepted and
-  converted), ``(H, W)`` or ``(H, W, C)``; colour frames are reduced to the channel mean.
-  Thresholds (``min_contrast``, ``shadow_threshold``) are in the frames' units.
+* **Frames** are intensities, ``(H, W)`` or ``(H, W, C)``; colour frames are reduced to the
+  channel mean. Every frame is read relative to its **full scale**: the dtype's maximum for
+  integer frames (255 for uint8, 65535 for uint16), 1.0 for float frames, or the
+  ``full_scale`` argument when given (e.g. float radiance with another exposure). Thresholds
+  (``min_contrast``, ``shadow_threshold``, ``threshold``, ``min_modulation``) and the returned
+  ``contrast`` / ``modulation`` are fractions of full scale, so the uint8, uint16 and float
+  versions of one capture decode to the same codes and the same shadow mask. Bit decisions
+  (``frame > inverse``) do not depend on the scale or on a monotonic response curve; the
+  thresholds do, so 8/16-bit frames of a non-linear camera are best linearised first
+  (:mod:`facegeo.capture.response`).
 
 References
 ----------
@@ -487,12 +494,36 @@ def _validated_frames(frames: Any, needed: list[str], what: str) -> dict[str, np
     return out
 
 
-def _load_chunk(a: np.ndarray, name: str, rows: slice) -> np.ndarray:
-    """Rows of one frame as float32 (H', W), channel mean for colour frames."""
+def _full_scale(a: np.ndarray, full_scale: float | None) -> float:
+    """The value that means "full white" for frame ``a``: dtype max for integers, else 1."""
+    if full_scale is not None:
+        return full_scale
+    if a.dtype.kind in "iu":
+        return float(np.iinfo(a.dtype).max)
+    return 1.0
+
+
+def _check_full_scale(full_scale) -> float | None:
+    if full_scale is None:
+        return None
+    v = float(as_array(full_scale, "full_scale", shape=()))
+    if not v > 0:
+        raise InputError(f"full_scale: expected a number > 0 (the frames' white level), got {v}")
+    return v
+
+
+def _load_chunk(a: np.ndarray, name: str, rows: slice, full_scale: float | None = None
+                ) -> np.ndarray:
+    """Rows of one frame as float32 (H', W) in fractions of full scale, channel mean for colour
+    frames (see the module docstring: integer frames divide by their dtype's maximum)."""
     c = a[rows]
     if c.ndim == 3:
         c = c.mean(axis=2, dtype=np.float32) if c.shape[2] > 1 else c[..., 0]
-    return np.asarray(c, dtype=np.float32)
+    c = np.asarray(c, dtype=np.float32)
+    scale = _full_scale(a, full_scale)
+    if scale != 1.0:
+        c = c / np.float32(scale)
+    return c
 
 
 def _raise_if_nonfinite(a: np.ndarray, name: str, rows: slice) -> None:
@@ -529,7 +560,7 @@ class GrayDecode:
         Same for rows.
     valid : (H, W) bool
         Not shadow, contrast >= ``min_contrast`` and every decoded code inside the projector.
-    contrast : (H, W) float32, frame units
+    contrast : (H, W) float32, fraction of full scale
         Confidence: the smallest ``|frame - inverse|`` over all bits (``2 |frame - threshold|``
         without inverse frames), i.e. the weakest bit decision's margin.
     shadow : (H, W) bool
@@ -556,6 +587,7 @@ def decode_gray(
     min_contrast: float = 0.01,
     shadow_threshold: float = 0.02,
     threshold: float | None = None,
+    full_scale: float | None = None,
 ) -> GrayDecode:
     """Decode Gray-code frames into projector column / row per camera pixel (vectorised).
 
@@ -576,12 +608,15 @@ def decode_gray(
         Keys as :func:`pattern_names`; the Gray frames (and inverses, white, black as the spec
         says) must be present; phase or extra frames are ignored.
     spec : PatternSpec
-    min_contrast : float, frame units
+    min_contrast : float, fraction of full scale
         Pixels whose weakest bit margin (see :class:`GrayDecode`) is below this are invalid.
-    shadow_threshold : float, frame units
+    shadow_threshold : float, fraction of full scale
         Pixels lit by less than this (white - black) are shadow.
-    threshold : float, optional, frame units
+    threshold : float, optional, fraction of full scale
         Fixed bit threshold; only for specs without inverse frames.
+    full_scale : float, optional, frame units
+        The frames' white level; default the dtype's maximum for integer frames, 1 for float
+        frames (module docstring). Thresholds are relative to it for every dtype.
 
     Returns
     -------
@@ -596,6 +631,7 @@ def decode_gray(
         Frames of different shapes or of a non-image shape.
     """
     spec = _check_spec(spec)
+    full_scale = _check_full_scale(full_scale)
     min_contrast = float(as_array(min_contrast, "min_contrast", shape=()))
     shadow_threshold = float(as_array(shadow_threshold, "shadow_threshold", shape=()))
     if threshold is not None:
@@ -628,7 +664,7 @@ def decode_gray(
 
         def load(name: str, rows: slice = rows, cache: dict = cache) -> np.ndarray:
             c = cache.get(name)
-            return _load_chunk(arrs[name], name, rows) if c is None else c
+            return _load_chunk(arrs[name], name, rows, full_scale) if c is None else c
 
         # Reference level for the bit decision without inverse frames; shadow from white/black.
         ref: np.ndarray | float | None = None
@@ -644,7 +680,7 @@ def decode_gray(
         elif not spec.inverse:
             if use_minmax:
                 for n in gray_names:
-                    cache[n] = _load_chunk(arrs[n], n, rows)
+                    cache[n] = _load_chunk(arrs[n], n, rows, full_scale)
                 hi = cache[gray_names[0]].copy()
                 lo = hi.copy()
                 for n in gray_names[1:]:
@@ -735,7 +771,7 @@ class PhaseDecode(NamedTuple):
     ----------
     phase : (H, W) float64, radians in [0, 2 pi)
         Wrapped phase ``phi mod 2 pi``; NaN where ``modulation <= min_modulation``.
-    modulation : (H, W) float32, frame units
+    modulation : (H, W) float32, fraction of full scale
         Fringe amplitude ``B`` in ``I_k = A + B cos(phi - 2 pi k / N)``.
     """
 
@@ -749,6 +785,7 @@ def decode_phase(
     axis: str = "x",
     *,
     min_modulation: float = 0.0,
+    full_scale: float | None = None,
 ) -> PhaseDecode:
     """Wrapped phase and modulation from N-step phase-shift frames (least squares, N >= 3).
 
@@ -762,9 +799,11 @@ def decode_phase(
     spec : PatternSpec
         ``phase_steps`` > 0 and ``axis`` in ``phase_axes``.
     axis : {"x", "y"}
-    min_modulation : float, frame units
+    min_modulation : float, fraction of full scale
         Phase is NaN where the modulation is at or below this (default: only where it is 0,
         where the phase is undefined).
+    full_scale : float, optional, frame units
+        The frames' white level (default: dtype maximum for integers, 1 for floats).
 
     Returns
     -------
@@ -773,6 +812,7 @@ def decode_phase(
     """
     spec = _check_spec(spec)
     check_choice(axis, "axis", _AXES)
+    full_scale = _check_full_scale(full_scale)
     min_modulation = float(as_array(min_modulation, "min_modulation", shape=()))
     if not spec.phase_steps or axis not in spec.phase_axes:
         raise InputError(
@@ -787,7 +827,7 @@ def decode_phase(
     C = np.zeros((H, W), dtype=np.float64)
     for k, n in enumerate(names):
         _raise_if_nonfinite(arrs[n], n, slice(0, H))
-        f = _load_chunk(arrs[n], n, slice(0, H))
+        f = _load_chunk(arrs[n], n, slice(0, H), full_scale)
         dk = 2.0 * np.pi * k / N
         S += math.sin(dk) * f
         C += math.cos(dk) * f

@@ -3,11 +3,13 @@
 This is the ground truth every later stage is measured against: the synthetic capture writes its
 OLAT frames with it, and novel views and relit images of the fitted model are compared with it.
 
-Model (Debevec et al. 2000, §4): per surface point, the skin BRDF of :mod:`facegeo.appearance.brdf` —
-Lambertian diffuse with the diffuse chromaticity ramp plus Torrance–Sparrow specular — with
+Model: per surface point, the generator's own skin BRDF of :mod:`facegeo.appearance.brdf` — an
+energy-weighted diffuse colour blend plus Torrance–Sparrow specular, deliberately *not* the
+paper's §4 fitting model (Debevec et al. 2000) — with
 parameters from a solid-texture :class:`~facegeo.synth.skin.SkinField`, cast shadows by exact
 Embree shadow rays, no interreflection or subsurface transport (the paper's model has none
-either, so a perfect fit can reproduce these frames exactly).
+either; the OLAT frames are a per-pixel reflectance field that the paper's data-driven
+resynthesis can reproduce, while a fit of the paper's parametric model meets a mismatched BRDF).
 
 Radiometry (``docs/conventions.md``): an OLAT pixel is the radiance reflected toward the camera
 under a light that delivers irradiance ``E_l = c_l·(r/d)²`` (per RGB channel) at normal
@@ -293,7 +295,7 @@ class ReferenceRenderer:
         return self._shade(view, l, np.ones(n_p), col, sel=sel, light_dir=d)
 
     def _shade(self, view, l, falloff, col, *, sel=None, light_pos=None, light_dir=None):
-        from facegeo.appearance.brdf import skin_brdf_unchecked
+        from facegeo.appearance.brdf import synthetic_skin_brdf_unchecked
 
         pick = (lambda a: a) if sel is None else (lambda a: a[sel])
         n = pick(view.n_world)
@@ -316,7 +318,7 @@ class ReferenceRenderer:
         # Hot loop (once per light): the view's normals, directions and skin parameters were
         # checked when the view was built, so the unchecked kernel skips re-validating them.
         # float32 parameters promote exactly to float64 inside the arithmetic.
-        f = skin_brdf_unchecked(
+        f = synthetic_skin_brdf_unchecked(
             n[lit], l[lit], v[lit], pick(view.alpha_0)[lit], pick(view.alpha_1)[lit],
             pick(view.rho_s)[lit], pick(view.roughness)[lit], self.eta,
         )

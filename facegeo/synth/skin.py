@@ -1,12 +1,13 @@
 """Ground-truth skin parameters as solid textures: smooth functions of 3-D position.
 
-A :class:`SkinField` gives the parameters of the skin BRDF of :mod:`facegeo.appearance.brdf`
-(Debevec et al. 2000, §4) at any point in space, so the ground truth can be evaluated at any
+A :class:`SkinField` gives the parameters of the generator's own skin BRDF of
+:mod:`facegeo.appearance.brdf` (deliberately not the paper's §4 fitting model) at any point
+in space, so the ground truth can be evaluated at any
 texel of any reconstructed atlas, on any mesh:
 
 * ``alpha_0`` — linear-sRGB diffuse colour at normal incidence and view;
-* ``alpha_1`` — diffuse colour at grazing angles (desaturated and a little lighter, the ramp the
-  paper observed);
+* ``alpha_1`` — diffuse colour at grazing angles (desaturated and a little lighter, imitating the
+  desaturation the paper observed);
 * ``rho_s`` — specular scale on the Fresnel term, in (0.3, 1.0);
 * ``roughness`` — Beckmann RMS slope m, in (0.25, 0.5).
 
@@ -473,7 +474,8 @@ class SkinField:
 
     def _evaluate_block(self, u: np.ndarray):
         a0, model_rho_s = self._alpha_0(u)
-        # Grazing colour: desaturated toward luminance, a little lighter (Debevec et al. 2000 §4).
+        # Grazing colour: desaturated toward luminance, a little lighter (imitating the
+        # grazing desaturation of Debevec et al. 2000 §4 with the generator's own blend).
         a1 = np.minimum(desaturate(a0, self.grazing_desaturation) * self.grazing_lift, 0.95)
         w = region_weights(u)
         oil = w["forehead"] + w["nose"] + 0.35 * w["chin"]

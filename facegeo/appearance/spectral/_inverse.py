@@ -56,6 +56,7 @@ __all__ = [
     "FLAG_C_H_UNIDENTIFIABLE",
     "FLAG_AT_BOUND",
     "FLAG_DARK",
+    "FLAG_SKIPPED_STEPS",
     "AlbedoFit",
     "SpectrumFit",
     "fit_albedo",
@@ -70,6 +71,9 @@ FLAG_BETA_M_UNIDENTIFIABLE = 4  #: predicted absolute error of β_m above the to
 FLAG_C_H_UNIDENTIFIABLE = 8  #: predicted relative error of C_h above the tolerance
 FLAG_AT_BOUND = 16  #: a parameter sits on the edge of its range
 FLAG_DARK = 32  #: a target channel is below 1e-4 (log residual floored)
+#: Levenberg–Marquardt skipped a step: singular normal matrix or non-finite residual/cost
+#: (counted in ``AlbedoFit.skipped_steps``; the parameters are the last good iterate)
+FLAG_SKIPPED_STEPS = 64
 
 
 @dataclass
@@ -100,6 +104,10 @@ class AlbedoFit:
         Bitwise OR of the ``FLAG_*`` constants; 0 means fully trusted.
     x_lut : (...,3) float64
         Table coordinates of the lookup stage (its nearest entry).
+    skipped_steps : (...) int64
+        Levenberg–Marquardt steps skipped because the damped normal matrix was singular or
+        the residual at the trial point was not finite, summed over every start of the texel
+        (sets :data:`FLAG_SKIPPED_STEPS`). 0 for ``refine="none"``.
     """
 
     C_m: np.ndarray
@@ -114,6 +122,7 @@ class AlbedoFit:
     identifiable: np.ndarray
     flags: np.ndarray
     x_lut: np.ndarray
+    skipped_steps: np.ndarray
 
     @property
     def parameters(self) -> SkinParameters:
@@ -137,6 +146,9 @@ class SpectrumFit:
     rmse : (...) float64
         Root-mean-square reflectance error over the wavelengths.
     wavelengths : (L,) float64, nm
+    skipped_steps : (...) int64
+        Levenberg–Marquardt steps skipped (singular normal matrix or non-finite residual);
+        a spectrum with skipped steps may not be at a minimum — check before trusting it.
     """
 
     C_m: np.ndarray
@@ -145,6 +157,7 @@ class SpectrumFit:
     model: np.ndarray
     rmse: np.ndarray
     wavelengths: np.ndarray
+    skipped_steps: np.ndarray
 
     @property
     def parameters(self) -> SkinParameters:
@@ -190,36 +203,49 @@ def _lm(
     hi: np.ndarray,
     iterations: int,
     free: np.ndarray,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Vectorised Levenberg–Marquardt with box constraints (projected steps).
 
     ``residual_fn(x) -> (r (N, M), J (N, M, 3))``; ``free`` (3,) bool masks the parameters
-    that move. Returns the improved ``x`` (N, 3).
+    that move. Returns the improved ``x`` (N, 3) and ``skipped`` (N,) int64: per row, the
+    iterations whose step could not be taken — the damped normal matrix was singular (the
+    step is not finite) or the residual at the trial point (or at the start) is not finite.
+    Such a step is rejected like a step that does not lower the cost (λ grows), but it is
+    counted, never silently dropped; the caller reports it.
     """
     x = x.copy()
     lam = np.full(len(x), 1e-3)
     r, J = residual_fn(x)
     J = J * free
     cost = np.einsum("nm,nm->n", r, r)
+    skipped = np.zeros(len(x), np.int64)
     eye = np.eye(3)
     for _ in range(int(iterations)):
-        H = np.einsum("nmi,nmj->nij", J, J)
-        g = np.einsum("nmi,nm->ni", J, r)
-        d = np.einsum("nii->ni", H)
-        A = H + (lam[:, None] * d + 1e-12 + (~free) * 1.0)[:, :, None] * eye
-        step = -np.einsum("nij,nj->ni", _inv3(A), g)
-        step = np.where(np.isfinite(step), step, 0.0) * free
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite rows: counted below
+            H = np.einsum("nmi,nmj->nij", J, J)
+            g = np.einsum("nmi,nm->ni", J, r)
+            d = np.einsum("nii->ni", H)
+            A = H + (lam[:, None] * d + 1e-12 + (~free) * 1.0)[:, :, None] * eye
+            step = -np.einsum("nij,nj->ni", _inv3(A), g)
+        finite_step = np.all(np.isfinite(step), axis=1)
+        step = np.where(finite_step[:, None], step, 0.0) * free
         x_new = np.clip(x + step, lo, hi)
         r_new, J_new = residual_fn(x_new)
         J_new = J_new * free
         cost_new = np.einsum("nm,nm->n", r_new, r_new)
-        better = cost_new < cost
+        finite_cost = np.isfinite(cost_new) & np.all(np.isfinite(J_new), axis=(1, 2))
+        skipped += ~(finite_step & finite_cost & np.isfinite(cost))
+        better = finite_step & finite_cost & (cost_new < cost)
         x[better] = x_new[better]
         r[better] = r_new[better]
         J[better] = J_new[better]
         cost[better] = cost_new[better]
         lam = np.where(better, lam / 3.0, lam * 4.0)
-    return x
+    n_bad = int(np.count_nonzero(skipped))
+    if n_bad:
+        log.debug("Levenberg–Marquardt: %d of %d rows skipped %d step(s) (singular system or "
+                  "non-finite residual)", n_bad, len(x), int(skipped.sum()))
+    return x, skipped
 
 
 # --------------------------------------------------------------------------- albedo
@@ -346,6 +372,7 @@ def fit_albedo(
     out_m = np.empty((n, 3))
     out_sigma = np.empty((n, 3))
     out_spread = np.zeros((n, 3))
+    out_skipped = np.zeros(n, np.int64)
     for s in range(0, n, max(1, int(chunk))):
         e = min(n, s + int(chunk))
         tc = t[s:e]
@@ -367,18 +394,22 @@ def fit_albedo(
             return np.log(mc) - tl[: len(x)], J / mc[:, :, None]
 
         if refine != "none":
-            X[:nc] = _lm(X[:nc], lambda x: res_lut(x, tlog), lut.lo, lut.hi, iterations, free)
+            X[:nc], sk = _lm(X[:nc], lambda x: res_lut(x, tlog), lut.lo, lut.hi, iterations,
+                             free)
+            out_skipped[s:e] += sk
             if P:
                 # Profile over β_m: (C_m, C_h) fitted with β_m held at each blend ...
                 prof = slice(nc, (1 + P) * nc)
-                X[prof] = _lm(
+                X[prof], sk = _lm(
                     X[prof], lambda x: res_lut(x, tl[prof]), lut.lo, lut.hi, iterations, held
                 )
+                out_skipped[s:e] += sk.reshape(P, nc).sum(axis=0)
                 # ... then each profile point released (finds every isolated solution).
                 pol = slice((1 + P) * nc, S * nc)
-                X[pol] = _lm(
+                X[pol], sk = _lm(
                     X[prof], lambda x: res_lut(x, tl[pol]), lut.lo, lut.hi, iterations, free
                 )
+                out_skipped[s:e] += sk.reshape(P, nc).sum(axis=0)
         if refine == "none":
             m = lut.rgb_flat[idx0]
             mc = np.maximum(m, LOG_FLOOR)
@@ -415,7 +446,8 @@ def fit_albedo(
                     J[:, :, k] = (_rgb_exact_x(xk, lut.convention) - m) / h[:, None]
                 return np.log(mc) - tlog, J / mc[:, :, None]
 
-            x = _lm(x, res_exact, lut.lo, lut.hi, 3, free)
+            x, sk = _lm(x, res_exact, lut.lo, lut.hi, 3, free)
+            out_skipped[s:e] += sk
             m = _rgb_exact_x(x, lut.convention)
             _, Jl = res_lut(x, tlog)
         else:
@@ -443,7 +475,11 @@ def fit_albedo(
         | (~identifiable[:, 2]) * FLAG_C_H_UNIDENTIFIABLE
         | at_bound * FLAG_AT_BOUND
         | np.any(t <= LOG_FLOOR, axis=1) * FLAG_DARK
+        | (out_skipped > 0) * FLAG_SKIPPED_STEPS
     ).astype(np.uint8)
+    if np.any(out_skipped):
+        log.info("fit_albedo: %d of %d texels had skipped Levenberg–Marquardt steps "
+                 "(flag FLAG_SKIPPED_STEPS)", int(np.count_nonzero(out_skipped)), n)
     if n:
         log.debug(
             "fit_albedo: %d texels, %.1f %% in gamut, %.1f %% with C_m and C_h identifiable",
@@ -462,6 +498,7 @@ def fit_albedo(
         identifiable=identifiable.reshape(shape + (3,)),
         flags=flags.reshape(shape),
         x_lut=out_x0.reshape(shape + (3,)),
+        skipped_steps=out_skipped.reshape(shape),
     )
 
 
@@ -527,7 +564,10 @@ def fit_spectra(
             J[:, :, kk] = (spectra(xk) - m) / h[:, None]
         return m - y, J
 
-    x = _lm(x0, res, lo, hi, iterations, np.array([True, True, True]))
+    x, skipped = _lm(x0, res, lo, hi, iterations, np.array([True, True, True]))
+    if np.any(skipped):
+        log.info("fit_spectra: %d of %d spectra had skipped Levenberg–Marquardt steps",
+                 int(np.count_nonzero(skipped)), len(x))
     model = spectra(x)
     rmse = np.sqrt(np.mean((model - y) ** 2, axis=1))
     C_m, b_m, C_h = SkinLUT.from_x(x)
@@ -538,6 +578,7 @@ def fit_spectra(
         model=model.reshape(shape + (wl.size,)),
         rmse=rmse.reshape(shape),
         wavelengths=wl,
+        skipped_steps=skipped.reshape(shape),
     )
 
 

@@ -16,6 +16,12 @@ Implements Donner & Jensen 2006 with the choices below (each deviation is stated
 
 The albedo ``alpha_0`` of the synthetic skin is therefore ``(1 − ρ_dr) · R_ml(λ)`` integrated
 against D65 and the CIE 1931 2° observer (:mod:`facegeo.appearance.spectral._colour`).
+When the synthetic generator renders with it, its own skin BRDF
+(:func:`facegeo.appearance.brdf.synthetic_skin_brdf`, deliberately not the paper's §4 model)
+weights the diffuse term once more by the angle-dependent ``(1 − ρ_dr(θ_i))(1 − ρ_dr(θ_r))`` of
+its Torrance–Sparrow lobe (ρ_s-scaled, D&J 2006 Eq. 2) so that it conserves energy at grazing
+angles; ``alpha_0`` is then the colour before that weight, not the measured normal-incidence
+albedo (the two differ by ≈ (1 − 0.028 ρ_s)² at normal incidence).
 
 References
 ----------
