@@ -15,7 +15,8 @@ import pytest
 from facegeo.errors import InputError, ShapeError
 from facegeo.surface.atlas import build_atlas, rasterize_texels
 from facegeo.surface.reflectance import (
-    bilinear_taps, camera_visibility, open_field, project_camera, sample_frame,
+    bilinear_taps, camera_visibility, frame_sampler, open_field, project_camera, sample_frame,
+    sample_taps,
 )
 from facegeo.surface.visibility import RayScene
 
@@ -32,6 +33,12 @@ PROJECTION_REL_RMSE_TINY = 0.06
 #: remains. Measured 0.72 %; a 0.5 px shift of the sampling positions measures 3.0 %.
 PROJECTION_REL_RMSE_SMOOTH = 0.01
 WEIGHT_MIN = 0.3
+#: Max |Δ| between cv2.remap sampling and the float64-weight numpy reference, values in [0, 1]
+#: (float32 positions and weights).
+BILINEAR_ABS_TOL = 1e-5
+#: Max error (pixels) reproducing a linear ramp image: would be ~1/64 px if positions were
+#: quantised to OpenCV's 1/32-pixel interpolation table.
+RAMP_ABS_TOL = 1e-4
 #: Linearity: max |R(a + b) − R(a) − R(b)| relative to max |R(a + b)| (float32 rounding).
 LINEARITY_REL_TOL = 1e-6
 
@@ -204,8 +211,8 @@ def test_half_pixel_shift_breaks_the_smooth_tolerance(tiny):
     smooth = _smooth(scan, name, cam, q0, lights) & inner[:, None]
     errs = []
     for shift in (0.0, 0.5):
-        idx, w = bilinear_taps(q0 + shift * inner[:, None], cam.width, cam.height)
-        est = np.stack([sample_frame(scan.olat_frame(name, int(l)), idx, w) for l in lights], 1)
+        smp = frame_sampler(q0 + shift * inner[:, None], cam.width, cam.height)
+        est = np.stack([sample_frame(scan.olat_frame(name, int(l)), smp) for l in lights], 1)
         errs.append(np.sqrt(((est - ref) ** 2).sum(axis=2)[smooth].sum()
                             / (ref ** 2).sum(axis=2)[smooth].sum()))
     assert errs[0] < PROJECTION_REL_RMSE_SMOOTH < errs[1], errs
@@ -228,21 +235,23 @@ def test_projection_is_linear_in_the_frames(tiny, tmp_path):
     assert np.abs(r_sum - (r_a + r_b)).max() <= LINEARITY_REL_TOL * np.abs(r_sum).max()
 
 
-def test_bilinear_taps_match_cv2_remap():
-    """Independent reference: OpenCV's bilinear remap at positions on its 1/32-pixel grid."""
-    import cv2
-
+def test_sampler_matches_plain_bilinear_reference():
+    """cv2.remap sampling vs the plain numpy bilinear reference (exact float64 taps)."""
     rng = np.random.default_rng(1)
     img = rng.random((23, 31, 3)).astype(np.float32)
-    q = np.round(rng.uniform([0, 0], [30, 22], size=(500, 2)) * 32) / 32
-    idx, w = bilinear_taps(q, 31, 23)
-    ours = sample_frame(img, idx, w)
-    mx = q[:, 0].astype(np.float32).reshape(1, -1)
-    my = q[:, 1].astype(np.float32).reshape(1, -1)
-    ref = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
-    assert np.abs(ours - ref).max() < 1e-5
+    q = rng.uniform([0, 0], [30, 22], size=(20000, 2))
+    q[:5] = [[0, 0], [30, 22], [30, 0], [0, 22], [12, 7]]  # corners and an exact centre
+    ours = sample_frame(img, frame_sampler(q, 31, 23))
+    ref = sample_taps(img, *bilinear_taps(q, 31, 23))
+    assert np.abs(ours - ref).max() < BILINEAR_ABS_TOL
+    np.testing.assert_array_equal(ours[4], img[7, 12])
+    # a linear ramp is reproduced exactly: no sub-pixel quantisation of the positions
+    ramp = np.repeat(np.tile(np.arange(31, dtype=np.float32), (23, 1))[..., None], 3, axis=2)
+    qf = q.astype(np.float32).astype(np.float64)
+    got = sample_frame(ramp, frame_sampler(qf, 31, 23))[:, 0]
+    assert np.abs(got - qf[:, 0]).max() < RAMP_ABS_TOL
     with pytest.raises(InputError, match="bilinear"):
-        bilinear_taps(np.array([[30.5, 1.0]]), 31, 23)
+        frame_sampler(np.array([[30.5, 1.0]]), 31, 23)
 
 
 def test_masked_pixels_give_nan_samples_not_values(tiny, tmp_path):
