@@ -16,8 +16,9 @@ A texel is visible in camera ``c`` when
 2. it faces the camera: both the geometric and the interpolated normal have ``n·v > min_cos``
    (default 0.1, i.e. views within ≈ 84° of the normal);
 3. nothing blocks the segment from the texel to the camera centre (Embree occlusion,
-   :meth:`~facegeo.surface.visibility.RayScene.segment_visible`, the origin offset ``eps`` along
-   the *geometric* normal so the ray never hits its own triangle — DESIGN §7's terminator case).
+   :meth:`~facegeo.surface.visibility.RayScene.occluded`, the origin offset ``eps`` along the
+   *geometric* normal so the ray never hits its own triangle — DESIGN §7's terminator case —
+   and ``eps`` excluded at both ends, as in ``RayScene.segment_visible``).
 
 Weights (view-dependent texture mapping, course notes §"VDTM": "the contribution of each input
 pixel ... should be weighted so that pixels viewed at oblique angles contribute less ... the dot
@@ -255,7 +256,21 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     unoccluded = np.zeros(T, bool)
     cand = np.flatnonzero(in_image & facing)
     if cand.size:
-        unoccluded[cand] = scene.segment_visible(p[cand], c, normals=g[cand])
+        # The segment texel -> camera centre, its origin lifted eps along the geometric normal
+        # (the camera is on the normal's side: cos_geom > min_cos), eps excluded at both ends.
+        # Same decision as RayScene.segment_visible(p, c, normals=g); calling occluded directly
+        # skips its broadcasting and normal checks (measured ≈ 1.6× faster on these rays).
+        eps = scene.eps
+        o = p[cand] + eps * g[cand]
+        d = c[None, :] - o
+        length = np.sqrt(np.einsum("tc,tc->t", d, d))
+        d /= length[:, None]
+        far = length - eps
+        long = far > 2.0 * eps
+        hit = np.zeros(cand.size, bool)
+        if long.any():
+            hit[long] = scene.occluded(o[long], d[long], far[long], t_min=eps)
+        unoccluded[cand] = ~hit
     vis = in_image & facing & unoccluded
     edge_px = np.full(T, np.nan, np.float32)
     weight = np.zeros(T, np.float32)
