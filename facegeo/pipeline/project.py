@@ -257,8 +257,8 @@ def _visibility_agreement(scan, cam_name: str, camera, texels, vis, depth_jump: 
             "occluded_reference": int(np.count_nonzero(~ref[sel]))}
 
 
-def _projection_error(renderer, rig, camera, texels, field, n_lights: int, gt_lights: int,
-                      weight_min: float):
+def _projection_error(renderer, rig, camera, texels, face_input, field, n_lights: int,
+                      gt_lights: int, weight_min: float):
     """Sums (Σ err², Σ ref², count) of projected vs exactly shaded samples for one camera."""
     from facegeo.synth.render import SurfaceView
 
@@ -269,11 +269,11 @@ def _projection_error(renderer, rig, camera, texels, field, n_lights: int, gt_li
     p = texels.p_world[tex]
     # The generator's own shading normals at these points (same mesh, same interpolation).
     n = np.einsum("tk,tkc->tc", texels.bary[tex],
-                  renderer.vertex_normals[renderer.faces[texels.face_input[tex]]])
+                  renderer.vertex_normals[renderer.faces[face_input[tex]]])
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     skin = renderer.skin.evaluate(p)
     view = SurfaceView(camera.name, (1, sel.size), np.ones((1, sel.size), bool),
-                       np.arange(sel.size), p, n, field.v_world[sel], texels.face_input[tex],
+                       np.arange(sel.size), p, n, field.v_world[sel], face_input[tex],
                        np.asarray(skin.alpha_0, np.float32).reshape(-1, 3),
                        np.asarray(skin.alpha_1, np.float32).reshape(-1, 3),
                        np.asarray(skin.rho_s, np.float32).reshape(-1),
@@ -342,7 +342,7 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         run_atlas(scan, out, mesh=mesh, **(atlas_settings or {}))
     atlas = Atlas.load(atlas_dir / "atlas.npz")
     texels = Texels.load(atlas_dir / "texels.npz")
-    texels.face_input = atlas.face_map[texels.face]  # type: ignore[attr-defined]
+    face_input = atlas.face_map[texels.face]  # input-mesh face of each texel
     V, F, _ = load_mesh(scan, mesh)
     scene = RayScene(V, F)
     the_rig, rig_used = _rig(scan, rig)
@@ -403,7 +403,7 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
                     entry["visibility_agreement"] = round(agr["agreement"], 6)
                     entry["visibility_compared"] = agr["compared"]
             if renderer is not None and rig_used == "ground_truth":
-                a, b, _ = _projection_error(renderer, the_rig, camera, texels, field,
+                a, b, _ = _projection_error(renderer, the_rig, camera, texels, face_input, field,
                                             scan.n_lights, gt_lights, gt_weight_min)
                 se += a
                 sr += b

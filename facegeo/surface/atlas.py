@@ -549,7 +549,8 @@ def rasterize_texels(atlas: Atlas) -> Texels:
     bw = np.maximum(x1 - x0 + 1, 0)
     bh = np.maximum(y1 - y0 + 1, 0)
     # Signed doubled area in pixel coordinates; zero-area UV triangles hold no texel.
-    area2 = (tx[:, 1] - tx[:, 0]) * (ty[:, 2] - ty[:, 0]) - (tx[:, 2] - tx[:, 0]) * (ty[:, 1] - ty[:, 0])
+    area2 = ((tx[:, 1] - tx[:, 0]) * (ty[:, 2] - ty[:, 0])
+             - (tx[:, 2] - tx[:, 0]) * (ty[:, 1] - ty[:, 0]))
     live = np.flatnonzero((bw > 0) & (bh > 0) & (area2 != 0))
     live = live[np.argsort((bw * bh)[live], kind="stable")]
     faces_out, pix_out, bary_out = [], [], []

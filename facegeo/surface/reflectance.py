@@ -32,10 +32,11 @@ projection to the nearest silhouette or occlusion edge of the camera's depth ima
 image border. Depth edges are pixels whose 4-neighbour sees background, or a surface deeper or
 shallower by more than ``max(depth_jump, jump_px · z / f)`` — the second term is ``jump_px``
 pixel footprints, so a smooth surface seen at up to atan(jump_px) ≈ 85° from its normal (what
-``min_cos`` still lets through) never counts as an edge on a coarse camera. The depth image is traced with pixel-centre rays of
-the camera's *pinhole* part (same K and pose, no distortion) and the texel's edge distance is
-read at its pinhole projection: distortion only moves pixels by a smooth 1-to-1 map, so the
-distance is off by the local scale of the distortion (< 2 % on these lenses). The weight depends
+``min_cos`` still lets through) never counts as an edge on a coarse camera. The depth image is
+traced with pixel-centre rays of the camera's *pinhole* part (same K and pose, no distortion)
+and the texel's edge distance is read at its pinhole projection: distortion only moves pixels by
+a smooth 1-to-1 map, so the distance is off by the local scale of the distortion (< 2 % on
+these lenses). The weight depends
 on geometry only, so it is **identical for every light** and relighting stays linear.
 
 Not done: the optional z-buffer pre-pass with ``cv2.triangleRasterizeDepth`` (its camera model
@@ -83,8 +84,9 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
-    "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera", "open_field", "iter_field_chunks",
-    "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX", "DEFAULT_DEPTH_JUMP",
+    "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
+    "open_field", "iter_field_chunks", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
+    "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS",
 ]
 
 #: Facing threshold on n·v (both normals): ≈ 84° from the normal.
