@@ -260,6 +260,7 @@ def _visibility_agreement(scan, cam_name: str, camera, texels, vis, depth_jump: 
 def _projection_error(renderer, rig, camera, texels, face_input, field, n_lights: int,
                       gt_lights: int, weight_min: float):
     """Sums (Σ err², Σ ref², count) of projected vs exactly shaded samples for one camera."""
+    from facegeo.surface.reflectance import iter_field_chunks as rf_iter_chunks
     from facegeo.synth.render import SurfaceView
 
     sel = np.flatnonzero(field.weight > weight_min)
@@ -280,12 +281,15 @@ def _projection_error(renderer, rig, camera, texels, face_input, field, n_lights
                        np.asarray(skin.roughness, np.float32).reshape(-1))
     step = max(1, -(-n_lights // gt_lights))
     lights = np.arange(0, n_lights, step)
-    R = field.field()
+    # Gather the compared samples chunk by chunk along texels (bounded resident memory).
+    keep = field.weight > weight_min
+    est_all = np.concatenate([chunk[keep[s:s + len(chunk)]][:, lights]
+                              for s, chunk in rf_iter_chunks(field.directory)])
     se = sr = 0.0
     cnt = 0
-    for l in lights:
+    for k, l in enumerate(lights):
         ref = renderer.shade_stage_light(view, rig.lights, int(l)).astype(np.float64)
-        est = np.asarray(R[sel, int(l)], np.float64)
+        est = est_all[:, k].astype(np.float64)
         ok = np.isfinite(est).all(axis=1)
         se += float(((est[ok] - ref[ok]) ** 2).sum())
         sr += float((ref[ok] ** 2).sum())

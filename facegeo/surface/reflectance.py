@@ -60,9 +60,10 @@ along texels (``(T_c, L, 3)`` C order, each texel's function contiguous). Frames
 frame-major into a float32 block of ``block_lights`` lights (``B × T_c × 3 × 4`` bytes, 154 MB
 for 200 k texels and B = 64; each sampled frame is one contiguous write), which is transposed
 into the memory-mapped ``.npy`` in steps of 4,096 texels (each texel's B lights contiguous on
-disk, ``B × 3 × 2`` bytes), flushed, and the written pages are released from the process
-(``madvise(MADV_DONTNEED)``), so resident memory stays at one block plus one frame whatever L
-is. Writing every frame straight into the texel-major file (B = 1) touches every page of the
+disk, ``B × 3 × 2`` bytes); each step's pages are flushed and released from the process
+(``madvise(MADV_DONTNEED)``) at once — a texel-major write touches a page of every texel, and
+file-backed pages count as resident — so resident memory stays at one block plus one frame
+whatever L and T_c are. :func:`iter_field_chunks` releases the pages it read the same way. Writing every frame straight into the texel-major file (B = 1) touches every page of the
 field once per light and measured 2.9× slower (``facegeo bench surface.project``).
 """
 
@@ -428,12 +429,27 @@ class ProjectedField:
         return open_field(self.directory)
 
 
-def _release(mm: np.memmap) -> None:
-    """Flush a memmap and drop its pages from this process's resident set."""
-    mm.flush()
+def _release_rows(mm: np.memmap, t0: int, t1: int, *, write: bool) -> None:
+    """Drop rows ``t0:t1`` of a memory-mapped array from this process's resident set.
+
+    File-backed pages count in the resident set once touched; a texel-major write of a light
+    block touches a page of every texel, so without this the resident set would grow toward the
+    size of the field. Written pages are flushed (``msync``) first, then released
+    (``madvise(MADV_DONTNEED)``; the data stays in the file and the page cache).
+    """
     m = getattr(mm, "_mmap", None)
-    if m is not None and hasattr(m, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
-        m.madvise(mmap.MADV_DONTNEED)
+    if m is None or t1 <= t0:
+        return
+    row = int(np.prod(mm.shape[1:])) * mm.dtype.itemsize
+    base = int(getattr(mm, "offset", 0)) % mmap.ALLOCATIONGRANULARITY
+    lo = base + t0 * row
+    hi = base + t1 * row
+    lo -= lo % mmap.PAGESIZE
+    hi = min(hi + (-hi) % mmap.PAGESIZE, len(m))
+    if write:
+        m.flush(lo, hi - lo)
+    if hasattr(m, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
+        m.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
 
 
 def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int],
@@ -500,7 +516,7 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
         for t0 in range(0, sel.size, _TRANSPOSE_TEXELS):
             t1 = min(t0 + _TRANSPOSE_TEXELS, sel.size)
             R[t0:t1, l0:upto] = buf[:upto - l0, t0:t1].transpose(1, 0, 2)
-        _release(R)
+            _release_rows(R, t0, t1, write=True)
 
     for item in frames:
         if len(item) == 3:
@@ -562,4 +578,6 @@ def iter_field_chunks(directory, chunk_texels: int = 8192):
     float16)."""
     R = open_field(directory)
     for s in range(0, R.shape[0], chunk_texels):
-        yield s, np.asarray(R[s:s + chunk_texels], dtype=np.float32)
+        chunk = np.array(R[s:s + chunk_texels], dtype=np.float32)
+        _release_rows(R, s, s + len(chunk), write=False)  # keep resident memory at one chunk
+        yield s, chunk

@@ -6,7 +6,8 @@ pieces; the error column is the texel count's relative difference from the chart
 
 ``surface.visibility``: the occlusion rays of
 :func:`~facegeo.surface.reflectance.camera_visibility` (texel → camera centre, offset along
-the geometric normal) traced by :meth:`RayScene.occluded` (as ``camera_visibility`` calls it) and by
+the geometric normal) traced by :meth:`RayScene.occluded` (as ``camera_visibility`` calls it)
+and by
 :meth:`RayScene.segment_visible`, against raw embreex (one ``run(query="OCCLUDED")`` call on
 the same float32 rays and BVH; the ratio at 1 thread is the equal-thread figure, the raw call
 has no threading of its own), plus the whole visibility pass in texels/s.
