@@ -103,7 +103,7 @@ def test_visibility_agrees_with_bruteforce_reference(tiny):
             ("head", v0, (gt.vertices, gt.faces)),
             ("head+ball", camera_visibility(texels, cam, RayScene(V, F)), (V, F)),
         ):
-            sel = np.flatnonzero(v.in_image & v.facing & (v.edge_px >= 2))[::2]
+            sel = np.flatnonzero(v.in_image & v.facing & (v.edge_px >= 2))[::3]
             ref = ~_occluded_bruteforce(VV, FF, cam.center_world, texels.p_world[sel],
                                         tol=1e-5)
             agree = np.mean(ref == v.unoccluded[sel])
