@@ -312,3 +312,30 @@ def test_run_project_writes_products_and_metrics(tiny, tmp_path):
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no partial folders
     with pytest.raises(InputError, match="rig"):
         run_project(scan.root, out, rig="nominal")
+
+
+def test_interrupted_projection_keeps_previous_products(tiny, tmp_path, monkeypatch):
+    """A stage that fails midway leaves the previous out/project/ intact and no partial folder."""
+    from facegeo.pipeline.project import run_atlas, run_project
+    from facegeo.surface import reflectance
+
+    scan = tiny[0]
+    out = tmp_path / "out"
+    run_atlas(scan.root, out, texels_per_mm=0.3)
+    run_project(scan.root, out, gt_lights=4)
+    before = sorted(p.name for p in (out / "project").iterdir())
+    real = reflectance.project_camera
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("simulated crash in the second camera")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(reflectance, "project_camera", failing)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        run_project(scan.root, out, gt_lights=4)
+    assert sorted(p.name for p in (out / "project").iterdir()) == before
+    assert open_field(out / "project" / "cam_right").shape[1] == scan.n_lights
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
