@@ -1,0 +1,445 @@
+"""Pipeline stages ``atlas`` and ``project``: the surface reflectance field of a scan on disk.
+
+``run_atlas(scan_dir, out_dir)`` parameterises the scan's mesh and writes ``out_dir/atlas/``:
+
+    mesh_uv.obj, mesh_uv.mtl, mesh_uv.glb   the mesh with UVs (docs/surface.md)
+    atlas.npz                              facegeo.surface.atlas.Atlas
+    texels.npz                             facegeo.surface.atlas.Texels (index map rebuilt on load)
+    stage.json                             settings and metrics
+
+``run_project(scan_dir, out_dir)`` reads ``out_dir/atlas/`` (running the atlas stage first when
+it is missing) and writes ``out_dir/project/``:
+
+    <camera>/R.npy            (T_c, L, 3) float16, chunked along texels (memory-mapped)
+    <camera>/texel_index.npy  (T_c,) int64; weight.npy (T_c,) float32; v_world.npy (T_c, 3)
+    seen.npy                  (T,) bool: some camera has a non-zero weight
+    preview.png               the mean over lights, blended over cameras, pull–push filled
+                              (display only: unseen texels are never counted as measured)
+    stage.json
+
+Each stage writes into a temporary sibling folder that replaces the old one only when complete,
+and records its metrics in ``out_dir/metrics.json`` under ``"atlas"`` / ``"project"``.
+
+Mesh: the structured-light mesh stage does not exist yet, so both stages use the synthetic
+scan's ground-truth mesh (``mesh="ground_truth"``) or a mesh file (``mesh=<path>``).
+Rig: ``rig="ground_truth"`` (default when the scan has one) uses the true rig the frames were
+rendered with — calibration is not built yet, and the accuracy figures must measure the
+projection, not the nominal rig's error; ``rig="scan"`` uses the scan's (nominal) ``rig.json``.
+
+Ground-truth metrics (synthetic scans):
+
+* ``visibility_agreement`` per camera: over texels in the image and facing the camera, away from
+  silhouettes and occlusion edges, the fraction whose occlusion decision agrees with the
+  generator's own per-pixel closest hits (``ground_truth/geometry_<camera>.npz``, true rig): a
+  texel is visible in the reference when it is no farther from the camera than the farthest of
+  the four ground-truth hits around its projection (+ 1 mm).
+* ``projection_rel_rmse``: ``sqrt(Σ (R − R_ref)² / Σ R_ref²)`` over texels with weight above
+  ``gt_weight_min``, every camera, a regular subset of at most ``gt_lights`` lights, where
+  ``R_ref`` is the reference renderer's exact shading of the same surface points from the same
+  camera (true rig). Masked (NaN) samples are left out.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import resource
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facegeo.errors import InputError
+from facegeo.fsutil import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+__all__ = ["run_atlas", "run_project", "load_mesh", "peak_rss_mb"]
+
+_GT_DEPTH_TOL_M = 1e-3
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB, from ``getrusage``)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _scan(scan_dir):
+    from facegeo.capture.scan import Scan, load_scan
+
+    return scan_dir if isinstance(scan_dir, Scan) else load_scan(scan_dir)
+
+
+def load_mesh(scan, mesh: str = "ground_truth") -> tuple[np.ndarray, np.ndarray, str]:
+    """Vertices ``(V, 3)`` float64 (metres, world frame), faces ``(F, 3)`` and a description.
+
+    ``mesh`` is ``"ground_truth"`` (a synthetic scan's ``ground_truth/mesh.ply``) or a path to a
+    mesh file in metres (PLY/OBJ/GLB, loaded with ``process=False``).
+    """
+    import trimesh
+
+    if mesh == "ground_truth":
+        if "mesh" not in scan.ground_truth_keys:
+            raise InputError(
+                f"scan {scan.root}: no ground-truth mesh, and the structured-light mesh stage "
+                f"is not built yet; pass mesh=<path to a mesh file in metres>")
+        path = scan.ground_truth_path("mesh")
+        import trimesh.exchange.ply
+
+        with open(path, "rb") as fh:
+            data = trimesh.exchange.ply.load_ply(fh)
+        return (np.asarray(data["vertices"], np.float64), np.asarray(data["faces"], np.int64),
+                f"ground truth ({path.name})")
+    path = Path(mesh)
+    if not path.is_file():
+        raise InputError(f"mesh: {path} is not a file")
+    m = trimesh.load(path, process=False, force="mesh")
+    return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64), str(path)
+
+
+class _StageDir:
+    """A temporary sibling folder swapped onto ``out_dir/<name>`` on success."""
+
+    def __init__(self, out_dir: Path, name: str):
+        self.final = out_dir / name
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{name}.partial-", dir=out_dir))
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(self.tmp, 0o777 & ~umask)
+
+    def commit(self) -> None:
+        old = None
+        if self.final.exists():
+            old = self.final.with_name(f".{self.final.name}.old-{os.getpid()}-{time.time_ns()}")
+            os.replace(self.final, old)
+        os.replace(self.tmp, self.final)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def abort(self) -> None:
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def _record(out_dir: Path, stage_dir: Path, name: str, settings: dict, metrics: dict) -> None:
+    atomic_write_text(stage_dir / "stage.json", json.dumps(
+        {"stage": name, "settings": settings, "metrics": metrics}, indent=2, sort_keys=True))
+    path = out_dir / "metrics.json"
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = doc if isinstance(doc, dict) else {}
+    except (OSError, ValueError):
+        doc = {}
+    doc[name] = metrics
+    atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True))
+
+
+def _atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
+                    size: int | None, padding: int, split_faces: int | None,
+                    repair: bool) -> dict:
+    from facegeo.surface.atlas import build_atlas, export_mesh_uv, rasterize_texels
+
+    t0 = time.perf_counter()
+    V, F, what = load_mesh(scan, mesh)
+    atlas = build_atlas(V, F, texels_per_mm=texels_per_mm, size=size, padding=padding,
+                        split_faces=split_faces, repair=repair)
+    t1 = time.perf_counter()
+    texels = rasterize_texels(atlas)
+    t2 = time.perf_counter()
+    atlas.save(dest / "atlas.npz")
+    texels.save(dest / "texels.npz")
+    export_mesh_uv(atlas, dest / "mesh_uv.obj")
+    export_mesh_uv(atlas, dest / "mesh_uv.glb")
+    return {
+        "mesh": what, "faces": int(len(F)), "vertices": int(len(V)),
+        "dropped_degenerate": int(atlas.report.degenerate_faces.size),
+        "dropped_nonmanifold": int(atlas.report.nonmanifold_faces.size),
+        "pieces": atlas.n_pieces, "charts": atlas.n_charts,
+        "width": atlas.width, "height": atlas.height,
+        "texels_per_mm": round(atlas.texels_per_metre / 1000.0, 6),
+        "texels": int(len(texels)),
+        "texel_fill": round(len(texels) / (atlas.width * atlas.height), 4),
+        "seconds_xatlas": round(atlas.seconds, 4),
+        "seconds_parameterise": round(t1 - t0, 4),
+        "seconds_rasterise": round(t2 - t1, 4),
+        "seconds": round(time.perf_counter() - t0, 4),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+    }
+
+
+def run_atlas(scan_dir, out_dir=None, *, mesh: str = "ground_truth",
+              texels_per_mm: float | None = 1.0, size: int | None = None, padding: int = 2,
+              split_faces: int | None = 25_000, repair: bool = False) -> dict:
+    """Build the atlas and texel table of a scan's mesh into ``out_dir/atlas/``.
+
+    Parameters
+    ----------
+    scan_dir : path-like or Scan
+    out_dir : path-like, optional
+        Default the scan's ``out/``.
+    mesh : str
+        ``"ground_truth"`` or a mesh file (metres).
+    texels_per_mm, size, padding, split_faces, repair
+        See :func:`facegeo.surface.atlas.build_atlas` (give ``size`` with
+        ``texels_per_mm=None``).
+
+    Returns
+    -------
+    dict
+        Metrics: ``texels``, atlas size, charts, ``seconds`` (and its parts), ``peak_rss_mb``.
+    """
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir
+    settings = {"mesh": mesh, "texels_per_mm": texels_per_mm, "size": size,
+                "padding": padding, "split_faces": split_faces, "repair": repair}
+    stage = _StageDir(out, "atlas")
+    try:
+        metrics = _atlas_products(scan, stage.tmp, **settings)
+        _record(out, stage.tmp, "atlas", settings, metrics)
+        stage.commit()
+    except BaseException:
+        stage.abort()
+        raise
+    return metrics
+
+
+def _rig(scan, rig: str | None):
+    has_gt = scan.synthetic and "rig" in scan.ground_truth_keys
+    if rig is None:
+        rig = "ground_truth" if has_gt else "scan"
+    if rig == "ground_truth":
+        if not has_gt:
+            raise InputError(f"rig: scan {scan.root} has no ground-truth rig; use rig='scan'")
+        from facegeo.geometry.rig import Rig
+
+        return Rig.load(scan.ground_truth_path("rig")), rig
+    if rig == "scan":
+        return scan.rig, rig
+    raise InputError(f"rig: expected 'ground_truth' or 'scan', got {rig!r}")
+
+
+def _visibility_agreement(scan, cam_name: str, camera, texels, vis, depth_jump: float):
+    """Agreement of the occlusion decision with the generator's per-pixel hits (see module)."""
+    key = f"geometry_{cam_name}"
+    if key not in scan.ground_truth_keys:
+        return None
+    with np.load(scan.ground_truth_path(key)) as g:
+        mask, p_gt = g["mask"], g["p_world"]
+    H, W = mask.shape
+    idx = np.flatnonzero(vis.in_image & vis.facing)
+    q = vis.q[idx]
+    x0 = np.clip(np.floor(q[:, 0]).astype(np.int64), 0, W - 2)
+    y0 = np.clip(np.floor(q[:, 1]).astype(np.int64), 0, H - 2)
+    c = camera.center_world
+    d_gt = np.linalg.norm(p_gt - c, axis=-1)
+    d_gt[~mask] = np.nan
+    quad = np.stack([d_gt[y0, x0], d_gt[y0, x0 + 1], d_gt[y0 + 1, x0], d_gt[y0 + 1, x0 + 1]], 1)
+    smooth = np.all(np.isfinite(quad), axis=1)
+    with np.errstate(invalid="ignore"):
+        smooth &= (np.nanmax(quad, axis=1) - np.nanmin(quad, axis=1)) < depth_jump
+    # away from silhouettes: no miss within 2 pixels
+    import cv2
+
+    near_sil = cv2.dilate((~mask).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    smooth &= ~near_sil[np.rint(q[:, 1]).astype(int).clip(0, H - 1),
+                        np.rint(q[:, 0]).astype(int).clip(0, W - 1)]
+    d_t = np.linalg.norm(texels.p_world[idx] - c, axis=1)
+    ref = d_t <= np.nanmax(np.where(np.isfinite(quad), quad, -np.inf), axis=1) + _GT_DEPTH_TOL_M
+    sel = np.flatnonzero(smooth)
+    if sel.size == 0:
+        return None
+    agree = ref[sel] == vis.unoccluded[idx[sel]]
+    return {"agreement": float(agree.mean()), "compared": int(sel.size),
+            "occluded_reference": int(np.count_nonzero(~ref[sel]))}
+
+
+def _projection_error(renderer, rig, camera, texels, face_input, field, n_lights: int,
+                      gt_lights: int, weight_min: float):
+    """Sums (Σ err², Σ ref², count) of projected vs exactly shaded samples for one camera."""
+    from facegeo.surface.reflectance import iter_field_chunks as rf_iter_chunks
+    from facegeo.synth.render import SurfaceView
+
+    sel = np.flatnonzero(field.weight > weight_min)
+    if sel.size == 0:
+        return 0.0, 0.0, 0
+    tex = field.texel_index[sel]
+    p = texels.p_world[tex]
+    # The generator's own shading normals at these points (same mesh, same interpolation).
+    n = np.einsum("tk,tkc->tc", texels.bary[tex],
+                  renderer.vertex_normals[renderer.faces[face_input[tex]]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    skin = renderer.skin.evaluate(p)
+    view = SurfaceView(camera.name, (1, sel.size), np.ones((1, sel.size), bool),
+                       np.arange(sel.size), p, n, field.v_world[sel], face_input[tex],
+                       np.asarray(skin.alpha_0, np.float32).reshape(-1, 3),
+                       np.asarray(skin.alpha_1, np.float32).reshape(-1, 3),
+                       np.asarray(skin.rho_s, np.float32).reshape(-1),
+                       np.asarray(skin.roughness, np.float32).reshape(-1))
+    step = max(1, -(-n_lights // gt_lights))
+    lights = np.arange(0, n_lights, step)
+    # Gather the compared samples chunk by chunk along texels (bounded resident memory).
+    keep = field.weight > weight_min
+    est_all = np.concatenate([chunk[keep[s:s + len(chunk)]][:, lights]
+                              for s, chunk in rf_iter_chunks(field.directory)])
+    se = sr = 0.0
+    cnt = 0
+    for k, l in enumerate(lights):
+        ref = renderer.shade_stage_light(view, rig.lights, int(l)).astype(np.float64)
+        est = est_all[:, k].astype(np.float64)
+        ok = np.isfinite(est).all(axis=1)
+        se += float(((est[ok] - ref[ok]) ** 2).sum())
+        sr += float((ref[ok] ** 2).sum())
+        cnt += int(ok.sum())
+    return se, sr, cnt
+
+
+def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "ground_truth",
+                min_cos: float | None = None, feather_px: float | None = None,
+                depth_jump: float | None = None, dtype: str = "float16",
+                block_lights: int | None = None, gt_lights: int = 32,
+                gt_weight_min: float = 0.3, cameras: list[str] | None = None,
+                atlas_settings: dict | None = None) -> dict:
+    """Project every camera's OLAT frames onto the atlas texels into ``out_dir/project/``.
+
+    Parameters
+    ----------
+    scan_dir : path-like or Scan
+    out_dir : path-like, optional
+        Default the scan's ``out/``; ``out_dir/atlas/`` is built first when missing.
+    rig : {"ground_truth", "scan"}, optional
+        Which rig places the cameras (module docstring).
+    mesh : str
+        The mesh the texels lie on (must be the atlas's mesh).
+    min_cos, feather_px, depth_jump
+        See :func:`facegeo.surface.reflectance.camera_visibility`.
+    dtype, block_lights
+        See :func:`facegeo.surface.reflectance.project_camera`.
+    gt_lights, gt_weight_min
+        Ground-truth comparison: at most this many lights; texels above this weight.
+    cameras : list of str, optional
+        Default every camera of the scan.
+    atlas_settings : dict, optional
+        Keyword arguments for :func:`run_atlas` when the atlas is missing.
+
+    Returns
+    -------
+    dict
+        ``texels``, ``cameras`` (per camera ``visible_fraction``, ``weighted_texels``,
+        ``seconds_visibility``, ``seconds_projection``, ``texels_per_second``,
+        ``masked_samples``, ``visibility_agreement``), ``unseen_fraction``,
+        ``projection_rel_rmse`` (synthetic scans), ``seconds``, ``peak_rss_mb``.
+    """
+    from facegeo.surface import reflectance as rf
+    from facegeo.surface.atlas import Atlas, Texels
+    from facegeo.surface.pullpush import pull_push
+    from facegeo.surface.visibility import RayScene
+
+    t_start = time.perf_counter()
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir
+    atlas_dir = out / "atlas"
+    if not (atlas_dir / "texels.npz").is_file():
+        run_atlas(scan, out, mesh=mesh, **(atlas_settings or {}))
+    atlas = Atlas.load(atlas_dir / "atlas.npz")
+    texels = Texels.load(atlas_dir / "texels.npz")
+    face_input = atlas.face_map[texels.face]  # input-mesh face of each texel
+    V, F, _ = load_mesh(scan, mesh)
+    scene = RayScene(V, F)
+    the_rig, rig_used = _rig(scan, rig)
+    names = list(cameras) if cameras is not None else scan.camera_names
+    for n in names:
+        if n not in scan.camera_names:
+            raise InputError(f"cameras: unknown camera {n!r}; the scan has {scan.camera_names}")
+    vis_kw = {k: v for k, v in (("min_cos", min_cos), ("feather_px", feather_px),
+                                ("depth_jump", depth_jump)) if v is not None}
+    jump = depth_jump if depth_jump is not None else rf.DEFAULT_DEPTH_JUMP
+    settings = {"rig": rig_used, "mesh": mesh, **vis_kw, "dtype": dtype,
+                "block_lights": block_lights or rf.DEFAULT_BLOCK_LIGHTS,
+                "gt_lights": gt_lights, "gt_weight_min": gt_weight_min, "cameras": names}
+    renderer = None
+    if scan.synthetic and "skin" in scan.ground_truth_keys and mesh == "ground_truth":
+        from facegeo.synth.render import load_ground_truth
+
+        renderer = load_ground_truth(scan)
+    T = len(texels)
+    stage = _StageDir(out, "project")
+    try:
+        per_cam: dict[str, Any] = {}
+        seen = np.zeros(T, bool)
+        colour = np.zeros((T, 3))
+        wsum = np.zeros(T)
+        se = sr = 0.0
+        for name in names:
+            camera = the_rig.camera(name)
+            t0 = time.perf_counter()
+            vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
+            t1 = time.perf_counter()
+            field = rf.project_camera(
+                scan.iter_olat(name, return_mask=True), vis, (camera.width, camera.height),
+                scan.n_lights, stage.tmp / name, dtype=dtype,
+                block_lights=block_lights or rf.DEFAULT_BLOCK_LIGHTS)
+            t2 = time.perf_counter()
+            seen[field.texel_index] = True
+            for s, chunk in rf.iter_field_chunks(stage.tmp / name):
+                sl = field.texel_index[s:s + len(chunk)]
+                w = field.weight[s:s + len(chunk)].astype(np.float64)
+                m = np.nanmean(chunk, axis=1)
+                ok = np.isfinite(m).all(axis=1)
+                colour[sl[ok]] += w[ok, None] * m[ok]
+                wsum[sl[ok]] += w[ok]
+            entry = {
+                "visible_fraction": round(vis.visible_fraction, 6),
+                "weighted_texels": int(field.texel_index.size),
+                "seconds_visibility": round(t1 - t0, 4),
+                "seconds_projection": round(t2 - t1, 4),
+                "texels_per_second": round(field.texel_index.size * scan.n_lights
+                                           / max(t2 - t1, 1e-9), 1),
+                "masked_samples": field.n_masked,
+                "float16_overflow": field.n_overflow,
+            }
+            if scan.synthetic and rig_used == "ground_truth":
+                agr = _visibility_agreement(scan, name, camera, texels, vis, jump)
+                if agr is not None:
+                    entry["visibility_agreement"] = round(agr["agreement"], 6)
+                    entry["visibility_compared"] = agr["compared"]
+            if renderer is not None and rig_used == "ground_truth":
+                a, b, _ = _projection_error(renderer, the_rig, camera, texels, face_input, field,
+                                            scan.n_lights, gt_lights, gt_weight_min)
+                se += a
+                sr += b
+                entry["projection_rel_rmse"] = round(float(np.sqrt(a / b)), 6) if b else None
+            per_cam[name] = entry
+        np.save(stage.tmp / "seen.npy", seen)
+        preview = np.where(wsum[:, None] > 0, colour / np.maximum(wsum, 1e-30)[:, None], np.nan)
+        img = pull_push(texels.to_image(preview), texels.to_image(
+            np.where(wsum > 0, 1.0, 0.0), fill=0.0))
+        import cv2
+
+        scale = np.nanpercentile(preview, 99) if np.isfinite(preview).any() else 1.0
+        png = np.clip(np.nan_to_num(img) / max(scale, 1e-12), 0, 1) ** (1 / 2.2)
+        cv2.imwrite(str(stage.tmp / "preview.png"),
+                    (png[..., ::-1] * 255 + 0.5).astype(np.uint8))
+        metrics: dict[str, Any] = {
+            "texels": int(T), "lights": int(scan.n_lights), "rig": rig_used,
+            "cameras": per_cam,
+            "unseen_fraction": round(float(1 - seen.mean()) if T else 0.0, 6),
+        }
+        agrs = [c["visibility_agreement"] for c in per_cam.values()
+                if "visibility_agreement" in c]
+        if agrs:
+            metrics["visibility_agreement"] = round(float(min(agrs)), 6)
+        if renderer is not None and sr > 0:
+            metrics["projection_rel_rmse"] = round(float(np.sqrt(se / sr)), 6)
+            metrics["projection_weight_min"] = gt_weight_min
+        metrics["seconds"] = round(time.perf_counter() - t_start, 4)
+        metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+        _record(out, stage.tmp, "project", settings, metrics)
+        stage.commit()
+    except BaseException:
+        stage.abort()
+        raise
+    return metrics

@@ -1,0 +1,583 @@
+"""Per-camera visibility of atlas texels and projection of OLAT frames onto them.
+
+The surface reflectance field (Debevec et al. 2000, §2.1) is measured camera by camera: each
+camera pixel's reflectance function ``R_xy(θ, φ) = L_θφ(x, y)`` (Eq. 2, §3.2) is carried onto
+the surface point the pixel sees. Here the surface points are atlas texels
+(:mod:`facegeo.surface.atlas`); for camera ``c`` the field is ``R_c[texel, light, rgb]``, with a
+weight ``w_c[texel]`` and a view direction ``v_c[texel]``.
+
+Visibility (:func:`camera_visibility`)
+--------------------------------------
+A texel is visible in camera ``c`` when
+
+1. it projects in front of the camera, inside the lens model's valid region (``Camera.project``'s
+   mask) and far enough inside the image that all four bilinear taps exist
+   (``0 <= x <= W − 1``, ``0 <= y <= H − 1``);
+2. it faces the camera: both the geometric and the interpolated normal have ``n·v > min_cos``
+   (default 0.1, i.e. views within ≈ 84° of the normal);
+3. nothing blocks the segment from the texel to the camera centre (Embree occlusion,
+   :meth:`~facegeo.surface.visibility.RayScene.occluded`, the origin offset ``eps`` along the
+   *geometric* normal so the ray never hits its own triangle — DESIGN §7's terminator case —
+   and ``eps`` excluded at both ends, as in ``RayScene.segment_visible``).
+
+Weights (view-dependent texture mapping, course notes §"VDTM": "the contribution of each input
+pixel ... should be weighted so that pixels viewed at oblique angles contribute less ... the dot
+product between the camera viewing direction and the surface normal", and "the pixel weights are
+ramped down near the boundary of the projected images")::
+
+    w_c = (n · v) · s(d_edge / feather_px)
+
+with ``s`` the smoothstep on [0, 1] and ``d_edge`` the distance in pixels from the texel's
+projection to the nearest silhouette or occlusion edge of the camera's depth image, or to the
+image border. Depth edges are pixels whose 4-neighbour sees background, or a surface deeper or
+shallower by more than ``max(depth_jump, jump_px · z / f)`` — the second term is ``jump_px``
+pixel footprints, so a smooth surface seen at up to atan(jump_px) ≈ 85° from its normal (what
+``min_cos`` still lets through) never counts as an edge on a coarse camera. The depth image is
+traced with pixel-centre rays of the camera's *pinhole* part (same K and pose, no distortion)
+and the texel's edge distance is read at its pinhole projection: distortion only moves pixels by
+a smooth 1-to-1 map, so the distance is off by the local scale of the distortion (< 2 % on
+these lenses). The weight depends
+on geometry only, so it is **identical for every light** and relighting stays linear.
+
+Not done: the optional z-buffer pre-pass with ``cv2.triangleRasterizeDepth`` (its camera model
+is a symmetric OpenGL frustum; mapping our K with fx ≠ fy and an off-centre principal point
+onto it was not finished in time). Every candidate texel gets an exact occlusion ray instead.
+
+Projection (:func:`project_camera`)
+-----------------------------------
+Every OLAT frame is sampled at the visible texels' projected positions by bilinear
+interpolation with ``cv2.remap`` (``INTER_LINEAR``; the float32 maps are built once per camera,
+folded into rows of 16,384 texels). With float maps and float32 frames OpenCV 5 interpolates at
+the exact float32 position (measured: a linear ramp is reproduced with zero error at random
+positions), and it is ≈ 9× faster than a numpy gather of precomputed taps
+(:func:`bilinear_taps`, kept as the plain reference implementation the tests compare against).
+The validity mask is remapped the same way (as a float image of the *invalid* pixels): a sample
+with any weight on a masked pixel (saturated, clipped, non-finite) is stored as NaN — never
+trusted, never a fake value — while the texel's weight stays light-independent.
+
+Transpose strategy and memory: a frame is one light for all texels, the on-disk field is chunked
+along texels (``(T_c, L, 3)`` C order, each texel's function contiguous). Frames are gathered
+frame-major into a float32 block of ``block_lights`` lights (``B × T_c × 3 × 4`` bytes, 154 MB
+for 200 k texels and B = 64; each sampled frame is one contiguous write), which is transposed
+into the memory-mapped ``.npy`` in steps of 4,096 texels (each texel's B lights contiguous on
+disk, ``B × 3 × 2`` bytes); each step's pages are flushed and released from the process
+(``madvise(MADV_DONTNEED)``) at once — a texel-major write touches a page of every texel, and
+file-backed pages count as resident — so resident memory stays at one block plus one frame
+whatever L and T_c are. :func:`iter_field_chunks` releases the pages it read the same way. Writing every frame straight into the texel-major file (B = 1) touches every page of the
+field once per light and measured 2.9× slower (``facegeo bench surface.project``).
+"""
+
+from __future__ import annotations
+
+import logging
+import mmap
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from facegeo.checks import as_array
+from facegeo.errors import InputError, ShapeError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
+    "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
+    "open_field", "iter_field_chunks", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
+    "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS",
+]
+
+#: Facing threshold on n·v (both normals): ≈ 84° from the normal.
+DEFAULT_MIN_COS = 0.1
+#: Weight ramps from 0 at a silhouette/occlusion edge or the image border to full over this.
+DEFAULT_FEATHER_PX = 3.0
+#: Depth step (metres) between neighbouring pixels that counts as an occlusion edge ...
+DEFAULT_DEPTH_JUMP = 0.005
+#: ... and at least this many pixel footprints (z / f): tan(85°) ≈ 11.4.
+DEFAULT_JUMP_PX = 12.0
+#: Lights gathered in RAM before one strided write to the on-disk field.
+DEFAULT_BLOCK_LIGHTS = 64
+_F16_MAX = float(np.finfo(np.float16).max)
+#: Texels per step of the blocked transpose from frame-major RAM to texel-major disk.
+_TRANSPOSE_TEXELS = 4096
+
+
+@dataclass
+class CameraVisibility:
+    """Which texels one camera sees, and how much each measurement is trusted.
+
+    Attributes
+    ----------
+    camera : str
+    q : (T, 2) float64, pixels
+        Projection of every texel (NaN behind the camera).
+    v_world : (T, 3) float64, unit, world frame
+        Direction from each texel toward the camera centre.
+    in_image : (T,) bool
+        In front, inside the lens model's valid region, all four bilinear taps in the image.
+    facing : (T,) bool
+        Both normals have ``n·v > min_cos``.
+    unoccluded : (T,) bool
+        Nothing blocks the segment to the camera centre (only traced where ``in_image &
+        facing``; False elsewhere).
+    cos_view : (T,) float64
+        ``n_world · v_world`` (interpolated normal).
+    edge_px : (T,) float32, pixels
+        Distance to the nearest silhouette/occlusion edge or image border (NaN where not
+        ``in_image``).
+    weight : (T,) float32
+        ``cos_view · smoothstep(edge_px / feather_px)`` where visible, 0 elsewhere.
+    """
+
+    camera: str
+    q: np.ndarray
+    v_world: np.ndarray
+    in_image: np.ndarray
+    facing: np.ndarray
+    unoccluded: np.ndarray
+    cos_view: np.ndarray
+    edge_px: np.ndarray
+    weight: np.ndarray
+
+    @property
+    def visible(self) -> np.ndarray:
+        """(T,) bool: in image, facing and unoccluded."""
+        return self.in_image & self.facing & self.unoccluded
+
+    @property
+    def visible_fraction(self) -> float:
+        """Fraction of all texels visible (0 for an empty table)."""
+        n = self.visible.size
+        return float(np.count_nonzero(self.visible) / n) if n else 0.0
+
+
+def _texel_arrays(texels: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    p = as_array(getattr(texels, "p_world", None), "texels.p_world", shape=(None, 3))
+    n = as_array(getattr(texels, "n_world", None), "texels.n_world", shape=(len(p), 3))
+    g = as_array(getattr(texels, "n_geom", None), "texels.n_geom", shape=(len(p), 3))
+    return p, n, g
+
+
+def depth_image(scene, camera) -> np.ndarray:
+    """Depth ``z`` (metres, camera frame) along the pinhole pixel-centre rays of ``camera``.
+
+    Parameters
+    ----------
+    scene : facegeo.surface.visibility.RayScene
+    camera : facegeo.geometry.camera.Camera
+        Its distortion is ignored (pinhole part: K and pose).
+
+    Returns
+    -------
+    (H, W) float64
+        NaN where the ray misses the mesh.
+    """
+    pin = camera.replace(dist=np.zeros_like(camera.dist))
+    o, d = pin.pixel_rays()
+    hits = scene.closest_hit(o.reshape(-1, 3), d.reshape(-1, 3), t_min=0.0)
+    d_cam = d.reshape(-1, 3) @ camera.T_cam_world.R.T
+    z = hits.t * d_cam[:, 2]
+    return z.reshape(camera.height, camera.width)
+
+
+def _edge_distance(depth: np.ndarray, depth_jump: float, footprint: float = 0.0,
+                   jump_px: float = 0.0) -> np.ndarray:
+    """Distance (pixels, float32) from each pixel to the nearest depth edge (L2)."""
+    import cv2
+
+    hit = np.isfinite(depth)
+    z = np.where(hit, depth, 0.0)
+    edge = np.zeros(depth.shape, bool)
+    for axis in (0, 1):
+        a = [slice(None)] * 2
+        b = [slice(None)] * 2
+        a[axis] = slice(1, None)
+        b[axis] = slice(None, -1)
+        ha, hb = hit[tuple(a)], hit[tuple(b)]
+        za, zb = z[tuple(a)], z[tuple(b)]
+        limit = np.maximum(depth_jump, jump_px * footprint * np.maximum(za, zb))
+        jump = (ha != hb) | (ha & hb & (np.abs(za - zb) > limit))
+        edge[tuple(a)] |= jump
+        edge[tuple(b)] |= jump
+    src = np.where(edge, 0, 255).astype(np.uint8)
+    if not edge.any():
+        return np.full(depth.shape, np.inf, np.float32)
+    return cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MIN_COS,
+                      feather_px: float = DEFAULT_FEATHER_PX,
+                      depth_jump: float = DEFAULT_DEPTH_JUMP) -> CameraVisibility:
+    """Visibility and blending weight of every texel in one camera (module docstring).
+
+    Parameters
+    ----------
+    texels : facegeo.surface.atlas.Texels
+        Anything with ``p_world``, ``n_world``, ``n_geom`` ``(T, 3)`` float64 arrays.
+    camera : facegeo.geometry.camera.Camera
+    scene : facegeo.surface.visibility.RayScene
+        The mesh the texels lie on.
+    min_cos : float
+        Facing threshold on ``n·v`` in [0, 1).
+    feather_px : float
+        Width (pixels) of the weight ramp at edges; 0 disables feathering.
+    depth_jump : float, metres
+        Smallest depth step between neighbouring pixels counted as an occlusion edge (the
+        step must also exceed ``DEFAULT_JUMP_PX`` pixel footprints).
+
+    Returns
+    -------
+    CameraVisibility
+    """
+    p, n, g = _texel_arrays(texels)
+    if not (0.0 <= float(min_cos) < 1.0):
+        raise InputError(f"min_cos: expected a number in [0, 1), got {min_cos!r}")
+    if not (np.isfinite(feather_px) and feather_px >= 0):
+        raise InputError(f"feather_px: expected a finite number >= 0, got {feather_px!r}")
+    if not (np.isfinite(depth_jump) and depth_jump > 0):
+        raise InputError(f"depth_jump: expected a finite number > 0 (metres), got {depth_jump!r}")
+    T = len(p)
+    q, valid = camera.project(p)
+    W, H = camera.width, camera.height
+    with np.errstate(invalid="ignore"):
+        in_image = (valid & (q[:, 0] >= 0) & (q[:, 0] <= W - 1)
+                    & (q[:, 1] >= 0) & (q[:, 1] <= H - 1))
+    c = camera.center_world
+    v = c[None, :] - p
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    cos_view = np.einsum("tc,tc->t", n, v)
+    cos_geom = np.einsum("tc,tc->t", g, v)
+    facing = (cos_view > min_cos) & (cos_geom > min_cos)
+    unoccluded = np.zeros(T, bool)
+    cand = np.flatnonzero(in_image & facing)
+    if cand.size:
+        # The segment texel -> camera centre, its origin lifted eps along the geometric normal
+        # (the camera is on the normal's side: cos_geom > min_cos), eps excluded at both ends.
+        # Same decision as RayScene.segment_visible(p, c, normals=g); calling occluded directly
+        # skips its broadcasting and normal checks (measured ≈ 1.6× faster on these rays).
+        eps = scene.eps
+        o = p[cand] + eps * g[cand]
+        d = c[None, :] - o
+        length = np.sqrt(np.einsum("tc,tc->t", d, d))
+        d /= length[:, None]
+        far = length - eps
+        long = far > 2.0 * eps
+        hit = np.zeros(cand.size, bool)
+        if long.any():
+            hit[long] = scene.occluded(o[long], d[long], far[long], t_min=eps)
+        unoccluded[cand] = ~hit
+    vis = in_image & facing & unoccluded
+    edge_px = np.full(T, np.nan, np.float32)
+    weight = np.zeros(T, np.float32)
+    idx = np.flatnonzero(in_image)
+    if idx.size:
+        border = np.minimum.reduce([q[idx, 0] + 0.5, W - 0.5 - q[idx, 0],
+                                    q[idx, 1] + 0.5, H - 0.5 - q[idx, 1]])
+        dist = _edge_distance(depth_image(scene, camera), float(depth_jump),
+                              2.0 / (camera.fx + camera.fy), DEFAULT_JUMP_PX)
+        pin = camera.replace(dist=np.zeros_like(camera.dist))
+        qp = pin.project(p[idx])[0]
+        col = np.clip(np.rint(qp[:, 0]), 0, W - 1).astype(np.int64)
+        row = np.clip(np.rint(qp[:, 1]), 0, H - 1).astype(np.int64)
+        edge_px[idx] = np.minimum(border, dist[row, col])
+    if feather_px > 0:
+        ramp = _smoothstep(np.nan_to_num(edge_px, nan=0.0) / feather_px)
+    else:
+        ramp = np.ones(T)
+    weight[vis] = (cos_view[vis] * ramp[vis]).astype(np.float32)
+    return CameraVisibility(camera=camera.name, q=q, v_world=v, in_image=in_image,
+                            facing=facing, unoccluded=unoccluded, cos_view=cos_view,
+                            edge_px=edge_px, weight=weight)
+
+
+def bilinear_taps(q: Any, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel indices and weights of bilinear interpolation at pixel positions.
+
+    Parameters
+    ----------
+    q : (N, 2) float64, pixels (integers are pixel centres)
+        Must satisfy ``0 <= x <= W − 1`` and ``0 <= y <= H − 1``.
+    width, height : int
+
+    Returns
+    -------
+    index : (N, 4) int64
+        ``row · W + col`` of the taps (top-left, top-right, bottom-left, bottom-right).
+    weight : (N, 4) float32
+        Bilinear weights (computed in float64, sum 1 to float32 rounding).
+    """
+    q = as_array(q, "q", shape=(None, 2))
+    x, y = q[:, 0], q[:, 1]
+    if np.any((x < 0) | (x > width - 1) | (y < 0) | (y > height - 1)):
+        raise InputError(f"q: bilinear positions must lie in [0, {width - 1}] × "
+                         f"[0, {height - 1}] (all four taps inside the image)")
+    x0 = np.minimum(np.floor(x), max(width - 2, 0)).astype(np.int64)
+    y0 = np.minimum(np.floor(y), max(height - 2, 0)).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    x1 = np.minimum(x0 + 1, width - 1)
+    y1 = np.minimum(y0 + 1, height - 1)
+    index = np.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], 1)
+    weight = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
+    return index, weight.astype(np.float32)
+
+
+_REMAP_COLS = 1 << 14
+
+
+@dataclass(frozen=True)
+class FrameSampler:
+    """Bilinear sampling positions of N texels in one camera, as ``cv2.remap`` maps.
+
+    Attributes
+    ----------
+    map_x, map_y : (rows, 16384) float32, pixels
+        Positions, padded with 0 past ``n``.
+    n : int
+    """
+
+    map_x: np.ndarray
+    map_y: np.ndarray
+    n: int
+
+
+def frame_sampler(q: Any, width: int, height: int) -> FrameSampler:
+    """Sampling maps for positions ``q`` ``(N, 2)`` float64 (pixels, all four bilinear taps
+    inside the ``width × height`` image: ``0 <= x <= W − 1``, ``0 <= y <= H − 1``)."""
+    q = as_array(q, "q", shape=(None, 2))
+    if np.any((q[:, 0] < 0) | (q[:, 0] > width - 1) | (q[:, 1] < 0) | (q[:, 1] > height - 1)):
+        raise InputError(f"q: bilinear positions must lie in [0, {width - 1}] × "
+                         f"[0, {height - 1}] (all four taps inside the image)")
+    n = len(q)
+    rows = max(1, -(-n // _REMAP_COLS))
+    mx = np.zeros(rows * _REMAP_COLS, np.float32)
+    my = np.zeros(rows * _REMAP_COLS, np.float32)
+    mx[:n] = q[:, 0]
+    my[:n] = q[:, 1]
+    return FrameSampler(mx.reshape(rows, -1), my.reshape(rows, -1), n)
+
+
+def sample_frame(frame: np.ndarray, sampler: FrameSampler,
+                 valid: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear samples ``(N, 3)`` float32 of an ``(H, W, 3)`` float32 frame (``cv2.remap``).
+
+    A sample with a non-zero weight on a pixel where ``valid`` ``(H, W)`` is False is NaN.
+    Linear in ``frame`` (the interpolation weights depend on the positions only).
+    """
+    import cv2
+
+    frame = np.ascontiguousarray(frame, np.float32)
+    out = cv2.remap(frame, sampler.map_x, sampler.map_y, cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    out = out.reshape(-1, frame.shape[-1])[:sampler.n]
+    if valid is not None and not np.all(valid):
+        bad = cv2.remap((~np.asarray(valid, bool)).astype(np.float32), sampler.map_x,
+                        sampler.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out = out.copy()
+        out[bad.reshape(-1)[:sampler.n] > 0] = np.nan
+    return out
+
+
+def sample_taps(frame: np.ndarray, index: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Reference bilinear samples ``(N, 3)`` from :func:`bilinear_taps` (a numpy gather)."""
+    flat = np.asarray(frame, np.float32).reshape(-1, frame.shape[-1])
+    return np.einsum("nk,nkc->nc", weight, np.take(flat, index, axis=0), dtype=np.float32)
+
+
+@dataclass
+class ProjectedField:
+    """One camera's reflectance field on the atlas, as written by :func:`project_camera`.
+
+    Attributes
+    ----------
+    camera : str
+    directory : pathlib.Path
+        Holds ``R.npy`` ``(T_c, L, 3)`` (float16 or float32, C order: chunked along texels),
+        ``texel_index.npy`` ``(T_c,)`` int64, ``weight.npy`` ``(T_c,)`` float32 and
+        ``v_world.npy`` ``(T_c, 3)`` float64.
+    texel_index : (T_c,) int64
+        Texels with a non-zero weight, in texel order.
+    weight : (T_c,) float32
+    v_world : (T_c, 3) float64, unit, world frame
+    n_lights : int
+    n_masked : int
+        Samples stored as NaN (a bilinear tap on a masked pixel).
+    n_overflow : int
+        Finite samples beyond the float16 range (stored as ±inf when ``dtype`` is float16).
+    seconds : float
+    """
+
+    camera: str
+    directory: Path
+    texel_index: np.ndarray
+    weight: np.ndarray
+    v_world: np.ndarray
+    n_lights: int
+    n_masked: int
+    n_overflow: int
+    seconds: float
+
+    def field(self) -> np.ndarray:
+        """The memory-mapped ``R_c`` ``(T_c, L, 3)`` (read-only)."""
+        return open_field(self.directory)
+
+
+def _release_rows(mm: np.memmap, t0: int, t1: int, *, write: bool) -> None:
+    """Drop rows ``t0:t1`` of a memory-mapped array from this process's resident set.
+
+    File-backed pages count in the resident set once touched; a texel-major write of a light
+    block touches a page of every texel, so without this the resident set would grow toward the
+    size of the field. Written pages are flushed (``msync``) first, then released
+    (``madvise(MADV_DONTNEED)``; the data stays in the file and the page cache).
+    """
+    m = getattr(mm, "_mmap", None)
+    if m is None or t1 <= t0:
+        return
+    row = int(np.prod(mm.shape[1:])) * mm.dtype.itemsize
+    base = int(getattr(mm, "offset", 0)) % mmap.ALLOCATIONGRANULARITY
+    lo = base + t0 * row
+    hi = base + t1 * row
+    lo -= lo % mmap.PAGESIZE
+    hi = min(hi + (-hi) % mmap.PAGESIZE, len(m))
+    if write:
+        m.flush(lo, hi - lo)
+    if hasattr(m, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
+        m.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
+
+
+def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int],
+                   n_lights: int, directory, *, dtype: str = "float16",
+                   block_lights: int = DEFAULT_BLOCK_LIGHTS) -> ProjectedField:
+    """Project one camera's OLAT frames onto its visible texels, streaming frame by frame.
+
+    Implements Debevec et al. 2000 Eq. (2) per texel: ``R_c[t, l] = L_l(q_c(t))``, the frame of
+    light l sampled (bilinearly) where texel t projects.
+
+    Parameters
+    ----------
+    frames : iterable of (light, frame) or (light, frame, valid)
+        In light-index order ``0 … L−1`` (e.g. ``Scan.iter_olat(camera, return_mask=True)``);
+        ``frame`` ``(H, W, 3)`` float32 linear radiance, ``valid`` ``(H, W)`` bool.
+    vis : CameraVisibility
+        This camera's visibility; texels with ``weight > 0`` are projected.
+    size : (int, int)
+        The camera's (width, height) in pixels.
+    n_lights : int
+        Number of frames expected.
+    directory : path-like
+        Created; receives the files listed in :class:`ProjectedField`.
+    dtype : {"float16", "float32"}
+        On-disk type of ``R`` (computation is float32).
+    block_lights : int
+        Lights gathered in RAM before one write (module docstring).
+
+    Returns
+    -------
+    ProjectedField
+
+    Raises
+    ------
+    ShapeError
+        A frame of the wrong size or channel count (the message names the camera and light).
+    InputError
+        Frames out of order, or a count different from ``n_lights``.
+    """
+    t0 = time.perf_counter()
+    if dtype not in ("float16", "float32"):
+        raise InputError(f"dtype: expected 'float16' or 'float32', got {dtype!r}")
+    if int(n_lights) != n_lights or n_lights < 1:
+        raise InputError(f"n_lights: expected a positive integer, got {n_lights!r}")
+    if int(block_lights) != block_lights or block_lights < 1:
+        raise InputError(f"block_lights: expected a positive integer, got {block_lights!r}")
+    W, H = (int(s) for s in size)
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    sel = np.flatnonzero(vis.weight > 0)
+    sampler = frame_sampler(vis.q[sel], W, H)
+    L = int(n_lights)
+    B = int(min(block_lights, L))
+    R = np.lib.format.open_memmap(directory / "R.npy", mode="w+", dtype=dtype,
+                                  shape=(sel.size, L, 3))
+    buf = np.empty((B, sel.size, 3), np.float32)  # frame-major: each frame one contiguous row
+    n_masked = n_overflow = 0
+    count = 0
+    l0 = 0
+
+    def flush(upto: int) -> None:
+        # Blocked transpose (B, T, 3) -> (T, B, 3), a few thousand texels at a time so the
+        # source rows and the destination pages stay in cache; converted to the disk dtype.
+        for t0 in range(0, sel.size, _TRANSPOSE_TEXELS):
+            t1 = min(t0 + _TRANSPOSE_TEXELS, sel.size)
+            R[t0:t1, l0:upto] = buf[:upto - l0, t0:t1].transpose(1, 0, 2)
+            _release_rows(R, t0, t1, write=True)
+
+    for item in frames:
+        if len(item) == 3:
+            light, frame, valid = item
+        else:
+            (light, frame), valid = item, None
+        if int(light) != count:
+            raise InputError(f"camera {vis.camera!r}: expected OLAT frame of light {count}, "
+                             f"got light {light} (frames must come in light-index order)")
+        if count >= L:
+            raise InputError(f"camera {vis.camera!r}: more OLAT frames than the {L} lights")
+        frame = np.asarray(frame)
+        if frame.shape != (H, W, 3):
+            raise ShapeError(f"camera {vis.camera!r}, light {light}: OLAT frame has shape "
+                             f"{frame.shape}, expected ({H}, {W}, 3)")
+        if valid is not None and np.shape(valid) != (H, W):
+            raise ShapeError(f"camera {vis.camera!r}, light {light}: mask has shape "
+                             f"{np.shape(valid)}, expected ({H}, {W})")
+        s = sample_frame(frame, sampler, valid)
+        if np.isnan(s.sum()):  # one cheap reduction; count only when something is missing
+            n_masked += int(np.count_nonzero(np.isnan(s).any(axis=1)))
+        if dtype == "float16":
+            big = float(np.abs(s).max(initial=0.0)) if s.size else 0.0
+            if big > _F16_MAX:
+                with np.errstate(invalid="ignore"):
+                    n_overflow += int(np.count_nonzero(np.isfinite(s) & (np.abs(s) > _F16_MAX)))
+        buf[count - l0] = s
+        count += 1
+        if count - l0 == B:
+            flush(count)
+            l0 = count
+    if count != L:
+        raise InputError(f"camera {vis.camera!r}: got {count} OLAT frames, expected {L} "
+                         f"(one per light)")
+    if count > l0:
+        flush(count)
+    del R
+    np.save(directory / "texel_index.npy", sel.astype(np.int64))
+    np.save(directory / "weight.npy", vis.weight[sel])
+    np.save(directory / "v_world.npy", vis.v_world[sel])
+    seconds = time.perf_counter() - t0
+    log.info("project %s: %d texels × %d lights in %.2f s (%d masked samples)",
+             vis.camera, sel.size, L, seconds, n_masked)
+    return ProjectedField(camera=vis.camera, directory=directory, texel_index=sel,
+                          weight=vis.weight[sel], v_world=vis.v_world[sel], n_lights=L,
+                          n_masked=n_masked, n_overflow=n_overflow, seconds=seconds)
+
+
+def open_field(directory) -> np.ndarray:
+    """Memory-map a camera's ``R.npy`` ``(T_c, L, 3)`` read-only."""
+    path = Path(directory) / "R.npy"
+    if not path.is_file():
+        raise InputError(f"{path}: no projected field here (run the projection first)")
+    return np.load(path, mmap_mode="r")
+
+
+def iter_field_chunks(directory, chunk_texels: int = 8192):
+    """Yield ``(start, R[start:stop] as float32)`` chunks along texels (never computing in
+    float16)."""
+    R = open_field(directory)
+    for s in range(0, R.shape[0], chunk_texels):
+        chunk = np.array(R[s:s + chunk_texels], dtype=np.float32)
+        _release_rows(R, s, s + len(chunk), write=False)  # keep resident memory at one chunk
+        yield s, chunk
