@@ -452,15 +452,18 @@ def test_true_rig_differs_from_nominal_by_a_calibration_sized_error(tiny_scan):
     assert not np.array_equal(nominal.cameras[0].K, true.cameras[0].K)
 
 
-def test_overwrite_replaces_the_whole_scan(tmp_path):
+def test_overwrite_replaces_every_file_facegeo_wrote(tmp_path):
+    from facegeo import fsutil
     from facegeo.capture.scan import load_scan
     from facegeo.synth.capture import generate_scan
 
     root = tmp_path / "s"
     generate_scan(root, "tiny", seed=0)
-    (root / "olat" / "cam_left" / "9999.exr").write_bytes(b"stale")
+    stale = root / "olat" / "cam_left" / "9999.exr"
+    stale.write_bytes(b"stale")
+    fsutil.add_to_written_record(root, ["olat/cam_left/9999.exr"])  # a file facegeo wrote
     generate_scan(root, "tiny", seed=1, overwrite=True)
-    assert not (root / "olat" / "cam_left" / "9999.exr").exists()
+    assert not stale.exists()
     assert "seed 1" in load_scan(root).description
 
 

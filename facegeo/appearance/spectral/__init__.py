@@ -68,6 +68,7 @@ from facegeo.appearance.spectral._inverse import (
     FLAG_C_M_UNIDENTIFIABLE,
     FLAG_DARK,
     FLAG_OUT_OF_GAMUT,
+    FLAG_SKIPPED_STEPS,
     AlbedoFit,
     SpectrumFit,
     edit,
@@ -112,6 +113,7 @@ __all__ = [
     "FLAG_C_M_UNIDENTIFIABLE",
     "FLAG_DARK",
     "FLAG_OUT_OF_GAMUT",
+    "FLAG_SKIPPED_STEPS",
     # absorption and scattering (D&J 2006 Eqs. 3-8)
     "eumelanin_absorption",
     "pheomelanin_absorption",
