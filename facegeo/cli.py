@@ -230,6 +230,43 @@ def _cmd_calibrate(args) -> int:
     return 0
 
 
+def _print_metrics(title: str, metrics: dict) -> None:
+    """A short, flat view of a stage's metrics (nested dicts one level deep)."""
+    def fmt(v):
+        return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+    print(title)
+    for k, v in metrics.items():
+        if isinstance(v, dict):
+            inner = ", ".join(f"{ik}={fmt(iv)}" for ik, iv in v.items() if not isinstance(iv, dict))
+            print(f"  {k}: {inner}")
+        elif not isinstance(v, list):
+            print(f"  {k}: {fmt(v)}")
+
+
+def _cmd_atlas(args) -> int:
+    from facegeo.pipeline.project import run_atlas
+
+    if args.out is not None:
+        _check_output_dir(args.out, "--out")
+    m = run_atlas(args.scan, args.out, mesh=args.mesh,
+                  texels_per_mm=None if args.size else args.texels_per_mm, size=args.size,
+                  padding=args.padding, split_faces=args.split_faces or None, repair=args.repair)
+    _print_metrics("atlas", m)
+    return 0
+
+
+def _cmd_project(args) -> int:
+    from facegeo.pipeline.project import run_project
+
+    if args.out is not None:
+        _check_output_dir(args.out, "--out")
+    m = run_project(args.scan, args.out, rig=args.rig, mesh=args.mesh, cameras=args.camera,
+                    dtype=args.dtype, gt_lights=args.gt_lights)
+    _print_metrics("project", m)
+    return 0
+
+
 def _common_options() -> argparse.ArgumentParser:
     """Options every subcommand accepts after its name (``facegeo info SCAN -v``)."""
     c = argparse.ArgumentParser(add_help=False)
@@ -310,6 +347,41 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the two-halves cross-validation")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     s.set_defaults(func=_cmd_calibrate)
+
+    s = sub.add_parser("atlas", parents=common,
+                       help="UV atlas (xatlas) and texel table of the scan's mesh")
+    s.add_argument("scan", metavar="SCAN", help="scan directory")
+    s.add_argument("--out", default=None, help="products folder (default: SCAN/out; writes atlas/)")
+    s.add_argument("--mesh", default="ground_truth",
+                   help="'ground_truth' (synthetic scans, until facegeo mesh lands) or a mesh "
+                        "file in metres")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--texels-per-mm", type=_nonneg_float, default=1.0,
+                   help="atlas resolution on the surface")
+    g.add_argument("--size", type=_nonneg_int, default=None, help="atlas size in texels instead")
+    s.add_argument("--padding", type=_nonneg_int, default=2, help="texels between charts")
+    s.add_argument("--split-faces", type=_nonneg_int, default=25000,
+                   help="parameterise in pieces of about this many triangles (0: one piece)")
+    s.add_argument("--repair", action="store_true",
+                   help="drop degenerate and non-manifold faces instead of refusing the mesh")
+    s.set_defaults(func=_cmd_atlas)
+
+    s = sub.add_parser("project", parents=common,
+                       help="project every camera's OLAT frames onto the atlas texels")
+    s.add_argument("scan", metavar="SCAN", help="scan directory")
+    s.add_argument("--out", default=None,
+                   help="products folder (default: SCAN/out; writes project/, builds atlas/ first)")
+    s.add_argument("--rig", choices=["ground_truth", "scan"], default=None,
+                   help="rig to project with (default: the true rig of a synthetic scan, "
+                        "else the scan's)")
+    s.add_argument("--mesh", default="ground_truth", help="as for facegeo atlas")
+    s.add_argument("--camera", action="append", default=None,
+                   help="project only this camera (repeatable; default: all)")
+    s.add_argument("--dtype", choices=["float16", "float32"], default="float16",
+                   help="storage type of the fields on disk")
+    s.add_argument("--gt-lights", type=_nonneg_int, default=32,
+                   help="lights compared against ground truth on synthetic scans")
+    s.set_defaults(func=_cmd_project)
 
     s = sub.add_parser("demo", parents=common,
                        help="the main job on the embedded default (a synthetic scan)")
