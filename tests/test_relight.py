@@ -46,8 +46,9 @@ def test_relight_field_batch_equals_single_calls_and_channels_are_not_mixed():
     ws = rng.random((4, 20, 3))
     batch = R.relight_field(field, ws)
     assert batch.shape == (4, 300, 3)
-    for b in range(4):
-        assert np.array_equal(batch[b], R.relight_field(field, ws[b]))
+    for b in range(4):  # one GEMM vs three GEMVs: equal up to float32 summation order
+        single = R.relight_field(field, ws[b])
+        assert np.max(np.abs(batch[b] - single)) / np.max(single) <= GEMM_REL
     # weights only in the red channel light only the red output
     w = np.zeros((20, 3))
     w[:, 0] = 1
