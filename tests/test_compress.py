@@ -86,7 +86,8 @@ def test_low_rank_target_error_and_held_out(case):
     e_sun = C.relative_rmse(lr.relight(ws["sun"]), relight_field(f, ws["sun"]))
     assert e_smooth <= 0.01 and e_sun > e_smooth
     # held-out lights: the error falls with rank
-    errs = [C.held_out_error(f, k) for k in (4, 32, 128)]
+    errs = C.held_out_error(f, [4, 32, 128])
+    assert errs[1] == C.held_out_error(f, 32)
     assert errs[0] > errs[1] > errs[2]
 
 
@@ -118,3 +119,11 @@ def test_bad_input():
         C.fit_low_rank(np.zeros((4, 8, 3), np.float32))
     with pytest.raises(ShapeError, match="expected shape"):
         C.fit_wavelet(np.zeros((4, 8, 3), np.float32), 4, 4)
+
+
+def test_low_rank_truncation_equals_a_lower_rank_fit(case):
+    f, ws = case
+    full = C.fit_low_rank(f, rank=64)
+    a = full.truncated(16).relight(ws["smooth"])
+    b = C.fit_low_rank(f, rank=16).relight(ws["smooth"])
+    assert C.relative_rmse(a, b) <= LOSSLESS_REL

@@ -85,6 +85,13 @@ class LowRankField:
     def nbytes(self) -> int:
         return int(self.U.nbytes + self.SVt.nbytes)
 
+    def truncated(self, rank: int) -> LowRankField:
+        """The first ``rank`` terms (the factors are ordered by singular value)."""
+        if not 1 <= int(rank) <= self.rank:
+            raise InputError(f"rank: expected 1 … {self.rank}, got {rank!r}")
+        k = int(rank)
+        return LowRankField(np.ascontiguousarray(self.U[:, :k]), self.SVt[:k], self.n_pixels)
+
     def relight(self, weights: Any) -> np.ndarray:
         """Eq. (4) from the factors: ``(P, 3)`` float32 (``weights`` ``(L, 3)``, δA included)."""
         w = as_array(weights, "weights", shape=(self.SVt.shape[1], 3))
@@ -142,12 +149,13 @@ def fit_low_rank(field: Any, *, rank: int | None = None, target_error: float | N
     return LowRankField(U, np.ascontiguousarray(Vk.T.astype(np.float32)), n_p)
 
 
-def held_out_error(field: Any, rank: int, *, held_out: float = 0.25, seed: int = 0) -> float:
+def held_out_error(field: Any, rank: Any, *, held_out: float = 0.25, seed: int = 0):
     """Held-out-light validation of a rank-k pixel basis.
 
     Fits the rank-k column space (the pixel basis ``U_k``) on a random ``1 − held_out`` of the
     lights, projects the held-out lights' images onto it and returns their relative RMSE: how
-    well the compressed basis represents lighting it was not fitted to.
+    well the compressed basis represents lighting it was not fitted to. ``rank`` may be a
+    sequence of ranks (one fit, one error per rank).
     """
     A, _, n_l = _transport(field)
     rng = np.random.default_rng(seed)
@@ -155,10 +163,15 @@ def held_out_error(field: Any, rank: int, *, held_out: float = 0.25, seed: int =
     test[rng.choice(n_l, size=max(1, int(round(held_out * n_l))), replace=False)] = True
     fit = A[:, ~test]
     s, V = _gram_svd(fit)
-    k = min(int(rank), int(np.count_nonzero(s > s[0] * 1e-7)))
-    Uk = (fit.astype(np.float64) @ V[:, :k]) / s[:k]
+    ranks = np.atleast_1d(rank).astype(int)
+    k_max = min(int(ranks.max()), int(np.count_nonzero(s > s[0] * 1e-7)))
+    U = (fit.astype(np.float64) @ V[:, :k_max]) / s[:k_max]
     T = A[:, test].astype(np.float64)
-    return relative_rmse(Uk @ (Uk.T @ T), T)
+    errs = []
+    for k in ranks:
+        Uk = U[:, : min(int(k), k_max)]
+        errs.append(relative_rmse(Uk @ (Uk.T @ T), T))
+    return errs if np.ndim(rank) else errs[0]
 
 
 # --------------------------------------------------------------------------- Haar wavelets

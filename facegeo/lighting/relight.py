@@ -35,9 +35,11 @@ __all__ = ["CHUNK_BYTES", "SPARSE_FRACTION", "normalize_weights", "block_weights
 #: Target size of one float32 chunk of field rows (fits comfortably in the L2/L3 caches).
 CHUNK_BYTES = 4 << 20
 
-#: Use only the lights with non-zero weight when at most this fraction of them is active (below
-#: it, gathering the active columns reads less memory than streaming every light).
-SPARSE_FRACTION = 0.25
+#: Use only the lights with non-zero weight when at most this fraction of them is active. The
+#: gather of the active columns costs more than it saves above ≈ 2 % (measured on a 20,000 ×
+#: 2048 × 3 float32 field: sparse / dense time 2.6 at 10 % lit, 1.3 at 3 %, 0.45 at 1 %).
+#: Frames streamed from disk (:func:`relight_scan_view`) always skip unlit lights.
+SPARSE_FRACTION = 0.02
 
 
 def normalize_weights(weights: Any, n_lights: int, light_color: Any = None) -> np.ndarray:
