@@ -15,8 +15,9 @@ and ``g(z_mid) = 0`` fixing the free scale. :func:`merge_exposures` assembles th
 
     ln E_i = Σ_j w(Z_ij)(g(Z_ij) − ln Δt_j) / Σ_j w(Z_ij)                       (DM97 Eq. 6)
 
-Deviation: the course notes' MATLAB builds a dense matrix; here it is a ``scipy.sparse``
-system solved by LSQR-free sparse normal equations (``spsolve`` on AᵀA), same solution.
+Deviation: the course notes' MATLAB builds a dense matrix and uses SVD; here the system is a
+``scipy.sparse`` matrix solved through its normal equations (``spsolve`` on AᵀA, plus a 1e-10
+ridge for codes no sample or smoothness row reaches): the same least-squares solution.
 """
 
 from __future__ import annotations
