@@ -1,0 +1,512 @@
+"""Environment maps: reading, projections ↔ world directions, rotation, and projection onto a
+light basis (Debevec et al. 2000 §3.3, Eq. 4).
+
+Conventions (written out in ``docs/lighting.md``): facegeo's world frame (+Y up, the subject
+looks along +Z). All three projections put **+Z at the image centre** and +Y at the top:
+
+* ``"latlong"`` — OpenEXR's ``Imf::LatLongMap`` orientation: longitude
+  ``atan2(x, z)`` runs from +π at the left edge through 0 (+Z) at the centre column to −π at
+  the right edge (so +X is the left quarter, −X the right quarter), latitude +π/2 (+Y) at the
+  top. In facegeo's light-grid angles: ``θ = (π − 2π u) mod 2π``, ``φ = π v`` with
+  ``u = (x + ½)/W``, ``v = (y + ½)/H``. Deviation: OpenEXR maps the *centres* of the first and
+  last columns to ±π; facegeo treats a pixel as an area, so the left *edge* of column 0 is +π
+  (the usual convention for HDRI files; the difference is half a pixel).
+* ``"mirrorball"`` — a mirrored sphere photographed from +Z (orthographic): disc coordinates
+  ``(a, b) ∈ [−1, 1]²`` (a right, b up, r² = a² + b² ≤ 1) give the reflected direction
+  ``ω = (2a√(1−r²), 2b√(1−r²), 1 − 2r²)``: centre +Z (toward the camera), rim −Z.
+* ``"angular"`` — Debevec's angular map: ``(a, b) = (ω_x, ω_y)·arccos(ω_z)/(π·√(ω_x²+ω_y²))``:
+  the distance from the centre is proportional to the angle from +Z.
+
+Rotation ``rotation`` (radians) turns the environment about +Y by the right-hand rule (a feature
+at +Z moves toward +X): ``L_rot(ω) = L(R_y(−α) ω)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import as_array, check_choice
+from facegeo.errors import InputError, ShapeError
+from facegeo.frames import direction_angles, light_solid_angles
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "PROJECTIONS", "NEGATIVE_CLIP_TOLERANCE", "EnvironmentMap", "read_envmap", "axis_lobe_map",
+    "analytic_map", "pixel_directions", "pixel_solid_angles", "directions_to_pixels",
+    "rotation_y", "light_stage_radiance", "light_stage_weights", "direction_weights",
+]
+
+#: The supported projections.
+PROJECTIONS = ("latlong", "mirrorball", "angular")
+
+#: Negative values down to ``−NEGATIVE_CLIP_TOLERANCE × max(1, 99th percentile)`` are clipped
+#: to 0 with a logged note (filtered or compressed HDR files carry small ringing negatives; the
+#: shared maps go down to −0.004); anything more negative is an error.
+NEGATIVE_CLIP_TOLERANCE = 0.01
+
+_ASPECT = {"latlong": 2.0, "mirrorball": 1.0, "angular": 1.0}
+
+
+def rotation_y(angle: float) -> np.ndarray:
+    """Rotation matrix ``(3, 3)`` float64 about +Y by ``angle`` radians (right-hand rule:
+    +Z turns toward +X)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+# --------------------------------------------------------------------------- projections
+
+
+def _check_projection(projection: str) -> str:
+    return check_choice(projection, "projection", PROJECTIONS)
+
+
+def _pixel_uv(h: int, w: int, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel sample centres ``u = (x + (k + ½)/s)/W`` (columns) and ``v`` (rows)."""
+    u = (np.arange(w * s) + 0.5) / (w * s)
+    v = (np.arange(h * s) + 0.5) / (h * s)
+    return u, v
+
+
+def _disc_ab(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Disc coordinates (a right, b up) ∈ [−1, 1] of image coordinates u, v ∈ [0, 1]."""
+    return 2.0 * u - 1.0, 1.0 - 2.0 * v
+
+
+def pixel_directions(projection: str, height: int, width: int, *, supersample: int = 1
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """World directions of the (sub-)pixel centres of an environment map.
+
+    Parameters
+    ----------
+    projection : {"latlong", "mirrorball", "angular"}
+    height, width : int
+        Map size in pixels.
+    supersample : int
+        ``s``: each pixel is split into ``s × s`` equal sub-pixels.
+
+    Returns
+    -------
+    v_world : (H·s, W·s, 3) float64, unit directions toward the environment, world frame
+        NaN outside the disc of a mirror-ball or angular map.
+    valid : (H·s, W·s) bool
+        False outside the disc.
+    """
+    _check_projection(projection)
+    u, v = _pixel_uv(int(height), int(width), int(supersample))
+    if projection == "latlong":
+        theta = np.pi - 2.0 * np.pi * u
+        phi = np.pi * v
+        st, ct = np.sin(theta), np.cos(theta)
+        sp, cp = np.sin(phi), np.cos(phi)
+        d = np.stack([sp[:, None] * st[None, :], np.broadcast_to(cp[:, None], (v.size, u.size)),
+                      sp[:, None] * ct[None, :]], axis=-1)
+        return d, np.ones(d.shape[:2], bool)
+    a, b = _disc_ab(u[None, :], v[:, None])
+    r2 = a * a + b * b
+    valid = r2 <= 1.0
+    r2c = np.minimum(r2, 1.0)
+    if projection == "mirrorball":
+        k = 2.0 * np.sqrt(1.0 - r2c)
+        d = np.stack([k * a, k * b, 1.0 - 2.0 * r2c], axis=-1)
+    else:  # angular
+        r = np.sqrt(r2c)
+        gamma = np.pi * r
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sinc = np.where(r > 0, np.sin(gamma) / np.where(r > 0, r, 1.0), np.pi)
+        d = np.stack([sinc * a, sinc * b, np.cos(gamma)], axis=-1)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    d[~valid] = np.nan
+    return d, valid
+
+
+def pixel_solid_angles(projection: str, height: int, width: int, *, supersample: int = 1
+                       ) -> np.ndarray:
+    """Solid angle of every (sub-)pixel, ``(H·s, W·s)`` float64, steradians (0 outside the disc).
+
+    Lat-long: exact, ``(2π/(W·s))(cos φ⁻ − cos φ⁺)``. Mirror ball: ``4 ΔA`` (the mirror ball's
+    Jacobian is constant on the unit disc). Angular map: ``π sin(π r)/r · ΔA`` at the sub-pixel
+    centre. ``ΔA = (2/(W·s))(2/(H·s))`` is the sub-pixel area in disc units. Over a whole map
+    the sum is 4π up to the disc's rim (exactly for lat-long).
+    """
+    _check_projection(projection)
+    h, w, s = int(height) * int(supersample), int(width) * int(supersample), int(supersample)
+    if projection == "latlong":
+        edges = np.pi * np.arange(h + 1) / h
+        rows = (2.0 * np.pi / w) * (np.cos(edges[:-1]) - np.cos(edges[1:]))
+        return np.repeat(rows[:, None], w, axis=1)
+    u, v = _pixel_uv(h // s, w // s, s)
+    a, b = _disc_ab(u[None, :], v[:, None])
+    r = np.sqrt(a * a + b * b)
+    dA = (2.0 / w) * (2.0 / h)
+    if projection == "mirrorball":
+        jac = np.full(r.shape, 4.0)
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rs = np.where(r > 0, r, 1.0)
+            jac = np.where(r > 0, np.pi * np.sin(np.pi * np.minimum(r, 1.0)) / rs, np.pi * np.pi)
+    return np.where(r <= 1.0, jac * dA, 0.0)
+
+
+def directions_to_pixels(projection: str, v_world: Any, height: int, width: int) -> np.ndarray:
+    """Continuous pixel coordinates ``(..., 2)`` = (x, y) of world directions (pixel centres are
+    integers, :doc:`conventions`); the inverse of :func:`pixel_directions`.
+
+    Parameters
+    ----------
+    projection : {"latlong", "mirrorball", "angular"}
+    v_world : (..., 3) float, directions (need not be unit), world frame
+    height, width : int
+    """
+    _check_projection(projection)
+    v = as_array(v_world, "v_world", shape=(..., 3))
+    v = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    if projection == "latlong":
+        theta, phi = direction_angles(v)
+        u = np.mod(np.pi - theta, 2.0 * np.pi) / (2.0 * np.pi)
+        vv = phi / np.pi
+    else:
+        rxy = np.hypot(v[..., 0], v[..., 1])
+        if projection == "mirrorball":
+            # ω_z = 1 − 2r² → r = √((1 − ω_z)/2); (a, b) along (ω_x, ω_y)
+            r = np.sqrt(np.clip((1.0 - v[..., 2]) / 2.0, 0.0, 1.0))
+        else:
+            r = np.arccos(np.clip(v[..., 2], -1.0, 1.0)) / np.pi
+        with np.errstate(invalid="ignore", divide="ignore"):
+            k = np.where(rxy > 0, r / np.where(rxy > 0, rxy, 1.0), 0.0)
+        a, b = k * v[..., 0], k * v[..., 1]
+        u, vv = (a + 1.0) / 2.0, (1.0 - b) / 2.0
+    return np.stack([u * width - 0.5, vv * height - 0.5], axis=-1)
+
+
+# --------------------------------------------------------------------------- the map object
+
+
+@dataclass(frozen=True)
+class EnvironmentMap:
+    """An environment of incident radiance ``L(ω)``.
+
+    Attributes
+    ----------
+    image : (H, W, 3) float32, linear radiance (W/(sr·m²) up to a global scale)
+        Finite and ≥ 0 (validated).
+    projection : {"latlong", "mirrorball", "angular"}
+    rotation : float, radians
+        Rotation about +Y applied on lookup (right-hand rule).
+    source : str
+        Where the map came from (file name), for messages.
+    """
+
+    image: np.ndarray
+    projection: str = "latlong"
+    rotation: float = 0.0
+    source: str = "<array>"
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        img = _validate_image(self.image, self.projection, self.source)
+        object.__setattr__(self, "image", img)
+        rot = float(self.rotation)
+        if not math.isfinite(rot):
+            raise InputError(f"rotation: expected a finite angle in radians, got {self.rotation!r}")
+        object.__setattr__(self, "rotation", rot)
+
+    @property
+    def height(self) -> int:
+        return int(self.image.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.image.shape[1])
+
+    def rotated(self, angle: float) -> EnvironmentMap:
+        """The same map turned by a further ``angle`` radians about +Y."""
+        return EnvironmentMap(self.image, self.projection, self.rotation + float(angle),
+                              self.source)
+
+    def radiance(self, v_world: Any) -> np.ndarray:
+        """Radiance ``(..., 3)`` float32 toward directions ``(..., 3)`` (world frame), bilinear
+        (lat-long wraps in longitude; disc maps clamp to the image)."""
+        v = as_array(v_world, "v_world", shape=(..., 3))
+        v_map = v @ rotation_y(self.rotation)  # R_y(−α) ω as row vectors: ω · R_y(α)
+        q = directions_to_pixels(self.projection, v_map, self.height, self.width)
+        return _bilinear(self.image, q, wrap_x=self.projection == "latlong")
+
+    def integral(self) -> np.ndarray:
+        """``∫ L(ω) dω`` over the sphere, ``(3,)`` float64 (pixel-area quadrature)."""
+        om = pixel_solid_angles(self.projection, self.height, self.width)
+        return np.einsum("hw,hwc->c", om, self.image.astype(np.float64))
+
+
+def _bilinear(img: np.ndarray, q: np.ndarray, *, wrap_x: bool) -> np.ndarray:
+    h, w = img.shape[:2]
+    x, y = q[..., 0], q[..., 1]
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = (x - x0)[..., None]
+    fy = (y - y0)[..., None]
+    x0 = x0.astype(np.int64)
+    y0 = y0.astype(np.int64)
+    x1 = x0 + 1
+    y1 = np.clip(y0 + 1, 0, h - 1)
+    y0 = np.clip(y0, 0, h - 1)
+    if wrap_x:
+        x0, x1 = np.mod(x0, w), np.mod(x1, w)
+    else:
+        x0, x1 = np.clip(x0, 0, w - 1), np.clip(x1, 0, w - 1)
+    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
+    bot = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    return (top * (1 - fy) + bot * fy).astype(np.float32)
+
+
+def _validate_image(img: Any, projection: str, source: str) -> np.ndarray:
+    """Shape, aspect, finiteness and sign checks; clip small negatives with a logged note."""
+    _check_projection(projection)
+    a = np.asarray(img)
+    if a.ndim == 2:
+        a = np.repeat(a[..., None], 3, axis=-1)
+    if a.ndim != 3 or a.shape[-1] not in (3, 4) or min(a.shape[:2]) < 2:
+        raise ShapeError(f"{source}: expected an environment image of shape (H, W, 3), "
+                         f"got {tuple(a.shape)}")
+    if a.dtype.kind not in "fiu":
+        raise ShapeError(f"{source}: expected a numeric image, got dtype {a.dtype}")
+    a = np.ascontiguousarray(a[..., :3], dtype=np.float32)
+    h, w = a.shape[:2]
+    want = _ASPECT[projection]
+    if abs(w / h - want) > 0.02 * want:
+        raise ShapeError(
+            f"{source}: a {projection} environment map must be {int(want)}:1 (width:height), "
+            f"got {w} × {h}; pass the right projection (one of {', '.join(PROJECTIONS)})"
+        )
+    ok = np.isfinite(a)
+    if not ok.all():
+        bad = np.argwhere(~ok)[0]
+        raise InputError(f"{source}: {int((~ok).sum())} NaN/inf value(s) in the environment map "
+                         f"(first at row {bad[0]}, column {bad[1]}); fix or re-export the map")
+    lo = float(a.min())
+    if lo < 0:
+        scale = max(1.0, float(np.percentile(a, 99)))
+        if lo < -NEGATIVE_CLIP_TOLERANCE * scale:
+            bad = np.argwhere(a == lo)[0]
+            raise InputError(
+                f"{source}: negative radiance {lo:.4g} at row {bad[0]}, column {bad[1]} (allowed "
+                f"down to {-NEGATIVE_CLIP_TOLERANCE * scale:.3g}); an environment map holds "
+                f"radiance, which is never negative"
+            )
+        n = int((a < 0).sum())
+        log.info("%s: clipped %d small negative value(s) (min %.3g) to 0", source, n, lo)
+        a = np.maximum(a, 0.0)
+    return a
+
+
+def read_envmap(path: str | os.PathLike, projection: str = "latlong", *,
+                rotate_deg: float = 0.0, response: Any = None) -> EnvironmentMap:
+    """Read an environment map file.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.exr`` or ``.hdr`` (linear float), or an 8/16-bit image with ``response``.
+    projection : {"latlong", "mirrorball", "angular"}
+    rotate_deg : float, degrees
+        Rotation about +Y (right-hand rule).
+    response : str or Response, optional
+        Response of an 8/16-bit file (``"srgb"``, ``"linear"``, …); required for integer files.
+
+    Raises
+    ------
+    ImageReadError
+        Unreadable file.
+    InputError, ShapeError
+        NaN/inf or large negative values, unknown projection, wrong aspect, an integer file
+        without ``response``.
+    """
+    from facegeo.capture import imageio
+
+    _check_projection(projection)
+    path = Path(path)
+    raw = imageio.read_image(path)
+    if raw.dtype.kind in "iu":
+        if response is None:
+            raise InputError(f"{path}: an {raw.dtype} environment map needs a response "
+                             f"(e.g. response='srgb') to be linearised")
+        raw = imageio.linearize(raw, response)
+    return EnvironmentMap(raw, projection, math.radians(float(rotate_deg)), str(path))
+
+
+# --------------------------------------------------------------------------- synthetic maps
+
+
+def analytic_map(fn, height: int, *, projection: str = "latlong", supersample: int = 4
+                 ) -> EnvironmentMap:
+    """Rasterise an analytic environment ``fn(v_world (..., 3)) -> (..., 3)`` as the box-filtered
+    (``supersample²`` sub-pixels, solid-angle weighted) pixel means."""
+    w = 2 * height if projection == "latlong" else height
+    s = int(supersample)
+    d, valid = pixel_directions(projection, height, w, supersample=s)
+    om = pixel_solid_angles(projection, height, w, supersample=s)
+    vals = np.zeros(d.shape[:2] + (3,))
+    vals[valid] = np.asarray(fn(d[valid]), float)
+    num = (vals * om[..., None]).reshape(height, s, w, s, 3).sum(axis=(1, 3))
+    den = om.reshape(height, s, w, s).sum(axis=(1, 3))[..., None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        img = np.where(den > 0, num / np.where(den > 0, den, 1), 0.0)
+    return EnvironmentMap(img.astype(np.float32), projection, 0.0, "<analytic>")
+
+
+#: Axis → colour of the orientation test map (+X red, +Y green, +Z blue; −X cyan, −Y magenta,
+#: −Z yellow), each a lobe ``max(0, ω·a)^k``.
+AXIS_LOBE_COLORS = {
+    (1, 0, 0): (1.0, 0.0, 0.0), (0, 1, 0): (0.0, 1.0, 0.0), (0, 0, 1): (0.0, 0.0, 1.0),
+    (-1, 0, 0): (0.0, 1.0, 1.0), (0, -1, 0): (1.0, 0.0, 1.0), (0, 0, -1): (1.0, 1.0, 0.0),
+}
+
+
+def axis_lobe_map(height: int = 64, *, projection: str = "latlong", exponent: float = 8.0,
+                  axes: Any = None) -> EnvironmentMap:
+    """The orientation test map: one coloured lobe ``max(0, ω·a)^exponent`` per axis ``a``
+    (colours :data:`AXIS_LOBE_COLORS`, or the subset ``axes``)."""
+    table = AXIS_LOBE_COLORS if axes is None else {tuple(a): AXIS_LOBE_COLORS[tuple(a)]
+                                                   for a in axes}
+
+    def fn(v):
+        out = np.zeros(v.shape[:-1] + (3,))
+        for a, c in table.items():
+            out += np.maximum(v @ np.asarray(a, float), 0.0)[..., None] ** exponent * np.asarray(c)
+        return out
+
+    return analytic_map(fn, height, projection=projection)
+
+
+# --------------------------------------------------------------------------- light basis
+
+
+def _samples(env: EnvironmentMap, min_per_cell: float):
+    """(Sub-)pixel directions (rotated into the world), solid angles and radiance."""
+    s = max(1, min(16, int(math.ceil(min_per_cell))))
+    d, valid = pixel_directions(env.projection, env.height, env.width, supersample=s)
+    om = pixel_solid_angles(env.projection, env.height, env.width, supersample=s)
+    d = d[valid]
+    om = om[valid]
+    rad = np.repeat(np.repeat(env.image, s, axis=0), s, axis=1)[valid].astype(np.float64)
+    if env.rotation != 0.0:
+        d = d @ rotation_y(env.rotation).T
+    return d, om, rad
+
+
+def light_stage_radiance(env: EnvironmentMap, n_theta: int, n_phi: int, *,
+                         supersample: int | None = None) -> np.ndarray:
+    """Mean radiance of the environment over each light-stage grid cell, ``(L, 3)`` float64.
+
+    The map is treated as piecewise constant over its pixels; each pixel is split into
+    ``s × s`` sub-pixels (default: enough for ≥ 4 sub-pixels per cell edge, at most 16), each
+    sub-pixel is assigned to the grid cell ``[θ_i⁻, θ_i⁺) × [φ_j⁻, φ_j⁺)`` containing its centre
+    and contributes ``L · Ω_subpixel``. The cell's integral divided by the solid angle of its
+    samples is the mean radiance. Cells no sample falls in (maps coarser than the grid) take
+    the bilinear lookup at the cell centre. Summed over cells, ``mean · Ω_samples`` equals the
+    map's integral exactly — the projection preserves energy.
+    """
+    from facegeo.frames import light_directions, nearest_light_index
+
+    n_l = int(n_theta) * int(n_phi)
+    if supersample is None:
+        # sub-pixels per cell edge ≥ 4: cell width 2π/n_theta vs pixel width
+        px = 2.0 * np.pi / env.width if env.projection == "latlong" else 2.0 * np.pi / env.width
+        cell = min(2.0 * np.pi / n_theta, np.pi / n_phi)
+        supersample = 4.0 * px / cell
+    d, om, rad = _samples(env, supersample)
+    idx = nearest_light_index(d, n_theta, n_phi)
+    area = np.bincount(idx, weights=om, minlength=n_l)
+    integ = np.stack([np.bincount(idx, weights=om * rad[:, c], minlength=n_l) for c in range(3)],
+                     axis=-1)
+    out = np.empty((n_l, 3))
+    has = area > 0
+    out[has] = integ[has] / area[has, None]
+    if not has.all():
+        out[~has] = env.radiance(light_directions(n_theta, n_phi)[~has])
+    return out
+
+
+def light_stage_weights(env: EnvironmentMap, n_theta: int, n_phi: int, *,
+                        solid_angle: str = "paper", supersample: int | None = None
+                        ) -> np.ndarray:
+    """Eq. (4) weights ``w_l = L̄_l · δA_l`` for a light-stage grid, ``(L, 3)`` float64.
+
+    The returned weights **include δA** (applied here, exactly once): relight with
+    ``Σ_l R_l ⊙ w_l`` and never multiply by δA again.
+
+    Parameters
+    ----------
+    env : EnvironmentMap
+    n_theta, n_phi : int
+        The grid (facegeo.frames conventions).
+    solid_angle : {"paper", "exact"}
+        ``"paper"``: Debevec et al. 2000's ``δA = (2π/n_θ)(π/n_φ) sin φ`` (midpoint rule; a
+        map reads high by h/sin h − 1 ≈ (π/n_φ)²/24 in every row, h = π/(2n_φ): 0.65 % at
+        n_φ = 8, 0.16 % at 16, 0.04 % at 32).
+        ``"exact"``: the cell area ``(2π/n_θ)(cos φ⁻ − cos φ⁺)``; ``Σ w`` then equals the map's
+        integral to rounding.
+    supersample : int, optional
+        See :func:`light_stage_radiance`.
+    """
+    check_choice(solid_angle, "solid_angle", ("paper", "exact"))
+    mean = light_stage_radiance(env, n_theta, n_phi, supersample=supersample)
+    dA = light_solid_angles(n_theta, n_phi, exact=solid_angle == "exact")
+    return mean * dA[:, None]
+
+
+def direction_weights(env: EnvironmentMap, directions: Any, *, supersample: int = 2
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. (4) weights for an arbitrary set of light directions (a real rig).
+
+    Each light gets its spherical Voronoi cell (``scipy.spatial.SphericalVoronoi``) as its
+    solid angle; the environment is integrated over the cell by assigning every (sub-)pixel to
+    the nearest light (which is the cell containing it).
+
+    Parameters
+    ----------
+    env : EnvironmentMap
+    directions : (N, 3) float, unit directions toward the lights, world frame, N ≥ 4, distinct
+    supersample : int
+        Sub-pixels per pixel edge.
+
+    Returns
+    -------
+    weights : (N, 3) float64
+        ``∫_cell L dω`` — mean radiance times the Voronoi cell area (δA included).
+    solid_angles : (N,) float64, steradians
+        Voronoi cell areas (sum 4π).
+    """
+    from scipy.spatial import SphericalVoronoi, cKDTree
+
+    v = as_array(directions, "directions", shape=(None, 3))
+    if v.shape[0] < 4:
+        raise ShapeError(f"directions: need at least 4 light directions, got {v.shape[0]}")
+    norm = np.linalg.norm(v, axis=1)
+    if np.any(np.abs(norm - 1.0) > 1e-6):
+        raise InputError("directions: expected unit vectors toward the lights")
+    try:
+        sv = SphericalVoronoi(v, radius=1.0, threshold=1e-6)
+    except ValueError as exc:
+        raise InputError(f"directions: cannot build the spherical Voronoi cells ({exc}); "
+                         f"directions must be distinct and not all on one great circle") from exc
+    areas = sv.calculate_areas()
+    d, om, rad = _samples(env, supersample)
+    _, idx = cKDTree(v).query(d)
+    area = np.bincount(idx, weights=om, minlength=v.shape[0])
+    integ = np.stack([np.bincount(idx, weights=om * rad[:, c], minlength=v.shape[0])
+                      for c in range(3)], axis=-1)
+    mean = np.empty_like(integ)
+    has = area > 0
+    mean[has] = integ[has] / area[has, None]
+    if not has.all():
+        mean[~has] = env.radiance(v[~has])
+    return mean * areas[:, None], areas

@@ -1,0 +1,167 @@
+"""Benchmarks of relighting (Debevec et al. 2000 Eq. 4): throughput against this machine's
+memory bandwidth measured in the same run, batches of environments, and compressed fields
+(rank / coefficient budget against relit-image error, time and storage).
+
+The bandwidth probe is OpenBLAS ``sgemv`` over a float32 matrix of at least 1 GB (the roofline
+for streaming a field, DESIGN §6); the relighting figure is "one read of the float16 field at
+that bandwidth" divided by the measured relighting time (1.0 = at the memory limit).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facegeo.pipeline.bench import BenchRow, best_of, register
+
+PAPER_PIXELS = 345_600  # 640 × 540 pixels of the paper's capture
+PAPER_GRID = (64, 32)
+
+
+def _random_half_field(n_p: int, n_l: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    f = np.empty((n_p, n_l, 3), np.float16)
+    step = max(1, (64 << 20) // (n_l * 12))
+    for r0 in range(0, n_p, step):
+        r1 = min(n_p, r0 + step)
+        f[r0:r1] = rng.random((r1 - r0, n_l, 3), dtype=np.float32)
+    return f
+
+
+def _bandwidth(nbytes: int) -> tuple[float, int]:
+    """GB/s of one float32 sgemv pass over ≈ ``nbytes`` (≥ 1 GB)."""
+    n_l = 6144
+    rows = max(1, max(int(nbytes), 1 << 30) // (4 * n_l))
+    A = np.ones((rows, n_l), np.float32)
+    v = np.ones(n_l, np.float32)
+    t, _ = best_of(lambda: A @ v, repeat=3)
+    return A.nbytes / t / 1e9, A.nbytes
+
+
+def _envs(n_theta: int, n_phi: int):
+    from facegeo.lighting import envmap as E
+
+    def smooth(v):
+        return np.stack([1 + 0.5 * v[..., 1], 1 + 0.3 * v[..., 0], 0.8 + 0.2 * v[..., 2]], -1)
+
+    sun_dir = np.array([0.4, 0.6, 0.69]) / np.linalg.norm([0.4, 0.6, 0.69])
+
+    def sun(v):
+        return 0.2 + 2e3 * np.maximum(v @ sun_dir, 0)[..., None] ** 3000 * np.array([1, .9, .8])
+
+    return {name: E.light_stage_weights(E.analytic_map(fn, 128), n_theta, n_phi,
+                                        solid_angle="exact")
+            for name, fn in (("smooth", smooth), ("sun", sun))}
+
+
+@register("relight.throughput")
+def bench_throughput(quick: bool) -> list[BenchRow]:
+    from facegeo.lighting.relight import relight_field
+
+    n_l = PAPER_GRID[0] * PAPER_GRID[1]
+    n_p = 20_000 if quick else PAPER_PIXELS
+    field = _random_half_field(n_p, n_l, 0)
+    bw, probe = _bandwidth(field.nbytes)
+    w = np.random.default_rng(1).random((n_l, 3))
+    t16, _ = best_of(lambda: relight_field(field, w), repeat=3)
+    rows = [BenchRow(
+        "relight.throughput", f"relight_field, float16 field {n_p} px × {n_l} lights × 3",
+        field.nbytes / t16 / 1e9, "GB/s of field",
+        ratios={"vs one read at measured bandwidth": (field.nbytes / (bw * 1e9)) / t16},
+        extra={"field_GB": field.nbytes / 1e9, "seconds": t16, "sgemv_GB_s": bw,
+               "probe_GB": probe / 1e9},
+    )]
+    # float32 field and the einsum baseline on a slice that fits beside the float16 field
+    m = min(n_p, 40_000)
+    f32 = field[:m].astype(np.float32)
+    t32, _ = best_of(lambda: relight_field(f32, w), repeat=3)
+    t_es, _ = best_of(lambda: np.einsum("plc,lc->pc", f32, w.astype(np.float32)), repeat=2)
+    sparse_w = w.copy()
+    sparse_w[np.random.default_rng(2).random(n_l) > 0.02] = 0.0  # 2 % of lights lit
+    t_sp, _ = best_of(lambda: relight_field(f32, sparse_w, sparse=True), repeat=3)
+    rows.append(BenchRow(
+        "relight.throughput", f"relight_field, float32 field {m} px × {n_l} × 3",
+        f32.nbytes / t32 / 1e9, "GB/s of field",
+        ratios={"vs one read at measured bandwidth": (f32.nbytes / (bw * 1e9)) / t32,
+                "vs np.einsum": t_es / t32, "2 % lights lit, gather vs dense": t32 / t_sp},
+        extra={"seconds": t32, "einsum_seconds": t_es, "sparse_seconds": t_sp},
+    ))
+    return rows
+
+
+@register("relight.batch")
+def bench_batch(quick: bool) -> list[BenchRow]:
+    from facegeo.lighting.relight import relight_field
+
+    n_l = PAPER_GRID[0] * PAPER_GRID[1]
+    n_p = 10_000 if quick else 100_000
+    field = _random_half_field(n_p, n_l, 3)
+    ws = np.random.default_rng(4).random((16, n_l, 3))
+    t_batch, batch = best_of(lambda: relight_field(field, ws), repeat=2)
+    t_single, _ = best_of(lambda: [relight_field(field, w) for w in ws], repeat=1)
+    err = max(float(np.max(np.abs(batch[b] - relight_field(field, ws[b])))
+                    / np.max(np.abs(batch[b]))) for b in (0, 15))
+    return [BenchRow(
+        "relight.batch", f"16 environments as one GEMM, float16 field {n_p} px × {n_l} × 3",
+        16 / t_batch, "maps/s", error=err, error_unit="max |batch − single| / max",
+        ratios={"vs 16 single calls": t_single / t_batch},
+        extra={"batch_seconds": t_batch, "single_seconds_total": t_single},
+    )]
+
+
+def _shadowed_field(n_p: int, n_theta: int, n_phi: int, seed: int) -> np.ndarray:
+    """Lambertian + sharp specular lobe + hard-edged shadow caps: an all-frequency field."""
+    from facegeo.frames import light_directions
+
+    rng = np.random.default_rng(seed)
+    d = light_directions(n_theta, n_phi)
+    nrm = rng.normal(size=(n_p, 3))
+    nrm[:, 2] = np.abs(nrm[:, 2]) + 0.5
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    occ = rng.normal(size=(n_p, 3))
+    occ /= np.linalg.norm(occ, axis=1, keepdims=True)
+    vis = (occ @ d.T) < rng.uniform(0.0, 0.6, size=(n_p, 1))
+    refl = 2 * nrm[:, 2:3] * nrm - np.array([0.0, 0.0, 1.0])
+    spec = np.maximum(refl @ d.T, 0) ** 60
+    albedo = rng.uniform(0.2, 0.9, size=(n_p, 1, 3))
+    cos = np.maximum(nrm @ d.T, 0)
+    return ((albedo / np.pi * cos[..., None] + 0.3 * spec[..., None]) * vis[..., None]
+            ).astype(np.float16)
+
+
+@register("relight.compress")
+def bench_compress(quick: bool) -> list[BenchRow]:
+    from facegeo.lighting import compress as C
+    from facegeo.lighting.relight import relight_field
+
+    n_theta, n_phi = PAPER_GRID
+    n_p = 2_000 if quick else 10_000
+    field = _shadowed_field(n_p, n_theta, n_phi, 5)
+    envs = _envs(n_theta, n_phi)
+    refs = {k: relight_field(field, w) for k, w in envs.items()}
+    t_direct, _ = best_of(lambda: relight_field(field, envs["sun"]), repeat=3)
+    rows = []
+
+    def row(case, model, t_fit):
+        errs = {k: C.relative_rmse(model.relight(w), refs[k]) for k, w in envs.items()}
+        t, _ = best_of(lambda: model.relight(envs["sun"]), repeat=3)
+        rows.append(BenchRow(
+            "relight.compress", case, n_p / t, "relit px/s",
+            error=max(errs.values()), error_unit="max relative RMSE (smooth, sun)",
+            ratios={"storage vs float16 field": field.nbytes / model.nbytes,
+                    "speed vs direct float16 relight": t_direct / t},
+            extra={"rmse_smooth": errs["smooth"], "rmse_sun": errs["sun"], "fit_seconds": t_fit,
+                   "bytes": model.nbytes, "field_px": n_p},
+        ))
+
+    ranks = (8, 32, 128)
+    t_fit, full = best_of(lambda: C.fit_low_rank(field, rank=max(ranks)), repeat=1)
+    held = C.held_out_error(field, ranks)
+    for k, h in zip(ranks, held):
+        row(f"low-rank SVD, rank {k}", full.truncated(k), t_fit)
+        rows[-1].extra["held_out_light_rmse"] = h
+    for target in (0.05, 0.02, 0.01):
+        t_fit, wf = best_of(lambda: C.fit_wavelet(field, n_theta, n_phi, target_error=target),
+                            repeat=1)
+        row(f"Haar wavelets (Ng 2003), field target {target:g}", wf, t_fit)
+        rows[-1].extra["kept_fraction"] = wf.kept_fraction
+    return rows

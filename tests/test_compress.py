@@ -1,0 +1,129 @@
+"""Relighting from compressed fields: low-rank SVD and Haar wavelets (Ng et al. 2003) on a
+synthetic all-frequency field (hard shadows, a sharp specular lobe), smooth and sun maps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facegeo.errors import InputError, ShapeError
+from facegeo.frames import light_directions
+from facegeo.lighting import compress as C
+from facegeo.lighting import envmap as E
+from facegeo.lighting.relight import relight_field
+
+GRID = (32, 16)
+#: Uncompressed (full-rank / zero-threshold) relighting vs direct Eq. (4): relative RMSE.
+LOSSLESS_REL = 1e-5
+#: Haar round trip: max |Δ| relative to max |x|.
+HAAR_ROUNDTRIP = 1e-12
+
+
+def _field(seed=0, n=300):
+    rng = np.random.default_rng(seed)
+    d = light_directions(*GRID)
+    nrm = rng.normal(size=(n, 3))
+    nrm[:, 2] = np.abs(nrm[:, 2]) + 0.5
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    cos = np.maximum(nrm @ d.T, 0)
+    occ = rng.normal(size=(n, 3))
+    occ /= np.linalg.norm(occ, axis=1, keepdims=True)
+    vis = (d @ occ.T).T < rng.uniform(0.0, 0.6, size=(n, 1))  # hard-edged shadow caps
+    view = np.array([0.0, 0.0, 1.0])
+    refl = 2 * (nrm @ view)[:, None] * nrm - view
+    spec = np.maximum(refl @ d.T, 0) ** 60
+    albedo = rng.uniform(0.2, 0.9, size=(n, 1, 3))
+    f = (albedo / np.pi * cos[..., None] + 0.3 * spec[..., None]) * vis[..., None]
+    return f.astype(np.float32)
+
+
+def _smooth_env():
+    return E.analytic_map(lambda v: np.stack([1 + 0.5 * v[..., 1], 1 + 0.3 * v[..., 0],
+                                              0.8 + 0.2 * v[..., 2]], -1), 64)
+
+
+def _sun_env():
+    sun = np.array([0.4, 0.6, 0.69])
+    sun /= np.linalg.norm(sun)
+    return E.analytic_map(lambda v: 0.2 + 2e3 * np.maximum(v @ sun, 0)[..., None] ** 3000
+                          * np.array([1.0, 0.9, 0.8]), 128)
+
+
+@pytest.fixture(scope="module")
+def case():
+    f = _field()
+    ws = {name: E.light_stage_weights(env, *GRID, solid_angle="exact")
+          for name, env in (("smooth", _smooth_env()), ("sun", _sun_env()))}
+    return f, ws
+
+
+def test_haar_round_trip_and_parseval():
+    x = np.random.default_rng(1).normal(size=(5, GRID[0] * GRID[1]))
+    c = C.haar2d(x, *GRID)
+    assert np.max(np.abs(C.ihaar2d(c, *GRID) - x)) <= HAAR_ROUNDTRIP * np.abs(x).max()
+    assert np.allclose((c ** 2).sum(1), (x ** 2).sum(1), rtol=1e-12)
+    with pytest.raises(InputError, match="power of two"):
+        C.haar2d(np.zeros(24), 6, 4)
+
+
+def test_low_rank_full_rank_is_lossless(case):
+    f, ws = case
+    lr = C.fit_low_rank(f, rank=GRID[0] * GRID[1])
+    for w in ws.values():
+        assert C.relative_rmse(lr.relight(w), relight_field(f, w)) <= LOSSLESS_REL
+
+
+def test_low_rank_target_error_and_held_out(case):
+    f, ws = case
+    lr = C.fit_low_rank(f, target_error=0.05)
+    A = f.transpose(0, 2, 1).reshape(-1, f.shape[1]).astype(np.float64)
+    approx = lr.U.astype(np.float64) @ lr.SVt.astype(np.float64)
+    assert C.relative_rmse(approx, A) <= 0.05
+    smaller = C.fit_low_rank(f, rank=lr.rank - 1)
+    assert C.relative_rmse(smaller.U.astype(float) @ smaller.SVt.astype(float), A) > 0.05
+    # smooth lighting is easy for a low-rank basis; the sun is not
+    e_smooth = C.relative_rmse(lr.relight(ws["smooth"]), relight_field(f, ws["smooth"]))
+    e_sun = C.relative_rmse(lr.relight(ws["sun"]), relight_field(f, ws["sun"]))
+    assert e_smooth <= 0.01 and e_sun > e_smooth
+    # held-out lights: the error falls with rank
+    errs = C.held_out_error(f, [4, 32, 128])
+    assert errs[1] == C.held_out_error(f, 32)
+    assert errs[0] > errs[1] > errs[2]
+
+
+def test_wavelet_lossless_and_target(case):
+    f, ws = case
+    exact = C.fit_wavelet(f, *GRID, target_error=0.0)
+    for w in ws.values():
+        assert C.relative_rmse(exact.relight(w), relight_field(f, w)) <= LOSSLESS_REL
+    wf = C.fit_wavelet(f, *GRID, target_error=0.02)
+    assert wf.kept_fraction < 0.5
+    for name, w in ws.items():
+        err = C.relative_rmse(wf.relight(w), relight_field(f, w))
+        assert err <= 0.02, (name, err)
+
+
+def test_wavelet_beats_low_rank_on_the_sun_at_equal_storage(case):
+    f, ws = case
+    wf = C.fit_wavelet(f, *GRID, target_error=0.02)
+    k = max(1, int(wf.nbytes / (4 * (3 * f.shape[0] + f.shape[1]))))  # same bytes
+    lr = C.fit_low_rank(f, rank=k)
+    ref = relight_field(f, ws["sun"])
+    assert C.relative_rmse(wf.relight(ws["sun"]), ref) < C.relative_rmse(lr.relight(ws["sun"]), ref)
+
+
+def test_bad_input():
+    with pytest.raises(ShapeError, match=r"\(P, L, 3\)"):
+        C.fit_low_rank(np.zeros((4, 8)), rank=2)
+    with pytest.raises(InputError, match="exactly one"):
+        C.fit_low_rank(np.zeros((4, 8, 3), np.float32))
+    with pytest.raises(ShapeError, match="expected shape"):
+        C.fit_wavelet(np.zeros((4, 8, 3), np.float32), 4, 4)
+
+
+def test_low_rank_truncation_equals_a_lower_rank_fit(case):
+    f, ws = case
+    full = C.fit_low_rank(f, rank=64)
+    a = full.truncated(16).relight(ws["smooth"])
+    b = C.fit_low_rank(f, rank=16).relight(ws["smooth"])
+    assert C.relative_rmse(a, b) <= LOSSLESS_REL

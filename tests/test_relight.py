@@ -1,0 +1,193 @@
+"""Relighting (Debevec et al. 2000 Eq. 3–4): the GEMM path against a float64 reference, the
+analytic Lambertian case, consistency with the synthetic generator, orientation on a face."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facegeo.errors import InputError, ShapeError
+from facegeo.frames import light_directions, light_solid_angles
+from facegeo.lighting import envmap as E
+from facegeo.lighting import relight as R
+
+#: GEMM relighting vs a float64 reference sum over the same float16/float32 field:
+#: max |Δ| / max |reference|.
+GEMM_REL = 2e-6
+#: Constant environment of radiance 1 on a Lambertian patch: |L_out/albedo − 1| (issue 12).
+ALBEDO_REL = 0.01
+#: Relit OLAT frames vs the generator's weighted render: max |Δ| / max image (float32 rounding).
+CONSISTENCY_REL = 1e-6
+#: Orientation: mean lit channel on the side facing the lobe / on the opposite side, at least.
+ORIENTATION_RATIO = 5.0
+
+
+def _reference(field, w):
+    return np.einsum("plc,lc->pc", field.astype(np.float64), w)
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32])
+@pytest.mark.parametrize("sparse", [False, True])
+def test_relight_field_matches_reference(dtype, sparse):
+    rng = np.random.default_rng(0)
+    P, L = 1000, 48
+    field = rng.random((P, L, 3)).astype(dtype)
+    w = rng.random((L, 3))
+    w[rng.random(L) < 0.5] = 0.0
+    got = R.relight_field(field, w, chunk_rows=77, sparse=sparse)  # chunks with a remainder
+    ref = _reference(field, w)
+    assert got.shape == (P, 3) and got.dtype == np.float32
+    assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= GEMM_REL
+
+
+def test_relight_field_batch_equals_single_calls_and_channels_are_not_mixed():
+    rng = np.random.default_rng(1)
+    field = rng.random((300, 20, 3)).astype(np.float16)
+    ws = rng.random((4, 20, 3))
+    batch = R.relight_field(field, ws)
+    assert batch.shape == (4, 300, 3)
+    for b in range(4):  # one GEMM vs three GEMVs: equal up to float32 summation order
+        single = R.relight_field(field, ws[b])
+        assert np.max(np.abs(batch[b] - single)) / np.max(single) <= GEMM_REL
+    # weights only in the red channel light only the red output
+    w = np.zeros((20, 3))
+    w[:, 0] = 1
+    out = R.relight_field(field, w)
+    assert np.all(out[:, 1:] == 0)
+    assert np.allclose(out[:, 0], field[:, :, 0].astype(np.float64).sum(1), rtol=1e-5)
+
+
+def test_light_color_normalisation():
+    rng = np.random.default_rng(2)
+    white = rng.random((50, 16, 3)).astype(np.float32)
+    color = np.array([0.9, 0.7, 1.3])
+    recorded = (white * color).astype(np.float32)  # OLAT frames under a coloured light
+    w = rng.random((16, 3))
+    got = R.relight_field(recorded, w, light_color=color)
+    assert np.allclose(got, R.relight_field(white, w), rtol=1e-5)
+    per_light = np.repeat(color[None], 16, axis=0)
+    assert np.allclose(R.relight_field(recorded, w, light_color=per_light), got, rtol=1e-6)
+
+
+def test_relight_bad_input():
+    f = np.zeros((4, 8, 3), np.float32)
+    with pytest.raises(ShapeError, match=r"weights: expected shape \(8, 3\)"):
+        R.relight_field(f, np.ones((7, 3)))
+    with pytest.raises(ShapeError, match="float16 or float32"):
+        R.relight_field(f.astype(np.float64), np.ones((8, 3)))
+    with pytest.raises(ShapeError, match=r"\(P, L, 3\)"):
+        R.relight_field(np.zeros((4, 8)), np.ones((8, 3)))
+    with pytest.raises(InputError, match="non-finite"):
+        R.relight_field(f, np.full((8, 3), np.nan))
+    with pytest.raises(InputError, match="light_color"):
+        R.relight_field(f, np.ones((8, 3)), light_color=[1, 0, 1])
+    with pytest.raises(InputError, match="given twice"):
+        R.relight_frames([(0, np.zeros((2, 2, 3))), (0, np.zeros((2, 2, 3)))], np.ones((8, 3)), 8)
+
+
+@pytest.mark.parametrize("grid", [(32, 16), (64, 32)])
+@pytest.mark.parametrize("solid_angle", ["paper", "exact"])
+def test_constant_environment_on_lambertian_patch_gives_albedo(grid, solid_angle):
+    # Patch of Lambertian texels with several normals (off every axis) and albedos; OLAT frames
+    # under unit irradiance: R_l = ρ/π · max(0, n·ω_l).
+    rng = np.random.default_rng(4)
+    n = rng.normal(size=(64, 3))
+    n[0] = (0, 1, 0)  # facing the pole, the hardest case for the (θ, φ) grid
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    albedo = np.ones((64, 3))
+    albedo[1:] = rng.uniform(0.2, 1.0, size=(63, 3))
+    d = light_directions(*grid)
+    field = (albedo[:, None, :] / np.pi * np.maximum(n @ d.T, 0)[:, :, None]).astype(np.float32)
+    env = E.analytic_map(lambda v: np.ones(v.shape[:-1] + (3,)), 32)
+    w = E.light_stage_weights(env, *grid, solid_angle=solid_angle)
+    out = R.relight_field(field, w)
+    assert np.max(np.abs(out / albedo - 1)) <= ALBEDO_REL
+
+
+# --------------------------------------------------------------------------- synthetic scan
+
+
+@pytest.fixture(scope="module")
+def tiny_scan(tmp_path_factory):
+    from facegeo.capture.scan import load_scan
+    from facegeo.synth.capture import generate_scan
+    from facegeo.synth.render import load_ground_truth
+
+    root = tmp_path_factory.mktemp("relight") / "tiny"
+    generate_scan(root, "tiny", seed=5)
+    scan = load_scan(root)
+    return scan, load_ground_truth(scan)
+
+
+@pytest.mark.slow
+def test_relit_olat_frames_equal_the_generators_render(tiny_scan):
+    scan, renderer = tiny_scan
+    lights = scan.rig.lights
+    env = E.axis_lobe_map(32, exponent=3).rotated(0.4)
+    w = E.light_stage_weights(env, lights.n_theta, lights.n_phi)
+    name = scan.camera_names[0]
+    cam = renderer.rig.camera(name)
+    ref = renderer.render_lights(cam, renderer.rig.lights, w)
+    got = R.relight_scan_view(scan, name, w)
+    assert got.shape == ref.shape
+    assert np.max(np.abs(got - ref)) <= CONSISTENCY_REL * np.max(ref)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("axis", [(1, 0, 0), (-1, 0, 0), (0, 1, 0)])
+def test_axis_lobe_lights_the_face_from_the_expected_side(tiny_scan, axis):
+    scan, renderer = tiny_scan
+    lights = scan.rig.lights
+    env = E.axis_lobe_map(32, exponent=4, axes=[axis])
+    w = E.light_stage_weights(env, lights.n_theta, lights.n_phi)
+    name = scan.camera_names[0]
+    img = R.relight_scan_view(scan, name, w)
+    view = renderer.surface_view(renderer.rig.camera(name))
+    n_img = view.to_image(view.n_world.astype(np.float32), fill=np.nan)
+    facing = n_img @ np.asarray(axis, float)
+    colour = np.asarray(E.AXIS_LOBE_COLORS[axis])
+    lit = colour > 0
+    toward = img[facing > 0.3][:, lit].mean()
+    away = img[facing < -0.3][:, lit].mean()
+    assert toward > ORIENTATION_RATIO * away, (toward, away)
+    assert np.all(img[..., ~lit] == 0)  # the lobe's colour and nothing else
+
+
+# --------------------------------------------------------------------------- pipeline stage
+
+
+@pytest.mark.slow
+def test_run_relight_writes_exr_png_and_metrics(tiny_scan, tmp_path):
+    from facegeo.capture import imageio
+    from facegeo.pipeline.relight import run_relight
+
+    scan, _ = tiny_scan
+    env_file = imageio.write_image(tmp_path / "lobes.exr", E.axis_lobe_map(32).image)
+    calls = []
+    m = run_relight(scan.root, env_file, rotate_deg=30, view=scan.camera_names[1],
+                    out_dir=tmp_path / "out", progress=lambda *a: calls.append(a))
+    exr = imageio.read_image(m["files"]["exr"])
+    lights = scan.rig.lights
+    env = E.read_envmap(env_file, rotate_deg=30)
+    w = E.light_stage_weights(env, lights.n_theta, lights.n_phi)
+    assert np.array_equal(exr, R.relight_scan_view(scan, scan.camera_names[1], w))
+    png = imageio.read_image(m["files"]["png"])
+    assert png.dtype == np.uint8 and png.shape == exr.shape
+    assert m["active_lights"] == len(calls) and m["view"] == scan.camera_names[1]
+    # Σ w vs ∫ L: the paper's midpoint δA on the tiny 16 × 8 grid reads 0.6 % high
+    assert np.allclose(m["energy_ratio"], 1.0, atol=0.01)
+
+
+@pytest.mark.slow
+def test_run_relight_bad_arguments(tiny_scan, tmp_path):
+    from facegeo.capture import imageio
+    from facegeo.pipeline.relight import run_relight
+
+    scan, _ = tiny_scan
+    env_file = imageio.write_image(tmp_path / "c.exr", np.ones((8, 16, 3), np.float32))
+    with pytest.raises(InputError, match="texture atlas"):
+        run_relight(scan.root, env_file, view="texture")
+    with pytest.raises(InputError, match="unknown camera 'nope'"):
+        run_relight(scan.root, env_file, view="nope")
+    with pytest.raises(ShapeError, match="1:1"):
+        run_relight(scan.root, env_file, projection="mirrorball")
