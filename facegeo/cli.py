@@ -267,6 +267,26 @@ def _cmd_project(args) -> int:
     return 0
 
 
+def _cmd_relight(args) -> int:
+    from facegeo.pipeline.relight import run_relight
+
+    if args.out is not None:
+        _check_output_dir(args.out, "--out")
+    tick, close = _progress_factory(not args.quiet)
+    try:
+        m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
+                        out_dir=args.out, projection=args.projection,
+                        solid_angle="exact" if args.exact_solid_angles else "paper",
+                        progress=tick)
+    finally:
+        close()
+    print(f"{m['view']}: {m['active_lights']}/{m['n_lights']} lights lit, "
+          f"sum(w)/integral(L) = {', '.join(f'{r:.4f}' for r in m['energy_ratio'])}, "
+          f"{m['seconds']['total']:.2f} s")
+    print(f"wrote {m['files']['exr']} and {m['files']['png']}")
+    return 0
+
+
 def _common_options() -> argparse.ArgumentParser:
     """Options every subcommand accepts after its name (``facegeo info SCAN -v``)."""
     c = argparse.ArgumentParser(add_help=False)
@@ -382,6 +402,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gt-lights", type=_nonneg_int, default=32,
                    help="lights compared against ground truth on synthetic scans")
     s.set_defaults(func=_cmd_project)
+
+    s = sub.add_parser("relight", parents=common,
+                       help="relight a camera view of the scan with an environment map (Eq. 4)")
+    s.add_argument("scan", metavar="SCAN", help="scan directory")
+    s.add_argument("--env", required=True, metavar="FILE", help=".exr/.hdr environment map")
+    s.add_argument("--projection", choices=["latlong", "mirrorball", "angular"],
+                   default="latlong", help="how the map stores directions")
+    s.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
+                   help="rotate the environment about +Y (degrees, +Z toward +X)")
+    s.add_argument("--view", default=None, metavar="CAMERA",
+                   help="camera name (default: the first) or 'texture'")
+    s.add_argument("--exact-solid-angles", action="store_true",
+                   help="exact cell solid angles instead of the paper's sin(phi) rule")
+    s.add_argument("--out", default=None, help="output folder (default: SCAN/out/relight)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    s.set_defaults(func=_cmd_relight)
 
     s = sub.add_parser("demo", parents=common,
                        help="the main job on the embedded default (a synthetic scan)")
