@@ -27,7 +27,8 @@ from pathlib import Path
 __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "load_json_file",
            "WRITTEN_RECORD", "read_written_record", "write_written_record", "add_to_written_record",
            "list_files",
-           "remove_tree", "staging_dir", "swap_in_dir", "clean_stale_siblings", "carry_over"]
+           "remove_tree", "staging_dir", "swap_in_dir", "clean_stale_siblings", "carry_over",
+           "staged_directory"]
 
 log = logging.getLogger(__name__)
 
@@ -403,3 +404,25 @@ def carry_over(old: str | os.PathLike, new: str | os.PathLike, ours: set[str]) -
 
     walk(old, "")
     return carried
+
+
+@contextlib.contextmanager
+def staged_directory(target: str | os.PathLike) -> Iterator[Path]:
+    """Yield an empty directory beside ``target``; swap it onto ``target`` if the block succeeds.
+
+    The products of a step are written into the yielded directory; only when the block
+    finishes does :func:`swap_in_dir` put them at ``target`` (the old ``target`` is removed
+    after). On an exception (Ctrl-C included) the staging directory is removed and ``target``
+    is untouched. Leftovers of killed runs are tidied first (:func:`clean_stale_siblings`).
+    """
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale_siblings(target)
+    tmp = staging_dir(target, "tmp")
+    try:
+        yield tmp
+        swap_in_dir(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            remove_tree(tmp)
+        raise

@@ -48,8 +48,7 @@ def scan(tmp_path):
 
 
 def _partials(scan):
-    return [p.name for p in (scan / "out").iterdir() if p.name.startswith(".") and
-            (cache._PARTIAL in p.name or cache._OLD in p.name)]
+    return [p.name for p in (scan / "out").iterdir() if ".facegeo-tmp-" in p.name or ".facegeo-old-" in p.name]
 
 
 def test_second_run_does_no_work(scan):
@@ -125,7 +124,7 @@ def test_interrupted_stage_keeps_earlier_products_and_resumes(scan):
 def test_killed_run_leftovers_are_cleaned(scan):
     calls: list[str] = []
     _toy_pipeline(calls).run(scan)
-    stale = scan / "out" / f".b{cache._PARTIAL}12345"
+    stale = scan / "out" / ".b.facegeo-tmp-999999999-abc"  # a pid that is not running
     stale.mkdir()
     (stale / "junk").write_text("x")
     user_file = scan / "out" / "my-notes.txt"

@@ -18,9 +18,7 @@ from facegeo.appearance._skin_model import (
     SINGULAR_SIN2,
     LightSet,
     normalize,
-    ramp_chromaticity,
     ramp_f,
-    separate_colour,
 )
 from facegeo.appearance.brdf import fresnel_dielectric, torrance_sparrow_geometry
 from facegeo.checks import as_array, check_unit_vectors

@@ -20,13 +20,10 @@ Content hashes of large input files are memoised by (size, modification time) in
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
 import os
-import shutil
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,16 +32,14 @@ from typing import Any
 
 from facegeo import __version__
 from facegeo.errors import InputError
-from facegeo.fsutil import atomic_write_text
+from facegeo.fsutil import atomic_write_text, clean_stale_siblings, staged_directory
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StageSpec", "StageContext", "StageResult", "Pipeline", "MANIFEST_NAME"]
+__all__ = ["StageSpec", "StageContext", "StageResult", "Pipeline", "MANIFEST_NAME", "record_metrics"]
 
 #: The manifest written last into every finished stage folder.
 MANIFEST_NAME = "stage.json"
-_PARTIAL = ".partial-"
-_OLD = ".old-"
 _HASH_MEMO = ".facegeo-hashes.json"
 
 
@@ -152,12 +147,17 @@ class _HashMemo:
             self.changed = False
 
 
-def _remove_tree(p: Path) -> None:
-    """Delete a folder we created; a symlink is unlinked, never followed."""
-    if p.is_symlink() or p.is_file():
-        p.unlink()
-    elif p.is_dir():
-        shutil.rmtree(p)
+def record_metrics(out_dir: str | os.PathLike, name: str, metrics: dict) -> None:
+    """Set ``out_dir/metrics.json[name] = metrics`` (other entries kept; atomic write)."""
+    path = Path(out_dir) / "metrics.json"
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        if not isinstance(doc, dict):
+            doc = {}
+    except (OSError, ValueError):
+        doc = {}
+    doc[name] = metrics
+    atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True, allow_nan=False))
 
 
 class Pipeline:
@@ -234,7 +234,8 @@ class Pipeline:
                              f"{', '.join(self.names)}")
         out = scan_dir / self.out_name
         out.mkdir(parents=True, exist_ok=True)
-        self._clean_leftovers(out)
+        for name in self.names:  # leftovers of killed runs (only folders this code names)
+            clean_stale_siblings(out / name)
         memo = _HashMemo(out / _HASH_MEMO)
         keys: dict[str, str] = {}
         results: list[StageResult] = []
@@ -261,7 +262,7 @@ class Pipeline:
                 else:
                     result = self._run_stage(spec, scan_dir, out, key, stage_settings, inputs,
                                              keys, progress)
-                    self._record_metrics(out, spec.name, result.metrics)
+                    record_metrics(out, spec.name, result.metrics)
                 results.append(result)
                 if on_stage is not None:
                     on_stage(result)
@@ -307,10 +308,9 @@ class Pipeline:
 
     def _run_stage(self, spec, scan_dir, out, key, stage_settings, inputs, keys, progress):
         final = out / spec.name
-        tmp = Path(tempfile.mkdtemp(prefix=f".{spec.name}{_PARTIAL}", dir=out))
         log.info("stage %s: running (key %s)", spec.name, key[:12])
         t0 = time.perf_counter()
-        try:
+        with staged_directory(final) as tmp:
             ctx = StageContext(scan_dir, tmp, dict(stage_settings),
                                {a: out / a for a in spec.after}, progress)
             metrics = spec.run(ctx)
@@ -331,42 +331,7 @@ class Pipeline:
                 "metrics": metrics,
                 "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             }
+            # the manifest is written last: a folder without it is never taken as finished
             atomic_write_text(tmp / MANIFEST_NAME,
                               json.dumps(manifest, indent=2, sort_keys=True, allow_nan=False))
-            self._swap_in(tmp, final)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                _remove_tree(tmp)
-            raise
         return StageResult(spec.name, key, True, seconds, metrics, final)
-
-    @staticmethod
-    def _swap_in(tmp: Path, final: Path) -> None:
-        old = None
-        if final.is_symlink() or final.exists():
-            old = final.with_name(f".{final.name}{_OLD}{os.getpid()}-{time.monotonic_ns()}")
-            os.replace(final, old)
-        os.replace(tmp, final)
-        if old is not None:
-            _remove_tree(old)
-
-    def _clean_leftovers(self, out: Path) -> None:
-        """Remove partial folders of interrupted runs (only the ones this module names)."""
-        for name in self.names:
-            for p in out.glob(f".{name}{_PARTIAL}*"):
-                log.info("removing the partial products of an interrupted run: %s", p)
-                _remove_tree(p)
-            for p in out.glob(f".{name}{_OLD}*"):
-                _remove_tree(p)
-
-    @staticmethod
-    def _record_metrics(out: Path, name: str, metrics: dict) -> None:
-        path = out / "metrics.json"
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-            if not isinstance(doc, dict):
-                doc = {}
-        except (OSError, ValueError):
-            doc = {}
-        doc[name] = metrics
-        atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True, allow_nan=False))

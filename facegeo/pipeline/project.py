@@ -43,10 +43,7 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import resource
-import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -54,11 +51,12 @@ from typing import Any
 import numpy as np
 
 from facegeo.errors import InputError
-from facegeo.fsutil import atomic_write_text
+from facegeo.fsutil import atomic_write_text, staged_directory
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_atlas", "run_project", "load_mesh", "peak_rss_mb"]
+__all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
+           "peak_rss_mb"]
 
 _GT_DEPTH_TOL_M = 1e-3
 
@@ -101,44 +99,15 @@ def load_mesh(scan, mesh: str = "ground_truth") -> tuple[np.ndarray, np.ndarray,
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64), str(path)
 
 
-class _StageDir:
-    """A temporary sibling folder swapped onto ``out_dir/<name>`` on success."""
-
-    def __init__(self, out_dir: Path, name: str):
-        self.final = out_dir / name
-        out_dir.mkdir(parents=True, exist_ok=True)
-        self.tmp = Path(tempfile.mkdtemp(prefix=f".{name}.partial-", dir=out_dir))
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(self.tmp, 0o777 & ~umask)
-
-    def commit(self) -> None:
-        old = None
-        if self.final.exists():
-            old = self.final.with_name(f".{self.final.name}.old-{os.getpid()}-{time.time_ns()}")
-            os.replace(self.final, old)
-        os.replace(self.tmp, self.final)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-
-    def abort(self) -> None:
-        shutil.rmtree(self.tmp, ignore_errors=True)
-
-
 def _record(out_dir: Path, stage_dir: Path, name: str, settings: dict, metrics: dict) -> None:
+    from facegeo.pipeline.cache import record_metrics
+
     atomic_write_text(stage_dir / "stage.json", json.dumps(
         {"stage": name, "settings": settings, "metrics": metrics}, indent=2, sort_keys=True))
-    path = out_dir / "metrics.json"
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-        doc = doc if isinstance(doc, dict) else {}
-    except (OSError, ValueError):
-        doc = {}
-    doc[name] = metrics
-    atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True))
+    record_metrics(out_dir, name, metrics)
 
 
-def _atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
+def atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
                     size: int | None, padding: int, split_faces: int | None,
                     repair: bool) -> dict:
     from facegeo.surface.atlas import build_atlas, export_mesh_uv, rasterize_texels
@@ -196,14 +165,9 @@ def run_atlas(scan_dir, out_dir=None, *, mesh: str = "ground_truth",
     out = Path(out_dir) if out_dir is not None else scan.out_dir
     settings = {"mesh": mesh, "texels_per_mm": texels_per_mm, "size": size,
                 "padding": padding, "split_faces": split_faces, "repair": repair}
-    stage = _StageDir(out, "atlas")
-    try:
-        metrics = _atlas_products(scan, stage.tmp, **settings)
-        _record(out, stage.tmp, "atlas", settings, metrics)
-        stage.commit()
-    except BaseException:
-        stage.abort()
-        raise
+    with staged_directory(out / "atlas") as tmp:
+        metrics = atlas_products(scan, tmp, **settings)
+        _record(out, tmp, "atlas", settings, metrics)
     return metrics
 
 
@@ -333,17 +297,37 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         ``masked_samples``, ``visibility_agreement``), ``unseen_fraction``,
         ``projection_rel_rmse`` (synthetic scans), ``seconds``, ``peak_rss_mb``.
     """
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir
+    atlas_dir = out / "atlas"
+    if not (atlas_dir / "texels.npz").is_file():
+        run_atlas(scan, out, mesh=mesh, **(atlas_settings or {}))
+    with staged_directory(out / "project") as tmp:
+        metrics, settings = project_products(
+            scan, atlas_dir, tmp, rig=rig, mesh=mesh, min_cos=min_cos, feather_px=feather_px,
+            depth_jump=depth_jump, dtype=dtype, block_lights=block_lights, gt_lights=gt_lights,
+            gt_weight_min=gt_weight_min, cameras=cameras)
+        _record(out, tmp, "project", settings, metrics)
+    return metrics
+
+
+def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = None,
+                     mesh: str = "ground_truth", min_cos: float | None = None,
+                     feather_px: float | None = None, depth_jump: float | None = None,
+                     dtype: str = "float16", block_lights: int | None = None,
+                     gt_lights: int = 32, gt_weight_min: float = 0.3,
+                     cameras: list[str] | None = None) -> tuple[dict, dict]:
+    """Write the ``project`` products of ``scan`` into ``dest`` from the atlas in ``atlas_dir``.
+
+    The work of :func:`run_project` without the staging (the stage cache of
+    :mod:`facegeo.pipeline.cache` stages it too). Returns ``(metrics, settings)``.
+    """
     from facegeo.surface import reflectance as rf
     from facegeo.surface.atlas import Atlas, Texels
     from facegeo.surface.pullpush import pull_push
     from facegeo.surface.visibility import RayScene
 
     t_start = time.perf_counter()
-    scan = _scan(scan_dir)
-    out = Path(out_dir) if out_dir is not None else scan.out_dir
-    atlas_dir = out / "atlas"
-    if not (atlas_dir / "texels.npz").is_file():
-        run_atlas(scan, out, mesh=mesh, **(atlas_settings or {}))
     atlas = Atlas.load(atlas_dir / "atlas.npz")
     texels = Texels.load(atlas_dir / "texels.npz")
     face_input = atlas.face_map[texels.face]  # input-mesh face of each texel
@@ -366,80 +350,73 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
 
         renderer = load_ground_truth(scan)
     T = len(texels)
-    stage = _StageDir(out, "project")
-    try:
-        per_cam: dict[str, Any] = {}
-        seen = np.zeros(T, bool)
-        colour = np.zeros((T, 3))
-        wsum = np.zeros(T)
-        se = sr = 0.0
-        for name in names:
-            camera = the_rig.camera(name)
-            t0 = time.perf_counter()
-            vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
-            t1 = time.perf_counter()
-            field = rf.project_camera(
-                scan.iter_olat(name, return_mask=True), vis, (camera.width, camera.height),
-                scan.n_lights, stage.tmp / name, dtype=dtype,
-                block_lights=block_lights or rf.DEFAULT_BLOCK_LIGHTS)
-            t2 = time.perf_counter()
-            seen[field.texel_index] = True
-            for s, chunk in rf.iter_field_chunks(stage.tmp / name):
-                sl = field.texel_index[s:s + len(chunk)]
-                w = field.weight[s:s + len(chunk)].astype(np.float64)
-                m = np.nanmean(chunk, axis=1)
-                ok = np.isfinite(m).all(axis=1)
-                colour[sl[ok]] += w[ok, None] * m[ok]
-                wsum[sl[ok]] += w[ok]
-            entry = {
-                "visible_fraction": round(vis.visible_fraction, 6),
-                "weighted_texels": int(field.texel_index.size),
-                "seconds_visibility": round(t1 - t0, 4),
-                "seconds_projection": round(t2 - t1, 4),
-                "texels_per_second": round(field.texel_index.size * scan.n_lights
-                                           / max(t2 - t1, 1e-9), 1),
-                "masked_samples": field.n_masked,
-                "float16_overflow": field.n_overflow,
-            }
-            if scan.synthetic and rig_used == "ground_truth":
-                agr = _visibility_agreement(scan, name, camera, texels, vis, jump)
-                if agr is not None:
-                    entry["visibility_agreement"] = round(agr["agreement"], 6)
-                    entry["visibility_compared"] = agr["compared"]
-            if renderer is not None and rig_used == "ground_truth":
-                a, b, _ = _projection_error(renderer, the_rig, camera, texels, face_input, field,
-                                            scan.n_lights, gt_lights, gt_weight_min)
-                se += a
-                sr += b
-                entry["projection_rel_rmse"] = round(float(np.sqrt(a / b)), 6) if b else None
-            per_cam[name] = entry
-        np.save(stage.tmp / "seen.npy", seen)
-        preview = np.where(wsum[:, None] > 0, colour / np.maximum(wsum, 1e-30)[:, None], np.nan)
-        img = pull_push(texels.to_image(preview), texels.to_image(
-            np.where(wsum > 0, 1.0, 0.0), fill=0.0))
-        import cv2
-
-        scale = np.nanpercentile(preview, 99) if np.isfinite(preview).any() else 1.0
-        png = np.clip(np.nan_to_num(img) / max(scale, 1e-12), 0, 1) ** (1 / 2.2)
-        cv2.imwrite(str(stage.tmp / "preview.png"),
-                    (png[..., ::-1] * 255 + 0.5).astype(np.uint8))
-        metrics: dict[str, Any] = {
-            "texels": int(T), "lights": int(scan.n_lights), "rig": rig_used,
-            "cameras": per_cam,
-            "unseen_fraction": round(float(1 - seen.mean()) if T else 0.0, 6),
+    per_cam: dict[str, Any] = {}
+    seen = np.zeros(T, bool)
+    colour = np.zeros((T, 3))
+    wsum = np.zeros(T)
+    se = sr = 0.0
+    for name in names:
+        camera = the_rig.camera(name)
+        t0 = time.perf_counter()
+        vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
+        t1 = time.perf_counter()
+        field = rf.project_camera(
+            scan.iter_olat(name, return_mask=True), vis, (camera.width, camera.height),
+            scan.n_lights, dest / name, dtype=dtype,
+            block_lights=block_lights or rf.DEFAULT_BLOCK_LIGHTS)
+        t2 = time.perf_counter()
+        seen[field.texel_index] = True
+        for s, chunk in rf.iter_field_chunks(dest / name):
+            sl = field.texel_index[s:s + len(chunk)]
+            w = field.weight[s:s + len(chunk)].astype(np.float64)
+            m = np.nanmean(chunk, axis=1)
+            ok = np.isfinite(m).all(axis=1)
+            colour[sl[ok]] += w[ok, None] * m[ok]
+            wsum[sl[ok]] += w[ok]
+        entry = {
+            "visible_fraction": round(vis.visible_fraction, 6),
+            "weighted_texels": int(field.texel_index.size),
+            "seconds_visibility": round(t1 - t0, 4),
+            "seconds_projection": round(t2 - t1, 4),
+            "texels_per_second": round(field.texel_index.size * scan.n_lights
+                                       / max(t2 - t1, 1e-9), 1),
+            "masked_samples": field.n_masked,
+            "float16_overflow": field.n_overflow,
         }
-        agrs = [c["visibility_agreement"] for c in per_cam.values()
-                if "visibility_agreement" in c]
-        if agrs:
-            metrics["visibility_agreement"] = round(float(min(agrs)), 6)
-        if renderer is not None and sr > 0:
-            metrics["projection_rel_rmse"] = round(float(np.sqrt(se / sr)), 6)
-            metrics["projection_weight_min"] = gt_weight_min
-        metrics["seconds"] = round(time.perf_counter() - t_start, 4)
-        metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
-        _record(out, stage.tmp, "project", settings, metrics)
-        stage.commit()
-    except BaseException:
-        stage.abort()
-        raise
-    return metrics
+        if scan.synthetic and rig_used == "ground_truth":
+            agr = _visibility_agreement(scan, name, camera, texels, vis, jump)
+            if agr is not None:
+                entry["visibility_agreement"] = round(agr["agreement"], 6)
+                entry["visibility_compared"] = agr["compared"]
+        if renderer is not None and rig_used == "ground_truth":
+            a, b, _ = _projection_error(renderer, the_rig, camera, texels, face_input, field,
+                                        scan.n_lights, gt_lights, gt_weight_min)
+            se += a
+            sr += b
+            entry["projection_rel_rmse"] = round(float(np.sqrt(a / b)), 6) if b else None
+        per_cam[name] = entry
+    np.save(dest / "seen.npy", seen)
+    preview = np.where(wsum[:, None] > 0, colour / np.maximum(wsum, 1e-30)[:, None], np.nan)
+    img = pull_push(texels.to_image(preview), texels.to_image(
+        np.where(wsum > 0, 1.0, 0.0), fill=0.0))
+    import cv2
+
+    scale = np.nanpercentile(preview, 99) if np.isfinite(preview).any() else 1.0
+    png = np.clip(np.nan_to_num(img) / max(scale, 1e-12), 0, 1) ** (1 / 2.2)
+    cv2.imwrite(str(dest / "preview.png"),
+                (png[..., ::-1] * 255 + 0.5).astype(np.uint8))
+    metrics: dict[str, Any] = {
+        "texels": int(T), "lights": int(scan.n_lights), "rig": rig_used,
+        "cameras": per_cam,
+        "unseen_fraction": round(float(1 - seen.mean()) if T else 0.0, 6),
+    }
+    agrs = [c["visibility_agreement"] for c in per_cam.values()
+            if "visibility_agreement" in c]
+    if agrs:
+        metrics["visibility_agreement"] = round(float(min(agrs)), 6)
+    if renderer is not None and sr > 0:
+        metrics["projection_rel_rmse"] = round(float(np.sqrt(se / sr)), 6)
+        metrics["projection_weight_min"] = gt_weight_min
+    metrics["seconds"] = round(time.perf_counter() - t_start, 4)
+    metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    return metrics, settings
