@@ -243,15 +243,16 @@ def test_out_that_is_a_file_is_refused(tmp_path, capsys):
     f.write_bytes(b"not a scan")
     rc = main(["synth", str(f), "--preset", "tiny", "-q"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and "not a directory" in err[0]
+    assert rc == 2 and len(err) == 1 and str(f) in err[0] and "expected a directory" in err[0]
     assert f.read_bytes() == b"not a scan"
 
 
 def test_bad_seed_through_cli_is_one_line(old_scan, capsys):
     before = tree_hashes(old_scan.parent)
-    rc = main(["synth", str(old_scan), "--preset", "tiny", "--overwrite", "-q", "--seed", "-1"])
+    with pytest.raises(SystemExit) as exc:  # argparse rejects it before anything runs
+        main(["synth", str(old_scan), "--preset", "tiny", "--overwrite", "-q", "--seed", "-1"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and "seed" in err[0] and "-1" in err[0]
+    assert exc.value.code == 2 and len(err) == 1 and "seed" in err[0] and "-1" in err[0]
     assert tree_hashes(old_scan.parent) == before
 
 
