@@ -29,6 +29,12 @@ from facegeo.pipeline.bench import (
 _SLOW = {"spectral.forward", "spectral.inverse", "synth.generate"}
 
 
+@pytest.fixture(autouse=True)
+def _small_bandwidth_array(monkeypatch):
+    """64 MiB instead of 512 MiB for the bandwidth figure: these tests check form, not speed."""
+    monkeypatch.setattr(bench, "BANDWIDTH_BYTES", 64 << 20)
+
+
 def _cells(line: str) -> int:
     """Number of Markdown table cells in ``line`` (``\\|`` is an escaped pipe, not a border)."""
     return line.replace("\\|", "").count("|") - 1

@@ -199,8 +199,11 @@ def _method_threads(key: str) -> int:
 
 _BANDWIDTH: dict[int, Bandwidth] = {}
 
+#: Bytes :func:`read_bandwidth` reads by default (512 MiB, far beyond any cache; tests lower it).
+BANDWIDTH_BYTES = 512 << 20
 
-def read_bandwidth(nbytes: int = 512 << 20, *, repeat: int = 3, max_threads: int | None = None,
+
+def read_bandwidth(nbytes: int | None = None, *, repeat: int = 3, max_threads: int | None = None,
                    fresh: bool = False) -> Bandwidth:
     """Measure the memory read bandwidth in this run (cached per run and size).
 
@@ -211,8 +214,9 @@ def read_bandwidth(nbytes: int = 512 << 20, *, repeat: int = 3, max_threads: int
 
     Parameters
     ----------
-    nbytes : int
-        Size of the array read, bytes (rounded down to whole rows of 4 KiB).
+    nbytes : int, optional
+        Size of the array read, bytes (rounded down to whole rows of 4 KiB); default
+        :data:`BANDWIDTH_BYTES`.
     repeat : int
         Passes per method; the best is kept.
     max_threads : int, optional
@@ -220,7 +224,7 @@ def read_bandwidth(nbytes: int = 512 << 20, *, repeat: int = 3, max_threads: int
     fresh : bool
         Measure again even if this size was measured in this run.
     """
-    nbytes = int(nbytes)
+    nbytes = BANDWIDTH_BYTES if nbytes is None else int(nbytes)
     if nbytes < 4096:
         raise InputError(f"nbytes: expected at least 4096 bytes, got {nbytes}")
     if not fresh and nbytes in _BANDWIDTH:
