@@ -56,7 +56,9 @@ def test_reports_written_and_escaped(tmp_path):
     @register("test.dummy")
     def _dummy(quick):
         return [BenchRow("test.dummy", "a|b", 2.0, "x/s", error=0.5, error_unit="max |e|",
-                         ratios={"vs |ref|": 1.5}, extra={"n |x|": 3, "s": "p|q\nr"},
+                         ratios={"vs |ref|": 1.5},
+                         extra={"n |x|": 3, "s": "p|q\nr", "flag": np.bool_(True),
+                                "v": np.float32(0.25)},
                          threads=1, baseline_threads={"vs |ref|": 2})]
 
     rows = run_benchmarks(["test.dummy"], quick=True)
@@ -66,6 +68,7 @@ def test_reports_written_and_escaped(tmp_path):
     assert data["rows"][0]["ratios"] == {"vs |ref|": 1.5}
     assert data["rows"][0]["baseline_threads"] == {"vs |ref|": 2}
     assert data["meta"]["read bandwidth"]["gbps"] > 0  # measured in the same run
+    assert data["rows"][0]["extra"]["flag"] is True  # numpy scalars written as JSON values
     table = [ln for ln in m.read_text().splitlines() if ln.startswith("|")]
     assert len(table) == 3
     assert {_cells(ln) for ln in table} == {8}  # pipes inside cells (keys too) are escaped

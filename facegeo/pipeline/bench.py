@@ -360,6 +360,15 @@ def render_table(rows: list[BenchRow]) -> list[str]:
     return lines
 
 
+def _json_default(x):
+    """numpy scalars and arrays in ``extra`` → plain JSON values."""
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"bench.json: cannot write a {type(x).__name__}")
+
+
 def write_reports(rows: list[BenchRow], out_dir: str | Path) -> tuple[Path, Path]:
     """Write ``bench.json`` and ``bench.md`` into ``out_dir`` (atomically); return their paths."""
     out = Path(out_dir)
@@ -372,6 +381,10 @@ def write_reports(rows: list[BenchRow], out_dir: str | Path) -> tuple[Path, Path
     }
     meta["cpus"] = os.cpu_count()
     try:
+        meta["load average"] = [round(x, 2) for x in os.getloadavg()]
+    except OSError:  # pragma: no cover - not available
+        meta["load average"] = None
+    try:
         meta["blas threads"] = blas_threads()
     except ImportError:  # pragma: no cover - threadpoolctl is a dependency
         meta["blas threads"] = None
@@ -379,10 +392,12 @@ def write_reports(rows: list[BenchRow], out_dir: str | Path) -> tuple[Path, Path
         bw = max(_BANDWIDTH.values(), key=lambda b: b.nbytes)
         meta["read bandwidth"] = asdict(bw)
     jpath = out / "bench.json"
-    atomic_write_text(jpath, json.dumps({"meta": meta, "rows": [asdict(r) for r in rows]}, indent=2))
+    atomic_write_text(jpath, json.dumps({"meta": meta, "rows": [asdict(r) for r in rows]}, indent=2,
+                                        default=_json_default))
     head = [
         f"facegeo bench, {meta['time']}: {meta['cpus']} CPUs, BLAS threads {meta['blas threads']}, "
-        f"Python {meta['python']}.",
+        f"Python {meta['python']}, load average {meta['load average']} (other jobs slow "
+        "every figure; compare ratios from one run).",
     ]
     if "read bandwidth" in meta:
         bw = meta["read bandwidth"]
