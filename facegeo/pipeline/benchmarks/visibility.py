@@ -11,7 +11,10 @@ thread (one ``EmbreeScene.run`` call on the same float32 arrays and the same BVH
 facegeo's overhead differs), and facegeo on 2 threads against raw embreex on 2 threads (the
 same ``run`` calls on ray chunks of facegeo's chunk size, mapped over a 2-worker
 ``ThreadPoolExecutor``). Whether embreex releases the GIL is measured, not assumed: the raw
-2-thread row reports its speed-up over the 1-thread call (≈ 1 if the GIL were held). trimesh's
+2-thread row reports its speed-up over the 1-thread call, and how far a pure-Python loop in
+the main thread progresses while ``run`` executes in a worker, beside the same figure for
+``time.sleep`` (releases the GIL) and for one long C call that holds it (``sum(range(n))``),
+measured in the same run (≈ 0.85–1 and ≈ 0.02 on the loaded 2-core machine). trimesh's
 ``mesh.ray`` (a single-threaded wrapper) is reported beside them. Timings on the shared 2-core
 machines are noisy: compare ratios, not absolute speeds, and rerun when another job was using
 the second core.
@@ -35,7 +38,7 @@ def _raw_chunked(run_chunk, n: int, chunk: int, threads: int):
         return list(ex.map(run_chunk, slices))
 
 
-def _gil_free_fraction(call) -> float:
+def _gil_free_fraction(call, min_seconds: float = 0.3) -> float:
     """How far Python runs while ``call()`` runs in another thread (≈1: GIL released, ≈0: held).
 
     A pure-Python counting loop runs in this thread while ``call`` runs in a worker; its rate is
@@ -52,8 +55,11 @@ def _gil_free_fraction(call) -> float:
         return k
 
     def run_then_set(ev) -> None:
-        try:
+        try:  # repeat short calls so thread start-up and switch intervals (5 ms) do not dominate
+            end = time.perf_counter() + min_seconds
             call()
+            while time.perf_counter() < end:
+                call()
         finally:
             ev.set()
 
@@ -66,6 +72,19 @@ def _gil_free_fraction(call) -> float:
     threading.Timer(elapsed, alone_ev.set).start()  # the same loop, same wall time, no work
     alone = count(alone_ev)
     return float(min(1.0, busy / max(alone, 1)))
+
+
+def _gil_calibration(seconds: float) -> dict:
+    """:func:`_gil_free_fraction` of a call known to release the GIL (``time.sleep``) and of one
+    C call known to hold it for its whole length (``sum(range(n))``), each about ``seconds``
+    long: under machine load the embreex figure reads against these two, not against 1 and 0."""
+    import time
+
+    t0 = time.perf_counter()
+    sum(range(1_000_000))
+    n = int(1_000_000 * seconds / max(time.perf_counter() - t0, 1e-6))
+    return {"released (time.sleep)": _gil_free_fraction(lambda: time.sleep(seconds)),
+            "held (one C call, sum(range(n)))": _gil_free_fraction(lambda: sum(range(n)))}
 
 
 def _thread_rows(name: str, label: str, ours: dict, raw: dict, n: int) -> list[BenchRow]:
@@ -186,7 +205,9 @@ def _raw_rows(name: str, label: str, t_raw: dict, n: int, chunk: int, sizes: dic
             name, f"{label}, {chunk}-ray chunks on a {th}-worker ThreadPoolExecutor",
             n / t_raw[th] / 1e6, "Mrays/s",
             extra={"speed-up over 1 thread": speedup,
-                   "Python progress during run() (1 = GIL released)": gil_free},
+                   "Python progress during run()": gil_free,
+                   **{f"Python progress, {k}": v
+                      for k, v in _gil_calibration(0.3).items()}},
             threads=th))
     return rows
 
