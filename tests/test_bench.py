@@ -1,19 +1,49 @@
-"""The benchmark registry and its reports (correctness only: no timing asserts)."""
+"""The benchmark registry, its reports, and every registered benchmark run in its quick form.
+
+No timing asserts: the benchmarks run to check that their rows are well-formed (positive speed,
+finite errors, thread counts and named baselines) and that the report renders.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 
+import numpy as np
 import pytest
 
-from facegeo.pipeline.bench import BenchRow, register, registered, run_benchmarks, write_reports
 from facegeo.errors import InputError
+from facegeo.pipeline import bench
+from facegeo.pipeline.bench import (
+    BenchRow,
+    read_bandwidth,
+    register,
+    registered,
+    render_table,
+    run_benchmarks,
+    write_reports,
+)
+
+# Benchmarks whose quick form takes more than a few seconds here (measured: spectral ≈ 24 s,
+# synth ≈ 27 s on the shared 2-core machine).
+_SLOW = {"spectral.forward", "spectral.inverse", "synth.generate"}
+
+
+@pytest.fixture(autouse=True)
+def _small_bandwidth_array(monkeypatch):
+    """64 MiB instead of 512 MiB for the bandwidth figure: these tests check form, not speed."""
+    monkeypatch.setattr(bench, "BANDWIDTH_BYTES", 64 << 20)
+
+
+def _cells(line: str) -> int:
+    """Number of Markdown table cells in ``line`` (``\\|`` is an escaped pipe, not a border)."""
+    return line.replace("\\|", "").count("|") - 1
 
 
 def test_every_stage_registers_benchmarks():
     names = registered()
     for expected in ("visibility.closest_hit", "visibility.occluded", "synth.generate",
-                     "structured_light.decode_gray"):
+                     "structured_light.decode_gray", "memory.read_bandwidth"):
         assert expected in names
 
 
@@ -26,12 +56,120 @@ def test_reports_written_and_escaped(tmp_path):
     @register("test.dummy")
     def _dummy(quick):
         return [BenchRow("test.dummy", "a|b", 2.0, "x/s", error=0.5, error_unit="max |e|",
-                         ratios={"vs ref": 1.5}, extra={"n": 3})]
+                         ratios={"vs |ref|": 1.5},
+                         extra={"n |x|": 3, "s": "p|q\nr", "flag": np.bool_(True),
+                                "v": np.float32(0.25)},
+                         threads=1, baseline_threads={"vs |ref|": 2})]
 
     rows = run_benchmarks(["test.dummy"], quick=True)
+    assert rows[0].peak_rss_mb is not None and rows[0].peak_rss_mb > 0
     j, m = write_reports(rows, tmp_path)
     data = json.loads(j.read_text())
-    assert data["rows"][0]["ratios"] == {"vs ref": 1.5}
-    line = m.read_text().splitlines()[2]
-    assert line.count(" | ") == 5  # six cells: pipes inside cells are escaped
-    assert "a\\|b" in line and "max \\|e\\|" in line
+    assert data["rows"][0]["ratios"] == {"vs |ref|": 1.5}
+    assert data["rows"][0]["baseline_threads"] == {"vs |ref|": 2}
+    assert data["meta"]["read bandwidth"]["gbps"] > 0  # measured in the same run
+    assert data["rows"][0]["extra"]["flag"] is True  # numpy scalars written as JSON values
+    table = [ln for ln in m.read_text().splitlines() if ln.startswith("|")]
+    assert len(table) == 3
+    assert {_cells(ln) for ln in table} == {8}  # pipes inside cells (keys too) are escaped
+    line = table[2]
+    assert "a\\|b" in line and "max \\|e\\|" in line and "vs \\|ref\\| [2 thr]: 1.5" in line
+    assert "n \\|x\\|=3" in line and "\n" not in line
+
+
+def test_table_cell_count_fails_for_an_unescaped_pipe():
+    """The cell-count check above can fail: an unescaped | adds a cell."""
+    row = BenchRow("b", "case", 1.0, "x/s", threads=1)
+    good = render_table([row])[2]
+    assert _cells(good) == 8
+    assert _cells(good.replace("case", "ca|se")) == 9
+
+
+def test_read_bandwidth_measures_methods_and_threads():
+    bw = read_bandwidth(32 << 20, repeat=1, fresh=True)
+    assert bw.nbytes == 32 << 20
+    assert "numpy sum, 1 thread" in bw.by_method and bw.gbps == max(bw.by_method.values())
+    assert all(v > 0 and math.isfinite(v) for v in bw.by_method.values())
+    assert bw.at_threads(1) <= bw.gbps
+    # reading 1 GB once at 1 GB/s takes 1 s
+    assert bw.read_once_seconds(bw.gbps * 1e9) == pytest.approx(1.0)
+    with pytest.raises(InputError, match="nbytes"):
+        read_bandwidth(10)
+
+
+def test_peak_rss_sees_an_allocation():
+    bench.reset_peak_rss()
+    before = bench.peak_rss_mb()
+    a = np.ones(64 << 20, dtype=np.uint8)  # 64 MiB, touched
+    after = bench.peak_rss_mb()
+    del a
+    assert after - before >= 60
+
+
+def _check_rows(name: str, rows: list[BenchRow]) -> None:
+    assert rows, f"{name} returned no rows"
+    for r in rows:
+        assert r.benchmark == name
+        assert isinstance(r.case, str) and r.case
+        assert math.isfinite(r.speed) and r.speed > 0, (r.case, r.speed)
+        assert r.speed_unit
+        if r.error is not None:
+            assert math.isfinite(r.error), (r.case, r.error)
+            assert r.error_unit, r.case
+        assert isinstance(r.threads, int) and r.threads >= 1, (r.case, r.threads)
+        for key, ratio in r.ratios.items():
+            assert math.isfinite(ratio) and ratio > 0, (r.case, key, ratio)
+            # every ratio names its baseline and the baseline's thread count
+            assert isinstance(key, str) and len(key) > 3
+            assert isinstance(r.baseline_threads.get(key), int), (r.case, key)
+        assert r.peak_rss_mb is not None and r.peak_rss_mb > 0
+    table = render_table(rows)
+    assert {_cells(ln) for ln in table} == {8}
+
+
+def _bench_params():
+    out = []
+    for name in registered():
+        if name.startswith("test."):
+            continue
+        marks = [pytest.mark.slow] if name in _SLOW else []
+        out.append(pytest.param(name, marks=marks, id=name))
+    return out
+
+
+@pytest.mark.parametrize("name", _bench_params())
+def test_registered_benchmark_quick_rows_well_formed(name, tmp_path):
+    rows = run_benchmarks([name], quick=True)
+    _check_rows(name, rows)
+    _, m = write_reports(rows, tmp_path)
+    table = [ln for ln in m.read_text().splitlines() if ln.startswith("|")]
+    assert len(table) == len(rows) + 2
+    assert {_cells(ln) for ln in table} == {8}
+
+
+def test_decode_benchmark_reports_reference_and_read_once_limit():
+    rows = run_benchmarks(["structured_light.decode_gray"], quick=True)
+    ours = rows[0]
+    assert ours.case.startswith("facegeo decode_gray")
+    assert "vs numpy reference decode" in ours.ratios
+    assert any(k.startswith("of read-once limit") for k in ours.ratios)
+    assert ours.error == 0.0  # synthetic frames decode exactly
+    assert ours.extra["pixels differing from numpy reference"] == 0.0
+    cv = [r for r in rows if "getProjPixel" in r.case]
+    assert cv and "per-pixel Python loop" in cv[0].case and "extrapolated" in cv[0].case
+
+
+def test_reference_decode_matches_truth_on_small_frames():
+    from facegeo.geometry.structured_light import PatternSpec
+    from facegeo.pipeline.benchmarks.structured_light import _frames, reference_decode_gray
+
+    spec = PatternSpec(width=1024, height=768, white_black=False)
+    frames, _, tx, ty, _ = _frames(64, 48, spec)
+    px, py, valid = reference_decode_gray(frames, spec)
+    assert valid.all()
+    np.testing.assert_array_equal(px, tx)
+    np.testing.assert_array_equal(py, ty)
+    # a flipped bit plane must show up (the reference is not vacuous)
+    frames["gray_x_03"], frames["gray_x_03_inv"] = frames["gray_x_03_inv"], frames["gray_x_03"]
+    px2, _, _ = reference_decode_gray(frames, spec)
+    assert np.mean(px2 != tx) > 0.5

@@ -295,3 +295,76 @@ def test_texture_survives_opencv_roi_sizes():
                      dictionary="DICT_4X4_50")
     tex, m = b.texture(62)
     assert tex.shape[1] * m == pytest.approx(b.size[0], rel=1e-12)
+
+
+# _bilinear is cv2.remap (float32 maps): equal to the plain float64 numpy lookup it replaced.
+# Metric: max |remap − numpy| over random samples, divided by the texture's value range, with
+# numpy evaluated at the same float32-rounded coordinates (so only the interpolation differs).
+# Measured ≈ 1e-7.
+BILINEAR_RANGE_TOL = 1e-5
+# Against numpy at the float64 coordinates the float32 map rounding adds up to half an ulp of
+# the coordinate (6e-5 texel at 1800 texels) times the texture's slope (range per texel):
+# bound = range · (|coord|max · 2⁻²⁴ · 2 + BILINEAR_RANGE_TOL). Measured 4.9e-5 of range.
+# Metric: max |Δreflectance| / reflectance over board pixels of a render, remap vs numpy lookup.
+# Measured 3.5e-5 … 1.2e-4 over 4 random views (float32 map coordinates).
+RENDER_REL_TOL = 3e-4
+
+
+def _numpy_bilinear(img, u, v):
+    """The former hand-written lookup (float64), kept as the reference."""
+    H, W = img.shape
+    u = np.clip(u, 0.0, W - 1.0)
+    v = np.clip(v, 0.0, H - 1.0)
+    i0 = np.minimum(np.floor(u).astype(np.intp), max(W - 2, 0))
+    j0 = np.minimum(np.floor(v).astype(np.intp), max(H - 2, 0))
+    fu, fv = u - i0, v - j0
+    i1, j1 = np.minimum(i0 + 1, W - 1), np.minimum(j0 + 1, H - 1)
+    a = img[j0, i0] * (1 - fu) + img[j0, i1] * fu
+    b = img[j1, i0] * (1 - fu) + img[j1, i1] * fu
+    return a * (1 - fv) + b * fv
+
+
+def test_bilinear_matches_numpy_reference(board):
+    from facegeo.geometry.board import _bilinear
+
+    rng = np.random.default_rng(3)
+    tex, _ = board.texture(256)
+    H, W = tex.shape
+    # inside, on texel centres, and outside (clamped) — 2-D maps and a long 1-D batch
+    u = rng.uniform(-5.0, W + 5.0, (300, 400))
+    v = rng.uniform(-5.0, H + 5.0, (300, 400))
+    u[0, :10] = np.arange(10)
+    v[0, :10] = 3.0
+    span = float(tex.max() - tex.min())
+    u32, v32 = u.astype(np.float32).astype(np.float64), v.astype(np.float32).astype(np.float64)
+    got = _bilinear(tex, u, v)
+    assert got.shape == u.shape and got.dtype == np.float32
+    assert np.max(np.abs(got - _numpy_bilinear(tex, u32, v32))) / span < BILINEAR_RANGE_TOL
+    rounding = max(W, H) * 2.0**-24 * 2
+    assert np.max(np.abs(got - _numpy_bilinear(tex, u, v))) / span < rounding + BILINEAR_RANGE_TOL
+    u1, v1 = u32.ravel()[:70_000], v32.ravel()[:70_000]  # longer than one remap row (32766)
+    got1 = _bilinear(tex, u1, v1)
+    assert np.max(np.abs(got1 - _numpy_bilinear(tex, u1, v1))) / span < BILINEAR_RANGE_TOL
+    # the check can fail: a half-texel shift is far outside the tolerance
+    assert np.max(np.abs(_bilinear(tex, u + 0.5, v) - _numpy_bilinear(tex, u, v))) / span > 0.1
+
+
+def test_render_with_remap_matches_numpy_lookup(board, monkeypatch):
+    import facegeo.geometry.board as board_mod
+
+    cam = make_camera()
+    T = board_mod.random_board_poses(cam, 1, np.random.default_rng(11), board=board)[0]
+    new = board.render(cam, T, supersample=2)
+    monkeypatch.setattr(board_mod, "_bilinear", _numpy_bilinear)
+    ref = board.render(cam, T, supersample=2)
+    m = ref.mask & (ref.reflectance > 0)
+    assert m.mean() > 0.05
+    rel = np.abs(new.reflectance[m] - ref.reflectance[m]) / ref.reflectance[m]
+    assert rel.max() < RENDER_REL_TOL
+
+
+def test_bilinear_rejects_texture_too_large_for_remap():
+    from facegeo.geometry.board import _bilinear
+
+    with pytest.raises(InputError, match="px_per_square"):
+        _bilinear(np.zeros((2, 40000), np.float32), np.zeros(3), np.zeros(3))

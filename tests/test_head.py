@@ -249,3 +249,120 @@ def test_load_errors(tmp_path):
     assert len(m.faces) == 2, "a quad becomes two triangles"
     with pytest.raises(InputError, match="removes every face"):
         load_head_mesh(q, drop_groups=("skin",))
+
+
+# --------------------------------------------------------------------------- OBJ vs trimesh
+# facegeo keeps its own OBJ reader (trimesh 5.2's loses material names without the .mtl, cannot
+# label faces by group and was 2× slower on the ICT head; see load_head_mesh). These tests check
+# it against trimesh's reader on the geometry both produce: the multiset of triangles (vertex
+# positions, quads split on the 0–2 diagonal as trimesh does) must be identical, and the UV of
+# every triangle corner equal. Metric: exact equality of positions read from the same decimal
+# text (both parse with float64), so the tolerance is 0.
+
+
+def _triangle_multiset(tris: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) triangles → (F, 9) canonical rows, sorted, to compare multisets as arrays.
+
+    Each triangle starts at its lexicographically smallest corner (a rotation: the winding is
+    kept, so a flipped triangle still differs)."""
+    tris = np.asarray(tris, dtype=float)
+    rots = np.stack([np.roll(tris, -k, axis=1).reshape(len(tris), 9) for k in range(3)], axis=1)
+    first = np.lexsort(rots.transpose(2, 0, 1)[::-1], axis=-1)[:, 0]
+    flat = rots[np.arange(len(tris)), first]
+    return flat[np.lexsort(flat.T[::-1])]
+
+
+def _trimesh_triangles(path):
+    import trimesh
+
+    loaded = trimesh.load(str(path), process=False, skip_materials=True)
+    geoms = loaded.dump() if isinstance(loaded, trimesh.Scene) else [loaded]
+    return np.concatenate([np.asarray(g.triangles) for g in geoms])
+
+
+def _our_triangles(path):
+    from pathlib import Path
+
+    V, T, Fv, Ft, labels = headmod._parse_obj(Path(path))
+    return V[Fv], T, Ft, labels
+
+
+_SMALL_OBJ = """# hand-written: quads, a triangle, a pentagon, groups, UVs
+o part_a
+v 0 0 0
+v 1 0 0
+v 1 1 0
+v 0 1 0
+v 0.5 1.5 0.25
+vt 0 0
+vt 1 0
+vt 1 1
+vt 0 1
+vt 0.5 1
+g front
+usemtl skin
+f 1/1 2/2 3/3 4/4
+f 1/1 3/3 5/5
+o part_b
+v 2 0 0
+v 3 0 1
+v 3 1 1
+v 2 1 0
+v 2.5 1.5 0.5
+g back
+usemtl Eye_Lashes
+f 6/1 7/2 8/3 9/4 10/5
+"""
+
+
+def test_small_obj_matches_trimesh(tmp_path):
+    p = tmp_path / "small.obj"
+    p.write_text(_SMALL_OBJ)
+    ours, T, Ft, labels = _our_triangles(p)
+    assert len(ours) == 2 + 1 + 3, "quad → 2, triangle → 1, pentagon → 3 (fan)"
+    np.testing.assert_array_equal(_triangle_multiset(ours), _triangle_multiset(_trimesh_triangles(p)))
+    assert list(labels) == ["part_a|front|skin"] * 3 + ["part_b|back|Eye_Lashes"] * 3
+    np.testing.assert_array_equal(T[Ft[2]], [[0, 0], [1, 1], [0.5, 1]])
+    # OBJ negative indices count back from the vertices read *so far* (trimesh 5.2 counts from
+    # the end of the file instead, so this case is checked against the positive form only)
+    q = tmp_path / "negative.obj"
+    q.write_text(_SMALL_OBJ.replace("f 1/1 3/3 5/5", "f -5/-5 -3/-3 -1/-1"))
+    neg, T2, Ft2, _ = _our_triangles(q)
+    np.testing.assert_array_equal(neg, ours)
+    np.testing.assert_array_equal(T2[Ft2], T[Ft])
+    m = load_head_mesh(p, units="m", center=False, drop_groups=("lashes",))
+    assert len(m.faces) == 3 and m.metadata["dropped_groups"] == ["part_b|back|Eye_Lashes"]
+    assert m.visual.uv.shape == (len(m.vertices), 2)
+
+
+def test_obj_check_can_fail(tmp_path):
+    """A reader that split quads on the other diagonal would be caught by the comparison."""
+    p = tmp_path / "small.obj"
+    p.write_text(_SMALL_OBJ)
+    ours, *_ = _our_triangles(p)
+    wrong = ours.copy()
+    theirs = _triangle_multiset(_trimesh_triangles(p))
+    rotated = ours.copy()
+    rotated[0] = ours[0][[1, 2, 0]]  # the same triangle, another starting corner: still equal
+    np.testing.assert_array_equal(_triangle_multiset(rotated), theirs)
+    flipped = ours.copy()
+    flipped[0] = ours[0][[0, 2, 1]]  # reversed winding: caught
+    assert not np.array_equal(_triangle_multiset(flipped), theirs)
+    diagonal = ours.copy()  # the quad split on the 1–3 diagonal instead of 0–2: caught
+    a, b, c = ours[0]
+    d = ours[1][2]
+    diagonal[0], diagonal[1] = [a, b, d], [b, c, d]
+    assert not np.array_equal(_triangle_multiset(diagonal), theirs)
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("name", [
+    "mediapipe_canonical_face.obj",
+    pytest.param("ict_facekit_generic_neutral.obj", marks=pytest.mark.slow),
+])
+def test_shared_obj_matches_trimesh(shared_data, name):
+    path = shared_file(shared_data, f"faces/{name}")
+    ours, *_ = _our_triangles(path)
+    theirs = _trimesh_triangles(path)
+    assert ours.shape == theirs.shape
+    np.testing.assert_array_equal(_triangle_multiset(ours), _triangle_multiset(theirs))

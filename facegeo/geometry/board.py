@@ -416,21 +416,53 @@ def _camera_rays(camera: Camera, ss: int):
     return value
 
 
+_REMAP_MAX = 32767  # cv2.remap needs source and map sides below SHRT_MAX
+
+
 def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear lookup of ``img`` (H, W) at texel coordinates ``(u, v)`` = (col, row), texel
-    centres at integers; coordinates are clamped to the image (edge texels extend to the border)."""
+    centres at integers; coordinates are clamped to the image (edge texels extend to the border).
+
+    ``cv2.remap`` (``INTER_LINEAR``, ``BORDER_REPLICATE``, float32 maps) on a float32 image: OpenCV
+    interpolates float32 images in floating point (its 1/32-texel fixed-point weights apply only
+    to integer and float64 images, which is why ``img`` is cast to float32 here). The maps are
+    float32, so coordinates carry float32 round-off (2.4e-4 texel at 4000 texels): against the
+    former float64 numpy lookup, board renders differ by at most 1.2e-4 relative per pixel (mean
+    absolute 5e-8); at the same float32 coordinates the two agree to < 1e-5 of the texture's range
+    (``tests/test_board.py::test_bilinear_matches_numpy_reference``). Renders ~1.5× faster.
+
+    Parameters
+    ----------
+    img : (H, W) float array
+    u, v : (...) float arrays of the same shape, texel coordinates
+
+    Returns
+    -------
+    (...) float32
+    """
+    img = np.ascontiguousarray(img, dtype=np.float32)
     H, W = img.shape
-    u = np.clip(u, 0.0, W - 1.0)
-    v = np.clip(v, 0.0, H - 1.0)
-    i0 = np.minimum(np.floor(u).astype(np.intp), max(W - 2, 0))
-    j0 = np.minimum(np.floor(v).astype(np.intp), max(H - 2, 0))
-    fu = u - i0
-    fv = v - j0
-    i1 = np.minimum(i0 + 1, W - 1)
-    j1 = np.minimum(j0 + 1, H - 1)
-    a = img[j0, i0] * (1 - fu) + img[j0, i1] * fu
-    b = img[j1, i0] * (1 - fu) + img[j1, i1] * fu
-    return a * (1 - fv) + b * fv
+    if H >= _REMAP_MAX or W >= _REMAP_MAX:
+        raise InputError(
+            f"board texture: {W}×{H} texels; cv2.remap takes images below {_REMAP_MAX} texels a "
+            "side (lower px_per_square)"
+        )
+    u = np.asarray(u)
+    shape = u.shape
+    mu = np.asarray(u, dtype=np.float32).reshape(-1)
+    mv = np.asarray(v, dtype=np.float32).reshape(-1)
+    n = mu.size
+    if n == 0:
+        return np.zeros(shape, dtype=np.float32)
+    cols = min(n, _REMAP_MAX - 1)
+    rows = -(-n // cols)
+    pad = rows * cols - n
+    if pad:
+        mu = np.concatenate([mu, np.zeros(pad, np.float32)])
+        mv = np.concatenate([mv, np.zeros(pad, np.float32)])
+    out = cv2.remap(img, mu.reshape(rows, cols), mv.reshape(rows, cols), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1)[:n].reshape(shape)
 
 
 def random_board_poses(

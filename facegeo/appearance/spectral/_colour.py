@@ -6,8 +6,13 @@ sRGB white point is D65; the division only removes the ~1e-3 residue of table ro
 
 The spectrum is treated as piecewise linear between its samples (constant beyond the ends),
 and the integral is taken on the CIE tables' 1 nm grid, so the weights are exact for any
-sample grid, uniform or not. The colour matching functions and D65 come from colour-science
-(imported on first use; it takes ~0.7 s).
+sample grid, uniform or not. The colour matching functions, D65 and the XYZ → linear-sRGB
+matrix all come from colour-science (imported on first use; it takes ~0.7 s): only the
+integration weights are computed here, because colour-science's ``sd_to_XYZ`` integrates one
+spectrum at a time and interpolates non-1 nm data with Sprague / cubic splines, whereas these
+weights are one (3, L) matrix product for any number of spectra and treat the spectrum as piecewise
+linear. ``tests/test_library_equivalence.py`` checks them against ``colour.sd_to_XYZ`` +
+``colour.XYZ_to_RGB`` on 1 nm data.
 
 References
 ----------
@@ -28,19 +33,7 @@ from facegeo.errors import MissingDependencyError
 
 __all__ = ["XYZ_TO_LINEAR_SRGB", "rgb_weights", "spectrum_to_rgb", "spectrum_to_xyz"]
 
-#: IEC 61966-2-1 XYZ (D65, Y = 1) → linear sRGB.
-XYZ_TO_LINEAR_SRGB = np.array(
-    [
-        [3.2406, -1.5372, -0.4986],
-        [-0.9689, 1.8758, 0.0415],
-        [0.0557, -0.2040, 1.0570],
-    ]
-)
-
-
-@functools.lru_cache(maxsize=1)
-def _cie_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(λ (nm, 1 nm steps), x̄ȳz̄ (N, 3), D65 (N,)) on 360–830 nm."""
+def _colour_module():
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # colour-science warns that matplotlib is absent
@@ -49,6 +42,28 @@ def _cie_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise MissingDependencyError(
             "facegeo.appearance.spectral needs colour-science for the CIE tables: pip install colour-science"
         ) from exc
+    return colour
+
+
+@functools.lru_cache(maxsize=1)
+def _xyz_to_linear_srgb() -> np.ndarray:
+    """IEC 61966-2-1 XYZ (D65, Y = 1) → linear sRGB, from colour-science's sRGB colourspace."""
+    m = np.array(_colour_module().models.RGB_COLOURSPACE_sRGB.matrix_XYZ_to_RGB, dtype=np.float64)
+    m.setflags(write=False)
+    return m
+
+
+def __getattr__(name: str):
+    # XYZ_TO_LINEAR_SRGB stays a module attribute without importing colour-science at import.
+    if name == "XYZ_TO_LINEAR_SRGB":
+        return _xyz_to_linear_srgb()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+@functools.lru_cache(maxsize=1)
+def _cie_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(λ (nm, 1 nm steps), x̄ȳz̄ (N, 3), D65 (N,)) on 360–830 nm."""
+    colour = _colour_module()
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
     wl = np.asarray(cmfs.wavelengths, dtype=np.float64)
     xyz = np.asarray(cmfs.values, dtype=np.float64)
@@ -68,7 +83,7 @@ def _weights_cached(wavelengths: tuple[float, ...]) -> tuple[np.ndarray, np.ndar
         hat[:, k] = np.interp(wl, grid, eye[k])
     k_norm = 1.0 / np.sum(s * xyz[:, 1])
     w_xyz = (xyz * s[:, None]).T @ hat * k_norm  # (3, L), 1 nm steps (Δλ cancels)
-    w_rgb = XYZ_TO_LINEAR_SRGB @ w_xyz
+    w_rgb = _xyz_to_linear_srgb() @ w_xyz
     w_rgb /= w_rgb.sum(axis=1, keepdims=True)  # R ≡ 1 → (1, 1, 1) exactly
     w_xyz.setflags(write=False)
     w_rgb.setflags(write=False)

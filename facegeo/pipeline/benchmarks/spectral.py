@@ -3,13 +3,29 @@
 Throughput is measured on inputs made with the table's interpolant (fast to make at 1 M
 texels); the error column is measured on a separate sample whose albedo comes from the exact
 spectral model, so it includes the table's interpolation error.
+
+Threads: the code is numpy (elementwise ufuncs on one thread, matrix products on the BLAS pool);
+every row states the BLAS pool size as its thread count, and baselines run in the same process
+under the same pool. ``spectral.nearest`` compares the voxel nearest-neighbour lookup of
+:class:`~facegeo.appearance.spectral.SkinLUT` with a ``scipy.spatial.cKDTree`` query on the
+same table entries (both 1 thread).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, register
+from facegeo.pipeline.bench import BenchRow, best_of, blas_threads, register
+
+
+def _with_threads(rows: list[BenchRow]) -> list[BenchRow]:
+    th = blas_threads()
+    for r in rows:
+        if r.threads is None:
+            r.threads = th
+        for k in r.ratios:
+            r.baseline_threads.setdefault(k, th)
+    return rows
 
 
 def _parameters(n: int, seed: int):
@@ -57,7 +73,7 @@ def bench_forward(quick: bool) -> list[BenchRow]:
             ratios={"vs exact skin_rgb": (m / t_lut) / (k / t_rgb)}, extra={"n": m},
         )
     )
-    return rows
+    return _with_threads(rows)
 
 
 @register("spectral.inverse")
@@ -135,4 +151,42 @@ def bench_inverse(quick: bool) -> list[BenchRow]:
             extra={"n": n},
         )
     )
-    return rows
+    return _with_threads(rows)
+
+
+@register("spectral.nearest")
+def bench_nearest(quick: bool) -> list[BenchRow]:
+    """Voxel nearest-entry lookup (the inverse fit's seed) against ``scipy.spatial.cKDTree``."""
+    from scipy.spatial import cKDTree
+
+    from facegeo.appearance import spectral
+    from facegeo.appearance.spectral._lut import LOG_FLOOR
+
+    lut = spectral.skin_lut()
+    logrgb = np.log(np.maximum(lut.rgb_flat, LOG_FLOOR))
+    t_vox_build, _ = best_of(lambda: lut._voxels, 1)  # cached property: first access builds
+    t_tree_build, tree = best_of(lambda: cKDTree(logrgb), 1)
+    n = 1 << 14 if quick else 1 << 18
+    rng = np.random.default_rng(6)
+    P = _parameters(n, 7)
+    rgb = lut.interpolate(*P) * np.exp(rng.normal(0.0, 0.02, (n, 3)))  # 2 % colour noise
+    q = np.log(np.maximum(rgb, LOG_FLOOR))
+    repeat = 2 if quick else 3
+    t_vox, i_vox = best_of(lambda: lut.nearest(rgb), repeat)
+    t_tree, (d_tree, i_tree) = best_of(lambda: tree.query(q), repeat)
+    d_vox = np.linalg.norm(logrgb[i_vox] - q, axis=1)
+    excess = d_vox - d_tree
+    key = "vs cKDTree.query"
+    return [
+        BenchRow("spectral.nearest", "SkinLUT.nearest (64³ voxel table, approximate)",
+                 n / t_vox / 1e6, "Mqueries/s", float(np.max(excess)),
+                 "max excess log-RGB distance over the exact nearest entry",
+                 ratios={key: t_tree / t_vox},
+                 extra={"n": n, "entries": len(logrgb), "build s": round(t_vox_build, 3),
+                        "median excess": float(np.median(excess)),
+                        "fraction not the exact nearest": float(np.mean(i_vox != i_tree))},
+                 threads=1, baseline_threads={key: 1}),
+        BenchRow("spectral.nearest", "scipy.spatial.cKDTree.query (exact nearest entry)",
+                 n / t_tree / 1e6, "Mqueries/s", 0.0, "excess distance (exact by construction)",
+                 extra={"n": n, "build s": round(t_tree_build, 3)}, threads=1),
+    ]
