@@ -193,6 +193,21 @@ class Bandwidth:
         return float(nbytes) / (bw * 1e9)
 
 
+def one_blas_thread(fn: BenchFn) -> BenchFn:
+    """Decorator: run a benchmark with BLAS limited to one thread (``threadpoolctl``), so that
+    its rows can honestly say ``threads=1`` for numpy/scipy code that calls BLAS."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapped(quick: bool) -> list[BenchRow]:
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):
+            return fn(quick)
+
+    return wrapped
+
+
 def _method_threads(key: str) -> int:
     return int(key.rsplit(", ", 1)[1].split()[0])
 

@@ -8,13 +8,14 @@ import time
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, register
+from facegeo.pipeline.bench import BenchRow, one_blas_thread, register
 
 #: Injected corner noise, pixels (per axis).
 NOISE_PX = 0.2
 
 
 @register("calibration.camera")
+@one_blas_thread
 def bench_camera(quick: bool) -> list[BenchRow]:
     import cv2
 
@@ -53,6 +54,7 @@ def bench_camera(quick: bool) -> list[BenchRow]:
                 "calibration.camera", f"facegeo calibrate_camera, {n} views", n / t_ours,
                 "views/s", error=focal, error_unit="max |Δf|/f vs truth",
                 ratios={"vs cv2.calibrateCamera (1 thread)": t_cv / t_ours},
+                threads=1, baseline_threads={"vs cv2.calibrateCamera (1 thread)": 1},
                 extra={"seconds": round(t_ours, 3), "rms_px": round(c.rms_px, 4),
                        "cv2_rms_px": round(float(rms_cv), 4), "principal_point_error_px":
                        round(pp, 3), "cv2_focal_rel_error": float(max(
@@ -64,6 +66,7 @@ def bench_camera(quick: bool) -> list[BenchRow]:
 
 
 @register("calibration.projector")
+@one_blas_thread
 def bench_projector(quick: bool) -> list[BenchRow]:
     """Projector focal error with and without the joint refinement: a pinhole projector seen in
     4 board views (0.2 px noise on its corners) beside two cameras with 12 views each."""
@@ -117,9 +120,9 @@ def bench_projector(quick: bool) -> list[BenchRow]:
         BenchRow("calibration.projector",
                  "separate (projector as inverse camera; time includes both cameras' solves)",
                  views / t_sep, "views/s", error=ferr(sep), error_unit="max |Δf|/f vs truth",
-                 extra={"projector_views": views, "seconds": round(t_sep, 3)}),
+                 threads=1, extra={"projector_views": views, "seconds": round(t_sep, 3)}),
         BenchRow("calibration.projector", "joint bundle adjustment with the cameras",
                  views / t_joint, "views/s", error=ferr(est), error_unit="max |Δf|/f vs truth",
-                 extra={"projector_views": views, "seconds": round(t_joint, 3),
+                 threads=1, extra={"projector_views": views, "seconds": round(t_joint, 3),
                         "projector_rms_px": round(rig.rms_px["projector"], 4)}),
     ]

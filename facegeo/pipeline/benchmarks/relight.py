@@ -2,8 +2,8 @@
 memory bandwidth measured in the same run, batches of environments, and compressed fields
 (rank / coefficient budget against relit-image error, time and storage).
 
-The bandwidth probe is OpenBLAS ``sgemv`` over a float32 matrix of at least 1 GB (the roofline
-for streaming a field, DESIGN §6); the relighting figure is "one read of the float16 field at
+The bandwidth is this run's probe (:func:`facegeo.pipeline.bench.read_bandwidth`, the best
+method at the relighting's two threads: the roofline for streaming a field); the relighting figure is "one read of the float16 field at
 that bandwidth" divided by the measured relighting time (1.0 = at the memory limit).
 """
 
@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, register
+from facegeo.pipeline.bench import BenchRow, best_of, read_bandwidth, register
+
+#: relight_field spreads chunks over this many Python threads (BLAS single-threaded in each).
+RELIGHT_THREADS = 2
 
 PAPER_PIXELS = 345_600  # 640 × 540 pixels of the paper's capture
 PAPER_GRID = (64, 32)
@@ -27,14 +30,10 @@ def _random_half_field(n_p: int, n_l: int, seed: int) -> np.ndarray:
     return f
 
 
-def _bandwidth(nbytes: int) -> tuple[float, int]:
-    """GB/s of one float32 sgemv pass over ≈ ``nbytes`` (≥ 1 GB)."""
-    n_l = 6144
-    rows = max(1, max(int(nbytes), 1 << 30) // (4 * n_l))
-    A = np.ones((rows, n_l), np.float32)
-    v = np.ones(n_l, np.float32)
-    t, _ = best_of(lambda: A @ v, repeat=3)
-    return A.nbytes / t / 1e9, A.nbytes
+def _bandwidth() -> tuple[float, int]:
+    """GB/s of this run's memory-read probe at the relighting's thread count, and its size."""
+    bw = read_bandwidth()
+    return bw.at_threads(RELIGHT_THREADS), bw.nbytes
 
 
 def _envs(n_theta: int, n_phi: int):
@@ -60,13 +59,15 @@ def bench_throughput(quick: bool) -> list[BenchRow]:
     n_l = PAPER_GRID[0] * PAPER_GRID[1]
     n_p = 20_000 if quick else PAPER_PIXELS
     field = _random_half_field(n_p, n_l, 0)
-    bw, probe = _bandwidth(field.nbytes)
+    bw, probe = _bandwidth()
     w = np.random.default_rng(1).random((n_l, 3))
     t16, _ = best_of(lambda: relight_field(field, w), repeat=3)
     rows = [BenchRow(
         "relight.throughput", f"relight_field, float16 field {n_p} px × {n_l} lights × 3",
         field.nbytes / t16 / 1e9, "GB/s of field",
         ratios={"vs one read at measured bandwidth": (field.nbytes / (bw * 1e9)) / t16},
+        threads=RELIGHT_THREADS,
+        baseline_threads={"vs one read at measured bandwidth": RELIGHT_THREADS},
         extra={"field_GB": field.nbytes / 1e9, "seconds": t16, "sgemv_GB_s": bw,
                "probe_GB": probe / 1e9},
     )]
@@ -83,6 +84,9 @@ def bench_throughput(quick: bool) -> list[BenchRow]:
         f32.nbytes / t32 / 1e9, "GB/s of field",
         ratios={"vs one read at measured bandwidth": (f32.nbytes / (bw * 1e9)) / t32,
                 "vs np.einsum": t_es / t32, "2 % lights lit, gather vs dense": t32 / t_sp},
+        threads=RELIGHT_THREADS,
+        baseline_threads={"vs one read at measured bandwidth": RELIGHT_THREADS,
+                          "vs np.einsum": 1, "2 % lights lit, gather vs dense": RELIGHT_THREADS},
         extra={"seconds": t32, "einsum_seconds": t_es, "sparse_seconds": t_sp},
     ))
     return rows
@@ -104,6 +108,7 @@ def bench_batch(quick: bool) -> list[BenchRow]:
         "relight.batch", f"16 environments as one GEMM, float16 field {n_p} px × {n_l} × 3",
         16 / t_batch, "maps/s", error=err, error_unit="max |batch − single| / max",
         ratios={"vs 16 single calls": t_single / t_batch},
+        threads=RELIGHT_THREADS, baseline_threads={"vs 16 single calls": RELIGHT_THREADS},
         extra={"batch_seconds": t_batch, "single_seconds_total": t_single},
     )]
 
@@ -149,6 +154,9 @@ def bench_compress(quick: bool) -> list[BenchRow]:
             error=max(errs.values()), error_unit="max relative RMSE (smooth, sun)",
             ratios={"storage vs float16 field": field.nbytes / model.nbytes,
                     "speed vs direct float16 relight": t_direct / t},
+            threads=RELIGHT_THREADS,
+            baseline_threads={"storage vs float16 field": RELIGHT_THREADS,
+                              "speed vs direct float16 relight": RELIGHT_THREADS},
             extra={"rmse_smooth": errs["smooth"], "rmse_sun": errs["sun"], "fit_seconds": t_fit,
                    "bytes": model.nbytes, "field_px": n_p},
         ))

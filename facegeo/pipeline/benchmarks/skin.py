@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, register
+from facegeo.pipeline.bench import BenchRow, best_of, one_blas_thread, register
 
 
 def _case(n: int, seed: int, n_theta: int = 64, n_phi: int = 32):
@@ -43,6 +43,7 @@ def _errors(fit, nrm, p):
 
 
 @register("skin.fit")
+@one_blas_thread
 def bench_fit(quick: bool) -> list[BenchRow]:
     from facegeo.appearance import skin
 
@@ -58,7 +59,7 @@ def bench_fit(quick: bool) -> list[BenchRow]:
         rows.append(BenchRow(
             "skin.fit", f"fit_reflectance, 2048 lights, depth {levels} levels + {polish} LM",
             n / t, "functions/s", error=e["normal median error, deg"],
-            error_unit="median normal error, degrees (paper mode)",
+            error_unit="median normal error, degrees (paper mode)", threads=1,
             extra={**e, "n": n, "seconds": t,
                    "paper preset 200k texels, extrapolated minutes": 200_000 / (n / t) / 60},
         ))
@@ -67,11 +68,13 @@ def bench_fit(quick: bool) -> list[BenchRow]:
     rows.append(BenchRow(
         "skin.fit", "fit_reflectance, 2048 lights, default depth, d_0 from median ratios",
         n / t, "functions/s", error=e["normal median error, deg"],
-        error_unit="median normal error, degrees (paper mode)", extra={**e, "n": n}))
+        error_unit="median normal error, degrees (paper mode)", threads=1,
+        extra={**e, "n": n}))
     return rows
 
 
 @register("skin.resynthesize")
+@one_blas_thread
 def bench_resynthesize(quick: bool) -> list[BenchRow]:
     from facegeo.appearance import skin
 
@@ -89,6 +92,7 @@ def bench_resynthesize(quick: bool) -> list[BenchRow]:
         rows.append(BenchRow(
             "skin.resynthesize", f"resynthesize (Eq. 9), 2048 lights, view {deg:.0f}° from source",
             n / t, "functions/s", error=rel, error_unit="relative RMSE vs paper model at v_n",
-            ratios={"error vs naive (reuse source function)": rel / naive},
+            ratios={"error vs naive (reuse source function)": rel / naive}, threads=1,
+            baseline_threads={"error vs naive (reuse source function)": 1},
             extra={"naive relative RMSE": naive, "n": n}))
     return rows

@@ -25,6 +25,7 @@ scan generated in a temporary folder, true rig, ground-truth mesh.
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -32,6 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from facegeo.pipeline.bench import BenchRow, best_of, register
+
+#: Cores of this machine: xatlas and the mixed atlas+project pass use all of them.
+_CPU = os.cpu_count() or 1
 
 
 def _head(subdivisions: int):
@@ -78,7 +82,8 @@ def bench_atlas(quick: bool) -> list[BenchRow]:
                  "rasterise s": round(t2 - t1, 3), "texels": len(tx),
                  "texels/s rasterised": round(len(tx) / (t2 - t1)),
                  "charts": atlas.n_charts, "pieces": atlas.n_pieces,
-                 "size": f"{atlas.width}×{atlas.height}"}))
+                 "size": f"{atlas.width}×{atlas.height}"},
+                threads=_CPU))  # xatlas schedules its own tasks on every core
     return rows
 
 
@@ -125,20 +130,22 @@ def bench_visibility(quick: bool) -> list[BenchRow]:
             n / t / 1e6, "Mrays/s", float(np.mean(ours != raw_occ)),
             "fraction of decisions differing from raw embreex",
             {"vs raw embreex (1 call, 1 thr.)": (n / t / 1e6) / raw_speed},
-            {"rays": n, "faces": len(F), "occluded fraction": float(ours.mean())}))
+            {"rays": n, "faces": len(F), "occluded fraction": float(ours.mean())},
+            threads=nt, baseline_threads={"vs raw embreex (1 call, 1 thr.)": 1}))
         t_seg, _ = best_of(lambda: scene.segment_visible(p, c, normals=g), repeat)
         rows.append(BenchRow(
             "surface.visibility", f"same rays via RayScene.segment_visible ({nt} thr.)",
             n / t_seg / 1e6, "Mrays/s", None, None,
-            {"vs raw embreex (1 call, 1 thr.)": (n / t_seg / 1e6) / raw_speed}, {}))
+            {"vs raw embreex (1 call, 1 thr.)": (n / t_seg / 1e6) / raw_speed}, {},
+            threads=nt, baseline_threads={"vs raw embreex (1 call, 1 thr.)": 1}))
     scene.n_threads = threads
     rows.append(BenchRow("surface.visibility", "raw embreex run(OCCLUDED), 1 call", raw_speed,
-                         "Mrays/s", None, None, {}, {"rays": n}))
+                         "Mrays/s", None, None, {}, {"rays": n}, threads=1))
     t_all, _ = best_of(lambda: camera_visibility(tx, cam, scene), repeat)
     rows.append(BenchRow("surface.visibility",
                          f"camera_visibility, whole pass ({threads} thr., 480×720 depth image)",
                          len(tx) / t_all / 1e6, "Mtexels/s", None, None, {},
-                         {"texels": len(tx), "seconds": round(t_all, 3)}))
+                         {"texels": len(tx), "seconds": round(t_all, 3)}, threads=threads))
     return rows
 
 
@@ -152,6 +159,9 @@ def bench_project(quick: bool) -> list[BenchRow]:
     )
     from facegeo.surface.visibility import RayScene
 
+    import cv2
+
+    cv_threads = max(1, cv2.getNumThreads())  # cv2.remap's worker threads
     V, F = _head(5)
     tx = rasterize_texels(build_atlas(V, F, texels_per_mm=2.0))
     cam = default_rig().camera("cam_left")
@@ -173,7 +183,7 @@ def bench_project(quick: bool) -> list[BenchRow]:
                 "surface.project", f"project_camera, block_lights={block}, float16 memmap",
                 T * L / t / 1e6, "Mtexel·lights/s", None, None, {},
                 {"texels": T, "lights": L, "seconds": round(t, 3),
-                 "field MB": round(T * L * 3 * 2 / 1e6, 1)}))
+                 "field MB": round(T * L * 3 * 2 / 1e6, 1)}, threads=cv_threads))
     # The physical floor: read every frame once and write the field once (numpy copies).
     out16 = np.empty(T * 3 * L, np.float16)
     acc = np.empty((H, W, 3), np.float32)
@@ -186,6 +196,7 @@ def bench_project(quick: bool) -> list[BenchRow]:
     t_floor, _ = best_of(floor, 2)
     base = rows[-1].speed
     rows[-1].ratios["vs one pass over frames + field"] = base / (T * L / t_floor / 1e6)
+    rows[-1].baseline_threads["vs one pass over frames + field"] = 1
     # Sampler: cv2.remap (used) vs the numpy gather of precomputed taps (the reference).
     q = vis.q[sel]
     smp = frame_sampler(q, W, H)
@@ -196,9 +207,11 @@ def bench_project(quick: bool) -> list[BenchRow]:
     rows.append(BenchRow("surface.project", "sample_frame (cv2.remap, float32 maps)",
                          T / t_cv / 1e6, "Mtexels/s", float(np.abs(ours - ref).max()),
                          "max |Δ| vs float64-weight numpy bilinear",
-                         {"vs numpy gather": t_np / t_cv}, {"texels": T}))
+                         {"vs numpy gather": t_np / t_cv}, {"texels": T}, threads=cv_threads,
+                         baseline_threads={"vs numpy gather": 1}))
     rows.append(BenchRow("surface.project", "numpy gather of 4 precomputed taps (reference)",
-                         T / t_np / 1e6, "Mtexels/s", None, None, {}, {"texels": T}))
+                         T / t_np / 1e6, "Mtexels/s", None, None, {}, {"texels": T},
+                         threads=1))
     return rows
 
 
@@ -223,5 +236,6 @@ def bench_resolution(quick: bool) -> list[BenchRow]:
                 pm["projection_rel_rmse"], "projection_rel_rmse (weight > 0.3, 32 lights)",
                 {}, {"texels": am["texels"], "atlas s": am["seconds"],
                      "project s": round(proj_s, 3),
-                     "visibility_agreement": pm["visibility_agreement"]}))
+                     "visibility_agreement": pm["visibility_agreement"]},
+                threads=_CPU))
     return rows
