@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError
 
 __all__ = [
@@ -231,7 +231,7 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> Pose:
 def _check_grid(n_theta: int, n_phi: int) -> tuple[int, int]:
     if int(n_theta) != n_theta or int(n_phi) != n_phi or n_theta < 1 or n_phi < 1:
         raise InputError(
-            f"light grid: n_theta and n_phi must be positive integers, got {n_theta!r}, {n_phi!r}"
+            f"light grid: n_theta and n_phi must be positive integers, got {fmt_value(n_theta)}, {fmt_value(n_phi)}"
         )
     return int(n_theta), int(n_phi)
 

@@ -23,6 +23,7 @@ import stat
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from facegeo.checks import fmt_value
 
 __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "load_json_file",
            "WRITTEN_RECORD", "read_written_record", "write_written_record", "add_to_written_record",
@@ -161,7 +162,7 @@ def write_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> P
     paths = sorted({str(r) for r in rel_paths} - {WRITTEN_RECORD})
     for r in paths:
         if r.startswith("/") or ".." in r.split("/") or "\n" in r:
-            raise ValueError(f"written record: {r!r} is not a relative path inside the scan")
+            raise ValueError(f"written record: {fmt_value(r)} is not a relative path inside the scan")
     target = Path(root) / WRITTEN_RECORD
     atomic_write_text(target, _RECORD_HEADER + "".join(r + "\n" for r in paths))
     return target
@@ -247,7 +248,7 @@ def staging_dir(target: str | os.PathLike, kind: str = "tmp") -> Path:
     """
     target = Path(target)
     if kind not in _STAGE_KINDS:
-        raise ValueError(f"kind: expected one of {_STAGE_KINDS}, got {kind!r}")
+        raise ValueError(f"kind: expected one of {_STAGE_KINDS}, got {fmt_value(kind)}")
     d = Path(tempfile.mkdtemp(prefix=f".{target.name}.facegeo-{kind}-{os.getpid()}-",
                               dir=target.parent))
     if target.is_dir():

@@ -21,7 +21,7 @@ from facegeo.appearance._skin_model import (
     ramp_f,
 )
 from facegeo.appearance.brdf import fresnel_dielectric, torrance_sparrow_geometry
-from facegeo.checks import as_array, check_unit_vectors
+from facegeo.checks import as_array, check_unit_vectors, fmt_value
 from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -127,7 +127,7 @@ def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
     elif pattern == "grid":
         offs = np.stack(np.meshgrid(*([[0.0, -1.0, 1.0]] * P), indexing="ij"), -1).reshape(-1, P)
     else:
-        raise ValueError(f"pattern: expected 'grid' or 'compass', got {pattern!r}")
+        raise ValueError(f"pattern: expected 'grid' or 'compass', got {fmt_value(pattern)}")
     rows = np.arange(N)
     val = np.full(N, np.inf)
     halvings = np.zeros(N, np.int64)

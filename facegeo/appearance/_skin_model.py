@@ -21,7 +21,7 @@ from facegeo.appearance.brdf import (
     fresnel_dielectric,
     torrance_sparrow_geometry,
 )
-from facegeo.checks import as_array, check_unit_vectors
+from facegeo.checks import as_array, check_unit_vectors, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.frames import light_directions, light_solid_angles
 
@@ -170,7 +170,7 @@ class SkinParams:
             raise InputError("params.roughness: Beckmann m must be > 0")
         eta = float(self.eta)
         if not (np.isfinite(eta) and eta > 1.0):
-            raise InputError(f"params.eta: expected an index of refraction > 1, got {self.eta!r}")
+            raise InputError(f"params.eta: expected an index of refraction > 1, got {fmt_value(self.eta)}")
         return SkinParams(rho_d, a0, a1, rs, m, eta)
 
 

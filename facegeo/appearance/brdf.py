@@ -63,7 +63,7 @@ import functools
 
 import numpy as np
 
-from facegeo.checks import as_array, check_unit_vectors
+from facegeo.checks import as_array, check_unit_vectors, fmt_value
 from facegeo.errors import InputError
 
 __all__ = [
@@ -108,10 +108,10 @@ def _eta(eta) -> float:
     try:
         e = float(eta)
     except (TypeError, ValueError) as exc:
-        raise InputError(f"eta: expected a number > 1, got {eta!r}") from exc
+        raise InputError(f"eta: expected a number > 1, got {fmt_value(eta)}") from exc
     if not np.isfinite(e) or e <= 1.0:
         raise InputError(
-            f"eta: expected a finite index of refraction > 1 (skin ≈ 1.4), got {eta!r}"
+            f"eta: expected a finite index of refraction > 1 (skin ≈ 1.4), got {fmt_value(eta)}"
         )
     return e
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facegeo.checks import as_array, check_unit_vectors
+from facegeo.checks import as_array, check_unit_vectors, fmt_value
 
 from facegeo.appearance._skin_fit import (
     FLAG_BACKFACING,
@@ -182,7 +182,7 @@ def shadow_map(R, *, threshold: float = SHADOW_THRESHOLD, visibility=None, satur
     if not 0.0 < float(threshold) < 1.0:
         from facegeo.errors import InputError
 
-        raise InputError(f"threshold: expected a fraction in (0, 1), got {threshold!r}")
+        raise InputError(f"threshold: expected a fraction in (0, 1), got {fmt_value(threshold)}")
     sat = check_mask(saturated, "saturated", N, L)
     b = R.sum(axis=2)
     ref = np.percentile(np.where(sat, 0.0, b), 99, axis=1)
@@ -257,7 +257,7 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     if not (np.isfinite(eta) and eta > 1.0):
         from facegeo.errors import InputError
 
-        raise InputError(f"eta: expected an index of refraction > 1, got {eta!r}")
+        raise InputError(f"eta: expected an index of refraction > 1, got {fmt_value(eta)}")
     E = lights.intensities if not single else lights.intensities.mean(axis=1, keepdims=True)
     Rw = R / E[None]
     sat = (R >= float(saturation)).any(axis=2) if saturation is not None else np.zeros((N, L), bool)

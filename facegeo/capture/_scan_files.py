@@ -31,7 +31,7 @@ def _format_template(template: str, fields: Mapping[str, Any]) -> str:
     try:
         return template.format(**fields)
     except (KeyError, IndexError, ValueError, TypeError) as exc:
-        raise InputError(f"cannot fill template {template!r} with {dict(fields)!r}: {exc}") from exc
+        raise InputError(f"cannot fill template {fmt_value(template)} with {fmt_value(dict(fields))}: {exc}") from exc
 
 
 class _Resolver:
@@ -55,7 +55,7 @@ class _Resolver:
             real = os.path.realpath(real)
         if real != self.root_real and not real.startswith(self.root_real + os.sep):
             raise _err(
-                f"{rel!r} resolves to {real}, outside the scan directory {self.root_real} (a "
+                f"{fmt_value(rel)} resolves to {real}, outside the scan directory {self.root_real} (a "
                 "symlink out of the scan); every scan file must live inside the scan directory",
                 key=key,
                 path=p,
@@ -189,7 +189,7 @@ def _check_group_files(files, response, group: str, cam, *, full: bool,
         label, p = missing[0]
         more = f" ({len(missing)} of {len(files)} {group} files of this camera are missing)"
         raise _err(
-            f"missing {group} frame: camera {cam.name!r}, {label}; expected file {p}{more}",
+            f"missing {group} frame: camera {fmt_value(cam.name)}, {label}; expected file {p}{more}",
             key=f"{group}.files",
             path=p,
         )

@@ -22,6 +22,7 @@ from typing import Any
 from facegeo.errors import ScanFormatError
 from facegeo.capture.imageio import READ_SUFFIXES
 from facegeo.capture.response import parse_response
+from facegeo.checks import fmt_value
 
 FORMAT = "facegeo-scan"
 VERSION = 1
@@ -112,21 +113,21 @@ def _check_rel_path(rel: Any, key: str, where: Any) -> str:
     """A relative POSIX path that cannot leave the scan directory (string-level check)."""
     if not isinstance(rel, str) or not rel.strip():
         raise _err(
-            f"expected a relative path (a non-empty string), got {rel!r}", key=key, path=where
+            f"expected a relative path (a non-empty string), got {fmt_value(rel)}", key=key, path=where
         )
     if "\\" in rel:
-        raise _err(f"path {rel!r} contains a backslash; use forward slashes", key=key, path=where)
+        raise _err(f"path {fmt_value(rel)} contains a backslash; use forward slashes", key=key, path=where)
     p = PurePosixPath(rel)
     if p.is_absolute() or re.match(r"^[A-Za-z]:", rel):
         raise _err(
-            f"path {rel!r} is absolute; paths in scan.toml are relative to the scan directory "
+            f"path {fmt_value(rel)} is absolute; paths in scan.toml are relative to the scan directory "
             "and may not leave it",
             key=key,
             path=where,
         )
     if ".." in p.parts:
         raise _err(
-            f"path {rel!r} contains '..'; paths must stay inside the scan directory",
+            f"path {fmt_value(rel)} contains '..'; paths must stay inside the scan directory",
             key=key,
             path=where,
         )
@@ -135,14 +136,14 @@ def _check_rel_path(rel: Any, key: str, where: Any) -> str:
 
 def _check_template(t: Any, group: str, key: str, where: Any) -> str:
     if not isinstance(t, str) or not t:
-        raise _err(f"expected a path template string, got {t!r}", key=key, path=where)
+        raise _err(f"expected a path template string, got {fmt_value(t)}", key=key, path=where)
     need = TEMPLATE_FIELDS[group]
     example = DEFAULT_FILES[group]
     try:
         parsed = list(string.Formatter().parse(t))
     except ValueError as exc:
         raise _err(
-            f"bad template {t!r} ({exc}); for example {example!r}", key=key, path=where
+            f"bad template {fmt_value(t)} ({exc}); for example {fmt_value(example)}", key=key, path=where
         ) from exc
     used = set()
     for _, name, _, conv in parsed:
@@ -150,22 +151,22 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
             continue
         if name not in need:
             raise _err(
-                f"template {t!r} uses field {{{name}}}; valid fields here: "
+                f"template {fmt_value(t)} uses field {{{name}}}; valid fields here: "
                 + ", ".join("{" + n + "}" for n in need),
                 key=key,
                 path=where,
             )
         if conv is not None:
             raise _err(
-                f"template {t!r}: conversions (!{conv}) are not allowed", key=key, path=where
+                f"template {fmt_value(t)}: conversions (!{conv}) are not allowed", key=key, path=where
             )
         used.add(name)
     missing = [n for n in need if n not in used]
     if missing:
         raise _err(
-            f"template {t!r} must use every one of "
+            f"template {fmt_value(t)} must use every one of "
             + ", ".join("{" + n + "}" for n in need)
-            + f" (missing {', '.join('{' + n + '}' for n in missing)}); for example {example!r}",
+            + f" (missing {', '.join('{' + n + '}' for n in missing)}); for example {fmt_value(example)}",
             key=key,
             path=where,
         )
@@ -173,14 +174,14 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
         sample = t.format(**_SAMPLE_FIELDS)
     except (ValueError, TypeError, IndexError, KeyError) as exc:
         raise _err(
-            f"template {t!r} cannot be formatted ({exc}); for example {example!r}",
+            f"template {fmt_value(t)} cannot be formatted ({exc}); for example {fmt_value(example)}",
             key=key,
             path=where,
         ) from exc
     _check_rel_path(sample, key, where)
     if PurePosixPath(sample).suffix.lower() not in READ_SUFFIXES:
         raise _err(
-            f"template {t!r} must end in an image suffix ({', '.join(READ_SUFFIXES)})",
+            f"template {fmt_value(t)} must end in an image suffix ({', '.join(READ_SUFFIXES)})",
             key=key,
             path=where,
         )
@@ -191,12 +192,12 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
     if kind == "format":
         if v != FORMAT:
             raise _err(
-                f"format is {v!r}; a facegeo scan says format = {FORMAT!r}", key=key, path=where
+                f"format is {fmt_value(v)}; a facegeo scan says format = {fmt_value(FORMAT)}", key=key, path=where
             )
         return v
     if kind == "version":
         if isinstance(v, bool) or not isinstance(v, int):
-            raise _err(f"version must be an integer, got {v!r}", key=key, path=where)
+            raise _err(f"version must be an integer, got {fmt_value(v)}", key=key, path=where)
         if v != VERSION:
             newer = " (newer than this facegeo; upgrade facegeo)" if v > VERSION else ""
             raise _err(
@@ -207,27 +208,27 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
         return v
     if kind == "text":
         if not isinstance(v, str) or not v.strip():
-            raise _err(f"expected a non-empty string, got {v!r}", key=key, path=where)
+            raise _err(f"expected a non-empty string, got {fmt_value(v)}", key=key, path=where)
         return v
     if kind == "str":
         if not isinstance(v, str):
-            raise _err(f"expected a string, got {_type_name(v)} {v!r}", key=key, path=where)
+            raise _err(f"expected a string, got {_type_name(v)} {fmt_value(v)}", key=key, path=where)
         return v
     if kind == "bool":
         if not isinstance(v, bool):
-            raise _err(f"expected true or false, got {v!r}", key=key, path=where)
+            raise _err(f"expected true or false, got {fmt_value(v)}", key=key, path=where)
         return v
     if kind == "datetime":
         if not isinstance(v, (str, _dt.datetime, _dt.date)):
-            raise _err(f"expected a TOML date-time or a string, got {v!r}", key=key, path=where)
+            raise _err(f"expected a TOML date-time or a string, got {fmt_value(v)}", key=key, path=where)
         return v
     if kind == "count":
         if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-            raise _err(f"expected an integer > 0, got {v!r}", key=key, path=where)
+            raise _err(f"expected an integer > 0, got {fmt_value(v)}", key=key, path=where)
         return v
     if kind == "positive":
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < float("inf")):
-            raise _err(f"expected a finite number > 0, got {v!r}", key=key, path=where)
+            raise _err(f"expected a finite number > 0, got {fmt_value(v)}", key=key, path=where)
         return float(v)
     if kind == "path":
         return _check_rel_path(v, key, where)
@@ -237,7 +238,7 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
         if isinstance(v, str):
             if v not in ("linear", "srgb"):
                 raise _err(
-                    f"unknown response {v!r}; expected \"linear\", \"srgb\", "
+                    f"unknown response {fmt_value(v)}; expected \"linear\", \"srgb\", "
                     "{kind = \"gamma\", gamma = 2.2} or {kind = \"table\", file = \"<file>.npy\"}",
                     key=key,
                     path=where,
@@ -258,11 +259,11 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
                 return dict(v)
             resp = parse_response(v, key=key, path=where)  # checks gamma and the keys
             return resp.to_spec()
-        raise _err(f"expected a response string or table, got {v!r}", key=key, path=where)
+        raise _err(f"expected a response string or table, got {fmt_value(v)}", key=key, path=where)
     if kind == "light_order":
         if v not in LIGHT_ORDERS:
             raise _err(
-                f"unknown light_order {v!r}; expected one of "
+                f"unknown light_order {fmt_value(v)}; expected one of "
                 + ", ".join(repr(o) for o in LIGHT_ORDERS),
                 key=key,
                 path=where,
@@ -270,23 +271,23 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
         return v
     if kind == "frames":
         if not isinstance(v, list) or not v:
-            raise _err(f"expected a non-empty array of frame names, got {v!r}", key=key, path=where)
+            raise _err(f"expected a non-empty array of frame names, got {fmt_value(v)}", key=key, path=where)
         seen = set()
         for i, name in enumerate(v):
             if not isinstance(name, str) or not _FRAME_NAME.match(name):
                 raise _err(
-                    f"frame {i} is {name!r}; frame names are letters, digits and _ . + - "
+                    f"frame {i} is {fmt_value(name)}; frame names are letters, digits and _ . + - "
                     "(starting with a letter or digit), since they become file names",
                     key=key,
                     path=where,
                 )
             if name in seen:
-                raise _err(f"frame name {name!r} appears twice", key=key, path=where)
+                raise _err(f"frame name {fmt_value(name)} appears twice", key=key, path=where)
             seen.add(name)
         return list(v)
     if kind == "table":
         if not isinstance(v, Mapping):
-            raise _err(f"expected a table, got {_type_name(v)} {v!r}", key=key, path=where)
+            raise _err(f"expected a table, got {_type_name(v)} {fmt_value(v)}", key=key, path=where)
         return copy.deepcopy(dict(v))
     raise AssertionError(kind)  # pragma: no cover
 
@@ -300,7 +301,7 @@ def _check_table(section: str, table: Any, where: Any) -> dict:
     unknown = sorted(set(table) - set(spec))
     if unknown:
         raise _err(
-            f"unknown key {unknown[0]!r} in [{section}]; valid keys: {', '.join(spec)}",
+            f"unknown key {fmt_value(unknown[0])} in [{section}]; valid keys: {', '.join(spec)}",
             key=f"{section}.{unknown[0]}",
             path=where,
         )
@@ -311,7 +312,7 @@ def _check_table(section: str, table: Any, where: Any) -> dict:
             continue
         if k not in table:
             if required:
-                raise _err(f"missing required key {k!r} in [{section}]", key=key, path=where)
+                raise _err(f"missing required key {fmt_value(k)} in [{section}]", key=key, path=where)
             if default is not None:
                 out[k] = copy.deepcopy(default)
             continue
@@ -365,7 +366,7 @@ def validate_manifest(manifest: Mapping[str, Any], *, path: Any = None) -> dict:
         )
     if "scan" not in manifest:
         raise _err(
-            f"missing section [scan] (it needs at least format = {FORMAT!r}, version = {VERSION}, "
+            f"missing section [scan] (it needs at least format = {fmt_value(FORMAT)}, version = {VERSION}, "
             "name = \"...\")",
             key="scan",
             path=path,

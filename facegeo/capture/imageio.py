@@ -60,6 +60,7 @@ from facegeo.capture.response import (  # re-exported: part of this module's pub
     saturated_mask,
     srgb_to_linear,
 )
+from facegeo.checks import fmt_value
 
 __all__ = [
     "ImageReadError",
@@ -110,7 +111,7 @@ def _check_readable(path: Path) -> None:
         raise ImageReadError("expected an image file, found a directory or special file", path=path)
     if path.suffix.lower() not in READ_SUFFIXES:
         raise ImageReadError(
-            f"unsupported image format {path.suffix!r}; readable: {', '.join(READ_SUFFIXES)}",
+            f"unsupported image format {fmt_value(path.suffix)}; readable: {', '.join(READ_SUFFIXES)}",
             path=path,
         )
 
@@ -296,7 +297,7 @@ def _read_exr_pixels(path: Path) -> np.ndarray:
     for name, px in channels.items():
         if px.shape != (height, width):
             raise ImageReadError(
-                f"OpenEXR channel {name!r} has shape {px.shape}, expected {(height, width)} "
+                f"OpenEXR channel {fmt_value(name)} has shape {px.shape}, expected {(height, width)} "
                 "from the data window (subsampled channels are not supported)",
                 path=path,
             )
@@ -397,7 +398,7 @@ def _exr_structure(path: Path, *, check_chunks: bool = True) -> dict:
                     raise ImageReadError("OpenEXR header is truncated", path=path)
                 (n,) = struct.unpack("<i", raw)
                 if n < 0 or n > size:
-                    raise ImageReadError(f"OpenEXR attribute {name!r} has a bad size {n}",
+                    raise ImageReadError(f"OpenEXR attribute {fmt_value(name)} has a bad size {n}",
                                          path=path)
                 value = fh.read(n)
                 if len(value) < n:
@@ -473,7 +474,7 @@ def _exr_channels(raw: bytes, path: Path) -> list[tuple[str, np.dtype]]:
         name = raw[i:j].decode("latin-1")
         (ptype,) = struct.unpack("<i", raw[j + 1:j + 5])
         if ptype not in _EXR_PIXEL_DTYPES:
-            raise ImageReadError(f"OpenEXR channel {name!r} has unknown pixel type {ptype}",
+            raise ImageReadError(f"OpenEXR channel {fmt_value(name)} has unknown pixel type {ptype}",
                                  path=path)
         out.append((name, _EXR_PIXEL_DTYPES[ptype]))
         i = j + 1 + 16
@@ -664,7 +665,7 @@ def write_image(path: str | os.PathLike, img: Any, *, half: bool = False) -> Pat
     suffix = path.suffix.lower()
     if suffix not in WRITE_SUFFIXES:
         raise InputError(
-            f"write_image: cannot write {suffix or 'a file without suffix'!r} ({path}); "
+            f"write_image: cannot write {fmt_value(suffix or 'a file without suffix')} ({path}); "
             f"writable formats: {', '.join(WRITE_SUFFIXES)}"
         )
     if half and suffix != ".exr":

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ScanFormatError
 
 __all__ = [
@@ -104,14 +104,14 @@ class Response:
     def __post_init__(self):
         if self.kind not in RESPONSE_KINDS:
             raise InputError(
-                f"response: unknown kind {self.kind!r}; expected one of "
+                f"response: unknown kind {fmt_value(self.kind)}; expected one of "
                 + ", ".join(repr(k) for k in RESPONSE_KINDS)
             )
         if self.kind == "gamma":
             g = self.gamma
             bad = isinstance(g, bool) or not isinstance(g, (int, float))
             if bad or not np.isfinite(g) or g <= 0:
-                raise InputError(f"response: gamma must be a finite number > 0, got {g!r}")
+                raise InputError(f"response: gamma must be a finite number > 0, got {fmt_value(g)}")
             object.__setattr__(self, "gamma", float(g))
         if self.kind == "table":
             if self.table is None:
@@ -208,7 +208,7 @@ class Response:
             if self.kind != "linear":
                 raise InputError(
                     f"linearize: {a.dtype} pixels are already linear; a float image cannot have "
-                    f"response {self!r} (declare response = \"linear\")"
+                    f"response {fmt_value(self)} (declare response = \"linear\")"
                 )
             return a.astype(np.float32, copy=False)
         raise InputError(f"linearize: expected uint8, uint16 or float pixels, got {a.dtype}")
@@ -222,7 +222,7 @@ class Response:
         if dtype.kind == "f":
             if self.kind != "linear":
                 raise InputError(
-                    f"encode: float output is linear by definition; cannot encode with {self!r}"
+                    f"encode: float output is linear by definition; cannot encode with {fmt_value(self)}"
                 )
             return x.astype(dtype)
         if dtype not in _INT_DTYPES:
@@ -336,14 +336,14 @@ def parse_response(
         if spec in ("linear", "srgb"):
             return Response(spec)
         raise ScanFormatError(
-            f"unknown response {spec!r}; expected \"linear\", \"srgb\", "
+            f"unknown response {fmt_value(spec)}; expected \"linear\", \"srgb\", "
             "{kind = \"gamma\", gamma = 2.2} or {kind = \"table\", file = \"response.npy\"}",
             path=path,
             key=key,
         )
     if not isinstance(spec, Mapping):
         raise ScanFormatError(
-            f"response must be a string or a table, got {type(spec).__name__} {spec!r}",
+            f"response must be a string or a table, got {type(spec).__name__} {fmt_value(spec)}",
             path=path,
             key=key,
         )
@@ -352,12 +352,12 @@ def parse_response(
                "table": {"kind", "file"}}
     if kind not in allowed:
         raise ScanFormatError(
-            f"unknown response kind {kind!r}; expected one of {kinds}", path=path, key=f"{key}.kind"
+            f"unknown response kind {fmt_value(kind)}; expected one of {kinds}", path=path, key=f"{key}.kind"
         )
     extra = set(spec) - allowed[kind]
     if extra:
         raise ScanFormatError(
-            f"unknown key(s) {sorted(extra)} for a {kind!r} response; valid keys: "
+            f"unknown key(s) {sorted(extra)} for a {fmt_value(kind)} response; valid keys: "
             f"{sorted(allowed[kind])}",
             path=path,
             key=key,
@@ -365,7 +365,7 @@ def parse_response(
     missing = allowed[kind] - set(spec)
     if missing:
         raise ScanFormatError(
-            f"a {kind!r} response needs key(s) {sorted(missing)}", path=path, key=key
+            f"a {fmt_value(kind)} response needs key(s) {sorted(missing)}", path=path, key=key
         )
     if kind == "gamma":
         try:
@@ -376,7 +376,7 @@ def parse_response(
         rel = spec["file"]
         if not isinstance(rel, str) or not rel:
             raise ScanFormatError(
-                f"file must be a non-empty relative path, got {rel!r}", path=path, key=f"{key}.file"
+                f"file must be a non-empty relative path, got {fmt_value(rel)}", path=path, key=f"{key}.file"
             )
         full = Path(base_dir or ".") / rel
         table = load_response_table(full, key=f"{key}.file")

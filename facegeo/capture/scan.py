@@ -186,7 +186,7 @@ class Scan:
         p = self._resolve(rel, key="scan.rig", where=self.manifest_path)
         if not p.is_file():
             raise _err(
-                f"rig file not found: {p} (scan.rig = {rel!r})",
+                f"rig file not found: {p} (scan.rig = {fmt_value(rel)})",
                 key="scan.rig",
                 path=self.manifest_path,
             )
@@ -329,7 +329,7 @@ class Scan:
                        path=self.manifest_path)
         if key not in flat:
             raise _err(
-                f"no ground-truth entry {key!r}; entries: {', '.join(flat) or '(none)'}",
+                f"no ground-truth entry {fmt_value(key)}; entries: {', '.join(flat) or '(none)'}",
                 key=f"ground_truth.{key}",
                 path=self.manifest_path,
             )
@@ -507,7 +507,7 @@ class Scan:
                 )
             if self.sl_projector != proj.name:
                 raise _err(
-                    f"projector = {self.sl_projector!r} but the rig's projector is {proj.name!r}",
+                    f"projector = {fmt_value(self.sl_projector)} but the rig's projector is {fmt_value(proj.name)}",
                     key="structured_light.projector",
                     path=where,
                 )
@@ -602,7 +602,7 @@ def new_manifest(name: str, *, synthetic: bool, description: str = "") -> dict:
     >>> m["olat"] = {"n_lights": 2048, "files": DEFAULT_FILES["olat"]}
     """
     if not isinstance(name, str) or not name.strip():
-        raise InputError(f"name: expected a non-empty string, got {name!r}")
+        raise InputError(f"name: expected a non-empty string, got {fmt_value(name)}")
     return {
         "scan": {
             "format": FORMAT,

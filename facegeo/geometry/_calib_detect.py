@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from facegeo.checks import as_array, check_choice, check_positive
+from facegeo.checks import as_array, check_choice, check_positive, fmt_value
 from facegeo.errors import InputError
 
 __all__ = [
@@ -52,7 +52,7 @@ class ChessboardSpec:
         for name in ("cols", "rows"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
-                raise InputError(f"{name}: expected an integer >= 2 inner corners, got {v!r}")
+                raise InputError(f"{name}: expected an integer >= 2 inner corners, got {fmt_value(v)}")
         check_positive(self.square_size, "square_size")
 
     def object_points(self) -> np.ndarray:
@@ -80,7 +80,7 @@ class CircleGridSpec:
         for name in ("cols", "rows"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
-                raise InputError(f"{name}: expected an integer >= 2 circles, got {v!r}")
+                raise InputError(f"{name}: expected an integer >= 2 circles, got {fmt_value(v)}")
         check_positive(self.spacing, "spacing")
 
     def object_points(self) -> np.ndarray:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from facegeo.checks import check_choice, check_positive
+from facegeo.checks import check_choice, check_positive, fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import Pose
 from facegeo.geometry._calib_solve import (
@@ -61,7 +61,7 @@ class RigCalibration:
         for c in self.cameras:
             if c.name == name:
                 return c
-        raise InputError(f"camera: no camera named {name!r}")
+        raise InputError(f"camera: no camera named {fmt_value(name)}")
 
 
 def _pose6(T: Pose) -> np.ndarray:
@@ -112,10 +112,10 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
         raise InputError("cameras: at least one camera is needed")
     for n in names:
         if n not in observations or not observations[n]:
-            raise InputError(f"observations: camera {n!r} has no board views")
+            raise InputError(f"observations: camera {fmt_value(n)} has no board views")
     ref = names[0] if reference is None else reference
     if ref not in cameras:
-        raise InputError(f"reference: no camera {ref!r}; cameras: {', '.join(names)}")
+        raise InputError(f"reference: no camera {fmt_value(ref)}; cameras: {', '.join(names)}")
     names = [ref] + [n for n in names if n != ref]
     # ---- per-observation PnP
     T_cb = {}
@@ -126,7 +126,7 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
             q = np.asarray(q, np.float64)
             ok, rv, tv = cv2.solvePnP(p, q, cam.K, cam.dist)
             if not ok:
-                raise InputError(f"observations[{n!r}][{v!r}]: no pose for this view")
+                raise InputError(f"observations[{fmt_value(n)}][{fmt_value(v)}]: no pose for this view")
             T_cb[(n, v)] = Pose.from_rvec_tvec(rv, tv)
     # ---- chain camera poses T_c_ref through shared views (BFS from the reference)
     T_c_ref = {ref: Pose.identity()}
@@ -149,7 +149,7 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
     missing = [n for n in names if n not in T_c_ref]
     if missing:
         raise InputError(
-            f"observations: camera(s) {', '.join(missing)} share no board view with {ref!r} "
+            f"observations: camera(s) {', '.join(missing)} share no board view with {fmt_value(ref)} "
             "(directly or through other cameras); the rig cannot be connected"
         )
     views = sorted(T_ref_b, key=str)
@@ -223,11 +223,11 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
         T_ref_world = Pose.identity()
     elif isinstance(world, tuple) and len(world) == 2 and world[0] == "board":
         if world[1] not in vpos:
-            raise InputError(f"world: no board view {world[1]!r}; views: {views}")
+            raise InputError(f"world: no board view {fmt_value(world[1])}; views: {views}")
         T_ref_world = _pose(bp[vpos[world[1]]])  # T_ref_board with board := world
     else:
         raise InputError(f"world: expected 'reference', ('board', view_id) or a Pose, got "
-                         f"{world!r}")
+                         f"{fmt_value(world)}")
     T_world_ref = T_ref_world.inverse()
     out_cams, rms, used, resid = [], {}, {}, {}
     for ci, n in enumerate(names):

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from facegeo.geometry.camera import Camera
-from facegeo.checks import as_array, check_positive
+from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import Pose, rotation_from_rvec
 from facegeo.fsutil import atomic_write_text, load_json_file
@@ -116,20 +116,20 @@ class CharucoBoard:
         for name in ("squares_x", "squares_y"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
-                raise InputError(f"{name}: expected an integer >= 2, got {v!r}")
+                raise InputError(f"{name}: expected an integer >= 2, got {fmt_value(v)}")
             object.__setattr__(self, name, int(v))
         sq = check_positive(self.square_length, "square_length")
         mk = check_positive(self.marker_length, "marker_length")
         if not mk < sq:
             raise InputError(
-                f"marker_length: must be smaller than square_length ({sq!r} m), got {mk!r} m"
+                f"marker_length: must be smaller than square_length ({fmt_value(sq)} m), got {fmt_value(mk)} m"
             )
         object.__setattr__(self, "square_length", sq)
         object.__setattr__(self, "marker_length", mk)
         names = aruco_dictionary_names()
         if not isinstance(self.dictionary, str) or self.dictionary not in names:
             raise InputError(
-                f"dictionary: unknown ArUco dictionary {self.dictionary!r}; expected one of "
+                f"dictionary: unknown ArUco dictionary {fmt_value(self.dictionary)}; expected one of "
                 f"{', '.join(names)}"
             )
         have = self._cv2_dictionary().bytesList.shape[0]
@@ -224,7 +224,7 @@ class CharucoBoard:
         """
         pps = px_per_square
         if isinstance(pps, bool) or not isinstance(pps, (int, np.integer)) or pps < 4:
-            raise InputError(f"px_per_square: expected an integer >= 4, got {pps!r}")
+            raise InputError(f"px_per_square: expected an integer >= 4, got {fmt_value(pps)}")
         pps = int(pps)
         board = self.to_cv2()
         # OpenCV's generateImage fails an ROI assertion for a few resolutions where the marker's
@@ -284,7 +284,7 @@ class CharucoBoard:
             raise InputError(f"T_cam_board: expected a Pose, got {type(T_cam_board).__name__}")
         ss = supersample
         if isinstance(ss, bool) or not isinstance(ss, (int, np.integer)) or ss < 1:
-            raise InputError(f"supersample: expected an integer >= 1, got {ss!r}")
+            raise InputError(f"supersample: expected an integer >= 1, got {fmt_value(ss)}")
         ss = int(ss)
         R = T_cam_board.R
         t = T_cam_board.t
@@ -356,10 +356,10 @@ class CharucoBoard:
         if unknown:
             raise InputError(f"{unknown[0]}: unknown field (expected only {', '.join(allowed)})")
         if d.get("format", BOARD_FORMAT) != BOARD_FORMAT:
-            raise InputError(f"format: expected {BOARD_FORMAT!r}, got {d['format']!r}")
+            raise InputError(f"format: expected {fmt_value(BOARD_FORMAT)}, got {fmt_value(d['format'])}")
         if d.get("version", BOARD_VERSION) != BOARD_VERSION:
             raise InputError(
-                f"version: this facegeo reads board version {BOARD_VERSION}, got {d['version']!r}"
+                f"version: this facegeo reads board version {BOARD_VERSION}, got {fmt_value(d['version'])}"
             )
         return cls(**{k: d[k] for k in _BOARD_KEYS})
 
@@ -513,7 +513,7 @@ def random_board_poses(
     if not isinstance(camera, Camera):
         raise InputError(f"camera: expected a Camera, got {type(camera).__name__}")
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise InputError(f"n: expected a positive integer, got {n!r}")
+        raise InputError(f"n: expected a positive integer, got {fmt_value(n)}")
     rng = np.random.default_rng(rng)
     board = CharucoBoard() if board is None else board
     t_lo, t_hi = _check_range(tilt_deg, "tilt_deg", 0.0, 89.0)
@@ -571,7 +571,7 @@ def random_board_poses(
         else:
             raise InputError(
                 f"random_board_poses: no acceptable view {k} of the {board.squares_x}×"
-                f"{board.squares_y} board in camera {camera.name!r} after {max_tries} draws; "
+                f"{board.squares_y} board in camera {fmt_value(camera.name)} after {max_tries} draws; "
                 "lower 'fill' or 'tilt_deg', or reduce 'margin_px'"
             )
     return poses
@@ -581,6 +581,6 @@ def _check_range(r: Any, name: str, lo: float, hi: float) -> tuple[float, float]
     a = as_array(r, name, shape=(2,))
     if not (lo <= a[0] <= a[1] <= hi):
         raise InputError(
-            f"{name}: expected (low, high) with {lo} <= low <= high <= {hi}, got {r!r}"
+            f"{name}: expected (low, high) with {lo} <= low <= high <= {hi}, got {fmt_value(r)}"
         )
     return float(a[0]), float(a[1])

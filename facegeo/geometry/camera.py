@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array, check_positive
+from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.frames import Pose
 
@@ -57,15 +57,15 @@ _CAMERA_KEYS = ("name", "width", "height", "K", "dist", "T_cam_world")
 def _check_int(value: Any, name: str) -> int:
     """A positive integer (Python or numpy int, or an integral float); else :class:`InputError`."""
     if isinstance(value, bool):
-        raise InputError(f"{name}: expected a positive integer, got {value!r}")
+        raise InputError(f"{name}: expected a positive integer, got {fmt_value(value)}")
     if isinstance(value, Integral):
         v = int(value)
     elif isinstance(value, float) and np.isfinite(value) and float(value).is_integer():
         v = int(value)
     else:
-        raise InputError(f"{name}: expected a positive integer, got {value!r}")
+        raise InputError(f"{name}: expected a positive integer, got {fmt_value(value)}")
     if v <= 0:
-        raise InputError(f"{name}: expected a positive integer, got {value!r}")
+        raise InputError(f"{name}: expected a positive integer, got {fmt_value(value)}")
     return v
 
 
@@ -143,7 +143,7 @@ class Camera:
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
-            raise InputError(f"name: expected a non-empty string, got {self.name!r}")
+            raise InputError(f"name: expected a non-empty string, got {fmt_value(self.name)}")
         width = _check_int(self.width, "width")
         height = _check_int(self.height, "height")
         K = as_array(self.K, "K", shape=(3, 3), copy=True)
@@ -154,7 +154,7 @@ class Camera:
                 f"{np.array2string(K, separator=', ')}"
             )
         if not (K[0, 0] > 0 and K[1, 1] > 0):
-            raise InputError(f"K: focal lengths must be > 0, got fx={K[0, 0]!r}, fy={K[1, 1]!r}")
+            raise InputError(f"K: focal lengths must be > 0, got fx={fmt_value(K[0, 0])}, fy={fmt_value(K[1, 1])}")
         dist = np.zeros(0) if self.dist is None else self.dist
         dist = as_array(dist, "dist", shape=(None,), copy=True)
         if dist.shape[0] not in DIST_LENGTHS:
@@ -526,7 +526,7 @@ class Camera:
             r = round(v)
             if abs(v - r) > 1e-6 or r < 1:
                 raise InputError(
-                    f"factor: {label} {n} × {s!r} = {v!r} is not a positive integer; choose a "
+                    f"factor: {label} {n} × {fmt_value(s)} = {fmt_value(v)} is not a positive integer; choose a "
                     "factor that divides the image size"
                 )
             sizes.append(int(r))

@@ -241,7 +241,7 @@ class LightStage:
         order = d.get("light_order", LIGHT_ORDER)
         if order != LIGHT_ORDER:
             raise InputError(
-                f"{where}.light_order: only {LIGHT_ORDER!r} is supported, got {order!r}"
+                f"{where}.light_order: only {fmt_value(LIGHT_ORDER)} is supported, got {fmt_value(order)}"
             )
         radius = d["radius"]
         if radius == "inf":
@@ -314,7 +314,7 @@ class Rig:
             if c.name == name:
                 return c
         raise InputError(
-            f"camera: no camera named {name!r}; valid names: {', '.join(self.camera_names)}"
+            f"camera: no camera named {fmt_value(name)}; valid names: {', '.join(self.camera_names)}"
         )
 
     def scaled(self, factor: float) -> Rig:
@@ -349,11 +349,11 @@ class Rig:
         _check_keys(d, "", ("cameras", "lights"), _RIG_KEYS)
         fmt = d.get("format", RIG_FORMAT)
         if fmt != RIG_FORMAT:
-            raise InputError(f"format: expected {RIG_FORMAT!r}, got {fmt!r}")
+            raise InputError(f"format: expected {fmt_value(RIG_FORMAT)}, got {fmt_value(fmt)}")
         version = d.get("version", RIG_VERSION)
         if version != RIG_VERSION:
             raise InputError(
-                f"version: this facegeo reads rig version {RIG_VERSION}, got {version!r}"
+                f"version: this facegeo reads rig version {RIG_VERSION}, got {fmt_value(version)}"
             )
         cams = d["cameras"]
         if not isinstance(cams, list):

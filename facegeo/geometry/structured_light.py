@@ -60,7 +60,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from facegeo.checks import as_array, check_choice
+from facegeo.checks import as_array, check_choice, fmt_value
 from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -146,7 +146,7 @@ def _bits_for(size: int) -> int:
 
 def _check_int(value: Any, name: str, lo: int, hi: int | None = None) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"PatternSpec.{name}: expected an integer, got {value!r}")
+        raise InputError(f"PatternSpec.{name}: expected an integer, got {fmt_value(value)}")
     v = int(value)
     if v < lo or (hi is not None and v > hi):
         rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
@@ -156,7 +156,7 @@ def _check_int(value: Any, name: str, lo: int, hi: int | None = None) -> int:
 
 def _check_bool(value: Any, name: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
-        raise InputError(f"PatternSpec.{name}: expected true or false, got {value!r}")
+        raise InputError(f"PatternSpec.{name}: expected true or false, got {fmt_value(value)}")
     return bool(value)
 
 
@@ -235,7 +235,7 @@ class PatternSpec:
             axes = tuple(axes)
         except TypeError:
             raise InputError(
-                f"PatternSpec.phase_axes: expected a list of 'x'/'y', got {self.phase_axes!r}"
+                f"PatternSpec.phase_axes: expected a list of 'x'/'y', got {fmt_value(self.phase_axes)}"
             ) from None
         for a in axes:
             check_choice(a, "PatternSpec.phase_axes", _AXES)
@@ -252,13 +252,13 @@ class PatternSpec:
                     put(key, float(size) / 16.0)
                 continue
             if isinstance(val, (bool, np.bool_)):
-                raise InputError(f"PatternSpec.{key}: expected a number, got {val!r}")
+                raise InputError(f"PatternSpec.{key}: expected a number, got {fmt_value(val)}")
             try:
                 p = float(val)
             except (TypeError, ValueError):
-                raise InputError(f"PatternSpec.{key}: expected a number, got {val!r}") from None
+                raise InputError(f"PatternSpec.{key}: expected a number, got {fmt_value(val)}") from None
             if not (math.isfinite(p) and p > 0):
-                raise InputError(f"PatternSpec.{key}: expected a finite number > 0, got {val!r}")
+                raise InputError(f"PatternSpec.{key}: expected a finite number > 0, got {fmt_value(val)}")
             if steps and axis in axes and size / p < 2.0:
                 raise InputError(
                     f"PatternSpec.{key}: {p} periods across {size} px is a period of "
@@ -373,7 +373,7 @@ def _lookup(spec: PatternSpec, name: str) -> _Pattern:
     except (KeyError, TypeError):
         names = list(table)
         shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
-        raise InputError(f"name: unknown pattern {name!r} for this spec; valid: {shown}") from None
+        raise InputError(f"name: unknown pattern {fmt_value(name)} for this spec; valid: {shown}") from None
 
 
 def _gray_bit(spec: PatternSpec, axis: str, bit: int, coord: np.ndarray) -> np.ndarray:
@@ -480,14 +480,14 @@ def _validated_frames(frames: Any, needed: list[str], what: str) -> dict[str, np
     for n in needed:
         a = np.asarray(frames[n])
         if a.dtype.kind not in "fiu":
-            raise ShapeError(f"frames[{n!r}]: expected real numbers, got dtype {a.dtype}")
+            raise ShapeError(f"frames[{fmt_value(n)}]: expected real numbers, got dtype {a.dtype}")
         if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] < 1):
-            raise ShapeError(f"frames[{n!r}]: expected shape (H, W) or (H, W, C), got {a.shape}")
+            raise ShapeError(f"frames[{fmt_value(n)}]: expected shape (H, W) or (H, W, C), got {a.shape}")
         if shape0 is None:
             shape0, name0 = a.shape, n
         elif a.shape != shape0:
             raise ShapeError(
-                f"frames[{n!r}]: shape {a.shape} differs from frames[{name0!r}] {shape0}; "
+                f"frames[{fmt_value(n)}]: shape {a.shape} differs from frames[{fmt_value(name0)}] {shape0}; "
                 "all frames of one capture must have the same shape"
             )
         out[n] = a
@@ -534,7 +534,7 @@ def _raise_if_nonfinite(a: np.ndarray, name: str, rows: slice) -> None:
     if not ok.all():
         idx = np.argwhere(~ok)[0]
         raise InputError(
-            f"frames[{name!r}]: non-finite value (NaN or inf) at row "
+            f"frames[{fmt_value(name)}]: non-finite value (NaN or inf) at row "
             f"{int(idx[0]) + (rows.start or 0)}, column {int(idx[1])}"
         )
 
@@ -816,7 +816,7 @@ def decode_phase(
     min_modulation = float(as_array(min_modulation, "min_modulation", shape=()))
     if not spec.phase_steps or axis not in spec.phase_axes:
         raise InputError(
-            f"spec: has no phase-shift patterns on axis {axis!r} "
+            f"spec: has no phase-shift patterns on axis {fmt_value(axis)} "
             f"(phase_steps={spec.phase_steps}, phase_axes={list(spec.phase_axes)})"
         )
     N = spec.phase_steps
@@ -864,7 +864,7 @@ def unwrap_with_gray(wrapped, coarse_proj, spec: PatternSpec, *, axis: str = "x"
     check_choice(axis, "axis", _AXES)
     P = spec.phase_periods(axis)
     if not spec.phase_steps or P is None:
-        raise InputError(f"spec: has no phase-shift patterns on axis {axis!r}")
+        raise InputError(f"spec: has no phase-shift patterns on axis {fmt_value(axis)}")
     phi = as_array(wrapped, "wrapped", finite=False)
     xc = as_array(coarse_proj, "coarse_proj", shape=phi.shape, finite=False)
     if np.isinf(phi).any() or np.isinf(xc).any():

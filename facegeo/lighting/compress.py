@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array, check_positive
+from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -88,7 +88,7 @@ class LowRankField:
     def truncated(self, rank: int) -> LowRankField:
         """The first ``rank`` terms (the factors are ordered by singular value)."""
         if not 1 <= int(rank) <= self.rank:
-            raise InputError(f"rank: expected 1 … {self.rank}, got {rank!r}")
+            raise InputError(f"rank: expected 1 … {self.rank}, got {fmt_value(rank)}")
         k = int(rank)
         return LowRankField(np.ascontiguousarray(self.U[:, :k]), self.SVt[:k], self.n_pixels)
 
@@ -264,7 +264,7 @@ class WaveletField:
         if light_terms is not None:
             k = int(light_terms)
             if not 1 <= k <= n_l:
-                raise InputError(f"light_terms: expected 1 … {n_l}, got {light_terms!r}")
+                raise InputError(f"light_terms: expected 1 … {n_l}, got {fmt_value(light_terms)}")
             drop = np.argsort(np.abs(wc), axis=1)[:, : n_l - k]
             np.put_along_axis(wc, drop, 0.0, axis=1)
         out = np.stack([self.channels[c] @ wc[c].astype(np.float32) for c in range(3)], axis=-1)

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array, check_choice
+from facegeo.checks import as_array, check_choice, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.frames import direction_angles, light_solid_angles
 
@@ -216,7 +216,7 @@ class EnvironmentMap:
         object.__setattr__(self, "image", img)
         rot = float(self.rotation)
         if not math.isfinite(rot):
-            raise InputError(f"rotation: expected a finite angle in radians, got {self.rotation!r}")
+            raise InputError(f"rotation: expected a finite angle in radians, got {fmt_value(self.rotation)}")
         object.__setattr__(self, "rotation", rot)
 
     @property

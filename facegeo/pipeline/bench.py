@@ -32,6 +32,7 @@ import numpy as np
 
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text
+from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +107,7 @@ def register(name: str) -> Callable[[BenchFn], BenchFn]:
 
     def deco(fn: BenchFn) -> BenchFn:
         if name in _REGISTRY and _REGISTRY[name] is not fn:
-            raise InputError(f"benchmark {name!r} registered twice")
+            raise InputError(f"benchmark {fmt_value(name)} registered twice")
         _REGISTRY[name] = fn
         return fn
 

@@ -33,6 +33,7 @@ from typing import Any
 from facegeo import __version__
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text, clean_stale_siblings, staged_directory
+from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
@@ -175,13 +176,13 @@ class Pipeline:
         seen: set[str] = set()
         for s in stages:
             if not s.name or "/" in s.name or s.name.startswith("."):
-                raise InputError(f"stage name {s.name!r}: expected a plain folder name")
+                raise InputError(f"stage name {fmt_value(s.name)}: expected a plain folder name")
             if s.name in seen:
-                raise InputError(f"stage {s.name!r} is listed twice")
+                raise InputError(f"stage {fmt_value(s.name)} is listed twice")
             missing = [a for a in s.after if a not in seen]
             if missing:
                 raise InputError(
-                    f"stage {s.name!r} reads {missing}, which do not come before it"
+                    f"stage {fmt_value(s.name)} reads {missing}, which do not come before it"
                 )
             seen.add(s.name)
         self.stages = list(stages)
@@ -193,7 +194,7 @@ class Pipeline:
 
     def _check_stage(self, name: str | None, flag: str) -> None:
         if name is not None and name not in self.names:
-            raise InputError(f"{flag} {name!r}: unknown stage; stages are {', '.join(self.names)}")
+            raise InputError(f"{flag} {fmt_value(name)}: unknown stage; stages are {', '.join(self.names)}")
 
     def run(
         self,
@@ -251,7 +252,7 @@ class Pipeline:
                 if only is not None and spec.name != only:
                     if cached is None and spec.name in self._upstream_closure(only):
                         raise InputError(
-                            f"--only {only}: its input stage {spec.name!r} has no current "
+                            f"--only {only}: its input stage {fmt_value(spec.name)} has no current "
                             f"products in {final}; run it first (facegeo reconstruct --from "
                             f"{spec.name})"
                         )
@@ -317,7 +318,7 @@ class Pipeline:
             if metrics is None:
                 metrics = {}
             if not isinstance(metrics, dict):
-                raise InputError(f"stage {spec.name!r} returned {type(metrics).__name__}, "
+                raise InputError(f"stage {fmt_value(spec.name)} returned {type(metrics).__name__}, "
                                  "expected a dict of metrics")
             seconds = time.perf_counter() - t0
             metrics = {**metrics, "seconds": round(seconds, 4)}

@@ -52,6 +52,7 @@ import numpy as np
 
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text, staged_directory
+from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +184,7 @@ def _rig(scan, rig: str | None):
         return Rig.load(scan.ground_truth_path("rig")), rig
     if rig == "scan":
         return scan.rig, rig
-    raise InputError(f"rig: expected 'ground_truth' or 'scan', got {rig!r}")
+    raise InputError(f"rig: expected 'ground_truth' or 'scan', got {fmt_value(rig)}")
 
 
 def _visibility_agreement(scan, cam_name: str, camera, texels, vis, depth_jump: float):
@@ -337,7 +338,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     names = list(cameras) if cameras is not None else scan.camera_names
     for n in names:
         if n not in scan.camera_names:
-            raise InputError(f"cameras: unknown camera {n!r}; the scan has {scan.camera_names}")
+            raise InputError(f"cameras: unknown camera {fmt_value(n)}; the scan has {scan.camera_names}")
     vis_kw = {k: v for k, v in (("min_cos", min_cos), ("feather_px", feather_px),
                                 ("depth_jump", depth_jump)) if v is not None}
     jump = depth_jump if depth_jump is not None else rf.DEFAULT_DEPTH_JUMP

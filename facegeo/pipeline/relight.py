@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from facegeo.errors import InputError
+from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
@@ -90,14 +91,14 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
                          "surface reflectance field (facegeo atlas / project), which are not "
                          "built yet; pass a camera name instead")
     if not math.isfinite(float(rotate_deg)):
-        raise InputError(f"rotate: expected a finite angle in degrees, got {rotate_deg!r}")
+        raise InputError(f"rotate: expected a finite angle in degrees, got {fmt_value(rotate_deg)}")
     scan = load_scan(scan_dir)
     if not scan.has("olat"):
         raise InputError(f"{scan.root}: the scan has no OLAT frames to relight")
     names = scan.camera_names
     view = names[0] if view is None else view
     if view not in names:
-        raise InputError(f"view: unknown camera {view!r}; the scan has {', '.join(names)} "
+        raise InputError(f"view: unknown camera {fmt_value(view)}; the scan has {', '.join(names)} "
                          f"(or 'texture')")
     env = E.read_envmap(env_path, projection, rotate_deg=rotate_deg)
     lights = scan.rig.lights

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, MissingDependencyError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -219,7 +219,7 @@ def split_mesh(vertices: Any, faces: Any, max_faces: int = DEFAULT_SPLIT_FACES
     """
     V, F = _mesh_arrays(vertices, faces)
     if int(max_faces) != max_faces or max_faces < 1:
-        raise InputError(f"max_faces: expected a positive integer, got {max_faces!r}")
+        raise InputError(f"max_faces: expected a positive integer, got {fmt_value(max_faces)}")
     c = V[F].mean(axis=1)
     todo = [np.arange(len(F))]
     out: list[np.ndarray] = []
@@ -378,11 +378,11 @@ def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None
     if texels_per_mm is not None and size is not None:
         raise InputError("texels_per_mm and size: give one resolution, not both")
     if texels_per_mm is not None and not (np.isfinite(texels_per_mm) and texels_per_mm > 0):
-        raise InputError(f"texels_per_mm: expected a finite number > 0, got {texels_per_mm!r}")
+        raise InputError(f"texels_per_mm: expected a finite number > 0, got {fmt_value(texels_per_mm)}")
     if size is not None and (int(size) != size or not 16 <= size <= 1 << 15):
-        raise InputError(f"size: expected an integer in [16, 32768], got {size!r}")
+        raise InputError(f"size: expected an integer in [16, 32768], got {fmt_value(size)}")
     if int(padding) != padding or padding < 0:
-        raise InputError(f"padding: expected an integer >= 0, got {padding!r}")
+        raise InputError(f"padding: expected an integer >= 0, got {fmt_value(padding)}")
     if normals is None:
         N = vertex_normals(V, F)
     else:
@@ -626,7 +626,7 @@ def export_mesh_uv(atlas: Atlas, path) -> Path:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".obj", ".glb"):
-        raise InputError(f"path: expected a .obj or .glb file name, got {str(path)!r}")
+        raise InputError(f"path: expected a .obj or .glb file name, got {fmt_value(str(path))}")
     mesh = trimesh.Trimesh(atlas.vertices, atlas.faces, vertex_normals=atlas.normals,
                            process=False)
     # A PBR material without an image: trimesh's default material needs Pillow.

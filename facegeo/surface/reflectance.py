@@ -78,7 +78,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -239,11 +239,11 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     """
     p, n, g = _texel_arrays(texels)
     if not (0.0 <= float(min_cos) < 1.0):
-        raise InputError(f"min_cos: expected a number in [0, 1), got {min_cos!r}")
+        raise InputError(f"min_cos: expected a number in [0, 1), got {fmt_value(min_cos)}")
     if not (np.isfinite(feather_px) and feather_px >= 0):
-        raise InputError(f"feather_px: expected a finite number >= 0, got {feather_px!r}")
+        raise InputError(f"feather_px: expected a finite number >= 0, got {fmt_value(feather_px)}")
     if not (np.isfinite(depth_jump) and depth_jump > 0):
-        raise InputError(f"depth_jump: expected a finite number > 0 (metres), got {depth_jump!r}")
+        raise InputError(f"depth_jump: expected a finite number > 0 (metres), got {fmt_value(depth_jump)}")
     T = len(p)
     q, valid = camera.project(p)
     W, H = camera.width, camera.height
@@ -491,11 +491,11 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
     """
     t0 = time.perf_counter()
     if dtype not in ("float16", "float32"):
-        raise InputError(f"dtype: expected 'float16' or 'float32', got {dtype!r}")
+        raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
     if int(n_lights) != n_lights or n_lights < 1:
-        raise InputError(f"n_lights: expected a positive integer, got {n_lights!r}")
+        raise InputError(f"n_lights: expected a positive integer, got {fmt_value(n_lights)}")
     if int(block_lights) != block_lights or block_lights < 1:
-        raise InputError(f"block_lights: expected a positive integer, got {block_lights!r}")
+        raise InputError(f"block_lights: expected a positive integer, got {fmt_value(block_lights)}")
     W, H = (int(s) for s in size)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -524,16 +524,16 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
         else:
             (light, frame), valid = item, None
         if int(light) != count:
-            raise InputError(f"camera {vis.camera!r}: expected OLAT frame of light {count}, "
+            raise InputError(f"camera {fmt_value(vis.camera)}: expected OLAT frame of light {count}, "
                              f"got light {light} (frames must come in light-index order)")
         if count >= L:
-            raise InputError(f"camera {vis.camera!r}: more OLAT frames than the {L} lights")
+            raise InputError(f"camera {fmt_value(vis.camera)}: more OLAT frames than the {L} lights")
         frame = np.asarray(frame)
         if frame.shape != (H, W, 3):
-            raise ShapeError(f"camera {vis.camera!r}, light {light}: OLAT frame has shape "
+            raise ShapeError(f"camera {fmt_value(vis.camera)}, light {light}: OLAT frame has shape "
                              f"{frame.shape}, expected ({H}, {W}, 3)")
         if valid is not None and np.shape(valid) != (H, W):
-            raise ShapeError(f"camera {vis.camera!r}, light {light}: mask has shape "
+            raise ShapeError(f"camera {fmt_value(vis.camera)}, light {light}: mask has shape "
                              f"{np.shape(valid)}, expected ({H}, {W})")
         s = sample_frame(frame, sampler, valid)
         if np.isnan(s.sum()):  # one cheap reduction; count only when something is missing
@@ -549,7 +549,7 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
             flush(count)
             l0 = count
     if count != L:
-        raise InputError(f"camera {vis.camera!r}: got {count} OLAT frames, expected {L} "
+        raise InputError(f"camera {fmt_value(vis.camera)}: got {count} OLAT frames, expected {L} "
                          f"(one per light)")
     if count > l0:
         flush(count)

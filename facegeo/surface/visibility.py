@@ -70,7 +70,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, MissingDependencyError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -306,16 +306,16 @@ class RayScene:
             try:
                 eps = float(eps)
             except (TypeError, ValueError) as exc:
-                raise InputError(f"eps: expected a number, got {eps!r}") from exc
+                raise InputError(f"eps: expected a number, got {fmt_value(eps)}") from exc
             if not (np.isfinite(eps) and eps > 0):
-                raise InputError(f"eps: expected a finite number > 0, got {eps!r}")
+                raise InputError(f"eps: expected a finite number > 0, got {fmt_value(eps)}")
         self._eps = eps
 
         self.n_threads = _default_threads() if n_threads is None else n_threads
         if chunk_size is None:
             chunk_size = _DEFAULT_CHUNK
         if int(chunk_size) != chunk_size or chunk_size < 1:
-            raise InputError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
+            raise InputError(f"chunk_size: expected a positive integer, got {fmt_value(chunk_size)}")
         self._chunk = int(chunk_size)
 
         self._watertight = bool(watertight)
@@ -381,7 +381,7 @@ class RayScene:
     @n_threads.setter
     def n_threads(self, value: int) -> None:
         if isinstance(value, bool) or int(value) != value or value < 1:
-            raise InputError(f"n_threads: expected a positive integer, got {value!r}")
+            raise InputError(f"n_threads: expected a positive integer, got {fmt_value(value)}")
         self._n_threads = int(value)
 
     @property

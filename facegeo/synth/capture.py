@@ -33,6 +33,7 @@ import numpy as np
 from facegeo import fsutil
 from facegeo.errors import InputError
 from facegeo.frames import Pose, look_at, rotation_from_rvec
+from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
@@ -561,21 +562,21 @@ def _validate_arguments(out, preset, *, head, units, seed, noise, skin, olat_for
     """
     if isinstance(preset, str):
         if preset not in PRESETS:
-            raise InputError(f"preset: unknown {preset!r}; expected one of {', '.join(PRESETS)}")
+            raise InputError(f"preset: unknown {fmt_value(preset)}; expected one of {', '.join(PRESETS)}")
         preset = PRESETS[preset]
     elif not isinstance(preset, Preset):
         raise InputError(f"preset: expected a preset name ({', '.join(PRESETS)}) or a Preset, "
                          f"got {type(preset).__name__}")
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
-        raise InputError(f"seed: expected an integer >= 0, got {seed!r}")
+        raise InputError(f"seed: expected an integer >= 0, got {fmt_value(seed)}")
     if (isinstance(noise, bool) or not isinstance(noise, numbers.Real)
             or not np.isfinite(float(noise)) or float(noise) < 0):
-        raise InputError(f"noise: expected a finite number >= 0, got {noise!r}")
+        raise InputError(f"noise: expected a finite number >= 0, got {fmt_value(noise)}")
     skin_kwargs = _skin_model(skin)
     if olat_format not in ("exr", "png16"):
-        raise InputError(f"olat_format: unknown {olat_format!r}; expected 'exr' or 'png16'")
+        raise InputError(f"olat_format: unknown {fmt_value(olat_format)}; expected 'exr' or 'png16'")
     if units not in ("cm", "mm", "m"):
-        raise InputError(f"units: unknown {units!r}; expected one of 'cm', 'mm', 'm'")
+        raise InputError(f"units: unknown {fmt_value(units)}; expected one of 'cm', 'mm', 'm'")
     if not isinstance(head, (str, os.PathLike)):
         raise InputError(f"head: expected 'procedural' or a mesh path, got {type(head).__name__}")
     if head != "procedural":
@@ -589,7 +590,7 @@ def _validate_arguments(out, preset, *, head, units, seed, noise, skin, olat_for
     if progress is not None and not callable(progress):
         raise InputError("progress: expected a callable(stage, done, total) or None")
     if not isinstance(out, (str, os.PathLike)) or not os.fspath(out):
-        raise InputError(f"out: expected a directory path, got {out!r}")
+        raise InputError(f"out: expected a directory path, got {fmt_value(out)}")
     given = Path(os.path.abspath(out))
     if given.is_symlink():
         if not given.is_dir():
@@ -739,10 +740,10 @@ def _skin_model(spec: str) -> dict:
 
         kind = kind or "medium"
         if kind not in SKIN_TYPES:
-            raise InputError(f"skin: unknown spectral skin type {kind!r}; expected one of "
+            raise InputError(f"skin: unknown spectral skin type {fmt_value(kind)}; expected one of "
                              f"{', '.join(SKIN_TYPES)}")
         return {"albedo_model": "spectral", "albedo_params": {"params": kind}}
-    raise InputError(f"skin: unknown model {spec!r}; expected 'regional' or 'spectral[:type]'")
+    raise InputError(f"skin: unknown model {fmt_value(spec)}; expected 'regional' or 'spectral[:type]'")
 
 
 def _projector_irradiance(proj, p_world, n_world):

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.checks import check_choice
+from facegeo.checks import check_choice, fmt_value
 from facegeo.errors import InputError
 
 __all__ = [
@@ -313,7 +313,7 @@ def procedural_head(subdivisions: int = 5, *, ears: bool = False, seed: int | No
     import trimesh
 
     if int(subdivisions) != subdivisions or not 0 <= int(subdivisions) <= 8:
-        raise InputError(f"subdivisions: expected an integer in [0, 8], got {subdivisions!r}")
+        raise InputError(f"subdivisions: expected an integer in [0, 8], got {fmt_value(subdivisions)}")
     params = HeadParams.from_seed(seed)
     w, faces = _icosphere(int(subdivisions))
     r = head_radius(w, params, ears=ears)
@@ -505,7 +505,7 @@ def _parse_obj(path: Path):
         elif tag == "f":
             toks = rest.split()
             if len(toks) < 3:
-                raise InputError(f"{path}:{lineno}: face with fewer than 3 vertices: {line!r}")
+                raise InputError(f"{path}:{lineno}: face with fewer than 3 vertices: {fmt_value(line)}")
             vi, ti = [], []
             for tok in toks:
                 parts = tok.split("/")
@@ -516,7 +516,7 @@ def _parse_obj(path: Path):
                         b = int(parts[1])
                         ti.append(b - 1 if b > 0 else len(vt_list) + b)
                 except ValueError as exc:
-                    raise InputError(f"{path}:{lineno}: bad face entry {tok!r}") from exc
+                    raise InputError(f"{path}:{lineno}: bad face entry {fmt_value(tok)}") from exc
             if len(ti) != len(vi):
                 has_t = False
             n_poly += 1

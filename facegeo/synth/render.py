@@ -35,7 +35,7 @@ from functools import cached_property
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -172,7 +172,7 @@ class ReferenceRenderer:
         self.skin = skin
         self.eta = float(eta)
         if not (np.isfinite(self.eta) and self.eta > 1.0):
-            raise InputError(f"eta: expected a finite index of refraction > 1, got {eta!r}")
+            raise InputError(f"eta: expected a finite index of refraction > 1, got {fmt_value(eta)}")
         self.shadows = bool(shadows)
         self._views: dict[tuple, SurfaceView] = {}
         self.rig = None  # the true rig, when rebuilt from a scan (load_ground_truth)
@@ -204,7 +204,7 @@ class ReferenceRenderer:
         """
         s = int(supersample)
         if s < 1 or s != supersample:
-            raise InputError(f"supersample: expected an integer >= 1, got {supersample!r}")
+            raise InputError(f"supersample: expected an integer >= 1, got {fmt_value(supersample)}")
         key = (camera.name, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(),
                camera.T_cam_world.R.tobytes(), camera.T_cam_world.t.tobytes(), s)
         if key in self._views:

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from facegeo.appearance.brdf import desaturate
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError
 
 __all__ = [
@@ -265,11 +265,11 @@ def register_albedo_model(name: str, model: Callable[..., np.ndarray], *,
         Replace an existing entry instead of raising.
     """
     if not isinstance(name, str) or not name:
-        raise InputError(f"albedo model name: expected a non-empty string, got {name!r}")
+        raise InputError(f"albedo model name: expected a non-empty string, got {fmt_value(name)}")
     if not callable(model):
-        raise InputError(f"albedo model {name!r}: expected a callable, got {type(model).__name__}")
+        raise InputError(f"albedo model {fmt_value(name)}: expected a callable, got {type(model).__name__}")
     if name in ALBEDO_MODELS and not overwrite:
-        raise InputError(f"albedo model {name!r} is already registered (pass overwrite=True)")
+        raise InputError(f"albedo model {fmt_value(name)} is already registered (pass overwrite=True)")
     ALBEDO_MODELS[name] = model
 
 
@@ -360,12 +360,12 @@ class SkinField:
             raise InputError(f"half_extent: expected > 0 in every axis, got {he}")
         object.__setattr__(self, "half_extent", he)
         if int(self.seed) != self.seed:
-            raise InputError(f"seed: expected an integer, got {self.seed!r}")
+            raise InputError(f"seed: expected an integer, got {fmt_value(self.seed)}")
         object.__setattr__(self, "seed", int(self.seed))
         if self.albedo_fn is None and self.albedo_model not in ALBEDO_MODELS:
             known = ", ".join(sorted(ALBEDO_MODELS))
             raise InputError(
-                f"albedo_model: unknown model {self.albedo_model!r}; registered: {known} "
+                f"albedo_model: unknown model {fmt_value(self.albedo_model)}; registered: {known} "
                 "(add one with register_albedo_model)"
             )
         if not isinstance(self.albedo_params, dict):
@@ -423,7 +423,7 @@ class SkinField:
             if self.albedo_model not in ALBEDO_MODELS:
                 known = ", ".join(sorted(ALBEDO_MODELS))
                 raise InputError(
-                    f"albedo_model: unknown model {self.albedo_model!r}; registered: {known}"
+                    f"albedo_model: unknown model {fmt_value(self.albedo_model)}; registered: {known}"
                 )
             out = ALBEDO_MODELS[self.albedo_model](u, self, **self.albedo_params)
             name = f"albedo model {self.albedo_model!r}"
@@ -535,7 +535,7 @@ class SkinField:
         d = dict(d)
         fmt = d.pop("format", FORMAT)
         if fmt != FORMAT:
-            raise InputError(f"skin field: unknown format {fmt!r}; expected {FORMAT!r}")
+            raise InputError(f"skin field: unknown format {fmt_value(fmt)}; expected {fmt_value(FORMAT)}")
         names = {f.name for f in fields(cls)} - {"albedo_fn"}
         bad = sorted(set(d) - names)
         if bad:

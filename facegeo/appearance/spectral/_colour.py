@@ -30,6 +30,7 @@ import warnings
 import numpy as np
 
 from facegeo.errors import MissingDependencyError
+from facegeo.checks import fmt_value
 
 __all__ = ["XYZ_TO_LINEAR_SRGB", "rgb_weights", "spectrum_to_rgb", "spectrum_to_xyz"]
 
@@ -57,7 +58,7 @@ def __getattr__(name: str):
     # XYZ_TO_LINEAR_SRGB stays a module attribute without importing colour-science at import.
     if name == "XYZ_TO_LINEAR_SRGB":
         return _xyz_to_linear_srgb()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    raise AttributeError(f"module {fmt_value(__name__)} has no attribute {fmt_value(name)}")
 
 
 @functools.lru_cache(maxsize=1)

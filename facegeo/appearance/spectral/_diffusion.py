@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from facegeo.errors import InputError
+from facegeo.checks import fmt_value
 
 __all__ = [
     "fresnel_diffuse_reflectance",
@@ -150,7 +151,7 @@ def _multipole_geometry(sigma_a, sigma_s_prime, thickness, eta_top, eta_bottom):
     alpha, sigma_tr, ell, D = _optics(sigma_a, sigma_s_prime)
     d = np.asarray(thickness, dtype=np.float64)
     if np.any(~np.isfinite(d)) or np.any(d <= 0):
-        raise InputError(f"thickness: expected a finite slab thickness > 0 mm, got {thickness!r}")
+        raise InputError(f"thickness: expected a finite slab thickness > 0 mm, got {fmt_value(thickness)}")
     z_b0 = 2.0 * boundary_coefficient(eta_top) * D
     z_bd = 2.0 * boundary_coefficient(eta_bottom) * D
     L = d + z_b0 + z_bd  # half the period of the image-source lattice

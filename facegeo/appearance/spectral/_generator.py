@@ -23,7 +23,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from facegeo.checks import as_array, check_choice
+from facegeo.checks import as_array, check_choice, fmt_value
 from facegeo.errors import InputError
 from facegeo.appearance.spectral._lut import SkinLUT, skin_lut
 from facegeo.appearance.spectral._model import PARAMETER_RANGES, SkinParameters
@@ -106,7 +106,7 @@ def _base(params) -> dict[str, float]:
         v = float(np.asarray(v))
         lo, hi = PARAMETER_RANGES[k]
         if not (np.isfinite(v) and lo <= v <= hi):
-            raise InputError(f"params[{k!r}]: expected a value in [{lo:g}, {hi:g}], got {v!r}")
+            raise InputError(f"params[{fmt_value(k)}]: expected a value in [{lo:g}, {hi:g}], got {fmt_value(v)}")
         base[k] = v
     return base
 
@@ -135,7 +135,7 @@ def regional_parameter_maps(
     """
     u = as_array(u, "u", shape=(..., 3))
     if not (np.isfinite(variation) and variation >= 0):
-        raise InputError(f"variation: expected a finite number >= 0, got {variation!r}")
+        raise InputError(f"variation: expected a finite number >= 0, got {fmt_value(variation)}")
     base = _base(params)
     shape = u.shape[:-1]
     log_cm = np.full(shape, np.log(base["C_m"]))

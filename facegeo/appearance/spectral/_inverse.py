@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError
 from facegeo.appearance.spectral._absorption import DEFAULT_EUMELANIN, check_wavelengths
 from facegeo.appearance.spectral._lut import LOG_FLOOR, SkinLUT, layered_spectra_grid, skin_lut
@@ -341,21 +341,21 @@ def fit_albedo(
     """
     if refine not in ("lut", "exact", "none"):
         raise InputError(
-            f"refine: unknown value {refine!r}; expected one of 'lut', 'exact', 'none'"
+            f"refine: unknown value {fmt_value(refine)}; expected one of 'lut', 'exact', 'none'"
         )
     target = as_array(rgb, "rgb", shape=(..., 3))
     lut = skin_lut() if lut is None else lut
     if beta_m is not None:
         lo_b, hi_b = lut.ranges["beta_m"]
         if not (np.isfinite(beta_m) and lo_b <= beta_m <= hi_b):
-            raise InputError(f"beta_m: expected a value in [{lo_b:g}, {hi_b:g}], got {beta_m!r}")
+            raise InputError(f"beta_m: expected a value in [{lo_b:g}, {hi_b:g}], got {fmt_value(beta_m)}")
     tolerances = {"noise": noise, "gamut_tol": gamut_tol, "identifiability_tol": identifiability_tol}
     for name, v in tolerances.items():
         if not (np.isfinite(v) and v > 0):
-            raise InputError(f"{name}: expected a finite number > 0, got {v!r}")
+            raise InputError(f"{name}: expected a finite number > 0, got {fmt_value(v)}")
     if int(beta_profile) < 0 or int(iterations) < 0:
         raise InputError(
-            f"beta_profile, iterations: expected >= 0, got {beta_profile!r}, {iterations!r}"
+            f"beta_profile, iterations: expected >= 0, got {fmt_value(beta_profile)}, {fmt_value(iterations)}"
         )
     shape = target.shape[:-1]
     t = target.reshape(-1, 3)

@@ -44,6 +44,7 @@ from facegeo.appearance.spectral._model import (
     check_skin_parameters,
     subsurface_transmission,
 )
+from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +122,7 @@ class SkinLUT:
         rng.update(ranges or {})
         for k in ("C_m", "C_h"):
             if not 0.0 < rng[k][0] < rng[k][1] <= 1.0:
-                raise InputError(f"ranges[{k!r}]: expected 0 < lo < hi <= 1, got {rng[k]}")
+                raise InputError(f"ranges[{fmt_value(k)}]: expected 0 < lo < hi <= 1, got {rng[k]}")
         if not 0.0 <= rng["beta_m"][0] < rng["beta_m"][1] <= 1.0:
             raise InputError(f"ranges['beta_m']: expected 0 <= lo < hi <= 1, got {rng['beta_m']}")
         self.shape = shape

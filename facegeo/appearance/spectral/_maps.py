@@ -25,6 +25,7 @@ from facegeo.errors import InputError, ScanFormatError
 from facegeo.fsutil import atomic_path, atomic_write_text
 from facegeo.appearance.spectral._inverse import AlbedoFit
 from facegeo.appearance.spectral._model import SkinParameters
+from facegeo.checks import fmt_value
 
 __all__ = ["PNG_SCALES", "save_parameter_maps", "load_parameter_maps"]
 
@@ -70,7 +71,7 @@ def save_parameter_maps(
     Path of ``parameter_maps.json``.
     """
     if fmt not in ("png", "npy"):
-        raise InputError(f"fmt: unknown value {fmt!r}; expected 'png' or 'npy'")
+        raise InputError(f"fmt: unknown value {fmt_value(fmt)}; expected 'png' or 'npy'")
     params = maps.parameters if isinstance(maps, AlbedoFit) else maps
     arrays: dict[str, np.ndarray] = {k: np.asarray(v, float) for k, v in params.as_dict().items()}
     if isinstance(maps, AlbedoFit):
@@ -125,7 +126,7 @@ def load_parameter_maps(directory: str | os.PathLike) -> SkinParameters:
         raise ScanFormatError(f"invalid JSON: {exc}", path=meta_path) from exc
     if meta.get("format") != FORMAT:
         raise ScanFormatError(
-            f"format {meta.get('format')!r}, expected {FORMAT!r}", path=meta_path, key="format"
+            f"format {fmt_value(meta.get('format'))}, expected {fmt_value(FORMAT)}", path=meta_path, key="format"
         )
     shape = tuple(meta.get("shape", ()))
     out = {}

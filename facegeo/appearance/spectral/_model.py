@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.appearance.spectral._absorption import (
     DEFAULT_EUMELANIN,
@@ -164,7 +164,7 @@ def rho_dr(eta: float = ETA_SKIN) -> float:
     from facegeo.appearance.brdf import fresnel_dielectric
 
     if not (np.isfinite(eta) and eta >= 1.0):
-        raise InputError(f"eta: expected a relative index >= 1, got {eta!r}")
+        raise InputError(f"eta: expected a relative index >= 1, got {fmt_value(eta)}")
     x, w = np.polynomial.legendre.leggauss(64)
     mu = 0.5 * (x + 1.0)
     return float(np.sum(w * 0.5 * 2.0 * fresnel_dielectric(mu, eta) * mu))
