@@ -26,7 +26,8 @@ from facegeo.pipeline.bench import (
 
 # Benchmarks whose quick form takes more than a few seconds here (measured: spectral ≈ 24 s,
 # synth ≈ 27 s on the shared 2-core machine).
-_SLOW = {"spectral.forward", "spectral.inverse", "synth.generate"}
+_SLOW = {"spectral.forward", "spectral.inverse", "synth.generate", "surface.project",
+         "surface.resolution", "relight.compress"}
 
 
 @pytest.fixture(autouse=True)

@@ -59,7 +59,7 @@ def bench_atlas(quick: bool) -> list[BenchRow]:
     from facegeo.surface.atlas import build_atlas, rasterize_texels
 
     rows = []
-    for sub in ((4, 5, 6) if quick else (4, 5, 6, 7)):
+    for sub in ((4, 5) if quick else (4, 5, 6, 7)):
         V, F = _head(sub)
         splits = [None] if len(F) <= 25_000 else [None, 25_000]
         if len(F) > 25_000:
