@@ -40,6 +40,43 @@ def test_relight_field_matches_reference(dtype, sparse):
     assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= GEMM_REL
 
 
+def test_fused_float16_kernel_converts_every_half_exactly():
+    # Every float16 bit pattern (normals, subnormals, ±0, ±inf, NaNs) relit with weight 1 on
+    # one light must come out as numpy's exact float16 → float32 cast: bit-exact metric.
+    pytest.importorskip("numba")
+    h = np.arange(65536, dtype=np.uint16).view(np.float16)
+    field = np.ascontiguousarray(np.repeat(h[:, None, None], 3, axis=2))  # (65536, 1, 3)
+    got = R.relight_field(field, np.ones((1, 3)), kernel="fused")
+    want = np.repeat(h.astype(np.float32)[:, None], 3, axis=1)
+    finite = np.isfinite(want)
+    assert np.array_equal(got[finite], want[finite])
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.array_equal(got[np.isinf(want)], want[np.isinf(want)])
+
+
+@pytest.mark.parametrize("kernel", ["fused", "blas"])
+def test_kernels_agree_and_masked_samples_only_matter_at_lit_lights(kernel):
+    if kernel == "fused":
+        pytest.importorskip("numba")
+    rng = np.random.default_rng(7)
+    P, L = 500, 40  # 3L = 120: not a multiple of any SIMD width
+    field = rng.random((P, L, 3)).astype(np.float16)
+    w = rng.random((L, 3))
+    w[::4] = 0.0  # lights 0, 4, 8, ... unlit
+    field[3, 4, 1] = np.nan  # masked sample at an unlit light: must not matter
+    field[5, 8, 0] = np.inf  # float16 overflow at an unlit light: must not matter
+    field[7, 1, 2] = np.nan  # masked at a lit light: that row is NaN (never a fake value)
+    got = R.relight_field(field, w, kernel=kernel, chunk_rows=64)
+    f64 = np.nan_to_num(field.astype(np.float64), nan=0.0, posinf=0.0)
+    ref = np.einsum("plc,lc->pc", f64, w)
+    ok = np.ones(P, bool)
+    ok[7] = False
+    assert np.max(np.abs(got[ok] - ref[ok])) / np.max(ref) <= GEMM_REL
+    assert np.isnan(got[7]).any()
+    with pytest.raises(InputError, match="kernel"):
+        R.relight_field(field, w, kernel="simd")
+
+
 def test_relight_field_batch_equals_single_calls_and_channels_are_not_mixed():
     rng = np.random.default_rng(1)
     field = rng.random((300, 20, 3)).astype(np.float16)

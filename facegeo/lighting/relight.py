@@ -108,6 +108,58 @@ def _half_to_float32(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
         return dst
 
 
+#: float32 bits of a half ``h`` (sign, exponent, mantissa shifted into place) times this power
+#: of two are the half's exact value, subnormals included (the exponent bias 127 − 15 = 112).
+_HALF_SCALE = np.float32(2.0 ** 112)
+_FUSED: Any = None  # the compiled kernel, None until first use, False when numba is missing
+
+
+def _fused_kernel():
+    """The numba kernel of the fused float16 dot product, compiled on first use (cached on disk).
+
+    Returns ``False`` when numba is not installed (the OpenCV/BLAS path is used instead).
+    """
+    global _FUSED
+    if _FUSED is None:
+        try:
+            from numba import njit
+        except ImportError:
+            _FUSED = False
+            return _FUSED
+
+        # fastmath: reassociation and FMA contraction only (vectorised sums); no nnan/ninf,
+        # so NaN/inf samples propagate as IEEE arithmetic says.
+        @njit(nogil=True, cache=True, boundscheck=False, fastmath={"reassoc", "contract"})
+        def fused_half_dot(h, w, out, u):  # pragma: no cover - compiled
+            # h (n, m) uint16 bits of float16 rows (m = 3L', channel-interleaved),
+            # w (m,) float32 weights interleaved like the rows, out (n, 3) float32,
+            # u (m,) uint32 scratch holding one converted row (L1-resident).
+            n, m = h.shape
+            n_l = m // 3
+            fv = u.view(np.float32)
+            scale = np.float32(5.192296858534828e33)  # 2^112
+            for p in range(n):
+                for j in range(m):  # half bits → float32 bits, branch-free (vectorises)
+                    x = np.uint32(h[p, j])
+                    em = x & np.uint32(0x7FFF)
+                    big = (em + np.uint32(0x400)) >> np.uint32(15)  # 1 for inf/NaN
+                    u[j] = (((x & np.uint32(0x8000)) << np.uint32(16))
+                            | (em << np.uint32(13)) | (big * np.uint32(0x7F800000)))
+                s0 = np.float32(0)
+                s1 = np.float32(0)
+                s2 = np.float32(0)
+                for l in range(n_l):  # exact value = bits-as-float · 2^112
+                    s0 += (fv[3 * l] * scale) * w[3 * l]
+                    s1 += (fv[3 * l + 1] * scale) * w[3 * l + 1]
+                    s2 += (fv[3 * l + 2] * scale) * w[3 * l + 2]
+                out[p, 0] = s0
+                out[p, 1] = s1
+                out[p, 2] = s2
+
+        _FUSED = fused_half_dot
+    return _FUSED
+
+
 def _blas_single_thread():
     """Context limiting BLAS to one thread (chunks are spread over Python threads instead: many
     small BLAS calls each waking a thread pool cost more than they gain on a busy machine)."""
@@ -122,7 +174,7 @@ def _blas_single_thread():
 
 def relight_field(field: Any, weights: Any, *, light_color: Any = None,
                   chunk_rows: int | None = None, sparse: bool | None = None,
-                  workers: int = 2) -> np.ndarray:
+                  workers: int = 2, kernel: str | None = None) -> np.ndarray:
     """Relight an image-space or texel reflectance field with one or a batch of environments.
 
     Implements Eq. (4) of Debevec et al. 2000 (the weights carry δA). The field is read once,
@@ -146,11 +198,21 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
         lights are active).
     workers : int
         Python threads sharing the chunks (BLAS itself runs single-threaded meanwhile).
+    kernel : {"fused", "blas"}, optional
+        ``"fused"``: one environment on a float16 field goes through a compiled (numba) kernel
+        that converts each row's halves to float32 in registers/L1 and accumulates the dot
+        product in the same pass (no converted chunk is written back to memory; exact
+        conversion, float32 accumulation in 24 lanes). ``"blas"``: OpenCV's F16C conversion
+        into a cache-resident chunk, then BLAS. Default: ``"fused"`` when numba is installed and
+        the call is one environment on a float16 field, else ``"blas"``.
 
     Returns
     -------
     (P, 3) float32, or (B, P, 3) for batched weights
-        Relit radiance.
+        Relit radiance. A row whose sample is NaN/inf at a *lit* light is NaN/inf (masked
+        samples are never trusted); masked samples at unlit lights do not matter (such rows
+        are recomputed from the lit lights only, in float64 — NaN · 0 would otherwise poison
+        the BLAS sum).
     """
     f = np.asarray(field)
     if f.ndim != 3 or f.shape[2] != 3:
@@ -170,6 +232,15 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     W = block_weights(w, active if sparse else None)  # (3L', 3B)
     n_cols = W.shape[0]
     single = n_b == 1
+    if kernel not in (None, "fused", "blas"):
+        raise InputError(f"kernel: expected 'fused', 'blas' or None, got {kernel!r}")
+    fused = _fused_kernel() if (kernel != "blas" and single and f.dtype == np.float16) else False
+    if kernel == "fused" and not fused:
+        raise InputError("kernel: 'fused' needs numba installed, one environment (L, 3) "
+                         "weights and a float16 field")
+    if fused:
+        w_il = np.ascontiguousarray((w[0, active] if sparse else w[0]).reshape(-1),
+                                    dtype=np.float32)  # (3L',) interleaved like the rows
     if single:
         Wc = [np.ascontiguousarray(W[:, c]) for c in range(3)]
     rows = int(chunk_rows or max(1, CHUNK_BYTES // (4 * n_cols)))
@@ -182,20 +253,31 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
             src = f[r0:r1][:, active].reshape(r1 - r0, n_cols)
         else:
             src = f2[r0:r1]
+        if fused:
+            # buf is the (n_cols,) uint32 row scratch of this thread
+            fused(np.asarray(src).view(np.uint16), w_il, out[r0:r1], buf)
+            return
         if src.dtype != np.float32:
             # float16 → float32, chunk-wise (never float16 arithmetic)
             src = _half_to_float32(np.ascontiguousarray(src), buf[: r1 - r0])
-        if single:
-            for c in range(3):
-                out[r0:r1, c] = src @ Wc[c]
-        else:
-            np.matmul(src, W, out=out[r0:r1])
+        with np.errstate(invalid="ignore"):  # NaN · 0 from masked samples: fixed up below
+            if single:
+                for c in range(3):
+                    out[r0:r1, c] = src @ Wc[c]
+            else:
+                np.matmul(src, W, out=out[r0:r1])
 
     starts = list(range(0, n_p, rows))
     need_buf = f.dtype != np.float32
+
+    def new_buf() -> np.ndarray:
+        if fused:
+            return np.empty(n_cols, np.uint32)
+        return np.empty((min(rows, n_p), n_cols), np.float32)
+
     with _blas_single_thread():
         if workers <= 1 or len(starts) < 2:
-            buf = np.empty((min(rows, n_p), n_cols), np.float32) if need_buf else None
+            buf = new_buf() if need_buf else None
             for r0 in starts:
                 run(r0, buf)
         else:
@@ -206,14 +288,33 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
 
             def task(r0: int) -> None:
                 if need_buf and getattr(local, "buf", None) is None:
-                    local.buf = np.empty((min(rows, n_p), n_cols), np.float32)
+                    local.buf = new_buf()
                 run(r0, getattr(local, "buf", None))
 
             with ThreadPoolExecutor(max_workers=int(workers)) as pool:
                 for _ in pool.map(task, starts):
                     pass
+    if not sparse:
+        _recompute_nonfinite_rows(f, w, active, out)
     out = out.reshape(n_p, n_b, 3).transpose(1, 0, 2)
     return np.ascontiguousarray(out) if batched else np.ascontiguousarray(out[0])
+
+
+def _recompute_nonfinite_rows(f: np.ndarray, w: np.ndarray, active: np.ndarray,
+                              out: np.ndarray) -> None:
+    """Redo rows of ``out`` ``(P, 3B)`` that came out NaN/inf from the lit lights only.
+
+    A masked sample (NaN, or inf from float16 overflow) at an unlit light makes the dense sum
+    NaN (NaN · 0); the row's true value uses the lit lights only. Rows still non-finite have a
+    masked sample at a lit light and stay so. One pass over ``out``; the field rows are read
+    again only for the (rare) bad rows.
+    """
+    bad = np.flatnonzero(~np.isfinite(out).all(axis=1))
+    if bad.size == 0:
+        return
+    sub = np.asarray(f[bad][:, active], np.float64)  # (n_bad, L', 3)
+    redo = np.einsum("plc,blc->pbc", sub, w[:, active])
+    out[bad] = redo.reshape(bad.size, -1).astype(np.float32)
 
 
 def relight_frames(frames: Iterable[tuple[int, np.ndarray]], weights: Any, n_lights: int, *,
