@@ -108,50 +108,66 @@ def _half_to_float32(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
         return dst
 
 
-#: float32 bits of a half ``h`` (sign, exponent, mantissa shifted into place) times this power
-#: of two are the half's exact value, subnormals included (the exponent bias 127 − 15 = 112).
-_HALF_SCALE = np.float32(2.0 ** 112)
 _FUSED: Any = None  # the compiled kernel, None until first use, False when numba is missing
 
 
 def _fused_kernel():
     """The numba kernel of the fused float16 dot product, compiled on first use (cached on disk).
 
+    ``fused_half_dot(h, w0, w1, w2, out)``: ``h`` ``(n, m)`` uint16 bits of float16 rows
+    (``m = 3L'``, channel-interleaved as stored), ``w0, w1, w2`` ``(m,)`` float32 — channel
+    c's Eq. (4) weights on the columns of channel c, zero elsewhere (the block weight matrix's
+    columns) — and ``out`` ``(n, 3)`` float32. Each half is widened in registers by a
+    branch-free bit manipulation (sign, exponent and mantissa moved into float32 position,
+    then × 2^112; exact for normals, subnormals, ±0, ±inf and NaN) and multiplied into three
+    accumulators: one pass over the row, nothing converted is written back. Three contiguous
+    weight vectors vectorise cleanly where a stride-3 channel split does not (measured in
+    cache on one core: 4.1 G values/s against 2.8 for convert-row-then-dot and ≈ 1.2–3 for
+    OpenCV's F16C conversion alone).
+
     Returns ``False`` when numba is not installed (the OpenCV/BLAS path is used instead).
     """
     global _FUSED
     if _FUSED is None:
         try:
-            from numba import njit
+            from numba import njit, types
+            from numba.extending import intrinsic
         except ImportError:
             _FUSED = False
             return _FUSED
 
+        @intrinsic
+        def _bits_as_float32(typingctx, x):  # pragma: no cover - compiled
+            sig = types.float32(types.uint32)
+
+            def codegen(context, builder, signature, args):
+                return builder.bitcast(args[0], context.get_value_type(types.float32))
+
+            return sig, codegen
+
+        @njit(nogil=True, cache=True, inline="always")
+        def _half_bits_to_float32(h16):  # pragma: no cover - compiled
+            x = np.uint32(h16)
+            em = x & np.uint32(0x7FFF)
+            big = (em + np.uint32(0x400)) >> np.uint32(15)  # 1 for inf/NaN (exponent 31)
+            bits = (((x & np.uint32(0x8000)) << np.uint32(16)) | (em << np.uint32(13))
+                    | (big * np.uint32(0x7F800000)))
+            return _bits_as_float32(bits) * np.float32(5.192296858534828e33)  # × 2^112
+
         # fastmath: reassociation and FMA contraction only (vectorised sums); no nnan/ninf,
         # so NaN/inf samples propagate as IEEE arithmetic says.
         @njit(nogil=True, cache=True, boundscheck=False, fastmath={"reassoc", "contract"})
-        def fused_half_dot(h, w, out, u):  # pragma: no cover - compiled
-            # h (n, m) uint16 bits of float16 rows (m = 3L', channel-interleaved),
-            # w (m,) float32 weights interleaved like the rows, out (n, 3) float32,
-            # u (m,) uint32 scratch holding one converted row (L1-resident).
+        def fused_half_dot(h, w0, w1, w2, out):  # pragma: no cover - compiled
             n, m = h.shape
-            n_l = m // 3
-            fv = u.view(np.float32)
-            scale = np.float32(5.192296858534828e33)  # 2^112
             for p in range(n):
-                for j in range(m):  # half bits → float32 bits, branch-free (vectorises)
-                    x = np.uint32(h[p, j])
-                    em = x & np.uint32(0x7FFF)
-                    big = (em + np.uint32(0x400)) >> np.uint32(15)  # 1 for inf/NaN
-                    u[j] = (((x & np.uint32(0x8000)) << np.uint32(16))
-                            | (em << np.uint32(13)) | (big * np.uint32(0x7F800000)))
                 s0 = np.float32(0)
                 s1 = np.float32(0)
                 s2 = np.float32(0)
-                for l in range(n_l):  # exact value = bits-as-float · 2^112
-                    s0 += (fv[3 * l] * scale) * w[3 * l]
-                    s1 += (fv[3 * l + 1] * scale) * w[3 * l + 1]
-                    s2 += (fv[3 * l + 2] * scale) * w[3 * l + 2]
+                for j in range(m):
+                    v = _half_bits_to_float32(h[p, j])
+                    s0 += v * w0[j]
+                    s1 += v * w1[j]
+                    s2 += v * w2[j]
                 out[p, 0] = s0
                 out[p, 1] = s1
                 out[p, 2] = s2
@@ -238,9 +254,6 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     if kernel == "fused" and not fused:
         raise InputError("kernel: 'fused' needs numba installed, one environment (L, 3) "
                          "weights and a float16 field")
-    if fused:
-        w_il = np.ascontiguousarray((w[0, active] if sparse else w[0]).reshape(-1),
-                                    dtype=np.float32)  # (3L',) interleaved like the rows
     if single:
         Wc = [np.ascontiguousarray(W[:, c]) for c in range(3)]
     rows = int(chunk_rows or max(1, CHUNK_BYTES // (4 * n_cols)))
@@ -254,8 +267,7 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
         else:
             src = f2[r0:r1]
         if fused:
-            # buf is the (n_cols,) uint32 row scratch of this thread
-            fused(np.asarray(src).view(np.uint16), w_il, out[r0:r1], buf)
+            fused(np.asarray(src).view(np.uint16), Wc[0], Wc[1], Wc[2], out[r0:r1])
             return
         if src.dtype != np.float32:
             # float16 → float32, chunk-wise (never float16 arithmetic)
@@ -270,9 +282,9 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     starts = list(range(0, n_p, rows))
     need_buf = f.dtype != np.float32
 
+    need_buf = need_buf and not fused
+
     def new_buf() -> np.ndarray:
-        if fused:
-            return np.empty(n_cols, np.uint32)
         return np.empty((min(rows, n_p), n_cols), np.float32)
 
     with _blas_single_thread():
