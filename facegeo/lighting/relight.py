@@ -9,7 +9,9 @@ rows ``(P, 3L)`` times a block weight matrix ``(3L, 3B)`` whose column ``3b + c`
 environment b's channel-c weights on the rows of channel c — so the field is read once,
 contiguously, for any number B of environments (a GEMV-like GEMM; a batch of B maps is one
 GEMM). float16 rows are converted chunk-wise to float32 (numpy float16 arithmetic is ≈ 30×
-slower, ``einsum`` ≈ 9× — DESIGN §6).
+slower, ``einsum`` ≈ 9× — DESIGN §6); for one environment on a float16 field a fused numba
+kernel widens each half in registers and accumulates the three channel sums in the same pass
+(≈ 2× the convert-then-GEMV path, measured in one run; ``docs/lighting.md``).
 
 Light colour (paper §3.3, "we normalize the reflectance functions based on the light source
 color"): an OLAT frame taken with light colour ``c_l`` is ``R_l ⊙ c_l``; pass ``light_color``
@@ -194,7 +196,8 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     """Relight an image-space or texel reflectance field with one or a batch of environments.
 
     Implements Eq. (4) of Debevec et al. 2000 (the weights carry δA). The field is read once,
-    in chunks of rows: a float16 chunk is converted to float32 into a cache-resident buffer;
+    in chunks of rows. One environment on a float16 field: the fused kernel (see ``kernel``).
+    Otherwise a float16 chunk is converted to float32 into a cache-resident buffer;
     one environment is three BLAS GEMVs over the chunk (one per channel, the weight vector
     zero on the other channels' columns: the chunk stays in cache, so memory is read once); a
     batch of B environments is one GEMM ``(rows, 3L) @ (3L, 3B)``.
