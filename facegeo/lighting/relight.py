@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -252,7 +252,7 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     n_cols = W.shape[0]
     single = n_b == 1
     if kernel not in (None, "fused", "blas"):
-        raise InputError(f"kernel: expected 'fused', 'blas' or None, got {kernel!r}")
+        raise InputError(f"kernel: expected 'fused', 'blas' or None, got {fmt_value(kernel)}")
     fused = _fused_kernel() if (kernel != "blas" and single and f.dtype == np.float16) else False
     if kernel == "fused" and not fused:
         raise InputError("kernel: 'fused' needs numba installed, one environment (L, 3) "
