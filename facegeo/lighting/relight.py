@@ -238,6 +238,8 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
         raise ShapeError(f"field: expected shape (P, L, 3), got {tuple(f.shape)}")
     if f.dtype not in (np.float16, np.float32):
         raise ShapeError(f"field: expected float16 or float32, got {f.dtype}")
+    if kernel not in (None, "fused", "blas"):
+        raise InputError(f"kernel: expected 'fused', 'blas' or None, got {fmt_value(kernel)}")
     batched = np.ndim(weights) == 3
     w = normalize_weights(weights, f.shape[1], light_color)
     n_p, n_l, _ = f.shape
@@ -251,8 +253,6 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     W = block_weights(w, active if sparse else None)  # (3L', 3B)
     n_cols = W.shape[0]
     single = n_b == 1
-    if kernel not in (None, "fused", "blas"):
-        raise InputError(f"kernel: expected 'fused', 'blas' or None, got {fmt_value(kernel)}")
     fused = _fused_kernel() if (kernel != "blas" and single and f.dtype == np.float16) else False
     if kernel == "fused" and not fused:
         raise InputError("kernel: 'fused' needs numba installed, one environment (L, 3) "
@@ -283,9 +283,7 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
                 np.matmul(src, W, out=out[r0:r1])
 
     starts = list(range(0, n_p, rows))
-    need_buf = f.dtype != np.float32
-
-    need_buf = need_buf and not fused
+    need_buf = f.dtype != np.float32 and not fused
 
     def new_buf() -> np.ndarray:
         return np.empty((min(rows, n_p), n_cols), np.float32)
