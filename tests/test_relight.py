@@ -40,6 +40,43 @@ def test_relight_field_matches_reference(dtype, sparse):
     assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= GEMM_REL
 
 
+def test_fused_float16_kernel_converts_every_half_exactly():
+    # Every float16 bit pattern (normals, subnormals, ±0, ±inf, NaNs) relit with weight 1 on
+    # one light must come out as numpy's exact float16 → float32 cast: bit-exact metric.
+    pytest.importorskip("numba")
+    h = np.arange(65536, dtype=np.uint16).view(np.float16)
+    field = np.ascontiguousarray(np.repeat(h[:, None, None], 3, axis=2))  # (65536, 1, 3)
+    got = R.relight_field(field, np.ones((1, 3)), kernel="fused")
+    want = np.repeat(h.astype(np.float32)[:, None], 3, axis=1)
+    finite = np.isfinite(want)
+    assert np.array_equal(got[finite], want[finite])
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.array_equal(got[np.isinf(want)], want[np.isinf(want)])
+
+
+@pytest.mark.parametrize("kernel", ["fused", "blas"])
+def test_kernels_agree_and_masked_samples_only_matter_at_lit_lights(kernel):
+    if kernel == "fused":
+        pytest.importorskip("numba")
+    rng = np.random.default_rng(7)
+    P, L = 500, 40  # 3L = 120: not a multiple of any SIMD width
+    field = rng.random((P, L, 3)).astype(np.float16)
+    w = rng.random((L, 3))
+    w[::4] = 0.0  # lights 0, 4, 8, ... unlit
+    field[3, 4, 1] = np.nan  # masked sample at an unlit light: must not matter
+    field[5, 8, 0] = np.inf  # float16 overflow at an unlit light: must not matter
+    field[7, 1, 2] = np.nan  # masked at a lit light: that row is NaN (never a fake value)
+    got = R.relight_field(field, w, kernel=kernel, chunk_rows=64)
+    f64 = np.nan_to_num(field.astype(np.float64), nan=0.0, posinf=0.0)
+    ref = np.einsum("plc,lc->pc", f64, w)
+    ok = np.ones(P, bool)
+    ok[7] = False
+    assert np.max(np.abs(got[ok] - ref[ok])) / np.max(ref) <= GEMM_REL
+    assert np.isnan(got[7]).any()
+    with pytest.raises(InputError, match="kernel"):
+        R.relight_field(field, w, kernel="simd")
+
+
 def test_relight_field_batch_equals_single_calls_and_channels_are_not_mixed():
     rng = np.random.default_rng(1)
     field = rng.random((300, 20, 3)).astype(np.float16)
@@ -191,3 +228,108 @@ def test_run_relight_bad_arguments(tiny_scan, tmp_path):
         run_relight(scan.root, env_file, view="nope")
     with pytest.raises(ShapeError, match="1:1"):
         run_relight(scan.root, env_file, projection="mirrorball")
+
+
+# --------------------------------------------------------------------------- texture space
+
+
+@pytest.fixture(scope="module")
+def projected(tiny_scan, tmp_path_factory):
+    """The tiny scan's atlas and surface reflectance field (``facegeo project``) in a folder of
+    their own (so the camera-view tests still see a scan without them)."""
+    from facegeo.pipeline.project import run_project
+
+    scan, _ = tiny_scan
+    out = tmp_path_factory.mktemp("projected") / "out"
+    run_project(scan.root, out, gt_lights=4)
+    return scan, out
+
+
+def _blend_fields(field_dir, per_camera):
+    """Independent reference: Σ_c w_c f_c(R_c) / Σ_c w_c in float64 with ``np.add.at``, where
+    ``f_c`` maps a float32 chunk ``(n, L, 3)`` to ``(n, 3)``; non-finite values left out."""
+    from facegeo.surface.atlas import Texels
+    from facegeo.surface.reflectance import iter_field_chunks
+
+    n_t = len(Texels.load(field_dir / "atlas" / "texels.npz"))
+    acc = np.zeros((n_t, 3))
+    wsum = np.zeros((n_t, 3))
+    for cam in sorted((field_dir / "project").glob("*/R.npy")):
+        idx = np.load(cam.parent / "texel_index.npy")
+        wc = np.load(cam.parent / "weight.npy").astype(np.float64)
+        for s, chunk in iter_field_chunks(cam.parent):
+            v = per_camera(chunk.astype(np.float64))
+            ok = np.isfinite(v)
+            sl = slice(s, s + len(chunk))
+            np.add.at(acc, idx[sl], np.where(ok, v, 0.0) * wc[sl, None])
+            np.add.at(wsum, idx[sl], np.where(ok, wc[sl, None], 0.0))
+    with np.errstate(invalid="ignore"):
+        return np.where(wsum > 0, acc / np.where(wsum > 0, wsum, 1), np.nan)
+
+
+@pytest.mark.slow
+def test_texture_relight_with_one_light_equals_the_projected_olat_sample(projected):
+    # Linearity / consistency: a weight vector lighting only light l (asymmetric channel
+    # weights) relights the texture-space field to the camera-weighted blend of the projected
+    # OLAT samples of light l. Metric: max |Δ| / max |reference| over measured texels, and the
+    # same set of unmeasured (NaN) texels.
+    from facegeo.pipeline.relight import relight_texture
+
+    scan, out = projected
+    n_l = scan.n_lights
+    gain = np.array([0.7, 1.1, 1.3])
+    for l in (0, n_l // 3, n_l - 5):
+        w = np.zeros((n_l, 3))
+        w[l] = gain
+        got, wsum, cams = relight_texture(out, w)
+        ref = _blend_fields(out, lambda c: c[:, l, :] * gain)
+        assert cams == sorted(scan.camera_names)
+        assert np.array_equal(np.isnan(got), np.isnan(ref))
+        ok = np.isfinite(ref)
+        assert ok.mean() > 0.3  # the tiny preset's two frontal cameras see ≈ 46 % of the head
+        assert np.max(np.abs(got[ok] - ref[ok])) <= GEMM_REL * np.max(np.abs(ref[ok]))
+
+
+@pytest.mark.slow
+def test_texture_relight_of_a_uniform_environment_writes_the_irradiance_weighted_atlas(
+        projected, tmp_path):
+    # A constant environment of radiance 0.5 through the whole stage (EXR → Eq. 4 weights δA →
+    # every camera's field → per-texel blend → atlas EXR): each texel equals the camera blend
+    # of Σ_l R(l)·0.5·δA_l / colour_l computed independently in float64.
+    from facegeo.capture import imageio
+    from facegeo.pipeline.relight import run_relight
+    from facegeo.surface.atlas import Texels
+
+    scan, out = projected
+    env_file = imageio.write_image(tmp_path / "grey.exr", np.full((16, 32, 3), 0.5, np.float32))
+    calls = []
+    m = run_relight(scan.root, env_file, view="texture", field_dir=out, out_dir=tmp_path / "o",
+                    progress=lambda *a: calls.append(a))
+    lights = scan.rig.lights
+    w = E.light_stage_weights(E.read_envmap(env_file), lights.n_theta, lights.n_phi)
+    assert np.allclose(w, 0.5 * light_solid_angles(lights.n_theta, lights.n_phi)[:, None],
+                       rtol=1e-3)  # the uniform map's Eq. 4 weights are 0.5 · δA (paper δA)
+    wn = w / np.broadcast_to(lights.color_rgb, w.shape)
+    ref = _blend_fields(out, lambda c: np.einsum("tlc,lc->tc", c, wn))
+    texels = Texels.load(out / "atlas" / "texels.npz")
+    exr = imageio.read_image(m["files"]["exr"])
+    assert exr.shape == texels.shape + (3,)
+    got = exr[texels.row, texels.col]
+    ok = np.isfinite(ref).all(axis=1)
+    assert np.max(np.abs(got[ok] - ref[ok])) <= GEMM_REL * np.max(ref[ok])
+    assert np.all(got[~ok] == 0)  # unmeasured texels are 0 in the image and flagged
+    measured = imageio.read_image(m["files"]["measured"])
+    assert np.array_equal(measured[texels.row, texels.col] > 0, ok)
+    assert m["measured_texels"] == int(ok.sum()) and m["view"] == "texture"
+    assert [c[1:] for c in calls] == [(k + 1, len(scan.camera_names))
+                                      for k in range(len(scan.camera_names))]
+    png = imageio.read_image(m["files"]["png"])
+    assert png.dtype == np.uint8 and png.shape == exr.shape
+
+
+@pytest.mark.slow
+def test_texture_relight_without_a_projected_field_says_what_to_run(tiny_scan, tmp_path):
+    from facegeo.pipeline.relight import relight_texture
+
+    with pytest.raises(InputError, match="facegeo project"):
+        relight_texture(tmp_path, np.ones((tiny_scan[0].n_lights, 3)))

@@ -1,8 +1,15 @@
-"""Pipeline stage ``relight``: a scan's OLAT frames of one camera relit by an environment map
-(Debevec et al. 2000 §3.3, Eq. 4), written as EXR and tone-mapped PNG under
-``SCAN/out/relight/``.
+"""Pipeline stage ``relight``: a scan relit by an environment map (Debevec et al. 2000 §3.3,
+Eq. 4), written as EXR and tone-mapped PNG under ``SCAN/out/relight/``.
 
-The CLI (``facegeo relight SCAN --env FILE [--rotate DEG] [--view CAMERA]``) calls
+Two views:
+
+* a camera: its OLAT frames, reading only the lights with non-zero weight;
+* ``"texture"``: the surface reflectance field written by ``facegeo project``
+  (``out/project/<camera>/R.npy`` ``(T_c, L, 3)`` with ``texel_index.npy``, ``weight.npy``),
+  every camera's field relit and blended per texel by the camera weights, written as the
+  atlas image (:func:`relight_texture`).
+
+The CLI (``facegeo relight SCAN --env FILE [--rotate DEG] [--view CAMERA|texture]``) calls
 :func:`run_relight`; progress goes through the ``progress`` callback, the library only logs.
 """
 
@@ -16,6 +23,7 @@ import re
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -24,7 +32,7 @@ from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_relight", "tone_map"]
+__all__ = ["run_relight", "relight_texture", "tone_map"]
 
 #: Tone mapping: the 99.5th percentile of luminance maps to this display value before sRGB.
 TONE_MAP_WHITE = 0.9
@@ -48,12 +56,93 @@ def _safe_stem(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "env"
 
 
+def _project_cameras(field_dir: Path) -> list[Path]:
+    """The camera folders of ``field_dir/project`` that hold a projected field, sorted."""
+    proj = field_dir / "project"
+    cams = sorted(p for p in proj.glob("*") if (p / "R.npy").is_file()) if proj.is_dir() else []
+    if not cams or not (field_dir / "atlas" / "texels.npz").is_file():
+        raise InputError(f"{field_dir}: relighting in texture space needs the texture atlas "
+                         f"(atlas/texels.npz) and the surface reflectance field "
+                         f"(project/<camera>/R.npy); run 'facegeo project SCAN' first")
+    return cams
+
+
+def relight_texture(field_dir: str | os.PathLike, weights: Any, *, light_color: Any = None,
+                    progress: Callable[[int, int], None] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Relight the surface reflectance field in texture space (Eq. 4 on every camera's field,
+    blended per texel by the camera weights).
+
+    For texel t seen by cameras c with weights ``w_c(t)`` (light-independent, see
+    ``docs/surface.md``)::
+
+        L̂(t) = Σ_c w_c(t) · Σ_l R_c(t, l) ⊙ w_l  /  Σ_c w_c(t)
+
+    which equals relighting the blended field ``Σ_c w_c R_c / Σ_c w_c`` because the camera
+    weights are the same for every light: relighting stays linear in the environment. A
+    camera whose relit value is NaN/inf for a texel's channel (a masked sample at a lit light)
+    is left out of that texel's blend (the remaining cameras are renormalised); a texel no
+    camera measured is NaN.
+
+    Parameters
+    ----------
+    field_dir : path
+        Folder holding ``atlas/texels.npz`` and ``project/<camera>/`` (``SCAN/out``).
+    weights : (L, 3) float
+        Eq. (4) weights (δA included), L the scan's lights.
+    light_color : (3,) or (L, 3), optional
+        Divide the weights by the recording light's colour (see
+        :func:`facegeo.lighting.relight.relight_field`).
+    progress : callable(done, total), optional
+        Called after each camera.
+
+    Returns
+    -------
+    relit : (T, 3) float32
+        Relit radiance per texel, NaN where no camera measured it.
+    weight_sum : (T, 3) float64
+        ``Σ_c w_c(t)`` over the cameras blended (per channel); 0 where unmeasured.
+    cameras : list of str
+    """
+    from facegeo.lighting.relight import relight_field
+    from facegeo.surface.atlas import Texels
+    from facegeo.surface.reflectance import open_field
+
+    field_dir = Path(field_dir)
+    cams = _project_cameras(field_dir)
+    n_t = len(Texels.load(field_dir / "atlas" / "texels.npz"))
+    acc = np.zeros((n_t, 3))
+    wsum = np.zeros((n_t, 3))
+    for k, cam in enumerate(cams):
+        R = open_field(cam)
+        idx = np.load(cam / "texel_index.npy")
+        wc = np.load(cam / "weight.npy").astype(np.float64)
+        if R.ndim != 3 or R.shape[0] != idx.size or wc.shape != idx.shape:
+            raise InputError(f"{cam}: R.npy {R.shape}, texel_index.npy {idx.shape} and "
+                             f"weight.npy {wc.shape} disagree (re-run 'facegeo project')")
+        if idx.size and (idx.min() < 0 or idx.max() >= n_t):
+            raise InputError(f"{cam}/texel_index.npy: indices outside the atlas's {n_t} "
+                             f"texels (the atlas was rebuilt after the projection; re-run "
+                             f"'facegeo project')")
+        relit = relight_field(R, weights, light_color=light_color).astype(np.float64)
+        ok = np.isfinite(relit)
+        # texel_index is unique within a camera: plain fancy-index accumulation is exact
+        acc[idx] += np.where(ok, wc[:, None] * np.where(ok, relit, 0.0), 0.0)
+        wsum[idx] += np.where(ok, wc[:, None], 0.0)
+        if progress:
+            progress(k + 1, len(cams))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(wsum > 0, acc / wsum, np.nan).astype(np.float32)
+    return out, wsum, [c.name for c in cams]
+
+
 def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
                 rotate_deg: float = 0.0, view: str | None = None,
                 out_dir: str | os.PathLike | None = None, projection: str = "latlong",
-                solid_angle: str = "paper",
+                solid_angle: str = "paper", field_dir: str | os.PathLike | None = None,
                 progress: Callable[[str, int, int], None] | None = None) -> dict:
-    """Relight one camera of a scan with an environment map and write the images.
+    """Relight one camera of a scan, or its texture atlas, with an environment map and write
+    the images.
 
     Parameters
     ----------
@@ -64,14 +153,20 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     rotate_deg : float, degrees
         Rotation of the environment about +Y (right-hand rule: +Z turns toward +X).
     view : str, optional
-        Camera name (default: the scan's first camera). ``"texture"`` needs the texture atlas,
-        which the pipeline does not build yet (clear error).
+        Camera name (default: the scan's first camera), or ``"texture"``: the surface
+        reflectance field of ``facegeo project`` relit and blended per texel
+        (:func:`relight_texture`); the output is the atlas image, 0 where no camera measured a
+        texel (and outside the charts), with ``<stem>_measured.png`` marking measured texels.
     out_dir : path, optional
         Default ``SCAN/out/relight``.
     projection : {"latlong", "mirrorball", "angular"}
     solid_angle : {"paper", "exact"}
         δA rule of the light-basis projection (:func:`facegeo.lighting.envmap.light_stage_weights`).
+    field_dir : path, optional
+        For ``view="texture"``: the folder with ``atlas/`` and ``project/`` (default
+        ``SCAN/out``).
     progress : callable(stage, done, total), optional
+        Per active light (camera view) or per camera (texture view).
 
     Returns
     -------
@@ -86,20 +181,21 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     from facegeo.lighting.relight import relight_scan_view
 
     t0 = time.perf_counter()
-    if view == "texture":
-        raise InputError("view: relighting in texture space needs the scan's texture atlas and "
-                         "surface reflectance field (facegeo atlas / project), which are not "
-                         "built yet; pass a camera name instead")
     if not math.isfinite(float(rotate_deg)):
         raise InputError(f"rotate: expected a finite angle in degrees, got {fmt_value(rotate_deg)}")
     scan = load_scan(scan_dir)
-    if not scan.has("olat"):
-        raise InputError(f"{scan.root}: the scan has no OLAT frames to relight")
     names = scan.camera_names
-    view = names[0] if view is None else view
-    if view not in names:
-        raise InputError(f"view: unknown camera {fmt_value(view)}; the scan has {', '.join(names)} "
-                         f"(or 'texture')")
+    texture = view == "texture"
+    if texture:
+        fdir = Path(field_dir) if field_dir is not None else scan.out_dir
+        _project_cameras(fdir)  # clear error before reading the environment
+    else:
+        if not scan.has("olat"):
+            raise InputError(f"{scan.root}: the scan has no OLAT frames to relight")
+        view = names[0] if view is None else view
+        if view not in names:
+            raise InputError(f"view: unknown camera {fmt_value(view)}; the scan has "
+                             f"{', '.join(names)} (or 'texture')")
     env = E.read_envmap(env_path, projection, rotate_deg=rotate_deg)
     lights = scan.rig.lights
     t_env = time.perf_counter()
@@ -107,8 +203,25 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     integral = env.integral()
     active = int(np.count_nonzero(np.any(w != 0, axis=1)))
     t_w = time.perf_counter()
-    tick = (lambda k: progress("relight", k + 1, active)) if progress else None
-    img = relight_scan_view(scan, view, w, normalize_color=True, progress=tick)
+    extra: dict[str, Any] = {}
+    if texture:
+        from facegeo.surface.atlas import Texels
+
+        tick = (lambda k, n: progress("relight", k, n)) if progress else None
+        texel_rgb, wsum, cams = relight_texture(fdir, w, light_color=lights.color_rgb,
+                                                progress=tick)
+        texels = Texels.load(fdir / "atlas" / "texels.npz")
+        measured = np.isfinite(texel_rgb).all(axis=1)
+        img = texels.to_image(np.where(measured[:, None], texel_rgb, 0.0).astype(np.float32),
+                              fill=0.0)
+        extra = {"cameras": cams, "texels": int(measured.size),
+                 "measured_texels": int(measured.sum()),
+                 "mask": texels.to_image(measured.astype(np.uint8) * 255, fill=0)}
+        mean_src = texel_rgb[measured]
+    else:
+        tick = (lambda k: progress("relight", k + 1, active)) if progress else None
+        img = relight_scan_view(scan, view, w, normalize_color=True, progress=tick)
+        mean_src = img.reshape(-1, 3)
     t_relit = time.perf_counter()
 
     out = Path(out_dir) if out_dir is not None else scan.out_dir / "relight"
@@ -118,14 +231,18 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     exr = imageio.write_image(out / f"{stem}.exr", img)  # atomic (temporary file + rename)
     png_img, exposure = tone_map(img)
     png = imageio.write_image(out / f"{stem}.png", png_img)
+    files = {"exr": str(exr), "png": str(png)}
+    if texture:
+        files["measured"] = str(imageio.write_image(out / f"{stem}_measured.png",
+                                                    extra.pop("mask")))
     metrics = {
         "scan": str(scan.root), "view": view, "env": str(env_path), "projection": projection,
         "rotate_deg": float(rotate_deg), "solid_angle": solid_angle,
         "n_lights": int(lights.n_lights), "active_lights": active,
         "energy_ratio": (w.sum(0) / np.where(integral > 0, integral, 1)).tolist(),
-        "mean_radiance": img.reshape(-1, 3).mean(0).tolist(),
+        "mean_radiance": (mean_src.mean(0) if len(mean_src) else np.zeros(3)).tolist(),
         "tone_map_exposure": exposure,
-        "files": {"exr": str(exr), "png": str(png)},
+        "files": files, **extra,
         "seconds": {"env": t_env - t0, "weights": t_w - t_env, "relight": t_relit - t_w,
                     "total": time.perf_counter() - t0},
     }
