@@ -287,6 +287,8 @@ def _cmd_relight(args) -> int:
           f"sum(w)/integral(L) = {', '.join(f'{r:.4f}' for r in m['energy_ratio'])}, "
           f"{m['seconds']['total']:.2f} s")
     print(f"wrote {m['files']['exr']} and {m['files']['png']}")
+    if "measured" in m["files"]:
+        print(f"measured texels: {m['measured_texels']}/{m['texels']} ({m['files']['measured']})")
     return 0
 
 
@@ -437,7 +439,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_project)
 
     s = sub.add_parser("relight", parents=common,
-                       help="relight a camera view of the scan with an environment map (Eq. 4)")
+                       help="relight a camera view of the scan, or its texture atlas (--view texture), "
+                            "with an environment map (Eq. 4)")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--env", required=True, metavar="FILE", help=".exr/.hdr environment map")
     s.add_argument("--projection", choices=["latlong", "mirrorball", "angular"],
