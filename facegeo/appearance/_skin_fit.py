@@ -18,7 +18,7 @@ from facegeo.appearance._skin_model import (
     SINGULAR_SIN2,
     LightSet,
     normalize,
-    ramp_f,
+    ramp_f_from_x,
 )
 from facegeo.appearance.brdf import fresnel_dielectric, torrance_sparrow_geometry
 from facegeo.checks import as_array, check_unit_vectors, fmt_value
@@ -94,7 +94,7 @@ class SearchDepth:
 
 
 def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
-                  pattern: str = "grid"):
+                  pattern: str = "grid", subset: bool = False):
     """Coarse-to-fine compass search, vectorised over N problems.
 
     Pattern search: each iteration evaluates the candidates of the pattern around the centre
@@ -104,9 +104,16 @@ def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
     halves its step. Runs until every problem has halved ``levels`` times or after
     ``levels · moves`` iterations. Ties keep the centre.
 
+    With ``subset=True`` a problem stops as soon as its centre stays best at the finest step
+    ``step0 / 2**levels`` (it is converged to the requested precision) and
+    ``objective(cand, rows)`` is called with only the problems still searching (``rows``: their
+    indices into the N problems, ``cand`` ``(len(rows), K, P)``); without it, finished problems
+    keep taking finest-step moves until all have finished, and every problem is evaluated
+    every iteration (the same minimum to within the finest step, at more cost).
+
     Parameters
     ----------
-    objective : callable ``(N, K, P) -> (N, K)``
+    objective : callable ``(N, K, P) -> (N, K)`` (``subset``: ``(cand, rows) -> (n, K)``)
         Non-finite values count as +inf.
     x0 : (N, P) float64
     step0 : (P,) float64
@@ -128,21 +135,22 @@ def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
         offs = np.stack(np.meshgrid(*([[0.0, -1.0, 1.0]] * P), indexing="ij"), -1).reshape(-1, P)
     else:
         raise ValueError(f"pattern: expected 'grid' or 'compass', got {fmt_value(pattern)}")
-    rows = np.arange(N)
     val = np.full(N, np.inf)
     halvings = np.zeros(N, np.int64)
     for _ in range(levels * moves):
-        if np.all(halvings >= levels):
+        act = np.flatnonzero(halvings <= levels) if subset else np.arange(N)
+        if act.size == 0 or (not subset and np.all(halvings >= levels)):
             break
-        cand = x[:, None, :] + offs[None] * step[:, None, :]
-        f = np.asarray(objective(cand), np.float64)
+        cand = x[act, None, :] + offs[None] * step[act, None, :]
+        f = np.asarray(objective(cand, act) if subset else objective(cand), np.float64)
         f = np.where(np.isfinite(f), f, np.inf)
         best = np.argmin(f, axis=1)
-        x = cand[rows, best]
-        val = f[rows, best]
-        stay = (best == 0) & (halvings < levels)
-        step[stay] *= 0.5
-        halvings += stay
+        k = np.arange(act.size)
+        x[act] = cand[k, best]
+        val[act] = f[k, best]
+        stay = (best == 0) & (halvings[act] < levels + int(subset))
+        step[act[stay]] *= 0.5
+        halvings[act[stay]] += 1
     return x, val
 
 
@@ -169,6 +177,13 @@ def _lobe_misfit(y, w, x):
     return np.where(ok, 1.0 - sxy * sxy / den, 1.0)
 
 
+def _misfit_from_sums(syy, sxy, sxx):
+    """:func:`_lobe_misfit` from its three weighted sums (any broadcastable shapes)."""
+    ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
+    den = np.where(ok, sxx * syy, 1.0)
+    return np.where(ok, 1.0 - sxy * sxy / den, 1.0)
+
+
 def _lobe_residuals(y, w, x):
     """Residual vector whose squared sum is :func:`_lobe_misfit`: ``√w (y − k x)/√(Σ w y²)``."""
     if y.ndim == 3:
@@ -179,6 +194,18 @@ def _lobe_residuals(y, w, x):
     ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
     k = np.where(ok, sxy / np.where(ok, sxx, 1.0), 0.0)
     return np.sqrt(w) * (y - k * x) / np.sqrt(np.where(syy > 1e-300, syy, 1.0))
+
+
+def _lobe_residuals_sqrtw(y, sqw, x):
+    """:func:`_lobe_residuals` for ``y``, ``x`` ``(N, K, L)`` with ``√w`` ``(N, L)`` given."""
+    yw = y * sqw[:, None, :]
+    xw = x * sqw[:, None, :]
+    syy = np.sum(yw * yw, axis=-1, keepdims=True)
+    sxy = np.sum(yw * xw, axis=-1, keepdims=True)
+    sxx = np.sum(xw * xw, axis=-1, keepdims=True)
+    ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
+    k = np.where(ok, sxy / np.where(ok, sxx, 1.0), 0.0)
+    return (yw - k * xw) / np.sqrt(np.where(syy > 1e-300, syy, 1.0))
 
 
 def gauss_newton_polish(residuals, x0, *, iterations: int = 8, h: float = 1e-5):
@@ -260,22 +287,42 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
     misfit_start, misfit : (N,) float64
         Relative misfit at ``n_start`` and at the result.
     """
+    # Precomputed once per call, not per candidate: only lights some function of the chunk
+    # can use (w = 0 samples add nothing to any sum), the weighted data w δA y and its norm.
+    n_all = lights.directions
+    used = np.flatnonzero(w.any(axis=0))
+    l = n_all[used] if used.size < n_all.shape[0] else n_all
+    wd = (w * lights.solid_angles)[:, used] if used.size < n_all.shape[0] else w * lights.solid_angles
+    yu = y[:, used] if used.size < n_all.shape[0] else y
     t1, t2 = _tangent_basis(n_start)
-    l = lights.directions
-    wd = w * lights.solid_angles
+    lt = np.ascontiguousarray(l.T)
+    wy = (wd * yu)[:, :, None]  # (N, L', 1)
+    wdc = wd[:, :, None]
+    syy = np.sum(wd * yu * yu, axis=1)[:, None]  # (N, 1)
 
     def normals(u):
         return normalize(n_start[:, None, :] + u[..., :1] * t1[:, None, :]
                          + u[..., 1:2] * t2[:, None, :])
 
-    def objective(u):
-        x = np.maximum(np.einsum("nkc,lc->nkl", normals(u), l), 0.0)
-        return _lobe_misfit(y[:, None, :], wd, x)
+    def objective(u, rows=None):
+        # 1 − <y,x>²/(|y|²|x|²) (weights w δA) as batched matrix products; rows: the
+        # problems still searching (direct_search's subset)
+        sel = slice(None) if rows is None else rows
+        nk = n_start[sel][:, None, :] + u[..., :1] * t1[sel][:, None, :] \
+            + u[..., 1:2] * t2[sel][:, None, :]
+        nk = normalize(nk)
+        x = np.maximum(nk @ lt, 0.0)  # (n, K, L')
+        sxy = (x @ wy[sel])[..., 0]
+        sxx = ((x * x) @ wdc[sel])[..., 0]
+        return _misfit_from_sums(syy[sel], sxy, sxx)
 
     u0 = np.zeros((n_start.shape[0], 2))
     misfit_start = objective(u0[:, None, :])[:, 0]
-    u, misfit = direct_search(objective, u0, depth.normal_step, depth.levels, depth.moves)
+    u, misfit = direct_search(objective, u0, depth.normal_step, depth.levels, depth.moves,
+                              subset=True)
     n = normals(u[:, None, :])[:, 0]
+    l = n_all
+    wd = w * lights.solid_angles
     x = np.maximum(n @ l.T, 0.0)
     sxx = np.sum(wd * x * x, axis=1)
     k = np.where(sxx > 0, np.sum(wd * y * x, axis=1) / np.where(sxx > 0, sxx, 1.0), 0.0)
@@ -378,44 +425,74 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
                           lights.intensities[used], None)
         R, w = R[:, used], w[:, used]
     l = lights.directions
+    lt = np.ascontiguousarray(l.T)
     s = S_WHITE
     nv0 = np.einsum("ni,ni->n", n, v)
     r = 2.0 * nv0[:, None] * n - v
-    wm = 1.0 - np.exp(-(1.0 - r @ l.T) / MIRROR_SIGMA)
+    wm = 1.0 - np.exp(-(1.0 - r @ lt) / MIRROR_SIGMA)
     wd = w * lights.solid_angles * wm
     Rs = R @ s  # (N, L)
     Rd = np.einsum("nlc,nc->nl", R, d_0)
     ds = d_0 @ s
     t1, t2 = _tangent_basis(n)
+    # Per function, independent of the candidate (precomputed once, not per evaluation):
+    # Eq. 6 without 3-vectors. With g = 1 + f and u = g d_0 − f s (c = u/|u|):
+    #   |u|² = 1 + 2 (1 − d_0·s) f g,  |u × s|² = g² |d_0 × s|²,  R·u − (R·s)(u·s) = g (R·d_0 − (R·s)(d_0·s)),
+    # so the separated μ_d of §4.2 is  μ_d = |u|/g · A  with  A = (R·d_0 − (R·s)(d_0·s))/|d_0 × s|²,
+    # and where the matrix is singular (|u × s|² < SINGULAR_SIN2 |u|²) μ_d = R·c = (R·d_0 + f (R·d_0 − R·s))/|u|.
+    ds2 = 1.0 - ds * ds  # |d_0 × s|²
+    A = (Rd - Rs * ds[:, None]) / np.where(ds2 > 0, ds2, 1.0)[:, None]
+    A = np.where((ds2 > 0)[:, None], A, 0.0)
+    Rdms = Rd - Rs
+    two_1mds = (2.0 * (1.0 - ds))[:, None, None]
+    ds2k = ds2[:, None, None]
+    sqw = np.sqrt(wd)
+    # fixed normal (the search, and the polish without the normal): n·l, cos θ_i cos θ_r
+    nl_fix = np.maximum(n @ lt, 0.0)  # (N, L)
+    x_fix = np.clip(nl_fix, 0.0, 1.0) * np.clip(nv0, 0.0, 1.0)[:, None]
+    sxx_fix = np.sum(wd * nl_fix * nl_fix, axis=1)  # (N,)
+    wnl_fix = (wd * nl_fix)[:, :, None]
+    wdc = wd[:, :, None]
+
+    def mu_d(p, xcos, sel):
+        # separated diffuse coefficient of §4.2 for every candidate ramp, (n, K, L)
+        f = ramp_f_from_x(xcos, p[..., 0:1], p[..., 1:2])
+        g = 1.0 + f
+        uu = 1.0 + two_1mds[sel] * f * g
+        su = np.sqrt(uu)
+        sing = g * g * ds2k[sel] < SINGULAR_SIN2 * uu
+        if np.any(sing):
+            gs = np.where(sing, 1.0, g)
+            return np.where(sing, (Rd[sel][:, None, :] + f * Rdms[sel][:, None, :]) / su,
+                            A[sel][:, None, :] * su / gs)
+        return A[sel][:, None, :] * (su / g)
 
     def residuals(p):
         # p = (α_0, α_1[, u, w]): optional tangent-plane offsets of the normal
         if p.shape[-1] == 4:
             nk = normalize(n[:, None, :] + p[..., 2:3] * t1[:, None, :]
                            + p[..., 3:4] * t2[:, None, :])
+            nl = np.maximum(nk @ lt, 0.0)  # (N, K, L)
+            nv = np.einsum("nkc,nc->nk", nk, v)[..., None]
+            xcos = np.clip(nl, 0.0, 1.0) * np.clip(nv, 0.0, 1.0)
         else:
-            nk = np.broadcast_to(n[:, None, :], p.shape[:2] + (3,))
-        nl = np.maximum(np.einsum("nkc,lc->nkl", nk, l), 0.0)  # (N, K, L)
-        nv = np.einsum("nkc,nc->nk", nk, v)[..., None]
-        f = ramp_f(nl, nv, p[..., 0:1], p[..., 1:2])  # (N, K, L)
-        # Eq. 6 without 3-vectors: u = (1 + f) d_0 − f s, c = u/|u|; the separation of §4.2
-        # needs only R·c, c·s and |c × s|² = (1 + f)² |d_0 × s|² / |u|²
-        g = 1.0 + f
-        uR = g * Rd[:, None, :] - f * Rs[:, None, :]
-        us = g * ds[:, None, None] - f
-        uu = np.maximum(g * g - 2.0 * f * g * ds[:, None, None] + f * f, 1e-300)
-        cross2 = g * g * (1.0 - ds * ds)[:, None, None]  # |u × s|²
-        sing = cross2 < SINGULAR_SIN2 * uu
-        mu_d = np.where(sing, uR / np.sqrt(uu),
-                        np.sqrt(uu) * (uR - Rs[:, None, :] * us) / np.where(sing, 1.0, cross2))
-        return _lobe_residuals(mu_d, wd, nl)
+            nl = nl_fix[:, None, :]
+            xcos = x_fix[:, None, :]
+        return _lobe_residuals_sqrtw(mu_d(p, xcos, slice(None)), sqw, nl)
 
-    def objective(p):
-        r = residuals(p)
-        return np.sum(r * r, axis=-1)
+    def objective(p, rows):
+        # Σ residuals² of the fixed-normal ramp in closed form from the three weighted sums
+        m = mu_d(p, x_fix[rows][:, None, :], rows)
+        syy = ((m * m) @ wdc[rows])[..., 0]
+        sxy = (m @ wnl_fix[rows])[..., 0]
+        sxx = sxx_fix[rows][:, None]
+        ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
+        fit = 1.0 - sxy * sxy / np.where(ok, sxx * syy, 1.0)
+        return np.where(ok, fit, np.where(syy > 1e-300, 1.0, syy))
 
     x0 = np.zeros((n.shape[0], 2))
-    p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves)
+    p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves,
+                              subset=True)
     n_out = n
     if depth.polish and not depth.polish_normal:
         p, misfit = gauss_newton_polish(residuals, p, iterations=depth.polish)
