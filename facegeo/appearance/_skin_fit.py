@@ -208,43 +208,70 @@ def _lobe_residuals_sqrtw(y, sqw, x):
     return (yw - k * xw) / np.sqrt(np.where(syy > 1e-300, syy, 1.0))
 
 
-def gauss_newton_polish(residuals, x0, *, iterations: int = 8, h: float = 1e-5):
+#: Relative decrease of the sum of squares below which a Levenberg–Marquardt problem counts
+#: as converged (:func:`gauss_newton_polish` with ``subset=True``).
+POLISH_FTOL = 1e-9
+
+
+def gauss_newton_polish(residuals, x0, *, iterations: int = 8, h: float = 1e-5,
+                        subset: bool = False, ftol: float = POLISH_FTOL):
     """Levenberg–Marquardt polish of N small least-squares problems at once.
 
     ``residuals(cand (N, K, P)) -> (N, K, M)``; the Jacobian is taken by central differences
-    (all 2P + 1 evaluations in one call). A step is kept only where it lowers the sum of
-    squares, so the polish never makes a search result worse.
+    (the 2P offsets in one call; the centre's residuals are kept from the previous step). A
+    step is kept only where it lowers the sum of squares, so the polish never makes a search
+    result worse. The P × P normal equations of all problems are one batched
+    ``np.linalg.solve`` on ``(n, P, P)``.
+
+    With ``subset=True`` a problem stops once a step lowers its sum of squares by less than
+    ``ftol`` relative (or raises it) after a first accepted step: it sits at the bottom to
+    rounding, and later steps would only wander along flat valleys. ``residuals(cand, rows)``
+    is then called with only the problems still iterating (``rows`` their indices).
 
     Returns ``(x (N, P), value (N,))``.
     """
     x = np.array(x0, dtype=np.float64)
     N, P = x.shape
-    offs = np.concatenate([np.zeros((1, P)), h * np.eye(P), -h * np.eye(P)])
+    offs = np.concatenate([h * np.eye(P), -h * np.eye(P)])
     lam = np.full(N, 1e-8)
-    rows = np.arange(N)
-    r = residuals(x[:, None, :])[:, 0]
+    allrows = np.arange(N)
+
+    def res(cand, rows):
+        return residuals(cand, rows) if subset else residuals(cand)
+
+    r = res(x[:, None, :], allrows)[:, 0]
     val = np.sum(r * r, axis=-1)
+    active = np.ones(N, bool)
+    moved = np.zeros(N, bool)
     for _ in range(iterations):
-        rr = residuals(x[:, None, :] + offs[None])
-        r = rr[:, 0]
-        J = (rr[:, 1:P + 1] - rr[:, P + 1:]) / (2.0 * h)  # (N, P, M)
-        JtJ = np.einsum("npm,nqm->npq", J, J)
-        g = np.einsum("npm,nm->np", J, r)
-        A = JtJ + lam[:, None, None] * (np.eye(P) * np.maximum(
+        act = np.flatnonzero(active) if subset else allrows
+        if act.size == 0:
+            break
+        xa, ra = x[act], r[act]
+        rr = res(xa[:, None, :] + offs[None], act)
+        J = (rr[:, :P] - rr[:, P:]) / (2.0 * h)  # (n, P, M)
+        JtJ = J @ np.swapaxes(J, 1, 2)
+        g = (J @ ra[..., None])[..., 0]
+        A = JtJ + lam[act, None, None] * (np.eye(P) * np.maximum(
             np.einsum("npp->np", JtJ), 1e-30)[:, None, :])
         try:
             dx = -np.linalg.solve(A, g[..., None])[..., 0]
         except np.linalg.LinAlgError:
             break
         dx = np.where(np.isfinite(dx), dx, 0.0)
-        xn = x + dx
-        rn = residuals(xn[:, None, :])[:, 0]
+        xn = xa + dx
+        rn = res(xn[:, None, :], act)[:, 0]
         vn = np.sum(rn * rn, axis=-1)
-        better = np.isfinite(vn) & (vn < val)
-        x = np.where(better[:, None], xn, x)
-        val = np.where(better, vn, val)
-        lam = np.where(better, lam * 0.1, lam * 10.0)
-    del rows
+        va = val[act]
+        better = np.isfinite(vn) & (vn < va)
+        x[act] = np.where(better[:, None], xn, xa)
+        r[act] = np.where(better[:, None], rn, ra)
+        val[act] = np.where(better, vn, va)
+        lam[act] = np.where(better, lam[act] * 0.1, lam[act] * 10.0)
+        if subset:
+            small = ~better | (va - vn <= ftol * va)
+            active[act] = ~(small & moved[act])
+            moved[act] |= better
     return x, val
 
 
@@ -467,18 +494,18 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
                             A[sel][:, None, :] * su / gs)
         return A[sel][:, None, :] * (su / g)
 
-    def residuals(p):
+    def residuals(p, rows=slice(None)):
         # p = (α_0, α_1[, u, w]): optional tangent-plane offsets of the normal
         if p.shape[-1] == 4:
-            nk = normalize(n[:, None, :] + p[..., 2:3] * t1[:, None, :]
-                           + p[..., 3:4] * t2[:, None, :])
-            nl = np.maximum(nk @ lt, 0.0)  # (N, K, L)
-            nv = np.einsum("nkc,nc->nk", nk, v)[..., None]
+            nk = normalize(n[rows][:, None, :] + p[..., 2:3] * t1[rows][:, None, :]
+                           + p[..., 3:4] * t2[rows][:, None, :])
+            nl = np.maximum(nk @ lt, 0.0)  # (n, K, L)
+            nv = np.einsum("nkc,nc->nk", nk, v[rows])[..., None]
             xcos = np.clip(nl, 0.0, 1.0) * np.clip(nv, 0.0, 1.0)
         else:
-            nl = nl_fix[:, None, :]
-            xcos = x_fix[:, None, :]
-        return _lobe_residuals_sqrtw(mu_d(p, xcos, slice(None)), sqw, nl)
+            nl = nl_fix[rows][:, None, :]
+            xcos = x_fix[rows][:, None, :]
+        return _lobe_residuals_sqrtw(mu_d(p, xcos, rows), sqw[rows], nl)
 
     def objective(p, rows):
         # Σ residuals² of the fixed-normal ramp in closed form from the three weighted sums
