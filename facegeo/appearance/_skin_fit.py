@@ -487,8 +487,15 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         g = 1.0 + f
         uu = 1.0 + two_1mds[sel] * f * g
         su = np.sqrt(uu)
-        sing = g * g * ds2k[sel] < SINGULAR_SIN2 * uu
-        if np.any(sing):
+        # f is linear in x ∈ [0, 1]: bound |g| from below and |u|² (convex in f) from above
+        # per candidate from the ramp's ends, and test samples only where the bound allows
+        # a singular separation
+        g0, g1 = 1.0 + p[..., 0:1], 1.0 + p[..., 1:2]
+        gmin = np.where(g0 * g1 > 0, np.minimum(np.abs(g0), np.abs(g1)), 0.0)
+        uumax = 1.0 + two_1mds[sel] * np.maximum((g0 - 1) * g0, (g1 - 1) * g1)
+        maybe = gmin * gmin * ds2k[sel] < SINGULAR_SIN2 * uumax
+        sing = (g * g * ds2k[sel] < SINGULAR_SIN2 * uu) if np.any(maybe) else None
+        if sing is not None and np.any(sing):
             gs = np.where(sing, 1.0, g)
             return np.where(sing, (Rd[sel][:, None, :] + f * Rdms[sel][:, None, :]) / su,
                             A[sel][:, None, :] * su / gs)

@@ -83,9 +83,10 @@ __all__ = [
     "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
 ]
 
-#: Reflectance functions per chunk of the analysis (bounds the (chunk, candidates, L, 3)
-#: temporaries of the ramp search to ≈ 60 MB at 2048 lights).
-CHUNK = 64
+#: Reflectance functions per chunk of the analysis. The searches' (chunk, candidates, L)
+#: float64 temporaries are 2.4 MB at 16 functions, 9 candidates and 2048 lights, which stay in
+#: cache: measured 16 → 64 functions per chunk ≈ 1.5–2× slower (see docs/skin.md).
+CHUNK = 16
 
 
 @dataclass
