@@ -430,10 +430,13 @@ def ramp_mu_d(p, xcos, A, Rd, Rdms, ds):
     """
     two_1mds = (2.0 * (1.0 - ds))[:, None, None]
     ds2k = (1.0 - ds * ds)[:, None, None]
+    # in place where possible: three (n, K, L) allocations per call instead of ten
     f = ramp_f_from_x(xcos, p[..., 0:1], p[..., 1:2])
-    g = 1.0 + f
-    uu = np.maximum(1.0 + two_1mds * f * g, 1e-300)  # ≥ (1 + d_0·s)/2 but for rounding
-    su = np.sqrt(uu)
+    g = f + 1.0
+    uu = f * g
+    uu *= two_1mds
+    uu += 1.0
+    np.maximum(uu, 1e-300, out=uu)  # ≥ (1 + d_0·s)/2 but for rounding
     # f is linear in x ∈ [0, 1]: bound |g| from below and |u|² (convex in f) from above per
     # candidate from the ramp's ends; test samples only where the bound allows a singular one
     g0, g1 = 1.0 + p[..., 0:1], 1.0 + p[..., 1:2]
@@ -441,11 +444,14 @@ def ramp_mu_d(p, xcos, A, Rd, Rdms, ds):
     uumax = 1.0 + two_1mds * np.maximum((g0 - 1) * g0, (g1 - 1) * g1)
     maybe = gmin * gmin * ds2k < SINGULAR_SIN2 * uumax
     sing = (g * g * ds2k < SINGULAR_SIN2 * uu) if np.any(maybe) else None
+    su = np.sqrt(uu, out=uu)
     if sing is not None and np.any(sing):
         gs = np.where(sing, 1.0, g)
         return np.where(sing, (Rd[:, None, :] + f * Rdms[:, None, :]) / su,
                         A[:, None, :] * su / gs)
-    return A[:, None, :] * (su / g)
+    su /= g
+    su *= A[:, None, :]
+    return su
 
 
 def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):

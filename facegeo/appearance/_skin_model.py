@@ -193,7 +193,9 @@ def ramp_f_from_x(x, alpha_0, alpha_1) -> np.ndarray:
     The same f as :func:`ramp_f` (up to rounding), for callers that evaluate many (α_0, α_1)
     at one geometry and precompute x once.
     """
-    return alpha_1 + (alpha_0 - alpha_1) * x
+    f = (alpha_0 - alpha_1) * x
+    f += alpha_1
+    return f
 
 
 def ramp_chromaticity(d_0, f, s=S_WHITE) -> np.ndarray:
