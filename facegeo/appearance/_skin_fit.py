@@ -197,21 +197,24 @@ def _lobe_residuals(y, w, x):
 
 
 def _lobe_residuals_sqrtw(y, sqw, x):
-    """:func:`_lobe_residuals` for ``y``, ``x`` ``(N, K, L)`` with ``√w`` ``(N, L)`` given."""
-    yw = y * sqw[:, None, :]
+    """:func:`_lobe_residuals` for ``y`` ``(N, K, L)``, ``x`` ``(N, K or 1, L)`` with ``√w``
+    ``(N, L)`` given. ``y`` is overwritten (callers pass a fresh array)."""
+    yw = np.multiply(y, sqw[:, None, :], out=y)
     xw = x * sqw[:, None, :]
-    syy = np.sum(yw * yw, axis=-1, keepdims=True)
-    sxy = np.sum(yw * xw, axis=-1, keepdims=True)
-    sxx = np.sum(xw * xw, axis=-1, keepdims=True)
+    syy = np.einsum("nkl,nkl->nk", yw, yw)[..., None]
+    sxy = np.einsum("nkl,nkl->nk", yw, np.broadcast_to(xw, yw.shape))[..., None]
+    sxx = np.einsum("nkl,nkl->nk", xw, xw)[..., None]
     ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
     k = np.where(ok, sxy / np.where(ok, sxx, 1.0), 0.0)
-    return (yw - k * xw) / np.sqrt(np.where(syy > 1e-300, syy, 1.0))
+    yw -= k * xw
+    yw /= np.sqrt(np.where(syy > 1e-300, syy, 1.0))
+    return yw
 
 
 #: Jacobian of the ramp's Levenberg–Marquardt polish by forward differences (P + 1 residual
-#: evaluations per step, the centre's reused) instead of central ones (2P): measured ≈ 1.3×
-#: faster fit with α's within 2e-6 and ρ_s within 3e-5 relative of the central-difference
-#: polish (docs/skin.md).
+#: evaluations per step, the centre's reused) instead of central ones (2P): measured ≈ 1.2–1.3×
+#: faster fit with α's within 1e-5 and ρ_s within 2e-4 relative of the central-difference
+#: polish, normals identical (128 paper-mode functions; docs/skin.md).
 POLISH_FORWARD = True
 
 
@@ -328,9 +331,10 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
         nk = n_start[sel][:, None, :] + u[..., :1] * t1[sel][:, None, :] \
             + u[..., 1:2] * t2[sel][:, None, :]
         nk = normalize(nk)
-        x = np.maximum(nk @ lt, 0.0)  # (n, K, L')
+        x = nk @ lt  # (n, K, L')
+        np.maximum(x, 0.0, out=x)
         sxy = (x @ wy[sel])[..., 0]
-        sxx = ((x * x) @ wdc[sel])[..., 0]
+        sxx = (np.square(x, out=x) @ wdc[sel])[..., 0]
         return _misfit_from_sums(syy[sel], sxy, sxx)
 
     u0 = np.zeros((n_start.shape[0], 2))
