@@ -526,3 +526,20 @@ def test_forward_difference_polish_matches_central(paper_case, monkeypatch):
     # and both recover the generator's ramp (the fast path is not worse)
     for f in (fit, central):
         assert np.max(np.abs(f.alpha_0 / p.alpha_0 - 1)) <= PAPER_PARAM_REL
+
+
+def test_row_nanquantile_equals_numpy():
+    from facegeo.appearance._skin_fit import _row_nanquantile
+
+    rng = np.random.default_rng(2)
+    a = rng.uniform(0, 1, (30, 17))
+    a[rng.uniform(size=a.shape) < 0.4] = np.nan
+    a[3] = np.nan  # no finite value
+    a[4, 1:] = np.nan  # one
+    for q in (0.5, 0.9):
+        with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
+            ref = np.nanquantile(a, q, axis=1)
+        got = _row_nanquantile(a, q)
+        assert np.array_equal(np.isnan(got), np.isnan(ref))
+        ok = ~np.isnan(ref)
+        assert np.abs(got[ok] - ref[ok]).max() <= 1e-15  # same interpolation to rounding

@@ -350,6 +350,22 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
     return n, np.maximum(k, 0.0), misfit_start, misfit
 
 
+def _row_nanquantile(a, q):
+    """``np.nanquantile(a, q, axis=1)`` (linear interpolation) for ``a`` ``(N, L)`` without
+    numpy's per-row Python loop: one sort (NaNs last), then the two neighbours of the virtual
+    index ``q (k − 1)`` of each row's k finite values. NaN where a row has none."""
+    srt = np.sort(a, axis=1)
+    k = np.sum(~np.isnan(a), axis=1)
+    pos = q * np.maximum(k - 1, 0)
+    i0 = np.floor(pos).astype(np.int64)
+    i1 = np.minimum(i0 + 1, np.maximum(k - 1, 0))
+    t = pos - i0
+    rows = np.arange(a.shape[0])
+    lo, hi = srt[rows, i0], srt[rows, i1]
+    out = np.where(t >= 0.5, hi - (hi - lo) * (1.0 - t), lo + (hi - lo) * t)
+    return np.where(k > 0, out, np.nan)
+
+
 def initial_diffuse_chromaticity(R, valid):
     """Initial uniform diffuse chromaticity d_0 (§4.2).
 
@@ -371,15 +387,15 @@ def initial_diffuse_chromaticity(R, valid):
     bv = np.where(valid, b, np.nan)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        p90 = np.nan_to_num(np.nanpercentile(bv, 90, axis=1), nan=0.0)
+        p90 = np.nan_to_num(_row_nanquantile(bv, 0.9), nan=0.0)
         lo, hi = D0_BRIGHTNESS_RANGE
         sel = valid & (b >= lo * p90[:, None]) & (b <= hi * p90[:, None])
         sel &= (R[..., 1] > 0) & (R[..., 2] > 0) & (R[..., 0] >= 0)
         G = np.where(sel, R[..., 1], 1.0)
         rg = np.where(sel, R[..., 0] / G, np.nan)
         gb = np.where(sel, R[..., 1] / np.where(sel, R[..., 2], 1.0), np.nan)
-        mrg = np.nanmedian(rg, axis=1)
-        mgb = np.nanmedian(gb, axis=1)
+        mrg = _row_nanquantile(rg, 0.5)
+        mgb = _row_nanquantile(gb, 0.5)
     found = np.isfinite(mrg) & np.isfinite(mgb) & (mgb > 0)
     d = np.stack([np.where(found, mrg, 1.0), np.ones_like(mrg),
                   np.where(found, 1.0 / np.where(found, mgb, 1.0), 1.0)], axis=1)
