@@ -515,7 +515,7 @@ def test_chunk_size_does_not_change_the_fit():
 def test_forward_difference_polish_matches_central(paper_case, monkeypatch):
     from facegeo.appearance import _skin_fit
 
-    lights, n, p, R, fit = paper_case
+    lights, _n, p, R, fit = paper_case
     assert _skin_fit.POLISH_FORWARD  # the fixture's fit used the fast path
     monkeypatch.setattr(_skin_fit, "POLISH_FORWARD", False)
     central = skin.fit_reflectance(R, V0, lights, d_0=skin.normalize(p.rho_d))
