@@ -245,7 +245,8 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         default joint polish a second changes little).
     chunk : int, optional
         Functions per vectorised chunk; default ``max(16, CHUNK_SAMPLES // L)`` (16 at 2048
-        lights), which keeps the search temporaries in cache. Results do not depend on it.
+        lights), which keeps the search temporaries in cache. Results do not depend on it
+        (to rounding; tested).
 
     Returns
     -------
