@@ -33,6 +33,18 @@ RECOMBINE_ULPS = 2
 #: error over unshadowed pixels, degrees, for the final normal / the first-moment normal.
 SYNTH_NORMAL_MEDIAN_DEG = 5.0
 SYNTH_MOMENT_NORMAL_MEDIAN_DEG = 1.5
+#: Fast closed-form μ_d of the ramp search against the explicit Eq. 6 chromaticity + §4.2
+#: separation: max |μ̂_d − μ_d| / max |R| (float64 rounding only).
+FAST_MU_D_REL = 1e-9
+#: Fit of the same functions in chunks of different size: max |n_a − n_b| (≈ radians; an
+#: arccos angle cannot resolve below ~1e-6°) and max |Δα| (chunks are independent problems;
+#: only summation order may differ).
+CHUNK_NORMAL_ABS = 1e-8
+CHUNK_ALPHA_ABS = 1e-8
+#: Forward- against central-difference Jacobian in the ramp's LM polish (paper mode, d_0 known):
+#: max |Δα| and max relative |Δρ_s| (measured 8e-6 and 1.5e-4 on 128 functions).
+FORWARD_POLISH_ALPHA_ABS = 1e-4
+FORWARD_POLISH_RHO_S_REL = 2e-3
 
 V0 = np.array([0.0, 0.0, 1.0])
 
@@ -427,3 +439,107 @@ def test_negligible_specular_skips_specular_work():
     # a view below the horizon of every normal: flagged, zero, finite
     back = skin.resynthesize(fit, -V0)
     assert (back.flags & skin.FLAG_BACKFACING).all() and np.all(back.reflectance == 0)
+
+
+# ---------------------------------------------------------------- fast path (issue 13 speed)
+
+
+def test_fast_ramp_mu_d_equals_explicit_separation():
+    """The ramp search's closed-form μ_d equals Eq. 6 + the 3 × 3 separation of §4.2, including
+    candidates whose separation is singular (1 + f ≈ 0) and d_0 ∥ s."""
+    from facegeo.appearance._skin_fit import ramp_mu_d
+
+    rng = np.random.default_rng(7)
+    n_f, K, L = 5, 7, 40
+    d0 = skin.normalize(np.array([0.8, 0.5, 0.35]) + rng.normal(0, 0.1, (n_f, 3)))
+    d0[-1] = skin.S_WHITE  # d_0 = s: singular for every candidate
+    R = rng.uniform(0.0, 1.0, (n_f, L, 3))
+    xcos = rng.uniform(0.0, 1.0, (n_f, 1, L))
+    p = rng.uniform(-0.6, 0.6, (n_f, K, 2))
+    p[0, 0] = (-1.0, -1.0)  # f = −1 everywhere: u = s, singular
+    p[1, 1] = (-0.999999, -1.0000001)  # 1 + f crosses 0 between the ramp's ends
+    s = skin.S_WHITE
+    Rd, Rs = np.einsum("nlc,nc->nl", R, d0), R @ s
+    ds = d0 @ s
+    ds2 = 1.0 - ds * ds
+    A = np.where((ds2 > 0)[:, None], (Rd - Rs * ds[:, None]) / np.where(ds2 > 0, ds2, 1)[:, None], 0)
+    fast = ramp_mu_d(p, xcos, A, Rd, Rd - Rs, ds)
+    f = skin.ramp_f(xcos, 1.0, p[..., 0:1], p[..., 1:2])  # (n, K, L)
+    c = skin.ramp_chromaticity(d0[:, None, None, :], f)
+    _, _, mu_d, _, _, sing = skin.separate_colour(R[:, None], c)
+    assert sing[0, 0].all() and sing[-1].all() and not sing[2].any()
+    err = np.abs(fast - mu_d).max() / np.abs(R).max()
+    assert err <= FAST_MU_D_REL, err
+
+
+def test_direct_search_subset_stops_converged_problems_at_same_minimum():
+    """subset=True evaluates only unconverged problems and reaches the same minimum to within
+    the finest step as the all-problems search."""
+    rng = np.random.default_rng(3)
+    N, P = 40, 2
+    centre = rng.uniform(-0.8, 0.8, (N, P))
+    scale = rng.uniform(0.5, 50.0, (N, 1))
+    calls = []
+
+    def objective(cand, rows=None):
+        c = centre if rows is None else centre[rows]
+        sc = scale if rows is None else scale[rows]
+        calls.append(cand.shape[0])
+        return np.sum(sc[:, None, :] * (cand - c[:, None, :]) ** 2, axis=-1)
+
+    x0 = np.zeros((N, P))
+    full, _ = skin.direct_search(objective, x0, 0.25, 8, 6)
+    assert set(calls) == {N}
+    calls.clear()
+    sub, _ = skin.direct_search(objective, x0, 0.25, 8, 6, subset=True)
+    finest = 0.25 / 2 ** 8
+    assert np.abs(sub - centre).max() <= finest
+    assert np.abs(full - centre).max() <= finest
+    assert np.abs(sub - full).max() <= finest
+    assert min(calls) < N and calls == sorted(calls, reverse=True)  # converged ones stop
+
+
+def test_chunk_size_does_not_change_the_fit():
+    rng = np.random.default_rng(11)
+    lights = skin.LightSet.from_grid(32, 16)
+    n = _random_normals(rng, 10, 25.0)
+    p = _paper_params(rng, 10)
+    R = skin.paper_reflectance(n, V0, lights, p)
+    a = skin.fit_reflectance(R, V0, lights, chunk=3)
+    b = skin.fit_reflectance(R, V0, lights, chunk=10)
+    assert np.abs(a.normal - b.normal).max() <= CHUNK_NORMAL_ABS
+    assert np.abs(a.alpha_0 - b.alpha_0).max() <= CHUNK_ALPHA_ABS
+    assert np.abs(a.alpha_1 - b.alpha_1).max() <= CHUNK_ALPHA_ABS
+
+
+def test_forward_difference_polish_matches_central(paper_case, monkeypatch):
+    from facegeo.appearance import _skin_fit
+
+    lights, _n, p, R, fit = paper_case
+    assert _skin_fit.POLISH_FORWARD  # the fixture's fit used the fast path
+    monkeypatch.setattr(_skin_fit, "POLISH_FORWARD", False)
+    central = skin.fit_reflectance(R, V0, lights, d_0=skin.normalize(p.rho_d))
+    assert np.abs(central.alpha_0 - fit.alpha_0).max() <= FORWARD_POLISH_ALPHA_ABS
+    assert np.abs(central.alpha_1 - fit.alpha_1).max() <= FORWARD_POLISH_ALPHA_ABS
+    rel = np.abs(central.rho_s - fit.rho_s) / central.rho_s
+    assert rel.max() <= FORWARD_POLISH_RHO_S_REL, rel.max()
+    # and both recover the generator's ramp (the fast path is not worse)
+    for f in (fit, central):
+        assert np.max(np.abs(f.alpha_0 / p.alpha_0 - 1)) <= PAPER_PARAM_REL
+
+
+def test_row_nanquantile_equals_numpy():
+    from facegeo.appearance._skin_fit import _row_nanquantile
+
+    rng = np.random.default_rng(2)
+    a = rng.uniform(0, 1, (30, 17))
+    a[rng.uniform(size=a.shape) < 0.4] = np.nan
+    a[3] = np.nan  # no finite value
+    a[4, 1:] = np.nan  # one
+    for q in (0.5, 0.9):
+        with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
+            ref = np.nanquantile(a, q, axis=1)
+        got = _row_nanquantile(a, q)
+        assert np.array_equal(np.isnan(got), np.isnan(ref))
+        ok = ~np.isnan(ref)
+        assert np.abs(got[ok] - ref[ok]).max() <= 1e-15  # same interpolation to rounding

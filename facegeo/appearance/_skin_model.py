@@ -187,6 +187,17 @@ def ramp_f(cos_i, cos_r, alpha_0, alpha_1) -> np.ndarray:
     return alpha_0 * x + alpha_1 * (1.0 - x)
 
 
+def ramp_f_from_x(x, alpha_0, alpha_1) -> np.ndarray:
+    """Eq. 7 from the clipped product ``x = cos θ_i cos θ_r`` ∈ [0, 1]: ``α_1 + (α_0 − α_1) x``.
+
+    The same f as :func:`ramp_f` (up to rounding), for callers that evaluate many (α_0, α_1)
+    at one geometry and precompute x once.
+    """
+    f = (alpha_0 - alpha_1) * x
+    f += alpha_1
+    return f
+
+
 def ramp_chromaticity(d_0, f, s=S_WHITE) -> np.ndarray:
     """Diffuse chromaticity of Eq. 6: ``normalize(d_0 + f (d_0 − s))``.
 

@@ -83,9 +83,12 @@ __all__ = [
     "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
 ]
 
-#: Reflectance functions per chunk of the analysis (bounds the (chunk, candidates, L, 3)
-#: temporaries of the ramp search to ≈ 60 MB at 2048 lights).
-CHUNK = 64
+#: Samples (functions × lights) per chunk of the analysis: the searches' (chunk, candidates, L)
+#: float64 temporaries are then 2.4 MB (9 candidates), which stay in cache. At 2048 lights
+#: that is 16 functions; measured 64 functions per chunk ≈ 1.5–2× slower (docs/skin.md).
+CHUNK_SAMPLES = 32768
+#: Default functions per chunk at 2048 lights (``CHUNK_SAMPLES // L`` in general, ≥ 16).
+CHUNK = 16
 
 
 @dataclass
@@ -195,7 +198,7 @@ def shadow_map(R, *, threshold: float = SHADOW_THRESHOLD, visibility=None, satur
 def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: float | None = None,
                     eta: float = 1.4, depth: SearchDepth | None = None,
                     shadow_threshold: float = SHADOW_THRESHOLD, d_0=None, rounds: int = 1,
-                    chunk: int = CHUNK) -> SkinFit:
+                    chunk: int | None = None) -> SkinFit:
     """Fit the paper's skin model to reflectance functions (Debevec et al. 2000, §4.2 and §4.4).
 
     Steps, each vectorised over a chunk of functions:
@@ -240,8 +243,10 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     rounds : int
         Alternations of ramp fit → final separation → normal (the paper does one; with the
         default joint polish a second changes little).
-    chunk : int
-        Functions per vectorised chunk.
+    chunk : int, optional
+        Functions per vectorised chunk; default ``max(16, CHUNK_SAMPLES // L)`` (16 at 2048
+        lights), which keeps the search temporaries in cache. Results do not depend on it
+        (to rounding; tested).
 
     Returns
     -------
@@ -269,6 +274,8 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                  "fitting the diffuse lobe alone")
     out = {k: [] for k in ("n", "nm", "n1", "mm", "m1", "d0", "a0", "a1", "rd", "rs", "D", "S",
                            "flags", "cast")}
+    if chunk is None:
+        chunk = max(CHUNK, CHUNK_SAMPLES // max(L, 1))
     for i in range(0, N, max(1, int(chunk))):
         sl = slice(i, min(N, i + int(chunk)))
         res = _fit_chunk(Rw[sl], v[sl], lights, shadow[sl], sat[sl], single, eta, depth,

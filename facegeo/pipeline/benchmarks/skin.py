@@ -5,6 +5,8 @@ coarse-to-fine search depth against the error it buys.
 Data are paper-mode functions (:func:`facegeo.appearance.skin.paper_reflectance`, the model
 that is fitted, so the error column is the fit's own error, not a model mismatch) on random
 normals within 25° of the view; the known d_0 is passed so that α errors are meaningful.
+Fits run in the default chunks (16 functions at 2048 lights, ``skin.CHUNK_SAMPLES``); the
+machine is shared, so compare rows of one run.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ def _errors(fit, nrm, p):
 def bench_fit(quick: bool) -> list[BenchRow]:
     from facegeo.appearance import skin
 
-    n = 32 if quick else 128
+    n = 64 if quick else 256  # whole chunks of 16 (the default at 2048 lights)
     lights, nrm, p, v0, R = _case(n, 1)
     d0 = skin.normalize(p.rho_d)
     rows = []
