@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import json
 import logging
-import resource
 import time
 from pathlib import Path
 from typing import Any
@@ -52,6 +51,7 @@ import numpy as np
 
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text, staged_directory
+from facegeo.pipeline.bench import peak_rss_mb
 from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
@@ -60,11 +60,6 @@ __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "lo
            "peak_rss_mb"]
 
 _GT_DEPTH_TOL_M = 1e-3
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (MB, from ``getrusage``)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _scan(scan_dir):

@@ -24,12 +24,6 @@ __all__ = ["STAGES", "reconstruct_pipeline", "run_reconstruct"]
 STAGES = ("atlas", "project")
 
 
-def _scan(scan_dir: Path):
-    from facegeo.capture.scan import load_scan
-
-    return load_scan(scan_dir)
-
-
 def _mesh_inputs(scan, mesh: str) -> list[Path]:
     if mesh == "ground_truth":
         if "mesh" not in scan.ground_truth_keys:
@@ -39,53 +33,45 @@ def _mesh_inputs(scan, mesh: str) -> list[Path]:
     return [Path(mesh)]
 
 
-def _atlas_inputs(scan_dir: Path, settings: Mapping[str, Any]) -> list[Path]:
-    return _mesh_inputs(_scan(scan_dir), settings["mesh"])
-
-
-def _project_inputs(scan_dir: Path, settings: Mapping[str, Any]) -> list[Path]:
-    scan = _scan(scan_dir)
+def _project_inputs(scan, mesh: str) -> list[Path]:
     files = [scan.manifest_path, scan.root / scan.manifest["scan"]["rig"]]
     for cam in scan.camera_names:
         files += [p for _, p in scan.expected_files("olat", cam)]
     # ground truth feeds the accuracy metrics (and, on synthetic scans, the true rig)
     files += [scan.ground_truth_path(k) for k in sorted(scan.ground_truth_keys)
               if scan.ground_truth_path(k).is_file()]
-    return files + _mesh_inputs(scan, settings["mesh"])
+    return files + _mesh_inputs(scan, mesh)
 
 
-def _run_atlas(ctx: StageContext) -> dict:
-    from facegeo.pipeline.project import atlas_products
-
-    return atlas_products(_scan(ctx.scan_dir), ctx.out_dir, **ctx.settings)
-
-
-def _run_project(ctx: StageContext) -> dict:
-    from facegeo.pipeline.project import project_products
-
-    metrics, _ = project_products(_scan(ctx.scan_dir), ctx.upstream["atlas"], ctx.out_dir,
-                                  **ctx.settings)
-    return metrics
-
-
-def reconstruct_pipeline(*, mesh: str = "ground_truth") -> Pipeline:
-    """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct``.
+def reconstruct_pipeline(scan, *, mesh: str = "ground_truth") -> Pipeline:
+    """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct`` for one scan.
 
     Parameters
     ----------
+    scan : facegeo.capture.scan.Scan
+        The loaded scan (loaded and validated once; every stage reads it from here).
     mesh : str
         ``"ground_truth"`` (a synthetic scan's mesh) or a mesh file in metres.
     """
+    from facegeo.pipeline.project import atlas_products, project_products
+
     atlas_settings = {"mesh": mesh, "texels_per_mm": 1.0, "size": None, "padding": 2,
                       "split_faces": 25_000, "repair": False}
     project_settings = {"mesh": mesh, "rig": None, "dtype": "float16", "gt_lights": 32,
                         "gt_weight_min": 0.3}
+
+    def run_atlas(ctx: StageContext) -> dict:
+        return atlas_products(scan, ctx.out_dir, **ctx.settings)
+
+    def run_project(ctx: StageContext) -> dict:
+        metrics, _ = project_products(scan, ctx.upstream["atlas"], ctx.out_dir, **ctx.settings)
+        return metrics
+
     return Pipeline([
-        StageSpec("atlas", _run_atlas, inputs=lambda d: _atlas_inputs(d, atlas_settings),
+        StageSpec("atlas", run_atlas, inputs=lambda d: _mesh_inputs(scan, mesh),
                   settings=atlas_settings),
-        StageSpec("project", _run_project, after=("atlas",),
-                  inputs=lambda d: _project_inputs(d, project_settings),
-                  settings=project_settings),
+        StageSpec("project", run_project, after=("atlas",),
+                  inputs=lambda d: _project_inputs(scan, mesh), settings=project_settings),
     ])
 
 
@@ -110,10 +96,12 @@ def run_reconstruct(scan_dir, *, mesh: str = "ground_truth",
     progress, on_stage : callable, optional
         See :meth:`facegeo.pipeline.cache.Pipeline.run`.
     """
+    from facegeo.capture.scan import load_scan
+
     scan_dir = Path(scan_dir)
-    _scan(scan_dir)  # validate the scan before any stage starts
+    scan = load_scan(scan_dir)  # validated once, before any stage starts
     if settings:
         json.dumps(settings)  # fail early on values that cannot enter a cache key
-    return reconstruct_pipeline(mesh=mesh).run(scan_dir, settings=settings,
+    return reconstruct_pipeline(scan, mesh=mesh).run(scan_dir, settings=settings,
                                                from_stage=from_stage, only=only,
                                                progress=progress, on_stage=on_stage)
