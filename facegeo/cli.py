@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -313,6 +314,20 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None) -> None:
                         on_stage=lambda r: (close(), print(_stage_line(r))))
     finally:
         close()
+    _write_report(Path(scan) / "out")
+
+
+def _write_report(out: Path) -> None:
+    from facegeo.pipeline.report import summary_table, write_report
+
+    path = write_report(out)
+    print(summary_table(json.loads((out / "metrics.json").read_text())))
+    print(f"report: {path}")
+
+
+def _cmd_report(args) -> int:
+    _write_report(Path(args.scan) / "out")
+    return 0
 
 
 def _cmd_reconstruct(args) -> int:
@@ -468,6 +483,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run only this stage (its input stages must be current)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_reconstruct)
+
+    s = sub.add_parser("report", parents=common,
+                       help="write SCAN/out/report.html from the stages' metrics and images")
+    s.add_argument("scan", metavar="SCAN", help="scan directory with out/metrics.json")
+    s.set_defaults(func=_cmd_report)
 
     s = sub.add_parser("demo", parents=common,
                        help="the main job on the embedded default (a synthetic scan)")

@@ -1,0 +1,229 @@
+"""``out/report.html``: every stage's metrics and images on one page, and a speed-against-error
+summary for the terminal.
+
+The report is built only from what the stages left in ``SCAN/out/``: ``metrics.json`` (one entry
+per stage, written by :mod:`facegeo.pipeline.cache`) and the PNG images in each stage's folder.
+It references the images by relative path (nothing is copied), so the page opens from the
+``out/`` folder in any browser, and it is rewritten atomically after every run. A stage that has
+not run yet is simply absent; the page says which of the pipeline's stages it shows.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+from facegeo import __version__
+from facegeo.errors import InputError
+from facegeo.fsutil import atomic_write_text
+
+__all__ = ["PIPELINE_ORDER", "REPORT_NAME", "write_report", "summary_rows", "summary_table"]
+
+#: Stage order of the whole pipeline; stages not listed come after these, alphabetically.
+PIPELINE_ORDER = ("calibrate", "decode", "mesh", "atlas", "project", "fit", "relight", "render")
+REPORT_NAME = "report.html"
+#: At most this many images per stage (the first ones in path order).
+MAX_IMAGES_PER_STAGE = 24
+#: Metric names that describe an error or a score (shown in the speed-against-error summary).
+_ERROR_WORDS = ("error", "rmse", "rms_", "psnr", "agreement", "exact", "residual")
+
+
+def _load_metrics(out_dir: Path) -> dict:
+    path = out_dir / "metrics.json"
+    if not path.is_file():
+        raise InputError(f"{path}: no stage metrics yet; run `facegeo reconstruct` on the scan "
+                         "first")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"{path}: not readable JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object of stage entries")
+    return data
+
+
+def _ordered(stages) -> list[str]:
+    known = [s for s in PIPELINE_ORDER if s in stages]
+    return known + sorted(s for s in stages if s not in PIPELINE_ORDER)
+
+
+def _flatten(d: Any, prefix: str = "") -> list[tuple[str, Any]]:
+    rows: list[tuple[str, Any]] = []
+    if isinstance(d, dict):
+        for k in sorted(d, key=str):
+            rows += _flatten(d[k], f"{prefix}.{k}" if prefix else str(k))
+    else:
+        rows.append((prefix, d))
+    return rows
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool) or v is None:
+        return str(v).lower() if isinstance(v, bool) else "—"
+    if isinstance(v, int):
+        return f"{v:,}"
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return str(v)
+        if v != 0 and (abs(v) < 1e-3 or abs(v) >= 1e6):
+            return f"{v:.3e}"
+        return f"{v:.4g}"
+    if isinstance(v, list):
+        if len(v) <= 6 and all(isinstance(x, (int, float)) for x in v):
+            return "[" + ", ".join(_fmt(x) for x in v) + "]"
+        return f"[{len(v)} items]"
+    return str(v)
+
+
+def _is_error_metric(name: str) -> bool:
+    low = name.lower()
+    return any(w in low for w in _ERROR_WORDS)
+
+
+def summary_rows(metrics: dict) -> list[dict]:
+    """One row per stage: its time and its top-level error metrics (speed against error).
+
+    Returns
+    -------
+    list of dict
+        ``{"stage", "seconds", "errors": {name: value}}`` in pipeline order; ``seconds`` is None
+        when the stage did not record it.
+    """
+    rows = []
+    for stage in _ordered(metrics):
+        m = metrics[stage]
+        if not isinstance(m, dict):
+            continue
+        sec = m.get("seconds")
+        if isinstance(sec, dict):
+            sec = sec.get("total")
+        errors = {k: v for k, v in m.items()
+                  if _is_error_metric(k) and isinstance(v, (int, float)) and not isinstance(v, bool)}
+        rows.append({"stage": stage, "seconds": sec if isinstance(sec, (int, float)) else None,
+                     "errors": errors})
+    return rows
+
+
+def summary_table(metrics: dict) -> str:
+    """The speed-against-error summary as plain text, for the terminal."""
+    rows = summary_rows(metrics)
+    if not rows:
+        return "no stage metrics"
+    lines = [f"{'stage':<10} {'seconds':>9}  error metrics"]
+    for r in rows:
+        sec = f"{r['seconds']:.2f}" if r["seconds"] is not None else "—"
+        errs = ", ".join(f"{k} {_fmt(v)}" for k, v in r["errors"].items()) or "—"
+        lines.append(f"{r['stage']:<10} {sec:>9}  {errs}")
+    return "\n".join(lines)
+
+
+def _images(stage_dir: Path, out_dir: Path) -> list[str]:
+    if not stage_dir.is_dir():
+        return []
+    found = sorted(p for p in stage_dir.rglob("*.png") if p.is_file())
+    return [p.relative_to(out_dir).as_posix() for p in found[:MAX_IMAGES_PER_STAGE]]
+
+
+def _bar_chart(rows: list[dict]) -> str:
+    """An inline SVG bar chart of seconds per stage (no plotting dependency)."""
+    timed = [r for r in rows if r["seconds"] is not None]
+    if not timed:
+        return ""
+    width, bar_h, gap, label_w = 520, 18, 6, 90
+    top = max(r["seconds"] for r in timed) or 1.0
+    h = len(timed) * (bar_h + gap) + gap
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width + label_w + 80}" '
+             f'height="{h}" role="img" aria-label="seconds per stage">']
+    for i, r in enumerate(timed):
+        y = gap + i * (bar_h + gap)
+        w = max(1.0, width * r["seconds"] / top)
+        parts.append(f'<text x="{label_w - 6}" y="{y + bar_h - 5}" text-anchor="end">'
+                     f'{html.escape(r["stage"])}</text>')
+        parts.append(f'<rect x="{label_w}" y="{y}" width="{w:.1f}" height="{bar_h}" '
+                     'fill="#4a7fb5"/>')
+        parts.append(f'<text x="{label_w + w + 4:.1f}" y="{y + bar_h - 5}">'
+                     f'{r["seconds"]:.2f} s</text>')
+    parts.append("</svg>")
+    return "\n".join(parts)
+
+
+_CSS = """
+body { font-family: system-ui, sans-serif; margin: 2em; max-width: 1200px; color: #222; }
+table { border-collapse: collapse; margin: 0.5em 0 1.5em; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 2px 8px; text-align: left; vertical-align: top; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+figure { display: inline-block; margin: 0 1em 1em 0; vertical-align: top; }
+figure img { max-width: 360px; max-height: 360px; border: 1px solid #ddd;
+             image-rendering: pixelated; }
+figcaption { font-size: 0.8em; color: #555; max-width: 360px; word-break: break-all; }
+details { margin-bottom: 1em; }
+svg text { font-size: 12px; }
+"""
+
+
+def write_report(out_dir, *, title: str | None = None) -> Path:
+    """Write ``OUT/report.html`` from ``OUT/metrics.json`` and the stages' PNG images.
+
+    Parameters
+    ----------
+    out_dir : path-like
+        A scan's ``out/`` folder (``facegeo reconstruct`` writes it).
+    title : str, optional
+        Page title (default: the scan folder's name).
+
+    Returns
+    -------
+    Path
+        The report, written atomically.
+
+    Raises
+    ------
+    InputError
+        ``metrics.json`` is missing or not a JSON object.
+    """
+    out_dir = Path(out_dir)
+    metrics = _load_metrics(out_dir)
+    stages = _ordered(metrics)
+    title = title or f"facegeo report: {out_dir.resolve().parent.name}"
+    rows = summary_rows(metrics)
+    esc = html.escape
+    body = [f"<h1>{esc(title)}</h1>",
+            f"<p>facegeo {esc(__version__)}, written {esc(time.strftime('%Y-%m-%d %H:%M:%S'))}."
+            f" Stages shown: {esc(', '.join(stages)) or 'none'}; pipeline: "
+            f"{esc(' → '.join(PIPELINE_ORDER))}.</p>",
+            "<h2>Speed against error</h2>", "<table><tr><th>stage</th><th>seconds</th>"
+            "<th>error metrics</th></tr>"]
+    for r in rows:
+        sec = f"{r['seconds']:.2f}" if r["seconds"] is not None else "—"
+        errs = "<br>".join(f"{esc(k)} = {esc(_fmt(v))}" for k, v in r["errors"].items()) or "—"
+        body.append(f'<tr><td><a href="#{esc(r["stage"])}">{esc(r["stage"])}</a></td>'
+                    f'<td class="num">{sec}</td><td>{errs}</td></tr>')
+    body.append("</table>")
+    body.append(_bar_chart(rows))
+    for stage in stages:
+        m = metrics[stage]
+        body.append(f'<h2 id="{esc(stage)}">{esc(stage)}</h2>')
+        flat = _flatten(m) if isinstance(m, dict) else [("value", m)]
+        top = [(k, v) for k, v in flat if k.count(".") == 0]
+        nested = [(k, v) for k, v in flat if k.count(".") > 0]
+        body.append("<table>" + "".join(
+            f'<tr><td>{esc(k)}</td><td class="num">{esc(_fmt(v))}</td></tr>' for k, v in top)
+            + "</table>")
+        if nested:
+            body.append(f"<details><summary>{len(nested)} more values</summary><table>"
+                        + "".join(f'<tr><td>{esc(k)}</td><td class="num">{esc(_fmt(v))}</td></tr>'
+                                  for k, v in nested) + "</table></details>")
+        for rel in _images(out_dir / stage, out_dir):
+            body.append(f'<figure><a href="{esc(rel)}"><img src="{esc(rel)}" alt="{esc(rel)}" '
+                        f'loading="lazy"></a><figcaption>{esc(rel)}</figcaption></figure>')
+    page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>{esc(title)}</title><style>{_CSS}</style></head><body>\n"
+            + "\n".join(body) + "\n</body></html>\n")
+    path = out_dir / REPORT_NAME
+    atomic_write_text(path, page)
+    return path
+
