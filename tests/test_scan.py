@@ -238,7 +238,7 @@ def test_summarize(scan_dir):
                    "structured_light: 3 frame(s) per camera, 6 files, response srgb",
                    "      cam_b: 3 of 3\n",
                    "calib: 2 view(s)", "maps.albedo = ground_truth/albedo.exr",
-                   "size on disk:"]:
+                   "size on disk (hard links counted once):"]:
         assert needle in text, (needle, text)
 
 

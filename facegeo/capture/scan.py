@@ -1261,6 +1261,6 @@ def summarize(scan: Scan) -> str:
     seen: set = set()
     size_in = _du(scan.root, skip=out, seen=seen)
     size_out = _du(out, seen=seen) if out.is_dir() else 0
-    lines.append(f"  size on disk: {_fmt_bytes(size_in)} (inputs), {_fmt_bytes(size_out)} (out/)"
-                 " (hard links counted once)")
+    lines.append(f"  size on disk (hard links counted once): {_fmt_bytes(size_in)} (inputs), "
+                 f"{_fmt_bytes(size_out)} (out/)")
     return "\n".join(lines)
