@@ -856,10 +856,12 @@ class Scan:
             if not p.exists():
                 raise _err(f"reference file not found: {p}", key=f"reference.{key}", path=where)
         if self.has("calib"):
-            board = self._resolve(self._m["calib"]["board"], key="calib.board", where=where)
-            if not board.is_file():
-                raise _err(f"board file not found: {board}", key="calib.board", path=where)
-            if check == "full":
+            spec = self._m["calib"]["board"]
+            if isinstance(spec, str):
+                board = self._resolve(spec, key="calib.board", where=where)
+                if not board.is_file():
+                    raise _err(f"board file not found: {board}", key="calib.board", path=where)
+            if check == "full" or not isinstance(spec, str):
                 self.__dict__.pop("board", None)
                 _ = self.board
         for key in self.ground_truth_keys:
@@ -1236,7 +1238,9 @@ def summarize(scan: Scan) -> str:
             extra = f", response {_fmt_response(s['response'])}, projector {s['projector']!r}"
         else:
             per, what = s["n_lights"], "light(s)"
-            extra = f", response {_fmt_response(s['response'])}, order {s['light_order']}"
+            extra = f", response {_fmt_response(s['response'])}"
+            if hasattr(lights, "n_theta"):
+                extra += f", order {s['light_order']}"
             if "ambient" in s:
                 extra += ", ambient frame"
         lines.append(f"    {g}: {per} {what} per camera, {total} files{extra}")
@@ -1246,6 +1250,10 @@ def summarize(scan: Scan) -> str:
             lack = scan.missing_frames(g, c)
             line = f"      {c}: {len(have)} of {per}"
             if lack:
+                if g == "olat" and scan.light_names is not None:
+                    lack = [scan.light_names[k] for k in lack]
+                elif g == "calib":
+                    lack = [f"view {k}" for k in lack]
                 line += f"; lacks {_fmt_keys(lack)}"
             if g == "structured_light" and "cameras" in s and c in s["cameras"]:
                 bits = {k: v for k, v in s["cameras"][c].items() if k.startswith("bits_")}
