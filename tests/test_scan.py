@@ -574,7 +574,11 @@ def test_documented_example_manifest_is_valid():
     block = re.search(r"```toml\n(.*?)```", doc.read_text(encoding="utf-8"), re.S).group(1)
     m = validate_manifest(tomllib.loads(block))
     assert m["olat"]["n_lights"] == 2048 and m["calib"]["projector"]["views"] == 4
-    assert m["structured_light"]["patterns"]["kind"] == "gray"
+    assert m["structured_light"]["patterns"] == {"n_bits_x": 1, "n_bits_y": 1}
+    from facegeo.geometry.structured_light import PatternSpec, pattern_names
+
+    spec = PatternSpec.from_dict({"width": 1024, "height": 768, **m["structured_light"]["patterns"]})
+    assert pattern_names(spec) == m["structured_light"]["frames"]
 
 
 def test_olat_exposure_must_be_positive_and_divides_frames(tmp_path):

@@ -458,3 +458,22 @@ def test_iterating_a_40_frame_rgb_group_holds_only_a_few_frames(tmp_path):
     assert n == N_STREAM
     assert peak < STREAM_PEAK_FRAMES * FRAME_F32_RGB, (peak / FRAME_F32_RGB)
     assert abs(acc[0, 0] - N_STREAM * float(srgb_to_linear(np.float32(200 / 255)))) < 1e-3
+
+
+def test_every_documented_manifest_passes_the_schema():
+    """Each ```toml block of docs/scan-format.md with a [scan] section is a valid manifest;
+    the [calib.projector] fragment is valid under a minimal [scan]."""
+    import re
+    import tomllib
+
+    from facegeo.capture.scan import validate_manifest
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "scan-format.md"
+    if not doc.is_file():
+        pytest.skip(f"{doc} is absent")
+    blocks = re.findall(r"```toml\n(.*?)```", doc.read_text(encoding="utf-8"), re.S)
+    assert len(blocks) >= 5
+    head = '[scan]\nformat = "facegeo-scan"\nversion = 2\nname = "x"\n'
+    for block in blocks:
+        m = tomllib.loads(block if "[scan]" in block else head + block)
+        validate_manifest(m)
