@@ -475,5 +475,52 @@ def test_every_documented_manifest_passes_the_schema():
     assert len(blocks) >= 5
     head = '[scan]\nformat = "facegeo-scan"\nversion = 2\nname = "x"\n'
     for block in blocks:
+        if block.lstrip().startswith("[import]"):  # the importer's option table, not a manifest
+            continue
         m = tomllib.loads(block if "[scan]" in block else head + block)
         validate_manifest(m)
+
+
+# =========================================================================== import
+
+
+def test_import_folder_links_exactly_the_named_files(tmp_path):
+    """A folder plus its description becomes a scan: every named file hard-linked at the same
+    relative path (same inode), nothing else carried, the manifest written last."""
+    import tomllib
+
+    from facegeo.capture.importer import import_folder
+
+    src = tmp_path / "dataset"
+    shutil.copytree(FIXTURES / "structured_light_only", src)
+    desc = tmp_path / "describe.toml"
+    (src / "scan.toml").rename(desc)
+    (src / "README.txt").write_text("not part of the scan")
+    scan = import_folder(src, tmp_path / "scan", desc)
+    dest = tmp_path / "scan"
+    assert scan.root == dest.absolute() and scan.version == 2
+    assert not (dest / "README.txt").exists()
+    a = src / "structured_light" / "cam_a" / "black.bmp"
+    b = dest / "structured_light" / "cam_a" / "black.bmp"
+    assert a.stat().st_ino == b.stat().st_ino
+    assert tomllib.loads((dest / "scan.toml").read_text())["scan"]["name"] == "structured_light_only"
+    assert "hard links counted once" in summarize(scan)
+    copied = import_folder(src, tmp_path / "copy", desc, mode="copy")
+    assert (copied.root / "rig.json").stat().st_ino != (src / "rig.json").stat().st_ino
+
+
+def test_import_refuses_a_description_that_does_not_match_the_folder(tmp_path):
+    from facegeo.capture.importer import import_folder
+
+    src = tmp_path / "dataset"
+    shutil.copytree(FIXTURES / "light_stage_v2", src)
+    desc = tmp_path / "describe.toml"
+    (src / "scan.toml").rename(desc)
+    (src / "olat" / "cam_a" / "A+045E+75.pgm").unlink()
+    with pytest.raises(ScanFormatError, match=r"dataset/olat/cam_a/A\+045E\+75\.pgm \[olat.files\]"):
+        import_folder(src, tmp_path / "scan", desc)
+    assert not (tmp_path / "scan").exists()
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("x")
+    with pytest.raises(ScanFormatError, match=r"not an empty directory"):
+        import_folder(src, tmp_path / "full", desc)

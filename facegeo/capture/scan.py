@@ -594,6 +594,33 @@ class Scan:
             )
         return self._resolve(flat[key], key=f"ground_truth.{key}", where=self.manifest_path)
 
+    def input_files(self) -> list[Path]:
+        """Every input file the manifest names, in a stable order: the rig, a board file,
+        response tables, corner lists, every expected frame of every camera (each ``.*`` frame
+        resolved to its file), references and ground-truth entries (directories as such).
+
+        Used by :func:`facegeo.capture.importer.import_folder` to carry a scan's files over.
+        """
+        out = [self._resolve(self._m["scan"]["rig"], key="scan.rig", where=self.manifest_path)]
+        if self.has("calib") and isinstance(self._m["calib"]["board"], str):
+            out.append(self._resolve(self._m["calib"]["board"], key="calib.board",
+                                     where=self.manifest_path))
+        for sect in ("calib", "structured_light", "olat"):
+            spec = self._m.get(sect, {}).get("response")
+            if isinstance(spec, Mapping) and spec.get("kind") == "table":
+                out.append(self._resolve(spec["file"], key=f"{sect}.response.file",
+                                         where=self.manifest_path))
+        cams = self.camera_names
+        if self.has("calib") and "corners" in self._section("calib"):
+            out += [self._path("calib", "corners", camera=c) for c in cams]
+        for group in self.groups:
+            for c in cams:
+                out += [p for _, p in self.expected_files(group, c)]
+        out += [self.reference_path(k) for k in self.reference_keys]
+        out += [self.ground_truth_path(k) for k in self.ground_truth_keys]
+        seen: set[Path] = set()
+        return [p for p in out if not (p in seen or seen.add(p))]
+
     @property
     def out_dir(self) -> Path:
         """``root / "out"``, created on first access (the only place facegeo writes)."""
@@ -1120,7 +1147,8 @@ def write_manifest(root: str | os.PathLike, manifest: Mapping[str, Any], *,
     except (TypeError, ValueError) as exc:
         raise _err(f"the manifest cannot be written as TOML: {exc}", path=target) from exc
     header = (
-        f"# facegeo scan manifest, format {FORMAT} version {VERSION}; see docs/scan-format.md\n"
+        f"# facegeo scan manifest, format {FORMAT} version {scan.version}; see "
+        "docs/scan-format.md\n"
     )
     atomic_write_text(target, header + text)
     log.debug("wrote %s", target)
