@@ -344,8 +344,11 @@ def test_toml_syntax_error_names_line(scan_dir):
          r"\[structured_light.frames\]: frame name 'white' appears twice"),
         ('"black",', '"bl/ack",', r"\[structured_light.frames\]: frame 1 is 'bl/ack'"),
         ('files = "olat/{camera}/{light:04d}.exr"', 'files = "olat/{light:04d}.exr"',
-         r"\[olat.files\]: template 'olat/\{light:04d\}.exr' must use every one of \{camera\}, "
-         r"\{light\} \(missing \{camera\}\)"),
+         r"\[olat.files\]: template 'olat/\{light:04d\}.exr' has no \{camera\} but the rig "
+         r"has 2 cameras"),
+        ('files = "olat/{camera}/{light:04d}.exr"', 'files = "olat/{camera}/x.exr"',
+         r"\[olat.files\]: template 'olat/\{camera\}/x.exr' must use every one of "
+         r"\{camera\}, \{light\} \(missing \{light\}\)"),
         ('files = "olat/{camera}/{light:04d}.exr"', 'files = "olat/{camera}/{view}.exr"',
          r"\[olat.files\]: template .* uses field \{view\}; valid fields here: \{camera\}, \{light\}"),
         ('files = "olat/{camera}/{light:04d}.exr"', 'files = "olat/{camera}/{light:04d}.raw"',

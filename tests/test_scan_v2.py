@@ -490,3 +490,42 @@ def test_import_refuses_a_description_that_does_not_match_the_folder(tmp_path):
     (tmp_path / "full" / "x").write_text("x")
     with pytest.raises(ScanFormatError, match=r"not an empty directory"):
         import_folder(src, tmp_path / "full", desc)
+
+
+def test_flat_one_camera_folder_with_numbered_and_named_files(tmp_path):
+    """A data set as shipped: one camera, no camera folder, structured-light frames numbered
+    from 1 ({number}) and flashes named after their light (P00{light_name}.pgm), plus an
+    ambient frame; a version-1 manifest may not use these template fields."""
+    from facegeo.frames import look_at
+    from facegeo.geometry.camera import Camera
+    from facegeo.geometry.lights import LightList
+    from facegeo.geometry.rig import Projector, Rig
+
+    K = np.array([[30.0, 0, 11.7], [0, 30.4, 8.2], [0, 0, 1]])
+    names = ["A+000E+00", "A+090E+00", "A-090E+00", "A+000E+90", "A+180E+00", "A+000E-90"]
+    dirs = [[0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, 0, -1], [0, -1, 0]]
+    Rig([Camera("cam", 24, 16, K, None, look_at([0, 0, 1.0], [0, 0, 0]))],
+        Projector("proj", 4, 2), LightList(directions=dirs, names=names)).save(tmp_path / "rig.json")
+    frames = ["white", "black", "gray_x_00", "gray_x_00_inv"]
+    grey = np.full((16, 24), 90, np.uint8)
+    for i, _ in enumerate(frames):
+        write_image(tmp_path / f"{i + 1}.png", grey)
+    for n in names + ["_Ambient"]:
+        write_image(tmp_path / f"P00{n}.png", grey)
+    m = new_manifest("flat", synthetic=False)
+    m["structured_light"] = {"projector": "proj", "frames": frames, "files": "{number}.png",
+                             "patterns": {"n_bits_x": 1, "n_bits_y": 0}}
+    m["olat"] = {"n_lights": 6, "response": "srgb", "files": "P00{light_name}.png",
+                 "ambient": "P00_Ambient.png"}
+    write_manifest(tmp_path, m)
+    scan = load_scan(tmp_path, check="full")
+    assert scan.sl_path("cam", "gray_x_00").name == "3.png"
+    assert scan.olat_path("cam", "A+000E+90").name == "P00A+000E+90.png"
+    # The six octahedron directions split the sphere equally (exact by symmetry, sr).
+    assert np.abs(scan.lights.solid_angles - 4 * np.pi / 6).max() < 1e-9
+    text = (tmp_path / "scan.toml").read_text().replace("version = 2", "version = 1")
+    text = text.replace('ambient = "P00_Ambient.png"\n', "")
+    (tmp_path / "scan.toml").write_text(text)
+    with pytest.raises(ScanFormatError, match=r"\[structured_light.files\]: structured_light."
+                                              r"files is a version-2 feature"):
+        load_scan(tmp_path)

@@ -53,8 +53,16 @@ TEMPLATE_FIELDS = {
     "calib.corners": ("camera",),
     "olat.ambient": ("camera",),
 }
-#: Fields a template may use instead of a required one: ``{field: replacement}``.
-_ALT_FIELDS = {"olat": {"light": "light_name"}}
+#: Fields a template may use instead of a required one (v2): ``{field: replacements}``.
+#: ``{index}`` is the 0-based and ``{number}`` the 1-based position of the frame (the view, the
+#: frame in ``frames``, the OLAT file number), for data sets that number their files.
+_ALT_FIELDS = {
+    "olat": {"light": ("light_name", "index", "number")},
+    "calib": {"view": ("index", "number")},
+    "structured_light": {"frame": ("index", "number")},
+}
+#: Fields that only a version-2 template may use.
+V2_TEMPLATE_FIELDS = ("light_name", "index", "number")
 #: A template ending in this suffix matches one file of any readable image suffix (v2).
 ANY_SUFFIX = ".*"
 #: Suffixes of a corner-list file.
@@ -74,7 +82,8 @@ DEFAULT_RESPONSES = {"calib": "srgb", "structured_light": "srgb", "olat": "linea
 LIGHT_ORDERS = ("theta-fastest", "phi-fastest")
 
 _FRAME_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
-_SAMPLE_FIELDS = {"camera": "cam", "view": 0, "frame": "white", "light": 0, "light_name": "L0"}
+_SAMPLE_FIELDS = {"camera": "cam", "view": 0, "frame": "white", "light": 0, "light_name": "L0",
+                  "index": 0, "number": 1}
 
 
 # =========================================================================== schema
@@ -185,7 +194,7 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
             f"bad template {fmt_value(t)} ({exc}); for example {fmt_value(example)}", key=key, path=where
         ) from exc
     used = set()
-    valid = need + tuple(alt.values())
+    valid = need + tuple(a for alts in alt.values() for a in alts)
     for _, name, _, conv in parsed:
         if name is None:
             continue
@@ -201,13 +210,15 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
                 f"template {fmt_value(t)}: conversions (!{conv}) are not allowed", key=key, path=where
             )
         used.add(name)
-    for n, a in alt.items():
-        if a in used and n in used:
-            raise _err(f"template {fmt_value(t)} uses both {{{n}}} and {{{a}}}; use one",
-                       key=key, path=where)
-        if a in used:
+    for n, alts in alt.items():
+        both = [f for f in (n,) + alts if f in used]
+        if len(both) > 1:
+            raise _err(f"template {fmt_value(t)} uses " + " and ".join("{" + f + "}" for f in both)
+                       + "; they name the same thing, use one", key=key, path=where)
+        if both:
             used.add(n)
-    missing = [n for n in need if n not in used]
+    # v2: a template may leave out {camera} when the rig has one camera (checked at load).
+    missing = [n for n in need if n not in used and n != "camera"]
     if missing:
         raise _err(
             f"template {fmt_value(t)} must use every one of "
@@ -499,7 +510,8 @@ def _v2_keys_used(manifest: Mapping[str, Any]) -> list[str]:
         node = manifest
         for part in dotted.split("."):
             node = node.get(part) if isinstance(node, Mapping) else None
-        if isinstance(node, str) and (node.endswith(ANY_SUFFIX) or "{light_name" in node):
+        if isinstance(node, str) and (node.endswith(ANY_SUFFIX) or "{camera" not in node
+                                      or any("{" + f in node for f in V2_TEMPLATE_FIELDS)):
             used.append(dotted)
     return used
 

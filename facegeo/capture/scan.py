@@ -293,7 +293,20 @@ class Scan:
     def _path(self, group: str, key: str = "files", **fields: Any) -> Path:
         template = self._section(group)[key]
         k = f"{group}.{key}"
+        # The v2 alternatives of the group's item field ({index}, {number}, {light_name});
+        # str.format ignores the fields a template does not use.
+        if group == "calib" and "view" in fields:
+            fields.update(index=fields["view"], number=fields["view"] + 1)
+        elif group == "structured_light" and "frame" in fields:
+            i = self._frame_positions.get(fields["frame"], 0)
+            fields.update(index=i, number=i + 1)
+        elif group == "olat" and "light" in fields:
+            fields.update(index=fields["light"], number=fields["light"] + 1)
         return self._find(self._resolve(_format_template(template, fields), key=k), k)
+
+    @functools.cached_property
+    def _frame_positions(self) -> dict[str, int]:
+        return {f: i for i, f in enumerate(self._section("structured_light")["frames"])}
 
     # ------------------------------------------------------------------ per-camera frames
 
@@ -422,9 +435,10 @@ class Scan:
         return self._olat_file(camera, light)
 
     def _olat_file(self, camera: str, light: int) -> Path:
-        names = self.light_names
-        fields = {"light_name": names[light]} if "{light_name" in self._section("olat")["files"] \
-            else {"light": self._olat_file_number(light)}
+        names = getattr(self.lights, "names", None)
+        fields = {"light": self._olat_file_number(light)}
+        if names is not None:
+            fields["light_name"] = names[light]
         return self._path("olat", camera=camera, **fields)
 
     def ambient_path(self, camera: str) -> Path | None:
@@ -846,6 +860,15 @@ class Scan:
                 "the rig has no cameras, but the scan lists frames", key="scan.rig", path=where
             )
         names = [c.name for c in cameras]
+        if len(names) > 1:
+            for group in self.groups:
+                for k in ("files", "ambient", "corners"):
+                    t = self._section(group).get(k)
+                    if isinstance(t, str) and "{camera" not in t:
+                        raise _err(f"template {t!r} has no {{camera}} but the rig has "
+                                   f"{len(names)} cameras, whose files would collide; only a "
+                                   "one-camera rig may leave {camera} out",
+                                   key=f"{group}.{k}", path=where)
         if len(set(names)) != len(names):
             raise _err(
                 f"the rig's camera names are not unique: {names}", key="scan.rig", path=where
