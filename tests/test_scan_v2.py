@@ -529,3 +529,36 @@ def test_flat_one_camera_folder_with_numbered_and_named_files(tmp_path):
     with pytest.raises(ScanFormatError, match=r"\[structured_light.files\]: structured_light."
                                               r"files is a version-2 feature"):
         load_scan(tmp_path)
+
+
+# =========================================================================== real layouts
+
+#: A nominal 640 × 480 camera for real sets whose intrinsics calibration will find.
+_NOMINAL_K = [[530.0, 0.0, 319.5], [0.0, 530.0, 239.5], [0.0, 0.0, 1.0]]
+
+
+def test_real_stereo_chessboard_folder_is_expressible(shared_data, tmp_path):
+    """OpenCV's stereo sample (left01.jpg … right14.jpg, pose 10 absent on both cameras, a
+    9 × 6 chessboard) imported as shipped: numbered files, per-camera missing views."""
+    import json
+
+    from facegeo.capture.importer import import_folder
+    from tests.conftest import shared_file
+
+    src = shared_file(shared_data, "calibration/opencv_stereo_chessboards")
+    rig = {"format": "facegeo-rig", "version": 1, "projector": None, "lights": None,
+           "cameras": [{"name": n, "width": 640, "height": 480, "K": _NOMINAL_K, "dist": [],
+                        "T_cam_world": {"R": np.eye(3).tolist(), "t": [x, 0.0, 0.0]}}
+                       for n, x in (("left", 0.0), ("right", -0.06))]}
+    (tmp_path / "rig.json").write_text(json.dumps(rig))
+    m = {"scan": {"format": "facegeo-scan", "version": 2, "name": "opencv_stereo",
+                  "rig": "rig.json"},
+         "calib": {"board": {"kind": "chessboard", "cols": 9, "rows": 6, "square_size": 0.025},
+                   "views": 14, "files": "{camera}{number:02d}.jpg",
+                   "cameras": {"left": {"missing": [9]}, "right": {"missing": [9]}}},
+         "reference": {"intrinsics": "intrinsics.yml"}}
+    scan = import_folder(src, tmp_path / "scan", m, rig=tmp_path / "rig.json")
+    assert not (src / "rig.json").exists() and (tmp_path / "scan" / "rig.json").is_file()
+    assert scan.calib_views("left") == [0, 1, 2, 3, 4, 5, 6, 7, 8, 10, 11, 12, 13]
+    assert scan.calib_view_paths("right")[-1].name == "right14.jpg"
+    assert "left: 13 of 14; lacks view 9" in summarize(scan)

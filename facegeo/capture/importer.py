@@ -67,7 +67,7 @@ def _carry(src: Path, dst: Path, mode: str) -> str:
 
 def import_folder(src: str | os.PathLike, dest: str | os.PathLike,
                   description: str | os.PathLike | dict[str, Any], *,
-                  mode: str | None = None) -> Scan:
+                  mode: str | None = None, rig: Any = None) -> Scan:
     """Make a scan at ``dest`` from the frames in ``src`` and a description.
 
     Parameters
@@ -83,6 +83,10 @@ def import_folder(src: str | os.PathLike, dest: str | os.PathLike,
     mode : {"link", "copy"}, optional
         Overrides ``import.mode`` (default ``"link"``: hard links, falling back to a copy when
         ``dest`` is on another file system).
+    rig : Rig or path-like, optional
+        The rig, when the data set does not ship a facegeo ``rig.json`` (most do not): a
+        :class:`facegeo.geometry.rig.Rig` or the path of a rig file anywhere. It is written to
+        ``dest`` at ``scan.rig``; ``src`` then needs no rig file.
 
     Returns
     -------
@@ -117,8 +121,15 @@ def import_folder(src: str | os.PathLike, dest: str | os.PathLike,
         raise _err("destination exists and is not an empty directory; importing never "
                    "overwrites", path=dest)
     source = Scan(src, manifest, manifest_path=where)
+    rig_file = source.root / source.manifest["scan"]["rig"]
+    if rig is not None:
+        from facegeo.geometry.rig import Rig
+
+        if not isinstance(rig, Rig):
+            rig = Rig.load(rig)
+        source.__dict__["rig"] = rig  # the cached property: validate against this rig
     source.validate("quick")
-    files = source.input_files()
+    files = [p for p in source.input_files() if rig is None or p != rig_file]
     carried = {"link": 0, "copy": 0}
     created = not dest.exists()
     dest.mkdir(parents=True, exist_ok=True)
@@ -128,6 +139,8 @@ def import_folder(src: str | os.PathLike, dest: str | os.PathLike,
                 raise _err("is a directory; the import carries files (name its files in the "
                            "manifest)", path=p)
             carried[_carry(p, dest / p.relative_to(source.root), mode)] += 1
+        if rig is not None:
+            rig.save(dest / source.manifest["scan"]["rig"])
         write_manifest(dest, source.manifest)
     except (ScanFormatError, OSError):
         log.debug("import into %s failed; removing what it wrote", dest)
