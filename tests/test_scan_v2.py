@@ -562,3 +562,21 @@ def test_real_stereo_chessboard_folder_is_expressible(shared_data, tmp_path):
     assert scan.calib_views("left") == [0, 1, 2, 3, 4, 5, 6, 7, 8, 10, 11, 12, 13]
     assert scan.calib_view_paths("right")[-1].name == "right14.jpg"
     assert "left: 13 of 14; lacks view 9" in summarize(scan)
+
+
+def test_projector_frames_without_patterns_and_a_camera_with_no_views(tmp_path):
+    """[calib.projector] with its own frames but no pattern spec loads (nothing to check the
+    frames against); a camera listed with views = [] needs no corner list."""
+    root = _copy("calibration_corners", tmp_path)
+    _edit(root, "views = [0, 2]", "views = []")
+    (root / "calib" / "cam_b" / "corners.csv").unlink()
+    with open(root / "scan.toml", "a") as fh:
+        fh.write('\n[calib.projector]\nviews = 1\nframes = ["white"]\n'
+                 'files = "calib/projector/{camera}/{view}_{frame}.png"\n'
+                 '[calib.projector.cameras.cam_b]\nviews = []\n')
+    write_image(root / "calib" / "projector" / "cam_a" / "0_white.png",
+                np.full((480, 640), 200, np.uint8))
+    scan = load_scan(root)
+    assert scan.calib_views("cam_b") == [] and scan.pattern_spec("calib.projector") is None
+    assert scan.camera_frames("calib.projector", "cam_a") == [(0, "white")]
+    assert "cam_b: 0 of 1; lacks view 0 white" in summarize(scan)

@@ -1,14 +1,16 @@
 """The scan directory: its ``scan.toml`` manifest, validation, and lazy access to frames.
 
-A real light stage and the synthetic generator (:mod:`facegeo.synth`) write the same layout,
+A real capture rig and the synthetic generator (:mod:`facegeo.synth`) write the same layout,
 documented key by key in ``docs/scan-format.md``::
 
-    <scan>/scan.toml                        the manifest (this module's schema, version 1)
-    <scan>/rig.json                         cameras, projector, light stage (facegeo.geometry.rig)
-    calib/board.json, calib/<camera>/view_000.png ...
+    <scan>/scan.toml                        the manifest (this module's schema, version 2;
+                                            version 1 is still read)
+    <scan>/rig.json                         cameras, projector, lights (facegeo.geometry.rig)
+    calib/board.json, calib/<camera>/view_000.png ..., calib/<camera>/corners.csv
     calib/projector/<camera>/view_00_<frame>.png
     structured_light/<camera>/<frame>.png
-    olat/<camera>/0000.exr ...              one per light
+    olat/<camera>/0000.exr ...              one per light (or named after it), ambient frame
+    reference/...                           real scans: published answers
     ground_truth/...                        synthetic scans only
     out/                                    stage products
 
@@ -31,6 +33,7 @@ import copy
 import functools
 import logging
 import os
+import re
 import tomllib
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -114,7 +117,9 @@ CHECKS = ("quick", "full")
 #: item 3.2), used by the ``luminance=True`` readers.
 LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
-_GRAY_FRAME = __import__("re").compile(r"^gray_([xy])_(\d+)(_inv)?$")
+#: A Gray-code frame name of :func:`facegeo.geometry.structured_light.pattern_names`: axis, bit
+#: (0 = most significant) and inverse flag; per-camera ``bits_x`` / ``bits_y`` drop bits ≥ n.
+_GRAY_FRAME = re.compile(r"^gray_([xy])_(\d+)(_inv)?$")
 
 
 def _luminance(lin: np.ndarray) -> np.ndarray:
@@ -538,6 +543,8 @@ class Scan:
         from facegeo.geometry.structured_light import PatternSpec
 
         if group == "calib.projector" and "patterns" not in self._section(group):
+            if not self.has("structured_light"):
+                return None
             group = "structured_light"
         pat = self._patterns(group)
         if not pat:
@@ -626,7 +633,7 @@ class Scan:
                                          where=self.manifest_path))
         cams = self.camera_names
         if self.has("calib") and "corners" in self._section("calib"):
-            out += [self._path("calib", "corners", camera=c) for c in cams]
+            out += [self._path("calib", "corners", camera=c) for c in cams if self.calib_views(c)]
         for group in self.groups:
             for c in cams:
                 out += [p for _, p in self.expected_files(group, c)]
@@ -900,7 +907,8 @@ class Scan:
         self._validate_world(names, where)
         if self.has("calib") and "corners" in self._section("calib"):
             for cam in names:
-                self.calib_corners(cam)
+                if self.calib_views(cam):  # a camera that saw no view needs no corner list
+                    self.calib_corners(cam)
         for key in self.reference_keys:
             p = self.reference_path(key)
             if not p.exists():
