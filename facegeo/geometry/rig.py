@@ -1,7 +1,11 @@
-"""The capture rig: cameras, the structured-light projector and the light stage.
+"""The capture rig: cameras, the structured-light projector and the lights.
 
 A :class:`Rig` is what calibration produces and every later stage consumes. It saves to and loads
-from a small JSON file (``calib/default_rig.json`` is :func:`default_rig` written out).
+from a small JSON file (``calib/default_rig.json`` is :func:`default_rig` written out). Real rigs
+differ from the paper's: the projector may be uncalibrated (:class:`Projector`: resolution only),
+the lights may be a list (:class:`facegeo.geometry.lights.LightList`) instead of the θ × φ grid
+(:class:`LightStage`), or absent (``lights = None``: structured light or calibration only); see
+``docs/scan-format.md``, *Lights*.
 
 Regenerate the shipped calibration files (``calib/default_rig.json`` and
 ``calib/charuco_board.json``) after changing :func:`default_rig` or the default
