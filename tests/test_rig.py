@@ -407,3 +407,19 @@ def test_rig_without_lights_and_with_an_uncalibrated_projector_round_trips(tmp_p
     (tmp_path / "rig.json").write_text(json.dumps(d))
     with pytest.raises(ScanFormatError, match=r"projector.calibrated"):
         Rig.load(tmp_path / "rig.json")
+
+
+def test_azimuth_elevation_directions_follow_the_grid_convention():
+    """Azimuth a and elevation e equal the grid's θ and 90° − φ: the directions agree with
+    frames.light_directions on a 8 × 4 grid (max abs difference, unit vectors)."""
+    from facegeo.geometry.lights import directions_from_azimuth_elevation
+
+    n_theta, n_phi = 8, 4
+    i, j = np.meshgrid(np.arange(n_theta), np.arange(n_phi))
+    theta = 360.0 * (i.ravel() + 0.5) / n_theta
+    phi = 180.0 * (j.ravel() + 0.5) / n_phi
+    d = directions_from_azimuth_elevation(theta, 90.0 - phi)
+    assert np.abs(d - frames.light_directions(n_theta, n_phi)).max() < 1e-12
+    assert np.allclose(directions_from_azimuth_elevation(90.0, 0.0), [[1.0, 0.0, 0.0]])
+    with pytest.raises(InputError, match="elevation_deg"):
+        directions_from_azimuth_elevation(0.0, 95.0)

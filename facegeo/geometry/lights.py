@@ -31,7 +31,8 @@ import numpy as np
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError
 
-__all__ = ["LightSet", "LightList", "voronoi_solid_angles", "LIGHT_LIST_KIND"]
+__all__ = ["LightSet", "LightList", "voronoi_solid_angles", "directions_from_azimuth_elevation",
+           "LIGHT_LIST_KIND"]
 
 #: ``"kind"`` of a light list in ``rig.json``'s ``lights`` entry.
 LIGHT_LIST_KIND = "list"
@@ -75,6 +76,37 @@ def _unit_rows(a: Any, name: str) -> np.ndarray:
     if bad.size:
         raise InputError(f"{name}[{int(bad[0])}]: zero-length vector, which has no direction")
     return v / n[:, None]
+
+
+def directions_from_azimuth_elevation(azimuth_deg: Any, elevation_deg: Any) -> np.ndarray:
+    """Unit light directions from azimuth and elevation angles, world frame.
+
+    The world frame of ``docs/conventions.md`` (+Y up, the subject looks along +Z): azimuth is
+    measured in the horizontal plane from +Z toward +X (the light-stage grid's θ), elevation
+    from that plane toward +Y (90° − the grid's φ)::
+
+        ω = (cos e · sin a, sin e, cos e · cos a)
+
+    Data sets name their flashes this way (``A+035E+15``) but differ in the sign of the
+    azimuth; negate it when the data set's positive azimuth is toward −X.
+
+    Parameters
+    ----------
+    azimuth_deg, elevation_deg : (L,) float, degrees
+        Broadcast against each other.
+
+    Returns
+    -------
+    (L, 3) float64, unit
+    """
+    a = np.radians(np.asarray(azimuth_deg, dtype=np.float64))
+    e = np.radians(np.asarray(elevation_deg, dtype=np.float64))
+    a, e = np.broadcast_arrays(a, e)
+    if not (np.isfinite(a).all() and np.isfinite(e).all()):
+        raise InputError("azimuth_deg, elevation_deg: must be finite")
+    if (np.abs(np.degrees(e)) > 90.0 + 1e-9).any():
+        raise InputError("elevation_deg: expected angles in [-90, 90] degrees")
+    return np.stack([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)], axis=-1).reshape(-1, 3)
 
 
 def voronoi_solid_angles(directions: Any, horizon_axis: Any = None) -> np.ndarray:
