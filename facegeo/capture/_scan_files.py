@@ -76,7 +76,10 @@ def frame_path(root: str | os.PathLike, template: str, **fields: Any) -> Path:
         A group's path template (:data:`DEFAULT_FILES` or the manifest's ``files``).
     **fields
         ``camera`` (str), ``view`` (int), ``frame`` (str), ``light`` (int, the *file* number in
-        capture order; see ``olat.light_order``).
+        capture order; see ``olat.light_order``); version-2 templates may instead use
+        ``light_name`` (str), ``index`` (int, 0-based) or ``number`` (int, 1-based) — pass the
+        fields the template uses (unused ones are ignored). A template ending in ``.*`` gives a
+        path ending in ``.*``: write the frame with a real suffix in its place.
 
     Raises
     ------
