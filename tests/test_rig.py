@@ -305,8 +305,8 @@ def test_swapped_axes_fail():
 # --------------------------------------------------------------------------- v2: light lists,
 # rigs without lights, uncalibrated projectors
 
-from facegeo.geometry.lights import LightList, LightSet, voronoi_solid_angles  # noqa: E402
-from facegeo.geometry.rig import Projector  # noqa: E402
+from facegeo.geometry.lights import LightList, LightSet, voronoi_solid_angles
+from facegeo.geometry.rig import Projector
 
 #: Absolute tolerance (sr) on Voronoi areas that are exact by symmetry (float64 round-off).
 VORONOI_EXACT_SR = 1e-9

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facegeo.capture.imageio import encode, read_image, srgb_to_linear, write_image
+from facegeo.capture.imageio import read_image, srgb_to_linear, write_image
 from facegeo.capture.scan import (
     LUMINANCE_WEIGHTS,
     load_scan,
@@ -99,8 +99,8 @@ def test_structured_light_only_loads_and_describes_itself():
     assert scan.reference_path("point_cloud").name == "points.ply"
     text = summarize(scan)
     for needle in ["projector: proj 16×8 px (uncalibrated", "lights: none",
-                   "cam_a: 8 of 8", "cam_b: 5 of 8; lacks gray_x_01, gray_x_01_inv, "
-                   "gray_y_00_inv; resolves bits_x = 1", "files: structured_light/{camera}/{frame}.*"]:
+                   "cam_a: 8 of 8", ("cam_b: 5 of 8; lacks gray_x_01, gray_x_01_inv, "
+                                     "gray_y_00_inv; resolves bits_x = 1"), "files: structured_light/{camera}/{frame}.*"]:
         assert needle in text, (needle, text)
 
 
@@ -437,7 +437,7 @@ def test_every_documented_manifest_passes_the_schema():
     doc = Path(__file__).resolve().parents[1] / "docs" / "scan-format.md"
     if not doc.is_file():
         pytest.skip(f"{doc} is absent")
-    blocks = re.findall(r"```toml\n(.*?)```", doc.read_text(encoding="utf-8"), re.S)
+    blocks = re.findall(r"```toml\n(.*?)```", doc.read_text(encoding="utf-8"), re.DOTALL)
     assert len(blocks) >= 5
     head = '[scan]\nformat = "facegeo-scan"\nversion = 2\nname = "x"\n'
     for block in blocks:

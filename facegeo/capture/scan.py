@@ -1240,8 +1240,8 @@ def summarize(scan: Scan) -> str:
 
     This is what ``facegeo info`` prints."""
     m = scan._m
-    lines = [f"scan {scan.name!r} ({'synthetic' if scan.synthetic else 'real capture'}, "
-             f"format version {scan.version})",
+    lines = [(f"scan {scan.name!r} ({'synthetic' if scan.synthetic else 'real capture'}, "
+              f"format version {scan.version})"),
              f"  root: {scan.root}"]
     if scan.description:
         lines.append(f"  description: {scan.description}")

@@ -21,6 +21,7 @@ References
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass
@@ -246,7 +247,7 @@ class LightList:
     horizon_axis: Any = None
 
     def __post_init__(self):
-        put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
+        put = functools.partial(object.__setattr__, self)  # frozen dataclass
         c = np.asarray(self.center, dtype=np.float64)
         if c.shape != (3,) or not np.isfinite(c).all():
             raise InputError(f"center: expected 3 finite numbers, got {fmt_value(self.center)}")
@@ -352,16 +353,21 @@ class LightList:
     def __eq__(self, other) -> bool:
         if not isinstance(other, LightList) or other.n_lights != self.n_lights:
             return False
-        same = lambda a, b: (a is None and b is None) or (  # noqa: E731
-            a is not None and b is not None and np.array_equal(a, b))
-        return (self.names == other.names and same(self.positions, other.positions)
+        return (self.names == other.names and _same(self.positions, other.positions)
                 and np.array_equal(self.directions, other.directions)
                 and np.array_equal(self.intensities, other.intensities)
                 and np.array_equal(self.solid_angles, other.solid_angles)
                 and np.array_equal(self.center, other.center)
-                and same(self.horizon_axis, other.horizon_axis))
+                and _same(self.horizon_axis, other.horizon_axis))
 
     __hash__ = None  # type: ignore[assignment]
+
+
+def _same(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    """Equal arrays, or both None."""
+    if a is None or b is None:
+        return a is None and b is None
+    return np.array_equal(a, b)
 
 
 def _has_non_number(v: Any) -> bool:
