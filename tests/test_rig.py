@@ -300,3 +300,126 @@ def test_swapped_axes_fail():
     p = np.array([0.05, 0.14, 0.05])
     d = np.abs(cam.replace(K=K_sw).project(p)[0] - cam.project(p)[0]).max()
     assert d > 0.5, f"max pixel shift from swapping fx and fy = {d:.3f} px"
+
+
+# --------------------------------------------------------------------------- v2: light lists,
+# rigs without lights, uncalibrated projectors
+
+from facegeo.geometry.lights import LightList, LightSet, voronoi_solid_angles
+from facegeo.geometry.rig import Projector
+
+#: Absolute tolerance (sr) on Voronoi areas that are exact by symmetry (float64 round-off).
+VORONOI_EXACT_SR = 1e-9
+#: Worst relative difference between the Voronoi cell and the grid's δA cell of the same
+#: light, exact cell areas (the bisector of two rings is a tilted great circle, not the
+#: parallel between them): measured 1.16 % at 16 × 8 and 0.080 % at 64 × 32.
+VORONOI_VS_GRID_REL = {(16, 8): 0.013, (64, 32): 0.001}
+
+
+def _cube():
+    return np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+
+
+def test_voronoi_solid_angles_of_a_cube_are_an_eighth_of_the_sphere():
+    w = voronoi_solid_angles(_cube())
+    assert np.abs(w - 4 * math.pi / 8).max() < VORONOI_EXACT_SR
+
+
+def test_dome_cells_are_clipped_at_the_horizon():
+    """The upper four cube vertices as a dome (up = +Y): each cell is the cube's cell clipped at
+    the horizon, π/2 sr (exact by symmetry), and the cells sum to 2π. Without the horizon the
+    same four lights would split the whole sphere (π each), the bug this guards against."""
+    up = _cube()[_cube()[:, 1] > 0]
+    w = voronoi_solid_angles(up, [0, 1, 0])
+    assert np.abs(w - math.pi / 2).max() < VORONOI_EXACT_SR
+    with pytest.raises(InputError, match="below the horizon"):
+        voronoi_solid_angles(_cube(), [0, 1, 0])
+
+
+def test_light_on_the_horizon_gets_half_its_symmetric_cell():
+    """Octahedron vertices, dome up = +Y: four lights lie on the horizon. Each octahedron cell is
+    4π/6; the zenith keeps all of it, horizon lights keep half: total 2π."""
+    d = np.array([[0, 1, 0], [1, 0, 0], [-1, 0, 0], [0, 0, 1], [0, 0, -1]], float)
+    w = voronoi_solid_angles(d, [0, 1, 0])
+    assert abs(w[0] - 4 * math.pi / 6) < VORONOI_EXACT_SR
+    assert np.abs(w[1:] - 4 * math.pi / 12).max() < VORONOI_EXACT_SR
+    assert abs(w.sum() - 2 * math.pi) < VORONOI_EXACT_SR
+
+
+@pytest.mark.parametrize("n_theta, n_phi", sorted(VORONOI_VS_GRID_REL))
+def test_voronoi_weights_match_the_grid_delta_a_on_the_upper_hemisphere(n_theta, n_phi):
+    """The light stage grid's upper half as a dome: Voronoi weights against the known δA
+    (frames.light_solid_angles, exact cell areas), worst relative difference; the sum is
+    exactly 2π."""
+    d = frames.light_directions(n_theta, n_phi)
+    dA = frames.light_solid_angles(n_theta, n_phi, exact=True)
+    upper = d[:, 1] > 0
+    w = voronoi_solid_angles(d[upper], [0, 1, 0])
+    assert abs(w.sum() - 2 * math.pi) < 1e-9
+    assert np.abs(w / dA[upper] - 1).max() < VORONOI_VS_GRID_REL[(n_theta, n_phi)]
+    unclipped = voronoi_solid_angles(d[upper])  # the lowest ring would absorb the lower half
+    assert np.abs(unclipped / dA[upper] - 1).max() > 1.0
+
+
+def test_light_list_near_field_positions_and_round_trip(tmp_path):
+    center = np.array([0.0, 0.1, 0.0])
+    pos = center + 2.0 * _cube() / math.sqrt(3)
+    ll = LightList(positions=pos, center=center, intensities=np.linspace(0.5, 1, 8),
+                   names=[f"flash{k}" for k in range(8)])
+    assert np.abs(np.linalg.norm(ll.directions, axis=1) - 1).max() < 1e-12
+    assert np.abs(ll.directions - _cube() / math.sqrt(3)).max() < 1e-12
+    assert ll.intensities.shape == (8, 3) and not ll.is_distant and ll.index("flash3") == 3
+    rig = Rig([default_rig().cameras[0]], None, ll)
+    rig.save(tmp_path / "rig.json")
+    back = Rig.load(tmp_path / "rig.json")
+    assert back == rig and isinstance(back.lights, LightList)
+
+
+def test_both_light_kinds_satisfy_the_light_set_protocol():
+    for lights in (LightStage(4, 2), LightList(directions=_cube())):
+        assert isinstance(lights, LightSet)
+        assert lights.directions.shape == (lights.n_lights, 3)
+        assert lights.solid_angles.shape == (lights.n_lights,)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"directions": np.eye(3)[:2].tolist() + [[0, 0, 0]]}, "zero-length"),
+    ({"directions": _cube(), "names": ["a"] * 8}, "repeated: a"),
+    ({"directions": _cube(), "names": [f"a/{k}" for k in range(8)]}, "not a valid light name"),
+    ({"directions": _cube(), "intensities": -np.ones(8)}, "intensities"),
+    ({"directions": np.vstack([_cube(), _cube()[:1]])}, "are the same direction"),
+    ({}, "exactly one of them"),
+])
+def test_bad_light_lists_name_the_field(kwargs, words):
+    with pytest.raises(InputError, match=words):
+        LightList(**kwargs)
+
+
+def test_rig_without_lights_and_with_an_uncalibrated_projector_round_trips(tmp_path):
+    rig = Rig(default_rig().cameras, Projector("proj", 1024, 768), None)
+    assert not rig.projector_calibrated and default_rig().projector_calibrated
+    rig.save(tmp_path / "rig.json")
+    d = json.loads((tmp_path / "rig.json").read_text())
+    assert d["lights"] is None and d["projector"] == {"name": "proj", "width": 1024,
+                                                      "height": 768, "calibrated": False}
+    assert Rig.load(tmp_path / "rig.json") == rig
+    d["projector"]["calibrated"] = True
+    (tmp_path / "rig.json").write_text(json.dumps(d))
+    with pytest.raises(ScanFormatError, match=r"projector.calibrated"):
+        Rig.load(tmp_path / "rig.json")
+
+
+def test_azimuth_elevation_directions_follow_the_grid_convention():
+    """Azimuth a and elevation e equal the grid's θ and 90° − φ: the directions agree with
+    frames.light_directions on a 8 × 4 grid (max abs difference, unit vectors)."""
+    from facegeo.geometry.lights import directions_from_azimuth_elevation
+
+    n_theta, n_phi = 8, 4
+    i, j = np.meshgrid(np.arange(n_theta), np.arange(n_phi))
+    theta = 360.0 * (i.ravel() + 0.5) / n_theta
+    phi = 180.0 * (j.ravel() + 0.5) / n_phi
+    d = directions_from_azimuth_elevation(theta, 90.0 - phi)
+    assert np.abs(d - frames.light_directions(n_theta, n_phi)).max() < 1e-12
+    assert np.allclose(directions_from_azimuth_elevation(90.0, 0.0), [[1.0, 0.0, 0.0]])
+    with pytest.raises(InputError, match="elevation_deg"):
+        directions_from_azimuth_elevation(0.0, 95.0)

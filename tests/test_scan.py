@@ -63,7 +63,7 @@ def build_scan(root: Path, *, light_order="theta-fastest", olat_png=False, write
     m["calib"] = {"views": CALIB_VIEWS, "response": "srgb",
                   "projector": {"views": PROJ_VIEWS}}
     m["structured_light"] = {"projector": "proj", "frames": list(SL_FRAMES),
-                             "patterns": {"kind": "gray", "bits_x": 1, "bits_y": 0}}
+                             "patterns": {"n_bits_x": 1, "n_bits_y": 0, "inverse": False}}
     olat_files = "olat/{camera}/{light:04d}.png" if olat_png else DEFAULT_FILES["olat"]
     m["olat"] = {"n_lights": N_THETA * N_PHI, "light_order": light_order, "files": olat_files}
     if olat_png:
@@ -140,7 +140,8 @@ def test_write_load_round_trip_identical_arrays(scan_dir):
 def test_scan_accessors(scan_dir):
     scan = load_scan(scan_dir)
     assert scan.sl_frames == SL_FRAMES
-    assert scan.sl_patterns == {"kind": "gray", "bits_x": 1, "bits_y": 0}
+    assert scan.sl_patterns == {"n_bits_x": 1, "n_bits_y": 0, "inverse": False,
+                                "width": 40, "height": 30}
     assert scan.sl_projector == "proj"
     views = scan.calib_view_paths("cam_b")
     assert [p.relative_to(scan.root).as_posix() for p in views] == [
@@ -173,7 +174,7 @@ def test_manifest_written_is_normalised_toml(scan_dir):
     text = _toml(scan_dir)
     assert text.startswith("# facegeo scan manifest")
     m = tomllib.loads(text)
-    assert m["scan"]["format"] == "facegeo-scan" and m["scan"]["version"] == 1
+    assert m["scan"]["format"] == "facegeo-scan" and m["scan"]["version"] == 2
     assert m["olat"]["files"] == DEFAULT_FILES["olat"]  # defaults spelled out
     assert m["structured_light"]["response"] == "srgb"
     assert m["calib"]["projector"]["files"] == DEFAULT_FILES["calib.projector"]
@@ -231,12 +232,13 @@ def test_minimal_scan_only_scan_section(tmp_path):
 
 def test_summarize(scan_dir):
     text = summarize(load_scan(scan_dir))
-    for needle in ["'tiny' (synthetic)", "camera cam_a: 24×16 px", "projector: proj 40×30 px",
-                   "4 lights (2 azimuths × 2 inclinations)",
-                   "olat: 4 light(s) × 2 camera(s) = 8 files, response linear",
-                   "structured_light: 3 frame(s) × 2 camera(s) = 6 files, response srgb",
+    for needle in ["'tiny' (synthetic, format version 2)", "camera cam_a: 24×16 px",
+                   "projector: proj 40×30 px", "4 lights (2 azimuths × 2 inclinations)",
+                   "olat: 4 light(s) per camera, 8 files, response linear",
+                   "structured_light: 3 frame(s) per camera, 6 files, response srgb",
+                   "      cam_b: 3 of 3\n",
                    "calib: 2 view(s)", "maps.albedo = ground_truth/albedo.exr",
-                   "size on disk:"]:
+                   "size on disk (hard links counted once):"]:
         assert needle in text, (needle, text)
 
 
@@ -315,8 +317,8 @@ def test_toml_syntax_error_names_line(scan_dir):
     [
         ('format = "facegeo-scan"', 'format = "other"',
          r"\[scan.format\]: format is 'other'; a facegeo scan says format = 'facegeo-scan'"),
-        ("version = 1", "version = 2",
-         r"\[scan.version\]: unsupported version 2 \(newer .*reads version 1"),
+        ("version = 2", "version = 3",
+         r"\[scan.version\]: unsupported version 3 \(newer .*reads versions 1, 2"),
         ("n_lights = 4", "n_lights = 0", r"\[olat.n_lights\]: expected an integer > 0, got 0"),
         ("n_lights = 4", "n_lights = 5",
          r"\[olat.n_lights\]: n_lights = 5 but the rig's light stage has 4 lights"),
@@ -342,8 +344,11 @@ def test_toml_syntax_error_names_line(scan_dir):
          r"\[structured_light.frames\]: frame name 'white' appears twice"),
         ('"black",', '"bl/ack",', r"\[structured_light.frames\]: frame 1 is 'bl/ack'"),
         ('files = "olat/{camera}/{light:04d}.exr"', 'files = "olat/{light:04d}.exr"',
-         r"\[olat.files\]: template 'olat/\{light:04d\}.exr' must use every one of \{camera\}, "
-         r"\{light\} \(missing \{camera\}\)"),
+         r"\[olat.files\]: template 'olat/\{light:04d\}.exr' has no \{camera\} but the rig "
+         r"has 2 cameras"),
+        ('files = "olat/{camera}/{light:04d}.exr"', 'files = "olat/{camera}/x.exr"',
+         r"\[olat.files\]: template 'olat/\{camera\}/x.exr' must use every one of "
+         r"\{camera\}, \{light\} \(missing \{light\}\)"),
         ('files = "olat/{camera}/{light:04d}.exr"', 'files = "olat/{camera}/{view}.exr"',
          r"\[olat.files\]: template .* uses field \{view\}; valid fields here: \{camera\}, \{light\}"),
         ('files = "olat/{camera}/{light:04d}.exr"', 'files = "olat/{camera}/{light:04d}.raw"',
@@ -572,7 +577,11 @@ def test_documented_example_manifest_is_valid():
     block = re.search(r"```toml\n(.*?)```", doc.read_text(encoding="utf-8"), re.S).group(1)
     m = validate_manifest(tomllib.loads(block))
     assert m["olat"]["n_lights"] == 2048 and m["calib"]["projector"]["views"] == 4
-    assert m["structured_light"]["patterns"]["kind"] == "gray"
+    assert m["structured_light"]["patterns"] == {"n_bits_x": 1, "n_bits_y": 1}
+    from facegeo.geometry.structured_light import PatternSpec, pattern_names
+
+    spec = PatternSpec.from_dict({"width": 1024, "height": 768, **m["structured_light"]["patterns"]})
+    assert pattern_names(spec) == m["structured_light"]["frames"]
 
 
 def test_olat_exposure_must_be_positive_and_divides_frames(tmp_path):

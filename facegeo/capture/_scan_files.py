@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.capture._scan_schema import _check_rel_path, _err
-from facegeo.capture.imageio import read_image, read_image_info
+from facegeo.capture._scan_schema import ANY_SUFFIX, _check_rel_path, _err
+from facegeo.capture.imageio import READ_SUFFIXES, read_image, read_image_info
 from facegeo.capture.response import saturated_mask
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError, ScanFormatError
@@ -76,7 +76,10 @@ def frame_path(root: str | os.PathLike, template: str, **fields: Any) -> Path:
         A group's path template (:data:`DEFAULT_FILES` or the manifest's ``files``).
     **fields
         ``camera`` (str), ``view`` (int), ``frame`` (str), ``light`` (int, the *file* number in
-        capture order; see ``olat.light_order``).
+        capture order; see ``olat.light_order``); version-2 templates may instead use
+        ``light_name`` (str), ``index`` (int, 0-based) or ``number`` (int, 1-based) — pass the
+        fields the template uses (unused ones are ignored). A template ending in ``.*`` gives a
+        path ending in ``.*``: write the frame with a real suffix in its place.
 
     Raises
     ------
@@ -303,3 +306,170 @@ def _size_message(group: str, camera: str, found, expected) -> str:
 
 def _size_error(path: Path, group: str, camera: str, found, expected) -> ScanFormatError:
     return _err(_size_message(group, camera, found, expected), key=f"{group}.files", path=path)
+
+
+# =========================================================================== v2 helpers
+
+
+class _SuffixFinder:
+    """Finds the one file behind a ``<stem>.*`` path (a template ending in ``.*``, v2): each
+    frame may have its own readable image suffix. Directory listings are cached."""
+
+    def __init__(self):
+        self._dirs: dict[Path, dict[str, list[str]]] = {}
+
+    def __call__(self, p: Path, key: str) -> Path:
+        if not p.name.endswith(ANY_SUFFIX):
+            return p
+        stem = p.name[: -len(ANY_SUFFIX)]
+        d = p.parent
+        table = self._dirs.get(d)
+        if table is None:
+            table = {}
+            try:
+                names = os.listdir(d)
+            except OSError:
+                names = []
+            for n in names:
+                s, dot, suf = n.rpartition(".")
+                if dot and "." + suf.lower() in READ_SUFFIXES:
+                    table.setdefault(s, []).append(n)
+            self._dirs[d] = table
+        found = table.get(stem, [])
+        if len(found) > 1:
+            raise _err(f"{len(found)} files match {p.name}: {', '.join(sorted(found))}; a frame "
+                       "must have exactly one file", key=key, path=p)
+        return d / found[0] if found else p
+
+
+@dataclass(frozen=True)
+class CornerView:
+    """The board corners one camera saw in one calibration view (a corner list entry).
+
+    Attributes
+    ----------
+    ids : (N,) int64
+        Corner ids on the board (for a chessboard: the index in OpenCV's corner order).
+    object_points : (N, 3) float64, metres, board frame
+    image_points : (N, 2) float64, pixels (pixel centres at integers, ``docs/conventions.md``)
+    """
+
+    ids: np.ndarray
+    object_points: np.ndarray
+    image_points: np.ndarray
+
+
+#: Arrays of an ``.npz`` corner list and the columns of a ``.csv`` one.
+CORNER_ARRAYS = ("view", "ids", "object_points", "image_points")
+CORNER_COLUMNS = ("view", "id", "x", "y", "z", "u", "v")
+#: Fewest corners a view may have (a homography needs 4 points).
+MIN_CORNERS = 4
+
+
+def read_corner_list(path: Path, *, key: str = "calib.corners") -> dict[int, CornerView]:
+    """Read and check one camera's corner list: ``{view: CornerView}``.
+
+    ``.npz``: arrays ``view (N,)`` int, ``ids (N,)`` int, ``object_points (N, 3)`` float metres,
+    ``image_points (N, 2)`` float pixels, one row per corner of every view. ``.csv``: a header
+    line ``view,id,x,y,z,u,v`` and one row per corner.
+
+    Raises
+    ------
+    ScanFormatError
+        Missing or unreadable file, wrong arrays / columns, a shape mismatch, non-finite values,
+        non-integer views or ids, a corner id twice in one view, or a view with fewer than
+        :data:`MIN_CORNERS` corners; the message names the file and the key.
+    """
+    if not path.is_file():
+        raise _err(f"corner list not found: {path}", key=key, path=path)
+    try:
+        if path.suffix.lower() == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                names = sorted(z.files)
+                if names != sorted(CORNER_ARRAYS):
+                    raise _err(f"a corner list holds the arrays {', '.join(CORNER_ARRAYS)}; this "
+                               f"one holds {', '.join(names) or 'none'}", key=key, path=path)
+                arrays = {k: np.asarray(z[k]) for k in CORNER_ARRAYS}
+        else:
+            with open(path, encoding="utf-8") as fh:
+                header = [h.strip() for h in fh.readline().split(",")]
+            if tuple(header) != CORNER_COLUMNS:
+                raise _err(f"a CSV corner list starts with the header line "
+                           f"{','.join(CORNER_COLUMNS)}; this one has {','.join(header)}",
+                           key=key, path=path)
+            t = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=np.float64)
+            if t.size and t.shape[1] != len(CORNER_COLUMNS):
+                raise _err(f"rows have {t.shape[1]} columns; expected {len(CORNER_COLUMNS)} "
+                           f"({','.join(CORNER_COLUMNS)})", key=key, path=path)
+            t = t.reshape(-1, len(CORNER_COLUMNS))
+            arrays = {"view": t[:, 0], "ids": t[:, 1], "object_points": t[:, 2:5],
+                      "image_points": t[:, 5:7]}
+    except ScanFormatError:
+        raise
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise _err(f"cannot read the corner list ({exc})", key=key, path=path) from exc
+    view, ids = arrays["view"], arrays["ids"]
+    obj, img = arrays["object_points"], arrays["image_points"]
+    n = view.shape[0] if view.ndim == 1 else -1
+    want = {"view": (n,), "ids": (n,), "object_points": (n, 3), "image_points": (n, 2)}
+    for k, a in arrays.items():
+        if n < 0 or a.shape != want[k]:
+            shown = {kk: tuple(aa.shape) for kk, aa in arrays.items()}
+            raise _err(f"{k} has shape {tuple(a.shape)}; a corner list of N corners has view "
+                       f"(N,), ids (N,), object_points (N, 3), image_points (N, 2) (got "
+                       f"{shown})", key=key, path=path)
+        if a.dtype.kind not in "iuf" or not np.isfinite(a).all():
+            raise _err(f"{k} must be finite numbers", key=key, path=path)
+    for k in ("view", "ids"):
+        a = arrays[k]
+        if (a != np.round(a)).any() or (a < 0).any():
+            raise _err(f"{k} must be integers ≥ 0", key=key, path=path)
+    view = view.astype(np.int64)
+    ids = ids.astype(np.int64)
+    out = {}
+    for v in np.unique(view):
+        m = view == v
+        if m.sum() < MIN_CORNERS:
+            raise _err(f"view {int(v)} has {int(m.sum())} corner(s); a view needs at least "
+                       f"{MIN_CORNERS} (drop it from the list instead)", key=key, path=path)
+        vid = ids[m]
+        if np.unique(vid).size != vid.size:
+            raise _err(f"view {int(v)} lists a corner id twice", key=key, path=path)
+        out[int(v)] = CornerView(vid, obj[m].astype(np.float64), img[m].astype(np.float64))
+    return out
+
+
+def board_from_dict(d: Any, where: Path, key: str = "calib.board"):
+    """A board from ``board.json`` or an inline ``calib.board`` table.
+
+    ``kind = "charuco"`` (or no kind: the version-1 ``board.json``) is a
+    :class:`facegeo.geometry.board.CharucoBoard`; ``"chessboard"`` (``cols``, ``rows``,
+    ``square_size``) a :class:`~facegeo.geometry._calib_detect.ChessboardSpec`; ``"circles"``
+    (``cols``, ``rows``, ``spacing``, ``asymmetric``) a
+    :class:`~facegeo.geometry._calib_detect.CircleGridSpec`.
+    """
+    from facegeo.geometry._calib_detect import ChessboardSpec, CircleGridSpec
+    from facegeo.geometry.board import CharucoBoard
+
+    if not isinstance(d, Mapping):
+        raise _err(f"a board is a table, got {fmt_value(d)}", key=key, path=where)
+    d = dict(d)
+    kind = d.pop("kind", "charuco")
+    fields = {"chessboard": ("cols", "rows", "square_size"),
+              "circles": ("cols", "rows", "spacing", "asymmetric")}
+    try:
+        if kind == "charuco":
+            return CharucoBoard.from_dict(d)
+        if kind not in fields:
+            raise InputError(f"kind: expected one of charuco, chessboard, circles, got "
+                             f"{fmt_value(kind)}")
+        d.pop("format", None)
+        d.pop("version", None)
+        unknown = sorted(set(d) - set(fields[kind]))
+        if unknown:
+            raise InputError(f"{unknown[0]}: unknown field for a {kind} board (expected "
+                             f"{', '.join(fields[kind])})")
+        spec = ChessboardSpec if kind == "chessboard" else CircleGridSpec
+        return spec(**d)
+    except (InputError, TypeError) as exc:
+        raise _err(f"bad board: {exc}", key=key, path=where) from exc

@@ -25,7 +25,10 @@ from facegeo.capture.response import parse_response
 from facegeo.checks import fmt_value
 
 FORMAT = "facegeo-scan"
-VERSION = 1
+#: The version :func:`facegeo.capture.scan.new_manifest` writes.
+VERSION = 2
+#: Versions the loader reads (version 1 is version 2 without the v2 keys, :data:`V2_KEYS`).
+READ_VERSIONS = (1, 2)
 DEFAULT_RIG = "rig.json"
 DEFAULT_BOARD = "calib/board.json"
 
@@ -40,13 +43,37 @@ DEFAULT_FILES = {
     "olat": "olat/{camera}/{light:04d}.exr",
 }
 
-#: The fields each group's template must use, every one of them.
+#: The fields each group's template must use, every one of them (olat: ``{light}`` or, in
+#: version 2, ``{light_name}`` instead).
 TEMPLATE_FIELDS = {
     "calib": ("camera", "view"),
     "calib.projector": ("camera", "view", "frame"),
     "structured_light": ("camera", "frame"),
     "olat": ("camera", "light"),
+    "calib.corners": ("camera",),
+    "olat.ambient": ("camera",),
 }
+#: Fields a template may use instead of a required one (v2): ``{field: replacements}``.
+#: ``{index}`` is the 0-based and ``{number}`` the 1-based position of the frame (the view, the
+#: frame in ``frames``, the OLAT file number), for data sets that number their files.
+_ALT_FIELDS = {
+    "olat": {"light": ("light_name", "index", "number")},
+    "calib": {"view": ("index", "number")},
+    "structured_light": {"frame": ("index", "number")},
+}
+#: Fields that only a version-2 template may use.
+V2_TEMPLATE_FIELDS = ("light_name", "index", "number")
+#: A template ending in this suffix matches one file of any readable image suffix (v2).
+ANY_SUFFIX = ".*"
+#: Suffixes of a corner-list file.
+CORNER_SUFFIXES = (".npz", ".csv")
+#: Board kinds (``calib.board`` inline table or ``board.json``'s ``kind``).
+BOARD_KINDS = ("charuco", "chessboard", "circles")
+
+#: Keys (dotted) that exist only in version 2; a version-1 manifest using one is an error.
+V2_KEYS = ("scan.world", "calib.images", "calib.corners", "calib.cameras",
+           "calib.projector.frames", "calib.projector.patterns", "calib.projector.cameras",
+           "structured_light.cameras", "olat.ambient", "olat.cameras", "reference")
 
 #: Default response of each section that declares one (calib.projector uses calib's).
 DEFAULT_RESPONSES = {"calib": "srgb", "structured_light": "srgb", "olat": "linear"}
@@ -55,7 +82,8 @@ DEFAULT_RESPONSES = {"calib": "srgb", "structured_light": "srgb", "olat": "linea
 LIGHT_ORDERS = ("theta-fastest", "phi-fastest")
 
 _FRAME_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
-_SAMPLE_FIELDS = {"camera": "cam", "view": 0, "frame": "white", "light": 0}
+_SAMPLE_FIELDS = {"camera": "cam", "view": 0, "frame": "white", "light": 0, "light_name": "L0",
+                  "index": 0, "number": 1}
 
 
 # =========================================================================== schema
@@ -71,17 +99,24 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool, Any]]] = {
         "created": ("datetime", False, None),
         "rig": ("path", False, DEFAULT_RIG),
         "metadata": ("table", False, None),
+        "world": ("world", False, None),
     },
     "calib": {
-        "board": ("path", False, DEFAULT_BOARD),
+        "board": ("board", False, DEFAULT_BOARD),
         "response": ("response", False, DEFAULT_RESPONSES["calib"]),
         "views": ("count", True, None),
         "files": ("template", False, DEFAULT_FILES["calib"]),
+        "images": ("bool", False, None),
+        "corners": ("template", False, None),
+        "cameras": ("cameras", False, None),
         "projector": ("section", False, None),
     },
     "calib.projector": {
         "views": ("count", True, None),
         "files": ("template", False, DEFAULT_FILES["calib.projector"]),
+        "frames": ("frames", False, None),
+        "patterns": ("table", False, None),
+        "cameras": ("cameras", False, None),
     },
     "structured_light": {
         "response": ("response", False, DEFAULT_RESPONSES["structured_light"]),
@@ -89,6 +124,7 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool, Any]]] = {
         "frames": ("frames", True, None),
         "files": ("template", False, DEFAULT_FILES["structured_light"]),
         "patterns": ("table", False, {}),
+        "cameras": ("cameras", False, None),
     },
     "olat": {
         "response": ("response", False, DEFAULT_RESPONSES["olat"]),
@@ -96,9 +132,19 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool, Any]]] = {
         "light_order": ("light_order", False, LIGHT_ORDERS[0]),
         "exposure": ("positive", False, 1.0),
         "files": ("template", False, DEFAULT_FILES["olat"]),
+        "ambient": ("template", False, None),
+        "cameras": ("cameras", False, None),
     },
 }
-_SECTIONS = ("scan", "calib", "structured_light", "olat", "ground_truth")
+_SECTIONS = ("scan", "calib", "structured_light", "olat", "ground_truth", "reference")
+
+#: Keys of a per-camera table ``[<group>.cameras.<camera>]``, by group.
+CAMERA_KEYS = {
+    "calib": ("views", "missing"),
+    "calib.projector": ("views", "missing"),
+    "structured_light": ("missing", "bits_x", "bits_y"),
+    "olat": ("missing",),
+}
 
 
 def _err(message: str, *, key: str | None = None, path: Any = None) -> ScanFormatError:
@@ -138,7 +184,9 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
     if not isinstance(t, str) or not t:
         raise _err(f"expected a path template string, got {fmt_value(t)}", key=key, path=where)
     need = TEMPLATE_FIELDS[group]
-    example = DEFAULT_FILES[group]
+    alt = _ALT_FIELDS.get(group, {})
+    example = DEFAULT_FILES.get(group, {"calib.corners": "calib/{camera}/corners.npz",
+                                        "olat.ambient": "olat/{camera}/ambient.png"}.get(group))
     try:
         parsed = list(string.Formatter().parse(t))
     except ValueError as exc:
@@ -146,13 +194,14 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
             f"bad template {fmt_value(t)} ({exc}); for example {fmt_value(example)}", key=key, path=where
         ) from exc
     used = set()
+    valid = need + tuple(a for alts in alt.values() for a in alts)
     for _, name, _, conv in parsed:
         if name is None:
             continue
-        if name not in need:
+        if name not in valid:
             raise _err(
                 f"template {fmt_value(t)} uses field {{{name}}}; valid fields here: "
-                + ", ".join("{" + n + "}" for n in need),
+                + ", ".join("{" + n + "}" for n in valid),
                 key=key,
                 path=where,
             )
@@ -161,7 +210,15 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
                 f"template {fmt_value(t)}: conversions (!{conv}) are not allowed", key=key, path=where
             )
         used.add(name)
-    missing = [n for n in need if n not in used]
+    for n, alts in alt.items():
+        both = [f for f in (n,) + alts if f in used]
+        if len(both) > 1:
+            raise _err(f"template {fmt_value(t)} uses " + " and ".join("{" + f + "}" for f in both)
+                       + "; they name the same thing, use one", key=key, path=where)
+        if both:
+            used.add(n)
+    # v2: a template may leave out {camera} when the rig has one camera (checked at load).
+    missing = [n for n in need if n not in used and n != "camera"]
     if missing:
         raise _err(
             f"template {fmt_value(t)} must use every one of "
@@ -179,9 +236,15 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
             path=where,
         ) from exc
     _check_rel_path(sample, key, where)
-    if PurePosixPath(sample).suffix.lower() not in READ_SUFFIXES:
+    suffix = PurePosixPath(sample).suffix.lower()
+    if group == "calib.corners":
+        if suffix not in CORNER_SUFFIXES:
+            raise _err(f"template {fmt_value(t)} must end in {' or '.join(CORNER_SUFFIXES)} (a "
+                       "corner list)", key=key, path=where)
+    elif suffix not in READ_SUFFIXES and not sample.endswith(ANY_SUFFIX):
         raise _err(
-            f"template {fmt_value(t)} must end in an image suffix ({', '.join(READ_SUFFIXES)})",
+            f"template {fmt_value(t)} must end in an image suffix ({', '.join(READ_SUFFIXES)}) "
+            f"or in {ANY_SUFFIX!r} (any of them, one file per frame)",
             key=key,
             path=where,
         )
@@ -198,10 +261,11 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
     if kind == "version":
         if isinstance(v, bool) or not isinstance(v, int):
             raise _err(f"version must be an integer, got {fmt_value(v)}", key=key, path=where)
-        if v != VERSION:
+        if v not in READ_VERSIONS:
             newer = " (newer than this facegeo; upgrade facegeo)" if v > VERSION else ""
             raise _err(
-                f"unsupported version {v}{newer}; this facegeo reads version {VERSION}",
+                f"unsupported version {v}{newer}; this facegeo reads versions "
+                f"{', '.join(map(str, READ_VERSIONS))}",
                 key=key,
                 path=where,
             )
@@ -233,7 +297,23 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
     if kind == "path":
         return _check_rel_path(v, key, where)
     if kind == "template":
-        return _check_template(v, section, key, where)
+        sub = {"calib.corners": "calib.corners", "olat.ambient": "olat.ambient"}.get(key, section)
+        return _check_template(v, sub, key, where)
+    if kind == "board":
+        if isinstance(v, str):
+            return _check_rel_path(v, key, where)
+        if isinstance(v, Mapping):
+            if v.get("kind") not in BOARD_KINDS:
+                raise _err(f"an inline board needs kind = one of "
+                           f"{', '.join(repr(k) for k in BOARD_KINDS)}, got {fmt_value(v.get('kind'))}",
+                           key=f"{key}.kind", path=where)
+            return copy.deepcopy(dict(v))
+        raise _err(f"expected a board file path or an inline board table, got {fmt_value(v)}",
+                   key=key, path=where)
+    if kind == "world":
+        return _check_world(v, key, where)
+    if kind == "cameras":
+        return _check_cameras(v, section, key, where)
     if kind == "response":
         if isinstance(v, str):
             if v not in ("linear", "srgb"):
@@ -292,6 +372,97 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
     raise AssertionError(kind)  # pragma: no cover
 
 
+def _check_int_list(v: Any, key: str, where: Any, what: str) -> list:
+    if not isinstance(v, list):
+        raise _err(f"expected an array of {what}, got {fmt_value(v)}", key=key, path=where)
+    seen = set()
+    for i, x in enumerate(v):
+        if isinstance(x, bool) or not isinstance(x, (int, str)) or (isinstance(x, int) and x < 0):
+            raise _err(f"entry {i} is {fmt_value(x)}; expected {what}", key=key, path=where)
+        if x in seen:
+            raise _err(f"{fmt_value(x)} appears twice", key=key, path=where)
+        seen.add(x)
+    return list(v)
+
+
+def _check_cameras(v: Any, group: str, key: str, where: Any) -> dict:
+    """``[<group>.cameras.<camera>]`` tables: per-camera frame lists and usable bits (v2).
+
+    Only the shape is checked here; camera names, views, frame and light names are checked
+    against the rig and the group by :meth:`facegeo.capture.scan.Scan.validate`.
+    """
+    if not isinstance(v, Mapping):
+        raise _err(f"expected a table of cameras, got {fmt_value(v)}", key=key, path=where)
+    allowed = CAMERA_KEYS[group]
+    out = {}
+    for cam, t in v.items():
+        ck = f"{key}.{cam}"
+        if not isinstance(t, Mapping):
+            raise _err(f"expected a table, got {fmt_value(t)}", key=ck, path=where)
+        unknown = sorted(set(t) - set(allowed))
+        if unknown:
+            raise _err(f"unknown key {fmt_value(unknown[0])}; valid keys: {', '.join(allowed)}",
+                       key=f"{ck}.{unknown[0]}", path=where)
+        if "views" in t and "missing" in t:
+            raise _err("give either views (the views this camera has) or missing (those it "
+                       "lacks), not both", key=ck, path=where)
+        entry = {}
+        for k, x in t.items():
+            if k == "views" or (k == "missing" and group.startswith("calib")):
+                entry[k] = _check_int_list(x, f"{ck}.{k}", where, "view indices (integers ≥ 0)")
+                if any(isinstance(y, str) for y in x):
+                    raise _err("views are integers", key=f"{ck}.{k}", path=where)
+            elif k == "missing":
+                what = ("frame names" if group == "structured_light"
+                        else "light indices or light names")
+                entry[k] = _check_int_list(x, f"{ck}.{k}", where, what)
+            else:  # bits_x / bits_y
+                if isinstance(x, bool) or not isinstance(x, int) or x < 0:
+                    raise _err(f"expected an integer ≥ 0 (Gray-code bits this camera resolves), "
+                               f"got {fmt_value(x)}", key=f"{ck}.{k}", path=where)
+                entry[k] = x
+        out[str(cam)] = entry
+    return out
+
+
+def _check_world(v: Any, key: str, where: Any) -> dict:
+    """``scan.world``: ``{camera, board_view}`` or ``{transform = 4×4}`` (v2)."""
+    if not isinstance(v, Mapping):
+        raise _err(f"expected a table, got {fmt_value(v)}", key=key, path=where)
+    keys = set(v)
+    if keys == {"camera", "board_view"}:
+        if not isinstance(v["camera"], str) or not v["camera"]:
+            raise _err(f"expected a camera name, got {fmt_value(v['camera'])}",
+                       key=f"{key}.camera", path=where)
+        bv = v["board_view"]
+        if isinstance(bv, bool) or not isinstance(bv, int) or bv < 0:
+            raise _err(f"expected a view index ≥ 0, got {fmt_value(bv)}", key=f"{key}.board_view",
+                       path=where)
+        return dict(v)
+    if keys == {"transform"}:
+        import numpy as np  # deferred
+
+        t = v["transform"]
+        ok = (isinstance(t, list) and len(t) == 4 and all(isinstance(r, list) and len(r) == 4
+                                                           for r in t)
+              and all(not isinstance(x, bool) and isinstance(x, (int, float))
+                      for r in t for x in r))
+        if not ok:
+            raise _err(f"expected a 4×4 array of numbers (rows), got {fmt_value(t)}",
+                       key=f"{key}.transform", path=where)
+        T = np.asarray(t, dtype=np.float64)
+        R = T[:3, :3]
+        if (not np.isfinite(T).all() or not np.allclose(T[3], [0, 0, 0, 1])
+                or not np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+                or np.linalg.det(R) <= 0):
+            raise _err("expected a rigid transform T_world_rig: a rotation (orthonormal, det "
+                       "+1) and a translation in metres, last row [0, 0, 0, 1]",
+                       key=f"{key}.transform", path=where)
+        return {"transform": [[float(x) for x in r] for r in t]}
+    raise _err(f"expected {{ camera = \"<name>\", board_view = <int> }} or {{ transform = "
+               f"<4×4 rows> }}, got keys {sorted(keys)}", key=key, path=where)
+
+
 def _check_table(section: str, table: Any, where: Any) -> dict:
     if not isinstance(table, Mapping):
         raise _err(
@@ -320,6 +491,31 @@ def _check_table(section: str, table: Any, where: Any) -> dict:
     return out
 
 
+def _v2_keys_used(manifest: Mapping[str, Any]) -> list[str]:
+    """The version-2 keys present in a manifest (dotted), and ``"files"`` templates that use
+    v2 template features."""
+    used = []
+    for dotted in V2_KEYS:
+        node: Any = manifest
+        for part in dotted.split("."):
+            node = node.get(part) if isinstance(node, Mapping) else None
+            if node is None:
+                break
+        if node is not None:
+            used.append(dotted)
+    board = manifest.get("calib", {}).get("board") if isinstance(manifest.get("calib"), Mapping) else None
+    if isinstance(board, Mapping):
+        used.append("calib.board")
+    for dotted in ("calib.files", "calib.projector.files", "structured_light.files", "olat.files"):
+        node = manifest
+        for part in dotted.split("."):
+            node = node.get(part) if isinstance(node, Mapping) else None
+        if isinstance(node, str) and (node.endswith(ANY_SUFFIX) or "{camera" not in node
+                                      or any("{" + f in node for f in V2_TEMPLATE_FIELDS)):
+            used.append(dotted)
+    return used
+
+
 def _flatten_ground_truth(table: Any, prefix: str, where: Any, out: dict) -> dict:
     if not isinstance(table, Mapping):
         raise _err(f"expected a table, got {_type_name(table)}", key=prefix, path=where)
@@ -329,7 +525,7 @@ def _flatten_ground_truth(table: Any, prefix: str, where: Any, out: dict) -> dic
             _flatten_ground_truth(v, key, where, out)
         else:
             _check_rel_path(v, key, where)
-            out[key[len("ground_truth."):]] = v
+            out[key[len(key.split(".")[0]) + 1:]] = v
     return out
 
 
@@ -372,6 +568,13 @@ def validate_manifest(manifest: Mapping[str, Any], *, path: Any = None) -> dict:
             path=path,
         )
     out: dict[str, Any] = {"scan": _check_table("scan", manifest["scan"], path)}
+    if out["scan"]["version"] == 1:
+        v2 = _v2_keys_used(manifest)
+        if v2:
+            raise _err(
+                f"{v2[0]} is a version-2 feature but the manifest says version = 1; set "
+                "scan.version = 2 (a version-2 reader reads every version-1 manifest unchanged)",
+                key=v2[0], path=path)
     if "calib" in manifest:
         out["calib"] = _check_table("calib", manifest["calib"], path)
         if "projector" in manifest["calib"]:
@@ -381,13 +584,26 @@ def validate_manifest(manifest: Mapping[str, Any], *, path: Any = None) -> dict:
     for section in ("structured_light", "olat"):
         if section in manifest:
             out[section] = _check_table(section, manifest[section], path)
-    if "projector" in out.get("calib", {}) and "structured_light" not in out:
+    cp = out.get("calib", {}).get("projector")
+    if cp is not None and "structured_light" not in out and "frames" not in cp:
         raise _err(
             "[calib.projector] names its frames after structured_light.frames, but there is no "
-            "[structured_light] section",
+            "[structured_light] section; give the projector-calibration captures their own "
+            "frames (and patterns) in [calib.projector] (version 2)",
             key="calib.projector",
             path=path,
         )
+    if "calib" in out:
+        c = out["calib"]
+        images = c.get("images", True)
+        if not images and "corners" not in c:
+            raise _err("images = false needs corner lists (calib.corners): without images or "
+                       "corners there is nothing to calibrate from", key="calib.images", path=path)
+        if out["scan"]["version"] >= 2:
+            c.setdefault("images", True)
+    if "reference" in manifest:
+        _flatten_ground_truth(manifest["reference"], "reference", path, {})
+        out["reference"] = copy.deepcopy(dict(manifest["reference"]))
     if "ground_truth" in manifest:
         if not out["scan"]["synthetic"]:
             raise _err(

@@ -85,7 +85,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-READ_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".hdr", ".pic", ".exr")
+READ_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".hdr", ".pic",
+                 ".exr")
+#: Suffixes whose header Pillow reads, and the format Pillow must find behind each.
+_PIL_FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF",
+                ".bmp": "BMP", ".pgm": "PPM", ".ppm": "PPM"}
 WRITE_SUFFIXES = (".png", ".exr", ".hdr")
 
 _HALF_MAX = float(np.finfo(np.float16).max)
@@ -122,13 +126,14 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     Parameters
     ----------
     path : path-like
-        ``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff``, ``.hdr``/``.pic`` or ``.exr``.
+        ``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff``, ``.bmp``, ``.pgm``/``.ppm`` (binary
+        Netpbm, 8 or 16 bit), ``.hdr``/``.pic`` or ``.exr``.
 
     Returns
     -------
     (H, W, C) or (H, W) ndarray
         Channels in RGB(A) order; a single-channel file gives ``(H, W)``. The dtype is the
-        stored one: uint8 or uint16 (PNG/JPEG/TIFF), float32 (``.hdr``, float EXR), float16
+        stored one: uint8 or uint16 (PNG/JPEG/TIFF/BMP/PGM/PPM), float32 (``.hdr``, float EXR), float16
         (half EXR). Values are *not* linearised (see :func:`linearize`).
 
     Raises
@@ -507,8 +512,9 @@ _PIL_CHANNELS = {"L": 1, "1": 1, "I;16": 1, "I;16B": 1, "I;16L": 1, "RGB": 3, "R
 
 
 def _pillow_info(path: Path, verify: bool) -> ImageInfo | None:
-    """PNG / JPEG / TIFF header through Pillow (reads the header only; ``verify`` walks PNG
-    chunks and CRCs, or checks the JPEG end marker). None when the mode needs a decode to know
+    """PNG / JPEG / TIFF / BMP / PGM / PPM header through Pillow (reads the header only;
+    ``verify`` walks PNG chunks and CRCs, checks the JPEG end marker, or the file size of an
+    uncompressed BMP / Netpbm raster). None when the mode needs a decode to know
     what :func:`read_image` returns (palettes, CMYK, ...)."""
     from PIL import Image, UnidentifiedImageError  # deferred
 
@@ -520,6 +526,10 @@ def _pillow_info(path: Path, verify: bool) -> ImageInfo | None:
             mode = im.mode
             raw = str(im.tile[0].args[0] if isinstance(im.tile[0].args, tuple)
                       else im.tile[0].args) if im.tile else mode
+            tile = im.tile[0] if im.tile and im.tile[0].codec_name == "raw" else None
+            offset = tile.offset if tile is not None else None
+            stride = (tile.args[1] if tile is not None and isinstance(tile.args, tuple)
+                      and len(tile.args) > 1 and isinstance(tile.args[1], int) else None)
             if verify and fmt == "PNG":
                 im.verify()
     except UnidentifiedImageError as exc:
@@ -529,10 +539,17 @@ def _pillow_info(path: Path, verify: bool) -> ImageInfo | None:
         raise ImageReadError(
             f"truncated or corrupt {suffix.lstrip('.').upper()} file ({exc})", path=path
         ) from exc
-    expected = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF"}
-    if fmt != expected.get(suffix):
+    if fmt != _PIL_FORMATS.get(suffix):
         raise ImageReadError(f"file suffix is {suffix} but the file is {fmt}", path=path)
     verified = verify and fmt == "PNG"
+    if verify and fmt in ("BMP", "PPM") and offset is not None:
+        # Uncompressed rasters: the file must hold offset + rows × stride bytes.
+        need = offset + _raster_bytes(mode, raw, int(width), int(height), stride)
+        size = path.stat().st_size
+        if size < need:
+            raise ImageReadError(
+                f"truncated {fmt} file ({size} bytes; its header promises {need})", path=path)
+        verified = True
     if verify and fmt == "JPEG":
         with open(path, "rb") as fh:
             fh.seek(-2, os.SEEK_END)
@@ -544,6 +561,16 @@ def _pillow_info(path: Path, verify: bool) -> ImageInfo | None:
         return None
     dtype = np.dtype(np.uint16) if (";16" in raw or mode.startswith("I;16")) else np.dtype(np.uint8)
     return ImageInfo(int(width), int(height), channels, dtype, verified)
+
+
+def _raster_bytes(mode: str, raw: str, width: int, height: int, stride: int | None) -> int:
+    """Bytes of an uncompressed BMP / binary Netpbm raster (``stride``: bytes per row when the
+    decoder states it, as for BMP's 4-byte padded rows)."""
+    if stride:
+        return abs(stride) * height
+    channels = 3 if mode == "RGB" else 1
+    sample = 2 if (";16" in raw or mode.startswith("I")) else 1
+    return width * height * channels * sample
 
 
 def _hdr_size(path: Path) -> tuple[int, int] | None:
@@ -596,7 +623,7 @@ def read_image_info(path: str | os.PathLike, *, verify: bool = True) -> ImageInf
     if suffix == ".exr":
         return _exr_info(path, verify)
     info = None
-    if suffix in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+    if suffix in _PIL_FORMATS:
         info = _pillow_info(path, verify)
     elif suffix in (".hdr", ".pic"):
         try:

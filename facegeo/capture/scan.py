@@ -1,14 +1,16 @@
 """The scan directory: its ``scan.toml`` manifest, validation, and lazy access to frames.
 
-A real light stage and the synthetic generator (:mod:`facegeo.synth`) write the same layout,
+A real capture rig and the synthetic generator (:mod:`facegeo.synth`) write the same layout,
 documented key by key in ``docs/scan-format.md``::
 
-    <scan>/scan.toml                        the manifest (this module's schema, version 1)
-    <scan>/rig.json                         cameras, projector, light stage (facegeo.geometry.rig)
-    calib/board.json, calib/<camera>/view_000.png ...
+    <scan>/scan.toml                        the manifest (this module's schema, version 2;
+                                            version 1 is still read)
+    <scan>/rig.json                         cameras, projector, lights (facegeo.geometry.rig)
+    calib/board.json, calib/<camera>/view_000.png ..., calib/<camera>/corners.csv
     calib/projector/<camera>/view_00_<frame>.png
     structured_light/<camera>/<frame>.png
-    olat/<camera>/0000.exr ...              one per light
+    olat/<camera>/0000.exr ...              one per light (or named after it), ambient frame
+    reference/...                           real scans: published answers
     ground_truth/...                        synthetic scans only
     out/                                    stage products
 
@@ -31,6 +33,7 @@ import copy
 import functools
 import logging
 import os
+import re
 import tomllib
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -40,15 +43,22 @@ import numpy as np
 
 from facegeo.capture._scan_files import (
     SATURATED_FRAME_FRACTION,
+    CornerView,
     FrameCheck,
     FrameProblem,
     _check_group_files,
     _format_template,
     _Resolver,
     _size_error,
+    _SuffixFinder,
+    board_from_dict,
     frame_path,
+    read_corner_list,
 )
 from facegeo.capture._scan_schema import (
+    ANY_SUFFIX,
+    READ_VERSIONS,
+    V2_KEYS,
     DEFAULT_BOARD,
     DEFAULT_FILES,
     DEFAULT_RESPONSES,
@@ -71,6 +81,11 @@ from facegeo.capture.response import Response, clipped_mask, parse_response, sat
 __all__ = [
     "FORMAT",
     "VERSION",
+    "READ_VERSIONS",
+    "V2_KEYS",
+    "ANY_SUFFIX",
+    "LUMINANCE_WEIGHTS",
+    "CornerView",
     "MANIFEST_NAME",
     "DEFAULT_RIG",
     "DEFAULT_BOARD",
@@ -97,6 +112,21 @@ log = logging.getLogger(__name__)
 MANIFEST_NAME = "scan.toml"
 
 CHECKS = ("quick", "full")
+
+#: Linear-RGB → luminance weights (Rec. 709 / sRGB primaries, the library's RGB; ITU-R BT.709
+#: item 3.2), used by the ``luminance=True`` readers.
+LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+#: A Gray-code frame name of :func:`facegeo.geometry.structured_light.pattern_names`: axis, bit
+#: (0 = most significant) and inverse flag; per-camera ``bits_x`` / ``bits_y`` drop bits ≥ n.
+_GRAY_FRAME = re.compile(r"^gray_([xy])_(\d+)(_inv)?$")
+
+
+def _luminance(lin: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32 luminance of a linear frame (grey frames pass through)."""
+    if lin.ndim == 2:
+        return lin
+    return np.dot(lin[..., :3], LUMINANCE_WEIGHTS).astype(np.float32, copy=False)
 
 
 # =========================================================================== Scan
@@ -125,7 +155,13 @@ class Scan:
             _flatten_ground_truth(self._m["ground_truth"], "ground_truth", self.manifest_path, {})
             if "ground_truth" in self._m else None
         )
+        self._ref = (
+            _flatten_ground_truth(self._m["reference"], "reference", self.manifest_path, {})
+            if "reference" in self._m else None
+        )
         self._resolve = _Resolver(self.root)
+        self._find = _SuffixFinder()
+        self._ambient: dict[str, np.ndarray] = {}
         self._responses: dict[str, Response] = {}
         #: What the last :meth:`validate` found on the frame files (None before it ran).
         self.frame_check: FrameCheck | None = None
@@ -144,6 +180,11 @@ class Scan:
     def name(self) -> str:
         """``scan.name``."""
         return self._m["scan"]["name"]
+
+    @property
+    def version(self) -> int:
+        """``scan.version``: 1 or 2 (both read; :func:`new_manifest` writes 2)."""
+        return int(self._m["scan"]["version"])
 
     @property
     def synthetic(self) -> bool:
@@ -208,19 +249,35 @@ class Scan:
 
     @functools.cached_property
     def board(self):
-        """The calibration board (:class:`facegeo.geometry.board.CharucoBoard`, loaded on first use)."""
-        from facegeo.geometry.board import CharucoBoard
+        """The calibration board, loaded on first use: a
+        :class:`facegeo.geometry.board.CharucoBoard`, or (``kind = "chessboard"`` /
+        ``"circles"``, in ``board.json`` or inline in ``calib.board``) a
+        :class:`~facegeo.geometry._calib_detect.ChessboardSpec` /
+        :class:`~facegeo.geometry._calib_detect.CircleGridSpec`."""
+        from facegeo.fsutil import load_json_file
 
-        rel = self._section("calib")["board"]
-        p = self._resolve(rel, key="calib.board", where=self.manifest_path)
+        spec = self._section("calib")["board"]
+        if isinstance(spec, Mapping):
+            return board_from_dict(spec, self.manifest_path)
+        p = self._resolve(spec, key="calib.board", where=self.manifest_path)
         if not p.is_file():
             raise _err(f"board file not found: {p}", key="calib.board", path=self.manifest_path)
         try:
-            return CharucoBoard.load(p)
+            return load_json_file(p, "board", lambda d: board_from_dict(d, p))
         except ScanFormatError:
             raise
         except (FacegeoError, ValueError, KeyError, TypeError, OSError) as exc:
             raise _err(f"cannot load the board: {exc}", key="calib.board", path=p) from exc
+
+    @property
+    def board_kind(self) -> str:
+        """``"charuco"``, ``"chessboard"`` or ``"circles"`` (reads the board)."""
+        from facegeo.geometry._calib_detect import ChessboardSpec
+
+        b = self.board
+        if isinstance(b, ChessboardSpec):
+            return "chessboard"
+        return "circles" if hasattr(b, "spacing") else "charuco"
 
     def response(self, group: str) -> Response:
         """The declared :class:`~facegeo.capture.imageio.Response` of a frame group
@@ -238,9 +295,89 @@ class Scan:
 
     # ------------------------------------------------------------------ paths
 
-    def _path(self, group: str, **fields: Any) -> Path:
-        template = self._section(group)["files"]
-        return self._resolve(_format_template(template, fields), key=f"{group}.files")
+    def _path(self, group: str, key: str = "files", **fields: Any) -> Path:
+        template = self._section(group)[key]
+        k = f"{group}.{key}"
+        # The v2 alternatives of the group's item field ({index}, {number}, {light_name});
+        # str.format ignores the fields a template does not use.
+        if group == "calib" and "view" in fields:
+            fields.update(index=fields["view"], number=fields["view"] + 1)
+        elif group == "structured_light" and "frame" in fields:
+            i = self._frame_positions.get(fields["frame"], 0)
+            fields.update(index=i, number=i + 1)
+        elif group == "olat" and "light" in fields:
+            fields.update(index=fields["light"], number=fields["light"] + 1)
+        return self._find(self._resolve(_format_template(template, fields), key=k), k)
+
+    @functools.cached_property
+    def _frame_positions(self) -> dict[str, int]:
+        return {f: i for i, f in enumerate(self._section("structured_light")["frames"])}
+
+    # ------------------------------------------------------------------ per-camera frames
+
+    def _cam_table(self, group: str, camera: str) -> dict:
+        return self._section(group).get("cameras", {}).get(camera, {})
+
+    def _all_keys(self, group: str) -> list:
+        sect = self._section(group)
+        if group == "calib":
+            return list(range(sect["views"]))
+        if group == "calib.projector":
+            return [(v, f) for v in range(sect["views"]) for f in self.projector_frames]
+        if group == "structured_light":
+            return list(sect["frames"])
+        return list(range(sect["n_lights"]))
+
+    def _declared_missing(self, group: str, camera: str) -> set:
+        """Keys a camera lacks by declaration (``missing``, ``views``, ``bits_x``/``bits_y``)."""
+        t = self._cam_table(group, camera)
+        sect = self._section(group)
+        out: set = set()
+        if group in ("calib", "calib.projector"):
+            n = sect["views"]
+            views = set(t["views"]) if "views" in t else set(range(n)) - set(t.get("missing", ()))
+            gone = set(range(n)) - views
+            if group == "calib":
+                return gone
+            return {(v, f) for v in gone for f in self.projector_frames}
+        if group == "structured_light":
+            out = set(t.get("missing", ()))
+            for axis in ("x", "y"):
+                bits = t.get(f"bits_{axis}")
+                if bits is None:
+                    continue
+                for f in sect["frames"]:
+                    m = _GRAY_FRAME.match(f)
+                    if m and m.group(1) == axis and int(m.group(2)) >= bits:
+                        out.add(f)
+            return out
+        for x in t.get("missing", ()):
+            out.add(self._light_index(x) if isinstance(x, str) else x)
+        return out
+
+    def camera_frames(self, group: str, camera: str) -> list:
+        """The frames of ``group`` that ``camera`` has, in order.
+
+        Keys are view indices (``"calib"``), ``(view, frame)`` pairs (``"calib.projector"``),
+        frame names (``"structured_light"``) or light indices (``"olat"``). A camera lacks a
+        frame when its ``[<group>.cameras.<camera>]`` table lists it in ``missing``, leaves its
+        view out of ``views``, or (structured light) the frame codes a Gray bit at or beyond the
+        camera's ``bits_x`` / ``bits_y``.
+        """
+        self._check_camera(camera)
+        gone = self._declared_missing(group, camera)
+        return [k for k in self._all_keys(group) if k not in gone]
+
+    def missing_frames(self, group: str, camera: str) -> list:
+        """The frames of ``group`` that ``camera`` lacks (see :meth:`camera_frames`)."""
+        self._check_camera(camera)
+        gone = self._declared_missing(group, camera)
+        return [k for k in self._all_keys(group) if k in gone]
+
+    def _frame_check(self, group: str, camera: str, key: Any, what: str) -> None:
+        if key in self._declared_missing(group, camera):
+            raise InputError(f"{what}: camera {camera!r} has no such frame ({group}.cameras."
+                             f"{camera} declares it missing); use Scan.camera_frames")
 
     def _check_camera(self, camera: str) -> None:
         if camera not in self.camera_names:
@@ -251,9 +388,33 @@ class Scan:
         """``olat.n_lights``."""
         return int(self._section("olat")["n_lights"])
 
+    @property
+    def lights(self):
+        """The rig's lights: a :class:`~facegeo.geometry.rig.LightStage`, a
+        :class:`~facegeo.geometry.lights.LightList`, or None (no light stage)."""
+        return getattr(self.rig, "lights", None)
+
+    @property
+    def light_names(self) -> list[str] | None:
+        """Names of the lights of a light list (None for the grid or no lights)."""
+        names = getattr(self.lights, "names", None)
+        return None if names is None else list(names)
+
+    def _light_index(self, light: Any) -> int:
+        if isinstance(light, str):
+            names = self.light_names
+            if names is None:
+                raise InputError(f"light: {fmt_value(light)} is a light name, but the rig's "
+                                 "lights have no names (only a light list has)")
+            if light not in names:
+                shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
+                raise InputError(f"light: no light named {fmt_value(light)}; names: {shown}")
+            return names.index(light)
+        return self._check_light(light)
+
     def _olat_file_number(self, light: int) -> int:
         order = self._section("olat")["light_order"]
-        if order == "theta-fastest":
+        if order == "theta-fastest" or not hasattr(self.rig.lights, "n_theta"):
             return light
         lights = self.rig.lights
         i, j = light % lights.n_theta, light // lights.n_theta
@@ -274,31 +435,84 @@ class Scan:
         ``olat.light_order`` maps it to the file number.
         """
         self._check_camera(camera)
-        light = self._check_light(light)
-        return self._path("olat", camera=camera, light=self._olat_file_number(light))
+        light = self._light_index(light)
+        self._frame_check("olat", camera, light, f"light {light}")
+        return self._olat_file(camera, light)
+
+    def _olat_file(self, camera: str, light: int) -> Path:
+        names = getattr(self.lights, "names", None)
+        fields = {"light": self._olat_file_number(light)}
+        if names is not None:
+            fields["light_name"] = names[light]
+        return self._path("olat", camera=camera, **fields)
+
+    def ambient_path(self, camera: str) -> Path | None:
+        """Path of ``camera``'s ambient frame (``olat.ambient``; None when the scan has none)."""
+        self._check_camera(camera)
+        if "ambient" not in self._section("olat"):
+            return None
+        return self._path("olat", "ambient", camera=camera)
 
     def sl_path(self, camera: str, frame: str) -> Path:
         """Path of structured-light frame ``frame`` of ``camera``."""
         self._check_camera(camera)
         check_choice(frame, "frame", self.sl_frames)
+        self._frame_check("structured_light", camera, frame, f"frame {frame!r}")
         return self._path("structured_light", camera=camera, frame=frame)
 
+    def calib_views(self, camera: str) -> list[int]:
+        """The calibration views ``camera`` has (``calib.cameras.<camera>``), in order."""
+        return self.camera_frames("calib", camera)
+
+    @property
+    def calib_images(self) -> bool:
+        """``calib.images``: whether the calibration views have image files (v1: always)."""
+        return bool(self._section("calib").get("images", True))
+
     def calib_view_paths(self, camera: str) -> list[Path]:
-        """Paths of the calibration-board views of ``camera``, in view order."""
+        """Paths of the calibration-board views ``camera`` has, in view order (see
+        :meth:`calib_views` for their view indices; empty with ``calib.images = false``)."""
+        if not self.calib_images:
+            self._check_camera(camera)
+            return []
+        return [self._path("calib", camera=camera, view=v) for v in self.calib_views(camera)]
+
+    def calib_corners(self, camera: str) -> dict[int, CornerView]:
+        """``camera``'s corner list (``calib.corners``): ``{view: CornerView}``, one entry per
+        view in which corners were found (a subset of :meth:`calib_views`)."""
         self._check_camera(camera)
-        n = self._section("calib")["views"]
-        return [self._path("calib", camera=camera, view=v) for v in range(n)]
+        if "corners" not in self._section("calib"):
+            raise _err("this scan has no corner lists (calib.corners)", key="calib.corners",
+                       path=self.manifest_path)
+        p = self._path("calib", "corners", camera=camera)
+        corners = read_corner_list(p)
+        views = set(self.calib_views(camera))
+        extra = sorted(set(corners) - views)
+        if extra:
+            raise _err(f"the corner list has view {extra[0]}, which camera {camera!r} does not "
+                       f"have (calib.views = {self._section('calib')['views']}, this camera's "
+                       f"views: {sorted(views)})", key="calib.corners", path=p)
+        return corners
+
+    @property
+    def projector_frames(self) -> list[str]:
+        """Frame names of the projector-calibration captures: ``calib.projector.frames`` when
+        given (v2), else :attr:`sl_frames`."""
+        cp = self._section("calib.projector")
+        return list(cp["frames"]) if "frames" in cp else self.sl_frames
 
     def projector_view_paths(self, camera: str, view: int) -> dict[str, Path]:
         """Paths of the board seen by ``camera`` in projector-calibration view ``view`` under
-        every structured-light pattern: ``{frame name: path}`` in :attr:`sl_frames` order."""
+        every pattern: ``{frame name: path}`` in :attr:`projector_frames` order."""
         self._check_camera(camera)
         n = self._section("calib.projector")["views"]
         if isinstance(view, bool) or not isinstance(view, (int, np.integer)) or not 0 <= view < n:
             raise InputError(f"view: expected an integer in [0, {n}), got {fmt_value(view)}")
+        frames = self.projector_frames
+        self._frame_check("calib.projector", camera, (int(view), frames[0]), f"view {view}")
         return {
             f: self._path("calib.projector", camera=camera, view=int(view), frame=f)
-            for f in self.sl_frames
+            for f in frames
         }
 
     @property
@@ -308,13 +522,79 @@ class Scan:
 
     @property
     def sl_patterns(self) -> dict:
-        """The free-form pattern spec (``[structured_light.patterns]``), a deep copy."""
-        return copy.deepcopy(self._section("structured_light")["patterns"])
+        """The pattern spec (``[structured_light.patterns]``), a deep copy, with the projector's
+        ``width`` / ``height`` from the rig filled in when the table is non-empty and omits
+        them; ``PatternSpec.from_dict`` accepts it."""
+        return self._patterns("structured_light")
+
+    def _patterns(self, group: str) -> dict:
+        pat = copy.deepcopy(self._section(group).get("patterns") or {})
+        if pat:
+            proj = getattr(self.rig, "projector", None)
+            if proj is not None:
+                pat.setdefault("width", proj.width)
+                pat.setdefault("height", proj.height)
+        return pat
+
+    def pattern_spec(self, group: str = "structured_light"):
+        """The :class:`~facegeo.geometry.structured_light.PatternSpec` of ``group``
+        (``"structured_light"`` or ``"calib.projector"``; the latter falls back to the former),
+        or None when the group declares no patterns."""
+        from facegeo.geometry.structured_light import PatternSpec
+
+        if group == "calib.projector" and "patterns" not in self._section(group):
+            if not self.has("structured_light"):
+                return None
+            group = "structured_light"
+        pat = self._patterns(group)
+        if not pat:
+            return None
+        try:
+            return PatternSpec.from_dict(pat)
+        except InputError as exc:
+            raise _err(f"{exc}", key=f"{group}.patterns", path=self.manifest_path) from exc
+
+    def sl_bits(self, camera: str) -> dict[str, int]:
+        """Gray-code bits ``camera`` resolves per axis: ``{"x": n, "y": n}`` (the camera's
+        ``bits_x`` / ``bits_y`` or the pattern spec's; needs ``patterns``)."""
+        self._check_camera(camera)
+        spec = self.pattern_spec()
+        if spec is None:
+            raise _err("no pattern spec: [structured_light.patterns] is empty",
+                       key="structured_light.patterns", path=self.manifest_path)
+        t = self._cam_table("structured_light", camera)
+        return {a: int(t.get(f"bits_{a}", spec.n_bits(a))) for a in ("x", "y")}
 
     @property
     def sl_projector(self) -> str:
         """``structured_light.projector``: the rig's projector name."""
         return self._section("structured_light")["projector"]
+
+    @property
+    def world(self) -> dict | None:
+        """``scan.world`` (v2), or None: ``{"camera": name, "board_view": v}`` (the world frame
+        is the board's frame in that view as that camera saw it) or ``{"T_world_rig": (4, 4)
+        float64}`` (``p_world = T_world_rig · p_rig``, metres)."""
+        w = self._m["scan"].get("world")
+        if w is None:
+            return None
+        if "transform" in w:
+            return {"T_world_rig": np.asarray(w["transform"], dtype=np.float64)}
+        return dict(w)
+
+    @property
+    def reference_keys(self) -> list[str]:
+        """Dotted keys of the ``[reference]`` entries (v2; reference answers of a real scan)."""
+        return list(self._ref or {})
+
+    def reference_path(self, key: str) -> Path:
+        """Path of reference entry ``key`` (``"point_cloud"``, ``"intrinsics.cam_a"``)."""
+        flat = self._ref
+        if flat is None or key not in flat:
+            raise _err(f"no reference entry {fmt_value(key)}; entries: "
+                       f"{', '.join(flat or {}) or '(none)'}", key=f"reference.{key}",
+                       path=self.manifest_path)
+        return self._resolve(flat[key], key=f"reference.{key}", where=self.manifest_path)
 
     @property
     def ground_truth_keys(self) -> list[str]:
@@ -334,6 +614,33 @@ class Scan:
                 path=self.manifest_path,
             )
         return self._resolve(flat[key], key=f"ground_truth.{key}", where=self.manifest_path)
+
+    def input_files(self) -> list[Path]:
+        """Every input file the manifest names, in a stable order: the rig, a board file,
+        response tables, corner lists, every expected frame of every camera (each ``.*`` frame
+        resolved to its file), references and ground-truth entries (directories as such).
+
+        Used by :func:`facegeo.capture.importer.import_folder` to carry a scan's files over.
+        """
+        out = [self._resolve(self._m["scan"]["rig"], key="scan.rig", where=self.manifest_path)]
+        if self.has("calib") and isinstance(self._m["calib"]["board"], str):
+            out.append(self._resolve(self._m["calib"]["board"], key="calib.board",
+                                     where=self.manifest_path))
+        for sect in ("calib", "structured_light", "olat"):
+            spec = self._m.get(sect, {}).get("response")
+            if isinstance(spec, Mapping) and spec.get("kind") == "table":
+                out.append(self._resolve(spec["file"], key=f"{sect}.response.file",
+                                         where=self.manifest_path))
+        cams = self.camera_names
+        if self.has("calib") and "corners" in self._section("calib"):
+            out += [self._path("calib", "corners", camera=c) for c in cams if self.calib_views(c)]
+        for group in self.groups:
+            for c in cams:
+                out += [p for _, p in self.expected_files(group, c)]
+        out += [self.reference_path(k) for k in self.reference_keys]
+        out += [self.ground_truth_path(k) for k in self.ground_truth_keys]
+        seen: set[Path] = set()
+        return [p for p in out if not (p in seen or seen.add(p))]
 
     @property
     def out_dir(self) -> Path:
@@ -362,16 +669,21 @@ class Scan:
             valid = ~(saturated_mask(raw) | clipped_mask(raw))
         return lin, valid
 
-    def olat_frame(self, camera: str, light: int, *, return_mask: bool = False):
+    def olat_frame(self, camera: str, light: int | str, *, return_mask: bool = False,
+                   subtract_ambient: bool = False):
         """One OLAT frame, linear.
 
         Parameters
         ----------
         camera : str
-        light : int
-            Light index ``l = j·n_theta + i``.
+        light : int or str
+            Light index (``l = j·n_theta + i`` for the grid; the list position for a light
+            list) or a light list's light name.
         return_mask : bool
             Also return where the samples can be trusted.
+        subtract_ambient : bool
+            Subtract :meth:`ambient_frame` (needs ``olat.ambient``). The difference is not
+            clipped: noise leaves small negative values where a light adds nothing.
 
         Returns
         -------
@@ -382,60 +694,135 @@ class Scan:
             False where a sample is saturated or black-clipped (integer frames) or non-finite
             (float frames).
         """
-        lin, valid = self._read("olat", camera, self.olat_path(camera, light),
-                                return_mask=return_mask)
-        exposure = float(self.manifest["olat"].get("exposure", 1.0))
+        lin, valid = self._olat_read(camera, self.olat_path(camera, light), return_mask)
+        if subtract_ambient:
+            lin = lin - self.ambient_frame(camera)
+        return (lin, valid) if return_mask else lin
+
+    def _olat_read(self, camera: str, path: Path, return_mask: bool):
+        lin, valid = self._read("olat", camera, path, return_mask=return_mask)
+        exposure = float(self._section("olat").get("exposure", 1.0))
         if exposure != 1.0:
             lin = lin / np.float32(exposure)
         if lin.ndim == 2:
             lin = np.repeat(lin[..., None], 3, axis=-1)
         elif lin.shape[-1] == 4:
             lin = np.ascontiguousarray(lin[..., :3])
-        return (lin, valid) if return_mask else lin
+        return lin, valid
+
+    def ambient_frame(self, camera: str) -> np.ndarray:
+        """``camera``'s ambient frame (no light on), ``(H, W, 3)`` float32 linear, divided by
+        ``olat.exposure`` like the OLAT frames; read once and cached.
+
+        Raises
+        ------
+        ScanFormatError
+            The scan declares no ``olat.ambient``.
+        """
+        a = self._ambient.get(camera)
+        if a is None:
+            p = self.ambient_path(camera)
+            if p is None:
+                raise _err("this scan has no ambient frame (olat.ambient)", key="olat.ambient",
+                           path=self.manifest_path)
+            a = self._olat_read(camera, p, False)[0]
+            a.setflags(write=False)
+            self._ambient[camera] = a
+        return a
 
     def iter_olat(self, camera: str, lights: Sequence[int] | None = None, *,
-                  return_mask: bool = False) -> Iterator[tuple]:
-        """Yield ``(light, frame)`` (or ``(light, frame, valid)``) for ``lights`` (default all,
-        in light-index order), reading one frame at a time."""
-        for light in range(self.n_lights) if lights is None else lights:
-            out = self.olat_frame(camera, light, return_mask=return_mask)
+                  return_mask: bool = False, subtract_ambient: bool = False) -> Iterator[tuple]:
+        """Yield ``(light, frame)`` (or ``(light, frame, valid)``) for ``lights`` (default the
+        lights ``camera`` has, in light-index order), reading one frame at a time."""
+        for light in self.camera_frames("olat", camera) if lights is None else lights:
+            out = self.olat_frame(camera, light, return_mask=return_mask,
+                                  subtract_ambient=subtract_ambient)
             yield (light, *out) if return_mask else (light, out)
 
-    def sl_frame(self, camera: str, frame: str, *, return_mask: bool = False):
+    def sl_frame(self, camera: str, frame: str, *, return_mask: bool = False,
+                 luminance: bool = False):
         """One structured-light frame, linear.
+
+        Parameters
+        ----------
+        camera, frame : str
+        return_mask : bool
+            Also return where the samples can be trusted.
+        luminance : bool
+            Return single-channel luminance ``Y = 0.2126 R + 0.7152 G + 0.0722 B`` of the
+            linear frame (:data:`LUMINANCE_WEIGHTS`): a third of the memory of RGB, all a
+            Gray-code or phase decoder needs.
 
         Returns
         -------
-        frame : (H, W) or (H, W, 3) float32, linear, channels as stored (alpha dropped)
+        frame : (H, W) or (H, W, 3) float32, linear, channels as stored (alpha dropped);
+            ``(H, W)`` with ``luminance``
         valid : (H, W) bool, only with ``return_mask`` (see :meth:`olat_frame`)
         """
-        lin, valid = self._read("structured_light", camera, self.sl_path(camera, frame),
-                                return_mask=return_mask)
-        if lin.ndim == 3 and lin.shape[-1] == 4:
+        return self._sl_like("structured_light", camera, self.sl_path(camera, frame),
+                             return_mask, luminance)
+
+    def _sl_like(self, group, camera, path, return_mask, luminance):
+        lin, valid = self._read(group, camera, path, return_mask=return_mask)
+        if luminance:
+            lin = _luminance(lin)
+        elif lin.ndim == 3 and lin.shape[-1] == 4:
             lin = np.ascontiguousarray(lin[..., :3])
         return (lin, valid) if return_mask else lin
+
+    def iter_sl(self, camera: str, frames: Sequence[str] | None = None, *,
+                luminance: bool = False, return_mask: bool = False) -> Iterator[tuple]:
+        """Yield ``(name, frame)`` (or ``(name, frame, valid)``) for ``frames`` (default the
+        frames ``camera`` has, in capture order), reading one frame at a time: only the frame
+        being yielded is held, so a decoder that accumulates bit planes never holds the group.
+        See :meth:`sl_frame` for ``luminance``."""
+        for name in self.camera_frames("structured_light", camera) if frames is None else frames:
+            out = self.sl_frame(camera, name, return_mask=return_mask, luminance=luminance)
+            yield (name, *out) if return_mask else (name, out)
+
+    def projector_frame(self, camera: str, view: int, frame: str, *, return_mask: bool = False,
+                        luminance: bool = False):
+        """One projector-calibration frame (the board in view ``view`` under pattern
+        ``frame``), linearised with ``calib.response``; see :meth:`sl_frame` for the options."""
+        paths = self.projector_view_paths(camera, view)
+        check_choice(frame, "frame", list(paths))
+        return self._sl_like("calib.projector", camera, paths[frame], return_mask, luminance)
+
+    def iter_projector(self, camera: str, view: int, *, luminance: bool = False,
+                       return_mask: bool = False) -> Iterator[tuple]:
+        """Yield ``(name, frame)`` over the patterns of projector-calibration view ``view``,
+        one frame at a time (see :meth:`projector_frame`)."""
+        for name in self.projector_frames:
+            out = self.projector_frame(camera, view, name, return_mask=return_mask,
+                                       luminance=luminance)
+            yield (name, *out) if return_mask else (name, out)
 
     # ------------------------------------------------------------------ validation
 
     def expected_files(self, group: str, camera: str) -> list[tuple[str, Path]]:
-        """Every file a group should hold for ``camera``: ``[(label, path), ...]`` in order."""
-        sect = self._section(group)
+        """Every file a group should hold for ``camera``: ``[(label, path), ...]`` in order
+        (the frames :meth:`camera_frames` lists; OLAT adds the ambient frame, if any)."""
+        keys = self.camera_frames(group, camera)
         if group == "calib":
-            return [(f"view {v}", self._path(group, camera=camera, view=v))
-                    for v in range(sect["views"])]
+            if not self.calib_images:
+                return []
+            return [(f"view {v}", self._path(group, camera=camera, view=v)) for v in keys]
         if group == "calib.projector":
-            return [
-                (f"view {v} frame {f!r}", self._path(group, camera=camera, view=v, frame=f))
-                for v in range(sect["views"]) for f in self.sl_frames
-            ]
+            return [(f"view {v} frame {f!r}", self._path(group, camera=camera, view=v, frame=f))
+                    for v, f in keys]
         if group == "structured_light":
-            return [(f"frame {f!r}", self._path(group, camera=camera, frame=f))
-                    for f in self.sl_frames]
+            return [(f"frame {f!r}", self._path(group, camera=camera, frame=f)) for f in keys]
         out = []
-        for light in range(sect["n_lights"]):
+        names = self.light_names
+        for light in keys:
             k = self._olat_file_number(light)
             label = f"light {light}" + (f" (file number {k})" if k != light else "")
-            out.append((label, self._path(group, camera=camera, light=k)))
+            if names is not None:
+                label += f" ({names[light]!r})"
+            out.append((label, self._olat_file(camera, light)))
+        amb = self.ambient_path(camera)
+        if amb is not None:
+            out.append(("ambient frame", amb))
         return out
 
     def validate(self, check: str = "quick") -> Scan:
@@ -480,23 +867,21 @@ class Scan:
                 "the rig has no cameras, but the scan lists frames", key="scan.rig", path=where
             )
         names = [c.name for c in cameras]
+        if len(names) > 1:
+            for group in self.groups:
+                for k in ("files", "ambient", "corners"):
+                    t = self._section(group).get(k)
+                    if isinstance(t, str) and "{camera" not in t:
+                        raise _err(f"template {t!r} has no {{camera}} but the rig has "
+                                   f"{len(names)} cameras, whose files would collide; only a "
+                                   "one-camera rig may leave {camera} out",
+                                   key=f"{group}.{k}", path=where)
         if len(set(names)) != len(names):
             raise _err(
                 f"the rig's camera names are not unique: {names}", key="scan.rig", path=where
             )
         if self.has("olat"):
-            lights = getattr(rig, "lights", None)
-            if lights is None:
-                raise _err("[olat] is present but the rig has no light stage", key="olat",
-                           path=where)
-            if self.n_lights != lights.n_lights:
-                raise _err(
-                    f"n_lights = {self.n_lights} but the rig's light stage has "
-                    f"{lights.n_lights} lights ({lights.n_theta} × {lights.n_phi}); they must be "
-                    "equal",
-                    key="olat.n_lights",
-                    path=where,
-                )
+            self._validate_olat(rig, where)
         if self.has("structured_light"):
             proj = getattr(rig, "projector", None)
             if proj is None:
@@ -514,11 +899,27 @@ class Scan:
         for sect in ("calib", "structured_light", "olat"):
             if self.has(sect):
                 self.response(sect)
+        self._validate_cameras_tables(names, where)
+        if self.has("structured_light"):
+            self._validate_patterns("structured_light", self.sl_frames, where)
+        if self.has("calib.projector") and "frames" in self._section("calib.projector"):
+            self._validate_patterns("calib.projector", self.projector_frames, where)
+        self._validate_world(names, where)
+        if self.has("calib") and "corners" in self._section("calib"):
+            for cam in names:
+                if self.calib_views(cam):  # a camera that saw no view needs no corner list
+                    self.calib_corners(cam)
+        for key in self.reference_keys:
+            p = self.reference_path(key)
+            if not p.exists():
+                raise _err(f"reference file not found: {p}", key=f"reference.{key}", path=where)
         if self.has("calib"):
-            board = self._resolve(self._m["calib"]["board"], key="calib.board", where=where)
-            if not board.is_file():
-                raise _err(f"board file not found: {board}", key="calib.board", path=where)
-            if check == "full":
+            spec = self._m["calib"]["board"]
+            if isinstance(spec, str):
+                board = self._resolve(spec, key="calib.board", where=where)
+                if not board.is_file():
+                    raise _err(f"board file not found: {board}", key="calib.board", path=where)
+            if check == "full" or not isinstance(spec, str):
                 self.__dict__.pop("board", None)
                 _ = self.board
         for key in self.ground_truth_keys:
@@ -536,6 +937,122 @@ class Scan:
         self.frame_check = report
         report.raise_first_error()
         return self
+
+    def _validate_olat(self, rig, where) -> None:
+        lights = getattr(rig, "lights", None)
+        if lights is None:
+            raise _err("[olat] is present but the rig has no lights (rig.json lights = null)",
+                       key="olat", path=where)
+        grid = hasattr(lights, "n_theta")
+        if self.n_lights != lights.n_lights:
+            what = (f"light stage has {lights.n_lights} lights ({lights.n_theta} × "
+                    f"{lights.n_phi})" if grid else f"light list has {lights.n_lights} lights")
+            raise _err(
+                f"n_lights = {self.n_lights} but the rig's {what}; "
+                "they must be equal",
+                key="olat.n_lights",
+                path=where,
+            )
+        sect = self._section("olat")
+        if not grid and sect["light_order"] != "theta-fastest":
+            raise _err("light_order applies to the θ × φ grid; a light list's file order is its "
+                       "list order (leave light_order out)", key="olat.light_order", path=where)
+        if grid and "{light_name" in sect["files"]:
+            raise _err("{light_name} needs a light list with names in the rig (rig.json lights "
+                       "kind = \"list\"); the θ × φ grid has light numbers ({light})",
+                       key="olat.files", path=where)
+
+    def _validate_cameras_tables(self, names: list[str], where) -> None:
+        """``[<group>.cameras.<camera>]``: known cameras, known views / frames / lights, bits
+        within the pattern spec's."""
+        for group in self.groups:
+            tables = self._section(group).get("cameras", {})
+            for cam, t in tables.items():
+                key = f"{group}.cameras.{cam}"
+                if cam not in names:
+                    raise _err(f"no camera {cam!r} in the rig; cameras: {', '.join(names)}",
+                               key=key, path=where)
+                if group in ("calib", "calib.projector"):
+                    n = self._section(group)["views"]
+                    for k in ("views", "missing"):
+                        bad = [v for v in t.get(k, ()) if v >= n]
+                        if bad:
+                            raise _err(f"view {bad[0]} is out of range: {group}.views = {n} "
+                                       f"(views 0 … {n - 1})", key=f"{key}.{k}", path=where)
+                elif group == "structured_light":
+                    frames = self.sl_frames
+                    bad = [f for f in t.get("missing", ()) if f not in frames]
+                    if bad:
+                        raise _err(f"{bad[0]!r} is not one of structured_light.frames",
+                                   key=f"{key}.missing", path=where)
+                    for axis in ("x", "y"):
+                        if f"bits_{axis}" not in t:
+                            continue
+                        spec = self.pattern_spec()
+                        if spec is None:
+                            raise _err("per-camera bits need a pattern spec "
+                                       "([structured_light.patterns])", key=f"{key}.bits_{axis}",
+                                       path=where)
+                        if t[f"bits_{axis}"] > spec.n_bits(axis):
+                            raise _err(f"bits_{axis} = {t[f'bits_{axis}']} but the patterns "
+                                       f"code {spec.n_bits(axis)} bits on {axis}",
+                                       key=f"{key}.bits_{axis}", path=where)
+                else:
+                    for x in t.get("missing", ()):
+                        try:
+                            self._light_index(x)
+                        except InputError as exc:
+                            raise _err(f"{exc}", key=f"{key}.missing", path=where) from exc
+
+    def _validate_patterns(self, group: str, frames: list[str], where) -> None:
+        """The pattern spec must produce exactly the frame list (a missing inverse frame is a
+        load error naming it)."""
+        from facegeo.geometry.structured_light import pattern_names
+
+        try:
+            spec = self.pattern_spec(group)
+        except ScanFormatError:
+            if self.version == 1:  # version 1's patterns table was free-form, never parsed
+                log.debug("%s: version-1 patterns table is not a PatternSpec; not checked",
+                          self.manifest_path)
+                return
+            raise
+        if spec is None:
+            return
+        if group == "structured_light":
+            proj = getattr(self.rig, "projector", None)
+            if proj is not None and (spec.width, spec.height) != (proj.width, proj.height):
+                raise _err(f"patterns are for a {spec.width}×{spec.height} projector but the rig's "
+                           f"projector is {proj.width}×{proj.height}",
+                           key=f"{group}.patterns", path=where)
+        want = pattern_names(spec)
+        fkey = f"{group}.frames"
+        missing = [n for n in want if n not in frames]
+        if missing:
+            raise _err(f"the pattern spec ({group}.patterns) projects frame {missing[0]!r}, which "
+                       f"{fkey} does not list ({len(missing)} missing: "
+                       f"{', '.join(missing[:4])}{', ...' if len(missing) > 4 else ''})",
+                       key=fkey, path=where)
+        extra = [f for f in frames if f not in want]
+        if extra:
+            raise _err(f"frame {extra[0]!r} is not a pattern of {group}.patterns (it projects "
+                       f"{', '.join(want[:6])}{', ...' if len(want) > 6 else ''})",
+                       key=fkey, path=where)
+
+    def _validate_world(self, names: list[str], where) -> None:
+        w = self._m["scan"].get("world")
+        if w is None or "transform" in w:
+            return
+        if not self.has("calib"):
+            raise _err("world = { camera, board_view } needs a [calib] section",
+                       key="scan.world", path=where)
+        if w["camera"] not in names:
+            raise _err(f"no camera {w['camera']!r} in the rig; cameras: {', '.join(names)}",
+                       key="scan.world.camera", path=where)
+        if w["board_view"] not in self.calib_views(w["camera"]):
+            raise _err(f"camera {w['camera']!r} has no calibration view {w['board_view']} (its "
+                       f"views: {self.calib_views(w['camera'])})", key="scan.world.board_view",
+                       path=where)
 
 # =========================================================================== entry points
 
@@ -661,7 +1178,8 @@ def write_manifest(root: str | os.PathLike, manifest: Mapping[str, Any], *,
     except (TypeError, ValueError) as exc:
         raise _err(f"the manifest cannot be written as TOML: {exc}", path=target) from exc
     header = (
-        f"# facegeo scan manifest, format {FORMAT} version {VERSION}; see docs/scan-format.md\n"
+        f"# facegeo scan manifest, format {FORMAT} version {scan.version}; see "
+        "docs/scan-format.md\n"
     )
     atomic_write_text(target, header + text)
     log.debug("wrote %s", target)
@@ -710,11 +1228,20 @@ def _fmt_response(r: Any) -> str:
     return str(r.get("kind"))
 
 
+def _fmt_keys(keys: list, limit: int = 4) -> str:
+    shown = [f"view {k[0]} {k[1]}" if isinstance(k, tuple) else str(k) for k in keys[:limit]]
+    return ", ".join(shown) + (f", ... ({len(keys)} in all)" if len(keys) > limit else "")
+
+
 def summarize(scan: Scan) -> str:
-    """A human-readable summary of a scan: name, cameras, projector, light grid, frame groups,
-    responses, ground truth and size on disk."""
+    """A human-readable summary of a scan: name and version, cameras, projector, lights, frame
+    groups, what each camera has and lacks per group, board, world frame, responses, reference
+    answers, ground truth and size on disk (hard links counted once).
+
+    This is what ``facegeo info`` prints."""
     m = scan._m
-    lines = [f"scan {scan.name!r} ({'synthetic' if scan.synthetic else 'real capture'})",
+    lines = [(f"scan {scan.name!r} ({'synthetic' if scan.synthetic else 'real capture'}, "
+              f"format version {scan.version})"),
              f"  root: {scan.root}"]
     if scan.description:
         lines.append(f"  description: {scan.description}")
@@ -723,43 +1250,84 @@ def summarize(scan: Scan) -> str:
     for c in rig.cameras:
         lines.append(f"    camera {c.name}: {c.width}×{c.height} px")
     proj = getattr(rig, "projector", None)
-    lines.append(f"  projector: {proj.name} {proj.width}×{proj.height} px" if proj is not None
-                 else "  projector: none")
+    if proj is None:
+        lines.append("  projector: none")
+    else:
+        cal = "" if getattr(rig, "projector_calibrated", True) else " (uncalibrated: intrinsics unknown)"
+        lines.append(f"  projector: {proj.name} {proj.width}×{proj.height} px{cal}")
     lights = getattr(rig, "lights", None)
-    if lights is not None:
+    if lights is None:
+        lines.append("  lights: none")
+    elif hasattr(lights, "n_theta"):
         lines.append(
             f"  light stage: {lights.n_lights} lights ({lights.n_theta} azimuths × "
             f"{lights.n_phi} inclinations)"
         )
     else:
-        lines.append("  light stage: none")
-    n_cam = len(rig.cameras)
+        where = "directions" if lights.is_distant else "near-field positions"
+        cover = ("a dome clipped at the horizon" if lights.horizon_axis is not None
+                 else "the full sphere")
+        lines.append(f"  light list: {lights.n_lights} lights ({where}), Voronoi solid angles "
+                     f"over {cover}: sum {lights.solid_angles.sum():.3f} sr")
+    world = m["scan"].get("world")
+    if world is not None:
+        lines.append("  world frame: " + ("explicit transform T_world_rig" if "transform" in world
+                                          else f"board in view {world['board_view']} seen by "
+                                               f"{world['camera']}"))
     lines.append("  frame groups:" if scan.groups else "  frame groups: none")
+    cams = scan.camera_names
     for g in scan.groups:
         s = scan._section(g)
+        total = sum(len(scan.expected_files(g, c)) for c in cams)
         if g == "calib":
             per, what = s["views"], "view(s)"
-            extra = f", response {_fmt_response(s['response'])}, board {s['board']}"
+            board = s["board"] if isinstance(s["board"], str) else f"inline {s['board']['kind']}"
+            extra = f", response {_fmt_response(s['response'])}, board {board}"
+            if "corners" in s:
+                extra += f", corner lists {s['corners']}"
+            if not scan.calib_images:
+                extra += ", no images"
         elif g == "calib.projector":
-            per = s["views"] * len(scan.sl_frames)
-            what = f"file(s) ({s['views']} view(s) × {len(scan.sl_frames)} frames)"
+            nf = len(scan.projector_frames)
+            per = s["views"] * nf
+            what = f"file(s) ({s['views']} view(s) × {nf} frames)"
             extra = f", response {_fmt_response(m['calib']['response'])}"
         elif g == "structured_light":
             per, what = len(s["frames"]), "frame(s)"
             extra = f", response {_fmt_response(s['response'])}, projector {s['projector']!r}"
         else:
             per, what = s["n_lights"], "light(s)"
-            extra = f", response {_fmt_response(s['response'])}, order {s['light_order']}"
-        lines.append(f"    {g}: {per} {what} × {n_cam} camera(s) = {per * n_cam} files{extra}")
+            extra = f", response {_fmt_response(s['response'])}"
+            if hasattr(lights, "n_theta"):
+                extra += f", order {s['light_order']}"
+            if "ambient" in s:
+                extra += ", ambient frame"
+        lines.append(f"    {g}: {per} {what} per camera, {total} files{extra}")
         lines.append(f"      files: {s['files']}")
-    gt = scan._gt or {}
-    if gt:
-        lines.append(f"  ground truth: {len(gt)} entr{'y' if len(gt) == 1 else 'ies'}")
-        for k, v in gt.items():
-            lines.append(f"    {k} = {v}")
+        for c in cams:
+            have = scan.camera_frames(g, c)
+            lack = scan.missing_frames(g, c)
+            line = f"      {c}: {len(have)} of {per}"
+            if lack:
+                if g == "olat" and scan.light_names is not None:
+                    lack = [scan.light_names[k] for k in lack]
+                elif g == "calib":
+                    lack = [f"view {k}" for k in lack]
+                line += f"; lacks {_fmt_keys(lack)}"
+            if g == "structured_light" and "cameras" in s and c in s["cameras"]:
+                bits = {k: v for k, v in s["cameras"][c].items() if k.startswith("bits_")}
+                if bits:
+                    line += "; resolves " + ", ".join(f"{k} = {v}" for k, v in bits.items())
+            lines.append(line)
+    for title, flat in (("reference", scan._ref or {}), ("ground truth", scan._gt or {})):
+        if flat:
+            lines.append(f"  {title}: {len(flat)} entr{'y' if len(flat) == 1 else 'ies'}")
+            for k, v in flat.items():
+                lines.append(f"    {k} = {v}")
     out = scan.root / "out"
     seen: set = set()
     size_in = _du(scan.root, skip=out, seen=seen)
     size_out = _du(out, seen=seen) if out.is_dir() else 0
-    lines.append(f"  size on disk: {_fmt_bytes(size_in)} (inputs), {_fmt_bytes(size_out)} (out/)")
+    lines.append(f"  size on disk (hard links counted once): {_fmt_bytes(size_in)} (inputs), "
+                 f"{_fmt_bytes(size_out)} (out/)")
     return "\n".join(lines)

@@ -1,7 +1,11 @@
-"""The capture rig: cameras, the structured-light projector and the light stage.
+"""The capture rig: cameras, the structured-light projector and the lights.
 
 A :class:`Rig` is what calibration produces and every later stage consumes. It saves to and loads
-from a small JSON file (``calib/default_rig.json`` is :func:`default_rig` written out).
+from a small JSON file (``calib/default_rig.json`` is :func:`default_rig` written out). Real rigs
+differ from the paper's: the projector may be uncalibrated (:class:`Projector`: resolution only),
+the lights may be a list (:class:`facegeo.geometry.lights.LightList`) instead of the θ × φ grid
+(:class:`LightStage`), or absent (``lights = None``: structured light or calibration only); see
+``docs/scan-format.md``, *Lights*.
 
 Regenerate the shipped calibration files (``calib/default_rig.json`` and
 ``calib/charuco_board.json``) after changing :func:`default_rig` or the default
@@ -36,9 +40,13 @@ from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import light_directions, light_solid_angles, look_at
 from facegeo.fsutil import atomic_write_text, load_json_file
+from facegeo.geometry.lights import LIGHT_LIST_KIND, LightList, LightSet
 
 __all__ = [
     "LightStage",
+    "LightList",
+    "LightSet",
+    "Projector",
     "Rig",
     "default_rig",
     "RIG_FORMAT",
@@ -56,6 +64,7 @@ LIGHT_ORDER = "theta-fastest"
 
 _LIGHT_KEYS = ("n_theta", "n_phi", "radius", "center", "color", "light_order")
 _RIG_KEYS = ("format", "version", "cameras", "projector", "lights")
+_PROJECTOR_KEYS = ("name", "width", "height", "calibrated")
 
 
 def _vec3(value: Any, name: str) -> tuple[float, float, float]:
@@ -257,26 +266,98 @@ class LightStage:
             raise type(exc)(f"{where}.{exc}") from exc
 
 
+# --------------------------------------------------------------------------- projector
+
+
+@dataclass(frozen=True)
+class Projector:
+    """A projector whose resolution is known but whose intrinsics and pose are not (yet).
+
+    What a real structured-light scan has before projector calibration: the decoder needs only
+    the resolution (:class:`facegeo.geometry.structured_light.PatternSpec`); calibration finds
+    ``K``, distortion and pose and replaces this with a
+    :class:`facegeo.geometry.camera.Camera`. In ``rig.json``:
+    ``{"name": "projector", "width": 1024, "height": 768, "calibrated": false}``.
+
+    Parameters
+    ----------
+    name : str
+    width, height : int
+        Resolution, pixels.
+    """
+
+    name: str
+    width: int
+    height: int
+
+    #: Always False: an uncalibrated projector has no intrinsics (``Camera`` has them).
+    calibrated = False
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise InputError(f"name: expected a non-empty string, got {fmt_value(self.name)}")
+        for k in ("width", "height"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise InputError(f"{k}: expected a positive integer (pixels), got {fmt_value(v)}")
+            object.__setattr__(self, k, int(v))
+
+    def to_dict(self) -> dict:
+        """``{"name", "width", "height", "calibrated": false}``."""
+        return {"name": self.name, "width": self.width, "height": self.height,
+                "calibrated": False}
+
+    @classmethod
+    def from_dict(cls, d: Any, *, where: str = "projector") -> Projector:
+        """Inverse of :meth:`to_dict`; errors name ``<where>.<key>``."""
+        _check_keys(d, where, ("name", "width", "height", "calibrated"), _PROJECTOR_KEYS)
+        if d["calibrated"] is not False:
+            raise InputError(f"{where}.calibrated: an entry with only name, width and height is "
+                             "an uncalibrated projector and says \"calibrated\": false; a "
+                             "calibrated one is a camera entry (K, dist, T_cam_world)")
+        try:
+            return cls(d["name"], d["width"], d["height"])
+        except InputError as exc:
+            raise InputError(f"{where}.{exc}") from exc
+
+
+def _lights_from_dict(d: Any, where: str = "lights") -> LightStage | LightList | None:
+    """``rig.json``'s ``lights``: null (no light stage), a grid, or ``{"kind": "list", ...}``."""
+    if d is None:
+        return None
+    if isinstance(d, dict) and "kind" in d:
+        if d["kind"] != LIGHT_LIST_KIND:
+            raise InputError(f"{where}.kind: expected {LIGHT_LIST_KIND!r} (a light list) or no "
+                             f"kind (the θ × φ grid), got {fmt_value(d['kind'])}")
+        return LightList.from_dict(d, where=where)
+    return LightStage.from_dict(d, where=where)
+
+
 # --------------------------------------------------------------------------- rig
 
 
 @dataclass
 class Rig:
-    """Cameras, an optional projector and the light stage, all in one world frame.
+    """Cameras, an optional projector and optional lights, all in one world frame.
 
     Parameters
     ----------
     cameras : list of Camera
         At least one, unique names.
-    projector : Camera or None
+    projector : Camera, Projector or None
         The structured-light projector as an inverse camera: its own resolution and
-        intrinsics; ``T_cam_world`` is the projector pose.
-    lights : LightStage
+        intrinsics; ``T_cam_world`` is the projector pose. A :class:`Projector` when only its
+        resolution is known (not calibrated yet).
+    lights : LightStage, LightList or None
+        The θ × φ grid of Debevec et al. 2000, a list of lights
+        (:class:`facegeo.geometry.lights.LightList`), or None for a rig without lights
+        (structured light or calibration only). Both kinds satisfy
+        :class:`facegeo.geometry.lights.LightSet`.
     """
 
     cameras: list[Camera]
-    projector: Camera | None = None
-    lights: LightStage = LightStage()
+    projector: Camera | Projector | None = None
+    lights: LightStage | LightList | None = LightStage()
 
     def __post_init__(self):
         cams = list(self.cameras) if not isinstance(self.cameras, Camera) else [self.cameras]
@@ -289,13 +370,20 @@ class Rig:
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise InputError(f"cameras: camera names must be unique; repeated: {', '.join(dup)}")
-        if self.projector is not None and not isinstance(self.projector, Camera):
+        if self.projector is not None and not isinstance(self.projector, (Camera, Projector)):
             raise InputError(
-                f"projector: expected a Camera or None, got {type(self.projector).__name__}"
+                f"projector: expected a Camera, a Projector or None, got "
+                f"{type(self.projector).__name__}"
             )
-        if not isinstance(self.lights, LightStage):
-            raise InputError(f"lights: expected a LightStage, got {type(self.lights).__name__}")
+        if self.lights is not None and not isinstance(self.lights, (LightStage, LightList)):
+            raise InputError(f"lights: expected a LightStage, a LightList or None, got "
+                             f"{type(self.lights).__name__}")
         self.cameras = cams
+
+    @property
+    def projector_calibrated(self) -> bool:
+        """True when the rig has a projector with intrinsics and pose (a ``Camera``)."""
+        return isinstance(self.projector, Camera)
 
     @property
     def camera_names(self) -> list[str]:
@@ -328,13 +416,14 @@ class Rig:
     # ------------------------------------------------------------------ JSON
 
     def to_dict(self) -> dict:
-        """JSON-ready mapping: format, version, cameras, projector (or null), lights."""
+        """JSON-ready mapping: format, version, cameras, projector (or null), lights (or
+        null)."""
         return {
             "format": RIG_FORMAT,
             "version": RIG_VERSION,
             "cameras": [c.to_dict() for c in self.cameras],
             "projector": None if self.projector is None else self.projector.to_dict(),
-            "lights": self.lights.to_dict(),
+            "lights": None if self.lights is None else self.lights.to_dict(),
         }
 
     @classmethod
@@ -346,7 +435,7 @@ class Rig:
         InputError
             A missing, unknown or bad field; the message names it (``cameras[1].K: ...``).
         """
-        _check_keys(d, "", ("cameras", "lights"), _RIG_KEYS)
+        _check_keys(d, "", ("cameras",), _RIG_KEYS)
         fmt = d.get("format", RIG_FORMAT)
         if fmt != RIG_FORMAT:
             raise InputError(f"format: expected {fmt_value(RIG_FORMAT)}, got {fmt_value(fmt)}")
@@ -363,8 +452,13 @@ class Rig:
         cameras = [Camera.from_dict(c, where=f"cameras[{i}]") for i, c in enumerate(cams)]
         proj = d.get("projector")
         _check_json_numbers(proj, "projector", _CAMERA_NUMERIC)
-        projector = None if proj is None else Camera.from_dict(proj, where="projector")
-        lights = LightStage.from_dict(d["lights"], where="lights")
+        if proj is None:
+            projector = None
+        elif isinstance(proj, dict) and "calibrated" in proj:
+            projector = Projector.from_dict(proj, where="projector")
+        else:
+            projector = Camera.from_dict(proj, where="projector")
+        lights = _lights_from_dict(d.get("lights"), where="lights")
         return cls(cameras, projector, lights)
 
     def to_json(self) -> str:
