@@ -1,0 +1,138 @@
+"""Public data sets converted into scans (``facegeo.capture.datasets``), loaded and checked."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from conftest import shared_file
+from facegeo.capture.datasets import DATASETS, import_dataset, yale_light_direction
+from facegeo.capture.scan import load_scan, summarize
+from facegeo.errors import InputError
+
+SOURCES = {
+    "opencv-stereo": "calibration/opencv_stereo_chessboards",
+    "yale-b": "olat/yale_b01",
+    "graycode-mannequin": "structured_light/graycode_mannequin",
+    "three-phase": "structured_light/face_threephase",
+}
+
+
+@pytest.fixture(scope="module")
+def converted(tmp_path_factory, request):
+    from conftest import SHARED_DATA
+
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data folder {SHARED_DATA} is absent (set FACEGEO_SHARED_DATA)")
+    root = tmp_path_factory.mktemp("datasets")
+    out = {}
+    for kind, rel in SOURCES.items():
+        src = SHARED_DATA / rel
+        if src.is_dir():
+            out[kind] = import_dataset(kind, src, root / kind)
+    return out
+
+
+@pytest.mark.parametrize("kind", sorted(SOURCES))
+def test_each_dataset_converts_and_validates_fully(converted, kind):
+    if kind not in converted:
+        pytest.skip(f"{SOURCES[kind]} is absent from the shared data")
+    scan = load_scan(converted[kind].root, check="full")
+    assert scan.version == 2 and not scan.synthetic
+    text = summarize(scan)
+    assert scan.name in text
+    # what the data set does not publish is marked as nominal
+    assert scan.manifest["scan"]["metadata"]["nominal"]
+    # frames are the source's files, byte for byte (hard links or copies)
+    from conftest import SHARED_DATA
+
+    src = SHARED_DATA / SOURCES[kind]
+    carried = [p for g in scan.groups for c in scan.camera_names
+               for _, p in scan.expected_files(g, c)]
+    assert carried
+    source_bytes = {q.read_bytes() for q in src.iterdir() if q.is_file()}
+    assert all(p.read_bytes() in source_bytes for p in carried[:5])
+
+
+def test_opencv_stereo_keeps_the_published_intrinsics(converted):
+    scan = converted.get("opencv-stereo") or pytest.skip("no OpenCV stereo data")
+    assert scan.calib_views("left") == list(range(13)) == scan.calib_views("right")
+    ref = json.loads(scan.reference_path("intrinsics").read_text())
+    K = np.array(ref["cameras"]["left"]["K"])
+    assert K.shape == (3, 3) and K[0, 0] == pytest.approx(534.803, abs=1e-3)
+    assert np.array(ref["left_single_camera"]["K"])[0, 2] == pytest.approx(342.283, abs=1e-3)
+
+
+def test_yale_light_directions_agree_with_the_frames(converted):
+    """A flash on world −x lights the image's left half (the camera looks down −z from +z)."""
+    scan = converted.get("yale-b") or pytest.skip("no Yale B data")
+    lights = scan.rig.lights
+    assert lights.n_lights == 64
+    assert lights.solid_angles.sum() == pytest.approx(4 * np.pi, rel=1e-9)
+    checked = 0
+    for l, name in enumerate(scan.light_names):
+        d = lights.directions[l]
+        if abs(d[0]) < 0.6:
+            continue
+        img = scan.olat_frame("cam", l, subtract_ambient=True)[..., 0]
+        w = img.shape[1]
+        left, right = img[:, : w // 2].mean(), img[:, w // 2:].mean()
+        assert np.sign(right - left) == np.sign(d[0]), name
+        checked += 1
+    assert checked >= 8
+    np.testing.assert_allclose(yale_light_direction(0, 90), [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(yale_light_direction(90, 0), [-1, 0, 0], atol=1e-12)
+
+
+def test_yale_ambient_is_subtracted(converted):
+    scan = converted.get("yale-b") or pytest.skip("no Yale B data")
+    raw = scan.olat_frame("cam", 0)
+    amb = scan.ambient_frame("cam")
+    np.testing.assert_allclose(scan.olat_frame("cam", 0, subtract_ambient=True), raw - amb,
+                               atol=1e-7)
+    assert amb.mean() > 0
+
+
+def test_graycode_mannequin_bits_are_interleaved_rows_first(converted):
+    """Frame 1 is the row MSB (horizontal bands), frame 2 the column MSB (vertical bands)."""
+    scan = converted.get("graycode-mannequin") or pytest.skip("no mannequin data")
+    assert scan.sl_frames[:4] == ["gray_y_00", "gray_x_00", "gray_y_01", "gray_x_01"]
+    for name, axis in (("gray_y_00", 1), ("gray_x_00", 0), ("gray_y_01", 1), ("gray_x_01", 0)):
+        b = scan.sl_frame("cam", name, luminance=True) > 0.15
+        along_cols, along_rows = b.mean(0).std(), b.mean(1).std()
+        assert (along_rows > along_cols) == (axis == 1), name
+
+
+def test_three_phase_is_a_phase_only_spec(converted):
+    scan = converted.get("three-phase") or pytest.skip("no phase data")
+    spec = scan.pattern_spec("structured_light")
+    assert spec.phase_steps == 3 and not spec.gray
+    assert scan.sl_frames == ["phase_x_0", "phase_x_1", "phase_x_2"]
+
+
+def test_bad_input_is_refused_and_leaves_nothing(tmp_path, shared_data):
+    src = shared_file(shared_data, "structured_light/graycode_mannequin")
+    with pytest.raises(InputError, match="dataset"):
+        import_dataset("nonsense", src, tmp_path / "x")
+    partial = tmp_path / "partial"
+    shutil.copytree(src, partial)
+    (partial / "7.jpg").unlink()
+    with pytest.raises(InputError, match="missing 7.jpg"):
+        import_dataset("graycode-mannequin", partial, tmp_path / "scan")
+    assert not (tmp_path / "scan").exists()
+    assert not [p for p in tmp_path.iterdir() if "facegeo-tmp" in p.name]
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "mine.txt").write_text("keep")
+    with pytest.raises(InputError, match="never overwrites"):
+        import_dataset("graycode-mannequin", src, busy)
+    assert (busy / "mine.txt").read_text() == "keep"
+    with pytest.raises(InputError, match="not the expected data set"):
+        import_dataset("three-phase", src, tmp_path / "other")
+
+
+def test_registry_lists_every_converter():
+    assert set(DATASETS) == set(SOURCES)
