@@ -13,7 +13,7 @@ import traceback
 from pathlib import Path
 
 from facegeo import __version__
-from facegeo.errors import FacegeoError
+from facegeo.errors import FacegeoError, InputError
 from facegeo.checks import fmt_value
 
 log = logging.getLogger("facegeo")
@@ -138,6 +138,28 @@ def _cmd_synth(args) -> int:
 
 #: ``facegeo info`` lists at most this many frame warnings unless -v is given.
 _INFO_MAX_WARNINGS = 20
+
+
+def _cmd_import(args) -> int:
+    from facegeo.capture.scan import summarize
+
+    if (args.dataset is None) == (args.description is None):
+        raise InputError("give --dataset KIND (a public data set) or --description DESC.toml "
+                         "(your own folder), exactly one")
+    if args.dataset is not None:
+        if args.rig is not None:
+            raise InputError("--rig goes with --description; a --dataset writes its own rig")
+        from facegeo.capture.datasets import import_dataset
+
+        scan = import_dataset(args.dataset, args.src, args.dest, mode="copy" if args.copy else "link")
+    else:
+        from facegeo.capture.importer import import_folder
+
+        scan = import_folder(args.src, args.dest, args.description, rig=args.rig,
+                             mode="copy" if args.copy else None)
+    print(summarize(scan))
+    print(f"imported into {scan.root}")
+    return 0
 
 
 def _cmd_info(args) -> int:
@@ -386,6 +408,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "facegeo did not write are kept)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_synth)
+
+    s = sub.add_parser("import", parents=common,
+                       help="make a scan from a folder of frames (a description, or a known "
+                            "public data set)")
+    s.add_argument("src", metavar="SRC", help="the folder as it ships (never modified)")
+    s.add_argument("dest", metavar="DEST", help="new scan directory (must not exist or be empty)")
+    s.add_argument("--description", metavar="DESC.toml",
+                   help="a version-2 scan.toml whose paths are relative to SRC "
+                        "(docs/scan-format.md, Importing)")
+    s.add_argument("--rig", metavar="RIG.json", help="with --description: the rig file, if "
+                   "SRC has none")
+    s.add_argument("--dataset", choices=["opencv-stereo", "yale-b", "graycode-mannequin",
+                                         "three-phase"],
+                   help="convert a known public data set (docs/datasets.md)")
+    s.add_argument("--copy", action="store_true", help="copy files instead of hard-linking them")
+    s.set_defaults(func=_cmd_import)
 
     s = sub.add_parser("info", parents=common, help="summarise and validate a scan directory")
     s.add_argument("scan", metavar="SCAN", help="scan directory (or its scan.toml)")

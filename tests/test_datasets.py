@@ -136,3 +136,19 @@ def test_bad_input_is_refused_and_leaves_nothing(tmp_path, shared_data):
 
 def test_registry_lists_every_converter():
     assert set(DATASETS) == set(SOURCES)
+
+
+def test_cli_import_dataset_and_description(tmp_path, shared_data, capsys):
+    from facegeo.cli import main
+
+    src = shared_file(shared_data, "structured_light/face_threephase")
+    assert main(["import", str(src), str(tmp_path / "a"), "--dataset", "three-phase",
+                 "--copy"]) == 0
+    assert "imported into" in capsys.readouterr().out
+    assert (tmp_path / "a" / "scan.toml").is_file()
+    # importing a scan's own folder by its manifest: the description route
+    assert main(["import", str(tmp_path / "a"), str(tmp_path / "b"), "--description",
+                 str(tmp_path / "a" / "scan.toml")]) == 0
+    # exactly one of --dataset / --description
+    assert main(["import", str(src), str(tmp_path / "c")]) == 2
+    assert "exactly one" in capsys.readouterr().err

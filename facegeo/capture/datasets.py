@@ -94,7 +94,7 @@ def _read_cv_yaml(path: Path, keys: tuple[str, ...]) -> dict:
         fs.release()
 
 
-def _opencv_stereo(src: Path, root: Path) -> dict:
+def _opencv_stereo(src: Path, root: Path, mode: str) -> dict:
     from facegeo.geometry.rig import Rig
 
     files = {cam: _need(src, [f"{cam}{v:02d}.jpg" for v in _OPENCV_VIEWS])
@@ -106,7 +106,7 @@ def _opencv_stereo(src: Path, root: Path) -> dict:
     Rig(cameras=cams, projector=None, lights=None).save(root / "rig.json")
     for cam, paths in files.items():
         for view, p in enumerate(paths):
-            _carry(p, root / "calib" / cam / f"view_{view:03d}.jpg", "link")
+            _carry(p, root / "calib" / cam / f"view_{view:03d}.jpg", mode)
     ref = {"source": "OpenCV samples/data (stereo_calib output intrinsics.yml; calibration "
                      "sample output left_intrinsics.yml)", "cameras": {}}
     if (src / "intrinsics.yml").is_file():
@@ -149,14 +149,16 @@ def yale_light_direction(azimuth_deg, elevation_deg) -> np.ndarray:
 
     Returns
     -------
-    (..., 3) float64, unit
+    (..., 3) float64, unit (:func:`facegeo.geometry.lights.directions_from_azimuth_elevation`
+    with the azimuth negated)
     """
-    a = np.radians(np.asarray(azimuth_deg, float))
-    e = np.radians(np.asarray(elevation_deg, float))
-    return np.stack([-np.sin(a) * np.cos(e), np.sin(e), np.cos(a) * np.cos(e)], axis=-1)
+    from facegeo.geometry.lights import directions_from_azimuth_elevation
+
+    d = directions_from_azimuth_elevation(np.negative(azimuth_deg), elevation_deg)
+    return d.reshape(np.broadcast(np.asarray(azimuth_deg), np.asarray(elevation_deg)).shape + (3,))
 
 
-def _yale_b(src: Path, root: Path) -> dict:
+def _yale_b(src: Path, root: Path, mode: str) -> dict:
     from facegeo.geometry.lights import LightList
     from facegeo.geometry.rig import Rig
 
@@ -180,7 +182,7 @@ def _yale_b(src: Path, root: Path) -> dict:
     Rig(cameras=[cam], projector=None,
         lights=LightList(directions=dirs, names=names)).save(root / "rig.json")
     for (p, _), name in zip(lights, names):
-        _carry(p, root / "olat" / "cam" / f"{name}.pgm", "link")
+        _carry(p, root / "olat" / "cam" / f"{name}.pgm", mode)
     manifest = new_manifest(
         f"{subject}_P{pose}", synthetic=False,
         description=f"Extended Yale Face Database B, subject {subject}, pose {pose}: "
@@ -193,13 +195,13 @@ def _yale_b(src: Path, root: Path) -> dict:
     manifest["olat"] = {"response": "linear", "n_lights": len(lights),
                         "files": "olat/{camera}/{light_name}.pgm"}
     if ambient.is_file():
-        _carry(ambient, root / "olat" / "cam" / "ambient.pgm", "link")
+        _carry(ambient, root / "olat" / "cam" / "ambient.pgm", mode)
         manifest["olat"]["ambient"] = "olat/{camera}/ambient.pgm"
     return manifest
 
 
 # ---------------------------------------------------------------- structured light
-def _graycode_mannequin(src: Path, root: Path) -> dict:
+def _graycode_mannequin(src: Path, root: Path, mode: str) -> dict:
     from facegeo.geometry.rig import Projector, Rig
     from facegeo.geometry.structured_light import PatternSpec
 
@@ -213,7 +215,7 @@ def _graycode_mannequin(src: Path, root: Path) -> dict:
     Rig(cameras=[_nominal_camera("cam", w, h)], projector=Projector("projector", 1024, 1024),
         lights=None).save(root / "rig.json")
     for p, name in zip(paths, frames):
-        _carry(p, root / "structured_light" / "cam" / f"{name}.jpg", "link")
+        _carry(p, root / "structured_light" / "cam" / f"{name}.jpg", mode)
     manifest = new_manifest(
         "graycode_mannequin", synthetic=False,
         description="Gray-code structured light of a mannequin: 9 column and 9 row bits, no "
@@ -230,7 +232,7 @@ def _graycode_mannequin(src: Path, root: Path) -> dict:
     return manifest
 
 
-def _three_phase(src: Path, root: Path) -> dict:
+def _three_phase(src: Path, root: Path, mode: str) -> dict:
     from facegeo.geometry.rig import Projector, Rig
     from facegeo.geometry.structured_light import PatternSpec
 
@@ -242,7 +244,7 @@ def _three_phase(src: Path, root: Path) -> dict:
     Rig(cameras=[_nominal_camera("cam", w, h)], projector=Projector("projector", w, h),
         lights=None).save(root / "rig.json")
     for p, name in zip(paths, frames):
-        _carry(p, root / "structured_light" / "cam" / f"{name}.png", "link")
+        _carry(p, root / "structured_light" / "cam" / f"{name}.png", mode)
     manifest = new_manifest(
         "face_threephase", synthetic=False,
         description="Three-step phase shift of a face, fringes across the image columns, no "
@@ -257,7 +259,7 @@ def _three_phase(src: Path, root: Path) -> dict:
     return manifest
 
 
-#: Data set name -> converter ``(src, staging_root) -> manifest``.
+#: Data set name -> converter ``(src, staging_root, mode) -> manifest``.
 DATASETS: dict[str, Callable[[Path, Path], dict]] = {
     "opencv-stereo": _opencv_stereo,
     "yale-b": _yale_b,
@@ -266,7 +268,8 @@ DATASETS: dict[str, Callable[[Path, Path], dict]] = {
 }
 
 
-def import_dataset(kind: str, src: str | os.PathLike, dest: str | os.PathLike) -> Scan:
+def import_dataset(kind: str, src: str | os.PathLike, dest: str | os.PathLike, *,
+                   mode: str = "link") -> Scan:
     """Convert a public data set folder into a scan at ``dest``.
 
     Parameters
@@ -277,6 +280,8 @@ def import_dataset(kind: str, src: str | os.PathLike, dest: str | os.PathLike) -
         The data set's folder, as shipped (read only).
     dest : path-like
         The new scan directory; must not exist or be empty (nothing is ever overwritten).
+    mode : {"link", "copy"}
+        Hard-link the frames (copies across file systems), or always copy them.
 
     Returns
     -------
@@ -293,6 +298,7 @@ def import_dataset(kind: str, src: str | os.PathLike, dest: str | os.PathLike) -
         message names the file).
     """
     check_choice(kind, "dataset", tuple(DATASETS))
+    check_choice(mode, "mode", ("link", "copy"))
     src, dest = Path(src), Path(dest)
     if not src.is_dir():
         raise InputError(f"{src}: source folder not found")
@@ -303,7 +309,7 @@ def import_dataset(kind: str, src: str | os.PathLike, dest: str | os.PathLike) -
     clean_stale_siblings(dest)
     tmp = staging_dir(dest, "tmp")
     try:
-        manifest = DATASETS[kind](src, tmp)
+        manifest = DATASETS[kind](src, tmp, mode)
         write_manifest(tmp, manifest)
         swap_in_dir(tmp, dest)
     except BaseException:
