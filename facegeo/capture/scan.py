@@ -24,7 +24,9 @@ demand).
 
 The schema (key tables, value and template checks, path-safety checks) lives in the private
 module :mod:`facegeo.capture._scan_schema`, file resolution and the on-disk frame checks in
-:mod:`facegeo.capture._scan_files`; every public name is importable from here.
+:mod:`facegeo.capture._scan_files`, the frame readers in :mod:`facegeo.capture._scan_readers`, the
+validation in :mod:`facegeo.capture._scan_validate` and the summary in
+:mod:`facegeo.capture._scan_summary`; every public name is importable from here.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import logging
 import os
 import re
 import tomllib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -46,10 +48,8 @@ from facegeo.capture._scan_files import (
     CornerView,
     FrameCheck,
     FrameProblem,
-    _check_group_files,
     _format_template,
     _Resolver,
-    _size_error,
     _SuffixFinder,
     board_from_dict,
     frame_path,
@@ -72,11 +72,13 @@ from facegeo.capture._scan_schema import (
     _flatten_ground_truth,
     validate_manifest,
 )
+from facegeo.capture._scan_summary import summarize  # noqa: F401 (public name)
+from facegeo.capture._scan_readers import LUMINANCE_WEIGHTS, _ScanReaders  # noqa: F401
+from facegeo.capture._scan_validate import CHECKS, _ScanValidation
 from facegeo.checks import check_choice, fmt_value
 from facegeo.errors import FacegeoError, InputError, ScanFormatError
 from facegeo.fsutil import atomic_write_text
-from facegeo.capture.imageio import read_image
-from facegeo.capture.response import Response, clipped_mask, parse_response, saturated_mask
+from facegeo.capture.response import Response, parse_response
 
 __all__ = [
     "FORMAT",
@@ -111,28 +113,16 @@ log = logging.getLogger(__name__)
 
 MANIFEST_NAME = "scan.toml"
 
-CHECKS = ("quick", "full")
-
-#: Linear-RGB → luminance weights (Rec. 709 / sRGB primaries, the library's RGB; ITU-R BT.709
-#: item 3.2), used by the ``luminance=True`` readers.
-LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
 #: A Gray-code frame name of :func:`facegeo.geometry.structured_light.pattern_names`: axis, bit
 #: (0 = most significant) and inverse flag; per-camera ``bits_x`` / ``bits_y`` drop bits ≥ n.
 _GRAY_FRAME = re.compile(r"^gray_([xy])_(\d+)(_inv)?$")
 
 
-def _luminance(lin: np.ndarray) -> np.ndarray:
-    """``(H, W)`` float32 luminance of a linear frame (grey frames pass through)."""
-    if lin.ndim == 2:
-        return lin
-    return np.dot(lin[..., :3], LUMINANCE_WEIGHTS).astype(np.float32, copy=False)
-
-
 # =========================================================================== Scan
 
 
-class Scan:
+class Scan(_ScanReaders, _ScanValidation):
     """A validated scan directory with lazy access to its frames.
 
     Construct with :func:`load_scan`. Frames are read from disk only when asked for and returned
@@ -651,154 +641,6 @@ class Scan:
 
     # ------------------------------------------------------------------ frames
 
-    def _read(self, group: str, camera: str, path: Path, *, return_mask: bool):
-        raw = read_image(path)
-        cam = self.camera(camera)
-        h, w = raw.shape[:2]
-        if (w, h) != (cam.width, cam.height):
-            raise _size_error(path, group, camera, (w, h), (cam.width, cam.height))
-        try:
-            lin = self.response(group).linearize(raw)
-        except InputError as exc:
-            raise _err(f"{exc}", key=f"{group}.response", path=path) from exc
-        if not return_mask:
-            return lin, None
-        if raw.dtype.kind == "f":
-            valid = np.isfinite(raw) if raw.ndim == 2 else np.isfinite(raw).all(axis=-1)
-        else:
-            valid = ~(saturated_mask(raw) | clipped_mask(raw))
-        return lin, valid
-
-    def olat_frame(self, camera: str, light: int | str, *, return_mask: bool = False,
-                   subtract_ambient: bool = False):
-        """One OLAT frame, linear.
-
-        Parameters
-        ----------
-        camera : str
-        light : int or str
-            Light index (``l = j·n_theta + i`` for the grid; the list position for a light
-            list) or a light list's light name.
-        return_mask : bool
-            Also return where the samples can be trusted.
-        subtract_ambient : bool
-            Subtract :meth:`ambient_frame` (needs ``olat.ambient``). The difference is not
-            clipped: noise leaves small negative values where a light adds nothing.
-
-        Returns
-        -------
-        frame : (H, W, 3) float32, linear radiance
-            The linearised pixel values divided by ``[olat] exposure``. Grey frames are
-            repeated to three channels; alpha is dropped.
-        valid : (H, W) bool, only with ``return_mask``
-            False where a sample is saturated or black-clipped (integer frames) or non-finite
-            (float frames).
-        """
-        lin, valid = self._olat_read(camera, self.olat_path(camera, light), return_mask)
-        if subtract_ambient:
-            lin = lin - self.ambient_frame(camera)
-        return (lin, valid) if return_mask else lin
-
-    def _olat_read(self, camera: str, path: Path, return_mask: bool):
-        lin, valid = self._read("olat", camera, path, return_mask=return_mask)
-        exposure = float(self._section("olat").get("exposure", 1.0))
-        if exposure != 1.0:
-            lin = lin / np.float32(exposure)
-        if lin.ndim == 2:
-            lin = np.repeat(lin[..., None], 3, axis=-1)
-        elif lin.shape[-1] == 4:
-            lin = np.ascontiguousarray(lin[..., :3])
-        return lin, valid
-
-    def ambient_frame(self, camera: str) -> np.ndarray:
-        """``camera``'s ambient frame (no light on), ``(H, W, 3)`` float32 linear, divided by
-        ``olat.exposure`` like the OLAT frames; read once and cached.
-
-        Raises
-        ------
-        ScanFormatError
-            The scan declares no ``olat.ambient``.
-        """
-        a = self._ambient.get(camera)
-        if a is None:
-            p = self.ambient_path(camera)
-            if p is None:
-                raise _err("this scan has no ambient frame (olat.ambient)", key="olat.ambient",
-                           path=self.manifest_path)
-            a = self._olat_read(camera, p, False)[0]
-            a.setflags(write=False)
-            self._ambient[camera] = a
-        return a
-
-    def iter_olat(self, camera: str, lights: Sequence[int] | None = None, *,
-                  return_mask: bool = False, subtract_ambient: bool = False) -> Iterator[tuple]:
-        """Yield ``(light, frame)`` (or ``(light, frame, valid)``) for ``lights`` (default the
-        lights ``camera`` has, in light-index order), reading one frame at a time."""
-        for light in self.camera_frames("olat", camera) if lights is None else lights:
-            out = self.olat_frame(camera, light, return_mask=return_mask,
-                                  subtract_ambient=subtract_ambient)
-            yield (light, *out) if return_mask else (light, out)
-
-    def sl_frame(self, camera: str, frame: str, *, return_mask: bool = False,
-                 luminance: bool = False):
-        """One structured-light frame, linear.
-
-        Parameters
-        ----------
-        camera, frame : str
-        return_mask : bool
-            Also return where the samples can be trusted.
-        luminance : bool
-            Return single-channel luminance ``Y = 0.2126 R + 0.7152 G + 0.0722 B`` of the
-            linear frame (:data:`LUMINANCE_WEIGHTS`): a third of the memory of RGB, all a
-            Gray-code or phase decoder needs.
-
-        Returns
-        -------
-        frame : (H, W) or (H, W, 3) float32, linear, channels as stored (alpha dropped);
-            ``(H, W)`` with ``luminance``
-        valid : (H, W) bool, only with ``return_mask`` (see :meth:`olat_frame`)
-        """
-        return self._sl_like("structured_light", camera, self.sl_path(camera, frame),
-                             return_mask, luminance)
-
-    def _sl_like(self, group, camera, path, return_mask, luminance):
-        lin, valid = self._read(group, camera, path, return_mask=return_mask)
-        if luminance:
-            lin = _luminance(lin)
-        elif lin.ndim == 3 and lin.shape[-1] == 4:
-            lin = np.ascontiguousarray(lin[..., :3])
-        return (lin, valid) if return_mask else lin
-
-    def iter_sl(self, camera: str, frames: Sequence[str] | None = None, *,
-                luminance: bool = False, return_mask: bool = False) -> Iterator[tuple]:
-        """Yield ``(name, frame)`` (or ``(name, frame, valid)``) for ``frames`` (default the
-        frames ``camera`` has, in capture order), reading one frame at a time: only the frame
-        being yielded is held, so a decoder that accumulates bit planes never holds the group.
-        See :meth:`sl_frame` for ``luminance``."""
-        for name in self.camera_frames("structured_light", camera) if frames is None else frames:
-            out = self.sl_frame(camera, name, return_mask=return_mask, luminance=luminance)
-            yield (name, *out) if return_mask else (name, out)
-
-    def projector_frame(self, camera: str, view: int, frame: str, *, return_mask: bool = False,
-                        luminance: bool = False):
-        """One projector-calibration frame (the board in view ``view`` under pattern
-        ``frame``), linearised with ``calib.response``; see :meth:`sl_frame` for the options."""
-        paths = self.projector_view_paths(camera, view)
-        check_choice(frame, "frame", list(paths))
-        return self._sl_like("calib.projector", camera, paths[frame], return_mask, luminance)
-
-    def iter_projector(self, camera: str, view: int, *, luminance: bool = False,
-                       return_mask: bool = False) -> Iterator[tuple]:
-        """Yield ``(name, frame)`` over the patterns of projector-calibration view ``view``,
-        one frame at a time (see :meth:`projector_frame`)."""
-        for name in self.projector_frames:
-            out = self.projector_frame(camera, view, name, return_mask=return_mask,
-                                       luminance=luminance)
-            yield (name, *out) if return_mask else (name, out)
-
-    # ------------------------------------------------------------------ validation
-
     def expected_files(self, group: str, camera: str) -> list[tuple[str, Path]]:
         """Every file a group should hold for ``camera``: ``[(label, path), ...]`` in order
         (the frames :meth:`camera_frames` lists; OLAT adds the ambient frame, if any)."""
@@ -824,237 +666,6 @@ class Scan:
         if amb is not None:
             out.append(("ambient frame", amb))
         return out
-
-    def validate(self, check: str = "quick") -> Scan:
-        """Check the scan against its rig and the files on disk.
-
-        Parameters
-        ----------
-        check : {"quick", "full"}
-            ``"quick"``: the rig (and its cross-checks), response tables, ground-truth entries,
-            that every expected frame exists inside the scan, and the header of **every**
-            frame, read without decoding pixels: size against the rig, channel count, sample
-            type against the declared response and against the group's first frame, and a file
-            that ends before its data does (truncated; see
-            :func:`~facegeo.capture.imageio.read_image_info`). ``"full"``: additionally the
-            board file, and a decode of every frame whose pixels are checked: NaN or inf are
-            errors; negative radiance, an all-black frame and a mostly saturated one are
-            warnings, kept in :attr:`frame_check` and not raised.
-
-        Returns
-        -------
-        Scan
-            ``self``.
-
-        Raises
-        ------
-        ScanFormatError
-            The first problem found, naming the file and/or key and what would be right (with
-            the number and first names of the other frames that fail).
-
-        Notes
-        -----
-        After the frame checks ran, :attr:`frame_check` (a
-        :class:`~facegeo.capture._scan_files.FrameCheck`) says how many headers were read, how
-        many frames decoded, and lists every problem per frame, warnings included.
-        """
-        check_choice(check, "check", CHECKS)
-        where = self.manifest_path
-        rig = self.rig
-        cameras = list(rig.cameras)
-        if self.groups and not cameras:
-            raise _err(
-                "the rig has no cameras, but the scan lists frames", key="scan.rig", path=where
-            )
-        names = [c.name for c in cameras]
-        if len(names) > 1:
-            for group in self.groups:
-                for k in ("files", "ambient", "corners"):
-                    t = self._section(group).get(k)
-                    if isinstance(t, str) and "{camera" not in t:
-                        raise _err(f"template {t!r} has no {{camera}} but the rig has "
-                                   f"{len(names)} cameras, whose files would collide; only a "
-                                   "one-camera rig may leave {camera} out",
-                                   key=f"{group}.{k}", path=where)
-        if len(set(names)) != len(names):
-            raise _err(
-                f"the rig's camera names are not unique: {names}", key="scan.rig", path=where
-            )
-        if self.has("olat"):
-            self._validate_olat(rig, where)
-        if self.has("structured_light"):
-            proj = getattr(rig, "projector", None)
-            if proj is None:
-                raise _err(
-                    "[structured_light] is present but the rig has no projector",
-                    key="structured_light.projector",
-                    path=where,
-                )
-            if self.sl_projector != proj.name:
-                raise _err(
-                    f"projector = {fmt_value(self.sl_projector)} but the rig's projector is {fmt_value(proj.name)}",
-                    key="structured_light.projector",
-                    path=where,
-                )
-        for sect in ("calib", "structured_light", "olat"):
-            if self.has(sect):
-                self.response(sect)
-        self._validate_cameras_tables(names, where)
-        if self.has("structured_light"):
-            self._validate_patterns("structured_light", self.sl_frames, where)
-        if self.has("calib.projector") and "frames" in self._section("calib.projector"):
-            self._validate_patterns("calib.projector", self.projector_frames, where)
-        self._validate_world(names, where)
-        if self.has("calib") and "corners" in self._section("calib"):
-            for cam in names:
-                if self.calib_views(cam):  # a camera that saw no view needs no corner list
-                    self.calib_corners(cam)
-        for key in self.reference_keys:
-            p = self.reference_path(key)
-            if not p.exists():
-                raise _err(f"reference file not found: {p}", key=f"reference.{key}", path=where)
-        if self.has("calib"):
-            spec = self._m["calib"]["board"]
-            if isinstance(spec, str):
-                board = self._resolve(spec, key="calib.board", where=where)
-                if not board.is_file():
-                    raise _err(f"board file not found: {board}", key="calib.board", path=where)
-            if check == "full" or not isinstance(spec, str):
-                self.__dict__.pop("board", None)
-                _ = self.board
-        for key in self.ground_truth_keys:
-            p = self.ground_truth_path(key)
-            if not p.exists():
-                raise _err(f"ground-truth file not found: {p}", key=f"ground_truth.{key}",
-                           path=where)
-        report = FrameCheck()
-        for group in self.groups:
-            for cam in cameras:
-                _check_group_files(
-                    self.expected_files(group, cam.name), self.response(group), group, cam,
-                    full=(check == "full"), report=report,
-                )
-        self.frame_check = report
-        report.raise_first_error()
-        return self
-
-    def _validate_olat(self, rig, where) -> None:
-        lights = getattr(rig, "lights", None)
-        if lights is None:
-            raise _err("[olat] is present but the rig has no lights (rig.json lights = null)",
-                       key="olat", path=where)
-        grid = hasattr(lights, "n_theta")
-        if self.n_lights != lights.n_lights:
-            what = (f"light stage has {lights.n_lights} lights ({lights.n_theta} × "
-                    f"{lights.n_phi})" if grid else f"light list has {lights.n_lights} lights")
-            raise _err(
-                f"n_lights = {self.n_lights} but the rig's {what}; "
-                "they must be equal",
-                key="olat.n_lights",
-                path=where,
-            )
-        sect = self._section("olat")
-        if not grid and sect["light_order"] != "theta-fastest":
-            raise _err("light_order applies to the θ × φ grid; a light list's file order is its "
-                       "list order (leave light_order out)", key="olat.light_order", path=where)
-        if grid and "{light_name" in sect["files"]:
-            raise _err("{light_name} needs a light list with names in the rig (rig.json lights "
-                       "kind = \"list\"); the θ × φ grid has light numbers ({light})",
-                       key="olat.files", path=where)
-
-    def _validate_cameras_tables(self, names: list[str], where) -> None:
-        """``[<group>.cameras.<camera>]``: known cameras, known views / frames / lights, bits
-        within the pattern spec's."""
-        for group in self.groups:
-            tables = self._section(group).get("cameras", {})
-            for cam, t in tables.items():
-                key = f"{group}.cameras.{cam}"
-                if cam not in names:
-                    raise _err(f"no camera {cam!r} in the rig; cameras: {', '.join(names)}",
-                               key=key, path=where)
-                if group in ("calib", "calib.projector"):
-                    n = self._section(group)["views"]
-                    for k in ("views", "missing"):
-                        bad = [v for v in t.get(k, ()) if v >= n]
-                        if bad:
-                            raise _err(f"view {bad[0]} is out of range: {group}.views = {n} "
-                                       f"(views 0 … {n - 1})", key=f"{key}.{k}", path=where)
-                elif group == "structured_light":
-                    frames = self.sl_frames
-                    bad = [f for f in t.get("missing", ()) if f not in frames]
-                    if bad:
-                        raise _err(f"{bad[0]!r} is not one of structured_light.frames",
-                                   key=f"{key}.missing", path=where)
-                    for axis in ("x", "y"):
-                        if f"bits_{axis}" not in t:
-                            continue
-                        spec = self.pattern_spec()
-                        if spec is None:
-                            raise _err("per-camera bits need a pattern spec "
-                                       "([structured_light.patterns])", key=f"{key}.bits_{axis}",
-                                       path=where)
-                        if t[f"bits_{axis}"] > spec.n_bits(axis):
-                            raise _err(f"bits_{axis} = {t[f'bits_{axis}']} but the patterns "
-                                       f"code {spec.n_bits(axis)} bits on {axis}",
-                                       key=f"{key}.bits_{axis}", path=where)
-                else:
-                    for x in t.get("missing", ()):
-                        try:
-                            self._light_index(x)
-                        except InputError as exc:
-                            raise _err(f"{exc}", key=f"{key}.missing", path=where) from exc
-
-    def _validate_patterns(self, group: str, frames: list[str], where) -> None:
-        """The pattern spec must produce exactly the frame list (a missing inverse frame is a
-        load error naming it)."""
-        from facegeo.geometry.structured_light import pattern_names
-
-        try:
-            spec = self.pattern_spec(group)
-        except ScanFormatError:
-            if self.version == 1:  # version 1's patterns table was free-form, never parsed
-                log.debug("%s: version-1 patterns table is not a PatternSpec; not checked",
-                          self.manifest_path)
-                return
-            raise
-        if spec is None:
-            return
-        if group == "structured_light":
-            proj = getattr(self.rig, "projector", None)
-            if proj is not None and (spec.width, spec.height) != (proj.width, proj.height):
-                raise _err(f"patterns are for a {spec.width}×{spec.height} projector but the rig's "
-                           f"projector is {proj.width}×{proj.height}",
-                           key=f"{group}.patterns", path=where)
-        want = pattern_names(spec)
-        fkey = f"{group}.frames"
-        missing = [n for n in want if n not in frames]
-        if missing:
-            raise _err(f"the pattern spec ({group}.patterns) projects frame {missing[0]!r}, which "
-                       f"{fkey} does not list ({len(missing)} missing: "
-                       f"{', '.join(missing[:4])}{', ...' if len(missing) > 4 else ''})",
-                       key=fkey, path=where)
-        extra = [f for f in frames if f not in want]
-        if extra:
-            raise _err(f"frame {extra[0]!r} is not a pattern of {group}.patterns (it projects "
-                       f"{', '.join(want[:6])}{', ...' if len(want) > 6 else ''})",
-                       key=fkey, path=where)
-
-    def _validate_world(self, names: list[str], where) -> None:
-        w = self._m["scan"].get("world")
-        if w is None or "transform" in w:
-            return
-        if not self.has("calib"):
-            raise _err("world = { camera, board_view } needs a [calib] section",
-                       key="scan.world", path=where)
-        if w["camera"] not in names:
-            raise _err(f"no camera {w['camera']!r} in the rig; cameras: {', '.join(names)}",
-                       key="scan.world.camera", path=where)
-        if w["board_view"] not in self.calib_views(w["camera"]):
-            raise _err(f"camera {w['camera']!r} has no calibration view {w['board_view']} (its "
-                       f"views: {self.calib_views(w['camera'])})", key="scan.world.board_view",
-                       path=where)
-
-# =========================================================================== entry points
 
 
 def _read_manifest(path: Path) -> dict:
@@ -1187,147 +798,3 @@ def write_manifest(root: str | os.PathLike, manifest: Mapping[str, Any], *,
 
 
 # =========================================================================== summary
-
-
-def _fmt_bytes(n: float) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1000 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1000
-    return f"{n:.1f} TB"  # pragma: no cover
-
-
-def _du(path: Path, skip: Path | None = None, seen: set | None = None) -> int:
-    """Bytes in the files under ``path`` (symlinks not followed), each inode counted once:
-    hard links (a scan that links frames from another, say) do not double the size."""
-    total = 0
-    seen = set() if seen is None else seen
-    for dirpath, dirnames, filenames in os.walk(path):
-        if skip is not None:
-            dirnames[:] = [d for d in dirnames if Path(dirpath, d) != skip]
-        for f in filenames:
-            try:
-                st = os.lstat(os.path.join(dirpath, f))
-            except OSError:
-                continue
-            ident = (st.st_dev, st.st_ino)
-            if ident in seen:
-                continue
-            seen.add(ident)
-            total += st.st_size
-    return total
-
-
-def _fmt_response(r: Any) -> str:
-    if isinstance(r, str):
-        return r
-    if r.get("kind") == "gamma":
-        return f"gamma {r['gamma']}"
-    if r.get("kind") == "table":
-        return f"table {r['file']}"
-    return str(r.get("kind"))
-
-
-def _fmt_keys(keys: list, limit: int = 4) -> str:
-    shown = [f"view {k[0]} {k[1]}" if isinstance(k, tuple) else str(k) for k in keys[:limit]]
-    return ", ".join(shown) + (f", ... ({len(keys)} in all)" if len(keys) > limit else "")
-
-
-def summarize(scan: Scan) -> str:
-    """A human-readable summary of a scan: name and version, cameras, projector, lights, frame
-    groups, what each camera has and lacks per group, board, world frame, responses, reference
-    answers, ground truth and size on disk (hard links counted once).
-
-    This is what ``facegeo info`` prints."""
-    m = scan._m
-    lines = [(f"scan {scan.name!r} ({'synthetic' if scan.synthetic else 'real capture'}, "
-              f"format version {scan.version})"),
-             f"  root: {scan.root}"]
-    if scan.description:
-        lines.append(f"  description: {scan.description}")
-    rig = scan.rig
-    lines.append(f"  rig: {m['scan']['rig']}, {len(rig.cameras)} camera(s)")
-    for c in rig.cameras:
-        lines.append(f"    camera {c.name}: {c.width}×{c.height} px")
-    proj = getattr(rig, "projector", None)
-    if proj is None:
-        lines.append("  projector: none")
-    else:
-        cal = "" if getattr(rig, "projector_calibrated", True) else " (uncalibrated: intrinsics unknown)"
-        lines.append(f"  projector: {proj.name} {proj.width}×{proj.height} px{cal}")
-    lights = getattr(rig, "lights", None)
-    if lights is None:
-        lines.append("  lights: none")
-    elif hasattr(lights, "n_theta"):
-        lines.append(
-            f"  light stage: {lights.n_lights} lights ({lights.n_theta} azimuths × "
-            f"{lights.n_phi} inclinations)"
-        )
-    else:
-        where = "directions" if lights.is_distant else "near-field positions"
-        cover = ("a dome clipped at the horizon" if lights.horizon_axis is not None
-                 else "the full sphere")
-        lines.append(f"  light list: {lights.n_lights} lights ({where}), Voronoi solid angles "
-                     f"over {cover}: sum {lights.solid_angles.sum():.3f} sr")
-    world = m["scan"].get("world")
-    if world is not None:
-        lines.append("  world frame: " + ("explicit transform T_world_rig" if "transform" in world
-                                          else f"board in view {world['board_view']} seen by "
-                                               f"{world['camera']}"))
-    lines.append("  frame groups:" if scan.groups else "  frame groups: none")
-    cams = scan.camera_names
-    for g in scan.groups:
-        s = scan._section(g)
-        total = sum(len(scan.expected_files(g, c)) for c in cams)
-        if g == "calib":
-            per, what = s["views"], "view(s)"
-            board = s["board"] if isinstance(s["board"], str) else f"inline {s['board']['kind']}"
-            extra = f", response {_fmt_response(s['response'])}, board {board}"
-            if "corners" in s:
-                extra += f", corner lists {s['corners']}"
-            if not scan.calib_images:
-                extra += ", no images"
-        elif g == "calib.projector":
-            nf = len(scan.projector_frames)
-            per = s["views"] * nf
-            what = f"file(s) ({s['views']} view(s) × {nf} frames)"
-            extra = f", response {_fmt_response(m['calib']['response'])}"
-        elif g == "structured_light":
-            per, what = len(s["frames"]), "frame(s)"
-            extra = f", response {_fmt_response(s['response'])}, projector {s['projector']!r}"
-        else:
-            per, what = s["n_lights"], "light(s)"
-            extra = f", response {_fmt_response(s['response'])}"
-            if hasattr(lights, "n_theta"):
-                extra += f", order {s['light_order']}"
-            if "ambient" in s:
-                extra += ", ambient frame"
-        lines.append(f"    {g}: {per} {what} per camera, {total} files{extra}")
-        lines.append(f"      files: {s['files']}")
-        for c in cams:
-            have = scan.camera_frames(g, c)
-            lack = scan.missing_frames(g, c)
-            line = f"      {c}: {len(have)} of {per}"
-            if lack:
-                if g == "olat" and scan.light_names is not None:
-                    lack = [scan.light_names[k] for k in lack]
-                elif g == "calib":
-                    lack = [f"view {k}" for k in lack]
-                line += f"; lacks {_fmt_keys(lack)}"
-            if g == "structured_light" and "cameras" in s and c in s["cameras"]:
-                bits = {k: v for k, v in s["cameras"][c].items() if k.startswith("bits_")}
-                if bits:
-                    line += "; resolves " + ", ".join(f"{k} = {v}" for k, v in bits.items())
-            lines.append(line)
-    for title, flat in (("reference", scan._ref or {}), ("ground truth", scan._gt or {})):
-        if flat:
-            lines.append(f"  {title}: {len(flat)} entr{'y' if len(flat) == 1 else 'ies'}")
-            for k, v in flat.items():
-                lines.append(f"    {k} = {v}")
-    out = scan.root / "out"
-    seen: set = set()
-    size_in = _du(scan.root, skip=out, seen=seen)
-    size_out = _du(out, seen=seen) if out.is_dir() else 0
-    lines.append(f"  size on disk (hard links counted once): {_fmt_bytes(size_in)} (inputs), "
-                 f"{_fmt_bytes(size_out)} (out/)")
-    return "\n".join(lines)
