@@ -99,12 +99,17 @@ class RayFit:
         coordinates constrain the point (it is ≈ 0 with one).
     n_constraints : (N,) int
         Coordinates used (0, 1 or 2).
+    sin_angle : (N,) float64
+        Effective sine of the triangulation angle: the lateral 1-σ of the constraint at the
+        point (``σ_px · z_other / f_other`` metres) over ``sigma_t``. 1 for a ray crossing the
+        projector's ray/plane at right angles, → 0 as the ray runs along it.
     """
 
     t: np.ndarray
     sigma_t: np.ndarray
     chi: np.ndarray
     n_constraints: np.ndarray
+    sin_angle: np.ndarray
 
 
 def _project_along(other: Camera, o, d, t):
@@ -192,7 +197,12 @@ def solve_along_rays(o_world, d_world, other: Camera, q_other, sigma_other) -> R
         upd = np.where(good, -(J * r).sum(1) / np.where(good, jj, 1.0), 0.0)
         # keep a step from crossing behind the camera
         t[idx] = np.where(good, np.maximum(ti + upd, 0.5 * ti), ti)
-    return RayFit(t, sig_t, chi, use.sum(1))
+    z = ((o + np.nan_to_num(t)[:, None] * d) @ R.T + T)[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_eff = 1.0 / np.sqrt(w.sum(1))
+        sin_angle = np.clip(s_eff * z / np.sqrt(other.fx * other.fy) / sig_t, 0.0, 1.0)
+    sin_angle[~np.isfinite(t)] = np.nan
+    return RayFit(t, sig_t, chi, use.sum(1), sin_angle)
 
 
 # ------------------------------------------------------------------------- point maps
@@ -294,7 +304,7 @@ def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None
                      confidence=None, sigma_x=None, sigma_y=None, min_confidence: float = 0.2,
                      default_sigma_px: float = 0.3, footprint_ratio: float | None = 2.0,
                      max_sigma_ratio: float = 5.0, max_sigma: float | None = None,
-                     max_chi: float = 4.0, spike_sigmas: float = 6.0,
+                     min_angle_deg: float = 3.0, max_chi: float = 4.0, spike_sigmas: float = 6.0,
                      spike_floor: float = 1e-3) -> PointMap:
     """Triangulate one camera's decode maps against the projector.
 
@@ -321,12 +331,15 @@ def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None
         :data:`UNCERTAIN`): near-parallel ray/plane, grazing surfaces, silhouettes.
     max_sigma : float, metres, optional
         Absolute σ limit as well.
+    min_angle_deg : float, degrees
+        Reject points whose effective triangulation angle (:attr:`RayFit.sin_angle`) is below
+        this (reason :data:`UNCERTAIN`): a camera ray nearly parallel to the projector's plane.
     max_chi : float
         Reject points whose camera–projector residual exceeds this many σ (reason
         :data:`INCONSISTENT`; only where ``y`` was decoded).
     spike_sigmas, spike_floor : float, metres
         Reject points farther along their ray from the 3 × 3 median depth than
-        ``spike_sigmas·σ + spike_floor`` (reason :data:`OUTLIER`; isolated wrong codes).
+        ``spike_sigmas·σ_min + spike_floor`` (``σ_min`` the smallest σ in the 3 × 3 window) (reason :data:`OUTLIER`; isolated wrong codes).
 
     Returns
     -------
@@ -376,7 +389,9 @@ def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None
     r[idx[~(np.isfinite(fit.t) & (fit.t > 0))]] = BEHIND
     live = r == OK
     with np.errstate(invalid="ignore"):
-        r[live & ~np.isfinite(sig)] = UNCERTAIN
+        narrow = np.zeros(x.size, bool)
+        narrow[idx] = fit.sin_angle < np.sin(np.radians(min_angle_deg))
+        r[live & (~np.isfinite(sig) | narrow)] = UNCERTAIN
         live = r == OK
         if live.any():
             limit = max_sigma_ratio * float(np.median(sig[live]))
@@ -409,11 +424,21 @@ def _median3(a: np.ndarray) -> np.ndarray:
     return np.where(cnt >= 3, med, np.nan)
 
 
+def _min3(a: np.ndarray) -> np.ndarray:
+    """3 × 3 NaN-ignoring minimum."""
+    H, W = a.shape
+    pad = np.pad(np.where(np.isfinite(a), a, np.inf), 1, constant_values=np.inf)
+    m = np.min(np.stack([pad[i:i + H, j:j + W] for i in range(3) for j in range(3)]), axis=0)
+    return np.where(np.isfinite(m), m, np.nan)
+
+
 def _reject_spikes(pm: PointMap, k: float, floor: float) -> None:
+    # tolerance from the smallest σ around the pixel: a wrong code inflates its own σ (and its
+    # 4-neighbours') through the footprint term, which must not hide it from this test
     depth = pm.depth
     med = _median3(depth)
     with np.errstate(invalid="ignore"):
-        spike = np.abs(depth - med) > k * pm.sigma + floor
+        spike = np.abs(depth - med) > k * _min3(np.where(pm.valid, pm.sigma, np.nan)) + floor
         lonely = pm.valid & ~np.isfinite(med)  # fewer than 3 points in the 3 × 3 window
     pm.reject(spike | lonely, OUTLIER)
 
@@ -457,7 +482,9 @@ class FusedPoints:
 
 
 def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: float = 4.0,
-                 tol_floor: float = 1e-3, average: bool = True) -> FusedPoints:
+                 tol_floor: float = 1e-3, average: bool = True,
+                 cluster_spacings: float | None = 2.0,
+                 min_cluster_fraction: float = 0.1) -> FusedPoints:
     """Check every camera's points against the others' and merge them into one cloud.
 
     For a point ``p`` of camera A seen at pixel ``q_B`` of camera B, let ``d = |p − c_B|`` and
@@ -470,6 +497,14 @@ def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: flo
       ``p`` and B's point at the nearest pixel (σ shrinks accordingly).
     * ``d > D + τ`` or B has no point there: no evidence (occluded in B, or unseen).
 
+    Then the fused cloud is split into clusters (points closer than ``cluster_spacings`` times
+    the median distance to the 6th-nearest neighbour are linked) and clusters smaller than
+    ``min_cluster_fraction`` of the largest are dropped (reason :data:`OUTLIER`): a patch of
+    consistently wrong codes (a flipped coarse Gray bit) floats off the surface, and when no
+    other camera sees through it the free-space test cannot catch it. Limitation: a wrong patch
+    that lands behind the visible surface, attached to it, and hidden from every other camera
+    survives with ``x``-only decodes (with ``y`` the camera–projector residual rejects it).
+
     Parameters
     ----------
     maps : list of PointMap
@@ -480,6 +515,11 @@ def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: flo
         Agreement tolerance.
     average : bool
         Average confirmed points with the other camera's.
+    cluster_spacings : float, optional
+        Link distance of the cluster filter in median 6th-neighbour distances (``None``: no
+        filter).
+    min_cluster_fraction : float, 0..1
+        Smallest cluster kept, as a fraction of the largest.
 
     Returns
     -------
@@ -533,15 +573,42 @@ def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: flo
                     np.full(int(keep.sum()), a), np.stack([cols[keep], rows[keep]], 1),
                     confirmed[keep]))
     cat = [np.concatenate([o[i] for o in out]) for i in range(6)]
+    if cluster_spacings is not None and len(cat[0]) > 1:
+        keep = _large_clusters(cat[0], cluster_spacings, min_cluster_fraction)
+        for c in np.unique(cat[3][~keep]):
+            sel = ~keep & (cat[3] == c)
+            bad = np.zeros(maps[c].reason.shape, bool)
+            bad[cat[4][sel, 1], cat[4][sel, 0]] = True
+            maps[c].reject(bad, OUTLIER)
+        cat = [a[keep] for a in cat]
     return FusedPoints(cat[0], cat[1], cat[2].astype(np.float32), cat[3].astype(np.int64),
                        cat[4].astype(np.int64), cat[5], [c.name for c in cameras],
                        np.stack([c.center_world for c in cameras]))
 
 
+def _large_clusters(p: np.ndarray, spacings: float, min_fraction: float) -> np.ndarray:
+    """Points in clusters (linked within ``spacings`` × the median 6th-neighbour distance) of
+    ≥ ``min_fraction`` of the largest cluster's size."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(p)
+    nn = tree.query(p, k=min(7, len(p)))[0][:, -1]
+    r = spacings * float(np.median(nn))
+    pairs = tree.query_pairs(r, output_type="ndarray")
+    n = len(p)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, lab = connected_components(g, directed=False)
+    counts = np.bincount(lab)
+    return counts[lab] >= min_fraction * counts.max()
+
+
 # ------------------------------------------------------------------------- camera–camera
 
 
-def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8, max_code_dist: float = 1.5):
+def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
+                          max_code_dist: float | None = None):
     """Sub-pixel location in camera B of each camera-A pixel's projector code.
 
     B's decode maps pixel → code; the inverse near A's code is fitted as a local affine map
@@ -554,8 +621,9 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8, max_code_dist: floa
     x_b, y_b : (H_b, W_b) float, projector pixels, NaN invalid
     k : int
         Neighbours of the local affine fit (>= 3).
-    max_code_dist : float, projector pixels
-        No match when B's nearest code is farther than this from A's.
+    max_code_dist : float, projector pixels, optional
+        No match when B's nearest code is farther than this from A's. Default twice the median
+        code-space spacing of B's pixels.
 
     Returns
     -------
@@ -582,6 +650,9 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8, max_code_dist: floa
     codes_b = np.stack([xb[okb], yb[okb]], 1)
     tree = cKDTree(codes_b)
     ca = np.stack([xa[oka], ya[oka]], 1)
+    if max_code_dist is None:
+        spacing = tree.query(codes_b, k=2)[0][:, 1]
+        max_code_dist = 2.0 * float(np.median(spacing))
     dist, nn = tree.query(ca, k=k)
     X = codes_b[nn] - ca[:, None, :]  # (M, k, 2) centred on A's code
     Xh = np.concatenate([X, np.ones(X.shape[:2] + (1,))], -1)  # (M, k, 3)
@@ -607,7 +678,7 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8, max_code_dist: floa
 
 def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
                             sigma_px: float = 0.3, k: int = 8, max_sigma_ratio: float = 5.0,
-                            max_chi: float = 4.0) -> PointMap:
+                            min_angle_deg: float = 3.0, max_chi: float = 4.0) -> PointMap:
     """Triangulate camera A's pixels against camera B through matching projector codes.
 
     For rigs with an uncalibrated projector: each A pixel is matched to the sub-pixel location in
@@ -623,7 +694,7 @@ def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
     x_a, y_a : (H_a, W_a) float, projector pixels (NaN invalid); both coordinates are needed
     x_b, y_b : (H_b, W_b) float
     sigma_px : float, projector pixels
-    k, max_sigma_ratio, max_chi
+    k, max_sigma_ratio, min_angle_deg, max_chi
         See :func:`match_projector_codes` and :func:`triangulate_maps`.
 
     Returns
@@ -649,7 +720,9 @@ def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
     sig[idx], chi[idx] = fit.sigma_t, fit.chi
     live = reason == OK
     with np.errstate(invalid="ignore"):
-        reason[live & ~np.isfinite(sig)] = UNCERTAIN
+        narrow = np.zeros(xa.size, bool)
+        narrow[idx] = fit.sin_angle < np.sin(np.radians(min_angle_deg))
+        reason[live & (~np.isfinite(sig) | narrow)] = UNCERTAIN
         live = reason == OK
         if live.any():
             reason[live & (sig > max_sigma_ratio * np.median(sig[live]))] = UNCERTAIN

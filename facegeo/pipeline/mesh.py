@@ -188,3 +188,257 @@ def _load_gt_mesh(scan):
     with open(scan.ground_truth_path("mesh"), "rb") as fh:
         data = trimesh.exchange.ply.load_ply(fh)
     return np.asarray(data["vertices"], np.float64), np.asarray(data["faces"], np.int64)
+
+
+# ------------------------------------------------------------------------ PLY output
+
+_POINT_FIELDS = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("nx", "<f4"), ("ny", "<f4"),
+                 ("nz", "<f4"), ("confidence", "<f4"), ("sigma", "<f4"), ("camera", "<i4"),
+                 ("confirmed", "u1")]
+_PLY_TYPES = {"<f8": "double", "<f4": "float", "<i4": "int", "u1": "uchar"}
+
+
+def write_points_ply(path, points, normals, confidence, sigma, camera, confirmed) -> Path:
+    """Write a binary little-endian PLY of oriented points with per-point quality (atomic).
+
+    Vertex properties: ``x y z`` (double, metres), ``nx ny nz`` (float), ``confidence`` (float,
+    0..1), ``sigma`` (float, metres, 1 σ), ``camera`` (int), ``confirmed`` (uchar).
+    """
+    n = len(points)
+    rec = np.empty(n, dtype=_POINT_FIELDS)
+    for i, k in enumerate("xyz"):
+        rec[k] = points[:, i]
+        rec["n" + k] = normals[:, i]
+    rec["confidence"], rec["sigma"] = confidence, sigma
+    rec["camera"], rec["confirmed"] = camera, confirmed
+    head = ["ply", "format binary_little_endian 1.0", "comment facegeo mesh stage: metres, world frame",
+            f"element vertex {n}"]
+    head += [f"property {_PLY_TYPES[t]} {k}" for k, t in _POINT_FIELDS] + ["end_header", ""]
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write("\n".join(head).encode("ascii"))
+            fh.write(rec.tobytes())
+    return path
+
+
+def read_points_ply(path) -> np.ndarray:
+    """Read a :func:`write_points_ply` file back as a structured array."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode("ascii").splitlines()
+    names = [ln.split()[-1] for ln in header if ln.startswith("property")]
+    if names != [k for k, _ in _POINT_FIELDS]:
+        raise InputError(f"{path}: not a facegeo points PLY (properties {names})")
+    n = int(next(ln.split()[-1] for ln in header if ln.startswith("element vertex")))
+    return np.frombuffer(data, dtype=_POINT_FIELDS, count=n, offset=end)
+
+
+def _write_mesh_ply(path, V, F) -> None:
+    import trimesh
+
+    with atomic_path(path) as tmp:
+        trimesh.Trimesh(V, F, process=False).export(tmp, file_type="ply")
+
+
+# ------------------------------------------------------------------------ the stage
+
+
+def _record(out_dir: Path, stage_dir: Path, settings: dict, metrics: dict) -> None:
+    from facegeo.pipeline.cache import record_metrics
+
+    atomic_write_text(stage_dir / "stage.json", json.dumps(
+        {"stage": "mesh", "settings": settings, "metrics": metrics}, indent=2, sort_keys=True))
+    record_metrics(out_dir, "mesh", metrics)
+
+
+def run_mesh(scan_dir, out_dir=None, **settings) -> dict:
+    """Triangulate, fuse and mesh a scan's decode maps into ``out_dir/mesh/``.
+
+    Parameters
+    ----------
+    scan_dir : path-like or Scan
+    out_dir : path-like, optional
+        Default the scan's ``out/``; the decode maps are read from ``out_dir/decode/``.
+    **settings
+        See :func:`mesh_products`.
+
+    Returns
+    -------
+    dict
+        The metrics (see :func:`mesh_products`).
+    """
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir
+    with staged_directory(out / "mesh") as tmp:
+        metrics, used = mesh_products(scan, out / "decode", tmp, **settings)
+        _record(out, tmp, used, metrics)
+    return metrics
+
+
+def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
+                  cameras: list[str] | None = None, method: str = "poisson",
+                  min_confidence: float = 0.2, default_sigma_px: float = 0.3,
+                  max_sigma_ratio: float = 5.0, max_chi: float = 4.0,
+                  fuse_sigmas: float = 4.0, normals_k: int = 24, depth: int = 7,
+                  point_weight: float = 4.0, trim_quantile: float = 0.02,
+                  max_distance_mm: float | None = 2.0, min_component: float = 0.05,
+                  target_faces: int | None = None, observed_radius_mm: float = 2.0,
+                  gt_samples: int = 100_000) -> tuple[dict, dict]:
+    """Write ``points.ply`` and ``mesh.ply`` of ``scan`` into ``dest`` from ``decode_dir``.
+
+    The work of :func:`run_mesh` without the staging. Returns ``(metrics, settings)``.
+
+    Parameters
+    ----------
+    scan : Scan
+    decode_dir : path-like
+        Holds ``<camera>/decode.npz`` per camera.
+    dest : path-like
+        An existing directory.
+    rig : {"ground_truth", "scan"}, optional
+        Module docstring.
+    cameras : list of str, optional
+        Default every camera with decode maps in ``decode_dir``.
+    method : {"poisson", "grid"}
+        Poisson over all cameras' fused points, or the direct pixel-grid mesh of the first
+        camera (the cheap one-camera path).
+    min_confidence, default_sigma_px, max_sigma_ratio, max_chi
+        :func:`facegeo.geometry.triangulation.triangulate_maps`.
+    fuse_sigmas : float
+        :func:`facegeo.geometry.triangulation.fuse_cameras` tolerance.
+    normals_k : int
+        :func:`facegeo.geometry.mesh.oriented_normals`.
+    depth, point_weight, trim_quantile, min_component, target_faces
+        :func:`facegeo.geometry.mesh.poisson_mesh`.
+    max_distance_mm : float, millimetres, optional
+        Trim mesh vertices farther than this from every point.
+    observed_radius_mm : float, millimetres
+        The observed region for the ground-truth metrics and ``unobserved_area_mm2``.
+    gt_samples : int
+        Area-uniform mesh samples for ``mesh_p95_error_mm``.
+
+    Returns
+    -------
+    metrics : dict
+        ``cameras`` (per camera: pixels with a point, counts per rejection reason, median σ in
+        mm), ``points``, ``confirmed_fraction``, ``median_sigma_mm``, ``mesh`` (the
+        reconstruction's settings and counts: depth, point weight, trim quantile, …),
+        ``faces``, ``vertices``, ``area_mm2``, ``unobserved_area_mm2``,
+        ``unobserved_area_fraction``, seconds per step, and on synthetic scans
+        ``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg``.
+    settings : dict
+    """
+    from facegeo.geometry import mesh as gm
+    from facegeo.geometry import triangulation as tr
+
+    t_start = time.perf_counter()
+    decode_dir, dest = Path(decode_dir), Path(dest)
+    if method not in ("poisson", "grid"):
+        raise InputError(f"method: expected 'poisson' or 'grid', got {fmt_value(method)}")
+    the_rig, rig_used = _rig(scan, rig)
+    if the_rig.projector is None:
+        raise InputError(f"scan {scan.root}: the rig has no projector to triangulate against")
+    if cameras is None:
+        names = [n for n in scan.camera_names if (decode_dir / n / "decode.npz").is_file()]
+        if not names:
+            raise InputError(f"{decode_dir}: no <camera>/decode.npz for any of the scan's cameras "
+                             f"({', '.join(scan.camera_names)}); run the decode stage first")
+    else:
+        names = list(cameras)
+        for n in names:
+            if n not in scan.camera_names:
+                raise InputError(f"cameras: unknown camera {fmt_value(n)}; the scan has "
+                                 f"{scan.camera_names}")
+    settings = {"rig": rig_used, "cameras": names, "method": method,
+                "min_confidence": min_confidence, "default_sigma_px": default_sigma_px,
+                "max_sigma_ratio": max_sigma_ratio, "max_chi": max_chi,
+                "fuse_sigmas": fuse_sigmas, "normals_k": normals_k, "depth": depth,
+                "point_weight": point_weight, "trim_quantile": trim_quantile,
+                "max_distance_mm": max_distance_mm, "min_component": min_component,
+                "target_faces": target_faces, "observed_radius_mm": observed_radius_mm,
+                "gt_samples": gt_samples}
+    cams = [the_rig.camera(n) for n in names]
+    maps = []
+    t0 = time.perf_counter()
+    for cam in cams:
+        d = load_decode(decode_dir / cam.name / "decode.npz", (cam.height, cam.width))
+        maps.append(tr.triangulate_maps(
+            cam, the_rig.projector, d["x"], d.get("y"), valid=d.get("valid"),
+            confidence=d.get("confidence"), sigma_x=d.get("sigma_x"), sigma_y=d.get("sigma_y"),
+            min_confidence=min_confidence, default_sigma_px=default_sigma_px,
+            max_sigma_ratio=max_sigma_ratio, max_chi=max_chi))
+    t1 = time.perf_counter()
+    fused = tr.fuse_cameras(maps, cams, tol_sigmas=fuse_sigmas)
+    t2 = time.perf_counter()
+    if len(fused) < 10:
+        raise InputError(f"{decode_dir}: only {len(fused)} points triangulated (cameras "
+                         f"{', '.join(names)}); the decode maps hold no usable codes")
+    normals = gm.oriented_normals(fused.p_world, fused.view_dirs, k=normals_k)
+    t3 = time.perf_counter()
+    max_d = None if max_distance_mm is None else max_distance_mm * 1e-3
+    if method == "poisson":
+        mesh = gm.poisson_mesh(fused.p_world, normals, depth=depth, point_weight=point_weight,
+                               trim_quantile=trim_quantile, max_distance=max_d,
+                               min_component=min_component, target_faces=target_faces)
+    else:
+        mesh = gm.grid_mesh(maps[0].p_world, maps[0].valid, center_world=cams[0].center_world)
+    t4 = time.perf_counter()
+    write_points_ply(dest / "points.ply", fused.p_world, normals, fused.confidence,
+                     fused.sigma, fused.camera, fused.confirmed)
+    _write_mesh_ply(dest / "mesh.ply", mesh.vertices, mesh.faces)
+    r_obs = observed_radius_mm * 1e-3
+    area_out, far = gm.area_beyond(mesh.vertices, mesh.faces, fused.p_world, r_obs)
+    area = mesh.area
+    per_cam = {}
+    for m in maps:
+        per_cam[m.camera] = {"points": int(m.valid.sum()), "rejected": m.reason_counts(),
+                             "median_sigma_mm": _mm(np.median(m.sigma[m.valid]))
+                             if m.valid.any() else None}
+    metrics: dict[str, Any] = {
+        "rig": rig_used, "cameras": per_cam, "points": len(fused),
+        "confirmed_fraction": round(float(fused.confirmed.mean()), 6),
+        "median_sigma_mm": _mm(np.median(fused.sigma)),
+        "method": method, "mesh": mesh.info, "faces": int(len(mesh.faces)),
+        "vertices": int(len(mesh.vertices)), "area_mm2": round(area * 1e6, 3),
+        "unobserved_area_mm2": round(area_out * 1e6, 3),
+        "unobserved_area_fraction": round(area_out / area, 6) if area > 0 else None,
+        "seconds_triangulate": round(t1 - t0, 4), "seconds_fuse": round(t2 - t1, 4),
+        "seconds_normals": round(t3 - t2, 4), "seconds_mesh": round(t4 - t3, 4),
+    }
+    if scan.synthetic and "mesh" in scan.ground_truth_keys and rig_used == "ground_truth":
+        metrics.update(ground_truth_errors(scan, fused.p_world, mesh, far, gt_samples))
+    metrics["seconds"] = round(time.perf_counter() - t_start, 4)
+    return metrics, settings
+
+
+def _mm(v) -> float:
+    return round(float(v) * 1e3, 6)
+
+
+def ground_truth_errors(scan, points, mesh, far_faces, n_samples: int = 100_000) -> dict:
+    """``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg`` (module).
+
+    ``far_faces`` marks the mesh faces outside the observed region (left out of the mesh
+    figures).
+    """
+    from facegeo.geometry import mesh as gm
+
+    V, F = _load_gt_mesh(scan)
+    ref_n = None
+    if "vertex_params" in scan.ground_truth_keys:
+        with np.load(scan.ground_truth_path("vertex_params")) as z:
+            if "normals" in z.files and z["normals"].shape == V.shape:
+                ref_n = z["normals"].astype(np.float64)  # the renderer's shading normals
+    d_pts = gm.surface_errors(points, V, F)
+    out = {"points_rms_error_mm": _mm(np.sqrt(np.mean(d_pts**2)))}
+    keep_f = ~far_faces
+    if keep_f.any():
+        S, _ = gm.sample_surface(mesh.vertices, mesh.faces[keep_f], n_samples)
+        out["mesh_p95_error_mm"] = _mm(np.percentile(gm.surface_errors(S, V, F), 95))
+        vin = np.zeros(len(mesh.vertices), bool)
+        vin[mesh.faces[keep_f].ravel()] = True
+        _, ang = gm.surface_errors(mesh.vertices[vin], V, F, normals=mesh.vertex_normals[vin],
+                                   ref_normals=ref_n)
+        out["normal_median_error_deg"] = round(float(np.degrees(np.median(ang))), 4)
+    return out
