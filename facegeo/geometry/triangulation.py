@@ -70,6 +70,7 @@ __all__ = [
     "fuse_cameras",
     "match_projector_codes",
     "triangulate_camera_pair",
+    "neighbour_spacing",
 ]
 
 #: Reason codes of :attr:`PointMap.reason` (``uint8``).
@@ -494,7 +495,8 @@ def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: flo
     * ``d < D − τ``: B looked through the place where ``p`` should be — a free-space violation;
       the point is rejected (reason :data:`OCCLUDED_VIEW` in A's map).
     * ``|d − D| ≤ τ``: confirmed; with ``average`` the point becomes the inverse-variance mean of
-      ``p`` and B's point at the nearest pixel (σ shrinks accordingly).
+      ``p`` and B's point at the nearest pixel (σ shrinks accordingly; when A's and B's points
+      are each other's nearest, both average to the same point and one copy is kept).
     * ``d > D + τ`` or B has no point there: no evidence (occluded in B, or unseen).
 
     Then the fused cloud is split into clusters (points closer than ``cluster_spacings`` times
@@ -573,6 +575,10 @@ def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: flo
                     np.full(int(keep.sum()), a), np.stack([cols[keep], rows[keep]], 1),
                     confirmed[keep]))
     cat = [np.concatenate([o[i] for o in out]) for i in range(6)]
+    # two cameras' mutually nearest confirmed points average to the same point: keep one
+    _, first = np.unique(cat[0], axis=0, return_index=True)
+    first.sort()
+    cat = [a[first] for a in cat]
     if cluster_spacings is not None and len(cat[0]) > 1:
         keep = _large_clusters(cat[0], cluster_spacings, min_cluster_fraction)
         for c in np.unique(cat[3][~keep]):
@@ -586,6 +592,20 @@ def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: flo
                        np.stack([c.center_world for c in cameras]))
 
 
+def neighbour_spacing(points, k: int = 6) -> float:
+    """Median distance of a point to its ``k``-th nearest neighbour, metres.
+
+    The sampling scale of a point cloud (≈ 1.5–2 point spacings for ``k = 6`` on a surface),
+    used for the link distance of the cluster filter and the mesh's trim / observed radius.
+    """
+    from scipy.spatial import cKDTree
+
+    p = as_array(points, "points", shape=(None, 3))
+    if len(p) < 2:
+        raise InputError(f"points: need at least 2 points for a spacing, got {len(p)}")
+    return float(np.median(cKDTree(p).query(p, k=min(k + 1, len(p)))[0][:, -1]))
+
+
 def _large_clusters(p: np.ndarray, spacings: float, min_fraction: float) -> np.ndarray:
     """Points in clusters (linked within ``spacings`` × the median 6th-neighbour distance) of
     ≥ ``min_fraction`` of the largest cluster's size."""
@@ -594,8 +614,7 @@ def _large_clusters(p: np.ndarray, spacings: float, min_fraction: float) -> np.n
     from scipy.spatial import cKDTree
 
     tree = cKDTree(p)
-    nn = tree.query(p, k=min(7, len(p)))[0][:, -1]
-    r = spacings * float(np.median(nn))
+    r = spacings * neighbour_spacing(p)
     pairs = tree.query_pairs(r, output_type="ndarray")
     n = len(p)
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
