@@ -411,18 +411,15 @@ def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None
 
 
 def _median3(a: np.ndarray) -> np.ndarray:
-    """3 × 3 NaN-aware median (NaN where the window holds fewer than 3 values)."""
+    """3 × 3 NaN-ignoring median (NaN where the window holds fewer than 3 values)."""
     H, W = a.shape
     pad = np.pad(a, 1, constant_values=np.nan)
-    win = np.stack([pad[i:i + H, j:j + W] for i in range(3) for j in range(3)], -1)
+    win = np.sort(np.stack([pad[i:i + H, j:j + W] for i in range(3) for j in range(3)], -1),
+                  axis=-1)  # NaN sort last
     cnt = np.isfinite(win).sum(-1)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(win, axis=-1)
-    return np.where(cnt >= 3, med, np.nan)
+    lo = np.take_along_axis(win, np.maximum(cnt - 1, 0)[..., None] // 2, -1)[..., 0]
+    hi = np.take_along_axis(win, (cnt // 2)[..., None], -1)[..., 0]
+    return np.where(cnt >= 3, 0.5 * (lo + hi), np.nan)
 
 
 def _min3(a: np.ndarray) -> np.ndarray:

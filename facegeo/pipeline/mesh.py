@@ -47,7 +47,8 @@ from facegeo.fsutil import atomic_path, atomic_write_text, staged_directory
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_mesh", "mesh_products", "ground_truth_decode", "write_decode_npz",
+__all__ = ["run_mesh", "mesh_products", "ground_truth_decode", "decode_from_surface",
+           "write_decode_npz", "ground_truth_errors",
            "load_decode", "write_points_ply", "read_points_ply", "DECODE_KEYS"]
 
 #: Arrays of a ``decode.npz``.
@@ -120,8 +121,34 @@ def ground_truth_decode(scan, camera: str, *, noise_px: float = 0.1, seed: int =
     if scene is None:
         from facegeo.surface.visibility import RayScene
 
-        V, F = _load_gt_mesh(scan)
-        scene = RayScene(V, F)
+        scene = RayScene(*_load_gt_mesh(scan))
+    return decode_from_surface(p, n, mask, proj, scene, noise_px=noise_px, seed=seed,
+                               with_y=with_y)
+
+
+def decode_from_surface(p_world, n_world, mask, projector, scene, *, noise_px: float = 0.1,
+                        seed: int = 0, with_y: bool = True, quantize=None) -> dict:
+    """Decode maps of a camera whose per-pixel surface points are known.
+
+    Parameters
+    ----------
+    p_world, n_world : (H, W, 3) float64, metres / unit, world frame (NaN off the surface)
+    mask : (H, W) bool, the pixel sees the surface
+    projector : Camera
+    scene : facegeo.surface.visibility.RayScene of the surface (projector shadows)
+    noise_px : float, projector pixels, Gaussian 1 σ added to ``x`` and ``y``
+    seed : int
+    with_y : bool
+    quantize : callable, optional
+        ``quantize(q) -> (q_decoded, sigma_px)`` applied to the true projector coordinates
+        ``(H, W, 2)`` before the noise (e.g. Gray stripes); ``sigma_px`` is added in quadrature.
+
+    Returns
+    -------
+    dict
+        As :func:`ground_truth_decode`.
+    """
+    p, n, proj = p_world, n_world, projector
     q, front = proj.project(np.where(mask[..., None], p, 0.0))
     lit = mask & front & proj.in_image(q)
     to_proj = proj.center_world - p
@@ -133,13 +160,17 @@ def ground_truth_decode(scan, camera: str, *, noise_px: float = 0.1, seed: int =
     shadow = mask.copy()
     lit.ravel()[idx[~vis]] = False
     shadow &= ~lit
+    s2 = noise_px**2
+    if quantize is not None:
+        q, sq = quantize(q)
+        s2 = s2 + sq**2
     rng = np.random.default_rng(seed)
     noise = rng.normal(0.0, noise_px, q.shape) if noise_px > 0 else np.zeros(q.shape)
     x = np.where(lit, q[..., 0] + noise[..., 0], np.nan).astype(np.float32)
     y = np.where(lit, q[..., 1] + noise[..., 1], np.nan).astype(np.float32)
     if not with_y:
         y[:] = np.nan
-    s = np.float32(noise_px) if noise_px > 0 else np.float32(np.nan)
+    s = np.float32(np.sqrt(s2)) if s2 > 0 else np.float32(np.nan)
     return {"x": x, "y": y, "confidence": lit.astype(np.float32), "valid": lit,
             "sigma_x": np.where(lit, s, np.nan).astype(np.float32),
             "sigma_y": np.where(lit & with_y, s, np.nan).astype(np.float32),
