@@ -15,12 +15,12 @@ projected into the projector and turned into decode maps by a **noise model** of
 
 Rows:
 
-* ``mesh.points`` — per noise model: throughput of :func:`triangulate_maps` + fusion in
+* ``mesh.points`` — per noise model (``--quick``: full and full − 2 Gray bits, 3 phase steps): throughput of :func:`triangulate_maps` + fusion in
   points/s; error = RMS distance of the fused points to the true surface (mm). Ratio against
   ``cv2.triangulatePoints`` (linear DLT of camera and projector rays after ``undistortPoints``,
   x and y, no rejection) on the same maps, 1 thread each; its own error is in ``extra``.
 * ``mesh.poisson_depth`` — Open3D screened Poisson (single-threaded, trimmed) at depths 7–10
-  (``--quick`` 6–8) on the fused ``phase 3 steps`` points: input points per second; error = 95th
+  (``--quick`` 6–7) on the fused ``phase 3 steps`` points: input points per second; error = 95th
   percentile distance of the mesh's observed region to the true surface (mm); normal median
   error and face count in ``extra``.
 """
@@ -77,11 +77,11 @@ def _phase_sigma(steps: int) -> float:
     return _PHASE_PERIOD_PX / (2 * np.pi) * _IMAGE_NOISE_REL * np.sqrt(2.0 / steps)
 
 
-def _models(proj):
+def _models(proj, quick: bool):
     full = int(np.ceil(np.log2(proj.width)))
-    models = [(f"gray {n} bits", _gray(n, proj.width, proj.height), 0.0)
-              for n in (full, full - 1, full - 2)]
-    models += [(f"phase {k} steps", None, _phase_sigma(k)) for k in (3, 4, 8)]
+    bits, steps = ((full, full - 2), (3,)) if quick else ((full, full - 1, full - 2), (3, 4, 8))
+    models = [(f"gray {n} bits", _gray(n, proj.width, proj.height), 0.0) for n in bits]
+    models += [(f"phase {k} steps", None, _phase_sigma(k)) for k in steps]
     return models
 
 
@@ -129,7 +129,7 @@ def bench_points(quick: bool) -> list[BenchRow]:
 
     rig, V, F, scene, views = _views(quick)
     rows = []
-    for name, quantize, noise in _models(rig.projector):
+    for name, quantize, noise in _models(rig.projector, quick):
         maps = _maps(rig, scene, views, quantize, noise)
         t0 = time.perf_counter()
         fused = _triangulate(rig, views, maps)
@@ -168,7 +168,7 @@ def bench_poisson_depth(quick: bool) -> list[BenchRow]:
     normals = gm.oriented_normals(fused.p_world, fused.view_dirs)
     r_obs = 1.5 * neighbour_spacing(fused.p_world)
     rows = []
-    for depth in ((6, 7, 8) if quick else (7, 8, 9, 10)):
+    for depth in ((6, 7) if quick else (7, 8, 9, 10)):
         t0 = time.perf_counter()
         mesh = gm.poisson_mesh(fused.p_world, normals, depth=depth, max_distance=r_obs)
         t = time.perf_counter() - t0
