@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from facegeo.errors import InputError, ShapeError
-from facegeo.frames import Pose, look_at
+from facegeo.frames import look_at
 from facegeo.geometry import triangulation as tr
 from facegeo.geometry.camera import Camera
 from facegeo.geometry.rig import default_rig
@@ -96,7 +96,7 @@ def test_sigma_predicts_the_error(with_y):
     noise = 0.2
     ratios = []
     for cam in cams:
-        x, y, lit, p = _decode(cam, proj, noise=noise, seed=3, with_y=with_y)
+        x, y, _lit, p = _decode(cam, proj, noise=noise, seed=3, with_y=with_y)
         pm = tr.triangulate_maps(cam, proj, x, y, sigma_x=np.full(x.shape, noise),
                                  sigma_y=np.full(x.shape, noise), footprint_ratio=None)
         v = pm.valid
@@ -121,7 +121,7 @@ def test_ray_nearly_parallel_to_projector_plane_is_rejected():
     eye = c_proj + 0.2 * up
     side = look_at(eye, SPHERE_C)
     cam_bad = cam.replace(T_cam_world=side)
-    x, _, lit, p = _decode(cam_bad, proj)
+    x, _, lit, _p = _decode(cam_bad, proj)
     fit_only = tr.triangulate_maps(cam_bad, proj, x, None, min_angle_deg=0.0,
                                    max_sigma_ratio=np.inf)
     good_cam = tr.triangulate_maps(cam, proj, *_decode(cam, proj)[:2])
@@ -149,7 +149,7 @@ def test_wrong_y_codes_are_inconsistent():
     """x right, y off by 6 projector px in a patch: the camera–projector residual catches it."""
     cams, proj = _rig()
     cam = cams[1]
-    x, y, lit, p = _decode(cam, proj, noise=0.05)
+    x, y, lit, _p = _decode(cam, proj, noise=0.05)
     patch = np.zeros(lit.shape, bool)
     patch[50:60, 30:45] = True
     patch &= lit
@@ -167,7 +167,7 @@ def test_isolated_wrong_codes_give_no_wild_points():
     """Random codes at 2 % of pixels with full confidence (a decoder's wrong bits)."""
     cams, proj = _rig()
     cam = cams[0]
-    x, _, lit, p = _decode(cam, proj, noise=0.1)
+    x, _, lit, _p = _decode(cam, proj, noise=0.1)
     rng = np.random.default_rng(1)
     bad = lit & (rng.random(lit.shape) < 0.02)
     x = x.copy()
@@ -217,7 +217,7 @@ def test_fusion_rejects_wrong_patches_and_averages_agreeing_points(shift):
     cams, proj = _rig()
     maps = []
     for i, cam in enumerate(cams):
-        x, y, lit, _ = _decode(cam, proj, noise=0.1, seed=i, with_y=i != 0)
+        x, y, _lit, _ = _decode(cam, proj, noise=0.1, seed=i, with_y=i != 0)
         if i == 0:  # a patch of camera 0 decoded 40 px off (a flipped Gray bit), x only
             x = x.copy()
             x[40:60, 30:50] += shift
@@ -254,7 +254,7 @@ def test_camera_pair_through_codes_without_projector_calibration():
 def test_swapped_cameras_fail():
     """Using camera 1's maps with camera 0's pose does not reproduce the surface."""
     cams, proj = _rig()
-    x, y, lit, p = _decode(cams[1], proj)
+    x, y, lit, _p = _decode(cams[1], proj)
     pm = tr.triangulate_maps(cams[0].replace(K=cams[1].K, dist=cams[1].dist), proj, x, y)
     d = _dist_to_sphere(pm.p_world[pm.valid])
     assert pm.valid.sum() < 0.5 * lit.sum() or np.median(d) > 1e-3
@@ -290,9 +290,9 @@ def tiny_scan(tmp_path_factory):
 
 def test_projector_shadow_with_garbage_codes_gives_no_wild_point(tiny_scan):
     """Beside the nose the projector casts a shadow; a decoder may emit garbage there."""
+    from facegeo.geometry.mesh import surface_errors
     from facegeo.geometry.rig import Rig
     from facegeo.pipeline.mesh import _load_gt_mesh, ground_truth_decode
-    from facegeo.geometry.mesh import surface_errors
 
     rig = Rig.load(tiny_scan.ground_truth_path("rig"))
     V, F = _load_gt_mesh(tiny_scan)

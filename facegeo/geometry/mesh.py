@@ -32,8 +32,16 @@ import numpy as np
 from facegeo.checks import as_array, check_positive
 from facegeo.errors import InputError, ShapeError
 
-__all__ = ["Mesh", "oriented_normals", "poisson_mesh", "grid_mesh", "surface_errors",
-           "area_beyond", "face_areas", "sample_surface"]
+__all__ = [
+    "Mesh",
+    "area_beyond",
+    "face_areas",
+    "grid_mesh",
+    "oriented_normals",
+    "poisson_mesh",
+    "sample_surface",
+    "surface_errors",
+]
 
 
 @dataclass
@@ -151,7 +159,7 @@ def _components(F, n_vertices):
     return lab[: len(F)]
 
 
-def poisson_mesh(points, normals, *, depth: int = 9, point_weight: float = 4.0,
+def poisson_mesh(points, normals, *, depth: int = 7, point_weight: float = 4.0,
                  scale: float = 1.1, samples_per_node: float = 1.5,
                  trim_quantile: float = 0.02, max_distance: float | None = 2e-3,
                  min_component: float = 0.05, target_faces: int | None = None) -> Mesh:
@@ -216,8 +224,8 @@ def poisson_mesh(points, normals, *, depth: int = 9, point_weight: float = 4.0,
             "samples_per_node": float(samples_per_node), "trim_quantile": float(trim_quantile),
             "max_distance_mm": None if max_distance is None else 1e3 * float(max_distance),
             "min_component": float(min_component), "target_faces": target_faces,
-            "points": int(p.shape[0]), "poisson_vertices": int(len(V)),
-            "poisson_faces": int(len(F)), "seconds_poisson": round(t1 - t0, 4)}
+            "points": int(p.shape[0]), "poisson_vertices": len(V),
+            "poisson_faces": len(F), "seconds_poisson": round(t1 - t0, 4)}
     keep = np.ones(len(V), bool)
     if trim_quantile > 0 and len(V):
         keep &= dens >= np.quantile(dens, trim_quantile)
@@ -249,7 +257,7 @@ def poisson_mesh(points, normals, *, depth: int = 9, point_weight: float = 4.0,
         V = np.asarray(mm.vertices, np.float64).copy()
         F = np.asarray(mm.triangles, np.int64).copy()
     vn = _vertex_normals(V, F)
-    info.update({"vertices": int(len(V)), "faces": int(len(F)),
+    info.update({"vertices": len(V), "faces": len(F),
                  "seconds": round(time.perf_counter() - t0, 4)})
     return Mesh(V, F, vn, info)
 
@@ -302,7 +310,7 @@ def grid_mesh(p_grid, valid=None, *, max_edge_ratio: float = 4.0,
         if np.einsum("ij,ij->", vn, c - V) < 0:
             F = F[:, ::-1].copy()
             vn = -vn
-    return Mesh(V, F, vn, {"faces": int(len(F)), "vertices": int(len(V)),
+    return Mesh(V, F, vn, {"faces": len(F), "vertices": len(V),
                            "max_edge_ratio": float(max_edge_ratio)})
 
 

@@ -54,23 +54,24 @@ from facegeo.errors import InputError, ShapeError
 from facegeo.geometry.camera import Camera
 
 __all__ = [
-    "OK",
-    "NO_CODE",
     "BEHIND",
-    "UNCERTAIN",
     "INCONSISTENT",
-    "OUTLIER",
+    "NO_CODE",
     "OCCLUDED_VIEW",
+    "OK",
+    "OUTLIER",
     "REASONS",
-    "RayFit",
-    "PointMap",
+    "UNCERTAIN",
     "FusedPoints",
-    "solve_along_rays",
-    "triangulate_maps",
+    "PointMap",
+    "RayFit",
+    "code_footprint",
     "fuse_cameras",
     "match_projector_codes",
-    "triangulate_camera_pair",
     "neighbour_spacing",
+    "solve_along_rays",
+    "triangulate_camera_pair",
+    "triangulate_maps",
 ]
 
 #: Reason codes of :attr:`PointMap.reason` (``uint8``).
@@ -381,33 +382,44 @@ def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None
     fit = solve_along_rays(o, dirs, projector,
                            np.stack([x.ravel()[idx], y.ravel()[idx]], 1),
                            np.stack([sx.ravel()[idx], sy.ravel()[idx]], 1))
-    t = np.full(x.size, np.nan)
-    sig = np.full(x.size, np.nan)
-    chi = np.full(x.size, np.nan)
-    t[idx], sig[idx] = fit.t, fit.sigma_t
-    chi[idx] = np.where(fit.n_constraints == 2, fit.chi, np.nan)
-    r = reason.ravel()
-    r[idx[~(np.isfinite(fit.t) & (fit.t > 0))]] = BEHIND
-    live = r == OK
-    with np.errstate(invalid="ignore"):
-        narrow = np.zeros(x.size, bool)
-        narrow[idx] = fit.sin_angle < np.sin(np.radians(min_angle_deg))
-        r[live & (~np.isfinite(sig) | narrow)] = UNCERTAIN
-        live = r == OK
-        if live.any():
-            limit = max_sigma_ratio * float(np.median(sig[live]))
-            if max_sigma is not None:
-                limit = min(limit, check_positive(max_sigma, "max_sigma"))
-            r[live & (sig > limit)] = UNCERTAIN
-        r[(r == OK) & (chi > max_chi)] = INCONSISTENT
-    p = np.full((x.size, 3), np.nan)
-    good = np.flatnonzero(r == OK)
-    pos = np.searchsorted(idx, good)
-    p[good] = o[pos] + t[good, None] * dirs[pos]
+    fit.chi = np.where(fit.n_constraints == 2, fit.chi, np.nan)
+    p, sig, chi, r = _classify(reason.ravel(), idx, fit, o, dirs, max_sigma_ratio=max_sigma_ratio,
+                               max_sigma=max_sigma, min_angle_deg=min_angle_deg,
+                               max_chi=max_chi)
     pm = PointMap(camera.name, p.reshape(shape + (3,)), sig.reshape(shape), chi.reshape(shape),
                   conf.astype(np.float32), r.reshape(shape), camera.center_world.copy())
     _reject_spikes(pm, spike_sigmas, spike_floor)
     return pm
+
+
+def _classify(reason, idx, fit: RayFit, o, d, *, max_sigma_ratio, max_sigma, min_angle_deg,
+              max_chi):
+    """Points and rejection reasons of solved rays (shared by both triangulations).
+
+    ``reason`` (flat, OK where a ray was solved) is updated in place; ``idx`` are the flat
+    pixels of the rays ``o + t·d`` in ``fit``. Returns flat ``p, sigma, chi, reason``.
+    """
+    n = reason.size
+    sig = np.full(n, np.nan)
+    chi = np.full(n, np.nan)
+    sig[idx], chi[idx] = fit.sigma_t, fit.chi
+    reason[idx[~(np.isfinite(fit.t) & (fit.t > 0))]] = BEHIND
+    live = reason == OK
+    with np.errstate(invalid="ignore"):
+        narrow = np.zeros(n, bool)
+        narrow[idx] = fit.sin_angle < np.sin(np.radians(min_angle_deg))
+        reason[live & (~np.isfinite(sig) | narrow)] = UNCERTAIN
+        live = reason == OK
+        if live.any():
+            limit = max_sigma_ratio * float(np.median(sig[live]))
+            if max_sigma is not None:
+                limit = min(limit, check_positive(max_sigma, "max_sigma"))
+            reason[live & (sig > limit)] = UNCERTAIN
+        reason[(reason == OK) & (chi > max_chi)] = INCONSISTENT
+    p = np.full((n, 3), np.nan)
+    good = reason[idx] == OK
+    p[idx[good]] = o[good] + fit.t[good, None] * d[good]
+    return p, sig, chi, reason
 
 
 def _median3(a: np.ndarray) -> np.ndarray:
@@ -730,21 +742,8 @@ def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
     fit = solve_along_rays(o, d, cam_b, q_b.reshape(-1, 2)[idx], sq.reshape(-1, 2)[idx])
     reason = np.full(xa.size, NO_CODE, np.uint8)
     reason[idx] = OK
-    reason[idx[~(np.isfinite(fit.t) & (fit.t > 0))]] = BEHIND
-    sig = np.full(xa.size, np.nan)
-    chi = np.full(xa.size, np.nan)
-    sig[idx], chi[idx] = fit.sigma_t, fit.chi
-    live = reason == OK
-    with np.errstate(invalid="ignore"):
-        narrow = np.zeros(xa.size, bool)
-        narrow[idx] = fit.sin_angle < np.sin(np.radians(min_angle_deg))
-        reason[live & (~np.isfinite(sig) | narrow)] = UNCERTAIN
-        live = reason == OK
-        if live.any():
-            reason[live & (sig > max_sigma_ratio * np.median(sig[live]))] = UNCERTAIN
-        reason[(reason == OK) & (chi > max_chi)] = INCONSISTENT
-    p = np.full((xa.size, 3), np.nan)
-    good = reason[idx] == OK
-    p[idx[good]] = o[good] + fit.t[good, None] * d[good]
+    p, sig, chi, reason = _classify(reason, idx, fit, o, d, max_sigma_ratio=max_sigma_ratio,
+                                    max_sigma=None, min_angle_deg=min_angle_deg,
+                                    max_chi=max_chi)
     return PointMap(cam_a.name, p.reshape(shape + (3,)), sig.reshape(shape), chi.reshape(shape),
                     np.ones(shape, np.float32), reason.reshape(shape), cam_a.center_world.copy())

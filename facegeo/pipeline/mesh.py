@@ -47,33 +47,34 @@ from facegeo.fsutil import atomic_path, atomic_write_text, staged_directory
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_mesh", "mesh_products", "ground_truth_decode", "decode_from_surface",
-           "write_decode_npz", "ground_truth_errors",
-           "load_decode", "write_points_ply", "read_points_ply", "DECODE_KEYS"]
+__all__ = [
+    "DECODE_KEYS",
+    "decode_from_surface",
+    "ground_truth_decode",
+    "ground_truth_errors",
+    "load_decode",
+    "mesh_products",
+    "read_points_ply",
+    "run_mesh",
+    "write_decode_npz",
+    "write_points_ply",
+]
 
 #: Arrays of a ``decode.npz``.
 DECODE_KEYS = ("x", "y", "confidence", "valid", "sigma_x", "sigma_y")
 
 
 def _scan(scan_dir):
-    from facegeo.capture.scan import Scan, load_scan
+    from facegeo.pipeline.project import _scan as scan_of
 
-    return scan_dir if isinstance(scan_dir, Scan) else load_scan(scan_dir)
+    return scan_of(scan_dir)
 
 
 def _rig(scan, rig: str | None):
-    has_gt = scan.synthetic and "rig" in scan.ground_truth_keys
-    if rig is None:
-        rig = "ground_truth" if has_gt else "scan"
-    if rig == "ground_truth":
-        if not has_gt:
-            raise InputError(f"rig: scan {scan.root} has no ground-truth rig; use rig='scan'")
-        from facegeo.geometry.rig import Rig
+    """The rig to triangulate with: ``"ground_truth"`` or ``"scan"`` (as the project stage)."""
+    from facegeo.pipeline.project import _rig as project_rig
 
-        return Rig.load(scan.ground_truth_path("rig")), rig
-    if rig == "scan":
-        return scan.rig, rig
-    raise InputError(f"rig: expected 'ground_truth' or 'scan', got {fmt_value(rig)}")
+    return project_rig(scan, rig)
 
 
 # ------------------------------------------------------------------------ decode maps
@@ -181,9 +182,8 @@ def write_decode_npz(path, maps: dict) -> Path:
     """Write the :data:`DECODE_KEYS` arrays of ``maps`` to ``path`` (atomic)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **{k: maps[k] for k in DECODE_KEYS})
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **{k: maps[k] for k in DECODE_KEYS})
     return path
 
 
@@ -247,10 +247,9 @@ def write_points_ply(path, points, normals, confidence, sigma, camera, confirmed
             f"element vertex {n}"]
     head += [f"property {_PLY_TYPES[t]} {k}" for k, t in _POINT_FIELDS] + ["end_header", ""]
     path = Path(path)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write("\n".join(head).encode("ascii"))
-            fh.write(rec.tobytes())
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write("\n".join(head).encode("ascii"))
+        fh.write(rec.tobytes())
     return path
 
 
@@ -436,8 +435,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         "confirmed_fraction": round(float(fused.confirmed.mean()), 6),
         "median_sigma_mm": _mm(np.median(fused.sigma)),
         "neighbour_spacing_mm": _mm(spacing), "observed_radius_mm": _mm(r_obs),
-        "method": method, "mesh": mesh.info, "faces": int(len(mesh.faces)),
-        "vertices": int(len(mesh.vertices)), "area_mm2": round(area * 1e6, 3),
+        "method": method, "mesh": mesh.info, "faces": len(mesh.faces),
+        "vertices": len(mesh.vertices), "area_mm2": round(area * 1e6, 3),
         "unobserved_area_mm2": round(area_out * 1e6, 3),
         "unobserved_area_fraction": round(area_out / area, 6) if area > 0 else None,
         "seconds_triangulate": round(t1 - t0, 4), "seconds_fuse": round(t2 - t1, 4),

@@ -39,8 +39,8 @@ _IMAGE_NOISE_REL = 0.05
 
 def _views(quick: bool):
     """Rig, head mesh (V, F), scene and per-camera (p, n, mask) of the procedural head."""
-    from facegeo.synth.capture import PRESETS, build_head, build_rig
     from facegeo.surface.visibility import RayScene
+    from facegeo.synth.capture import PRESETS, build_head, build_rig
 
     preset = PRESETS["tiny" if quick else "small"]
     rig = build_rig(preset)
@@ -181,7 +181,7 @@ def bench_poisson_depth(quick: bool) -> list[BenchRow]:
             "mesh.poisson_depth", f"Open3D screened Poisson depth {depth}, trimmed",
             len(fused) / t / 1e3, "kpoints/s", 1e3 * float(np.percentile(d, 95)),
             "p95 distance of the observed mesh to the true surface (mm)",
-            extra={"seconds": round(t, 3), "faces": int(len(mesh.faces)),
+            extra={"seconds": round(t, 3), "faces": len(mesh.faces),
                    "normal median deg": round(float(np.degrees(np.median(ang))), 3),
                    "points": len(fused), "preset": "tiny" if quick else "small"},
             threads=1))
