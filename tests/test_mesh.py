@@ -237,3 +237,21 @@ def test_small_preset_meets_issue_10(tmp_path):
     assert m["mesh_p95_error_mm"] <= SMALL_MESH_P95_MM
     assert m["normal_median_error_deg"] <= SMALL_NORMAL_MEDIAN_DEG
     assert m["unobserved_area_fraction"] <= SMALL_UNOBSERVED_FRACTION
+
+
+def test_column_only_decode_meshes(tiny, tmp_path):
+    """A decode with x only (no y array at all) triangulates against column planes."""
+    from facegeo.pipeline.mesh import ground_truth_decode, mesh_products
+
+    dec = tmp_path / "decode"
+    for c in tiny.camera_names:
+        d = ground_truth_decode(tiny, c, noise_px=0.1, seed=5, with_y=False)
+        (dec / c).mkdir(parents=True)
+        np.savez(dec / c / "decode.npz", x=d["x"], valid=d["valid"])
+    dest = tmp_path / "out"
+    dest.mkdir()
+    m, settings = mesh_products(tiny, dec, dest, depth=6)
+    assert settings["cameras"] == tiny.camera_names
+    assert m["points"] > 1000
+    assert all(c["rejected"]["inconsistent"] == 0 for c in m["cameras"].values())
+    assert m["points_rms_error_mm"] < 1.0
