@@ -215,11 +215,11 @@ def load_decode(path, shape: tuple[int, int] | None = None) -> dict:
 
 
 def _load_gt_mesh(scan):
-    import trimesh.exchange.ply
+    """The true mesh's ``(V, F)`` (float64 metres, int64)."""
+    from facegeo.pipeline.project import load_mesh
 
-    with open(scan.ground_truth_path("mesh"), "rb") as fh:
-        data = trimesh.exchange.ply.load_ply(fh)
-    return np.asarray(data["vertices"], np.float64), np.asarray(data["faces"], np.int64)
+    V, F, _ = load_mesh(scan, "ground_truth")
+    return V, F
 
 
 # ------------------------------------------------------------------------ PLY output
