@@ -347,7 +347,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     observed_radius_mm : float, millimetres, optional
         The observed region for the ground-truth metrics and ``unobserved_area_mm2``: within
         this of a fused point. Default 1.5 × the points' median 6th-neighbour distance
-        (:func:`facegeo.geometry.triangulation.neighbour_spacing`; ≈ 1.9 mm on the small
+        (:func:`facegeo.geometry.triangulation.neighbour_spacing`; ≈ 2.0 mm on the small
         preset, 5.5 mm on the tiny one), recorded in the metrics.
     gt_samples : int
         Area-uniform mesh samples for ``mesh_p95_error_mm``.
