@@ -1,0 +1,749 @@
+"""Triangulation of structured-light decodes: camera rays against the projector, fused over cameras.
+
+A camera pixel ``q`` that decoded the projector coordinate ``(x, y)`` lies on the camera ray
+``p(t) = o + t·d`` (``o`` the camera centre, ``d`` the unit ray through the pixel centre, ``t``
+metres). Every solver here finds ``t`` by weighted least squares on the **projector's
+reprojection residual** along that ray,
+
+    r_i(t) = (π_i(o + t·d) − x_i) / σ_i,     i ∈ {x, y} (y only where it was decoded),
+
+where ``π`` is the projector's projection (:meth:`facegeo.geometry.camera.Camera.project`,
+distortion included) and ``σ_i`` the decode's 1-σ noise in projector pixels. With ``x`` only this
+is the camera ray against the projector's column *plane* (a curved sheet when the projector has
+distortion); with ``x`` and ``y`` it is the ray against the projector *ray*, weighted by the
+decode's noise (the camera pixel is taken as exact: its centre is where the measurement was made,
+so all the error sits in the decoded code). A linear (algebraic) solution starts three
+Gauss–Newton steps in float64.
+
+Uncertainty comes from the intersection geometry: with ``J_i = ∂r_i/∂t`` at the solution,
+``σ_t = (Σ J_i²)^(-1/2)`` metres along the ray. ``J`` shrinks as the camera ray turns parallel to
+the projector's column plane (the projector code stops changing along the ray), so ``σ_t`` grows
+without bound there and :func:`triangulate_maps` rejects the point by threshold rather than
+placing it anywhere. The decode noise ``σ_i`` is widened by the pixel's **footprint** in the
+projector: a camera pixel spanning ``g`` projector pixels (``g`` the largest code step to a
+neighbouring pixel) integrates a box of that width. On a smooth surface the code is sampled at
+the pixel centre and that box adds no error, so only the excess over ``footprint_ratio`` times
+the map's median footprint counts, as a uniform box of variance ``excess²/12``: grazing
+surfaces (strongly foreshortened in the camera) and depth discontinuities (a code jump between
+neighbours) carry large σ instead of wild points. (An assumption of this module, not of the
+paper: a decoder's own σ should grow there too, but a plain Gray decode reports none.) With ``x`` and ``y`` both decoded,
+the normalised residual ``χ = sqrt(Σ r_i²)`` (one degree of freedom) is the camera–projector
+reprojection consistency test.
+
+:func:`fuse_cameras` checks every camera's points against the other cameras' point maps
+(free-space violations are rejected, agreeing points are averaged with inverse-variance weights)
+and :func:`triangulate_camera_pair` triangulates two cameras through matching projector codes,
+for rigs whose projector is not calibrated.
+
+References
+----------
+.. [1] Debevec et al., "Acquiring the Reflectance Field of a Human Face", SIGGRAPH 2000, §2
+   (geometry from structured light projected by a video projector, seen by the two cameras).
+.. [2] Hartley & Zisserman, *Multiple View Geometry*, 2nd ed., §12 (triangulation: minimise the
+   reprojection error, not an algebraic distance).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facegeo.checks import as_array, check_positive
+from facegeo.errors import InputError, ShapeError
+from facegeo.geometry.camera import Camera
+
+__all__ = [
+    "BEHIND",
+    "INCONSISTENT",
+    "NO_CODE",
+    "OCCLUDED_VIEW",
+    "OK",
+    "OUTLIER",
+    "REASONS",
+    "UNCERTAIN",
+    "FusedPoints",
+    "PointMap",
+    "RayFit",
+    "code_footprint",
+    "fuse_cameras",
+    "match_projector_codes",
+    "neighbour_spacing",
+    "solve_along_rays",
+    "triangulate_camera_pair",
+    "triangulate_maps",
+]
+
+#: Reason codes of :attr:`PointMap.reason` (``uint8``).
+OK, NO_CODE, BEHIND, UNCERTAIN, INCONSISTENT, OUTLIER, OCCLUDED_VIEW = range(7)
+#: Names of the reason codes, indexed by code.
+REASONS = ("ok", "no_code", "behind", "uncertain", "inconsistent", "outlier",
+           "free_space_violation")
+
+#: Gauss–Newton steps after the linear start (the residual is nearly linear in t; 3 reach
+#: float64 rounding on the test rigs).
+_GN_STEPS = 3
+
+
+@dataclass
+class RayFit:
+    """Depths along camera rays from :func:`solve_along_rays`.
+
+    Attributes
+    ----------
+    t : (N,) float64, metres
+        Distance along the unit ray; NaN where unsolved.
+    sigma_t : (N,) float64, metres
+        1-σ of ``t`` from the intersection geometry (``inf`` where the ray runs along the
+        constraint, NaN where unsolved).
+    chi : (N,) float64
+        Normalised reprojection residual ``sqrt(Σ r_i²)``; only meaningful where two
+        coordinates constrain the point (it is ≈ 0 with one).
+    n_constraints : (N,) int
+        Coordinates used (0, 1 or 2).
+    sin_angle : (N,) float64
+        Effective sine of the triangulation angle: the lateral 1-σ of the constraint at the
+        point (``σ_px · z_other / f_other`` metres) over ``sigma_t``. 1 for a ray crossing the
+        projector's ray/plane at right angles, → 0 as the ray runs along it.
+    """
+
+    t: np.ndarray
+    sigma_t: np.ndarray
+    chi: np.ndarray
+    n_constraints: np.ndarray
+    sin_angle: np.ndarray
+
+
+def _project_along(other: Camera, o, d, t):
+    q, ok = other.project(o + t[:, None] * d)
+    return q, ok
+
+
+def solve_along_rays(o_world, d_world, other: Camera, q_other, sigma_other) -> RayFit:
+    """Depth along each camera ray that best reprojects into ``other`` at ``q_other``.
+
+    Minimises ``Σ_i ((π_i(o + t·d) − q_i) / σ_i)²`` over ``t`` (module docstring), the
+    triangulation of the camera ray against the projector ray (both coordinates) or the
+    projector's column plane (``q_other[:, 1]`` NaN).
+
+    Parameters
+    ----------
+    o_world : (N, 3) float64, metres, world frame
+        Ray origins (camera centre).
+    d_world : (N, 3) float64, unit vectors, world frame
+        Ray directions.
+    other : Camera
+        The projector (or a second camera).
+    q_other : (N, 2) float64, pixels of ``other``
+        Target coordinates; NaN marks a coordinate that is not constrained.
+    sigma_other : (N, 2) float64, pixels of ``other``
+        1-σ noise of each coordinate, > 0.
+
+    Returns
+    -------
+    RayFit
+    """
+    o = as_array(o_world, "o_world", shape=(None, 3), finite=False)
+    n = o.shape[0]
+    d = as_array(d_world, "d_world", shape=(n, 3), finite=False)
+    q = as_array(q_other, "q_other", shape=(n, 2), finite=False)
+    s = as_array(sigma_other, "sigma_other", shape=(n, 2), finite=False)
+    use = np.isfinite(q) & np.isfinite(s) & (s > 0)
+    use &= np.isfinite(o).all(1)[:, None] & np.isfinite(d).all(1)[:, None]
+    w = np.where(use, 1.0 / np.where(use, s, 1.0) ** 2, 0.0)
+    # Linear start in the other's normalised (undistorted) coordinates: with P(t) = A + t·B in
+    # its frame, u·P_z = P_x is linear in t. Distortion is ignored here (GN handles it).
+    R, T = other.T_cam_world.R, other.T_cam_world.t
+    A = o @ R.T + T
+    B = d @ R.T
+    f = np.array([other.fx, other.fy])
+    c = np.array([other.cx, other.cy])
+    u = (np.where(use, q, 0.0) - c) / f
+    a = B[:, :2] - u * B[:, 2:3]
+    b = u * A[:, 2:3] - A[:, :2]
+    wl = w * f**2
+    den = (wl * a * a).sum(1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(den > 0, (wl * a * b).sum(1) / den, np.nan)
+    t[~use.any(1)] = np.nan
+    # Gauss–Newton on the true (distorted) projection, central differences along the ray.
+    sig_t = np.full(n, np.nan)
+    chi = np.full(n, np.nan)
+    qs = np.where(use, q, 0.0)
+    sw = np.sqrt(w)
+    for step in range(_GN_STEPS + 1):
+        live = np.isfinite(t) & (t > 0)
+        if not live.any():
+            break
+        idx = np.flatnonzero(live)
+        ti = t[idx]
+        h = 1e-6 * np.maximum(ti, 1e-3)
+        oi, di = o[idx], d[idx]
+        q0, ok0 = _project_along(other, oi, di, ti)
+        qp, okp = _project_along(other, oi, di, ti + h)
+        qm, okm = _project_along(other, oi, di, ti - h)
+        ok = ok0 & okp & okm
+        r = (q0 - qs[idx]) * sw[idx]
+        J = (qp - qm) / (2 * h[:, None]) * sw[idx]
+        r = np.where(use[idx], r, 0.0)
+        J = np.where(use[idx], J, 0.0)
+        jj = (J * J).sum(1)
+        good = ok & (jj > 0) & np.isfinite(jj)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sig_t[idx] = np.where(good, 1.0 / np.sqrt(jj), np.where(ok & (jj == 0), np.inf, np.nan))
+            chi[idx] = np.where(ok, np.sqrt((r * r).sum(1)), np.nan)
+        bad = idx[~ok]
+        t[bad] = np.nan
+        if step == _GN_STEPS:
+            break
+        upd = np.where(good, -(J * r).sum(1) / np.where(good, jj, 1.0), 0.0)
+        # keep a step from crossing behind the camera
+        t[idx] = np.where(good, np.maximum(ti + upd, 0.5 * ti), ti)
+    z = ((o + np.nan_to_num(t)[:, None] * d) @ R.T + T)[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_eff = 1.0 / np.sqrt(w.sum(1))
+        sin_angle = np.clip(s_eff * z / np.sqrt(other.fx * other.fy) / sig_t, 0.0, 1.0)
+    sin_angle[~np.isfinite(t)] = np.nan
+    return RayFit(t, sig_t, chi, use.sum(1), sin_angle)
+
+
+# ------------------------------------------------------------------------- point maps
+
+
+@dataclass
+class PointMap:
+    """One camera's triangulated points on its pixel grid.
+
+    Attributes
+    ----------
+    camera : str
+        Camera name.
+    p_world : (H, W, 3) float64, metres, world frame
+        Surface point per pixel; NaN where ``reason != OK``.
+    sigma : (H, W) float64, metres
+        1-σ along the camera ray (intersection geometry, module docstring).
+    chi : (H, W) float64
+        Camera–projector reprojection residual in σ (NaN with one coordinate).
+    confidence : (H, W) float32, 0..1
+        The decode's confidence.
+    reason : (H, W) uint8
+        :data:`OK` or why the pixel has no point (:data:`REASONS`).
+    center_world : (3,) float64, metres
+        The camera centre (points' normals are oriented toward it).
+    """
+
+    camera: str
+    p_world: np.ndarray
+    sigma: np.ndarray
+    chi: np.ndarray
+    confidence: np.ndarray
+    reason: np.ndarray
+    center_world: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        """``(H, W)`` bool: the pixel has a point."""
+        return self.reason == OK
+
+    @property
+    def depth(self) -> np.ndarray:
+        """Distance from the camera centre, ``(H, W)`` float64, metres (NaN without a point)."""
+        return np.linalg.norm(self.p_world - self.center_world, axis=-1)
+
+    def reason_counts(self) -> dict:
+        """``{reason name: pixel count}`` over the whole map."""
+        counts = np.bincount(self.reason.ravel(), minlength=len(REASONS))
+        return {REASONS[i]: int(counts[i]) for i in range(len(REASONS))}
+
+    def reject(self, mask: np.ndarray, code: int) -> None:
+        """Mark valid pixels in ``mask`` as rejected with ``code`` (in place)."""
+        m = mask & (self.reason == OK)
+        self.reason[m] = code
+        self.p_world[m] = np.nan
+
+
+def code_footprint(code: np.ndarray) -> np.ndarray:
+    """Projector pixels spanned by each camera pixel: the largest code step to a 4-neighbour.
+
+    Parameters
+    ----------
+    code : (H, W) float, projector pixels (NaN invalid)
+
+    Returns
+    -------
+    (H, W) float64, projector pixels; 0 where no neighbour is decoded.
+    """
+    c = np.asarray(code, np.float64)
+    g = np.zeros(c.shape)
+    with np.errstate(invalid="ignore"):
+        dx = np.abs(np.diff(c, axis=1))
+        dy = np.abs(np.diff(c, axis=0))
+    dx = np.nan_to_num(dx, nan=0.0)
+    dy = np.nan_to_num(dy, nan=0.0)
+    g[:, 1:] = np.maximum(g[:, 1:], dx)
+    g[:, :-1] = np.maximum(g[:, :-1], dx)
+    g[1:] = np.maximum(g[1:], dy)
+    g[:-1] = np.maximum(g[:-1], dy)
+    return g
+
+
+def _excess_footprint(code: np.ndarray, ok: np.ndarray, ratio: float) -> np.ndarray:
+    g = code_footprint(code)
+    sel = ok & (g > 0)
+    if not sel.any():
+        return np.zeros(code.shape)
+    return np.maximum(g - ratio * float(np.median(g[sel])), 0.0)
+
+
+def _map(a, name, shape, dtype=np.float64):
+    a = as_array(a, name, dtype=dtype, finite=False)
+    if a.shape != shape:
+        raise ShapeError(f"{name}: expected shape {shape} (the decode's x map), got {a.shape}")
+    return a
+
+
+def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None,
+                     confidence=None, sigma_x=None, sigma_y=None, min_confidence: float = 0.2,
+                     default_sigma_px: float = 0.3, footprint_ratio: float | None = 2.0,
+                     max_sigma_ratio: float = 5.0, max_sigma: float | None = None,
+                     min_angle_deg: float = 3.0, max_chi: float = 4.0, spike_sigmas: float = 6.0,
+                     spike_floor: float = 1e-3) -> PointMap:
+    """Triangulate one camera's decode maps against the projector.
+
+    Parameters
+    ----------
+    camera : Camera
+        The camera that saw the patterns; its size must equal the maps'.
+    projector : Camera
+        The projector (an inverse camera).
+    x, y : (H, W) float, projector pixels (pixel-centre convention, NaN invalid)
+        Decoded projector column and row; ``y`` ``None`` or all-NaN triangulates against
+        column planes only.
+    valid : (H, W) bool, optional
+        The decoder's validity mask (default: finite ``x``).
+    confidence : (H, W) float, 0..1, optional
+        Pixels below ``min_confidence`` get no point (reason :data:`NO_CODE`).
+    sigma_x, sigma_y : (H, W) float, projector pixels, optional
+        Decode noise (1 σ); NaN or missing → ``default_sigma_px``.
+    footprint_ratio : float or None
+        Widen σ by the pixel's footprint in the projector beyond this multiple of the map's
+        median footprint (module docstring); ``None`` disables it.
+    max_sigma_ratio : float
+        Reject points whose σ exceeds this multiple of the map's median σ (reason
+        :data:`UNCERTAIN`): near-parallel ray/plane, grazing surfaces, silhouettes.
+    max_sigma : float, metres, optional
+        Absolute σ limit as well.
+    min_angle_deg : float, degrees
+        Reject points whose effective triangulation angle (:attr:`RayFit.sin_angle`) is below
+        this (reason :data:`UNCERTAIN`): a camera ray nearly parallel to the projector's plane.
+    max_chi : float
+        Reject points whose camera–projector residual exceeds this many σ (reason
+        :data:`INCONSISTENT`; only where ``y`` was decoded).
+    spike_sigmas, spike_floor : float, metres
+        Reject points farther along their ray from the 3 × 3 median depth than
+        ``spike_sigmas·σ_min + spike_floor`` (``σ_min`` the smallest σ in the 3 × 3 window) (reason :data:`OUTLIER`; isolated wrong codes).
+
+    Returns
+    -------
+    PointMap
+
+    Notes
+    -----
+    Implements the ray/plane and ray/ray triangulation of the module docstring. Deviation from
+    a plain midpoint: the projector's reprojection error is minimised, because the decoded code
+    carries the noise and the camera pixel centre does not.
+    """
+    if not isinstance(camera, Camera) or not isinstance(projector, Camera):
+        raise InputError("camera, projector: expected facegeo.geometry.camera.Camera objects")
+    x = as_array(x, "x", shape=(None, None), finite=False)
+    shape = x.shape
+    if shape != (camera.height, camera.width):
+        raise ShapeError(f"x: expected the camera {camera.name!r}'s image shape "
+                         f"{(camera.height, camera.width)}, got {shape}")
+    y = np.full(shape, np.nan) if y is None else _map(y, "y", shape)
+    ok = np.isfinite(x) if valid is None else _map(valid, "valid", shape, bool) & np.isfinite(x)
+    conf = (np.ones(shape, np.float32) if confidence is None
+            else _map(confidence, "confidence", shape, np.float32))
+    with np.errstate(invalid="ignore"):
+        ok &= ~(conf < min_confidence)
+    d0 = check_positive(default_sigma_px, "default_sigma_px")
+    sx = np.full(shape, d0) if sigma_x is None else _map(sigma_x, "sigma_x", shape)
+    sy = np.full(shape, d0) if sigma_y is None else _map(sigma_y, "sigma_y", shape)
+    sx = np.where(np.isfinite(sx) & (sx > 0), sx, d0)
+    sy = np.where(np.isfinite(sy) & (sy > 0), sy, d0)
+    xm = np.where(ok, x, np.nan)
+    ym = np.where(ok, y, np.nan)
+    if footprint_ratio is not None:
+        sx = np.sqrt(sx**2 + _excess_footprint(xm, ok, footprint_ratio) ** 2 / 12.0)
+        sy = np.sqrt(sy**2 + _excess_footprint(ym, ok, footprint_ratio) ** 2 / 12.0)
+    reason = np.where(ok, OK, NO_CODE).astype(np.uint8)
+    idx = np.flatnonzero(ok)
+    o, dirs = camera.pixel_rays(camera.pixel_grid().reshape(-1, 2)[idx])
+    fit = solve_along_rays(o, dirs, projector,
+                           np.stack([x.ravel()[idx], y.ravel()[idx]], 1),
+                           np.stack([sx.ravel()[idx], sy.ravel()[idx]], 1))
+    fit.chi = np.where(fit.n_constraints == 2, fit.chi, np.nan)
+    p, sig, chi, r = _classify(reason.ravel(), idx, fit, o, dirs, max_sigma_ratio=max_sigma_ratio,
+                               max_sigma=max_sigma, min_angle_deg=min_angle_deg,
+                               max_chi=max_chi)
+    pm = PointMap(camera.name, p.reshape(shape + (3,)), sig.reshape(shape), chi.reshape(shape),
+                  conf.astype(np.float32), r.reshape(shape), camera.center_world.copy())
+    _reject_spikes(pm, spike_sigmas, spike_floor)
+    return pm
+
+
+def _classify(reason, idx, fit: RayFit, o, d, *, max_sigma_ratio, max_sigma, min_angle_deg,
+              max_chi):
+    """Points and rejection reasons of solved rays (shared by both triangulations).
+
+    ``reason`` (flat, OK where a ray was solved) is updated in place; ``idx`` are the flat
+    pixels of the rays ``o + t·d`` in ``fit``. Returns flat ``p, sigma, chi, reason``.
+    """
+    n = reason.size
+    sig = np.full(n, np.nan)
+    chi = np.full(n, np.nan)
+    sig[idx], chi[idx] = fit.sigma_t, fit.chi
+    reason[idx[~(np.isfinite(fit.t) & (fit.t > 0))]] = BEHIND
+    live = reason == OK
+    with np.errstate(invalid="ignore"):
+        narrow = np.zeros(n, bool)
+        narrow[idx] = fit.sin_angle < np.sin(np.radians(min_angle_deg))
+        reason[live & (~np.isfinite(sig) | narrow)] = UNCERTAIN
+        live = reason == OK
+        if live.any():
+            limit = max_sigma_ratio * float(np.median(sig[live]))
+            if max_sigma is not None:
+                limit = min(limit, check_positive(max_sigma, "max_sigma"))
+            reason[live & (sig > limit)] = UNCERTAIN
+        reason[(reason == OK) & (chi > max_chi)] = INCONSISTENT
+    p = np.full((n, 3), np.nan)
+    good = reason[idx] == OK
+    p[idx[good]] = o[good] + fit.t[good, None] * d[good]
+    return p, sig, chi, reason
+
+
+def _median3(a: np.ndarray) -> np.ndarray:
+    """3 × 3 NaN-ignoring median (NaN where the window holds fewer than 3 values)."""
+    H, W = a.shape
+    pad = np.pad(a, 1, constant_values=np.nan)
+    win = np.sort(np.stack([pad[i:i + H, j:j + W] for i in range(3) for j in range(3)], -1),
+                  axis=-1)  # NaN sort last
+    cnt = np.isfinite(win).sum(-1)
+    lo = np.take_along_axis(win, np.maximum(cnt - 1, 0)[..., None] // 2, -1)[..., 0]
+    hi = np.take_along_axis(win, (cnt // 2)[..., None], -1)[..., 0]
+    return np.where(cnt >= 3, 0.5 * (lo + hi), np.nan)
+
+
+def _min3(a: np.ndarray) -> np.ndarray:
+    """3 × 3 NaN-ignoring minimum."""
+    H, W = a.shape
+    pad = np.pad(np.where(np.isfinite(a), a, np.inf), 1, constant_values=np.inf)
+    m = np.min(np.stack([pad[i:i + H, j:j + W] for i in range(3) for j in range(3)]), axis=0)
+    return np.where(np.isfinite(m), m, np.nan)
+
+
+def _reject_spikes(pm: PointMap, k: float, floor: float) -> None:
+    # tolerance from the smallest σ around the pixel: a wrong code inflates its own σ (and its
+    # 4-neighbours') through the footprint term, which must not hide it from this test
+    depth = pm.depth
+    med = _median3(depth)
+    with np.errstate(invalid="ignore"):
+        spike = np.abs(depth - med) > k * _min3(np.where(pm.valid, pm.sigma, np.nan)) + floor
+        lonely = pm.valid & ~np.isfinite(med)  # fewer than 3 points in the 3 × 3 window
+    pm.reject(spike | lonely, OUTLIER)
+
+
+# ------------------------------------------------------------------------- fusion
+
+
+@dataclass
+class FusedPoints:
+    """Points of several cameras after the cross-camera check.
+
+    Attributes
+    ----------
+    p_world : (N, 3) float64, metres, world frame
+    sigma : (N,) float64, metres (1 σ, after averaging with agreeing cameras)
+    confidence : (N,) float32, 0..1
+    camera : (N,) int, index of the observing camera (into ``camera_names``)
+    pixel : (N, 2) int, (column, row) in that camera
+    confirmed : (N,) bool, another camera saw the same surface within tolerance
+    camera_names : list of str
+    centers_world : (C, 3) float64, metres, camera centres
+    """
+
+    p_world: np.ndarray
+    sigma: np.ndarray
+    confidence: np.ndarray
+    camera: np.ndarray
+    pixel: np.ndarray
+    confirmed: np.ndarray
+    camera_names: list
+    centers_world: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.p_world.shape[0])
+
+    @property
+    def view_dirs(self) -> np.ndarray:
+        """Unit vectors from each point toward its camera, ``(N, 3)`` float64, world frame."""
+        v = self.centers_world[self.camera] - self.p_world
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: float = 4.0,
+                 tol_floor: float = 1e-3, average: bool = True,
+                 cluster_spacings: float | None = 2.0,
+                 min_cluster_fraction: float = 0.1) -> FusedPoints:
+    """Check every camera's points against the others' and merge them into one cloud.
+
+    For a point ``p`` of camera A seen at pixel ``q_B`` of camera B, let ``d = |p − c_B|`` and
+    ``D`` the 3 × 3 median depth of B's own points around ``q_B``, with tolerance
+    ``τ = tol_sigmas·sqrt(σ_A² + σ_B²) + tol_floor``:
+
+    * ``d < D − τ``: B looked through the place where ``p`` should be — a free-space violation;
+      the point is rejected (reason :data:`OCCLUDED_VIEW` in A's map).
+    * ``|d − D| ≤ τ``: confirmed; with ``average`` the point becomes the inverse-variance mean of
+      ``p`` and B's point at the nearest pixel (σ shrinks accordingly; when A's and B's points
+      are each other's nearest, both average to the same point and one copy is kept).
+    * ``d > D + τ`` or B has no point there: no evidence (occluded in B, or unseen).
+
+    Then the fused cloud is split into clusters (points closer than ``cluster_spacings`` times
+    the median distance to the 6th-nearest neighbour are linked) and clusters smaller than
+    ``min_cluster_fraction`` of the largest are dropped (reason :data:`OUTLIER`): a patch of
+    consistently wrong codes (a flipped coarse Gray bit) floats off the surface, and when no
+    other camera sees through it the free-space test cannot catch it. Limitation: a wrong patch
+    that lands behind the visible surface, attached to it, and hidden from every other camera
+    survives with ``x``-only decodes (with ``y`` the camera–projector residual rejects it).
+
+    Parameters
+    ----------
+    maps : list of PointMap
+        One per camera (modified in place: rejected points get a reason).
+    cameras : list of Camera
+        The same cameras, in the same order.
+    tol_sigmas, tol_floor : float, tol_floor in metres
+        Agreement tolerance.
+    average : bool
+        Average confirmed points with the other camera's.
+    cluster_spacings : float, optional
+        Link distance of the cluster filter in median 6th-neighbour distances (``None``: no
+        filter).
+    min_cluster_fraction : float, 0..1
+        Smallest cluster kept, as a fraction of the largest.
+
+    Returns
+    -------
+    FusedPoints
+    """
+    if len(maps) != len(cameras) or not maps:
+        raise InputError(f"maps, cameras: expected one point map per camera (>= 1), got "
+                         f"{len(maps)} maps and {len(cameras)} cameras")
+    depth_med = [_median3(m.depth) for m in maps]
+    # check against the maps as triangulated (rejections below must not change the evidence)
+    masks = [m.valid.copy() for m in maps]
+    points = [m.p_world.copy() for m in maps]
+    out = []
+    for a, (ma, ca) in enumerate(zip(maps, cameras)):
+        rows, cols = np.nonzero(masks[a])
+        p = ma.p_world[rows, cols]
+        s = ma.sigma[rows, cols]
+        num = p / s[:, None] ** 2
+        den = 1.0 / s**2
+        confirmed = np.zeros(p.shape[0], bool)
+        violated = np.zeros(p.shape[0], bool)
+        for b, (mb, cb) in enumerate(zip(maps, cameras)):
+            if b == a:
+                continue
+            q, front = cb.project(p)
+            ok = front & cb.in_image(q)
+            qi = np.rint(np.where(ok[:, None], q, 0)).astype(np.int64)
+            qi[:, 0] = qi[:, 0].clip(0, cb.width - 1)
+            qi[:, 1] = qi[:, 1].clip(0, cb.height - 1)
+            D = np.where(ok, depth_med[b][qi[:, 1], qi[:, 0]], np.nan)
+            sb = mb.sigma[qi[:, 1], qi[:, 0]]
+            sb = np.where(np.isfinite(sb), sb, s)
+            d = np.linalg.norm(p - cb.center_world, axis=1)
+            tau = tol_sigmas * np.sqrt(s**2 + sb**2) + tol_floor
+            with np.errstate(invalid="ignore"):
+                violated |= d < D - tau
+                agree = np.abs(d - D) <= tau
+            have = agree & masks[b][qi[:, 1], qi[:, 0]]
+            confirmed |= have
+            if average and have.any():
+                pb = points[b][qi[have, 1], qi[have, 0]]
+                wb = 1.0 / sb[have] ** 2
+                num[have] += pb * wb[:, None]
+                den[have] += wb
+        bad = np.zeros(ma.reason.shape, bool)
+        bad[rows[violated], cols[violated]] = True
+        ma.reject(bad, OCCLUDED_VIEW)
+        keep = ~violated
+        pf = num[keep] / den[keep, None]
+        out.append((pf, 1.0 / np.sqrt(den[keep]), ma.confidence[rows[keep], cols[keep]],
+                    np.full(int(keep.sum()), a), np.stack([cols[keep], rows[keep]], 1),
+                    confirmed[keep]))
+    cat = [np.concatenate([o[i] for o in out]) for i in range(6)]
+    # two cameras' mutually nearest confirmed points average to the same point: keep one
+    _, first = np.unique(cat[0], axis=0, return_index=True)
+    first.sort()
+    cat = [a[first] for a in cat]
+    if cluster_spacings is not None and len(cat[0]) > 1:
+        keep = _large_clusters(cat[0], cluster_spacings, min_cluster_fraction)
+        for c in np.unique(cat[3][~keep]):
+            sel = ~keep & (cat[3] == c)
+            bad = np.zeros(maps[c].reason.shape, bool)
+            bad[cat[4][sel, 1], cat[4][sel, 0]] = True
+            maps[c].reject(bad, OUTLIER)
+        cat = [a[keep] for a in cat]
+    return FusedPoints(cat[0], cat[1], cat[2].astype(np.float32), cat[3].astype(np.int64),
+                       cat[4].astype(np.int64), cat[5], [c.name for c in cameras],
+                       np.stack([c.center_world for c in cameras]))
+
+
+def neighbour_spacing(points, k: int = 6) -> float:
+    """Median distance of a point to its ``k``-th nearest neighbour, metres.
+
+    The sampling scale of a point cloud (≈ 1.5–2 point spacings for ``k = 6`` on a surface),
+    used for the link distance of the cluster filter and the mesh's trim / observed radius.
+    """
+    from scipy.spatial import cKDTree
+
+    p = as_array(points, "points", shape=(None, 3))
+    if len(p) < 2:
+        raise InputError(f"points: need at least 2 points for a spacing, got {len(p)}")
+    return float(np.median(cKDTree(p).query(p, k=min(k + 1, len(p)))[0][:, -1]))
+
+
+def _large_clusters(p: np.ndarray, spacings: float, min_fraction: float) -> np.ndarray:
+    """Points in clusters (linked within ``spacings`` × the median 6th-neighbour distance) of
+    ≥ ``min_fraction`` of the largest cluster's size."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(p)
+    r = spacings * neighbour_spacing(p)
+    pairs = tree.query_pairs(r, output_type="ndarray")
+    n = len(p)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, lab = connected_components(g, directed=False)
+    counts = np.bincount(lab)
+    return counts[lab] >= min_fraction * counts.max()
+
+
+# ------------------------------------------------------------------------- camera–camera
+
+
+def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
+                          max_code_dist: float | None = None):
+    """Sub-pixel location in camera B of each camera-A pixel's projector code.
+
+    B's decode maps pixel → code; the inverse near A's code is fitted as a local affine map
+    ``q_B ≈ M·(x, y) + m`` over B's ``k`` pixels nearest in code space (a k-d tree over B's
+    codes), so no projector calibration is needed.
+
+    Parameters
+    ----------
+    x_a, y_a : (H_a, W_a) float, projector pixels, NaN invalid
+    x_b, y_b : (H_b, W_b) float, projector pixels, NaN invalid
+    k : int
+        Neighbours of the local affine fit (>= 3).
+    max_code_dist : float, projector pixels, optional
+        No match when B's nearest code is farther than this from A's. Default twice the median
+        code-space spacing of B's pixels.
+
+    Returns
+    -------
+    q_b : (H_a, W_a, 2) float64, pixels of B (NaN where unmatched)
+    jac : (H_a, W_a, 2, 2) float64, ``∂q_B/∂(x, y)`` (pixels of B per projector pixel), for
+        propagating the decode noise.
+    """
+    from scipy.spatial import cKDTree
+
+    xa, ya = (as_array(v, n, finite=False) for v, n in ((x_a, "x_a"), (y_a, "y_a")))
+    xb, yb = (as_array(v, n, finite=False) for v, n in ((x_b, "x_b"), (y_b, "y_b")))
+    if xa.shape != ya.shape or xb.shape != yb.shape or xa.ndim != 2 or xb.ndim != 2:
+        raise ShapeError(f"x_a/y_a and x_b/y_b: expected two pairs of equal 2-D maps, got "
+                         f"{xa.shape}/{ya.shape} and {xb.shape}/{yb.shape}")
+    if k < 3:
+        raise InputError(f"k: expected >= 3 neighbours for an affine fit, got {k}")
+    q_b = np.full(xa.shape + (2,), np.nan)
+    jac = np.full(xa.shape + (2, 2), np.nan)
+    okb = np.isfinite(xb) & np.isfinite(yb)
+    oka = np.isfinite(xa) & np.isfinite(ya)
+    if okb.sum() < k or not oka.any():
+        return q_b, jac
+    rb, cb_ = np.nonzero(okb)
+    codes_b = np.stack([xb[okb], yb[okb]], 1)
+    tree = cKDTree(codes_b)
+    ca = np.stack([xa[oka], ya[oka]], 1)
+    if max_code_dist is None:
+        spacing = tree.query(codes_b, k=2)[0][:, 1]
+        max_code_dist = 2.0 * float(np.median(spacing))
+    dist, nn = tree.query(ca, k=k)
+    X = codes_b[nn] - ca[:, None, :]  # (M, k, 2) centred on A's code
+    Xh = np.concatenate([X, np.ones(X.shape[:2] + (1,))], -1)  # (M, k, 3)
+    Y = np.stack([cb_[nn], rb[nn]], -1).astype(np.float64)  # (M, k, 2) B pixels
+    G = np.einsum("mki,mkj->mij", Xh, Xh)
+    rhs = np.einsum("mki,mkj->mij", Xh, Y)
+    det = np.linalg.det(G)
+    scale = np.einsum("mki,mki->m", X, X) / k
+    good = (dist[:, 0] <= max_code_dist) & (np.abs(det) > 1e-9 * np.maximum(scale, 1e-12) ** 2)
+    sol = np.full((ca.shape[0], 3, 2), np.nan)
+    if good.any():
+        sol[good] = np.linalg.solve(G[good], rhs[good])
+    qa = sol[:, 2, :]  # value at A's code (X = 0)
+    J = np.swapaxes(sol[:, :2, :], 1, 2)  # (M, 2 [q], 2 [code])
+    # the fitted location must stay among the neighbours (no extrapolation across holes)
+    span = np.linalg.norm(Y - Y.mean(1, keepdims=True), axis=-1).max(1)
+    far = np.linalg.norm(qa - Y.mean(1), axis=1) > span + 1.0
+    qa[far] = np.nan
+    q_b[oka] = qa
+    jac[oka] = J
+    return q_b, jac
+
+
+def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
+                            sigma_px: float = 0.3, k: int = 8, max_sigma_ratio: float = 5.0,
+                            min_angle_deg: float = 3.0, max_chi: float = 4.0) -> PointMap:
+    """Triangulate camera A's pixels against camera B through matching projector codes.
+
+    For rigs with an uncalibrated projector: each A pixel is matched to the sub-pixel location in
+    B that decoded the same projector code (:func:`match_projector_codes`), then the A ray is
+    intersected with B's ray by minimising B's reprojection error (:func:`solve_along_rays`
+    with B as the "other" view). The matching noise in B is the decode noise ``sigma_px``
+    (projector pixels, both A's and B's, added in quadrature) mapped through the local
+    ``∂q_B/∂code``; the B-epipolar residual is the consistency check (``max_chi``).
+
+    Parameters
+    ----------
+    cam_a, cam_b : Camera
+    x_a, y_a : (H_a, W_a) float, projector pixels (NaN invalid); both coordinates are needed
+    x_b, y_b : (H_b, W_b) float
+    sigma_px : float, projector pixels
+    k, max_sigma_ratio, min_angle_deg, max_chi
+        See :func:`match_projector_codes` and :func:`triangulate_maps`.
+
+    Returns
+    -------
+    PointMap
+        On A's pixel grid.
+    """
+    xa = as_array(x_a, "x_a", shape=(cam_a.height, cam_a.width), finite=False)
+    q_b, jac = match_projector_codes(xa, y_a, x_b, y_b, k=k)
+    shape = xa.shape
+    s = check_positive(sigma_px, "sigma_px") * np.sqrt(2.0)
+    # σ of q_B: J·J^T s² — use each pixel axis's standard deviation (correlation ignored)
+    sq = s * np.sqrt((jac**2).sum(-1))  # (H, W, 2)
+    ok = np.isfinite(q_b).all(-1) & np.isfinite(sq).all(-1) & (sq > 0).all(-1)
+    idx = np.flatnonzero(ok)
+    o, d = cam_a.pixel_rays(cam_a.pixel_grid().reshape(-1, 2)[idx])
+    fit = solve_along_rays(o, d, cam_b, q_b.reshape(-1, 2)[idx], sq.reshape(-1, 2)[idx])
+    reason = np.full(xa.size, NO_CODE, np.uint8)
+    reason[idx] = OK
+    p, sig, chi, reason = _classify(reason, idx, fit, o, d, max_sigma_ratio=max_sigma_ratio,
+                                    max_sigma=None, min_angle_deg=min_angle_deg,
+                                    max_chi=max_chi)
+    return PointMap(cam_a.name, p.reshape(shape + (3,)), sig.reshape(shape), chi.reshape(shape),
+                    np.ones(shape, np.float32), reason.reshape(shape), cam_a.center_world.copy())

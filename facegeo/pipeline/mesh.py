@@ -1,0 +1,480 @@
+"""Pipeline stage ``mesh``: decode maps → triangulated, fused points → trimmed Poisson mesh.
+
+``run_mesh(scan_dir, out_dir)`` reads the decode stage's ``out_dir/decode/<camera>/decode.npz``
+(float32 ``x``, ``y``, ``confidence``, ``sigma_x``, ``sigma_y``, bool ``valid``; see the module
+of the decode stage) and writes ``out_dir/mesh/``:
+
+    points.ply    fused points: x y z, nx ny nz (toward the observing camera), confidence,
+                  sigma (1 σ along the camera ray, metres), camera (index), confirmed
+    mesh.ply      the trimmed Poisson mesh (metres, world frame)
+    stage.json    settings and metrics
+
+and records its metrics in ``out_dir/metrics.json`` under ``"mesh"``.
+
+Rig: ``rig="ground_truth"`` (default when the scan has one) uses the true rig the frames were
+rendered with, ``rig="scan"`` the scan's ``rig.json`` (the calibrated rig once calibration feeds
+the pipeline).
+
+Ground-truth metrics (synthetic scans; the mesh is ``scan.ground_truth_path("mesh")``):
+
+* ``points_rms_error_mm``: RMS unsigned distance of the fused points to the true surface.
+* ``mesh_p95_error_mm``: 95th percentile distance to the true surface of area-uniform samples
+  of the mesh inside the observed region (within ``observed_radius`` of a fused point).
+* ``normal_median_error_deg``: median angle between the mesh's vertex normals and the true
+  surface's interpolated vertex normals at the closest point, observed region only.
+* ``unobserved_area_mm2`` / ``unobserved_area_fraction``: mesh area farther than
+  ``observed_radius`` from every fused point — "no mesh where no camera saw the face"
+  (``observed_radius`` defaults to 1.5 sampling spacings, see :func:`mesh_products`).
+
+:func:`ground_truth_decode` makes decode maps from a synthetic scan's per-camera ground-truth
+geometry (project the true surface point of each pixel into the projector, drop projector
+shadows, add Gaussian noise), for tests and benchmarks and until the decode stage exists.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import fmt_value
+from facegeo.errors import InputError
+from facegeo.fsutil import atomic_path, atomic_write_text, staged_directory
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DECODE_KEYS",
+    "decode_from_surface",
+    "ground_truth_decode",
+    "ground_truth_errors",
+    "load_decode",
+    "mesh_products",
+    "read_points_ply",
+    "run_mesh",
+    "write_decode_npz",
+    "write_points_ply",
+]
+
+#: Arrays of a ``decode.npz``.
+DECODE_KEYS = ("x", "y", "confidence", "valid", "sigma_x", "sigma_y")
+
+
+def _scan(scan_dir):
+    from facegeo.pipeline.project import _scan as scan_of
+
+    return scan_of(scan_dir)
+
+
+def _rig(scan, rig: str | None):
+    """The rig to triangulate with: ``"ground_truth"`` or ``"scan"`` (as the project stage)."""
+    from facegeo.pipeline.project import _rig as project_rig
+
+    return project_rig(scan, rig)
+
+
+# ------------------------------------------------------------------------ decode maps
+
+
+def ground_truth_decode(scan, camera: str, *, noise_px: float = 0.1, seed: int = 0,
+                        with_y: bool = True, scene=None) -> dict:
+    """Decode maps of one camera made from a synthetic scan's ground truth.
+
+    Each pixel's true surface point (``ground_truth/geometry_<camera>.npz``) is projected with
+    the true rig's projector; pixels whose point the projector does not light (outside its
+    image, facing away, or shadowed by the head — an Embree segment test) are invalid. Gaussian
+    noise of ``noise_px`` projector pixels is added to ``x`` and ``y``.
+
+    Parameters
+    ----------
+    scan : Scan
+        A synthetic scan with ground truth.
+    camera : str
+    noise_px : float, projector pixels (1 σ)
+    seed : int
+    with_y : bool
+        False leaves ``y`` all NaN (a column-only decode).
+    scene : facegeo.surface.visibility.RayScene, optional
+        The true mesh's scene (built here when omitted).
+
+    Returns
+    -------
+    dict
+        The :data:`DECODE_KEYS` arrays (float32, ``valid`` bool) plus ``p_world`` (the true
+        points, float64) and ``shadow`` (bool: on the surface but not lit by the projector).
+    """
+    from facegeo.geometry.rig import Rig
+
+    key = f"geometry_{camera}"
+    if key not in scan.ground_truth_keys:
+        raise InputError(f"camera: scan {scan.root} has no ground-truth geometry for "
+                         f"{fmt_value(camera)} (keys: {', '.join(scan.ground_truth_keys)})")
+    rig = Rig.load(scan.ground_truth_path("rig"))
+    proj = rig.projector
+    if proj is None:
+        raise InputError(f"scan {scan.root}: the ground-truth rig has no projector")
+    with np.load(scan.ground_truth_path(key)) as g:
+        mask, p, n = g["mask"], g["p_world"], g["n_world"]
+    if scene is None:
+        from facegeo.surface.visibility import RayScene
+
+        scene = RayScene(*_load_gt_mesh(scan))
+    return decode_from_surface(p, n, mask, proj, scene, noise_px=noise_px, seed=seed,
+                               with_y=with_y)
+
+
+def decode_from_surface(p_world, n_world, mask, projector, scene, *, noise_px: float = 0.1,
+                        seed: int = 0, with_y: bool = True, quantize=None) -> dict:
+    """Decode maps of a camera whose per-pixel surface points are known.
+
+    Parameters
+    ----------
+    p_world, n_world : (H, W, 3) float64, metres / unit, world frame (NaN off the surface)
+    mask : (H, W) bool, the pixel sees the surface
+    projector : Camera
+    scene : facegeo.surface.visibility.RayScene of the surface (projector shadows)
+    noise_px : float, projector pixels, Gaussian 1 σ added to ``x`` and ``y``
+    seed : int
+    with_y : bool
+    quantize : callable, optional
+        ``quantize(q) -> (q_decoded, sigma_px)`` applied to the true projector coordinates
+        ``(H, W, 2)`` before the noise (e.g. Gray stripes); ``sigma_px`` is added in quadrature.
+
+    Returns
+    -------
+    dict
+        As :func:`ground_truth_decode`.
+    """
+    p, n, proj = p_world, n_world, projector
+    q, front = proj.project(np.where(mask[..., None], p, 0.0))
+    lit = mask & front & proj.in_image(q)
+    to_proj = proj.center_world - p
+    with np.errstate(invalid="ignore"):
+        lit &= np.einsum("...i,...i->...", to_proj, n) > 0
+    idx = np.flatnonzero(lit)
+    vis = scene.segment_visible(p.reshape(-1, 3)[idx], proj.center_world,
+                                normals=n.reshape(-1, 3)[idx])
+    shadow = mask.copy()
+    lit.ravel()[idx[~vis]] = False
+    shadow &= ~lit
+    s2 = noise_px**2
+    if quantize is not None:
+        q, sq = quantize(q)
+        s2 = s2 + sq**2
+    rng = np.random.default_rng(seed)
+    noise = rng.normal(0.0, noise_px, q.shape) if noise_px > 0 else np.zeros(q.shape)
+    x = np.where(lit, q[..., 0] + noise[..., 0], np.nan).astype(np.float32)
+    y = np.where(lit, q[..., 1] + noise[..., 1], np.nan).astype(np.float32)
+    if not with_y:
+        y[:] = np.nan
+    s = np.float32(np.sqrt(s2)) if s2 > 0 else np.float32(np.nan)
+    return {"x": x, "y": y, "confidence": lit.astype(np.float32), "valid": lit,
+            "sigma_x": np.where(lit, s, np.nan).astype(np.float32),
+            "sigma_y": np.where(lit & with_y, s, np.nan).astype(np.float32),
+            "p_world": np.where(mask[..., None], p, np.nan), "shadow": shadow}
+
+
+def write_decode_npz(path, maps: dict) -> Path:
+    """Write the :data:`DECODE_KEYS` arrays of ``maps`` to ``path`` (atomic)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **{k: maps[k] for k in DECODE_KEYS})
+    return path
+
+
+def load_decode(path, shape: tuple[int, int] | None = None) -> dict:
+    """Read a ``decode.npz``, checking its arrays (names, shapes, dtypes).
+
+    Raises
+    ------
+    InputError
+        Missing file or array, or a map whose shape differs from ``shape`` / the ``x`` map.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no decode maps (run the decode stage first: facegeo decode "
+                         "SCAN)")
+    try:
+        with np.load(path) as z:
+            if "x" not in z.files:
+                raise InputError(f"{path}: missing array 'x' (expected {', '.join(DECODE_KEYS)})")
+            out = {k: z[k] for k in DECODE_KEYS if k in z.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({exc})") from exc
+    want = shape if shape is not None else out["x"].shape
+    for k, a in out.items():
+        if a.shape != tuple(want):
+            raise InputError(f"{path}: array {k!r} has shape {a.shape}, expected {tuple(want)} "
+                             "(the camera's height × width)")
+    return out
+
+
+def _load_gt_mesh(scan):
+    """The true mesh's ``(V, F)`` (float64 metres, int64)."""
+    from facegeo.pipeline.project import load_mesh
+
+    V, F, _ = load_mesh(scan, "ground_truth")
+    return V, F
+
+
+# ------------------------------------------------------------------------ PLY output
+
+_POINT_FIELDS = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("nx", "<f4"), ("ny", "<f4"),
+                 ("nz", "<f4"), ("confidence", "<f4"), ("sigma", "<f4"), ("camera", "<i4"),
+                 ("confirmed", "u1")]
+_PLY_TYPES = {"<f8": "double", "<f4": "float", "<i4": "int", "u1": "uchar"}
+
+
+def write_points_ply(path, points, normals, confidence, sigma, camera, confirmed) -> Path:
+    """Write a binary little-endian PLY of oriented points with per-point quality (atomic).
+
+    Vertex properties: ``x y z`` (double, metres), ``nx ny nz`` (float), ``confidence`` (float,
+    0..1), ``sigma`` (float, metres, 1 σ), ``camera`` (int), ``confirmed`` (uchar).
+    """
+    n = len(points)
+    rec = np.empty(n, dtype=_POINT_FIELDS)
+    for i, k in enumerate("xyz"):
+        rec[k] = points[:, i]
+        rec["n" + k] = normals[:, i]
+    rec["confidence"], rec["sigma"] = confidence, sigma
+    rec["camera"], rec["confirmed"] = camera, confirmed
+    head = ["ply", "format binary_little_endian 1.0", "comment facegeo mesh stage: metres, world frame",
+            f"element vertex {n}"]
+    head += [f"property {_PLY_TYPES[t]} {k}" for k, t in _POINT_FIELDS] + ["end_header", ""]
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write("\n".join(head).encode("ascii"))
+        fh.write(rec.tobytes())
+    return path
+
+
+def read_points_ply(path) -> np.ndarray:
+    """Read a :func:`write_points_ply` file back as a structured array."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode("ascii").splitlines()
+    names = [ln.split()[-1] for ln in header if ln.startswith("property")]
+    if names != [k for k, _ in _POINT_FIELDS]:
+        raise InputError(f"{path}: not a facegeo points PLY (properties {names})")
+    n = int(next(ln.split()[-1] for ln in header if ln.startswith("element vertex")))
+    return np.frombuffer(data, dtype=_POINT_FIELDS, count=n, offset=end)
+
+
+def _write_mesh_ply(path, V, F) -> None:
+    import trimesh
+
+    with atomic_path(path) as tmp:
+        trimesh.Trimesh(V, F, process=False).export(tmp, file_type="ply")
+
+
+# ------------------------------------------------------------------------ the stage
+
+
+def _record(out_dir: Path, stage_dir: Path, settings: dict, metrics: dict) -> None:
+    from facegeo.pipeline.cache import record_metrics
+
+    atomic_write_text(stage_dir / "stage.json", json.dumps(
+        {"stage": "mesh", "settings": settings, "metrics": metrics}, indent=2, sort_keys=True))
+    record_metrics(out_dir, "mesh", metrics)
+
+
+def run_mesh(scan_dir, out_dir=None, **settings) -> dict:
+    """Triangulate, fuse and mesh a scan's decode maps into ``out_dir/mesh/``.
+
+    Parameters
+    ----------
+    scan_dir : path-like or Scan
+    out_dir : path-like, optional
+        Default the scan's ``out/``; the decode maps are read from ``out_dir/decode/``.
+    **settings
+        See :func:`mesh_products`.
+
+    Returns
+    -------
+    dict
+        The metrics (see :func:`mesh_products`).
+    """
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir
+    with staged_directory(out / "mesh") as tmp:
+        metrics, used = mesh_products(scan, out / "decode", tmp, **settings)
+        _record(out, tmp, used, metrics)
+    return metrics
+
+
+def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
+                  cameras: list[str] | None = None, method: str = "poisson",
+                  min_confidence: float = 0.2, default_sigma_px: float = 0.3,
+                  max_sigma_ratio: float = 5.0, max_chi: float = 4.0,
+                  fuse_sigmas: float = 4.0, normals_k: int = 24, depth: int = 7,
+                  point_weight: float = 4.0, trim_quantile: float = 0.02,
+                  max_distance_mm: float | None = None, min_component: float = 0.05,
+                  target_faces: int | None = None, observed_radius_mm: float | None = None,
+                  gt_samples: int = 100_000) -> tuple[dict, dict]:
+    """Write ``points.ply`` and ``mesh.ply`` of ``scan`` into ``dest`` from ``decode_dir``.
+
+    The work of :func:`run_mesh` without the staging. Returns ``(metrics, settings)``.
+
+    Parameters
+    ----------
+    scan : Scan
+    decode_dir : path-like
+        Holds ``<camera>/decode.npz`` per camera.
+    dest : path-like
+        An existing directory.
+    rig : {"ground_truth", "scan"}, optional
+        Module docstring.
+    cameras : list of str, optional
+        Default every camera with decode maps in ``decode_dir``.
+    method : {"poisson", "grid"}
+        Poisson over all cameras' fused points, or the direct pixel-grid mesh of the first
+        camera (the cheap one-camera path).
+    min_confidence, default_sigma_px, max_sigma_ratio, max_chi
+        :func:`facegeo.geometry.triangulation.triangulate_maps`.
+    fuse_sigmas : float
+        :func:`facegeo.geometry.triangulation.fuse_cameras` tolerance.
+    normals_k : int
+        :func:`facegeo.geometry.mesh.oriented_normals`.
+    depth, point_weight, trim_quantile, min_component, target_faces
+        :func:`facegeo.geometry.mesh.poisson_mesh`.
+    max_distance_mm : float, millimetres, optional
+        Trim mesh vertices farther than this from every point. Default ``observed_radius_mm``.
+    observed_radius_mm : float, millimetres, optional
+        The observed region for the ground-truth metrics and ``unobserved_area_mm2``: within
+        this of a fused point. Default 1.5 × the points' median 6th-neighbour distance
+        (:func:`facegeo.geometry.triangulation.neighbour_spacing`; ≈ 2.0 mm on the small
+        preset, 5.5 mm on the tiny one), recorded in the metrics.
+    gt_samples : int
+        Area-uniform mesh samples for ``mesh_p95_error_mm``.
+
+    Returns
+    -------
+    metrics : dict
+        ``cameras`` (per camera: pixels with a point, counts per rejection reason, median σ in
+        mm), ``points``, ``confirmed_fraction``, ``median_sigma_mm``, ``mesh`` (the
+        reconstruction's settings and counts: depth, point weight, trim quantile, …),
+        ``faces``, ``vertices``, ``area_mm2``, ``unobserved_area_mm2``,
+        ``unobserved_area_fraction``, seconds per step, and on synthetic scans
+        ``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg``.
+    settings : dict
+    """
+    from facegeo.geometry import mesh as gm
+    from facegeo.geometry import triangulation as tr
+
+    t_start = time.perf_counter()
+    decode_dir, dest = Path(decode_dir), Path(dest)
+    if method not in ("poisson", "grid"):
+        raise InputError(f"method: expected 'poisson' or 'grid', got {fmt_value(method)}")
+    the_rig, rig_used = _rig(scan, rig)
+    if the_rig.projector is None:
+        raise InputError(f"scan {scan.root}: the rig has no projector to triangulate against")
+    if cameras is None:
+        names = [n for n in scan.camera_names if (decode_dir / n / "decode.npz").is_file()]
+        if not names:
+            raise InputError(f"{decode_dir}: no <camera>/decode.npz for any of the scan's cameras "
+                             f"({', '.join(scan.camera_names)}); run the decode stage first")
+    else:
+        names = list(cameras)
+        for n in names:
+            if n not in scan.camera_names:
+                raise InputError(f"cameras: unknown camera {fmt_value(n)}; the scan has "
+                                 f"{scan.camera_names}")
+    settings = {"rig": rig_used, "cameras": names, "method": method,
+                "min_confidence": min_confidence, "default_sigma_px": default_sigma_px,
+                "max_sigma_ratio": max_sigma_ratio, "max_chi": max_chi,
+                "fuse_sigmas": fuse_sigmas, "normals_k": normals_k, "depth": depth,
+                "point_weight": point_weight, "trim_quantile": trim_quantile,
+                "max_distance_mm": max_distance_mm, "min_component": min_component,
+                "target_faces": target_faces, "observed_radius_mm": observed_radius_mm,
+                "gt_samples": gt_samples}
+    cams = [the_rig.camera(n) for n in names]
+    maps = []
+    t0 = time.perf_counter()
+    for cam in cams:
+        d = load_decode(decode_dir / cam.name / "decode.npz", (cam.height, cam.width))
+        maps.append(tr.triangulate_maps(
+            cam, the_rig.projector, d["x"], d.get("y"), valid=d.get("valid"),
+            confidence=d.get("confidence"), sigma_x=d.get("sigma_x"), sigma_y=d.get("sigma_y"),
+            min_confidence=min_confidence, default_sigma_px=default_sigma_px,
+            max_sigma_ratio=max_sigma_ratio, max_chi=max_chi))
+    t1 = time.perf_counter()
+    fused = tr.fuse_cameras(maps, cams, tol_sigmas=fuse_sigmas)
+    t2 = time.perf_counter()
+    if len(fused) < 10:
+        raise InputError(f"{decode_dir}: only {len(fused)} points triangulated (cameras "
+                         f"{', '.join(names)}); the decode maps hold no usable codes")
+    normals = gm.oriented_normals(fused.p_world, fused.view_dirs, k=normals_k)
+    t3 = time.perf_counter()
+    spacing = tr.neighbour_spacing(fused.p_world)
+    r_obs = 1.5 * spacing if observed_radius_mm is None else observed_radius_mm * 1e-3
+    max_d = r_obs if max_distance_mm is None else max_distance_mm * 1e-3
+    if method == "poisson":
+        mesh = gm.poisson_mesh(fused.p_world, normals, depth=depth, point_weight=point_weight,
+                               trim_quantile=trim_quantile, max_distance=max_d,
+                               min_component=min_component, target_faces=target_faces)
+    else:
+        mesh = gm.grid_mesh(maps[0].p_world, maps[0].valid, center_world=cams[0].center_world)
+    t4 = time.perf_counter()
+    write_points_ply(dest / "points.ply", fused.p_world, normals, fused.confidence,
+                     fused.sigma, fused.camera, fused.confirmed)
+    _write_mesh_ply(dest / "mesh.ply", mesh.vertices, mesh.faces)
+    area_out, far = gm.area_beyond(mesh.vertices, mesh.faces, fused.p_world, r_obs)
+    area = mesh.area
+    per_cam = {}
+    for m in maps:
+        per_cam[m.camera] = {"points": int(m.valid.sum()), "rejected": m.reason_counts(),
+                             "median_sigma_mm": _mm(np.median(m.sigma[m.valid]))
+                             if m.valid.any() else None}
+    metrics: dict[str, Any] = {
+        "rig": rig_used, "cameras": per_cam, "points": len(fused),
+        "confirmed_fraction": round(float(fused.confirmed.mean()), 6),
+        "median_sigma_mm": _mm(np.median(fused.sigma)),
+        "neighbour_spacing_mm": _mm(spacing), "observed_radius_mm": _mm(r_obs),
+        "method": method, "mesh": mesh.info, "faces": len(mesh.faces),
+        "vertices": len(mesh.vertices), "area_mm2": round(area * 1e6, 3),
+        "unobserved_area_mm2": round(area_out * 1e6, 3),
+        "unobserved_area_fraction": round(area_out / area, 6) if area > 0 else None,
+        "seconds_triangulate": round(t1 - t0, 4), "seconds_fuse": round(t2 - t1, 4),
+        "seconds_normals": round(t3 - t2, 4), "seconds_mesh": round(t4 - t3, 4),
+    }
+    if scan.synthetic and "mesh" in scan.ground_truth_keys and rig_used == "ground_truth":
+        metrics.update(ground_truth_errors(scan, fused.p_world, mesh, far, gt_samples))
+    metrics["seconds"] = round(time.perf_counter() - t_start, 4)
+    return metrics, settings
+
+
+def _mm(v) -> float:
+    return round(float(v) * 1e3, 6)
+
+
+def ground_truth_errors(scan, points, mesh, far_faces, n_samples: int = 100_000) -> dict:
+    """``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg`` (module).
+
+    ``far_faces`` marks the mesh faces outside the observed region (left out of the mesh
+    figures).
+    """
+    from facegeo.geometry import mesh as gm
+
+    V, F = _load_gt_mesh(scan)
+    ref_n = None
+    if "vertex_params" in scan.ground_truth_keys:
+        with np.load(scan.ground_truth_path("vertex_params")) as z:
+            if "normals" in z.files and z["normals"].shape == V.shape:
+                ref_n = z["normals"].astype(np.float64)  # the renderer's shading normals
+    d_pts = gm.surface_errors(points, V, F)
+    out = {"points_rms_error_mm": _mm(np.sqrt(np.mean(d_pts**2)))}
+    keep_f = ~far_faces
+    if keep_f.any():
+        S, _ = gm.sample_surface(mesh.vertices, mesh.faces[keep_f], n_samples)
+        out["mesh_p95_error_mm"] = _mm(np.percentile(gm.surface_errors(S, V, F), 95))
+        vin = np.zeros(len(mesh.vertices), bool)
+        vin[mesh.faces[keep_f].ravel()] = True
+        _, ang = gm.surface_errors(mesh.vertices[vin], V, F, normals=mesh.vertex_normals[vin],
+                                   ref_normals=ref_n)
+        out["normal_median_error_deg"] = round(float(np.degrees(np.median(ang))), 4)
+    return out
