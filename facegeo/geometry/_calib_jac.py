@@ -20,7 +20,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["INTRINSIC_ORDER", "project_with_jac", "rodrigues_batch"]
+__all__ = ["INTRINSIC_ORDER", "BlockJacobian", "block_lm", "group_indicator", "project_with_jac",
+           "rodrigues_batch", "rotate_with_jac"]
 
 #: Column order of the intrinsic derivatives returned by :func:`project_with_jac`.
 INTRINSIC_ORDER = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
@@ -144,6 +145,14 @@ def project_with_jac(pc: np.ndarray, fx, fy, cx, cy, d8):
 # ------------------------------------------------------------------------------ block LM
 
 
+def group_indicator(group: np.ndarray, n_groups: int):
+    """Sparse ``(n_groups, M)`` 0/1 matrix summing rows by group (``S[g, m] = group[m] == g``)."""
+    from scipy.sparse import csr_matrix
+
+    M = group.shape[0]
+    return csr_matrix((np.ones(M), (group, np.arange(M))), shape=(int(n_groups), M))
+
+
 class BlockJacobian:
     """A calibration Jacobian in its block-sparse form.
 
@@ -160,12 +169,16 @@ class BlockJacobian:
     n_groups : int
     """
 
-    def __init__(self, Ja, Jb, group, n_groups):
+    def __init__(self, Ja, Jb, group, n_groups, indicator=None):
         self.Ja, self.Jb, self.group, self.n_groups = Ja, Jb, group, int(n_groups)
-        M = Ja.shape[0]
-        from scipy.sparse import csr_matrix
+        self._S = group_indicator(group, n_groups) if indicator is None else indicator
 
-        self._S = csr_matrix((np.ones(M), (group, np.arange(M))), shape=(self.n_groups, M))
+    def matvec(self, dx: np.ndarray) -> np.ndarray:
+        """``J · dx``, (M,)."""
+        na = self.Ja.shape[1]
+        b = self.Jb.shape[1]
+        db = dx[na:].reshape(self.n_groups, b)
+        return self.Ja @ dx[:na] + np.einsum("mk,mk->m", self.Jb, db[self.group])
 
     @property
     def shape(self):
@@ -227,8 +240,11 @@ def _schur_step(U, W, V, ga, gb, lam):
     return np.concatenate([da, db.ravel()])
 
 
-def block_lm(fun_jac, x0, *, max_iter: int = 200, ftol: float = 1e-15, xtol: float = 1e-14):
+def block_lm(fun_jac, x0, *, max_iter: int = 100, ftol: float = 1e-12):
     """Levenberg–Marquardt over a block-sparse problem (the bundle-adjustment Schur trick).
+
+    Marquardt's scaled damping ``JᵀJ + λ diag(JᵀJ)`` with Nielsen's update of λ from the gain
+    ratio (actual over predicted decrease of ``‖r‖²``).
 
     Parameters
     ----------
@@ -238,9 +254,8 @@ def block_lm(fun_jac, x0, *, max_iter: int = 200, ftol: float = 1e-15, xtol: flo
         Start; the first ``n_dense`` entries are the dense parameters, then the blocks.
     max_iter : int
         Jacobian evaluations at most.
-    ftol, xtol : float
-        Stop when the relative cost decrease of an accepted step is below ``ftol`` or the step
-        is below ``xtol · (‖x‖ + xtol)``.
+    ftol : float
+        Stop when the predicted or the actual relative decrease of ``‖r‖²`` falls below it.
 
     Returns
     -------
@@ -252,7 +267,7 @@ def block_lm(fun_jac, x0, *, max_iter: int = 200, ftol: float = 1e-15, xtol: flo
     x = np.asarray(x0, np.float64).copy()
     r, J = fun_jac(x, True)
     cost = float(r @ r)
-    lam = 1e-3
+    lam, nu = 1e-3, 2.0
     it = 0
     for it in range(1, max_iter + 1):
         U, W, V, ga, gb = J.normal(r)
@@ -262,18 +277,29 @@ def block_lm(fun_jac, x0, *, max_iter: int = 200, ftol: float = 1e-15, xtol: flo
                 dx = _schur_step(U, W, V, ga, gb, lam)
             except np.linalg.LinAlgError:
                 dx = None
-            if dx is not None and np.all(np.isfinite(dx)):
-                x_new = x + dx
-                r_new, _ = fun_jac(x_new, False)
-                cost_new = float(r_new @ r_new) if np.all(np.isfinite(r_new)) else np.inf
-                if cost_new <= cost:
-                    small_f = cost - cost_new <= ftol * cost
-                    small_x = np.linalg.norm(dx) <= xtol * (np.linalg.norm(x) + xtol)
-                    x, cost = x_new, cost_new
-                    lam = max(lam / 10.0, 1e-12)
-                    done = small_f or small_x
+            if dx is None or not np.all(np.isfinite(dx)):
+                lam *= nu
+                nu *= 2.0
+                if lam > 1e16:
+                    done = True
                     break
-            lam *= 10.0
+                continue
+            r_lin = r + J.matvec(dx)
+            pred = cost - float(r_lin @ r_lin)
+            if pred <= ftol * cost:  # converged: no decrease left to predict
+                done = True
+                break
+            r_new, _ = fun_jac(x + dx, False)
+            cost_new = float(r_new @ r_new) if np.all(np.isfinite(r_new)) else np.inf
+            rho = (cost - cost_new) / pred
+            if rho > 0:
+                done = cost - cost_new <= ftol * cost
+                x, cost = x + dx, cost_new
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                break
+            lam *= nu
+            nu *= 2.0
             if lam > 1e16:
                 done = True
                 break

@@ -23,6 +23,7 @@ from facegeo.errors import InputError
 from facegeo.frames import Pose
 from facegeo.geometry._calib_jac import (
     BlockJacobian,
+    group_indicator,
     project_with_jac,
     rodrigues_batch,
     rotate_with_jac,
@@ -130,6 +131,7 @@ def _rig_problem(names, cameras, observations, vpos, refine_intrinsics):
         return fx, fy, cx, cy, d8
 
     rows_v = np.repeat(view_idx, 2)
+    S = group_indicator(rows_v, Vn)
     cam_rows = [np.flatnonzero(cam_idx == ci) for ci in range(C)]
 
     def fun_jac(x, jac: bool):
@@ -165,7 +167,7 @@ def _rig_problem(names, cameras, observations, vpos, refine_intrinsics):
                 Ja[sel, :, o + 3: o + 6] = dq_dp[sel]
         dq_dref = dq_dp @ Rc[cam_idx]
         Jb = np.concatenate([dq_dref @ dRbp, dq_dref], axis=-1).reshape(-1, 6)
-        return (q - q_all).ravel(), BlockJacobian(Ja.reshape(2 * N, -1), Jb, rows_v, Vn)
+        return (q - q_all).ravel(), BlockJacobian(Ja.reshape(2 * N, -1), Jb, rows_v, Vn, S)
 
     return SimpleNamespace(fun_jac=fun_jac, unpack_intr=unpack_intr, theta0=theta0, mdls=mdls,
                            cam_idx=cam_idx, q_all=q_all, n_intr=n_intr, n_cam=n_cam)

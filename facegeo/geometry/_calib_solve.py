@@ -37,6 +37,7 @@ from facegeo.frames import Pose
 from facegeo.geometry._calib_jac import (
     BlockJacobian,
     block_lm,
+    group_indicator,
     project_with_jac,
     rodrigues_batch,
     rotate_with_jac,
@@ -339,21 +340,22 @@ def _single_problem(P, Q, mdl: _Model):
     p_all = np.concatenate(P)
     q_all = np.concatenate(Q)
     rows_v = np.repeat(vidx, 2)
+    S = group_indicator(rows_v, V)
 
     def fun_jac(x, jac: bool):
         th = x[:ni]
         ps = x[ni:].reshape(V, 6)
         fx, fy, cx, cy, d8 = mdl.unpack(th)
-        if not jac:
-            pc = rotate_rvec(ps[vidx, :3], p_all) + ps[vidx, 3:]
-            return (project_points(pc, fx, fy, cx, cy, d8) - q_all).ravel(), None
         R, dR = rodrigues_batch(ps[:, :3])
+        if not jac:
+            pc = np.einsum("nij,nj->ni", R[vidx], p_all) + ps[vidx, 3:]
+            return (project_points(pc, fx, fy, cx, cy, d8) - q_all).ravel(), None
         Rp, dRp = rotate_with_jac(R[vidx], dR[vidx], p_all)
         pc = Rp + ps[vidx, 3:]
         q, dq_dp, dq_dk = project_with_jac(pc, fx, fy, cx, cy, d8)
         Ja = mdl.intr_jac(dq_dk).reshape(-1, ni)
         Jb = np.concatenate([dq_dp @ dRp, dq_dp], axis=-1).reshape(-1, 6)
-        return (q - q_all).ravel(), BlockJacobian(Ja, Jb, rows_v, V)
+        return (q - q_all).ravel(), BlockJacobian(Ja, Jb, rows_v, V, S)
 
     return fun_jac, vidx
 
