@@ -346,6 +346,23 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
     assert (tmp_path / "out" / "metrics.json").exists()
     # one projector view cannot calibrate the projector: said in the metrics, rig keeps nominal
     assert "need 3" in m["projector"]["error"]
+    # the stage form: same products but no metrics file; JSON-safe metrics and settings back
+    import json
+
+    from facegeo.pipeline.calibrate import calibrate_products
+
+    m2, settings = calibrate_products(tmp_path / "scan", tmp_path / "stage",
+                                      cross_validation=False)
+    assert settings == {"model": "opencv5", "legacy": False, "loss": "linear",
+                        "reference": None, "cross_validation": False}
+    json.dumps(m2, allow_nan=False)
+    json.dumps(settings)
+    assert not (tmp_path / "stage" / "metrics.json").exists()
+    rig2 = Rig.load(tmp_path / "stage" / "rig.json")
+    for name in rig.camera_names:
+        assert np.allclose(rig2.camera(name).K, rig.camera(name).K, rtol=1e-9)
+        assert m2["cameras"][name]["reprojection_rms_px"] == pytest.approx(
+            m["cameras"][name]["reprojection_rms_px"], rel=1e-9)
 
 
 #: local-homography projector corners vs the exact map, Gray-quantised codes: worst, projector px

@@ -266,27 +266,16 @@ class CameraCalibration:
         for i in range(V):
             p_b[i] = rotate_rvec(-poses[i, :3], p_cam0 - poses[i, 3:])
 
-        x0 = np.concatenate([self._theta, poses.ravel()])
-
-        def q_of(x):
-            th = x[: self._mdl.n]
-            ps = x[self._mdl.n:].reshape(V, 6)
-            pc = np.zeros((G, 3))
-            for i in range(V):
-                pc += rotate_rvec(np.broadcast_to(ps[i, :3], (G, 3)), p_b[i]) + ps[i, 3:]
-            pc /= V
-            fx, fy, cx, cy, d8 = self._mdl.unpack(th)
-            return project_points(pc, fx, fy, cx, cy, d8)
-
-        n = x0.size
-        J = np.empty((G, 2, n))
-        for j in range(n):
-            h = 1e-6 * max(1.0, abs(x0[j]))
-            xp = x0.copy()
-            xm = x0.copy()
-            xp[j] += h
-            xm[j] -= h
-            J[:, :, j] = (q_of(xp) - q_of(xm)) / (2 * h)
+        # analytic first-order propagation: p_cam = mean_v (R_v p_b[v] + t_v), q = project(p_cam)
+        R, dR = rodrigues_batch(poses[:, :3])
+        pc = np.einsum("vij,vgj->gi", R, p_b) / V + poses[:, 3:].mean(axis=0)
+        fx, fy, cx, cy, d8 = self._mdl.unpack(self._theta)
+        _, dq_dp, dq_dk = project_with_jac(pc, fx, fy, cx, cy, d8)
+        dpc_dr = np.einsum("vkij,vgj->vgik", dR, p_b) / V  # (V, G, 3, 3): ∂p_cam/∂r_v
+        J_r = np.einsum("gai,vgik->gavk", dq_dp, dpc_dr)  # (G, 2, V, 3)
+        J_t = np.broadcast_to((dq_dp / V)[:, :, None, :], (G, 2, V, 3))
+        J = np.concatenate([self._mdl.intr_jac(dq_dk),
+                            np.concatenate([J_r, J_t], axis=-1).reshape(G, 2, 6 * V)], axis=-1)
         S = np.einsum("gin,nm,gjm->gij", J, self.covariance, J)
         sig = np.sqrt(np.clip(np.trace(S, axis1=1, axis2=2), 0, None))
         return {"q": q, "sigma_px": sig, "rms_px": float(np.sqrt(np.mean(sig**2))),
