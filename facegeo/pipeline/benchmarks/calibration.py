@@ -48,10 +48,15 @@ def _versus_opencv(P, Q, size, *, repeat: int = 3, **kwargs):
     Q32 = [q.astype(np.float32) for q in Q]
     Pd = [p.astype(np.float64) for p in P32]
     Qd = [q.astype(np.float64) for q in Q32]
-    t_ours, c = best_of(lambda: calibrate_camera(Pd, Qd, size, reject_views=False, **kwargs),
-                        repeat)
-    t_cv, (rms_cv, K_cv, d_cv, _, _) = best_of(
-        lambda: cv2.calibrateCamera(P32, Q32, size, None, None), repeat)
+    prev = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        t_ours, c = best_of(
+            lambda: calibrate_camera(Pd, Qd, size, reject_views=False, **kwargs), repeat)
+        t_cv, (rms_cv, K_cv, d_cv, _, _) = best_of(
+            lambda: cv2.calibrateCamera(P32, Q32, size, None, None), repeat)
+    finally:
+        cv2.setNumThreads(prev)
     return t_ours, t_cv, c, float(rms_cv), K_cv, np.ravel(d_cv)
 
 
@@ -66,8 +71,6 @@ def _param_diff(cam, K_cv, d_cv) -> dict:
 @register("calibration.camera")
 @one_blas_thread
 def bench_camera(quick: bool) -> list[BenchRow]:
-    import cv2
-
     from facegeo.frames import Pose
     from facegeo.geometry.board import CharucoBoard, random_board_poses
     from facegeo.geometry.camera import Camera
@@ -78,37 +81,32 @@ def bench_camera(quick: bool) -> list[BenchRow]:
     board = CharucoBoard(10, 7, 0.03, 0.022)
     P0 = board.chessboard_corners()
     rows = []
-    prev = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        cases = [(f"{n} views (random_board_poses)", random_board_poses(cam, n, n, board=board), n)
-                 for n in ((5, 10) if quick else (5, 10, 20))]
-        if not quick:
-            from facegeo.synth.boards import calibration_board_poses
+    cases = [(f"{n} views (random_board_poses)", random_board_poses(cam, n, n, board=board), n)
+             for n in ((5, 10) if quick else (5, 10, 20))]
+    if not quick:
+        from facegeo.synth.boards import calibration_board_poses
 
-            cases.append(("20 views (synth.boards.calibration_board_poses)",
-                          calibration_board_poses(board, [cam], 20, 20), 20))
-        for label, poses, n in cases:
-            rng = np.random.default_rng(n)
-            Q = [cam.project_cam(T.apply(P0))[0] + rng.normal(0, NOISE_PX, (len(P0), 2))
-                 for T in poses]
-            t_ours, t_cv, c, rms_cv, K_cv, d_cv = _versus_opencv([P0] * n, Q, cam.size)
-            e = c.camera
-            focal = max(abs(e.fx / K[0, 0] - 1), abs(e.fy / K[1, 1] - 1))
-            pp = float(np.hypot(e.cx - K[0, 2], e.cy - K[1, 2]))
-            rows.append(BenchRow(
-                "calibration.camera", f"facegeo calibrate_camera, {label}", n / t_ours,
-                "views/s", error=focal, error_unit="max |Δf|/f vs truth",
-                ratios={_VS: t_cv / t_ours}, threads=1, baseline_threads={_VS: 1},
-                extra={"seconds": round(t_ours, 4), "cv2_seconds": round(t_cv, 4),
-                       "rms_px": c.rms_px, "cv2_rms_px": rms_cv,
-                       "principal_point_error_px": round(pp, 3),
-                       "cv2_focal_rel_error": float(max(abs(K_cv[0, 0] / K[0, 0] - 1),
-                                                        abs(K_cv[1, 1] / K[1, 1] - 1))),
-                       "std_fx_px": round(c.std["fx"], 3), "std_cx_px": round(c.std["cx"], 3),
-                       "noise_px": NOISE_PX, **_param_diff(e, K_cv, d_cv)}))
-    finally:
-        cv2.setNumThreads(prev)
+        cases.append(("20 views (synth.boards.calibration_board_poses)",
+                      calibration_board_poses(board, [cam], 20, 20), 20))
+    for label, poses, n in cases:
+        rng = np.random.default_rng(n)
+        Q = [cam.project_cam(T.apply(P0))[0] + rng.normal(0, NOISE_PX, (len(P0), 2))
+             for T in poses]
+        t_ours, t_cv, c, rms_cv, K_cv, d_cv = _versus_opencv([P0] * n, Q, cam.size)
+        e = c.camera
+        focal = max(abs(e.fx / K[0, 0] - 1), abs(e.fy / K[1, 1] - 1))
+        pp = float(np.hypot(e.cx - K[0, 2], e.cy - K[1, 2]))
+        rows.append(BenchRow(
+            "calibration.camera", f"facegeo calibrate_camera, {label}", n / t_ours,
+            "views/s", error=focal, error_unit="max |Δf|/f vs truth",
+            ratios={_VS: t_cv / t_ours}, threads=1, baseline_threads={_VS: 1},
+            extra={"seconds": round(t_ours, 4), "cv2_seconds": round(t_cv, 4),
+                   "rms_px": c.rms_px, "cv2_rms_px": rms_cv,
+                   "principal_point_error_px": round(pp, 3),
+                   "cv2_focal_rel_error": float(max(abs(K_cv[0, 0] / K[0, 0] - 1),
+                                                    abs(K_cv[1, 1] / K[1, 1] - 1))),
+                   "std_fx_px": round(c.std["fx"], 3), "std_cx_px": round(c.std["cx"], 3),
+                   "noise_px": NOISE_PX, **_param_diff(e, K_cv, d_cv)}))
     return rows
 
 
@@ -125,28 +123,23 @@ def bench_real(quick: bool) -> list[BenchRow]:
         log.warning("calibration.real: %s is absent; no rows", d)
         return []
     rows = []
-    prev = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        for side in ("left",) if quick else ("left", "right"):
-            files = sorted(d.glob(f"{side}*.jpg"))
-            imgs = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
-            dets = usable_detections(detect_boards(imgs, ChessboardSpec(9, 6, 0.025),
-                                                   names=[f.name for f in files],
-                                                   method="classic"))
-            size = dets[0].image_size
-            t_ours, t_cv, c, rms_cv, K_cv, d_cv = _versus_opencv(
-                [x.p_board for x in dets], [x.q for x in dets], size)
-            rows.append(BenchRow(
-                "calibration.real", f"facegeo calibrate_camera, OpenCV {side}*.jpg "
-                f"({len(dets)} views, 54 corners)", len(dets) / t_ours, "views/s",
-                error=c.rms_px - rms_cv, error_unit="RMS − cv2 RMS, px",
-                ratios={_VS: t_cv / t_ours}, threads=1, baseline_threads={_VS: 1},
-                extra={"seconds": round(t_ours, 4), "cv2_seconds": round(t_cv, 4),
-                       "rms_px": c.rms_px, "cv2_rms_px": rms_cv,
-                       **_param_diff(c.camera, K_cv, d_cv)}))
-    finally:
-        cv2.setNumThreads(prev)
+    for side in ("left",) if quick else ("left", "right"):
+        files = sorted(d.glob(f"{side}*.jpg"))
+        imgs = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+        dets = usable_detections(detect_boards(imgs, ChessboardSpec(9, 6, 0.025),
+                                               names=[f.name for f in files],
+                                               method="classic"))
+        size = dets[0].image_size
+        t_ours, t_cv, c, rms_cv, K_cv, d_cv = _versus_opencv(
+            [x.p_board for x in dets], [x.q for x in dets], size)
+        rows.append(BenchRow(
+            "calibration.real", f"facegeo calibrate_camera, OpenCV {side}*.jpg "
+            f"({len(dets)} views, 54 corners)", len(dets) / t_ours, "views/s",
+            error=c.rms_px - rms_cv, error_unit="RMS − cv2 RMS, px",
+            ratios={_VS: t_cv / t_ours}, threads=1, baseline_threads={_VS: 1},
+            extra={"seconds": round(t_ours, 4), "cv2_seconds": round(t_cv, 4),
+                   "rms_px": c.rms_px, "cv2_rms_px": rms_cv,
+                   **_param_diff(c.camera, K_cv, d_cv)}))
     return rows
 
 
