@@ -497,3 +497,30 @@ def test_rig_jacobian_matches_finite_differences():
                               (c.T_cam_world @ T_ref.inverse()).t]) for c in cams[1:]]
     parts += [np.concatenate([rng.uniform(-0.5, 0.5, 3), [-0.1, -0.05, 0.6]]) for _ in views]
     _check_jacobian(pb.fun_jac, np.concatenate(parts))
+
+
+#: robust loss with gross outlier corners vs the plain solve without them: max |Δ| on fx, fy,
+#: cx, cy, pixels
+ROBUST_TOL_PX = 0.5
+
+
+def test_robust_loss_ignores_gross_corner_outliers(clean):
+    """Five corners moved by 15 px in five views: the plain solve moves by more than the
+    tolerance from the outlier-free solve; the Cauchy loss (scipy's trust-region solver with the
+    analytic Jacobian) stays within it."""
+    P, Q, _ = clean
+    rng = np.random.default_rng(12)
+    Qn = [q + rng.normal(0, 0.1, q.shape) for q in Q]
+    Qo = [q.copy() for q in Qn]
+    for v in range(5):
+        Qo[v][7 * v + 3] += 15.0
+
+    def intr(c):
+        e = c.camera
+        return np.array([e.fx, e.fy, e.cx, e.cy])
+
+    ref = intr(calibrate_camera(P, Qn, SIZE, reject_views=False))
+    plain = intr(calibrate_camera(P, Qo, SIZE, reject_views=False))
+    robust = intr(calibrate_camera(P, Qo, SIZE, loss="cauchy", f_scale=0.5, reject_views=False))
+    assert np.abs(robust - ref).max() <= ROBUST_TOL_PX, robust - ref
+    assert np.abs(plain - ref).max() > ROBUST_TOL_PX, plain - ref
