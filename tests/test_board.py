@@ -382,7 +382,8 @@ GEN_FOCAL_REL = 0.002
 #: same: every intrinsic's actual error within this many reported standard deviations
 GEN_SIGMA_K = 3.0
 #: narrow default-rig camera: σ(fx), σ(fy) of the generator's views at least this many times
-#: below those of centred, mildly tilted views (random_board_poses, 12–35°, fill 0.3–0.5), equal count
+#: below those of centred, mildly tilted views (random_board_poses, 12–35°, fill 0.3–0.5) of
+#: equal count
 NARROW_FOCAL_SIGMA_GAIN = 2.5
 #: same for σ(cx), σ(cy)
 NARROW_CENTRE_SIGMA_GAIN = 1.5
