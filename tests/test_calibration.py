@@ -338,6 +338,7 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
     for name in rig.camera_names:
         cm = m["cameras"][name]
         assert cm["views_used"] == 8 and cm["reprojection_rms_px"] < 0.3
+        assert len(cm["per_view_rms_px"]) == 8 and max(cm["per_view_rms_px"].values()) < 0.5
         for key in ("cross_validation_px", "focal_rel_error", "principal_point_error_px",
                     "rotation_error_deg", "translation_error_mm"):
             assert np.isfinite(cm[key]), key

@@ -241,7 +241,9 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
     Returns
     -------
     metrics : dict
-        ``{"cameras": {name: {reprojection_rms_px, views_used, views_detected,
+        ``{"cameras": {name: {reprojection_rms_px, views_used, views_detected, rejected
+        (why each dropped view was dropped), per_view_rms_px (view → RMS at the camera's own
+        solution; dropped views re-posed),
         cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
         std_px: {fx, fy, cx, cy}[, focal_rel_error, principal_point_error_px,
         rotation_error_deg, translation_error_mm]}}, "projector": {views_used,
@@ -298,6 +300,7 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
         obs[name] = {d.name: (d.p_board, d.q) for d, u in zip(found, c.views_used) if u}
         m = {"views_detected": len(found), "views_used": c.n_views_used,
              "rejected": c.rejected, "camera_rms_px": c.rms_px,
+             "per_view_rms_px": {d.name: float(r) for d, r in zip(found, c.per_view_rms_px)},
              "std_px": {k: c.std[k] for k in ("fx", "fy", "cx", "cy")}}
         u = c.projection_uncertainty()
         m["projection_uncertainty_rms_px"] = u["rms_px"]
