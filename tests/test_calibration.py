@@ -338,6 +338,7 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
     for name in rig.camera_names:
         cm = m["cameras"][name]
         assert cm["views_used"] == 8 and cm["reprojection_rms_px"] < 0.3
+        assert len(cm["per_view_rms_px"]) == 8 and max(cm["per_view_rms_px"].values()) < 0.5
         for key in ("cross_validation_px", "focal_rel_error", "principal_point_error_px",
                     "rotation_error_deg", "translation_error_mm"):
             assert np.isfinite(cm[key]), key
@@ -346,6 +347,23 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
     assert (tmp_path / "out" / "metrics.json").exists()
     # one projector view cannot calibrate the projector: said in the metrics, rig keeps nominal
     assert "need 3" in m["projector"]["error"]
+    # the stage form: same products but no metrics file; JSON-safe metrics and settings back
+    import json
+
+    from facegeo.pipeline.calibrate import calibrate_products
+
+    m2, settings = calibrate_products(tmp_path / "scan", tmp_path / "stage",
+                                      cross_validation=False)
+    assert settings == {"model": "opencv5", "legacy": False, "loss": "linear",
+                        "reference": None, "cross_validation": False}
+    json.dumps(m2, allow_nan=False)
+    json.dumps(settings)
+    assert not (tmp_path / "stage" / "metrics.json").exists()
+    rig2 = Rig.load(tmp_path / "stage" / "rig.json")
+    for name in rig.camera_names:
+        assert np.allclose(rig2.camera(name).K, rig.camera(name).K, rtol=1e-9)
+        assert m2["cameras"][name]["reprojection_rms_px"] == pytest.approx(
+            m["cameras"][name]["reprojection_rms_px"], rel=1e-9)
 
 
 #: local-homography projector corners vs the exact map, Gray-quantised codes: worst, projector px
@@ -415,3 +433,95 @@ def test_projector_joint_refinement():
     err = max(abs(est.fx / 997.0 - 1), abs(est.fy / 989.5 - 1))
     assert err <= PROJECTOR_FOCAL_REL_TOL  # measured 6.8e-4; the separate solve: 1.5e-2
     assert np.isfinite(rig.rms_px["projector"]) and rig.rms_px["projector"] < 0.3
+
+
+# ------------------------------------------------------------------ analytic Jacobian
+
+#: analytic vs central-difference Jacobian: max |ΔJ| / max(1, |J|), per entry
+JACOBIAN_REL_TOL = 1e-5
+
+
+def _fd_jacobian(fun_jac, x, h=1e-6):
+    f0 = fun_jac(x, False)[0]
+    J = np.empty((f0.size, x.size))
+    for j in range(x.size):
+        step = h * max(1.0, abs(x[j]))
+        xp, xm = x.copy(), x.copy()
+        xp[j] += step
+        xm[j] -= step
+        J[:, j] = (fun_jac(xp, False)[0] - fun_jac(xm, False)[0]) / (2 * step)
+    return J
+
+
+def _check_jacobian(fun_jac, x):
+    r, J = fun_jac(x, True)
+    assert np.allclose(r, fun_jac(x, False)[0], rtol=0, atol=1e-9)  # both residual paths agree
+    Ja = J.dense()
+    Jn = _fd_jacobian(fun_jac, x)
+    err = np.abs(Ja - Jn) / np.maximum(1.0, np.abs(Jn))
+    assert err.max() <= JACOBIAN_REL_TOL, (err.max(), np.unravel_index(err.argmax(), err.shape))
+    # JᵀJ from the blocks equals the dense product
+    assert np.allclose(J.jtj(), Ja.T @ Ja, rtol=1e-10, atol=1e-9)
+
+
+@pytest.mark.parametrize("model,aspect", [("opencv5", None), ("rational8", None),
+                                          ("opencv4", 1.0), ("pinhole", None)])
+def test_analytic_jacobian_matches_finite_differences(model, aspect):
+    """The solver's hand-written Jacobian (intrinsics, distortion, per-view poses) against
+    central differences, at a point with every distortion term non-zero (a sign or factor error
+    in any term breaks it)."""
+    from facegeo.geometry._calib_solve import _Model, _single_problem
+
+    P, Q, poses = _views(_camera(), 4, 9)
+    mdl = _Model(model, aspect)
+    fun_jac, _ = _single_problem(P, Q, mdl)
+    d8 = np.array([-0.21, 0.09, 0.0012, -0.0007, -0.02, 0.05, -0.03, 0.01])
+    theta = mdl.pack(TRUE_K, d8)
+    x = np.concatenate([theta] + [np.concatenate([T.rvec, T.t]) for T in poses])
+    _check_jacobian(fun_jac, x)
+
+
+def test_rig_jacobian_matches_finite_differences():
+    """Same check for the rig bundle adjustment (camera poses chained with board poses)."""
+    from facegeo.geometry._calib_rig import _rig_problem
+
+    cams, obs = _rig_fixture()
+    cameras = {c.name: c for c in cams}
+    names = [c.name for c in cams]
+    views = sorted({v for o in obs.values() for v in o}, key=str)
+    vpos = {v: i for i, v in enumerate(views)}
+    pb = _rig_problem(names, cameras, obs, vpos, True)
+    rng = np.random.default_rng(4)
+    T_ref = cams[0].T_cam_world
+    parts = [np.concatenate(pb.theta0)]
+    parts += [np.concatenate([(c.T_cam_world @ T_ref.inverse()).rvec,
+                              (c.T_cam_world @ T_ref.inverse()).t]) for c in cams[1:]]
+    parts += [np.concatenate([rng.uniform(-0.5, 0.5, 3), [-0.1, -0.05, 0.6]]) for _ in views]
+    _check_jacobian(pb.fun_jac, np.concatenate(parts))
+
+
+#: robust loss with gross outlier corners vs the plain solve without them: max |Δ| on fx, fy,
+#: cx, cy, pixels
+ROBUST_TOL_PX = 0.5
+
+
+def test_robust_loss_ignores_gross_corner_outliers(clean):
+    """Five corners moved by 15 px in five views: the plain solve moves by more than the
+    tolerance from the outlier-free solve; the Cauchy loss (scipy's trust-region solver with the
+    analytic Jacobian) stays within it."""
+    P, Q, _ = clean
+    rng = np.random.default_rng(12)
+    Qn = [q + rng.normal(0, 0.1, q.shape) for q in Q]
+    Qo = [q.copy() for q in Qn]
+    for v in range(5):
+        Qo[v][7 * v + 3] += 15.0
+
+    def intr(c):
+        e = c.camera
+        return np.array([e.fx, e.fy, e.cx, e.cy])
+
+    ref = intr(calibrate_camera(P, Qn, SIZE, reject_views=False))
+    plain = intr(calibrate_camera(P, Qo, SIZE, reject_views=False))
+    robust = intr(calibrate_camera(P, Qo, SIZE, loss="cauchy", f_scale=0.5, reject_views=False))
+    assert np.abs(robust - ref).max() <= ROBUST_TOL_PX, robust - ref
+    assert np.abs(plain - ref).max() > ROBUST_TOL_PX, plain - ref

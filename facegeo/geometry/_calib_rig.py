@@ -3,15 +3,17 @@
 Rig: every camera ``c`` has a pose ``T_c_ref`` relative to a reference camera (identity for the
 reference) and every board view ``v`` a pose ``T_ref_board_v``; the residual of a corner seen by
 camera c in view v is ``project_c(T_c_ref · T_ref_board_v · p_board) − q``. All poses (and, if
-asked, every camera's intrinsics) are refined jointly by ``scipy.optimize.least_squares`` with a
-block-sparse Jacobian, so N cameras with different view counts and views seen by only some
-cameras work alike. Initial poses come from ``solvePnP`` per observation, chained through views
+asked, every camera's intrinsics) are refined jointly by the block Levenberg–Marquardt of
+:mod:`._calib_jac` (analytic Jacobian; intrinsics and camera poses dense, board poses in 6-column
+blocks; ``scipy.optimize.least_squares`` for a robust loss), so N cameras with different view
+counts and views seen by only some cameras work alike. Initial poses come from ``solvePnP`` per observation, chained through views
 seen by two cameras.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -19,8 +21,18 @@ import numpy as np
 from facegeo.checks import check_choice, check_positive, fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import Pose
+from facegeo.geometry._calib_jac import (
+    BlockJacobian,
+    group_indicator,
+    project_with_jac,
+    rodrigues_batch,
+    rotate_with_jac,
+)
 from facegeo.geometry._calib_solve import (
-    _least_squares, _Model, calibrate_camera, grouped_jacobian, project_points,
+    _Model,
+    calibrate_camera,
+    minimise,
+    project_points,
     rotate_rvec,
 )
 from facegeo.geometry.camera import Camera
@@ -70,6 +82,95 @@ def _pose6(T: Pose) -> np.ndarray:
 
 def _pose(x6) -> Pose:
     return Pose.from_rvec_tvec(x6[:3], x6[3:])
+
+
+def _rig_problem(names, cameras, observations, vpos, refine_intrinsics):
+    """Residuals and block Jacobian of the rig bundle adjustment.
+
+    Parameters: ``x = (θ of every camera if refine_intrinsics, T_c_ref of cameras 1…C−1,
+    T_ref_board of every view)`` as 6-vectors (rvec, tvec); the residual of a corner seen by
+    camera c in view v is ``project_c(T_c_ref · T_ref_board_v · p) − q``. Returns a namespace
+    with ``fun_jac(x, jac)``, ``unpack_intr(x)``, ``theta0``, ``mdls``, ``cam_idx``, ``q_all``,
+    ``n_intr``, ``n_cam``.
+    """
+    C, Vn = len(names), len(vpos)
+    mdls = [_Model({0: "pinhole", 4: "opencv4", 5: "opencv5", 8: "rational8"}[
+        cameras[n].dist.size], None) for n in names]
+    off_i = np.cumsum([0] + [m.n for m in mdls]) if refine_intrinsics else np.zeros(
+        len(names) + 1, int)
+    n_intr = int(off_i[-1])
+    # observation arrays
+    cam_idx, view_idx, Pl, Ql = [], [], [], []
+    for ci, n in enumerate(names):
+        for v, (p, q) in observations[n].items():
+            p = np.asarray(p, np.float64)
+            cam_idx.append(np.full(len(p), ci))
+            view_idx.append(np.full(len(p), vpos[v]))
+            Pl.append(p)
+            Ql.append(np.asarray(q, np.float64))
+    cam_idx = np.concatenate(cam_idx)
+    view_idx = np.concatenate(view_idx)
+    p_all = np.concatenate(Pl)
+    q_all = np.concatenate(Ql)
+    theta0 = [m.pack(cameras[n].K, cameras[n].dist) for m, n in zip(mdls, names)]
+    fixed = [
+        (cameras[n].fx, cameras[n].fy, cameras[n].cx, cameras[n].cy,
+         np.pad(cameras[n].dist, (0, 8 - cameras[n].dist.size))) for n in names
+    ]
+    n_cam = 6 * (C - 1)
+
+    def unpack_intr(x):
+        fx = np.empty(C)
+        fy, cx, cy = np.empty(C), np.empty(C), np.empty(C)
+        d8 = np.empty((C, 8))
+        for ci, m in enumerate(mdls):
+            if refine_intrinsics:
+                fx[ci], fy[ci], cx[ci], cy[ci], d8[ci] = m.unpack(x[off_i[ci]: off_i[ci + 1]])
+            else:
+                fx[ci], fy[ci], cx[ci], cy[ci], d8[ci] = fixed[ci]
+        return fx, fy, cx, cy, d8
+
+    rows_v = np.repeat(view_idx, 2)
+    S = group_indicator(rows_v, Vn)
+    cam_rows = [np.flatnonzero(cam_idx == ci) for ci in range(C)]
+
+    def fun_jac(x, jac: bool):
+        fx, fy, cx, cy, d8 = unpack_intr(x)
+        cp = np.zeros((C, 6))
+        cp[1:] = x[n_intr: n_intr + n_cam].reshape(C - 1, 6)
+        bp = x[n_intr + n_cam:].reshape(Vn, 6)
+        if not jac:
+            b = bp[view_idx]
+            p_ref = rotate_rvec(b[:, :3], p_all) + b[:, 3:]
+            c = cp[cam_idx]
+            p_cam = rotate_rvec(c[:, :3], p_ref) + c[:, 3:]
+            q = project_points(p_cam, fx[cam_idx], fy[cam_idx], cx[cam_idx], cy[cam_idx],
+                               d8[cam_idx])
+            return (q - q_all).ravel(), None
+        Rb, dRb = rodrigues_batch(bp[:, :3])
+        Rc, dRc = rodrigues_batch(cp[:, :3])
+        Rbp, dRbp = rotate_with_jac(Rb[view_idx], dRb[view_idx], p_all)
+        p_ref = Rbp + bp[view_idx, 3:]
+        Rcp, dRcp = rotate_with_jac(Rc[cam_idx], dRc[cam_idx], p_ref)
+        p_cam = Rcp + cp[cam_idx, 3:]
+        q, dq_dp, dq_dk = project_with_jac(p_cam, fx[cam_idx], fy[cam_idx], cx[cam_idx],
+                                           cy[cam_idx], d8[cam_idx])
+        N = p_all.shape[0]
+        Ja = np.zeros((N, 2, n_intr + n_cam))
+        for ci in range(C):  # cameras: a handful
+            sel = cam_rows[ci]
+            if refine_intrinsics:
+                Ja[sel, :, off_i[ci]: off_i[ci + 1]] = mdls[ci].intr_jac(dq_dk[sel])
+            if ci:
+                o = n_intr + 6 * (ci - 1)
+                Ja[sel, :, o: o + 3] = dq_dp[sel] @ dRcp[sel]
+                Ja[sel, :, o + 3: o + 6] = dq_dp[sel]
+        dq_dref = dq_dp @ Rc[cam_idx]
+        Jb = np.concatenate([dq_dref @ dRbp, dq_dref], axis=-1).reshape(-1, 6)
+        return (q - q_all).ravel(), BlockJacobian(Ja.reshape(2 * N, -1), Jb, rows_v, Vn, S)
+
+    return SimpleNamespace(fun_jac=fun_jac, unpack_intr=unpack_intr, theta0=theta0, mdls=mdls,
+                           cam_idx=cam_idx, q_all=q_all, n_intr=n_intr, n_cam=n_cam)
 
 
 def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = None,
@@ -154,65 +255,17 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
         )
     views = sorted(T_ref_b, key=str)
     vpos = {v: i for i, v in enumerate(views)}
-    mdls = [_Model({0: "pinhole", 4: "opencv4", 5: "opencv5", 8: "rational8"}[
-        cameras[n].dist.size], None) for n in names]
-    off_i = np.cumsum([0] + [m.n for m in mdls]) if refine_intrinsics else np.zeros(
-        len(names) + 1, int)
-    n_intr = int(off_i[-1])
+    pb = _rig_problem(names, cameras, observations, vpos, refine_intrinsics)
+    mdls, cam_idx, q_all, n_intr, n_cam = pb.mdls, pb.cam_idx, pb.q_all, pb.n_intr, pb.n_cam
     C, Vn = len(names), len(views)
-    # observation arrays
-    cam_idx, view_idx, Pl, Ql = [], [], [], []
-    for ci, n in enumerate(names):
-        for v, (p, q) in observations[n].items():
-            p = np.asarray(p, np.float64)
-            cam_idx.append(np.full(len(p), ci))
-            view_idx.append(np.full(len(p), vpos[v]))
-            Pl.append(p)
-            Ql.append(np.asarray(q, np.float64))
-    cam_idx = np.concatenate(cam_idx)
-    view_idx = np.concatenate(view_idx)
-    p_all = np.concatenate(Pl)
-    q_all = np.concatenate(Ql)
-    theta0 = [m.pack(cameras[n].K, cameras[n].dist) for m, n in zip(mdls, names)]
-    fixed = [
-        (cameras[n].fx, cameras[n].fy, cameras[n].cx, cameras[n].cy,
-         np.pad(cameras[n].dist, (0, 8 - cameras[n].dist.size))) for n in names
-    ]
-    parts = [np.concatenate(theta0)] if refine_intrinsics else []
+    parts = [np.concatenate(pb.theta0)] if refine_intrinsics else []
     parts += [_pose6(T_c_ref[n]) for n in names[1:]]
     parts += [_pose6(T_ref_b[v]) for v in views]
     x0 = np.concatenate(parts)
-    n_cam = 6 * (C - 1)
-
-    def unpack_intr(x):
-        fx = np.empty(C)
-        fy, cx, cy = np.empty(C), np.empty(C), np.empty(C)
-        d8 = np.empty((C, 8))
-        for ci, m in enumerate(mdls):
-            if refine_intrinsics:
-                fx[ci], fy[ci], cx[ci], cy[ci], d8[ci] = m.unpack(x[off_i[ci]: off_i[ci + 1]])
-            else:
-                fx[ci], fy[ci], cx[ci], cy[ci], d8[ci] = fixed[ci]
-        return fx, fy, cx, cy, d8
-
-    def fun(x):
-        fx, fy, cx, cy, d8 = unpack_intr(x)
-        cp = np.zeros((C, 6))
-        cp[1:] = x[n_intr: n_intr + n_cam].reshape(C - 1, 6)
-        bp = x[n_intr + n_cam:].reshape(Vn, 6)[view_idx]
-        p_ref = rotate_rvec(bp[:, :3], p_all) + bp[:, 3:]
-        c = cp[cam_idx]
-        p_cam = rotate_rvec(c[:, :3], p_ref) + c[:, 3:]
-        q = project_points(p_cam, fx[cam_idx], fy[cam_idx], cx[cam_idx], cy[cam_idx],
-                           d8[cam_idx])
-        return (q - q_all).ravel()
-
     # dense columns: intrinsics and camera poses (few); blocks: board poses
-    jac = grouped_jacobian(fun, n_intr + n_cam, view_idx, Vn, 6)
-    res = _least_squares(fun, jac, x0, loss, f_scale)
-    x = res.x
-    r = fun(x).reshape(-1, 2)
-    fx, fy, cx, cy, d8 = unpack_intr(x)
+    x, r, _ = minimise(pb.fun_jac, x0, loss, f_scale)
+    r = r.reshape(-1, 2)
+    fx, fy, cx, cy, d8 = pb.unpack_intr(x)
     cp = np.zeros((C, 6))
     cp[1:] = x[n_intr: n_intr + n_cam].reshape(C - 1, 6)
     bp = x[n_intr + n_cam:].reshape(Vn, 6)

@@ -3,15 +3,18 @@
 The model is OpenCV's (``facegeo.geometry.camera``): pinhole ``K`` with zero skew and the
 radial-tangential (optionally rational) distortion. The solve follows Zhang (2000) as OpenCV
 does: ``cv2.initCameraMatrix2D`` (homographies of the planar board) starts ``K``, ``solvePnP``
-starts each view's pose ``T_cam_board``, and ``scipy.optimize.least_squares`` (trust-region
-reflective) refines intrinsics + distortion + every pose jointly, minimising
+starts each view's pose ``T_cam_board``, and a Levenberg–Marquardt solve refines
+intrinsics + distortion + every pose jointly, minimising
 
     Σ_views Σ_corners ‖ project(K, d, T_cam_board_v · p_board) − q ‖²
 
-(the course notes' calibration objective, `siggraph2000-course` §"camera calibration"), with an
-optional robust loss and a block-sparse Jacobian (each residual depends on the intrinsics and on
-one view's six pose parameters), built by grouped central differences (:func:`grouped_jacobian`,
-``2 (n_intrinsics + 6)`` evaluations whatever the number of views) and stored dense.
+(the course notes' calibration objective, `siggraph2000-course` §"camera calibration"). The
+Jacobian is analytic (:mod:`._calib_jac`: the OpenCV projection's derivatives by hand, OpenCV's
+Rodrigues derivative) and block-sparse (each residual depends on the intrinsics and on one view's
+six pose parameters); the normal equations are solved by the Schur complement on the intrinsics
+(:func:`~._calib_jac.block_lm`, the bundle-adjustment trick), as OpenCV's own solver does
+densely. A robust loss goes through ``scipy.optimize.least_squares`` (trust-region reflective)
+with the same Jacobian.
 
 Uncertainty: ``Σ = σ² (JᵀJ)⁻¹`` at the solution with ``σ² = ‖r‖² / (m − n)``; the projection
 uncertainty follows mrcal (Kogan): a pixel's ray at a working distance is fixed in the frame of
@@ -31,6 +34,14 @@ from scipy.optimize import least_squares
 from facegeo.checks import as_array, check_choice, check_positive
 from facegeo.errors import InputError
 from facegeo.frames import Pose
+from facegeo.geometry._calib_jac import (
+    BlockJacobian,
+    block_lm,
+    group_indicator,
+    project_with_jac,
+    rodrigues_batch,
+    rotate_with_jac,
+)
 from facegeo.geometry.camera import Camera
 
 log = logging.getLogger(__name__)
@@ -39,8 +50,8 @@ __all__ = [
     "MODELS",
     "CameraCalibration",
     "calibrate_camera",
-    "rotate_rvec",
     "project_points",
+    "rotate_rvec",
 ]
 
 #: Distortion models by name → number of OpenCV coefficients ``(k1, k2, p1, p2, k3, k4, k5, k6)``.
@@ -135,6 +146,14 @@ class _Model:
         d8 = np.zeros(theta.shape[:-1] + (8,))
         d8[..., : self.nd] = theta[..., o + 2: o + 2 + self.nd]
         return fx, fy, cx, cy, d8
+
+    def intr_jac(self, dq_dk: np.ndarray) -> np.ndarray:
+        """Derivatives in :data:`~._calib_jac.INTRINSIC_ORDER` (…, 2, 12) → θ's (…, 2, n)."""
+        if self.aspect is not None:
+            f = (self.aspect * dq_dk[..., 0] + dq_dk[..., 1])[..., None]
+        else:
+            f = dq_dk[..., 0:2]
+        return np.concatenate([f, dq_dk[..., 2:4], dq_dk[..., 4: 4 + self.nd]], axis=-1)
 
     def camera(self, theta: np.ndarray, name: str, size) -> Camera:
         fx, fy, cx, cy, d8 = self.unpack(theta)
@@ -247,27 +266,16 @@ class CameraCalibration:
         for i in range(V):
             p_b[i] = rotate_rvec(-poses[i, :3], p_cam0 - poses[i, 3:])
 
-        x0 = np.concatenate([self._theta, poses.ravel()])
-
-        def q_of(x):
-            th = x[: self._mdl.n]
-            ps = x[self._mdl.n:].reshape(V, 6)
-            pc = np.zeros((G, 3))
-            for i in range(V):
-                pc += rotate_rvec(np.broadcast_to(ps[i, :3], (G, 3)), p_b[i]) + ps[i, 3:]
-            pc /= V
-            fx, fy, cx, cy, d8 = self._mdl.unpack(th)
-            return project_points(pc, fx, fy, cx, cy, d8)
-
-        n = x0.size
-        J = np.empty((G, 2, n))
-        for j in range(n):
-            h = 1e-6 * max(1.0, abs(x0[j]))
-            xp = x0.copy()
-            xm = x0.copy()
-            xp[j] += h
-            xm[j] -= h
-            J[:, :, j] = (q_of(xp) - q_of(xm)) / (2 * h)
+        # analytic first-order propagation: p_cam = mean_v (R_v p_b[v] + t_v), q = project(p_cam)
+        R, dR = rodrigues_batch(poses[:, :3])
+        pc = np.einsum("vij,vgj->gi", R, p_b) / V + poses[:, 3:].mean(axis=0)
+        fx, fy, cx, cy, d8 = self._mdl.unpack(self._theta)
+        _, dq_dp, dq_dk = project_with_jac(pc, fx, fy, cx, cy, d8)
+        dpc_dr = np.einsum("vkij,vgj->vgik", dR, p_b) / V  # (V, G, 3, 3): ∂p_cam/∂r_v
+        J_r = np.einsum("gai,vgik->gavk", dq_dp, dpc_dr)  # (G, 2, V, 3)
+        J_t = np.broadcast_to((dq_dp / V)[:, :, None, :], (G, 2, V, 3))
+        J = np.concatenate([self._mdl.intr_jac(dq_dk),
+                            np.concatenate([J_r, J_t], axis=-1).reshape(G, 2, 6 * V)], axis=-1)
         S = np.einsum("gin,nm,gjm->gij", J, self.covariance, J)
         sig = np.sqrt(np.clip(np.trace(S, axis1=1, axis2=2), 0, None))
         return {"q": q, "sigma_px": sig, "rms_px": float(np.sqrt(np.mean(sig**2))),
@@ -312,71 +320,64 @@ def _check_views(P, Q, size, min_views):
     return usable, reasons
 
 
-def _solve(P, Q, theta0, poses0, mdl: _Model, loss: str, f_scale: float):
+def _single_problem(P, Q, mdl: _Model):
+    """Residuals and block Jacobian of one camera's calibration over ``(θ, poses)``."""
     V = len(P)
     ni = mdl.n
     counts = np.array([p.shape[0] for p in P])
     vidx = np.repeat(np.arange(V), counts)
     p_all = np.concatenate(P)
     q_all = np.concatenate(Q)
-    N = p_all.shape[0]
+    rows_v = np.repeat(vidx, 2)
+    S = group_indicator(rows_v, V)
 
-    def fun(x):
+    def fun_jac(x, jac: bool):
         th = x[:ni]
-        ps = x[ni:].reshape(V, 6)[vidx]
-        pc = rotate_rvec(ps[:, :3], p_all) + ps[:, 3:]
+        ps = x[ni:].reshape(V, 6)
         fx, fy, cx, cy, d8 = mdl.unpack(th)
-        return (project_points(pc, fx, fy, cx, cy, d8) - q_all).ravel()
+        R, dR = rodrigues_batch(ps[:, :3])
+        if not jac:
+            pc = np.einsum("nij,nj->ni", R[vidx], p_all) + ps[vidx, 3:]
+            return (project_points(pc, fx, fy, cx, cy, d8) - q_all).ravel(), None
+        Rp, dRp = rotate_with_jac(R[vidx], dR[vidx], p_all)
+        pc = Rp + ps[vidx, 3:]
+        q, dq_dp, dq_dk = project_with_jac(pc, fx, fy, cx, cy, d8)
+        Ja = mdl.intr_jac(dq_dk).reshape(-1, ni)
+        Jb = np.concatenate([dq_dp @ dRp, dq_dp], axis=-1).reshape(-1, 6)
+        return (q - q_all).ravel(), BlockJacobian(Ja, Jb, rows_v, V, S)
 
+    return fun_jac, vidx
+
+
+def _solve(P, Q, theta0, poses0, mdl: _Model, loss: str, f_scale: float):
+    """Joint solve of intrinsics and poses; returns ``x, r (N, 2), vidx, BlockJacobian``."""
+    fun_jac, vidx = _single_problem(P, Q, mdl)
     x0 = np.concatenate([theta0, poses0.ravel()])
-    jac = grouped_jacobian(fun, ni, vidx, V, 6)
-    res = _least_squares(fun, jac, x0, loss, f_scale)
-    r = fun(res.x)
-    J = jac(res.x)
-    return res.x, r.reshape(N, 2), vidx, J
+    x, r, J = minimise(fun_jac, x0, loss, f_scale)
+    return x, r.reshape(-1, 2), vidx, J
 
 
-def grouped_jacobian(fun, n_dense, group_idx, n_groups, block):
-    """Central-difference Jacobian exploiting block sparsity, as a dense array.
+def minimise(fun_jac, x0, loss: str, f_scale: float):
+    """Least squares over a block-sparse calibration problem.
 
-    Columns ``[0, n_dense)`` touch every residual; then ``n_groups`` blocks of ``block``
-    columns, block g touching only the residual pairs whose ``group_idx`` is g. Perturbing
-    column k of every block at once costs one evaluation pair per block column, so the whole
-    Jacobian takes ``2 (n_dense + block)`` evaluations of ``fun``.
+    The plain loss uses facegeo's block Levenberg–Marquardt (:func:`~._calib_jac.block_lm`,
+    analytic Jacobian, Schur complement on the dense parameters). A robust loss uses
+    ``scipy.optimize.least_squares`` (trust-region reflective) with the same analytic Jacobian
+    (dense, exact trust-region solver).
+
+    Returns
+    -------
+    x, r, J : the solution, its residuals and its :class:`~._calib_jac.BlockJacobian`.
     """
-    rows_g = np.repeat(group_idx, 2)
-
-    def jac(x):
-        f0 = fun(x)
-        J = np.zeros((f0.size, x.size))
-        for j in range(n_dense):
-            h = 1e-6 * max(1.0, abs(x[j]))
-            xp, xm = x.copy(), x.copy()
-            xp[j] += h
-            xm[j] -= h
-            J[:, j] = (fun(xp) - fun(xm)) / (2 * h)
-        if n_groups:
-            rows = np.arange(f0.size)
-            for k in range(block):
-                cols = n_dense + block * np.arange(n_groups) + k
-                h = 1e-6 * np.maximum(1.0, np.abs(x[cols]))
-                xp, xm = x.copy(), x.copy()
-                xp[cols] += h
-                xm[cols] -= h
-                J[rows, n_dense + block * rows_g + k] = (fun(xp) - fun(xm)) / (2 * h[rows_g])
-        return J
-
-    return jac
-
-
-def _least_squares(fun, jac, x0, loss, f_scale):
-    """Levenberg–Marquardt (MINPACK) for the plain loss, trust-region reflective otherwise."""
     if loss == "linear":
-        return least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", ftol=1e-14,
-                             xtol=1e-14, gtol=1e-14, max_nfev=100 * (x0.size + 1))
-    return least_squares(fun, x0, jac=jac, method="trf", tr_solver="exact", loss=loss,
-                         f_scale=f_scale, x_scale="jac", ftol=1e-14, xtol=1e-14, gtol=1e-14,
-                         max_nfev=100 * (x0.size + 1))
+        x, r, J, _ = block_lm(fun_jac, x0)
+        return x, r, J
+    res = least_squares(lambda x: fun_jac(x, False)[0], x0,
+                        jac=lambda x: fun_jac(x, True)[1].dense(), method="trf",
+                        tr_solver="exact", loss=loss, f_scale=f_scale, x_scale="jac",
+                        ftol=1e-14, xtol=1e-14, gtol=1e-14, max_nfev=100 * (x0.size + 1))
+    r, J = fun_jac(res.x, True)
+    return res.x, r, J
 
 
 def _init(P, Q, size, mdl: _Model, K0):
@@ -510,7 +511,7 @@ def calibrate_camera(object_points, image_points, image_size, *, model: str = "o
     m, n = r.size, x.size
     ssr = float((r**2).sum())
     sigma2 = ssr / max(m - n, 1)
-    JtJ = J.T @ J
+    JtJ = J.jtj()
     try:
         cov = sigma2 * np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:

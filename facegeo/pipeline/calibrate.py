@@ -1,7 +1,8 @@
 """The calibrate stage: cameras and rig from a scan's ChArUco views (issue 9).
 
-``run_calibrate(scan_dir, out_dir)`` reads every camera's ``calib/<camera>/`` views, detects the
-board (:func:`facegeo.geometry.calibration.detect_boards`), calibrates each camera
+``run_calibrate(scan_dir, out_dir)`` (``facegeo calibrate``) reads every camera's
+``calib/<camera>/`` views, detects the board
+(:func:`facegeo.geometry.calibration.detect_boards`), calibrates each camera
 (:func:`~facegeo.geometry.calibration.calibrate_camera`), cross-validates it, bundle-adjusts the
 rig (:func:`~facegeo.geometry.calibration.calibrate_rig`) and writes
 
@@ -17,7 +18,11 @@ rig (:func:`~facegeo.geometry.calibration.calibrate_rig`) and writes
 * with ``calib/projector/`` views: the projector (Moreno & Taubin local homographies, then the
   joint bundle adjustment), its YAML and residual plot; otherwise ``metrics["projector"]``
   says why it was not calibrated and ``rig.json`` keeps the nominal projector;
-* ``metrics.json`` — ``{"calibrate": metrics}`` (the dict returned).
+* ``metrics.json`` — ``{"calibrate": metrics}`` (the dict returned), by ``run_calibrate`` only.
+
+``calibrate_products(scan, dest, **settings) -> (metrics, settings)`` is the same work as a
+cached stage (the shape of ``facegeo.pipeline.project.project_products``): it writes the products
+above except ``metrics.json`` and returns the metrics for the stage cache to record.
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ from facegeo.fsutil import atomic_write_text
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_calibrate", "RESIDUAL_GAIN"]
+__all__ = ["run_calibrate", "calibrate_products", "RESIDUAL_GAIN"]
 
 #: Residual vectors are drawn this many times longer than they are.
 RESIDUAL_GAIN = 100.0
@@ -157,14 +162,69 @@ def _projector_observations(scan, board, legacy):
 def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: bool = False,
                   loss: str = "linear", reference: str | None = None,
                   cross_validation: bool = True, progress=None) -> dict:
-    """Calibrate a scan's cameras and rig from its ChArUco ``calib/`` views.
+    """Calibrate a scan's cameras and rig from its ChArUco ``calib/`` views (``facegeo
+    calibrate``): :func:`calibrate_products` into ``out_dir``, plus ``out_dir/metrics.json``
+    (``{"calibrate": metrics}``).
 
     Parameters
     ----------
-    scan_dir : path-like
-        A scan directory (:func:`facegeo.capture.scan.load_scan`).
+    scan_dir : path-like or Scan
+        A scan directory (:func:`facegeo.capture.scan.load_scan`) or a loaded scan.
     out_dir : path-like, optional
         Where to write the products (default ``<scan>/out/calibrate``).
+    model, legacy, loss, reference, cross_validation, progress
+        See :func:`calibrate_products`.
+
+    Returns
+    -------
+    dict
+        The metrics of :func:`calibrate_products`.
+    """
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir / "calibrate"
+    metrics, _ = calibrate_products(scan, out, model=model, legacy=legacy, loss=loss,
+                                    reference=reference, cross_validation=cross_validation,
+                                    progress=progress)
+    atomic_write_text(out / "metrics.json", json.dumps({"calibrate": metrics}, indent=1) + "\n")
+    return metrics
+
+
+def _scan(scan):
+    from facegeo.capture.scan import Scan, load_scan
+
+    return scan if isinstance(scan, Scan) else load_scan(scan)
+
+
+def _json_safe(obj):
+    """Non-finite floats → None (metrics go through ``json.dumps(allow_nan=False)``)."""
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = False,
+                       loss: str = "linear", reference: str | None = None,
+                       cross_validation: bool = True, progress=None) -> tuple[dict, dict]:
+    """Write the ``calibrate`` products of ``scan`` into ``dest``; return ``(metrics, settings)``.
+
+    The stage form of the calibration (the shape of
+    :func:`facegeo.pipeline.project.project_products`): products ``rig.json`` (the calibrated
+    rig, the scan's world frame), ``<camera>.yml``, ``residuals_<camera>.png``,
+    ``detections.json`` and, with a calibrated projector, its YAML and plot. The metrics are
+    returned (the stage cache records them in ``out/metrics.json``), not written here.
+
+    Parameters
+    ----------
+    scan : path-like or Scan
+        A scan directory or a loaded scan with a ``[calib]`` section.
+    dest : path-like
+        The folder to write into (created).
     model : {"pinhole", "opencv4", "opencv5", "rational8"}
         Distortion model of every camera.
     legacy : bool
@@ -176,20 +236,25 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: boo
     cross_validation : bool
         Run the two-halves check per camera (needs ≥ 6 usable views).
     progress : callable(str), optional
-        Called with a short message per step.
+        Called with a short message per step (not a setting).
 
     Returns
     -------
-    dict
-        ``{"cameras": {name: {reprojection_rms_px, views_used, views_detected,
+    metrics : dict
+        ``{"cameras": {name: {reprojection_rms_px, views_used, views_detected, rejected
+        (why each dropped view was dropped), per_view_rms_px (view → RMS at the camera's own
+        solution; dropped views re-posed),
         cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
         std_px: {fx, fy, cx, cy}[, focal_rel_error, principal_point_error_px,
         rotation_error_deg, translation_error_mm]}}, "projector": {views_used,
         reprojection_rms_px, separate_rms_px[, focal_rel_error, focal_rel_error_without_joint,
-        ...]} or {"error": why}, "seconds"}``. View k of every camera is taken to be the same
-        board pose (the scan format's ``calib`` views are simultaneous). Ground-truth errors (synthetic scans) compare with
+        ...]} or {"error": why}, "seconds"}`` (non-finite numbers as None). View k of every
+        camera is taken to be the same board pose (the scan format's ``calib`` views are
+        simultaneous). Ground-truth errors (synthetic scans) compare with
         ``ground_truth/rig.json`` after the best rigid alignment of the whole rig (the world
         frame is a gauge choice); rotation/translation errors are those of each camera pose.
+    settings : dict
+        The settings used (JSON-serialisable; the stage cache keys on them).
 
     Raises
     ------
@@ -198,7 +263,6 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: boo
         every skipped image and why).
     """
     from facegeo.capture.imageio import read_image
-    from facegeo.capture.scan import load_scan
     from facegeo.geometry.calibration import (
         calibrate_camera, calibrate_rig, cross_validate, detect_boards, detection_report,
         usable_detections,
@@ -207,10 +271,12 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: boo
 
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
-    scan = load_scan(scan_dir)
+    scan = _scan(scan)
+    settings = {"model": model, "legacy": bool(legacy), "loss": loss, "reference": reference,
+                "cross_validation": bool(cross_validation)}
     if not scan.has("calib"):
         raise InputError(f"{scan.root}: the scan has no [calib] section (no board views)")
-    out = Path(out_dir) if out_dir is not None else scan.out_dir / "calibrate"
+    out = Path(dest)
     out.mkdir(parents=True, exist_ok=True)
     board = scan.board
     nominal = scan.rig
@@ -234,6 +300,7 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: boo
         obs[name] = {d.name: (d.p_board, d.q) for d, u in zip(found, c.views_used) if u}
         m = {"views_detected": len(found), "views_used": c.n_views_used,
              "rejected": c.rejected, "camera_rms_px": c.rms_px,
+             "per_view_rms_px": {d.name: float(r) for d, r in zip(found, c.per_view_rms_px)},
              "std_px": {k: c.std[k] for k in ("fx", "fy", "cx", "cy")}}
         u = c.projection_uncertainty()
         m["projection_uncertainty_rms_px"] = u["rms_px"]
@@ -332,5 +399,4 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: boo
     metrics["projector"] = proj_metrics
     metrics["seconds"] = time.perf_counter() - t0
     atomic_write_text(out / "detections.json", json.dumps(report, indent=1) + "\n")
-    atomic_write_text(out / "metrics.json", json.dumps({"calibrate": metrics}, indent=1) + "\n")
-    return metrics
+    return _json_safe(metrics), settings

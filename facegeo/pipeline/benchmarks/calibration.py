@@ -1,27 +1,78 @@
-"""Benchmark of camera calibration: solve time against reprojection and ground-truth error for
-5, 10 and 20 views of synthetic corners (asymmetric camera, 0.2 px noise), beside
-``cv2.calibrateCamera`` on the same corners (same model, one thread each)."""
+"""Benchmark of camera calibration against ``cv2.calibrateCamera`` on the same corners (same
+model, one thread each): solve time, RMS, and the parameter differences to OpenCV's solution.
+
+* ``calibration.camera`` — 5, 10 and 20 views of synthetic corners (asymmetric camera, 5-term
+  distortion, 0.2 px noise) with ground-truth errors, and 20 views placed by
+  :func:`facegeo.synth.boards.calibration_board_poses` (tilts 45–60°, image-filling);
+* ``calibration.real`` — OpenCV's own stereo chessboards (``left*.jpg``, ``right*.jpg``,
+  9 × 6 inner corners, classic detector) from ``../shared/data/calibration/
+  opencv_stereo_chessboards`` (``FACEGEO_SHARED_DATA`` overrides; no rows when absent);
+* ``calibration.projector`` — projector focal error with and without the joint refinement.
+
+Times are the best of 3 runs of each solver.
+"""
 
 from __future__ import annotations
 
+import logging
+import os
 import time
+from pathlib import Path
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, one_blas_thread, register
+from facegeo.pipeline.bench import BenchRow, best_of, one_blas_thread, register
+
+log = logging.getLogger(__name__)
 
 #: Injected corner noise, pixels (per axis).
 NOISE_PX = 0.2
+
+#: What the rows compare with.
+_VS = "vs cv2.calibrateCamera (1 thread)"
+
+
+def _shared_data() -> Path:
+    default = Path(__file__).resolve().parents[4] / "shared" / "data"
+    return Path(os.environ.get("FACEGEO_SHARED_DATA", default))
+
+
+def _versus_opencv(P, Q, size, *, repeat: int = 3, **kwargs):
+    """Time facegeo's ``calibrate_camera`` and ``cv2.calibrateCamera`` on the same float32
+    corners; return both times, both RMS and facegeo's camera, OpenCV's K and distortion."""
+    import cv2
+
+    from facegeo.geometry.calibration import calibrate_camera
+
+    P32 = [p.astype(np.float32) for p in P]
+    Q32 = [q.astype(np.float32) for q in Q]
+    Pd = [p.astype(np.float64) for p in P32]
+    Qd = [q.astype(np.float64) for q in Q32]
+    prev = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        t_ours, c = best_of(
+            lambda: calibrate_camera(Pd, Qd, size, reject_views=False, **kwargs), repeat)
+        t_cv, (rms_cv, K_cv, d_cv, _, _) = best_of(
+            lambda: cv2.calibrateCamera(P32, Q32, size, None, None), repeat)
+    finally:
+        cv2.setNumThreads(prev)
+    return t_ours, t_cv, c, float(rms_cv), K_cv, np.ravel(d_cv)
+
+
+def _param_diff(cam, K_cv, d_cv) -> dict:
+    e = cam
+    return {"max_abs_diff_fx_fy_cx_cy_px": float(max(
+        abs(e.fx - K_cv[0, 0]), abs(e.fy - K_cv[1, 1]), abs(e.cx - K_cv[0, 2]),
+        abs(e.cy - K_cv[1, 2]))),
+        "max_abs_diff_dist": float(np.abs(np.ravel(e.dist) - d_cv[: np.size(e.dist)]).max())}
 
 
 @register("calibration.camera")
 @one_blas_thread
 def bench_camera(quick: bool) -> list[BenchRow]:
-    import cv2
-
     from facegeo.frames import Pose
     from facegeo.geometry.board import CharucoBoard, random_board_poses
-    from facegeo.geometry.calibration import calibrate_camera
     from facegeo.geometry.camera import Camera
 
     K = np.array([[1210.0, 0.0, 655.3], [0.0, 1190.0, 371.8], [0.0, 0.0, 1.0]])
@@ -30,38 +81,65 @@ def bench_camera(quick: bool) -> list[BenchRow]:
     board = CharucoBoard(10, 7, 0.03, 0.022)
     P0 = board.chessboard_corners()
     rows = []
-    prev = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        for n in (5, 10) if quick else (5, 10, 20):
-            poses = random_board_poses(cam, n, n, board=board)
-            rng = np.random.default_rng(n)
-            Q = [(cam.project_cam(T.apply(P0))[0] + rng.normal(0, NOISE_PX, (len(P0), 2)))
-                 .astype(np.float32).astype(np.float64) for T in poses]
-            P = [P0] * n
-            t0 = time.perf_counter()
-            c = calibrate_camera(P, Q, cam.size, reject_views=False)
-            t_ours = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            rms_cv, K_cv, _, _, _ = cv2.calibrateCamera(
-                [p.astype(np.float32) for p in P], [q.astype(np.float32) for q in Q], cam.size,
-                None, None)
-            t_cv = time.perf_counter() - t0
-            e = c.camera
-            focal = max(abs(e.fx / K[0, 0] - 1), abs(e.fy / K[1, 1] - 1))
-            pp = float(np.hypot(e.cx - K[0, 2], e.cy - K[1, 2]))
-            rows.append(BenchRow(
-                "calibration.camera", f"facegeo calibrate_camera, {n} views", n / t_ours,
-                "views/s", error=focal, error_unit="max |Δf|/f vs truth",
-                ratios={"vs cv2.calibrateCamera (1 thread)": t_cv / t_ours},
-                threads=1, baseline_threads={"vs cv2.calibrateCamera (1 thread)": 1},
-                extra={"seconds": round(t_ours, 3), "rms_px": round(c.rms_px, 4),
-                       "cv2_rms_px": round(float(rms_cv), 4), "principal_point_error_px":
-                       round(pp, 3), "cv2_focal_rel_error": float(max(
-                           abs(K_cv[0, 0] / K[0, 0] - 1), abs(K_cv[1, 1] / K[1, 1] - 1))),
-                       "std_fx_px": round(c.std["fx"], 3), "noise_px": NOISE_PX}))
-    finally:
-        cv2.setNumThreads(prev)
+    cases = [(f"{n} views (random_board_poses)", random_board_poses(cam, n, n, board=board), n)
+             for n in ((5, 10) if quick else (5, 10, 20))]
+    if not quick:
+        from facegeo.synth.boards import calibration_board_poses
+
+        cases.append(("20 views (synth.boards.calibration_board_poses)",
+                      calibration_board_poses(board, [cam], 20, 20), 20))
+    for label, poses, n in cases:
+        rng = np.random.default_rng(n)
+        Q = [cam.project_cam(T.apply(P0))[0] + rng.normal(0, NOISE_PX, (len(P0), 2))
+             for T in poses]
+        t_ours, t_cv, c, rms_cv, K_cv, d_cv = _versus_opencv([P0] * n, Q, cam.size)
+        e = c.camera
+        focal = max(abs(e.fx / K[0, 0] - 1), abs(e.fy / K[1, 1] - 1))
+        pp = float(np.hypot(e.cx - K[0, 2], e.cy - K[1, 2]))
+        rows.append(BenchRow(
+            "calibration.camera", f"facegeo calibrate_camera, {label}", n / t_ours,
+            "views/s", error=focal, error_unit="max |Δf|/f vs truth",
+            ratios={_VS: t_cv / t_ours}, threads=1, baseline_threads={_VS: 1},
+            extra={"seconds": round(t_ours, 4), "cv2_seconds": round(t_cv, 4),
+                   "rms_px": c.rms_px, "cv2_rms_px": rms_cv,
+                   "principal_point_error_px": round(pp, 3),
+                   "cv2_focal_rel_error": float(max(abs(K_cv[0, 0] / K[0, 0] - 1),
+                                                    abs(K_cv[1, 1] / K[1, 1] - 1))),
+                   "std_fx_px": round(c.std["fx"], 3), "std_cx_px": round(c.std["cx"], 3),
+                   "noise_px": NOISE_PX, **_param_diff(e, K_cv, d_cv)}))
+    return rows
+
+
+@register("calibration.real")
+@one_blas_thread
+def bench_real(quick: bool) -> list[BenchRow]:
+    """OpenCV's stereo chessboards: facegeo vs ``cv2.calibrateCamera`` on the same corners."""
+    import cv2
+
+    from facegeo.geometry.calibration import ChessboardSpec, detect_boards, usable_detections
+
+    d = _shared_data() / "calibration" / "opencv_stereo_chessboards"
+    if not d.is_dir():
+        log.warning("calibration.real: %s is absent; no rows", d)
+        return []
+    rows = []
+    for side in ("left",) if quick else ("left", "right"):
+        files = sorted(d.glob(f"{side}*.jpg"))
+        imgs = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+        dets = usable_detections(detect_boards(imgs, ChessboardSpec(9, 6, 0.025),
+                                               names=[f.name for f in files],
+                                               method="classic"))
+        size = dets[0].image_size
+        t_ours, t_cv, c, rms_cv, K_cv, d_cv = _versus_opencv(
+            [x.p_board for x in dets], [x.q for x in dets], size)
+        rows.append(BenchRow(
+            "calibration.real", f"facegeo calibrate_camera, OpenCV {side}*.jpg "
+            f"({len(dets)} views, 54 corners)", len(dets) / t_ours, "views/s",
+            error=c.rms_px - rms_cv, error_unit="RMS − cv2 RMS, px",
+            ratios={_VS: t_cv / t_ours}, threads=1, baseline_threads={_VS: 1},
+            extra={"seconds": round(t_ours, 4), "cv2_seconds": round(t_cv, 4),
+                   "rms_px": c.rms_px, "cv2_rms_px": rms_cv,
+                   **_param_diff(c.camera, K_cv, d_cv)}))
     return rows
 
 

@@ -1,0 +1,289 @@
+"""Board poses a rig can be calibrated from: strong tilts, image-filling views, shared views.
+
+A narrow-field camera (the default rig's: ≈ 12° × 19°) calibrated from boards tilted ≤ 35° and
+centred in the image cannot separate its principal point from the pose and the decentering
+distortion: the small scan's ``cam_left`` came out 48 px off with a reported σ(cx) of 11 px.
+What constrains the model (Zhang 2000 §5; mrcal's "how to calibrate": tilted boards, close,
+covering the image) is
+
+* **tilt**: each view tilts the board 45–60° from the target camera's optical axis, about an
+  in-plane axis whose direction is stratified over the views (so the tilt axes cover every
+  direction, and both focal lengths and both principal-point coordinates are seen through
+  perspective);
+* **coverage**: each view's board fills a large fraction of the image and is pushed toward one
+  of the image corners in turn (and the centre), so the union of the views reaches every corner
+  of the image, where the distortion terms are largest;
+* **shared views**: a camera-targeted view need not be seen by the other cameras; every
+  ``shared_every``-th view (and every view when ``shared_every=1``, as for the projector views,
+  which must be seen by the cameras and the projector at once) keeps the whole board inside
+  every camera, so the rig's bundle adjustment connects the cameras.
+
+:func:`calibration_board_poses` returns world poses ``T_world_board`` (board frame →
+world), the convention of ``facegeo.synth.capture``'s ``_board_poses``; render a view with
+``board.render(cam, cam.T_cam_world @ T_world_board)``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from facegeo.checks import check_positive, fmt_value
+from facegeo.errors import InputError
+from facegeo.frames import Pose, rotation_from_rvec
+from facegeo.geometry.camera import Camera
+
+__all__ = ["CORNER_CELL", "CORNER_TRIES", "board_coverage", "calibration_board_poses"]
+
+#: Image anchors cycled through by the views of one camera: the four corners, then the centre
+#: (fractions of the free image span: −1 / +1 push the board's box against that side).
+_ANCHORS = ((-1.0, -1.0), (1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (0.0, 0.0))
+
+
+#: A corner view puts a board corner within this fraction of the image size (per axis) from
+#: the image corner, when it can within :data:`CORNER_TRIES` draws.
+CORNER_CELL = 0.3
+CORNER_TRIES = 300
+
+
+def _range(r, name, lo, hi):
+    try:
+        a, b = (float(v) for v in r)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected (low, high), got {fmt_value(r)}") from None
+    if not (lo <= a <= b <= hi):
+        raise InputError(f"{name}: expected (low, high) with {lo} <= low <= high <= {hi}, got "
+                         f"{fmt_value(r)}")
+    return a, b
+
+
+def _inside(cam: Camera, p_cam: np.ndarray, margin_px: float, cos_max: float, normal_cam):
+    """Whole outline in front, inside the image with ``margin_px``, printed face seen at less
+    than the maximum view angle everywhere."""
+    q, front = cam.project_cam(p_cam)
+    if not front.all() or not np.all(np.isfinite(q)):
+        return False, q
+    lo = -0.5 + margin_px
+    if (q < lo).any() or (q[:, 0] > cam.width - 0.5 - margin_px).any() or (
+            q[:, 1] > cam.height - 0.5 - margin_px).any():
+        return False, q
+    # printed face looks toward board −z: the view direction p/|p| must be along +normal
+    cos_view = (p_cam @ normal_cam) / np.linalg.norm(p_cam, axis=-1)
+    return bool(np.all(cos_view >= cos_max)), q
+
+
+def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 3,
+                            tilt_deg=(45.0, 60.0), fill=(0.6, 0.85), roll_deg=(-30.0, 30.0),
+                            margin_px: float = 2.0, max_view_angle_deg: float = 75.0,
+                            max_tries: int = 4000) -> list[Pose]:
+    """World poses of a calibration board that constrain every camera's intrinsics.
+
+    View k targets camera ``cameras[k mod C]`` (C cameras): the board is tilted by an angle drawn
+    from ``tilt_deg`` about an in-plane axis at azimuth ``2π(j + u)/m`` in that camera's image
+    (j: the view's index among the camera's m views, u uniform), rolled by ``roll_deg``, and
+    placed at the distance where its projected box spans a fraction drawn from ``fill`` of the
+    image (the larger of width and height fractions), pushed toward image anchor
+    ``j mod 5`` (the four corners — where a board corner must land within :data:`CORNER_CELL`
+    of the image size from the image corner — then the centre; shared views of several cameras: near the
+    centre, where the cameras' views overlap, and targeting only the cameras whose field of
+    view is within 1.5× the narrowest, so a projector's wide field does not set the size). A
+    draw is kept when the whole board is
+    inside the target camera's image with ``margin_px`` to spare, in front of it, and its printed
+    face is seen at less than ``max_view_angle_deg`` everywhere; a *shared* view (every
+    ``shared_every``-th, starting with view 0; ``shared_every=1``: all) must satisfy this in
+    every camera. Where a shared view cannot be placed in half of ``max_tries`` draws, its tilt
+    and fill are scaled down gradually over the remaining draws (to half the drawn values at
+    most).
+
+    Parameters
+    ----------
+    board : CharucoBoard
+    cameras : sequence of Camera
+        Cameras (a projector too: it is an inverse camera) in the world frame.
+    n : int
+        Number of views.
+    rng : numpy.random.Generator or int
+    shared_every : int
+        Every this many views is seen whole by every camera (1: every view).
+    tilt_deg, fill, roll_deg : (float, float)
+        Ranges, degrees / fraction of the image.
+    margin_px : float
+        Pixels kept between the board's outline and the image border.
+    max_view_angle_deg : float
+        Largest angle between a viewing ray and the board normal.
+    max_tries : int
+        Draws per view before relaxing (shared views) or giving up.
+
+    Returns
+    -------
+    list of Pose
+        ``T_world_board`` per view.
+
+    Raises
+    ------
+    InputError
+        Bad arguments, or a view that cannot be placed (the message names the camera and the
+        constraint to relax).
+    """
+    cams = list(cameras)
+    if not cams or not all(isinstance(c, Camera) for c in cams):
+        raise InputError("cameras: expected a non-empty sequence of Camera")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise InputError(f"n: expected a positive integer, got {fmt_value(n)}")
+    if isinstance(shared_every, bool) or not isinstance(shared_every, (int, np.integer)) or \
+            shared_every < 1:
+        raise InputError(f"shared_every: expected an integer >= 1, got {fmt_value(shared_every)}")
+    t_lo, t_hi = _range(tilt_deg, "tilt_deg", 0.0, 85.0)
+    f_lo, f_hi = _range(fill, "fill", 1e-3, 1.0)
+    r_lo, r_hi = _range(roll_deg, "roll_deg", -180.0, 180.0)
+    check_positive(max_tries, "max_tries")
+    cos_max = math.cos(math.radians(check_positive(max_view_angle_deg, "max_view_angle_deg")))
+    # the board's edges are seen up to a few degrees more obliquely than its centre
+    cos_pre = math.cos(math.radians(max_view_angle_deg - 3.0))
+    rng = np.random.default_rng(rng)
+    C = len(cams)
+    W_m, H_m = board.size
+    c_board = np.array([W_m / 2.0, H_m / 2.0, 0.0])
+    outline = board.outline(8)
+    inner = board.chessboard_corners()
+    per_cam = [len(range(ci, n, C)) for ci in range(C)]
+    # shared views target the narrow cameras (field of view within 1.5× the narrowest): a board
+    # filling a wide camera (a projector) would overflow a narrow one
+    fov = np.array([min(c.width / c.fx, c.height / c.fy) for c in cams])
+    narrow = [i for i in range(C) if fov[i] <= 1.5 * fov.min()]
+    # where the narrow cameras' optical axes come closest (least squares): shared views go there
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for i in narrow:
+        d = cams[i].T_cam_world.R[2]  # optical axis in the world
+        P_perp = np.eye(3) - np.outer(d, d)
+        A += P_perp
+        b += P_perp @ cams[i].center_world
+    x_conv = np.linalg.lstsq(A, b, rcond=None)[0]
+    board_scale = float(np.hypot(W_m, H_m))
+    poses: list[Pose] = []
+    for k in range(n):
+        shared = k % shared_every == 0
+        ci = k % C
+        if shared and ci not in narrow:
+            ci = narrow[(k // shared_every) % len(narrow)]
+        cam = cams[ci]
+        j = k // C
+        m = per_cam[ci]
+        others = [c for c in cams if c is not cam] if shared else []
+        ax, ay = _ANCHORS[j % len(_ANCHORS)] if not shared or C == 1 else (0.0, 0.0)
+        T_wc = cam.T_cam_world.inverse()
+        corner = None if (ax == 0.0 or others) else np.array(
+            [-0.5 if ax < 0 else cam.width - 0.5, -0.5 if ay < 0 else cam.height - 0.5])
+        placed = None
+        for attempt in range(int(max_tries)):
+            # shared views: after half the draws, scale tilt and fill down (to half at most)
+            shrink = 1.0 - 0.5 * min(1.0, max(0.0, 2.0 * attempt / max_tries - 1.0)) \
+                if shared else 1.0
+            tilt = math.radians(shrink * rng.uniform(t_lo, t_hi))
+            # stratified tilt directions; shared views: any direction all the cameras accept
+            az = 2.0 * math.pi * ((j + rng.uniform()) / m if not others else rng.uniform())
+            roll = math.radians(rng.uniform(r_lo, r_hi))
+            axis = np.array([math.cos(az), math.sin(az), 0.0])
+            R = rotation_from_rvec(axis * tilt) @ rotation_from_rvec(np.array([0.0, 0.0, roll]))
+            f_target = shrink * rng.uniform(f_lo, f_hi)
+            jitter = rng.uniform(0.8, 1.0, 2) if (ax or ay) else rng.uniform(-0.3, 0.3, 2)
+            # where the board's projected box is centred: toward the anchor, in the free span
+            q_c = np.array([(cam.width - 1) / 2.0 + (ax or 1.0) * jitter[0] * 0.5 * (
+                1.0 - f_target) * cam.width, (cam.height - 1) / 2.0 + (ay or 1.0) * jitter[1]
+                * 0.5 * (1.0 - f_target) * cam.height])
+            v_c = cam.unproject(q_c)
+            if not np.all(np.isfinite(v_c)):
+                continue
+            v_c = v_c / v_c[2]
+            z = max(cam.fx * W_m / (f_target * cam.width), cam.fy * H_m / (f_target * cam.height))
+            if others:  # cheap pre-check: the board centre's view angle from every other camera
+                c_w = x_conv
+                n_w = T_wc.R @ R[:, 2]
+                if any(np.dot(n_w, c_w - o.center_world) < cos_pre * np.linalg.norm(
+                        c_w - o.center_world) for o in others):
+                    continue
+            ok = False
+            if others:  # centre the board where the cameras' axes meet, jittered
+                p_c = cam.T_cam_world.apply(x_conv + 0.1 * board_scale * rng.uniform(-1, 1, 3))
+                t = p_c - R @ c_board
+                p_cam = outline @ R.T + t
+                ok = True
+            q_aim = q_c.copy()
+            for _ in range(0 if others else 12):
+                # distance for the fill; aim so the box (not the board centre) sits at q_c
+                t = z * v_c - R @ c_board
+                p_cam = outline @ R.T + t
+                q, front = cam.project_cam(p_cam)
+                if not front.all():
+                    break
+                span = q.max(axis=0) - q.min(axis=0)
+                off = q_c - 0.5 * (q.max(axis=0) + q.min(axis=0))
+                f_now = max(span[0] / cam.width, span[1] / cam.height)
+                if abs(f_now - f_target) < 2e-3 and np.abs(off).max() < 0.5:
+                    ok = True
+                    break
+                z *= f_now / f_target
+                q_aim = q_aim + off
+                v_c = cam.unproject(q_aim)
+                if not np.all(np.isfinite(v_c)):
+                    break
+                v_c = v_c / v_c[2]
+            if not ok:
+                continue
+            inside, q = _inside(cam, p_cam, margin_px, cos_max, R[:, 2])
+            if not inside:
+                continue
+            if corner is not None and attempt < CORNER_TRIES:
+                # a corner view must put a board corner near that image corner
+                qi, _ = cam.project_cam(inner @ R.T + t)
+                d = np.maximum(np.abs(qi[:, 0] - corner[0]) / cam.width,
+                               np.abs(qi[:, 1] - corner[1]) / cam.height)
+                if d.min() > CORNER_CELL:
+                    continue
+            T_world_board = T_wc @ Pose(R, t)
+            good = True
+            for o in others:
+                T_ob = o.T_cam_world @ T_world_board
+                if not _inside(o, T_ob.apply(outline), margin_px, cos_max, T_ob.R[:, 2])[0]:
+                    good = False
+                    break
+            if good:
+                placed = T_world_board
+                break
+        if placed is None:
+            raise InputError(
+                f"calibration_board_poses: could not place view {k} ({'shared by every camera' if shared else 'for ' + fmt_value(cam.name)}) "
+                f"in {max_tries} draws; lower tilt_deg or fill, raise shared_every, or reduce "
+                "margin_px")
+        poses.append(placed)
+    return poses
+
+
+def board_coverage(board, camera: Camera, T_cam_boards, grid=(8, 8)) -> float:
+    """Fraction of an image grid's cells that contain at least one board corner of the views.
+
+    Parameters
+    ----------
+    board : CharucoBoard
+    camera : Camera
+    T_cam_boards : sequence of Pose
+        Views in the camera's frame.
+    grid : (int, int)
+        Cells across × down.
+
+    Returns
+    -------
+    float in [0, 1]
+    """
+    gx, gy = int(grid[0]), int(grid[1])
+    hit = np.zeros((gy, gx), bool)
+    P = board.chessboard_corners()
+    for T in T_cam_boards:
+        q, front = camera.project_cam(T.apply(P))
+        ok = front & camera.in_image(q)
+        ix = np.clip((q[ok, 0] + 0.5) / camera.width * gx, 0, gx - 1).astype(int)
+        iy = np.clip((q[ok, 1] + 0.5) / camera.height * gy, 0, gy - 1).astype(int)
+        hit[iy, ix] = True
+    return float(hit.mean())
