@@ -8,13 +8,16 @@ texel of any reconstructed atlas, on any mesh:
 * ``alpha_0`` — linear-sRGB diffuse colour at normal incidence and view;
 * ``alpha_1`` — diffuse colour at grazing angles (desaturated and a little lighter, imitating the
   desaturation the paper observed);
-* ``rho_s`` — specular scale on the Fresnel term, in (0.3, 1.0);
+* ``rho_s`` — specular scale on the Fresnel term, in (0.3, 1.0) for the built-in model (0.34–0.93
+  on the default head at seed 0); a model that supplies its own (the spectral one's oiliness
+  map) may go lower: 0.11–0.74 over the spectral skin types;
 * ``roughness`` — Beckmann RMS slope m, in (0.25, 0.5).
 
 Everything is computed in head-normalised coordinates ``u = (p − center)/half_extent`` (face
 toward +Z, +Y up, so the face occupies u_z ≈ 0.5…1): smooth regional weights (lips, cheeks,
 forehead, nose, under-eye, chin) placed where :func:`facegeo.synth.head.procedural_head` puts
-those features, plus seeded smooth 3-D noise (random-phase plane waves with wavelengths
+those features — or, for a real face, a frame fitted on its landmarks with every region centred
+on its landmark (:meth:`SkinField.for_landmarks`) — plus seeded smooth 3-D noise (random-phase plane waves with wavelengths
 8–60 mm). Every map is C^∞ (Gaussians, logistic squashing, sinusoids) so a fit can recover it.
 
 The diffuse colour model is pluggable: ``albedo_model`` names an entry of
@@ -50,6 +53,9 @@ __all__ = [
     "REGION_ANCHORS",
     "landmark_frame",
     "region_landmark_distances",
+    "PartMaterial",
+    "PART_MATERIALS",
+    "apply_part_materials",
 ]
 
 FORMAT = "facegeo.skin_field/1"
@@ -749,3 +755,67 @@ def region_landmark_distances(skin: SkinField, vertices, faces, landmarks: dict,
         out[name] = {"landmark": anchor, "distance_to_landmark_mm": 1000.0 * d,
                      "location_m": loc.tolist(), "peak_weight": peak}
     return out
+
+
+# --------------------------------------------------------------------------- non-skin parts
+
+
+@dataclass(frozen=True)
+class PartMaterial:
+    """A simple uniform material for a non-skin mesh part, in the generator BRDF's terms.
+
+    ``alpha_0 = alpha_1 = albedo`` (no grazing colour shift: that is a skin property), a
+    uniform specular scale and Beckmann roughness; no skin-field parameters, no noise.
+    """
+
+    albedo: tuple[float, float, float]
+    rho_s: float
+    roughness: float
+
+
+#: Materials of the mesh parts of :data:`facegeo.synth.head.PART_NAMES` other than skin:
+#: a bright, wet sclera and a dark, wet iris (low roughness: the tear film), ivory teeth,
+#: dark-red gums, tongue and mouth interior.
+PART_MATERIALS: dict[str, PartMaterial] = {
+    "sclera": PartMaterial((0.62, 0.56, 0.52), 0.9, 0.15),
+    "iris": PartMaterial((0.10, 0.06, 0.035), 0.9, 0.15),
+    "teeth": PartMaterial((0.66, 0.60, 0.48), 0.6, 0.25),
+    "mouth_interior": PartMaterial((0.30, 0.07, 0.07), 0.6, 0.30),
+}
+
+
+def apply_part_materials(sample: SkinSample, labels, names) -> SkinSample:
+    """Replace the skin parameters of points on non-skin parts by their part's material.
+
+    Parameters
+    ----------
+    sample : SkinSample
+        Skin-field parameters at P points (leading shape (P,)).
+    labels : (P,) int
+        Part of each point, indexing ``names``; 0 (``names[0] == "skin"``) keeps the skin.
+    names : sequence of str
+        Part names; every non-skin name must be in :data:`PART_MATERIALS`.
+
+    Returns
+    -------
+    SkinSample
+        A copy with the part materials written in (float32).
+    """
+    labels = np.asarray(labels).reshape(-1)
+    a0 = np.array(sample.alpha_0, np.float32, copy=True)
+    a1 = np.array(sample.alpha_1, np.float32, copy=True)
+    rho = np.array(sample.rho_s, np.float32, copy=True)
+    m = np.array(sample.roughness, np.float32, copy=True)
+    for k, name in enumerate(names):
+        if name == "skin":
+            continue
+        if name not in PART_MATERIALS:
+            raise InputError(f"part {name!r}: no material; expected one of {sorted(PART_MATERIALS)}")
+        sel = labels == k
+        if sel.any():
+            mat = PART_MATERIALS[name]
+            a0[sel] = mat.albedo
+            a1[sel] = mat.albedo
+            rho[sel] = mat.rho_s
+            m[sel] = mat.roughness
+    return SkinSample(alpha_0=a0, alpha_1=a1, rho_s=rho, roughness=m)
