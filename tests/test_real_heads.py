@@ -25,33 +25,32 @@ REGION_TOL_MM = 10.0
 REGION_PEAK_MIN = 0.5
 #: Issue 8: lit samples shadowed by their own or an adjacent triangle, fraction.
 TERMINATOR_MAX = 0.005
-#: The face box must span at least this fraction of each capture camera's image height.
-FACE_FILL_MIN = 0.45
+#: The face box must span at least this fraction of each capture camera's image height (the
+#: framing targets 0.8 of the width, the limiting axis for a portrait camera and a face box).
+FACE_FILL_MIN = 0.6
+#: ... and its centre must project within this fraction of the image size of the image centre.
+FACE_CENTRE_TOL = 0.1
 #: Light subset for the terminator measurement (every k-th light of the tiny stage: 32 lights).
 LIGHT_STEP = 4
 
 
 @pytest.fixture(scope="module")
 def heads(shared_data):
-    """name → (mesh, skin field, renderer), built as generate_scan builds them."""
-    from facegeo.synth.capture import build_head
+    """name → (mesh, skin field, renderer, nominal tiny rig framed on the face), built as
+    generate_scan builds them."""
+    from facegeo.synth.capture import PRESETS, build_head, build_rig, frame_rig
     from facegeo.synth.render import ReferenceRenderer
     from facegeo.synth.skin import SkinField
 
     out = {}
     for name in HEADS:
         mesh = build_head(str(shared_file(shared_data, f"faces/{name}")), units="cm")
-        skin = SkinField.for_landmarks(mesh.metadata["face_landmarks"])
-        out[name] = (mesh, skin, ReferenceRenderer.from_mesh(mesh, skin,
-                                                             parts=mesh.metadata["part_labels"]))
+        lm = mesh.metadata["face_landmarks"]
+        skin = SkinField.for_landmarks(lm)
+        out[name] = (mesh, skin,
+                     ReferenceRenderer.from_mesh(mesh, skin, parts=mesh.metadata["part_labels"]),
+                     frame_rig(build_rig(PRESETS["tiny"]), lm))
     return out
-
-
-@pytest.fixture(scope="module")
-def tiny_rig():
-    from facegeo.synth.capture import PRESETS, build_rig
-
-    return build_rig(PRESETS["tiny"])
 
 
 @pytest.mark.shared_data
@@ -59,7 +58,7 @@ def tiny_rig():
 def test_regions_within_1cm_of_landmarks(heads, name):
     from facegeo.synth.skin import SkinField, region_landmark_distances
 
-    mesh, skin, _ = heads[name]
+    mesh, skin, _, _ = heads[name]
     lm = mesh.metadata["face_landmarks"]
     skin_faces = mesh.metadata["part_labels"] == 0
     rep = region_landmark_distances(skin, mesh.vertices, mesh.faces, lm, face_mask=skin_faces)
@@ -77,7 +76,7 @@ def test_regions_within_1cm_of_landmarks(heads, name):
 
 @pytest.mark.shared_data
 def test_landmark_indices_are_the_published_ones(heads):
-    mesh, _, _ = heads["ict_facekit_generic_neutral.obj"]
+    mesh = heads["ict_facekit_generic_neutral.obj"][0]
     assert "iBUG" in mesh.metadata["landmark_source"]
     for name in HEADS:
         lm = heads[name][0].metadata["face_landmarks"]
@@ -94,7 +93,7 @@ def test_parts_get_their_own_materials(heads):
     from facegeo.synth.head import PART_NAMES
     from facegeo.synth.skin import PART_MATERIALS
 
-    mesh, skin, renderer = heads["ict_facekit_generic_neutral.obj"]
+    mesh, skin, renderer, _ = heads["ict_facekit_generic_neutral.obj"]
     labels = mesh.metadata["part_labels"]
     counts = np.bincount(labels, minlength=len(PART_NAMES))
     assert np.all(counts > 0), f"every part labelled on ICT: {dict(zip(PART_NAMES, counts))}"
@@ -118,35 +117,44 @@ def test_parts_get_their_own_materials(heads):
 
 @pytest.mark.shared_data
 @pytest.mark.parametrize("name", HEADS)
-def test_face_fills_the_frame(heads, tiny_rig, name):
-    from facegeo.synth.capture import face_fill
+def test_face_fills_the_frame(heads, name):
+    from facegeo.synth.capture import PRESETS, build_rig, face_fill
+    from facegeo.synth.head import face_box
 
-    lm = heads[name][0].metadata["face_landmarks"]
-    for cam in tiny_rig.cameras:
+    mesh, _, _, rig = heads[name]
+    lm = mesh.metadata["face_landmarks"]
+    centre = 0.5 * np.add(*face_box(lm))
+    for cam in rig.cameras:
         fill = face_fill(cam, lm)
         assert fill["inside"], f"{name}: face box leaves {cam.name}'s image: {fill}"
         assert fill["height"] >= FACE_FILL_MIN, f"{name}: face spans {fill} of {cam.name}"
+        q, _ = cam.project(centre[None])
+        off = np.abs(q[0] / [cam.width, cam.height] - 0.5)
+        assert np.all(off <= FACE_CENTRE_TOL), f"{name}: face centre off by {off} in {cam.name}"
+    # the unframed default rig (aimed at the head centre) leaves the face small
+    for cam in build_rig(PRESETS["tiny"]).cameras:
+        assert face_fill(cam, lm)["height"] < FACE_FILL_MIN
 
 
 @pytest.mark.shared_data
 @pytest.mark.parametrize("name", HEADS)
-def test_terminator_self_shadowing(heads, tiny_rig, name):
+def test_terminator_self_shadowing(heads, name):
     from facegeo.synth.render import terminator_self_shadow_fraction
 
-    _, _, renderer = heads[name]
-    idx = np.arange(0, tiny_rig.lights.n_lights, LIGHT_STEP)
-    res = terminator_self_shadow_fraction(renderer, tiny_rig.cameras, tiny_rig.lights, idx)
+    _, _, renderer, rig = heads[name]
+    idx = np.arange(0, rig.lights.n_lights, LIGHT_STEP)
+    res = terminator_self_shadow_fraction(renderer, rig.cameras, rig.lights, idx)
     assert res["lit"] > 10000
     assert res["fraction"] <= TERMINATOR_MAX, f"{name}: {res}"
 
 
 @pytest.mark.shared_data
-def test_terminator_measure_can_fail(heads, tiny_rig):
+def test_terminator_measure_can_fail(heads):
     """Without the lifted origins and re-trace (plain shading-point shadow rays) the measure
     reports the 2–8 % of issue 8."""
     from facegeo.synth.render import ReferenceRenderer, terminator_self_shadow_fraction
 
-    mesh, skin, _ = heads["mediapipe_canonical_face.obj"]
+    mesh, skin, _, tiny_rig = heads["mediapipe_canonical_face.obj"]
     plain = ReferenceRenderer.from_mesh(mesh, skin)
     plain.shadow_origins = lambda p, face: np.asarray(p, float)
     plain.face_size = np.zeros(len(mesh.faces))
@@ -156,11 +164,11 @@ def test_terminator_measure_can_fail(heads, tiny_rig):
 
 
 @pytest.mark.shared_data
-def test_ground_truth_transform_parts_and_landmarks(heads, tiny_rig, tmp_path, shared_data):
+def test_ground_truth_transform_parts_and_landmarks(heads, tmp_path, shared_data):
     from facegeo.synth.capture import _write_head_truth
 
     name = "ict_facekit_generic_neutral.obj"
-    mesh, skin, renderer = heads[name]
+    mesh, skin, renderer, tiny_rig = heads[name]
     written = _write_head_truth(tmp_path, mesh, tiny_rig, skin, renderer)
     assert set(written) == {"parts", "landmarks", "head_transform", "vertex_map"}
     T = np.array(json.loads((tmp_path / "head_transform.json").read_text())["world_from_file"])
@@ -202,3 +210,52 @@ def test_landmarks_file_beside_any_mesh(shared_data, tmp_path):
     lm_file.write_text(json.dumps({"vertex_indices": {**MEDIAPIPE_INDEX, "menton": 10**6}}))
     with pytest.raises(InputError, match="face.landmarks.json.*menton"):
         load_head_mesh(obj)
+
+
+@pytest.mark.shared_data
+@pytest.mark.slow
+def test_ict_scan_round_trip(shared_data, tmp_path):
+    """An ICT tiny scan: ground truth (with parts.npz) reproduces an OLAT frame bit for bit,
+    and its landmarks.json holds every region within 1 cm and the framing."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.synth.capture import generate_scan
+    from facegeo.synth.render import load_ground_truth
+
+    mesh = shared_file(shared_data, "faces/ict_facekit_generic_neutral.obj")
+    generate_scan(tmp_path / "ict", "tiny", head=str(mesh), units="cm", seed=2)
+    scan = load_scan(tmp_path / "ict", check="full")
+    for key in ("parts", "landmarks", "head_transform", "vertex_map"):
+        assert key in scan.ground_truth_keys, key
+    gt = load_ground_truth(scan)
+    assert gt.parts is not None, "eyes, teeth and mouth come back from parts.npz"
+    cam = gt.rig.cameras[0]
+    view = gt.surface_view(cam)
+    assert np.any(gt.parts[view.face] != 0), "the eyes are seen by the camera"
+    (_, img), = gt.olat_images(cam, gt.rig.lights, indices=[40])
+    assert np.array_equal(img, scan.olat_frame(cam.name, 40))
+    doc = json.loads(scan.ground_truth_path("landmarks").read_text())
+    assert all(v["distance_to_landmark_mm"] <= REGION_TOL_MM for v in doc["regions"].values())
+    assert all(f["inside"] and f["height"] >= FACE_FILL_MIN for f in doc["framing"].values())
+
+
+#: Spectral skin's regions (written at the procedural head's centres) must be centred on the
+#: real face's landmark-placed regions: |warped u − procedural centre| · half_extent, mm.
+SPECTRAL_CENTRE_TOL_MM = 3.0
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("name", HEADS)
+def test_spectral_regions_follow_landmarks(heads, name):
+    from facegeo.synth.skin import REGION_ANCHORS, REGIONS, procedural_coordinates
+
+    mesh, skin, _, _ = heads[name]
+    lm = mesh.metadata["face_landmarks"]
+    h = np.asarray(skin.half_extent)
+    warped, plain = {}, {}
+    for region, anchor in REGION_ANCHORS.items():
+        u = skin.normalised(lm[anchor])
+        c = np.asarray(REGIONS[region][0])
+        warped[region] = 1000 * np.linalg.norm((procedural_coordinates(u, skin) - c) * h)
+        plain[region] = 1000 * np.linalg.norm((u - c) * h)
+    assert max(warped.values()) <= SPECTRAL_CENTRE_TOL_MM, f"{name}: {warped}"
+    assert max(plain.values()) > SPECTRAL_CENTRE_TOL_MM, "the fitted frame alone is not enough"

@@ -37,7 +37,8 @@ from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Preset", "PRESETS", "generate_scan", "SynthSummary", "build_rig", "build_head"]
+__all__ = ["Preset", "PRESETS", "generate_scan", "SynthSummary", "build_rig", "build_head",
+           "frame_rig", "face_fill"]
 
 
 @dataclass(frozen=True)
@@ -376,6 +377,8 @@ def generate_scan(
     # mesh in ground_truth/ reproduces every frame bit for bit.
     mesh.vertices = np.asarray(mesh.vertices, np.float32).astype(np.float64)
     nominal_rig = build_rig(preset)
+    if mesh.metadata.get("face_landmarks") is not None:  # a real face: fill the frame with it
+        nominal_rig = frame_rig(nominal_rig, mesh.metadata["face_landmarks"])
     rig = perturbed_rig(nominal_rig, seed)  # the true rig: every frame is rendered with it
     landmarks = mesh.metadata.get("face_landmarks")
     if landmarks is not None:  # a real face: regions on its landmarks
@@ -798,6 +801,39 @@ def face_fill(camera, landmarks) -> dict:
                   and (q[:, 1] >= 0).all() and (q[:, 1] <= camera.height - 1).all())
     return {"height": float(np.ptp(q[:, 1]) / camera.height),
             "width": float(np.ptp(q[:, 0]) / camera.width), "inside": inside}
+
+
+#: Fraction of the image a real face's box (:func:`facegeo.synth.head.face_box`) spans along
+#: its limiting axis once :func:`frame_rig` has moved the cameras.
+FACE_FILL_TARGET = 0.8
+
+
+def frame_rig(rig, landmarks, fill: float = FACE_FILL_TARGET):
+    """The rig with every capture camera aimed at a real face and moved so the face fills it.
+
+    Each camera keeps its direction from the face box's centre (:func:`facegeo.synth.head.face_box`)
+    — its yaw and height angle — but looks at that centre (the default rig aims at the head
+    centre, ≈ 11 cm behind the face, which shifts the face sideways in yawed cameras) from the
+    distance at which the face box spans ``fill`` of the image height or width, whichever is
+    reached first (three fixed-point steps: perspective makes the span only nearly
+    ∝ 1/distance). Projector and light stage are unchanged.
+    """
+    from facegeo.geometry.rig import Rig
+    from facegeo.synth.head import face_box
+
+    lo, hi = face_box(landmarks)
+    target = 0.5 * (lo + hi)
+    cams = []
+    for cam in rig.cameras:
+        off = cam.center_world - target
+        dist = float(np.linalg.norm(off))
+        off = off / dist
+        for _ in range(3):
+            cam = cam.replace(T_cam_world=look_at(target + dist * off, target))
+            f = face_fill(cam, landmarks)
+            dist *= max(f["height"], f["width"]) / fill
+        cams.append(cam.replace(T_cam_world=look_at(target + dist * off, target)))
+    return Rig(cameras=cams, projector=rig.projector, lights=rig.lights)
 
 
 def _write_head_truth(gt: Path, mesh, rig, skin, renderer) -> dict:

@@ -430,8 +430,9 @@ class ReferenceRenderer:
         """Whether each surface point sees the light.
 
         Shadow rays start at :meth:`shadow_origins` (Hanika 2021). Hanika's lift alone still
-        left 1.8 % (ICT), 3.9 % (MediaPipe) and 2.2 % (procedural, subdivision 5) of lit samples
-        shadowed by their own or an adjacent triangle at the ``tiny`` rig: where the light is
+        left 1.28 % (ICT), 3.76 % (MediaPipe) and 1.94 % (procedural, subdivision 5) of lit
+        samples shadowed by their own or an adjacent triangle at the ``tiny`` preset (2.10 %,
+        7.11 % and 2.64 % without it; docs/synth.md): where the light is
         below a facet's plane the ray enters the mesh through its 1-ring and then meets the
         far side from inside. So a blocked ray whose first hit is on the 1-ring of its own face
         (faces sharing a vertex position) is traced again from an origin offset along the

@@ -53,6 +53,7 @@ __all__ = [
     "REGION_ANCHORS",
     "landmark_frame",
     "region_landmark_distances",
+    "procedural_coordinates",
     "PartMaterial",
     "PART_MATERIALS",
     "apply_part_materials",
@@ -252,7 +253,33 @@ def spectral_albedo(u, skin, params="medium", variation=1.0):
     from facegeo.appearance.spectral import spectral_albedo_fn
 
     fn = spectral_albedo_fn(params, seed=int(skin.seed), variation=variation)
+    u = procedural_coordinates(u, skin)
     return {"alpha_0": fn(u), "rho_s": fn.parameter_maps(u).rho_s}
+
+
+def procedural_coordinates(u, skin: SkinField) -> np.ndarray:
+    """Head-normalised coordinates warped so a real face's regions sit where models written
+    for the procedural head expect them.
+
+    With ``skin.region_centers`` set (a real face), every region r of :data:`REGIONS` is
+    centred on its landmark at ``c'_r`` instead of at its procedural centre ``c_r``; a model
+    with its own regions at the procedural centres (the spectral skin's ``PARAMETER_REGIONS``)
+    sees ``u' = u + 2 Σ_r w_r(u) (c_r − c'_r) / (1 + Σ_r w_r(u))`` with ``w_r`` the
+    landmark-placed memberships (:func:`region_weights`): C^∞, ``u' = c_r`` at an isolated
+    region's centre, ``u' = u`` far from every region. Without region centres, ``u``.
+    """
+    u = np.asarray(u, dtype=float)
+    if skin.region_centers is None:
+        return u
+    w = region_weights(u, skin.region_centers)
+    num = np.zeros_like(u)
+    den = np.ones(u.shape[:-1])
+    for name, (c, _) in REGIONS.items():
+        if name in skin.region_centers:
+            d = np.asarray(c, float) - np.asarray(skin.region_centers[name], float)
+            num += w[name][..., None] * d
+            den += w[name]
+    return u + 2.0 * num / den[..., None]
 
 
 #: Diffuse colour models by name: ``model(u, skin, **params) -> alpha_0 (..., 3)``.
