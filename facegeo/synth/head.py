@@ -44,6 +44,8 @@ __all__ = [
     "part_labels",
     "real_face_landmarks",
     "frame_face",
+    "face_box",
+    "landmarks_file_for",
 ]
 
 log = logging.getLogger(__name__)
