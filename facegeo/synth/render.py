@@ -205,6 +205,7 @@ class ReferenceRenderer:
             raise InputError(f"eta: expected a finite index of refraction > 1, got {fmt_value(eta)}")
         self.shadows = bool(shadows)
         self._views: dict[tuple, SurfaceView] = {}
+        self._origins: dict[int, tuple] = {}  # id(view) -> (view, shadow origins)
         self.rig = None  # the true rig, when rebuilt from a scan (load_ground_truth)
 
     def material_at(self, p_world, face):
@@ -365,7 +366,8 @@ class ReferenceRenderer:
         lit = cos_i > 0
         if self.shadows and lit.any():
             vis = self._unshadowed(pick(view.p_world)[lit], pick(view.face)[lit], n[lit],
-                                   light_pos=light_pos, light_dir=light_dir)
+                                   light_pos=light_pos, light_dir=light_dir,
+                                   origins=pick(self._view_origins(view))[lit])
             lit_idx = np.flatnonzero(lit)
             lit[lit_idx[~vis]] = False
         if not lit.any():
@@ -429,7 +431,17 @@ class ReferenceRenderer:
         t = self.vertices[self.faces]
         return np.max(np.linalg.norm(t - np.roll(t, 1, axis=1), axis=2), axis=1)
 
-    def _unshadowed(self, p, face, n, *, light_pos=None, light_dir=None) -> np.ndarray:
+    def _view_origins(self, view: SurfaceView) -> np.ndarray:
+        """:meth:`shadow_origins` of every sample of a view, computed once per view (they do
+        not depend on the light)."""
+        hit = self._origins.get(id(view))
+        if hit is None or hit[0] is not view:
+            hit = (view, self.shadow_origins(view.p_world, view.face))
+            self._origins[id(view)] = hit
+        return hit[1]
+
+    def _unshadowed(self, p, face, n, *, light_pos=None, light_dir=None,
+                    origins=None) -> np.ndarray:
         """Whether each surface point sees the light.
 
         Shadow rays start at :meth:`shadow_origins` (Hanika 2021). Hanika's lift alone still
@@ -443,12 +455,13 @@ class ReferenceRenderer:
         needs an occluder beyond the facets' own scale. Contact shadows closer than one
         facet (a crease sharper than the light's elevation) are lost.
         """
-        return self._shadow_test(p, face, n, light_pos=light_pos, light_dir=light_dir)[0]
+        return self._shadow_test(p, face, n, light_pos=light_pos, light_dir=light_dir,
+                                 origins=origins)[0]
 
-    def _shadow_test(self, p, face, n, *, light_pos=None, light_dir=None):
+    def _shadow_test(self, p, face, n, *, light_pos=None, light_dir=None, origins=None):
         """:meth:`_unshadowed` and, per point, the face that blocks the deciding shadow ray
-        (−1 where the point is lit)."""
-        o = self.shadow_origins(p, face)
+        (−1 where the point is lit). ``origins``: precomputed :meth:`shadow_origins`."""
+        o = self.shadow_origins(p, face) if origins is None else origins
         eps = self.rays.eps
         vis = self._visible_from(o, n, eps, light_pos, light_dir)
         blocker = np.full(len(vis), -1, np.int64)
