@@ -433,12 +433,15 @@ class ReferenceRenderer:
 
     def _view_origins(self, view: SurfaceView) -> np.ndarray:
         """:meth:`shadow_origins` of every sample of a view, computed once per view (they do
-        not depend on the light)."""
+        not depend on the light) for the views :meth:`surface_view` caches; views built
+        elsewhere are not kept alive by this cache (recomputed per call)."""
         hit = self._origins.get(id(view))
-        if hit is None or hit[0] is not view:
-            hit = (view, self.shadow_origins(view.p_world, view.face))
-            self._origins[id(view)] = hit
-        return hit[1]
+        if hit is not None and hit[0] is view:
+            return hit[1]
+        origins = self.shadow_origins(view.p_world, view.face)
+        if any(v is view for v in self._views.values()):
+            self._origins[id(view)] = (view, origins)
+        return origins
 
     def _unshadowed(self, p, face, n, *, light_pos=None, light_dir=None,
                     origins=None) -> np.ndarray:
