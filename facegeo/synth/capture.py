@@ -37,7 +37,8 @@ from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Preset", "PRESETS", "generate_scan", "SynthSummary", "build_rig", "build_head"]
+__all__ = ["Preset", "PRESETS", "generate_scan", "SynthSummary", "build_rig", "build_head",
+           "frame_rig", "face_fill"]
 
 
 @dataclass(frozen=True)
@@ -125,11 +126,20 @@ class SynthSummary:
 
 
 def build_head(head: str = "procedural", *, units: str = "cm", subdivisions: int = 5, seed: int = 0):
-    """The ground-truth head mesh: ``"procedural"`` or a path to a mesh file (OBJ/PLY/GLB)."""
-    from facegeo.synth.head import load_head_mesh, procedural_head
+    """The ground-truth head mesh: ``"procedural"`` or a path to a mesh file (OBJ/PLY/GLB).
+
+    A mesh file whose facial landmarks are known (:func:`facegeo.synth.head.real_face_landmarks`)
+    is moved so the rig frames its face (:func:`facegeo.synth.head.frame_face`);
+    ``metadata["face_landmarks"]`` then holds the landmarks in the final frame. Every mesh
+    gets ``metadata["part_labels"]`` (per face, :data:`facegeo.synth.head.PART_NAMES`).
+    """
+    from facegeo.synth.head import (frame_face, load_head_mesh, part_labels, procedural_head,
+                                    real_face_landmarks)
 
     if head == "procedural":
-        return procedural_head(subdivisions, seed=seed)
+        mesh = procedural_head(subdivisions, seed=seed)
+        mesh.metadata["part_labels"] = part_labels(mesh)
+        return mesh
     p = Path(head)
     if not p.exists():
         raise InputError(f"--head: no such mesh file {p} (use 'procedural' or a path)")
@@ -141,6 +151,15 @@ def build_head(head: str = "procedural", *, units: str = "cm", subdivisions: int
             f"--head {p}: with --units {units} the mesh's bounding-box diagonal is {diag:.3g} m, "
             f"outside the {lo}–{hi} m of a head; check --units (cm, mm or m)"
         )
+    mesh.metadata["part_labels"] = part_labels(mesh)
+    landmarks = real_face_landmarks(mesh)
+    if landmarks is None:
+        log.warning("%s: no facial landmarks (no %s beside it, not an ICT FaceKit or MediaPipe "
+                    "face): skin regions fall back to bounding-box placement", p,
+                    p.with_name(p.stem + ".landmarks.json").name)
+    else:
+        frame_face(mesh, landmarks)
+        mesh.metadata["face_landmarks"] = landmarks
     return mesh
 
 
@@ -358,9 +377,15 @@ def generate_scan(
     # mesh in ground_truth/ reproduces every frame bit for bit.
     mesh.vertices = np.asarray(mesh.vertices, np.float32).astype(np.float64)
     nominal_rig = build_rig(preset)
+    if mesh.metadata.get("face_landmarks") is not None:  # a real face: fill the frame with it
+        nominal_rig = frame_rig(nominal_rig, mesh.metadata["face_landmarks"])
     rig = perturbed_rig(nominal_rig, seed)  # the true rig: every frame is rendered with it
-    skin_field = SkinField.for_mesh(mesh, seed=seed, **skin_kwargs)
-    renderer = ReferenceRenderer.from_mesh(mesh, skin_field)
+    landmarks = mesh.metadata.get("face_landmarks")
+    if landmarks is not None:  # a real face: regions on its landmarks
+        skin_field = SkinField.for_landmarks(landmarks, seed=seed, **skin_kwargs)
+    else:
+        skin_field = SkinField.for_mesh(mesh, seed=seed, **skin_kwargs)
+    renderer = ReferenceRenderer.from_mesh(mesh, skin_field, parts=mesh.metadata["part_labels"])
     board = _board_for_rig(rig)
     spec = PatternSpec(width=rig.projector.width, height=rig.projector.height,
                        phase_steps=preset.phase_steps)
@@ -760,6 +785,117 @@ def _projector_irradiance(proj, p_world, n_world):
     return e.astype(np.float32), q
 
 
+def face_fill(camera, landmarks) -> dict:
+    """How much of a camera's image the face box (:func:`facegeo.synth.head.face_box`) spans.
+
+    Returns ``{"height": h, "width": w, "inside": bool}``: the projected box's extent as
+    fractions of the image height and width, and whether all its corners are in the image.
+    """
+    from facegeo.synth.head import face_box
+
+    lo, hi = face_box(landmarks)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    q, front = camera.project(corners)
+    inside = bool(front.all() and (q[:, 0] >= 0).all() and (q[:, 0] <= camera.width - 1).all()
+                  and (q[:, 1] >= 0).all() and (q[:, 1] <= camera.height - 1).all())
+    return {"height": float(np.ptp(q[:, 1]) / camera.height),
+            "width": float(np.ptp(q[:, 0]) / camera.width), "inside": inside}
+
+
+#: Fraction of the image a real face's box (:func:`facegeo.synth.head.face_box`) spans along
+#: its limiting axis once :func:`frame_rig` has moved the cameras.
+FACE_FILL_TARGET = 0.8
+
+
+def frame_rig(rig, landmarks, fill: float = FACE_FILL_TARGET):
+    """The rig with every capture camera aimed at a real face and moved so the face fills it.
+
+    Each camera keeps its direction from the face box's centre (:func:`facegeo.synth.head.face_box`)
+    — its yaw and height angle — but looks at that centre (the default rig aims at the head
+    centre, ≈ 11 cm behind the face, which shifts the face sideways in yawed cameras) from the
+    distance at which the face box spans ``fill`` of the image height or width, whichever is
+    reached first (three fixed-point steps: perspective makes the span only nearly
+    ∝ 1/distance). Projector and light stage are unchanged.
+    """
+    from facegeo.geometry.rig import Rig
+    from facegeo.synth.head import face_box
+
+    lo, hi = face_box(landmarks)
+    target = 0.5 * (lo + hi)
+    cams = []
+    for cam in rig.cameras:
+        off = cam.center_world - target
+        dist = float(np.linalg.norm(off))
+        off = off / dist
+        for _ in range(3):
+            cam = cam.replace(T_cam_world=look_at(target + dist * off, target))
+            f = face_fill(cam, landmarks)
+            dist *= max(f["height"], f["width"]) / fill
+        cams.append(cam.replace(T_cam_world=look_at(target + dist * off, target)))
+    return Rig(cameras=cams, projector=rig.projector, lights=rig.lights)
+
+
+def _write_head_truth(gt: Path, mesh, rig, skin, renderer) -> dict:
+    """``parts.npz``, ``landmarks.json`` and, for a mesh file, ``head_transform.json`` and
+    ``vertex_map.npz``; returns their manifest entries."""
+    from facegeo.fsutil import atomic_path, atomic_write_text
+    from facegeo.synth.head import head_landmarks
+    from facegeo.synth.skin import PART_MATERIALS, region_landmark_distances
+
+    out = {}
+    names = list(renderer.part_names)
+    labels = (renderer.parts if renderer.parts is not None
+              else np.zeros(len(renderer.faces), np.int64))
+    mats = [PART_MATERIALS.get(n) for n in names]
+    with atomic_path(gt / "parts.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(
+                fh, labels=labels.astype(np.int64), names=np.array(names),
+                albedo=np.array([m.albedo if m else (np.nan,) * 3 for m in mats], np.float32),
+                rho_s=np.array([m.rho_s if m else np.nan for m in mats], np.float32),
+                roughness=np.array([m.roughness if m else np.nan for m in mats], np.float32))
+    out["parts"] = "ground_truth/parts.npz"
+    meta = mesh.metadata
+    landmarks = meta.get("face_landmarks")
+    if landmarks is None and "facegeo_head" in meta:
+        landmarks = head_landmarks(mesh)
+    doc: dict = {"landmarks": {}, "regions": {}}
+    if landmarks is not None:
+        doc["landmarks"] = {k: np.asarray(v, float).tolist() for k, v in landmarks.items()}
+        doc["regions"] = region_landmark_distances(skin, mesh.vertices, mesh.faces, landmarks,
+                                                   face_mask=labels == 0)
+        doc["landmark_source"] = meta.get("landmark_source", "procedural head parameters")
+        if "menton" in landmarks:
+            doc["framing"] = {c.name: face_fill(c, landmarks) for c in rig.cameras}
+    else:
+        doc["note"] = "no facial landmarks known for this mesh: regions in bounding-box placement"
+    atomic_write_text(gt / "landmarks.json", json.dumps(doc, indent=2))
+    out["landmarks"] = "ground_truth/landmarks.json"
+    if "source_vertex_index" in meta:
+        scale = float(meta["scale_to_m"])
+        t = np.asarray(meta["translation_m"], float)
+        T = np.eye(4)
+        T[:3, :3] *= scale
+        T[:3, 3] = t
+        atomic_write_text(gt / "head_transform.json", json.dumps({
+            "source_path": meta.get("source_path"), "units": meta.get("units"),
+            "scale_to_m": scale, "translation_m": t.tolist(),
+            "world_from_file": T.tolist(),
+            "note": "world = scale_to_m * file + translation_m (no rotation); mesh.ply vertices "
+                    "are these, rounded to float32",
+        }, indent=2))
+        out["head_transform"] = "ground_truth/head_transform.json"
+        src = np.asarray(meta["source_vertex_index"], np.int64)
+        of_src = np.full(int(meta.get("n_source_vertices", src.max() + 1)), -1, np.int64)
+        of_src[src[::-1]] = np.arange(len(src))[::-1]  # first output vertex of each file vertex
+        with atomic_path(gt / "vertex_map.npz") as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, source_vertex_index=src, output_vertex_of_source=of_src)
+        out["vertex_map"] = "ground_truth/vertex_map.npz"
+    return out
+
+
 def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: dict, *,
                         tick=None) -> dict:
     """Write ``ground_truth/`` and return its manifest table.
@@ -795,11 +931,16 @@ def _write_ground_truth(root: Path, mesh, rig, skin, renderer, uniform_renders: 
     atomic_write_text(gt / "skin.json", json.dumps(skin.to_dict(), indent=2))
     out["skin"] = "ground_truth/skin.json"
     s = skin.evaluate(np.asarray(mesh.vertices))
+    if renderer.parts is not None:  # eyes, teeth, mouth: their own materials
+        from facegeo.synth.skin import apply_part_materials
+
+        s = apply_part_materials(s, renderer.vertex_parts(), renderer.part_names)
     with atomic_path(gt / "vertex_params.npz") as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, alpha_0=s.alpha_0, alpha_1=s.alpha_1, rho_s=s.rho_s,
                                 roughness=s.roughness, normals=renderer.vertex_normals)
     out["vertex_params"] = "ground_truth/vertex_params.npz"
+    out.update(_write_head_truth(gt, mesh, rig, skin, renderer))
     novel = _novel_cameras(rig)
     atomic_write_text(gt / "novel_cameras.json", json.dumps([c.to_dict() for c in novel], indent=2))
     out["novel_cameras"] = "ground_truth/novel_cameras.json"

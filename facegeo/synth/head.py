@@ -37,6 +37,15 @@ __all__ = [
     "load_head_mesh",
     "DEFAULT_DROP_GROUPS",
     "UNIT_SCALE",
+    "CORE_LANDMARKS",
+    "ICT_IBUG68_INDEX",
+    "MEDIAPIPE_INDEX",
+    "PART_NAMES",
+    "part_labels",
+    "real_face_landmarks",
+    "frame_face",
+    "face_box",
+    "landmarks_file_for",
 ]
 
 log = logging.getLogger(__name__)
@@ -345,6 +354,7 @@ LANDMARK_NAMES = (
     "right_under_eye",
     "upper_lip",
     "lower_lip",
+    "nose_bridge",
 )
 
 
@@ -365,6 +375,7 @@ def _landmark_xy(p: HeadParams) -> dict[str, tuple[float, float]]:
         "right_under_eye": (-p.eye_x, p.eye_y - 0.021),
         "upper_lip": (0.0, p.mouth_y + 0.0065),
         "lower_lip": (0.0, p.mouth_y - 0.0075),
+        "nose_bridge": (0.0, 0.5 * (p.eye_y + p.nose_tip_y)),
     }
 
 
@@ -442,7 +453,8 @@ def head_landmarks(mesh=None, *, params: HeadParams | None = None, ears: bool = 
         Keys :data:`LANDMARK_NAMES` ("left"/"right" are the subject's; left = +X): nose_tip (the
         most +Z point of the smooth surface on the midline), left/right_eye (socket centre),
         mouth_center (on the mouth crease), chin, forehead,
-        left/right_cheek, left/right_brow, left/right_under_eye, upper/lower_lip.
+        left/right_cheek, left/right_brow, left/right_under_eye, upper/lower_lip, nose_bridge
+        (the ridge halfway between the eye line and the nose tip).
     """
     if mesh is not None:
         meta = getattr(mesh, "metadata", {}).get("facegeo_head")
@@ -579,6 +591,7 @@ def _mesh_from_obj(path: Path, drop_groups):
         visual = None
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, visual=visual, process=False)
     mesh.metadata["source_vertex_index"] = src  # index into the file's `v` list
+    mesh.metadata["n_source_vertices"] = len(V)
     mesh.metadata["face_labels"] = labels  # "object|group|material" per triangle
     mesh.metadata["groups"] = names
     mesh.metadata["dropped_groups"] = dropped
@@ -619,8 +632,11 @@ def load_head_mesh(path, *, units: str = "cm", center: bool = True,
     -------
     trimesh.Trimesh
         ``process=False``; UVs in ``visual.uv`` when the file has them. ``metadata`` holds
-        ``units``, ``scale_to_m``, ``translation_m`` (added after scaling) and, for OBJ,
-        ``source_vertex_index``, ``face_labels``, ``groups`` and ``dropped_groups``.
+        ``units``, ``scale_to_m``, ``translation_m`` (added after scaling),
+        ``source_vertex_index`` (output vertex → index into the file's vertex list),
+        ``n_source_vertices``, ``landmark_indices`` and ``landmark_source`` (when the mesh's
+        landmarks are known, see :func:`real_face_landmarks`) and, for OBJ, ``face_labels``,
+        ``groups`` and ``dropped_groups``.
 
     Raises
     ------
@@ -651,6 +667,9 @@ def load_head_mesh(path, *, units: str = "cm", center: bool = True,
             raise InputError(f"{path}: not a triangle mesh (loaded a {type(loaded).__name__})")
         if len(mesh.faces) == 0:
             raise InputError(f"{path}: not a triangle mesh (no faces)")
+    if "source_vertex_index" not in mesh.metadata:  # trimesh keeps the file's order
+        mesh.metadata["source_vertex_index"] = np.arange(len(mesh.vertices))
+        mesh.metadata["n_source_vertices"] = len(mesh.vertices)
     scale = UNIT_SCALE[units]
     verts = np.asarray(mesh.vertices, dtype=float) * scale
     shift = np.zeros(3)
@@ -661,6 +680,291 @@ def load_head_mesh(path, *, units: str = "cm", center: bool = True,
     mesh.vertices = verts
     mesh.metadata.update({"units": units, "scale_to_m": scale, "translation_m": shift.tolist(),
                           "source_path": str(path)})
+    found = _find_landmark_indices(path, int(mesh.metadata["n_source_vertices"]))
+    if found is not None:
+        mesh.metadata["landmark_indices"], mesh.metadata["landmark_source"] = found
     log.debug("loaded %s: %d vertices, %d faces, extent %s m", path, len(mesh.vertices),
               len(mesh.faces), np.ptp(verts, axis=0))
     return mesh
+
+
+# --------------------------------------------------------------------------- real faces: landmarks
+
+#: Landmarks every real face needs (``left``/``right`` are the subject's; left = +X), found
+#: from published vertex indices or a ``HEAD.landmarks.json`` file beside the mesh.
+CORE_LANDMARKS = (
+    "nose_tip",
+    "menton",  # lowest point of the chin on the face contour ("chin" in the 68-point scheme)
+    "right_eye_outer",
+    "right_eye_inner",
+    "left_eye_inner",
+    "left_eye_outer",
+    "right_mouth_corner",
+    "left_mouth_corner",
+    "upper_lip",  # outer (vermilion) midpoint of the upper lip
+    "lower_lip",  # outer midpoint of the lower lip
+)
+
+#: Positions of :data:`CORE_LANDMARKS` in the iBUG 300-W 68-point scheme (0-based: 8 chin,
+#: 30 nose tip, 36/39 and 42/45 the eye corners on the image's left/right, i.e. the subject's
+#: right/left eye, 48/54 mouth corners, 51/57 outer lip midpoints). The ICT FaceKit ships the
+#: vertex of each of the 68 points as ``idx_to_landmark_verts`` in
+#: ``ict_facekit_vertex_indices.json`` beside the mesh (github.com/ICT-VGL/ICT-FaceKit).
+ICT_IBUG68_INDEX = {
+    "nose_tip": 30, "menton": 8, "right_eye_outer": 36, "right_eye_inner": 39,
+    "left_eye_inner": 42, "left_eye_outer": 45, "right_mouth_corner": 48,
+    "left_mouth_corner": 54, "upper_lip": 51, "lower_lip": 57,
+}
+
+#: Vertex indices of :data:`CORE_LANDMARKS` on MediaPipe's 468-vertex canonical face mesh
+#: (``canonical_face_model.obj`` / its UV visualisation ``canonical_face_model_uv_visualization.png``
+#: in google/mediapipe, mediapipe/modules/face_geometry/data; the same numbering as the Face
+#: Mesh landmarks): 1 nose tip, 152 chin, 33/133 right eye outer/inner corner, 362/263 left
+#: eye inner/outer corner, 61/291 mouth corners, 0/17 upper/lower lip outer midpoints.
+MEDIAPIPE_INDEX = {
+    "nose_tip": 1, "menton": 152, "right_eye_outer": 33, "right_eye_inner": 133,
+    "left_eye_inner": 362, "left_eye_outer": 263, "right_mouth_corner": 61,
+    "left_mouth_corner": 291, "upper_lip": 0, "lower_lip": 17,
+}
+
+#: Vertex counts of MediaPipe's canonical face (468) and of its variant with irises (478).
+MEDIAPIPE_VERTEX_COUNTS = (468, 478)
+ICT_INDEX_FILE = "ict_facekit_vertex_indices.json"
+
+
+def landmarks_file_for(path) -> Path:
+    """``HEAD.landmarks.json`` beside a mesh ``HEAD.obj`` (any suffix)."""
+    path = Path(path)
+    return path.with_name(path.stem + ".landmarks.json")
+
+
+def _read_landmarks_file(lm_path: Path, n_vertices: int) -> dict[str, int]:
+    import json
+
+    try:
+        data = json.loads(lm_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{lm_path}: cannot read the landmarks file ({exc})") from exc
+    idx = data.get("vertex_indices") if isinstance(data, dict) else None
+    if not isinstance(idx, dict):
+        raise InputError(f"{lm_path}: expected an object with \"vertex_indices\": "
+                         f"{{NAME: index}}, names {list(CORE_LANDMARKS)}")
+    missing = [k for k in CORE_LANDMARKS if k not in idx]
+    if missing:
+        raise InputError(f"{lm_path}: vertex_indices lacks {missing} (needs every one of "
+                         f"{list(CORE_LANDMARKS)})")
+    out = {}
+    for k in CORE_LANDMARKS:
+        v = idx[k]
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < n_vertices:
+            raise InputError(f"{lm_path}: vertex_indices[{k!r}] = {fmt_value(v)}; expected a "
+                             f"0-based index into the mesh file's {n_vertices} vertices")
+        out[k] = v
+    return out
+
+
+def _find_landmark_indices(path: Path, n_vertices: int):
+    """``(name → file vertex index, description)`` of a mesh's landmarks, or None.
+
+    In order: ``HEAD.landmarks.json`` beside the mesh; the ICT FaceKit's
+    ``ict_facekit_vertex_indices.json`` beside it (68-point landmark vertices); a mesh with
+    MediaPipe's canonical vertex count (468 or 478).
+    """
+    import json
+
+    lm = landmarks_file_for(path)
+    if lm.is_file():
+        return _read_landmarks_file(lm, n_vertices), str(lm)
+    ict = path.with_name(ICT_INDEX_FILE)
+    if ict.is_file():
+        try:
+            verts68 = json.loads(ict.read_text(encoding="utf-8"))["idx_to_landmark_verts"]
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise InputError(f"{ict}: cannot read idx_to_landmark_verts ({exc})") from exc
+        if len(verts68) != 68:
+            raise InputError(f"{ict}: idx_to_landmark_verts has {len(verts68)} entries, expected 68")
+        out = {k: int(verts68[i]) for k, i in ICT_IBUG68_INDEX.items()}
+        if max(out.values()) < n_vertices:
+            return out, f"{ict} (iBUG 68-point landmark vertices)"
+        log.debug("%s does not fit %s (vertex index %d >= %d vertices); ignored", ict, path,
+                  max(out.values()), n_vertices)
+    if n_vertices in MEDIAPIPE_VERTEX_COUNTS:
+        return dict(MEDIAPIPE_INDEX), "MediaPipe canonical face mesh vertex indices"
+    return None
+
+
+# --------------------------------------------------------------------------- real faces: parts
+
+#: Mesh parts with their own material (index = label in ``ground_truth/parts.npz``).
+PART_NAMES = ("skin", "sclera", "iris", "teeth", "mouth_interior")
+
+#: Substrings of OBJ object/group/material names (lower case) that select a part, tried in
+#: order; everything else is skin (the ICT FaceKit's ``M_Face`` and ``M_BackHead``).
+_PART_PATTERNS = (
+    ("iris", ("iris", "pupil", "cornea")),
+    ("sclera", ("sclera", "eyeball", "eye")),
+    ("teeth", ("teeth", "tooth")),
+    ("mouth_interior", ("gum", "tongue", "mouth")),
+)
+
+
+def part_labels(mesh) -> np.ndarray:
+    """Per-face part label ``(F,)`` int64 indexing :data:`PART_NAMES` (0 = skin).
+
+    From the OBJ object/group/material names the loader keeps in ``metadata["face_labels"]``
+    (the ICT FaceKit: ``M_ScleraLeft``/``Right`` → sclera, ``M_IrisLeft``/``Right`` → iris,
+    ``M_Teeth`` → teeth, ``M_GumsTongue`` → mouth_interior). Meshes without names (the
+    procedural head, PLY, the MediaPipe face) are all skin.
+    """
+    n = len(mesh.faces)
+    names = getattr(mesh, "metadata", {}).get("face_labels")
+    out = np.zeros(n, np.int64)
+    if names is None or len(names) != n:
+        return out
+    uniq, inv = np.unique(np.asarray(names, dtype=str), return_inverse=True)
+    lab = np.zeros(len(uniq), np.int64)
+    for i, name in enumerate(uniq):
+        low = name.lower()
+        for part, pats in _PART_PATTERNS:
+            if any(pt in low for pt in pats):
+                lab[i] = PART_NAMES.index(part)
+                break
+    return lab[inv.reshape(-1)]
+
+
+# --------------------------------------------------------------------------- real faces: frame
+
+#: Where the face's derived landmarks sit, in units of the interocular distance (IOD, between
+#: the eye centres) from the eye line / midline: the proportions of the procedural head
+#: (:func:`_landmark_xy`, IOD = 2·eye_x = 64 mm), so a region placed on either head lands on
+#: the same feature.
+_DERIVED_IOD = {
+    "forehead": (0.0, 0.78),  # 50 mm above the eye line
+    "cheek": (0.69, -0.69),  # 44 mm out, 44 mm below
+    "under_eye": (None, -0.33),  # below each eye centre
+}
+#: The chin (mental protuberance) this far from the lower lip toward the menton.
+_CHIN_FRACTION = 0.5
+#: The face box spans the eye line + this many IODs (the hairline) down to the menton, and
+#: ± this many IODs about the midline (cheek to cheek).
+_FACE_TOP_IOD = 1.0
+_FACE_HALF_WIDTH_IOD = 1.1
+
+
+def _front_hits(mesh, skin_faces: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """First skin surface point seen looking along −Z at each ``(x, y)`` (N, 3); NaN on a miss."""
+    from facegeo.surface.visibility import RayScene
+
+    v = np.asarray(mesh.vertices, dtype=float)
+    f = np.asarray(mesh.faces, dtype=np.int64)[skin_faces]
+    scene = RayScene(v, f)
+    z0 = v[:, 2].max() + 0.1
+    o = np.column_stack([xy, np.full(len(xy), z0)])
+    d = np.broadcast_to([0.0, 0.0, -1.0], o.shape)
+    hits = scene.closest_hit(o, d, t_min=0.0)
+    return np.where(hits.hit[:, None], hits.point, np.nan)
+
+
+def real_face_landmarks(mesh) -> dict[str, np.ndarray] | None:
+    """Facial landmarks of a loaded real face, metres, in the mesh's current frame.
+
+    The :data:`CORE_LANDMARKS` are mesh vertices (``metadata["landmark_indices"]``, set by
+    :func:`load_head_mesh`). Derived from them: ``left_eye``/``right_eye`` (midpoint of each
+    eye's corners), ``mouth_center``, ``forehead``, ``left/right_cheek``,
+    ``left/right_under_eye``, ``nose_bridge`` and ``chin`` — the skin point seen from the front (−Z ray, skin
+    faces only) at a position set by the eyes and mouth in the procedural head's proportions
+    (:data:`_DERIVED_IOD`), so these carry the names of :func:`head_landmarks`.
+
+    Returns
+    -------
+    dict of str → (3,) float64, or None when the mesh has no known landmarks.
+
+    Raises
+    ------
+    InputError
+        A landmark vertex is not used by any face, or a derived point misses the skin.
+    """
+    meta = getattr(mesh, "metadata", {})
+    idx = meta.get("landmark_indices")
+    if idx is None:
+        return None
+    src = np.asarray(meta["source_vertex_index"])
+    v = np.asarray(mesh.vertices, dtype=float)
+    first = {}
+    order = np.argsort(src, kind="stable")
+    pos = np.searchsorted(src[order], [idx[k] for k in CORE_LANDMARKS])
+    out: dict[str, np.ndarray] = {}
+    for k, p_ in zip(CORE_LANDMARKS, pos):
+        if p_ >= len(src) or src[order[p_]] != idx[k]:
+            raise InputError(f"{meta.get('landmark_source')}: landmark {k!r} is file vertex "
+                             f"{idx[k]}, which no face of {meta.get('source_path')} uses")
+        first[k] = order[p_]
+        out[k] = v[first[k]].copy()
+    eye_r = 0.5 * (out["right_eye_outer"] + out["right_eye_inner"])
+    eye_l = 0.5 * (out["left_eye_outer"] + out["left_eye_inner"])
+    out["right_eye"], out["left_eye"] = eye_r, eye_l
+    iod = float(np.linalg.norm(eye_l - eye_r))
+    x_mid = 0.5 * (eye_l[0] + eye_r[0])
+    y_eye = 0.5 * (eye_l[1] + eye_r[1])
+    mouth = 0.5 * (out["upper_lip"] + out["lower_lip"])
+    fx, fy = _DERIVED_IOD["forehead"]
+    cx, cy = _DERIVED_IOD["cheek"]
+    uy = _DERIVED_IOD["under_eye"][1]
+    chin_y = out["lower_lip"][1] + _CHIN_FRACTION * (out["menton"][1] - out["lower_lip"][1])
+    want = {
+        "mouth_center": (mouth[0], mouth[1]),
+        "forehead": (x_mid + fx * iod, y_eye + fy * iod),
+        "left_cheek": (x_mid + cx * iod, y_eye + cy * iod),
+        "right_cheek": (x_mid - cx * iod, y_eye + cy * iod),
+        "left_under_eye": (eye_l[0], y_eye + uy * iod),
+        "right_under_eye": (eye_r[0], y_eye + uy * iod),
+        "chin": (x_mid, chin_y),
+        "nose_bridge": (out["nose_tip"][0], 0.5 * (y_eye + out["nose_tip"][1])),
+    }
+    skin = part_labels(mesh) == 0
+    pts = _front_hits(mesh, skin, np.array(list(want.values()), dtype=float))
+    for (k, _), p_ in zip(want.items(), pts):
+        if not np.all(np.isfinite(p_)):
+            raise InputError(f"{meta.get('source_path')}: derived landmark {k!r} misses the skin "
+                             "seen from the front (is the face toward +Z and +Y up?)")
+        out[k] = p_
+    return out
+
+
+def face_box(landmarks: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box ``(lo, hi)`` (3,) of the face, metres: cheek to cheek
+    (± :data:`_FACE_HALF_WIDTH_IOD` IOD), menton to hairline (eye line +
+    :data:`_FACE_TOP_IOD` IOD), and in depth from the eye centres to the nose tip."""
+    eye_l, eye_r = landmarks["left_eye"], landmarks["right_eye"]
+    iod = float(np.linalg.norm(eye_l - eye_r))
+    mid = 0.5 * (eye_l + eye_r)
+    lo = np.array([mid[0] - _FACE_HALF_WIDTH_IOD * iod, landmarks["menton"][1],
+                   min(eye_l[2], eye_r[2])])
+    hi = np.array([mid[0] + _FACE_HALF_WIDTH_IOD * iod, mid[1] + _FACE_TOP_IOD * iod,
+                   landmarks["nose_tip"][2]])
+    return lo, hi
+
+
+def frame_face(mesh, landmarks: dict[str, np.ndarray]) -> np.ndarray:
+    """Translate a real face so that the rig, aimed at the origin, frames the face.
+
+    The face box's (:func:`face_box`) centre goes to x = y = 0 and the nose tip to the
+    procedural head's nose-tip depth (``HEAD_LANDMARKS["nose_tip"][2]``, so a real head sits
+    in the light stage where the procedural one does, instead of its bounding box — neck
+    included — being centred). Updates ``mesh.vertices``, ``metadata["translation_m"]``
+    (cumulative, after scaling) and the ``landmarks`` in place.
+
+    Returns
+    -------
+    (3,) float64, metres: the translation added.
+    """
+    lo, hi = face_box(landmarks)
+    centre = 0.5 * (lo + hi)
+    shift = np.array([-centre[0], -centre[1],
+                      float(HEAD_LANDMARKS["nose_tip"][2]) - landmarks["nose_tip"][2]])
+    mesh.vertices = np.asarray(mesh.vertices, dtype=float) + shift
+    meta = mesh.metadata
+    meta["translation_m"] = (np.asarray(meta.get("translation_m", np.zeros(3))) + shift).tolist()
+    for k in landmarks:
+        landmarks[k] = landmarks[k] + shift
+    return shift

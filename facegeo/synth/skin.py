@@ -8,13 +8,16 @@ texel of any reconstructed atlas, on any mesh:
 * ``alpha_0`` — linear-sRGB diffuse colour at normal incidence and view;
 * ``alpha_1`` — diffuse colour at grazing angles (desaturated and a little lighter, imitating the
   desaturation the paper observed);
-* ``rho_s`` — specular scale on the Fresnel term, in (0.3, 1.0);
+* ``rho_s`` — specular scale on the Fresnel term, in (0.3, 1.0) for the built-in model (0.34–0.93
+  on the default head at seed 0); a model that supplies its own (the spectral one's oiliness
+  map) may go lower: 0.11–0.74 over the spectral skin types;
 * ``roughness`` — Beckmann RMS slope m, in (0.25, 0.5).
 
 Everything is computed in head-normalised coordinates ``u = (p − center)/half_extent`` (face
 toward +Z, +Y up, so the face occupies u_z ≈ 0.5…1): smooth regional weights (lips, cheeks,
 forehead, nose, under-eye, chin) placed where :func:`facegeo.synth.head.procedural_head` puts
-those features, plus seeded smooth 3-D noise (random-phase plane waves with wavelengths
+those features — or, for a real face, a frame fitted on its landmarks with every region centred
+on its landmark (:meth:`SkinField.for_landmarks`) — plus seeded smooth 3-D noise (random-phase plane waves with wavelengths
 8–60 mm). Every map is C^∞ (Gaussians, logistic squashing, sinusoids) so a fit can recover it.
 
 The diffuse colour model is pluggable: ``albedo_model`` names an entry of
@@ -46,6 +49,14 @@ __all__ = [
     "region_weights",
     "REGIONS",
     "smooth_noise",
+    "FIT_LANDMARKS",
+    "REGION_ANCHORS",
+    "landmark_frame",
+    "region_landmark_distances",
+    "procedural_coordinates",
+    "PartMaterial",
+    "PART_MATERIALS",
+    "apply_part_materials",
 ]
 
 FORMAT = "facegeo.skin_field/1"
@@ -72,7 +83,7 @@ REGIONS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]
 _LN2 = math.log(2.0)
 
 
-def region_weights(u) -> dict[str, np.ndarray]:
+def region_weights(u, centers: dict | None = None) -> dict[str, np.ndarray]:
     """Smooth membership of each region of :data:`REGIONS` at head-normalised points.
 
     ``w = exp(−ln 2 · q²)`` with ``q = Σ_k ((u_k − c_k)/r_k)²``: a flat-topped (super-Gaussian)
@@ -81,6 +92,9 @@ def region_weights(u) -> dict[str, np.ndarray]:
     Parameters
     ----------
     u : (..., 3) float64, dimensionless, head-normalised (face toward +Z, +Y up)
+    centers : dict of str → (3,), optional
+        Region centres (head-normalised) replacing those of :data:`REGIONS` (radii kept):
+        a real face's regions placed on its landmarks (``SkinField.region_centers``).
 
     Returns
     -------
@@ -90,6 +104,8 @@ def region_weights(u) -> dict[str, np.ndarray]:
     ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
     out = {}
     for name, (c, r) in REGIONS.items():
+        if centers is not None and name in centers:
+            c = centers[name]
         q = ((ux - c[0]) / r[0]) ** 2 + ((uy - c[1]) / r[1]) ** 2 + ((uz - c[2]) / r[2]) ** 2
         out[name] = np.exp(-_LN2 * q * q)
     out["cheeks"] = out["left_cheek"] + out["right_cheek"]
@@ -211,7 +227,7 @@ def regional_albedo(u, skin: SkinField, *, tone=(0.45, 0.30, 0.23), subject_vari
     lum = math.exp(subject_variation * float(np.clip(rng.normal(0.0, 0.12), -0.3, 0.3)))
     shift = subject_variation * float(rng.uniform(-0.03, 0.05))  # > 0: redder / more melanin
     base = np.asarray(tone, float) * lum * np.array([1.0, 1.0 - shift, 1.0 - 2.0 * shift])
-    w = region_weights(u)
+    w = region_weights(u, skin.region_centers)
     log_a = np.log(base) + (
         w["lips"][..., None] * np.log(np.asarray(lip_tint, float))
         + w["cheeks"][..., None] * np.log(np.asarray(blush_tint, float))
@@ -237,7 +253,33 @@ def spectral_albedo(u, skin, params="medium", variation=1.0):
     from facegeo.appearance.spectral import spectral_albedo_fn
 
     fn = spectral_albedo_fn(params, seed=int(skin.seed), variation=variation)
+    u = procedural_coordinates(u, skin)
     return {"alpha_0": fn(u), "rho_s": fn.parameter_maps(u).rho_s}
+
+
+def procedural_coordinates(u, skin: SkinField) -> np.ndarray:
+    """Head-normalised coordinates warped so a real face's regions sit where models written
+    for the procedural head expect them.
+
+    With ``skin.region_centers`` set (a real face), every region r of :data:`REGIONS` is
+    centred on its landmark at ``c'_r`` instead of at its procedural centre ``c_r``; a model
+    with its own regions at the procedural centres (the spectral skin's ``PARAMETER_REGIONS``)
+    sees ``u' = u + 2 Σ_r w_r(u) (c_r − c'_r) / (1 + Σ_r w_r(u))`` with ``w_r`` the
+    landmark-placed memberships (:func:`region_weights`): C^∞, ``u' = c_r`` at an isolated
+    region's centre, ``u' = u`` far from every region. Without region centres, ``u``.
+    """
+    u = np.asarray(u, dtype=float)
+    if skin.region_centers is None:
+        return u
+    w = region_weights(u, skin.region_centers)
+    num = np.zeros_like(u)
+    den = np.ones(u.shape[:-1])
+    for name, (c, _) in REGIONS.items():
+        if name in skin.region_centers:
+            d = np.asarray(c, float) - np.asarray(skin.region_centers[name], float)
+            num += w[name][..., None] * d
+            den += w[name]
+    return u + 2.0 * num / den[..., None]
 
 
 #: Diffuse colour models by name: ``model(u, skin, **params) -> alpha_0 (..., 3)``.
@@ -333,6 +375,10 @@ class SkinField:
         Plane waves per noise field.
     noise_wavelengths : (float, float), metres
         Shortest and longest noise wavelength.
+    region_centers : dict of str → (3,), optional
+        Head-normalised centres replacing those of :data:`REGIONS` for the named regions
+        (a real face's regions on its landmarks, :meth:`for_landmarks`); None keeps
+        :data:`REGIONS` (the procedural head). Serialised only when set.
     albedo_fn : callable, optional
         ``albedo_fn(u) -> alpha_0``; replaces the named model. Not serialisable.
     """
@@ -351,6 +397,7 @@ class SkinField:
     spec_noise: float = 0.35
     noise_waves: int = 12
     noise_wavelengths: tuple[float, float] = (0.008, 0.06)
+    region_centers: dict | None = None
     albedo_fn: Callable | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
@@ -391,6 +438,17 @@ class SkinField:
         object.__setattr__(self, "noise_wavelengths", lam)
         if int(self.noise_waves) < 1:
             raise InputError(f"noise_waves: expected >= 1, got {self.noise_waves}")
+        if self.region_centers is not None:
+            if not isinstance(self.region_centers, dict):
+                raise InputError("region_centers: expected a dict of region name → (3,) centre, "
+                                 f"got {type(self.region_centers).__name__}")
+            bad = sorted(set(self.region_centers) - set(REGIONS))
+            if bad:
+                raise InputError(f"region_centers: unknown region(s) {bad}; expected a subset "
+                                 f"of {sorted(REGIONS)}")
+            object.__setattr__(self, "region_centers", {
+                str(k): list(_vec3(v, f"region_centers[{k!r}]"))
+                for k, v in self.region_centers.items()})
 
     # ---------------------------------------------------------------- construction
 
@@ -406,6 +464,23 @@ class SkinField:
         if np.any(half <= 0):
             raise InputError(f"for_mesh: degenerate bounding box (half sizes {half.tolist()})")
         return cls(center=(lo + hi) / 2.0, half_extent=half, seed=seed, **params)
+
+    @classmethod
+    def for_landmarks(cls, landmarks: dict, seed: int = 0, **params) -> SkinField:
+        """A field for a real face: head frame fitted on its landmarks (:func:`landmark_frame`)
+        and every region of :data:`REGIONS` centred on its landmark (:data:`REGION_ANCHORS`).
+
+        Parameters
+        ----------
+        landmarks : dict of str → (3,) float64, metres, world frame
+            As :func:`facegeo.synth.head.real_face_landmarks` returns them.
+        seed, **params
+            As the constructor.
+        """
+        center, half = landmark_frame(landmarks)
+        centers = {name: ((np.asarray(landmarks[a], float) - center) / half).tolist()
+                   for name, a in REGION_ANCHORS.items()}
+        return cls(center=center, half_extent=half, seed=seed, region_centers=centers, **params)
 
     # ---------------------------------------------------------------- evaluation
 
@@ -477,7 +552,7 @@ class SkinField:
         # Grazing colour: desaturated toward luminance, a little lighter (imitating the
         # grazing desaturation of Debevec et al. 2000 §4 with the generator's own blend).
         a1 = np.minimum(desaturate(a0, self.grazing_desaturation) * self.grazing_lift, 0.95)
-        w = region_weights(u)
+        w = region_weights(u, self.region_centers)
         oil = w["forehead"] + w["nose"] + 0.35 * w["chin"]
         moist = w["lips"]
         x = u * np.asarray(self.half_extent)
@@ -523,6 +598,8 @@ class SkinField:
             if f.name == "albedo_fn":
                 continue
             val = getattr(self, f.name)
+            if f.name == "region_centers" and val is None:
+                continue  # absent: the procedural head's skin.json is unchanged
             d[f.name] = list(val) if isinstance(val, tuple) else val
         d["albedo_params"] = _jsonable(self.albedo_params)
         return d
@@ -559,3 +636,213 @@ def _jsonable(x):
     if isinstance(x, np.generic):
         return x.item()
     return x
+
+
+# --------------------------------------------------------------------------- landmark placement
+
+#: Landmarks a real face's head frame is fitted on (names of facegeo.synth.head.head_landmarks).
+FIT_LANDMARKS = ("nose_tip", "left_eye", "right_eye", "mouth_center", "upper_lip", "lower_lip",
+                 "chin", "forehead", "left_cheek", "right_cheek", "left_under_eye",
+                 "right_under_eye")
+
+#: The landmark each region of :data:`REGIONS` is placed on (its distance to it is reported).
+REGION_ANCHORS = {
+    "lips": "mouth_center",
+    "left_cheek": "left_cheek",
+    "right_cheek": "right_cheek",
+    "forehead": "forehead",
+    "nose": "nose_bridge",
+    "left_under_eye": "left_under_eye",
+    "right_under_eye": "right_under_eye",
+    "chin": "chin",
+}
+
+
+@functools.lru_cache(maxsize=1)
+def _procedural_frame() -> tuple[np.ndarray, np.ndarray]:
+    """Centre and half extent (3,) of the default procedural head at the ``small`` preset's
+    resolution (subdivision 5): the frame :data:`REGIONS` were placed in."""
+    from facegeo.synth.head import procedural_head
+
+    v = np.asarray(procedural_head(5).vertices, dtype=float)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    return (lo + hi) / 2.0, (hi - lo) / 2.0
+
+
+def landmark_frame(landmarks: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Head frame ``(center, half_extent)`` that puts a real face's landmarks where the
+    default procedural head has them in head-normalised coordinates.
+
+    For x and y, a least-squares line ``u_k = (p_k − c_k)/h_k`` through the pairs (real
+    landmark p, procedural landmark u) for the :data:`FIT_LANDMARKS`; in depth the scale is the
+    procedural one times the mean x/y scale ratio and only the offset is fitted. Every region of :data:`REGIONS`
+    (and of any other model written in head-normalised coordinates, such as the spectral
+    skin's) then lands on the same feature of the real face as on the procedural one,
+    whatever the real mesh's bounding box holds (a neck, a back of the head, nothing but a
+    face mask).
+
+    Parameters
+    ----------
+    landmarks : dict of str → (3,) float64, metres, world frame
+
+    Returns
+    -------
+    center, half_extent : (3,) float64, metres
+
+    Raises
+    ------
+    InputError
+        A landmark of :data:`FIT_LANDMARKS` is missing, or an axis's fit is degenerate
+        (non-positive scale: the face is not +Y up, facing +Z).
+    """
+    from facegeo.synth.head import HEAD_LANDMARKS
+
+    missing = [k for k in FIT_LANDMARKS if k not in landmarks]
+    if missing:
+        raise InputError(f"landmark_frame: landmarks lack {missing}")
+    c0, h0 = _procedural_frame()
+    p = np.array([landmarks[k] for k in FIT_LANDMARKS], dtype=float)
+    u = (np.array([HEAD_LANDMARKS[k] for k in FIT_LANDMARKS]) - c0) / h0
+    center = np.empty(3)
+    half = np.empty(3)
+    for k in range(2):
+        a, b = np.polyfit(p[:, k], u[:, k], 1)
+        if not (np.isfinite(a) and a > 0):
+            raise InputError(f"landmark_frame: axis {'xy'[k]} fits a scale {a:.3g} (expected > 0); "
+                             "is the face +Y up and facing +Z?")
+        half[k] = 1.0 / a
+        center[k] = -b / a
+    # Depth: the landmarks span only ≈ 4 cm of it, too little to fit a scale (it came out 30 %
+    # deeper than the procedural head's on the ICT face, stretching every region back toward
+    # the neck); scale it like the face's width and height, fit only the offset.
+    half[2] = h0[2] * float(np.mean(half[:2] / h0[:2]))
+    center[2] = float(np.mean(p[:, 2] - u[:, 2] * half[2]))
+    return center, half
+
+
+def region_landmark_distances(skin: SkinField, vertices, faces, landmarks: dict, *,
+                              face_mask=None) -> dict[str, dict]:
+    """Where each skin region lands on a mesh, and how far that is from its landmark.
+
+    A region's location is the centroid of its core — the faces (``face_mask``) whose
+    membership (:func:`region_weights` at the face centroid) is at least half the largest one
+    found, weighted by membership × area — moved onto the surface along the core's mean
+    normal (the nearer hit of the two directions; the closest face centroid if both miss).
+    A region placed off the face (on the neck, in the air, inside the head) shows up as a large
+    distance or a small ``peak_weight``.
+
+    Parameters
+    ----------
+    skin : SkinField
+    vertices : (V, 3) float64, metres, world frame
+    faces : (F, 3) int
+    landmarks : dict of str → (3,) float64
+        Must hold the landmarks named in :data:`REGION_ANCHORS`.
+    face_mask : (F,) bool, optional
+        Faces that carry skin (default all).
+
+    Returns
+    -------
+    dict of region name → {"landmark": str, "distance_to_landmark_mm": float,
+    "location_m": [x, y, z], "peak_weight": float (largest membership at a skin face)}
+    """
+    from facegeo.surface.visibility import RayScene
+
+    v = as_array(vertices, "vertices", shape=(None, 3))
+    f = as_array(faces, "faces", shape=(None, 3), dtype=np.int64)
+    if face_mask is not None:
+        f = f[np.asarray(face_mask, bool)]
+    tri = v[f]
+    centroid = tri.mean(axis=1)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # |fn| = 2·area
+    area = 0.5 * np.linalg.norm(fn, axis=1)
+    weights = region_weights(skin.normalised(centroid), skin.region_centers)
+    scene = RayScene(v, f)
+    out = {}
+    for name, anchor in REGION_ANCHORS.items():
+        if anchor not in landmarks:
+            raise InputError(f"region_landmark_distances: no landmark {anchor!r} for region {name!r}")
+        w = weights[name]
+        peak = float(w.max()) if w.size else 0.0
+        core = w >= 0.5 * peak
+        if peak <= 0 or not core.any():
+            loc = np.full(3, np.nan)
+        else:
+            wa = (w * area)[core]
+            c = (wa[:, None] * centroid[core]).sum(axis=0) / wa.sum()
+            n = (w[core, None] * fn[core]).sum(axis=0)
+            n = n / max(float(np.linalg.norm(n)), 1e-300)
+            hits = scene.closest_hit(np.stack([c, c]), np.stack([n, -n]), t_min=0.0)
+            if hits.hit.any():
+                t = np.where(hits.hit, hits.t, np.inf)
+                loc = hits.point[int(np.argmin(t))]
+            else:
+                loc = centroid[core][int(np.argmin(np.linalg.norm(centroid[core] - c, axis=1)))]
+        d = float(np.linalg.norm(loc - np.asarray(landmarks[anchor], float)))
+        out[name] = {"landmark": anchor, "distance_to_landmark_mm": 1000.0 * d,
+                     "location_m": loc.tolist(), "peak_weight": peak}
+    return out
+
+
+# --------------------------------------------------------------------------- non-skin parts
+
+
+@dataclass(frozen=True)
+class PartMaterial:
+    """A simple uniform material for a non-skin mesh part, in the generator BRDF's terms.
+
+    ``alpha_0 = alpha_1 = albedo`` (no grazing colour shift: that is a skin property), a
+    uniform specular scale and Beckmann roughness; no skin-field parameters, no noise.
+    """
+
+    albedo: tuple[float, float, float]
+    rho_s: float
+    roughness: float
+
+
+#: Materials of the mesh parts of :data:`facegeo.synth.head.PART_NAMES` other than skin:
+#: a bright, wet sclera and a dark, wet iris (low roughness: the tear film), ivory teeth,
+#: dark-red gums, tongue and mouth interior.
+PART_MATERIALS: dict[str, PartMaterial] = {
+    "sclera": PartMaterial((0.62, 0.56, 0.52), 0.9, 0.15),
+    "iris": PartMaterial((0.10, 0.06, 0.035), 0.9, 0.15),
+    "teeth": PartMaterial((0.66, 0.60, 0.48), 0.6, 0.25),
+    "mouth_interior": PartMaterial((0.30, 0.07, 0.07), 0.6, 0.30),
+}
+
+
+def apply_part_materials(sample: SkinSample, labels, names) -> SkinSample:
+    """Replace the skin parameters of points on non-skin parts by their part's material.
+
+    Parameters
+    ----------
+    sample : SkinSample
+        Skin-field parameters at P points (leading shape (P,)).
+    labels : (P,) int
+        Part of each point, indexing ``names``; 0 (``names[0] == "skin"``) keeps the skin.
+    names : sequence of str
+        Part names; every non-skin name must be in :data:`PART_MATERIALS`.
+
+    Returns
+    -------
+    SkinSample
+        A copy with the part materials written in (float32).
+    """
+    labels = np.asarray(labels).reshape(-1)
+    a0 = np.array(sample.alpha_0, np.float32, copy=True)
+    a1 = np.array(sample.alpha_1, np.float32, copy=True)
+    rho = np.array(sample.rho_s, np.float32, copy=True)
+    m = np.array(sample.roughness, np.float32, copy=True)
+    for k, name in enumerate(names):
+        if name == "skin":
+            continue
+        if name not in PART_MATERIALS:
+            raise InputError(f"part {name!r}: no material; expected one of {sorted(PART_MATERIALS)}")
+        sel = labels == k
+        if sel.any():
+            mat = PART_MATERIALS[name]
+            a0[sel] = mat.albedo
+            a1[sel] = mat.albedo
+            rho[sel] = mat.rho_s
+            m[sel] = mat.roughness
+    return SkinSample(alpha_0=a0, alpha_1=a1, rho_s=rho, roughness=m)
