@@ -34,6 +34,7 @@ from facegeo import fsutil
 from facegeo.errors import InputError
 from facegeo.frames import Pose, look_at, rotation_from_rvec
 from facegeo.checks import fmt_value
+from facegeo.synth.boards import calibration_board_poses
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +84,8 @@ class Preset:
 
 PRESETS: dict[str, Preset] = {
     "tiny": Preset("tiny", 1 / 6, 16, 8, 4, (256, 192), 3, 1, 3, olat_half=False),
-    "small": Preset("small", 1 / 2, 32, 16, 5, (512, 384), 10, 3, 3),
-    "paper": Preset("paper", 1.0, 64, 32, 6, (1024, 768), 15, 5, 3, sl_supersample=2),
+    "small": Preset("small", 1 / 2, 32, 16, 5, (512, 384), 30, 4, 3),
+    "paper": Preset("paper", 1.0, 64, 32, 6, (1024, 768), 30, 6, 3, sl_supersample=2),
 }
 
 #: Bounding-box diagonal a head mesh must have once converted to metres (a real head is
@@ -226,46 +227,6 @@ def _board_for_rig(rig):
     square = round(target / squares_x / 0.004) * 0.004  # multiples of 4 mm: marker = ¾ exactly
     return CharucoBoard(squares_x=squares_x, squares_y=squares_y, square_length=square,
                         marker_length=square * 0.75, dictionary="DICT_4X4_50")
-
-
-def _board_poses(board, cameras, n, rng, *, max_tries=2000) -> list[Pose]:
-    """World poses ``T_world_board`` of a board seen whole by every camera in ``cameras``."""
-    w, h = board.size
-    corners_board = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], float)
-    # Board facing the cameras (+Z): board x → world +X, board y (down) → world -Y, z → -Z.
-    R0 = np.diag([1.0, -1.0, -1.0])
-    poses: list[Pose] = []
-    tries = 0
-    while len(poses) < n and tries < max_tries:
-        tries += 1
-        tilt = np.deg2rad(rng.uniform(12, 35)) * rng.choice([-1, 1], size=2)
-        roll = np.deg2rad(rng.uniform(-20, 20))
-        R = rotation_from_rvec([tilt[0], tilt[1], roll]) @ R0
-        centre = np.array([rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), rng.uniform(-0.08, 0.12)])
-        t = centre - R @ np.array([w / 2, h / 2, 0.0])
-        T_world_board = Pose(R, t)
-        corners_world = T_world_board.apply(corners_board)
-        normal_world = R[:, 2]
-        ok = True
-        for cam in cameras:
-            q, front = cam.project(corners_world)
-            margin = 0.04 * cam.width
-            if not front.all() or not (
-                (q[:, 0] > margin).all() and (q[:, 0] < cam.width - 1 - margin).all()
-                and (q[:, 1] > margin).all() and (q[:, 1] < cam.height - 1 - margin).all()
-            ):
-                ok = False
-                break
-            # the camera must see the printed side: board z points away from the camera
-            if np.dot(normal_world, cam.center_world - T_world_board.apply(np.zeros(3))) > 0:
-                ok = False
-                break
-        if ok:
-            poses.append(T_world_board)
-    if len(poses) < n:
-        raise InputError(f"could not place {n} board views visible to every camera "
-                         f"({len(poses)} found in {max_tries} tries)")
-    return poses
 
 
 def _novel_cameras(rig) -> list:
@@ -461,7 +422,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     t0 = time.perf_counter()
     board_path = root / "calib" / "board.json"
     board.save(board_path)
-    poses = _board_poses(board, rig.cameras, preset.calib_views, rng)
+    poses = calibration_board_poses(board, rig.cameras, preset.calib_views, rng, shared_every=1)
     calib_files = scanmod.DEFAULT_FILES["calib"]
     exposure = 3.0  # maps a white board under unit irradiance (0.85/π) to ≈ 0.81
     n_total = len(poses) * len(rig.cameras)
@@ -481,7 +442,8 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
 
     # ---- projector calibration: the board under every pattern ----
     proj = rig.projector
-    proj_poses = _board_poses(board, list(rig.cameras) + [proj], preset.projector_views, rng)
+    proj_poses = calibration_board_poses(board, list(rig.cameras) + [proj], preset.projector_views,
+                                         rng, shared_every=1, tilt_deg=(20.0, 40.0))
     proj_files = scanmod.DEFAULT_FILES["calib.projector"]
     n_total = len(proj_poses) * len(rig.cameras) * len(sl_names)
     done = 0
