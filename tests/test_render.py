@@ -224,3 +224,21 @@ def test_run_render_errors(parts, tmp_path):
         run_render(root, camera_spec="orbit:cam_middle:10")
     with pytest.raises(InputError, match="reconstruct"):
         run_render(root, out_dir=tmp_path, camera_spec="cam_left")
+
+
+def test_grazing_views_fall_back_to_measured_not_black(parts):
+    """Where the fitted normal calls a steep novel view back-facing (the mesh still sees the
+    texel), the renderer keeps the measured function: nothing turns black that was lit."""
+    from facegeo.render import orbit_camera, shade_texels
+
+    src = parts["sources"][0]
+    t = _fitted_texels(src)
+    p = parts["texels"].p_world[t]
+    w = _weights(parts["rig"].lights, 3)
+    far = orbit_camera(parts["rig"].camera(src.name), 85.0).center_world
+    st: dict = {}
+    a = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis=True, stats=st)
+    b = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis=False)
+    assert st["backfacing_fallback"] > 0, "an 85° orbit makes some fitted normals back-facing"
+    lit = np.linalg.norm(b, axis=1) > 0
+    assert np.all(np.linalg.norm(a[lit], axis=1) > 0)

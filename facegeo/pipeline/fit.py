@@ -58,7 +58,7 @@ __all__ = ["fit_products", "run_fit", "default_views", "needed_texels", "FIT_SET
 FIT_SETTINGS: dict[str, Any] = {
     "texels": "all", "views": None, "max_texels": None, "eta": 1.4, "chunk": 2048,
     "diffuse_dtype": "float16", "gt_functions": 256, "gt_angles": [30.0, 60.0],
-    "mosaic": 8, "rig": None,
+    "mosaic": 8, "rig": None, "polish": 0,
 }
 
 
@@ -210,7 +210,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                  views: list | None = None, max_texels: int | None = None, eta: float = 1.4,
                  chunk: int = 2048, diffuse_dtype: str = "float16", gt_functions: int = 256,
                  gt_angles=(30.0, 60.0), mosaic: int = 8, rig: str | None = None,
-                 progress=None) -> tuple[dict, dict]:
+                 polish: int | None = 0, progress=None) -> tuple[dict, dict]:
     """Fit the skin model to every camera's projected field; write the ``fit`` products.
 
     Parameters
@@ -229,13 +229,18 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     gt_angles : sequence of float, degrees
     mosaic : int — the mosaic shows mosaic × mosaic functions (0: none)
     rig : {"ground_truth", "scan"}, optional — rig for view specs (default as ``project``)
+    polish : int or None — Levenberg–Marquardt iterations after the ramp search
+        (``SearchDepth.polish``); None keeps the skin module's default (10). Default 0: on the
+        generator's BRDF the polish drives the ramp to absorb the model mismatch and moves
+        ~40 % of a purely diffuse function into S, which resynthesis then moves like a
+        specular lobe (measured in docs/render.md); the paper's pure direct search does not.
     progress : callable(stage, done, total), optional
 
     Returns
     -------
     (metrics, settings)
     """
-    from facegeo.appearance.skin import FLAG_NAMES, fit_reflectance, resynthesize
+    from facegeo.appearance.skin import FLAG_NAMES, SearchDepth, fit_reflectance, resynthesize
     from facegeo.capture import imageio
     from facegeo.pipeline.bench import peak_rss_mb
     from facegeo.pipeline.project import _rig
@@ -262,7 +267,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     settings = {"texels": texels, "views": views, "max_texels": max_texels, "eta": eta,
                 "chunk": int(chunk), "diffuse_dtype": diffuse_dtype,
                 "gt_functions": gt_functions, "gt_angles": list(gt_angles), "mosaic": mosaic,
-                "rig": rig_used}
+                "rig": rig_used, "polish": polish}
+    depth = SearchDepth() if polish is None else SearchDepth(polish=int(polish))
     cam_table = _camera_table(scan, the_rig)
     need = None
     t_views = 0.0
@@ -301,7 +307,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             R = np.asarray(src.field[rr], np.float32)
             ok = np.isfinite(R).all(axis=(1, 2))
             R = np.where(ok[:, None, None], R, 0.0)  # masked samples: fitted as black, flagged
-            fit = fit_reflectance(R, src.v_world[rr], lights, eta=eta)
+            fit = fit_reflectance(R, src.v_world[rr], lights, eta=eta, depth=depth)
             writer.write(rr, src.texel_index[rr], fit)
             flags = np.concatenate([flags, fit.flags])
             t_id = src.texel_index[rr]

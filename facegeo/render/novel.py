@@ -20,10 +20,16 @@ For a camera the light stage never had, under an environment given as Eq. (4) li
    (foreshortening and occlusion-edge feathering, docs/surface.md) and ``p =``
    :data:`BLEND_POWER`. A view equal to a source camera (θ below :data:`SAME_VIEW_RAD`) takes
    that camera's measured function unchanged, and its weight dominates every other by
-   ≥ 10¹⁴, so the render reproduces that camera's relit image.
+   ≥ 10¹⁴, so the render reproduces that camera's relit image. Cameras whose share of a
+   texel's blend is below :data:`BLEND_MIN_SHARE` are skipped (not read, not resynthesised).
 4. **Image**: pixel samples are the tap-weighted texel colours, averaged over s × s sub-pixel
    samples with supersampling; pixels whose taps no camera measured are not covered (0, and
    False in ``RenderResult.covered``).
+
+Where the fitted normal puts v_n at or below the horizon although the mesh sees the texel
+(``FLAG_BACKFACING``, grazing views with a normal a few degrees off), resynthesis would give
+black; the texel keeps its measured function from that camera instead (counted in
+``stats["backfacing_fallback"]``).
 
 The naive baseline (``resynthesis=False``) is the same pipeline with the source cameras'
 measured functions relit unchanged (projecting the relit source views onto the geometry).
@@ -61,6 +67,10 @@ BLEND_POWER = 2.0
 #: Angles below this (radians) count as the source view itself: its measured function is used
 #: unchanged (the paper's guarantee), and θ is floored here in the weight.
 SAME_VIEW_RAD = 1e-7
+#: A source camera whose blend weight is below this share of a texel's total is left out of
+#: that texel (not read, not resynthesised); the others are renormalised, so the blend moves by
+#: at most this fraction of the difference between cameras.
+BLEND_MIN_SHARE = 1e-3
 #: A bilinear tap farther than this many texel spacings from the hit point lies on another chart.
 TAP_MAX_TEXELS = 3.0
 #: Functions per resynthesis chunk: ``CHUNK_SAMPLES // L`` (bounded temporaries).
@@ -323,24 +333,32 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     bsum = np.zeros(K)
     st = stats if stats is not None else {}
     st.update({"active_lights": int(active.size), "texels": int(K), "samples": 0,
-               "resynthesized": 0, "unfitted": 0, "same_view": 0})
+               "resynthesized": 0, "unfitted": 0, "same_view": 0, "backfacing_fallback": 0})
     if K == 0 or active.size == 0:
         return np.where(bsum[:, None] > 0, acc, np.nan).astype(np.float32)
     chunk = max(16, CHUNK_SAMPLES // max(L, 1))
     c_new = np.asarray(center_world, np.float64).reshape(3)
+    # pass 1 (no field reads): every camera's blend weight, so that cameras whose share of a
+    # texel's blend is below BLEND_MIN_SHARE are never read or resynthesised
+    plan = []
+    total_b = np.zeros(K)
     for src in sources:
         rows, seen = src.rows_of(texel_ids)
         k_idx = np.flatnonzero(seen)
-        if k_idx.size == 0:
-            continue
         rows = rows[k_idx]
-        v0 = src.v_world[rows]
         vn = c_new[None, :] - p_world[k_idx]
         vn /= np.linalg.norm(vn, axis=1, keepdims=True)
-        theta = _angle(v0, vn)
-        same = theta < SAME_VIEW_RAD
-        st["same_view"] += int(same.sum())
+        theta = _angle(src.v_world[rows], vn)
         b = src.weight[rows].astype(np.float64) / np.maximum(theta, SAME_VIEW_RAD) ** blend_power
+        plan.append((src, k_idx, rows, vn, theta < SAME_VIEW_RAD, b))
+        np.add.at(total_b, k_idx, b)
+    for src, k_idx, rows, vn, same, b in plan:
+        keep = b >= BLEND_MIN_SHARE * total_b[k_idx]
+        st["skipped_small_weight"] = st.get("skipped_small_weight", 0) + int((~keep).sum())
+        k_idx, rows, vn, same, b = k_idx[keep], rows[keep], vn[keep], same[keep], b[keep]
+        if k_idx.size == 0:
+            continue
+        st["same_view"] += int(same.sum())
         if resynthesis:
             if src.fit is None:
                 raise InputError(f"camera {src.name}: resynthesis needs its skin-model fit "
@@ -358,9 +376,13 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                 st["unfitted"] += int(np.count_nonzero(ok & ~fitted[sl]))
                 if todo.size:
                     fit = src.fit.skin_fit(fidx[sl][todo], R[todo], lights)
-                    res = _resynthesize(fit, vn[sl][todo])
-                    out[todo] = np.einsum("nlc,lc->nc", res[:, active, :], w_act)
-                    st["resynthesized"] += int(todo.size)
+                    res, back = _resynthesize(fit, vn[sl][todo])
+                    # the fitted normal puts v_n below the horizon while the mesh sees the
+                    # texel (grazing views): keep the measured function rather than black
+                    use = todo[~back]
+                    out[use] = np.einsum("nlc,lc->nc", res[~back][:, active, :], w_act)
+                    st["resynthesized"] += int(use.size)
+                    st["backfacing_fallback"] += int(back.sum())
             kk = k_idx[sl][ok]
             acc[kk] += b[sl][ok, None] * out[ok]
             bsum[kk] += b[sl][ok]
@@ -371,9 +393,11 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
 
 
 def _resynthesize(fit, vn):
-    from facegeo.appearance.skin import resynthesize
+    """Resynthesised functions ``(n, L, C)`` and where the fit called v_n back-facing."""
+    from facegeo.appearance.skin import FLAG_BACKFACING, resynthesize
 
-    return resynthesize(fit, vn).reflectance
+    r = resynthesize(fit, vn)
+    return r.reflectance, (r.flags & FLAG_BACKFACING) != 0
 
 
 def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
