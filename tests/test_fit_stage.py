@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from facegeo.errors import InputError
+from facegeo.pipeline.fit import FIT_SETTINGS
 
 #: Texels per millimetre of the test atlas (coarser than the default 1.0: a fast fixture).
 TEST_TEXELS_PER_MM = 0.35
@@ -84,7 +85,8 @@ def test_fit_store_round_trip_resynthesises_like_the_fit(reconstructed):
     store = src.fit
     idx = np.arange(min(40, len(store)))
     R = np.asarray(src.field[store.rows[idx]], np.float32)
-    fresh = skin.fit_reflectance(R, src.v_world[store.rows[idx]], lights)
+    fresh = skin.fit_reflectance(R, src.v_world[store.rows[idx]], lights,
+                                 depth=skin.SearchDepth(polish=FIT_SETTINGS["polish"]))
     loaded = store.skin_fit(idx, R, lights)
     # refitting in other chunks changes the search's rounding only (fit_reflectance docs)
     for k in ("normal", "alpha_0", "alpha_1", "rho_s", "d_0"):

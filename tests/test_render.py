@@ -119,7 +119,8 @@ def test_same_view_returns_the_measured_functions_relit(parts):
     st: dict = {}
     c = shade_texels(t, p, far, [src], w, resynthesis=True, stats=st, **kw)
     d = shade_texels(t, p, far, [src], w, resynthesis=False, **kw)
-    assert st["resynthesized"] == t.size
+    assert st["resynthesized"] + st["backfacing_fallback"] == t.size
+    assert st["resynthesized"] > 0
     assert np.abs(c - d).max() > 100 * SUM_ROUNDING_REL * scale
 
 
