@@ -243,3 +243,21 @@ def test_grazing_views_fall_back_to_measured_not_black(parts):
     assert st["backfacing_fallback"] > 0, "an 85° orbit makes some fitted normals back-facing"
     lit = np.linalg.norm(b, axis=1) > 0
     assert np.all(np.linalg.norm(a[lit], axis=1) > 0)
+
+
+def test_diffuse_only_ablation_keeps_measured_specular(parts):
+    """``resynthesis="diffuse"``: at a 30° view it differs from full resynthesis only by the
+    specular part, and a bad value is refused by name."""
+    from facegeo.render import orbit_camera, shade_texels
+
+    src = parts["sources"][0]
+    t = _fitted_texels(src)
+    p = parts["texels"].p_world[t]
+    w = _weights(parts["rig"].lights, 4)
+    far = orbit_camera(parts["rig"].camera(src.name), 30.0).center_world
+    full = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis=True)
+    diff = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis="diffuse")
+    naive = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis=False)
+    assert np.abs(diff - full).max() > 0 and np.abs(diff - naive).max() > 0
+    with pytest.raises(InputError, match="resynthesis"):
+        shade_texels(t, p, far, [src], w, parts["lights"], resynthesis="specular")

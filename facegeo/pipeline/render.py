@@ -141,7 +141,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     rotate_deg : float, degrees — environment rotation about +Y
     projection : {"latlong", "mirrorball", "angular"} — of an environment file
     supersample : int — s × s rays per pixel
-    resynthesis : bool — False: render only the naive baseline as the main image
+    resynthesis : bool or "diffuse" — False: render only the naive baseline as the main
+        image; ``"diffuse"``: the diffuse-only ablation (:func:`facegeo.render.shade_texels`)
     baseline : bool — also render the naive baseline
     reference : bool — compare with the generator's reference (synthetic scans)
     name : str, optional — output stem (default from the camera and environment)
@@ -216,7 +217,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         "camera": camera.name, "camera_spec": camera_spec if isinstance(camera_spec, str)
         else camera.to_dict(), "env": str(env) if not isinstance(env, E.EnvironmentMap)
         else "EnvironmentMap", "rotate_deg": float(rotate_deg), "supersample": int(supersample),
-        "resynthesis": bool(resynthesis), "blend_power": bp, "rig": rig_used,
+        "resynthesis": resynthesis, "blend_power": bp, "rig": rig_used,
         "size": [camera.width, camera.height], "active_lights": res.stats["active_lights"],
         "stats": res.stats, "seconds_render": res.stats["seconds"],
         "seconds_naive": naive.stats["seconds"] if naive is not None else None,

@@ -313,7 +313,10 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     sources : list of SourceCamera
     weights : (L, 3) float — Eq. (4) light weights (δA included), in the field's units
     lights : LightSet — the light set the fits were made with (resynthesis)
-    resynthesis : bool — False: the naive baseline (measured functions relit unchanged)
+    resynthesis : bool or "diffuse" — True: §4.3 resynthesis; False: the naive baseline
+        (measured functions relit unchanged); ``"diffuse"``: an ablation, not the paper —
+        the diffuse component resynthesised (chroma shift), the measured specular component
+        kept (see docs/render.md for what it measures)
     blend_power : float — p of the view-dependent weight
     stats : dict, optional — filled with counts
 
@@ -321,6 +324,9 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     -------
     colour : (K, 3) float32 — NaN where no source camera measured the texel
     """
+    if resynthesis not in (True, False, "diffuse"):
+        raise InputError(f"resynthesis: expected True, False or 'diffuse', got "
+                         f"{fmt_value(resynthesis)}")
     texel_ids = np.asarray(texel_ids, np.int64)
     K = texel_ids.size
     if not sources:
@@ -376,7 +382,8 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                 st["unfitted"] += int(np.count_nonzero(ok & ~fitted[sl]))
                 if todo.size:
                     fit = src.fit.skin_fit(fidx[sl][todo], R[todo], lights)
-                    res, back = _resynthesize(fit, vn[sl][todo])
+                    res, back = _resynthesize(fit, vn[sl][todo],
+                                              diffuse_only=resynthesis == "diffuse")
                     # the fitted normal puts v_n below the horizon while the mesh sees the
                     # texel (grazing views): keep the measured function rather than black
                     use = todo[~back]
@@ -392,12 +399,15 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     return colour.astype(np.float32)
 
 
-def _resynthesize(fit, vn):
+def _resynthesize(fit, vn, *, diffuse_only: bool = False):
     """Resynthesised functions ``(n, L, C)`` and where the fit called v_n back-facing."""
     from facegeo.appearance.skin import FLAG_BACKFACING, resynthesize
 
     r = resynthesize(fit, vn)
-    return r.reflectance, (r.flags & FLAG_BACKFACING) != 0
+    back = (r.flags & FLAG_BACKFACING) != 0
+    if diffuse_only:
+        return r.diffuse + fit.specular, back
+    return r.reflectance, back
 
 
 def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
@@ -417,7 +427,7 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
     weights : (L, 3) float — Eq. (4) weights of the environment (δA included), field units
     lights : LightSet — the light set of the fits
     supersample : int — s × s rays per pixel
-    resynthesis : bool — False renders the naive baseline
+    resynthesis : bool or "diffuse" — False renders the naive baseline; see :func:`shade_texels`
     blend_power : float — view-dependent weight exponent
     samples : ViewSamples, optional — a :func:`trace_view` result to reuse
 
