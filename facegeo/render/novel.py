@@ -60,6 +60,7 @@ from facegeo.errors import InputError, ShapeError
 log = logging.getLogger(__name__)
 
 __all__ = ["ViewSamples", "SourceCamera", "RenderResult", "atlas_scene", "trace_view",
+           "pixel_sample_rays",
            "load_sources", "shade_texels", "render_view", "BLEND_POWER", "SAME_VIEW_RAD"]
 
 #: Exponent p of the view-dependent weight 1/θ^p.
@@ -183,6 +184,26 @@ def atlas_scene(atlas):
     return RayScene(atlas.vertices, atlas.faces)
 
 
+def pixel_sample_rays(camera, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Rays through s × s regular sub-pixel samples of every pixel (s = 1: the pixel centres).
+
+    Returns
+    -------
+    origins, directions : (H·W·s², 3) float64, world frame
+        Row-major over pixels, the s² sub-samples of a pixel consecutive (row-major within the
+        pixel); directions NaN where the camera's undistortion did not converge.
+    """
+    s = int(supersample)
+    if s == 1:
+        o, d = camera.pixel_rays()
+    else:
+        off = (np.arange(s) + 0.5) / s - 0.5
+        ox, oy = np.meshgrid(off, off)
+        sub = np.stack([ox.ravel(), oy.ravel()], axis=-1)
+        o, d = camera.pixel_rays(camera.pixel_grid()[:, :, None, :] + sub[None, None])
+    return o.reshape(-1, 3), d.reshape(-1, 3)
+
+
 def trace_view(camera, scene, atlas, texels, *, supersample: int = 1) -> ViewSamples:
     """Primary rays of ``camera`` → surface points → bilinear texel taps (see module docstring).
 
@@ -207,15 +228,7 @@ def trace_view(camera, scene, atlas, texels, *, supersample: int = 1) -> ViewSam
         raise ShapeError(f"scene: {scene.n_faces} faces, but the atlas has {len(atlas.faces)}; "
                          "build it with atlas_scene(atlas)")
     h, w = camera.height, camera.width
-    if s == 1:
-        o, d = camera.pixel_rays()
-    else:
-        off = (np.arange(s) + 0.5) / s - 0.5
-        ox, oy = np.meshgrid(off, off)
-        sub = np.stack([ox.ravel(), oy.ravel()], axis=-1)
-        o, d = camera.pixel_rays(camera.pixel_grid()[:, :, None, :] + sub[None, None])
-    o = o.reshape(-1, 3)
-    d = d.reshape(-1, 3)
+    o, d = pixel_sample_rays(camera, s)
     finite = np.flatnonzero(np.isfinite(d).all(axis=1))
     hits = scene.closest_hit(o[finite], d[finite], t_min=0.0)
     sel = np.flatnonzero(hits.hit)
