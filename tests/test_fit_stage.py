@@ -34,8 +34,11 @@ def reconstructed(tmp_path_factory):
     root = tmp_path_factory.mktemp("render") / "scan"
     assert main(["synth", str(root), "--preset", "tiny", "-q"]) == 0
     run_project(root, atlas_settings={"texels_per_mm": TEST_TEXELS_PER_MM}, gt_lights=4)
+    calls = []
     metrics = run_fit(root, texels="views", views=["cam_left", "orbit:cam_left:30"],
-                      max_texels=TEST_MAX_TEXELS, gt_functions=24, mosaic=4)
+                      max_texels=TEST_MAX_TEXELS, gt_functions=24, mosaic=4,
+                      progress=lambda *a: calls.append(a))
+    metrics["_progress"] = calls
     return root, metrics
 
 
@@ -56,6 +59,8 @@ def test_fit_stage_writes_products_and_metrics(reconstructed):
               "resynthesis_naive_rel_rmse_30", "resynthesis_rel_rmse_0"):
         assert k in m and np.isfinite(m[k]), k
     assert m["normal_median_error_deg"] <= NORMAL_MEDIAN_DEG_MAX, m["normal_median_error_deg"]
+    stage, done, total = m["_progress"][-1]
+    assert stage == "fit" and done == total == 2 * TEST_MAX_TEXELS, "progress ends at the total"
 
 
 def test_normal_map_holds_fitted_normals(reconstructed):

@@ -234,7 +234,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         generator's BRDF the polish drives the ramp to absorb the model mismatch and moves
         ~40 % of a purely diffuse function into S, which resynthesis then moves like a
         specular lobe (measured in docs/render.md); the paper's pure direct search does not.
-    progress : callable(stage, done, total), optional
+    progress : callable(stage, done, total), optional — called per chunk with functions fitted
 
     Returns
     -------
@@ -292,13 +292,16 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     gt = {"n_err": [], "a_err": [], "s_err": [], "sums": {}}
     mosaic_R = None
     total = 0
-    for ci, src in enumerate(sources):
-        t0 = time.perf_counter()
+    selections = []
+    for src in sources:
         rows = np.arange(src.texel_index.size)
         if need is not None:
             r, seen = src.rows_of(need)
             rows = np.unique(r[seen])
-        rows = rows[_even_subset(rows.size, max_texels)]
+        selections.append(rows[_even_subset(rows.size, max_texels)])
+    n_all = int(sum(r.size for r in selections))
+    for src, rows in zip(sources, selections):
+        t0 = time.perf_counter()
         writer = FitWriter(dest / src.name, rows.size, lights.n_lights,
                            src.field.shape[2], diffuse_dtype)
         flags = np.zeros(0, np.int32)
@@ -317,7 +320,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             acc["rho_s"][t_id] += wc * fit.rho_s
             wsum[t_id] += wc
             if progress:
-                progress("fit", total + s + len(rr), -1)
+                progress("fit", total + s + len(rr), n_all)
         writer.close()
         total += rows.size
         seconds = time.perf_counter() - t0
