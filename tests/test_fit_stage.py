@@ -81,7 +81,7 @@ def test_fit_store_round_trip_resynthesises_like_the_fit(reconstructed):
     """Saved parameters + D (float16) + the field give back the fit: same parameters, and
     resynthesis for a new view within D's float16 rounding of the in-memory fit's."""
     from facegeo.appearance import skin
-    from facegeo.render import FitStore, light_set, load_sources
+    from facegeo.render import light_set, load_sources
     from facegeo.synth.render import load_ground_truth
 
     root, _ = reconstructed

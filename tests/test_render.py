@@ -6,9 +6,9 @@ import json
 
 import numpy as np
 import pytest
+from test_fit_stage import reconstructed  # noqa: F401  (module-scoped fixture)
 
 from facegeo.errors import InputError
-from test_fit_stage import reconstructed  # noqa: F401  (module-scoped fixture)
 
 #: Float32 rounding of an Eq. (4) sum of 128 lights, relative to the largest value.
 SUM_ROUNDING_REL = 1e-5
@@ -110,7 +110,7 @@ def test_same_view_returns_the_measured_functions_relit(parts):
     t = _fitted_texels(src)
     p = parts["texels"].p_world[t]
     w = _weights(parts["rig"].lights)
-    kw = dict(lights=parts["lights"])
+    kw = {"lights": parts["lights"]}
     a = shade_texels(t, p, cam.center_world, [src], w, resynthesis=True, **kw)
     b = shade_texels(t, p, cam.center_world, [src], w, resynthesis=False, **kw)
     scale = np.abs(b).max()
@@ -133,7 +133,7 @@ def test_view_dependent_blend_picks_the_matching_camera(parts):
     both = np.intersect1d(left.texel_index, right.texel_index)[::7]
     p = parts["texels"].p_world[both]
     w = _weights(parts["rig"].lights, 1)
-    kw = dict(lights=parts["lights"], resynthesis=False)
+    kw = {"lights": parts["lights"], "resynthesis": False}
     c_right = parts["rig"].camera(right.name).center_world
     blended = shade_texels(both, p, c_right, [left, right], w, **kw)
     only_r = shade_texels(both, p, c_right, [right], w, **kw)
@@ -261,3 +261,25 @@ def test_diffuse_only_ablation_keeps_measured_specular(parts):
     assert np.abs(diff - full).max() > 0 and np.abs(diff - naive).max() > 0
     with pytest.raises(InputError, match="resynthesis"):
         shade_texels(t, p, far, [src], w, parts["lights"], resynthesis="specular")
+
+
+def test_hole_filling_copies_the_nearest_covered_pixel(parts):
+    """fill_px: uncovered hit samples take the colour of the nearest covered pixel (so a
+    filled pixel's colour occurs among covered pixels); covered pixels are unchanged."""
+    from facegeo.render import orbit_camera, render_view
+
+    src = parts["sources"]
+    cam = orbit_camera(parts["rig"].camera("cam_left"), -60.0)
+    w = _weights(parts["rig"].lights, 5)
+    args = (cam, parts["scene"], parts["atlas"], parts["texels"], src, w, parts["lights"])
+    a = render_view(*args, resynthesis=False)
+    b = render_view(*args, resynthesis=False, fill_px=2.0)
+    assert np.array_equal(a.image[a.covered], b.image[b.covered])
+    assert np.array_equal(a.covered, b.covered)
+    filled = b.mask & ~b.covered & (np.abs(b.image).sum(axis=2) > 0)
+    assert b.stats["samples_filled"] > 0 and filled.any()
+    cov_colours = {tuple(c) for c in a.image[a.covered]}
+    assert all(tuple(c) in cov_colours for c in b.image[filled])
+    # beyond fill_px nothing is filled: at 2 px far fewer than with 50 px
+    c = render_view(*args, resynthesis=False, fill_px=50.0)
+    assert c.stats["samples_filled"] > b.stats["samples_filled"]

@@ -52,7 +52,7 @@ from facegeo.fsutil import staged_directory
 
 log = logging.getLogger(__name__)
 
-__all__ = ["fit_products", "run_fit", "default_views", "needed_texels", "FIT_SETTINGS"]
+__all__ = ["FIT_SETTINGS", "default_views", "fit_products", "needed_texels", "run_fit"]
 
 #: Default settings of the ``fit`` stage (JSON-serialisable, part of its cache key).
 FIT_SETTINGS: dict[str, Any] = {
@@ -240,7 +240,12 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     -------
     (metrics, settings)
     """
-    from facegeo.appearance.skin import FLAG_NAMES, SearchDepth, fit_reflectance, resynthesize
+    from facegeo.appearance.skin import (
+        FLAG_NAMES,
+        SearchDepth,
+        fit_reflectance,
+        resynthesize,
+    )
     from facegeo.capture import imageio
     from facegeo.pipeline.bench import peak_rss_mb
     from facegeo.pipeline.project import _rig

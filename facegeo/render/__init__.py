@@ -19,6 +19,18 @@ from facegeo.render.novel import (
     trace_view,
 )
 
-__all__ = ["orbit_camera", "parse_camera_spec", "FitStore", "FitWriter", "light_set",
-           "RenderResult", "SourceCamera", "ViewSamples", "atlas_scene", "load_sources",
-           "render_view", "shade_texels", "trace_view"]
+__all__ = [
+    "FitStore",
+    "FitWriter",
+    "RenderResult",
+    "SourceCamera",
+    "ViewSamples",
+    "atlas_scene",
+    "light_set",
+    "load_sources",
+    "orbit_camera",
+    "parse_camera_spec",
+    "render_view",
+    "shade_texels",
+    "trace_view",
+]

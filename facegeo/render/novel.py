@@ -24,7 +24,9 @@ For a camera the light stage never had, under an environment given as Eq. (4) li
    texel's blend is below :data:`BLEND_MIN_SHARE` are skipped (not read, not resynthesised).
 4. **Image**: pixel samples are the tap-weighted texel colours, averaged over s × s sub-pixel
    samples with supersampling; pixels whose taps no camera measured are not covered (0, and
-   False in ``RenderResult.covered``).
+   False in ``RenderResult.covered``); with ``fill_px > 0`` such samples take the colour of
+   the nearest pixel with measured samples within that distance (hole filling for display:
+   the silhouette ring the projection leaves out) and stay False in ``covered``.
 
 Where the fitted normal puts v_n at or below the horizon although the mesh sees the texel
 (``FLAG_BACKFACING``, grazing views with a normal a few degrees off), resynthesis would give
@@ -59,9 +61,19 @@ from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewSamples", "SourceCamera", "RenderResult", "atlas_scene", "trace_view",
-           "pixel_sample_rays",
-           "load_sources", "shade_texels", "render_view", "BLEND_POWER", "SAME_VIEW_RAD"]
+__all__ = [
+    "BLEND_POWER",
+    "SAME_VIEW_RAD",
+    "RenderResult",
+    "SourceCamera",
+    "ViewSamples",
+    "atlas_scene",
+    "load_sources",
+    "pixel_sample_rays",
+    "render_view",
+    "shade_texels",
+    "trace_view",
+]
 
 #: Exponent p of the view-dependent weight 1/θ^p.
 BLEND_POWER = 2.0
@@ -412,6 +424,33 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     return colour.astype(np.float32)
 
 
+def _fill_uncovered(vs: ViewSamples, val, cov, max_px: float):
+    """Give uncovered hit samples the mean colour of the nearest pixel with covered samples
+    (Euclidean distance transform, OpenCV), if it lies within ``max_px`` pixels."""
+    import cv2
+
+    h, w = vs.shape
+    pix = vs.pixel_index // vs.samples_per_pixel
+    acc = np.zeros((h * w, 3))
+    cnt = np.zeros(h * w)
+    np.add.at(acc, pix[cov], val[cov])
+    np.add.at(cnt, pix[cov], 1.0)
+    has = cnt > 0
+    miss = np.flatnonzero(~cov)
+    if not has.any() or miss.size == 0:
+        return val, 0
+    mean = acc / np.maximum(cnt, 1.0)[:, None]
+    src = np.where(has, 0, 1).astype(np.uint8).reshape(h, w)
+    dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                   labelType=cv2.DIST_LABEL_PIXEL)
+    # DIST_LABEL_PIXEL numbers the zero pixels 1, 2, … in raster order
+    nearest = np.flatnonzero(has)[labels.ravel() - 1]
+    near = dist.ravel()[pix[miss]] <= max_px
+    out = val.copy()
+    out[miss[near]] = mean[nearest[pix[miss[near]]]]
+    return out, int(near.sum())
+
+
 def _resynthesize(fit, vn, *, diffuse_only: bool = False):
     """Resynthesised functions ``(n, L, C)`` and where the fit called v_n back-facing."""
     from facegeo.appearance.skin import FLAG_BACKFACING, resynthesize
@@ -425,8 +464,8 @@ def _resynthesize(fit, vn, *, diffuse_only: bool = False):
 
 def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
                 supersample: int = 1, resynthesis: bool = True,
-                blend_power: float = BLEND_POWER, samples: ViewSamples | None = None
-                ) -> RenderResult:
+                blend_power: float = BLEND_POWER, samples: ViewSamples | None = None,
+                fill_px: float = 0.0) -> RenderResult:
     """Render ``camera`` under Eq. (4) light ``weights`` from the measured reflectance field.
 
     See the module docstring for the steps (Debevec et al. 2000 §4.5).
@@ -443,6 +482,9 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
     resynthesis : bool or "diffuse" — False renders the naive baseline; see :func:`shade_texels`
     blend_power : float — view-dependent weight exponent
     samples : ViewSamples, optional — a :func:`trace_view` result to reuse
+    fill_px : float, pixels — hit samples whose texels no camera measured take the colour of
+        the nearest pixel with measured samples within this distance (0: left black); they
+        stay False in ``covered`` (hole filling for display; see :func:`_fill_uncovered`)
 
     Returns
     -------
@@ -468,8 +510,12 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
             np.where(tot > 0, tot, 1.0)[:, None]
     cov = tot > 0
     val = np.where(cov[:, None], val, 0.0).astype(np.float32)
+    filled = 0
+    if fill_px > 0:
+        val, filled = _fill_uncovered(vs, val, cov, float(fill_px))
     image = vs.to_image(val)
     covered = vs.to_image(cov.astype(np.float32)) >= 1.0 - 1e-6
+    stats["samples_filled"] = filled
     stats.update({"pixels": int(vs.shape[0] * vs.shape[1]),
                   "samples_hit": int(vs.pixel_index.size),
                   "samples_covered": int(cov.sum()),
