@@ -203,7 +203,10 @@ def test_run_render_writes_images_and_metrics(parts):
     from facegeo.pipeline.render import run_render
 
     root = parts["root"]
-    m = run_render(root, camera_spec="orbit:cam_left:30", env="sky", name="o30")
+    calls = []
+    m = run_render(root, camera_spec="orbit:cam_left:30", env="sky", name="o30",
+                   progress=lambda *a: calls.append(a))
+    assert calls[-1] == ("render", 4, 4), calls
     d = root / "out" / "render"
     for f in ("o30.exr", "o30.png", "o30_naive.png", "o30_reference.png", "o30_error.png",
               "o30.json"):

@@ -153,7 +153,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     fill_px : float, pixels — hole filling of unmeasured hit samples from the nearest measured
         pixel within this distance (:func:`facegeo.render.render_view`; 0: off); filled
         pixels count in ``psnr_db`` / ``rel_rmse`` but not in the ``*_covered`` figures
-    progress : callable(stage, done, total), optional
+    progress : callable(stage, done, total), optional — called as stage ``"render"`` after
+        each step (rays, render, naive baseline, reference)
 
     Returns
     -------
@@ -201,16 +202,27 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     texels = Texels.load(out / "atlas" / "texels.npz")
     sources = load_sources(out / "project", (out / "fit") if resynthesis else None)
     t_load = time.perf_counter()
+    has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys
+                   and rig_used == "ground_truth")
+    steps = 2 + int(bool(baseline and resynthesis)) + int(has_ref)
+
+    def tick(k: int) -> None:
+        if progress:
+            progress("render", k, steps)
+
     scene = atlas_scene(atlas)
     samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
+    tick(1)
     bp = BLEND_POWER if blend_power is None else float(blend_power)
     res = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=resynthesis,
                       blend_power=bp, samples=samples, fill_px=fill_px)
+    tick(2)
     naive = None
     if baseline and resynthesis:
         naive = render_view(camera, scene, atlas, texels, sources, w, lights,
                             resynthesis=False, blend_power=bp, samples=samples,
                             fill_px=fill_px)
+        tick(3)
     env_tag = env if isinstance(env, str) and env in BUILTIN_ENVS else (
         Path(env).stem if isinstance(env, (str, Path)) else "env")
     stem = _safe(name or f"{camera.name}_{env_tag}")
@@ -235,14 +247,14 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         "seconds_load": round(t_load - t_start, 4),
         "coverage": round(float(res.covered.sum() / max(res.mask.sum(), 1)), 6),
     }
-    if reference and scan.synthetic and "skin" in scan.ground_truth_keys \
-            and rig_used == "ground_truth":
+    if has_ref:
         from facegeo.synth.render import load_ground_truth
 
         t0 = time.perf_counter()
         renderer = load_ground_truth(scan)
         ref = renderer.render_lights(camera, stage, w)
         mask = renderer.surface_view(camera).mask
+        tick(steps)
         metrics["seconds_reference"] = round(time.perf_counter() - t0, 4)
         imageio.write_image(dest / f"{stem}_reference.exr", ref)
         files["reference_png"] = imageio.write_image(dest / f"{stem}_reference.png",
