@@ -1,0 +1,437 @@
+"""Pipeline stage ``fit``: the paper's skin model fitted to every camera's projected field.
+
+``run_fit(scan_dir, out_dir=None, **settings)`` reads ``out/atlas/`` and ``out/project/`` and
+writes ``out/fit/``:
+
+    <camera>/fit.npz, <camera>/D.npy   per fitted texel: what
+                                       :func:`facegeo.appearance.skin.resynthesize` needs
+                                       (:mod:`facegeo.render._fitstore`; S = R − D from the field)
+    normal.exr/.png, albedo.exr/.png,  Fig. 14-style atlas maps (b: normals, c: diffuse albedo
+    specular.exr/.png                  ρ_d, d: specular energy ρ_s), blended over cameras by the
+                                       projection weights; 0 where nothing was fitted
+    fitted.png                         255 where a texel has a fit
+    mosaic.png                         Fig. 3-style mosaic of measured reflectance functions (each
+                                       a lat-long image of the light grid, θ across, φ down,
+                                       tone-mapped on its own)
+    stage.json
+
+The fit runs in chunks of ``chunk`` functions read from the memory-mapped field (bounded
+memory). It is slow (hundreds of functions per second at 128 lights), so ``texels`` selects
+what to fit: ``"all"`` texels a camera measured, or ``"views"``: only texels some listed view
+needs (the renderer's bilinear taps, :func:`facegeo.render.trace_view`); ``max_texels``
+subsamples each camera's selection evenly (the tiny preset, tests). The renderer falls back to
+a texel's measured function where it has no fit (counted as ``unfitted``).
+
+Metrics: per camera ``functions``, ``seconds``, ``functions_per_second``, flag counts; with the
+synthetic scan's ground truth (generator renderer, ground-truth mesh) over fitted, valid texels:
+
+* ``normal_median_error_deg`` — against the generator's shading normal at the texel;
+* ``albedo_rel_error`` — median ``|ρ_d − α_0| / |α_0|`` with α_0 the generator's diffuse colour
+  at normal incidence (its BRDF is not the paper's model: this mixes fit error and model
+  mismatch);
+* ``specular_energy_rel_error`` — median ``|ρ_s − ρ_s,gen| / ρ_s,gen`` (same caveat);
+* ``resynthesis_rel_rmse`` at 30° and 60° — the fitted functions resynthesised for the source
+  view turned by ±θ about the vertical axis, against the generator's exact functions from that
+  view (its renderer's shading of every light, cast shadows included), ``sqrt(Σ err² / Σ ref²)``
+  over at most ``gt_functions`` functions per camera; beside it ``resynthesis_naive_rel_rmse``
+  (the measured function reused unchanged) and at 0° the projection's own error.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import fmt_value
+from facegeo.errors import InputError
+from facegeo.fsutil import staged_directory
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FIT_SETTINGS", "default_views", "fit_products", "needed_texels", "run_fit"]
+
+#: Default settings of the ``fit`` stage (JSON-serialisable, part of its cache key).
+FIT_SETTINGS: dict[str, Any] = {
+    "texels": "all", "views": None, "max_texels": None, "eta": 1.4, "chunk": 2048,
+    "diffuse_dtype": "float16", "gt_functions": 256, "gt_angles": [30.0, 60.0],
+    "mosaic": 8, "rig": None, "polish": 0,
+}
+
+
+def default_views(cameras: list[str], novel: list[str] = ()) -> list[str]:
+    """The novel views the demo renders: every source camera, ±30° and ±60° orbits of the
+    first one, and the generator's novel cameras."""
+    first = cameras[0]
+    return list(cameras) + [f"orbit:{first}:{d:g}" for d in (30, -30, 60, -60)] + list(novel)
+
+
+def _camera_table(scan, rig) -> dict:
+    """Cameras a view spec may name: the rig's and the generator's novel ones."""
+    import json
+
+    from facegeo.geometry.camera import Camera
+
+    cams = {c.name: c for c in rig.cameras}
+    if "novel_cameras" in scan.ground_truth_keys:
+        for d in json.loads(scan.ground_truth_path("novel_cameras").read_text(encoding="utf-8")):
+            c = Camera.from_dict(d, where="ground_truth/novel_cameras.json")
+            cams[c.name] = c
+    return cams
+
+
+def needed_texels(specs, cameras: dict, atlas, texels, scene=None) -> np.ndarray:
+    """Sorted texels any of the views ``specs`` needs (their bilinear taps)."""
+    from facegeo.render import atlas_scene, parse_camera_spec, trace_view
+
+    scene = scene if scene is not None else atlas_scene(atlas)
+    parts = [trace_view(parse_camera_spec(s, cameras), scene, atlas, texels).needed_texels
+             for s in specs]
+    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+
+
+def _check_settings(*, texels="all", max_texels=None, chunk=1, **_ignored) -> None:
+    if texels not in ("all", "views"):
+        raise InputError(f"texels: expected 'all' or 'views', got {fmt_value(texels)}")
+    if max_texels is not None and int(max_texels) < 1:
+        raise InputError(f"max_texels: expected a positive count, got {fmt_value(max_texels)}")
+    if int(chunk) < 1:
+        raise InputError(f"chunk: expected a positive count, got {fmt_value(chunk)}")
+
+
+def _even_subset(n: int, k: int | None) -> np.ndarray:
+    if k is None or k >= n:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, int(k)).round().astype(np.int64))
+
+
+def _truth(renderer, atlas, texels, tex):
+    """The generator's shading normal and skin parameters at texels ``tex``."""
+    face_in = atlas.face_map[texels.face[tex]]
+    n = np.einsum("tk,tkc->tc", texels.bary[tex],
+                  renderer.vertex_normals[renderer.faces[face_in]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return n, face_in, renderer.skin.evaluate(texels.p_world[tex])
+
+
+def _exact_functions(renderer, stage, p, n, v, face_in, sk) -> np.ndarray:
+    """The generator's exact OLAT functions ``(N, L, 3)`` of points seen from directions v."""
+    from facegeo.synth.render import SurfaceView
+
+    N = p.shape[0]
+    view = SurfaceView("fit-truth", (1, N), np.ones((1, N), bool), np.arange(N), p, n, v,
+                       face_in, np.asarray(sk.alpha_0, np.float32).reshape(-1, 3),
+                       np.asarray(sk.alpha_1, np.float32).reshape(-1, 3),
+                       np.asarray(sk.rho_s, np.float32).reshape(-1),
+                       np.asarray(sk.roughness, np.float32).reshape(-1))
+    return np.stack([renderer.shade_stage_light(view, stage, l) for l in range(stage.n_lights)],
+                    axis=1)
+
+
+def _rotate_views(v, n, deg):
+    """v turned by +deg about +Y, or by −deg where that keeps the view higher above n."""
+    from facegeo.lighting.envmap import rotation_y
+
+    a = v @ rotation_y(np.radians(deg)).T
+    b = v @ rotation_y(-np.radians(deg)).T
+    pick = np.einsum("ni,ni->n", a, n) >= np.einsum("ni,ni->n", b, n)
+    return np.where(pick[:, None], a, b)
+
+
+def _rel_rmse(est, ref):
+    den = float((ref.astype(np.float64) ** 2).sum())
+    return float(np.sqrt(((est.astype(np.float64) - ref) ** 2).sum() / den)) if den > 0 else None
+
+
+def _angle_deg(a, b):
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1),
+                                 np.einsum("ni,ni->n", a, b)))
+
+
+def _write_maps(dest: Path, texels, acc: dict, wsum: np.ndarray) -> dict:
+    from facegeo.capture import imageio
+    from facegeo.capture.response import encode
+
+    fitted = wsum > 0
+    safe = np.where(fitted, wsum, 1.0)
+    normal = acc["normal"] / safe[:, None]
+    nn = np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = np.where(fitted[:, None] & (nn > 0), normal / np.where(nn > 0, nn, 1.0), 0.0)
+    rho_d = np.where(fitted[:, None], acc["rho_d"] / safe[:, None], 0.0)
+    rho_s = np.where(fitted, acc["rho_s"] / safe, 0.0)
+    files = {}
+    img_n = texels.to_image(normal.astype(np.float32), fill=0.0)
+    files["normal"] = imageio.write_image(dest / "normal.exr", img_n)
+    imageio.write_image(dest / "normal.png", np.where(
+        texels.to_image(fitted, fill=False)[..., None],
+        np.clip((img_n + 1.0) * 127.5 + 0.5, 0, 255), 0).astype(np.uint8))
+    img_d = texels.to_image(rho_d.astype(np.float32), fill=0.0)
+    files["albedo"] = imageio.write_image(dest / "albedo.exr", img_d)
+    imageio.write_image(dest / "albedo.png", encode(np.clip(img_d, 0, 1), "srgb", np.uint8))
+    img_s = texels.to_image(rho_s.astype(np.float32), fill=0.0)
+    files["specular"] = imageio.write_image(dest / "specular.exr", img_s)
+    top = float(np.percentile(rho_s[fitted], 99)) if fitted.any() else 1.0
+    imageio.write_image(dest / "specular.png",
+                        encode(np.clip(img_s / max(top, 1e-12), 0, 1), "srgb", np.uint8))
+    imageio.write_image(dest / "fitted.png",
+                        (texels.to_image(fitted, fill=False) * 255).astype(np.uint8))
+    return {k: Path(v).name for k, v in files.items()}
+
+
+def reflectance_mosaic(R, n_theta: int, n_phi: int, *, scale: int = 4, cols: int = 8,
+                       gap: int = 1) -> np.ndarray:
+    """Fig. 3-style mosaic ``(H, W, 3)`` uint8 of reflectance functions ``(N, L, 3)``.
+
+    Each function is shown as a lat-long image of the light grid (θ across, φ down; the light
+    order of docs/conventions.md, θ fastest), magnified ``scale`` times, tone-mapped by its
+    own 99th percentile, sRGB.
+    """
+    from facegeo.capture.response import encode
+
+    R = np.nan_to_num(np.asarray(R, np.float32))
+    N = R.shape[0]
+    rows = max(1, -(-N // cols))
+    th, tw = n_phi * scale, n_theta * scale
+    out = np.zeros((rows * (th + gap) + gap, cols * (tw + gap) + gap, 3), np.float32)
+    for k in range(N):  # a handful of tiles, not a per-texel loop
+        img = R[k].reshape(n_phi, n_theta, 3)
+        top = float(np.percentile(img, 99))
+        img = np.repeat(np.repeat(img / max(top, 1e-12), scale, 0), scale, 1)
+        r, c = divmod(k, cols)
+        out[gap + r * (th + gap):gap + r * (th + gap) + th,
+            gap + c * (tw + gap):gap + c * (tw + gap) + tw] = img
+    return encode(np.clip(out, 0, 1), "srgb", np.uint8)
+
+
+def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all",
+                 views: list | None = None, max_texels: int | None = None, eta: float = 1.4,
+                 chunk: int = 2048, diffuse_dtype: str = "float16", gt_functions: int = 256,
+                 gt_angles=(30.0, 60.0), mosaic: int = 8, rig: str | None = None,
+                 polish: int | None = 0, progress=None) -> tuple[dict, dict]:
+    """Fit the skin model to every camera's projected field; write the ``fit`` products.
+
+    Parameters
+    ----------
+    scan : Scan
+    project_dir : path — the ``project`` stage folder (``<camera>/R.npy`` …)
+    dest : path — folder to write into (the stage cache's temporary folder)
+    atlas_dir : path, optional — default ``project_dir/../atlas``
+    texels : {"all", "views"} — fit every measured texel, or only those ``views`` need
+    views : list of camera specs, optional — default :func:`default_views`
+    max_texels : int, optional — at most this many functions per camera (even subsample)
+    eta : float — index of refraction (ρ_s, Eq. 9)
+    chunk : int — functions read and fitted at a time
+    diffuse_dtype : {"float16", "float32"} — storage of D
+    gt_functions : int — functions per camera in the resynthesis ground-truth comparison
+    gt_angles : sequence of float, degrees
+    mosaic : int — the mosaic shows mosaic × mosaic functions (0: none)
+    rig : {"ground_truth", "scan"}, optional — rig for view specs (default as ``project``)
+    polish : int or None — Levenberg–Marquardt iterations after the ramp search
+        (``SearchDepth.polish``); None keeps the skin module's default (10). Default 0: on the
+        generator's BRDF the polish drives the ramp to absorb the model mismatch and moves
+        ~40 % of a purely diffuse function into S, which resynthesis then moves like a
+        specular lobe (measured in docs/render.md); the paper's pure direct search does not.
+    progress : callable(stage, done, total), optional — called per chunk with functions fitted
+
+    Returns
+    -------
+    (metrics, settings)
+    """
+    from facegeo.appearance.skin import (
+        FLAG_NAMES,
+        SearchDepth,
+        fit_reflectance,
+        resynthesize,
+    )
+    from facegeo.capture import imageio
+    from facegeo.pipeline.bench import peak_rss_mb
+    from facegeo.pipeline.project import _rig
+    from facegeo.render import FitWriter, atlas_scene, light_set, load_sources
+    from facegeo.surface.atlas import Atlas, Texels
+
+    t_start = time.perf_counter()
+    project_dir = Path(project_dir)
+    dest = Path(dest)
+    atlas_dir = Path(atlas_dir) if atlas_dir is not None else project_dir.parent / "atlas"
+    _check_settings(texels=texels, max_texels=max_texels, chunk=chunk)
+    for f in ("atlas.npz", "texels.npz"):
+        if not (atlas_dir / f).is_file():
+            raise InputError(f"fit: {atlas_dir / f} is missing; run 'facegeo reconstruct SCAN' "
+                             "(the atlas stage) first")
+    atlas = Atlas.load(atlas_dir / "atlas.npz")
+    tex = Texels.load(atlas_dir / "texels.npz")
+    sources = load_sources(project_dir)
+    the_rig, rig_used = _rig(scan, rig)
+    lights = light_set(the_rig.lights)
+    if sources[0].field.shape[1] != lights.n_lights:
+        raise InputError(f"{project_dir}: fields hold {sources[0].field.shape[1]} lights, the rig "
+                         f"{lights.n_lights}")
+    settings = {"texels": texels, "views": views, "max_texels": max_texels, "eta": eta,
+                "chunk": int(chunk), "diffuse_dtype": diffuse_dtype,
+                "gt_functions": gt_functions, "gt_angles": list(gt_angles), "mosaic": mosaic,
+                "rig": rig_used, "polish": polish}
+    depth = SearchDepth() if polish is None else SearchDepth(polish=int(polish))
+    cam_table = _camera_table(scan, the_rig)
+    need = None
+    t_views = 0.0
+    if texels == "views":
+        t0 = time.perf_counter()
+        specs = views if views is not None else default_views(
+            [c.name for c in the_rig.cameras],
+            [n for n in cam_table if n not in the_rig.camera_names])
+        settings["views"] = list(specs)
+        need = needed_texels(specs, cam_table, atlas, tex, atlas_scene(atlas))
+        t_views = time.perf_counter() - t0
+    renderer = None
+    if scan.synthetic and "skin" in scan.ground_truth_keys and rig_used == "ground_truth":
+        from facegeo.synth.render import load_ground_truth
+
+        renderer = load_ground_truth(scan)
+    T = len(tex)
+    acc = {"normal": np.zeros((T, 3)), "rho_d": np.zeros((T, 3)), "rho_s": np.zeros(T)}
+    wsum = np.zeros(T)
+    per_cam: dict[str, Any] = {}
+    gt = {"n_err": [], "a_err": [], "s_err": [], "sums": {}}
+    mosaic_R = None
+    total = 0
+    selections = []
+    for src in sources:
+        rows = np.arange(src.texel_index.size)
+        if need is not None:
+            r, seen = src.rows_of(need)
+            rows = np.unique(r[seen])
+        selections.append(rows[_even_subset(rows.size, max_texels)])
+    n_all = int(sum(r.size for r in selections))
+    for src, rows in zip(sources, selections):
+        t0 = time.perf_counter()
+        writer = FitWriter(dest / src.name, rows.size, lights.n_lights,
+                           src.field.shape[2], diffuse_dtype)
+        flags = np.zeros(0, np.int32)
+        for s in range(0, rows.size, int(chunk)):
+            rr = rows[s:s + int(chunk)]
+            R = np.asarray(src.field[rr], np.float32)
+            ok = np.isfinite(R).all(axis=(1, 2))
+            R = np.where(ok[:, None, None], R, 0.0)  # masked samples: fitted as black, flagged
+            fit = fit_reflectance(R, src.v_world[rr], lights, eta=eta, depth=depth)
+            writer.write(rr, src.texel_index[rr], fit)
+            flags = np.concatenate([flags, fit.flags])
+            t_id = src.texel_index[rr]
+            wc = np.where(fit.valid & ok, src.weight[rr].astype(np.float64), 0.0)
+            acc["normal"][t_id] += wc[:, None] * fit.normal
+            acc["rho_d"][t_id] += wc[:, None] * fit.rho_d
+            acc["rho_s"][t_id] += wc * fit.rho_s
+            wsum[t_id] += wc
+            if progress:
+                progress("fit", total + s + len(rr), n_all)
+        writer.close()
+        total += rows.size
+        seconds = time.perf_counter() - t0
+        per_cam[src.name] = {
+            "functions": int(rows.size), "measured_texels": int(src.texel_index.size),
+            "seconds": round(seconds, 4),
+            "functions_per_second": round(rows.size / max(seconds, 1e-9), 1),
+            "flags": {name: int(np.count_nonzero(flags & bit)) for bit, name in FLAG_NAMES.items()},
+        }
+        if mosaic and mosaic_R is None and rows.size:
+            pick = rows[_even_subset(rows.size, int(mosaic) ** 2)]
+            mosaic_R = np.asarray(src.field[pick], np.float32)
+        if renderer is not None and rows.size:
+            _ground_truth(gt, renderer, the_rig.lights, atlas, tex, src, rows, lights,
+                          dest / src.name, gt_functions, gt_angles, resynthesize)
+    files = _write_maps(dest, tex, acc, wsum)
+    if mosaic_R is not None:
+        imageio.write_image(dest / "mosaic.png", reflectance_mosaic(
+            mosaic_R, the_rig.lights.n_theta, the_rig.lights.n_phi, cols=int(mosaic)))
+        files["mosaic"] = "mosaic.png"
+    metrics: dict[str, Any] = {
+        "cameras": per_cam, "functions": int(total), "lights": int(lights.n_lights),
+        "texels_fitted": int(np.count_nonzero(wsum > 0)), "texels": int(T),
+        "seconds_views": round(t_views, 4),
+        "functions_per_second": round(total / max(sum(c["seconds"] for c in per_cam.values()),
+                                                  1e-9), 1),
+        "files": files,
+    }
+    if renderer is not None and gt["n_err"]:
+        ne = np.concatenate(gt["n_err"])
+        metrics["normal_median_error_deg"] = round(float(np.median(ne)), 4)
+        metrics["albedo_rel_error"] = round(float(np.median(np.concatenate(gt["a_err"]))), 5)
+        metrics["specular_energy_rel_error"] = round(
+            float(np.median(np.concatenate(gt["s_err"]))), 5)
+        metrics["gt_valid_functions"] = int(ne.size)
+        for key, (se, sr) in sorted(gt["sums"].items()):
+            metrics[key] = round(float(np.sqrt(se / sr)), 5) if sr > 0 else None
+    metrics["seconds"] = round(time.perf_counter() - t_start, 4)
+    metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    return metrics, settings
+
+
+def _ground_truth(gt, renderer, stage, atlas, tex, src, rows, lights, cam_dir, n_max, angles,
+                  resynthesize):
+    """Accumulate the ground-truth comparisons of one camera's fits (see module docstring)."""
+    from facegeo.render import FitStore
+
+    store = FitStore.load(cam_dir)
+    valid = store.params["valid"].astype(bool)
+    t_id = store.texel_index
+    n_true, face_in, sk = _truth(renderer, atlas, tex, t_id)
+    a0 = np.asarray(sk.alpha_0, np.float64).reshape(-1, 3)
+    rs = np.asarray(sk.rho_s, np.float64).reshape(-1)
+    gt["n_err"].append(_angle_deg(store.params["normal"], n_true)[valid])
+    gt["a_err"].append((np.linalg.norm(store.params["rho_d"] - a0, axis=1)
+                        / np.linalg.norm(a0, axis=1))[valid])
+    gt["s_err"].append((np.abs(store.params["rho_s"] - rs) / np.maximum(rs, 1e-12))[valid])
+    sub = np.flatnonzero(valid)[_even_subset(int(valid.sum()), n_max)]
+    if sub.size == 0:
+        return
+    R = np.asarray(src.field[store.rows[sub]], np.float32)
+    fit = store.skin_fit(sub, R, lights)
+    p = tex.p_world[t_id[sub]]
+    n = n_true[sub]
+    skin_sub = renderer.skin.evaluate(p)
+    v0 = src.v_world[store.rows[sub]]
+    ref0 = _exact_functions(renderer, stage, p, n, v0, face_in[sub], skin_sub)
+    _add(gt["sums"], "resynthesis_rel_rmse_0", R, ref0)
+    for deg in angles:
+        vn = _rotate_views(v0, n, float(deg))
+        ref = _exact_functions(renderer, stage, p, n, vn, face_in[sub], skin_sub)
+        est = resynthesize(fit, vn).reflectance
+        _add(gt["sums"], f"resynthesis_rel_rmse_{deg:g}", est, ref)
+        _add(gt["sums"], f"resynthesis_naive_rel_rmse_{deg:g}", R, ref)
+
+
+def _add(sums, key, est, ref):
+    se, sr = sums.get(key, (0.0, 0.0))
+    ok = np.isfinite(est).all(axis=(1, 2))
+    e = est[ok].astype(np.float64) - ref[ok]
+    sums[key] = (se + float((e ** 2).sum()), sr + float((ref[ok].astype(np.float64) ** 2).sum()))
+
+
+def run_fit(scan_dir, out_dir=None, **settings) -> dict:
+    """Fit the skin model to a scan's projected fields into ``out_dir/fit/`` (staged).
+
+    Parameters
+    ----------
+    scan_dir : path-like or Scan
+    out_dir : path-like, optional — default the scan's ``out/`` (must hold ``atlas/`` and
+        ``project/``)
+    **settings — see :func:`fit_products`
+
+    Returns
+    -------
+    dict — the metrics (also recorded in ``out_dir/metrics.json`` under ``"fit"``)
+    """
+    from facegeo.pipeline.project import _record, _scan
+
+    _check_settings(**settings)
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir
+    if not (out / "project").is_dir():
+        raise InputError(f"fit: {out / 'project'} is missing; run 'facegeo reconstruct SCAN' first")
+    with staged_directory(out / "fit") as tmp:
+        metrics, used = fit_products(scan, out / "project", tmp, atlas_dir=out / "atlas",
+                                     **settings)
+        _record(out, tmp, "fit", used, metrics)
+    return metrics

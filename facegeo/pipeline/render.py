@@ -1,0 +1,304 @@
+"""Pipeline stage ``render``: novel views of a reconstructed scan under an environment.
+
+``run_render(scan_dir, out_dir=None, *, camera_spec, env, ...)`` reads ``out/atlas/``,
+``out/project/`` and ``out/fit/`` and writes into ``out/render/``:
+
+    <name>.exr, <name>.png                the render (Debevec et al. 2000 §4.5,
+                                          :func:`facegeo.render.render_view`)
+    <name>_naive.exr/.png                 the naive baseline: the source cameras' measured
+                                          functions relit and blended, no resynthesis
+    <name>_reference.exr/.png             the generator's reference (synthetic scans)
+    <name>_error.png                      |render − reference| heat map (synthetic scans)
+    <name>.json                           the view's metrics
+
+and merges the view's metrics into ``out/metrics.json`` → ``"render"`` → ``"views"`` → name.
+
+Metrics against the generator's reference (same camera, same Eq. (4) weights, its exact
+renderer; ``mask`` = the reference's pixels that see the head):
+
+* ``psnr_db`` = 10 log10(peak² / MSE), MSE over the mask's pixels and channels, peak = the
+  reference's maximum over the mask; ``rel_rmse`` = sqrt(Σ err² / Σ ref²) over the mask;
+* the same for the naive baseline (``naive_psnr_db``, ``naive_rel_rmse``) and the gain
+  ``psnr_gain_db``;
+* ``coverage``: the fraction of the mask whose texels some source camera measured (pixels
+  outside it are filled from the nearest measured pixel within ``fill_px``, else black, in
+  both renders, and count as errors), and the ``*_covered`` variants of PSNR / relative RMSE
+  over covered pixels only.
+
+Environments: a path to an ``.exr``/``.hdr`` map (``projection`` lat-long by default), or a
+built-in name: ``"uniform"`` (radiance 1 everywhere, the generator's ``uniform`` renders),
+``"axis_lobes"`` (:func:`facegeo.lighting.envmap.axis_lobe_map`), ``"sky"`` (a procedural
+overcast sky with a warm sun, CC0 by construction).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import fmt_value
+from facegeo.errors import InputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["BUILTIN_ENVS", "builtin_env", "image_metrics", "run_render"]
+
+BUILTIN_ENVS = ("uniform", "axis_lobes", "sky")
+_ENV_HEIGHT = 64
+
+
+def builtin_env(name: str):
+    """A built-in :class:`facegeo.lighting.envmap.EnvironmentMap` (see module docstring)."""
+    from facegeo.lighting import envmap as E
+
+    if name == "uniform":
+        return E.analytic_map(lambda v: np.ones(v.shape[:-1] + (3,)), _ENV_HEIGHT)
+    if name == "axis_lobes":
+        return E.axis_lobe_map(_ENV_HEIGHT)
+    if name == "sky":
+        sun = np.array([0.5, 0.6, 0.62])
+        sun /= np.linalg.norm(sun)
+
+        def fn(v):
+            up = np.clip(v[..., 1], -1.0, 1.0)[..., None]
+            sky = np.where(up > 0, 0.6 + 0.4 * up, 0.25 + 0.1 * up) * np.array([0.75, 0.85, 1.0])
+            ground = np.where(up < 0, np.array([0.35, 0.3, 0.25]) * (-up), 0.0)
+            glow = 8.0 * np.maximum(v @ sun, 0.0)[..., None] ** 64 * np.array([1.0, 0.9, 0.75])
+            return sky + ground + glow
+
+        return E.analytic_map(fn, _ENV_HEIGHT)
+    raise InputError(f"env: unknown built-in environment {fmt_value(name)}; built-ins are "
+                     f"{', '.join(BUILTIN_ENVS)} (or give an .exr/.hdr file)")
+
+
+def _load_env(env, projection: str, rotate_deg: float):
+    from facegeo.lighting import envmap as E
+
+    if isinstance(env, E.EnvironmentMap):
+        m = env
+    elif isinstance(env, str) and env in BUILTIN_ENVS:
+        m = builtin_env(env)
+    else:
+        path = Path(env)
+        if not path.is_file():
+            raise InputError(f"env: {path} is not a file and not a built-in environment "
+                             f"({', '.join(BUILTIN_ENVS)})")
+        return E.read_envmap(path, projection, rotate_deg=rotate_deg)
+    return m.rotated(math.radians(rotate_deg)) if rotate_deg else m
+
+
+def image_metrics(img, ref, mask) -> dict:
+    """PSNR (dB, peak = max of ``ref`` over ``mask``) and relative RMSE over ``mask``."""
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return {"psnr_db": None, "rel_rmse": None, "pixels": 0}
+    e = img[m].astype(np.float64) - ref[m]
+    mse = float((e ** 2).mean())
+    peak = float(ref[m].max())
+    den = float((ref[m].astype(np.float64) ** 2).sum())
+    psnr = 10.0 * math.log10(peak ** 2 / mse) if mse > 0 and peak > 0 else math.inf
+    return {"psnr_db": round(psnr, 4) if math.isfinite(psnr) else None,
+            "rel_rmse": round(math.sqrt(float((e ** 2).sum()) / den), 6) if den > 0 else None,
+            "pixels": int(m.sum())}
+
+
+def _safe(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+-]+", "_", text).strip("_") or "view"
+
+
+def _error_heatmap(img, ref, mask) -> np.ndarray:
+    import cv2
+
+    err = np.linalg.norm(img.astype(np.float64) - ref, axis=2)
+    top = float(np.percentile(np.linalg.norm(ref[mask], axis=1), 99)) if mask.any() else 1.0
+    g = np.clip(err / max(0.25 * top, 1e-12), 0, 1)
+    bgr = cv2.applyColorMap((g * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    return np.where(mask[..., None], bgr[..., ::-1], 0).astype(np.uint8)
+
+
+def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_deg: float = 0.0,
+               projection: str = "latlong", supersample: int = 1, resynthesis: bool = True,
+               baseline: bool = True, reference: bool = True, name: str | None = None,
+               blend_power: float | None = None, rig: str | None = None,
+               solid_angle: str = "paper", fill_px: float = 2.0, progress=None) -> dict:
+    """Render a novel view of a reconstructed scan under an environment; write the images.
+
+    Parameters
+    ----------
+    scan_dir : path-like or Scan
+    out_dir : path-like, optional — default the scan's ``out/`` (holding ``atlas/``,
+        ``project/``, ``fit/``); images go to ``out_dir/render/``
+    camera_spec : str, dict or Camera — ``"orbit:<camera>:<degrees>"``, a camera name (the
+        scan's, or the generator's novel cameras), a camera JSON file or dict
+        (:func:`facegeo.render.parse_camera_spec`)
+    env : str or EnvironmentMap — an ``.exr``/``.hdr`` file or a built-in name
+    rotate_deg : float, degrees — environment rotation about +Y
+    projection : {"latlong", "mirrorball", "angular"} — of an environment file
+    supersample : int — s × s rays per pixel
+    resynthesis : bool or "diffuse" — False: render only the naive baseline as the main
+        image; ``"diffuse"``: the diffuse-only ablation (:func:`facegeo.render.shade_texels`)
+    baseline : bool — also render the naive baseline
+    reference : bool — compare with the generator's reference (synthetic scans)
+    name : str, optional — output stem (default from the camera and environment)
+    blend_power : float, optional — view-dependent weight exponent
+    rig : {"ground_truth", "scan"}, optional — default as the ``project`` stage used
+    solid_angle : {"paper", "exact"} — δA rule of the Eq. (4) weights
+    fill_px : float, pixels — hole filling of unmeasured hit samples from the nearest measured
+        pixel within this distance (:func:`facegeo.render.render_view`; 0: off); filled
+        pixels count in ``psnr_db`` / ``rel_rmse`` but not in the ``*_covered`` figures
+    progress : callable(stage, done, total), optional — called as stage ``"render"`` after
+        each step (rays, render, naive baseline, reference)
+
+    Returns
+    -------
+    dict — the view's metrics (files, timings, ``psnr_db`` …)
+    """
+    from facegeo.capture import imageio
+    from facegeo.fsutil import atomic_write_text
+    from facegeo.lighting import envmap as E
+    from facegeo.pipeline.fit import _camera_table
+    from facegeo.pipeline.project import _rig, _scan
+    from facegeo.pipeline.relight import tone_map
+    from facegeo.render import (
+        atlas_scene,
+        light_set,
+        load_sources,
+        parse_camera_spec,
+        render_view,
+        trace_view,
+    )
+    from facegeo.render.novel import BLEND_POWER
+    from facegeo.surface.atlas import Atlas, Texels
+
+    t_start = time.perf_counter()
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir
+    for need in ("atlas/atlas.npz", "atlas/texels.npz"):
+        if not (out / need).is_file():
+            raise InputError(f"render: {out / need} is missing; run 'facegeo reconstruct SCAN' first")
+    if resynthesis and not (out / "fit").is_dir():
+        raise InputError(f"render: {out / 'fit'} is missing; run 'facegeo fit SCAN' first (or "
+                         "render the naive baseline with resynthesis=False)")
+    if rig is None:
+        try:
+            rig = json.loads((out / "project" / "stage.json").read_text())["settings"]["rig"]
+        except (OSError, ValueError, KeyError):
+            rig = None
+    the_rig, rig_used = _rig(scan, rig)
+    camera = parse_camera_spec(camera_spec, _camera_table(scan, the_rig))
+    environment = _load_env(env, projection, rotate_deg)
+    stage = the_rig.lights
+    w = E.light_stage_weights(environment, stage.n_theta, stage.n_phi, solid_angle=solid_angle)
+    w = w / stage.color_rgb[None, :]  # image in the environment's units (field = colour × R)
+    lights = light_set(stage)
+    atlas = Atlas.load(out / "atlas" / "atlas.npz")
+    texels = Texels.load(out / "atlas" / "texels.npz")
+    sources = load_sources(out / "project", (out / "fit") if resynthesis else None)
+    t_load = time.perf_counter()
+    has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys
+                   and rig_used == "ground_truth")
+    steps = 2 + int(bool(baseline and resynthesis)) + int(has_ref)
+
+    def tick(k: int) -> None:
+        if progress:
+            progress("render", k, steps)
+
+    scene = atlas_scene(atlas)
+    samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
+    tick(1)
+    bp = BLEND_POWER if blend_power is None else float(blend_power)
+    res = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=resynthesis,
+                      blend_power=bp, samples=samples, fill_px=fill_px)
+    tick(2)
+    naive = None
+    if baseline and resynthesis:
+        naive = render_view(camera, scene, atlas, texels, sources, w, lights,
+                            resynthesis=False, blend_power=bp, samples=samples,
+                            fill_px=fill_px)
+        tick(3)
+    env_tag = env if isinstance(env, str) and env in BUILTIN_ENVS else (
+        Path(env).stem if isinstance(env, (str, Path)) else "env")
+    stem = _safe(name or f"{camera.name}_{env_tag}")
+    dest = out / "render"
+    dest.mkdir(parents=True, exist_ok=True)
+    files = {"exr": imageio.write_image(dest / f"{stem}.exr", res.image).name}
+    png, exposure = tone_map(res.image)
+    files["png"] = imageio.write_image(dest / f"{stem}.png", png).name
+    if naive is not None:
+        imageio.write_image(dest / f"{stem}_naive.exr", naive.image)
+        files["naive_png"] = imageio.write_image(
+            dest / f"{stem}_naive.png", _expose(naive.image, exposure)).name
+    metrics: dict[str, Any] = {
+        "camera": camera.name, "camera_spec": camera_spec if isinstance(camera_spec, str)
+        else camera.to_dict(), "env": str(env) if not isinstance(env, E.EnvironmentMap)
+        else "EnvironmentMap", "rotate_deg": float(rotate_deg), "supersample": int(supersample),
+        "resynthesis": resynthesis, "blend_power": bp, "fill_px": float(fill_px),
+        "rig": rig_used,
+        "size": [camera.width, camera.height], "active_lights": res.stats["active_lights"],
+        "stats": res.stats, "seconds_render": res.stats["seconds"],
+        "seconds_naive": naive.stats["seconds"] if naive is not None else None,
+        "seconds_load": round(t_load - t_start, 4),
+        "coverage": round(float(res.covered.sum() / max(res.mask.sum(), 1)), 6),
+    }
+    if has_ref:
+        from facegeo.synth.render import load_ground_truth
+
+        t0 = time.perf_counter()
+        renderer = load_ground_truth(scan)
+        ref = renderer.render_lights(camera, stage, w)
+        mask = renderer.surface_view(camera).mask
+        tick(steps)
+        metrics["seconds_reference"] = round(time.perf_counter() - t0, 4)
+        imageio.write_image(dest / f"{stem}_reference.exr", ref)
+        files["reference_png"] = imageio.write_image(dest / f"{stem}_reference.png",
+                                                     _expose(ref, exposure)).name
+        files["error_png"] = imageio.write_image(dest / f"{stem}_error.png",
+                                                 _error_heatmap(res.image, ref, mask)).name
+        cov = mask & res.covered
+        m = image_metrics(res.image, ref, mask)
+        mc = image_metrics(res.image, ref, cov)
+        metrics.update({"psnr_db": m["psnr_db"], "rel_rmse": m["rel_rmse"],
+                        "mask_pixels": m["pixels"], "psnr_db_covered": mc["psnr_db"],
+                        "rel_rmse_covered": mc["rel_rmse"]})
+        if naive is not None:
+            nm = image_metrics(naive.image, ref, mask)
+            nc = image_metrics(naive.image, ref, cov)
+            metrics.update({"naive_psnr_db": nm["psnr_db"], "naive_rel_rmse": nm["rel_rmse"],
+                            "naive_psnr_db_covered": nc["psnr_db"],
+                            "naive_rel_rmse_covered": nc["rel_rmse"]})
+            if m["psnr_db"] is not None and nm["psnr_db"] is not None:
+                metrics["psnr_gain_db"] = round(m["psnr_db"] - nm["psnr_db"], 4)
+    metrics["files"] = files
+    metrics["seconds"] = round(time.perf_counter() - t_start, 4)
+    atomic_write_text(dest / f"{stem}.json", json.dumps(metrics, indent=2, allow_nan=False))
+    _merge_metrics(out, stem, metrics)
+    log.info("rendered %s (%s) in %.2f s", stem, camera.name, metrics["seconds"])
+    return metrics
+
+
+def _expose(img, exposure: float) -> np.ndarray:
+    """8-bit sRGB with a given exposure (so a render and its reference share one)."""
+    from facegeo.capture.response import encode
+
+    return encode(np.clip(img * np.float32(exposure), 0.0, 1.0), "srgb", np.uint8)
+
+
+def _merge_metrics(out: Path, stem: str, metrics: dict) -> None:
+    from facegeo.pipeline.cache import record_metrics
+
+    try:
+        doc = json.loads((out / "metrics.json").read_text(encoding="utf-8")).get("render", {})
+        if not isinstance(doc, dict):
+            doc = {}
+    except (OSError, ValueError, AttributeError):
+        doc = {}
+    views = doc.get("views", {}) if isinstance(doc.get("views"), dict) else {}
+    views[stem] = {k: v for k, v in metrics.items() if k not in ("stats",)}
+    record_metrics(out, "render", {"views": views})

@@ -1,0 +1,36 @@
+"""Novel-view rendering of a captured reflectance field (Debevec et al. 2000, §4.5).
+
+* :mod:`facegeo.render.novel` — primary rays → texels → per-source-camera resynthesis (§4.3)
+  → Eq. (4) relighting → view-dependent blending → image; the naive baseline.
+* camera specs (``orbit:<camera>:<degrees>``, names, JSON) and the per-camera skin-model fit
+  store live in private modules re-exported here.
+"""
+
+from facegeo.render._cameras import orbit_camera, parse_camera_spec
+from facegeo.render._fitstore import FitStore, FitWriter, light_set
+from facegeo.render.novel import (
+    RenderResult,
+    SourceCamera,
+    ViewSamples,
+    atlas_scene,
+    load_sources,
+    render_view,
+    shade_texels,
+    trace_view,
+)
+
+__all__ = [
+    "FitStore",
+    "FitWriter",
+    "RenderResult",
+    "SourceCamera",
+    "ViewSamples",
+    "atlas_scene",
+    "light_set",
+    "load_sources",
+    "orbit_camera",
+    "parse_camera_spec",
+    "render_view",
+    "shade_texels",
+    "trace_view",
+]

@@ -1,0 +1,114 @@
+"""Camera specifications for novel views: a camera, a named camera, or an orbit.
+
+Private module behind :mod:`facegeo.render`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import fmt_value
+from facegeo.errors import InputError
+from facegeo.frames import Pose
+from facegeo.geometry.camera import Camera
+
+#: ``orbit:<camera>:<degrees>`` (e.g. ``orbit:cam_left:-30``).
+_ORBIT = re.compile(r"^orbit:(?P<cam>[^:]+):(?P<deg>[-+]?[0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)$")
+
+
+def _rotation_y(angle: float) -> np.ndarray:
+    # same convention as facegeo.lighting.envmap.rotation_y (+Z turns toward +X)
+    from facegeo.lighting.envmap import rotation_y
+
+    return rotation_y(angle)
+
+
+def orbit_camera(camera: Camera, degrees: float, *, center=(0.0, 0.0, 0.0),
+                 name: str | None = None) -> Camera:
+    """``camera`` orbited by ``degrees`` about the vertical (+Y) axis through ``center``.
+
+    The camera keeps its intrinsics and distortion and its pose relative to the rotated world:
+    its centre moves to ``R_y(θ) (c − center) + center`` and it turns with it, so a camera
+    aimed at ``center`` stays aimed at it. Positive angles follow the right-hand rule about +Y
+    (+Z turns toward +X), as :func:`facegeo.lighting.envmap.rotation_y`.
+
+    Parameters
+    ----------
+    camera : Camera
+    degrees : float, degrees
+    center : (3,) float, metres, world frame
+        A point on the rotation axis (the head centre, the rig's target: the origin).
+    name : str, optional
+        Default ``"<camera>_orbit<degrees>"``.
+
+    Returns
+    -------
+    Camera
+    """
+    deg = float(degrees)
+    if not math.isfinite(deg):
+        raise InputError(f"degrees: expected a finite angle, got {fmt_value(degrees)}")
+    c0 = np.asarray(center, np.float64).reshape(3)
+    Ry = _rotation_y(math.radians(deg))
+    # T_rot maps the old world to the rotated one: p' = Ry (p - c0) + c0
+    T_rot = Pose(Ry, c0 - Ry @ c0)
+    T_new = camera.T_cam_world @ T_rot.inverse()
+    return camera.replace(name=name or f"{camera.name}_orbit{deg:g}", T_cam_world=T_new)
+
+
+def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
+                      center=(0.0, 0.0, 0.0)) -> Camera:
+    """The camera a spec names.
+
+    Parameters
+    ----------
+    spec : Camera, dict, or str
+        A :class:`Camera`; a dict ``{"orbit": degrees, "from": name}`` or a camera dict
+        (``Camera.to_dict``); a string ``"orbit:<name>:<degrees>"``, the name of one of
+        ``cameras``, or a path to a JSON file holding a camera dict.
+    cameras : mapping of str -> Camera
+        The cameras a spec may name (the scan's cameras, the generator's novel ones).
+    center : (3,) float, metres
+        The orbit axis passes through this point.
+
+    Returns
+    -------
+    Camera
+    """
+    def named(name: str) -> Camera:
+        if name not in cameras:
+            raise InputError(f"camera spec: unknown camera {fmt_value(name)}; known cameras are "
+                             f"{', '.join(cameras)}")
+        return cameras[name]
+
+    if isinstance(spec, Camera):
+        return spec
+    if isinstance(spec, Mapping):
+        if "orbit" in spec:
+            if "from" not in spec:
+                raise InputError("camera spec: an orbit needs 'from': <camera name>")
+            return orbit_camera(named(str(spec["from"])), float(spec["orbit"]), center=center,
+                                name=spec.get("name"))
+        return Camera.from_dict(spec, where="camera spec")
+    if isinstance(spec, str):
+        m = _ORBIT.match(spec.strip())
+        if m:
+            return orbit_camera(named(m["cam"]), float(m["deg"]), center=center)
+        if spec in cameras:
+            return cameras[spec]
+        path = Path(spec)
+        if path.suffix.lower() == ".json" and path.is_file():
+            try:
+                d = json.loads(path.read_text(encoding="utf-8"))
+            except ValueError as exc:
+                raise InputError(f"camera spec {path}: not valid JSON ({exc})") from exc
+            return Camera.from_dict(d, where=str(path))
+    raise InputError(f"camera spec {fmt_value(spec)}: expected 'orbit:<camera>:<degrees>', a camera "
+                     f"name ({', '.join(cameras)}), a camera JSON file, or a camera dict")

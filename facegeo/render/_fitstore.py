@@ -1,0 +1,189 @@
+"""Per-camera skin-model fits on disk: what :func:`facegeo.appearance.skin.resynthesize` needs.
+
+Private module behind :mod:`facegeo.render`. A camera's folder ``<dest>/<camera>/`` holds
+
+    fit.npz   per fitted function: ``rows`` (row of the camera's projected field),
+              ``texel_index``, the SkinFit's per-function parameters (view, normals, d_0,
+              α_0, α_1, ρ_d, ρ_s, flags, valid, lobe misfits), its shadow / cast-shadow /
+              saturation maps bit-packed, eta and single_channel
+    D.npy     ``(N, L, C)`` the diffuse component D of the final separation (float16 by
+              default, float32 on request), memory-mapped
+
+The specular component is not stored: S = R − D with R the projected field (the fit's own
+definition, so D + S reproduces the measured function exactly and a view equal to the source
+view returns it unchanged). With float16 D, S differs from the fit's by at most D's rounding
+(2⁻¹¹ of D).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from facegeo.errors import InputError
+
+FIT_FILE = "fit.npz"
+DIFFUSE_FILE = "D.npy"
+
+_PER_FUNCTION = ("view", "normal", "normal_moment", "normal_initial", "lobe_misfit_moment",
+                 "lobe_misfit", "d_0", "alpha_0", "alpha_1", "rho_d", "rho_s", "flags", "valid")
+_MAPS = ("shadow", "cast_shadow", "saturated")
+
+
+def light_set(stage):
+    """The :class:`facegeo.appearance.skin.LightSet` of a rig's light stage.
+
+    Directions are the stage's (toward each light from the stage centre); near-field lights
+    are treated as distant from the surface point, as :func:`fit_reflectance` requires (the
+    direction error is at most the head radius over the stage radius, ≈ 6° at 1.5 m).
+    """
+    from facegeo.appearance.skin import LightSet
+
+    return LightSet.from_grid(stage.n_theta, stage.n_phi, stage.color)
+
+
+class FitWriter:
+    """Write a camera's fits chunk by chunk (bounded memory: D goes to a memory map).
+
+    Parameters
+    ----------
+    directory : path
+        The camera's folder (created).
+    n : int
+        Functions that will be written.
+    n_lights, channels : int
+    dtype : {"float16", "float32"}
+        Storage of D.
+    """
+
+    def __init__(self, directory, n: int, n_lights: int, channels: int = 3,
+                 dtype: str = "float16"):
+        if dtype not in ("float16", "float32"):
+            raise InputError(f"diffuse_dtype: expected 'float16' or 'float32', got {dtype!r}")
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.n = int(n)
+        self.D = np.lib.format.open_memmap(self.dir / DIFFUSE_FILE, mode="w+", dtype=dtype,
+                                           shape=(self.n, int(n_lights), int(channels)))
+        self.parts: dict[str, list] = {k: [] for k in _PER_FUNCTION + _MAPS}
+        self.rows: list[np.ndarray] = []
+        self.texels: list[np.ndarray] = []
+        self.done = 0
+        self.eta = 1.4
+        self.single = False
+
+    def write(self, rows, texel_index, fit) -> None:
+        """Append the fits of field rows ``rows`` (texels ``texel_index``)."""
+        k = len(rows)
+        self.D[self.done:self.done + k] = fit.diffuse
+        self.done += k
+        self.rows.append(np.asarray(rows, np.int64))
+        self.texels.append(np.asarray(texel_index, np.int64))
+        for name in _PER_FUNCTION:
+            self.parts[name].append(np.asarray(getattr(fit, name)))
+        for name in _MAPS:
+            self.parts[name].append(np.packbits(np.asarray(getattr(fit, name), bool), axis=1))
+        self.eta = float(fit.eta)
+        self.single = bool(fit.single_channel)
+
+    def close(self) -> Path:
+        """Flush D and write ``fit.npz``; returns its path."""
+        if self.done != self.n:
+            raise InputError(f"{self.dir}: {self.done} fits written, {self.n} announced")
+        self.D.flush()
+        del self.D
+        L = np.load(self.dir / DIFFUSE_FILE, mmap_mode="r").shape[1]
+        arrays = {k: (np.concatenate(v) if v else np.zeros((0,)))
+                  for k, v in self.parts.items()}
+        path = self.dir / FIT_FILE
+        np.savez(path, rows=np.concatenate(self.rows) if self.rows else np.zeros(0, np.int64),
+                 texel_index=(np.concatenate(self.texels) if self.texels
+                              else np.zeros(0, np.int64)),
+                 eta=np.array(self.eta), single_channel=np.array(self.single),
+                 n_lights=np.array(L), **arrays)
+        return path
+
+
+@dataclass
+class FitStore:
+    """A camera's fits, loaded from its folder (parameters in memory, D memory-mapped).
+
+    Attributes
+    ----------
+    directory : Path
+    rows : (N,) int64 — row of the camera's projected field of each fit (increasing)
+    texel_index : (N,) int64
+    params : dict of str -> array — per-function parameters and packed maps
+    D : (N, L, C) memmap
+    eta : float
+    single_channel : bool
+    """
+
+    directory: Path
+    rows: np.ndarray
+    texel_index: np.ndarray
+    params: dict
+    D: np.ndarray
+    eta: float
+    single_channel: bool
+
+    @classmethod
+    def load(cls, directory) -> FitStore:
+        d = Path(directory)
+        if not (d / FIT_FILE).is_file() or not (d / DIFFUSE_FILE).is_file():
+            raise InputError(f"{d}: no skin-model fit here ({FIT_FILE}, {DIFFUSE_FILE}); run "
+                             f"'facegeo fit SCAN' first")
+        with np.load(d / FIT_FILE) as z:
+            params = {k: z[k] for k in _PER_FUNCTION + _MAPS}
+            rows, tex = z["rows"].astype(np.int64), z["texel_index"].astype(np.int64)
+            eta, single = float(z["eta"]), bool(z["single_channel"])
+        D = np.load(d / DIFFUSE_FILE, mmap_mode="r")
+        if D.shape[0] != rows.size:
+            raise InputError(f"{d}: {DIFFUSE_FILE} holds {D.shape[0]} functions, {FIT_FILE} "
+                             f"{rows.size} (re-run 'facegeo fit')")
+        order = np.argsort(rows, kind="stable")
+        if np.any(order != np.arange(rows.size)):
+            raise InputError(f"{d}: fitted rows are not in field order (re-run 'facegeo fit')")
+        return cls(d, rows, tex, params, D, eta, single)
+
+    def __len__(self) -> int:
+        return int(self.rows.size)
+
+    def locate(self, field_rows) -> tuple[np.ndarray, np.ndarray]:
+        """Fit index of each field row, and whether the row was fitted."""
+        field_rows = np.asarray(field_rows, np.int64)
+        pos = np.searchsorted(self.rows, field_rows)
+        pos_c = np.minimum(pos, max(len(self) - 1, 0))
+        found = (pos < len(self)) & (self.rows[pos_c] == field_rows) if len(self) else \
+            np.zeros(field_rows.shape, bool)
+        return pos_c, found
+
+    def skin_fit(self, idx, R, lights):
+        """The :class:`facegeo.appearance.skin.SkinFit` of fits ``idx`` with measured functions R.
+
+        Parameters
+        ----------
+        idx : (n,) int, fit indices (increasing, for memory-map locality)
+        R : (n, L, C) float32, the projected field's rows of these fits
+        lights : LightSet
+        """
+        from facegeo.appearance.skin import SkinFit
+
+        idx = np.asarray(idx, np.int64)
+        L = R.shape[1]
+        p = {k: self.params[k][idx] for k in _PER_FUNCTION}
+        maps = {k: np.unpackbits(self.params[k][idx], axis=1, count=L).astype(bool)
+                for k in _MAPS}
+        D = np.asarray(self.D[idx], np.float32)
+        S = R.astype(np.float32) - D
+        return SkinFit(lights=lights, view=p["view"], normal=p["normal"],
+                       normal_moment=p["normal_moment"], normal_initial=p["normal_initial"],
+                       lobe_misfit_moment=p["lobe_misfit_moment"], lobe_misfit=p["lobe_misfit"],
+                       d_0=p["d_0"], alpha_0=p["alpha_0"], alpha_1=p["alpha_1"],
+                       rho_d=p["rho_d"], rho_s=p["rho_s"], diffuse=D, specular=S,
+                       shadow=maps["shadow"], cast_shadow=maps["cast_shadow"],
+                       saturated=maps["saturated"], flags=p["flags"].astype(np.int32),
+                       valid=p["valid"].astype(bool), eta=self.eta,
+                       single_channel=self.single_channel)

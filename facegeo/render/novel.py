@@ -1,0 +1,524 @@
+"""Novel-view rendering of a reflectance-field face (Debevec et al. 2000, §4.5).
+
+For a camera the light stage never had, under an environment given as Eq. (4) light weights:
+
+1. **Primary rays** (Embree, :class:`facegeo.surface.visibility.RayScene` over the atlas mesh)
+   give each pixel sample a surface point, its atlas face and barycentrics; the face's UVs give
+   an atlas position, and the four texels around it (bilinear taps, docs/surface.md UV
+   convention) carry the reflectance data. Taps on another chart (farther than
+   :data:`TAP_MAX_TEXELS` texel spacings from the hit) or outside every chart are dropped and
+   the rest renormalised.
+2. **Per texel**, only for the texels some pixel needs, for each source camera c that measured
+   it (a row of its projected field ``R_c``): its reflectance function resynthesised for the
+   new view v_n (the skin model, §4.3 Eq. 9: :func:`facegeo.appearance.skin.resynthesize`),
+   then relit with the environment (Eq. 4: ``Σ_l R(l) ⊙ w_l`` over the lights with non-zero
+   weight only).
+3. **Blended across source cameras** with view-dependent weights (Debevec, Taylor & Malik 1996,
+   view-dependent texture mapping; the paper's §4.5 "blend ... weighted by the angle"):
+   ``b_c = w_c(t) / max(θ_c, θ_floor)^p`` with θ_c the angle at the surface point between the
+   source view v_c and v_n, ``w_c(t)`` the projection's own light-independent weight
+   (foreshortening and occlusion-edge feathering, docs/surface.md) and ``p =``
+   :data:`BLEND_POWER`. A view equal to a source camera (θ below :data:`SAME_VIEW_RAD`) takes
+   that camera's measured function unchanged, and its weight dominates every other by
+   ≥ 10¹⁴, so the render reproduces that camera's relit image. Cameras whose share of a
+   texel's blend is below :data:`BLEND_MIN_SHARE` are skipped (not read, not resynthesised).
+4. **Image**: pixel samples are the tap-weighted texel colours, averaged over s × s sub-pixel
+   samples with supersampling; pixels whose taps no camera measured are not covered (0, and
+   False in ``RenderResult.covered``); with ``fill_px > 0`` such samples take the colour of
+   the nearest pixel with measured samples within that distance (hole filling for display:
+   the silhouette ring the projection leaves out) and stay False in ``covered``.
+
+Where the fitted normal puts v_n at or below the horizon although the mesh sees the texel
+(``FLAG_BACKFACING``, grazing views with a normal a few degrees off), resynthesis would give
+black; the texel keeps its measured function from that camera instead (counted in
+``stats["backfacing_fallback"]``).
+
+The naive baseline (``resynthesis=False``) is the same pipeline with the source cameras'
+measured functions relit unchanged (projecting the relit source views onto the geometry).
+
+Deviation: :func:`resynthesize` produces every light's sample (Eq. 9 interpolates the measured
+lobe at l_q over the whole light set, so its input must be complete); only its output at the
+lights that carry energy enters the relighting sum.
+
+References
+----------
+.. [1] P. Debevec et al., "Acquiring the Reflectance Field of a Human Face", SIGGRAPH 2000, §4.5.
+.. [2] P. Debevec, C. J. Taylor, J. Malik, "Modeling and Rendering Architecture from
+   Photographs", SIGGRAPH 1996 (view-dependent texture mapping).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from facegeo.checks import as_array, fmt_value
+from facegeo.errors import InputError, ShapeError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "BLEND_POWER",
+    "SAME_VIEW_RAD",
+    "RenderResult",
+    "SourceCamera",
+    "ViewSamples",
+    "atlas_scene",
+    "load_sources",
+    "pixel_sample_rays",
+    "render_view",
+    "shade_texels",
+    "trace_view",
+]
+
+#: Exponent p of the view-dependent weight 1/θ^p.
+BLEND_POWER = 2.0
+#: Angles below this (radians) count as the source view itself: its measured function is used
+#: unchanged (the paper's guarantee), and θ is floored here in the weight.
+SAME_VIEW_RAD = 1e-7
+#: A source camera whose blend weight is below this share of a texel's total is left out of
+#: that texel (not read, not resynthesised); the others are renormalised, so the blend moves by
+#: at most this fraction of the difference between cameras.
+BLEND_MIN_SHARE = 1e-3
+#: A bilinear tap farther than this many texel spacings from the hit point lies on another chart.
+TAP_MAX_TEXELS = 3.0
+#: Functions per resynthesis chunk: ``CHUNK_SAMPLES // L`` (bounded temporaries).
+CHUNK_SAMPLES = 1 << 19
+
+
+@dataclass
+class ViewSamples:
+    """What a camera sees on the atlas: per pixel sample, a surface point and its texel taps.
+
+    Attributes
+    ----------
+    camera_name : str
+    shape : (int, int) — image (height, width)
+    samples_per_pixel : int — s² with s × s supersampling
+    pixel_index : (P,) int64 — ``(row·W + col)·s² + k`` of each sample that hit the mesh
+    p_world : (P, 3) float64, metres, world frame
+    v_world : (P, 3) float64, unit — toward the camera centre
+    taps : (P, 4) int64 — texel index of each bilinear tap, -1 where none
+    tap_weight : (P, 4) float64 — bilinear weights of the kept taps, summing to 1 (0 when none)
+    """
+
+    camera_name: str
+    shape: tuple[int, int]
+    samples_per_pixel: int
+    pixel_index: np.ndarray
+    p_world: np.ndarray
+    v_world: np.ndarray
+    taps: np.ndarray
+    tap_weight: np.ndarray
+
+    @property
+    def needed_texels(self) -> np.ndarray:
+        """Sorted unique texels with a non-zero tap weight."""
+        return np.unique(self.taps[self.tap_weight > 0])
+
+    @property
+    def mask(self) -> np.ndarray:
+        """``(H, W)`` bool: some sample of the pixel hits the mesh."""
+        h, w = self.shape
+        m = np.zeros(h * w * self.samples_per_pixel, bool)
+        m[self.pixel_index] = True
+        return m.reshape(h, w, self.samples_per_pixel).any(axis=2)
+
+    def to_image(self, values, fill: float = 0.0) -> np.ndarray:
+        """Per-sample values ``(P, ...)`` → image ``(H, W, ...)`` (box filter over sub-samples;
+        samples that miss count as ``fill``)."""
+        h, w = self.shape
+        s = self.samples_per_pixel
+        values = np.asarray(values)
+        out = np.full((h * w * s,) + values.shape[1:], fill, values.dtype)
+        out[self.pixel_index] = values
+        out = out.reshape((h, w, s) + values.shape[1:])
+        return out[:, :, 0] if s == 1 else out.mean(axis=2, dtype=np.float64).astype(values.dtype)
+
+
+@dataclass
+class SourceCamera:
+    """One source camera's measured data on the atlas.
+
+    Attributes
+    ----------
+    name : str
+    texel_index : (T_c,) int64, increasing — texels of the projected field's rows
+    weight : (T_c,) float — light-independent projection weight w_c(t) > 0
+    v_world : (T_c, 3) float64, unit — toward this camera (v_0)
+    field : (T_c, L, C) array (memory map) — the projected field R_c
+    fit : FitStore or None — skin-model fits (needed for resynthesis)
+    """
+
+    name: str
+    texel_index: np.ndarray
+    weight: np.ndarray
+    v_world: np.ndarray
+    field: np.ndarray
+    fit: object = None
+
+    def rows_of(self, texels) -> tuple[np.ndarray, np.ndarray]:
+        """Field row of each texel and whether this camera measured it."""
+        texels = np.asarray(texels, np.int64)
+        pos = np.searchsorted(self.texel_index, texels)
+        pos_c = np.minimum(pos, max(self.texel_index.size - 1, 0))
+        if self.texel_index.size == 0:
+            return pos_c, np.zeros(texels.shape, bool)
+        return pos_c, (pos < self.texel_index.size) & (self.texel_index[pos_c] == texels)
+
+
+@dataclass
+class RenderResult:
+    """A rendered view.
+
+    Attributes
+    ----------
+    image : (H, W, 3) float32, linear radiance
+    covered : (H, W) bool — every sample of the pixel hit the mesh and had measured texels
+    mask : (H, W) bool — some sample of the pixel hit the mesh
+    stats : dict — counts and timings (texels shaded, samples resynthesised, active lights …)
+    """
+
+    image: np.ndarray
+    covered: np.ndarray
+    mask: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+def atlas_scene(atlas):
+    """The Embree scene of the atlas mesh (faces = atlas faces, so hits index its UVs)."""
+    from facegeo.surface.visibility import RayScene
+
+    return RayScene(atlas.vertices, atlas.faces)
+
+
+def pixel_sample_rays(camera, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Rays through s × s regular sub-pixel samples of every pixel (s = 1: the pixel centres).
+
+    Returns
+    -------
+    origins, directions : (H·W·s², 3) float64, world frame
+        Row-major over pixels, the s² sub-samples of a pixel consecutive (row-major within the
+        pixel); directions NaN where the camera's undistortion did not converge.
+    """
+    s = int(supersample)
+    if s == 1:
+        o, d = camera.pixel_rays()
+    else:
+        off = (np.arange(s) + 0.5) / s - 0.5
+        ox, oy = np.meshgrid(off, off)
+        sub = np.stack([ox.ravel(), oy.ravel()], axis=-1)
+        o, d = camera.pixel_rays(camera.pixel_grid()[:, :, None, :] + sub[None, None])
+    return o.reshape(-1, 3), d.reshape(-1, 3)
+
+
+def trace_view(camera, scene, atlas, texels, *, supersample: int = 1) -> ViewSamples:
+    """Primary rays of ``camera`` → surface points → bilinear texel taps (see module docstring).
+
+    Parameters
+    ----------
+    camera : facegeo.geometry.camera.Camera
+    scene : RayScene
+        Over ``atlas.vertices`` / ``atlas.faces`` (:func:`atlas_scene`).
+    atlas : facegeo.surface.atlas.Atlas
+    texels : facegeo.surface.atlas.Texels
+    supersample : int ≥ 1
+        s × s rays per pixel on a regular sub-pixel grid (box filter).
+
+    Returns
+    -------
+    ViewSamples
+    """
+    s = int(supersample)
+    if s < 1 or s != supersample:
+        raise InputError(f"supersample: expected an integer >= 1, got {fmt_value(supersample)}")
+    if scene.n_faces != len(atlas.faces):
+        raise ShapeError(f"scene: {scene.n_faces} faces, but the atlas has {len(atlas.faces)}; "
+                         "build it with atlas_scene(atlas)")
+    h, w = camera.height, camera.width
+    o, d = pixel_sample_rays(camera, s)
+    finite = np.flatnonzero(np.isfinite(d).all(axis=1))
+    hits = scene.closest_hit(o[finite], d[finite], t_min=0.0)
+    sel = np.flatnonzero(hits.hit)
+    idx = finite[sel].astype(np.int64)
+    face = hits.face[sel]
+    bary = hits.bary[sel]
+    p = hits.point[sel]
+    v = camera.center_world[None, :] - p
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    uv = np.einsum("pk,pkc->pc", bary, atlas.uv[atlas.faces[face]])
+    H, W = texels.shape
+    x = uv[:, 0] * W - 0.5
+    y = (1.0 - uv[:, 1]) * H - 0.5
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    cols = np.stack([x0, x0 + 1, x0, x0 + 1], axis=1)
+    rows = np.stack([y0, y0, y0 + 1, y0 + 1], axis=1)
+    wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    inside = (cols >= 0) & (cols < W) & (rows >= 0) & (rows < H)
+    taps = np.where(inside, texels.index_map[rows.clip(0, H - 1), cols.clip(0, W - 1)], -1)
+    ok = taps >= 0
+    spacing = 1.0 / max(float(atlas.texels_per_metre), 1e-12)
+    dist = np.linalg.norm(texels.p_world[np.where(ok, taps, 0)] - p[:, None, :], axis=2)
+    ok &= dist <= TAP_MAX_TEXELS * spacing
+    wts = np.where(ok, wts, 0.0)
+    # a centre exactly on a tap gives that tap weight 1 and its neighbours 0: keep it
+    tot = wts.sum(axis=1, keepdims=True)
+    wts = np.where(tot > 0, wts / np.where(tot > 0, tot, 1.0), 0.0)
+    taps = np.where(wts > 0, taps, -1)
+    return ViewSamples(camera.name, (h, w), s * s, idx, p, v, taps, wts)
+
+
+def load_sources(project_dir, fit_dir=None, *, cameras=None) -> list[SourceCamera]:
+    """The source cameras of a ``project`` stage folder (and their fits from ``fit_dir``).
+
+    Parameters
+    ----------
+    project_dir : path — ``out/project`` (``<camera>/R.npy``, ``texel_index.npy`` …)
+    fit_dir : path, optional — ``out/fit`` (``<camera>/fit.npz``); None: no fits (naive only)
+    cameras : list of str, optional — default every camera folder with a field
+    """
+    from facegeo.render._fitstore import FitStore
+    from facegeo.surface.reflectance import open_field
+
+    project_dir = Path(project_dir)
+    dirs = sorted(p for p in project_dir.glob("*") if (p / "R.npy").is_file()) \
+        if project_dir.is_dir() else []
+    if cameras is not None:
+        known = {p.name: p for p in dirs}
+        missing = [c for c in cameras if c not in known]
+        if missing:
+            raise InputError(f"{project_dir}: no projected field for cameras {missing}; it has "
+                             f"{sorted(known)}")
+        dirs = [known[c] for c in cameras]
+    if not dirs:
+        raise InputError(f"{project_dir}: no projected fields (<camera>/R.npy); run "
+                         "'facegeo reconstruct SCAN' first")
+    out = []
+    for d in dirs:
+        R = open_field(d)
+        idx = np.load(d / "texel_index.npy").astype(np.int64)
+        wt = np.load(d / "weight.npy")
+        v = np.load(d / "v_world.npy")
+        if R.shape[0] != idx.size or wt.shape != idx.shape or v.shape != (idx.size, 3):
+            raise InputError(f"{d}: R.npy {R.shape}, texel_index.npy {idx.shape}, weight.npy "
+                             f"{wt.shape} and v_world.npy {v.shape} disagree (re-run the projection)")
+        if idx.size > 1 and np.any(np.diff(idx) <= 0):
+            raise InputError(f"{d}/texel_index.npy: expected increasing texel indices")
+        fit = FitStore.load(fit_dir / d.name) if fit_dir is not None else None
+        out.append(SourceCamera(d.name, idx, wt, v, R, fit))
+    return out
+
+
+def _angle(a, b):
+    """Angle between unit vectors, accurate near 0 (atan2 of |a×b| and a·b)."""
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i->...", a, b))
+
+
+def _check_weights(weights, n_lights):
+    w = as_array(weights, "weights", shape=(n_lights, 3))
+    return w
+
+
+def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
+                 resynthesis: bool = True, blend_power: float = BLEND_POWER,
+                 stats: dict | None = None):
+    """Relit radiance of texels seen from a camera centre, blended over source cameras.
+
+    Parameters
+    ----------
+    texel_ids : (K,) int64 — the texels to shade
+    p_world : (K, 3) float64, metres — their positions
+    center_world : (3,) float64, metres — the novel camera's centre
+    sources : list of SourceCamera
+    weights : (L, 3) float — Eq. (4) light weights (δA included), in the field's units
+    lights : LightSet — the light set the fits were made with (resynthesis)
+    resynthesis : bool or "diffuse" — True: §4.3 resynthesis; False: the naive baseline
+        (measured functions relit unchanged); ``"diffuse"``: an ablation, not the paper —
+        the diffuse component resynthesised (chroma shift), the measured specular component
+        kept (see docs/render.md for what it measures)
+    blend_power : float — p of the view-dependent weight
+    stats : dict, optional — filled with counts
+
+    Returns
+    -------
+    colour : (K, 3) float32 — NaN where no source camera measured the texel
+    """
+    if resynthesis not in (True, False, "diffuse"):
+        raise InputError(f"resynthesis: expected True, False or 'diffuse', got "
+                         f"{fmt_value(resynthesis)}")
+    texel_ids = np.asarray(texel_ids, np.int64)
+    K = texel_ids.size
+    if not sources:
+        raise InputError("sources: no source cameras")
+    L = sources[0].field.shape[1]
+    w = _check_weights(weights, L)
+    active = np.flatnonzero(np.any(w != 0, axis=1))
+    w_act = w[active]
+    acc = np.zeros((K, 3))
+    bsum = np.zeros(K)
+    st = stats if stats is not None else {}
+    st.update({"active_lights": int(active.size), "texels": int(K), "samples": 0,
+               "resynthesized": 0, "unfitted": 0, "same_view": 0, "backfacing_fallback": 0})
+    if K == 0 or active.size == 0:
+        return np.where(bsum[:, None] > 0, acc, np.nan).astype(np.float32)
+    chunk = max(16, CHUNK_SAMPLES // max(L, 1))
+    c_new = np.asarray(center_world, np.float64).reshape(3)
+    # pass 1 (no field reads): every camera's blend weight, so that cameras whose share of a
+    # texel's blend is below BLEND_MIN_SHARE are never read or resynthesised
+    plan = []
+    total_b = np.zeros(K)
+    for src in sources:
+        rows, seen = src.rows_of(texel_ids)
+        k_idx = np.flatnonzero(seen)
+        rows = rows[k_idx]
+        vn = c_new[None, :] - p_world[k_idx]
+        vn /= np.linalg.norm(vn, axis=1, keepdims=True)
+        theta = _angle(src.v_world[rows], vn)
+        b = src.weight[rows].astype(np.float64) / np.maximum(theta, SAME_VIEW_RAD) ** blend_power
+        plan.append((src, k_idx, rows, vn, theta < SAME_VIEW_RAD, b))
+        np.add.at(total_b, k_idx, b)
+    for src, k_idx, rows, vn, same, b in plan:
+        keep = b >= BLEND_MIN_SHARE * total_b[k_idx]
+        st["skipped_small_weight"] = st.get("skipped_small_weight", 0) + int((~keep).sum())
+        k_idx, rows, vn, same, b = k_idx[keep], rows[keep], vn[keep], same[keep], b[keep]
+        if k_idx.size == 0:
+            continue
+        st["same_view"] += int(same.sum())
+        if resynthesis:
+            if src.fit is None:
+                raise InputError(f"camera {src.name}: resynthesis needs its skin-model fit "
+                                 "(run 'facegeo fit SCAN')")
+            fidx, fitted = src.fit.locate(rows)
+        for c0 in range(0, k_idx.size, chunk):
+            sl = slice(c0, min(k_idx.size, c0 + chunk))
+            R = np.asarray(src.field[rows[sl]], np.float32)
+            ok = np.isfinite(R).all(axis=(1, 2))
+            out = np.einsum("nlc,lc->nc", np.where(ok[:, None, None], R, 0.0)[:, active, :],
+                            w_act)
+            st["samples"] += int(ok.sum())
+            if resynthesis:
+                todo = np.flatnonzero(ok & fitted[sl] & ~same[sl])
+                st["unfitted"] += int(np.count_nonzero(ok & ~fitted[sl]))
+                if todo.size:
+                    fit = src.fit.skin_fit(fidx[sl][todo], R[todo], lights)
+                    res, back = _resynthesize(fit, vn[sl][todo],
+                                              diffuse_only=resynthesis == "diffuse")
+                    # the fitted normal puts v_n below the horizon while the mesh sees the
+                    # texel (grazing views): keep the measured function rather than black
+                    use = todo[~back]
+                    out[use] = np.einsum("nlc,lc->nc", res[~back][:, active, :], w_act)
+                    st["resynthesized"] += int(use.size)
+                    st["backfacing_fallback"] += int(back.sum())
+            kk = k_idx[sl][ok]
+            acc[kk] += b[sl][ok, None] * out[ok]
+            bsum[kk] += b[sl][ok]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        colour = np.where(bsum[:, None] > 0, acc / np.where(bsum > 0, bsum, 1.0)[:, None],
+                          np.nan)
+    return colour.astype(np.float32)
+
+
+def _fill_uncovered(vs: ViewSamples, val, cov, max_px: float):
+    """Give uncovered hit samples the mean colour of the nearest pixel with covered samples
+    (Euclidean distance transform, OpenCV), if it lies within ``max_px`` pixels."""
+    import cv2
+
+    h, w = vs.shape
+    pix = vs.pixel_index // vs.samples_per_pixel
+    acc = np.zeros((h * w, 3))
+    cnt = np.zeros(h * w)
+    np.add.at(acc, pix[cov], val[cov])
+    np.add.at(cnt, pix[cov], 1.0)
+    has = cnt > 0
+    miss = np.flatnonzero(~cov)
+    if not has.any() or miss.size == 0:
+        return val, 0
+    mean = acc / np.maximum(cnt, 1.0)[:, None]
+    src = np.where(has, 0, 1).astype(np.uint8).reshape(h, w)
+    dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                   labelType=cv2.DIST_LABEL_PIXEL)
+    # DIST_LABEL_PIXEL numbers the zero pixels 1, 2, … in raster order
+    nearest = np.flatnonzero(has)[labels.ravel() - 1]
+    near = dist.ravel()[pix[miss]] <= max_px
+    out = val.copy()
+    out[miss[near]] = mean[nearest[pix[miss[near]]]]
+    return out, int(near.sum())
+
+
+def _resynthesize(fit, vn, *, diffuse_only: bool = False):
+    """Resynthesised functions ``(n, L, C)`` and where the fit called v_n back-facing."""
+    from facegeo.appearance.skin import FLAG_BACKFACING, resynthesize
+
+    r = resynthesize(fit, vn)
+    back = (r.flags & FLAG_BACKFACING) != 0
+    if diffuse_only:
+        return r.diffuse + fit.specular, back
+    return r.reflectance, back
+
+
+def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
+                supersample: int = 1, resynthesis: bool = True,
+                blend_power: float = BLEND_POWER, samples: ViewSamples | None = None,
+                fill_px: float = 0.0) -> RenderResult:
+    """Render ``camera`` under Eq. (4) light ``weights`` from the measured reflectance field.
+
+    See the module docstring for the steps (Debevec et al. 2000 §4.5).
+
+    Parameters
+    ----------
+    camera : Camera — intrinsics and pose of the novel view
+    scene : RayScene — over the atlas mesh (:func:`atlas_scene`)
+    atlas, texels : the ``atlas`` stage's Atlas and Texels
+    sources : list of SourceCamera — per-camera fields and fits (:func:`load_sources`)
+    weights : (L, 3) float — Eq. (4) weights of the environment (δA included), field units
+    lights : LightSet — the light set of the fits
+    supersample : int — s × s rays per pixel
+    resynthesis : bool or "diffuse" — False renders the naive baseline; see :func:`shade_texels`
+    blend_power : float — view-dependent weight exponent
+    samples : ViewSamples, optional — a :func:`trace_view` result to reuse
+    fill_px : float, pixels — hit samples whose texels no camera measured take the colour of
+        the nearest pixel with measured samples within this distance (0: left black); they
+        stay False in ``covered`` (hole filling for display; see :func:`_fill_uncovered`)
+
+    Returns
+    -------
+    RenderResult
+    """
+    t0 = time.perf_counter()
+    vs = samples if samples is not None else trace_view(camera, scene, atlas, texels,
+                                                         supersample=supersample)
+    t1 = time.perf_counter()
+    need = vs.needed_texels
+    stats: dict = {}
+    colour = shade_texels(need, texels.p_world[need], camera.center_world, sources, weights,
+                          lights, resynthesis=resynthesis, blend_power=blend_power, stats=stats)
+    t2 = time.perf_counter()
+    pos = np.searchsorted(need, np.where(vs.taps >= 0, vs.taps, 0))
+    pos = np.minimum(pos, max(need.size - 1, 0))
+    tap_col = colour[pos] if need.size else np.full(vs.taps.shape + (3,), np.nan, np.float32)
+    good = (vs.taps >= 0) & np.isfinite(tap_col).all(axis=2)
+    wt = np.where(good, vs.tap_weight, 0.0)
+    tot = wt.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        val = np.einsum("pk,pkc->pc", wt, np.where(good[..., None], tap_col, 0.0)) / \
+            np.where(tot > 0, tot, 1.0)[:, None]
+    cov = tot > 0
+    val = np.where(cov[:, None], val, 0.0).astype(np.float32)
+    filled = 0
+    if fill_px > 0:
+        val, filled = _fill_uncovered(vs, val, cov, float(fill_px))
+    image = vs.to_image(val)
+    covered = vs.to_image(cov.astype(np.float32)) >= 1.0 - 1e-6
+    stats["samples_filled"] = filled
+    stats.update({"pixels": int(vs.shape[0] * vs.shape[1]),
+                  "samples_hit": int(vs.pixel_index.size),
+                  "samples_covered": int(cov.sum()),
+                  "seconds_trace": round(t1 - t0, 4), "seconds_shade": round(t2 - t1, 4),
+                  "seconds": round(time.perf_counter() - t0, 4)})
+    return RenderResult(image, covered & vs.mask, vs.mask, stats)

@@ -1,0 +1,288 @@
+"""The novel-view renderer (facegeo.render) and the ``render`` pipeline stage."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_fit_stage import reconstructed  # noqa: F401  (module-scoped fixture)
+
+from facegeo.errors import InputError
+
+#: Float32 rounding of an Eq. (4) sum of 128 lights, relative to the largest value.
+SUM_ROUNDING_REL = 1e-5
+#: A bilinear tap lies within this many texel spacings of its hit point (√2/2 + margin for
+#: texels snapped to the chart).
+TAP_DISTANCE_TEXELS = 3.0
+#: Relighting the source camera's OLAT frames vs rendering that camera from the projected field:
+#: relative RMSE over pixels whose taps that camera measured (two bilinear resamplings of the
+#: frames; the projection's own error at 0.35 texels/mm is a few per cent).
+SAME_VIEW_IMAGE_REL = 0.12
+
+
+@pytest.fixture(scope="module")
+def parts(reconstructed):  # noqa: F811
+    from facegeo.render import atlas_scene, light_set, load_sources
+    from facegeo.surface.atlas import Atlas, Texels
+    from facegeo.synth.render import load_ground_truth
+
+    root, _ = reconstructed
+    out = root / "out"
+    atlas = Atlas.load(out / "atlas" / "atlas.npz")
+    texels = Texels.load(out / "atlas" / "texels.npz")
+    ren = load_ground_truth(root)
+    return {"root": root, "atlas": atlas, "texels": texels, "scene": atlas_scene(atlas),
+            "rig": ren.rig, "renderer": ren, "lights": light_set(ren.rig.lights),
+            "sources": load_sources(out / "project", out / "fit")}
+
+
+def _weights(stage, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(0.0, 1.0, (stage.n_lights, 3)) * stage.solid_angles[:, None]
+
+
+# ----------------------------------------------------------------------------- cameras
+
+
+def test_orbit_camera_moves_about_vertical_axis_and_keeps_aim():
+    from facegeo.geometry.rig import default_rig
+    from facegeo.render import orbit_camera, parse_camera_spec
+
+    cam = default_rig().cameras[0]  # off-axis: yawed, raised, fx ≠ fy, distorted
+    c = cam.center_world
+    o = orbit_camera(cam, 90.0)
+    # +90° about +Y turns +Z toward +X: (x, y, z) → (z, y, −x)
+    assert np.allclose(o.center_world, [c[2], c[1], -c[0]], atol=1e-12)
+    # the origin projects to the same pixel (the camera turned with its centre)
+    assert np.allclose(o.project(np.zeros((1, 3)))[0], cam.project(np.zeros((1, 3)))[0], atol=1e-9)
+    back = orbit_camera(orbit_camera(cam, 37.0), -37.0)
+    assert np.allclose(back.T_cam_world.matrix, cam.T_cam_world.matrix, atol=1e-12)
+    assert np.array_equal(o.K, cam.K) and np.array_equal(o.dist, cam.dist)
+    s = parse_camera_spec(f"orbit:{cam.name}:90", {cam.name: cam})
+    assert np.allclose(s.center_world, o.center_world)
+    s2 = parse_camera_spec({"orbit": 90, "from": cam.name}, {cam.name: cam})
+    assert np.allclose(s2.center_world, o.center_world)
+    with pytest.raises(InputError, match="unknown camera 'nope'"):
+        parse_camera_spec("orbit:nope:10", {cam.name: cam})
+    with pytest.raises(InputError, match="camera spec"):
+        parse_camera_spec("sideways", {cam.name: cam})
+
+
+# ----------------------------------------------------------------------------- tracing
+
+
+def test_trace_view_taps_lie_on_the_hit_surface(parts):
+    from facegeo.render import trace_view
+
+    cam = parts["rig"].camera("cam_left")
+    vs = trace_view(cam, parts["scene"], parts["atlas"], parts["texels"])
+    assert vs.pixel_index.size > 100
+    tot = vs.tap_weight.sum(axis=1)
+    has = tot > 0
+    assert has.mean() > 0.95, f"fraction of hits with a texel tap {has.mean():.3f}"
+    assert np.allclose(tot[has], 1.0, atol=1e-12), "tap weights sum to 1"
+    spacing = 1.0 / parts["atlas"].texels_per_metre
+    p_tap = parts["texels"].p_world[np.where(vs.taps >= 0, vs.taps, 0)]
+    d = np.linalg.norm(p_tap - vs.p_world[:, None], axis=2)[vs.taps >= 0]
+    assert d.max() <= TAP_DISTANCE_TEXELS * spacing
+    # the tap-weighted texel position reproduces the hit point to about a texel
+    p_interp = np.einsum("pk,pkc->pc", vs.tap_weight[has], p_tap[has])
+    err = np.linalg.norm(p_interp - vs.p_world[has], axis=1)
+    assert np.median(err) <= 0.5 * spacing, f"median {np.median(err) / spacing:.2f} texels"
+
+
+# ----------------------------------------------------------------------------- shading
+
+
+def _fitted_texels(src):
+    return src.texel_index[src.fit.rows]
+
+
+def test_same_view_returns_the_measured_functions_relit(parts):
+    """At a source camera's own centre, resynthesis returns its measured functions: the shaded
+    texels equal the naive (measured) relighting to float32 rounding — at fitted texels, where
+    resynthesis would otherwise run. At a view 30° away they differ (the check can fail)."""
+    from facegeo.render import orbit_camera, shade_texels
+
+    src = parts["sources"][0]
+    cam = parts["rig"].camera(src.name)
+    t = _fitted_texels(src)
+    p = parts["texels"].p_world[t]
+    w = _weights(parts["rig"].lights)
+    kw = {"lights": parts["lights"]}
+    a = shade_texels(t, p, cam.center_world, [src], w, resynthesis=True, **kw)
+    b = shade_texels(t, p, cam.center_world, [src], w, resynthesis=False, **kw)
+    scale = np.abs(b).max()
+    assert np.abs(a - b).max() <= SUM_ROUNDING_REL * scale
+    far = orbit_camera(cam, 30.0).center_world
+    st: dict = {}
+    c = shade_texels(t, p, far, [src], w, resynthesis=True, stats=st, **kw)
+    d = shade_texels(t, p, far, [src], w, resynthesis=False, **kw)
+    assert st["resynthesized"] + st["backfacing_fallback"] == t.size
+    assert st["resynthesized"] > 0
+    assert np.abs(c - d).max() > 100 * SUM_ROUNDING_REL * scale
+
+
+def test_view_dependent_blend_picks_the_matching_camera(parts):
+    """Texels both cameras measured: at cam_right's centre the blend is cam_right's value
+    (weight ≥ 1e14 times the other), elsewhere a convex combination of the two."""
+    from facegeo.render import shade_texels
+
+    left, right = parts["sources"]
+    both = np.intersect1d(left.texel_index, right.texel_index)[::7]
+    p = parts["texels"].p_world[both]
+    w = _weights(parts["rig"].lights, 1)
+    kw = {"lights": parts["lights"], "resynthesis": False}
+    c_right = parts["rig"].camera(right.name).center_world
+    blended = shade_texels(both, p, c_right, [left, right], w, **kw)
+    only_r = shade_texels(both, p, c_right, [right], w, **kw)
+    only_l = shade_texels(both, p, c_right, [left], w, **kw)
+    scale = np.abs(only_r).max()
+    assert np.abs(blended - only_r).max() <= SUM_ROUNDING_REL * scale
+    mid = 0.5 * (c_right + parts["rig"].camera(left.name).center_world)
+    m = shade_texels(both, p, mid, [left, right], w, **kw)
+    lo, hi = np.minimum(only_l, only_r), np.maximum(only_l, only_r)
+    assert np.all((m >= lo - 1e-6 * scale) & (m <= hi + 1e-6 * scale)), "convex blend"
+
+
+def test_only_lights_with_energy_are_used(parts):
+    """One active light: the stats say so, and the result is that light's samples × weight."""
+    from facegeo.render import shade_texels
+
+    src = parts["sources"][0]
+    t = src.texel_index[::50]
+    w = np.zeros((parts["rig"].lights.n_lights, 3))
+    w[37] = [0.5, 1.0, 2.0]
+    st: dict = {}
+    cam = parts["rig"].camera(src.name)
+    got = shade_texels(t, parts["texels"].p_world[t], cam.center_world, [src], w,
+                       parts["lights"], resynthesis=False, stats=st)
+    assert st["active_lights"] == 1
+    want = np.asarray(src.field[np.searchsorted(src.texel_index, t), 37], np.float32) * w[37]
+    assert np.allclose(got, want, rtol=1e-6, atol=0)
+
+
+def test_source_view_render_reproduces_relit_frames(parts):
+    """Rendering cam_left from the field ≈ relighting cam_left's OLAT frames (Eq. 4 on the
+    images), over pixels whose texels cam_left measured."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.lighting.relight import relight_scan_view
+    from facegeo.render import render_view
+
+    src = parts["sources"][0]
+    cam = parts["rig"].camera(src.name)
+    w = _weights(parts["rig"].lights, 2)
+    res = render_view(cam, parts["scene"], parts["atlas"], parts["texels"], [src], w,
+                      parts["lights"], resynthesis=True)
+    relit = relight_scan_view(load_scan(parts["root"]), src.name, w)
+    m = res.covered
+    assert m.sum() > 0.8 * res.mask.sum(), "cam_left covers most of its own view"
+    rel = np.sqrt(((res.image[m] - relit[m]) ** 2).sum() / (relit[m] ** 2).sum())
+    assert rel <= SAME_VIEW_IMAGE_REL, f"relative RMSE {rel:.4f}"
+
+
+def test_supersampling_box_filters_sub_samples(parts):
+    from facegeo.render import trace_view
+
+    cam = parts["rig"].camera("cam_left")
+    vs1 = trace_view(cam, parts["scene"], parts["atlas"], parts["texels"], supersample=1)
+    vs2 = trace_view(cam, parts["scene"], parts["atlas"], parts["texels"], supersample=2)
+    assert vs2.samples_per_pixel == 4 and vs2.mask.shape == vs1.mask.shape
+    # coverage of the head: the box-filtered hit fraction sums to about the centre-ray count
+    frac = vs2.to_image(np.ones(vs2.pixel_index.size, np.float32)).sum()
+    assert abs(frac - vs1.mask.sum()) <= 0.05 * vs1.mask.sum()
+    with pytest.raises(InputError, match="supersample"):
+        trace_view(cam, parts["scene"], parts["atlas"], parts["texels"], supersample=0)
+
+
+# ----------------------------------------------------------------------------- stage
+
+
+def test_run_render_writes_images_and_metrics(parts):
+    from facegeo.pipeline.render import run_render
+
+    root = parts["root"]
+    calls = []
+    m = run_render(root, camera_spec="orbit:cam_left:30", env="sky", name="o30",
+                   progress=lambda *a: calls.append(a))
+    assert calls[-1] == ("render", 4, 4), calls
+    d = root / "out" / "render"
+    for f in ("o30.exr", "o30.png", "o30_naive.png", "o30_reference.png", "o30_error.png",
+              "o30.json"):
+        assert (d / f).is_file(), f
+    for k in ("psnr_db", "naive_psnr_db", "psnr_gain_db", "rel_rmse", "coverage"):
+        assert m[k] is not None and np.isfinite(m[k]), k
+    assert m["coverage"] > 0.8
+    doc = json.loads((root / "out" / "metrics.json").read_text())
+    assert doc["render"]["views"]["o30"]["psnr_db"] == m["psnr_db"]
+
+
+def test_run_render_errors(parts, tmp_path):
+    from facegeo.pipeline.render import run_render
+
+    root = parts["root"]
+    with pytest.raises(InputError, match="built-in"):
+        run_render(root, camera_spec="cam_left", env="nowhere")
+    with pytest.raises(InputError, match="unknown camera"):
+        run_render(root, camera_spec="orbit:cam_middle:10")
+    with pytest.raises(InputError, match="reconstruct"):
+        run_render(root, out_dir=tmp_path, camera_spec="cam_left")
+
+
+def test_grazing_views_fall_back_to_measured_not_black(parts):
+    """Where the fitted normal calls a steep novel view back-facing (the mesh still sees the
+    texel), the renderer keeps the measured function: nothing turns black that was lit."""
+    from facegeo.render import orbit_camera, shade_texels
+
+    src = parts["sources"][0]
+    t = _fitted_texels(src)
+    p = parts["texels"].p_world[t]
+    w = _weights(parts["rig"].lights, 3)
+    far = orbit_camera(parts["rig"].camera(src.name), 85.0).center_world
+    st: dict = {}
+    a = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis=True, stats=st)
+    b = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis=False)
+    assert st["backfacing_fallback"] > 0, "an 85° orbit makes some fitted normals back-facing"
+    lit = np.linalg.norm(b, axis=1) > 0
+    assert np.all(np.linalg.norm(a[lit], axis=1) > 0)
+
+
+def test_diffuse_only_ablation_keeps_measured_specular(parts):
+    """``resynthesis="diffuse"``: at a 30° view it differs from full resynthesis only by the
+    specular part, and a bad value is refused by name."""
+    from facegeo.render import orbit_camera, shade_texels
+
+    src = parts["sources"][0]
+    t = _fitted_texels(src)
+    p = parts["texels"].p_world[t]
+    w = _weights(parts["rig"].lights, 4)
+    far = orbit_camera(parts["rig"].camera(src.name), 30.0).center_world
+    full = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis=True)
+    diff = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis="diffuse")
+    naive = shade_texels(t, p, far, [src], w, parts["lights"], resynthesis=False)
+    assert np.abs(diff - full).max() > 0 and np.abs(diff - naive).max() > 0
+    with pytest.raises(InputError, match="resynthesis"):
+        shade_texels(t, p, far, [src], w, parts["lights"], resynthesis="specular")
+
+
+def test_hole_filling_copies_the_nearest_covered_pixel(parts):
+    """fill_px: uncovered hit samples take the colour of the nearest covered pixel (so a
+    filled pixel's colour occurs among covered pixels); covered pixels are unchanged."""
+    from facegeo.render import orbit_camera, render_view
+
+    src = parts["sources"]
+    cam = orbit_camera(parts["rig"].camera("cam_left"), -60.0)
+    w = _weights(parts["rig"].lights, 5)
+    args = (cam, parts["scene"], parts["atlas"], parts["texels"], src, w, parts["lights"])
+    a = render_view(*args, resynthesis=False)
+    b = render_view(*args, resynthesis=False, fill_px=2.0)
+    assert np.array_equal(a.image[a.covered], b.image[b.covered])
+    assert np.array_equal(a.covered, b.covered)
+    filled = b.mask & ~b.covered & (np.abs(b.image).sum(axis=2) > 0)
+    assert b.stats["samples_filled"] > 0 and filled.any()
+    cov_colours = {tuple(c) for c in a.image[a.covered]}
+    assert all(tuple(c) in cov_colours for c in b.image[filled])
+    # beyond fill_px nothing is filled: at 2 px far fewer than with 50 px
+    c = render_view(*args, resynthesis=False, fill_px=50.0)
+    assert c.stats["samples_filled"] > b.stats["samples_filled"]
