@@ -65,6 +65,14 @@ def _nonneg_int(text: str) -> int:
     return v
 
 
+def _pos_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    v = _nonneg_int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {v}")
+    return v
+
+
 def _nonneg_float(text: str) -> float:
     """argparse type: a finite number >= 0."""
     import math
@@ -317,22 +325,29 @@ def _cmd_relight(args) -> int:
 
 def _stage_line(result) -> str:
     """One line per stage of a reconstruct run: ran or cached, time, the headline figures."""
+    from facegeo.pipeline.report import summary_rows
+
     m = result.metrics
-    keys = ("texels", "visible_fraction", "visibility_agreement", "projection_rel_rmse",
-            "unseen_fraction", "peak_rss_mb")
-    figs = ", ".join(f"{k}={m[k]:.4g}" if isinstance(m[k], float) else f"{k}={m[k]}"
-                     for k in keys if k in m and m[k] is not None)
+    rows = summary_rows({result.name: m})
+    figs = dict(rows[0]["errors"]) if rows else {}
+    for k in ("texels", "valid_fraction", "points", "faces", "error"):
+        if k in m and m[k] is not None and not isinstance(m[k], (dict, list)):
+            figs[k] = m[k]
+    if isinstance(figs.get("error"), str) and len(figs["error"]) > 120:
+        figs["error"] = figs["error"][:117] + "..."
+    text = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                     for k, v in figs.items())
     what = f"ran in {result.seconds:.1f} s" if result.ran else "cached (inputs unchanged)"
-    return f"  {result.name:<10} {what}; {figs}"
+    return f"  {result.name:<10} {what}; {text}"
 
 
-def _run_reconstruct(scan, args, *, from_stage=None, only=None) -> None:
+def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None) -> None:
     from facegeo.pipeline.reconstruct import run_reconstruct
 
     tick, close = _progress_factory(not args.quiet)
     try:
-        run_reconstruct(scan, mesh=getattr(args, "mesh", "ground_truth"), from_stage=from_stage,
-                        only=only, progress=tick,
+        run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"), from_stage=from_stage,
+                        only=only, until=until, progress=tick,
                         on_stage=lambda r: (close(), print(_stage_line(r))))
     finally:
         close()
@@ -345,6 +360,32 @@ def _write_report(out: Path) -> None:
     path = write_report(out)
     print(summary_table(json.loads((out / "metrics.json").read_text())))
     print(f"report: {path}")
+
+
+def _cmd_stage(args) -> int:
+    """``facegeo decode|mesh|fit SCAN``: that stage of ``reconstruct`` and what it needs."""
+    print(f"{args.command}: {args.scan} (cached stages under {Path(args.scan) / 'out'})")
+    _run_reconstruct(args.scan, args, until=args.command)
+    return 0
+
+
+def _cmd_render(args) -> int:
+    from facegeo.pipeline.render import run_render
+
+    print(f"render: products of {args.scan} up to the fit (cached):")
+    _run_reconstruct(args.scan, args, until="fit")
+    tick, close = _progress_factory(not args.quiet)
+    try:
+        m = run_render(args.scan, camera_spec=args.camera, env=args.env,
+                       rotate_deg=args.rotate, supersample=args.supersample,
+                       resynthesis=not args.naive, progress=tick)
+    finally:
+        close()
+    figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "psnr_gain_db", "coverage",
+                                   "seconds_render") if m.get(k) is not None}
+    print(f"rendered {m['name']}: " + ", ".join(f"{k}={v}" for k, v in figs.items()))
+    print(f"images: {Path(args.scan) / 'out' / 'render' / m['files']['png']} (+ .exr)")
+    return 0
 
 
 def _cmd_report(args) -> int:
@@ -508,12 +549,41 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_relight)
 
-    s = sub.add_parser("reconstruct", parents=common,
-                       help="run the reconstruction stages built so far (atlas, project), cached")
+    mesh_help = ("surface stages' mesh: 'auto' (a synthetic scan's ground-truth mesh, else the "
+                 "reconstructed one), 'ground_truth', 'reconstructed', or a mesh file in metres")
+    for name, text in (("decode", "decode the structured-light frames (cached stage)"),
+                       ("mesh", "decode, triangulate and mesh the structured light (cached)"),
+                       ("fit", "fit the skin model to the surface reflectance field (cached, "
+                               "with every stage it needs)")):
+        s = sub.add_parser(name, parents=common, help=text)
+        s.add_argument("scan", metavar="SCAN", help="scan directory")
+        s.add_argument("--mesh", default="auto", help=mesh_help)
+        s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+        s.set_defaults(func=_cmd_stage)
+
+    s = sub.add_parser("render", parents=common,
+                       help="render a novel view under an environment map (reflectance field + "
+                            "skin model, Debevec et al. 2000 §4.5)")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
-    s.add_argument("--mesh", default="ground_truth",
-                   help="'ground_truth' (synthetic scans, until meshing lands) or a mesh file "
-                        "in metres")
+    s.add_argument("--camera", required=True, metavar="SPEC",
+                   help="'orbit:CAMERA:DEGREES', a camera name of the rig or the generator's "
+                        "novel cameras, or a camera JSON file")
+    s.add_argument("--env", default="sky", help="an .exr/.hdr lat-long map, or a built-in: "
+                   "sky, uniform, axis_lobes")
+    s.add_argument("--rotate", type=float, default=0.0, help="environment rotation about +Y, "
+                   "degrees")
+    s.add_argument("--supersample", type=_pos_int, default=1, help="s x s rays per pixel")
+    s.add_argument("--naive", action="store_true", help="no resynthesis: the source cameras' "
+                   "measured functions relit and blended (the baseline)")
+    s.add_argument("--mesh", default="auto", help=mesh_help)
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    s.set_defaults(func=_cmd_render)
+
+    s = sub.add_parser("reconstruct", parents=common,
+                       help="run every stage the scan has input for (calibrate, decode, mesh, "
+                            "atlas, project, fit, render), cached")
+    s.add_argument("scan", metavar="SCAN", help="scan directory")
+    s.add_argument("--mesh", default="auto", help=mesh_help)
     g = s.add_mutually_exclusive_group()
     g.add_argument("--from", dest="from_stage", default=None, metavar="STAGE",
                    help="rerun this stage and every later one even if cached")

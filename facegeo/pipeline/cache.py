@@ -203,6 +203,7 @@ class Pipeline:
         settings: Mapping[str, Mapping[str, Any]] | None = None,
         from_stage: str | None = None,
         only: str | None = None,
+        until: str | None = None,
         progress: Callable[[str, int, int], None] | None = None,
         on_stage: Callable[[StageResult], None] | None = None,
     ) -> list[StageResult]:
@@ -218,6 +219,10 @@ class Pipeline:
         only : str, optional
             Run only this stage, even if cached (``--only``); the stages it reads from must
             be cached and current, else :class:`~facegeo.errors.InputError` names the missing one.
+        until : str, optional
+            Stop after this stage: run it and the stages it reads from (directly or not), as
+            usual (cached ones are not rerun), and none of the others (``facegeo decode``,
+            ``facegeo fit``: one stage and what it needs).
         progress : callable(stage, done, total), optional
             Passed to the stages.
         on_stage : callable(StageResult), optional
@@ -228,6 +233,8 @@ class Pipeline:
             raise InputError(f"scan directory {scan_dir} does not exist")
         self._check_stage(from_stage, "--from")
         self._check_stage(only, "--only")
+        self._check_stage(until, "until")
+        wanted = None if until is None else set(self._upstream_closure(until)) | {until}
         settings = dict(settings or {})
         unknown = set(settings) - set(self.names)
         if unknown:
@@ -243,6 +250,8 @@ class Pipeline:
         forced = False
         try:
             for spec in self.stages:
+                if wanted is not None and spec.name not in wanted:
+                    continue
                 forced = forced or spec.name in (from_stage, only)
                 stage_settings = {**spec.settings, **settings.get(spec.name, {})}
                 key, inputs = self._key(spec, scan_dir, stage_settings, keys, memo)

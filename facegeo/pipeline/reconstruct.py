@@ -1,11 +1,29 @@
-"""``facegeo reconstruct``: the stages built so far, cached under ``SCAN/out/<stage>/``.
+"""``facegeo reconstruct``: every stage the scan has input for, cached under ``SCAN/out/<stage>/``.
 
-Today the chain is ``atlas → project`` (issue 11) on the scan's mesh — the synthetic scan's
-ground-truth mesh until structured-light meshing lands — with calibrate, decode, mesh and fit to
-join it as their issues land. Each stage is a :class:`facegeo.pipeline.cache.StageSpec`: it
-reruns only when the content of the files it reads, its settings, an earlier stage's key or the
-facegeo version changed (:mod:`facegeo.pipeline.cache`), and every stage's metrics are gathered
-in ``SCAN/out/metrics.json``.
+The chain (Debevec et al. 2000 from capture to novel views)::
+
+    calibrate ─► (rig, residuals)                      if the scan has [calib]
+    decode ─► mesh                                     if it has [structured_light]
+    atlas ─► project ─► fit ─► render                  if it has [olat] (atlas needs a mesh)
+
+Each stage is a :class:`facegeo.pipeline.cache.StageSpec`: it reruns only when the content of
+the files it reads, its settings, an earlier stage's key or the facegeo version changed
+(:mod:`facegeo.pipeline.cache`), and every stage's metrics are gathered in
+``SCAN/out/metrics.json``. A stage is left out when the scan has nothing for it (a calibration-
+only scan runs ``calibrate``; a structured-light-only scan runs ``decode → mesh``).
+
+Which mesh and which rig the surface stages use:
+
+* ``mesh="auto"`` (the default): a synthetic scan's ground-truth mesh, so the surface stages'
+  errors measure the surface methods alone, and the reconstructed mesh of the ``mesh`` stage
+  otherwise; ``"ground_truth"``, ``"reconstructed"`` or a mesh file (metres) choose explicitly.
+* the rig: a synthetic scan's true rig (``ground_truth/rig.json``), else the scan's
+  ``rig.json``. The ``calibrate`` stage reports how well calibration recovers the rig; feeding
+  its rig to the later stages is not wired yet (issue 9).
+
+A calibration that fails (no board found in a camera's views, say) ends the run with the error
+only when nothing downstream depends on it; here nothing does yet, so ``calibrate`` records the
+failure in its metrics (``"error"``) and the other stages go on.
 """
 
 from __future__ import annotations
@@ -15,35 +33,67 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from facegeo.errors import InputError
+from facegeo.errors import FacegeoError, InputError
 from facegeo.pipeline.cache import Pipeline, StageContext, StageResult, StageSpec
 
-__all__ = ["STAGES", "reconstruct_pipeline", "run_reconstruct"]
+__all__ = ["STAGES", "MESH_CHOICES", "reconstruct_pipeline", "run_reconstruct"]
 
-#: The stages ``facegeo reconstruct`` runs, in order.
-STAGES = ("atlas", "project")
+#: Every stage ``facegeo reconstruct`` knows, in pipeline order.
+STAGES = ("calibrate", "decode", "mesh", "atlas", "project", "fit", "render")
+#: Values of ``mesh`` besides a mesh file.
+MESH_CHOICES = ("auto", "ground_truth", "reconstructed")
 
-
-def _mesh_inputs(scan, mesh: str) -> list[Path]:
-    if mesh == "ground_truth":
-        if "mesh" not in scan.ground_truth_keys:
-            raise InputError(f"scan {scan.root}: no ground-truth mesh, and structured-light "
-                             "meshing is not built yet; give --mesh PATH (a mesh in metres)")
-        return [scan.ground_truth_path("mesh")]
-    return [Path(mesh)]
+#: The render stage's default views: the first camera orbited by these angles (degrees).
+RENDER_ORBITS = (30.0, -30.0, 60.0, -60.0)
 
 
-def _project_inputs(scan, mesh: str) -> list[Path]:
+def _common_inputs(scan) -> list[Path]:
     files = [scan.manifest_path, scan.root / scan.manifest["scan"]["rig"]]
-    for cam in scan.camera_names:
-        files += [p for _, p in scan.expected_files("olat", cam)]
     # ground truth feeds the accuracy metrics (and, on synthetic scans, the true rig)
     files += [scan.ground_truth_path(k) for k in sorted(scan.ground_truth_keys)
               if scan.ground_truth_path(k).is_file()]
-    return files + _mesh_inputs(scan, mesh)
+    return files
 
 
-def reconstruct_pipeline(scan, *, mesh: str = "ground_truth") -> Pipeline:
+def _group_inputs(scan, group: str) -> list[Path]:
+    files = _common_inputs(scan)
+    for cam in scan.camera_names:
+        files += [p for _, p in scan.expected_files(group, cam)]
+    return files
+
+
+def _resolve_mesh(scan, mesh: str) -> str:
+    if mesh == "auto":
+        if "mesh" in scan.ground_truth_keys:
+            return "ground_truth"
+        if scan.has("structured_light"):
+            return "reconstructed"
+        raise InputError(f"scan {scan.root}: no structured light to build a mesh from and no "
+                         "ground-truth mesh; give --mesh PATH (a mesh in metres)")
+    if mesh == "ground_truth" and "mesh" not in scan.ground_truth_keys:
+        raise InputError(f"mesh: scan {scan.root} has no ground-truth mesh (use 'reconstructed' "
+                         "or a mesh file)")
+    if mesh == "reconstructed" and not scan.has("structured_light"):
+        raise InputError(f"mesh: scan {scan.root} has no structured-light frames to reconstruct "
+                         "a mesh from")
+    if mesh not in MESH_CHOICES and not Path(mesh).is_file():
+        raise InputError(f"mesh: expected one of {', '.join(MESH_CHOICES)} or a mesh file, got "
+                         f"{mesh!r}")
+    return mesh
+
+
+def _applicable(scan, mesh: str) -> list[str]:
+    stages = []
+    if scan.has("calib"):
+        stages.append("calibrate")
+    if scan.has("structured_light"):
+        stages += ["decode", "mesh"]
+    if scan.has("olat") and scan.camera_names:
+        stages += ["atlas", "project", "fit", "render"]
+    return stages
+
+
+def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
     """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct`` for one scan.
 
     Parameters
@@ -51,33 +101,117 @@ def reconstruct_pipeline(scan, *, mesh: str = "ground_truth") -> Pipeline:
     scan : facegeo.capture.scan.Scan
         The loaded scan (loaded and validated once; every stage reads it from here).
     mesh : str
-        ``"ground_truth"`` (a synthetic scan's mesh) or a mesh file in metres.
+        ``"auto"``, ``"ground_truth"``, ``"reconstructed"`` or a mesh file in metres (module
+        docstring).
     """
-    from facegeo.pipeline.project import atlas_products, project_products
+    from facegeo.pipeline.fit import FIT_SETTINGS
+    from facegeo.pipeline.render import RENDER_DEFAULT_ENV
 
-    atlas_settings = {"mesh": mesh, "texels_per_mm": 1.0, "size": None, "padding": 2,
-                      "split_faces": 25_000, "repair": False}
-    project_settings = {"mesh": mesh, "rig": None, "dtype": "float16", "gt_lights": 32,
-                        "gt_weight_min": 0.3}
+    names = _applicable(scan, mesh)
+    use_mesh = _resolve_mesh(scan, mesh) if "atlas" in names else None
+    specs: list[StageSpec] = []
 
-    def run_atlas(ctx: StageContext) -> dict:
-        return atlas_products(scan, ctx.out_dir, **ctx.settings)
+    if "calibrate" in names:
+        def run_calibrate(ctx: StageContext) -> dict:
+            from facegeo.pipeline.calibrate import calibrate_products
 
-    def run_project(ctx: StageContext) -> dict:
-        metrics, _ = project_products(scan, ctx.upstream["atlas"], ctx.out_dir, **ctx.settings)
-        return metrics
+            try:
+                metrics, _ = calibrate_products(scan, ctx.out_dir, **ctx.settings)
+            except FacegeoError as e:  # nothing downstream uses the calibrated rig yet
+                return {"error": str(e)}
+            return metrics
 
-    return Pipeline([
-        StageSpec("atlas", run_atlas, inputs=lambda d: _mesh_inputs(scan, mesh),
-                  settings=atlas_settings),
-        StageSpec("project", run_project, after=("atlas",),
-                  inputs=lambda d: _project_inputs(scan, mesh), settings=project_settings),
-    ])
+        specs.append(StageSpec("calibrate", run_calibrate,
+                               inputs=lambda d: _group_inputs(scan, "calib"),
+                               settings={"model": "opencv5", "cross_validation": True}))
+
+    if "decode" in names:
+        def run_decode(ctx: StageContext) -> dict:
+            from facegeo.pipeline.decode import decode_products
+
+            metrics, _ = decode_products(scan, ctx.out_dir, **ctx.settings)
+            return metrics
+
+        specs.append(StageSpec("decode", run_decode,
+                               inputs=lambda d: _group_inputs(scan, "structured_light")))
+
+        def run_mesh(ctx: StageContext) -> dict:
+            from facegeo.pipeline.mesh import mesh_products
+
+            metrics, _ = mesh_products(scan, ctx.upstream["decode"], ctx.out_dir, **ctx.settings)
+            return metrics
+
+        specs.append(StageSpec("mesh", run_mesh, after=("decode",),
+                               inputs=lambda d: _common_inputs(scan),
+                               settings={"method": "poisson", "depth": 7, "point_weight": 4.0,
+                                         "trim_quantile": 0.02}))
+
+    if "atlas" in names:
+        from facegeo.pipeline.project import atlas_products, project_products
+
+        mesh_after = ("mesh",) if use_mesh == "reconstructed" else ()
+
+        def mesh_of(ctx: StageContext) -> str:
+            return (str(ctx.upstream["mesh"] / "mesh.ply") if use_mesh == "reconstructed"
+                    else use_mesh)
+
+        def mesh_inputs() -> list[Path]:
+            if use_mesh == "ground_truth":
+                return [scan.ground_truth_path("mesh")]
+            return [] if use_mesh == "reconstructed" else [Path(use_mesh)]
+
+        def without_mesh(ctx: StageContext) -> dict:
+            return {k: v for k, v in ctx.settings.items() if k != "mesh"}
+
+        def run_atlas(ctx: StageContext) -> dict:
+            return atlas_products(scan, ctx.out_dir, mesh=mesh_of(ctx), **without_mesh(ctx))
+
+        def run_project(ctx: StageContext) -> dict:
+            metrics, _ = project_products(scan, ctx.upstream["atlas"], ctx.out_dir,
+                                          mesh=mesh_of(ctx), **without_mesh(ctx))
+            return metrics
+
+        def run_fit(ctx: StageContext) -> dict:
+            from facegeo.pipeline.fit import fit_products
+
+            metrics, _ = fit_products(scan, ctx.upstream["project"], ctx.out_dir,
+                                      atlas_dir=ctx.upstream["atlas"], progress=ctx.progress,
+                                      **ctx.settings)
+            return metrics
+
+        def run_render(ctx: StageContext) -> dict:
+            from facegeo.pipeline.render import render_products
+
+            return render_products(scan, ctx.upstream["atlas"].parent, ctx.out_dir,
+                                   progress=ctx.progress, **ctx.settings)
+
+        first = scan.camera_names[0]
+        views = [f"orbit:{first}:{d:g}" for d in RENDER_ORBITS]
+        fit_settings = dict(FIT_SETTINGS, texels="views", views=views)
+        specs += [
+            StageSpec("atlas", run_atlas, after=mesh_after, inputs=lambda d: mesh_inputs(),
+                      settings={"mesh": use_mesh, "texels_per_mm": 1.0, "size": None, "padding": 2,
+                                "split_faces": 25_000, "repair": False}),
+            StageSpec("project", run_project, after=("atlas",) + mesh_after,
+                      inputs=lambda d: _group_inputs(scan, "olat") + mesh_inputs(),
+                      settings={"mesh": use_mesh, "rig": None, "dtype": "float16", "gt_lights": 32,
+                                "gt_weight_min": 0.3}),
+            StageSpec("fit", run_fit, after=("atlas", "project"),
+                      inputs=lambda d: _common_inputs(scan), settings=fit_settings),
+            StageSpec("render", run_render, after=("atlas", "project", "fit"),
+                      inputs=lambda d: _common_inputs(scan),
+                      settings={"views": views, "env": RENDER_DEFAULT_ENV}),
+        ]
+    if not specs:
+        raise InputError(f"scan {scan.root}: nothing to reconstruct (no [calib], "
+                         "[structured_light] or [olat] frames)")
+    return Pipeline(specs)
 
 
-def run_reconstruct(scan_dir, *, mesh: str = "ground_truth",
+def run_reconstruct(scan_dir, *, mesh: str = "auto",
                     settings: Mapping[str, Mapping[str, Any]] | None = None,
                     from_stage: str | None = None, only: str | None = None,
+                    until: str | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
                     on_stage: Callable[[StageResult], None] | None = None) -> list[StageResult]:
     """Run every stage of ``facegeo reconstruct`` whose products are missing or stale.
@@ -93,6 +227,8 @@ def run_reconstruct(scan_dir, *, mesh: str = "ground_truth",
     from_stage, only : str, optional
         ``--from STAGE`` reruns that stage and every later one; ``--only STAGE`` runs one stage
         (its inputs must be current).
+    until : str, optional
+        Run that stage and what it needs, nothing after it (``facegeo decode SCAN``, ...).
     progress, on_stage : callable, optional
         See :meth:`facegeo.pipeline.cache.Pipeline.run`.
     """
@@ -103,5 +239,5 @@ def run_reconstruct(scan_dir, *, mesh: str = "ground_truth",
     if settings:
         json.dumps(settings)  # fail early on values that cannot enter a cache key
     return reconstruct_pipeline(scan, mesh=mesh).run(scan_dir, settings=settings,
-                                               from_stage=from_stage, only=only,
-                                               progress=progress, on_stage=on_stage)
+                                                     from_stage=from_stage, only=only,
+                                                     until=until, progress=progress, on_stage=on_stage)
