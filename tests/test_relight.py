@@ -54,6 +54,36 @@ def test_fused_float16_kernel_converts_every_half_exactly():
     assert np.array_equal(got[np.isinf(want)], want[np.isinf(want)])
 
 
+@pytest.mark.parametrize("conversion", ["f16c", "bits"])
+def test_both_half_conversions_are_exact_in_every_lane_and_row_of_a_block(conversion):
+    # The kernel itself, each conversion (F16C only where the CPU has it): row r holds float16
+    # bit pattern r (all 65,536: normals, subnormals, ±0, ±inf, NaNs) at light r mod 11 of 11
+    # (so it lands in every SIMD lane and in the vector body and the scalar remainder), zeros
+    # elsewhere; rows run in blocks of three plus a remainder. Channel-0 weights 1: the sum is
+    # that half exactly. Metric: bit-exact against numpy's cast (NaN compared as NaN).
+    pytest.importorskip("numba")
+    if conversion == "f16c" and not R._host_has_f16c():
+        pytest.skip("this CPU has no F16C")
+    kern = R._fused_kernel(conversion)
+    n_l = 11
+    bits = np.arange(65536, dtype=np.uint16)
+    h = np.zeros((bits.size, n_l, 3), np.uint16)
+    h[np.arange(bits.size), np.arange(bits.size) % n_l, 0] = bits
+    h = h.reshape(bits.size, 3 * n_l)
+    w = [np.zeros(3 * n_l, np.float32) for _ in range(3)]
+    for c in range(3):
+        w[c][c::3] = 1.0
+    out = np.empty((bits.size, 3), np.float32)
+    kern(h, w[0], w[1], w[2], out)
+    want = bits.view(np.float16).astype(np.float32)
+    got = out[:, 0]
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    ok = ~np.isnan(want)
+    assert np.array_equal(got[ok], want[ok])
+    fin = np.isfinite(want)  # other channels: 0 · half; NaN when the half is NaN/inf (IEEE)
+    assert np.all(out[fin, 1:] == 0) and np.all(np.isnan(out[~fin, 1:]))
+
+
 @pytest.mark.parametrize("kernel", ["fused", "blas"])
 def test_kernels_agree_and_masked_samples_only_matter_at_lit_lights(kernel):
     if kernel == "fused":

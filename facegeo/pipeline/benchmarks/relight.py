@@ -65,6 +65,7 @@ def bench_throughput(quick: bool) -> list[BenchRow]:
     relight_field(field[:64], w)  # compile the fused kernel (cached on disk) outside the timing
     t16, got = best_of(lambda: relight_field(field, w), repeat=3)
     t_blas, ref = best_of(lambda: relight_field(field, w, kernel="blas"), repeat=3)
+    t_one, _ = best_of(lambda: relight_field(field, w, workers=1), repeat=2)
     err = float(np.max(np.abs(got - ref)) / np.max(np.abs(ref)))
     one_read = field.nbytes / (bw * 1e9)
     rows = [BenchRow(
@@ -73,13 +74,17 @@ def bench_throughput(quick: bool) -> list[BenchRow]:
         error=err, error_unit="max |default − OpenCV/BLAS path| / max",
         ratios={"vs one read at measured bandwidth": one_read / t16,
                 "vs OpenCV F16C + sgemv path": t_blas / t16,
-                "OpenCV F16C + sgemv path vs one read": one_read / t_blas},
+                "OpenCV F16C + sgemv path vs one read": one_read / t_blas,
+                "2 threads vs 1 thread": t_one / t16},
         threads=RELIGHT_THREADS,
         baseline_threads={"vs one read at measured bandwidth": RELIGHT_THREADS,
                           "vs OpenCV F16C + sgemv path": RELIGHT_THREADS,
-                          "OpenCV F16C + sgemv path vs one read": RELIGHT_THREADS},
+                          "OpenCV F16C + sgemv path vs one read": RELIGHT_THREADS,
+                          "2 threads vs 1 thread": 1},
         extra={"field_GB": field.nbytes / 1e9, "seconds": t16, "blas_seconds": t_blas,
-               "kernel": "fused" if R._fused_kernel() else "blas (numba missing)",
+               "kernel": (f"fused ({R.FUSED_CONVERSION}, {R.FUSED_ROWS} rows per pass)"
+                          if R._fused_kernel() else "blas (numba missing)"),
+               "one_thread_seconds": t_one,
                "sgemv_GB_s": bw, "probe_GB": probe / 1e9},
     )]
     # float32 field and the einsum baseline on a slice that fits beside the float16 field
