@@ -32,7 +32,7 @@ from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CHUNK_BYTES", "FUSED_CHUNK_BYTES", "SPARSE_FRACTION", "normalize_weights", "block_weights",
+__all__ = ["CHUNK_BYTES", "FUSED_CHUNK_BYTES", "tint_clothing", "SPARSE_FRACTION", "normalize_weights", "block_weights",
            "relight_field", "relight_frames", "relight_scan_view"]
 
 #: Target size of one float32 chunk of field rows (fits comfortably in the L2/L3 caches).
@@ -397,3 +397,41 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
         return np.zeros((cam.height, cam.width, 3), np.float32)
     return relight_frames(scan.iter_olat(camera, active.tolist()), w, n_l, light_color=color,
                           progress=progress)
+
+
+def tint_clothing(white: Any, black: Any, color: Any) -> np.ndarray:
+    """Change the colour of the subject's clothing (Debevec et al. 2000 §3.3, Fig. 7).
+
+    The indirect light the clothing reflects onto the face is the difference of a capture in
+    white clothing and one in black clothing; tinted by the new clothing's reflectance and added
+    back to the black-clothing capture::
+
+        tinted = black + color ⊙ (white − black)
+
+    Everything is linear in the light, so this applies equally to OLAT frames, reflectance
+    fields ``(P, L, 3)`` or images relit from both fields (relight each, then tint, or tint the
+    fields and relight once: the same result). ``color = (1, 1, 1)`` gives the white capture,
+    ``(0, 0, 0)`` the black one. Deviation: nothing forces ``white − black ≥ 0`` (noise can make
+    it slightly negative); the result is returned as computed, not clipped.
+
+    Parameters
+    ----------
+    white, black : (..., 3) float arrays, same shape
+        Linear radiance captured with white and with black clothing (same lighting and view).
+    color : (3,) float
+        Linear RGB reflectance of the new clothing relative to the white clothing, ≥ 0.
+
+    Returns
+    -------
+    (..., 3) float32
+    """
+    w = as_array(white, "white", finite=False)  # masked (NaN) samples stay masked
+    b = as_array(black, "black", finite=False)
+    if w.shape != b.shape or w.ndim < 1 or w.shape[-1] != 3:
+        raise ShapeError(f"white, black: expected two (..., 3) arrays of the same shape, got "
+                         f"{w.shape} and {b.shape}")
+    c = as_array(color, "color", shape=(3,))
+    if np.any(c < 0):
+        raise InputError(f"color: expected a reflectance ≥ 0 per channel, got {c.tolist()}")
+    out = np.asarray(b, np.float64) + c * (np.asarray(w, np.float64) - np.asarray(b, np.float64))
+    return out.astype(np.float32)

@@ -188,4 +188,42 @@ def bench_compress(quick: bool) -> list[BenchRow]:
                             repeat=1)
         row(f"Haar wavelets (Ng 2003), field target {target:g}", wf, t_fit)
         rows[-1].extra["kept_fraction"] = wf.kept_fraction
+    rows += _ng_lighting_rows(field, envs, refs)
+    return rows
+
+
+def _ng_lighting_rows(field, envs, refs) -> list[BenchRow]:
+    """Ng et al. 2003: exact transport in the non-standard Haar basis, the lighting's K largest
+    coefficients per relight, K from a target error on 512 validation pixels. One thread
+    against the direct fused float16 relight at one thread."""
+    from facegeo.lighting import compress as C
+    from facegeo.lighting.relight import relight_field
+
+    n_theta, n_phi = PAPER_GRID
+    n_p, n_l, _ = field.shape
+    t_fit, wl = best_of(lambda: C.fit_wavelet_lighting(field, n_theta, n_phi), repeat=1)
+    held = np.setdiff1d(np.arange(n_p), wl.sample)  # pixels the budget never saw
+    rows = []
+    for name, w in envs.items():
+        t_direct, _ = best_of(lambda: relight_field(field, w, workers=1), repeat=5)
+        for target in (0.01, 0.003):
+            k, est = wl.budget(w, target)
+            t, got = best_of(lambda: wl.relight(w, terms=k), repeat=5)
+            err = C.relative_rmse(got, refs[name])
+            rows.append(BenchRow(
+                "relight.compress",
+                f"Ng 2003 lighting approximation, {name} map, target {target:g} → K = {k}",
+                n_p / t, "relit px/s", error=err, error_unit=f"relative RMSE ({name} map)",
+                ratios={"speed vs direct float16 relight": t_direct / t,
+                        "bytes read per relight vs float16 field": n_l / k,
+                        "storage vs float16 field": field.nbytes / wl.nbytes},
+                threads=1,
+                baseline_threads={"speed vs direct float16 relight": 1,
+                                  "bytes read per relight vs float16 field": 1,
+                                  "storage vs float16 field": 1},
+                extra={"terms": k, "terms_fraction": k / n_l, "budget_estimate": est,
+                       "rmse_held_out_pixels": C.relative_rmse(got[held], refs[name][held]),
+                       "fit_seconds": t_fit, "seconds": t, "direct_seconds": t_direct,
+                       "bytes": wl.nbytes, "field_px": n_p},
+            ))
     return rows
