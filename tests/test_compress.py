@@ -213,3 +213,11 @@ def test_wavelet_lighting_bad_input(case):
         C.fit_wavelet_lighting(bad, *GRID)
     with pytest.raises(InputError, match="power of two"):
         C.fit_wavelet_lighting(np.zeros((2, 24, 3), np.float32), 6, 4)
+
+
+def test_compiled_nonstandard_haar_equals_numpy():
+    pytest.importorskip("numba")
+    x = np.random.default_rng(4).normal(size=(3, GRID[0] * GRID[1]))
+    a = C.haar2d_nonstandard(x, *GRID)
+    b = C.haar2d_nonstandard(x, *GRID, compiled=True)
+    assert np.max(np.abs(a - b)) <= HAAR_ROUNDTRIP * np.abs(a).max()

@@ -175,3 +175,39 @@ def half_slab_dot(coef, idx, lw, out, f16c):  # pragma: no cover - compiled
                 for i in range(o.size):
                     o[i] += _half(a[i], f16c) * xa
                 k += 1
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def haar_nonstandard_forward(img, levels):  # pragma: no cover - compiled
+    """In-place forward non-standard 2-D Haar transform of ``img`` ``(C, H, W)`` float64.
+
+    ``levels`` ``(n, 4)`` int64 rows ``(h, w, step θ, step φ)`` from
+    :func:`facegeo.lighting.compress._nonstandard_levels`; the compiled twin of
+    :func:`facegeo.lighting.compress.haar2d_nonstandard` for one lighting per relight (the numpy
+    version's per-step overhead dominated a relight of K slabs; tested equal).
+    """
+    r = np.sqrt(0.5)
+    n_c, n_h, n_w = img.shape
+    tmp = np.empty(max(n_h, n_w))
+    for lev in range(levels.shape[0]):
+        h = levels[lev, 0]
+        w = levels[lev, 1]
+        for c in range(n_c):
+            if levels[lev, 2]:
+                for y in range(h):
+                    for i in range(w // 2):
+                        a = img[c, y, 2 * i]
+                        b = img[c, y, 2 * i + 1]
+                        tmp[i] = (a + b) * r
+                        tmp[w // 2 + i] = (a - b) * r
+                    for i in range(w):
+                        img[c, y, i] = tmp[i]
+            if levels[lev, 3]:
+                for x in range(w):
+                    for i in range(h // 2):
+                        a = img[c, 2 * i, x]
+                        b = img[c, 2 * i + 1, x]
+                        tmp[i] = (a + b) * r
+                        tmp[h // 2 + i] = (a - b) * r
+                    for i in range(h):
+                        img[c, i, x] = tmp[i]
