@@ -170,18 +170,20 @@ def test_wavelet_lighting_all_terms_is_eq4_and_k_terms_is_the_truncated_lighting
 
 
 def test_wavelet_lighting_budget_meets_the_target_with_few_terms(case):
-    # Budget from a target error (validation pixels = all 300 here): the relit error with the
-    # chosen K is within the target (plus the float16 slabs' error), one term fewer is not,
-    # and the sun needs ≤ 5 % of the lights' coefficients (Ng et al.'s all-frequency claim).
+    # Budget from a target error (validation pixels = all 300 here, so the estimate is the
+    # error): the relit error with the chosen K is within BUDGET_MARGIN · target (plus the
+    # float16 slabs' error), one term fewer is not, and the sun needs ≤ 5 % of the lights'
+    # coefficients (Ng et al.'s all-frequency claim).
     f, ws = case
     wl = C.fit_wavelet_lighting(f, *GRID, validation_pixels=1000)
     n_l = GRID[0] * GRID[1]
+    aim = C.BUDGET_MARGIN * 0.01
     for name, w in ws.items():
         ref = relight_field(f, w)
         k, est = wl.budget(w, 0.01)
-        assert est <= 0.01
-        assert C.relative_rmse(wl.relight(w, target_error=0.01), ref) <= 0.01 + FLOAT16_SLABS_REL
-        assert C.relative_rmse(wl.relight(w, terms=k - 1), ref) > 0.01 - FLOAT16_SLABS_REL
+        assert est <= aim
+        assert C.relative_rmse(wl.relight(w, target_error=0.01), ref) <= aim + FLOAT16_SLABS_REL
+        assert C.relative_rmse(wl.relight(w, terms=k - 1), ref) > aim - FLOAT16_SLABS_REL
         if name == "sun":
             assert k <= 0.05 * n_l, k
 

@@ -205,10 +205,10 @@ def _ng_lighting_rows(field, envs, refs) -> list[BenchRow]:
     held = np.setdiff1d(np.arange(n_p), wl.sample)  # pixels the budget never saw
     rows = []
     for name, w in envs.items():
-        t_direct, _ = best_of(lambda: relight_field(field, w, workers=1), repeat=5)
+        t_direct, _ = best_of(lambda w=w: relight_field(field, w, workers=1), repeat=5)
         for target in (0.01, 0.003):
-            t_budget, (k, est) = best_of(lambda: wl.budget(w, target), repeat=3)
-            t, got = best_of(lambda: wl.relight(w, terms=k), repeat=5)
+            t_budget, (k, est) = best_of(lambda w=w, t=target: wl.budget(w, t), repeat=3)
+            t, got = best_of(lambda w=w, k=k: wl.relight(w, terms=k), repeat=5)
             err = C.relative_rmse(got, refs[name])
             rows.append(BenchRow(
                 "relight.compress",
