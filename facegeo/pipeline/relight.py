@@ -9,8 +9,12 @@ Two views:
   every camera's field relit and blended per texel by the camera weights, written as the
   atlas image (:func:`relight_texture`).
 
-The CLI (``facegeo relight SCAN --env FILE [--rotate DEG] [--view CAMERA|texture]``) calls
-:func:`run_relight`; progress goes through the ``progress`` callback, the library only logs.
+:func:`relight_products` does the work and returns ``(metrics, settings)`` without writing a
+JSON file (the cached stage of ``facegeo reconstruct``); :func:`run_relight` wraps it for the CLI
+(``facegeo relight SCAN --env FILE|NAME [--rotate DEG] [--view CAMERA|texture]``) and writes the
+metrics beside the images. ``env`` may name a shipped procedural map (``"sky"``, ``"studio"``,
+:func:`facegeo.lighting.envmap.shipped_map`). Progress goes through the ``progress`` callback, the
+library only logs.
 """
 
 from __future__ import annotations
