@@ -127,3 +127,99 @@ def test_low_rank_truncation_equals_a_lower_rank_fit(case):
     a = full.truncated(16).relight(ws["smooth"])
     b = C.fit_low_rank(f, rank=16).relight(ws["smooth"])
     assert C.relative_rmse(a, b) <= LOSSLESS_REL
+
+
+# --------------------------------------------------------------------------- Ng et al. 2003
+
+#: Relighting from all L coefficient slabs vs direct Eq. (4) on the float32 field: relative
+#: RMSE; the slabs are float16 (11 significant bits), so ≈ 2^-11 / √(terms summed) and below.
+FLOAT16_SLABS_REL = 1e-3
+
+
+def test_nonstandard_haar_round_trip_parseval_and_point_light_sparsity():
+    x = np.random.default_rng(3).normal(size=(4, GRID[0] * GRID[1]))
+    c = C.haar2d_nonstandard(x, *GRID)
+    back = C.haar2d_nonstandard(c, *GRID, inverse=True)
+    assert np.max(np.abs(back - x)) <= HAAR_ROUNDTRIP * np.abs(x).max()
+    assert np.allclose((c ** 2).sum(1), (x ** 2).sum(1), rtol=1e-12)
+    # a point light: 3 details per 2-D level (4 levels on 32 × 16), 1 θ-only detail, 1 average
+    delta = np.zeros(GRID[0] * GRID[1])
+    delta[GRID[0] * 5 + 11] = 1.0
+    nnz = np.count_nonzero(np.abs(C.haar2d_nonstandard(delta, *GRID)) > 1e-12)
+    assert nnz == 3 * 4 + 2 < np.count_nonzero(np.abs(C.haar2d(delta, *GRID)) > 1e-12)
+
+
+def test_wavelet_lighting_all_terms_is_eq4_and_k_terms_is_the_truncated_lighting(case):
+    # All L terms: direct Eq. (4) up to the float16 slabs. K terms: exactly relighting with
+    # the lighting whose non-standard Haar expansion keeps its K largest coefficients (the
+    # non-linear approximation), computed independently by inverse transform + direct Eq. (4).
+    f, ws = case
+    wl = C.fit_wavelet_lighting(f, *GRID)
+    for w in ws.values():
+        assert C.relative_rmse(wl.relight(w), relight_field(f, w)) <= FLOAT16_SLABS_REL
+    w = ws["sun"]
+    wc = C.haar2d_nonstandard(w.T, *GRID).T
+    k = 20
+    keep = np.argsort(-np.abs(wc).sum(1), kind="stable")[:k]
+    trunc = np.zeros_like(wc)
+    trunc[keep] = wc[keep]
+    w_k = C.haar2d_nonstandard(trunc.T, *GRID, inverse=True).T
+    ref = relight_field(f, w_k)
+    assert C.relative_rmse(wl.relight(w, terms=k), ref) <= FLOAT16_SLABS_REL
+    assert C.relative_rmse(ref, relight_field(f, w)) > 10 * FLOAT16_SLABS_REL  # K matters
+
+
+def test_wavelet_lighting_budget_meets_the_target_with_few_terms(case):
+    # Budget from a target error (validation pixels = all 300 here, so the estimate is the
+    # error): the relit error with the chosen K is within BUDGET_MARGIN · target (plus the
+    # float16 slabs' error), one term fewer is not, and the sun needs ≤ 5 % of the lights'
+    # coefficients (Ng et al.'s all-frequency claim).
+    f, ws = case
+    wl = C.fit_wavelet_lighting(f, *GRID, validation_pixels=1000)
+    n_l = GRID[0] * GRID[1]
+    aim = C.BUDGET_MARGIN * 0.01
+    for name, w in ws.items():
+        ref = relight_field(f, w)
+        k, est = wl.budget(w, 0.01)
+        assert est <= aim
+        assert C.relative_rmse(wl.relight(w, target_error=0.01), ref) <= aim + FLOAT16_SLABS_REL
+        assert C.relative_rmse(wl.relight(w, terms=k - 1), ref) > aim - FLOAT16_SLABS_REL
+        if name == "sun":
+            assert k <= 0.05 * n_l, k
+
+
+def test_wavelet_lighting_numpy_fallback_equals_the_kernel(case, monkeypatch):
+    pytest.importorskip("numba")
+    import facegeo.lighting.relight as RL
+
+    f, ws = case
+    wl = C.fit_wavelet_lighting(f, *GRID)
+    a = wl.relight(ws["smooth"], terms=37)
+    monkeypatch.setattr(RL, "_fused_kernel", lambda conversion=None: False)
+    b = wl.relight(ws["smooth"], terms=37)
+    assert C.relative_rmse(a, b) <= 1e-6  # float32 summation order only
+
+
+def test_wavelet_lighting_bad_input(case):
+    f, ws = case
+    wl = C.fit_wavelet_lighting(f, *GRID)
+    with pytest.raises(InputError, match="terms"):
+        wl.relight(ws["sun"], terms=0)
+    with pytest.raises(InputError, match="not both"):
+        wl.relight(ws["sun"], terms=3, target_error=0.01)
+    with pytest.raises(ShapeError, match="weights"):
+        wl.relight(np.ones((7, 3)))
+    bad = f.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(InputError, match="non-finite"):
+        C.fit_wavelet_lighting(bad, *GRID)
+    with pytest.raises(InputError, match="power of two"):
+        C.fit_wavelet_lighting(np.zeros((2, 24, 3), np.float32), 6, 4)
+
+
+def test_compiled_nonstandard_haar_equals_numpy():
+    pytest.importorskip("numba")
+    x = np.random.default_rng(4).normal(size=(3, GRID[0] * GRID[1]))
+    a = C.haar2d_nonstandard(x, *GRID)
+    b = C.haar2d_nonstandard(x, *GRID, compiled=True)
+    assert np.max(np.abs(a - b)) <= HAAR_ROUNDTRIP * np.abs(a).max()

@@ -226,3 +226,56 @@ def test_read_envmap_files(tmp_path):
         E.read_envmap(p8)
     env8 = E.read_envmap(p8, response="srgb")
     assert env8.image.dtype == np.float32 and env8.image.max() <= 1.0
+
+
+# --------------------------------------------------------------------------- shipped maps
+
+#: Shipped half-float file vs the procedural map it was written from: max |Δ| / max, per map
+#: (float16 keeps 11 significant bits: ≤ 2^-11 relative per pixel).
+SHIPPED_HALF_REL = 2.0 ** -11
+
+
+@pytest.mark.parametrize("name", E.SHIPPED_MAPS)
+def test_shipped_map_files_are_the_documented_procedural_maps(name):
+    # The files in facegeo/data/envmaps must be what procedural_map(name) produces (stored as
+    # half floats): a hand-edited or stale file fails here.
+    path = E.shipped_map_path(name)
+    assert path.is_file(), f"{path} missing: run facegeo.lighting.envmap.write_shipped_maps()"
+    assert path.stat().st_size < 64 << 10  # small: the package carries them
+    got = E.shipped_map(name)
+    want = E.procedural_map(name)
+    assert got.image.shape == want.image.shape == (E.SHIPPED_HEIGHT, 2 * E.SHIPPED_HEIGHT, 3)
+    assert np.all(np.abs(got.image - want.image) <= SHIPPED_HALF_REL * np.abs(want.image) + 1e-7)
+
+
+def test_sky_sun_is_where_documented_and_carries_most_energy():
+    # Orientation of the sky's sun: the brightest pixel is the one the documented direction
+    # maps to (lat-long convention of this module), and the light grid cell nearest the sun
+    # direction gets the largest Eq. (4) weight. Its energy (pixels brighter than 100) is
+    # > 40 % of the map's integral: a sun-like, all-frequency map.
+    from facegeo.frames import nearest_light_index
+
+    env = E.procedural_map("sky")
+    sun = np.asarray(E.SKY_SUN["direction"], float)
+    sun /= np.linalg.norm(sun)
+    q = E.directions_to_pixels("latlong", sun[None], env.height, env.width)[0]
+    lum = env.image.sum(-1)
+    iy, ix = np.unravel_index(np.argmax(lum), lum.shape)
+    assert abs(iy - q[1]) <= 1.0 and abs(ix - q[0]) <= 1.0  # pixel centres are integers
+    om = E.pixel_solid_angles("latlong", env.height, env.width)
+    assert (om * lum * (lum > 300)).sum() > 0.4 * (om * lum).sum()
+    w = E.light_stage_weights(env, 32, 16, solid_angle="exact")
+    assert np.argmax(w.sum(1)) == nearest_light_index(sun[None], 32, 16)[0]
+
+
+def test_studio_key_light_is_front_left_and_above():
+    # The key light (brightest, warm) lies toward +X (the subject's left), +Y and +Z: the
+    # Eq. (4) weights of lights in that octant carry more than those of the mirrored one.
+    env = E.procedural_map("studio")
+    d = light_directions(32, 16)
+    w = E.light_stage_weights(env, 32, 16, solid_angle="exact").sum(1)
+    key = (d[:, 0] > 0) & (d[:, 1] > 0) & (d[:, 2] > 0)
+    mirrored = (d[:, 0] < 0) & (d[:, 1] > 0) & (d[:, 2] > 0)
+    assert w[key].sum() > 2 * w[mirrored].sum()
+    with pytest.raises(InputError, match="name"):
+        E.procedural_map("moon")

@@ -54,6 +54,36 @@ def test_fused_float16_kernel_converts_every_half_exactly():
     assert np.array_equal(got[np.isinf(want)], want[np.isinf(want)])
 
 
+@pytest.mark.parametrize("conversion", ["f16c", "bits"])
+def test_both_half_conversions_are_exact_in_every_lane_and_row_of_a_block(conversion):
+    # The kernel itself, each conversion (F16C only where the CPU has it): row r holds float16
+    # bit pattern r (all 65,536: normals, subnormals, ±0, ±inf, NaNs) at light r mod 11 of 11
+    # (so it lands in every SIMD lane and in the vector body and the scalar remainder), zeros
+    # elsewhere; rows run in blocks of three plus a remainder. Channel-0 weights 1: the sum is
+    # that half exactly. Metric: bit-exact against numpy's cast (NaN compared as NaN).
+    pytest.importorskip("numba")
+    if conversion == "f16c" and not R._host_has_f16c():
+        pytest.skip("this CPU has no F16C")
+    kern = R._fused_kernel(conversion)
+    n_l = 11
+    bits = np.arange(65536, dtype=np.uint16)
+    h = np.zeros((bits.size, n_l, 3), np.uint16)
+    h[np.arange(bits.size), np.arange(bits.size) % n_l, 0] = bits
+    h = h.reshape(bits.size, 3 * n_l)
+    w = [np.zeros(3 * n_l, np.float32) for _ in range(3)]
+    for c in range(3):
+        w[c][c::3] = 1.0
+    out = np.empty((bits.size, 3), np.float32)
+    kern(h, w[0], w[1], w[2], out)
+    want = bits.view(np.float16).astype(np.float32)
+    got = out[:, 0]
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    ok = ~np.isnan(want)
+    assert np.array_equal(got[ok], want[ok])
+    fin = np.isfinite(want)  # other channels: 0 · half; NaN when the half is NaN/inf (IEEE)
+    assert np.all(out[fin, 1:] == 0) and np.all(np.isnan(out[~fin, 1:]))
+
+
 @pytest.mark.parametrize("kernel", ["fused", "blas"])
 def test_kernels_agree_and_masked_samples_only_matter_at_lit_lights(kernel):
     if kernel == "fused":
@@ -216,6 +246,56 @@ def test_run_relight_writes_exr_png_and_metrics(tiny_scan, tmp_path):
 
 
 @pytest.mark.slow
+def test_relight_products_camera_view_metrics_files_and_settings(tiny_scan, tmp_path):
+    # The stage function for 'facegeo reconstruct': the shipped sky map on a camera view.
+    # Relit-vs-reference: the generator's render under the same Eq. (4) weights equals the
+    # relit OLAT frames to float32 precision (relative RMSE metric, CONSISTENCY_REL); the EXR
+    # holds exactly the relit image; energy Σw/∫L is the paper δA's midpoint excess on the
+    # tiny 16 × 8 grid (h/sin h − 1 = 0.65 %, the same in every channel); no JSON of its own.
+    from facegeo.capture import imageio
+    from facegeo.pipeline.relight import relight_products
+
+    scan, _ = tiny_scan
+    cam = scan.camera_names[1]
+    m, settings = relight_products(scan, None, tmp_path / "d", env="sky", rotate=-40, view=cam)
+    assert settings == {"env": "sky", "rotate": -40.0, "view": cam, "projection": "latlong",
+                        "solid_angle": "paper", "reference": True}
+    ref = m["reference"]
+    assert ref["computed"] and ref["pixels"] > 0
+    assert ref["relative_rmse"] <= CONSISTENCY_REL and ref["max_abs_over_max"] <= CONSISTENCY_REL
+    lights = scan.rig.lights
+    w = E.light_stage_weights(E.shipped_map("sky").rotated(np.radians(-40)), lights.n_theta,
+                              lights.n_phi)
+    exr = imageio.read_image(m["files"]["exr"])
+    assert np.array_equal(exr, R.relight_scan_view(scan, cam, w, normalize_color=True))
+    h = np.pi / (2 * lights.n_phi)
+    assert np.allclose(m["energy_ratio"], h / np.sin(h), rtol=1e-4)
+    assert sorted(p.suffix for p in (tmp_path / "d").iterdir()) == [".exr", ".png"]
+    assert "seconds" in m and m["seconds"]["reference"] >= 0
+    m2, _ = relight_products(scan, None, tmp_path / "e", env="sky", view=cam, reference=False)
+    assert m2["reference"] == {"computed": False, "reason": "reference=False"}
+    with pytest.raises(InputError, match="solid_angle"):
+        relight_products(scan, None, tmp_path / "f", env="sky", view=cam, solid_angle="midpoint")
+
+
+@pytest.mark.slow
+def test_relight_products_reference_error_detects_a_wrong_image(tiny_scan, tmp_path,
+                                                               monkeypatch):
+    # The reference metric must be able to fail: relighting with weights that forgot δA
+    # (the bug Eq. 4's δA guards against) is far from the generator's render.
+    import facegeo.lighting.relight as RL
+    from facegeo.pipeline.relight import relight_products
+
+    scan, _ = tiny_scan
+    real = RL.relight_scan_view
+    dA = light_solid_angles(scan.rig.lights.n_theta, scan.rig.lights.n_phi)
+    monkeypatch.setattr(RL, "relight_scan_view",
+                        lambda sc, cam, w, **kw: real(sc, cam, w / dA[:, None], **kw))
+    m, _ = relight_products(scan, None, tmp_path, env="studio", view=scan.camera_names[0])
+    assert m["reference"]["relative_rmse"] > 0.5
+
+
+@pytest.mark.slow
 def test_run_relight_bad_arguments(tiny_scan, tmp_path):
     from facegeo.capture import imageio
     from facegeo.pipeline.relight import run_relight
@@ -333,3 +413,52 @@ def test_texture_relight_without_a_projected_field_says_what_to_run(tiny_scan, t
 
     with pytest.raises(InputError, match="facegeo project"):
         relight_texture(tmp_path, np.ones((tiny_scan[0].n_lights, 3)))
+
+
+@pytest.mark.slow
+def test_relight_products_texture_view_reads_the_stage_folders(projected, tmp_path):
+    # relight_products with the 'project' stage folder (atlas found beside it) writes the same
+    # atlas image as run_relight on the parent folder (bit-exact), and needs project_dir.
+    from facegeo.capture import imageio
+    from facegeo.pipeline.relight import relight_products, run_relight
+
+    scan, out = projected
+    m, settings = relight_products(scan, out / "project", tmp_path / "a", env="studio",
+                                   view="texture")
+    assert settings["view"] == "texture" and not m["reference"]["computed"]
+    assert m["measured_texels"] > 0
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == [
+        "studio_rot0_texture.exr", "studio_rot0_texture.png", "studio_rot0_texture_measured.png"]
+    r = run_relight(scan.root, "studio", view="texture", field_dir=out, out_dir=tmp_path / "b")
+    assert np.array_equal(imageio.read_image(m["files"]["exr"]),
+                          imageio.read_image(r["files"]["exr"]))
+    with pytest.raises(InputError, match="project_dir"):
+        relight_products(scan, None, tmp_path / "c", env="studio", view="texture")
+
+
+# --------------------------------------------------------------------------- clothing colour
+
+
+def test_tint_clothing_adds_tinted_indirect_light_and_commutes_with_relighting():
+    # Paper Fig. 7: black + c ⊙ (white − black). With white = black + indirect, the result is
+    # black + c ⊙ indirect (max |Δ| relative, GEMM_REL); c = 1 and 0 give the two captures;
+    # tinting two fields then relighting equals relighting each then tinting (linearity).
+    rng = np.random.default_rng(11)
+    black = rng.random((200, 24, 3)).astype(np.float32)
+    indirect = 0.3 * rng.random((200, 24, 3)).astype(np.float32)
+    white = black + indirect
+    c = np.array([0.1, 0.8, 0.2])
+    got = R.tint_clothing(white, black, c)
+    assert got.dtype == np.float32
+    want = black.astype(np.float64) + c * indirect
+    assert np.max(np.abs(got - want)) <= GEMM_REL * np.max(want)
+    assert np.allclose(R.tint_clothing(white, black, np.ones(3)), white, rtol=1e-6)
+    assert np.array_equal(R.tint_clothing(white, black, np.zeros(3)), black)
+    w = rng.random((24, 3))
+    a = R.relight_field(R.tint_clothing(white, black, c), w)
+    b = R.tint_clothing(R.relight_field(white, w), R.relight_field(black, w), c)
+    assert np.max(np.abs(a - b)) <= GEMM_REL * np.max(np.abs(a))
+    with pytest.raises(ShapeError, match="same shape"):
+        R.tint_clothing(white, black[:10], c)
+    with pytest.raises(InputError, match="color"):
+        R.tint_clothing(white, black, [0.5, -0.1, 0.2])

@@ -42,6 +42,7 @@ __all__ = [
     "PROJECTIONS", "NEGATIVE_CLIP_TOLERANCE", "EnvironmentMap", "read_envmap", "axis_lobe_map",
     "analytic_map", "pixel_directions", "pixel_solid_angles", "directions_to_pixels",
     "rotation_y", "light_stage_radiance", "light_stage_weights", "direction_weights",
+    "SHIPPED_MAPS", "procedural_map", "shipped_map", "shipped_map_path", "write_shipped_maps",
 ]
 
 #: The supported projections.
@@ -510,3 +511,127 @@ def direction_weights(env: EnvironmentMap, directions: Any, *, supersample: int 
     if not has.all():
         mean[~has] = env.radiance(v[~has])
     return mean * areas[:, None], areas
+
+
+# --------------------------------------------------------------------------- shipped maps
+
+#: Names of the procedural environment maps shipped with facegeo (``facegeo/data/envmaps``).
+SHIPPED_MAPS = ("sky", "studio")
+
+#: Height of the shipped lat-long maps (width 2×); small: the light stage's densest preset
+#: grid (64 × 32) samples cells of 5.6°, the shipped maps' pixels are 2.8°.
+SHIPPED_HEIGHT = 64
+
+#: The sky's sun: direction (world frame: up 35°, toward +X and +Z, i.e. front-left of a
+#: subject looking along +Z), angular radius (radians; ≈ 7× the real sun's, so a 64-pixel map
+#: and the light grid resolve it) and radiance.
+SKY_SUN = {"direction": (0.5, 0.5736, 0.6494), "radius": math.radians(2.0),
+           "radiance": (1400.0, 1300.0, 1150.0)}
+
+#: The studio's three rectangular area lights: centre direction, half-extents (tangent of the
+#: half-angle along the light's horizontal and vertical axes) and radiance. Key: a large
+#: warm softbox front-left and above; fill: a dim cool one front-right, low; rim: behind and
+#: above on the right.
+STUDIO_LIGHTS = (
+    {"name": "key", "direction": (0.55, 0.42, 0.72), "half": (0.30, 0.22),
+     "radiance": (9.0, 8.4, 7.5)},
+    {"name": "fill", "direction": (-0.70, 0.10, 0.70), "half": (0.25, 0.25),
+     "radiance": (1.6, 1.8, 2.1)},
+    {"name": "rim", "direction": (-0.45, 0.55, -0.70), "half": (0.12, 0.35),
+     "radiance": (7.0, 7.0, 7.0)},
+)
+
+
+def _sky(v: np.ndarray) -> np.ndarray:
+    """Clear sky with a sun over a grey-brown ground (world directions ``(..., 3)``)."""
+    y = v[..., 1]
+    up = np.clip(y, 0.0, 1.0)[..., None]
+    horizon = np.array([0.90, 0.92, 0.95])
+    zenith = np.array([0.18, 0.32, 0.75])
+    sky = horizon + (zenith - horizon) * np.sqrt(up)
+    ground = np.array([0.22, 0.19, 0.15])
+    out = np.where((y >= 0.0)[..., None], sky, ground)
+    sun = np.asarray(SKY_SUN["direction"], float)
+    sun = sun / np.linalg.norm(sun)
+    in_sun = (v @ sun) >= math.cos(SKY_SUN["radius"])
+    return np.where(in_sun[..., None], np.asarray(SKY_SUN["radiance"]), out)
+
+
+def _studio(v: np.ndarray) -> np.ndarray:
+    """Dark studio (radiance 0.02) with three rectangular area lights (:data:`STUDIO_LIGHTS`)."""
+    out = np.full(v.shape[:-1] + (3,), 0.02)
+    up = np.array([0.0, 1.0, 0.0])
+    for light in STUDIO_LIGHTS:
+        c = np.asarray(light["direction"], float)
+        c = c / np.linalg.norm(c)
+        t1 = np.cross(up, c)
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(c, t1)
+        dc = v @ c
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x = (v @ t1) / dc
+            yy = (v @ t2) / dc
+        hx, hy = light["half"]
+        inside = (dc > 0) & (np.abs(x) <= hx) & (np.abs(yy) <= hy)
+        out = np.where(inside[..., None], np.asarray(light["radiance"]), out)
+    return out
+
+
+_PROCEDURAL = {"sky": _sky, "studio": _studio}
+
+
+def procedural_map(name: str, height: int = SHIPPED_HEIGHT) -> EnvironmentMap:
+    """One of the procedural environment maps shipped with facegeo, rasterised (lat-long).
+
+    * ``"sky"``: a clear sky (horizon ``(0.90, 0.92, 0.95)`` → zenith ``(0.18, 0.32, 0.75)``,
+      blended by ``√y``), a ground of radiance ``(0.22, 0.19, 0.15)`` below the horizon and a
+      sun disc (:data:`SKY_SUN`) carrying ≈ 50 % of the map's energy — a sun-like, all-frequency
+      environment;
+    * ``"studio"``: a dark room (0.02) with three rectangular area lights
+      (:data:`STUDIO_LIGHTS`: key, fill, rim) — hard-edged, medium-frequency lighting.
+
+    Every pixel is the solid-angle-weighted mean over 4 × 4 sub-pixels (:func:`analytic_map`).
+    The shipped files ``facegeo/data/envmaps/<name>.exr`` are this function's output at
+    :data:`SHIPPED_HEIGHT` stored as half floats (``tests/test_envmap.py`` checks they match).
+
+    Parameters
+    ----------
+    name : {"sky", "studio"}
+    height : int
+        Rows of the lat-long map (width ``2 · height``).
+    """
+    check_choice(name, "name", SHIPPED_MAPS)
+    env = analytic_map(_PROCEDURAL[name], int(height))
+    return EnvironmentMap(env.image, "latlong", 0.0, f"<procedural {name}>")
+
+
+def shipped_map_path(name: str) -> Path:
+    """Path of the shipped map file ``facegeo/data/envmaps/<name>.exr`` (may be missing in a
+    source tree that never wrote it; :func:`shipped_map` then rasterises it)."""
+    check_choice(name, "name", SHIPPED_MAPS)
+    return Path(__file__).resolve().parent.parent / "data" / "envmaps" / f"{name}.exr"
+
+
+def shipped_map(name: str) -> EnvironmentMap:
+    """A shipped procedural environment map (lat-long, :data:`SHIPPED_HEIGHT` rows): read from
+    the package's ``data/envmaps/<name>.exr``, or rasterised by :func:`procedural_map` when the
+    file is absent."""
+    path = shipped_map_path(name)
+    if path.is_file():
+        env = read_envmap(path, "latlong")
+        return EnvironmentMap(env.image, "latlong", 0.0, str(path))
+    log.info("%s missing: rasterising the procedural map %r", path, name)
+    return procedural_map(name)
+
+
+def write_shipped_maps(folder: str | os.PathLike | None = None) -> list[Path]:
+    """Write every shipped map as a half-float EXR (``folder`` default: the package's
+    ``data/envmaps``). How the files in the package were made."""
+    from facegeo.capture import imageio
+
+    out = []
+    for name in SHIPPED_MAPS:
+        path = shipped_map_path(name) if folder is None else Path(folder) / f"{name}.exr"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        out.append(imageio.write_image(path, procedural_map(name).image, half=True))
+    return out

@@ -9,8 +9,12 @@ Two views:
   every camera's field relit and blended per texel by the camera weights, written as the
   atlas image (:func:`relight_texture`).
 
-The CLI (``facegeo relight SCAN --env FILE [--rotate DEG] [--view CAMERA|texture]``) calls
-:func:`run_relight`; progress goes through the ``progress`` callback, the library only logs.
+:func:`relight_products` does the work and returns ``(metrics, settings)`` without writing a
+JSON file (the cached stage of ``facegeo reconstruct``); :func:`run_relight` wraps it for the CLI
+(``facegeo relight SCAN --env FILE|NAME [--rotate DEG] [--view CAMERA|texture]``) and writes the
+metrics beside the images. ``env`` may name a shipped procedural map (``"sky"``, ``"studio"``,
+:func:`facegeo.lighting.envmap.shipped_map`). Progress goes through the ``progress`` callback, the
+library only logs.
 """
 
 from __future__ import annotations
@@ -28,11 +32,11 @@ from typing import Any
 import numpy as np
 
 from facegeo.errors import InputError
-from facegeo.checks import fmt_value
+from facegeo.checks import check_choice, fmt_value
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_relight", "relight_texture", "tone_map"]
+__all__ = ["run_relight", "relight_products", "relight_texture", "resolve_env", "tone_map"]
 
 #: Tone mapping: the 99.5th percentile of luminance maps to this display value before sRGB.
 TONE_MAP_WHITE = 0.9
@@ -56,19 +60,22 @@ def _safe_stem(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "env"
 
 
-def _project_cameras(field_dir: Path) -> list[Path]:
-    """The camera folders of ``field_dir/project`` that hold a projected field, sorted."""
-    proj = field_dir / "project"
-    cams = sorted(p for p in proj.glob("*") if (p / "R.npy").is_file()) if proj.is_dir() else []
-    if not cams or not (field_dir / "atlas" / "texels.npz").is_file():
-        raise InputError(f"{field_dir}: relighting in texture space needs the texture atlas "
-                         f"(atlas/texels.npz) and the surface reflectance field "
-                         f"(project/<camera>/R.npy); run 'facegeo project SCAN' first")
+def _project_cameras(project_dir: Path, texels_path: Path) -> list[Path]:
+    """The camera folders of ``project_dir`` that hold a projected field, sorted."""
+    cams = (sorted(p for p in project_dir.glob("*") if (p / "R.npy").is_file())
+            if project_dir.is_dir() else [])
+    if not cams or not texels_path.is_file():
+        raise InputError(f"{project_dir.parent}: relighting in texture space needs the texture "
+                         f"atlas ({texels_path}) and the surface reflectance field "
+                         f"({project_dir}/<camera>/R.npy); run 'facegeo project SCAN' first")
     return cams
 
 
-def relight_texture(field_dir: str | os.PathLike, weights: Any, *, light_color: Any = None,
-                    progress: Callable[[int, int], None] | None = None
+def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
+                    light_color: Any = None,
+                    progress: Callable[[int, int], None] | None = None,
+                    project_dir: str | os.PathLike | None = None,
+                    atlas_dir: str | os.PathLike | None = None,
                     ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Relight the surface reflectance field in texture space (Eq. 4 on every camera's field,
     blended per texel by the camera weights).
@@ -86,7 +93,7 @@ def relight_texture(field_dir: str | os.PathLike, weights: Any, *, light_color: 
 
     Parameters
     ----------
-    field_dir : path
+    field_dir : path or None
         Folder holding ``atlas/texels.npz`` and ``project/<camera>/`` (``SCAN/out``).
     weights : (L, 3) float
         Eq. (4) weights (δA included), L the scan's lights.
@@ -95,6 +102,9 @@ def relight_texture(field_dir: str | os.PathLike, weights: Any, *, light_color: 
         :func:`facegeo.lighting.relight.relight_field`).
     progress : callable(done, total), optional
         Called after each camera.
+    project_dir, atlas_dir : path, optional
+        The ``project`` and ``atlas`` stage folders when they are not ``field_dir/project``
+        and ``field_dir/atlas`` (the cached stages of ``facegeo reconstruct``).
 
     Returns
     -------
@@ -108,9 +118,9 @@ def relight_texture(field_dir: str | os.PathLike, weights: Any, *, light_color: 
     from facegeo.surface.atlas import Texels
     from facegeo.surface.reflectance import open_field
 
-    field_dir = Path(field_dir)
-    cams = _project_cameras(field_dir)
-    n_t = len(Texels.load(field_dir / "atlas" / "texels.npz"))
+    proj, texels_path = _texture_dirs(field_dir, project_dir, atlas_dir)
+    cams = _project_cameras(proj, texels_path)
+    n_t = len(Texels.load(texels_path))
     acc = np.zeros((n_t, 3))
     wsum = np.zeros((n_t, 3))
     for k, cam in enumerate(cams):
@@ -136,10 +146,203 @@ def relight_texture(field_dir: str | os.PathLike, weights: Any, *, light_color: 
     return out, wsum, [c.name for c in cams]
 
 
+def _texture_dirs(field_dir, project_dir, atlas_dir) -> tuple[Path, Path]:
+    """``(project folder, texels.npz path)`` from ``field_dir`` or the explicit folders."""
+    if field_dir is None and (project_dir is None or atlas_dir is None):
+        raise InputError("relight_texture: give field_dir, or both project_dir and atlas_dir")
+    proj = Path(project_dir) if project_dir is not None else Path(field_dir) / "project"
+    atlas = Path(atlas_dir) if atlas_dir is not None else Path(field_dir) / "atlas"
+    return proj, atlas / "texels.npz"
+
+
+def resolve_env(env: str | os.PathLike, projection: str = "latlong", *, rotate_deg: float = 0.0):
+    """An :class:`~facegeo.lighting.envmap.EnvironmentMap` from a file, or a shipped map's name.
+
+    ``env`` is an existing ``.exr``/``.hdr`` path (read with ``projection``), or the name of a
+    procedural map shipped with facegeo (:data:`facegeo.lighting.envmap.SHIPPED_MAPS`:
+    ``"sky"``, ``"studio"``; lat-long). A file of that name in the working folder wins.
+    """
+    from facegeo.lighting import envmap as E
+
+    if not math.isfinite(float(rotate_deg)):
+        raise InputError(f"rotate: expected a finite angle in degrees, got {fmt_value(rotate_deg)}")
+    if not Path(env).exists() and str(env) in E.SHIPPED_MAPS:
+        return E.shipped_map(str(env)).rotated(math.radians(float(rotate_deg)))
+    return E.read_envmap(env, projection, rotate_deg=rotate_deg)
+
+
+def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os.PathLike, *,
+                     env: str | os.PathLike, rotate: float = 0.0, view: str = "texture",
+                     atlas_dir: str | os.PathLike | None = None, projection: str = "latlong",
+                     solid_angle: str = "paper", reference: bool = True,
+                     progress: Callable[[str, int, int], None] | None = None
+                     ) -> tuple[dict, dict]:
+    """Write the ``relight`` products of ``scan`` into ``dest``: the relit image as EXR and a
+    tone-mapped PNG (Debevec et al. 2000 §3.3, Eq. 4).
+
+    The work of :func:`run_relight` without its JSON file, for the cached stage of
+    ``facegeo reconstruct`` (the stage cache gathers the returned metrics).
+
+    Parameters
+    ----------
+    scan : facegeo.capture.scan.Scan
+        The loaded scan.
+    project_dir : path or None
+        The ``project`` stage's folder (``<camera>/R.npy`` ``(T_c, L, 3)`` float16,
+        ``texel_index.npy``, ``weight.npy``); needed for ``view="texture"`` only.
+    dest : path
+        Output folder (created).
+    env : path or str
+        Environment map file, or a shipped map's name (``"sky"``, ``"studio"``; see
+        :func:`resolve_env`).
+    rotate : float, degrees
+        Rotation of the environment about +Y (right-hand rule: +Z turns toward +X).
+    view : str
+        ``"texture"``: the texture atlas relit from the projected field
+        (:func:`relight_texture`); or a camera name: that camera's OLAT frames, reading only lit
+        lights.
+    atlas_dir : path, optional
+        The ``atlas`` stage's folder (``texels.npz``); default ``project_dir/../atlas``.
+    projection : {"latlong", "mirrorball", "angular"}
+        Of an environment file.
+    solid_angle : {"paper", "exact"}
+        δA rule of the light-basis projection (:func:`facegeo.lighting.envmap.light_stage_weights`).
+    reference : bool
+        On a synthetic scan with ground truth and a camera view: render the generator's image
+        under the same weights (:meth:`facegeo.synth.render.ReferenceRenderer.render_lights`, one
+        shading per lit light) and report the relit image's error against it.
+    progress : callable(stage, done, total), optional
+
+    Returns
+    -------
+    metrics : dict
+        ``files`` (``exr``, ``png``; ``measured`` for the texture view), ``energy_ratio``
+        (``Σ_l w_l / ∫ L dω`` per channel: the light-basis projection's energy check, 1 up to the
+        δA rule), ``active_lights``, ``mean_radiance``, ``reference`` (relative RMSE and max
+        error of the relit image against the generator's render, when computed, else the reason
+        it was not), ``seconds``.
+    settings : dict
+        The settings that determine the products (for the stage cache key).
+    """
+    from facegeo.capture import imageio
+    from facegeo.lighting import envmap as E
+    from facegeo.lighting.relight import relight_scan_view
+
+    t0 = time.perf_counter()
+    check_choice(solid_angle, "solid_angle", ("paper", "exact"))
+    names = scan.camera_names
+    texture = view == "texture"
+    if texture:
+        if project_dir is None:
+            raise InputError("project_dir: view='texture' relights the projected surface "
+                             "reflectance field; give the 'project' stage's folder (run "
+                             "'facegeo project SCAN' first)")
+        proj, texels_path = _texture_dirs(None, project_dir, atlas_dir if atlas_dir is not None
+                                          else Path(project_dir).parent / "atlas")
+        _project_cameras(proj, texels_path)  # clear error before reading the environment
+    else:
+        if not scan.has("olat"):
+            raise InputError(f"{scan.root}: the scan has no OLAT frames to relight")
+        if view not in names:
+            raise InputError(f"view: unknown camera {fmt_value(view)}; the scan has "
+                             f"{', '.join(names)} (or 'texture')")
+    env_map = resolve_env(env, projection, rotate_deg=rotate)
+    settings = {"env": str(env), "rotate": float(rotate), "view": view,
+                "projection": env_map.projection, "solid_angle": solid_angle,
+                "reference": bool(reference)}
+    lights = scan.rig.lights
+    t_env = time.perf_counter()
+    w = E.light_stage_weights(env_map, lights.n_theta, lights.n_phi, solid_angle=solid_angle)
+    integral = env_map.integral()
+    active = int(np.count_nonzero(np.any(w != 0, axis=1)))
+    t_w = time.perf_counter()
+    extra: dict[str, Any] = {}
+    ref_metrics: dict[str, Any]
+    if texture:
+        from facegeo.surface.atlas import Texels
+
+        tick = (lambda k, n: progress("relight", k, n)) if progress else None
+        texel_rgb, _, cams = relight_texture(None, w, light_color=lights.color_rgb,
+                                             progress=tick, project_dir=proj,
+                                             atlas_dir=texels_path.parent)
+        texels = Texels.load(texels_path)
+        measured = np.isfinite(texel_rgb).all(axis=1)
+        img = texels.to_image(np.where(measured[:, None], texel_rgb, 0.0).astype(np.float32),
+                              fill=0.0)
+        extra = {"cameras": cams, "texels": int(measured.size),
+                 "measured_texels": int(measured.sum()),
+                 "mask": texels.to_image(measured.astype(np.uint8) * 255, fill=0)}
+        mean_src = texel_rgb[measured]
+        t_relit = time.perf_counter()
+        ref_metrics = {"computed": False,
+                       "reason": "the generator's reference is rendered per camera view"}
+    else:
+        tick = (lambda k: progress("relight", k + 1, active)) if progress else None
+        img = relight_scan_view(scan, view, w, normalize_color=True, progress=tick)
+        mean_src = img.reshape(-1, 3)
+        t_relit = time.perf_counter()
+        ref_metrics = _reference_error(scan, view, w, img) if reference else \
+            {"computed": False, "reason": "reference=False"}
+    t_ref = time.perf_counter()
+
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    rot = f"{float(rotate):g}".replace("-", "m")
+    stem = f"{_safe_stem(Path(str(env)).stem)}_rot{rot}_{_safe_stem(view)}"
+    exr = imageio.write_image(dest / f"{stem}.exr", img)  # atomic (temporary file + rename)
+    png_img, exposure = tone_map(img)
+    png = imageio.write_image(dest / f"{stem}.png", png_img)
+    files = {"exr": str(exr), "png": str(png)}
+    if texture:
+        files["measured"] = str(imageio.write_image(dest / f"{stem}_measured.png",
+                                                    extra.pop("mask")))
+    metrics = {
+        "scan": str(scan.root), "view": view, "env": str(env),
+        "projection": env_map.projection, "rotate_deg": float(rotate),
+        "solid_angle": solid_angle, "n_lights": int(lights.n_lights), "active_lights": active,
+        "energy_ratio": (w.sum(0) / np.where(integral > 0, integral, 1)).tolist(),
+        "mean_radiance": (mean_src.mean(0) if len(mean_src) else np.zeros(3)).tolist(),
+        "reference": ref_metrics, "tone_map_exposure": exposure,
+        "files": files, **extra,
+        "seconds": {"env": t_env - t0, "weights": t_w - t_env, "relight": t_relit - t_w,
+                    "reference": t_ref - t_relit, "total": time.perf_counter() - t0},
+    }
+    log.info("relit %s with %s (%d active lights) in %.2f s", view, env, active,
+             metrics["seconds"]["total"])
+    return metrics, settings
+
+
+def _reference_error(scan, view: str, w: np.ndarray, img: np.ndarray) -> dict:
+    """Relit image vs the generator's render under the same Eq. (4) weights (synthetic scans).
+
+    The frames were normalised by the light colour, the generator's OLAT shading includes it:
+    the reference is ``render_lights(w / colour)``. Metrics over pixels where both are finite:
+    relative RMSE ``‖img − ref‖ / ‖ref‖`` and ``max |img − ref| / max ref``.
+    """
+    if not (scan.synthetic and "skin" in scan.ground_truth_keys
+            and "mesh" in scan.ground_truth_keys):
+        return {"computed": False, "reason": "no generator ground truth in this scan"}
+    from facegeo.synth.render import load_ground_truth
+
+    renderer = load_ground_truth(scan)
+    lights = scan.rig.lights
+    wn = w / np.broadcast_to(np.asarray(lights.color_rgb, float), w.shape)
+    ref = renderer.render_lights(renderer.rig.camera(view), lights, wn).astype(np.float64)
+    got = img.astype(np.float64)
+    ok = np.isfinite(got).all(axis=-1) & np.isfinite(ref).all(axis=-1)
+    if not ok.any():
+        return {"computed": False, "reason": "no finite pixels to compare"}
+    d = got[ok] - ref[ok]
+    return {"computed": True, "pixels": int(ok.sum()),
+            "relative_rmse": float(np.linalg.norm(d) / max(np.linalg.norm(ref[ok]), 1e-300)),
+            "max_abs_over_max": float(np.abs(d).max() / max(np.abs(ref[ok]).max(), 1e-300))}
+
+
 def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
                 rotate_deg: float = 0.0, view: str | None = None,
                 out_dir: str | os.PathLike | None = None, projection: str = "latlong",
                 solid_angle: str = "paper", field_dir: str | os.PathLike | None = None,
+                reference: bool = False,
                 progress: Callable[[str, int, int], None] | None = None) -> dict:
     """Relight one camera of a scan, or its texture atlas, with an environment map and write
     the images.
@@ -148,8 +351,8 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     ----------
     scan_dir : path
         Scan directory (``scan.toml``) with OLAT frames.
-    env_path : path
-        ``.exr``/``.hdr`` environment map.
+    env_path : path or str
+        ``.exr``/``.hdr`` environment map, or a shipped map's name (``"sky"``, ``"studio"``).
     rotate_deg : float, degrees
         Rotation of the environment about +Y (right-hand rule: +Z turns toward +X).
     view : str, optional
@@ -165,6 +368,9 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     field_dir : path, optional
         For ``view="texture"``: the folder with ``atlas/`` and ``project/`` (default
         ``SCAN/out``).
+    reference : bool
+        Also render the generator's reference image on a synthetic scan and report the error
+        (:func:`relight_products`; off by default here: one shading per lit light).
     progress : callable(stage, done, total), optional
         Per active light (camera view) or per camera (texture view).
 
@@ -174,79 +380,20 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
         Metrics: the files written, the view, the environment, the active lights, the energy
         check ``Σ w / ∫ L`` per channel, the image's mean radiance, timings.
     """
-    from facegeo.capture import imageio
     from facegeo.capture.scan import load_scan
     from facegeo.fsutil import atomic_write_text
-    from facegeo.lighting import envmap as E
-    from facegeo.lighting.relight import relight_scan_view
 
-    t0 = time.perf_counter()
     if not math.isfinite(float(rotate_deg)):
         raise InputError(f"rotate: expected a finite angle in degrees, got {fmt_value(rotate_deg)}")
     scan = load_scan(scan_dir)
-    names = scan.camera_names
-    texture = view == "texture"
-    if texture:
-        fdir = Path(field_dir) if field_dir is not None else scan.out_dir
-        _project_cameras(fdir)  # clear error before reading the environment
-    else:
-        if not scan.has("olat"):
-            raise InputError(f"{scan.root}: the scan has no OLAT frames to relight")
-        view = names[0] if view is None else view
-        if view not in names:
-            raise InputError(f"view: unknown camera {fmt_value(view)}; the scan has "
-                             f"{', '.join(names)} (or 'texture')")
-    env = E.read_envmap(env_path, projection, rotate_deg=rotate_deg)
-    lights = scan.rig.lights
-    t_env = time.perf_counter()
-    w = E.light_stage_weights(env, lights.n_theta, lights.n_phi, solid_angle=solid_angle)
-    integral = env.integral()
-    active = int(np.count_nonzero(np.any(w != 0, axis=1)))
-    t_w = time.perf_counter()
-    extra: dict[str, Any] = {}
-    if texture:
-        from facegeo.surface.atlas import Texels
-
-        tick = (lambda k, n: progress("relight", k, n)) if progress else None
-        texel_rgb, wsum, cams = relight_texture(fdir, w, light_color=lights.color_rgb,
-                                                progress=tick)
-        texels = Texels.load(fdir / "atlas" / "texels.npz")
-        measured = np.isfinite(texel_rgb).all(axis=1)
-        img = texels.to_image(np.where(measured[:, None], texel_rgb, 0.0).astype(np.float32),
-                              fill=0.0)
-        extra = {"cameras": cams, "texels": int(measured.size),
-                 "measured_texels": int(measured.sum()),
-                 "mask": texels.to_image(measured.astype(np.uint8) * 255, fill=0)}
-        mean_src = texel_rgb[measured]
-    else:
-        tick = (lambda k: progress("relight", k + 1, active)) if progress else None
-        img = relight_scan_view(scan, view, w, normalize_color=True, progress=tick)
-        mean_src = img.reshape(-1, 3)
-    t_relit = time.perf_counter()
-
+    if view is None:
+        view = scan.camera_names[0]
+    fdir = Path(field_dir) if field_dir is not None else scan.out_dir
     out = Path(out_dir) if out_dir is not None else scan.out_dir / "relight"
-    out.mkdir(parents=True, exist_ok=True)
-    rot = f"{float(rotate_deg):g}".replace("-", "m")
-    stem = f"{_safe_stem(Path(env_path).stem)}_rot{rot}_{_safe_stem(view)}"
-    exr = imageio.write_image(out / f"{stem}.exr", img)  # atomic (temporary file + rename)
-    png_img, exposure = tone_map(img)
-    png = imageio.write_image(out / f"{stem}.png", png_img)
-    files = {"exr": str(exr), "png": str(png)}
-    if texture:
-        files["measured"] = str(imageio.write_image(out / f"{stem}_measured.png",
-                                                    extra.pop("mask")))
-    metrics = {
-        "scan": str(scan.root), "view": view, "env": str(env_path), "projection": projection,
-        "rotate_deg": float(rotate_deg), "solid_angle": solid_angle,
-        "n_lights": int(lights.n_lights), "active_lights": active,
-        "energy_ratio": (w.sum(0) / np.where(integral > 0, integral, 1)).tolist(),
-        "mean_radiance": (mean_src.mean(0) if len(mean_src) else np.zeros(3)).tolist(),
-        "tone_map_exposure": exposure,
-        "files": files, **extra,
-        "seconds": {"env": t_env - t0, "weights": t_w - t_env, "relight": t_relit - t_w,
-                    "total": time.perf_counter() - t0},
-    }
+    metrics, _ = relight_products(scan, fdir / "project", out, env=env_path, rotate=rotate_deg,
+                                  view=view, atlas_dir=fdir / "atlas", projection=projection,
+                                  solid_angle=solid_angle, reference=reference,
+                                  progress=progress)
+    stem = Path(metrics["files"]["exr"]).stem
     atomic_write_text(out / f"{stem}.json", json.dumps(metrics, indent=2))
-    log.info("relit %s with %s (%d active lights) in %.2f s", view, env_path, active,
-             metrics["seconds"]["total"])
     return metrics
