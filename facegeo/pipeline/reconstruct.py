@@ -4,7 +4,7 @@ The chain (Debevec et al. 2000 from capture to novel views)::
 
     calibrate ─► (rig, residuals)                      if the scan has [calib]
     decode ─► mesh                                     if it has [structured_light]
-    atlas ─► project ─► fit ─► render                  if it has [olat] (atlas needs a mesh)
+    atlas ─► project ─► relight, fit ─► render         if it has [olat] (atlas needs a mesh)
 
 Each stage is a :class:`facegeo.pipeline.cache.StageSpec`: it reruns only when the content of
 the files it reads, its settings, an earlier stage's key or the facegeo version changed
@@ -39,7 +39,7 @@ from facegeo.pipeline.cache import Pipeline, StageContext, StageResult, StageSpe
 __all__ = ["STAGES", "MESH_CHOICES", "reconstruct_pipeline", "run_reconstruct"]
 
 #: Every stage ``facegeo reconstruct`` knows, in pipeline order.
-STAGES = ("calibrate", "decode", "mesh", "atlas", "project", "fit", "render")
+STAGES = ("calibrate", "decode", "mesh", "atlas", "project", "relight", "fit", "render")
 #: Values of ``mesh`` besides a mesh file.
 MESH_CHOICES = ("auto", "ground_truth", "reconstructed")
 
@@ -89,7 +89,7 @@ def _applicable(scan, mesh: str) -> list[str]:
     if scan.has("structured_light"):
         stages += ["decode", "mesh"]
     if scan.has("olat") and scan.camera_names:
-        stages += ["atlas", "project", "fit", "render"]
+        stages += ["atlas", "project", "relight", "fit", "render"]
     return stages
 
 
@@ -171,6 +171,17 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
                                           mesh=mesh_of(ctx), **without_mesh(ctx))
             return metrics
 
+        def run_relight(ctx: StageContext) -> dict:
+            from facegeo.pipeline.relight import relight_products
+
+            metrics, _ = relight_products(scan, ctx.upstream["project"], ctx.out_dir,
+                                          atlas_dir=ctx.upstream["atlas"], **ctx.settings)
+            return metrics
+
+        def env_inputs(env: str) -> list[Path]:
+            # a map file's content is part of the key; shipped maps are covered by the version
+            return [Path(env)] if Path(env).is_file() else []
+
         def run_fit(ctx: StageContext) -> dict:
             from facegeo.pipeline.fit import fit_products
 
@@ -196,10 +207,14 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
                       inputs=lambda d: _group_inputs(scan, "olat") + mesh_inputs(),
                       settings={"mesh": use_mesh, "rig": None, "dtype": "float16", "gt_lights": 32,
                                 "gt_weight_min": 0.3}),
+            StageSpec("relight", run_relight, after=("atlas", "project"),
+                      inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
+                      settings={"env": RENDER_DEFAULT_ENV, "rotate": 0.0, "view": "texture",
+                                "projection": "latlong", "solid_angle": "paper"}),
             StageSpec("fit", run_fit, after=("atlas", "project"),
                       inputs=lambda d: _common_inputs(scan), settings=fit_settings),
             StageSpec("render", run_render, after=("atlas", "project", "fit"),
-                      inputs=lambda d: _common_inputs(scan),
+                      inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
                       settings={"views": views, "env": RENDER_DEFAULT_ENV}),
         ]
     if not specs:

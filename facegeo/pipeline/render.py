@@ -27,8 +27,9 @@ renderer; ``mask`` = the reference's pixels that see the head):
 
 Environments: a path to an ``.exr``/``.hdr`` map (``projection`` lat-long by default), or a
 built-in name: ``"uniform"`` (radiance 1 everywhere, the generator's ``uniform`` renders),
-``"axis_lobes"`` (:func:`facegeo.lighting.envmap.axis_lobe_map`), ``"sky"`` (a procedural
-overcast sky with a warm sun, CC0 by construction).
+``"axis_lobes"`` (:func:`facegeo.lighting.envmap.axis_lobe_map`), and the procedural maps
+shipped with facegeo, ``"sky"`` (a sky with a 2° sun) and ``"studio"`` (key, fill and rim area
+lights) (:func:`facegeo.lighting.envmap.shipped_map`).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ log = logging.getLogger(__name__)
 __all__ = ["BUILTIN_ENVS", "builtin_env", "image_metrics", "render_one", "render_products",
            "run_render"]
 
-BUILTIN_ENVS = ("uniform", "axis_lobes", "sky")
+BUILTIN_ENVS = ("uniform", "axis_lobes", "sky", "studio")
 #: The environment of the ``render`` stage of ``facegeo reconstruct``.
 RENDER_DEFAULT_ENV = "sky"
 _ENV_HEIGHT = 64
@@ -65,18 +66,8 @@ def builtin_env(name: str):
         return E.analytic_map(lambda v: np.ones(v.shape[:-1] + (3,)), _ENV_HEIGHT)
     if name == "axis_lobes":
         return E.axis_lobe_map(_ENV_HEIGHT)
-    if name == "sky":
-        sun = np.array([0.5, 0.6, 0.62])
-        sun /= np.linalg.norm(sun)
-
-        def fn(v):
-            up = np.clip(v[..., 1], -1.0, 1.0)[..., None]
-            sky = np.where(up > 0, 0.6 + 0.4 * up, 0.25 + 0.1 * up) * np.array([0.75, 0.85, 1.0])
-            ground = np.where(up < 0, np.array([0.35, 0.3, 0.25]) * (-up), 0.0)
-            glow = 8.0 * np.maximum(v @ sun, 0.0)[..., None] ** 64 * np.array([1.0, 0.9, 0.75])
-            return sky + ground + glow
-
-        return E.analytic_map(fn, _ENV_HEIGHT)
+    if name in E.SHIPPED_MAPS:  # the procedural maps shipped with facegeo (sky, studio)
+        return E.shipped_map(name)
     raise InputError(f"env: unknown built-in environment {fmt_value(name)}; built-ins are "
                      f"{', '.join(BUILTIN_ENVS)} (or give an .exr/.hdr file)")
 
