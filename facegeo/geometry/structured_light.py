@@ -77,6 +77,7 @@ __all__ = [
     "decode_gray",
     "decode_phase",
     "unwrap_with_gray",
+    "decode_stream",
 ]
 
 _MAX_BITS = 24
@@ -187,6 +188,14 @@ class PatternSpec:
         (``width / 16``), resolved when ``phase_steps > 0``.
     phase_axes : tuple of {"x", "y"}
         Axes that get phase-shift sequences, in projection order.
+    codes : tuple of {"gray", "xor02", "xor04"}
+        Binary code families projected, in this order, each with ``n_bits_x`` / ``n_bits_y``
+        bits (Gupta et al. 2013's ensemble of codes): ``"gray"`` the reflected Gray code;
+        ``"xor02"`` / ``"xor04"`` its bit planes XORed with the plane of stripe width 2 / 4
+        (every projected pattern is high-frequency, so the global light of interreflections
+        is the same under a pattern and its inverse). See :mod:`facegeo.geometry._sl_codes`.
+        Frames of family ``c`` are named ``"{c}_{axis}_{bit:02d}"``; the default
+        ``("gray",)`` keeps the classic names (and is left out of :meth:`to_dict`).
 
     Raises
     ------
@@ -205,6 +214,7 @@ class PatternSpec:
     phase_periods_x: float | None = None
     phase_periods_y: float | None = None
     phase_axes: tuple[str, ...] = ("x",)
+    codes: tuple[str, ...] = ("gray",)
 
     def __post_init__(self) -> None:
         put = functools.partial(object.__setattr__, self)
@@ -265,6 +275,7 @@ class PatternSpec:
                     f"{size / p:.3g} px; the projector needs >= 2 px per period"
                 )
             put(key, p)
+        put("codes", _check_codes(self.codes, self.n_bits_x, self.n_bits_y))
         if not (self.gray or self.white_black or steps):
             raise InputError("PatternSpec: produces no pattern (gray, white_black and phase off)")
 
@@ -295,8 +306,8 @@ class PatternSpec:
         out: dict[str, Any] = {}
         for f in fields(self):
             v = getattr(self, f.name)
-            if v is None:
-                continue
+            if v is None or (f.name == "codes" and v == ("gray",)):
+                continue  # the default family is left out: older readers know no "codes"
             out[f.name] = list(v) if isinstance(v, tuple) else v
         return out
 
@@ -322,6 +333,7 @@ class _Pattern(NamedTuple):
     axis: str | None
     index: int  # bit (MSB = 0) or phase step
     inverse: bool
+    code: str = "gray"  # code family of a binary ("gray"-kind) pattern
 
 
 @functools.lru_cache(maxsize=64)
@@ -330,15 +342,40 @@ def _pattern_table(spec: PatternSpec) -> dict[str, _Pattern]:
     if spec.white_black:
         table["white"] = _Pattern("white", None, 0, False)
         table["black"] = _Pattern("black", None, 0, False)
-    for axis in _AXES:
-        for i in range(spec.n_bits(axis)):
-            table[f"gray_{axis}_{i:02d}"] = _Pattern("gray", axis, i, False)
-            if spec.inverse:
-                table[f"gray_{axis}_{i:02d}_inv"] = _Pattern("gray", axis, i, True)
+    for code in spec.codes:
+        for axis in _AXES:
+            for i in range(spec.n_bits(axis)):
+                table[f"{code}_{axis}_{i:02d}"] = _Pattern("gray", axis, i, False, code)
+                if spec.inverse:
+                    table[f"{code}_{axis}_{i:02d}_inv"] = _Pattern("gray", axis, i, True, code)
     for axis in spec.phase_axes if spec.phase_steps else ():
         for k in range(spec.phase_steps):
             table[f"phase_{axis}_{k}"] = _Pattern("phase", axis, k, False)
     return table
+
+
+def _check_codes(codes: Any, n_bits_x: int, n_bits_y: int) -> tuple[str, ...]:
+    from facegeo.geometry._sl_codes import CODE_FAMILIES, min_bits
+
+    if isinstance(codes, str):
+        codes = (codes,)
+    try:
+        codes = tuple(codes)
+    except TypeError:
+        raise InputError(f"PatternSpec.codes: expected a list of code families, got "
+                         f"{fmt_value(codes)}") from None
+    if not codes:
+        raise InputError(f"PatternSpec.codes: empty; expected some of {list(CODE_FAMILIES)}")
+    for c in codes:
+        check_choice(c, "PatternSpec.codes", CODE_FAMILIES)
+    if len(set(codes)) != len(codes):
+        raise InputError(f"PatternSpec.codes: repeated family in {list(codes)}")
+    for c in codes:
+        for axis, n in (("x", n_bits_x), ("y", n_bits_y)):
+            if 0 < n < min_bits(c):
+                raise InputError(f"PatternSpec.codes: {c!r} needs >= {min_bits(c)} bits, "
+                                 f"n_bits_{axis} is {n}")
+    return codes
 
 
 def _check_spec(spec: Any) -> PatternSpec:
@@ -376,11 +413,12 @@ def _lookup(spec: PatternSpec, name: str) -> _Pattern:
         raise InputError(f"name: unknown pattern {fmt_value(name)} for this spec; valid: {shown}") from None
 
 
-def _gray_bit(spec: PatternSpec, axis: str, bit: int, coord: np.ndarray) -> np.ndarray:
-    """Bit ``bit`` (0 = MSB) of the Gray code of integer projector coordinates ``coord``."""
-    n = spec.n_bits(axis)
-    stripe = coord >> spec.stripe_shift(axis)
-    return (gray_encode(stripe) >> (n - 1 - bit)) & 1
+def _gray_bit(spec: PatternSpec, axis: str, bit: int, coord: np.ndarray, code: str = "gray"
+              ) -> np.ndarray:
+    """Bit ``bit`` (0 = MSB) of code family ``code`` at integer projector coordinates ``coord``."""
+    from facegeo.geometry._sl_codes import code_bit
+
+    return code_bit(code, spec.n_bits(axis), bit, coord >> spec.stripe_shift(axis))
 
 
 def _phase_value(spec: PatternSpec, axis: str, k: int, coord: np.ndarray) -> np.ndarray:
@@ -411,7 +449,7 @@ def pattern_image(spec: PatternSpec, name: str) -> np.ndarray:
     size = spec.width if p.axis == "x" else spec.height
     coord = np.arange(size, dtype=np.int64)
     if p.kind == "gray":
-        line = _gray_bit(spec, p.axis, p.index, coord).astype(np.float32)
+        line = _gray_bit(spec, p.axis, p.index, coord, p.code).astype(np.float32)
         if p.inverse:
             line = 1.0 - line
     else:
@@ -454,7 +492,7 @@ def pattern_value_at(spec: PatternSpec, name: str, q_proj) -> np.ndarray:
     c = (x if p.axis == "x" else y)[inside]
     if p.kind == "gray":
         ic = np.floor(c + 0.5).astype(np.int64)
-        v = _gray_bit(spec, p.axis, p.index, ic)
+        v = _gray_bit(spec, p.axis, p.index, ic, p.code)
         out[inside] = (1 - v) if p.inverse else v
     else:
         out[inside] = _phase_value(spec, p.axis, p.index, c)
@@ -642,10 +680,12 @@ def decode_gray(
                 "threshold applies only to specs with inverse=False"
             )
     axes = [(a, spec.n_bits(a)) for a in _AXES if spec.n_bits(a) > 0]
-    if not axes:
-        raise InputError("spec: has no Gray-code patterns to decode (gray=False or 0 bits)")
+    if not axes or "gray" not in spec.codes:
+        raise InputError("spec: has no Gray-code patterns to decode (gray=False, 0 bits or no "
+                         "'gray' in codes; decode_stream decodes the other code families)")
     table = _pattern_table(spec)
-    needed = [n for n, p in table.items() if p.kind in ("white", "black", "gray")]
+    needed = [n for n, p in table.items()
+              if p.kind in ("white", "black") or (p.kind == "gray" and p.code == "gray")]
     arrs = _validated_frames(frames, needed, "Gray decoding")
     H, W = arrs[needed[0]].shape[:2]
 
@@ -656,7 +696,7 @@ def decode_gray(
     use_minmax = not spec.inverse and not spec.white_black and threshold is None
     rows_per_chunk = max(1, _CHUNK_PIXELS // max(W, 1))
 
-    gray_names = [n for n, p in table.items() if p.kind == "gray"]
+    gray_names = [n for n, p in table.items() if p.kind == "gray" and p.code == "gray"]
     for r0 in range(0, H, rows_per_chunk):
         rows = slice(r0, min(H, r0 + rows_per_chunk))
         h = rows.stop - r0
@@ -873,3 +913,91 @@ def unwrap_with_gray(wrapped, coarse_proj, spec: PatternSpec, *, axis: str = "x"
     k = 2.0 * np.pi * P / size  # radians per projector pixel
     m = np.round((k * (xc + 0.5) - phi) / (2.0 * np.pi))
     return (phi + 2.0 * np.pi * m) / k - 0.5
+
+
+# --------------------------------------------------------------------------- streaming decode
+
+
+def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
+                  min_contrast: float = 0.005, rel_contrast: float = 0.15,
+                  shadow_threshold: float = 0.02, min_modulation: float = 0.1,
+                  noise_sigma: float = 0.005, max_coarse_px: float | None = None,
+                  vote_tolerance_px: float = 1.0):
+    """Decode structured-light frames in one streaming pass, robust to skin's global light.
+
+    Frames arrive one at a time as ``(name, frame)`` pairs, in any order; each is reduced to
+    float32 luminance (channel mean, fraction of full scale) and folded into per-pixel
+    accumulators, so memory is bounded by a few planes per pixel (``_sl_stream`` module
+    docstring), never the whole set.
+
+    **Bits relative to the pixel's own light.** Each binary plane's decision is ``pattern >
+    inverse`` (without inverse frames, ``pattern > (white + black) / 2``, or ``> (L_max +
+    L_min) / 2`` over the pixel's binary frames when there are no white / black frames either).
+    Its margin (``|pattern - inverse|``, or twice the distance to the threshold) is *reliable*
+    when ``margin >= max(min_contrast, rel_contrast * L_d)``, with ``L_d = L_max - L_min`` the
+    pixel's direct light from the binary frames (Nayar et al. 2006, Eqs. 4-5; the global part
+    ``L_g = 2 L_min`` is returned too). A pixel keeps the planes it resolves: its coordinate
+    comes from the prefix of reliable planes (a block of ``2**k`` stripes, centre and
+    ``σ = w / sqrt(12)``), or, when exactly one plane is unresolved and the two candidate
+    codes are neighbours, from the stripe boundary between them. The coordinate is valid when
+    the block is at most ``max_coarse_px`` wide — by default half a phase period when the axis
+    has phase frames (enough to unwrap), else one stripe (exact codes only). Per bit, the
+    result counts the lit pixels that leave that plane unresolved and those it invalidates.
+
+    **Ensemble of codes** (Gupta et al. 2013): with several ``spec.codes`` families, each is
+    decoded independently and a family's coordinate stands when another agrees within
+    ``vote_tolerance_px`` (plus half their block widths); disagreeing pixels are invalid.
+
+    **Phase** (Srinivasan et al. 1984): ``phi = atan2(S, C)``, ``B = (2/N) sqrt(S^2 + C^2)``,
+    unwrapped with the Gray coordinate as in :func:`unwrap_with_gray`; used where the fringe
+    contrast ``2 B / L_d >= min_modulation``, with ``σ = noise_sigma sqrt(2/N) / B`` radians
+    turned into projector pixels.
+
+    Parameters
+    ----------
+    frames : iterable of (str, (H, W) or (H, W, C) array) or mapping str -> array
+        Linear intensities named as :func:`pattern_names`; every frame of the set exactly once.
+    spec : PatternSpec
+    full_scale : float, optional, frame units
+        White level (default: dtype maximum for integers, 1 for floats).
+    min_contrast : float, fraction of full scale
+        Absolute floor of a reliable bit margin.
+    rel_contrast : float
+        Reliable bit margin relative to the pixel's direct light ``L_d``.
+    shadow_threshold : float, fraction of full scale
+        Pixels with ``white - black`` (else ``L_d``) below this are projector shadow.
+    min_modulation : float
+        Smallest fringe contrast ``2 B / L_d`` for the phase to be used.
+    noise_sigma : float, fraction of full scale
+        1-σ intensity noise assumed for the phase ``σ`` estimate.
+    max_coarse_px : float, optional, projector pixels
+        Widest block a binary code may leave a pixel in (default above).
+    vote_tolerance_px : float, projector pixels
+        Agreement tolerance of the code-family vote.
+
+    Returns
+    -------
+    StreamDecode
+
+    Raises
+    ------
+    InputError
+        Unknown, repeated or missing frames (the count must match the pattern set); NaN / inf;
+        all-dark frames (no pixel lit by the projector); bad settings.
+    ShapeError
+        Frames of different sizes or not images.
+
+    References
+    ----------
+    Nayar, Krishnan, Grossberg, Raskar. Fast separation of direct and global components of a
+    scene using high frequency illumination. SIGGRAPH 2006. — Gupta, Agrawal, Veeraraghavan,
+    Narasimhan. A Practical Approach to 3D Scanning in the Presence of Interreflections,
+    Subsurface Scattering and Defocus. IJCV 102, 2013.
+    """
+    from facegeo.geometry._sl_stream import decode_frames
+
+    return decode_frames(frames, _check_spec(spec), full_scale=full_scale,
+                         min_contrast=min_contrast, rel_contrast=rel_contrast,
+                         shadow_threshold=shadow_threshold, min_modulation=min_modulation,
+                         noise_sigma=noise_sigma, max_coarse_px=max_coarse_px,
+                         vote_tolerance_px=vote_tolerance_px)
