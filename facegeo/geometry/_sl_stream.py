@@ -454,7 +454,8 @@ class StreamDecoder:
             return (coord.astype(np.float32), sig.astype(np.float32), ok,
                     conf.astype(np.float32))
         # Consistency vote (Gupta et al. 2013, Sec. 4.3): a family's coordinate counts when
-        # another family's agrees within half their block widths + vote_tolerance_px.
+        # another family's agrees within half their block widths + vote_tolerance_px, or when
+        # it is the only family that resolved the pixel.
         F = len(results)
         agree = np.zeros((F, results[0][0].size), np.int64)
         for i in range(F):
@@ -472,9 +473,11 @@ class StreamDecoder:
         pick = lambda k: np.take_along_axis(np.stack([r[k] for r in results]), best[None], 0)[0]
         coord, sig, conf = pick(0), pick(1), pick(3)
         nbest = np.take_along_axis(agree, best[None], 0)[0]
-        ok = nbest >= 1
-        any_ok = np.stack([r[2] for r in results]).any(axis=0)
-        stats["votes_disagree"] += int(np.count_nonzero(lit & any_ok & ~ok))
+        n_ok = np.stack([r[2] for r in results]).sum(axis=0)
+        # A lone resolved family stands when every other one is unresolved (no contradiction:
+        # fine XOR bases blur away under subsurface scattering); two that disagree do not.
+        ok = (nbest >= 1) | (n_ok == 1)
+        stats["votes_disagree"] += int(np.count_nonzero(lit & (n_ok >= 2) & ~ok))
         conf = conf * (nbest + 1) / F
         return (coord.astype(np.float32), sig.astype(np.float32), ok, conf.astype(np.float32))
 
