@@ -232,9 +232,9 @@ class StreamDecoder:
     # ---------------------------------------------------------------- decoding
 
     def finish(self, *, min_contrast: float = 0.005, rel_contrast: float = 0.15,
-               shadow_threshold: float = 0.02, min_modulation: float = 0.1,
+               shadow_threshold: float = 0.02, min_modulation: float = 0.3,
                noise_sigma: float = 0.005, max_coarse_px: float | None = None,
-               vote_tolerance_px: float = 1.0) -> StreamDecode:
+               vote_tolerance_px: float = 0.0) -> StreamDecode:
         """Decode the accumulated frames (see ``decode_stream`` for the parameters)."""
         spec = self.spec
         missing = [n for n in self.table if n not in self.seen]
@@ -278,7 +278,7 @@ class StreamDecoder:
                 f"{shadow_threshold} of full scale everywhere; max lit "
                 f"{float(np.nanmax(out['lit'])) if np.isfinite(out['lit']).any() else 0:.4g}): "
                 "all-dark frames, a wrong full_scale or frames of another capture")
-        out["valid"] = np.ones((H, W), bool)
+        out["valid"] = np.full((H, W), bool(coded))  # no coded axis: nothing is valid
         for a in coded:
             out["valid"] &= out[f"valid_{a}"]
         return StreamDecode(wrapped=wrapped, modulation=modulation, bits=bits, **out)
@@ -335,9 +335,7 @@ class StreamDecoder:
             sig = np.full(n_pix, np.nan, np.float32)
             conf = np.zeros(n_pix, np.float32)
             ok = np.zeros(n_pix, bool)
-            if n:
-                coord, sig, ok, conf = self._decode_axis(
-                    axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis])
+            hint = None
             if phase_here:
                 S, C, A = (v.reshape(-1)[sl] for v in self.phase[axis])
                 N = spec.phase_steps
@@ -350,6 +348,12 @@ class StreamDecoder:
                 fw[axis][sl] = phi_out
                 pconf = np.clip(2.0 * B / np.maximum(ref, 1e-12), 0.0, 1.0).astype(np.float32)
                 pok = ~shadow & (pconf >= vals["min_modulation"])
+                hint = (phi, pok, 2.0 * np.pi * spec.phase_periods(axis) / size, period)
+            if n:
+                coord, sig, ok, conf = self._decode_axis(
+                    axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
+                    hint)
+            if phase_here:
                 k = 2.0 * np.pi * spec.phase_periods(axis) / size
                 if n:
                     with np.errstate(invalid="ignore"):
@@ -403,8 +407,14 @@ class StreamDecoder:
             margins[:b] = np.minimum(margins[:b], margins[b])
         return signs, rel, margins
 
-    def _decode_axis(self, axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, stats):
-        """Per family: coordinate from the resolved bits; then the vote across families."""
+    def _decode_axis(self, axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, stats,
+                     hint=None):
+        """Per family: coordinate from the resolved bits; then the vote across families.
+
+        ``hint = (phi, usable, k, period)``: the wrapped phase on this axis picks between the two
+        candidate codes of a pixel with one unresolved plane (the one whose predicted phase
+        ``k (x + 0.5)`` is within a quarter period of ``phi``, when the other is not or both
+        lie within half a period of each other)."""
         step = float(1 << s)
         n_stripes = -(-size // (1 << s))
         full = (1 << n) - 1
@@ -430,16 +440,33 @@ class StreamDecoder:
             flip = binary ^ ((np.int64(1) << (n - first)) - 1)
             edge = single & (np.abs(flip - binary) == 1)
             # (b) otherwise the resolved prefix names a block of 2**(n - first) stripes.
+            # (c) one unresolved plane, candidates far apart: the phase may pick one.
+            picked = np.zeros(u.shape, bool)
+            if hint is not None:
+                phi, usable, kk, period = hint
+                amb = single & ~edge & usable
+                if amb.any():
+                    ca = binary * step + 0.5 * (step - 1.0)
+                    cb = flip * step + 0.5 * (step - 1.0)
+                    da = np.abs(np.angle(np.exp(1j * (phi - kk * (ca + 0.5)))))
+                    db = np.abs(np.angle(np.exp(1j * (phi - kk * (cb + 0.5)))))
+                    dmin, dmax = np.minimum(da, db), np.maximum(da, db)
+                    picked = amb & (dmin < 0.5 * np.pi) & (
+                        (dmax >= 0.5 * np.pi) | (np.abs(ca - cb) < 0.5 * period))
+                    binary = np.where(picked & (db < da), flip, binary)
             w = (np.int64(1) << (n - first)).astype(np.float64)
             block = binary >> (n - first)
-            c_st = np.where(edge, 0.5 * (binary + flip), block * w + 0.5 * (w - 1))
-            w_eff = np.where(edge, 1.0, w)
-            exists = np.where(edge, np.maximum(binary, flip), block * w) < n_stripes
-            ok = lit & exists & ((w_eff * step <= coarse_lim + 1e-9) | edge)
+            c_st = np.where(edge, 0.5 * (binary + flip),
+                            np.where(picked, binary, block * w + 0.5 * (w - 1)))
+            w_eff = np.where(edge | picked, 1.0, w)
+            exists = np.where(edge, np.maximum(binary, flip),
+                              np.where(picked, binary, block * w)) < n_stripes
+            ok = lit & exists & ((w_eff * step <= coarse_lim + 1e-9) | edge | picked)
             coord = c_st * step + 0.5 * (step - 1.0)
             sig = np.where(edge, 0.5 * step, w_eff * step / math.sqrt(12.0))
             # confidence: weakest margin among the planes used, over the direct light
-            used = np.arange(n)[:, None] < np.where(edge, n, first)[None, :]
+            resolved = ((rel.astype(np.int64)[None, :] >> (n - 1 - np.arange(n))[:, None]) & 1) == 1
+            used = resolved & (np.arange(n)[:, None] < np.where(edge | picked, n, first)[None, :])
             mmin = np.where(used, margins, np.inf).min(axis=0)
             mmin = np.where(np.isfinite(mmin), mmin, 0.0)
             conf = np.clip(mmin / np.maximum(ref, 1e-12), 0.0, 1.0)

@@ -920,9 +920,9 @@ def unwrap_with_gray(wrapped, coarse_proj, spec: PatternSpec, *, axis: str = "x"
 
 def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
                   min_contrast: float = 0.005, rel_contrast: float = 0.15,
-                  shadow_threshold: float = 0.02, min_modulation: float = 0.1,
+                  shadow_threshold: float = 0.02, min_modulation: float = 0.3,
                   noise_sigma: float = 0.005, max_coarse_px: float | None = None,
-                  vote_tolerance_px: float = 1.0):
+                  vote_tolerance_px: float = 0.0):
     """Decode structured-light frames in one streaming pass, robust to skin's global light.
 
     Frames arrive one at a time as ``(name, frame)`` pairs, in any order; each is reduced to
