@@ -219,6 +219,27 @@ def test_phase_sigma_confidence_and_products():
     np.testing.assert_allclose(res.modulation["y"], mod, atol=1e-5)
 
 
+def test_saturated_pixels_never_get_a_wild_phase():
+    """Pixels clipped at full scale in the phase frames: the phase is not used; they keep the
+    exact Gray code (σ of one stripe) or are invalid."""
+    spec = PatternSpec(PROJ_W, PROJ_H, phase_steps=3, phase_axes=("x", "y"))
+    frames, q, lit = _frames(spec, noise=0.0)
+    hot = np.zeros(lit.shape, bool)
+    hot[30:50, 60:90] = True
+    frames = {n: np.where(hot, np.clip(3.0 * f, 0, 1), f).astype(np.float32)
+              for n, f in frames.items()}
+    hot &= np.max([frames[f"phase_x_{k}"] for k in range(3)], axis=0) >= 1.0  # clipped
+    res = decode_stream(frames, spec)
+    v = res.valid & hot
+    assert hot.sum() > 100 and v.sum() > 0.5 * hot.sum()
+    tx = np.floor(q[..., 0] + 0.5)
+    assert (res.x[v] == tx[v]).mean() >= 0.99  # integer codes: the phase was not used
+    np.testing.assert_allclose(res.sigma_x[v], 1 / np.sqrt(12), rtol=1e-5)
+    plain = decode_stream(frames, spec, saturation=2.0)  # saturation check off
+    err = np.abs(plain.x - q[..., 0])[plain.valid & hot]
+    assert np.sqrt(np.mean(err**2)) > 0.3  # the clipped fringe would have biased the phase
+
+
 @pytest.mark.parametrize("case, err, match", [
     ("missing", InputError, r"2 frame\(s\) given.*has \d+; missing"),
     ("unknown", InputError, "unknown frame name 'gray_x_99'"),

@@ -37,6 +37,16 @@ log = logging.getLogger(__name__)
 _AXES = ("x", "y")
 _MARGIN_STEPS = 510.0  # uint8 margin quantisation: 1/510 of full scale, saturating at 0.5
 _CHUNK = 1 << 18  # pixels per chunk when finishing
+_HF_STRIPE_PX = 16.0  # widest stripe (projector px) used for the direct / global split
+
+
+def _stripe_width_px(spec, code: str, axis: str, bit: int) -> float:
+    """Widest stripe of a binary plane, projector pixels (Gray plane i of n: 2**(n-i) stripes;
+    an XOR plane below its base: twice the base plane's)."""
+    n = spec.n_bits(axis)
+    b = base_plane(code, n)
+    k = n - b + 1 if (b is not None and bit < b) else n - bit
+    return float(2 ** k * (1 << spec.stripe_shift(axis)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,7 +71,7 @@ class StreamDecode:
         the propagated intensity noise for phase; NaN where invalid.
     direct, global_ : (H, W) float32, fraction of full scale
         Nayar et al. 2006 split from the binary frames, ``L_d = L_max - L_min``,
-        ``L_g = 2 L_min`` (Eqs. 4-5 with half the projector lit); NaN without binary frames.
+        ``L_g = 2 L_min`` (Sec. 3, half the projector lit); NaN without binary frames.
     lit : (H, W) float32, fraction of full scale
         The reference for the relative thresholds: ``white - black`` with those frames, else
         ``direct`` (else the phase offset ``2 A``).
@@ -158,6 +168,13 @@ class StreamDecoder:
                        if p.kind == "gray" and not p.inverse]
         self.plane_index = {k: i for i, k in enumerate(self.planes)}
         self.families = [(c, a) for c in spec.codes for a in _AXES if spec.n_bits(a)]
+        # Planes for the direct / global split (Nayar et al. 2006 need patterns whose stripes
+        # are fine against the global light's spread): stripes at most _HF_STRIPE_PX wide;
+        # all planes when the set has none.
+        widths = {k: _stripe_width_px(spec, *k) for k in self.planes}
+        hf = {k for k, w in widths.items() if w <= _HF_STRIPE_PX}
+        # without inverse frames a few fine planes may all be on (or off) at a pixel: all planes
+        self.hf_planes = hf if (hf and spec.inverse) else set(widths)
         self.pending: dict[tuple, tuple[bool, np.ndarray]] = {}
 
     # ---------------------------------------------------------------- accumulation
@@ -177,6 +194,7 @@ class StreamDecoder:
         self.lmin = np.full((H, W), np.inf, np.float32) if n else None
         self.white = self.black = None
         N = spec.phase_steps
+        self.phase_max = np.zeros((H, W), np.float32) if N else None
         self.phase = {a: [np.zeros((H, W), np.float32) for _ in range(3)]
                       for a in (spec.phase_axes if N else ())}
 
@@ -210,12 +228,14 @@ class StreamDecoder:
             N = self.spec.phase_steps
             dk = 2.0 * math.pi * p.index / N
             S, C, A = self.phase[p.axis]
+            np.maximum(self.phase_max, lum, out=self.phase_max)
             S += np.float32(math.sin(dk)) * lum
             C += np.float32(math.cos(dk)) * lum
             A += lum
         else:
-            np.maximum(self.lmax, lum, out=self.lmax)
-            np.minimum(self.lmin, lum, out=self.lmin)
+            if (p.code, p.axis, p.index) in self.hf_planes:
+                np.maximum(self.lmax, lum, out=self.lmax)
+                np.minimum(self.lmin, lum, out=self.lmin)
             k = self.plane_index[(p.code, p.axis, p.index)]
             if not self.spec.inverse:
                 self.values[k] = lum
@@ -243,7 +263,7 @@ class StreamDecoder:
     def finish(self, *, min_contrast: float = 0.005, rel_contrast: float = 0.15,
                shadow_threshold: float = 0.02, min_modulation: float = 0.3,
                noise_sigma: float = 0.005, max_coarse_px: float | None = None,
-               vote_tolerance_px: float = 0.0) -> StreamDecode:
+               vote_tolerance_px: float = 0.0, saturation: float = 0.98) -> StreamDecode:
         """Decode the accumulated frames (see ``decode_stream`` for the parameters)."""
         spec = self.spec
         missing = [n for n in self.table if n not in self.seen]
@@ -254,7 +274,8 @@ class StreamDecoder:
         vals = {}
         for key, v in (("min_contrast", min_contrast), ("rel_contrast", rel_contrast),
                        ("shadow_threshold", shadow_threshold), ("min_modulation", min_modulation),
-                       ("noise_sigma", noise_sigma), ("vote_tolerance_px", vote_tolerance_px)):
+                       ("noise_sigma", noise_sigma), ("vote_tolerance_px", vote_tolerance_px),
+                       ("saturation", saturation)):
             vals[key] = float(as_array(v, key, shape=()))
             if vals[key] < 0:
                 raise InputError(f"{key}: expected a number >= 0, got {v}")
@@ -356,7 +377,9 @@ class StreamDecoder:
                 phi_out[~(B > 0)] = np.nan
                 fw[axis][sl] = phi_out
                 pconf = np.clip(2.0 * B / np.maximum(ref, 1e-12), 0.0, 1.0).astype(np.float32)
-                pok = ~shadow & (pconf >= vals["min_modulation"])
+                # a clipped fringe biases the phase: saturated pixels fall back to the code
+                pok = ~shadow & (pconf >= vals["min_modulation"]) \
+                    & (self.phase_max.reshape(-1)[sl] < vals["saturation"])
                 hint = (phi, pok, 2.0 * np.pi * spec.phase_periods(axis) / size, period)
             if n:
                 coord, sig, ok, conf = self._decode_axis(

@@ -922,7 +922,7 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
                   min_contrast: float = 0.005, rel_contrast: float = 0.15,
                   shadow_threshold: float = 0.02, min_modulation: float = 0.3,
                   noise_sigma: float = 0.005, max_coarse_px: float | None = None,
-                  vote_tolerance_px: float = 0.0):
+                  vote_tolerance_px: float = 0.0, saturation: float = 0.98):
     """Decode structured-light frames in one streaming pass, robust to skin's global light.
 
     Frames arrive one at a time as ``(name, frame)`` pairs, in any order; each is reduced to
@@ -935,8 +935,10 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
     L_min) / 2`` over the pixel's binary frames when there are no white / black frames either).
     Its margin (``|pattern - inverse|``, or twice the distance to the threshold) is *reliable*
     when ``margin >= max(min_contrast, rel_contrast * L_d)``, with ``L_d = L_max - L_min`` the
-    pixel's direct light from the binary frames (Nayar et al. 2006, Eqs. 4-5; the global part
-    ``L_g = 2 L_min`` is returned too). A pixel keeps the planes it resolves: its coordinate
+    pixel's direct light from the binary frames with stripes at most 16 projector pixels wide
+    (with inverse frames; all binary frames if none is that fine or without inverses; Nayar et al. 2006, Sec. 3: ``L_max = L_d + L_g/2``,
+    ``L_min = L_g/2`` under half-on high-frequency patterns; the global part ``L_g = 2 L_min``
+    is returned too). A pixel keeps the planes it resolves: its coordinate
     comes from the prefix of reliable planes (a block of ``2**k`` stripes, centre and
     ``σ = w / sqrt(12)``), or, when exactly one plane is unresolved and the two candidate
     codes are neighbours, from the stripe boundary between them. The coordinate is valid when
@@ -973,7 +975,11 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
     max_coarse_px : float, optional, projector pixels
         Widest block a binary code may leave a pixel in (default above).
     vote_tolerance_px : float, projector pixels
-        Agreement tolerance of the code-family vote.
+        Agreement tolerance of the code-family vote beyond half the two block widths (0: exact
+        codes must be equal; a stripe-boundary coordinate agrees with either neighbour).
+    saturation : float, fraction of full scale
+        Pixels whose brightest phase frame reaches this have a clipped fringe: their phase is
+        not used (they keep an exact code if they have one).
 
     Returns
     -------
@@ -1000,4 +1006,4 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
                          min_contrast=min_contrast, rel_contrast=rel_contrast,
                          shadow_threshold=shadow_threshold, min_modulation=min_modulation,
                          noise_sigma=noise_sigma, max_coarse_px=max_coarse_px,
-                         vote_tolerance_px=vote_tolerance_px)
+                         vote_tolerance_px=vote_tolerance_px, saturation=saturation)

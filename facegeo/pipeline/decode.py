@@ -58,7 +58,7 @@ __all__ = ["run_decode", "decode_products", "ground_truth_projector", "code_accu
 #: Settings of :func:`facegeo.geometry.structured_light.decode_stream` used by the stage.
 DECODE_DEFAULTS = {"min_contrast": 0.005, "rel_contrast": 0.15, "shadow_threshold": 0.02,
                    "min_modulation": 0.3, "noise_sigma": 0.005, "max_coarse_px": None,
-                   "vote_tolerance_px": 0.0}
+                   "vote_tolerance_px": 0.0, "saturation": 0.98}
 
 _EDGE_JUMP_PX = 4.0
 
