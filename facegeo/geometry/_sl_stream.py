@@ -14,7 +14,8 @@ Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families a
   2006 direct / global split), and three phase sums per phase axis;
 * the outputs (float32 ``x, y, sigma_x, sigma_y, confidence, direct, global``).
 
-A 42-frame 4896 × 3264 set (white, black, 10 + 10 bits with inverses) thus needs ~1.1 GB, not
+A 42-frame 4896 × 3264 RGB set (white, black, 10 + 10 bits with inverses) peaks at 1.27 GB
+(measured, tests/test_decode.py), not
 the 8.5 GB of holding every frame as float32 RGB.
 """
 
@@ -37,16 +38,6 @@ log = logging.getLogger(__name__)
 _AXES = ("x", "y")
 _MARGIN_STEPS = 510.0  # uint8 margin quantisation: 1/510 of full scale, saturating at 0.5
 _CHUNK = 1 << 18  # pixels per chunk when finishing
-_HF_STRIPE_PX = 16.0  # widest stripe (projector px) used for the direct / global split
-
-
-def _stripe_width_px(spec, code: str, axis: str, bit: int) -> float:
-    """Widest stripe of a binary plane, projector pixels (Gray plane i of n: 2**(n-i) stripes;
-    an XOR plane below its base: twice the base plane's)."""
-    n = spec.n_bits(axis)
-    b = base_plane(code, n)
-    k = n - b + 1 if (b is not None and bit < b) else n - bit
-    return float(2 ** k * (1 << spec.stripe_shift(axis)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,13 +159,6 @@ class StreamDecoder:
                        if p.kind == "gray" and not p.inverse]
         self.plane_index = {k: i for i, k in enumerate(self.planes)}
         self.families = [(c, a) for c in spec.codes for a in _AXES if spec.n_bits(a)]
-        # Planes for the direct / global split (Nayar et al. 2006 need patterns whose stripes
-        # are fine against the global light's spread): stripes at most _HF_STRIPE_PX wide;
-        # all planes when the set has none.
-        widths = {k: _stripe_width_px(spec, *k) for k in self.planes}
-        hf = {k for k, w in widths.items() if w <= _HF_STRIPE_PX}
-        # without inverse frames a few fine planes may all be on (or off) at a pixel: all planes
-        self.hf_planes = hf if (hf and spec.inverse) else set(widths)
         self.pending: dict[tuple, tuple[bool, np.ndarray]] = {}
 
     # ---------------------------------------------------------------- accumulation
@@ -233,9 +217,8 @@ class StreamDecoder:
             C += np.float32(math.cos(dk)) * lum
             A += lum
         else:
-            if (p.code, p.axis, p.index) in self.hf_planes:
-                np.maximum(self.lmax, lum, out=self.lmax)
-                np.minimum(self.lmin, lum, out=self.lmin)
+            np.maximum(self.lmax, lum, out=self.lmax)
+            np.minimum(self.lmin, lum, out=self.lmin)
             k = self.plane_index[(p.code, p.axis, p.index)]
             if not self.spec.inverse:
                 self.values[k] = lum

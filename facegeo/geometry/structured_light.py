@@ -935,10 +935,12 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
     L_min) / 2`` over the pixel's binary frames when there are no white / black frames either).
     Its margin (``|pattern - inverse|``, or twice the distance to the threshold) is *reliable*
     when ``margin >= max(min_contrast, rel_contrast * L_d)``, with ``L_d = L_max - L_min`` the
-    pixel's direct light from the binary frames with stripes at most 16 projector pixels wide
-    (with inverse frames; all binary frames if none is that fine or without inverses; Nayar et al. 2006, Sec. 3: ``L_max = L_d + L_g/2``,
-    ``L_min = L_g/2`` under half-on high-frequency patterns; the global part ``L_g = 2 L_min``
-    is returned too). A pixel keeps the planes it resolves: its coordinate
+    pixel's direct light from its binary frames (Nayar et al. 2006, Sec. 3: ``L_max = L_d +
+    L_g/2``, ``L_min = L_g/2`` under half-on high-frequency patterns; the global part
+    ``L_g = 2 L_min`` is returned too). All binary planes are used, coarse ones included: under
+    interreflection this overestimates ``L_d`` (and the thresholds err on the strict side);
+    restricting to the fine planes was measured worse on skin, where subsurface scattering
+    blurs stripes of a few millimetres and the "direct" light they show is too small. A pixel keeps the planes it resolves: its coordinate
     comes from the prefix of reliable planes (a block of ``2**k`` stripes, centre and
     ``σ = w / sqrt(12)``), or, when exactly one plane is unresolved and the two candidate
     codes are neighbours, from the stripe boundary between them. The coordinate is valid when
