@@ -504,3 +504,16 @@ def test_memory_42_full_resolution_frames_under_1_5_gb():
     valid, peak_mb = map(float, out.stdout.split())
     assert valid > 0.99
     assert peak_mb < MEMORY_PEAK_MB_MAX, peak_mb
+
+
+def test_skin_effects_dict_round_trip_and_validation():
+    from facegeo.synth.sl_effects import SkinEffects
+
+    e = SkinEffects(subsurface="dipole", interreflection=0.7, ir_sigma_px=5.0)
+    assert SkinEffects.from_dict(json.loads(json.dumps(e.to_dict()))) == e
+    with pytest.raises(InputError, match="subsurface"):
+        SkinEffects(subsurface="blur")
+    with pytest.raises(InputError, match="subsurface_fraction"):
+        SkinEffects(subsurface_fraction=1.5)
+    with pytest.raises(InputError, match="unknown key"):
+        SkinEffects.from_dict({"mfp": 1.0})

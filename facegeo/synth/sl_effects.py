@@ -113,6 +113,15 @@ class SkinEffects:
             raise InputError(f"SkinEffects.ir_sigma_px: expected a number > 0, got "
                              f"{fmt_value(self.ir_sigma_px)}")
 
+    def to_dict(self) -> dict[str, Any]:
+        """Plain numbers / strings / lists (for a scan manifest); ``None`` left out."""
+        out = {}
+        for k in self.__dataclass_fields__:
+            v = getattr(self, k)
+            if v is not None:
+                out[k] = list(v) if isinstance(v, tuple) else v
+        return out
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SkinEffects:
         """Build from a mapping of the attribute names (unknown keys raise InputError)."""
@@ -120,6 +129,10 @@ class SkinEffects:
         unknown = sorted(set(d) - known)
         if unknown:
             raise InputError(f"SkinEffects: unknown key(s) {unknown}; valid keys are {sorted(known)}")
+        d = dict(d)
+        for k in ("sigma_a", "sigma_s_prime"):
+            if isinstance(d.get(k), list):
+                d[k] = tuple(d[k])
         return cls(**d)
 
 
@@ -312,8 +325,9 @@ def apply_effects(image, mask, effects: SkinEffects, *, pixel_mm: float,
     return out.astype(np.float32)
 
 
-def render_sl_frames(renderer, spec, camera, *, supersample: int = 3, exposure: float = 3.0,
-                     ambient: float = 0.02, effects: SkinEffects | None = None):
+def render_sl_frames(renderer, spec, camera, *, projector=None, supersample: int = 3,
+                     exposure: float = 3.0, ambient: float = 0.02,
+                     effects: SkinEffects | None = None):
     """Yield ``(name, frame)``: noise-free linear structured-light frames of ``camera``.
 
     The generator's model (``facegeo.synth.capture._write_scan``): the skin BRDF shaded under the
@@ -325,9 +339,11 @@ def render_sl_frames(renderer, spec, camera, *, supersample: int = 3, exposure: 
     Parameters
     ----------
     renderer : facegeo.synth.render.ReferenceRenderer
-        With its ``rig`` (e.g. :func:`facegeo.synth.render.load_ground_truth`).
     spec : PatternSpec
     camera : facegeo.geometry.camera.Camera
+    projector : facegeo.geometry.camera.Camera, optional
+        Default ``renderer.rig.projector`` (set by
+        :func:`facegeo.synth.render.load_ground_truth`).
     supersample, exposure, ambient, effects
         As above.
 
@@ -338,7 +354,7 @@ def render_sl_frames(renderer, spec, camera, *, supersample: int = 3, exposure: 
     """
     from facegeo.geometry.structured_light import pattern_names, pattern_value_at
 
-    proj = renderer.rig.projector
+    proj = renderer.rig.projector if projector is None else projector
     view = renderer.surface_view(camera, supersample=supersample)
     unit = renderer.shade_point_light(view, proj.center_world, np.ones(3),
                                       stage_radius=float(np.linalg.norm(proj.center_world)))
