@@ -31,6 +31,7 @@ import numpy as np
 
 from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ShapeError
+from facegeo.geometry import _sl_kernels as _kern
 from facegeo.geometry._sl_codes import base_plane
 
 log = logging.getLogger(__name__)
@@ -112,19 +113,11 @@ def _luminance(frame: Any, name: str, shape, full_scale: float | None) -> np.nda
         full_scale = float(np.iinfo(a.dtype).max) if a.dtype.kind in "iu" else 1.0
     C = a.shape[2] if a.ndim == 3 else 1
     if C > 1:
-        # channel sum, one plane at a time (numpy's mean over a short last axis is ~40x slower);
-        # 8-bit sums stay exact in uint16, 16-bit ones in uint32
-        acc = {1: np.uint16, 2: np.uint32}.get(a.dtype.itemsize) if a.dtype.kind == "u" else None
-        acc = acc or np.float32
-        lum = a[..., 0].astype(acc)
-        for c in range(1, C):
-            np.add(lum, a[..., c], out=lum, casting="unsafe")
-        lum = lum.astype(np.float32, copy=False)
-        full_scale = full_scale * C
+        lum = _kern.luminance(a, 1.0 / (full_scale * C))  # one compiled pass
     else:
         lum = (a[..., 0] if a.ndim == 3 else a).astype(np.float32, copy=True)
-    if full_scale != 1.0:
-        lum *= np.float32(1.0 / full_scale)
+        if full_scale != 1.0:
+            lum *= np.float32(1.0 / full_scale)
     if a.dtype.kind == "f" and not np.isfinite(lum).all():
         idx = np.argwhere(~np.isfinite(lum))[0]
         raise InputError(f"frames[{fmt_value(name)}]: non-finite value (NaN or inf) at row "
@@ -217,10 +210,10 @@ class StreamDecoder:
             C += np.float32(math.cos(dk)) * lum
             A += lum
         else:
-            np.maximum(self.lmax, lum, out=self.lmax)
-            np.minimum(self.lmin, lum, out=self.lmin)
             k = self.plane_index[(p.code, p.axis, p.index)]
             if not self.spec.inverse:
+                np.maximum(self.lmax, lum, out=self.lmax)
+                np.minimum(self.lmin, lum, out=self.lmin)
                 self.values[k] = lum
                 return
             key = (p.code, p.axis, p.index)
@@ -229,17 +222,10 @@ class StreamDecoder:
                 self.pending[key] = (p.inverse, lum)
                 return
             pos, neg = (other[1], lum) if p.inverse else (lum, other[1])
-            d = np.subtract(pos, neg, out=lum)
-            words = self.signs[(p.code, p.axis)]
-            n = self.spec.n_bits(p.axis)
-            bit = (d > 0).astype(words.dtype)
-            bit <<= n - 1 - p.index
-            words |= bit
-            np.abs(d, out=d)
-            d *= _MARGIN_STEPS
-            np.minimum(d, 255.0, out=d)
-            np.rint(d, out=d)
-            self.margin[k] = d
+            # one compiled pass: decision bit, uint8 margin, running L_max / L_min
+            _kern.pair_update(pos, neg, self.signs[(p.code, p.axis)],
+                              self.spec.n_bits(p.axis) - 1 - p.index, self.margin[k],
+                              _MARGIN_STEPS, self.lmax, self.lmin)
 
     # ---------------------------------------------------------------- decoding
 
