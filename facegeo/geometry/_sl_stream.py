@@ -429,57 +429,37 @@ class StreamDecoder:
                 binary ^= binary >> shift
                 shift *= 2
             u = (~rel.astype(np.int64)) & full  # unresolved planes
-            # first unresolved plane (MSB index), n if none
-            blen = np.zeros(u.shape, np.int64)
-            nz = u > 0
-            blen[nz] = np.frexp(u[nz].astype(np.float64))[1]
-            first = n - blen
-            single = nz & ((u & (u - 1)) == 0)
-            # (a) one unresolved plane at an edge of that plane: the two candidate codes are
-            #     neighbours (Gray codes change one plane between neighbours) -> the boundary.
-            flip = binary ^ ((np.int64(1) << (n - first)) - 1)
-            edge = single & (np.abs(flip - binary) == 1)
-            # (b) otherwise the resolved prefix names a block of 2**(n - first) stripes.
-            # (c) one unresolved plane, candidates far apart: the phase may pick one.
-            picked = np.zeros(u.shape, bool)
-            if hint is not None:
-                phi, usable, kk, period = hint
-                amb = single & ~edge & usable
-                idx = np.flatnonzero(amb)
-                if idx.size:
-                    ca = binary[idx] * step + 0.5 * (step - 1.0)
-                    cb = flip[idx] * step + 0.5 * (step - 1.0)
-                    da = np.abs(np.angle(np.exp(1j * (phi[idx] - kk * (ca + 0.5)))))
-                    db = np.abs(np.angle(np.exp(1j * (phi[idx] - kk * (cb + 0.5)))))
-                    dmin, dmax = np.minimum(da, db), np.maximum(da, db)
-                    good = (dmin < 0.5 * np.pi) & (
-                        (dmax >= 0.5 * np.pi) | (np.abs(ca - cb) < 0.5 * period))
-                    picked[idx] = good
-                    binary = binary.copy()
-                    swap = idx[good & (db < da)]
-                    binary[swap] = flip[swap]
-            w = (np.int64(1) << (n - first)).astype(np.float64)
-            block = binary >> (n - first)
-            c_st = np.where(edge, 0.5 * (binary + flip),
-                            np.where(picked, binary, block * w + 0.5 * (w - 1)))
-            w_eff = np.where(edge | picked, 1.0, w)
-            exists = np.where(edge, np.maximum(binary, flip),
-                              np.where(picked, binary, block * w)) < n_stripes
+            P = u.size
+            first = np.full(P, n, np.int64)  # first unresolved plane (MSB index), n if none
+            c_st = binary.astype(np.float64)  # coordinate in stripes
+            w_eff = np.ones(P)  # width of the named block, stripes
+            exists = binary < n_stripes
+            edge = np.zeros(P, bool)
+            picked = np.zeros(P, bool)
+            idx = np.flatnonzero(u)  # only pixels with unresolved planes need more work
+            if idx.size:
+                sub = None if hint is None else (hint[0][idx], hint[1][idx], hint[2], hint[3])
+                (first[idx], c_st[idx], w_eff[idx], exists[idx], edge[idx],
+                 picked[idx]) = _partial_codes(binary[idx], u[idx], n, step, n_stripes, sub)
             ok = lit & exists & ((w_eff * step <= coarse_lim + 1e-9) | edge | picked)
             coord = c_st * step + 0.5 * (step - 1.0)
             sig = np.where(edge, 0.5 * step, w_eff * step / math.sqrt(12.0))
             # confidence: weakest margin among the planes used, over the direct light
-            limit = np.where(edge | picked, n, first)
-            mmin = np.full(u.shape, np.inf, np.float32)
+            mmin = margins.min(axis=0)
             st = stats[code]
-            for i in range(n):
-                plane_bad = ((u >> (n - 1 - i)) & 1).astype(bool)
-                st["unresolved"][i] += int(np.count_nonzero(plane_bad & lit))
-                np.minimum(mmin, np.where(plane_bad | (limit <= i), np.inf, margins[i]), out=mmin)
+            if idx.size:
+                limit = np.where(edge[idx] | picked[idx], n, first[idx])
+                us, lit_s = u[idx], lit[idx]
+                ms = np.full(idx.size, np.inf, np.float32)
+                for i in range(n):
+                    bad_i = ((us >> (n - 1 - i)) & 1).astype(bool)
+                    st["unresolved"][i] += int(np.count_nonzero(bad_i & lit_s))
+                    np.minimum(ms, np.where(bad_i | (limit <= i), np.inf, margins[i, idx]), out=ms)
+                ms[~np.isfinite(ms)] = 0.0
+                mmin[idx] = ms
             lost = np.bincount(first[lit & ~ok], minlength=n + 1)
             for i in range(n):
                 st["lost"][i] += int(lost[i])
-            mmin[~np.isfinite(mmin)] = 0.0
             conf = np.clip(mmin / np.maximum(ref, 1e-12), 0.0, 1.0)
             results.append((coord, sig, ok, conf, w_eff * step))
         if len(results) == 1:
@@ -513,6 +493,47 @@ class StreamDecoder:
         stats["votes_disagree"] += int(np.count_nonzero(lit & (n_ok >= 2) & ~ok))
         conf = conf * (nbest + 1) / F
         return (coord.astype(np.float32), sig.astype(np.float32), ok, conf.astype(np.float32))
+
+
+
+def _partial_codes(binary, u, n, step, n_stripes, hint):
+    """Coordinates of pixels with unresolved planes ``u`` (int64 words, all non-zero).
+
+    Returns ``first`` (first unresolved plane), ``c_st`` (coordinate, stripes), ``w_eff`` (block
+    width, stripes), ``exists`` (the block is on the projector), ``edge``, ``picked`` — see
+    :func:`facegeo.geometry.structured_light.decode_stream`:
+
+    * (a) one unresolved plane at an edge of that plane: the two candidate codes are neighbours
+      (Gray codes change one plane between neighbours) → the boundary between them;
+    * (c) one unresolved plane, candidates far apart: the phase ``hint = (phi, usable, k,
+      period)`` picks the one whose predicted phase ``k (x + 0.5)`` is within a quarter period;
+    * (b) otherwise the resolved prefix names a block of ``2**(n - first)`` stripes.
+    """
+    first = n - np.frexp(u.astype(np.float64))[1].astype(np.int64)
+    single = (u & (u - 1)) == 0
+    flip = binary ^ ((np.int64(1) << (n - first)) - 1)
+    edge = single & (np.abs(flip - binary) == 1)
+    picked = np.zeros(u.shape, bool)
+    if hint is not None:
+        phi, usable, kk, period = hint
+        amb = np.flatnonzero(single & ~edge & usable)
+        if amb.size:
+            ca = binary[amb] * step + 0.5 * (step - 1.0)
+            cb = flip[amb] * step + 0.5 * (step - 1.0)
+            da = np.abs(np.angle(np.exp(1j * (phi[amb] - kk * (ca + 0.5)))))
+            db = np.abs(np.angle(np.exp(1j * (phi[amb] - kk * (cb + 0.5)))))
+            dmin, dmax = np.minimum(da, db), np.maximum(da, db)
+            good = (dmin < 0.5 * np.pi) & ((dmax >= 0.5 * np.pi) | (np.abs(ca - cb) < 0.5 * period))
+            picked[amb] = good
+            binary = binary.copy()
+            swap = amb[good & (db < da)]
+            binary[swap] = flip[swap]
+    w = (np.int64(1) << (n - first)).astype(np.float64)
+    block = binary >> (n - first)
+    c_st = np.where(edge, 0.5 * (binary + flip), np.where(picked, binary, block * w + 0.5 * (w - 1)))
+    w_eff = np.where(edge | picked, 1.0, w)
+    exists = np.where(edge, np.maximum(binary, flip), np.where(picked, binary, block * w)) < n_stripes
+    return first, c_st, w_eff, exists, edge, picked
 
 
 def decode_frames(frames: Iterable, spec, *, full_scale=None, **settings) -> StreamDecode:
