@@ -153,6 +153,7 @@ class StreamDecoder:
         self.plane_index = {k: i for i, k in enumerate(self.planes)}
         self.families = [(c, a) for c in spec.codes for a in _AXES if spec.n_bits(a)]
         self.pending: dict[tuple, tuple[bool, np.ndarray]] = {}
+        self.finished = False
 
     # ---------------------------------------------------------------- accumulation
 
@@ -185,6 +186,8 @@ class StreamDecoder:
         ShapeError
             A frame whose size differs from the first one's, or not an image.
         """
+        if self.finished:
+            raise InputError("StreamDecoder.add: the decoder is finished; start a new one")
         p = self.table.get(name) if isinstance(name, str) else None
         if p is None:
             names = list(self.table)
@@ -251,8 +254,18 @@ class StreamDecoder:
         if max_coarse_px is not None:
             max_coarse_px = float(as_array(max_coarse_px, "max_coarse_px", shape=()))
         H, W = self.shape
-        out = {k: np.full((H, W), np.nan, np.float32)
-               for k in ("x", "y", "sigma_x", "sigma_y", "direct", "global_", "lit")}
+        if self.finished:
+            raise InputError("StreamDecoder.finish: already finished (its accumulators hold the "
+                             "result now); start a new decoder")
+        self.finished = True
+        out = {k: np.full((H, W), np.nan, np.float32) for k in ("x", "y", "sigma_x", "sigma_y")}
+        # direct / global / lit are written over the accumulators they come from (chunk by
+        # chunk, after the chunk has read them): 3 full-size planes less at the peak
+        nan_plane = lambda: np.full((H, W), np.nan, np.float32)  # noqa: E731
+        out["direct"] = self.lmax if self.planes else nan_plane()
+        out["global_"] = self.lmin if self.planes else nan_plane()
+        out["lit"] = self.white if spec.white_black else (
+            out["direct"] if self.planes else nan_plane())
         out["valid_x"] = np.zeros((H, W), bool)
         out["valid_y"] = np.zeros((H, W), bool)
         out["confidence"] = np.zeros((H, W), np.float32)
@@ -290,10 +303,7 @@ class StreamDecoder:
         has_bin = bool(self.planes)
         lmax = self._chunk_lum(self.lmax, sl)
         lmin = self._chunk_lum(self.lmin, sl)
-        if has_bin:
-            direct = lmax - lmin
-            flat["direct"][sl] = direct
-            flat["global_"][sl] = 2.0 * np.maximum(lmin, 0.0)
+        direct = lmax - lmin if has_bin else None
         if spec.white_black:
             lit = self._chunk_lum(self.white, sl) - self._chunk_lum(self.black, sl)
         elif has_bin:
@@ -302,6 +312,16 @@ class StreamDecoder:
             a0 = next(iter(self.phase))
             lit = 2.0 * self.phase[a0][2].reshape(-1)[sl] / spec.phase_steps
         lit = np.asarray(lit, np.float32)
+        thr = None
+        if has_bin and not spec.inverse:
+            if spec.white_black:
+                thr = 0.5 * (self._chunk_lum(self.white, sl) + self._chunk_lum(self.black, sl))
+            else:
+                thr = 0.5 * (lmax + lmin)
+        # the chunk's accumulators are read: overwrite them with the outputs (see finish)
+        if has_bin:
+            flat["global_"][sl] = 2.0 * np.maximum(lmin, 0.0)
+            flat["direct"][sl] = direct
         flat["lit"][sl] = lit
         shadow = ~(lit >= vals["shadow_threshold"])
         flat["shadow"][sl] = shadow
@@ -310,12 +330,6 @@ class StreamDecoder:
         n_pix = sl.stop - sl.start
         conf_all = np.ones(n_pix, np.float32)
         any_axis = False
-        thr = None
-        if has_bin and not spec.inverse:
-            if spec.white_black:
-                thr = 0.5 * (self._chunk_lum(self.white, sl) + self._chunk_lum(self.black, sl))
-            else:
-                thr = 0.5 * (lmax + lmin)
         for axis in _AXES:
             n = spec.n_bits(axis)
             phase_here = axis in self.phase
