@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CODE_FAMILIES", "code_bit", "base_plane", "min_bits"]
+__all__ = ["CODE_FAMILIES", "base_plane", "code_bit", "min_bits"]
 
 #: Code families a :class:`~facegeo.geometry.structured_light.PatternSpec` may project.
 CODE_FAMILIES = ("gray", "xor02", "xor04")

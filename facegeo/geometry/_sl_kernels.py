@@ -11,7 +11,7 @@ import functools
 
 import numpy as np
 
-__all__ = ["luminance", "pair_update", "lum_reference", "pair_reference"]
+__all__ = ["lum_reference", "luminance", "pair_reference", "pair_update"]
 
 
 @functools.cache
@@ -39,15 +39,12 @@ def _kernels():
                 if d > 0:
                     words[i, j] |= bitval
                 m = abs(d) * steps
-                if m > 255.0:
-                    m = 255.0
+                m = min(m, 255.0)
                 margin[i, j] = np.uint8(np.rint(m))
-                hi = p if p > q else q
-                lo = q if p > q else p
-                if hi > lmax[i, j]:
-                    lmax[i, j] = hi
-                if lo < lmin[i, j]:
-                    lmin[i, j] = lo
+                hi = max(q, p)
+                lo = min(p, q)
+                lmax[i, j] = max(lmax[i, j], hi)
+                lmin[i, j] = min(lmin[i, j], lo)
 
     return lum, pair
 

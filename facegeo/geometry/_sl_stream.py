@@ -12,9 +12,10 @@ Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families a
   float16 (2 bytes per plane and pixel), since the per-pixel threshold is known only at the end;
 * float32 per pixel: white, black, the running max / min over the binary frames (Nayar et al.
   2006 direct / global split), and three phase sums per phase axis;
-* the outputs (float32 ``x, y, sigma_x, sigma_y, confidence, direct, global``).
+* the outputs (float32 ``x, y, sigma_x, sigma_y, confidence``; ``direct``, ``global_`` and
+  ``lit`` are written over the accumulators they come from).
 
-A 42-frame 4896 × 3264 RGB set (white, black, 10 + 10 bits with inverses) peaks at 1.27 GB
+A 42-frame 4896 × 3264 RGB set (white, black, 10 + 10 bits with inverses) peaks at 1.21 GB
 (measured, tests/test_decode.py), not
 the 8.5 GB of holding every frame as float32 RGB.
 """
@@ -140,7 +141,8 @@ class StreamDecoder:
     """
 
     def __init__(self, spec, *, full_scale: float | None = None):
-        from facegeo.geometry.structured_light import _check_full_scale, _pattern_table
+        from facegeo.geometry._sl_decode import _check_full_scale
+        from facegeo.geometry.structured_light import _pattern_table
 
         self.spec = spec
         self.full_scale = _check_full_scale(full_scale)
@@ -261,7 +263,7 @@ class StreamDecoder:
         out = {k: np.full((H, W), np.nan, np.float32) for k in ("x", "y", "sigma_x", "sigma_y")}
         # direct / global / lit are written over the accumulators they come from (chunk by
         # chunk, after the chunk has read them): 3 full-size planes less at the peak
-        nan_plane = lambda: np.full((H, W), np.nan, np.float32)  # noqa: E731
+        nan_plane = lambda: np.full((H, W), np.nan, np.float32)
         out["direct"] = self.lmax if self.planes else nan_plane()
         out["global_"] = self.lmin if self.planes else nan_plane()
         out["lit"] = self.white if spec.white_black else (
@@ -350,7 +352,7 @@ class StreamDecoder:
             ok = np.zeros(n_pix, bool)
             hint = None
             if phase_here:
-                S, C, A = (v.reshape(-1)[sl] for v in self.phase[axis])
+                S, C, _ = (v.reshape(-1)[sl] for v in self.phase[axis])
                 N = spec.phase_steps
                 phi = np.mod(np.arctan2(S, C), np.float32(2 * np.pi)).astype(np.float32)
                 phi[phi >= 2 * np.pi] = 0.0

@@ -52,8 +52,13 @@ from facegeo.pipeline.bench import peak_rss_mb
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_decode", "decode_products", "ground_truth_projector", "code_accuracy",
-           "DECODE_DEFAULTS"]
+__all__ = [
+    "DECODE_DEFAULTS",
+    "code_accuracy",
+    "decode_products",
+    "ground_truth_projector",
+    "run_decode",
+]
 
 #: Settings of :func:`facegeo.geometry.structured_light.decode_stream` used by the stage.
 DECODE_DEFAULTS = {"min_contrast": 0.005, "rel_contrast": 0.15, "shadow_threshold": 0.02,
@@ -162,7 +167,11 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     The work of :func:`run_decode` without the staging. ``settings`` are
     :data:`DECODE_DEFAULTS` keys. Returns ``(metrics, settings)``.
     """
-    from facegeo.geometry.structured_light import PatternSpec, decode_stream, pattern_names
+    from facegeo.geometry.structured_light import (
+        PatternSpec,
+        decode_stream,
+        pattern_names,
+    )
 
     unknown = sorted(set(settings) - set(DECODE_DEFAULTS))
     if unknown:
@@ -194,10 +203,9 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
         res = decode_stream(frames, spec, **used)
         d = dest / cam
         d.mkdir(parents=True, exist_ok=True)
-        with atomic_path(d / "decode.npz") as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, x=res.x, y=res.y, confidence=res.confidence,
-                                    valid=res.valid, sigma_x=res.sigma_x, sigma_y=res.sigma_y)
+        with atomic_path(d / "decode.npz") as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, x=res.x, y=res.y, confidence=res.confidence,
+                                valid=res.valid, sigma_x=res.sigma_x, sigma_y=res.sigma_y)
         _false_colour(res.x, res.valid_x, spec.width, d / "x.png")
         _false_colour(res.y, res.valid_y, spec.height, d / "y.png")
         m: dict[str, Any] = {
@@ -260,8 +268,8 @@ def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None,
     dict
         The metrics (module docstring).
     """
-    from facegeo.pipeline.cache import record_metrics
     from facegeo.fsutil import atomic_write_text
+    from facegeo.pipeline.cache import record_metrics
 
     scan = _scan(scan_dir)
     out = Path(out_dir) if out_dir is not None else scan.out_dir

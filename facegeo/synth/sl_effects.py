@@ -42,16 +42,16 @@ from facegeo.checks import as_array, check_choice, fmt_value
 from facegeo.errors import InputError, ShapeError
 
 __all__ = [
-    "SkinEffects",
-    "SKIN_MEAN_FREE_PATH_MM",
     "SKIN1_SIGMA_A",
     "SKIN1_SIGMA_S_PRIME",
-    "footprint_mm",
-    "subsurface_kernel",
-    "subsurface_blur",
-    "interreflection",
+    "SKIN_MEAN_FREE_PATH_MM",
+    "SkinEffects",
     "apply_effects",
+    "footprint_mm",
+    "interreflection",
     "render_sl_frames",
+    "subsurface_blur",
+    "subsurface_kernel",
 ]
 
 #: Jensen et al. 2001, Table 2, skin1: absorption σ_a and reduced scattering σ_s′ (mm⁻¹), R, G, B.

@@ -192,7 +192,11 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
 
     import cv2
 
-    from facegeo.geometry.structured_light import PatternSpec, decode_stream, pattern_names
+    from facegeo.geometry.structured_light import (
+        PatternSpec,
+        decode_stream,
+        pattern_names,
+    )
 
     w, h = (320, 256) if quick else (1280, 1024)
     repeat = 2 if quick else 3
