@@ -501,7 +501,7 @@ def pattern_value_at(spec: PatternSpec, name: str, q_proj) -> np.ndarray:
 
 # --------------------------------------------------------------------------- decoders
 # Whole-set decoders live in _sl_decode (they need PatternSpec above): re-exported here.
-from facegeo.geometry._sl_decode import (  # noqa: E402  (needs PatternSpec above)
+from facegeo.geometry._sl_decode import (
     GrayDecode,
     PhaseDecode,
     decode_gray,
