@@ -169,3 +169,95 @@ def bench_decode_gray(quick: bool) -> list[BenchRow]:
         )
     )
     return rows
+
+
+@register("structured_light.decode_stream")
+def bench_decode_stream(quick: bool) -> list[BenchRow]:
+    """Streaming decode (:func:`facegeo.geometry.structured_light.decode_stream`).
+
+    Frames: the warp of :func:`_frames`, white / black + 10 + 10 Gray bits with inverses
+    (42 frames), as 8-bit RGB (what a camera delivers). Rows:
+
+    * in memory — throughput, the fraction of pixels not decoded to the true projector pixel,
+      its ratio to :func:`reference_decode_gray` run on the same frames already reduced to float32
+      luminance (the reference does less: no per-bit reliability, no luminance conversion) and
+      its fraction of the read-once limit (every 8-bit frame read once at the bandwidth measured
+      in the same run, 1 thread: both decoders are single-threaded numpy);
+    * end to end from files — the frames written as PNG, then read one at a time
+      (``cv2.imread``) and streamed into the decoder; the read alone is timed separately, so the
+      decode's share of the wall time is visible.
+    """
+    import tempfile
+    from pathlib import Path
+
+    import cv2
+
+    from facegeo.geometry.structured_light import (
+        PatternSpec,
+        decode_stream,
+        pattern_names,
+    )
+
+    w, h = (320, 256) if quick else (1280, 1024)
+    repeat = 2 if quick else 3
+    spec = PatternSpec(width=1024, height=768)
+    names = pattern_names(spec)
+    gray_frames, gnames, truth_x, truth_y, _ = _frames(w, h, spec)
+    rgb = {}
+    for n in names:
+        f = gray_frames.get(n)
+        if f is None:  # white / black
+            f = np.full((h, w), 1.0 if n == "white" else 0.0, np.float32) * 0.9
+        u8 = np.clip(np.rint(f * 255), 0, 255).astype(np.uint8)
+        rgb[n] = np.repeat(u8[..., None], 3, axis=2)
+    lum = {n: (rgb[n].mean(axis=2, dtype=np.float32) / 255.0) for n in gnames}
+    nbytes = sum(a.nbytes for a in rgb.values())
+    bw = read_bandwidth()
+
+    def wrong(px, py, valid):
+        return float(np.mean((np.floor(px + 0.5) != truth_x) | (np.floor(py + 0.5) != truth_y)
+                             | ~valid))
+
+    t, res = best_of(lambda: decode_stream(rgb.items(), spec), repeat)
+    t_ref, (rx, ry, rv) = best_of(lambda: reference_decode_gray(lum, spec), repeat)
+    mpx, ref_mpx = w * h / t / 1e6, w * h / t_ref / 1e6
+    limit_1 = w * h / bw.read_once_seconds(nbytes, threads=1) / 1e6
+    size = {"pixels": f"{w}x{h}", "frames": len(names), "MB read once": round(nbytes / 1e6, 1)}
+    rows = [
+        BenchRow("structured_light.decode_stream",
+                 "facegeo decode_stream, frames in memory (8-bit RGB)", mpx, "Mpx/s",
+                 wrong(res.x, res.y, res.valid),
+                 "fraction of pixels not decoded to the true projector pixel",
+                 ratios={"vs numpy reference decode (float32 luminance given)": mpx / ref_mpx,
+                         "of read-once limit at 1-thread bandwidth": mpx / limit_1},
+                 extra={**size, "ms": round(1e3 * t, 1)}, threads=1,
+                 baseline_threads={"vs numpy reference decode (float32 luminance given)": 1,
+                                   "of read-once limit at 1-thread bandwidth": 1}),
+        BenchRow("structured_light.decode_stream",
+                 "numpy reference decode on float32 luminance", ref_mpx, "Mpx/s",
+                 wrong(rx, ry, rv), "fraction of pixels not decoded to the true projector pixel",
+                 extra={**size, "ms": round(1e3 * t_ref, 1)}, threads=1),
+    ]
+    with tempfile.TemporaryDirectory(prefix="facegeo-bench-sl-") as d:
+        paths = {}
+        for n, a in rgb.items():
+            paths[n] = Path(d) / f"{n}.png"
+            cv2.imwrite(str(paths[n]), a)
+
+        def read_only():
+            return sum(int(cv2.imread(str(p)).shape[0]) for p in paths.values())
+
+        def end_to_end():
+            return decode_stream(((n, cv2.imread(str(p))[..., ::-1]) for n, p in paths.items()),
+                                 spec)
+
+        t_read, _ = best_of(read_only, 1 if quick else 2)
+        t_e2e, res2 = best_of(end_to_end, 1 if quick else 2)
+    rows.append(BenchRow(
+        "structured_light.decode_stream", "facegeo decode_stream end to end from PNG files",
+        w * h / t_e2e / 1e6, "Mpx/s", wrong(res2.x, res2.y, res2.valid),
+        "fraction of pixels not decoded to the true projector pixel",
+        extra={**size, "ms": round(1e3 * t_e2e, 1), "ms reading PNGs alone": round(1e3 * t_read, 1),
+               "decode share of wall time": round(1 - t_read / t_e2e, 3)},
+        threads=1))
+    return rows

@@ -1,0 +1,574 @@
+"""Streaming structured-light decoder: one pass over ``(name, frame)``, per-pixel accumulators.
+
+Private implementation of :func:`facegeo.geometry.structured_light.decode_stream` (read that
+docstring first; the method is written down in ``docs/structured-light.md``).
+
+Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families and axes):
+
+* with inverse frames: one uint8 margin per bit plane and pixel (``|pattern - inverse|`` in steps
+  of 1/510 of full scale, saturating at 0.5) and the bit decisions packed into one integer word
+  per pixel, family and axis; at most one frame waits for its partner;
+* without inverse frames (the bit threshold comes from the data): the frames themselves as
+  float16 (2 bytes per plane and pixel), since the per-pixel threshold is known only at the end;
+* float32 per pixel: white, black, the running max / min over the binary frames (Nayar et al.
+  2006 direct / global split), and three phase sums per phase axis;
+* the outputs (float32 ``x, y, sigma_x, sigma_y, confidence``; ``direct``, ``global_`` and
+  ``lit`` are written over the accumulators they come from).
+
+A 42-frame 4896 × 3264 RGB set (white, black, 10 + 10 bits with inverses) peaks at 1.21 GB
+(measured, tests/test_decode.py), not
+the 8.5 GB of holding every frame as float32 RGB.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import as_array, fmt_value
+from facegeo.errors import InputError, ShapeError
+from facegeo.geometry import _sl_kernels as _kern
+from facegeo.geometry._sl_codes import base_plane
+
+log = logging.getLogger(__name__)
+
+_AXES = ("x", "y")
+_MARGIN_STEPS = 510.0  # uint8 margin quantisation: 1/510 of full scale, saturating at 0.5
+_CHUNK = 1 << 18  # pixels per chunk when finishing
+
+
+@dataclass(frozen=True, eq=False)
+class StreamDecode:
+    """Result of :func:`~facegeo.geometry.structured_light.decode_stream`.
+
+    Attributes
+    ----------
+    x, y : (H, W) float32, projector pixels (pixel-centre convention)
+        Projector column / row seen by each camera pixel; NaN where not valid on that axis (``y``
+        all NaN when the patterns code no rows).
+    valid_x, valid_y : (H, W) bool
+        The axis has a coordinate (False everywhere for an axis the patterns do not code).
+    valid : (H, W) bool
+        Valid on every axis the patterns code (Gray / XOR bits, or phase with bits to unwrap).
+    confidence : (H, W) float32 in [0, 1]
+        Weakest needed evidence relative to the pixel's direct light: the smallest margin of the
+        bits the coordinate uses over ``direct`` (Gray only) or the fringe contrast ``2 B /
+        direct`` (phase), times the fraction of code families that agree; 0 where invalid.
+    sigma_x, sigma_y : (H, W) float32, projector pixels
+        Estimated 1-σ coordinate noise: ``w / sqrt(12)`` for a code naming a ``w``-pixel block,
+        the propagated intensity noise for phase; NaN where invalid.
+    direct, global_ : (H, W) float32, fraction of full scale
+        Nayar et al. 2006 split from the binary frames, ``L_d = L_max - L_min``,
+        ``L_g = 2 L_min`` (Sec. 3, half the projector lit); NaN without binary frames.
+    lit : (H, W) float32, fraction of full scale
+        The reference for the relative thresholds: ``white - black`` with those frames, else
+        ``direct`` (else the phase offset ``2 A``).
+    shadow : (H, W) bool
+        ``lit < shadow_threshold``.
+    wrapped : dict axis -> (H, W) float32, radians in [0, 2 pi)
+        Wrapped phase per phase axis (NaN at zero modulation).
+    modulation : dict axis -> (H, W) float32, fraction of full scale
+        Fringe amplitude ``B`` per phase axis.
+    bits : dict
+        Per axis and family, per bit (MSB first): ``"unresolved"`` (lit pixels whose decision
+        on that bit is not reliable) and ``"lost"`` (lit pixels invalid on that axis because
+        that bit is the first one they could not resolve); per axis ``"votes_disagree"`` (lit
+        pixels whose families resolved but did not agree).
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    valid_x: np.ndarray
+    valid_y: np.ndarray
+    valid: np.ndarray
+    confidence: np.ndarray
+    sigma_x: np.ndarray
+    sigma_y: np.ndarray
+    direct: np.ndarray
+    global_: np.ndarray
+    lit: np.ndarray
+    shadow: np.ndarray
+    wrapped: dict = field(default_factory=dict)
+    modulation: dict = field(default_factory=dict)
+    bits: dict = field(default_factory=dict)
+
+
+def _luminance(frame: Any, name: str, shape, full_scale: float | None) -> np.ndarray:
+    """Frame as float32 (H, W) in fractions of full scale (channel mean), validated."""
+    a = np.asarray(frame)
+    if a.dtype.kind not in "fiu":
+        raise ShapeError(f"frames[{fmt_value(name)}]: expected real numbers, got dtype {a.dtype}")
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] < 1):
+        raise ShapeError(f"frames[{fmt_value(name)}]: expected shape (H, W) or (H, W, C), "
+                         f"got {a.shape}")
+    if shape is not None and a.shape[:2] != shape:
+        raise ShapeError(f"frames[{fmt_value(name)}]: size {a.shape[1]}x{a.shape[0]} (W x H) "
+                         f"differs from the first frame's {shape[1]}x{shape[0]}; all frames of "
+                         "one capture must have the same size")
+    if full_scale is None:
+        full_scale = float(np.iinfo(a.dtype).max) if a.dtype.kind in "iu" else 1.0
+    C = a.shape[2] if a.ndim == 3 else 1
+    if C > 1:
+        lum = _kern.luminance(a, 1.0 / (full_scale * C))  # one compiled pass
+    else:
+        lum = (a[..., 0] if a.ndim == 3 else a).astype(np.float32, copy=True)
+        if full_scale != 1.0:
+            lum *= np.float32(1.0 / full_scale)
+    if a.dtype.kind == "f" and not np.isfinite(lum).all():
+        idx = np.argwhere(~np.isfinite(lum))[0]
+        raise InputError(f"frames[{fmt_value(name)}]: non-finite value (NaN or inf) at row "
+                         f"{int(idx[0])}, column {int(idx[1])}")
+    return lum
+
+
+def _word_dtype(n: int):
+    return np.uint8 if n <= 8 else np.uint16 if n <= 16 else np.uint32
+
+
+class StreamDecoder:
+    """Accumulate structured-light frames one at a time; :meth:`finish` decodes.
+
+    Parameters
+    ----------
+    spec : PatternSpec
+    full_scale : float, optional
+        The frames' white level (default: dtype maximum for integer frames, 1 for floats).
+    """
+
+    def __init__(self, spec, *, full_scale: float | None = None):
+        from facegeo.geometry._sl_decode import _check_full_scale
+        from facegeo.geometry.structured_light import _pattern_table
+
+        self.spec = spec
+        self.full_scale = _check_full_scale(full_scale)
+        self.table = _pattern_table(spec)
+        self.seen: set[str] = set()
+        self.shape: tuple[int, int] | None = None
+        # binary planes: (code, axis, bit) -> storage index
+        self.planes = [(p.code, p.axis, p.index) for p in self.table.values()
+                       if p.kind == "gray" and not p.inverse]
+        self.plane_index = {k: i for i, k in enumerate(self.planes)}
+        self.families = [(c, a) for c in spec.codes for a in _AXES if spec.n_bits(a)]
+        self.pending: dict[tuple, tuple[bool, np.ndarray]] = {}
+        self.finished = False
+
+    # ---------------------------------------------------------------- accumulation
+
+    def _allocate(self, shape) -> None:
+        H, W = shape
+        self.shape = (H, W)
+        spec = self.spec
+        n = len(self.planes)
+        if spec.inverse:
+            self.margin = np.zeros((n, H, W), np.uint8)
+            self.signs = {(c, a): np.zeros((H, W), _word_dtype(spec.n_bits(a)))
+                          for c, a in self.families}
+        else:
+            self.values = np.zeros((n, H, W), np.float16)
+        self.lmax = np.full((H, W), -np.inf, np.float32) if n else None
+        self.lmin = np.full((H, W), np.inf, np.float32) if n else None
+        self.white = self.black = None
+        N = spec.phase_steps
+        self.phase_max = np.zeros((H, W), np.float32) if N else None
+        self.phase = {a: [np.zeros((H, W), np.float32) for _ in range(3)]
+                      for a in (spec.phase_axes if N else ())}
+
+    def add(self, name: str, frame) -> None:
+        """Fold frame ``name`` (one of ``pattern_names(spec)``) into the accumulators.
+
+        Raises
+        ------
+        InputError
+            Unknown or repeated frame name; NaN / inf in a float frame.
+        ShapeError
+            A frame whose size differs from the first one's, or not an image.
+        """
+        if self.finished:
+            raise InputError("StreamDecoder.add: the decoder is finished; start a new one")
+        p = self.table.get(name) if isinstance(name, str) else None
+        if p is None:
+            names = list(self.table)
+            shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
+            raise InputError(f"frames: unknown frame name {fmt_value(name)} for this pattern "
+                             f"set; expected one of {shown}")
+        if name in self.seen:
+            raise InputError(f"frames: frame {fmt_value(name)} given twice")
+        lum = _luminance(frame, name, self.shape, self.full_scale)
+        if self.shape is None:
+            self._allocate(lum.shape)
+        self.seen.add(name)
+        if p.kind == "white":
+            self.white = lum
+        elif p.kind == "black":
+            self.black = lum
+        elif p.kind == "phase":
+            N = self.spec.phase_steps
+            dk = 2.0 * math.pi * p.index / N
+            S, C, A = self.phase[p.axis]
+            np.maximum(self.phase_max, lum, out=self.phase_max)
+            S += np.float32(math.sin(dk)) * lum
+            C += np.float32(math.cos(dk)) * lum
+            A += lum
+        else:
+            k = self.plane_index[(p.code, p.axis, p.index)]
+            if not self.spec.inverse:
+                np.maximum(self.lmax, lum, out=self.lmax)
+                np.minimum(self.lmin, lum, out=self.lmin)
+                self.values[k] = lum
+                return
+            key = (p.code, p.axis, p.index)
+            other = self.pending.pop(key, None)
+            if other is None:
+                self.pending[key] = (p.inverse, lum)
+                return
+            pos, neg = (other[1], lum) if p.inverse else (lum, other[1])
+            # one compiled pass: decision bit, uint8 margin, running L_max / L_min
+            _kern.pair_update(pos, neg, self.signs[(p.code, p.axis)],
+                              self.spec.n_bits(p.axis) - 1 - p.index, self.margin[k],
+                              _MARGIN_STEPS, self.lmax, self.lmin)
+
+    # ---------------------------------------------------------------- decoding
+
+    def finish(self, *, min_contrast: float = 0.005, rel_contrast: float = 0.15,
+               shadow_threshold: float = 0.02, min_modulation: float = 0.3,
+               noise_sigma: float = 0.005, max_coarse_px: float | None = None,
+               vote_tolerance_px: float = 0.0, saturation: float = 0.98) -> StreamDecode:
+        """Decode the accumulated frames (see ``decode_stream`` for the parameters)."""
+        spec = self.spec
+        missing = [n for n in self.table if n not in self.seen]
+        if missing:
+            raise InputError(
+                f"frames: {len(self.seen)} frame(s) given, the pattern set has "
+                f"{len(self.table)}; missing {missing[:12]}{' ...' if len(missing) > 12 else ''}")
+        vals = {}
+        for key, v in (("min_contrast", min_contrast), ("rel_contrast", rel_contrast),
+                       ("shadow_threshold", shadow_threshold), ("min_modulation", min_modulation),
+                       ("noise_sigma", noise_sigma), ("vote_tolerance_px", vote_tolerance_px),
+                       ("saturation", saturation)):
+            vals[key] = float(as_array(v, key, shape=()))
+            if vals[key] < 0:
+                raise InputError(f"{key}: expected a number >= 0, got {v}")
+        if max_coarse_px is not None:
+            max_coarse_px = float(as_array(max_coarse_px, "max_coarse_px", shape=()))
+        H, W = self.shape
+        if self.finished:
+            raise InputError("StreamDecoder.finish: already finished (its accumulators hold the "
+                             "result now); start a new decoder")
+        self.finished = True
+        out = {k: np.full((H, W), np.nan, np.float32) for k in ("x", "y", "sigma_x", "sigma_y")}
+        # direct / global / lit are written over the accumulators they come from (chunk by
+        # chunk, after the chunk has read them): 3 full-size planes less at the peak
+        nan_plane = lambda: np.full((H, W), np.nan, np.float32)
+        out["direct"] = self.lmax if self.planes else nan_plane()
+        out["global_"] = self.lmin if self.planes else nan_plane()
+        out["lit"] = self.white if spec.white_black else (
+            out["direct"] if self.planes else nan_plane())
+        out["valid_x"] = np.zeros((H, W), bool)
+        out["valid_y"] = np.zeros((H, W), bool)
+        out["confidence"] = np.zeros((H, W), np.float32)
+        out["shadow"] = np.zeros((H, W), bool)
+        wrapped = {a: np.full((H, W), np.nan, np.float32) for a in self.phase}
+        modulation = {a: np.zeros((H, W), np.float32) for a in self.phase}
+        bits = {a: {c: {"unresolved": [0] * spec.n_bits(a), "lost": [0] * spec.n_bits(a)}
+                    for c in spec.codes} | {"votes_disagree": 0}
+                for a in _AXES if spec.n_bits(a)}
+        flat = {k: v.reshape(-1) for k, v in out.items()}
+        fw = {a: v.reshape(-1) for a, v in wrapped.items()}
+        fm = {a: v.reshape(-1) for a, v in modulation.items()}
+        P = H * W
+        for p0 in range(0, P, _CHUNK):
+            sl = slice(p0, min(P, p0 + _CHUNK))
+            self._finish_chunk(sl, flat, fw, fm, bits, vals, max_coarse_px)
+        coded = [a for a in _AXES if spec.n_bits(a)]
+        lit_any = ~out["shadow"]
+        if not lit_any.any():
+            raise InputError(
+                f"frames: no pixel is lit by the projector (lit level below shadow_threshold="
+                f"{shadow_threshold} of full scale everywhere; max lit "
+                f"{float(np.nanmax(out['lit'])) if np.isfinite(out['lit']).any() else 0:.4g}): "
+                "all-dark frames, a wrong full_scale or frames of another capture")
+        out["valid"] = np.full((H, W), bool(coded))  # no coded axis: nothing is valid
+        for a in coded:
+            out["valid"] &= out[f"valid_{a}"]
+        return StreamDecode(wrapped=wrapped, modulation=modulation, bits=bits, **out)
+
+    def _chunk_lum(self, arr, sl):
+        return None if arr is None else arr.reshape(-1)[sl]
+
+    def _finish_chunk(self, sl, flat, fw, fm, bits, vals, max_coarse_px) -> None:
+        spec = self.spec
+        has_bin = bool(self.planes)
+        lmax = self._chunk_lum(self.lmax, sl)
+        lmin = self._chunk_lum(self.lmin, sl)
+        direct = lmax - lmin if has_bin else None
+        if spec.white_black:
+            lit = self._chunk_lum(self.white, sl) - self._chunk_lum(self.black, sl)
+        elif has_bin:
+            lit = direct
+        else:
+            a0 = next(iter(self.phase))
+            lit = 2.0 * self.phase[a0][2].reshape(-1)[sl] / spec.phase_steps
+        lit = np.asarray(lit, np.float32)
+        thr = None
+        if has_bin and not spec.inverse:
+            if spec.white_black:
+                thr = 0.5 * (self._chunk_lum(self.white, sl) + self._chunk_lum(self.black, sl))
+            else:
+                thr = 0.5 * (lmax + lmin)
+        # the chunk's accumulators are read: overwrite them with the outputs (see finish)
+        if has_bin:
+            flat["global_"][sl] = 2.0 * np.maximum(lmin, 0.0)
+            flat["direct"][sl] = direct
+        flat["lit"][sl] = lit
+        shadow = ~(lit >= vals["shadow_threshold"])
+        flat["shadow"][sl] = shadow
+        ref = direct if has_bin else lit
+        tau = np.maximum(np.float32(vals["min_contrast"]), np.float32(vals["rel_contrast"]) * ref)
+        n_pix = sl.stop - sl.start
+        conf_all = np.ones(n_pix, np.float32)
+        any_axis = False
+        for axis in _AXES:
+            n = spec.n_bits(axis)
+            phase_here = axis in self.phase
+            if not n and not phase_here:
+                continue
+            any_axis = True
+            size = spec.width if axis == "x" else spec.height
+            s = spec.stripe_shift(axis)
+            step = float(1 << s)
+            period = size / spec.phase_periods(axis) if phase_here else None
+            if max_coarse_px is not None:
+                coarse_lim = max_coarse_px
+            else:
+                coarse_lim = period / 2.0 if phase_here else step
+            coord = np.full(n_pix, np.nan, np.float32)
+            sig = np.full(n_pix, np.nan, np.float32)
+            conf = np.zeros(n_pix, np.float32)
+            ok = np.zeros(n_pix, bool)
+            hint = None
+            if phase_here:
+                S, C, _ = (v.reshape(-1)[sl] for v in self.phase[axis])
+                N = spec.phase_steps
+                phi = np.mod(np.arctan2(S, C), np.float32(2 * np.pi)).astype(np.float32)
+                phi[phi >= 2 * np.pi] = 0.0
+                B = (2.0 / N) * np.hypot(S, C)
+                fm[axis][sl] = B
+                phi_out = phi.copy()
+                phi_out[~(B > 0)] = np.nan
+                fw[axis][sl] = phi_out
+                pconf = np.clip(2.0 * B / np.maximum(ref, 1e-12), 0.0, 1.0).astype(np.float32)
+                # a clipped fringe biases the phase: saturated pixels fall back to the code
+                pok = ~shadow & (pconf >= vals["min_modulation"]) \
+                    & (self.phase_max.reshape(-1)[sl] < vals["saturation"])
+                hint = (phi, pok, 2.0 * np.pi * spec.phase_periods(axis) / size, period)
+            if n:
+                coord, sig, ok, conf = self._decode_axis(
+                    axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
+                    hint)
+            if phase_here:
+                k = 2.0 * np.pi * spec.phase_periods(axis) / size
+                if n:
+                    with np.errstate(invalid="ignore"):
+                        m = np.round((k * (coord.astype(np.float64) + 0.5) - phi) / (2 * np.pi))
+                    xp = (phi + 2 * np.pi * m) / k - 0.5
+                    use = ok & pok
+                    psig = (vals["noise_sigma"] * math.sqrt(2.0 / N)
+                            / np.maximum(B, 1e-12) / k).astype(np.float32)
+                    # Coarse-only pixels keep a coordinate only if exact to one stripe.
+                    keep_coarse = ok & ~pok & (sig <= step / math.sqrt(12.0) + 1e-6)
+                    coord = np.where(use, xp, np.where(keep_coarse, coord, np.nan)).astype(np.float32)
+                    sig = np.where(use, psig, np.where(keep_coarse, sig, np.nan)).astype(np.float32)
+                    conf = np.where(use, np.minimum(conf, pconf), np.where(keep_coarse, conf, 0))
+                    ok = use | keep_coarse
+                # phase without binary codes: no unwrapping, the axis stays invalid
+            flat[axis][sl] = np.where(ok, coord, np.nan)
+            flat[f"sigma_{axis}"][sl] = np.where(ok, sig, np.nan)
+            flat[f"valid_{axis}"][sl] = ok
+            conf_all = np.minimum(conf_all, np.where(ok, conf, 0.0))
+        if any_axis:
+            flat["confidence"][sl] = conf_all
+
+    def _bit_words(self, code, axis, n, sl, tau, thr):
+        """(signs, reliable) packed words of family ``code`` on ``axis`` for pixels ``sl``, and
+        the smallest margin over each bit as (n, P) float32."""
+        dt = _word_dtype(n)
+        n_pix = sl.stop - sl.start
+        rel = np.zeros(n_pix, dt)
+        margins = np.empty((n, n_pix), np.float32)
+        if self.spec.inverse:
+            signs = self.signs[(code, axis)].reshape(-1)[sl].copy()
+        else:
+            signs = np.zeros(n_pix, dt)
+        for i in range(n):
+            k = self.plane_index[(code, axis, i)]
+            if self.spec.inverse:
+                m = self.margin[k].reshape(-1)[sl].astype(np.float32) * np.float32(1.0 / _MARGIN_STEPS)
+            else:
+                v = self.values[k].reshape(-1)[sl].astype(np.float32) - thr
+                signs |= (v > 0).astype(dt) << dt(n - 1 - i)
+                m = 2.0 * np.abs(v)
+            margins[i] = m
+            rel |= (m >= tau).astype(dt) << dt(n - 1 - i)
+        b = base_plane(code, n)
+        if b is not None and b > 0:
+            high = dt(((1 << b) - 1) << (n - b))  # planes i < b
+            base_sign = (signs >> dt(n - 1 - b)) & dt(1)
+            signs ^= base_sign * high
+            base_rel = (rel >> dt(n - 1 - b)) & dt(1)
+            rel &= np.where(base_rel.astype(bool), dt((1 << n) - 1), dt(~high & ((1 << n) - 1)))
+            margins[:b] = np.minimum(margins[:b], margins[b])
+        return signs, rel, margins
+
+    def _decode_axis(self, axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, stats,
+                     hint=None):
+        """Per family: coordinate from the resolved bits; then the vote across families.
+
+        ``hint = (phi, usable, k, period)``: the wrapped phase on this axis picks between the two
+        candidate codes of a pixel with one unresolved plane (the one whose predicted phase
+        ``k (x + 0.5)`` is within a quarter period of ``phi``, when the other is not or both
+        lie within half a period of each other)."""
+        step = float(1 << s)
+        n_stripes = -(-size // (1 << s))
+        full = (1 << n) - 1
+        lit = ~shadow
+        results = []
+        for code in self.spec.codes:
+            signs, rel, margins = self._bit_words(code, axis, n, sl, tau, thr)
+            binary = signs.astype(np.int64)
+            shift = 1
+            while shift < n:
+                binary ^= binary >> shift
+                shift *= 2
+            u = (~rel.astype(np.int64)) & full  # unresolved planes
+            P = u.size
+            first = np.full(P, n, np.int64)  # first unresolved plane (MSB index), n if none
+            c_st = binary.astype(np.float64)  # coordinate in stripes
+            w_eff = np.ones(P)  # width of the named block, stripes
+            exists = binary < n_stripes
+            edge = np.zeros(P, bool)
+            picked = np.zeros(P, bool)
+            idx = np.flatnonzero(u)  # only pixels with unresolved planes need more work
+            if idx.size:
+                sub = None if hint is None else (hint[0][idx], hint[1][idx], hint[2], hint[3])
+                (first[idx], c_st[idx], w_eff[idx], exists[idx], edge[idx],
+                 picked[idx]) = _partial_codes(binary[idx], u[idx], n, step, n_stripes, sub)
+            ok = lit & exists & ((w_eff * step <= coarse_lim + 1e-9) | edge | picked)
+            coord = c_st * step + 0.5 * (step - 1.0)
+            sig = np.where(edge, 0.5 * step, w_eff * step / math.sqrt(12.0))
+            # confidence: weakest margin among the planes used, over the direct light
+            mmin = margins.min(axis=0)
+            st = stats[code]
+            if idx.size:
+                limit = np.where(edge[idx] | picked[idx], n, first[idx])
+                us, lit_s = u[idx], lit[idx]
+                ms = np.full(idx.size, np.inf, np.float32)
+                for i in range(n):
+                    bad_i = ((us >> (n - 1 - i)) & 1).astype(bool)
+                    st["unresolved"][i] += int(np.count_nonzero(bad_i & lit_s))
+                    np.minimum(ms, np.where(bad_i | (limit <= i), np.inf, margins[i, idx]), out=ms)
+                ms[~np.isfinite(ms)] = 0.0
+                mmin[idx] = ms
+            lost = np.bincount(first[lit & ~ok], minlength=n + 1)
+            for i in range(n):
+                st["lost"][i] += int(lost[i])
+            conf = np.clip(mmin / np.maximum(ref, 1e-12), 0.0, 1.0)
+            results.append((coord, sig, ok, conf, w_eff * step))
+        if len(results) == 1:
+            coord, sig, ok, conf, _ = results[0]
+            return (coord.astype(np.float32), sig.astype(np.float32), ok,
+                    conf.astype(np.float32))
+        # Consistency vote (Gupta et al. 2013, Sec. 4.3): a family's coordinate counts when
+        # another family's agrees within half their block widths + vote_tolerance_px, or when
+        # it is the only family that resolved the pixel.
+        F = len(results)
+        agree = np.zeros((F, results[0][0].size), np.int64)
+        for i in range(F):
+            for j in range(i + 1, F):
+                ci, _, oi, _, wi = results[i]
+                cj, _, oj, _, wj = results[j]
+                with np.errstate(invalid="ignore"):
+                    a = oi & oj & (np.abs(ci - cj) <= 0.5 * (wi + wj) / 2 + vals["vote_tolerance_px"])
+                agree[i] += a
+                agree[j] += a
+        # choose the family with most agreement, ties to the smaller σ, then the listed order
+        sigs = np.stack([np.where(r[2], r[1], np.inf) for r in results])
+        score = agree * 1e6 - np.minimum(sigs, 1e5)
+        best = np.argmax(score, axis=0)
+        pick = lambda k: np.take_along_axis(np.stack([r[k] for r in results]), best[None], 0)[0]
+        coord, sig, conf = pick(0), pick(1), pick(3)
+        nbest = np.take_along_axis(agree, best[None], 0)[0]
+        n_ok = np.stack([r[2] for r in results]).sum(axis=0)
+        # A lone resolved family stands when every other one is unresolved (no contradiction:
+        # fine XOR bases blur away under subsurface scattering); two that disagree do not.
+        ok = (nbest >= 1) | (n_ok == 1)
+        stats["votes_disagree"] += int(np.count_nonzero(lit & (n_ok >= 2) & ~ok))
+        conf = conf * (nbest + 1) / F
+        return (coord.astype(np.float32), sig.astype(np.float32), ok, conf.astype(np.float32))
+
+
+
+def _partial_codes(binary, u, n, step, n_stripes, hint):
+    """Coordinates of pixels with unresolved planes ``u`` (int64 words, all non-zero).
+
+    Returns ``first`` (first unresolved plane), ``c_st`` (coordinate, stripes), ``w_eff`` (block
+    width, stripes), ``exists`` (the block is on the projector), ``edge``, ``picked`` — see
+    :func:`facegeo.geometry.structured_light.decode_stream`:
+
+    * (a) one unresolved plane at an edge of that plane: the two candidate codes are neighbours
+      (Gray codes change one plane between neighbours) → the boundary between them;
+    * (c) one unresolved plane, candidates far apart: the phase ``hint = (phi, usable, k,
+      period)`` picks the one whose predicted phase ``k (x + 0.5)`` is within a quarter period;
+    * (b) otherwise the resolved prefix names a block of ``2**(n - first)`` stripes.
+    """
+    first = n - np.frexp(u.astype(np.float64))[1].astype(np.int64)
+    single = (u & (u - 1)) == 0
+    flip = binary ^ ((np.int64(1) << (n - first)) - 1)
+    edge = single & (np.abs(flip - binary) == 1)
+    picked = np.zeros(u.shape, bool)
+    if hint is not None:
+        phi, usable, kk, period = hint
+        amb = np.flatnonzero(single & ~edge & usable)
+        if amb.size:
+            ca = binary[amb] * step + 0.5 * (step - 1.0)
+            cb = flip[amb] * step + 0.5 * (step - 1.0)
+            da = np.abs(np.angle(np.exp(1j * (phi[amb] - kk * (ca + 0.5)))))
+            db = np.abs(np.angle(np.exp(1j * (phi[amb] - kk * (cb + 0.5)))))
+            dmin, dmax = np.minimum(da, db), np.maximum(da, db)
+            good = (dmin < 0.5 * np.pi) & ((dmax >= 0.5 * np.pi) | (np.abs(ca - cb) < 0.5 * period))
+            picked[amb] = good
+            binary = binary.copy()
+            swap = amb[good & (db < da)]
+            binary[swap] = flip[swap]
+    w = (np.int64(1) << (n - first)).astype(np.float64)
+    block = binary >> (n - first)
+    c_st = np.where(edge, 0.5 * (binary + flip), np.where(picked, binary, block * w + 0.5 * (w - 1)))
+    w_eff = np.where(edge | picked, 1.0, w)
+    exists = np.where(edge, np.maximum(binary, flip), np.where(picked, binary, block * w)) < n_stripes
+    return first, c_st, w_eff, exists, edge, picked
+
+
+def decode_frames(frames: Iterable, spec, *, full_scale=None, **settings) -> StreamDecode:
+    """Feed ``(name, frame)`` pairs to a :class:`StreamDecoder` and finish it."""
+    if isinstance(frames, dict):
+        frames = frames.items()
+    dec = StreamDecoder(spec, full_scale=full_scale)
+    try:
+        it = iter(frames)
+    except TypeError:
+        raise InputError(f"frames: expected an iterable of (name, frame) pairs, got "
+                         f"{type(frames).__name__}") from None
+    for item in it:
+        try:
+            name, frame = item
+        except (TypeError, ValueError):
+            raise InputError("frames: expected (name, frame) pairs, got an item of type "
+                             f"{type(item).__name__}") from None
+        dec.add(name, frame)
+    if dec.shape is None:
+        raise InputError("frames: empty; expected the frames named by pattern_names(spec)")
+    return dec.finish(**settings)

@@ -1,0 +1,281 @@
+"""Pipeline stage ``decode``: structured-light frames → projector coordinates per camera pixel.
+
+``run_decode(scan_dir, out_dir)`` streams each camera's structured-light frames (one at a time,
+:meth:`facegeo.capture.scan.Scan.sl_frame`) through
+:func:`facegeo.geometry.structured_light.decode_stream` and writes ``out_dir/decode/``:
+
+    <camera>/decode.npz   float32 (H, W) ``x``, ``y`` — projector pixel coordinates (pixel-centre
+                          convention of docs/conventions.md) of what the camera pixel sees, NaN
+                          where invalid (``y`` all NaN when the patterns code no rows);
+                          ``confidence`` (0..1); bool ``valid``; float32 ``sigma_x``,
+                          ``sigma_y`` (1-σ coordinate noise, projector px, NaN where unknown)
+    <camera>/x.png, y.png false-colour maps (turbo over the projector width / height; black =
+                          invalid), for looking at only
+    stage.json            settings and metrics
+
+and records the metrics in ``out_dir/metrics.json`` under ``"decode"``.
+
+Metrics, per camera and pooled: ``valid_fraction`` (of the image, and ``valid_of_surface``: of
+the pixels that see the head when the scan has ground truth), per-bit losses (``bits``: per axis
+and code family, the lit pixels that leave each bit unresolved and those it invalidates; see
+:class:`facegeo.geometry._sl_stream.StreamDecode`), and with ground truth (a synthetic scan's
+``ground_truth/geometry_<camera>.npz`` and true rig):
+
+* ``exact_code_fraction`` — over valid pixels of the *interior* (see below), the fraction whose
+  decoded projector pixel ``round(x), round(y)`` is one the camera pixel sees: within
+  ``0.5 + h`` of the true coordinate of the pixel centre, ``h`` the half extent of the camera
+  pixel's footprint in the projector (``0.5 (|∂q/∂col| + |∂q/∂row|)`` per axis). A camera pixel
+  that covers two projector pixels integrates both; naming either is exact.
+* ``phase_rms_error_proj_px`` — RMS of ``x - q_x`` (and ``y - q_y``) over valid interior pixels
+  on the axes with phase frames, against the pixel centre's true projector coordinate.
+
+The *interior* is the head mask eroded by one pixel, minus pixels whose true projector
+coordinate jumps by more than 4 projector pixels to a neighbour (occlusion edges): pixels there
+mix two surfaces, so no single true coordinate exists; ``exact_code_fraction_all`` counts every
+valid pixel on the head.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import fmt_value
+from facegeo.errors import InputError
+from facegeo.fsutil import atomic_path, staged_directory
+from facegeo.pipeline.bench import peak_rss_mb
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DECODE_DEFAULTS",
+    "code_accuracy",
+    "decode_products",
+    "ground_truth_projector",
+    "run_decode",
+]
+
+#: Settings of :func:`facegeo.geometry.structured_light.decode_stream` used by the stage.
+DECODE_DEFAULTS = {"min_contrast": 0.005, "rel_contrast": 0.15, "shadow_threshold": 0.02,
+                   "min_modulation": 0.3, "noise_sigma": 0.005, "max_coarse_px": None,
+                   "vote_tolerance_px": 0.0, "saturation": 0.98}
+
+_EDGE_JUMP_PX = 4.0
+
+
+def _scan(scan_dir):
+    from facegeo.capture.scan import Scan, load_scan
+
+    return scan_dir if isinstance(scan_dir, Scan) else load_scan(scan_dir)
+
+
+def ground_truth_projector(scan, camera: str) -> dict[str, np.ndarray] | None:
+    """True projector coordinates of a synthetic scan's camera pixels (None without ground truth).
+
+    Returns
+    -------
+    dict with
+        ``q`` (H, W, 2) float64 projector px of the surface point at each pixel centre (NaN off
+        the head), ``mask`` (H, W) bool on the head, ``interior`` (H, W) bool (module
+        docstring), ``half_extent`` (H, W, 2) float64 projector px.
+    """
+    from scipy.ndimage import binary_erosion
+
+    from facegeo.geometry.rig import Rig
+
+    key = f"geometry_{camera}"
+    if key not in scan.ground_truth_keys or "rig" not in scan.ground_truth_keys:
+        return None
+    rig = Rig.load(scan.ground_truth_path("rig"))
+    with np.load(scan.ground_truth_path(key)) as g:
+        mask, p = g["mask"], g["p_world"]
+    q, front = rig.projector.project(np.where(mask[..., None], p, np.nan))
+    q = np.where((mask & front)[..., None], q, np.nan)
+    h = np.stack([0.5 * (np.abs(np.gradient(q[..., a], axis=1))
+                         + np.abs(np.gradient(q[..., a], axis=0))) for a in (0, 1)], axis=-1)
+    interior = binary_erosion(mask, iterations=1) & np.isfinite(h).all(axis=-1) \
+        & (h < _EDGE_JUMP_PX).all(axis=-1)
+    return {"q": q, "mask": mask, "interior": interior, "half_extent": h}
+
+
+def code_accuracy(x, y, valid, gt: dict, *, axes=("x", "y"), phase_axes=()) -> dict[str, Any]:
+    """``exact_code_fraction`` (interior and all) and ``phase_rms_error_proj_px`` of a decode.
+
+    Parameters
+    ----------
+    x, y : (H, W) float, projector px (NaN where invalid)
+    valid : (H, W) bool
+    gt : dict from :func:`ground_truth_projector`
+    axes : axes the patterns code (the others are not compared)
+    phase_axes : axes with phase frames (the RMS is over these)
+
+    Returns
+    -------
+    dict with ``exact_code_fraction``, ``exact_code_fraction_all``, ``phase_rms_error_proj_px``
+    (None without phase), ``compared_pixels``.
+    """
+    q, h, mask, interior = gt["q"], gt["half_extent"], gt["mask"], gt["interior"]
+    coords = {"x": np.asarray(x, np.float64), "y": np.asarray(y, np.float64)}
+    exact = np.ones(mask.shape, bool)
+    with np.errstate(invalid="ignore"):
+        for i, a in enumerate(("x", "y")):
+            if a in axes:
+                exact &= np.abs(np.floor(coords[a] + 0.5) - q[..., i]) <= h[..., i] + 0.5
+    v_all = np.asarray(valid, bool) & mask
+    v_in = v_all & interior
+    se, n = 0.0, 0
+    for i, a in enumerate(("x", "y")):
+        if a in phase_axes and a in axes:
+            d = coords[a][v_in] - q[..., i][v_in]
+            se += float(np.sum(d * d))
+            n += int(d.size)
+    return {
+        "exact_code_fraction": float(exact[v_in].mean()) if v_in.any() else None,
+        "exact_code_fraction_all": float(exact[v_all].mean()) if v_all.any() else None,
+        "phase_rms_error_proj_px": float(np.sqrt(se / n)) if n else None,
+        "compared_pixels": int(v_in.sum()),
+    }
+
+
+def _false_colour(values: np.ndarray, valid: np.ndarray, size: int, path: Path) -> None:
+    import cv2
+
+    v = np.nan_to_num(np.asarray(values, np.float64) / max(size - 1, 1), nan=0.0)
+    u8 = np.clip(np.rint(v * 255.0), 0, 255).astype(np.uint8)
+    bgr = cv2.applyColorMap(u8, cv2.COLORMAP_TURBO)
+    bgr[~valid] = 0
+    with atomic_path(path) as tmp:
+        ok, buf = cv2.imencode(".png", bgr)
+        if not ok:
+            raise InputError(f"{path}: PNG encoding failed")
+        Path(tmp).write_bytes(buf.tobytes())
+
+
+def _axes_coded(spec) -> tuple[str, ...]:
+    return tuple(a for a in ("x", "y") if spec.n_bits(a))
+
+
+def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
+                    **settings) -> tuple[dict, dict]:
+    """Write the ``decode`` products of ``scan`` into ``dest`` (module docstring).
+
+    The work of :func:`run_decode` without the staging. ``settings`` are
+    :data:`DECODE_DEFAULTS` keys. Returns ``(metrics, settings)``.
+    """
+    from facegeo.geometry.structured_light import (
+        PatternSpec,
+        decode_stream,
+        pattern_names,
+    )
+
+    unknown = sorted(set(settings) - set(DECODE_DEFAULTS))
+    if unknown:
+        raise InputError(f"decode settings: unknown {unknown}; valid: {sorted(DECODE_DEFAULTS)}")
+    used = {**DECODE_DEFAULTS, **settings}
+    spec = PatternSpec.from_dict(scan.sl_patterns)
+    names = scan.sl_frames
+    spec_names = pattern_names(spec)
+    if sorted(names) != sorted(spec_names):
+        extra = sorted(set(names) - set(spec_names))
+        missing = [n for n in spec_names if n not in names]
+        raise InputError(
+            f"scan {scan.root}: structured_light.frames lists {len(names)} frames, the pattern "
+            f"set [structured_light.patterns] has {len(spec_names)}; missing {missing[:8]}, "
+            f"extra {extra[:8]}")
+    cams = list(scan.camera_names) if cameras is None else list(cameras)
+    for c in cams:
+        if c not in scan.camera_names:
+            raise InputError(f"cameras: unknown camera {fmt_value(c)}; the scan has {scan.camera_names}")
+    t0 = time.perf_counter()
+    per_cam: dict[str, dict] = {}
+    pooled = {"valid": 0, "pixels": 0, "surface": 0, "valid_surface": 0,
+              "exact": 0.0, "compared": 0, "se": 0.0, "n_phase": 0}
+    axes = _axes_coded(spec)
+    phase_axes = tuple(spec.phase_axes) if spec.phase_steps else ()
+    for cam in cams:
+        tc = time.perf_counter()
+        frames = ((n, scan.sl_frame(cam, n)) for n in names)
+        res = decode_stream(frames, spec, **used)
+        d = dest / cam
+        d.mkdir(parents=True, exist_ok=True)
+        with atomic_path(d / "decode.npz") as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, x=res.x, y=res.y, confidence=res.confidence,
+                                valid=res.valid, sigma_x=res.sigma_x, sigma_y=res.sigma_y)
+        _false_colour(res.x, res.valid_x, spec.width, d / "x.png")
+        _false_colour(res.y, res.valid_y, spec.height, d / "y.png")
+        m: dict[str, Any] = {
+            "valid_fraction": float(res.valid.mean()),
+            "lit_fraction": float((~res.shadow).mean()),
+            "bits": res.bits,
+            "seconds": round(time.perf_counter() - tc, 4),
+        }
+        pooled["valid"] += int(res.valid.sum())
+        pooled["pixels"] += int(res.valid.size)
+        gt = ground_truth_projector(scan, cam) if scan.synthetic else None
+        if gt is not None:
+            acc = code_accuracy(res.x, res.y, res.valid, gt, axes=axes, phase_axes=phase_axes)
+            m.update(acc)
+            m["valid_of_surface"] = float((res.valid & gt["mask"]).sum() / max(gt["mask"].sum(), 1))
+            pooled["surface"] += int(gt["mask"].sum())
+            pooled["valid_surface"] += int((res.valid & gt["mask"]).sum())
+            if acc["exact_code_fraction"] is not None:
+                pooled["exact"] += acc["exact_code_fraction"] * acc["compared_pixels"]
+                pooled["compared"] += acc["compared_pixels"]
+            if acc["phase_rms_error_proj_px"] is not None:
+                k = acc["compared_pixels"] * sum(a in axes for a in phase_axes)
+                pooled["se"] += acc["phase_rms_error_proj_px"] ** 2 * k
+                pooled["n_phase"] += k
+        per_cam[cam] = m
+        log.info("decode %s: %.1f %% valid", cam, 100 * m["valid_fraction"])
+    metrics: dict[str, Any] = {
+        "cameras": per_cam,
+        "patterns": spec.to_dict(),
+        "valid_fraction": pooled["valid"] / max(pooled["pixels"], 1),
+    }
+    if pooled["surface"]:
+        metrics["valid_of_surface"] = pooled["valid_surface"] / pooled["surface"]
+        metrics["exact_code_fraction"] = (pooled["exact"] / pooled["compared"]
+                                          if pooled["compared"] else None)
+        metrics["phase_rms_error_proj_px"] = (float(np.sqrt(pooled["se"] / pooled["n_phase"]))
+                                              if pooled["n_phase"] else None)
+    metrics["seconds"] = round(time.perf_counter() - t0, 4)
+    metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    return metrics, {**used, "cameras": cams}
+
+
+def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None,
+               **settings) -> dict:
+    """Decode every camera's structured-light frames into ``out_dir/decode/``.
+
+    Parameters
+    ----------
+    scan_dir : path-like or Scan
+    out_dir : path-like, optional
+        Default the scan's ``out/``.
+    cameras : list of str, optional
+        Default every camera.
+    **settings
+        :func:`facegeo.geometry.structured_light.decode_stream` thresholds
+        (:data:`DECODE_DEFAULTS`).
+
+    Returns
+    -------
+    dict
+        The metrics (module docstring).
+    """
+    from facegeo.fsutil import atomic_write_text
+    from facegeo.pipeline.cache import record_metrics
+
+    scan = _scan(scan_dir)
+    out = Path(out_dir) if out_dir is not None else scan.out_dir
+    with staged_directory(out / "decode") as tmp:
+        metrics, used = decode_products(scan, tmp, cameras=cameras, **settings)
+        atomic_write_text(tmp / "stage.json", json.dumps(
+            {"stage": "decode", "settings": used, "metrics": metrics}, indent=2, sort_keys=True))
+        record_metrics(out, "decode", metrics)
+    return metrics
