@@ -545,7 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera name (default: the first) or 'texture'")
     s.add_argument("--exact-solid-angles", action="store_true",
                    help="exact cell solid angles instead of the paper's sin(phi) rule")
-    s.add_argument("--out", default=None, help="output folder (default: SCAN/out/relight)")
+    s.add_argument("--out", default=None, help="output folder (default: SCAN/out/relit)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_relight)
 

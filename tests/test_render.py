@@ -207,7 +207,7 @@ def test_run_render_writes_images_and_metrics(parts):
     m = run_render(root, camera_spec="orbit:cam_left:30", env="sky", name="o30",
                    progress=lambda *a: calls.append(a))
     assert calls[-1] == ("render", 4, 4), calls
-    d = root / "out" / "render"
+    d = root / "out" / "views"
     for f in ("o30.exr", "o30.png", "o30_naive.png", "o30_reference.png", "o30_error.png",
               "o30.json"):
         assert (d / f).is_file(), f
@@ -215,7 +215,7 @@ def test_run_render_writes_images_and_metrics(parts):
         assert m[k] is not None and np.isfinite(m[k]), k
     assert m["coverage"] > 0.8
     doc = json.loads((root / "out" / "metrics.json").read_text())
-    assert doc["render"]["views"]["o30"]["psnr_db"] == m["psnr_db"]
+    assert doc["views"]["views"]["o30"]["psnr_db"] == m["psnr_db"]
 
 
 def test_run_render_errors(parts, tmp_path):

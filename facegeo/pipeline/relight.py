@@ -1,5 +1,5 @@
 """Pipeline stage ``relight``: a scan relit by an environment map (Debevec et al. 2000 §3.3,
-Eq. 4), written as EXR and tone-mapped PNG under ``SCAN/out/relight/``.
+Eq. 4), written as EXR and tone-mapped PNG under ``SCAN/out/relit/``.
 
 Two views:
 
@@ -361,7 +361,8 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
         (:func:`relight_texture`); the output is the atlas image, 0 where no camera measured a
         texel (and outside the charts), with ``<stem>_measured.png`` marking measured texels.
     out_dir : path, optional
-        Default ``SCAN/out/relight``.
+        Default ``SCAN/out/relit`` (``out/relight`` is the cached stage of ``facegeo
+        reconstruct``, which replaces its folder when it reruns).
     projection : {"latlong", "mirrorball", "angular"}
     solid_angle : {"paper", "exact"}
         δA rule of the light-basis projection (:func:`facegeo.lighting.envmap.light_stage_weights`).
@@ -389,7 +390,7 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     if view is None:
         view = scan.camera_names[0]
     fdir = Path(field_dir) if field_dir is not None else scan.out_dir
-    out = Path(out_dir) if out_dir is not None else scan.out_dir / "relight"
+    out = Path(out_dir) if out_dir is not None else scan.out_dir / "relit"
     metrics, _ = relight_products(scan, fdir / "project", out, env=env_path, rotate=rotate_deg,
                                   view=view, atlas_dir=fdir / "atlas", projection=projection,
                                   solid_angle=solid_angle, reference=reference,

@@ -1,7 +1,8 @@
 """Pipeline stage ``render``: novel views of a reconstructed scan under an environment.
 
 ``run_render(scan_dir, out_dir=None, *, camera_spec, env, ...)`` reads ``out/atlas/``,
-``out/project/`` and ``out/fit/`` and writes into ``out/render/``:
+``out/project/`` and ``out/fit/`` and writes into ``out/views/`` (``out/render/`` is the cached
+``render`` stage of ``facegeo reconstruct``, :func:`render_products`):
 
     <name>.exr, <name>.png                the render (Debevec et al. 2000 §4.5,
                                           :func:`facegeo.render.render_view`)
@@ -11,7 +12,7 @@
     <name>_error.png                      |render − reference| heat map (synthetic scans)
     <name>.json                           the view's metrics
 
-and merges the view's metrics into ``out/metrics.json`` → ``"render"`` → ``"views"`` → name.
+and merges the view's metrics into ``out/metrics.json`` → ``"views"`` → ``"views"`` → name.
 
 Metrics against the generator's reference (same camera, same Eq. (4) weights, its exact
 renderer; ``mask`` = the reference's pixels that see the head):
@@ -158,7 +159,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
 
     scan = _scan(scan_dir)
     out = Path(out_dir) if out_dir is not None else scan.out_dir
-    metrics = render_one(scan, out, out / "render", camera_spec=camera_spec, env=env,
+    metrics = render_one(scan, out, out / "views", camera_spec=camera_spec, env=env,
                          rotate_deg=rotate_deg, projection=projection, supersample=supersample,
                          resynthesis=resynthesis, baseline=baseline, reference=reference,
                          name=name, blend_power=blend_power, rig=rig, solid_angle=solid_angle,
@@ -338,11 +339,11 @@ def _merge_metrics(out: Path, stem: str, metrics: dict) -> None:
     from facegeo.pipeline.cache import record_metrics
 
     try:
-        doc = json.loads((out / "metrics.json").read_text(encoding="utf-8")).get("render", {})
+        doc = json.loads((out / "metrics.json").read_text(encoding="utf-8")).get("views", {})
         if not isinstance(doc, dict):
             doc = {}
     except (OSError, ValueError, AttributeError):
         doc = {}
     views = doc.get("views", {}) if isinstance(doc.get("views"), dict) else {}
     views[stem] = {k: v for k, v in metrics.items() if k not in ("stats",)}
-    record_metrics(out, "render", {"views": views})
+    record_metrics(out, "views", {"views": views})
