@@ -124,13 +124,16 @@ def _cmd_synth(args) -> int:
     from facegeo.synth.capture import generate_scan
 
     _check_output_dir(args.out, "OUT")
+    effects = None
+    if args.sl_subsurface != "none" or args.sl_interreflection > 0:
+        effects = {"subsurface": args.sl_subsurface, "interreflection": args.sl_interreflection}
     tick, close = _progress_factory(not args.quiet)
     try:
         summary = generate_scan(args.out, args.preset, head=args.head, units=args.units,
                                 seed=args.seed, noise=args.noise, skin=args.skin,
                                 olat_format=args.olat_format,
                                 overwrite=args.overwrite,
-                                progress=tick)
+                                progress=tick, sl_effects=effects)
     finally:
         close()
     secs = " ".join(f"{k}={v:.1f}s" for k, v in summary.seconds.items())
@@ -445,6 +448,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="OLAT frames as linear EXR or 16-bit sRGB PNG with an exposure")
     s.add_argument("--noise", type=_nonneg_float, default=0.0,
                    help="sensor noise, fraction of white level (0: noise-free)")
+    s.add_argument("--sl-subsurface", default="none", choices=["none", "gaussian", "dipole"],
+                   help="blur the projected patterns by subsurface scattering (a Gaussian of "
+                        "skin's mean free path, or a dipole profile; docs/structured-light.md)")
+    s.add_argument("--sl-interreflection", type=_nonneg_float, default=0.0,
+                   help="strength of a low-frequency interreflection term in the "
+                        "structured-light frames (0: none)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing synthetic scan at OUT (a real capture is refused; files "
                         "facegeo did not write are kept)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

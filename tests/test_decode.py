@@ -549,3 +549,22 @@ def test_kernels_match_numpy_reference(dtype):
     for got, want in zip(state, ref):
         np.testing.assert_array_equal(got, want)
     assert state[0].any() and state[1].max() > 100  # the bit and margins were written
+
+
+def test_synth_cli_writes_effects_into_the_frames(tmp_path):
+    """`facegeo synth --sl-subsurface/--sl-interreflection` changes the structured-light frames
+    (not the OLAT ones) and records the effects in the manifest."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.cli import main
+
+    sharp, soft = tmp_path / "sharp", tmp_path / "soft"
+    assert main(["synth", str(sharp), "--preset", "tiny", "-q"]) == 0
+    assert main(["synth", str(soft), "--preset", "tiny", "-q", "--sl-subsurface", "gaussian",
+                 "--sl-interreflection", "0.5"]) == 0
+    a, b = load_scan(sharp), load_scan(soft)
+    assert "sl_effects" not in a.manifest["scan"].get("metadata", {})
+    assert b.manifest["scan"]["metadata"]["sl_effects"]["subsurface"] == "gaussian"
+    fa = a.sl_frame("cam_left", "gray_x_00", luminance=True)
+    fb = b.sl_frame("cam_left", "gray_x_00", luminance=True)
+    assert np.abs(fa - fb).max() > 0.02
+    np.testing.assert_array_equal(a.olat_frame("cam_left", 5), b.olat_frame("cam_left", 5))

@@ -258,6 +258,7 @@ def generate_scan(
     olat_format: str = "exr",
     overwrite: bool = False,
     progress: Callable[[str, int, int], None] | None = None,
+    sl_effects=None,
 ) -> SynthSummary:
     """Synthesise a light-stage capture into the scan directory ``out``.
 
@@ -293,6 +294,9 @@ def generate_scan(
         Called as work proceeds, with stages ``"calib"``, ``"calib.projector"``,
         ``"structured_light"``, ``"olat"`` and ``"ground_truth"`` (the CLI draws one progress
         bar per stage).
+    sl_effects : facegeo.synth.sl_effects.SkinEffects or dict, optional
+        Subsurface blur and interreflection in the structured-light frames (default: sharp,
+        direct-only frames); recorded in ``scan.metadata.sl_effects``.
 
     Returns
     -------
@@ -326,6 +330,14 @@ def generate_scan(
     preset, skin_kwargs, root = _validate_arguments(
         out, preset, head=head, units=units, seed=seed, noise=noise, skin=skin,
         olat_format=olat_format, progress=progress)
+    if sl_effects is not None:
+        from facegeo.synth.sl_effects import SkinEffects
+
+        if not isinstance(sl_effects, SkinEffects):
+            if not isinstance(sl_effects, dict):
+                raise InputError(f"sl_effects: expected a SkinEffects or a dict, got "
+                                 f"{type(sl_effects).__name__}")
+            sl_effects = SkinEffects.from_dict(sl_effects)
     _replaceable_files(root, overwrite=overwrite)  # read-only: refuse a real capture at once
     tick = progress or (lambda stage, done, total: None)
     seconds: dict[str, float] = {}
@@ -367,7 +379,7 @@ def generate_scan(
             tmp, name=root.name, preset=preset, head=head, skin=skin, seed=seed, noise=noise,
             olat_format=olat_format, mesh=mesh, nominal_rig=nominal_rig, rig=rig,
             skin_field=skin_field, renderer=renderer, board=board, spec=spec,
-            sl_names=sl_names, tick=tick, seconds=seconds)
+            sl_names=sl_names, tick=tick, seconds=seconds, sl_effects=sl_effects)
         fsutil.write_written_record(tmp, fsutil.list_files(tmp))
         carried: list[str] = []
         if ours is not None:
@@ -393,7 +405,7 @@ def generate_scan(
 
 def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_format, mesh,
                 nominal_rig, rig, skin_field, renderer, board, spec, sl_names, tick,
-                seconds) -> int:
+                seconds, sl_effects=None) -> int:
     """Render and write a whole scan into the (empty, staging) directory ``root``; the manifest
     goes last. Returns the number of frames written."""
     from facegeo.capture import imageio, scan as scanmod
@@ -472,18 +484,16 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     sl_files = scanmod.DEFAULT_FILES["structured_light"]
     n_total = len(rig.cameras) * len(sl_names)
     done = 0
+    from facegeo.synth.sl_effects import render_sl_frames
+
     for cam in rig.cameras:
-        view = renderer.surface_view(cam, supersample=preset.sl_supersample)
-        # Projector light: shade the skin BRDF under the projector as a point light, with
-        # projector shadows from Embree; the pattern modulates it per projector pixel.
-        unit = renderer.shade_point_light(view, proj.center_world, np.ones(3),
-                                          stage_radius=float(np.linalg.norm(proj.center_world)))
-        q_proj, in_front = proj.project(view.p_world)
-        ambient = 0.02 * view.alpha_0 / np.pi
-        for name in sl_names:
-            pat = np.where(in_front, pattern_value_at(spec, name, np.nan_to_num(q_proj, nan=-1e9)), 0.0)
-            rad = exposure * (unit * pat[:, None].astype(np.float32) + ambient)
-            img = _noisy(view.to_image(rad.astype(np.float32)), 1.0)
+        # the skin BRDF under the projector as a point light with Embree shadows, the pattern
+        # modulating it per projector pixel (and, with sl_effects, blurred by subsurface
+        # scattering and lifted by interreflection; synth.sl_effects)
+        for name, img in render_sl_frames(renderer, spec, cam, projector=proj,
+                                          supersample=preset.sl_supersample, exposure=exposure,
+                                          ambient=0.02, effects=sl_effects):
+            img = _noisy(img, 1.0)
             path = scanmod.frame_path(root, sl_files, camera=cam.name, frame=name)
             imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
             frames += 1
@@ -491,6 +501,8 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
             tick("structured_light", done, n_total)
     manifest["structured_light"] = {"response": "srgb", "projector": proj.name, "frames": sl_names,
                                     "files": sl_files, "patterns": spec.to_dict()}
+    if sl_effects is not None:
+        manifest["scan"].setdefault("metadata", {})["sl_effects"] = sl_effects.to_dict()
     seconds["structured_light"] = time.perf_counter() - t0
 
     # ---- OLAT ----
