@@ -545,7 +545,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="relight a camera view of the scan, or its texture atlas (--view texture), "
                             "with an environment map (Eq. 4)")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
-    s.add_argument("--env", required=True, metavar="FILE", help=".exr/.hdr environment map")
+    s.add_argument("--env", required=True, metavar="FILE|NAME",
+                   help=".exr/.hdr environment map, or a shipped map: sky, studio")
     s.add_argument("--projection", choices=["latlong", "mirrorball", "angular"],
                    default="latlong", help="how the map stores directions")
     s.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
