@@ -157,6 +157,80 @@ class SkinFit:
         """D + S, ``(N, L, C)`` float32: the measured functions (the separation recombines)."""
         return self.diffuse + self.specular
 
+    def save(self, path) -> None:
+        """Write the fit to one ``.npz`` file, atomically (:func:`facegeo.fsutil.atomic_path`).
+
+        Every array attribute is stored under its own name, the light set as ``lights_*``
+        arrays, scalars as 0-d arrays (format version :data:`SKINFIT_FORMAT`). No pickles:
+        :meth:`load` reads it with ``allow_pickle=False``.
+
+        Parameters
+        ----------
+        path : path-like
+            Destination; conventionally ending ``.npz`` (written as given, never renamed).
+        """
+        from facegeo.fsutil import atomic_path
+
+        arrays = {k: np.asarray(getattr(self, k)) for k in _SKINFIT_ARRAYS}
+        lt = self.lights
+        arrays.update(lights_directions=lt.directions, lights_solid_angles=lt.solid_angles,
+                      lights_intensities=lt.intensities,
+                      lights_grid=np.asarray(lt.grid if lt.grid is not None else (-1, -1),
+                                             np.int64),
+                      eta=np.float64(self.eta), single_channel=np.bool_(self.single_channel),
+                      format=np.int64(SKINFIT_FORMAT))
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+    @classmethod
+    def load(cls, path) -> SkinFit:
+        """Read a fit written by :meth:`save`.
+
+        Raises
+        ------
+        ScanFormatError
+            The file is missing, not an ``.npz``, of another format version, or lacks an
+            array or has one of the wrong shape (the message names the file and the key).
+        """
+        from facegeo.errors import ScanFormatError
+
+        try:
+            z = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise ScanFormatError(f"cannot read a skin fit (.npz from SkinFit.save): {exc}",
+                                  path=path) from exc
+        with z:
+            missing = [k for k in (*_SKINFIT_ARRAYS, "lights_directions", "lights_solid_angles",
+                                   "lights_intensities", "lights_grid", "eta", "single_channel",
+                                   "format") if k not in z.files]
+            if missing:
+                raise ScanFormatError(f"not a skin fit: missing arrays {missing}", path=path,
+                                      key=missing[0])
+            if int(z["format"]) != SKINFIT_FORMAT:
+                raise ScanFormatError(f"skin fit format {int(z['format'])}, expected "
+                                      f"{SKINFIT_FORMAT}", path=path, key="format")
+            a = {k: z[k] for k in z.files}
+        grid = tuple(int(g) for g in a["lights_grid"])
+        lights = LightSet(a["lights_directions"], a["lights_solid_angles"],
+                          a["lights_intensities"], None if grid[0] < 0 else grid)
+        N, L = a["shadow"].shape if a["shadow"].ndim == 2 else (-1, -1)
+        for k in _SKINFIT_ARRAYS:
+            lead = a[k].shape[:2] if k in ("diffuse", "specular", "shadow", "cast_shadow",
+                                           "saturated") else a[k].shape[:1]
+            want = (N, L) if len(lead) == 2 else (N,)
+            if lead != want or lights.n_lights != L:
+                raise ScanFormatError(f"array shape {a[k].shape} does not match {N} functions "
+                                      f"× {lights.n_lights} lights", path=path, key=k)
+        return cls(lights=lights, eta=float(a["eta"]), single_channel=bool(a["single_channel"]),
+                   **{k: a[k] for k in _SKINFIT_ARRAYS})
+
+
+#: Version of the ``.npz`` layout written by :meth:`SkinFit.save`.
+SKINFIT_FORMAT = 1
+_SKINFIT_ARRAYS = ("view", "normal", "normal_moment", "normal_initial", "lobe_misfit_moment",
+                   "lobe_misfit", "d_0", "alpha_0", "alpha_1", "rho_d", "rho_s", "diffuse",
+                   "specular", "shadow", "cast_shadow", "saturated", "flags", "valid")
+
 
 def flag_names(flags: int) -> list[str]:
     """Names of the bits set in one flags value."""
