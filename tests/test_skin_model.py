@@ -46,6 +46,15 @@ CHUNK_ALPHA_ABS = 1e-8
 FORWARD_POLISH_ALPHA_ABS = 1e-4
 FORWARD_POLISH_RHO_S_REL = 2e-3
 
+#: Compiled kernels (_skin_kernels) against the numpy reference, same fit: max angle between
+#: normals, degrees; max |Δ misfit|; max |Δα|; max relative |Δρ_s|. Same algorithm; only
+#: summation order and the lobe search's moment/band split differ (a wrong band or a dropped
+#: light moves normals by > 0.01°, a wrong ramp sample α's by > 1e-3).
+KERNEL_NORMAL_DEG = 1e-4
+KERNEL_MISFIT_ABS = 1e-10
+KERNEL_ALPHA_ABS = 1e-5
+KERNEL_RHO_S_REL = 1e-4
+
 V0 = np.array([0.0, 0.0, 1.0])
 
 
@@ -576,3 +585,31 @@ def test_skinfit_load_errors_name_the_file(tmp_path):
     np.savez(bad, normal=np.zeros((2, 3)))
     with pytest.raises(ScanFormatError, match="bad.npz.*missing arrays"):
         skin.SkinFit.load(bad)
+
+
+def test_compiled_kernels_match_numpy_reference(monkeypatch):
+    """The numba searches and polish (_skin_kernels) against the numpy reference (KERNELS off):
+    same algorithm, so the same fit to rounding — estimated d_0, a free light list with
+    shadows (lobe band/moment split exercised at the terminator) and the fixed-normal polish."""
+    from facegeo.appearance import _skin_fit
+
+    rng = np.random.default_rng(21)
+    lights = skin.LightSet.from_grid(32, 16)
+    n = _random_normals(rng, 12, 60.0)
+    p = _paper_params(rng, 12)
+    R = skin.paper_reflectance(n, V0, lights, p)
+    vis = rng.uniform(size=R.shape[:2]) > 0.1
+    fits = {}
+    for kern in (True, False):
+        monkeypatch.setattr(_skin_fit, "KERNELS", kern)
+        fits[kern] = (skin.fit_reflectance(R, V0, lights, visibility=vis),
+                      skin.fit_reflectance(R, V0, lights, d_0=skin.normalize(p.rho_d),
+                                           depth=skin.SearchDepth(polish_normal=False)))
+    for a, b in zip(fits[True], fits[False]):
+        for k in ("normal", "normal_initial"):
+            assert _angle_deg(getattr(a, k), getattr(b, k)).max() <= KERNEL_NORMAL_DEG, k
+        for k in ("lobe_misfit", "lobe_misfit_moment"):
+            assert np.abs(getattr(a, k) - getattr(b, k)).max() <= KERNEL_MISFIT_ABS, k
+        assert np.abs(a.alpha_0 - b.alpha_0).max() <= KERNEL_ALPHA_ABS
+        assert np.abs(a.alpha_1 - b.alpha_1).max() <= KERNEL_ALPHA_ABS
+        assert (np.abs(a.rho_s - b.rho_s) / b.rho_s).max() <= KERNEL_RHO_S_REL

@@ -211,6 +211,11 @@ def _lobe_residuals_sqrtw(y, sqw, x):
     return yw
 
 
+#: Run the searches and the polish in the compiled kernels of ``_skin_kernels`` (numba; one
+#: function per ``prange`` iteration). False: the numpy reference below, which the kernels are
+#: tested against.
+KERNELS = True
+
 #: Jacobian of the ramp's Levenberg–Marquardt polish by forward differences (P + 1 residual
 #: evaluations per step, the centre's reused) instead of central ones (2P): measured ≈ 1.2–1.3×
 #: faster fit with α's within 1e-5 and ρ_s within 2e-4 relative of the central-difference
@@ -337,10 +342,19 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
         sxx = (np.square(x, out=x) @ wdc[sel])[..., 0]
         return _misfit_from_sums(syy[sel], sxy, sxx)
 
-    u0 = np.zeros((n_start.shape[0], 2))
-    misfit_start = objective(u0[:, None, :])[:, 0]
-    u, misfit = direct_search(objective, u0, depth.normal_step, depth.levels, depth.moves,
-                              subset=True)
+    if KERNELS:
+        from facegeo.appearance._skin_kernels import lobe_search
+
+        u, misfit_start, misfit = lobe_search(
+            np.ascontiguousarray(y, np.float64), np.ascontiguousarray(w, np.float64),
+            np.ascontiguousarray(n_all), np.ascontiguousarray(lights.solid_angles),
+            np.ascontiguousarray(n_start), t1, t2, float(depth.normal_step), int(depth.levels),
+            int(depth.moves))
+    else:
+        u0 = np.zeros((n_start.shape[0], 2))
+        misfit_start = objective(u0[:, None, :])[:, 0]
+        u, misfit = direct_search(objective, u0, depth.normal_step, depth.levels, depth.moves,
+                                  subset=True)
     n = normals(u[:, None, :])[:, 0]
     l = n_all
     wd = w * lights.solid_angles
@@ -566,10 +580,29 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         fit = 1.0 - sxy * sxy / np.where(ok, sxx * syy, 1.0)
         return np.where(ok, fit, np.where(syy > 1e-300, 1.0, syy))
 
+    n_out = n
+    if KERNELS and (POLISH_FORWARD or not depth.polish):
+        from facegeo.appearance._skin_kernels import ramp_polish, ramp_search
+
+        x_c, nl_c, wd_c = (np.ascontiguousarray(a) for a in (x_fix, nl_fix, wd))
+        A_c, Rd_c, Rdms_c = (np.ascontiguousarray(a) for a in (A, Rd, Rdms))
+        ds_c = np.ascontiguousarray(ds, np.float64)
+        p, misfit = ramp_search(x_c, nl_c, wd_c, A_c, Rd_c, Rdms_c, ds_c,
+                                float(depth.alpha_step), int(depth.alpha_levels),
+                                int(depth.moves), SINGULAR_SIN2)
+        if depth.polish:
+            p0 = p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1)
+            p, misfit = ramp_polish(np.ascontiguousarray(p0), np.ascontiguousarray(n), t1, t2,
+                                    np.ascontiguousarray(v, np.float64), np.ascontiguousarray(l),
+                                    x_c, nl_c, wd_c, A_c, Rd_c, Rdms_c, ds_c, int(depth.polish),
+                                    1e-5, SINGULAR_SIN2)
+            if depth.polish_normal:
+                n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
+                p = p[:, :2]
+        return p[:, 0], p[:, 1], n_out, misfit
     x0 = np.zeros((n.shape[0], 2))
     p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves,
                               subset=True)
-    n_out = n
     if depth.polish and not depth.polish_normal:
         p, misfit = gauss_newton_polish(residuals, p, iterations=depth.polish,
                                         forward=POLISH_FORWARD)

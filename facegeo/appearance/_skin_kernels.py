@@ -1,0 +1,461 @@
+"""Compiled (numba) kernels of the skin-model fit's searches (Debevec et al. 2000, §4.2).
+
+Private module behind :mod:`facegeo.appearance._skin_fit`. Each kernel runs one reflectance
+function per iteration of a ``prange`` loop (both cores when numba has two threads) and fuses
+what the numpy reference (``_skin_fit`` with ``KERNELS = False``) does with ``(n, K, L)``
+temporaries into loops over the function's usable lights. They reproduce the reference's
+algorithms exactly — the same compass/grid direct search (same candidate order, so the same
+tie-breaking), the same Levenberg–Marquardt steps — and agree with it to rounding (tested in
+``tests/test_skin_model.py``). Work the reference does and no result needs is skipped:
+
+* **Lobe search, moments instead of sums** (``lobe_search``). The lobe misfit of Eq. 5's
+  diffuse lobe needs ``Σ w y max(0, n·l)`` and ``Σ w max(0, n·l)²`` per candidate normal n.
+  For lights with ``a·l > ρ`` around an anchor normal a, every candidate within ρ of a has
+  ``n·l > 0`` (projecting onto the unit sphere from outside the ball is 1-Lipschitz), so their
+  part is ``n·M₁`` and ``nᵀ M₂ n`` with the moments ``M₁ = Σ w y l`` and ``M₂ = Σ w l lᵀ``
+  accumulated once; only the band ``|a·l| ≤ ρ`` is summed per candidate, and lights below
+  ``−ρ`` contribute nothing. The anchor moves (moments rebuilt) when the pattern would leave
+  the ball; ρ is a few steps, so at the fine levels the band is nearly empty.
+* **Centre values carried over**: the pattern's centre was the previous iteration's best.
+* **Ramp search and polish fused** (``ramp_search``, ``ramp_polish``): μ_d of §4.2 under each
+  candidate ramp in closed form (``_skin_fit.ramp_mu_d``), the misfit's three weighted sums
+  accumulated in the same loop; the polish builds JᵀJ and Jᵀr from its P + 1 residual vectors
+  in one pass and solves the 4 × 4 normal equations by Gaussian elimination per function.
+
+Kernels are compiled on first use and cached on disk (``cache=True``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+#: Floors of :func:`facegeo.appearance._skin_fit._misfit_from_sums` (same values).
+_TINY = 1e-300
+
+# Grid pattern of _skin_fit.direct_search for P = 2, in its order (meshgrid of [0, -1, 1]²,
+# "ij"): the centre first, so that ties keep the centre as there.
+_OFFS2 = np.array([[0.0, 0.0], [0.0, -1.0], [0.0, 1.0], [-1.0, 0.0], [-1.0, -1.0], [-1.0, 1.0],
+                   [1.0, 0.0], [1.0, -1.0], [1.0, 1.0]])
+
+_FM = {"contract"}  # FMA contraction only: sums keep their order (results match to rounding)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _misfit(syy, sxy, sxx):
+    if sxx > _TINY and syy > _TINY and sxy > 0.0:
+        return 1.0 - sxy * sxy / (sxx * syy)
+    return 1.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _unit3(a0, a1, a2):
+    r = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if r > 1e-30:
+        return a0 / r, a1 / r, a2 / r
+    return 0.0, 0.0, 1.0
+
+
+# ------------------------------------------------------------------------------- lobe search
+
+
+@njit(cache=True, nogil=True, fastmath=_FM)
+def _lobe_anchor(ax, ay, az, rho, lx, ly, lz, wy, wd, band, mom):
+    """Moments over lights with a·l > ρ into ``mom`` (M₁ 3, M₂ 6); band indices; returns count."""
+    for j in range(9):
+        mom[j] = 0.0
+    nb = 0
+    for j in range(lx.size):
+        c = ax * lx[j] + ay * ly[j] + az * lz[j]
+        if c > rho:
+            mom[0] += wy[j] * lx[j]
+            mom[1] += wy[j] * ly[j]
+            mom[2] += wy[j] * lz[j]
+            mom[3] += wd[j] * lx[j] * lx[j]
+            mom[4] += wd[j] * ly[j] * ly[j]
+            mom[5] += wd[j] * lz[j] * lz[j]
+            mom[6] += wd[j] * lx[j] * ly[j]
+            mom[7] += wd[j] * lx[j] * lz[j]
+            mom[8] += wd[j] * ly[j] * lz[j]
+        elif c >= -rho:
+            band[nb] = j
+            nb += 1
+    return nb
+
+
+@njit(cache=True, nogil=True, fastmath=_FM)
+def _lobe_sums(nx, ny, nz, lx, ly, lz, wy, wd, band, nb, mom):
+    sxy = nx * mom[0] + ny * mom[1] + nz * mom[2]
+    sxx = (nx * nx * mom[3] + ny * ny * mom[4] + nz * nz * mom[5]
+           + 2.0 * (nx * ny * mom[6] + nx * nz * mom[7] + ny * nz * mom[8]))
+    for b in range(nb):
+        j = band[b]
+        x = nx * lx[j] + ny * ly[j] + nz * lz[j]
+        if x > 0.0:
+            sxy += wy[j] * x
+            sxx += wd[j] * x * x
+    return sxy, sxx
+
+
+@njit(cache=True, nogil=True, fastmath=_FM)
+def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
+    L = y.size
+    idx = np.empty(L, np.int64)
+    m = 0
+    for j in range(L):
+        if w[j] > 0.0:
+            idx[m] = j
+            m += 1
+    lx = np.empty(m)
+    ly = np.empty(m)
+    lz = np.empty(m)
+    wy = np.empty(m)
+    wd = np.empty(m)
+    syy = 0.0
+    for q in range(m):
+        j = idx[q]
+        lx[q] = dirs[j, 0]
+        ly[q] = dirs[j, 1]
+        lz[q] = dirs[j, 2]
+        wd[q] = w[j] * sa[j]
+        wy[q] = wd[q] * y[j]
+        syy += wy[q] * y[j]
+    band = np.empty(m, np.int64)
+    mom = np.empty(9)
+    n0x, n0y, n0z = ns[i, 0], ns[i, 1], ns[i, 2]
+    ax, ay, az = n0x, n0y, n0z
+    rho = 0.0
+    nb = _lobe_anchor(ax, ay, az, rho, lx, ly, lz, wy, wd, band, mom)
+    sxy, sxx = _lobe_sums(n0x, n0y, n0z, lx, ly, lz, wy, wd, band, nb, mom)
+    val0 = _misfit(syy, sxy, sxx)
+    u0 = 0.0
+    u1 = 0.0
+    step = step0
+    halvings = 0
+    val = val0
+    have_centre = False
+    sq2 = np.sqrt(2.0)
+    for _ in range(levels * moves):
+        if halvings > levels:
+            break
+        # centre on the sphere; the pattern stays within step·√2 of it
+        cx, cy, cz = _unit3(n0x + u0 * t1[i, 0] + u1 * t2[i, 0],
+                            n0y + u0 * t1[i, 1] + u1 * t2[i, 1],
+                            n0z + u0 * t1[i, 2] + u1 * t2[i, 2])
+        dx, dy, dz = cx - ax, cy - ay, cz - az
+        # re-anchor when the pattern could leave the ball, or when the ball (and its band)
+        # is much larger than the current step needs
+        if np.sqrt(dx * dx + dy * dy + dz * dz) + step * sq2 > rho or rho > 12.0 * step:
+            ax, ay, az = cx, cy, cz
+            rho = 3.0 * step * sq2
+            nb = _lobe_anchor(ax, ay, az, rho, lx, ly, lz, wy, wd, band, mom)
+        best = 0
+        bval = np.inf
+        for k in range(9):
+            if k == 0 and have_centre:
+                f = val
+            else:
+                p0 = u0 + _OFFS2[k, 0] * step
+                p1 = u1 + _OFFS2[k, 1] * step
+                nx, ny, nz = _unit3(n0x + p0 * t1[i, 0] + p1 * t2[i, 0],
+                                    n0y + p0 * t1[i, 1] + p1 * t2[i, 1],
+                                    n0z + p0 * t1[i, 2] + p1 * t2[i, 2])
+                sxy, sxx = _lobe_sums(nx, ny, nz, lx, ly, lz, wy, wd, band, nb, mom)
+                f = _misfit(syy, sxy, sxx)
+                if not np.isfinite(f):
+                    f = np.inf
+            if f < bval:
+                bval = f
+                best = k
+        u0 += _OFFS2[best, 0] * step
+        u1 += _OFFS2[best, 1] * step
+        val = bval
+        have_centre = True
+        if best == 0 and halvings < levels + 1:
+            step *= 0.5
+            halvings += 1
+    out_u[i, 0] = u0
+    out_u[i, 1] = u1
+    return val0, val
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def lobe_search(y, w, dirs, sa, ns, t1, t2, step0, levels, moves):
+    """Lambertian-lobe direct search of ``_skin_fit.fit_lambertian_lobe`` for N functions.
+
+    Parameters: ``y, w`` ``(N, L)`` float64 (brightness, 0/1 usable), ``dirs`` ``(L, 3)``,
+    ``sa`` ``(L,)`` δA, ``ns, t1, t2`` ``(N, 3)`` start normal and its tangent basis.
+    Returns ``(u (N, 2) tangent offsets, misfit_start (N,), misfit (N,))``.
+    """
+    N = y.shape[0]
+    u = np.zeros((N, 2))
+    v0 = np.empty(N)
+    v1 = np.empty(N)
+    for i in prange(N):
+        a, b = _lobe_one(y[i], w[i], dirs, sa, ns, t1, t2, step0, levels, moves, u, i)
+        v0[i] = a
+        v1[i] = b
+    return u, v0, v1
+
+
+# ------------------------------------------------------------------------------- ramp
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mu_d(f, A, Rd, Rdms, two_1mds, ds2k, sing_sin2):
+    """μ_d of §4.2 under ramp weight f (``_skin_fit.ramp_mu_d`` for one sample)."""
+    g = 1.0 + f
+    uu = 1.0 + two_1mds * f * g
+    if uu < 1e-300:
+        uu = 1e-300
+    su = np.sqrt(uu)
+    if g * g * ds2k < sing_sin2 * uu:
+        return (Rd + f * Rdms) / su
+    return A * su / g
+
+
+@njit(cache=True, nogil=True, fastmath=_FM)
+def _ramp_value(a0, a1, x, nl, wd, A, Rd, Rdms, two_1mds, ds2k, sxx, sing_sin2):
+    syy = 0.0
+    sxy = 0.0
+    da = a0 - a1
+    for j in range(x.size):
+        f = da * x[j] + a1
+        mm = _mu_d(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2)
+        syy += wd[j] * mm * mm
+        sxy += wd[j] * mm * nl[j]
+    if sxx > _TINY and syy > _TINY and sxy > 0.0:
+        return 1.0 - sxy * sxy / (sxx * syy)
+    if syy > _TINY:
+        return 1.0
+    return syy
+
+
+@njit(cache=True, nogil=True, fastmath=_FM)
+def _compact(w_i, L):
+    idx = np.empty(L, np.int64)
+    m = 0
+    for j in range(L):
+        if w_i[j] > 0.0:
+            idx[m] = j
+            m += 1
+    return idx[:m]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
+    """(α_0, α_1) grid direct search of ``_skin_fit.fit_ramp`` at a fixed normal, N functions.
+
+    ``x`` ``(N, L)`` clipped cos θ_i cos θ_r, ``nl`` clipped n·l, ``wd`` weights (0: unused),
+    ``A, Rd, Rdms`` ``(N, L)`` and ``ds`` ``(N,)`` as in ``_skin_fit.ramp_mu_d``.
+    Returns ``(p (N, 2), misfit (N,))``.
+    """
+    N, L = x.shape
+    p = np.zeros((N, 2))
+    val = np.empty(N)
+    for i in prange(N):
+        idx = _compact(wd[i], L)
+        xs = x[i][idx]
+        nls = nl[i][idx]
+        wds = wd[i][idx]
+        As = A[i][idx]
+        Rds = Rd[i][idx]
+        Rms = Rdms[i][idx]
+        two_1mds = 2.0 * (1.0 - ds[i])
+        ds2k = 1.0 - ds[i] * ds[i]
+        sxx = 0.0
+        for j in range(idx.size):
+            sxx += wds[j] * nls[j] * nls[j]
+        u0 = 0.0
+        u1 = 0.0
+        step = step0
+        halvings = 0
+        v = np.inf
+        have_centre = False
+        for _ in range(levels * moves):
+            if halvings > levels:
+                break
+            best = 0
+            bval = np.inf
+            for k in range(9):
+                if k == 0 and have_centre:
+                    f = v
+                else:
+                    f = _ramp_value(u0 + _OFFS2[k, 0] * step, u1 + _OFFS2[k, 1] * step, xs, nls,
+                                    wds, As, Rds, Rms, two_1mds, ds2k, sxx, sing_sin2)
+                    if not np.isfinite(f):
+                        f = np.inf
+                if f < bval:
+                    bval = f
+                    best = k
+            u0 += _OFFS2[best, 0] * step
+            u1 += _OFFS2[best, 1] * step
+            v = bval
+            have_centre = True
+            if best == 0 and halvings < levels + 1:
+                step *= 0.5
+                halvings += 1
+        p[i, 0] = u0
+        p[i, 1] = u1
+        val[i] = v
+    return p, val
+
+
+@njit(cache=True, nogil=True, fastmath=_FM)
+def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
+                      sing_sin2, r_out, xs_fix, nl_fix):
+    """Residuals √w (μ_d − k x)/√Σw μ_d² of ``_skin_fit.fit_ramp``'s polish into ``r_out``;
+    returns Σ r². ``nrm``: polish the normal too (p has 4 entries)."""
+    m = r_out.size
+    nx = ny = nz = nvc = 0.0
+    if nrm:
+        nx, ny, nz = _unit3(normal[0] + p[2] * t1[0] + p[3] * t2[0],
+                            normal[1] + p[2] * t1[1] + p[3] * t2[1],
+                            normal[2] + p[2] * t1[2] + p[3] * t2[2])
+        nv = nx * v[0] + ny * v[1] + nz * v[2]
+        nvc = min(max(nv, 0.0), 1.0)
+    da = p[0] - p[1]
+    syy = 0.0
+    sxy = 0.0
+    sxx = 0.0
+    # first pass: μ_d · √w into r_out and the three sums; second pass: the residuals
+    for j in range(m):
+        if nrm:
+            c = nx * lx[j] + ny * ly[j] + nz * lz[j]
+            nlj = c if c > 0.0 else 0.0
+            xc = min(nlj, 1.0) * nvc
+        else:
+            nlj = nl_fix[j]
+            xc = xs_fix[j]
+        f = da * xc + p[1]
+        mm = _mu_d(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2) * sqw[j]
+        xw = nlj * sqw[j]
+        r_out[j] = mm
+        syy += mm * mm
+        sxy += mm * xw
+        sxx += xw * xw
+    ok = sxx > _TINY and syy > _TINY and sxy > 0.0
+    k = sxy / sxx if ok else 0.0
+    inv = 1.0 / np.sqrt(syy if syy > _TINY else 1.0)
+    tot = 0.0
+    for j in range(m):
+        if nrm:
+            c = nx * lx[j] + ny * ly[j] + nz * lz[j]
+            nlj = c if c > 0.0 else 0.0
+        else:
+            nlj = nl_fix[j]
+        r = (r_out[j] - k * nlj * sqw[j]) * inv
+        r_out[j] = r
+        tot += r * r
+    return tot
+
+
+@njit(cache=True, nogil=True, fastmath=_FM)
+def _solve_small(A, b, P):
+    """Gaussian elimination with partial pivoting in place; False when singular."""
+    for c in range(P):
+        piv = c
+        for r in range(c + 1, P):
+            if abs(A[r, c]) > abs(A[piv, c]):
+                piv = r
+        if A[piv, c] == 0.0 or not np.isfinite(A[piv, c]):
+            return False
+        if piv != c:
+            for q in range(P):
+                A[c, q], A[piv, q] = A[piv, q], A[c, q]
+            b[c], b[piv] = b[piv], b[c]
+        for r in range(c + 1, P):
+            fct = A[r, c] / A[c, c]
+            for q in range(c, P):
+                A[r, q] -= fct * A[c, q]
+            b[r] -= fct * b[c]
+    for c in range(P - 1, -1, -1):
+        acc = b[c]
+        for q in range(c + 1, P):
+            acc -= A[c, q] * b[q]
+        b[c] = acc / A[c, c]
+    return True
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations, h,
+                sing_sin2):
+    """Levenberg–Marquardt polish of ``_skin_fit.gauss_newton_polish`` (forward differences)
+    on ``fit_ramp``'s residuals, N functions. ``p0`` ``(N, 2)`` (ramp at the fixed normal) or
+    ``(N, 4)`` (ramp and tangent offsets of the normal). Returns ``(p, Σ r²)``."""
+    N, P = p0.shape
+    L = wd.shape[1]
+    nrm = P == 4
+    out = p0.copy()
+    val = np.empty(N)
+    for i in prange(N):
+        idx = _compact(wd[i], L)
+        m = idx.size
+        lx = dirs[idx, 0].copy()
+        ly = dirs[idx, 1].copy()
+        lz = dirs[idx, 2].copy()
+        sqw = np.sqrt(wd[i][idx])
+        As = A[i][idx]
+        Rds = Rd[i][idx]
+        Rms = Rdms[i][idx]
+        xs = x_fix[i][idx]
+        nls = nl_fix[i][idx]
+        two_1mds = 2.0 * (1.0 - ds[i])
+        ds2k = 1.0 - ds[i] * ds[i]
+        x = out[i].copy()
+        r = np.empty(m)
+        rj = np.empty((P, m))
+        rn = np.empty(m)
+        pt = np.empty(P)
+        JtJ = np.empty((P, P))
+        g = np.empty(P)
+        Am = np.empty((P, P))
+        lam = 1e-8
+        cur = _polish_residuals(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds,
+                                Rms, two_1mds, ds2k, sing_sin2, r, xs, nls)
+        for _ in range(iterations):
+            for a in range(P):
+                for q in range(P):
+                    pt[q] = x[q]
+                pt[a] += h
+                _polish_residuals(pt, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
+                                  Rds, Rms, two_1mds, ds2k, sing_sin2, rj[a], xs, nls)
+            for a in range(P):
+                g[a] = 0.0
+                for q in range(P):
+                    JtJ[a, q] = 0.0
+            for j in range(m):
+                for a in range(P):
+                    ja = (rj[a, j] - r[j]) / h
+                    g[a] += ja * r[j]
+                    for q in range(a, P):
+                        JtJ[a, q] += ja * (rj[q, j] - r[j]) / h
+            for a in range(P):
+                for q in range(a):
+                    JtJ[a, q] = JtJ[q, a]
+            for a in range(P):
+                for q in range(P):
+                    Am[a, q] = JtJ[a, q]
+                Am[a, a] += lam * max(JtJ[a, a], 1e-30)
+                pt[a] = -g[a]
+            if not _solve_small(Am, pt, P):
+                break
+            for a in range(P):
+                if not np.isfinite(pt[a]):
+                    pt[a] = 0.0
+                pt[a] += x[a]
+            vn = _polish_residuals(pt, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
+                                   Rds, Rms, two_1mds, ds2k, sing_sin2, rn, xs, nls)
+            if np.isfinite(vn) and vn < cur:
+                for a in range(P):
+                    x[a] = pt[a]
+                for j in range(m):
+                    r[j] = rn[j]
+                cur = vn
+                lam *= 0.1
+            else:
+                lam *= 10.0
+        for a in range(P):
+            out[i, a] = x[a]
+        val[i] = cur
+    return out, val
