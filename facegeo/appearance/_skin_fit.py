@@ -312,6 +312,8 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
     misfit_start, misfit : (N,) float64
         Relative misfit at ``n_start`` and at the result.
     """
+    if KERNELS:
+        return _fit_lobe_compiled(y, w, lights, n_start, depth)
     # Precomputed once per call, not per candidate: only lights some function of the chunk
     # can use (w = 0 samples add nothing to any sum), the weighted data w δA y and its norm.
     n_all = lights.directions
@@ -342,19 +344,10 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
         sxx = (np.square(x, out=x) @ wdc[sel])[..., 0]
         return _misfit_from_sums(syy[sel], sxy, sxx)
 
-    if KERNELS:
-        from facegeo.appearance._skin_kernels import lobe_search
-
-        u, misfit_start, misfit = lobe_search(
-            np.ascontiguousarray(y, np.float64), np.ascontiguousarray(w, np.float64),
-            np.ascontiguousarray(n_all), np.ascontiguousarray(lights.solid_angles),
-            np.ascontiguousarray(n_start), t1, t2, float(depth.normal_step), int(depth.levels),
-            int(depth.moves))
-    else:
-        u0 = np.zeros((n_start.shape[0], 2))
-        misfit_start = objective(u0[:, None, :])[:, 0]
-        u, misfit = direct_search(objective, u0, depth.normal_step, depth.levels, depth.moves,
-                                  subset=True)
+    u0 = np.zeros((n_start.shape[0], 2))
+    misfit_start = objective(u0[:, None, :])[:, 0]
+    u, misfit = direct_search(objective, u0, depth.normal_step, depth.levels, depth.moves,
+                              subset=True)
     n = normals(u[:, None, :])[:, 0]
     l = n_all
     wd = w * lights.solid_angles
@@ -362,6 +355,20 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
     sxx = np.sum(wd * x * x, axis=1)
     k = np.where(sxx > 0, np.sum(wd * y * x, axis=1) / np.where(sxx > 0, sxx, 1.0), 0.0)
     return n, np.maximum(k, 0.0), misfit_start, misfit
+
+
+def _fit_lobe_compiled(y, w, lights: LightSet, n_start, depth: SearchDepth):
+    """:func:`fit_lambertian_lobe` in the compiled kernel ``_skin_kernels.lobe_search``."""
+    from facegeo.appearance._skin_kernels import lobe_search
+
+    c = np.ascontiguousarray
+    n_start = c(n_start, np.float64)
+    t1, t2 = _tangent_basis(n_start)
+    u, k, misfit_start, misfit = lobe_search(
+        c(y, np.float64), c(w, np.float64), c(lights.directions), c(lights.solid_angles),
+        n_start, t1, t2, float(depth.normal_step), int(depth.levels), int(depth.moves))
+    n = normalize(n_start + u[:, :1] * t1 + u[:, 1:2] * t2)
+    return n, k, misfit_start, misfit
 
 
 def _row_nanquantile(a, q):
@@ -523,6 +530,8 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     normal : (N, 3) float64, unit (the input normal when ``depth.polish`` is 0)
     misfit : (N,) float64
     """
+    if KERNELS:
+        return _fit_ramp_compiled(R, w, lights, n, v, d_0, depth)
     # only lights some function of the chunk uses (the shadowed half of the sphere drops out)
     used = np.flatnonzero(w.any(axis=0))
     if used.size < lights.n_lights:
@@ -581,25 +590,6 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         return np.where(ok, fit, np.where(syy > 1e-300, 1.0, syy))
 
     n_out = n
-    if KERNELS and (POLISH_FORWARD or not depth.polish):
-        from facegeo.appearance._skin_kernels import ramp_polish, ramp_search
-
-        x_c, nl_c, wd_c = (np.ascontiguousarray(a) for a in (x_fix, nl_fix, wd))
-        A_c, Rd_c, Rdms_c = (np.ascontiguousarray(a) for a in (A, Rd, Rdms))
-        ds_c = np.ascontiguousarray(ds, np.float64)
-        p, misfit = ramp_search(x_c, nl_c, wd_c, A_c, Rd_c, Rdms_c, ds_c,
-                                float(depth.alpha_step), int(depth.alpha_levels),
-                                int(depth.moves), SINGULAR_SIN2)
-        if depth.polish:
-            p0 = p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1)
-            p, misfit = ramp_polish(np.ascontiguousarray(p0), np.ascontiguousarray(n), t1, t2,
-                                    np.ascontiguousarray(v, np.float64), np.ascontiguousarray(l),
-                                    x_c, nl_c, wd_c, A_c, Rd_c, Rdms_c, ds_c, int(depth.polish),
-                                    1e-5, SINGULAR_SIN2)
-            if depth.polish_normal:
-                n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
-                p = p[:, :2]
-        return p[:, 0], p[:, 1], n_out, misfit
     x0 = np.zeros((n.shape[0], 2))
     p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves,
                               subset=True)
@@ -612,6 +602,29 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
                                         forward=POLISH_FORWARD)
         p = p4[:, :2]
         n_out = normalize(n + p4[:, 2:3] * t1 + p4[:, 3:4] * t2)
+    return p[:, 0], p[:, 1], n_out, misfit
+
+
+def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
+    """:func:`fit_ramp` in the compiled kernels (``_skin_kernels``): the same inputs, search
+    and Levenberg–Marquardt steps, the polish with the analytic Jacobian."""
+    from facegeo.appearance._skin_kernels import ramp_inputs, ramp_polish, ramp_search
+
+    c = np.ascontiguousarray
+    n, v, d_0 = c(n, np.float64), c(v, np.float64), c(d_0, np.float64)
+    t1, t2 = _tangent_basis(n)
+    wd, x_fix, nl_fix, A, Rd, Rdms, ds = ramp_inputs(
+        c(R, np.float64), c(w, np.float64), c(lights.solid_angles), c(lights.directions), n, v,
+        d_0, float(MIRROR_SIGMA))
+    p, misfit = ramp_search(x_fix, nl_fix, wd, A, Rd, Rdms, ds, float(depth.alpha_step),
+                            int(depth.alpha_levels), int(depth.moves), SINGULAR_SIN2)
+    n_out = n
+    if depth.polish:
+        p0 = p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1)
+        p, misfit = ramp_polish(c(p0), n, t1, t2, v, c(lights.directions), x_fix, nl_fix, wd, A,
+                                Rd, Rdms, ds, int(depth.polish), SINGULAR_SIN2)
+        if depth.polish_normal:
+            n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
     return p[:, 0], p[:, 1], n_out, misfit
 
 

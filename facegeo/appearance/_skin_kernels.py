@@ -17,10 +17,14 @@ tie-breaking), the same Levenberg–Marquardt steps — and agree with it to rou
   ``−ρ`` contribute nothing. The anchor moves (moments rebuilt) when the pattern would leave
   the ball; ρ is a few steps, so at the fine levels the band is nearly empty.
 * **Centre values carried over**: the pattern's centre was the previous iteration's best.
-* **Ramp search and polish fused** (``ramp_search``, ``ramp_polish``): μ_d of §4.2 under each
-  candidate ramp in closed form (``_skin_fit.ramp_mu_d``), the misfit's three weighted sums
-  accumulated in the same loop; the polish builds JᵀJ and Jᵀr from its P + 1 residual vectors
-  in one pass and solves the 4 × 4 normal equations by Gaussian elimination per function.
+* **Ramp search fused** (``ramp_search``): μ_d of §4.2 under each candidate ramp in closed
+  form (``_skin_fit.ramp_mu_d``), the misfit's three weighted sums accumulated in the same loop.
+* **Polish with the analytic Jacobian** (``ramp_polish``): the reference's Levenberg–Marquardt
+  steps, but JᵀJ and Jᵀr from the residuals' analytic derivatives (one pass with derivatives
+  instead of P forward-difference residual vectors; reused after a rejected step), the 4 × 4
+  normal equations solved by Gaussian elimination per function. This one is not the
+  reference's arithmetic: it converges to the same minimum (tested against the numpy polish and
+  the Jacobian against central differences).
 
 Kernels are compiled on first use and cached on disk (``cache=True``).
 """
@@ -176,7 +180,19 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
             halvings += 1
     out_u[i, 0] = u0
     out_u[i, 1] = u1
-    return val0, val
+    # the lobe's scale k = Σ w δA y x / Σ w δA x² at the result, over every usable light
+    nx, ny, nz = _unit3(n0x + u0 * t1[i, 0] + u1 * t2[i, 0],
+                        n0y + u0 * t1[i, 1] + u1 * t2[i, 1],
+                        n0z + u0 * t1[i, 2] + u1 * t2[i, 2])
+    sxy = 0.0
+    sxx = 0.0
+    for q in range(m):
+        x = nx * lx[q] + ny * ly[q] + nz * lz[q]
+        if x > 0.0:
+            sxy += wy[q] * x
+            sxx += wd[q] * x * x
+    k = sxy / sxx if sxx > 0.0 else 0.0
+    return val0, val, max(k, 0.0)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -185,17 +201,20 @@ def lobe_search(y, w, dirs, sa, ns, t1, t2, step0, levels, moves):
 
     Parameters: ``y, w`` ``(N, L)`` float64 (brightness, 0/1 usable), ``dirs`` ``(L, 3)``,
     ``sa`` ``(L,)`` δA, ``ns, t1, t2`` ``(N, 3)`` start normal and its tangent basis.
-    Returns ``(u (N, 2) tangent offsets, misfit_start (N,), misfit (N,))``.
+    Returns ``(u (N, 2) tangent offsets, k (N,) lobe scale ≥ 0, misfit_start (N,),
+    misfit (N,))``.
     """
     N = y.shape[0]
     u = np.zeros((N, 2))
+    kk = np.empty(N)
     v0 = np.empty(N)
     v1 = np.empty(N)
     for i in prange(N):
-        a, b = _lobe_one(y[i], w[i], dirs, sa, ns, t1, t2, step0, levels, moves, u, i)
+        a, b, c = _lobe_one(y[i], w[i], dirs, sa, ns, t1, t2, step0, levels, moves, u, i)
         v0[i] = a
         v1[i] = b
-    return u, v0, v1
+        kk[i] = c
+    return u, kk, v0, v1
 
 
 # ------------------------------------------------------------------------------- ramp
@@ -350,6 +369,153 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
     return tot
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _mu_d_df(f, A, Rd, Rdms, two_1mds, ds2k, sing_sin2):
+    """μ_d of §4.2 under ramp weight f and its derivative dμ_d/df (``_mu_d``)."""
+    g = 1.0 + f
+    uu = 1.0 + two_1mds * f * g
+    duu = two_1mds * (1.0 + 2.0 * f)
+    if uu < 1e-300:
+        uu = 1e-300
+        duu = 0.0
+    su = np.sqrt(uu)
+    dsu = 0.5 * duu / su
+    if g * g * ds2k < sing_sin2 * uu:
+        num = Rd + f * Rdms
+        return num / su, Rdms / su - num * dsu / uu
+    return A * su / g, A * (dsu * g - su) / (g * g)
+
+
+@njit(cache=True, nogil=True, fastmath=_FM)
+def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
+                     sing_sin2, r_out, xs_fix, nl_fix, dm, dxw, JtJ, g):
+    """Residuals of :func:`_polish_residuals` into ``r_out`` with the analytic Jacobian,
+    accumulated as ``JtJ`` ``(P, P)`` and ``g = Jᵀ r`` ``(P,)``; returns Σ r².
+
+    r_j = (m_j − k x_j)/√s_yy with m_j = √w_j μ_d(f_j) (Eq. 6–7 and §4.2, f_j = α_1 +
+    (α_0 − α_1) cos θ_i cos θ_r), x_j = √w_j max(0, n·l_j), k = s_xy/s_xx; the normal
+    n = (n_0 + u t_1 + w t_2)/|·| (P = 4). Derivatives through k and s_yy included (the
+    residual's variable projection); clamps and clips contribute zero derivative where active.
+    ``dm`` ``(P, m)`` and ``dxw`` ``(2, m)`` are scratch.
+    """
+    m = r_out.size
+    P = p.size
+    nx = ny = nz = nvc = dnvc0 = dnvc1 = 0.0
+    d0x = d0y = d0z = d1x = d1y = d1z = 0.0
+    if nrm:
+        qx = normal[0] + p[2] * t1[0] + p[3] * t2[0]
+        qy = normal[1] + p[2] * t1[1] + p[3] * t2[1]
+        qz = normal[2] + p[2] * t1[2] + p[3] * t2[2]
+        qn = np.sqrt(qx * qx + qy * qy + qz * qz)
+        nx, ny, nz = _unit3(qx, qy, qz)
+        a = nx * t1[0] + ny * t1[1] + nz * t1[2]
+        b = nx * t2[0] + ny * t2[1] + nz * t2[2]
+        d0x, d0y, d0z = (t1[0] - nx * a) / qn, (t1[1] - ny * a) / qn, (t1[2] - nz * a) / qn
+        d1x, d1y, d1z = (t2[0] - nx * b) / qn, (t2[1] - ny * b) / qn, (t2[2] - nz * b) / qn
+        nv = nx * v[0] + ny * v[1] + nz * v[2]
+        nvc = min(max(nv, 0.0), 1.0)
+        if 0.0 < nv < 1.0:
+            dnvc0 = d0x * v[0] + d0y * v[1] + d0z * v[2]
+            dnvc1 = d1x * v[0] + d1y * v[1] + d1z * v[2]
+    da = p[0] - p[1]
+    syy = 0.0
+    sxy = 0.0
+    sxx = 0.0
+    dsyy = np.zeros(P)
+    dsxy = np.zeros(P)
+    dsxx = np.zeros(P)
+    for j in range(m):
+        dn0 = 0.0
+        dn1 = 0.0
+        if nrm:
+            c = nx * lx[j] + ny * ly[j] + nz * lz[j]
+            nlj = c if c > 0.0 else 0.0
+            if c > 0.0:
+                dn0 = d0x * lx[j] + d0y * ly[j] + d0z * lz[j]
+                dn1 = d1x * lx[j] + d1y * ly[j] + d1z * lz[j]
+            nlc = nlj
+            dl0 = dn0
+            dl1 = dn1
+            if nlj > 1.0:
+                nlc = 1.0
+                dl0 = 0.0
+                dl1 = 0.0
+            xc = nlc * nvc
+            dx0 = dl0 * nvc + nlc * dnvc0
+            dx1 = dl1 * nvc + nlc * dnvc1
+        else:
+            nlj = nl_fix[j]
+            xc = xs_fix[j]
+            dx0 = 0.0
+            dx1 = 0.0
+        f = da * xc + p[1]
+        mu, dmu = _mu_d_df(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2)
+        sw = sqw[j]
+        mm = mu * sw
+        xw = nlj * sw
+        dmu *= sw
+        r_out[j] = mm
+        syy += mm * mm
+        sxy += mm * xw
+        sxx += xw * xw
+        dm[0, j] = dmu * xc
+        dm[1, j] = dmu * (1.0 - xc)
+        for a in range(2):
+            dsyy[a] += 2.0 * mm * dm[a, j]
+            dsxy[a] += dm[a, j] * xw
+        if nrm:
+            dm[2, j] = dmu * da * dx0
+            dm[3, j] = dmu * da * dx1
+            dxw[0, j] = dn0 * sw
+            dxw[1, j] = dn1 * sw
+            for a in range(2):
+                dsyy[2 + a] += 2.0 * mm * dm[2 + a, j]
+                dsxy[2 + a] += dm[2 + a, j] * xw + mm * dxw[a, j]
+                dsxx[2 + a] += 2.0 * xw * dxw[a, j]
+    ok = sxx > _TINY and syy > _TINY and sxy > 0.0
+    k = sxy / sxx if ok else 0.0
+    dk = np.zeros(P)
+    if ok:
+        for a in range(P):
+            dk[a] = (dsxy[a] - k * dsxx[a]) / sxx
+    big = syy > _TINY
+    inv = 1.0 / np.sqrt(syy if big else 1.0)
+    dinv = np.zeros(P)
+    if big:
+        for a in range(P):
+            dinv[a] = -0.5 * inv * inv * inv * dsyy[a]
+    for a in range(P):
+        g[a] = 0.0
+        for q in range(P):
+            JtJ[a, q] = 0.0
+    jr = np.empty(P)
+    tot = 0.0
+    for j in range(m):
+        if nrm:
+            c = nx * lx[j] + ny * ly[j] + nz * lz[j]
+            nlj = c if c > 0.0 else 0.0
+        else:
+            nlj = nl_fix[j]
+        xw = nlj * sqw[j]
+        e = r_out[j] - k * xw
+        r = e * inv
+        r_out[j] = r
+        tot += r * r
+        for a in range(P):
+            dd = dm[a, j] - dk[a] * xw
+            if a >= 2:
+                dd -= k * dxw[a - 2, j]
+            jr[a] = dd * inv + e * dinv[a]
+        for a in range(P):
+            g[a] += jr[a] * r
+            for q in range(a, P):
+                JtJ[a, q] += jr[a] * jr[q]
+    for a in range(P):
+        for q in range(a):
+            JtJ[a, q] = JtJ[q, a]
+    return tot
+
+
 @njit(cache=True, nogil=True, fastmath=_FM)
 def _solve_small(A, b, P):
     """Gaussian elimination with partial pivoting in place; False when singular."""
@@ -378,11 +544,13 @@ def _solve_small(A, b, P):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations, h,
+def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations,
                 sing_sin2):
-    """Levenberg–Marquardt polish of ``_skin_fit.gauss_newton_polish`` (forward differences)
-    on ``fit_ramp``'s residuals, N functions. ``p0`` ``(N, 2)`` (ramp at the fixed normal) or
-    ``(N, 4)`` (ramp and tangent offsets of the normal). Returns ``(p, Σ r²)``."""
+    """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
+    ``_skin_fit.gauss_newton_polish`` (same damping, a step kept only where it lowers Σ r²)
+    with the analytic Jacobian of :func:`_polish_jacobian` instead of finite differences, and
+    JᵀJ, Jᵀr reused after a rejected step (x unchanged). ``p0`` ``(N, 2)`` (ramp at the fixed
+    normal) or ``(N, 4)`` (ramp and tangent offsets of the normal). Returns ``(p, Σ r²)``."""
     N, P = p0.shape
     L = wd.shape[1]
     nrm = P == 4
@@ -404,35 +572,23 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
         ds2k = 1.0 - ds[i] * ds[i]
         x = out[i].copy()
         r = np.empty(m)
-        rj = np.empty((P, m))
         rn = np.empty(m)
         pt = np.empty(P)
         JtJ = np.empty((P, P))
         g = np.empty(P)
         Am = np.empty((P, P))
         lam = 1e-8
+        dm = np.empty((P, m))
+        dxw = np.empty((2, m))
         cur = _polish_residuals(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds,
                                 Rms, two_1mds, ds2k, sing_sin2, r, xs, nls)
+        fresh = False  # JtJ, g are those of the current x (kept across rejected steps)
         for _ in range(iterations):
-            for a in range(P):
-                for q in range(P):
-                    pt[q] = x[q]
-                pt[a] += h
-                _polish_residuals(pt, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
-                                  Rds, Rms, two_1mds, ds2k, sing_sin2, rj[a], xs, nls)
-            for a in range(P):
-                g[a] = 0.0
-                for q in range(P):
-                    JtJ[a, q] = 0.0
-            for j in range(m):
-                for a in range(P):
-                    ja = (rj[a, j] - r[j]) / h
-                    g[a] += ja * r[j]
-                    for q in range(a, P):
-                        JtJ[a, q] += ja * (rj[q, j] - r[j]) / h
-            for a in range(P):
-                for q in range(a):
-                    JtJ[a, q] = JtJ[q, a]
+            if not fresh:
+                cur = _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw,
+                                       As, Rds, Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, dm,
+                                       dxw, JtJ, g)
+                fresh = True
             for a in range(P):
                 for q in range(P):
                     Am[a, q] = JtJ[a, q]
@@ -449,9 +605,8 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
             if np.isfinite(vn) and vn < cur:
                 for a in range(P):
                     x[a] = pt[a]
-                for j in range(m):
-                    r[j] = rn[j]
                 cur = vn
+                fresh = False
                 lam *= 0.1
             else:
                 lam *= 10.0
@@ -459,3 +614,120 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
             out[i, a] = x[a]
         val[i] = cur
     return out, val
+
+
+# ------------------------------------------------------------------------------- separation
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=_FM)
+def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
+    """§4.2 colour-space separation of every sample with the Eq. 6–7 ramp chromaticity.
+
+    The fused form of ``separate_colour(R, ramp_chromaticity(d_0, ramp_f(n·l, n·v, α_0, α_1)))``
+    (``_skin_model``; same formulas, s = (1, 1, 1)/√3): per sample
+    ``c = normalize(d_0 + f (d_0 − s))`` (s where that vanishes), ``μ_s = (R·s − (R·c)(c·s))/|c × s|²``
+    (0 where ``|c × s|² < sing_sin2``), ``D = R − max(μ_s, 0) s``. With ``uniform`` the
+    chromaticity is d_0 itself (f = 0: the initial separation).
+
+    Parameters
+    ----------
+    R : (N, L, 3) float64, white balanced
+    d0, nrm, v : (N, 3) float64, unit
+    dirs : (L, 3) float64
+    a0, a1 : (N,) float64
+
+    Returns
+    -------
+    D : (N, L, 3) float64
+    mu_s : (N, L) float64
+    y : (N, L) float64, |D|
+    singular : (N,) bool, any sample singular
+    """
+    N, L, _ = R.shape
+    s = 1.0 / np.sqrt(3.0)
+    D = np.empty((N, L, 3))
+    mu_s = np.empty((N, L))
+    y = np.empty((N, L))
+    singular = np.zeros(N, np.bool_)
+    for i in prange(N):
+        nv = nrm[i, 0] * v[i, 0] + nrm[i, 1] * v[i, 1] + nrm[i, 2] * v[i, 2]
+        nv = min(max(nv, 0.0), 1.0)
+        sing_i = False
+        for j in range(L):
+            if uniform:
+                f = 0.0
+            else:
+                nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
+                x = min(max(nl, 0.0), 1.0) * nv
+                f = a0[i] * x + a1[i] * (1.0 - x)
+            cx = d0[i, 0] + f * (d0[i, 0] - s)
+            cy = d0[i, 1] + f * (d0[i, 1] - s)
+            cz = d0[i, 2] + f * (d0[i, 2] - s)
+            cn = np.sqrt(cx * cx + cy * cy + cz * cz)
+            if cn > 1e-30:
+                cx /= cn
+                cy /= cn
+                cz /= cn
+            else:
+                cx = cy = cz = s
+            ds = (cx + cy + cz) * s
+            det = 1.0 - ds * ds
+            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+            ms = 0.0
+            if det < sing_sin2:
+                sing_i = True
+            else:
+                Rd = r0 * cx + r1 * cy + r2 * cz
+                Rs = (r0 + r1 + r2) * s
+                ms = (Rs - Rd * ds) / det
+            mu_s[i, j] = ms
+            sp = max(ms, 0.0) * s
+            e0, e1, e2 = r0 - sp, r1 - sp, r2 - sp
+            D[i, j, 0] = e0
+            D[i, j, 1] = e1
+            D[i, j, 2] = e2
+            y[i, j] = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        singular[i] = sing_i
+    return D, mu_s, y, singular
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=_FM)
+def ramp_inputs(R, w, sa, dirs, nrm, v, d0, mirror_sigma):
+    """Per-sample inputs of ``_skin_fit.fit_ramp`` (its numpy preamble, fused): the weights
+    ``w δA (1 − exp(−(1 − l·r)/σ))`` with ``r = 2(n·v)n − v`` (mirror samples down-weighted),
+    ``x = clip(n·l) clip(n·v)``, ``max(0, n·l)``, and ``A``, ``R·d_0``, ``R·d_0 − R·s`` of
+    ``ramp_mu_d``; ``d_0·s`` per function. Arrays ``(N, L)``, the last ``(N,)``."""
+    N, L, _ = R.shape
+    s = 1.0 / np.sqrt(3.0)
+    wd = np.empty((N, L))
+    xf = np.empty((N, L))
+    nlf = np.empty((N, L))
+    A = np.empty((N, L))
+    Rd = np.empty((N, L))
+    Rdms = np.empty((N, L))
+    ds = np.empty(N)
+    for i in prange(N):
+        nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+        nv0 = nx * v[i, 0] + ny * v[i, 1] + nz * v[i, 2]
+        rx, ry, rz = 2.0 * nv0 * nx - v[i, 0], 2.0 * nv0 * ny - v[i, 1], 2.0 * nv0 * nz - v[i, 2]
+        nvc = min(max(nv0, 0.0), 1.0)
+        dsi = (d0[i, 0] + d0[i, 1] + d0[i, 2]) * s
+        ds[i] = dsi
+        ds2 = 1.0 - dsi * dsi
+        for j in range(L):
+            lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+            if w[i, j] > 0.0:
+                wm = 1.0 - np.exp(-(1.0 - (rx * lx + ry * ly + rz * lz)) / mirror_sigma)
+                wd[i, j] = w[i, j] * sa[j] * wm
+            else:
+                wd[i, j] = 0.0
+            nl = max(nx * lx + ny * ly + nz * lz, 0.0)
+            nlf[i, j] = nl
+            xf[i, j] = min(nl, 1.0) * nvc
+            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+            rd = r0 * d0[i, 0] + r1 * d0[i, 1] + r2 * d0[i, 2]
+            rs = (r0 + r1 + r2) * s
+            Rd[i, j] = rd
+            Rdms[i, j] = rd - rs
+            A[i, j] = (rd - rs * dsi) / ds2 if ds2 > 0.0 else 0.0
+    return wd, xf, nlf, A, Rd, Rdms, ds

@@ -58,8 +58,10 @@ from facegeo.appearance._skin_fit import (
     moment_normal,
     specular_energy,
 )
+from facegeo.appearance import _skin_fit
 from facegeo.appearance._skin_model import (
     S_WHITE,
+    SINGULAR_SIN2,
     LightSet,
     SkinParams,
     invert_ramp,
@@ -370,6 +372,21 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                    flags=flags, valid=valid, eta=eta, single_channel=single)
 
 
+def _separate_ramp(R, d0, n, v, lights, a0, a1):
+    """The §4.2 separation of every sample with the ramp chromaticity (the compiled
+    ``_skin_kernels.separate_ramp``); ``n`` None: with d_0 itself (the initial separation).
+    Returns ``D (n, L, 3)``, ``μ_s (n, L)``, ``|D| (n, L)``, any-singular ``(n,)``."""
+    from facegeo.appearance._skin_kernels import separate_ramp
+
+    c = np.ascontiguousarray
+    uniform = n is None
+    N = R.shape[0]
+    zeros = np.zeros(N)
+    return separate_ramp(c(R, np.float64), c(d0, np.float64), c(v if uniform else n, np.float64),
+                         c(v, np.float64), c(lights.directions), zeros if uniform else c(a0),
+                         zeros if uniform else c(a1), uniform, SINGULAR_SIN2)
+
+
 def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, rounds):
     """§4.2 on one chunk of white-balanced functions R ``(n, L, C)``; see :func:`fit_reflectance`."""
     n_f, L, C = R.shape
@@ -393,11 +410,15 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
         d0, found = initial_diffuse_chromaticity(R, valid_s)
         if d_0 is not None:
             d0 = d_0
-        D0, _, _, _, _, sing = separate_colour(R, d0[:, None, :], s)
-        flags |= np.where(sing[:, 0], FLAG_SINGULAR, 0)
-        y0 = np.linalg.norm(D0, axis=2)
+        if _skin_fit.KERNELS:
+            _, _, y0, sing0 = _separate_ramp(R, d0, None, v, lights, None, None)
+        else:
+            D0, _, _, _, _, sing = separate_colour(R, d0[:, None, :], s)
+            sing0 = sing[:, 0]
+            y0 = np.linalg.norm(D0, axis=2)
+        flags |= np.where(sing0, FLAG_SINGULAR, 0)
     nm = moment_normal(y0, w, lights, v)
-    n1, _, mm, m1 = fit_lambertian_lobe(y0, w, lights, nm, depth)
+    n1, k, mm, m1 = fit_lambertian_lobe(y0, w, lights, nm, depth)
     if single:
         a0 = np.zeros(n_f)
         a1 = np.zeros(n_f)
@@ -409,23 +430,25 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
         for _ in range(max(1, int(rounds))):
             # the polish moves the normal with the ramp; it only serves the ramp fit
             a0, a1, n_ramp, _ = fit_ramp(R, w, lights, n, v, d0, depth)
-            nl = n_ramp @ l.T
-            nv = np.einsum("ni,ni->n", n_ramp, v)
-            c = ramp_chromaticity(d0[:, None, :],
-                                  ramp_f(nl, nv[:, None], a0[:, None], a1[:, None]))
-            D, _, _, mu_s, _, sing2 = separate_colour(R, c, s)
+            if _skin_fit.KERNELS:
+                D, mu_s, y, sing2 = _separate_ramp(R, d0, n_ramp, v, lights, a0, a1)
+            else:
+                nl = n_ramp @ l.T
+                nv = np.einsum("ni,ni->n", n_ramp, v)
+                c = ramp_chromaticity(d0[:, None, :],
+                                      ramp_f(nl, nv[:, None], a0[:, None], a1[:, None]))
+                D, _, _, mu_s, _, sing2 = separate_colour(R, c, s)
+                y = np.linalg.norm(D, axis=2)
+                sing2 = sing2.any(axis=1)
             # normal recomputed from the final diffuse component (§4.2, Fig. 14 b)
-            n, _, _, _ = fit_lambertian_lobe(np.linalg.norm(D, axis=2), w, lights, n1, depth)
+            n, k, _, _ = fit_lambertian_lobe(y, w, lights, n1, depth)
         sing_any = (flags & FLAG_SINGULAR) != 0
         a0 = np.where(sing_any, 0.0, a0)
         a1 = np.where(sing_any, 0.0, a1)
-        flags |= np.where(sing2.any(axis=1), FLAG_SINGULAR, 0)
+        flags |= np.where(sing2, FLAG_SINGULAR, 0)
         Smu = np.maximum(mu_s, 0.0) / np.sqrt(3.0)
-    y = np.linalg.norm(D, axis=2) if not single else D[..., 0]
-    wd = w * lights.solid_angles
+    # k: the lobe's scale at the final normal (fit_lambertian_lobe, on the final |D|)
     x = np.maximum(n @ l.T, 0.0)
-    sxx = np.sum(wd * x * x, axis=1)
-    k = np.where(sxx > 0, np.sum(wd * y * x, axis=1) / np.where(sxx > 0, sxx, 1.0), 0.0)
     rho_d = np.pi * np.maximum(k, 0.0)[:, None] * d0
     ref = np.percentile(np.where(sat, 0.0, np.linalg.norm(R, axis=2)), 99, axis=1)
     cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
