@@ -378,14 +378,16 @@ _YALE_NAME = re.compile(r"yaleB01_P00A([+-]\d{3})E([+-]\d{2})\.pgm$")
 
 
 def _load_yale(folder):
+    """All ``*.pgm`` frames (8-bit), light directions from the azimuth/elevation in the names,
+    the ambient frame apart. The folder's ``.info`` lists only a 21-frame subset (plus the
+    ambient), so the names, not it, enumerate the 64 flashes."""
     import cv2
 
     ambient = None
     frames, dirs = [], []
     for p in sorted(folder.glob("*.pgm")):
         img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            continue
+        assert img is not None and img.dtype == np.uint8, f"{p}: not an 8-bit PGM"
         m = _YALE_NAME.search(p.name)
         if m is None:
             if "Ambient" in p.name:
@@ -395,6 +397,15 @@ def _load_yale(folder):
         dirs.append([-np.cos(E) * np.sin(A), np.sin(E), np.cos(E) * np.cos(A)])
         frames.append(img)
     return np.array(frames), np.array(dirs), ambient
+
+
+def _voronoi_solid_angles(dirs):
+    """Solid angle (sr) of each light's spherical Voronoi cell over the unit sphere (sums to 4π);
+    the scan format's own light list with Voronoi weights is not in yet."""
+    from scipy.spatial import SphericalVoronoi
+
+    sv = SphericalVoronoi(dirs, radius=1.0)
+    return sv.calculate_areas()
 
 
 def test_real_face_yale_b01(shared_data):
@@ -415,15 +426,18 @@ def test_real_face_yale_b01(shared_data):
     bright = Rall[:, near].mean(axis=1)
     px = np.flatnonzero(bright > 0.25 * np.percentile(bright, 90))[::4]
     R, sat = Rall[px], sat[px]
-    lights = skin.LightSet.from_directions(dirs[fit_l])
+    sa = _voronoi_solid_angles(dirs)
+    assert abs(sa.sum() - 4 * np.pi) <= 1e-6
+    lights = skin.LightSet.from_directions(dirs[fit_l], sa[fit_l])
     fit = skin.fit_reflectance(R[:, fit_l], V0, lights, saturation=254.5)
     assert fit.single_channel and (fit.flags & skin.FLAG_SINGLE_CHANNEL).all()
     k_ours = np.linalg.norm(fit.rho_d, axis=1) / np.pi
-    # baseline: plain least squares b = argmin Σ (b·l − y)² over the same unmasked fit samples
-    mask_fit = ~fit.shadow & ~sat[:, fit_l]
+    # baseline: plain least squares b = argmin Σ δA (b·l − y)² over the same unmasked fit
+    # samples (the same Voronoi weights as the fit)
+    mask_fit = (~fit.shadow & ~sat[:, fit_l]) * sa[fit_l]
     Lf = dirs[fit_l]
-    A = np.einsum("pl,li,lj->pij", mask_fit.astype(float), Lf, Lf) + 1e-9 * np.eye(3)
-    rhs = np.einsum("pl,pl,li->pi", mask_fit.astype(float), R[:, fit_l], Lf)
+    A = np.einsum("pl,li,lj->pij", mask_fit, Lf, Lf) + 1e-9 * np.eye(3)
+    rhs = np.einsum("pl,pl,li->pi", mask_fit, R[:, fit_l], Lf)
     b = np.linalg.solve(A, rhs[..., None])[..., 0]
     # held-out lights, with shadowed (dark) and saturated samples masked for both
     y = R[:, test_l]

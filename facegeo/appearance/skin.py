@@ -26,6 +26,7 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from dataclasses import dataclass
 
@@ -88,9 +89,9 @@ __all__ = [
 #: Samples (functions × lights) per chunk of the analysis: the searches' (chunk, candidates, L)
 #: float64 temporaries are then 2.4 MB (9 candidates), which stay in cache. At 2048 lights
 #: that is 16 functions; measured 64 functions per chunk ≈ 1.5–2× slower (docs/skin.md).
-CHUNK_SAMPLES = 32768
+CHUNK_SAMPLES = 131072
 #: Default functions per chunk at 2048 lights (``CHUNK_SAMPLES // L`` in general, ≥ 16).
-CHUNK = 16
+CHUNK = 64
 
 
 @dataclass
@@ -274,7 +275,7 @@ def shadow_map(R, *, threshold: float = SHADOW_THRESHOLD, visibility=None, satur
 def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: float | None = None,
                     eta: float = 1.4, depth: SearchDepth | None = None,
                     shadow_threshold: float = SHADOW_THRESHOLD, d_0=None, rounds: int = 1,
-                    chunk: int | None = None) -> SkinFit:
+                    chunk: int | None = None, threads: int | None = None) -> SkinFit:
     """Fit the paper's skin model to reflectance functions (Debevec et al. 2000, §4.2 and §4.4).
 
     Steps, each vectorised over a chunk of functions:
@@ -323,6 +324,10 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         Functions per vectorised chunk; default ``max(16, CHUNK_SAMPLES // L)`` (16 at 2048
         lights), which keeps the search temporaries in cache. Results do not depend on it
         (to rounding; tested).
+    threads : int, optional
+        Threads of the compiled kernels (numba ``prange`` over the functions of a chunk);
+        default numba's setting (``NUMBA_NUM_THREADS``, all cores). Results do not depend on
+        it: each function is one independent problem.
 
     Returns
     -------
@@ -352,13 +357,14 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                            "flags", "cast")}
     if chunk is None:
         chunk = max(CHUNK, CHUNK_SAMPLES // max(L, 1))
-    for i in range(0, N, max(1, int(chunk))):
-        sl = slice(i, min(N, i + int(chunk)))
-        res = _fit_chunk(Rw[sl], v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
-                         shadow_threshold,
-                         None if d_0 is None else d_0[sl], rounds)
-        for k in out:
-            out[k].append(res[k])
+    with _numba_threads(threads):
+        for i in range(0, N, max(1, int(chunk))):
+            sl = slice(i, min(N, i + int(chunk)))
+            res = _fit_chunk(Rw[sl], v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
+                             shadow_threshold,
+                             None if d_0 is None else d_0[sl], rounds)
+            for k in out:
+                out[k].append(res[k])
     cat = {k: np.concatenate(val) if val else np.zeros((0,)) for k, val in out.items()}
     flags = cat["flags"].astype(np.int32)
     D = (cat["D"] * E[None]).astype(np.float32)
@@ -370,6 +376,28 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                    rho_s=cat["rs"], diffuse=D, specular=S, shadow=shadow,
                    cast_shadow=cat["cast"] | hidden, saturated=sat,
                    flags=flags, valid=valid, eta=eta, single_channel=single)
+
+
+@contextlib.contextmanager
+def _numba_threads(threads):
+    """numba's thread count for the block (``None``: unchanged)."""
+    if threads is None:
+        yield
+        return
+    import numba
+
+    t = int(threads)
+    if not 1 <= t <= numba.config.NUMBA_NUM_THREADS:
+        from facegeo.errors import InputError
+
+        raise InputError(f"threads: expected 1 to {numba.config.NUMBA_NUM_THREADS}, got "
+                         f"{fmt_value(threads)}")
+    old = numba.get_num_threads()
+    numba.set_num_threads(t)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(old)
 
 
 def _separate_ramp(R, d0, n, v, lights, a0, a1):
