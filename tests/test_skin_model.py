@@ -33,6 +33,14 @@ RECOMBINE_ULPS = 2
 #: error over unshadowed pixels, degrees, for the final normal / the first-moment normal.
 SYNTH_NORMAL_MEDIAN_DEG = 5.0
 SYNTH_MOMENT_NORMAL_MEDIAN_DEG = 1.5
+#: Generator's BRDF, small preset (32 × 16 distant lights, ground-truth mesh normals), issue
+#: 13's "Show": median normal error over unshadowed pixels, degrees; median albedo error
+#: |ρ̂_d − ρ_d|/|ρ_d| against the generator's own Lambertian albedo (π × the least-squares
+#: scale of its exact diffuse radiance f_d cos θ_i onto max(0, n·l), per channel, true normal);
+#: resynthesis at 30°/60° must beat reusing the source function by this factor (relative RMSE).
+SMALL_NORMAL_MEDIAN_DEG = 2.0
+SMALL_ALBEDO_MEDIAN_REL = 0.03
+SMALL_RESYNTH_VS_NAIVE = 3.0
 #: Fast closed-form μ_d of the ramp search against the explicit Eq. 6 chromaticity + §4.2
 #: separation: max |μ̂_d − μ_d| / max |R| (float64 rounding only).
 FAST_MU_D_REL = 1e-9
@@ -370,6 +378,115 @@ def test_generator_olat_functions():
     assert np.abs(fit.diffuse + fit.specular - R).max() <= RECOMBINE_ULPS * ulp
     same = skin.resynthesize(fit, view.v_world[idx]).reflectance
     assert np.abs(same - R).max() <= RECOMBINE_ULPS * ulp
+
+
+# ---------------------------------------------------------------- small preset, generator BRDF
+
+
+def _rotate_views(v, deg):
+    """Each view rotated by ``deg`` about the axis v × up (exactly ``deg`` from its source)."""
+    ax = skin.normalize(np.cross(v, [0.0, 1.0, 0.0]))
+    th = np.radians(deg)
+    return (v * np.cos(th) + np.cross(ax, v) * np.sin(th)
+            + ax * np.sum(ax * v, 1, keepdims=True) * (1 - np.cos(th)))
+
+
+@pytest.fixture(scope="module")
+def small_case():
+    """400 random head pixels of the small preset's first camera: OLAT functions of the
+    generator's (mismatched) BRDF under the 32 × 16 grid as distant lights, with and without
+    cast shadows, the same points' exact functions seen from views 30° and 60° away, and the
+    fit with the default depth."""
+    from facegeo.appearance.brdf import synthetic_diffuse_brdf
+    from facegeo.synth.capture import PRESETS, build_head, build_rig
+    from facegeo.synth.render import ReferenceRenderer
+    from facegeo.synth.skin import SkinField
+
+    pre = PRESETS["small"]
+    mesh = build_head("procedural", subdivisions=pre.head_subdivisions, seed=0)
+    rig = build_rig(pre)
+    stage = replace(rig.lights, radius=float("inf"))
+    ren = ReferenceRenderer.from_mesh(mesh, SkinField.for_mesh(mesh, seed=0))
+    view = ren.surface_view(rig.cameras[0])
+    col = np.asarray(stage.color, float)
+    idx = np.sort(np.random.default_rng(0).choice(view.n_samples, 400, replace=False))
+    sel = np.zeros(view.n_samples, bool)
+    sel[idx] = True
+
+    def olat(vw, shadows=True):
+        ren.shadows = shadows
+        return np.stack([ren.shade_directional_light(vw, d, col, sel=sel)
+                         for d in stage.directions], axis=1)
+
+    R, R_free = olat(view), olat(view, shadows=False)
+    v0, n = view.v_world[idx], view.n_world[idx]
+    novel = {}
+    for deg in (30.0, 60.0):
+        vn = _rotate_views(v0, deg)
+        v_all = view.v_world.copy()
+        v_all[idx] = vn
+        novel[deg] = (vn, olat(replace(view, v_world=v_all)))
+    unshadowed = np.all(np.abs(R - R_free) <= 1e-7 + 1e-6 * np.abs(R_free), axis=(1, 2))
+    lights = skin.LightSet.from_grid(stage.n_theta, stage.n_phi, stage.color)
+    L = lights.n_lights
+    l = np.broadcast_to(lights.directions[None], (len(idx), L, 3))
+    fd = synthetic_diffuse_brdf(np.broadcast_to(n[:, None], l.shape), l,
+                                np.broadcast_to(v0[:, None], l.shape),
+                                view.alpha_0[idx][:, None].astype(float),
+                                view.alpha_1[idx][:, None].astype(float),
+                                view.rho_s[idx][:, None].astype(float),
+                                view.roughness[idx][:, None].astype(float))
+    x = np.maximum(n @ lights.directions.T, 0.0)
+    wx = lights.solid_angles * x
+    rho_true = np.pi * np.einsum("nl,nlc->nc", wx, fd * x[..., None]) / np.sum(wx * x, 1)[:, None]
+    fit = skin.fit_reflectance(R, v0, lights)
+    return dict(R=R, v0=v0, n=n, novel=novel, unshadowed=unshadowed, lights=lights,
+                rho_true=rho_true, fit=fit)
+
+
+def _small_resynthesis_errors(case, deg):
+    vn, truth = case["novel"][deg]
+    m = case["unshadowed"] & (np.sum(case["n"] * vn, 1) > np.cos(np.radians(75)))
+    out = skin.resynthesize(case["fit"], vn).reflectance
+
+    def rel(a):
+        return float(np.sqrt(np.sum((a[m] - truth[m]) ** 2) / np.sum(truth[m] ** 2)))
+
+    return rel(out), rel(case["R"]), int(m.sum())
+
+
+@pytest.mark.slow
+def test_small_preset_generator_normals_and_exact_recombination(small_case):
+    c = small_case
+    fit, R, un = c["fit"], c["R"], c["unshadowed"]
+    err = _angle_deg(fit.normal, c["n"])[un]
+    err_m = _angle_deg(fit.normal_moment, c["n"])[un]
+    print(f"small preset, generator BRDF: median normal error over {un.sum()} unshadowed "
+          f"pixels {np.median(err):.3f}° (moment {np.median(err_m):.2f}°)")
+    assert np.median(err) <= SMALL_NORMAL_MEDIAN_DEG
+    ulp = np.spacing(np.float32(np.abs(R).max()))
+    assert np.abs(fit.diffuse + fit.specular - R).max() <= RECOMBINE_ULPS * ulp
+    same = skin.resynthesize(fit, c["v0"]).reflectance
+    assert np.abs(same - R).max() <= RECOMBINE_ULPS * ulp
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "known (issue 13, docs/skin.md): on the generator's BRDF the ramp's Levenberg–Marquardt "
+    "polish slides along the (d_0, α_0, α_1) valley where the lobe-shape criterion is blind to "
+    "a uniform scale of μ_d: albedo off by ≈ 30–55 %, resynthesis worse than reusing the "
+    "source function. Without the polish (SearchDepth(polish=0)): 3.8 %, 3.0× / 2.6×."))
+def test_small_preset_generator_albedo_and_resynthesis(small_case):
+    c = small_case
+    fit, un = c["fit"], c["unshadowed"]
+    rel = np.linalg.norm(fit.rho_d - c["rho_true"], axis=1) / np.linalg.norm(c["rho_true"], axis=1)
+    figures = {deg: _small_resynthesis_errors(c, deg) for deg in (30.0, 60.0)}
+    print(f"small preset, generator BRDF: median albedo error {np.median(rel[un]):.3f}; "
+          + "; ".join(f"{deg:.0f}°: resynthesis relative RMSE {r:.3f}, naive {nv:.3f} "
+                      f"({m} pixels)" for deg, (r, nv, m) in figures.items()))
+    assert np.median(rel[un]) <= SMALL_ALBEDO_MEDIAN_REL
+    for r, naive, _ in figures.values():
+        assert r * SMALL_RESYNTH_VS_NAIVE <= naive
 
 
 # ---------------------------------------------------------------- a real face (Yale B01)
