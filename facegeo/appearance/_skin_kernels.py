@@ -31,6 +31,8 @@ Kernels are compiled on first use and cached on disk (``cache=True``).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
@@ -43,18 +45,21 @@ _OFFS2 = np.array([[0.0, 0.0], [0.0, -1.0], [0.0, 1.0], [-1.0, 0.0], [-1.0, -1.0
                    [1.0, 0.0], [1.0, -1.0], [1.0, 1.0]])
 
 _FM = {"contract"}  # FMA contraction only: sums keep their order (results match to rounding)
+#: Branch-free inner loops: reassociation too, so that their sums vectorise (AVX2: 4 lanes);
+#: results then differ from the sequential sums by rounding only.
+_FMV = {"contract", "reassoc"}
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _misfit(syy, sxy, sxx):
     if sxx > _TINY and syy > _TINY and sxy > 0.0:
         return 1.0 - sxy * sxy / (sxx * syy)
     return 1.0
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _unit3(a0, a1, a2):
-    r = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    r = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
     if r > 1e-30:
         return a0 / r, a1 / r, a2 / r
     return 0.0, 0.0, 1.0
@@ -63,7 +68,7 @@ def _unit3(a0, a1, a2):
 # ------------------------------------------------------------------------------- lobe search
 
 
-@njit(cache=True, nogil=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _lobe_anchor(ax, ay, az, rho, lx, ly, lz, wy, wd, band, mom):
     """Moments over lights with a·l > ρ into ``mom`` (M₁ 3, M₂ 6); band indices; returns count."""
     for j in range(9):
@@ -87,7 +92,7 @@ def _lobe_anchor(ax, ay, az, rho, lx, ly, lz, wy, wd, band, mom):
     return nb
 
 
-@njit(cache=True, nogil=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _lobe_sums(nx, ny, nz, lx, ly, lz, wy, wd, band, nb, mom):
     sxy = nx * mom[0] + ny * mom[1] + nz * mom[2]
     sxx = (nx * nx * mom[3] + ny * ny * mom[4] + nz * nz * mom[5]
@@ -101,7 +106,7 @@ def _lobe_sums(nx, ny, nz, lx, ly, lz, wy, wd, band, nb, mom):
     return sxy, sxx
 
 
-@njit(cache=True, nogil=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
     L = y.size
     idx = np.empty(L, np.int64)
@@ -138,7 +143,7 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
     halvings = 0
     val = val0
     have_centre = False
-    sq2 = np.sqrt(2.0)
+    sq2 = math.sqrt(2.0)
     for _ in range(levels * moves):
         if halvings > levels:
             break
@@ -149,7 +154,7 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
         dx, dy, dz = cx - ax, cy - ay, cz - az
         # re-anchor when the pattern could leave the ball, or when the ball (and its band)
         # is much larger than the current step needs
-        if np.sqrt(dx * dx + dy * dy + dz * dz) + step * sq2 > rho or rho > 12.0 * step:
+        if math.sqrt(dx * dx + dy * dy + dz * dz) + step * sq2 > rho or rho > 12.0 * step:
             ax, ay, az = cx, cy, cz
             rho = 3.0 * step * sq2
             nb = _lobe_anchor(ax, ay, az, rho, lx, ly, lz, wy, wd, band, mom)
@@ -195,7 +200,7 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
     return val0, val, max(k, 0.0)
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def lobe_search(y, w, dirs, sa, ns, t1, t2, step0, levels, moves):
     """Lambertian-lobe direct search of ``_skin_fit.fit_lambertian_lobe`` for N functions.
 
@@ -220,29 +225,61 @@ def lobe_search(y, w, dirs, sa, ns, t1, t2, step0, levels, moves):
 # ------------------------------------------------------------------------------- ramp
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _mu_d(f, A, Rd, Rdms, two_1mds, ds2k, sing_sin2):
-    """μ_d of §4.2 under ramp weight f (``_skin_fit.ramp_mu_d`` for one sample)."""
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _mu_d(f, A, Rd, Rdms, two_1mds, ds2k, sing_sin2, regular=False):
+    """μ_d of §4.2 under ramp weight f (``_skin_fit.ramp_mu_d`` for one sample); ``regular``:
+    the caller knows no sample of the ramp is singular (:func:`_maybe_singular`)."""
     g = 1.0 + f
-    uu = 1.0 + two_1mds * f * g
-    if uu < 1e-300:
-        uu = 1e-300
-    su = np.sqrt(uu)
+    uu = max(1.0 + two_1mds * f * g, 1e-300)
+    su = math.sqrt(uu)
+    if regular:
+        return A * su / g
     if g * g * ds2k < sing_sin2 * uu:
         return (Rd + f * Rdms) / su
     return A * su / g
 
 
-@njit(cache=True, nogil=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _maybe_singular(a0, a1, two_1mds, ds2k, sing_sin2):
+    """Whether any sample can be singular under ramp (α_0, α_1): f is linear in x ∈ [0, 1], so
+    |g| is bounded below and |u|² (convex in f) above by the ramp's two ends
+    (``_skin_fit.ramp_mu_d``'s bound)."""
+    g0 = 1.0 + a0
+    g1 = 1.0 + a1
+    gmin = min(abs(g0), abs(g1)) if g0 * g1 > 0.0 else 0.0
+    uumax = 1.0 + two_1mds * max(a0 * g0, a1 * g1)
+    return gmin * gmin * ds2k < sing_sin2 * uumax
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
+def _ramp_sums_regular(da, a1, x, nl, wd, A, two_1mds):
+    """Σ w μ_d² and Σ w μ_d n·l when no sample is singular: branch-free, so it vectorises."""
+    syy = 0.0
+    sxy = 0.0
+    for j in range(x.size):
+        f = da * x[j] + a1
+        g = 1.0 + f
+        uu = max(1.0 + two_1mds * f * g, 1e-300)
+        mm = A[j] * math.sqrt(uu) / g
+        t = wd[j] * mm
+        syy += t * mm
+        sxy += t * nl[j]
+    return syy, sxy
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _ramp_value(a0, a1, x, nl, wd, A, Rd, Rdms, two_1mds, ds2k, sxx, sing_sin2):
     syy = 0.0
     sxy = 0.0
     da = a0 - a1
-    for j in range(x.size):
-        f = da * x[j] + a1
-        mm = _mu_d(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2)
-        syy += wd[j] * mm * mm
-        sxy += wd[j] * mm * nl[j]
+    if not _maybe_singular(a0, a1, two_1mds, ds2k, sing_sin2):
+        syy, sxy = _ramp_sums_regular(da, a1, x, nl, wd, A, two_1mds)
+    else:
+        for j in range(x.size):
+            f = da * x[j] + a1
+            mm = _mu_d(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2)
+            syy += wd[j] * mm * mm
+            sxy += wd[j] * mm * nl[j]
     if sxx > _TINY and syy > _TINY and sxy > 0.0:
         return 1.0 - sxy * sxy / (sxx * syy)
     if syy > _TINY:
@@ -250,7 +287,7 @@ def _ramp_value(a0, a1, x, nl, wd, A, Rd, Rdms, two_1mds, ds2k, sxx, sing_sin2):
     return syy
 
 
-@njit(cache=True, nogil=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _compact(w_i, L):
     idx = np.empty(L, np.int64)
     m = 0
@@ -261,7 +298,7 @@ def _compact(w_i, L):
     return idx[:m]
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
     """(α_0, α_1) grid direct search of ``_skin_fit.fit_ramp`` at a fixed normal, N functions.
 
@@ -320,7 +357,7 @@ def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
     return p, val
 
 
-@njit(cache=True, nogil=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
 def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
                       sing_sin2, r_out, xs_fix, nl_fix):
     """Residuals √w (μ_d − k x)/√Σw μ_d² of ``_skin_fit.fit_ramp``'s polish into ``r_out``;
@@ -334,6 +371,7 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
         nv = nx * v[0] + ny * v[1] + nz * v[2]
         nvc = min(max(nv, 0.0), 1.0)
     da = p[0] - p[1]
+    regular = not _maybe_singular(p[0], p[1], two_1mds, ds2k, sing_sin2)
     syy = 0.0
     sxy = 0.0
     sxx = 0.0
@@ -347,7 +385,7 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
             nlj = nl_fix[j]
             xc = xs_fix[j]
         f = da * xc + p[1]
-        mm = _mu_d(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2) * sqw[j]
+        mm = _mu_d(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2, regular) * sqw[j]
         xw = nlj * sqw[j]
         r_out[j] = mm
         syy += mm * mm
@@ -355,7 +393,7 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
         sxx += xw * xw
     ok = sxx > _TINY and syy > _TINY and sxy > 0.0
     k = sxy / sxx if ok else 0.0
-    inv = 1.0 / np.sqrt(syy if syy > _TINY else 1.0)
+    inv = 1.0 / math.sqrt(syy if syy > _TINY else 1.0)
     tot = 0.0
     for j in range(m):
         if nrm:
@@ -369,24 +407,24 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
     return tot
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _mu_d_df(f, A, Rd, Rdms, two_1mds, ds2k, sing_sin2):
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _mu_d_df(f, A, Rd, Rdms, two_1mds, ds2k, sing_sin2, regular=False):
     """μ_d of §4.2 under ramp weight f and its derivative dμ_d/df (``_mu_d``)."""
     g = 1.0 + f
     uu = 1.0 + two_1mds * f * g
-    duu = two_1mds * (1.0 + 2.0 * f)
-    if uu < 1e-300:
-        uu = 1e-300
-        duu = 0.0
-    su = np.sqrt(uu)
+    duu = two_1mds * (1.0 + 2.0 * f) if uu >= 1e-300 else 0.0
+    uu = max(uu, 1e-300)
+    su = math.sqrt(uu)
     dsu = 0.5 * duu / su
+    if regular:
+        return A * su / g, A * (dsu * g - su) / (g * g)
     if g * g * ds2k < sing_sin2 * uu:
         num = Rd + f * Rdms
         return num / su, Rdms / su - num * dsu / uu
     return A * su / g, A * (dsu * g - su) / (g * g)
 
 
-@njit(cache=True, nogil=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
                      sing_sin2, r_out, xs_fix, nl_fix, dm, dxw, JtJ, g):
     """Residuals of :func:`_polish_residuals` into ``r_out`` with the analytic Jacobian,
@@ -406,7 +444,7 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
         qx = normal[0] + p[2] * t1[0] + p[3] * t2[0]
         qy = normal[1] + p[2] * t1[1] + p[3] * t2[1]
         qz = normal[2] + p[2] * t1[2] + p[3] * t2[2]
-        qn = np.sqrt(qx * qx + qy * qy + qz * qz)
+        qn = math.sqrt(qx * qx + qy * qy + qz * qz)
         nx, ny, nz = _unit3(qx, qy, qz)
         a = nx * t1[0] + ny * t1[1] + nz * t1[2]
         b = nx * t2[0] + ny * t2[1] + nz * t2[2]
@@ -418,6 +456,7 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
             dnvc0 = d0x * v[0] + d0y * v[1] + d0z * v[2]
             dnvc1 = d1x * v[0] + d1y * v[1] + d1z * v[2]
     da = p[0] - p[1]
+    regular = not _maybe_singular(p[0], p[1], two_1mds, ds2k, sing_sin2)
     syy = 0.0
     sxy = 0.0
     sxx = 0.0
@@ -449,7 +488,7 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
             dx0 = 0.0
             dx1 = 0.0
         f = da * xc + p[1]
-        mu, dmu = _mu_d_df(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2)
+        mu, dmu = _mu_d_df(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2, regular)
         sw = sqw[j]
         mm = mu * sw
         xw = nlj * sw
@@ -479,7 +518,7 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
         for a in range(P):
             dk[a] = (dsxy[a] - k * dsxx[a]) / sxx
     big = syy > _TINY
-    inv = 1.0 / np.sqrt(syy if big else 1.0)
+    inv = 1.0 / math.sqrt(syy if big else 1.0)
     dinv = np.zeros(P)
     if big:
         for a in range(P):
@@ -516,7 +555,7 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
     return tot
 
 
-@njit(cache=True, nogil=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _solve_small(A, b, P):
     """Gaussian elimination with partial pivoting in place; False when singular."""
     for c in range(P):
@@ -543,7 +582,7 @@ def _solve_small(A, b, P):
     return True
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations,
                 sing_sin2):
     """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
@@ -562,7 +601,7 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
         lx = dirs[idx, 0].copy()
         ly = dirs[idx, 1].copy()
         lz = dirs[idx, 2].copy()
-        sqw = np.sqrt(wd[i][idx])
+        sqw = np.sqrt(wd[i][idx])  # array
         As = A[i][idx]
         Rds = Rd[i][idx]
         Rms = Rdms[i][idx]
@@ -619,7 +658,7 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
 # ------------------------------------------------------------------------------- separation
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
     """§4.2 colour-space separation of every sample with the Eq. 6–7 ramp chromaticity.
 
@@ -644,7 +683,7 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
     singular : (N,) bool, any sample singular
     """
     N, L, _ = R.shape
-    s = 1.0 / np.sqrt(3.0)
+    s = 1.0 / math.sqrt(3.0)
     D = np.empty((N, L, 3))
     mu_s = np.empty((N, L))
     y = np.empty((N, L))
@@ -663,7 +702,7 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
             cx = d0[i, 0] + f * (d0[i, 0] - s)
             cy = d0[i, 1] + f * (d0[i, 1] - s)
             cz = d0[i, 2] + f * (d0[i, 2] - s)
-            cn = np.sqrt(cx * cx + cy * cy + cz * cz)
+            cn = math.sqrt(cx * cx + cy * cy + cz * cz)
             if cn > 1e-30:
                 cx /= cn
                 cy /= cn
@@ -686,19 +725,19 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
             D[i, j, 0] = e0
             D[i, j, 1] = e1
             D[i, j, 2] = e2
-            y[i, j] = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            y[i, j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
         singular[i] = sing_i
     return D, mu_s, y, singular
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def ramp_inputs(R, w, sa, dirs, nrm, v, d0, mirror_sigma):
     """Per-sample inputs of ``_skin_fit.fit_ramp`` (its numpy preamble, fused): the weights
     ``w δA (1 − exp(−(1 − l·r)/σ))`` with ``r = 2(n·v)n − v`` (mirror samples down-weighted),
     ``x = clip(n·l) clip(n·v)``, ``max(0, n·l)``, and ``A``, ``R·d_0``, ``R·d_0 − R·s`` of
     ``ramp_mu_d``; ``d_0·s`` per function. Arrays ``(N, L)``, the last ``(N,)``."""
     N, L, _ = R.shape
-    s = 1.0 / np.sqrt(3.0)
+    s = 1.0 / math.sqrt(3.0)
     wd = np.empty((N, L))
     xf = np.empty((N, L))
     nlf = np.empty((N, L))
