@@ -648,18 +648,23 @@ def specular_energy(S, shadow, lights: LightSet, n, v, eta):
     -------
     (N,) float64, ≥ 0
     """
-    l = lights.directions[None]
-    h = normalize(l + v[:, None, :], fallback=n[:, None, :] * np.ones_like(l))
     nl = n @ lights.directions.T
-    nv = np.einsum("ni,ni->n", n, v)[:, None]
-    nh = np.einsum("nlc,nc->nl", h, n)
-    vh = np.einsum("nlc,nc->nl", h, v)
+    nv = np.einsum("ni,ni->n", n, v)
+    # only the samples that can contribute (S > 0, unshadowed, both cosines positive): the
+    # specular lobe is a small part of the sphere, so this skips most of the work
+    rows, cols = np.nonzero((S > 0) & ~shadow & (nl > 0) & (nv > 0)[:, None])
+    l = lights.directions[cols]
+    h = normalize(l + v[rows], fallback=n[rows])
+    nh = np.einsum("kc,kc->k", h, n[rows])
+    vh = np.einsum("kc,kc->k", h, v[rows])
+    nvk = nv[rows]
     F = fresnel_dielectric(vh, eta)
-    G = torrance_sparrow_geometry(nl, nv, nh, vh)
+    G = torrance_sparrow_geometry(nl[rows, cols], nvk, nh, vh)
     den = F * G * vh
-    ok = (~shadow) & (den > 1e-6) & (nl > 0) & (nv > 0)
-    val = np.where(ok, S * np.maximum(nv, 0.0) * np.maximum(nh, 0.0) / np.where(ok, den, 1.0), 0.0)
-    return np.maximum(val @ lights.solid_angles, 0.0)
+    ok = den > 1e-6
+    val = np.where(ok, S[rows, cols] * nvk * np.maximum(nh, 0.0) / np.where(ok, den, 1.0), 0.0)
+    out = np.bincount(rows, weights=val * lights.solid_angles[cols], minlength=S.shape[0])
+    return np.maximum(out, 0.0)
 
 
 def check_reflectance(R, lights: LightSet):
