@@ -65,6 +65,18 @@ def _unit3(a0, a1, a2):
     return 0.0, 0.0, 1.0
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _pattern_move(best, u0, u1, step, halvings, levels):
+    """One move of ``_skin_fit.direct_search`` (subset mode): to the best candidate; the step
+    halves when the centre stayed best."""
+    u0 += _OFFS2[best, 0] * step
+    u1 += _OFFS2[best, 1] * step
+    if best == 0 and halvings < levels + 1:
+        step *= 0.5
+        halvings += 1
+    return u0, u1, step, halvings
+
+
 # ------------------------------------------------------------------------------- lobe search
 
 
@@ -171,18 +183,12 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
                                     n0z + p0 * t1[i, 2] + p1 * t2[i, 2])
                 sxy, sxx = _lobe_sums(nx, ny, nz, lx, ly, lz, wy, wd, band, nb, mom)
                 f = _misfit(syy, sxy, sxx)
-                if not np.isfinite(f):
-                    f = np.inf
-            if f < bval:
+            if f < bval:  # non-finite values never win (+inf in direct_search)
                 bval = f
                 best = k
-        u0 += _OFFS2[best, 0] * step
-        u1 += _OFFS2[best, 1] * step
+        u0, u1, step, halvings = _pattern_move(best, u0, u1, step, halvings, levels)
         val = bval
         have_centre = True
-        if best == 0 and halvings < levels + 1:
-            step *= 0.5
-            halvings += 1
     out_u[i, 0] = u0
     out_u[i, 1] = u1
     # the lobe's scale k = Σ w δA y x / Σ w δA x² at the result, over every usable light
@@ -339,18 +345,12 @@ def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
                 else:
                     f = _ramp_value(u0 + _OFFS2[k, 0] * step, u1 + _OFFS2[k, 1] * step, xs, nls,
                                     wds, As, Rds, Rms, two_1mds, ds2k, sxx, sing_sin2)
-                    if not np.isfinite(f):
-                        f = np.inf
-                if f < bval:
+                if f < bval:  # non-finite values never win (+inf in direct_search)
                     bval = f
                     best = k
-            u0 += _OFFS2[best, 0] * step
-            u1 += _OFFS2[best, 1] * step
+            u0, u1, step, halvings = _pattern_move(best, u0, u1, step, halvings, levels)
             v = bval
             have_centre = True
-            if best == 0 and halvings < levels + 1:
-                step *= 0.5
-                halvings += 1
         p[i, 0] = u0
         p[i, 1] = u1
         val[i] = v
