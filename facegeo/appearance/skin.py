@@ -86,11 +86,12 @@ __all__ = [
     "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
 ]
 
-#: Samples (functions × lights) per chunk of the analysis: the searches' (chunk, candidates, L)
-#: float64 temporaries are then 2.4 MB (9 candidates), which stay in cache. At 2048 lights
-#: that is 16 functions; measured 64 functions per chunk ≈ 1.5–2× slower (docs/skin.md).
+#: Samples (functions × lights) per chunk of the analysis. With the compiled kernels
+#: (``_skin_fit.KERNELS``) the searches keep their temporaries per function, so the chunk only
+#: bounds the numpy steps' (chunk, L, 3) arrays (6 MB at 64 × 2048); measured under load,
+#: 64 functions per chunk were as fast as 16 on one thread and faster on two (docs/skin.md).
 CHUNK_SAMPLES = 131072
-#: Default functions per chunk at 2048 lights (``CHUNK_SAMPLES // L`` in general, ≥ 16).
+#: Default functions per chunk at 2048 lights (``CHUNK_SAMPLES // L`` in general, ≥ 64).
 CHUNK = 64
 
 
@@ -321,9 +322,9 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         Alternations of ramp fit → final separation → normal (the paper does one; with the
         default joint polish a second changes little).
     chunk : int, optional
-        Functions per vectorised chunk; default ``max(16, CHUNK_SAMPLES // L)`` (16 at 2048
-        lights), which keeps the search temporaries in cache. Results do not depend on it
-        (to rounding; tested).
+        Functions per chunk; default ``max(CHUNK, CHUNK_SAMPLES // L)`` (64 at 2048 lights),
+        which bounds the memory of the numpy steps. Results do not depend on it (to rounding;
+        tested).
     threads : int, optional
         Threads of the compiled kernels (numba ``prange`` over the functions of a chunk);
         default numba's setting (``NUMBA_NUM_THREADS``, all cores). Results do not depend on
