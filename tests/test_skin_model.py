@@ -794,3 +794,19 @@ def test_polish_analytic_jacobian_equals_central_differences(with_normal):
         J[a] = (rp - rm) / (2 * h)
     assert np.abs(J @ J.T - JtJ).max() <= KERNEL_JACOBIAN_REL * np.abs(JtJ).max()
     assert np.abs(J @ r0 - g).max() <= KERNEL_JACOBIAN_REL * np.abs(J).max() * np.abs(r0).max()
+
+
+def test_threads_do_not_change_the_fit():
+    """Each function is one problem on one thread: the fit is bit-identical at any thread count."""
+    import numba
+
+    rng = np.random.default_rng(8)
+    lights = skin.LightSet.from_grid(32, 16)
+    n = _random_normals(rng, 9, 30.0)
+    R = skin.paper_reflectance(n, V0, lights, _paper_params(rng, 9))
+    a = skin.fit_reflectance(R, V0, lights, threads=1)
+    b = skin.fit_reflectance(R, V0, lights, threads=numba.config.NUMBA_NUM_THREADS)
+    for k in ("normal", "alpha_0", "alpha_1", "rho_d", "rho_s", "diffuse"):
+        assert np.array_equal(getattr(a, k), getattr(b, k)), k
+    with pytest.raises(InputError, match="threads"):
+        skin.fit_reflectance(R, V0, lights, threads=0)
