@@ -670,7 +670,7 @@ def specular_energy(S, shadow, lights: LightSet, n, v, eta):
 def check_reflectance(R, lights: LightSet):
     """Validate reflectance functions: ``(N, L, 3)``, ``(N, L, 1)`` or ``(N, L)``, finite, ≥ 0.
 
-    Returns ``(R float64 (N, L, C), single_channel)``.
+    Returns ``(R (N, L, C) in its own dtype, single_channel)``: callers convert per chunk.
     """
     R = as_array(R, "R", dtype=None)
     if R.ndim == 2:
@@ -680,7 +680,8 @@ def check_reflectance(R, lights: LightSet):
     if R.shape[1] != lights.n_lights:
         raise ShapeError(f"R: expected {lights.n_lights} lights on axis 1 (the light set's), "
                          f"got shape {R.shape}")
-    R = R.astype(np.float64)
+    if not (np.issubdtype(R.dtype, np.floating) or np.issubdtype(R.dtype, np.integer)):
+        raise InputError(f"R: expected real numbers, got dtype {R.dtype}")
     if np.any(R < 0):
         raise InputError("R: reflectance must be >= 0 (subtract the ambient frame and clip)")
     return R, R.shape[2] == 1

@@ -346,30 +346,43 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
 
         raise InputError(f"eta: expected an index of refraction > 1, got {fmt_value(eta)}")
     E = lights.intensities if not single else lights.intensities.mean(axis=1, keepdims=True)
-    Rw = R / E[None]
-    sat = (R >= float(saturation)).any(axis=2) if saturation is not None else np.zeros((N, L), bool)
-    shadow = shadow_map(Rw, threshold=shadow_threshold, visibility=visibility, saturated=sat)
-    hidden = np.zeros((N, L), bool) if visibility is None else ~check_mask(
-        visibility, "visibility", N, L)
+    if not 0.0 < float(shadow_threshold) < 1.0:
+        from facegeo.errors import InputError
+
+        raise InputError(f"shadow_threshold: expected a fraction in (0, 1), got "
+                         f"{fmt_value(shadow_threshold)}")
+    vis = None if visibility is None else check_mask(visibility, "visibility", N, L)
     if single:
         log.info("single-channel reflectance functions: colour separation is impossible; "
                  "fitting the diffuse lobe alone")
-    out = {k: [] for k in ("n", "nm", "n1", "mm", "m1", "d0", "a0", "a1", "rd", "rs", "D", "S",
-                           "flags", "cast")}
+    out = {k: [] for k in ("n", "nm", "n1", "mm", "m1", "d0", "a0", "a1", "rd", "rs", "flags",
+                           "cast")}
+    # Everything per chunk, written straight into the outputs: no (N, L, 3) float64 copy of
+    # the whole input (those passes cost a third of the fit at 512 functions).
+    D = np.empty((N, L, C), np.float32)
+    shadow = np.empty((N, L), bool)
+    sat = np.zeros((N, L), bool)
     if chunk is None:
         chunk = max(CHUNK, CHUNK_SAMPLES // max(L, 1))
     with _numba_threads(threads):
         for i in range(0, N, max(1, int(chunk))):
             sl = slice(i, min(N, i + int(chunk)))
-            res = _fit_chunk(Rw[sl], v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
+            Rc = np.asarray(R[sl], np.float64)
+            if saturation is not None:
+                sat[sl] = (Rc >= float(saturation)).any(axis=2)
+            Rw = Rc / E[None]
+            shadow[sl] = shadow_map(Rw, threshold=shadow_threshold,
+                                    visibility=None if vis is None else vis[sl], saturated=sat[sl])
+            res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
                              shadow_threshold,
                              None if d_0 is None else d_0[sl], rounds)
+            D[sl] = res["D"] * E[None]  # float32 on assignment
             for k in out:
                 out[k].append(res[k])
     cat = {k: np.concatenate(val) if val else np.zeros((0,)) for k, val in out.items()}
     flags = cat["flags"].astype(np.int32)
-    D = (cat["D"] * E[None]).astype(np.float32)
-    S = R.astype(np.float32) - D  # D + S = R up to one float32 rounding
+    S = np.subtract(R, D, dtype=np.float32)  # D + S = R up to one float32 rounding
+    hidden = np.zeros((N, L), bool) if vis is None else ~vis
     valid = (flags & (FLAG_BLACK | FLAG_SHADOWED)) == 0
     return SkinFit(lights=lights, view=v, normal=cat["n"], normal_moment=cat["nm"],
                    normal_initial=cat["n1"], lobe_misfit_moment=cat["mm"], lobe_misfit=cat["m1"],
@@ -491,4 +504,4 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
     rho_d = np.where(bad[:, None], 0.0, rho_d)
     rho_s = np.where(bad, 0.0, rho_s)
     return {"n": n, "nm": nm, "n1": n1, "mm": mm, "m1": m1, "d0": d0, "a0": a0, "a1": a1,
-            "rd": rho_d, "rs": rho_s, "D": D, "S": R - D, "flags": flags, "cast": cast}
+            "rd": rho_d, "rs": rho_s, "D": D, "flags": flags, "cast": cast}
