@@ -440,8 +440,8 @@ def small_case():
     wx = lights.solid_angles * x
     rho_true = np.pi * np.einsum("nl,nlc->nc", wx, fd * x[..., None]) / np.sum(wx * x, 1)[:, None]
     fit = skin.fit_reflectance(R, v0, lights)
-    return dict(R=R, v0=v0, n=n, novel=novel, unshadowed=unshadowed, lights=lights,
-                rho_true=rho_true, fit=fit)
+    return {"R": R, "v0": v0, "n": n, "novel": novel, "unshadowed": unshadowed,
+            "lights": lights, "rho_true": rho_true, "fit": fit}
 
 
 def _small_resynthesis_errors(case, deg):
@@ -692,7 +692,7 @@ def test_row_nanquantile_equals_numpy():
 
 
 def test_skinfit_save_load_round_trip_bit_exact(paper_case, tmp_path):
-    lights, n, p, R, fit = paper_case
+    lights, _n, _p, R, fit = paper_case
     path = tmp_path / "fit.npz"
     fit.save(path)
     back = skin.SkinFit.load(path)

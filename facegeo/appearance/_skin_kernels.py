@@ -379,7 +379,7 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
     for j in range(m):
         if nrm:
             c = nx * lx[j] + ny * ly[j] + nz * lz[j]
-            nlj = c if c > 0.0 else 0.0
+            nlj = max(c, 0.0)
             xc = min(nlj, 1.0) * nvc
         else:
             nlj = nl_fix[j]
@@ -398,7 +398,7 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
     for j in range(m):
         if nrm:
             c = nx * lx[j] + ny * ly[j] + nz * lz[j]
-            nlj = c if c > 0.0 else 0.0
+            nlj = max(c, 0.0)
         else:
             nlj = nl_fix[j]
         r = (r_out[j] - k * nlj * sqw[j]) * inv
@@ -468,7 +468,7 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
         dn1 = 0.0
         if nrm:
             c = nx * lx[j] + ny * ly[j] + nz * lz[j]
-            nlj = c if c > 0.0 else 0.0
+            nlj = max(c, 0.0)
             if c > 0.0:
                 dn0 = d0x * lx[j] + d0y * ly[j] + d0z * lz[j]
                 dn1 = d1x * lx[j] + d1y * ly[j] + d1z * lz[j]
@@ -532,7 +532,7 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
     for j in range(m):
         if nrm:
             c = nx * lx[j] + ny * ly[j] + nz * lz[j]
-            nlj = c if c > 0.0 else 0.0
+            nlj = max(c, 0.0)
         else:
             nlj = nl_fix[j]
         xw = nlj * sqw[j]

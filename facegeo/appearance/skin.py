@@ -32,8 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facegeo.checks import as_array, check_unit_vectors, fmt_value
-
+from facegeo.appearance import _skin_fit
 from facegeo.appearance._skin_fit import (
     FLAG_BACKFACING,
     FLAG_BLACK,
@@ -59,7 +58,6 @@ from facegeo.appearance._skin_fit import (
     moment_normal,
     specular_energy,
 )
-from facegeo.appearance import _skin_fit
 from facegeo.appearance._skin_model import (
     S_WHITE,
     SINGULAR_SIN2,
@@ -74,6 +72,7 @@ from facegeo.appearance._skin_model import (
     specular_sample,
 )
 from facegeo.appearance._skin_resynth import Resynthesis, resynthesize, view_independent
+from facegeo.checks import as_array, check_unit_vectors, fmt_value
 
 log = logging.getLogger(__name__)
 
