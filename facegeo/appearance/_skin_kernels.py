@@ -424,7 +424,7 @@ def _mu_d_df(f, A, Rd, Rdms, two_1mds, ds2k, sing_sin2, regular=False):
     return A * su / g, A * (dsu * g - su) / (g * g)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
 def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
                      sing_sin2, r_out, xs_fix, nl_fix, dm, dxw, JtJ, g):
     """Residuals of :func:`_polish_residuals` into ``r_out`` with the analytic Jacobian,
@@ -523,11 +523,16 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
     if big:
         for a in range(P):
             dinv[a] = -0.5 * inv * inv * inv * dsyy[a]
-    for a in range(P):
-        g[a] = 0.0
-        for q in range(P):
-            JtJ[a, q] = 0.0
-    jr = np.empty(P)
+    # JᵀJ (10 unique entries) and Jᵀr accumulated in scalars, not in the arrays: register
+    # accumulators (the arrays could alias the inputs, so LLVM keeps those in memory)
+    dk0, dk1 = dk[0], dk[1]
+    di0, di1 = dinv[0], dinv[1]
+    dk2 = dk3 = di2 = di3 = 0.0
+    if nrm:
+        dk2, dk3 = dk[2], dk[3]
+        di2, di3 = dinv[2], dinv[3]
+    a00 = a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = 0.0
+    g0 = g1 = g2 = g3 = 0.0
     tot = 0.0
     for j in range(m):
         if nrm:
@@ -540,18 +545,32 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
         r = e * inv
         r_out[j] = r
         tot += r * r
-        for a in range(P):
-            dd = dm[a, j] - dk[a] * xw
-            if a >= 2:
-                dd -= k * dxw[a - 2, j]
-            jr[a] = dd * inv + e * dinv[a]
-        for a in range(P):
-            g[a] += jr[a] * r
-            for q in range(a, P):
-                JtJ[a, q] += jr[a] * jr[q]
-    for a in range(P):
-        for q in range(a):
-            JtJ[a, q] = JtJ[q, a]
+        j0 = (dm[0, j] - dk0 * xw) * inv + e * di0
+        j1 = (dm[1, j] - dk1 * xw) * inv + e * di1
+        g0 += j0 * r
+        g1 += j1 * r
+        a00 += j0 * j0
+        a01 += j0 * j1
+        a11 += j1 * j1
+        if nrm:
+            j2 = (dm[2, j] - dk2 * xw - k * dxw[0, j]) * inv + e * di2
+            j3 = (dm[3, j] - dk3 * xw - k * dxw[1, j]) * inv + e * di3
+            g2 += j2 * r
+            g3 += j3 * r
+            a02 += j0 * j2
+            a03 += j0 * j3
+            a12 += j1 * j2
+            a13 += j1 * j3
+            a22 += j2 * j2
+            a23 += j2 * j3
+            a33 += j3 * j3
+    g[0], g[1] = g0, g1
+    JtJ[0, 0], JtJ[0, 1], JtJ[1, 0], JtJ[1, 1] = a00, a01, a01, a11
+    if nrm:
+        g[2], g[3] = g2, g3
+        JtJ[0, 2], JtJ[0, 3], JtJ[1, 2], JtJ[1, 3] = a02, a03, a12, a13
+        JtJ[2, 0], JtJ[3, 0], JtJ[2, 1], JtJ[3, 1] = a02, a03, a12, a13
+        JtJ[2, 2], JtJ[2, 3], JtJ[3, 2], JtJ[3, 3] = a22, a23, a23, a33
     return tot
 
 
