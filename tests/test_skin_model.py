@@ -810,3 +810,23 @@ def test_threads_do_not_change_the_fit():
         assert np.array_equal(getattr(a, k), getattr(b, k)), k
     with pytest.raises(InputError, match="threads"):
         skin.fit_reflectance(R, V0, lights, threads=0)
+
+
+def test_specular_energy_kernel_equals_numpy_reference(monkeypatch):
+    """ρ_s by the compiled kernel against the numpy reference (brdf's F and G), including
+    shadowed lights, l = −v (H undefined) and grazing views."""
+    from facegeo.appearance import _skin_fit
+
+    rng = np.random.default_rng(4)
+    lights = skin.LightSet.from_grid(32, 16)
+    N = 40
+    n = _random_normals(rng, N, 80.0)
+    v = _random_normals(rng, N, 85.0)
+    v[0] = -lights.directions[5]  # l_5 = −v
+    S = rng.uniform(0, 1, (N, lights.n_lights)) * (rng.uniform(size=(N, lights.n_lights)) > 0.3)
+    shadow = rng.uniform(size=S.shape) > 0.8
+    got = _skin_fit.specular_energy(S, shadow, lights, n, v, 1.4)
+    monkeypatch.setattr(_skin_fit, "KERNELS", False)
+    ref = _skin_fit.specular_energy(S, shadow, lights, n, v, 1.4)
+    assert np.all(np.isfinite(got))
+    assert np.abs(got - ref).max() <= 1e-12 * max(1.0, np.abs(ref).max())

@@ -648,6 +648,12 @@ def specular_energy(S, shadow, lights: LightSet, n, v, eta):
     -------
     (N,) float64, ≥ 0
     """
+    if KERNELS:
+        from facegeo.appearance._skin_kernels import specular_energy as kernel
+
+        c = np.ascontiguousarray
+        return kernel(c(S, np.float64), c(shadow, bool), c(lights.directions),
+                      c(lights.solid_angles), c(n, np.float64), c(v, np.float64), float(eta))
     nl = n @ lights.directions.T
     nv = np.einsum("ni,ni->n", n, v)
     # only the samples that can contribute (S > 0, unshadowed, both cosines positive): the
