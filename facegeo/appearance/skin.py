@@ -275,7 +275,7 @@ def shadow_map(R, *, threshold: float = SHADOW_THRESHOLD, visibility=None, satur
 def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: float | None = None,
                     eta: float = 1.4, depth: SearchDepth | None = None,
                     shadow_threshold: float = SHADOW_THRESHOLD, d_0=None, rounds: int = 1,
-                    chunk: int | None = None, threads: int | None = None) -> SkinFit:
+                    chunk: int | None = None, threads: int = 1) -> SkinFit:
     """Fit the paper's skin model to reflectance functions (Debevec et al. 2000, §4.2 and §4.4).
 
     Steps, each vectorised over a chunk of functions:
@@ -324,10 +324,12 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         Functions per chunk; default ``max(CHUNK, CHUNK_SAMPLES // L)`` (64 at 2048 lights),
         which bounds the memory of the numpy steps. Results do not depend on it (to rounding;
         tested).
-    threads : int, optional
-        Threads of the compiled kernels (numba ``prange`` over the functions of a chunk);
-        default numba's setting (``NUMBA_NUM_THREADS``, all cores). Results do not depend on
-        it: each function is one independent problem.
+    threads : int
+        Threads of the compiled kernels (numba ``prange`` over the functions of a chunk), 1 to
+        ``NUMBA_NUM_THREADS``. Default 1: on the shared 2-core machine two threads measured
+        0.5–0.7× of one (the OpenMP workers spin between kernels while the numpy steps run;
+        docs/skin.md) — run more processes or pass ``threads`` where cores are free. Results do
+        not depend on it: each function is one independent problem (tested).
 
     Returns
     -------
@@ -393,10 +395,7 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
 
 @contextlib.contextmanager
 def _numba_threads(threads):
-    """numba's thread count for the block (``None``: unchanged)."""
-    if threads is None:
-        yield
-        return
+    """numba's thread count for the block."""
     import numba
 
     t = int(threads)
