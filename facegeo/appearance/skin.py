@@ -447,9 +447,8 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
         D0 = R
         y0 = R[..., 0]
     else:
-        d0, found = initial_diffuse_chromaticity(R, valid_s)
-        if d_0 is not None:
-            d0 = d_0
+        # the median-ratio estimate only where no d_0 is given (skipped work, not a fallback)
+        d0 = d_0 if d_0 is not None else initial_diffuse_chromaticity(R, valid_s)[0]
         if _skin_fit.KERNELS:
             _, _, y0, sing0 = _separate_ramp(R, d0, None, v, lights, None, None)
         else:
