@@ -830,3 +830,20 @@ def test_specular_energy_kernel_equals_numpy_reference(monkeypatch):
     ref = _skin_fit.specular_energy(S, shadow, lights, n, v, 1.4)
     assert np.all(np.isfinite(got))
     assert np.abs(got - ref).max() <= 1e-12 * max(1.0, np.abs(ref).max())
+
+
+def test_median_ratio_kernel_equals_numpy_reference(monkeypatch):
+    """d_0's median ratios (§4.2) by the compiled kernel against the numpy reference, with
+    masked samples, zero channels and a function without any usable sample."""
+    from facegeo.appearance import _skin_fit
+
+    rng = np.random.default_rng(6)
+    R = rng.uniform(0, 1, (25, 200, 3)) * rng.uniform(0.2, 1, (25, 1, 3))
+    R[rng.uniform(size=R.shape) < 0.05] = 0.0
+    valid = rng.uniform(size=R.shape[:2]) > 0.3
+    valid[3] = False
+    got, found = _skin_fit.initial_diffuse_chromaticity(R, valid)
+    monkeypatch.setattr(_skin_fit, "KERNELS", False)
+    ref, found_ref = _skin_fit.initial_diffuse_chromaticity(R, valid)
+    assert np.array_equal(found, found_ref) and not found[3]
+    assert np.abs(got - ref).max() <= 1e-14

@@ -404,6 +404,19 @@ def initial_diffuse_chromaticity(R, valid):
     d_0 : (N, 3) float64, unit; the light colour where no sample qualifies.
     found : (N,) bool
     """
+    if KERNELS:
+        from facegeo.appearance._skin_kernels import median_ratios
+
+        lo, hi = D0_BRIGHTNESS_RANGE
+        mrg, mgb = median_ratios(np.ascontiguousarray(R, np.float64),
+                                 np.ascontiguousarray(valid, bool), float(lo), float(hi))
+    else:
+        mrg, mgb = _median_ratios(R, valid)
+    return _d0_from_ratios(R, valid, mrg, mgb)
+
+
+def _median_ratios(R, valid):
+    """The two medians of :func:`initial_diffuse_chromaticity` (numpy reference)."""
     b = R.sum(axis=2)
     bv = np.where(valid, b, np.nan)
     with warnings.catch_warnings():
@@ -417,6 +430,12 @@ def initial_diffuse_chromaticity(R, valid):
         gb = np.where(sel, R[..., 1] / np.where(sel, R[..., 2], 1.0), np.nan)
         mrg = _row_nanquantile(rg, 0.5)
         mgb = _row_nanquantile(gb, 0.5)
+    return mrg, mgb
+
+
+def _d0_from_ratios(R, valid, mrg, mgb):
+    """d_0 from the two medians, projected onto the colours' plane through s
+    (:func:`initial_diffuse_chromaticity`)."""
     found = np.isfinite(mrg) & np.isfinite(mgb) & (mgb > 0)
     d = np.stack([np.where(found, mrg, 1.0), np.ones_like(mrg),
                   np.where(found, 1.0 / np.where(found, mgb, 1.0), 1.0)], axis=1)
