@@ -14,8 +14,10 @@ tie-breaking), the same Levenberg–Marquardt steps — and agree with it to rou
   ``n·l > 0`` (projecting onto the unit sphere from outside the ball is 1-Lipschitz), so their
   part is ``n·M₁`` and ``nᵀ M₂ n`` with the moments ``M₁ = Σ w y l`` and ``M₂ = Σ w l lᵀ``
   accumulated once; only the band ``|a·l| ≤ ρ`` is summed per candidate, and lights below
-  ``−ρ`` contribute nothing. The anchor moves (moments rebuilt) when the pattern would leave
-  the ball; ρ is a few steps, so at the fine levels the band is nearly empty.
+  ``−ρ`` contribute nothing. The anchor moves when the pattern would leave the ball or the
+  ball is much wider than the step (moments rebuilt, or — when the new ball lies inside the
+  old — only the old band sorted again); ρ is a few steps, so at the fine levels the band is
+  nearly empty.
 * **Centre values carried over**: the pattern's centre was the previous iteration's best.
 * **Ramp search fused** (``ramp_search``): μ_d of §4.2 under each candidate ramp in closed
   form (``_skin_fit.ramp_mu_d``), the misfit's three weighted sums accumulated in the same loop.
@@ -80,28 +82,47 @@ def _pattern_move(best, u0, u1, step, halvings, levels):
 # ------------------------------------------------------------------------------- lobe search
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _add_moments(mom, wy, wd, x, y, z):
+    """One always-lit light into the moments M₁ = Σ w y l (``mom[:3]``) and M₂ = Σ w l lᵀ
+    (``mom[3:]``: xx, yy, zz, xy, xz, yz)."""
+    mom[0] += wy * x
+    mom[1] += wy * y
+    mom[2] += wy * z
+    mom[3] += wd * x * x
+    mom[4] += wd * y * y
+    mom[5] += wd * z * z
+    mom[6] += wd * x * y
+    mom[7] += wd * x * z
+    mom[8] += wd * y * z
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _lobe_anchor(ax, ay, az, rho, lx, ly, lz, wy, wd, band, mom):
-    """Moments over lights with a·l > ρ into ``mom`` (M₁ 3, M₂ 6); band indices; returns count."""
+    """Moments over lights with a·l > ρ into ``mom`` (M₁ 3, M₂ 6); band indices; returns count.
+    (:func:`_lobe_refine` over every light, from zero moments.)"""
     for j in range(9):
         mom[j] = 0.0
-    nb = 0
     for j in range(lx.size):
+        band[j] = j
+    return _lobe_refine(ax, ay, az, rho, lx, ly, lz, wy, wd, band, lx.size, mom)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _lobe_refine(ax, ay, az, rho, lx, ly, lz, wy, wd, band, nb, mom):
+    """:func:`_lobe_anchor` for a new anchor whose ball (radius ρ) lies inside the previous
+    one: only the previous band's lights are classified again (into the moments, the band,
+    or dropped); returns the new band's count."""
+    k = 0
+    for b in range(nb):
+        j = band[b]
         c = ax * lx[j] + ay * ly[j] + az * lz[j]
         if c > rho:
-            mom[0] += wy[j] * lx[j]
-            mom[1] += wy[j] * ly[j]
-            mom[2] += wy[j] * lz[j]
-            mom[3] += wd[j] * lx[j] * lx[j]
-            mom[4] += wd[j] * ly[j] * ly[j]
-            mom[5] += wd[j] * lz[j] * lz[j]
-            mom[6] += wd[j] * lx[j] * ly[j]
-            mom[7] += wd[j] * lx[j] * lz[j]
-            mom[8] += wd[j] * ly[j] * lz[j]
+            _add_moments(mom, wy[j], wd[j], lx[j], ly[j], lz[j])
         elif c >= -rho:
-            band[nb] = j
-            nb += 1
-    return nb
+            band[k] = j
+            k += 1
+    return k
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
@@ -166,10 +187,17 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
         dx, dy, dz = cx - ax, cy - ay, cz - az
         # re-anchor when the pattern could leave the ball, or when the ball (and its band)
         # is much larger than the current step needs
-        if math.sqrt(dx * dx + dy * dy + dz * dz) + step * sq2 > rho or rho > 12.0 * step:
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if dist + step * sq2 > rho or rho > 12.0 * step:
+            rho_new = 3.0 * step * sq2
+            if rho - dist >= rho_new:
+                # the new ball lies inside the old one: lit lights stay lit and dropped ones
+                # stay dark, only the band needs sorting again
+                nb = _lobe_refine(cx, cy, cz, rho_new, lx, ly, lz, wy, wd, band, nb, mom)
+            else:
+                nb = _lobe_anchor(cx, cy, cz, rho_new, lx, ly, lz, wy, wd, band, mom)
             ax, ay, az = cx, cy, cz
-            rho = 3.0 * step * sq2
-            nb = _lobe_anchor(ax, ay, az, rho, lx, ly, lz, wy, wd, band, mom)
+            rho = rho_new
         best = 0
         bval = np.inf
         for k in range(9):
