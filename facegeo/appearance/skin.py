@@ -326,10 +326,10 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         tested).
     threads : int
         Threads of the compiled kernels (numba ``prange`` over the functions of a chunk), 1 to
-        ``NUMBA_NUM_THREADS``. Default 1: on the shared 2-core machine two threads measured
-        0.5–0.7× of one (the OpenMP workers spin between kernels while the numpy steps run;
-        docs/skin.md) — run more processes or pass ``threads`` where cores are free. Results do
-        not depend on it: each function is one independent problem (tested).
+        ``NUMBA_NUM_THREADS``. Default 1: on the shared 2-core machine two threads gave 1.33×
+        when idle but 0.5–0.6× of one whenever other jobs ran (the OpenMP workers spin between
+        kernels while the numpy steps run; docs/skin.md) — pass ``threads`` where cores are
+        free. Results do not depend on it: each function is one independent problem (tested).
 
     Returns
     -------
