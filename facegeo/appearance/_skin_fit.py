@@ -405,7 +405,7 @@ def initial_diffuse_chromaticity(R, valid):
     found : (N,) bool
     """
     if KERNELS:
-        from facegeo.appearance._skin_kernels import median_ratios
+        from facegeo.appearance._skin_kernels_samples import median_ratios
 
         lo, hi = D0_BRIGHTNESS_RANGE
         mrg, mgb = median_ratios(np.ascontiguousarray(R, np.float64),
@@ -627,7 +627,8 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
 def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     """:func:`fit_ramp` in the compiled kernels (``_skin_kernels``): the same inputs, search
     and Levenberg–Marquardt steps, the polish with the analytic Jacobian."""
-    from facegeo.appearance._skin_kernels import ramp_inputs, ramp_polish, ramp_search
+    from facegeo.appearance._skin_kernels import ramp_polish, ramp_search
+    from facegeo.appearance._skin_kernels_samples import ramp_inputs
 
     c = np.ascontiguousarray
     n, v, d_0 = c(n, np.float64), c(v, np.float64), c(d_0, np.float64)
@@ -668,7 +669,7 @@ def specular_energy(S, shadow, lights: LightSet, n, v, eta):
     (N,) float64, ≥ 0
     """
     if KERNELS:
-        from facegeo.appearance._skin_kernels import specular_energy as kernel
+        from facegeo.appearance._skin_kernels_samples import specular_energy as kernel
 
         c = np.ascontiguousarray
         return kernel(c(S, np.float64), c(shadow, bool), c(lights.directions),

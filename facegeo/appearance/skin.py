@@ -416,7 +416,7 @@ def _separate_ramp(R, d0, n, v, lights, a0, a1):
     """The §4.2 separation of every sample with the ramp chromaticity (the compiled
     ``_skin_kernels.separate_ramp``); ``n`` None: with d_0 itself (the initial separation).
     Returns ``D (n, L, 3)``, ``μ_s (n, L)``, ``|D| (n, L)``, any-singular ``(n,)``."""
-    from facegeo.appearance._skin_kernels import separate_ramp
+    from facegeo.appearance._skin_kernels_samples import separate_ramp
 
     c = np.ascontiguousarray
     uniform = n is None
