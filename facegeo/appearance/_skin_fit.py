@@ -211,6 +211,11 @@ def _lobe_residuals_sqrtw(y, sqw, x):
     return yw
 
 
+#: Run the searches and the polish in the compiled kernels of ``_skin_kernels`` (numba; one
+#: function per ``prange`` iteration). False: the numpy reference below, which the kernels are
+#: tested against.
+KERNELS = True
+
 #: Jacobian of the ramp's Levenberg–Marquardt polish by forward differences (P + 1 residual
 #: evaluations per step, the centre's reused) instead of central ones (2P): measured ≈ 1.2–1.3×
 #: faster fit with α's within 1e-5 and ρ_s within 2e-4 relative of the central-difference
@@ -307,6 +312,8 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
     misfit_start, misfit : (N,) float64
         Relative misfit at ``n_start`` and at the result.
     """
+    if KERNELS:
+        return _fit_lobe_compiled(y, w, lights, n_start, depth)
     # Precomputed once per call, not per candidate: only lights some function of the chunk
     # can use (w = 0 samples add nothing to any sum), the weighted data w δA y and its norm.
     n_all = lights.directions
@@ -350,6 +357,20 @@ def fit_lambertian_lobe(y, w, lights: LightSet, n_start, depth: SearchDepth):
     return n, np.maximum(k, 0.0), misfit_start, misfit
 
 
+def _fit_lobe_compiled(y, w, lights: LightSet, n_start, depth: SearchDepth):
+    """:func:`fit_lambertian_lobe` in the compiled kernel ``_skin_kernels.lobe_search``."""
+    from facegeo.appearance._skin_kernels import lobe_search
+
+    c = np.ascontiguousarray
+    n_start = c(n_start, np.float64)
+    t1, t2 = _tangent_basis(n_start)
+    u, k, misfit_start, misfit = lobe_search(
+        c(y, np.float64), c(w, np.float64), c(lights.directions), c(lights.solid_angles),
+        n_start, t1, t2, float(depth.normal_step), int(depth.levels), int(depth.moves))
+    n = normalize(n_start + u[:, :1] * t1 + u[:, 1:2] * t2)
+    return n, k, misfit_start, misfit
+
+
 def _row_nanquantile(a, q):
     """``np.nanquantile(a, q, axis=1)`` (linear interpolation) for ``a`` ``(N, L)`` without
     numpy's per-row Python loop: one sort (NaNs last), then the two neighbours of the virtual
@@ -383,6 +404,19 @@ def initial_diffuse_chromaticity(R, valid):
     d_0 : (N, 3) float64, unit; the light colour where no sample qualifies.
     found : (N,) bool
     """
+    if KERNELS:
+        from facegeo.appearance._skin_kernels_samples import median_ratios
+
+        lo, hi = D0_BRIGHTNESS_RANGE
+        mrg, mgb = median_ratios(np.ascontiguousarray(R, np.float64),
+                                 np.ascontiguousarray(valid, bool), float(lo), float(hi))
+    else:
+        mrg, mgb = _median_ratios(R, valid)
+    return _d0_from_ratios(R, valid, mrg, mgb)
+
+
+def _median_ratios(R, valid):
+    """The two medians of :func:`initial_diffuse_chromaticity` (numpy reference)."""
     b = R.sum(axis=2)
     bv = np.where(valid, b, np.nan)
     with warnings.catch_warnings():
@@ -396,6 +430,12 @@ def initial_diffuse_chromaticity(R, valid):
         gb = np.where(sel, R[..., 1] / np.where(sel, R[..., 2], 1.0), np.nan)
         mrg = _row_nanquantile(rg, 0.5)
         mgb = _row_nanquantile(gb, 0.5)
+    return mrg, mgb
+
+
+def _d0_from_ratios(R, valid, mrg, mgb):
+    """d_0 from the two medians, projected onto the colours' plane through s
+    (:func:`initial_diffuse_chromaticity`)."""
     found = np.isfinite(mrg) & np.isfinite(mgb) & (mgb > 0)
     d = np.stack([np.where(found, mrg, 1.0), np.ones_like(mrg),
                   np.where(found, 1.0 / np.where(found, mgb, 1.0), 1.0)], axis=1)
@@ -509,6 +549,8 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     normal : (N, 3) float64, unit (the input normal when ``depth.polish`` is 0)
     misfit : (N,) float64
     """
+    if KERNELS:
+        return _fit_ramp_compiled(R, w, lights, n, v, d_0, depth)
     # only lights some function of the chunk uses (the shadowed half of the sphere drops out)
     used = np.flatnonzero(w.any(axis=0))
     if used.size < lights.n_lights:
@@ -566,10 +608,10 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         fit = 1.0 - sxy * sxy / np.where(ok, sxx * syy, 1.0)
         return np.where(ok, fit, np.where(syy > 1e-300, 1.0, syy))
 
+    n_out = n
     x0 = np.zeros((n.shape[0], 2))
     p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves,
                               subset=True)
-    n_out = n
     if depth.polish and not depth.polish_normal:
         p, misfit = gauss_newton_polish(residuals, p, iterations=depth.polish,
                                         forward=POLISH_FORWARD)
@@ -579,6 +621,30 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
                                         forward=POLISH_FORWARD)
         p = p4[:, :2]
         n_out = normalize(n + p4[:, 2:3] * t1 + p4[:, 3:4] * t2)
+    return p[:, 0], p[:, 1], n_out, misfit
+
+
+def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
+    """:func:`fit_ramp` in the compiled kernels (``_skin_kernels``): the same inputs, search
+    and Levenberg–Marquardt steps, the polish with the analytic Jacobian."""
+    from facegeo.appearance._skin_kernels import ramp_polish, ramp_search
+    from facegeo.appearance._skin_kernels_samples import ramp_inputs
+
+    c = np.ascontiguousarray
+    n, v, d_0 = c(n, np.float64), c(v, np.float64), c(d_0, np.float64)
+    t1, t2 = _tangent_basis(n)
+    wd, x_fix, nl_fix, A, Rd, Rdms, ds = ramp_inputs(
+        c(R, np.float64), c(w, np.float64), c(lights.solid_angles), c(lights.directions), n, v,
+        d_0, float(MIRROR_SIGMA))
+    p, misfit = ramp_search(x_fix, nl_fix, wd, A, Rd, Rdms, ds, float(depth.alpha_step),
+                            int(depth.alpha_levels), int(depth.moves), SINGULAR_SIN2)
+    n_out = n
+    if depth.polish:
+        p0 = p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1)
+        p, misfit = ramp_polish(c(p0), n, t1, t2, v, c(lights.directions), x_fix, nl_fix, wd, A,
+                                Rd, Rdms, ds, int(depth.polish), SINGULAR_SIN2)
+        if depth.polish_normal:
+            n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
     return p[:, 0], p[:, 1], n_out, misfit
 
 
@@ -602,24 +668,35 @@ def specular_energy(S, shadow, lights: LightSet, n, v, eta):
     -------
     (N,) float64, ≥ 0
     """
-    l = lights.directions[None]
-    h = normalize(l + v[:, None, :], fallback=n[:, None, :] * np.ones_like(l))
+    if KERNELS:
+        from facegeo.appearance._skin_kernels_samples import specular_energy as kernel
+
+        c = np.ascontiguousarray
+        return kernel(c(S, np.float64), c(shadow, bool), c(lights.directions),
+                      c(lights.solid_angles), c(n, np.float64), c(v, np.float64), float(eta))
     nl = n @ lights.directions.T
-    nv = np.einsum("ni,ni->n", n, v)[:, None]
-    nh = np.einsum("nlc,nc->nl", h, n)
-    vh = np.einsum("nlc,nc->nl", h, v)
+    nv = np.einsum("ni,ni->n", n, v)
+    # only the samples that can contribute (S > 0, unshadowed, both cosines positive): the
+    # specular lobe is a small part of the sphere, so this skips most of the work
+    rows, cols = np.nonzero((S > 0) & ~shadow & (nl > 0) & (nv > 0)[:, None])
+    l = lights.directions[cols]
+    h = normalize(l + v[rows], fallback=n[rows])
+    nh = np.einsum("kc,kc->k", h, n[rows])
+    vh = np.einsum("kc,kc->k", h, v[rows])
+    nvk = nv[rows]
     F = fresnel_dielectric(vh, eta)
-    G = torrance_sparrow_geometry(nl, nv, nh, vh)
+    G = torrance_sparrow_geometry(nl[rows, cols], nvk, nh, vh)
     den = F * G * vh
-    ok = (~shadow) & (den > 1e-6) & (nl > 0) & (nv > 0)
-    val = np.where(ok, S * np.maximum(nv, 0.0) * np.maximum(nh, 0.0) / np.where(ok, den, 1.0), 0.0)
-    return np.maximum(val @ lights.solid_angles, 0.0)
+    ok = den > 1e-6
+    val = np.where(ok, S[rows, cols] * nvk * np.maximum(nh, 0.0) / np.where(ok, den, 1.0), 0.0)
+    out = np.bincount(rows, weights=val * lights.solid_angles[cols], minlength=S.shape[0])
+    return np.maximum(out, 0.0)
 
 
 def check_reflectance(R, lights: LightSet):
     """Validate reflectance functions: ``(N, L, 3)``, ``(N, L, 1)`` or ``(N, L)``, finite, ≥ 0.
 
-    Returns ``(R float64 (N, L, C), single_channel)``.
+    Returns ``(R (N, L, C) in its own dtype, single_channel)``: callers convert per chunk.
     """
     R = as_array(R, "R", dtype=None)
     if R.ndim == 2:
@@ -629,7 +706,8 @@ def check_reflectance(R, lights: LightSet):
     if R.shape[1] != lights.n_lights:
         raise ShapeError(f"R: expected {lights.n_lights} lights on axis 1 (the light set's), "
                          f"got shape {R.shape}")
-    R = R.astype(np.float64)
+    if not (np.issubdtype(R.dtype, np.floating) or np.issubdtype(R.dtype, np.integer)):
+        raise InputError(f"R: expected real numbers, got dtype {R.dtype}")
     if np.any(R < 0):
         raise InputError("R: reflectance must be >= 0 (subtract the ambient frame and clip)")
     return R, R.shape[2] == 1

@@ -26,13 +26,13 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from dataclasses import dataclass
 
 import numpy as np
 
-from facegeo.checks import as_array, check_unit_vectors, fmt_value
-
+from facegeo.appearance import _skin_fit
 from facegeo.appearance._skin_fit import (
     FLAG_BACKFACING,
     FLAG_BLACK,
@@ -60,6 +60,7 @@ from facegeo.appearance._skin_fit import (
 )
 from facegeo.appearance._skin_model import (
     S_WHITE,
+    SINGULAR_SIN2,
     LightSet,
     SkinParams,
     invert_ramp,
@@ -71,6 +72,7 @@ from facegeo.appearance._skin_model import (
     specular_sample,
 )
 from facegeo.appearance._skin_resynth import Resynthesis, resynthesize, view_independent
+from facegeo.checks import as_array, check_unit_vectors, fmt_value
 
 log = logging.getLogger(__name__)
 
@@ -83,12 +85,13 @@ __all__ = [
     "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
 ]
 
-#: Samples (functions × lights) per chunk of the analysis: the searches' (chunk, candidates, L)
-#: float64 temporaries are then 2.4 MB (9 candidates), which stay in cache. At 2048 lights
-#: that is 16 functions; measured 64 functions per chunk ≈ 1.5–2× slower (docs/skin.md).
-CHUNK_SAMPLES = 32768
-#: Default functions per chunk at 2048 lights (``CHUNK_SAMPLES // L`` in general, ≥ 16).
-CHUNK = 16
+#: Samples (functions × lights) per chunk of the analysis. With the compiled kernels
+#: (``_skin_fit.KERNELS``) the searches keep their temporaries per function, so the chunk only
+#: bounds the numpy steps' (chunk, L, 3) arrays (6 MB at 64 × 2048); measured under load,
+#: 64 functions per chunk were as fast as 16 on one thread and faster on two (docs/skin.md).
+CHUNK_SAMPLES = 131072
+#: Default functions per chunk at 2048 lights (``CHUNK_SAMPLES // L`` in general, ≥ 64).
+CHUNK = 64
 
 
 @dataclass
@@ -157,6 +160,80 @@ class SkinFit:
         """D + S, ``(N, L, C)`` float32: the measured functions (the separation recombines)."""
         return self.diffuse + self.specular
 
+    def save(self, path) -> None:
+        """Write the fit to one ``.npz`` file, atomically (:func:`facegeo.fsutil.atomic_path`).
+
+        Every array attribute is stored under its own name, the light set as ``lights_*``
+        arrays, scalars as 0-d arrays (format version :data:`SKINFIT_FORMAT`). No pickles:
+        :meth:`load` reads it with ``allow_pickle=False``.
+
+        Parameters
+        ----------
+        path : path-like
+            Destination; conventionally ending ``.npz`` (written as given, never renamed).
+        """
+        from facegeo.fsutil import atomic_path
+
+        arrays = {k: np.asarray(getattr(self, k)) for k in _SKINFIT_ARRAYS}
+        lt = self.lights
+        arrays.update(lights_directions=lt.directions, lights_solid_angles=lt.solid_angles,
+                      lights_intensities=lt.intensities,
+                      lights_grid=np.asarray(lt.grid if lt.grid is not None else (-1, -1),
+                                             np.int64),
+                      eta=np.float64(self.eta), single_channel=np.bool_(self.single_channel),
+                      format=np.int64(SKINFIT_FORMAT))
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+    @classmethod
+    def load(cls, path) -> SkinFit:
+        """Read a fit written by :meth:`save`.
+
+        Raises
+        ------
+        ScanFormatError
+            The file is missing, not an ``.npz``, of another format version, or lacks an
+            array or has one of the wrong shape (the message names the file and the key).
+        """
+        from facegeo.errors import ScanFormatError
+
+        try:
+            z = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise ScanFormatError(f"cannot read a skin fit (.npz from SkinFit.save): {exc}",
+                                  path=path) from exc
+        with z:
+            missing = [k for k in (*_SKINFIT_ARRAYS, "lights_directions", "lights_solid_angles",
+                                   "lights_intensities", "lights_grid", "eta", "single_channel",
+                                   "format") if k not in z.files]
+            if missing:
+                raise ScanFormatError(f"not a skin fit: missing arrays {missing}", path=path,
+                                      key=missing[0])
+            if int(z["format"]) != SKINFIT_FORMAT:
+                raise ScanFormatError(f"skin fit format {int(z['format'])}, expected "
+                                      f"{SKINFIT_FORMAT}", path=path, key="format")
+            a = {k: z[k] for k in z.files}
+        grid = tuple(int(g) for g in a["lights_grid"])
+        lights = LightSet(a["lights_directions"], a["lights_solid_angles"],
+                          a["lights_intensities"], None if grid[0] < 0 else grid)
+        N, L = a["shadow"].shape if a["shadow"].ndim == 2 else (-1, -1)
+        for k in _SKINFIT_ARRAYS:
+            lead = a[k].shape[:2] if k in ("diffuse", "specular", "shadow", "cast_shadow",
+                                           "saturated") else a[k].shape[:1]
+            want = (N, L) if len(lead) == 2 else (N,)
+            if lead != want or lights.n_lights != L:
+                raise ScanFormatError(f"array shape {a[k].shape} does not match {N} functions "
+                                      f"× {lights.n_lights} lights", path=path, key=k)
+        return cls(lights=lights, eta=float(a["eta"]), single_channel=bool(a["single_channel"]),
+                   **{k: a[k] for k in _SKINFIT_ARRAYS})
+
+
+#: Version of the ``.npz`` layout written by :meth:`SkinFit.save`.
+SKINFIT_FORMAT = 1
+_SKINFIT_ARRAYS = ("view", "normal", "normal_moment", "normal_initial", "lobe_misfit_moment",
+                   "lobe_misfit", "d_0", "alpha_0", "alpha_1", "rho_d", "rho_s", "diffuse",
+                   "specular", "shadow", "cast_shadow", "saturated", "flags", "valid")
+
 
 def flag_names(flags: int) -> list[str]:
     """Names of the bits set in one flags value."""
@@ -198,7 +275,7 @@ def shadow_map(R, *, threshold: float = SHADOW_THRESHOLD, visibility=None, satur
 def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: float | None = None,
                     eta: float = 1.4, depth: SearchDepth | None = None,
                     shadow_threshold: float = SHADOW_THRESHOLD, d_0=None, rounds: int = 1,
-                    chunk: int | None = None) -> SkinFit:
+                    chunk: int | None = None, threads: int = 1) -> SkinFit:
     """Fit the paper's skin model to reflectance functions (Debevec et al. 2000, §4.2 and §4.4).
 
     Steps, each vectorised over a chunk of functions:
@@ -244,9 +321,15 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         Alternations of ramp fit → final separation → normal (the paper does one; with the
         default joint polish a second changes little).
     chunk : int, optional
-        Functions per vectorised chunk; default ``max(16, CHUNK_SAMPLES // L)`` (16 at 2048
-        lights), which keeps the search temporaries in cache. Results do not depend on it
-        (to rounding; tested).
+        Functions per chunk; default ``max(CHUNK, CHUNK_SAMPLES // L)`` (64 at 2048 lights),
+        which bounds the memory of the numpy steps. Results do not depend on it (to rounding;
+        tested).
+    threads : int
+        Threads of the compiled kernels (numba ``prange`` over the functions of a chunk), 1 to
+        ``NUMBA_NUM_THREADS``. Default 1: on the shared 2-core machine two threads gave 1.33×
+        when idle but 0.5–0.6× of one whenever other jobs ran (the OpenMP workers spin between
+        kernels while the numpy steps run; docs/skin.md) — pass ``threads`` where cores are
+        free. Results do not depend on it: each function is one independent problem (tested).
 
     Returns
     -------
@@ -264,29 +347,43 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
 
         raise InputError(f"eta: expected an index of refraction > 1, got {fmt_value(eta)}")
     E = lights.intensities if not single else lights.intensities.mean(axis=1, keepdims=True)
-    Rw = R / E[None]
-    sat = (R >= float(saturation)).any(axis=2) if saturation is not None else np.zeros((N, L), bool)
-    shadow = shadow_map(Rw, threshold=shadow_threshold, visibility=visibility, saturated=sat)
-    hidden = np.zeros((N, L), bool) if visibility is None else ~check_mask(
-        visibility, "visibility", N, L)
+    if not 0.0 < float(shadow_threshold) < 1.0:
+        from facegeo.errors import InputError
+
+        raise InputError(f"shadow_threshold: expected a fraction in (0, 1), got "
+                         f"{fmt_value(shadow_threshold)}")
+    vis = None if visibility is None else check_mask(visibility, "visibility", N, L)
     if single:
         log.info("single-channel reflectance functions: colour separation is impossible; "
                  "fitting the diffuse lobe alone")
-    out = {k: [] for k in ("n", "nm", "n1", "mm", "m1", "d0", "a0", "a1", "rd", "rs", "D", "S",
-                           "flags", "cast")}
+    out = {k: [] for k in ("n", "nm", "n1", "mm", "m1", "d0", "a0", "a1", "rd", "rs", "flags",
+                           "cast")}
+    # Everything per chunk, written straight into the outputs: no (N, L, 3) float64 copy of
+    # the whole input (those passes cost a third of the fit at 512 functions).
+    D = np.empty((N, L, C), np.float32)
+    shadow = np.empty((N, L), bool)
+    sat = np.zeros((N, L), bool)
     if chunk is None:
         chunk = max(CHUNK, CHUNK_SAMPLES // max(L, 1))
-    for i in range(0, N, max(1, int(chunk))):
-        sl = slice(i, min(N, i + int(chunk)))
-        res = _fit_chunk(Rw[sl], v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
-                         shadow_threshold,
-                         None if d_0 is None else d_0[sl], rounds)
-        for k in out:
-            out[k].append(res[k])
+    with _numba_threads(threads):
+        for i in range(0, N, max(1, int(chunk))):
+            sl = slice(i, min(N, i + int(chunk)))
+            Rc = np.asarray(R[sl], np.float64)
+            if saturation is not None:
+                sat[sl] = (Rc >= float(saturation)).any(axis=2)
+            Rw = Rc / E[None]
+            shadow[sl] = shadow_map(Rw, threshold=shadow_threshold,
+                                    visibility=None if vis is None else vis[sl], saturated=sat[sl])
+            res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
+                             shadow_threshold,
+                             None if d_0 is None else d_0[sl], rounds)
+            D[sl] = res["D"] * E[None]  # float32 on assignment
+            for k in out:
+                out[k].append(res[k])
     cat = {k: np.concatenate(val) if val else np.zeros((0,)) for k, val in out.items()}
     flags = cat["flags"].astype(np.int32)
-    D = (cat["D"] * E[None]).astype(np.float32)
-    S = R.astype(np.float32) - D  # D + S = R up to one float32 rounding
+    S = np.subtract(R, D, dtype=np.float32)  # D + S = R up to one float32 rounding
+    hidden = np.zeros((N, L), bool) if vis is None else ~vis
     valid = (flags & (FLAG_BLACK | FLAG_SHADOWED)) == 0
     return SkinFit(lights=lights, view=v, normal=cat["n"], normal_moment=cat["nm"],
                    normal_initial=cat["n1"], lobe_misfit_moment=cat["mm"], lobe_misfit=cat["m1"],
@@ -294,6 +391,40 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                    rho_s=cat["rs"], diffuse=D, specular=S, shadow=shadow,
                    cast_shadow=cat["cast"] | hidden, saturated=sat,
                    flags=flags, valid=valid, eta=eta, single_channel=single)
+
+
+@contextlib.contextmanager
+def _numba_threads(threads):
+    """numba's thread count for the block."""
+    import numba
+
+    t = int(threads)
+    if not 1 <= t <= numba.config.NUMBA_NUM_THREADS:
+        from facegeo.errors import InputError
+
+        raise InputError(f"threads: expected 1 to {numba.config.NUMBA_NUM_THREADS}, got "
+                         f"{fmt_value(threads)}")
+    old = numba.get_num_threads()
+    numba.set_num_threads(t)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(old)
+
+
+def _separate_ramp(R, d0, n, v, lights, a0, a1):
+    """The §4.2 separation of every sample with the ramp chromaticity (the compiled
+    ``_skin_kernels.separate_ramp``); ``n`` None: with d_0 itself (the initial separation).
+    Returns ``D (n, L, 3)``, ``μ_s (n, L)``, ``|D| (n, L)``, any-singular ``(n,)``."""
+    from facegeo.appearance._skin_kernels_samples import separate_ramp
+
+    c = np.ascontiguousarray
+    uniform = n is None
+    N = R.shape[0]
+    zeros = np.zeros(N)
+    return separate_ramp(c(R, np.float64), c(d0, np.float64), c(v if uniform else n, np.float64),
+                         c(v, np.float64), c(lights.directions), zeros if uniform else c(a0),
+                         zeros if uniform else c(a1), uniform, SINGULAR_SIN2)
 
 
 def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, rounds):
@@ -316,14 +447,17 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
         D0 = R
         y0 = R[..., 0]
     else:
-        d0, found = initial_diffuse_chromaticity(R, valid_s)
-        if d_0 is not None:
-            d0 = d_0
-        D0, _, _, _, _, sing = separate_colour(R, d0[:, None, :], s)
-        flags |= np.where(sing[:, 0], FLAG_SINGULAR, 0)
-        y0 = np.linalg.norm(D0, axis=2)
+        # the median-ratio estimate only where no d_0 is given (skipped work, not a fallback)
+        d0 = d_0 if d_0 is not None else initial_diffuse_chromaticity(R, valid_s)[0]
+        if _skin_fit.KERNELS:
+            _, _, y0, sing0 = _separate_ramp(R, d0, None, v, lights, None, None)
+        else:
+            D0, _, _, _, _, sing = separate_colour(R, d0[:, None, :], s)
+            sing0 = sing[:, 0]
+            y0 = np.linalg.norm(D0, axis=2)
+        flags |= np.where(sing0, FLAG_SINGULAR, 0)
     nm = moment_normal(y0, w, lights, v)
-    n1, _, mm, m1 = fit_lambertian_lobe(y0, w, lights, nm, depth)
+    n1, k, mm, m1 = fit_lambertian_lobe(y0, w, lights, nm, depth)
     if single:
         a0 = np.zeros(n_f)
         a1 = np.zeros(n_f)
@@ -335,23 +469,25 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
         for _ in range(max(1, int(rounds))):
             # the polish moves the normal with the ramp; it only serves the ramp fit
             a0, a1, n_ramp, _ = fit_ramp(R, w, lights, n, v, d0, depth)
-            nl = n_ramp @ l.T
-            nv = np.einsum("ni,ni->n", n_ramp, v)
-            c = ramp_chromaticity(d0[:, None, :],
-                                  ramp_f(nl, nv[:, None], a0[:, None], a1[:, None]))
-            D, _, _, mu_s, _, sing2 = separate_colour(R, c, s)
+            if _skin_fit.KERNELS:
+                D, mu_s, y, sing2 = _separate_ramp(R, d0, n_ramp, v, lights, a0, a1)
+            else:
+                nl = n_ramp @ l.T
+                nv = np.einsum("ni,ni->n", n_ramp, v)
+                c = ramp_chromaticity(d0[:, None, :],
+                                      ramp_f(nl, nv[:, None], a0[:, None], a1[:, None]))
+                D, _, _, mu_s, _, sing2 = separate_colour(R, c, s)
+                y = np.linalg.norm(D, axis=2)
+                sing2 = sing2.any(axis=1)
             # normal recomputed from the final diffuse component (§4.2, Fig. 14 b)
-            n, _, _, _ = fit_lambertian_lobe(np.linalg.norm(D, axis=2), w, lights, n1, depth)
+            n, k, _, _ = fit_lambertian_lobe(y, w, lights, n1, depth)
         sing_any = (flags & FLAG_SINGULAR) != 0
         a0 = np.where(sing_any, 0.0, a0)
         a1 = np.where(sing_any, 0.0, a1)
-        flags |= np.where(sing2.any(axis=1), FLAG_SINGULAR, 0)
+        flags |= np.where(sing2, FLAG_SINGULAR, 0)
         Smu = np.maximum(mu_s, 0.0) / np.sqrt(3.0)
-    y = np.linalg.norm(D, axis=2) if not single else D[..., 0]
-    wd = w * lights.solid_angles
+    # k: the lobe's scale at the final normal (fit_lambertian_lobe, on the final |D|)
     x = np.maximum(n @ l.T, 0.0)
-    sxx = np.sum(wd * x * x, axis=1)
-    k = np.where(sxx > 0, np.sum(wd * y * x, axis=1) / np.where(sxx > 0, sxx, 1.0), 0.0)
     rho_d = np.pi * np.maximum(k, 0.0)[:, None] * d0
     ref = np.percentile(np.where(sat, 0.0, np.linalg.norm(R, axis=2)), 99, axis=1)
     cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
@@ -365,4 +501,4 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
     rho_d = np.where(bad[:, None], 0.0, rho_d)
     rho_s = np.where(bad, 0.0, rho_s)
     return {"n": n, "nm": nm, "n1": n1, "mm": mm, "m1": m1, "d0": d0, "a0": a0, "a1": a1,
-            "rd": rho_d, "rs": rho_s, "D": D, "S": R - D, "flags": flags, "cast": cast}
+            "rd": rho_d, "rs": rho_s, "D": D, "flags": flags, "cast": cast}

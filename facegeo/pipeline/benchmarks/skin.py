@@ -5,11 +5,16 @@ coarse-to-fine search depth against the error it buys.
 Data are paper-mode functions (:func:`facegeo.appearance.skin.paper_reflectance`, the model
 that is fitted, so the error column is the fit's own error, not a model mismatch) on random
 normals within 25° of the view; the known d_0 is passed so that α errors are meaningful.
-Fits run in the default chunks (16 functions at 2048 lights, ``skin.CHUNK_SAMPLES``); the
-machine is shared, so compare rows of one run.
+Fits run in the default chunks (64 functions at 2048 lights, ``skin.CHUNK_SAMPLES``) with the
+compiled kernels (``_skin_kernels``) on the stated threads; the numpy reference
+(``_skin_fit.KERNELS = False``, the implementation before them) is timed in the same run. The
+machine is shared, so compare rows of one run; one-thread rows also record the process CPU
+time (``cpu functions/s``), which other jobs' load inflates less than wall time.
 """
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 
@@ -47,26 +52,69 @@ def _errors(fit, nrm, p):
 @register("skin.fit")
 @one_blas_thread
 def bench_fit(quick: bool) -> list[BenchRow]:
-    from facegeo.appearance import skin
+    import numba
 
-    n = 64 if quick else 256  # whole chunks of 16 (the default at 2048 lights)
+    from facegeo.appearance import _skin_fit, skin
+
+    n = 128 if quick else 512
     lights, nrm, p, v0, R = _case(n, 1)
     d0 = skin.normalize(p.rho_d)
+    # compile / load the kernels' cache, for both paths (the d_0 estimate has its own kernel)
+    skin.fit_reflectance(R[:4], v0, lights, d_0=d0[:4])
+    skin.fit_reflectance(R[:4], v0, lights)
+    cores = numba.config.NUMBA_NUM_THREADS
+
+    cpu = {}
+
+    def fit(depth=None, threads=1, known=True):
+        c = time.process_time()
+        out = best_of(lambda: skin.fit_reflectance(R, v0, lights, d_0=d0 if known else None,
+                                                    depth=depth, threads=threads), repeat=1)
+        cpu["functions/s"] = n / max(time.process_time() - c, 1e-9)
+        return out
+
+    # the numpy reference (the implementation before the compiled kernels), same process
+    _skin_fit.KERNELS = False
+    try:
+        t_ref, fit_ref = fit()
+        cpu_ref = cpu["functions/s"]
+    finally:
+        _skin_fit.KERNELS = True
     rows = []
     for levels, polish in ((4, 3), (7, 6), (10, 10), (14, 20)):
         depth = skin.SearchDepth(levels=levels, alpha_levels=min(levels, 4), polish=polish)
-        t, fit = best_of(lambda: skin.fit_reflectance(R, v0, lights, d_0=d0, depth=depth),
-                         repeat=1)
-        e = _errors(fit, nrm, p)
+        t, res = fit(depth)
+        e = _errors(res, nrm, p)
+        default = depth == skin.SearchDepth()
         rows.append(BenchRow(
-            "skin.fit", f"fit_reflectance, 2048 lights, depth {levels} levels + {polish} LM",
+            "skin.fit", f"fit_reflectance, 2048 lights, depth {levels} levels + {polish} LM"
+            + (" (default)" if default else ""),
             n / t, "functions/s", error=e["normal median error, deg"],
             error_unit="median normal error, degrees (paper mode)", threads=1,
-            extra={**e, "n": n, "seconds": t,
+            ratios={"vs numpy reference": t_ref / t} if default else {},
+            baseline_threads={"vs numpy reference": 1} if default else {},
+            extra={**e, "n": n, "seconds": t, "cpu functions/s": cpu["functions/s"],
                    "paper preset 200k texels, extrapolated minutes": 200_000 / (n / t) / 60},
         ))
-    t, fit = best_of(lambda: skin.fit_reflectance(R, v0, lights), repeat=1)
-    e = _errors(fit, nrm, p)
+    e = _errors(fit_ref, nrm, p)
+    rows.append(BenchRow(
+        "skin.fit", "fit_reflectance, numpy reference (KERNELS off), default depth",
+        n / t_ref, "functions/s", error=e["normal median error, deg"],
+        error_unit="median normal error, degrees (paper mode)", threads=1,
+        extra={**e, "n": n, "seconds": t_ref, "cpu functions/s": cpu_ref}))
+    if cores >= 2:
+        t2, res = fit(threads=cores)
+        t1, _ = fit(threads=1)
+        e = _errors(res, nrm, p)
+        rows.append(BenchRow(
+            "skin.fit", f"fit_reflectance, 2048 lights, default depth, {cores} threads",
+            n / t2, "functions/s", error=e["normal median error, deg"],
+            error_unit="median normal error, degrees (paper mode)", threads=cores,
+            ratios={"vs 1 thread": t1 / t2}, baseline_threads={"vs 1 thread": 1},
+            extra={**e, "n": n, "seconds": t2,
+                   "paper preset 200k texels, extrapolated minutes": 200_000 / (n / t2) / 60}))
+    t, res = fit(known=False)
+    e = _errors(res, nrm, p)
     rows.append(BenchRow(
         "skin.fit", "fit_reflectance, 2048 lights, default depth, d_0 from median ratios",
         n / t, "functions/s", error=e["normal median error, deg"],

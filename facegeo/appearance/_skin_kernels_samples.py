@@ -1,0 +1,237 @@
+"""Compiled (numba) per-sample kernels of the skin-model fit (Debevec et al. 2000, §4.2).
+
+Private module beside :mod:`facegeo.appearance._skin_kernels` (the searches and the polish):
+the steps between the searches that the numpy reference (``_skin_fit`` with
+``KERNELS = False``) does with whole-chunk ``(n, L, 3)`` temporaries, fused into one pass per
+function — the §4.2 separations with the Eq. 6–7 ramp chromaticity, the ramp search's
+per-sample inputs, the specular energy ρ_s (Fig. 14 d) and d_0's median ratios. Each is tested
+equal to its numpy reference in ``tests/test_skin_model.py``. Compiled on first use, cached on
+disk.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from facegeo.appearance._skin_kernels import _FM
+
+# ------------------------------------------------------------------------------- separation
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
+    """§4.2 colour-space separation of every sample with the Eq. 6–7 ramp chromaticity.
+
+    The fused form of ``separate_colour(R, ramp_chromaticity(d_0, ramp_f(n·l, n·v, α_0, α_1)))``
+    (``_skin_model``; same formulas, s = (1, 1, 1)/√3): per sample
+    ``c = normalize(d_0 + f (d_0 − s))`` (s where that vanishes), ``μ_s = (R·s − (R·c)(c·s))/|c × s|²``
+    (0 where ``|c × s|² < sing_sin2``), ``D = R − max(μ_s, 0) s``. With ``uniform`` the
+    chromaticity is d_0 itself (f = 0: the initial separation).
+
+    Parameters
+    ----------
+    R : (N, L, 3) float64, white balanced
+    d0, nrm, v : (N, 3) float64, unit
+    dirs : (L, 3) float64
+    a0, a1 : (N,) float64
+
+    Returns
+    -------
+    D : (N, L, 3) float64
+    mu_s : (N, L) float64
+    y : (N, L) float64, |D|
+    singular : (N,) bool, any sample singular
+    """
+    N, L, _ = R.shape
+    s = 1.0 / math.sqrt(3.0)
+    D = np.empty((N, L, 3))
+    mu_s = np.empty((N, L))
+    y = np.empty((N, L))
+    singular = np.zeros(N, np.bool_)
+    for i in prange(N):
+        nv = nrm[i, 0] * v[i, 0] + nrm[i, 1] * v[i, 1] + nrm[i, 2] * v[i, 2]
+        nv = min(max(nv, 0.0), 1.0)
+        sing_i = False
+        for j in range(L):
+            if uniform:
+                f = 0.0
+            else:
+                nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
+                x = min(max(nl, 0.0), 1.0) * nv
+                f = a0[i] * x + a1[i] * (1.0 - x)
+            cx = d0[i, 0] + f * (d0[i, 0] - s)
+            cy = d0[i, 1] + f * (d0[i, 1] - s)
+            cz = d0[i, 2] + f * (d0[i, 2] - s)
+            cn = math.sqrt(cx * cx + cy * cy + cz * cz)
+            if cn > 1e-30:
+                cx /= cn
+                cy /= cn
+                cz /= cn
+            else:
+                cx = cy = cz = s
+            ds = (cx + cy + cz) * s
+            det = 1.0 - ds * ds
+            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+            ms = 0.0
+            if det < sing_sin2:
+                sing_i = True
+            else:
+                Rd = r0 * cx + r1 * cy + r2 * cz
+                Rs = (r0 + r1 + r2) * s
+                ms = (Rs - Rd * ds) / det
+            mu_s[i, j] = ms
+            sp = max(ms, 0.0) * s
+            e0, e1, e2 = r0 - sp, r1 - sp, r2 - sp
+            D[i, j, 0] = e0
+            D[i, j, 1] = e1
+            D[i, j, 2] = e2
+            y[i, j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        singular[i] = sing_i
+    return D, mu_s, y, singular
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def ramp_inputs(R, w, sa, dirs, nrm, v, d0, mirror_sigma):
+    """Per-sample inputs of ``_skin_fit.fit_ramp`` (its numpy preamble, fused): the weights
+    ``w δA (1 − exp(−(1 − l·r)/σ))`` with ``r = 2(n·v)n − v`` (mirror samples down-weighted),
+    ``x = clip(n·l) clip(n·v)``, ``max(0, n·l)``, and ``A``, ``R·d_0``, ``R·d_0 − R·s`` of
+    ``ramp_mu_d``; ``d_0·s`` per function. Arrays ``(N, L)``, the last ``(N,)``."""
+    N, L, _ = R.shape
+    s = 1.0 / math.sqrt(3.0)
+    wd = np.empty((N, L))
+    xf = np.empty((N, L))
+    nlf = np.empty((N, L))
+    A = np.empty((N, L))
+    Rd = np.empty((N, L))
+    Rdms = np.empty((N, L))
+    ds = np.empty(N)
+    for i in prange(N):
+        nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+        nv0 = nx * v[i, 0] + ny * v[i, 1] + nz * v[i, 2]
+        rx, ry, rz = 2.0 * nv0 * nx - v[i, 0], 2.0 * nv0 * ny - v[i, 1], 2.0 * nv0 * nz - v[i, 2]
+        nvc = min(max(nv0, 0.0), 1.0)
+        dsi = (d0[i, 0] + d0[i, 1] + d0[i, 2]) * s
+        ds[i] = dsi
+        ds2 = 1.0 - dsi * dsi
+        for j in range(L):
+            lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+            if w[i, j] > 0.0:
+                wm = 1.0 - np.exp(-(1.0 - (rx * lx + ry * ly + rz * lz)) / mirror_sigma)
+                wd[i, j] = w[i, j] * sa[j] * wm
+            else:
+                wd[i, j] = 0.0
+            nl = max(nx * lx + ny * ly + nz * lz, 0.0)
+            nlf[i, j] = nl
+            xf[i, j] = min(nl, 1.0) * nvc
+            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+            rd = r0 * d0[i, 0] + r1 * d0[i, 1] + r2 * d0[i, 2]
+            rs = (r0 + r1 + r2) * s
+            Rd[i, j] = rd
+            Rdms[i, j] = rd - rs
+            A[i, j] = (rd - rs * dsi) / ds2 if ds2 > 0.0 else 0.0
+    return wd, xf, nlf, A, Rd, Rdms, ds
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def specular_energy(S, shadow, dirs, sa, nrm, v, eta):
+    """ρ_s of ``_skin_fit.specular_energy`` (Fig. 14 d), fused: per function
+    ``Σ_l S_l (n·v)(n·h_l) / (F G (v·h_l)) δA_l`` over unshadowed lights with S > 0, n·l > 0,
+    n·v > 0 and ``F G (v·h) > 1e-6``; F the exact unpolarised dielectric Fresnel term and G
+    the Torrance–Sparrow attenuation, as ``brdf.fresnel_dielectric`` and
+    ``brdf.torrance_sparrow_geometry`` write them (tested equal to the numpy reference)."""
+    N, L = S.shape
+    out = np.zeros(N)
+    e2 = eta * eta - 1.0
+    for i in prange(N):
+        nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+        vx, vy, vz = v[i, 0], v[i, 1], v[i, 2]
+        nv = nx * vx + ny * vy + nz * vz
+        if not nv > 0.0:
+            continue
+        acc = 0.0
+        for j in range(L):
+            s = S[i, j]
+            if not s > 0.0 or shadow[i, j]:
+                continue
+            lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+            nl = nx * lx + ny * ly + nz * lz
+            if not nl > 0.0:
+                continue
+            hx, hy, hz = lx + vx, ly + vy, lz + vz
+            hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+            if hn > 1e-30:
+                hx, hy, hz = hx / hn, hy / hn, hz / hn
+            else:
+                hx, hy, hz = nx, ny, nz
+            nh = nx * hx + ny * hy + nz * hz
+            vh = vx * hx + vy * hy + vz * hz
+            if not vh > 0.0:
+                continue
+            c = min(vh, 1.0)
+            g = math.sqrt(e2 + c * c)
+            a = (g - c) / (g + c)
+            b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
+            F = 0.5 * a * a * (1.0 + b * b)
+            nhc = max(nh, 0.0)
+            G = min(1.0, min(2.0 * nhc * nv / vh, 2.0 * nhc * nl / vh))
+            den = F * G * vh
+            if den > 1e-6:
+                acc += s * nv * nhc / den * sa[j]
+        out[i] = max(acc, 0.0)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _quantile_sorted(a, k, q):
+    """Linear-interpolation quantile of the first k values of sorted ``a`` (numpy's default,
+    as ``_skin_fit._row_nanquantile`` computes it); NaN when k = 0."""
+    if k == 0:
+        return np.nan
+    pos = q * (k - 1)
+    i0 = int(math.floor(pos))
+    i1 = min(i0 + 1, k - 1)
+    t = pos - i0
+    lo, hi = a[i0], a[i1]
+    if t >= 0.5:
+        return hi - (hi - lo) * (1.0 - t)
+    return lo + (hi - lo) * t
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def median_ratios(R, valid, lo, hi):
+    """The two medians of ``_skin_fit.initial_diffuse_chromaticity`` (§4.2), per function:
+    over valid samples with brightness (R + G + B) in ``[lo, hi] ×`` the 90th percentile of
+    the valid brightnesses and G, B > 0, R ≥ 0, the medians of R/G and of G/B. NaN where no
+    sample qualifies. Returns ``(r/g (N,), g/b (N,))``."""
+    N, L, _ = R.shape
+    mrg = np.empty(N)
+    mgb = np.empty(N)
+    for i in prange(N):
+        b = np.empty(L)
+        k = 0
+        for j in range(L):
+            if valid[i, j]:
+                b[k] = R[i, j, 0] + R[i, j, 1] + R[i, j, 2]
+                k += 1
+        bs = np.sort(b[:k])
+        p90 = _quantile_sorted(bs, k, 0.9)
+        if not np.isfinite(p90):
+            p90 = 0.0
+        rg = np.empty(L)
+        gb = np.empty(L)
+        m = 0
+        for j in range(L):
+            if not valid[i, j]:
+                continue
+            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+            bj = r0 + r1 + r2
+            if bj >= lo * p90 and bj <= hi * p90 and r1 > 0.0 and r2 > 0.0 and r0 >= 0.0:
+                rg[m] = r0 / r1
+                gb[m] = r1 / r2
+                m += 1
+        mrg[i] = _quantile_sorted(np.sort(rg[:m]), m, 0.5)
+        mgb[i] = _quantile_sorted(np.sort(gb[:m]), m, 0.5)
+    return mrg, mgb
