@@ -397,6 +397,13 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
                     np.linalg.norm(T_est.origin_of_a_in_b - t.center_world) * 1e3),
             })
     metrics["projector"] = proj_metrics
+    # headline figures over the cameras (the worst one), for the summary table and the report
+    for key in ("reprojection_rms_px", "focal_rel_error", "principal_point_error_px"):
+        vals = [c[key] for c in metrics["cameras"].values() if isinstance(c.get(key), float)]
+        if vals:
+            metrics[f"{key}_max"] = float(max(vals))
+    if proj_metrics and isinstance(proj_metrics.get("reprojection_rms_px"), float):
+        metrics["projector_reprojection_rms_px"] = proj_metrics["reprojection_rms_px"]
     metrics["seconds"] = time.perf_counter() - t0
     atomic_write_text(out / "detections.json", json.dumps(report, indent=1) + "\n")
     return _json_safe(metrics), settings
