@@ -152,3 +152,38 @@ def test_cli_import_dataset_and_description(tmp_path, shared_data, capsys):
     # exactly one of --dataset / --description
     assert main(["import", str(src), str(tmp_path / "c")]) == 2
     assert "exactly one" in capsys.readouterr().err
+
+
+def test_reference_intrinsics_in_all_three_forms(tmp_path):
+    from pathlib import Path
+
+    from facegeo.capture.references import read_reference_intrinsics
+    from facegeo.errors import ScanFormatError
+
+    fixtures = Path(__file__).parent / "fixtures" / "scans"
+    a = read_reference_intrinsics(fixtures / "light_stage_v2" / "reference" / "intrinsics.json")
+    assert a["cam_a"][0, 0] == 9.0 and a["cam_b"][1, 2] == 2.6
+    b = read_reference_intrinsics(fixtures / "calibration_corners" / "reference" / "intrinsics.json")
+    assert b["cam_b"][0, 0] == 598.1
+    p = tmp_path / "bad.json"
+    p.write_text(json.dumps({"cameras": {"x": {"K": [[0, 0, 1], [0, 1, 1], [0, 0, 1]]}}}))
+    with pytest.raises(ScanFormatError, match="bad.json.*fx, fy > 0"):
+        read_reference_intrinsics(p)
+
+
+def test_calibrating_the_opencv_scan_reports_errors_against_the_published_intrinsics(converted):
+    """The same metrics code compares with a real scan's [reference] as with ground truth."""
+    scan = converted.get("opencv-stereo") or pytest.skip("no OpenCV stereo data")
+    from facegeo.pipeline.calibrate import calibrate_products
+
+    dest = scan.root / "out" / "calib_test"
+    dest.mkdir(parents=True)
+    metrics, _ = calibrate_products(scan, dest, cross_validation=False)
+    for cam in ("left", "right"):
+        m = metrics["cameras"][cam]
+        assert m["reprojection_rms_px"] < 0.5
+        # OpenCV's stereo_calib solved both cameras jointly with other flags: agreement within
+        # 1 % in focal length and 15 px in principal point is what the two models allow
+        assert m["reference_focal_rel_error"] < 0.01
+        assert m["reference_principal_point_error_px"] < 15.0
+    assert "focal_rel_error" not in metrics["cameras"]["left"]  # no ground truth in a real scan

@@ -376,6 +376,17 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
             n = nominal.camera(c.name)
             m["nominal_focal_rel_error"] = float(abs(n.fx / t.fx - 1))
             m["nominal_principal_point_error_px"] = float(np.hypot(n.cx - t.cx, n.cy - t.cy))
+    # published answers of a real scan ([reference] intrinsics), compared the same way
+    from facegeo.capture.references import reference_intrinsics
+
+    for name, K in reference_intrinsics(scan).items():
+        if name in metrics["cameras"] and name != proj_name:
+            c = rig_cal.camera(name)
+            m = metrics["cameras"][name]
+            m["reference_focal_rel_error"] = float(max(abs(c.fx / K[0, 0] - 1),
+                                                       abs(c.fy / K[1, 1] - 1)))
+            m["reference_principal_point_error_px"] = float(np.hypot(c.cx - K[0, 2],
+                                                                     c.cy - K[1, 2]))
     metrics["rig_reference"] = rig_cal.reference
     if proj_name is not None:
         pr = rig_cal.camera(proj_name)
@@ -398,7 +409,8 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
             })
     metrics["projector"] = proj_metrics
     # headline figures over the cameras (the worst one), for the summary table and the report
-    for key in ("reprojection_rms_px", "focal_rel_error", "principal_point_error_px"):
+    for key in ("reprojection_rms_px", "focal_rel_error", "principal_point_error_px",
+                "reference_focal_rel_error", "reference_principal_point_error_px"):
         vals = [c[key] for c in metrics["cameras"].values() if isinstance(c.get(key), float)]
         if vals:
             metrics[f"{key}_max"] = float(max(vals))
