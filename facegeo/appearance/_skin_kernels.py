@@ -37,12 +37,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import numba
 from numba import njit, prange
-
-# The TBB in these wheels is older than numba's parallel backend wants: numba would warn and fall
-# back at the first parallel call. Prefer OpenMP, then numba's own workqueue.
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 #: Floors of :func:`facegeo.appearance._skin_fit._misfit_from_sums` (same values).
 _TINY = 1e-300

@@ -14,12 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import numba
 from numba import njit, prange
-
-# The TBB in these wheels is older than numba's parallel backend wants: numba would warn and fall
-# back at the first parallel call. Prefer OpenMP, then numba's own workqueue.
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 from facegeo.appearance._skin_kernels import _FM
 

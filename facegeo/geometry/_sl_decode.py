@@ -18,7 +18,7 @@ import numpy as np
 
 from facegeo.checks import as_array, check_choice, fmt_value
 from facegeo.errors import InputError, ShapeError
-from facegeo.geometry.structured_light import (
+from facegeo.geometry._sl_patterns import (
     _AXES,
     _CHUNK_PIXELS,
     PatternSpec,

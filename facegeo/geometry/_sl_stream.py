@@ -142,7 +142,7 @@ class StreamDecoder:
 
     def __init__(self, spec, *, full_scale: float | None = None):
         from facegeo.geometry._sl_decode import _check_full_scale
-        from facegeo.geometry.structured_light import _pattern_table
+        from facegeo.geometry._sl_patterns import _pattern_table
 
         self.spec = spec
         self.full_scale = _check_full_scale(full_scale)
