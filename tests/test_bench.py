@@ -128,12 +128,21 @@ def _check_rows(name: str, rows: list[BenchRow]) -> None:
     assert {_cells(ln) for ln in table} == {8}
 
 
+#: Benchmarks that measure on the real data in ``../shared/data`` (no rows without it).
+_SHARED_DATA = {"calibration.real"}
+
+
 def _bench_params():
     out = []
     for name in registered():
         if name.startswith("test."):
             continue
         marks = [pytest.mark.slow] if name in _SLOW else []
+        if name in _SHARED_DATA:
+            from conftest import SHARED_DATA
+
+            marks.append(pytest.mark.skipif(not SHARED_DATA.is_dir(), reason=(
+                f"{name} measures on ../shared/data, absent here ({SHARED_DATA})")))
         out.append(pytest.param(name, marks=marks, id=name))
     return out
 
