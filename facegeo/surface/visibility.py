@@ -62,9 +62,7 @@ Large batches of incoherent rays on large meshes are traced in Z-order of their 
 from __future__ import annotations
 
 import logging
-import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -72,10 +70,26 @@ import numpy as np
 
 from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, MissingDependencyError, ShapeError
+from facegeo.surface._vis_util import (
+    _cross,
+    _default_threads,
+    _dot,
+    _executor,
+    _morton_order,
+    _rows,
+    _scratch,
+)
+
+_F64, _F32, _BOOL = np.dtype(np.float64), np.dtype(np.float32), np.dtype(bool)
+#: Per-thread buffers of one chunk: contiguous o, tmax (inputs); org32, d32, d, far (Embree
+#: rays); reject, t_e, coplanar, n̂ (refinement side outputs).
+_CLOSEST_SCRATCH = (((3,), _F64), ((), _F64), ((3,), _F32), ((3,), _F32), ((3,), _F64),
+                    ((), _F32), ((), _BOOL), ((), _F64), ((), _BOOL), ((3,), _F64))
+_OCCLUDED_SCRATCH = (((3,), _F32), ((3,), _F32), ((3,), _F64), ((), _F32))
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Hits", "RayScene", "EPS_RELATIVE"]
+__all__ = ["EPS_RELATIVE", "Hits", "RayScene"]
 
 #: Default self-intersection epsilon as a fraction of the bounding-box diagonal.
 EPS_RELATIVE = 1e-5
@@ -100,87 +114,23 @@ _SORT_MIN_FACES = 1 << 18
 #: scene scales plus unit-direction step) exceeds this: random rays score ~1, a camera's pixel
 #: grid or texels in atlas order ~1e-3.
 _INCOHERENT_STEP = 0.05
-_F32_MAX = float(np.finfo(np.float32).max)
-
-_EXECUTORS: dict[int, ThreadPoolExecutor] = {}
-_EXECUTOR_LOCK = threading.Lock()
-
-
-def _executor(n_threads: int) -> ThreadPoolExecutor:
-    with _EXECUTOR_LOCK:
-        ex = _EXECUTORS.get(n_threads)
-        if ex is None:
-            ex = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="facegeo-vis")
-            _EXECUTORS[n_threads] = ex
-        return ex
+#: ``prim_to_face`` for the kernels when primitive ids are face indices.
+_NO_REMAP = np.empty(0, dtype=np.int64)
+_KERNELS: Any = None
 
 
-def _default_threads() -> int:
-    try:
-        n = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - non-Linux
-        n = os.cpu_count() or 1
-    return max(1, min(n, 8))
-
-
-def _morton_order(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Indices sorting points ``(N, 3)`` along a Z-order curve of 32³ cells over [lo, hi].
-
-    A 15-bit key sorts by radix (stable argsort of uint16) in ~7 ms per million points; finer
-    cells measured no faster tracing.
-    """
-    # Morton code of 5-bit integers: bit i of x goes to bit 3i.
-    lut = np.zeros(32, dtype=np.uint16)
-    for i in range(5):
-        lut |= ((np.arange(32, dtype=np.uint16) >> i) & 1) << (3 * i)
-    key = np.empty(len(p), dtype=np.uint16)
-    scale = 31.0 / np.maximum(hi - lo, np.finfo(float).tiny)
-    step = 1 << 16
-    for s in range(0, len(p), step):
-        q = ((p[s:s + step] - lo) * scale).astype(np.intp)
-        np.clip(q, 0, 31, out=q)
-        m = lut[q]
-        key[s:s + step] = m[:, 0] | (m[:, 1] << 1) | (m[:, 2] << 2)
-    return np.argsort(key, kind="stable")
-
-
-def _rows(a: np.ndarray, rows) -> np.ndarray:
-    """``a[rows]`` for a slice (a view) or an index array (``np.take``: several times faster
-    than fancy indexing for (N, 3) arrays)."""
-    return a[rows] if isinstance(rows, slice) else np.take(a, rows, axis=0)
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
-
-
-def _write(out, where, res) -> None:
-    """Write one ``_trace_refine`` result into the output views ``out`` at ``where``."""
-    hit, t, face, bary, point, normal = out
-    if res[1] is None:  # nothing hit
-        hit[where] = False
-        t[where] = np.nan
-        face[where] = -1
-        bary[where] = np.nan
-        point[where] = np.nan
-        normal[where] = np.nan
-        return
-    hit[where] = res[0]
-    t[where] = res[1]
-    face[where] = res[2]
-    for k in range(3):
-        bary[where, k] = res[3][k]
-        point[where, k] = res[4][k]
-        normal[where, k] = res[5][k]
-
+def _kernels():
+    """The compiled kernels module (numba imported and kernels loaded on first use)."""
+    global _KERNELS
+    if _KERNELS is None:
+        try:
+            from facegeo.surface import _vis_kernels
+        except ImportError as exc:  # pragma: no cover - numba is a hard dependency
+            raise MissingDependencyError(
+                "facegeo.surface.visibility needs numba: pip install numba"
+            ) from exc
+        _KERNELS = _vis_kernels
+    return _KERNELS
 
 @dataclass(frozen=True)
 class Hits:
@@ -327,7 +277,7 @@ class RayScene:
     # ------------------------------------------------------------------ construction helpers
 
     @classmethod
-    def from_trimesh(cls, mesh, **kwargs) -> "RayScene":
+    def from_trimesh(cls, mesh, **kwargs) -> RayScene:
         """Build a scene from a :class:`trimesh.Trimesh` (its ``vertices`` and ``faces``).
 
         Parameters
@@ -448,12 +398,11 @@ class RayScene:
         Record (12 float64): ``v0`` (3), unit normal ``n̂`` (3), ``q1 = (e2 × n) / |n|²`` (3),
         ``q2 = (n × e1) / |n|²`` (3), so that for a point ``p`` in the face's plane the
         barycentric weights of ``v1`` and ``v2`` are ``(p - v0)·q1`` and ``(p - v0)·q2``.
-        Viewed as one void item per record so a gather is a single copy per hit.
         """
         table = self._table
         if table is not None:
             return table
-        scene, prim_to_face = self._scene()
+        _, prim_to_face = self._scene()
         with self._lock:
             if self._table is not None:
                 return self._table
@@ -472,10 +421,11 @@ class RayScene:
                 block[:, 3:6] = n / np.sqrt(nn)[:, None]
                 block[:, 6:9] = _cross(e2, n) / nn[:, None]
                 block[:, 9:12] = _cross(n, e1) / nn[:, None]
-            self._table = data.view(np.dtype((np.void, data.itemsize * 12))).ravel()
+            data.setflags(write=False)
+            self._table = data
             return self._table
 
-    def build(self) -> "RayScene":
+    def build(self) -> RayScene:
         """Build the BVH now (otherwise it is built on the first query); return ``self``."""
         self._scene()
         return self
@@ -623,11 +573,15 @@ class RayScene:
         out = (hit, t, face, bary, point, normal)
         scene, prim_to_face = self._scene()
         if scene is None:
-            _write(out, slice(None), (None,) * 10)
+            hit[:] = False
+            face[:] = -1
+            for a in (t, bary, point, normal):
+                a[:] = np.nan
         elif n:
             table = self._face_table()
 
             order = self._ray_order(O, D, norm, sort_rays)
+            p2f = _NO_REMAP if prim_to_face is None else prim_to_face
 
             def work(rows) -> None:
                 if isinstance(rows, slice):
@@ -636,9 +590,9 @@ class RayScene:
                     m = len(rows)
                     views = (np.empty(m, dtype=bool), np.empty(m), np.empty(m, dtype=np.int64),
                              np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)))
-                d = _rows(D, rows) / _rows(norm, rows)[:, None]
-                self._closest_chunk(scene, prim_to_face, table, _rows(O, rows), d,
-                                    _rows(tmin, rows), _rows(tmax, rows), views)
+                self._closest_chunk(scene, p2f, table, _rows(O, rows), _rows(D, rows),
+                                    _rows(norm, rows), _rows(tmin, rows), _rows(tmax, rows),
+                                    views)
                 if not isinstance(rows, slice):
                     for a, v in zip(out, views):
                         a[rows] = v
@@ -653,7 +607,7 @@ class RayScene:
             normal=normal.reshape(shape + (3,)),
         )
 
-    def _closest_chunk(self, scene, prim_to_face, table, o, d, tmin, tmax, out) -> None:
+    def _closest_chunk(self, scene, p2f, table, o, D, norm, tmin, tmax, out) -> None:
         """Trace one chunk and write it into ``out`` (views of the result arrays).
 
         Rays whose hit is rejected as a self-intersection are re-cast, on that subset only, at
@@ -662,17 +616,28 @@ class RayScene:
         hit fell before ``t_min`` starts again ``eps`` past that hit.
         """
         eps = self._eps
-        t_shift = tmin.copy()  # distance the origin is moved along the ray before the query
-        res = self._trace_refine(scene, prim_to_face, table, o, d, t_shift, tmin, tmax)
-        _write(out, slice(None), res)
-        idx = np.flatnonzero(res[6])
+        m = len(o)
+        o_c, tmax_c, *bufs = _scratch(m, _CLOSEST_SCRATCH)
+        # Contiguous inputs for the kernels (broadcast origins / t_max arrive with stride 0,
+        # which the compiled loops read ~3x slower).
+        if not o.flags.c_contiguous:
+            np.copyto(o_c, o)
+            o = o_c
+        if not tmax.flags.c_contiguous:
+            np.copyto(tmax_c, tmax)
+            tmax = tmax_c
+        t_shift = np.array(tmin, dtype=np.float64)  # origin moved this far along the ray
+        tmin = t_shift
+        d, extra = self._trace_refine(scene, p2f, table, o, D, norm, t_shift, tmin, tmax, out,
+                                      bufs)
+        reject, t_e, coplanar, n_hat = extra
+        idx = np.flatnonzero(reject)
         base = o
         for _ in range(_MAX_RECASTS):
             if len(idx) == 0:
                 return
-            reject, t_e, coplanar, n_hat = res[6], res[7], res[8], res[9]
             cop = coplanar[reject]
-            nr = np.stack([c[reject] for c in n_hat], axis=1)
+            nr = n_hat[reject]
             dr = d[idx]
             # Back side only for rays clearly heading below the plane; within _TANGENT_COS of
             # it the side is not resolved and the front (the winding's side) is used.
@@ -680,92 +645,44 @@ class RayScene:
             base = base[reject] + np.where(cop, side, 0.0)[:, None] * nr
             t_shift = np.where(cop, t_shift[reject],
                                np.maximum(t_shift[reject], t_e[reject]) + eps)
-            res = self._trace_refine(scene, prim_to_face, table, base, dr, t_shift,
-                                     tmin[idx], tmax[idx])
-            if res[1] is not None:
-                # Report t along the original ray: the lifted origin is off it by <= eps.
-                res = (res[0], res[1] + np.einsum("ij,ij->i", base - o[idx], dr)) + res[2:]
-            _write(out, idx, res)
-            idx = idx[res[6]]
+            m = len(idx)
+            sub = (np.empty(m, dtype=bool), np.empty(m), np.empty(m, dtype=np.int64),
+                   np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)))
+            _, extra = self._trace_refine(scene, p2f, table, base, dr, np.ones(m), t_shift,
+                                          tmin[idx], tmax[idx], sub)
+            # Report t along the original ray: the lifted origin is off it by <= eps.
+            sub[1][:] += np.einsum("ij,ij->i", base - o[idx], dr)
+            for arr, val in zip(out, sub):
+                arr[idx] = val
+            reject, t_e, coplanar, n_hat = extra
+            idx = idx[reject]
         if len(idx):
             log.debug("closest_hit: %d ray(s) still self-intersecting after %d re-casts; "
                       "reported as misses", len(idx), _MAX_RECASTS)
 
-    def _trace_refine(self, scene, prim_to_face, table, o, d, t_shift, tmin, tmax):
+    def _trace_refine(self, scene, p2f, table, o, D, norm, t_shift, tmin, tmax, out,
+                      bufs=None):
         """One float32 Embree query and its float64 refinement, dense over the rays given.
 
-        Returns ``(hit, t, face, (b0, b1, b2), point, normal, reject, t_e, coplanar, n̂)``:
-        accepted hits (NaN / -1 elsewhere; ``point`` is ``o + t d``), the mask of hits rejected
-        as self-intersections, Embree's hit distance from ``o``, the mask of hits on a face
-        whose plane contains ``o`` and the unit normals of all hit faces (unmasked).
+        Writes the accepted hits into ``out`` (``hit, t, face, bary, point, normal``; NaN / -1
+        elsewhere; ``point`` is ``o + t d``) and returns the unit float64 directions and
+        ``(reject, t_e, coplanar, n̂)``: the mask of hits rejected as self-intersections,
+        Embree's hit distance from ``o``, the mask of hits on a face whose plane contains ``o``
+        and the unit normals of all hit faces. Both steps are compiled kernels
+        (:mod:`facegeo.surface._vis_kernels`). ``bufs``: the calling thread's scratch buffers
+        (``_CLOSEST_SCRATCH`` from org32 on), else fresh ones.
         """
+        k = _kernels()
         m = len(o)
-        org = d * t_shift[:, None]
-        org += o
-        org -= self._centre
-        far = np.minimum(tmax - t_shift, _F32_MAX).astype(np.float32)
-        res = scene.run(org.astype(np.float32), d.astype(np.float32), dists=far, output=1)
-        prim = res["primID"]
-        got = (prim >= 0) & (tmax >= t_shift)
-        nothing = np.zeros(m, dtype=bool)
-        if not got.any():
-            return (nothing, None, None, None, None, None, nothing, None, nothing, None)
-        prim = np.where(got, prim, 0)
-        g = table.take(prim).view(np.float64).reshape(m, 12)
-        ox, oy, oz = o[:, 0], o[:, 1], o[:, 2]
-        dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
-        nx, ny, nz = g[:, 3], g[:, 4], g[:, 5]
-        # w = v0 - o; num = w·n̂ is the signed distance from the origin to the face's plane.
-        wx, wy, wz = g[:, 0] - ox, g[:, 1] - oy, g[:, 2] - oz
-        num = wx * nx
-        num += wy * ny
-        num += wz * nz
-        den = dx * nx
-        den += dy * ny
-        den += dz * nz
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            t_r = num / den
-            # p - v0 = o + t d - v0 = t d - w
-            px = t_r * dx - wx
-            py = t_r * dy - wy
-            pz = t_r * dz - wz
-            b1 = px * g[:, 6]
-            b1 += py * g[:, 7]
-            b1 += pz * g[:, 8]
-            b2 = px * g[:, 9]
-            b2 += py * g[:, 10]
-            b2 += pz * g[:, 11]
-            b0 = 1.0 - b1 - b2
-        with np.errstate(invalid="ignore"):
-            refined = (np.isfinite(t_r) & (b0 >= -_BARY_TOL) & (b1 >= -_BARY_TOL)
-                       & (b2 >= -_BARY_TOL))
-        t_e = t_shift + res["tfar"]
-        if refined.all():
-            t_h = t_r
-        else:
-            # The float64 ray misses this face (a float32 edge clip): keep Embree's answer.
-            t_h = np.where(refined, t_r, t_e)
-            b1 = np.where(refined, b1, res["u"])
-            b2 = np.where(refined, b2, res["v"])
-            b0 = 1.0 - b1 - b2
-        # Hits are points of the closed face: clip rounding-level negative weights.
-        if (b0 < 0).any() or (b1 < 0).any() or (b2 < 0).any():
-            b0, b1, b2 = np.maximum(b0, 0.0), np.maximum(b1, 0.0), np.maximum(b2, 0.0)
-            s = b0 + b1 + b2
-            b0, b1, b2 = b0 / s, b1 / s, b2 / s
-        # A face whose plane (nearly) contains the origin can only be met at the origin or by
-        # sliding along it: a self-intersection. So is a hit before t_min (float32 rounding).
-        coplanar = np.abs(num) <= _COPLANAR_FRACTION * self._eps
-        reject = got & (coplanar | ~(t_h >= tmin))
-        ok = got & ~reject & (t_h <= tmax)
-        t_out = np.where(ok, t_h, np.nan)
-        face = prim if prim_to_face is None else prim_to_face[prim]
-        face = np.where(ok, face, -1)
-        nan = np.float64(np.nan)
-        bary = (np.where(ok, b0, nan), np.where(ok, b1, nan), np.where(ok, b2, nan))
-        point = (ox + t_out * dx, oy + t_out * dy, oz + t_out * dz)
-        normal = (np.where(ok, nx, nan), np.where(ok, ny, nan), np.where(ok, nz, nan))
-        return (ok, t_out, face, bary, point, normal, reject, t_e, coplanar, (nx, ny, nz))
+        if bufs is None:
+            bufs = [np.empty((m,) + shape, dtype) for shape, dtype in _CLOSEST_SCRATCH[2:]]
+        org32, d32, d, far, reject, t_e, coplanar, n_hat = bufs
+        k.prepare_rays(o, D, norm, t_shift, tmax, self._centre, False, org32, d32, d, far)
+        res = scene.run(org32, d32, dists=far, output=1)
+        k.refine_hits(o, d, t_shift, tmin, tmax, res["primID"], res["tfar"], res["u"],
+                      res["v"], table, p2f, _COPLANAR_FRACTION * self._eps, _BARY_TOL, *out,
+                      reject, t_e, coplanar, n_hat)
+        return d, (reject, t_e, coplanar, n_hat)
 
     def occluded(self, origins, directions, t_max, *, t_min=None,
                  sort_rays: bool | None = None) -> np.ndarray:
@@ -798,33 +715,32 @@ class RayScene:
             As :meth:`closest_hit`.
         """
         shape, O, D, norm = self._rays(origins, directions)
-        n = len(O)
         tmin = self._range(t_min, "t_min", shape, default=self._eps)
         tmax = self._range(t_max, "t_max", shape, allow_inf=True)
+        return self._occluded_rays(O, D, norm, tmin, tmax, sort_rays).reshape(shape)
+
+    def _occluded_rays(self, O, D, norm, tmin, tmax, sort_rays) -> np.ndarray:
+        """:meth:`occluded` on validated flat rays ``(n, 3)`` with lengths ``norm`` (n,)."""
+        n = len(O)
         out = np.zeros(n, dtype=bool)
         scene, _ = self._scene()
-
         if scene is None or n == 0:
-            return out.reshape(shape)
+            return out
+        k = _kernels()
 
         def work(rows) -> None:
             lo, hi = _rows(tmin, rows), _rows(tmax, rows)
-            o, d = _rows(O, rows), _rows(D, rows) / _rows(norm, rows)[:, None]
+            o, d, s = _rows(O, rows), _rows(D, rows), _rows(norm, rows)
             keep_all = hi >= lo
             if not keep_all.all():
                 keep = np.flatnonzero(keep_all)
-                lo, hi, o, d = lo[keep], hi[keep], o[keep], d[keep]
+                lo, hi, o, d, s = lo[keep], hi[keep], o[keep], d[keep], s[keep]
             else:
                 keep = None
-            org = d * lo[:, None]
-            org += o
-            org -= self._centre
-            far64 = np.minimum(hi - lo, _F32_MAX)
-            far = far64.astype(np.float32)
-            up = far.astype(np.float64) > far64  # never look past t_max after rounding
-            far[up] = np.nextafter(far[up], np.float32(0))
-            res = scene.run(org.astype(np.float32), d.astype(np.float32),
-                            query="OCCLUDED", dists=far) == 0
+            org32, d32, d64, far = _scratch(len(o), _OCCLUDED_SCRATCH)
+            # Rounded toward zero: never look past t_max.
+            k.prepare_rays(o, d, s, lo, hi, self._centre, True, org32, d32, d64, far)
+            res = scene.run(org32, d32, query="OCCLUDED", dists=far) == 0
             if keep is not None:
                 full = np.zeros(len(keep_all), dtype=bool)
                 full[keep] = res
@@ -832,7 +748,7 @@ class RayScene:
             out[rows] = res
 
         self._map_chunks(work, n, self._ray_order(O, D, norm, sort_rays))
-        return out.reshape(shape)
+        return out
 
     def segment_visible(self, p_from, p_to, *, normals=None,
                         sort_rays: bool | None = None) -> np.ndarray:
@@ -895,12 +811,21 @@ class RayScene:
             side = np.where(height < -eps, -1.0, 1.0)
             p0 = p0 + (eps * side / nlen)[..., None] * nrm
             v = p1 - p0
-        v = np.broadcast_to(v, shape)
-        p0 = np.broadcast_to(p0, shape)
-        length = np.sqrt(np.einsum("...i,...i->...", v, v))
+        # Straight to the any-hit rays: validated once here, each ray's length computed once,
+        # no masked copies when every segment is long (the usual case). Going through the
+        # public occluded() re-validated and re-normalised everything and copied the long
+        # segments: 25-30 % slower than occluded() on the same rays.
+        P0 = np.broadcast_to(p0, shape).reshape(-1, 3)
+        V = np.broadcast_to(v, shape).reshape(-1, 3)
+        length = np.sqrt(_dot(V, V))
         long = length > 2.0 * eps
-        visible = np.ones(shape[:-1], dtype=bool)
-        if long.any():
-            visible[long] = ~self.occluded(p0[long], v[long], length[long] - eps, t_min=eps,
-                                           sort_rays=sort_rays)
-        return visible
+        visible = np.ones(len(V), dtype=bool)
+        if long.all():
+            visible = ~self._occluded_rays(P0, V, length, np.broadcast_to(eps, length.shape),
+                                           length - eps, sort_rays)
+        elif long.any():
+            sel = np.flatnonzero(long)
+            P0, V, length = P0[sel], V[sel], length[sel]
+            visible[sel] = ~self._occluded_rays(P0, V, length, np.broadcast_to(eps, len(sel)),
+                                                length - eps, sort_rays)
+        return visible.reshape(shape[:-1])

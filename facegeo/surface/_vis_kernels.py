@@ -1,0 +1,163 @@
+"""Compiled (numba) kernels of :class:`facegeo.surface.visibility.RayScene`.
+
+Private: imported on the first ray query, so ``import facegeo`` does not pay for numba. Each
+kernel fuses what the numpy version did in 20–40 array passes into one pass per ray and
+releases the GIL (``nogil=True``), so the scene's worker threads run them in parallel with
+each other and with Embree's own (GIL-free) traversal. The numpy formulation they replace is
+kept in ``tests/test_visibility.py`` as the plain reference they are tested against.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def prepare_rays(o, D, norm, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
+    """Float32 Embree rays from float64 rays, one pass (pure ray preparation).
+
+    Parameters
+    ----------
+    o : (m, 3) float64, metres, mesh frame
+        Ray origins (any strides).
+    D : (m, 3) float64
+        Directions, any non-zero length; ``norm`` (m,) their lengths.
+    t_shift : (m,) float64, metres
+        Distance the origin is moved along the unit direction before the query.
+    tmax : (m,) float64, metres
+        Farthest accepted distance from the original origin (inf allowed).
+    centre : (3,) float64, metres
+        The BVH's centring offset, subtracted from the moved origins.
+    round_down : bool
+        Round the float32 query distance toward zero (never past ``tmax``: any-hit queries);
+        otherwise to nearest (closest-hit queries re-check ``tmax`` in float64).
+    org32, d32 : (m, 3) float32, out
+        Centred moved origins and unit directions for Embree.
+    d64 : (m, 3) float64, out
+        Unit directions in float64 (for the refinement).
+    far32 : (m,) float32, out
+        ``min(tmax - t_shift, float32 max)``.
+    """
+    m = o.shape[0]
+    fmax = np.float32(_F32_MAX)
+    for i in range(m):
+        s = norm[i]
+        ts = t_shift[i]
+        for k in range(3):
+            dk = D[i, k] / s
+            d64[i, k] = dk
+            d32[i, k] = np.float32(dk)
+            org32[i, k] = np.float32(o[i, k] + dk * ts - centre[k])
+        f = tmax[i] - ts
+        if f >= _F32_MAX:
+            far32[i] = fmax
+        else:
+            f32 = np.float32(f)
+            if round_down and np.float64(f32) > f:
+                f32 = np.nextafter(f32, np.float32(0.0))
+            far32[i] = f32
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face, cop_dist,
+                bary_tol, hit, t, face, bary, point, normal, reject, t_e, coplanar, n_hat):
+    """Float64 refinement of Embree's float32 closest hits (module docstring of
+    :mod:`facegeo.surface.visibility`, "Precision"), one pass over the rays.
+
+    Per ray: gather the hit face's record of ``table`` (``v0``, unit normal ``n̂``, ``q1``,
+    ``q2``); intersect the float64 ray with the face's plane (``t = (v0 - o)·n̂ / d·n̂``);
+    barycentrics ``b1 = (p - v0)·q1``, ``b2 = (p - v0)·q2``; keep Embree's ``t``, ``u``, ``v``
+    when the float64 point falls more than ``bary_tol`` outside the face; clip rounding-level
+    negative weights; reject hits on a face whose plane passes within ``cop_dist`` of the origin
+    and hits before ``tmin`` (``reject`` True; the caller re-casts them); accept the rest within
+    ``tmax``.
+
+    ``prim_to_face`` is an empty array when primitive ids are face indices. Outputs ``hit``,
+    ``t``, ``face``, ``bary``, ``point``, ``normal`` are as :class:`~facegeo.surface.visibility.Hits`
+    (NaN / -1 where not accepted); ``t_e`` is Embree's distance from ``o``, ``coplanar`` and
+    ``n_hat`` (unit normal of the hit face, any hit) feed the re-casts.
+    """
+    m = o.shape[0]
+    nan = np.nan
+    remap = prim_to_face.shape[0] > 0
+    for i in range(m):
+        p = prim[i]
+        got = p >= 0 and tmax[i] >= t_shift[i]
+        if not got:
+            hit[i] = False
+            t[i] = nan
+            face[i] = -1
+            reject[i] = False
+            coplanar[i] = False
+            t_e[i] = nan
+            for k in range(3):
+                bary[i, k] = nan
+                point[i, k] = nan
+                normal[i, k] = nan
+                n_hat[i, k] = nan
+            continue
+        g = table[p]
+        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
+        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+        nx, ny, nz = g[3], g[4], g[5]
+        wx, wy, wz = g[0] - ox, g[1] - oy, g[2] - oz
+        num = wx * nx + wy * ny + wz * nz
+        den = dx * nx + dy * ny + dz * nz
+        te = t_shift[i] + np.float64(tfar[i])
+        t_e[i] = te
+        n_hat[i, 0] = nx
+        n_hat[i, 1] = ny
+        n_hat[i, 2] = nz
+        th = te
+        b1 = np.float64(u[i])
+        b2 = np.float64(v[i])
+        if den != 0.0:
+            tr = num / den
+            if np.isfinite(tr):
+                px = tr * dx - wx
+                py = tr * dy - wy
+                pz = tr * dz - wz
+                c1 = px * g[6] + py * g[7] + pz * g[8]
+                c2 = px * g[9] + py * g[10] + pz * g[11]
+                c0 = 1.0 - c1 - c2
+                if c0 >= -bary_tol and c1 >= -bary_tol and c2 >= -bary_tol:
+                    th = tr
+                    b1 = c1
+                    b2 = c2
+        b0 = 1.0 - b1 - b2
+        if b0 < 0.0 or b1 < 0.0 or b2 < 0.0:
+            b0 = max(b0, 0.0)
+            b1 = max(b1, 0.0)
+            b2 = max(b2, 0.0)
+            s = b0 + b1 + b2
+            b0 /= s
+            b1 /= s
+            b2 /= s
+        cop = abs(num) <= cop_dist
+        coplanar[i] = cop
+        rej = cop or not (th >= tmin[i])
+        reject[i] = rej
+        ok = (not rej) and th <= tmax[i]
+        hit[i] = ok
+        if ok:
+            t[i] = th
+            face[i] = prim_to_face[p] if remap else p
+            bary[i, 0] = b0
+            bary[i, 1] = b1
+            bary[i, 2] = b2
+            point[i, 0] = ox + th * dx
+            point[i, 1] = oy + th * dy
+            point[i, 2] = oz + th * dz
+            normal[i, 0] = nx
+            normal[i, 1] = ny
+            normal[i, 2] = nz
+        else:
+            t[i] = nan
+            face[i] = -1
+            for k in range(3):
+                bary[i, k] = nan
+                point[i, k] = nan
+                normal[i, k] = nan
