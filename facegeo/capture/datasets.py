@@ -201,62 +201,63 @@ def _yale_b(src: Path, root: Path, mode: str) -> dict:
 
 
 # ---------------------------------------------------------------- structured light
-def _graycode_mannequin(src: Path, root: Path, mode: str) -> dict:
+def _sl_scan(root: Path, mode: str, *, name: str, description: str, metadata: dict,
+             paths: list[Path], frames: list[str], spec, suffix: str) -> dict:
+    """A one-camera structured-light scan with an uncalibrated projector of ``spec``'s size:
+    writes the rig, carries the frames (``paths[k]`` becomes frame ``frames[k]``), returns the
+    manifest."""
     from facegeo.geometry.rig import Projector, Rig
+
+    w, h = _image_size(paths[0])
+    Rig(cameras=[_nominal_camera("cam", w, h)],
+        projector=Projector("projector", spec.width, spec.height),
+        lights=None).save(root / "rig.json")
+    for p, frame in zip(paths, frames):
+        _carry(p, root / "structured_light" / "cam" / f"{frame}{suffix}", mode)
+    manifest = new_manifest(name, synthetic=False, description=description)
+    manifest["scan"]["metadata"] = metadata
+    manifest["structured_light"] = {"response": "srgb", "projector": "projector",
+                                    "frames": frames,
+                                    "files": "structured_light/{camera}/{frame}" + suffix,
+                                    "patterns": spec.to_dict()}
+    return manifest
+
+
+def _graycode_mannequin(src: Path, root: Path, mode: str) -> dict:
     from facegeo.geometry.structured_light import PatternSpec
 
     paths = _need(src, [f"{k}.jpg" for k in range(1, 19)])
-    w, h = _image_size(paths[0])
     # GrayDecoder.pde: level k (frame k + 1) is a row bit for even k, a column bit for odd k,
     # most significant first; 9 bits each over a 1024 x 1024 pattern space.
     frames = [f"gray_{'y' if k % 2 == 0 else 'x'}_{k // 2:02d}" for k in range(18)]
     spec = PatternSpec(width=1024, height=1024, gray=True, n_bits_x=9, n_bits_y=9,
                        inverse=False, white_black=False)
-    Rig(cameras=[_nominal_camera("cam", w, h)], projector=Projector("projector", 1024, 1024),
-        lights=None).save(root / "rig.json")
-    for p, name in zip(paths, frames):
-        _carry(p, root / "structured_light" / "cam" / f"{name}.jpg", mode)
-    manifest = new_manifest(
-        "graycode_mannequin", synthetic=False,
+    return _sl_scan(
+        root, mode, name="graycode_mannequin", paths=paths, frames=frames, spec=spec,
+        suffix=".jpg",
         description="Gray-code structured light of a mannequin: 9 column and 9 row bits, no "
                     "inverse or white/black frames (threshold from the data). The projector's "
                     "pattern space is 1024 x 1024 (shown squeezed into 1024 x 768); camera and "
-                    "projector are uncalibrated.")
-    manifest["scan"]["metadata"] = {"dataset": "graycode-mannequin",
-                                    "nominal": ["cameras", "projector resolution"],
-                                    "source_frames": {name: f"{k + 1}.jpg"
-                                                      for k, name in enumerate(frames)}}
-    manifest["structured_light"] = {"response": "srgb", "projector": "projector",
-                                    "frames": frames, "files": "structured_light/{camera}/{frame}.jpg",
-                                    "patterns": spec.to_dict()}
-    return manifest
+                    "projector are uncalibrated.",
+        metadata={"dataset": "graycode-mannequin", "nominal": ["cameras", "projector resolution"],
+                  "source_frames": {name: f"{k + 1}.jpg" for k, name in enumerate(frames)}})
 
 
 def _three_phase(src: Path, root: Path, mode: str) -> dict:
-    from facegeo.geometry.rig import Projector, Rig
     from facegeo.geometry.structured_light import PatternSpec
 
     paths = _need(src, [f"phase{k}.png" for k in (1, 2, 3)])
     w, h = _image_size(paths[0])
-    frames = [f"phase_x_{k}" for k in range(3)]
     spec = PatternSpec(width=w, height=h, gray=False, inverse=False, white_black=False,
                        phase_steps=3, phase_axes=("x",))
-    Rig(cameras=[_nominal_camera("cam", w, h)], projector=Projector("projector", w, h),
-        lights=None).save(root / "rig.json")
-    for p, name in zip(paths, frames):
-        _carry(p, root / "structured_light" / "cam" / f"{name}.png", mode)
-    manifest = new_manifest(
-        "face_threephase", synthetic=False,
+    return _sl_scan(
+        root, mode, name="face_threephase", paths=paths,
+        frames=[f"phase_x_{k}" for k in range(3)], spec=spec, suffix=".png",
         description="Three-step phase shift of a face, fringes across the image columns, no "
                     "Gray code (wrapped phase only). Projector resolution and fringe period are "
-                    "not published: the pattern space is nominally the camera's size.")
-    manifest["scan"]["metadata"] = {"dataset": "three-phase",
-                                    "nominal": ["cameras", "projector resolution",
-                                                "phase period"]}
-    manifest["structured_light"] = {"response": "srgb", "projector": "projector",
-                                    "frames": frames, "files": "structured_light/{camera}/{frame}.png",
-                                    "patterns": spec.to_dict()}
-    return manifest
+                    "not published: the pattern space is nominally the camera's size.",
+        metadata={"dataset": "three-phase",
+                  "nominal": ["cameras", "projector resolution", "phase period"]})
 
 
 #: Data set name -> converter ``(src, staging_root, mode) -> manifest``.
