@@ -1,7 +1,7 @@
 """Stages whose products are cached under ``out/<stage>/`` by a key of their inputs.
 
-The reconstruction pipeline (calibrate → decode → mesh → atlas → project → fit) is a chain of
-stages, each reading some files of the scan and the products of earlier stages and writing its
+The reconstruction pipeline (calibrate → decode → mesh → atlas → project → fit → render) is a
+chain of stages, each reading some files of the scan and the products of earlier stages and writing its
 own products into one folder. As Meshroom and COLMAP users expect, a stage reruns only when
 something it depends on changed:
 

@@ -8,8 +8,8 @@ rig (:func:`~facegeo.geometry.calibration.calibrate_rig`) and writes
 
 * ``rig.json`` — the scan's rig with the calibrated cameras (``Rig`` serialisation); the world
   frame is the scan's: the calibrated rig is aligned to the nominal ``rig.json`` by the rigid
-  transform averaged over the cameras; the projector and the light stage are copied unchanged
-  (projector calibration is not built yet);
+  transform averaged over the cameras; the projector is the jointly calibrated one when the scan
+  has projector views that calibrate (else copied unchanged), the lights are copied;
 * ``<camera>.yml`` — OpenCV FileStorage: ``camera_matrix``, ``distortion_coefficients``,
   ``image_width``, ``image_height``, ``avg_reprojection_error``, ``per_view_reprojection_errors``;
 * ``residuals_<camera>.png`` — residual vectors over the image (×``RESIDUAL_GAIN``) and a

@@ -20,11 +20,12 @@ it is missing) and writes ``out_dir/project/``:
 Each stage writes into a temporary sibling folder that replaces the old one only when complete,
 and records its metrics in ``out_dir/metrics.json`` under ``"atlas"`` / ``"project"``.
 
-Mesh: the structured-light mesh stage does not exist yet, so both stages use the synthetic
-scan's ground-truth mesh (``mesh="ground_truth"``) or a mesh file (``mesh=<path>``).
+Mesh: the synthetic scan's ground-truth mesh (``mesh="ground_truth"``) or a mesh file
+(``mesh=<path>``, e.g. the ``mesh`` stage's ``out/mesh/mesh.ply``; ``facegeo reconstruct``
+chooses, see :mod:`facegeo.pipeline.reconstruct`).
 Rig: ``rig="ground_truth"`` (default when the scan has one) uses the true rig the frames were
-rendered with — calibration is not built yet, and the accuracy figures must measure the
-projection, not the nominal rig's error; ``rig="scan"`` uses the scan's (nominal) ``rig.json``.
+rendered with — so the accuracy figures measure the projection, not a rig's error (the
+calibrated rig is not fed here yet); ``rig="scan"`` uses the scan's (nominal) ``rig.json``.
 
 Ground-truth metrics (synthetic scans):
 
@@ -79,8 +80,9 @@ def load_mesh(scan, mesh: str = "ground_truth") -> tuple[np.ndarray, np.ndarray,
     if mesh == "ground_truth":
         if "mesh" not in scan.ground_truth_keys:
             raise InputError(
-                f"scan {scan.root}: no ground-truth mesh, and the structured-light mesh stage "
-                f"is not built yet; pass mesh=<path to a mesh file in metres>")
+                f"scan {scan.root}: no ground-truth mesh; pass mesh=<path to a mesh file in "
+                f"metres> (facegeo reconstruct --mesh reconstructed builds one from the "
+                f"structured light)")
         path = scan.ground_truth_path("mesh")
         import trimesh.exchange.ply
 
