@@ -161,3 +161,27 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
                 bary[i, k] = nan
                 point[i, k] = nan
                 normal[i, k] = nan
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def all_finite(a):
+    """Whether every value of ``a`` (n, 3) is finite (one pass, no temporaries)."""
+    for i in range(a.shape[0]):
+        for k in range(3):
+            if not np.isfinite(a[i, k]):
+                return False
+    return True
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def ray_lengths(D, norm):
+    """Lengths ``norm`` (n,) of the directions ``D`` (n, 3); False if one is non-finite or zero
+    (the caller then finds and names the first bad row)."""
+    ok = True
+    for i in range(D.shape[0]):
+        x, y, z = D[i, 0], D[i, 1], D[i, 2]
+        s = np.sqrt(x * x + y * y + z * z)
+        norm[i] = s
+        if not (s > 0.0 and np.isfinite(s)):
+            ok = False
+    return ok

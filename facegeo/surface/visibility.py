@@ -68,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array, fmt_value
+from facegeo.checks import as_array, check_finite, fmt_value
 from facegeo.errors import InputError, MissingDependencyError, ShapeError
 from facegeo.surface._vis_util import (
     _cross,
@@ -433,21 +433,30 @@ class RayScene:
     # ------------------------------------------------------------------ input handling
 
     def _rays(self, origins, directions, oname="origins", dname="directions"):
-        o = as_array(origins, oname, shape=(..., 3))
-        d = as_array(directions, dname, shape=(..., 3))
+        o = as_array(origins, oname, shape=(..., 3), finite=False)
+        d = as_array(directions, dname, shape=(..., 3), finite=False)
         try:
             shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1])
         except ValueError as exc:
             raise ShapeError(
                 f"{oname} {o.shape} and {dname} {d.shape}: leading axes do not broadcast"
             ) from exc
-        norm = np.sqrt(np.einsum("...i,...i->...", d, d))
-        zero = ~(norm > 0)
-        if zero.any():
-            idx = tuple(int(i) for i in np.argwhere(zero)[0])
-            raise InputError(
-                f"{dname}: {int(zero.sum())} zero-length direction(s); first at index {idx}"
-            )
+        # One compiled pass checks and measures (the numpy checks took ~0.14 of Embree's time
+        # per ray); the numpy path below only runs to name the first bad value.
+        k = _kernels()
+        d2 = d.reshape(-1, 3)
+        norm = np.empty(len(d2))
+        if not (k.all_finite(o.reshape(-1, 3)) and k.ray_lengths(d2, norm)):
+            check_finite(o, oname)
+            check_finite(d, dname)
+            norm = np.sqrt(np.einsum("...i,...i->...", d, d))
+            zero = ~(norm > 0)
+            if zero.any():
+                idx = tuple(int(i) for i in np.argwhere(zero)[0])
+                raise InputError(
+                    f"{dname}: {int(zero.sum())} zero-length direction(s); first at index {idx}"
+                )
+        norm = norm.reshape(d.shape[:-1])
         n = int(np.prod(shape))
         o = np.broadcast_to(o, shape + (3,)).reshape(n, 3)
         d = np.broadcast_to(d, shape + (3,)).reshape(n, 3)
