@@ -349,7 +349,8 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None) -> N
 
     tick, close = _progress_factory(not args.quiet)
     try:
-        run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"), from_stage=from_stage,
+        run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"), rig=getattr(args, "rig", "auto"),
+                        from_stage=from_stage,
                         only=only, until=until, progress=tick,
                         on_stage=lambda r: (close(), print(_stage_line(r))))
     finally:
@@ -417,6 +418,8 @@ def _common_options() -> argparse.ArgumentParser:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from facegeo.pipeline.reconstruct import RIG_CHOICES
+
     p = _Parser(
         prog="facegeo",
         description="Light-stage face capture to a relightable, re-viewable reflectance field "
@@ -529,9 +532,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--out", default=None,
                    help="products folder (default: SCAN/out; writes project/, builds atlas/ first)")
-    s.add_argument("--rig", choices=["ground_truth", "scan"], default=None,
-                   help="rig to project with (default: the true rig of a synthetic scan, "
-                        "else the scan's)")
+    s.add_argument("--rig", default=None, metavar="RIG",
+                   help="rig to project with: ground_truth (default on a synthetic scan), scan "
+                        "(the scan's rig.json, default otherwise), calibrated "
+                        "(SCAN/out/calibrate/rig.json) or a rig file")
     s.add_argument("--mesh", default="ground_truth", help="as for facegeo atlas")
     s.add_argument("--camera", action="append", default=None,
                    help="project only this camera (repeatable; default: all)")
@@ -559,6 +563,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_relight)
 
+    rig_help = ("rig of the stages after calibration: 'auto' (a synthetic scan's true rig, else "
+                "the calibrated one when the scan has board views, else the scan's rig.json), "
+                "'ground_truth', 'calibrated' or 'scan'")
     mesh_help = ("surface stages' mesh: 'auto' (a synthetic scan's ground-truth mesh, else the "
                  "reconstructed one), 'ground_truth', 'reconstructed', or a mesh file in metres")
     for name, text in (("decode", "decode the structured-light frames (cached stage)"),
@@ -568,6 +575,7 @@ def build_parser() -> argparse.ArgumentParser:
         s = sub.add_parser(name, parents=common, help=text)
         s.add_argument("scan", metavar="SCAN", help="scan directory")
         s.add_argument("--mesh", default="auto", help=mesh_help)
+        s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
         s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         s.set_defaults(func=_cmd_stage)
 
@@ -586,6 +594,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--naive", action="store_true", help="no resynthesis: the source cameras' "
                    "measured functions relit and blended (the baseline)")
     s.add_argument("--mesh", default="auto", help=mesh_help)
+    s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_render)
 
@@ -594,6 +603,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "atlas, project, fit, render), cached")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--mesh", default="auto", help=mesh_help)
+    s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
     g = s.add_mutually_exclusive_group()
     g.add_argument("--from", dest="from_stage", default=None, metavar="STAGE",
                    help="rerun this stage and every later one even if cached")

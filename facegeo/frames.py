@@ -189,6 +189,17 @@ class Pose:
     __hash__ = None  # type: ignore[assignment]
 
 
+def nearest_rotation(M) -> np.ndarray:
+    """The rotation nearest to a 3 × 3 matrix in the Frobenius norm (SVD projection, det +1).
+
+    Used for the chordal mean of rotations (M = Σ R_i) and for Kabsch alignment
+    (M = Σ b_i a_iᵀ gives the R minimising Σ |b_i − R a_i|²; the two-halves check of
+    :func:`facegeo.geometry.calibration.cross_validate`).
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
 def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> Pose:
     """Pose ``T_cam_world`` of an OpenCV camera at ``eye`` looking at ``target``.
 

@@ -530,16 +530,18 @@ def test_robust_loss_ignores_gross_corner_outliers(clean):
     assert np.abs(plain - ref).max() > ROBUST_TOL_PX, plain - ref
 
 
-def test_corner_lists_without_images_go_straight_to_the_solver(tmp_path):
-    """A scan that ships detected corners (no images; scan format v2) calibrates: cameras with
-    different view counts, views only one camera saw, intrinsics recovered from the corners."""
+def _corner_list_scan(root, world=None, *, nominal_intrinsics: bool = False):
+    """A scan of corner lists without images (format v2): two cameras with different view
+    counts and views only one camera saw; returns (truth cameras, {view: T_world_board}, views).
+    The nominal rig.json has the true poses and rough intrinsics (``nominal_intrinsics``: the
+    true ones).
+    """
     import json
 
-    from facegeo.capture.scan import load_scan, new_manifest, write_manifest
-    from facegeo.frames import look_at
+    from facegeo.capture.scan import new_manifest, write_manifest
+    from facegeo.frames import Pose, look_at, rotation_from_rvec
     from facegeo.geometry.camera import Camera
     from facegeo.geometry.rig import Rig
-    from facegeo.pipeline.calibrate import calibrate_products
 
     rng = np.random.default_rng(7)
     K = np.array([[820.0, 0, 331.0], [0, 815.0, 236.0], [0, 0, 1]])
@@ -549,21 +551,20 @@ def test_corner_lists_without_images_go_straight_to_the_solver(tmp_path):
                     look_at((0.15, 0.0, 0.6), (0, 0, 0)))]
     nominal = [Camera(c.name, 640, 480, np.array([[700.0, 0, 320], [0, 700, 240], [0, 0, 1]]),
                       np.zeros(5), c.T_cam_world) for c in truth]
-    Rig(nominal, None, None).save(tmp_path / "rig.json")
+    Rig(truth if nominal_intrinsics else nominal, None, None).save(root / "rig.json")
     cols, rows, sq = 8, 6, 0.02
     k = np.arange(cols * rows)
     P = np.stack([(k % cols) * sq, (k // cols) * sq, np.zeros(k.size)], 1)
     views = {"cam_a": list(range(10)), "cam_b": [0, 2, 4, 6, 8, 9, 10, 11]}
     lines = {c: ["view,id,x,y,z,u,v"] for c in views}
+    boards = {}
     for v in range(12):
         ang = np.radians(rng.uniform(20, 45))
         axis = rng.normal(size=3) * [1, 1, 0.2]
         axis /= np.linalg.norm(axis)
-        from facegeo.frames import Pose, rotation_from_rvec
-
         R = rotation_from_rvec(axis * ang)
         t = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.04, 0.04), 0.0])
-        T_world_board = Pose(R, t - R @ np.array([cols * sq / 2, rows * sq / 2, 0]))
+        boards[v] = T_world_board = Pose(R, t - R @ np.array([cols * sq / 2, rows * sq / 2, 0]))
         for cam in truth:
             if v not in views[cam.name]:
                 continue
@@ -573,18 +574,30 @@ def test_corner_lists_without_images_go_straight_to_the_solver(tmp_path):
             lines[cam.name] += [f"{v},{i},{p[0]},{p[1]},{p[2]},{u[0]},{u[1]}"
                                 for i, (p, u) in enumerate(zip(P, q))]
     for c, ls in lines.items():
-        (tmp_path / "calib" / c).mkdir(parents=True)
-        (tmp_path / "calib" / c / "corners.csv").write_text("\n".join(ls) + "\n")
+        (root / "calib" / c).mkdir(parents=True)
+        (root / "calib" / c / "corners.csv").write_text("\n".join(ls) + "\n")
     m = new_manifest("corners", synthetic=False)
     m["calib"] = {"board": {"kind": "chessboard", "cols": cols, "rows": rows, "square_size": sq},
                   "views": 12, "images": False, "corners": "calib/{camera}/corners.csv",
                   "cameras": {"cam_a": {"views": views["cam_a"]},
                               "cam_b": {"views": views["cam_b"]}}}
-    (tmp_path / "reference").mkdir()
-    (tmp_path / "reference" / "intrinsics.json").write_text(json.dumps(
+    (root / "reference").mkdir()
+    (root / "reference" / "intrinsics.json").write_text(json.dumps(
         {"cameras": {c.name: {"K": c.K.tolist()} for c in truth}}))
     m["reference"] = {"intrinsics": "reference/intrinsics.json"}
-    write_manifest(tmp_path, m)
+    if world is not None:
+        m["scan"]["world"] = world
+    write_manifest(root, m)
+    return truth, boards, views
+
+
+def test_corner_lists_without_images_go_straight_to_the_solver(tmp_path):
+    """A scan that ships detected corners (no images; scan format v2) calibrates: cameras with
+    different view counts, views only one camera saw, intrinsics recovered from the corners."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.calibrate import calibrate_products
+
+    truth, _, views = _corner_list_scan(tmp_path)
     scan = load_scan(tmp_path)
     dest = tmp_path / "out_cal"
     dest.mkdir()
@@ -598,3 +611,55 @@ def test_corner_lists_without_images_go_straight_to_the_solver(tmp_path):
         assert mc["reference_focal_rel_error"] < 0.005, cam.name
         assert mc["reference_principal_point_error_px"] < 4 * sigma_c, (cam.name, sigma_c)
         assert mc["reprojection_rms_px"] < 0.2
+
+
+#: calibrated camera pose vs the truth in the scan's world frame (0.1 px corner noise, 0.6 m):
+#: the principal point's few-pixel uncertainty (≈ 3 px of 820 px focal) turns the camera by
+#: ≈ 0.2° and moves it ≈ 2 mm; a wrong frame is off by degrees and centimetres
+WORLD_POSE_TOL_DEG = 0.3
+WORLD_POSE_TOL_MM = 3.0
+
+
+@pytest.mark.parametrize("world", ["nominal", "board", "transform"])
+def test_calibrated_rig_is_written_in_the_scans_world_frame(tmp_path, world):
+    """``scan.world`` decides the calibrated rig's frame: absent — the nominal rig.json's frame;
+    ``{camera, board_view}`` — the board of that view; ``{transform}`` — T_world_rig applied to
+    the nominal frame. Each camera's calibrated pose matches the truth expressed in that frame."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.frames import Pose, rotation_from_rvec
+    from facegeo.geometry.rig import Rig
+    from facegeo.pipeline.calibrate import _rot_deg, calibrate_products
+
+    T = Pose(rotation_from_rvec([0.0, 0.3, 0.1]), np.array([0.01, -0.2, 0.05]))
+    spec = {"nominal": None, "board": {"camera": "cam_b", "board_view": 4},
+            "transform": {"transform": T.matrix.tolist()}}[world]
+    # the nominal rig's pixels look where the truth's do (its intrinsics place the frame)
+    truth, boards, _ = _corner_list_scan(tmp_path, world=spec, nominal_intrinsics=True)
+    dest = tmp_path / "out_cal"
+    dest.mkdir()
+    metrics, _ = calibrate_products(load_scan(tmp_path), dest, cross_validation=False)
+    rig = Rig.load(dest / "rig.json")
+    # the truth's frame is the nominal one; T_nom_world maps world points into it
+    T_nom_world = {"nominal": Pose.identity(), "board": boards[4], "transform": T.inverse()}[world]
+    assert {"nominal": "nominal", "board": "board of view 4", "transform": "transform"}[world] \
+        in metrics["world"]
+    for cam in truth:
+        want = cam.T_cam_world @ T_nom_world
+        got = rig.camera(cam.name).T_cam_world
+        assert _rot_deg(got.R, want.R) < WORLD_POSE_TOL_DEG, cam.name
+        assert np.linalg.norm(got.origin_of_a_in_b - want.origin_of_a_in_b) * 1e3 \
+            < WORLD_POSE_TOL_MM, cam.name
+
+
+def test_world_board_view_without_a_board_is_a_clear_error(tmp_path):
+    """The world frame's board view declared but without corners in that camera: the error
+    names the view and lists the views the camera did use."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.calibrate import calibrate_products
+
+    _corner_list_scan(tmp_path, world={"camera": "cam_a", "board_view": 3})
+    csv = tmp_path / "calib" / "cam_a" / "corners.csv"
+    csv.write_text("\n".join(ln for ln in csv.read_text().splitlines()
+                             if not ln.startswith("3,")) + "\n")
+    with pytest.raises(InputError, match="no usable board in view 3"):
+        calibrate_products(load_scan(tmp_path), tmp_path / "o", cross_validation=False)

@@ -100,3 +100,48 @@ def test_stage_commands_and_render(tiny_scan, capsys):
     assert m["psnr_db"] > 10 and (tiny_scan / "out" / "views" / m["files"]["png"]).is_file()
     # the user's renders live beside the cached stages, not inside one
     assert not (tiny_scan / "out" / "render" / m["files"]["png"]).exists()
+
+
+def test_calibrated_rig_feeds_the_later_stages(tmp_path):
+    """``rig="calibrated"``: the mesh stage waits for ``calibrate`` and triangulates with its
+    rig; on a synthetic scan the mesh is still compared with the truth, raw (the calibrated
+    frame is the nominal rig's best fit) and after the best rigid alignment."""
+    from facegeo.synth.capture import Preset, generate_scan
+
+    preset = Preset("calibtest", 1 / 2, 4, 2, 3, (64, 48), 12, 1, 3, olat_half=False,
+                    sl_supersample=1)
+    generate_scan(tmp_path / "scan", preset, seed=0)
+    done = {r.name: r for r in reconstruct.run_reconstruct(tmp_path / "scan", rig="calibrated",
+                                                           until="mesh")}
+    assert list(done) == ["calibrate", "decode", "mesh"]
+    metrics = json.loads((tmp_path / "scan" / "out" / "metrics.json").read_text())
+    assert "error" not in metrics["calibrate"]
+    m = metrics["mesh"]
+    assert m["rig"] == "calibrated"
+    stage = json.loads((tmp_path / "scan" / "out" / "mesh" / "stage.json").read_text())
+    assert stage["settings"]["rig"] == "calibrated"
+    aligned = m["after_rigid_alignment"]
+    for key in ("points_rms_error_mm", "mesh_p95_error_mm", "alignment_rotation_deg"):
+        assert key in m or key in aligned, key
+    # the alignment can only remove error: the shape error is at most the raw error
+    assert aligned["points_rms_error_mm"] <= m["points_rms_error_mm"] * (1 + 1e-6)
+
+
+def test_calibrated_rig_without_a_calibration_is_a_clear_error(tiny_scan, tmp_path):
+    """The tiny preset's board views are too small to detect: with ``rig="calibrated"`` the
+    calibration's failure ends the run (with auto it is only recorded); a stage asked for the
+    calibrated rig before any calibration says what to run."""
+    import shutil
+
+    from facegeo.errors import InputError
+    from facegeo.pipeline.project import run_project
+
+    root = tmp_path / "scan"
+    shutil.copytree(tiny_scan, root, ignore=shutil.ignore_patterns("out"))
+    with pytest.raises(InputError, match="run `facegeo calibrate"):
+        run_project(root, rig="calibrated")
+    with pytest.raises(InputError, match="camera"):
+        reconstruct.run_reconstruct(root, rig="calibrated", until="mesh")
+    assert not (root / "out" / "mesh").exists()
+    with pytest.raises(InputError, match="rig: expected one of"):
+        reconstruct.run_reconstruct(root, rig="calibrate")

@@ -20,7 +20,7 @@ import numpy as np
 
 from facegeo.checks import check_choice, check_positive, fmt_value
 from facegeo.errors import InputError
-from facegeo.frames import Pose
+from facegeo.frames import Pose, nearest_rotation
 from facegeo.geometry._calib_jac import (
     BlockJacobian,
     group_indicator,
@@ -345,9 +345,7 @@ def cross_validate(object_points, image_points, image_size, *, grid=(16, 12), se
     q = q[ok]
     A = va[ok] / np.linalg.norm(va[ok], axis=-1, keepdims=True)
     B = vb[ok] / np.linalg.norm(vb[ok], axis=-1, keepdims=True)
-    U, _, Vt = np.linalg.svd(B.T @ A)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R_ba = U @ D @ Vt
+    R_ba = nearest_rotation(B.T @ A)
     qb, _ = b.camera.project_cam(A @ R_ba.T)
     d = np.linalg.norm(qb - q, axis=-1)
     ua = a.projection_uncertainty(q=q)

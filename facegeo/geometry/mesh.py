@@ -34,6 +34,7 @@ from facegeo.errors import InputError, ShapeError
 
 __all__ = [
     "Mesh",
+    "align_to_surface",
     "area_beyond",
     "face_areas",
     "grid_mesh",
@@ -356,19 +357,10 @@ def surface_errors(points, ref_vertices, ref_faces, *, normals=None, ref_normals
     angle : (N,) float64, radians — only when ``normals`` is given (orientation ignored:
         the angle to the nearer of ±n_ref)
     """
-    o3d = _o3d()
     p = as_array(points, "points", shape=(None, 3))
     Vr = as_array(ref_vertices, "ref_vertices", shape=(None, 3))
     Fr = np.asarray(ref_faces, np.int64)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(Vr.astype(np.float32)),
-                        o3d.core.Tensor(Fr.astype(np.uint32)))
-    # distance from float64 closest points (Open3D's own distance is float32 throughout)
-    cp = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
-    prim = cp["primitive_ids"].numpy().astype(np.int64)
-    uv = cp["primitive_uvs"].numpy().astype(np.float64)
-    bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], 1)
-    closest = np.einsum("nk,nkc->nc", bary, Vr[Fr[prim]])
+    prim, bary, closest = _closest_points(_closest_scene(Vr, Fr), Vr, Fr, p)
     dist = np.linalg.norm(p - closest, axis=1)
     if normals is None:
         return dist
@@ -380,6 +372,80 @@ def surface_errors(points, ref_vertices, ref_faces, *, normals=None, ref_normals
     nn = n / np.linalg.norm(n, axis=1, keepdims=True)
     cos = np.abs(np.einsum("ij,ij->i", nn, m)).clip(0, 1)
     return dist, np.arccos(cos)
+
+
+def _closest_scene(Vr, Fr):
+    o3d = _o3d()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(Vr.astype(np.float32)),
+                        o3d.core.Tensor(Fr.astype(np.uint32)))
+    return scene
+
+
+def _closest_points(scene, Vr, Fr, p):
+    """(face, barycentrics, closest point) on the reference surface for each point; the
+    closest point in float64 from the barycentrics (Open3D works in float32)."""
+    o3d = _o3d()
+    cp = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
+    prim = cp["primitive_ids"].numpy().astype(np.int64)
+    uv = cp["primitive_uvs"].numpy().astype(np.float64)
+    bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], 1)
+    return prim, bary, np.einsum("nk,nkc->nc", bary, Vr[Fr[prim]])
+
+
+def align_to_surface(points, ref_vertices, ref_faces, *, iterations: int = 50,
+                     keep: float = 0.9, tol: float = 1e-9):
+    """Rigid transform bringing points onto a reference surface (trimmed point-to-plane ICP).
+
+    Each iteration pairs every point with its closest point on the reference surface, keeps the
+    ``keep`` fraction of pairs with the smallest distances (trimmed ICP, Chetverikov et al. 2002:
+    robust to points where the reference has no surface) and takes the Gauss–Newton step of the
+    point-to-plane distances ``((R q + t − c) · n)²`` with ``n`` the closest face's normal
+    (Chen & Medioni 1992; converges in a few steps where point-to-point ICP crawls along a
+    smooth surface). Stops when a step moves the points by less than ``tol`` metres RMS. Used
+    to separate a reconstruction's shape error from the gauge of its world frame (a calibrated
+    rig's frame against the true one).
+
+    Parameters
+    ----------
+    points : (N, 3) float64, metres, N ≥ 6
+    ref_vertices : (V, 3) float64; ref_faces : (F, 3) int
+
+    Returns
+    -------
+    T_ref_points : facegeo.frames.Pose — ``p_ref ≈ T.apply(p)``
+    """
+    from facegeo.frames import Pose, rotation_from_rvec
+
+    p = as_array(points, "points", shape=(None, 3))
+    Vr = as_array(ref_vertices, "ref_vertices", shape=(None, 3))
+    Fr = np.asarray(ref_faces, np.int64)
+    if not 0.0 < keep <= 1.0:
+        raise InputError(f"keep: expected a fraction in (0, 1], got {keep}")
+    if len(p) < 6:
+        raise InputError(f"points: a rigid alignment needs at least 6 points, got {len(p)}")
+    scene = _closest_scene(Vr, Fr)
+    fn = np.cross(Vr[Fr[:, 1]] - Vr[Fr[:, 0]], Vr[Fr[:, 2]] - Vr[Fr[:, 0]])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    T = Pose.identity()
+    q = p
+    n_keep = max(6, round(keep * len(p)))
+    for _ in range(int(iterations)):
+        prim, _, c = _closest_points(scene, Vr, Fr, q)
+        d = np.linalg.norm(q - c, axis=1)
+        sel = np.argpartition(d, n_keep - 1)[:n_keep] if n_keep < len(p) else slice(None)
+        qs, n = q[sel], fn[prim[sel]]
+        A = np.concatenate([np.cross(qs, n), n], axis=1)
+        b = -np.einsum("ij,ij->i", qs - c[sel], n)
+        x = np.linalg.lstsq(A, b, rcond=None)[0]
+        step = Pose(rotation_from_rvec(x[:3]), x[3:])
+        q_new = step.apply(q)
+        T = step @ T
+        moved = float(np.sqrt(np.mean(np.sum((q_new - q) ** 2, axis=1))))
+        q = q_new
+        if moved < tol:
+            break
+    return T
 
 
 def area_beyond(vertices, faces, points, radius: float) -> tuple[float, np.ndarray]:

@@ -286,7 +286,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         need = needed_texels(specs, cam_table, atlas, tex, atlas_scene(atlas))
         t_views = time.perf_counter() - t0
     renderer = None
-    if scan.synthetic and "skin" in scan.ground_truth_keys and rig_used == "ground_truth":
+    if scan.synthetic and "skin" in scan.ground_truth_keys:
         from facegeo.synth.render import load_ground_truth
 
         renderer = load_ground_truth(scan)

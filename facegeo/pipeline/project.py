@@ -169,19 +169,42 @@ def run_atlas(scan_dir, out_dir=None, *, mesh: str = "ground_truth",
     return metrics
 
 
+#: Rig choices of the stages after calibration (``rig=``); a rig file's path is accepted too.
+RIG_CHOICES = ("ground_truth", "scan", "calibrated")
+
+
 def _rig(scan, rig: str | None):
+    """The rig a stage works with, and its name for the metrics.
+
+    ``"ground_truth"`` — a synthetic scan's true rig (the default when there is one);
+    ``"scan"`` — the scan's own ``rig.json`` (the nominal rig; the default otherwise);
+    ``"calibrated"`` — ``out/calibrate/rig.json`` written by ``facegeo calibrate``;
+    any other string — a rig file (``facegeo-rig`` JSON), e.g. another calibration's.
+    """
+    from facegeo.geometry.rig import Rig
+
     has_gt = scan.synthetic and "rig" in scan.ground_truth_keys
     if rig is None:
         rig = "ground_truth" if has_gt else "scan"
     if rig == "ground_truth":
         if not has_gt:
-            raise InputError(f"rig: scan {scan.root} has no ground-truth rig; use rig='scan'")
-        from facegeo.geometry.rig import Rig
-
+            raise InputError(f"rig: scan {scan.root} has no ground-truth rig; use rig='scan' or "
+                             "'calibrated'")
         return Rig.load(scan.ground_truth_path("rig")), rig
     if rig == "scan":
         return scan.rig, rig
-    raise InputError(f"rig: expected 'ground_truth' or 'scan', got {fmt_value(rig)}")
+    path = scan.out_dir / "calibrate" / "rig.json" if rig == "calibrated" else Path(rig)
+    if not path.is_file():
+        if rig == "calibrated":
+            raise InputError(f"rig 'calibrated': {path} does not exist; run `facegeo calibrate "
+                             f"{scan.root}` first")
+        raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)} or a rig file, got "
+                         f"{fmt_value(rig)} (no such file)")
+    the_rig = Rig.load(path)
+    missing = [n for n in scan.camera_names if n not in the_rig.camera_names]
+    if missing:
+        raise InputError(f"rig {path}: lacks the scan's camera(s) {', '.join(missing)}")
+    return the_rig, rig
 
 
 def _visibility_agreement(scan, cam_name: str, camera, texels, vis, depth_jump: float):
@@ -381,12 +404,12 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             "masked_samples": field.n_masked,
             "float16_overflow": field.n_overflow,
         }
-        if scan.synthetic and rig_used == "ground_truth":
+        if scan.synthetic:
             agr = _visibility_agreement(scan, name, camera, texels, vis, jump)
             if agr is not None:
                 entry["visibility_agreement"] = round(agr["agreement"], 6)
                 entry["visibility_compared"] = agr["compared"]
-        if renderer is not None and rig_used == "ground_truth":
+        if renderer is not None:
             a, b, _ = _projection_error(renderer, the_rig, camera, texels, face_input, field,
                                         scan.n_lights, gt_lights, gt_weight_min)
             se += a

@@ -17,13 +17,17 @@ Which mesh and which rig the surface stages use:
 * ``mesh="auto"`` (the default): a synthetic scan's ground-truth mesh, so the surface stages'
   errors measure the surface methods alone, and the reconstructed mesh of the ``mesh`` stage
   otherwise; ``"ground_truth"``, ``"reconstructed"`` or a mesh file (metres) choose explicitly.
-* the rig: a synthetic scan's true rig (``ground_truth/rig.json``), else the scan's
-  ``rig.json``. The ``calibrate`` stage reports how well calibration recovers the rig; feeding
-  its rig to the later stages is not wired yet (issue 9).
+* ``rig="auto"`` (the default): a synthetic scan's true rig (``ground_truth/rig.json``), so the
+  later stages' errors are their own; otherwise the ``calibrate`` stage's rig
+  (``out/calibrate/rig.json``) when the scan has board views, else the scan's ``rig.json``.
+  ``"ground_truth"``, ``"calibrated"`` or ``"scan"`` choose explicitly (``"calibrated"`` on a
+  synthetic scan runs the whole chain from the board images: its errors against the ground
+  truth are end to end; ``mesh`` then also reports them after the best rigid alignment, since
+  a calibrated rig's world frame is its own gauge).
 
 A calibration that fails (no board found in a camera's views, say) ends the run with the error
-only when nothing downstream depends on it; here nothing does yet, so ``calibrate`` records the
-failure in its metrics (``"error"``) and the other stages go on.
+when the rig it should produce is used downstream; otherwise ``calibrate`` records the failure
+in its metrics (``"error"``) and the other stages go on.
 """
 
 from __future__ import annotations
@@ -36,12 +40,14 @@ from typing import Any
 from facegeo.errors import FacegeoError, InputError
 from facegeo.pipeline.cache import Pipeline, StageContext, StageResult, StageSpec
 
-__all__ = ["STAGES", "MESH_CHOICES", "reconstruct_pipeline", "run_reconstruct"]
+__all__ = ["STAGES", "MESH_CHOICES", "RIG_CHOICES", "reconstruct_pipeline", "run_reconstruct"]
 
 #: Every stage ``facegeo reconstruct`` knows, in pipeline order.
 STAGES = ("calibrate", "decode", "mesh", "atlas", "project", "relight", "fit", "render")
 #: Values of ``mesh`` besides a mesh file.
 MESH_CHOICES = ("auto", "ground_truth", "reconstructed")
+#: Values of ``rig``.
+RIG_CHOICES = ("auto", "ground_truth", "calibrated", "scan")
 
 #: The render stage's default views: the first camera orbited by these angles (degrees).
 RENDER_ORBITS = (30.0, -30.0, 60.0, -60.0)
@@ -93,7 +99,21 @@ def _applicable(scan, mesh: str) -> list[str]:
     return stages
 
 
-def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
+def _resolve_rig(scan, rig: str, stages: list[str]) -> str:
+    if rig not in RIG_CHOICES:
+        raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)}, got {rig!r}")
+    has_gt = scan.synthetic and "rig" in scan.ground_truth_keys
+    if rig == "auto":
+        return "ground_truth" if has_gt else ("calibrated" if "calibrate" in stages else "scan")
+    if rig == "ground_truth" and not has_gt:
+        raise InputError(f"rig 'ground_truth': scan {scan.root} has no ground-truth rig")
+    if rig == "calibrated" and "calibrate" not in stages:
+        raise InputError(f"rig 'calibrated': scan {scan.root} has no [calib] board views to "
+                         "calibrate from")
+    return rig
+
+
+def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipeline:
     """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct`` for one scan.
 
     Parameters
@@ -103,12 +123,17 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
     mesh : str
         ``"auto"``, ``"ground_truth"``, ``"reconstructed"`` or a mesh file in metres (module
         docstring).
+    rig : str
+        ``"auto"``, ``"ground_truth"``, ``"calibrated"`` or ``"scan"`` (module docstring).
     """
     from facegeo.pipeline.fit import FIT_SETTINGS
     from facegeo.pipeline.render import RENDER_DEFAULT_ENV
 
     names = _applicable(scan, mesh)
     use_mesh = _resolve_mesh(scan, mesh) if "atlas" in names else None
+    use_rig = _resolve_rig(scan, rig, names)
+    # the stages that work in the rig's frame wait for the calibration when they use its rig
+    rig_after = ("calibrate",) if use_rig == "calibrated" else ()
     specs: list[StageSpec] = []
 
     if "calibrate" in names:
@@ -117,7 +142,9 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
 
             try:
                 metrics, _ = calibrate_products(scan, ctx.out_dir, **ctx.settings)
-            except FacegeoError as e:  # nothing downstream uses the calibrated rig yet
+            except FacegeoError as e:
+                if use_rig == "calibrated":  # the later stages need its rig
+                    raise
                 return {"error": str(e)}
             return metrics
 
@@ -141,9 +168,10 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
             metrics, _ = mesh_products(scan, ctx.upstream["decode"], ctx.out_dir, **ctx.settings)
             return metrics
 
-        specs.append(StageSpec("mesh", run_mesh, after=("decode",),
+        specs.append(StageSpec("mesh", run_mesh, after=("decode",) + rig_after,
                                inputs=lambda d: _common_inputs(scan),
-                               settings={"method": "poisson", "depth": 7, "point_weight": 4.0,
+                               settings={"rig": use_rig, "method": "poisson", "depth": 7,
+                                         "point_weight": 4.0,
                                          "trim_quantile": 0.02}))
 
     if "atlas" in names:
@@ -198,24 +226,25 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
 
         first = scan.camera_names[0]
         views = [f"orbit:{first}:{d:g}" for d in RENDER_ORBITS]
-        fit_settings = dict(FIT_SETTINGS, texels="views", views=views)
+        fit_settings = dict(FIT_SETTINGS, texels="views", views=views, rig=use_rig)
         specs += [
             StageSpec("atlas", run_atlas, after=mesh_after, inputs=lambda d: mesh_inputs(),
                       settings={"mesh": use_mesh, "texels_per_mm": 1.0, "size": None, "padding": 2,
                                 "split_faces": 25_000, "repair": False}),
-            StageSpec("project", run_project, after=("atlas",) + mesh_after,
+            StageSpec("project", run_project, after=("atlas",) + mesh_after + rig_after,
                       inputs=lambda d: _group_inputs(scan, "olat") + mesh_inputs(),
-                      settings={"mesh": use_mesh, "rig": None, "dtype": "float16", "gt_lights": 32,
+                      settings={"mesh": use_mesh, "rig": use_rig, "dtype": "float16",
+                                "gt_lights": 32,
                                 "gt_weight_min": 0.3}),
             StageSpec("relight", run_relight, after=("atlas", "project"),
                       inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
                       settings={"env": RENDER_DEFAULT_ENV, "rotate": 0.0, "view": "texture",
                                 "projection": "latlong", "solid_angle": "paper"}),
-            StageSpec("fit", run_fit, after=("atlas", "project"),
+            StageSpec("fit", run_fit, after=("atlas", "project") + rig_after,
                       inputs=lambda d: _common_inputs(scan), settings=fit_settings),
-            StageSpec("render", run_render, after=("atlas", "project", "fit"),
+            StageSpec("render", run_render, after=("atlas", "project", "fit") + rig_after,
                       inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
-                      settings={"views": views, "env": RENDER_DEFAULT_ENV}),
+                      settings={"views": views, "env": RENDER_DEFAULT_ENV, "rig": use_rig}),
         ]
     if not specs:
         raise InputError(f"scan {scan.root}: nothing to reconstruct (no [calib], "
@@ -223,7 +252,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto") -> Pipeline:
     return Pipeline(specs)
 
 
-def run_reconstruct(scan_dir, *, mesh: str = "auto",
+def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
                     settings: Mapping[str, Mapping[str, Any]] | None = None,
                     from_stage: str | None = None, only: str | None = None,
                     until: str | None = None,
@@ -234,7 +263,7 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto",
     Parameters
     ----------
     scan_dir : path-like
-    mesh : str
+    mesh, rig : str
         See :func:`reconstruct_pipeline`.
     settings : mapping of stage -> mapping, optional
         Overrides of a stage's settings (``{"atlas": {"texels_per_mm": 2.0}}``); a changed
@@ -253,6 +282,6 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto",
     scan = load_scan(scan_dir)  # validated once, before any stage starts
     if settings:
         json.dumps(settings)  # fail early on values that cannot enter a cache key
-    return reconstruct_pipeline(scan, mesh=mesh).run(scan_dir, settings=settings,
+    return reconstruct_pipeline(scan, mesh=mesh, rig=rig).run(scan_dir, settings=settings,
                                                      from_stage=from_stage, only=only,
                                                      until=until, progress=progress, on_stage=on_stage)

@@ -218,8 +218,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     texels = Texels.load(out / "atlas" / "texels.npz")
     sources = load_sources(out / "project", (out / "fit") if resynthesis else None)
     t_load = time.perf_counter()
-    has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys
-                   and rig_used == "ground_truth")
+    has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys)
     steps = 2 + int(bool(baseline and resynthesis)) + int(has_ref)
 
     def tick(k: int) -> None:
