@@ -57,6 +57,21 @@ SHADOW_THRESHOLD = 0.02
 #: Angular scale of the mirror down-weighting in the ramp fit: weight 1 − exp(−(1 − l·r)/σ),
 #: σ = 1 − cos(15°).
 MIRROR_SIGMA = 1.0 - np.cos(np.radians(15.0))
+CHROMA_SIGMA = 1.0 - np.cos(np.radians(60.0))
+CHROMA_POW = 4.0
+
+
+def chroma_weights(cos_lr):
+    """Weights of the ramp's chromaticity rows: ``(1 − exp(−(1 − l·r)/σ_c))^p``."""
+    return (1.0 - np.exp(-(1.0 - cos_lr) / CHROMA_SIGMA)) ** CHROMA_POW
+
+
+def ramp_mu_s(p, xcos, A, B):
+    """μ_s of §4.2 under candidate ramps: ``B + A f/(1 + f)``, 0 where 1 + f ≈ 0."""
+    f = ramp_f_from_x(xcos, p[..., 0:1], p[..., 1:2])
+    g = 1.0 + f
+    ok = np.abs(g) > 1e-6
+    return np.where(ok, B[:, None, :] + A[:, None, :] * f / np.where(ok, g, 1.0), 0.0)
 
 
 @dataclass(frozen=True)
@@ -91,6 +106,7 @@ class SearchDepth:
     polish: int = 10
     alpha_levels: int = 4
     polish_normal: bool = True
+    chroma: float = 300.0
 
 
 def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
@@ -575,6 +591,11 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     A = np.where((ds2 > 0)[:, None], A, 0.0)
     Rdms = Rd - Rs
     sqw = np.sqrt(wd)
+    B, cw1 = _chroma_rows(R, w, lights, n, v, A, ds)
+    cw = np.zeros_like(cw1)  # the chromaticity rows' weights: off in the first polish
+
+    def mu_s(p, xcos, rows):
+        return ramp_mu_s(p, xcos, A[rows], B[rows])
     # fixed normal (the search, and the polish without the normal): n·l, cos θ_i cos θ_r
     nl_fix = np.maximum(n @ lt, 0.0)  # (N, L)
     x_fix = np.clip(nl_fix, 0.0, 1.0) * np.clip(nv0, 0.0, 1.0)[:, None]
@@ -596,7 +617,8 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         else:
             nl = nl_fix[rows][:, None, :]
             xcos = x_fix[rows][:, None, :]
-        return _lobe_residuals_sqrtw(mu_d(p, xcos, rows), sqw[rows], nl)
+        res = _lobe_residuals_sqrtw(mu_d(p, xcos, rows), sqw[rows], nl)
+        return np.concatenate([res, mu_s(p, xcos, rows) * cw[rows][:, None, :]], axis=-1)
 
     def objective(p, rows):
         # Σ residuals² of the fixed-normal ramp in closed form from the three weighted sums
@@ -612,16 +634,33 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     x0 = np.zeros((n.shape[0], 2))
     p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves,
                               subset=True)
-    if depth.polish and not depth.polish_normal:
-        p, misfit = gauss_newton_polish(residuals, p, iterations=depth.polish,
+    if depth.polish:
+        ps = p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1)
+        p, misfit = gauss_newton_polish(residuals, ps, iterations=depth.polish,
                                         forward=POLISH_FORWARD)
-    elif depth.polish:
-        p4 = np.concatenate([p, np.zeros_like(p)], axis=1)
-        p4, misfit = gauss_newton_polish(residuals, p4, iterations=depth.polish,
-                                        forward=POLISH_FORWARD)
-        p = p4[:, :2]
-        n_out = normalize(n + p4[:, 2:3] * t1 + p4[:, 3:4] * t2)
+        if depth.chroma > 0:
+            # second polish from the search's result with the chromaticity rows weighted by
+            # the lobe misfit the first polish left (chroma_weights)
+            cw[:] = np.sqrt(depth.chroma * np.maximum(misfit, 0.0))[:, None] * cw1
+            p, misfit = gauss_newton_polish(residuals, ps, iterations=depth.polish,
+                                            forward=POLISH_FORWARD)
+        if depth.polish_normal:
+            n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
+            p = p[:, :2]
     return p[:, 0], p[:, 1], n_out, misfit
+
+
+def _chroma_rows(R, w, lights: LightSet, n, v, A, ds):
+    """The chromaticity rows of :func:`fit_ramp`'s second polish: ``B = R·s − A (d_0·s)`` of
+    :func:`ramp_mu_s` and the unit row weights ``√w_c / √Σ w_c |R|²`` with
+    ``w_c = w δA`` × :func:`chroma_weights` (each ``(N, L)``)."""
+    nv = np.einsum("ni,ni->n", n, v)
+    r = 2.0 * nv[:, None] * n - v
+    wc = w * lights.solid_angles * chroma_weights(r @ lights.directions.T)
+    RR = np.einsum("nlc,nlc->nl", R, R)
+    nR = np.sqrt(np.maximum(np.sum(wc * RR, axis=1), 1e-300))
+    B = R @ S_WHITE - A * ds[:, None]
+    return np.ascontiguousarray(B), np.ascontiguousarray(np.sqrt(wc) / nR[:, None])
 
 
 def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
@@ -640,9 +679,14 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
                             int(depth.alpha_levels), int(depth.moves), SINGULAR_SIN2)
     n_out = n
     if depth.polish:
-        p0 = p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1)
-        p, misfit = ramp_polish(c(p0), n, t1, t2, v, c(lights.directions), x_fix, nl_fix, wd, A,
-                                Rd, Rdms, ds, int(depth.polish), SINGULAR_SIN2)
+        p0 = c(p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1))
+        B, cw1 = _chroma_rows(R, w, lights, n, v, A, ds)
+        args = (n, t1, t2, v, c(lights.directions), x_fix, nl_fix, wd, A, Rd, Rdms, ds,
+                int(depth.polish), SINGULAR_SIN2, B)
+        p, misfit = ramp_polish(p0, *args, cw1, False)
+        if depth.chroma > 0:
+            cw = c(np.sqrt(depth.chroma * np.maximum(misfit, 0.0))[:, None] * cw1)
+            p, misfit = ramp_polish(p0, *args, cw, True)
         if depth.polish_normal:
             n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
     return p[:, 0], p[:, 1], n_out, misfit
