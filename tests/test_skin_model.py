@@ -491,16 +491,12 @@ def test_small_preset_generator_albedo_and_resynthesis(small_case):
         assert r * SMALL_RESYNTH_VS_NAIVE <= naive
 
 
-def test_generator_diffuse_alone_stays_diffuse():
-    """Functions with no specular lobe at all — the generator's Fresnel-weighted diffuse colour
-    blend (not the paper's ramp: its brightness falls off faster than Lambert's at grazing
-    angles) — must not be separated into a large S. The lobe-shape criterion alone lets the
-    ramp's polish absorb that fall-off by moving white light into S (37 % of the energy)."""
+def _generator_diffuse(rng, lights, N):
+    """The generator's diffuse term alone (brdf.synthetic_diffuse_brdf: skin-like α_0, a
+    desaturated α_1, Fresnel weights (1 − ρ_dr)²) for N random normals, seen from V0:
+    ``(N, L, 3)`` float32 OLAT radiance under unit lights."""
     from facegeo.appearance.brdf import desaturate, synthetic_diffuse_brdf
 
-    rng = np.random.default_rng(3)
-    lights = skin.LightSet.from_grid(32, 16)
-    N = 60
     n = _random_normals(rng, N, 40.0)
     a0 = np.array([0.62, 0.36, 0.26]) * rng.uniform(0.8, 1.1, (N, 1))
     a1 = desaturate(a0, rng.uniform(0.3, 0.6, N)) * 1.1
@@ -509,7 +505,16 @@ def test_generator_diffuse_alone_stays_diffuse():
                                 np.broadcast_to(lights.directions[None], sh),
                                 np.broadcast_to(V0, sh), a0[:, None], a1[:, None],
                                 rng.uniform(0.4, 0.9, (N, 1)), rng.uniform(0.25, 0.5, (N, 1)))
-    R = (fd * np.maximum(n @ lights.directions.T, 0.0)[..., None]).astype(np.float32)
+    return (fd * np.maximum(n @ lights.directions.T, 0.0)[..., None]).astype(np.float32)
+
+
+def test_generator_diffuse_alone_stays_diffuse():
+    """Functions with no specular lobe at all — the generator's Fresnel-weighted diffuse colour
+    blend (not the paper's ramp: its brightness falls off faster than Lambert's at grazing
+    angles) — must not be separated into a large S. The lobe-shape criterion alone lets the
+    ramp's polish absorb that fall-off by moving white light into S (37 % of the energy)."""
+    lights = skin.LightSet.from_grid(32, 16)
+    R = _generator_diffuse(np.random.default_rng(3), lights, 60)
     fit = skin.fit_reflectance(R, V0, lights)
     share = float(fit.specular.sum() / R.sum())
     print(f"generator diffuse alone: S holds {share:.4f} of the energy")
@@ -754,7 +759,8 @@ def test_skinfit_load_errors_name_the_file(tmp_path):
 def test_compiled_kernels_match_numpy_reference(monkeypatch):
     """The numba searches and polish (_skin_kernels) against the numpy reference (KERNELS off):
     same algorithm, so the same fit to rounding — estimated d_0, a free light list with
-    shadows (lobe band/moment split exercised at the terminator) and the fixed-normal polish."""
+    shadows (lobe band/moment split exercised at the terminator), the fixed-normal polish, and
+    mismatched functions on which the chromaticity polish runs (on a subset of the chunk)."""
     from facegeo.appearance import _skin_fit
 
     rng = np.random.default_rng(21)
@@ -763,12 +769,16 @@ def test_compiled_kernels_match_numpy_reference(monkeypatch):
     p = _paper_params(rng, 12)
     R = skin.paper_reflectance(n, V0, lights, p)
     vis = rng.uniform(size=R.shape[:2]) > 0.1
+    # mismatched functions: the chromaticity polish runs on some of them (not on paper data)
+    Rg = _generator_diffuse(rng, lights, 8)
+    Rg[:3] = R[:3]  # both kinds in one chunk: the second polish on a subset
     fits = {}
     for kern in (True, False):
         monkeypatch.setattr(_skin_fit, "KERNELS", kern)
         fits[kern] = (skin.fit_reflectance(R, V0, lights, visibility=vis),
                       skin.fit_reflectance(R, V0, lights, d_0=skin.normalize(p.rho_d),
-                                           depth=skin.SearchDepth(polish_normal=False)))
+                                           depth=skin.SearchDepth(polish_normal=False)),
+                      skin.fit_reflectance(Rg, V0, lights))
     for a, b in zip(fits[True], fits[False]):
         for k in ("normal", "normal_initial"):
             assert _angle_deg(getattr(a, k), getattr(b, k)).max() <= KERNEL_NORMAL_DEG, k
@@ -778,7 +788,7 @@ def test_compiled_kernels_match_numpy_reference(monkeypatch):
         assert np.abs(a.alpha_1 - b.alpha_1).max() <= KERNEL_ALPHA_ABS
         assert np.abs(a.rho_s - b.rho_s).max() <= KERNEL_RHO_S_REL * b.rho_s.max()
         assert np.array_equal(a.flags, b.flags) and np.array_equal(a.cast_shadow, b.cast_shadow)
-        assert np.abs(a.diffuse - b.diffuse).max() <= 1e-4 * np.abs(R).max()
+        assert np.abs(a.diffuse - b.diffuse).max() <= 1e-4 * np.abs(a.reflectance).max()
 
 
 @pytest.mark.parametrize("chroma", [False, True])

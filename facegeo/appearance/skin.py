@@ -287,8 +287,10 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     3. Normal: the closed-form first moment Σ D ω δA (Ma et al. 2007), then the Lambertian-lobe
        fit to |D| by coarse-to-fine direct search started from it (§4.2).
     4. α_0, α_1 (Eq. 7) by coarse-to-fine direct search with samples near the mirror direction
-       down-weighted, then a Levenberg–Marquardt polish of α_0, α_1 and the normal together
-       (see :func:`facegeo.appearance._skin_fit.fit_ramp` for the criterion and why).
+       down-weighted, then a Levenberg–Marquardt polish of α_0, α_1 and the normal together;
+       where the lobe leaves the ramp's scale undecided (model mismatch), a second polish
+       adds the paper's fit to the observed chromaticities (``SearchDepth.chroma``; see
+       :func:`facegeo.appearance._skin_fit.fit_ramp` for the criterion and why).
     5. Final separation with the fitted ramp (Eq. 6 per sample), normal recomputed from the
        final D, albedo ρ_d and specular energy ρ_s (Fig. 14 b–d).
 
