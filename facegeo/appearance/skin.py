@@ -291,7 +291,8 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
        where the lobe leaves the ramp's scale undecided (model mismatch), a second polish
        adds the paper's fit to the observed chromaticities (``SearchDepth.chroma``; see
        :func:`facegeo.appearance._skin_fit.fit_ramp` for the criterion and why).
-    5. Final separation with the fitted ramp (Eq. 6 per sample), normal recomputed from the
+    5. Final separation with the fitted ramp (Eq. 6 per sample), μ_s gated at the noise
+       (:func:`facegeo.appearance._skin_fit.gate_specular`), normal recomputed from the
        final D, albedo ρ_d and specular energy ρ_s (Fig. 14 b–d).
 
     Single-channel input (``(N, L)`` or ``(N, L, 1)``) cannot be separated by colour: the whole
@@ -481,6 +482,7 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
                 D, _, _, mu_s, _, sing2 = separate_colour(R, c, s)
                 y = np.linalg.norm(D, axis=2)
                 sing2 = sing2.any(axis=1)
+            D, mu_s, y = _skin_fit.gate_specular(D, mu_s, w)
             # normal recomputed from the final diffuse component (§4.2, Fig. 14 b)
             n, k, _, _ = fit_lambertian_lobe(y, w, lights, n1, depth)
         sing_any = (flags & FLAG_SINGULAR) != 0
