@@ -46,7 +46,7 @@ SMALL_RESYNTH_VS_NAIVE = 3.0
 #: 1.0 %; 37 % with the lobe criterion alone, SearchDepth(chroma=0)).
 DIFFUSE_ONLY_S_SHARE = 0.03
 #: The same with Gaussian noise σ = 1 % of each function's maximum: Σ S / Σ R (measured 0.12 %
-#: with the specular gate; 6.2 % with the paper's plain max(μ_s, 0), SPECULAR_GATE = 0).
+#: with specular_gate=3; 6.2 % with the paper's plain max(μ_s, 0), the default).
 NOISY_DIFFUSE_S_SHARE = 0.02
 #: Fast closed-form μ_d of the ramp search against the explicit Eq. 6 chromaticity + §4.2
 #: separation: max |μ̂_d − μ_d| / max |R| (float64 rounding only).
@@ -341,6 +341,8 @@ def test_input_errors_name_the_argument():
         skin.fit_reflectance(np.ones((2, 32, 3)), [0, 0, 2.0], lights)
     with pytest.raises(ShapeError, match="visibility"):
         skin.fit_reflectance(np.ones((2, 32, 3)), V0, lights, visibility=np.ones((2, 3), bool))
+    with pytest.raises(InputError, match="specular_gate"):
+        skin.fit_reflectance(np.ones((2, 32, 3)), V0, lights, specular_gate=-1.0)
     with pytest.raises(InputError, match="directions"):
         skin.LightSet.from_directions([[0, 0, 1.0], [0, 1, 0]])
 
@@ -526,13 +528,14 @@ def test_generator_diffuse_alone_stays_diffuse():
 
 def test_noise_does_not_become_specular():
     """Noise on purely diffuse functions: the plain clamp max(μ_s, 0) keeps every positive
-    excursion as S; the gate (μ_s above 3 σ of the function's negative μ_s) returns it to D."""
+    excursion as S; the gate (``specular_gate=3``: μ_s above 3 σ of the function's negative
+    μ_s) returns it to D."""
     lights = skin.LightSet.from_grid(32, 16)
     R = _generator_diffuse(np.random.default_rng(3), lights, 60)
     rng = np.random.default_rng(4)
     R = np.maximum(R + 0.01 * R.max(axis=(1, 2), keepdims=True) * rng.normal(size=R.shape), 0)
     R = R.astype(np.float32)
-    fit = skin.fit_reflectance(R, V0, lights)
+    fit = skin.fit_reflectance(R, V0, lights, specular_gate=3.0)
     share = float(fit.specular.sum() / R.sum())
     print(f"noisy diffuse: S holds {share:.4f} of the energy")
     assert share <= NOISY_DIFFUSE_S_SHARE
@@ -550,7 +553,7 @@ def test_gate_specular_keeps_lobes_above_the_noise():
     mu_s[:, :10] = 0.2
     D0 = rng.uniform(0.1, 1.0, (4, 500, 3))
     D = D0 - (np.maximum(mu_s, 0.0) / np.sqrt(3.0))[..., None]
-    Dg, mg, y = _skin_fit.gate_specular(D, mu_s, np.ones((4, 500)))
+    Dg, mg, y = _skin_fit.gate_specular(D, mu_s, np.ones((4, 500)), 3.0)
     assert np.array_equal(mg[:, :10], mu_s[:, :10]), "the lobe is kept"
     # a Gaussian exceeds 3σ with probability 0.13 %: positives that survive are that rare
     # (without the gate, half the noise samples are S)

@@ -64,9 +64,6 @@ MIRROR_SIGMA = 1.0 - np.cos(np.radians(15.0))
 #: resynthesis 5.6× / 4.8× better than naive; 60°, p = 4: 0.08°, 2.3 %, 7.0× / 6.3×).
 CHROMA_SIGMA = 1.0 - np.cos(np.radians(60.0))
 CHROMA_POW = 4.0
-#: Specular gate of the final separation (``gate_specular``): a sample keeps μ_s only above
-#: this many noise σ's (σ from the function's negative μ_s); 0: the paper's plain max(μ_s, 0).
-SPECULAR_GATE = 3.0
 #: The second polish runs only where its weight λ = chroma × (lobe misfit after the first
 #: polish) exceeds this: below it the chromaticity rows cannot move the minimum measurably
 #: (paper-mode data: λ ≈ 1e-12 with d_0 known, ≲ 1e-7 estimated; the generator: 1e-4–1e-2).
@@ -705,38 +702,42 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     return p[:, 0], p[:, 1], n_out, misfit
 
 
-def gate_specular(D, mu_s, w):
-    """Keep μ_s only where it exceeds the noise: the final separation's specular gate.
+def gate_specular(D, mu_s, w, gate: float):
+    """Keep μ_s only where it exceeds the noise: the final separation's optional specular gate.
 
     §4.2 takes ``S = max(μ_s, 0) s``, which turns every positive noise excursion into S: on
     the small preset with 2 % Gaussian noise S held 21 % of the energy where the generator
     puts 7.5 %. A white specular term only adds to a sample, so negative μ_s is noise (or
     ramp error); its RMS estimates the noise, ``σ² = 2 Σ_w min(μ_s, 0)² / Σ w`` per function
-    (half the noise is negative), and a sample keeps ``μ_s`` only where ``μ_s > G σ``
-    (``G`` = :data:`SPECULAR_GATE`; the rest goes back to D). Deviation from the paper, which
-    clamps at 0; on noise-free data σ is rounding or the ramp's own error and the gate
-    changes nothing measurable (paper mode: σ ≈ 1e-17; generator: S share 7.5 → 7.4 %).
+    (half the noise is negative), and a sample keeps ``μ_s`` only where ``μ_s > gate · σ``
+    (the rest goes back to D). Deviation from the paper (which clamps at 0), hence off by
+    default (``fit_reflectance(specular_gate=0)``): where σ comes from model mismatch rather
+    than noise it also cuts real specular tails (noise-free small preset, gate 3: ρ_s error
+    3.2 → 4.5 %; the fit stage's projected functions: ρ_s error 17 → 42 %).
 
     Parameters
     ----------
     D : (N, L, 3) float64, ``R − max(μ_s, 0) s`` (white balanced)
     mu_s : (N, L) float64, signed
     w : (N, L) float64, 0/1 usable samples (the noise estimate's)
+    gate : float, ≥ 0; 0 returns the inputs unchanged
 
     Returns
     -------
     D : (N, L, 3) float64, ``R − S`` with the gated S
     mu_s : (N, L) float64, 0 where gated
-    y : (N, L) float64, ``|D|``
+    y : (N, L) float64 or None, ``|D|`` (None when nothing was gated: the caller's holds)
     """
+    if not gate > 0.0:
+        return D, mu_s, None
     neg = np.minimum(mu_s, 0.0)
     sigma = np.sqrt(2.0 * np.sum(w * neg * neg, axis=1) / np.maximum(np.sum(w, axis=1), 1.0))
-    gated = (mu_s > 0.0) & (mu_s <= SPECULAR_GATE * sigma[:, None])
-    if np.any(gated):
-        back = np.where(gated, mu_s, 0.0) / np.sqrt(3.0)  # per channel: μ_s s = μ_s/√3
-        D = D + back[..., None]
-        mu_s = np.where(gated, 0.0, mu_s)
-    return D, mu_s, np.linalg.norm(D, axis=2)
+    gated = (mu_s > 0.0) & (mu_s <= gate * sigma[:, None])
+    if not np.any(gated):
+        return D, mu_s, None
+    back = np.where(gated, mu_s, 0.0) / np.sqrt(3.0)  # per channel: μ_s s = μ_s/√3
+    D = D + back[..., None]
+    return D, np.where(gated, 0.0, mu_s), np.linalg.norm(D, axis=2)
 
 
 def _chroma_rows(R, w, lights: LightSet, n, v, A, ds):
