@@ -63,7 +63,6 @@ MIRROR_SIGMA = 1.0 - np.cos(np.radians(15.0))
 #: tails through (measured on the small preset: 15°, p = 1 gave normals 0.63°, albedo 2.8 %,
 #: resynthesis 5.6× / 4.8× better than naive; 60°, p = 4: 0.08°, 2.3 %, 7.0× / 6.3×).
 CHROMA_SIGMA = 1.0 - np.cos(np.radians(60.0))
-CHROMA_POW = 4.0
 #: The second polish runs only where its weight λ = chroma × (lobe misfit after the first
 #: polish) exceeds this: below it the chromaticity rows cannot move the minimum measurably
 #: (paper-mode data: λ ≈ 1e-12 with d_0 known, ≲ 1e-7 estimated; the generator: 1e-4–1e-2).
@@ -72,9 +71,12 @@ CHROMA_MIN_WEIGHT = 1e-6
 
 def chroma_weights(cos_lr):
     """Weights of the ramp's chromaticity rows (:func:`fit_ramp`):
-    ``(1 − exp(−(1 − l·r)/σ_c))^p`` for ``cos_lr = l·r`` (r the mirror direction), any shape;
-    :data:`CHROMA_SIGMA`, :data:`CHROMA_POW`."""
-    return (1.0 - np.exp(-(1.0 - cos_lr) / CHROMA_SIGMA)) ** CHROMA_POW
+    ``(1 − exp(−(1 − l·r)/σ_c))⁴`` for ``cos_lr = l·r`` (r the mirror direction), any shape;
+    σ_c = :data:`CHROMA_SIGMA`."""
+    t = 1.0 - np.exp(-(1.0 - cos_lr) / CHROMA_SIGMA)
+    t *= t
+    t *= t
+    return t
 
 
 def ramp_mu_s(p, xcos, A, B):
@@ -770,24 +772,26 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     n_out = n
     if depth.polish:
         p0 = c(p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1))
-        B, cw1 = _chroma_rows(R, w, lights, n, v, A, ds)
         dirs = c(lights.directions)
 
-        def polish(rows, cw, chroma):
+        def polish(rows, B, cw, chroma):
             # per-function arguments of the functions ``rows`` (None: all)
             f = (lambda a: a) if rows is None else (lambda a: c(a[rows]))
             return ramp_polish(f(p0), f(n), f(t1), f(t2), f(v), dirs, f(x_fix), f(nl_fix),
                                f(wd), f(A), f(Rd), f(Rdms), f(ds), int(depth.polish),
-                               SINGULAR_SIN2, f(B), c(cw), chroma)
+                               SINGULAR_SIN2, B, cw, chroma)
 
-        p, misfit = polish(None, cw1, False)
+        zero = np.zeros_like(wd)  # no chromaticity rows in the first polish
+        p, misfit = polish(None, zero, zero, False)
         lam = depth.chroma * np.maximum(misfit, 0.0)
         sel = np.flatnonzero(lam > CHROMA_MIN_WEIGHT)
         if sel.size:
             # second polish from the search's result with the chromaticity rows weighted by
-            # the lobe misfit the first polish left (see fit_ramp)
-            p[sel], misfit[sel] = polish(None if sel.size == p.shape[0] else sel,
-                                         np.sqrt(lam[sel])[:, None] * cw1[sel], True)
+            # the lobe misfit the first polish left (see fit_ramp); their inputs only for
+            # the functions that need them
+            rows = None if sel.size == p.shape[0] else sel
+            B, cw1 = _chroma_rows(R[sel], w[sel], lights, n[sel], v[sel], A[sel], ds[sel])
+            p[sel], misfit[sel] = polish(rows, B, c(np.sqrt(lam[sel])[:, None] * cw1), True)
         if depth.polish_normal:
             n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
     return p[:, 0], p[:, 1], n_out, misfit
