@@ -386,11 +386,22 @@ def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
     return p, val
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _mu_s_df(f, A, B):
+    """μ_s of §4.2 under ramp weight f, ``B + A f/(1 + f)`` (``_skin_fit.ramp_mu_s``), and
+    dμ_s/df = A/(1 + f)²; both 0 where 1 + f ≈ 0."""
+    g = 1.0 + f
+    if abs(g) > 1e-6:
+        return B + A * f / g, A / (g * g)
+    return 0.0, 0.0
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
 def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
-                      sing_sin2, r_out, xs_fix, nl_fix):
+                      sing_sin2, r_out, xs_fix, nl_fix, B, cw, chroma):
     """Residuals √w (μ_d − k x)/√Σw μ_d² of ``_skin_fit.fit_ramp``'s polish into ``r_out``;
-    returns Σ r². ``nrm``: polish the normal too (p has 4 entries)."""
+    returns Σ r² plus, with ``chroma``, the chromaticity rows Σ (c_j μ_s,j)² (``cw`` = c_j,
+    ``B`` as in ``_skin_fit.ramp_mu_s``). ``nrm``: polish the normal too (p has 4 entries)."""
     m = r_out.size
     nx = ny = nz = nvc = 0.0
     if nrm:
@@ -433,6 +444,16 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
         r = (r_out[j] - k * nlj * sqw[j]) * inv
         r_out[j] = r
         tot += r * r
+    if chroma:
+        for j in range(m):
+            if nrm:
+                c = nx * lx[j] + ny * ly[j] + nz * lz[j]
+                xc = min(max(c, 0.0), 1.0) * nvc
+            else:
+                xc = xs_fix[j]
+            ms, _ = _mu_s_df(da * xc + p[1], A[j], B[j])
+            rc = cw[j] * ms
+            tot += rc * rc
     return tot
 
 
@@ -455,7 +476,7 @@ def _mu_d_df(f, A, Rd, Rdms, two_1mds, ds2k, sing_sin2, regular=False):
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
 def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
-                     sing_sin2, r_out, xs_fix, nl_fix, dm, dxw, JtJ, g):
+                     sing_sin2, r_out, xs_fix, nl_fix, dm, dxw, JtJ, g, B, cw, chroma):
     """Residuals of :func:`_polish_residuals` into ``r_out`` with the analytic Jacobian,
     accumulated as ``JtJ`` ``(P, P)`` and ``g = Jᵀ r`` ``(P,)``; returns Σ r².
 
@@ -463,7 +484,9 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
     (α_0 − α_1) cos θ_i cos θ_r), x_j = √w_j max(0, n·l_j), k = s_xy/s_xx; the normal
     n = (n_0 + u t_1 + w t_2)/|·| (P = 4). Derivatives through k and s_yy included (the
     residual's variable projection); clamps and clips contribute zero derivative where active.
-    ``dm`` ``(P, m)`` and ``dxw`` ``(2, m)`` are scratch.
+    ``dm`` ``(P, m)`` and ``dxw`` ``(2, m)`` are scratch. With ``chroma`` the chromaticity
+    rows ρ_j = c_j μ_s(f_j) of :func:`_polish_residuals` are added (dρ_j/dp = c_j dμ_s/df
+    df/dp; they do not enter k or s_yy).
     """
     m = r_out.size
     P = p.size
@@ -492,6 +515,9 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
     dsyy = np.zeros(P)
     dsxy = np.zeros(P)
     dsxx = np.zeros(P)
+    ctot = 0.0
+    cg = np.zeros(P)
+    cJ = np.zeros((P, P))  # upper triangle
     for j in range(m):
         dn0 = 0.0
         dn1 = 0.0
@@ -517,6 +543,30 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
             dx0 = 0.0
             dx1 = 0.0
         f = da * xc + p[1]
+        if chroma:
+            ms, dms = _mu_s_df(f, A[j], B[j])
+            rc = cw[j] * ms
+            dms *= cw[j]
+            c0 = dms * xc
+            c1 = dms * (1.0 - xc)
+            ctot += rc * rc
+            cg[0] += c0 * rc
+            cg[1] += c1 * rc
+            cJ[0, 0] += c0 * c0
+            cJ[0, 1] += c0 * c1
+            cJ[1, 1] += c1 * c1
+            if nrm:
+                c2 = dms * da * dx0
+                c3 = dms * da * dx1
+                cg[2] += c2 * rc
+                cg[3] += c3 * rc
+                cJ[0, 2] += c0 * c2
+                cJ[0, 3] += c0 * c3
+                cJ[1, 2] += c1 * c2
+                cJ[1, 3] += c1 * c3
+                cJ[2, 2] += c2 * c2
+                cJ[2, 3] += c2 * c3
+                cJ[3, 3] += c3 * c3
         mu, dmu = _mu_d_df(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2, regular)
         sw = sqw[j]
         mm = mu * sw
@@ -600,6 +650,14 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
         JtJ[0, 2], JtJ[0, 3], JtJ[1, 2], JtJ[1, 3] = a02, a03, a12, a13
         JtJ[2, 0], JtJ[3, 0], JtJ[2, 1], JtJ[3, 1] = a02, a03, a12, a13
         JtJ[2, 2], JtJ[2, 3], JtJ[3, 2], JtJ[3, 3] = a22, a23, a23, a33
+    if chroma:
+        for a in range(P):
+            g[a] += cg[a]
+            for q in range(a, P):
+                JtJ[a, q] += cJ[a, q]
+                if q != a:
+                    JtJ[q, a] += cJ[a, q]
+        tot += ctot
     return tot
 
 
@@ -632,12 +690,14 @@ def _solve_small(A, b, P):
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations,
-                sing_sin2):
+                sing_sin2, B, cw, chroma):
     """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
     ``_skin_fit.gauss_newton_polish`` (same damping, a step kept only where it lowers Σ r²)
     with the analytic Jacobian of :func:`_polish_jacobian` instead of finite differences, and
     JᵀJ, Jᵀr reused after a rejected step (x unchanged). ``p0`` ``(N, 2)`` (ramp at the fixed
-    normal) or ``(N, 4)`` (ramp and tangent offsets of the normal). Returns ``(p, Σ r²)``."""
+    normal) or ``(N, 4)`` (ramp and tangent offsets of the normal). With ``chroma`` the
+    chromaticity rows ``cw μ_s`` (``B``, ``cw`` ``(N, L)``) join the residuals. Returns
+    ``(p, Σ r²)``."""
     N, P = p0.shape
     L = wd.shape[1]
     nrm = P == 4
@@ -655,6 +715,8 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
         Rms = Rdms[i][idx]
         xs = x_fix[i][idx]
         nls = nl_fix[i][idx]
+        Bs = B[i][idx]
+        cws = cw[i][idx]
         two_1mds = 2.0 * (1.0 - ds[i])
         ds2k = 1.0 - ds[i] * ds[i]
         x = out[i].copy()
@@ -668,13 +730,13 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
         dm = np.empty((P, m))
         dxw = np.empty((2, m))
         cur = _polish_residuals(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds,
-                                Rms, two_1mds, ds2k, sing_sin2, r, xs, nls)
+                                Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, Bs, cws, chroma)
         fresh = False  # JtJ, g are those of the current x (kept across rejected steps)
         for _ in range(iterations):
             if not fresh:
                 cur = _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw,
                                        As, Rds, Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, dm,
-                                       dxw, JtJ, g)
+                                       dxw, JtJ, g, Bs, cws, chroma)
                 fresh = True
             for a in range(P):
                 for q in range(P):
@@ -688,7 +750,8 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
                     pt[a] = 0.0
                 pt[a] += x[a]
             vn = _polish_residuals(pt, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
-                                   Rds, Rms, two_1mds, ds2k, sing_sin2, rn, xs, nls)
+                                   Rds, Rms, two_1mds, ds2k, sing_sin2, rn, xs, nls, Bs, cws,
+                                   chroma)
             if np.isfinite(vn) and vn < cur:
                 for a in range(P):
                     x[a] = pt[a]
