@@ -91,7 +91,8 @@ def test_fit_store_round_trip_resynthesises_like_the_fit(reconstructed):
     idx = np.arange(min(40, len(store)))
     R = np.asarray(src.field[store.rows[idx]], np.float32)
     fresh = skin.fit_reflectance(R, src.v_world[store.rows[idx]], lights,
-                                 depth=skin.SearchDepth(polish=FIT_SETTINGS["polish"]))
+                                 depth=skin.SearchDepth() if FIT_SETTINGS["polish"] is None
+                                 else skin.SearchDepth(polish=FIT_SETTINGS["polish"]))
     loaded = store.skin_fit(idx, R, lights)
     # refitting in other chunks changes the search's rounding only (fit_reflectance docs)
     for k in ("normal", "alpha_0", "alpha_1", "rho_s", "d_0"):
