@@ -228,7 +228,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     gt_functions : int — functions per camera in the resynthesis ground-truth comparison
     gt_angles : sequence of float, degrees
     mosaic : int — the mosaic shows mosaic × mosaic functions (0: none)
-    rig : {"ground_truth", "scan"}, optional — rig for view specs (default as ``project``)
+    rig : str, optional — rig for view specs (:func:`facegeo.pipeline.project.stage_rig`)
     polish : int or None — Levenberg–Marquardt iterations after the ramp search
         (``SearchDepth.polish``); None (default) keeps the skin module's default depth (10
         steps, then the chromaticity polish that pins the ramp's scale, docs/skin.md). Small
@@ -248,7 +248,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     )
     from facegeo.capture import imageio
     from facegeo.pipeline.bench import peak_rss_mb
-    from facegeo.pipeline.project import _rig
+    from facegeo.pipeline.project import stage_rig
     from facegeo.render import FitWriter, atlas_scene, light_set, load_sources
     from facegeo.surface.atlas import Atlas, Texels
 
@@ -264,7 +264,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     atlas = Atlas.load(atlas_dir / "atlas.npz")
     tex = Texels.load(atlas_dir / "texels.npz")
     sources = load_sources(project_dir)
-    the_rig, rig_used = _rig(scan, rig)
+    the_rig, rig_used = stage_rig(scan, rig)
     lights = light_set(the_rig.lights)
     if sources[0].field.shape[1] != lights.n_lights:
         raise InputError(f"{project_dir}: fields hold {sources[0].field.shape[1]} lights, the rig "

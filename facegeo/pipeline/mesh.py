@@ -12,8 +12,10 @@ of the decode stage) and writes ``out_dir/mesh/``:
 and records its metrics in ``out_dir/metrics.json`` under ``"mesh"``.
 
 Rig: ``rig="ground_truth"`` (default when the scan has one) uses the true rig the frames were
-rendered with, ``rig="scan"`` the scan's ``rig.json`` (the calibrated rig once calibration feeds
-the pipeline).
+rendered with, ``rig="scan"`` the scan's ``rig.json``, ``rig="calibrated"`` the ``calibrate``
+stage's ``out/calibrate/rig.json`` (or give a rig file). With any rig but the true one, the
+ground-truth metrics are also given after the best rigid alignment of the points to the true
+surface (``after_rigid_alignment``: a calibrated rig's world frame is its own gauge).
 
 Ground-truth metrics (synthetic scans; the mesh is ``scan.ground_truth_path("mesh")``):
 
@@ -68,13 +70,6 @@ def _scan(scan_dir):
     from facegeo.pipeline.project import _scan as scan_of
 
     return scan_of(scan_dir)
-
-
-def _rig(scan, rig: str | None):
-    """The rig to triangulate with: ``"ground_truth"`` or ``"scan"`` (as the project stage)."""
-    from facegeo.pipeline.project import _rig as project_rig
-
-    return project_rig(scan, rig)
 
 
 # ------------------------------------------------------------------------ decode maps
@@ -327,8 +322,9 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         Holds ``<camera>/decode.npz`` per camera.
     dest : path-like
         An existing directory.
-    rig : {"ground_truth", "scan"}, optional
-        Module docstring.
+    rig : str, optional
+        ``"ground_truth"``, ``"scan"``, ``"calibrated"`` or a rig file
+        (:func:`facegeo.pipeline.project.stage_rig`; module docstring).
     cameras : list of str, optional
         Default every camera with decode maps in ``decode_dir``.
     method : {"poisson", "grid"}
@@ -370,7 +366,9 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     decode_dir, dest = Path(decode_dir), Path(dest)
     if method not in ("poisson", "grid"):
         raise InputError(f"method: expected 'poisson' or 'grid', got {fmt_value(method)}")
-    the_rig, rig_used = _rig(scan, rig)
+    from facegeo.pipeline.project import stage_rig
+
+    the_rig, rig_used = stage_rig(scan, rig)
     if the_rig.projector is None:
         raise InputError(f"scan {scan.root}: the rig has no projector to triangulate against")
     if cameras is None:

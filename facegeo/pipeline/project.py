@@ -58,7 +58,7 @@ from facegeo.checks import fmt_value
 log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
-           "peak_rss_mb"]
+           "peak_rss_mb", "stage_rig", "RIG_CHOICES"]
 
 _GT_DEPTH_TOL_M = 1e-3
 
@@ -173,7 +173,7 @@ def run_atlas(scan_dir, out_dir=None, *, mesh: str = "ground_truth",
 RIG_CHOICES = ("ground_truth", "scan", "calibrated")
 
 
-def _rig(scan, rig: str | None):
+def stage_rig(scan, rig: str | None):
     """The rig a stage works with, and its name for the metrics.
 
     ``"ground_truth"`` — a synthetic scan's true rig (the default when there is one);
@@ -295,8 +295,9 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
     scan_dir : path-like or Scan
     out_dir : path-like, optional
         Default the scan's ``out/``; ``out_dir/atlas/`` is built first when missing.
-    rig : {"ground_truth", "scan"}, optional
-        Which rig places the cameras (module docstring).
+    rig : str, optional
+        Which rig places the cameras: ``"ground_truth"``, ``"scan"``, ``"calibrated"`` or a rig
+        file (:func:`stage_rig`).
     mesh : str
         The mesh the texels lie on (must be the atlas's mesh).
     min_cos, feather_px, depth_jump
@@ -354,7 +355,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     face_input = atlas.face_map[texels.face]  # input-mesh face of each texel
     V, F, _ = load_mesh(scan, mesh)
     scene = RayScene(V, F)
-    the_rig, rig_used = _rig(scan, rig)
+    the_rig, rig_used = stage_rig(scan, rig)
     names = list(cameras) if cameras is not None else scan.camera_names
     for n in names:
         if n not in scan.camera_names:

@@ -143,7 +143,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     reference : bool — compare with the generator's reference (synthetic scans)
     name : str, optional — output stem (default from the camera and environment)
     blend_power : float, optional — view-dependent weight exponent
-    rig : {"ground_truth", "scan"}, optional — default as the ``project`` stage used
+    rig : str, optional — :func:`facegeo.pipeline.project.stage_rig`; default as the ``project`` stage used
     solid_angle : {"paper", "exact"} — δA rule of the Eq. (4) weights
     fill_px : float, pixels — hole filling of unmeasured hit samples from the nearest measured
         pixel within this distance (:func:`facegeo.render.render_view`; 0: off); filled
@@ -181,7 +181,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     from facegeo.fsutil import atomic_write_text
     from facegeo.lighting import envmap as E
     from facegeo.pipeline.fit import _camera_table
-    from facegeo.pipeline.project import _rig
+    from facegeo.pipeline.project import stage_rig
     from facegeo.pipeline.relight import tone_map
     from facegeo.render import (
         atlas_scene,
@@ -207,7 +207,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
             rig = json.loads((out / "project" / "stage.json").read_text())["settings"]["rig"]
         except (OSError, ValueError, KeyError):
             rig = None
-    the_rig, rig_used = _rig(scan, rig)
+    the_rig, rig_used = stage_rig(scan, rig)
     camera = parse_camera_spec(camera_spec, _camera_table(scan, the_rig))
     environment = _load_env(env, projection, rotate_deg)
     stage = the_rig.lights
