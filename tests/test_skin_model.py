@@ -853,8 +853,9 @@ def test_median_ratio_kernel_equals_numpy_reference(monkeypatch):
 
 #: Compiled resynthesis (_skin_resynth_kernels) against the numpy reference (KERNELS off):
 #: max |Δ| over reflectance, diffuse and specular / max |reference reflectance|. Same formulas
-#: in the same order; only FMA contraction and float32 rounding of the outputs differ (measured
-#: 0 to 1e-7); a wrong factor, light or interpolation node moves samples by > 1e-3.
+#: up to float64 rounding (reciprocals for divisions, FMA contraction), which the float32
+#: outputs hide: measured bit-identical on these cases; a wrong factor, light or interpolation
+#: node moves samples by > 1e-3 (tried: F at 0.999 v·H, l_q's z scaled by 0.9999).
 RESYNTH_KERNEL_REL = 1e-5
 #: resynthesize_relit against resynthesize(...).reflectance @ weights: max |Δ| / max |ref|.
 #: The reference rounds each new sample to float32 before the sum (≈ 6e-8 relative).

@@ -28,6 +28,7 @@ from facegeo.appearance._skin_kernels import _FM
 
 _S = 1.0 / math.sqrt(3.0)  # a component of S_WHITE
 _TWO_PI = 2.0 * math.pi
+_THIRD = 1.0 / 3.0
 
 
 # ------------------------------------------------------------------------------- BRDF factors
@@ -73,10 +74,12 @@ def _grid_interp(micro, shadow_i, nt, npf, x, y, z):
     j0 = math.floor(fj)
     fi -= i0
     fj -= j0
-    ia = int(i0) % nt
+    ia = int(i0)  # in [-1, nt - 1] up to rounding: wrap without integer division
     if ia < 0:
         ia += nt
-    ib = (ia + 1) % nt
+    elif ia >= nt:
+        ia -= nt
+    ib = ia + 1 if ia + 1 < nt else 0
     j0i = int(j0)
     ja = min(max(j0i, 0), npf - 1)
     jb = min(max(j0i + 1, 0), npf - 1)
@@ -129,7 +132,7 @@ def _free_interp(micro, shadow_i, dirs, x, y, z):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
-def _prepare(i, D, S, E, dirs, sa, nrm, v0, eta2m1, skip, micro):
+def _prepare(i, D, S, iE, dirs, sa, nrm, v0, eta2m1, skip, micro):
     """Per function: whether its specular part is resynthesised (energy above ``skip`` of the
     total, as ``_skin_resynth.resynthesize``) and, if so, the microfacet values on the nodes
     ``micro[l] = σ_l (n·v_0)/(G(v_0, l, n) F(v_0·h_l))`` (0 where ``G F ≤ 1e-6``) of
@@ -138,9 +141,10 @@ def _prepare(i, D, S, E, dirs, sa, nrm, v0, eta2m1, skip, micro):
     energy = 0.0
     total = 0.0
     for j in range(L):
-        sig = (S[i, j, 0] / E[j, 0] + S[i, j, 1] / E[j, 1] + S[i, j, 2] / E[j, 2]) / 3.0
-        tot = (abs((D[i, j, 0] + S[i, j, 0]) / E[j, 0]) + abs((D[i, j, 1] + S[i, j, 1]) / E[j, 1])
-               + abs((D[i, j, 2] + S[i, j, 2]) / E[j, 2])) / 3.0
+        s0, s1, s2 = S[i, j, 0] * iE[j, 0], S[i, j, 1] * iE[j, 1], S[i, j, 2] * iE[j, 2]
+        sig = (s0 + s1 + s2) * _THIRD
+        tot = (abs(D[i, j, 0] * iE[j, 0] + s0) + abs(D[i, j, 1] * iE[j, 1] + s1)
+               + abs(D[i, j, 2] * iE[j, 2] + s2)) * _THIRD
         energy += sig * sa[j]
         total += tot * sa[j]
         micro[j] = sig
@@ -156,7 +160,8 @@ def _prepare(i, D, S, E, dirs, sa, nrm, v0, eta2m1, skip, micro):
         hx, hy, hz = lx + vx, ly + vy, lz + vz
         hn = math.sqrt(hx * hx + hy * hy + hz * hz)
         if hn > 1e-30:
-            hx, hy, hz = hx / hn, hy / hn, hz / hn
+            r = 1.0 / hn
+            hx, hy, hz = hx * r, hy * r, hz * r
         else:
             hx, hy, hz = nx, ny, nz
         nh = hx * nx + hy * ny + hz * nz
@@ -168,27 +173,29 @@ def _prepare(i, D, S, E, dirs, sa, nrm, v0, eta2m1, skip, micro):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
-def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, f0, fn):
+def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, ie_r, ie_g, ie_b, f0, fn):
     """Diffuse sample chroma-shifted from v_0 to v_n (``resynthesize_diffuse``): ``c`` the
     sample's chromaticity, d = Eq. 6 inverted at f0 (``invert_ramp``), Eq. 6 at fn applied,
     brightness |D/E| kept. Returns the new RGB sample in input units."""
-    wr, wg, wb = d_r / e_r, d_g / e_g, d_b / e_b
+    wr, wg, wb = d_r * ie_r, d_g * ie_g, d_b * ie_b
     b = math.sqrt(wr * wr + wg * wg + wb * wb)
     if b > 1e-30:
-        cr, cg, cb = wr / b, wg / b, wb / b
+        r = 1.0 / b
+        cr, cg, cb = wr * r, wg * r, wb * r
     else:
         cr, cg, cb = _S, _S, _S
     cs = cr * _S + cg * _S + cb * _S
     disc = f0 * f0 * cs * cs + 1.0 + 2.0 * f0
     if disc >= 0.0 and abs(1.0 + f0) > 1e-6:
         mu = -f0 * cs + math.sqrt(disc)
-        den = 1.0 + f0
-        dr = (mu * cr + f0 * _S) / den
-        dg = (mu * cg + f0 * _S) / den
-        db = (mu * cb + f0 * _S) / den
+        r = 1.0 / (1.0 + f0)
+        dr = (mu * cr + f0 * _S) * r
+        dg = (mu * cg + f0 * _S) * r
+        db = (mu * cb + f0 * _S) * r
         r = math.sqrt(dr * dr + dg * dg + db * db)
         if r > 1e-30:
-            dr, dg, db = dr / r, dg / r, db / r
+            r = 1.0 / r
+            dr, dg, db = dr * r, dg * r, db * r
         else:
             dr, dg, db = _S, _S, _S
     else:
@@ -198,18 +205,19 @@ def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, f0, fn):
     qb = db + fn * (db - _S)
     r = math.sqrt(qr * qr + qg * qg + qb * qb)
     if r > 1e-30:
-        qr, qg, qb = qr / r, qg / r, qb / r
-    else:
-        qr, qg, qb = _S, _S, _S
-    return b * qr * e_r, b * qg * e_g, b * qb * e_b
+        r = b / r  # normalised, times the brightness
+        return qr * r * e_r, qg * r * e_g, qb * r * e_b
+    r = b * _S
+    return r * e_r, r * e_g, r * e_b
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
-def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1):
+def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, inv_nvn):
     """Eq. 9's white-balanced specular sample for light ``j`` (``resynthesize_specular``) and
     whether it came from a shadowed source direction (lit l_p, l_q in shadow). Zero where l_p
     is occluded or below the horizon, H is undefined, n·H ≤ 0 or l_q is below the horizon;
-    the caller has checked n·v_0 > 0 and n·v_n > 0."""
+    the caller has checked n·v_0 > 0 and n·v_n > 0 and passes n·v_n and
+    ``1/max(n·v_n, COS_FLOOR)``."""
     if cast[i, j]:
         return 0.0, False
     nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
@@ -222,7 +230,8 @@ def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1):
     hn = math.sqrt(hx * hx + hy * hy + hz * hz)
     if not hn > 1e-9:
         return 0.0, False
-    hx, hy, hz = hx / hn, hy / hn, hz / hn
+    r = 1.0 / hn
+    hx, hy, hz = hx * r, hy * r, hz * r
     nH = hx * nx + hy * ny + hz * nz
     if not nH > 0.0:
         return 0.0, False
@@ -233,7 +242,8 @@ def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1):
     qz = 2.0 * hv0 * hz - vz
     qn = math.sqrt(qx * qx + qy * qy + qz * qz)
     if qn > 1e-30:
-        qx, qy, qz = qx / qn, qy / qn, qz / qn
+        r = 1.0 / qn
+        qx, qy, qz = qx * r, qy * r, qz * r
     else:
         qx, qy, qz = nx, ny, nz
     nlq = qx * nx + qy * ny + qz * nz
@@ -243,11 +253,10 @@ def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1):
         m_q, sh_q = _grid_interp(micro, cast[i], nt, npf, qx, qy, qz)
     else:
         m_q, sh_q = _free_interp(micro, cast[i], dirs, qx, qy, qz)
-    nvn = nx * ux + ny * uy + nz * uz
     vnH = hx * ux + hy * uy + hz * uz
     g = _geometry(nlp, nvn, nH, vnH)
     f = _fresnel(vnH, eta2m1)
-    return max(m_q * g * f / max(nvn, 1e-4), 0.0), sh_q > 0.5
+    return max(m_q * g * f * inv_nvn, 0.0), sh_q > 0.5
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
@@ -285,6 +294,7 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
     spec = np.empty((N, L, 3), np.float32)
     flags = np.zeros(N, np.int32)
     e2 = eta * eta - 1.0
+    iE = 1.0 / E
     for i in prange(N):
         if same[i] or back[i]:
             for j in range(L):
@@ -297,7 +307,7 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
             if same[i]:
                 continue
         micro = np.empty(L)
-        if not _prepare(i, D, S, E, dirs, sa, nrm, v0, e2, skip, micro):
+        if not _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro):
             flags[i] |= flag_skipped
             do_spec = False
         else:
@@ -308,16 +318,18 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
         nv0 = nx * v0[i, 0] + ny * v0[i, 1] + nz * v0[i, 2]
         nvn = nx * vn[i, 0] + ny * vn[i, 1] + nz * vn[i, 2]
         lobe = do_spec and nv0 > 0.0 and nvn > 0.0
+        inv_nvn = 1.0 / max(nvn, 1e-4)
         hidden = False
         for j in range(L):
             nl = nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2]
             f0 = _ramp_f(nl, nv0, a0[i], a1[i])
             fn = _ramp_f(nl, nvn, a0[i], a1[i])
             dr, dg, db = _diffuse(D[i, j, 0], D[i, j, 1], D[i, j, 2], E[j, 0], E[j, 1], E[j, 2],
-                                  f0, fn)
+                                  iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
             sw = 0.0
             if lobe:
-                sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2)
+                sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
+                                    inv_nvn)
                 hidden |= hid
             sr, sg, sb = sw * E[j, 0], sw * E[j, 1], sw * E[j, 2]
             diff[i, j, 0], diff[i, j, 1], diff[i, j, 2] = dr, dg, db
@@ -343,6 +355,7 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
     A = active.size
     out = np.zeros((N, 3))
     e2 = eta * eta - 1.0
+    iE = 1.0 / E
     for i in prange(N):
         if back[i]:
             continue
@@ -353,11 +366,12 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
                     out[i, c] += w[k, c] * (np.float64(D[i, j, c]) + np.float64(S[i, j, c]))
             continue
         micro = np.empty(L)
-        do_spec = _prepare(i, D, S, E, dirs, sa, nrm, v0, e2, skip, micro)
+        do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
         nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
         nv0 = nx * v0[i, 0] + ny * v0[i, 1] + nz * v0[i, 2]
         nvn = nx * vn[i, 0] + ny * vn[i, 1] + nz * vn[i, 2]
         lobe = do_spec and nv0 > 0.0 and nvn > 0.0
+        inv_nvn = 1.0 / max(nvn, 1e-4)
         acc_r = acc_g = acc_b = 0.0
         for k in range(A):
             j = active[k]
@@ -365,10 +379,11 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
             f0 = _ramp_f(nl, nv0, a0[i], a1[i])
             fn = _ramp_f(nl, nvn, a0[i], a1[i])
             dr, dg, db = _diffuse(D[i, j, 0], D[i, j, 1], D[i, j, 2], E[j, 0], E[j, 1], E[j, 2],
-                                  f0, fn)
+                                  iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
             sw = 0.0
             if lobe:
-                sw, _ = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2)
+                sw, _ = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
+                                    inv_nvn)
             acc_r += w[k, 0] * (dr + sw * E[j, 0])
             acc_g += w[k, 1] * (dg + sw * E[j, 1])
             acc_b += w[k, 2] * (db + sw * E[j, 2])
