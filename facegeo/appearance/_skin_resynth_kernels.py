@@ -157,6 +157,10 @@ def _prepare(i, D, S, iE, dirs, sa, nrm, v0, eta2m1, skip, micro):
     nv0p = max(nv0, 0.0)
     for j in range(L):
         lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+        nl = nx * lx + ny * ly + nz * lz
+        if not nl > 0.0 or micro[j] == 0.0:
+            micro[j] = 0.0  # G = 0 below the horizon (G F ≤ 1e-6 there), or no sample
+            continue
         hx, hy, hz = lx + vx, ly + vy, lz + vz
         hn = math.sqrt(hx * hx + hy * hy + hz * hz)
         if hn > 1e-30:
@@ -166,7 +170,6 @@ def _prepare(i, D, S, iE, dirs, sa, nrm, v0, eta2m1, skip, micro):
             hx, hy, hz = nx, ny, nz
         nh = hx * nx + hy * ny + hz * nz
         vh = hx * vx + hy * vy + hz * vz
-        nl = nx * lx + ny * ly + nz * lz
         gf = _geometry(nl, nv0, nh, vh) * _fresnel(vh, eta2m1)
         micro[j] = micro[j] * nv0p / gf if gf > 1e-6 else 0.0
     return True
