@@ -34,6 +34,17 @@ _THIRD = 1.0 / 3.0
 # ------------------------------------------------------------------------------- BRDF factors
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _unit(x, y, z, fx, fy, fz):
+    """``_skin_model.normalize`` of one vector: (x, y, z)/|·|, the fallback (fx, fy, fz)
+    where the norm is ≤ 1e-30; also returns the norm."""
+    r = math.sqrt(x * x + y * y + z * z)
+    if r > 1e-30:
+        q = 1.0 / r
+        return x * q, y * q, z * q, r
+    return fx, fy, fz, r
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _fresnel(cos_d, e2):
     """``brdf.fresnel_dielectric`` with ``e2 = η² − 1`` (cos clipped to [0, 1])."""
@@ -161,13 +172,7 @@ def _prepare(i, D, S, iE, dirs, sa, nrm, v0, eta2m1, skip, micro):
         if not nl > 0.0 or micro[j] == 0.0:
             micro[j] = 0.0  # G = 0 below the horizon (G F ≤ 1e-6 there), or no sample
             continue
-        hx, hy, hz = lx + vx, ly + vy, lz + vz
-        hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-        if hn > 1e-30:
-            r = 1.0 / hn
-            hx, hy, hz = hx * r, hy * r, hz * r
-        else:
-            hx, hy, hz = nx, ny, nz
+        hx, hy, hz, _ = _unit(lx + vx, ly + vy, lz + vz, nx, ny, nz)
         nh = hx * nx + hy * ny + hz * nz
         vh = hx * vx + hy * vy + hz * vz
         gf = _geometry(nl, nv0, nh, vh) * _fresnel(vh, eta2m1)
@@ -180,27 +185,14 @@ def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, ie_r, ie_g, ie_b, f0, fn):
     """Diffuse sample chroma-shifted from v_0 to v_n (``resynthesize_diffuse``): ``c`` the
     sample's chromaticity, d = Eq. 6 inverted at f0 (``invert_ramp``), Eq. 6 at fn applied,
     brightness |D/E| kept. Returns the new RGB sample in input units."""
-    wr, wg, wb = d_r * ie_r, d_g * ie_g, d_b * ie_b
-    b = math.sqrt(wr * wr + wg * wg + wb * wb)
-    if b > 1e-30:
-        r = 1.0 / b
-        cr, cg, cb = wr * r, wg * r, wb * r
-    else:
-        cr, cg, cb = _S, _S, _S
+    cr, cg, cb, b = _unit(d_r * ie_r, d_g * ie_g, d_b * ie_b, _S, _S, _S)
     cs = cr * _S + cg * _S + cb * _S
     disc = f0 * f0 * cs * cs + 1.0 + 2.0 * f0
     if disc >= 0.0 and abs(1.0 + f0) > 1e-6:
         mu = -f0 * cs + math.sqrt(disc)
         r = 1.0 / (1.0 + f0)
-        dr = (mu * cr + f0 * _S) * r
-        dg = (mu * cg + f0 * _S) * r
-        db = (mu * cb + f0 * _S) * r
-        r = math.sqrt(dr * dr + dg * dg + db * db)
-        if r > 1e-30:
-            r = 1.0 / r
-            dr, dg, db = dr * r, dg * r, db * r
-        else:
-            dr, dg, db = _S, _S, _S
+        dr, dg, db, _ = _unit((mu * cr + f0 * _S) * r, (mu * cg + f0 * _S) * r,
+                              (mu * cb + f0 * _S) * r, _S, _S, _S)
     else:
         dr, dg, db = cr, cg, cb
     qr = dr + fn * (dr - _S)
@@ -240,15 +232,8 @@ def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, 
         return 0.0, False
     vx, vy, vz = v0[i, 0], v0[i, 1], v0[i, 2]
     hv0 = hx * vx + hy * vy + hz * vz
-    qx = 2.0 * hv0 * hx - vx
-    qy = 2.0 * hv0 * hy - vy
-    qz = 2.0 * hv0 * hz - vz
-    qn = math.sqrt(qx * qx + qy * qy + qz * qz)
-    if qn > 1e-30:
-        r = 1.0 / qn
-        qx, qy, qz = qx * r, qy * r, qz * r
-    else:
-        qx, qy, qz = nx, ny, nz
+    qx, qy, qz, _ = _unit(2.0 * hv0 * hx - vx, 2.0 * hv0 * hy - vy, 2.0 * hv0 * hz - vz,
+                          nx, ny, nz)
     nlq = qx * nx + qy * ny + qz * nz
     if not nlq > 0.0:
         return 0.0, False
@@ -270,6 +255,33 @@ def _ramp_f(nl, nv, a0, a1):
 
 
 # ------------------------------------------------------------------------------- kernels
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _view_cosines(i, nrm, v0, vn, do_spec):
+    """n·v_0, n·v_n, whether Eq. 9 can give a lobe at all (specular kept, both views above
+    the horizon) and ``1/max(n·v_n, COS_FLOOR)``."""
+    nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+    nv0 = nx * v0[i, 0] + ny * v0[i, 1] + nz * v0[i, 2]
+    nvn = nx * vn[i, 0] + ny * vn[i, 1] + nz * vn[i, 2]
+    return nv0, nvn, do_spec and nv0 > 0.0 and nvn > 0.0, 1.0 / max(nvn, 1e-4)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro, nv0, nvn, lobe, inv_nvn,
+            grid, nt, npf, e2):
+    """Light ``j`` of function ``i`` resynthesised: the diffuse RGB sample (input units), the
+    white-balanced Eq. 9 specular sample and whether it came from a shadowed source direction."""
+    nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
+    f0 = _ramp_f(nl, nv0, a0[i], a1[i])
+    fn = _ramp_f(nl, nvn, a0[i], a1[i])
+    dr, dg, db = _diffuse(D[i, j, 0], D[i, j, 1], D[i, j, 2], E[j, 0], E[j, 1], E[j, 2],
+                          iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
+    if lobe:
+        sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
+                            inv_nvn)
+        return dr, dg, db, sw, hid
+    return dr, dg, db, 0.0, False
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
@@ -310,30 +322,17 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
             if same[i]:
                 continue
         micro = np.empty(L)
-        if not _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro):
+        do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
+        if not do_spec:
             flags[i] |= flag_skipped
-            do_spec = False
-        else:
-            do_spec = True
         if back[i]:
             continue
-        nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
-        nv0 = nx * v0[i, 0] + ny * v0[i, 1] + nz * v0[i, 2]
-        nvn = nx * vn[i, 0] + ny * vn[i, 1] + nz * vn[i, 2]
-        lobe = do_spec and nv0 > 0.0 and nvn > 0.0
-        inv_nvn = 1.0 / max(nvn, 1e-4)
+        nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
         hidden = False
         for j in range(L):
-            nl = nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2]
-            f0 = _ramp_f(nl, nv0, a0[i], a1[i])
-            fn = _ramp_f(nl, nvn, a0[i], a1[i])
-            dr, dg, db = _diffuse(D[i, j, 0], D[i, j, 1], D[i, j, 2], E[j, 0], E[j, 1], E[j, 2],
-                                  iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
-            sw = 0.0
-            if lobe:
-                sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
-                                    inv_nvn)
-                hidden |= hid
+            dr, dg, db, sw, hid = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
+                                          nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2)
+            hidden |= hid
             sr, sg, sb = sw * E[j, 0], sw * E[j, 1], sw * E[j, 2]
             diff[i, j, 0], diff[i, j, 1], diff[i, j, 2] = dr, dg, db
             spec[i, j, 0], spec[i, j, 1], spec[i, j, 2] = sr, sg, sb
@@ -350,8 +349,9 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
     ``Σ_k w[k] ⊙ R_new(l = active[k])`` over the lights that carry energy.
 
     Parameters as :func:`resynth_full`, plus ``active`` (A,) int64 light indices and ``w``
-    (A, 3) float64 their weights (δA included). Returns (N, 3) float64. The new samples are
-    summed in float64 (the reference rounds them to float32 first).
+    (A, 3) float64 their weights (δA included). Returns (N, 3) float64, 0 for back-facing
+    functions. The new samples are summed in float64 (the reference rounds them to float32
+    first).
     """
     N = D.shape[0]
     L = dirs.shape[0]
@@ -370,23 +370,12 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
             continue
         micro = np.empty(L)
         do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
-        nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
-        nv0 = nx * v0[i, 0] + ny * v0[i, 1] + nz * v0[i, 2]
-        nvn = nx * vn[i, 0] + ny * vn[i, 1] + nz * vn[i, 2]
-        lobe = do_spec and nv0 > 0.0 and nvn > 0.0
-        inv_nvn = 1.0 / max(nvn, 1e-4)
+        nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
         acc_r = acc_g = acc_b = 0.0
         for k in range(A):
             j = active[k]
-            nl = nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2]
-            f0 = _ramp_f(nl, nv0, a0[i], a1[i])
-            fn = _ramp_f(nl, nvn, a0[i], a1[i])
-            dr, dg, db = _diffuse(D[i, j, 0], D[i, j, 1], D[i, j, 2], E[j, 0], E[j, 1], E[j, 2],
-                                  iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
-            sw = 0.0
-            if lobe:
-                sw, _ = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
-                                    inv_nvn)
+            dr, dg, db, sw, _ = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
+                                        nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2)
             acc_r += w[k, 0] * (dr + sw * E[j, 0])
             acc_g += w[k, 1] * (dg + sw * E[j, 1])
             acc_b += w[k, 2] * (db + sw * E[j, 2])
