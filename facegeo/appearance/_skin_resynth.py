@@ -1,6 +1,10 @@
 """Resynthesis of reflectance functions for novel views (Debevec et al. 2000, §4.3, Eq. 9).
 
-Private module behind :mod:`facegeo.appearance.skin`.
+Private module behind :mod:`facegeo.appearance.skin`. The numpy functions here are the
+reference; with ``KERNELS`` (default) :func:`resynthesize` and :func:`resynthesize_relit` run
+the compiled kernels of ``_skin_resynth_kernels`` instead (same formulas, one function per
+thread, no ``(N, L, 3)`` temporaries; equal to the reference to rounding, tested in
+``tests/test_skin_model.py``).
 """
 
 from __future__ import annotations

@@ -241,6 +241,8 @@ def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, 
         m_q, sh_q = _grid_interp(micro, cast[i], nt, npf, qx, qy, qz)
     else:
         m_q, sh_q = _free_interp(micro, cast[i], dirs, qx, qy, qz)
+    if m_q == 0.0:  # no lobe at l_q (G and F are finite, so the sample is 0)
+        return 0.0, sh_q > 0.5
     vnH = hx * ux + hy * uy + hz * uz
     g = _geometry(nlp, nvn, nH, vnH)
     f = _fresnel(vnH, eta2m1)
