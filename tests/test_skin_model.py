@@ -955,3 +955,28 @@ def test_resynthesize_relit_equals_relit_resynthesis(monkeypatch, kernels):
         assert np.abs(got - ref).max() <= RESYNTH_RELIT_REL * np.abs(ref).max()
     with pytest.raises(ShapeError, match="weights"):
         _skin_resynth.resynthesize_relit(fit, vn, w[:-1])
+
+
+def test_resynthesis_kernel_threads_do_not_change_the_result():
+    """One function per thread: resynthesize and resynthesize_relit are bit-identical at any
+    numba thread count (a race on the per-function scratch would show here)."""
+    import numba
+
+    from facegeo.appearance import _skin_resynth
+
+    rng = np.random.default_rng(34)
+    lights = skin.LightSet.from_grid(16, 8)
+    fit, vn = _resynth_hard_case(rng, lights, N=40)
+    w = rng.uniform(0.0, 1.0, (lights.n_lights, 3))
+    out = {}
+    old = numba.get_num_threads()
+    try:
+        for t in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(t)
+            out[t] = (skin.resynthesize(fit, vn), _skin_resynth.resynthesize_relit(fit, vn, w))
+    finally:
+        numba.set_num_threads(old)
+    a, b = out[1], out[max(out)]
+    for k in ("reflectance", "diffuse", "specular", "flags"):
+        assert np.array_equal(getattr(a[0], k), getattr(b[0], k)), k
+    assert np.array_equal(a[1], b[1])
