@@ -311,9 +311,9 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     ``out[i] = Σ_l w_l ⊙ R_new,i(l)`` (Debevec et al. 2000, Eq. 4, with the δA_l inside the
     weights), where ``R_new`` is :func:`resynthesize`'s ``reflectance`` — without building it:
     with ``KERNELS`` the compiled ``_skin_resynth_kernels.resynth_relit`` visits, per function,
-    only the lights whose weight is non-zero (the lights that carry energy). Back-facing
-    functions (FLAG_BACKFACING) give 0 as in :func:`resynthesize`; callers that want another
-    fallback test ``fit.normal · v_n <= 0`` themselves.
+    only the lights whose weight is non-zero (the lights that carry energy). Functions with
+    ``n·v_n <= 0`` (FLAG_BACKFACING) give 0 as in :func:`resynthesize`; callers that want
+    another fallback test ``fit.normal · v_n <= 0`` themselves.
 
     Deviation from ``resynthesize(fit, v_n).reflectance @ weights``: the new samples are summed
     in float64 (the reference rounds each to float32 first), a relative difference of order
