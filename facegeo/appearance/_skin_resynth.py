@@ -1,6 +1,10 @@
 """Resynthesis of reflectance functions for novel views (Debevec et al. 2000, §4.3, Eq. 9).
 
-Private module behind :mod:`facegeo.appearance.skin`.
+Private module behind :mod:`facegeo.appearance.skin`. The numpy functions here are the
+reference; with ``KERNELS`` (default) :func:`resynthesize` and :func:`resynthesize_relit` run
+the compiled kernels of ``_skin_resynth_kernels`` instead (same formulas, one function per
+thread, no ``(N, L, 3)`` temporaries; equal to the reference to rounding, tested in
+``tests/test_skin_model.py``).
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from facegeo.appearance._skin_model import (
     ramp_f,
 )
 from facegeo.appearance.brdf import fresnel_dielectric, torrance_sparrow_geometry
+from facegeo.checks import as_array
 
 #: Functions whose specular energy is below this fraction of their total energy skip the
 #: specular resynthesis (their specular part is dropped and flagged).
@@ -33,6 +38,11 @@ SPECULAR_SKIP = 1e-4
 #: A v_n within this distance of v_0 counts as the source view: the measured function is
 #: returned unchanged (the paper's guarantee, without interpolation rounding).
 SAME_VIEW_TOL = 1e-12
+
+#: Run :func:`resynthesize` and :func:`resynthesize_relit` in the compiled kernels of
+#: ``_skin_resynth_kernels`` (numba; one function per ``prange`` iteration, no ``(N, L, 3)``
+#: temporaries). False: the numpy reference below, which the kernels are tested against.
+KERNELS = True
 
 
 @dataclass
@@ -193,6 +203,34 @@ def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta):
     return np.maximum(spec, 0.0), hidden_l.any(axis=1)
 
 
+def _views_and_masks(fit, v_n):
+    """The checked novel views ``(N, 3)``, the input flags with FLAG_BACKFACING, and the
+    same-view / back-facing masks of :func:`resynthesize`."""
+    N = fit.diffuse.shape[0]
+    vn = check_views(v_n, N)
+    same = np.linalg.norm(vn - fit.view, axis=1) <= SAME_VIEW_TOL
+    back = np.einsum("ni,ni->n", fit.normal, vn) <= 0
+    flags = fit.flags.astype(np.int32) | np.where(back, FLAG_BACKFACING, 0).astype(np.int32)
+    return vn, flags, same, back
+
+
+def _kernel_args(fit, vn, same, back, specular_skip):
+    """The arguments :mod:`_skin_resynth_kernels` shares between its two kernels."""
+    c = np.ascontiguousarray
+    lights = fit.lights
+    grid = lights.grid is not None
+    nt, npf = lights.grid if grid else (1, 1)
+
+    def comp(a):  # float32 components are read as they are (the reference widens them)
+        return c(a) if a.dtype in (np.float32, np.float64) else c(a, np.float64)
+
+    return (comp(fit.diffuse), comp(fit.specular), c(lights.intensities, np.float64),
+            c(lights.directions, np.float64), c(lights.solid_angles, np.float64),
+            c(fit.cast_shadow, np.bool_), c(fit.normal, np.float64), c(fit.view, np.float64),
+            c(vn, np.float64), c(fit.alpha_0, np.float64), c(fit.alpha_1, np.float64),
+            c(same), c(back), grid, int(nt), int(npf), float(fit.eta), float(specular_skip))
+
+
 def resynthesize(fit, v_n, *, view_independent_form: bool = False,
                  specular_skip: float = SPECULAR_SKIP) -> Resynthesis:
     """Reflectance functions as seen from a novel view v_n (Debevec et al. 2000, §4.3, Fig. 12).
@@ -205,6 +243,10 @@ def resynthesize(fit, v_n, *, view_independent_form: bool = False,
     transformed to the view-independent form (v = n, Fig. 12 e; :func:`view_independent`) and
     resynthesised from there. Single-channel fits keep their (diffuse) function unchanged.
 
+    With ``KERNELS`` (default) the work runs in the compiled kernel
+    ``_skin_resynth_kernels.resynth_full`` (one function per thread, no ``(N, L, 3)``
+    temporaries); it equals this module's numpy path to rounding.
+
     Parameters
     ----------
     fit : SkinFit
@@ -214,22 +256,33 @@ def resynthesize(fit, v_n, *, view_independent_form: bool = False,
     -------
     Resynthesis
     """
-    N, L, C = fit.diffuse.shape
-    vn = check_views(v_n, N)
     if view_independent_form:
+        check_views(v_n, fit.diffuse.shape[0])
         fit = view_independent(fit, specular_skip=specular_skip)
-    flags = fit.flags.astype(np.int32).copy()
-    D = fit.diffuse.astype(np.float64)
-    S = fit.specular.astype(np.float64)
-    same = np.linalg.norm(vn - fit.view, axis=1) <= SAME_VIEW_TOL
-    back = np.einsum("ni,ni->n", fit.normal, vn) <= 0
-    flags |= np.where(back, FLAG_BACKFACING, 0).astype(np.int32)
-    D_new = D.copy()
-    S_new = S.copy()
+    vn, flags, same, back = _views_and_masks(fit, v_n)
     todo = np.flatnonzero(~same)
     if fit.single_channel or todo.size == 0:
-        return Resynthesis((D_new + S_new).astype(np.float32), D_new.astype(np.float32),
-                           S_new.astype(np.float32), flags)
+        D = fit.diffuse.astype(np.float64)
+        S = fit.specular.astype(np.float64)
+        return Resynthesis((D + S).astype(np.float32), D.astype(np.float32),
+                           S.astype(np.float32), flags)
+    if KERNELS:
+        from facegeo.appearance._skin_resynth_kernels import resynth_full
+
+        refl, diff, spec, kflags = resynth_full(
+            *_kernel_args(fit, vn, same, back, specular_skip),
+            FLAG_SPECULAR_SKIPPED, FLAG_SPECULAR_IN_SHADOW)
+        return Resynthesis(refl, diff, spec, flags | kflags)
+    return _resynthesize_numpy(fit, vn, flags, same, back, todo, specular_skip)
+
+
+def _resynthesize_numpy(fit, vn, flags, same, back, todo, specular_skip) -> Resynthesis:
+    """The numpy reference of :func:`resynthesize` (``KERNELS = False``) for a 3-channel fit
+    with at least one function to resynthesise."""
+    D = fit.diffuse.astype(np.float64)
+    S = fit.specular.astype(np.float64)
+    D_new = D.copy()
+    S_new = S.copy()
     E = fit.lights.intensities
     n, v0 = fit.normal[todo], fit.view[todo]
     D_new[todo] = resynthesize_diffuse(D[todo], E, n, v0, vn[todo], fit.alpha_0[todo],
@@ -250,6 +303,47 @@ def resynthesize(fit, v_n, *, view_independent_form: bool = False,
     S_new[back] = 0.0
     return Resynthesis((D_new + S_new).astype(np.float32), D_new.astype(np.float32),
                        S_new.astype(np.float32), flags)
+
+
+def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKIP) -> np.ndarray:
+    """Relit radiance of the functions resynthesised for v_n: Eq. 4 on :func:`resynthesize`.
+
+    ``out[i] = Σ_l w_l ⊙ R_new,i(l)`` (Debevec et al. 2000, Eq. 4, with the δA_l inside the
+    weights), where ``R_new`` is :func:`resynthesize`'s ``reflectance`` — without building it:
+    with ``KERNELS`` the compiled ``_skin_resynth_kernels.resynth_relit`` visits, per function,
+    only the lights whose weight is non-zero (the lights that carry energy). Functions with
+    ``n·v_n <= 0`` (FLAG_BACKFACING) give 0 as in :func:`resynthesize`; callers that want
+    another fallback test ``fit.normal · v_n <= 0`` themselves.
+
+    Deviation from ``resynthesize(fit, v_n).reflectance @ weights``: the new samples are summed
+    in float64 (the reference rounds each to float32 first), a relative difference of order
+    1e-7.
+
+    Parameters
+    ----------
+    fit : SkinFit
+    v_n : (3,) or (N, 3) array_like, unit, the light set's frame
+    weights : (L, C) array_like — per-light, per-channel weights in the field's units
+
+    Returns
+    -------
+    (N, C) float64
+    """
+    N, L, C = fit.diffuse.shape
+    w = as_array(weights, "weights", shape=(L, C))
+    if not KERNELS or fit.single_channel or C != 3:
+        r = resynthesize(fit, v_n, specular_skip=specular_skip)
+        return np.einsum("nlc,lc->nc", r.reflectance, w)
+    vn, _, same, back = _views_and_masks(fit, v_n)
+    if not (~same).any():
+        # resynthesize returns the measured functions unchanged here (back-facing ones too)
+        R = fit.diffuse.astype(np.float64) + fit.specular.astype(np.float64)
+        return np.einsum("nlc,lc->nc", R, w)
+    from facegeo.appearance._skin_resynth_kernels import resynth_relit
+
+    active = np.flatnonzero(np.any(w != 0, axis=1)).astype(np.int64)
+    return resynth_relit(*_kernel_args(fit, vn, same, back, specular_skip), active,
+                         np.ascontiguousarray(w[active]))
 
 
 def view_independent(fit, *, specular_skip: float = SPECULAR_SKIP):

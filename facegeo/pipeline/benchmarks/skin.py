@@ -126,23 +126,51 @@ def bench_fit(quick: bool) -> list[BenchRow]:
 @register("skin.resynthesize")
 @one_blas_thread
 def bench_resynthesize(quick: bool) -> list[BenchRow]:
-    from facegeo.appearance import skin
+    from facegeo.appearance import _skin_resynth, skin
 
     n = 32 if quick else 128
     lights, nrm, p, v0, R = _case(n, 2)
     fit = skin.fit_reflectance(R, v0, lights, d_0=skin.normalize(p.rho_d))
     rows = []
-    for deg in (30.0, 60.0):
-        a = np.radians(deg)
-        vn = np.array([np.sin(a), 0.0, np.cos(a)])
-        truth = skin.paper_reflectance(nrm, vn, lights, p)
-        t, out = best_of(lambda: skin.resynthesize(fit, vn), repeat=2 if quick else 3)
-        rel = float(np.sqrt(np.sum((out.reflectance - truth) ** 2) / np.sum(truth ** 2)))
-        naive = float(np.sqrt(np.sum((R - truth) ** 2) / np.sum(truth ** 2)))
-        rows.append(BenchRow(
-            "skin.resynthesize", f"resynthesize (Eq. 9), 2048 lights, view {deg:.0f}° from source",
-            n / t, "functions/s", error=rel, error_unit="relative RMSE vs paper model at v_n",
-            ratios={"error vs naive (reuse source function)": rel / naive}, threads=1,
-            baseline_threads={"error vs naive (reuse source function)": 1},
-            extra={"naive relative RMSE": naive, "n": n}))
+    vn = np.array([0.5, 0.0, np.sqrt(0.75)])
+    w = np.where((lights.directions[:, 1] > 0)[:, None], lights.solid_angles[:, None], 0.0)
+    w = np.repeat(w, 3, axis=1)
+    # compile / load the kernels' cache
+    skin.resynthesize(fit, vn)
+    _skin_resynth.resynthesize_relit(fit, vn, w)
+    with skin._numba_threads(1):  # the compiled kernel on one thread, as the rows state
+        for deg in (30.0, 60.0):
+            a = np.radians(deg)
+            vn = np.array([np.sin(a), 0.0, np.cos(a)])
+            truth = skin.paper_reflectance(nrm, vn, lights, p)
+            t, out = best_of(lambda: skin.resynthesize(fit, vn), repeat=2 if quick else 3)
+            rel = float(np.sqrt(np.sum((out.reflectance - truth) ** 2) / np.sum(truth ** 2)))
+            naive = float(np.sqrt(np.sum((R - truth) ** 2) / np.sum(truth ** 2)))
+            rows.append(BenchRow(
+                "skin.resynthesize",
+                f"resynthesize (Eq. 9), 2048 lights, view {deg:.0f}° from source",
+                n / t, "functions/s", error=rel, error_unit="relative RMSE vs paper model at v_n",
+                ratios={"error vs naive (reuse source function)": rel / naive}, threads=1,
+                baseline_threads={"error vs naive (reuse source function)": 1},
+                extra={"naive relative RMSE": naive, "n": n}))
+        # the compiled kernel against the numpy reference (KERNELS off), same run, 1 thread each;
+        # and resynthesize_relit (Eq. 4 fused, no (N, L, 3) result) under a sky-like half dome
+        t_k, out_k = best_of(lambda: skin.resynthesize(fit, vn), repeat=3 if quick else 5)
+        t_relit, _ = best_of(lambda: _skin_resynth.resynthesize_relit(fit, vn, w),
+                             repeat=3 if quick else 5)
+        _skin_resynth.KERNELS = False
+        try:
+            t_ref, out_ref = best_of(lambda: skin.resynthesize(fit, vn), repeat=1 if quick else 2)
+        finally:
+            _skin_resynth.KERNELS = True
+    diff = float(np.abs(out_k.reflectance - out_ref.reflectance).max()
+                 / np.abs(out_ref.reflectance).max())
+    rows.append(BenchRow(
+        "skin.resynthesize", "resynthesize, compiled kernel, 2048 lights, view 30° "
+        "(vs numpy reference, KERNELS off)", n / t_k, "functions/s", error=diff,
+        error_unit="max |kernel − numpy| / max |R|", threads=1,
+        ratios={"vs numpy reference": t_ref / t_k}, baseline_threads={"vs numpy reference": 1},
+        extra={"n": n, "numpy reference functions/s": n / t_ref,
+               "resynthesize_relit functions/s (upper-half lights)": n / t_relit,
+               "relit vs full kernel": t_k / t_relit}))
     return rows

@@ -1,0 +1,385 @@
+"""Compiled (numba) kernels of the skin model's resynthesis (Debevec et al. 2000, §4.3, Eq. 9).
+
+Private module behind :mod:`facegeo.appearance._skin_resynth`. One reflectance function per
+iteration of a ``prange`` loop (both cores when numba has two threads); per function, one loop
+over its lights computes what the numpy reference (``_skin_resynth`` with ``KERNELS = False``)
+builds as ``(n, L, 3)`` temporaries: the diffuse chroma shift from v_0 to v_n (Eq. 6–7
+inverted and re-applied, :func:`_skin_resynth.resynthesize_diffuse`), Eq. 9's specular sample
+with G and F (:func:`_skin_resynth.resynthesize_specular`, its interpolation on the light set
+included), the same-view guarantee, the skip of negligible specular and the flags. Same
+formulas in the same order, so the results agree with the reference to rounding (tested in
+``tests/test_skin_model.py``). Work the reference does and no result needs is skipped: the
+specular sample's interpolation and G, F are evaluated only for lights that pass Eq. 9's cheap
+conditions (lit, n·l_p > 0, n·H > 0, n·l_q > 0), and :func:`resynth_relit` (Eq. 4 on the
+resynthesised function) only visits lights whose weight is non-zero.
+
+Kernels are compiled on first use and cached on disk (``cache=True``); the threading layer is
+chosen by ``facegeo/__init__.py`` (``NUMBA_THREADING_LAYER_PRIORITY``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from facegeo.appearance._skin_kernels import _FM
+
+_S = 1.0 / math.sqrt(3.0)  # a component of S_WHITE
+_TWO_PI = 2.0 * math.pi
+_THIRD = 1.0 / 3.0
+
+
+# ------------------------------------------------------------------------------- BRDF factors
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _unit(x, y, z, fx, fy, fz):
+    """``_skin_model.normalize`` of one vector: (x, y, z)/|·|, the fallback (fx, fy, fz)
+    where the norm is ≤ 1e-30; also returns the norm."""
+    r = math.sqrt(x * x + y * y + z * z)
+    if r > 1e-30:
+        q = 1.0 / r
+        return x * q, y * q, z * q, r
+    return fx, fy, fz, r
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _fresnel(cos_d, e2):
+    """``brdf.fresnel_dielectric`` with ``e2 = η² − 1`` (cos clipped to [0, 1])."""
+    c = min(max(cos_d, 0.0), 1.0)
+    g = math.sqrt(e2 + c * c)
+    a = (g - c) / (g + c)
+    b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
+    return 0.5 * a * a * (1.0 + b * b)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _geometry(nl, nv, nh, vh):
+    """``brdf.torrance_sparrow_geometry``: ``min(1, 2 nh nv / vh, 2 nh nl / vh)`` with the
+    cosines clipped at 0; at ``vh <= 0`` the ratios are +inf (0 where their numerator is 0)."""
+    nl = max(nl, 0.0)
+    nv = max(nv, 0.0)
+    nh = max(nh, 0.0)
+    if vh > 0.0:
+        inv = 1.0 / vh
+        return min(1.0, min(2.0 * nh * nv * inv, 2.0 * nh * nl * inv))
+    return 1.0 if (nh * nv > 0.0 and nh * nl > 0.0) else 0.0
+
+
+# ------------------------------------------------------------------------------- interpolation
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _grid_interp(micro, shadow_i, nt, npf, x, y, z):
+    """``_skin_resynth.interpolate_on_lights`` on the light-stage grid at one unit direction:
+    bilinear in (θ, φ) grid coordinates of ``micro`` and of the shadow mask (as 0/1)."""
+    theta = math.atan2(x, z)
+    if theta < 0.0:
+        theta += _TWO_PI
+    phi = math.acos(min(max(y, -1.0), 1.0))
+    fi = theta * nt / _TWO_PI - 0.5
+    fj = phi * npf / math.pi - 0.5
+    i0 = math.floor(fi)
+    j0 = math.floor(fj)
+    fi -= i0
+    fj -= j0
+    ia = int(i0)  # in [-1, nt - 1] up to rounding: wrap without integer division
+    if ia < 0:
+        ia += nt
+    elif ia >= nt:
+        ia -= nt
+    ib = ia + 1 if ia + 1 < nt else 0
+    j0i = int(j0)
+    ja = min(max(j0i, 0), npf - 1)
+    jb = min(max(j0i + 1, 0), npf - 1)
+    k00, k01 = ja * nt + ia, ja * nt + ib
+    k10, k11 = jb * nt + ia, jb * nt + ib
+    m = ((1 - fj) * ((1 - fi) * micro[k00] + fi * micro[k01])
+         + fj * ((1 - fi) * micro[k10] + fi * micro[k11]))
+    s00 = 1.0 if shadow_i[k00] else 0.0
+    s01 = 1.0 if shadow_i[k01] else 0.0
+    s10 = 1.0 if shadow_i[k10] else 0.0
+    s11 = 1.0 if shadow_i[k11] else 0.0
+    sh = ((1 - fj) * ((1 - fi) * s00 + fi * s01) + fj * ((1 - fi) * s10 + fi * s11))
+    return m, sh
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _free_interp(micro, shadow_i, dirs, x, y, z):
+    """``interpolate_on_lights`` on a free light list: inverse angular-distance weights
+    ``1/(1 − cos + 1e-12)`` of the (up to) 3 lights nearest to the direction."""
+    L = dirs.shape[0]
+    c0 = c1 = c2 = -np.inf
+    i0 = i1 = i2 = -1
+    for j in range(L):
+        c = min(max(x * dirs[j, 0] + y * dirs[j, 1] + z * dirs[j, 2], -1.0), 1.0)
+        if c > c0:
+            c2, i2 = c1, i1
+            c1, i1 = c0, i0
+            c0, i0 = c, j
+        elif c > c1:
+            c2, i2 = c1, i1
+            c1, i1 = c, j
+        elif c > c2:
+            c2, i2 = c, j
+    w0 = 1.0 / (1.0 - c0 + 1e-12)
+    w1 = 1.0 / (1.0 - c1 + 1e-12) if i1 >= 0 else 0.0
+    w2 = 1.0 / (1.0 - c2 + 1e-12) if i2 >= 0 else 0.0
+    ws = w0 + w1 + w2
+    m = w0 / ws * micro[i0]
+    sh = w0 / ws * (1.0 if shadow_i[i0] else 0.0)
+    if i1 >= 0:
+        m += w1 / ws * micro[i1]
+        sh += w1 / ws * (1.0 if shadow_i[i1] else 0.0)
+    if i2 >= 0:
+        m += w2 / ws * micro[i2]
+        sh += w2 / ws * (1.0 if shadow_i[i2] else 0.0)
+    return m, sh
+
+
+# ------------------------------------------------------------------------------- one function
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _prepare(i, D, S, iE, dirs, sa, nrm, v0, eta2m1, skip, micro):
+    """Per function: whether its specular part is resynthesised (energy above ``skip`` of the
+    total, as ``_skin_resynth.resynthesize``) and, if so, the microfacet values on the nodes
+    ``micro[l] = σ_l (n·v_0)/(G(v_0, l, n) F(v_0·h_l))`` (0 where ``G F ≤ 1e-6``) of
+    :func:`_skin_resynth.resynthesize_specular`."""
+    L = dirs.shape[0]
+    energy = 0.0
+    total = 0.0
+    for j in range(L):
+        s0, s1, s2 = S[i, j, 0] * iE[j, 0], S[i, j, 1] * iE[j, 1], S[i, j, 2] * iE[j, 2]
+        sig = (s0 + s1 + s2) * _THIRD
+        tot = (abs(D[i, j, 0] * iE[j, 0] + s0) + abs(D[i, j, 1] * iE[j, 1] + s1)
+               + abs(D[i, j, 2] * iE[j, 2] + s2)) * _THIRD
+        energy += sig * sa[j]
+        total += tot * sa[j]
+        micro[j] = sig
+    do_spec = energy > skip * max(total, 1e-300)
+    if not do_spec:
+        return False
+    nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+    vx, vy, vz = v0[i, 0], v0[i, 1], v0[i, 2]
+    nv0 = nx * vx + ny * vy + nz * vz
+    nv0p = max(nv0, 0.0)
+    for j in range(L):
+        lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+        nl = nx * lx + ny * ly + nz * lz
+        if not nl > 0.0 or micro[j] == 0.0:
+            micro[j] = 0.0  # G = 0 below the horizon (G F ≤ 1e-6 there), or no sample
+            continue
+        hx, hy, hz, _ = _unit(lx + vx, ly + vy, lz + vz, nx, ny, nz)
+        nh = hx * nx + hy * ny + hz * nz
+        vh = hx * vx + hy * vy + hz * vz
+        gf = _geometry(nl, nv0, nh, vh) * _fresnel(vh, eta2m1)
+        micro[j] = micro[j] * nv0p / gf if gf > 1e-6 else 0.0
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, ie_r, ie_g, ie_b, f0, fn):
+    """Diffuse sample chroma-shifted from v_0 to v_n (``resynthesize_diffuse``): ``c`` the
+    sample's chromaticity, d = Eq. 6 inverted at f0 (``invert_ramp``), Eq. 6 at fn applied,
+    brightness |D/E| kept. Returns the new RGB sample in input units."""
+    cr, cg, cb, b = _unit(d_r * ie_r, d_g * ie_g, d_b * ie_b, _S, _S, _S)
+    cs = cr * _S + cg * _S + cb * _S
+    disc = f0 * f0 * cs * cs + 1.0 + 2.0 * f0
+    if disc >= 0.0 and abs(1.0 + f0) > 1e-6:
+        mu = -f0 * cs + math.sqrt(disc)
+        r = 1.0 / (1.0 + f0)
+        dr, dg, db, _ = _unit((mu * cr + f0 * _S) * r, (mu * cg + f0 * _S) * r,
+                              (mu * cb + f0 * _S) * r, _S, _S, _S)
+    else:
+        dr, dg, db = cr, cg, cb
+    qr = dr + fn * (dr - _S)
+    qg = dg + fn * (dg - _S)
+    qb = db + fn * (db - _S)
+    r = math.sqrt(qr * qr + qg * qg + qb * qb)
+    if r > 1e-30:
+        r = b / r  # normalised, times the brightness
+        return qr * r * e_r, qg * r * e_g, qb * r * e_b
+    r = b * _S
+    return r * e_r, r * e_g, r * e_b
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, inv_nvn):
+    """Eq. 9's white-balanced specular sample for light ``j`` (``resynthesize_specular``) and
+    whether it came from a shadowed source direction (lit l_p, l_q in shadow). Zero where l_p
+    is occluded or below the horizon, H is undefined, n·H ≤ 0 or l_q is below the horizon;
+    the caller has checked n·v_0 > 0 and n·v_n > 0 and passes n·v_n and
+    ``1/max(n·v_n, COS_FLOOR)``."""
+    if cast[i, j]:
+        return 0.0, False
+    nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+    lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+    nlp = nx * lx + ny * ly + nz * lz
+    if not nlp > 0.0:
+        return 0.0, False
+    ux, uy, uz = vn[i, 0], vn[i, 1], vn[i, 2]
+    hx, hy, hz = ux + lx, uy + ly, uz + lz
+    hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+    if not hn > 1e-9:
+        return 0.0, False
+    r = 1.0 / hn
+    hx, hy, hz = hx * r, hy * r, hz * r
+    nH = hx * nx + hy * ny + hz * nz
+    if not nH > 0.0:
+        return 0.0, False
+    vx, vy, vz = v0[i, 0], v0[i, 1], v0[i, 2]
+    hv0 = hx * vx + hy * vy + hz * vz
+    qx, qy, qz, _ = _unit(2.0 * hv0 * hx - vx, 2.0 * hv0 * hy - vy, 2.0 * hv0 * hz - vz,
+                          nx, ny, nz)
+    nlq = qx * nx + qy * ny + qz * nz
+    if not nlq > 0.0:
+        return 0.0, False
+    if grid:
+        m_q, sh_q = _grid_interp(micro, cast[i], nt, npf, qx, qy, qz)
+    else:
+        m_q, sh_q = _free_interp(micro, cast[i], dirs, qx, qy, qz)
+    if m_q == 0.0:  # no lobe at l_q (G and F are finite, so the sample is 0)
+        return 0.0, sh_q > 0.5
+    vnH = hx * ux + hy * uy + hz * uz
+    g = _geometry(nlp, nvn, nH, vnH)
+    f = _fresnel(vnH, eta2m1)
+    return max(m_q * g * f * inv_nvn, 0.0), sh_q > 0.5
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _ramp_f(nl, nv, a0, a1):
+    """Eq. 7: ``α_0 x + α_1 (1 − x)``, ``x = clip(n·l) clip(n·v)`` (``_skin_model.ramp_f``)."""
+    x = min(max(nl, 0.0), 1.0) * min(max(nv, 0.0), 1.0)
+    return a0 * x + a1 * (1.0 - x)
+
+
+# ------------------------------------------------------------------------------- kernels
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _view_cosines(i, nrm, v0, vn, do_spec):
+    """n·v_0, n·v_n, whether Eq. 9 can give a lobe at all (specular kept, both views above
+    the horizon) and ``1/max(n·v_n, COS_FLOOR)``."""
+    nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+    nv0 = nx * v0[i, 0] + ny * v0[i, 1] + nz * v0[i, 2]
+    nvn = nx * vn[i, 0] + ny * vn[i, 1] + nz * vn[i, 2]
+    return nv0, nvn, do_spec and nv0 > 0.0 and nvn > 0.0, 1.0 / max(nvn, 1e-4)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro, nv0, nvn, lobe, inv_nvn,
+            grid, nt, npf, e2):
+    """Light ``j`` of function ``i`` resynthesised: the diffuse RGB sample (input units), the
+    white-balanced Eq. 9 specular sample and whether it came from a shadowed source direction."""
+    nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
+    f0 = _ramp_f(nl, nv0, a0[i], a1[i])
+    fn = _ramp_f(nl, nvn, a0[i], a1[i])
+    dr, dg, db = _diffuse(D[i, j, 0], D[i, j, 1], D[i, j, 2], E[j, 0], E[j, 1], E[j, 2],
+                          iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
+    if lobe:
+        sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
+                            inv_nvn)
+        return dr, dg, db, sw, hid
+    return dr, dg, db, 0.0, False
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
+                 nt, npf, eta, skip, flag_skipped, flag_in_shadow):
+    """``_skin_resynth.resynthesize`` for 3-channel functions, fused per function.
+
+    Parameters
+    ----------
+    D, S : (N, L, 3) float32 or float64 — the fit's diffuse and specular components
+    E : (L, 3) float64 light intensities; dirs : (L, 3) unit; sa : (L,) δA, steradians
+    cast : (N, L) bool — occluded lights (``SkinFit.cast_shadow``)
+    nrm, v0, vn : (N, 3) float64, unit; a0, a1 : (N,) float64, Eq. 7
+    same, back : (N,) bool — v_n = v_0 (function returned unchanged); n·v_n ≤ 0 (zeroed)
+    grid : bool, with (nt, npf) the light-stage grid; eta : float; skip : specular_skip
+
+    Returns
+    -------
+    refl, diff, spec : (N, L, 3) float32 — D + S, D, S (sums in float64, as the reference)
+    flags : (N,) int32 — ``flag_skipped`` / ``flag_in_shadow`` bits set here
+    """
+    N, L, _ = D.shape
+    refl = np.empty((N, L, 3), np.float32)
+    diff = np.empty((N, L, 3), np.float32)
+    spec = np.empty((N, L, 3), np.float32)
+    flags = np.zeros(N, np.int32)
+    e2 = eta * eta - 1.0
+    iE = 1.0 / E
+    for i in prange(N):
+        if same[i] or back[i]:
+            for j in range(L):
+                for c in range(3):
+                    d = 0.0 if back[i] else np.float64(D[i, j, c])
+                    s = 0.0 if back[i] else np.float64(S[i, j, c])
+                    refl[i, j, c] = d + s
+                    diff[i, j, c] = d
+                    spec[i, j, c] = s
+            if same[i]:
+                continue
+        micro = np.empty(L)
+        do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
+        if not do_spec:
+            flags[i] |= flag_skipped
+        if back[i]:
+            continue
+        nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
+        hidden = False
+        for j in range(L):
+            dr, dg, db, sw, hid = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
+                                          nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2)
+            hidden |= hid
+            sr, sg, sb = sw * E[j, 0], sw * E[j, 1], sw * E[j, 2]
+            diff[i, j, 0], diff[i, j, 1], diff[i, j, 2] = dr, dg, db
+            spec[i, j, 0], spec[i, j, 1], spec[i, j, 2] = sr, sg, sb
+            refl[i, j, 0], refl[i, j, 1], refl[i, j, 2] = dr + sr, dg + sg, db + sb
+        if hidden:
+            flags[i] |= flag_in_shadow
+    return refl, diff, spec, flags
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
+                  nt, npf, eta, skip, active, w):
+    """Eq. 4 on the resynthesised functions without building them: per function
+    ``Σ_k w[k] ⊙ R_new(l = active[k])`` over the lights that carry energy.
+
+    Parameters as :func:`resynth_full`, plus ``active`` (A,) int64 light indices and ``w``
+    (A, 3) float64 their weights (δA included). Returns (N, 3) float64, 0 for back-facing
+    functions. The new samples are summed in float64 (the reference rounds them to float32
+    first).
+    """
+    N = D.shape[0]
+    L = dirs.shape[0]
+    A = active.size
+    out = np.zeros((N, 3))
+    e2 = eta * eta - 1.0
+    iE = 1.0 / E
+    for i in prange(N):
+        if back[i]:
+            continue
+        if same[i]:
+            for k in range(A):
+                j = active[k]
+                for c in range(3):
+                    out[i, c] += w[k, c] * (np.float64(D[i, j, c]) + np.float64(S[i, j, c]))
+            continue
+        micro = np.empty(L)
+        do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
+        nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
+        acc_r = acc_g = acc_b = 0.0
+        for k in range(A):
+            j = active[k]
+            dr, dg, db, sw, _ = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
+                                        nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2)
+            acc_r += w[k, 0] * (dr + sw * E[j, 0])
+            acc_g += w[k, 1] * (dg + sw * E[j, 1])
+            acc_b += w[k, 2] * (db + sw * E[j, 2])
+        out[i, 0], out[i, 1], out[i, 2] = acc_r, acc_g, acc_b
+    return out
