@@ -9,6 +9,7 @@ BRDF of :mod:`facegeo.appearance.brdf` (whose RGB α's also change brightness). 
 * :func:`separate_colour` — the colour-space separation of §4.2;
 * :func:`fit_reflectance` — the whole analysis of §4.2 with the shadow maps of §4.4;
 * :func:`resynthesize` — new reflectance functions for a novel view, §4.3 with Eq. 9.
+* :func:`resynthesize_relit` — Eq. 4 on the resynthesised functions, fused (no (N, L, 3) result).
 
 Reflectance functions are ``(N, L, 3)`` float32 (linear RGB OLAT radiance, one row per texel or
 pixel, one column per light of a :class:`LightSet`); directions are unit vectors in the light
@@ -71,7 +72,12 @@ from facegeo.appearance._skin_model import (
     separate_colour,
     specular_sample,
 )
-from facegeo.appearance._skin_resynth import Resynthesis, resynthesize, view_independent
+from facegeo.appearance._skin_resynth import (
+    Resynthesis,
+    resynthesize,
+    resynthesize_relit,
+    view_independent,
+)
 from facegeo.checks import as_array, check_unit_vectors, fmt_value
 
 log = logging.getLogger(__name__)
@@ -79,7 +85,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "LightSet", "SkinParams", "SkinFit", "SearchDepth", "Resynthesis",
     "ramp_f", "ramp_chromaticity", "invert_ramp", "specular_sample", "paper_reflectance",
-    "separate_colour", "shadow_map", "fit_reflectance", "resynthesize", "view_independent",
+    "separate_colour", "shadow_map", "fit_reflectance", "resynthesize", "resynthesize_relit",
+    "view_independent",
     "direct_search", "flag_names", "check_mask", "FLAG_NAMES", "FLAG_BLACK", "FLAG_SINGULAR", "FLAG_SHADOWED",
     "FLAG_SATURATED", "FLAG_SINGLE_CHANNEL", "FLAG_GRAZING_VIEW", "FLAG_SPECULAR_IN_SHADOW",
     "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE", "SHADOW_THRESHOLD", "normalize",

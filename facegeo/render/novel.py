@@ -36,9 +36,9 @@ black; the texel keeps its measured function from that camera instead (counted i
 The naive baseline (``resynthesis=False``) is the same pipeline with the source cameras'
 measured functions relit unchanged (projecting the relit source views onto the geometry).
 
-Deviation: :func:`resynthesize` produces every light's sample (Eq. 9 interpolates the measured
-lobe at l_q over the whole light set, so its input must be complete); only its output at the
-lights that carry energy enters the relighting sum.
+Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthesize_relit`):
+Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised
+samples are computed only at the lights that carry energy and never stored.
 
 References
 ----------
@@ -407,12 +407,12 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                 st["unfitted"] += int(np.count_nonzero(ok & ~fitted[sl]))
                 if todo.size:
                     fit = src.fit.skin_fit(fidx[sl][todo], R[todo], lights)
-                    res, back = _resynthesize(fit, vn[sl][todo],
-                                              diffuse_only=resynthesis == "diffuse")
+                    relit, back = _resynthesize_relit(fit, vn[sl][todo], w, active, w_act,
+                                                      diffuse_only=resynthesis == "diffuse")
                     # the fitted normal puts v_n below the horizon while the mesh sees the
                     # texel (grazing views): keep the measured function rather than black
                     use = todo[~back]
-                    out[use] = np.einsum("nlc,lc->nc", res[~back][:, active, :], w_act)
+                    out[use] = relit[~back]
                     st["resynthesized"] += int(use.size)
                     st["backfacing_fallback"] += int(back.sum())
             kk = k_idx[sl][ok]
@@ -449,6 +449,20 @@ def _fill_uncovered(vs: ViewSamples, val, cov, max_px: float):
     out = val.copy()
     out[miss[near]] = mean[nearest[pix[miss[near]]]]
     return out, int(near.sum())
+
+
+def _resynthesize_relit(fit, vn, w, active, w_act, *, diffuse_only: bool = False):
+    """Eq. 4 on the functions resynthesised for v_n, ``(n, 3)``, and where the fit called v_n
+    back-facing. Full resynthesis: :func:`facegeo.appearance.skin.resynthesize_relit` (fused,
+    only the lights with non-zero weight, no ``(n, L, 3)`` result); the ``"diffuse"``
+    ablation relights :func:`_resynthesize`'s functions at the active lights."""
+    from facegeo.appearance.skin import FLAG_BACKFACING, resynthesize_relit
+
+    if diffuse_only:
+        res, back = _resynthesize(fit, vn, diffuse_only=True)
+        return np.einsum("nlc,lc->nc", res[:, active, :], w_act), back
+    back = ((fit.flags & FLAG_BACKFACING) != 0) | (np.einsum("ni,ni->n", fit.normal, vn) <= 0)
+    return resynthesize_relit(fit, vn, w), back
 
 
 def _resynthesize(fit, vn, *, diffuse_only: bool = False):
