@@ -12,8 +12,9 @@ consistency vote across families (Sec. 4.3). The method is written down in
 float32 / float64 steps in the same order), so codes, validity and statistics are identical and
 ``x`` / ``y`` / ``sigma`` / ``confidence`` equal to rounding (tested in tests/test_decode.py).
 
-Threads: ``parallel=True`` over blocks of pixels (``prange``); each block counts its own
-statistics (summed afterwards), so the result does not depend on the thread count.
+Serial, like the per-frame kernels (``_sl_kernels``: why). The pixels run in blocks of
+``_BLOCK``, each counting its own statistics (summed afterwards), so a ``prange`` over blocks
+is a one-word change.
 """
 
 from __future__ import annotations
@@ -25,12 +26,12 @@ import numpy as np
 
 __all__ = ["decode_axis", "prepare"]
 
-_BLOCK = 1 << 14  # pixels per prange block
+_BLOCK = 1 << 14  # pixels per block (own statistics row)
 
 
 @functools.cache
 def _kernel():
-    from numba import njit, prange
+    from numba import njit
 
     @njit(cache=True, nogil=True, boundscheck=False, inline="always")
     def _min_nan(a, b):  # np.minimum: NaN propagates
@@ -58,13 +59,13 @@ def _kernel():
         sig_out[p] = np.float32(sig)
         conf_out[p] = _min_nan(conf_out[p], conf) if final else conf
 
-    @njit(cache=True, nogil=True, boundscheck=False, parallel=True)
+    @njit(cache=True, nogil=True, boundscheck=False)
     def prepare(white, black, has_wb, lmax, lmin, shadow_thr, min_c, rel_c, lit_out, shadow,
                 tau):  # pragma: no cover - compiled
         # _finish_chunk's per-pixel start with binary frames: direct / global over lmax / lmin
         # (in place), lit, shadow, the reliability threshold
         P = lmax.shape[0]
-        for blk in prange((P + _BLOCK - 1) // _BLOCK):
+        for blk in range((P + _BLOCK - 1) // _BLOCK):
             for p in range(blk * _BLOCK, min(P, (blk + 1) * _BLOCK)):
                 mx = lmax[p]
                 mn = lmin[p]
@@ -76,7 +77,7 @@ def _kernel():
                 shadow[p] = not (lit >= shadow_thr)
                 tau[p] = _max_nan(min_c, rel_c * d)
 
-    @njit(cache=True, nogil=True, boundscheck=False, parallel=True)
+    @njit(cache=True, nogil=True, boundscheck=False)
     def axis_pixels(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol,
                     tau, ref, lit, phi, pok, has_hint, kk, period,
                     coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
@@ -88,7 +89,7 @@ def _kernel():
         inf32 = np.float32(np.inf)
         tiny = np.float32(1e-12)
         sqrt12 = math.sqrt(12.0)
-        for blk in prange(nblk):
+        for blk in range(nblk):
             lo = blk * _BLOCK
             hi = min(P, lo + _BLOCK)
             cnt = counts[blk]  # (F, 2 n + 1): unresolved[i], lost[i], votes_disagree

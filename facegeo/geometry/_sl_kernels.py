@@ -20,8 +20,11 @@ materialises no float32 luminance plane for a pattern / inverse pair or a phase 
 The luminance is bit-for-bit the one :func:`luminance` computes (a channel sum of integers
 below 2**24 is exact in float32 whichever order it is summed in), so the decode does not change.
 
-Threads: the kernels are ``parallel=True`` over image rows (``prange``); they use as many
-threads as numba has (``numba.set_num_threads``; 2 on the project machine by default).
+Threads: the kernels are serial (no ``prange``): the decode runs on the calling thread.
+``parallel=True`` row loops were tried and measured on the shared 2-core machine (load ≈ 7):
+at 2 numba threads the in-memory decode took 725 ms against 37.5 ms at 1 (``--quick`` size),
+presumably because each of the ~50 parallel regions per decode waits for a descheduled
+thread.
 """
 
 from __future__ import annotations
@@ -34,81 +37,78 @@ __all__ = ["channel_sum", "lum_reference", "luminance", "pair_reference", "pair_
            "phase_reference", "phase_update", "sum_dtype"]
 
 
+_EXACT = (np.dtype(np.uint8), np.dtype(np.uint16))  # channel sums exact below 2**24
+
+
 @functools.cache
-def _kernels():
-    from numba import njit, prange
+def _kernels(C: int, exact: bool):
+    """The kernels for frames of ``C`` channels, flattened to 1-D (pixel-major).
 
-    @njit(cache=True, nogil=True, boundscheck=False, inline="always")
-    def _lum_at(a, i, j, scale):  # pragma: no cover - compiled
-        s = np.float32(0.0)
-        for c in range(a.shape[2]):
-            s += np.float32(a[i, j, c])
-        return s * scale
+    ``C`` is a compile-time constant of these closures, so the channel loop unrolls and the
+    pixel loop vectorises (a run-time channel count, or 3-D indexing, kept it scalar: 4-8×
+    slower, measured). ``exact``: uint8 / uint16 frames, summed as integers."""
+    from numba import njit
 
-    @njit(cache=True, nogil=True, boundscheck=False, inline="always")
-    def _lum_at_int(a, i, j, scale):  # pragma: no cover - compiled
-        # integer frames / channel sums below 2**24: the integer sum is exact, and so is its
-        # float32 conversion -- the same value _lum_at forms, one conversion instead of C
-        s = np.int64(0)
-        for c in range(a.shape[2]):
-            s += np.int64(a[i, j, c])
-        return np.float32(s) * scale
+    if exact:
+        @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", inline="always")
+        def fsum(f, i):  # pragma: no cover - compiled
+            s = np.uint32(0)
+            for c in range(C):
+                s += np.uint32(f[C * i + c])
+            return np.float32(s)  # exact: the same value as the float32 sum below
+    else:
+        @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", inline="always")
+        def fsum(f, i):  # pragma: no cover - compiled
+            s = np.float32(0.0)
+            for c in range(C):
+                s += np.float32(f[C * i + c])
+            return s
 
-    def make_pair(lum_at):
-        @njit(cache=True, nogil=True, boundscheck=False, parallel=True)
-        def pair(pos, ps, neg, ns, words, bitval, margin, steps, lmax, lmin):  # pragma: no cover
-            H, W, _ = pos.shape
-            for i in prange(H):
-                for j in range(W):
-                    p = lum_at(pos, i, j, ps)
-                    q = lum_at(neg, i, j, ns)
-                    d = p - q
-                    if d > 0:
-                        words[i, j] |= bitval
-                    m = abs(d) * steps
-                    m = min(m, np.float32(255.0))
-                    margin[i, j] = np.uint8(np.rint(m))
-                    hi = max(q, p)
-                    lo = min(p, q)
-                    lmax[i, j] = max(lmax[i, j], hi)
-                    lmin[i, j] = min(lmin[i, j], lo)
-        return pair
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def lum(f, scale, out):  # pragma: no cover - compiled
+        for i in range(out.shape[0]):
+            out[i] = fsum(f, i) * scale
 
-    @njit(cache=True, nogil=True, boundscheck=False, parallel=True)
-    def lum(a, scale, out):  # pragma: no cover - compiled
-        H, W, _ = a.shape
-        for i in prange(H):
-            for j in range(W):
-                out[i, j] = _lum_at(a, i, j, scale)
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def csum(f, out):  # pragma: no cover - compiled
+        for i in range(out.shape[0]):
+            s = out.dtype.type(0)
+            for c in range(C):
+                s += out.dtype.type(f[C * i + c])
+            out[i] = s
 
-    @njit(cache=True, nogil=True, boundscheck=False, parallel=True)
-    def csum(a, out):  # pragma: no cover - compiled
-        H, W, C = a.shape
-        for i in prange(H):
-            for j in range(W):
-                s = np.uint32(0)
-                for c in range(C):
-                    s += np.uint32(a[i, j, c])
-                out[i, j, 0] = s
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def pair(stored, ss, f, fs, stored_is_pos, words, bitval, margin, steps, lmax,
+             lmin):  # pragma: no cover - compiled
+        for i in range(words.shape[0]):
+            a = np.float32(stored[i]) * ss
+            b = fsum(f, i) * fs
+            p = a if stored_is_pos else b
+            q = b if stored_is_pos else a
+            d = p - q
+            words[i] |= bitval if d > 0 else words.dtype.type(0)
+            m = abs(d) * steps
+            m = min(m, np.float32(255.0))
+            margin[i] = np.uint8(np.rint(m))
+            lmax[i] = max(lmax[i], max(q, p))
+            lmin[i] = min(lmin[i], min(p, q))
 
-    @njit(cache=True, nogil=True, boundscheck=False, parallel=True)
-    def phase(a, scale, sk, ck, S, C, A, pmax):  # pragma: no cover - compiled
-        H, W, _ = a.shape
-        for i in prange(H):
-            for j in range(W):
-                v = _lum_at_int(a, i, j, scale)
-                m = pmax[i, j]
-                if not v <= m:  # np.maximum: NaN propagates
-                    pmax[i, j] = v if (v > m or v != v) else m
-                S[i, j] += sk * v
-                C[i, j] += ck * v
-                A[i, j] += v
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def phase(f, scale, sk, ck, S, C_, A, pmax):  # pragma: no cover - compiled
+        for i in range(S.shape[0]):
+            v = fsum(f, i) * scale
+            pmax[i] = max(pmax[i], v)
+            S[i] += sk * v
+            C_[i] += ck * v
+            A[i] += v
 
-    return lum, csum, make_pair(_lum_at), phase, make_pair(_lum_at_int)
+    return lum, csum, pair, phase
 
 
-def _as3(a: np.ndarray) -> np.ndarray:
-    return a[:, :, None] if a.ndim == 2 else a
+def _flat(a: np.ndarray) -> tuple[np.ndarray, int]:
+    """A frame as a C-contiguous 1-D array (pixel-major) and its channel count."""
+    C = a.shape[2] if a.ndim == 3 else 1
+    return np.ascontiguousarray(a).reshape(-1), C
 
 
 def sum_dtype(dtype, channels: int):
@@ -123,18 +123,20 @@ def sum_dtype(dtype, channels: int):
 
 
 def luminance(a: np.ndarray, scale: float) -> np.ndarray:
-    """Channel sum of an (H, W, C) frame times ``scale``, float32 (H, W)."""
+    """Channel sum of an (H, W[, C]) frame times ``scale``, float32 (H, W)."""
+    f, C = _flat(a)
     out = np.empty(a.shape[:2], np.float32)
-    _kernels()[0](_as3(np.ascontiguousarray(a)), np.float32(scale), out)
+    exact = f.dtype in _EXACT and sum_dtype(f.dtype, C) is not None
+    _kernels(C, exact)[0](f, np.float32(scale), out.reshape(-1))
     return out
 
 
 def channel_sum(a: np.ndarray) -> np.ndarray:
-    """Exact integer channel sum of a uint8 / uint16 (H, W[, C]) frame, as (H, W, 1) of
+    """Exact integer channel sum of a uint8 / uint16 (H, W[, C]) frame, (H, W) of
     :func:`sum_dtype` (the stored half of a pattern / inverse pair)."""
-    a = _as3(a)
-    out = np.empty(a.shape[:2] + (1,), sum_dtype(a.dtype, a.shape[2]))
-    _kernels()[1](a, out)
+    f, C = _flat(a)
+    out = np.empty(a.shape[:2], sum_dtype(a.dtype, C))
+    _kernels(C, True)[1](f, out.reshape(-1))
     return out
 
 
@@ -142,32 +144,35 @@ def pair_update(pos, neg, words, bit: int, margin, steps: float, lmax, lmin, *,
                 pos_scale: float = 1.0, neg_scale: float = 1.0) -> None:
     """Fold a pattern / inverse pair into the accumulators in place (see ``pair_reference``).
 
-    ``pos`` / ``neg``: (H, W) float32 luminance, or an (H, W[, C]) frame / a
-    :func:`channel_sum`, whose luminance is its channel sum times ``pos_scale`` / ``neg_scale``
-    (formed in registers, as :func:`luminance` would)."""
-    pos, neg = _as3(pos), _as3(neg)
-    integer = pos.dtype.kind in "iu" and neg.dtype.kind in "iu"
-    _kernels()[4 if integer else 2](pos, np.float32(pos_scale), neg, np.float32(neg_scale), words,
-                  words.dtype.type(1 << bit), margin, np.float32(steps), lmax, lmin)
+    ``pos`` / ``neg``: each (H, W) float32 luminance, a :func:`channel_sum` or an (H, W[, C])
+    frame, whose luminance is its channel sum times ``pos_scale`` / ``neg_scale`` (formed in
+    registers, as :func:`luminance` would). At most one may have channels; the accumulators
+    must be C-contiguous (H, W) arrays (written in place)."""
+    stored_is_pos = not (pos.ndim == 3 and pos.shape[2] > 1)
+    (s, ss), (f, fs) = ((pos, pos_scale), (neg, neg_scale)) if stored_is_pos else \
+        ((neg, neg_scale), (pos, pos_scale))
+    f, C = _flat(f)
+    exact = f.dtype in _EXACT and sum_dtype(f.dtype, C) is not None
+    _kernels(C, exact)[2](np.ascontiguousarray(s).reshape(-1), np.float32(ss), f,
+                          np.float32(fs), stored_is_pos, words.reshape(-1),
+                          words.dtype.type(1 << bit), margin.reshape(-1), np.float32(steps),
+                          lmax.reshape(-1), lmin.reshape(-1))
 
 
 def phase_update(a, scale: float, sin_k: float, cos_k: float, S, C, A, pmax) -> None:
     """Fold a phase frame (its luminance = channel sum times ``scale``) into the phase sums in
-    place (see ``phase_reference``).
-
-    ``a``: an (H, W[, C]) uint8 / uint16 frame (exact integer channel sums), or float32 (H, W)
-    luminance with ``scale`` 1."""
-    a = _as3(a)
-    if a.dtype.kind == "f":
-        phase_reference(a, scale, sin_k, cos_k, S, C, A, pmax)
-        return
-    _kernels()[3](_as3(a), np.float32(scale), np.float32(sin_k), np.float32(cos_k), S, C, A,
-                  pmax)
+    place (see ``phase_reference``): ``a`` an (H, W[, C]) frame, or (H, W) float32 luminance
+    with ``scale`` 1. The sums must be C-contiguous (H, W) arrays."""
+    f, Ch = _flat(a)
+    exact = f.dtype in _EXACT and sum_dtype(f.dtype, Ch) is not None
+    _kernels(Ch, exact)[3](f, np.float32(scale), np.float32(sin_k), np.float32(cos_k),
+                           S.reshape(-1), C.reshape(-1), A.reshape(-1), pmax.reshape(-1))
 
 
 def lum_reference(a: np.ndarray, scale: float) -> np.ndarray:
     """Plain numpy :func:`luminance`."""
-    return (_as3(a).astype(np.float32).sum(axis=2) * np.float32(scale)).astype(np.float32)
+    a = a[:, :, None] if a.ndim == 2 else a
+    return (a.astype(np.float32).sum(axis=2) * np.float32(scale)).astype(np.float32)
 
 
 def pair_reference(pos, neg, words, bit: int, margin, steps: float, lmax, lmin, *,
