@@ -1,20 +1,23 @@
-"""Compiled end of the streaming structured-light decode: one pass per pixel over its bit words.
+"""Compiled end of the streaming structured-light decode: the bit decode of a run of pixels.
 
 Private kernel behind :meth:`facegeo.geometry._sl_stream.StreamDecoder.finish`. For one axis and
-a block of pixels it does, per pixel, what the numpy reference (``_sl_stream._bit_words``,
-``_decode_axis``, ``_partial_codes``; run with ``_sl_stream.KERNELS = False``) does with
-several full-size planes per family: read the pixel's decision word and its ``n`` margins per
-code family, apply the XOR base plane (Gupta et al. 2013, Sec. 4.2), Gray → binary, find the
-first unresolved plane, the boundary / phase-picked / coarse-block coordinate of a partly
-resolved code, the weakest used margin (confidence), the per-bit statistics, and the
-consistency vote across families (Sec. 4.3). The method is written down in
-``docs/structured-light.md``; the kernel reproduces the reference's arithmetic (the same
-float32 / float64 steps in the same order), so codes, validity and statistics are identical and
-``x`` / ``y`` / ``sigma`` / ``confidence`` equal to rounding (tested in tests/test_decode.py).
+a run of pixels it does what the numpy reference (``_sl_stream._bit_words``, ``_decode_axis``,
+``_partial_codes``; run with ``_sl_stream.KERNELS = False``) does with several full-size planes
+per family: read each pixel's decision word and its ``n`` margins per code family, apply the XOR
+base plane (Gupta et al. 2013, Sec. 4.2), Gray → binary, find the first unresolved plane, the
+boundary / phase-picked / coarse-block coordinate of a partly resolved code, the weakest used
+margin (confidence), the per-bit statistics and the consistency vote across families
+(Sec. 4.3). The method is written down in ``docs/structured-light.md``.
 
-Serial, like the per-frame kernels (``_sl_kernels``: why). The pixels run in blocks of
-``_BLOCK``, each counting its own statistics (summed afterwards), so a ``prange`` over blocks
-is a one-word change.
+Tiles of ``_TILE`` pixels: the margins are read plane by plane over the tile and every pixel
+is first decoded as fully resolved — loops the compiler vectorises, over data that stays in
+cache — then only the pixels with unresolved planes take the scalar path (partial codes,
+statistics), then the vote. The kernel does the reference's arithmetic (the same float32 /
+float64 steps in the same order), so codes, validity and statistics are identical and ``x`` /
+``y`` / ``sigma`` / ``confidence`` equal (tested in tests/test_decode.py). Margins are never
+NaN here (the decoder rejects non-finite frames), so plain ``min`` stands for ``np.minimum``.
+
+Serial, like the per-frame kernels (``_sl_kernels`` says why).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import numpy as np
 
 __all__ = ["decode_axis", "prepare"]
 
-_BLOCK = 1 << 14  # pixels per block (own statistics row)
+_TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 
 
 @functools.cache
@@ -65,8 +68,8 @@ def _kernel():
         # _finish_chunk's per-pixel start with binary frames: direct / global over lmax / lmin
         # (in place), lit, shadow, the reliability threshold
         P = lmax.shape[0]
-        for blk in range((P + _BLOCK - 1) // _BLOCK):
-            for p in range(blk * _BLOCK, min(P, (blk + 1) * _BLOCK)):
+        if True:
+            for p in range(P):
                 mx = lmax[p]
                 mn = lmin[p]
                 d = mx - mn
@@ -77,166 +80,172 @@ def _kernel():
                 shadow[p] = not (lit >= shadow_thr)
                 tau[p] = _max_nan(min_c, rel_c * d)
 
-    @njit(cache=True, nogil=True, boundscheck=False)
-    def axis_pixels(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol,
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def axis_pixels(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, p0,
                     tau, ref, lit, phi, pok, has_hint, kk, period,
                     coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
         F = signs.shape[0]
         P = tau.shape[0]
         full = (np.int64(1) << n) - 1
-        nblk = counts.shape[0]
         half_pi = 0.5 * math.pi
         inf32 = np.float32(np.inf)
         tiny = np.float32(1e-12)
         sqrt12 = math.sqrt(12.0)
-        for blk in range(nblk):
-            lo = blk * _BLOCK
-            hi = min(P, lo + _BLOCK)
-            cnt = counts[blk]  # (F, 2 n + 1): unresolved[i], lost[i], votes_disagree
-            mg = np.empty(n, np.float32)
-            cf = np.empty(F)
-            sf = np.empty(F)
-            wf = np.empty(F)
-            qf = np.empty(F, np.float32)
-            of = np.zeros(F, np.bool_)
-            agree = np.zeros(F, np.int64)
-            for p in range(lo, hi):
-                t = tau[p]
-                isl = lit[p]
-                r = ref[p]
-                rden = r if (r >= tiny or r != r) else tiny  # np.maximum(ref, 1e-12)
-                for f in range(F):
-                    w = np.int64(signs[f, p])
-                    rel = np.int64(0)
-                    for i in range(n):
-                        m = np.float32(marg[kidx[f, i], p]) * mscale
-                        mg[i] = m
-                        if m >= t:
-                            rel |= np.int64(1) << (n - 1 - i)
-                    b = base[f]
-                    if b > 0:  # XOR code: planes above the base were projected XORed with it
-                        high = ((np.int64(1) << b) - 1) << (n - b)
-                        if (w >> (n - 1 - b)) & 1:
-                            w ^= high
-                        if not ((rel >> (n - 1 - b)) & 1):
-                            rel &= ~high & full
-                        mb = mg[b]
-                        for i in range(b):
-                            if not (mg[i] <= mb):  # np.minimum (NaN propagates)
-                                mg[i] = mb if (mb < mg[i] or mb != mb) else mg[i]
-                    binary = w  # Gray -> binary: prefix XOR
-                    sh = 1
-                    while sh < n:
-                        binary ^= binary >> sh
-                        sh *= 2
-                    u = ~rel & full  # unresolved planes
-                    first = n
-                    cst = float(binary)
-                    weff = 1.0
-                    exists = binary < n_stripes
-                    edge = False
-                    picked = False
-                    if u != 0:
-                        bl = 0
-                        t2 = u
-                        while t2:
-                            bl += 1
-                            t2 >>= 1
-                        first = n - bl
-                        single = (u & (u - 1)) == 0
-                        flip = binary ^ ((np.int64(1) << (n - first)) - 1)
-                        edge = single and abs(flip - binary) == 1
-                        bsel = binary
-                        if has_hint and single and not edge and pok[p]:
-                            ca = binary * step + 0.5 * (step - 1.0)
-                            cb = flip * step + 0.5 * (step - 1.0)
-                            xa = phi[p] - kk * (ca + 0.5)
-                            xb = phi[p] - kk * (cb + 0.5)
-                            da = abs(math.atan2(math.sin(xa), math.cos(xa)))
-                            db = abs(math.atan2(math.sin(xb), math.cos(xb)))
-                            dmin = min(da, db)
-                            dmax = max(da, db)
-                            good = dmin < half_pi and (dmax >= half_pi
-                                                       or abs(ca - cb) < 0.5 * period)
-                            picked = good
-                            if good and db < da:
-                                bsel = flip
-                        if edge:
-                            cst = 0.5 * (binary + flip)
-                            exists = max(binary, flip) < n_stripes
-                        elif picked:
-                            cst = float(bsel)
-                            exists = bsel < n_stripes
-                        else:
-                            wb = np.int64(1) << (n - first)
-                            wbf = float(wb)
-                            block = bsel >> (n - first)
-                            cst = block * wbf + 0.5 * (wbf - 1)
-                            weff = wbf
-                            exists = block * wbf < n_stripes
-                    ok = isl and exists and (weff * step <= coarse_lim + 1e-9 or edge or picked)
-                    # confidence: weakest margin among the planes used
+        T = _TILE
+        mg = np.empty((n, T), np.float32)  # margins of the tile, plane-major
+        rel = np.empty(T, np.int64)
+        wrd = np.empty(T, np.int64)
+        mm = np.empty(T, np.float32)
+        cf = np.empty((F, T))
+        sf = np.empty((F, T))
+        wf = np.empty((F, T))
+        qf = np.empty((F, T), np.float32)
+        of = np.empty((F, T), np.bool_)
+        agree = np.zeros(F, np.int64)
+        c0 = 0.5 * (step - 1.0)
+        one_stripe_ok = step <= coarse_lim + 1e-9  # a fully resolved code names one stripe
+        sig_one = 1.0 * step / sqrt12
+        for t0 in range(0, P, T):
+            nt = min(T, P - t0)
+            for f in range(F):
+                # plane-major passes over the tile (vectorised): margins, reliable planes
+                for t in range(nt):
+                    rel[t] = 0
+                    wrd[t] = signs[f, p0 + t0 + t]
+                for i in range(n):
+                    k = kidx[f, i]
+                    bit = np.int64(1) << (n - 1 - i)
+                    for t in range(nt):
+                        m = np.float32(marg[k, p0 + t0 + t]) * mscale
+                        mg[i, t] = m
+                        rel[t] |= bit if m >= tau[t0 + t] else np.int64(0)
+                b = base[f]
+                if b > 0:  # XOR code: planes above the base were projected XORed with it
+                    high = ((np.int64(1) << b) - 1) << (n - b)
+                    sb = n - 1 - b
+                    for t in range(nt):
+                        w = wrd[t]
+                        wrd[t] = w ^ (high * ((w >> sb) & 1))
+                        r = rel[t]
+                        rel[t] = r & ((full & ~high) | (high * ((r >> sb) & 1)))
+                    for i in range(b):
+                        for t in range(nt):
+                            mg[i, t] = min(mg[i, t], mg[b, t])
+                for t in range(nt):
+                    mm[t] = mg[0, t]
+                for i in range(1, n):
+                    for t in range(nt):
+                        mm[t] = min(mm[t], mg[i, t])
+                # every pixel as if fully resolved (vectorised) ...
+                for t in range(nt):
+                    x = wrd[t]  # Gray -> binary: prefix XOR (n <= 32)
+                    x ^= x >> 1
+                    x ^= x >> 2
+                    x ^= x >> 4
+                    x ^= x >> 8
+                    x ^= x >> 16
+                    wrd[t] = x
+                    cf[f, t] = x * step + c0
+                    sf[f, t] = sig_one
+                    wf[f, t] = step
+                    of[f, t] = lit[t0 + t] & (x < n_stripes) & one_stripe_ok
+                    r = ref[t0 + t]
+                    q = mm[t] / (r if (r >= tiny or r != r) else tiny)
+                    qf[f, t] = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                # ... then the pixels with unresolved planes (few): partial codes, statistics
+                for t in range(nt):
+                    u = ~rel[t] & full
                     if u == 0:
-                        mm = mg[0]
-                        for i in range(1, n):
-                            v = mg[i]
-                            if not (mm <= v):
-                                mm = v if (v < mm or v != v) else mm
+                        continue
+                    isl = lit[t0 + t]
+                    binary = wrd[t]
+                    bl = 0
+                    t2 = u
+                    while t2:
+                        bl += 1
+                        t2 >>= 1
+                    first = n - bl
+                    single = (u & (u - 1)) == 0
+                    flip = binary ^ ((np.int64(1) << (n - first)) - 1)
+                    edge = single and abs(flip - binary) == 1
+                    picked = False
+                    bsel = binary
+                    if has_hint and single and not edge and pok[t0 + t]:
+                        ca = binary * step + c0
+                        cb = flip * step + c0
+                        xa = phi[t0 + t] - kk * (ca + 0.5)
+                        xb = phi[t0 + t] - kk * (cb + 0.5)
+                        da = abs(math.atan2(math.sin(xa), math.cos(xa)))
+                        db = abs(math.atan2(math.sin(xb), math.cos(xb)))
+                        dmin = min(da, db)
+                        dmax = max(da, db)
+                        picked = dmin < half_pi and (dmax >= half_pi or abs(ca - cb) < 0.5 * period)
+                        if picked and db < da:
+                            bsel = flip
+                    weff = 1.0
+                    if edge:
+                        cst = 0.5 * (binary + flip)
+                        exists = max(binary, flip) < n_stripes
+                    elif picked:
+                        cst = float(bsel)
+                        exists = bsel < n_stripes
                     else:
-                        limit = n if (edge or picked) else first
-                        mm = inf32
-                        for i in range(n):
-                            bad = (u >> (n - 1 - i)) & 1
-                            if bad and isl:
-                                cnt[f, i] += 1
-                            if not bad and limit > i:
-                                v = mg[i]
-                                if not (mm <= v):
-                                    mm = v if (v < mm or v != v) else mm
-                        if not np.isfinite(mm):
-                            mm = np.float32(0.0)
-                    if isl and not ok and first < n:
-                        cnt[f, n + first] += 1
-                    q = mm / rden
-                    if q < 0:
-                        q = np.float32(0.0)
-                    elif q > 1:
-                        q = np.float32(1.0)
-                    cf[f] = cst * step + 0.5 * (step - 1.0)
-                    sf[f] = 0.5 * step if edge else weff * step / sqrt12
-                    wf[f] = weff * step
-                    qf[f] = q
-                    of[f] = ok
-                if F == 1:
-                    _store(p, final, of[0], cf[0], sf[0], qf[0], coord_out, sig_out, ok_out,
-                           conf_out)
-                    continue
-                # consistency vote (Gupta et al. 2013, Sec. 4.3)
+                        weff = float(np.int64(1) << (n - first))
+                        block = bsel >> (n - first)
+                        cst = block * weff + 0.5 * (weff - 1)
+                        exists = block * weff < n_stripes
+                    ok = isl and exists and (weff * step <= coarse_lim + 1e-9 or edge or picked)
+                    # confidence: the weakest margin among the planes the coordinate uses
+                    limit = n if (edge or picked) else first
+                    ms = inf32
+                    for i in range(n):
+                        bad = (u >> (n - 1 - i)) & 1
+                        if bad and isl:
+                            counts[f, i] += 1
+                        if not bad and limit > i:
+                            ms = _min_nan(ms, mg[i, t])
+                    if not np.isfinite(ms):
+                        ms = np.float32(0.0)
+                    if isl and not ok:
+                        counts[f, n + first] += 1
+                    r = ref[t0 + t]
+                    q = ms / (r if (r >= tiny or r != r) else tiny)
+                    cf[f, t] = cst * step + c0
+                    sf[f, t] = 0.5 * step if edge else weff * step / sqrt12
+                    wf[f, t] = weff * step
+                    qf[f, t] = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                    of[f, t] = ok
+            if F == 1:
+                for t in range(nt):
+                    _store(t0 + t, final, of[0, t], cf[0, t], sf[0, t], qf[0, t], coord_out,
+                           sig_out, ok_out, conf_out)
+                continue
+            for t in range(nt):  # consistency vote (Gupta et al. 2013, Sec. 4.3)
                 for f in range(F):
                     agree[f] = 0
                 for i in range(F):
                     for j in range(i + 1, F):
-                        if of[i] and of[j] and abs(cf[i] - cf[j]) <= \
-                                0.5 * (wf[i] + wf[j]) / 2 + tol:
+                        if of[i, t] and of[j, t] and abs(cf[i, t] - cf[j, t]) <= \
+                                0.5 * (wf[i, t] + wf[j, t]) / 2 + tol:
                             agree[i] += 1
                             agree[j] += 1
                 best = 0
                 best_score = -np.inf
                 n_ok = 0
                 for f in range(F):
-                    sg = sf[f] if of[f] else np.inf
+                    sg = sf[f, t] if of[f, t] else np.inf
                     score = agree[f] * 1e6 - min(sg, 1e5)
                     if score > best_score:  # np.argmax: the first maximum
                         best_score = score
                         best = f
-                    n_ok += of[f]
+                    n_ok += of[f, t]
                 nbest = agree[best]
                 okv = nbest >= 1 or n_ok == 1
-                if isl and n_ok >= 2 and not okv:
-                    cnt[0, 2 * n] += 1
-                _store(p, final, okv, cf[best], sf[best],
-                       np.float32(float(qf[best]) * (nbest + 1) / F), coord_out, sig_out, ok_out,
-                       conf_out)
+                if lit[t0 + t] and n_ok >= 2 and not okv:
+                    counts[0, 2 * n] += 1
+                _store(t0 + t, final, okv, cf[best, t], sf[best, t],
+                       np.float32(float(qf[best, t]) * (nbest + 1) / F), coord_out, sig_out,
+                       ok_out, conf_out)
 
     return axis_pixels, prepare
 
@@ -256,16 +265,17 @@ def prepare(white, black, lmax, lmin, shadow_threshold, min_contrast, rel_contra
 
 
 def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, tau, ref,
-                lit, hint=None, out=None):
+                lit, hint=None, out=None, p0=0):
     """Decode one axis for a run of pixels (see the module docstring).
 
     Parameters
     ----------
-    signs : (F, P) unsigned int
-        Per code family, the packed decisions (plane ``i`` at bit ``n - 1 - i``).
-    marg : (K, P) uint8 or float32
-        Stored margins; plane ``i`` of family ``f`` is row ``kidx[f, i]``, in units of
-        ``mscale`` (uint8 steps of 1/510 of full scale, or float32 with ``mscale`` 1).
+    signs : (F, N) unsigned int, C-contiguous
+        Per code family, the packed decisions (plane ``i`` at bit ``n - 1 - i``); the run's
+        pixels are columns ``p0 … p0 + P - 1``.
+    marg : (K, N) uint8 or float32, C-contiguous
+        Stored margins (same columns); plane ``i`` of family ``f`` is row ``kidx[f, i]``, in
+        units of ``mscale`` (uint8 steps of 1/510 of full scale, or float32 with ``mscale`` 1).
     mscale : float
     kidx : (F, n) int64
     base : (F,) int64
@@ -301,7 +311,7 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
         ok, conf = np.empty(P, bool), np.empty(P, np.float32)
     else:
         coord, sig, ok, conf = out
-    counts = np.zeros((max(1, -(-P // _BLOCK)), F, 2 * n + 1), np.int64)
+    counts = np.zeros((F, 2 * n + 1), np.int64)
     if hint is None:
         phi, pok, kk, period, has = np.zeros(1, np.float32), np.zeros(1, bool), 0.0, 0.0, False
     else:
@@ -309,7 +319,7 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
         has = True
     _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
               np.asarray(base, np.int64), int(n), float(step), int(n_stripes),
-              float(coarse_lim), float(tol), tau, ref, lit, phi, pok, has, float(kk),
+              float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
               float(period), coord, sig, ok, conf, out is not None, counts)
-    c = counts.sum(axis=0)
+    c = counts
     return coord, sig, ok, conf, c[:, :n], c[:, n:2 * n], int(c[0, 2 * n])

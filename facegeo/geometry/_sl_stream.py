@@ -449,9 +449,10 @@ class StreamDecoder:
         codes = self.spec.codes
         F = len(codes)
         n_pix = sl.stop - sl.start
-        if self.spec.inverse:
-            signs = self.sign_words[axis].reshape(F, -1)[:, sl]
-            marg = self.margin.reshape(len(self.planes), -1)[:, sl]
+        if self.spec.inverse:  # the stored words and margins, columns sl
+            p0 = sl.start
+            signs = self.sign_words[axis].reshape(F, -1)
+            marg = self.margin.reshape(len(self.planes), -1)
             kidx = np.array([[self.plane_index[(c, axis, i)] for i in range(n)] for c in codes])
             mscale = 1.0 / _MARGIN_STEPS
         else:  # decisions and margins against the pixel's threshold, then the same kernel
@@ -464,12 +465,12 @@ class StreamDecoder:
                         self.plane_index[(c, axis, i)], sl, thr)
                     signs[f] |= positive.astype(dt) << dt(n - 1 - i)
             kidx = np.arange(F * n).reshape(F, n)
-            mscale = 1.0
+            mscale, p0 = 1.0, 0
         base = [-1 if base_plane(c, n) is None else base_plane(c, n) for c in codes]
         n_stripes = -(-size // (1 << s))
         coord, sig, ok, conf, unresolved, lost, disagree = decode_axis(
             signs, marg, mscale, kidx, base, n, float(1 << s), n_stripes, coarse_lim,
-            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out)
+            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out, p0)
         for f, c in enumerate(codes):
             for i in range(n):
                 stats[c]["unresolved"][i] += int(unresolved[f, i])
