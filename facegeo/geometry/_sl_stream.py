@@ -3,11 +3,16 @@
 Private implementation of :func:`facegeo.geometry.structured_light.decode_stream` (read that
 docstring first; the method is written down in ``docs/structured-light.md``).
 
+Speed: the per-frame updates are compiled kernels (``_sl_kernels``: an 8-bit pair or phase
+frame is read once, no float32 luminance plane), and so is the per-pixel part of
+:meth:`StreamDecoder.finish` (``_sl_finish``; the numpy reference stays, ``KERNELS = False``).
+
 Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families and axes):
 
 * with inverse frames: one uint8 margin per bit plane and pixel (``|pattern - inverse|`` in steps
   of 1/510 of full scale, saturating at 0.5) and the bit decisions packed into one integer word
-  per pixel, family and axis; at most one frame waits for its partner;
+  per pixel, family and axis; at most one frame waits for its partner (as its exact integer
+  channel sum for 8-bit / 16-bit frames: 2 / 4 bytes a pixel, else float32 luminance);
 * without inverse frames (the bit threshold comes from the data): the frames themselves as
   float16 (2 bytes per plane and pixel), since the per-pixel threshold is known only at the end;
 * float32 per pixel: white, black, the running max / min over the binary frames (Nayar et al.
