@@ -606,13 +606,16 @@ def test_synth_cli_writes_effects_into_the_frames(tmp_path):
 #: float64 steps, so the measured difference is 0; the phase pick uses libm sin/cos/atan2.
 KERNEL_COORD_TOL_PX = 1e-4
 KERNEL_CONF_TOL = 1e-6
+KERNEL_PHASE_TOL_RAD = 1e-5  # wrapped phase, max abs difference (float32 atan2: ~1 ulp)
+KERNEL_MODULATION_TOL = 1e-6  # fringe amplitude B, fraction of full scale
 
 
 @pytest.mark.parametrize("kw", [
-    dict(codes=("gray", "xor02", "xor04"), phase_axes=("x", "y"), n_bits_x=6, n_bits_y=5),
+    dict(codes=("gray", "xor02", "xor04"), phase_steps=4, phase_axes=("x", "y"), n_bits_x=6,
+         n_bits_y=5),
     dict(inverse=False),
     dict(inverse=False, white_black=False, codes=("gray", "xor04")),
-    dict(phase_axes=("x",), n_bits_x=5),
+    dict(phase_steps=3, phase_axes=("x",), n_bits_x=5),
 ])
 def test_compiled_finish_equals_numpy_reference(kw, monkeypatch):
     """The per-pixel finish kernel against the numpy planes, on noisy blurred 8-bit frames
@@ -645,3 +648,10 @@ def test_compiled_finish_equals_numpy_reference(kw, monkeypatch):
     np.testing.assert_allclose(got.confidence, want.confidence, rtol=0, atol=KERNEL_CONF_TOL)
     for name in ("direct", "global_", "lit"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    assert set(got.wrapped) == set(want.wrapped) == set(spec.phase_axes if spec.phase_steps else ())
+    for a in got.wrapped:
+        np.testing.assert_array_equal(np.isnan(got.wrapped[a]), np.isnan(want.wrapped[a]))
+        np.testing.assert_allclose(got.wrapped[a], want.wrapped[a], rtol=0,
+                                   atol=KERNEL_PHASE_TOL_RAD)
+        np.testing.assert_allclose(got.modulation[a], want.modulation[a], rtol=0,
+                                   atol=KERNEL_MODULATION_TOL)

@@ -7,7 +7,9 @@ per family: read each pixel's decision word and its ``n`` margins per code famil
 base plane (Gupta et al. 2013, Sec. 4.2), Gray → binary, find the first unresolved plane, the
 boundary / phase-picked / coarse-block coordinate of a partly resolved code, the weakest used
 margin (confidence), the per-bit statistics and the consistency vote across families
-(Sec. 4.3). The method is written down in ``docs/structured-light.md``.
+(Sec. 4.3); on an axis with phase frames also the wrapped phase and fringe amplitude
+(:func:`phase`, Srinivasan et al. 1984) and the unwrapping with the code (:func:`phase_merge`).
+The method is written down in ``docs/structured-light.md``.
 
 Tiles of ``_TILE`` pixels: the margins are read plane by plane over the tile and every pixel
 is first decoded as fully resolved — loops the compiler vectorises, over data that stays in
@@ -27,7 +29,7 @@ import math
 
 import numpy as np
 
-__all__ = ["decode_axis", "prepare"]
+__all__ = ["decode_axis", "phase", "phase_merge", "prepare"]
 
 _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 
@@ -247,7 +249,56 @@ def _kernel():
                        np.float32(float(qf[best, t]) * (nbest + 1) / F), coord_out, sig_out,
                        ok_out, conf_out)
 
-    return axis_pixels, prepare
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def phase_pixels(S, C, pmax, ref, shadow, two_over_n, min_mod, saturation, wrapped, B_out,
+                     phi_out, pconf_out, pok_out):  # pragma: no cover - compiled
+        two_pi = np.float32(2.0 * math.pi)
+        zero = np.float32(0.0)
+        tiny = np.float32(1e-12)
+        for p in range(S.shape[0]):
+            # np.mod(np.arctan2(S, C), float32(2 pi)) in float32 (numpy's divmod rule)
+            m = math.atan2(S[p], C[p])  # in [-pi, pi]: fmod(m, 2 pi) = m
+            if m != 0:
+                if m < 0:
+                    m += two_pi
+            else:
+                m = zero
+            if m >= two_pi:
+                m = zero
+            B = two_over_n * math.hypot(S[p], C[p])
+            B_out[p] = B
+            phi_out[p] = m
+            wrapped[p] = m if B > 0 else np.float32(np.nan)
+            r = ref[p]
+            q = (np.float32(2.0) * B) / (r if (r >= tiny or r != r) else tiny)
+            q = min(max(q, zero), np.float32(1.0)) if q == q else q
+            pconf_out[p] = q
+            # a clipped fringe biases the phase: saturated pixels fall back to the code
+            pok_out[p] = (not shadow[p]) and q >= min_mod and pmax[p] < saturation
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def phase_merge(coord, sig, ok, conf, phi, B, pconf, pok, k, sig_c, keep_sig,
+                    coord_out, sig_out, ok_out, conf_all):  # pragma: no cover - compiled
+        two_pi = 2.0 * math.pi
+        tiny = np.float32(1e-12)
+        for p in range(coord.shape[0]):
+            use = ok[p] and pok[p]
+            # coarse-only pixels keep a coordinate only if exact to one stripe
+            keep = ok[p] and not pok[p] and sig[p] <= keep_sig
+            if use:
+                mm = np.rint((k * (np.float64(coord[p]) + 0.5) - phi[p]) / two_pi)
+                c = np.float32((phi[p] + two_pi * mm) / k - 0.5)
+                b = B[p]
+                sg = (sig_c / (b if (b >= tiny or b != b) else tiny)) / np.float32(k)
+                q = _min_nan(conf[p], pconf[p])
+            elif keep:
+                c, sg, q = coord[p], sig[p], conf[p]
+            else:
+                c, sg, q = np.float32(np.nan), np.float32(np.nan), np.float32(0.0)
+            v = use or keep
+            _store(p, True, v, c, sg, q, coord_out, sig_out, ok_out, conf_all)
+
+    return axis_pixels, prepare, phase_pixels, phase_merge
 
 
 def prepare(white, black, lmax, lmin, shadow_threshold, min_contrast, rel_contrast, lit_out,
@@ -323,3 +374,27 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
               float(period), coord, sig, ok, conf, out is not None, counts)
     c = counts
     return coord, sig, ok, conf, c[:, :n], c[:, n:2 * n], int(c[0, 2 * n])
+
+
+def phase(S, C, pmax, ref, shadow, N, min_modulation, saturation, wrapped, modulation):
+    """Wrapped phase and fringe amplitude of a run of pixels (Srinivasan et al. 1984):
+    ``phi = atan2(S, C) mod 2 pi``, ``B = (2 / N) hypot(S, C)``, written to ``wrapped`` (NaN
+    where ``B = 0``) and ``modulation``; returns ``phi`` (P,) float32, the fringe contrast
+    ``pconf = clip(2 B / ref, 0, 1)`` and ``usable = not shadow, pconf >= min_modulation, max
+    phase frame < saturation`` — what the numpy lines of ``_finish_chunk`` compute."""
+    P = S.shape[0]
+    phi, pconf, usable = np.empty(P, np.float32), np.empty(P, np.float32), np.empty(P, bool)
+    _kernel()[2](S, C, pmax, ref, shadow, np.float32(2.0 / N), np.float32(min_modulation),
+                 np.float32(saturation), wrapped, modulation, phi, pconf, usable)
+    return phi, pconf, usable
+
+
+def phase_merge(coord, sig, ok, conf, phi, B, pconf, usable, k, noise_sigma, N, step, out):
+    """Unwrap the phase with the code coordinate and write the axis's outputs: where the code
+    and the phase are both usable ``x = (phi + 2 pi m) / k - 0.5`` with ``m = round((k (code
+    + 0.5) - phi) / 2 pi)``, σ ``= noise_sigma sqrt(2 / N) / B / k`` and confidence
+    ``min(conf, pconf)``; where only the code is, it stands if it names one stripe; ``out =
+    (x, sigma, valid, conf_all)`` as in :func:`decode_axis`."""
+    _kernel()[3](coord, sig, ok, conf, phi, B, pconf, usable, float(k),
+                 np.float32(noise_sigma * math.sqrt(2.0 / N)),
+                 np.float32(step / math.sqrt(12.0) + 1e-6), *out)

@@ -395,6 +395,24 @@ class StreamDecoder:
             conf = np.zeros(n_pix, np.float32)
             ok = np.zeros(n_pix, bool)
             hint = None
+            if KERNELS and phase_here and n:  # compiled: phase, bits, unwrapping, outputs
+                from facegeo.geometry import _sl_finish as fin
+
+                S, C, _ = (v.reshape(-1)[sl] for v in self.phase[axis])
+                N = spec.phase_steps
+                k = 2.0 * np.pi * spec.phase_periods(axis) / size
+                B = fm[axis][sl]
+                phi, pconf, pok = fin.phase(
+                    S, C, self.phase_max.reshape(-1)[sl], ref, shadow, N,
+                    vals["min_modulation"], vals["saturation"], fw[axis][sl], B)
+                coord, sig, ok, conf = self._decode_axis_compiled(
+                    axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
+                    (phi, pok, k, period))
+                fin.phase_merge(coord, sig, ok, conf, phi, B, pconf, pok, k,
+                                vals["noise_sigma"], N, step,
+                                (flat[axis][sl], flat[f"sigma_{axis}"][sl],
+                                 flat[f"valid_{axis}"][sl], conf_all))
+                continue
             if phase_here:
                 S, C, _ = (v.reshape(-1)[sl] for v in self.phase[axis])
                 N = spec.phase_steps
