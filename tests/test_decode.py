@@ -551,6 +551,36 @@ def test_kernels_match_numpy_reference(dtype):
     assert state[0].any() and state[1].max() > 100  # the bit and margins were written
 
 
+@pytest.mark.parametrize("dtype,channels", [(np.uint8, 3), (np.uint16, 3), (np.uint8, 1)])
+def test_fused_frame_kernels_equal_the_luminance_path(dtype, channels):
+    """An integer pattern / inverse pair read once by the fused kernel (one half as its exact
+    channel sum) and a fused phase frame update the accumulators *bit for bit* as the float32
+    luminance planes do (exact integer sums: no rounding may differ). Fails if the fused path
+    rounds the luminance differently (e.g. scales before summing) or drops a channel."""
+    from facegeo.geometry import _sl_kernels as k
+
+    rng = np.random.default_rng(2)
+    top = np.iinfo(dtype).max
+    shape = (29, 41, channels) if channels > 1 else (29, 41)
+    pos, neg = (rng.integers(0, top, shape, endpoint=True).astype(dtype) for _ in range(2))
+    scale = 1.0 / (top * channels)
+    state = [np.zeros((29, 41), np.uint16), np.zeros((29, 41), np.uint8),
+             np.full((29, 41), -np.inf, np.float32), np.full((29, 41), np.inf, np.float32)]
+    ref = [s.copy() for s in state]
+    k.pair_update(k.channel_sum(pos), neg, state[0], 3, state[1], 510.0, state[2], state[3],
+                  pos_scale=scale, neg_scale=scale)
+    k.pair_reference(k.luminance(pos, scale), k.luminance(neg, scale), ref[0], 3, ref[1], 510.0,
+                     ref[2], ref[3])
+    for got, want in zip(state, ref):
+        np.testing.assert_array_equal(got, want)
+    acc = [rng.random((29, 41), dtype=np.float32) for _ in range(4)]
+    racc = [a.copy() for a in acc]
+    k.phase_update(pos, scale, 0.8660254, -0.5, *acc)
+    k.phase_reference(pos, scale, 0.8660254, -0.5, *racc)
+    for got, want in zip(acc, racc):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_synth_cli_writes_effects_into_the_frames(tmp_path):
     """`facegeo synth --sl-subsurface/--sl-interreflection` changes the structured-light frames
     (not the OLAT ones) and records the effects in the manifest."""
@@ -568,3 +598,60 @@ def test_synth_cli_writes_effects_into_the_frames(tmp_path):
     fb = b.sl_frame("cam_left", "gray_x_00", luminance=True)
     assert np.abs(fa - fb).max() > 0.02
     np.testing.assert_array_equal(a.olat_frame("cam_left", 5), b.olat_frame("cam_left", 5))
+
+
+#: Compiled finish (``_sl_finish``) against the numpy reference (``KERNELS = False``): codes,
+#: validity, shadow and per-bit statistics identical; coordinates, σ and confidence equal to
+#: float32 rounding (max abs difference, projector px / unitless). Both do the same float32 /
+#: float64 steps, so the measured difference is 0; the phase pick uses libm sin/cos/atan2.
+KERNEL_COORD_TOL_PX = 1e-4
+KERNEL_CONF_TOL = 1e-6
+KERNEL_PHASE_TOL_RAD = 1e-5  # wrapped phase, max abs difference (float32 atan2: ~1 ulp)
+KERNEL_MODULATION_TOL = 1e-6  # fringe amplitude B, fraction of full scale
+
+
+@pytest.mark.parametrize("kw", [
+    dict(codes=("gray", "xor02", "xor04"), phase_steps=4, phase_axes=("x", "y"), n_bits_x=6,
+         n_bits_y=5),
+    dict(inverse=False),
+    dict(inverse=False, white_black=False, codes=("gray", "xor04")),
+    dict(phase_steps=3, phase_axes=("x",), n_bits_x=5),
+])
+def test_compiled_finish_equals_numpy_reference(kw, monkeypatch):
+    """The per-pixel finish kernel against the numpy planes, on noisy blurred 8-bit frames
+    where many pixels have unresolved planes (partial codes, stripe edges, phase picks, votes).
+    Fails if the kernel decodes a partial code, a vote or a statistic differently."""
+    from scipy.ndimage import gaussian_filter
+
+    import facegeo.geometry._sl_stream as S
+
+    spec = PatternSpec(PROJ_W, PROJ_H, **kw)
+    frames, _, _ = _frames(spec, noise=0.01, seed=5)
+    # blur the finest stripes away and add a dark corner: every branch gets pixels
+    frames = {n: np.clip(np.rint(gaussian_filter(f, 1.2) * 255), 0, 255).astype(np.uint8)
+              for n, f in frames.items()}
+    results = {}
+    for k in (True, False):
+        monkeypatch.setattr(S, "KERNELS", k)
+        results[k] = decode_stream(frames, spec)
+    got, want = results[True], results[False]
+    assert want.valid.any()
+    # partial codes were exercised
+    assert sum(sum(want.bits["x"][c]["unresolved"]) for c in spec.codes) > 50
+    for name in ("valid", "valid_x", "valid_y", "shadow"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    assert got.bits == want.bits
+    for name in ("x", "y", "sigma_x", "sigma_y"):
+        a, b = getattr(got, name), getattr(want, name)
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
+        np.testing.assert_allclose(a, b, rtol=0, atol=KERNEL_COORD_TOL_PX, err_msg=name)
+    np.testing.assert_allclose(got.confidence, want.confidence, rtol=0, atol=KERNEL_CONF_TOL)
+    for name in ("direct", "global_", "lit"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    assert set(got.wrapped) == set(want.wrapped) == set(spec.phase_axes if spec.phase_steps else ())
+    for a in got.wrapped:
+        np.testing.assert_array_equal(np.isnan(got.wrapped[a]), np.isnan(want.wrapped[a]))
+        np.testing.assert_allclose(got.wrapped[a], want.wrapped[a], rtol=0,
+                                   atol=KERNEL_PHASE_TOL_RAD)
+        np.testing.assert_allclose(got.modulation[a], want.modulation[a], rtol=0,
+                                   atol=KERNEL_MODULATION_TOL)

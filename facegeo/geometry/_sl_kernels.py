@@ -1,8 +1,30 @@
 """Compiled per-frame kernels of the streaming structured-light decoder (numba).
 
 Each kernel makes one pass over a frame, where the numpy version of the same update
-(:func:`lum_reference`, :func:`pair_reference`, used by the tests as the plain reference) makes
-five to twelve. Compiled lazily on first use (``cache=True``: once per machine).
+(:func:`lum_reference`, :func:`pair_reference`, :func:`phase_reference`, used by the tests as
+the plain reference) makes five to twelve. Compiled lazily on first use (``cache=True``: once
+per machine).
+
+**8-bit / 16-bit frames are read once.** For ``uint8`` / ``uint16`` frames the decoder
+materialises no float32 luminance plane for a pattern / inverse pair or a phase frame:
+
+* the first frame of a pair is reduced to its exact integer channel sum (:func:`channel_sum`,
+  uint16 for 8-bit frames, uint32 for 16-bit ones — half / the same bytes as the float32
+  luminance, and the frame itself can be dropped at once);
+* the second frame and that sum go through :func:`pair_update` together: both luminances
+  ``float32(channel sum) · scale`` are formed in registers, then the decision bit, the uint8
+  margin and the running ``L_max`` / ``L_min`` are written;
+* a phase frame goes through :func:`phase_update` (luminance, the three phase sums and the
+  running maximum in one pass).
+
+The luminance is bit-for-bit the one :func:`luminance` computes (a channel sum of integers
+below 2**24 is exact in float32 whichever order it is summed in), so the decode does not change.
+
+Threads: the kernels are serial (no ``prange``): the decode runs on the calling thread.
+``parallel=True`` row loops were tried and measured on the shared 2-core machine (load ≈ 7):
+at 2 numba threads the in-memory decode took 725 ms against 37.5 ms at 1 (``--quick`` size),
+presumably because each of the ~50 parallel regions per decode waits for a descheduled
+thread.
 """
 
 from __future__ import annotations
@@ -11,68 +33,167 @@ import functools
 
 import numpy as np
 
-__all__ = ["lum_reference", "luminance", "pair_reference", "pair_update"]
+__all__ = ["channel_sum", "lum_reference", "luminance", "pair_reference", "pair_update",
+           "phase_reference", "phase_update", "sum_dtype"]
+
+
+_EXACT = (np.dtype(np.uint8), np.dtype(np.uint16))  # channel sums exact below 2**24
 
 
 @functools.cache
-def _kernels():
+def _kernels(C: int, exact: bool):
+    """The kernels for frames of ``C`` channels, flattened to 1-D (pixel-major).
+
+    ``C`` is a compile-time constant of these closures, so the channel loop unrolls and the
+    pixel loop vectorises (a run-time channel count, or 3-D indexing, kept it scalar: 4-8×
+    slower, measured). ``exact``: uint8 / uint16 frames, summed as integers."""
     from numba import njit
 
-    @njit(cache=True, nogil=True, boundscheck=False)
-    def lum(a, scale, out):  # pragma: no cover - compiled
-        H, W, C = a.shape
-        for i in range(H):
-            for j in range(W):
-                s = np.float32(0.0)
-                for c in range(C):
-                    s += np.float32(a[i, j, c])
-                out[i, j] = s * scale
+    if exact:
+        @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", inline="always")
+        def fsum(f, i):  # pragma: no cover - compiled
+            s = np.uint32(0)
+            for c in range(C):
+                s += np.uint32(f[C * i + c])
+            return np.float32(s)  # exact: the same value as the float32 sum below
+    else:
+        @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", inline="always")
+        def fsum(f, i):  # pragma: no cover - compiled
+            s = np.float32(0.0)
+            for c in range(C):
+                s += np.float32(f[C * i + c])
+            return s
 
-    @njit(cache=True, nogil=True, boundscheck=False)
-    def pair(pos, neg, words, bitval, margin, steps, lmax, lmin):  # pragma: no cover
-        H, W = pos.shape
-        for i in range(H):
-            for j in range(W):
-                p = pos[i, j]
-                q = neg[i, j]
-                d = p - q
-                if d > 0:
-                    words[i, j] |= bitval
-                m = abs(d) * steps
-                m = min(m, 255.0)
-                margin[i, j] = np.uint8(np.rint(m))
-                hi = max(q, p)
-                lo = min(p, q)
-                lmax[i, j] = max(lmax[i, j], hi)
-                lmin[i, j] = min(lmin[i, j], lo)
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def lum(f, scale, out):  # pragma: no cover - compiled
+        for i in range(out.shape[0]):
+            out[i] = fsum(f, i) * scale
 
-    return lum, pair
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def csum(f, out):  # pragma: no cover - compiled
+        for i in range(out.shape[0]):
+            s = out.dtype.type(0)
+            for c in range(C):
+                s += out.dtype.type(f[C * i + c])
+            out[i] = s
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def pair(stored, ss, f, fs, stored_is_pos, words, bitval, margin, steps, lmax,
+             lmin):  # pragma: no cover - compiled
+        for i in range(words.shape[0]):
+            a = np.float32(stored[i]) * ss
+            b = fsum(f, i) * fs
+            p = a if stored_is_pos else b
+            q = b if stored_is_pos else a
+            d = p - q
+            words[i] |= bitval if d > 0 else words.dtype.type(0)
+            m = abs(d) * steps
+            m = min(m, np.float32(255.0))
+            margin[i] = np.uint8(np.rint(m))
+            lmax[i] = max(lmax[i], max(q, p))
+            lmin[i] = min(lmin[i], min(p, q))
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def phase(f, scale, sk, ck, S, C_, A, pmax):  # pragma: no cover - compiled
+        for i in range(S.shape[0]):
+            v = fsum(f, i) * scale
+            pmax[i] = max(pmax[i], v)
+            S[i] += sk * v
+            C_[i] += ck * v
+            A[i] += v
+
+    return lum, csum, pair, phase
+
+
+def _flat(a: np.ndarray) -> tuple[np.ndarray, int]:
+    """A frame as a C-contiguous 1-D array (pixel-major) and its channel count."""
+    C = a.shape[2] if a.ndim == 3 else 1
+    return np.ascontiguousarray(a).reshape(-1), C
+
+
+def sum_dtype(dtype, channels: int):
+    """Integer dtype that holds a pixel's channel sum exactly *and* below 2**24 (so its float32
+    conversion is exact too), or None when the frame must take the float32 luminance path."""
+    dtype = np.dtype(dtype)
+    if dtype == np.uint8 and channels <= 257:
+        return np.dtype(np.uint16)
+    if dtype == np.uint16 and channels <= 256:
+        return np.dtype(np.uint32)
+    return None
 
 
 def luminance(a: np.ndarray, scale: float) -> np.ndarray:
-    """Channel sum of an (H, W, C) frame times ``scale``, float32 (H, W)."""
+    """Channel sum of an (H, W[, C]) frame times ``scale``, float32 (H, W)."""
+    f, C = _flat(a)
     out = np.empty(a.shape[:2], np.float32)
-    _kernels()[0](np.ascontiguousarray(a), np.float32(scale), out)
+    exact = f.dtype in _EXACT and sum_dtype(f.dtype, C) is not None
+    _kernels(C, exact)[0](f, np.float32(scale), out.reshape(-1))
     return out
 
 
-def pair_update(pos, neg, words, bit: int, margin, steps: float, lmax, lmin) -> None:
-    """Fold a pattern / inverse pair into the accumulators in place (see ``pair_reference``)."""
-    _kernels()[1](pos, neg, words, words.dtype.type(1 << bit), margin, np.float32(steps),
-                  lmax, lmin)
+def channel_sum(a: np.ndarray) -> np.ndarray:
+    """Exact integer channel sum of a uint8 / uint16 (H, W[, C]) frame, (H, W) of
+    :func:`sum_dtype` (the stored half of a pattern / inverse pair)."""
+    f, C = _flat(a)
+    out = np.empty(a.shape[:2], sum_dtype(a.dtype, C))
+    _kernels(C, True)[1](f, out.reshape(-1))
+    return out
+
+
+def pair_update(pos, neg, words, bit: int, margin, steps: float, lmax, lmin, *,
+                pos_scale: float = 1.0, neg_scale: float = 1.0) -> None:
+    """Fold a pattern / inverse pair into the accumulators in place (see ``pair_reference``).
+
+    ``pos`` / ``neg``: each (H, W) float32 luminance, a :func:`channel_sum` or an (H, W[, C])
+    frame, whose luminance is its channel sum times ``pos_scale`` / ``neg_scale`` (formed in
+    registers, as :func:`luminance` would). At most one may have channels; the accumulators
+    must be C-contiguous (H, W) arrays (written in place)."""
+    stored_is_pos = not (pos.ndim == 3 and pos.shape[2] > 1)
+    (s, ss), (f, fs) = ((pos, pos_scale), (neg, neg_scale)) if stored_is_pos else \
+        ((neg, neg_scale), (pos, pos_scale))
+    f, C = _flat(f)
+    exact = f.dtype in _EXACT and sum_dtype(f.dtype, C) is not None
+    _kernels(C, exact)[2](np.ascontiguousarray(s).reshape(-1), np.float32(ss), f,
+                          np.float32(fs), stored_is_pos, words.reshape(-1),
+                          words.dtype.type(1 << bit), margin.reshape(-1), np.float32(steps),
+                          lmax.reshape(-1), lmin.reshape(-1))
+
+
+def phase_update(a, scale: float, sin_k: float, cos_k: float, S, C, A, pmax) -> None:
+    """Fold a phase frame (its luminance = channel sum times ``scale``) into the phase sums in
+    place (see ``phase_reference``): ``a`` an (H, W[, C]) frame, or (H, W) float32 luminance
+    with ``scale`` 1. The sums must be C-contiguous (H, W) arrays."""
+    f, Ch = _flat(a)
+    exact = f.dtype in _EXACT and sum_dtype(f.dtype, Ch) is not None
+    _kernels(Ch, exact)[3](f, np.float32(scale), np.float32(sin_k), np.float32(cos_k),
+                           S.reshape(-1), C.reshape(-1), A.reshape(-1), pmax.reshape(-1))
 
 
 def lum_reference(a: np.ndarray, scale: float) -> np.ndarray:
     """Plain numpy :func:`luminance`."""
+    a = a[:, :, None] if a.ndim == 2 else a
     return (a.astype(np.float32).sum(axis=2) * np.float32(scale)).astype(np.float32)
 
 
-def pair_reference(pos, neg, words, bit: int, margin, steps: float, lmax, lmin) -> None:
+def pair_reference(pos, neg, words, bit: int, margin, steps: float, lmax, lmin, *,
+                   pos_scale: float = 1.0, neg_scale: float = 1.0) -> None:
     """Plain numpy :func:`pair_update`: the decision ``pos > neg`` sets ``bit`` of ``words``,
     ``margin = min(rint(|pos - neg| · steps), 255)`` as uint8, and both frames enter the running
     ``lmax`` / ``lmin``."""
+    pos = lum_reference(pos, pos_scale)
+    neg = lum_reference(neg, neg_scale)
     d = pos - neg
     words |= ((d > 0).astype(words.dtype) << words.dtype.type(bit))
     margin[...] = np.rint(np.minimum(np.abs(d) * np.float32(steps), 255.0)).astype(np.uint8)
     np.maximum(lmax, np.maximum(pos, neg), out=lmax)
     np.minimum(lmin, np.minimum(pos, neg), out=lmin)
+
+
+def phase_reference(a, scale: float, sin_k: float, cos_k: float, S, C, A, pmax) -> None:
+    """Plain numpy :func:`phase_update`: ``S += sin_k L``, ``C += cos_k L``, ``A += L``,
+    ``pmax = max(pmax, L)`` with ``L`` the frame's luminance."""
+    lum = lum_reference(a, scale)
+    np.maximum(pmax, lum, out=pmax)
+    S += np.float32(sin_k) * lum
+    C += np.float32(cos_k) * lum
+    A += lum

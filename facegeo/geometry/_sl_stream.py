@@ -3,11 +3,16 @@
 Private implementation of :func:`facegeo.geometry.structured_light.decode_stream` (read that
 docstring first; the method is written down in ``docs/structured-light.md``).
 
+Speed: the per-frame updates are compiled kernels (``_sl_kernels``: an 8-bit pair or phase
+frame is read once, no float32 luminance plane), and so is the per-pixel part of
+:meth:`StreamDecoder.finish` (``_sl_finish``; the numpy reference stays, ``KERNELS = False``).
+
 Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families and axes):
 
 * with inverse frames: one uint8 margin per bit plane and pixel (``|pattern - inverse|`` in steps
   of 1/510 of full scale, saturating at 0.5) and the bit decisions packed into one integer word
-  per pixel, family and axis; at most one frame waits for its partner;
+  per pixel, family and axis; at most one frame waits for its partner (as its exact integer
+  channel sum for 8-bit / 16-bit frames: 2 / 4 bytes a pixel, else float32 luminance);
 * without inverse frames (the bit threshold comes from the data): the frames themselves as
   float16 (2 bytes per plane and pixel), since the per-pixel threshold is known only at the end;
 * float32 per pixel: white, black, the running max / min over the binary frames (Nayar et al.
@@ -40,6 +45,9 @@ log = logging.getLogger(__name__)
 _AXES = ("x", "y")
 _MARGIN_STEPS = 510.0  # uint8 margin quantisation: 1/510 of full scale, saturating at 0.5
 _CHUNK = 1 << 18  # pixels per chunk when finishing
+#: Decode the bits in the compiled per-pixel kernel (``_sl_finish``); False: the numpy
+#: reference (``_bit_words`` / ``_decode_axis`` / ``_partial_codes``), used by the tests.
+KERNELS = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,8 +106,8 @@ class StreamDecode:
     bits: dict = field(default_factory=dict)
 
 
-def _luminance(frame: Any, name: str, shape, full_scale: float | None) -> np.ndarray:
-    """Frame as float32 (H, W) in fractions of full scale (channel mean), validated."""
+def _check_frame(frame: Any, name: str, shape) -> np.ndarray:
+    """Frame as an (H, W) or (H, W, C) real array, validated (size against ``shape``)."""
     a = np.asarray(frame)
     if a.dtype.kind not in "fiu":
         raise ShapeError(f"frames[{fmt_value(name)}]: expected real numbers, got dtype {a.dtype}")
@@ -110,15 +118,21 @@ def _luminance(frame: Any, name: str, shape, full_scale: float | None) -> np.nda
         raise ShapeError(f"frames[{fmt_value(name)}]: size {a.shape[1]}x{a.shape[0]} (W x H) "
                          f"differs from the first frame's {shape[1]}x{shape[0]}; all frames of "
                          "one capture must have the same size")
+    return a
+
+
+def _lum_scale(a: np.ndarray, full_scale: float | None) -> float:
+    """Luminance = channel sum times this: ``1 / (C · full scale)``."""
     if full_scale is None:
         full_scale = float(np.iinfo(a.dtype).max) if a.dtype.kind in "iu" else 1.0
     C = a.shape[2] if a.ndim == 3 else 1
-    if C > 1:
-        lum = _kern.luminance(a, 1.0 / (full_scale * C))  # one compiled pass
-    else:
-        lum = (a[..., 0] if a.ndim == 3 else a).astype(np.float32, copy=True)
-        if full_scale != 1.0:
-            lum *= np.float32(1.0 / full_scale)
+    return 1.0 / (full_scale * C)
+
+
+def _luminance(frame: Any, name: str, shape, full_scale: float | None) -> np.ndarray:
+    """Frame as float32 (H, W) in fractions of full scale (channel mean), validated."""
+    a = _check_frame(frame, name, shape)
+    lum = _kern.luminance(a, _lum_scale(a, full_scale))  # one compiled pass
     if a.dtype.kind == "f" and not np.isfinite(lum).all():
         idx = np.argwhere(~np.isfinite(lum))[0]
         raise InputError(f"frames[{fmt_value(name)}]: non-finite value (NaN or inf) at row "
@@ -154,7 +168,7 @@ class StreamDecoder:
                        if p.kind == "gray" and not p.inverse]
         self.plane_index = {k: i for i, k in enumerate(self.planes)}
         self.families = [(c, a) for c in spec.codes for a in _AXES if spec.n_bits(a)]
-        self.pending: dict[tuple, tuple[bool, np.ndarray]] = {}
+        self.pending: dict[tuple, tuple[bool, np.ndarray, float]] = {}
         self.finished = False
 
     # ---------------------------------------------------------------- accumulation
@@ -166,7 +180,10 @@ class StreamDecoder:
         n = len(self.planes)
         if spec.inverse:
             self.margin = np.zeros((n, H, W), np.uint8)
-            self.signs = {(c, a): np.zeros((H, W), _word_dtype(spec.n_bits(a)))
+            # per axis one (families, H, W) block, so the finish kernel reads them together
+            self.sign_words = {a: np.zeros((len(spec.codes), H, W), _word_dtype(spec.n_bits(a)))
+                               for a in _AXES if spec.n_bits(a)}
+            self.signs = {(c, a): self.sign_words[a][spec.codes.index(c)]
                           for c, a in self.families}
         else:
             self.values = np.zeros((n, H, W), np.float16)
@@ -198,9 +215,17 @@ class StreamDecoder:
                              f"set; expected one of {shown}")
         if name in self.seen:
             raise InputError(f"frames: frame {fmt_value(name)} given twice")
-        lum = _luminance(frame, name, self.shape, self.full_scale)
+        a = _check_frame(frame, name, self.shape)
+        scale = _lum_scale(a, self.full_scale)
+        # uint8 / uint16 frames of a pair or a phase sequence: read once by a fused kernel, no
+        # float32 luminance plane (_sl_kernels); other frames: their luminance first
+        fused = (_kern.sum_dtype(a.dtype, a.shape[2] if a.ndim == 3 else 1) is not None
+                 and (p.kind == "phase" or (p.kind == "gray" and self.spec.inverse)))
+        if not fused:
+            lum = _luminance(a, name, None, self.full_scale)
+            a, scale = lum, 1.0
         if self.shape is None:
-            self._allocate(lum.shape)
+            self._allocate(a.shape[:2])
         self.seen.add(name)
         if p.kind == "white":
             self.white = lum
@@ -210,10 +235,7 @@ class StreamDecoder:
             N = self.spec.phase_steps
             dk = 2.0 * math.pi * p.index / N
             S, C, A = self.phase[p.axis]
-            np.maximum(self.phase_max, lum, out=self.phase_max)
-            S += np.float32(math.sin(dk)) * lum
-            C += np.float32(math.cos(dk)) * lum
-            A += lum
+            _kern.phase_update(a, scale, math.sin(dk), math.cos(dk), S, C, A, self.phase_max)
         else:
             k = self.plane_index[(p.code, p.axis, p.index)]
             if not self.spec.inverse:
@@ -224,13 +246,15 @@ class StreamDecoder:
             key = (p.code, p.axis, p.index)
             other = self.pending.pop(key, None)
             if other is None:
-                self.pending[key] = (p.inverse, lum)
+                # the waiting half of the pair: its exact channel sum (or luminance)
+                self.pending[key] = (p.inverse, _kern.channel_sum(a) if fused else a, scale)
                 return
-            pos, neg = (other[1], lum) if p.inverse else (lum, other[1])
-            # one compiled pass: decision bit, uint8 margin, running L_max / L_min
+            (pos, ps), (neg, ns) = ((other[1], other[2]), (a, scale)) if p.inverse else \
+                ((a, scale), (other[1], other[2]))
+            # one compiled pass: both luminances, decision bit, uint8 margin, L_max / L_min
             _kern.pair_update(pos, neg, self.signs[(p.code, p.axis)],
                               self.spec.n_bits(p.axis) - 1 - p.index, self.margin[k],
-                              _MARGIN_STEPS, self.lmax, self.lmin)
+                              _MARGIN_STEPS, self.lmax, self.lmin, pos_scale=ps, neg_scale=ns)
 
     # ---------------------------------------------------------------- decoding
 
@@ -305,31 +329,45 @@ class StreamDecoder:
         has_bin = bool(self.planes)
         lmax = self._chunk_lum(self.lmax, sl)
         lmin = self._chunk_lum(self.lmin, sl)
-        direct = lmax - lmin if has_bin else None
-        if spec.white_black:
+        compiled = has_bin and KERNELS  # lit / direct / global / shadow / tau in one pass below
+        direct = lmax - lmin if has_bin and not compiled else None
+        if compiled:
+            lit = None
+        elif spec.white_black:
             lit = self._chunk_lum(self.white, sl) - self._chunk_lum(self.black, sl)
         elif has_bin:
             lit = direct
         else:
             a0 = next(iter(self.phase))
             lit = 2.0 * self.phase[a0][2].reshape(-1)[sl] / spec.phase_steps
-        lit = np.asarray(lit, np.float32)
+        lit = None if lit is None else np.asarray(lit, np.float32)
         thr = None
         if has_bin and not spec.inverse:
             if spec.white_black:
                 thr = 0.5 * (self._chunk_lum(self.white, sl) + self._chunk_lum(self.black, sl))
             else:
                 thr = 0.5 * (lmax + lmin)
-        # the chunk's accumulators are read: overwrite them with the outputs (see finish)
-        if has_bin:
-            flat["global_"][sl] = 2.0 * np.maximum(lmin, 0.0)
-            flat["direct"][sl] = direct
-        flat["lit"][sl] = lit
-        shadow = ~(lit >= vals["shadow_threshold"])
-        flat["shadow"][sl] = shadow
-        ref = direct if has_bin else lit
-        tau = np.maximum(np.float32(vals["min_contrast"]), np.float32(vals["rel_contrast"]) * ref)
         n_pix = sl.stop - sl.start
+        # the chunk's accumulators are read: overwrite them with the outputs (see finish)
+        if compiled:  # one compiled pass, in place
+            from facegeo.geometry._sl_finish import prepare
+
+            tau = np.empty(n_pix, np.float32)
+            shadow = flat["shadow"][sl]
+            prepare(self._chunk_lum(self.white, sl) if spec.white_black else None,
+                    self._chunk_lum(self.black, sl), lmax, lmin, vals["shadow_threshold"],
+                    vals["min_contrast"], vals["rel_contrast"], flat["lit"][sl], shadow, tau)
+            ref = direct = flat["direct"][sl]
+        else:
+            if has_bin:
+                flat["global_"][sl] = 2.0 * np.maximum(lmin, 0.0)
+                flat["direct"][sl] = direct
+            flat["lit"][sl] = lit
+            shadow = ~(lit >= vals["shadow_threshold"])
+            flat["shadow"][sl] = shadow
+            ref = direct if has_bin else lit
+            tau = np.maximum(np.float32(vals["min_contrast"]),
+                             np.float32(vals["rel_contrast"]) * ref)
         conf_all = np.ones(n_pix, np.float32)
         any_axis = False
         for axis in _AXES:
@@ -346,11 +384,35 @@ class StreamDecoder:
                 coarse_lim = max_coarse_px
             else:
                 coarse_lim = period / 2.0 if phase_here else step
+            if KERNELS and n and not phase_here:  # the kernel writes the axis's outputs
+                self._decode_axis_compiled(
+                    axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
+                    out=(flat[axis][sl], flat[f"sigma_{axis}"][sl], flat[f"valid_{axis}"][sl],
+                         conf_all))
+                continue
             coord = np.full(n_pix, np.nan, np.float32)
             sig = np.full(n_pix, np.nan, np.float32)
             conf = np.zeros(n_pix, np.float32)
             ok = np.zeros(n_pix, bool)
             hint = None
+            if KERNELS and phase_here and n:  # compiled: phase, bits, unwrapping, outputs
+                from facegeo.geometry import _sl_finish as fin
+
+                S, C, _ = (v.reshape(-1)[sl] for v in self.phase[axis])
+                N = spec.phase_steps
+                k = 2.0 * np.pi * spec.phase_periods(axis) / size
+                B = fm[axis][sl]
+                phi, pconf, pok = fin.phase(
+                    S, C, self.phase_max.reshape(-1)[sl], ref, shadow, N,
+                    vals["min_modulation"], vals["saturation"], fw[axis][sl], B)
+                coord, sig, ok, conf = self._decode_axis_compiled(
+                    axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
+                    (phi, pok, k, period))
+                fin.phase_merge(coord, sig, ok, conf, phi, B, pconf, pok, k,
+                                vals["noise_sigma"], N, step,
+                                (flat[axis][sl], flat[f"sigma_{axis}"][sl],
+                                 flat[f"valid_{axis}"][sl], conf_all))
+                continue
             if phase_here:
                 S, C, _ = (v.reshape(-1)[sl] for v in self.phase[axis])
                 N = spec.phase_steps
@@ -367,7 +429,8 @@ class StreamDecoder:
                     & (self.phase_max.reshape(-1)[sl] < vals["saturation"])
                 hint = (phi, pok, 2.0 * np.pi * spec.phase_periods(axis) / size, period)
             if n:
-                coord, sig, ok, conf = self._decode_axis(
+                decode = self._decode_axis_compiled if KERNELS else self._decode_axis
+                coord, sig, ok, conf = decode(
                     axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
                     hint)
             if phase_here:
@@ -393,6 +456,51 @@ class StreamDecoder:
         if any_axis:
             flat["confidence"][sl] = conf_all
 
+    def _plane_vs_threshold(self, k, sl, thr):
+        """Without inverse frames: stored plane ``k`` against the pixel threshold, as the
+        decision ``value > thr`` and the margin ``2 |value - thr|`` (float32)."""
+        v = self.values[k].reshape(-1)[sl].astype(np.float32) - thr
+        return v > 0, 2.0 * np.abs(v)
+
+    def _decode_axis_compiled(self, axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim,
+                              vals, stats, hint=None, out=None):
+        """:meth:`_decode_axis` in the compiled per-pixel kernel (``_sl_finish``): the same
+        results, one pass per pixel over its words and margins instead of numpy planes.
+        ``out``: write the axis's final outputs there (see ``_sl_finish.decode_axis``)."""
+        from facegeo.geometry._sl_finish import decode_axis
+
+        codes = self.spec.codes
+        F = len(codes)
+        n_pix = sl.stop - sl.start
+        if self.spec.inverse:  # the stored words and margins, columns sl
+            p0 = sl.start
+            signs = self.sign_words[axis].reshape(F, -1)
+            marg = self.margin.reshape(len(self.planes), -1)
+            kidx = np.array([[self.plane_index[(c, axis, i)] for i in range(n)] for c in codes])
+            mscale = 1.0 / _MARGIN_STEPS
+        else:  # decisions and margins against the pixel's threshold, then the same kernel
+            dt = _word_dtype(n)
+            signs = np.zeros((F, n_pix), dt)
+            marg = np.empty((F * n, n_pix), np.float32)
+            for f, c in enumerate(codes):
+                for i in range(n):
+                    positive, marg[f * n + i] = self._plane_vs_threshold(
+                        self.plane_index[(c, axis, i)], sl, thr)
+                    signs[f] |= positive.astype(dt) << dt(n - 1 - i)
+            kidx = np.arange(F * n).reshape(F, n)
+            mscale, p0 = 1.0, 0
+        base = [-1 if base_plane(c, n) is None else base_plane(c, n) for c in codes]
+        n_stripes = -(-size // (1 << s))
+        coord, sig, ok, conf, unresolved, lost, disagree = decode_axis(
+            signs, marg, mscale, kidx, base, n, float(1 << s), n_stripes, coarse_lim,
+            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out, p0)
+        for f, c in enumerate(codes):
+            for i in range(n):
+                stats[c]["unresolved"][i] += int(unresolved[f, i])
+                stats[c]["lost"][i] += int(lost[f, i])
+        stats["votes_disagree"] += disagree
+        return coord, sig, ok, conf
+
     def _bit_words(self, code, axis, n, sl, tau, thr):
         """(signs, reliable) packed words of family ``code`` on ``axis`` for pixels ``sl``, and
         the smallest margin over each bit as (n, P) float32."""
@@ -409,9 +517,8 @@ class StreamDecoder:
             if self.spec.inverse:
                 m = self.margin[k].reshape(-1)[sl].astype(np.float32) * np.float32(1.0 / _MARGIN_STEPS)
             else:
-                v = self.values[k].reshape(-1)[sl].astype(np.float32) - thr
-                signs |= (v > 0).astype(dt) << dt(n - 1 - i)
-                m = 2.0 * np.abs(v)
+                positive, m = self._plane_vs_threshold(k, sl, thr)
+                signs |= positive.astype(dt) << dt(n - 1 - i)
             margins[i] = m
             rel |= (m >= tau).astype(dt) << dt(n - 1 - i)
         b = base_plane(code, n)

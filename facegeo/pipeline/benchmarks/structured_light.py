@@ -178,14 +178,17 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
     Frames: the warp of :func:`_frames`, white / black + 10 + 10 Gray bits with inverses
     (42 frames), as 8-bit RGB (what a camera delivers). Rows:
 
-    * in memory — throughput, the fraction of pixels not decoded to the true projector pixel,
-      its ratio to :func:`reference_decode_gray` run on the same frames already reduced to float32
-      luminance (the reference does less: no per-bit reliability, no luminance conversion) and
-      its fraction of the read-once limit (every 8-bit frame read once at the bandwidth measured
-      in the same run, 1 thread: both decoders are single-threaded numpy);
-    * end to end from files — the frames written as PNG, then read one at a time
-      (``cv2.imread``) and streamed into the decoder; the read alone is timed separately, so the
-      decode's share of the wall time is visible.
+    * in memory (1 thread: the decoder's kernels are serial) — throughput, the fraction of
+      pixels not decoded to the true projector pixel, its fraction of the **read-once limit**
+      and its ratio to :func:`reference_decode_gray` (single-threaded numpy) run on the same
+      frames already reduced to float32 luminance (the reference does less: no per-bit
+      reliability, no luminance conversion, no statistics);
+    * the read-once limit: the bytes of the frames as they sit in memory (42 × H × W × 3
+      bytes of 8-bit RGB) read once at the 1-thread bandwidth measured in the same run
+      (:meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`);
+    * end to end from files — the frames written as PNG, then read one at a
+      time (``cv2.imread``) and streamed into the decoder; the read alone is timed separately,
+      so the decode's share of the wall time is visible.
     """
     import tempfile
     from pathlib import Path
@@ -211,21 +214,24 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
         u8 = np.clip(np.rint(f * 255), 0, 255).astype(np.uint8)
         rgb[n] = np.repeat(u8[..., None], 3, axis=2)
     lum = {n: (rgb[n].mean(axis=2, dtype=np.float32) / 255.0) for n in gnames}
-    nbytes = sum(a.nbytes for a in rgb.values())
+    nbytes = sum(a.nbytes for a in rgb.values())  # the frames as they sit in memory
     bw = read_bandwidth()
 
     def wrong(px, py, valid):
         return float(np.mean((np.floor(px + 0.5) != truth_x) | (np.floor(py + 0.5) != truth_y)
                              | ~valid))
 
-    t, res = best_of(lambda: decode_stream(rgb.items(), spec), repeat)
     t_ref, (rx, ry, rv) = best_of(lambda: reference_decode_gray(lum, spec), repeat)
-    mpx, ref_mpx = w * h / t / 1e6, w * h / t_ref / 1e6
+    ref_mpx = w * h / t_ref / 1e6
+    size = {"pixels": f"{w}x{h}", "frames": len(names),
+            "MB read once (8-bit RGB as in memory)": round(nbytes / 1e6, 1)}
+    # the decoder's kernels are serial (facegeo/geometry/_sl_kernels.py says why): 1 thread
+    t, res = best_of(lambda: decode_stream(rgb.items(), spec), repeat)
+    mpx = w * h / t / 1e6
     limit_1 = w * h / bw.read_once_seconds(nbytes, threads=1) / 1e6
-    size = {"pixels": f"{w}x{h}", "frames": len(names), "MB read once": round(nbytes / 1e6, 1)}
     rows = [
         BenchRow("structured_light.decode_stream",
-                 "facegeo decode_stream, frames in memory (8-bit RGB)", mpx, "Mpx/s",
+                 "facegeo decode_stream, frames in memory (8-bit RGB), 1 thread", mpx, "Mpx/s",
                  wrong(res.x, res.y, res.valid),
                  "fraction of pixels not decoded to the true projector pixel",
                  ratios={"vs numpy reference decode (float32 luminance given)": mpx / ref_mpx,
@@ -233,10 +239,15 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
                  extra={**size, "ms": round(1e3 * t, 1)}, threads=1,
                  baseline_threads={"vs numpy reference decode (float32 luminance given)": 1,
                                    "of read-once limit at 1-thread bandwidth": 1}),
-        BenchRow("structured_light.decode_stream",
-                 "numpy reference decode on float32 luminance", ref_mpx, "Mpx/s",
-                 wrong(rx, ry, rv), "fraction of pixels not decoded to the true projector pixel",
+        BenchRow("structured_light.decode_stream", "numpy reference decode on float32 luminance",
+                 ref_mpx, "Mpx/s", wrong(rx, ry, rv),
+                 "fraction of pixels not decoded to the true projector pixel",
                  extra={**size, "ms": round(1e3 * t_ref, 1)}, threads=1),
+        BenchRow("structured_light.decode_stream",
+                 f"read-once limit: the {len(names)} 8-bit RGB frames as they sit in memory "
+                 f"({nbytes / 1e6:.0f} MB), read once at the 1-thread bandwidth measured in this "
+                 "run", limit_1, "Mpx/s",
+                 extra={**size, "1-thread GB/s": round(bw.at_threads(1), 2)}, threads=1),
     ]
     with tempfile.TemporaryDirectory(prefix="facegeo-bench-sl-") as d:
         paths = {}

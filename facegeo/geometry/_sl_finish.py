@@ -1,0 +1,400 @@
+"""Compiled end of the streaming structured-light decode: the bit decode of a run of pixels.
+
+Private kernel behind :meth:`facegeo.geometry._sl_stream.StreamDecoder.finish`. For one axis and
+a run of pixels it does what the numpy reference (``_sl_stream._bit_words``, ``_decode_axis``,
+``_partial_codes``; run with ``_sl_stream.KERNELS = False``) does with several full-size planes
+per family: read each pixel's decision word and its ``n`` margins per code family, apply the XOR
+base plane (Gupta et al. 2013, Sec. 4.2), Gray → binary, find the first unresolved plane, the
+boundary / phase-picked / coarse-block coordinate of a partly resolved code, the weakest used
+margin (confidence), the per-bit statistics and the consistency vote across families
+(Sec. 4.3); on an axis with phase frames also the wrapped phase and fringe amplitude
+(:func:`phase`, Srinivasan et al. 1984) and the unwrapping with the code (:func:`phase_merge`).
+The method is written down in ``docs/structured-light.md``.
+
+Tiles of ``_TILE`` pixels: the margins are read plane by plane over the tile and every pixel
+is first decoded as fully resolved — loops the compiler vectorises, over data that stays in
+cache — then only the pixels with unresolved planes take the scalar path (partial codes,
+statistics), then the vote. The kernel does the reference's arithmetic (the same float32 /
+float64 steps in the same order), so codes, validity and statistics are identical and ``x`` /
+``y`` / ``sigma`` / ``confidence`` equal (tested in tests/test_decode.py). Margins are never
+NaN here (the decoder rejects non-finite frames), so plain ``min`` stands for ``np.minimum``.
+
+Serial, like the per-frame kernels (``_sl_kernels`` says why).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+__all__ = ["decode_axis", "phase", "phase_merge", "prepare"]
+
+_TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
+
+
+@functools.cache
+def _kernel():
+    from numba import njit
+
+    @njit(cache=True, nogil=True, boundscheck=False, inline="always")
+    def _min_nan(a, b):  # np.minimum: NaN propagates
+        if a <= b:
+            return a
+        return b if (b < a or b != b) else a
+
+    @njit(cache=True, nogil=True, boundscheck=False, inline="always")
+    def _max_nan(a, b):  # np.maximum: NaN propagates, ties keep a
+        if a >= b:
+            return a
+        return b if (b > a or b != b) else a
+
+    @njit(cache=True, nogil=True, boundscheck=False, inline="always")
+    def _store(p, final, ok, coord, sig, conf, coord_out, sig_out, ok_out, conf_out):
+        # final: the axis's outputs as decode_stream returns them (NaN where invalid) and the
+        # running min of the confidence over the axes; else the raw values for the phase step
+        ok_out[p] = ok
+        if final and not ok:
+            coord_out[p] = np.nan
+            sig_out[p] = np.nan
+            conf_out[p] = _min_nan(conf_out[p], np.float32(0.0))
+            return
+        coord_out[p] = np.float32(coord)
+        sig_out[p] = np.float32(sig)
+        conf_out[p] = _min_nan(conf_out[p], conf) if final else conf
+
+    @njit(cache=True, nogil=True, boundscheck=False)
+    def prepare(white, black, has_wb, lmax, lmin, shadow_thr, min_c, rel_c, lit_out, shadow,
+                tau):  # pragma: no cover - compiled
+        # _finish_chunk's per-pixel start with binary frames: direct / global over lmax / lmin
+        # (in place), lit, shadow, the reliability threshold
+        P = lmax.shape[0]
+        if True:
+            for p in range(P):
+                mx = lmax[p]
+                mn = lmin[p]
+                d = mx - mn
+                lit = white[p] - black[p] if has_wb else d
+                lmax[p] = d
+                lmin[p] = np.float32(2.0) * _max_nan(mn, np.float32(0.0))
+                lit_out[p] = lit
+                shadow[p] = not (lit >= shadow_thr)
+                tau[p] = _max_nan(min_c, rel_c * d)
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def axis_pixels(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, p0,
+                    tau, ref, lit, phi, pok, has_hint, kk, period,
+                    coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
+        F = signs.shape[0]
+        P = tau.shape[0]
+        full = (np.int64(1) << n) - 1
+        half_pi = 0.5 * math.pi
+        inf32 = np.float32(np.inf)
+        tiny = np.float32(1e-12)
+        sqrt12 = math.sqrt(12.0)
+        T = _TILE
+        mg = np.empty((n, T), np.float32)  # margins of the tile, plane-major
+        rel = np.empty(T, np.int64)
+        wrd = np.empty(T, np.int64)
+        mm = np.empty(T, np.float32)
+        cf = np.empty((F, T))
+        sf = np.empty((F, T))
+        wf = np.empty((F, T))
+        qf = np.empty((F, T), np.float32)
+        of = np.empty((F, T), np.bool_)
+        agree = np.zeros(F, np.int64)
+        c0 = 0.5 * (step - 1.0)
+        one_stripe_ok = step <= coarse_lim + 1e-9  # a fully resolved code names one stripe
+        sig_one = 1.0 * step / sqrt12
+        for t0 in range(0, P, T):
+            nt = min(T, P - t0)
+            for f in range(F):
+                # plane-major passes over the tile (vectorised): margins, reliable planes
+                for t in range(nt):
+                    rel[t] = 0
+                    wrd[t] = signs[f, p0 + t0 + t]
+                for i in range(n):
+                    k = kidx[f, i]
+                    bit = np.int64(1) << (n - 1 - i)
+                    for t in range(nt):
+                        m = np.float32(marg[k, p0 + t0 + t]) * mscale
+                        mg[i, t] = m
+                        rel[t] |= bit if m >= tau[t0 + t] else np.int64(0)
+                b = base[f]
+                if b > 0:  # XOR code: planes above the base were projected XORed with it
+                    high = ((np.int64(1) << b) - 1) << (n - b)
+                    sb = n - 1 - b
+                    for t in range(nt):
+                        w = wrd[t]
+                        wrd[t] = w ^ (high * ((w >> sb) & 1))
+                        r = rel[t]
+                        rel[t] = r & ((full & ~high) | (high * ((r >> sb) & 1)))
+                    for i in range(b):
+                        for t in range(nt):
+                            mg[i, t] = min(mg[i, t], mg[b, t])
+                for t in range(nt):
+                    mm[t] = mg[0, t]
+                for i in range(1, n):
+                    for t in range(nt):
+                        mm[t] = min(mm[t], mg[i, t])
+                # every pixel as if fully resolved (vectorised) ...
+                for t in range(nt):
+                    x = wrd[t]  # Gray -> binary: prefix XOR (n <= 32)
+                    x ^= x >> 1
+                    x ^= x >> 2
+                    x ^= x >> 4
+                    x ^= x >> 8
+                    x ^= x >> 16
+                    wrd[t] = x
+                    cf[f, t] = x * step + c0
+                    sf[f, t] = sig_one
+                    wf[f, t] = step
+                    of[f, t] = lit[t0 + t] & (x < n_stripes) & one_stripe_ok
+                    r = ref[t0 + t]
+                    q = mm[t] / (r if (r >= tiny or r != r) else tiny)
+                    qf[f, t] = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                # ... then the pixels with unresolved planes (few): partial codes, statistics
+                for t in range(nt):
+                    u = ~rel[t] & full
+                    if u == 0:
+                        continue
+                    isl = lit[t0 + t]
+                    binary = wrd[t]
+                    bl = 0
+                    t2 = u
+                    while t2:
+                        bl += 1
+                        t2 >>= 1
+                    first = n - bl
+                    single = (u & (u - 1)) == 0
+                    flip = binary ^ ((np.int64(1) << (n - first)) - 1)
+                    edge = single and abs(flip - binary) == 1
+                    picked = False
+                    bsel = binary
+                    if has_hint and single and not edge and pok[t0 + t]:
+                        ca = binary * step + c0
+                        cb = flip * step + c0
+                        xa = phi[t0 + t] - kk * (ca + 0.5)
+                        xb = phi[t0 + t] - kk * (cb + 0.5)
+                        da = abs(math.atan2(math.sin(xa), math.cos(xa)))
+                        db = abs(math.atan2(math.sin(xb), math.cos(xb)))
+                        dmin = min(da, db)
+                        dmax = max(da, db)
+                        picked = dmin < half_pi and (dmax >= half_pi or abs(ca - cb) < 0.5 * period)
+                        if picked and db < da:
+                            bsel = flip
+                    weff = 1.0
+                    if edge:
+                        cst = 0.5 * (binary + flip)
+                        exists = max(binary, flip) < n_stripes
+                    elif picked:
+                        cst = float(bsel)
+                        exists = bsel < n_stripes
+                    else:
+                        weff = float(np.int64(1) << (n - first))
+                        block = bsel >> (n - first)
+                        cst = block * weff + 0.5 * (weff - 1)
+                        exists = block * weff < n_stripes
+                    ok = isl and exists and (weff * step <= coarse_lim + 1e-9 or edge or picked)
+                    # confidence: the weakest margin among the planes the coordinate uses
+                    limit = n if (edge or picked) else first
+                    ms = inf32
+                    for i in range(n):
+                        bad = (u >> (n - 1 - i)) & 1
+                        if bad and isl:
+                            counts[f, i] += 1
+                        if not bad and limit > i:
+                            ms = _min_nan(ms, mg[i, t])
+                    if not np.isfinite(ms):
+                        ms = np.float32(0.0)
+                    if isl and not ok:
+                        counts[f, n + first] += 1
+                    r = ref[t0 + t]
+                    q = ms / (r if (r >= tiny or r != r) else tiny)
+                    cf[f, t] = cst * step + c0
+                    sf[f, t] = 0.5 * step if edge else weff * step / sqrt12
+                    wf[f, t] = weff * step
+                    qf[f, t] = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                    of[f, t] = ok
+            if F == 1:
+                for t in range(nt):
+                    _store(t0 + t, final, of[0, t], cf[0, t], sf[0, t], qf[0, t], coord_out,
+                           sig_out, ok_out, conf_out)
+                continue
+            for t in range(nt):  # consistency vote (Gupta et al. 2013, Sec. 4.3)
+                for f in range(F):
+                    agree[f] = 0
+                for i in range(F):
+                    for j in range(i + 1, F):
+                        if of[i, t] and of[j, t] and abs(cf[i, t] - cf[j, t]) <= \
+                                0.5 * (wf[i, t] + wf[j, t]) / 2 + tol:
+                            agree[i] += 1
+                            agree[j] += 1
+                best = 0
+                best_score = -np.inf
+                n_ok = 0
+                for f in range(F):
+                    sg = sf[f, t] if of[f, t] else np.inf
+                    score = agree[f] * 1e6 - min(sg, 1e5)
+                    if score > best_score:  # np.argmax: the first maximum
+                        best_score = score
+                        best = f
+                    n_ok += of[f, t]
+                nbest = agree[best]
+                okv = nbest >= 1 or n_ok == 1
+                if lit[t0 + t] and n_ok >= 2 and not okv:
+                    counts[0, 2 * n] += 1
+                _store(t0 + t, final, okv, cf[best, t], sf[best, t],
+                       np.float32(float(qf[best, t]) * (nbest + 1) / F), coord_out, sig_out,
+                       ok_out, conf_out)
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def phase_pixels(S, C, pmax, ref, shadow, two_over_n, min_mod, saturation, wrapped, B_out,
+                     phi_out, pconf_out, pok_out):  # pragma: no cover - compiled
+        two_pi = np.float32(2.0 * math.pi)
+        zero = np.float32(0.0)
+        tiny = np.float32(1e-12)
+        for p in range(S.shape[0]):
+            # np.mod(np.arctan2(S, C), float32(2 pi)) in float32 (numpy's divmod rule)
+            m = math.atan2(S[p], C[p])  # in [-pi, pi]: fmod(m, 2 pi) = m
+            if m != 0:
+                if m < 0:
+                    m += two_pi
+            else:
+                m = zero
+            if m >= two_pi:
+                m = zero
+            B = two_over_n * math.hypot(S[p], C[p])
+            B_out[p] = B
+            phi_out[p] = m
+            wrapped[p] = m if B > 0 else np.float32(np.nan)
+            r = ref[p]
+            q = (np.float32(2.0) * B) / (r if (r >= tiny or r != r) else tiny)
+            q = min(max(q, zero), np.float32(1.0)) if q == q else q
+            pconf_out[p] = q
+            # a clipped fringe biases the phase: saturated pixels fall back to the code
+            pok_out[p] = (not shadow[p]) and q >= min_mod and pmax[p] < saturation
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def phase_merge(coord, sig, ok, conf, phi, B, pconf, pok, k, sig_c, keep_sig,
+                    coord_out, sig_out, ok_out, conf_all):  # pragma: no cover - compiled
+        two_pi = 2.0 * math.pi
+        tiny = np.float32(1e-12)
+        for p in range(coord.shape[0]):
+            use = ok[p] and pok[p]
+            # coarse-only pixels keep a coordinate only if exact to one stripe
+            keep = ok[p] and not pok[p] and sig[p] <= keep_sig
+            if use:
+                mm = np.rint((k * (np.float64(coord[p]) + 0.5) - phi[p]) / two_pi)
+                c = np.float32((phi[p] + two_pi * mm) / k - 0.5)
+                b = B[p]
+                sg = (sig_c / (b if (b >= tiny or b != b) else tiny)) / np.float32(k)
+                q = _min_nan(conf[p], pconf[p])
+            elif keep:
+                c, sg, q = coord[p], sig[p], conf[p]
+            else:
+                c, sg, q = np.float32(np.nan), np.float32(np.nan), np.float32(0.0)
+            v = use or keep
+            _store(p, True, v, c, sg, q, coord_out, sig_out, ok_out, conf_all)
+
+    return axis_pixels, prepare, phase_pixels, phase_merge
+
+
+def prepare(white, black, lmax, lmin, shadow_threshold, min_contrast, rel_contrast, lit_out,
+            shadow, tau) -> None:
+    """Per-pixel start of the finish with binary frames, in place on (P,) float32 views:
+    ``lmax`` becomes ``direct = lmax - lmin``, ``lmin`` becomes ``global = 2 max(lmin, 0)``
+    (Nayar et al. 2006), ``lit_out = white - black`` (``direct`` when ``white`` is None),
+    ``shadow = not (lit >= shadow_threshold)``, ``tau = max(min_contrast, rel_contrast ·
+    direct)``. ``lit_out`` may be ``white`` or ``lmax`` itself (each pixel is read first)."""
+    has_wb = white is not None
+    if not has_wb:
+        white = black = lmax
+    _kernel()[1](white, black, has_wb, lmax, lmin, np.float32(shadow_threshold),
+                 np.float32(min_contrast), np.float32(rel_contrast), lit_out, shadow, tau)
+
+
+def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, tau, ref,
+                lit, hint=None, out=None, p0=0):
+    """Decode one axis for a run of pixels (see the module docstring).
+
+    Parameters
+    ----------
+    signs : (F, N) unsigned int, C-contiguous
+        Per code family, the packed decisions (plane ``i`` at bit ``n - 1 - i``); the run's
+        pixels are columns ``p0 … p0 + P - 1``.
+    marg : (K, N) uint8 or float32, C-contiguous
+        Stored margins (same columns); plane ``i`` of family ``f`` is row ``kidx[f, i]``, in
+        units of ``mscale`` (uint8 steps of 1/510 of full scale, or float32 with ``mscale`` 1).
+    mscale : float
+    kidx : (F, n) int64
+    base : (F,) int64
+        The family's XOR base plane, or -1.
+    n : int
+        Bits on this axis.
+    step, n_stripes, coarse_lim, tol : float, int, float, float
+        Stripe width (projector px), stripes on the axis, the widest block that still gives a
+        coordinate (projector px), ``vote_tolerance_px``.
+    tau, ref : (P,) float32
+        Reliability threshold and the reference light of the confidence.
+    lit : (P,) bool
+    hint : tuple, optional
+        ``(phi, usable, k, period)``: wrapped phase (P,) float32, (P,) bool, rad / px, px.
+
+    out : tuple, optional
+        ``(coord, sig, ok, conf_all)`` (P,) arrays to write the axis's final outputs into
+        (``coord`` / ``sig`` NaN where not ok, ``conf_all = min(conf_all, conf if ok else
+        0)``), as ``_finish_chunk`` does for an axis without phase.
+
+    Returns
+    -------
+    coord, sig : (P,) float32, projector px
+    ok : (P,) bool
+    conf : (P,) float32 (``conf_all`` with ``out``)
+    unresolved, lost : (F, n) int64
+    votes_disagree : int
+    """
+    F = signs.shape[0]
+    P = tau.shape[0]
+    if out is None:
+        coord, sig = np.empty(P, np.float32), np.empty(P, np.float32)
+        ok, conf = np.empty(P, bool), np.empty(P, np.float32)
+    else:
+        coord, sig, ok, conf = out
+    counts = np.zeros((F, 2 * n + 1), np.int64)
+    if hint is None:
+        phi, pok, kk, period, has = np.zeros(1, np.float32), np.zeros(1, bool), 0.0, 0.0, False
+    else:
+        phi, pok, kk, period = hint
+        has = True
+    _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
+              np.asarray(base, np.int64), int(n), float(step), int(n_stripes),
+              float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
+              float(period), coord, sig, ok, conf, out is not None, counts)
+    c = counts
+    return coord, sig, ok, conf, c[:, :n], c[:, n:2 * n], int(c[0, 2 * n])
+
+
+def phase(S, C, pmax, ref, shadow, N, min_modulation, saturation, wrapped, modulation):
+    """Wrapped phase and fringe amplitude of a run of pixels (Srinivasan et al. 1984):
+    ``phi = atan2(S, C) mod 2 pi``, ``B = (2 / N) hypot(S, C)``, written to ``wrapped`` (NaN
+    where ``B = 0``) and ``modulation``; returns ``phi`` (P,) float32, the fringe contrast
+    ``pconf = clip(2 B / ref, 0, 1)`` and ``usable = not shadow, pconf >= min_modulation, max
+    phase frame < saturation`` — what the numpy lines of ``_finish_chunk`` compute."""
+    P = S.shape[0]
+    phi, pconf, usable = np.empty(P, np.float32), np.empty(P, np.float32), np.empty(P, bool)
+    _kernel()[2](S, C, pmax, ref, shadow, np.float32(2.0 / N), np.float32(min_modulation),
+                 np.float32(saturation), wrapped, modulation, phi, pconf, usable)
+    return phi, pconf, usable
+
+
+def phase_merge(coord, sig, ok, conf, phi, B, pconf, usable, k, noise_sigma, N, step, out):
+    """Unwrap the phase with the code coordinate and write the axis's outputs: where the code
+    and the phase are both usable ``x = (phi + 2 pi m) / k - 0.5`` with ``m = round((k (code
+    + 0.5) - phi) / 2 pi)``, σ ``= noise_sigma sqrt(2 / N) / B / k`` and confidence
+    ``min(conf, pconf)``; where only the code is, it stands if it names one stripe; ``out =
+    (x, sigma, valid, conf_all)`` as in :func:`decode_axis`."""
+    _kernel()[3](coord, sig, ok, conf, phi, B, pconf, usable, float(k),
+                 np.float32(noise_sigma * math.sqrt(2.0 / N)),
+                 np.float32(step / math.sqrt(12.0) + 1e-6), *out)
