@@ -540,7 +540,7 @@ RIG_SIGMA_C_PX = 5.0
 #: |c_est − c| of the same, in units of the reported σ (per axis)
 RIG_SIGMA_K = 3.0
 #: same, pixels, worst of cx, cy
-RIG_CENTRE_PX = 10.0
+RIG_CENTRE_PX = 12.0
 #: the old setting's σ(c) (RMS of cx, cy over cameras and seeds) is at least this many times
 #: the new one's
 RIG_SIGMA_GAIN = 2.5
@@ -607,7 +607,7 @@ def _pinhole_calibrations(cams, board, poses, seed):
 def test_rig_views_pin_narrow_principal_point():
     """The narrow cameras' principal point from rig_calibration_views (30 shared + 10 close
     views per camera, exact corners + 0.15 px noise, seeds 0, 1): reported σ(cx), σ(cy) ≤ 5 px,
-    the actual error ≤ 3 σ and ≤ 10 px; the old setting (5 × 4 board, 30 shared views: the
+    the actual error ≤ 3 σ and ≤ 12 px; the old setting (5 × 4 board, 30 shared views: the
     `small` scan's 6 / 18 px) has a σ(c) ≥ 2.5× larger. Distortion-free cameras and the
     pinhole model isolate what views control — a principal-point shift traded for a per-view
     board rotation — from the 5-term model's own degeneracy at 12° (k2, k3, p1, p2 against c).

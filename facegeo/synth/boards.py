@@ -199,9 +199,11 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
             f_target = shrink * rng.uniform(f_lo, f_hi)
             jitter = rng.uniform(0.8, 1.0, 2) if (ax or ay) else rng.uniform(-0.3, 0.3, 2)
             # where the board's projected box is centred: toward the anchor, in the free span
-            q_c = np.array([(cam.width - 1) / 2.0 + (ax or 1.0) * jitter[0] * 0.5 * (
-                1.0 - f_target) * cam.width, (cam.height - 1) / 2.0 + (ay or 1.0) * jitter[1]
-                * 0.5 * (1.0 - f_target) * cam.height])
+            # less the margin (else a small image's corner views never keep their margin)
+            free = np.maximum(0.5 * (1.0 - f_target) * np.array(cam.size, float) - margin_px,
+                              0.0)
+            q_c = np.array([(cam.width - 1) / 2.0 + (ax or 1.0) * jitter[0] * free[0],
+                            (cam.height - 1) / 2.0 + (ay or 1.0) * jitter[1] * free[1]])
             v_c = cam.unproject(q_c)
             if not np.all(np.isfinite(v_c)):
                 continue
