@@ -560,7 +560,11 @@ def test_rig_views_keep_constraints():
     shared views whole in both cameras with 2 px to spare, in front, seen at ≤ 75° from the
     board normal everywhere; close views so in their camera, tilted within CLOSE_VIEWS' range
     and filling 85–95 % of its image. The board is portrait (5 × 7) for the portrait cameras."""
-    from facegeo.synth.boards import CLOSE_VIEWS, board_for_cameras, rig_calibration_views
+    from facegeo.synth.boards import (
+        CLOSE_VIEWS,
+        board_for_cameras,
+        rig_calibration_views,
+    )
 
     rig, _ = _narrow_rig()
     cams = list(rig.cameras)
@@ -614,7 +618,11 @@ def test_rig_views_pin_narrow_principal_point():
     Measured over seeds 0–5, both cameras: see docs/calibration.md ("Synthetic calibration
     views")."""
     from facegeo.geometry.camera import Camera
-    from facegeo.synth.boards import board_for_cameras, calibration_board_poses, rig_calibration_views
+    from facegeo.synth.boards import (
+        board_for_cameras,
+        calibration_board_poses,
+        rig_calibration_views,
+    )
 
     rig, old_board = _narrow_rig()
     cams = [Camera(c.name, c.width, c.height, c.K, np.zeros(5), c.T_cam_world)
@@ -636,5 +644,6 @@ def test_rig_views_pin_narrow_principal_point():
                     (seed, cam.name, k, est - true, sd)
                 s_new.append(sd)
                 s_old.append(c_old.std[k])
-    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
-    assert rms(s_old) >= RIG_SIGMA_GAIN * rms(s_new), (rms(s_old), rms(s_new))
+    rms_old = float(np.sqrt(np.mean(np.square(s_old))))
+    rms_new = float(np.sqrt(np.mean(np.square(s_new))))
+    assert rms_old >= RIG_SIGMA_GAIN * rms_new, (rms_old, rms_new)

@@ -42,7 +42,7 @@ from facegeo.errors import InputError
 from facegeo.frames import Pose, rotation_from_rvec
 from facegeo.geometry.camera import Camera
 
-__all__ = ["CORNER_CELL", "CORNER_TRIES", "CLOSE_VIEWS", "board_coverage", "board_for_cameras",
+__all__ = ["CLOSE_VIEWS", "CORNER_CELL", "CORNER_TRIES", "board_coverage", "board_for_cameras",
            "calibration_board_poses", "rig_calibration_views"]
 
 #: Image anchors cycled through by the views of one camera: the four corners, then the centre
@@ -107,8 +107,8 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
     draw is kept when the whole board is
     inside the target camera's image with ``margin_px`` to spare, in front of it, and its printed
     face is seen at less than ``max_view_angle_deg`` everywhere; a *shared* view (every
-    ``shared_every``-th, starting with view 0; ``shared_every=1``: all; 0: none) must satisfy this in
-    every camera. Where a shared view cannot be placed in half of ``max_tries`` draws, its tilt
+    ``shared_every``-th, starting with view 0; ``shared_every=1``: all; 0: none) must satisfy
+    this in every camera. Where a shared view cannot be placed in half of ``max_tries`` draws, its tilt
     and fill are scaled down gradually over the remaining draws (to half the drawn values at
     most).
 
@@ -312,11 +312,12 @@ def rig_calibration_views(board, cameras, n: int, rng, *, close_per_camera: int 
         for the k-th).
     """
     cams = list(cameras)
-    rng = np.random.default_rng(rng)
-    m = -(-int(n) // 3) if close_per_camera is None else close_per_camera
-    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
+    m = close_per_camera
+    if m is not None and (isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0):
         raise InputError(f"close_per_camera: expected an integer >= 0, got {fmt_value(m)}")
-    poses = calibration_board_poses(board, cams, n, rng, shared_every=1)
+    rng = np.random.default_rng(rng)
+    poses = calibration_board_poses(board, cams, n, rng, shared_every=1)  # validates n
+    m = -(-int(n) // 3) if m is None else int(m)
     if m and cams:
         poses += calibration_board_poses(board, cams, m * len(cams), rng,
                                          **{"shared_every": 0, **close})
@@ -330,8 +331,8 @@ def board_for_cameras(cameras, *, fill: float = 0.6, squares: int = 5, dictionar
     ``fill`` of the narrowest camera's image width at its distance from the world origin (the
     head); the other side has as many squares as the image's aspect ratio allows (at least 4),
     so the board covers a portrait image's height too. Covering the image is what pins a narrow
-    camera's principal point (:func:`rig_calibration_views`), and the taller board doubles the corners per
-    view (default rig: 5 × 7 squares, 24 corners, against 5 × 4 and 12 before).
+    camera's principal point (:func:`rig_calibration_views`), and the taller board doubles the
+    corners per view (default rig: 5 × 7 squares, 24 corners, against 5 × 4 and 12 before).
 
     Parameters
     ----------

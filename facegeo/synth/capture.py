@@ -34,7 +34,11 @@ from facegeo import fsutil
 from facegeo.errors import InputError
 from facegeo.frames import Pose, look_at, rotation_from_rvec
 from facegeo.checks import fmt_value
-from facegeo.synth.boards import board_for_cameras, calibration_board_poses, rig_calibration_views
+from facegeo.synth.boards import (
+    board_for_cameras,
+    calibration_board_poses,
+    rig_calibration_views,
+)
 
 log = logging.getLogger(__name__)
 
