@@ -524,3 +524,126 @@ def test_generated_views_tighten_narrow_camera():
     for k, est, true in (("fx", e.fx, cam.fx), ("fy", e.fy, cam.fy), ("cx", e.cx, cam.cx),
                          ("cy", e.cy, cam.cy)):
         assert abs(est - true) <= GEN_SIGMA_K * new_c.std[k], (k, est - true, new_c.std[k])
+
+
+# ------------------------------------------------------------- rig views (synth.capture's setting)
+# facegeo.synth.boards.rig_calibration_views + board_for_cameras: n views shared by the cameras,
+# then close, image-filling views of each camera, of a board as tall as the portrait images.
+
+#: corner noise of the exact-corner loop, pixels (per coordinate; rendered ChArUco ≈ 0.13–0.15)
+RIG_NOISE_PX = 0.15
+#: |fill − asked range| of a close view, fraction of the image (the placement's tolerance)
+RIG_FILL_TOL = 3e-3
+#: reported σ(cx), σ(cy) of a narrow distortion-free camera, pinhole model, 30 shared views
+#: (+ 10 close views per camera), pixels. Measured (seeds 0–5, both cameras): see docstring.
+RIG_SIGMA_C_PX = 5.0
+#: |c_est − c| of the same, in units of the reported σ (per axis)
+RIG_SIGMA_K = 3.0
+#: same, pixels, worst of cx, cy
+RIG_CENTRE_PX = 12.0
+#: the old setting's σ(c) (RMS of cx, cy over cameras and seeds) is at least this many times
+#: the new one's
+RIG_SIGMA_GAIN = 2.5
+
+
+def _rig_view_ok(cam, T_cam_board, outline, margin_px, max_view_deg):
+    p = T_cam_board.apply(outline)
+    q, front = cam.project_cam(p)
+    inside = (q >= -0.5 + margin_px).all() and (q[:, 0] <= cam.width - 0.5 - margin_px).all() \
+        and (q[:, 1] <= cam.height - 0.5 - margin_px).all()
+    cos_view = (p @ T_cam_board.R[:, 2]) / np.linalg.norm(p, axis=1)
+    return bool(front.all() and inside and cos_view.min() >= math.cos(math.radians(max_view_deg)))
+
+
+def test_rig_views_keep_constraints():
+    """rig_calibration_views on the narrow default rig (12 shared views, 4 close per camera):
+    shared views whole in both cameras with 2 px to spare, in front, seen at ≤ 75° from the
+    board normal everywhere; close views so in their camera, tilted within CLOSE_VIEWS' range
+    and filling 85–95 % of its image. The board is portrait (5 × 7) for the portrait cameras."""
+    from facegeo.synth.boards import (
+        CLOSE_VIEWS,
+        board_for_cameras,
+        rig_calibration_views,
+    )
+
+    rig, _ = _narrow_rig()
+    cams = list(rig.cameras)
+    board = board_for_cameras(cams)
+    assert (board.squares_x, board.squares_y) == (5, 7)
+    n = 12
+    poses = rig_calibration_views(board, cams, n, 0)
+    assert len(poses) == n + 4 * len(cams)
+    outline = board.outline(8)
+    t_lo, t_hi = CLOSE_VIEWS["tilt_deg"]
+    f_lo, f_hi = CLOSE_VIEWS["fill"]
+    for k, T in enumerate(poses):
+        target = cams[(k - n) % len(cams)]
+        for c in (cams if k < n else [target]):
+            assert _rig_view_ok(c, c.T_cam_world @ T, outline, 2.0, 75.0), (k, c.name)
+        if k >= n:
+            Tc = target.T_cam_world @ T
+            assert t_lo - 1e-6 <= _tilt_deg(Tc) <= t_hi + 1e-6, (k, _tilt_deg(Tc))
+            q, _ = target.project_cam(Tc.apply(outline))
+            span = (q.max(axis=0) - q.min(axis=0)) / np.array(target.size)
+            assert f_lo - RIG_FILL_TOL <= span.max() <= f_hi + RIG_FILL_TOL, (k, span)
+    with pytest.raises(InputError, match="close_per_camera"):
+        rig_calibration_views(board, cams, 3, 0, close_per_camera=-1)
+
+
+def _pinhole_calibrations(cams, board, poses, seed):
+    from facegeo.geometry.calibration import calibrate_camera
+
+    P0 = board.chessboard_corners()
+    rng = np.random.default_rng(seed)
+    out = []
+    for cam in cams:
+        P, Q = [], []
+        for T in poses:
+            q, front = cam.project_cam((cam.T_cam_world @ T).apply(P0))
+            ok = front & cam.in_image(q)
+            if ok.sum() >= 6:
+                P.append(P0[ok])
+                Q.append(q[ok] + rng.normal(0.0, RIG_NOISE_PX, q[ok].shape))
+        out.append(calibrate_camera(P, Q, cam.size, model="pinhole", reject_views=False))
+    return out
+
+
+def test_rig_views_pin_narrow_principal_point():
+    """The narrow cameras' principal point from rig_calibration_views (30 shared + 10 close
+    views per camera, exact corners + 0.15 px noise, seeds 0, 1): reported σ(cx), σ(cy) ≤ 5 px,
+    the actual error ≤ 3 σ and ≤ 12 px; the old setting (5 × 4 board, 30 shared views: the
+    `small` scan's 6 / 18 px) has a σ(c) ≥ 2.5× larger. Distortion-free cameras and the
+    pinhole model isolate what views control — a principal-point shift traded for a per-view
+    board rotation — from the 5-term model's own degeneracy at 12° (k2, k3, p1, p2 against c).
+    Measured over seeds 0–5, both cameras: see docs/calibration.md ("Synthetic calibration
+    views")."""
+    from facegeo.geometry.camera import Camera
+    from facegeo.synth.boards import (
+        board_for_cameras,
+        calibration_board_poses,
+        rig_calibration_views,
+    )
+
+    rig, old_board = _narrow_rig()
+    cams = [Camera(c.name, c.width, c.height, c.K, np.zeros(5), c.T_cam_world)
+            for c in rig.cameras]
+    board = board_for_cameras(cams)
+    s_new, s_old = [], []
+    for seed in (0, 1):
+        new = _pinhole_calibrations(cams, board, rig_calibration_views(board, cams, 30, seed),
+                                    100 + seed)
+        old = _pinhole_calibrations(
+            cams, old_board, calibration_board_poses(old_board, cams, 30, seed, shared_every=1),
+            100 + seed)
+        for cam, c_new, c_old in zip(cams, new, old):
+            e = c_new.camera
+            for k, est, true in (("cx", e.cx, cam.cx), ("cy", e.cy, cam.cy)):
+                sd = c_new.std[k]
+                assert sd <= RIG_SIGMA_C_PX, (seed, cam.name, k, sd)
+                assert abs(est - true) <= min(RIG_SIGMA_K * sd, RIG_CENTRE_PX), \
+                    (seed, cam.name, k, est - true, sd)
+                s_new.append(sd)
+                s_old.append(c_old.std[k])
+    rms_old = float(np.sqrt(np.mean(np.square(s_old))))
+    rms_new = float(np.sqrt(np.mean(np.square(s_new))))
+    assert rms_old >= RIG_SIGMA_GAIN * rms_new, (rms_old, rms_new)

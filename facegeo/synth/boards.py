@@ -18,6 +18,14 @@ covering the image) is
   which must be seen by the cameras and the projector at once) keeps the whole board inside
   every camera, so the rig's bundle adjustment connects the cameras.
 
+Measured on the default rig's narrow cameras (exact corners + 0.15 px noise, pinhole model,
+30 views): what pins the principal point is how much of the image each view covers — σ(c)
+falls ≈ 1/fill² (σ(cx) 47 / 11 / 4.4 px at fill 0.3 / 0.6 / 0.95) — and the corners per view
+(√N), not the tilt (30–82° give the same σ(c) at equal fill). Shared views cannot be close (the
+cameras' fields overlap only near the head), so :func:`rig_calibration_views` (the synthetic
+capture's camera views) adds close views per camera (:data:`CLOSE_VIEWS`) to the shared ones,
+and :func:`board_for_cameras` makes the board as tall as a portrait image allows.
+
 :func:`calibration_board_poses` returns world poses ``T_world_board`` (board frame →
 world), the convention of ``facegeo.synth.capture``'s ``_board_poses``; render a view with
 ``board.render(cam, cam.T_cam_world @ T_world_board)``.
@@ -34,7 +42,8 @@ from facegeo.errors import InputError
 from facegeo.frames import Pose, rotation_from_rvec
 from facegeo.geometry.camera import Camera
 
-__all__ = ["CORNER_CELL", "CORNER_TRIES", "board_coverage", "calibration_board_poses"]
+__all__ = ["CLOSE_VIEWS", "CORNER_CELL", "CORNER_TRIES", "board_coverage", "board_for_cameras",
+           "calibration_board_poses", "rig_calibration_views"]
 
 #: Image anchors cycled through by the views of one camera: the four corners, then the centre
 #: (fractions of the free image span: −1 / +1 push the board's box against that side).
@@ -45,6 +54,13 @@ _ANCHORS = ((-1.0, -1.0), (1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (0.0, 0.0))
 #: the image corner, when it can within :data:`CORNER_TRIES` draws.
 CORNER_CELL = 0.3
 CORNER_TRIES = 300
+
+#: Settings of the close views :func:`rig_calibration_views` adds per camera: boards close
+#: enough to fill 85–95 % of that camera's image (≈ 0.6–0.8 m for the default rig's board),
+#: tilted 30–50°. On a narrow camera (12° × 19°) a principal-point error is almost a per-view
+#: rotation of the board; what separates the two is image coverage (module docstring). Fill
+#: 0.9–0.98 pins c no better (σ(c) within 10 %) and takes 5–25× the time to place.
+CLOSE_VIEWS = {"fill": (0.85, 0.95), "tilt_deg": (30.0, 50.0)}
 
 
 def _range(r, name, lo, hi):
@@ -91,8 +107,8 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
     draw is kept when the whole board is
     inside the target camera's image with ``margin_px`` to spare, in front of it, and its printed
     face is seen at less than ``max_view_angle_deg`` everywhere; a *shared* view (every
-    ``shared_every``-th, starting with view 0; ``shared_every=1``: all) must satisfy this in
-    every camera. Where a shared view cannot be placed in half of ``max_tries`` draws, its tilt
+    ``shared_every``-th, starting with view 0; ``shared_every=1``: all; 0: none) must satisfy
+    this in every camera. Where a shared view cannot be placed in half of ``max_tries`` draws, its tilt
     and fill are scaled down gradually over the remaining draws (to half the drawn values at
     most).
 
@@ -105,7 +121,7 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
         Number of views.
     rng : numpy.random.Generator or int
     shared_every : int
-        Every this many views is seen whole by every camera (1: every view).
+        Every this many views is seen whole by every camera (1: every view; 0: none).
     tilt_deg, fill, roll_deg : (float, float)
         Ranges, degrees / fraction of the image.
     margin_px : float
@@ -132,8 +148,8 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise InputError(f"n: expected a positive integer, got {fmt_value(n)}")
     if isinstance(shared_every, bool) or not isinstance(shared_every, (int, np.integer)) or \
-            shared_every < 1:
-        raise InputError(f"shared_every: expected an integer >= 1, got {fmt_value(shared_every)}")
+            shared_every < 0:
+        raise InputError(f"shared_every: expected an integer >= 0, got {fmt_value(shared_every)}")
     t_lo, t_hi = _range(tilt_deg, "tilt_deg", 0.0, 85.0)
     f_lo, f_hi = _range(fill, "fill", 1e-3, 1.0)
     r_lo, r_hi = _range(roll_deg, "roll_deg", -180.0, 180.0)
@@ -164,7 +180,7 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
     board_scale = float(np.hypot(W_m, H_m))
     poses: list[Pose] = []
     for k in range(n):
-        shared = k % shared_every == 0
+        shared = shared_every > 0 and k % shared_every == 0
         ci = k % C
         if shared and ci not in narrow:
             ci = narrow[(k // shared_every) % len(narrow)]
@@ -190,9 +206,11 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
             f_target = shrink * rng.uniform(f_lo, f_hi)
             jitter = rng.uniform(0.8, 1.0, 2) if (ax or ay) else rng.uniform(-0.3, 0.3, 2)
             # where the board's projected box is centred: toward the anchor, in the free span
-            q_c = np.array([(cam.width - 1) / 2.0 + (ax or 1.0) * jitter[0] * 0.5 * (
-                1.0 - f_target) * cam.width, (cam.height - 1) / 2.0 + (ay or 1.0) * jitter[1]
-                * 0.5 * (1.0 - f_target) * cam.height])
+            # less the margin (else a small image's corner views never keep their margin)
+            free = np.maximum(0.5 * (1.0 - f_target) * np.array(cam.size, float) - margin_px,
+                              0.0)
+            q_c = np.array([(cam.width - 1) / 2.0 + (ax or 1.0) * jitter[0] * free[0],
+                            (cam.height - 1) / 2.0 + (ay or 1.0) * jitter[1] * free[1]])
             v_c = cam.unproject(q_c)
             if not np.all(np.isfinite(v_c)):
                 continue
@@ -259,6 +277,92 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
                 "margin_px")
         poses.append(placed)
     return poses
+
+
+def rig_calibration_views(board, cameras, n: int, rng, *, close_per_camera: int | None = None,
+                          close=CLOSE_VIEWS) -> list[Pose]:
+    """A rig's camera calibration views: ``n`` views seen whole by every camera, then close
+    views of each camera alone.
+
+    The shared views (:func:`calibration_board_poses` with ``shared_every=1``) connect the
+    cameras in the rig's bundle adjustment but sit where the cameras' axes meet, at the head's
+    distance, where the board covers about half of a narrow camera's image. The close views
+    (``close_per_camera`` per camera, default ``⌈n / 3⌉``; :data:`CLOSE_VIEWS`) fill most of one
+    camera's image, which is what pins a narrow camera's principal point (Zhang 2000's
+    intrinsic constraints need the perspective of image-wide views; at 12° a principal-point
+    shift is otherwise traded for a rotation of each view's board).
+
+    Parameters
+    ----------
+    board : CharucoBoard
+    cameras : sequence of Camera
+        The rig's cameras (not the projector), world frame.
+    n : int
+        Shared views.
+    rng : numpy.random.Generator or int
+    close_per_camera : int, optional
+        Close views per camera (0: none).
+    close : dict
+        Keyword arguments of :func:`calibration_board_poses` for the close views.
+
+    Returns
+    -------
+    list of Pose
+        ``T_world_board``: the ``n`` shared views, then the close views (camera ``k mod C``
+        for the k-th).
+    """
+    cams = list(cameras)
+    m = close_per_camera
+    if m is not None and (isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0):
+        raise InputError(f"close_per_camera: expected an integer >= 0, got {fmt_value(m)}")
+    rng = np.random.default_rng(rng)
+    poses = calibration_board_poses(board, cams, n, rng, shared_every=1)  # validates n
+    m = -(-int(n) // 3) if m is None else int(m)
+    if m and cams:
+        poses += calibration_board_poses(board, cams, m * len(cams), rng,
+                                         **{"shared_every": 0, **close})
+    return poses
+
+
+def board_for_cameras(cameras, *, fill: float = 0.6, squares: int = 5, dictionary="DICT_4X4_50"):
+    """A ChArUco board for a rig's calibration views, shaped like the narrowest camera's image.
+
+    The square is a multiple of 4 mm (marker ¾ of it) such that ``squares`` squares span
+    ``fill`` of the narrowest camera's image width at its distance from the world origin (the
+    head); the other side has as many squares as the image's aspect ratio allows (at least 4),
+    so the board covers a portrait image's height too. Covering the image is what pins a narrow
+    camera's principal point (:func:`rig_calibration_views`), and the taller board doubles the
+    corners per view (default rig: 5 × 7 squares, 24 corners, against 5 × 4 and 12 before).
+
+    Parameters
+    ----------
+    cameras : sequence of Camera
+        World frame with the head at the origin.
+    fill : float
+        Fraction of the narrowest image width the ``squares`` squares span at the head.
+    squares : int
+        Squares along the image's x axis (board x).
+    dictionary : str
+        ArUco dictionary (must hold ``⌊squares_x · squares_y / 2⌋`` markers).
+
+    Returns
+    -------
+    CharucoBoard
+    """
+    from facegeo.geometry.board import CharucoBoard  # local import: board needs cv2
+
+    cams = list(cameras)
+    if not cams or not all(isinstance(c, Camera) for c in cams):
+        raise InputError("cameras: expected a non-empty sequence of Camera")
+    check_positive(fill, "fill")
+    if isinstance(squares, bool) or not isinstance(squares, (int, np.integer)) or squares < 3:
+        raise InputError(f"squares: expected an integer >= 3, got {fmt_value(squares)}")
+    widths = [c.width * float(np.linalg.norm(c.center_world)) / c.fx for c in cams]
+    i = int(np.argmin(widths))
+    square = max(round(fill * widths[i] / squares / 0.004), 1) * 0.004  # marker = ¾ exactly
+    squares_y = max(4, int(squares * cams[i].height / cams[i].width))
+    return CharucoBoard(squares_x=int(squares), squares_y=squares_y, square_length=square,
+                        marker_length=square * 0.75, dictionary=dictionary)
 
 
 def board_coverage(board, camera: Camera, T_cam_boards, grid=(8, 8)) -> float:

@@ -34,7 +34,11 @@ from facegeo import fsutil
 from facegeo.errors import InputError
 from facegeo.frames import Pose, look_at, rotation_from_rvec
 from facegeo.checks import fmt_value
-from facegeo.synth.boards import calibration_board_poses
+from facegeo.synth.boards import (
+    board_for_cameras,
+    calibration_board_poses,
+    rig_calibration_views,
+)
 
 log = logging.getLogger(__name__)
 
@@ -215,18 +219,9 @@ def build_rig(preset: Preset):
 
 
 def _board_for_rig(rig):
-    """A ChArUco board sized to fill ~60 % of the narrowest camera view at the head."""
-    from facegeo.geometry.board import CharucoBoard
-
-    widths = []
-    for cam in rig.cameras:
-        z = float(np.linalg.norm(cam.center_world))
-        widths.append(cam.width * z / cam.fx)
-    target = 0.6 * min(widths)
-    squares_x, squares_y = 5, 4
-    square = round(target / squares_x / 0.004) * 0.004  # multiples of 4 mm: marker = ¾ exactly
-    return CharucoBoard(squares_x=squares_x, squares_y=squares_y, square_length=square,
-                        marker_length=square * 0.75, dictionary="DICT_4X4_50")
+    """A ChArUco board whose 5 squares span ~60 % of the narrowest camera view at the head, as
+    tall as that image allows (:func:`facegeo.synth.boards.board_for_cameras`)."""
+    return board_for_cameras(rig.cameras)
 
 
 def _novel_cameras(rig) -> list:
@@ -430,11 +425,12 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
         sigma = noise * white * np.sqrt(1.0 + np.clip(img / white, 0, None))
         return img + (sigma * noise_rng.standard_normal(img.shape)).astype(np.float32)
 
-    # ---- calibration: board views (seen by all cameras at once) ----
+    # ---- calibration: board views seen by all cameras at once, then close views of each
+    #      camera (boards.rig_calibration_views) ----
     t0 = time.perf_counter()
     board_path = root / "calib" / "board.json"
     board.save(board_path)
-    poses = calibration_board_poses(board, rig.cameras, preset.calib_views, rng, shared_every=1)
+    poses = rig_calibration_views(board, rig.cameras, preset.calib_views, rng)
     calib_files = scanmod.DEFAULT_FILES["calib"]
     exposure = 3.0  # maps a white board under unit irradiance (0.85/π) to ≈ 0.81
     n_total = len(poses) * len(rig.cameras)
