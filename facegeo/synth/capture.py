@@ -3,8 +3,8 @@
 ``generate_scan(out, preset="small")`` builds (or loads) a head, a ground-truth skin field and a
 rig, then renders and writes, per camera:
 
-* ChArUco board views at varied poses seen by every camera at once (intrinsic and stereo
-  calibration), 8-bit sRGB PNG;
+* ChArUco board views seen by every camera at once (stereo) and close, image-filling views of
+  each camera (intrinsics; :func:`facegeo.synth.boards.rig_calibration_views`), 8-bit sRGB PNG;
 * the board under every structured-light pattern at a few poses (projector calibration);
 * structured-light frames of the head (white/black, Gray code with inverse frames, phase
   shift), with projector shadows and camera occlusion traced by Embree, 8-bit sRGB PNG;
