@@ -663,3 +663,29 @@ def test_world_board_view_without_a_board_is_a_clear_error(tmp_path):
                              if not ln.startswith("3,")) + "\n")
     with pytest.raises(InputError, match="no usable board in view 3"):
         calibrate_products(load_scan(tmp_path), tmp_path / "o", cross_validation=False)
+
+
+def test_nominal_lights_follow_the_world_frame():
+    """A light list turns and moves with ``scan.world``; the θ × φ grid (axes fixed to the rig
+    frame) only translates, and a rotated world with a grid is refused with the reason."""
+    from facegeo.frames import Pose, rotation_from_rvec
+    from facegeo.geometry.lights import LightList
+    from facegeo.geometry.rig import default_rig
+    from facegeo.pipeline.calibrate import _lights_to_world
+
+    T = Pose(rotation_from_rvec([0.0, np.pi / 2, 0.0]), np.array([0.0, 0.1, 0.0]))
+    P = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-0.6, -0.6, -0.5]]
+    names = ["a", "b", "c", "d"]
+    lights = LightList(directions=P, names=names)
+    moved = _lights_to_world(lights, T)
+    assert np.allclose(moved.directions, T.apply_direction(lights.directions), atol=1e-12)
+    assert np.allclose(moved.center, [0.0, 0.1, 0.0])
+    assert np.allclose(moved.solid_angles, lights.solid_angles)
+    near = LightList(positions=P, names=names)
+    assert np.allclose(_lights_to_world(near, T).positions, T.apply(near.positions))
+    grid = default_rig().lights
+    shifted = _lights_to_world(grid, Pose(np.eye(3), np.array([0.0, 0.0, 0.05])))
+    assert np.allclose(shifted.center, np.asarray(grid.center) + [0.0, 0.0, 0.05])
+    with pytest.raises(InputError, match="θ × φ grid"):
+        _lights_to_world(grid, T)
+    assert _lights_to_world(grid, Pose.identity()) is grid

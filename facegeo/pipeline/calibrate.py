@@ -66,7 +66,7 @@ def _working_point(cameras) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
-def _align(cameras, reference_cameras, *, reference_intrinsics: bool = True) -> Pose:
+def _align(cameras, reference_cameras) -> Pose:
     """``T_rig_world``: the rigid transform placing a calibrated rig (its own frame, ``rig``) on
     ``reference_cameras`` (same names, world frame) so that both see the same working volume.
 
@@ -77,12 +77,11 @@ def _align(cameras, reference_cameras, *, reference_intrinsics: bool = True) -> 
     working volume about the cameras: on narrow cameras a principal-point error is nearly a
     camera rotation, and 0.35° of it swings the head 1.1 m away by ≈ 7 mm.
 
-    ``reference_intrinsics``: the reference side's rays through its own intrinsics (default:
-    the calibrated rig's pixels then see the points the reference rig's pixels see — on the
-    small preset, placed on its nominal ``rig.json``, the structured-light mesh lands 0.41° /
-    6.5 mm from the true surface, against 0.95° / 17 mm without and 0.79° / 14.2 mm with the
-    average of the camera poses); False — through the calibrated camera's intrinsics at the
-    reference pose (the poses alone place the rig, pivoting at the working volume).
+    Each side's rays go through its own intrinsics, so the calibrated rig's pixels see the points
+    the reference rig's pixels see. Small preset placed on its nominal ``rig.json``: the
+    structured-light mesh lands 0.41° / 6.5 mm from the true surface; 0.79° / 14.2 mm with the
+    average of the camera poses, 0.95° / 17 mm with the calibrated intrinsics on both sides (the
+    poses alone placing the rig).
     """
     from facegeo.frames import nearest_rotation
 
@@ -96,7 +95,7 @@ def _align(cameras, reference_cameras, *, reference_intrinsics: bool = True) -> 
         ys = np.linspace(0, r.height - 1, ALIGN_GRID)
         q = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
         vc, ok_c = c.unproject(q, return_valid=True)
-        vr, ok_r = (r if reference_intrinsics else c).unproject(q, return_valid=True)
+        vr, ok_r = r.unproject(q, return_valid=True)
         ok = ok_c & ok_r
         src += [c.center_world, *c.T_cam_world.inverse().apply(vc[ok] * depth)]
         dst += [r.center_world, *r.T_cam_world.inverse().apply(vr[ok] * depth)]
@@ -115,9 +114,9 @@ def _world_frame(scan, rig_cal, obs, proj_name, nominal) -> tuple[Pose, Pose, st
     its lights and an uncalibrated projector live) into the world frame. ``scan.world``
     (format v2) decides: ``{camera, board_view}`` — the board's frame in that view (the bundle
     adjustment's pose of that board); ``{transform}`` — ``p_world = T · p_nominal``. Without it
-    the world is the nominal rig's frame: the calibrated cameras are placed on the nominal ones
-    by the best rigid fit of their poses, so the products stay in the frame the rest of the
-    scan uses.
+    the world is the nominal rig's frame: the calibrated rig is placed on the nominal one by the
+    working-volume fit (:func:`_align`), so the products stay in the frame the rest of the scan
+    uses.
     """
     cams = [c for c in rig_cal.cameras if c.name != proj_name]
     T_rig_nom = _align(cams, nominal.cameras)
@@ -401,9 +400,8 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
                                  names=[p.name for p in paths], legacy=legacy)
         report[name] = detection_report(dets)
         # the bundle adjustment ties a board pose across cameras by view index, not file name
-        view_key = dict(zip([d.name for d in dets],
-                            [f"v{v}" for v in (sorted(scan.calib_corners(name)) if corner_lists
-                                               else scan.calib_views(name))]))
+        views = sorted(scan.calib_corners(name)) if corner_lists else scan.calib_views(name)
+        view_key = {id(d): f"v{v}" for d, v in zip(dets, views)}
         found = usable_detections(dets, what=f"camera {name}")
         if dets and dets[0].image_size != cam0.size:
             raise InputError(f"camera {name}: views are {dets[0].image_size} px but rig.json says "
@@ -412,7 +410,7 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
         c = calibrate_camera([d.p_board for d in found], [d.q for d in found], cam0.size,
                              model=model, loss=loss, name=name)
         calibs[name] = c
-        obs[name] = {view_key[d.name]: (d.p_board, d.q) for d, u in zip(found, c.views_used)
+        obs[name] = {view_key[id(d)]: (d.p_board, d.q) for d, u in zip(found, c.views_used)
                      if u}
         m = {"views_detected": len(found), "views_used": c.n_views_used,
              "rejected": c.rejected, "camera_rms_px": c.rms_px,
