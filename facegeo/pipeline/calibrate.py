@@ -35,6 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facegeo.checks import fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import Pose
 from facegeo.fsutil import atomic_write_text
@@ -129,7 +130,7 @@ def _world_frame(scan, rig_cal, obs, proj_name, nominal) -> tuple[Pose, Pose, st
     key = f"v{int(w['board_view'])}"
     if key not in obs.get(w["camera"], {}):
         used = ", ".join(sorted(k[1:] for k in obs.get(w["camera"], {}) if k.startswith("v")))
-        raise InputError(f"scan.world: camera {w['camera']!r} has no usable board in view "
+        raise InputError(f"scan.world: camera {fmt_value(w['camera'])} has no usable board in view "
                          f"{w['board_view']} (the world frame's board pose); views it used: "
                          f"{used or 'none'}")
     # p_rig = T_rig_board · p_board and the world is the board: T_rig_world = T_rig_board

@@ -37,6 +37,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from facegeo.checks import fmt_value
 from facegeo.errors import FacegeoError, InputError
 from facegeo.pipeline.cache import Pipeline, StageContext, StageResult, StageSpec
 
@@ -101,7 +102,7 @@ def _applicable(scan, mesh: str) -> list[str]:
 
 def _resolve_rig(scan, rig: str, stages: list[str]) -> str:
     if rig not in RIG_CHOICES:
-        raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)}, got {rig!r}")
+        raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)}, got {fmt_value(rig)}")
     has_gt = scan.synthetic and "rig" in scan.ground_truth_keys
     if rig == "auto":
         return "ground_truth" if has_gt else ("calibrated" if "calibrate" in stages else "scan")
@@ -282,6 +283,6 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
     scan = load_scan(scan_dir)  # validated once, before any stage starts
     if settings:
         json.dumps(settings)  # fail early on values that cannot enter a cache key
-    return reconstruct_pipeline(scan, mesh=mesh, rig=rig).run(scan_dir, settings=settings,
-                                                     from_stage=from_stage, only=only,
-                                                     until=until, progress=progress, on_stage=on_stage)
+    pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig)
+    return pipeline.run(scan_dir, settings=settings, from_stage=from_stage, only=only,
+                        until=until, progress=progress, on_stage=on_stage)
