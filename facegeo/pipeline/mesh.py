@@ -441,11 +441,9 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         "seconds_normals": round(t3 - t2, 4), "seconds_mesh": round(t4 - t3, 4),
     }
     if scan.synthetic and "mesh" in scan.ground_truth_keys:
-        metrics.update(ground_truth_errors(scan, fused.p_world, mesh, far, gt_samples))
-        if rig_used != "ground_truth":
-            # a calibrated rig's world frame is a gauge choice: report the shape error too
-            metrics["after_rigid_alignment"] = ground_truth_errors(
-                scan, fused.p_world, mesh, far, gt_samples, align=True)
+        # a calibrated rig's world frame is a gauge choice: report the shape error too
+        metrics.update(ground_truth_errors(scan, fused.p_world, mesh, far, gt_samples,
+                                           align=rig_used != "ground_truth"))
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     return metrics, settings
 
@@ -459,36 +457,40 @@ def ground_truth_errors(scan, points, mesh, far_faces, n_samples: int = 100_000,
     """``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg`` (module).
 
     ``far_faces`` marks the mesh faces outside the observed region (left out of the mesh
-    figures). With ``align`` the points and the mesh are first moved by the rigid transform
-    that best fits the points to the true surface (:func:`facegeo.geometry.mesh.
-    align_to_surface`), and ``alignment_rotation_deg`` / ``alignment_translation_mm`` say how
-    far that was.
+    figures). With ``align`` the same figures are also given under ``after_rigid_alignment``,
+    after moving the points and the mesh by the rigid transform that best fits the points to
+    the true surface (:func:`facegeo.geometry.mesh.align_to_surface`), with
+    ``alignment_rotation_deg`` / ``alignment_translation_mm`` saying how far that was.
     """
     from facegeo.geometry import mesh as gm
 
     V, F = _load_gt_mesh(scan)
-    extra = {}
-    if align:
-        T = gm.align_to_surface(points, V, F)
-        points = T.apply(points)
-        mesh = gm.Mesh(T.apply(mesh.vertices), mesh.faces, T.apply_direction(mesh.vertex_normals))
-        extra = {"alignment_rotation_deg": round(float(np.degrees(np.linalg.norm(T.rvec))), 6),
-                 "alignment_translation_mm": _mm(np.linalg.norm(T.t))}
     ref_n = None
     if "vertex_params" in scan.ground_truth_keys:
         with np.load(scan.ground_truth_path("vertex_params")) as z:
             if "normals" in z.files and z["normals"].shape == V.shape:
                 ref_n = z["normals"].astype(np.float64)  # the renderer's shading normals
-    d_pts = gm.surface_errors(points, V, F)
-    out = {"points_rms_error_mm": _mm(np.sqrt(np.mean(d_pts**2)))}
     keep_f = ~far_faces
-    if keep_f.any():
-        S, _ = gm.sample_surface(mesh.vertices, mesh.faces[keep_f], n_samples)
-        out["mesh_p95_error_mm"] = _mm(np.percentile(gm.surface_errors(S, V, F), 95))
-        vin = np.zeros(len(mesh.vertices), bool)
-        vin[mesh.faces[keep_f].ravel()] = True
-        _, ang = gm.surface_errors(mesh.vertices[vin], V, F, normals=mesh.vertex_normals[vin],
-                                   ref_normals=ref_n)
-        out["normal_median_error_deg"] = round(float(np.degrees(np.median(ang))), 4)
-    out.update(extra)
+
+    def errors(pts, m) -> dict:
+        d_pts = gm.surface_errors(pts, V, F)
+        out = {"points_rms_error_mm": _mm(np.sqrt(np.mean(d_pts**2)))}
+        if keep_f.any():
+            S, _ = gm.sample_surface(m.vertices, m.faces[keep_f], n_samples)
+            out["mesh_p95_error_mm"] = _mm(np.percentile(gm.surface_errors(S, V, F), 95))
+            vin = np.zeros(len(m.vertices), bool)
+            vin[m.faces[keep_f].ravel()] = True
+            _, ang = gm.surface_errors(m.vertices[vin], V, F, normals=m.vertex_normals[vin],
+                                       ref_normals=ref_n)
+            out["normal_median_error_deg"] = round(float(np.degrees(np.median(ang))), 4)
+        return out
+
+    out = errors(points, mesh)
+    if align:
+        T = gm.align_to_surface(points, V, F)
+        moved = gm.Mesh(T.apply(mesh.vertices), mesh.faces, T.apply_direction(mesh.vertex_normals))
+        out["after_rigid_alignment"] = {
+            **errors(T.apply(points), moved),
+            "alignment_rotation_deg": round(float(np.degrees(np.linalg.norm(T.rvec))), 6),
+            "alignment_translation_mm": _mm(np.linalg.norm(T.t))}
     return out
