@@ -58,7 +58,7 @@ from facegeo.checks import fmt_value
 log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
-           "peak_rss_mb", "stage_rig", "RIG_CHOICES"]
+           "peak_rss_mb", "stage_rig", "STAGE_RIGS"]
 
 _GT_DEPTH_TOL_M = 1e-3
 
@@ -170,7 +170,7 @@ def run_atlas(scan_dir, out_dir=None, *, mesh: str = "ground_truth",
 
 
 #: Rig choices of the stages after calibration (``rig=``); a rig file's path is accepted too.
-RIG_CHOICES = ("ground_truth", "scan", "calibrated")
+STAGE_RIGS = ("ground_truth", "scan", "calibrated")
 
 
 def stage_rig(scan, rig: str | None):
@@ -198,7 +198,7 @@ def stage_rig(scan, rig: str | None):
         if rig == "calibrated":
             raise InputError(f"rig 'calibrated': {path} does not exist; run `facegeo calibrate "
                              f"{scan.root}` first")
-        raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)} or a rig file, got "
+        raise InputError(f"rig: expected one of {', '.join(STAGE_RIGS)} or a rig file, got "
                          f"{fmt_value(rig)} (no such file)")
     the_rig = Rig.load(path)
     missing = [n for n in scan.camera_names if n not in the_rig.camera_names]
