@@ -382,13 +382,15 @@ def _cmd_render(args) -> int:
     try:
         m = run_render(args.scan, camera_spec=args.camera, env=args.env,
                        rotate_deg=args.rotate, supersample=args.supersample,
-                       resynthesis=not args.naive, progress=tick)
+                       resynthesis=not args.naive, shrinkage=args.shrinkage, progress=tick)
     finally:
         close()
-    figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "psnr_gain_db", "coverage",
-                                   "seconds_render") if m.get(k) is not None}
+    figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "paper_psnr_db", "psnr_gain_db",
+                                   "coverage", "seconds_render") if m.get(k) is not None}
+    if m.get("shrinkage_factors"):
+        figs["shrinkage"] = ", ".join(f"{c} {lam:.3f}" for c, lam in m["shrinkage_factors"].items())
     print(f"rendered {m['name']}: " + ", ".join(f"{k}={v}" for k, v in figs.items()))
-    print(f"images: {Path(args.scan) / 'out' / 'render' / m['files']['png']} (+ .exr)")
+    print(f"images: {Path(args.scan) / 'out' / 'views' / m['files']['png']} (+ .exr)")
     return 0
 
 
@@ -585,7 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--camera", required=True, metavar="SPEC",
                    help="'orbit:CAMERA:DEGREES', a camera name of the rig or the generator's "
-                        "novel cameras, or a camera JSON file")
+                        "novel cameras ('front': the rig's frontal view), or a camera JSON file")
     s.add_argument("--env", default="sky", help="an .exr/.hdr lat-long map, or a built-in: "
                    "sky, uniform, axis_lobes")
     s.add_argument("--rotate", type=float, default=0.0, help="environment rotation about +Y, "
@@ -593,6 +595,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--supersample", type=_pos_int, default=1, help="s x s rays per pixel")
     s.add_argument("--naive", action="store_true", help="no resynthesis: the source cameras' "
                    "measured functions relit and blended (the baseline)")
+    s.add_argument("--shrinkage", default="cross-validated", metavar="MODE",
+                   help="share of the resynthesised view change applied per source camera: "
+                        "'cross-validated' (default: measured against the other source cameras; "
+                        "a deviation from the paper, docs/render.md), 'none' (the paper's "
+                        "resynthesis as written) or a number in [0, 1]")
     s.add_argument("--mesh", default="auto", help=mesh_help)
     s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

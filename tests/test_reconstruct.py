@@ -37,7 +37,11 @@ def test_second_run_does_no_work_and_metrics_gather(tiny_scan, capsys):
     assert metrics["mesh"]["mesh_p95_error_mm"] < 1.0
     # every novel view was rendered and compared with the generator's reference
     assert len(metrics["render"]["views"]) == len(reconstruct.RENDER_ORBITS)
+    # orbits of the rig's frontal camera: views no source camera saw
+    assert {v["camera"] for v in metrics["render"]["views"].values()} == {
+        f"front_orbit{d:g}" for d in reconstruct.RENDER_ORBITS}
     assert metrics["render"]["psnr_db_min"] > 10
+    assert "psnr_gain_db_covered_min" in metrics["render"]
     assert (tiny_scan / "out" / "report.html").is_file()
     # the projection is compared with the generator's exact shading (tiny preset: ≈ 5–7 %,
     # dominated by bilinear sampling across cast-shadow edges at 80 × 120 px)

@@ -19,6 +19,9 @@ TAP_DISTANCE_TEXELS = 3.0
 #: relative RMSE over pixels whose taps that camera measured (two bilinear resamplings of the
 #: frames; the projection's own error at 0.35 texels/mm is a few per cent).
 SAME_VIEW_IMAGE_REL = 0.12
+#: Planted shrinkage factor vs its estimate: the measurement is built from float32 functions
+#: and the estimator relights in float64 with the fused kernel (≈ 1e-7 relative differences).
+SHRINK_RECOVERY_ABS = 1e-3
 
 
 @pytest.fixture(scope="module")
@@ -67,6 +70,35 @@ def test_orbit_camera_moves_about_vertical_axis_and_keeps_aim():
         parse_camera_spec("orbit:nope:10", {cam.name: cam})
     with pytest.raises(InputError, match="camera spec"):
         parse_camera_spec("sideways", {cam.name: cam})
+
+
+def test_front_camera_is_the_rigs_mean_view_and_orbits_of_it_are_novel():
+    from facegeo.frames import look_at
+    from facegeo.geometry.rig import default_rig
+    from facegeo.render import FRONT, orbit_camera, parse_camera_spec
+
+    cam = default_rig().cameras[0]
+    # a symmetric pair at ±20° about the head, both aimed at the origin from 1.2 m and 1.0 m
+    pair = {}
+    for name, deg, dist in (("a", -20.0, 1.2), ("b", 20.0, 1.0)):
+        t = np.radians(deg)
+        eye = dist * np.array([np.sin(t), 0.0, np.cos(t)])
+        pair[name] = cam.replace(name=name, T_cam_world=look_at(eye, np.zeros(3)))
+    f = parse_camera_spec(FRONT, pair)
+    assert f.name == FRONT and np.array_equal(f.K, cam.K)
+    # on the +Z axis at the mean distance, looking at the origin
+    assert np.allclose(f.center_world, [0.0, 0.0, 1.1], atol=1e-9)
+    # the origin lies on its optical axis (no distortion on the axis): the principal point
+    assert np.allclose(f.project(np.zeros((1, 3)))[0], [f.K[0, 2], f.K[1, 2]], atol=1e-6)
+    # orbits of the front camera: +20° lands on camera b's direction (novel: not a source)
+    o = parse_camera_spec(f"orbit:{FRONT}:20", pair)
+    assert np.allclose(o.center_world / np.linalg.norm(o.center_world),
+                       pair["b"].center_world / np.linalg.norm(pair["b"].center_world), atol=1e-9)
+    assert np.allclose(orbit_camera(f, 20.0).center_world, o.center_world)
+    # a camera named "front" in the scan wins over the virtual one
+    assert parse_camera_spec(FRONT, {**pair, FRONT: pair["a"]}) is pair["a"]
+    with pytest.raises(InputError, match="'front', the rig's frontal view"):
+        parse_camera_spec("orbit:nope:10", pair)
 
 
 # ----------------------------------------------------------------------------- tracing
@@ -206,13 +238,18 @@ def test_run_render_writes_images_and_metrics(parts):
     calls = []
     m = run_render(root, camera_spec="orbit:cam_left:30", env="sky", name="o30",
                    progress=lambda *a: calls.append(a))
-    assert calls[-1] == ("render", 4, 4), calls
+    # rays, render, naive, the paper's λ = 1 render beside the cross-validated one, reference
+    assert calls[-1] == ("render", 5, 5), calls
     d = root / "out" / "views"
     for f in ("o30.exr", "o30.png", "o30_naive.png", "o30_reference.png", "o30_error.png",
               "o30.json"):
         assert (d / f).is_file(), f
-    for k in ("psnr_db", "naive_psnr_db", "psnr_gain_db", "rel_rmse", "coverage"):
+    for k in ("psnr_db", "naive_psnr_db", "psnr_gain_db", "rel_rmse", "coverage",
+              "paper_psnr_db", "psnr_gain_db_covered"):
         assert m[k] is not None and np.isfinite(m[k]), k
+    assert m["shrinkage"] == "cross-validated"
+    assert set(m["shrinkage_factors"]) == {"cam_left", "cam_right"}
+    assert all(0.0 <= lam <= 1.0 for lam in m["shrinkage_factors"].values())
     assert m["coverage"] > 0.8
     doc = json.loads((root / "out" / "metrics.json").read_text())
     assert doc["views"]["views"]["o30"]["psnr_db"] == m["psnr_db"]
@@ -228,6 +265,9 @@ def test_run_render_errors(parts, tmp_path):
         run_render(root, camera_spec="orbit:cam_middle:10")
     with pytest.raises(InputError, match="reconstruct"):
         run_render(root, out_dir=tmp_path, camera_spec="cam_left")
+    for bad in ("sometimes", 1.5, -0.1):
+        with pytest.raises(InputError, match="shrinkage"):
+            run_render(root, camera_spec="cam_left", shrinkage=bad)
 
 
 def test_grazing_views_fall_back_to_measured_not_black(parts):
@@ -264,6 +304,65 @@ def test_diffuse_only_ablation_keeps_measured_specular(parts):
     assert np.abs(diff - full).max() > 0 and np.abs(diff - naive).max() > 0
     with pytest.raises(InputError, match="resynthesis"):
         shade_texels(t, p, far, [src], w, parts["lights"], resynthesis="specular")
+
+
+def test_shrinkage_interpolates_between_naive_and_resynthesis(parts):
+    """λ = 0 is the naive baseline, λ = 1 the paper's resynthesis, λ = 0.5 their midpoint
+    (texel by texel, one camera, a view 30° away)."""
+    from facegeo.render import orbit_camera, shade_texels
+
+    src = parts["sources"][0]
+    t = _fitted_texels(src)
+    p = parts["texels"].p_world[t]
+    w = _weights(parts["rig"].lights, 5)
+    far = orbit_camera(parts["rig"].camera(src.name), 30.0).center_world
+    kw = {"lights": parts["lights"]}
+    full = shade_texels(t, p, far, [src], w, resynthesis=True, **kw)
+    naive = shade_texels(t, p, far, [src], w, resynthesis=False, **kw)
+    scale = np.abs(naive).max()
+    assert np.abs(full - naive).max() > 100 * SUM_ROUNDING_REL * scale
+    for lam, want in ((0.0, naive), (1.0, full), (0.5, 0.5 * (naive + full))):
+        got = shade_texels(t, p, far, [src], w, resynthesis=True,
+                           shrinkage={src.name: lam}, **kw)
+        assert np.abs(got - want).max() <= SUM_ROUNDING_REL * scale, lam
+
+
+def test_cross_validated_shrinkage_recovers_a_planted_factor(parts):
+    """A second camera whose measured functions are exactly ``R + λ₀ (resynthesised − R)`` of
+    the first camera's fits at its view directions: the estimate is λ₀ (the least-squares
+    factor of the relit change), and the in-sample error of the shrunk prediction is ≈ 0.
+    A camera with no other camera to check it against keeps λ = 1 and says why."""
+    from dataclasses import replace as dc_replace
+
+    from facegeo.appearance.skin import resynthesize
+    from facegeo.render import cross_validated_shrinkage
+
+    src, other = parts["sources"][0], parts["sources"][1]
+    lights = parts["lights"]
+    fitted = src.fit.texel_index[src.fit.params["valid"].astype(bool)]
+    rows_o, seen = other.rows_of(fitted)
+    tex, rows_o = fitted[seen], rows_o[seen]
+    assert tex.size > 50
+    rows_s, _ = src.rows_of(tex)
+    fidx, _ = src.fit.locate(rows_s)
+    R = np.asarray(src.field[rows_s], np.float32)
+    fit = src.fit.skin_fit(fidx, R, lights)
+    vb = other.v_world[rows_o]
+    new = resynthesize(fit, vb).reflectance
+    keep = np.einsum("ni,ni->n", fit.normal, vb) > 0  # the estimator keeps R where back-facing
+    lam0 = 0.37
+    planted = np.where(keep[:, None, None], R + lam0 * (new - R), R).astype(np.float32)
+    fake = dc_replace(other, texel_index=tex, weight=np.ones(tex.size, np.float32),
+                      v_world=vb, field=planted, fit=None)
+    w = _weights(parts["rig"].lights, 6)
+    factors, stats = cross_validated_shrinkage([src, fake], w, lights)
+    assert set(factors) == {src.name}
+    assert abs(factors[src.name] - lam0) < SHRINK_RECOVERY_ABS, stats
+    st = stats[src.name]
+    assert st["functions"] == tex.size and st["pairs"] == [fake.name]
+    assert st["xval_rel_rmse_shrunk"] < 0.01 * st["xval_rel_rmse_naive"]
+    alone, alone_stats = cross_validated_shrinkage([src], w, lights)
+    assert alone == {src.name: 1.0} and "no other camera" in alone_stats[src.name]["reason"]
 
 
 def test_hole_filling_copies_the_nearest_covered_pixel(parts):

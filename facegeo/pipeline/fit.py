@@ -64,9 +64,11 @@ FIT_SETTINGS: dict[str, Any] = {
 
 def default_views(cameras: list[str], novel: list[str] = ()) -> list[str]:
     """The novel views the demo renders: every source camera, ±30° and ±60° orbits of the
-    first one, and the generator's novel cameras."""
-    first = cameras[0]
-    return list(cameras) + [f"orbit:{first}:{d:g}" for d in (30, -30, 60, -60)] + list(novel)
+    rig's frontal camera (:func:`facegeo.render.front_camera`), and the generator's novel
+    cameras."""
+    from facegeo.pipeline.reconstruct import RENDER_ORBITS
+
+    return list(cameras) + [f"orbit:front:{d:g}" for d in RENDER_ORBITS] + list(novel)
 
 
 def _camera_table(scan, rig) -> dict:

@@ -50,7 +50,9 @@ MESH_CHOICES = ("auto", "ground_truth", "reconstructed")
 #: Values of ``rig``.
 RIG_CHOICES = ("auto", "ground_truth", "calibrated", "scan")
 
-#: The render stage's default views: the first camera orbited by these angles (degrees).
+#: The render stage's default views: the rig's frontal camera (:func:`facegeo.render.front_camera`,
+#: the source cameras' mean view of the head) orbited by these angles (degrees) — views no
+#: source camera saw (on the two-camera presets, 15° and 45° beyond the outermost camera).
 RENDER_ORBITS = (30.0, -30.0, 60.0, -60.0)
 
 
@@ -128,7 +130,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
         ``"auto"``, ``"ground_truth"``, ``"calibrated"`` or ``"scan"`` (module docstring).
     """
     from facegeo.pipeline.fit import FIT_SETTINGS
-    from facegeo.pipeline.render import RENDER_DEFAULT_ENV
+    from facegeo.pipeline.render import RENDER_DEFAULT_ENV, SHRINKAGE_DEFAULT
 
     names = _applicable(scan, mesh)
     use_mesh = _resolve_mesh(scan, mesh) if "atlas" in names else None
@@ -225,8 +227,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
             return render_products(scan, ctx.upstream["atlas"].parent, ctx.out_dir,
                                    progress=ctx.progress, **ctx.settings)
 
-        first = scan.camera_names[0]
-        views = [f"orbit:{first}:{d:g}" for d in RENDER_ORBITS]
+        views = [f"orbit:front:{d:g}" for d in RENDER_ORBITS]
         fit_settings = dict(FIT_SETTINGS, texels="views", views=views, rig=use_rig)
         specs += [
             StageSpec("atlas", run_atlas, after=mesh_after, inputs=lambda d: mesh_inputs(),
@@ -245,7 +246,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
                       inputs=lambda d: _common_inputs(scan), settings=fit_settings),
             StageSpec("render", run_render, after=("atlas", "project", "fit") + rig_after,
                       inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
-                      settings={"views": views, "env": RENDER_DEFAULT_ENV, "rig": use_rig}),
+                      settings={"views": views, "env": RENDER_DEFAULT_ENV, "rig": use_rig,
+                                "shrinkage": SHRINKAGE_DEFAULT}),
         ]
     if not specs:
         raise InputError(f"scan {scan.root}: nothing to reconstruct (no [calib], "

@@ -20,7 +20,11 @@ renderer; ``mask`` = the reference's pixels that see the head):
 * ``psnr_db`` = 10 log10(peak² / MSE), MSE over the mask's pixels and channels, peak = the
   reference's maximum over the mask; ``rel_rmse`` = sqrt(Σ err² / Σ ref²) over the mask;
 * the same for the naive baseline (``naive_psnr_db``, ``naive_rel_rmse``) and the gain
-  ``psnr_gain_db``;
+  ``psnr_gain_db`` (``psnr_gain_db_covered`` over covered pixels);
+* with the cross-validated shrinkage (the default, :func:`facegeo.render.cross_validated_shrinkage`):
+  ``shrinkage_factors`` (λ per source camera), ``shrinkage_cross_validation`` and, beside the
+  main render, the paper's resynthesis as written (λ = 1): ``paper_psnr_db``,
+  ``paper_psnr_db_covered``, ``paper_rel_rmse`` (``_covered``);
 * ``coverage``: the fraction of the mask whose texels some source camera measured (pixels
   outside it are filled from the nearest measured pixel within ``fill_px``, else black, in
   both renders, and count as errors), and the ``*_covered`` variants of PSNR / relative RMSE
@@ -50,12 +54,15 @@ from facegeo.errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BUILTIN_ENVS", "builtin_env", "image_metrics", "render_one", "render_products",
-           "run_render"]
+__all__ = ["BUILTIN_ENVS", "SHRINKAGE_CHOICES", "builtin_env", "image_metrics", "render_one",
+           "render_products", "run_render"]
 
 BUILTIN_ENVS = ("uniform", "axis_lobes", "sky", "studio")
 #: The environment of the ``render`` stage of ``facegeo reconstruct``.
 RENDER_DEFAULT_ENV = "sky"
+#: Values of ``shrinkage`` besides a number in [0, 1] (:func:`run_render`).
+SHRINKAGE_CHOICES = ("cross-validated", "none")
+SHRINKAGE_DEFAULT = "cross-validated"
 _ENV_HEIGHT = 64
 
 
@@ -87,6 +94,27 @@ def _load_env(env, projection: str, rotate_deg: float):
                              f"({', '.join(BUILTIN_ENVS)})")
         return E.read_envmap(path, projection, rotate_deg=rotate_deg)
     return m.rotated(math.radians(rotate_deg)) if rotate_deg else m
+
+
+def _check_shrinkage(shrinkage):
+    """``"cross-validated"``, ``"none"`` (→ None) or a float λ in [0, 1]."""
+    if isinstance(shrinkage, str):
+        if shrinkage == "none":
+            return None
+        if shrinkage in SHRINKAGE_CHOICES:
+            return shrinkage
+        try:
+            shrinkage = float(shrinkage)
+        except ValueError:
+            raise InputError(f"shrinkage: expected {' or '.join(SHRINKAGE_CHOICES)} or a number "
+                             f"in [0, 1], got {fmt_value(shrinkage)}") from None
+    if shrinkage is None:
+        return None
+    lam = float(shrinkage)
+    if not (0.0 <= lam <= 1.0):
+        raise InputError(f"shrinkage: a factor must lie in [0, 1] (1 = the paper's resynthesis, "
+                         f"0 = the naive baseline), got {fmt_value(shrinkage)}")
+    return lam
 
 
 def image_metrics(img, ref, mask) -> dict:
@@ -122,7 +150,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                projection: str = "latlong", supersample: int = 1, resynthesis: bool = True,
                baseline: bool = True, reference: bool = True, name: str | None = None,
                blend_power: float | None = None, rig: str | None = None,
-               solid_angle: str = "paper", fill_px: float = 2.0, progress=None) -> dict:
+               solid_angle: str = "paper", fill_px: float = 2.0,
+               shrinkage: str | float = SHRINKAGE_DEFAULT, progress=None) -> dict:
     """Render a novel view of a reconstructed scan under an environment; write the images.
 
     Parameters
@@ -148,6 +177,12 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     fill_px : float, pixels — hole filling of unmeasured hit samples from the nearest measured
         pixel within this distance (:func:`facegeo.render.render_view`; 0: off); filled
         pixels count in ``psnr_db`` / ``rel_rmse`` but not in the ``*_covered`` figures
+    shrinkage : {"cross-validated", "none"} or float in [0, 1] — the share λ of the
+        resynthesised change applied per source camera
+        (:func:`facegeo.render.cross_validated_shrinkage`, a deviation from the paper measured
+        against the other source cameras; ``"none"``: λ = 1, the paper's §4.3 as written; a
+        number: that λ for every camera). With λ ≠ 1 and a reference, the paper's render is
+        made as well and reported as ``paper_psnr_db`` (``_covered``)
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
         each step (rays, render, naive baseline, reference)
 
@@ -163,7 +198,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                          rotate_deg=rotate_deg, projection=projection, supersample=supersample,
                          resynthesis=resynthesis, baseline=baseline, reference=reference,
                          name=name, blend_power=blend_power, rig=rig, solid_angle=solid_angle,
-                         fill_px=fill_px, progress=progress)
+                         fill_px=fill_px, shrinkage=shrinkage, progress=progress)
     _merge_metrics(out, metrics["name"], metrics)
     return metrics
 
@@ -173,7 +208,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                resynthesis: bool | str = True, baseline: bool = True, reference: bool = True,
                name: str | None = None, blend_power: float | None = None,
                rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
-               progress=None) -> dict:
+               shrinkage: str | float = SHRINKAGE_DEFAULT, progress=None) -> dict:
     """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
     ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
     the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem)."""
@@ -185,6 +220,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     from facegeo.pipeline.relight import tone_map
     from facegeo.render import (
         atlas_scene,
+        cross_validated_shrinkage,
         light_set,
         load_sources,
         parse_camera_spec,
@@ -196,6 +232,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
 
     t_start = time.perf_counter()
     out, dest = Path(out), Path(dest)
+    shrink_mode = _check_shrinkage(shrinkage)
     for need in ("atlas/atlas.npz", "atlas/texels.npz"):
         if not (out / need).is_file():
             raise InputError(f"render: {out / need} is missing; run 'facegeo reconstruct SCAN' first")
@@ -219,7 +256,14 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     sources = load_sources(out / "project", (out / "fit") if resynthesis else None)
     t_load = time.perf_counter()
     has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys)
-    steps = 2 + int(bool(baseline and resynthesis)) + int(has_ref)
+    factors, shrink_stats = None, None
+    if resynthesis is True and shrink_mode == "cross-validated":
+        factors, shrink_stats = cross_validated_shrinkage(sources, w, lights)
+    elif resynthesis is True and isinstance(shrink_mode, float):
+        factors = {src.name: shrink_mode for src in sources}
+    shrunk = factors is not None and any(f != 1.0 for f in factors.values())
+    paper_too = bool(shrunk and has_ref)
+    steps = 2 + int(bool(baseline and resynthesis)) + int(has_ref) + int(paper_too)
 
     def tick(k: int) -> None:
         if progress:
@@ -230,7 +274,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     tick(1)
     bp = BLEND_POWER if blend_power is None else float(blend_power)
     res = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=resynthesis,
-                      blend_power=bp, samples=samples, fill_px=fill_px)
+                      blend_power=bp, samples=samples, fill_px=fill_px, shrinkage=factors)
     tick(2)
     naive = None
     if baseline and resynthesis:
@@ -238,6 +282,11 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                             resynthesis=False, blend_power=bp, samples=samples,
                             fill_px=fill_px)
         tick(3)
+    paper = None
+    if paper_too:  # the paper's §4.3 as written (λ = 1), for the metrics
+        paper = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=True,
+                            blend_power=bp, samples=samples, fill_px=fill_px)
+        tick(3 + int(naive is not None))
     env_tag = env if isinstance(env, str) and env in BUILTIN_ENVS else (
         Path(env).stem if isinstance(env, (str, Path)) else "env")
     stem = _safe(name or f"{camera.name}_{env_tag}")
@@ -254,6 +303,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         else camera.to_dict(), "env": str(env) if not isinstance(env, E.EnvironmentMap)
         else "EnvironmentMap", "rotate_deg": float(rotate_deg), "supersample": int(supersample),
         "resynthesis": resynthesis, "blend_power": bp, "fill_px": float(fill_px),
+        "shrinkage": shrink_mode, "shrinkage_factors": factors,
+        "shrinkage_cross_validation": shrink_stats,
         "rig": rig_used,
         "size": [camera.width, camera.height], "active_lights": res.stats["active_lights"],
         "stats": res.stats, "seconds_render": res.stats["seconds"],
@@ -289,6 +340,14 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                             "naive_rel_rmse_covered": nc["rel_rmse"]})
             if m["psnr_db"] is not None and nm["psnr_db"] is not None:
                 metrics["psnr_gain_db"] = round(m["psnr_db"] - nm["psnr_db"], 4)
+            if mc["psnr_db"] is not None and nc["psnr_db"] is not None:
+                metrics["psnr_gain_db_covered"] = round(mc["psnr_db"] - nc["psnr_db"], 4)
+        if paper is not None:
+            pm = image_metrics(paper.image, ref, mask)
+            pc = image_metrics(paper.image, ref, cov)
+            metrics.update({"paper_psnr_db": pm["psnr_db"], "paper_rel_rmse": pm["rel_rmse"],
+                            "paper_psnr_db_covered": pc["psnr_db"],
+                            "paper_rel_rmse_covered": pc["rel_rmse"]})
     metrics["files"] = files
     metrics["name"] = stem
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
@@ -303,8 +362,12 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     into ``dest`` (:func:`render_one`); returns the stage's metrics.
 
     Metrics: ``views`` (per view, as :func:`run_render`), and over the views with a reference
-    ``psnr_db_min``, ``psnr_db_mean``, ``naive_psnr_db_mean`` and ``psnr_gain_db_min`` (the
-    novel-view goal of issue 14: resynthesis at least 3 dB better than the naive baseline).
+    ``psnr_db_min``, ``psnr_db_mean``, ``naive_psnr_db_mean``, ``psnr_gain_db_min`` (the
+    novel-view goal of issue 14: resynthesis at least 3 dB better than the naive baseline) and
+    ``psnr_gain_db_covered_min`` (the same over the pixels whose surface a source camera
+    measured: the part of the head no camera saw has no mesh and is black in both renders);
+    ``paper_psnr_db_mean`` when the views were rendered with a shrinkage λ ≠ 1 (the paper's
+    resynthesis as written beside it).
     """
     per_view = {}
     for k, spec in enumerate(views):
@@ -316,6 +379,8 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     psnr = [v["psnr_db"] for v in per_view.values() if v.get("psnr_db") is not None]
     naive = [v["naive_psnr_db"] for v in per_view.values() if v.get("naive_psnr_db") is not None]
     gain = [v["psnr_gain_db"] for v in per_view.values() if v.get("psnr_gain_db") is not None]
+    gain_cov = [v["psnr_gain_db_covered"] for v in per_view.values()
+                if v.get("psnr_gain_db_covered") is not None]
     if psnr:
         metrics["psnr_db_min"] = round(min(psnr), 4)
         metrics["psnr_db_mean"] = round(float(np.mean(psnr)), 4)
@@ -323,6 +388,11 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
         metrics["naive_psnr_db_mean"] = round(float(np.mean(naive)), 4)
     if gain:
         metrics["psnr_gain_db_min"] = round(min(gain), 4)
+    if gain_cov:
+        metrics["psnr_gain_db_covered_min"] = round(min(gain_cov), 4)
+    paper = [v["paper_psnr_db"] for v in per_view.values() if v.get("paper_psnr_db") is not None]
+    if paper:
+        metrics["paper_psnr_db_mean"] = round(float(np.mean(paper)), 4)
     metrics["seconds"] = round(sum(v["seconds"] for v in per_view.values()), 4)
     return metrics
 

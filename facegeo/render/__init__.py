@@ -6,13 +6,14 @@
   store live in private modules re-exported here.
 """
 
-from facegeo.render._cameras import orbit_camera, parse_camera_spec
+from facegeo.render._cameras import FRONT, front_camera, orbit_camera, parse_camera_spec
 from facegeo.render._fitstore import FitStore, FitWriter, light_set
 from facegeo.render.novel import (
     RenderResult,
     SourceCamera,
     ViewSamples,
     atlas_scene,
+    cross_validated_shrinkage,
     load_sources,
     render_view,
     shade_texels,
@@ -20,12 +21,15 @@ from facegeo.render.novel import (
 )
 
 __all__ = [
+    "FRONT",
     "FitStore",
     "FitWriter",
     "RenderResult",
     "SourceCamera",
     "ViewSamples",
     "atlas_scene",
+    "cross_validated_shrinkage",
+    "front_camera",
     "light_set",
     "load_sources",
     "orbit_camera",

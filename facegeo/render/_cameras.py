@@ -63,6 +63,41 @@ def orbit_camera(camera: Camera, degrees: float, *, center=(0.0, 0.0, 0.0),
     return camera.replace(name=name or f"{camera.name}_orbit{deg:g}", T_cam_world=T_new)
 
 
+#: The name of the rig's virtual frontal camera in camera specs (:func:`front_camera`).
+FRONT = "front"
+
+
+def front_camera(cameras: Mapping[str, Camera], *, center=(0.0, 0.0, 0.0)) -> Camera:
+    """The rig's frontal camera: the source cameras' mean view of ``center``.
+
+    Its rotation is the chordal mean of the cameras' rotations
+    (:func:`facegeo.frames.nearest_rotation` of Σ R_c), it looks through ``center`` from the
+    cameras' mean distance to ``center``; intrinsics and distortion are the first camera's. For a rig of cameras at ±15°
+    about the head it is the camera at 0°, so orbits of it by ±30° and ±60° are views that
+    no source camera saw (15° and 45° beyond the outermost one), where orbits of a source
+    camera by 30° can land on the other source camera.
+
+    Parameters
+    ----------
+    cameras : mapping of str -> Camera — the source cameras (at least one)
+    center : (3,) float, metres, world frame — the point the rig looks at (the head centre)
+
+    Returns
+    -------
+    Camera named ``"front"``
+    """
+    from facegeo.frames import nearest_rotation
+
+    cams = list(cameras.values())
+    if not cams:
+        raise InputError("camera spec: 'front' needs at least one source camera")
+    c0 = np.asarray(center, np.float64).reshape(3)
+    R = nearest_rotation(sum(c.T_cam_world.R for c in cams))
+    dist = float(np.mean([np.linalg.norm(c.center_world - c0) for c in cams]))
+    eye = c0 - dist * R[2]  # R[2]: the optical axis in the world frame
+    return cams[0].replace(name=FRONT, T_cam_world=Pose(R, -R @ eye))
+
+
 def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
                       center=(0.0, 0.0, 0.0)) -> Camera:
     """The camera a spec names.
@@ -83,9 +118,11 @@ def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
     Camera
     """
     def named(name: str) -> Camera:
+        if name == FRONT and name not in cameras:
+            return front_camera(cameras, center=center)
         if name not in cameras:
             raise InputError(f"camera spec: unknown camera {fmt_value(name)}; known cameras are "
-                             f"{', '.join(cameras)}")
+                             f"{', '.join(cameras)} (and '{FRONT}', the rig's frontal view)")
         return cameras[name]
 
     if isinstance(spec, Camera):
@@ -101,8 +138,8 @@ def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
         m = _ORBIT.match(spec.strip())
         if m:
             return orbit_camera(named(m["cam"]), float(m["deg"]), center=center)
-        if spec in cameras:
-            return cameras[spec]
+        if spec in cameras or spec == FRONT:
+            return named(spec)
         path = Path(spec)
         if path.suffix.lower() == ".json" and path.is_file():
             try:
