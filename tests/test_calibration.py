@@ -20,7 +20,7 @@ from facegeo.geometry.camera import Camera  # noqa: E402
 # ---- named tolerances (metric stated with each)
 #: noise-free: |f − f_true| / f_true, worst of fx, fy
 FOCAL_REL_TOL = 5e-4
-#: noise-free: |c − c_true|, pixels, worst of cx, cy
+#: noise-free: ‖c − c_true‖, pixels
 PRINCIPAL_TOL_PX = 0.2
 #: noise-free: rotation angle of R_est R_trueᵀ, degrees, worst view / camera
 ROTATION_TOL_DEG = 0.02
@@ -30,8 +30,15 @@ TRANSLATION_TOL_MM = 0.2
 RESIDUAL_NOISE_REL_TOL = 0.20
 #: reported σ against the spread over repeated runs: ratio within [1/1.5, 1.5]
 SIGMA_RATIO_TOL = 1.5
-#: facegeo vs cv2.calibrateCamera on the same corners: |Δ| on fx, fy, cx, cy, pixels
+#: facegeo vs cv2.calibrateCamera on the same corners: |Δ| on fx, fy, cx, cy, pixels; and the
+#: whole projection (K and distortion): worst over a 16 × 12 pixel grid of ‖q_cv2 − q‖, pixels
 OPENCV_AGREE_PX = 0.1
+#: corner noise at which the noise-free tolerances must still hold (0.005 px: every error
+#: measured at ≤ 0.6 of its tolerance; at ChArUco's 0.1 px they are 20× larger and the test is
+#: that each error is within N_SIGMA of the solution's reported σ)
+LOW_NOISE_PX = 0.005
+#: errors vs reported σ with realistic corner noise: ‖e‖ ≤ N_SIGMA · sqrt(trace Σ) per quantity
+N_SIGMA = 3.0
 #: facegeo's RMS may exceed OpenCV's by at most this relative amount (finite-difference
 #: Jacobian and stopping tolerances; "not worse")
 RMS_NOT_WORSE_REL = 1e-6
@@ -74,7 +81,7 @@ def test_noise_free_recovers_truth(clean):
     c = calibrate_camera(P, Q, SIZE)
     cam = c.camera
     assert max(abs(cam.fx / 1210.0 - 1), abs(cam.fy / 1190.0 - 1)) <= FOCAL_REL_TOL
-    assert max(abs(cam.cx - 655.3), abs(cam.cy - 371.8)) <= PRINCIPAL_TOL_PX
+    assert np.hypot(cam.cx - 655.3, cam.cy - 371.8) <= PRINCIPAL_TOL_PX
     for T, T0 in zip(c.T_cam_board, poses):
         assert _rot_deg(T.R, T0.R) <= ROTATION_TOL_DEG
         assert np.linalg.norm(T.t - T0.t) * 1e3 <= TRANSLATION_TOL_MM
@@ -102,11 +109,53 @@ def test_noisy_residual_matches_noise_and_opencv():
     rms, K, dist, _, _ = cv2.calibrateCamera(
         [p.astype(np.float32) for p in P], [q.astype(np.float32) for q in Qn], SIZE, None, None,
         criteria=crit)
+    _assert_agrees_with_opencv(c, rms, K, dist)
+
+
+def _assert_agrees_with_opencv(c, rms_cv, K_cv, dist_cv):
+    """fx, fy, cx, cy within OPENCV_AGREE_PX of OpenCV's and the whole projection (distortion
+    included) within it over the image; facegeo's RMS not worse than OpenCV's."""
     ours = c.camera
-    for a, b in ((ours.fx, K[0, 0]), (ours.fy, K[1, 1]), (ours.cx, K[0, 2]),
-                 (ours.cy, K[1, 2])):
+    for a, b in ((ours.fx, K_cv[0, 0]), (ours.fy, K_cv[1, 1]), (ours.cx, K_cv[0, 2]),
+                 (ours.cy, K_cv[1, 2])):
         assert abs(a - b) <= OPENCV_AGREE_PX
-    assert c.rms_px <= rms * (1 + RMS_NOT_WORSE_REL)
+    xs = np.linspace(0, ours.width - 1, 16)
+    ys = np.linspace(0, ours.height - 1, 12)
+    q = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    v, ok = ours.unproject(q, return_valid=True)
+    q_cv, _ = cv2.projectPoints(v[ok], np.zeros(3), np.zeros(3), K_cv, dist_cv)
+    assert np.linalg.norm(q_cv.reshape(-1, 2) - q[ok], axis=-1).max() <= OPENCV_AGREE_PX
+    assert c.rms_px <= rms_cv * (1 + RMS_NOT_WORSE_REL)
+
+
+@pytest.mark.parametrize("noise_px", [LOW_NOISE_PX, 0.1])
+def test_noisy_recovers_truth(noise_px):
+    """With corner noise (20 views, wide distorted camera): at LOW_NOISE_PX the noise-free
+    tolerances hold (focal ≤ 0.05 %, principal point ≤ 0.2 px, board rotation ≤ 0.02°,
+    translation ≤ 0.2 mm); at ChArUco's 0.1 px every error is within N_SIGMA of the σ the
+    solution reports for it (principal point σ ≈ 1.5 px, pose ≈ 0.17° / 1.7 mm there: the
+    views, not the solver, set the accuracy). Residual RMS within 20 % of the noise."""
+    P, Q, poses = _views(_camera(), 20, 3)
+    rng = np.random.default_rng(17)
+    Qn = [q + rng.normal(0, noise_px, q.shape) for q in Q]
+    c = calibrate_camera(P, Qn, SIZE, reject_views=False)
+    e = c.camera
+    assert abs(c.rms_px / np.sqrt(2) / noise_px - 1) <= RESIDUAL_NOISE_REL_TOL
+    f_err = max(abs(e.fx / 1210.0 - 1), abs(e.fy / 1190.0 - 1))
+    c_err = float(np.hypot(e.cx - 655.3, e.cy - 371.8))
+    rot = np.array([_rot_deg(T.R, T0.R) for T, T0 in zip(c.T_cam_board, poses)])
+    tr = np.array([np.linalg.norm(T.t - T0.t) * 1e3 for T, T0 in zip(c.T_cam_board, poses)])
+    if noise_px == LOW_NOISE_PX:
+        assert f_err <= FOCAL_REL_TOL and c_err <= PRINCIPAL_TOL_PX
+        assert rot.max() <= ROTATION_TOL_DEG and tr.max() <= TRANSLATION_TOL_MM
+        return
+    n = len(c.param_names)
+    cov_pose = np.diagonal(c.covariance)[n:].reshape(-1, 6)
+    sd_rot = np.degrees(np.sqrt(cov_pose[:, :3].sum(-1)))
+    sd_tr = np.sqrt(cov_pose[:, 3:].sum(-1)) * 1e3
+    assert f_err <= N_SIGMA * max(c.std["fx"] / e.fx, c.std["fy"] / e.fy)
+    assert c_err <= N_SIGMA * np.hypot(c.std["cx"], c.std["cy"])
+    assert np.all(rot <= N_SIGMA * sd_rot) and np.all(tr <= N_SIGMA * sd_tr)
 
 
 @pytest.mark.slow
@@ -261,11 +310,18 @@ def test_real_left_reproduces_opencv_yml(shared_data):
     K_ref = fs.getNode("camera_matrix").mat()
     fs.release()
     # OpenCV's flags in the yml: 2 = CALIB_FIX_ASPECT_RATIO with aspectRatio 1
-    c = calibrate_camera([x.p_board for x in ok], [x.q for x in ok], (640, 480),
-                         fix_aspect_ratio=1.0, reject_views=False)
+    P = [x.p_board for x in ok]
+    Q = [x.q for x in ok]
+    c = calibrate_camera(P, Q, (640, 480), fix_aspect_ratio=1.0, reject_views=False)
     for a, b in ((c.camera.fx, K_ref[0, 0]), (c.camera.fy, K_ref[1, 1]),
                  (c.camera.cx, K_ref[0, 2]), (c.camera.cy, K_ref[1, 2])):
         assert abs(a - b) <= OPENCV_YML_PX
+    # independent reference on the same real corners: cv2.calibrateCamera with the same flag
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    rms, K, dist, _, _ = cv2.calibrateCamera(
+        [p.astype(np.float32) for p in P], [q.astype(np.float32) for q in Q], (640, 480),
+        np.eye(3), None, flags=cv2.CALIB_FIX_ASPECT_RATIO, criteria=crit)
+    _assert_agrees_with_opencv(c, rms, K, dist)
     with pytest.raises(InputError, match="only 0 of"):
         usable_detections(detect_boards([cv2.imread(str(d / "left01.jpg"), 0)],
                                         ChessboardSpec(10, 7, 0.025)), min_views=1)
@@ -357,7 +413,7 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
 
     m2, settings = calibrate_products(tmp_path / "scan", tmp_path / "stage",
                                       cross_validation=False)
-    assert settings == {"model": "opencv5", "legacy": False, "loss": "linear",
+    assert settings == {"model": "auto", "legacy": False, "loss": "linear",
                         "reference": None, "cross_validation": False}
     json.dumps(m2, allow_nan=False)
     json.dumps(settings)
