@@ -3,8 +3,11 @@
 ``run_calibrate(scan_dir, out_dir)`` (``facegeo calibrate``) reads every camera's
 ``calib/<camera>/`` views, detects the board
 (:func:`facegeo.geometry.calibration.detect_boards`), calibrates each camera
-(:func:`~facegeo.geometry.calibration.calibrate_camera`), cross-validates it, bundle-adjusts the
-rig (:func:`~facegeo.geometry.calibration.calibrate_rig`) and writes
+(:func:`~facegeo.geometry.calibration.calibrate_camera`; by default its distortion model is
+chosen by k-fold cross-validation over its views, ``model="auto"``), cross-validates it,
+bundle-adjusts the rig (:func:`~facegeo.geometry.calibration.calibrate_rig`; a camera with
+fewer than :data:`MIN_VIEWS_ALONE` views keeps its nominal intrinsics and is only posed, with a
+warning) and writes
 
 * ``rig.json`` — the scan's rig with the calibrated cameras (``Rig`` serialisation); the world
   frame is the scan's: the calibrated rig is aligned to the nominal ``rig.json`` by the rigid
@@ -350,7 +353,9 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     Returns
     -------
     metrics : dict
-        ``{"cameras": {name: {reprojection_rms_px, views_used, views_detected, rejected
+        ``{"cameras": {name: {model, [model_selection: {reason, best, folds, scores},]
+        [intrinsics: "nominal", warning (a camera posed only),] reprojection_rms_px,
+        views_used, views_detected, rejected
         (why each dropped view was dropped), per_view_rms_px (view → RMS at the camera's own
         solution; dropped views re-posed),
         cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
@@ -368,8 +373,9 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     Raises
     ------
     InputError, ScanFormatError
-        No calibration views in the scan, too few usable views in a camera (the message lists
-        every skipped image and why).
+        No calibration views in the scan; a camera without a usable view, or (single-camera
+        scan) with fewer than :data:`MIN_VIEWS_ALONE` (the message lists every skipped image
+        and why); no camera with :data:`MIN_VIEWS_ALONE` views.
     """
     from facegeo.capture.imageio import read_image
     from facegeo.geometry.calibration import (
@@ -409,8 +415,11 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         views = sorted(scan.calib_corners(name)) if corner_lists else scan.calib_views(name)
         view_key = {id(d): f"v{v}" for d, v in zip(dets, views)}
         # in a rig, a camera with 1-2 views is posed with its nominal intrinsics (below)
-        found = usable_detections(dets, what=f"camera {name}",
-                                  min_views=1 if len(scan.camera_names) > 1 else MIN_VIEWS_ALONE)
+        rig_scan = len(scan.camera_names) > 1
+        found = usable_detections(
+            dets, min_views=1 if rig_scan else MIN_VIEWS_ALONE,
+            what=f"camera {name}" + (f" ({MIN_VIEWS_ALONE} views calibrate it; 1-2 pose it with "
+                                     "its nominal intrinsics)" if rig_scan else ""))
         if dets and dets[0].image_size != cam0.size:
             raise InputError(f"camera {name}: views are {dets[0].image_size} px but rig.json says "
                              f"{cam0.size}")
