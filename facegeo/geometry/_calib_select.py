@@ -20,6 +20,10 @@ The held-out view's pose is refitted (six parameters per view of ≥ 12 corners)
 judged on what the pose cannot absorb: the shape of its projection over the image. This is
 mrcal's reason for cross-validation (two solves on disjoint halves, :func:`~._calib_rig.
 cross_validate`), made into a score per model with k folds so every view is held out once.
+The flip side: what a pose can absorb is not scored. On a wide lens with 0.2 px corner noise
+and 12 views the rule may drop tangential terms of ≈ 1e-3 (their effect is mostly a tilt of the
+held-out board) and move the principal point by ≈ 2 σ; with 0.05 px it keeps them
+(``docs/calibration.md``).
 """
 
 from __future__ import annotations
