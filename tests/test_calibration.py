@@ -812,7 +812,7 @@ def test_auto_model_keeps_the_distortion_a_wide_lens_has(clean):
     tangential 1e-3): the radial-only models are clearly worse on held-out views and the
     rational model is a tie, so ``auto`` picks the 5-term model and recovers the truth to the
     noise-free tolerances. A rule that always took the simplest model fails here."""
-    P, Q, poses = clean
+    P, Q, _ = clean
     c = calibrate_camera(P, Q, SIZE, model="auto")
     sel = c.model_selection
     assert c.model == "opencv5", sel["reason"]
