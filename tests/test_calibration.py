@@ -866,3 +866,33 @@ def test_camera_with_two_views_is_posed_with_its_nominal_intrinsics(tmp_path, ca
         assert _rot_deg(got.T_cam_world.R, cam.T_cam_world.R) < WORLD_POSE_TOL_DEG, cam.name
         assert np.linalg.norm(got.center_world - cam.center_world) * 1e3 < WORLD_POSE_TOL_MM
     assert np.array_equal(rig.camera("cam_b").K, truth[1].K)  # nominal = truth here
+
+
+def test_projector_views_with_undecodable_corners_are_a_clear_error(tmp_path):
+    """Projector-calibration views whose Gray frames carry no code (every pattern frame the
+    same grey): the board is found in the white frame, no corner decodes, and the stage's error
+    says so per view and camera ("only 0 corners decodable (need 6)") and that 3 views are
+    needed — not a solve on garbage."""
+    from types import SimpleNamespace
+
+    from facegeo.geometry.structured_light import PatternSpec, pattern_names
+    from facegeo.pipeline.calibrate import _projector_observations
+
+    cam = _camera().scaled(0.5)
+    spec = PatternSpec(width=64, height=32)
+    paths = {}
+    for v, T in enumerate(random_board_poses(cam, 3, 31, board=BOARD, fill=(0.6, 0.8))):
+        white = BOARD.render(cam, T).to_uint8()
+        grey = np.full_like(white, 128)
+        for name in pattern_names(spec):
+            p = tmp_path / f"v{v}_{name}.png"
+            cv2.imwrite(str(p), white if name == "white" else grey)
+            paths[(v, name)] = p
+    scan = SimpleNamespace(
+        sl_patterns=spec.to_dict(), camera_names=["cam"],
+        manifest={"calib": {"projector": {"views": 3}}},
+        response=lambda key: SimpleNamespace(linearize=lambda a: a.astype(np.float32) / 255),
+        projector_view_paths=lambda name, v: {n: paths[(v, n)] for n in pattern_names(spec)})
+    with pytest.raises(InputError, match=r"0 of 3 projector views.*need 3.*projector view 0 "
+                                         r"cam: only 0 corners decodable \(need 6\)"):
+        _projector_observations(scan, BOARD, False)
