@@ -32,6 +32,7 @@ from facegeo.geometry._calib_solve import (
     _Model,
     calibrate_camera,
     minimise,
+    model_of_dist,
     project_points,
     rotate_rvec,
 )
@@ -84,20 +85,23 @@ def _pose(x6) -> Pose:
     return Pose.from_rvec_tvec(x6[:3], x6[3:])
 
 
-def _rig_problem(names, cameras, observations, vpos, refine_intrinsics):
+def _rig_problem(names, cameras, observations, vpos, refine_intrinsics, models=None):
     """Residuals and block Jacobian of the rig bundle adjustment.
 
-    Parameters: ``x = (θ of every camera if refine_intrinsics, T_c_ref of cameras 1…C−1,
-    T_ref_board of every view)`` as 6-vectors (rvec, tvec); the residual of a corner seen by
+    Parameters: ``x = (θ of every camera whose intrinsics are refined, T_c_ref of cameras
+    1…C−1, T_ref_board of every view)`` as 6-vectors (rvec, tvec); the residual of a corner seen by
     camera c in view v is ``project_c(T_c_ref · T_ref_board_v · p) − q``. Returns a namespace
     with ``fun_jac(x, jac)``, ``unpack_intr(x)``, ``theta0``, ``mdls``, ``cam_idx``, ``q_all``,
     ``n_intr``, ``n_cam``.
     """
     C, Vn = len(names), len(vpos)
-    mdls = [_Model({0: "pinhole", 4: "opencv4", 5: "opencv5", 8: "rational8"}[
-        cameras[n].dist.size], None) for n in names]
-    off_i = np.cumsum([0] + [m.n for m in mdls]) if refine_intrinsics else np.zeros(
-        len(names) + 1, int)
+    models = models or {}
+    mdls = [_Model(models.get(n) or model_of_dist(cameras[n].dist), None) for n in names]
+    if isinstance(refine_intrinsics, (bool, np.bool_)):
+        refine = [bool(refine_intrinsics)] * C
+    else:
+        refine = [n in refine_intrinsics for n in names]
+    off_i = np.cumsum([0] + [m.n if rf else 0 for m, rf in zip(mdls, refine)])
     n_intr = int(off_i[-1])
     # observation arrays
     cam_idx, view_idx, Pl, Ql = [], [], [], []
@@ -112,7 +116,8 @@ def _rig_problem(names, cameras, observations, vpos, refine_intrinsics):
     view_idx = np.concatenate(view_idx)
     p_all = np.concatenate(Pl)
     q_all = np.concatenate(Ql)
-    theta0 = [m.pack(cameras[n].K, cameras[n].dist) for m, n in zip(mdls, names)]
+    theta0 = [m.pack(cameras[n].K, cameras[n].dist) for m, n, rf in zip(mdls, names, refine)
+              if rf]
     fixed = [
         (cameras[n].fx, cameras[n].fy, cameras[n].cx, cameras[n].cy,
          np.pad(cameras[n].dist, (0, 8 - cameras[n].dist.size))) for n in names
@@ -124,7 +129,7 @@ def _rig_problem(names, cameras, observations, vpos, refine_intrinsics):
         fy, cx, cy = np.empty(C), np.empty(C), np.empty(C)
         d8 = np.empty((C, 8))
         for ci, m in enumerate(mdls):
-            if refine_intrinsics:
+            if refine[ci]:
                 fx[ci], fy[ci], cx[ci], cy[ci], d8[ci] = m.unpack(x[off_i[ci]: off_i[ci + 1]])
             else:
                 fx[ci], fy[ci], cx[ci], cy[ci], d8[ci] = fixed[ci]
@@ -159,7 +164,7 @@ def _rig_problem(names, cameras, observations, vpos, refine_intrinsics):
         Ja = np.zeros((N, 2, n_intr + n_cam))
         for ci in range(C):  # cameras: a handful
             sel = cam_rows[ci]
-            if refine_intrinsics:
+            if refine[ci]:
                 Ja[sel, :, off_i[ci]: off_i[ci + 1]] = mdls[ci].intr_jac(dq_dk[sel])
             if ci:
                 o = n_intr + 6 * (ci - 1)
@@ -174,8 +179,8 @@ def _rig_problem(names, cameras, observations, vpos, refine_intrinsics):
 
 
 def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = None,
-                  refine_intrinsics: bool = True, loss: str = "linear", f_scale: float = 1.0,
-                  world: str | tuple = "reference") -> RigCalibration:
+                  refine_intrinsics=True, models: dict | None = None, loss: str = "linear",
+                  f_scale: float = 1.0, world: str | tuple = "reference") -> RigCalibration:
     """Bundle-adjust a multi-camera rig over camera and board poses jointly.
 
     Parameters
@@ -188,8 +193,14 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
         0, 4, 5 or 8 coefficients), e.g. from :func:`calibrate_camera`.
     reference : str, optional
         The camera whose frame is the rig frame (default: the first camera).
-    refine_intrinsics : bool
-        Refine every camera's intrinsics with the poses (else hold them fixed).
+    refine_intrinsics : bool or collection of str
+        Refine every camera's intrinsics with the poses (True), none (False), or only those of
+        the cameras named (the others keep ``cameras``' intrinsics; only their poses are solved,
+        e.g. a camera with too few views to calibrate alone).
+    models : dict, optional
+        ``{camera_name: model}`` (keys of :data:`~._calib_solve.MODELS`): which distortion
+        coefficients are refined (e.g. ``"k1"`` keeps k2, p1, p2 at 0). Default: every
+        coefficient of the camera's distortion vector (:func:`~._calib_solve.model_of_dist`).
     loss, f_scale
         Robust loss of ``scipy.optimize.least_squares`` (see :func:`calibrate_camera`).
     world : "reference", ("board", view_id) or Pose
@@ -255,10 +266,10 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
         )
     views = sorted(T_ref_b, key=str)
     vpos = {v: i for i, v in enumerate(views)}
-    pb = _rig_problem(names, cameras, observations, vpos, refine_intrinsics)
+    pb = _rig_problem(names, cameras, observations, vpos, refine_intrinsics, models)
     mdls, cam_idx, q_all, n_intr, n_cam = pb.mdls, pb.cam_idx, pb.q_all, pb.n_intr, pb.n_cam
     C, Vn = len(names), len(views)
-    parts = [np.concatenate(pb.theta0)] if refine_intrinsics else []
+    parts = list(pb.theta0)
     parts += [_pose6(T_c_ref[n]) for n in names[1:]]
     parts += [_pose6(T_ref_b[v]) for v in views]
     x0 = np.concatenate(parts)

@@ -48,14 +48,42 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "MODELS",
+    "MODEL_FREE",
     "CameraCalibration",
     "calibrate_camera",
+    "model_of_dist",
     "project_points",
     "rotate_rvec",
 ]
 
-#: Distortion models by name → number of OpenCV coefficients ``(k1, k2, p1, p2, k3, k4, k5, k6)``.
-MODELS = {"pinhole": 0, "opencv4": 4, "opencv5": 5, "rational8": 8}
+#: Distortion models by name → length of the camera's OpenCV coefficient vector
+#: ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``; :data:`MODEL_FREE` says which of them are solved for
+#: (the others stay 0): ``k1`` and ``k1k2`` are the radial-only models of narrow lenses, stored
+#: as OpenCV's 4-vector.
+MODELS = {"pinhole": 0, "k1": 4, "k1k2": 4, "opencv4": 4, "opencv5": 5, "rational8": 8}
+
+#: Indices (OpenCV order) of the distortion coefficients each model solves for.
+MODEL_FREE = {"pinhole": (), "k1": (0,), "k1k2": (0, 1), "opencv4": (0, 1, 2, 3),
+              "opencv5": (0, 1, 2, 3, 4), "rational8": tuple(range(8))}
+
+#: The full model of each distortion-vector length (a camera read from a rig file).
+_MODEL_OF_LENGTH = {0: "pinhole", 4: "opencv4", 5: "opencv5", 8: "rational8"}
+
+
+def model_of_dist(dist) -> str:
+    """The model that solves every coefficient of an OpenCV distortion vector of this length.
+
+    Parameters
+    ----------
+    dist : (n,) float64, n ∈ {0, 4, 5, 8}
+
+    Returns
+    -------
+    str
+        A key of :data:`MODELS`.
+    """
+    return _MODEL_OF_LENGTH[np.asarray(dist).size]
+
 
 _LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
 
@@ -120,18 +148,19 @@ class _Model:
     def __init__(self, model: str, fix_aspect_ratio: float | None):
         check_choice(model, "model", tuple(MODELS))
         self.model = model
-        self.nd = MODELS[model]
+        self.nd = MODELS[model]  # length of the camera's distortion vector
+        self.free = np.array(MODEL_FREE[model], int)  # solved coefficients (OpenCV order)
         self.aspect = None if fix_aspect_ratio is None else float(fix_aspect_ratio)
         self.names = (["f"] if self.aspect is not None else ["fx", "fy"]) + ["cx", "cy"] + [
-            "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][: self.nd]
+            ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")[i] for i in self.free]
         self.n = len(self.names)
 
     def pack(self, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-        d = np.zeros(self.nd)
-        m = min(self.nd, len(dist))
-        d[:m] = np.ravel(dist)[:m]
+        d8 = np.zeros(8)
+        d = np.ravel(dist)[:8]
+        d8[: d.size] = d
         f = [K[1, 1]] if self.aspect is not None else [K[0, 0], K[1, 1]]
-        return np.concatenate([f, [K[0, 2], K[1, 2]], d])
+        return np.concatenate([f, [K[0, 2], K[1, 2]], d8[self.free]])
 
     def unpack(self, theta: np.ndarray):
         """θ (..., n) → fx, fy, cx, cy, dist8 (..., 8)."""
@@ -144,7 +173,7 @@ class _Model:
             o = 2
         cx, cy = theta[..., o], theta[..., o + 1]
         d8 = np.zeros(theta.shape[:-1] + (8,))
-        d8[..., : self.nd] = theta[..., o + 2: o + 2 + self.nd]
+        d8[..., self.free] = theta[..., o + 2: o + 2 + self.free.size]
         return fx, fy, cx, cy, d8
 
     def intr_jac(self, dq_dk: np.ndarray) -> np.ndarray:
@@ -153,7 +182,7 @@ class _Model:
             f = (self.aspect * dq_dk[..., 0] + dq_dk[..., 1])[..., None]
         else:
             f = dq_dk[..., 0:2]
-        return np.concatenate([f, dq_dk[..., 2:4], dq_dk[..., 4: 4 + self.nd]], axis=-1)
+        return np.concatenate([f, dq_dk[..., 2:4], dq_dk[..., 4 + self.free]], axis=-1)
 
     def camera(self, theta: np.ndarray, name: str, size) -> Camera:
         fx, fy, cx, cy, d8 = self.unpack(theta)
@@ -195,6 +224,9 @@ class CameraCalibration:
         Covariance of the whole parameter vector (intrinsics, then 6 per used view: rvec, tvec).
     rejected : list of str
         Why views were dropped.
+    model_selection : dict or None
+        With ``model="auto"``: how the model was chosen (:func:`~._calib_select.select_model`:
+        ``model``, ``reason``, per-model held-out ``scores``).
     """
 
     camera: Camera
@@ -209,6 +241,7 @@ class CameraCalibration:
     sigma_px: float
     covariance: np.ndarray
     rejected: list = field(default_factory=list)
+    model_selection: dict | None = None
     _theta: np.ndarray = None
     _poses: np.ndarray = None
     _mdl: _Model = None
@@ -405,7 +438,7 @@ def calibrate_camera(object_points, image_points, image_size, *, model: str = "o
                      loss: str = "linear", f_scale: float = 1.0,
                      reject_views: bool = True, reject_factor: float = 3.0,
                      reject_floor_px: float = 0.5, min_views: int = 3,
-                     name: str = "camera") -> CameraCalibration:
+                     auto_fallback: str = "opencv5", name: str = "camera") -> CameraCalibration:
     """Calibrate one camera from corner lists (Zhang 2000 start, joint least squares).
 
     Parameters
@@ -416,8 +449,12 @@ def calibrate_camera(object_points, image_points, image_size, *, model: str = "o
         Per view, their detected positions (integers are pixel centres).
     image_size : (int, int)
         ``(width, height)``, pixels.
-    model : {"pinhole", "opencv4", "opencv5", "rational8"}
-        Distortion model (:data:`MODELS`).
+    model : {"pinhole", "k1", "k1k2", "opencv4", "opencv5", "rational8", "auto"}
+        Distortion model (:data:`MODELS`); ``"auto"`` chooses among
+        :data:`~._calib_select.AUTO_CANDIDATES` by k-fold cross-validation over the usable
+        views (:func:`~._calib_select.select_model`: held-out reprojection error, the simplest
+        model within one standard error of the best) and records the choice in
+        :attr:`CameraCalibration.model_selection`.
     fix_aspect_ratio : float, optional
         Fix ``fx / fy`` to this value (OpenCV's ``CALIB_FIX_ASPECT_RATIO``).
     K_init : (3, 3) float64, optional
@@ -430,6 +467,9 @@ def calibrate_camera(object_points, image_points, image_size, *, model: str = "o
         re-solve (repeated until none is dropped, keeping at least ``min_views``).
     min_views : int
         Fewest usable views.
+    auto_fallback : str
+        With ``model="auto"``, the model used when the views are too few to hold any out
+        (fewer than ``min_views + 1``).
     name : str
         Name of the returned camera.
 
@@ -453,8 +493,21 @@ def calibrate_camera(object_points, image_points, image_size, *, model: str = "o
     check_positive(f_scale, "f_scale")
     if fix_aspect_ratio is not None:
         check_positive(fix_aspect_ratio, "fix_aspect_ratio")
-    mdl = _Model(model, fix_aspect_ratio)
+    if model != "auto":
+        check_choice(model, "model", tuple(MODELS) + ("auto",))
     usable, reasons = _check_views(P, Q, size, min_views)
+    selection = None
+    if model == "auto":
+        from facegeo.geometry._calib_select import select_model
+
+        u = np.flatnonzero(usable)
+        selection = select_model(
+            [P[i] for i in u], [Q[i] for i in u], size, min_views=min_views,
+            fix_aspect_ratio=fix_aspect_ratio, K_init=K_init, loss=loss, f_scale=f_scale,
+            reject_views=reject_views, reject_factor=reject_factor,
+            reject_floor_px=reject_floor_px, fallback=auto_fallback, name=name)
+        model = selection["model"]
+    mdl = _Model(model, fix_aspect_ratio)
     rejected = list(reasons)
     V = len(P)
     n_corners = int(sum(p.shape[0] for p, u in zip(P, usable) if u))
@@ -527,5 +580,5 @@ def calibrate_camera(object_points, image_points, image_size, *, model: str = "o
         residuals=residuals, T_cam_board=T_list, param_names=mdl.names, std=std,
         sigma_px=float(np.sqrt(sigma2)), covariance=cov, rejected=rejected, _theta=theta,
         _poses=poses[np.flatnonzero(used)], _mdl=mdl,
-        _object_points=[P[i] for i in range(V)],
+        _object_points=[P[i] for i in range(V)], model_selection=selection,
     )

@@ -9,6 +9,8 @@ The public namespace of three private modules:
   least squares over intrinsics, distortion and per-view poses; robust loss; outlier-view
   rejection; parameter standard deviations from ``σ² (JᵀJ)⁻¹``; mrcal-style projection
   uncertainty over the image).
+* :mod:`._calib_select` — :func:`select_model` (``model="auto"``): the distortion model per
+  camera by k-fold cross-validation over its views, the simplest within noise of the best.
 * :mod:`._calib_projector` — :func:`projector_corners`: board corners in projector pixels by
   Moreno & Taubin's local homographies over the decoded structured light.
 * :mod:`._calib_rig` — :func:`calibrate_rig` (bundle adjustment of N cameras and the board
@@ -38,15 +40,18 @@ from facegeo.geometry._calib_projector import (
     PROJECTOR_MIN_PIXELS, PROJECTOR_WINDOW_PX, projector_corners,
 )
 from facegeo.geometry._calib_rig import RigCalibration, calibrate_rig, cross_validate
+from facegeo.geometry._calib_select import AUTO_CANDIDATES, select_model
 from facegeo.geometry._calib_solve import (
-    MODELS, CameraCalibration, calibrate_camera, project_points, rotate_rvec,
+    MODEL_FREE, MODELS, CameraCalibration, calibrate_camera, model_of_dist, project_points,
+    rotate_rvec,
 )
 
 __all__ = [
-    "MIN_CORNERS_PER_VIEW", "MODELS",
+    "AUTO_CANDIDATES", "MIN_CORNERS_PER_VIEW", "MODEL_FREE", "MODELS",
     "BoardDetection", "ChessboardSpec", "CircleGridSpec", "CameraCalibration", "RigCalibration",
     "as_corner_lists", "detect_boards", "detect_charuco", "detect_chessboard",
     "detect_circle_grid", "detection_report", "usable_detections",
     "PROJECTOR_MIN_PIXELS", "PROJECTOR_WINDOW_PX", "projector_corners",
-    "calibrate_camera", "calibrate_rig", "cross_validate", "project_points", "rotate_rvec",
+    "calibrate_camera", "calibrate_rig", "cross_validate", "model_of_dist", "project_points", "rotate_rvec",
+    "select_model",
 ]

@@ -3,8 +3,11 @@
 ``run_calibrate(scan_dir, out_dir)`` (``facegeo calibrate``) reads every camera's
 ``calib/<camera>/`` views, detects the board
 (:func:`facegeo.geometry.calibration.detect_boards`), calibrates each camera
-(:func:`~facegeo.geometry.calibration.calibrate_camera`), cross-validates it, bundle-adjusts the
-rig (:func:`~facegeo.geometry.calibration.calibrate_rig`) and writes
+(:func:`~facegeo.geometry.calibration.calibrate_camera`; by default its distortion model is
+chosen by k-fold cross-validation over its views, ``model="auto"``), cross-validates it,
+bundle-adjusts the rig (:func:`~facegeo.geometry.calibration.calibrate_rig`; a camera with
+fewer than :data:`MIN_VIEWS_ALONE` views keeps its nominal intrinsics and is only posed, with a
+warning) and writes
 
 * ``rig.json`` — the scan's rig with the calibrated cameras (``Rig`` serialisation); the world
   frame is the scan's: the calibrated rig is aligned to the nominal ``rig.json`` by the rigid
@@ -47,6 +50,10 @@ __all__ = ["run_calibrate", "calibrate_products", "RESIDUAL_GAIN"]
 #: Residual vectors are drawn this many times longer than they are.
 RESIDUAL_GAIN = 100.0
 
+
+#: Fewest usable board views a camera is calibrated from on its own; a rig camera with fewer
+#: keeps its nominal intrinsics and only its pose is solved (with a warning).
+MIN_VIEWS_ALONE = 3
 
 #: Pixels per image side whose rays place a calibrated rig on a reference rig (:func:`_align`).
 ALIGN_GRID = 7
@@ -262,7 +269,7 @@ def _projector_observations(scan, board, legacy):
                                "skipped": skipped}
 
 
-def run_calibrate(scan_dir, out_dir=None, *, model: str = "opencv5", legacy: bool = False,
+def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool = False,
                   loss: str = "linear", reference: str | None = None,
                   cross_validation: bool = True, progress=None) -> dict:
     """Calibrate a scan's cameras and rig from its ChArUco ``calib/`` views (``facegeo
@@ -311,7 +318,7 @@ def _json_safe(obj):
     return obj
 
 
-def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = False,
+def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
                        loss: str = "linear", reference: str | None = None,
                        cross_validation: bool = True, progress=None) -> tuple[dict, dict]:
     """Write the ``calibrate`` products of ``scan`` into ``dest``; return ``(metrics, settings)``.
@@ -328,8 +335,10 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
         A scan directory or a loaded scan with a ``[calib]`` section.
     dest : path-like
         The folder to write into (created).
-    model : {"pinhole", "opencv4", "opencv5", "rational8"}
-        Distortion model of every camera.
+    model : {"auto", "pinhole", "k1", "k1k2", "opencv4", "opencv5", "rational8"}
+        Distortion model of every camera; ``"auto"`` (default) chooses per camera by k-fold
+        cross-validation over its views (:func:`facegeo.geometry.calibration.select_model`;
+        the choice and every candidate's held-out score go to the metrics).
     legacy : bool
         Boards printed by OpenCV < 4.6 (``setLegacyPattern``).
     loss : str
@@ -344,7 +353,9 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
     Returns
     -------
     metrics : dict
-        ``{"cameras": {name: {reprojection_rms_px, views_used, views_detected, rejected
+        ``{"cameras": {name: {model, [model_selection: {reason, best, folds, scores},]
+        [intrinsics: "nominal", warning (a camera posed only),] reprojection_rms_px,
+        views_used, views_detected, rejected
         (why each dropped view was dropped), per_view_rms_px (view → RMS at the camera's own
         solution; dropped views re-posed),
         cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
@@ -362,14 +373,14 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
     Raises
     ------
     InputError, ScanFormatError
-        No calibration views in the scan, too few usable views in a camera (the message lists
-        every skipped image and why).
+        No calibration views in the scan; a camera without a usable view, or (single-camera
+        scan) with fewer than :data:`MIN_VIEWS_ALONE` (the message lists every skipped image
+        and why); no camera with :data:`MIN_VIEWS_ALONE` views.
     """
     from facegeo.capture.imageio import read_image
     from facegeo.geometry.calibration import (
         BoardDetection, calibrate_camera, calibrate_rig, cross_validate, detect_boards,
-        detection_report,
-        usable_detections,
+        detection_report, model_of_dist, usable_detections,
     )
     from facegeo.geometry.rig import Rig
 
@@ -403,27 +414,50 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
         # the bundle adjustment ties a board pose across cameras by view index, not file name
         views = sorted(scan.calib_corners(name)) if corner_lists else scan.calib_views(name)
         view_key = {id(d): f"v{v}" for d, v in zip(dets, views)}
-        found = usable_detections(dets, what=f"camera {name}")
+        # in a rig, a camera with 1-2 views is posed with its nominal intrinsics (below)
+        rig_scan = len(scan.camera_names) > 1
+        found = usable_detections(
+            dets, min_views=1 if rig_scan else MIN_VIEWS_ALONE,
+            what=f"camera {name}" + (f" ({MIN_VIEWS_ALONE} views calibrate it; 1-2 pose it with "
+                                     "its nominal intrinsics)" if rig_scan else ""))
         if dets and dets[0].image_size != cam0.size:
             raise InputError(f"camera {name}: views are {dets[0].image_size} px but rig.json says "
                              f"{cam0.size}")
+        if len(found) < MIN_VIEWS_ALONE:
+            why = (f"camera {name}: {len(found)} usable board view(s), fewer than "
+                   f"{MIN_VIEWS_ALONE} to calibrate it alone; its intrinsics are the nominal "
+                   "rig.json's and only its pose is solved, jointly with the rig")
+            log.warning(why)
+            say(why)
+            obs[name] = {view_key[id(d)]: (d.p_board, d.q) for d in found}
+            metrics["cameras"][name] = {
+                "model": "nominal", "intrinsics": "nominal", "warning": why,
+                "views_detected": len(found), "views_used": len(found), "rejected": [],
+                "cross_validation_px": None}
+            continue
         say(f"calibrate {name}")
         c = calibrate_camera([d.p_board for d in found], [d.q for d in found], cam0.size,
-                             model=model, loss=loss, name=name)
+                             model=model, loss=loss, name=name,
+                             auto_fallback=model_of_dist(cam0.dist))
         calibs[name] = c
+        if c.model_selection is not None:
+            log.info("camera %s: distortion model %s", name, c.model_selection["reason"])
         obs[name] = {view_key[id(d)]: (d.p_board, d.q) for d, u in zip(found, c.views_used)
                      if u}
-        m = {"views_detected": len(found), "views_used": c.n_views_used,
+        m = {"model": c.model, "views_detected": len(found), "views_used": c.n_views_used,
              "rejected": c.rejected, "camera_rms_px": c.rms_px,
              "per_view_rms_px": {d.name: float(r) for d, r in zip(found, c.per_view_rms_px)},
              "std_px": {k: c.std[k] for k in ("fx", "fy", "cx", "cy")}}
+        if c.model_selection is not None:
+            m["model_selection"] = {k: c.model_selection[k]
+                                    for k in ("reason", "best", "folds", "scores")}
         u = c.projection_uncertainty()
         m["projection_uncertainty_rms_px"] = u["rms_px"]
         m["projection_uncertainty_max_px"] = u["max_px"]
         if cross_validation and len(found) >= 6:
             say(f"cross-validate {name}")
             cv = cross_validate([d.p_board for d in found], [d.q for d in found], cam0.size,
-                                model=model, loss=loss, reject_views=False)
+                                model=c.model, loss=loss, reject_views=False)
             m["cross_validation_px"] = cv["diff_rms_px"]
             m["cross_validation_max_px"] = cv["diff_max_px"]
             m["cross_validation_predicted_px"] = cv["predicted_rms_px"]
@@ -439,11 +473,17 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
                 obs[n].update(o)
         except InputError as exc:
             proj_metrics = {"error": str(exc)}
+    if not calibs:
+        raise InputError(
+            f"{scan.root}: no camera has the {MIN_VIEWS_ALONE} usable board views needed to "
+            "calibrate it alone (" + "; ".join(m["warning"] for m in metrics["cameras"].values())
+            + ")")
     init = {n: c.camera for n, c in calibs.items()}
+    init.update({n: nominal.camera(n) for n in obs if n not in calibs})  # posed only
     proj_name = None
     if proj_obs:
         pj = nominal.projector
-        pmodel = {0: "pinhole", 4: "opencv4", 5: "opencv5", 8: "rational8"}[pj.dist.size]
+        pmodel = model_of_dist(pj.dist)
         try:
             pc = calibrate_camera([p for p, _ in proj_obs.values()],
                                   [q for _, q in proj_obs.values()], pj.size, model=pmodel,
@@ -455,7 +495,12 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
         except InputError as exc:
             proj_metrics["error"] = str(exc)
     say("bundle-adjust the rig")
-    rig_cal = calibrate_rig(obs, init, reference=reference, loss=loss)
+    models = {n: c.model for n, c in calibs.items()}
+    refine = set(calibs) | ({proj_name} if proj_name else set())
+    if reference is None and scan.camera_names[0] not in calibs:
+        reference = next(iter(calibs))  # the rig frame: a camera calibrated from its own views
+    rig_cal = calibrate_rig(obs, init, reference=reference, loss=loss, models=models,
+                            refine_intrinsics=refine)
     T_rig_world, T_world_nom, metrics["world"] = _world_frame(scan, rig_cal, obs, proj_name,
                                                               nominal)
     cams = [c.replace(T_cam_world=c.T_cam_world @ T_rig_world) for c in rig_cal.cameras
@@ -479,7 +524,8 @@ def calibrate_products(scan, dest, *, model: str = "opencv5", legacy: bool = Fal
         m = metrics["cameras"][c.name]
         m["reprojection_rms_px"] = rig_cal.rms_px[c.name]
         r, q = rig_cal.residuals[c.name]
-        per_view = calibs[c.name].per_view_rms_px
+        per_view = (calibs[c.name].per_view_rms_px if c.name in calibs
+                    else np.full(0, np.nan))
         _write_yaml(out / f"{c.name}.yml", c, rig_cal.rms_px[c.name],
                     per_view[np.isfinite(per_view)])
         _residual_plot(out / f"residuals_{c.name}.png", c.size, r, q, c.name)

@@ -7,7 +7,10 @@ model, one thread each): solve time, RMS, and the parameter differences to OpenC
 * ``calibration.real`` — OpenCV's own stereo chessboards (``left*.jpg``, ``right*.jpg``,
   9 × 6 inner corners, classic detector) from ``../shared/data/calibration/
   opencv_stereo_chessboards`` (``FACEGEO_SHARED_DATA`` overrides; no rows when absent);
-* ``calibration.projector`` — projector focal error with and without the joint refinement.
+* ``calibration.projector`` — projector focal error with and without the joint refinement;
+* ``calibration.model`` — the distortion model chosen per camera (``model="auto"``, k-fold
+  cross-validation over views) against the fixed 5-term model on the `small` preset's narrow
+  camera (12° × 19°, 240 × 360 px): solve time against the principal-point error.
 
 Times are the best of 3 runs of each solver.
 """
@@ -204,3 +207,42 @@ def bench_projector(quick: bool) -> list[BenchRow]:
                  threads=1, extra={"projector_views": views, "seconds": round(t_joint, 3),
                         "projector_rms_px": round(rig.rms_px["projector"], 4)}),
     ]
+
+
+@register("calibration.model")
+@one_blas_thread
+def bench_model(quick: bool) -> list[BenchRow]:
+    """``model="auto"`` vs ``"opencv5"`` on the `small` preset's narrow camera, 16 views of
+    :func:`facegeo.synth.boards.rig_calibration_views` with 0.15 px corner noise."""
+    from facegeo.geometry.calibration import calibrate_camera
+    from facegeo.geometry.rig import default_rig
+    from facegeo.synth.boards import board_for_cameras, rig_calibration_views
+
+    cam = default_rig().scaled(0.5).cameras[0]
+    board = board_for_cameras([cam])
+    P0 = board.chessboard_corners()
+    rows = []
+    for seed in (0,) if quick else (0, 1):
+        rng = np.random.default_rng(seed)
+        P, Q = [], []
+        for T in rig_calibration_views(board, [cam], 12, seed):
+            q, front = cam.project_cam((cam.T_cam_world @ T).apply(P0))
+            ok = front & cam.in_image(q)
+            if ok.sum() >= 6:
+                P.append(P0[ok])
+                Q.append(q[ok] + rng.normal(0.0, 0.15, q[ok].shape))
+        for model in ("opencv5", "auto"):
+            t0 = time.perf_counter()
+            c = calibrate_camera(P, Q, cam.size, model=model)
+            dt = time.perf_counter() - t0
+            e = c.camera
+            pp = float(np.hypot(e.cx - cam.cx, e.cy - cam.cy))
+            rows.append(BenchRow(
+                "calibration.model", f"model={model}, narrow camera, {len(P)} views, seed {seed}",
+                len(P) / dt, "views/s", error=pp, error_unit="‖c − c_true‖, px", threads=1,
+                extra={"seconds": round(dt, 3), "chosen": c.model,
+                       "focal_rel_error": float(max(abs(e.fx / cam.fx - 1),
+                                                    abs(e.fy / cam.fy - 1))),
+                       "std_c_px": round(float(np.hypot(c.std["cx"], c.std["cy"])), 3),
+                       "rms_px": round(c.rms_px, 4), "noise_px": 0.15}))
+    return rows
