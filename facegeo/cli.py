@@ -250,14 +250,17 @@ def _cmd_calibrate(args) -> int:
                       reference=args.reference, legacy=args.legacy_board,
                       cross_validation=not args.no_cross_validation,
                       progress=None if args.quiet else (lambda s: print(s, file=sys.stderr)))
-    cols = ("reprojection_rms_px", "views_used", "cross_validation_px",
+    cols = ("model", "reprojection_rms_px", "views_used", "cross_validation_px",
             "projection_uncertainty_rms_px", "focal_rel_error", "principal_point_error_px")
     print("camera      " + "  ".join(f"{c:>14.14}" for c in cols))
     for name, cm in m.get("cameras", {}).items():
         cells = []
         for c in cols:
             v = cm.get(c)
-            cells.append(f"{v:>14.4g}" if isinstance(v, (int, float)) else f"{'-':>14}")
+            if isinstance(v, str):
+                cells.append(f"{v:>14.14}")
+            else:
+                cells.append(f"{v:>14.4g}" if isinstance(v, (int, float)) else f"{'-':>14}")
         print(f"{name:<12}" + "  ".join(cells))
     proj = m.get("projector", {})
     if proj:
@@ -498,8 +501,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="calibrate cameras, rig and projector from the scan's board views")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--out", default=None, help="output folder (default: SCAN/out/calibrate)")
-    s.add_argument("--model", choices=["pinhole", "opencv4", "opencv5", "rational8"],
-                   default="opencv5", help="lens distortion model of every camera")
+    s.add_argument("--model", choices=["auto", "pinhole", "k1", "k1k2", "opencv4", "opencv5",
+                                        "rational8"],
+                   default="auto", help="lens distortion model of every camera; auto: chosen per "
+                   "camera by k-fold cross-validation over its views (held-out reprojection "
+                   "error, the simplest model within one standard error of the best)")
     s.add_argument("--loss", choices=["linear", "soft_l1", "huber", "cauchy", "arctan"],
                    default="linear", help="robust loss of the least-squares solves")
     s.add_argument("--reference", default=None,

@@ -153,7 +153,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
 
         specs.append(StageSpec("calibrate", run_calibrate,
                                inputs=lambda d: _group_inputs(scan, "calib"),
-                               settings={"model": "opencv5", "cross_validation": True}))
+                               settings={"model": "auto", "cross_validation": True}))
 
     if "decode" in names:
         def run_decode(ctx: StageContext) -> dict:
