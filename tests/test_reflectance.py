@@ -15,8 +15,8 @@ import pytest
 from facegeo.errors import InputError, ShapeError
 from facegeo.surface.atlas import build_atlas, rasterize_texels
 from facegeo.surface.reflectance import (
-    bilinear_taps, camera_visibility, frame_sampler, open_field, project_camera, sample_frame,
-    sample_taps,
+    bilinear_taps, blend_fields, camera_visibility, frame_sampler, open_blended, open_field,
+    project_camera, sample_frame, sample_taps,
 )
 from facegeo.surface.visibility import RayScene
 
@@ -41,6 +41,9 @@ BILINEAR_ABS_TOL = 1e-5
 RAMP_ABS_TOL = 1e-4
 #: Linearity: max |R(a + b) − R(a) − R(b)| relative to max |R(a + b)| (float32 rounding).
 LINEARITY_REL_TOL = 1e-6
+#: Blended field vs a dense numpy weighted mean of the per-camera fields (both from the same
+#: float16 files): max |Δ| relative to the largest value, i.e. one float16 rounding (2^-11).
+BLEND_REL_TOL = 2.0 ** -10
 
 
 @pytest.fixture(scope="module")
@@ -339,3 +342,66 @@ def test_interrupted_projection_keeps_previous_products(tiny, tmp_path, monkeypa
     assert sorted(p.name for p in (out / "project").iterdir()) == before
     assert open_field(out / "project" / "cam_right").shape[1] == scan.n_lights
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def _dense(T, texel_index, values, fill=np.nan):
+    out = np.full((T,) + values.shape[1:], fill, np.float64)
+    out[texel_index] = values
+    return out
+
+
+def test_blended_field_is_the_weighted_mean_of_the_cameras(tiny, projected, tmp_path):
+    """Σ_c w_c R_c / Σ_c w_c per texel (a wrong weight, index map or normalisation fails), and a
+    texel one camera sees carries exactly that camera's function."""
+    texels = tiny[3]
+    T = len(texels)
+    fields = list(projected.values())
+    b = blend_fields(fields, tmp_path / "blended", chunk_texels=1000)  # several chunks
+    Rs = [_dense(T, f.texel_index, np.asarray(f.field(), np.float64)) for f in fields]
+    ws = [_dense(T, f.texel_index, f.weight.astype(np.float64), fill=0.0) for f in fields]
+    num = sum(np.where(np.isfinite(R), w[:, None, None] * R, 0.0) for R, w in zip(Rs, ws))
+    den = sum(np.where(np.isfinite(R), w[:, None, None], 0.0) for R, w in zip(Rs, ws))
+    ref_idx = np.flatnonzero(sum(ws) > 0)
+    np.testing.assert_array_equal(b.texel_index, ref_idx)
+    with np.errstate(invalid="ignore"):
+        ref = (num / den)[ref_idx]
+    got = np.asarray(b.field(), np.float64)
+    assert got.shape == (ref_idx.size, tiny[0].n_lights, 3) and b.field().dtype == np.float16
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    scale = np.nanmax(np.abs(ref))
+    assert np.nanmax(np.abs(got - ref)) <= BLEND_REL_TOL * scale
+    both = (ws[0][ref_idx] > 0) & (ws[1][ref_idx] > 0)
+    assert both.sum() > 100  # the two cameras overlap, so the blend is exercised
+    np.testing.assert_allclose(b.weight, sum(ws)[ref_idx], rtol=1e-6)
+    np.testing.assert_array_equal(b.n_cameras, (ws[0] > 0).astype(int)[ref_idx]
+                                  + (ws[1] > 0).astype(int)[ref_idx])
+    for k, f in enumerate(fields):  # seen by this camera only: its own function, bit for bit
+        only = np.flatnonzero((ws[k][ref_idx] > 0) & ~both)
+        assert only.size > 100
+        np.testing.assert_array_equal(got[only], Rs[k][ref_idx[only]])
+    again = open_blended(tmp_path / "blended")
+    np.testing.assert_array_equal(again.texel_index, b.texel_index)
+    assert again.n_lights == tiny[0].n_lights
+
+
+def test_blend_leaves_masked_samples_out_and_renormalises(tmp_path):
+    """A NaN (masked) sample of one camera gives the other camera's value; NaN in all gives NaN."""
+    L = 2
+    for name, idx, w, R in (("a", [1, 3, 4], [1.0, 0.5, 2.0], [[1, 2], [3, np.nan], [np.nan, 5]]),
+                            ("b", [3, 4, 7], [0.5, 1.0, 1.0], [[7, 8], [np.nan, np.nan], [6, 6]])):
+        d = tmp_path / name
+        d.mkdir()
+        Rf = np.repeat(np.asarray(R, np.float16)[:, :, None], 3, axis=2)
+        np.save(d / "R.npy", Rf)
+        np.save(d / "texel_index.npy", np.asarray(idx, np.int64))
+        np.save(d / "weight.npy", np.asarray(w, np.float32))
+    b = blend_fields([tmp_path / "a", tmp_path / "b"], tmp_path / "blend")
+    got = np.asarray(b.field()[:, :, 0], np.float64)
+    np.testing.assert_array_equal(b.texel_index, [1, 3, 4, 7])
+    # texel 3: light 0 blends both (weights 0.5, 0.5), light 1 only b (a is masked);
+    # texel 4: light 0 masked in both -> NaN, light 1 only a.
+    expect = np.array([[1, 2], [(0.5 * 3 + 0.5 * 7) / 1.0, 8], [np.nan, 5], [6, 6]])
+    np.testing.assert_array_equal(got, expect)
+    np.testing.assert_array_equal(b.n_cameras, [1, 2, 2, 1])
+    with pytest.raises(InputError, match="at least one"):
+        blend_fields([], tmp_path / "none")
