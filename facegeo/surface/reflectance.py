@@ -39,9 +39,13 @@ a smooth 1-to-1 map, so the distance is off by the local scale of the distortion
 these lenses). The weight depends
 on geometry only, so it is **identical for every light** and relighting stays linear.
 
-Not done: the optional z-buffer pre-pass with ``cv2.triangleRasterizeDepth`` (its camera model
-is a symmetric OpenGL frustum; mapping our K with fx ≠ fy and an off-centre principal point
-onto it was not finished in time). Every candidate texel gets an exact occlusion ray instead.
+Occlusion is decided by a z-buffer pre-pass by default (``occlusion="zbuffer"``,
+:mod:`facegeo.surface.zbuffer`): ``cv2.triangleRasterizeDepth`` renders the pinhole camera's
+depth with our K exactly (vertices pre-transformed so its symmetric frustum reproduces fx ≠ fy
+and the off-centre principal point); texels whose 3 × 3 pixel neighbourhood agrees with their
+own depth are visible, those covered by nearer surface are occluded, and only the ambiguous
+rest (edges, grazing views) get the exact ray of 3. The same buffer is the depth image of the
+weights. ``occlusion="rays"`` traces every candidate and the depth image (the reference).
 
 Projection (:func:`project_camera`)
 -----------------------------------
@@ -88,7 +92,7 @@ __all__ = [
     "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
     "open_field", "iter_field_chunks", "BlendedField", "blend_fields", "open_blended",
     "BLENDED_FILE", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
-    "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS",
+    "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS", "OCCLUSION_METHODS",
 ]
 
 #: Facing threshold on n·v (both normals): ≈ 84° from the normal.
@@ -101,6 +105,9 @@ DEFAULT_DEPTH_JUMP = 0.005
 DEFAULT_JUMP_PX = 12.0
 #: Lights gathered in RAM before one strided write to the on-disk field.
 DEFAULT_BLOCK_LIGHTS = 64
+#: How camera_visibility decides occlusion: a z-buffer pre-pass with rays where ambiguous,
+#: or a ray for every candidate texel (the reference).
+OCCLUSION_METHODS = ("zbuffer", "rays")
 _F16_MAX = float(np.finfo(np.float16).max)
 #: Texels per step of the blocked transpose from frame-major RAM to texel-major disk.
 _TRANSPOSE_TEXELS = 4096
@@ -216,7 +223,8 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
 
 def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MIN_COS,
                       feather_px: float = DEFAULT_FEATHER_PX,
-                      depth_jump: float = DEFAULT_DEPTH_JUMP) -> CameraVisibility:
+                      depth_jump: float = DEFAULT_DEPTH_JUMP,
+                      occlusion: str = "zbuffer") -> CameraVisibility:
     """Visibility and blending weight of every texel in one camera (module docstring).
 
     Parameters
@@ -233,6 +241,12 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     depth_jump : float, metres
         Smallest depth step between neighbouring pixels counted as an occlusion edge (the
         step must also exceed ``DEFAULT_JUMP_PX`` pixel footprints).
+    occlusion : {"zbuffer", "rays"}
+        ``"zbuffer"``: a rasterised depth buffer of the pinhole camera
+        (:mod:`facegeo.surface.zbuffer`) decides the texels it proves visible or occluded and
+        serves as the depth image of the weights; only ambiguous texels get an Embree ray.
+        ``"rays"``: every candidate texel gets a ray and the depth image is ray-traced (the
+        reference).
 
     Returns
     -------
@@ -245,6 +259,9 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
         raise InputError(f"feather_px: expected a finite number >= 0, got {fmt_value(feather_px)}")
     if not (np.isfinite(depth_jump) and depth_jump > 0):
         raise InputError(f"depth_jump: expected a finite number > 0 (metres), got {fmt_value(depth_jump)}")
+    if occlusion not in OCCLUSION_METHODS:
+        raise InputError(f"occlusion: expected one of {', '.join(OCCLUSION_METHODS)}, got "
+                         f"{fmt_value(occlusion)}")
     T = len(p)
     q, valid = camera.project(p)
     W, H = camera.width, camera.height
@@ -259,6 +276,18 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     facing = (cos_view > min_cos) & (cos_geom > min_cos)
     unoccluded = np.zeros(T, bool)
     cand = np.flatnonzero(in_image & facing)
+    pin = camera.replace(dist=np.zeros_like(camera.dist))
+    depth = None
+    if occlusion == "zbuffer":
+        from facegeo.surface.zbuffer import classify_occlusion, depth_buffer
+
+        depth = depth_buffer(scene.vertices, scene.faces, camera)
+        if cand.size:
+            sure_vis, sure_occ = classify_occlusion(
+                depth, camera.T_cam_world.apply(p[cand]),
+                camera.T_cam_world.apply_direction(g[cand]), camera.K)
+            unoccluded[cand[sure_vis]] = True
+            cand = cand[~(sure_vis | sure_occ)]  # ambiguous: an exact ray below
     if cand.size:
         # The segment texel -> camera centre, its origin lifted eps along the geometric normal
         # (the camera is on the normal's side: cos_geom > min_cos), eps excluded at both ends.
@@ -282,9 +311,10 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     if idx.size:
         border = np.minimum.reduce([q[idx, 0] + 0.5, W - 0.5 - q[idx, 0],
                                     q[idx, 1] + 0.5, H - 0.5 - q[idx, 1]])
-        dist = _edge_distance(depth_image(scene, camera), float(depth_jump),
-                              2.0 / (camera.fx + camera.fy), DEFAULT_JUMP_PX)
-        pin = camera.replace(dist=np.zeros_like(camera.dist))
+        if depth is None:
+            depth = depth_image(scene, camera)
+        dist = _edge_distance(depth, float(depth_jump), 2.0 / (camera.fx + camera.fy),
+                              DEFAULT_JUMP_PX)
         qp = pin.project(p[idx])[0]
         col = np.clip(np.rint(qp[:, 0]), 0, W - 1).astype(np.int64)
         row = np.clip(np.rint(qp[:, 1]), 0, H - 1).astype(np.int64)
