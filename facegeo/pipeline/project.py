@@ -57,6 +57,7 @@ import numpy as np
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text, staged_directory
 from facegeo.pipeline.bench import peak_rss_mb
+from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
@@ -130,6 +131,7 @@ def atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
         "dropped_degenerate": int(atlas.report.degenerate_faces.size),
         "dropped_nonmanifold": int(atlas.report.nonmanifold_faces.size),
         "pieces": atlas.n_pieces, "charts": atlas.n_charts,
+        "utilization": round(atlas.meta.get("utilization", float("nan")), 4),
         "width": atlas.width, "height": atlas.height,
         "texels_per_mm": round(atlas.texels_per_metre / 1000.0, 6),
         "texels": int(len(texels)),
@@ -144,7 +146,7 @@ def atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
 
 def run_atlas(scan_dir, out_dir=None, *, mesh: str = "ground_truth",
               texels_per_mm: float | None = 1.0, size: int | None = None, padding: int = 2,
-              split_faces: int | None = 25_000, repair: bool = False) -> dict:
+              split_faces: int | None = DEFAULT_SPLIT_FACES, repair: bool = False) -> dict:
     """Build the atlas and texel table of a scan's mesh into ``out_dir/atlas/``.
 
     Parameters
