@@ -317,6 +317,11 @@ def test_run_project_writes_products_and_metrics(tiny, tmp_path):
         assert 0.2 < c["visible_fraction"] < 0.7
         R = open_field(out / "project" / name)
         assert R.shape == (c["weighted_texels"], scan.n_lights, 3)
+    blended = open_blended(out / "project" / "blended")  # the stage writes the blended field
+    seen = np.load(out / "project" / "seen.npy")
+    np.testing.assert_array_equal(blended.texel_index, np.flatnonzero(seen))
+    assert pm["blended_texels"] == blended.texel_index.size
+    assert blended.field().shape == (seen.sum(), scan.n_lights, 3)
     doc = json.loads((out / "metrics.json").read_text())
     assert set(doc) >= {"atlas", "project"}
     assert (out / "project" / "preview.png").is_file()
