@@ -453,6 +453,8 @@ def test_depth_buffer_reproduces_our_K_exactly(small_geometry):
             rms = float(np.sqrt(np.mean((zb - ref)[both] ** 2)))
             good = mismatch <= ZBUFFER_HIT_MISMATCH_MAX and rms <= ZBUFFER_DEPTH_RMS_M
             assert good == ok, (cam.name, shift, mismatch, rms)
+    with pytest.raises(InputError, match="faces"):
+        depth_buffer(V, np.where(F == 0, len(V), F), cams[0])
 
 
 def test_zbuffer_prepass_agrees_with_all_rays(small_geometry):

@@ -50,6 +50,7 @@ from __future__ import annotations
 import numpy as np
 
 from facegeo.checks import as_array
+from facegeo.errors import InputError, ShapeError
 
 __all__ = ["depth_buffer", "classify_occlusion", "DEFAULT_MIN_COS_SURE", "DEFAULT_MARGIN_PX",
            "DEFAULT_MARGIN_M"]
@@ -74,6 +75,11 @@ def depth_buffer(vertices, faces, camera) -> np.ndarray:
     camera : facegeo.geometry.camera.Camera
         Its pinhole part (K and pose; distortion ignored), ``width × height`` pixels.
 
+    Raises
+    ------
+    ShapeError, InputError
+        Malformed vertices or faces (face indices out of range).
+
     Returns
     -------
     (H, W) float64, metres
@@ -84,7 +90,12 @@ def depth_buffer(vertices, faces, camera) -> np.ndarray:
     import cv2
 
     V = as_array(vertices, "vertices", shape=(None, 3))
-    F = np.asarray(faces)
+    F = as_array(faces, "faces", shape=(None, 3), dtype=None, finite=False)
+    if F.dtype.kind not in "iu":
+        raise ShapeError(f"faces: expected an integer array, got dtype {F.dtype}")
+    if F.size and (F.min() < 0 or F.max() >= len(V)):  # the rasteriser would read out of bounds
+        raise InputError(f"faces: indices must lie in [0, {len(V)}), got "
+                         f"[{int(F.min())}, {int(F.max())}]")
     p = camera.T_cam_world.apply(V)  # camera frame: x right, y down, z forward
     W, H = camera.width, camera.height
     f = camera.fy
