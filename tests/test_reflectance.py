@@ -473,3 +473,20 @@ def test_zbuffer_prepass_agrees_with_all_rays(small_geometry):
         assert np.mean(np.abs(got.weight - ref.weight) > 1e-3) <= 1 - ZBUFFER_AGREEMENT_MIN
     with pytest.raises(InputError, match="occlusion"):
         camera_visibility(texels, cams[0], scene, occlusion="zbuf")
+
+
+def test_zbuffer_falls_back_to_rays_when_the_mesh_reaches_behind_the_camera(small_geometry):
+    """A plane x = z − 0.1 m (camera frame) crosses the camera plane and covers the whole view
+    10 cm in front of the lens, nearer than the rasteriser's near plane (half its nearest vertex
+    depth, 0.2 m): rays must decide, and every texel is occluded as with occlusion="rays"."""
+    V, F, texels, _, cams = small_geometry
+    cam = cams[0]
+    quad_cam = np.array([[-0.3, -1.0, -0.2], [-0.3, 1.0, -0.2], [0.3, 1.0, 0.4], [0.3, -1.0, 0.4]])
+    V2 = np.vstack([V, cam.T_cam_world.inverse().apply(quad_cam)])
+    F2 = np.vstack([F, len(V) + np.array([[0, 1, 2], [0, 2, 3]])])
+    scene = RayScene(V2, F2)
+    ref = camera_visibility(texels, cam, scene, occlusion="rays")
+    got = camera_visibility(texels, cam, scene, occlusion="zbuffer")
+    cand = ref.in_image & ref.facing
+    assert cand.sum() > 1000 and not ref.unoccluded.any()
+    np.testing.assert_array_equal(got.unoccluded, ref.unoccluded)

@@ -246,7 +246,8 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
         (:mod:`facegeo.surface.zbuffer`) decides the texels it proves visible or occluded and
         serves as the depth image of the weights; only ambiguous texels get an Embree ray.
         ``"rays"``: every candidate texel gets a ray and the depth image is ray-traced (the
-        reference).
+        reference; also used when the mesh reaches behind the camera, where the rasteriser's
+        near plane would clip it).
 
     Returns
     -------
@@ -278,6 +279,12 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     cand = np.flatnonzero(in_image & facing)
     pin = camera.replace(dist=np.zeros_like(camera.dist))
     depth = None
+    if occlusion == "zbuffer" and camera.T_cam_world.apply(scene.vertices)[:, 2].min() <= 0:
+        # The rasteriser clips at a near plane: a mesh reaching behind the camera could hide an
+        # occluder there, so every candidate gets its ray.
+        log.info("camera %s: the mesh crosses the camera plane; occlusion by rays only",
+                 camera.name)
+        occlusion = "rays"
     if occlusion == "zbuffer":
         from facegeo.surface.zbuffer import classify_occlusion, depth_buffer
 
