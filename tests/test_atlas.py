@@ -24,6 +24,9 @@ PLANE_TOL_M = 1e-12
 OBJ_ROUNDTRIP_TOL = 1e-8
 #: Worst UV difference after a GLB round trip (float32 storage).
 GLB_UV_TOL = 1e-6
+#: A chart's 3-D area may exceed xatlas's max_chart_area by this fraction (float32 areas;
+#: measured ≤ 0: 49.97 average faces for a limit of 50).
+CHART_AREA_REL_TOL = 0.01
 
 
 def _sphere(subdivisions: int = 3, radius: float = 0.1):
@@ -211,3 +214,35 @@ def test_pull_push_keeps_trusted_and_fills_holes():
     np.testing.assert_allclose(pull_push(const, w), 0.25, atol=1e-6)
     with pytest.raises(InputError, match="weights"):
         pull_push(img, -w)
+
+
+def _chart_labels(atlas):
+    """Chart of each atlas face: faces sharing an atlas vertex (UVs are split at seams)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    nf = len(atlas.faces)
+    A = sp.coo_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), atlas.faces.ravel())),
+                      shape=(nf, len(atlas.vertices))).tocsr()
+    return connected_components(A @ A.T, directed=False)
+
+
+def test_max_chart_faces_caps_every_chart_area():
+    """Every chart's 3-D area is at most max_chart_faces × the mean face area (the default
+    limit that keeps xatlas fast); without the limit some chart is larger."""
+    from facegeo.synth.head import procedural_head
+
+    m = procedural_head(4)
+    V, F = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+    area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                axis=1)
+    biggest = {}
+    for limit in (None, 50):
+        atlas = build_atlas(V, F, texels_per_mm=0.5, max_chart_faces=limit)
+        n, lab = _chart_labels(atlas)
+        assert n == atlas.n_charts
+        biggest[limit] = np.bincount(lab, weights=area[atlas.face_map]).max() / area.mean()
+    assert biggest[50] <= 50 * (1 + CHART_AREA_REL_TOL)
+    assert biggest[None] > 50 * (1 + CHART_AREA_REL_TOL)
+    with pytest.raises(InputError, match="max_chart_faces"):
+        build_atlas(V, F, texels_per_mm=0.5, max_chart_faces=-1)

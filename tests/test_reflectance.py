@@ -15,10 +15,11 @@ import pytest
 from facegeo.errors import InputError, ShapeError
 from facegeo.surface.atlas import build_atlas, rasterize_texels
 from facegeo.surface.reflectance import (
-    bilinear_taps, camera_visibility, frame_sampler, open_field, project_camera, sample_frame,
-    sample_taps,
+    bilinear_taps, blend_fields, camera_visibility, frame_sampler, open_blended, open_field,
+    project_camera, sample_frame, sample_taps,
 )
 from facegeo.surface.visibility import RayScene
+from facegeo.surface.zbuffer import depth_buffer
 
 #: Fraction of texels (in image, facing, ≥ 2 px from any silhouette/occlusion edge) whose
 #: occlusion decision must agree with the brute-force numpy ray–triangle reference.
@@ -41,6 +42,16 @@ BILINEAR_ABS_TOL = 1e-5
 RAMP_ABS_TOL = 1e-4
 #: Linearity: max |R(a + b) − R(a) − R(b)| relative to max |R(a + b)| (float32 rounding).
 LINEARITY_REL_TOL = 1e-6
+#: Blended field vs a dense numpy weighted mean of the per-camera fields (both from the same
+#: float16 files): max |Δ| relative to the largest value, i.e. one float16 rounding (2^-11).
+BLEND_REL_TOL = 2.0 ** -10
+#: Z-buffer pre-pass vs the all-rays path: fraction of candidate texels (in image, facing) with
+#: the same occlusion decision, small-preset geometry (measured 1.0).
+ZBUFFER_AGREEMENT_MIN = 0.999
+#: Rasterised depth vs Embree's pixel-centre rays (depth_image): RMS |Δz| in metres over pixels
+#: both hit (measured 1e-7 m, float32 rasterisation), and hit/miss disagreements per pixel hit.
+ZBUFFER_DEPTH_RMS_M = 1e-6
+ZBUFFER_HIT_MISMATCH_MAX = 1e-3
 
 
 @pytest.fixture(scope="module")
@@ -306,6 +317,11 @@ def test_run_project_writes_products_and_metrics(tiny, tmp_path):
         assert 0.2 < c["visible_fraction"] < 0.7
         R = open_field(out / "project" / name)
         assert R.shape == (c["weighted_texels"], scan.n_lights, 3)
+    blended = open_blended(out / "project" / "blended")  # the stage writes the blended field
+    seen = np.load(out / "project" / "seen.npy")
+    np.testing.assert_array_equal(blended.texel_index, np.flatnonzero(seen))
+    assert pm["blended_texels"] == blended.texel_index.size
+    assert blended.field().shape == (seen.sum(), scan.n_lights, 3)
     doc = json.loads((out / "metrics.json").read_text())
     assert set(doc) >= {"atlas", "project"}
     assert (out / "project" / "preview.png").is_file()
@@ -339,3 +355,138 @@ def test_interrupted_projection_keeps_previous_products(tiny, tmp_path, monkeypa
     assert sorted(p.name for p in (out / "project").iterdir()) == before
     assert open_field(out / "project" / "cam_right").shape[1] == scan.n_lights
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def _dense(T, texel_index, values, fill=np.nan):
+    out = np.full((T,) + values.shape[1:], fill, np.float64)
+    out[texel_index] = values
+    return out
+
+
+def test_blended_field_is_the_weighted_mean_of_the_cameras(tiny, projected, tmp_path):
+    """Σ_c w_c R_c / Σ_c w_c per texel (a wrong weight, index map or normalisation fails), and a
+    texel one camera sees carries exactly that camera's function."""
+    texels = tiny[3]
+    T = len(texels)
+    fields = list(projected.values())
+    b = blend_fields(fields, tmp_path / "blended", chunk_texels=1000)  # several chunks
+    Rs = [_dense(T, f.texel_index, np.asarray(f.field(), np.float64)) for f in fields]
+    ws = [_dense(T, f.texel_index, f.weight.astype(np.float64), fill=0.0) for f in fields]
+    num = sum(np.where(np.isfinite(R), w[:, None, None] * R, 0.0) for R, w in zip(Rs, ws))
+    den = sum(np.where(np.isfinite(R), w[:, None, None], 0.0) for R, w in zip(Rs, ws))
+    ref_idx = np.flatnonzero(sum(ws) > 0)
+    np.testing.assert_array_equal(b.texel_index, ref_idx)
+    with np.errstate(invalid="ignore"):
+        ref = (num / den)[ref_idx]
+    got = np.asarray(b.field(), np.float64)
+    assert got.shape == (ref_idx.size, tiny[0].n_lights, 3) and b.field().dtype == np.float16
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    scale = np.nanmax(np.abs(ref))
+    assert np.nanmax(np.abs(got - ref)) <= BLEND_REL_TOL * scale
+    both = (ws[0][ref_idx] > 0) & (ws[1][ref_idx] > 0)
+    assert both.sum() > 100  # the two cameras overlap, so the blend is exercised
+    np.testing.assert_allclose(b.weight, sum(ws)[ref_idx], rtol=1e-6)
+    np.testing.assert_array_equal(b.n_cameras, (ws[0] > 0).astype(int)[ref_idx]
+                                  + (ws[1] > 0).astype(int)[ref_idx])
+    for k, f in enumerate(fields):  # seen by this camera only: its own function, bit for bit
+        only = np.flatnonzero((ws[k][ref_idx] > 0) & ~both)
+        assert only.size > 100
+        np.testing.assert_array_equal(got[only], Rs[k][ref_idx[only]])
+    again = open_blended(tmp_path / "blended")
+    np.testing.assert_array_equal(again.texel_index, b.texel_index)
+    assert again.n_lights == tiny[0].n_lights
+
+
+def test_blend_leaves_masked_samples_out_and_renormalises(tmp_path):
+    """A NaN (masked) sample of one camera gives the other camera's value; NaN in all gives NaN."""
+    L = 2
+    for name, idx, w, R in (("a", [1, 3, 4], [1.0, 0.5, 2.0], [[1, 2], [3, np.nan], [np.nan, 5]]),
+                            ("b", [3, 4, 7], [0.5, 1.0, 1.0], [[7, 8], [np.nan, np.nan], [6, 6]])):
+        d = tmp_path / name
+        d.mkdir()
+        Rf = np.repeat(np.asarray(R, np.float16)[:, :, None], 3, axis=2)
+        np.save(d / "R.npy", Rf)
+        np.save(d / "texel_index.npy", np.asarray(idx, np.int64))
+        np.save(d / "weight.npy", np.asarray(w, np.float32))
+    b = blend_fields([tmp_path / "a", tmp_path / "b"], tmp_path / "blend")
+    got = np.asarray(b.field()[:, :, 0], np.float64)
+    np.testing.assert_array_equal(b.texel_index, [1, 3, 4, 7])
+    # texel 3: light 0 blends both (weights 0.5, 0.5), light 1 only b (a is masked);
+    # texel 4: light 0 masked in both -> NaN, light 1 only a.
+    expect = np.array([[1, 2], [(0.5 * 3 + 0.5 * 7) / 1.0, 8], [np.nan, 5], [6, 6]])
+    np.testing.assert_array_equal(got, expect)
+    np.testing.assert_array_equal(b.n_cameras, [1, 2, 2, 1])
+    with pytest.raises(InputError, match="at least one"):
+        blend_fields([], tmp_path / "none")
+
+
+@pytest.fixture(scope="module")
+def small_geometry():
+    """The small preset's geometry without rendering: head (5 subdivisions, ears), default rig
+    at half resolution (240 × 360, fx ≠ fy, off-centre principal points), 1 texel/mm."""
+    from facegeo.geometry.rig import default_rig
+    from facegeo.synth.head import procedural_head
+
+    m = procedural_head(5, ears=True)
+    V, F = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+    texels = rasterize_texels(build_atlas(V, F, texels_per_mm=1.0))
+    rig = default_rig()
+    cams = [rig.camera(n).scaled(0.5) for n in rig.camera_names]
+    return V, F, texels, RayScene(V, F), cams
+
+
+def test_depth_buffer_reproduces_our_K_exactly(small_geometry):
+    """cv2's symmetric frustum with the vertex pre-transform renders our K: equal to Embree's
+    pixel-centre depth; a principal point off by one pixel fails the same tolerances."""
+    from facegeo.surface.reflectance import depth_image
+
+    V, F, _, scene, cams = small_geometry
+    for cam in cams:
+        assert cam.fx != cam.fy and abs(cam.cx - (cam.width - 1) / 2) > 1
+        ref = depth_image(scene, cam)
+        for shift, ok in ((0.0, True), (1.0, False)):
+            K = cam.K.copy()
+            K[0, 2] += shift
+            zb = depth_buffer(V, F, cam.replace(K=K))
+            both = np.isfinite(zb) & np.isfinite(ref)
+            mismatch = np.count_nonzero(np.isfinite(zb) != np.isfinite(ref)) / both.sum()
+            rms = float(np.sqrt(np.mean((zb - ref)[both] ** 2)))
+            good = mismatch <= ZBUFFER_HIT_MISMATCH_MAX and rms <= ZBUFFER_DEPTH_RMS_M
+            assert good == ok, (cam.name, shift, mismatch, rms)
+    with pytest.raises(InputError, match="faces"):
+        depth_buffer(V, np.where(F == 0, len(V), F), cams[0])
+
+
+def test_zbuffer_prepass_agrees_with_all_rays(small_geometry):
+    """occlusion="zbuffer" decides as occlusion="rays" on ≥ 99.9 % of candidate texels (nose
+    shadowing the far cheek, nostrils, eye sockets, ears included) with the same weights."""
+    V, F, texels, scene, cams = small_geometry
+    for cam in cams:
+        ref = camera_visibility(texels, cam, scene, occlusion="rays")
+        got = camera_visibility(texels, cam, scene, occlusion="zbuffer")
+        cand = ref.in_image & ref.facing
+        np.testing.assert_array_equal(got.in_image & got.facing, cand)
+        assert np.count_nonzero(~ref.unoccluded[cand]) > 100  # real occlusion is exercised
+        agree = np.mean(got.unoccluded[cand] == ref.unoccluded[cand])
+        assert agree >= ZBUFFER_AGREEMENT_MIN, (cam.name, agree)
+        # the weights' depth image is the buffer: edges agree to within the same fraction
+        assert np.mean(np.abs(got.weight - ref.weight) > 1e-3) <= 1 - ZBUFFER_AGREEMENT_MIN
+    with pytest.raises(InputError, match="occlusion"):
+        camera_visibility(texels, cams[0], scene, occlusion="zbuf")
+
+
+def test_zbuffer_falls_back_to_rays_when_the_mesh_reaches_behind_the_camera(small_geometry):
+    """A plane x = z − 0.1 m (camera frame) crosses the camera plane and covers the whole view
+    10 cm in front of the lens, nearer than the rasteriser's near plane (half its nearest vertex
+    depth, 0.2 m): rays must decide, and every texel is occluded as with occlusion="rays"."""
+    V, F, texels, _, cams = small_geometry
+    cam = cams[0]
+    quad_cam = np.array([[-0.3, -1.0, -0.2], [-0.3, 1.0, -0.2], [0.3, 1.0, 0.4], [0.3, -1.0, 0.4]])
+    V2 = np.vstack([V, cam.T_cam_world.inverse().apply(quad_cam)])
+    F2 = np.vstack([F, len(V) + np.array([[0, 1, 2], [0, 2, 3]])])
+    scene = RayScene(V2, F2)
+    ref = camera_visibility(texels, cam, scene, occlusion="rays")
+    got = camera_visibility(texels, cam, scene, occlusion="zbuffer")
+    cand = ref.in_image & ref.facing
+    assert cand.sum() > 1000 and not ref.unoccluded.any()
+    np.testing.assert_array_equal(got.unoccluded, ref.unoccluded)

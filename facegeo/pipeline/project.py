@@ -13,6 +13,10 @@ it is missing) and writes ``out_dir/project/``:
     <camera>/R.npy            (T_c, L, 3) float16, chunked along texels (memory-mapped)
     <camera>/texel_index.npy  (T_c,) int64; weight.npy (T_c,) float32; v_world.npy (T_c, 3)
     seen.npy                  (T,) bool: some camera has a non-zero weight
+    blended/R_blend.npy       (U, L, 3) float16: Σ_c w_c R_c / Σ_c w_c per texel, for
+                              fixed-viewpoint uses (facegeo.surface.reflectance.blend_fields);
+    blended/texel_index.npy   (U,) int64; weight.npy (U,) float32 Σ_c w_c; n_cameras.npy (U,)
+                              (read with facegeo.surface.reflectance.open_blended)
     preview.png               the mean over lights, blended over cameras, pull–push filled
                               (display only: unseen texels are never counted as measured)
     stage.json
@@ -53,6 +57,7 @@ import numpy as np
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text, staged_directory
 from facegeo.pipeline.bench import peak_rss_mb
+from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
@@ -126,6 +131,7 @@ def atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
         "dropped_degenerate": int(atlas.report.degenerate_faces.size),
         "dropped_nonmanifold": int(atlas.report.nonmanifold_faces.size),
         "pieces": atlas.n_pieces, "charts": atlas.n_charts,
+        "utilization": round(atlas.meta.get("utilization", float("nan")), 4),
         "width": atlas.width, "height": atlas.height,
         "texels_per_mm": round(atlas.texels_per_metre / 1000.0, 6),
         "texels": int(len(texels)),
@@ -140,7 +146,7 @@ def atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
 
 def run_atlas(scan_dir, out_dir=None, *, mesh: str = "ground_truth",
               texels_per_mm: float | None = 1.0, size: int | None = None, padding: int = 2,
-              split_faces: int | None = 25_000, repair: bool = False) -> dict:
+              split_faces: int | None = DEFAULT_SPLIT_FACES, repair: bool = False) -> dict:
     """Build the atlas and texel table of a scan's mesh into ``out_dir/atlas/``.
 
     Parameters
@@ -317,6 +323,7 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         ``texels``, ``cameras`` (per camera ``visible_fraction``, ``weighted_texels``,
         ``seconds_visibility``, ``seconds_projection``, ``texels_per_second``,
         ``masked_samples``, ``visibility_agreement``), ``unseen_fraction``,
+        ``blended_texels``, ``seconds_blend``,
         ``projection_rel_rmse`` (synthetic scans), ``seconds``, ``peak_rss_mb``.
     """
     scan = _scan(scan_dir)
@@ -418,6 +425,9 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             entry["projection_rel_rmse"] = round(float(np.sqrt(a / b)), 6) if b else None
         per_cam[name] = entry
     np.save(dest / "seen.npy", seen)
+    t_b = time.perf_counter()
+    blended = rf.blend_fields([dest / n for n in names], dest / "blended", dtype=dtype)
+    seconds_blend = time.perf_counter() - t_b
     preview = np.where(wsum[:, None] > 0, colour / np.maximum(wsum, 1e-30)[:, None], np.nan)
     img = pull_push(texels.to_image(preview), texels.to_image(
         np.where(wsum > 0, 1.0, 0.0), fill=0.0))
@@ -431,6 +441,8 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
         "texels": int(T), "lights": int(scan.n_lights), "rig": rig_used,
         "cameras": per_cam,
         "unseen_fraction": round(float(1 - seen.mean()) if T else 0.0, 6),
+        "blended_texels": int(blended.texel_index.size),
+        "seconds_blend": round(seconds_blend, 4),
     }
     agrs = [c["visibility_agreement"] for c in per_cam.values()
             if "visibility_agreement" in c]

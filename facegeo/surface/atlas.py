@@ -29,10 +29,14 @@ after the second on a non-manifold edge) and says how many it dropped.
 Speed
 -----
 xatlas grows worse than linearly with the triangle count (DESIGN §6: ≈ 11 s for 50 k triangles,
-≈ 3 min for 1 M). ``split_faces`` (default 25,000) cuts larger meshes into spatially compact
-pieces by recursive median bisection of face centroids; the pieces are added to one
-``xatlas.Atlas`` as separate meshes, so they are charted independently (cheaper) and packed
-together. Piece boundaries become chart boundaries (seams).
+≈ 3 min for 1 M), and its chart computation (not the packing: a 4× coarser atlas costs the
+same) dominates, growing steeply with the faces per chart and per mesh. Two limits keep both
+small: ``split_faces`` (default 12,000) cuts larger meshes into spatially compact pieces by
+recursive median bisection of face centroids, added to one ``xatlas.Atlas`` as separate meshes
+(charted independently, on xatlas's worker threads, and packed together; piece boundaries
+become seams); ``max_chart_faces`` (default 300) caps each chart's area at that many average
+faces. On a 100 k-face face this cut xatlas's CPU time ≈ 10× (more, smaller charts at the same
+utilisation; ``facegeo bench surface.atlas``).
 """
 
 from __future__ import annotations
@@ -53,10 +57,16 @@ log = logging.getLogger(__name__)
 __all__ = [
     "MeshReport", "Atlas", "Texels", "check_mesh", "split_mesh", "build_atlas",
     "rasterize_texels", "vertex_normals", "export_mesh_uv", "DEFAULT_SPLIT_FACES",
+    "DEFAULT_MAX_CHART_FACES",
 ]
 
-#: Faces per piece when splitting a mesh for xatlas (DESIGN §6: halves the time at 50 k).
-DEFAULT_SPLIT_FACES = 25_000
+#: Faces per piece when splitting a mesh for xatlas (DESIGN §6: halves the time at 50 k;
+#: 12 k pieces measured 2–4× cheaper than 25 k ones with the chart limit below).
+DEFAULT_SPLIT_FACES = 12_000
+#: Charts are limited to the area of this many average faces (xatlas ``max_chart_area``):
+#: xatlas's cost grows steeply with the faces per chart; 300 measured ≈ 10× less CPU than
+#: unlimited charts on a 100 k-face face at the same utilisation (docs/surface.md).
+DEFAULT_MAX_CHART_FACES = 300
 #: A face is degenerate when |e1 × e2| <= this × max(|e1|², |e2|²) (collinear to float64
 #: working precision; the same test as :mod:`facegeo.surface.visibility`).
 _DEGENERATE_SIN = 1e-12
@@ -283,6 +293,11 @@ class Atlas:
     report : MeshReport
     seconds : float
         Wall time of the xatlas ``generate`` call.
+    n_pieces : int
+        Pieces the mesh was split into (``split_faces``).
+    meta : dict
+        ``utilization`` (xatlas: fraction of the atlas covered by charts) and the
+        ``max_chart_area`` used (m²), when built here (not saved).
     """
 
     vertices: np.ndarray
@@ -330,6 +345,7 @@ class Atlas:
 def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None,
                 size: int | None = None, padding: int = 2, max_chart_area: float = 0.0,
                 max_boundary_length: float = 0.0, max_iterations: int = 1,
+                max_chart_faces: float | None = DEFAULT_MAX_CHART_FACES,
                 split_faces: int | None = DEFAULT_SPLIT_FACES, repair: bool = False,
                 normals: Any = None) -> Atlas:
     """Parameterise a mesh with xatlas and pack its charts into one atlas.
@@ -350,6 +366,10 @@ def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None
         xatlas chart limits in mesh units (m², m); 0 means unlimited.
     max_iterations : int
         xatlas chart-growing iterations (more: better charts, slower).
+    max_chart_faces : float or None
+        When ``max_chart_area`` is 0: limit charts to the area of this many average faces
+        (``max_chart_area = max_chart_faces × mean face area``); None or 0: unlimited. xatlas's
+        cost grows steeply with the faces per chart (module docstring, "Speed").
     split_faces : int or None
         Split meshes with more faces into pieces of at most this many (see module docstring);
         None or 0 never splits.
@@ -397,8 +417,20 @@ def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None
         piece_verts.append(used)
         atlas.add_mesh(np.ascontiguousarray(V[used], np.float32),
                        np.ascontiguousarray(local.reshape(-1, 3), np.uint32))
+    if not (np.isfinite(max_chart_area) and max_chart_area >= 0):
+        raise InputError(f"max_chart_area: expected a finite number >= 0 (m²), got "
+                         f"{fmt_value(max_chart_area)}")
+    if max_chart_faces is not None and not (np.isfinite(max_chart_faces)
+                                            and max_chart_faces >= 0):
+        raise InputError(f"max_chart_faces: expected a number >= 0 or None, got "
+                         f"{fmt_value(max_chart_faces)}")
+    chart_area = float(max_chart_area)
+    if chart_area == 0 and max_chart_faces:
+        area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                    axis=1)
+        chart_area = float(max_chart_faces) * float(area.mean())
     co = xatlas.ChartOptions()
-    co.max_chart_area = float(max_chart_area)
+    co.max_chart_area = chart_area
     co.max_boundary_length = float(max_boundary_length)
     co.max_iterations = int(max_iterations)
     po = xatlas.PackOptions()
@@ -446,6 +478,7 @@ def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None
         width=int(atlas.width), height=int(atlas.height),
         texels_per_metre=float(atlas.texels_per_unit), n_charts=int(atlas.chart_count),
         report=report, seconds=seconds, n_pieces=len(pieces),
+        meta={"utilization": float(np.mean(atlas.utilization)), "max_chart_area": chart_area},
     )
     log.info("atlas: %d faces in %d piece(s) -> %d charts, %d × %d texels, %.2f s",
              len(F), len(pieces), out.n_charts, out.width, out.height, seconds)

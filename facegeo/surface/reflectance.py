@@ -39,9 +39,13 @@ a smooth 1-to-1 map, so the distance is off by the local scale of the distortion
 these lenses). The weight depends
 on geometry only, so it is **identical for every light** and relighting stays linear.
 
-Not done: the optional z-buffer pre-pass with ``cv2.triangleRasterizeDepth`` (its camera model
-is a symmetric OpenGL frustum; mapping our K with fx ≠ fy and an off-centre principal point
-onto it was not finished in time). Every candidate texel gets an exact occlusion ray instead.
+Occlusion is decided by a z-buffer pre-pass by default (``occlusion="zbuffer"``,
+:mod:`facegeo.surface.zbuffer`): ``cv2.triangleRasterizeDepth`` renders the pinhole camera's
+depth with our K exactly (vertices pre-transformed so its symmetric frustum reproduces fx ≠ fy
+and the off-centre principal point); texels whose 3 × 3 pixel neighbourhood agrees with their
+own depth are visible, those covered by nearer surface are occluded, and only the ambiguous
+rest (edges, grazing views) get the exact ray of 3. The same buffer is the depth image of the
+weights. ``occlusion="rays"`` traces every candidate and the depth image (the reference).
 
 Projection (:func:`project_camera`)
 -----------------------------------
@@ -86,8 +90,9 @@ log = logging.getLogger(__name__)
 __all__ = [
     "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
     "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
-    "open_field", "iter_field_chunks", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
-    "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS",
+    "open_field", "iter_field_chunks", "BlendedField", "blend_fields", "open_blended",
+    "BLENDED_FILE", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
+    "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS", "OCCLUSION_METHODS",
 ]
 
 #: Facing threshold on n·v (both normals): ≈ 84° from the normal.
@@ -100,6 +105,9 @@ DEFAULT_DEPTH_JUMP = 0.005
 DEFAULT_JUMP_PX = 12.0
 #: Lights gathered in RAM before one strided write to the on-disk field.
 DEFAULT_BLOCK_LIGHTS = 64
+#: How camera_visibility decides occlusion: a z-buffer pre-pass with rays where ambiguous,
+#: or a ray for every candidate texel (the reference).
+OCCLUSION_METHODS = ("zbuffer", "rays")
 _F16_MAX = float(np.finfo(np.float16).max)
 #: Texels per step of the blocked transpose from frame-major RAM to texel-major disk.
 _TRANSPOSE_TEXELS = 4096
@@ -215,7 +223,8 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
 
 def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MIN_COS,
                       feather_px: float = DEFAULT_FEATHER_PX,
-                      depth_jump: float = DEFAULT_DEPTH_JUMP) -> CameraVisibility:
+                      depth_jump: float = DEFAULT_DEPTH_JUMP,
+                      occlusion: str = "zbuffer") -> CameraVisibility:
     """Visibility and blending weight of every texel in one camera (module docstring).
 
     Parameters
@@ -232,6 +241,13 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     depth_jump : float, metres
         Smallest depth step between neighbouring pixels counted as an occlusion edge (the
         step must also exceed ``DEFAULT_JUMP_PX`` pixel footprints).
+    occlusion : {"zbuffer", "rays"}
+        ``"zbuffer"``: a rasterised depth buffer of the pinhole camera
+        (:mod:`facegeo.surface.zbuffer`) decides the texels it proves visible or occluded and
+        serves as the depth image of the weights; only ambiguous texels get an Embree ray.
+        ``"rays"``: every candidate texel gets a ray and the depth image is ray-traced (the
+        reference; also used when the mesh reaches behind the camera, where the rasteriser's
+        near plane would clip it).
 
     Returns
     -------
@@ -244,6 +260,9 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
         raise InputError(f"feather_px: expected a finite number >= 0, got {fmt_value(feather_px)}")
     if not (np.isfinite(depth_jump) and depth_jump > 0):
         raise InputError(f"depth_jump: expected a finite number > 0 (metres), got {fmt_value(depth_jump)}")
+    if occlusion not in OCCLUSION_METHODS:
+        raise InputError(f"occlusion: expected one of {', '.join(OCCLUSION_METHODS)}, got "
+                         f"{fmt_value(occlusion)}")
     T = len(p)
     q, valid = camera.project(p)
     W, H = camera.width, camera.height
@@ -258,6 +277,24 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     facing = (cos_view > min_cos) & (cos_geom > min_cos)
     unoccluded = np.zeros(T, bool)
     cand = np.flatnonzero(in_image & facing)
+    pin = camera.replace(dist=np.zeros_like(camera.dist))
+    depth = None
+    if occlusion == "zbuffer" and camera.T_cam_world.apply(scene.vertices)[:, 2].min() <= 0:
+        # The rasteriser clips at a near plane: a mesh reaching behind the camera could hide an
+        # occluder there, so every candidate gets its ray.
+        log.info("camera %s: the mesh crosses the camera plane; occlusion by rays only",
+                 camera.name)
+        occlusion = "rays"
+    if occlusion == "zbuffer":
+        from facegeo.surface.zbuffer import classify_occlusion, depth_buffer
+
+        depth = depth_buffer(scene.vertices, scene.faces, camera)
+        if cand.size:
+            sure_vis, sure_occ = classify_occlusion(
+                depth, camera.T_cam_world.apply(p[cand]),
+                camera.T_cam_world.apply_direction(g[cand]), camera.K)
+            unoccluded[cand[sure_vis]] = True
+            cand = cand[~(sure_vis | sure_occ)]  # ambiguous: an exact ray below
     if cand.size:
         # The segment texel -> camera centre, its origin lifted eps along the geometric normal
         # (the camera is on the normal's side: cos_geom > min_cos), eps excluded at both ends.
@@ -281,9 +318,10 @@ def camera_visibility(texels: Any, camera, scene, *, min_cos: float = DEFAULT_MI
     if idx.size:
         border = np.minimum.reduce([q[idx, 0] + 0.5, W - 0.5 - q[idx, 0],
                                     q[idx, 1] + 0.5, H - 0.5 - q[idx, 1]])
-        dist = _edge_distance(depth_image(scene, camera), float(depth_jump),
-                              2.0 / (camera.fx + camera.fy), DEFAULT_JUMP_PX)
-        pin = camera.replace(dist=np.zeros_like(camera.dist))
+        if depth is None:
+            depth = depth_image(scene, camera)
+        dist = _edge_distance(depth, float(depth_jump), 2.0 / (camera.fx + camera.fy),
+                              DEFAULT_JUMP_PX)
         qp = pin.project(p[idx])[0]
         col = np.clip(np.rint(qp[:, 0]), 0, W - 1).astype(np.int64)
         row = np.clip(np.rint(qp[:, 1]), 0, H - 1).astype(np.int64)
@@ -565,19 +603,171 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
                           n_masked=n_masked, n_overflow=n_overflow, seconds=seconds)
 
 
-def open_field(directory) -> np.ndarray:
-    """Memory-map a camera's ``R.npy`` ``(T_c, L, 3)`` read-only."""
-    path = Path(directory) / "R.npy"
+def open_field(directory, name: str = "R.npy") -> np.ndarray:
+    """Memory-map a camera's ``R.npy`` ``(T_c, L, 3)`` read-only (``name=BLENDED_FILE``: the
+    blended field of :func:`blend_fields`)."""
+    path = Path(directory) / name
     if not path.is_file():
         raise InputError(f"{path}: no projected field here (run the projection first)")
     return np.load(path, mmap_mode="r")
 
 
-def iter_field_chunks(directory, chunk_texels: int = 8192):
+def iter_field_chunks(directory, chunk_texels: int = 8192, name: str = "R.npy"):
     """Yield ``(start, R[start:stop] as float32)`` chunks along texels (never computing in
-    float16)."""
-    R = open_field(directory)
+    float16); ``name`` as in :func:`open_field`."""
+    R = open_field(directory, name)
     for s in range(0, R.shape[0], chunk_texels):
         chunk = np.array(R[s:s + chunk_texels], dtype=np.float32)
         _release_rows(R, s, s + len(chunk), write=False)  # keep resident memory at one chunk
         yield s, chunk
+
+
+#: File name of the blended field in its folder. Not ``R.npy``: consumers find the per-camera
+#: fields as the folders of ``out/project/`` holding an ``R.npy``, and the blend is not a camera.
+BLENDED_FILE = "R_blend.npy"
+
+
+@dataclass
+class BlendedField:
+    """The weighted blend of the per-camera fields, as written by :func:`blend_fields`.
+
+    Attributes
+    ----------
+    directory : pathlib.Path
+        Holds ``R_blend.npy`` ``(U, L, 3)`` (float16 or float32, C order: chunked along
+        texels), ``texel_index.npy`` ``(U,)`` int64, ``weight.npy`` ``(U,)`` float32 and
+        ``n_cameras.npy`` ``(U,)`` int16.
+    texel_index : (U,) int64
+        Texels some camera weights (> 0), ascending.
+    weight : (U,) float32
+        ``Σ_c w_c`` over the cameras that weight the texel.
+    n_cameras : (U,) int16
+        How many cameras weight the texel.
+    n_lights : int
+    """
+
+    directory: Path
+    texel_index: np.ndarray
+    weight: np.ndarray
+    n_cameras: np.ndarray
+    n_lights: int
+
+    def field(self) -> np.ndarray:
+        """The memory-mapped blended ``R`` ``(U, L, 3)`` (read-only)."""
+        return open_field(self.directory, name=BLENDED_FILE)
+
+
+def _camera_field(item) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+    """(name, R memmap, texel_index, weight) of a ProjectedField or a camera folder."""
+    d = Path(item.directory if isinstance(item, ProjectedField) else item)
+    R = open_field(d)
+    try:
+        idx = np.load(d / "texel_index.npy")
+        w = np.load(d / "weight.npy")
+    except FileNotFoundError as exc:
+        raise InputError(f"{d}: texel_index.npy and weight.npy must sit beside R.npy "
+                         f"(a folder written by project_camera)") from exc
+    if idx.shape != (R.shape[0],) or w.shape != (R.shape[0],):
+        raise ShapeError(f"{d}: R.npy {R.shape}, texel_index.npy {idx.shape} and weight.npy "
+                         f"{w.shape} disagree (expected {R.shape[0]} texels each)")
+    if idx.size > 1 and not np.all(np.diff(idx) > 0):
+        raise InputError(f"{d}: texel_index.npy must be strictly ascending")
+    return d.name, R, idx.astype(np.int64), w.astype(np.float32)
+
+
+def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
+                 chunk_texels: int = 8192) -> BlendedField:
+    """Blend per-camera fields into one field for fixed-viewpoint uses, streamed along texels.
+
+    ``R_b[t, l] = Σ_c w_c(t) R_c[t, l] / Σ_c w_c(t)`` over the cameras ``c`` that weight texel
+    ``t`` — the issue's "blended field" beside the per-camera fields ``R_c`` of Debevec et al.
+    2000 Eq. (2) taken onto the surface (§2.1). The weights are light-independent
+    (:func:`camera_visibility`), so the blend is linear in the frames and relighting it
+    (Eq. 4) equals blending the relit cameras. A masked sample (NaN in ``R_c``) is left out of
+    its texel's blend for that light and channel and the other cameras are renormalised; with
+    no finite sample left the result is NaN (never a fake value). The blend discards the view
+    dependence (``v_c``): it suits a viewpoint near the cameras, not novel views.
+
+    Parameters
+    ----------
+    fields : iterable of ProjectedField or path-like
+        Camera folders written by :func:`project_camera` (same number of lights).
+    directory : path-like
+        Created; receives the files listed in :class:`BlendedField`.
+    dtype : {"float16", "float32"}
+        On-disk type (computation is float32).
+    chunk_texels : int
+        Texels of the blend computed per step (resident memory ≈ ``chunk × L × 3 × 16`` B).
+
+    Returns
+    -------
+    BlendedField
+
+    Raises
+    ------
+    InputError
+        No fields, fields with different light counts, unknown ``dtype``, malformed folders.
+    """
+    if dtype not in ("float16", "float32"):
+        raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
+    if int(chunk_texels) != chunk_texels or chunk_texels < 1:
+        raise InputError(f"chunk_texels: expected a positive integer, got {fmt_value(chunk_texels)}")
+    cams = [_camera_field(f) for f in fields]
+    if not cams:
+        raise InputError("fields: expected at least one projected camera field")
+    L = cams[0][1].shape[1]
+    for name, R, _, _ in cams:
+        if R.shape[1:] != (L, 3):
+            raise ShapeError(f"fields: camera {fmt_value(name)} has R of shape {R.shape}, "
+                             f"expected (T_c, {L}, 3) like {fmt_value(cams[0][0])}")
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    U = np.unique(np.concatenate([idx for _, _, idx, _ in cams]))
+    out = np.lib.format.open_memmap(directory / BLENDED_FILE, mode="w+", dtype=dtype,
+                                    shape=(U.size, L, 3))
+    wsum = np.zeros(U.size, np.float32)
+    ncam = np.zeros(U.size, np.int16)
+    step = int(chunk_texels)
+    for s in range(0, U.size, step):
+        u = U[s:s + step]
+        num = np.zeros((u.size, L, 3), np.float32)
+        den = np.zeros((u.size, L, 3), np.float32)
+        for _, R, idx, w in cams:
+            a, b = np.searchsorted(idx, [u[0], u[-1] + 1])
+            if b <= a:
+                continue
+            rows = np.array(R[a:b], dtype=np.float32)
+            _release_rows(R, a, b, write=False)
+            pos = np.searchsorted(u, idx[a:b])  # unique within one camera
+            ok = np.isfinite(rows)
+            wc = np.broadcast_to(w[a:b, None, None], rows.shape)
+            num[pos] += np.where(ok, wc * rows, 0.0)
+            den[pos] += np.where(ok, wc, 0.0)
+            wsum[s + pos] += w[a:b]
+            ncam[s + pos] += 1
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[s:s + u.size] = np.where(den > 0, num / den, np.nan)
+        _release_rows(out, s, s + u.size, write=True)
+    del out
+    np.save(directory / "texel_index.npy", U.astype(np.int64))
+    np.save(directory / "weight.npy", wsum)
+    np.save(directory / "n_cameras.npy", ncam)
+    log.info("blend: %d cameras -> %d texels × %d lights", len(cams), U.size, L)
+    return BlendedField(directory, U.astype(np.int64), wsum, ncam, int(L))
+
+
+def open_blended(directory) -> BlendedField:
+    """Read the blended field written by :func:`blend_fields` (``R`` stays memory-mapped:
+    :meth:`BlendedField.field`, or ``iter_field_chunks(directory, name=BLENDED_FILE)``)."""
+    d = Path(directory)
+    R = open_field(d, name=BLENDED_FILE)
+    try:
+        idx, w, n = (np.load(d / f) for f in ("texel_index.npy", "weight.npy",
+                                               "n_cameras.npy"))
+    except FileNotFoundError as exc:
+        raise InputError(f"{d}: texel_index.npy, weight.npy and n_cameras.npy must sit beside "
+                         f"{BLENDED_FILE} (a folder written by blend_fields)") from exc
+    if not (idx.shape == w.shape == n.shape == (R.shape[0],)):
+        raise ShapeError(f"{d}: {BLENDED_FILE} {R.shape}, texel_index.npy {idx.shape}, "
+                         f"weight.npy {w.shape}, n_cameras.npy {n.shape} disagree")
+    return BlendedField(d, idx.astype(np.int64), w, n, int(R.shape[1]))
