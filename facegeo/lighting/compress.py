@@ -38,8 +38,8 @@ from facegeo.errors import InputError, ShapeError
 log = logging.getLogger(__name__)
 
 __all__ = ["haar2d", "ihaar2d", "haar2d_nonstandard", "LowRankField", "WaveletField",
-           "WaveletLightingField", "fit_low_rank", "fit_wavelet", "fit_wavelet_lighting",
-           "held_out_error", "relative_rmse"]
+           "WaveletLightingField", "ImageWaveletField", "fit_low_rank", "fit_wavelet",
+           "fit_wavelet_lighting", "fit_image_wavelet", "held_out_error", "relative_rmse"]
 
 
 def relative_rmse(got: Any, ref: Any) -> float:
@@ -566,3 +566,9 @@ def fit_wavelet_lighting(field: Any, n_theta: int, n_phi: int, *,
     sample = np.sort(rng.choice(n_p, size=min(int(validation_pixels), n_p), replace=False))
     sample_coef = np.ascontiguousarray(coef[:, :, sample].transpose(2, 1, 0), np.float32)
     return WaveletLightingField(coef, int(n_theta), int(n_phi), sample, sample_coef)
+
+
+# --------------------------------------------------------------------------- light × image Haar
+# (defined in a private module; it uses the helpers above, so it is imported last)
+
+from facegeo.lighting._compress_image import ImageWaveletField, fit_image_wavelet  # noqa: E402

@@ -1,0 +1,333 @@
+"""Relighting from a field compressed in the light domain *and* across the image (private to
+:mod:`facegeo.lighting.compress`, which re-exports :class:`ImageWaveletField` and
+:func:`fit_image_wavelet`).
+
+The transport of an image-space field is a 4-D signal: two light coordinates (φ, θ) and two
+image coordinates (row, column). Each reflectance function goes to the non-standard Haar basis
+of the light image (Ng, Ramamoorthi & Hanrahan 2003); each resulting coefficient, seen across
+the pixels, is an image ("slab" j), which goes to the non-standard Haar basis of the image
+grid — the spatial (JPEG-domain) compression of Smith & Rowe 1993 that the paper's "factor of
+twenty" refers to, with Haar instead of the 8 × 8 DCT. Both bases are orthonormal, so one global
+magnitude threshold on the 4-D coefficients drops exactly the squared error it says (Parseval),
+and a relight is, by linearity,
+
+    relit image = H_s⁻¹ ( Σ_{j ∈ top-K of the lighting} ŵ_j · S_j )            (Eq. 4)
+
+with ŵ the lighting's light-Haar coefficients (the K largest, Ng et al.'s non-linear lighting
+approximation), S_j slab j's sparse spatial coefficients, and one inverse spatial transform at
+the end: the sum runs in the compressed domain and touches only the K slabs' stored entries.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import as_array, check_positive, fmt_value
+from facegeo.errors import InputError, ShapeError
+
+log = logging.getLogger(__name__)
+
+#: Bins per octave of the squared-magnitude histogram that chooses the threshold in
+#: :func:`fit_image_wavelet` (the threshold is the lower edge of a bin, so the dropped energy is
+#: at most the target's; 32 bins per octave of energy ≈ 1 % steps in the threshold).
+THRESHOLD_BINS_PER_OCTAVE = 32
+
+#: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · grid float32).
+SLAB_CHUNK = 32
+
+#: float16 values are stored divided by a global scale so the largest is this (well inside
+#: float16's range 65504; relative precision 2⁻¹¹ whatever the field's units).
+VALUE_HEADROOM = 1024.0
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(0, int(n - 1).bit_length())
+
+
+@dataclass
+class ImageWaveletField:
+    """An image-space reflectance field as thresholded 4-D Haar coefficients (light × image),
+    stored light-coefficient-major for relighting from the top K lighting coefficients.
+
+    Attributes
+    ----------
+    ptr : (L + 1,) int64
+        Entries of light-coefficient slab j are ``ptr[j] : ptr[j + 1]``.
+    pos : (n,) uint16 or uint32
+        Spatial coefficient index of each entry in the ``grid`` (row-major), sorted in a slab.
+    val : (n, 3) float16
+        RGB coefficient values divided by ``scale``.
+    scale : float
+    pixel_pos : (P,) int32
+        Grid index of each field row (pixel).
+    n_theta, n_phi : int
+        The light grid (powers of two).
+    grid : (int, int)
+        ``(H, W)`` of the image grid, powers of two (the pixels' bounding box, padded).
+    kept_fraction : float
+        Kept entries (one per light coefficient and grid cell, RGB together) over P · L.
+    field_error : float
+        Relative Frobenius error of the field from the threshold (exact by Parseval, float16
+        rounding of the kept values not included).
+    """
+
+    ptr: np.ndarray
+    pos: np.ndarray
+    val: np.ndarray
+    scale: float
+    pixel_pos: np.ndarray
+    n_theta: int
+    n_phi: int
+    grid: tuple[int, int]
+    kept_fraction: float
+    field_error: float
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.pixel_pos.size)
+
+    @property
+    def nbytes(self) -> int:
+        """Storage, every array counted: slab pointers, spatial indices, values, pixel map."""
+        return int(self.ptr.nbytes + self.pos.nbytes + self.val.nbytes + self.pixel_pos.nbytes
+                   + 8)
+
+    def lighting_coefficients(self, weights: Any) -> np.ndarray:
+        """The Eq. (4) weights ``(L, 3)`` (δA included) in the non-standard light Haar basis."""
+        from facegeo.lighting.compress import haar2d_nonstandard
+
+        n_l = self.n_theta * self.n_phi
+        w = as_array(weights, "weights", shape=(n_l, 3))
+        return haar2d_nonstandard(w.T, self.n_theta, self.n_phi, compiled=True).T
+
+    def budget(self, weights: Any, target_error: float) -> tuple[int, float]:
+        """The smallest K whose relight from the K largest lighting coefficients is within
+        ``target_error`` (relative RMSE) of the relight from all of them, and that error.
+
+        Measured in the spatial coefficient domain on the whole grid (Parseval: the padded grid
+        includes the pixels, so this is ≥ the error on the pixels), against this compressed
+        field's full relight, so the error against exact Eq. (4) is at most this plus the
+        transport's (:attr:`field_error` for the field; far less for a relit image). Costs two
+        passes over the stored entries (a full relight, then every prefix's error by updating
+        the residual entry by entry).
+        """
+        from facegeo.lighting.compress import WaveletLightingField
+
+        t = check_positive(target_error, "target_error")
+        wc = self.lighting_coefficients(weights)
+        order = WaveletLightingField._order(wc)
+        order = np.ascontiguousarray(order[np.abs(wc[order]).sum(axis=1) > 0], np.int64)
+        if order.size == 0:
+            return 1, 0.0
+        lw = np.ascontiguousarray(wc[order] * self.scale, np.float32)
+        full = np.zeros((3, self.grid[0] * self.grid[1]), np.float32)
+        _scatter(self, order, lw, full)
+        e2 = _truncation_errors(self, order, lw, full)
+        norm2 = max(float((full.astype(np.float64) ** 2).sum()), 1e-300)
+        ok = np.flatnonzero(e2 <= t * t * norm2)
+        k = int(ok[0]) if ok.size else order.size - 1
+        return k + 1, float(np.sqrt(e2[k] / norm2))
+
+    def relight(self, weights: Any, *, terms: int | None = None,
+                target_error: float | None = None) -> np.ndarray:
+        """Eq. (4) from the compressed field: ``(P, 3)`` float32.
+
+        Parameters
+        ----------
+        weights : (L, 3) float
+            Eq. (4) weights (δA included).
+        terms : int, optional
+            K, the lighting coefficients kept (Ng et al. 2003's non-linear approximation).
+        target_error : float, optional
+            Instead of ``terms``: K from :meth:`budget`. Neither: every non-zero lighting
+            coefficient (the compressed transport's own error only).
+        """
+        from facegeo.lighting.compress import WaveletLightingField
+
+        if terms is not None and target_error is not None:
+            raise InputError("relight: give terms or target_error, not both")
+        wc = self.lighting_coefficients(weights)
+        n_l = wc.shape[0]
+        if target_error is not None:
+            k, _ = self.budget(weights, target_error)
+        elif terms is not None:
+            k = int(terms)
+            if not 1 <= k <= n_l:
+                raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
+        else:
+            k = max(1, int(np.count_nonzero(np.abs(wc).sum(axis=1))))
+        idx = np.ascontiguousarray(WaveletLightingField._top(wc, k), np.int64)
+        lw = np.ascontiguousarray(wc[idx] * self.scale, np.float32)
+        h, w = self.grid
+        acc = np.zeros((3, h * w), np.float32)
+        _scatter(self, idx, lw, acc)
+        img = _inverse_spatial(acc.reshape(3, h, w))
+        return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
+
+
+def _kernels():
+    """The numba kernels and the half-conversion flag, or ``None`` without numba."""
+    from facegeo.lighting import relight as _relight
+
+    if not _relight._fused_kernel():  # numba missing; sets FUSED_CONVERSION otherwise
+        return None
+    from facegeo.lighting import _compress_kernels as K
+
+    return K, _relight.FUSED_CONVERSION == "f16c"
+
+
+def _scatter(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, acc: np.ndarray) -> None:
+    """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx``."""
+    ker = _kernels()
+    if ker is not None:
+        ker[0].scatter_slabs(f.ptr, f.pos, f.val.view(np.uint16), idx, lw, acc, ker[1])
+        return
+    sel = np.concatenate([np.arange(f.ptr[j], f.ptr[j + 1]) for j in idx])
+    rep = np.repeat(np.arange(idx.size), np.diff(f.ptr)[idx])
+    for c in range(3):  # numpy reference: one weighted histogram per channel
+        acc[c] += np.bincount(f.pos[sel].astype(np.int64),
+                              weights=f.val[sel, c].astype(np.float64) * lw[rep, c],
+                              minlength=acc.shape[1]).astype(np.float32)
+
+
+def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
+                       full: np.ndarray) -> np.ndarray:
+    """``‖full − Σ_{k' ≤ k} slab_k'‖²`` for every prefix k of ``idx`` (``(K,)`` float64)."""
+    ker = _kernels()
+    if ker is not None:
+        return ker[0].truncation_errors(f.ptr, f.pos, f.val.view(np.uint16), idx, lw, full,
+                                        ker[1])
+    d = full.astype(np.float64)
+    out = np.empty(idx.size)
+    for k, j in enumerate(idx):  # numpy reference: one slab at a time
+        sl = slice(f.ptr[j], f.ptr[j + 1])
+        p = f.pos[sl].astype(np.int64)
+        d[:, p] -= (f.val[sl].astype(np.float32) * lw[k]).T.astype(np.float64)
+        out[k] = (d ** 2).sum()
+    return out
+
+
+def _inverse_spatial(img: np.ndarray) -> np.ndarray:
+    """Inverse non-standard 2-D Haar of ``(3, H, W)`` float32 spatial coefficients, in place."""
+    from facegeo.lighting.compress import _nonstandard_levels, haar2d_nonstandard
+
+    h, w = img.shape[1:]
+    ker = _kernels()
+    if ker is not None:
+        levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
+        ker[0].haar_nonstandard_inverse(img, levels)
+        return img
+    return haar2d_nonstandard(img.reshape(3, h * w), w, h, inverse=True).astype(np.float32)
+
+
+def _check_pixels(pixels: Any, n_p: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """Grid index of each pixel (bounding box shifted to the origin, padded to powers of two)."""
+    q = np.asarray(pixels)
+    if q.shape != (n_p, 2) or q.dtype.kind not in "iu":
+        raise ShapeError(f"pixels: expected ({n_p}, 2) integer (row, column) image positions "
+                         f"of the field's rows, got {q.shape} {q.dtype}")
+    q = q.astype(np.int64) - q.min(axis=0)
+    h, w = _pow2(int(q[:, 0].max()) + 1), _pow2(int(q[:, 1].max()) + 1)
+    flat = q[:, 0] * w + q[:, 1]
+    if np.unique(flat).size != n_p:
+        raise InputError("pixels: two field rows share an image position; expected one row "
+                         "per pixel")
+    return flat.astype(np.int32), (h, w)
+
+
+def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
+                      target_error: float = 0.01) -> ImageWaveletField:
+    """Compress an image-space field in the light domain and across the image (4-D Haar).
+
+    Every reflectance function (per channel) goes to the non-standard light Haar basis
+    (:func:`facegeo.lighting.compress.haar2d_nonstandard`), every light coefficient's image to
+    the non-standard Haar basis of the pixels' padded bounding box; one global threshold τ on
+    the RGB magnitude ``√(Σ_c c²)`` keeps the entries ``≥ τ`` (RGB together: one spatial index
+    for three values), τ the smallest whose dropped energy is ≤ ``target_error²`` of the
+    field's (a histogram of 32 bins per octave of energy, so at most the target). Kept values
+    are float16 (relative precision 2⁻¹¹), after one global scale.
+
+    Parameters
+    ----------
+    field : (P, L, 3) float16/float32, L = n_theta · n_phi
+    n_theta, n_phi : int, powers of two
+    pixels : (P, 2) int
+        Image (row, column) of each field row, unique (e.g. ``numpy.argwhere(mask)``).
+    target_error : float
+        Relative Frobenius error of the field, > 0 (the relit error under a smooth
+        environment is much smaller; under a sun it is that of one light's image).
+
+    Notes
+    -----
+    Memory: the light coefficients of the whole field, float32 ``(P, 3, L)`` (twice a float16
+    field), plus :data:`SLAB_CHUNK` slabs of the grid at a time. Deviations from the papers:
+    Haar, not the 8 × 8 DCT of JPEG, across the image (one orthonormal transform whose
+    threshold error is exact); float16 values, not entropy-coded quantised ones (a relight must
+    read them directly).
+    """
+    from facegeo.lighting.compress import _check_pow2, haar2d_nonstandard
+
+    f = np.asarray(field)
+    if f.ndim != 3 or f.shape[1:] != (n_theta * n_phi, 3) or f.dtype.kind != "f":
+        raise ShapeError(f"field: expected a float field of shape (P, {n_theta * n_phi}, 3), "
+                         f"got {f.shape} {f.dtype}")
+    _check_pow2(n_theta, n_phi)
+    t = check_positive(target_error, "target_error")
+    n_p, n_l, _ = f.shape
+    pixel_pos, (gh, gw) = _check_pixels(pixels, n_p)
+    if not np.all(np.isfinite(f)):
+        raise InputError("field: non-finite samples (masked pixels) cannot be compressed; fill "
+                         "or drop those pixels first")
+    g = gh * gw
+    light = np.empty((n_l, 3, n_p), np.float32)  # slab-major light coefficients
+    for r0 in range(0, n_p, 4096):
+        c = haar2d_nonstandard(np.asarray(f[r0:r0 + 4096], np.float64).transpose(0, 2, 1),
+                               n_theta, n_phi)  # (rows, 3, L)
+        light[:, :, r0:r0 + c.shape[0]] = c.transpose(2, 1, 0)
+
+    def slabs(j0: int) -> np.ndarray:
+        grid = np.zeros((min(n_l, j0 + SLAB_CHUNK) - j0, 3, g), np.float64)
+        grid[:, :, pixel_pos] = light[j0:j0 + grid.shape[0]]
+        return haar2d_nonstandard(grid, gw, gh)  # image width plays θ, height φ
+
+    # pass 1: histogram of squared RGB magnitudes (energy per bin) → threshold
+    total = float((light.astype(np.float64) ** 2).sum())
+    if total == 0.0:
+        raise InputError("field: all zero; nothing to compress")
+    lo = np.log2(total) - 120.0
+    n_bins = 140 * THRESHOLD_BINS_PER_OCTAVE
+    energy = np.zeros(n_bins + 1)
+    peak = 0.0
+    for j0 in range(0, n_l, SLAB_CHUNK):
+        m2 = (slabs(j0) ** 2).sum(axis=1).ravel()
+        m2 = m2[m2 > 0]
+        peak = max(peak, float(m2.max(initial=0.0)))
+        b = np.clip(((np.log2(m2) - lo) * THRESHOLD_BINS_PER_OCTAVE).astype(np.int64), 0, n_bins)
+        energy += np.bincount(b, weights=m2, minlength=n_bins + 1)
+    dropped = np.cumsum(energy)  # energy of bins 0 … i
+    i = int(np.searchsorted(dropped, t * t * total, side="right"))  # bins < i can be dropped
+    tau2 = 2.0 ** (lo + i / THRESHOLD_BINS_PER_OCTAVE) if i > 0 else 0.0
+    field_error = float(np.sqrt(dropped[i - 1] / total)) if i > 0 else 0.0
+    scale = np.sqrt(peak) / VALUE_HEADROOM
+    # pass 2: keep entries ≥ τ, slab by slab (np.nonzero is sorted by slab, then position)
+    ptr = np.zeros(n_l + 1, np.int64)
+    pos_parts, val_parts = [], []
+    for j0 in range(0, n_l, SLAB_CHUNK):
+        s = slabs(j0)
+        keep = (s ** 2).sum(axis=1) >= tau2
+        jj, pp = np.nonzero(keep)
+        pos_parts.append(pp)
+        val_parts.append((s[jj, :, pp] / scale).astype(np.float16))
+        ptr[j0 + 1:j0 + 1 + s.shape[0]] = np.bincount(jj, minlength=s.shape[0])
+    ptr = np.cumsum(ptr)
+    pos = np.concatenate(pos_parts).astype(np.uint16 if g <= 1 << 16 else np.uint32)
+    val = np.ascontiguousarray(np.concatenate(val_parts).reshape(-1, 3))
+    frac = pos.size / (n_p * n_l)
+    log.info("image wavelet field: %d entries (%.3g %% of P·L), field error %.3g for target %g",
+             pos.size, 100 * frac, field_error, t)
+    return ImageWaveletField(ptr, pos, val, float(scale), pixel_pos, int(n_theta), int(n_phi),
+                             (gh, gw), float(frac), field_error)

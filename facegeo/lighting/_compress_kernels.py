@@ -1,0 +1,97 @@
+"""numba kernels of :class:`facegeo.lighting.compress.ImageWaveletField` (imported only when
+numba is installed; the numpy fallbacks in :mod:`facegeo.lighting._compress_image` are the plain
+reference implementations they are tested against).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from facegeo.lighting._fused import _FASTMATH, _half
+
+__all__ = ["scatter_slabs", "haar_nonstandard_inverse"]
+
+
+@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
+def scatter_slabs(ptr, pos, val, idx, lw, acc, f16c):  # pragma: no cover - compiled
+    """``acc[c, pos[e]] += half(val[e, c]) · lw[k, c]`` for the entries ``e`` of each selected
+    light-coefficient slab ``idx[k]`` (``ptr[idx[k]] ≤ e < ptr[idx[k] + 1]``).
+
+    ``ptr`` ``(L + 1,)`` int64, ``pos`` ``(n,)`` uint16/uint32 spatial coefficient index,
+    ``val`` ``(n, 3)`` uint16 bits of float16, ``idx`` ``(K,)`` int64, ``lw`` ``(K, 3)``
+    float32, ``acc`` ``(3, G)`` float32 (accumulated into). Entries of a slab are sorted by
+    ``pos``, so the scatter walks ``acc`` forward.
+    """
+    for k in range(idx.size):
+        j = idx[k]
+        x0 = lw[k, 0]
+        x1 = lw[k, 1]
+        x2 = lw[k, 2]
+        for e in range(ptr[j], ptr[j + 1]):
+            s = pos[e]
+            acc[0, s] += _half(val[e, 0], f16c) * x0
+            acc[1, s] += _half(val[e, 1], f16c) * x1
+            acc[2, s] += _half(val[e, 2], f16c) * x2
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def haar_nonstandard_inverse(img, levels):  # pragma: no cover - compiled
+    """In-place inverse non-standard 2-D Haar transform of ``img`` ``(C, H, W)`` float32.
+
+    ``levels`` ``(n, 4)`` int64 rows ``(h, w, step θ, step φ)`` from
+    :func:`facegeo.lighting.compress._nonstandard_levels` (the columns' axis is the image's
+    width here); the compiled twin of ``haar2d_nonstandard(..., inverse=True)``.
+    """
+    r = np.float32(np.sqrt(0.5))
+    n_c, n_h, n_w = img.shape
+    tmp = np.empty(max(n_h, n_w), np.float32)
+    for lev in range(levels.shape[0] - 1, -1, -1):
+        h = levels[lev, 0]
+        w = levels[lev, 1]
+        for c in range(n_c):
+            if levels[lev, 3]:  # undo the step along the rows' axis first (reverse order)
+                for x in range(w):
+                    for i in range(h // 2):
+                        s = img[c, i, x]
+                        d = img[c, h // 2 + i, x]
+                        tmp[2 * i] = (s + d) * r
+                        tmp[2 * i + 1] = (s - d) * r
+                    for i in range(h):
+                        img[c, i, x] = tmp[i]
+            if levels[lev, 2]:
+                for y in range(h):
+                    for i in range(w // 2):
+                        s = img[c, y, i]
+                        d = img[c, y, w // 2 + i]
+                        tmp[2 * i] = (s + d) * r
+                        tmp[2 * i + 1] = (s - d) * r
+                    for i in range(w):
+                        img[c, y, i] = tmp[i]
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def truncation_errors(ptr, pos, val, idx, lw, full, f16c):  # pragma: no cover - compiled
+    """Squared error ``‖full − Σ_{k' ≤ k} slab idx[k']‖²`` after each slab ``k`` of ``idx``.
+
+    Same entries and weights as :func:`scatter_slabs`; ``full`` ``(3, G)`` float32 is the sum
+    over all of ``idx``. The residual is updated in place per entry (float64), so the error of
+    every prefix costs one pass over the entries. Returns ``(K,)`` float64.
+    """
+    d = full.astype(np.float64)
+    e2 = 0.0
+    for c in range(3):
+        for s in range(d.shape[1]):
+            e2 += d[c, s] * d[c, s]
+    out = np.empty(idx.size)
+    for k in range(idx.size):
+        j = idx[k]
+        for e in range(ptr[j], ptr[j + 1]):
+            s = pos[e]
+            for c in range(3):
+                old = d[c, s]
+                new = old - np.float64(_half(val[e, c], f16c) * lw[k, c])
+                e2 += new * new - old * old
+                d[c, s] = new
+        out[k] = max(e2, 0.0)
+    return out
