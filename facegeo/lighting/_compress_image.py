@@ -39,9 +39,53 @@ THRESHOLD_BINS_PER_OCTAVE = 32
 #: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · grid float32).
 SLAB_CHUNK = 32
 
-#: float16 values are stored divided by a global scale so the largest is this (well inside
-#: float16's range 65504; relative precision 2⁻¹¹ whatever the field's units).
-VALUE_HEADROOM = 1024.0
+#: Bits of each channel's magnitude in a packed entry (plus a sign bit; three channels and a
+#: 5-bit shared exponent fill a uint32): the largest channel keeps 8 significant bits, so the
+#: rounding error is ≤ 2⁻⁸ of the entry's largest channel (RGBE-like, signed).
+MAGNITUDE_BITS = 8
+EXPONENT_LEVELS = 32
+
+
+def encode_rgb(v: np.ndarray) -> tuple[np.ndarray, int]:
+    """Pack ``(n, 3)`` float RGB coefficients into ``(n,)`` uint32 with one shared exponent per
+    entry: three (sign, 8-bit magnitude) fields in bits 0–26 and a 5-bit exponent e in bits
+    27–31; value = ± magnitude · 2^(e + base). Returns the codes and ``base`` (the largest
+    entry uses the top exponent; entries more than 2³² below it flush to zero).
+    """
+    v = np.asarray(v, np.float64)
+    big = np.abs(v).max(axis=1)
+    top = (1 << MAGNITUDE_BITS) - 1
+    base = (int(np.ceil(np.log2(big.max() / top))) - (EXPONENT_LEVELS - 1)) if big.size and \
+        big.max() > 0 else 0
+    with np.errstate(divide="ignore"):
+        e = np.ceil(np.log2(np.maximum(big, 1e-300) / top)).astype(np.int64) - base
+    e = np.clip(e, 0, EXPONENT_LEVELS - 1)
+    mag = np.rint(np.abs(v) / np.ldexp(1.0, (e + base))[:, None]).astype(np.int64)
+    over = mag.max(axis=1) > top  # log2 rounding at a power of two: one exponent up
+    e[over] += 1
+    mag = np.minimum(np.rint(np.abs(v) / np.ldexp(1.0, (e + base))[:, None]), top).astype(np.uint32)
+    code = e.astype(np.uint32) << np.uint32(27)
+    for c in range(3):
+        code |= (mag[:, c] | (np.signbit(v[:, c]).astype(np.uint32) << np.uint32(MAGNITUDE_BITS))
+                 ) << np.uint32(9 * c)
+    return code, base
+
+
+def exponent_table(base: int) -> np.ndarray:
+    """``(32,)`` float32 ``2^(e + base)`` for the exponent field of :func:`encode_rgb`."""
+    return np.ldexp(1.0, np.arange(EXPONENT_LEVELS) + base).astype(np.float32)
+
+
+def decode_rgb(code: np.ndarray, base: int) -> np.ndarray:
+    """Inverse of :func:`encode_rgb`: ``(n, 3)`` float32."""
+    code = np.asarray(code, np.uint32)
+    out = np.empty((code.size, 3), np.float32)
+    p = exponent_table(base)[code >> np.uint32(27)]
+    for c in range(3):
+        m = ((code >> np.uint32(9 * c)) & np.uint32(0xFF)).astype(np.float32)
+        neg = (code >> np.uint32(9 * c + 8)) & np.uint32(1)
+        out[:, c] = np.where(neg == 1, -m, m) * p
+    return out
 
 
 def _pow2(n: int) -> int:
@@ -55,13 +99,19 @@ class ImageWaveletField:
 
     Attributes
     ----------
-    ptr : (L + 1,) int64
-        Entries of light-coefficient slab j are ``ptr[j] : ptr[j + 1]``.
-    pos : (n,) uint16 or uint32
-        Spatial coefficient index of each entry in the ``grid`` (row-major), sorted in a slab.
-    val : (n, 3) float16
-        RGB coefficient values divided by ``scale``.
-    scale : float
+    ptr : (L · segments + 1,) int64
+        Entries of light-coefficient slab j whose spatial index lies in segment g (indices
+        ``65536·g … 65536·g + 65535``) are ``ptr[j·segments + g] : ptr[j·segments + g + 1]``.
+    segments : int
+        ``⌈grid size / 65536⌉``: the segments let positions be uint16 on any grid.
+    pos : (n,) uint16
+        Spatial coefficient index of each entry in the ``grid`` (row-major) minus its
+        segment's start, sorted in a slab.
+    code : (n,) uint32
+        The entry's RGB coefficients packed by :func:`encode_rgb` (6 bytes an entry with
+        ``pos``).
+    base : int
+        Exponent base of the codes.
     pixel_pos : (P,) int32
         Grid index of each field row (pixel).
     n_theta, n_phi : int
@@ -71,14 +121,15 @@ class ImageWaveletField:
     kept_fraction : float
         Kept entries (one per light coefficient and grid cell, RGB together) over P · L.
     field_error : float
-        Relative Frobenius error of the field from the threshold (exact by Parseval, float16
-        rounding of the kept values not included).
+        Relative Frobenius error of the field from the threshold (exact by Parseval; the
+        8-bit rounding of the kept values not included).
     """
 
     ptr: np.ndarray
+    segments: int
     pos: np.ndarray
-    val: np.ndarray
-    scale: float
+    code: np.ndarray
+    base: int
     pixel_pos: np.ndarray
     n_theta: int
     n_phi: int
@@ -92,8 +143,9 @@ class ImageWaveletField:
 
     @property
     def nbytes(self) -> int:
-        """Storage, every array counted: slab pointers, spatial indices, values, pixel map."""
-        return int(self.ptr.nbytes + self.pos.nbytes + self.val.nbytes + self.pixel_pos.nbytes
+        """Storage, every array counted: slab pointers, spatial indices, codes, pixel map (and
+        the exponent base)."""
+        return int(self.ptr.nbytes + self.pos.nbytes + self.code.nbytes + self.pixel_pos.nbytes
                    + 8)
 
     def lighting_coefficients(self, weights: Any) -> np.ndarray:
@@ -123,7 +175,7 @@ class ImageWaveletField:
         order = np.ascontiguousarray(order[np.abs(wc[order]).sum(axis=1) > 0], np.int64)
         if order.size == 0:
             return 1, 0.0
-        lw = np.ascontiguousarray(wc[order] * self.scale, np.float32)
+        lw = np.ascontiguousarray(wc[order], np.float32)
         full = np.zeros((3, self.grid[0] * self.grid[1]), np.float32)
         _scatter(self, order, lw, full)
         e2 = _truncation_errors(self, order, lw, full)
@@ -161,7 +213,7 @@ class ImageWaveletField:
         else:
             k = max(1, int(np.count_nonzero(np.abs(wc).sum(axis=1))))
         idx = np.ascontiguousarray(WaveletLightingField._top(wc, k), np.int64)
-        lw = np.ascontiguousarray(wc[idx] * self.scale, np.float32)
+        lw = np.ascontiguousarray(wc[idx], np.float32)
         h, w = self.grid
         acc = np.zeros((3, h * w), np.float32)
         _scatter(self, idx, lw, acc)
@@ -170,28 +222,43 @@ class ImageWaveletField:
 
 
 def _kernels():
-    """The numba kernels and the half-conversion flag, or ``None`` without numba."""
+    """The numba kernels module, or ``None`` without numba (``relight._fused_kernel`` is the
+    project's one switch for compiled kernels, so tests can turn them all off)."""
     from facegeo.lighting import relight as _relight
 
-    if not _relight._fused_kernel():  # numba missing; sets FUSED_CONVERSION otherwise
+    if not _relight._fused_kernel():
         return None
     from facegeo.lighting import _compress_kernels as K
 
-    return K, _relight.FUSED_CONVERSION == "f16c"
+    return K
 
 
 def _scatter(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, acc: np.ndarray) -> None:
     """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx``."""
     ker = _kernels()
     if ker is not None:
-        ker[0].scatter_slabs(f.ptr, f.pos, f.val.view(np.uint16), idx, lw, acc, ker[1])
+        ker.scatter_slabs(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base), idx, lw,
+                          acc)
         return
-    sel = np.concatenate([np.arange(f.ptr[j], f.ptr[j + 1]) for j in idx])
-    rep = np.repeat(np.arange(idx.size), np.diff(f.ptr)[idx])
+    sel, p = _slab_entries(f, idx)
+    rep = np.repeat(np.arange(idx.size),
+                    f.ptr[(idx + 1) * f.segments] - f.ptr[idx * f.segments])
+    val = decode_rgb(f.code[sel], f.base)
     for c in range(3):  # numpy reference: one weighted histogram per channel
-        acc[c] += np.bincount(f.pos[sel].astype(np.int64),
-                              weights=f.val[sel, c].astype(np.float64) * lw[rep, c],
+        acc[c] += np.bincount(p,
+                              weights=val[:, c].astype(np.float64) * lw[rep, c],
                               minlength=acc.shape[1]).astype(np.float32)
+
+
+def _slab_entries(f: ImageWaveletField, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Entry indices of slabs ``idx`` (in that order) and their full grid positions (int64)."""
+    n = f.segments
+    rows = (idx[:, None] * n + np.arange(n)).ravel()  # (slab, segment) rows
+    counts = f.ptr[rows + 1] - f.ptr[rows]
+    sel = np.concatenate([np.arange(f.ptr[r], f.ptr[r + 1]) for r in rows]) if rows.size \
+        else np.zeros(0, np.int64)
+    seg = np.repeat(rows % n, counts)
+    return sel, (seg << 16) + f.pos[sel].astype(np.int64)
 
 
 def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
@@ -199,14 +266,13 @@ def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
     """``‖full − Σ_{k' ≤ k} slab_k'‖²`` for every prefix k of ``idx`` (``(K,)`` float64)."""
     ker = _kernels()
     if ker is not None:
-        return ker[0].truncation_errors(f.ptr, f.pos, f.val.view(np.uint16), idx, lw, full,
-                                        ker[1])
+        return ker.truncation_errors(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base),
+                                     idx, lw, full)
     d = full.astype(np.float64)
     out = np.empty(idx.size)
     for k, j in enumerate(idx):  # numpy reference: one slab at a time
-        sl = slice(f.ptr[j], f.ptr[j + 1])
-        p = f.pos[sl].astype(np.int64)
-        d[:, p] -= (f.val[sl].astype(np.float32) * lw[k]).T.astype(np.float64)
+        sel, p = _slab_entries(f, np.array([j]))
+        d[:, p] -= (decode_rgb(f.code[sel], f.base) * lw[k]).T.astype(np.float64)
         out[k] = (d ** 2).sum()
     return out
 
@@ -219,7 +285,7 @@ def _inverse_spatial(img: np.ndarray) -> np.ndarray:
     ker = _kernels()
     if ker is not None:
         levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
-        ker[0].haar_nonstandard_inverse(img, levels)
+        ker.haar_nonstandard_inverse(img, levels)
         return img
     return haar2d_nonstandard(img.reshape(3, h * w), w, h, inverse=True).astype(np.float32)
 
@@ -249,7 +315,9 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     the RGB magnitude ``√(Σ_c c²)`` keeps the entries ``≥ τ`` (RGB together: one spatial index
     for three values), τ the smallest whose dropped energy is ≤ ``target_error²`` of the
     field's (a histogram of 32 bins per octave of energy, so at most the target). Kept values
-    are float16 (relative precision 2⁻¹¹), after one global scale.
+    are packed three channels and a shared exponent to 32 bits (:func:`encode_rgb`: 8
+    significant bits for an entry's largest channel; with its uint16 position, 6 bytes an
+    entry, the same as one light of the float16 field).
 
     Parameters
     ----------
@@ -266,8 +334,8 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     Memory: the light coefficients of the whole field, float32 ``(P, 3, L)`` (twice a float16
     field), plus :data:`SLAB_CHUNK` slabs of the grid at a time. Deviations from the papers:
     Haar, not the 8 × 8 DCT of JPEG, across the image (one orthonormal transform whose
-    threshold error is exact); float16 values, not entropy-coded quantised ones (a relight must
-    read them directly).
+    threshold error is exact); fixed-size RGBE-like codes, not entropy-coded quantised values (a
+    relight must read them directly).
     """
     from facegeo.lighting.compress import _check_pow2, haar2d_nonstandard
 
@@ -301,33 +369,32 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     lo = np.log2(total) - 120.0
     n_bins = 140 * THRESHOLD_BINS_PER_OCTAVE
     energy = np.zeros(n_bins + 1)
-    peak = 0.0
     for j0 in range(0, n_l, SLAB_CHUNK):
         m2 = (slabs(j0) ** 2).sum(axis=1).ravel()
         m2 = m2[m2 > 0]
-        peak = max(peak, float(m2.max(initial=0.0)))
         b = np.clip(((np.log2(m2) - lo) * THRESHOLD_BINS_PER_OCTAVE).astype(np.int64), 0, n_bins)
         energy += np.bincount(b, weights=m2, minlength=n_bins + 1)
     dropped = np.cumsum(energy)  # energy of bins 0 … i
     i = int(np.searchsorted(dropped, t * t * total, side="right"))  # bins < i can be dropped
     tau2 = 2.0 ** (lo + i / THRESHOLD_BINS_PER_OCTAVE) if i > 0 else 0.0
     field_error = float(np.sqrt(dropped[i - 1] / total)) if i > 0 else 0.0
-    scale = np.sqrt(peak) / VALUE_HEADROOM
     # pass 2: keep entries ≥ τ, slab by slab (np.nonzero is sorted by slab, then position)
-    ptr = np.zeros(n_l + 1, np.int64)
+    n_seg = -(-g // (1 << 16))
+    ptr = np.zeros(n_l * n_seg + 1, np.int64)
     pos_parts, val_parts = [], []
     for j0 in range(0, n_l, SLAB_CHUNK):
         s = slabs(j0)
         keep = (s ** 2).sum(axis=1) >= tau2
         jj, pp = np.nonzero(keep)
         pos_parts.append(pp)
-        val_parts.append((s[jj, :, pp] / scale).astype(np.float16))
-        ptr[j0 + 1:j0 + 1 + s.shape[0]] = np.bincount(jj, minlength=s.shape[0])
+        val_parts.append(s[jj, :, pp])
+        ptr[j0 * n_seg + 1:(j0 + s.shape[0]) * n_seg + 1] = np.bincount(
+            jj * n_seg + (pp >> 16), minlength=s.shape[0] * n_seg)
     ptr = np.cumsum(ptr)
-    pos = np.concatenate(pos_parts).astype(np.uint16 if g <= 1 << 16 else np.uint32)
-    val = np.ascontiguousarray(np.concatenate(val_parts).reshape(-1, 3))
+    pos = (np.concatenate(pos_parts) & 0xFFFF).astype(np.uint16)
+    code, base = encode_rgb(np.concatenate(val_parts).reshape(-1, 3))
     frac = pos.size / (n_p * n_l)
     log.info("image wavelet field: %d entries (%.3g %% of P·L), field error %.3g for target %g",
              pos.size, 100 * frac, field_error, t)
-    return ImageWaveletField(ptr, pos, val, float(scale), pixel_pos, int(n_theta), int(n_phi),
+    return ImageWaveletField(ptr, int(n_seg), pos, code, int(base), pixel_pos, int(n_theta), int(n_phi),
                              (gh, gw), float(frac), field_error)

@@ -8,31 +8,45 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from facegeo.lighting._fused import _FASTMATH, _half
+from facegeo.lighting._fused import _FASTMATH
 
 __all__ = ["scatter_slabs", "haar_nonstandard_inverse"]
 
 
-@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def scatter_slabs(ptr, pos, val, idx, lw, acc, f16c):  # pragma: no cover - compiled
-    """``acc[c, pos[e]] += half(val[e, c]) · lw[k, c]`` for the entries ``e`` of each selected
-    light-coefficient slab ``idx[k]`` (``ptr[idx[k]] ≤ e < ptr[idx[k] + 1]``).
+@njit(inline="always", cache=True)
+def _channel(code, c):  # pragma: no cover - compiled
+    """Signed 8-bit magnitude of channel ``c`` of a packed entry (see ``_compress_image``)."""
+    m = np.float32((code >> np.uint32(9 * c)) & np.uint32(0xFF))
+    return -m if (code >> np.uint32(9 * c + 8)) & np.uint32(1) else m
 
-    ``ptr`` ``(L + 1,)`` int64, ``pos`` ``(n,)`` uint16/uint32 spatial coefficient index,
-    ``val`` ``(n, 3)`` uint16 bits of float16, ``idx`` ``(K,)`` int64, ``lw`` ``(K, 3)``
-    float32, ``acc`` ``(3, G)`` float32 (accumulated into). Entries of a slab are sorted by
-    ``pos``, so the scatter walks ``acc`` forward.
+
+@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
+def scatter_slabs(ptr, n_seg, pos, code, pw, idx, lw, acc):  # pragma: no cover - compiled
+    """``acc[c, 65536·g + pos[e]] += value(code[e], c) · lw[k, c]`` for the entries ``e`` of
+    each selected light-coefficient slab ``j = idx[k]``, segment g
+    (``ptr[j·n_seg + g] ≤ e < ptr[j·n_seg + g + 1]``).
+
+    ``ptr`` ``(L·n_seg + 1,)`` int64, ``pos`` ``(n,)`` uint16 spatial coefficient index within
+    its segment of 65536,
+    ``code`` ``(n,)`` uint32 packed RGB (three sign + 8-bit magnitudes, a 5-bit shared
+    exponent: value = ± magnitude · ``pw[exponent]``), ``pw`` ``(32,)`` float32, ``idx``
+    ``(K,)`` int64, ``lw`` ``(K, 3)`` float32, ``acc`` ``(3, G)`` float32 (accumulated into).
+    Entries of a slab are sorted by ``pos``, so the scatter walks ``acc`` forward.
     """
     for k in range(idx.size):
         j = idx[k]
         x0 = lw[k, 0]
         x1 = lw[k, 1]
         x2 = lw[k, 2]
-        for e in range(ptr[j], ptr[j + 1]):
-            s = pos[e]
-            acc[0, s] += _half(val[e, 0], f16c) * x0
-            acc[1, s] += _half(val[e, 1], f16c) * x1
-            acc[2, s] += _half(val[e, 2], f16c) * x2
+        for e0 in range(j * n_seg, (j + 1) * n_seg):
+            off = (e0 - j * n_seg) << 16
+            for e in range(ptr[e0], ptr[e0 + 1]):
+                s = off + np.int64(pos[e])
+                v = code[e]
+                p = pw[v >> np.uint32(27)]
+                acc[0, s] += _channel(v, 0) * (p * x0)
+                acc[1, s] += _channel(v, 1) * (p * x1)
+                acc[2, s] += _channel(v, 2) * (p * x2)
 
 
 @njit(nogil=True, cache=True, boundscheck=False)
@@ -71,7 +85,7 @@ def haar_nonstandard_inverse(img, levels):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False)
-def truncation_errors(ptr, pos, val, idx, lw, full, f16c):  # pragma: no cover - compiled
+def truncation_errors(ptr, n_seg, pos, code, pw, idx, lw, full):  # pragma: no cover
     """Squared error ``‖full − Σ_{k' ≤ k} slab idx[k']‖²`` after each slab ``k`` of ``idx``.
 
     Same entries and weights as :func:`scatter_slabs`; ``full`` ``(3, G)`` float32 is the sum
@@ -86,12 +100,15 @@ def truncation_errors(ptr, pos, val, idx, lw, full, f16c):  # pragma: no cover -
     out = np.empty(idx.size)
     for k in range(idx.size):
         j = idx[k]
-        for e in range(ptr[j], ptr[j + 1]):
-            s = pos[e]
-            for c in range(3):
-                old = d[c, s]
-                new = old - np.float64(_half(val[e, c], f16c) * lw[k, c])
-                e2 += new * new - old * old
-                d[c, s] = new
+        for e0 in range(j * n_seg, (j + 1) * n_seg):
+            off = (e0 - j * n_seg) << 16
+            for e in range(ptr[e0], ptr[e0 + 1]):
+                s = off + np.int64(pos[e])
+                p = pw[code[e] >> np.uint32(27)]
+                for c in range(3):
+                    old = d[c, s]
+                    new = old - np.float64(_channel(code[e], c) * (p * lw[k, c]))
+                    e2 += new * new - old * old
+                    d[c, s] = new
         out[k] = max(e2, 0.0)
     return out

@@ -246,6 +246,7 @@ def bench_compress(quick: bool) -> list[BenchRow]:
         row(f"Haar wavelets (Ng 2003), field target {target:g}", wf, t_fit)
         rows[-1].extra["kept_fraction"] = wf.kept_fraction
     rows += _ng_lighting_rows(field, envs, refs)
+    rows += _image_wavelet_rows(quick)
     return rows
 
 
@@ -283,5 +284,100 @@ def _ng_lighting_rows(field, envs, refs) -> list[BenchRow]:
                        "fit_seconds": t_fit, "seconds": t, "budget_seconds": t_budget,
                        "direct_seconds": t_direct,
                        "bytes": wl.nbytes, "field_px": n_p},
+            ))
+    return rows
+
+
+#: Camera size of the generator's image-space field for the light × image Haar rows (fraction
+#: of the paper camera's 480 × 720): quick / full. The full size takes ≈ 45 s to shade.
+IMAGE_FIELD_SCALE = {True: 1 / 8, False: 1 / 4}
+
+
+def generator_olat_field(scale: float, n_theta: int, n_phi: int, *, workers: int = RELIGHT_THREADS):
+    """One camera's OLAT frames from the generator (procedural head, skin field, shadows and
+    specular of the reference renderer, near-field stage lights) as an image-space field.
+
+    Returns ``field (P, L, 3) float16`` (P = the camera's pixels that see the head) and
+    ``pixels (P, 2) int`` (row, column): a spatially coherent field, as a real capture's.
+    """
+    from dataclasses import replace
+
+    from facegeo.synth.capture import PRESETS, build_head, build_rig
+    from facegeo.synth.render import ReferenceRenderer, _ordered_map
+    from facegeo.synth.skin import SkinField
+
+    mesh = build_head("procedural", subdivisions=4, seed=0)
+    rig = build_rig(PRESETS["paper"]).scaled(scale)
+    lights = replace(rig.lights, n_theta=n_theta, n_phi=n_phi)
+    renderer = ReferenceRenderer.from_mesh(mesh, SkinField.for_mesh(mesh, seed=0),
+                                           parts=mesh.metadata["part_labels"])
+    view = renderer.surface_view(rig.cameras[0])
+    n_p = view.n_samples
+    field = np.empty((n_p, lights.n_lights, 3), np.float16)
+    for l, rad in _ordered_map(lambda l: renderer.shade_stage_light(view, lights, l),
+                               range(lights.n_lights), workers):
+        field[:, l] = rad
+    rows = view.to_image(np.repeat(np.arange(n_p, dtype=np.float32)[:, None] + 1, 3, 1))[..., 0]
+    pixels = np.empty((n_p, 2), np.int64)
+    rr, cc = np.nonzero(rows)
+    pixels[rows[rr, cc].astype(np.int64) - 1] = np.stack([rr, cc], -1)
+    return field, pixels
+
+
+def _image_wavelet_rows(quick: bool) -> list[BenchRow]:
+    """The light × image Haar field (:class:`facegeo.lighting.compress.ImageWaveletField`) on the
+    generator's OLAT frames of one camera: every map (smooth, sun, the shared maps when present)
+    at two field targets, K from a relit target of 0.5 %. One thread, against the direct fused
+    float16 relight at one thread; storage against the float16 field, every stored byte."""
+    import time
+
+    from facegeo.lighting import compress as C
+    from facegeo.lighting import envmap as E
+    from facegeo.lighting.relight import relight_field
+    from facegeo.pipeline.benchmarks.calibration import _shared_data
+
+    n_theta, n_phi = (32, 16) if quick else PAPER_GRID
+    t0 = time.perf_counter()
+    field, pixels = generator_olat_field(IMAGE_FIELD_SCALE[quick], n_theta, n_phi)
+    t_shade = time.perf_counter() - t0
+    n_p, n_l, _ = field.shape
+    envs = _envs(n_theta, n_phi)
+    for path in sorted((_shared_data() / "envmaps").glob("*.exr")):
+        envs[path.stem] = E.light_stage_weights(E.read_envmap(path), n_theta, n_phi,
+                                                solid_angle="exact")
+    refs = {k: relight_field(field, w) for k, w in envs.items()}
+    relight_field(field, envs["sun"], workers=1)  # compile outside the timing
+    t_direct = {k: best_of(lambda w=w: relight_field(field, w, workers=1), repeat=5)[0]
+                for k, w in envs.items()}
+    relit_target = 0.005
+    rows = []
+    for target in (0.01, 0.03):
+        t_fit, m = best_of(lambda t=target: C.fit_image_wavelet(field, n_theta, n_phi, pixels,
+                                                                target_error=t), repeat=1)
+        m.relight(envs["sun"], terms=4)  # compile the kernels outside the timing
+        for name, w in envs.items():
+            t_budget, (k, est) = best_of(lambda w=w: m.budget(w, relit_target), repeat=3)
+            t, got = best_of(lambda w=w, k=k: m.relight(w, terms=k), repeat=5)
+            err = C.relative_rmse(got, refs[name])
+            rows.append(BenchRow(
+                "relight.compress",
+                f"light × image Haar, field target {target:g}, {name} map, relit target "
+                f"{relit_target:g} → K = {k}",
+                n_p / t, "relit px/s", error=err, error_unit=f"relative RMSE ({name} map)",
+                ratios={"storage vs float16 field": field.nbytes / m.nbytes,
+                        "speed vs direct float16 relight": t_direct[name] / t,
+                        "speed incl. budget vs direct float16 relight":
+                            t_direct[name] / (t + t_budget)},
+                threads=1,
+                baseline_threads={"storage vs float16 field": 1,
+                                  "speed vs direct float16 relight": 1,
+                                  "speed incl. budget vs direct float16 relight": 1},
+                extra={"terms": k, "terms_fraction": k / n_l, "budget_estimate": est,
+                       "rmse_all_terms": C.relative_rmse(m.relight(w), refs[name]),
+                       "field_error": m.field_error, "kept_fraction": m.kept_fraction,
+                       "fit_seconds": t_fit, "seconds": t, "budget_seconds": t_budget,
+                       "direct_seconds": t_direct[name], "bytes": m.nbytes,
+                       "field_bytes": field.nbytes, "field_px": n_p, "grid": list(m.grid),
+                       "lights": n_l, "shade_seconds": t_shade},
             ))
     return rows
