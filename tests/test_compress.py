@@ -406,3 +406,17 @@ def test_image_wavelet_grids_beyond_uint16_positions(monkeypatch):
 
     monkeypatch.setattr(RL, "_fused_kernel", lambda conversion=None: False)
     assert C.relative_rmse(m.relight(w), a) <= 1e-6
+
+
+def test_image_wavelet_threads_equal_one_thread(image_case, monkeypatch):
+    from facegeo.lighting import _compress_image as CI
+
+    f, pix, ws = image_case
+    m = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
+    monkeypatch.setattr(CI, "PARALLEL_ENTRIES", 0)  # split even this small field
+    for k in (2, 40, 512):
+        a = m.relight(ws["sun"], terms=k, workers=1)
+        b = m.relight(ws["sun"], terms=k, workers=3)
+        assert C.relative_rmse(b, a) <= 1e-6  # float32 summation order only
+    with pytest.raises(InputError, match="workers"):
+        m.relight(ws["sun"], workers=0)

@@ -50,39 +50,41 @@ def scatter_slabs(ptr, n_seg, pos, code, pw, idx, lw, acc):  # pragma: no cover 
                 acc[2, s] += _channel(v, 2) * (p * x2)
 
 
-@njit(nogil=True, cache=True, boundscheck=False)
+@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
 def haar_nonstandard_inverse(img, levels):  # pragma: no cover - compiled
     """In-place inverse non-standard 2-D Haar transform of ``img`` ``(C, H, W)`` float32.
 
     ``levels`` ``(n, 4)`` int64 rows ``(h, w, step θ, step φ)`` from
     :func:`facegeo.lighting.compress._nonstandard_levels` (the columns' axis is the image's
-    width here); the compiled twin of ``haar2d_nonstandard(..., inverse=True)``.
+    width here); the compiled twin of ``haar2d_nonstandard(..., inverse=True)``. The step along
+    the rows' axis combines whole rows (contiguous, vectorised) through a row buffer.
     """
     r = np.float32(np.sqrt(0.5))
     n_c, n_h, n_w = img.shape
-    tmp = np.empty(max(n_h, n_w), np.float32)
+    rows = np.empty((n_h, n_w), np.float32)
+    tmp = np.empty(n_w, np.float32)
     for lev in range(levels.shape[0] - 1, -1, -1):
         h = levels[lev, 0]
         w = levels[lev, 1]
         for c in range(n_c):
             if levels[lev, 3]:  # undo the step along the rows' axis first (reverse order)
-                for x in range(w):
-                    for i in range(h // 2):
-                        s = img[c, i, x]
-                        d = img[c, h // 2 + i, x]
-                        tmp[2 * i] = (s + d) * r
-                        tmp[2 * i + 1] = (s - d) * r
-                    for i in range(h):
-                        img[c, i, x] = tmp[i]
+                for i in range(h // 2):
+                    s = img[c, i, :w]
+                    d = img[c, h // 2 + i, :w]
+                    a = rows[2 * i, :w]
+                    b = rows[2 * i + 1, :w]
+                    for x in range(w):
+                        a[x] = (s[x] + d[x]) * r
+                        b[x] = (s[x] - d[x]) * r
+                for i in range(h):
+                    img[c, i, :w] = rows[i, :w]
             if levels[lev, 2]:
                 for y in range(h):
+                    row = img[c, y]
                     for i in range(w // 2):
-                        s = img[c, y, i]
-                        d = img[c, y, w // 2 + i]
-                        tmp[2 * i] = (s + d) * r
-                        tmp[2 * i + 1] = (s - d) * r
-                    for i in range(w):
-                        img[c, y, i] = tmp[i]
+                        tmp[2 * i] = (row[i] + row[w // 2 + i]) * r
+                        tmp[2 * i + 1] = (row[i] - row[w // 2 + i]) * r
+                    row[:w] = tmp[:w]
 
 
 @njit(nogil=True, cache=True, boundscheck=False)

@@ -15,8 +15,16 @@ of twenty" in storage and computation). Two schemes are implemented here:
   largest coefficients (non-linear approximation, one global threshold from a target error),
   the lighting its largest ``light_terms`` coefficients; relighting is a sparse dot product
   (Parseval: the Haar basis is orthonormal, so the dot product is unchanged).
+* :class:`WaveletLightingField` — Ng et al.'s non-linear approximation of the *lighting* over
+  an exact (float16) transport in the non-standard Haar basis: fast, not smaller.
+* :class:`ImageWaveletField` (:mod:`facegeo.lighting._compress_image`) — for image-space
+  fields: the light Haar coefficients of every pixel, each seen as an image across the pixels,
+  in a spatial Haar basis too (the "JPEG-domain" compression of Smith & Rowe that the paper
+  cites, with Haar for the DCT), one global threshold on the 4-D coefficients, 6-byte entries;
+  relit in the compressed domain from the top-K lighting coefficients, one inverse spatial
+  transform at the end: smaller *and* faster.
 
-Both take the weights of :func:`facegeo.lighting.envmap.light_stage_weights` (δA included).
+All take the weights of :func:`facegeo.lighting.envmap.light_stage_weights` (δA included).
 
 References
 ----------
