@@ -206,24 +206,11 @@ class ImageWaveletField:
             loaded shared machine the thread hand-offs cost more than they save (measured at
             load ≈ 8.6, 240 × 360 field: 12 ms on 2 threads against 3–10 ms on one).
         """
-        from facegeo.lighting.compress import WaveletLightingField
+        from facegeo.lighting.compress import selected_lighting_terms
 
         if int(workers) < 1:
             raise InputError(f"workers: expected ≥ 1, got {fmt_value(workers)}")
-        if terms is not None and target_error is not None:
-            raise InputError("relight: give terms or target_error, not both")
-        wc = self.lighting_coefficients(weights)
-        n_l = wc.shape[0]
-        if target_error is not None:
-            k, _ = self.budget(weights, target_error)
-        elif terms is not None:
-            k = int(terms)
-            if not 1 <= k <= n_l:
-                raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
-        else:
-            k = max(1, int(np.count_nonzero(np.abs(wc).sum(axis=1))))
-        idx = np.ascontiguousarray(WaveletLightingField._top(wc, k), np.int64)
-        lw = np.ascontiguousarray(wc[idx], np.float32)
+        idx, lw = selected_lighting_terms(self, weights, terms, target_error)
         h, w = self.grid
         acc = np.zeros((3, h * w), np.float32)
         n = self.segments

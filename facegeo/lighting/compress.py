@@ -508,25 +508,35 @@ class WaveletLightingField:
             K, the lighting coefficients kept.
         target_error : float, optional
             Instead of ``terms``: K from :meth:`budget` (relative RMSE on the validation
-            pixels). Neither: all L terms (exact up to float32 summation).
+            pixels). Neither: all non-zero terms (exact up to float32 summation).
         """
-        if terms is not None and target_error is not None:
-            raise InputError("relight: give terms or target_error, not both")
-        wc = self.lighting_coefficients(weights)
-        n_l = wc.shape[0]
-        if target_error is not None:
-            k, _ = self.budget(weights, target_error)
-        elif terms is not None:
-            k = int(terms)
-            if not 1 <= k <= n_l:
-                raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
-        else:
-            k = n_l
-        idx = np.ascontiguousarray(self._top(wc, k), np.int64)
-        lw = np.ascontiguousarray(wc[idx], np.float32)
+        idx, lw = selected_lighting_terms(self, weights, terms, target_error)
         out = np.zeros((3, self.n_pixels), np.float32)
         _slab_dot(self.coef, idx, lw, out)
         return np.ascontiguousarray(out.T)
+
+
+def selected_lighting_terms(model: Any, weights: Any, terms: int | None,
+                            target_error: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """The K largest lighting coefficients of a wavelet-lighting model (Ng et al. 2003's
+    non-linear approximation): K = ``terms``, or from ``model.budget(weights, target_error)``,
+    or (neither) every non-zero coefficient. Returns their indices ``(K,)`` int64 and values
+    ``(K, 3)`` float32, largest first. ``model`` has ``lighting_coefficients`` and ``budget``.
+    """
+    if terms is not None and target_error is not None:
+        raise InputError("relight: give terms or target_error, not both")
+    wc = model.lighting_coefficients(weights)
+    n_l = wc.shape[0]
+    if target_error is not None:
+        k, _ = model.budget(weights, target_error)
+    elif terms is not None:
+        k = int(terms)
+        if not 1 <= k <= n_l:
+            raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
+    else:
+        k = max(1, int(np.count_nonzero(np.abs(wc).sum(axis=1))))
+    idx = np.ascontiguousarray(WaveletLightingField._top(wc, k), np.int64)
+    return idx, np.ascontiguousarray(wc[idx], np.float32)
 
 
 def _slab_dot(coef: np.ndarray, idx: np.ndarray, lw: np.ndarray, out: np.ndarray) -> None:
