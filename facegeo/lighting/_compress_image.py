@@ -28,6 +28,13 @@ import numpy as np
 
 from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError, ShapeError
+from facegeo.lighting._compress_haar import (
+    _check_pow2,
+    _nonstandard_levels,
+    haar2d_nonstandard,
+    lighting_order,
+    selected_lighting_terms,
+)
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +160,6 @@ class ImageWaveletField:
 
     def lighting_coefficients(self, weights: Any) -> np.ndarray:
         """The Eq. (4) weights ``(L, 3)`` (δA included) in the non-standard light Haar basis."""
-        from facegeo.lighting.compress import haar2d_nonstandard
 
         n_l = self.n_theta * self.n_phi
         w = as_array(weights, "weights", shape=(n_l, 3))
@@ -170,11 +176,9 @@ class ImageWaveletField:
         passes over the stored entries (a full relight, then every prefix's error by updating
         the residual entry by entry).
         """
-        from facegeo.lighting.compress import WaveletLightingField
-
         t = check_positive(target_error, "target_error")
         wc = self.lighting_coefficients(weights)
-        order = WaveletLightingField._order(wc)
+        order = lighting_order(wc)
         order = np.ascontiguousarray(order[np.abs(wc[order]).sum(axis=1) > 0], np.int64)
         if order.size == 0:
             return 1, 0.0
@@ -206,7 +210,6 @@ class ImageWaveletField:
             loaded shared machine the thread hand-offs cost more than they save (measured at
             load ≈ 8.6, 240 × 360 field: 12 ms on 2 threads against 3–10 ms on one).
         """
-        from facegeo.lighting.compress import selected_lighting_terms
 
         if int(workers) < 1:
             raise InputError(f"workers: expected ≥ 1, got {fmt_value(workers)}")
@@ -291,7 +294,6 @@ def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
 
 def _inverse_spatial(img: np.ndarray) -> np.ndarray:
     """Inverse non-standard 2-D Haar of ``(3, H, W)`` float32 spatial coefficients, in place."""
-    from facegeo.lighting.compress import _nonstandard_levels, haar2d_nonstandard
 
     h, w = img.shape[1:]
     ker = _kernels()
@@ -349,7 +351,6 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     threshold error is exact); fixed-size RGBE-like codes, not entropy-coded quantised values (a
     relight must read them directly).
     """
-    from facegeo.lighting.compress import _check_pow2, haar2d_nonstandard
 
     f = np.asarray(field)
     if f.ndim != 3 or f.shape[1:] != (n_theta * n_phi, 3) or f.dtype.kind != "f":

@@ -10,7 +10,7 @@ from numba import njit
 
 from facegeo.lighting._fused import _FASTMATH
 
-__all__ = ["scatter_slabs", "haar_nonstandard_inverse"]
+__all__ = ["haar_nonstandard_inverse", "scatter_slabs", "truncation_errors"]
 
 
 @njit(inline="always", cache=True)
@@ -55,7 +55,7 @@ def haar_nonstandard_inverse(img, levels):  # pragma: no cover - compiled
     """In-place inverse non-standard 2-D Haar transform of ``img`` ``(C, H, W)`` float32.
 
     ``levels`` ``(n, 4)`` int64 rows ``(h, w, step θ, step φ)`` from
-    :func:`facegeo.lighting.compress._nonstandard_levels` (the columns' axis is the image's
+    :func:`facegeo.lighting._compress_haar._nonstandard_levels` (the columns' axis is the image's
     width here); the compiled twin of ``haar2d_nonstandard(..., inverse=True)``. The step along
     the rows' axis combines whole rows (contiguous, vectorised) through a row buffer.
     """

@@ -241,7 +241,7 @@ def bench_compress(quick: bool) -> list[BenchRow]:
         row(f"low-rank SVD, rank {k}", full.truncated(k), t_fit)
         rows[-1].extra["held_out_light_rmse"] = h
     for target in (0.05, 0.02, 0.01):
-        t_fit, wf = best_of(lambda: C.fit_wavelet(field, n_theta, n_phi, target_error=target),
+        t_fit, wf = best_of(lambda t=target: C.fit_wavelet(field, n_theta, n_phi, target_error=t),
                             repeat=1)
         row(f"Haar wavelets (Ng 2003), field target {target:g}", wf, t_fit)
         rows[-1].extra["kept_fraction"] = wf.kept_fraction
@@ -384,12 +384,13 @@ def image_wavelet_rows(field, pixels, n_theta: int, n_phi: int,
                                                                 target_error=t), repeat=1)
         m.relight(envs["sun"], terms=4)  # compile the kernels outside the timing
         for name, w in envs.items():
-            t_budget, (k, est) = best_of(lambda w=w: m.budget(w, relit_target), repeat=3)
+            t_budget, (k, est) = best_of(lambda w=w, m=m: m.budget(w, relit_target), repeat=3)
             tm = _interleaved_times({
                 "direct": lambda w=w: relight_field(field, w),
                 "direct_1": lambda w=w: relight_field(field, w, workers=1),
-                "compressed": lambda w=w, k=k: m.relight(w, terms=k, workers=RELIGHT_THREADS),
-                "compressed_1": lambda w=w, k=k: m.relight(w, terms=k, workers=1)})
+                "compressed": lambda w=w, k=k, m=m: m.relight(w, terms=k,
+                                                              workers=RELIGHT_THREADS),
+                "compressed_1": lambda w=w, k=k, m=m: m.relight(w, terms=k, workers=1)})
             t, t1 = tm["compressed"][0], tm["compressed_1"][0]
             got = m.relight(w, terms=k, workers=1)
             err = C.relative_rmse(got, refs[name])
