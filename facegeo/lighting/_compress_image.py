@@ -397,7 +397,8 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     pos_parts, val_parts = [], []
     for j0 in range(0, n_l, SLAB_CHUNK):
         s = slabs(j0)
-        keep = (s ** 2).sum(axis=1) >= tau2
+        m2 = (s ** 2).sum(axis=1)
+        keep = (m2 >= tau2) & (m2 > 0)  # never store zeros (padding cells, τ = 0)
         jj, pp = np.nonzero(keep)
         pos_parts.append(pp)
         val_parts.append(s[jj, :, pp])
