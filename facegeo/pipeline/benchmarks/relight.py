@@ -307,7 +307,7 @@ def generator_olat_field(scale: float, n_theta: int, n_phi: int, *, workers: int
     from dataclasses import replace
 
     from facegeo.synth.capture import PRESETS, build_head, build_rig
-    from facegeo.synth.render import ReferenceRenderer, _ordered_map
+    from facegeo.synth.render import ReferenceRenderer
     from facegeo.synth.skin import SkinField
 
     mesh = build_head("procedural", subdivisions=4, seed=0)
@@ -315,16 +315,17 @@ def generator_olat_field(scale: float, n_theta: int, n_phi: int, *, workers: int
     lights = replace(rig.lights, n_theta=n_theta, n_phi=n_phi)
     renderer = ReferenceRenderer.from_mesh(mesh, SkinField.for_mesh(mesh, seed=0),
                                            parts=mesh.metadata["part_labels"])
-    view = renderer.surface_view(rig.cameras[0])
+    cam = rig.cameras[0]
+    view = renderer.surface_view(cam)
     n_p = view.n_samples
-    field = np.empty((n_p, lights.n_lights, 3), np.float16)
-    for l, rad in _ordered_map(lambda l: renderer.shade_stage_light(view, lights, l),
-                               range(lights.n_lights), workers):
-        field[:, l] = rad
     rows = view.to_image(np.repeat(np.arange(n_p, dtype=np.float32)[:, None] + 1, 3, 1))[..., 0]
-    pixels = np.empty((n_p, 2), np.int64)
     rr, cc = np.nonzero(rows)
-    pixels[rows[rr, cc].astype(np.int64) - 1] = np.stack([rr, cc], -1)
+    order = rows[rr, cc].astype(np.int64) - 1  # field row of each image pixel the head covers
+    pixels = np.empty((n_p, 2), np.int64)
+    pixels[order] = np.stack([rr, cc], -1)
+    field = np.empty((n_p, lights.n_lights, 3), np.float16)
+    for l, img in renderer.olat_images(cam, lights, workers=workers):
+        field[order, l] = img[rr, cc]
     return field, pixels
 
 
