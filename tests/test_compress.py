@@ -231,6 +231,10 @@ def test_compiled_nonstandard_haar_equals_numpy():
 #: all lighting terms, for the smooth and the sun map (measured 0.32 % and 0.88 % on this field:
 #: a relit image averages the field's error over the lights it sees).
 IMAGE_WAVELET_RELIT_AT_2PCT = 0.015
+#: Field target 1 % and K from a relit target of 1 %: relit relative RMSE against exact
+#: Eq. (4) for the smooth and the sun map (measured 1.05 % and 1.21 %; bound: the budget's 1 %
+#: plus the all-terms error, 0.20 % and 0.56 %).
+IMAGE_WAVELET_RELIT_AT_BUDGET = 0.015
 #: Near-zero threshold, so only the 8-bit shared-exponent codes round: relit relative RMSE
 #: against exact Eq. (4) (each entry within 1/255 of its largest channel; measured 0.17 % smooth, 0.44 % sun).
 IMAGE_WAVELET_CODES = 6e-3
@@ -341,6 +345,7 @@ def test_image_wavelet_budget(image_case):
             assert e_prev[0] <= k
         ref = relight_field(f, w)
         assert C.relative_rmse(got, ref) <= 0.01 + C.relative_rmse(allk, ref) + 1e-6
+        assert C.relative_rmse(got, ref) <= IMAGE_WAVELET_RELIT_AT_BUDGET, name
         if name == "sun":
             assert k <= 0.15 * GRID[0] * GRID[1], k
 
