@@ -15,8 +15,16 @@ of twenty" in storage and computation). Two schemes are implemented here:
   largest coefficients (non-linear approximation, one global threshold from a target error),
   the lighting its largest ``light_terms`` coefficients; relighting is a sparse dot product
   (Parseval: the Haar basis is orthonormal, so the dot product is unchanged).
+* :class:`WaveletLightingField` — Ng et al.'s non-linear approximation of the *lighting* over
+  an exact (float16) transport in the non-standard Haar basis: fast, not smaller.
+* :class:`ImageWaveletField` (:mod:`facegeo.lighting._compress_image`) — for image-space
+  fields: the light Haar coefficients of every pixel, each seen as an image across the pixels,
+  in a spatial Haar basis too (the "JPEG-domain" compression of Smith & Rowe that the paper
+  cites, with Haar for the DCT), one global threshold on the 4-D coefficients, 6-byte entries;
+  relit in the compressed domain from the top-K lighting coefficients, one inverse spatial
+  transform at the end: smaller *and* faster.
 
-Both take the weights of :func:`facegeo.lighting.envmap.light_stage_weights` (δA included).
+All take the weights of :func:`facegeo.lighting.envmap.light_stage_weights` (δA included).
 
 References
 ----------
@@ -34,12 +42,20 @@ import numpy as np
 
 from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError, ShapeError
+from facegeo.lighting._compress_haar import (
+    _check_pow2,
+    _nonstandard_levels,  # noqa: F401 - re-exported (named in _fused.py)
+    haar2d_nonstandard,
+    lighting_order,
+    selected_lighting_terms,
+    top_terms,
+)
 
 log = logging.getLogger(__name__)
 
 __all__ = ["haar2d", "ihaar2d", "haar2d_nonstandard", "LowRankField", "WaveletField",
-           "WaveletLightingField", "fit_low_rank", "fit_wavelet", "fit_wavelet_lighting",
-           "held_out_error", "relative_rmse"]
+           "WaveletLightingField", "ImageWaveletField", "fit_low_rank", "fit_wavelet",
+           "fit_wavelet_lighting", "fit_image_wavelet", "held_out_error", "relative_rmse"]
 
 
 def relative_rmse(got: Any, ref: Any) -> float:
@@ -203,12 +219,6 @@ def _haar_axis(x: np.ndarray, axis: int, inverse: bool) -> np.ndarray:
     return np.moveaxis(x, -1, axis)
 
 
-def _check_pow2(n_theta: int, n_phi: int) -> None:
-    for name, n in (("n_theta", n_theta), ("n_phi", n_phi)):
-        if n < 1 or n & (n - 1):
-            raise InputError(f"{name}: the Haar basis needs a power of two, got {n}")
-
-
 def haar2d(x: Any, n_theta: int, n_phi: int) -> np.ndarray:
     """Orthonormal 2-D (tensor-product) Haar transform of light images.
 
@@ -308,82 +318,6 @@ def fit_wavelet(field: Any, n_theta: int, n_phi: int, *, target_error: float = 0
 # non-linear wavelet approximation of the lighting, exact transport in the same basis
 
 
-def _haar_step(x: np.ndarray, axis: int, n: int, inverse: bool) -> None:
-    """One orthonormal Haar step in place on the first ``n`` entries of ``axis`` (−1 or −2) of
-    ``x`` (forward: pairs → ``[averages | details]``; inverse: the reverse)."""
-    r = np.sqrt(0.5)
-
-    def sl(s: slice) -> tuple:
-        return (Ellipsis, s) if axis == -1 else (Ellipsis, s, slice(None))
-
-    if not inverse:
-        a = x[sl(slice(0, n, 2))].copy()
-        b = x[sl(slice(1, n, 2))]
-        d = (a - b) * r
-        a += b
-        a *= r
-        x[sl(slice(0, n // 2))] = a
-        x[sl(slice(n // 2, n))] = d
-    else:
-        s = x[sl(slice(0, n // 2))].copy()
-        d = x[sl(slice(n // 2, n))].copy()
-        x[sl(slice(0, n, 2))] = (s + d) * r
-        x[sl(slice(1, n, 2))] = (s - d) * r
-
-
-def _nonstandard_levels(n_theta: int, n_phi: int) -> list[tuple[int, int, bool, bool]]:
-    """The non-standard decomposition's levels: ``(h, w, step θ, step φ)`` per level."""
-    levels = []
-    h, w = n_phi, n_theta
-    while h > 1 or w > 1:
-        levels.append((h, w, w > 1, h > 1))
-        h, w = max(1, h // 2), max(1, w // 2)
-    return levels
-
-
-def haar2d_nonstandard(x: Any, n_theta: int, n_phi: int, *, inverse: bool = False,
-                       compiled: bool = False) -> np.ndarray:
-    """Orthonormal **non-standard** 2-D Haar transform of light images (Ng et al. 2003 §4).
-
-    At every level one Haar step runs along θ and along φ over the current low-pass block,
-    then the recursion continues on its low-low quarter (when one side reaches 1 the other
-    continues alone). Unlike the tensor-product (standard) transport of :func:`haar2d`, a point
-    light (one cell) has only ``3·log₂(n_φ) + 2`` non-zero coefficients (17 on the 64 × 32 grid
-    instead of 42), which is what makes a sun cheap to approximate.
-
-    ``x`` is ``(..., L)`` in light-index order (``l = j·n_theta + i``); returns ``(..., L)``
-    float64 (``inverse=True`` undoes it). ``compiled=True`` runs the forward transform in a numba
-    loop when numba is installed (one lighting per relight: the numpy steps' overhead is
-    ≈ 30 µs each).
-    """
-    _check_pow2(n_theta, n_phi)
-    a = np.asarray(x, np.float64)
-    img = np.array(a.reshape(a.shape[:-1] + (n_phi, n_theta)), np.float64, copy=True)
-    levels = _nonstandard_levels(n_theta, n_phi)
-    if compiled and not inverse and levels:
-        from facegeo.lighting.relight import _fused_kernel
-
-        if _fused_kernel():  # numba present
-            from facegeo.lighting._fused import haar_nonstandard_forward
-
-            flat = img.reshape((-1, n_phi, n_theta))
-            haar_nonstandard_forward(flat, np.array(levels, np.int64))
-            return flat.reshape(a.shape)
-    for h, w, st, sp in (reversed(levels) if inverse else levels):
-        block = img[..., :h, :w]
-        if not inverse:
-            if st:
-                _haar_step(block, -1, w, False)
-            if sp:
-                _haar_step(block, -2, h, False)
-        else:
-            if sp:
-                _haar_step(block, -2, h, True)
-            if st:
-                _haar_step(block, -1, w, True)
-    return img.reshape(a.shape)
-
-
 #: Lighting terms added per step of :meth:`WaveletLightingField.budget`'s search.
 BUDGET_BLOCK = 32
 
@@ -441,23 +375,8 @@ class WaveletLightingField:
         w = as_array(weights, "weights", shape=(n_l, 3))
         return haar2d_nonstandard(w.T, self.n_theta, self.n_phi, compiled=True).T  # (L, 3)
 
-    @staticmethod
-    def _order(wc: np.ndarray) -> np.ndarray:
-        """Coefficients by decreasing magnitude (summed over channels): the non-linear
-        approximation's order."""
-        return np.argsort(-np.abs(wc).sum(axis=1), kind="stable")
-
-    @classmethod
-    def _top(cls, wc: np.ndarray, k: int) -> np.ndarray:
-        """The first ``k`` of :meth:`_order` (ties to the lower index) in O(L + k log k)."""
-        mag = np.abs(wc).sum(axis=1)
-        if k >= mag.size:
-            return cls._order(wc)
-        kth = np.partition(mag, mag.size - k)[mag.size - k]  # the k-th largest magnitude
-        above = np.flatnonzero(mag > kth)
-        sel = np.concatenate([above, np.flatnonzero(mag == kth)[: k - above.size]])
-        sel.sort()
-        return sel[np.argsort(-mag[sel], kind="stable")]
+    _order = staticmethod(lighting_order)
+    _top = staticmethod(top_terms)
 
     def budget(self, weights: Any, target_error: float) -> tuple[int, float]:
         """The smallest number K of lighting terms whose relit error on the validation pixels
@@ -500,22 +419,9 @@ class WaveletLightingField:
             K, the lighting coefficients kept.
         target_error : float, optional
             Instead of ``terms``: K from :meth:`budget` (relative RMSE on the validation
-            pixels). Neither: all L terms (exact up to float32 summation).
+            pixels). Neither: all non-zero terms (exact up to float32 summation).
         """
-        if terms is not None and target_error is not None:
-            raise InputError("relight: give terms or target_error, not both")
-        wc = self.lighting_coefficients(weights)
-        n_l = wc.shape[0]
-        if target_error is not None:
-            k, _ = self.budget(weights, target_error)
-        elif terms is not None:
-            k = int(terms)
-            if not 1 <= k <= n_l:
-                raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
-        else:
-            k = n_l
-        idx = np.ascontiguousarray(self._top(wc, k), np.int64)
-        lw = np.ascontiguousarray(wc[idx], np.float32)
+        idx, lw = selected_lighting_terms(self, weights, terms, target_error)
         out = np.zeros((3, self.n_pixels), np.float32)
         _slab_dot(self.coef, idx, lw, out)
         return np.ascontiguousarray(out.T)
@@ -566,3 +472,9 @@ def fit_wavelet_lighting(field: Any, n_theta: int, n_phi: int, *,
     sample = np.sort(rng.choice(n_p, size=min(int(validation_pixels), n_p), replace=False))
     sample_coef = np.ascontiguousarray(coef[:, :, sample].transpose(2, 1, 0), np.float32)
     return WaveletLightingField(coef, int(n_theta), int(n_phi), sample, sample_coef)
+
+
+# --------------------------------------------------------------------------- light × image Haar
+# (defined in a private module; it uses the helpers above, so it is imported last)
+
+from facegeo.lighting._compress_image import ImageWaveletField, fit_image_wavelet

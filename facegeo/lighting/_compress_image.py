@@ -1,0 +1,414 @@
+"""Relighting from a field compressed in the light domain *and* across the image (private to
+:mod:`facegeo.lighting.compress`, which re-exports :class:`ImageWaveletField` and
+:func:`fit_image_wavelet`).
+
+The transport of an image-space field is a 4-D signal: two light coordinates (φ, θ) and two
+image coordinates (row, column). Each reflectance function goes to the non-standard Haar basis
+of the light image (Ng, Ramamoorthi & Hanrahan 2003); each resulting coefficient, seen across
+the pixels, is an image ("slab" j), which goes to the non-standard Haar basis of the image
+grid — the spatial (JPEG-domain) compression of Smith & Rowe 1993 that the paper's "factor of
+twenty" refers to, with Haar instead of the 8 × 8 DCT. Both bases are orthonormal, so one global
+magnitude threshold on the 4-D coefficients drops exactly the squared error it says (Parseval),
+and a relight is, by linearity,
+
+    relit image = H_s⁻¹ ( Σ_{j ∈ top-K of the lighting} ŵ_j · S_j )            (Eq. 4)
+
+with ŵ the lighting's light-Haar coefficients (the K largest, Ng et al.'s non-linear lighting
+approximation), S_j slab j's sparse spatial coefficients, and one inverse spatial transform at
+the end: the sum runs in the compressed domain and touches only the K slabs' stored entries.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from facegeo.checks import as_array, check_positive, fmt_value
+from facegeo.errors import InputError, ShapeError
+from facegeo.lighting._compress_haar import (
+    _check_pow2,
+    _nonstandard_levels,
+    haar2d_nonstandard,
+    lighting_order,
+    selected_lighting_terms,
+)
+
+log = logging.getLogger(__name__)
+
+#: Bins per octave of the squared-magnitude histogram that chooses the threshold in
+#: :func:`fit_image_wavelet` (the threshold is the lower edge of a bin, so the dropped energy is
+#: at most the target's; 32 bins per octave of energy ≈ 1 % steps in the threshold).
+THRESHOLD_BINS_PER_OCTAVE = 32
+
+#: Entries to scatter below which a relight stays on one thread (a thread hand-off costs
+#: ≈ 0.1 ms, ≈ 30,000 entries' work).
+PARALLEL_ENTRIES = 100_000
+
+#: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · grid float32).
+SLAB_CHUNK = 32
+
+#: Bits of each channel's magnitude in a packed entry (9-bit two's complement mantissas: three
+#: channels and a 5-bit shared exponent fill a uint32): the largest channel keeps 8 significant
+#: bits, so the rounding error is ≤ 1/255 of the entry's largest channel (RGBE-like, signed).
+MAGNITUDE_BITS = 8
+EXPONENT_LEVELS = 32
+
+
+def encode_rgb(v: np.ndarray) -> tuple[np.ndarray, int]:
+    """Pack ``(n, 3)`` float RGB coefficients into ``(n,)`` uint32 with one shared exponent per
+    entry: three 9-bit two's complement mantissas m (|m| ≤ 255) in bits 0–26 and a 5-bit
+    exponent e in bits 27–31; value = m · 2^(e + base). Returns the codes and ``base`` (the largest
+    entry uses the top exponent; entries more than 2³² below it flush to zero).
+    """
+    v = np.asarray(v, np.float64)
+    big = np.abs(v).max(axis=1)
+    top = (1 << MAGNITUDE_BITS) - 1
+    base = (int(np.ceil(np.log2(big.max() / top))) - (EXPONENT_LEVELS - 1)) if big.size and \
+        big.max() > 0 else 0
+    with np.errstate(divide="ignore"):
+        e = np.ceil(np.log2(np.maximum(big, 1e-300) / top)).astype(np.int64) - base
+    e = np.clip(e, 0, EXPONENT_LEVELS - 1)
+    mag = np.rint(np.abs(v) / np.ldexp(1.0, (e + base))[:, None]).astype(np.int64)
+    over = mag.max(axis=1) > top  # log2 rounding at a power of two: one exponent up
+    e[over] += 1
+    mag = np.minimum(np.rint(np.abs(v) / np.ldexp(1.0, (e + base))[:, None]), top).astype(np.uint32)
+    code = e.astype(np.uint32) << np.uint32(27)
+    m = np.where(np.signbit(v), -mag.astype(np.int64), mag.astype(np.int64))
+    for c in range(3):
+        code |= (m[:, c] & 0x1FF).astype(np.uint32) << np.uint32(9 * c)
+    return code, base
+
+
+def exponent_table(base: int) -> np.ndarray:
+    """``(32,)`` float32 ``2^(e + base)`` for the exponent field of :func:`encode_rgb`."""
+    return np.ldexp(1.0, np.arange(EXPONENT_LEVELS) + base).astype(np.float32)
+
+
+def decode_rgb(code: np.ndarray, base: int) -> np.ndarray:
+    """Inverse of :func:`encode_rgb`: ``(n, 3)`` float32."""
+    code = np.asarray(code, np.uint32)
+    out = np.empty((code.size, 3), np.float32)
+    p = exponent_table(base)[code >> np.uint32(27)]
+    for c in range(3):  # the 9-bit field to the top, then an arithmetic shift sign-extends it
+        m = (code << np.uint32(23 - 9 * c)).view(np.int32) >> np.int32(23)
+        out[:, c] = m.astype(np.float32) * p
+    return out
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(0, int(n - 1).bit_length())
+
+
+@dataclass
+class ImageWaveletField:
+    """An image-space reflectance field as thresholded 4-D Haar coefficients (light × image),
+    stored light-coefficient-major for relighting from the top K lighting coefficients.
+
+    Attributes
+    ----------
+    ptr : (L · segments + 1,) int64
+        Entries of light-coefficient slab j whose spatial index lies in segment g (indices
+        ``65536·g … 65536·g + 65535``) are ``ptr[j·segments + g] : ptr[j·segments + g + 1]``.
+    segments : int
+        ``⌈grid size / 65536⌉``: the segments let positions be uint16 on any grid.
+    pos : (n,) uint16
+        Spatial coefficient index of each entry in the ``grid`` (row-major) minus its
+        segment's start, sorted in a slab.
+    code : (n,) uint32
+        The entry's RGB coefficients packed by :func:`encode_rgb` (6 bytes an entry with
+        ``pos``).
+    base : int
+        Exponent base of the codes.
+    pixel_pos : (P,) int32
+        Grid index of each field row (pixel).
+    n_theta, n_phi : int
+        The light grid (powers of two).
+    grid : (int, int)
+        ``(H, W)`` of the image grid, powers of two (the pixels' bounding box, padded).
+    kept_fraction : float
+        Kept entries (one per light coefficient and grid cell, RGB together) over P · L.
+    field_error : float
+        Relative Frobenius error of the field from the threshold (exact by Parseval; the
+        8-bit rounding of the kept values not included).
+    """
+
+    ptr: np.ndarray
+    segments: int
+    pos: np.ndarray
+    code: np.ndarray
+    base: int
+    pixel_pos: np.ndarray
+    n_theta: int
+    n_phi: int
+    grid: tuple[int, int]
+    kept_fraction: float
+    field_error: float
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.pixel_pos.size)
+
+    @property
+    def nbytes(self) -> int:
+        """Storage, every array counted: slab pointers, spatial indices, codes, pixel map (and
+        the exponent base)."""
+        return int(self.ptr.nbytes + self.pos.nbytes + self.code.nbytes + self.pixel_pos.nbytes
+                   + 8)
+
+    def lighting_coefficients(self, weights: Any) -> np.ndarray:
+        """The Eq. (4) weights ``(L, 3)`` (δA included) in the non-standard light Haar basis."""
+
+        n_l = self.n_theta * self.n_phi
+        w = as_array(weights, "weights", shape=(n_l, 3))
+        return haar2d_nonstandard(w.T, self.n_theta, self.n_phi, compiled=True).T
+
+    def budget(self, weights: Any, target_error: float) -> tuple[int, float]:
+        """The smallest K whose relight from the K largest lighting coefficients is within
+        ``target_error`` (relative RMSE) of the relight from all of them, and that error.
+
+        Measured in the spatial coefficient domain on the whole grid (Parseval: the padded grid
+        includes the pixels, so this is ≥ the error on the pixels), against this compressed
+        field's full relight, so the error against exact Eq. (4) is at most this plus the
+        transport's (:attr:`field_error` for the field; far less for a relit image). Costs two
+        passes over the stored entries (a full relight, then every prefix's error by updating
+        the residual entry by entry).
+        """
+        t = check_positive(target_error, "target_error")
+        wc = self.lighting_coefficients(weights)
+        order = lighting_order(wc)
+        order = np.ascontiguousarray(order[np.abs(wc[order]).sum(axis=1) > 0], np.int64)
+        if order.size == 0:
+            return 1, 0.0
+        lw = np.ascontiguousarray(wc[order], np.float32)
+        full = np.zeros((3, self.grid[0] * self.grid[1]), np.float32)
+        _scatter(self, order, lw, full)
+        e2 = _truncation_errors(self, order, lw, full)
+        norm2 = max(float((full.astype(np.float64) ** 2).sum()), 1e-300)
+        ok = np.flatnonzero(e2 <= t * t * norm2)
+        k = int(ok[0]) if ok.size else order.size - 1
+        return k + 1, float(np.sqrt(e2[k] / norm2))
+
+    def relight(self, weights: Any, *, terms: int | None = None,
+                target_error: float | None = None, workers: int = 1) -> np.ndarray:
+        """Eq. (4) from the compressed field: ``(P, 3)`` float32.
+
+        Parameters
+        ----------
+        weights : (L, 3) float
+            Eq. (4) weights (δA included).
+        terms : int, optional
+            K, the lighting coefficients kept (Ng et al. 2003's non-linear approximation).
+        target_error : float, optional
+            Instead of ``terms``: K from :meth:`budget`. Neither: every non-zero lighting
+            coefficient (the compressed transport's own error only).
+        workers : int
+            Threads for the scatter: the K slabs split in parts of equal entry counts, one
+            accumulator each, summed. Default 1: a relight takes milliseconds, and on the
+            loaded shared machine the thread hand-offs cost more than they save (measured at
+            load ≈ 8.6, 240 × 360 field: 12 ms on 2 threads against 3–10 ms on one).
+        """
+
+        if int(workers) < 1:
+            raise InputError(f"workers: expected ≥ 1, got {fmt_value(workers)}")
+        idx, lw = selected_lighting_terms(self, weights, terms, target_error)
+        h, w = self.grid
+        acc = np.zeros((3, h * w), np.float32)
+        n = self.segments
+        counts = self.ptr[(idx + 1) * n] - self.ptr[idx * n]
+        if int(workers) > 1 and idx.size > 1 and counts.sum() >= PARALLEL_ENTRIES:
+            from concurrent.futures import ThreadPoolExecutor
+
+            cum = np.cumsum(counts)
+            cuts = np.searchsorted(cum, cum[-1] * np.arange(1, workers) / workers)
+            parts = np.split(np.arange(idx.size), np.unique(np.clip(cuts + 1, 1, idx.size - 1)))
+            accs = [acc] + [np.zeros_like(acc) for _ in parts[1:]]
+            with ThreadPoolExecutor(max_workers=len(parts)) as pool:  # nogil kernels
+                list(pool.map(lambda i: _scatter(self, idx[parts[i]], lw[parts[i]], accs[i]),
+                              range(len(parts))))
+            for a in accs[1:]:
+                acc += a
+        else:
+            _scatter(self, idx, lw, acc)
+        img = _inverse_spatial(acc.reshape(3, h, w))
+        return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
+
+
+def _kernels():
+    """The numba kernels module, or ``None`` without numba (``relight._fused_kernel`` is the
+    project's one switch for compiled kernels, so tests can turn them all off)."""
+    from facegeo.lighting import relight as _relight
+
+    if not _relight._fused_kernel():
+        return None
+    from facegeo.lighting import _compress_kernels as K
+
+    return K
+
+
+def _scatter(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, acc: np.ndarray) -> None:
+    """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx``."""
+    ker = _kernels()
+    if ker is not None:
+        ker.scatter_slabs(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base), idx, lw,
+                          acc)
+        return
+    sel, p = _slab_entries(f, idx)
+    rep = np.repeat(np.arange(idx.size),
+                    f.ptr[(idx + 1) * f.segments] - f.ptr[idx * f.segments])
+    val = decode_rgb(f.code[sel], f.base)
+    for c in range(3):  # numpy reference: one weighted histogram per channel
+        acc[c] += np.bincount(p,
+                              weights=val[:, c].astype(np.float64) * lw[rep, c],
+                              minlength=acc.shape[1]).astype(np.float32)
+
+
+def _slab_entries(f: ImageWaveletField, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Entry indices of slabs ``idx`` (in that order) and their full grid positions (int64)."""
+    n = f.segments
+    rows = (idx[:, None] * n + np.arange(n)).ravel()  # (slab, segment) rows
+    counts = f.ptr[rows + 1] - f.ptr[rows]
+    sel = np.concatenate([np.arange(f.ptr[r], f.ptr[r + 1]) for r in rows]) if rows.size \
+        else np.zeros(0, np.int64)
+    seg = np.repeat(rows % n, counts)
+    return sel, (seg << 16) + f.pos[sel].astype(np.int64)
+
+
+def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
+                       full: np.ndarray) -> np.ndarray:
+    """``‖full − Σ_{k' ≤ k} slab_k'‖²`` for every prefix k of ``idx`` (``(K,)`` float64)."""
+    ker = _kernels()
+    if ker is not None:
+        return ker.truncation_errors(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base),
+                                     idx, lw, full)
+    d = full.astype(np.float64)
+    out = np.empty(idx.size)
+    for k, j in enumerate(idx):  # numpy reference: one slab at a time
+        sel, p = _slab_entries(f, np.array([j]))
+        d[:, p] -= (decode_rgb(f.code[sel], f.base) * lw[k]).T.astype(np.float64)
+        out[k] = (d ** 2).sum()
+    return out
+
+
+def _inverse_spatial(img: np.ndarray) -> np.ndarray:
+    """Inverse non-standard 2-D Haar of ``(3, H, W)`` float32 spatial coefficients, in place."""
+
+    h, w = img.shape[1:]
+    ker = _kernels()
+    if ker is not None:
+        levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
+        ker.haar_nonstandard_inverse(img, levels)
+        return img
+    return haar2d_nonstandard(img.reshape(3, h * w), w, h, inverse=True).astype(np.float32)
+
+
+def _check_pixels(pixels: Any, n_p: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """Grid index of each pixel (bounding box shifted to the origin, padded to powers of two)."""
+    q = np.asarray(pixels)
+    if q.shape != (n_p, 2) or q.dtype.kind not in "iu":
+        raise ShapeError(f"pixels: expected ({n_p}, 2) integer (row, column) image positions "
+                         f"of the field's rows, got {q.shape} {q.dtype}")
+    q = q.astype(np.int64) - q.min(axis=0)
+    h, w = _pow2(int(q[:, 0].max()) + 1), _pow2(int(q[:, 1].max()) + 1)
+    flat = q[:, 0] * w + q[:, 1]
+    if np.unique(flat).size != n_p:
+        raise InputError("pixels: two field rows share an image position; expected one row "
+                         "per pixel")
+    return flat.astype(np.int32), (h, w)
+
+
+def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
+                      target_error: float = 0.01) -> ImageWaveletField:
+    """Compress an image-space field in the light domain and across the image (4-D Haar).
+
+    Every reflectance function (per channel) goes to the non-standard light Haar basis
+    (:func:`facegeo.lighting.compress.haar2d_nonstandard`), every light coefficient's image to
+    the non-standard Haar basis of the pixels' padded bounding box; one global threshold τ on
+    the RGB magnitude ``√(Σ_c c²)`` keeps the entries ``≥ τ`` (RGB together: one spatial index
+    for three values), τ the smallest whose dropped energy is ≤ ``target_error²`` of the
+    field's (a histogram of 32 bins per octave of energy, so at most the target). Kept values
+    are packed three channels and a shared exponent to 32 bits (:func:`encode_rgb`: 8
+    significant bits for an entry's largest channel; with its uint16 position, 6 bytes an
+    entry, the same as one light of the float16 field).
+
+    Parameters
+    ----------
+    field : (P, L, 3) float16/float32, L = n_theta · n_phi
+    n_theta, n_phi : int, powers of two
+    pixels : (P, 2) int
+        Image (row, column) of each field row, unique (e.g. ``numpy.argwhere(mask)``).
+    target_error : float
+        Relative Frobenius error of the field, > 0 (the relit error under a smooth
+        environment is much smaller; under a sun it is that of one light's image).
+
+    Notes
+    -----
+    Memory: the light coefficients of the whole field, float32 ``(P, 3, L)`` (twice a float16
+    field), plus :data:`SLAB_CHUNK` slabs of the grid at a time. Deviations from the papers:
+    Haar, not the 8 × 8 DCT of JPEG, across the image (one orthonormal transform whose
+    threshold error is exact); fixed-size RGBE-like codes, not entropy-coded quantised values (a
+    relight must read them directly).
+    """
+
+    f = np.asarray(field)
+    if f.ndim != 3 or f.shape[1:] != (n_theta * n_phi, 3) or f.dtype.kind != "f":
+        raise ShapeError(f"field: expected a float field of shape (P, {n_theta * n_phi}, 3), "
+                         f"got {f.shape} {f.dtype}")
+    _check_pow2(n_theta, n_phi)
+    t = check_positive(target_error, "target_error")
+    n_p, n_l, _ = f.shape
+    pixel_pos, (gh, gw) = _check_pixels(pixels, n_p)
+    if not np.all(np.isfinite(f)):
+        raise InputError("field: non-finite samples (masked pixels) cannot be compressed; fill "
+                         "or drop those pixels first")
+    g = gh * gw
+    light = np.empty((n_l, 3, n_p), np.float32)  # slab-major light coefficients
+    for r0 in range(0, n_p, 4096):
+        c = haar2d_nonstandard(np.asarray(f[r0:r0 + 4096], np.float64).transpose(0, 2, 1),
+                               n_theta, n_phi)  # (rows, 3, L)
+        light[:, :, r0:r0 + c.shape[0]] = c.transpose(2, 1, 0)
+
+    def slabs(j0: int) -> np.ndarray:
+        grid = np.zeros((min(n_l, j0 + SLAB_CHUNK) - j0, 3, g), np.float64)
+        grid[:, :, pixel_pos] = light[j0:j0 + grid.shape[0]]
+        return haar2d_nonstandard(grid, gw, gh)  # image width plays θ, height φ
+
+    # pass 1: histogram of squared RGB magnitudes (energy per bin) → threshold
+    total = float((light.astype(np.float64) ** 2).sum())
+    if total == 0.0:
+        raise InputError("field: all zero; nothing to compress")
+    lo = np.log2(total) - 120.0
+    n_bins = 140 * THRESHOLD_BINS_PER_OCTAVE
+    energy = np.zeros(n_bins + 1)
+    for j0 in range(0, n_l, SLAB_CHUNK):
+        m2 = (slabs(j0) ** 2).sum(axis=1).ravel()
+        m2 = m2[m2 > 0]
+        b = np.clip(((np.log2(m2) - lo) * THRESHOLD_BINS_PER_OCTAVE).astype(np.int64), 0, n_bins)
+        energy += np.bincount(b, weights=m2, minlength=n_bins + 1)
+    dropped = np.cumsum(energy)  # energy of bins 0 … i
+    i = int(np.searchsorted(dropped, t * t * total, side="right"))  # bins < i can be dropped
+    tau2 = 2.0 ** (lo + i / THRESHOLD_BINS_PER_OCTAVE) if i > 0 else 0.0
+    field_error = float(np.sqrt(dropped[i - 1] / total)) if i > 0 else 0.0
+    # pass 2: keep entries ≥ τ, slab by slab (np.nonzero is sorted by slab, then position)
+    n_seg = -(-g // (1 << 16))
+    ptr = np.zeros(n_l * n_seg + 1, np.int64)
+    pos_parts, val_parts = [], []
+    for j0 in range(0, n_l, SLAB_CHUNK):
+        s = slabs(j0)
+        m2 = (s ** 2).sum(axis=1)
+        keep = (m2 >= tau2) & (m2 > 0)  # never store zeros (padding cells, τ = 0)
+        jj, pp = np.nonzero(keep)
+        pos_parts.append(pp)
+        val_parts.append(s[jj, :, pp])
+        ptr[j0 * n_seg + 1:(j0 + s.shape[0]) * n_seg + 1] = np.bincount(
+            jj * n_seg + (pp >> 16), minlength=s.shape[0] * n_seg)
+    ptr = np.cumsum(ptr)
+    pos = (np.concatenate(pos_parts) & 0xFFFF).astype(np.uint16)
+    code, base = encode_rgb(np.concatenate(val_parts).reshape(-1, 3))
+    frac = pos.size / (n_p * n_l)
+    log.info("image wavelet field: %d entries (%.3g %% of P·L), field error %.3g for target %g",
+             pos.size, 100 * frac, field_error, t)
+    return ImageWaveletField(ptr, int(n_seg), pos, code, int(base), pixel_pos, int(n_theta), int(n_phi),
+                             (gh, gw), float(frac), field_error)
