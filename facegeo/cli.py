@@ -424,6 +424,7 @@ def _common_options() -> argparse.ArgumentParser:
 
 def build_parser() -> argparse.ArgumentParser:
     from facegeo.pipeline.reconstruct import RIG_CHOICES
+    from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 
     p = _Parser(
         prog="facegeo",
@@ -529,7 +530,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="atlas resolution on the surface")
     g.add_argument("--size", type=_nonneg_int, default=None, help="atlas size in texels instead")
     s.add_argument("--padding", type=_nonneg_int, default=2, help="texels between charts")
-    s.add_argument("--split-faces", type=_nonneg_int, default=25000,
+    s.add_argument("--split-faces", type=_nonneg_int, default=DEFAULT_SPLIT_FACES,
                    help="parameterise in pieces of about this many triangles (0: one piece)")
     s.add_argument("--repair", action="store_true",
                    help="drop degenerate and non-manifold faces instead of refusing the mesh")

@@ -66,10 +66,15 @@ def _held_out_residuals(cam, p, q) -> np.ndarray:
     return q_pred.reshape(-1, 2) - q
 
 
-def select_model(object_points, image_points, image_size, *,
+def select_model(object_points, image_points, image_size, *, solve, models,
                  candidates=AUTO_CANDIDATES, folds: int = AUTO_FOLDS, seed: int = 0,
                  min_views: int = 3, fallback: str = AUTO_FALLBACK, **kwargs) -> dict:
     """Choose a camera's distortion model by k-fold cross-validation over its views.
+
+    ``solve`` and ``models`` are :func:`~._calib_solve.calibrate_camera` and
+    :data:`~._calib_solve.MODELS`, passed in by that module (which calls this one for
+    ``model="auto"``) so that neither module imports the other back; the public
+    :func:`facegeo.geometry.calibration.select_model` binds them.
 
     Parameters
     ----------
@@ -111,8 +116,8 @@ def select_model(object_points, image_points, image_size, *,
         Unknown candidate, ``folds`` < 2.
     """
     from facegeo.geometry._calib_detect import as_corner_lists
-    from facegeo.geometry._calib_solve import MODELS, calibrate_camera
 
+    MODELS, calibrate_camera = models, solve
     P, Q = as_corner_lists(object_points, image_points)
     for m in candidates:
         check_choice(m, "candidates", tuple(MODELS))

@@ -502,7 +502,8 @@ def calibrate_camera(object_points, image_points, image_size, *, model: str = "o
 
         u = np.flatnonzero(usable)
         selection = select_model(
-            [P[i] for i in u], [Q[i] for i in u], size, min_views=min_views,
+            [P[i] for i in u], [Q[i] for i in u], size, solve=calibrate_camera, models=MODELS,
+            min_views=min_views,
             fix_aspect_ratio=fix_aspect_ratio, K_init=K_init, loss=loss, f_scale=f_scale,
             reject_views=reject_views, reject_factor=reject_factor,
             reject_floor_px=reject_floor_px, fallback=auto_fallback, name=name)

@@ -40,7 +40,8 @@ from facegeo.geometry._calib_projector import (
     PROJECTOR_MIN_PIXELS, PROJECTOR_WINDOW_PX, projector_corners,
 )
 from facegeo.geometry._calib_rig import RigCalibration, calibrate_rig, cross_validate
-from facegeo.geometry._calib_select import AUTO_CANDIDATES, select_model
+from facegeo.geometry._calib_select import AUTO_CANDIDATES
+from facegeo.geometry._calib_select import select_model as _select_model
 from facegeo.geometry._calib_solve import (
     MODEL_FREE, MODELS, CameraCalibration, calibrate_camera, model_of_dist, project_points,
     rotate_rvec,
@@ -55,3 +56,12 @@ __all__ = [
     "calibrate_camera", "calibrate_rig", "cross_validate", "model_of_dist", "project_points", "rotate_rvec",
     "select_model",
 ]
+
+
+def select_model(object_points, image_points, image_size, **kwargs) -> dict:
+    """Choose a camera's distortion model by k-fold cross-validation over its views
+    (:func:`._calib_select.select_model` with facegeo's solver, :func:`calibrate_camera`;
+    keyword arguments as there)."""
+    return _select_model(object_points, image_points, image_size, solve=calibrate_camera,
+                         models=MODELS, **kwargs)
+

@@ -182,7 +182,7 @@ def haar_nonstandard_forward(img, levels):  # pragma: no cover - compiled
     """In-place forward non-standard 2-D Haar transform of ``img`` ``(C, H, W)`` float64.
 
     ``levels`` ``(n, 4)`` int64 rows ``(h, w, step θ, step φ)`` from
-    :func:`facegeo.lighting.compress._nonstandard_levels`; the compiled twin of
+    :func:`facegeo.lighting._compress_haar._nonstandard_levels`; the compiled twin of
     :func:`facegeo.lighting.compress.haar2d_nonstandard` for one lighting per relight (the numpy
     version's per-step overhead dominated a relight of K slabs; tested equal).
     """

@@ -66,9 +66,9 @@ def default_views(cameras: list[str], novel: list[str] = ()) -> list[str]:
     """The novel views the demo renders: every source camera, ±30° and ±60° orbits of the
     rig's frontal camera (:func:`facegeo.render.front_camera`), and the generator's novel
     cameras."""
-    from facegeo.pipeline.reconstruct import RENDER_ORBITS
+    from facegeo.render._cameras import FRONT, NOVEL_ORBITS
 
-    return list(cameras) + [f"orbit:front:{d:g}" for d in RENDER_ORBITS] + list(novel)
+    return list(cameras) + [f"orbit:{FRONT}:{d:g}" for d in NOVEL_ORBITS] + list(novel)
 
 
 def _camera_table(scan, rig) -> dict:

@@ -40,6 +40,7 @@ from typing import Any
 from facegeo.checks import fmt_value
 from facegeo.errors import FacegeoError, InputError
 from facegeo.pipeline.cache import Pipeline, StageContext, StageResult, StageSpec
+from facegeo.render._cameras import FRONT, NOVEL_ORBITS
 
 __all__ = ["STAGES", "MESH_CHOICES", "RIG_CHOICES", "reconstruct_pipeline", "run_reconstruct"]
 
@@ -53,7 +54,7 @@ RIG_CHOICES = ("auto", "ground_truth", "calibrated", "scan")
 #: The render stage's default views: the rig's frontal camera (:func:`facegeo.render.front_camera`,
 #: the source cameras' mean view of the head) orbited by these angles (degrees) — views no
 #: source camera saw (on the two-camera presets, 15° and 45° beyond the outermost camera).
-RENDER_ORBITS = (30.0, -30.0, 60.0, -60.0)
+RENDER_ORBITS = NOVEL_ORBITS
 
 
 def _common_inputs(scan) -> list[Path]:
@@ -131,6 +132,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
     """
     from facegeo.pipeline.fit import FIT_SETTINGS
     from facegeo.pipeline.render import RENDER_DEFAULT_ENV, SHRINKAGE_DEFAULT
+    from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 
     names = _applicable(scan, mesh)
     use_mesh = _resolve_mesh(scan, mesh) if "atlas" in names else None
@@ -227,12 +229,12 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
             return render_products(scan, ctx.upstream["atlas"].parent, ctx.out_dir,
                                    progress=ctx.progress, **ctx.settings)
 
-        views = [f"orbit:front:{d:g}" for d in RENDER_ORBITS]
+        views = [f"orbit:{FRONT}:{d:g}" for d in RENDER_ORBITS]
         fit_settings = dict(FIT_SETTINGS, texels="views", views=views, rig=use_rig)
         specs += [
             StageSpec("atlas", run_atlas, after=mesh_after, inputs=lambda d: mesh_inputs(),
                       settings={"mesh": use_mesh, "texels_per_mm": 1.0, "size": None, "padding": 2,
-                                "split_faces": 25_000, "repair": False}),
+                                "split_faces": DEFAULT_SPLIT_FACES, "repair": False}),
             StageSpec("project", run_project, after=("atlas",) + mesh_after + rig_after,
                       inputs=lambda d: _group_inputs(scan, "olat") + mesh_inputs(),
                       settings={"mesh": use_mesh, "rig": use_rig, "dtype": "float16",

@@ -6,7 +6,13 @@
   store live in private modules re-exported here.
 """
 
-from facegeo.render._cameras import FRONT, front_camera, orbit_camera, parse_camera_spec
+from facegeo.render._cameras import (
+    FRONT,
+    NOVEL_ORBITS,
+    front_camera,
+    orbit_camera,
+    parse_camera_spec,
+)
 from facegeo.render._fitstore import FitStore, FitWriter, light_set
 from facegeo.render.novel import (
     RenderResult,
@@ -23,6 +29,7 @@ from facegeo.render.novel import (
 __all__ = [
     "FRONT",
     "FitStore",
+    "NOVEL_ORBITS",
     "FitWriter",
     "RenderResult",
     "SourceCamera",

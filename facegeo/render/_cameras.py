@@ -65,6 +65,10 @@ def orbit_camera(camera: Camera, degrees: float, *, center=(0.0, 0.0, 0.0),
 
 #: The name of the rig's virtual frontal camera in camera specs (:func:`front_camera`).
 FRONT = "front"
+#: The novel views of the ``render`` stage and of the fit's default views: the frontal camera
+#: orbited by these angles (degrees) — views no source camera saw (on the two-camera presets,
+#: 15° and 45° beyond the outermost camera).
+NOVEL_ORBITS = (30.0, -30.0, 60.0, -60.0)
 
 
 def front_camera(cameras: Mapping[str, Camera], *, center=(0.0, 0.0, 0.0)) -> Camera:
