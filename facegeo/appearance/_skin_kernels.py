@@ -690,13 +690,18 @@ def _solve_small(A, b, P):
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations,
-                sing_sin2, B, cw, chroma):
+                sing_sin2, B, cw, chroma, xtol):
     """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
     ``_skin_fit.gauss_newton_polish`` (same damping, a step kept only where it lowers Σ r²)
     with the analytic Jacobian of :func:`_polish_jacobian` instead of finite differences, and
     JᵀJ, Jᵀr reused after a rejected step (x unchanged). ``p0`` ``(N, 2)`` (ramp at the fixed
     normal) or ``(N, 4)`` (ramp and tangent offsets of the normal). With ``chroma`` the
-    chromaticity rows ``cw μ_s`` (``B``, ``cw`` ``(N, L)``) join the residuals. Returns
+    chromaticity rows ``cw μ_s`` (``B``, ``cw`` ``(N, L)``) join the residuals.
+
+    A function stops before ``iterations`` once converged: when a proposed step has every
+    ``|Δp| ≤ xtol`` and was either rejected (later steps, with the same JᵀJ and more damping,
+    are shorter still) or accepted undamped (λ ≤ 1e-6: a Gauss–Newton step). Steps that small
+    only move p by rounding (0: every function takes all ``iterations``). Returns
     ``(p, Σ r²)``."""
     N, P = p0.shape
     L = wd.shape[1]
@@ -745,9 +750,11 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
                 pt[a] = -g[a]
             if not _solve_small(Am, pt, P):
                 break
+            tiny = True
             for a in range(P):
                 if not np.isfinite(pt[a]):
                     pt[a] = 0.0
+                tiny = tiny and abs(pt[a]) <= xtol
                 pt[a] += x[a]
             vn = _polish_residuals(pt, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
                                    Rds, Rms, two_1mds, ds2k, sing_sin2, rn, xs, nls, Bs, cws,
@@ -757,8 +764,12 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
                     x[a] = pt[a]
                 cur = vn
                 fresh = False
+                if tiny and lam <= 1e-6:
+                    break  # an undamped (Gauss–Newton) step below xtol: converged
                 lam *= 0.1
             else:
+                if tiny:
+                    break  # rejected below xtol: later steps (more damping, same JᵀJ) are smaller
                 lam *= 10.0
         for a in range(P):
             out[i, a] = x[a]

@@ -390,21 +390,26 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     sat = np.zeros((N, L), bool)
     if chunk is None:
         chunk = max(CHUNK, CHUNK_SAMPLES // max(L, 1))
-    with _numba_threads(threads):
-        for i in range(0, N, max(1, int(chunk))):
-            sl = slice(i, min(N, i + int(chunk)))
-            Rc = np.asarray(R[sl], np.float64)
-            if saturation is not None:
-                sat[sl] = (Rc >= float(saturation)).any(axis=2)
-            Rw = Rc / E[None]
-            shadow[sl] = shadow_map(Rw, threshold=shadow_threshold,
-                                    visibility=None if vis is None else vis[sl], saturated=sat[sl])
-            res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
-                             shadow_threshold,
-                             None if d_0 is None else d_0[sl], rounds, specular_gate)
-            D[sl] = res["D"] * E[None]  # float32 on assignment
-            for k in out:
-                out[k].append(res[k])
+    starts = list(range(0, N, max(1, int(chunk))))
+
+    def run(i):
+        # one chunk, written straight into the outputs (disjoint slices of D, shadow, sat)
+        sl = slice(i, min(N, i + int(chunk)))
+        Rc = np.asarray(R[sl], np.float64)
+        if saturation is not None:
+            sat[sl] = (Rc >= float(saturation)).any(axis=2)
+        Rw = Rc / E[None]
+        shadow[sl] = shadow_map(Rw, threshold=shadow_threshold,
+                                visibility=None if vis is None else vis[sl], saturated=sat[sl])
+        res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
+                         shadow_threshold, None if d_0 is None else d_0[sl], rounds,
+                         specular_gate)
+        D[sl] = res["D"] * E[None]  # float32 on assignment
+        return {k: res[k] for k in out}
+
+    for res in _map_chunks(run, starts, threads):
+        for k in out:
+            out[k].append(res[k])
     cat = {k: np.concatenate(val) if val else np.zeros((0,)) for k, val in out.items()}
     flags = cat["flags"].astype(np.int32)
     S = np.subtract(R, D, dtype=np.float32)  # D + S = R up to one float32 rounding
@@ -418,9 +423,32 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                    flags=flags, valid=valid, eta=eta, single_channel=single)
 
 
-@contextlib.contextmanager
-def _numba_threads(threads):
-    """numba's thread count for the block."""
+def _map_chunks(run, starts, threads):
+    """``[run(i) for i in starts]``, on ``threads`` worker threads when > 1 (results in order).
+
+    Each worker takes whole chunks and runs the compiled kernels on one numba thread (numba's
+    thread count is per calling thread), so the numpy steps of one chunk overlap the kernels of
+    another: no thread waits at a parallel region's barrier while the serial steps run (the
+    reason ``prange`` over the functions of a chunk measured slower than one thread under
+    load). The chunks are the same at any thread count and each is computed by the same code,
+    so the results are bit-identical (tested).
+    """
+    t = _check_threads(threads)
+    if t == 1 or len(starts) <= 1:
+        with _numba_threads(1):
+            return [run(i) for i in starts]
+    from concurrent.futures import ThreadPoolExecutor
+
+    def job(i):
+        with _numba_threads(1):
+            return run(i)
+
+    with ThreadPoolExecutor(max_workers=min(t, len(starts)),
+                            thread_name_prefix="facegeo-skin-fit") as pool:
+        return list(pool.map(job, starts))
+
+
+def _check_threads(threads):
     import numba
 
     t = int(threads)
@@ -429,6 +457,15 @@ def _numba_threads(threads):
 
         raise InputError(f"threads: expected 1 to {numba.config.NUMBA_NUM_THREADS}, got "
                          f"{fmt_value(threads)}")
+    return t
+
+
+@contextlib.contextmanager
+def _numba_threads(threads):
+    """numba's thread count for the block (in the calling thread)."""
+    import numba
+
+    t = _check_threads(threads)
     old = numba.get_num_threads()
     numba.set_num_threads(t)
     try:
