@@ -235,3 +235,94 @@ def median_ratios(R, valid, lo, hi):
         mrg[i] = _quantile_sorted(np.sort(rg[:m]), m, 0.5)
         mgb[i] = _quantile_sorted(np.sort(gb[:m]), m, 0.5)
     return mrg, mgb
+
+
+# ------------------------------------------------------------------------------- chunk set-up
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _percentile_select(a, k, q):
+    """:func:`_quantile_sorted` of ``a[:k]`` without sorting it: the two order statistics the
+    linear interpolation needs by selection (``np.partition``, O(k)); ``a`` is reordered."""
+    if k == 0:
+        return np.nan
+    pos = q * (k - 1)
+    i0 = int(math.floor(pos))
+    part = np.partition(a[:k], i0)
+    lo = part[i0]
+    hi = lo
+    if i0 + 1 < k:
+        hi = part[i0 + 1]
+        for j in range(i0 + 2, k):
+            if part[j] < hi:
+                hi = part[j]
+    t = pos - i0
+    if t >= 0.5:
+        return hi - (hi - lo) * (1.0 - t)
+    return lo + (hi - lo) * t
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def prepare_chunk(R, E, saturation, threshold, visibility, has_visibility):
+    """The fit's per-sample set-up of one chunk (``skin.fit_reflectance`` before §4.2), fused.
+
+    White balance ``R / E``; saturated samples (any channel ≥ ``saturation`` in input units;
+    ``saturation`` +inf: none); the §4.4 shadow map of ``skin.shadow_map`` (brightness
+    ``ΣR/E`` at or below ``threshold`` × its 99th percentile over the function's samples,
+    saturated ones counted as 0; lights ``visibility`` hides). Plus what ``_fit_chunk`` needs
+    of the same pass: each function's largest unsaturated brightness (black functions) and the
+    99th percentile of ``|R/E|`` (saturated as 0; the cast-shadow test). No fastmath: the sums
+    keep numpy's order, so the results equal the numpy steps bit for bit (tested).
+
+    Parameters
+    ----------
+    R : (N, L, C) float32 or float64, ≥ 0
+    E : (L, C) float64, light intensities
+    saturation, threshold : float
+    visibility : (N, L) bool (ignored unless ``has_visibility``)
+
+    Returns
+    -------
+    Rw : (N, L, C) float64
+    sat, shadow : (N, L) bool
+    bmax, ref : (N,) float64
+    """
+    N, L, C = R.shape
+    Rw = np.empty((N, L, C))
+    sat = np.zeros((N, L), np.bool_)
+    shadow = np.empty((N, L), np.bool_)
+    bmax = np.empty(N)
+    ref = np.empty(N)
+    for i in prange(N):
+        b = np.empty(L)
+        bz = np.empty(L)
+        nz = np.empty(L)
+        top = -np.inf
+        for j in range(L):
+            s_ = False
+            acc = 0.0
+            sq = 0.0
+            for c in range(C):
+                r = np.float64(R[i, j, c])
+                if r >= saturation:
+                    s_ = True
+                rw = r / E[j, c]
+                Rw[i, j, c] = rw
+                if c == 0:
+                    acc = rw
+                    sq = rw * rw
+                else:
+                    acc = acc + rw
+                    sq = sq + rw * rw
+            sat[i, j] = s_
+            b[j] = acc
+            bz[j] = 0.0 if s_ else acc
+            nz[j] = 0.0 if s_ else math.sqrt(sq)
+            if bz[j] > top:
+                top = bz[j]
+        bmax[i] = top
+        lim = threshold * _percentile_select(bz, L, 0.99)
+        for j in range(L):
+            shadow[i, j] = b[j] <= lim or (has_visibility and not visibility[i, j])
+        ref[i] = _percentile_select(nz, L, 0.99)
+    return Rw, sat, shadow, bmax, ref

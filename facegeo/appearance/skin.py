@@ -391,19 +391,35 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     if chunk is None:
         chunk = max(CHUNK, CHUNK_SAMPLES // max(L, 1))
     starts = list(range(0, N, max(1, int(chunk))))
+    no_vis = np.ones((1, 1), bool)
 
     def run(i):
         # one chunk, written straight into the outputs (disjoint slices of D, shadow, sat)
         sl = slice(i, min(N, i + int(chunk)))
-        Rc = np.asarray(R[sl], np.float64)
-        if saturation is not None:
-            sat[sl] = (Rc >= float(saturation)).any(axis=2)
-        Rw = Rc / E[None]
-        shadow[sl] = shadow_map(Rw, threshold=shadow_threshold,
-                                visibility=None if vis is None else vis[sl], saturated=sat[sl])
+        stats = None
+        if _skin_fit.KERNELS:
+            # white balance, saturation, shadow map and the brightness statistics in one pass
+            from facegeo.appearance._skin_kernels_samples import prepare_chunk
+
+            Rs = R[sl]
+            if Rs.dtype not in (np.float32, np.float64):  # float16 maps, integers: one kernel
+                Rs = Rs.astype(np.float64)
+            Rw, sat[sl], shadow[sl], bmax, ref = prepare_chunk(
+                np.ascontiguousarray(Rs), np.ascontiguousarray(E, np.float64),
+                np.inf if saturation is None else float(saturation), float(shadow_threshold),
+                no_vis if vis is None else np.ascontiguousarray(vis[sl]), vis is not None)
+            stats = (bmax, ref)
+        else:
+            Rc = np.asarray(R[sl], np.float64)
+            if saturation is not None:
+                sat[sl] = (Rc >= float(saturation)).any(axis=2)
+            Rw = Rc / E[None]
+            shadow[sl] = shadow_map(Rw, threshold=shadow_threshold,
+                                    visibility=None if vis is None else vis[sl],
+                                    saturated=sat[sl])
         res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
                          shadow_threshold, None if d_0 is None else d_0[sl], rounds,
-                         specular_gate)
+                         specular_gate, stats)
         D[sl] = res["D"] * E[None]  # float32 on assignment
         return {k: res[k] for k in out}
 
@@ -490,15 +506,21 @@ def _separate_ramp(R, d0, n, v, lights, a0, a1):
 
 
 def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, rounds,
-               gate=0.0):
-    """§4.2 on one chunk of white-balanced functions R ``(n, L, C)``; see :func:`fit_reflectance`."""
+               gate=0.0, stats=None):
+    """§4.2 on one chunk of white-balanced functions R ``(n, L, C)``; see :func:`fit_reflectance`.
+    ``stats``: each function's largest unsaturated brightness and the 99th percentile of its
+    ``|R|`` (saturated samples as 0), when the caller has them (``prepare_chunk``)."""
     n_f, L, C = R.shape
     l = lights.directions
     flags = np.zeros(n_f, np.int64)
     valid_s = ~shadow & ~sat
     flags |= np.where(sat.any(axis=1), FLAG_SATURATED, 0)
-    b = R.sum(axis=2)
-    black = ~(np.where(sat, 0.0, b).max(axis=1) > 1e-12)
+    if stats is None:
+        bmax = np.where(sat, 0.0, R.sum(axis=2)).max(axis=1)
+        ref = np.percentile(np.where(sat, 0.0, np.linalg.norm(R, axis=2)), 99, axis=1)
+    else:
+        bmax, ref = stats
+    black = ~(bmax > 1e-12)
     few = valid_s.sum(axis=1) < MIN_SAMPLES
     flags |= np.where(black, FLAG_BLACK, 0)
     flags |= np.where(few & ~black, FLAG_SHADOWED, 0)
@@ -554,7 +576,6 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
     # k: the lobe's scale at the final normal (fit_lambertian_lobe, on the final |D|)
     x = np.maximum(n @ l.T, 0.0)
     rho_d = np.pi * np.maximum(k, 0.0)[:, None] * d0
-    ref = np.percentile(np.where(sat, 0.0, np.linalg.norm(R, axis=2)), 99, axis=1)
     cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
     nv = np.einsum("ni,ni->n", n, v)
     flags |= np.where(nv < GRAZING_COS, FLAG_GRAZING_VIEW, 0)
