@@ -185,65 +185,10 @@ def specular_energy(S, shadow, dirs, sa, nrm, v, eta):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _quantile_sorted(a, k, q):
-    """Linear-interpolation quantile of the first k values of sorted ``a`` (numpy's default,
-    as ``_skin_fit._row_nanquantile`` computes it); NaN when k = 0."""
-    if k == 0:
-        return np.nan
-    pos = q * (k - 1)
-    i0 = int(math.floor(pos))
-    i1 = min(i0 + 1, k - 1)
-    t = pos - i0
-    lo, hi = a[i0], a[i1]
-    if t >= 0.5:
-        return hi - (hi - lo) * (1.0 - t)
-    return lo + (hi - lo) * t
-
-
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
-def median_ratios(R, valid, lo, hi):
-    """The two medians of ``_skin_fit.initial_diffuse_chromaticity`` (§4.2), per function:
-    over valid samples with brightness (R + G + B) in ``[lo, hi] ×`` the 90th percentile of
-    the valid brightnesses and G, B > 0, R ≥ 0, the medians of R/G and of G/B. NaN where no
-    sample qualifies. Returns ``(r/g (N,), g/b (N,))``."""
-    N, L, _ = R.shape
-    mrg = np.empty(N)
-    mgb = np.empty(N)
-    for i in prange(N):
-        b = np.empty(L)
-        k = 0
-        for j in range(L):
-            if valid[i, j]:
-                b[k] = R[i, j, 0] + R[i, j, 1] + R[i, j, 2]
-                k += 1
-        bs = np.sort(b[:k])
-        p90 = _quantile_sorted(bs, k, 0.9)
-        if not np.isfinite(p90):
-            p90 = 0.0
-        rg = np.empty(L)
-        gb = np.empty(L)
-        m = 0
-        for j in range(L):
-            if not valid[i, j]:
-                continue
-            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
-            bj = r0 + r1 + r2
-            if bj >= lo * p90 and bj <= hi * p90 and r1 > 0.0 and r2 > 0.0 and r0 >= 0.0:
-                rg[m] = r0 / r1
-                gb[m] = r1 / r2
-                m += 1
-        mrg[i] = _quantile_sorted(np.sort(rg[:m]), m, 0.5)
-        mgb[i] = _quantile_sorted(np.sort(gb[:m]), m, 0.5)
-    return mrg, mgb
-
-
-# ------------------------------------------------------------------------------- chunk set-up
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _percentile_select(a, k, q):
-    """:func:`_quantile_sorted` of ``a[:k]`` without sorting it: the two order statistics the
-    linear interpolation needs by selection (``np.partition``, O(k)); ``a`` is reordered."""
+    """Linear-interpolation quantile ``q`` of ``a[:k]`` (numpy's default, as
+    ``_skin_fit._row_nanquantile`` computes it; NaN when k = 0) without sorting: the two order
+    statistics it needs by selection (``np.partition``, O(k))."""
     if k == 0:
         return np.nan
     pos = q * (k - 1)
@@ -260,6 +205,46 @@ def _percentile_select(a, k, q):
     if t >= 0.5:
         return hi - (hi - lo) * (1.0 - t)
     return lo + (hi - lo) * t
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def median_ratios(R, valid, lo, hi):
+    """The two medians of ``_skin_fit.initial_diffuse_chromaticity`` (§4.2), per function:
+    over valid samples with brightness (R + G + B) in ``[lo, hi] ×`` the 90th percentile of
+    the valid brightnesses and G, B > 0, R ≥ 0, the medians of R/G and of G/B. NaN where no
+    sample qualifies. Order statistics by selection, not sorting (same values). Returns
+    ``(r/g (N,), g/b (N,))``."""
+    N, L, _ = R.shape
+    mrg = np.empty(N)
+    mgb = np.empty(N)
+    for i in prange(N):
+        b = np.empty(L)
+        k = 0
+        for j in range(L):
+            if valid[i, j]:
+                b[k] = R[i, j, 0] + R[i, j, 1] + R[i, j, 2]
+                k += 1
+        p90 = _percentile_select(b, k, 0.9)
+        if not np.isfinite(p90):
+            p90 = 0.0
+        rg = np.empty(L)
+        gb = np.empty(L)
+        m = 0
+        for j in range(L):
+            if not valid[i, j]:
+                continue
+            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+            bj = r0 + r1 + r2
+            if bj >= lo * p90 and bj <= hi * p90 and r1 > 0.0 and r2 > 0.0 and r0 >= 0.0:
+                rg[m] = r0 / r1
+                gb[m] = r1 / r2
+                m += 1
+        mrg[i] = _percentile_select(rg, m, 0.5)
+        mgb[i] = _percentile_select(gb, m, 0.5)
+    return mrg, mgb
+
+
+# ------------------------------------------------------------------------------- chunk set-up
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
