@@ -24,9 +24,10 @@ tie-breaking), the same Levenberg–Marquardt steps — and agree with it to rou
 * **Polish with the analytic Jacobian** (``ramp_polish``): the reference's Levenberg–Marquardt
   steps, but JᵀJ and Jᵀr from the residuals' analytic derivatives (one pass with derivatives
   instead of P forward-difference residual vectors; reused after a rejected step), the 4 × 4
-  normal equations solved by Gaussian elimination per function. This one is not the
-  reference's arithmetic: it converges to the same minimum (tested against the numpy polish and
-  the Jacobian against central differences).
+  normal equations solved by Gaussian elimination per function, every sum in a register;
+  a function stops once its steps fall below ``_skin_fit.POLISH_XTOL`` (converged). This one
+  is not the reference's arithmetic: it converges to the same minimum (tested against the
+  numpy polish and the Jacobian against central differences).
 
 Kernels are compiled on first use and cached on disk (``cache=True``). The per-sample kernels
 (separations, the ramp's inputs, ρ_s, d_0's median ratios) are in ``_skin_kernels_samples``.

@@ -21,6 +21,24 @@ from facegeo.appearance._skin_kernels import _FM
 # ------------------------------------------------------------------------------- separation
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _chromaticity(d0x, d0y, d0z, f, s):
+    """Eq. 6's ``c = normalize(d_0 + f (d_0 − s))`` (s where that vanishes), ``c·s`` and
+    ``|c × s|² = 1 − (c·s)²``."""
+    cx = d0x + f * (d0x - s)
+    cy = d0y + f * (d0y - s)
+    cz = d0z + f * (d0z - s)
+    cn = math.sqrt(cx * cx + cy * cy + cz * cz)
+    if cn > 1e-30:
+        cx /= cn
+        cy /= cn
+        cz /= cn
+    else:
+        cx = cy = cz = s
+    ds = (cx + cy + cz) * s
+    return cx, cy, cz, ds, 1.0 - ds * ds
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
     """§4.2 colour-space separation of every sample with the Eq. 6–7 ramp chromaticity.
@@ -40,40 +58,33 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
 
     Returns
     -------
-    D : (N, L, 3) float64
-    mu_s : (N, L) float64
+    D : (N, L, 3) float64 (``(N, 0, 3)`` with ``uniform``: the initial separation needs |D| only)
+    mu_s : (N, L) float64 (``(N, 0)`` with ``uniform``)
     y : (N, L) float64, |D|
     singular : (N,) bool, any sample singular
     """
     N, L, _ = R.shape
     s = 1.0 / math.sqrt(3.0)
-    D = np.empty((N, L, 3))
-    mu_s = np.empty((N, L))
+    Lw = 0 if uniform else L  # the initial separation only needs |D|
+    D = np.empty((N, Lw, 3))
+    mu_s = np.empty((N, Lw))
     y = np.empty((N, L))
     singular = np.zeros(N, np.bool_)
     for i in prange(N):
         nv = nrm[i, 0] * v[i, 0] + nrm[i, 1] * v[i, 1] + nrm[i, 2] * v[i, 2]
         nv = min(max(nv, 0.0), 1.0)
         sing_i = False
+        # uniform: the chromaticity is the function's d_0 for every sample (once, not per
+        # sample; the same arithmetic, so the same values)
+        cx0, cy0, cz0, ds0, det0 = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], 0.0, s)
         for j in range(L):
             if uniform:
-                f = 0.0
+                cx, cy, cz, ds, det = cx0, cy0, cz0, ds0, det0
             else:
                 nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
                 x = min(max(nl, 0.0), 1.0) * nv
                 f = a0[i] * x + a1[i] * (1.0 - x)
-            cx = d0[i, 0] + f * (d0[i, 0] - s)
-            cy = d0[i, 1] + f * (d0[i, 1] - s)
-            cz = d0[i, 2] + f * (d0[i, 2] - s)
-            cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-            if cn > 1e-30:
-                cx /= cn
-                cy /= cn
-                cz /= cn
-            else:
-                cx = cy = cz = s
-            ds = (cx + cy + cz) * s
-            det = 1.0 - ds * ds
+                cx, cy, cz, ds, det = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], f, s)
             r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
             ms = 0.0
             if det < sing_sin2:
@@ -82,12 +93,13 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
                 Rd = r0 * cx + r1 * cy + r2 * cz
                 Rs = (r0 + r1 + r2) * s
                 ms = (Rs - Rd * ds) / det
-            mu_s[i, j] = ms
             sp = max(ms, 0.0) * s
             e0, e1, e2 = r0 - sp, r1 - sp, r2 - sp
-            D[i, j, 0] = e0
-            D[i, j, 1] = e1
-            D[i, j, 2] = e2
+            if not uniform:
+                mu_s[i, j] = ms
+                D[i, j, 0] = e0
+                D[i, j, 1] = e1
+                D[i, j, 2] = e2
             y[i, j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
         singular[i] = sing_i
     return D, mu_s, y, singular

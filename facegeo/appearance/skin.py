@@ -94,8 +94,8 @@ __all__ = [
 
 #: Samples (functions × lights) per chunk of the analysis. With the compiled kernels
 #: (``_skin_fit.KERNELS``) the searches keep their temporaries per function, so the chunk only
-#: bounds the numpy steps' (chunk, L, 3) arrays (6 MB at 64 × 2048); measured under load,
-#: 64 functions per chunk were as fast as 16 on one thread and faster on two (docs/skin.md).
+#: bounds the numpy steps' (chunk, L, 3) arrays (6 MB at 64 × 2048) and is the unit of work
+#: of ``threads=`` (measured under load, 64 functions per chunk were as fast as 16).
 CHUNK_SAMPLES = 131072
 #: Default functions per chunk at 2048 lights (``CHUNK_SAMPLES // L`` in general, ≥ 64).
 CHUNK = 64
@@ -336,11 +336,12 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         which bounds the memory of the numpy steps. Results do not depend on it (to rounding;
         tested).
     threads : int
-        Threads of the compiled kernels (numba ``prange`` over the functions of a chunk), 1 to
-        ``NUMBA_NUM_THREADS``. Default 1: on the shared 2-core machine two threads gave 1.33×
-        when idle but 0.5–0.6× of one whenever other jobs ran (the OpenMP workers spin between
-        kernels while the numpy steps run; docs/skin.md) — pass ``threads`` where cores are
-        free. Results do not depend on it: each function is one independent problem (tested).
+        Worker threads, 1 to ``NUMBA_NUM_THREADS``: each fits whole chunks (numpy steps and
+        compiled kernels, the kernels on one numba thread), so no thread waits while another
+        runs serial numpy code. Default 1; pass 2 where both cores are free (paper mode, 2048
+        lights: ≈ 2× the functions per second of one thread when idle, the same CPU time per
+        function under load; docs/skin.md). Results do not depend on it: the chunks are the
+        same and each function is one independent problem (bit-identical, tested).
 
     specular_gate : float
         ≥ 0. With G > 0 a sample's μ_s counts as specular only above G σ, σ the noise
@@ -493,7 +494,8 @@ def _numba_threads(threads):
 def _separate_ramp(R, d0, n, v, lights, a0, a1):
     """The §4.2 separation of every sample with the ramp chromaticity (the compiled
     ``_skin_kernels.separate_ramp``); ``n`` None: with d_0 itself (the initial separation).
-    Returns ``D (n, L, 3)``, ``μ_s (n, L)``, ``|D| (n, L)``, any-singular ``(n,)``."""
+    Returns ``D (n, L, 3)``, ``μ_s (n, L)`` (both with 0 lights when ``n`` is None),
+    ``|D| (n, L)``, any-singular ``(n,)``."""
     from facegeo.appearance._skin_kernels_samples import separate_ramp
 
     c = np.ascontiguousarray
