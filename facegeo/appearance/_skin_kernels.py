@@ -652,6 +652,13 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
             a22 += j2 * j2
             a23 += j2 * j3
             a33 += j3 * j3
+    if chroma:
+        # the chromaticity rows' part (they do not enter k or s_yy): same sums, added once
+        g0, g1, g2, g3 = g0 + cg0, g1 + cg1, g2 + cg2, g3 + cg3
+        a00, a01, a02, a03 = a00 + c00, a01 + c01, a02 + c02, a03 + c03
+        a11, a12, a13 = a11 + c11, a12 + c12, a13 + c13
+        a22, a23, a33 = a22 + c22, a23 + c23, a33 + c33
+        tot += ctot
     g[0], g[1] = g0, g1
     JtJ[0, 0], JtJ[0, 1], JtJ[1, 0], JtJ[1, 1] = a00, a01, a01, a11
     if nrm:
@@ -659,29 +666,6 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
         JtJ[0, 2], JtJ[0, 3], JtJ[1, 2], JtJ[1, 3] = a02, a03, a12, a13
         JtJ[2, 0], JtJ[3, 0], JtJ[2, 1], JtJ[3, 1] = a02, a03, a12, a13
         JtJ[2, 2], JtJ[2, 3], JtJ[3, 2], JtJ[3, 3] = a22, a23, a23, a33
-    if chroma:
-        g[0] += cg0
-        g[1] += cg1
-        JtJ[0, 0] += c00
-        JtJ[0, 1] += c01
-        JtJ[1, 0] += c01
-        JtJ[1, 1] += c11
-        if nrm:
-            g[2] += cg2
-            g[3] += cg3
-            JtJ[0, 2] += c02
-            JtJ[2, 0] += c02
-            JtJ[0, 3] += c03
-            JtJ[3, 0] += c03
-            JtJ[1, 2] += c12
-            JtJ[2, 1] += c12
-            JtJ[1, 3] += c13
-            JtJ[3, 1] += c13
-            JtJ[2, 2] += c22
-            JtJ[2, 3] += c23
-            JtJ[3, 2] += c23
-            JtJ[3, 3] += c33
-        tot += ctot
     return tot
 
 
