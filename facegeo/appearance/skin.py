@@ -338,10 +338,11 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     threads : int
         Worker threads, 1 to ``NUMBA_NUM_THREADS``: each fits whole chunks (numpy steps and
         compiled kernels, the kernels on one numba thread), so no thread waits while another
-        runs serial numpy code. Default 1; pass 2 where both cores are free (paper mode, 2048
-        lights: ≈ 2× the functions per second of one thread when idle, the same CPU time per
-        function under load; docs/skin.md). Results do not depend on it: the chunks are the
-        same and each function is one independent problem (bit-identical, tested).
+        runs serial numpy code. Default 1; pass 2 where both cores are free: the CPU time per
+        function is the same at one and two threads, so two gain what the free core gives
+        (paper mode, 2048 lights, one core busy with another job: 1.26× wall; docs/skin.md).
+        Results do not depend on it: the chunks are the same and each function is one
+        independent problem (bit-identical, tested).
 
     specular_gate : float
         ≥ 0. With G > 0 a sample's μ_s counts as specular only above G σ, σ the noise
