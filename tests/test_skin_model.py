@@ -948,6 +948,122 @@ def test_threads_do_not_change_the_fit():
         skin.fit_reflectance(R, V0, lights, threads=0)
 
 
+#: Compiled polish stopping converged functions (_skin_fit.POLISH_XTOL) against every
+#: iteration (POLISH_XTOL = 0), same functions: max |Δα| (paper mode, d_0 known and
+#: estimated, and mismatched functions on which the chromaticity polish runs; measured 9e-10
+#: here, ≤ 1e-8 at 2048 lights). Stopping at steps of 1e-3 instead moves α's by 5e-6.
+POLISH_STOP_ALPHA_ABS = 1e-6
+
+
+def _mixed_functions(rng, lights, n_paper, n_generator):
+    """Paper-mode functions (the polish converges in a few steps) and the generator's diffuse
+    term (the chromaticity polish runs), interleaved, with their paper-mode d_0."""
+    n = _random_normals(rng, n_paper, 50.0)
+    p = _paper_params(rng, n_paper)
+    R = np.concatenate([skin.paper_reflectance(n, V0, lights, p),
+                        _generator_diffuse(rng, lights, n_generator)])
+    order = rng.permutation(len(R))
+    return R[order], order
+
+
+def test_polish_early_stop_matches_all_iterations(monkeypatch):
+    from facegeo.appearance import _skin_fit
+
+    rng = np.random.default_rng(31)
+    lights = skin.LightSet.from_grid(32, 16)
+    R, _ = _mixed_functions(rng, lights, 14, 10)
+    fits = {}
+    for xtol in (_skin_fit.POLISH_XTOL, 0.0):
+        monkeypatch.setattr(_skin_fit, "POLISH_XTOL", xtol)
+        fits[xtol] = skin.fit_reflectance(R, V0, lights)
+    a, b = fits.values()
+    assert np.abs(a.alpha_0 - b.alpha_0).max() <= POLISH_STOP_ALPHA_ABS
+    assert np.abs(a.alpha_1 - b.alpha_1).max() <= POLISH_STOP_ALPHA_ABS
+    assert _angle_deg(a.normal, b.normal).max() <= KERNEL_NORMAL_DEG
+
+
+def test_parallel_chunks_equal_serial_fit():
+    """threads=2 fits whole chunks on two worker threads: bit-identical to one thread. Chunks
+    of 5 functions, so that both workers run several chunks each, interleaved; saturation and
+    visibility exercise every output slice the workers write."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has one thread")
+    rng = np.random.default_rng(32)
+    lights = skin.LightSet.from_grid(32, 16)
+    R, _ = _mixed_functions(rng, lights, 15, 8)
+    vis = rng.uniform(size=R.shape[:2]) > 0.05
+    kw = dict(visibility=vis, saturation=float(np.quantile(R, 0.999)), chunk=5)
+    a = skin.fit_reflectance(R, V0, lights, threads=1, **kw)
+    b = skin.fit_reflectance(R, V0, lights, threads=2, **kw)
+    for k in ("normal", "normal_moment", "normal_initial", "lobe_misfit", "d_0", "alpha_0",
+              "alpha_1", "rho_d", "rho_s", "diffuse", "specular", "shadow", "cast_shadow",
+              "saturated", "flags"):
+        assert np.array_equal(getattr(a, k), getattr(b, k)), k
+
+
+def test_kernels_do_not_race_across_numba_threads():
+    """Every prange kernel of the fit (set-up, d_0 medians, separations, lobe and ramp searches,
+    polishes, ρ_s) on two numba threads against one, bit for bit: each iteration must touch only
+    its own function's rows (a scratch buffer shared across iterations, or a sum written by
+    several, would differ). fit_reflectance runs them on one numba thread per worker, so this
+    calls one chunk directly."""
+    import numba
+
+    from facegeo.appearance._skin_kernels_samples import prepare_chunk
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has one thread")
+    rng = np.random.default_rng(33)
+    lights = skin.LightSet.from_grid(32, 16)
+    R, _ = _mixed_functions(rng, lights, 30, 18)
+    out = []
+    for t in (1, 2):
+        with skin._numba_threads(t):
+            Rw, sat, shadow, bmax, ref = prepare_chunk(
+                np.ascontiguousarray(R), lights.intensities, np.inf, skin.SHADOW_THRESHOLD,
+                np.ones((1, 1), bool), False)
+            out.append(skin._fit_chunk(Rw, np.broadcast_to(V0, (len(R), 3)), lights, shadow,
+                                       sat, False, 1.4, skin.SearchDepth(),
+                                       skin.SHADOW_THRESHOLD, None, 1, 0.0, (bmax, ref)))
+    for k in out[0]:
+        assert np.array_equal(out[0][k], out[1][k]), k
+
+
+def test_chunk_setup_kernel_equals_numpy_steps():
+    """The fused set-up (white balance, saturation, §4.4 shadow map, brightness statistics)
+    against the numpy steps it replaces, bit for bit: float32 and float64 input, per-light
+    colour intensities, saturated samples, caller visibility, a black and a fully saturated
+    function."""
+    from facegeo.appearance._skin_kernels_samples import prepare_chunk
+
+    rng = np.random.default_rng(34)
+    L = 300
+    E = rng.uniform(0.5, 2.0, (L, 3))
+    R = (rng.uniform(0, 1, (9, L, 3)) ** 3 * rng.uniform(0.1, 1, (9, 1, 3))).astype(np.float32)
+    R[2] = 0.0
+    R[4] = 1.0
+    vis = rng.uniform(size=(9, L)) > 0.2
+    level = 0.6
+    for arr in (R, R.astype(np.float64)):
+        for sat_level, v in ((level, vis), (None, None)):
+            Rw, sat, shadow, bmax, ref = prepare_chunk(
+                arr, E, np.inf if sat_level is None else sat_level, 0.02,
+                np.ones((1, 1), bool) if v is None else v, v is not None)
+            Rc = np.asarray(arr, np.float64)
+            sat_np = (np.zeros(R.shape[:2], bool) if sat_level is None
+                      else (Rc >= sat_level).any(axis=2))
+            Rw_np = Rc / E[None]
+            assert np.array_equal(Rw, Rw_np) and np.array_equal(sat, sat_np)
+            assert sat[4].all() == (sat_level is not None)
+            assert np.array_equal(shadow, skin.shadow_map(Rw_np, threshold=0.02, visibility=v,
+                                                          saturated=sat_np))
+            assert np.array_equal(bmax, np.where(sat_np, 0.0, Rw_np.sum(axis=2)).max(axis=1))
+            assert np.array_equal(ref, np.percentile(
+                np.where(sat_np, 0.0, np.linalg.norm(Rw_np, axis=2)), 99, axis=1))
+
+
 def test_specular_energy_kernel_equals_numpy_reference(monkeypatch):
     """ρ_s by the compiled kernel against the numpy reference (brdf's F and G), including
     shadowed lights, l = −v (H undefined) and grazing views."""

@@ -24,9 +24,10 @@ tie-breaking), the same Levenberg–Marquardt steps — and agree with it to rou
 * **Polish with the analytic Jacobian** (``ramp_polish``): the reference's Levenberg–Marquardt
   steps, but JᵀJ and Jᵀr from the residuals' analytic derivatives (one pass with derivatives
   instead of P forward-difference residual vectors; reused after a rejected step), the 4 × 4
-  normal equations solved by Gaussian elimination per function. This one is not the
-  reference's arithmetic: it converges to the same minimum (tested against the numpy polish and
-  the Jacobian against central differences).
+  normal equations solved by Gaussian elimination per function, every sum in a register;
+  a function stops once its steps fall below ``_skin_fit.POLISH_XTOL`` (converged). This one
+  is not the reference's arithmetic: it converges to the same minimum (tested against the
+  numpy polish and the Jacobian against central differences).
 
 Kernels are compiled on first use and cached on disk (``cache=True``). The per-sample kernels
 (separations, the ramp's inputs, ρ_s, d_0's median ratios) are in ``_skin_kernels_samples``.
@@ -509,15 +510,15 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
             dnvc1 = d1x * v[0] + d1y * v[1] + d1z * v[2]
     da = p[0] - p[1]
     regular = not _maybe_singular(p[0], p[1], two_1mds, ds2k, sing_sin2)
-    syy = 0.0
-    sxy = 0.0
-    sxx = 0.0
-    dsyy = np.zeros(P)
-    dsxy = np.zeros(P)
-    dsxx = np.zeros(P)
+    # every sum in a scalar (register) accumulator, not an array element: arrays could alias
+    # the inputs, so LLVM would keep them in memory and the loop would not vectorise
+    syy = sxy = sxx = 0.0
+    dsyy0 = dsyy1 = dsyy2 = dsyy3 = 0.0
+    dsxy0 = dsxy1 = dsxy2 = dsxy3 = 0.0
+    dsxx2 = dsxx3 = 0.0
     ctot = 0.0
-    cg = np.zeros(P)
-    cJ = np.zeros((P, P))  # upper triangle
+    cg0 = cg1 = cg2 = cg3 = 0.0
+    c00 = c01 = c02 = c03 = c11 = c12 = c13 = c22 = c23 = c33 = 0.0
     for j in range(m):
         dn0 = 0.0
         dn1 = 0.0
@@ -547,26 +548,26 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
             ms, dms = _mu_s_df(f, A[j], B[j])
             rc = cw[j] * ms
             dms *= cw[j]
-            c0 = dms * xc
-            c1 = dms * (1.0 - xc)
+            q0 = dms * xc
+            q1 = dms * (1.0 - xc)
             ctot += rc * rc
-            cg[0] += c0 * rc
-            cg[1] += c1 * rc
-            cJ[0, 0] += c0 * c0
-            cJ[0, 1] += c0 * c1
-            cJ[1, 1] += c1 * c1
+            cg0 += q0 * rc
+            cg1 += q1 * rc
+            c00 += q0 * q0
+            c01 += q0 * q1
+            c11 += q1 * q1
             if nrm:
-                c2 = dms * da * dx0
-                c3 = dms * da * dx1
-                cg[2] += c2 * rc
-                cg[3] += c3 * rc
-                cJ[0, 2] += c0 * c2
-                cJ[0, 3] += c0 * c3
-                cJ[1, 2] += c1 * c2
-                cJ[1, 3] += c1 * c3
-                cJ[2, 2] += c2 * c2
-                cJ[2, 3] += c2 * c3
-                cJ[3, 3] += c3 * c3
+                q2 = dms * da * dx0
+                q3 = dms * da * dx1
+                cg2 += q2 * rc
+                cg3 += q3 * rc
+                c02 += q0 * q2
+                c03 += q0 * q3
+                c12 += q1 * q2
+                c13 += q1 * q3
+                c22 += q2 * q2
+                c23 += q2 * q3
+                c33 += q3 * q3
         mu, dmu = _mu_d_df(f, A[j], Rd[j], Rdms[j], two_1mds, ds2k, sing_sin2, regular)
         sw = sqw[j]
         mm = mu * sw
@@ -576,40 +577,48 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
         syy += mm * mm
         sxy += mm * xw
         sxx += xw * xw
-        dm[0, j] = dmu * xc
-        dm[1, j] = dmu * (1.0 - xc)
-        for a in range(2):
-            dsyy[a] += 2.0 * mm * dm[a, j]
-            dsxy[a] += dm[a, j] * xw
+        e0 = dmu * xc
+        e1 = dmu * (1.0 - xc)
+        dm[0, j] = e0
+        dm[1, j] = e1
+        dsyy0 += 2.0 * mm * e0
+        dsyy1 += 2.0 * mm * e1
+        dsxy0 += e0 * xw
+        dsxy1 += e1 * xw
         if nrm:
-            dm[2, j] = dmu * da * dx0
-            dm[3, j] = dmu * da * dx1
-            dxw[0, j] = dn0 * sw
-            dxw[1, j] = dn1 * sw
-            for a in range(2):
-                dsyy[2 + a] += 2.0 * mm * dm[2 + a, j]
-                dsxy[2 + a] += dm[2 + a, j] * xw + mm * dxw[a, j]
-                dsxx[2 + a] += 2.0 * xw * dxw[a, j]
+            e2 = dmu * da * dx0
+            e3 = dmu * da * dx1
+            w0 = dn0 * sw
+            w1 = dn1 * sw
+            dm[2, j] = e2
+            dm[3, j] = e3
+            dxw[0, j] = w0
+            dxw[1, j] = w1
+            dsyy2 += 2.0 * mm * e2
+            dsyy3 += 2.0 * mm * e3
+            dsxy2 += e2 * xw + mm * w0
+            dsxy3 += e3 * xw + mm * w1
+            dsxx2 += 2.0 * xw * w0
+            dsxx3 += 2.0 * xw * w1
     ok = sxx > _TINY and syy > _TINY and sxy > 0.0
     k = sxy / sxx if ok else 0.0
-    dk = np.zeros(P)
+    dk0 = dk1 = dk2 = dk3 = 0.0
     if ok:
-        for a in range(P):
-            dk[a] = (dsxy[a] - k * dsxx[a]) / sxx
+        dk0 = dsxy0 / sxx
+        dk1 = dsxy1 / sxx
+        dk2 = (dsxy2 - k * dsxx2) / sxx
+        dk3 = (dsxy3 - k * dsxx3) / sxx
     big = syy > _TINY
     inv = 1.0 / math.sqrt(syy if big else 1.0)
-    dinv = np.zeros(P)
+    di0 = di1 = di2 = di3 = 0.0
     if big:
-        for a in range(P):
-            dinv[a] = -0.5 * inv * inv * inv * dsyy[a]
+        h = -0.5 * inv * inv * inv
+        di0 = h * dsyy0
+        di1 = h * dsyy1
+        di2 = h * dsyy2
+        di3 = h * dsyy3
     # JᵀJ (10 unique entries) and Jᵀr accumulated in scalars, not in the arrays: register
     # accumulators (the arrays could alias the inputs, so LLVM keeps those in memory)
-    dk0, dk1 = dk[0], dk[1]
-    di0, di1 = dinv[0], dinv[1]
-    dk2 = dk3 = di2 = di3 = 0.0
-    if nrm:
-        dk2, dk3 = dk[2], dk[3]
-        di2, di3 = dinv[2], dinv[3]
     a00 = a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = 0.0
     g0 = g1 = g2 = g3 = 0.0
     tot = 0.0
@@ -643,6 +652,13 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
             a22 += j2 * j2
             a23 += j2 * j3
             a33 += j3 * j3
+    if chroma:
+        # the chromaticity rows' part (they do not enter k or s_yy): same sums, added once
+        g0, g1, g2, g3 = g0 + cg0, g1 + cg1, g2 + cg2, g3 + cg3
+        a00, a01, a02, a03 = a00 + c00, a01 + c01, a02 + c02, a03 + c03
+        a11, a12, a13 = a11 + c11, a12 + c12, a13 + c13
+        a22, a23, a33 = a22 + c22, a23 + c23, a33 + c33
+        tot += ctot
     g[0], g[1] = g0, g1
     JtJ[0, 0], JtJ[0, 1], JtJ[1, 0], JtJ[1, 1] = a00, a01, a01, a11
     if nrm:
@@ -650,14 +666,6 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
         JtJ[0, 2], JtJ[0, 3], JtJ[1, 2], JtJ[1, 3] = a02, a03, a12, a13
         JtJ[2, 0], JtJ[3, 0], JtJ[2, 1], JtJ[3, 1] = a02, a03, a12, a13
         JtJ[2, 2], JtJ[2, 3], JtJ[3, 2], JtJ[3, 3] = a22, a23, a23, a33
-    if chroma:
-        for a in range(P):
-            g[a] += cg[a]
-            for q in range(a, P):
-                JtJ[a, q] += cJ[a, q]
-                if q != a:
-                    JtJ[q, a] += cJ[a, q]
-        tot += ctot
     return tot
 
 
@@ -690,13 +698,20 @@ def _solve_small(A, b, P):
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations,
-                sing_sin2, B, cw, chroma):
+                sing_sin2, B, cw, chroma, xtol):
     """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
     ``_skin_fit.gauss_newton_polish`` (same damping, a step kept only where it lowers Σ r²)
     with the analytic Jacobian of :func:`_polish_jacobian` instead of finite differences, and
-    JᵀJ, Jᵀr reused after a rejected step (x unchanged). ``p0`` ``(N, 2)`` (ramp at the fixed
+    JᵀJ, Jᵀr reused after a rejected step (x unchanged); trial points by their residuals only
+    (:func:`_polish_residuals`, ≈ 1/20 of a pass with derivatives), derivatives only after an
+    accepted step that is not the last. ``p0`` ``(N, 2)`` (ramp at the fixed
     normal) or ``(N, 4)`` (ramp and tangent offsets of the normal). With ``chroma`` the
-    chromaticity rows ``cw μ_s`` (``B``, ``cw`` ``(N, L)``) join the residuals. Returns
+    chromaticity rows ``cw μ_s`` (``B``, ``cw`` ``(N, L)``) join the residuals.
+
+    A function stops before ``iterations`` once converged: when a proposed step has every
+    ``|Δp| ≤ xtol`` and was either rejected (later steps, with the same JᵀJ and more damping,
+    are shorter still) or accepted undamped (λ ≤ 1e-6: a Gauss–Newton step). Steps that small
+    only move p by rounding (0: every function takes all ``iterations``). Returns
     ``(p, Σ r²)``."""
     N, P = p0.shape
     L = wd.shape[1]
@@ -729,15 +744,11 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
         lam = 1e-8
         dm = np.empty((P, m))
         dxw = np.empty((2, m))
-        cur = _polish_residuals(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds,
-                                Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, Bs, cws, chroma)
-        fresh = False  # JtJ, g are those of the current x (kept across rejected steps)
-        for _ in range(iterations):
-            if not fresh:
-                cur = _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw,
-                                       As, Rds, Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, dm,
-                                       dxw, JtJ, g, Bs, cws, chroma)
-                fresh = True
+        # JtJ, g are those of the current x (kept across rejected steps)
+        cur = _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds,
+                               Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, dm, dxw, JtJ, g, Bs,
+                               cws, chroma)
+        for it in range(iterations):
             for a in range(P):
                 for q in range(P):
                     Am[a, q] = JtJ[a, q]
@@ -745,9 +756,11 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
                 pt[a] = -g[a]
             if not _solve_small(Am, pt, P):
                 break
+            tiny = True
             for a in range(P):
                 if not np.isfinite(pt[a]):
                     pt[a] = 0.0
+                tiny = tiny and abs(pt[a]) <= xtol
                 pt[a] += x[a]
             vn = _polish_residuals(pt, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
                                    Rds, Rms, two_1mds, ds2k, sing_sin2, rn, xs, nls, Bs, cws,
@@ -756,9 +769,15 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
                 for a in range(P):
                     x[a] = pt[a]
                 cur = vn
-                fresh = False
+                if (tiny and lam <= 1e-6) or it == iterations - 1:
+                    break  # an undamped (Gauss–Newton) step below xtol: converged; or the last
+                _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
+                                 Rds, Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, dm, dxw, JtJ,
+                                 g, Bs, cws, chroma)
                 lam *= 0.1
             else:
+                if tiny:
+                    break  # rejected below xtol: later steps (more damping, same JᵀJ) are smaller
                 lam *= 10.0
         for a in range(P):
             out[i, a] = x[a]

@@ -21,6 +21,24 @@ from facegeo.appearance._skin_kernels import _FM
 # ------------------------------------------------------------------------------- separation
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _chromaticity(d0x, d0y, d0z, f, s):
+    """Eq. 6's ``c = normalize(d_0 + f (d_0 − s))`` (s where that vanishes), ``c·s`` and
+    ``|c × s|² = 1 − (c·s)²``."""
+    cx = d0x + f * (d0x - s)
+    cy = d0y + f * (d0y - s)
+    cz = d0z + f * (d0z - s)
+    cn = math.sqrt(cx * cx + cy * cy + cz * cz)
+    if cn > 1e-30:
+        cx /= cn
+        cy /= cn
+        cz /= cn
+    else:
+        cx = cy = cz = s
+    ds = (cx + cy + cz) * s
+    return cx, cy, cz, ds, 1.0 - ds * ds
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
     """§4.2 colour-space separation of every sample with the Eq. 6–7 ramp chromaticity.
@@ -40,40 +58,33 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
 
     Returns
     -------
-    D : (N, L, 3) float64
-    mu_s : (N, L) float64
+    D : (N, L, 3) float64 (``(N, 0, 3)`` with ``uniform``: the initial separation needs |D| only)
+    mu_s : (N, L) float64 (``(N, 0)`` with ``uniform``)
     y : (N, L) float64, |D|
     singular : (N,) bool, any sample singular
     """
     N, L, _ = R.shape
     s = 1.0 / math.sqrt(3.0)
-    D = np.empty((N, L, 3))
-    mu_s = np.empty((N, L))
+    Lw = 0 if uniform else L  # the initial separation only needs |D|
+    D = np.empty((N, Lw, 3))
+    mu_s = np.empty((N, Lw))
     y = np.empty((N, L))
     singular = np.zeros(N, np.bool_)
     for i in prange(N):
         nv = nrm[i, 0] * v[i, 0] + nrm[i, 1] * v[i, 1] + nrm[i, 2] * v[i, 2]
         nv = min(max(nv, 0.0), 1.0)
         sing_i = False
+        # uniform: the chromaticity is the function's d_0 for every sample (once, not per
+        # sample; the same arithmetic, so the same values)
+        cx0, cy0, cz0, ds0, det0 = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], 0.0, s)
         for j in range(L):
             if uniform:
-                f = 0.0
+                cx, cy, cz, ds, det = cx0, cy0, cz0, ds0, det0
             else:
                 nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
                 x = min(max(nl, 0.0), 1.0) * nv
                 f = a0[i] * x + a1[i] * (1.0 - x)
-            cx = d0[i, 0] + f * (d0[i, 0] - s)
-            cy = d0[i, 1] + f * (d0[i, 1] - s)
-            cz = d0[i, 2] + f * (d0[i, 2] - s)
-            cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-            if cn > 1e-30:
-                cx /= cn
-                cy /= cn
-                cz /= cn
-            else:
-                cx = cy = cz = s
-            ds = (cx + cy + cz) * s
-            det = 1.0 - ds * ds
+                cx, cy, cz, ds, det = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], f, s)
             r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
             ms = 0.0
             if det < sing_sin2:
@@ -82,12 +93,13 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
                 Rd = r0 * cx + r1 * cy + r2 * cz
                 Rs = (r0 + r1 + r2) * s
                 ms = (Rs - Rd * ds) / det
-            mu_s[i, j] = ms
             sp = max(ms, 0.0) * s
             e0, e1, e2 = r0 - sp, r1 - sp, r2 - sp
-            D[i, j, 0] = e0
-            D[i, j, 1] = e1
-            D[i, j, 2] = e2
+            if not uniform:
+                mu_s[i, j] = ms
+                D[i, j, 0] = e0
+                D[i, j, 1] = e1
+                D[i, j, 2] = e2
             y[i, j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
         singular[i] = sing_i
     return D, mu_s, y, singular
@@ -185,16 +197,23 @@ def specular_energy(S, shadow, dirs, sa, nrm, v, eta):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _quantile_sorted(a, k, q):
-    """Linear-interpolation quantile of the first k values of sorted ``a`` (numpy's default,
-    as ``_skin_fit._row_nanquantile`` computes it); NaN when k = 0."""
+def _percentile_select(a, k, q):
+    """Linear-interpolation quantile ``q`` of ``a[:k]`` (numpy's default, as
+    ``_skin_fit._row_nanquantile`` computes it; NaN when k = 0) without sorting: the two order
+    statistics it needs by selection (``np.partition``, O(k))."""
     if k == 0:
         return np.nan
     pos = q * (k - 1)
     i0 = int(math.floor(pos))
-    i1 = min(i0 + 1, k - 1)
+    part = np.partition(a[:k], i0)
+    lo = part[i0]
+    hi = lo
+    if i0 + 1 < k:
+        hi = part[i0 + 1]
+        for j in range(i0 + 2, k):
+            if part[j] < hi:
+                hi = part[j]
     t = pos - i0
-    lo, hi = a[i0], a[i1]
     if t >= 0.5:
         return hi - (hi - lo) * (1.0 - t)
     return lo + (hi - lo) * t
@@ -205,7 +224,8 @@ def median_ratios(R, valid, lo, hi):
     """The two medians of ``_skin_fit.initial_diffuse_chromaticity`` (§4.2), per function:
     over valid samples with brightness (R + G + B) in ``[lo, hi] ×`` the 90th percentile of
     the valid brightnesses and G, B > 0, R ≥ 0, the medians of R/G and of G/B. NaN where no
-    sample qualifies. Returns ``(r/g (N,), g/b (N,))``."""
+    sample qualifies. Order statistics by selection, not sorting (same values). Returns
+    ``(r/g (N,), g/b (N,))``."""
     N, L, _ = R.shape
     mrg = np.empty(N)
     mgb = np.empty(N)
@@ -216,8 +236,7 @@ def median_ratios(R, valid, lo, hi):
             if valid[i, j]:
                 b[k] = R[i, j, 0] + R[i, j, 1] + R[i, j, 2]
                 k += 1
-        bs = np.sort(b[:k])
-        p90 = _quantile_sorted(bs, k, 0.9)
+        p90 = _percentile_select(b, k, 0.9)
         if not np.isfinite(p90):
             p90 = 0.0
         rg = np.empty(L)
@@ -232,6 +251,75 @@ def median_ratios(R, valid, lo, hi):
                 rg[m] = r0 / r1
                 gb[m] = r1 / r2
                 m += 1
-        mrg[i] = _quantile_sorted(np.sort(rg[:m]), m, 0.5)
-        mgb[i] = _quantile_sorted(np.sort(gb[:m]), m, 0.5)
+        mrg[i] = _percentile_select(rg, m, 0.5)
+        mgb[i] = _percentile_select(gb, m, 0.5)
     return mrg, mgb
+
+
+# ------------------------------------------------------------------------------- chunk set-up
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def prepare_chunk(R, E, saturation, threshold, visibility, has_visibility):
+    """The fit's per-sample set-up of one chunk (``skin.fit_reflectance`` before §4.2), fused.
+
+    White balance ``R / E``; saturated samples (any channel ≥ ``saturation`` in input units;
+    ``saturation`` +inf: none); the §4.4 shadow map of ``skin.shadow_map`` (brightness
+    ``ΣR/E`` at or below ``threshold`` × its 99th percentile over the function's samples,
+    saturated ones counted as 0; lights ``visibility`` hides). Plus what ``_fit_chunk`` needs
+    of the same pass: each function's largest unsaturated brightness (black functions) and the
+    99th percentile of ``|R/E|`` (saturated as 0; the cast-shadow test). No fastmath: the sums
+    keep numpy's order, so the results equal the numpy steps bit for bit (tested).
+
+    Parameters
+    ----------
+    R : (N, L, C) float32 or float64, ≥ 0
+    E : (L, C) float64, light intensities
+    saturation, threshold : float
+    visibility : (N, L) bool (ignored unless ``has_visibility``)
+
+    Returns
+    -------
+    Rw : (N, L, C) float64
+    sat, shadow : (N, L) bool
+    bmax, ref : (N,) float64
+    """
+    N, L, C = R.shape
+    Rw = np.empty((N, L, C))
+    sat = np.zeros((N, L), np.bool_)
+    shadow = np.empty((N, L), np.bool_)
+    bmax = np.empty(N)
+    ref = np.empty(N)
+    for i in prange(N):
+        b = np.empty(L)
+        bz = np.empty(L)
+        nz = np.empty(L)
+        top = -np.inf
+        for j in range(L):
+            s_ = False
+            acc = 0.0
+            sq = 0.0
+            for c in range(C):
+                r = np.float64(R[i, j, c])
+                if r >= saturation:
+                    s_ = True
+                rw = r / E[j, c]
+                Rw[i, j, c] = rw
+                if c == 0:
+                    acc = rw
+                    sq = rw * rw
+                else:
+                    acc = acc + rw
+                    sq = sq + rw * rw
+            sat[i, j] = s_
+            b[j] = acc
+            bz[j] = 0.0 if s_ else acc
+            nz[j] = 0.0 if s_ else math.sqrt(sq)
+            if bz[j] > top:
+                top = bz[j]
+        bmax[i] = top
+        lim = threshold * _percentile_select(bz, L, 0.99)
+        for j in range(L):
+            shadow[i, j] = b[j] <= lim or (has_visibility and not visibility[i, j])
+        ref[i] = _percentile_select(nz, L, 0.99)
+    return Rw, sat, shadow, bmax, ref

@@ -94,8 +94,8 @@ __all__ = [
 
 #: Samples (functions × lights) per chunk of the analysis. With the compiled kernels
 #: (``_skin_fit.KERNELS``) the searches keep their temporaries per function, so the chunk only
-#: bounds the numpy steps' (chunk, L, 3) arrays (6 MB at 64 × 2048); measured under load,
-#: 64 functions per chunk were as fast as 16 on one thread and faster on two (docs/skin.md).
+#: bounds the numpy steps' (chunk, L, 3) arrays (6 MB at 64 × 2048) and is the unit of work
+#: of ``threads=`` (measured under load, 64 functions per chunk were as fast as 16).
 CHUNK_SAMPLES = 131072
 #: Default functions per chunk at 2048 lights (``CHUNK_SAMPLES // L`` in general, ≥ 64).
 CHUNK = 64
@@ -336,11 +336,13 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         which bounds the memory of the numpy steps. Results do not depend on it (to rounding;
         tested).
     threads : int
-        Threads of the compiled kernels (numba ``prange`` over the functions of a chunk), 1 to
-        ``NUMBA_NUM_THREADS``. Default 1: on the shared 2-core machine two threads gave 1.33×
-        when idle but 0.5–0.6× of one whenever other jobs ran (the OpenMP workers spin between
-        kernels while the numpy steps run; docs/skin.md) — pass ``threads`` where cores are
-        free. Results do not depend on it: each function is one independent problem (tested).
+        Worker threads, 1 to ``NUMBA_NUM_THREADS``: each fits whole chunks (numpy steps and
+        compiled kernels, the kernels on one numba thread), so no thread waits while another
+        runs serial numpy code. Default 1; pass 2 where both cores are free: the CPU time per
+        function is the same at one and two threads, so two gain what the free core gives
+        (paper mode, 2048 lights, one core busy with another job: 1.26× wall; docs/skin.md).
+        Results do not depend on it: the chunks are the same and each function is one
+        independent problem (bit-identical, tested).
 
     specular_gate : float
         ≥ 0. With G > 0 a sample's μ_s counts as specular only above G σ, σ the noise
@@ -390,21 +392,42 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     sat = np.zeros((N, L), bool)
     if chunk is None:
         chunk = max(CHUNK, CHUNK_SAMPLES // max(L, 1))
-    with _numba_threads(threads):
-        for i in range(0, N, max(1, int(chunk))):
-            sl = slice(i, min(N, i + int(chunk)))
+    starts = list(range(0, N, max(1, int(chunk))))
+    no_vis = np.ones((1, 1), bool)
+
+    def run(i):
+        # one chunk, written straight into the outputs (disjoint slices of D, shadow, sat)
+        sl = slice(i, min(N, i + int(chunk)))
+        stats = None
+        if _skin_fit.KERNELS:
+            # white balance, saturation, shadow map and the brightness statistics in one pass
+            from facegeo.appearance._skin_kernels_samples import prepare_chunk
+
+            Rs = R[sl]
+            if Rs.dtype not in (np.float32, np.float64):  # float16 maps, integers: one kernel
+                Rs = Rs.astype(np.float64)
+            Rw, sat[sl], shadow[sl], bmax, ref = prepare_chunk(
+                np.ascontiguousarray(Rs), np.ascontiguousarray(E, np.float64),
+                np.inf if saturation is None else float(saturation), float(shadow_threshold),
+                no_vis if vis is None else np.ascontiguousarray(vis[sl]), vis is not None)
+            stats = (bmax, ref)
+        else:
             Rc = np.asarray(R[sl], np.float64)
             if saturation is not None:
                 sat[sl] = (Rc >= float(saturation)).any(axis=2)
             Rw = Rc / E[None]
             shadow[sl] = shadow_map(Rw, threshold=shadow_threshold,
-                                    visibility=None if vis is None else vis[sl], saturated=sat[sl])
-            res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
-                             shadow_threshold,
-                             None if d_0 is None else d_0[sl], rounds, specular_gate)
-            D[sl] = res["D"] * E[None]  # float32 on assignment
-            for k in out:
-                out[k].append(res[k])
+                                    visibility=None if vis is None else vis[sl],
+                                    saturated=sat[sl])
+        res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
+                         shadow_threshold, None if d_0 is None else d_0[sl], rounds,
+                         specular_gate, stats)
+        D[sl] = res["D"] * E[None]  # float32 on assignment
+        return {k: res[k] for k in out}
+
+    for res in _map_chunks(run, starts, threads):
+        for k in out:
+            out[k].append(res[k])
     cat = {k: np.concatenate(val) if val else np.zeros((0,)) for k, val in out.items()}
     flags = cat["flags"].astype(np.int32)
     S = np.subtract(R, D, dtype=np.float32)  # D + S = R up to one float32 rounding
@@ -418,9 +441,32 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                    flags=flags, valid=valid, eta=eta, single_channel=single)
 
 
-@contextlib.contextmanager
-def _numba_threads(threads):
-    """numba's thread count for the block."""
+def _map_chunks(run, starts, threads):
+    """``[run(i) for i in starts]``, on ``threads`` worker threads when > 1 (results in order).
+
+    Each worker takes whole chunks and runs the compiled kernels on one numba thread (numba's
+    thread count is per calling thread), so the numpy steps of one chunk overlap the kernels of
+    another: no thread waits at a parallel region's barrier while the serial steps run (the
+    reason ``prange`` over the functions of a chunk measured slower than one thread under
+    load). The chunks are the same at any thread count and each is computed by the same code,
+    so the results are bit-identical (tested).
+    """
+    t = _check_threads(threads)
+    if t == 1 or len(starts) <= 1:
+        with _numba_threads(1):
+            return [run(i) for i in starts]
+    from concurrent.futures import ThreadPoolExecutor
+
+    def job(i):
+        with _numba_threads(1):
+            return run(i)
+
+    with ThreadPoolExecutor(max_workers=min(t, len(starts)),
+                            thread_name_prefix="facegeo-skin-fit") as pool:
+        return list(pool.map(job, starts))
+
+
+def _check_threads(threads):
     import numba
 
     t = int(threads)
@@ -429,6 +475,15 @@ def _numba_threads(threads):
 
         raise InputError(f"threads: expected 1 to {numba.config.NUMBA_NUM_THREADS}, got "
                          f"{fmt_value(threads)}")
+    return t
+
+
+@contextlib.contextmanager
+def _numba_threads(threads):
+    """numba's thread count for the block (in the calling thread)."""
+    import numba
+
+    t = _check_threads(threads)
     old = numba.get_num_threads()
     numba.set_num_threads(t)
     try:
@@ -440,7 +495,8 @@ def _numba_threads(threads):
 def _separate_ramp(R, d0, n, v, lights, a0, a1):
     """The §4.2 separation of every sample with the ramp chromaticity (the compiled
     ``_skin_kernels.separate_ramp``); ``n`` None: with d_0 itself (the initial separation).
-    Returns ``D (n, L, 3)``, ``μ_s (n, L)``, ``|D| (n, L)``, any-singular ``(n,)``."""
+    Returns ``D (n, L, 3)``, ``μ_s (n, L)`` (both with 0 lights when ``n`` is None),
+    ``|D| (n, L)``, any-singular ``(n,)``."""
     from facegeo.appearance._skin_kernels_samples import separate_ramp
 
     c = np.ascontiguousarray
@@ -453,15 +509,21 @@ def _separate_ramp(R, d0, n, v, lights, a0, a1):
 
 
 def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, rounds,
-               gate=0.0):
-    """§4.2 on one chunk of white-balanced functions R ``(n, L, C)``; see :func:`fit_reflectance`."""
+               gate=0.0, stats=None):
+    """§4.2 on one chunk of white-balanced functions R ``(n, L, C)``; see :func:`fit_reflectance`.
+    ``stats``: each function's largest unsaturated brightness and the 99th percentile of its
+    ``|R|`` (saturated samples as 0), when the caller has them (``prepare_chunk``)."""
     n_f, L, C = R.shape
     l = lights.directions
     flags = np.zeros(n_f, np.int64)
     valid_s = ~shadow & ~sat
     flags |= np.where(sat.any(axis=1), FLAG_SATURATED, 0)
-    b = R.sum(axis=2)
-    black = ~(np.where(sat, 0.0, b).max(axis=1) > 1e-12)
+    if stats is None:
+        bmax = np.where(sat, 0.0, R.sum(axis=2)).max(axis=1)
+        ref = np.percentile(np.where(sat, 0.0, np.linalg.norm(R, axis=2)), 99, axis=1)
+    else:
+        bmax, ref = stats
+    black = ~(bmax > 1e-12)
     few = valid_s.sum(axis=1) < MIN_SAMPLES
     flags |= np.where(black, FLAG_BLACK, 0)
     flags |= np.where(few & ~black, FLAG_SHADOWED, 0)
@@ -517,7 +579,6 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
     # k: the lobe's scale at the final normal (fit_lambertian_lobe, on the final |D|)
     x = np.maximum(n @ l.T, 0.0)
     rho_d = np.pi * np.maximum(k, 0.0)[:, None] * d0
-    ref = np.percentile(np.where(sat, 0.0, np.linalg.norm(R, axis=2)), 99, axis=1)
     cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
     nv = np.einsum("ni,ni->n", n, v)
     flags |= np.where(nv < GRAZING_COS, FLAG_GRAZING_VIEW, 0)
