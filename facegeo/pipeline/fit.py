@@ -307,6 +307,11 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             rows = np.unique(r[seen])
         selections.append(rows[_even_subset(rows.size, max_texels)])
     n_all = int(sum(r.size for r in selections))
+    # both cores when numba has them (the fit is bit-identical at any thread count, so the
+    # thread count is not a setting of the stage's cache key)
+    import numba
+
+    threads = max(1, min(2, int(numba.config.NUMBA_NUM_THREADS)))
     for src, rows in zip(sources, selections):
         t0 = time.perf_counter()
         writer = FitWriter(dest / src.name, rows.size, lights.n_lights,
@@ -317,7 +322,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             R = np.asarray(src.field[rr], np.float32)
             ok = np.isfinite(R).all(axis=(1, 2))
             R = np.where(ok[:, None, None], R, 0.0)  # masked samples: fitted as black, flagged
-            fit = fit_reflectance(R, src.v_world[rr], lights, eta=eta, depth=depth)
+            fit = fit_reflectance(R, src.v_world[rr], lights, eta=eta, depth=depth,
+                                  threads=threads)
             writer.write(rr, src.texel_index[rr], fit)
             flags = np.concatenate([flags, fit.flags])
             t_id = src.texel_index[rr]
