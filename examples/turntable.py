@@ -3,10 +3,11 @@
 Run:  python examples/turntable.py SCAN [--step 30] [--env sky|studio|FILE.exr] [--naive]
       python examples/turntable.py --tiny [--step 60]    (synthesises a tiny scan first)
 
-Each frame is a view of the first camera orbited about the vertical axis through the head
-(``orbit:CAMERA:DEGREES``), rendered by :func:`facegeo.pipeline.render.run_render`: Embree rays
-→ atlas texels → each source camera's reflectance function resynthesised for the new view
-(Debevec et al. 2000, Eq. 9) → relit (Eq. 4) → blended. The stages it needs (atlas, project,
+Each frame is a view of the rig's frontal camera orbited about the vertical axis through the
+head (``orbit:front:DEGREES``), rendered by :func:`facegeo.pipeline.render.run_render`: Embree
+rays → atlas texels → each source camera's reflectance function resynthesised for the new view
+(Debevec et al. 2000, Eq. 9, with the cross-validated shrinkage of docs/render.md) → relit
+(Eq. 4) → blended. The stages it needs (atlas, project,
 fit) run first and are cached, so a second turntable reuses them. The frames are written to
 ``SCAN/out/views/`` and gathered into ``turntable.gif``.
 """
@@ -23,16 +24,14 @@ import numpy as np
 def turntable(scan: Path, *, step: float, env: str, naive: bool, out_gif: Path) -> list[dict]:
     from PIL import Image
 
-    from facegeo.capture.scan import load_scan
     from facegeo.pipeline.reconstruct import run_reconstruct
     from facegeo.pipeline.render import run_render
 
-    cam = load_scan(scan).camera_names[0]
     run_reconstruct(scan, until="fit")  # cached after the first time
     angles = np.arange(-90.0, 90.0 + 1e-9, step)
     frames, results = [], []
     for a in angles:
-        m = run_render(scan, camera_spec=f"orbit:{cam}:{a:g}", env=env, resynthesis=not naive,
+        m = run_render(scan, camera_spec=f"orbit:front:{a:g}", env=env, resynthesis=not naive,
                        baseline=False, name=f"turntable_{a:+04.0f}")
         results.append(m)
         frames.append(Image.open(scan / "out" / "views" / m["files"]["png"]).convert("RGB"))

@@ -399,7 +399,6 @@ def test_blended_field_is_the_weighted_mean_of_the_cameras(tiny, projected, tmp_
 
 def test_blend_leaves_masked_samples_out_and_renormalises(tmp_path):
     """A NaN (masked) sample of one camera gives the other camera's value; NaN in all gives NaN."""
-    L = 2
     for name, idx, w, R in (("a", [1, 3, 4], [1.0, 0.5, 2.0], [[1, 2], [3, np.nan], [np.nan, 5]]),
                             ("b", [3, 4, 7], [0.5, 1.0, 1.0], [[7, 8], [np.nan, np.nan], [6, 6]])):
         d = tmp_path / name

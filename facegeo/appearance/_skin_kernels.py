@@ -490,7 +490,6 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
     df/dp; they do not enter k or s_yy).
     """
     m = r_out.size
-    P = p.size
     nx = ny = nz = nvc = dnvc0 = dnvc1 = 0.0
     d0x = d0y = d0z = d1x = d1y = d1z = 0.0
     if nrm:
