@@ -19,7 +19,11 @@ float64 steps in the same order), so codes, validity and statistics are identica
 ``y`` / ``sigma`` / ``confidence`` equal (tested in tests/test_decode.py). Margins are never
 NaN here (the decoder rejects non-finite frames), so plain ``min`` stands for ``np.minimum``.
 
-Serial, like the per-frame kernels (``_sl_kernels`` says why).
+Reliability on integer margins is an integer compare against the smallest reliable margin of
+the pixel (found once per pixel and axis), and the fully-resolved pass writes its selects as
+``np.maximum`` / ``np.minimum`` (numba vectorises those, not ``min`` / ``max`` / conditional
+expressions on floats). The kernels are serial; ``StreamDecoder.finish`` runs the chunks of
+2**16 pixels on numba's thread count of Python threads (the kernels release the GIL).
 """
 
 from __future__ import annotations

@@ -20,11 +20,18 @@ materialises no float32 luminance plane for a pattern / inverse pair or a phase 
 The luminance is bit-for-bit the one :func:`luminance` computes (a channel sum of integers
 below 2**24 is exact in float32 whichever order it is summed in), so the decode does not change.
 
-Threads: the kernels are serial (no ``prange``): the decode runs on the calling thread.
-``parallel=True`` row loops were tried and measured on the shared 2-core machine (load ≈ 7):
-at 2 numba threads the in-memory decode took 725 ms against 37.5 ms at 1 (``--quick`` size),
-presumably because each of the ~50 parallel regions per decode waits for a descheduled
-thread.
+**Frames already in memory are read tile-major** (:func:`pairs_tiled`): when the decoder holds
+several pairs at once (all of them when ``decode_stream`` is given a mapping, list or tuple),
+the pixels are cut into tiles of :data:`TILE` pixels and every pair is folded into a tile before
+the next tile, so the tile's accumulators stay in cache and each frame byte is read once; the
+decision and the running max / min are taken on the exact integer channel sums (vectorised),
+bit for bit the float32 result (the proof is in :func:`pairs_tiled`).
+
+Threads: the frame-by-frame kernels are serial (one call per frame: ``parallel=True`` row loops
+with ~50 parallel regions per decode were measured 20× slower on the shared 2-core machine at
+load ≈ 7). :func:`pairs_tiled` has one ``prange`` over its tiles — one parallel region per
+group and axis (two for a decode of held frames) — on numba's current thread count
+(``numba.set_num_threads``).
 """
 
 from __future__ import annotations

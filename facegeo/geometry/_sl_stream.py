@@ -6,6 +6,13 @@ docstring first; the method is written down in ``docs/structured-light.md``).
 Speed: the per-frame updates are compiled kernels (``_sl_kernels``: an 8-bit pair or phase
 frame is read once, no float32 luminance plane), and so is the per-pixel part of
 :meth:`StreamDecoder.finish` (``_sl_finish``; the numpy reference stays, ``KERNELS = False``).
+Frames the caller already holds (``decode_frames`` given a mapping, list or tuple) are not
+folded one by one: their 8-bit / 16-bit pairs wait in one group (references, no copies) that
+:func:`_sl_kernels.pairs_tiled` folds tile-major at :meth:`StreamDecoder.finish`. A stream (a
+generator) is folded frame by frame: buffering its frames for a group needs copies (the
+caller may reuse a frame's buffer), and copied groups measured no faster than frame by frame
+(``STREAM_GROUP_BYTES = 0``; ``docs/structured-light.md``). The finish runs its chunks on
+numba's thread count (``numba.set_num_threads``) of Python threads.
 
 Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families and axes):
 
