@@ -687,18 +687,29 @@ def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, ti
     assert k.tiled_ok(np.uint8, 3, 1 / 765, 510.0) and not k.tiled_ok(np.float32, 3, 1.0, 510.0)
 
 
-@pytest.mark.parametrize("group_frames", [1, 3, 100])
-def test_grouped_decode_equals_frame_by_frame(group_frames):
+@pytest.mark.parametrize("group_frames,mixed", [(1, False), (3, False), (100, False),
+                                                (np.inf, True), (3, True)])
+def test_grouped_decode_equals_frame_by_frame(group_frames, mixed):
     """Frames buffered in tile-major groups (a budget of 1, 3 or all frames; out of order, so
     groups end with pairs split across them) decode exactly as frame by frame (``group_bytes
-    = 0``): codes, validity, statistics and every float output identical."""
+    = 0``): codes, validity, statistics and every float output identical. ``mixed``: some
+    frames are channel-reversed views (not C-contiguous: frame by frame when held) and some
+    uint16, so pairs have one half in a group and the other folded frame by frame — fails if
+    a half is dropped or folded twice."""
     from facegeo.geometry._sl_stream import StreamDecoder
 
     spec = PatternSpec(PROJ_W, PROJ_H, codes=("gray", "xor04"), phase_steps=3)
     frames, _, _ = _frames(spec, noise=0.01, seed=6, dtype=np.uint8)
-    frames = {n: np.repeat(f[..., None], 3, axis=2) for n, f in frames.items()}
+    rng = np.random.default_rng(1)
+    frames = {n: np.stack([f, np.roll(f, 1, axis=1), f], axis=2) for n, f in frames.items()}
+    if mixed:
+        for i, n in enumerate(frames):
+            if i % 3 == 1:
+                frames[n] = frames[n][..., ::-1]
+            elif i % 7 == 2:
+                frames[n] = frames[n].astype(np.uint16) * 257
     order = list(frames)
-    np.random.default_rng(1).shuffle(order)
+    rng.shuffle(order)
     results = []
     for budget in (0, group_frames * frames[order[0]].nbytes):
         dec = StreamDecoder(spec, group_bytes=budget, copy_group=budget < np.inf)

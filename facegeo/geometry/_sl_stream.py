@@ -27,7 +27,7 @@ Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families a
 * the outputs (float32 ``x, y, sigma_x, sigma_y, confidence``; ``direct``, ``global_`` and
   ``lit`` are written over the accumulators they come from).
 
-A 42-frame 4896 × 3264 RGB set (white, black, 10 + 10 bits with inverses) peaks at 1.21 GB
+A 42-frame 4896 × 3264 RGB set (white, black, 10 + 10 bits with inverses) peaks at 1.24 GB
 (measured, tests/test_decode.py), not
 the 8.5 GB of holding every frame as float32 RGB.
 """
@@ -281,21 +281,32 @@ class StreamDecoder:
                 self.values[k] = lum
                 return
             key = (p.code, p.axis, p.index)
+            # a held frame that is not C-contiguous (a channel-reversed view) would be copied
+            # whole for the tile kernel: it takes the frame-by-frame path instead
             if fused and self.group_bytes > 0 and key not in self.pending and _kern.tiled_ok(
-                    a.dtype, a.shape[2] if a.ndim == 3 else 1, scale, _MARGIN_STEPS):
+                    a.dtype, a.shape[2] if a.ndim == 3 else 1, scale, _MARGIN_STEPS) and (
+                    self.copy_group or a.flags.c_contiguous):
                 self._add_to_group(key, p.inverse, a, scale)
                 return
-            other = self.pending.pop(key, None)
-            if other is None:
-                # the waiting half of the pair: its exact channel sum (or luminance)
-                self.pending[key] = (p.inverse, _kern.channel_sum(a) if fused else a, scale)
-                return
-            (pos, ps), (neg, ns) = ((other[1], other[2]), (a, scale)) if p.inverse else \
-                ((a, scale), (other[1], other[2]))
-            # one compiled pass: both luminances, decision bit, uint8 margin, L_max / L_min
-            _kern.pair_update(pos, neg, self.signs[(p.code, p.axis)],
-                              self.spec.n_bits(p.axis) - 1 - p.index, self.margin[k],
-                              _MARGIN_STEPS, self.lmax, self.lmin, pos_scale=ps, neg_scale=ns)
+            if any(g[0] == key for g in self.group):
+                self._flush_group()  # its partner waits in the group: make it pending first
+            self._fold_pair(key, p.inverse, a, scale, fused)
+
+    def _fold_pair(self, key, inverse: bool, a, scale: float, fused: bool) -> None:
+        """Frame by frame: fold a pair frame with its waiting partner, or make it wait (as its
+        exact channel sum when ``fused``, else ``a`` is its float32 luminance)."""
+        other = self.pending.pop(key, None)
+        if other is None:
+            # the waiting half of the pair: its exact channel sum (or luminance)
+            self.pending[key] = (inverse, _kern.channel_sum(a) if fused else a, scale)
+            return
+        (pos, ps), (neg, ns) = ((other[1], other[2]), (a, scale)) if inverse else \
+            ((a, scale), (other[1], other[2]))
+        code, axis, index = key
+        # one compiled pass: both luminances, decision bit, uint8 margin, L_max / L_min
+        _kern.pair_update(pos, neg, self.signs[(code, axis)], self.spec.n_bits(axis) - 1 - index,
+                          self.margin[self.plane_index[key]], _MARGIN_STEPS, self.lmax,
+                          self.lmin, pos_scale=ps, neg_scale=ns)
 
     def _add_to_group(self, key, inverse: bool, a: np.ndarray, scale: float) -> None:
         """Buffer a pair frame for the tile-major group kernel; flush at the byte budget."""
@@ -330,8 +341,8 @@ class StreamDecoder:
                 [n - 1 - q[2][2] for q in pairs], [self.plane_index[q[2]] for q in pairs],
                 self.sign_words[axis], self.margin, _MARGIN_STEPS, self.lmax, self.lmin)
         for (key, inv), j in where.items():
-            if (key, not inv) not in where:
-                self.pending[key] = (inv, _kern.channel_sum(group[j][2]), group[j][3])
+            if (key, not inv) not in where:  # fold with a pending partner, or wait
+                self._fold_pair(key, inv, group[j][2], group[j][3], True)
 
     # ---------------------------------------------------------------- decoding
 
