@@ -721,3 +721,29 @@ def test_grouped_decode_equals_frame_by_frame(group_frames, mixed):
     for name in ("x", "y", "valid", "confidence", "sigma_x", "sigma_y", "direct", "global_",
                  "lit", "shadow"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+def test_threads_do_not_change_the_decode_and_are_checked():
+    """Two threads (tiles of the pair kernel, chunks of the finish; chunks smaller than the
+    image so both threads work and their statistics are summed) decode exactly as one; a
+    thread count outside 1 … NUMBA_NUM_THREADS is an InputError naming ``threads``."""
+    import numba
+
+    import facegeo.geometry._sl_stream as S
+
+    spec = PatternSpec(PROJ_W, PROJ_H, codes=("gray", "xor02"))
+    frames, _, _ = _frames(spec, noise=0.01, seed=8, dtype=np.uint8)
+    one = S.decode_frames(frames, spec, threads=1)
+    if numba.config.NUMBA_NUM_THREADS >= 2:
+        chunk = S._CHUNK
+        S._CHUNK = 1000  # several chunks on this small image
+        try:
+            two = S.decode_frames(frames, spec, threads=2)
+        finally:
+            S._CHUNK = chunk
+        assert two.bits == one.bits
+        for name in ("x", "y", "valid", "confidence", "sigma_x", "lit", "shadow"):
+            np.testing.assert_array_equal(getattr(two, name), getattr(one, name), err_msg=name)
+    for bad in (0, 1.5, numba.config.NUMBA_NUM_THREADS + 1):
+        with pytest.raises(InputError, match="threads"):
+            S.decode_frames(frames, spec, threads=bad)

@@ -23,7 +23,7 @@ Reliability on integer margins is an integer compare against the smallest reliab
 the pixel (found once per pixel and axis), and the fully-resolved pass writes its selects as
 ``np.maximum`` / ``np.minimum`` (numba vectorises those, not ``min`` / ``max`` / conditional
 expressions on floats). The kernels are serial; ``StreamDecoder.finish`` runs the chunks of
-2**16 pixels on numba's thread count of Python threads (the kernels release the GIL).
+2**16 pixels on its ``threads`` Python threads (the kernels release the GIL).
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ folded one by one: their 8-bit / 16-bit pairs wait in one group (references, no 
 generator) is folded frame by frame: buffering its frames for a group needs copies (the
 caller may reuse a frame's buffer), and copied groups measured no faster than frame by frame
 (``STREAM_GROUP_BYTES = 0``; ``docs/structured-light.md``). The finish runs its chunks on
-numba's thread count (``numba.set_num_threads``) of Python threads.
+``threads`` Python threads (default 1).
 
 Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families and axes):
 
@@ -150,11 +150,19 @@ def _luminance(frame: Any, name: str, shape, full_scale: float | None) -> np.nda
     return lum
 
 
-def _finish_threads() -> int:
-    """Threads of the finish: numba's current thread count (``numba.set_num_threads``)."""
+def _check_threads(threads) -> int:
+    """``threads`` as an int in 1 … ``NUMBA_NUM_THREADS``, else :class:`InputError`."""
     import numba
 
-    return int(numba.get_num_threads())
+    top = numba.config.NUMBA_NUM_THREADS
+    try:
+        t = int(threads)
+    except (TypeError, ValueError):
+        t = 0
+    if t != threads or not 1 <= t <= top:
+        raise InputError(f"threads: expected an integer from 1 to {top} (NUMBA_NUM_THREADS), "
+                         f"got {fmt_value(threads)}")
+    return t
 
 
 def _add_bits(total: dict, part: dict) -> None:
@@ -185,7 +193,7 @@ class StreamDecoder:
     """
 
     def __init__(self, spec, *, full_scale: float | None = None, group_bytes: float = 0,
-                 copy_group: bool = True):
+                 copy_group: bool = True, threads: int = 1):
         from facegeo.geometry._sl_decode import _check_full_scale
         from facegeo.geometry._sl_patterns import _pattern_table
 
@@ -207,6 +215,7 @@ class StreamDecoder:
         self.group_nbytes = 0
         self.group_bytes = float(group_bytes)
         self.copy_group = bool(copy_group)
+        self.threads = _check_threads(threads)
 
     # ---------------------------------------------------------------- accumulation
 
@@ -329,17 +338,25 @@ class StreamDecoder:
             return
         where = {(key, inv): j for j, (key, inv, _, _) in enumerate(group)}
         frames = [g[2] for g in group]
+        import numba
+
         for axis in _AXES:
             pairs = [(where[(k, False)], where[(k, True)], k) for (k, inv), _ in where.items()
                      if not inv and k[1] == axis and (k, True) in where]
             if not pairs:
                 continue
             n = self.spec.n_bits(axis)
-            _kern.pairs_tiled(
-                frames, [q[0] for q in pairs], [q[1] for q in pairs], group[0][3],
-                [self.spec.codes.index(q[2][0]) for q in pairs],
-                [n - 1 - q[2][2] for q in pairs], [self.plane_index[q[2]] for q in pairs],
-                self.sign_words[axis], self.margin, _MARGIN_STEPS, self.lmax, self.lmin)
+            old = numba.get_num_threads()
+            numba.set_num_threads(self.threads)
+            try:
+                _kern.pairs_tiled(
+                    frames, [q[0] for q in pairs], [q[1] for q in pairs], group[0][3],
+                    [self.spec.codes.index(q[2][0]) for q in pairs],
+                    [n - 1 - q[2][2] for q in pairs], [self.plane_index[q[2]] for q in pairs],
+                    self.sign_words[axis], self.margin, _MARGIN_STEPS, self.lmax, self.lmin,
+                    parallel=self.threads > 1)
+            finally:
+                numba.set_num_threads(old)
         for (key, inv), j in where.items():
             if (key, not inv) not in where:  # fold with a pending partner, or wait
                 self._fold_pair(key, inv, group[j][2], group[j][3], True)
@@ -403,7 +420,7 @@ class StreamDecoder:
         fm = {a: v.reshape(-1) for a, v in modulation.items()}
         P = H * W
         chunks = [slice(p0, min(P, p0 + _CHUNK)) for p0 in range(0, P, _CHUNK)]
-        threads = _finish_threads() if KERNELS else 1
+        threads = self.threads if KERNELS else 1
         if threads > 1 and len(chunks) > 1:
             # the chunks write disjoint slices; the compiled kernels release the GIL, so
             # Python threads run them in parallel (per-chunk statistics, summed after)
@@ -772,8 +789,13 @@ def _partial_codes(binary, u, n, step, n_stripes, hint):
     return first, c_st, w_eff, exists, edge, picked
 
 
-def decode_frames(frames: Iterable, spec, *, full_scale=None, **settings) -> StreamDecode:
-    """Feed ``(name, frame)`` pairs to a :class:`StreamDecoder` and finish it."""
+def decode_frames(frames: Iterable, spec, *, full_scale=None, threads: int = 1,
+                  **settings) -> StreamDecode:
+    """Feed ``(name, frame)`` pairs to a :class:`StreamDecoder` and finish it.
+
+    ``threads``: of the tile-major pair kernel and of the finish (1 … ``NUMBA_NUM_THREADS``).
+    Default 1: on the shared 2-core machine two threads were slower than one in every run
+    measured (docs/structured-light.md)."""
     from collections.abc import ItemsView, Mapping
 
     if isinstance(frames, Mapping):
@@ -783,7 +805,7 @@ def decode_frames(frames: Iterable, spec, *, full_scale=None, **settings) -> Str
     held = isinstance(frames, (ItemsView, list, tuple))
     dec = StreamDecoder(spec, full_scale=full_scale,
                         group_bytes=math.inf if held else STREAM_GROUP_BYTES,
-                        copy_group=not held)
+                        copy_group=not held, threads=threads)
     try:
         it = iter(frames)
     except TypeError:

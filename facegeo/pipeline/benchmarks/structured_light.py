@@ -179,7 +179,7 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
     (42 frames), as 8-bit RGB (what a camera delivers). Rows:
 
     * in memory (a mapping: every frame held, so the pairs are folded tile-major in one
-      group), at 1 numba thread and at ``NUMBA_NUM_THREADS`` (``numba.set_num_threads``: the
+      group), at 1 thread and at ``NUMBA_NUM_THREADS`` (``decode_frames(threads=...)``: the
       tiles of the pair kernel and the chunks of the finish share the threads) — throughput,
       the fraction of pixels not decoded to the true projector pixel, its fraction of the
       **read-once limit** at the bandwidth of the same thread count, and (1 thread) its ratio to
@@ -200,6 +200,7 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
 
     import cv2
 
+    from facegeo.geometry._sl_stream import decode_frames
     from facegeo.geometry.structured_light import (
         PatternSpec,
         decode_stream,
@@ -243,22 +244,18 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
             best = min(best, time.process_time() - c0)
         return round(1e3 * best, 1)
 
-    old_threads = numba.get_num_threads()
     runs, cpu = {}, {}
     cpu_ref = cpu_ms(lambda: reference_decode_gray(lum, spec))
-    try:
-        for nt in sorted({1, numba.config.NUMBA_NUM_THREADS}):
-            numba.set_num_threads(nt)
-            # a mapping: every frame is held, one tile-major group over all of them
-            runs[nt] = best_of(lambda: decode_stream(rgb, spec), repeat)
-            cpu[nt] = cpu_ms(lambda: decode_stream(rgb, spec))
-        numba.set_num_threads(1)
-        # a generator: the streaming path, frame by frame (what a camera feeds)
-        streamed = lambda: decode_stream(((n, a) for n, a in rgb.items()), spec)
-        t_s, res_s = best_of(streamed, repeat)
-        cpu_s = cpu_ms(streamed)
-    finally:
-        numba.set_num_threads(old_threads)
+    for nt in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+        # a mapping: every frame is held, one tile-major group over all of them
+        # (decode_frames: decode_stream's implementation, with its thread count)
+        held = lambda: decode_frames(rgb, spec, threads=nt)
+        runs[nt] = best_of(held, repeat)
+        cpu[nt] = cpu_ms(held)
+    # a generator: the streaming path, frame by frame (what a camera feeds)
+    streamed = lambda: decode_stream(((n, a) for n, a in rgb.items()), spec)
+    t_s, res_s = best_of(streamed, repeat)
+    cpu_s = cpu_ms(streamed)
     rows = []
     for nt, (t, res) in runs.items():
         mpx = w * h / t / 1e6
@@ -311,11 +308,7 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
                                  spec)
 
         t_read, _ = best_of(read_only, 1 if quick else 2)
-        numba.set_num_threads(1)
-        try:
-            t_e2e, res2 = best_of(end_to_end, 1 if quick else 2)
-        finally:
-            numba.set_num_threads(old_threads)
+        t_e2e, res2 = best_of(end_to_end, 1 if quick else 2)
     rows.append(BenchRow(
         "structured_light.decode_stream", "facegeo decode_stream end to end from PNG files",
         w * h / t_e2e / 1e6, "Mpx/s", wrong(res2.x, res2.y, res2.valid),
