@@ -655,3 +655,95 @@ def test_compiled_finish_equals_numpy_reference(kw, monkeypatch):
                                    atol=KERNEL_PHASE_TOL_RAD)
         np.testing.assert_allclose(got.modulation[a], want.modulation[a], rtol=0,
                                    atol=KERNEL_MODULATION_TOL)
+
+
+@pytest.mark.parametrize("dtype,channels,tile,parallel", [
+    (np.uint8, 3, 64, True), (np.uint8, 1, 4096, False), (np.uint16, 3, 100, True)])
+def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, tile, parallel):
+    """Several pairs folded tile-major (``pairs_tiled``: integer channel sums, tiles of any
+    size, prange) update words, margins and ``L_max`` / ``L_min`` *bit for bit* as the
+    frame-by-frame ``pair_update`` does, pair after pair. Fails if the tiled kernel decides a
+    bit on the wrong side, rounds a margin or a luminance differently or skips a tile's tail."""
+    from facegeo.geometry import _sl_kernels as k
+
+    rng = np.random.default_rng(4)
+    top = np.iinfo(dtype).max
+    shape = (23, 37, channels) if channels > 1 else (23, 37)
+    frames = [rng.integers(0, top, shape, endpoint=True).astype(dtype) for _ in range(6)]
+    frames[3] = frames[2].copy()  # a tie: pos == neg must not set the bit
+    scale = 1.0 / (top * channels)
+    pos, neg, rows, bits, planes = [0, 2, 5], [1, 3, 4], [0, 1, 1], [9, 3, 0], [2, 0, 1]
+    state = [np.zeros((2, 23, 37), np.uint16), np.zeros((3, 23, 37), np.uint8),
+             rng.random((23, 37), dtype=np.float32), rng.random((23, 37), dtype=np.float32)]
+    ref = [s.copy() for s in state]
+    k.pairs_tiled(frames, pos, neg, scale, rows, bits, planes, *state[:2], 510.0, *state[2:],
+                  tile=tile, parallel=parallel)
+    for p, q, r, b, m in zip(pos, neg, rows, bits, planes):
+        k.pair_update(frames[p], k.channel_sum(frames[q]), ref[0][r], b, ref[1][m], 510.0,
+                      ref[2], ref[3], pos_scale=scale, neg_scale=scale)
+    for got, want in zip(state, ref):
+        np.testing.assert_array_equal(got, want)
+    assert state[1].max() > 100 and state[0].any()  # margins and bits were written
+    assert k.tiled_ok(np.uint8, 3, 1 / 765, 510.0) and not k.tiled_ok(np.float32, 3, 1.0, 510.0)
+
+
+@pytest.mark.parametrize("group_frames,mixed", [(1, False), (3, False), (100, False),
+                                                (np.inf, True), (3, True)])
+def test_grouped_decode_equals_frame_by_frame(group_frames, mixed):
+    """Frames buffered in tile-major groups (a budget of 1, 3 or all frames; out of order, so
+    groups end with pairs split across them) decode exactly as frame by frame (``group_bytes
+    = 0``): codes, validity, statistics and every float output identical. ``mixed``: some
+    frames are channel-reversed views (not C-contiguous: frame by frame when held) and some
+    uint16, so pairs have one half in a group and the other folded frame by frame — fails if
+    a half is dropped or folded twice."""
+    from facegeo.geometry._sl_stream import StreamDecoder
+
+    spec = PatternSpec(PROJ_W, PROJ_H, codes=("gray", "xor04"), phase_steps=3)
+    frames, _, _ = _frames(spec, noise=0.01, seed=6, dtype=np.uint8)
+    rng = np.random.default_rng(1)
+    frames = {n: np.stack([f, np.roll(f, 1, axis=1), f], axis=2) for n, f in frames.items()}
+    if mixed:
+        for i, n in enumerate(frames):
+            if i % 3 == 1:
+                frames[n] = frames[n][..., ::-1]
+            elif i % 7 == 2:
+                frames[n] = frames[n].astype(np.uint16) * 257
+    order = list(frames)
+    rng.shuffle(order)
+    results = []
+    for budget in (0, group_frames * frames[order[0]].nbytes):
+        dec = StreamDecoder(spec, group_bytes=budget, copy_group=budget < np.inf)
+        for n in order:
+            dec.add(n, frames[n])
+        results.append(dec.finish())
+    want, got = results
+    assert want.valid.mean() > 0.5 and got.bits == want.bits
+    for name in ("x", "y", "valid", "confidence", "sigma_x", "sigma_y", "direct", "global_",
+                 "lit", "shadow"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+def test_threads_do_not_change_the_decode_and_are_checked():
+    """Two threads (tiles of the pair kernel, chunks of the finish; chunks smaller than the
+    image so both threads work and their statistics are summed) decode exactly as one; a
+    thread count outside 1 … NUMBA_NUM_THREADS is an InputError naming ``threads``."""
+    import numba
+
+    import facegeo.geometry._sl_stream as S
+
+    spec = PatternSpec(PROJ_W, PROJ_H, codes=("gray", "xor02"))
+    frames, _, _ = _frames(spec, noise=0.01, seed=8, dtype=np.uint8)
+    one = S.decode_frames(frames, spec, threads=1)
+    if numba.config.NUMBA_NUM_THREADS >= 2:
+        chunk = S._CHUNK
+        S._CHUNK = 1000  # several chunks on this small image
+        try:
+            two = S.decode_frames(frames, spec, threads=2)
+        finally:
+            S._CHUNK = chunk
+        assert two.bits == one.bits
+        for name in ("x", "y", "valid", "confidence", "sigma_x", "lit", "shadow"):
+            np.testing.assert_array_equal(getattr(two, name), getattr(one, name), err_msg=name)
+    for bad in (0, 1.5, numba.config.NUMBA_NUM_THREADS + 1):
+        with pytest.raises(InputError, match="threads"):
+            S.decode_frames(frames, spec, threads=bad)

@@ -19,7 +19,11 @@ float64 steps in the same order), so codes, validity and statistics are identica
 ``y`` / ``sigma`` / ``confidence`` equal (tested in tests/test_decode.py). Margins are never
 NaN here (the decoder rejects non-finite frames), so plain ``min`` stands for ``np.minimum``.
 
-Serial, like the per-frame kernels (``_sl_kernels`` says why).
+Reliability on integer margins is an integer compare against the smallest reliable margin of
+the pixel (found once per pixel and axis), and the fully-resolved pass writes its selects as
+``np.maximum`` / ``np.minimum`` (numba vectorises those, not ``min`` / ``max`` / conditional
+expressions on floats). The kernels are serial; ``StreamDecoder.finish`` runs the chunks of
+2**16 pixels on its ``threads`` Python threads (the kernels release the GIL).
 """
 
 from __future__ import annotations
@@ -85,7 +89,8 @@ def _kernel():
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def axis_pixels(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, p0,
                     tau, ref, lit, phi, pok, has_hint, kk, period,
-                    coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
+                    coord_out, sig_out, ok_out, conf_out, final, counts,
+                    int_marg):  # pragma: no cover
         F = signs.shape[0]
         P = tau.shape[0]
         full = (np.int64(1) << n) - 1
@@ -94,10 +99,11 @@ def _kernel():
         tiny = np.float32(1e-12)
         sqrt12 = math.sqrt(12.0)
         T = _TILE
-        mg = np.empty((n, T), np.float32)  # margins of the tile, plane-major
         rel = np.empty(T, np.int64)
         wrd = np.empty(T, np.int64)
         mm = np.empty(T, np.float32)
+        mi = np.empty(T, marg.dtype)  # the smallest stored margin of a family
+        thr = np.empty(T, np.int32)  # integer margins: the smallest margin that is reliable
         cf = np.empty((F, T))
         sf = np.empty((F, T))
         wf = np.empty((F, T))
@@ -107,53 +113,88 @@ def _kernel():
         c0 = 0.5 * (step - 1.0)
         one_stripe_ok = step <= coarse_lim + 1e-9  # a fully resolved code names one stripe
         sig_one = 1.0 * step / sqrt12
+        # integer (uint8) margins: "float32(m) * mscale >= tau" is "m >= thr" with thr the
+        # smallest such m (monotone in m), found once per pixel; the plane loops then compare
+        # integers, which numba vectorises (its float compare-and-select loops stay scalar)
+        table = np.arange(257).astype(np.float32) * mscale
         for t0 in range(0, P, T):
             nt = min(T, P - t0)
-            for f in range(F):
-                # plane-major passes over the tile (vectorised): margins, reliable planes
+            a0 = p0 + t0
+            relv = rel[:nt]
+            wrdv = wrd[:nt]
+            miv = mi[:nt]
+            thrv = thr[:nt]
+            tauv = tau[t0:t0 + nt]
+            if int_marg:
                 for t in range(nt):
-                    rel[t] = 0
-                    wrd[t] = signs[f, p0 + t0 + t]
+                    tt = tauv[t]
+                    if not tt <= table[255]:  # NaN, inf or above every margin: none reliable
+                        thrv[t] = 256
+                        continue
+                    v = min(max(int(math.ceil(tt / mscale)), 0), 255)
+                    while v > 0 and table[v - 1] >= tt:
+                        v -= 1
+                    while table[v] < tt:  # stops at 255 at the latest (table[255] >= tt)
+                        v += 1
+                    thrv[t] = v
+            for f in range(F):
+                # plane-major passes over the tile: reliable planes, the smallest margin
+                sg = signs[f, a0:a0 + nt]
+                for t in range(nt):
+                    relv[t] = 0
+                    wrdv[t] = sg[t]
                 for i in range(n):
-                    k = kidx[f, i]
+                    mrow = marg[kidx[f, i], a0:a0 + nt]
                     bit = np.int64(1) << (n - 1 - i)
-                    for t in range(nt):
-                        m = np.float32(marg[k, p0 + t0 + t]) * mscale
-                        mg[i, t] = m
-                        rel[t] |= bit if m >= tau[t0 + t] else np.int64(0)
+                    if int_marg:
+                        for t in range(nt):
+                            relv[t] |= bit * np.int64(np.int32(mrow[t]) >= thrv[t])
+                    else:
+                        for t in range(nt):
+                            m = np.float32(mrow[t]) * mscale
+                            relv[t] |= bit if m >= tauv[t] else np.int64(0)
+                    if i == 0:
+                        for t in range(nt):
+                            miv[t] = mrow[t]
+                    else:
+                        for t in range(nt):
+                            miv[t] = min(miv[t], mrow[t])
+                # the XOR base lowers the margins above it to its own: the smallest is unchanged
+                for t in range(nt):
+                    mm[t] = np.float32(miv[t]) * mscale
                 b = base[f]
                 if b > 0:  # XOR code: planes above the base were projected XORed with it
                     high = ((np.int64(1) << b) - 1) << (n - b)
                     sb = n - 1 - b
                     for t in range(nt):
-                        w = wrd[t]
-                        wrd[t] = w ^ (high * ((w >> sb) & 1))
-                        r = rel[t]
-                        rel[t] = r & ((full & ~high) | (high * ((r >> sb) & 1)))
-                    for i in range(b):
-                        for t in range(nt):
-                            mg[i, t] = min(mg[i, t], mg[b, t])
+                        w = wrdv[t]
+                        wrdv[t] = w ^ (high * ((w >> sb) & 1))
+                        r = relv[t]
+                        relv[t] = r & ((full & ~high) | (high * ((r >> sb) & 1)))
+                # every pixel as if fully resolved (vectorised: np.maximum / np.minimum are
+                # the NaN-propagating selects of the reference, and vectorise where numba's
+                # min / max / conditional expressions on floats stay scalar) ...
+                cfv = cf[f, :nt]
+                sfv = sf[f, :nt]
+                wfv = wf[f, :nt]
+                ofv = of[f, :nt]
+                qfv = qf[f, :nt]
+                litv = lit[t0:t0 + nt]
+                refv = ref[t0:t0 + nt]
                 for t in range(nt):
-                    mm[t] = mg[0, t]
-                for i in range(1, n):
-                    for t in range(nt):
-                        mm[t] = min(mm[t], mg[i, t])
-                # every pixel as if fully resolved (vectorised) ...
-                for t in range(nt):
-                    x = wrd[t]  # Gray -> binary: prefix XOR (n <= 32)
+                    x = wrdv[t]  # Gray -> binary: prefix XOR (n <= 32)
                     x ^= x >> 1
                     x ^= x >> 2
                     x ^= x >> 4
                     x ^= x >> 8
                     x ^= x >> 16
-                    wrd[t] = x
-                    cf[f, t] = x * step + c0
-                    sf[f, t] = sig_one
-                    wf[f, t] = step
-                    of[f, t] = lit[t0 + t] & (x < n_stripes) & one_stripe_ok
-                    r = ref[t0 + t]
-                    q = mm[t] / (r if (r >= tiny or r != r) else tiny)
-                    qf[f, t] = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                    wrdv[t] = x
+                    cfv[t] = np.float64(np.int32(x)) * step + c0  # x < 2**31 (n <= 31)
+                    sfv[t] = sig_one
+                    wfv[t] = step
+                    ofv[t] = litv[t] & (x < n_stripes) & one_stripe_ok
+                    q = mm[t] / np.maximum(refv[t], tiny)
+                    qfv[t] = np.minimum(np.maximum(q, np.float32(0.0)), np.float32(1.0))
                 # ... then the pixels with unresolved planes (few): partial codes, statistics
                 for t in range(nt):
                     u = ~rel[t] & full
@@ -205,7 +246,10 @@ def _kernel():
                         if bad and isl:
                             counts[f, i] += 1
                         if not bad and limit > i:
-                            ms = _min_nan(ms, mg[i, t])
+                            m = np.float32(marg[kidx[f, i], a0 + t]) * mscale
+                            if b > 0 and i < b:  # as the XOR base lowered it
+                                m = min(m, np.float32(marg[kidx[f, b], a0 + t]) * mscale)
+                            ms = _min_nan(ms, m)
                     if not np.isfinite(ms):
                         ms = np.float32(0.0)
                     if isl and not ok:
@@ -217,6 +261,21 @@ def _kernel():
                     wf[f, t] = weff * step
                     qf[f, t] = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
                     of[f, t] = ok
+            if F == 1 and final:  # _store, written with vectorisable selects
+                nan_or_0 = np.array([np.nan, 0.0], np.float32)  # + : NaN where not ok
+                cov = coord_out[t0:t0 + nt]
+                sov = sig_out[t0:t0 + nt]
+                oov = ok_out[t0:t0 + nt]
+                qov = conf_out[t0:t0 + nt]
+                for t in range(nt):
+                    o = of[0, t]
+                    z = nan_or_0[np.int64(o)]
+                    oov[t] = o
+                    cov[t] = np.float32(cf[0, t]) + z
+                    sov[t] = np.float32(sf[0, t]) + z
+                    # conf if ok else 0 (conf is finite: ref >= tiny, margins finite)
+                    qov[t] = np.minimum(qov[t], qf[0, t] * np.float32(o))
+                continue
             if F == 1:
                 for t in range(nt):
                     _store(t0 + t, final, of[0, t], cf[0, t], sf[0, t], qf[0, t], coord_out,
@@ -371,7 +430,8 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
               np.asarray(base, np.int64), int(n), float(step), int(n_stripes),
               float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
-              float(period), coord, sig, ok, conf, out is not None, counts)
+              float(period), coord, sig, ok, conf, out is not None, counts,
+              marg.dtype == np.uint8)
     c = counts
     return coord, sig, ok, conf, c[:, :n], c[:, n:2 * n], int(c[0, 2 * n])
 

@@ -20,11 +20,18 @@ materialises no float32 luminance plane for a pattern / inverse pair or a phase 
 The luminance is bit-for-bit the one :func:`luminance` computes (a channel sum of integers
 below 2**24 is exact in float32 whichever order it is summed in), so the decode does not change.
 
-Threads: the kernels are serial (no ``prange``): the decode runs on the calling thread.
-``parallel=True`` row loops were tried and measured on the shared 2-core machine (load ≈ 7):
-at 2 numba threads the in-memory decode took 725 ms against 37.5 ms at 1 (``--quick`` size),
-presumably because each of the ~50 parallel regions per decode waits for a descheduled
-thread.
+**Frames already in memory are read tile-major** (:func:`pairs_tiled`): when the decoder holds
+several pairs at once (all of them when ``decode_stream`` is given a mapping, list or tuple),
+the pixels are cut into tiles of :data:`TILE` pixels and every pair is folded into a tile before
+the next tile, so the tile's accumulators stay in cache and each frame byte is read once; the
+decision and the running max / min are taken on the exact integer channel sums (vectorised),
+bit for bit the float32 result (the proof is in :func:`pairs_tiled`).
+
+Threads: the frame-by-frame kernels are serial (one call per frame: ``parallel=True`` row loops
+with ~50 parallel regions per decode were measured 20× slower on the shared 2-core machine at
+load ≈ 7). :func:`pairs_tiled` has one ``prange`` over its tiles — one parallel region per
+group and axis (two for a decode of held frames) — on numba's current thread count
+(``numba.set_num_threads``).
 """
 
 from __future__ import annotations
@@ -33,20 +40,17 @@ import functools
 
 import numpy as np
 
-__all__ = ["channel_sum", "lum_reference", "luminance", "pair_reference", "pair_update",
-           "phase_reference", "phase_update", "sum_dtype"]
+__all__ = ["TILE", "channel_sum", "lum_reference", "luminance", "pair_reference", "pair_update",
+           "pairs_tiled", "phase_reference", "phase_update", "sum_dtype", "tiled_ok"]
 
 
 _EXACT = (np.dtype(np.uint8), np.dtype(np.uint16))  # channel sums exact below 2**24
 
 
 @functools.cache
-def _kernels(C: int, exact: bool):
-    """The kernels for frames of ``C`` channels, flattened to 1-D (pixel-major).
-
-    ``C`` is a compile-time constant of these closures, so the channel loop unrolls and the
-    pixel loop vectorises (a run-time channel count, or 3-D indexing, kept it scalar: 4-8×
-    slower, measured). ``exact``: uint8 / uint16 frames, summed as integers."""
+def _fsum(C: int, exact: bool):
+    """Compiled ``fsum(f, i)``: the float32 channel sum of pixel ``i`` of a flattened frame of
+    ``C`` channels (``exact``: uint8 / uint16 frames, summed as integers)."""
     from numba import njit
 
     if exact:
@@ -63,6 +67,20 @@ def _kernels(C: int, exact: bool):
             for c in range(C):
                 s += np.float32(f[C * i + c])
             return s
+
+    return fsum
+
+
+@functools.cache
+def _kernels(C: int, exact: bool):
+    """The kernels for frames of ``C`` channels, flattened to 1-D (pixel-major).
+
+    ``C`` is a compile-time constant of these closures, so the channel loop unrolls and the
+    pixel loop vectorises (a run-time channel count, or 3-D indexing, kept it scalar: 4-8×
+    slower, measured). ``exact``: uint8 / uint16 frames, summed as integers."""
+    from numba import njit
+
+    fsum = _fsum(C, exact)
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def lum(f, scale, out):  # pragma: no cover - compiled
@@ -103,6 +121,140 @@ def _kernels(C: int, exact: bool):
             A[i] += v
 
     return lum, csum, pair, phase
+
+
+#: Pixels per tile of :func:`pairs_tiled`: the tile's ``L_max`` / ``L_min`` (float32), decision
+#: words and margins (32 kB + 8 kB + 1 byte a plane and pixel at 4096) stay in the core's L2 while
+#: every pair of the group passes over it.
+TILE = 4096
+
+
+@functools.cache
+def _pairs_tiled(C: int, parallel: bool):
+    """Tile-major pair kernel for integer frames of ``C`` channels (see :func:`pairs_tiled`).
+
+    Integer domain: the decision and the running max / min are taken on the exact channel
+    sums (``pairs_tiled`` says why that is the float32 result); numba vectorises these integer
+    loops, where its float compare-and-select loops stayed scalar (measured 0.6 ns against
+    0.03 ns a pixel for a running max)."""
+    from numba import njit, prange
+
+    # The per-tile loops run over views, bounded by a view's length: indexing a full-size
+    # array at ``a + t`` kept the loops scalar (4-5x slower, measured).
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def sums_tile(f, out):  # pragma: no cover - compiled
+        for t in range(out.shape[0]):
+            s = np.int32(0)
+            for c in range(C):
+                s += np.int32(f[C * t + c])
+            out[t] = s
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def pair_tile(sp, sq, scale, wr, bv, mg, steps, hi, lo):  # pragma: no cover - compiled
+        for t in range(wr.shape[0]):
+            a = sp[t]
+            b = sq[t]
+            wr[t] |= bv * wr.dtype.type(a > b)  # = (pos lum - neg lum > 0)
+            d = np.float32(a) * scale - np.float32(b) * scale  # the float32 luminances' d
+            m = np.int32(np.rint(abs(d) * steps))  # min(rint(x), 255) = rint(min(x, 255))
+            mg[t] = np.uint8(min(m, np.int32(255)))
+            hi[t] = max(hi[t], max(a, b))
+            lo[t] = min(lo[t], min(a, b))
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def merge_tile(hi, lo, scale, lmax, lmin):  # pragma: no cover - compiled
+        for t in range(lmax.shape[0]):
+            lmax[t] = max(lmax[t], np.float32(hi[t]) * scale)
+            lmin[t] = min(lmin[t], np.float32(lo[t]) * scale)
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", parallel=parallel)
+    def pairs(frames, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax, lmin,
+              tile):  # pragma: no cover - compiled
+        P = lmax.shape[0]
+        for ti in prange((P + tile - 1) // tile):  # tiles outermost (a thread's share) ...
+            a = ti * tile
+            b = min(P, a + tile)
+            sp = np.empty(b - a, np.int32)  # the pair's channel sums over the tile
+            sq = np.empty(b - a, np.int32)
+            hi = np.full(b - a, np.int32(-1), np.int32)  # running max / min channel sum
+            lo = np.full(b - a, np.int32(2147483647), np.int32)
+            for o in range(pos.shape[0]):  # ... every pair over the tile, in cache
+                sums_tile(frames[pos[o]][C * a:C * b], sp)
+                sums_tile(frames[neg[o]][C * a:C * b], sq)
+                pair_tile(sp, sq, scale, words[rows[o]][a:b], bitvals[o],
+                          margin[planes[o]][a:b], steps, hi, lo)
+            merge_tile(hi, lo, scale, lmax[a:b], lmin[a:b])
+
+    return pairs
+
+
+def tiled_ok(dtype, channels: int, scale: float, steps: float) -> bool:
+    """Whether :func:`pairs_tiled` takes frames of this dtype / channel count / luminance
+    scale: integer channel sums below 2**22 (so ``sum_a > sum_b`` is exactly ``float32(sum_a) ·
+    scale > float32(sum_b) · scale``) and margins ``|d| · steps`` below 2**30 (int32)."""
+    dtype = np.dtype(dtype)
+    if dtype not in _EXACT or channels < 1 or not 1e-30 < scale:
+        return False
+    top = float(np.iinfo(dtype).max) * channels
+    return top < 2 ** 22 and top * scale * steps < 2 ** 30
+
+
+def pairs_tiled(frames, pos, neg, scale: float, rows, bits, planes, words, margin,
+                steps: float, lmax, lmin, *, tile: int = TILE, parallel: bool = True) -> None:
+    """Fold several pattern / inverse pairs into the accumulators in place, **tile-major**.
+
+    The pixels are cut into tiles of ``tile`` pixels (outer loop, ``prange`` over the tiles:
+    one parallel region for the whole group, on numba's current thread count when
+    ``parallel``); for each tile every pair is folded in turn (inner loop), so each frame byte
+    is read once from memory and the tile's accumulators (running max / min, decision words,
+    channel sums) stay in cache across the pairs — the frame-by-frame :func:`pair_update`
+    streams the full-size float32 ``L_max`` / ``L_min`` through memory once per pair.
+
+    Exactly :func:`pair_update` (``pair_reference``) per pair, in the integer domain: all frames
+    share one luminance ``scale`` (one dtype and channel count, :func:`tiled_ok`), and for
+    channel sums ``0 <= s1 < s2 < 2**22`` the float32 products satisfy ``float32(s2) · scale -
+    float32(s1) · scale >= scale (s2 - s1) - 2**-24 scale (s1 + s2) > 0``, so the decision
+    ``pos > neg``, the max and the min are taken on the sums, and ``L_max = float32(max sum) ·
+    scale`` (rounding is monotone). The margin is computed from the two float32 luminances as
+    before. Bit for bit the frame-by-frame result in any tile size and thread count (tested).
+
+    Parameters
+    ----------
+    frames : list of (H, W[, C]) uint8 or uint16 arrays
+        One dtype and channel count for all.
+    pos, neg : (K,) int
+        Indices into ``frames`` of pair ``o``'s pattern and inverse.
+    scale : float
+        Luminance = channel sum times ``scale`` (float32).
+    rows : (K,) int
+        Row of ``words`` (the code family) pair ``o`` sets its bit in.
+    bits : (K,) int
+        Bit of the word pair ``o`` decides (``pattern > inverse``).
+    planes : (K,) int
+        Plane of ``margin`` pair ``o`` writes.
+    words : (F, H, W) unsigned int array, C-contiguous
+    margin : (n, H, W) uint8 array, C-contiguous
+    steps : float
+        Margin quantisation (``min(rint(|pos - neg| steps), 255)``).
+    lmax, lmin : (H, W) float32, C-contiguous
+        Running max / min of the luminances (updated with the group's).
+    """
+    from numba.typed import List
+
+    f0, C = _flat(frames[0])
+    if not tiled_ok(f0.dtype, C, scale, steps):
+        raise ValueError(f"pairs_tiled: frames of dtype {f0.dtype} with {C} channels at scale "
+                         f"{scale} are not exact in the integer domain (check tiled_ok first)")
+    flats = List()
+    for f in frames:
+        flats.append(np.ascontiguousarray(f).reshape(-1))
+    W = words.reshape(words.shape[0], -1)
+    idx = lambda v: np.ascontiguousarray(v, np.int64)
+    bitvals = (np.ones(len(bits), W.dtype) << np.asarray(bits, W.dtype)).astype(W.dtype)
+    _pairs_tiled(C, bool(parallel))(
+        flats, idx(pos), idx(neg), np.float32(scale), idx(rows), bitvals, idx(planes), W,
+        margin.reshape(margin.shape[0], -1), np.float32(steps), lmax.reshape(-1),
+        lmin.reshape(-1), int(tile))
 
 
 def _flat(a: np.ndarray) -> tuple[np.ndarray, int]:

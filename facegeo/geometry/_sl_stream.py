@@ -6,6 +6,13 @@ docstring first; the method is written down in ``docs/structured-light.md``).
 Speed: the per-frame updates are compiled kernels (``_sl_kernels``: an 8-bit pair or phase
 frame is read once, no float32 luminance plane), and so is the per-pixel part of
 :meth:`StreamDecoder.finish` (``_sl_finish``; the numpy reference stays, ``KERNELS = False``).
+Frames the caller already holds (``decode_frames`` given a mapping, list or tuple) are not
+folded one by one: their 8-bit / 16-bit pairs wait in one group (references, no copies) that
+:func:`_sl_kernels.pairs_tiled` folds tile-major at :meth:`StreamDecoder.finish`. A stream (a
+generator) is folded frame by frame: buffering its frames for a group needs copies (the
+caller may reuse a frame's buffer), and copied groups measured no faster than frame by frame
+(``STREAM_GROUP_BYTES = 0``; ``docs/structured-light.md``). The finish runs its chunks on
+``threads`` Python threads (default 1).
 
 Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families and axes):
 
@@ -20,7 +27,7 @@ Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families a
 * the outputs (float32 ``x, y, sigma_x, sigma_y, confidence``; ``direct``, ``global_`` and
   ``lit`` are written over the accumulators they come from).
 
-A 42-frame 4896 × 3264 RGB set (white, black, 10 + 10 bits with inverses) peaks at 1.21 GB
+A 42-frame 4896 × 3264 RGB set (white, black, 10 + 10 bits with inverses) peaks at 1.24 GB
 (measured, tests/test_decode.py), not
 the 8.5 GB of holding every frame as float32 RGB.
 """
@@ -44,7 +51,10 @@ log = logging.getLogger(__name__)
 
 _AXES = ("x", "y")
 _MARGIN_STEPS = 510.0  # uint8 margin quantisation: 1/510 of full scale, saturating at 0.5
-_CHUNK = 1 << 18  # pixels per chunk when finishing
+_CHUNK = 1 << 16  # pixels per chunk when finishing (a thread's unit of work)
+#: Byte budget of a group of streamed (not held) 8-bit / 16-bit pair frames copied for the
+#: tile-major kernel (``StreamDecoder.group_bytes``); 0: frame by frame.
+STREAM_GROUP_BYTES = 0
 #: Decode the bits in the compiled per-pixel kernel (``_sl_finish``); False: the numpy
 #: reference (``_bit_words`` / ``_decode_axis`` / ``_partial_codes``), used by the tests.
 KERNELS = True
@@ -140,6 +150,34 @@ def _luminance(frame: Any, name: str, shape, full_scale: float | None) -> np.nda
     return lum
 
 
+def _check_threads(threads) -> int:
+    """``threads`` as an int in 1 … ``NUMBA_NUM_THREADS``, else :class:`InputError`."""
+    import numba
+
+    top = numba.config.NUMBA_NUM_THREADS
+    try:
+        t = int(threads)
+    except (TypeError, ValueError):
+        t = 0
+    if t != threads or not 1 <= t <= top:
+        raise InputError(f"threads: expected an integer from 1 to {top} (NUMBA_NUM_THREADS), "
+                         f"got {fmt_value(threads)}")
+    return t
+
+
+def _add_bits(total: dict, part: dict) -> None:
+    """Add one chunk's per-bit statistics (``StreamDecode.bits`` layout) into ``total``."""
+    for a, ax in part.items():
+        for c, d in ax.items():
+            if isinstance(d, dict):
+                for k, v in d.items():
+                    tk = total[a][c][k]
+                    for i, x in enumerate(v):
+                        tk[i] += x
+            else:
+                total[a][c] += d
+
+
 def _word_dtype(n: int):
     return np.uint8 if n <= 8 else np.uint16 if n <= 16 else np.uint32
 
@@ -154,7 +192,8 @@ class StreamDecoder:
         The frames' white level (default: dtype maximum for integer frames, 1 for floats).
     """
 
-    def __init__(self, spec, *, full_scale: float | None = None):
+    def __init__(self, spec, *, full_scale: float | None = None, group_bytes: float = 0,
+                 copy_group: bool = True, threads: int = 1):
         from facegeo.geometry._sl_decode import _check_full_scale
         from facegeo.geometry._sl_patterns import _pattern_table
 
@@ -170,6 +209,13 @@ class StreamDecoder:
         self.families = [(c, a) for c in spec.codes for a in _AXES if spec.n_bits(a)]
         self.pending: dict[tuple, tuple[bool, np.ndarray, float]] = {}
         self.finished = False
+        # tile-major groups of 8-bit / 16-bit pair frames (see add): [(key, inverse, frame,
+        # scale)], their bytes, the byte budget and whether buffered frames are copies
+        self.group: list[tuple[tuple, bool, np.ndarray, float]] = []
+        self.group_nbytes = 0
+        self.group_bytes = float(group_bytes)
+        self.copy_group = bool(copy_group)
+        self.threads = _check_threads(threads)
 
     # ---------------------------------------------------------------- accumulation
 
@@ -244,17 +290,76 @@ class StreamDecoder:
                 self.values[k] = lum
                 return
             key = (p.code, p.axis, p.index)
-            other = self.pending.pop(key, None)
-            if other is None:
-                # the waiting half of the pair: its exact channel sum (or luminance)
-                self.pending[key] = (p.inverse, _kern.channel_sum(a) if fused else a, scale)
+            # a held frame that is not C-contiguous (a channel-reversed view) would be copied
+            # whole for the tile kernel: it takes the frame-by-frame path instead
+            if fused and self.group_bytes > 0 and key not in self.pending and _kern.tiled_ok(
+                    a.dtype, a.shape[2] if a.ndim == 3 else 1, scale, _MARGIN_STEPS) and (
+                    self.copy_group or a.flags.c_contiguous):
+                self._add_to_group(key, p.inverse, a, scale)
                 return
-            (pos, ps), (neg, ns) = ((other[1], other[2]), (a, scale)) if p.inverse else \
-                ((a, scale), (other[1], other[2]))
-            # one compiled pass: both luminances, decision bit, uint8 margin, L_max / L_min
-            _kern.pair_update(pos, neg, self.signs[(p.code, p.axis)],
-                              self.spec.n_bits(p.axis) - 1 - p.index, self.margin[k],
-                              _MARGIN_STEPS, self.lmax, self.lmin, pos_scale=ps, neg_scale=ns)
+            if any(g[0] == key for g in self.group):
+                self._flush_group()  # its partner waits in the group: make it pending first
+            self._fold_pair(key, p.inverse, a, scale, fused)
+
+    def _fold_pair(self, key, inverse: bool, a, scale: float, fused: bool) -> None:
+        """Frame by frame: fold a pair frame with its waiting partner, or make it wait (as its
+        exact channel sum when ``fused``, else ``a`` is its float32 luminance)."""
+        other = self.pending.pop(key, None)
+        if other is None:
+            # the waiting half of the pair: its exact channel sum (or luminance)
+            self.pending[key] = (inverse, _kern.channel_sum(a) if fused else a, scale)
+            return
+        (pos, ps), (neg, ns) = ((other[1], other[2]), (a, scale)) if inverse else \
+            ((a, scale), (other[1], other[2]))
+        code, axis, index = key
+        # one compiled pass: both luminances, decision bit, uint8 margin, L_max / L_min
+        _kern.pair_update(pos, neg, self.signs[(code, axis)], self.spec.n_bits(axis) - 1 - index,
+                          self.margin[self.plane_index[key]], _MARGIN_STEPS, self.lmax,
+                          self.lmin, pos_scale=ps, neg_scale=ns)
+
+    def _add_to_group(self, key, inverse: bool, a: np.ndarray, scale: float) -> None:
+        """Buffer a pair frame for the tile-major group kernel; flush at the byte budget."""
+        if self.group and (a.dtype != self.group[0][2].dtype or a.shape != self.group[0][2].shape
+                           or scale != self.group[0][3]):
+            self._flush_group()  # one dtype, channel count and luminance scale per group
+        if self.copy_group:  # the caller may reuse the buffer of a streamed frame
+            a = np.array(a, order="C", copy=True)
+        self.group.append((key, inverse, a, scale))
+        self.group_nbytes += a.nbytes
+        if self.group_nbytes >= self.group_bytes:
+            self._flush_group()
+
+    def _flush_group(self) -> None:
+        """Fold the group's complete pairs in one tile-major pass per axis
+        (:func:`_sl_kernels.pairs_tiled`); a frame whose partner has not come yet waits as
+        its exact channel sum, as in the frame-by-frame path."""
+        group, self.group, self.group_nbytes = self.group, [], 0
+        if not group:
+            return
+        where = {(key, inv): j for j, (key, inv, _, _) in enumerate(group)}
+        frames = [g[2] for g in group]
+        import numba
+
+        for axis in _AXES:
+            pairs = [(where[(k, False)], where[(k, True)], k) for (k, inv), _ in where.items()
+                     if not inv and k[1] == axis and (k, True) in where]
+            if not pairs:
+                continue
+            n = self.spec.n_bits(axis)
+            old = numba.get_num_threads()
+            numba.set_num_threads(self.threads)
+            try:
+                _kern.pairs_tiled(
+                    frames, [q[0] for q in pairs], [q[1] for q in pairs], group[0][3],
+                    [self.spec.codes.index(q[2][0]) for q in pairs],
+                    [n - 1 - q[2][2] for q in pairs], [self.plane_index[q[2]] for q in pairs],
+                    self.sign_words[axis], self.margin, _MARGIN_STEPS, self.lmax, self.lmin,
+                    parallel=self.threads > 1)
+            finally:
+                numba.set_num_threads(old)
+        for (key, inv), j in where.items():
+            if (key, not inv) not in where:  # fold with a pending partner, or wait
+                self._fold_pair(key, inv, group[j][2], group[j][3], True)
 
     # ---------------------------------------------------------------- decoding
 
@@ -269,6 +374,8 @@ class StreamDecoder:
             raise InputError(
                 f"frames: {len(self.seen)} frame(s) given, the pattern set has "
                 f"{len(self.table)}; missing {missing[:12]}{' ...' if len(missing) > 12 else ''}")
+        if not self.finished:
+            self._flush_group()
         vals = {}
         for key, v in (("min_contrast", min_contrast), ("rel_contrast", rel_contrast),
                        ("shadow_threshold", shadow_threshold), ("min_modulation", min_modulation),
@@ -284,7 +391,14 @@ class StreamDecoder:
             raise InputError("StreamDecoder.finish: already finished (its accumulators hold the "
                              "result now); start a new decoder")
         self.finished = True
-        out = {k: np.full((H, W), np.nan, np.float32) for k in ("x", "y", "sigma_x", "sigma_y")}
+        # an axis with bits or phase frames is written at every pixel by _finish_chunk (no
+        # fill: a fresh plane's pages are touched once, by the kernel); the others stay NaN
+        out = {}
+        for a in _AXES:
+            written = spec.n_bits(a) or a in self.phase
+            for k in (a, f"sigma_{a}"):
+                out[k] = np.empty((H, W), np.float32) if written else \
+                    np.full((H, W), np.nan, np.float32)
         # direct / global / lit are written over the accumulators they come from (chunk by
         # chunk, after the chunk has read them): 3 full-size planes less at the peak
         nan_plane = lambda: np.full((H, W), np.nan, np.float32)
@@ -305,9 +419,25 @@ class StreamDecoder:
         fw = {a: v.reshape(-1) for a, v in wrapped.items()}
         fm = {a: v.reshape(-1) for a, v in modulation.items()}
         P = H * W
-        for p0 in range(0, P, _CHUNK):
-            sl = slice(p0, min(P, p0 + _CHUNK))
-            self._finish_chunk(sl, flat, fw, fm, bits, vals, max_coarse_px)
+        chunks = [slice(p0, min(P, p0 + _CHUNK)) for p0 in range(0, P, _CHUNK)]
+        threads = self.threads if KERNELS else 1
+        if threads > 1 and len(chunks) > 1:
+            # the chunks write disjoint slices; the compiled kernels release the GIL, so
+            # Python threads run them in parallel (per-chunk statistics, summed after)
+            from concurrent.futures import ThreadPoolExecutor
+
+            def run(sl):
+                b = {a: {c: {k: [0] * len(v) for k, v in d.items()} if isinstance(d, dict)
+                         else 0 for c, d in ax.items()} for a, ax in bits.items()}
+                self._finish_chunk(sl, flat, fw, fm, b, vals, max_coarse_px)
+                return b
+
+            with ThreadPoolExecutor(threads) as pool:
+                for b in pool.map(run, chunks):
+                    _add_bits(bits, b)
+        else:
+            for sl in chunks:
+                self._finish_chunk(sl, flat, fw, fm, bits, vals, max_coarse_px)
         coded = [a for a in _AXES if spec.n_bits(a)]
         lit_any = ~out["shadow"]
         if not lit_any.any():
@@ -659,11 +789,23 @@ def _partial_codes(binary, u, n, step, n_stripes, hint):
     return first, c_st, w_eff, exists, edge, picked
 
 
-def decode_frames(frames: Iterable, spec, *, full_scale=None, **settings) -> StreamDecode:
-    """Feed ``(name, frame)`` pairs to a :class:`StreamDecoder` and finish it."""
-    if isinstance(frames, dict):
+def decode_frames(frames: Iterable, spec, *, full_scale=None, threads: int = 1,
+                  **settings) -> StreamDecode:
+    """Feed ``(name, frame)`` pairs to a :class:`StreamDecoder` and finish it.
+
+    ``threads``: of the tile-major pair kernel and of the finish (1 … ``NUMBA_NUM_THREADS``).
+    Default 1: on the shared 2-core machine two threads were 1.6× faster than one when idle
+    but slower whenever another job ran (docs/structured-light.md)."""
+    from collections.abc import ItemsView, Mapping
+
+    if isinstance(frames, Mapping):
         frames = frames.items()
-    dec = StreamDecoder(spec, full_scale=full_scale)
+    # frames the caller already holds (a mapping, list or tuple): one tile-major group over all
+    # of them, no copies; a stream (generator): groups of copies up to STREAM_GROUP_BYTES
+    held = isinstance(frames, (ItemsView, list, tuple))
+    dec = StreamDecoder(spec, full_scale=full_scale,
+                        group_bytes=math.inf if held else STREAM_GROUP_BYTES,
+                        copy_group=not held, threads=threads)
     try:
         it = iter(frames)
     except TypeError:
