@@ -96,7 +96,8 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
                   min_contrast: float = 0.005, rel_contrast: float = 0.15,
                   shadow_threshold: float = 0.02, min_modulation: float = 0.3,
                   noise_sigma: float = 0.005, max_coarse_px: float | None = None,
-                  vote_tolerance_px: float = 0.0, saturation: float = 0.98):
+                  vote_tolerance_px: float = 0.0, saturation: float = 0.98,
+                  threads: int = 1):
     """Decode structured-light frames in one streaming pass, robust to skin's global light.
 
     Frames arrive one at a time as ``(name, frame)`` pairs, in any order; each is reduced to
@@ -156,6 +157,9 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
     saturation : float, fraction of full scale
         Pixels whose brightest phase frame reaches this have a clipped fringe: their phase is
         not used (they keep an exact code if they have one).
+    threads : int
+        Threads of the tile-major pair kernel and of the finish, 1 … ``NUMBA_NUM_THREADS``
+        (default 1: two threads were faster only on an idle machine; the result is identical).
 
     Returns
     -------
@@ -182,4 +186,5 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
                          min_contrast=min_contrast, rel_contrast=rel_contrast,
                          shadow_threshold=shadow_threshold, min_modulation=min_modulation,
                          noise_sigma=noise_sigma, max_coarse_px=max_coarse_px,
-                         vote_tolerance_px=vote_tolerance_px, saturation=saturation)
+                         vote_tolerance_px=vote_tolerance_px, saturation=saturation,
+                         threads=threads)
