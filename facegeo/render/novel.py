@@ -342,6 +342,17 @@ def _check_weights(weights, n_lights):
     return w
 
 
+def _lights_with_energy(sources, weights):
+    """``L``, the checked ``(L, 3)`` weights, the indices of the lights with non-zero weight and
+    their weights (only those lights are read and resynthesised)."""
+    if not sources:
+        raise InputError("sources: no source cameras")
+    L = sources[0].field.shape[1]
+    w = _check_weights(weights, L)
+    active = np.flatnonzero(np.any(w != 0, axis=1))
+    return L, w, active, w[active]
+
+
 def cross_validated_shrinkage(sources, weights, lights, *,
                               max_functions: int = SHRINK_FUNCTIONS) -> tuple[dict, dict]:
     """λ_c per source camera: the share of the resynthesised change that the other cameras confirm.
@@ -378,12 +389,7 @@ def cross_validated_shrinkage(sources, weights, lights, *,
     """
     if int(max_functions) < 1:
         raise InputError(f"max_functions: expected an integer >= 1, got {fmt_value(max_functions)}")
-    if not sources:
-        raise InputError("sources: no source cameras")
-    L = sources[0].field.shape[1]
-    w = _check_weights(weights, L)
-    active = np.flatnonzero(np.any(w != 0, axis=1))
-    w_act = w[active]
+    L, w, active, w_act = _lights_with_energy(sources, weights)
     chunk = max(16, CHUNK_SAMPLES // max(L, 1))
     factors: dict[str, float] = {}
     stats: dict[str, dict] = {}
@@ -481,12 +487,7 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                          f"{fmt_value(resynthesis)}")
     texel_ids = np.asarray(texel_ids, np.int64)
     K = texel_ids.size
-    if not sources:
-        raise InputError("sources: no source cameras")
-    L = sources[0].field.shape[1]
-    w = _check_weights(weights, L)
-    active = np.flatnonzero(np.any(w != 0, axis=1))
-    w_act = w[active]
+    L, w, active, w_act = _lights_with_energy(sources, weights)
     acc = np.zeros((K, 3))
     bsum = np.zeros(K)
     st = stats if stats is not None else {}
