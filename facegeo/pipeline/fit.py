@@ -49,6 +49,7 @@ import numpy as np
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError
 from facegeo.fsutil import staged_directory
+from facegeo.render.novel import even_subset
 
 log = logging.getLogger(__name__)
 
@@ -102,12 +103,6 @@ def _check_settings(*, texels="all", max_texels=None, chunk=1, **_ignored) -> No
         raise InputError(f"max_texels: expected a positive count, got {fmt_value(max_texels)}")
     if int(chunk) < 1:
         raise InputError(f"chunk: expected a positive count, got {fmt_value(chunk)}")
-
-
-def _even_subset(n: int, k: int | None) -> np.ndarray:
-    if k is None or k >= n:
-        return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, int(k)).round().astype(np.int64))
 
 
 def _truth(renderer, atlas, texels, tex):
@@ -305,7 +300,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         if need is not None:
             r, seen = src.rows_of(need)
             rows = np.unique(r[seen])
-        selections.append(rows[_even_subset(rows.size, max_texels)])
+        selections.append(rows[even_subset(rows.size, max_texels)])
     n_all = int(sum(r.size for r in selections))
     # both cores when numba has them (the fit is bit-identical at any thread count, so the
     # thread count is not a setting of the stage's cache key)
@@ -344,7 +339,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             "flags": {name: int(np.count_nonzero(flags & bit)) for bit, name in FLAG_NAMES.items()},
         }
         if mosaic and mosaic_R is None and rows.size:
-            pick = rows[_even_subset(rows.size, int(mosaic) ** 2)]
+            pick = rows[even_subset(rows.size, int(mosaic) ** 2)]
             mosaic_R = np.asarray(src.field[pick], np.float32)
         if renderer is not None and rows.size:
             _ground_truth(gt, renderer, the_rig.lights, atlas, tex, src, rows, lights,
@@ -391,7 +386,7 @@ def _ground_truth(gt, renderer, stage, atlas, tex, src, rows, lights, cam_dir, n
     gt["a_err"].append((np.linalg.norm(store.params["rho_d"] - a0, axis=1)
                         / np.linalg.norm(a0, axis=1))[valid])
     gt["s_err"].append((np.abs(store.params["rho_s"] - rs) / np.maximum(rs, 1e-12))[valid])
-    sub = np.flatnonzero(valid)[_even_subset(int(valid.sum()), n_max)]
+    sub = np.flatnonzero(valid)[even_subset(int(valid.sum()), n_max)]
     if sub.size == 0:
         return
     R = np.asarray(src.field[store.rows[sub]], np.float32)

@@ -45,7 +45,7 @@ predicted and the measured change under the same lighting. λ = 1 is the paper's
 naive baseline. Why: on the generator's data the fitted specular part holds twice the true
 specular energy (the generator's diffuse term is outside the paper's model, docs/render.md), so
 the predicted change overshoots and its errors are anti-correlated with the naive baseline's;
-the cross-validated λ is ≈ 0.45–0.6 there. With one source camera there is nothing to
+the cross-validated λ is 0.43–0.58 on the small preset under ``sky``. With one source camera there is nothing to
 cross-validate and λ = 1.
 
 Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthesize_relit`):
@@ -82,6 +82,7 @@ __all__ = [
     "ViewSamples",
     "atlas_scene",
     "cross_validated_shrinkage",
+    "even_subset",
     "load_sources",
     "pixel_sample_rays",
     "render_view",
@@ -407,7 +408,7 @@ def cross_validated_shrinkage(sources, weights, lights, *,
             rows_o = rows_o[seen]
             if tex.size == 0:
                 continue
-            pick = _even_subset(tex.size, int(max_functions))
+            pick = even_subset(tex.size, int(max_functions))
             tex, rows_o = tex[pick], rows_o[pick]
             rows_s, _ = src.rows_of(tex)
             fidx, _ = src.fit.locate(rows_s)
@@ -449,10 +450,12 @@ def cross_validated_shrinkage(sources, weights, lights, *,
     return factors, stats
 
 
-def _even_subset(n: int, k: int) -> np.ndarray:
-    if k >= n:
+def even_subset(n: int, k: int | None) -> np.ndarray:
+    """At most ``k`` indices of ``range(n)`` spread evenly, increasing (all when ``k`` is None
+    or ≥ n); used for the shrinkage's samples and the fit stage's subsets."""
+    if k is None or k >= n:
         return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
+    return np.unique(np.linspace(0, n - 1, int(k)).round().astype(np.int64))
 
 
 def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
@@ -518,6 +521,8 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
         if k_idx.size == 0:
             continue
         st["same_view"] += int(same.sum())
+        lam = 1.0 if (shrinkage is None or resynthesis == "diffuse") else \
+            float(shrinkage.get(src.name, 1.0))
         if resynthesis:
             if src.fit is None:
                 raise InputError(f"camera {src.name}: resynthesis needs its skin-model fit "
@@ -540,8 +545,6 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                     # the fitted normal puts v_n below the horizon while the mesh sees the
                     # texel (grazing views): keep the measured function rather than black
                     use = todo[~back]
-                    lam = 1.0 if (shrinkage is None or resynthesis == "diffuse") else \
-                        float(shrinkage.get(src.name, 1.0))
                     out[use] = out[use] + lam * (relit[~back] - out[use]) if lam != 1.0 \
                         else relit[~back]
                     st["resynthesized"] += int(use.size)
