@@ -129,3 +129,35 @@ def test_mosaic_tiles_are_light_grid_images():
     img = reflectance_mosaic(R, n_theta, n_phi, scale=scale, cols=1, gap=1)
     lit = np.argwhere(img[..., 0] > 0)
     assert lit[:, 0].min() == 1 + 2 * scale and lit[:, 1].min() == 1 + 3 * scale, lit.min(0)
+
+
+def test_truth_on_another_mesh_is_the_generators_surface(reconstructed):
+    """The ground truth of the fit (and projection) on a mesh other than the generator's (a reconstructed one) is the
+    true surface the camera saw through each texel. The generator's own mesh with vertices and
+    faces permuted is such a mesh whose answer is known: every texel's true point is the texel
+    itself and its normal the generator's interpolated normal there. Reading the permuted
+    mesh's faces as the generator's (the bug: ``face_map`` into the wrong mesh) fails it."""
+    from facegeo.surface.atlas import build_atlas, rasterize_texels
+    from facegeo.synth.render import load_ground_truth
+
+    root, _ = reconstructed
+    r = load_ground_truth(root)
+    rng = np.random.default_rng(3)
+    perm_v = rng.permutation(len(r.vertices))
+    inv = np.argsort(perm_v)
+    F = inv[r.faces][rng.permutation(len(r.faces))]
+    atlas = build_atlas(r.vertices[perm_v], F, texels_per_mm=TEST_TEXELS_PER_MM)
+    tex = rasterize_texels(atlas)
+    assert not r.is_mesh(atlas.vertices, atlas.vertex_map)
+    with pytest.raises(InputError, match="view directions"):
+        r.texel_truth(atlas, tex, np.arange(3))
+    ids = np.arange(0, len(tex), 7)
+    v = tex.n_world[ids]  # any direction on the texel's front side will do
+    keep, p, n, _ = r.texel_truth(atlas, tex, ids, v)
+    assert keep.mean() > 0.99, "texels on the true surface find it"
+    assert np.abs(p - tex.p_world[ids][keep]).max() < 1e-7, "true point = texel point (metres)"
+    # the generator's normal there, through the atlas face's vertices back to the generator's
+    gen_vertex = perm_v[atlas.vertex_map[atlas.faces[tex.face[ids][keep]]]]  # (n, 3)
+    n_ref = np.einsum("tk,tkc->tc", tex.bary[ids][keep], r.vertex_normals[gen_vertex])
+    n_ref /= np.linalg.norm(n_ref, axis=1, keepdims=True)
+    assert np.degrees(np.arccos(np.clip((n * n_ref).sum(1), -1, 1))).max() < 1e-4

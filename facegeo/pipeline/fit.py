@@ -105,15 +105,6 @@ def _check_settings(*, texels="all", max_texels=None, chunk=1, **_ignored) -> No
         raise InputError(f"chunk: expected a positive count, got {fmt_value(chunk)}")
 
 
-def _truth(renderer, atlas, texels, tex):
-    """The generator's shading normal and skin parameters at texels ``tex``."""
-    face_in = atlas.face_map[texels.face[tex]]
-    n = np.einsum("tk,tkc->tc", texels.bary[tex],
-                  renderer.vertex_normals[renderer.faces[face_in]])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    return n, face_in, renderer.skin.evaluate(texels.p_world[tex])
-
-
 def _exact_functions(renderer, stage, p, n, v, face_in, sk) -> np.ndarray:
     """The generator's exact OLAT functions ``(N, L, 3)`` of points seen from directions v."""
     from facegeo.synth.render import SurfaceView
@@ -364,6 +355,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         metrics["specular_energy_rel_error"] = round(
             float(np.median(np.concatenate(gt["s_err"]))), 5)
         metrics["gt_valid_functions"] = int(ne.size)
+        metrics["gt_without_true_surface"] = int(gt.get("no_truth", 0))
         for key, (se, sr) in sorted(gt["sums"].items()):
             metrics[key] = round(float(np.sqrt(se / sr)), 5) if sr > 0 else None
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
@@ -377,24 +369,28 @@ def _ground_truth(gt, renderer, stage, atlas, tex, src, rows, lights, cam_dir, n
     from facegeo.render import FitStore
 
     store = FitStore.load(cam_dir)
-    valid = store.params["valid"].astype(bool)
-    t_id = store.texel_index
-    n_true, face_in, sk = _truth(renderer, atlas, tex, t_id)
+    rows_all = store.rows
+    keep, p_all, n_true, face_in = renderer.texel_truth(atlas, tex, store.texel_index,
+                                                        src.v_world[rows_all])
+    sk = renderer.skin.evaluate(p_all)
+    valid = store.params["valid"].astype(bool)[keep]
+    gt["no_truth"] = gt.get("no_truth", 0) + int(np.count_nonzero(~keep))
     a0 = np.asarray(sk.alpha_0, np.float64).reshape(-1, 3)
     rs = np.asarray(sk.rho_s, np.float64).reshape(-1)
-    gt["n_err"].append(_angle_deg(store.params["normal"], n_true)[valid])
-    gt["a_err"].append((np.linalg.norm(store.params["rho_d"] - a0, axis=1)
+    gt["n_err"].append(_angle_deg(store.params["normal"][keep], n_true)[valid])
+    gt["a_err"].append((np.linalg.norm(store.params["rho_d"][keep] - a0, axis=1)
                         / np.linalg.norm(a0, axis=1))[valid])
-    gt["s_err"].append((np.abs(store.params["rho_s"] - rs) / np.maximum(rs, 1e-12))[valid])
-    sub = np.flatnonzero(valid)[even_subset(int(valid.sum()), n_max)]
+    gt["s_err"].append((np.abs(store.params["rho_s"][keep] - rs) / np.maximum(rs, 1e-12))[valid])
+    sub = np.flatnonzero(valid)[even_subset(int(valid.sum()), n_max)]  # indices into kept
     if sub.size == 0:
         return
-    R = np.asarray(src.field[store.rows[sub]], np.float32)
-    fit = store.skin_fit(sub, R, lights)
-    p = tex.p_world[t_id[sub]]
+    sub_store = np.flatnonzero(keep)[sub]  # the same functions, indices into the store
+    R = np.asarray(src.field[rows_all[sub_store]], np.float32)
+    fit = store.skin_fit(sub_store, R, lights)
+    p = p_all[sub]
     n = n_true[sub]
     skin_sub = renderer.skin.evaluate(p)
-    v0 = src.v_world[store.rows[sub]]
+    v0 = src.v_world[rows_all[sub_store]]
     ref0 = _exact_functions(renderer, stage, p, n, v0, face_in[sub], skin_sub)
     _add(gt["sums"], "resynthesis_rel_rmse_0", R, ref0)
     for deg in angles:
