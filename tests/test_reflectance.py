@@ -554,6 +554,14 @@ def test_projection_error_uses_the_generators_part_materials(tiny, tmp_path):
             rend, cam, texels, ref, field, area, len(lights), len(lights), WEIGHT_MIN,
             stage_lights=lights))["projection_rel_rmse"]
     assert errs["parts"] <= PROJECTION_REL_RMSE_PARTS < errs["skin only"], errs
+    # the headline is the area-weighted sum: equal areas give back the per-texel figure,
+    # and the real areas do not
+    ref = _reference_points(parted, texels, face_input, True)
+    fig = {tag: _error_metrics(_projection_error(
+        parted, cam, texels, ref, field, a, len(lights), len(lights), WEIGHT_MIN,
+        stage_lights=lights)) for tag, a in (("equal", np.ones(len(texels))), ("areas", area))}
+    assert fig["equal"]["projection_rel_rmse"] == fig["equal"]["projection_rel_rmse_per_texel"]
+    assert fig["areas"]["projection_rel_rmse"] != fig["areas"]["projection_rel_rmse_per_texel"]
 
 
 def test_mesh_file_reference_is_the_closest_ground_truth_point(tiny, tmp_path):
