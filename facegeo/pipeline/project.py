@@ -77,7 +77,7 @@ from facegeo.checks import fmt_value
 log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
-           "peak_rss_mb", "stage_rig", "STAGE_RIGS"]
+           "peak_rss_mb", "stage_rig", "STAGE_RIGS", "texel_areas"]
 
 _GT_DEPTH_TOL_M = 1e-3
 
@@ -269,6 +269,18 @@ def texel_areas(atlas, texels) -> np.ndarray:
     ``area_3d / area_uv`` (``area_uv`` in texel units), so a texel on a stretched chart stands
     for more surface. Weighting a per-texel statistic by this makes it a mean over the surface,
     independent of how the atlas samples it (docs/surface.md, "Atlas").
+
+    Parameters
+    ----------
+    atlas : facegeo.surface.atlas.Atlas
+    texels : facegeo.surface.atlas.Texels
+        The texel table of ``atlas``.
+
+    Returns
+    -------
+    (T,) float64, m²
+        Summed over the texels it gives the charted surface's area up to the chart-boundary
+        texels (a texel whose face has no UV area — none by construction — gets 0).
     """
     tri = atlas.vertices[atlas.faces]
     a3 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
