@@ -38,10 +38,23 @@ Ground-truth metrics (synthetic scans):
   generator's own per-pixel closest hits (``ground_truth/geometry_<camera>.npz``, true rig): a
   texel is visible in the reference when it is no farther from the camera than the farthest of
   the four ground-truth hits around its projection (+ 1 mm).
-* ``projection_rel_rmse``: ``sqrt(Σ (R − R_ref)² / Σ R_ref²)`` over texels with weight above
-  ``gt_weight_min``, every camera, a regular subset of at most ``gt_lights`` lights, where
-  ``R_ref`` is the reference renderer's exact shading of the same surface points from the same
-  camera (true rig). Masked (NaN) samples are left out.
+* ``projection_rel_rmse``: ``sqrt(Σ_t a_t Σ_{c,l} (R − R_ref)² / Σ_t a_t Σ_{c,l} R_ref²)`` over
+  texels with weight above ``gt_weight_min`` (per camera), every camera, a regular subset of at
+  most ``gt_lights`` lights, ``a_t`` the surface area the texel stands for
+  (:func:`texel_areas`; so the figure is a mean over the surface, not over however the atlas
+  samples it). ``R_ref`` is the generator's exact shading (true rig; the same normals,
+  material — ``material_at``, part materials included — and shadow rays as its frames) of the
+  texel's surface point from the same camera. The texel's point is itself on the ground-truth
+  mesh; on any other mesh (a reconstruction) it is the closest point of the ground-truth
+  surface (``projection_reference``, with the area-weighted RMS distance
+  ``projection_reference_offset_mm``), so a misplaced surface shows up as misregistration.
+  Masked (NaN) samples are left out. Beside it, for comparison and diagnosis:
+  ``projection_rel_rmse_per_texel`` (every texel counted once, the metric before area
+  weighting), ``projection_rel_rmse_off_shadow_edges`` (area-weighted, only samples whose four
+  bilinear taps are all lit or all dark in the generator's noiseless frame),
+  ``projection_shadow_edge_samples`` (the fraction of compared samples that straddle such an
+  edge) and ``projection_shadow_edge_error_share`` (their share of Σ a_t err²). Each camera's
+  entry has the same keys.
 """
 
 from __future__ import annotations
@@ -49,6 +62,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +77,7 @@ from facegeo.checks import fmt_value
 log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
-           "peak_rss_mb", "stage_rig", "STAGE_RIGS"]
+           "peak_rss_mb", "stage_rig", "STAGE_RIGS", "texel_areas"]
 
 _GT_DEPTH_TOL_M = 1e-3
 
@@ -248,44 +262,143 @@ def _visibility_agreement(scan, cam_name: str, camera, texels, vis, depth_jump: 
             "occluded_reference": int(np.count_nonzero(~ref[sel]))}
 
 
-def _projection_error(renderer, rig, camera, texels, face_input, field, n_lights: int,
-                      gt_lights: int, weight_min: float):
-    """Sums (Σ err², Σ ref², count) of projected vs exactly shaded samples for one camera."""
+def texel_areas(atlas, texels) -> np.ndarray:
+    """Surface area each texel stands for, ``(T,)`` float64, m².
+
+    A texel is one unit square of the atlas; the affine UV map of its face scales area by
+    ``area_3d / area_uv`` (``area_uv`` in texel units), so a texel on a stretched chart stands
+    for more surface. Weighting a per-texel statistic by this makes it a mean over the surface,
+    independent of how the atlas samples it (docs/surface.md, "Atlas").
+
+    Parameters
+    ----------
+    atlas : facegeo.surface.atlas.Atlas
+    texels : facegeo.surface.atlas.Texels
+        The texel table of ``atlas``.
+
+    Returns
+    -------
+    (T,) float64, m²
+        Summed over the texels it gives the charted surface's area up to the chart-boundary
+        texels (a texel whose face has no UV area — none by construction — gets 0).
+    """
+    tri = atlas.vertices[atlas.faces]
+    a3 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    uv = atlas.uv[atlas.faces] * np.array([atlas.width, atlas.height], float)
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    auv = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_face = np.where(auv > 0, a3 / auv, 0.0)
+    return per_face[texels.face]
+
+
+@dataclass
+class _Reference:
+    """The ground-truth surface point each texel is compared at (see ``run_project``)."""
+
+    p: np.ndarray      # (T, 3) float64, metres, on the ground-truth mesh
+    face: np.ndarray   # (T,) int64, ground-truth face
+    bary: np.ndarray   # (T, 3) float64
+    offset: np.ndarray  # (T,) float64, metres: distance from the texel to p (0 on the GT mesh)
+
+
+def _reference_points(renderer, texels, face_input, on_gt_mesh: bool) -> _Reference:
+    """Texels on the ground-truth mesh are their own reference points; on another mesh the
+    reference is the closest point of the ground-truth surface (Open3D, float32 query)."""
+    if on_gt_mesh:
+        return _Reference(texels.p_world, np.asarray(face_input, np.int64), texels.bary,
+                          np.zeros(len(texels)))
+    from facegeo.geometry.mesh import _closest_points, _closest_scene
+
+    V, F = renderer.vertices, renderer.faces
+    prim, bary, p = _closest_points(_closest_scene(V, F), V, F, texels.p_world)
+    return _Reference(p, prim, bary, np.linalg.norm(texels.p_world - p, axis=1))
+
+
+def _projection_error(renderer, camera, texels, ref: _Reference, field, area,
+                      n_lights: int, gt_lights: int, weight_min: float,
+                      stage_lights=None) -> dict[str, float]:
+    """Error sums of projected vs exactly shaded samples for one camera (see ``run_project``).
+
+    Field light ``k`` is the true rig's light ``stage_lights[k]`` (default ``k``).
+
+    Returns ``se``/``sr`` (Σ a_t err², Σ a_t ref², area-weighted), ``se_texel``/``sr_texel``
+    (every texel counted once, the former metric), ``se_off``/``sr_off`` (area-weighted,
+    samples off shadow edges), ``edge_samples``, ``samples``.
+    """
+    from facegeo.surface.reflectance import frame_sampler, sample_frame
     from facegeo.surface.reflectance import iter_field_chunks as rf_iter_chunks
     from facegeo.synth.render import SurfaceView
 
-    sel = np.flatnonzero(field.weight > weight_min)
+    keep = field.weight > weight_min
+    sel = np.flatnonzero(keep)
+    out = dict.fromkeys(("se", "sr", "se_texel", "sr_texel", "se_off", "sr_off",
+                         "edge_samples", "samples"), 0.0)
     if sel.size == 0:
-        return 0.0, 0.0, 0
+        return out
     tex = field.texel_index[sel]
-    p = texels.p_world[tex]
-    # The generator's own shading normals at these points (same mesh, same interpolation).
-    n = np.einsum("tk,tkc->tc", texels.bary[tex],
-                  renderer.vertex_normals[renderer.faces[face_input[tex]]])
+    p, face = ref.p[tex], ref.face[tex]
+    rig = renderer.rig  # the true rig: the frames were rendered from its cameras
+    true_cam = rig.camera(camera.name)
+    # The generator's own shading normals and material at these points (same interpolation).
+    n = np.einsum("tk,tkc->tc", ref.bary[tex], renderer.vertex_normals[renderer.faces[face]])
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    skin = renderer.skin.evaluate(p)
-    view = SurfaceView(camera.name, (1, sel.size), np.ones((1, sel.size), bool),
-                       np.arange(sel.size), p, n, field.v_world[sel], face_input[tex],
-                       np.asarray(skin.alpha_0, np.float32).reshape(-1, 3),
-                       np.asarray(skin.alpha_1, np.float32).reshape(-1, 3),
-                       np.asarray(skin.rho_s, np.float32).reshape(-1),
-                       np.asarray(skin.roughness, np.float32).reshape(-1))
+    v = true_cam.center_world[None, :] - p
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    mat = renderer.material_at(p, face)
+    view = SurfaceView(true_cam.name, (1, sel.size), np.ones((1, sel.size), bool),
+                       np.arange(sel.size), p, n, v, face,
+                       np.asarray(mat.alpha_0, np.float32).reshape(-1, 3),
+                       np.asarray(mat.alpha_1, np.float32).reshape(-1, 3),
+                       np.asarray(mat.rho_s, np.float32).reshape(-1),
+                       np.asarray(mat.roughness, np.float32).reshape(-1))
+    # Shadow edges: samples whose bilinear taps mix pixels the generator lit and left dark
+    # (its noiseless frame of the same light, from the pixel-centre view it rendered).
+    # The taps are where the texel was sampled: its projection by the stage's camera.
+    pixels = renderer.surface_view(true_cam)
+    sampler = frame_sampler(camera.project(texels.p_world[tex])[0], camera.width, camera.height)
     step = max(1, -(-n_lights // gt_lights))
     lights = np.arange(0, n_lights, step)
     # Gather the compared samples chunk by chunk along texels (bounded resident memory).
-    keep = field.weight > weight_min
     est_all = np.concatenate([chunk[keep[s:s + len(chunk)]][:, lights]
                               for s, chunk in rf_iter_chunks(field.directory)])
-    se = sr = 0.0
-    cnt = 0
-    for k, l in enumerate(lights):
-        ref = renderer.shade_stage_light(view, rig.lights, int(l)).astype(np.float64)
+    a = np.asarray(area, np.float64)[tex]
+    stage = np.arange(n_lights) if stage_lights is None else np.asarray(stage_lights)
+    for k, l in enumerate(stage[lights]):
+        r = renderer.shade_stage_light(view, rig.lights, int(l)).astype(np.float64)
+        lit = renderer.shade_stage_light(pixels, rig.lights, int(l)).sum(axis=1) > 0
+        lit_img = pixels.to_image(lit.astype(np.float32))
+        mix = sample_frame(np.repeat(lit_img[..., None], 3, axis=2), sampler)[:, 0]
         est = est_all[:, k].astype(np.float64)
         ok = np.isfinite(est).all(axis=1)
-        se += float(((est[ok] - ref[ok]) ** 2).sum())
-        sr += float((ref[ok] ** 2).sum())
-        cnt += int(ok.sum())
-    return se, sr, cnt
+        e2 = np.where(ok, ((est - r) ** 2).sum(axis=1), 0.0)
+        r2 = np.where(ok, (r ** 2).sum(axis=1), 0.0)
+        off = ok & ((mix <= 0.0) | (mix >= 1.0))
+        out["se"] += float(a @ e2)
+        out["sr"] += float(a @ r2)
+        out["se_texel"] += float(e2.sum())
+        out["sr_texel"] += float(r2.sum())
+        out["se_off"] += float(a[off] @ e2[off])
+        out["sr_off"] += float(a[off] @ r2[off])
+        out["edge_samples"] += int(np.count_nonzero(ok & ~off))
+        out["samples"] += int(np.count_nonzero(ok))
+    return out
+
+
+def _error_metrics(e: dict[str, float]) -> dict[str, Any]:
+    """The ``projection_*`` metrics from the sums of :func:`_projection_error`."""
+    def rel(se, sr):
+        return round(float(np.sqrt(se / sr)), 6) if sr > 0 else None
+
+    return {
+        "projection_rel_rmse": rel(e["se"], e["sr"]),
+        "projection_rel_rmse_per_texel": rel(e["se_texel"], e["sr_texel"]),
+        "projection_rel_rmse_off_shadow_edges": rel(e["se_off"], e["sr_off"]),
+        "projection_shadow_edge_samples": (round(e["edge_samples"] / e["samples"], 6)
+                                           if e["samples"] else None),
+        "projection_shadow_edge_error_share": (round(1.0 - e["se_off"] / e["se"], 6)
+                                               if e["se"] > 0 else None),
+    }
 
 
 def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "ground_truth",
@@ -322,9 +435,11 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
     dict
         ``texels``, ``cameras`` (per camera ``visible_fraction``, ``weighted_texels``,
         ``seconds_visibility``, ``seconds_projection``, ``texels_per_second``,
-        ``masked_samples``, ``visibility_agreement``), ``unseen_fraction``,
+        ``masked_samples``, ``visibility_agreement``, the ``projection_*`` figures and
+        ``seconds_projection_error`` on synthetic scans), ``unseen_fraction``,
         ``blended_texels``, ``seconds_blend``,
-        ``projection_rel_rmse`` (synthetic scans), ``seconds``, ``peak_rss_mb``.
+        ``projection_rel_rmse`` and its companions (synthetic scans; module docstring),
+        ``seconds``, ``peak_rss_mb``.
     """
     scan = _scan(scan_dir)
     out = Path(out_dir) if out_dir is not None else scan.out_dir
@@ -373,17 +488,19 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     settings = {"rig": rig_used, "mesh": mesh, **vis_kw, "dtype": dtype,
                 "block_lights": block_lights or rf.DEFAULT_BLOCK_LIGHTS,
                 "gt_lights": gt_lights, "gt_weight_min": gt_weight_min, "cameras": names}
-    renderer = None
-    if scan.synthetic and "skin" in scan.ground_truth_keys and mesh == "ground_truth":
+    renderer = ref = None
+    if scan.synthetic and {"skin", "mesh", "rig"} <= set(scan.ground_truth_keys):
         from facegeo.synth.render import load_ground_truth
 
         renderer = load_ground_truth(scan)
+        ref = _reference_points(renderer, texels, face_input, mesh == "ground_truth")
+        area = texel_areas(atlas, texels)
     T = len(texels)
     per_cam: dict[str, Any] = {}
     seen = np.zeros(T, bool)
     colour = np.zeros((T, 3))
     wsum = np.zeros(T)
-    se = sr = 0.0
+    err_sums: dict[str, float] = {}
     for name in names:
         camera = the_rig.camera(name)
         t0 = time.perf_counter()
@@ -418,11 +535,13 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
                 entry["visibility_agreement"] = round(agr["agreement"], 6)
                 entry["visibility_compared"] = agr["compared"]
         if renderer is not None:
-            a, b, _ = _projection_error(renderer, the_rig, camera, texels, face_input, field,
-                                        scan.n_lights, gt_lights, gt_weight_min)
-            se += a
-            sr += b
-            entry["projection_rel_rmse"] = round(float(np.sqrt(a / b)), 6) if b else None
+            t3 = time.perf_counter()
+            e = _projection_error(renderer, camera, texels, ref, field, area, scan.n_lights,
+                                  gt_lights, gt_weight_min)
+            for k, x in e.items():
+                err_sums[k] = err_sums.get(k, 0.0) + x
+            entry.update(_error_metrics(e))
+            entry["seconds_projection_error"] = round(time.perf_counter() - t3, 4)
         per_cam[name] = entry
     np.save(dest / "seen.npy", seen)
     t_b = time.perf_counter()
@@ -448,9 +567,14 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             if "visibility_agreement" in c]
     if agrs:
         metrics["visibility_agreement"] = round(float(min(agrs)), 6)
-    if renderer is not None and sr > 0:
-        metrics["projection_rel_rmse"] = round(float(np.sqrt(se / sr)), 6)
+    if renderer is not None and err_sums.get("sr", 0.0) > 0:
+        metrics.update(_error_metrics(err_sums))
         metrics["projection_weight_min"] = gt_weight_min
+        metrics["projection_reference"] = (
+            "texel" if mesh == "ground_truth" else "closest ground-truth point")
+        if mesh != "ground_truth":
+            metrics["projection_reference_offset_mm"] = round(
+                float(np.sqrt(area @ ref.offset ** 2 / area.sum())) * 1e3, 6)
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     return metrics, settings
