@@ -393,6 +393,26 @@ def _closest_points(scene, Vr, Fr, p):
     return prim, bary, np.einsum("nk,nkc->nc", bary, Vr[Fr[prim]])
 
 
+def closest_surface_points(vertices, faces, points):
+    """The closest point of a triangle mesh to each query point.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64, metres; faces : (F, 3) int
+    points : (N, 3) float64, metres
+
+    Returns
+    -------
+    face : (N,) int64 — the face holding the closest point
+    bary : (N, 3) float64 — its barycentric weights on that face
+    point : (N, 3) float64 — the closest point, from the barycentrics in float64 (Open3D's
+        query runs in float32: ≈ 1e-8 m at head size)
+    """
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    return _closest_points(_closest_scene(V, F), V, F, np.asarray(points, np.float64))
+
+
 def align_to_surface(points, ref_vertices, ref_faces, *, iterations: int = 50,
                      keep: float = 0.9, tol: float = 1e-9):
     """Rigid transform bringing points onto a reference surface (trimmed point-to-plane ICP).

@@ -355,7 +355,6 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         metrics["specular_energy_rel_error"] = round(
             float(np.median(np.concatenate(gt["s_err"]))), 5)
         metrics["gt_valid_functions"] = int(ne.size)
-        metrics["gt_without_true_surface"] = int(gt.get("no_truth", 0))
         for key, (se, sr) in sorted(gt["sums"].items()):
             metrics[key] = round(float(np.sqrt(se / sr)), 5) if sr > 0 else None
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
@@ -369,33 +368,28 @@ def _ground_truth(gt, renderer, stage, atlas, tex, src, rows, lights, cam_dir, n
     from facegeo.render import FitStore
 
     store = FitStore.load(cam_dir)
-    rows_all = store.rows
-    keep, p_all, n_true, face_in = renderer.texel_truth(atlas, tex, store.texel_index,
-                                                        src.v_world[rows_all])
-    sk = renderer.skin.evaluate(p_all)
-    valid = store.params["valid"].astype(bool)[keep]
-    gt["no_truth"] = gt.get("no_truth", 0) + int(np.count_nonzero(~keep))
+    valid = store.params["valid"].astype(bool)
+    truth = renderer.texel_truth(atlas, tex, store.texel_index)
+    sk = renderer.material_at(truth.p, truth.face)
     a0 = np.asarray(sk.alpha_0, np.float64).reshape(-1, 3)
     rs = np.asarray(sk.rho_s, np.float64).reshape(-1)
-    gt["n_err"].append(_angle_deg(store.params["normal"][keep], n_true)[valid])
-    gt["a_err"].append((np.linalg.norm(store.params["rho_d"][keep] - a0, axis=1)
+    gt["n_err"].append(_angle_deg(store.params["normal"], truth.n)[valid])
+    gt["a_err"].append((np.linalg.norm(store.params["rho_d"] - a0, axis=1)
                         / np.linalg.norm(a0, axis=1))[valid])
-    gt["s_err"].append((np.abs(store.params["rho_s"][keep] - rs) / np.maximum(rs, 1e-12))[valid])
-    sub = np.flatnonzero(valid)[even_subset(int(valid.sum()), n_max)]  # indices into kept
+    gt["s_err"].append((np.abs(store.params["rho_s"] - rs) / np.maximum(rs, 1e-12))[valid])
+    sub = np.flatnonzero(valid)[even_subset(int(valid.sum()), n_max)]
     if sub.size == 0:
         return
-    sub_store = np.flatnonzero(keep)[sub]  # the same functions, indices into the store
-    R = np.asarray(src.field[rows_all[sub_store]], np.float32)
-    fit = store.skin_fit(sub_store, R, lights)
-    p = p_all[sub]
-    n = n_true[sub]
-    skin_sub = renderer.skin.evaluate(p)
-    v0 = src.v_world[rows_all[sub_store]]
-    ref0 = _exact_functions(renderer, stage, p, n, v0, face_in[sub], skin_sub)
+    R = np.asarray(src.field[store.rows[sub]], np.float32)
+    fit = store.skin_fit(sub, R, lights)
+    p, n, face_in = truth.p[sub], truth.n[sub], truth.face[sub]
+    skin_sub = renderer.material_at(p, face_in)
+    v0 = src.v_world[store.rows[sub]]
+    ref0 = _exact_functions(renderer, stage, p, n, v0, face_in, skin_sub)
     _add(gt["sums"], "resynthesis_rel_rmse_0", R, ref0)
     for deg in angles:
         vn = _rotate_views(v0, n, float(deg))
-        ref = _exact_functions(renderer, stage, p, n, vn, face_in[sub], skin_sub)
+        ref = _exact_functions(renderer, stage, p, n, vn, face_in, skin_sub)
         est = resynthesize(fit, vn).reflectance
         _add(gt["sums"], f"resynthesis_rel_rmse_{deg:g}", est, ref)
         _add(gt["sums"], f"resynthesis_naive_rel_rmse_{deg:g}", R, ref)

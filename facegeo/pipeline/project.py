@@ -62,7 +62,6 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -292,30 +291,7 @@ def texel_areas(atlas, texels) -> np.ndarray:
     return per_face[texels.face]
 
 
-@dataclass
-class _Reference:
-    """The ground-truth surface point each texel is compared at (see ``run_project``)."""
-
-    p: np.ndarray      # (T, 3) float64, metres, on the ground-truth mesh
-    face: np.ndarray   # (T,) int64, ground-truth face
-    bary: np.ndarray   # (T, 3) float64
-    offset: np.ndarray  # (T,) float64, metres: distance from the texel to p (0 on the GT mesh)
-
-
-def _reference_points(renderer, texels, face_input, on_gt_mesh: bool) -> _Reference:
-    """Texels on the ground-truth mesh are their own reference points; on another mesh the
-    reference is the closest point of the ground-truth surface (Open3D, float32 query)."""
-    if on_gt_mesh:
-        return _Reference(texels.p_world, np.asarray(face_input, np.int64), texels.bary,
-                          np.zeros(len(texels)))
-    from facegeo.geometry.mesh import _closest_points, _closest_scene
-
-    V, F = renderer.vertices, renderer.faces
-    prim, bary, p = _closest_points(_closest_scene(V, F), V, F, texels.p_world)
-    return _Reference(p, prim, bary, np.linalg.norm(texels.p_world - p, axis=1))
-
-
-def _projection_error(renderer, camera, texels, ref: _Reference, field, area,
+def _projection_error(renderer, camera, texels, ref, field, area,
                       n_lights: int, gt_lights: int, weight_min: float,
                       stage_lights=None) -> dict[str, float]:
     """Error sums of projected vs exactly shaded samples for one camera (see ``run_project``).
@@ -337,12 +313,10 @@ def _projection_error(renderer, camera, texels, ref: _Reference, field, area,
     if sel.size == 0:
         return out
     tex = field.texel_index[sel]
-    p, face = ref.p[tex], ref.face[tex]
+    p, face, n = ref.p[tex], ref.face[tex], ref.n[tex]
     rig = renderer.rig  # the true rig: the frames were rendered from its cameras
     true_cam = rig.camera(camera.name)
-    # The generator's own shading normals and material at these points (same interpolation).
-    n = np.einsum("tk,tkc->tc", ref.bary[tex], renderer.vertex_normals[renderer.faces[face]])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    # The generator's own shading normals (ref.n) and material at these points.
     v = true_cam.center_world[None, :] - p
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     mat = renderer.material_at(p, face)
@@ -474,7 +448,6 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     t_start = time.perf_counter()
     atlas = Atlas.load(atlas_dir / "atlas.npz")
     texels = Texels.load(atlas_dir / "texels.npz")
-    face_input = atlas.face_map[texels.face]  # input-mesh face of each texel
     V, F, _ = load_mesh(scan, mesh)
     scene = RayScene(V, F)
     the_rig, rig_used = stage_rig(scan, rig)
@@ -493,7 +466,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
         from facegeo.synth.render import load_ground_truth
 
         renderer = load_ground_truth(scan)
-        ref = _reference_points(renderer, texels, face_input, mesh == "ground_truth")
+        ref = renderer.texel_truth(atlas, texels)
         area = texel_areas(atlas, texels)
     T = len(texels)
     per_cam: dict[str, Any] = {}
@@ -570,9 +543,9 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     if renderer is not None and err_sums.get("sr", 0.0) > 0:
         metrics.update(_error_metrics(err_sums))
         metrics["projection_weight_min"] = gt_weight_min
-        metrics["projection_reference"] = (
-            "texel" if mesh == "ground_truth" else "closest ground-truth point")
-        if mesh != "ground_truth":
+        on_truth = not ref.offset.any()
+        metrics["projection_reference"] = "texel" if on_truth else "closest ground-truth point"
+        if not on_truth:
             metrics["projection_reference_offset_mm"] = round(
                 float(np.sqrt(area @ ref.offset ** 2 / area.sum())) * 1e3, 6)
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)

@@ -161,6 +161,24 @@ class SurfaceView:
         return out.mean(axis=2, dtype=np.float64).astype(values.dtype)
 
 
+@dataclass
+class TexelTruth:
+    """Where atlas texels lie on the generator's surface (:meth:`ReferenceRenderer.texel_truth`).
+
+    Attributes
+    ----------
+    p : (N, 3) float64, metres — the true surface point
+    n : (N, 3) float64, unit — the generator's interpolated shading normal there
+    face : (N,) int64 — its face of the generator's mesh
+    offset : (N,) float64, metres — distance from the texel to ``p`` (0 on the generator's mesh)
+    """
+
+    p: np.ndarray
+    n: np.ndarray
+    face: np.ndarray
+    offset: np.ndarray
+
+
 class ReferenceRenderer:
     """Exact renderer of a head mesh with a solid-texture skin field.
 
@@ -266,70 +284,32 @@ class ReferenceRenderer:
                 and bool(np.allclose(np.asarray(vertices), self.vertices[vm], rtol=0.0,
                                      atol=1e-9)))
 
-    def surface_along(self, p_world, v_world, *, reach: float = 0.02):
-        """The generator's surface where a camera looking along ``-v_world`` through the points
-        ``p_world`` of another surface (a reconstructed mesh's texels, say) saw it.
+    def texel_truth(self, atlas, texels, tex=None) -> TexelTruth:
+        """The generator's surface at atlas texels: the point each texel is compared at.
 
-        A ray from ``p + reach v`` toward ``-v`` hits the true mesh within ``2 reach`` of its
-        origin; that hit is the surface point whose radiance the camera's pixel recorded.
-
-        Parameters
-        ----------
-        p_world : (N, 3) float64, metres
-        v_world : (N, 3) float64, unit — toward the camera
-        reach : float, metres — how far the true surface may lie from ``p_world``
-
-        Returns
-        -------
-        hit : (N,) bool
-        point : (N, 3) float64 — the true surface point (NaN where ``~hit``)
-        normal : (N, 3) float64 — its interpolated shading normal (NaN where ``~hit``)
-        face : (N,) int64 — its face of this renderer's mesh (-1 where ``~hit``)
-        """
-        p = np.asarray(p_world, np.float64)
-        v = np.asarray(v_world, np.float64)
-        hits = self.rays.closest_hit(p + reach * v, -v, t_min=0.0, t_max=2.0 * reach)
-        n = np.full_like(p, np.nan)
-        ok = hits.hit
-        if ok.any():
-            m = np.einsum("pk,pkc->pc", hits.bary[ok],
-                          self.vertex_normals[self.faces[hits.face[ok]]])
-            n[ok] = m / np.linalg.norm(m, axis=1, keepdims=True)
-        return ok, hits.point, n, hits.face
-
-    def texel_truth(self, atlas, texels, tex, v=None):
-        """The generator's surface at atlas texels ``tex``: ``(keep, p, n, face)``.
-
-        On the generator's own mesh (:meth:`is_mesh`) a texel is its true point, its face read
-        through ``atlas.face_map``; on another mesh (a reconstructed one) it is the true surface
-        point a camera looking along ``-v`` saw through the texel (:meth:`surface_along`).
+        On the generator's own mesh (:meth:`is_mesh`; a file holding it included) a texel is its
+        own true point, its face read through ``atlas.face_map``; on another mesh (a
+        reconstruction) it is the closest point of the generator's surface
+        (:func:`facegeo.geometry.mesh.closest_surface_points`). The projection's and the fit's
+        ground truth both read it.
 
         Parameters
         ----------
         atlas : facegeo.surface.atlas.Atlas
         texels : facegeo.surface.atlas.Texels
-        tex : (N,) int — texel indices
-        v : (N, 3) float64, unit, optional — toward the camera that measured each texel;
-            required on a mesh other than the generator's
-
-        Returns
-        -------
-        keep : (N,) bool — texels that have a true point (all on the generator's mesh)
-        p, n : (K, 3) float64 — true points and interpolated shading normals of the kept texels
-        face : (K,) int64 — their faces of this renderer's mesh
+        tex : (N,) int, optional — texel indices (default all)
         """
-        p = texels.p_world[tex]
+        from facegeo.geometry.mesh import closest_surface_points
+
+        tex = np.arange(len(texels)) if tex is None else np.asarray(tex, np.int64)
+        p_tex = texels.p_world[tex]
         if self.is_mesh(atlas.vertices, atlas.vertex_map):
-            face = atlas.face_map[texels.face[tex]]
-            n = np.einsum("tk,tkc->tc", texels.bary[tex],
-                          self.vertex_normals[self.faces[face]])
-            n /= np.linalg.norm(n, axis=1, keepdims=True)
-            return np.ones(len(tex), bool), p, n, face
-        if v is None:
-            raise InputError("texel_truth: the atlas is not on the generator's mesh; give the "
-                             "view directions v of the cameras that measured the texels")
-        keep, p, n, face = self.surface_along(p, v)
-        return keep, p[keep], n[keep], face[keep]
+            face, bary, p = atlas.face_map[texels.face[tex]], texels.bary[tex], p_tex
+        else:
+            face, bary, p = closest_surface_points(self.vertices, self.faces, p_tex)
+        n = np.einsum("tk,tkc->tc", bary, self.vertex_normals[self.faces[face]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        return TexelTruth(p, n, np.asarray(face, np.int64), np.linalg.norm(p_tex - p, axis=1))
 
     def surface_view(self, camera, *, supersample: int = 1) -> SurfaceView:
         """Surface samples seen by ``camera`` (cached per camera).
