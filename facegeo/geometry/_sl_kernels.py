@@ -48,44 +48,28 @@ _EXACT = (np.dtype(np.uint8), np.dtype(np.uint16))  # channel sums exact below 2
 
 
 @functools.cache
-def _fsum(C: int, exact: bool):
-    """Compiled ``fsum(f, i)``: the float32 channel sum of pixel ``i`` of a flattened frame of
-    ``C`` channels (``exact``: uint8 / uint16 frames, summed as integers)."""
-    from numba import njit
-
-    if exact:
-        @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", inline="always")
-        def fsum(f, i):  # pragma: no cover - compiled
-            s = np.uint32(0)
-            for c in range(C):
-                s += np.uint32(f[C * i + c])
-            return np.float32(s)  # exact: the same value as the float32 sum below
-    else:
-        @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", inline="always")
-        def fsum(f, i):  # pragma: no cover - compiled
-            s = np.float32(0.0)
-            for c in range(C):
-                s += np.float32(f[C * i + c])
-            return s
-
-    return fsum
-
-
-@functools.cache
 def _kernels(C: int, exact: bool):
     """The kernels for frames of ``C`` channels, flattened to 1-D (pixel-major).
 
     ``C`` is a compile-time constant of these closures, so the channel loop unrolls and the
     pixel loop vectorises (a run-time channel count, or 3-D indexing, kept it scalar: 4-8×
-    slower, measured). ``exact``: uint8 / uint16 frames, summed as integers."""
+    slower, measured). ``exact``: uint8 / uint16 frames, summed as integers (uint32: exact,
+    the same value as the float32 sum).
+
+    The closures hold only ``C`` and the accumulator type (both pickle to the same bytes in
+    every process): numba's cache keys a closure on its cells, and the former helper
+    dispatcher in a cell made every process compile these kernels again."""
     from numba import njit
 
-    fsum = _fsum(C, exact)
+    acc = np.uint32 if exact else np.float32  # the channel sum's type
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def lum(f, scale, out):  # pragma: no cover - compiled
         for i in range(out.shape[0]):
-            out[i] = fsum(f, i) * scale
+            s = acc(0)
+            for c in range(C):
+                s += acc(f[C * i + c])
+            out[i] = np.float32(s) * scale
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def csum(f, out):  # pragma: no cover - compiled
@@ -100,7 +84,10 @@ def _kernels(C: int, exact: bool):
              lmin):  # pragma: no cover - compiled
         for i in range(words.shape[0]):
             a = np.float32(stored[i]) * ss
-            b = fsum(f, i) * fs
+            s = acc(0)
+            for c in range(C):
+                s += acc(f[C * i + c])
+            b = np.float32(s) * fs
             p = a if stored_is_pos else b
             q = b if stored_is_pos else a
             d = p - q
@@ -114,7 +101,10 @@ def _kernels(C: int, exact: bool):
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def phase(f, scale, sk, ck, S, C_, A, pmax):  # pragma: no cover - compiled
         for i in range(S.shape[0]):
-            v = fsum(f, i) * scale
+            s = acc(0)
+            for c in range(C):
+                s += acc(f[C * i + c])
+            v = np.float32(s) * scale
             pmax[i] = max(pmax[i], v)
             S[i] += sk * v
             C_[i] += ck * v
