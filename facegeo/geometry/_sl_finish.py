@@ -109,7 +109,6 @@ def _kernel():
         sqrt12 = math.sqrt(12.0)
         T = _TILE
         wrd = np.empty(T, np.int64)
-        mm = np.empty(T, np.float32)
         mi = np.empty(T, marg.dtype)  # the smallest stored margin of a family
         slow = np.empty(T, np.uint8)  # 1: a plane is unreliable (the scalar path)
         cf = np.empty((F, T))
@@ -121,16 +120,25 @@ def _kernel():
         c0 = 0.5 * (step - 1.0)
         one_stripe_ok = step <= coarse_lim + 1e-9  # a fully resolved code names one stripe
         sig_one = 1.0 * step / sqrt12
+        zero32 = np.float32(0.0)
+        sig_one32 = np.float32(sig_one)
+        big32 = np.float32(3e38)  # max(conf * ok, big) = big: min(conf_all, big) keeps conf_all
+        qs = np.empty(T, np.float32)  # conf_all before this axis (direct)
+        direct = F == 1 and final
         for t0 in range(0, P, T):
             nt = min(T, P - t0)
             a0 = p0 + t0
             wrdv = wrd[:nt]
             miv = mi[:nt]
-            mmv = mm[:nt]
             slv = slow[:nt]
             tauv = tau[t0:t0 + nt]
             litv = lit[t0:t0 + nt]
             refv = ref[t0:t0 + nt]
+            qsv = qs[:nt]
+            cov = coord_out[t0:t0 + nt]
+            sov = sig_out[t0:t0 + nt]
+            oov = ok_out[t0:t0 + nt]
+            qov = conf_out[t0:t0 + nt]
             for f in range(F):
                 # the smallest margin over the planes (the XOR base lowers the margins above it
                 # to its own: the smallest is unchanged); a pass per plane over the tile
@@ -151,35 +159,63 @@ def _kernel():
                 b = base[f]
                 high = ((np.int64(1) << b) - 1) << (n - b) if b > 0 else np.int64(0)
                 sb = n - 1 - b if b > 0 else 0
-                cfv = cf[f, :nt]
-                sfv = sf[f, :nt]
-                wfv = wf[f, :nt]
-                ofv = of[f, :nt]
-                qfv = qf[f, :nt]
-                for t in range(nt):
-                    x = np.int64(sg[t])
-                    # XOR code: planes above the base were projected XORed with it (high = 0
-                    # for other codes)
-                    x ^= high * ((x >> sb) & 1)
-                    x ^= x >> 1  # Gray -> binary: prefix XOR (n <= 32)
-                    x ^= x >> 2
-                    x ^= x >> 4
-                    x ^= x >> 8
-                    x ^= x >> 16
-                    wrdv[t] = x
-                    m = np.float32(miv[t]) * mscale
-                    mmv[t] = m
-                    res = m >= tauv[t]
-                    slv[t] = np.uint8(not res)
-                    cfv[t] = np.float64(np.int32(x)) * step + c0  # x < 2**31 (n <= 31)
-                    sfv[t] = sig_one
-                    wfv[t] = step
-                    ofv[t] = litv[t] & (x < n_stripes) & one_stripe_ok
-                    q = m / np.maximum(refv[t], tiny)
-                    qfv[t] = np.minimum(np.maximum(q, np.float32(0.0)), np.float32(1.0))
+                n_slow = np.int32(0)
+                if direct:  # one family, final outputs: written here (the store, fused)
+                    for t in range(nt):
+                        x = np.int64(sg[t])
+                        # XOR code: planes above the base were projected XORed with it (high
+                        # = 0 for other codes)
+                        x ^= high * ((x >> sb) & 1)
+                        x ^= x >> 1  # Gray -> binary: prefix XOR (n <= 32)
+                        x ^= x >> 2
+                        x ^= x >> 4
+                        x ^= x >> 8
+                        x ^= x >> 16
+                        wrdv[t] = x
+                        m = np.float32(miv[t]) * mscale
+                        sl = np.uint8(not (m >= tauv[t]))
+                        slv[t] = sl
+                        n_slow += np.int32(sl)
+                        o = litv[t] & (x < n_stripes) & one_stripe_ok & (sl == 0)
+                        z = zero32 / np.float32(o)  # + z: NaN where not ok (0 / 0), else exact
+                        oov[t] = o
+                        cov[t] = np.float32(np.float64(np.int32(x)) * step + c0) + z
+                        sov[t] = sig_one32 + z
+                        q = m / np.maximum(refv[t], tiny)
+                        q = np.minimum(np.maximum(q, zero32), np.float32(1.0))
+                        # the running min over the axes; a slow pixel's is set by its path below
+                        # (from qsv, the value before this axis)
+                        qsv[t] = qov[t]
+                        qov[t] = np.minimum(qov[t], np.maximum(q * np.float32(o),
+                                                               big32 * np.float32(sl)))
+                else:
+                    cfv = cf[f, :nt]
+                    sfv = sf[f, :nt]
+                    wfv = wf[f, :nt]
+                    ofv = of[f, :nt]
+                    qfv = qf[f, :nt]
+                    for t in range(nt):
+                        x = np.int64(sg[t])
+                        x ^= high * ((x >> sb) & 1)  # the XOR code, as above
+                        x ^= x >> 1  # Gray -> binary
+                        x ^= x >> 2
+                        x ^= x >> 4
+                        x ^= x >> 8
+                        x ^= x >> 16
+                        wrdv[t] = x
+                        m = np.float32(miv[t]) * mscale
+                        sl = np.uint8(not (m >= tauv[t]))
+                        slv[t] = sl
+                        n_slow += np.int32(sl)
+                        cfv[t] = np.float64(np.int32(x)) * step + c0  # x < 2**31 (n <= 31)
+                        sfv[t] = sig_one
+                        wfv[t] = step
+                        ofv[t] = litv[t] & (x < n_stripes) & one_stripe_ok
+                        q = m / np.maximum(refv[t], tiny)
+                        qfv[t] = np.minimum(np.maximum(q, zero32), np.float32(1.0))
                 # ... then the pixels with unresolved planes: their reliable planes, partial
                 # codes, statistics
-                for t in range(nt):
+                for t in range(nt if n_slow else 0):
                     if slv[t] == 0:
                         continue
                     tt = tauv[t]
@@ -247,25 +283,21 @@ def _kernel():
                         counts[f, n + first] += 1
                     r = ref[t0 + t]
                     q = ms / (r if (r >= tiny or r != r) else tiny)
+                    q = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                    sig = 0.5 * step if edge else weff * step / sqrt12
+                    if direct:
+                        z = zero32 / np.float32(ok)
+                        oov[t] = ok
+                        cov[t] = np.float32(cst * step + c0) + z
+                        sov[t] = np.float32(sig) + z
+                        qov[t] = np.minimum(qsv[t], q * np.float32(ok))
+                        continue
                     cf[f, t] = cst * step + c0
-                    sf[f, t] = 0.5 * step if edge else weff * step / sqrt12
+                    sf[f, t] = sig
                     wf[f, t] = weff * step
-                    qf[f, t] = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                    qf[f, t] = q
                     of[f, t] = ok
-            if F == 1 and final:  # _store, written with vectorisable selects
-                nan_or_0 = np.array([np.nan, 0.0], np.float32)  # + : NaN where not ok
-                cov = coord_out[t0:t0 + nt]
-                sov = sig_out[t0:t0 + nt]
-                oov = ok_out[t0:t0 + nt]
-                qov = conf_out[t0:t0 + nt]
-                for t in range(nt):
-                    o = of[0, t]
-                    z = nan_or_0[np.int64(o)]
-                    oov[t] = o
-                    cov[t] = np.float32(cf[0, t]) + z
-                    sov[t] = np.float32(sf[0, t]) + z
-                    # conf if ok else 0 (conf is finite: ref >= tiny, margins finite)
-                    qov[t] = np.minimum(qov[t], qf[0, t] * np.float32(o))
+            if direct:
                 continue
             if F == 1:
                 for t in range(nt):
