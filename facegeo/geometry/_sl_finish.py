@@ -11,18 +11,25 @@ margin (confidence), the per-bit statistics and the consistency vote across fami
 (:func:`phase`, Srinivasan et al. 1984) and the unwrapping with the code (:func:`phase_merge`).
 The method is written down in ``docs/structured-light.md``.
 
-Tiles of ``_TILE`` pixels: the margins are read plane by plane over the tile and every pixel
-is first decoded as fully resolved — loops the compiler vectorises, over data that stays in
-cache — then only the pixels with unresolved planes take the scalar path (partial codes,
-statistics), then the vote. The kernel does the reference's arithmetic (the same float32 /
-float64 steps in the same order), so codes, validity and statistics are identical and ``x`` /
-``y`` / ``sigma`` / ``confidence`` equal (tested in tests/test_decode.py). Margins are never
-NaN here (the decoder rejects non-finite frames), so plain ``min`` stands for ``np.minimum``.
+Tiles of ``_TILE`` pixels. Per family the smallest of the pixel's ``n`` margins is taken
+plane by plane over the tile (uint8 ``min``, vectorised); a pixel is *fully resolved* when that
+smallest margin is reliable — ``float32(m) · mscale >= tau`` is monotone in ``m``, so the
+smallest margin passes exactly when every plane does — and fully resolved pixels decode in one
+vectorised pass (XOR base, Gray → binary, coordinate, σ, confidence; with one family the
+axis's outputs are written there, ``NaN`` as ``0 / 0``). Only the other pixels take the scalar
+path: their reliable planes one by one, partial codes, statistics; a tile without such pixels
+skips it. Then the vote. The kernel does the reference's arithmetic (the same float32 / float64
+steps in the same order), so codes, validity and statistics are identical and ``x`` / ``y`` /
+``sigma`` / ``confidence`` equal (tested in tests/test_decode.py; bit for bit against the
+former kernel on the benchmark's frames). Margins are never NaN here (the decoder rejects
+non-finite frames), so plain ``min`` stands for ``np.minimum``.
 
-Reliability on integer margins is an integer compare against the smallest reliable margin of
-the pixel (found once per pixel and axis), and the fully-resolved pass writes its selects as
-``np.maximum`` / ``np.minimum`` (numba vectorises those, not ``min`` / ``max`` / conditional
-expressions on floats). The kernels are serial; ``StreamDecoder.finish`` runs the chunks of
+The fully-resolved pass writes its selects as ``np.maximum`` / ``np.minimum`` (numba vectorises
+those, not ``min`` / ``max`` / conditional expressions on floats). One axis of the benchmark's
+1280 × 1024 frames (10 Gray bits, every pixel resolved) in one call, 1 thread, CPU time, load
+≈ 11: 5.5–5.8 ns a pixel, against 13.3–18.4 for the former kernel (a per-pixel threshold
+search, ten per-plane reliability passes, a separate store loop with a gather), interleaved.
+The kernels are serial; ``StreamDecoder.finish`` runs the chunks of
 2**16 pixels on its ``threads`` Python threads (the kernels release the GIL).
 """
 
