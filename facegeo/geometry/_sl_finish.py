@@ -49,12 +49,12 @@ _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 # the pickled contents of its closure cells, and a dispatcher pickles differently in every
 # process, so kernels that closed over their helpers were compiled again in every process
 # (~20 s, measured); globals are not part of the key.
-_min_nan = _max_nan = _store = None
+_min_nan = _max_nan = _store = _binary = None
 
 
 @functools.cache
 def _kernel():
-    global _min_nan, _max_nan, _store
+    global _min_nan, _max_nan, _store, _binary
     from numba import njit
 
     def min_nan(a, b):  # np.minimum: NaN propagates
@@ -80,7 +80,21 @@ def _kernel():
         sig_out[p] = np.float32(sig)
         conf_out[p] = _min_nan(conf_out[p], conf) if final else conf
 
+    def binary(word, high, sb):
+        # a decision word as a binary stripe index: for an XOR code the planes above the base
+        # were projected XORed with it (``high`` their mask, ``sb`` the base's shift; high = 0
+        # for other codes), then Gray -> binary as a prefix XOR (n <= 32)
+        x = np.int64(word)
+        x ^= high * ((x >> sb) & 1)
+        x ^= x >> 1
+        x ^= x >> 2
+        x ^= x >> 4
+        x ^= x >> 8
+        x ^= x >> 16
+        return x
+
     helper = njit(cache=True, nogil=True, boundscheck=False, inline="always")
+    _binary = helper(binary)
     _min_nan = helper(min_nan)
     _max_nan = helper(max_nan)
     _store = helper(store)
@@ -169,15 +183,7 @@ def _kernel():
                 n_slow = np.int32(0)
                 if direct:  # one family, final outputs: written here (the store, fused)
                     for t in range(nt):
-                        x = np.int64(sg[t])
-                        # XOR code: planes above the base were projected XORed with it (high
-                        # = 0 for other codes)
-                        x ^= high * ((x >> sb) & 1)
-                        x ^= x >> 1  # Gray -> binary: prefix XOR (n <= 32)
-                        x ^= x >> 2
-                        x ^= x >> 4
-                        x ^= x >> 8
-                        x ^= x >> 16
+                        x = _binary(sg[t], high, sb)
                         wrdv[t] = x
                         m = np.float32(miv[t]) * mscale
                         sl = np.uint8(not (m >= tauv[t]))
@@ -202,13 +208,7 @@ def _kernel():
                     ofv = of[f, :nt]
                     qfv = qf[f, :nt]
                     for t in range(nt):
-                        x = np.int64(sg[t])
-                        x ^= high * ((x >> sb) & 1)  # the XOR code, as above
-                        x ^= x >> 1  # Gray -> binary
-                        x ^= x >> 2
-                        x ^= x >> 4
-                        x ^= x >> 8
-                        x ^= x >> 16
+                        x = _binary(sg[t], high, sb)
                         wrdv[t] = x
                         m = np.float32(miv[t]) * mscale
                         sl = np.uint8(not (m >= tauv[t]))
