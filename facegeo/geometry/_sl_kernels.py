@@ -91,12 +91,12 @@ def _kernels(C: int, exact: bool):
             p = a if stored_is_pos else b
             q = b if stored_is_pos else a
             d = p - q
-            words[i] |= bitval if d > 0 else words.dtype.type(0)
-            m = abs(d) * steps
-            m = min(m, np.float32(255.0))
+            words[i] |= bitval * words.dtype.type(d > 0)
+            m = np.minimum(abs(d) * steps, np.float32(255.0))
             margin[i] = np.uint8(np.rint(m))
-            lmax[i] = max(lmax[i], max(q, p))
-            lmin[i] = min(lmin[i], min(p, q))
+            # np.maximum / np.minimum: vectorised, where float max / min stay scalar
+            lmax[i] = np.maximum(lmax[i], np.maximum(q, p))
+            lmin[i] = np.minimum(lmin[i], np.minimum(p, q))
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def phase(f, scale, sk, ck, S, C_, A, pmax):  # pragma: no cover - compiled
@@ -105,7 +105,7 @@ def _kernels(C: int, exact: bool):
             for c in range(C):
                 s += acc(f[C * i + c])
             v = np.float32(s) * scale
-            pmax[i] = max(pmax[i], v)
+            pmax[i] = np.maximum(pmax[i], v)
             S[i] += sk * v
             C_[i] += ck * v
             A[i] += v
