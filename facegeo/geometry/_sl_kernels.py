@@ -17,6 +17,11 @@ materialises no float32 luminance plane for a pattern / inverse pair or a phase 
 * a phase frame goes through :func:`phase_update` (luminance, the three phase sums and the
   running maximum in one pass).
 
+Their float selects are written ``np.maximum`` / ``np.minimum`` (numba vectorises those; builtin
+``max`` / ``min`` on floats stayed scalar): the pair update measured 1.49 against 3.37 ms CPU a
+pair of 1280 × 1024 RGB pixels. The values are the builtin ones (no NaN reaches them: the
+decoder rejects non-finite frames).
+
 The luminance is bit-for-bit the one :func:`luminance` computes (a channel sum of integers
 below 2**24 is exact in float32 whichever order it is summed in), so the decode does not change.
 
