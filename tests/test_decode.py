@@ -657,13 +657,19 @@ def test_compiled_finish_equals_numpy_reference(kw, monkeypatch):
                                    atol=KERNEL_MODULATION_TOL)
 
 
-@pytest.mark.parametrize("dtype,channels,tile,parallel", [
-    (np.uint8, 3, 64, True), (np.uint8, 1, 4096, False), (np.uint16, 3, 100, True)])
-def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, tile, parallel):
-    """Several pairs folded tile-major (``pairs_tiled``: integer channel sums, tiles of any
-    size, prange) update words, margins and ``L_max`` / ``L_min`` *bit for bit* as the
+@pytest.mark.parametrize("dtype,channels,tile,parallel,diff,full", [
+    (np.uint8, 3, 64, True, True, None), (np.uint8, 3, 64, False, False, None),
+    (np.uint8, 1, 4096, False, True, None), (np.uint8, 4, 128, False, True, None),
+    (np.uint8, 3, 100, False, True, 200.0), (np.uint16, 3, 100, True, True, None)])
+def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, tile, parallel,
+                                                             diff, full):
+    """Several pairs folded tile-major (``pairs_tiled``: integer channel sums in int16 lanes
+    for 8-bit frames, int32 for 16-bit, tiles of any size, prange, the margin from the sums'
+    difference or from the two float32 products, a full scale where the difference is not
+    exact) update words, margins and ``L_max`` / ``L_min`` *bit for bit* as the
     frame-by-frame ``pair_update`` does, pair after pair. Fails if the tiled kernel decides a
-    bit on the wrong side, rounds a margin or a luminance differently or skips a tile's tail."""
+    bit on the wrong side, rounds a margin or a luminance differently, overflows a lane or
+    skips a tile's tail."""
     from facegeo.geometry import _sl_kernels as k
 
     rng = np.random.default_rng(4)
@@ -671,13 +677,13 @@ def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, ti
     shape = (23, 37, channels) if channels > 1 else (23, 37)
     frames = [rng.integers(0, top, shape, endpoint=True).astype(dtype) for _ in range(6)]
     frames[3] = frames[2].copy()  # a tie: pos == neg must not set the bit
-    scale = 1.0 / (top * channels)
+    scale = 1.0 / ((full or top) * channels)
     pos, neg, rows, bits, planes = [0, 2, 5], [1, 3, 4], [0, 1, 1], [9, 3, 0], [2, 0, 1]
     state = [np.zeros((2, 23, 37), np.uint16), np.zeros((3, 23, 37), np.uint8),
              rng.random((23, 37), dtype=np.float32), rng.random((23, 37), dtype=np.float32)]
     ref = [s.copy() for s in state]
     k.pairs_tiled(frames, pos, neg, scale, rows, bits, planes, *state[:2], 510.0, *state[2:],
-                  tile=tile, parallel=parallel)
+                  tile=tile, parallel=parallel, diff_margin=diff)
     for p, q, r, b, m in zip(pos, neg, rows, bits, planes):
         k.pair_update(frames[p], k.channel_sum(frames[q]), ref[0][r], b, ref[1][m], 510.0,
                       ref[2], ref[3], pos_scale=scale, neg_scale=scale)
@@ -685,6 +691,24 @@ def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, ti
         np.testing.assert_array_equal(got, want)
     assert state[1].max() > 100 and state[0].any()  # margins and bits were written
     assert k.tiled_ok(np.uint8, 3, 1 / 765, 510.0) and not k.tiled_ok(np.float32, 3, 1.0, 510.0)
+
+
+def test_diff_margin_is_exact_or_declined():
+    """``_diff_margin``: the margin of 8-bit RGB sums at the default full scale is
+    ``rint(|s1 - s2| · 2/3)`` for every pair of sums (checked here independently of the
+    function's own check, all 766² pairs); a full scale of 200 makes the two float32 products
+    round differently from the difference for some pairs, and the function declines (0) — fails
+    if it accepts a ``k`` that changes one margin, or declines the default."""
+    from facegeo.geometry import _sl_kernels as k
+
+    kk = k._diff_margin(765, 1 / 765, 510.0)
+    assert kk == pytest.approx(2 / 3, rel=1e-6)
+    s = np.arange(766)
+    s1, s2 = np.meshgrid(s, s, indexing="ij")
+    got = np.minimum(np.rint(np.abs(s1 - s2).astype(np.float32) * np.float32(kk)), 255)
+    np.testing.assert_array_equal(got, k._float_margin(s1, s2, 1 / 765, 510.0))
+    assert k._diff_margin(600, 1 / 600, 510.0) == 0.0
+    assert k._diff_margin(65535 * 3, 1 / (65535 * 3), 510.0) == 0.0  # 16-bit: not enumerated
 
 
 @pytest.mark.parametrize("group_frames,mixed", [(1, False), (3, False), (100, False),

@@ -11,18 +11,25 @@ margin (confidence), the per-bit statistics and the consistency vote across fami
 (:func:`phase`, Srinivasan et al. 1984) and the unwrapping with the code (:func:`phase_merge`).
 The method is written down in ``docs/structured-light.md``.
 
-Tiles of ``_TILE`` pixels: the margins are read plane by plane over the tile and every pixel
-is first decoded as fully resolved — loops the compiler vectorises, over data that stays in
-cache — then only the pixels with unresolved planes take the scalar path (partial codes,
-statistics), then the vote. The kernel does the reference's arithmetic (the same float32 /
-float64 steps in the same order), so codes, validity and statistics are identical and ``x`` /
-``y`` / ``sigma`` / ``confidence`` equal (tested in tests/test_decode.py). Margins are never
-NaN here (the decoder rejects non-finite frames), so plain ``min`` stands for ``np.minimum``.
+Tiles of ``_TILE`` pixels. Per family the smallest of the pixel's ``n`` margins is taken
+plane by plane over the tile (uint8 ``min``, vectorised); a pixel is *fully resolved* when that
+smallest margin is reliable — ``float32(m) · mscale >= tau`` is monotone in ``m``, so the
+smallest margin passes exactly when every plane does — and fully resolved pixels decode in one
+vectorised pass (XOR base, Gray → binary, coordinate, σ, confidence; with one family the
+axis's outputs are written there, ``NaN`` as ``0 / 0``). Only the other pixels take the scalar
+path: their reliable planes one by one, partial codes, statistics; a tile without such pixels
+skips it. Then the vote. The kernel does the reference's arithmetic (the same float32 / float64
+steps in the same order), so codes, validity and statistics are identical and ``x`` / ``y`` /
+``sigma`` / ``confidence`` equal (tested in tests/test_decode.py; bit for bit against the
+former kernel on the benchmark's frames). Margins are never NaN here (the decoder rejects
+non-finite frames), so plain ``min`` stands for ``np.minimum``.
 
-Reliability on integer margins is an integer compare against the smallest reliable margin of
-the pixel (found once per pixel and axis), and the fully-resolved pass writes its selects as
-``np.maximum`` / ``np.minimum`` (numba vectorises those, not ``min`` / ``max`` / conditional
-expressions on floats). The kernels are serial; ``StreamDecoder.finish`` runs the chunks of
+The fully-resolved pass writes its selects as ``np.maximum`` / ``np.minimum`` (numba vectorises
+those, not ``min`` / ``max`` / conditional expressions on floats). One axis of the benchmark's
+1280 × 1024 frames (10 Gray bits, every pixel resolved) in one call, 1 thread, CPU time, load
+≈ 11: 5.5–5.8 ns a pixel, against 13.3–18.4 for the former kernel (a per-pixel threshold
+search, ten per-plane reliability passes, a separate store loop with a gather), interleaved.
+The kernels are serial; ``StreamDecoder.finish`` runs the chunks of
 2**16 pixels on its ``threads`` Python threads (the kernels release the GIL).
 """
 
@@ -38,24 +45,29 @@ __all__ = ["decode_axis", "phase", "phase_merge", "prepare"]
 _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 
 
+# The compiled helpers are module globals, set by _kernel(): numba's cache keys a function on
+# the pickled contents of its closure cells, and a dispatcher pickles differently in every
+# process, so kernels that closed over their helpers were compiled again in every process
+# (~20 s, measured); globals are not part of the key.
+_min_nan = _max_nan = _store = _binary = None
+
+
 @functools.cache
 def _kernel():
+    global _min_nan, _max_nan, _store, _binary
     from numba import njit
 
-    @njit(cache=True, nogil=True, boundscheck=False, inline="always")
-    def _min_nan(a, b):  # np.minimum: NaN propagates
+    def min_nan(a, b):  # np.minimum: NaN propagates
         if a <= b:
             return a
         return b if (b < a or b != b) else a
 
-    @njit(cache=True, nogil=True, boundscheck=False, inline="always")
-    def _max_nan(a, b):  # np.maximum: NaN propagates, ties keep a
+    def max_nan(a, b):  # np.maximum: NaN propagates, ties keep a
         if a >= b:
             return a
         return b if (b > a or b != b) else a
 
-    @njit(cache=True, nogil=True, boundscheck=False, inline="always")
-    def _store(p, final, ok, coord, sig, conf, coord_out, sig_out, ok_out, conf_out):
+    def store(p, final, ok, coord, sig, conf, coord_out, sig_out, ok_out, conf_out):
         # final: the axis's outputs as decode_stream returns them (NaN where invalid) and the
         # running min of the confidence over the axes; else the raw values for the phase step
         ok_out[p] = ok
@@ -67,6 +79,25 @@ def _kernel():
         coord_out[p] = np.float32(coord)
         sig_out[p] = np.float32(sig)
         conf_out[p] = _min_nan(conf_out[p], conf) if final else conf
+
+    def binary(word, high, sb):
+        # a decision word as a binary stripe index: for an XOR code the planes above the base
+        # were projected XORed with it (``high`` their mask, ``sb`` the base's shift; high = 0
+        # for other codes), then Gray -> binary as a prefix XOR (n <= 32)
+        x = np.int64(word)
+        x ^= high * ((x >> sb) & 1)
+        x ^= x >> 1
+        x ^= x >> 2
+        x ^= x >> 4
+        x ^= x >> 8
+        x ^= x >> 16
+        return x
+
+    helper = njit(cache=True, nogil=True, boundscheck=False, inline="always")
+    _binary = helper(binary)
+    _min_nan = helper(min_nan)
+    _max_nan = helper(max_nan)
+    _store = helper(store)
 
     @njit(cache=True, nogil=True, boundscheck=False)
     def prepare(white, black, has_wb, lmax, lmin, shadow_thr, min_c, rel_c, lit_out, shadow,
@@ -89,8 +120,7 @@ def _kernel():
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def axis_pixels(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, p0,
                     tau, ref, lit, phi, pok, has_hint, kk, period,
-                    coord_out, sig_out, ok_out, conf_out, final, counts,
-                    int_marg):  # pragma: no cover
+                    coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
         F = signs.shape[0]
         P = tau.shape[0]
         full = (np.int64(1) << n) - 1
@@ -99,11 +129,9 @@ def _kernel():
         tiny = np.float32(1e-12)
         sqrt12 = math.sqrt(12.0)
         T = _TILE
-        rel = np.empty(T, np.int64)
         wrd = np.empty(T, np.int64)
-        mm = np.empty(T, np.float32)
         mi = np.empty(T, marg.dtype)  # the smallest stored margin of a family
-        thr = np.empty(T, np.int32)  # integer margins: the smallest margin that is reliable
+        slow = np.empty(T, np.uint8)  # 1: a plane is unreliable (the scalar path)
         cf = np.empty((F, T))
         sf = np.empty((F, T))
         wf = np.empty((F, T))
@@ -113,93 +141,99 @@ def _kernel():
         c0 = 0.5 * (step - 1.0)
         one_stripe_ok = step <= coarse_lim + 1e-9  # a fully resolved code names one stripe
         sig_one = 1.0 * step / sqrt12
-        # integer (uint8) margins: "float32(m) * mscale >= tau" is "m >= thr" with thr the
-        # smallest such m (monotone in m), found once per pixel; the plane loops then compare
-        # integers, which numba vectorises (its float compare-and-select loops stay scalar)
-        table = np.arange(257).astype(np.float32) * mscale
+        zero32 = np.float32(0.0)
+        sig_one32 = np.float32(sig_one)
+        big32 = np.float32(3e38)  # max(conf * ok, big) = big: min(conf_all, big) keeps conf_all
+        qs = np.empty(T, np.float32)  # conf_all before this axis (direct)
+        direct = F == 1 and final
         for t0 in range(0, P, T):
             nt = min(T, P - t0)
             a0 = p0 + t0
-            relv = rel[:nt]
             wrdv = wrd[:nt]
             miv = mi[:nt]
-            thrv = thr[:nt]
+            slv = slow[:nt]
             tauv = tau[t0:t0 + nt]
-            if int_marg:
-                for t in range(nt):
-                    tt = tauv[t]
-                    if not tt <= table[255]:  # NaN, inf or above every margin: none reliable
-                        thrv[t] = 256
-                        continue
-                    v = min(max(int(math.ceil(tt / mscale)), 0), 255)
-                    while v > 0 and table[v - 1] >= tt:
-                        v -= 1
-                    while table[v] < tt:  # stops at 255 at the latest (table[255] >= tt)
-                        v += 1
-                    thrv[t] = v
+            litv = lit[t0:t0 + nt]
+            refv = ref[t0:t0 + nt]
+            qsv = qs[:nt]
+            cov = coord_out[t0:t0 + nt]
+            sov = sig_out[t0:t0 + nt]
+            oov = ok_out[t0:t0 + nt]
+            qov = conf_out[t0:t0 + nt]
             for f in range(F):
-                # plane-major passes over the tile: reliable planes, the smallest margin
-                sg = signs[f, a0:a0 + nt]
-                for t in range(nt):
-                    relv[t] = 0
-                    wrdv[t] = sg[t]
+                # the smallest margin over the planes (the XOR base lowers the margins above it
+                # to its own: the smallest is unchanged); a pass per plane over the tile
                 for i in range(n):
                     mrow = marg[kidx[f, i], a0:a0 + nt]
-                    bit = np.int64(1) << (n - 1 - i)
-                    if int_marg:
-                        for t in range(nt):
-                            relv[t] |= bit * np.int64(np.int32(mrow[t]) >= thrv[t])
-                    else:
-                        for t in range(nt):
-                            m = np.float32(mrow[t]) * mscale
-                            relv[t] |= bit if m >= tauv[t] else np.int64(0)
                     if i == 0:
                         for t in range(nt):
                             miv[t] = mrow[t]
                     else:
                         for t in range(nt):
                             miv[t] = min(miv[t], mrow[t])
-                # the XOR base lowers the margins above it to its own: the smallest is unchanged
-                for t in range(nt):
-                    mm[t] = np.float32(miv[t]) * mscale
+                # every plane is reliable <=> the smallest margin is ("float32(m) * mscale >=
+                # tau" is monotone in m): those pixels decode fully resolved in one vectorised
+                # pass (np.maximum / np.minimum are the NaN-propagating selects of the
+                # reference and vectorise where numba's float min / max / conditional
+                # expressions stay scalar); the others (few) take the scalar path after
+                sg = signs[f, a0:a0 + nt]
                 b = base[f]
-                if b > 0:  # XOR code: planes above the base were projected XORed with it
-                    high = ((np.int64(1) << b) - 1) << (n - b)
-                    sb = n - 1 - b
+                high = ((np.int64(1) << b) - 1) << (n - b) if b > 0 else np.int64(0)
+                sb = n - 1 - b if b > 0 else 0
+                n_slow = np.int32(0)
+                if direct:  # one family, final outputs: written here (the store, fused)
                     for t in range(nt):
-                        w = wrdv[t]
-                        wrdv[t] = w ^ (high * ((w >> sb) & 1))
-                        r = relv[t]
-                        relv[t] = r & ((full & ~high) | (high * ((r >> sb) & 1)))
-                # every pixel as if fully resolved (vectorised: np.maximum / np.minimum are
-                # the NaN-propagating selects of the reference, and vectorise where numba's
-                # min / max / conditional expressions on floats stay scalar) ...
-                cfv = cf[f, :nt]
-                sfv = sf[f, :nt]
-                wfv = wf[f, :nt]
-                ofv = of[f, :nt]
-                qfv = qf[f, :nt]
-                litv = lit[t0:t0 + nt]
-                refv = ref[t0:t0 + nt]
-                for t in range(nt):
-                    x = wrdv[t]  # Gray -> binary: prefix XOR (n <= 32)
-                    x ^= x >> 1
-                    x ^= x >> 2
-                    x ^= x >> 4
-                    x ^= x >> 8
-                    x ^= x >> 16
-                    wrdv[t] = x
-                    cfv[t] = np.float64(np.int32(x)) * step + c0  # x < 2**31 (n <= 31)
-                    sfv[t] = sig_one
-                    wfv[t] = step
-                    ofv[t] = litv[t] & (x < n_stripes) & one_stripe_ok
-                    q = mm[t] / np.maximum(refv[t], tiny)
-                    qfv[t] = np.minimum(np.maximum(q, np.float32(0.0)), np.float32(1.0))
-                # ... then the pixels with unresolved planes (few): partial codes, statistics
-                for t in range(nt):
-                    u = ~rel[t] & full
-                    if u == 0:
+                        x = _binary(sg[t], high, sb)
+                        wrdv[t] = x
+                        m = np.float32(miv[t]) * mscale
+                        sl = np.uint8(not (m >= tauv[t]))
+                        slv[t] = sl
+                        n_slow += np.int32(sl)
+                        o = litv[t] & (x < n_stripes) & one_stripe_ok & (sl == 0)
+                        z = zero32 / np.float32(o)  # + z: NaN where not ok (0 / 0), else exact
+                        oov[t] = o
+                        cov[t] = np.float32(np.float64(np.int32(x)) * step + c0) + z
+                        sov[t] = sig_one32 + z
+                        q = m / np.maximum(refv[t], tiny)
+                        q = np.minimum(np.maximum(q, zero32), np.float32(1.0))
+                        # the running min over the axes; a slow pixel's is set by its path below
+                        # (from qsv, the value before this axis)
+                        qsv[t] = qov[t]
+                        qov[t] = np.minimum(qov[t], np.maximum(q * np.float32(o),
+                                                               big32 * np.float32(sl)))
+                else:
+                    cfv = cf[f, :nt]
+                    sfv = sf[f, :nt]
+                    wfv = wf[f, :nt]
+                    ofv = of[f, :nt]
+                    qfv = qf[f, :nt]
+                    for t in range(nt):
+                        x = _binary(sg[t], high, sb)
+                        wrdv[t] = x
+                        m = np.float32(miv[t]) * mscale
+                        sl = np.uint8(not (m >= tauv[t]))
+                        slv[t] = sl
+                        n_slow += np.int32(sl)
+                        cfv[t] = np.float64(np.int32(x)) * step + c0  # x < 2**31 (n <= 31)
+                        sfv[t] = sig_one
+                        wfv[t] = step
+                        ofv[t] = litv[t] & (x < n_stripes) & one_stripe_ok
+                        q = m / np.maximum(refv[t], tiny)
+                        qfv[t] = np.minimum(np.maximum(q, zero32), np.float32(1.0))
+                # ... then the pixels with unresolved planes: their reliable planes, partial
+                # codes, statistics
+                for t in range(nt if n_slow else 0):
+                    if slv[t] == 0:
                         continue
+                    tt = tauv[t]
+                    r = np.int64(0)
+                    for i in range(n):
+                        m = np.float32(marg[kidx[f, i], a0 + t]) * mscale
+                        if m >= tt:
+                            r |= np.int64(1) << (n - 1 - i)
+                    if b > 0:
+                        r &= (full & ~high) | (high * ((r >> sb) & 1))
+                    u = ~r & full
                     isl = lit[t0 + t]
                     binary = wrd[t]
                     bl = 0
@@ -256,25 +290,21 @@ def _kernel():
                         counts[f, n + first] += 1
                     r = ref[t0 + t]
                     q = ms / (r if (r >= tiny or r != r) else tiny)
+                    q = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                    sig = 0.5 * step if edge else weff * step / sqrt12
+                    if direct:
+                        z = zero32 / np.float32(ok)
+                        oov[t] = ok
+                        cov[t] = np.float32(cst * step + c0) + z
+                        sov[t] = np.float32(sig) + z
+                        qov[t] = np.minimum(qsv[t], q * np.float32(ok))
+                        continue
                     cf[f, t] = cst * step + c0
-                    sf[f, t] = 0.5 * step if edge else weff * step / sqrt12
+                    sf[f, t] = sig
                     wf[f, t] = weff * step
-                    qf[f, t] = min(max(q, np.float32(0.0)), np.float32(1.0)) if q == q else q
+                    qf[f, t] = q
                     of[f, t] = ok
-            if F == 1 and final:  # _store, written with vectorisable selects
-                nan_or_0 = np.array([np.nan, 0.0], np.float32)  # + : NaN where not ok
-                cov = coord_out[t0:t0 + nt]
-                sov = sig_out[t0:t0 + nt]
-                oov = ok_out[t0:t0 + nt]
-                qov = conf_out[t0:t0 + nt]
-                for t in range(nt):
-                    o = of[0, t]
-                    z = nan_or_0[np.int64(o)]
-                    oov[t] = o
-                    cov[t] = np.float32(cf[0, t]) + z
-                    sov[t] = np.float32(sf[0, t]) + z
-                    # conf if ok else 0 (conf is finite: ref >= tiny, margins finite)
-                    qov[t] = np.minimum(qov[t], qf[0, t] * np.float32(o))
+            if direct:
                 continue
             if F == 1:
                 for t in range(nt):
@@ -430,8 +460,7 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
               np.asarray(base, np.int64), int(n), float(step), int(n_stripes),
               float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
-              float(period), coord, sig, ok, conf, out is not None, counts,
-              marg.dtype == np.uint8)
+              float(period), coord, sig, ok, conf, out is not None, counts)
     c = counts
     return coord, sig, ok, conf, c[:, :n], c[:, n:2 * n], int(c[0, 2 * n])
 
