@@ -597,3 +597,34 @@ def test_query_errors_name_the_argument_and_index():
         scene.segment_visible(o, [0.0, np.nan, 1.0])
     with pytest.raises(InputError, match="normals"):
         scene.segment_visible(o, [0.0, 0.0, 1.0], normals=np.zeros((4, 3)))
+
+
+def test_fields_subset_is_identical_to_the_full_result_and_omits_the_rest():
+    # A subset of fields skips only writing the others: every field computed must equal the
+    # default call's bit for bit, on rays that include surface-start rays (re-casts) and
+    # misses, in chunks and on two threads, in input order and Z-order.
+    rng = np.random.default_rng(23)
+    v, f = _dented_sphere()
+    scene = RayScene(v, f, n_threads=2, chunk_size=211)
+    o, d = _rays_at(rng, 1500, scene.bounds, 2.0 * scene.scale)
+    tri = v[f[rng.integers(0, len(f), 500)]]
+    p = np.einsum("ni,nij->nj", rng.dirichlet([1, 1, 1], 500), tri)
+    o, d = np.vstack([o, p]), np.vstack([d, rng.normal(size=(500, 3))])
+    for sort in (False, True):
+        full = scene.closest_hit(o, d, sort_rays=sort)
+        for fields in (("t", "face", "bary"), ["point"], "normal", ("face", "t")):
+            sub = scene.closest_hit(o, d, sort_rays=sort, fields=fields)
+            wanted = {fields} if isinstance(fields, str) else set(fields)
+            assert np.array_equal(sub.hit, full.hit), "metric: hit identical"
+            for name in ("t", "face", "bary", "point", "normal"):
+                got = getattr(sub, name)
+                if name in wanted:
+                    assert np.array_equal(got, getattr(full, name), equal_nan=True), (
+                        f"metric: {name} identical with fields={fields}"
+                    )
+                else:
+                    assert got is None, f"metric: {name} not computed with fields={fields}"
+    none = scene.closest_hit(o, d, fields=())
+    assert np.array_equal(none.hit, full.hit) and none.t is None, "metric: hit alone"
+    with pytest.raises(InputError, match=r"fields.*'depth'.*expected some of"):
+        scene.closest_hit(o, d, fields=("t", "depth"))

@@ -63,7 +63,7 @@ def prepare_rays(o, D, norm, t_shift, tmax, centre, round_down, org32, d32, d64,
 
 @njit(nogil=True, cache=True, boundscheck=False)
 def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face, cop_dist,
-                bary_tol, hit, t, face, bary, point, normal, reject, t_e, coplanar, n_hat):
+                bary_tol, hit, t, face, bary, point, normal, rej_idx, rej_te, rej_cop, rej_n):
     """Float64 refinement of Embree's float32 closest hits (module docstring of
     :mod:`facegeo.surface.visibility`, "Precision"), one pass over the rays.
 
@@ -72,95 +72,108 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
     barycentrics ``b1 = (p - v0)·q1``, ``b2 = (p - v0)·q2``; keep Embree's ``t``, ``u``, ``v``
     when the float64 point falls more than ``bary_tol`` outside the face; clip rounding-level
     negative weights; reject hits on a face whose plane passes within ``cop_dist`` of the origin
-    and hits before ``tmin`` (``reject`` True; the caller re-casts them); accept the rest within
-    ``tmax``.
+    and hits before ``tmin`` (the caller re-casts them); accept the rest within ``tmax``.
 
     ``prim_to_face`` is an empty array when primitive ids are face indices. Outputs ``hit``,
     ``t``, ``face``, ``bary``, ``point``, ``normal`` are as :class:`~facegeo.surface.visibility.Hits`
-    (NaN / -1 where not accepted); ``t_e`` is Embree's distance from ``o``, ``coplanar`` and
-    ``n_hat`` (unit normal of the hit face, any hit) feed the re-casts.
+    (NaN / -1 where not accepted); each of ``t`` … ``normal`` is written only when it has the
+    rays' length (pass a length-0 array for a field not wanted). Rejected rays are listed
+    compactly: ``rej_idx[j]`` the ray, ``rej_te[j]`` Embree's distance from ``o``,
+    ``rej_cop[j]`` whether the face's plane contains ``o``, ``rej_n[j]`` the face's unit normal
+    (these feed the re-casts). Returns the number of rejected rays.
     """
     m = o.shape[0]
     nan = np.nan
     remap = prim_to_face.shape[0] > 0
+    w_t = t.shape[0] == m
+    w_f = face.shape[0] == m
+    w_b = bary.shape[0] == m
+    w_p = point.shape[0] == m
+    w_n = normal.shape[0] == m
+    n_rej = 0
     for i in range(m):
         p = prim[i]
-        got = p >= 0 and tmax[i] >= t_shift[i]
-        if not got:
-            hit[i] = False
-            t[i] = nan
-            face[i] = -1
-            reject[i] = False
-            coplanar[i] = False
-            t_e[i] = nan
-            for k in range(3):
-                bary[i, k] = nan
-                point[i, k] = nan
-                normal[i, k] = nan
-                n_hat[i, k] = nan
-            continue
-        g = table[p]
-        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
-        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
-        nx, ny, nz = g[3], g[4], g[5]
-        wx, wy, wz = g[0] - ox, g[1] - oy, g[2] - oz
-        num = wx * nx + wy * ny + wz * nz
-        den = dx * nx + dy * ny + dz * nz
-        te = t_shift[i] + np.float64(tfar[i])
-        t_e[i] = te
-        n_hat[i, 0] = nx
-        n_hat[i, 1] = ny
-        n_hat[i, 2] = nz
-        th = te
-        b1 = np.float64(u[i])
-        b2 = np.float64(v[i])
-        if den != 0.0:
-            tr = num / den
-            if np.isfinite(tr):
-                px = tr * dx - wx
-                py = tr * dy - wy
-                pz = tr * dz - wz
-                c1 = px * g[6] + py * g[7] + pz * g[8]
-                c2 = px * g[9] + py * g[10] + pz * g[11]
-                c0 = 1.0 - c1 - c2
-                if c0 >= -bary_tol and c1 >= -bary_tol and c2 >= -bary_tol:
-                    th = tr
-                    b1 = c1
-                    b2 = c2
-        b0 = 1.0 - b1 - b2
-        if b0 < 0.0 or b1 < 0.0 or b2 < 0.0:
-            b0 = max(b0, 0.0)
-            b1 = max(b1, 0.0)
-            b2 = max(b2, 0.0)
-            s = b0 + b1 + b2
-            b0 /= s
-            b1 /= s
-            b2 /= s
-        cop = abs(num) <= cop_dist
-        coplanar[i] = cop
-        rej = cop or not (th >= tmin[i])
-        reject[i] = rej
-        ok = (not rej) and th <= tmax[i]
+        ok = False
+        th = nan
+        b0 = b1 = b2 = nan
+        nx = ny = nz = nan
+        ox = oy = oz = 0.0
+        dx = dy = dz = 0.0
+        if p >= 0 and tmax[i] >= t_shift[i]:
+            ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
+            dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+            nx, ny, nz = table[p, 3], table[p, 4], table[p, 5]
+            wx, wy, wz = table[p, 0] - ox, table[p, 1] - oy, table[p, 2] - oz
+            num = wx * nx + wy * ny + wz * nz
+            den = dx * nx + dy * ny + dz * nz
+            te = t_shift[i] + np.float64(tfar[i])
+            th = te
+            b1 = np.float64(u[i])
+            b2 = np.float64(v[i])
+            if den != 0.0:
+                tr = num / den
+                if np.isfinite(tr):
+                    px = tr * dx - wx
+                    py = tr * dy - wy
+                    pz = tr * dz - wz
+                    c1 = px * table[p, 6] + py * table[p, 7] + pz * table[p, 8]
+                    c2 = px * table[p, 9] + py * table[p, 10] + pz * table[p, 11]
+                    c0 = 1.0 - c1 - c2
+                    if c0 >= -bary_tol and c1 >= -bary_tol and c2 >= -bary_tol:
+                        th = tr
+                        b1 = c1
+                        b2 = c2
+            b0 = 1.0 - b1 - b2
+            if b0 < 0.0 or b1 < 0.0 or b2 < 0.0:
+                b0 = max(b0, 0.0)
+                b1 = max(b1, 0.0)
+                b2 = max(b2, 0.0)
+                s = b0 + b1 + b2
+                b0 /= s
+                b1 /= s
+                b2 /= s
+            cop = abs(num) <= cop_dist
+            if cop or not (th >= tmin[i]):
+                rej_idx[n_rej] = i
+                rej_te[n_rej] = te
+                rej_cop[n_rej] = cop
+                rej_n[n_rej, 0] = nx
+                rej_n[n_rej, 1] = ny
+                rej_n[n_rej, 2] = nz
+                n_rej += 1
+            else:
+                ok = th <= tmax[i]
         hit[i] = ok
         if ok:
-            t[i] = th
-            face[i] = prim_to_face[p] if remap else p
-            bary[i, 0] = b0
-            bary[i, 1] = b1
-            bary[i, 2] = b2
-            point[i, 0] = ox + th * dx
-            point[i, 1] = oy + th * dy
-            point[i, 2] = oz + th * dz
-            normal[i, 0] = nx
-            normal[i, 1] = ny
-            normal[i, 2] = nz
+            if w_t:
+                t[i] = th
+            if w_f:
+                face[i] = prim_to_face[p] if remap else p
+            if w_b:
+                bary[i, 0] = b0
+                bary[i, 1] = b1
+                bary[i, 2] = b2
+            if w_p:
+                point[i, 0] = ox + th * dx
+                point[i, 1] = oy + th * dy
+                point[i, 2] = oz + th * dz
+            if w_n:
+                normal[i, 0] = nx
+                normal[i, 1] = ny
+                normal[i, 2] = nz
         else:
-            t[i] = nan
-            face[i] = -1
+            if w_t:
+                t[i] = nan
+            if w_f:
+                face[i] = -1
             for k in range(3):
-                bary[i, k] = nan
-                point[i, k] = nan
-                normal[i, k] = nan
+                if w_b:
+                    bary[i, k] = nan
+                if w_p:
+                    point[i, k] = nan
+                if w_n:
+                    normal[i, k] = nan
+    return n_rej
 
 
 @njit(nogil=True, cache=True, boundscheck=False)

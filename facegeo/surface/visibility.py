@@ -71,6 +71,7 @@ import numpy as np
 from facegeo.checks import as_array, check_finite, fmt_value
 from facegeo.errors import InputError, MissingDependencyError, ShapeError
 from facegeo.surface._vis_util import (
+    _block,
     _cross,
     _default_threads,
     _dot,
@@ -81,10 +82,11 @@ from facegeo.surface._vis_util import (
 )
 
 _F64, _F32, _BOOL = np.dtype(np.float64), np.dtype(np.float32), np.dtype(bool)
-#: Per-thread buffers of one chunk: contiguous o, tmax (inputs); org32, d32, d, far (Embree
-#: rays); reject, t_e, coplanar, n̂ (refinement side outputs).
-_CLOSEST_SCRATCH = (((3,), _F64), ((), _F64), ((3,), _F32), ((3,), _F32), ((3,), _F64),
-                    ((), _F32), ((), _BOOL), ((), _F64), ((), _BOOL), ((3,), _F64))
+_I64 = np.dtype(np.int64)
+#: Per-thread buffers of one chunk: contiguous o, tmin, tmax (inputs); org32, d32, d, far
+#: (Embree rays); the rejected rays' index, t_e, coplanar flag, n̂ (refinement side outputs).
+_CLOSEST_SCRATCH = (((3,), _F64), ((), _F64), ((), _F64), ((3,), _F32), ((3,), _F32),
+                    ((3,), _F64), ((), _F32), ((), _I64), ((), _F64), ((), _BOOL), ((3,), _F64))
 _OCCLUDED_SCRATCH = (((3,), _F32), ((3,), _F32), ((3,), _F64), ((), _F32))
 
 log = logging.getLogger(__name__)
@@ -116,6 +118,11 @@ _SORT_MIN_FACES = 1 << 18
 _INCOHERENT_STEP = 0.05
 #: ``prim_to_face`` for the kernels when primitive ids are face indices.
 _NO_REMAP = np.empty(0, dtype=np.int64)
+#: The optional fields of :class:`Hits` (``hit`` is always computed), with their per-ray shape
+#: and dtype, and the length-0 stand-ins the kernel gets for fields not asked for.
+_FIELDS = {"t": ((), _F64), "face": ((), _I64), "bary": ((3,), _F64), "point": ((3,), _F64),
+           "normal": ((3,), _F64)}
+_ABSENT = {name: np.empty((0,) + shape, dtype) for name, (shape, dtype) in _FIELDS.items()}
 _KERNELS: Any = None
 
 
@@ -135,6 +142,9 @@ def _kernels():
 @dataclass(frozen=True)
 class Hits:
     """Closest hits of a batch of rays; misses are NaN / -1 with ``hit`` False.
+
+    Every field but ``hit`` is None when not asked for (``fields`` of
+    :meth:`RayScene.closest_hit`).
 
     Attributes
     ----------
@@ -157,11 +167,11 @@ class Hits:
     """
 
     hit: np.ndarray
-    t: np.ndarray
-    face: np.ndarray
-    bary: np.ndarray
-    point: np.ndarray
-    normal: np.ndarray
+    t: np.ndarray | None
+    face: np.ndarray | None
+    bary: np.ndarray | None
+    point: np.ndarray | None
+    normal: np.ndarray | None
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -523,7 +533,7 @@ class RayScene:
     # ------------------------------------------------------------------ queries
 
     def closest_hit(self, origins, directions, *, t_min=None, t_max=np.inf,
-                    sort_rays: bool | None = None) -> Hits:
+                    sort_rays: bool | None = None, fields=None) -> Hits:
         """Nearest face hit by each ray within ``[t_min, t_max]``.
 
         Parameters
@@ -542,13 +552,20 @@ class RayScene:
             Default: when the batch has ≥ 65,536 rays, the mesh ≥ 262,144 faces and
             consecutive rays are incoherent (a camera's pixel grid is not; random shadow rays
             are).
+        fields : collection of str, optional
+            The :class:`Hits` fields to compute, some of ``"t"``, ``"face"``, ``"bary"``,
+            ``"point"``, ``"normal"`` (``hit`` always is); the others are None. Default: all.
+            Each field costs writing its bytes per ray (``point`` and ``normal`` are 48 of the
+            89); the float64 refinement and the self-intersection checks run for every choice,
+            so the fields computed are identical to those of the default.
 
         Returns
         -------
         Hits
             Per-ray results with the broadcast leading shape; ``t`` is measured from the
             original origin along the unit direction. Computed in float64 from the face Embree
-            reports in float32 (see the module docstring).
+            reports in float32 (see the module docstring). The arrays are views of one
+            allocation, freed when the last of them is.
 
         Raises
         ------
@@ -556,7 +573,7 @@ class RayScene:
             Wrong shapes, or leading axes that do not broadcast.
         InputError
             NaN or inf in origins or directions (the first bad index is named), a zero-length
-            direction, NaN or negative ``t_min``/``t_max``.
+            direction, NaN or negative ``t_min``/``t_max``; an unknown name in ``fields``.
 
         Notes
         -----
@@ -566,58 +583,68 @@ class RayScene:
         when Embree finds it (it is geometry, not rounding). Offset the origin along the normal,
         as :meth:`segment_visible` does with ``normals``, when such contacts are unwanted.
         """
+        fields = self._fields(fields)
         shape, O, D, norm = self._rays(origins, directions)
         n = len(O)
         tmin = self._range(t_min, "t_min", shape, default=self._eps)
         tmax = self._range(t_max, "t_max", shape, allow_inf=True)
 
-        # Left uninitialised here: every chunk writes all of its rays (first touch of the pages
-        # happens in the worker threads).
-        hit = np.empty(n, dtype=bool)
-        t = np.empty(n)
-        face = np.empty(n, dtype=np.int64)
-        bary = np.empty((n, 3))
-        point = np.empty((n, 3))
-        normal = np.empty((n, 3))
-        out = (hit, t, face, bary, point, normal)
+        # One block for all outputs (see _block), left uninitialised here: every chunk writes
+        # all of its rays (first touch of the pages happens in the worker threads).
+        hit, *arrays = _block(n, [((), _BOOL)] + [_FIELDS[f] for f in fields])
+        got = dict(zip(fields, arrays))
+        out = (hit,) + tuple(got.get(f, _ABSENT[f]) for f in _FIELDS)
         scene, prim_to_face = self._scene()
         if scene is None:
             hit[:] = False
-            face[:] = -1
-            for a in (t, bary, point, normal):
-                a[:] = np.nan
+            for f, a in got.items():
+                a[:] = -1 if f == "face" else np.nan
         elif n:
             table = self._face_table()
-
             order = self._ray_order(O, D, norm, sort_rays)
             p2f = _NO_REMAP if prim_to_face is None else prim_to_face
 
             def work(rows) -> None:
                 if isinstance(rows, slice):
-                    views = tuple(a[rows] for a in out)
+                    views = tuple(a[rows] if len(a) else a for a in out)
                 else:
-                    m = len(rows)
-                    views = (np.empty(m, dtype=bool), np.empty(m), np.empty(m, dtype=np.int64),
-                             np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)))
+                    views = (np.empty(len(rows), dtype=bool),) + tuple(
+                        np.empty((len(rows),) + a.shape[1:], a.dtype) if len(a) else a
+                        for a in out[1:])
                 self._closest_chunk(scene, p2f, table, _rows(O, rows), _rows(D, rows),
                                     _rows(norm, rows), _rows(tmin, rows), _rows(tmax, rows),
                                     views)
                 if not isinstance(rows, slice):
                     for a, v in zip(out, views):
-                        a[rows] = v
+                        if len(a):
+                            a[rows] = v
 
             self._map_chunks(work, n, order)
-        return Hits(
-            hit=hit.reshape(shape),
-            t=t.reshape(shape),
-            face=face.reshape(shape),
-            bary=bary.reshape(shape + (3,)),
-            point=point.reshape(shape + (3,)),
-            normal=normal.reshape(shape + (3,)),
-        )
+        return Hits(hit=hit.reshape(shape),
+                    **{f: got[f].reshape(shape + _FIELDS[f][0]) if f in got else None
+                       for f in _FIELDS})
+
+    @staticmethod
+    def _fields(fields) -> tuple[str, ...]:
+        """The requested optional :class:`Hits` fields, validated, in ``_FIELDS`` order."""
+        if fields is None:
+            return tuple(_FIELDS)
+        if isinstance(fields, str):
+            fields = (fields,)
+        try:
+            asked = set(fields)
+        except TypeError as exc:
+            raise InputError(f"fields: expected a collection of field names, got "
+                             f"{fmt_value(fields)}") from exc
+        unknown = sorted(str(f) for f in asked - set(_FIELDS))
+        if unknown:
+            raise InputError(f"fields: unknown field(s) {', '.join(map(repr, unknown))}; "
+                             f"expected some of {', '.join(map(repr, _FIELDS))}")
+        return tuple(f for f in _FIELDS if f in asked)
 
     def _closest_chunk(self, scene, p2f, table, o, D, norm, tmin, tmax, out) -> None:
-        """Trace one chunk and write it into ``out`` (views of the result arrays).
+        """Trace one chunk and write it into ``out`` (views of the result arrays; a length-0
+        array for a field not asked for).
 
         Rays whose hit is rejected as a self-intersection are re-cast, on that subset only, at
         most ``_MAX_RECASTS`` times: a ray that starts on the rejected face's plane is lifted
@@ -626,72 +653,76 @@ class RayScene:
         """
         eps = self._eps
         m = len(o)
-        o_c, tmax_c, *bufs = _scratch(m, _CLOSEST_SCRATCH)
-        # Contiguous inputs for the kernels (broadcast origins / t_max arrive with stride 0,
-        # which the compiled loops read ~3x slower).
+        o_c, tmin_c, tmax_c, *bufs = _scratch(m, _CLOSEST_SCRATCH)
+        # Contiguous inputs for the kernels (broadcast origins / t_min / t_max arrive with
+        # stride 0, which the compiled loops read ~3x slower).
         if not o.flags.c_contiguous:
             np.copyto(o_c, o)
             o = o_c
+        if not tmin.flags.c_contiguous:
+            np.copyto(tmin_c, tmin)
+            tmin = tmin_c
         if not tmax.flags.c_contiguous:
             np.copyto(tmax_c, tmax)
             tmax = tmax_c
-        t_shift = np.array(tmin, dtype=np.float64)  # origin moved this far along the ray
-        tmin = t_shift
-        d, extra = self._trace_refine(scene, p2f, table, o, D, norm, t_shift, tmin, tmax, out,
-                                      bufs)
-        reject, t_e, coplanar, n_hat = extra
-        idx = np.flatnonzero(reject)
-        base = o
+        # First query: the origin is moved t_min along the ray (t_shift = t_min).
+        d, n_rej, (j, t_e, coplanar, n_hat) = self._trace_refine(
+            scene, p2f, table, o, D, norm, tmin, tmin, tmax, out, bufs)
+        if n_rej == 0:
+            return
+        full = [np.empty((0,) + a.shape[1:], a.dtype) for a in out[1:]]
+        idx = j[:n_rej].copy()  # rejected rays, as rows of the chunk
+        base, t_shift = o, tmin
         for _ in range(_MAX_RECASTS):
-            if len(idx) == 0:
-                return
-            cop = coplanar[reject]
-            nr = n_hat[reject]
+            sel = j[:n_rej]  # rejected rays, as rows of the last query
+            cop = coplanar[:n_rej]
+            nr = n_hat[:n_rej]
             dr = d[idx]
             # Back side only for rays clearly heading below the plane; within _TANGENT_COS of
             # it the side is not resolved and the front (the winding's side) is used.
             side = np.where(np.einsum("ij,ij->i", dr, nr) < -_TANGENT_COS, -eps, eps)
-            base = base[reject] + np.where(cop, side, 0.0)[:, None] * nr
-            t_shift = np.where(cop, t_shift[reject],
-                               np.maximum(t_shift[reject], t_e[reject]) + eps)
+            base = base[sel] + np.where(cop, side, 0.0)[:, None] * nr
+            t_shift = np.where(cop, t_shift[sel], np.maximum(t_shift[sel], t_e[:n_rej]) + eps)
             m = len(idx)
-            sub = (np.empty(m, dtype=bool), np.empty(m), np.empty(m, dtype=np.int64),
-                   np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)))
-            _, extra = self._trace_refine(scene, p2f, table, base, dr, np.ones(m), t_shift,
-                                          tmin[idx], tmax[idx], sub)
+            # Every field on the re-cast subset: t is corrected below, the rest copied.
+            sub = (np.empty(m, dtype=bool),) + tuple(
+                np.empty((m,) + a.shape[1:], a.dtype) for a in full)
+            _, n_rej, (j, t_e, coplanar, n_hat) = self._trace_refine(
+                scene, p2f, table, base, dr, np.ones(m), t_shift, tmin[idx], tmax[idx], sub)
             # Report t along the original ray: the lifted origin is off it by <= eps.
             sub[1][:] += np.einsum("ij,ij->i", base - o[idx], dr)
             for arr, val in zip(out, sub):
-                arr[idx] = val
-            reject, t_e, coplanar, n_hat = extra
-            idx = idx[reject]
-        if len(idx):
-            log.debug("closest_hit: %d ray(s) still self-intersecting after %d re-casts; "
-                      "reported as misses", len(idx), _MAX_RECASTS)
+                if len(arr):
+                    arr[idx] = val
+            if n_rej == 0:
+                return
+            idx = idx[j[:n_rej]]
+        log.debug("closest_hit: %d ray(s) still self-intersecting after %d re-casts; "
+                  "reported as misses", len(idx), _MAX_RECASTS)
 
     def _trace_refine(self, scene, p2f, table, o, D, norm, t_shift, tmin, tmax, out,
                       bufs=None):
         """One float32 Embree query and its float64 refinement, dense over the rays given.
 
         Writes the accepted hits into ``out`` (``hit, t, face, bary, point, normal``; NaN / -1
-        elsewhere; ``point`` is ``o + t d``) and returns the unit float64 directions and
-        ``(reject, t_e, coplanar, n̂)``: the mask of hits rejected as self-intersections,
-        Embree's hit distance from ``o``, the mask of hits on a face whose plane contains ``o``
-        and the unit normals of all hit faces. Both steps are compiled kernels
-        (:mod:`facegeo.surface._vis_kernels`). ``bufs``: the calling thread's scratch buffers
-        (``_CLOSEST_SCRATCH`` from org32 on), else fresh ones.
+        elsewhere; ``point`` is ``o + t d``; length-0 arrays are skipped) and returns the unit
+        float64 directions, the number ``r`` of hits rejected as self-intersections and, in
+        their first ``r`` rows, ``(rows, t_e, coplanar, n̂)``: the rejected rays, Embree's hit
+        distance from ``o``, whether the hit face's plane contains ``o`` and its unit normal.
+        Both steps are compiled kernels (:mod:`facegeo.surface._vis_kernels`). ``bufs``: the
+        calling thread's scratch buffers (``_CLOSEST_SCRATCH`` from org32 on), else fresh ones.
         """
         k = _kernels()
         m = len(o)
         if bufs is None:
-            bufs = [np.empty((m,) + shape, dtype) for shape, dtype in _CLOSEST_SCRATCH[2:]]
-        org32, d32, d, far, reject, t_e, coplanar, n_hat = bufs
+            bufs = [np.empty((m,) + shape, dtype) for shape, dtype in _CLOSEST_SCRATCH[3:]]
+        org32, d32, d, far, *rejected = bufs
         k.prepare_rays(o, D, norm, t_shift, tmax, self._centre, False, org32, d32, d, far)
         res = scene.run(org32, d32, dists=far, output=1)
-        k.refine_hits(o, d, t_shift, tmin, tmax, res["primID"], res["tfar"], res["u"],
-                      res["v"], table, p2f, _COPLANAR_FRACTION * self._eps, _BARY_TOL, *out,
-                      reject, t_e, coplanar, n_hat)
-        return d, (reject, t_e, coplanar, n_hat)
+        n_rej = k.refine_hits(o, d, t_shift, tmin, tmax, res["primID"], res["tfar"], res["u"],
+                              res["v"], table, p2f, _COPLANAR_FRACTION * self._eps, _BARY_TOL,
+                              *out, *rejected)
+        return d, n_rej, rejected
 
     def occluded(self, origins, directions, t_max, *, t_min=None,
                  sort_rays: bool | None = None) -> np.ndarray:
