@@ -15,19 +15,25 @@ from numba import njit
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
-@njit(nogil=True, cache=True, boundscheck=False)
-def prepare_rays(o, D, norm, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
-    """Float32 Embree rays from float64 rays, one pass (pure ray preparation).
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
+    """Float32 Embree rays from float64 rays, one pass that also validates them.
+
+    Every per-ray input has either ``m`` rows (``m = len(d64)``) or one row shared by all rays
+    (a broadcast origin, a scalar ``t_shift``/``tmax``), which the loop reads without copying.
 
     Parameters
     ----------
-    o : (m, 3) float64, metres, mesh frame
-        Ray origins (any strides).
-    D : (m, 3) float64
-        Directions, any non-zero length; ``norm`` (m,) their lengths.
-    t_shift : (m,) float64, metres
+    o : (m, 3) or (1, 3) float64, metres, mesh frame
+        Ray origins.
+    D : (m, 3) or (1, 3) float64
+        Directions, any non-zero length (normalised here: ``D / sqrt(D·D)``).
+    unit : bool
+        ``D`` is already unit length: used as it is (the re-casts of rejected rays, whose
+        directions this pass normalised before).
+    t_shift : (m,) or (1,) float64, metres
         Distance the origin is moved along the unit direction before the query.
-    tmax : (m,) float64, metres
+    tmax : (m,) or (1,) float64, metres
         Farthest accepted distance from the original origin (inf allowed).
     centre : (3,) float64, metres
         The BVH's centring offset, subtracted from the moved origins.
@@ -40,18 +46,37 @@ def prepare_rays(o, D, norm, t_shift, tmax, centre, round_down, org32, d32, d64,
         Unit directions in float64 (for the refinement).
     far32 : (m,) float32, out
         ``min(tmax - t_shift, float32 max)``.
+
+    Returns
+    -------
+    bool
+        False when an origin is not finite or a direction is not finite or has length zero
+        (the outputs are then incomplete; the caller names the first bad ray).
     """
-    m = o.shape[0]
+    m = d64.shape[0]
     fmax = np.float32(_F32_MAX)
+    o1 = o.shape[0] == 1
+    D1 = D.shape[0] == 1
+    s1 = t_shift.shape[0] == 1
+    t1 = tmax.shape[0] == 1
+    ok = True
     for i in range(m):
-        s = norm[i]
-        ts = t_shift[i]
+        io = 0 if o1 else i
+        iD = 0 if D1 else i
+        x, y, z = D[iD, 0], D[iD, 1], D[iD, 2]
+        s = 1.0 if unit else np.sqrt(x * x + y * y + z * z)
+        if not (s > 0.0 and np.isfinite(s)):
+            ok = False
+        ts = t_shift[0 if s1 else i]
         for k in range(3):
-            dk = D[i, k] / s
+            ok_k = np.isfinite(o[io, k])
+            if not ok_k:
+                ok = False
+            dk = D[iD, k] / s
             d64[i, k] = dk
             d32[i, k] = np.float32(dk)
-            org32[i, k] = np.float32(o[i, k] + dk * ts - centre[k])
-        f = tmax[i] - ts
+            org32[i, k] = np.float32(o[io, k] + dk * ts - centre[k])
+        f = tmax[0 if t1 else i] - ts
         if f >= _F32_MAX:
             far32[i] = fmax
         else:
@@ -59,9 +84,10 @@ def prepare_rays(o, D, norm, t_shift, tmax, centre, round_down, org32, d32, d64,
             if round_down and np.float64(f32) > f:
                 f32 = np.nextafter(f32, np.float32(0.0))
             far32[i] = f32
+    return ok
 
 
-@njit(nogil=True, cache=True, boundscheck=False)
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
 def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face, cop_dist,
                 bary_tol, hit, t, face, bary, point, normal, rej_idx, rej_te, rej_cop, rej_n):
     """Float64 refinement of Embree's float32 closest hits (module docstring of
@@ -74,7 +100,9 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
     negative weights; reject hits on a face whose plane passes within ``cop_dist`` of the origin
     and hits before ``tmin`` (the caller re-casts them); accept the rest within ``tmax``.
 
-    ``prim_to_face`` is an empty array when primitive ids are face indices. Outputs ``hit``,
+    ``o``, ``t_shift``, ``tmin`` and ``tmax`` have one row per ray or one row shared by all
+    (as :func:`prepare_rays`). ``prim_to_face`` is an empty array when primitive ids are face
+    indices. Outputs ``hit``,
     ``t``, ``face``, ``bary``, ``point``, ``normal`` are as :class:`~facegeo.surface.visibility.Hits`
     (NaN / -1 where not accepted); each of ``t`` … ``normal`` is written only when it has the
     rays' length (pass a length-0 array for a field not wanted). Rejected rays are listed
@@ -82,9 +110,13 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
     ``rej_cop[j]`` whether the face's plane contains ``o``, ``rej_n[j]`` the face's unit normal
     (these feed the re-casts). Returns the number of rejected rays.
     """
-    m = o.shape[0]
+    m = d.shape[0]
     nan = np.nan
     remap = prim_to_face.shape[0] > 0
+    o1 = o.shape[0] == 1
+    s1 = t_shift.shape[0] == 1
+    n1 = tmin.shape[0] == 1
+    x1 = tmax.shape[0] == 1
     w_t = t.shape[0] == m
     w_f = face.shape[0] == m
     w_b = bary.shape[0] == m
@@ -99,14 +131,17 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
         nx = ny = nz = nan
         ox = oy = oz = 0.0
         dx = dy = dz = 0.0
-        if p >= 0 and tmax[i] >= t_shift[i]:
-            ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
+        io = 0 if o1 else i
+        ts = t_shift[0 if s1 else i]
+        tx = tmax[0 if x1 else i]
+        if p >= 0 and tx >= ts:
+            ox, oy, oz = o[io, 0], o[io, 1], o[io, 2]
             dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
             nx, ny, nz = table[p, 3], table[p, 4], table[p, 5]
             wx, wy, wz = table[p, 0] - ox, table[p, 1] - oy, table[p, 2] - oz
             num = wx * nx + wy * ny + wz * nz
             den = dx * nx + dy * ny + dz * nz
-            te = t_shift[i] + np.float64(tfar[i])
+            te = ts + np.float64(tfar[i])
             th = te
             b1 = np.float64(u[i])
             b2 = np.float64(v[i])
@@ -133,7 +168,7 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
                 b1 /= s
                 b2 /= s
             cop = abs(num) <= cop_dist
-            if cop or not (th >= tmin[i]):
+            if cop or not (th >= tmin[0 if n1 else i]):
                 rej_idx[n_rej] = i
                 rej_te[n_rej] = te
                 rej_cop[n_rej] = cop
@@ -142,7 +177,7 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
                 rej_n[n_rej, 2] = nz
                 n_rej += 1
             else:
-                ok = th <= tmax[i]
+                ok = th <= tx
         hit[i] = ok
         if ok:
             if w_t:
@@ -177,24 +212,15 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
 
 
 @njit(nogil=True, cache=True, boundscheck=False)
-def all_finite(a):
-    """Whether every value of ``a`` (n, 3) is finite (one pass, no temporaries)."""
-    for i in range(a.shape[0]):
-        for k in range(3):
-            if not np.isfinite(a[i, k]):
-                return False
-    return True
-
-
-@njit(nogil=True, cache=True, boundscheck=False)
-def ray_lengths(D, norm):
-    """Lengths ``norm`` (n,) of the directions ``D`` (n, 3); False if one is non-finite or zero
-    (the caller then finds and names the first bad row)."""
-    ok = True
-    for i in range(D.shape[0]):
+def rays_ok(o, D):
+    """Whether every origin of ``o`` (n, 3) is finite and every direction of ``D`` (n, 3) is
+    finite with a non-zero length, as :func:`prepare_rays` checks (one pass, no outputs)."""
+    for i in range(o.shape[0]):
         x, y, z = D[i, 0], D[i, 1], D[i, 2]
         s = np.sqrt(x * x + y * y + z * z)
-        norm[i] = s
         if not (s > 0.0 and np.isfinite(s)):
-            ok = False
-    return ok
+            return False
+        for k in range(3):
+            if not np.isfinite(o[i, k]):
+                return False
+    return True

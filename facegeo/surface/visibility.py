@@ -126,6 +126,22 @@ _ABSENT = {name: np.empty((0,) + shape, dtype) for name, (shape, dtype) in _FIEL
 _KERNELS: Any = None
 
 
+class _BadRays(Exception):
+    """A compiled pass met a non-finite ray or a zero-length direction (the caller names it)."""
+
+
+def _lean(a: np.ndarray, buf: np.ndarray | None = None) -> np.ndarray:
+    """A per-ray input ``a`` (m, ...) as the kernels read it: its first row alone when every
+    row is that row (broadcast, stride 0: read in place instead of copied), else ``a`` when
+    C-contiguous, else its copy into ``buf`` (or ``a`` as it is without ``buf``)."""
+    if len(a) > 1 and a.strides[0] == 0:
+        return a[:1]
+    if buf is None or a.flags.c_contiguous:
+        return a
+    np.copyto(buf, a)
+    return buf
+
+
 def _kernels():
     """The compiled kernels module (numba imported and kernels loaded on first use)."""
     global _KERNELS
@@ -443,6 +459,13 @@ class RayScene:
     # ------------------------------------------------------------------ input handling
 
     def _rays(self, origins, directions, oname="origins", dname="directions"):
+        """Shapes checked and broadcast: ``(shape, O, D, src)`` with ``O``, ``D`` (n, 3) views.
+
+        The values are checked where they are read, by the compiled pass that prepares the
+        Embree rays (:func:`~facegeo.surface._vis_kernels.prepare_rays`): a separate pass cost
+        ~0.07 of Embree's time per ray. When that pass reports a bad ray the caller raises
+        :class:`_BadRays` and :meth:`_name_bad_ray` (given ``src``) names the first one.
+        """
         o = as_array(origins, oname, shape=(..., 3), finite=False)
         d = as_array(directions, dname, shape=(..., 3), finite=False)
         try:
@@ -451,27 +474,36 @@ class RayScene:
             raise ShapeError(
                 f"{oname} {o.shape} and {dname} {d.shape}: leading axes do not broadcast"
             ) from exc
-        # One compiled pass checks and measures (the numpy checks took ~0.14 of Embree's time
-        # per ray); the numpy path below only runs to name the first bad value.
-        k = _kernels()
-        d2 = d.reshape(-1, 3)
-        norm = np.empty(len(d2))
-        if not (k.all_finite(o.reshape(-1, 3)) and k.ray_lengths(d2, norm)):
-            check_finite(o, oname)
-            check_finite(d, dname)
-            norm = np.sqrt(np.einsum("...i,...i->...", d, d))
-            zero = ~(norm > 0)
-            if zero.any():
-                idx = tuple(int(i) for i in np.argwhere(zero)[0])
-                raise InputError(
-                    f"{dname}: {int(zero.sum())} zero-length direction(s); first at index {idx}"
-                )
-        norm = norm.reshape(d.shape[:-1])
         n = int(np.prod(shape))
-        o = np.broadcast_to(o, shape + (3,)).reshape(n, 3)
-        d = np.broadcast_to(d, shape + (3,)).reshape(n, 3)
-        norm = np.broadcast_to(norm, shape).reshape(n)
-        return shape, o, d, norm
+        O = np.broadcast_to(o, shape + (3,)).reshape(n, 3)
+        D = np.broadcast_to(d, shape + (3,)).reshape(n, 3)
+        return shape, O, D, (o, d, oname, dname)
+
+    @staticmethod
+    def _name_bad_ray(src) -> None:
+        """Raise the :class:`InputError` naming the first non-finite origin or direction or
+        zero-length direction of ``src`` (from :meth:`_rays`); return if there is none."""
+        o, d, oname, dname = src
+        check_finite(o, oname)
+        check_finite(d, dname)
+        norm = np.sqrt(np.einsum("...i,...i->...", d, d))
+        zero = ~(norm > 0)
+        if zero.any():
+            idx = tuple(int(i) for i in np.argwhere(zero)[0])
+            raise InputError(
+                f"{dname}: {int(zero.sum())} zero-length direction(s); first at index {idx}"
+            )
+        bad = ~np.isfinite(norm)
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise InputError(f"{dname}: direction length overflows float64 (components above "
+                             f"~1e154); first at index {idx}; scale the directions down")
+
+    def _check_rays(self, O, D, src) -> None:
+        """Validate rays ``O``, ``D`` (n, 3) that no query reads (an empty scene, rays with
+        ``t_max < t_min``) as :func:`~facegeo.surface._vis_kernels.prepare_rays` does."""
+        if not _kernels().rays_ok(O, D):
+            self._name_bad_ray(src)
 
     def _range(self, value, name, shape, *, default=None, allow_inf=False):
         if value is None:
@@ -493,7 +525,7 @@ class RayScene:
             ) from exc
         return a.reshape(-1)
 
-    def _ray_order(self, O: np.ndarray, D: np.ndarray, norm: np.ndarray, sort_rays) -> Any:
+    def _ray_order(self, O: np.ndarray, D: np.ndarray, sort_rays) -> Any:
         """A processing order for the rays: None (input order) or a Morton order of origins.
 
         Incoherent rays (random origins and directions) over a large mesh are memory-bound:
@@ -508,7 +540,10 @@ class RayScene:
         if sort_rays is None:
             i = np.unique(np.linspace(0, n - 2, min(n - 1, 4096)).astype(np.intp))
             do = np.linalg.norm(O[i + 1] - O[i], axis=1) / max(self._scale, 1e-300)
-            dd = np.linalg.norm(D[i + 1] / norm[i + 1, None] - D[i] / norm[i, None], axis=1)
+            u = D[np.concatenate([i, i + 1])]
+            with np.errstate(divide="ignore", invalid="ignore"):  # bad rays: named later
+                u = u / np.sqrt(_dot(u, u))[:, None]
+            dd = np.linalg.norm(u[len(i):] - u[:len(i)], axis=1)
             if np.median(do + dd) <= _INCOHERENT_STEP:
                 return None
         # Cells over the scene's bounding box; origins outside it share the boundary cells.
@@ -584,7 +619,7 @@ class RayScene:
         as :meth:`segment_visible` does with ``normals``, when such contacts are unwanted.
         """
         fields = self._fields(fields)
-        shape, O, D, norm = self._rays(origins, directions)
+        shape, O, D, src = self._rays(origins, directions)
         n = len(O)
         tmin = self._range(t_min, "t_min", shape, default=self._eps)
         tmax = self._range(t_max, "t_max", shape, allow_inf=True)
@@ -596,12 +631,13 @@ class RayScene:
         out = (hit,) + tuple(got.get(f, _ABSENT[f]) for f in _FIELDS)
         scene, prim_to_face = self._scene()
         if scene is None:
+            self._check_rays(O, D, src)
             hit[:] = False
             for f, a in got.items():
                 a[:] = -1 if f == "face" else np.nan
         elif n:
             table = self._face_table()
-            order = self._ray_order(O, D, norm, sort_rays)
+            order = self._ray_order(O, D, sort_rays)
             p2f = _NO_REMAP if prim_to_face is None else prim_to_face
 
             def work(rows) -> None:
@@ -612,14 +648,17 @@ class RayScene:
                         np.empty((len(rows),) + a.shape[1:], a.dtype) if len(a) else a
                         for a in out[1:])
                 self._closest_chunk(scene, p2f, table, _rows(O, rows), _rows(D, rows),
-                                    _rows(norm, rows), _rows(tmin, rows), _rows(tmax, rows),
-                                    views)
+                                    _rows(tmin, rows), _rows(tmax, rows), views)
                 if not isinstance(rows, slice):
                     for a, v in zip(out, views):
                         if len(a):
                             a[rows] = v
 
-            self._map_chunks(work, n, order)
+            try:
+                self._map_chunks(work, n, order)
+            except _BadRays:
+                self._name_bad_ray(src)
+                raise
         return Hits(hit=hit.reshape(shape),
                     **{f: got[f].reshape(shape + _FIELDS[f][0]) if f in got else None
                        for f in _FIELDS})
@@ -642,7 +681,7 @@ class RayScene:
                              f"expected some of {', '.join(map(repr, _FIELDS))}")
         return tuple(f for f in _FIELDS if f in asked)
 
-    def _closest_chunk(self, scene, p2f, table, o, D, norm, tmin, tmax, out) -> None:
+    def _closest_chunk(self, scene, p2f, table, o, D, tmin, tmax, out) -> None:
         """Trace one chunk and write it into ``out`` (views of the result arrays; a length-0
         array for a field not asked for).
 
@@ -652,22 +691,12 @@ class RayScene:
         hit fell before ``t_min`` starts again ``eps`` past that hit.
         """
         eps = self._eps
-        m = len(o)
-        o_c, tmin_c, tmax_c, *bufs = _scratch(m, _CLOSEST_SCRATCH)
-        # Contiguous inputs for the kernels (broadcast origins / t_min / t_max arrive with
-        # stride 0, which the compiled loops read ~3x slower).
-        if not o.flags.c_contiguous:
-            np.copyto(o_c, o)
-            o = o_c
-        if not tmin.flags.c_contiguous:
-            np.copyto(tmin_c, tmin)
-            tmin = tmin_c
-        if not tmax.flags.c_contiguous:
-            np.copyto(tmax_c, tmax)
-            tmax = tmax_c
+        o_c, tmin_c, tmax_c, *bufs = _scratch(len(o), _CLOSEST_SCRATCH)
         # First query: the origin is moved t_min along the ray (t_shift = t_min).
+        lo = _lean(tmin, tmin_c)
         d, n_rej, (j, t_e, coplanar, n_hat) = self._trace_refine(
-            scene, p2f, table, o, D, norm, tmin, tmin, tmax, out, bufs)
+            scene, p2f, table, len(o), _lean(o, o_c), _lean(D), lo, lo, _lean(tmax, tmax_c),
+            out, bufs)
         if n_rej == 0:
             return
         full = [np.empty((0,) + a.shape[1:], a.dtype) for a in out[1:]]
@@ -688,7 +717,7 @@ class RayScene:
             sub = (np.empty(m, dtype=bool),) + tuple(
                 np.empty((m,) + a.shape[1:], a.dtype) for a in full)
             _, n_rej, (j, t_e, coplanar, n_hat) = self._trace_refine(
-                scene, p2f, table, base, dr, np.ones(m), t_shift, tmin[idx], tmax[idx], sub)
+                scene, p2f, table, m, base, dr, t_shift, tmin[idx], tmax[idx], sub, unit=True)
             # Report t along the original ray: the lifted origin is off it by <= eps.
             sub[1][:] += np.einsum("ij,ij->i", base - o[idx], dr)
             for arr, val in zip(out, sub):
@@ -700,24 +729,28 @@ class RayScene:
         log.debug("closest_hit: %d ray(s) still self-intersecting after %d re-casts; "
                   "reported as misses", len(idx), _MAX_RECASTS)
 
-    def _trace_refine(self, scene, p2f, table, o, D, norm, t_shift, tmin, tmax, out,
-                      bufs=None):
-        """One float32 Embree query and its float64 refinement, dense over the rays given.
+    def _trace_refine(self, scene, p2f, table, m, o, D, t_shift, tmin, tmax, out, bufs=None,
+                      unit=False):
+        """One float32 Embree query and its float64 refinement, dense over the ``m`` rays given.
 
         Writes the accepted hits into ``out`` (``hit, t, face, bary, point, normal``; NaN / -1
         elsewhere; ``point`` is ``o + t d``; length-0 arrays are skipped) and returns the unit
         float64 directions, the number ``r`` of hits rejected as self-intersections and, in
         their first ``r`` rows, ``(rows, t_e, coplanar, n̂)``: the rejected rays, Embree's hit
         distance from ``o``, whether the hit face's plane contains ``o`` and its unit normal.
-        Both steps are compiled kernels (:mod:`facegeo.surface._vis_kernels`). ``bufs``: the
-        calling thread's scratch buffers (``_CLOSEST_SCRATCH`` from org32 on), else fresh ones.
+        Both steps are compiled kernels (:mod:`facegeo.surface._vis_kernels`); per-ray inputs
+        have one row per ray or one shared row (see :func:`_lean`). ``bufs``: the calling
+        thread's scratch buffers (``_CLOSEST_SCRATCH`` from org32 on), else fresh ones.
+        ``unit``: ``D`` is already unit length (the re-casts). Raises
+        :class:`_BadRays` when a ray is not finite or has a zero-length direction.
         """
         k = _kernels()
-        m = len(o)
         if bufs is None:
             bufs = [np.empty((m,) + shape, dtype) for shape, dtype in _CLOSEST_SCRATCH[3:]]
         org32, d32, d, far, *rejected = bufs
-        k.prepare_rays(o, D, norm, t_shift, tmax, self._centre, False, org32, d32, d, far)
+        if not k.prepare_rays(o, D, unit, t_shift, tmax, self._centre, False, org32, d32, d,
+                              far):
+            raise _BadRays
         res = scene.run(org32, d32, dists=far, output=1)
         n_rej = k.refine_hits(o, d, t_shift, tmin, tmax, res["primID"], res["tfar"], res["u"],
                               res["v"], table, p2f, _COPLANAR_FRACTION * self._eps, _BARY_TOL,
@@ -754,32 +787,43 @@ class RayScene:
         ShapeError, InputError
             As :meth:`closest_hit`.
         """
-        shape, O, D, norm = self._rays(origins, directions)
+        shape, O, D, src = self._rays(origins, directions)
         tmin = self._range(t_min, "t_min", shape, default=self._eps)
         tmax = self._range(t_max, "t_max", shape, allow_inf=True)
-        return self._occluded_rays(O, D, norm, tmin, tmax, sort_rays).reshape(shape)
+        try:
+            return self._occluded_rays(O, D, tmin, tmax, sort_rays).reshape(shape)
+        except _BadRays:
+            self._name_bad_ray(src)
+            raise
 
-    def _occluded_rays(self, O, D, norm, tmin, tmax, sort_rays) -> np.ndarray:
-        """:meth:`occluded` on validated flat rays ``(n, 3)`` with lengths ``norm`` (n,)."""
+    def _occluded_rays(self, O, D, tmin, tmax, sort_rays) -> np.ndarray:
+        """:meth:`occluded` on flat rays ``(n, 3)``; raises :class:`_BadRays` on a ray that is
+        not finite or has a zero-length direction."""
         n = len(O)
         out = np.zeros(n, dtype=bool)
         scene, _ = self._scene()
         if scene is None or n == 0:
+            if n and not _kernels().rays_ok(O, D):
+                raise _BadRays
             return out
         k = _kernels()
 
         def work(rows) -> None:
             lo, hi = _rows(tmin, rows), _rows(tmax, rows)
-            o, d, s = _rows(O, rows), _rows(D, rows), _rows(norm, rows)
+            o, d = _rows(O, rows), _rows(D, rows)
             keep_all = hi >= lo
             if not keep_all.all():
+                if not k.rays_ok(o, d):  # the skipped rays are validated too
+                    raise _BadRays
                 keep = np.flatnonzero(keep_all)
-                lo, hi, o, d, s = lo[keep], hi[keep], o[keep], d[keep], s[keep]
+                lo, hi, o, d = lo[keep], hi[keep], o[keep], d[keep]
             else:
                 keep = None
             org32, d32, d64, far = _scratch(len(o), _OCCLUDED_SCRATCH)
             # Rounded toward zero: never look past t_max.
-            k.prepare_rays(o, d, s, lo, hi, self._centre, True, org32, d32, d64, far)
+            if not k.prepare_rays(_lean(o), _lean(d), False, _lean(lo), _lean(hi), self._centre,
+                                  True, org32, d32, d64, far):
+                raise _BadRays
             res = scene.run(org32, d32, query="OCCLUDED", dists=far) == 0
             if keep is not None:
                 full = np.zeros(len(keep_all), dtype=bool)
@@ -787,7 +831,7 @@ class RayScene:
                 res = full
             out[rows] = res
 
-        self._map_chunks(work, n, self._ray_order(O, D, norm, sort_rays))
+        self._map_chunks(work, n, self._ray_order(O, D, sort_rays))
         return out
 
     def segment_visible(self, p_from, p_to, *, normals=None,
@@ -861,11 +905,11 @@ class RayScene:
         long = length > 2.0 * eps
         visible = np.ones(len(V), dtype=bool)
         if long.all():
-            visible = ~self._occluded_rays(P0, V, length, np.broadcast_to(eps, length.shape),
+            visible = ~self._occluded_rays(P0, V, np.broadcast_to(eps, length.shape),
                                            length - eps, sort_rays)
         elif long.any():
             sel = np.flatnonzero(long)
             P0, V, length = P0[sel], V[sel], length[sel]
-            visible[sel] = ~self._occluded_rays(P0, V, length, np.broadcast_to(eps, len(sel)),
+            visible[sel] = ~self._occluded_rays(P0, V, np.broadcast_to(eps, len(sel)),
                                                 length - eps, sort_rays)
         return visible.reshape(shape[:-1])
