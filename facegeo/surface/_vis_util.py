@@ -41,7 +41,9 @@ def _morton_order(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     for i in range(5):
         lut |= ((np.arange(32, dtype=np.uint16) >> i) & 1) << (3 * i)
     key = np.empty(len(p), dtype=np.uint16)
-    scale = 31.0 / np.maximum(hi - lo, np.finfo(float).tiny)
+    extent = hi - lo
+    # A flat box (zero extent along an axis, e.g. a planar mesh) puts every point in cell 0.
+    scale = np.where(extent > 0, 31.0 / np.where(extent > 0, extent, 1.0), 0.0)
     step = 1 << 16
     for s in range(0, len(p), step):
         q = ((p[s:s + step] - lo) * scale).astype(np.intp)
@@ -90,21 +92,3 @@ def _scratch(m: int, specs: tuple) -> list[np.ndarray]:
         store[specs] = bufs
     return [b[:m] for b in bufs]
 
-
-def _block(n: int, specs) -> list[np.ndarray]:
-    """Arrays ``(n, *shape) dtype`` for ``(shape, dtype)`` in ``specs``, carved out of one
-    allocation (each starting on a 64-byte boundary).
-
-    One large block instead of several: returned result arrays are fresh memory, and on the
-    development VM a first touch of fresh memory costs a page fault per 4 kB page (measured:
-    allocating and filling ``closest_hit``'s six arrays for 1 M rays 15 ms, one block of the
-    same size 1.3 ms when numpy backs it with transparent huge pages, which it asks the kernel
-    for on allocations of ≥ 4 MB). The arrays share the block: it is freed when the last of
-    them is.
-    """
-    sizes = [n * int(np.prod(shape, dtype=np.int64)) * np.dtype(dt).itemsize
-             for shape, dt in specs]
-    starts = np.cumsum([0] + [-(-s // 64) * 64 for s in sizes])
-    buf = np.empty(int(starts[-1]), dtype=np.uint8)
-    return [buf[a:a + s].view(dt).reshape((n,) + tuple(shape))
-            for (shape, dt), a, s in zip(specs, starts, sizes)]
