@@ -235,7 +235,7 @@ def test_rays_from_surface_points_in_a_concave_mesh():
     assert not np.any(h.face == own), "metric: no ray reports the face it starts on"
     assert np.all(h.t[h.hit] >= scene.eps), "metric: every hit is beyond eps"
     assert h.hit.any(), "metric: concavities shadow some upper-hemisphere rays"
-    ref_face, ref_t, _, _ = _reference_closest(v, f, p + scene.eps * dirs / np.linalg.norm(
+    ref_face, _, _, _ = _reference_closest(v, f, p + scene.eps * dirs / np.linalg.norm(
         dirs, axis=1, keepdims=True), dirs)
     assert np.mean(h.hit != (ref_face >= 0)) <= FACE_MISMATCH_MAX, (
         "metric: hit-mask agreement with the reference from origins moved eps"
