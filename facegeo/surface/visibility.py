@@ -62,6 +62,7 @@ Large batches of incoherent rays on large meshes are traced in Z-order of their 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -484,9 +485,10 @@ class RayScene:
             raise ShapeError(
                 f"{oname} {o.shape} and {dname} {d.shape}: leading axes do not broadcast"
             ) from exc
-        n = int(np.prod(shape))
-        O = np.broadcast_to(o, shape + (3,)).reshape(n, 3)
-        D = np.broadcast_to(d, shape + (3,)).reshape(n, 3)
+        n = math.prod(shape)
+        full = shape + (3,)
+        O = (o if o.shape == full else np.broadcast_to(o, full)).reshape(n, 3)
+        D = (d if d.shape == full else np.broadcast_to(d, full)).reshape(n, 3)
         return shape, O, D, (o, d, oname, dname)
 
     @staticmethod
@@ -516,8 +518,14 @@ class RayScene:
             self._name_bad_ray(src)
 
     def _range(self, value, name, shape, *, default=None, allow_inf=False):
+        """``t_min``/``t_max`` checked and broadcast to the rays: a flat (n,) float64 view."""
         if value is None:
             value = default
+        if type(value) in (float, int, np.float64):  # the usual scalar: no array machinery
+            v = float(value)
+            if v >= 0 and (v < np.inf or allow_inf):
+                n = math.prod(shape)
+                return np.ndarray((n,), _F64, np.array([v]), 0, (0,))  # stride 0: v n times
         a = as_array(value, name, finite=False)
         bad = np.isnan(a) if allow_inf else ~np.isfinite(a)
         if bad.any():
