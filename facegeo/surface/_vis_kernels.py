@@ -3,8 +3,9 @@
 Private: imported on the first ray query, so ``import facegeo`` does not pay for numba. Each
 kernel fuses what the numpy version did in 20–40 array passes into one pass per ray and
 releases the GIL (``nogil=True``), so the scene's worker threads run them in parallel with
-each other and with Embree's own (GIL-free) traversal. The numpy formulation they replace is
-kept in ``tests/test_visibility.py`` as the plain reference they are tested against.
+each other and with Embree's own (GIL-free) traversal. ``tests/test_visibility.py`` tests
+:func:`prepare_rays` against its numpy formulation directly and the refinement through
+:class:`~facegeo.surface.visibility.RayScene` against trimesh's float64 ray–triangle test.
 """
 
 from __future__ import annotations
