@@ -235,7 +235,7 @@ def test_rays_from_surface_points_in_a_concave_mesh():
     assert not np.any(h.face == own), "metric: no ray reports the face it starts on"
     assert np.all(h.t[h.hit] >= scene.eps), "metric: every hit is beyond eps"
     assert h.hit.any(), "metric: concavities shadow some upper-hemisphere rays"
-    ref_face, ref_t, _, _ = _reference_closest(v, f, p + scene.eps * dirs / np.linalg.norm(
+    ref_face, _, _, _ = _reference_closest(v, f, p + scene.eps * dirs / np.linalg.norm(
         dirs, axis=1, keepdims=True), dirs)
     assert np.mean(h.hit != (ref_face >= 0)) <= FACE_MISMATCH_MAX, (
         "metric: hit-mask agreement with the reference from origins moved eps"
@@ -597,3 +597,107 @@ def test_query_errors_name_the_argument_and_index():
         scene.segment_visible(o, [0.0, np.nan, 1.0])
     with pytest.raises(InputError, match="normals"):
         scene.segment_visible(o, [0.0, 0.0, 1.0], normals=np.zeros((4, 3)))
+
+
+def test_fields_subset_is_identical_to_the_full_result_and_omits_the_rest():
+    # A subset of fields skips only writing the others: every field computed must equal the
+    # default call's bit for bit, on rays that include surface-start rays (re-casts) and
+    # misses, in chunks and on two threads, in input order and Z-order.
+    rng = np.random.default_rng(23)
+    v, f = _dented_sphere()
+    scene = RayScene(v, f, n_threads=2, chunk_size=211)
+    o, d = _rays_at(rng, 1500, scene.bounds, 2.0 * scene.scale)
+    tri = v[f[rng.integers(0, len(f), 500)]]
+    p = np.einsum("ni,nij->nj", rng.dirichlet([1, 1, 1], 500), tri)
+    o, d = np.vstack([o, p]), np.vstack([d, rng.normal(size=(500, 3))])
+    for sort in (False, True):
+        full = scene.closest_hit(o, d, sort_rays=sort)
+        for fields in (("t", "face", "bary"), ["point"], "normal", ("face", "t")):
+            sub = scene.closest_hit(o, d, sort_rays=sort, fields=fields)
+            wanted = {fields} if isinstance(fields, str) else set(fields)
+            assert np.array_equal(sub.hit, full.hit), "metric: hit identical"
+            for name in ("t", "face", "bary", "point", "normal"):
+                got = getattr(sub, name)
+                if name in wanted:
+                    assert np.array_equal(got, getattr(full, name), equal_nan=True), (
+                        f"metric: {name} identical with fields={fields}"
+                    )
+                else:
+                    assert got is None, f"metric: {name} not computed with fields={fields}"
+    none = scene.closest_hit(o, d, fields=())
+    assert np.array_equal(none.hit, full.hit) and none.t is None, "metric: hit alone"
+    with pytest.raises(InputError, match=r"fields.*'depth'.*expected some of"):
+        scene.closest_hit(o, d, fields=("t", "depth"))
+
+
+def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
+    # The compiled preparation pass against its numpy formulation, with per-ray inputs given
+    # one row per ray and one row shared by all (broadcast origins, scalar t_min / t_max), and
+    # its validation flag on each kind of bad ray.
+    from facegeo.surface import _vis_kernels as k
+    from facegeo.surface._vis_util import _dot
+
+    rng = np.random.default_rng(29)
+    m = 257
+    o = rng.normal(size=(m, 3))
+    D = rng.normal(size=(m, 3)) * rng.uniform(0.1, 10.0, (m, 1))
+    ts = rng.uniform(0.0, 1e-3, m)
+    tmax = np.where(rng.random(m) < 0.3, np.inf, rng.uniform(0.0, 5.0, m))
+    centre = np.array([0.3, -0.7, 1.1])
+
+    def run(o, D, ts, tmax, round_down):
+        out = (np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty((m, 3)),
+               np.empty(m, np.float32))
+        ok = k.prepare_rays(o, D, False, ts, tmax, centre, round_down, *out)
+        return ok, out
+
+    for oo, tt, xx in ((o, ts, tmax), (o[:1], ts[:1], tmax[:1])):
+        ob, tb, xb = (np.broadcast_to(a, (m,) + a.shape[1:]) for a in (oo, tt, xx))
+        d = D / np.sqrt(_dot(D, D))[:, None]
+        far = np.minimum(xb - tb, np.finfo(np.float32).max)
+        for round_down in (False, True):
+            ok, (org32, d32, d64, far32) = run(oo, D, tt, xx, round_down)
+            assert ok, "metric: valid rays pass"
+            assert np.array_equal(d64, d), "metric: unit directions bit-identical to numpy"
+            assert np.array_equal(d32, d.astype(np.float32)), "metric: float32 directions"
+            expect = (ob + d * tb[:, None] - centre).astype(np.float32)
+            assert np.array_equal(org32, expect), "metric: moved, centred float32 origins"
+            if round_down:  # never past t_max: the float32 distance is at most the float64 one
+                assert np.all(far32.astype(np.float64) <= far), "metric: rounded toward zero"
+                fin = far32 < np.finfo(np.float32).max
+                assert np.all(far[fin] - far32[fin] <= np.spacing(far32[fin])), (
+                    "metric: by under one float32 ulp"
+                )
+            else:
+                assert np.array_equal(far32, far.astype(np.float32)), "metric: to nearest"
+    for bad in ("nan origin", "inf direction", "zero direction"):
+        ob, Db = o.copy(), D.copy()
+        if bad == "nan origin":
+            ob[100, 2] = np.nan
+        elif bad == "inf direction":
+            Db[5, 0] = np.inf
+        else:
+            Db[200] = 0.0
+        assert not run(ob, Db, ts, tmax, False)[0], f"metric: {bad} reported"
+
+
+def test_rays_no_query_reads_are_still_validated():
+    # Validation runs inside the compiled preparation pass; rays that never reach it (a scene
+    # of degenerate faces only, rays with t_max < t_min) must still be checked and named.
+    flat = RayScene([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]])
+    o = np.zeros((3, 3))
+    d = np.tile([0.0, 0.0, 1.0], (3, 1))
+    assert not flat.closest_hit(o, d).hit.any(), "metric: degenerate-only scene never hits"
+    bad = o.copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(InputError, match=r"origins.*\(1, 0\)"):
+        flat.closest_hit(bad, d)
+    with pytest.raises(InputError, match=r"origins.*\(1, 0\)"):
+        flat.occluded(bad, d, 1.0)
+    scene = RayScene([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+    zero = d.copy()
+    zero[2] = 0.0
+    with pytest.raises(InputError, match=r"directions.*zero-length.*\(2,\)"):
+        scene.occluded(o, zero, [1.0, 1.0, 0.0], t_min=0.5)  # ray 2 skipped: t_max < t_min
+    with pytest.raises(InputError, match=r"directions.*zero-length.*\(2,\)"):
+        scene.closest_hit(o, zero, t_max=[1.0, 1.0, 0.0], t_min=0.5)

@@ -3,8 +3,9 @@
 Private: imported on the first ray query, so ``import facegeo`` does not pay for numba. Each
 kernel fuses what the numpy version did in 20–40 array passes into one pass per ray and
 releases the GIL (``nogil=True``), so the scene's worker threads run them in parallel with
-each other and with Embree's own (GIL-free) traversal. The numpy formulation they replace is
-kept in ``tests/test_visibility.py`` as the plain reference they are tested against.
+each other and with Embree's own (GIL-free) traversal. ``tests/test_visibility.py`` tests
+:func:`prepare_rays` against its numpy formulation directly and the refinement through
+:class:`~facegeo.surface.visibility.RayScene` against trimesh's float64 ray–triangle test.
 """
 
 from __future__ import annotations
@@ -15,19 +16,25 @@ from numba import njit
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
-@njit(nogil=True, cache=True, boundscheck=False)
-def prepare_rays(o, D, norm, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
-    """Float32 Embree rays from float64 rays, one pass (pure ray preparation).
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
+    """Float32 Embree rays from float64 rays, one pass that also validates them.
+
+    Every per-ray input has either ``m`` rows (``m = len(d64)``) or one row shared by all rays
+    (a broadcast origin, a scalar ``t_shift``/``tmax``), which the loop reads without copying.
 
     Parameters
     ----------
-    o : (m, 3) float64, metres, mesh frame
-        Ray origins (any strides).
-    D : (m, 3) float64
-        Directions, any non-zero length; ``norm`` (m,) their lengths.
-    t_shift : (m,) float64, metres
+    o : (m, 3) or (1, 3) float64, metres, mesh frame
+        Ray origins.
+    D : (m, 3) or (1, 3) float64
+        Directions, any non-zero length (normalised here: ``D / sqrt(D·D)``).
+    unit : bool
+        ``D`` is already unit length: used as it is (the re-casts of rejected rays, whose
+        directions this pass normalised before).
+    t_shift : (m,) or (1,) float64, metres
         Distance the origin is moved along the unit direction before the query.
-    tmax : (m,) float64, metres
+    tmax : (m,) or (1,) float64, metres
         Farthest accepted distance from the original origin (inf allowed).
     centre : (3,) float64, metres
         The BVH's centring offset, subtracted from the moved origins.
@@ -40,18 +47,37 @@ def prepare_rays(o, D, norm, t_shift, tmax, centre, round_down, org32, d32, d64,
         Unit directions in float64 (for the refinement).
     far32 : (m,) float32, out
         ``min(tmax - t_shift, float32 max)``.
+
+    Returns
+    -------
+    bool
+        False when an origin is not finite or a direction is not finite or has length zero
+        (the outputs are then incomplete; the caller names the first bad ray).
     """
-    m = o.shape[0]
+    m = d64.shape[0]
     fmax = np.float32(_F32_MAX)
+    o1 = o.shape[0] == 1
+    D1 = D.shape[0] == 1
+    s1 = t_shift.shape[0] == 1
+    t1 = tmax.shape[0] == 1
+    ok = True
     for i in range(m):
-        s = norm[i]
-        ts = t_shift[i]
+        io = 0 if o1 else i
+        iD = 0 if D1 else i
+        x, y, z = D[iD, 0], D[iD, 1], D[iD, 2]
+        s = 1.0 if unit else np.sqrt(x * x + y * y + z * z)
+        if not (s > 0.0 and np.isfinite(s)):
+            ok = False
+        ts = t_shift[0 if s1 else i]
         for k in range(3):
-            dk = D[i, k] / s
+            ok_k = np.isfinite(o[io, k])
+            if not ok_k:
+                ok = False
+            dk = D[iD, k] / s
             d64[i, k] = dk
             d32[i, k] = np.float32(dk)
-            org32[i, k] = np.float32(o[i, k] + dk * ts - centre[k])
-        f = tmax[i] - ts
+            org32[i, k] = np.float32(o[io, k] + dk * ts - centre[k])
+        f = tmax[0 if t1 else i] - ts
         if f >= _F32_MAX:
             far32[i] = fmax
         else:
@@ -59,11 +85,12 @@ def prepare_rays(o, D, norm, t_shift, tmax, centre, round_down, org32, d32, d64,
             if round_down and np.float64(f32) > f:
                 f32 = np.nextafter(f32, np.float32(0.0))
             far32[i] = f32
+    return ok
 
 
-@njit(nogil=True, cache=True, boundscheck=False)
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
 def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face, cop_dist,
-                bary_tol, hit, t, face, bary, point, normal, reject, t_e, coplanar, n_hat):
+                bary_tol, hit, t, face, bary, point, normal, rej_idx, rej_te, rej_cop, rej_n):
     """Float64 refinement of Embree's float32 closest hits (module docstring of
     :mod:`facegeo.surface.visibility`, "Precision"), one pass over the rays.
 
@@ -72,116 +99,129 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
     barycentrics ``b1 = (p - v0)·q1``, ``b2 = (p - v0)·q2``; keep Embree's ``t``, ``u``, ``v``
     when the float64 point falls more than ``bary_tol`` outside the face; clip rounding-level
     negative weights; reject hits on a face whose plane passes within ``cop_dist`` of the origin
-    and hits before ``tmin`` (``reject`` True; the caller re-casts them); accept the rest within
-    ``tmax``.
+    and hits before ``tmin`` (the caller re-casts them); accept the rest within ``tmax``.
 
-    ``prim_to_face`` is an empty array when primitive ids are face indices. Outputs ``hit``,
+    ``o``, ``t_shift``, ``tmin`` and ``tmax`` have one row per ray or one row shared by all
+    (as :func:`prepare_rays`). ``prim_to_face`` is an empty array when primitive ids are face
+    indices. Outputs ``hit``,
     ``t``, ``face``, ``bary``, ``point``, ``normal`` are as :class:`~facegeo.surface.visibility.Hits`
-    (NaN / -1 where not accepted); ``t_e`` is Embree's distance from ``o``, ``coplanar`` and
-    ``n_hat`` (unit normal of the hit face, any hit) feed the re-casts.
+    (NaN / -1 where not accepted); each of ``t`` … ``normal`` is written only when it has the
+    rays' length (pass a length-0 array for a field not wanted). Rejected rays are listed
+    compactly: ``rej_idx[j]`` the ray, ``rej_te[j]`` Embree's distance from ``o``,
+    ``rej_cop[j]`` whether the face's plane contains ``o``, ``rej_n[j]`` the face's unit normal
+    (these feed the re-casts). Returns the number of rejected rays.
     """
-    m = o.shape[0]
+    m = d.shape[0]
     nan = np.nan
     remap = prim_to_face.shape[0] > 0
+    o1 = o.shape[0] == 1
+    s1 = t_shift.shape[0] == 1
+    n1 = tmin.shape[0] == 1
+    x1 = tmax.shape[0] == 1
+    w_t = t.shape[0] == m
+    w_f = face.shape[0] == m
+    w_b = bary.shape[0] == m
+    w_p = point.shape[0] == m
+    w_n = normal.shape[0] == m
+    n_rej = 0
     for i in range(m):
         p = prim[i]
-        got = p >= 0 and tmax[i] >= t_shift[i]
-        if not got:
-            hit[i] = False
-            t[i] = nan
-            face[i] = -1
-            reject[i] = False
-            coplanar[i] = False
-            t_e[i] = nan
-            for k in range(3):
-                bary[i, k] = nan
-                point[i, k] = nan
-                normal[i, k] = nan
-                n_hat[i, k] = nan
-            continue
-        g = table[p]
-        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
-        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
-        nx, ny, nz = g[3], g[4], g[5]
-        wx, wy, wz = g[0] - ox, g[1] - oy, g[2] - oz
-        num = wx * nx + wy * ny + wz * nz
-        den = dx * nx + dy * ny + dz * nz
-        te = t_shift[i] + np.float64(tfar[i])
-        t_e[i] = te
-        n_hat[i, 0] = nx
-        n_hat[i, 1] = ny
-        n_hat[i, 2] = nz
-        th = te
-        b1 = np.float64(u[i])
-        b2 = np.float64(v[i])
-        if den != 0.0:
-            tr = num / den
-            if np.isfinite(tr):
-                px = tr * dx - wx
-                py = tr * dy - wy
-                pz = tr * dz - wz
-                c1 = px * g[6] + py * g[7] + pz * g[8]
-                c2 = px * g[9] + py * g[10] + pz * g[11]
-                c0 = 1.0 - c1 - c2
-                if c0 >= -bary_tol and c1 >= -bary_tol and c2 >= -bary_tol:
-                    th = tr
-                    b1 = c1
-                    b2 = c2
-        b0 = 1.0 - b1 - b2
-        if b0 < 0.0 or b1 < 0.0 or b2 < 0.0:
-            b0 = max(b0, 0.0)
-            b1 = max(b1, 0.0)
-            b2 = max(b2, 0.0)
-            s = b0 + b1 + b2
-            b0 /= s
-            b1 /= s
-            b2 /= s
-        cop = abs(num) <= cop_dist
-        coplanar[i] = cop
-        rej = cop or not (th >= tmin[i])
-        reject[i] = rej
-        ok = (not rej) and th <= tmax[i]
+        ok = False
+        th = nan
+        b0 = b1 = b2 = nan
+        nx = ny = nz = nan
+        ox = oy = oz = 0.0
+        dx = dy = dz = 0.0
+        io = 0 if o1 else i
+        ts = t_shift[0 if s1 else i]
+        tx = tmax[0 if x1 else i]
+        if p >= 0 and tx >= ts:
+            ox, oy, oz = o[io, 0], o[io, 1], o[io, 2]
+            dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+            nx, ny, nz = table[p, 3], table[p, 4], table[p, 5]
+            wx, wy, wz = table[p, 0] - ox, table[p, 1] - oy, table[p, 2] - oz
+            num = wx * nx + wy * ny + wz * nz
+            den = dx * nx + dy * ny + dz * nz
+            te = ts + np.float64(tfar[i])
+            th = te
+            b1 = np.float64(u[i])
+            b2 = np.float64(v[i])
+            if den != 0.0:
+                tr = num / den
+                if np.isfinite(tr):
+                    px = tr * dx - wx
+                    py = tr * dy - wy
+                    pz = tr * dz - wz
+                    c1 = px * table[p, 6] + py * table[p, 7] + pz * table[p, 8]
+                    c2 = px * table[p, 9] + py * table[p, 10] + pz * table[p, 11]
+                    c0 = 1.0 - c1 - c2
+                    if c0 >= -bary_tol and c1 >= -bary_tol and c2 >= -bary_tol:
+                        th = tr
+                        b1 = c1
+                        b2 = c2
+            b0 = 1.0 - b1 - b2
+            if b0 < 0.0 or b1 < 0.0 or b2 < 0.0:
+                b0 = max(b0, 0.0)
+                b1 = max(b1, 0.0)
+                b2 = max(b2, 0.0)
+                s = b0 + b1 + b2
+                b0 /= s
+                b1 /= s
+                b2 /= s
+            cop = abs(num) <= cop_dist
+            if cop or not (th >= tmin[0 if n1 else i]):
+                rej_idx[n_rej] = i
+                rej_te[n_rej] = te
+                rej_cop[n_rej] = cop
+                rej_n[n_rej, 0] = nx
+                rej_n[n_rej, 1] = ny
+                rej_n[n_rej, 2] = nz
+                n_rej += 1
+            else:
+                ok = th <= tx
         hit[i] = ok
         if ok:
-            t[i] = th
-            face[i] = prim_to_face[p] if remap else p
-            bary[i, 0] = b0
-            bary[i, 1] = b1
-            bary[i, 2] = b2
-            point[i, 0] = ox + th * dx
-            point[i, 1] = oy + th * dy
-            point[i, 2] = oz + th * dz
-            normal[i, 0] = nx
-            normal[i, 1] = ny
-            normal[i, 2] = nz
+            if w_t:
+                t[i] = th
+            if w_f:
+                face[i] = prim_to_face[p] if remap else p
+            if w_b:
+                bary[i, 0] = b0
+                bary[i, 1] = b1
+                bary[i, 2] = b2
+            if w_p:
+                point[i, 0] = ox + th * dx
+                point[i, 1] = oy + th * dy
+                point[i, 2] = oz + th * dz
+            if w_n:
+                normal[i, 0] = nx
+                normal[i, 1] = ny
+                normal[i, 2] = nz
         else:
-            t[i] = nan
-            face[i] = -1
+            if w_t:
+                t[i] = nan
+            if w_f:
+                face[i] = -1
             for k in range(3):
-                bary[i, k] = nan
-                point[i, k] = nan
-                normal[i, k] = nan
+                if w_b:
+                    bary[i, k] = nan
+                if w_p:
+                    point[i, k] = nan
+                if w_n:
+                    normal[i, k] = nan
+    return n_rej
 
 
 @njit(nogil=True, cache=True, boundscheck=False)
-def all_finite(a):
-    """Whether every value of ``a`` (n, 3) is finite (one pass, no temporaries)."""
-    for i in range(a.shape[0]):
-        for k in range(3):
-            if not np.isfinite(a[i, k]):
-                return False
-    return True
-
-
-@njit(nogil=True, cache=True, boundscheck=False)
-def ray_lengths(D, norm):
-    """Lengths ``norm`` (n,) of the directions ``D`` (n, 3); False if one is non-finite or zero
-    (the caller then finds and names the first bad row)."""
-    ok = True
-    for i in range(D.shape[0]):
+def rays_ok(o, D):
+    """Whether every origin of ``o`` (n, 3) is finite and every direction of ``D`` (n, 3) is
+    finite with a non-zero length, as :func:`prepare_rays` checks (one pass, no outputs)."""
+    for i in range(o.shape[0]):
         x, y, z = D[i, 0], D[i, 1], D[i, 2]
         s = np.sqrt(x * x + y * y + z * z)
-        norm[i] = s
         if not (s > 0.0 and np.isfinite(s)):
-            ok = False
-    return ok
+            return False
+        for k in range(3):
+            if not np.isfinite(o[i, k]):
+                return False
+    return True

@@ -41,7 +41,9 @@ def _morton_order(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     for i in range(5):
         lut |= ((np.arange(32, dtype=np.uint16) >> i) & 1) << (3 * i)
     key = np.empty(len(p), dtype=np.uint16)
-    scale = 31.0 / np.maximum(hi - lo, np.finfo(float).tiny)
+    extent = hi - lo
+    # A flat box (zero extent along an axis, e.g. a planar mesh) puts every point in cell 0.
+    scale = np.where(extent > 0, 31.0 / np.where(extent > 0, extent, 1.0), 0.0)
     step = 1 << 16
     for s in range(0, len(p), step):
         q = ((p[s:s + step] - lo) * scale).astype(np.intp)
@@ -89,3 +91,4 @@ def _scratch(m: int, specs: tuple) -> list[np.ndarray]:
         bufs = [np.empty((m,) + shape, dtype) for shape, dtype in specs]
         store[specs] = bufs
     return [b[:m] for b in bufs]
+

@@ -48,20 +48,27 @@ did from outside (2 of 642 after the ``eps`` origin shift), at ~10–15 % of thr
 
 Speed
 -----
-Rays are processed in bounded chunks (``chunk_size`` rays, default 16,384) on a small thread
-pool: embreex releases the GIL while tracing and numpy releases it in the float64
-post-processing. Measured on the 2-core development machine (``facegeo bench visibility``),
-camera-coherent rays on 82 k faces: one thread ≈ 4.1–4.4 Mrays/s (≈ 0.56 of one raw
-``EmbreeScene.run`` call, the rest is validation and the float64 refinement), two threads
-≈ 6–7.2 Mrays/s (0.8–1.07 of raw embreex, ≈ 2× ``trimesh.ray``) when the second core is
-free.
+Rays are processed in bounded chunks (``chunk_size`` rays, default 65,536 at one thread, at most
+16,384 with several) on a small thread pool: embreex releases the GIL while tracing, and the
+compiled passes around it release it too. Beyond Embree's traversal a closest-hit query costs
+one preparation pass (≈ 10–14 ns per ray: validation, normalisation, float32 rounding), the
+float64 refinement (≈ 15 ns per ray with the face table in cache; Embree's primitives are
+numbered in Z-order so neighbouring rays read neighbouring records) and the first touch of the
+fresh result arrays (89 bytes per ray for the default :class:`Hits`, 41 with
+``fields=("t", "face", "bary")``). Median CPU time at one thread, interleaved with raw
+``EmbreeScene.run(output=1)`` on the same float32 rays and BVH, 2-core machine under a load
+average of 7–12: 65,536 camera rays on 20 k faces 0.74–0.79 of raw embreex (0.75–0.80 with
+``fields=("t", "face", "bary")``; the previous implementation 0.65–0.69 in the same runs);
+1 M rays on 1.3 M faces 0.72–0.74 (0.73–0.75; previously 0.65 in the same run).
 Large batches of incoherent rays on large meshes are traced in Z-order of their origins (see
-``sort_rays``), which makes shadow rays ~3× faster than raw embreex on the same input order.
+``sort_rays``), which makes shadow rays ~1.5–1.9× faster than raw embreex on the same input
+order.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -81,10 +88,11 @@ from facegeo.surface._vis_util import (
 )
 
 _F64, _F32, _BOOL = np.dtype(np.float64), np.dtype(np.float32), np.dtype(bool)
-#: Per-thread buffers of one chunk: contiguous o, tmax (inputs); org32, d32, d, far (Embree
-#: rays); reject, t_e, coplanar, n̂ (refinement side outputs).
-_CLOSEST_SCRATCH = (((3,), _F64), ((), _F64), ((3,), _F32), ((3,), _F32), ((3,), _F64),
-                    ((), _F32), ((), _BOOL), ((), _F64), ((), _BOOL), ((3,), _F64))
+_I64 = np.dtype(np.int64)
+#: Per-thread buffers of one chunk: contiguous o, tmin, tmax (inputs); org32, d32, d, far
+#: (Embree rays); the rejected rays' index, t_e, coplanar flag, n̂ (refinement side outputs).
+_CLOSEST_SCRATCH = (((3,), _F64), ((), _F64), ((), _F64), ((3,), _F32), ((3,), _F32),
+                    ((3,), _F64), ((), _F32), ((), _I64), ((), _F64), ((), _BOOL), ((3,), _F64))
 _OCCLUDED_SCRATCH = (((3,), _F32), ((3,), _F32), ((3,), _F64), ((), _F32))
 
 log = logging.getLogger(__name__)
@@ -105,7 +113,9 @@ _COPLANAR_FRACTION = 0.1
 _TANGENT_COS = 1e-6
 #: Re-casts for rays whose first hit was rejected as a self-intersection.
 _MAX_RECASTS = 4
-_DEFAULT_CHUNK = 1 << 14
+_DEFAULT_CHUNK = 1 << 16
+#: With several threads, chunks hold at most this many rays (several chunks per thread).
+_THREAD_CHUNK = 1 << 14
 #: ``sort_rays=None`` sorts batches of at least this many rays on meshes of at least this many
 #: faces (smaller BVHs stay in cache: sorting measured slower there, gathers included).
 _SORT_MIN_RAYS = 1 << 16
@@ -116,7 +126,28 @@ _SORT_MIN_FACES = 1 << 18
 _INCOHERENT_STEP = 0.05
 #: ``prim_to_face`` for the kernels when primitive ids are face indices.
 _NO_REMAP = np.empty(0, dtype=np.int64)
+#: The optional fields of :class:`Hits` (``hit`` is always computed), with their per-ray shape
+#: and dtype, and the length-0 stand-ins the kernel gets for fields not asked for.
+_FIELDS = {"t": ((), _F64), "face": ((), _I64), "bary": ((3,), _F64), "point": ((3,), _F64),
+           "normal": ((3,), _F64)}
+_ABSENT = {name: np.empty((0,) + shape, dtype) for name, (shape, dtype) in _FIELDS.items()}
 _KERNELS: Any = None
+
+
+class _BadRays(Exception):
+    """A compiled pass met a non-finite ray or a zero-length direction (the caller names it)."""
+
+
+def _lean(a: np.ndarray, buf: np.ndarray | None = None) -> np.ndarray:
+    """A per-ray input ``a`` (m, ...) as the kernels read it: its first row alone when every
+    row is that row (broadcast, stride 0: read in place instead of copied), else ``a`` when
+    C-contiguous, else its copy into ``buf`` (or ``a`` as it is without ``buf``)."""
+    if len(a) > 1 and a.strides[0] == 0:
+        return a[:1]
+    if buf is None or a.flags.c_contiguous:
+        return a
+    np.copyto(buf, a)
+    return buf
 
 
 def _kernels():
@@ -135,6 +166,9 @@ def _kernels():
 @dataclass(frozen=True)
 class Hits:
     """Closest hits of a batch of rays; misses are NaN / -1 with ``hit`` False.
+
+    Every field but ``hit`` is None when not asked for (``fields`` of
+    :meth:`RayScene.closest_hit`).
 
     Attributes
     ----------
@@ -157,11 +191,11 @@ class Hits:
     """
 
     hit: np.ndarray
-    t: np.ndarray
-    face: np.ndarray
-    bary: np.ndarray
-    point: np.ndarray
-    normal: np.ndarray
+    t: np.ndarray | None
+    face: np.ndarray | None
+    bary: np.ndarray | None
+    point: np.ndarray | None
+    normal: np.ndarray | None
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -185,8 +219,12 @@ class RayScene:
     n_threads : int, optional
         Threads used for large batches. Default: the CPUs available to this process (≤ 8).
     chunk_size : int, optional
-        Rays per chunk (bounds the temporary memory, ~0.5 kB per ray). Default 16,384, which
-        keeps a chunk's temporaries in cache (65,536 measured ~30 % slower).
+        Most rays per chunk (bounds the temporary memory: at most ~0.3 kB per ray and thread).
+        Default 65,536: each chunk costs ≈ 40–90 µs of fixed work (Python, three compiled
+        calls, Embree's per-call set-up), and on the development machine 65,536- and
+        131,072-ray chunks traced 4–5 % faster than 16,384-ray ones at one thread. With
+        several threads chunks hold at most 16,384 rays (the earlier default), so a batch is
+        shared out in several chunks per thread.
     watertight : bool, optional
         Build the BVH with Embree's robust flag (default True). Without it, rays aimed at a
         shared vertex can slip through a closed mesh (measured: ~16 % of vertex-aimed rays on
@@ -358,7 +396,16 @@ class RayScene:
         """The committed Embree scene and its primitive → face map (built once, thread-safe).
 
         Returns ``(scene, prim_to_face)``; ``scene`` is None when every face is degenerate and
-        ``prim_to_face`` is None when no face was dropped (primitive id == face index).
+        ``prim_to_face`` is None when primitive ids are face indices.
+
+        Embree gets the non-degenerate faces in Z-order of their first vertex
+        (:func:`_morton_order` over the scene's bounds; ``prim_to_face`` maps back). The float64
+        refinement gathers a record per hit from a table in primitive order (:meth:`_face_table`);
+        in Z-order, neighbouring rays read neighbouring records. In the mesh's own order a
+        subdivided mesh scatters neighbouring faces across the table: on 1.3 M faces (a 125 MB
+        table) the refinement then took ≈ 140 ns per ray, cache misses, against ≈ 15 ns on a
+        table that fits in cache. A ray meeting an edge or vertex shared by several faces at
+        the same float32 distance may be reported on another of them than in the mesh's order.
         """
         emb = self._embree
         if emb is not None:
@@ -379,8 +426,10 @@ class RayScene:
                             self.n_faces)
                 self._embree = (None, None)
                 return self._embree
-            prim_to_face = np.flatnonzero(~deg) if deg.any() else None
-            faces = self._faces if prim_to_face is None else self._faces[prim_to_face]
+            keep = np.flatnonzero(~deg)
+            first = self._vertices[self._faces[keep, 0]]
+            prim_to_face = keep[_morton_order(first, self._bounds[0], self._bounds[1])]
+            faces = self._faces[prim_to_face]
             v32 = np.ascontiguousarray(self._vertices - self._centre, dtype=np.float32)
             f32 = np.ascontiguousarray(faces, dtype=np.int32)
             scene = rtcore_scene.EmbreeScene(robust=self._watertight)
@@ -433,6 +482,13 @@ class RayScene:
     # ------------------------------------------------------------------ input handling
 
     def _rays(self, origins, directions, oname="origins", dname="directions"):
+        """Shapes checked and broadcast: ``(shape, O, D, src)`` with ``O``, ``D`` (n, 3) views.
+
+        The values are checked where they are read, by the compiled pass that prepares the
+        Embree rays (:func:`~facegeo.surface._vis_kernels.prepare_rays`): a separate pass cost
+        ~0.07 of Embree's time per ray. When that pass reports a bad ray the caller raises
+        :class:`_BadRays` and :meth:`_name_bad_ray` (given ``src``) names the first one.
+        """
         o = as_array(origins, oname, shape=(..., 3), finite=False)
         d = as_array(directions, dname, shape=(..., 3), finite=False)
         try:
@@ -441,31 +497,47 @@ class RayScene:
             raise ShapeError(
                 f"{oname} {o.shape} and {dname} {d.shape}: leading axes do not broadcast"
             ) from exc
-        # One compiled pass checks and measures (the numpy checks took ~0.14 of Embree's time
-        # per ray); the numpy path below only runs to name the first bad value.
-        k = _kernels()
-        d2 = d.reshape(-1, 3)
-        norm = np.empty(len(d2))
-        if not (k.all_finite(o.reshape(-1, 3)) and k.ray_lengths(d2, norm)):
-            check_finite(o, oname)
-            check_finite(d, dname)
-            norm = np.sqrt(np.einsum("...i,...i->...", d, d))
-            zero = ~(norm > 0)
-            if zero.any():
-                idx = tuple(int(i) for i in np.argwhere(zero)[0])
-                raise InputError(
-                    f"{dname}: {int(zero.sum())} zero-length direction(s); first at index {idx}"
-                )
-        norm = norm.reshape(d.shape[:-1])
-        n = int(np.prod(shape))
-        o = np.broadcast_to(o, shape + (3,)).reshape(n, 3)
-        d = np.broadcast_to(d, shape + (3,)).reshape(n, 3)
-        norm = np.broadcast_to(norm, shape).reshape(n)
-        return shape, o, d, norm
+        n = math.prod(shape)
+        full = shape + (3,)
+        O = (o if o.shape == full else np.broadcast_to(o, full)).reshape(n, 3)
+        D = (d if d.shape == full else np.broadcast_to(d, full)).reshape(n, 3)
+        return shape, O, D, (o, d, oname, dname)
+
+    @staticmethod
+    def _name_bad_ray(src) -> None:
+        """Raise the :class:`InputError` naming the first non-finite origin or direction or
+        zero-length direction of ``src`` (from :meth:`_rays`); return if there is none."""
+        o, d, oname, dname = src
+        check_finite(o, oname)
+        check_finite(d, dname)
+        norm = np.sqrt(np.einsum("...i,...i->...", d, d))
+        zero = ~(norm > 0)
+        if zero.any():
+            idx = tuple(int(i) for i in np.argwhere(zero)[0])
+            raise InputError(
+                f"{dname}: {int(zero.sum())} zero-length direction(s); first at index {idx}"
+            )
+        bad = ~np.isfinite(norm)
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise InputError(f"{dname}: direction length overflows float64 (components above "
+                             f"~1e154); first at index {idx}; scale the directions down")
+
+    def _check_rays(self, O, D, src) -> None:
+        """Validate rays ``O``, ``D`` (n, 3) that no query reads (an empty scene, rays with
+        ``t_max < t_min``) as :func:`~facegeo.surface._vis_kernels.prepare_rays` does."""
+        if not _kernels().rays_ok(O, D):
+            self._name_bad_ray(src)
 
     def _range(self, value, name, shape, *, default=None, allow_inf=False):
+        """``t_min``/``t_max`` checked and broadcast to the rays: a flat (n,) float64 view."""
         if value is None:
             value = default
+        if type(value) in (float, int, np.float64):  # the usual scalar: no array machinery
+            v = float(value)
+            if v >= 0 and (v < np.inf or allow_inf):
+                n = math.prod(shape)
+                return np.ndarray((n,), _F64, np.array([v]), 0, (0,))  # stride 0: v n times
         a = as_array(value, name, finite=False)
         bad = np.isnan(a) if allow_inf else ~np.isfinite(a)
         if bad.any():
@@ -483,7 +555,7 @@ class RayScene:
             ) from exc
         return a.reshape(-1)
 
-    def _ray_order(self, O: np.ndarray, D: np.ndarray, norm: np.ndarray, sort_rays) -> Any:
+    def _ray_order(self, O: np.ndarray, D: np.ndarray, sort_rays) -> Any:
         """A processing order for the rays: None (input order) or a Morton order of origins.
 
         Incoherent rays (random origins and directions) over a large mesh are memory-bound:
@@ -498,21 +570,30 @@ class RayScene:
         if sort_rays is None:
             i = np.unique(np.linspace(0, n - 2, min(n - 1, 4096)).astype(np.intp))
             do = np.linalg.norm(O[i + 1] - O[i], axis=1) / max(self._scale, 1e-300)
-            dd = np.linalg.norm(D[i + 1] / norm[i + 1, None] - D[i] / norm[i, None], axis=1)
+            u = D[np.concatenate([i, i + 1])]
+            with np.errstate(divide="ignore", invalid="ignore"):  # bad rays: named later
+                u = u / np.sqrt(_dot(u, u))[:, None]
+            dd = np.linalg.norm(u[len(i):] - u[:len(i)], axis=1)
             if np.median(do + dd) <= _INCOHERENT_STEP:
                 return None
         # Cells over the scene's bounding box; origins outside it share the boundary cells.
         return _morton_order(O, self._bounds[0], self._bounds[1])
 
+    def _chunk_rays(self) -> int:
+        """Rays per chunk: ``chunk_size`` on one thread, at most ``_THREAD_CHUNK`` on several
+        (a batch is then shared out in several chunks per thread)."""
+        return self._chunk if self._n_threads == 1 else min(self._chunk, _THREAD_CHUNK)
+
     def _map_chunks(self, fn, n: int, order=None) -> None:
         """Call ``fn(rows)`` for each chunk: ``rows`` is a slice, or indices when ``order``."""
-        starts = range(0, n, self._chunk)
+        chunk = self._chunk_rays()
+        starts = range(0, n, chunk)
 
         def rows(s: int):
-            sl = slice(s, min(s + self._chunk, n))
+            sl = slice(s, min(s + chunk, n))
             return sl if order is None else order[sl]
 
-        if self._n_threads == 1 or n <= self._chunk:
+        if self._n_threads == 1 or n <= chunk:
             for s in starts:
                 fn(rows(s))
             return
@@ -523,7 +604,7 @@ class RayScene:
     # ------------------------------------------------------------------ queries
 
     def closest_hit(self, origins, directions, *, t_min=None, t_max=np.inf,
-                    sort_rays: bool | None = None) -> Hits:
+                    sort_rays: bool | None = None, fields=None) -> Hits:
         """Nearest face hit by each ray within ``[t_min, t_max]``.
 
         Parameters
@@ -542,6 +623,12 @@ class RayScene:
             Default: when the batch has ≥ 65,536 rays, the mesh ≥ 262,144 faces and
             consecutive rays are incoherent (a camera's pixel grid is not; random shadow rays
             are).
+        fields : collection of str, optional
+            The :class:`Hits` fields to compute, some of ``"t"``, ``"face"``, ``"bary"``,
+            ``"point"``, ``"normal"`` (``hit`` always is); the others are None. Default: all.
+            Each field costs writing its bytes per ray (``point`` and ``normal`` are 48 of the
+            89); the float64 refinement and the self-intersection checks run for every choice,
+            so the fields computed are identical to those of the default.
 
         Returns
         -------
@@ -556,7 +643,7 @@ class RayScene:
             Wrong shapes, or leading axes that do not broadcast.
         InputError
             NaN or inf in origins or directions (the first bad index is named), a zero-length
-            direction, NaN or negative ``t_min``/``t_max``.
+            direction, NaN or negative ``t_min``/``t_max``; an unknown name in ``fields``.
 
         Notes
         -----
@@ -566,7 +653,8 @@ class RayScene:
         when Embree finds it (it is geometry, not rounding). Offset the origin along the normal,
         as :meth:`segment_visible` does with ``normals``, when such contacts are unwanted.
         """
-        shape, O, D, norm = self._rays(origins, directions)
+        fields = self._fields(fields)
+        shape, O, D, src = self._rays(origins, directions)
         n = len(O)
         tmin = self._range(t_min, "t_min", shape, default=self._eps)
         tmax = self._range(t_max, "t_max", shape, allow_inf=True)
@@ -574,50 +662,63 @@ class RayScene:
         # Left uninitialised here: every chunk writes all of its rays (first touch of the pages
         # happens in the worker threads).
         hit = np.empty(n, dtype=bool)
-        t = np.empty(n)
-        face = np.empty(n, dtype=np.int64)
-        bary = np.empty((n, 3))
-        point = np.empty((n, 3))
-        normal = np.empty((n, 3))
-        out = (hit, t, face, bary, point, normal)
+        got = {f: np.empty((n,) + _FIELDS[f][0], _FIELDS[f][1]) for f in fields}
+        out = (hit,) + tuple(got.get(f, _ABSENT[f]) for f in _FIELDS)
         scene, prim_to_face = self._scene()
         if scene is None:
+            self._check_rays(O, D, src)
             hit[:] = False
-            face[:] = -1
-            for a in (t, bary, point, normal):
-                a[:] = np.nan
+            for f, a in got.items():
+                a[:] = -1 if f == "face" else np.nan
         elif n:
             table = self._face_table()
-
-            order = self._ray_order(O, D, norm, sort_rays)
+            order = self._ray_order(O, D, sort_rays)
             p2f = _NO_REMAP if prim_to_face is None else prim_to_face
 
             def work(rows) -> None:
                 if isinstance(rows, slice):
-                    views = tuple(a[rows] for a in out)
+                    views = tuple(a[rows] if len(a) else a for a in out)
                 else:
-                    m = len(rows)
-                    views = (np.empty(m, dtype=bool), np.empty(m), np.empty(m, dtype=np.int64),
-                             np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)))
+                    views = (np.empty(len(rows), dtype=bool),) + tuple(
+                        np.empty((len(rows),) + a.shape[1:], a.dtype) if len(a) else a
+                        for a in out[1:])
                 self._closest_chunk(scene, p2f, table, _rows(O, rows), _rows(D, rows),
-                                    _rows(norm, rows), _rows(tmin, rows), _rows(tmax, rows),
-                                    views)
+                                    _rows(tmin, rows), _rows(tmax, rows), views)
                 if not isinstance(rows, slice):
                     for a, v in zip(out, views):
-                        a[rows] = v
+                        if len(a):
+                            a[rows] = v
 
-            self._map_chunks(work, n, order)
-        return Hits(
-            hit=hit.reshape(shape),
-            t=t.reshape(shape),
-            face=face.reshape(shape),
-            bary=bary.reshape(shape + (3,)),
-            point=point.reshape(shape + (3,)),
-            normal=normal.reshape(shape + (3,)),
-        )
+            try:
+                self._map_chunks(work, n, order)
+            except _BadRays:
+                self._name_bad_ray(src)
+                raise
+        return Hits(hit=hit.reshape(shape),
+                    **{f: got[f].reshape(shape + _FIELDS[f][0]) if f in got else None
+                       for f in _FIELDS})
 
-    def _closest_chunk(self, scene, p2f, table, o, D, norm, tmin, tmax, out) -> None:
-        """Trace one chunk and write it into ``out`` (views of the result arrays).
+    @staticmethod
+    def _fields(fields) -> tuple[str, ...]:
+        """The requested optional :class:`Hits` fields, validated, in ``_FIELDS`` order."""
+        if fields is None:
+            return tuple(_FIELDS)
+        if isinstance(fields, str):
+            fields = (fields,)
+        try:
+            asked = set(fields)
+        except TypeError as exc:
+            raise InputError(f"fields: expected a collection of field names, got "
+                             f"{fmt_value(fields)}") from exc
+        unknown = sorted(str(f) for f in asked - set(_FIELDS))
+        if unknown:
+            raise InputError(f"fields: unknown field(s) {', '.join(map(repr, unknown))}; "
+                             f"expected some of {', '.join(map(repr, _FIELDS))}")
+        return tuple(f for f in _FIELDS if f in asked)
+
+    def _closest_chunk(self, scene, p2f, table, o, D, tmin, tmax, out) -> None:
+        """Trace one chunk and write it into ``out`` (views of the result arrays; a length-0
+        array for a field not asked for).
 
         Rays whose hit is rejected as a self-intersection are re-cast, on that subset only, at
         most ``_MAX_RECASTS`` times: a ray that starts on the rejected face's plane is lifted
@@ -625,73 +726,71 @@ class RayScene:
         hit fell before ``t_min`` starts again ``eps`` past that hit.
         """
         eps = self._eps
-        m = len(o)
-        o_c, tmax_c, *bufs = _scratch(m, _CLOSEST_SCRATCH)
-        # Contiguous inputs for the kernels (broadcast origins / t_max arrive with stride 0,
-        # which the compiled loops read ~3x slower).
-        if not o.flags.c_contiguous:
-            np.copyto(o_c, o)
-            o = o_c
-        if not tmax.flags.c_contiguous:
-            np.copyto(tmax_c, tmax)
-            tmax = tmax_c
-        t_shift = np.array(tmin, dtype=np.float64)  # origin moved this far along the ray
-        tmin = t_shift
-        d, extra = self._trace_refine(scene, p2f, table, o, D, norm, t_shift, tmin, tmax, out,
-                                      bufs)
-        reject, t_e, coplanar, n_hat = extra
-        idx = np.flatnonzero(reject)
-        base = o
+        o_c, tmin_c, tmax_c, *bufs = _scratch(len(o), _CLOSEST_SCRATCH)
+        # First query: the origin is moved t_min along the ray (t_shift = t_min).
+        lo = _lean(tmin, tmin_c)
+        d, n_rej, (j, t_e, coplanar, n_hat) = self._trace_refine(
+            scene, p2f, table, len(o), _lean(o, o_c), _lean(D), lo, lo, _lean(tmax, tmax_c),
+            out, bufs)
+        if n_rej == 0:
+            return
+        full = [np.empty((0,) + a.shape[1:], a.dtype) for a in out[1:]]
+        idx = j[:n_rej].copy()  # rejected rays, as rows of the chunk
+        base, t_shift = o, tmin
         for _ in range(_MAX_RECASTS):
-            if len(idx) == 0:
-                return
-            cop = coplanar[reject]
-            nr = n_hat[reject]
+            sel = j[:n_rej]  # rejected rays, as rows of the last query
+            cop = coplanar[:n_rej]
+            nr = n_hat[:n_rej]
             dr = d[idx]
             # Back side only for rays clearly heading below the plane; within _TANGENT_COS of
             # it the side is not resolved and the front (the winding's side) is used.
             side = np.where(np.einsum("ij,ij->i", dr, nr) < -_TANGENT_COS, -eps, eps)
-            base = base[reject] + np.where(cop, side, 0.0)[:, None] * nr
-            t_shift = np.where(cop, t_shift[reject],
-                               np.maximum(t_shift[reject], t_e[reject]) + eps)
+            base = base[sel] + np.where(cop, side, 0.0)[:, None] * nr
+            t_shift = np.where(cop, t_shift[sel], np.maximum(t_shift[sel], t_e[:n_rej]) + eps)
             m = len(idx)
-            sub = (np.empty(m, dtype=bool), np.empty(m), np.empty(m, dtype=np.int64),
-                   np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)))
-            _, extra = self._trace_refine(scene, p2f, table, base, dr, np.ones(m), t_shift,
-                                          tmin[idx], tmax[idx], sub)
+            # Every field on the re-cast subset: t is corrected below, the rest copied.
+            sub = (np.empty(m, dtype=bool),) + tuple(
+                np.empty((m,) + a.shape[1:], a.dtype) for a in full)
+            _, n_rej, (j, t_e, coplanar, n_hat) = self._trace_refine(
+                scene, p2f, table, m, base, dr, t_shift, tmin[idx], tmax[idx], sub, unit=True)
             # Report t along the original ray: the lifted origin is off it by <= eps.
             sub[1][:] += np.einsum("ij,ij->i", base - o[idx], dr)
             for arr, val in zip(out, sub):
-                arr[idx] = val
-            reject, t_e, coplanar, n_hat = extra
-            idx = idx[reject]
-        if len(idx):
-            log.debug("closest_hit: %d ray(s) still self-intersecting after %d re-casts; "
-                      "reported as misses", len(idx), _MAX_RECASTS)
+                if len(arr):
+                    arr[idx] = val
+            if n_rej == 0:
+                return
+            idx = idx[j[:n_rej]]
+        log.debug("closest_hit: %d ray(s) still self-intersecting after %d re-casts; "
+                  "reported as misses", len(idx), _MAX_RECASTS)
 
-    def _trace_refine(self, scene, p2f, table, o, D, norm, t_shift, tmin, tmax, out,
-                      bufs=None):
-        """One float32 Embree query and its float64 refinement, dense over the rays given.
+    def _trace_refine(self, scene, p2f, table, m, o, D, t_shift, tmin, tmax, out, bufs=None,
+                      unit=False):
+        """One float32 Embree query and its float64 refinement, dense over the ``m`` rays given.
 
         Writes the accepted hits into ``out`` (``hit, t, face, bary, point, normal``; NaN / -1
-        elsewhere; ``point`` is ``o + t d``) and returns the unit float64 directions and
-        ``(reject, t_e, coplanar, n̂)``: the mask of hits rejected as self-intersections,
-        Embree's hit distance from ``o``, the mask of hits on a face whose plane contains ``o``
-        and the unit normals of all hit faces. Both steps are compiled kernels
-        (:mod:`facegeo.surface._vis_kernels`). ``bufs``: the calling thread's scratch buffers
-        (``_CLOSEST_SCRATCH`` from org32 on), else fresh ones.
+        elsewhere; ``point`` is ``o + t d``; length-0 arrays are skipped) and returns the unit
+        float64 directions, the number ``r`` of hits rejected as self-intersections and, in
+        their first ``r`` rows, ``(rows, t_e, coplanar, n̂)``: the rejected rays, Embree's hit
+        distance from ``o``, whether the hit face's plane contains ``o`` and its unit normal.
+        Both steps are compiled kernels (:mod:`facegeo.surface._vis_kernels`); per-ray inputs
+        have one row per ray or one shared row (see :func:`_lean`). ``bufs``: the calling
+        thread's scratch buffers (``_CLOSEST_SCRATCH`` from org32 on), else fresh ones.
+        ``unit``: ``D`` is already unit length (the re-casts). Raises
+        :class:`_BadRays` when a ray is not finite or has a zero-length direction.
         """
         k = _kernels()
-        m = len(o)
         if bufs is None:
-            bufs = [np.empty((m,) + shape, dtype) for shape, dtype in _CLOSEST_SCRATCH[2:]]
-        org32, d32, d, far, reject, t_e, coplanar, n_hat = bufs
-        k.prepare_rays(o, D, norm, t_shift, tmax, self._centre, False, org32, d32, d, far)
+            bufs = [np.empty((m,) + shape, dtype) for shape, dtype in _CLOSEST_SCRATCH[3:]]
+        org32, d32, d, far, *rejected = bufs
+        if not k.prepare_rays(o, D, unit, t_shift, tmax, self._centre, False, org32, d32, d,
+                              far):
+            raise _BadRays
         res = scene.run(org32, d32, dists=far, output=1)
-        k.refine_hits(o, d, t_shift, tmin, tmax, res["primID"], res["tfar"], res["u"],
-                      res["v"], table, p2f, _COPLANAR_FRACTION * self._eps, _BARY_TOL, *out,
-                      reject, t_e, coplanar, n_hat)
-        return d, (reject, t_e, coplanar, n_hat)
+        n_rej = k.refine_hits(o, d, t_shift, tmin, tmax, res["primID"], res["tfar"], res["u"],
+                              res["v"], table, p2f, _COPLANAR_FRACTION * self._eps, _BARY_TOL,
+                              *out, *rejected)
+        return d, n_rej, rejected
 
     def occluded(self, origins, directions, t_max, *, t_min=None,
                  sort_rays: bool | None = None) -> np.ndarray:
@@ -723,32 +822,43 @@ class RayScene:
         ShapeError, InputError
             As :meth:`closest_hit`.
         """
-        shape, O, D, norm = self._rays(origins, directions)
+        shape, O, D, src = self._rays(origins, directions)
         tmin = self._range(t_min, "t_min", shape, default=self._eps)
         tmax = self._range(t_max, "t_max", shape, allow_inf=True)
-        return self._occluded_rays(O, D, norm, tmin, tmax, sort_rays).reshape(shape)
+        try:
+            return self._occluded_rays(O, D, tmin, tmax, sort_rays).reshape(shape)
+        except _BadRays:
+            self._name_bad_ray(src)
+            raise
 
-    def _occluded_rays(self, O, D, norm, tmin, tmax, sort_rays) -> np.ndarray:
-        """:meth:`occluded` on validated flat rays ``(n, 3)`` with lengths ``norm`` (n,)."""
+    def _occluded_rays(self, O, D, tmin, tmax, sort_rays) -> np.ndarray:
+        """:meth:`occluded` on flat rays ``(n, 3)``; raises :class:`_BadRays` on a ray that is
+        not finite or has a zero-length direction."""
         n = len(O)
         out = np.zeros(n, dtype=bool)
         scene, _ = self._scene()
         if scene is None or n == 0:
+            if n and not _kernels().rays_ok(O, D):
+                raise _BadRays
             return out
         k = _kernels()
 
         def work(rows) -> None:
             lo, hi = _rows(tmin, rows), _rows(tmax, rows)
-            o, d, s = _rows(O, rows), _rows(D, rows), _rows(norm, rows)
+            o, d = _rows(O, rows), _rows(D, rows)
             keep_all = hi >= lo
             if not keep_all.all():
+                if not k.rays_ok(o, d):  # the skipped rays are validated too
+                    raise _BadRays
                 keep = np.flatnonzero(keep_all)
-                lo, hi, o, d, s = lo[keep], hi[keep], o[keep], d[keep], s[keep]
+                lo, hi, o, d = lo[keep], hi[keep], o[keep], d[keep]
             else:
                 keep = None
             org32, d32, d64, far = _scratch(len(o), _OCCLUDED_SCRATCH)
             # Rounded toward zero: never look past t_max.
-            k.prepare_rays(o, d, s, lo, hi, self._centre, True, org32, d32, d64, far)
+            if not k.prepare_rays(_lean(o), _lean(d), False, _lean(lo), _lean(hi), self._centre,
+                                  True, org32, d32, d64, far):
+                raise _BadRays
             res = scene.run(org32, d32, query="OCCLUDED", dists=far) == 0
             if keep is not None:
                 full = np.zeros(len(keep_all), dtype=bool)
@@ -756,7 +866,7 @@ class RayScene:
                 res = full
             out[rows] = res
 
-        self._map_chunks(work, n, self._ray_order(O, D, norm, sort_rays))
+        self._map_chunks(work, n, self._ray_order(O, D, sort_rays))
         return out
 
     def segment_visible(self, p_from, p_to, *, normals=None,
@@ -830,11 +940,11 @@ class RayScene:
         long = length > 2.0 * eps
         visible = np.ones(len(V), dtype=bool)
         if long.all():
-            visible = ~self._occluded_rays(P0, V, length, np.broadcast_to(eps, length.shape),
+            visible = ~self._occluded_rays(P0, V, np.broadcast_to(eps, length.shape),
                                            length - eps, sort_rays)
         elif long.any():
             sel = np.flatnonzero(long)
             P0, V, length = P0[sel], V[sel], length[sel]
-            visible[sel] = ~self._occluded_rays(P0, V, length, np.broadcast_to(eps, len(sel)),
+            visible[sel] = ~self._occluded_rays(P0, V, np.broadcast_to(eps, len(sel)),
                                                 length - eps, sort_rays)
         return visible.reshape(shape[:-1])

@@ -10,7 +10,18 @@ Ratios are taken **at equal thread counts**: facegeo on 1 thread against raw emb
 thread (one ``EmbreeScene.run`` call on the same float32 arrays and the same BVH, so only
 facegeo's overhead differs), and facegeo on 2 threads against raw embreex on 2 threads (the
 same ``run`` calls on ray chunks of facegeo's chunk size, mapped over a 2-worker
-``ThreadPoolExecutor``). Whether embreex releases the GIL is measured, not assumed: the raw
+``ThreadPoolExecutor``). The calls being compared are **interleaved** (each round runs every
+case once, the previous result released first) so machine load and the allocator's state hit
+them alike; speeds are the best wall time of the rounds, and the 1-thread rows also give the
+ratio of median CPU times (``time.process_time``), steadier under load.
+
+``closest_hit`` returns more than raw embreex: ``run(output=1)`` gives float32 ``tfar``, ``u``,
+``v`` and int32 ``primID``/``geomID`` (20 bytes per ray); the default :class:`Hits` holds
+``hit``, float64 ``t``, ``bary``, ``point``, ``normal`` and int64 ``face`` (89 bytes per ray).
+Both are measured: the default, and ``fields=("t", "face", "bary")`` — the information raw
+embreex returns, float64-refined (41 bytes per ray). Writing fresh result memory is a large
+part of the difference on the development VM (a first touch of a fresh 4 kB page costs
+microseconds there). Whether embreex releases the GIL is measured, not assumed: the raw
 2-thread row reports its speed-up over the 1-thread call, and how far a pure-Python loop in
 the main thread progresses while ``run`` executes in a worker, beside the same figure for
 ``time.sleep`` (releases the GIL) and for one long C call that holds it (``sum(range(n))``),
@@ -87,14 +98,41 @@ def _gil_calibration(seconds: float) -> dict:
             "held (one C call, sum(range(n)))": _gil_free_fraction(lambda: sum(range(n)))}
 
 
-def _thread_rows(name: str, label: str, ours: dict, raw: dict, n: int) -> list[BenchRow]:
-    """facegeo and raw-embreex rows at each thread count, with per-thread-count ratios."""
+def _interleaved(cases: dict, repeat: int) -> tuple[dict, dict]:
+    """Time ``cases`` (key → call) in ``repeat`` interleaved rounds.
+
+    Each round calls every case once, in order; each result is released before the next call.
+    Returns the best wall seconds and the median process CPU seconds per case.
+    """
+    import statistics
+    import time
+
+    wall: dict = {k: [] for k in cases}
+    cpu: dict = {k: [] for k in cases}
+    for _ in range(max(1, repeat)):
+        for k, call in cases.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            out = call()
+            wall[k].append(time.perf_counter() - t0)
+            cpu[k].append(time.process_time() - c0)
+            del out
+    return ({k: min(v) for k, v in wall.items()},
+            {k: statistics.median(v) for k, v in cpu.items()})
+
+
+def _thread_rows(name: str, label: str, ours: dict, raw: dict, n: int, baseline: str,
+                 cpu_ratio: float | None = None) -> list[BenchRow]:
+    """facegeo rows at each thread count with the ratio to the raw-embreex case ``baseline``
+    at the same thread count (``ours``/``raw``: thread count → seconds)."""
     rows = []
     for th in _THREADS:
-        key = f"vs raw embreex, {th} thread{'s' if th > 1 else ''}"
-        rows.append(BenchRow(name, f"{label} ({th} thread{'s' if th > 1 else ''})",
-                             n / ours[th] / 1e6, "Mrays/s", ratios={key: raw[th] / ours[th]},
-                             threads=th, baseline_threads={key: th}))
+        t = f"{th} thread{'s' if th > 1 else ''}"
+        key = f"vs {baseline}, {t}"
+        extra = {} if th > 1 or cpu_ratio is None else {
+            "ratio of median CPU times vs raw, 1 thread": cpu_ratio}
+        rows.append(BenchRow(name, f"{label} ({t})", n / ours[th] / 1e6, "Mrays/s",
+                             ratios={key: raw[th] / ours[th]}, extra=extra, threads=th,
+                             baseline_threads={key: th}))
     return rows
 
 _RADIUS = 0.1  # metres, a head
@@ -138,28 +176,41 @@ def bench_closest_hit(quick: bool) -> list[BenchRow]:
 
     mesh = _mesh(quick)
     n_side = 256 if quick else 1000
-    repeat = 2 if quick else 3
+    repeat = 7 if quick else 3
     scene = RayScene.from_trimesh(mesh)
     t_build, _ = best_of(scene.build, repeat=1)
     c, d = _pinhole_rays(n_side)
     n = len(d)
     o = np.broadcast_to(c, d.shape)
-
-    ours = {}
-    for th in _THREADS:
-        scene.n_threads = th
-        ours[th], hits = best_of(lambda: scene.closest_hit(o, d), repeat)
+    # Outside the timing: the float64 face table (built on the first query, like the BVH) and
+    # the compiled kernels (loaded from numba's cache on first use).
+    scene.closest_hit(o[:16], d[:16])
 
     # Raw embreex on the same BVH and float32 arrays: one call (1 thread), and the same calls
     # on facegeo's chunks over a 2-worker thread pool (2 threads).
     emb, prim_to_face = scene._scene()
     o32 = np.ascontiguousarray(o - scene._centre, dtype=np.float32)
     d32 = np.ascontiguousarray(d, dtype=np.float32)
-    t_raw = {}
-    t_raw[1], raw = best_of(lambda: emb.run(o32, d32, output=1), repeat)
+    raw_fields = ("t", "face", "bary")
+
+    def ours(th, **kw):
+        scene.n_threads = th
+        return scene.closest_hit(o, d, **kw)
+
+    cases = {("all", 1): lambda: ours(1), ("raw fields", 1): lambda: ours(1, fields=raw_fields),
+             ("raw", 1): lambda: emb.run(o32, d32, output=1)}
     for th in _THREADS[1:]:
-        t_raw[th], _ = best_of(lambda: _raw_chunked(
-            lambda sl: emb.run(o32[sl], d32[sl], output=1), n, scene._chunk, th), repeat)
+        cases[("all", th)] = lambda th=th: ours(th)
+        cases[("raw fields", th)] = lambda th=th: ours(th, fields=raw_fields)
+        scene.n_threads = th
+        chunk = scene._chunk_rays()  # facegeo's chunks at this thread count
+        cases[("raw", th)] = lambda th=th, chunk=chunk: _raw_chunked(
+            lambda sl: emb.run(o32[sl], d32[sl], output=1), n, chunk, th)
+    # The timed cases' results are released between rounds; the ones compared are recomputed.
+    t_wall, t_cpu = _interleaved(cases, repeat)
+    hits = ours(1)
+    raw = emb.run(o32, d32, output=1)
+    t_raw = {th: t_wall[("raw", th)] for th in _THREADS}
     raw_hit = raw["primID"] >= 0
     raw_prim = np.maximum(raw["primID"], 0).astype(np.int64)
     raw_face = np.where(raw_hit, raw_prim if prim_to_face is None else prim_to_face[raw_prim], -1)
@@ -174,6 +225,7 @@ def bench_closest_hit(quick: bool) -> list[BenchRow]:
     o_tm, d_tm = np.ascontiguousarray(o[sub]), np.ascontiguousarray(d[sub])
     _trimesh_closest(mesh, o_tm[:10], d_tm[:10])  # build trimesh's scene outside the timing
     t_tm, (tm_face, tm_t) = best_of(lambda: _trimesh_closest(mesh, o_tm, d_tm), repeat)
+    ours_1 = t_wall[("all", 1)]
     ok = hits.hit[sub] & (tm_face >= 0)
     t_sub = hits.t[sub]
     err_tm = float(np.max(np.abs(tm_t[ok] - t_sub[ok]) / t_sub[ok])) if ok.any() else 0.0
@@ -182,14 +234,22 @@ def bench_closest_hit(quick: bool) -> list[BenchRow]:
     tm_speed = n_tm / t_tm / 1e6
     sizes = {"faces": scene.n_faces, "rays": n, "hit fraction": float(hits.hit.mean())}
     name = "visibility.closest_hit"
-    rows = _thread_rows(name, "RayScene.closest_hit", ours, t_raw, n)
+    baseline = "raw embreex run(output=1)"
+    rows = _thread_rows(name, "RayScene.closest_hit, all fields (hit, t, face, bary, point, "
+                        "normal; 89 B/ray)", {th: t_wall[("all", th)] for th in _THREADS}, t_raw,
+                        n, baseline, t_cpu[("raw", 1)] / t_cpu[("all", 1)])
     rows[0].error, rows[0].error_unit = err_t, "max |Δt|/t vs raw embreex"
-    rows[0].extra = {**sizes, "face ids differing vs embreex": diff_face, "BVH build s": t_build}
+    rows[0].extra.update({**sizes, "face ids differing vs embreex": diff_face,
+                          "BVH build s": t_build})
+    rows += _thread_rows(name, "RayScene.closest_hit(fields=('t', 'face', 'bary')), raw "
+                         "embreex's information in float64 (41 B/ray)",
+                         {th: t_wall[("raw fields", th)] for th in _THREADS}, t_raw, n, baseline,
+                         t_cpu[("raw", 1)] / t_cpu[("raw fields", 1)])
     gil_free = _gil_free_fraction(lambda: emb.run(o32, d32, output=1))
-    rows += _raw_rows(name, "raw embreex run(output=1)", t_raw, n, scene._chunk, sizes, gil_free)
+    rows += _raw_rows(name, "raw embreex run(output=1)", t_raw, n, chunk, sizes, gil_free)
     rows.append(BenchRow(name, "trimesh mesh.ray.intersects_id (single-threaded wrapper)",
                          tm_speed, "Mrays/s", err_tm, "max |Δt|/t vs RayScene",
-                         {"RayScene 1 thread vs this": (n / ours[1] / 1e6) / tm_speed},
+                         {"RayScene 1 thread vs this": (n / ours_1 / 1e6) / tm_speed},
                          {"rays": n_tm, "face ids differing vs RayScene": diff_tm},
                          threads=1, baseline_threads={"RayScene 1 thread vs this": 1}))
     return rows
@@ -234,26 +294,34 @@ def bench_occluded(quick: bool) -> list[BenchRow]:
     repeat = 2 if quick else 3
     scene = RayScene.from_trimesh(mesh).build()
     p, nrm = _surface_points(mesh, n, rng)
+    scene.occluded(p[:16], nrm[:16], np.inf)  # kernels loaded outside the timing
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     # Shadow rays toward the hemisphere above the surface, as toward lights that can reach it.
     d *= np.where(np.einsum("ni,ni->n", d, nrm) < 0, -1.0, 1.0)[:, None]
 
-    ours = {}
-    for th in _THREADS:
-        scene.n_threads = th
-        ours[th], occ = best_of(lambda: scene.occluded(p, d, np.inf), repeat)
-
     emb, _ = scene._scene()
     o32 = np.ascontiguousarray(p + scene.eps * d - scene._centre, dtype=np.float32)
     d32 = np.ascontiguousarray(d, dtype=np.float32)
     far = np.full(n, np.finfo(np.float32).max, dtype=np.float32)
-    t_raw = {}
-    t_raw[1], raw = best_of(lambda: emb.run(o32, d32, query="OCCLUDED", dists=far), repeat)
+
+    def ours(th):
+        scene.n_threads = th
+        return scene.occluded(p, d, np.inf)
+
+    cases = {("ours", 1): lambda: ours(1),
+             ("raw", 1): lambda: emb.run(o32, d32, query="OCCLUDED", dists=far)}
     for th in _THREADS[1:]:
-        t_raw[th], _ = best_of(lambda: _raw_chunked(
-            lambda sl: emb.run(o32[sl], d32[sl], query="OCCLUDED", dists=far[sl]), n,
-            scene._chunk, th), repeat)
+        cases[("ours", th)] = lambda th=th: ours(th)
+        scene.n_threads = th
+        chunk = scene._chunk_rays()  # facegeo's chunks at this thread count
+        cases[("raw", th)] = lambda th=th, chunk=chunk: _raw_chunked(
+            lambda sl: emb.run(o32[sl], d32[sl], query="OCCLUDED", dists=far[sl]), n, chunk,
+            th)
+    t_wall, t_cpu = _interleaved(cases, repeat)
+    occ = ours(1)
+    raw = emb.run(o32, d32, query="OCCLUDED", dists=far)
+    t_raw = {th: t_wall[("raw", th)] for th in _THREADS}
     diff_raw = float(np.mean(occ != (raw == 0)))
     # The ceiling for incoherent rays: raw embreex on the same rays in Z-order (sort untimed).
     from facegeo.surface.visibility import _morton_order
@@ -261,7 +329,7 @@ def bench_occluded(quick: bool) -> list[BenchRow]:
     z = _morton_order(p, scene.bounds[0], scene.bounds[1])
     o32z, d32z = np.ascontiguousarray(o32[z]), np.ascontiguousarray(d32[z])
     t_rawz, _ = best_of(lambda: emb.run(o32z, d32z, query="OCCLUDED", dists=far), repeat)
-    sorted_auto = scene._ray_order(p, d, np.ones(n), None) is not None
+    sorted_auto = scene._ray_order(p, d, None) is not None
 
     # Consistency with closest_hit on a subset (occluded iff a hit exists).
     sub = np.linspace(0, n - 1, min(n, 100_000)).astype(np.int64)
@@ -277,19 +345,22 @@ def bench_occluded(quick: bool) -> list[BenchRow]:
     tm_speed = n_tm / t_tm / 1e6
     sizes = {"faces": scene.n_faces, "rays": n, "occluded fraction": float(occ.mean())}
     name = "visibility.occluded"
-    rows = _thread_rows(name, "RayScene.occluded", ours, t_raw, n)
+    ours_t = {th: t_wall[("ours", th)] for th in _THREADS}
+    rows = _thread_rows(name, "RayScene.occluded", ours_t, t_raw, n,
+                        "raw embreex run(query='OCCLUDED')",
+                        t_cpu[("raw", 1)] / t_cpu[("ours", 1)])
     rows[0].error, rows[0].error_unit = diff_raw, "fraction differing vs raw embreex"
-    rows[0].extra = {**sizes, "differing vs closest_hit": diff_closest,
-                     "Z-order sorting (auto)": sorted_auto}
+    rows[0].extra.update({**sizes, "differing vs closest_hit": diff_closest,
+                          "Z-order sorting (auto)": sorted_auto})
     gil_free = _gil_free_fraction(lambda: emb.run(o32, d32, query="OCCLUDED", dists=far))
-    rows += _raw_rows(name, "raw embreex run(query='OCCLUDED')", t_raw, n, scene._chunk, sizes,
+    rows += _raw_rows(name, "raw embreex run(query='OCCLUDED')", t_raw, n, chunk, sizes,
                       gil_free)
     key = "RayScene 1 thread vs this"
     rows.append(BenchRow(name, "raw embreex, same rays pre-sorted in Z-order (sort untimed), "
                          "1 call, 1 thread", n / t_rawz / 1e6, "Mrays/s",
-                         ratios={key: t_rawz / ours[1]}, threads=1, baseline_threads={key: 1}))
+                         ratios={key: t_rawz / ours_t[1]}, threads=1, baseline_threads={key: 1}))
     rows.append(BenchRow(name, "trimesh mesh.ray.intersects_any (origin moved eps), "
                          "single-threaded wrapper", tm_speed, "Mrays/s", diff_tm,
-                         "fraction differing vs RayScene", {key: (n / ours[1] / 1e6) / tm_speed},
+                         "fraction differing vs RayScene", {key: (n / ours_t[1] / 1e6) / tm_speed},
                          {"rays": n_tm}, threads=1, baseline_threads={key: 1}))
     return rows
