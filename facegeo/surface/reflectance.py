@@ -191,7 +191,7 @@ def depth_image(scene, camera) -> np.ndarray:
     """
     pin = camera.replace(dist=np.zeros_like(camera.dist))
     o, d = pin.pixel_rays()
-    hits = scene.closest_hit(o.reshape(-1, 3), d.reshape(-1, 3), t_min=0.0)
+    hits = scene.closest_hit(o.reshape(-1, 3), d.reshape(-1, 3), t_min=0.0, fields=("t",))
     d_cam = d.reshape(-1, 3) @ camera.T_cam_world.R.T
     z = hits.t * d_cam[:, 2]
     return z.reshape(camera.height, camera.width)

@@ -861,7 +861,7 @@ def _front_hits(mesh, skin_faces: np.ndarray, xy: np.ndarray) -> np.ndarray:
     z0 = v[:, 2].max() + 0.1
     o = np.column_stack([xy, np.full(len(xy), z0)])
     d = np.broadcast_to([0.0, 0.0, -1.0], o.shape)
-    hits = scene.closest_hit(o, d, t_min=0.0)
+    hits = scene.closest_hit(o, d, t_min=0.0, fields=("point",))
     return np.where(hits.hit[:, None], hits.point, np.nan)
 
 

@@ -337,7 +337,8 @@ class ReferenceRenderer:
         d = d.reshape(-1, 3)
         # Pixels whose undistortion did not converge (extreme lenses) have no ray: leave them out.
         finite = np.flatnonzero(np.isfinite(d).all(axis=1))
-        hits = self.rays.closest_hit(o[finite], d[finite], t_min=0.0)
+        hits = self.rays.closest_hit(o[finite], d[finite], t_min=0.0,
+                                    fields=("face", "bary", "point"))
         sel = np.flatnonzero(hits.hit)
         idx = finite[sel]
         face = hits.face[sel]
@@ -545,9 +546,9 @@ class ReferenceRenderer:
             to_l = np.asarray(light_pos, float)[None, :] - start
             dist = np.linalg.norm(to_l, axis=1)
             return self.rays.closest_hit(start, to_l / dist[:, None],
-                                         t_max=np.maximum(dist - eps, eps))
+                                         t_max=np.maximum(dist - eps, eps), fields=("face",))
         d = np.broadcast_to(np.asarray(light_dir, float), start.shape)
-        return self.rays.closest_hit(start, d)
+        return self.rays.closest_hit(start, d, fields=("face",))
 
     def _visible_from(self, o, n, eps, light_pos, light_dir) -> np.ndarray:
         if light_pos is not None:

@@ -772,7 +772,8 @@ def region_landmark_distances(skin: SkinField, vertices, faces, landmarks: dict,
             c = (wa[:, None] * centroid[core]).sum(axis=0) / wa.sum()
             n = (w[core, None] * fn[core]).sum(axis=0)
             n = n / max(float(np.linalg.norm(n)), 1e-300)
-            hits = scene.closest_hit(np.stack([c, c]), np.stack([n, -n]), t_min=0.0)
+            hits = scene.closest_hit(np.stack([c, c]), np.stack([n, -n]), t_min=0.0,
+                                    fields=("t", "point"))
             if hits.hit.any():
                 t = np.where(hits.hit, hits.t, np.inf)
                 loc = hits.point[int(np.argmin(t))]

@@ -50,7 +50,7 @@ def _views(quick: bool):
     views = []
     for cam in rig.cameras:
         o, d = cam.pixel_rays()
-        h = scene.closest_hit(o, d)
+        h = scene.closest_hit(o, d, fields=("point", "normal"))
         n = h.normal.copy()
         flip = np.einsum("...i,...i->...", n, d) > 0
         n[flip] *= -1
