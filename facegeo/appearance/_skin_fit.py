@@ -790,15 +790,19 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         p0 = c(p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1))
         dirs = c(lights.directions)
 
-        def polish(rows, B, cw, chroma):
+        P = p0.shape[1]
+        # the lobe rows' JᵀJ, Jᵀr, Σ r² at p0, recorded by the first polish for the second
+        start = np.empty((p0.shape[0], P * P + P + 1))
+
+        def polish(rows, B, cw, chroma, mode):
             # per-function arguments of the functions ``rows`` (None: all)
             f = (lambda a: a) if rows is None else (lambda a: c(a[rows]))
             return ramp_polish(f(p0), f(n), f(t1), f(t2), f(v), dirs, f(x_fix), f(nl_fix),
                                f(wd), f(A), f(Rd), f(Rdms), f(ds), int(depth.polish),
-                               SINGULAR_SIN2, B, cw, chroma, float(POLISH_XTOL))
+                               SINGULAR_SIN2, B, cw, chroma, float(POLISH_XTOL), f(start), mode)
 
         zero = np.zeros_like(wd)  # no chromaticity rows in the first polish
-        p, misfit = polish(None, zero, zero, False)
+        p, misfit = polish(None, zero, zero, False, 1)
         lam = depth.chroma * np.maximum(misfit, 0.0)
         sel = np.flatnonzero(lam > CHROMA_MIN_WEIGHT)
         if sel.size:
@@ -809,7 +813,7 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
             B, cw1 = chroma_rows(c(R, np.float64), c(w, np.float64), c(lights.solid_angles),
                                  dirs, c(n[sel]), c(v[sel]), c(A[sel]), c(ds[sel]),
                                  sel.astype(np.int64), float(CHROMA_SIGMA))
-            p[sel], misfit[sel] = polish(rows, B, c(np.sqrt(lam[sel])[:, None] * cw1), True)
+            p[sel], misfit[sel] = polish(rows, B, c(np.sqrt(lam[sel])[:, None] * cw1), True, 2)
         if depth.polish_normal:
             n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
     return p[:, 0], p[:, 1], n_out, misfit

@@ -446,7 +446,7 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
     The loops are straight-line (selects), so they vectorise; at a fixed normal n·l is
     recomputed from ``normal`` (equal to ``nl_fix``, ``xs_fix`` to rounding)."""
     m = r_out.size
-    nx, ny, nz, nvc = _polish_normal(p, nrm, normal, t1, t2, v)
+    nx, ny, nz, nvc = _polish_frame(p, nrm, normal, t1, t2, v)[:4]
     da = p[0] - p[1]
     p1 = p[1]
     thr = -1.0 if not _maybe_singular(p[0], p[1], two_1mds, ds2k, sing_sin2) else sing_sin2
@@ -476,27 +476,25 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
         r_out[j] = r
         tot += r * r
     if chroma:
-        for j in range(m):
-            c = nx * lx[j] + ny * ly[j] + nz * lz[j]
-            nlj = c if c > 0.0 else 0.0
-            xc = (nlj if nlj < 1.0 else 1.0) * nvc
-            ms, _ = _mu_s_df(da * xc + p1, A[j], B[j])
-            rc = cw[j] * ms
-            tot += rc * rc
+        tot += _polish_residuals_chroma(p, nrm, normal, t1, t2, v, lx, ly, lz, A, B, cw)
     return tot
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _polish_normal(p, nrm, normal, t1, t2, v):
-    """The polish's normal ``(n_0 + u t_1 + w t_2)/|·|`` (``normal`` renormalised at a fixed
-    normal) and ``clip(n·v, 0, 1)``."""
-    u2 = p[2] if nrm else 0.0
-    u3 = p[3] if nrm else 0.0
-    nx, ny, nz = _unit3(normal[0] + u2 * t1[0] + u3 * t2[0],
-                        normal[1] + u2 * t1[1] + u3 * t2[1],
-                        normal[2] + u2 * t1[2] + u3 * t2[2])
-    nv = nx * v[0] + ny * v[1] + nz * v[2]
-    return nx, ny, nz, min(max(nv, 0.0), 1.0)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
+def _polish_residuals_chroma(p, nrm, normal, t1, t2, v, lx, ly, lz, A, B, cw):
+    """The chromaticity rows' part of :func:`_polish_residuals`: Σ (c_j μ_s,j)²."""
+    nx, ny, nz, nvc = _polish_frame(p, nrm, normal, t1, t2, v)[:4]
+    da = p[0] - p[1]
+    p1 = p[1]
+    tot = 0.0
+    for j in range(lx.size):
+        c = nx * lx[j] + ny * ly[j] + nz * lz[j]
+        nlj = c if c > 0.0 else 0.0
+        xc = (nlj if nlj < 1.0 else 1.0) * nvc
+        ms, _ = _mu_s_df(da * xc + p1, A[j], B[j])
+        rc = cw[j] * ms
+        tot += rc * rc
+    return tot
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -552,6 +550,32 @@ def _mu_s_df(f, A, B):
     return (ms if ok else 0.0), (dms if ok else 0.0)
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _polish_frame(p, nrm, normal, t1, t2, v):
+    """The polish's normal n, ``clip(n·v)`` and their derivatives along the tangent offsets
+    (zero at a fixed normal, whose n·l then equals ``nl_fix`` to rounding: the loops need no
+    branch on ``nrm``). Returns ``(nx, ny, nz, nvc, dnvc0, dnvc1, ∂n/∂u (3), ∂n/∂w (3))``."""
+    u2 = p[2] if nrm else 0.0
+    u3 = p[3] if nrm else 0.0
+    qx = normal[0] + u2 * t1[0] + u3 * t2[0]
+    qy = normal[1] + u2 * t1[1] + u3 * t2[1]
+    qz = normal[2] + u2 * t1[2] + u3 * t2[2]
+    qn = math.sqrt(qx * qx + qy * qy + qz * qz)
+    nx, ny, nz = _unit3(qx, qy, qz)
+    d0x = d0y = d0z = d1x = d1y = d1z = dnvc0 = dnvc1 = 0.0
+    nv = nx * v[0] + ny * v[1] + nz * v[2]
+    nvc = min(max(nv, 0.0), 1.0)
+    if nrm:
+        a = nx * t1[0] + ny * t1[1] + nz * t1[2]
+        b = nx * t2[0] + ny * t2[1] + nz * t2[2]
+        d0x, d0y, d0z = (t1[0] - nx * a) / qn, (t1[1] - ny * a) / qn, (t1[2] - nz * a) / qn
+        d1x, d1y, d1z = (t2[0] - nx * b) / qn, (t2[1] - ny * b) / qn, (t2[2] - nz * b) / qn
+        if 0.0 < nv < 1.0:
+            dnvc0 = d0x * v[0] + d0y * v[1] + d0z * v[2]
+            dnvc1 = d1x * v[0] + d1y * v[1] + d1z * v[2]
+    return nx, ny, nz, nvc, dnvc0, dnvc1, d0x, d0y, d0z, d1x, d1y, d1z
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
 def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
                      sing_sin2, xs_fix, nl_fix, JtJ, g, B, cw, chroma):
@@ -575,26 +599,8 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
     """
     m = lx.size
     P = 4 if nrm else 2
-    # the normal and its derivatives along the tangent offsets (zero at a fixed normal, whose
-    # n·l then equals nl_fix to rounding: the loops need no branch on nrm)
-    u2 = p[2] if nrm else 0.0
-    u3 = p[3] if nrm else 0.0
-    qx = normal[0] + u2 * t1[0] + u3 * t2[0]
-    qy = normal[1] + u2 * t1[1] + u3 * t2[1]
-    qz = normal[2] + u2 * t1[2] + u3 * t2[2]
-    qn = math.sqrt(qx * qx + qy * qy + qz * qz)
-    nx, ny, nz = _unit3(qx, qy, qz)
-    d0x = d0y = d0z = d1x = d1y = d1z = dnvc0 = dnvc1 = 0.0
-    nv = nx * v[0] + ny * v[1] + nz * v[2]
-    nvc = min(max(nv, 0.0), 1.0)
-    if nrm:
-        a = nx * t1[0] + ny * t1[1] + nz * t1[2]
-        b = nx * t2[0] + ny * t2[1] + nz * t2[2]
-        d0x, d0y, d0z = (t1[0] - nx * a) / qn, (t1[1] - ny * a) / qn, (t1[2] - nz * a) / qn
-        d1x, d1y, d1z = (t2[0] - nx * b) / qn, (t2[1] - ny * b) / qn, (t2[2] - nz * b) / qn
-        if 0.0 < nv < 1.0:
-            dnvc0 = d0x * v[0] + d0y * v[1] + d0z * v[2]
-            dnvc1 = d1x * v[0] + d1y * v[1] + d1z * v[2]
+    nx, ny, nz, nvc, dnvc0, dnvc1, d0x, d0y, d0z, d1x, d1y, d1z = _polish_frame(
+        p, nrm, normal, t1, t2, v)
     da = p[0] - p[1]
     p1 = p[1]
     thr = -1.0 if not _maybe_singular(p[0], p[1], two_1mds, ds2k, sing_sin2) else sing_sin2
@@ -702,54 +708,65 @@ def _polish_jacobian(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, tw
             JtJ[a, b] = acc
             JtJ[b, a] = acc
     if chroma:
-        # the chromaticity rows' part (they do not enter k or s_yy)
-        cg0 = cg1 = cg2 = cg3 = 0.0
-        c00 = c01 = c02 = c03 = c11 = c12 = c13 = c22 = c23 = c33 = 0.0
-        for j in range(m):
-            nlj, xc, dn0, dn1, dx0, dx1 = _polish_geometry(
-                j, nx, ny, nz, nvc, dnvc0, dnvc1, d0x, d0y, d0z, d1x, d1y, d1z, lx, ly, lz)
-            ms, dms = _mu_s_df(da * xc + p1, A[j], B[j])
-            rc = cw[j] * ms
-            dms *= cw[j]
-            q0 = dms * xc
-            q1 = dms * (1.0 - xc)
-            q2 = dms * da * dx0
-            q3 = dms * da * dx1
-            cg0 += q0 * rc
-            cg1 += q1 * rc
-            c00 += q0 * q0
-            c01 += q0 * q1
-            c11 += q1 * q1
-            cg2 += q2 * rc
-            cg3 += q3 * rc
-            c02 += q0 * q2
-            c03 += q0 * q3
-            c12 += q1 * q2
-            c13 += q1 * q3
-            c22 += q2 * q2
-            c23 += q2 * q3
-            c33 += q3 * q3
-        g[0] += cg0
-        g[1] += cg1
-        JtJ[0, 0] += c00
-        JtJ[0, 1] += c01
-        JtJ[1, 0] += c01
-        JtJ[1, 1] += c11
-        if nrm:
-            g[2] += cg2
-            g[3] += cg3
-            JtJ[0, 2] += c02
-            JtJ[2, 0] += c02
-            JtJ[0, 3] += c03
-            JtJ[3, 0] += c03
-            JtJ[1, 2] += c12
-            JtJ[2, 1] += c12
-            JtJ[1, 3] += c13
-            JtJ[3, 1] += c13
-            JtJ[2, 2] += c22
-            JtJ[2, 3] += c23
-            JtJ[3, 2] += c23
-            JtJ[3, 3] += c33
+        _polish_jacobian_chroma(p, nrm, normal, t1, t2, v, lx, ly, lz, A, B, cw, JtJ, g)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
+def _polish_jacobian_chroma(p, nrm, normal, t1, t2, v, lx, ly, lz, A, B, cw, JtJ, g):
+    """The chromaticity rows' part of :func:`_polish_jacobian`, added into ``JtJ`` and ``g``
+    (the rows do not enter k or s_yy); one branch-free pass."""
+    m = lx.size
+    nx, ny, nz, nvc, dnvc0, dnvc1, d0x, d0y, d0z, d1x, d1y, d1z = _polish_frame(
+        p, nrm, normal, t1, t2, v)
+    da = p[0] - p[1]
+    p1 = p[1]
+    cg0 = cg1 = cg2 = cg3 = 0.0
+    c00 = c01 = c02 = c03 = c11 = c12 = c13 = c22 = c23 = c33 = 0.0
+    for j in range(m):
+        nlj, xc, dn0, dn1, dx0, dx1 = _polish_geometry(
+            j, nx, ny, nz, nvc, dnvc0, dnvc1, d0x, d0y, d0z, d1x, d1y, d1z, lx, ly, lz)
+        ms, dms = _mu_s_df(da * xc + p1, A[j], B[j])
+        rc = cw[j] * ms
+        dms *= cw[j]
+        q0 = dms * xc
+        q1 = dms * (1.0 - xc)
+        q2 = dms * da * dx0
+        q3 = dms * da * dx1
+        cg0 += q0 * rc
+        cg1 += q1 * rc
+        c00 += q0 * q0
+        c01 += q0 * q1
+        c11 += q1 * q1
+        cg2 += q2 * rc
+        cg3 += q3 * rc
+        c02 += q0 * q2
+        c03 += q0 * q3
+        c12 += q1 * q2
+        c13 += q1 * q3
+        c22 += q2 * q2
+        c23 += q2 * q3
+        c33 += q3 * q3
+    g[0] += cg0
+    g[1] += cg1
+    JtJ[0, 0] += c00
+    JtJ[0, 1] += c01
+    JtJ[1, 0] += c01
+    JtJ[1, 1] += c11
+    if nrm:
+        g[2] += cg2
+        g[3] += cg3
+        JtJ[0, 2] += c02
+        JtJ[2, 0] += c02
+        JtJ[0, 3] += c03
+        JtJ[3, 0] += c03
+        JtJ[1, 2] += c12
+        JtJ[2, 1] += c12
+        JtJ[1, 3] += c13
+        JtJ[3, 1] += c13
+        JtJ[2, 2] += c22
+        JtJ[2, 3] += c23
+        JtJ[3, 2] += c23
+        JtJ[3, 3] += c33
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -791,9 +808,32 @@ def _solve_small(A, b, P):
     return True
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _polish_start(JtJ, g, cur, row, P, save):
+    """:func:`ramp_polish`'s recorded start: ``save`` writes JᵀJ, Jᵀr and Σ r² (``cur``) into
+    ``row`` (``P² + P + 1``), else reads JᵀJ and Jᵀr back and returns the recorded Σ r²."""
+    q = 0
+    for a in range(P):
+        for b in range(P):
+            if save:
+                row[q] = JtJ[a, b]
+            else:
+                JtJ[a, b] = row[q]
+            q += 1
+    for a in range(P):
+        if save:
+            row[q] = g[a]
+        else:
+            g[a] = row[q]
+        q += 1
+    if save:
+        row[q] = cur
+    return row[q]
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations,
-                sing_sin2, B, cw, chroma, xtol):
+                sing_sin2, B, cw, chroma, xtol, start, start_mode):
     """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
     ``_skin_fit.gauss_newton_polish`` (same damping, a step kept only where it lowers Σ r²)
     with the analytic Jacobian of :func:`_polish_jacobian` instead of finite differences, and
@@ -806,8 +846,13 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
     A function stops before ``iterations`` once converged: when a proposed step has every
     ``|Δp| ≤ xtol`` and was either rejected (later steps, with the same JᵀJ and more damping,
     are shorter still) or accepted undamped (λ ≤ 1e-6: a Gauss–Newton step). Steps that small
-    only move p by rounding (0: every function takes all ``iterations``). Returns
-    ``(p, Σ r²)``."""
+    only move p by rounding (0: every function takes all ``iterations``).
+
+    ``start`` ``(N, P² + P + 1)``: the lobe rows' JᵀJ, Jᵀr and Σ r² at ``p0``. ``start_mode``
+    1 records them (a polish without the chromaticity rows), 2 uses them instead of
+    recomputing (a polish with the rows from the same ``p0``: only the rows' part is
+    computed), 0 neither. The second polish of ``fit_ramp`` restarts from the first one's
+    start, so this saves one pass with derivatives per function. Returns ``(p, Σ r²)``."""
     N, P = p0.shape
     L = wd.shape[1]
     nrm = P == 4
@@ -838,10 +883,20 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
         Am = np.empty((P, P))
         lam = 1e-8
         # JtJ, g are those of the current x (kept across rejected steps)
-        cur = _polish_residuals(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
-                                Rds, Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, Bs, cws, chroma)
-        _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds, Rms,
-                         two_1mds, ds2k, sing_sin2, xs, nls, JtJ, g, Bs, cws, chroma)
+        if start_mode == 2:
+            # the lobe rows' part at p0 from the earlier polish, plus the chromaticity rows'
+            cur = _polish_start(JtJ, g, 0.0, start[i], P, False) + _polish_residuals_chroma(
+                x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, As, Bs, cws)
+            _polish_jacobian_chroma(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, As, Bs,
+                                    cws, JtJ, g)
+        else:
+            cur = _polish_residuals(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
+                                    Rds, Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, Bs, cws,
+                                    chroma)
+            _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds,
+                             Rms, two_1mds, ds2k, sing_sin2, xs, nls, JtJ, g, Bs, cws, chroma)
+            if start_mode == 1:
+                _polish_start(JtJ, g, cur, start[i], P, True)
         for it in range(iterations):
             for a in range(P):
                 for q in range(P):
