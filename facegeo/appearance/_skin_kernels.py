@@ -22,12 +22,16 @@ tie-breaking), the same Levenberg–Marquardt steps — and agree with it to rou
 * **Ramp search fused** (``ramp_search``): μ_d of §4.2 under each candidate ramp in closed
   form (``_skin_fit.ramp_mu_d``), the misfit's three weighted sums accumulated in the same loop.
 * **Polish with the analytic Jacobian** (``ramp_polish``): the reference's Levenberg–Marquardt
-  steps, but JᵀJ and Jᵀr from the residuals' analytic derivatives (one pass with derivatives
-  instead of P forward-difference residual vectors; reused after a rejected step), the 4 × 4
-  normal equations solved by Gaussian elimination per function, every sum in a register;
+  steps, but JᵀJ and Jᵀr from the residuals' analytic derivatives — one branch-free,
+  vectorised pass accumulating the Gram matrix of eight per-sample vectors
+  (``_polish_jacobian``) instead of P forward-difference residual vectors; reused after a
+  rejected step; the second (chromaticity) polish takes the lobe rows' part at its start from
+  the first — the 4 × 4 normal equations solved by Gaussian elimination per function;
   a function stops once its steps fall below ``_skin_fit.POLISH_XTOL`` (converged). This one
   is not the reference's arithmetic: it converges to the same minimum (tested against the
   numpy polish and the Jacobian against central differences).
+* **Overlapping pattern points reused** (``_cached_value``): after a move at the same step,
+  3 or 5 of the 8 new candidates are new; the rest keep the previous iteration's values.
 
 Kernels are compiled on first use and cached on disk (``cache=True``). The per-sample kernels
 (separations, the ramp's inputs, ρ_s, d_0's median ratios) are in ``_skin_kernels_samples``.
@@ -838,7 +842,7 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
     ``_skin_fit.gauss_newton_polish`` (same damping, a step kept only where it lowers Σ r²)
     with the analytic Jacobian of :func:`_polish_jacobian` instead of finite differences, and
     JᵀJ, Jᵀr reused after a rejected step (x unchanged); trial points by their residuals only
-    (:func:`_polish_residuals`, ≈ 1/20 of a pass with derivatives), derivatives only after an
+    (:func:`_polish_residuals`, ≈ 1/3 of a pass with derivatives), derivatives only after an
     accepted step that is not the last. ``p0`` ``(N, 2)`` (ramp at the fixed
     normal) or ``(N, 4)`` (ramp and tangent offsets of the normal). With ``chroma`` the
     chromaticity rows ``cw μ_s`` (``B``, ``cw`` ``(N, L)``) join the residuals.
