@@ -40,7 +40,7 @@ def _chromaticity(d0x, d0y, d0z, f, s):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
-def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
+def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2, E, out):
     """§4.2 colour-space separation of every sample with the Eq. 6–7 ramp chromaticity.
 
     The fused form of ``separate_colour(R, ramp_chromaticity(d_0, ramp_f(n·l, n·v, α_0, α_1)))``
@@ -55,10 +55,14 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
     d0, nrm, v : (N, 3) float64, unit
     dirs : (L, 3) float64
     a0, a1 : (N,) float64
+    E : (L, 3) float64, light intensities; out : (N, L, 3) float32 or ``(0, 0, 3)``
+        With ``out`` of N rows, ``D ⊙ E`` is written there in float32 (the fit's output, as
+        ``float32(D * E)`` rounds it) instead of returning D: no float64 D, no numpy pass.
 
     Returns
     -------
-    D : (N, L, 3) float64 (``(N, 0, 3)`` with ``uniform``: the initial separation needs |D| only)
+    D : (N, L, 3) float64 (``(N, 0, 3)`` with ``uniform``: the initial separation needs |D|
+        only; also with ``out``)
     mu_s : (N, L) float64 (``(N, 0)`` with ``uniform``)
     y : (N, L) float64, |D|
     singular : (N,) bool, any sample singular
@@ -66,7 +70,8 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
     N, L, _ = R.shape
     s = 1.0 / math.sqrt(3.0)
     Lw = 0 if uniform else L  # the initial separation only needs |D|
-    D = np.empty((N, Lw, 3))
+    direct = out.shape[0] == N and N > 0 and not uniform
+    D = np.empty((N, 0 if direct else Lw, 3))
     mu_s = np.empty((N, Lw))
     y = np.empty((N, L))
     singular = np.zeros(N, np.bool_)
@@ -95,7 +100,12 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
                 ms = (Rs - Rd * ds) / det
             sp = max(ms, 0.0) * s
             e0, e1, e2 = r0 - sp, r1 - sp, r2 - sp
-            if not uniform:
+            if direct:
+                mu_s[i, j] = ms
+                out[i, j, 0] = np.float32(e0 * E[j, 0])
+                out[i, j, 1] = np.float32(e1 * E[j, 1])
+                out[i, j, 2] = np.float32(e2 * E[j, 2])
+            elif not uniform:
                 mu_s[i, j] = ms
                 D[i, j, 0] = e0
                 D[i, j, 1] = e1
