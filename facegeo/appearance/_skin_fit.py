@@ -506,9 +506,15 @@ def _d0_from_ratios(R, valid, mrg, mgb):
     # the data. The plane's normal e ⊥ s is the least-scatter direction of R in s's complement.
     b1 = normalize(np.cross(S_WHITE, [1.0, 0.0, 0.0]))
     b2 = np.cross(S_WHITE, b1)
-    w = valid.astype(np.float64)
-    u1, u2 = R @ b1, R @ b2
-    a, b, c = (np.sum(w * u1 * u1, 1), np.sum(w * u1 * u2, 1), np.sum(w * u2 * u2, 1))
+    if KERNELS:
+        from facegeo.appearance._skin_kernels_samples import colour_scatter
+
+        a, b, c = colour_scatter(np.ascontiguousarray(R, np.float64),
+                                 np.ascontiguousarray(valid, bool), b1, b2)
+    else:
+        w = valid.astype(np.float64)
+        u1, u2 = R @ b1, R @ b2
+        a, b, c = (np.sum(w * u1 * u1, 1), np.sum(w * u1 * u2, 1), np.sum(w * u2 * u2, 1))
     # smallest-eigenvalue eigenvector of [[a, b], [b, c]]
     lam = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
     ex = np.where(np.abs(b) > 1e-300, b, np.where(a <= c, 1.0, 0.0))
@@ -769,7 +775,7 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     """:func:`fit_ramp` in the compiled kernels (``_skin_kernels``): the same inputs, search
     and Levenberg–Marquardt steps, the polish with the analytic Jacobian."""
     from facegeo.appearance._skin_kernels import ramp_polish, ramp_search
-    from facegeo.appearance._skin_kernels_samples import ramp_inputs
+    from facegeo.appearance._skin_kernels_samples import chroma_rows, ramp_inputs
 
     c = np.ascontiguousarray
     n, v, d_0 = c(n, np.float64), c(v, np.float64), c(d_0, np.float64)
@@ -784,15 +790,19 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         p0 = c(p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1))
         dirs = c(lights.directions)
 
-        def polish(rows, B, cw, chroma):
+        P = p0.shape[1]
+        # the lobe rows' JᵀJ, Jᵀr, Σ r² at p0, recorded by the first polish for the second
+        start = np.empty((p0.shape[0], P * P + P + 1))
+
+        def polish(rows, B, cw, chroma, mode):
             # per-function arguments of the functions ``rows`` (None: all)
             f = (lambda a: a) if rows is None else (lambda a: c(a[rows]))
             return ramp_polish(f(p0), f(n), f(t1), f(t2), f(v), dirs, f(x_fix), f(nl_fix),
                                f(wd), f(A), f(Rd), f(Rdms), f(ds), int(depth.polish),
-                               SINGULAR_SIN2, B, cw, chroma, float(POLISH_XTOL))
+                               SINGULAR_SIN2, B, cw, chroma, float(POLISH_XTOL), f(start), mode)
 
         zero = np.zeros_like(wd)  # no chromaticity rows in the first polish
-        p, misfit = polish(None, zero, zero, False)
+        p, misfit = polish(None, zero, zero, False, 1)
         lam = depth.chroma * np.maximum(misfit, 0.0)
         sel = np.flatnonzero(lam > CHROMA_MIN_WEIGHT)
         if sel.size:
@@ -800,8 +810,10 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
             # the lobe misfit the first polish left (see fit_ramp); their inputs only for
             # the functions that need them
             rows = None if sel.size == p.shape[0] else sel
-            B, cw1 = _chroma_rows(R[sel], w[sel], lights, n[sel], v[sel], A[sel], ds[sel])
-            p[sel], misfit[sel] = polish(rows, B, c(np.sqrt(lam[sel])[:, None] * cw1), True)
+            B, cw1 = chroma_rows(c(R, np.float64), c(w, np.float64), c(lights.solid_angles),
+                                 dirs, c(n[sel]), c(v[sel]), c(A[sel]), c(ds[sel]),
+                                 sel.astype(np.int64), float(CHROMA_SIGMA))
+            p[sel], misfit[sel] = polish(rows, B, c(np.sqrt(lam[sel])[:, None] * cw1), True, 2)
         if depth.polish_normal:
             n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
     return p[:, 0], p[:, 1], n_out, misfit

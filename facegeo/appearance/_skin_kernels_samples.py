@@ -40,7 +40,7 @@ def _chromaticity(d0x, d0y, d0z, f, s):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
-def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
+def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2, E, out):
     """§4.2 colour-space separation of every sample with the Eq. 6–7 ramp chromaticity.
 
     The fused form of ``separate_colour(R, ramp_chromaticity(d_0, ramp_f(n·l, n·v, α_0, α_1)))``
@@ -55,10 +55,14 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
     d0, nrm, v : (N, 3) float64, unit
     dirs : (L, 3) float64
     a0, a1 : (N,) float64
+    E : (L, 3) float64, light intensities; out : (N, L, 3) float32 or ``(0, 0, 3)``
+        With ``out`` of N rows, ``D ⊙ E`` is written there in float32 (the fit's output, as
+        ``float32(D * E)`` rounds it) instead of returning D: no float64 D, no numpy pass.
 
     Returns
     -------
-    D : (N, L, 3) float64 (``(N, 0, 3)`` with ``uniform``: the initial separation needs |D| only)
+    D : (N, L, 3) float64 (``(N, 0, 3)`` with ``uniform``: the initial separation needs |D|
+        only; also with ``out``)
     mu_s : (N, L) float64 (``(N, 0)`` with ``uniform``)
     y : (N, L) float64, |D|
     singular : (N,) bool, any sample singular
@@ -66,7 +70,8 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
     N, L, _ = R.shape
     s = 1.0 / math.sqrt(3.0)
     Lw = 0 if uniform else L  # the initial separation only needs |D|
-    D = np.empty((N, Lw, 3))
+    direct = out.shape[0] == N and N > 0 and not uniform
+    D = np.empty((N, 0 if direct else Lw, 3))
     mu_s = np.empty((N, Lw))
     y = np.empty((N, L))
     singular = np.zeros(N, np.bool_)
@@ -95,7 +100,12 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2):
                 ms = (Rs - Rd * ds) / det
             sp = max(ms, 0.0) * s
             e0, e1, e2 = r0 - sp, r1 - sp, r2 - sp
-            if not uniform:
+            if direct:
+                mu_s[i, j] = ms
+                out[i, j, 0] = np.float32(e0 * E[j, 0])
+                out[i, j, 1] = np.float32(e1 * E[j, 1])
+                out[i, j, 2] = np.float32(e2 * E[j, 2])
+            elif not uniform:
                 mu_s[i, j] = ms
                 D[i, j, 0] = e0
                 D[i, j, 1] = e1
@@ -219,6 +229,46 @@ def _percentile_select(a, k, q):
     return lo + (hi - lo) * t
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _percentile_high(a, k, q):
+    """:func:`_percentile_select` for a high quantile (the 99th percentile of 2048 samples
+    needs the 21st and 22nd largest values): the ``k − ⌊q (k − 1)⌋`` largest values kept in a
+    small sorted buffer in one pass (one comparison per sample once it is full), instead of
+    ``np.partition``'s copy and selection. The same order statistics, so the same value.
+    Falls back to :func:`_percentile_select` when more than 64 values would be kept. No NaN
+    in ``a[:k]``."""
+    if k == 0:
+        return np.nan
+    pos = q * (k - 1)
+    i0 = int(math.floor(pos))
+    top = k - i0
+    if top > 64:
+        return _percentile_select(a, k, q)
+    buf = np.empty(top)  # the largest values seen, ascending
+    cnt = 0
+    for j in range(k):
+        x = a[j]
+        if cnt < top:
+            p_ = cnt
+            while p_ > 0 and buf[p_ - 1] > x:
+                buf[p_] = buf[p_ - 1]
+                p_ -= 1
+            buf[p_] = x
+            cnt += 1
+        elif x > buf[0]:
+            p_ = 0
+            while p_ + 1 < top and buf[p_ + 1] < x:
+                buf[p_] = buf[p_ + 1]
+                p_ += 1
+            buf[p_] = x
+    lo = buf[0]  # the i0-th smallest
+    hi = buf[1] if top > 1 else lo
+    t = pos - i0
+    if t >= 0.5:
+        return hi - (hi - lo) * (1.0 - t)
+    return lo + (hi - lo) * t
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def median_ratios(R, valid, lo, hi):
     """The two medians of ``_skin_fit.initial_diffuse_chromaticity`` (§4.2), per function:
@@ -318,8 +368,84 @@ def prepare_chunk(R, E, saturation, threshold, visibility, has_visibility):
             if bz[j] > top:
                 top = bz[j]
         bmax[i] = top
-        lim = threshold * _percentile_select(bz, L, 0.99)
+        lim = threshold * _percentile_high(bz, L, 0.99)
         for j in range(L):
             shadow[i, j] = b[j] <= lim or (has_visibility and not visibility[i, j])
-        ref[i] = _percentile_select(nz, L, 0.99)
+        ref[i] = _percentile_high(nz, L, 0.99)
     return Rw, sat, shadow, bmax, ref
+
+
+# ------------------------------------------------------------------------------- ramp rows
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def chroma_rows(R, w, sa, dirs, nrm, v, A, ds, rows, chroma_sigma):
+    """The chromaticity rows of ``_skin_fit.fit_ramp``'s second polish for the functions
+    ``rows`` (``_skin_fit._chroma_rows``, fused; no copy of ``R[rows]``): ``B = R·s −
+    A (d_0·s)`` and the unit row weights ``√w_c / √Σ w_c |R|²`` with ``w_c = w δA (1 −
+    exp(−(1 − l·r)/σ_c))⁴``, ``r = 2(n·v)n − v``.
+
+    Parameters
+    ----------
+    R : (N, L, 3) float64, white balanced
+    w : (N, L) float64, 0/1 usable samples
+    sa : (L,) δA; dirs : (L, 3)
+    nrm, v : (n, 3) float64, unit, of the selected functions
+    A : (n, L), ds : (n,) float64, of the selected functions (``ramp_inputs``)
+    rows : (n,) int64, indices into R and w
+
+    Returns
+    -------
+    B, cw : (n, L) float64
+    """
+    n = rows.size
+    L = R.shape[1]
+    s = 1.0 / math.sqrt(3.0)
+    B = np.empty((n, L))
+    cw = np.empty((n, L))
+    for q in prange(n):
+        i = rows[q]
+        nx, ny, nz = nrm[q, 0], nrm[q, 1], nrm[q, 2]
+        nv = nx * v[q, 0] + ny * v[q, 1] + nz * v[q, 2]
+        rx, ry, rz = 2.0 * nv * nx - v[q, 0], 2.0 * nv * ny - v[q, 1], 2.0 * nv * nz - v[q, 2]
+        acc = 0.0
+        for j in range(L):
+            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+            B[q, j] = (r0 + r1 + r2) * s - A[q, j] * ds[q]
+            wc = 0.0
+            if w[i, j] > 0.0:
+                cos_lr = rx * dirs[j, 0] + ry * dirs[j, 1] + rz * dirs[j, 2]
+                t = 1.0 - math.exp(-(1.0 - cos_lr) / chroma_sigma)
+                t *= t
+                wc = w[i, j] * sa[j] * t * t
+                acc += wc * (r0 * r0 + r1 * r1 + r2 * r2)
+            cw[q, j] = wc
+        inv = 1.0 / math.sqrt(max(acc, 1e-300))
+        for j in range(L):
+            cw[q, j] = math.sqrt(cw[q, j]) * inv
+    return B, cw
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def colour_scatter(R, valid, b1, b2):
+    """Per function, the scatter of the valid samples' colours in the plane ⊥ s
+    (``_skin_fit._d0_from_ratios``): with ``u_1 = R·b_1``, ``u_2 = R·b_2``, the sums
+    ``(Σ u_1², Σ u_1 u_2, Σ u_2²)`` over valid samples, each ``(N,)``."""
+    N, L, _ = R.shape
+    a = np.empty(N)
+    b = np.empty(N)
+    c = np.empty(N)
+    for i in prange(N):
+        s11 = s12 = s22 = 0.0
+        for j in range(L):
+            if valid[i, j]:
+                r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+                u1 = r0 * b1[0] + r1 * b1[1] + r2 * b1[2]
+                u2 = r0 * b2[0] + r1 * b2[1] + r2 * b2[2]
+                s11 += u1 * u1
+                s12 += u1 * u2
+                s22 += u2 * u2
+        a[i] = s11
+        b[i] = s12
+        c[i] = s22
+    return a, b, c

@@ -421,8 +421,9 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                                     saturated=sat[sl])
         res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
                          shadow_threshold, None if d_0 is None else d_0[sl], rounds,
-                         specular_gate, stats)
-        D[sl] = res["D"] * E[None]  # float32 on assignment
+                         specular_gate, stats, D[sl] if _skin_fit.KERNELS else None)
+        if res["D"] is not None:  # else the final separation wrote D[sl] itself
+            D[sl] = res["D"] * E[None]  # float32 on assignment
         return {k: res[k] for k in out}
 
     for res in _map_chunks(run, starts, threads):
@@ -492,11 +493,12 @@ def _numba_threads(threads):
         numba.set_num_threads(old)
 
 
-def _separate_ramp(R, d0, n, v, lights, a0, a1):
+def _separate_ramp(R, d0, n, v, lights, a0, a1, out=None):
     """The §4.2 separation of every sample with the ramp chromaticity (the compiled
     ``_skin_kernels.separate_ramp``); ``n`` None: with d_0 itself (the initial separation).
     Returns ``D (n, L, 3)``, ``μ_s (n, L)`` (both with 0 lights when ``n`` is None),
-    ``|D| (n, L)``, any-singular ``(n,)``."""
+    ``|D| (n, L)``, any-singular ``(n,)``. ``out`` ``(n, L, 3)`` float32: ``D ⊙ E`` (the
+    light intensities) is written there instead, and D has 0 lights."""
     from facegeo.appearance._skin_kernels_samples import separate_ramp
 
     c = np.ascontiguousarray
@@ -505,14 +507,18 @@ def _separate_ramp(R, d0, n, v, lights, a0, a1):
     zeros = np.zeros(N)
     return separate_ramp(c(R, np.float64), c(d0, np.float64), c(v if uniform else n, np.float64),
                          c(v, np.float64), c(lights.directions), zeros if uniform else c(a0),
-                         zeros if uniform else c(a1), uniform, SINGULAR_SIN2)
+                         zeros if uniform else c(a1), uniform, SINGULAR_SIN2,
+                         c(lights.intensities, np.float64),
+                         np.empty((0, 0, 3), np.float32) if out is None else out)
 
 
 def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, rounds,
-               gate=0.0, stats=None):
+               gate=0.0, stats=None, out=None):
     """§4.2 on one chunk of white-balanced functions R ``(n, L, C)``; see :func:`fit_reflectance`.
     ``stats``: each function's largest unsaturated brightness and the 99th percentile of its
-    ``|R|`` (saturated samples as 0), when the caller has them (``prepare_chunk``)."""
+    ``|R|`` (saturated samples as 0), when the caller has them (``prepare_chunk``). ``out``
+    ``(n, L, 3)`` float32: where the final separation can write ``D ⊙ E`` itself (compiled
+    kernels, colour, no specular gate), it does, and the result's ``"D"`` is None."""
     n_f, L, C = R.shape
     l = lights.directions
     flags = np.zeros(n_f, np.int64)
@@ -558,7 +564,10 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
             # the polish moves the normal with the ramp; it only serves the ramp fit
             a0, a1, n_ramp, _ = fit_ramp(R, w, lights, n, v, d0, depth)
             if _skin_fit.KERNELS:
-                D, mu_s, y, sing2 = _separate_ramp(R, d0, n_ramp, v, lights, a0, a1)
+                direct = out is not None and not gate > 0.0
+                D, mu_s, y, sing2 = _separate_ramp(R, d0, n_ramp, v, lights, a0, a1,
+                                                   out if direct else None)
+                D = None if direct else D
             else:
                 nl = n_ramp @ l.T
                 nv = np.einsum("ni,ni->n", n_ramp, v)
