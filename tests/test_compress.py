@@ -425,3 +425,55 @@ def test_image_wavelet_threads_equal_one_thread(image_case, monkeypatch):
         assert C.relative_rmse(b, a) <= 1e-6  # float32 summation order only
     with pytest.raises(InputError, match="workers"):
         m.relight(ws["sun"], workers=0)
+
+
+#: Compiled interleaved scatter vs the planar scatter kernel: max |Δ| over max |acc| (the same
+#: float32 products summed in the same order; only the layout differs).
+SCATTER_RGBX = 1e-6
+#: Coarse-level inverse + finest level at the pixels vs numpy's full inverse (float64): max |Δ|
+#: over max |pixel| (float32 rounding through ≤ 2·log₂(size) steps).
+FINEST_AT_PIXELS = 1e-5
+
+
+def test_scatter_rgbx_equals_the_planar_scatter(image_case):
+    pytest.importorskip("numba")
+    from facegeo.lighting import _compress_image as CI
+    from facegeo.lighting import _compress_kernels as K
+
+    f, pix, ws = image_case
+    m = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
+    idx, lw = CI.selected_lighting_terms(m, ws["sun"], 40, None)
+    g = m.grid[0] * m.grid[1]
+    planar = np.zeros((3, g), np.float32)
+    K.scatter_slabs(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw, planar)
+    rgbx = np.zeros((g, 4), np.float32)
+    K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_weights(m.base, lw), idx, rgbx)
+    assert np.abs(planar).max() > 0
+    assert np.abs(rgbx[:, :3].T - planar).max() <= SCATTER_RGBX * np.abs(planar).max()
+    assert not rgbx[:, 3].any()  # the pad lane stays zero
+    # a swapped channel order fails: the lanes are R, G, B
+    assert np.abs(rgbx[:, 2::-1].T - planar).max() > SCATTER_RGBX * np.abs(planar).max()
+
+
+@pytest.mark.parametrize("shape", [(1, 8), (8, 1), (4, 16), (16, 4), (8, 8), (1, 1)])
+def test_finest_level_at_pixels_equals_the_full_inverse(shape):
+    pytest.importorskip("numba")
+    from facegeo.lighting._compress_haar import _nonstandard_levels, haar2d_nonstandard
+    from facegeo.lighting import _compress_kernels as K
+
+    h, w = shape
+    rng = np.random.default_rng(h * 31 + w)
+    coef = rng.normal(size=(h, w, 4)).astype(np.float32)
+    coef[..., 3] = 0
+    ref = haar2d_nonstandard(coef[..., :3].transpose(2, 0, 1).reshape(3, h * w).astype(np.float64),
+                             w, h, inverse=True).T  # (H·W, 3)
+    pixels = rng.permutation(h * w)[: max(1, h * w // 2)].astype(np.int32)
+    levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
+    img = coef.copy()
+    out = np.full((pixels.size, 3), np.nan, np.float32)
+    if levels.shape[0] == 0:
+        out[:] = img.reshape(-1, 4)[pixels, :3]
+    else:
+        K.haar_inverse_rgbx(img, levels[1:])
+        K.finest_level_at_pixels(img, bool(levels[0, 2]), bool(levels[0, 3]), pixels, out)
+    assert np.abs(out - ref[pixels]).max() <= FINEST_AT_PIXELS * np.abs(ref).max()

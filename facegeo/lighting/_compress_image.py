@@ -215,25 +215,60 @@ class ImageWaveletField:
             raise InputError(f"workers: expected ≥ 1, got {fmt_value(workers)}")
         idx, lw = selected_lighting_terms(self, weights, terms, target_error)
         h, w = self.grid
-        acc = np.zeros((3, h * w), np.float32)
-        n = self.segments
-        counts = self.ptr[(idx + 1) * n] - self.ptr[idx * n]
-        if int(workers) > 1 and idx.size > 1 and counts.sum() >= PARALLEL_ENTRIES:
-            from concurrent.futures import ThreadPoolExecutor
+        ker = _kernels()
+        if ker is None:  # numpy reference: planar accumulator, full inverse, pixel gather
+            acc = _scatter_in_parts(self, idx, lw, (3, h * w), _scatter, int(workers))
+            img = _inverse_spatial(acc.reshape(3, h, w))
+            return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
 
-            cum = np.cumsum(counts)
-            cuts = np.searchsorted(cum, cum[-1] * np.arange(1, workers) / workers)
-            parts = np.split(np.arange(idx.size), np.unique(np.clip(cuts + 1, 1, idx.size - 1)))
-            accs = [acc] + [np.zeros_like(acc) for _ in parts[1:]]
-            with ThreadPoolExecutor(max_workers=len(parts)) as pool:  # nogil kernels
-                list(pool.map(lambda i: _scatter(self, idx[parts[i]], lw[parts[i]], accs[i]),
-                              range(len(parts))))
-            for a in accs[1:]:
-                acc += a
-        else:
-            _scatter(self, idx, lw, acc)
-        img = _inverse_spatial(acc.reshape(3, h, w))
-        return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
+        def scatter(f: ImageWaveletField, ii: np.ndarray, ww: np.ndarray, acc: np.ndarray):
+            ker.scatter_rgbx(f.ptr, f.segments, f.pos, f.code, exponent_weights(f.base, ww), ii,
+                             acc)
+
+        acc = _scatter_in_parts(self, idx, lw, (h * w, 4), scatter, int(workers))
+        img = acc.reshape(h, w, 4)
+        levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
+        if levels.shape[0] == 0:  # a 1 × 1 grid: the coefficient is the pixel
+            return np.ascontiguousarray(img.reshape(-1, 4)[self.pixel_pos, :3])
+        ker.haar_inverse_rgbx(img, levels[1:])
+        out = np.empty((self.n_pixels, 3), np.float32)
+        ker.finest_level_at_pixels(img, bool(levels[0, 2]), bool(levels[0, 3]), self.pixel_pos,
+                                   out)
+        return out
+
+
+def exponent_weights(base: int, lw: np.ndarray) -> np.ndarray:
+    """``(K·32, 4)`` float32 table of :func:`_compress_kernels.scatter_rgbx`: row ``32·k + e`` is
+    ``2^(e + base) · lw[k]`` (float32 products, as :func:`_compress_kernels.scatter_slabs`
+    forms them), lane 3 zero."""
+    lw4 = np.zeros((lw.shape[0], 4), np.float32)
+    lw4[:, :3] = lw
+    return (exponent_table(base)[None, :, None] * lw4[:, None, :]).reshape(-1, 4)
+
+
+def _scatter_in_parts(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, shape: tuple,
+                      scatter: Any, workers: int) -> np.ndarray:
+    """Zeroed accumulator of ``shape`` with ``scatter(f, idx, lw, acc)`` added; with ``workers``
+    > 1 and enough entries, the K slabs split in parts of equal entry counts, one accumulator
+    per thread, summed."""
+    acc = np.zeros(shape, np.float32)
+    n = f.segments
+    counts = f.ptr[(idx + 1) * n] - f.ptr[idx * n]
+    if workers > 1 and idx.size > 1 and counts.sum() >= PARALLEL_ENTRIES:
+        from concurrent.futures import ThreadPoolExecutor
+
+        cum = np.cumsum(counts)
+        cuts = np.searchsorted(cum, cum[-1] * np.arange(1, workers) / workers)
+        parts = np.split(np.arange(idx.size), np.unique(np.clip(cuts + 1, 1, idx.size - 1)))
+        accs = [acc] + [np.zeros_like(acc) for _ in parts[1:]]
+        with ThreadPoolExecutor(max_workers=len(parts)) as pool:  # nogil kernels
+            list(pool.map(lambda i: scatter(f, idx[parts[i]], lw[parts[i]], accs[i]),
+                          range(len(parts))))
+        for a in accs[1:]:
+            acc += a
+    else:
+        scatter(f, idx, lw, acc)
+    return acc
 
 
 def _kernels():
