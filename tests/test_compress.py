@@ -446,11 +446,13 @@ def test_scatter_rgbx_equals_the_planar_scatter(image_case):
     g = m.grid[0] * m.grid[1]
     planar = np.zeros((3, g), np.float32)
     K.scatter_slabs(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw, planar)
-    rgbx = np.zeros((g, 4), np.float32)
-    K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_weights(m.base, lw), idx, rgbx)
     assert np.abs(planar).max() > 0
-    assert np.abs(rgbx[:, :3].T - planar).max() <= SCATTER_RGBX * np.abs(planar).max()
-    assert not rgbx[:, 3].any()  # the pad lane stays zero
+    for tile in (g, 64, 16):  # one tile, and tiles that split every slab's entries
+        rgbx = np.zeros((g, 4), np.float32)
+        K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_weights(m.base, lw), idx,
+                       rgbx, tile)
+        assert np.abs(rgbx[:, :3].T - planar).max() <= SCATTER_RGBX * np.abs(planar).max()
+        assert not rgbx[:, 3].any()  # the pad lane stays zero
     # a swapped channel order fails: the lanes are R, G, B
     assert np.abs(rgbx[:, 2::-1].T - planar).max() > SCATTER_RGBX * np.abs(planar).max()
 
@@ -475,5 +477,6 @@ def test_finest_level_at_pixels_equals_the_full_inverse(shape):
         out[:] = img.reshape(-1, 4)[pixels, :3]
     else:
         K.haar_inverse_rgbx(img, levels[1:])
-        K.finest_level_at_pixels(img, bool(levels[0, 2]), bool(levels[0, 3]), pixels, out)
+        K.finest_level_at_pixels(img, bool(levels[0, 2]), bool(levels[0, 3]), pixels,
+                                 np.argsort(pixels), out)
     assert np.abs(out - ref[pixels]).max() <= FINEST_AT_PIXELS * np.abs(ref).max()

@@ -55,22 +55,40 @@ def _axpy_rgbx(typingctx, acc, q, tab, t, code):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def scatter_rgbx(ptr, n_seg, pos, code, tab, idx, acc):  # pragma: no cover - compiled
+def scatter_rgbx(ptr, n_seg, pos, code, tab, idx, acc, tile):  # pragma: no cover - compiled
     """``acc[65536·g + pos[e], c] += value(code[e], c) · lw[k, c]`` over the entries ``e`` of each
     selected slab ``j = idx[k]`` (the sum of :func:`scatter_slabs`, interleaved).
 
     ``tab`` ``(K·32, 4)`` float32: row ``32·k + exponent`` is ``pw[exponent] · lw[k]`` with lane 3
     zero (one table load replaces the exponent lookup and three multiplies); ``acc`` ``(G, 4)``
-    float32, accumulated into (lane 3 stays 0). Other arguments as :func:`scatter_slabs`.
+    float32, accumulated into (lane 3 stays 0); ``tile`` a power of two ≤ 65536: the grid is
+    swept in tiles of that many cells, all K slabs' entries of a tile (found by binary search
+    in each slab's sorted positions) before the next, so the accumulator's working set is
+    ``16·tile`` bytes (measured ≈ 10 % faster at 16384 than the whole 1 MB of a 256 × 256 grid).
+    Entries are read through slices (loop index from 0), which lets LLVM drop numba's
+    negative-index wraparound (measured ≈ 25 % of the loop). Other arguments as
+    :func:`scatter_slabs`.
     """
-    for k in range(idx.size):
-        j = idx[k]
-        kb = np.int64(32) * k
-        for g in range(n_seg):
-            off = np.int64(g) << 16
-            for e in range(ptr[j * n_seg + g], ptr[j * n_seg + g + 1]):
-                v = code[e]
-                _axpy_rgbx(acc, off + np.int64(pos[e]), tab, kb + np.int64(v >> np.uint32(27)), v)
+    n_tiles = (acc.shape[0] + tile - 1) // tile
+    for t in range(n_tiles):
+        g = (t * tile) >> 16
+        lo = (t * tile) & 0xFFFF
+        hi = lo + tile
+        off = np.int64(g) << 16
+        for k in range(idx.size):
+            r = idx[k] * n_seg + g
+            a = ptr[r]
+            b = ptr[r + 1]
+            if lo > 0:
+                a = a + np.searchsorted(pos[a:b], lo)
+            if hi < 65536:
+                b = a + np.searchsorted(pos[a:b], hi)
+            kb = np.int64(32) * k
+            pc = code[a:b]
+            pp = pos[a:b]
+            for i in range(pc.size):
+                v = pc[i]
+                _axpy_rgbx(acc, off + np.int64(pp[i]), tab, kb + np.int64(v >> np.uint32(27)), v)
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
@@ -111,12 +129,14 @@ def haar_inverse_rgbx(img, levels):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def finest_level_at_pixels(img, step_theta, step_phi, pixel_pos, out):  # pragma: no cover
+def finest_level_at_pixels(img, step_theta, step_phi, pixel_pos, order, out):  # pragma: no cover
     """The finest level of the inverse non-standard Haar, evaluated at the pixels only.
 
     ``img`` ``(H, W, 4)`` float32: coefficients with every coarser level already inverted (the
     low-pass quarter ``[:H/2, :W/2]`` holds the level's averages, the other quarters its
-    details); ``pixel_pos`` ``(P,)`` grid indices ``y·W + x``; ``out`` ``(P, 3)`` float32.
+    details); ``pixel_pos`` ``(P,)`` grid indices ``y·W + x``; ``order`` ``(P,)`` the pixels in
+    increasing grid index (the visiting order: the coefficients are then read forward, measured
+    ≈ 3× faster than in a renderer's sample order); ``out`` ``(P, 3)`` float32.
     Pixel (y, x) with j = y/2, i = x/2 (integer), s_y = ±1 for y even/odd, s_x likewise:
     ``½ (C[j, i] + s_y C[H/2 + j, i] + s_x C[j, W/2 + i] + s_x s_y C[H/2 + j, W/2 + i])``
     (one factor √½ per axis stepped; an axis of size 1 is not stepped).
@@ -129,7 +149,8 @@ def finest_level_at_pixels(img, step_theta, step_phi, pixel_pos, out):  # pragma
         scale *= np.float32(np.sqrt(0.5))
     if step_theta:
         scale *= np.float32(np.sqrt(0.5))
-    for p in range(pixel_pos.size):
+    for q in range(order.size):
+        p = order[q]
         y = pixel_pos[p] // n_w
         x = pixel_pos[p] - y * n_w
         j = y >> 1 if step_phi else y
