@@ -449,7 +449,7 @@ def test_scatter_rgbx_equals_the_planar_scatter(image_case):
     assert np.abs(planar).max() > 0
     for tile in (g, 64, 16):  # one tile, and tiles that split every slab's entries
         rgbx = np.zeros((g, 4), np.float32)
-        K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_weights(m.base, lw), idx,
+        K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw,
                        rgbx, tile)
         assert np.abs(rgbx[:, :3].T - planar).max() <= SCATTER_RGBX * np.abs(planar).max()
         assert not rgbx[:, 3].any()  # the pad lane stays zero

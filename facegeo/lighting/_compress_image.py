@@ -232,7 +232,7 @@ class ImageWaveletField:
             return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
 
         def scatter(f: ImageWaveletField, ii: np.ndarray, ww: np.ndarray, acc: np.ndarray):
-            ker.scatter_rgbx(f.ptr, f.segments, f.pos, f.code, exponent_weights(f.base, ww), ii,
+            ker.scatter_rgbx(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base), ii, ww,
                              acc, SCATTER_TILE)
 
         acc = _scatter_in_parts(self, idx, lw, (h * w, 4), scatter, int(workers))
@@ -245,15 +245,6 @@ class ImageWaveletField:
         ker.finest_level_at_pixels(img, bool(levels[0, 2]), bool(levels[0, 3]), self.pixel_pos,
                                    self._grid_order, out)
         return out
-
-
-def exponent_weights(base: int, lw: np.ndarray) -> np.ndarray:
-    """``(K·32, 4)`` float32 table of :func:`_compress_kernels.scatter_rgbx`: row ``32·k + e`` is
-    ``2^(e + base) · lw[k]`` (float32 products, as :func:`_compress_kernels.scatter_slabs`
-    forms them), lane 3 zero."""
-    lw4 = np.zeros((lw.shape[0], 4), np.float32)
-    lw4[:, :3] = lw
-    return (exponent_table(base)[None, :, None] * lw4[:, None, :]).reshape(-1, 4)
 
 
 def _scatter_in_parts(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, shape: tuple,

@@ -55,12 +55,13 @@ def _axpy_rgbx(typingctx, acc, q, tab, t, code):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def scatter_rgbx(ptr, n_seg, pos, code, tab, idx, acc, tile):  # pragma: no cover - compiled
+def scatter_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tile):  # pragma: no cover - compiled
     """``acc[65536·g + pos[e], c] += value(code[e], c) · lw[k, c]`` over the entries ``e`` of each
     selected slab ``j = idx[k]`` (the sum of :func:`scatter_slabs`, interleaved).
 
-    ``tab`` ``(K·32, 4)`` float32: row ``32·k + exponent`` is ``pw[exponent] · lw[k]`` with lane 3
-    zero (one table load replaces the exponent lookup and three multiplies); ``acc`` ``(G, 4)``
+    A table ``(K·32, 4)`` float32 whose row ``32·k + exponent`` is ``pw[exponent] · lw[k]``
+    (lane 3 zero; the float32 products :func:`scatter_slabs` forms) replaces the exponent
+    lookup and three multiplies per entry by one vector load. ``acc`` ``(G, 4)``
     float32, accumulated into (lane 3 stays 0); ``tile`` a power of two ≤ 65536: the grid is
     swept in tiles of that many cells, all K slabs' entries of a tile (found by binary search
     in each slab's sorted positions) before the next, so the accumulator's working set is
@@ -69,6 +70,11 @@ def scatter_rgbx(ptr, n_seg, pos, code, tab, idx, acc, tile):  # pragma: no cove
     negative-index wraparound (measured ≈ 25 % of the loop). Other arguments as
     :func:`scatter_slabs`.
     """
+    tab = np.zeros((idx.size * 32, 4), np.float32)
+    for k in range(idx.size):
+        for e in range(32):
+            for c in range(3):
+                tab[32 * k + e, c] = pw[e] * lw[k, c]
     n_tiles = (acc.shape[0] + tile - 1) // tile
     for t in range(n_tiles):
         g = (t * tile) >> 16
