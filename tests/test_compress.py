@@ -480,3 +480,19 @@ def test_finest_level_at_pixels_equals_the_full_inverse(shape):
         K.finest_level_at_pixels(img, bool(levels[0, 2]), bool(levels[0, 3]), pixels,
                                  np.argsort(pixels), out)
     assert np.abs(out - ref[pixels]).max() <= FINEST_AT_PIXELS * np.abs(ref).max()
+
+
+def test_top_terms_in_index_order_is_the_same_set():
+    from facegeo.lighting._compress_haar import top_terms, top_terms_index_order
+
+    rng = np.random.default_rng(8)
+    wc = rng.normal(size=(512, 3))
+    wc[::7] = 0.0  # ties at zero
+    wc[3] = wc[40] = wc[100] = [1.0, -2.0, 0.5]  # ties at a non-zero magnitude
+    mag = np.abs(wc).sum(axis=1)
+    for k in (1, 5, 37, int((mag > 0).sum()), 500, 512):
+        got = top_terms_index_order(wc, k)
+        assert np.array_equal(got, np.sort(top_terms(wc, k))), k
+    k3 = int((mag > 3.5).sum()) + 2  # the k-th magnitude is the three-way tie: lowest two
+    got = top_terms_index_order(wc, k3)
+    assert 3 in got and 40 in got and 100 not in got

@@ -223,7 +223,7 @@ class ImageWaveletField:
 
         if int(workers) < 1:
             raise InputError(f"workers: expected ≥ 1, got {fmt_value(workers)}")
-        idx, lw = selected_lighting_terms(self, weights, terms, target_error)
+        idx, lw = selected_lighting_terms(self, weights, terms, target_error, index_order=True)
         h, w = self.grid
         ker = _kernels()
         if ker is None:  # numpy reference: planar accumulator, full inverse, pixel gather

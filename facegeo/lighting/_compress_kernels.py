@@ -20,7 +20,7 @@ from numba.extending import intrinsic
 
 from facegeo.lighting._fused import _FASTMATH
 
-__all__ = ["finest_level_at_pixels", "haar_inverse_rgbx", "haar_nonstandard_inverse",
+__all__ = ["finest_level_at_pixels", "top_k_index_order", "haar_inverse_rgbx", "haar_nonstandard_inverse",
            "scatter_rgbx", "scatter_slabs", "truncation_errors"]
 
 
@@ -207,6 +207,35 @@ def finest_level_at_pixels(img, step_theta, step_phi, pixel_pos, order, out):  #
         sy = np.float32(1 - 2 * (y & 1)) if step_phi else np.float32(0.0)
         sx = np.float32(1 - 2 * (x & 1)) if step_theta else np.float32(0.0)
         _finest_rgbx(flat, (y >> hy) * n_w + (x >> hx), dy, dx, sy, sx, scale, out, p)
+
+
+@njit(nogil=True, cache=True)
+def top_k_index_order(wc, k):  # pragma: no cover - compiled
+    """Indices of the ``k`` largest ``Σ_c |wc[l, c]|`` (ties to the lower index), increasing:
+    the set of ``_compress_haar.top_terms``. ``wc`` ``(L, 3)`` float64; returns ``(k,)`` int64."""
+    n = wc.shape[0]
+    mag = np.empty(n)
+    for j in range(n):
+        mag[j] = abs(wc[j, 0]) + abs(wc[j, 1]) + abs(wc[j, 2])
+    out = np.empty(min(k, n), np.int64)
+    if k >= n:
+        for j in range(n):
+            out[j] = j
+        return out
+    kth = np.partition(mag, n - k)[n - k]  # the k-th largest magnitude
+    above = 0
+    for j in range(n):
+        if mag[j] > kth:
+            above += 1
+    ties = k - above  # tied at the k-th magnitude: the lowest indices
+    c = 0
+    for j in range(n):
+        if mag[j] > kth or (mag[j] == kth and ties > 0):
+            if mag[j] == kth:
+                ties -= 1
+            out[c] = j
+            c += 1
+    return out
 
 
 @njit(inline="always", cache=True)
