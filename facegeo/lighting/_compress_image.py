@@ -157,6 +157,12 @@ class ImageWaveletField:
         """Field rows by increasing grid index (derived, cached)."""
         return np.argsort(self.pixel_pos, kind="stable")
 
+    @functools.cached_property
+    def _levels(self) -> np.ndarray:
+        """The spatial transform's levels ``(n, 4)`` int64 (derived, cached)."""
+        h, w = self.grid
+        return np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
+
     @property
     def n_pixels(self) -> int:
         return int(self.pixel_pos.size)
@@ -236,13 +242,8 @@ class ImageWaveletField:
                              acc, SCATTER_TILE)
 
         acc = _scatter_in_parts(self, idx, lw, (h * w, 4), scatter, int(workers))
-        img = acc.reshape(h, w, 4)
-        levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
-        if levels.shape[0] == 0:  # a 1 × 1 grid: the coefficient is the pixel
-            return np.ascontiguousarray(img.reshape(-1, 4)[self.pixel_pos, :3])
-        ker.haar_inverse_rgbx(img, levels[1:])
         out = np.empty((self.n_pixels, 3), np.float32)
-        ker.finest_level_at_pixels(img, bool(levels[0, 2]), bool(levels[0, 3]), self.pixel_pos,
+        ker.inverse_haar_at_pixels(acc.reshape(h, w, 4), self._levels, self.pixel_pos,
                                    self._grid_order, out)
         return out
 

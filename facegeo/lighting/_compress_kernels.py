@@ -5,10 +5,10 @@ reference implementations they are tested against).
 The relight's hot loop is :func:`scatter_rgbx`: one 4-lane vector read-modify-write per stored
 entry into an interleaved ``(G, 4)`` float32 accumulator (R, G, B and a zero lane), the entry's
 three 9-bit mantissas decoded in the same 4 lanes by one variable shift (LLVM vector IR through
-a numba intrinsic: numba's scalar code for the same loop decodes and stores channel by channel,
-measured ≈ 3 ns an entry against ≈ 1.6 ns). The inverse spatial transform then runs on the
-coarse levels only; the finest level is evaluated at the field's pixels alone
-(:func:`finest_level_at_pixels`), so the padded grid's empty cells cost nothing there.
+a numba intrinsic: numba's scalar code for the same loop decodes and stores channel by channel).
+The inverse spatial transform (:func:`inverse_haar_at_pixels`) then evaluates each coarse level
+in one pass of 4-lane vectors and the finest level at the field's pixels alone, so the padded
+grid's empty cells cost nothing there.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from numba.extending import intrinsic
 
 from facegeo.lighting._fused import _FASTMATH
 
-__all__ = ["finest_level_at_pixels", "top_k_index_order", "haar_inverse_rgbx", "haar_nonstandard_inverse",
+__all__ = ["inverse_haar_at_pixels", "top_k_index_order", "haar_nonstandard_inverse",
            "scatter_rgbx", "scatter_slabs", "truncation_errors"]
 
 
@@ -97,116 +97,131 @@ def scatter_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tile):  # pragma: no c
                 _axpy_rgbx(acc, off + np.int64(pp[i]), tab, kb + np.int64(v >> np.uint32(27)), v)
 
 
-@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def haar_inverse_rgbx(img, levels):  # pragma: no cover - compiled
-    """In-place inverse non-standard 2-D Haar of ``img`` ``(H, W, 4)`` float32 over ``levels``
-    (rows ``(h, w, step θ, step φ)`` as :func:`haar_nonstandard_inverse`, the width playing θ):
-    the interleaved twin of that kernel, each step over whole contiguous rows of 4·w floats.
-    Pass ``levels[1:]`` to leave the finest level to :func:`finest_level_at_pixels`.
-    """
-    r = np.float32(np.sqrt(0.5))
-    n_h, n_w, _ = img.shape
-    flat = img.reshape(n_h, 4 * n_w)
-    rows = np.empty((n_h, 4 * n_w), np.float32)
-    tmp = np.empty(4 * n_w, np.float32)
-    for lev in range(levels.shape[0] - 1, -1, -1):
-        h = levels[lev, 0]
-        w4 = 4 * levels[lev, 1]
-        if levels[lev, 3]:  # the step along the rows' axis first (reverse order)
-            for i in range(h // 2):
-                s = flat[i]
-                d = flat[h // 2 + i]
-                a = rows[2 * i]
-                b = rows[2 * i + 1]
-                for x in range(w4):
-                    a[x] = (s[x] + d[x]) * r
-                    b[x] = (s[x] - d[x]) * r
-            for i in range(h):
-                flat[i, :w4] = rows[i, :w4]
-        if levels[lev, 2]:
-            half = w4 // 2
-            for y in range(h):
-                row = flat[y]
-                for i in range(0, half, 4):
-                    for c in range(4):
-                        tmp[2 * i + c] = (row[i + c] + row[half + i + c]) * r
-                        tmp[2 * i + 4 + c] = (row[i + c] - row[half + i + c]) * r
-                row[:w4] = tmp[:w4]
+def _haar_pixel_intrinsic(lanes: int):
+    """An intrinsic ``(ll, lb, det, db, dy, dx, sy, sx, scale, out, ob)``: one pixel of an
+    inverse non-standard Haar level from 4-lane rows of ``(N, 4)`` float32 arrays,
+    ``out[ob] = ((ll[lb] + sy·det[db+dy]) + sx·(det[db+dx] + sy·det[db+dy+dx]))·scale``;
+    ``lanes`` = 4 stores the whole vector into ``out`` ``(M, 4)``, 3 stores R, G, B into
+    ``out`` ``(M, 3)``."""
+
+    @intrinsic
+    def px(typingctx, ll, lb, det, db, dy, dx, sy, sx, scale, out, ob):  # pragma: no cover
+        i64 = types.int64
+        sig = types.void(ll, i64, det, i64, i64, i64, types.float32, types.float32,
+                         types.float32, out, i64)
+
+        def codegen(context, builder, signature, args):
+            ll_v, lb_v, det_v, db_v, dy_v, dx_v, sy_v, sx_v, sc_v, out_v, ob_v = args
+            f4 = ir.VectorType(ir.FloatType(), 4)
+            i32 = ir.IntType(32)
+
+            def rows(k):
+                arr = context.make_array(signature.args[k])(context, builder, args[k])
+                return builder.bitcast(arr.data, f4.as_pointer())
+
+            def load(base, i):
+                return builder.load(builder.gep(base, [i]), align=4)
+
+            def splat(x):
+                v = builder.insert_element(ir.Constant(f4, ir.Undefined), x, ir.Constant(i32, 0))
+                return builder.shuffle_vector(v, ir.Constant(f4, ir.Undefined),
+                                              ir.Constant(ir.VectorType(i32, 4), [0] * 4))
+
+            det = rows(2)
+            sy = splat(sy_v)
+            d_dy = builder.add(db_v, dy_v)
+            v = builder.fadd(load(rows(0), lb_v), builder.fmul(sy, load(det, d_dy)))
+            u = builder.fadd(load(det, builder.add(db_v, dx_v)),
+                             builder.fmul(sy, load(det, builder.add(d_dy, dx_v))))
+            r = builder.fmul(builder.fadd(v, builder.fmul(splat(sx_v), u)), splat(sc_v))
+            if lanes == 4:
+                builder.store(r, builder.gep(rows(9), [ob_v]), align=4)
+            else:
+                o = context.make_array(signature.args[9])(context, builder, out_v)
+                po = builder.gep(o.data, [builder.mul(ob_v, ir.Constant(ir.IntType(64), 3))])
+                for c in range(3):
+                    builder.store(builder.extract_element(r, ir.Constant(i32, c)),
+                                  builder.gep(po, [ir.Constant(ir.IntType(64), c)]), align=4)
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    return px
 
 
-@intrinsic
-def _finest_rgbx(typingctx, flat, base, dy, dx, sy, sx, scale, out, p):  # pragma: no cover
-    """``out[p, :3] = ((L[b] + sy·L[b+dy]) + sx·(L[b+dx] + sy·L[b+dy+dx]))·scale`` with
-    ``L = flat`` ``(N, 4)`` float32 rows as 4-lane vectors (``b = base``)."""
-    sig = types.void(flat, types.int64, types.int64, types.int64, types.float32, types.float32,
-                     types.float32, out, types.int64)
-
-    def codegen(context, builder, signature, args):
-        flat_v, b_v, dy_v, dx_v, sy_v, sx_v, sc_v, out_v, p_v = args
-        a = context.make_array(signature.args[0])(context, builder, flat_v)
-        o = context.make_array(signature.args[7])(context, builder, out_v)
-        f4 = ir.VectorType(ir.FloatType(), 4)
-        i32 = ir.IntType(32)
-        base = builder.bitcast(a.data, f4.as_pointer())
-
-        def row(i):
-            return builder.load(builder.gep(base, [i]), align=4)
-
-        def splat(x):
-            v = builder.insert_element(ir.Constant(f4, ir.Undefined), x, ir.Constant(i32, 0))
-            return builder.shuffle_vector(v, ir.Constant(f4, ir.Undefined),
-                                          ir.Constant(ir.VectorType(i32, 4), [0] * 4))
-
-        sy = splat(sy_v)
-        b_dy = builder.add(b_v, dy_v)
-        v = builder.fadd(row(b_v), builder.fmul(sy, row(b_dy)))
-        u = builder.fadd(row(builder.add(b_v, dx_v)),
-                         builder.fmul(sy, row(builder.add(b_dy, dx_v))))
-        r = builder.fmul(builder.fadd(v, builder.fmul(splat(sx_v), u)), splat(sc_v))
-        po = builder.gep(o.data, [builder.mul(p_v, ir.Constant(ir.IntType(64), 3))])
-        for c in range(3):
-            builder.store(builder.extract_element(r, ir.Constant(i32, c)),
-                          builder.gep(po, [ir.Constant(ir.IntType(64), c)]), align=4)
-        return context.get_dummy_value()
-
-    return sig, codegen
+_haar_pixel_rgbx = _haar_pixel_intrinsic(4)
+_haar_pixel_rgb = _haar_pixel_intrinsic(3)
 
 
-@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def finest_level_at_pixels(img, step_theta, step_phi, pixel_pos, order, out):  # pragma: no cover
-    """The finest level of the inverse non-standard Haar, evaluated at the pixels only.
-
-    ``img`` ``(H, W, 4)`` float32, C-contiguous: coefficients with every coarser level already
-    inverted (the low-pass quarter ``[:H/2, :W/2]`` holds the level's averages, the other
-    quarters its details); ``pixel_pos`` ``(P,)`` grid indices ``y·W + x``; ``order`` ``(P,)``
-    the pixels in increasing grid index (the visiting order: the coefficients are read
-    forward); ``out`` ``(P, 3)`` float32, C-contiguous. Pixel (y, x) with j = y/2, i = x/2
-    (integer), s_y = ±1 for y even/odd, s_x likewise:
-    ``½ (C[j, i] + s_y C[H/2 + j, i] + s_x C[j, W/2 + i] + s_x s_y C[H/2 + j, W/2 + i])``
-    (one factor √½ per axis stepped; an axis of size 1 is not stepped: its sign is 0 there).
-    RGB as one 4-lane vector (:func:`_finest_rgbx`).
-    """
-    n_h, n_w, _ = img.shape
-    flat = img.reshape(n_h * n_w, 4)
-    shift = 0
-    while (1 << shift) < n_w:  # W is a power of two: y = index >> log₂ W (no 64-bit division)
-        shift += 1
-    dy = np.int64(n_h // 2) * n_w if step_phi else np.int64(0)
-    dx = np.int64(n_w // 2) if step_theta else np.int64(0)
+@njit(inline="always", cache=True)
+def _level_constants(h, w, step_theta, step_phi):  # pragma: no cover - compiled
+    """``(hy, hx, dy_rows, dx, scale)`` of a level: halving shifts, detail offsets (rows, columns;
+    0 on an axis not stepped) and the factor √½ per stepped axis."""
+    hy = 1 if step_phi else 0
+    hx = 1 if step_theta else 0
     scale = np.float32(1.0)
     if step_phi:
         scale *= np.float32(np.sqrt(0.5))
     if step_theta:
         scale *= np.float32(np.sqrt(0.5))
-    hy = 1 if step_phi else 0
-    hx = 1 if step_theta else 0
+    return hy, hx, (h // 2) * hy, (w // 2) * hx, scale
+
+
+@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
+def inverse_haar_at_pixels(img, levels, pixel_pos, order, out):  # pragma: no cover - compiled
+    """Inverse non-standard 2-D Haar of ``img`` ``(H, W, 4)`` float32 (C-contiguous; read only),
+    evaluated at the pixels: ``out`` ``(P, 3)`` float32 gets the grid cells ``pixel_pos``
+    ``(P,)`` (``y·W + x``), visited in ``order`` (increasing grid index: the coefficients are
+    read forward). ``levels`` ``(n, 4)`` rows ``(h, w, step θ, step φ)``, finest first, as
+    :func:`haar_nonstandard_inverse` (the width playing θ).
+
+    Every level at once per output cell: cell (y, x) of a level of size (h, w) is
+    ``(LL[j, i] + s_y D[h/2 + j, i] + s_x (D[j, w/2 + i] + s_y D[h/2 + j, w/2 + i]))·√½^steps``
+    with j = y/2, i = x/2 (integer; y, x on an axis not stepped), s = ±1 for even/odd (0 on an
+    axis not stepped), D the level's detail coefficients (in ``img``) and LL the coarser
+    levels' result. The coarse levels write their cells into one low-pass buffer of the
+    finest level's LL size, visited backwards so each cell is read before it is overwritten
+    (an output cell is never before its input in that order); the finest level is evaluated
+    at the pixels only, so padding cells cost nothing there. RGB as one 4-lane vector.
+    """
+    n_h, n_w, _ = img.shape
+    det = img.reshape(n_h * n_w, 4)
+    if levels.shape[0] == 0:  # a 1 × 1 grid
+        for q in range(order.size):
+            p = order[q]
+            for c in range(3):
+                out[p, c] = det[pixel_pos[p], c]
+        return
+    hy0, hx0, _, _, _ = _level_constants(n_h, n_w, levels[0, 2], levels[0, 3])
+    bw = n_w >> hx0  # the low-pass buffer: (H, W) of level 1, stride bw
+    ll = np.empty(((n_h >> hy0) * bw, 4), np.float32)
+    for c in range(4):
+        ll[0, c] = det[0, c]
+    for lev in range(levels.shape[0] - 1, 0, -1):
+        h = levels[lev, 0]
+        w = levels[lev, 1]
+        hy, hx, dy, dx, scale = _level_constants(h, w, levels[lev, 2], levels[lev, 3])
+        for y in range(h - 1, -1, -1):
+            sy = np.float32(1 - 2 * (y & 1)) if hy else np.float32(0.0)
+            j = y >> hy
+            for x in range(w - 1, -1, -1):
+                sx = np.float32(1 - 2 * (x & 1)) if hx else np.float32(0.0)
+                i = x >> hx
+                _haar_pixel_rgbx(ll, j * bw + i, det, j * n_w + i, dy * n_w, dx, sy, sx,
+                                 scale, ll, y * bw + x)
+    shift = 0
+    while (1 << shift) < n_w:  # W is a power of two: y = index >> log₂ W (no 64-bit division)
+        shift += 1
+    hy, hx, dy, dx, scale = _level_constants(n_h, n_w, levels[0, 2], levels[0, 3])
     for q in range(order.size):
         p = order[q]
         y = np.int64(pixel_pos[p]) >> shift
         x = np.int64(pixel_pos[p]) & (n_w - 1)
-        sy = np.float32(1 - 2 * (y & 1)) if step_phi else np.float32(0.0)
-        sx = np.float32(1 - 2 * (x & 1)) if step_theta else np.float32(0.0)
-        _finest_rgbx(flat, (y >> hy) * n_w + (x >> hx), dy, dx, sy, sx, scale, out, p)
+        sy = np.float32(1 - 2 * (y & 1)) if hy else np.float32(0.0)
+        sx = np.float32(1 - 2 * (x & 1)) if hx else np.float32(0.0)
+        j = y >> hy
+        i = x >> hx
+        _haar_pixel_rgb(ll, j * bw + i, det, j * n_w + i, dy * n_w, dx, sy, sx, scale, out, p)
 
 
 @njit(nogil=True, cache=True)
