@@ -419,6 +419,16 @@ def test_image_wavelet_threads_equal_one_thread(image_case, monkeypatch):
     f, pix, ws = image_case
     m = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
     monkeypatch.setattr(CI, "PARALLEL_ENTRIES", 0)  # split even this small field
+    ker = CI._kernels()
+    if ker is not None:  # the split counts: none below cell 0, all below G, half in between
+        idx = np.arange(m.n_theta * m.n_phi, dtype=np.int64)
+        g = m.grid[0] * m.grid[1]
+        below = ker.entries_below(m.ptr, m.segments, m.pos, idx, np.array([0, g // 2, g]))
+        assert below[0] == 0 and below[2] == m.pos.size
+        assert below[1] == sum(int(np.count_nonzero(m.pos[m.ptr[j]:m.ptr[j + 1]] < g // 2))
+                               for j in idx)
+        cuts = CI._cell_ranges(m, idx, 3, ker)
+        assert cuts[0] == 0 and cuts[-1] == g and len(cuts) == 4
     for k in (2, 40, 512):
         a = m.relight(ws["sun"], terms=k, workers=1)
         b = m.relight(ws["sun"], terms=k, workers=3)
@@ -450,7 +460,7 @@ def test_scatter_rgbx_equals_the_planar_scatter(image_case):
     for tile in (g, 64, 16):  # one tile, and tiles that split every slab's entries
         rgbx = np.zeros((g, 4), np.float32)
         K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw,
-                       rgbx, tile)
+                       rgbx, tile, 0, g)
         assert np.abs(rgbx[:, :3].T - planar).max() <= SCATTER_RGBX * np.abs(planar).max()
         assert not rgbx[:, 3].any()  # the pad lane stays zero
     # a swapped channel order fails: the lanes are R, G, B

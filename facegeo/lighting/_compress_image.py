@@ -221,10 +221,11 @@ class ImageWaveletField:
             Instead of ``terms``: K from :meth:`budget`. Neither: every non-zero lighting
             coefficient (the compressed transport's own error only).
         workers : int
-            Threads for the scatter: the K slabs split in parts of equal entry counts, one
-            accumulator each, summed. Default 1: a relight takes milliseconds, and on the
-            loaded shared machine the thread hand-offs cost more than they save (measured at
-            load ≈ 8.6, 240 × 360 field: 12 ms on 2 threads against 3–10 ms on one).
+            Threads for the scatter: compiled, each thread takes a range of grid cells holding
+            about an equal share of the entries (one accumulator, disjoint cells); numpy, the
+            K slabs split in parts, one accumulator each, summed. Default 1: a relight takes
+            about a millisecond, and on the loaded shared machine a thread hand-off can cost
+            as much.
         """
 
         if int(workers) < 1:
@@ -236,12 +237,15 @@ class ImageWaveletField:
             acc = _scatter_in_parts(self, idx, lw, (3, h * w), _scatter, int(workers))
             img = _inverse_spatial(acc.reshape(3, h, w))
             return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
-
-        def scatter(f: ImageWaveletField, ii: np.ndarray, ww: np.ndarray, acc: np.ndarray):
-            ker.scatter_rgbx(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base), ii, ww,
-                             acc, SCATTER_TILE)
-
-        acc = _scatter_in_parts(self, idx, lw, (h * w, 4), scatter, int(workers))
+        acc = np.zeros((h * w, 4), np.float32)
+        args = (self.ptr, self.segments, self.pos, self.code, exponent_table(self.base), idx, lw,
+                acc, SCATTER_TILE)
+        cuts = _cell_ranges(self, idx, int(workers), ker)
+        if len(cuts) > 2:  # threads scatter into disjoint cell ranges of the one accumulator
+            list(_pool(len(cuts) - 1).map(lambda i: ker.scatter_rgbx(*args, cuts[i], cuts[i + 1]),
+                                          range(len(cuts) - 1)))
+        else:
+            ker.scatter_rgbx(*args, 0, h * w)
         out = np.empty((self.n_pixels, 3), np.float32)
         ker.inverse_haar_at_pixels(acc.reshape(h, w, 4), self._levels, self.pixel_pos,
                                    self._grid_order, out)
@@ -271,6 +275,39 @@ def _scatter_in_parts(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, sha
     else:
         scatter(f, idx, lw, acc)
     return acc
+
+
+#: Candidate split cells per thread when a compiled relight runs on several threads.
+SPLIT_CANDIDATES = 8
+
+_POOLS: dict = {}
+
+
+def _pool(n: int):
+    """A persistent pool of ``n`` threads for the compiled relight (creating one per call costs
+    ≈ 0.1–0.2 ms, a sixth of a relight)."""
+    if n not in _POOLS:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOLS[n] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="facegeo-compress")
+    return _POOLS[n]
+
+
+def _cell_ranges(f: ImageWaveletField, idx: np.ndarray, workers: int, ker: Any) -> list[int]:
+    """Grid-cell bounds ``[0, …, G]`` splitting the selected entries into ``workers`` parts of
+    about equal count (cuts on a grid of :data:`SPLIT_CANDIDATES` · workers cells), or
+    ``[0, G]`` for one thread or fewer than :data:`PARALLEL_ENTRIES` entries."""
+    g = f.grid[0] * f.grid[1]
+    n = f.segments
+    total = int((f.ptr[(idx + 1) * n] - f.ptr[idx * n]).sum())
+    if workers <= 1 or total < PARALLEL_ENTRIES:
+        return [0, g]
+    cells = np.unique(np.linspace(0, g, SPLIT_CANDIDATES * workers + 1).astype(np.int64))
+    if cells.size < 3:
+        return [0, g]
+    below = ker.entries_below(f.ptr, f.segments, f.pos, idx, cells)
+    at = np.searchsorted(below, total * np.arange(1, workers) / workers)
+    return [0] + sorted({int(c) for c in cells[np.clip(at, 1, cells.size - 2)]}) + [g]
 
 
 def _kernels():
