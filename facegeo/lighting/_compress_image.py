@@ -199,9 +199,19 @@ class ImageWaveletField:
         if order.size == 0:
             return 1, 0.0
         lw = np.ascontiguousarray(wc[order], np.float32)
-        full = np.zeros((3, self.grid[0] * self.grid[1]), np.float32)
-        _scatter(self, order, lw, full)
-        e2 = _truncation_errors(self, order, lw, full)
+        g = self.grid[0] * self.grid[1]
+        ker = _kernels()
+        if ker is not None:  # interleaved: the relight's scatter, then the prefix errors
+            full = np.zeros((g, 4), np.float32)
+            pw = exponent_table(self.base)
+            ker.scatter_rgbx(self.ptr, self.segments, self.pos, self.code, pw, order, lw, full,
+                             SCATTER_TILE, 0, g)
+            e2 = ker.truncation_errors_rgbx(self.ptr, self.segments, self.pos, self.code, pw,
+                                            order, lw, full)
+        else:
+            full = np.zeros((3, g), np.float32)
+            _scatter(self, order, lw, full)
+            e2 = _truncation_errors(self, order, lw, full)
         norm2 = max(float((full.astype(np.float64) ** 2).sum()), 1e-300)
         ok = np.flatnonzero(e2 <= t * t * norm2)
         k = int(ok[0]) if ok.size else order.size - 1

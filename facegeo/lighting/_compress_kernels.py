@@ -21,7 +21,8 @@ from numba.extending import intrinsic
 from facegeo.lighting._fused import _FASTMATH
 
 __all__ = ["inverse_haar_at_pixels", "top_k_index_order", "haar_nonstandard_inverse",
-           "entries_below", "scatter_rgbx", "scatter_slabs", "truncation_errors"]
+           "entries_below", "scatter_rgbx", "scatter_slabs", "truncation_errors",
+           "truncation_errors_rgbx"]
 
 
 @intrinsic
@@ -374,5 +375,46 @@ def truncation_errors(ptr, n_seg, pos, code, pw, idx, lw, full):  # pragma: no c
                     new = old - np.float64(_channel(code[e], c) * (p * lw[k, c]))
                     e2 += new * new - old * old
                     d[c, s] = new
+        out[k] = max(e2, 0.0)
+    return out
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def truncation_errors_rgbx(ptr, n_seg, pos, code, pw, idx, lw, full):  # pragma: no cover
+    """:func:`truncation_errors` with ``full`` ``(G, 4)`` float32 interleaved (the sum of
+    :func:`scatter_rgbx` over all of ``idx``): the float64 residual interleaved too (one cache
+    line per entry instead of three) and the entries read through slices (no index
+    wraparound). Returns ``(K,)`` float64."""
+    n = full.shape[0]
+    d = np.empty((n, 4))
+    e2 = 0.0
+    for s in range(n):
+        for c in range(4):
+            d[s, c] = full[s, c]
+            e2 += d[s, c] * d[s, c]
+    out = np.empty(idx.size)
+    for k in range(idx.size):
+        j = idx[k]
+        x0 = lw[k, 0]
+        x1 = lw[k, 1]
+        x2 = lw[k, 2]
+        for g in range(n_seg):
+            off = np.int64(g) << 16
+            pc = code[ptr[j * n_seg + g]:ptr[j * n_seg + g + 1]]
+            pp = pos[ptr[j * n_seg + g]:ptr[j * n_seg + g + 1]]
+            for i in range(pc.size):
+                v = pc[i]
+                s = off + np.int64(pp[i])
+                p = pw[v >> np.uint32(27)]
+                o0 = d[s, 0]
+                o1 = d[s, 1]
+                o2 = d[s, 2]
+                n0 = o0 - np.float64(_channel(v, 0) * (p * x0))
+                n1 = o1 - np.float64(_channel(v, 1) * (p * x1))
+                n2 = o2 - np.float64(_channel(v, 2) * (p * x2))
+                e2 += (n0 * n0 + n1 * n1 + n2 * n2) - (o0 * o0 + o1 * o1 + o2 * o2)
+                d[s, 0] = n0
+                d[s, 1] = n1
+                d[s, 2] = n2
         out[k] = max(e2, 0.0)
     return out
