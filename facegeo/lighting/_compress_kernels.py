@@ -175,6 +175,49 @@ _haar_pixel_rgbx = _haar_pixel_intrinsic(4)
 _haar_pixel_rgb = _haar_pixel_intrinsic(3)
 
 
+@intrinsic
+def _haar_block_rgbx(typingctx, ll, lb, det, db, dy, dx, scale, out, ob, stride):  # pragma: no cover
+    """The 2 × 2 cells ``out[ob], out[ob+1], out[ob+stride], out[ob+stride+1]`` of a level
+    stepped on both axes from one low-pass row and three detail rows (as
+    :func:`_haar_pixel_intrinsic` with s_y, s_x = ±1, four cells per set of loads):
+    ``(LL ± D_y) ± (D_x ± D_xy)``, times ``scale``."""
+    i64 = types.int64
+    sig = types.void(ll, i64, det, i64, i64, i64, types.float32, out, i64, i64)
+
+    def codegen(context, builder, signature, args):
+        _, lb_v, _, db_v, dy_v, dx_v, sc_v, _, ob_v, st_v = args
+        f4 = ir.VectorType(ir.FloatType(), 4)
+        i32 = ir.IntType(32)
+
+        def rows(k):
+            arr = context.make_array(signature.args[k])(context, builder, args[k])
+            return builder.bitcast(arr.data, f4.as_pointer())
+
+        def load(base, i):
+            return builder.load(builder.gep(base, [i]), align=4)
+
+        det = rows(2)
+        sc = builder.insert_element(ir.Constant(f4, ir.Undefined), sc_v, ir.Constant(i32, 0))
+        sc = builder.shuffle_vector(sc, ir.Constant(f4, ir.Undefined),
+                                    ir.Constant(ir.VectorType(i32, 4), [0] * 4))
+        a = load(rows(0), lb_v)
+        d_dy = builder.add(db_v, dy_v)
+        d_y = load(det, d_dy)
+        d_x = load(det, builder.add(db_v, dx_v))
+        d_xy = load(det, builder.add(d_dy, dx_v))
+        p, m = builder.fadd(a, d_y), builder.fsub(a, d_y)
+        q, n = builder.fadd(d_x, d_xy), builder.fsub(d_x, d_xy)
+        out = rows(7)
+        one = ir.Constant(ir.IntType(64), 1)
+        o1 = builder.add(ob_v, st_v)
+        for idx, val in ((ob_v, builder.fadd(p, q)), (builder.add(ob_v, one), builder.fsub(p, q)),
+                         (o1, builder.fadd(m, n)), (builder.add(o1, one), builder.fsub(m, n))):
+            builder.store(builder.fmul(val, sc), builder.gep(out, [idx]), align=4)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 @njit(inline="always", cache=True)
 def _level_constants(h, w, step_theta, step_phi):  # pragma: no cover - compiled
     """``(hy, hx, dy_rows, dx, scale)`` of a level: halving shifts, detail offsets (rows, columns;
@@ -223,6 +266,12 @@ def inverse_haar_at_pixels(img, levels, pixel_pos, order, out):  # pragma: no co
         h = levels[lev, 0]
         w = levels[lev, 1]
         hy, hx, dy, dx, scale = _level_constants(h, w, levels[lev, 2], levels[lev, 3])
+        if hy and hx:  # both axes: 2 × 2 cells per low-pass cell, blocks visited backwards
+            for j in range(h // 2 - 1, -1, -1):
+                for i in range(w // 2 - 1, -1, -1):
+                    _haar_block_rgbx(ll, j * bw + i, det, j * n_w + i, dy * n_w, dx, scale, ll,
+                                     2 * j * bw + 2 * i, bw)
+            continue
         for y in range(h - 1, -1, -1):
             sy = np.float32(1 - 2 * (y & 1)) if hy else np.float32(0.0)
             j = y >> hy
