@@ -484,6 +484,17 @@ def test_inverse_haar_at_pixels_equals_the_full_inverse(shape):
     levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
     img = coef.copy()
     out = np.full((pixels.size, 3), np.nan, np.float32)
-    K.inverse_haar_at_pixels(img, levels, pixels, np.argsort(pixels), out)
+    none = (np.zeros(0, np.int64), np.zeros((0, 4), np.int64))
+    K.inverse_haar_at_pixels(img, levels, pixels, np.argsort(pixels), out, *none)
     assert np.array_equal(img, coef)  # the coefficients are read only
     assert np.abs(out - ref[pixels]).max() <= INVERSE_AT_PIXELS * np.abs(ref).max()
+    if h > 1 and w > 1:  # the finest level by 2 × 2 blocks (the model's cached table)
+        from facegeo.lighting._compress_image import ImageWaveletField
+
+        f = ImageWaveletField(np.zeros(1, np.int64), 1, np.zeros(0, np.uint16),
+                              np.zeros(0, np.uint32), 0, pixels, 1, 1, (h, w), 0.0, 0.0)
+        blocks = f._finest_blocks
+        assert blocks[0].size < pixels.size  # some blocks hold several pixels
+        out[:] = np.nan
+        K.inverse_haar_at_pixels(img, levels, pixels, np.argsort(pixels), out, *blocks)
+        assert np.abs(out - ref[pixels]).max() <= INVERSE_AT_PIXELS * np.abs(ref).max()

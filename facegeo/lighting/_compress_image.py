@@ -158,6 +158,20 @@ class ImageWaveletField:
         return np.argsort(self.pixel_pos, kind="stable")
 
     @functools.cached_property
+    def _finest_blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grid's 2 × 2 blocks holding pixels ``(n,)`` int64 (index ``(y/2)·(W/2) + x/2``)
+        and the field row in each of their cells ``(n, 4)`` int64 (slot ``2·(y mod 2) + x mod
+        2``, −1 for none); empty when a grid axis has size 1 (derived, cached)."""
+        h, w = self.grid
+        if h < 2 or w < 2:
+            return np.zeros(0, np.int64), np.zeros((0, 4), np.int64)
+        y, x = np.divmod(self.pixel_pos.astype(np.int64), w)
+        blocks, which = np.unique((y >> 1) * (w // 2) + (x >> 1), return_inverse=True)
+        block_px = np.full((blocks.size, 4), -1, np.int64)
+        block_px[which.ravel(), 2 * (y & 1) + (x & 1)] = np.arange(self.n_pixels)
+        return blocks, block_px
+
+    @functools.cached_property
     def _levels(self) -> np.ndarray:
         """The spatial transform's levels ``(n, 4)`` int64 (derived, cached)."""
         h, w = self.grid
@@ -258,7 +272,7 @@ class ImageWaveletField:
             ker.scatter_rgbx(*args, 0, h * w)
         out = np.empty((self.n_pixels, 3), np.float32)
         ker.inverse_haar_at_pixels(acc.reshape(h, w, 4), self._levels, self.pixel_pos,
-                                   self._grid_order, out)
+                                   self._grid_order, out, *self._finest_blocks)
         return out
 
 

@@ -233,7 +233,7 @@ def _level_constants(h, w, step_theta, step_phi):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def inverse_haar_at_pixels(img, levels, pixel_pos, order, out):  # pragma: no cover - compiled
+def inverse_haar_at_pixels(img, levels, pixel_pos, order, out, blocks, block_px):  # pragma: no cover
     """Inverse non-standard 2-D Haar of ``img`` ``(H, W, 4)`` float32 (C-contiguous; read only),
     evaluated at the pixels: ``out`` ``(P, 3)`` float32 gets the grid cells ``pixel_pos``
     ``(P,)`` (``y·W + x``), visited in ``order`` (increasing grid index: the coefficients are
@@ -248,6 +248,12 @@ def inverse_haar_at_pixels(img, levels, pixel_pos, order, out):  # pragma: no co
     finest level's LL size, visited backwards so each cell is read before it is overwritten
     (an output cell is never before its input in that order); the finest level is evaluated
     at the pixels only, so padding cells cost nothing there. RGB as one 4-lane vector.
+
+    ``blocks`` ``(n,)`` int64 and ``block_px`` ``(n, 4)`` int64 (optional: empty arrays): when
+    the finest level steps both axes, its 2 × 2 blocks holding pixels (block index
+    ``(y/2)·(W/2) + x/2``) and the pixel of each cell (slot ``2·(y mod 2) + x mod 2``, −1 for
+    none); the finest level is then evaluated a block at a time (one set of loads per four
+    cells, measured ≈ 2× fewer cycles than per pixel on a face).
     """
     n_h, n_w, _ = img.shape
     det = img.reshape(n_h * n_w, 4)
@@ -284,6 +290,19 @@ def inverse_haar_at_pixels(img, levels, pixel_pos, order, out):  # pragma: no co
     while (1 << shift) < n_w:  # W is a power of two: y = index >> log₂ W (no 64-bit division)
         shift += 1
     hy, hx, dy, dx, scale = _level_constants(n_h, n_w, levels[0, 2], levels[0, 3])
+    if hy and hx and blocks.size:
+        blk = np.empty((4, 4), np.float32)
+        half = n_w // 2
+        for bi in range(blocks.size):
+            j = blocks[bi] >> (shift - 1)
+            i = blocks[bi] & (half - 1)
+            _haar_block_rgbx(ll, j * bw + i, det, j * n_w + i, dy * n_w, dx, scale, blk, 0, 2)
+            for slot in range(4):
+                p = block_px[bi, slot]
+                if p >= 0:
+                    for c in range(3):
+                        out[p, c] = blk[slot, c]
+        return
     for q in range(order.size):
         p = order[q]
         y = np.int64(pixel_pos[p]) >> shift
