@@ -458,7 +458,7 @@ def test_scatter_rgbx_equals_the_planar_scatter(image_case):
     K.scatter_slabs(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw, planar)
     assert np.abs(planar).max() > 0
     for tile in (g, 64, 16):  # one tile, and tiles that split every slab's entries
-        rgbx = np.zeros((g, 4), np.float32)
+        rgbx = np.full((g, 4), np.nan, np.float32)  # written, not accumulated into
         K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw,
                        rgbx, tile, 0, g)
         assert np.abs(rgbx[:, :3].T - planar).max() <= SCATTER_RGBX * np.abs(planar).max()

@@ -216,7 +216,7 @@ class ImageWaveletField:
         g = self.grid[0] * self.grid[1]
         ker = _kernels()
         if ker is not None:  # interleaved: the relight's scatter, then the prefix errors
-            full = np.zeros((g, 4), np.float32)
+            full = np.empty((g, 4), np.float32)
             pw = exponent_table(self.base)
             ker.scatter_rgbx(self.ptr, self.segments, self.pos, self.code, pw, order, lw, full,
                              SCATTER_TILE, 0, g)
@@ -261,7 +261,7 @@ class ImageWaveletField:
             acc = _scatter_in_parts(self, idx, lw, (3, h * w), _scatter, int(workers))
             img = _inverse_spatial(acc.reshape(3, h, w))
             return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
-        acc = np.zeros((h * w, 4), np.float32)
+        acc = np.empty((h * w, 4), np.float32)  # the scatter zeroes each tile it fills
         args = (self.ptr, self.segments, self.pos, self.code, exponent_table(self.base), idx, lw,
                 acc, SCATTER_TILE)
         cuts = _cell_ranges(self, idx, int(workers), ker)
