@@ -25,6 +25,29 @@ __all__ = ["inverse_haar_at_pixels", "top_k_index_order", "haar_nonstandard_inve
            "truncation_errors_rgbx"]
 
 
+_F4 = ir.VectorType(ir.FloatType(), 4)
+_I32 = ir.IntType(32)
+
+
+def _f4_rows(context, builder, signature, args, k):
+    """Codegen helper: argument ``k`` (a C-contiguous ``(n, 4)`` float32 array) as a pointer to
+    4-lane float vectors."""
+    arr = context.make_array(signature.args[k])(context, builder, args[k])
+    return builder.bitcast(arr.data, _F4.as_pointer())
+
+
+def _f4_load(builder, base, i):
+    """Codegen helper: the 4-lane row ``i`` of ``base`` (alignment of a float only)."""
+    return builder.load(builder.gep(base, [i]), align=4)
+
+
+def _splat(builder, x, vec_type):
+    """Codegen helper: scalar ``x`` in every lane of ``vec_type``."""
+    v = builder.insert_element(ir.Constant(vec_type, ir.Undefined), x, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(v, ir.Constant(vec_type, ir.Undefined),
+                                  ir.Constant(ir.VectorType(_I32, 4), [0] * 4))
+
+
 @intrinsic
 def _axpy_rgbx(typingctx, acc, q, tab, t, code):  # pragma: no cover - compiled
     """``acc[q, :] += mantissas(code) · tab[t, :]`` as 4-lane vector operations.
@@ -36,19 +59,14 @@ def _axpy_rgbx(typingctx, acc, q, tab, t, code):  # pragma: no cover - compiled
     sig = types.void(acc, types.int64, tab, types.int64, types.uint32)
 
     def codegen(context, builder, signature, args):
-        acc_v, q_v, tab_v, t_v, code_v = args
-        a = context.make_array(signature.args[0])(context, builder, acc_v)
-        b = context.make_array(signature.args[2])(context, builder, tab_v)
-        f4 = ir.VectorType(ir.FloatType(), 4)
-        i4 = ir.VectorType(ir.IntType(32), 4)
-        pa = builder.gep(builder.bitcast(a.data, f4.as_pointer()), [q_v])
-        pb = builder.gep(builder.bitcast(b.data, f4.as_pointer()), [t_v])
-        c = builder.insert_element(ir.Constant(i4, ir.Undefined), code_v,
-                                   ir.Constant(ir.IntType(32), 0))
-        c = builder.shuffle_vector(c, ir.Constant(i4, ir.Undefined), ir.Constant(i4, [0] * 4))
+        q_v, t_v, code_v = args[1], args[3], args[4]
+        i4 = ir.VectorType(_I32, 4)
+        pa = builder.gep(_f4_rows(context, builder, signature, args, 0), [q_v])
+        c = _splat(builder, code_v, i4)
         m = builder.ashr(builder.shl(c, ir.Constant(i4, [23, 14, 5, 5])),
                          ir.Constant(i4, [23] * 4))
-        x = builder.fmul(builder.sitofp(m, f4), builder.load(pb, align=4))
+        x = builder.fmul(builder.sitofp(m, _F4),
+                         _f4_load(builder, _f4_rows(context, builder, signature, args, 2), t_v))
         builder.store(builder.fadd(builder.load(pa, align=4), x), pa, align=4)
         return context.get_dummy_value()
 
@@ -135,36 +153,25 @@ def _haar_pixel_intrinsic(lanes: int):
                          types.float32, out, i64)
 
         def codegen(context, builder, signature, args):
-            ll_v, lb_v, det_v, db_v, dy_v, dx_v, sy_v, sx_v, sc_v, out_v, ob_v = args
-            f4 = ir.VectorType(ir.FloatType(), 4)
-            i32 = ir.IntType(32)
-
-            def rows(k):
-                arr = context.make_array(signature.args[k])(context, builder, args[k])
-                return builder.bitcast(arr.data, f4.as_pointer())
-
-            def load(base, i):
-                return builder.load(builder.gep(base, [i]), align=4)
-
-            def splat(x):
-                v = builder.insert_element(ir.Constant(f4, ir.Undefined), x, ir.Constant(i32, 0))
-                return builder.shuffle_vector(v, ir.Constant(f4, ir.Undefined),
-                                              ir.Constant(ir.VectorType(i32, 4), [0] * 4))
-
-            det = rows(2)
-            sy = splat(sy_v)
+            lb_v, db_v, dy_v, dx_v, sy_v, sx_v, sc_v, out_v, ob_v = args[1], *args[3:]
+            det = _f4_rows(context, builder, signature, args, 2)
+            sy = _splat(builder, sy_v, _F4)
             d_dy = builder.add(db_v, dy_v)
-            v = builder.fadd(load(rows(0), lb_v), builder.fmul(sy, load(det, d_dy)))
-            u = builder.fadd(load(det, builder.add(db_v, dx_v)),
-                             builder.fmul(sy, load(det, builder.add(d_dy, dx_v))))
-            r = builder.fmul(builder.fadd(v, builder.fmul(splat(sx_v), u)), splat(sc_v))
+            v = builder.fadd(_f4_load(builder, _f4_rows(context, builder, signature, args, 0),
+                                      lb_v),
+                             builder.fmul(sy, _f4_load(builder, det, d_dy)))
+            u = builder.fadd(_f4_load(builder, det, builder.add(db_v, dx_v)),
+                             builder.fmul(sy, _f4_load(builder, det, builder.add(d_dy, dx_v))))
+            r = builder.fmul(builder.fadd(v, builder.fmul(_splat(builder, sx_v, _F4), u)),
+                             _splat(builder, sc_v, _F4))
             if lanes == 4:
-                builder.store(r, builder.gep(rows(9), [ob_v]), align=4)
+                builder.store(r, builder.gep(_f4_rows(context, builder, signature, args, 9),
+                                             [ob_v]), align=4)
             else:
                 o = context.make_array(signature.args[9])(context, builder, out_v)
                 po = builder.gep(o.data, [builder.mul(ob_v, ir.Constant(ir.IntType(64), 3))])
                 for c in range(3):
-                    builder.store(builder.extract_element(r, ir.Constant(i32, c)),
+                    builder.store(builder.extract_element(r, ir.Constant(_I32, c)),
                                   builder.gep(po, [ir.Constant(ir.IntType(64), c)]), align=4)
             return context.get_dummy_value()
 
@@ -188,28 +195,16 @@ def _haar_block_rgbx(typingctx, ll, lb, det, db, dy, dx, scale, out, ob, stride)
 
     def codegen(context, builder, signature, args):
         _, lb_v, _, db_v, dy_v, dx_v, sc_v, _, ob_v, st_v = args
-        f4 = ir.VectorType(ir.FloatType(), 4)
-        i32 = ir.IntType(32)
-
-        def rows(k):
-            arr = context.make_array(signature.args[k])(context, builder, args[k])
-            return builder.bitcast(arr.data, f4.as_pointer())
-
-        def load(base, i):
-            return builder.load(builder.gep(base, [i]), align=4)
-
-        det = rows(2)
-        sc = builder.insert_element(ir.Constant(f4, ir.Undefined), sc_v, ir.Constant(i32, 0))
-        sc = builder.shuffle_vector(sc, ir.Constant(f4, ir.Undefined),
-                                    ir.Constant(ir.VectorType(i32, 4), [0] * 4))
-        a = load(rows(0), lb_v)
+        det = _f4_rows(context, builder, signature, args, 2)
+        sc = _splat(builder, sc_v, _F4)
+        a = _f4_load(builder, _f4_rows(context, builder, signature, args, 0), lb_v)
         d_dy = builder.add(db_v, dy_v)
-        d_y = load(det, d_dy)
-        d_x = load(det, builder.add(db_v, dx_v))
-        d_xy = load(det, builder.add(d_dy, dx_v))
+        d_y = _f4_load(builder, det, d_dy)
+        d_x = _f4_load(builder, det, builder.add(db_v, dx_v))
+        d_xy = _f4_load(builder, det, builder.add(d_dy, dx_v))
         p, m = builder.fadd(a, d_y), builder.fsub(a, d_y)
         q, n = builder.fadd(d_x, d_xy), builder.fsub(d_x, d_xy)
-        out = rows(7)
+        out = _f4_rows(context, builder, signature, args, 7)
         one = ir.Constant(ir.IntType(64), 1)
         o1 = builder.add(ob_v, st_v)
         for idx, val in ((ob_v, builder.fadd(p, q)), (builder.add(ob_v, one), builder.fsub(p, q)),
