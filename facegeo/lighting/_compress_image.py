@@ -152,6 +152,36 @@ class ImageWaveletField:
     kept_fraction: float
     field_error: float
 
+    def _relight_one_call(self, ker: Any, weights: Any, terms: int | None) -> np.ndarray:
+        """:meth:`relight` on one thread with K = ``terms`` (or every non-zero term) as one
+        compiled call (:func:`_compress_kernels.relight_one_thread`)."""
+        n_l = self.n_theta * self.n_phi
+        wts = as_array(weights, "weights", shape=(n_l, 3))
+        k = 0
+        if terms is not None:
+            k = int(terms)
+            if not 1 <= k <= n_l:
+                raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
+        h, w = self.grid
+        acc = np.empty((h * w, 4), np.float32)
+        out = np.empty((self.n_pixels, 3), np.float32)
+        ker.relight_one_thread(np.ascontiguousarray(wts, np.float64), self._light_levels,
+                               self.n_theta, self.n_phi, k, self.ptr, self.segments, self.pos,
+                               self.code, self._exponents, acc, h, w, SCATTER_TILE,
+                               self._levels, self.pixel_pos, self._grid_order,
+                               *self._finest_blocks, out)
+        return out
+
+    @functools.cached_property
+    def _light_levels(self) -> np.ndarray:
+        """The light grid's non-standard Haar levels ``(n, 4)`` int64 (derived, cached)."""
+        return np.array(_nonstandard_levels(self.n_theta, self.n_phi), np.int64).reshape(-1, 4)
+
+    @functools.cached_property
+    def _exponents(self) -> np.ndarray:
+        """:func:`exponent_table` of :attr:`base` (derived, cached)."""
+        return exponent_table(self.base)
+
     @functools.cached_property
     def _grid_order(self) -> np.ndarray:
         """Field rows by increasing grid index (derived, cached)."""
@@ -254,9 +284,11 @@ class ImageWaveletField:
 
         if int(workers) < 1:
             raise InputError(f"workers: expected ≥ 1, got {fmt_value(workers)}")
-        idx, lw = selected_lighting_terms(self, weights, terms, target_error, index_order=True)
         h, w = self.grid
         ker = _kernels()
+        if ker is not None and int(workers) == 1 and target_error is None:
+            return self._relight_one_call(ker, weights, terms)
+        idx, lw = selected_lighting_terms(self, weights, terms, target_error, index_order=True)
         if ker is None:  # numpy reference: planar accumulator, full inverse, pixel gather
             acc = _scatter_in_parts(self, idx, lw, (3, h * w), _scatter, int(workers))
             img = _inverse_spatial(acc.reshape(3, h, w))
