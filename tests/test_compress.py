@@ -437,15 +437,15 @@ def test_image_wavelet_threads_equal_one_thread(image_case, monkeypatch):
         m.relight(ws["sun"], workers=0)
 
 
-#: Compiled interleaved scatter vs the planar scatter kernel: max |Δ| over max |acc| (the same
-#: float32 products summed in the same order; only the layout differs).
-SCATTER_RGBX = 1e-6
+#: Compiled interleaved scatter vs the numpy reference: max |Δ| over max |acc| (float32 against
+#: float64 products and sums, then float32).
+SCATTER_RGBX = 1e-5
 #: Compiled inverse evaluated at the pixels vs numpy's full inverse (float64): max |Δ|
 #: over max |pixel| (float32 rounding through ≤ 2·log₂(size) steps).
 INVERSE_AT_PIXELS = 1e-5
 
 
-def test_scatter_rgbx_equals_the_planar_scatter(image_case):
+def test_scatter_rgbx_equals_the_numpy_scatter(image_case):
     pytest.importorskip("numba")
     from facegeo.lighting import _compress_image as CI
     from facegeo.lighting import _compress_kernels as K
@@ -455,7 +455,7 @@ def test_scatter_rgbx_equals_the_planar_scatter(image_case):
     idx, lw = CI.selected_lighting_terms(m, ws["sun"], 40, None)
     g = m.grid[0] * m.grid[1]
     planar = np.zeros((3, g), np.float32)
-    K.scatter_slabs(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw, planar)
+    CI._scatter(m, idx, lw, planar)  # the numpy reference (float64 products, then float32)
     assert np.abs(planar).max() > 0
     for tile in (g, 64, 16):  # one tile, and tiles that split every slab's entries
         rgbx = np.full((g, 4), np.nan, np.float32)  # written, not accumulated into

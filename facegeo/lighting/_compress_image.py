@@ -379,17 +379,13 @@ def _kernels():
 
 
 def _scatter(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, acc: np.ndarray) -> None:
-    """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx``."""
-    ker = _kernels()
-    if ker is not None:
-        ker.scatter_slabs(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base), idx, lw,
-                          acc)
-        return
+    """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx`` (numpy
+    reference of :func:`_compress_kernels.scatter_rgbx`: one weighted histogram per channel)."""
     sel, p = _slab_entries(f, idx)
     rep = np.repeat(np.arange(idx.size),
                     f.ptr[(idx + 1) * f.segments] - f.ptr[idx * f.segments])
     val = decode_rgb(f.code[sel], f.base)
-    for c in range(3):  # numpy reference: one weighted histogram per channel
+    for c in range(3):
         acc[c] += np.bincount(p,
                               weights=val[:, c].astype(np.float64) * lw[rep, c],
                               minlength=acc.shape[1]).astype(np.float32)
@@ -408,14 +404,11 @@ def _slab_entries(f: ImageWaveletField, idx: np.ndarray) -> tuple[np.ndarray, np
 
 def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
                        full: np.ndarray) -> np.ndarray:
-    """``‖full − Σ_{k' ≤ k} slab_k'‖²`` for every prefix k of ``idx`` (``(K,)`` float64)."""
-    ker = _kernels()
-    if ker is not None:
-        return ker.truncation_errors(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base),
-                                     idx, lw, full)
+    """``‖full − Σ_{k' ≤ k} slab_k'‖²`` for every prefix k of ``idx`` (``(K,)`` float64; numpy
+    reference of :func:`_compress_kernels.truncation_errors_rgbx`, one slab at a time)."""
     d = full.astype(np.float64)
     out = np.empty(idx.size)
-    for k, j in enumerate(idx):  # numpy reference: one slab at a time
+    for k, j in enumerate(idx):
         sel, p = _slab_entries(f, np.array([j]))
         d[:, p] -= (decode_rgb(f.code[sel], f.base) * lw[k]).T.astype(np.float64)
         out[k] = (d ** 2).sum()
@@ -423,14 +416,9 @@ def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
 
 
 def _inverse_spatial(img: np.ndarray) -> np.ndarray:
-    """Inverse non-standard 2-D Haar of ``(3, H, W)`` float32 spatial coefficients, in place."""
-
+    """Inverse non-standard 2-D Haar of ``(3, H, W)`` float32 spatial coefficients (numpy
+    reference of :func:`_compress_kernels.inverse_haar_at_pixels`)."""
     h, w = img.shape[1:]
-    ker = _kernels()
-    if ker is not None:
-        levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
-        ker.haar_nonstandard_inverse(img, levels)
-        return img
     return haar2d_nonstandard(img.reshape(3, h * w), w, h, inverse=True).astype(np.float32)
 
 

@@ -20,9 +20,8 @@ from numba.extending import intrinsic
 
 from facegeo.lighting._fused import _FASTMATH, haar_nonstandard_forward
 
-__all__ = ["inverse_haar_at_pixels", "relight_one_thread", "top_k_index_order", "haar_nonstandard_inverse",
-           "entries_below", "scatter_rgbx", "scatter_slabs", "truncation_errors",
-           "truncation_errors_rgbx"]
+__all__ = ["entries_below", "inverse_haar_at_pixels", "relight_one_thread", "scatter_rgbx",
+           "top_k_index_order", "truncation_errors_rgbx"]
 
 
 _F4 = ir.VectorType(ir.FloatType(), 4)
@@ -76,10 +75,15 @@ def _axpy_rgbx(typingctx, acc, q, tab, t, code):  # pragma: no cover - compiled
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
 def scatter_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tile, c0, c1):  # pragma: no cover
     """``acc[65536·g + pos[e], c] += value(code[e], c) · lw[k, c]`` over the entries ``e`` of each
-    selected slab ``j = idx[k]`` (the sum of :func:`scatter_slabs`, interleaved).
+    selected slab ``j = idx[k]`` (``_compress_image._scatter``'s sum, interleaved), where
+    ``ptr`` ``(L·n_seg + 1,)`` int64 bounds slab j's entries of segment g (cells ``65536·g …``)
+    as ``ptr[j·n_seg + g] : ptr[j·n_seg + g + 1]``, ``pos`` ``(n,)`` uint16 and ``code`` ``(n,)``
+    uint32 are the entries (positions sorted within a slab's segment; codes of
+    ``encode_rgb``), ``pw`` ``(32,)`` float32 the exponent table, ``idx`` ``(K,)`` int64,
+    ``lw`` ``(K, 3)`` float32 the lighting coefficients.
 
     A table ``(K·32, 4)`` float32 whose row ``32·k + exponent`` is ``pw[exponent] · lw[k]``
-    (lane 3 zero; the float32 products :func:`scatter_slabs` forms) replaces the exponent
+    (lane 3 zero; float32 products) replaces the exponent
     lookup and three multiplies per entry by one vector load. ``acc`` ``(G, 4)``
     float32, written (zeroed a tile at a time, just before the tile's entries are added; lane
     3 is 0) at grid cells ``c0 ≤ s < c1`` only (threads take disjoint ranges of one
@@ -185,7 +189,8 @@ _haar_pixel_rgb = _haar_pixel_intrinsic(3)
 
 
 @intrinsic
-def _haar_block_rgbx(typingctx, ll, lb, det, db, dy, dx, scale, out, ob, stride):  # pragma: no cover
+def _haar_block_rgbx(typingctx, ll, lb, det, db, dy, dx, scale, out, ob,
+                     stride):  # pragma: no cover - compiled
     """The 2 × 2 cells ``out[ob], out[ob+1], out[ob+stride], out[ob+stride+1]`` of a level
     stepped on both axes from one low-pass row and three detail rows (as
     :func:`_haar_pixel_intrinsic` with s_y, s_x = ±1, four cells per set of loads):
@@ -230,12 +235,13 @@ def _level_constants(h, w, step_theta, step_phi):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def inverse_haar_at_pixels(img, levels, pixel_pos, order, out, blocks, block_px):  # pragma: no cover
+def inverse_haar_at_pixels(img, levels, pixel_pos, order, out, blocks,
+                           block_px):  # pragma: no cover - compiled
     """Inverse non-standard 2-D Haar of ``img`` ``(H, W, 4)`` float32 (C-contiguous; read only),
     evaluated at the pixels: ``out`` ``(P, 3)`` float32 gets the grid cells ``pixel_pos``
     ``(P,)`` (``y·W + x``), visited in ``order`` (increasing grid index: the coefficients are
-    read forward). ``levels`` ``(n, 4)`` rows ``(h, w, step θ, step φ)``, finest first, as
-    :func:`haar_nonstandard_inverse` (the width playing θ).
+    read forward). ``levels`` ``(n, 4)`` rows ``(h, w, step θ, step φ)``, finest first, from
+    ``_compress_haar._nonstandard_levels(W, H)`` (the width playing θ).
 
     Every level at once per output cell: cell (y, x) of a level of size (h, w) is
     ``(LL[j, i] + s_y D[h/2 + j, i] + s_x (D[j, w/2 + i] + s_y D[h/2 + j, w/2 + i]))·√½^steps``
@@ -348,108 +354,16 @@ def _channel(code, c):  # pragma: no cover - compiled
     return np.float32(np.int32(code << np.uint32(23 - 9 * c)) >> np.int32(23))
 
 
-@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def scatter_slabs(ptr, n_seg, pos, code, pw, idx, lw, acc):  # pragma: no cover - compiled
-    """``acc[c, 65536·g + pos[e]] += value(code[e], c) · lw[k, c]`` for the entries ``e`` of
-    each selected light-coefficient slab ``j = idx[k]``, segment g
-    (``ptr[j·n_seg + g] ≤ e < ptr[j·n_seg + g + 1]``).
-
-    ``ptr`` ``(L·n_seg + 1,)`` int64, ``pos`` ``(n,)`` uint16 spatial coefficient index within
-    its segment of 65536,
-    ``code`` ``(n,)`` uint32 packed RGB (three 9-bit two's complement mantissas, a 5-bit
-    shared exponent: value = mantissa · ``pw[exponent]``), ``pw`` ``(32,)`` float32, ``idx``
-    ``(K,)`` int64, ``lw`` ``(K, 3)`` float32, ``acc`` ``(3, G)`` float32 (accumulated into).
-    Entries of a slab are sorted by ``pos``, so the scatter walks ``acc`` forward.
-    """
-    for k in range(idx.size):
-        j = idx[k]
-        x0 = lw[k, 0]
-        x1 = lw[k, 1]
-        x2 = lw[k, 2]
-        for e0 in range(j * n_seg, (j + 1) * n_seg):
-            off = (e0 - j * n_seg) << 16
-            for e in range(ptr[e0], ptr[e0 + 1]):
-                s = off + np.int64(pos[e])
-                v = code[e]
-                p = pw[v >> np.uint32(27)]
-                acc[0, s] += _channel(v, 0) * (p * x0)
-                acc[1, s] += _channel(v, 1) * (p * x1)
-                acc[2, s] += _channel(v, 2) * (p * x2)
-
-
-@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def haar_nonstandard_inverse(img, levels):  # pragma: no cover - compiled
-    """In-place inverse non-standard 2-D Haar transform of ``img`` ``(C, H, W)`` float32.
-
-    ``levels`` ``(n, 4)`` int64 rows ``(h, w, step θ, step φ)`` from
-    :func:`facegeo.lighting._compress_haar._nonstandard_levels` (the columns' axis is the image's
-    width here); the compiled twin of ``haar2d_nonstandard(..., inverse=True)``. The step along
-    the rows' axis combines whole rows (contiguous, vectorised) through a row buffer.
-    """
-    r = np.float32(np.sqrt(0.5))
-    n_c, n_h, n_w = img.shape
-    rows = np.empty((n_h, n_w), np.float32)
-    tmp = np.empty(n_w, np.float32)
-    for lev in range(levels.shape[0] - 1, -1, -1):
-        h = levels[lev, 0]
-        w = levels[lev, 1]
-        for c in range(n_c):
-            if levels[lev, 3]:  # undo the step along the rows' axis first (reverse order)
-                for i in range(h // 2):
-                    s = img[c, i, :w]
-                    d = img[c, h // 2 + i, :w]
-                    a = rows[2 * i, :w]
-                    b = rows[2 * i + 1, :w]
-                    for x in range(w):
-                        a[x] = (s[x] + d[x]) * r
-                        b[x] = (s[x] - d[x]) * r
-                for i in range(h):
-                    img[c, i, :w] = rows[i, :w]
-            if levels[lev, 2]:
-                for y in range(h):
-                    row = img[c, y]
-                    for i in range(w // 2):
-                        tmp[2 * i] = (row[i] + row[w // 2 + i]) * r
-                        tmp[2 * i + 1] = (row[i] - row[w // 2 + i]) * r
-                    row[:w] = tmp[:w]
-
-
 @njit(nogil=True, cache=True, boundscheck=False)
-def truncation_errors(ptr, n_seg, pos, code, pw, idx, lw, full):  # pragma: no cover
-    """Squared error ``‖full − Σ_{k' ≤ k} slab idx[k']‖²`` after each slab ``k`` of ``idx``.
+def truncation_errors_rgbx(ptr, n_seg, pos, code, pw, idx, lw,
+                           full):  # pragma: no cover - compiled
+    """Squared error ``‖full − Σ_{k' ≤ k} slab idx[k']‖²`` after each slab ``k`` of ``idx``
+    (the twin of ``_compress_image._truncation_errors``).
 
-    Same entries and weights as :func:`scatter_slabs`; ``full`` ``(3, G)`` float32 is the sum
-    over all of ``idx``. The residual is updated in place per entry (float64), so the error of
-    every prefix costs one pass over the entries. Returns ``(K,)`` float64.
-    """
-    d = full.astype(np.float64)
-    e2 = 0.0
-    for c in range(3):
-        for s in range(d.shape[1]):
-            e2 += d[c, s] * d[c, s]
-    out = np.empty(idx.size)
-    for k in range(idx.size):
-        j = idx[k]
-        for e0 in range(j * n_seg, (j + 1) * n_seg):
-            off = (e0 - j * n_seg) << 16
-            for e in range(ptr[e0], ptr[e0 + 1]):
-                s = off + np.int64(pos[e])
-                p = pw[code[e] >> np.uint32(27)]
-                for c in range(3):
-                    old = d[c, s]
-                    new = old - np.float64(_channel(code[e], c) * (p * lw[k, c]))
-                    e2 += new * new - old * old
-                    d[c, s] = new
-        out[k] = max(e2, 0.0)
-    return out
-
-
-@njit(nogil=True, cache=True, boundscheck=False)
-def truncation_errors_rgbx(ptr, n_seg, pos, code, pw, idx, lw, full):  # pragma: no cover
-    """:func:`truncation_errors` with ``full`` ``(G, 4)`` float32 interleaved (the sum of
-    :func:`scatter_rgbx` over all of ``idx``): the float64 residual interleaved too (one cache
-    line per entry instead of three) and the entries read through slices (no index
-    wraparound). Returns ``(K,)`` float64."""
+    Entries and weights as :func:`scatter_rgbx`; ``full`` ``(G, 4)`` float32 is its sum over
+    all of ``idx``. The residual (float64, interleaved: one cache line per entry) is updated in
+    place entry by entry, so the error of every prefix costs one pass over the entries; the
+    entries are read through slices (no index wraparound). Returns ``(K,)`` float64."""
     n = full.shape[0]
     d = np.empty((n, 4))
     e2 = 0.0
