@@ -419,9 +419,82 @@ def test_image_wavelet_threads_equal_one_thread(image_case, monkeypatch):
     f, pix, ws = image_case
     m = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
     monkeypatch.setattr(CI, "PARALLEL_ENTRIES", 0)  # split even this small field
+    ker = CI._kernels()
+    if ker is not None:  # the split counts: none below cell 0, all below G, half in between
+        idx = np.arange(m.n_theta * m.n_phi, dtype=np.int64)
+        g = m.grid[0] * m.grid[1]
+        below = ker.entries_below(m.ptr, m.segments, m.pos, idx, np.array([0, g // 2, g]))
+        assert below[0] == 0 and below[2] == m.pos.size
+        assert below[1] == sum(int(np.count_nonzero(m.pos[m.ptr[j]:m.ptr[j + 1]] < g // 2))
+                               for j in idx)
+        cuts = CI._cell_ranges(m, idx, 3, ker)
+        assert cuts[0] == 0 and cuts[-1] == g and len(cuts) == 4
     for k in (2, 40, 512):
         a = m.relight(ws["sun"], terms=k, workers=1)
         b = m.relight(ws["sun"], terms=k, workers=3)
         assert C.relative_rmse(b, a) <= 1e-6  # float32 summation order only
     with pytest.raises(InputError, match="workers"):
         m.relight(ws["sun"], workers=0)
+
+
+#: Compiled interleaved scatter vs the numpy reference: max |Δ| over max |acc| (float32 against
+#: float64 products and sums, then float32).
+SCATTER_RGBX = 1e-5
+#: Compiled inverse evaluated at the pixels vs numpy's full inverse (float64): max |Δ|
+#: over max |pixel| (float32 rounding through ≤ 2·log₂(size) steps).
+INVERSE_AT_PIXELS = 1e-5
+
+
+def test_scatter_rgbx_equals_the_numpy_scatter(image_case):
+    pytest.importorskip("numba")
+    from facegeo.lighting import _compress_image as CI
+    from facegeo.lighting import _compress_kernels as K
+
+    f, pix, ws = image_case
+    m = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
+    idx, lw = CI.selected_lighting_terms(m, ws["sun"], 40, None)
+    g = m.grid[0] * m.grid[1]
+    planar = np.zeros((3, g), np.float32)
+    CI._scatter(m, idx, lw, planar)  # the numpy reference (float64 products, then float32)
+    assert np.abs(planar).max() > 0
+    for tile in (g, 64, 16):  # one tile, and tiles that split every slab's entries
+        rgbx = np.full((g, 4), np.nan, np.float32)  # written, not accumulated into
+        K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw,
+                       rgbx, tile, 0, g)
+        assert np.abs(rgbx[:, :3].T - planar).max() <= SCATTER_RGBX * np.abs(planar).max()
+        assert not rgbx[:, 3].any()  # the pad lane stays zero
+    # a swapped channel order fails: the lanes are R, G, B
+    assert np.abs(rgbx[:, 2::-1].T - planar).max() > SCATTER_RGBX * np.abs(planar).max()
+
+
+@pytest.mark.parametrize("shape", [(1, 8), (8, 1), (2, 16), (16, 2), (4, 16), (16, 4),
+                                   (16, 16), (1, 1)])
+def test_inverse_haar_at_pixels_equals_the_full_inverse(shape):
+    pytest.importorskip("numba")
+    from facegeo.lighting._compress_haar import _nonstandard_levels, haar2d_nonstandard
+    from facegeo.lighting import _compress_kernels as K
+
+    h, w = shape
+    rng = np.random.default_rng(h * 31 + w)
+    coef = rng.normal(size=(h, w, 4)).astype(np.float32)
+    coef[..., 3] = 0
+    ref = haar2d_nonstandard(coef[..., :3].transpose(2, 0, 1).reshape(3, h * w).astype(np.float64),
+                             w, h, inverse=True).T  # (H·W, 3)
+    pixels = rng.permutation(h * w)[: max(1, h * w // 2)].astype(np.int32)
+    levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
+    img = coef.copy()
+    out = np.full((pixels.size, 3), np.nan, np.float32)
+    none = (np.zeros(0, np.int64), np.zeros((0, 4), np.int64))
+    K.inverse_haar_at_pixels(img, levels, pixels, np.argsort(pixels), out, *none)
+    assert np.array_equal(img, coef)  # the coefficients are read only
+    assert np.abs(out - ref[pixels]).max() <= INVERSE_AT_PIXELS * np.abs(ref).max()
+    if h > 1 and w > 1:  # the finest level by 2 × 2 blocks (the model's cached table)
+        from facegeo.lighting._compress_image import ImageWaveletField
+
+        f = ImageWaveletField(np.zeros(1, np.int64), 1, np.zeros(0, np.uint16),
+                              np.zeros(0, np.uint32), 0, pixels, 1, 1, (h, w), 0.0, 0.0)
+        blocks = f._finest_blocks
+        assert blocks[0].size < pixels.size  # some blocks hold several pixels
+        out[:] = np.nan
+        K.inverse_haar_at_pixels(img, levels, pixels, np.argsort(pixels), out, *blocks)
+        assert np.abs(out - ref[pixels]).max() <= INVERSE_AT_PIXELS * np.abs(ref).max()

@@ -114,12 +114,28 @@ def top_terms(wc: np.ndarray, k: int) -> np.ndarray:
     return sel[np.argsort(-mag[sel], kind="stable")]
 
 
+def top_terms_index_order(wc: np.ndarray, k: int) -> np.ndarray:
+    """The same set as :func:`top_terms` in increasing index (the stored slabs' order), without
+    sorting by magnitude: one partition and one pass, compiled when numba is installed
+    (measured 0.11 → ≈ 0.01 ms for L = 2048, a tenth of a compressed relight)."""
+    from facegeo.lighting.relight import _fused_kernel
+
+    if _fused_kernel():  # numba present
+        from facegeo.lighting._compress_kernels import top_k_index_order
+
+        return top_k_index_order(np.ascontiguousarray(wc, np.float64), int(k))
+    return np.sort(top_terms(wc, k))
+
+
 def selected_lighting_terms(model: Any, weights: Any, terms: int | None,
-                            target_error: float | None) -> tuple[np.ndarray, np.ndarray]:
+                            target_error: float | None, *,
+                            index_order: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The K largest lighting coefficients of a wavelet-lighting model (Ng et al. 2003's
     non-linear approximation): K = ``terms``, or from ``model.budget(weights, target_error)``,
     or (neither) every non-zero coefficient. Returns their indices ``(K,)`` int64 and values
-    ``(K, 3)`` float32, largest first. ``model`` has ``lighting_coefficients`` and ``budget``.
+    ``(K, 3)`` float32, largest first (``index_order=True``: the same K in increasing index,
+    for a sum whose order does not matter). ``model`` has ``lighting_coefficients`` and
+    ``budget``.
     """
     if terms is not None and target_error is not None:
         raise InputError("relight: give terms or target_error, not both")
@@ -133,5 +149,6 @@ def selected_lighting_terms(model: Any, weights: Any, terms: int | None,
             raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
     else:
         k = max(1, int(np.count_nonzero(np.abs(wc).sum(axis=1))))
-    idx = np.ascontiguousarray(top_terms(wc, k), np.int64)
+    pick = top_terms_index_order if index_order else top_terms
+    idx = np.ascontiguousarray(pick(wc, k), np.int64)
     return idx, np.ascontiguousarray(wc[idx], np.float32)

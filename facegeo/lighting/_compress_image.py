@@ -20,6 +20,7 @@ the end: the sum runs in the compressed domain and touches only the K slabs' sto
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 from typing import Any
@@ -46,6 +47,10 @@ THRESHOLD_BINS_PER_OCTAVE = 32
 #: Entries to scatter below which a relight stays on one thread (a thread hand-off costs
 #: ≈ 0.1 ms, ≈ 30,000 entries' work).
 PARALLEL_ENTRIES = 100_000
+
+#: Grid cells per tile of the compiled scatter (its accumulator tile is 16 bytes a cell: 256 KB,
+#: half this machine's per-core L2; 8192–32768 measured within noise of each other).
+SCATTER_TILE = 16384
 
 #: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · grid float32).
 SLAB_CHUNK = 32
@@ -147,6 +152,61 @@ class ImageWaveletField:
     kept_fraction: float
     field_error: float
 
+    def _relight_one_call(self, ker: Any, weights: Any, terms: int | None) -> np.ndarray:
+        """:meth:`relight` on one thread with K = ``terms`` (or every non-zero term) as one
+        compiled call (:func:`_compress_kernels.relight_one_thread`)."""
+        n_l = self.n_theta * self.n_phi
+        wts = as_array(weights, "weights", shape=(n_l, 3))
+        k = 0
+        if terms is not None:
+            k = int(terms)
+            if not 1 <= k <= n_l:
+                raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
+        h, w = self.grid
+        acc = np.empty((h * w, 4), np.float32)
+        out = np.empty((self.n_pixels, 3), np.float32)
+        ker.relight_one_thread(np.ascontiguousarray(wts, np.float64), self._light_levels,
+                               self.n_theta, self.n_phi, k, self.ptr, self.segments, self.pos,
+                               self.code, self._exponents, acc, h, w, SCATTER_TILE,
+                               self._levels, self.pixel_pos, self._grid_order,
+                               *self._finest_blocks, out)
+        return out
+
+    @functools.cached_property
+    def _light_levels(self) -> np.ndarray:
+        """The light grid's non-standard Haar levels ``(n, 4)`` int64 (derived, cached)."""
+        return np.array(_nonstandard_levels(self.n_theta, self.n_phi), np.int64).reshape(-1, 4)
+
+    @functools.cached_property
+    def _exponents(self) -> np.ndarray:
+        """:func:`exponent_table` of :attr:`base` (derived, cached)."""
+        return exponent_table(self.base)
+
+    @functools.cached_property
+    def _grid_order(self) -> np.ndarray:
+        """Field rows by increasing grid index (derived, cached)."""
+        return np.argsort(self.pixel_pos, kind="stable")
+
+    @functools.cached_property
+    def _finest_blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grid's 2 × 2 blocks holding pixels ``(n,)`` int64 (index ``(y/2)·(W/2) + x/2``)
+        and the field row in each of their cells ``(n, 4)`` int64 (slot ``2·(y mod 2) + x mod
+        2``, −1 for none); empty when a grid axis has size 1 (derived, cached)."""
+        h, w = self.grid
+        if h < 2 or w < 2:
+            return np.zeros(0, np.int64), np.zeros((0, 4), np.int64)
+        y, x = np.divmod(self.pixel_pos.astype(np.int64), w)
+        blocks, which = np.unique((y >> 1) * (w // 2) + (x >> 1), return_inverse=True)
+        block_px = np.full((blocks.size, 4), -1, np.int64)
+        block_px[which.ravel(), 2 * (y & 1) + (x & 1)] = np.arange(self.n_pixels)
+        return blocks, block_px
+
+    @functools.cached_property
+    def _levels(self) -> np.ndarray:
+        """The spatial transform's levels ``(n, 4)`` int64 (derived, cached)."""
+        h, w = self.grid
+        return np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
+
     @property
     def n_pixels(self) -> int:
         return int(self.pixel_pos.size)
@@ -183,9 +243,19 @@ class ImageWaveletField:
         if order.size == 0:
             return 1, 0.0
         lw = np.ascontiguousarray(wc[order], np.float32)
-        full = np.zeros((3, self.grid[0] * self.grid[1]), np.float32)
-        _scatter(self, order, lw, full)
-        e2 = _truncation_errors(self, order, lw, full)
+        g = self.grid[0] * self.grid[1]
+        ker = _kernels()
+        if ker is not None:  # interleaved: the relight's scatter, then the prefix errors
+            full = np.empty((g, 4), np.float32)
+            pw = exponent_table(self.base)
+            ker.scatter_rgbx(self.ptr, self.segments, self.pos, self.code, pw, order, lw, full,
+                             SCATTER_TILE, 0, g)
+            e2 = ker.truncation_errors_rgbx(self.ptr, self.segments, self.pos, self.code, pw,
+                                            order, lw, full)
+        else:
+            full = np.zeros((3, g), np.float32)
+            _scatter(self, order, lw, full)
+            e2 = _truncation_errors(self, order, lw, full)
         norm2 = max(float((full.astype(np.float64) ** 2).sum()), 1e-300)
         ok = np.flatnonzero(e2 <= t * t * norm2)
         k = int(ok[0]) if ok.size else order.size - 1
@@ -205,35 +275,95 @@ class ImageWaveletField:
             Instead of ``terms``: K from :meth:`budget`. Neither: every non-zero lighting
             coefficient (the compressed transport's own error only).
         workers : int
-            Threads for the scatter: the K slabs split in parts of equal entry counts, one
-            accumulator each, summed. Default 1: a relight takes milliseconds, and on the
-            loaded shared machine the thread hand-offs cost more than they save (measured at
-            load ≈ 8.6, 240 × 360 field: 12 ms on 2 threads against 3–10 ms on one).
+            Threads for the scatter: compiled, each thread takes a range of grid cells holding
+            about an equal share of the entries (one accumulator, disjoint cells); numpy, the
+            K slabs split in parts, one accumulator each, summed. Default 1: a relight takes
+            about a millisecond, and on the loaded shared machine a thread hand-off can cost
+            as much.
         """
 
         if int(workers) < 1:
             raise InputError(f"workers: expected ≥ 1, got {fmt_value(workers)}")
-        idx, lw = selected_lighting_terms(self, weights, terms, target_error)
         h, w = self.grid
-        acc = np.zeros((3, h * w), np.float32)
-        n = self.segments
-        counts = self.ptr[(idx + 1) * n] - self.ptr[idx * n]
-        if int(workers) > 1 and idx.size > 1 and counts.sum() >= PARALLEL_ENTRIES:
-            from concurrent.futures import ThreadPoolExecutor
-
-            cum = np.cumsum(counts)
-            cuts = np.searchsorted(cum, cum[-1] * np.arange(1, workers) / workers)
-            parts = np.split(np.arange(idx.size), np.unique(np.clip(cuts + 1, 1, idx.size - 1)))
-            accs = [acc] + [np.zeros_like(acc) for _ in parts[1:]]
-            with ThreadPoolExecutor(max_workers=len(parts)) as pool:  # nogil kernels
-                list(pool.map(lambda i: _scatter(self, idx[parts[i]], lw[parts[i]], accs[i]),
-                              range(len(parts))))
-            for a in accs[1:]:
-                acc += a
+        ker = _kernels()
+        if ker is not None and int(workers) == 1 and target_error is None:
+            return self._relight_one_call(ker, weights, terms)
+        idx, lw = selected_lighting_terms(self, weights, terms, target_error, index_order=True)
+        if ker is None:  # numpy reference: planar accumulator, full inverse, pixel gather
+            acc = _scatter_in_parts(self, idx, lw, (3, h * w), _scatter, int(workers))
+            img = _inverse_spatial(acc.reshape(3, h, w))
+            return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
+        acc = np.empty((h * w, 4), np.float32)  # the scatter zeroes each tile it fills
+        args = (self.ptr, self.segments, self.pos, self.code, exponent_table(self.base), idx, lw,
+                acc, SCATTER_TILE)
+        cuts = _cell_ranges(self, idx, int(workers), ker)
+        if len(cuts) > 2:  # threads scatter into disjoint cell ranges of the one accumulator
+            list(_pool(len(cuts) - 1).map(lambda i: ker.scatter_rgbx(*args, cuts[i], cuts[i + 1]),
+                                          range(len(cuts) - 1)))
         else:
-            _scatter(self, idx, lw, acc)
-        img = _inverse_spatial(acc.reshape(3, h, w))
-        return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
+            ker.scatter_rgbx(*args, 0, h * w)
+        out = np.empty((self.n_pixels, 3), np.float32)
+        ker.inverse_haar_at_pixels(acc.reshape(h, w, 4), self._levels, self.pixel_pos,
+                                   self._grid_order, out, *self._finest_blocks)
+        return out
+
+
+def _scatter_in_parts(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, shape: tuple,
+                      scatter: Any, workers: int) -> np.ndarray:
+    """Zeroed accumulator of ``shape`` with ``scatter(f, idx, lw, acc)`` added; with ``workers``
+    > 1 and enough entries, the K slabs split in parts of equal entry counts, one accumulator
+    per thread, summed."""
+    acc = np.zeros(shape, np.float32)
+    n = f.segments
+    counts = f.ptr[(idx + 1) * n] - f.ptr[idx * n]
+    if workers > 1 and idx.size > 1 and counts.sum() >= PARALLEL_ENTRIES:
+        from concurrent.futures import ThreadPoolExecutor
+
+        cum = np.cumsum(counts)
+        cuts = np.searchsorted(cum, cum[-1] * np.arange(1, workers) / workers)
+        parts = np.split(np.arange(idx.size), np.unique(np.clip(cuts + 1, 1, idx.size - 1)))
+        accs = [acc] + [np.zeros_like(acc) for _ in parts[1:]]
+        with ThreadPoolExecutor(max_workers=len(parts)) as pool:  # nogil kernels
+            list(pool.map(lambda i: scatter(f, idx[parts[i]], lw[parts[i]], accs[i]),
+                          range(len(parts))))
+        for a in accs[1:]:
+            acc += a
+    else:
+        scatter(f, idx, lw, acc)
+    return acc
+
+
+#: Candidate split cells per thread when a compiled relight runs on several threads.
+SPLIT_CANDIDATES = 8
+
+_POOLS: dict = {}
+
+
+def _pool(n: int):
+    """A persistent pool of ``n`` threads for the compiled relight (creating one per call costs
+    ≈ 0.1–0.2 ms, a sixth of a relight)."""
+    if n not in _POOLS:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOLS[n] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="facegeo-compress")
+    return _POOLS[n]
+
+
+def _cell_ranges(f: ImageWaveletField, idx: np.ndarray, workers: int, ker: Any) -> list[int]:
+    """Grid-cell bounds ``[0, …, G]`` splitting the selected entries into ``workers`` parts of
+    about equal count (cuts on a grid of :data:`SPLIT_CANDIDATES` · workers cells), or
+    ``[0, G]`` for one thread or fewer than :data:`PARALLEL_ENTRIES` entries."""
+    g = f.grid[0] * f.grid[1]
+    n = f.segments
+    total = int((f.ptr[(idx + 1) * n] - f.ptr[idx * n]).sum())
+    if workers <= 1 or total < PARALLEL_ENTRIES:
+        return [0, g]
+    cells = np.unique(np.linspace(0, g, SPLIT_CANDIDATES * workers + 1).astype(np.int64))
+    if cells.size < 3:
+        return [0, g]
+    below = ker.entries_below(f.ptr, f.segments, f.pos, idx, cells)
+    at = np.searchsorted(below, total * np.arange(1, workers) / workers)
+    return [0] + sorted({int(c) for c in cells[np.clip(at, 1, cells.size - 2)]}) + [g]
 
 
 def _kernels():
@@ -249,17 +379,13 @@ def _kernels():
 
 
 def _scatter(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, acc: np.ndarray) -> None:
-    """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx``."""
-    ker = _kernels()
-    if ker is not None:
-        ker.scatter_slabs(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base), idx, lw,
-                          acc)
-        return
+    """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx`` (numpy
+    reference of :func:`_compress_kernels.scatter_rgbx`: one weighted histogram per channel)."""
     sel, p = _slab_entries(f, idx)
     rep = np.repeat(np.arange(idx.size),
                     f.ptr[(idx + 1) * f.segments] - f.ptr[idx * f.segments])
     val = decode_rgb(f.code[sel], f.base)
-    for c in range(3):  # numpy reference: one weighted histogram per channel
+    for c in range(3):
         acc[c] += np.bincount(p,
                               weights=val[:, c].astype(np.float64) * lw[rep, c],
                               minlength=acc.shape[1]).astype(np.float32)
@@ -278,14 +404,11 @@ def _slab_entries(f: ImageWaveletField, idx: np.ndarray) -> tuple[np.ndarray, np
 
 def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
                        full: np.ndarray) -> np.ndarray:
-    """``‖full − Σ_{k' ≤ k} slab_k'‖²`` for every prefix k of ``idx`` (``(K,)`` float64)."""
-    ker = _kernels()
-    if ker is not None:
-        return ker.truncation_errors(f.ptr, f.segments, f.pos, f.code, exponent_table(f.base),
-                                     idx, lw, full)
+    """``‖full − Σ_{k' ≤ k} slab_k'‖²`` for every prefix k of ``idx`` (``(K,)`` float64; numpy
+    reference of :func:`_compress_kernels.truncation_errors_rgbx`, one slab at a time)."""
     d = full.astype(np.float64)
     out = np.empty(idx.size)
-    for k, j in enumerate(idx):  # numpy reference: one slab at a time
+    for k, j in enumerate(idx):
         sel, p = _slab_entries(f, np.array([j]))
         d[:, p] -= (decode_rgb(f.code[sel], f.base) * lw[k]).T.astype(np.float64)
         out[k] = (d ** 2).sum()
@@ -293,14 +416,9 @@ def _truncation_errors(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray,
 
 
 def _inverse_spatial(img: np.ndarray) -> np.ndarray:
-    """Inverse non-standard 2-D Haar of ``(3, H, W)`` float32 spatial coefficients, in place."""
-
+    """Inverse non-standard 2-D Haar of ``(3, H, W)`` float32 spatial coefficients (numpy
+    reference of :func:`_compress_kernels.inverse_haar_at_pixels`)."""
     h, w = img.shape[1:]
-    ker = _kernels()
-    if ker is not None:
-        levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
-        ker.haar_nonstandard_inverse(img, levels)
-        return img
     return haar2d_nonstandard(img.reshape(3, h * w), w, h, inverse=True).astype(np.float32)
 
 
