@@ -29,7 +29,8 @@ from facegeo.appearance._skin_model import (
     ramp_f,
 )
 from facegeo.appearance.brdf import fresnel_dielectric, torrance_sparrow_geometry
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
+from facegeo.errors import InputError
 
 #: Functions whose specular energy is below this fraction of their total energy skip the
 #: specular resynthesis (their specular part is dropped and flagged).
@@ -305,7 +306,8 @@ def _resynthesize_numpy(fit, vn, flags, same, back, todo, specular_skip) -> Resy
                        S_new.astype(np.float32), flags)
 
 
-def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKIP) -> np.ndarray:
+def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKIP,
+                       lobe_tol: float = 0.0) -> np.ndarray:
     """Relit radiance of the functions resynthesised for v_n: Eq. 4 on :func:`resynthesize`.
 
     ``out[i] = Σ_l w_l ⊙ R_new,i(l)`` (Debevec et al. 2000, Eq. 4, with the δA_l inside the
@@ -319,11 +321,24 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     in float64 (the reference rounds each to float32 first), a relative difference of order
     1e-7.
 
+    Work skipped without changing the result: lights whose diffuse sample is 0 (below the
+    horizon, shadowed) skip the chroma shift; per function, Eq. 9's interpolation, G and F
+    run only where the source direction l_q can reach a node with a non-zero microfacet value
+    (a cone around the lobe, :func:`_skin_resynth_kernels._lobe_cone`, light-stage grid only).
+
+    Speed against accuracy (``lobe_tol > 0``, not the paper): nodes whose microfacet value is
+    at most ``lobe_tol`` of the function's largest count as zero for that cone, so the
+    specular work is confined to the lobe. Each dropped specular sample is at most
+    ``lobe_tol`` times the lobe's peak microfacet value times G F/(n·v_n) (G, F ≤ 1); with
+    float16 fields the nodes far from the lobe hold storage rounding, not signal.
+
     Parameters
     ----------
     fit : SkinFit
     v_n : (3,) or (N, 3) array_like, unit, the light set's frame
     weights : (L, C) array_like — per-light, per-channel weights in the field's units
+    lobe_tol : float in [0, 1) — see above; 0 (default) gives the exact result. Ignored by the
+        numpy reference (``KERNELS = False``) and for free light lists.
 
     Returns
     -------
@@ -331,6 +346,9 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     """
     N, L, C = fit.diffuse.shape
     w = as_array(weights, "weights", shape=(L, C))
+    tol = float(lobe_tol)
+    if not 0.0 <= tol < 1.0:
+        raise InputError(f"lobe_tol: expected a fraction in [0, 1), got {fmt_value(lobe_tol)}")
     if not KERNELS or fit.single_channel or C != 3:
         r = resynthesize(fit, v_n, specular_skip=specular_skip)
         return np.einsum("nlc,lc->nc", r.reflectance, w)
@@ -343,7 +361,18 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
 
     active = np.flatnonzero(np.any(w != 0, axis=1)).astype(np.int64)
     return resynth_relit(*_kernel_args(fit, vn, same, back, specular_skip), active,
-                         np.ascontiguousarray(w[active]))
+                         np.ascontiguousarray(w[active]), tol, _cone_margin(fit.lights))
+
+
+def _cone_margin(lights) -> float:
+    """The largest angle (radians) between a direction and the nodes its interpolation on the
+    light set reads: ``2π/n_θ + π/n_φ`` on the grid (a path along the meridian, then the
+    parallel, within one cell); 4 (> π: no cone) for a free light list, whose 3 nearest
+    lights can be arbitrarily far."""
+    if lights.grid is None:
+        return 4.0
+    nt, npf = lights.grid
+    return 2.0 * np.pi / nt + np.pi / npf
 
 
 def view_independent(fit, *, specular_skip: float = SPECULAR_SKIP):
@@ -355,3 +384,64 @@ def view_independent(fit, *, specular_skip: float = SPECULAR_SKIP):
     r = resynthesize(fit, fit.normal, specular_skip=specular_skip)
     return replace(fit, view=fit.normal.copy(), diffuse=r.diffuse, specular=r.specular,
                    flags=r.flags)
+
+
+def coarsen_light_grid(fit, weights, step: int):
+    """The fit and Eq. (4) weights on a light-stage grid ``step`` times coarser per axis.
+
+    A speed/accuracy option for relighting resynthesised functions (not the paper): each
+    ``step × step`` block of the ``(n_θ, n_φ)`` grid becomes one light of the
+    ``(n_θ/step, n_φ/step)`` grid (:meth:`LightSet.from_grid`'s node at the block's centre).
+    The functions' samples are averaged over the block with the δA_l weights, the lights'
+    solid angles summed, their intensities δA-averaged, the occlusion maps taken by majority
+    (δA-weighted share > 1/2), and the weights summed, so that Eq. (4) on the coarse grid,
+    ``Σ_blocks (Σ_l w_l) ⊙ R̄_block``, is the midpoint rule of the fine grid's
+    ``Σ_l w_l ⊙ R_l`` — exact for functions constant over a block. Resynthesis (§4.3 Eq. 9)
+    on the coarse grid then costs ``step²`` times less; its error (the lobe interpolated on a
+    coarser grid, the chroma shift of block means) is measured in ``facegeo bench
+    render.novel_view_paper``.
+
+    Parameters
+    ----------
+    fit : SkinFit — on a light-stage grid (``fit.lights.grid`` not None)
+    weights : (L, C) array_like — Eq. (4) weights, δA included
+    step : int ≥ 1 — dividing both n_θ and n_φ; 1 returns the inputs unchanged
+
+    Returns
+    -------
+    fit : SkinFit on the coarse light set (diffuse, specular float32)
+    weights : (L / step², C) float64
+    """
+    L, C = fit.diffuse.shape[1:]
+    w = as_array(weights, "weights", shape=(L, C))
+    k = int(step)
+    if k != step or k < 1:
+        raise InputError(f"step: expected an integer >= 1, got {fmt_value(step)}")
+    if k == 1:
+        return fit, w
+    lights = fit.lights
+    if lights.grid is None:
+        raise InputError("step: coarsening needs the light-stage grid; this fit's lights are a "
+                         "free list (use step=1)")
+    nt, npf = lights.grid
+    if nt % k or npf % k:
+        raise InputError(f"step: {k} must divide the light grid's n_theta={nt} and "
+                         f"n_phi={npf}")
+    mt, mp = nt // k, npf // k
+    sa = lights.solid_angles.reshape(mp, k, mt, k)
+    sa_c = sa.sum(axis=(1, 3))
+    share = (sa / sa_c[:, None, :, None]).astype(np.float32)
+
+    def block_mean(a):  # (n, L, ...) → (n, L / k², ...), δA-weighted
+        b = np.asarray(a, np.float32).reshape((a.shape[0], mp, k, mt, k) + a.shape[2:])
+        s = share.reshape((1, mp, k, mt, k) + (1,) * (a.ndim - 2))
+        return (b * s).sum(axis=(2, 4)).reshape((a.shape[0], mp * mt) + a.shape[2:])
+
+    coarse = LightSet.from_grid(mt, mp)
+    E = block_mean(lights.intensities[None])[0].astype(np.float64)
+    coarse = LightSet(coarse.directions, sa_c.ravel(), E, (mt, mp))
+    maps = {name: block_mean(getattr(fit, name)) > 0.5
+            for name in ("shadow", "cast_shadow", "saturated")}
+    w_c = w.reshape(mp, k, mt, k, C).sum(axis=(1, 3)).reshape(mp * mt, C)
+    return replace(fit, lights=coarse, diffuse=block_mean(fit.diffuse),
+                   specular=block_mean(fit.specular), **maps), w_c

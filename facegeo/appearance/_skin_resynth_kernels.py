@@ -180,6 +180,41 @@ def _prepare(i, D, S, iE, dirs, sa, nrm, v0, eta2m1, skip, micro):
     return True
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _lobe_cone(micro, dirs, tol, delta):
+    """The cone of source directions outside which Eq. 9's interpolated lobe is negligible.
+
+    Nodes whose microfacet value ``|micro[l]|`` exceeds ``tol · max|micro|`` (``tol = 0``: every
+    non-zero node) lie within angle β of the axis (the node of the largest value); a direction
+    l_q farther than β + ``delta`` from the axis (``delta`` ≥ the largest angle between a
+    point of a grid cell and the cell's interpolation nodes) interpolates only nodes at or
+    below ``tol · max|micro|``. Returns the axis and ``cos(β + delta)`` (−2: no cone, every
+    direction inside).
+    """
+    L = dirs.shape[0]
+    big = 0.0
+    k = -1
+    for j in range(L):
+        a = abs(micro[j])
+        if a > big:
+            big = a
+            k = j
+    if k < 0:
+        return 0.0, 0.0, 1.0, 2.0  # no lobe anywhere: every direction outside
+    ax, ay, az = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+    lim = tol * big
+    cmin = 1.0
+    for j in range(L):
+        if abs(micro[j]) > lim:
+            c = ax * dirs[j, 0] + ay * dirs[j, 1] + az * dirs[j, 2]
+            if c < cmin:
+                cmin = c
+    beta = math.acos(min(max(cmin, -1.0), 1.0)) + delta
+    if beta >= math.pi:
+        return ax, ay, az, -2.0
+    return ax, ay, az, math.cos(beta)
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
 def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, ie_r, ie_g, ie_b, f0, fn):
     """Diffuse sample chroma-shifted from v_0 to v_n (``resynthesize_diffuse``): ``c`` the
@@ -207,12 +242,13 @@ def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, ie_r, ie_g, ie_b, f0, fn):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
-def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, inv_nvn):
+def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, inv_nvn, cone):
     """Eq. 9's white-balanced specular sample for light ``j`` (``resynthesize_specular``) and
     whether it came from a shadowed source direction (lit l_p, l_q in shadow). Zero where l_p
     is occluded or below the horizon, H is undefined, n·H ≤ 0 or l_q is below the horizon;
     the caller has checked n·v_0 > 0 and n·v_n > 0 and passes n·v_n and
-    ``1/max(n·v_n, COS_FLOOR)``."""
+    ``1/max(n·v_n, COS_FLOOR)``. ``cone`` (:func:`_lobe_cone`): an l_q outside it gives 0
+    (and False) without the interpolation, G and F."""
     if cast[i, j]:
         return 0.0, False
     nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
@@ -236,6 +272,8 @@ def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, 
                           nx, ny, nz)
     nlq = qx * nx + qy * ny + qz * nz
     if not nlq > 0.0:
+        return 0.0, False
+    if qx * cone[0] + qy * cone[1] + qz * cone[2] < cone[3]:
         return 0.0, False
     if grid:
         m_q, sh_q = _grid_interp(micro, cast[i], nt, npf, qx, qy, qz)
@@ -271,17 +309,21 @@ def _view_cosines(i, nrm, v0, vn, do_spec):
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
 def _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro, nv0, nvn, lobe, inv_nvn,
-            grid, nt, npf, e2):
+            grid, nt, npf, e2, cone):
     """Light ``j`` of function ``i`` resynthesised: the diffuse RGB sample (input units), the
     white-balanced Eq. 9 specular sample and whether it came from a shadowed source direction."""
-    nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
-    f0 = _ramp_f(nl, nv0, a0[i], a1[i])
-    fn = _ramp_f(nl, nvn, a0[i], a1[i])
-    dr, dg, db = _diffuse(D[i, j, 0], D[i, j, 1], D[i, j, 2], E[j, 0], E[j, 1], E[j, 2],
-                          iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
+    d_r, d_g, d_b = D[i, j, 0], D[i, j, 1], D[i, j, 2]
+    if d_r == 0.0 and d_g == 0.0 and d_b == 0.0:
+        dr = dg = db = 0.0  # what _diffuse gives for a zero sample (brightness 0), exactly
+    else:
+        nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
+        f0 = _ramp_f(nl, nv0, a0[i], a1[i])
+        fn = _ramp_f(nl, nvn, a0[i], a1[i])
+        dr, dg, db = _diffuse(d_r, d_g, d_b, E[j, 0], E[j, 1], E[j, 2],
+                              iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
     if lobe:
         sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
-                            inv_nvn)
+                            inv_nvn, cone)
         return dr, dg, db, sw, hid
     return dr, dg, db, 0.0, False
 
@@ -312,6 +354,7 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
     flags = np.zeros(N, np.int32)
     e2 = eta * eta - 1.0
     iE = 1.0 / E
+    no_cone = (0.0, 0.0, 1.0, -2.0)  # the full functions keep every sample and flag
     for i in prange(N):
         if same[i] or back[i]:
             for j in range(L):
@@ -333,7 +376,7 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
         hidden = False
         for j in range(L):
             dr, dg, db, sw, hid = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
-                                          nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2)
+                                          nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2, no_cone)
             hidden |= hid
             sr, sg, sb = sw * E[j, 0], sw * E[j, 1], sw * E[j, 2]
             diff[i, j, 0], diff[i, j, 1], diff[i, j, 2] = dr, dg, db
@@ -346,14 +389,16 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
-                  nt, npf, eta, skip, active, w):
+                  nt, npf, eta, skip, active, w, lobe_tol, delta):
     """Eq. 4 on the resynthesised functions without building them: per function
     ``Σ_k w[k] ⊙ R_new(l = active[k])`` over the lights that carry energy.
 
     Parameters as :func:`resynth_full`, plus ``active`` (A,) int64 light indices and ``w``
-    (A, 3) float64 their weights (δA included). Returns (N, 3) float64, 0 for back-facing
-    functions. The new samples are summed in float64 (the reference rounds them to float32
-    first).
+    (A, 3) float64 their weights (δA included), ``lobe_tol`` and ``delta`` of
+    :func:`_lobe_cone` (per function, Eq. 9's interpolation, G and F run only for l_q inside
+    its lobe's cone; ``lobe_tol = 0`` skips only samples that are exactly 0, so the result is
+    unchanged). Returns (N, 3) float64, 0 for back-facing functions. The new samples are
+    summed in float64 (the reference rounds them to float32 first).
     """
     N = D.shape[0]
     L = dirs.shape[0]
@@ -373,11 +418,12 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
         micro = np.empty(L)
         do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
         nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
+        cone = _lobe_cone(micro, dirs, lobe_tol, delta) if lobe else (0.0, 0.0, 1.0, 2.0)
         acc_r = acc_g = acc_b = 0.0
         for k in range(A):
             j = active[k]
             dr, dg, db, sw, _ = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
-                                        nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2)
+                                        nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2, cone)
             acc_r += w[k, 0] * (dr + sw * E[j, 0])
             acc_g += w[k, 1] * (dg + sw * E[j, 1])
             acc_b += w[k, 2] * (db + sw * E[j, 2])
