@@ -242,17 +242,19 @@ def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, ie_r, ie_g, ie_b, f0, fn):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
-def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, inv_nvn, cone):
+def _specular(i, j, nrm, v0, vn, lp_dirs, lp_cast, dirs, cast, micro, grid, nt, npf, eta2m1, nvn,
+              inv_nvn, cone):
     """Eq. 9's white-balanced specular sample for light ``j`` (``resynthesize_specular``) and
     whether it came from a shadowed source direction (lit l_p, l_q in shadow). Zero where l_p
     is occluded or below the horizon, H is undefined, n·H ≤ 0 or l_q is below the horizon;
     the caller has checked n·v_0 > 0 and n·v_n > 0 and passes n·v_n and
     ``1/max(n·v_n, COS_FLOOR)``. ``cone`` (:func:`_lobe_cone`): an l_q outside it gives 0
-    (and False) without the interpolation, G and F."""
-    if cast[i, j]:
+    (and False) without the interpolation, G and F. l_p is ``lp_dirs[j]``, occluded where
+    ``lp_cast[i, j]``; the measured lobe (``micro``, ``cast[i]``) lives on ``dirs``."""
+    if lp_cast[i, j]:
         return 0.0, False
     nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
-    lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+    lx, ly, lz = lp_dirs[j, 0], lp_dirs[j, 1], lp_dirs[j, 2]
     nlp = nx * lx + ny * ly + nz * lz
     if not nlp > 0.0:
         return 0.0, False
@@ -309,9 +311,12 @@ def _view_cosines(i, nrm, v0, vn, do_spec):
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
 def _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro, nv0, nvn, lobe, inv_nvn,
-            grid, nt, npf, e2, cone):
-    """Light ``j`` of function ``i`` resynthesised: the diffuse RGB sample (input units), the
-    white-balanced Eq. 9 specular sample and whether it came from a shadowed source direction."""
+            grid, nt, npf, e2, cone, src_dirs, src_cast):
+    """Output light ``j`` of function ``i`` resynthesised: the diffuse RGB sample (input units),
+    the white-balanced Eq. 9 specular sample and whether it came from a shadowed source
+    direction. ``D, E, iE, dirs, cast`` describe the output lights; the measured lobe
+    (``micro``, ``src_cast[i]``) lives on ``src_dirs`` (the same arrays when the output
+    lights are the measured ones)."""
     d_r, d_g, d_b = D[i, j, 0], D[i, j, 1], D[i, j, 2]
     if d_r == 0.0 and d_g == 0.0 and d_b == 0.0:
         dr = dg = db = 0.0  # what _diffuse gives for a zero sample (brightness 0), exactly
@@ -322,8 +327,8 @@ def _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro, nv0, nvn, lo
         dr, dg, db = _diffuse(d_r, d_g, d_b, E[j, 0], E[j, 1], E[j, 2],
                               iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
     if lobe:
-        sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
-                            inv_nvn, cone)
+        sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, src_dirs, src_cast, micro, grid, nt,
+                            npf, e2, nvn, inv_nvn, cone)
         return dr, dg, db, sw, hid
     return dr, dg, db, 0.0, False
 
@@ -376,7 +381,8 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
         hidden = False
         for j in range(L):
             dr, dg, db, sw, hid = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
-                                          nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2, no_cone)
+                                          nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2, no_cone,
+                                          dirs, cast)
             hidden |= hid
             sr, sg, sb = sw * E[j, 0], sw * E[j, 1], sw * E[j, 2]
             diff[i, j, 0], diff[i, j, 1], diff[i, j, 2] = dr, dg, db
@@ -389,16 +395,22 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
-                  nt, npf, eta, skip, active, w, lobe_tol, delta):
+                  nt, npf, eta, skip, Dq, Eq, dq, castq, active, w, lobe_tol, delta):
     """Eq. 4 on the resynthesised functions without building them: per function
-    ``Σ_k w[k] ⊙ R_new(l = active[k])`` over the lights that carry energy.
+    ``Σ_k w[k] ⊙ R_new(l = output light active[k])``.
 
-    Parameters as :func:`resynth_full`, plus ``active`` (A,) int64 light indices and ``w``
-    (A, 3) float64 their weights (δA included), ``lobe_tol`` and ``delta`` of
-    :func:`_lobe_cone` (per function, Eq. 9's interpolation, G and F run only for l_q inside
-    its lobe's cone; ``lobe_tol = 0`` skips only samples that are exactly 0, so the result is
-    unchanged). Returns (N, 3) float64, 0 for back-facing functions. The new samples are
-    summed in float64 (the reference rounds them to float32 first).
+    Parameters as :func:`resynth_full` for the measured functions (the lobe Eq. 9
+    interpolates lives on ``dirs``), plus the output lights where the new function is
+    evaluated: ``Dq`` (N, Q, 3) their diffuse samples, ``Eq`` (Q, 3) intensities, ``dq``
+    (Q, 3) unit directions, ``castq`` (N, Q) bool occlusion — the measured arrays themselves
+    (``D, E, dirs, cast``) for the exact relighting, or per-block summaries
+    (:func:`block_outputs`); ``active`` (A,) int64 the output lights visited and ``w`` (A, 3)
+    float64 their weights (δA included); ``lobe_tol`` and ``delta`` of :func:`_lobe_cone`
+    (``lobe_tol < 0``: no cone; ``lobe_tol = 0`` skips only samples that are exactly 0).
+
+    Returns (N, 3) float64: 0 for back-facing functions and for ``same`` (the caller relights
+    the measured function there). The new samples are summed in float64 (the reference
+    rounds them to float32 first).
     """
     N = D.shape[0]
     L = dirs.shape[0]
@@ -406,26 +418,53 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
     out = np.zeros((N, 3))
     e2 = eta * eta - 1.0
     iE = 1.0 / E
+    iEq = 1.0 / Eq
     for i in prange(N):
-        if back[i]:
-            continue
-        if same[i]:
-            for k in range(A):
-                j = active[k]
-                for c in range(3):
-                    out[i, c] += w[k, c] * (np.float64(D[i, j, c]) + np.float64(S[i, j, c]))
+        if back[i] or same[i]:
             continue
         micro = np.empty(L)
         do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
         nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
-        cone = _lobe_cone(micro, dirs, lobe_tol, delta) if lobe else (0.0, 0.0, 1.0, 2.0)
+        cone = (0.0, 0.0, 1.0, -2.0)
+        if lobe and lobe_tol >= 0.0:
+            cone = _lobe_cone(micro, dirs, lobe_tol, delta)
         acc_r = acc_g = acc_b = 0.0
         for k in range(A):
             j = active[k]
-            dr, dg, db, sw, _ = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
-                                        nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2, cone)
-            acc_r += w[k, 0] * (dr + sw * E[j, 0])
-            acc_g += w[k, 1] * (dg + sw * E[j, 1])
-            acc_b += w[k, 2] * (db + sw * E[j, 2])
+            dr, dg, db, sw, _ = _sample(i, j, Dq, Eq, iEq, dq, castq, nrm, v0, vn, a0, a1, micro,
+                                        nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2, cone,
+                                        dirs, cast)
+            acc_r += w[k, 0] * (dr + sw * Eq[j, 0])
+            acc_g += w[k, 1] * (dg + sw * Eq[j, 1])
+            acc_b += w[k, 2] * (db + sw * Eq[j, 2])
         out[i, 0], out[i, 1], out[i, 2] = acc_r, acc_g, acc_b
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def block_outputs(D, cast, members, starts, share):
+    """Per function, the diffuse samples and occlusion of output lights that summarise blocks
+    of measured lights: ``Dq[i, b] = Σ_m share[m] D[i, members[m]]`` over the block's members
+    ``starts[b] ≤ m < starts[b + 1]`` (shares summing to 1 per block) and ``castq[i, b]`` the
+    majority (share > 1/2) of the members' occlusion.
+
+    Returns ``Dq`` (N, B, 3) float32 and ``castq`` (N, B) bool.
+    """
+    N = D.shape[0]
+    B = starts.size - 1
+    Dq = np.empty((N, B, 3), np.float32)
+    castq = np.empty((N, B), np.bool_)
+    for i in prange(N):
+        for b in range(B):
+            r = g = bl = c = 0.0
+            for m in range(starts[b], starts[b + 1]):
+                l = members[m]
+                s = share[m]
+                r += s * D[i, l, 0]
+                g += s * D[i, l, 1]
+                bl += s * D[i, l, 2]
+                if cast[i, l]:
+                    c += s
+            Dq[i, b, 0], Dq[i, b, 1], Dq[i, b, 2] = r, g, bl
+            castq[i, b] = c > 0.5
+    return Dq, castq
