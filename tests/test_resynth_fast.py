@@ -60,7 +60,7 @@ def test_fast_kernel_equals_numpy_reference_on_hard_cases(monkeypatch, hard):
     """The compiled relighting (zero diffuse samples skipped; with lobe_tol = 0 the lobe cone)
     against the numpy reference, on v_n = v_0, back-facing and grazing views, shadowed
     lobes, zero specular, zero diffuse samples and a single zero channel."""
-    lights, fit, vn, w = hard
+    _, fit, vn, w = hard
     plain = _skin_resynth.resynthesize_relit(fit, vn, w)
     cone = _skin_resynth.resynthesize_relit(fit, vn, w, lobe_tol=0.0)
     ref = _reference(monkeypatch, fit, vn, w)

@@ -224,9 +224,7 @@ def _lobe_cone(mic, dirs, tol, delta):
     cmin = 1.0
     for j in range(L):
         if abs(micro[j]) > lim:
-            c = ax * dirs[j, 0] + ay * dirs[j, 1] + az * dirs[j, 2]
-            if c < cmin:
-                cmin = c
+            cmin = min(cmin, ax * dirs[j, 0] + ay * dirs[j, 1] + az * dirs[j, 2])
     beta = math.acos(min(max(cmin, -1.0), 1.0)) + delta
     if beta >= math.pi:
         return ax, ay, az, -2.0

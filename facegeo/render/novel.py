@@ -52,6 +52,10 @@ Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthes
 Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised
 samples are computed only at the lights that carry energy and never stored.
 
+**Speed against accuracy (optional, not the paper):** ``light_step = k > 1`` evaluates the
+resynthesised function once per k × k block of the light grid, at the block's energy centroid
+(:func:`shade_texels`); measured in ``facegeo bench render.novel_view_paper``.
+
 References
 ----------
 .. [1] P. Debevec et al., "Acquiring the Reflectance Field of a Human Face", SIGGRAPH 2000, §4.5.

@@ -275,15 +275,18 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
     for the setting and for the exact path, and the profile (seconds reading the fields,
     reading the fits, resynthesising, the rest of the shading = blending and bookkeeping).
     """
-    import numpy as np
-
     from facegeo.capture import imageio
     from facegeo.lighting import envmap as E
     from facegeo.pipeline.relight import tone_map
     from facegeo.pipeline.render import builtin_env
     from facegeo.render._fitstore import light_set
-    from facegeo.render.novel import (cross_validated_shrinkage, even_subset, render_view,
-                                      shade_texels, trace_view)
+    from facegeo.render.novel import (
+        cross_validated_shrinkage,
+        even_subset,
+        render_view,
+        shade_texels,
+        trace_view,
+    )
 
     t0 = time.perf_counter()
     atlas, texels, scene, rig, novel = _paper_geometry()
