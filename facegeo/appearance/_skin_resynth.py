@@ -29,7 +29,8 @@ from facegeo.appearance._skin_model import (
     ramp_f,
 )
 from facegeo.appearance.brdf import fresnel_dielectric, torrance_sparrow_geometry
-from facegeo.checks import as_array
+from facegeo.checks import as_array, fmt_value
+from facegeo.errors import InputError
 
 #: Functions whose specular energy is below this fraction of their total energy skip the
 #: specular resynthesis (their specular part is dropped and flagged).
@@ -305,7 +306,8 @@ def _resynthesize_numpy(fit, vn, flags, same, back, todo, specular_skip) -> Resy
                        S_new.astype(np.float32), flags)
 
 
-def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKIP) -> np.ndarray:
+def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKIP,
+                       lobe_tol: float | None = None, light_step: int = 1) -> np.ndarray:
     """Relit radiance of the functions resynthesised for v_n: Eq. 4 on :func:`resynthesize`.
 
     ``out[i] = Σ_l w_l ⊙ R_new,i(l)`` (Debevec et al. 2000, Eq. 4, with the δA_l inside the
@@ -319,11 +321,42 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     in float64 (the reference rounds each to float32 first), a relative difference of order
     1e-7.
 
+    Work skipped without changing the result: lights whose diffuse sample is 0 (below the
+    horizon, shadowed) skip the chroma shift; with ``lobe_tol = 0``, per function, Eq. 9's
+    interpolation, G and F run only where the source direction l_q can reach a node with a
+    non-zero microfacet value (a cone around the lobe, :func:`_skin_resynth_kernels._lobe_cone`,
+    light-stage grid only; measured functions hold storage rounding and noise at every node,
+    so the cone rarely excludes anything and is off by default).
+
+    Speed against accuracy (``lobe_tol > 0``, not the paper): nodes whose microfacet value is
+    at most ``lobe_tol`` of the function's largest count as zero for that cone, so the
+    specular work is confined to the lobe. Each dropped specular sample is at most
+    ``lobe_tol`` times the lobe's peak microfacet value times G F/(n·v_n) (G, F ≤ 1); with
+    float16 fields the nodes far from the lobe hold storage rounding, not signal. On skin's
+    broad lobes the cone covers most of the hemisphere, so this buys little (measured in
+    ``facegeo bench render.novel_view_paper``).
+
+    Speed against accuracy (``light_step = k > 1``, not the paper): the new function is
+    evaluated at one output light per ``k × k`` block of the light-stage grid instead of at
+    every light — at the block's energy centroid (its lights' directions averaged with the
+    weights' channel mean ω_l), with the block's diffuse samples and intensities ω-averaged,
+    its occlusion by ω-majority and its weights summed (:func:`_output_blocks`). The measured
+    lobe Eq. 9 interpolates stays at full resolution. Eq. 4 on the measured diffuse part is
+    kept exactly where the weights' colour is constant over a block (a block holding a sun
+    evaluates at the sun); what changes is that Eq. 9 and the chroma shift are evaluated
+    once per block (the midpoint rule of a smooth function over the block): ``k²`` times
+    fewer evaluations.
+
     Parameters
     ----------
     fit : SkinFit
     v_n : (3,) or (N, 3) array_like, unit, the light set's frame
     weights : (L, C) array_like — per-light, per-channel weights in the field's units
+    lobe_tol : float in [0, 1) or None — see above; None (default, no cone) and 0 give the
+        exact result. Ignored by the numpy reference (``KERNELS = False``) and for free light
+        lists.
+    light_step : int ≥ 1 — see above; 1 (default) gives the exact result. Needs the kernels
+        and a light-stage grid that ``light_step`` divides.
 
     Returns
     -------
@@ -331,6 +364,13 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     """
     N, L, C = fit.diffuse.shape
     w = as_array(weights, "weights", shape=(L, C))
+    tol = -1.0 if lobe_tol is None else float(lobe_tol)
+    if lobe_tol is not None and not 0.0 <= tol < 1.0:
+        raise InputError(f"lobe_tol: expected a fraction in [0, 1), got {fmt_value(lobe_tol)}")
+    step = check_light_step(light_step, fit.lights)
+    if step > 1 and (not KERNELS or fit.single_channel or C != 3):
+        raise InputError("light_step > 1 needs the compiled kernels (KERNELS) and a 3-channel "
+                         "fit")
     if not KERNELS or fit.single_channel or C != 3:
         r = resynthesize(fit, v_n, specular_skip=specular_skip)
         return np.einsum("nlc,lc->nc", r.reflectance, w)
@@ -341,9 +381,73 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
         return np.einsum("nlc,lc->nc", R, w)
     from facegeo.appearance._skin_resynth_kernels import resynth_relit
 
-    active = np.flatnonzero(np.any(w != 0, axis=1)).astype(np.int64)
-    return resynth_relit(*_kernel_args(fit, vn, same, back, specular_skip), active,
-                         np.ascontiguousarray(w[active]))
+    args = _kernel_args(fit, vn, same, back, specular_skip)
+    if step == 1:
+        active = np.flatnonzero(np.any(w != 0, axis=1)).astype(np.int64)
+        D, E, dirs, cast = args[0], args[2], args[3], args[5]
+        outputs = (D, E, dirs, cast, active, np.ascontiguousarray(w[active], np.float64))
+    else:
+        from facegeo.appearance._skin_resynth_kernels import block_outputs
+
+        members, starts, share, dq, Eq, wq = _output_blocks(fit.lights, w, step)
+        Dq, castq = block_outputs(args[0], args[5], members, starts, share)
+        outputs = (Dq, Eq, dq, castq, np.arange(dq.shape[0], dtype=np.int64), wq)
+    out = resynth_relit(*args, *outputs, tol, _cone_margin(fit.lights))
+    keep = np.flatnonzero(same & ~back)  # the source's own view: the measured function
+    if keep.size:
+        R = fit.diffuse[keep].astype(np.float64) + fit.specular[keep].astype(np.float64)
+        out[keep] = np.einsum("nlc,lc->nc", R, w)
+    return out
+
+
+def check_light_step(light_step, lights) -> int:
+    """``light_step`` as an int ≥ 1 that divides the light-stage grid (any value > 1 needs the
+    grid); raises InputError naming what is wrong."""
+    ok = (isinstance(light_step, (int, float, np.integer, np.floating))
+          and not isinstance(light_step, bool) and float(light_step).is_integer()
+          and light_step >= 1)
+    if not ok:
+        raise InputError(f"light_step: expected an integer >= 1, got {fmt_value(light_step)}")
+    k = int(light_step)
+    if k > 1 and (lights.grid is None or lights.grid[0] % k or lights.grid[1] % k):
+        raise InputError(f"light_step: {k} must divide the light-stage grid (n_theta, n_phi) = "
+                         f"{lights.grid} (1 keeps every light)")
+    return k
+
+
+def _output_blocks(lights, w, step: int):
+    """The output lights of ``light_step = step`` (:func:`resynthesize_relit`): per ``step ×
+    step`` block of the grid with energy, its members (block-major), the offsets of each
+    block's members, their shares ω_l/Σω (ω_l the mean |w_l| over channels), the block's
+    energy-centroid direction and ω-mean intensity, and its summed weights."""
+    nt, npf = lights.grid
+    k = int(step)
+    mt, mp = nt // k, npf // k
+    idx = np.arange(nt * npf).reshape(mp, k, mt, k).transpose(0, 2, 1, 3).reshape(mp * mt, k * k)
+    om = np.abs(w).mean(axis=1)[idx]
+    tot = om.sum(axis=1)
+    keep = tot > 0
+    idx, om, tot = idx[keep], om[keep], tot[keep]
+    share = om / tot[:, None]
+    d = np.einsum("bm,bmi->bi", share, lights.directions[idx])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    E = np.einsum("bm,bmc->bc", share, lights.intensities[idx])
+    wq = w[idx].sum(axis=1)
+    starts = np.arange(0, idx.size + 1, k * k, dtype=np.int64)
+    c = np.ascontiguousarray
+    return (c(idx.ravel(), np.int64), starts, c(share.ravel(), np.float64), c(d, np.float64),
+            c(E, np.float64), c(wq, np.float64))
+
+
+def _cone_margin(lights) -> float:
+    """The largest angle (radians) between a direction and the nodes its interpolation on the
+    light set reads: ``2π/n_θ + π/n_φ`` on the grid (a path along the meridian, then the
+    parallel, within one cell); 4 (> π: no cone) for a free light list, whose 3 nearest
+    lights can be arbitrarily far."""
+    if lights.grid is None:
+        return 4.0
+    nt, npf = lights.grid
+    return 2.0 * np.pi / nt + np.pi / npf
 
 
 def view_independent(fit, *, specular_skip: float = SPECULAR_SKIP):
@@ -355,3 +459,4 @@ def view_independent(fit, *, specular_skip: float = SPECULAR_SKIP):
     r = resynthesize(fit, fit.normal, specular_skip=specular_skip)
     return replace(fit, view=fit.normal.copy(), diffuse=r.diffuse, specular=r.specular,
                    flags=r.flags)
+

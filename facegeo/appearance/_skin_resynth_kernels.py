@@ -72,9 +72,10 @@ def _geometry(nl, nv, nh, vh):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _grid_interp(micro, shadow_i, nt, npf, x, y, z):
+def _grid_interp(mic, dirs, shadow_i, nt, npf, x, y, z):
     """``_skin_resynth.interpolate_on_lights`` on the light-stage grid at one unit direction:
-    bilinear in (θ, φ) grid coordinates of ``micro`` and of the shadow mask (as 0/1)."""
+    bilinear in (θ, φ) grid coordinates of the microfacet values (``mic``, :func:`_node`) and
+    of the shadow mask (as 0/1)."""
     theta = math.atan2(x, z)
     if theta < 0.0:
         theta += _TWO_PI
@@ -96,8 +97,8 @@ def _grid_interp(micro, shadow_i, nt, npf, x, y, z):
     jb = min(max(j0i + 1, 0), npf - 1)
     k00, k01 = ja * nt + ia, ja * nt + ib
     k10, k11 = jb * nt + ia, jb * nt + ib
-    m = ((1 - fj) * ((1 - fi) * micro[k00] + fi * micro[k01])
-         + fj * ((1 - fi) * micro[k10] + fi * micro[k11]))
+    m = ((1 - fj) * ((1 - fi) * _node(mic, dirs, k00) + fi * _node(mic, dirs, k01))
+         + fj * ((1 - fi) * _node(mic, dirs, k10) + fi * _node(mic, dirs, k11)))
     s00 = 1.0 if shadow_i[k00] else 0.0
     s01 = 1.0 if shadow_i[k01] else 0.0
     s10 = 1.0 if shadow_i[k10] else 0.0
@@ -107,7 +108,7 @@ def _grid_interp(micro, shadow_i, nt, npf, x, y, z):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _free_interp(micro, shadow_i, dirs, x, y, z):
+def _free_interp(mic, shadow_i, dirs, x, y, z):
     """``interpolate_on_lights`` on a free light list: inverse angular-distance weights
     ``1/(1 − cos + 1e-12)`` of the (up to) 3 lights nearest to the direction."""
     L = dirs.shape[0]
@@ -128,13 +129,13 @@ def _free_interp(micro, shadow_i, dirs, x, y, z):
     w1 = 1.0 / (1.0 - c1 + 1e-12) if i1 >= 0 else 0.0
     w2 = 1.0 / (1.0 - c2 + 1e-12) if i2 >= 0 else 0.0
     ws = w0 + w1 + w2
-    m = w0 / ws * micro[i0]
+    m = w0 / ws * _node(mic, dirs, i0)
     sh = w0 / ws * (1.0 if shadow_i[i0] else 0.0)
     if i1 >= 0:
-        m += w1 / ws * micro[i1]
+        m += w1 / ws * _node(mic, dirs, i1)
         sh += w1 / ws * (1.0 if shadow_i[i1] else 0.0)
     if i2 >= 0:
-        m += w2 / ws * micro[i2]
+        m += w2 / ws * _node(mic, dirs, i2)
         sh += w2 / ws * (1.0 if shadow_i[i2] else 0.0)
     return m, sh
 
@@ -145,9 +146,9 @@ def _free_interp(micro, shadow_i, dirs, x, y, z):
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def _prepare(i, D, S, iE, dirs, sa, nrm, v0, eta2m1, skip, micro):
     """Per function: whether its specular part is resynthesised (energy above ``skip`` of the
-    total, as ``_skin_resynth.resynthesize``) and, if so, the microfacet values on the nodes
-    ``micro[l] = σ_l (n·v_0)/(G(v_0, l, n) F(v_0·h_l))`` (0 where ``G F ≤ 1e-6``) of
-    :func:`_skin_resynth.resynthesize_specular`."""
+    total, as ``_skin_resynth.resynthesize``); ``micro[l]`` receives the white-balanced
+    specular sample σ_l, which :func:`_node` turns into the microfacet value when Eq. 9 first
+    reads node l."""
     L = dirs.shape[0]
     energy = 0.0
     total = 0.0
@@ -159,25 +160,75 @@ def _prepare(i, D, S, iE, dirs, sa, nrm, v0, eta2m1, skip, micro):
         energy += sig * sa[j]
         total += tot * sa[j]
         micro[j] = sig
-    do_spec = energy > skip * max(total, 1e-300)
-    if not do_spec:
-        return False
+    return energy > skip * max(total, 1e-300)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _lobe_state(i, nrm, v0, eta2m1, micro, ready):
+    """What :func:`_node` needs of function ``i``: its σ samples ``micro`` (overwritten by the
+    microfacet values node by node), the flags of the nodes done, n, v_0, n·v_0, max(n·v_0, 0)
+    and η² − 1."""
     nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
     vx, vy, vz = v0[i, 0], v0[i, 1], v0[i, 2]
     nv0 = nx * vx + ny * vy + nz * vz
-    nv0p = max(nv0, 0.0)
+    return micro, ready, (nx, ny, nz, vx, vy, vz, nv0, max(nv0, 0.0), eta2m1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _node(mic, dirs, j):
+    """The microfacet value on node ``j``, ``σ_j (n·v_0)/(G(v_0, l_j, n) F(v_0·h_j))`` (0 where
+    ``G F ≤ 1e-6``) of :func:`_skin_resynth.resynthesize_specular`, computed the first time a
+    node is read (Eq. 9 reads only the nodes around the l_q it visits)."""
+    micro, ready, st = mic
+    if ready[j]:
+        return micro[j]
+    ready[j] = True
+    nx, ny, nz, vx, vy, vz, nv0, nv0p, eta2m1 = st
+    lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+    nl = nx * lx + ny * ly + nz * lz
+    if not nl > 0.0 or micro[j] == 0.0:
+        micro[j] = 0.0  # G = 0 below the horizon (G F ≤ 1e-6 there), or no sample
+        return 0.0
+    hx, hy, hz, _ = _unit(lx + vx, ly + vy, lz + vz, nx, ny, nz)
+    nh = hx * nx + hy * ny + hz * nz
+    vh = hx * vx + hy * vy + hz * vz
+    gf = _geometry(nl, nv0, nh, vh) * _fresnel(vh, eta2m1)
+    micro[j] = micro[j] * nv0p / gf if gf > 1e-6 else 0.0
+    return micro[j]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _lobe_cone(mic, dirs, tol, delta):
+    """The cone of source directions outside which Eq. 9's interpolated lobe is negligible.
+
+    Nodes whose microfacet value ``|micro[l]|`` exceeds ``tol · max|micro|`` (``tol = 0``: every
+    non-zero node) lie within angle β of the axis (the node of the largest value); a direction
+    l_q farther than β + ``delta`` from the axis (``delta`` ≥ the largest angle between a
+    point of a grid cell and the cell's interpolation nodes) interpolates only nodes at or
+    below ``tol · max|micro|``. Returns the axis and ``cos(β + delta)`` (−2: no cone, every
+    direction inside).
+    """
+    L = dirs.shape[0]
+    micro = mic[0]
+    big = 0.0
+    k = -1
     for j in range(L):
-        lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-        nl = nx * lx + ny * ly + nz * lz
-        if not nl > 0.0 or micro[j] == 0.0:
-            micro[j] = 0.0  # G = 0 below the horizon (G F ≤ 1e-6 there), or no sample
-            continue
-        hx, hy, hz, _ = _unit(lx + vx, ly + vy, lz + vz, nx, ny, nz)
-        nh = hx * nx + hy * ny + hz * nz
-        vh = hx * vx + hy * vy + hz * vz
-        gf = _geometry(nl, nv0, nh, vh) * _fresnel(vh, eta2m1)
-        micro[j] = micro[j] * nv0p / gf if gf > 1e-6 else 0.0
-    return True
+        a = abs(_node(mic, dirs, j))
+        if a > big:
+            big = a
+            k = j
+    if k < 0:
+        return 0.0, 0.0, 1.0, 2.0  # no lobe anywhere: every direction outside
+    ax, ay, az = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+    lim = tol * big
+    cmin = 1.0
+    for j in range(L):
+        if abs(micro[j]) > lim:
+            cmin = min(cmin, ax * dirs[j, 0] + ay * dirs[j, 1] + az * dirs[j, 2])
+    beta = math.acos(min(max(cmin, -1.0), 1.0)) + delta
+    if beta >= math.pi:
+        return ax, ay, az, -2.0
+    return ax, ay, az, math.cos(beta)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
@@ -207,16 +258,20 @@ def _diffuse(d_r, d_g, d_b, e_r, e_g, e_b, ie_r, ie_g, ie_b, f0, fn):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
-def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, inv_nvn):
+def _specular(i, j, nrm, v0, vn, lp_dirs, lp_cast, dirs, cast, mic, grid, nt, npf, eta2m1, nvn,
+              inv_nvn, cone):
     """Eq. 9's white-balanced specular sample for light ``j`` (``resynthesize_specular``) and
     whether it came from a shadowed source direction (lit l_p, l_q in shadow). Zero where l_p
     is occluded or below the horizon, H is undefined, n·H ≤ 0 or l_q is below the horizon;
     the caller has checked n·v_0 > 0 and n·v_n > 0 and passes n·v_n and
-    ``1/max(n·v_n, COS_FLOOR)``."""
-    if cast[i, j]:
+    ``1/max(n·v_n, COS_FLOOR)``. ``cone`` (:func:`_lobe_cone`): an l_q outside it gives 0
+    (and False) without the interpolation, G and F. l_p is ``lp_dirs[j]``, occluded where
+    ``lp_cast[i, j]``; the measured lobe (``mic``, :func:`_node`; ``cast[i]``) lives on
+    ``dirs``."""
+    if lp_cast[i, j]:
         return 0.0, False
     nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
-    lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+    lx, ly, lz = lp_dirs[j, 0], lp_dirs[j, 1], lp_dirs[j, 2]
     nlp = nx * lx + ny * ly + nz * lz
     if not nlp > 0.0:
         return 0.0, False
@@ -237,10 +292,12 @@ def _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, eta2m1, nvn, 
     nlq = qx * nx + qy * ny + qz * nz
     if not nlq > 0.0:
         return 0.0, False
+    if qx * cone[0] + qy * cone[1] + qz * cone[2] < cone[3]:
+        return 0.0, False
     if grid:
-        m_q, sh_q = _grid_interp(micro, cast[i], nt, npf, qx, qy, qz)
+        m_q, sh_q = _grid_interp(mic, dirs, cast[i], nt, npf, qx, qy, qz)
     else:
-        m_q, sh_q = _free_interp(micro, cast[i], dirs, qx, qy, qz)
+        m_q, sh_q = _free_interp(mic, cast[i], dirs, qx, qy, qz)
     if m_q == 0.0:  # no lobe at l_q (G and F are finite, so the sample is 0)
         return 0.0, sh_q > 0.5
     vnH = hx * ux + hy * uy + hz * uz
@@ -270,18 +327,25 @@ def _view_cosines(i, nrm, v0, vn, do_spec):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
-def _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro, nv0, nvn, lobe, inv_nvn,
-            grid, nt, npf, e2):
-    """Light ``j`` of function ``i`` resynthesised: the diffuse RGB sample (input units), the
-    white-balanced Eq. 9 specular sample and whether it came from a shadowed source direction."""
-    nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
-    f0 = _ramp_f(nl, nv0, a0[i], a1[i])
-    fn = _ramp_f(nl, nvn, a0[i], a1[i])
-    dr, dg, db = _diffuse(D[i, j, 0], D[i, j, 1], D[i, j, 2], E[j, 0], E[j, 1], E[j, 2],
-                          iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
+def _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, mic, nv0, nvn, lobe, inv_nvn,
+            grid, nt, npf, e2, cone, src_dirs, src_cast):
+    """Output light ``j`` of function ``i`` resynthesised: the diffuse RGB sample (input units),
+    the white-balanced Eq. 9 specular sample and whether it came from a shadowed source
+    direction. ``D, E, iE, dirs, cast`` describe the output lights; the measured lobe
+    (``mic``, ``src_cast[i]``) lives on ``src_dirs`` (the same arrays when the output
+    lights are the measured ones)."""
+    d_r, d_g, d_b = D[i, j, 0], D[i, j, 1], D[i, j, 2]
+    if d_r == 0.0 and d_g == 0.0 and d_b == 0.0:
+        dr = dg = db = 0.0  # what _diffuse gives for a zero sample (brightness 0), exactly
+    else:
+        nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
+        f0 = _ramp_f(nl, nv0, a0[i], a1[i])
+        fn = _ramp_f(nl, nvn, a0[i], a1[i])
+        dr, dg, db = _diffuse(d_r, d_g, d_b, E[j, 0], E[j, 1], E[j, 2],
+                              iE[j, 0], iE[j, 1], iE[j, 2], f0, fn)
     if lobe:
-        sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, micro, grid, nt, npf, e2, nvn,
-                            inv_nvn)
+        sw, hid = _specular(i, j, nrm, v0, vn, dirs, cast, src_dirs, src_cast, mic, grid, nt,
+                            npf, e2, nvn, inv_nvn, cone)
         return dr, dg, db, sw, hid
     return dr, dg, db, 0.0, False
 
@@ -312,6 +376,7 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
     flags = np.zeros(N, np.int32)
     e2 = eta * eta - 1.0
     iE = 1.0 / E
+    no_cone = (0.0, 0.0, 1.0, -2.0)  # the full functions keep every sample and flag
     for i in prange(N):
         if same[i] or back[i]:
             for j in range(L):
@@ -325,6 +390,7 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
                 continue
         micro = np.empty(L)
         do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
+        mic = _lobe_state(i, nrm, v0, e2, micro, np.zeros(L, np.bool_))
         if not do_spec:
             flags[i] |= flag_skipped
         if back[i]:
@@ -332,8 +398,9 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
         nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
         hidden = False
         for j in range(L):
-            dr, dg, db, sw, hid = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
-                                          nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2)
+            dr, dg, db, sw, hid = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, mic,
+                                          nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2, no_cone,
+                                          dirs, cast)
             hidden |= hid
             sr, sg, sb = sw * E[j, 0], sw * E[j, 1], sw * E[j, 2]
             diff[i, j, 0], diff[i, j, 1], diff[i, j, 2] = dr, dg, db
@@ -346,14 +413,22 @@ def resynth_full(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid,
-                  nt, npf, eta, skip, active, w):
+                  nt, npf, eta, skip, Dq, Eq, dq, castq, active, w, lobe_tol, delta):
     """Eq. 4 on the resynthesised functions without building them: per function
-    ``Σ_k w[k] ⊙ R_new(l = active[k])`` over the lights that carry energy.
+    ``Σ_k w[k] ⊙ R_new(l = output light active[k])``.
 
-    Parameters as :func:`resynth_full`, plus ``active`` (A,) int64 light indices and ``w``
-    (A, 3) float64 their weights (δA included). Returns (N, 3) float64, 0 for back-facing
-    functions. The new samples are summed in float64 (the reference rounds them to float32
-    first).
+    Parameters as :func:`resynth_full` for the measured functions (the lobe Eq. 9
+    interpolates lives on ``dirs``), plus the output lights where the new function is
+    evaluated: ``Dq`` (N, Q, 3) their diffuse samples, ``Eq`` (Q, 3) intensities, ``dq``
+    (Q, 3) unit directions, ``castq`` (N, Q) bool occlusion — the measured arrays themselves
+    (``D, E, dirs, cast``) for the exact relighting, or per-block summaries
+    (:func:`block_outputs`); ``active`` (A,) int64 the output lights visited and ``w`` (A, 3)
+    float64 their weights (δA included); ``lobe_tol`` and ``delta`` of :func:`_lobe_cone`
+    (``lobe_tol < 0``: no cone; ``lobe_tol = 0`` skips only samples that are exactly 0).
+
+    Returns (N, 3) float64: 0 for back-facing functions and for ``same`` (the caller relights
+    the measured function there). The new samples are summed in float64 (the reference
+    rounds them to float32 first).
     """
     N = D.shape[0]
     L = dirs.shape[0]
@@ -361,25 +436,54 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
     out = np.zeros((N, 3))
     e2 = eta * eta - 1.0
     iE = 1.0 / E
+    iEq = 1.0 / Eq
     for i in prange(N):
-        if back[i]:
-            continue
-        if same[i]:
-            for k in range(A):
-                j = active[k]
-                for c in range(3):
-                    out[i, c] += w[k, c] * (np.float64(D[i, j, c]) + np.float64(S[i, j, c]))
+        if back[i] or same[i]:
             continue
         micro = np.empty(L)
         do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
+        mic = _lobe_state(i, nrm, v0, e2, micro, np.zeros(L, np.bool_))
         nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
+        cone = (0.0, 0.0, 1.0, -2.0)
+        if lobe and lobe_tol >= 0.0:
+            cone = _lobe_cone(mic, dirs, lobe_tol, delta)
         acc_r = acc_g = acc_b = 0.0
         for k in range(A):
             j = active[k]
-            dr, dg, db, sw, _ = _sample(i, j, D, E, iE, dirs, cast, nrm, v0, vn, a0, a1, micro,
-                                        nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2)
-            acc_r += w[k, 0] * (dr + sw * E[j, 0])
-            acc_g += w[k, 1] * (dg + sw * E[j, 1])
-            acc_b += w[k, 2] * (db + sw * E[j, 2])
+            dr, dg, db, sw, _ = _sample(i, j, Dq, Eq, iEq, dq, castq, nrm, v0, vn, a0, a1, mic,
+                                        nv0, nvn, lobe, inv_nvn, grid, nt, npf, e2, cone,
+                                        dirs, cast)
+            acc_r += w[k, 0] * (dr + sw * Eq[j, 0])
+            acc_g += w[k, 1] * (dg + sw * Eq[j, 1])
+            acc_b += w[k, 2] * (db + sw * Eq[j, 2])
         out[i, 0], out[i, 1], out[i, 2] = acc_r, acc_g, acc_b
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+def block_outputs(D, cast, members, starts, share):
+    """Per function, the diffuse samples and occlusion of output lights that summarise blocks
+    of measured lights: ``Dq[i, b] = Σ_m share[m] D[i, members[m]]`` over the block's members
+    ``starts[b] ≤ m < starts[b + 1]`` (shares summing to 1 per block) and ``castq[i, b]`` the
+    majority (share > 1/2) of the members' occlusion.
+
+    Returns ``Dq`` (N, B, 3) float32 and ``castq`` (N, B) bool.
+    """
+    N = D.shape[0]
+    B = starts.size - 1
+    Dq = np.empty((N, B, 3), np.float32)
+    castq = np.empty((N, B), np.bool_)
+    for i in prange(N):
+        for b in range(B):
+            r = g = bl = c = 0.0
+            for m in range(starts[b], starts[b + 1]):
+                l = members[m]
+                s = share[m]
+                r += s * D[i, l, 0]
+                g += s * D[i, l, 1]
+                bl += s * D[i, l, 2]
+                if cast[i, l]:
+                    c += s
+            Dq[i, b, 0], Dq[i, b, 1], Dq[i, b, 2] = r, g, bl
+            castq[i, b] = c > 0.5
+    return Dq, castq

@@ -177,7 +177,7 @@ class FitStore:
         maps = {k: np.unpackbits(self.params[k][idx], axis=1, count=L).astype(bool)
                 for k in _MAPS}
         D = np.asarray(self.D[idx], np.float32)
-        S = R.astype(np.float32) - D
+        S = np.asarray(R, np.float32) - D
         return SkinFit(lights=lights, view=p["view"], normal=p["normal"],
                        normal_moment=p["normal_moment"], normal_initial=p["normal_initial"],
                        lobe_misfit_moment=p["lobe_misfit_moment"], lobe_misfit=p["lobe_misfit"],

@@ -52,6 +52,10 @@ Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthes
 Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised
 samples are computed only at the lights that carry energy and never stored.
 
+**Speed against accuracy (optional, not the paper):** ``light_step = k > 1`` evaluates the
+resynthesised function once per k × k block of the light grid, at the block's energy centroid
+(:func:`shade_texels`); measured in ``facegeo bench render.novel_view_paper``.
+
 References
 ----------
 .. [1] P. Debevec et al., "Acquiring the Reflectance Field of a Human Face", SIGGRAPH 2000, §4.5.
@@ -345,7 +349,7 @@ def _check_weights(weights, n_lights):
 
 def _lights_with_energy(sources, weights):
     """``L``, the checked ``(L, 3)`` weights, the indices of the lights with non-zero weight and
-    their weights (only those lights are read and resynthesised)."""
+    their weights (only those lights are resynthesised)."""
     if not sources:
         raise InputError("sources: no source cameras")
     L = sources[0].field.shape[1]
@@ -354,8 +358,34 @@ def _lights_with_energy(sources, weights):
     return L, w, active, w[active]
 
 
+def _relight_matrix(w) -> np.ndarray:
+    """Eq. (4) as one matrix product: ``(3L, 3)`` float64 ``W`` with ``W[3l + c, c] = w[l, c]``,
+    so that ``R.reshape(n, 3L) @ W = Σ_l R[:, l, :] ⊙ w_l`` (BLAS; lights without energy
+    contribute exact zeros)."""
+    L = w.shape[0]
+    W = np.zeros((L, 3, 3))
+    W[:, np.arange(3), np.arange(3)] = w
+    return W.reshape(3 * L, 3)
+
+
+def _relight(R, W) -> np.ndarray:
+    """Eq. (4) of the functions ``R`` ``(n, L, 3)``: ``(n, 3)`` float64, non-finite where a
+    sample is (NaN · 0 stays NaN, so a row with any non-finite sample is caught). A float32
+    product (BLAS sgemm: no float64 copy of the functions; relative rounding ≈ 1e-7 per
+    term, well inside the float32 colours it produces)."""
+    R = np.asarray(R, np.float32)
+    return (R.reshape(R.shape[0], -1) @ W.astype(np.float32)).astype(np.float64)
+
+
+def _check_light_step(light_step, lights) -> int:
+    from facegeo.appearance._skin_resynth import check_light_step
+
+    return check_light_step(light_step, lights)
+
+
 def cross_validated_shrinkage(sources, weights, lights, *,
-                              max_functions: int = SHRINK_FUNCTIONS) -> tuple[dict, dict]:
+                              max_functions: int = SHRINK_FUNCTIONS,
+                              light_step: int = 1) -> tuple[dict, dict]:
     """λ_c per source camera: the share of the resynthesised change that the other cameras confirm.
 
     For each source camera c with a fit and each other source camera b, over an even subset of
@@ -378,6 +408,8 @@ def cross_validated_shrinkage(sources, weights, lights, *,
     weights : (L, 3) float — Eq. (4) weights of the environment the render uses
     lights : LightSet — the fits' light set
     max_functions : int ≥ 1
+    light_step : int — resynthesise on a grid this many times coarser, as the render does
+        (:func:`shade_texels`)
 
     Returns
     -------
@@ -391,6 +423,8 @@ def cross_validated_shrinkage(sources, weights, lights, *,
     if int(max_functions) < 1:
         raise InputError(f"max_functions: expected an integer >= 1, got {fmt_value(max_functions)}")
     L, w, active, w_act = _lights_with_energy(sources, weights)
+    step = _check_light_step(light_step, lights)
+    W = _relight_matrix(w)
     chunk = max(16, CHUNK_SAMPLES // max(L, 1))
     factors: dict[str, float] = {}
     stats: dict[str, dict] = {}
@@ -416,15 +450,14 @@ def cross_validated_shrinkage(sources, weights, lights, *,
             for c0 in range(0, tex.size, chunk):
                 sl = slice(c0, min(tex.size, c0 + chunk))
                 R = np.asarray(src.field[rows_s[sl]], np.float32)
-                Rm = np.asarray(other.field[rows_o[sl]], np.float32)
-                ok = np.isfinite(R).all(axis=(1, 2)) & np.isfinite(Rm).all(axis=(1, 2))
+                q = _relight(R, W)
+                m = _relight(other.field[rows_o[sl]], W)
+                ok = np.isfinite(q).all(axis=1) & np.isfinite(m).all(axis=1)
                 if not ok.any():
                     continue
-                R, Rm, vb = R[ok], Rm[ok], other.v_world[rows_o[sl]][ok]
-                q = np.einsum("nlc,lc->nc", R[:, active, :], w_act)
-                m = np.einsum("nlc,lc->nc", Rm[:, active, :], w_act)
+                R, q, m, vb = R[ok], q[ok], m[ok], other.v_world[rows_o[sl]][ok]
                 fit = src.fit.skin_fit(fidx[sl][ok], R, lights)
-                p, back = _resynthesize_relit(fit, vb, w, active, w_act)
+                p, back = _resynthesize_relit(fit, vb, w, active, w_act, light_step=step)
                 p = np.where(back[:, None], q, p)
                 d = p - q
                 sums += [float((d * (m - q)).sum()), float((d * d).sum()),
@@ -460,7 +493,7 @@ def even_subset(n: int, k: int | None) -> np.ndarray:
 
 def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                  resynthesis: bool = True, blend_power: float = BLEND_POWER,
-                 shrinkage=None, stats: dict | None = None):
+                 shrinkage=None, light_step: int = 1, stats: dict | None = None):
     """Relit radiance of texels seen from a camera centre, blended over source cameras.
 
     Parameters
@@ -479,7 +512,16 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     shrinkage : mapping str -> float, optional — λ_c per source camera (full resynthesis only):
         a resynthesised value becomes ``naive + λ_c (resynthesised − naive)``
         (:func:`cross_validated_shrinkage`; cameras not in the mapping: λ = 1, the paper)
-    stats : dict, optional — filled with counts
+    light_step : int ≥ 1 — speed against accuracy, not the paper: with k > 1 the resynthesised
+        function is evaluated once per k × k block of the light grid, at the block's energy
+        centroid (k² times fewer evaluations of Eq. 9 and the chroma shift:
+        :func:`facegeo.appearance.skin.resynthesize_relit`); the measured lobe and the
+        measured functions (the naive value, a source camera's own view) stay at full
+        resolution. 1 (default): every light, the paper's resynthesis
+    stats : dict, optional — filled with counts and the seconds spent reading the fields
+        (``seconds_read``: rows gathered, converted to float32, relit by Eq. 4), reading the
+        fits (``seconds_fit``: D, S = R − D, maps) and resynthesising
+        (``seconds_resynthesis``)
 
     Returns
     -------
@@ -491,11 +533,15 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     texel_ids = np.asarray(texel_ids, np.int64)
     K = texel_ids.size
     L, w, active, w_act = _lights_with_energy(sources, weights)
+    step = _check_light_step(light_step, lights) if resynthesis else 1
+    W = _relight_matrix(w)
     acc = np.zeros((K, 3))
     bsum = np.zeros(K)
     st = stats if stats is not None else {}
     st.update({"active_lights": int(active.size), "texels": int(K), "samples": 0,
-               "resynthesized": 0, "unfitted": 0, "same_view": 0, "backfacing_fallback": 0})
+               "resynthesized": 0, "unfitted": 0, "same_view": 0, "backfacing_fallback": 0,
+               "light_step": step, "seconds_read": 0.0, "seconds_fit": 0.0,
+               "seconds_resynthesis": 0.0})
     if K == 0 or active.size == 0:
         return np.where(bsum[:, None] > 0, acc, np.nan).astype(np.float32)
     chunk = max(16, CHUNK_SAMPLES // max(L, 1))
@@ -530,18 +576,26 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
             fidx, fitted = src.fit.locate(rows)
         for c0 in range(0, k_idx.size, chunk):
             sl = slice(c0, min(k_idx.size, c0 + chunk))
+            t0 = time.perf_counter()
             R = np.asarray(src.field[rows[sl]], np.float32)
-            ok = np.isfinite(R).all(axis=(1, 2))
-            out = np.einsum("nlc,lc->nc", np.where(ok[:, None, None], R, 0.0)[:, active, :],
-                            w_act)
+            out = _relight(R, W)
+            ok = np.isfinite(out).all(axis=1)
             st["samples"] += int(ok.sum())
+            t1 = time.perf_counter()
+            st["seconds_read"] += t1 - t0
             if resynthesis:
                 todo = np.flatnonzero(ok & fitted[sl] & ~same[sl])
                 st["unfitted"] += int(np.count_nonzero(ok & ~fitted[sl]))
                 if todo.size:
-                    fit = src.fit.skin_fit(fidx[sl][todo], R[todo], lights)
+                    every = todo.size == R.shape[0]  # no copy of the chunk when all are to do
+                    fit = src.fit.skin_fit(fidx[sl] if every else fidx[sl][todo],
+                                           R if every else R[todo], lights)
+                    t2 = time.perf_counter()
+                    st["seconds_fit"] += t2 - t1
                     relit, back = _resynthesize_relit(fit, vn[sl][todo], w, active, w_act,
-                                                      diffuse_only=resynthesis == "diffuse")
+                                                      diffuse_only=resynthesis == "diffuse",
+                                                      light_step=step)
+                    st["seconds_resynthesis"] += time.perf_counter() - t2
                     # the fitted normal puts v_n below the horizon while the mesh sees the
                     # texel (grazing views): keep the measured function rather than black
                     use = todo[~back]
@@ -555,6 +609,8 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     with np.errstate(invalid="ignore", divide="ignore"):
         colour = np.where(bsum[:, None] > 0, acc / np.where(bsum > 0, bsum, 1.0)[:, None],
                           np.nan)
+    for key in ("seconds_read", "seconds_fit", "seconds_resynthesis"):
+        st[key] = round(st[key], 4)
     return colour.astype(np.float32)
 
 
@@ -585,18 +641,20 @@ def _fill_uncovered(vs: ViewSamples, val, cov, max_px: float):
     return out, int(near.sum())
 
 
-def _resynthesize_relit(fit, vn, w, active, w_act, *, diffuse_only: bool = False):
+def _resynthesize_relit(fit, vn, w, active, w_act, *, diffuse_only: bool = False,
+                        light_step: int = 1):
     """Eq. 4 on the functions resynthesised for v_n, ``(n, 3)``, and where the fit called v_n
     back-facing. Full resynthesis: :func:`facegeo.appearance.skin.resynthesize_relit` (fused,
-    only the lights with non-zero weight, no ``(n, L, 3)`` result); the ``"diffuse"``
-    ablation relights :func:`_resynthesize`'s functions at the active lights."""
+    only the lights with non-zero weight, no ``(n, L, 3)`` result), on the grid
+    ``light_step`` times coarser when > 1 (:func:`shade_texels`); the ``"diffuse"`` ablation
+    relights :func:`_resynthesize`'s functions at the active lights."""
     from facegeo.appearance.skin import FLAG_BACKFACING, resynthesize_relit
 
     if diffuse_only:
         res, back = _resynthesize(fit, vn, diffuse_only=True)
         return np.einsum("nlc,lc->nc", res[:, active, :], w_act), back
     back = ((fit.flags & FLAG_BACKFACING) != 0) | (np.einsum("ni,ni->n", fit.normal, vn) <= 0)
-    return resynthesize_relit(fit, vn, w), back
+    return resynthesize_relit(fit, vn, w, light_step=light_step), back
 
 
 def _resynthesize(fit, vn, *, diffuse_only: bool = False):
@@ -613,7 +671,7 @@ def _resynthesize(fit, vn, *, diffuse_only: bool = False):
 def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
                 supersample: int = 1, resynthesis: bool = True,
                 blend_power: float = BLEND_POWER, samples: ViewSamples | None = None,
-                fill_px: float = 0.0, shrinkage=None) -> RenderResult:
+                fill_px: float = 0.0, shrinkage=None, light_step: int = 1) -> RenderResult:
     """Render ``camera`` under Eq. (4) light ``weights`` from the measured reflectance field.
 
     See the module docstring for the steps (Debevec et al. 2000 §4.5).
@@ -634,10 +692,14 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
         the nearest pixel with measured samples within this distance (0: left black); they
         stay False in ``covered`` (hole filling for display; see :func:`_fill_uncovered`)
     shrinkage : mapping str -> float, optional — λ per source camera (:func:`shade_texels`)
+    light_step : int — resynthesis on a k times coarser light grid (:func:`shade_texels`;
+        1: every light)
 
     Returns
     -------
     RenderResult
+        ``stats`` holds :func:`shade_texels`'s counts and seconds, ``seconds_trace``,
+        ``seconds_shade``, ``seconds_image`` (taps → image) and the total ``seconds``.
     """
     t0 = time.perf_counter()
     vs = samples if samples is not None else trace_view(camera, scene, atlas, texels,
@@ -647,7 +709,7 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
     stats: dict = {}
     colour = shade_texels(need, texels.p_world[need], camera.center_world, sources, weights,
                           lights, resynthesis=resynthesis, blend_power=blend_power,
-                          shrinkage=shrinkage, stats=stats)
+                          shrinkage=shrinkage, light_step=light_step, stats=stats)
     t2 = time.perf_counter()
     pos = np.searchsorted(need, np.where(vs.taps >= 0, vs.taps, 0))
     pos = np.minimum(pos, max(need.size - 1, 0))
@@ -670,5 +732,6 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
                   "samples_hit": int(vs.pixel_index.size),
                   "samples_covered": int(cov.sum()),
                   "seconds_trace": round(t1 - t0, 4), "seconds_shade": round(t2 - t1, 4),
+                  "seconds_image": round(time.perf_counter() - t2, 4),
                   "seconds": round(time.perf_counter() - t0, 4)})
     return RenderResult(image, covered & vs.mask, vs.mask, stats)

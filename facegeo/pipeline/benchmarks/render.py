@@ -62,3 +62,307 @@ def bench_novel_view(quick: bool) -> list[BenchRow]:
                        "fit_seconds": round(t_fit, 2)},
                 threads=1))
     return rows
+
+
+# ----------------------------------------------------------------- paper-preset novel view
+
+#: Size of the paper-preset novel view (width, height), pixels.
+PAPER_VIEW_SIZE = (640, 480)
+#: Functions generated per chunk (bounded (n, L, 3) temporaries at 2048 lights).
+_GEN_CHUNK = 2048
+
+
+def _paper_geometry(seed: int = 0):
+    """The paper preset's head (its icosphere subdivisions), its atlas at the reconstruct
+    default of 1 texel/mm, the paper rig and a 640 × 480 camera orbited 30° from ``cam_left``
+    (its intrinsics scaled so the face fills the same share of the image height)."""
+    import numpy as np
+
+    from facegeo.render._cameras import orbit_camera
+    from facegeo.render.novel import atlas_scene
+    from facegeo.surface.atlas import build_atlas, rasterize_texels
+    from facegeo.synth.capture import PRESETS, build_head, build_rig
+
+    preset = PRESETS["paper"]
+    mesh = build_head("procedural", subdivisions=preset.head_subdivisions, seed=seed)
+    atlas = build_atlas(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces),
+                        texels_per_mm=1.0)
+    texels = rasterize_texels(atlas)
+    rig = build_rig(preset)
+    cam = rig.cameras[0]
+    w, h = PAPER_VIEW_SIZE
+    s = h / cam.height
+    K = cam.K.copy()
+    K[:2] *= s
+    K[0, 2] = (w - 1) / 2.0 + (cam.K[0, 2] - (cam.width - 1) / 2.0) * s
+    K[1, 2] = (h - 1) / 2.0 + (cam.K[1, 2] - (cam.height - 1) / 2.0) * s
+    novel = orbit_camera(cam.replace(width=w, height=h, K=K), 30.0)
+    return atlas, texels, atlas_scene(atlas), rig, novel
+
+
+def _texel_params(texel_ids, seed: int):
+    """Skin-model parameters per texel (paper mode), seeded by the texel index so that every
+    camera sees the same surface."""
+    import numpy as np
+
+    from facegeo.appearance import skin
+
+    n = texel_ids.size
+    rng = np.random.default_rng([seed, 11])
+    u = rng.random((int(texel_ids.max()) + 1 if n else 1, 8))[texel_ids]
+    chroma = skin.normalize(np.array([0.8, 0.5, 0.35]) + 0.05 * (u[:, :3] - 0.5))
+    return skin.SkinParams((0.3 + 0.4 * u[:, 3:4]) * chroma, 0.2 + 0.2 * u[:, 4],
+                           -0.5 + 0.3 * u[:, 5], 0.3 + 0.5 * u[:, 6], 0.3 + 0.15 * u[:, 7])
+
+
+
+
+def _paper_diffuse(n, v, lights, params):
+    """The diffuse part of :func:`facegeo.appearance.skin.paper_reflectance` (Eq. 6–7, no
+    specular term), ``(N, L, 3)`` float32: what an exact separation gives as D."""
+    import numpy as np
+
+    from facegeo.appearance._skin_model import normalize, ramp_chromaticity, ramp_f
+
+    nl = n @ lights.directions.T
+    nv = np.einsum("ni,ni->n", n, v)[:, None]
+    f = ramp_f(nl, nv, params.alpha_0[:, None], params.alpha_1[:, None])
+    c = ramp_chromaticity(normalize(params.rho_d)[:, None, :], f)
+    a = np.linalg.norm(params.rho_d, axis=1)[:, None]
+    lit = (nv > 0) & (nl > 0)
+    D = np.where(lit, a / np.pi * nl, 0.0)[..., None] * c * lights.intensities[None]
+    return D.astype(np.float32)
+
+
+def _subset_params(prm, sel):
+    from facegeo.appearance import skin
+
+    return skin.SkinParams(prm.rho_d[sel], prm.alpha_0[sel], prm.alpha_1[sel], prm.rho_s[sel],
+                           prm.roughness[sel], prm.eta)
+
+
+def _paper_sources(texels, need, rig, scene, lights, pool_step: int, seed: int = 0):
+    """Source cameras at paper-preset sizes with generator-exact fits.
+
+    Every texel of ``need`` that a rig camera sees becomes a row of that camera's field, with
+    the projection's weight and view direction (:func:`camera_visibility`). Its function is the
+    paper model's (:func:`facegeo.appearance.skin.paper_reflectance`) for the surface point of
+    its *pool texel* — every ``pool_step``-th needed texel, each texel taking the nearest pool
+    texel at or before it in atlas order (a neighbour a few texels away): normal, view from
+    that camera and skin parameters of the pool texel. Generating 2048-light functions costs
+    ≈ 3 ms each here, so the pool keeps the setup to about a minute while every texel is still
+    its own row, read and resynthesised on its own. The field R is float16 (as the
+    projection stores it); the fit is a :class:`facegeo.render._fitstore.FitStore` in memory
+    with the generator's parameters and D its exact diffuse part (float16, as the fit stage
+    stores it), no cast shadows.
+
+    Returns
+    -------
+    sources : list of SourceCamera
+    pool : (P,) int64 — the pool texels
+    params : SkinParams of the pool texels
+    """
+    import numpy as np
+
+    from facegeo.appearance import skin
+    from facegeo.render._fitstore import _MAPS, _PER_FUNCTION, FitStore
+    from facegeo.render.novel import SourceCamera
+    from facegeo.surface.reflectance import camera_visibility
+
+    L = lights.n_lights
+    pool = need[::pool_step]
+    prm = _texel_params(pool, seed)
+    nrm_pool = texels.n_world[pool]
+    out = []
+    for cam in rig.cameras:
+        vis = camera_visibility(texels, cam, scene)
+        idx = np.intersect1d(np.flatnonzero(vis.visible), need)
+        parent = np.searchsorted(need, idx) // pool_step  # pool position of each texel
+        gen, inv = np.unique(parent, return_inverse=True)
+        v_gen = cam.center_world[None, :] - texels.p_world[pool[gen]]
+        v_gen /= np.linalg.norm(v_gen, axis=1, keepdims=True)
+        R = np.empty((gen.size, L, 3), np.float16)
+        D = np.empty((gen.size, L, 3), np.float16)
+        for s in range(0, gen.size, _GEN_CHUNK):
+            sl = slice(s, min(gen.size, s + _GEN_CHUNK))
+            p = _subset_params(prm, gen[sl])
+            n_s = nrm_pool[gen[sl]]
+            R[sl] = skin.paper_reflectance(n_s, v_gen[sl], lights, p)
+            D[sl] = _paper_diffuse(n_s, v_gen[sl], lights, p)
+        n_c = idx.size
+        nrm = nrm_pool[parent]
+        params = {k: np.zeros(n_c) for k in _PER_FUNCTION}
+        params.update(view=v_gen[inv], normal=nrm, normal_moment=nrm, normal_initial=nrm,
+                      d_0=skin.normalize(prm.rho_d)[parent], alpha_0=prm.alpha_0[parent],
+                      alpha_1=prm.alpha_1[parent], rho_d=prm.rho_d[parent],
+                      rho_s=prm.rho_s[parent], flags=np.zeros(n_c, np.int32),
+                      valid=np.ones(n_c, bool))
+        params.update({k: np.zeros((n_c, (L + 7) // 8), np.uint8) for k in _MAPS})
+        fit = FitStore(None, np.arange(n_c), idx, params, D[inv], float(prm.eta), False)
+        out.append(SourceCamera(cam.name, idx, vis.weight[idx], vis.v_world[idx], R[inv], fit))
+    return out, pool, prm
+
+
+#: The sun-like environment of ``render.novel_view_paper``: a disc of this angular radius
+#: (radians) and radiance, from this direction (world frame), over a dim uniform sky.
+SUN = {"direction": (0.5, 0.6, 0.6), "radius": 0.05, "radiance": 400.0, "sky": 0.02}
+
+
+def _sun_map():
+    """A sun-like environment: :data:`SUN`'s disc over a dim uniform sky (every light carries
+    some energy, one block of lights nearly all of it)."""
+    import numpy as np
+
+    from facegeo.lighting import envmap as E
+
+    d = np.asarray(SUN["direction"], np.float64)
+    d /= np.linalg.norm(d)
+    cos_r = np.cos(SUN["radius"])
+
+    def fn(v):
+        sun = (v @ d) >= cos_r
+        return np.where(sun[..., None], SUN["radiance"], SUN["sky"]) * np.ones(3)
+
+    return E.analytic_map(fn, 128, supersample=4)
+
+
+def _generator_texel_colours(texels, ids, pos, center, prm, lights, w, normals):
+    """The generator's answer at texels ``ids`` (pool positions ``pos``): their paper-model
+    functions (the pool texel's parameters and normal) seen from the novel camera centre,
+    relit by Eq. 4 — ``(n, 3)`` float64."""
+    import numpy as np
+
+    from facegeo.appearance import skin
+
+    v = center[None, :] - texels.p_world[ids]
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    R = skin.paper_reflectance(normals, v, lights, _subset_params(prm, pos))
+    return np.einsum("nlc,lc->nc", R.astype(np.float64), w)
+
+
+def _rel_rmse(a, b) -> float:
+    import numpy as np
+
+    ok = np.isfinite(a).all(axis=-1) & np.isfinite(b).all(axis=-1)
+    return float(np.sqrt(((a[ok] - b[ok]) ** 2).sum() / max((b[ok] ** 2).sum(), 1e-300)))
+
+
+@register("render.novel_view_paper")
+def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
+    """A 640 × 480 novel view at the paper preset's sizes: seconds per view against error.
+
+    Sizes: the paper preset's head (6 icosphere subdivisions, 81,920 faces), its atlas at the
+    reconstruct default of 1 texel/mm (≈ 115,000 texels), its two source cameras
+    (``cam_left``, ``cam_right``) and 64 × 32 = 2048 lights; the view orbits ``cam_left`` by
+    30° (640 × 480, focal length scaled so that the face fills the image height as in the
+    source cameras; ≈ 48,000 texels needed, ≈ 80,000 camera functions). Fit inputs: the
+    paper-preset scan is too slow to synthesise here, so every camera function is the
+    generator-exact paper model (:func:`_paper_sources`: paper-mode skin functions with
+    per-texel parameters, D the exact diffuse part, float16 storage like the pipeline's; every
+    ``pool_step``-th texel's function reused by its neighbours — 4, 16 with ``quick`` — so
+    generation takes about a minute while every texel is still read and resynthesised on
+    its own). Environments: the built-in ``sky`` and a sun-like map (:data:`SUN`), Eq. (4)
+    weights with the paper's δA.
+
+    Per environment, one row per renderer setting, all in the same run: the exact path
+    (``light_step=1``, every light), the speed/accuracy option ``light_step`` = 2 and 4
+    (:func:`facegeo.render.shade_texels`) and the naive baseline; each with the
+    cross-validated shrinkage λ the render stage uses (its seconds included in the view's).
+    Speed: views per second (whole render: trace, shrinkage, shading, image; writing EXR +
+    PNG timed separately). Error: the image's relative RMSE against the exact path over the
+    covered pixels; extras: the relative RMSE of texel colours against the generator's exact
+    answer (its functions at the novel view, relit) over an even subset of ≤ 1024 pool texels,
+    for the setting and for the exact path, and the profile (seconds reading the fields,
+    reading the fits, resynthesising, the rest of the shading = blending and bookkeeping).
+    """
+    from facegeo.capture import imageio
+    from facegeo.lighting import envmap as E
+    from facegeo.pipeline.relight import tone_map
+    from facegeo.pipeline.render import builtin_env
+    from facegeo.render._fitstore import light_set
+    from facegeo.render.novel import (
+        cross_validated_shrinkage,
+        even_subset,
+        render_view,
+        shade_texels,
+        trace_view,
+    )
+
+    t0 = time.perf_counter()
+    atlas, texels, scene, rig, novel = _paper_geometry()
+    t_geo = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    vs = trace_view(novel, scene, atlas, texels)
+    t_trace = time.perf_counter() - t0
+    need = vs.needed_texels
+    lights = light_set(rig.lights)
+    pool_step = 16 if quick else 4
+    t0 = time.perf_counter()
+    sources, pool, prm = _paper_sources(texels, need, rig, scene, lights, pool_step)
+    t_gen = time.perf_counter() - t0
+    n_fun = sum(s.texel_index.size for s in sources)
+    # texels where the generator's answer is computed: pool texels (their own function)
+    ref_pos = even_subset(pool.size, 1024)
+    ref_ids = pool[ref_pos]
+    stage = rig.lights
+    rows = []
+    settings = (("exact (every light)", True, 1), ("light_step=2", True, 2),
+                ("light_step=4", True, 4), ("naive baseline", False, 1))
+    for env_name, env in (("sky", builtin_env("sky")), ("sun", _sun_map())):
+        w = E.light_stage_weights(env, stage.n_theta, stage.n_phi) / stage.color_rgb[None, :]
+        truth = _generator_texel_colours(texels, ref_ids, ref_pos, novel.center_world, prm,
+                                         lights, w, texels.n_world[pool][ref_pos])
+        results = {}
+        for label, resyn, step in settings:
+            t0 = time.perf_counter()
+            factors = None
+            if resyn:
+                factors, _ = cross_validated_shrinkage(sources, w, lights, light_step=step)
+            t_shrink = time.perf_counter() - t0
+            res = render_view(novel, scene, atlas, texels, sources, w, lights, samples=vs,
+                              resynthesis=resyn, shrinkage=factors, light_step=step)
+            t_view = time.perf_counter() - t0 + t_trace
+            with tempfile.TemporaryDirectory(prefix="facegeo-bench-render-") as tmp:
+                t1 = time.perf_counter()
+                imageio.write_image(Path(tmp) / "view.exr", res.image)
+                imageio.write_image(Path(tmp) / "view.png", tone_map(res.image)[0])
+                t_write = time.perf_counter() - t1
+            col = shade_texels(ref_ids, texels.p_world[ref_ids], novel.center_world, sources, w,
+                               lights, resynthesis=resyn, shrinkage=factors, light_step=step)
+            results[label] = (res, t_view, t_shrink, t_write, factors, col)
+        exact, exact_col = results[settings[0][0]][0], results[settings[0][0]][5]
+        cov = exact.covered
+        naive_change = _rel_rmse(results["naive baseline"][0].image[cov], exact.image[cov])
+        for label, (res, t_view, t_shrink, t_write, factors, col) in results.items():
+            s = res.stats
+            err = _rel_rmse(res.image[cov], exact.image[cov])
+            rest = s["seconds_shade"] - s["seconds_read"] - s["seconds_fit"] \
+                - s["seconds_resynthesis"]
+            rows.append(BenchRow(
+                "render.novel_view_paper",
+                f"640×480 novel view (cam_left +30°), paper preset sizes, {env_name}, {label}",
+                1.0 / t_view, "views/s", err,
+                "relative RMSE vs the exact path's image (covered pixels)",
+                extra={"seconds_per_view": round(t_view, 3),
+                       "texel_rel_rmse_vs_generator": round(_rel_rmse(col, truth), 6),
+                       "exact_texel_rel_rmse_vs_generator": round(_rel_rmse(exact_col, truth),
+                                                                  6),
+                       "share_of_resynthesis_change": round(err / max(naive_change, 1e-12), 4)
+                       if label != "naive baseline" else 1.0,
+                       "naive_vs_exact_rel_rmse": round(naive_change, 6),
+                       "seconds_trace": round(t_trace, 3),
+                       "seconds_shrinkage": round(t_shrink, 3),
+                       "seconds_read_fields": s["seconds_read"],
+                       "seconds_read_fits": s["seconds_fit"],
+                       "seconds_resynthesis_relight": s["seconds_resynthesis"],
+                       "seconds_blend_other": round(rest, 3),
+                       "seconds_image": s["seconds_image"],
+                       "seconds_write_exr_png": round(t_write, 3),
+                       "lambda": factors, "active_lights": s["active_lights"],
+                       "texels": s["texels"], "camera_functions": s["samples"],
+                       "resynthesized": s["resynthesized"],
+                       "setup_seconds": {"geometry": round(t_geo, 1),
+                                         "generate_functions": round(t_gen, 1)},
+                       "camera_functions_stored": n_fun, "pool_step": pool_step},
+                threads=2))
+    return rows
