@@ -385,7 +385,8 @@ def _cmd_render(args) -> int:
     try:
         m = run_render(args.scan, camera_spec=args.camera, env=args.env,
                        rotate_deg=args.rotate, supersample=args.supersample,
-                       resynthesis=not args.naive, shrinkage=args.shrinkage, progress=tick)
+                       resynthesis=not args.naive, shrinkage=args.shrinkage,
+                       light_step=args.light_step, progress=tick)
     finally:
         close()
     figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "paper_psnr_db", "psnr_gain_db",
@@ -607,6 +608,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "'cross-validated' (default: measured against the other source cameras; "
                         "a deviation from the paper, docs/render.md), 'none' (the paper's "
                         "resynthesis as written) or a number in [0, 1]")
+    s.add_argument("--light-step", type=_pos_int, default=1, metavar="K",
+                   help="speed against accuracy (not the paper): resynthesise once per K x K "
+                        "block of lights (default 1: every light; docs/render.md)")
     s.add_argument("--mesh", default="auto", help=mesh_help)
     s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

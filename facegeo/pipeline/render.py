@@ -151,7 +151,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                baseline: bool = True, reference: bool = True, name: str | None = None,
                blend_power: float | None = None, rig: str | None = None,
                solid_angle: str = "paper", fill_px: float = 2.0,
-               shrinkage: str | float = SHRINKAGE_DEFAULT, progress=None) -> dict:
+               shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
+               progress=None) -> dict:
     """Render a novel view of a reconstructed scan under an environment; write the images.
 
     Parameters
@@ -183,6 +184,10 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         against the other source cameras; ``"none"``: λ = 1, the paper's §4.3 as written; a
         number: that λ for every camera). With λ ≠ 1 and a reference, the paper's render is
         made as well and reported as ``paper_psnr_db`` (``_covered``)
+    light_step : int ≥ 1 — speed against accuracy, not the paper: the resynthesis (and the
+        shrinkage's cross-validation) evaluates the new functions once per k × k block of
+        lights (:func:`facegeo.render.shade_texels`; docs/render.md has time against error);
+        the naive and the paper's renders beside it stay exact
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
         each step (rays, render, naive baseline, reference)
 
@@ -198,7 +203,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                          rotate_deg=rotate_deg, projection=projection, supersample=supersample,
                          resynthesis=resynthesis, baseline=baseline, reference=reference,
                          name=name, blend_power=blend_power, rig=rig, solid_angle=solid_angle,
-                         fill_px=fill_px, shrinkage=shrinkage, progress=progress)
+                         fill_px=fill_px, shrinkage=shrinkage, light_step=light_step,
+                         progress=progress)
     _merge_metrics(out, metrics["name"], metrics)
     return metrics
 
@@ -208,7 +214,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                resynthesis: bool | str = True, baseline: bool = True, reference: bool = True,
                name: str | None = None, blend_power: float | None = None,
                rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
-               shrinkage: str | float = SHRINKAGE_DEFAULT, progress=None) -> dict:
+               shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
+               progress=None) -> dict:
     """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
     ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
     the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem)."""
@@ -258,7 +265,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys)
     factors, shrink_stats = None, None
     if resynthesis is True and shrink_mode == "cross-validated":
-        factors, shrink_stats = cross_validated_shrinkage(sources, w, lights)
+        factors, shrink_stats = cross_validated_shrinkage(sources, w, lights,
+                                                          light_step=light_step)
     elif resynthesis is True and isinstance(shrink_mode, float):
         factors = {src.name: shrink_mode for src in sources}
     shrunk = factors is not None and any(f != 1.0 for f in factors.values())
@@ -274,7 +282,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     tick(1)
     bp = BLEND_POWER if blend_power is None else float(blend_power)
     res = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=resynthesis,
-                      blend_power=bp, samples=samples, fill_px=fill_px, shrinkage=factors)
+                      blend_power=bp, samples=samples, fill_px=fill_px, shrinkage=factors,
+                      light_step=light_step if resynthesis is True else 1)
     tick(2)
     naive = None
     if baseline and resynthesis:
@@ -304,6 +313,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         else "EnvironmentMap", "rotate_deg": float(rotate_deg), "supersample": int(supersample),
         "resynthesis": resynthesis, "blend_power": bp, "fill_px": float(fill_px),
         "shrinkage": shrink_mode, "shrinkage_factors": factors,
+        "light_step": int(light_step) if resynthesis is True else 1,
         "shrinkage_cross_validation": shrink_stats,
         "rig": rig_used,
         "size": [camera.width, camera.height], "active_lights": res.stats["active_lights"],
