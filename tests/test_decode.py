@@ -474,17 +474,22 @@ def test_real_face_threephase_wrapped_phase_and_quality(shared_data):
 @pytest.mark.slow
 def test_memory_42_full_resolution_frames_under_1_5_gb():
     """42 RGB uint8 frames of 4896 x 3264 (white, black, 10 + 10 bits with inverses), generated
-    one at a time, decode with a peak resident set under 1.5 GB (measured in a fresh process)."""
+    one at a time, decode with a peak resident set under 1.5 GB (measured in a fresh process).
+
+    The peak is the child's own ``VmHWM`` after a reset: ``ru_maxrss`` in a child started by
+    fork + exec reports the forking process's size when that was larger (a CI run read the
+    pytest process's 1.52 GB there; the decode itself peaks at ≈ 1.25 GB with a cold numba
+    cache, compilation included)."""
     code = textwrap.dedent("""
-        import resource, numpy as np
+        import numpy as np
         from facegeo.geometry.structured_light import PatternSpec, pattern_names, decode_stream
-        H, W = 3264, 4896
+        from facegeo.pipeline.bench import peak_rss_mb, reset_peak_rss
         spec = PatternSpec(1024, 768)
         names = pattern_names(spec)
         assert len(names) == 42
-        qx = np.linspace(0, 1023, W); qy = np.linspace(0, 767, H)
         from facegeo.geometry.structured_light import pattern_value_at
-        def frames():
+        def frames(H, W):
+            qx = np.linspace(0, 1023, W); qy = np.linspace(0, 767, H)
             for n in names:
                 row = pattern_value_at(spec, n, np.stack([qx, np.full(W, 100.0)], -1))
                 col = pattern_value_at(spec, n, np.stack([np.full(H, 100.0), qy], -1))
@@ -494,9 +499,10 @@ def test_memory_42_full_resolution_frames_under_1_5_gb():
                 img = np.empty((H, W, 3), np.uint8)
                 img[...] = np.broadcast_to((20 + 200 * v).astype(np.uint8), (H, W))[..., None]
                 yield n, img
-        res = decode_stream(frames(), spec)
+        assert reset_peak_rss()
+        res = decode_stream(frames(3264, 4896), spec)
         ok = res.valid.mean()
-        print(ok, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+        print(ok, peak_rss_mb())
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=600)
