@@ -410,13 +410,6 @@ def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None
     split = int(split_faces or 0)
     pieces = split_mesh(V, F, split) if split and len(F) > split else [np.arange(len(F))]
 
-    atlas = xatlas.Atlas()
-    piece_verts = []
-    for idx in pieces:
-        used, local = np.unique(F[idx], return_inverse=True)
-        piece_verts.append(used)
-        atlas.add_mesh(np.ascontiguousarray(V[used], np.float32),
-                       np.ascontiguousarray(local.reshape(-1, 3), np.uint32))
     if not (np.isfinite(max_chart_area) and max_chart_area >= 0):
         raise InputError(f"max_chart_area: expected a finite number >= 0 (m²), got "
                          f"{fmt_value(max_chart_area)}")
@@ -424,6 +417,16 @@ def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None
                                             and max_chart_faces >= 0):
         raise InputError(f"max_chart_faces: expected a number >= 0 or None, got "
                          f"{fmt_value(max_chart_faces)}")
+    # Every check before the first add_mesh: xatlas queues each mesh on its worker threads, and
+    # an Atlas destroyed before generate() has joined them can deadlock (an InputError raised
+    # after add_mesh hung 2 runs in 8).
+    atlas = xatlas.Atlas()
+    piece_verts = []
+    for idx in pieces:
+        used, local = np.unique(F[idx], return_inverse=True)
+        piece_verts.append(used)
+        atlas.add_mesh(np.ascontiguousarray(V[used], np.float32),
+                       np.ascontiguousarray(local.reshape(-1, 3), np.uint32))
     chart_area = float(max_chart_area)
     if chart_area == 0 and max_chart_faces:
         area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
