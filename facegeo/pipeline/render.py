@@ -337,27 +337,24 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         files["error_png"] = imageio.write_image(dest / f"{stem}_error.png",
                                                  _error_heatmap(res.image, ref, mask)).name
         cov = mask & res.covered
-        m = image_metrics(res.image, ref, mask)
-        mc = image_metrics(res.image, ref, cov)
-        metrics.update({"psnr_db": m["psnr_db"], "rel_rmse": m["rel_rmse"],
-                        "mask_pixels": m["pixels"], "psnr_db_covered": mc["psnr_db"],
-                        "rel_rmse_covered": mc["rel_rmse"]})
+        def figures(prefix, image):
+            """``{prefix}psnr_db``, ``rel_rmse`` and their ``_covered`` forms; the two PSNRs."""
+            a, c = image_metrics(image, ref, mask), image_metrics(image, ref, cov)
+            metrics.update({f"{prefix}psnr_db": a["psnr_db"], f"{prefix}rel_rmse": a["rel_rmse"],
+                            f"{prefix}psnr_db_covered": c["psnr_db"],
+                            f"{prefix}rel_rmse_covered": c["rel_rmse"]})
+            return a, c
+
+        m, mc = figures("", res.image)
+        metrics["mask_pixels"] = m["pixels"]
         if naive is not None:
-            nm = image_metrics(naive.image, ref, mask)
-            nc = image_metrics(naive.image, ref, cov)
-            metrics.update({"naive_psnr_db": nm["psnr_db"], "naive_rel_rmse": nm["rel_rmse"],
-                            "naive_psnr_db_covered": nc["psnr_db"],
-                            "naive_rel_rmse_covered": nc["rel_rmse"]})
+            nm, nc = figures("naive_", naive.image)
             if m["psnr_db"] is not None and nm["psnr_db"] is not None:
                 metrics["psnr_gain_db"] = round(m["psnr_db"] - nm["psnr_db"], 4)
             if mc["psnr_db"] is not None and nc["psnr_db"] is not None:
                 metrics["psnr_gain_db_covered"] = round(mc["psnr_db"] - nc["psnr_db"], 4)
         if paper is not None:
-            pm = image_metrics(paper.image, ref, mask)
-            pc = image_metrics(paper.image, ref, cov)
-            metrics.update({"paper_psnr_db": pm["psnr_db"], "paper_rel_rmse": pm["rel_rmse"],
-                            "paper_psnr_db_covered": pc["psnr_db"],
-                            "paper_rel_rmse_covered": pc["rel_rmse"]})
+            figures("paper_", paper.image)
     metrics["files"] = files
     metrics["name"] = stem
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
