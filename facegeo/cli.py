@@ -524,8 +524,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--out", default=None, help="products folder (default: SCAN/out; writes atlas/)")
     s.add_argument("--mesh", default="ground_truth",
-                   help="'ground_truth' (synthetic scans, until facegeo mesh lands) or a mesh "
-                        "file in metres")
+                   help="'ground_truth' (a synthetic scan's true mesh) or a mesh file in metres, "
+                        "e.g. SCAN/out/mesh/mesh.ply from 'facegeo mesh' ('facegeo "
+                        "reconstruct --mesh reconstructed' does this for you)")
     g = s.add_mutually_exclusive_group()
     g.add_argument("--texels-per-mm", type=_nonneg_float, default=1.0,
                    help="atlas resolution on the surface")
