@@ -38,6 +38,7 @@ per sample, not box-filtered.
 from __future__ import annotations
 
 import logging
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -144,6 +145,15 @@ class SurfaceView:
     def n_samples(self) -> int:
         return int(self.pixel_index.size)
 
+    def take(self, idx: np.ndarray) -> SurfaceView:
+        """The view restricted to samples ``idx`` (indices into the per-sample arrays); ``mask``
+        stays the whole view's, and :meth:`to_image` fills the other pixels."""
+        idx = np.asarray(idx, np.int64)
+        return SurfaceView(self.camera_name, self.shape, self.mask, self.pixel_index[idx],
+                           self.p_world[idx], self.n_world[idx], self.v_world[idx],
+                           self.face[idx], self.alpha_0[idx], self.alpha_1[idx],
+                           self.rho_s[idx], self.roughness[idx], self.samples_per_pixel)
+
     def to_image(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
         """Scatter per-sample values ``(P, ...)`` into an image ``(H, W, ...)``.
 
@@ -177,6 +187,14 @@ class TexelTruth:
     n: np.ndarray
     face: np.ndarray
     offset: np.ndarray
+
+
+def _forget(cache: dict, key: int) -> None:
+    """Drop ``cache[key]`` when its view has been collected (a new view that reused the id
+    keeps its entry)."""
+    hit = cache.get(key)
+    if hit is not None and hit[0]() is None:
+        cache.pop(key, None)
 
 
 class ReferenceRenderer:
@@ -223,7 +241,9 @@ class ReferenceRenderer:
             raise InputError(f"eta: expected a finite index of refraction > 1, got {fmt_value(eta)}")
         self.shadows = bool(shadows)
         self._views: dict[tuple, SurfaceView] = {}
-        self._origins: dict[int, tuple] = {}  # id(view) -> (view, shadow origins)
+        # id(view) -> (weak reference to the view, its shadow origins); an entry leaves with
+        # its view (weakref.finalize), so the cache never keeps a view alive
+        self._origins: dict[int, tuple] = {}
         self.rig = None  # the true rig, when rebuilt from a scan (load_ground_truth)
 
     def material_at(self, p_world, face):
@@ -488,14 +508,15 @@ class ReferenceRenderer:
 
     def _view_origins(self, view: SurfaceView) -> np.ndarray:
         """:meth:`shadow_origins` of every sample of a view, computed once per view (they do
-        not depend on the light) for the views :meth:`surface_view` caches; views built
-        elsewhere are not kept alive by this cache (recomputed per call)."""
-        hit = self._origins.get(id(view))
-        if hit is not None and hit[0] is view:
+        not depend on the light), for any view: the cache holds a weak reference and drops the
+        entry when the view is collected."""
+        key = id(view)
+        hit = self._origins.get(key)
+        if hit is not None and hit[0]() is view:
             return hit[1]
         origins = self.shadow_origins(view.p_world, view.face)
-        if any(v is view for v in self._views.values()):
-            self._origins[id(view)] = (view, origins)
+        self._origins[key] = (weakref.ref(view), origins)
+        weakref.finalize(view, _forget, self._origins, key)
         return origins
 
     def _unshadowed(self, p, face, n, *, light_pos=None, light_dir=None,
