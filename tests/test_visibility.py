@@ -633,7 +633,8 @@ def test_fields_subset_is_identical_to_the_full_result_and_omits_the_rest():
 def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
     # The compiled preparation pass against its numpy formulation, with per-ray inputs given
     # one row per ray and one row shared by all (broadcast origins, scalar t_min / t_max), and
-    # its validation flag on each kind of bad ray.
+    # its validation flag on each kind of bad ray. Each layout runs its own loop (per-ray
+    # origins with scalar distances and a shared origin have branch-free fast paths).
     from facegeo.surface import _vis_kernels as k
     from facegeo.surface._vis_util import _dot
 
@@ -651,7 +652,9 @@ def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
         ok = k.prepare_rays(o, D, False, ts, tmax, centre, round_down, *out)
         return ok, out
 
-    for oo, tt, xx in ((o, ts, tmax), (o[:1], ts[:1], tmax[:1])):
+    layouts = ((o, ts, tmax), (o, ts[:1], tmax[:1]), (o[:1], ts[:1], tmax[:1]),
+               (o[:1], ts, tmax[:1]))
+    for oo, tt, xx in layouts:
         ob, tb, xb = (np.broadcast_to(a, (m,) + a.shape[1:]) for a in (oo, tt, xx))
         d = D / np.sqrt(_dot(D, D))[:, None]
         far = np.minimum(xb - tb, np.finfo(np.float32).max)
@@ -671,14 +674,16 @@ def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
             else:
                 assert np.array_equal(far32, far.astype(np.float32)), "metric: to nearest"
     for bad in ("nan origin", "inf direction", "zero direction"):
-        ob, Db = o.copy(), D.copy()
-        if bad == "nan origin":
-            ob[100, 2] = np.nan
-        elif bad == "inf direction":
-            Db[5, 0] = np.inf
-        else:
-            Db[200] = 0.0
-        assert not run(ob, Db, ts, tmax, False)[0], f"metric: {bad} reported"
+        for oo, tt, xx in layouts:
+            ob, Db = oo.copy(), D.copy()
+            if bad == "nan origin":
+                ob[min(100, len(ob) - 1), 2] = np.nan
+            elif bad == "inf direction":
+                Db[5, 0] = np.inf
+            else:
+                Db[200] = 0.0
+            assert not run(ob, Db, tt, xx, False)[0], (
+                f"metric: {bad} reported ({len(oo)} origin rows, {len(tt)} t_min rows)")
 
 
 def test_rays_no_query_reads_are_still_validated():

@@ -11,9 +11,34 @@ each other and with Embree's own (GIL-free) traversal. ``tests/test_visibility.p
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 _F32_MAX = float(np.finfo(np.float32).max)
+#: :func:`refine_hits` prefetches the face record of the ray this many rays ahead: on 1.3 M
+#: faces (a 125 MB table) the record gathers are cache misses, which the prefetch overlaps.
+_PREFETCH_AHEAD = 16
+#: Bytes per record of the face table (12 float64; a record spans two 64-byte cache lines).
+_RECORD_BYTES = 96
+
+
+@intrinsic
+def _prefetch(typingctx, addr):
+    """Hint the CPU to fetch the cache line at byte address ``addr`` (``llvm.prefetch``: read,
+    high locality, data cache). A hint only: no effect on results, never faults."""
+    sig = types.void(types.intp)
+
+    def codegen(context, builder, signature, args):
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p], fnty)
+        builder.call(fn, [builder.inttoptr(args[0], i8p), ir.Constant(i32, 0), ir.Constant(i32, 3),
+                          ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 @njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
@@ -55,7 +80,16 @@ def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64,
         (the outputs are then incomplete; the caller names the first bad ray).
     """
     m = d64.shape[0]
-    fmax = np.float32(_F32_MAX)
+    if (not unit and D.shape[0] == m and t_shift.shape[0] == 1 and tmax.shape[0] == 1
+            and m > 0):
+        # The usual batch (rays with their own directions, scalar t_min / t_max): one query
+        # distance for all, and a branch-free loop per origin layout.
+        far = _far32(tmax[0] - t_shift[0], round_down)
+        for i in range(m):
+            far32[i] = far
+        if o.shape[0] == 1:
+            return _prep_shared_origin(o, D, t_shift[0], centre, org32, d32, d64)
+        return _prep_own_origins(o, D, t_shift[0], centre, org32, d32, d64)
     o1 = o.shape[0] == 1
     D1 = D.shape[0] == 1
     s1 = t_shift.shape[0] == 1
@@ -77,14 +111,66 @@ def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64,
             d64[i, k] = dk
             d32[i, k] = np.float32(dk)
             org32[i, k] = np.float32(o[io, k] + dk * ts - centre[k])
-        f = tmax[0 if t1 else i] - ts
-        if f >= _F32_MAX:
-            far32[i] = fmax
-        else:
-            f32 = np.float32(f)
-            if round_down and np.float64(f32) > f:
-                f32 = np.nextafter(f32, np.float32(0.0))
-            far32[i] = f32
+        far32[i] = _far32(tmax[0 if t1 else i] - ts, round_down)
+    return ok
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy", inline="always")
+def _far32(f, round_down):
+    """Float32 Embree query distance for the float64 distance ``f`` (as :func:`prepare_rays`)."""
+    if f >= _F32_MAX:
+        return np.float32(_F32_MAX)
+    f32 = np.float32(f)
+    if round_down and np.float64(f32) > f:
+        f32 = np.nextafter(f32, np.float32(0.0))
+    return f32
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _prep_shared_origin(o, D, ts, centre, org32, d32, d64):
+    """:func:`prepare_rays` for one origin ``o`` (1, 3) shared by all rays, ``D`` (m, 3) and a
+    scalar shift ``ts``: the same arithmetic, without per-ray layout branches."""
+    ox, oy, oz = o[0, 0], o[0, 1], o[0, 2]
+    cx, cy, cz = centre[0], centre[1], centre[2]
+    ok = np.isfinite(ox) & np.isfinite(oy) & np.isfinite(oz)
+    for i in range(d64.shape[0]):
+        x, y, z = D[i, 0], D[i, 1], D[i, 2]
+        s = np.sqrt(x * x + y * y + z * z)
+        ok &= (s > 0.0) & (s < np.inf)
+        dx, dy, dz = x / s, y / s, z / s
+        d64[i, 0] = dx
+        d64[i, 1] = dy
+        d64[i, 2] = dz
+        d32[i, 0] = np.float32(dx)
+        d32[i, 1] = np.float32(dy)
+        d32[i, 2] = np.float32(dz)
+        org32[i, 0] = np.float32(ox + dx * ts - cx)
+        org32[i, 1] = np.float32(oy + dy * ts - cy)
+        org32[i, 2] = np.float32(oz + dz * ts - cz)
+    return ok
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _prep_own_origins(o, D, ts, centre, org32, d32, d64):
+    """:func:`prepare_rays` for per-ray origins ``o`` (m, 3), ``D`` (m, 3) and a scalar shift
+    ``ts``: the same arithmetic, without per-ray layout branches."""
+    cx, cy, cz = centre[0], centre[1], centre[2]
+    ok = True
+    for i in range(d64.shape[0]):
+        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
+        x, y, z = D[i, 0], D[i, 1], D[i, 2]
+        s = np.sqrt(x * x + y * y + z * z)
+        ok &= (s > 0.0) & (s < np.inf) & np.isfinite(ox) & np.isfinite(oy) & np.isfinite(oz)
+        dx, dy, dz = x / s, y / s, z / s
+        d64[i, 0] = dx
+        d64[i, 1] = dy
+        d64[i, 2] = dz
+        d32[i, 0] = np.float32(dx)
+        d32[i, 1] = np.float32(dy)
+        d32[i, 2] = np.float32(dz)
+        org32[i, 0] = np.float32(ox + dx * ts - cx)
+        org32[i, 1] = np.float32(oy + dy * ts - cy)
+        org32[i, 2] = np.float32(oz + dz * ts - cz)
     return ok
 
 
@@ -124,7 +210,14 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
     w_p = point.shape[0] == m
     w_n = normal.shape[0] == m
     n_rej = 0
+    base = table.ctypes.data
     for i in range(m):
+        if i + _PREFETCH_AHEAD < m:
+            q = prim[i + _PREFETCH_AHEAD]
+            if q >= 0:
+                a = base + q * _RECORD_BYTES
+                _prefetch(a)
+                _prefetch(a + _RECORD_BYTES - 1)
         p = prim[i]
         ok = False
         th = nan
