@@ -652,14 +652,19 @@ def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
         ok = k.prepare_rays(o, D, False, ts, tmax, centre, round_down, *out)
         return ok, out
 
+    def strided(a):  # the same values in a non-contiguous view (the general loop reads it)
+        wide = np.empty((len(a), 4))
+        wide[:, :3] = a
+        return wide[:, :3]
+
     layouts = ((o, ts, tmax), (o, ts[:1], tmax[:1]), (o[:1], ts[:1], tmax[:1]),
-               (o[:1], ts, tmax[:1]))
-    for oo, tt, xx in layouts:
+               (o[:1], ts, tmax[:1]), (strided(o), ts[:1], tmax[:1]))
+    for (oo, tt, xx), DD in [(lay, D) for lay in layouts] + [(layouts[2], strided(D))]:
         ob, tb, xb = (np.broadcast_to(a, (m,) + a.shape[1:]) for a in (oo, tt, xx))
         d = D / np.sqrt(_dot(D, D))[:, None]
         far = np.minimum(xb - tb, np.finfo(np.float32).max)
         for round_down in (False, True):
-            ok, (org32, d32, d64, far32) = run(oo, D, tt, xx, round_down)
+            ok, (org32, d32, d64, far32) = run(oo, DD, tt, xx, round_down)
             assert ok, "metric: valid rays pass"
             assert np.array_equal(d64, d), "metric: unit directions bit-identical to numpy"
             assert np.array_equal(d32, d.astype(np.float32)), "metric: float32 directions"
@@ -675,7 +680,7 @@ def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
                 assert np.array_equal(far32, far.astype(np.float32)), "metric: to nearest"
     for bad in ("nan origin", "inf direction", "zero direction"):
         for oo, tt, xx in layouts:
-            ob, Db = oo.copy(), D.copy()
+            ob, Db = oo.copy(), D.copy()  # (copies are contiguous: the fast loops)
             if bad == "nan origin":
                 ob[min(100, len(ob) - 1), 2] = np.nan
             elif bad == "inf direction":

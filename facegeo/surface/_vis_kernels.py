@@ -40,7 +40,6 @@ def _prefetch(typingctx, addr):
     return sig, codegen
 
 
-@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
 def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
     """Float32 Embree rays from float64 rays, one pass that also validates them.
 
@@ -78,17 +77,24 @@ def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64,
         False when an origin is not finite or a direction is not finite or has length zero
         (the outputs are then incomplete; the caller names the first bad ray).
     """
-    m = d64.shape[0]
-    if (not unit and D.shape[0] == m and t_shift.shape[0] == 1 and tmax.shape[0] == 1
-            and m > 0):
+    m = len(d64)
+    if (not unit and m > 0 and len(D) == m and len(t_shift) == 1 and len(tmax) == 1
+            and (len(o) == 1 or o.flags.c_contiguous) and D.flags.c_contiguous
+            and org32.flags.c_contiguous and d32.flags.c_contiguous and d64.flags.c_contiguous):
         # The usual batch (rays with their own directions, scalar t_min / t_max): one query
-        # distance for all, and a branch-free loop per origin layout.
-        far = _far32(tmax[0] - t_shift[0], round_down)
-        for i in range(m):
-            far32[i] = far
-        if o.shape[0] == 1:
-            return _prep_shared_origin(o, D, t_shift[0], centre, org32, d32, d64)
-        return _prep_own_origins(o, D, t_shift[0], centre, org32, d32, d64)
+        # distance for all, and a loop per origin layout on flat views, which LLVM vectorises
+        # (the (m, 3) indexing of the general loop does not: 8-9 against 4-5 ns per ray).
+        flat = (D.reshape(-1), org32.reshape(-1), d32.reshape(-1), d64.reshape(-1), far32)
+        if len(o) == 1:
+            return _prep_shared_origin(o, t_shift[0], tmax[0], round_down, centre, *flat)
+        return _prep_own_origins(o.reshape(-1), t_shift[0], tmax[0], round_down, centre, *flat)
+    return _prep_general(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64, far32)
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _prep_general(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
+    """:func:`prepare_rays` for any layout (one row per ray or one shared row per input)."""
+    m = d64.shape[0]
     o1 = o.shape[0] == 1
     D1 = D.shape[0] == 1
     s1 = t_shift.shape[0] == 1
@@ -126,51 +132,60 @@ def _far32(f, round_down):
 
 
 @njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
-def _prep_shared_origin(o, D, ts, centre, org32, d32, d64):
-    """:func:`prepare_rays` for one origin ``o`` (1, 3) shared by all rays, ``D`` (m, 3) and a
-    scalar shift ``ts``: the same arithmetic, without per-ray layout branches."""
+def _prep_shared_origin(o, ts, tmax, round_down, centre, D, org32, d32, d64, far32):
+    """:func:`prepare_rays` for one origin ``o`` (1, 3) shared by all rays and scalar ``ts``
+    and ``tmax``; ``D``, ``org32``, ``d32``, ``d64`` are the flat (3m,) views of the (m, 3)
+    arrays. The same arithmetic as the general loop (bit-identical results), no branches."""
+    far = _far32(tmax - ts, round_down)
+    for i in range(far32.shape[0]):
+        far32[i] = far
     ox, oy, oz = o[0, 0], o[0, 1], o[0, 2]
     cx, cy, cz = centre[0], centre[1], centre[2]
-    ok = np.isfinite(ox) & np.isfinite(oy) & np.isfinite(oz)
-    for i in range(d64.shape[0]):
-        x, y, z = D[i, 0], D[i, 1], D[i, 2]
+    bad = 0
+    for i in range(d64.shape[0] // 3):
+        x, y, z = D[3 * i], D[3 * i + 1], D[3 * i + 2]
         s = np.sqrt(x * x + y * y + z * z)
-        ok &= (s > 0.0) & (s < np.inf)
+        bad += not ((s > 0.0) & (s < np.inf))
         dx, dy, dz = x / s, y / s, z / s
-        d64[i, 0] = dx
-        d64[i, 1] = dy
-        d64[i, 2] = dz
-        d32[i, 0] = np.float32(dx)
-        d32[i, 1] = np.float32(dy)
-        d32[i, 2] = np.float32(dz)
-        org32[i, 0] = np.float32(ox + dx * ts - cx)
-        org32[i, 1] = np.float32(oy + dy * ts - cy)
-        org32[i, 2] = np.float32(oz + dz * ts - cz)
-    return ok
+        d64[3 * i] = dx
+        d64[3 * i + 1] = dy
+        d64[3 * i + 2] = dz
+        d32[3 * i] = np.float32(dx)
+        d32[3 * i + 1] = np.float32(dy)
+        d32[3 * i + 2] = np.float32(dz)
+        org32[3 * i] = np.float32(ox + dx * ts - cx)
+        org32[3 * i + 1] = np.float32(oy + dy * ts - cy)
+        org32[3 * i + 2] = np.float32(oz + dz * ts - cz)
+    return bad == 0 and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
 
 
 @njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
-def _prep_own_origins(o, D, ts, centre, org32, d32, d64):
-    """:func:`prepare_rays` for per-ray origins ``o`` (m, 3), ``D`` (m, 3) and a scalar shift
-    ``ts``: the same arithmetic, without per-ray layout branches."""
+def _prep_own_origins(o, ts, tmax, round_down, centre, D, org32, d32, d64, far32):
+    """:func:`prepare_rays` for per-ray origins and scalar ``ts`` and ``tmax``; ``o``, ``D``,
+    ``org32``, ``d32``, ``d64`` are the flat (3m,) views of the (m, 3) arrays. The same
+    arithmetic as the general loop (bit-identical results), without branches."""
+    far = _far32(tmax - ts, round_down)
+    for i in range(far32.shape[0]):
+        far32[i] = far
     cx, cy, cz = centre[0], centre[1], centre[2]
-    ok = True
-    for i in range(d64.shape[0]):
-        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
-        x, y, z = D[i, 0], D[i, 1], D[i, 2]
+    bad = 0
+    for i in range(d64.shape[0] // 3):
+        ox, oy, oz = o[3 * i], o[3 * i + 1], o[3 * i + 2]
+        x, y, z = D[3 * i], D[3 * i + 1], D[3 * i + 2]
         s = np.sqrt(x * x + y * y + z * z)
-        ok &= (s > 0.0) & (s < np.inf) & np.isfinite(ox) & np.isfinite(oy) & np.isfinite(oz)
+        bad += not ((s > 0.0) & (s < np.inf) & np.isfinite(ox) & np.isfinite(oy)
+                    & np.isfinite(oz))
         dx, dy, dz = x / s, y / s, z / s
-        d64[i, 0] = dx
-        d64[i, 1] = dy
-        d64[i, 2] = dz
-        d32[i, 0] = np.float32(dx)
-        d32[i, 1] = np.float32(dy)
-        d32[i, 2] = np.float32(dz)
-        org32[i, 0] = np.float32(ox + dx * ts - cx)
-        org32[i, 1] = np.float32(oy + dy * ts - cy)
-        org32[i, 2] = np.float32(oz + dz * ts - cz)
-    return ok
+        d64[3 * i] = dx
+        d64[3 * i + 1] = dy
+        d64[3 * i + 2] = dz
+        d32[3 * i] = np.float32(dx)
+        d32[3 * i + 1] = np.float32(dy)
+        d32[3 * i + 2] = np.float32(dz)
+        org32[3 * i] = np.float32(ox + dx * ts - cx)
+        org32[3 * i + 1] = np.float32(oy + dy * ts - cy)
+        org32[3 * i + 2] = np.float32(oz + dz * ts - cz)
+    return bad == 0
 
 
 @njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
