@@ -711,3 +711,33 @@ def test_rays_no_query_reads_are_still_validated():
         scene.occluded(o, zero, [1.0, 1.0, 0.0], t_min=0.5)  # ray 2 skipped: t_max < t_min
     with pytest.raises(InputError, match=r"directions.*zero-length.*\(2,\)"):
         scene.closest_hit(o, zero, t_max=[1.0, 1.0, 0.0], t_min=0.5)
+
+
+@pytest.mark.slow
+def test_bench_loads_a_previous_checkout_beside_this_one(tmp_path):
+    # FACEGEO_BENCH_PREVIOUS: the closest_hit benchmark times another checkout's RayScene in
+    # the same process. Loading this checkout as the "previous" one must give a separate class
+    # (its own copied modules, not this one under another name) with bit-identical hits, and
+    # the comparison must notice a single changed value.
+    from pathlib import Path
+
+    import facegeo
+    from facegeo.pipeline.benchmarks.visibility import _load_previous, _same_hits
+
+    root = Path(facegeo.__file__).parent.parent
+    Prev = _load_previous(str(root))
+    assert Prev is not RayScene and Prev.__module__ != RayScene.__module__, (
+        "metric: a separately loaded class")
+    kern = __import__(Prev.__module__.rsplit(".", 1)[0] + "._vis_kernels", fromlist=["x"])
+    assert kern.__name__ != "facegeo.surface._vis_kernels", "metric: its own kernels module"
+    rng = np.random.default_rng(31)
+    v, f = _dented_sphere()
+    ours, prev = RayScene(v, f, n_threads=1), Prev(v, f, n_threads=1)
+    o, d = _rays_at(rng, 400, ours.bounds, 2.0 * ours.scale)
+    a, b = ours.closest_hit(o, d), prev.closest_hit(o, d)
+    assert _same_hits(a, b), "metric: bit-identical hits from the same code"
+    t = b.t.copy()
+    i = int(np.flatnonzero(b.hit)[0])
+    t[i] = np.nextafter(t[i], np.inf)
+    changed = Hits(b.hit, t, b.face, b.bary, b.point, b.normal)
+    assert not _same_hits(a, changed), "metric: one ulp in one t is a difference"

@@ -3,7 +3,9 @@
 Private: imported on the first ray query, so ``import facegeo`` does not pay for numba. Each
 kernel fuses what the numpy version did in 20–40 array passes into one pass per ray and
 releases the GIL (``nogil=True``), so the scene's worker threads run them in parallel with
-each other and with Embree's own (GIL-free) traversal. ``tests/test_visibility.py`` tests
+each other and with Embree's own (GIL-free) traversal. No ``fastmath``: vectorised loops
+compute the same IEEE operations in the same order, so every layout's results are identical
+bit for bit. ``tests/test_visibility.py`` tests
 :func:`prepare_rays` against its numpy formulation directly and the refinement through
 :class:`~facegeo.surface.visibility.RayScene` against trimesh's float64 ray–triangle test.
 """
@@ -45,6 +47,10 @@ def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64,
 
     Every per-ray input has either ``m`` rows (``m = len(d64)``) or one row shared by all rays
     (a broadcast origin, a scalar ``t_shift``/``tmax``), which the loop reads without copying.
+    A Python dispatcher: contiguous rays with scalar ``t_shift`` and ``tmax`` (the usual
+    query) go to a compiled loop over flat views that LLVM vectorises (AVX: four rays per
+    division and square root; 4–5 ns per ray against 8–9 for the general loop, results
+    bit-identical), anything else to the general compiled loop.
 
     Parameters
     ----------
