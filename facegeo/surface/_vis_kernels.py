@@ -137,6 +137,26 @@ def _far32(f, round_down):
     return f32
 
 
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy", inline="always")
+def _put_ray(i, ox, oy, oz, ts, cx, cy, cz, D, org32, d32, d64):
+    """Ray ``i`` of the flat views: unit direction (float64 and float32) and the centred,
+    moved float32 origin, as the general loop computes them. Returns whether the direction's
+    length is finite and non-zero."""
+    x, y, z = D[3 * i], D[3 * i + 1], D[3 * i + 2]
+    s = np.sqrt(x * x + y * y + z * z)
+    dx, dy, dz = x / s, y / s, z / s
+    d64[3 * i] = dx
+    d64[3 * i + 1] = dy
+    d64[3 * i + 2] = dz
+    d32[3 * i] = np.float32(dx)
+    d32[3 * i + 1] = np.float32(dy)
+    d32[3 * i + 2] = np.float32(dz)
+    org32[3 * i] = np.float32(ox + dx * ts - cx)
+    org32[3 * i + 1] = np.float32(oy + dy * ts - cy)
+    org32[3 * i + 2] = np.float32(oz + dz * ts - cz)
+    return (s > 0.0) & (s < np.inf)
+
+
 @njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
 def _prep_shared_origin(o, ts, tmax, round_down, centre, D, org32, d32, d64, far32):
     """:func:`prepare_rays` for one origin ``o`` (1, 3) shared by all rays and scalar ``ts``
@@ -149,19 +169,7 @@ def _prep_shared_origin(o, ts, tmax, round_down, centre, D, org32, d32, d64, far
     cx, cy, cz = centre[0], centre[1], centre[2]
     bad = 0
     for i in range(d64.shape[0] // 3):
-        x, y, z = D[3 * i], D[3 * i + 1], D[3 * i + 2]
-        s = np.sqrt(x * x + y * y + z * z)
-        bad += not ((s > 0.0) & (s < np.inf))
-        dx, dy, dz = x / s, y / s, z / s
-        d64[3 * i] = dx
-        d64[3 * i + 1] = dy
-        d64[3 * i + 2] = dz
-        d32[3 * i] = np.float32(dx)
-        d32[3 * i + 1] = np.float32(dy)
-        d32[3 * i + 2] = np.float32(dz)
-        org32[3 * i] = np.float32(ox + dx * ts - cx)
-        org32[3 * i + 1] = np.float32(oy + dy * ts - cy)
-        org32[3 * i + 2] = np.float32(oz + dz * ts - cz)
+        bad += not _put_ray(i, ox, oy, oz, ts, cx, cy, cz, D, org32, d32, d64)
     return bad == 0 and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
 
 
@@ -177,20 +185,8 @@ def _prep_own_origins(o, ts, tmax, round_down, centre, D, org32, d32, d64, far32
     bad = 0
     for i in range(d64.shape[0] // 3):
         ox, oy, oz = o[3 * i], o[3 * i + 1], o[3 * i + 2]
-        x, y, z = D[3 * i], D[3 * i + 1], D[3 * i + 2]
-        s = np.sqrt(x * x + y * y + z * z)
-        bad += not ((s > 0.0) & (s < np.inf) & np.isfinite(ox) & np.isfinite(oy)
-                    & np.isfinite(oz))
-        dx, dy, dz = x / s, y / s, z / s
-        d64[3 * i] = dx
-        d64[3 * i + 1] = dy
-        d64[3 * i + 2] = dz
-        d32[3 * i] = np.float32(dx)
-        d32[3 * i + 1] = np.float32(dy)
-        d32[3 * i + 2] = np.float32(dz)
-        org32[3 * i] = np.float32(ox + dx * ts - cx)
-        org32[3 * i + 1] = np.float32(oy + dy * ts - cy)
-        org32[3 * i + 2] = np.float32(oz + dz * ts - cz)
+        bad += not (_put_ray(i, ox, oy, oz, ts, cx, cy, cz, D, org32, d32, d64)
+                    & np.isfinite(ox) & np.isfinite(oy) & np.isfinite(oz))
     return bad == 0
 
 
