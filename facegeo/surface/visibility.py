@@ -61,8 +61,8 @@ memory is recycled by the allocator: after the first call neither this nor raw e
 a page fault per call, so writing into caller-provided buffers measured no faster. Median CPU
 time at one thread, interleaved with raw ``EmbreeScene.run(output=1)`` on the same float32
 rays and BVH and with the previous implementation, 2-core machine under a load average of
-8–11: 65,536 camera rays on 20 k faces 0.80–0.86 of raw embreex (0.82–0.86 with
-``fields=("t", "face", "bary")``; previously 0.75–0.81 and 0.78–0.83); 1 M rays on 1.3 M
+7–11: 65,536 camera rays on 20 k faces 0.80–0.88 of raw embreex (0.82–0.89 with
+``fields=("t", "face", "bary")``; previously 0.75–0.81 and 0.78–0.84); 1 M rays on 1.3 M
 faces 0.78–0.82 (0.80–0.86; previously 0.71–0.75 and 0.74–0.77).
 Large batches of incoherent rays on large meshes are traced in Z-order of their origins (see
 ``sort_rays``), which makes shadow rays ~1.5–1.9× faster than raw embreex on the same input
