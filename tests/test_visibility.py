@@ -633,7 +633,8 @@ def test_fields_subset_is_identical_to_the_full_result_and_omits_the_rest():
 def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
     # The compiled preparation pass against its numpy formulation, with per-ray inputs given
     # one row per ray and one row shared by all (broadcast origins, scalar t_min / t_max), and
-    # its validation flag on each kind of bad ray.
+    # its validation flag on each kind of bad ray. Each layout runs its own loop (per-ray
+    # origins with scalar distances and a shared origin have branch-free fast paths).
     from facegeo.surface import _vis_kernels as k
     from facegeo.surface._vis_util import _dot
 
@@ -651,12 +652,19 @@ def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
         ok = k.prepare_rays(o, D, False, ts, tmax, centre, round_down, *out)
         return ok, out
 
-    for oo, tt, xx in ((o, ts, tmax), (o[:1], ts[:1], tmax[:1])):
+    def strided(a):  # the same values in a non-contiguous view (the general loop reads it)
+        wide = np.empty((len(a), 4))
+        wide[:, :3] = a
+        return wide[:, :3]
+
+    layouts = ((o, ts, tmax), (o, ts[:1], tmax[:1]), (o[:1], ts[:1], tmax[:1]),
+               (o[:1], ts, tmax[:1]), (strided(o), ts[:1], tmax[:1]))
+    for (oo, tt, xx), DD in [(lay, D) for lay in layouts] + [(layouts[2], strided(D))]:
         ob, tb, xb = (np.broadcast_to(a, (m,) + a.shape[1:]) for a in (oo, tt, xx))
         d = D / np.sqrt(_dot(D, D))[:, None]
         far = np.minimum(xb - tb, np.finfo(np.float32).max)
         for round_down in (False, True):
-            ok, (org32, d32, d64, far32) = run(oo, D, tt, xx, round_down)
+            ok, (org32, d32, d64, far32) = run(oo, DD, tt, xx, round_down)
             assert ok, "metric: valid rays pass"
             assert np.array_equal(d64, d), "metric: unit directions bit-identical to numpy"
             assert np.array_equal(d32, d.astype(np.float32)), "metric: float32 directions"
@@ -671,14 +679,16 @@ def test_prepare_rays_matches_numpy_and_reads_shared_rows_in_place():
             else:
                 assert np.array_equal(far32, far.astype(np.float32)), "metric: to nearest"
     for bad in ("nan origin", "inf direction", "zero direction"):
-        ob, Db = o.copy(), D.copy()
-        if bad == "nan origin":
-            ob[100, 2] = np.nan
-        elif bad == "inf direction":
-            Db[5, 0] = np.inf
-        else:
-            Db[200] = 0.0
-        assert not run(ob, Db, ts, tmax, False)[0], f"metric: {bad} reported"
+        for oo, tt, xx in layouts:
+            ob, Db = oo.copy(), D.copy()  # (copies are contiguous: the fast loops)
+            if bad == "nan origin":
+                ob[min(100, len(ob) - 1), 2] = np.nan
+            elif bad == "inf direction":
+                Db[5, 0] = np.inf
+            else:
+                Db[200] = 0.0
+            assert not run(ob, Db, tt, xx, False)[0], (
+                f"metric: {bad} reported ({len(oo)} origin rows, {len(tt)} t_min rows)")
 
 
 def test_rays_no_query_reads_are_still_validated():
@@ -701,3 +711,33 @@ def test_rays_no_query_reads_are_still_validated():
         scene.occluded(o, zero, [1.0, 1.0, 0.0], t_min=0.5)  # ray 2 skipped: t_max < t_min
     with pytest.raises(InputError, match=r"directions.*zero-length.*\(2,\)"):
         scene.closest_hit(o, zero, t_max=[1.0, 1.0, 0.0], t_min=0.5)
+
+
+@pytest.mark.slow
+def test_bench_loads_a_previous_checkout_beside_this_one(tmp_path):
+    # FACEGEO_BENCH_PREVIOUS: the closest_hit benchmark times another checkout's RayScene in
+    # the same process. Loading this checkout as the "previous" one must give a separate class
+    # (its own copied modules, not this one under another name) with bit-identical hits, and
+    # the comparison must notice a single changed value.
+    from pathlib import Path
+
+    import facegeo
+    from facegeo.pipeline.benchmarks.visibility import _load_previous, _same_hits
+
+    root = Path(facegeo.__file__).parent.parent
+    Prev = _load_previous(str(root))
+    assert Prev is not RayScene and Prev.__module__ != RayScene.__module__, (
+        "metric: a separately loaded class")
+    kern = __import__(Prev.__module__.rsplit(".", 1)[0] + "._vis_kernels", fromlist=["x"])
+    assert kern.__name__ != "facegeo.surface._vis_kernels", "metric: its own kernels module"
+    rng = np.random.default_rng(31)
+    v, f = _dented_sphere()
+    ours, prev = RayScene(v, f, n_threads=1), Prev(v, f, n_threads=1)
+    o, d = _rays_at(rng, 400, ours.bounds, 2.0 * ours.scale)
+    a, b = ours.closest_hit(o, d), prev.closest_hit(o, d)
+    assert _same_hits(a, b), "metric: bit-identical hits from the same code"
+    t = b.t.copy()
+    i = int(np.flatnonzero(b.hit)[0])
+    t[i] = np.nextafter(t[i], np.inf)
+    changed = Hits(b.hit, t, b.face, b.bary, b.point, b.normal)
+    assert not _same_hits(a, changed), "metric: one ulp in one t is a difference"

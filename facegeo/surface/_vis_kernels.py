@@ -3,7 +3,9 @@
 Private: imported on the first ray query, so ``import facegeo`` does not pay for numba. Each
 kernel fuses what the numpy version did in 20–40 array passes into one pass per ray and
 releases the GIL (``nogil=True``), so the scene's worker threads run them in parallel with
-each other and with Embree's own (GIL-free) traversal. ``tests/test_visibility.py`` tests
+each other and with Embree's own (GIL-free) traversal. No ``fastmath``: vectorised loops
+compute the same IEEE operations in the same order, so every layout's results are identical
+bit for bit. ``tests/test_visibility.py`` tests
 :func:`prepare_rays` against its numpy formulation directly and the refinement through
 :class:`~facegeo.surface.visibility.RayScene` against trimesh's float64 ray–triangle test.
 """
@@ -11,17 +13,44 @@ each other and with Embree's own (GIL-free) traversal. ``tests/test_visibility.p
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 _F32_MAX = float(np.finfo(np.float32).max)
+#: :func:`refine_hits` prefetches the face record (and face index) of the ray this many rays
+#: ahead: on 1.3 M faces (a 125 MB table) the record gathers are cache misses, which the
+#: prefetch overlaps (8, 16 and 32 measured alike; none ahead was slower).
+_PREFETCH_AHEAD = 16
 
 
-@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+@intrinsic
+def _prefetch(typingctx, addr):
+    """Hint the CPU to fetch the cache line at byte address ``addr`` (``llvm.prefetch``: read,
+    high locality, data cache). A hint only: no effect on results, never faults."""
+    sig = types.void(types.intp)
+
+    def codegen(context, builder, signature, args):
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p], fnty)
+        builder.call(fn, [builder.inttoptr(args[0], i8p), ir.Constant(i32, 0), ir.Constant(i32, 3),
+                          ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
     """Float32 Embree rays from float64 rays, one pass that also validates them.
 
     Every per-ray input has either ``m`` rows (``m = len(d64)``) or one row shared by all rays
     (a broadcast origin, a scalar ``t_shift``/``tmax``), which the loop reads without copying.
+    A Python dispatcher: contiguous rays with scalar ``t_shift`` and ``tmax`` (the usual
+    query) go to a compiled loop over flat views that LLVM vectorises (AVX: four rays per
+    division and square root; 4–5 ns per ray against 8–9 for the general loop, results
+    bit-identical), anything else to the general compiled loop.
 
     Parameters
     ----------
@@ -54,8 +83,24 @@ def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64,
         False when an origin is not finite or a direction is not finite or has length zero
         (the outputs are then incomplete; the caller names the first bad ray).
     """
+    m = len(d64)
+    if (not unit and m > 0 and len(D) == m and len(t_shift) == 1 and len(tmax) == 1
+            and (len(o) == 1 or o.flags.c_contiguous) and D.flags.c_contiguous
+            and org32.flags.c_contiguous and d32.flags.c_contiguous and d64.flags.c_contiguous):
+        # The usual batch (rays with their own directions, scalar t_min / t_max): one query
+        # distance for all, and a loop per origin layout on flat views, which LLVM vectorises
+        # (the (m, 3) indexing of the general loop does not: 8-9 against 4-5 ns per ray).
+        flat = (D.reshape(-1), org32.reshape(-1), d32.reshape(-1), d64.reshape(-1), far32)
+        if len(o) == 1:
+            return _prep_shared_origin(o, t_shift[0], tmax[0], round_down, centre, *flat)
+        return _prep_own_origins(o.reshape(-1), t_shift[0], tmax[0], round_down, centre, *flat)
+    return _prep_general(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64, far32)
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _prep_general(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64, far32):
+    """:func:`prepare_rays` for any layout (one row per ray or one shared row per input)."""
     m = d64.shape[0]
-    fmax = np.float32(_F32_MAX)
     o1 = o.shape[0] == 1
     D1 = D.shape[0] == 1
     s1 = t_shift.shape[0] == 1
@@ -77,15 +122,72 @@ def prepare_rays(o, D, unit, t_shift, tmax, centre, round_down, org32, d32, d64,
             d64[i, k] = dk
             d32[i, k] = np.float32(dk)
             org32[i, k] = np.float32(o[io, k] + dk * ts - centre[k])
-        f = tmax[0 if t1 else i] - ts
-        if f >= _F32_MAX:
-            far32[i] = fmax
-        else:
-            f32 = np.float32(f)
-            if round_down and np.float64(f32) > f:
-                f32 = np.nextafter(f32, np.float32(0.0))
-            far32[i] = f32
+        far32[i] = _far32(tmax[0 if t1 else i] - ts, round_down)
     return ok
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy", inline="always")
+def _far32(f, round_down):
+    """Float32 Embree query distance for the float64 distance ``f`` (as :func:`prepare_rays`)."""
+    if f >= _F32_MAX:
+        return np.float32(_F32_MAX)
+    f32 = np.float32(f)
+    if round_down and np.float64(f32) > f:
+        f32 = np.nextafter(f32, np.float32(0.0))
+    return f32
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy", inline="always")
+def _put_ray(i, ox, oy, oz, ts, cx, cy, cz, D, org32, d32, d64):
+    """Ray ``i`` of the flat views: unit direction (float64 and float32) and the centred,
+    moved float32 origin, as the general loop computes them. Returns whether the direction's
+    length is finite and non-zero."""
+    x, y, z = D[3 * i], D[3 * i + 1], D[3 * i + 2]
+    s = np.sqrt(x * x + y * y + z * z)
+    dx, dy, dz = x / s, y / s, z / s
+    d64[3 * i] = dx
+    d64[3 * i + 1] = dy
+    d64[3 * i + 2] = dz
+    d32[3 * i] = np.float32(dx)
+    d32[3 * i + 1] = np.float32(dy)
+    d32[3 * i + 2] = np.float32(dz)
+    org32[3 * i] = np.float32(ox + dx * ts - cx)
+    org32[3 * i + 1] = np.float32(oy + dy * ts - cy)
+    org32[3 * i + 2] = np.float32(oz + dz * ts - cz)
+    return (s > 0.0) & (s < np.inf)
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _prep_shared_origin(o, ts, tmax, round_down, centre, D, org32, d32, d64, far32):
+    """:func:`prepare_rays` for one origin ``o`` (1, 3) shared by all rays and scalar ``ts``
+    and ``tmax``; ``D``, ``org32``, ``d32``, ``d64`` are the flat (3m,) views of the (m, 3)
+    arrays. The same arithmetic as the general loop (bit-identical results), no branches."""
+    far = _far32(tmax - ts, round_down)
+    for i in range(far32.shape[0]):
+        far32[i] = far
+    ox, oy, oz = o[0, 0], o[0, 1], o[0, 2]
+    cx, cy, cz = centre[0], centre[1], centre[2]
+    bad = 0
+    for i in range(d64.shape[0] // 3):
+        bad += not _put_ray(i, ox, oy, oz, ts, cx, cy, cz, D, org32, d32, d64)
+    return bad == 0 and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
+
+
+@njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _prep_own_origins(o, ts, tmax, round_down, centre, D, org32, d32, d64, far32):
+    """:func:`prepare_rays` for per-ray origins and scalar ``ts`` and ``tmax``; ``o``, ``D``,
+    ``org32``, ``d32``, ``d64`` are the flat (3m,) views of the (m, 3) arrays. The same
+    arithmetic as the general loop (bit-identical results), without branches."""
+    far = _far32(tmax - ts, round_down)
+    for i in range(far32.shape[0]):
+        far32[i] = far
+    cx, cy, cz = centre[0], centre[1], centre[2]
+    bad = 0
+    for i in range(d64.shape[0] // 3):
+        ox, oy, oz = o[3 * i], o[3 * i + 1], o[3 * i + 2]
+        bad += not (_put_ray(i, ox, oy, oz, ts, cx, cy, cz, D, org32, d32, d64)
+                    & np.isfinite(ox) & np.isfinite(oy) & np.isfinite(oz))
+    return bad == 0
 
 
 @njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
@@ -124,7 +226,18 @@ def refine_hits(o, d, t_shift, tmin, tmax, prim, tfar, u, v, table, prim_to_face
     w_p = point.shape[0] == m
     w_n = normal.shape[0] == m
     n_rej = 0
+    # Prefetch addresses (hints only: an address past an array's end never faults).
+    base, rec = table.ctypes.data, table.strides[0]
+    p2f_base, p2f_step = prim_to_face.ctypes.data, prim_to_face.strides[0]
     for i in range(m):
+        if i + _PREFETCH_AHEAD < m:
+            q = prim[i + _PREFETCH_AHEAD]
+            if q >= 0:
+                a = base + q * rec
+                _prefetch(a)
+                _prefetch(a + rec - 1)  # a 96-byte record spans two cache lines
+                if remap and w_f:
+                    _prefetch(p2f_base + q * p2f_step)
         p = prim[i]
         ok = False
         th = nan

@@ -12,8 +12,9 @@ facegeo's overhead differs), and facegeo on 2 threads against raw embreex on 2 t
 same ``run`` calls on ray chunks of facegeo's chunk size, mapped over a 2-worker
 ``ThreadPoolExecutor``). The calls being compared are **interleaved** (each round runs every
 case once, the previous result released first) so machine load and the allocator's state hit
-them alike; speeds are the best wall time of the rounds, and the 1-thread rows also give the
-ratio of median CPU times (``time.process_time``), steadier under load.
+them alike; speeds are the best wall time of the rounds, and every facegeo row also gives the
+ratio of median CPU times (``time.process_time``, all of the process's threads), which machine
+load does not inflate the way it inflates wall time.
 
 ``closest_hit`` returns more than raw embreex: ``run(output=1)`` gives float32 ``tfar``, ``u``,
 ``v`` and int32 ``primID``/``geomID`` (20 bytes per ray); the default :class:`Hits` holds
@@ -29,6 +30,13 @@ measured in the same run (≈ 0.85–1 and ≈ 0.02 on the loaded 2-core machine
 ``mesh.ray`` (a single-threaded wrapper) is reported beside them. Timings on the shared 2-core
 machines are noisy: compare ratios, not absolute speeds, and rerun when another job was using
 the second core.
+
+Before/after in one run: with ``FACEGEO_BENCH_PREVIOUS=/path/to/other/checkout`` (for example
+the main worktree while a branch is being measured), ``visibility.closest_hit`` also loads that
+checkout's ``facegeo/surface/visibility.py`` and its two private modules (copied to a temporary
+package, so both versions share nothing but numpy, numba and embreex), builds the same scene
+with it and interleaves its calls with the others; its rows state whether its results are
+bit-identical to this version's.
 """
 
 from __future__ import annotations
@@ -121,19 +129,57 @@ def _interleaved(cases: dict, repeat: int) -> tuple[dict, dict]:
 
 
 def _thread_rows(name: str, label: str, ours: dict, raw: dict, n: int, baseline: str,
-                 cpu_ratio: float | None = None) -> list[BenchRow]:
+                 cpu: dict | None = None) -> list[BenchRow]:
     """facegeo rows at each thread count with the ratio to the raw-embreex case ``baseline``
-    at the same thread count (``ours``/``raw``: thread count → seconds)."""
+    at the same thread count (``ours``/``raw``: thread count → best wall seconds; ``cpu``:
+    thread count → ratio of median process CPU times, raw over ours, reported beside)."""
     rows = []
     for th in _THREADS:
         t = f"{th} thread{'s' if th > 1 else ''}"
         key = f"vs {baseline}, {t}"
-        extra = {} if th > 1 or cpu_ratio is None else {
-            "ratio of median CPU times vs raw, 1 thread": cpu_ratio}
+        ratios = {key: raw[th] / ours[th]}
+        if cpu is not None:
+            ratios[f"{key}, median CPU time"] = cpu[th]
         rows.append(BenchRow(name, f"{label} ({t})", n / ours[th] / 1e6, "Mrays/s",
-                             ratios={key: raw[th] / ours[th]}, extra=extra, threads=th,
-                             baseline_threads={key: th}))
+                             ratios=ratios, threads=th,
+                             baseline_threads={k: th for k in ratios}))
     return rows
+
+
+def _load_previous(root: str):
+    """``RayScene`` of another facegeo checkout ``root`` (its ``facegeo/surface/visibility.py``,
+    ``_vis_kernels.py`` and ``_vis_util.py``, copied into a temporary package whose imports of
+    each other are redirected to it), for before/after timings in one process. One previous
+    checkout per process: later calls return the first one loaded."""
+    import importlib
+    import re
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    src = Path(root) / "facegeo" / "surface"
+    pkg = "_facegeo_previous_vis"
+    if pkg not in sys.modules:
+        tmp = Path(tempfile.mkdtemp(prefix="facegeo-prev-vis-"))
+        (tmp / pkg).mkdir()
+        (tmp / pkg / "__init__.py").write_text("")
+        for mod in ("visibility", "_vis_kernels", "_vis_util"):
+            text = (src / f"{mod}.py").read_text()
+            text = re.sub(r"facegeo\.surface\.(_vis_\w+)", pkg + r".\1", text)
+            text = text.replace("from facegeo.surface import _vis", f"from {pkg} import _vis")
+            (tmp / pkg / f"{mod}.py").write_text(text)
+        sys.path.insert(0, str(tmp))
+    return importlib.import_module(f"{pkg}.visibility").RayScene
+
+
+def _same_hits(a, b) -> bool:
+    """Whether two :class:`Hits` are bit-identical (NaN equal to NaN, None to None)."""
+    for f in ("hit", "t", "face", "bary", "point", "normal"):
+        x, y = getattr(a, f), getattr(b, f)
+        if (x is None) != (y is None) or (x is not None
+                                          and not np.array_equal(x, y, equal_nan=True)):
+            return False
+    return True
 
 _RADIUS = 0.1  # metres, a head
 _CAMERA_DISTANCE = 0.5  # metres
@@ -174,9 +220,11 @@ def _trimesh_closest(mesh, o, d):
 def bench_closest_hit(quick: bool) -> list[BenchRow]:
     from facegeo.surface.visibility import RayScene
 
+    import os
+
     mesh = _mesh(quick)
     n_side = 256 if quick else 1000
-    repeat = 7 if quick else 3
+    repeat = 15 if quick else 5
     scene = RayScene.from_trimesh(mesh)
     t_build, _ = best_of(scene.build, repeat=1)
     c, d = _pinhole_rays(n_side)
@@ -199,6 +247,12 @@ def bench_closest_hit(quick: bool) -> list[BenchRow]:
 
     cases = {("all", 1): lambda: ours(1), ("raw fields", 1): lambda: ours(1, fields=raw_fields),
              ("raw", 1): lambda: emb.run(o32, d32, output=1)}
+    previous_root = os.environ.get("FACEGEO_BENCH_PREVIOUS")
+    if previous_root:
+        prev = _load_previous(previous_root).from_trimesh(mesh, n_threads=1).build()
+        prev.closest_hit(o[:16], d[:16])
+        cases[("previous all", 1)] = lambda: prev.closest_hit(o, d)
+        cases[("previous raw fields", 1)] = lambda: prev.closest_hit(o, d, fields=raw_fields)
     for th in _THREADS[1:]:
         cases[("all", th)] = lambda th=th: ours(th)
         cases[("raw fields", th)] = lambda th=th: ours(th, fields=raw_fields)
@@ -234,17 +288,31 @@ def bench_closest_hit(quick: bool) -> list[BenchRow]:
     tm_speed = n_tm / t_tm / 1e6
     sizes = {"faces": scene.n_faces, "rays": n, "hit fraction": float(hits.hit.mean())}
     name = "visibility.closest_hit"
-    baseline = "raw embreex run(output=1)"
+    baseline = "raw embreex EmbreeScene.run(output=1) on the same float32 rays and BVH"
+    cpu = {k: {th: t_cpu[("raw", th)] / t_cpu[(k, th)] for th in _THREADS}
+           for k in ("all", "raw fields")}
     rows = _thread_rows(name, "RayScene.closest_hit, all fields (hit, t, face, bary, point, "
                         "normal; 89 B/ray)", {th: t_wall[("all", th)] for th in _THREADS}, t_raw,
-                        n, baseline, t_cpu[("raw", 1)] / t_cpu[("all", 1)])
+                        n, baseline, cpu["all"])
     rows[0].error, rows[0].error_unit = err_t, "max |Δt|/t vs raw embreex"
     rows[0].extra.update({**sizes, "face ids differing vs embreex": diff_face,
                           "BVH build s": t_build})
     rows += _thread_rows(name, "RayScene.closest_hit(fields=('t', 'face', 'bary')), raw "
                          "embreex's information in float64 (41 B/ray)",
                          {th: t_wall[("raw fields", th)] for th in _THREADS}, t_raw, n, baseline,
-                         t_cpu[("raw", 1)] / t_cpu[("raw fields", 1)])
+                         cpu["raw fields"])
+    if previous_root:
+        for k, fl, label in (("previous all", None, "all fields"),
+                             ("previous raw fields", raw_fields, "fields=('t', 'face', 'bary')")):
+            key = f"vs {baseline}, 1 thread"
+            rows.append(BenchRow(
+                name, f"previous RayScene.closest_hit ({previous_root}), {label} (1 thread)",
+                n / t_wall[(k, 1)] / 1e6, "Mrays/s",
+                ratios={key: t_raw[1] / t_wall[(k, 1)],
+                        f"{key}, median CPU time": t_cpu[("raw", 1)] / t_cpu[(k, 1)]},
+                extra={"results bit-identical to this version's": _same_hits(
+                    prev.closest_hit(o, d, fields=fl), ours(1, fields=fl))},
+                threads=1, baseline_threads={key: 1, f"{key}, median CPU time": 1}))
     gil_free = _gil_free_fraction(lambda: emb.run(o32, d32, output=1))
     rows += _raw_rows(name, "raw embreex run(output=1)", t_raw, n, chunk, sizes, gil_free)
     rows.append(BenchRow(name, "trimesh mesh.ray.intersects_id (single-threaded wrapper)",
@@ -347,8 +415,9 @@ def bench_occluded(quick: bool) -> list[BenchRow]:
     name = "visibility.occluded"
     ours_t = {th: t_wall[("ours", th)] for th in _THREADS}
     rows = _thread_rows(name, "RayScene.occluded", ours_t, t_raw, n,
-                        "raw embreex run(query='OCCLUDED')",
-                        t_cpu[("raw", 1)] / t_cpu[("ours", 1)])
+                        "raw embreex EmbreeScene.run(query='OCCLUDED') on the same float32 "
+                        "rays and BVH",
+                        {th: t_cpu[("raw", th)] / t_cpu[("ours", th)] for th in _THREADS})
     rows[0].error, rows[0].error_unit = diff_raw, "fraction differing vs raw embreex"
     rows[0].extra.update({**sizes, "differing vs closest_hit": diff_closest,
                           "Z-order sorting (auto)": sorted_auto})
