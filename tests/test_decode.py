@@ -106,7 +106,7 @@ def test_pattern_value_at_serves_new_families_and_spec_round_trip():
     assert d["codes"] == ["xor04", "gray"] and PatternSpec.from_dict(d) == spec
     assert "codes" not in PatternSpec(200, 120).to_dict()  # default left out: old manifests
     with pytest.raises(InputError, match="codes"):
-        PatternSpec(200, 120, codes=("gray", "minsw"))
+        PatternSpec(200, 120, codes=("gray", "minsw3"))
     with pytest.raises(InputError, match="xor04.*needs >= 2 bits"):
         PatternSpec(200, 120, n_bits_x=1, codes=("xor04",))
     with pytest.raises(InputError, match="decode_stream"):

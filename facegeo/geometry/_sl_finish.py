@@ -4,7 +4,8 @@ Private kernel behind :meth:`facegeo.geometry._sl_stream.StreamDecoder.finish`. 
 a run of pixels it does what the numpy reference (``_sl_stream._bit_words``, ``_decode_axis``,
 ``_partial_codes``; run with ``_sl_stream.KERNELS = False``) does with several full-size planes
 per family: read each pixel's decision word and its ``n`` margins per code family, apply the XOR
-base plane (Gupta et al. 2013, Sec. 4.2), Gray → binary, find the first unresolved plane, the
+base plane (Gupta et al. 2013, Sec. 4.2), Gray → binary (or a long-run code's code → stripe
+table), find the first unresolved plane, the
 boundary / phase-picked / coarse-block coordinate of a partly resolved code, the weakest used
 margin (confidence), the per-bit statistics and the consistency vote across families
 (Sec. 4.3); on an axis with phase frames also the wrapped phase and fringe amplitude
@@ -49,12 +50,12 @@ _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 # the pickled contents of its closure cells, and a dispatcher pickles differently in every
 # process, so kernels that closed over their helpers were compiled again in every process
 # (~20 s, measured); globals are not part of the key.
-_min_nan = _max_nan = _store = _binary = None
+_min_nan = _max_nan = _store = _binary = _stripe = None
 
 
 @functools.cache
 def _kernel():
-    global _min_nan, _max_nan, _store, _binary
+    global _min_nan, _max_nan, _store, _binary, _stripe
     from numba import njit
 
     def min_nan(a, b):  # np.minimum: NaN propagates
@@ -93,8 +94,17 @@ def _kernel():
         x ^= x >> 16
         return x
 
+    def stripe(word, high, sb, tab, use_tab):
+        # a decision word as a stripe index: through the family's code -> stripe table (the
+        # long-run code, no prefix structure) or the XOR / Gray arithmetic (use_tab is the
+        # same for a whole loop: hoisted by the compiler)
+        if use_tab:
+            return np.int64(tab[word])
+        return _binary(word, high, sb)
+
     helper = njit(cache=True, nogil=True, boundscheck=False, inline="always")
     _binary = helper(binary)
+    _stripe = helper(stripe)
     _min_nan = helper(min_nan)
     _max_nan = helper(max_nan)
     _store = helper(store)
@@ -118,8 +128,8 @@ def _kernel():
                 tau[p] = _max_nan(min_c, rel_c * d)
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-    def axis_pixels(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, p0,
-                    tau, ref, lit, phi, pok, has_hint, kk, period,
+    def axis_pixels(signs, marg, mscale, kidx, base, tabs, use_tabs, n, step, n_stripes,
+                    coarse_lim, tol, p0, tau, ref, lit, phi, pok, has_hint, kk, period,
                     coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
         F = signs.shape[0]
         P = tau.shape[0]
@@ -180,10 +190,12 @@ def _kernel():
                 b = base[f]
                 high = ((np.int64(1) << b) - 1) << (n - b) if b > 0 else np.int64(0)
                 sb = n - 1 - b if b > 0 else 0
+                ut = use_tabs[f]
+                tb = tabs[f] if ut else tabs[0]
                 n_slow = np.int32(0)
                 if direct:  # one family, final outputs: written here (the store, fused)
                     for t in range(nt):
-                        x = _binary(sg[t], high, sb)
+                        x = _stripe(sg[t], high, sb, tb, ut)
                         wrdv[t] = x
                         m = np.float32(miv[t]) * mscale
                         sl = np.uint8(not (m >= tauv[t]))
@@ -208,7 +220,7 @@ def _kernel():
                     ofv = of[f, :nt]
                     qfv = qf[f, :nt]
                     for t in range(nt):
-                        x = _binary(sg[t], high, sb)
+                        x = _stripe(sg[t], high, sb, tb, ut)
                         wrdv[t] = x
                         m = np.float32(miv[t]) * mscale
                         sl = np.uint8(not (m >= tauv[t]))
@@ -243,7 +255,10 @@ def _kernel():
                         t2 >>= 1
                     first = n - bl
                     single = (u & (u - 1)) == 0
-                    flip = binary ^ ((np.int64(1) << (n - first)) - 1)
+                    if ut:  # the other candidate: the word with its unresolved plane flipped
+                        flip = np.int64(tb[np.int64(sg[t]) ^ (np.int64(1) << (n - 1 - first))])
+                    else:  # Gray: the binary index with the bits below the prefix flipped
+                        flip = binary ^ ((np.int64(1) << (n - first)) - 1)
                     edge = single and abs(flip - binary) == 1
                     picked = False
                     bsel = binary
@@ -270,7 +285,8 @@ def _kernel():
                         weff = float(np.int64(1) << (n - first))
                         block = bsel >> (n - first)
                         cst = block * weff + 0.5 * (weff - 1)
-                        exists = block * weff < n_stripes
+                        # a table code has no prefix blocks: it names no stripe
+                        exists = block * weff < n_stripes and not ut
                     ok = isl and exists and (weff * step <= coarse_lim + 1e-9 or edge or picked)
                     # confidence: the weakest margin among the planes the coordinate uses
                     limit = n if (edge or picked) else first
@@ -405,7 +421,7 @@ def prepare(white, black, lmax, lmin, shadow_threshold, min_contrast, rel_contra
 
 
 def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, tau, ref,
-                lit, hint=None, out=None, p0=0):
+                lit, hint=None, out=None, p0=0, tables=None):
     """Decode one axis for a run of pixels (see the module docstring).
 
     Parameters
@@ -430,6 +446,11 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     lit : (P,) bool
     hint : tuple, optional
         ``(phi, usable, k, period)``: wrapped phase (P,) float32, (P,) bool, rad / px, px.
+    tables : sequence of ((2**n,) uint16 or None), optional
+        Per family its code → stripe table (``_sl_codes.stripe_table``), None for the Gray /
+        XOR families. A table family's pixel with one unresolved plane gets the two
+        candidates' boundary or the phase's pick, as a Gray one; otherwise it is invalid (a
+        resolved subset of its planes names no block of stripes).
 
     out : tuple, optional
         ``(coord, sig, ok, conf_all)`` (P,) arrays to write the axis's final outputs into
@@ -457,8 +478,12 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     else:
         phi, pok, kk, period = hint
         has = True
+    use = np.array([t is not None for t in tables] if tables is not None else [False] * F)
+    tabs = np.zeros((F, (1 << n) if use.any() else 1), np.uint16)
+    for f in np.flatnonzero(use):
+        tabs[f] = tables[f]
     _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
-              np.asarray(base, np.int64), int(n), float(step), int(n_stripes),
+              np.asarray(base, np.int64), tabs, use, int(n), float(step), int(n_stripes),
               float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
               float(period), coord, sig, ok, conf, out is not None, counts)
     c = counts
