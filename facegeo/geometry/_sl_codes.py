@@ -226,9 +226,9 @@ def long_run_transitions(n: int) -> np.ndarray:
     (``n``) steps apart. Construction, deterministic:
 
     * ``n <= 6``: depth-first search from word 0 (bits in increasing order) for the largest
-      gap ``r <= n`` it proves or finds within 20 000 placed words: 1, 2, 2, 2, 4, 4 for
-      ``n = 1 … 6`` (optimal: a 3- or 4-bit cycle has no gap 3; the 6-bit search for 5 runs
-      out of budget, and 4 is the known optimum);
+      gap ``r <= n`` it finds within 20 000 placed words: 1, 2, 2, 2, 4, 4 for ``n = 1 …
+      6`` (optimal up to 5 bits: the search exhausts ``r + 1`` without a cycle, e.g. no
+      3- or 4-bit cycle has gap 3; for 6 bits the search for 5 runs out of budget);
     * ``n >= 7``: Goddyn, Lawrence & Nemeth 1988, Theorem 1 (:func:`_compose`), over every
       split ``n = (n - m) + m`` with ``m <= n / 2`` and every odd ``s < 2**m``, keeping the
       largest cyclic gap (first found on ties).

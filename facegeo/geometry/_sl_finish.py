@@ -41,7 +41,9 @@ import math
 
 import numpy as np
 
-__all__ = ["decode_axis", "phase", "phase_merge", "prepare"]
+from facegeo.geometry._sl_codes import long_run_words, stripe_table
+
+__all__ = ["decode_axis", "phase", "phase_merge", "prepare", "stripe_gray_words"]
 
 _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 
@@ -50,12 +52,12 @@ _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 # the pickled contents of its closure cells, and a dispatcher pickles differently in every
 # process, so kernels that closed over their helpers were compiled again in every process
 # (~20 s, measured); globals are not part of the key.
-_min_nan = _max_nan = _store = _binary = _stripe = None
+_min_nan = _max_nan = _store = _binary = None
 
 
 @functools.cache
 def _kernel():
-    global _min_nan, _max_nan, _store, _binary, _stripe
+    global _min_nan, _max_nan, _store, _binary
     from numba import njit
 
     def min_nan(a, b):  # np.minimum: NaN propagates
@@ -94,17 +96,8 @@ def _kernel():
         x ^= x >> 16
         return x
 
-    def stripe(word, high, sb, tab, use_tab):
-        # a decision word as a stripe index: through the family's code -> stripe table (the
-        # long-run code, no prefix structure) or the XOR / Gray arithmetic (use_tab is the
-        # same for a whole loop: hoisted by the compiler)
-        if use_tab:
-            return np.int64(tab[word])
-        return _binary(word, high, sb)
-
     helper = njit(cache=True, nogil=True, boundscheck=False, inline="always")
     _binary = helper(binary)
-    _stripe = helper(stripe)
     _min_nan = helper(min_nan)
     _max_nan = helper(max_nan)
     _store = helper(store)
@@ -128,7 +121,7 @@ def _kernel():
                 tau[p] = _max_nan(min_c, rel_c * d)
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-    def axis_pixels(signs, marg, mscale, kidx, base, tabs, use_tabs, n, step, n_stripes,
+    def axis_pixels(signs, marg, mscale, kidx, base, tabs, words, use_tabs, n, step, n_stripes,
                     coarse_lim, tol, p0, tau, ref, lit, phi, pok, has_hint, kk, period,
                     coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
         F = signs.shape[0]
@@ -187,15 +180,14 @@ def _kernel():
                 # reference and vectorise where numba's float min / max / conditional
                 # expressions stay scalar); the others (few) take the scalar path after
                 sg = signs[f, a0:a0 + nt]
+                ut = use_tabs[f]  # a table code: sg holds its stripes' Gray words
                 b = base[f]
                 high = ((np.int64(1) << b) - 1) << (n - b) if b > 0 else np.int64(0)
                 sb = n - 1 - b if b > 0 else 0
-                ut = use_tabs[f]
-                tb = tabs[f] if ut else tabs[0]
                 n_slow = np.int32(0)
                 if direct:  # one family, final outputs: written here (the store, fused)
                     for t in range(nt):
-                        x = _stripe(sg[t], high, sb, tb, ut)
+                        x = _binary(sg[t], high, sb)
                         wrdv[t] = x
                         m = np.float32(miv[t]) * mscale
                         sl = np.uint8(not (m >= tauv[t]))
@@ -220,7 +212,7 @@ def _kernel():
                     ofv = of[f, :nt]
                     qfv = qf[f, :nt]
                     for t in range(nt):
-                        x = _stripe(sg[t], high, sb, tb, ut)
+                        x = _binary(sg[t], high, sb)
                         wrdv[t] = x
                         m = np.float32(miv[t]) * mscale
                         sl = np.uint8(not (m >= tauv[t]))
@@ -255,8 +247,10 @@ def _kernel():
                         t2 >>= 1
                     first = n - bl
                     single = (u & (u - 1)) == 0
-                    if ut:  # the other candidate: the word with its unresolved plane flipped
-                        flip = np.int64(tb[np.int64(sg[t]) ^ (np.int64(1) << (n - 1 - first))])
+                    if ut:  # the other candidate: the projected word (words[stripe]) with its
+                        # unresolved plane flipped, through the code -> stripe table
+                        flip = np.int64(tabs[f, np.int64(words[f, binary])
+                                             ^ (np.int64(1) << (n - 1 - first))])
                     else:  # Gray: the binary index with the bits below the prefix flipped
                         flip = binary ^ ((np.int64(1) << (n - first)) - 1)
                     edge = single and abs(flip - binary) == 1
@@ -446,11 +440,14 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     lit : (P,) bool
     hint : tuple, optional
         ``(phi, usable, k, period)``: wrapped phase (P,) float32, (P,) bool, rad / px, px.
-    tables : sequence of ((2**n,) uint16 or None), optional
-        Per family its code → stripe table (``_sl_codes.stripe_table``), None for the Gray /
-        XOR families. A table family's pixel with one unresolved plane gets the two
-        candidates' boundary or the phase's pick, as a Gray one; otherwise it is invalid (a
-        resolved subset of its planes names no block of stripes).
+    tables : sequence of (str or None), optional
+        Per family the code family name when it decodes through a code → stripe table (the
+        long-run ``"minsw"``), else None. Such a family's ``signs`` must already hold the
+        Gray words of its stripes (:func:`stripe_gray_words`), so the Gray loops decode it
+        unchanged; a pixel with one unresolved plane gets the two candidates' boundary or
+        the phase's pick, as a Gray one (the candidates: the table at the projected word and
+        at the word with that plane flipped); otherwise it is invalid (a resolved subset of
+        its planes names no block of stripes).
 
     out : tuple, optional
         ``(coord, sig, ok, conf_all)`` (P,) arrays to write the axis's final outputs into
@@ -480,10 +477,12 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
         has = True
     use = np.array([t is not None for t in tables] if tables is not None else [False] * F)
     tabs = np.zeros((F, (1 << n) if use.any() else 1), np.uint16)
+    words = np.zeros_like(tabs)
     for f in np.flatnonzero(use):
-        tabs[f] = tables[f]
+        tabs[f] = stripe_table(tables[f], n)
+        words[f] = long_run_words(n)
     _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
-              np.asarray(base, np.int64), tabs, use, int(n), float(step), int(n_stripes),
+              np.asarray(base, np.int64), tabs, words, use, int(n), float(step), int(n_stripes),
               float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
               float(period), coord, sig, ok, conf, out is not None, counts)
     c = counts
@@ -512,3 +511,17 @@ def phase_merge(coord, sig, ok, conf, phi, B, pconf, usable, k, noise_sigma, N, 
     _kernel()[3](coord, sig, ok, conf, phi, B, pconf, usable, float(k),
                  np.float32(noise_sigma * math.sqrt(2.0 / N)),
                  np.float32(step / math.sqrt(12.0) + 1e-6), *out)
+
+
+@functools.lru_cache(maxsize=None)
+def _stripe_gray(code: str, n: int) -> np.ndarray:
+    t = stripe_table(code, n)
+    return t ^ (t >> 1)
+
+
+def stripe_gray_words(code: str, n: int, signs: np.ndarray) -> None:
+    """In place: a table family's decision words ``signs`` (plane ``i`` at bit ``n - 1 - i``)
+    become the reflected Gray words of the stripes they name, ``g = k ^ (k >> 1)`` with ``k
+    = table[word]``, so :func:`decode_axis` decodes them with its Gray arithmetic, unchanged
+    (the Gray path does not pay for the table). Stored once per decode, before the chunks."""
+    signs[...] = _stripe_gray(code, n)[signs]

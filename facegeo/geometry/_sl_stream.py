@@ -419,6 +419,15 @@ class StreamDecoder:
         fw = {a: v.reshape(-1) for a, v in wrapped.items()}
         fm = {a: v.reshape(-1) for a, v in modulation.items()}
         P = H * W
+        if KERNELS and spec.inverse:
+            # the compiled finish decodes a table code (the long-run "minsw") from its
+            # stripes' Gray words: its stored decision words are translated once, here
+            from facegeo.geometry._sl_finish import stripe_gray_words
+
+            for a in _AXES:
+                for f, c in enumerate(spec.codes):
+                    if spec.n_bits(a) and stripe_table(c, spec.n_bits(a)) is not None:
+                        stripe_gray_words(c, spec.n_bits(a), self.sign_words[a][f])
         chunks = [slice(p0, min(P, p0 + _CHUNK)) for p0 in range(0, P, _CHUNK)]
         threads = self.threads if KERNELS else 1
         if threads > 1 and len(chunks) > 1:
@@ -597,7 +606,7 @@ class StreamDecoder:
         """:meth:`_decode_axis` in the compiled per-pixel kernel (``_sl_finish``): the same
         results, one pass per pixel over its words and margins instead of numpy planes.
         ``out``: write the axis's final outputs there (see ``_sl_finish.decode_axis``)."""
-        from facegeo.geometry._sl_finish import decode_axis
+        from facegeo.geometry._sl_finish import decode_axis, stripe_gray_words
 
         codes = self.spec.codes
         F = len(codes)
@@ -621,10 +630,14 @@ class StreamDecoder:
             mscale, p0 = 1.0, 0
         base = [-1 if base_plane(c, n) is None else base_plane(c, n) for c in codes]
         n_stripes = -(-size // (1 << s))
+        tables = [c if stripe_table(c, n) is not None else None for c in codes]
+        if not self.spec.inverse:  # the stored words were translated in finish()
+            for f, c in enumerate(tables):
+                if c is not None:
+                    stripe_gray_words(c, n, signs[f])
         coord, sig, ok, conf, unresolved, lost, disagree = decode_axis(
             signs, marg, mscale, kidx, base, n, float(1 << s), n_stripes, coarse_lim,
-            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out, p0,
-            [stripe_table(c, n) for c in codes])
+            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out, p0, tables)
         for f, c in enumerate(codes):
             for i in range(n):
                 stats[c]["unresolved"][i] += int(unresolved[f, i])
