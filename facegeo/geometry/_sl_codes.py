@@ -197,7 +197,7 @@ def _compose(A: np.ndarray, n: int, B: np.ndarray, m: int, s: int) -> np.ndarray
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _transitions(n: int) -> tuple[np.ndarray, int]:
     """(transitions, cyclic min gap) of the long-run code with ``n`` bits (see
     :func:`long_run_transitions`)."""
@@ -262,7 +262,7 @@ def long_run_min_run(n: int) -> int:
     return _transitions(_check_long_run_bits(n))[1]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _words(n: int) -> np.ndarray:
     w = _words_from_transitions(_transitions(n)[0]).astype(np.uint16)
     w.setflags(write=False)
@@ -281,7 +281,7 @@ def long_run_words(n: int) -> np.ndarray:
     return _words(_check_long_run_bits(n))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _table(n: int) -> np.ndarray:
     w = _words(n)
     t = np.empty(w.size, np.uint16)

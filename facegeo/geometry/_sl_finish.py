@@ -513,7 +513,7 @@ def phase_merge(coord, sig, ok, conf, phi, B, pconf, usable, k, noise_sigma, N, 
                  np.float32(step / math.sqrt(12.0) + 1e-6), *out)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _stripe_gray(code: str, n: int) -> np.ndarray:
     t = stripe_table(code, n)
     return t ^ (t >> 1)
