@@ -175,8 +175,9 @@ def test_minsw_partial_codes_boundary_or_invalid(kernels, monkeypatch):
     """One unresolved plane: the two candidates are the table's entries for the word and the
     word with that plane flipped; where they are neighbours (the plane flips between them)
     the pixel sits on their boundary (k ± 0.5, valid), elsewhere it is invalid (a long-run
-    code has no prefix block). Two unresolved planes: invalid everywhere. The per-plane
-    statistics count them. Fails if a table pixel falls back to the Gray prefix block."""
+    code has no prefix block), even when ``max_coarse_px`` would accept any block. Two
+    unresolved planes: invalid everywhere. The per-plane statistics count them. Fails if a
+    table pixel falls back to the Gray prefix block."""
     import facegeo.geometry._sl_stream as S
 
     monkeypatch.setattr(S, "KERNELS", kernels)
@@ -196,6 +197,10 @@ def test_minsw_partial_codes_boundary_or_invalid(kernels, monkeypatch):
     assert st["unresolved"][i] == 256 and st["lost"][i] == 256 - (right | left).sum()
     res2 = decode_stream(_one_row(spec, [i, 6]), spec)
     assert not res2.valid.any() and res2.bits["x"]["minsw"]["lost"][i] == 256
+    # however wide a block the caller accepts: the resolved planes name none
+    assert not decode_stream(_one_row(spec, [i, 6]), spec, max_coarse_px=1e6).valid.any()
+    assert (decode_stream(_one_row(spec, [i]), spec, max_coarse_px=1e6).valid[0]
+            == (right | left)).all()
 
 
 @pytest.mark.parametrize("kernels", [True, False])
