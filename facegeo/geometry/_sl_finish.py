@@ -4,7 +4,8 @@ Private kernel behind :meth:`facegeo.geometry._sl_stream.StreamDecoder.finish`. 
 a run of pixels it does what the numpy reference (``_sl_stream._bit_words``, ``_decode_axis``,
 ``_partial_codes``; run with ``_sl_stream.KERNELS = False``) does with several full-size planes
 per family: read each pixel's decision word and its ``n`` margins per code family, apply the XOR
-base plane (Gupta et al. 2013, Sec. 4.2), Gray → binary, find the first unresolved plane, the
+base plane (Gupta et al. 2013, Sec. 4.2), Gray → binary (or a long-run code's code → stripe
+table), find the first unresolved plane, the
 boundary / phase-picked / coarse-block coordinate of a partly resolved code, the weakest used
 margin (confidence), the per-bit statistics and the consistency vote across families
 (Sec. 4.3); on an axis with phase frames also the wrapped phase and fringe amplitude
@@ -40,7 +41,9 @@ import math
 
 import numpy as np
 
-__all__ = ["decode_axis", "phase", "phase_merge", "prepare"]
+from facegeo.geometry._sl_codes import long_run_words, stripe_table
+
+__all__ = ["decode_axis", "phase", "phase_merge", "prepare", "stripe_gray_words"]
 
 _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 
@@ -118,8 +121,8 @@ def _kernel():
                 tau[p] = _max_nan(min_c, rel_c * d)
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-    def axis_pixels(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, p0,
-                    tau, ref, lit, phi, pok, has_hint, kk, period,
+    def axis_pixels(signs, marg, mscale, kidx, base, tabs, words, use_tabs, n, step, n_stripes,
+                    coarse_lim, tol, p0, tau, ref, lit, phi, pok, has_hint, kk, period,
                     coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
         F = signs.shape[0]
         P = tau.shape[0]
@@ -177,6 +180,7 @@ def _kernel():
                 # reference and vectorise where numba's float min / max / conditional
                 # expressions stay scalar); the others (few) take the scalar path after
                 sg = signs[f, a0:a0 + nt]
+                ut = use_tabs[f]  # a table code: sg holds its stripes' Gray words
                 b = base[f]
                 high = ((np.int64(1) << b) - 1) << (n - b) if b > 0 else np.int64(0)
                 sb = n - 1 - b if b > 0 else 0
@@ -243,7 +247,12 @@ def _kernel():
                         t2 >>= 1
                     first = n - bl
                     single = (u & (u - 1)) == 0
-                    flip = binary ^ ((np.int64(1) << (n - first)) - 1)
+                    if ut:  # the other candidate: the projected word (words[stripe]) with its
+                        # unresolved plane flipped, through the code -> stripe table
+                        flip = np.int64(tabs[f, np.int64(words[f, binary])
+                                             ^ (np.int64(1) << (n - 1 - first))])
+                    else:  # Gray: the binary index with the bits below the prefix flipped
+                        flip = binary ^ ((np.int64(1) << (n - first)) - 1)
                     edge = single and abs(flip - binary) == 1
                     picked = False
                     bsel = binary
@@ -270,7 +279,8 @@ def _kernel():
                         weff = float(np.int64(1) << (n - first))
                         block = bsel >> (n - first)
                         cst = block * weff + 0.5 * (weff - 1)
-                        exists = block * weff < n_stripes
+                        # a table code has no prefix blocks: it names no stripe
+                        exists = block * weff < n_stripes and not ut
                     ok = isl and exists and (weff * step <= coarse_lim + 1e-9 or edge or picked)
                     # confidence: the weakest margin among the planes the coordinate uses
                     limit = n if (edge or picked) else first
@@ -405,7 +415,7 @@ def prepare(white, black, lmax, lmin, shadow_threshold, min_contrast, rel_contra
 
 
 def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, tau, ref,
-                lit, hint=None, out=None, p0=0):
+                lit, hint=None, out=None, p0=0, tables=None):
     """Decode one axis for a run of pixels (see the module docstring).
 
     Parameters
@@ -430,6 +440,14 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     lit : (P,) bool
     hint : tuple, optional
         ``(phi, usable, k, period)``: wrapped phase (P,) float32, (P,) bool, rad / px, px.
+    tables : sequence of (str or None), optional
+        Per family the code family name when it decodes through a code → stripe table (the
+        long-run ``"minsw"``), else None. Such a family's ``signs`` must already hold the
+        Gray words of its stripes (:func:`stripe_gray_words`), so the Gray loops decode it
+        unchanged; a pixel with one unresolved plane gets the two candidates' boundary or
+        the phase's pick, as a Gray one (the candidates: the table at the projected word and
+        at the word with that plane flipped); otherwise it is invalid (a resolved subset of
+        its planes names no block of stripes).
 
     out : tuple, optional
         ``(coord, sig, ok, conf_all)`` (P,) arrays to write the axis's final outputs into
@@ -457,8 +475,14 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     else:
         phi, pok, kk, period = hint
         has = True
+    use = np.array([t is not None for t in tables] if tables is not None else [False] * F)
+    tabs = np.zeros((F, (1 << n) if use.any() else 1), np.uint16)
+    words = np.zeros_like(tabs)
+    for f in np.flatnonzero(use):
+        tabs[f] = stripe_table(tables[f], n)
+        words[f] = long_run_words(n)
     _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
-              np.asarray(base, np.int64), int(n), float(step), int(n_stripes),
+              np.asarray(base, np.int64), tabs, words, use, int(n), float(step), int(n_stripes),
               float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
               float(period), coord, sig, ok, conf, out is not None, counts)
     c = counts
@@ -487,3 +511,17 @@ def phase_merge(coord, sig, ok, conf, phi, B, pconf, usable, k, noise_sigma, N, 
     _kernel()[3](coord, sig, ok, conf, phi, B, pconf, usable, float(k),
                  np.float32(noise_sigma * math.sqrt(2.0 / N)),
                  np.float32(step / math.sqrt(12.0) + 1e-6), *out)
+
+
+@functools.cache
+def _stripe_gray(code: str, n: int) -> np.ndarray:
+    t = stripe_table(code, n)
+    return t ^ (t >> 1)
+
+
+def stripe_gray_words(code: str, n: int, signs: np.ndarray) -> None:
+    """In place: a table family's decision words ``signs`` (plane ``i`` at bit ``n - 1 - i``)
+    become the reflected Gray words of the stripes they name, ``g = k ^ (k >> 1)`` with ``k
+    = table[word]``, so :func:`decode_axis` decodes them with its Gray arithmetic, unchanged
+    (the Gray path does not pay for the table). Stored once per decode, before the chunks."""
+    signs[...] = _stripe_gray(code, n)[signs]

@@ -1,4 +1,4 @@
-"""Structured-light patterns: :class:`PatternSpec`, the Gray / XOR / phase-shift frames and their
+"""Structured-light patterns: :class:`PatternSpec`, the Gray / XOR / long-run / phase-shift frames and their
 values at projector pixels (the part of :mod:`facegeo.geometry.structured_light` the decoders
 build on; every name is re-exported there).
 """
@@ -130,12 +130,14 @@ class PatternSpec:
         (``width / 16``), resolved when ``phase_steps > 0``.
     phase_axes : tuple of {"x", "y"}
         Axes that get phase-shift sequences, in projection order.
-    codes : tuple of {"gray", "xor02", "xor04"}
+    codes : tuple of {"gray", "xor02", "xor04", "minsw"}
         Binary code families projected, in this order, each with ``n_bits_x`` / ``n_bits_y``
         bits (Gupta et al. 2013's ensemble of codes): ``"gray"`` the reflected Gray code;
         ``"xor02"`` / ``"xor04"`` its bit planes XORed with the plane of stripe width 2 / 4
         (every projected pattern is high-frequency, so the global light of interreflections
-        is the same under a pattern and its inverse). See :mod:`facegeo.geometry._sl_codes`.
+        is the same under a pattern and its inverse); ``"minsw"`` a long-run Gray code (every
+        interior stripe of every plane >= 7 stripes wide at 10 bits: it survives subsurface
+        blur; at most 16 bits). See :mod:`facegeo.geometry._sl_codes`.
         Frames of family ``c`` are named ``"{c}_{axis}_{bit:02d}"``; the default
         ``("gray",)`` keeps the classic names (and is left out of :meth:`to_dict`).
 
@@ -297,7 +299,7 @@ def _pattern_table(spec: PatternSpec) -> dict[str, _Pattern]:
 
 
 def _check_codes(codes: Any, n_bits_x: int, n_bits_y: int) -> tuple[str, ...]:
-    from facegeo.geometry._sl_codes import CODE_FAMILIES, min_bits
+    from facegeo.geometry._sl_codes import CODE_FAMILIES, max_bits, min_bits
 
     if isinstance(codes, str):
         codes = (codes,)
@@ -317,6 +319,11 @@ def _check_codes(codes: Any, n_bits_x: int, n_bits_y: int) -> tuple[str, ...]:
             if 0 < n < min_bits(c):
                 raise InputError(f"PatternSpec.codes: {c!r} needs >= {min_bits(c)} bits, "
                                  f"n_bits_{axis} is {n}")
+            hi = max_bits(c)
+            if hi is not None and n > hi:
+                raise InputError(f"PatternSpec.codes: {c!r} takes <= {hi} bits (its decode "
+                                 f"table has 2**n entries), n_bits_{axis} is {n}; give fewer "
+                                 f"bits (stripes 2**(ceil(log2(size)) - n) px wide)")
     return codes
 
 

@@ -45,7 +45,7 @@ import numpy as np
 from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.geometry import _sl_kernels as _kern
-from facegeo.geometry._sl_codes import base_plane
+from facegeo.geometry._sl_codes import base_plane, stripe_table
 
 log = logging.getLogger(__name__)
 
@@ -419,6 +419,15 @@ class StreamDecoder:
         fw = {a: v.reshape(-1) for a, v in wrapped.items()}
         fm = {a: v.reshape(-1) for a, v in modulation.items()}
         P = H * W
+        if KERNELS and spec.inverse:
+            # the compiled finish decodes a table code (the long-run "minsw") from its
+            # stripes' Gray words: its stored decision words are translated once, here
+            from facegeo.geometry._sl_finish import stripe_gray_words
+
+            for a in _AXES:
+                for f, c in enumerate(spec.codes):
+                    if spec.n_bits(a) and stripe_table(c, spec.n_bits(a)) is not None:
+                        stripe_gray_words(c, spec.n_bits(a), self.sign_words[a][f])
         chunks = [slice(p0, min(P, p0 + _CHUNK)) for p0 in range(0, P, _CHUNK)]
         threads = self.threads if KERNELS else 1
         if threads > 1 and len(chunks) > 1:
@@ -597,7 +606,7 @@ class StreamDecoder:
         """:meth:`_decode_axis` in the compiled per-pixel kernel (``_sl_finish``): the same
         results, one pass per pixel over its words and margins instead of numpy planes.
         ``out``: write the axis's final outputs there (see ``_sl_finish.decode_axis``)."""
-        from facegeo.geometry._sl_finish import decode_axis
+        from facegeo.geometry._sl_finish import decode_axis, stripe_gray_words
 
         codes = self.spec.codes
         F = len(codes)
@@ -621,9 +630,14 @@ class StreamDecoder:
             mscale, p0 = 1.0, 0
         base = [-1 if base_plane(c, n) is None else base_plane(c, n) for c in codes]
         n_stripes = -(-size // (1 << s))
+        tables = [c if stripe_table(c, n) is not None else None for c in codes]
+        if not self.spec.inverse:  # the stored words were translated in finish()
+            for f, c in enumerate(tables):
+                if c is not None:
+                    stripe_gray_words(c, n, signs[f])
         coord, sig, ok, conf, unresolved, lost, disagree = decode_axis(
             signs, marg, mscale, kidx, base, n, float(1 << s), n_stripes, coarse_lim,
-            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out, p0)
+            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out, p0, tables)
         for f, c in enumerate(codes):
             for i in range(n):
                 stats[c]["unresolved"][i] += int(unresolved[f, i])
@@ -676,11 +690,16 @@ class StreamDecoder:
         results = []
         for code in self.spec.codes:
             signs, rel, margins = self._bit_words(code, axis, n, sl, tau, thr)
-            binary = signs.astype(np.int64)
-            shift = 1
-            while shift < n:
-                binary ^= binary >> shift
-                shift *= 2
+            table = stripe_table(code, n)
+            word = signs.astype(np.int64)
+            if table is not None:  # long-run code: the code -> stripe table
+                binary = table[word].astype(np.int64)
+            else:  # Gray -> binary, a prefix XOR
+                binary = word.copy()
+                shift = 1
+                while shift < n:
+                    binary ^= binary >> shift
+                    shift *= 2
             u = (~rel.astype(np.int64)) & full  # unresolved planes
             P = u.size
             first = np.full(P, n, np.int64)  # first unresolved plane (MSB index), n if none
@@ -693,7 +712,8 @@ class StreamDecoder:
             if idx.size:
                 sub = None if hint is None else (hint[0][idx], hint[1][idx], hint[2], hint[3])
                 (first[idx], c_st[idx], w_eff[idx], exists[idx], edge[idx],
-                 picked[idx]) = _partial_codes(binary[idx], u[idx], n, step, n_stripes, sub)
+                 picked[idx]) = _partial_codes(binary[idx], u[idx], n, step, n_stripes, sub,
+                                               table, word[idx])
             ok = lit & exists & ((w_eff * step <= coarse_lim + 1e-9) | edge | picked)
             coord = c_st * step + 0.5 * (step - 1.0)
             sig = np.where(edge, 0.5 * step, w_eff * step / math.sqrt(12.0))
@@ -749,7 +769,7 @@ class StreamDecoder:
 
 
 
-def _partial_codes(binary, u, n, step, n_stripes, hint):
+def _partial_codes(binary, u, n, step, n_stripes, hint, table=None, word=None):
     """Coordinates of pixels with unresolved planes ``u`` (int64 words, all non-zero).
 
     Returns ``first`` (first unresolved plane), ``c_st`` (coordinate, stripes), ``w_eff`` (block
@@ -761,10 +781,17 @@ def _partial_codes(binary, u, n, step, n_stripes, hint):
     * (c) one unresolved plane, candidates far apart: the phase ``hint = (phi, usable, k,
       period)`` picks the one whose predicted phase ``k (x + 0.5)`` is within a quarter period;
     * (b) otherwise the resolved prefix names a block of ``2**(n - first)`` stripes.
+
+    With ``table`` (a long-run code's code → stripe table, ``word`` the decision words) the
+    candidates of (a) / (c) are ``table[word]`` and ``table[word ^ plane]``; (b) does not
+    exist (its resolved planes name no block): such pixels get ``exists = False``.
     """
     first = n - np.frexp(u.astype(np.float64))[1].astype(np.int64)
     single = (u & (u - 1)) == 0
-    flip = binary ^ ((np.int64(1) << (n - first)) - 1)
+    if table is None:  # Gray: the binary index with the bits below the prefix flipped
+        flip = binary ^ ((np.int64(1) << (n - first)) - 1)
+    else:  # the word with its (first) unresolved plane flipped, through the table
+        flip = table[word ^ (np.int64(1) << (n - 1 - first))].astype(np.int64)
     edge = single & (np.abs(flip - binary) == 1)
     picked = np.zeros(u.shape, bool)
     if hint is not None:
@@ -786,6 +813,8 @@ def _partial_codes(binary, u, n, step, n_stripes, hint):
     c_st = np.where(edge, 0.5 * (binary + flip), np.where(picked, binary, block * w + 0.5 * (w - 1)))
     w_eff = np.where(edge | picked, 1.0, w)
     exists = np.where(edge, np.maximum(binary, flip), np.where(picked, binary, block * w)) < n_stripes
+    if table is not None:
+        exists &= edge | picked
     return first, c_st, w_eff, exists, edge, picked
 
 

@@ -122,6 +122,9 @@ def decode_stream(frames, spec: PatternSpec, *, full_scale: float | None = None,
     the block is at most ``max_coarse_px`` wide — by default half a phase period when the axis
     has phase frames (enough to unwrap), else one stripe (exact codes only). Per bit, the
     result counts the lit pixels that leave that plane unresolved and those it invalidates.
+    The long-run code (``"minsw"``) has no prefix: it decodes through its code → stripe table;
+    with one unresolved plane it takes the boundary (or the phase's pick) of the two table
+    candidates, otherwise the pixel is invalid on that axis (docs/structured-light.md).
 
     **Ensemble of codes** (Gupta et al. 2013): with several ``spec.codes`` families, each is
     decoded independently and a family's coordinate stands when another agrees within

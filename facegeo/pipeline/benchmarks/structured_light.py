@@ -76,7 +76,7 @@ def _frames(w: int, h: int, spec):
     qy = 15 + yy * (740 / h) + 5 * np.sin(xx / 70)
     q = np.stack([qx, qy], -1)
     albedo = 0.3 + 0.6 * rng.random((h, w))
-    names = [n for n in pattern_names(spec) if n.startswith("gray")]
+    names = [n for n in pattern_names(spec) if n.split("_")[0] in spec.codes]
     frames = {n: (albedo * pattern_value_at(spec, n, q)).astype(np.float32) for n in names}
     return frames, names, np.floor(qx + 0.5), np.floor(qy + 0.5), rng
 
@@ -187,6 +187,9 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
       reduced to float32 luminance (the reference does less: no per-bit reliability, no
       luminance conversion, no statistics);
     * streamed (a generator, 1 thread): the frame-by-frame path, what a camera feeds;
+    * the long-run code (``codes=("minsw",)``, the same warp, 10 + 10 bits, in memory, 1
+      thread): decoded through its code → stripe table (docs/structured-light.md), its time
+      against the Gray decode's in the same run;
     * the read-once limit: the bytes of the frames as they sit in memory (42 × H × W × 3
       bytes of 8-bit RGB) read once at the 1-thread bandwidth measured in the same run
       (:meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`; the best bandwidth in ``extra``);
@@ -194,6 +197,7 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
       time (``cv2.imread``) and streamed into the decoder; the read alone is timed separately,
       so the decode's share of the wall time is visible.
     """
+    import functools
     import tempfile
     import time
     from pathlib import Path
@@ -212,13 +216,18 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
     spec = PatternSpec(width=1024, height=768)
     names = pattern_names(spec)
     gray_frames, gnames, truth_x, truth_y, _ = _frames(w, h, spec)
-    rgb = {}
-    for n in names:
-        f = gray_frames.get(n)
-        if f is None:  # white / black
-            f = np.full((h, w), 1.0 if n == "white" else 0.0, np.float32) * 0.9
-        u8 = np.clip(np.rint(f * 255), 0, 255).astype(np.uint8)
-        rgb[n] = np.repeat(u8[..., None], 3, axis=2)
+
+    def as_rgb(frames, names):
+        out = {}
+        for n in names:
+            f = frames.get(n)
+            if f is None:  # white / black
+                f = np.full((h, w), 1.0 if n == "white" else 0.0, np.float32) * 0.9
+            u8 = np.clip(np.rint(f * 255), 0, 255).astype(np.uint8)
+            out[n] = np.repeat(u8[..., None], 3, axis=2)
+        return out
+
+    rgb = as_rgb(gray_frames, names)
     lum = {n: (rgb[n].mean(axis=2, dtype=np.float32) / 255.0) for n in gnames}
     nbytes = sum(a.nbytes for a in rgb.values())  # the frames as they sit in memory
     bw = read_bandwidth()
@@ -256,6 +265,15 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
     streamed = lambda: decode_stream(((n, a) for n, a in rgb.items()), spec)
     t_s, res_s = best_of(streamed, repeat)
     cpu_s = cpu_ms(streamed)
+    # the long-run code, same warp and bit counts, frames in memory, 1 thread
+    mspec = PatternSpec(width=1024, height=768, codes=("minsw",))
+    m_frames = _frames(w, h, mspec)[0]
+    m_rgb = as_rgb(m_frames, pattern_names(mspec))
+    del m_frames
+    minsw = functools.partial(decode_frames, m_rgb, mspec, threads=1)
+    t_m, res_m = best_of(minsw, repeat)
+    cpu_m = cpu_ms(minsw)
+    del minsw, m_rgb  # 165 MB of frames
     rows = []
     for nt, (t, res) in runs.items():
         mpx = w * h / t / 1e6
@@ -274,7 +292,16 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
                    f"{nt}-thread GB/s": round(bw.at_threads(nt), 2)}, threads=nt,
             baseline_threads={k: nt if "read-once" in k else 1 for k in ratios}))
     mpx_s = w * h / t_s / 1e6
+    mpx_m = w * h / t_m / 1e6
     rows += [
+        BenchRow("structured_light.decode_stream",
+                 "facegeo decode_stream, long-run (minsw) code through its code -> stripe table, "
+                 "frames in memory, 1 thread", mpx_m, "Mpx/s",
+                 wrong(res_m.x, res_m.y, res_m.valid),
+                 "fraction of pixels not decoded to the true projector pixel",
+                 ratios={"vs the Gray decode in memory (same run)": runs[1][0] / t_m},
+                 extra={**size, "ms": round(1e3 * t_m, 1), "CPU ms": cpu_m}, threads=1,
+                 baseline_threads={"vs the Gray decode in memory (same run)": 1}),
         BenchRow("structured_light.decode_stream",
                  "facegeo decode_stream, frames streamed one at a time (generator), 1 thread",
                  mpx_s, "Mpx/s", wrong(res_s.x, res_s.y, res_s.valid),
