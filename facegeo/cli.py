@@ -133,7 +133,8 @@ def _cmd_synth(args) -> int:
                                 seed=args.seed, noise=args.noise, skin=args.skin,
                                 olat_format=args.olat_format,
                                 overwrite=args.overwrite,
-                                progress=tick, sl_effects=effects)
+                                progress=tick, sl_effects=effects,
+                                sl_codes=tuple(c.strip() for c in args.sl_codes.split(",")))
     finally:
         close()
     secs = " ".join(f"{k}={v:.1f}s" for k, v in summary.seconds.items())
@@ -461,6 +462,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sl-subsurface", default="none", choices=["none", "gaussian", "dipole"],
                    help="blur the projected patterns by subsurface scattering (a Gaussian of "
                         "skin's mean free path, or a dipole profile; docs/structured-light.md)")
+    s.add_argument("--sl-codes", default="gray", metavar="FAMILIES",
+                   help="structured-light code families, comma-separated: gray, xor02, xor04, "
+                        "minsw (several: Gupta et al.'s ensemble, decoded with a vote)")
     s.add_argument("--sl-interreflection", type=_nonneg_float, default=0.0,
                    help="strength of a low-frequency interreflection term in the "
                         "structured-light frames (0: none)")

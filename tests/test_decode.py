@@ -649,15 +649,22 @@ def test_fused_frame_kernels_equal_the_luminance_path(dtype, channels):
 
 def test_synth_cli_writes_effects_into_the_frames(tmp_path):
     """`facegeo synth --sl-subsurface/--sl-interreflection` changes the structured-light frames
-    (not the OLAT ones) and records the effects in the manifest."""
+    (not the OLAT ones) and records the effects in the manifest; `--sl-codes` projects the
+    families it names (recorded in the patterns table, frames named after them)."""
     from facegeo.capture.scan import load_scan
     from facegeo.cli import main
 
     sharp, soft = tmp_path / "sharp", tmp_path / "soft"
     assert main(["synth", str(sharp), "--preset", "tiny", "-q"]) == 0
     assert main(["synth", str(soft), "--preset", "tiny", "-q", "--sl-subsurface", "gaussian",
-                 "--sl-interreflection", "0.5"]) == 0
+                 "--sl-interreflection", "0.5", "--sl-codes", "gray,minsw"]) == 0
     a, b = load_scan(sharp), load_scan(soft)
+    assert "codes" not in a.manifest["structured_light"]["patterns"]  # the default is left out
+    assert tuple(b.manifest["structured_light"]["patterns"]["codes"]) == ("gray", "minsw")
+    assert "minsw_x_00" in b.manifest["structured_light"]["frames"]
+    assert main(["synth", str(tmp_path / "bad"), "--preset", "tiny", "-q",
+                 "--sl-codes", "gray,bogus"]) == 2
+    assert not (tmp_path / "bad").exists()
     assert "sl_effects" not in a.manifest["scan"].get("metadata", {})
     assert b.manifest["scan"]["metadata"]["sl_effects"]["subsurface"] == "gaussian"
     fa = a.sl_frame("cam_left", "gray_x_00", luminance=True)

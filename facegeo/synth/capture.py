@@ -254,6 +254,7 @@ def generate_scan(
     overwrite: bool = False,
     progress: Callable[[str, int, int], None] | None = None,
     sl_effects=None,
+    sl_codes=("gray",),
 ) -> SynthSummary:
     """Synthesise a light-stage capture into the scan directory ``out``.
 
@@ -292,6 +293,10 @@ def generate_scan(
     sl_effects : facegeo.synth.sl_effects.SkinEffects or dict, optional
         Subsurface blur and interreflection in the structured-light frames (default: sharp,
         direct-only frames); recorded in ``scan.metadata.sl_effects``.
+    sl_codes : sequence of {"gray", "xor02", "xor04", "minsw"}
+        Code families the projector shows, each a full set of bit planes (Gupta et al. 2013's
+        ensemble of codes; :class:`facegeo.geometry.structured_light.PatternSpec`); recorded in
+        the scan's ``[structured_light.patterns]`` and decoded with a consistency vote.
 
     Returns
     -------
@@ -356,7 +361,7 @@ def generate_scan(
     renderer = ReferenceRenderer.from_mesh(mesh, skin_field, parts=mesh.metadata["part_labels"])
     board = _board_for_rig(rig)
     spec = PatternSpec(width=rig.projector.width, height=rig.projector.height,
-                       phase_steps=preset.phase_steps)
+                       phase_steps=preset.phase_steps, codes=sl_codes)
     sl_names = pattern_names(spec)
     seconds["setup"] = time.perf_counter() - t0
 
