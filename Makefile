@@ -24,11 +24,13 @@ $(STAMP): pyproject.toml scripts/ensure-system-deps.sh
 demo: $(STAMP)
 	$(VENV)/bin/facegeo demo $(DEMO_SCAN)
 
+# Two workers (this machine's cores), one test file per worker at a time (module fixtures are
+# built once); `pytest -q` alone runs the suite in one process.
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow"
 
 bench: $(STAMP)
 	$(VENV)/bin/facegeo bench --out bench-out
