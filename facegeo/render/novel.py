@@ -47,6 +47,9 @@ specular energy (the generator's diffuse term is outside the paper's model, docs
 the predicted change overshoots and its errors are anti-correlated with the naive baseline's;
 the cross-validated λ is 0.43–0.58 on the small preset under ``sky``. With one source camera there is nothing to
 cross-validate and λ = 1.
+``render_view(..., shrinkage_set=[...])`` renders several λ mappings (e.g. the shrunk render,
+λ = 0 = the naive baseline and λ = 1 = the paper) from one read of the fields and one
+resynthesis, each equal bit for bit to its own call.
 
 Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthesize_relit`):
 Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised

@@ -383,7 +383,8 @@ KERNEL_FUNCTIONS = 600
 
 def _kernel_inputs(n: int, seed: int = 0):
     """``n`` paper-model functions on the paper preset's 64 × 32 light grid as the paper
-    benchmark stores them (R and D float16, S = R − D; normals within 70° of v_0 = +z), novel
+    benchmark builds and stores them (:func:`_texel_params`; R and D float16, S = R − D;
+    normals within 70° of v_0 = +z), novel
     views ≈ 30° away, and the ``sky`` weights."""
     import numpy as np
 
@@ -396,10 +397,7 @@ def _kernel_inputs(n: int, seed: int = 0):
     ang = np.radians(rng.uniform(0.0, 70.0, n))
     az = rng.uniform(0.0, 2.0 * np.pi, n)
     nrm = np.stack([np.sin(ang) * np.cos(az), np.sin(ang) * np.sin(az), np.cos(ang)], 1)
-    chroma = skin.normalize(np.array([0.8, 0.5, 0.35]) + rng.normal(0, 0.05, (n, 3)))
-    prm = skin.SkinParams(rng.uniform(0.3, 0.7, (n, 1)) * chroma, rng.uniform(0.2, 0.4, n),
-                          rng.uniform(-0.5, -0.2, n), rng.uniform(0.3, 0.8, n),
-                          rng.uniform(0.3, 0.45, n))
+    prm = _texel_params(np.arange(n), seed)  # the paper benchmark's per-texel parameters
     v0 = np.tile([0.0, 0.0, 1.0], (n, 1))
     R = skin.paper_reflectance(nrm, v0, lights, prm).astype(np.float16).astype(np.float32)
     D = _paper_diffuse(nrm, v0, lights, prm).astype(np.float16).astype(np.float32)
