@@ -411,3 +411,29 @@ def test_hole_filling_copies_the_nearest_covered_pixel(parts):
     # beyond fill_px nothing is filled: at 2 px far fewer than with 50 px
     c = render_view(*args, resynthesis=False, fill_px=50.0)
     assert c.stats["samples_filled"] > b.stats["samples_filled"]
+
+
+def test_shrinkage_set_renders_each_shrinkage_as_its_own_call(parts):
+    """One pass with shrinkage_set = [planted λ per camera, λ = 0, None] gives the shrunk
+    render, the naive baseline and the paper's λ = 1 render, each equal to its own
+    render_view call (bit for bit: the same sums in the same order) — a variant that reused
+    another's shrunk values, or blended the wrong λ, would differ."""
+    from facegeo.render import orbit_camera, render_view, trace_view
+
+    srcs = parts["sources"]
+    cam = orbit_camera(parts["rig"].camera(srcs[0].name), 30.0)
+    w = _weights(parts["rig"].lights, 7)
+    vs = trace_view(cam, parts["scene"], parts["atlas"], parts["texels"])
+    args = (cam, parts["scene"], parts["atlas"], parts["texels"], srcs, w, parts["lights"])
+    planted = {s.name: lam for s, lam in zip(srcs, (0.4, 0.7))}
+    zero = {s.name: 0.0 for s in srcs}
+    shrunk, naive, paper = render_view(*args, samples=vs, shrinkage_set=[planted, zero, None])
+    want = {"shrunk": render_view(*args, samples=vs, shrinkage=planted),
+            "naive": render_view(*args, samples=vs, resynthesis=False),
+            "paper": render_view(*args, samples=vs, resynthesis=True)}
+    for got, key in ((shrunk, "shrunk"), (naive, "naive"), (paper, "paper")):
+        assert np.array_equal(got.image, want[key].image), key
+        assert np.array_equal(got.covered, want[key].covered), key
+    assert not np.array_equal(shrunk.image, paper.image)
+    with pytest.raises(InputError, match="shrinkage_set"):
+        render_view(*args, samples=vs, resynthesis=False, shrinkage_set=[None])

@@ -61,6 +61,7 @@ def test_fast_kernel_equals_numpy_reference_on_hard_cases(monkeypatch, hard):
     against the numpy reference, on v_n = v_0, back-facing and grazing views, shadowed
     lobes, zero specular, zero diffuse samples and a single zero channel."""
     _, fit, vn, w = hard
+    monkeypatch.setattr(_skin_resynth, "VECTOR_KERNEL", False)  # the scalar kernel
     plain = _skin_resynth.resynthesize_relit(fit, vn, w)
     cone = _skin_resynth.resynthesize_relit(fit, vn, w, lobe_tol=0.0)
     ref = _reference(monkeypatch, fit, vn, w)
@@ -70,7 +71,7 @@ def test_fast_kernel_equals_numpy_reference_on_hard_cases(monkeypatch, hard):
     assert np.array_equal(cone, plain)
 
 
-def test_lobe_cone_skips_only_what_it_may():
+def test_lobe_cone_skips_only_what_it_may(monkeypatch):
     """A fit whose lobe is confined (measured specular zero outside a 35° cap around the
     mirror direction): with lobe_tol = 0 the cone excludes most source directions yet the
     result is bit-identical (a wrong axis or too small a margin would drop non-zero samples);
@@ -86,6 +87,7 @@ def test_lobe_cone_skips_only_what_it_may():
     fit = replace(fit, specular=np.where(cap[..., None], fit.specular, 0.0).astype(np.float32))
     vn = skin.normalize(_random_normals(rng, N, 40.0))
     w = _weights(rng, lights, 0.0)
+    monkeypatch.setattr(_skin_resynth, "VECTOR_KERNEL", False)  # the cone is the scalar's
     exact = _skin_resynth.resynthesize_relit(fit, vn, w)
     assert np.array_equal(_skin_resynth.resynthesize_relit(fit, vn, w, lobe_tol=0.0), exact)
     tol = 0.05
@@ -151,3 +153,112 @@ def test_light_step_errors(hard):
     free = skin.LightSet.from_directions(lights.directions, lights.solid_angles)
     with pytest.raises(InputError, match="light_step"):
         _skin_resynth.resynthesize_relit(replace(fit, lights=free), vn, w, light_step=2)
+
+
+# --------------------------------------------------------------- the vectorised grid kernel
+
+#: resynth_relit_grid (branch-free, fewer roots and divisions, polynomial atan2, reassociated
+#: sums) against resynth_relit (the scalar kernel): max |Δ| / max |scalar| over functions and
+#: channels. Rounding differs (sums reassociated, quotients folded): measured ≈ 1e-15.
+VECTOR_REL = 1e-11
+#: grid_angles against numpy's arctan2 / arccos: max absolute difference, radians (the
+#: polynomial's error is 2.7e-14; arccos near the poles loses ≈ 1e-8 to cancellation, so
+#: there φ is compared with arctan2(√(x² + z²), y)).
+ANGLE_ABS = 1e-12
+#: The lean factors (_diffuse_lean, _gf_ratio) against _diffuse and _geometry·_fresnel:
+#: max relative difference (same formulas, quotients folded).
+FACTOR_REL = 1e-12
+
+
+def _relit_both(monkeypatch, fit, vn, w):
+    from facegeo.appearance import _skin_resynth_kernels as K
+
+    scalar_calls = []
+    scalar = K.resynth_relit
+
+    def spy(*a):
+        scalar_calls.append(1)
+        return scalar(*a)
+
+    monkeypatch.setattr(K, "resynth_relit", spy)
+    vec = _skin_resynth.resynthesize_relit(fit, vn, w)
+    taken = not scalar_calls
+    monkeypatch.setattr(_skin_resynth, "VECTOR_KERNEL", False)
+    ref = _skin_resynth.resynthesize_relit(fit, vn, w)
+    monkeypatch.setattr(_skin_resynth, "VECTOR_KERNEL", True)
+    return vec, ref, taken
+
+
+def test_vector_kernel_equals_scalar_kernel_on_hard_cases(monkeypatch, hard):
+    """The vectorised kernel against the scalar one on v_n = v_0, back-facing and grazing
+    views, normals up to 80° from v_0 (grazing lights), shadowed lights (hidden lobes), zero
+    specular, zero diffuse samples and a zero channel — and it is the kernel that ran."""
+    _, fit, vn, w = hard
+    vec, ref, taken = _relit_both(monkeypatch, fit, vn, w)
+    assert taken
+    assert np.abs(vec - ref).max() <= VECTOR_REL * np.abs(ref).max()
+    assert np.all(vec[3] == 0.0)  # back-facing: 0, as the scalar kernel
+
+
+def test_vector_kernel_on_random_functions(monkeypatch):
+    """Random paper-model functions and views (grazing included: normals up to 85°, views up
+    to 85° from them), every light carrying energy, some lights shadowed."""
+    rng = np.random.default_rng(45)
+    lights = skin.LightSet.from_grid(24, 12, color=(0.9, 1.0, 1.1))
+    N = 40
+    n = _random_normals(rng, N, 85.0)
+    fit = skin.fit_reflectance(skin.paper_reflectance(n, V0, lights, _paper_params(rng, N)),
+                               V0, lights, visibility=rng.uniform(size=(N, 288)) > 0.1)
+    vn = skin.normalize(_random_normals(rng, N, 85.0))
+    w = _weights(rng, lights, 0.0)
+    vec, ref, taken = _relit_both(monkeypatch, fit, vn, w)
+    assert taken
+    assert np.abs(vec - ref).max() <= VECTOR_REL * np.abs(ref).max()
+
+
+def test_grid_angles_match_numpy():
+    """θ = atan2(x, z) mod 2π and φ of the light-stage grid, at random directions, the axes,
+    the poles' neighbourhood and the octant boundaries (|x| = |z|, ρ = |y|, a = tan(π/8))."""
+    from facegeo.appearance._skin_resynth_kernels import grid_angles
+
+    rng = np.random.default_rng(46)
+    d = [rng.normal(size=3) for _ in range(2000)]
+    d += [np.array(v, float) for v in ([1, 0, 0], [-1, 0, 0], [0, 0, 1], [0, 0, -1],
+                                        [1e-9, 1, 1e-9], [-1e-9, -1, 2e-9], [1, 0.3, 1],
+                                        [-1, 1, 1e-3], [np.tan(np.pi / 8), 0.2, 1.0],
+                                        [1, np.sqrt(2), -1])]
+    worst_t = worst_p = 0.0
+    for v in d:
+        x, y, z = v / np.linalg.norm(v)
+        t, p = grid_angles(x, y, z)
+        t_ref = np.mod(np.arctan2(x, z), 2 * np.pi)
+        dt = abs(t - t_ref)
+        worst_t = max(worst_t, min(dt, 2 * np.pi - dt))
+        worst_p = max(worst_p, abs(p - np.arctan2(np.hypot(x, z), y)))
+        assert 0.0 <= t < 2 * np.pi and 0.0 <= p <= np.pi
+    assert worst_t <= ANGLE_ABS and worst_p <= ANGLE_ABS
+
+
+def test_lean_factors_match_the_scalar_ones():
+    """_diffuse_lean against _diffuse (zero sample, f0 = −1 where the ramp cannot be
+    inverted, negative 1 + f0) and _gf_ratio against _geometry·_fresnel (vh ≤ 0, vh = 0,
+    grazing cosines)."""
+    from facegeo.appearance import _skin_resynth_kernels as K
+
+    rng = np.random.default_rng(47)
+    e = (0.9, 1.0, 1.1)
+    ie = tuple(1.0 / x for x in e)
+    cases = [(*rng.uniform(0, 1, 3), *rng.uniform(-1.5, 1.0, 2)) for _ in range(300)]
+    cases += [(0.0, 0.0, 0.0, 0.3, -0.2), (0.2, 0.1, 0.1, -1.0, 0.4),
+              (0.2, 0.1, 0.05, -1.4, -1.2), (0.3, 0.3, 0.3, 0.0, 0.0)]
+    for dr, dg, db, f0, fn in cases:
+        a = np.array(K._diffuse(dr, dg, db, *e, *ie, f0, fn))
+        b = np.array(K._diffuse_lean(dr, dg, db, *e, *ie, f0, fn))
+        assert np.abs(a - b).max() <= FACTOR_REL * max(np.abs(a).max(), 1e-300)
+    e2 = 1.38 ** 2 - 1.0
+    for nl, nv, nh, vh in [tuple(rng.uniform(-0.2, 1.0, 4)) for _ in range(300)] + \
+            [(0.5, 0.5, 0.9, 0.0), (0.5, 0.5, 0.9, -0.1), (1e-6, 0.9, 0.5, 0.3),
+             (0.0, 0.5, 0.5, 0.5)]:
+        gf = K._geometry(nl, nv, nh, vh) * K._fresnel(vh, e2)
+        num, den = K._gf_ratio(nl, nv, nh, vh, e2)
+        assert den > 0.0 and abs(num / den - gf) <= FACTOR_REL * max(gf, 1e-300)

@@ -45,6 +45,15 @@ SAME_VIEW_TOL = 1e-12
 #: temporaries). False: the numpy reference below, which the kernels are tested against.
 KERNELS = True
 
+#: On the light-stage grid without a lobe cone, with at least half the lights to visit,
+#: :func:`resynthesize_relit` runs ``_skin_resynth_kernels.resynth_relit_grid`` (branch-free
+#: loop over lights, fewer square roots and divisions, a polynomial atan2, every node's
+#: microfacet value computed up front) instead of ``resynth_relit`` (libm atan2/acos, nodes
+#: computed when first read, which pays when few lights are visited: ``light_step > 1``);
+#: the two agree to rounding (tested in ``tests/test_resynth_fast.py``). False: always
+#: ``resynth_relit``.
+VECTOR_KERNEL = True
+
 
 @dataclass
 class Resynthesis:
@@ -392,7 +401,13 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
         members, starts, share, dq, Eq, wq = _output_blocks(fit.lights, w, step)
         Dq, castq = block_outputs(args[0], args[5], members, starts, share)
         outputs = (Dq, Eq, dq, castq, np.arange(dq.shape[0], dtype=np.int64), wq)
-    out = resynth_relit(*args, *outputs, tol, _cone_margin(fit.lights))
+    many = 2 * outputs[4].size >= fit.lights.n_lights  # nodes computed up front pay off
+    if VECTOR_KERNEL and args[13] and tol < 0.0 and many:
+        from facegeo.appearance._skin_resynth_kernels import resynth_relit_grid
+
+        out = resynth_relit_grid(*args[:13], *args[14:], *outputs)
+    else:
+        out = resynth_relit(*args, *outputs, tol, _cone_margin(fit.lights))
     keep = np.flatnonzero(same & ~back)  # the source's own view: the measured function
     if keep.size:
         R = fit.diffuse[keep].astype(np.float64) + fit.specular[keep].astype(np.float64)

@@ -47,6 +47,9 @@ specular energy (the generator's diffuse term is outside the paper's model, docs
 the predicted change overshoots and its errors are anti-correlated with the naive baseline's;
 the cross-validated λ is 0.43–0.58 on the small preset under ``sky``. With one source camera there is nothing to
 cross-validate and λ = 1.
+``render_view(..., shrinkage_set=[...])`` renders several λ mappings (e.g. the shrunk render,
+λ = 0 = the naive baseline and λ = 1 = the paper) from one read of the fields and one
+resynthesis, each equal bit for bit to its own call.
 
 Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthesize_relit`):
 Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised
@@ -493,7 +496,8 @@ def even_subset(n: int, k: int | None) -> np.ndarray:
 
 def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                  resynthesis: bool = True, blend_power: float = BLEND_POWER,
-                 shrinkage=None, light_step: int = 1, stats: dict | None = None):
+                 shrinkage=None, light_step: int = 1, stats: dict | None = None,
+                 shrinkage_set=None):
     """Relit radiance of texels seen from a camera centre, blended over source cameras.
 
     Parameters
@@ -522,20 +526,34 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
         (``seconds_read``: rows gathered, converted to float32, relit by Eq. 4), reading the
         fits (``seconds_fit``: D, S = R − D, maps) and resynthesising
         (``seconds_resynthesis``)
+    shrinkage_set : sequence of (mapping str -> float or None), optional — several
+        ``shrinkage`` values at once (full resynthesis only; ``shrinkage`` is then ignored):
+        the fields are read and the functions resynthesised once, and each value blends its
+        own ``naive + λ_c (resynthesised − naive)`` (None: λ = 1, the paper; λ = 0 for every
+        camera gives the naive baseline's colours exactly). For a render stage that wants
+        the shrunk render, the naive baseline and the paper's λ = 1 of one view
 
     Returns
     -------
-    colour : (K, 3) float32 — NaN where no source camera measured the texel
+    colour : (K, 3) float32 — NaN where no source camera measured the texel; ``(V, K, 3)``
+        with ``shrinkage_set`` (V values, in its order)
     """
     if resynthesis not in (True, False, "diffuse"):
         raise InputError(f"resynthesis: expected True, False or 'diffuse', got "
                          f"{fmt_value(resynthesis)}")
+    if shrinkage_set is not None and resynthesis is not True:
+        raise InputError(f"shrinkage_set: needs resynthesis=True, got resynthesis="
+                         f"{fmt_value(resynthesis)}")
+    sets = [shrinkage] if shrinkage_set is None else list(shrinkage_set)
+    if not sets:
+        raise InputError("shrinkage_set: expected at least one shrinkage (None: λ = 1)")
+    V = len(sets)
     texel_ids = np.asarray(texel_ids, np.int64)
     K = texel_ids.size
     L, w, active, w_act = _lights_with_energy(sources, weights)
     step = _check_light_step(light_step, lights) if resynthesis else 1
     W = _relight_matrix(w)
-    acc = np.zeros((K, 3))
+    acc = np.zeros((V, K, 3))
     bsum = np.zeros(K)
     st = stats if stats is not None else {}
     st.update({"active_lights": int(active.size), "texels": int(K), "samples": 0,
@@ -543,7 +561,8 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                "light_step": step, "seconds_read": 0.0, "seconds_fit": 0.0,
                "seconds_resynthesis": 0.0})
     if K == 0 or active.size == 0:
-        return np.where(bsum[:, None] > 0, acc, np.nan).astype(np.float32)
+        colour = np.where(bsum[:, None] > 0, acc, np.nan).astype(np.float32)
+        return colour if shrinkage_set is not None else colour[0]
     chunk = max(16, CHUNK_SAMPLES // max(L, 1))
     c_new = np.asarray(center_world, np.float64).reshape(3)
     # pass 1 (no field reads): every camera's blend weight, so that cameras whose share of a
@@ -567,8 +586,8 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
         if k_idx.size == 0:
             continue
         st["same_view"] += int(same.sum())
-        lam = 1.0 if (shrinkage is None or resynthesis == "diffuse") else \
-            float(shrinkage.get(src.name, 1.0))
+        lams = [1.0 if (sh is None or resynthesis == "diffuse") else
+                float(sh.get(src.name, 1.0)) for sh in sets]
         if resynthesis:
             if src.fit is None:
                 raise InputError(f"camera {src.name}: resynthesis needs its skin-model fit "
@@ -579,6 +598,7 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
             t0 = time.perf_counter()
             R = np.asarray(src.field[rows[sl]], np.float32)
             out = _relight(R, W)
+            outs = [out] * V
             ok = np.isfinite(out).all(axis=1)
             st["samples"] += int(ok.sum())
             t1 = time.perf_counter()
@@ -599,19 +619,27 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                     # the fitted normal puts v_n below the horizon while the mesh sees the
                     # texel (grazing views): keep the measured function rather than black
                     use = todo[~back]
-                    out[use] = out[use] + lam * (relit[~back] - out[use]) if lam != 1.0 \
-                        else relit[~back]
+                    outs = [_shrunk(out, use, relit[~back], lam, copy=V > 1) for lam in lams]
                     st["resynthesized"] += int(use.size)
                     st["backfacing_fallback"] += int(back.sum())
             kk = k_idx[sl][ok]
-            acc[kk] += b[sl][ok, None] * out[ok]
+            for v in range(V):
+                acc[v, kk] += b[sl][ok, None] * outs[v][ok]
             bsum[kk] += b[sl][ok]
     with np.errstate(invalid="ignore", divide="ignore"):
         colour = np.where(bsum[:, None] > 0, acc / np.where(bsum > 0, bsum, 1.0)[:, None],
-                          np.nan)
+                          np.nan).astype(np.float32)
     for key in ("seconds_read", "seconds_fit", "seconds_resynthesis"):
         st[key] = round(st[key], 4)
-    return colour.astype(np.float32)
+    return colour if shrinkage_set is not None else colour[0]
+
+
+def _shrunk(naive, use, relit, lam: float, *, copy: bool):
+    """Relit values with rows ``use`` moved from the naive value toward the resynthesised
+    one: ``naive + λ (relit − naive)`` (λ = 1: ``relit`` exactly); a copy when ``copy``."""
+    out = naive.copy() if copy else naive
+    out[use] = naive[use] + lam * (relit - naive[use]) if lam != 1.0 else relit
+    return out
 
 
 def _fill_uncovered(vs: ViewSamples, val, cov, max_px: float):
@@ -671,7 +699,8 @@ def _resynthesize(fit, vn, *, diffuse_only: bool = False):
 def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
                 supersample: int = 1, resynthesis: bool = True,
                 blend_power: float = BLEND_POWER, samples: ViewSamples | None = None,
-                fill_px: float = 0.0, shrinkage=None, light_step: int = 1) -> RenderResult:
+                fill_px: float = 0.0, shrinkage=None, light_step: int = 1,
+                shrinkage_set=None) -> RenderResult | list[RenderResult]:
     """Render ``camera`` under Eq. (4) light ``weights`` from the measured reflectance field.
 
     See the module docstring for the steps (Debevec et al. 2000 §4.5).
@@ -694,10 +723,16 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
     shrinkage : mapping str -> float, optional — λ per source camera (:func:`shade_texels`)
     light_step : int — resynthesis on a k times coarser light grid (:func:`shade_texels`;
         1: every light)
+    shrinkage_set : sequence of (mapping or None), optional — several shrinkages rendered
+        from one pass over the fields and one resynthesis (:func:`shade_texels`): e.g.
+        ``[factors, {c: 0.0 for c in cameras}, None]`` gives the shrunk render, the naive
+        baseline and the paper's λ = 1 render of the view, each equal to its own
+        ``render_view`` call (full resynthesis only)
 
     Returns
     -------
-    RenderResult
+    RenderResult, or a list of them (one per ``shrinkage_set`` entry, sharing the trace and
+    the shading's counts and seconds)
         ``stats`` holds :func:`shade_texels`'s counts and seconds, ``seconds_trace``,
         ``seconds_shade``, ``seconds_image`` (taps → image) and the total ``seconds``.
     """
@@ -709,8 +744,17 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
     stats: dict = {}
     colour = shade_texels(need, texels.p_world[need], camera.center_world, sources, weights,
                           lights, resynthesis=resynthesis, blend_power=blend_power,
-                          shrinkage=shrinkage, light_step=light_step, stats=stats)
+                          shrinkage=shrinkage, light_step=light_step, stats=stats,
+                          shrinkage_set=shrinkage_set)
     t2 = time.perf_counter()
+    if shrinkage_set is None:
+        return _view_image(vs, need, colour, fill_px, stats, t0, t1, t2)
+    return [_view_image(vs, need, c, fill_px, dict(stats), t0, t1, t2) for c in colour]
+
+
+def _view_image(vs: ViewSamples, need, colour, fill_px, stats, t0, t1, t2) -> RenderResult:
+    """:func:`render_view`'s last step: texel colours → tap-weighted pixel samples → image,
+    with ``covered``, hole filling and the timings (``t0``–``t2``: start, traced, shaded)."""
     pos = np.searchsorted(need, np.where(vs.taps >= 0, vs.taps, 0))
     pos = np.minimum(pos, max(need.size - 1, 0))
     tap_col = colour[pos] if need.size else np.full(vs.taps.shape + (3,), np.nan, np.float32)
