@@ -39,6 +39,7 @@ lights) (:func:`facegeo.lighting.envmap.shipped_map`).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -215,10 +216,16 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                name: str | None = None, blend_power: float | None = None,
                rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
-               progress=None) -> dict:
+               progress=None, shrinkage_cache: dict | None = None) -> dict:
     """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
     ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
-    the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem)."""
+    the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem).
+
+    With full resynthesis the shrunk render, the naive baseline (λ = 0) and the paper's λ = 1
+    come from one read of the fields and one resynthesis (``render_view(shrinkage_set=)``, each
+    bit for bit its own render). ``shrinkage_cache``: a dict shared by the views of one stage;
+    the cross-validated λ depends on the environment's weights and the light step, not on the
+    view, so it is computed once per (weights, light step) and reused."""
     from facegeo.capture import imageio
     from facegeo.fsutil import atomic_write_text
     from facegeo.lighting import envmap as E
@@ -265,8 +272,15 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys)
     factors, shrink_stats = None, None
     if resynthesis is True and shrink_mode == "cross-validated":
-        factors, shrink_stats = cross_validated_shrinkage(sources, w, lights,
-                                                          light_step=light_step)
+        key = (hashlib.sha1(np.ascontiguousarray(w, np.float64).tobytes()).hexdigest(),
+               int(light_step))
+        if shrinkage_cache is not None and key in shrinkage_cache:
+            factors, shrink_stats = shrinkage_cache[key]
+        else:
+            factors, shrink_stats = cross_validated_shrinkage(sources, w, lights,
+                                                              light_step=light_step)
+            if shrinkage_cache is not None:
+                shrinkage_cache[key] = (factors, shrink_stats)
     elif resynthesis is True and isinstance(shrink_mode, float):
         factors = {src.name: shrink_mode for src in sources}
     shrunk = factors is not None and any(f != 1.0 for f in factors.values())
@@ -281,18 +295,32 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
     tick(1)
     bp = BLEND_POWER if blend_power is None else float(blend_power)
-    res = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=resynthesis,
-                      blend_power=bp, samples=samples, fill_px=fill_px, shrinkage=factors,
-                      light_step=light_step if resynthesis is True else 1)
-    tick(2)
-    naive = None
-    if baseline and resynthesis:
-        naive = render_view(camera, scene, atlas, texels, sources, w, lights,
-                            resynthesis=False, blend_power=bp, samples=samples,
-                            fill_px=fill_px)
-        tick(3)
-    paper = None
-    if paper_too:  # the paper's §4.3 as written (λ = 1), for the metrics
+    naive = paper = None
+    # the paper's §4.3 as written (λ = 1), for the metrics, shares the pass only at the same
+    # light step (the paper's render always evaluates every light)
+    share_paper = paper_too and light_step == 1
+    if resynthesis is True and (baseline or share_paper):
+        sets = [factors] + ([{src.name: 0.0 for src in sources}] if baseline else [])
+        sets += [None] if share_paper else []
+        got = render_view(camera, scene, atlas, texels, sources, w, lights, blend_power=bp,
+                          samples=samples, fill_px=fill_px, light_step=light_step,
+                          shrinkage_set=sets)
+        res = got[0]
+        naive = got[1] if baseline else None
+        paper = got[-1] if share_paper else None
+        tick(2 + int(naive is not None) + int(paper is not None))
+    else:
+        res = render_view(camera, scene, atlas, texels, sources, w, lights,
+                          resynthesis=resynthesis, blend_power=bp, samples=samples,
+                          fill_px=fill_px, shrinkage=factors,
+                          light_step=light_step if resynthesis is True else 1)
+        tick(2)
+        if baseline and resynthesis:
+            naive = render_view(camera, scene, atlas, texels, sources, w, lights,
+                                resynthesis=False, blend_power=bp, samples=samples,
+                                fill_px=fill_px)
+            tick(3)
+    if paper_too and paper is None:
         paper = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=True,
                             blend_power=bp, samples=samples, fill_px=fill_px)
         tick(3 + int(naive is not None))
@@ -377,10 +405,12 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     resynthesis as written beside it).
     """
     per_view = {}
+    lam_cache: dict = {}  # the cross-validated λ, once per environment (render_one)
     for k, spec in enumerate(views):
         tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(views) * n)) \
             if progress else None
-        m = render_one(scan, out, dest, camera_spec=spec, env=env, progress=tick, **settings)
+        m = render_one(scan, out, dest, camera_spec=spec, env=env, progress=tick,
+                       shrinkage_cache=lam_cache, **settings)
         per_view[m["name"]] = {key: v for key, v in m.items() if key != "stats"}
     metrics: dict[str, Any] = {"views": per_view, "env": str(env)}
     psnr = [v["psnr_db"] for v in per_view.values() if v.get("psnr_db") is not None]
