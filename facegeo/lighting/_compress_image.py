@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -47,10 +48,6 @@ THRESHOLD_BINS_PER_OCTAVE = 32
 #: Entries to scatter below which a relight stays on one thread (a thread hand-off costs
 #: ≈ 0.1 ms, ≈ 30,000 entries' work).
 PARALLEL_ENTRIES = 100_000
-
-#: Grid cells per tile of the compiled scatter (its accumulator tile is 16 bytes a cell: 256 KB,
-#: half this machine's per-core L2; 8192–32768 measured within noise of each other).
-SCATTER_TILE = 16384
 
 #: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · grid float32).
 SLAB_CHUNK = 32
@@ -115,13 +112,14 @@ class ImageWaveletField:
     Attributes
     ----------
     ptr : (L · segments + 1,) int64
-        Entries of light-coefficient slab j whose spatial index lies in segment g (indices
+        Entries of light-coefficient slab j whose coefficient row lies in segment g (rows
         ``65536·g … 65536·g + 65535``) are ``ptr[j·segments + g] : ptr[j·segments + g + 1]``.
     segments : int
-        ``⌈grid size / 65536⌉``: the segments let positions be uint16 on any grid.
+        ``⌈S / 65536⌉`` (S = :attr:`n_rows`): the segments let positions be uint16 on any grid.
     pos : (n,) uint16
-        Spatial coefficient index of each entry in the ``grid`` (row-major) minus its
-        segment's start, sorted in a slab.
+        Spatial coefficient row of each entry (:func:`coefficient_rows`: the grid's
+        coefficients in the block layout) minus its segment's start, sorted in a slab's
+        segment.
     code : (n,) uint32
         The entry's RGB coefficients packed by :func:`encode_rgb` (6 bytes an entry with
         ``pos``).
@@ -152,9 +150,22 @@ class ImageWaveletField:
     kept_fraction: float
     field_error: float
 
+    def __post_init__(self) -> None:
+        self._scratch_lock = threading.Lock()
+
+    def __getstate__(self) -> dict:
+        """The stored fields only (the derived tables and the relight's scratch are rebuilt)."""
+        return {name: getattr(self, name) for name in self.__dataclass_fields__}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.__post_init__()
+
     def _relight_one_call(self, ker: Any, weights: Any, terms: int | None) -> np.ndarray:
         """:meth:`relight` on one thread with K = ``terms`` (or every non-zero term) as one
-        compiled call (:func:`_compress_kernels.relight_one_thread`)."""
+        compiled call (:func:`_compress_kernels.relight_one_thread`) into the model's kept
+        scratch: an accumulator the inverse leaves zeroed (no allocation, no 16·S-byte memset
+        per call), or a new zeroed one while another thread holds it."""
         n_l = self.n_theta * self.n_phi
         wts = as_array(weights, "weights", shape=(n_l, 3))
         k = 0
@@ -163,13 +174,38 @@ class ImageWaveletField:
             if not 1 <= k <= n_l:
                 raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
         h, w = self.grid
-        acc = np.empty((h * w, 4), np.float32)
         out = np.empty((self.n_pixels, 3), np.float32)
-        ker.relight_one_thread(np.ascontiguousarray(wts, np.float64), self._light_levels,
-                               self.n_theta, self.n_phi, k, self.ptr, self.segments, self.pos,
-                               self.code, self._exponents, acc, h, w, SCATTER_TILE,
-                               self._levels, self.pixel_pos, self._grid_order,
-                               *self._finest_blocks, out)
+        owned = self._scratch_lock.acquire(blocking=False)
+        try:
+            if owned:
+                if "_scratch" not in self.__dict__:  # zeroed once; the kernels keep it zeroed
+                    self._scratch = _scratch(self)
+                acc, ll, tab = self._scratch
+            else:
+                acc, ll, tab = _scratch(self)
+            ker.relight_one_thread(np.ascontiguousarray(wts, np.float64), self._light_levels,
+                                   self.n_theta, self.n_phi, k, self.ptr, self.segments,
+                                   self.pos, self.code, self._exponents, acc, h, w,
+                                   _blocked(self.grid), self._levels, self.pixel_pos, self._grid_order,
+                                   *self._finest_blocks, ll, tab, owned, out)
+        finally:
+            if owned:
+                self._scratch_lock.release()
+        return out
+
+    @property
+    def n_rows(self) -> int:
+        """S, the coefficient rows of the spatial layout (:func:`coefficient_rows`)."""
+        h, w = self.grid
+        return h * w // 4 + 3 * self._finest_blocks[0].size if _blocked(self.grid) else h * w
+
+    @functools.cached_property
+    def _grid_of_row(self) -> np.ndarray:
+        """The grid cell of each coefficient row ``(S,)`` int64 (derived, cached)."""
+        rows = coefficient_rows(self.grid, self._finest_blocks[0])
+        cell = np.flatnonzero(rows >= 0)
+        out = np.empty(self.n_rows, np.int64)
+        out[rows[cell]] = cell
         return out
 
     @functools.cached_property
@@ -189,17 +225,8 @@ class ImageWaveletField:
 
     @functools.cached_property
     def _finest_blocks(self) -> tuple[np.ndarray, np.ndarray]:
-        """The grid's 2 × 2 blocks holding pixels ``(n,)`` int64 (index ``(y/2)·(W/2) + x/2``)
-        and the field row in each of their cells ``(n, 4)`` int64 (slot ``2·(y mod 2) + x mod
-        2``, −1 for none); empty when a grid axis has size 1 (derived, cached)."""
-        h, w = self.grid
-        if h < 2 or w < 2:
-            return np.zeros(0, np.int64), np.zeros((0, 4), np.int64)
-        y, x = np.divmod(self.pixel_pos.astype(np.int64), w)
-        blocks, which = np.unique((y >> 1) * (w // 2) + (x >> 1), return_inverse=True)
-        block_px = np.full((blocks.size, 4), -1, np.int64)
-        block_px[which.ravel(), 2 * (y & 1) + (x & 1)] = np.arange(self.n_pixels)
-        return blocks, block_px
+        """:func:`finest_blocks` of the pixels (derived, cached)."""
+        return finest_blocks(self.pixel_pos, self.grid)
 
     @functools.cached_property
     def _levels(self) -> np.ndarray:
@@ -243,13 +270,13 @@ class ImageWaveletField:
         if order.size == 0:
             return 1, 0.0
         lw = np.ascontiguousarray(wc[order], np.float32)
-        g = self.grid[0] * self.grid[1]
+        g = self.n_rows
         ker = _kernels()
         if ker is not None:  # interleaved: the relight's scatter, then the prefix errors
-            full = np.empty((g, 4), np.float32)
-            pw = exponent_table(self.base)
-            ker.scatter_rgbx(self.ptr, self.segments, self.pos, self.code, pw, order, lw, full,
-                             SCATTER_TILE, 0, g)
+            full, _, tab = _scratch(self)
+            pw = self._exponents
+            ker.scatter_add_rgbx(self.ptr, self.segments, self.pos, self.code, pw, order, lw,
+                                 full, tab, 0, g)
             e2 = ker.truncation_errors_rgbx(self.ptr, self.segments, self.pos, self.code, pw,
                                             order, lw, full)
         else:
@@ -290,22 +317,78 @@ class ImageWaveletField:
             return self._relight_one_call(ker, weights, terms)
         idx, lw = selected_lighting_terms(self, weights, terms, target_error, index_order=True)
         if ker is None:  # numpy reference: planar accumulator, full inverse, pixel gather
-            acc = _scatter_in_parts(self, idx, lw, (3, h * w), _scatter, int(workers))
-            img = _inverse_spatial(acc.reshape(3, h, w))
+            acc = _scatter_in_parts(self, idx, lw, (3, self.n_rows), _scatter, int(workers))
+            grid = np.zeros((3, h * w), np.float32)
+            grid[:, self._grid_of_row] = acc
+            img = _inverse_spatial(grid.reshape(3, h, w))
             return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
-        acc = np.empty((h * w, 4), np.float32)  # the scatter zeroes each tile it fills
-        args = (self.ptr, self.segments, self.pos, self.code, exponent_table(self.base), idx, lw,
-                acc, SCATTER_TILE)
+        acc, ll, _ = _scratch(self)
+        args = (self.ptr, self.segments, self.pos, self.code, self._exponents, idx, lw, acc)
         cuts = _cell_ranges(self, idx, int(workers), ker)
         if len(cuts) > 2:  # threads scatter into disjoint cell ranges of the one accumulator
-            list(_pool(len(cuts) - 1).map(lambda i: ker.scatter_rgbx(*args, cuts[i], cuts[i + 1]),
-                                          range(len(cuts) - 1)))
+            list(_pool(len(cuts) - 1).map(
+                lambda i: ker.scatter_add_rgbx(*args, np.zeros((32, 4), np.float32), cuts[i],
+                                               cuts[i + 1]), range(len(cuts) - 1)))
         else:
-            ker.scatter_rgbx(*args, 0, h * w)
+            ker.scatter_add_rgbx(*args, np.zeros((32, 4), np.float32), 0, self.n_rows)
         out = np.empty((self.n_pixels, 3), np.float32)
-        ker.inverse_haar_at_pixels(acc.reshape(h, w, 4), self._levels, self.pixel_pos,
-                                   self._grid_order, out, *self._finest_blocks)
+        ker.inverse_haar_at_pixels(acc, h, w, _blocked(self.grid), self._levels, self.pixel_pos,
+                                   self._grid_order, out, *self._finest_blocks, ll, False)
         return out
+
+
+def _blocked(grid: tuple[int, int]) -> bool:
+    """Whether a grid's coefficients use the block layout (the finest level steps both axes)."""
+    return grid[0] >= 2 and grid[1] >= 2
+
+
+def finest_blocks(pixel_pos: np.ndarray, grid: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The grid's finest-level 2 × 2 blocks holding pixels ``(n,)`` int64 (index ``(y/2)·(W/2)
+    + x/2``, increasing) and the field row in each of their cells ``(n, 4)`` int32 (slot
+    ``2·(y mod 2) + x mod 2``, −1 for none); empty when a grid axis has size 1."""
+    h, w = grid
+    if not _blocked(grid):
+        return np.zeros(0, np.int64), np.zeros((0, 4), np.int32)
+    y, x = np.divmod(np.asarray(pixel_pos, np.int64), w)
+    blocks, which = np.unique((y >> 1) * (w // 2) + (x >> 1), return_inverse=True)
+    block_px = np.full((blocks.size, 4), -1, np.int32)
+    block_px[which.ravel(), 2 * (y & 1) + (x & 1)] = np.arange(y.size)
+    return blocks, block_px
+
+
+def coefficient_rows(grid: tuple[int, int], blocks: np.ndarray) -> np.ndarray:
+    """The row of each spatial coefficient ``(H·W,)`` int64 (grid cell ``y·W + x`` in the
+    non-standard Haar layout) in the **block layout**: rows ``[0, H·W/4)`` the finest level's
+    low-pass quadrant row-major (stride W/2), then rows ``H·W/4 + 3·b + (0, 1, 2)`` the detail
+    coefficients ``D_y, D_x, D_xy`` of the b-th block of ``blocks`` (:func:`finest_blocks`);
+    −1 for the detail cells of blocks without pixels, which are zero (never stored). The
+    relight's accumulator then holds S = H·W/4 + 3·n rows (0.56 MB instead of 1 MB on the 256 ×
+    256 face grid: it shares the per-core L2 better) and the finest inverse level reads them in
+    one forward sweep. Identity (the grid row-major) when a grid axis has size 1."""
+    h, w = grid
+    if not _blocked(grid):
+        return np.arange(h * w, dtype=np.int64)
+    hh, hw = h // 2, w // 2
+    y, x = np.divmod(np.arange(h * w, dtype=np.int64), w)
+    rows = np.full(h * w, -1, np.int64)
+    low = (y < hh) & (x < hw)
+    rows[low] = y[low] * hw + x[low]
+    block = (y % hh) * hw + x % hw  # the block a detail cell belongs to
+    b = np.searchsorted(blocks, block)
+    held = ~low & (b < blocks.size) & (blocks[np.minimum(b, blocks.size - 1)] == block)
+    kind = (y >= hh).astype(np.int64) + 2 * (x >= hw) - 1  # D_y 0, D_x 1, D_xy 2
+    rows[held] = hh * hw + 3 * b[held] + kind[held]
+    return rows
+
+
+def _scratch(f: ImageWaveletField) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A compiled relight's zeroed scratch: the accumulator ``(S, 4)``, the inverse's low-pass
+    buffer (``(H·W/4, 4)`` in the block layout, else ``(H·W, 4)``: a bound) and the scatter's
+    exponent table ``(32, 4)``, float32."""
+    h, w = f.grid
+    return (np.zeros((f.n_rows, 4), np.float32),
+            np.zeros((h * w // 4 if _blocked(f.grid) else h * w, 4), np.float32),
+            np.zeros((32, 4), np.float32))
 
 
 def _scatter_in_parts(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, shape: tuple,
@@ -353,7 +436,7 @@ def _cell_ranges(f: ImageWaveletField, idx: np.ndarray, workers: int, ker: Any) 
     """Grid-cell bounds ``[0, …, G]`` splitting the selected entries into ``workers`` parts of
     about equal count (cuts on a grid of :data:`SPLIT_CANDIDATES` · workers cells), or
     ``[0, G]`` for one thread or fewer than :data:`PARALLEL_ENTRIES` entries."""
-    g = f.grid[0] * f.grid[1]
+    g = f.n_rows
     n = f.segments
     total = int((f.ptr[(idx + 1) * n] - f.ptr[idx * n]).sum())
     if workers <= 1 or total < PARALLEL_ENTRIES:
@@ -380,7 +463,7 @@ def _kernels():
 
 def _scatter(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, acc: np.ndarray) -> None:
     """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx`` (numpy
-    reference of :func:`_compress_kernels.scatter_rgbx`: one weighted histogram per channel)."""
+    reference of :func:`_compress_kernels.scatter_add_rgbx`: one weighted histogram per channel)."""
     sel, p = _slab_entries(f, idx)
     rep = np.repeat(np.arange(idx.size),
                     f.ptr[(idx + 1) * f.segments] - f.ptr[idx * f.segments])
@@ -482,6 +565,9 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
         raise InputError("field: non-finite samples (masked pixels) cannot be compressed; fill "
                          "or drop those pixels first")
     g = gh * gw
+    blocks, _ = finest_blocks(pixel_pos, (gh, gw))
+    row_of = coefficient_rows((gh, gw), blocks)
+    n_rows = gh * gw // 4 + 3 * blocks.size if _blocked((gh, gw)) else g
     light = np.empty((n_l, 3, n_p), np.float32)  # slab-major light coefficients
     for r0 in range(0, n_p, 4096):
         c = haar2d_nonstandard(np.asarray(f[r0:r0 + 4096], np.float64).transpose(0, 2, 1),
@@ -509,17 +595,20 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     i = int(np.searchsorted(dropped, t * t * total, side="right"))  # bins < i can be dropped
     tau2 = 2.0 ** (lo + i / THRESHOLD_BINS_PER_OCTAVE) if i > 0 else 0.0
     field_error = float(np.sqrt(dropped[i - 1] / total)) if i > 0 else 0.0
-    # pass 2: keep entries ≥ τ, slab by slab (np.nonzero is sorted by slab, then position)
-    n_seg = -(-g // (1 << 16))
+    # pass 2: keep entries ≥ τ, slab by slab, sorted by slab then coefficient row
+    n_seg = -(-n_rows // (1 << 16))
     ptr = np.zeros(n_l * n_seg + 1, np.int64)
     pos_parts, val_parts = [], []
     for j0 in range(0, n_l, SLAB_CHUNK):
         s = slabs(j0)
         m2 = (s ** 2).sum(axis=1)
         keep = (m2 >= tau2) & (m2 > 0)  # never store zeros (padding cells, τ = 0)
-        jj, pp = np.nonzero(keep)
+        jj, cell = np.nonzero(keep)
+        pp = row_of[cell]  # a detail cell of a block without pixels is 0, never kept
+        by_row = np.lexsort((pp, jj))  # by slab, then coefficient row
+        jj, pp, cell = jj[by_row], pp[by_row], cell[by_row]
         pos_parts.append(pp)
-        val_parts.append(s[jj, :, pp])
+        val_parts.append(s[jj, :, cell])
         ptr[j0 * n_seg + 1:(j0 + s.shape[0]) * n_seg + 1] = np.bincount(
             jj * n_seg + (pp >> 16), minlength=s.shape[0] * n_seg)
     ptr = np.cumsum(ptr)
