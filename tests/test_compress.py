@@ -394,6 +394,13 @@ def test_image_wavelet_bad_input(image_case):
         m.budget(ws["sun"], 0.0)
     with pytest.raises(ShapeError, match="weights"):
         m.relight(np.ones((7, 3)))
+    good = m.relight(ws["sun"], terms=9)
+    for bad_w in (np.nan, np.inf):  # a float64 array goes to the kernel, which checks it
+        w = np.array(ws["sun"], np.float64)
+        w[7, 1] = bad_w
+        with pytest.raises(InputError, match=r"weights: 1 non-finite .* index \(7, 1\)"):
+            m.relight(w, terms=9)
+    assert np.array_equal(m.relight(ws["sun"], terms=9), good)  # the scratch is untouched
 
 
 def test_image_wavelet_grids_beyond_uint16_positions(monkeypatch):

@@ -504,7 +504,12 @@ def relight_one_thread(weights, light_levels, n_theta, n_phi, k, ptr, n_seg, pos
     entry; the ``grid_h × grid_w`` grid in the layout ``blocked``) and
     :func:`inverse_haar_at_pixels` into ``out`` ``(P, 3)`` (``clear``: ``acc`` left zeroed). ``weights`` ``(L, 3)`` float64 (validated),
     ``light_levels`` the light grid's levels, ``ll`` and ``tab`` scratch; the rest as those
-    kernels. The same operations as the Python-level path, so the same result bit for bit."""
+    kernels. The same operations as the Python-level path, so the same result bit for bit.
+    Returns False, having done nothing, when ``weights`` holds a NaN or infinity (else True)."""
+    for j in range(weights.shape[0]):
+        for c in range(3):
+            if not np.isfinite(weights[j, c]):
+                return False
     img = np.empty((3, n_phi, n_theta))
     for c in range(3):
         for j in range(n_phi):
@@ -532,3 +537,4 @@ def relight_one_thread(weights, light_levels, n_theta, n_phi, k, ptr, n_seg, pos
     scatter_add_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tab, 0, acc.shape[0])
     inverse_haar_at_pixels(acc, grid_h, grid_w, blocked, levels, pixel_pos, order, out, blocks,
                            block_px, ll, clear)
+    return True
