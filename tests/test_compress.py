@@ -3,6 +3,8 @@ synthetic all-frequency field (hard shadows, a sharp specular lobe), smooth and 
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -469,7 +471,7 @@ def test_scatter_add_rgbx_equals_the_numpy_scatter(image_case):
     for cuts in ([0, g], [0, 17, g // 2, g - 5, g]):  # whole, and ranges cutting every run
         rgbx = np.zeros((g, 4), np.float32)
         rgbx[:, :3] = 1.0  # added to, not overwritten
-        for c0, c1 in zip(cuts[:-1], cuts[1:]):
+        for c0, c1 in itertools.pairwise(cuts):
             K.scatter_add_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base),
                                idx, lw, rgbx, tab, c0, c1)
         rgbx[:, :3] -= 1.0
@@ -485,9 +487,9 @@ def test_inverse_haar_at_pixels_equals_the_full_inverse(shape):
     # Grid layout (read only, and clearing), and on grids with both axes ≥ 2 the block layout
     # of the model's accumulator (coefficients of blocks without pixels zero, as a fit's).
     pytest.importorskip("numba")
-    from facegeo.lighting._compress_haar import _nonstandard_levels, haar2d_nonstandard
     from facegeo.lighting import _compress_image as CI
     from facegeo.lighting import _compress_kernels as K
+    from facegeo.lighting._compress_haar import _nonstandard_levels, haar2d_nonstandard
 
     h, w = shape
     rng = np.random.default_rng(h * 31 + w)

@@ -316,7 +316,7 @@ class ImageWaveletField:
             Instead of ``terms``: K from :meth:`budget`. Neither: every non-zero lighting
             coefficient (the compressed transport's own error only).
         workers : int
-            Threads for the scatter: compiled, each thread takes a range of grid cells holding
+            Threads for the scatter: compiled, each thread takes a range of coefficient rows holding
             about an equal share of the entries (one accumulator, disjoint cells); numpy, the
             K slabs split in parts, one accumulator each, summed. Default 1: a relight takes
             about a millisecond, and on the loaded shared machine a thread hand-off can cost
@@ -360,9 +360,9 @@ def finest_blocks(pixel_pos: np.ndarray, grid: tuple[int, int]) -> tuple[np.ndar
     """The grid's finest-level 2 × 2 blocks holding pixels ``(n,)`` int64 (index ``(y/2)·(W/2)
     + x/2``, increasing) and the field row in each of their cells ``(n, 4)`` int32 (slot
     ``2·(y mod 2) + x mod 2``, −1 for none); empty when a grid axis has size 1."""
-    h, w = grid
     if not _blocked(grid):
         return np.zeros(0, np.int64), np.zeros((0, 4), np.int32)
+    w = grid[1]
     y, x = np.divmod(np.asarray(pixel_pos, np.int64), w)
     blocks, which = np.unique((y >> 1) * (w // 2) + (x >> 1), return_inverse=True)
     block_px = np.full((blocks.size, 4), -1, np.int32)
@@ -430,7 +430,7 @@ def _scatter_in_parts(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, sha
     return acc
 
 
-#: Candidate split cells per thread when a compiled relight runs on several threads.
+#: Candidate split rows per thread when a compiled relight runs on several threads.
 SPLIT_CANDIDATES = 8
 
 _POOLS: dict = {}
@@ -447,9 +447,9 @@ def _pool(n: int):
 
 
 def _cell_ranges(f: ImageWaveletField, idx: np.ndarray, workers: int, ker: Any) -> list[int]:
-    """Grid-cell bounds ``[0, …, G]`` splitting the selected entries into ``workers`` parts of
-    about equal count (cuts on a grid of :data:`SPLIT_CANDIDATES` · workers cells), or
-    ``[0, G]`` for one thread or fewer than :data:`PARALLEL_ENTRIES` entries."""
+    """Coefficient-row bounds ``[0, …, S]`` splitting the selected entries into ``workers``
+    parts of about equal count (cuts on a grid of :data:`SPLIT_CANDIDATES` · workers rows), or
+    ``[0, S]`` for one thread or fewer than :data:`PARALLEL_ENTRIES` entries."""
     g = f.n_rows
     n = f.segments
     total = int((f.ptr[(idx + 1) * n] - f.ptr[idx * n]).sum())

@@ -2,8 +2,9 @@
 numba is installed; the numpy fallbacks in :mod:`facegeo.lighting._compress_image` are the plain
 reference implementations they are tested against).
 
-The relight's hot loop is :func:`scatter_rgbx`: one 4-lane vector read-modify-write per stored
-entry into an interleaved ``(G, 4)`` float32 accumulator (R, G, B and a zero lane), the entry's
+The relight's hot loop is :func:`scatter_add_rgbx`: one 4-lane vector read-modify-write per
+stored entry into an interleaved ``(S, 4)`` float32 accumulator (R, G, B and a zero lane; S
+coefficient rows in the block layout of ``_compress_image.coefficient_rows``), the entry's
 three 9-bit mantissas decoded in the same 4 lanes by one variable shift (LLVM vector IR through
 a numba intrinsic: numba's scalar code for the same loop decodes and stores channel by channel).
 The inverse spatial transform (:func:`inverse_haar_at_pixels`) then evaluates each coarse level
@@ -20,7 +21,7 @@ from numba.extending import intrinsic
 
 from facegeo.lighting._fused import _FASTMATH, haar_nonstandard_forward
 
-__all__ = ["entries_below", "inverse_haar_at_pixels", "relight_one_thread", "scatter_rgbx",
+__all__ = ["entries_below", "inverse_haar_at_pixels", "relight_one_thread", "scatter_add_rgbx",
            "top_k_index_order", "truncation_errors_rgbx"]
 
 
@@ -73,74 +74,30 @@ def _axpy_rgbx(typingctx, acc, q, tab, t, code):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def scatter_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tile, c0, c1):  # pragma: no cover
-    """``acc[65536·g + pos[e], c] += value(code[e], c) · lw[k, c]`` over the entries ``e`` of each
-    selected slab ``j = idx[k]`` (``_compress_image._scatter``'s sum, interleaved), where
-    ``ptr`` ``(L·n_seg + 1,)`` int64 bounds slab j's entries of segment g (cells ``65536·g …``)
-    as ``ptr[j·n_seg + g] : ptr[j·n_seg + g + 1]``, ``pos`` ``(n,)`` uint16 and ``code`` ``(n,)``
-    uint32 are the entries (positions sorted within a slab's segment; codes of
-    ``encode_rgb``), ``pw`` ``(32,)`` float32 the exponent table, ``idx`` ``(K,)`` int64,
-    ``lw`` ``(K, 3)`` float32 the lighting coefficients.
-
-    A table ``(K·32, 4)`` float32 whose row ``32·k + exponent`` is ``pw[exponent] · lw[k]``
-    (lane 3 zero; float32 products) replaces the exponent
-    lookup and three multiplies per entry by one vector load. ``acc`` ``(G, 4)``
-    float32, written (zeroed a tile at a time, just before the tile's entries are added; lane
-    3 is 0) at grid cells ``c0 ≤ s < c1`` only (threads take disjoint ranges of one
-    accumulator); ``tile`` ≤ 65536: the range is
-    swept in tiles of that many cells, all K slabs' entries of a tile (found by binary search
-    in each slab's sorted positions) before the next, so the accumulator's working set is
-    ``16·tile`` bytes (measured ≈ 10 % faster at 16384 than the whole 1 MB of a 256 × 256 grid).
-    Entries are read through slices (loop index from 0), which lets LLVM drop numba's
-    negative-index wraparound (measured ≈ 25 % of the loop). Other arguments as
-    :func:`scatter_slabs`.
-    """
-    tab = np.zeros((idx.size * 32, 4), np.float32)
-    for k in range(idx.size):
-        for e in range(32):
-            for c in range(3):
-                tab[32 * k + e, c] = pw[e] * lw[k, c]
-    start = np.int64(c0)
-    while start < c1:
-        g = start >> 16
-        stop = min(np.int64(c1), start + tile, (g + 1) << 16)  # a tile within one segment
-        off = g << 16
-        lo = start - off
-        hi = stop - off
-        acc[start:stop] = 0.0
-        for k in range(idx.size):
-            r = idx[k] * n_seg + g
-            a = ptr[r]
-            b = ptr[r + 1]
-            if lo > 0:
-                a = a + np.searchsorted(pos[a:b], lo)
-            if hi < 65536:
-                b = a + np.searchsorted(pos[a:b], hi)
-            kb = np.int64(32) * k
-            pc = code[a:b]
-            pp = pos[a:b]
-            for i in range(pc.size):
-                v = pc[i]
-                _axpy_rgbx(acc, off + np.int64(pp[i]), tab, kb + np.int64(v >> np.uint32(27)), v)
-        start = stop
-
-
-@njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
 def scatter_add_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tab, c0,
                      c1):  # pragma: no cover - compiled
     """``acc[65536·g + pos[e], :3] += value(code[e]) · lw[k]`` over the entries ``e`` of each
-    selected slab ``j = idx[k]`` at grid cells ``c0 ≤ s < c1`` (the sum of
-    ``_compress_image._scatter``, interleaved), **added** to ``acc`` ``(G, 4)`` float32 (lane 3
+    selected slab ``j = idx[k]`` at coefficient rows ``c0 ≤ s < c1`` (the sum of
+    ``_compress_image._scatter``, interleaved), **added** to ``acc`` ``(S, 4)`` float32 (lane 3
     stays as it is: zero in a zeroed accumulator).
 
-    Arguments as :func:`scatter_rgbx`; ``tab`` ``(32, 4)`` float32 scratch (lane 3 zero): the
-    current slab's ``pw[e] · lw[k]`` per exponent e (float32 products, rebuilt for each slab's
-    run: 512 bytes in L1 instead of a ``(K·32, 4)`` table). Segment-major, each slab's run whole
-    (no tiles: measured 1.3 against 1.5–1.8 ns an entry for 16,384-cell tiles on the 256 × 256
-    face grid, and no binary searches; software prefetches of the next run's start or of the
-    accumulator rows 8–64 entries ahead measured no gain). Positions are sorted within a run, so
-    a range ``c0 … c1`` costs one binary search at each end that cuts a segment. The same additions in the same order per cell as
-    :func:`scatter_rgbx`, so the same sums bit for bit.
+    ``ptr`` ``(L·n_seg + 1,)`` int64 bounds slab j's entries of segment g (rows ``65536·g …``)
+    as ``ptr[j·n_seg + g] : ptr[j·n_seg + g + 1]``, ``pos`` ``(n,)`` uint16 and ``code`` ``(n,)``
+    uint32 are the entries (rows sorted within a slab's segment; codes of ``encode_rgb``), ``pw``
+    ``(32,)`` float32 the exponent table, ``idx`` ``(K,)`` int64, ``lw`` ``(K, 3)`` float32 the
+    lighting coefficients. ``tab`` ``(32, 4)`` float32 scratch (lane 3 zero): the current slab's
+    ``pw[e] · lw[k]`` per exponent e (float32 products, rebuilt for each slab's run: 512 bytes
+    in L1), which replaces the exponent lookup and three multiplies per entry by one vector
+    load. Entries are read through slices (loop index from 0), which lets LLVM drop numba's
+    negative-index wraparound (measured ≈ 25 % of the loop).
+
+    Segment-major, each slab's run whole (no tiles: measured 1.3 against 1.5–1.8 ns an entry for
+    16,384-cell tiles on the 256 × 256 face grid, and no binary searches; software prefetches
+    of the next run's start or of the accumulator rows 8–64 entries ahead measured no gain).
+    Positions are sorted within a run, so a range ``c0 … c1`` (threads take disjoint ranges of
+    one accumulator) costs one binary search at each end that cuts a segment. The additions
+    into each row are in slab order, as the tiled kernel this replaces: the same sums bit for
+    bit.
     """
     n_k = idx.size
     g0 = np.int64(c0) >> 16
@@ -169,8 +126,8 @@ def scatter_add_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tab, c0,
 
 @njit(nogil=True, cache=True, boundscheck=False)
 def entries_below(ptr, n_seg, pos, idx, cells):  # pragma: no cover - compiled
-    """Entries of the slabs ``idx`` at grid cells ``< cells[i]`` for each ``i`` (``(n,)`` int64,
-    one binary search per slab and cell): where to split a scatter into equal parts."""
+    """Entries of the slabs ``idx`` at coefficient rows ``< cells[i]`` for each ``i`` (``(n,)``
+    int64, one binary search per slab and row): where to split a scatter into equal parts."""
     out = np.zeros(cells.size, np.int64)
     for i in range(cells.size):
         cell = cells[i]
@@ -454,7 +411,7 @@ def truncation_errors_rgbx(ptr, n_seg, pos, code, pw, idx, lw,
     """Squared error ``‖full − Σ_{k' ≤ k} slab idx[k']‖²`` after each slab ``k`` of ``idx``
     (the twin of ``_compress_image._truncation_errors``).
 
-    Entries and weights as :func:`scatter_rgbx`; ``full`` ``(G, 4)`` float32 is its sum over
+    Entries and weights as :func:`scatter_add_rgbx`; ``full`` ``(S, 4)`` float32 is its sum over
     all of ``idx``. The residual (float64, interleaved: one cache line per entry) is updated in
     place entry by entry, so the error of every prefix costs one pass over the entries; the
     entries are read through slices (no index wraparound). Returns ``(K,)`` float64."""
