@@ -423,6 +423,29 @@ def test_image_wavelet_grids_beyond_uint16_positions(monkeypatch):
     assert C.relative_rmse(m.relight(w), a) <= 1e-6
 
 
+def test_image_wavelet_fit_streams_bands_with_the_same_result(image_case, monkeypatch, tmp_path):
+    # The fit's bands of image rows (spatial levels finer than the band on the band alone, the
+    # rest on the bands' low-pass rows) give the coefficients of one whole-grid transform: the
+    # same model for bands of 2 rows, of the whole grid (one band: the plain transform) and
+    # the default, with light-transform blocks that split and reorder the bands' rows, and from
+    # a memory-mapped field. A wrong band-to-grid placement would move or lose entries.
+    from facegeo.lighting import _compress_image as CI
+
+    f, pix, _ = image_case
+    ref = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
+    fields = ("ptr", "segments", "pos", "code", "base", "pixel_pos", "grid")
+    path = tmp_path / "field.npy"
+    np.save(path, f)
+    for band, light_rows, field in ((2, 7, f), (1 << 20, 4096, f), (CI.FIT_BAND_ROWS, 5, None)):
+        monkeypatch.setattr(CI, "FIT_BAND_ROWS", band)
+        monkeypatch.setattr(CI, "FIT_LIGHT_ROWS", light_rows)
+        src = np.load(path, mmap_mode="r") if field is None else field
+        m = C.fit_image_wavelet(src, *GRID, pix, target_error=0.02)
+        for name in fields:
+            assert np.array_equal(getattr(m, name), getattr(ref, name)), (band, name)
+        assert abs(m.field_error - ref.field_error) <= 1e-9
+
+
 def test_image_wavelet_threads_equal_one_thread(image_case, monkeypatch):
     from facegeo.lighting import _compress_image as CI
 

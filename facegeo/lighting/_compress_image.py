@@ -32,6 +32,7 @@ from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.lighting._compress_haar import (
     _check_pow2,
+    _haar_step,
     _nonstandard_levels,
     haar2d_nonstandard,
     lighting_order,
@@ -59,17 +60,24 @@ MAGNITUDE_BITS = 8
 EXPONENT_LEVELS = 32
 
 
-def encode_rgb(v: np.ndarray) -> tuple[np.ndarray, int]:
+def _code_base(big: float) -> int:
+    """The exponent base of :func:`encode_rgb` for values of largest magnitude ``big``."""
+    top = (1 << MAGNITUDE_BITS) - 1
+    return int(np.ceil(np.log2(big / top))) - (EXPONENT_LEVELS - 1) if big > 0 else 0
+
+
+def encode_rgb(v: np.ndarray, base: int | None = None) -> tuple[np.ndarray, int]:
     """Pack ``(n, 3)`` float RGB coefficients into ``(n,)`` uint32 with one shared exponent per
     entry: three 9-bit two's complement mantissas m (|m| ≤ 255) in bits 0–26 and a 5-bit
-    exponent e in bits 27–31; value = m · 2^(e + base). Returns the codes and ``base`` (the largest
-    entry uses the top exponent; entries more than 2³² below it flush to zero).
+    exponent e in bits 27–31; value = m · 2^(e + base). Returns the codes and ``base`` (default:
+    the largest entry uses the top exponent; entries more than 2³² below it flush to zero; a
+    given ``base`` must be at least that of the largest magnitude, :func:`_code_base`).
     """
     v = np.asarray(v, np.float64)
     big = np.abs(v).max(axis=1)
     top = (1 << MAGNITUDE_BITS) - 1
-    base = (int(np.ceil(np.log2(big.max() / top))) - (EXPONENT_LEVELS - 1)) if big.size and \
-        big.max() > 0 else 0
+    if base is None:
+        base = _code_base(float(big.max())) if big.size else 0
     with np.errstate(divide="ignore"):
         e = np.ceil(np.log2(np.maximum(big, 1e-300) / top)).astype(np.int64) - base
     e = np.clip(e, 0, EXPONENT_LEVELS - 1)
@@ -534,6 +542,59 @@ def _check_pixels(pixels: Any, n_p: int) -> tuple[np.ndarray, tuple[int, int]]:
     return flat.astype(np.int32), (h, w)
 
 
+#: Image rows per band of :func:`fit_image_wavelet` (a power of two): the spatial Haar levels
+#: finer than the band are local to it, so the fit holds one band's light coefficients at a
+#: time (≈ 16 · W pixels · L · 3 float32) and the bands' low-pass rows (L · 3 · G / 16² float64).
+FIT_BAND_ROWS = 16
+
+#: Field rows per block of the light transform in the fit (float64: 4096 · L · 3 · 8 bytes).
+FIT_LIGHT_ROWS = 4096
+
+
+def _band_layout(grid: tuple[int, int], band: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Where the cells of a band of ``band`` image rows go after the first log₂(band) levels of
+    the grid's non-standard Haar transform (computed on the band alone): the full grid index
+    of cell c of band b is ``base[c] + b · step[c]`` for detail cells; the band's low-pass
+    cells (row 0, columns ``< w_k``) have ``base`` −1 and go to row b, column c of the
+    ``(H/band, w_k)`` low-pass grid. Returns ``base, step`` ``(band·W,)`` int64 and ``w_k``."""
+    gh, gw = grid
+    r, c = np.divmod(np.arange(band * gw, dtype=np.int64), gw)
+    base = np.full(r.size, -1, np.int64)
+    step = np.zeros(r.size, np.int64)
+    hb, w, hf = band, gw, gh  # level size in the band (rows), columns, full-grid rows
+    while hb > 1:  # every level here halves the rows (band ≤ H); columns while w > 1
+        w_next = max(1, w // 2)
+        level = (r < hb) & (c < w) & ~((r < hb // 2) & (c < w_next))
+        lower = level & (r >= hb // 2)  # the row-detail half: H_i/2 + b·hb/2 + (r − hb/2)
+        upper = level & (r < hb // 2)  # b·hb/2 + r
+        base[lower] = (hf // 2 + r[lower] - hb // 2) * gw + c[lower]
+        base[upper] = r[upper] * gw + c[upper]
+        step[level] = (hb // 2) * gw
+        hb, w, hf = hb // 2, w_next, hf // 2
+    return base, step, w
+
+
+def _band_forward(x: np.ndarray, grid: tuple[int, int], band: int) -> None:
+    """The first log₂(band) levels of the grid's non-standard Haar transform
+    (:func:`haar2d_nonstandard`, image width as θ) on a band ``(..., band, W)`` float64, in
+    place: the same steps on the same values as the whole grid's transform."""
+    levels = _nonstandard_levels(grid[1], grid[0])
+    hb = band
+    for _, w, st, sp in levels[: band.bit_length() - 1]:
+        block = x[..., :hb, :w]
+        if st:
+            _haar_step(block, -1, w, False)
+        if sp:
+            _haar_step(block, -2, hb, False)
+        hb //= 2
+
+
+def _energy_bins(m2: np.ndarray, lo: float) -> np.ndarray:
+    """Histogram bin of each squared magnitude (> 0) for the fit's threshold."""
+    n_bins = 140 * THRESHOLD_BINS_PER_OCTAVE
+    return np.clip(((np.log2(m2) - lo) * THRESHOLD_BINS_PER_OCTAVE).astype(np.int64), 0, n_bins)
+
+
 def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
                       target_error: float = 0.01) -> ImageWaveletField:
     """Compress an image-space field in the light domain and across the image (4-D Haar).
@@ -560,14 +621,21 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
 
     Notes
     -----
-    Memory: the light coefficients of the whole field, float32 ``(P, 3, L)`` (twice a float16
-    field), plus :data:`SLAB_CHUNK` slabs of the grid at a time. Deviations from the papers:
+    Streams the field in bands of :data:`FIT_BAND_ROWS` image rows, twice (an energy histogram
+    for the threshold, then the kept entries): each band's light coefficients (float32, as
+    the in-memory transform's) go through the spatial levels finer than the band on the band
+    alone; the bands' low-pass rows (float64) then take the remaining levels together. The same
+    steps on the same values as one transform of the whole grid, so the same coefficients.
+    Memory: one band's light coefficients, :data:`SLAB_CHUNK` slabs of one band's grid, the
+    low-pass grid ``L · 3 · G / FIT_BAND_ROWS²`` float64 and the kept entries (12 bytes each
+    until sorted) — not the whole field's coefficients (``P · L · 3`` float32, twice a float16
+    field; ``field`` may be a ``numpy.memmap``). Deviations from the papers:
     Haar, not the 8 × 8 DCT of JPEG, across the image (one orthonormal transform whose
     threshold error is exact); fixed-size RGBE-like codes, not entropy-coded quantised values (a
     relight must read them directly).
     """
 
-    f = np.asarray(field)
+    f = field if isinstance(field, np.ndarray) else np.asarray(field)
     if f.ndim != 3 or f.shape[1:] != (n_theta * n_phi, 3) or f.dtype.kind != "f":
         raise ShapeError(f"field: expected a float field of shape (P, {n_theta * n_phi}, 3), "
                          f"got {f.shape} {f.dtype}")
@@ -575,61 +643,107 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     t = check_positive(target_error, "target_error")
     n_p, n_l, _ = f.shape
     pixel_pos, (gh, gw) = _check_pixels(pixels, n_p)
-    if not np.all(np.isfinite(f)):
+    grid = (gh, gw)
+    blocks, _ = finest_blocks(pixel_pos, grid)
+    row_of = coefficient_rows(grid, blocks)
+    n_rows = gh * gw // 4 + 3 * blocks.size if _blocked(grid) else gh * gw
+    band = min(FIT_BAND_ROWS, gh)
+    base_of, step_of, wk = _band_layout(grid, band)
+    detail = base_of >= 0
+    low_cells = np.flatnonzero(~detail)  # the band's low-pass cells: row 0, columns < w_k
+    n_band = gh // band
+    y_pix = pixel_pos.astype(np.int64) // gw
+    by_band = np.argsort(y_pix // band, kind="stable")
+    band_ptr = np.searchsorted((y_pix // band)[by_band], np.arange(n_band + 1))
+    coarse = np.zeros((n_l, 3, n_band, wk))  # the bands' low-pass rows
+
+    def band_slabs(b: int):
+        """Slab chunks of band b: ``(j0, coefficients (C, 3, band·W) float64, full grid index
+        of each detail cell)`` after the band's spatial levels (low-pass rows to ``coarse``)."""
+        rows = by_band[band_ptr[b]:band_ptr[b + 1]]
+        cells = pixel_pos[rows].astype(np.int64) - b * band * gw
+        light = np.empty((n_l, 3, rows.size), np.float32)
+        for r0 in range(0, rows.size, FIT_LIGHT_ROWS):
+            fr = np.asarray(f[np.sort(rows[r0:r0 + FIT_LIGHT_ROWS])], np.float64)
+            inv = np.argsort(np.argsort(rows[r0:r0 + FIT_LIGHT_ROWS]))  # back to `rows` order
+            c = haar2d_nonstandard(fr[inv].transpose(0, 2, 1), n_theta, n_phi)  # (r, 3, L)
+            light[:, :, r0:r0 + c.shape[0]] = c.transpose(2, 1, 0)
+        full = base_of[detail] + b * step_of[detail]
+        for j0 in range(0, n_l, SLAB_CHUNK):
+            x = np.zeros((min(n_l, j0 + SLAB_CHUNK) - j0, 3, band * gw))
+            x[:, :, cells] = light[j0:j0 + x.shape[0]]
+            xb = x.reshape(x.shape[0], 3, band, gw)
+            _band_forward(xb, grid, band)
+            coarse[j0:j0 + x.shape[0], :, b, :] = x[:, :, low_cells]
+            yield j0, x[:, :, detail], full
+
+    def coarse_slabs():
+        """Slab chunks of the low-pass grid after its remaining levels, full grid indices."""
+        cy, cx = np.divmod(np.arange(n_band * wk, dtype=np.int64), wk)
+        full = cy * gw + cx
+        for j0 in range(0, n_l, SLAB_CHUNK):
+            c = coarse[j0:j0 + SLAB_CHUNK].reshape(-1, 3, n_band * wk)
+            yield j0, haar2d_nonstandard(c, wk, n_band), full
+
+    # the field's energy (Parseval: the 4-D coefficients' up to their float32 rounding), read
+    # once without transforms
+    total = 0.0
+    for r0 in range(0, n_p, FIT_LIGHT_ROWS):
+        total += float((np.asarray(f[r0:r0 + FIT_LIGHT_ROWS], np.float64) ** 2).sum())
+    if not np.isfinite(total):
         raise InputError("field: non-finite samples (masked pixels) cannot be compressed; fill "
                          "or drop those pixels first")
-    g = gh * gw
-    blocks, _ = finest_blocks(pixel_pos, (gh, gw))
-    row_of = coefficient_rows((gh, gw), blocks)
-    n_rows = gh * gw // 4 + 3 * blocks.size if _blocked((gh, gw)) else g
-    light = np.empty((n_l, 3, n_p), np.float32)  # slab-major light coefficients
-    for r0 in range(0, n_p, 4096):
-        c = haar2d_nonstandard(np.asarray(f[r0:r0 + 4096], np.float64).transpose(0, 2, 1),
-                               n_theta, n_phi)  # (rows, 3, L)
-        light[:, :, r0:r0 + c.shape[0]] = c.transpose(2, 1, 0)
-
-    def slabs(j0: int) -> np.ndarray:
-        grid = np.zeros((min(n_l, j0 + SLAB_CHUNK) - j0, 3, g), np.float64)
-        grid[:, :, pixel_pos] = light[j0:j0 + grid.shape[0]]
-        return haar2d_nonstandard(grid, gw, gh)  # image width plays θ, height φ
-
-    # pass 1: histogram of squared RGB magnitudes (energy per bin) → threshold
-    total = float((light.astype(np.float64) ** 2).sum())
     if total == 0.0:
         raise InputError("field: all zero; nothing to compress")
+    # pass 1: histogram of squared RGB magnitudes (energy per bin) → threshold; the largest
+    # channel magnitude → the codes' exponent base
     lo = np.log2(total) - 120.0
-    n_bins = 140 * THRESHOLD_BINS_PER_OCTAVE
-    energy = np.zeros(n_bins + 1)
-    for j0 in range(0, n_l, SLAB_CHUNK):
-        m2 = (slabs(j0) ** 2).sum(axis=1).ravel()
+    energy = np.zeros(140 * THRESHOLD_BINS_PER_OCTAVE + 1)
+    big = 0.0
+
+    def histogram(x: np.ndarray) -> float:
+        m2 = (x ** 2).sum(axis=1).ravel()
         m2 = m2[m2 > 0]
-        b = np.clip(((np.log2(m2) - lo) * THRESHOLD_BINS_PER_OCTAVE).astype(np.int64), 0, n_bins)
-        energy += np.bincount(b, weights=m2, minlength=n_bins + 1)
+        energy[:] += np.bincount(_energy_bins(m2, lo), weights=m2, minlength=energy.size)
+        return float(np.abs(x).max(initial=0.0))
+
+    for b in range(n_band):
+        for _, x, _ in band_slabs(b):
+            big = max(big, histogram(x))
+    coarse_done = list(coarse_slabs())
+    for _, c, _ in coarse_done:
+        big = max(big, histogram(c))
     dropped = np.cumsum(energy)  # energy of bins 0 … i
     i = int(np.searchsorted(dropped, t * t * total, side="right"))  # bins < i can be dropped
     tau2 = 2.0 ** (lo + i / THRESHOLD_BINS_PER_OCTAVE) if i > 0 else 0.0
     field_error = float(np.sqrt(dropped[i - 1] / total)) if i > 0 else 0.0
-    # pass 2: keep entries ≥ τ, slab by slab, sorted by slab then coefficient row
+    code_base = _code_base(big)
+    # pass 2: keep entries ≥ τ (never zeros: padding cells, τ = 0), encoded at once
+    keys, codes = [], []
+
+    def keep(j0: int, x: np.ndarray, full: np.ndarray) -> None:
+        m2 = (x ** 2).sum(axis=1)
+        jj, cc = np.nonzero((m2 >= tau2) & (m2 > 0))
+        rows = row_of[full[cc]]  # a detail cell of a block without pixels is 0, never kept
+        keys.append((jj + j0).astype(np.int64) * n_rows + rows)
+        codes.append(encode_rgb(x[jj, :, cc], code_base)[0])
+
+    for b in range(n_band):
+        for j0, x, full in band_slabs(b):
+            keep(j0, x, full)
+    for j0, c, full in coarse_done:
+        keep(j0, c, full)
+    key = np.concatenate(keys)
+    order = np.argsort(key, kind="stable")  # by slab, then coefficient row
+    key = key[order]
+    code = np.concatenate(codes)[order]
     n_seg = -(-n_rows // (1 << 16))
+    slab, row = np.divmod(key, n_rows)
     ptr = np.zeros(n_l * n_seg + 1, np.int64)
-    pos_parts, val_parts = [], []
-    for j0 in range(0, n_l, SLAB_CHUNK):
-        s = slabs(j0)
-        m2 = (s ** 2).sum(axis=1)
-        keep = (m2 >= tau2) & (m2 > 0)  # never store zeros (padding cells, τ = 0)
-        jj, cell = np.nonzero(keep)
-        pp = row_of[cell]  # a detail cell of a block without pixels is 0, never kept
-        by_row = np.lexsort((pp, jj))  # by slab, then coefficient row
-        jj, pp, cell = jj[by_row], pp[by_row], cell[by_row]
-        pos_parts.append(pp)
-        val_parts.append(s[jj, :, cell])
-        ptr[j0 * n_seg + 1:(j0 + s.shape[0]) * n_seg + 1] = np.bincount(
-            jj * n_seg + (pp >> 16), minlength=s.shape[0] * n_seg)
-    ptr = np.cumsum(ptr)
-    pos = (np.concatenate(pos_parts) & 0xFFFF).astype(np.uint16)
-    code, base = encode_rgb(np.concatenate(val_parts).reshape(-1, 3))
+    ptr[1:] = np.cumsum(np.bincount(slab * n_seg + (row >> 16), minlength=n_l * n_seg))
+    pos = (row & 0xFFFF).astype(np.uint16)
     frac = pos.size / (n_p * n_l)
     log.info("image wavelet field: %d entries (%.3g %% of P·L), field error %.3g for target %g",
              pos.size, 100 * frac, field_error, t)
-    return ImageWaveletField(ptr, int(n_seg), pos, code, int(base), pixel_pos, int(n_theta), int(n_phi),
-                             (gh, gw), float(frac), field_error)
+    return ImageWaveletField(ptr, int(n_seg), pos, code, int(code_base), pixel_pos, int(n_theta),
+                             int(n_phi), grid, float(frac), field_error)
