@@ -547,8 +547,9 @@ def _check_pixels(pixels: Any, n_p: int) -> tuple[np.ndarray, tuple[int, int]]:
 #: time (≈ 16 · W pixels · L · 3 float32) and the bands' low-pass rows (L · 3 · G / 16² float64).
 FIT_BAND_ROWS = 16
 
-#: Field rows per block of the light transform in the fit (float64: 4096 · L · 3 · 8 bytes).
-FIT_LIGHT_ROWS = 4096
+#: Field rows per block of the light transform in the fit (float64, a few copies of 512 · L · 3
+#: · 8 bytes = 25 MB at L = 2048; 4096 rows made the transform the fit's peak, ≈ 0.6 GB).
+FIT_LIGHT_ROWS = 512
 
 
 def _band_layout(grid: tuple[int, int], band: int) -> tuple[np.ndarray, np.ndarray, int]:
