@@ -570,3 +570,11 @@ def test_image_wavelet_relight_scratch_stays_zero_and_pickles(image_case):
         assert np.array_equal(m.relight(w, terms=30), first[k])
     if "_scratch" in m.__dict__:  # compiled path
         assert not m._scratch[0].any()
+    # threads relighting one model at once: one holds the kept scratch, the others get new
+    from concurrent.futures import ThreadPoolExecutor
+
+    names = list(ws) * 8
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        got = list(pool.map(lambda k: m.relight(ws[k], terms=30), names))
+    for k, g in zip(names, got, strict=True):
+        assert np.array_equal(g, first[k]), k
