@@ -50,7 +50,7 @@ THRESHOLD_BINS_PER_OCTAVE = 32
 #: ≈ 0.1 ms, ≈ 30,000 entries' work).
 PARALLEL_ENTRIES = 100_000
 
-#: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · grid float32).
+#: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · band float64).
 SLAB_CHUNK = 32
 
 #: Bits of each channel's magnitude in a packed entry (9-bit two's complement mantissas: three
