@@ -3,6 +3,8 @@ synthetic all-frequency field (hard shadows, a sharp specular lobe), smooth and 
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -394,23 +396,54 @@ def test_image_wavelet_bad_input(image_case):
         m.budget(ws["sun"], 0.0)
     with pytest.raises(ShapeError, match="weights"):
         m.relight(np.ones((7, 3)))
+    good = m.relight(ws["sun"], terms=9)
+    for bad_w in (np.nan, np.inf):  # a float64 array goes to the kernel, which checks it
+        w = np.array(ws["sun"], np.float64)
+        w[7, 1] = bad_w
+        with pytest.raises(InputError, match=r"weights: 1 non-finite .* index \(7, 1\)"):
+            m.relight(w, terms=9)
+    assert np.array_equal(m.relight(ws["sun"], terms=9), good)  # the scratch is untouched
 
 
 def test_image_wavelet_grids_beyond_uint16_positions(monkeypatch):
-    # A sparse set of pixels spread over a 300 × 400 image: a 512 × 512 grid, 4 segments of
-    # 65536 uint16 positions. Near-zero threshold: Eq. (4) up to the codes; kernels = numpy.
+    # A sparse set of pixels spread over a 300 × 400 image: a 512 × 512 grid, whose block
+    # layout (65,536 low-pass rows + 3 per pixel block) needs 2 segments of 65536 uint16
+    # positions. Near-zero threshold: Eq. (4) up to the codes; kernels = numpy.
     rng = np.random.default_rng(6)
     pix = np.unique(rng.integers(0, [300, 400], size=(80, 2)), axis=0)
     f = rng.uniform(0.0, 1.0, size=(len(pix), 8, 3)).astype(np.float32)
     w = rng.uniform(0.0, 1.0, size=(8, 3))
     m = C.fit_image_wavelet(f, 4, 2, pix, target_error=1e-6)
-    assert m.segments == 4 and m.pos.dtype == np.uint16
+    assert m.n_rows > 65536 and m.segments == 2 and m.pos.dtype == np.uint16
     a = m.relight(w)
     assert C.relative_rmse(a, relight_field(f, w)) <= IMAGE_WAVELET_CODES
     import facegeo.lighting.relight as RL
 
     monkeypatch.setattr(RL, "_fused_kernel", lambda conversion=None: False)
     assert C.relative_rmse(m.relight(w), a) <= 1e-6
+
+
+def test_image_wavelet_fit_streams_bands_with_the_same_result(image_case, monkeypatch, tmp_path):
+    # The fit's bands of image rows (spatial levels finer than the band on the band alone, the
+    # rest on the bands' low-pass rows) give the coefficients of one whole-grid transform: the
+    # same model for bands of 2 rows, of the whole grid (one band: the plain transform) and
+    # the default, with light-transform blocks that split and reorder the bands' rows, and from
+    # a memory-mapped field. A wrong band-to-grid placement would move or lose entries.
+    from facegeo.lighting import _compress_image as CI
+
+    f, pix, _ = image_case
+    ref = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
+    fields = ("ptr", "segments", "pos", "code", "base", "pixel_pos", "grid")
+    path = tmp_path / "field.npy"
+    np.save(path, f)
+    for band, light_rows, field in ((2, 7, f), (1 << 20, 4096, f), (CI.FIT_BAND_ROWS, 5, None)):
+        monkeypatch.setattr(CI, "FIT_BAND_ROWS", band)
+        monkeypatch.setattr(CI, "FIT_LIGHT_ROWS", light_rows)
+        src = np.load(path, mmap_mode="r") if field is None else field
+        m = C.fit_image_wavelet(src, *GRID, pix, target_error=0.02)
+        for name in fields:
+            assert np.array_equal(getattr(m, name), getattr(ref, name)), (band, name)
+        assert abs(m.field_error - ref.field_error) <= 1e-9
 
 
 def test_image_wavelet_threads_equal_one_thread(image_case, monkeypatch):
@@ -422,7 +455,7 @@ def test_image_wavelet_threads_equal_one_thread(image_case, monkeypatch):
     ker = CI._kernels()
     if ker is not None:  # the split counts: none below cell 0, all below G, half in between
         idx = np.arange(m.n_theta * m.n_phi, dtype=np.int64)
-        g = m.grid[0] * m.grid[1]
+        g = m.n_rows
         below = ker.entries_below(m.ptr, m.segments, m.pos, idx, np.array([0, g // 2, g]))
         assert below[0] == 0 and below[2] == m.pos.size
         assert below[1] == sum(int(np.count_nonzero(m.pos[m.ptr[j]:m.ptr[j + 1]] < g // 2))
@@ -445,22 +478,26 @@ SCATTER_RGBX = 1e-5
 INVERSE_AT_PIXELS = 1e-5
 
 
-def test_scatter_rgbx_equals_the_numpy_scatter(image_case):
+def test_scatter_add_rgbx_equals_the_numpy_scatter(image_case):
     pytest.importorskip("numba")
     from facegeo.lighting import _compress_image as CI
     from facegeo.lighting import _compress_kernels as K
 
     f, pix, ws = image_case
     m = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
-    idx, lw = CI.selected_lighting_terms(m, ws["sun"], 40, None)
-    g = m.grid[0] * m.grid[1]
+    idx, lw = CI.selected_lighting_terms(m, ws["sun"], 40, None, index_order=True)
+    g = m.n_rows
     planar = np.zeros((3, g), np.float32)
     CI._scatter(m, idx, lw, planar)  # the numpy reference (float64 products, then float32)
     assert np.abs(planar).max() > 0
-    for tile in (g, 64, 16):  # one tile, and tiles that split every slab's entries
-        rgbx = np.full((g, 4), np.nan, np.float32)  # written, not accumulated into
-        K.scatter_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base), idx, lw,
-                       rgbx, tile, 0, g)
+    tab = np.zeros((32, 4), np.float32)
+    for cuts in ([0, g], [0, 17, g // 2, g - 5, g]):  # whole, and ranges cutting every run
+        rgbx = np.zeros((g, 4), np.float32)
+        rgbx[:, :3] = 1.0  # added to, not overwritten
+        for c0, c1 in itertools.pairwise(cuts):
+            K.scatter_add_rgbx(m.ptr, m.segments, m.pos, m.code, CI.exponent_table(m.base),
+                               idx, lw, rgbx, tab, c0, c1)
+        rgbx[:, :3] -= 1.0
         assert np.abs(rgbx[:, :3].T - planar).max() <= SCATTER_RGBX * np.abs(planar).max()
         assert not rgbx[:, 3].any()  # the pad lane stays zero
     # a swapped channel order fails: the lanes are R, G, B
@@ -470,31 +507,74 @@ def test_scatter_rgbx_equals_the_numpy_scatter(image_case):
 @pytest.mark.parametrize("shape", [(1, 8), (8, 1), (2, 16), (16, 2), (4, 16), (16, 4),
                                    (16, 16), (1, 1)])
 def test_inverse_haar_at_pixels_equals_the_full_inverse(shape):
+    # Grid layout (read only, and clearing), and on grids with both axes ≥ 2 the block layout
+    # of the model's accumulator (coefficients of blocks without pixels zero, as a fit's).
     pytest.importorskip("numba")
-    from facegeo.lighting._compress_haar import _nonstandard_levels, haar2d_nonstandard
+    from facegeo.lighting import _compress_image as CI
     from facegeo.lighting import _compress_kernels as K
+    from facegeo.lighting._compress_haar import _nonstandard_levels, haar2d_nonstandard
 
     h, w = shape
     rng = np.random.default_rng(h * 31 + w)
-    coef = rng.normal(size=(h, w, 4)).astype(np.float32)
-    coef[..., 3] = 0
-    ref = haar2d_nonstandard(coef[..., :3].transpose(2, 0, 1).reshape(3, h * w).astype(np.float64),
-                             w, h, inverse=True).T  # (H·W, 3)
-    pixels = rng.permutation(h * w)[: max(1, h * w // 2)].astype(np.int32)
+    pixels = rng.permutation(h * w)[: max(1, h * w // 3)].astype(np.int32)
+    blocks, block_px = CI.finest_blocks(pixels, shape)
+    rows = CI.coefficient_rows(shape, blocks)
+    coef = rng.normal(size=(h * w, 4)).astype(np.float32)
+    coef[:, 3] = 0
+    coef[rows < 0] = 0  # the detail cells of blocks without pixels
+    ref = haar2d_nonstandard(coef[:, :3].T.astype(np.float64), w, h, inverse=True).T
     levels = np.array(_nonstandard_levels(w, h), np.int64).reshape(-1, 4)
-    img = coef.copy()
-    out = np.full((pixels.size, 3), np.nan, np.float32)
-    none = (np.zeros(0, np.int64), np.zeros((0, 4), np.int64))
-    K.inverse_haar_at_pixels(img, levels, pixels, np.argsort(pixels), out, *none)
-    assert np.array_equal(img, coef)  # the coefficients are read only
-    assert np.abs(out - ref[pixels]).max() <= INVERSE_AT_PIXELS * np.abs(ref).max()
-    if h > 1 and w > 1:  # the finest level by 2 × 2 blocks (the model's cached table)
-        from facegeo.lighting._compress_image import ImageWaveletField
+    ll = np.zeros((0, 4), np.float32)
+    none = (np.zeros(0, np.int64), np.zeros((0, 4), np.int32))
+    tol = INVERSE_AT_PIXELS * np.abs(ref).max()
+    order = np.argsort(pixels)
+    for blk in (none, (blocks, block_px)) if blocks.size else (none,):
+        for clear in (False, True):
+            det = coef.copy()
+            out = np.full((pixels.size, 3), np.nan, np.float32)
+            K.inverse_haar_at_pixels(det, h, w, False, levels, pixels, order, out, *blk, ll,
+                                     clear)
+            assert np.abs(out - ref[pixels]).max() <= tol
+            assert not det.any() if clear else np.array_equal(det, coef)
+    if blocks.size:  # the block layout: S = H·W/4 + 3 · blocks rows
+        assert rows.max() + 1 == h * w // 4 + 3 * blocks.size
+        packed = np.zeros((rows.max() + 1, 4), np.float32)
+        packed[rows[rows >= 0]] = coef[rows >= 0]
+        for clear in (False, True):
+            det = packed.copy()
+            out = np.full((pixels.size, 3), np.nan, np.float32)
+            K.inverse_haar_at_pixels(det, h, w, True, levels, pixels, order, out, blocks,
+                                     block_px, np.zeros((h * w // 4, 4), np.float32), clear)
+            assert np.abs(out - ref[pixels]).max() <= tol
+            assert not det.any() if clear else np.array_equal(det, packed)
+        # the rows' order matters: the blocks' detail rows swapped fail
+        det = packed.copy()
+        det[h * w // 4:] = packed[h * w // 4:][::-1]
+        K.inverse_haar_at_pixels(det, h, w, True, levels, pixels, order, out, blocks, block_px,
+                                 ll, False)
+        assert np.abs(out - ref[pixels]).max() > tol
 
-        f = ImageWaveletField(np.zeros(1, np.int64), 1, np.zeros(0, np.uint16),
-                              np.zeros(0, np.uint32), 0, pixels, 1, 1, (h, w), 0.0, 0.0)
-        blocks = f._finest_blocks
-        assert blocks[0].size < pixels.size  # some blocks hold several pixels
-        out[:] = np.nan
-        K.inverse_haar_at_pixels(img, levels, pixels, np.argsort(pixels), out, *blocks)
-        assert np.abs(out - ref[pixels]).max() <= INVERSE_AT_PIXELS * np.abs(ref).max()
+
+def test_image_wavelet_relight_scratch_stays_zero_and_pickles(image_case):
+    # The one-thread relight keeps its accumulator on the model and the inverse zeroes it as
+    # it reads: repeated relights with different lightings equal fresh models' relights.
+    import pickle
+
+    f, pix, ws = image_case
+    m = C.fit_image_wavelet(f, *GRID, pix, target_error=0.02)
+    first = {k: m.relight(w, terms=30) for k, w in ws.items()}
+    for k, w in ws.items():
+        fresh = pickle.loads(pickle.dumps(m))  # stored fields only: no scratch, no lock
+        assert "_scratch" not in fresh.__dict__
+        assert np.array_equal(fresh.relight(w, terms=30), first[k])
+        assert np.array_equal(m.relight(w, terms=30), first[k])
+    if "_scratch" in m.__dict__:  # compiled path
+        assert not m._scratch[0].any()
+    # threads relighting one model at once: one holds the kept scratch, the others get new
+    from concurrent.futures import ThreadPoolExecutor
+
+    names = list(ws) * 8
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        got = list(pool.map(lambda k: m.relight(ws[k], terms=30), names))
+    for k, g in zip(names, got, strict=True):
+        assert np.array_equal(g, first[k]), k

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,6 +32,7 @@ from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.lighting._compress_haar import (
     _check_pow2,
+    _haar_step,
     _nonstandard_levels,
     haar2d_nonstandard,
     lighting_order,
@@ -48,11 +50,7 @@ THRESHOLD_BINS_PER_OCTAVE = 32
 #: ≈ 0.1 ms, ≈ 30,000 entries' work).
 PARALLEL_ENTRIES = 100_000
 
-#: Grid cells per tile of the compiled scatter (its accumulator tile is 16 bytes a cell: 256 KB,
-#: half this machine's per-core L2; 8192–32768 measured within noise of each other).
-SCATTER_TILE = 16384
-
-#: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · grid float32).
+#: Light-coefficient slabs transformed together in the fit (memory: SLAB_CHUNK · 3 · band float64).
 SLAB_CHUNK = 32
 
 #: Bits of each channel's magnitude in a packed entry (9-bit two's complement mantissas: three
@@ -62,17 +60,24 @@ MAGNITUDE_BITS = 8
 EXPONENT_LEVELS = 32
 
 
-def encode_rgb(v: np.ndarray) -> tuple[np.ndarray, int]:
+def _code_base(big: float) -> int:
+    """The exponent base of :func:`encode_rgb` for values of largest magnitude ``big``."""
+    top = (1 << MAGNITUDE_BITS) - 1
+    return int(np.ceil(np.log2(big / top))) - (EXPONENT_LEVELS - 1) if big > 0 else 0
+
+
+def encode_rgb(v: np.ndarray, base: int | None = None) -> tuple[np.ndarray, int]:
     """Pack ``(n, 3)`` float RGB coefficients into ``(n,)`` uint32 with one shared exponent per
     entry: three 9-bit two's complement mantissas m (|m| ≤ 255) in bits 0–26 and a 5-bit
-    exponent e in bits 27–31; value = m · 2^(e + base). Returns the codes and ``base`` (the largest
-    entry uses the top exponent; entries more than 2³² below it flush to zero).
+    exponent e in bits 27–31; value = m · 2^(e + base). Returns the codes and ``base`` (default:
+    the largest entry uses the top exponent; entries more than 2³² below it flush to zero; a
+    given ``base`` must be at least that of the largest magnitude, :func:`_code_base`).
     """
     v = np.asarray(v, np.float64)
     big = np.abs(v).max(axis=1)
     top = (1 << MAGNITUDE_BITS) - 1
-    base = (int(np.ceil(np.log2(big.max() / top))) - (EXPONENT_LEVELS - 1)) if big.size and \
-        big.max() > 0 else 0
+    if base is None:
+        base = _code_base(float(big.max())) if big.size else 0
     with np.errstate(divide="ignore"):
         e = np.ceil(np.log2(np.maximum(big, 1e-300) / top)).astype(np.int64) - base
     e = np.clip(e, 0, EXPONENT_LEVELS - 1)
@@ -115,13 +120,14 @@ class ImageWaveletField:
     Attributes
     ----------
     ptr : (L · segments + 1,) int64
-        Entries of light-coefficient slab j whose spatial index lies in segment g (indices
+        Entries of light-coefficient slab j whose coefficient row lies in segment g (rows
         ``65536·g … 65536·g + 65535``) are ``ptr[j·segments + g] : ptr[j·segments + g + 1]``.
     segments : int
-        ``⌈grid size / 65536⌉``: the segments let positions be uint16 on any grid.
+        ``⌈S / 65536⌉`` (S = :attr:`n_rows`): the segments let positions be uint16 on any grid.
     pos : (n,) uint16
-        Spatial coefficient index of each entry in the ``grid`` (row-major) minus its
-        segment's start, sorted in a slab.
+        Spatial coefficient row of each entry (:func:`coefficient_rows`: the grid's
+        coefficients in the block layout) minus its segment's start, sorted in a slab's
+        segment.
     code : (n,) uint32
         The entry's RGB coefficients packed by :func:`encode_rgb` (6 bytes an entry with
         ``pos``).
@@ -152,24 +158,76 @@ class ImageWaveletField:
     kept_fraction: float
     field_error: float
 
+    def __post_init__(self) -> None:
+        self._scratch_lock = threading.Lock()
+
+    def __getstate__(self) -> dict:
+        """The stored fields only (the derived tables and the relight's scratch are rebuilt)."""
+        return {name: getattr(self, name) for name in self.__dataclass_fields__}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.__post_init__()
+
     def _relight_one_call(self, ker: Any, weights: Any, terms: int | None) -> np.ndarray:
         """:meth:`relight` on one thread with K = ``terms`` (or every non-zero term) as one
-        compiled call (:func:`_compress_kernels.relight_one_thread`)."""
+        compiled call (:func:`_compress_kernels.relight_one_thread`) into the model's kept
+        scratch: an accumulator the inverse leaves zeroed (no allocation, no 16·S-byte memset
+        per call), or a new zeroed one while another thread holds it. A C-contiguous float64
+        ``(L, 3)`` array goes straight to the kernel, which checks it is finite (numpy's checks
+        cost ≈ 0.1 ms with cold caches); anything else through :func:`facegeo.checks.as_array`."""
         n_l = self.n_theta * self.n_phi
-        wts = as_array(weights, "weights", shape=(n_l, 3))
+        wts = weights
+        if not (type(wts) is np.ndarray and wts.dtype == np.float64 and wts.shape == (n_l, 3)
+                and wts.flags.c_contiguous):
+            wts = np.ascontiguousarray(as_array(weights, "weights", shape=(n_l, 3)))
         k = 0
         if terms is not None:
             k = int(terms)
             if not 1 <= k <= n_l:
                 raise InputError(f"terms: expected 1 … {n_l}, got {fmt_value(terms)}")
-        h, w = self.grid
-        acc = np.empty((h * w, 4), np.float32)
         out = np.empty((self.n_pixels, 3), np.float32)
-        ker.relight_one_thread(np.ascontiguousarray(wts, np.float64), self._light_levels,
-                               self.n_theta, self.n_phi, k, self.ptr, self.segments, self.pos,
-                               self.code, self._exponents, acc, h, w, SCATTER_TILE,
-                               self._levels, self.pixel_pos, self._grid_order,
-                               *self._finest_blocks, out)
+        owned = self._scratch_lock.acquire(blocking=False)
+        try:
+            if owned:
+                if "_scratch" not in self.__dict__:  # zeroed once; the kernels keep it zeroed
+                    self._scratch = _scratch(self)
+                acc, ll, tab = self._scratch
+            else:
+                acc, ll, tab = _scratch(self)
+            lighting, entries, inverse = self._kernel_args
+            finite = ker.relight_one_thread(wts, *lighting, k, *entries, acc, *inverse, ll, tab,
+                                            owned, out)
+        finally:
+            if owned:
+                self._scratch_lock.release()
+        if not finite:
+            as_array(wts, "weights", shape=(n_l, 3))  # raises: names the non-finite values
+        return out
+
+    @functools.cached_property
+    def _kernel_args(self) -> tuple[tuple, tuple, tuple]:
+        """The model's arguments of :func:`_compress_kernels.relight_one_thread` (derived,
+        cached): the light grid's, the stored entries', the inverse's."""
+        h, w = self.grid
+        return ((self._light_levels, self.n_theta, self.n_phi),
+                (self.ptr, self.segments, self.pos, self.code, self._exponents),
+                (h, w, _blocked(self.grid), self._levels, self.pixel_pos, self._grid_order,
+                 *self._finest_blocks))
+
+    @property
+    def n_rows(self) -> int:
+        """S, the coefficient rows of the spatial layout (:func:`coefficient_rows`)."""
+        h, w = self.grid
+        return h * w // 4 + 3 * self._finest_blocks[0].size if _blocked(self.grid) else h * w
+
+    @functools.cached_property
+    def _grid_of_row(self) -> np.ndarray:
+        """The grid cell of each coefficient row ``(S,)`` int64 (derived, cached)."""
+        rows = coefficient_rows(self.grid, self._finest_blocks[0])
+        cell = np.flatnonzero(rows >= 0)
+        out = np.empty(self.n_rows, np.int64)
+        out[rows[cell]] = cell
         return out
 
     @functools.cached_property
@@ -189,17 +247,8 @@ class ImageWaveletField:
 
     @functools.cached_property
     def _finest_blocks(self) -> tuple[np.ndarray, np.ndarray]:
-        """The grid's 2 × 2 blocks holding pixels ``(n,)`` int64 (index ``(y/2)·(W/2) + x/2``)
-        and the field row in each of their cells ``(n, 4)`` int64 (slot ``2·(y mod 2) + x mod
-        2``, −1 for none); empty when a grid axis has size 1 (derived, cached)."""
-        h, w = self.grid
-        if h < 2 or w < 2:
-            return np.zeros(0, np.int64), np.zeros((0, 4), np.int64)
-        y, x = np.divmod(self.pixel_pos.astype(np.int64), w)
-        blocks, which = np.unique((y >> 1) * (w // 2) + (x >> 1), return_inverse=True)
-        block_px = np.full((blocks.size, 4), -1, np.int64)
-        block_px[which.ravel(), 2 * (y & 1) + (x & 1)] = np.arange(self.n_pixels)
-        return blocks, block_px
+        """:func:`finest_blocks` of the pixels (derived, cached)."""
+        return finest_blocks(self.pixel_pos, self.grid)
 
     @functools.cached_property
     def _levels(self) -> np.ndarray:
@@ -243,13 +292,13 @@ class ImageWaveletField:
         if order.size == 0:
             return 1, 0.0
         lw = np.ascontiguousarray(wc[order], np.float32)
-        g = self.grid[0] * self.grid[1]
+        g = self.n_rows
         ker = _kernels()
         if ker is not None:  # interleaved: the relight's scatter, then the prefix errors
-            full = np.empty((g, 4), np.float32)
-            pw = exponent_table(self.base)
-            ker.scatter_rgbx(self.ptr, self.segments, self.pos, self.code, pw, order, lw, full,
-                             SCATTER_TILE, 0, g)
+            full, _, tab = _scratch(self)
+            pw = self._exponents
+            ker.scatter_add_rgbx(self.ptr, self.segments, self.pos, self.code, pw, order, lw,
+                                 full, tab, 0, g)
             e2 = ker.truncation_errors_rgbx(self.ptr, self.segments, self.pos, self.code, pw,
                                             order, lw, full)
         else:
@@ -275,7 +324,7 @@ class ImageWaveletField:
             Instead of ``terms``: K from :meth:`budget`. Neither: every non-zero lighting
             coefficient (the compressed transport's own error only).
         workers : int
-            Threads for the scatter: compiled, each thread takes a range of grid cells holding
+            Threads for the scatter: compiled, each thread takes a range of coefficient rows holding
             about an equal share of the entries (one accumulator, disjoint cells); numpy, the
             K slabs split in parts, one accumulator each, summed. Default 1: a relight takes
             about a millisecond, and on the loaded shared machine a thread hand-off can cost
@@ -290,22 +339,78 @@ class ImageWaveletField:
             return self._relight_one_call(ker, weights, terms)
         idx, lw = selected_lighting_terms(self, weights, terms, target_error, index_order=True)
         if ker is None:  # numpy reference: planar accumulator, full inverse, pixel gather
-            acc = _scatter_in_parts(self, idx, lw, (3, h * w), _scatter, int(workers))
-            img = _inverse_spatial(acc.reshape(3, h, w))
+            acc = _scatter_in_parts(self, idx, lw, (3, self.n_rows), _scatter, int(workers))
+            grid = np.zeros((3, h * w), np.float32)
+            grid[:, self._grid_of_row] = acc
+            img = _inverse_spatial(grid.reshape(3, h, w))
             return np.ascontiguousarray(img.reshape(3, h * w)[:, self.pixel_pos].T)
-        acc = np.empty((h * w, 4), np.float32)  # the scatter zeroes each tile it fills
-        args = (self.ptr, self.segments, self.pos, self.code, exponent_table(self.base), idx, lw,
-                acc, SCATTER_TILE)
+        acc, ll, _ = _scratch(self)
+        args = (self.ptr, self.segments, self.pos, self.code, self._exponents, idx, lw, acc)
         cuts = _cell_ranges(self, idx, int(workers), ker)
         if len(cuts) > 2:  # threads scatter into disjoint cell ranges of the one accumulator
-            list(_pool(len(cuts) - 1).map(lambda i: ker.scatter_rgbx(*args, cuts[i], cuts[i + 1]),
-                                          range(len(cuts) - 1)))
+            list(_pool(len(cuts) - 1).map(
+                lambda i: ker.scatter_add_rgbx(*args, np.zeros((32, 4), np.float32), cuts[i],
+                                               cuts[i + 1]), range(len(cuts) - 1)))
         else:
-            ker.scatter_rgbx(*args, 0, h * w)
+            ker.scatter_add_rgbx(*args, np.zeros((32, 4), np.float32), 0, self.n_rows)
         out = np.empty((self.n_pixels, 3), np.float32)
-        ker.inverse_haar_at_pixels(acc.reshape(h, w, 4), self._levels, self.pixel_pos,
-                                   self._grid_order, out, *self._finest_blocks)
+        ker.inverse_haar_at_pixels(acc, h, w, _blocked(self.grid), self._levels, self.pixel_pos,
+                                   self._grid_order, out, *self._finest_blocks, ll, False)
         return out
+
+
+def _blocked(grid: tuple[int, int]) -> bool:
+    """Whether a grid's coefficients use the block layout (the finest level steps both axes)."""
+    return grid[0] >= 2 and grid[1] >= 2
+
+
+def finest_blocks(pixel_pos: np.ndarray, grid: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The grid's finest-level 2 × 2 blocks holding pixels ``(n,)`` int64 (index ``(y/2)·(W/2)
+    + x/2``, increasing) and the field row in each of their cells ``(n, 4)`` int32 (slot
+    ``2·(y mod 2) + x mod 2``, −1 for none); empty when a grid axis has size 1."""
+    if not _blocked(grid):
+        return np.zeros(0, np.int64), np.zeros((0, 4), np.int32)
+    w = grid[1]
+    y, x = np.divmod(np.asarray(pixel_pos, np.int64), w)
+    blocks, which = np.unique((y >> 1) * (w // 2) + (x >> 1), return_inverse=True)
+    block_px = np.full((blocks.size, 4), -1, np.int32)
+    block_px[which.ravel(), 2 * (y & 1) + (x & 1)] = np.arange(y.size)
+    return blocks, block_px
+
+
+def coefficient_rows(grid: tuple[int, int], blocks: np.ndarray) -> np.ndarray:
+    """The row of each spatial coefficient ``(H·W,)`` int64 (grid cell ``y·W + x`` in the
+    non-standard Haar layout) in the **block layout**: rows ``[0, H·W/4)`` the finest level's
+    low-pass quadrant row-major (stride W/2), then rows ``H·W/4 + 3·b + (0, 1, 2)`` the detail
+    coefficients ``D_y, D_x, D_xy`` of the b-th block of ``blocks`` (:func:`finest_blocks`);
+    −1 for the detail cells of blocks without pixels, which are zero (never stored). The
+    relight's accumulator then holds S = H·W/4 + 3·n rows (0.56 MB instead of 1 MB on the 256 ×
+    256 face grid: it shares the per-core L2 better) and the finest inverse level reads them in
+    one forward sweep. Identity (the grid row-major) when a grid axis has size 1."""
+    h, w = grid
+    if not _blocked(grid):
+        return np.arange(h * w, dtype=np.int64)
+    hh, hw = h // 2, w // 2
+    y, x = np.divmod(np.arange(h * w, dtype=np.int64), w)
+    rows = np.full(h * w, -1, np.int64)
+    low = (y < hh) & (x < hw)
+    rows[low] = y[low] * hw + x[low]
+    block = (y % hh) * hw + x % hw  # the block a detail cell belongs to
+    b = np.searchsorted(blocks, block)
+    held = ~low & (b < blocks.size) & (blocks[np.minimum(b, blocks.size - 1)] == block)
+    kind = (y >= hh).astype(np.int64) + 2 * (x >= hw) - 1  # D_y 0, D_x 1, D_xy 2
+    rows[held] = hh * hw + 3 * b[held] + kind[held]
+    return rows
+
+
+def _scratch(f: ImageWaveletField) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A compiled relight's zeroed scratch: the accumulator ``(S, 4)``, the inverse's low-pass
+    buffer (``(H·W/4, 4)`` in the block layout, else ``(H·W, 4)``: a bound) and the scatter's
+    exponent table ``(32, 4)``, float32."""
+    h, w = f.grid
+    return (np.zeros((f.n_rows, 4), np.float32),
+            np.zeros((h * w // 4 if _blocked(f.grid) else h * w, 4), np.float32),
+            np.zeros((32, 4), np.float32))
 
 
 def _scatter_in_parts(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, shape: tuple,
@@ -333,7 +438,7 @@ def _scatter_in_parts(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, sha
     return acc
 
 
-#: Candidate split cells per thread when a compiled relight runs on several threads.
+#: Candidate split rows per thread when a compiled relight runs on several threads.
 SPLIT_CANDIDATES = 8
 
 _POOLS: dict = {}
@@ -350,10 +455,10 @@ def _pool(n: int):
 
 
 def _cell_ranges(f: ImageWaveletField, idx: np.ndarray, workers: int, ker: Any) -> list[int]:
-    """Grid-cell bounds ``[0, …, G]`` splitting the selected entries into ``workers`` parts of
-    about equal count (cuts on a grid of :data:`SPLIT_CANDIDATES` · workers cells), or
-    ``[0, G]`` for one thread or fewer than :data:`PARALLEL_ENTRIES` entries."""
-    g = f.grid[0] * f.grid[1]
+    """Coefficient-row bounds ``[0, …, S]`` splitting the selected entries into ``workers``
+    parts of about equal count (cuts on a grid of :data:`SPLIT_CANDIDATES` · workers rows), or
+    ``[0, S]`` for one thread or fewer than :data:`PARALLEL_ENTRIES` entries."""
+    g = f.n_rows
     n = f.segments
     total = int((f.ptr[(idx + 1) * n] - f.ptr[idx * n]).sum())
     if workers <= 1 or total < PARALLEL_ENTRIES:
@@ -380,7 +485,7 @@ def _kernels():
 
 def _scatter(f: ImageWaveletField, idx: np.ndarray, lw: np.ndarray, acc: np.ndarray) -> None:
     """``acc[c, pos] += val[., c] · lw[k, c]`` over the entries of slabs ``idx`` (numpy
-    reference of :func:`_compress_kernels.scatter_rgbx`: one weighted histogram per channel)."""
+    reference of :func:`_compress_kernels.scatter_add_rgbx`: one weighted histogram per channel)."""
     sel, p = _slab_entries(f, idx)
     rep = np.repeat(np.arange(idx.size),
                     f.ptr[(idx + 1) * f.segments] - f.ptr[idx * f.segments])
@@ -437,6 +542,60 @@ def _check_pixels(pixels: Any, n_p: int) -> tuple[np.ndarray, tuple[int, int]]:
     return flat.astype(np.int32), (h, w)
 
 
+#: Image rows per band of :func:`fit_image_wavelet` (a power of two): the spatial Haar levels
+#: finer than the band are local to it, so the fit holds one band's light coefficients at a
+#: time (≈ 16 · W pixels · L · 3 float32) and the bands' low-pass rows (L · 3 · G / 16² float64).
+FIT_BAND_ROWS = 16
+
+#: Field rows per block of the light transform in the fit (float64, a few copies of 512 · L · 3
+#: · 8 bytes = 25 MB at L = 2048; 4096 rows made the transform the fit's peak, ≈ 0.6 GB).
+FIT_LIGHT_ROWS = 512
+
+
+def _band_layout(grid: tuple[int, int], band: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Where the cells of a band of ``band`` image rows go after the first log₂(band) levels of
+    the grid's non-standard Haar transform (computed on the band alone): the full grid index
+    of cell c of band b is ``base[c] + b · step[c]`` for detail cells; the band's low-pass
+    cells (row 0, columns ``< w_k``) have ``base`` −1 and go to row b, column c of the
+    ``(H/band, w_k)`` low-pass grid. Returns ``base, step`` ``(band·W,)`` int64 and ``w_k``."""
+    gh, gw = grid
+    r, c = np.divmod(np.arange(band * gw, dtype=np.int64), gw)
+    base = np.full(r.size, -1, np.int64)
+    step = np.zeros(r.size, np.int64)
+    hb, w, hf = band, gw, gh  # level size in the band (rows), columns, full-grid rows
+    while hb > 1:  # every level here halves the rows (band ≤ H); columns while w > 1
+        w_next = max(1, w // 2)
+        level = (r < hb) & (c < w) & ~((r < hb // 2) & (c < w_next))
+        lower = level & (r >= hb // 2)  # the row-detail half: H_i/2 + b·hb/2 + (r − hb/2)
+        upper = level & (r < hb // 2)  # b·hb/2 + r
+        base[lower] = (hf // 2 + r[lower] - hb // 2) * gw + c[lower]
+        base[upper] = r[upper] * gw + c[upper]
+        step[level] = (hb // 2) * gw
+        hb, w, hf = hb // 2, w_next, hf // 2
+    return base, step, w
+
+
+def _band_forward(x: np.ndarray, grid: tuple[int, int], band: int) -> None:
+    """The first log₂(band) levels of the grid's non-standard Haar transform
+    (:func:`haar2d_nonstandard`, image width as θ) on a band ``(..., band, W)`` float64, in
+    place: the same steps on the same values as the whole grid's transform."""
+    levels = _nonstandard_levels(grid[1], grid[0])
+    hb = band
+    for _, w, st, sp in levels[: band.bit_length() - 1]:
+        block = x[..., :hb, :w]
+        if st:
+            _haar_step(block, -1, w, False)
+        if sp:
+            _haar_step(block, -2, hb, False)
+        hb //= 2
+
+
+def _energy_bins(m2: np.ndarray, lo: float) -> np.ndarray:
+    """Histogram bin of each squared magnitude (> 0) for the fit's threshold."""
+    n_bins = 140 * THRESHOLD_BINS_PER_OCTAVE
+    return np.clip(((np.log2(m2) - lo) * THRESHOLD_BINS_PER_OCTAVE).astype(np.int64), 0, n_bins)
+
+
 def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
                       target_error: float = 0.01) -> ImageWaveletField:
     """Compress an image-space field in the light domain and across the image (4-D Haar).
@@ -463,14 +622,21 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
 
     Notes
     -----
-    Memory: the light coefficients of the whole field, float32 ``(P, 3, L)`` (twice a float16
-    field), plus :data:`SLAB_CHUNK` slabs of the grid at a time. Deviations from the papers:
+    Streams the field in bands of :data:`FIT_BAND_ROWS` image rows, twice (an energy histogram
+    for the threshold, then the kept entries): each band's light coefficients (float32, as
+    the in-memory transform's) go through the spatial levels finer than the band on the band
+    alone; the bands' low-pass rows (float64) then take the remaining levels together. The same
+    steps on the same values as one transform of the whole grid, so the same coefficients.
+    Memory: one band's light coefficients, :data:`SLAB_CHUNK` slabs of one band's grid, the
+    low-pass grid ``L · 3 · G / FIT_BAND_ROWS²`` float64 and the kept entries (12 bytes each
+    until sorted) — not the whole field's coefficients (``P · L · 3`` float32, twice a float16
+    field; ``field`` may be a ``numpy.memmap``). Deviations from the papers:
     Haar, not the 8 × 8 DCT of JPEG, across the image (one orthonormal transform whose
     threshold error is exact); fixed-size RGBE-like codes, not entropy-coded quantised values (a
     relight must read them directly).
     """
 
-    f = np.asarray(field)
+    f = field if isinstance(field, np.ndarray) else np.asarray(field)
     if f.ndim != 3 or f.shape[1:] != (n_theta * n_phi, 3) or f.dtype.kind != "f":
         raise ShapeError(f"field: expected a float field of shape (P, {n_theta * n_phi}, 3), "
                          f"got {f.shape} {f.dtype}")
@@ -478,55 +644,107 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     t = check_positive(target_error, "target_error")
     n_p, n_l, _ = f.shape
     pixel_pos, (gh, gw) = _check_pixels(pixels, n_p)
-    if not np.all(np.isfinite(f)):
+    grid = (gh, gw)
+    blocks, _ = finest_blocks(pixel_pos, grid)
+    row_of = coefficient_rows(grid, blocks)
+    n_rows = gh * gw // 4 + 3 * blocks.size if _blocked(grid) else gh * gw
+    band = min(FIT_BAND_ROWS, gh)
+    base_of, step_of, wk = _band_layout(grid, band)
+    detail = base_of >= 0
+    low_cells = np.flatnonzero(~detail)  # the band's low-pass cells: row 0, columns < w_k
+    n_band = gh // band
+    y_pix = pixel_pos.astype(np.int64) // gw
+    by_band = np.argsort(y_pix // band, kind="stable")
+    band_ptr = np.searchsorted((y_pix // band)[by_band], np.arange(n_band + 1))
+    coarse = np.zeros((n_l, 3, n_band, wk))  # the bands' low-pass rows
+
+    def band_slabs(b: int):
+        """Slab chunks of band b: ``(j0, coefficients (C, 3, band·W) float64, full grid index
+        of each detail cell)`` after the band's spatial levels (low-pass rows to ``coarse``)."""
+        rows = by_band[band_ptr[b]:band_ptr[b + 1]]
+        cells = pixel_pos[rows].astype(np.int64) - b * band * gw
+        light = np.empty((n_l, 3, rows.size), np.float32)
+        for r0 in range(0, rows.size, FIT_LIGHT_ROWS):
+            fr = np.asarray(f[np.sort(rows[r0:r0 + FIT_LIGHT_ROWS])], np.float64)
+            inv = np.argsort(np.argsort(rows[r0:r0 + FIT_LIGHT_ROWS]))  # back to `rows` order
+            c = haar2d_nonstandard(fr[inv].transpose(0, 2, 1), n_theta, n_phi)  # (r, 3, L)
+            light[:, :, r0:r0 + c.shape[0]] = c.transpose(2, 1, 0)
+        full = base_of[detail] + b * step_of[detail]
+        for j0 in range(0, n_l, SLAB_CHUNK):
+            x = np.zeros((min(n_l, j0 + SLAB_CHUNK) - j0, 3, band * gw))
+            x[:, :, cells] = light[j0:j0 + x.shape[0]]
+            xb = x.reshape(x.shape[0], 3, band, gw)
+            _band_forward(xb, grid, band)
+            coarse[j0:j0 + x.shape[0], :, b, :] = x[:, :, low_cells]
+            yield j0, x[:, :, detail], full
+
+    def coarse_slabs():
+        """Slab chunks of the low-pass grid after its remaining levels, full grid indices."""
+        cy, cx = np.divmod(np.arange(n_band * wk, dtype=np.int64), wk)
+        full = cy * gw + cx
+        for j0 in range(0, n_l, SLAB_CHUNK):
+            c = coarse[j0:j0 + SLAB_CHUNK].reshape(-1, 3, n_band * wk)
+            yield j0, haar2d_nonstandard(c, wk, n_band), full
+
+    # the field's energy (Parseval: the 4-D coefficients' up to their float32 rounding), read
+    # once without transforms
+    total = 0.0
+    for r0 in range(0, n_p, FIT_LIGHT_ROWS):
+        total += float((np.asarray(f[r0:r0 + FIT_LIGHT_ROWS], np.float64) ** 2).sum())
+    if not np.isfinite(total):
         raise InputError("field: non-finite samples (masked pixels) cannot be compressed; fill "
                          "or drop those pixels first")
-    g = gh * gw
-    light = np.empty((n_l, 3, n_p), np.float32)  # slab-major light coefficients
-    for r0 in range(0, n_p, 4096):
-        c = haar2d_nonstandard(np.asarray(f[r0:r0 + 4096], np.float64).transpose(0, 2, 1),
-                               n_theta, n_phi)  # (rows, 3, L)
-        light[:, :, r0:r0 + c.shape[0]] = c.transpose(2, 1, 0)
-
-    def slabs(j0: int) -> np.ndarray:
-        grid = np.zeros((min(n_l, j0 + SLAB_CHUNK) - j0, 3, g), np.float64)
-        grid[:, :, pixel_pos] = light[j0:j0 + grid.shape[0]]
-        return haar2d_nonstandard(grid, gw, gh)  # image width plays θ, height φ
-
-    # pass 1: histogram of squared RGB magnitudes (energy per bin) → threshold
-    total = float((light.astype(np.float64) ** 2).sum())
     if total == 0.0:
         raise InputError("field: all zero; nothing to compress")
+    # pass 1: histogram of squared RGB magnitudes (energy per bin) → threshold; the largest
+    # channel magnitude → the codes' exponent base
     lo = np.log2(total) - 120.0
-    n_bins = 140 * THRESHOLD_BINS_PER_OCTAVE
-    energy = np.zeros(n_bins + 1)
-    for j0 in range(0, n_l, SLAB_CHUNK):
-        m2 = (slabs(j0) ** 2).sum(axis=1).ravel()
+    energy = np.zeros(140 * THRESHOLD_BINS_PER_OCTAVE + 1)
+    big = 0.0
+
+    def histogram(x: np.ndarray) -> float:
+        m2 = (x ** 2).sum(axis=1).ravel()
         m2 = m2[m2 > 0]
-        b = np.clip(((np.log2(m2) - lo) * THRESHOLD_BINS_PER_OCTAVE).astype(np.int64), 0, n_bins)
-        energy += np.bincount(b, weights=m2, minlength=n_bins + 1)
+        energy[:] += np.bincount(_energy_bins(m2, lo), weights=m2, minlength=energy.size)
+        return float(np.abs(x).max(initial=0.0))
+
+    for b in range(n_band):
+        for _, x, _ in band_slabs(b):
+            big = max(big, histogram(x))
+    coarse_done = list(coarse_slabs())
+    for _, c, _ in coarse_done:
+        big = max(big, histogram(c))
     dropped = np.cumsum(energy)  # energy of bins 0 … i
     i = int(np.searchsorted(dropped, t * t * total, side="right"))  # bins < i can be dropped
     tau2 = 2.0 ** (lo + i / THRESHOLD_BINS_PER_OCTAVE) if i > 0 else 0.0
     field_error = float(np.sqrt(dropped[i - 1] / total)) if i > 0 else 0.0
-    # pass 2: keep entries ≥ τ, slab by slab (np.nonzero is sorted by slab, then position)
-    n_seg = -(-g // (1 << 16))
+    code_base = _code_base(big)
+    # pass 2: keep entries ≥ τ (never zeros: padding cells, τ = 0), encoded at once
+    keys, codes = [], []
+
+    def keep(j0: int, x: np.ndarray, full: np.ndarray) -> None:
+        m2 = (x ** 2).sum(axis=1)
+        jj, cc = np.nonzero((m2 >= tau2) & (m2 > 0))
+        rows = row_of[full[cc]]  # a detail cell of a block without pixels is 0, never kept
+        keys.append((jj + j0).astype(np.int64) * n_rows + rows)
+        codes.append(encode_rgb(x[jj, :, cc], code_base)[0])
+
+    for b in range(n_band):
+        for j0, x, full in band_slabs(b):
+            keep(j0, x, full)
+    for j0, c, full in coarse_done:
+        keep(j0, c, full)
+    key = np.concatenate(keys)
+    order = np.argsort(key, kind="stable")  # by slab, then coefficient row
+    key = key[order]
+    code = np.concatenate(codes)[order]
+    n_seg = -(-n_rows // (1 << 16))
+    slab, row = np.divmod(key, n_rows)
     ptr = np.zeros(n_l * n_seg + 1, np.int64)
-    pos_parts, val_parts = [], []
-    for j0 in range(0, n_l, SLAB_CHUNK):
-        s = slabs(j0)
-        m2 = (s ** 2).sum(axis=1)
-        keep = (m2 >= tau2) & (m2 > 0)  # never store zeros (padding cells, τ = 0)
-        jj, pp = np.nonzero(keep)
-        pos_parts.append(pp)
-        val_parts.append(s[jj, :, pp])
-        ptr[j0 * n_seg + 1:(j0 + s.shape[0]) * n_seg + 1] = np.bincount(
-            jj * n_seg + (pp >> 16), minlength=s.shape[0] * n_seg)
-    ptr = np.cumsum(ptr)
-    pos = (np.concatenate(pos_parts) & 0xFFFF).astype(np.uint16)
-    code, base = encode_rgb(np.concatenate(val_parts).reshape(-1, 3))
+    ptr[1:] = np.cumsum(np.bincount(slab * n_seg + (row >> 16), minlength=n_l * n_seg))
+    pos = (row & 0xFFFF).astype(np.uint16)
     frac = pos.size / (n_p * n_l)
     log.info("image wavelet field: %d entries (%.3g %% of P·L), field error %.3g for target %g",
              pos.size, 100 * frac, field_error, t)
-    return ImageWaveletField(ptr, int(n_seg), pos, code, int(base), pixel_pos, int(n_theta), int(n_phi),
-                             (gh, gw), float(frac), field_error)
+    return ImageWaveletField(ptr, int(n_seg), pos, code, int(code_base), pixel_pos, int(n_theta),
+                             int(n_phi), grid, float(frac), field_error)

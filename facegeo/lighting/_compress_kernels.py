@@ -2,8 +2,9 @@
 numba is installed; the numpy fallbacks in :mod:`facegeo.lighting._compress_image` are the plain
 reference implementations they are tested against).
 
-The relight's hot loop is :func:`scatter_rgbx`: one 4-lane vector read-modify-write per stored
-entry into an interleaved ``(G, 4)`` float32 accumulator (R, G, B and a zero lane), the entry's
+The relight's hot loop is :func:`scatter_add_rgbx`: one 4-lane vector read-modify-write per
+stored entry into an interleaved ``(S, 4)`` float32 accumulator (R, G, B and a zero lane; S
+coefficient rows in the block layout of ``_compress_image.coefficient_rows``), the entry's
 three 9-bit mantissas decoded in the same 4 lanes by one variable shift (LLVM vector IR through
 a numba intrinsic: numba's scalar code for the same loop decodes and stores channel by channel).
 The inverse spatial transform (:func:`inverse_haar_at_pixels`) then evaluates each coarse level
@@ -20,7 +21,7 @@ from numba.extending import intrinsic
 
 from facegeo.lighting._fused import _FASTMATH, haar_nonstandard_forward
 
-__all__ = ["entries_below", "inverse_haar_at_pixels", "relight_one_thread", "scatter_rgbx",
+__all__ = ["entries_below", "inverse_haar_at_pixels", "relight_one_thread", "scatter_add_rgbx",
            "top_k_index_order", "truncation_errors_rgbx"]
 
 
@@ -73,42 +74,42 @@ def _axpy_rgbx(typingctx, acc, q, tab, t, code):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def scatter_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tile, c0, c1):  # pragma: no cover
-    """``acc[65536·g + pos[e], c] += value(code[e], c) · lw[k, c]`` over the entries ``e`` of each
-    selected slab ``j = idx[k]`` (``_compress_image._scatter``'s sum, interleaved), where
-    ``ptr`` ``(L·n_seg + 1,)`` int64 bounds slab j's entries of segment g (cells ``65536·g …``)
-    as ``ptr[j·n_seg + g] : ptr[j·n_seg + g + 1]``, ``pos`` ``(n,)`` uint16 and ``code`` ``(n,)``
-    uint32 are the entries (positions sorted within a slab's segment; codes of
-    ``encode_rgb``), ``pw`` ``(32,)`` float32 the exponent table, ``idx`` ``(K,)`` int64,
-    ``lw`` ``(K, 3)`` float32 the lighting coefficients.
+def scatter_add_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tab, c0,
+                     c1):  # pragma: no cover - compiled
+    """``acc[65536·g + pos[e], :3] += value(code[e]) · lw[k]`` over the entries ``e`` of each
+    selected slab ``j = idx[k]`` at coefficient rows ``c0 ≤ s < c1`` (the sum of
+    ``_compress_image._scatter``, interleaved), **added** to ``acc`` ``(S, 4)`` float32 (lane 3
+    stays as it is: zero in a zeroed accumulator).
 
-    A table ``(K·32, 4)`` float32 whose row ``32·k + exponent`` is ``pw[exponent] · lw[k]``
-    (lane 3 zero; float32 products) replaces the exponent
-    lookup and three multiplies per entry by one vector load. ``acc`` ``(G, 4)``
-    float32, written (zeroed a tile at a time, just before the tile's entries are added; lane
-    3 is 0) at grid cells ``c0 ≤ s < c1`` only (threads take disjoint ranges of one
-    accumulator); ``tile`` ≤ 65536: the range is
-    swept in tiles of that many cells, all K slabs' entries of a tile (found by binary search
-    in each slab's sorted positions) before the next, so the accumulator's working set is
-    ``16·tile`` bytes (measured ≈ 10 % faster at 16384 than the whole 1 MB of a 256 × 256 grid).
-    Entries are read through slices (loop index from 0), which lets LLVM drop numba's
-    negative-index wraparound (measured ≈ 25 % of the loop). Other arguments as
-    :func:`scatter_slabs`.
+    ``ptr`` ``(L·n_seg + 1,)`` int64 bounds slab j's entries of segment g (rows ``65536·g …``)
+    as ``ptr[j·n_seg + g] : ptr[j·n_seg + g + 1]``, ``pos`` ``(n,)`` uint16 and ``code`` ``(n,)``
+    uint32 are the entries (rows sorted within a slab's segment; codes of ``encode_rgb``), ``pw``
+    ``(32,)`` float32 the exponent table, ``idx`` ``(K,)`` int64, ``lw`` ``(K, 3)`` float32 the
+    lighting coefficients. ``tab`` ``(32, 4)`` float32 scratch (lane 3 zero): the current slab's
+    ``pw[e] · lw[k]`` per exponent e (float32 products, rebuilt for each slab's run: 512 bytes
+    in L1), which replaces the exponent lookup and three multiplies per entry by one vector
+    load. Entries are read through slices (loop index from 0), which lets LLVM drop numba's
+    negative-index wraparound (measured ≈ 25 % of the loop).
+
+    Segment-major, each slab's run whole (no tiles: measured 1.3 against 1.5–1.8 ns an entry for
+    16,384-cell tiles on the 256 × 256 face grid, and no binary searches; software prefetches
+    of the next run's start or of the accumulator rows 8–64 entries ahead measured no gain).
+    Positions are sorted within a run, so a range ``c0 … c1`` (threads take disjoint ranges of
+    one accumulator) costs one binary search at each end that cuts a segment. The additions
+    into each row are in slab order, as the tiled kernel this replaces: the same sums bit for
+    bit.
     """
-    tab = np.zeros((idx.size * 32, 4), np.float32)
-    for k in range(idx.size):
-        for e in range(32):
-            for c in range(3):
-                tab[32 * k + e, c] = pw[e] * lw[k, c]
-    start = np.int64(c0)
-    while start < c1:
-        g = start >> 16
-        stop = min(np.int64(c1), start + tile, (g + 1) << 16)  # a tile within one segment
-        off = g << 16
-        lo = start - off
-        hi = stop - off
-        acc[start:stop] = 0.0
-        for k in range(idx.size):
+    n_k = idx.size
+    g0 = np.int64(c0) >> 16
+    g1 = (np.int64(c1) + 65535) >> 16
+    for g in range(g0, g1):
+        off = np.int64(g) << 16
+        lo = max(np.int64(c0) - off, 0)
+        hi = min(np.int64(c1) - off, 65536)
+        for k in range(n_k):
+            for e in range(32):
+                for c in range(3):
+                    tab[e, c] = pw[e] * lw[k, c]
             r = idx[k] * n_seg + g
             a = ptr[r]
             b = ptr[r + 1]
@@ -116,19 +117,17 @@ def scatter_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tile, c0, c1):  # prag
                 a = a + np.searchsorted(pos[a:b], lo)
             if hi < 65536:
                 b = a + np.searchsorted(pos[a:b], hi)
-            kb = np.int64(32) * k
             pc = code[a:b]
             pp = pos[a:b]
             for i in range(pc.size):
                 v = pc[i]
-                _axpy_rgbx(acc, off + np.int64(pp[i]), tab, kb + np.int64(v >> np.uint32(27)), v)
-        start = stop
+                _axpy_rgbx(acc, off + np.int64(pp[i]), tab, np.int64(v >> np.uint32(27)), v)
 
 
 @njit(nogil=True, cache=True, boundscheck=False)
 def entries_below(ptr, n_seg, pos, idx, cells):  # pragma: no cover - compiled
-    """Entries of the slabs ``idx`` at grid cells ``< cells[i]`` for each ``i`` (``(n,)`` int64,
-    one binary search per slab and cell): where to split a scatter into equal parts."""
+    """Entries of the slabs ``idx`` at coefficient rows ``< cells[i]`` for each ``i`` (``(n,)``
+    int64, one binary search per slab and row): where to split a scatter into equal parts."""
     out = np.zeros(cells.size, np.int64)
     for i in range(cells.size):
         cell = cells[i]
@@ -188,36 +187,50 @@ _haar_pixel_rgbx = _haar_pixel_intrinsic(4)
 _haar_pixel_rgb = _haar_pixel_intrinsic(3)
 
 
-@intrinsic
-def _haar_block_rgbx(typingctx, ll, lb, det, db, dy, dx, scale, out, ob,
-                     stride):  # pragma: no cover - compiled
-    """The 2 × 2 cells ``out[ob], out[ob+1], out[ob+stride], out[ob+stride+1]`` of a level
-    stepped on both axes from one low-pass row and three detail rows (as
-    :func:`_haar_pixel_intrinsic` with s_y, s_x = ±1, four cells per set of loads):
-    ``(LL ± D_y) ± (D_x ± D_xy)``, times ``scale``."""
-    i64 = types.int64
-    sig = types.void(ll, i64, det, i64, i64, i64, types.float32, out, i64, i64)
+def _haar_block_intrinsic(clear: bool):
+    """An intrinsic ``(ll, lb, det, db, dy, dx, scale, out, ob, stride)``: the 2 × 2 cells
+    ``out[ob], out[ob+1], out[ob+stride], out[ob+stride+1]`` of a level stepped on both axes
+    from one low-pass row and three detail rows (as :func:`_haar_pixel_intrinsic` with
+    s_y, s_x = ±1, four cells per set of loads): ``(LL ± D_y) ± (D_x ± D_xy)``, times
+    ``scale``. ``clear``: the three detail rows are zeroed once read (each is read once per
+    inverse, so an accumulator is left zeroed for the next relight at no extra pass)."""
 
-    def codegen(context, builder, signature, args):
-        _, lb_v, _, db_v, dy_v, dx_v, sc_v, _, ob_v, st_v = args
-        det = _f4_rows(context, builder, signature, args, 2)
-        sc = _splat(builder, sc_v, _F4)
-        a = _f4_load(builder, _f4_rows(context, builder, signature, args, 0), lb_v)
-        d_dy = builder.add(db_v, dy_v)
-        d_y = _f4_load(builder, det, d_dy)
-        d_x = _f4_load(builder, det, builder.add(db_v, dx_v))
-        d_xy = _f4_load(builder, det, builder.add(d_dy, dx_v))
-        p, m = builder.fadd(a, d_y), builder.fsub(a, d_y)
-        q, n = builder.fadd(d_x, d_xy), builder.fsub(d_x, d_xy)
-        out = _f4_rows(context, builder, signature, args, 7)
-        one = ir.Constant(ir.IntType(64), 1)
-        o1 = builder.add(ob_v, st_v)
-        for idx, val in ((ob_v, builder.fadd(p, q)), (builder.add(ob_v, one), builder.fsub(p, q)),
-                         (o1, builder.fadd(m, n)), (builder.add(o1, one), builder.fsub(m, n))):
-            builder.store(builder.fmul(val, sc), builder.gep(out, [idx]), align=4)
-        return context.get_dummy_value()
+    @intrinsic
+    def block(typingctx, ll, lb, det, db, dy, dx, scale, out, ob,
+              stride):  # pragma: no cover - compiled
+        i64 = types.int64
+        sig = types.void(ll, i64, det, i64, i64, i64, types.float32, out, i64, i64)
 
-    return sig, codegen
+        def codegen(context, builder, signature, args):
+            _, lb_v, _, db_v, dy_v, dx_v, sc_v, _, ob_v, st_v = args
+            det = _f4_rows(context, builder, signature, args, 2)
+            sc = _splat(builder, sc_v, _F4)
+            a = _f4_load(builder, _f4_rows(context, builder, signature, args, 0), lb_v)
+            d_dy = builder.add(db_v, dy_v)
+            p_y, p_x = builder.gep(det, [d_dy]), builder.gep(det, [builder.add(db_v, dx_v)])
+            p_xy = builder.gep(det, [builder.add(d_dy, dx_v)])
+            d_y, d_x, d_xy = (builder.load(p, align=4) for p in (p_y, p_x, p_xy))
+            if clear:
+                for p in (p_y, p_x, p_xy):
+                    builder.store(ir.Constant(_F4, [0.0] * 4), p, align=4)
+            p, m = builder.fadd(a, d_y), builder.fsub(a, d_y)
+            q, n = builder.fadd(d_x, d_xy), builder.fsub(d_x, d_xy)
+            out = _f4_rows(context, builder, signature, args, 7)
+            one = ir.Constant(ir.IntType(64), 1)
+            o1 = builder.add(ob_v, st_v)
+            for idx, val in ((ob_v, builder.fadd(p, q)),
+                             (builder.add(ob_v, one), builder.fsub(p, q)),
+                             (o1, builder.fadd(m, n)), (builder.add(o1, one), builder.fsub(m, n))):
+                builder.store(builder.fmul(val, sc), builder.gep(out, [idx]), align=4)
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    return block
+
+
+_haar_block_rgbx = _haar_block_intrinsic(False)
+_haar_block_rgbx_clear = _haar_block_intrinsic(True)
 
 
 @njit(inline="always", cache=True)
@@ -234,43 +247,66 @@ def _level_constants(h, w, step_theta, step_phi):  # pragma: no cover - compiled
     return hy, hx, (h // 2) * hy, (w // 2) * hx, scale
 
 
+@njit(inline="always", cache=True)
+def _clear_rows(det, n_w, y0, y1, x0, x1):  # pragma: no cover - compiled
+    """Zero cells ``[y0, y1) × [x0, x1)`` of ``det`` ``(H·W, 4)`` (row stride ``n_w``)."""
+    for y in range(y0, y1):
+        det[y * n_w + x0:y * n_w + x1] = 0.0
+
+
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)
-def inverse_haar_at_pixels(img, levels, pixel_pos, order, out, blocks,
-                           block_px):  # pragma: no cover - compiled
-    """Inverse non-standard 2-D Haar of ``img`` ``(H, W, 4)`` float32 (C-contiguous; read only),
-    evaluated at the pixels: ``out`` ``(P, 3)`` float32 gets the grid cells ``pixel_pos``
-    ``(P,)`` (``y·W + x``), visited in ``order`` (increasing grid index: the coefficients are
-    read forward). ``levels`` ``(n, 4)`` rows ``(h, w, step θ, step φ)``, finest first, from
+def inverse_haar_at_pixels(det, n_h, n_w, blocked, levels, pixel_pos, order, out, blocks,
+                           block_px, ll, clear):  # pragma: no cover - compiled
+    """Inverse non-standard 2-D Haar of the ``n_h × n_w`` grid's coefficients ``det`` ``(S, 4)``
+    float32 (RGB + a zero lane), evaluated at the pixels: ``out`` ``(P, 3)`` float32 gets the
+    grid cells ``pixel_pos`` ``(P,)`` (``y·W + x``), visited in ``order`` (increasing grid
+    index). ``levels`` ``(n, 4)`` rows ``(h, w, step θ, step φ)``, finest first, from
     ``_compress_haar._nonstandard_levels(W, H)`` (the width playing θ).
+
+    Layout of ``det``: ``blocked`` false, the grid row-major (S = H·W); ``blocked`` true (the
+    finest level steps both axes), the **block layout** of ``_compress_image.coefficient_rows``:
+    rows ``[0, H·W/4)`` the finest level's low-pass quadrant row-major (stride W/2), then three
+    rows ``D_y, D_x, D_xy`` per 2 × 2 block of ``blocks`` in that order, so the finest level
+    reads its coefficients in one forward sweep and padding blocks take no rows.
 
     Every level at once per output cell: cell (y, x) of a level of size (h, w) is
     ``(LL[j, i] + s_y D[h/2 + j, i] + s_x (D[j, w/2 + i] + s_y D[h/2 + j, w/2 + i]))·√½^steps``
     with j = y/2, i = x/2 (integer; y, x on an axis not stepped), s = ±1 for even/odd (0 on an
-    axis not stepped), D the level's detail coefficients (in ``img``) and LL the coarser
-    levels' result. The coarse levels write their cells into one low-pass buffer of the
-    finest level's LL size, visited backwards so each cell is read before it is overwritten
-    (an output cell is never before its input in that order); the finest level is evaluated
-    at the pixels only, so padding cells cost nothing there. RGB as one 4-lane vector.
+    axis not stepped), D the level's detail coefficients and LL the coarser levels' result.
+    The coarse levels write their cells into one low-pass buffer of the finest level's LL size,
+    visited backwards so each cell is read before it is overwritten (an output cell is never
+    before its input in that order); the finest level is evaluated at the pixels only, so
+    padding cells cost nothing there. RGB as one 4-lane vector.
 
-    ``blocks`` ``(n,)`` int64 and ``block_px`` ``(n, 4)`` int64 (optional: empty arrays): when
-    the finest level steps both axes, its 2 × 2 blocks holding pixels (block index
-    ``(y/2)·(W/2) + x/2``) and the pixel of each cell (slot ``2·(y mod 2) + x mod 2``, −1 for
-    none); the finest level is then evaluated a block at a time (one set of loads per four
-    cells, measured ≈ 2× fewer cycles than per pixel on a face).
+    ``blocks`` ``(n,)`` int64 and ``block_px`` ``(n, 4)`` int32 (may be empty in the grid
+    layout): when the finest level steps both axes, its 2 × 2 blocks holding pixels (block
+    index ``(y/2)·(W/2) + x/2``, increasing) and the pixel of each cell (slot ``2·(y mod 2) + x
+    mod 2``, −1 for none); the finest level is then evaluated a block at a time (one set of
+    loads per four cells, measured ≈ 2× fewer cycles than per pixel on a face).
+
+    ``ll`` ``(M, 4)`` float32: scratch for the low-pass buffer (a new one when M is below the
+    finest level's LL size). ``clear``: ``det`` is an accumulator to leave zeroed for the next
+    relight — each coefficient is zeroed as it is read (the block layout's rows are all read;
+    in the grid layout the finest level's cells outside ``blocks`` must already be zero).
+    Otherwise ``det`` is read only.
     """
-    n_h, n_w, _ = img.shape
-    det = img.reshape(n_h * n_w, 4)
     if levels.shape[0] == 0:  # a 1 × 1 grid
         for q in range(order.size):
             p = order[q]
             for c in range(3):
                 out[p, c] = det[pixel_pos[p], c]
+        if clear:
+            det[0] = 0.0
         return
     hy0, hx0, _, _, _ = _level_constants(n_h, n_w, levels[0, 2], levels[0, 3])
     bw = n_w >> hx0  # the low-pass buffer: (H, W) of level 1, stride bw
-    ll = np.empty(((n_h >> hy0) * bw, 4), np.float32)
+    cs = bw if blocked else n_w  # row stride of the coarse levels' coefficients
+    if ll.shape[0] < (n_h >> hy0) * bw:
+        ll = np.empty(((n_h >> hy0) * bw, 4), np.float32)
     for c in range(4):
         ll[0, c] = det[0, c]
+    if clear:
+        det[0] = 0.0
     for lev in range(levels.shape[0] - 1, 0, -1):
         h = levels[lev, 0]
         w = levels[lev, 1]
@@ -278,8 +314,12 @@ def inverse_haar_at_pixels(img, levels, pixel_pos, order, out, blocks,
         if hy and hx:  # both axes: 2 × 2 cells per low-pass cell, blocks visited backwards
             for j in range(h // 2 - 1, -1, -1):
                 for i in range(w // 2 - 1, -1, -1):
-                    _haar_block_rgbx(ll, j * bw + i, det, j * n_w + i, dy * n_w, dx, scale, ll,
-                                     2 * j * bw + 2 * i, bw)
+                    if clear:
+                        _haar_block_rgbx_clear(ll, j * bw + i, det, j * cs + i, dy * cs, dx,
+                                               scale, ll, 2 * j * bw + 2 * i, bw)
+                    else:
+                        _haar_block_rgbx(ll, j * bw + i, det, j * cs + i, dy * cs, dx, scale,
+                                         ll, 2 * j * bw + 2 * i, bw)
             continue
         for y in range(h - 1, -1, -1):
             sy = np.float32(1 - 2 * (y & 1)) if hy else np.float32(0.0)
@@ -287,19 +327,28 @@ def inverse_haar_at_pixels(img, levels, pixel_pos, order, out, blocks,
             for x in range(w - 1, -1, -1):
                 sx = np.float32(1 - 2 * (x & 1)) if hx else np.float32(0.0)
                 i = x >> hx
-                _haar_pixel_rgbx(ll, j * bw + i, det, j * n_w + i, dy * n_w, dx, sy, sx,
+                _haar_pixel_rgbx(ll, j * bw + i, det, j * cs + i, dy * cs, dx, sy, sx,
                                  scale, ll, y * bw + x)
+        if clear:  # one axis: this level's detail cells (read by several cells) after it
+            _clear_rows(det, cs, h >> hy if hy else 0, h, w >> hx if hx else 0, w)
     shift = 0
     while (1 << shift) < n_w:  # W is a power of two: y = index >> log₂ W (no 64-bit division)
         shift += 1
     hy, hx, dy, dx, scale = _level_constants(n_h, n_w, levels[0, 2], levels[0, 3])
-    if hy and hx and blocks.size:
+    if hy and hx and (blocked or blocks.size):
         blk = np.empty((4, 4), np.float32)
         half = n_w // 2
+        base = (n_h // 2) * half - 1  # block layout: block bi's rows base + 3·bi + 1, 2, 3
         for bi in range(blocks.size):
             j = blocks[bi] >> (shift - 1)
             i = blocks[bi] & (half - 1)
-            _haar_block_rgbx(ll, j * bw + i, det, j * n_w + i, dy * n_w, dx, scale, blk, 0, 2)
+            db, ddy, ddx = j * n_w + i, dy * n_w, dx
+            if blocked:
+                db, ddy, ddx = base + 3 * bi, 1, 2
+            if clear:
+                _haar_block_rgbx_clear(ll, j * bw + i, det, db, ddy, ddx, scale, blk, 0, 2)
+            else:
+                _haar_block_rgbx(ll, j * bw + i, det, db, ddy, ddx, scale, blk, 0, 2)
             for slot in range(4):
                 p = block_px[bi, slot]
                 if p >= 0:
@@ -315,6 +364,8 @@ def inverse_haar_at_pixels(img, levels, pixel_pos, order, out, blocks,
         j = y >> hy
         i = x >> hx
         _haar_pixel_rgb(ll, j * bw + i, det, j * n_w + i, dy * n_w, dx, sy, sx, scale, out, p)
+    if clear:  # the finest level's detail cells (the low-pass quadrant is already zero)
+        _clear_rows(det, n_w, 0, n_h, 0, n_w)
 
 
 @njit(nogil=True, cache=True)
@@ -360,7 +411,7 @@ def truncation_errors_rgbx(ptr, n_seg, pos, code, pw, idx, lw,
     """Squared error ``‖full − Σ_{k' ≤ k} slab idx[k']‖²`` after each slab ``k`` of ``idx``
     (the twin of ``_compress_image._truncation_errors``).
 
-    Entries and weights as :func:`scatter_rgbx`; ``full`` ``(G, 4)`` float32 is its sum over
+    Entries and weights as :func:`scatter_add_rgbx`; ``full`` ``(S, 4)`` float32 is its sum over
     all of ``idx``. The residual (float64, interleaved: one cache line per entry) is updated in
     place entry by entry, so the error of every prefix costs one pass over the entries; the
     entries are read through slices (no index wraparound). Returns ``(K,)`` float64."""
@@ -401,16 +452,21 @@ def truncation_errors_rgbx(ptr, n_seg, pos, code, pw, idx, lw,
 
 @njit(nogil=True, cache=True)
 def relight_one_thread(weights, light_levels, n_theta, n_phi, k, ptr, n_seg, pos, code, pw,
-                       acc, grid_h, grid_w, tile, levels, pixel_pos, order, blocks, block_px,
-                       out):  # pragma: no cover - compiled
+                       acc, grid_h, grid_w, blocked, levels, pixel_pos, order, blocks, block_px,
+                       ll, tab, clear, out):  # pragma: no cover - compiled
     """A whole one-thread relight in one compiled call (the Python-level steps between the
     kernels cost ≈ 0.5 ms with cold caches): the lighting's non-standard light Haar
     coefficients, the ``k`` largest (``k`` = 0: every non-zero one, at least one) in index
-    order, :func:`scatter_rgbx` over the whole grid into ``acc`` ``(G, 4)`` (G = ``grid_h ·
-    grid_w``) and
-    :func:`inverse_haar_at_pixels` into ``out`` ``(P, 3)``. ``weights`` ``(L, 3)`` float64
-    (validated), ``light_levels`` the light grid's levels; the rest as those kernels. The same
-    operations as the Python-level path, so the same result bit for bit."""
+    order, :func:`scatter_add_rgbx` over all coefficient rows into ``acc`` ``(S, 4)`` (zero on
+    entry; the ``grid_h × grid_w`` grid in the layout ``blocked``) and
+    :func:`inverse_haar_at_pixels` into ``out`` ``(P, 3)`` (``clear``: ``acc`` left zeroed). ``weights`` ``(L, 3)`` float64 (validated),
+    ``light_levels`` the light grid's levels, ``ll`` and ``tab`` scratch; the rest as those
+    kernels. The same operations as the Python-level path, so the same result bit for bit.
+    Returns False, having done nothing, when ``weights`` holds a NaN or infinity (else True)."""
+    for j in range(weights.shape[0]):
+        for c in range(3):
+            if not np.isfinite(weights[j, c]):
+                return False
     img = np.empty((3, n_phi, n_theta))
     for c in range(3):
         for j in range(n_phi):
@@ -435,6 +491,7 @@ def relight_one_thread(weights, light_levels, n_theta, n_phi, k, ptr, n_seg, pos
     for q in range(idx.size):
         for c in range(3):
             lw[q, c] = np.float32(wc[idx[q], c])
-    scatter_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tile, 0, acc.shape[0])
-    inverse_haar_at_pixels(acc.reshape((grid_h, grid_w, 4)), levels, pixel_pos, order, out,
-                           blocks, block_px)
+    scatter_add_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tab, 0, acc.shape[0])
+    inverse_haar_at_pixels(acc, grid_h, grid_w, blocked, levels, pixel_pos, order, out, blocks,
+                           block_px, ll, clear)
+    return True

@@ -63,10 +63,10 @@ def _interleaved_fraction(field: np.ndarray, w: np.ndarray, probe_bytes: int,
     one-thread figures in CPU time (``time.process_time``): GB read per CPU-second by the probe
     and by the relight, which a loaded machine's time slicing does not distort.
     """
+    import time
+
     from facegeo.lighting.relight import relight_field
     from facegeo.pipeline.bench import limit_threads
-
-    import time
 
     cols = 1024
     a = np.ones((probe_bytes // (4 * cols), cols), np.float32)
@@ -370,6 +370,7 @@ def image_wavelet_rows(field, pixels, n_theta: int, n_phi: int,
     from facegeo.lighting import compress as C
     from facegeo.lighting import envmap as E
     from facegeo.lighting.relight import relight_field
+    from facegeo.pipeline.bench import peak_rss_mb, reset_peak_rss
     from facegeo.pipeline.benchmarks.calibration import _shared_data
 
     field = np.asarray(field, np.float16)
@@ -383,8 +384,12 @@ def image_wavelet_rows(field, pixels, n_theta: int, n_phi: int,
     relit_target = IMAGE_RELIT_TARGET
     rows = []
     for target in targets:
+        rss_reset = reset_peak_rss()
+        rss_before = peak_rss_mb()  # the field, its references and the process so far
         t_fit, m = best_of(lambda t=target: C.fit_image_wavelet(field, n_theta, n_phi, pixels,
                                                                 target_error=t), repeat=1)
+        fit_rss = {"fit_peak_rss_mb": peak_rss_mb(), "rss_before_fit_mb": rss_before,
+                   "peak_rss_reset": rss_reset}
         m.relight(envs["sun"], terms=4)  # compile the kernels outside the timing
         for name, w in envs.items():
             t_budget, (k, est) = best_of(lambda w=w, m=m: m.budget(w, relit_target), repeat=3)
@@ -433,6 +438,6 @@ def image_wavelet_rows(field, pixels, n_theta: int, n_phi: int,
                        "blas_seconds": tm["blas"][0], "blas_seconds_1_thread": tm["blas_1"][0],
                        "exact_cpu_seconds_1_thread": exact_1_cpu, "bytes": m.nbytes,
                        "field_bytes": field.nbytes, "field_px": n_p, "grid": list(m.grid),
-                       "lights": n_l},
+                       "coefficient_rows": m.n_rows, "lights": n_l, **fit_rss},
             ))
     return rows
