@@ -72,7 +72,7 @@ PAPER_VIEW_SIZE = (640, 480)
 _GEN_CHUNK = 2048
 
 
-def _paper_geometry(seed: int = 0):
+def _paper_geometry(seed: int = 0, size: tuple[int, int] | None = None):
     """The paper preset's head (its icosphere subdivisions), its atlas at the reconstruct
     default of 1 texel/mm, the paper rig and a 640 × 480 camera orbited 30° from ``cam_left``
     (its intrinsics scaled so the face fills the same share of the image height)."""
@@ -90,7 +90,7 @@ def _paper_geometry(seed: int = 0):
     texels = rasterize_texels(atlas)
     rig = build_rig(preset)
     cam = rig.cameras[0]
-    w, h = PAPER_VIEW_SIZE
+    w, h = PAPER_VIEW_SIZE if size is None else size
     s = h / cam.height
     K = cam.K.copy()
     K[:2] *= s
@@ -261,7 +261,8 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
     per-texel parameters, D the exact diffuse part, float16 storage like the pipeline's; every
     ``pool_step``-th texel's function reused by its neighbours — 4, 16 with ``quick`` — so
     generation takes about a minute while every texel is still read and resynthesised on
-    its own). Environments: the built-in ``sky`` and a sun-like map (:data:`SUN`), Eq. (4)
+    its own; ``quick`` also renders a 160 × 120 view under ``sky`` only, without
+    ``light_step=2``: a smoke run of the rows, not the paper figures). Environments: the built-in ``sky`` and a sun-like map (:data:`SUN`), Eq. (4)
     weights with the paper's δA.
 
     Per environment, one row per renderer setting, all in the same run: the exact path
@@ -291,7 +292,10 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
     )
 
     t0 = time.perf_counter()
-    atlas, texels, scene, rig, novel = _paper_geometry()
+    # quick (the test suite's smoke run): a 160 × 120 view of the same head, atlas and lights,
+    # under one environment — the rows' shape, not the paper figures
+    size = (160, 120) if quick else PAPER_VIEW_SIZE
+    atlas, texels, scene, rig, novel = _paper_geometry(size=size)
     t_geo = time.perf_counter() - t0
     t0 = time.perf_counter()
     vs = trace_view(novel, scene, atlas, texels)
@@ -310,7 +314,11 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
     rows = []
     settings = (("exact (every light)", True, 1), ("light_step=2", True, 2),
                 ("light_step=4", True, 4), ("naive baseline", False, 1))
-    for env_name, env in (("sky", builtin_env("sky")), ("sun", _sun_map())):
+    envs = (("sky", builtin_env("sky")),) if quick else (("sky", builtin_env("sky")),
+                                                          ("sun", _sun_map()))
+    if quick:
+        settings = (settings[0], settings[2], settings[3])
+    for env_name, env in envs:
         w = E.light_stage_weights(env, stage.n_theta, stage.n_phi) / stage.color_rgb[None, :]
         truth = _generator_texel_colours(texels, ref_ids, ref_pos, novel.center_world, prm,
                                          lights, w, texels.n_world[pool][ref_pos])
@@ -346,7 +354,8 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
                 - s["seconds_resynthesis"]
             rows.append(BenchRow(
                 "render.novel_view_paper",
-                f"640×480 novel view (cam_left +30°), paper preset sizes, {env_name}, {label}",
+                f"{size[0]}×{size[1]} novel view (cam_left +30°), paper preset sizes, "
+                f"{env_name}, {label}",
                 1.0 / t_view, "views/s", err,
                 "relative RMSE vs the exact path's image (covered pixels)",
                 extra={"seconds_per_view": round(t_view, 3),
