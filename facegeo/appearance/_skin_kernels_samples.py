@@ -24,19 +24,91 @@ from facegeo.appearance._skin_kernels import _FM
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
 def _chromaticity(d0x, d0y, d0z, f, s):
     """Eq. 6's ``c = normalize(d_0 + f (d_0 − s))`` (s where that vanishes), ``c·s`` and
-    ``|c × s|² = 1 − (c·s)²``."""
+    ``|c × s|² = 1 − (c·s)²``. Straight-line (selects), so that per-sample loops vectorise."""
     cx = d0x + f * (d0x - s)
     cy = d0y + f * (d0y - s)
     cz = d0z + f * (d0z - s)
     cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-    if cn > 1e-30:
-        cx /= cn
-        cy /= cn
-        cz /= cn
-    else:
-        cx = cy = cz = s
+    ok = cn > 1e-30
+    cx = cx / cn if ok else s
+    cy = cy / cn if ok else s
+    cz = cz / cn if ok else s
     ds = (cx + cy + cz) * s
     return cx, cy, cz, ds, 1.0 - ds * ds
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _separate_sample(r0, r1, r2, cx, cy, cz, ds, det, sing_sin2, s):
+    """One sample's §4.2 separation with chromaticity c: ``(μ_s, D)`` (μ_s = 0 where
+    ``|c × s|² < sing_sin2``). Straight-line code (the division runs on singular samples
+    too, its result discarded)."""
+    Rd = r0 * cx + r1 * cy + r2 * cz
+    Rs = (r0 + r1 + r2) * s
+    ms = (Rs - Rd * ds) / det
+    ms = 0.0 if det < sing_sin2 else ms
+    sp = max(ms, 0.0) * s
+    return ms, r0 - sp, r1 - sp, r2 - sp
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _separate_uniform_row(R, i, cx, cy, cz, ds, det, sing_sin2, y):
+    """The initial separation of function i (chromaticity d_0 for every sample): ``|D|``
+    into ``y``; whether its samples are singular."""
+    s = 1.0 / math.sqrt(3.0)
+    L = y.size
+    for j in range(L):
+        _, e0, e1, e2 = _separate_sample(R[i, j, 0], R[i, j, 1], R[i, j, 2], cx, cy, cz, ds,
+                                         det, sing_sin2, s)
+        y[j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    return L > 0 and det < sing_sin2
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _separate_ramp_row(R, i, d0, nrm, v, dirs, a0, a1, sing_sin2, mu_s, y):
+    """The final separation of function i with the ramp chromaticity: ``μ_s`` and ``|D|``
+    into ``mu_s``, ``y``; the number of singular samples. Branch-free per sample (selects)
+    and with two outputs only, so that it vectorises (D follows from μ_s:
+    :func:`_diffuse_row`)."""
+    s = 1.0 / math.sqrt(3.0)
+    L = y.size
+    nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+    nv = nx * v[i, 0] + ny * v[i, 1] + nz * v[i, 2]
+    nv = min(max(nv, 0.0), 1.0)
+    d0x, d0y, d0z = d0[i, 0], d0[i, 1], d0[i, 2]
+    b0, b1 = a0[i], a1[i]
+    nsing = 0
+    for j in range(L):
+        nl = nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2]
+        x = min(max(nl, 0.0), 1.0) * nv
+        f = b0 * x + b1 * (1.0 - x)
+        cx, cy, cz, ds, det = _chromaticity(d0x, d0y, d0z, f, s)
+        nsing += 1 if det < sing_sin2 else 0
+        ms, e0, e1, e2 = _separate_sample(R[i, j, 0], R[i, j, 1], R[i, j, 2], cx, cy, cz, ds,
+                                          det, sing_sin2, s)
+        mu_s[j] = ms
+        y[j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    return nsing
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _diffuse_row(R, i, mu_s, E, D, out, direct):
+    """D = R − max(μ_s, 0) s of function i (the same arithmetic as
+    :func:`_separate_sample`): ``D ⊙ E`` as float32 into ``out[i]`` (``direct``), else D
+    into ``D`` ``(L, 3)``."""
+    s = 1.0 / math.sqrt(3.0)
+    L = mu_s.size
+    if direct:
+        for j in range(L):
+            sp = max(mu_s[j], 0.0) * s
+            out[i, j, 0] = np.float32((R[i, j, 0] - sp) * E[j, 0])
+            out[i, j, 1] = np.float32((R[i, j, 1] - sp) * E[j, 1])
+            out[i, j, 2] = np.float32((R[i, j, 2] - sp) * E[j, 2])
+    else:
+        for j in range(L):
+            sp = max(mu_s[j], 0.0) * s
+            D[j, 0] = R[i, j, 0] - sp
+            D[j, 1] = R[i, j, 1] - sp
+            D[j, 2] = R[i, j, 2] - sp
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
@@ -76,42 +148,14 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2, E, out):
     y = np.empty((N, L))
     singular = np.zeros(N, np.bool_)
     for i in prange(N):
-        nv = nrm[i, 0] * v[i, 0] + nrm[i, 1] * v[i, 1] + nrm[i, 2] * v[i, 2]
-        nv = min(max(nv, 0.0), 1.0)
-        sing_i = False
-        # uniform: the chromaticity is the function's d_0 for every sample (once, not per
-        # sample; the same arithmetic, so the same values)
-        cx0, cy0, cz0, ds0, det0 = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], 0.0, s)
-        for j in range(L):
-            if uniform:
-                cx, cy, cz, ds, det = cx0, cy0, cz0, ds0, det0
-            else:
-                nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
-                x = min(max(nl, 0.0), 1.0) * nv
-                f = a0[i] * x + a1[i] * (1.0 - x)
-                cx, cy, cz, ds, det = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], f, s)
-            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
-            ms = 0.0
-            if det < sing_sin2:
-                sing_i = True
-            else:
-                Rd = r0 * cx + r1 * cy + r2 * cz
-                Rs = (r0 + r1 + r2) * s
-                ms = (Rs - Rd * ds) / det
-            sp = max(ms, 0.0) * s
-            e0, e1, e2 = r0 - sp, r1 - sp, r2 - sp
-            if direct:
-                mu_s[i, j] = ms
-                out[i, j, 0] = np.float32(e0 * E[j, 0])
-                out[i, j, 1] = np.float32(e1 * E[j, 1])
-                out[i, j, 2] = np.float32(e2 * E[j, 2])
-            elif not uniform:
-                mu_s[i, j] = ms
-                D[i, j, 0] = e0
-                D[i, j, 1] = e1
-                D[i, j, 2] = e2
-            y[i, j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-        singular[i] = sing_i
+        if uniform:
+            # the chromaticity is the function's d_0 for every sample (once, not per sample)
+            cx, cy, cz, ds, det = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], 0.0, s)
+            singular[i] = _separate_uniform_row(R, i, cx, cy, cz, ds, det, sing_sin2, y[i])
+        else:
+            singular[i] = _separate_ramp_row(R, i, d0, nrm, v, dirs, a0, a1, sing_sin2,
+                                             mu_s[i], y[i]) > 0
+            _diffuse_row(R, i, mu_s[i], E, D[i], out, direct)
     return D, mu_s, y, singular
 
 

@@ -388,6 +388,7 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     # Everything per chunk, written straight into the outputs: no (N, L, 3) float64 copy of
     # the whole input (those passes cost a third of the fit at 512 functions).
     D = np.empty((N, L, C), np.float32)
+    S = np.empty((N, L, C), np.float32)
     shadow = np.empty((N, L), bool)
     sat = np.zeros((N, L), bool)
     if chunk is None:
@@ -424,6 +425,9 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                          specular_gate, stats, D[sl] if _skin_fit.KERNELS else None)
         if res["D"] is not None:  # else the final separation wrote D[sl] itself
             D[sl] = res["D"] * E[None]  # float32 on assignment
+        # S here, on the worker (not after all chunks, serially): D + S = R up to one float32
+        # rounding
+        np.subtract(R[sl], D[sl], out=S[sl], dtype=np.float32)
         return {k: res[k] for k in out}
 
     for res in _map_chunks(run, starts, threads):
@@ -431,7 +435,6 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
             out[k].append(res[k])
     cat = {k: np.concatenate(val) if val else np.zeros((0,)) for k, val in out.items()}
     flags = cat["flags"].astype(np.int32)
-    S = np.subtract(R, D, dtype=np.float32)  # D + S = R up to one float32 rounding
     hidden = np.zeros((N, L), bool) if vis is None else ~vis
     valid = (flags & (FLAG_BLACK | FLAG_SHADOWED)) == 0
     return SkinFit(lights=lights, view=v, normal=cat["n"], normal_moment=cat["nm"],
