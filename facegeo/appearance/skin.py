@@ -589,9 +589,16 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
         flags |= np.where(sing2, FLAG_SINGULAR, 0)
         Smu = np.maximum(mu_s, 0.0) / np.sqrt(3.0)
     # k: the lobe's scale at the final normal (fit_lambertian_lobe, on the final |D|)
-    x = np.maximum(n @ l.T, 0.0)
     rho_d = np.pi * np.maximum(k, 0.0)[:, None] * d0
-    cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
+    if _skin_fit.KERNELS:
+        from facegeo.appearance._skin_kernels_samples import cast_shadow
+
+        cast = cast_shadow(np.ascontiguousarray(shadow), np.ascontiguousarray(n, np.float64),
+                           np.ascontiguousarray(l), np.ascontiguousarray(k, np.float64),
+                           2.0 * threshold * np.asarray(ref, np.float64))
+    else:
+        x = np.maximum(n @ l.T, 0.0)
+        cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
     nv = np.einsum("ni,ni->n", n, v)
     flags |= np.where(nv < GRAZING_COS, FLAG_GRAZING_VIEW, 0)
     rho_s = specular_energy(Smu, shadow, lights, n, v, eta) if not single else np.zeros(n_f)
