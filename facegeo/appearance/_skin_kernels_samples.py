@@ -182,23 +182,42 @@ def ramp_inputs(R, w, sa, dirs, nrm, v, d0, mirror_sigma):
         dsi = (d0[i, 0] + d0[i, 1] + d0[i, 2]) * s
         ds[i] = dsi
         ds2 = 1.0 - dsi * dsi
+        # three loops of few outputs each: the first two vectorise (the exp of the third
+        # cannot: no vector math library), and only usable samples take the exp
+        _ramp_geometry_row(dirs, nx, ny, nz, nvc, nlf[i], xf[i])
+        _ramp_colour_row(R, i, d0[i, 0], d0[i, 1], d0[i, 2], dsi, ds2, Rd[i], Rdms[i], A[i])
         for j in range(L):
-            lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
             if w[i, j] > 0.0:
+                lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
                 wm = 1.0 - np.exp(-(1.0 - (rx * lx + ry * ly + rz * lz)) / mirror_sigma)
                 wd[i, j] = w[i, j] * sa[j] * wm
             else:
                 wd[i, j] = 0.0
-            nl = max(nx * lx + ny * ly + nz * lz, 0.0)
-            nlf[i, j] = nl
-            xf[i, j] = min(nl, 1.0) * nvc
-            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
-            rd = r0 * d0[i, 0] + r1 * d0[i, 1] + r2 * d0[i, 2]
-            rs = (r0 + r1 + r2) * s
-            Rd[i, j] = rd
-            Rdms[i, j] = rd - rs
-            A[i, j] = (rd - rs * dsi) / ds2 if ds2 > 0.0 else 0.0
     return wd, xf, nlf, A, Rd, Rdms, ds
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _ramp_geometry_row(dirs, nx, ny, nz, nvc, nlf, xf):
+    """``max(0, n·l)`` and ``x = min(n·l, 1) clip(n·v)`` of one function (:func:`ramp_inputs`)."""
+    for j in range(nlf.size):
+        nl = max(nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2], 0.0)
+        nlf[j] = nl
+        xf[j] = min(nl, 1.0) * nvc
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _ramp_colour_row(R, i, d0x, d0y, d0z, dsi, ds2, Rd, Rdms, A):
+    """``R·d_0``, ``R·d_0 − R·s`` and A of function i (:func:`ramp_inputs`)."""
+    s = 1.0 / math.sqrt(3.0)
+    regular = ds2 > 0.0
+    for j in range(Rd.size):
+        r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+        rd = r0 * d0x + r1 * d0y + r2 * d0z
+        rs = (r0 + r1 + r2) * s
+        Rd[j] = rd
+        Rdms[j] = rd - rs
+        a = (rd - rs * dsi) / ds2
+        A[j] = a if regular else 0.0
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
@@ -453,9 +472,9 @@ def chroma_rows(R, w, sa, dirs, nrm, v, A, ds, rows, chroma_sigma):
         nv = nx * v[q, 0] + ny * v[q, 1] + nz * v[q, 2]
         rx, ry, rz = 2.0 * nv * nx - v[q, 0], 2.0 * nv * ny - v[q, 1], 2.0 * nv * nz - v[q, 2]
         acc = 0.0
+        _chroma_b_row(R, i, A[q], ds[q], B[q])  # vectorises; the exp below cannot
         for j in range(L):
             r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
-            B[q, j] = (r0 + r1 + r2) * s - A[q, j] * ds[q]
             wc = 0.0
             if w[i, j] > 0.0:
                 cos_lr = rx * dirs[j, 0] + ry * dirs[j, 1] + rz * dirs[j, 2]
@@ -468,6 +487,14 @@ def chroma_rows(R, w, sa, dirs, nrm, v, A, ds, rows, chroma_sigma):
         for j in range(L):
             cw[q, j] = math.sqrt(cw[q, j]) * inv
     return B, cw
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _chroma_b_row(R, i, A, ds, B):
+    """``B = R·s − A (d_0·s)`` of function i (:func:`chroma_rows`)."""
+    s = 1.0 / math.sqrt(3.0)
+    for j in range(B.size):
+        B[j] = (R[i, j, 0] + R[i, j, 1] + R[i, j, 2]) * s - A[j] * ds
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
