@@ -858,9 +858,10 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
     """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
     ``_skin_fit.gauss_newton_polish`` (same damping, a step kept only where it lowers Σ r²)
     with the analytic Jacobian of :func:`_polish_jacobian` instead of finite differences, and
-    JᵀJ, Jᵀr reused after a rejected step (x unchanged); trial points by their residuals only
-    (:func:`_polish_residuals`, ≈ 1/3 of a pass with derivatives), derivatives only after an
-    accepted step that is not the last. ``p0`` ``(N, 2)`` (ramp at the fixed
+    JᵀJ, Jᵀr reused after a rejected step (x unchanged); trial points by their Σ r² only
+    (:func:`_polish_residuals` with ``rows=False``: ≈ 1/4 of a pass with derivatives, its
+    second loop skipped where Σ r² > ``_SUMS_MIN``), derivatives only after an accepted step
+    that is not the last. ``p0`` ``(N, 2)`` (ramp at the fixed
     normal) or ``(N, 4)`` (ramp and tangent offsets of the normal). With ``chroma`` the
     chromaticity rows ``cw μ_s`` (``B``, ``cw`` ``(N, L)``) join the residuals.
 
