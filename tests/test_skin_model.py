@@ -79,6 +79,9 @@ KERNEL_RHO_S_REL = 1e-4
 #: Analytic Jacobian of the polish residuals against central differences (h = 1e-6): max
 #: |ΔJ| / max |J|.
 KERNEL_JACOBIAN_REL = 1e-5
+#: Σ r² of the polish's residuals from three sums (the LM steps' form) against the summed
+#: squares of its residual rows: relative difference (cancellation, where Σ r² > 1e-6)
+POLISH_SUMS_REL = 1e-10
 
 V0 = np.array([0.0, 0.0, 1.0])
 
@@ -917,6 +920,12 @@ def test_polish_analytic_jacobian_equals_central_differences(with_normal, chroma
 
     rr0 = rows(p)
     assert np.sum(rr0 ** 2) == pytest.approx(tot, rel=1e-12)
+    # the LM steps' Σ r² without the residual rows: from the first pass's sums where it is
+    # large (here ≈ 0.1–1), relative error of that cancelling form ≤ 1e-10
+    assert tot > 10 * K._SUMS_MIN
+    tot_sums = K._polish_residuals(p, with_normal, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd,
+                                   Rdms, *args, np.empty(m), xs_fix, nl_fix, B, cw, chroma, False)
+    assert tot_sums == pytest.approx(tot, rel=POLISH_SUMS_REL)
     J = np.empty((P, rr0.size))
     h = 1e-6
     for a in range(P):

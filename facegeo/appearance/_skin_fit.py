@@ -7,6 +7,7 @@ function of a chunk in one numpy expression.
 
 from __future__ import annotations
 
+import functools
 import logging
 import warnings
 from dataclasses import dataclass
@@ -206,6 +207,10 @@ def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
 
 def _tangent_basis(n):
     """Two unit vectors ``(N, 3)`` orthogonal to ``n`` and to each other."""
+    if KERNELS:
+        from facegeo.appearance._skin_kernels_samples import tangent_basis
+
+        return tangent_basis(np.ascontiguousarray(n, np.float64))
     a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     t1 = normalize(np.cross(n, a))
     t2 = np.cross(n, t1)
@@ -351,6 +356,13 @@ def moment_normal(y, w, lights: LightSet, fallback):
     -------
     (N, 3) float64, unit
     """
+    if KERNELS:
+        from facegeo.appearance._skin_kernels_samples import moment_normal as kernel
+
+        c = np.ascontiguousarray
+        return kernel(c(y, np.float64), c(w, np.float64), c(lights.solid_angles),
+                      c(lights.directions), c(np.broadcast_to(fallback, y.shape[:1] + (3,)),
+                                              np.float64))
     m = (y * w * lights.solid_angles) @ lights.directions
     nrm = np.linalg.norm(m, axis=1, keepdims=True)
     ok = nrm > 1e-300
@@ -493,9 +505,25 @@ def _median_ratios(R, valid):
     return mrg, mgb
 
 
+@functools.cache
+def _colour_plane_basis():
+    """Two orthonormal vectors ⊥ s (the plane of :func:`_d0_from_ratios`'s scatter)."""
+    b1 = normalize(np.cross(S_WHITE, [1.0, 0.0, 0.0]))
+    b2 = np.cross(S_WHITE, b1)
+    return b1, b2
+
+
 def _d0_from_ratios(R, valid, mrg, mgb):
     """d_0 from the two medians, projected onto the colours' plane through s
     (:func:`initial_diffuse_chromaticity`)."""
+    b1, b2 = _colour_plane_basis()
+    if KERNELS:
+        from facegeo.appearance._skin_kernels_samples import colour_scatter, d0_from_ratios
+
+        a, b, c = colour_scatter(np.ascontiguousarray(R, np.float64),
+                                 np.ascontiguousarray(valid, bool), b1, b2)
+        return d0_from_ratios(np.ascontiguousarray(mrg, np.float64),
+                              np.ascontiguousarray(mgb, np.float64), a, b, c, b1, b2)
     found = np.isfinite(mrg) & np.isfinite(mgb) & (mgb > 0)
     d = np.stack([np.where(found, mrg, 1.0), np.ones_like(mrg),
                   np.where(found, 1.0 / np.where(found, mgb, 1.0), 1.0)], axis=1)
@@ -504,17 +532,9 @@ def _d0_from_ratios(R, valid, mrg, mgb):
     # diffuse chromaticities and light colour, §4.1): the two medians come from different
     # samples, so (r/g, 1, b/g) can sit slightly off it, and then no ramp of Eq. 6 reaches
     # the data. The plane's normal e ⊥ s is the least-scatter direction of R in s's complement.
-    b1 = normalize(np.cross(S_WHITE, [1.0, 0.0, 0.0]))
-    b2 = np.cross(S_WHITE, b1)
-    if KERNELS:
-        from facegeo.appearance._skin_kernels_samples import colour_scatter
-
-        a, b, c = colour_scatter(np.ascontiguousarray(R, np.float64),
-                                 np.ascontiguousarray(valid, bool), b1, b2)
-    else:
-        w = valid.astype(np.float64)
-        u1, u2 = R @ b1, R @ b2
-        a, b, c = (np.sum(w * u1 * u1, 1), np.sum(w * u1 * u2, 1), np.sum(w * u2 * u2, 1))
+    w = valid.astype(np.float64)
+    u1, u2 = R @ b1, R @ b2
+    a, b, c = (np.sum(w * u1 * u1, 1), np.sum(w * u1 * u2, 1), np.sum(w * u2 * u2, 1))
     # smallest-eigenvalue eigenvector of [[a, b], [b, c]]
     lam = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
     ex = np.where(np.abs(b) > 1e-300, b, np.where(a <= c, 1.0, 0.0))

@@ -441,14 +441,25 @@ def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
     return p, val
 
 
+#: Σ r² above which :func:`_polish_residuals` (``rows=False``) takes the lobe rows' sum from
+#: the first pass's three sums instead of summing the residuals (error ≤ 1e-10 of it there).
+_SUMS_MIN = 1e-6
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
 def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, two_1mds, ds2k,
-                      sing_sin2, r_out, xs_fix, nl_fix, B, cw, chroma):
+                      sing_sin2, r_out, xs_fix, nl_fix, B, cw, chroma, rows=True):
     """Residuals √w (μ_d − k x)/√Σw μ_d² of ``_skin_fit.fit_ramp``'s polish into ``r_out``;
     returns Σ r² plus, with ``chroma``, the chromaticity rows Σ (c_j μ_s,j)² (``cw`` = c_j,
     ``B`` as in ``_skin_fit.ramp_mu_s``). ``nrm``: polish the normal too (p has 4 entries).
     The loops are straight-line (selects), so they vectorise; at a fixed normal n·l is
-    recomputed from ``normal`` (equal to ``nl_fix``, ``xs_fix`` to rounding)."""
+    recomputed from ``normal`` (equal to ``nl_fix``, ``xs_fix`` to rounding).
+
+    ``rows`` False (the LM steps need Σ r² only): where the lobe rows' Σ r² from the first
+    pass's sums, ``1 − s_xy²/(s_xx s_yy)``, exceeds :data:`_SUMS_MIN` it is returned as is and
+    the second pass (the residuals themselves) is skipped; ``r_out`` then holds √w μ_d. The
+    form's absolute error is ≈ 1e-16 (cancellation), ≤ 1e-10 of the value there; below it,
+    as on paper-mode data near the minimum (1e-15), the residuals are summed."""
     m = r_out.size
     nx, ny, nz, nvc = _polish_frame(p, nrm, normal, t1, t2, v)[:4]
     da = p[0] - p[1]
@@ -471,6 +482,12 @@ def _polish_residuals(p, nrm, normal, t1, t2, v, lx, ly, lz, sqw, A, Rd, Rdms, t
         sxx += xw * xw
     ok = sxx > _TINY and syy > _TINY and sxy > 0.0
     k = sxy / sxx if ok else 0.0
+    if not rows and ok:
+        tot = 1.0 - k * sxy / syy
+        if tot > _SUMS_MIN:
+            if chroma:
+                tot += _polish_residuals_chroma(p, nrm, normal, t1, t2, v, lx, ly, lz, A, B, cw)
+            return tot
     inv = 1.0 / math.sqrt(syy if syy > _TINY else 1.0)
     tot = 0.0
     for j in range(m):
@@ -841,9 +858,10 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
     """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
     ``_skin_fit.gauss_newton_polish`` (same damping, a step kept only where it lowers Σ r²)
     with the analytic Jacobian of :func:`_polish_jacobian` instead of finite differences, and
-    JᵀJ, Jᵀr reused after a rejected step (x unchanged); trial points by their residuals only
-    (:func:`_polish_residuals`, ≈ 1/3 of a pass with derivatives), derivatives only after an
-    accepted step that is not the last. ``p0`` ``(N, 2)`` (ramp at the fixed
+    JᵀJ, Jᵀr reused after a rejected step (x unchanged); trial points by their Σ r² only
+    (:func:`_polish_residuals` with ``rows=False``: ≈ 1/4 of a pass with derivatives, its
+    second loop skipped where Σ r² > ``_SUMS_MIN``), derivatives only after an accepted step
+    that is not the last. ``p0`` ``(N, 2)`` (ramp at the fixed
     normal) or ``(N, 4)`` (ramp and tangent offsets of the normal). With ``chroma`` the
     chromaticity rows ``cw μ_s`` (``B``, ``cw`` ``(N, L)``) join the residuals.
 
@@ -896,7 +914,7 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
         else:
             cur = _polish_residuals(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
                                     Rds, Rms, two_1mds, ds2k, sing_sin2, r, xs, nls, Bs, cws,
-                                    chroma)
+                                    chroma, False)
             _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds,
                              Rms, two_1mds, ds2k, sing_sin2, xs, nls, JtJ, g, Bs, cws, chroma)
             if start_mode == 1:
@@ -917,7 +935,7 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
                 pt[a] += x[a]
             vn = _polish_residuals(pt, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As,
                                    Rds, Rms, two_1mds, ds2k, sing_sin2, rn, xs, nls, Bs, cws,
-                                   chroma)
+                                   chroma, False)
             if np.isfinite(vn) and vn < cur:
                 for a in range(P):
                     x[a] = pt[a]

@@ -24,19 +24,91 @@ from facegeo.appearance._skin_kernels import _FM
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
 def _chromaticity(d0x, d0y, d0z, f, s):
     """Eq. 6's ``c = normalize(d_0 + f (d_0 − s))`` (s where that vanishes), ``c·s`` and
-    ``|c × s|² = 1 − (c·s)²``."""
+    ``|c × s|² = 1 − (c·s)²``. Straight-line (selects), so that per-sample loops vectorise."""
     cx = d0x + f * (d0x - s)
     cy = d0y + f * (d0y - s)
     cz = d0z + f * (d0z - s)
     cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-    if cn > 1e-30:
-        cx /= cn
-        cy /= cn
-        cz /= cn
-    else:
-        cx = cy = cz = s
+    ok = cn > 1e-30
+    cx = cx / cn if ok else s
+    cy = cy / cn if ok else s
+    cz = cz / cn if ok else s
     ds = (cx + cy + cz) * s
     return cx, cy, cz, ds, 1.0 - ds * ds
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM, inline="always")
+def _separate_sample(r0, r1, r2, cx, cy, cz, ds, det, sing_sin2, s):
+    """One sample's §4.2 separation with chromaticity c: ``(μ_s, D)`` (μ_s = 0 where
+    ``|c × s|² < sing_sin2``). Straight-line code (the division runs on singular samples
+    too, its result discarded)."""
+    Rd = r0 * cx + r1 * cy + r2 * cz
+    Rs = (r0 + r1 + r2) * s
+    ms = (Rs - Rd * ds) / det
+    ms = 0.0 if det < sing_sin2 else ms
+    sp = max(ms, 0.0) * s
+    return ms, r0 - sp, r1 - sp, r2 - sp
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _separate_uniform_row(R, i, cx, cy, cz, ds, det, sing_sin2, y):
+    """The initial separation of function i (chromaticity d_0 for every sample): ``|D|``
+    into ``y``; whether its samples are singular."""
+    s = 1.0 / math.sqrt(3.0)
+    L = y.size
+    for j in range(L):
+        _, e0, e1, e2 = _separate_sample(R[i, j, 0], R[i, j, 1], R[i, j, 2], cx, cy, cz, ds,
+                                         det, sing_sin2, s)
+        y[j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    return L > 0 and det < sing_sin2
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _separate_ramp_row(R, i, d0, nrm, v, dirs, a0, a1, sing_sin2, mu_s, y):
+    """The final separation of function i with the ramp chromaticity: ``μ_s`` and ``|D|``
+    into ``mu_s``, ``y``; the number of singular samples. Branch-free per sample (selects)
+    and with two outputs only, so that it vectorises (D follows from μ_s:
+    :func:`_diffuse_row`)."""
+    s = 1.0 / math.sqrt(3.0)
+    L = y.size
+    nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+    nv = nx * v[i, 0] + ny * v[i, 1] + nz * v[i, 2]
+    nv = min(max(nv, 0.0), 1.0)
+    d0x, d0y, d0z = d0[i, 0], d0[i, 1], d0[i, 2]
+    b0, b1 = a0[i], a1[i]
+    nsing = 0
+    for j in range(L):
+        nl = nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2]
+        x = min(max(nl, 0.0), 1.0) * nv
+        f = b0 * x + b1 * (1.0 - x)
+        cx, cy, cz, ds, det = _chromaticity(d0x, d0y, d0z, f, s)
+        nsing += 1 if det < sing_sin2 else 0
+        ms, e0, e1, e2 = _separate_sample(R[i, j, 0], R[i, j, 1], R[i, j, 2], cx, cy, cz, ds,
+                                          det, sing_sin2, s)
+        mu_s[j] = ms
+        y[j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    return nsing
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _diffuse_row(R, i, mu_s, E, D, out, direct):
+    """D = R − max(μ_s, 0) s of function i (the same arithmetic as
+    :func:`_separate_sample`): ``D ⊙ E`` as float32 into ``out[i]`` (``direct``), else D
+    into ``D`` ``(L, 3)``."""
+    s = 1.0 / math.sqrt(3.0)
+    L = mu_s.size
+    if direct:
+        for j in range(L):
+            sp = max(mu_s[j], 0.0) * s
+            out[i, j, 0] = np.float32((R[i, j, 0] - sp) * E[j, 0])
+            out[i, j, 1] = np.float32((R[i, j, 1] - sp) * E[j, 1])
+            out[i, j, 2] = np.float32((R[i, j, 2] - sp) * E[j, 2])
+    else:
+        for j in range(L):
+            sp = max(mu_s[j], 0.0) * s
+            D[j, 0] = R[i, j, 0] - sp
+            D[j, 1] = R[i, j, 1] - sp
+            D[j, 2] = R[i, j, 2] - sp
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
@@ -76,42 +148,14 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2, E, out):
     y = np.empty((N, L))
     singular = np.zeros(N, np.bool_)
     for i in prange(N):
-        nv = nrm[i, 0] * v[i, 0] + nrm[i, 1] * v[i, 1] + nrm[i, 2] * v[i, 2]
-        nv = min(max(nv, 0.0), 1.0)
-        sing_i = False
-        # uniform: the chromaticity is the function's d_0 for every sample (once, not per
-        # sample; the same arithmetic, so the same values)
-        cx0, cy0, cz0, ds0, det0 = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], 0.0, s)
-        for j in range(L):
-            if uniform:
-                cx, cy, cz, ds, det = cx0, cy0, cz0, ds0, det0
-            else:
-                nl = nrm[i, 0] * dirs[j, 0] + nrm[i, 1] * dirs[j, 1] + nrm[i, 2] * dirs[j, 2]
-                x = min(max(nl, 0.0), 1.0) * nv
-                f = a0[i] * x + a1[i] * (1.0 - x)
-                cx, cy, cz, ds, det = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], f, s)
-            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
-            ms = 0.0
-            if det < sing_sin2:
-                sing_i = True
-            else:
-                Rd = r0 * cx + r1 * cy + r2 * cz
-                Rs = (r0 + r1 + r2) * s
-                ms = (Rs - Rd * ds) / det
-            sp = max(ms, 0.0) * s
-            e0, e1, e2 = r0 - sp, r1 - sp, r2 - sp
-            if direct:
-                mu_s[i, j] = ms
-                out[i, j, 0] = np.float32(e0 * E[j, 0])
-                out[i, j, 1] = np.float32(e1 * E[j, 1])
-                out[i, j, 2] = np.float32(e2 * E[j, 2])
-            elif not uniform:
-                mu_s[i, j] = ms
-                D[i, j, 0] = e0
-                D[i, j, 1] = e1
-                D[i, j, 2] = e2
-            y[i, j] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-        singular[i] = sing_i
+        if uniform:
+            # the chromaticity is the function's d_0 for every sample (once, not per sample)
+            cx, cy, cz, ds, det = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], 0.0, s)
+            singular[i] = _separate_uniform_row(R, i, cx, cy, cz, ds, det, sing_sin2, y[i])
+        else:
+            singular[i] = _separate_ramp_row(R, i, d0, nrm, v, dirs, a0, a1, sing_sin2,
+                                             mu_s[i], y[i]) > 0
+            _diffuse_row(R, i, mu_s[i], E, D[i], out, direct)
     return D, mu_s, y, singular
 
 
@@ -138,23 +182,42 @@ def ramp_inputs(R, w, sa, dirs, nrm, v, d0, mirror_sigma):
         dsi = (d0[i, 0] + d0[i, 1] + d0[i, 2]) * s
         ds[i] = dsi
         ds2 = 1.0 - dsi * dsi
+        # three loops of few outputs each: the first two vectorise (the exp of the third
+        # cannot: no vector math library), and only usable samples take the exp
+        _ramp_geometry_row(dirs, nx, ny, nz, nvc, nlf[i], xf[i])
+        _ramp_colour_row(R, i, d0[i, 0], d0[i, 1], d0[i, 2], dsi, ds2, Rd[i], Rdms[i], A[i])
         for j in range(L):
-            lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
             if w[i, j] > 0.0:
+                lx, ly, lz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
                 wm = 1.0 - np.exp(-(1.0 - (rx * lx + ry * ly + rz * lz)) / mirror_sigma)
                 wd[i, j] = w[i, j] * sa[j] * wm
             else:
                 wd[i, j] = 0.0
-            nl = max(nx * lx + ny * ly + nz * lz, 0.0)
-            nlf[i, j] = nl
-            xf[i, j] = min(nl, 1.0) * nvc
-            r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
-            rd = r0 * d0[i, 0] + r1 * d0[i, 1] + r2 * d0[i, 2]
-            rs = (r0 + r1 + r2) * s
-            Rd[i, j] = rd
-            Rdms[i, j] = rd - rs
-            A[i, j] = (rd - rs * dsi) / ds2 if ds2 > 0.0 else 0.0
     return wd, xf, nlf, A, Rd, Rdms, ds
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _ramp_geometry_row(dirs, nx, ny, nz, nvc, nlf, xf):
+    """``max(0, n·l)`` and ``x = min(n·l, 1) clip(n·v)`` of one function (:func:`ramp_inputs`)."""
+    for j in range(nlf.size):
+        nl = max(nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2], 0.0)
+        nlf[j] = nl
+        xf[j] = min(nl, 1.0) * nvc
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _ramp_colour_row(R, i, d0x, d0y, d0z, dsi, ds2, Rd, Rdms, A):
+    """``R·d_0``, ``R·d_0 − R·s`` and A of function i (:func:`ramp_inputs`)."""
+    s = 1.0 / math.sqrt(3.0)
+    regular = ds2 > 0.0
+    for j in range(Rd.size):
+        r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
+        rd = r0 * d0x + r1 * d0y + r2 * d0z
+        rs = (r0 + r1 + r2) * s
+        Rd[j] = rd
+        Rdms[j] = rd - rs
+        a = (rd - rs * dsi) / ds2
+        A[j] = a if regular else 0.0
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
@@ -409,9 +472,9 @@ def chroma_rows(R, w, sa, dirs, nrm, v, A, ds, rows, chroma_sigma):
         nv = nx * v[q, 0] + ny * v[q, 1] + nz * v[q, 2]
         rx, ry, rz = 2.0 * nv * nx - v[q, 0], 2.0 * nv * ny - v[q, 1], 2.0 * nv * nz - v[q, 2]
         acc = 0.0
+        _chroma_b_row(R, i, A[q], ds[q], B[q])  # vectorises; the exp below cannot
         for j in range(L):
             r0, r1, r2 = R[i, j, 0], R[i, j, 1], R[i, j, 2]
-            B[q, j] = (r0 + r1 + r2) * s - A[q, j] * ds[q]
             wc = 0.0
             if w[i, j] > 0.0:
                 cos_lr = rx * dirs[j, 0] + ry * dirs[j, 1] + rz * dirs[j, 2]
@@ -424,6 +487,14 @@ def chroma_rows(R, w, sa, dirs, nrm, v, A, ds, rows, chroma_sigma):
         for j in range(L):
             cw[q, j] = math.sqrt(cw[q, j]) * inv
     return B, cw
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _chroma_b_row(R, i, A, ds, B):
+    """``B = R·s − A (d_0·s)`` of function i (:func:`chroma_rows`)."""
+    s = 1.0 / math.sqrt(3.0)
+    for j in range(B.size):
+        B[j] = (R[i, j, 0] + R[i, j, 1] + R[i, j, 2]) * s - A[j] * ds
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
@@ -449,3 +520,115 @@ def colour_scatter(R, valid, b1, b2):
         b[i] = s12
         c[i] = s22
     return a, b, c
+
+
+# ------------------------------------------------------------------------------- small glue
+# Per-function steps that numpy does in a dozen small calls per chunk (≈ 2 ms of Python glue
+# per 64 functions, held under the GIL while the other worker waits): one call each.
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def tangent_basis(n):
+    """``_skin_fit._tangent_basis``: two unit vectors ``(N, 3)`` orthogonal to ``n`` and to
+    each other, ``t_1 = normalize(n × a)`` (a = x̂, or ŷ where |n_x| ≥ 0.9; +Z where the
+    cross product vanishes, as ``normalize``), ``t_2 = n × t_1``. Same arithmetic as the
+    numpy steps (``np.cross``, ``normalize``)."""
+    N = n.shape[0]
+    t1 = np.empty((N, 3))
+    t2 = np.empty((N, 3))
+    for i in range(N):
+        n0, n1, n2 = n[i, 0], n[i, 1], n[i, 2]
+        a0, a1, a2 = (1.0, 0.0, 0.0) if abs(n0) < 0.9 else (0.0, 1.0, 0.0)
+        c0 = n1 * a2 - n2 * a1
+        c1 = n2 * a0 - n0 * a2
+        c2 = n0 * a1 - n1 * a0
+        r = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        if r > 1e-30:
+            c0, c1, c2 = c0 / r, c1 / r, c2 / r
+        else:
+            c0, c1, c2 = 0.0, 0.0, 1.0
+        t1[i, 0], t1[i, 1], t1[i, 2] = c0, c1, c2
+        t2[i, 0] = n1 * c2 - n2 * c1
+        t2[i, 1] = n2 * c0 - n0 * c2
+        t2[i, 2] = n0 * c1 - n1 * c0
+    return t1, t2
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def moment_normal(y, w, sa, dirs, fallback):
+    """``_skin_fit.moment_normal``: ``normalize(Σ_l y_l w_l δA_l ω_l)`` per function (Ma et
+    al. 2007), ``fallback`` where the moment vanishes (|m| ≤ 1e-300). ``y, w`` ``(N, L)``,
+    ``sa`` ``(L,)``, ``dirs`` ``(L, 3)``, ``fallback`` ``(N, 3)``. Sums in light order (the
+    numpy steps use a matrix product: equal to rounding)."""
+    N, L = y.shape
+    out = np.empty((N, 3))
+    for i in range(N):
+        m0 = m1 = m2 = 0.0
+        for j in range(L):
+            q = y[i, j] * w[i, j] * sa[j]
+            m0 += q * dirs[j, 0]
+            m1 += q * dirs[j, 1]
+            m2 += q * dirs[j, 2]
+        r = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+        if r > 1e-300:
+            out[i, 0], out[i, 1], out[i, 2] = m0 / r, m1 / r, m2 / r
+        else:
+            out[i, 0], out[i, 1], out[i, 2] = fallback[i, 0], fallback[i, 1], fallback[i, 2]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def cast_shadow(shadow, n, dirs, k, lim):
+    """The cast-shadow test of ``skin._fit_chunk``: shadowed samples that the fitted lobe
+    says are lit, ``shadow & (max(k, 0) max(0, n·l) > lim)``; ``shadow`` ``(N, L)`` bool,
+    ``n`` ``(N, 3)``, ``k, lim`` ``(N,)``."""
+    N, L = shadow.shape
+    out = np.zeros((N, L), np.bool_)
+    for i in range(N):
+        kk = max(k[i], 0.0)
+        for j in range(L):
+            if shadow[i, j]:
+                x = max(n[i, 0] * dirs[j, 0] + n[i, 1] * dirs[j, 1] + n[i, 2] * dirs[j, 2], 0.0)
+                out[i, j] = kk * x > lim[i]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _unit_or(x0, x1, x2, f0, f1, f2):
+    """``_skin_model.normalize`` of one vector (``f`` where |x| ≤ 1e-30)."""
+    r = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    if r > 1e-30:
+        return x0 / r, x1 / r, x2 / r
+    return f0, f1, f2
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def d0_from_ratios(mrg, mgb, a, b, c, b1, b2):
+    """``_skin_fit._d0_from_ratios`` after its scatter sums (``colour_scatter``): d_0 =
+    ``normalize(r/g, 1, 1/(g/b))`` (s where no sample qualified), projected onto the plane
+    through s with the least colour scatter (normal e: the smallest-eigenvalue eigenvector of
+    ``[[a, b], [b, c]]`` in the basis ``b1, b2`` ⊥ s). The numpy steps' arithmetic, one call
+    instead of ≈ 40 small ones. Returns ``(d_0 (N, 3), found (N,))``."""
+    N = mrg.shape[0]
+    s = 1.0 / math.sqrt(3.0)
+    d = np.empty((N, 3))
+    found = np.empty(N, np.bool_)
+    for i in range(N):
+        fnd = np.isfinite(mrg[i]) and np.isfinite(mgb[i]) and mgb[i] > 0.0
+        found[i] = fnd
+        x0 = mrg[i] if fnd else 1.0
+        x2 = 1.0 / mgb[i] if fnd else 1.0
+        d0, d1, d2 = _unit_or(x0, 1.0, x2, s, s, s)
+        ai, bi, ci = a[i], b[i], c[i]
+        if fnd and (ai + ci) > 0.0:
+            lam = 0.5 * (ai + ci) - math.sqrt(0.25 * ((ai - ci) * (ai - ci)) + bi * bi)
+            if abs(bi) > 1e-300:
+                ex, ey = bi, lam - ai
+            else:
+                ex, ey = (1.0, 0.0) if ai <= ci else (0.0, 1.0)
+            e0, e1, e2 = _unit_or(ex * b1[0] + ey * b2[0], ex * b1[1] + ey * b2[1],
+                                  ex * b1[2] + ey * b2[2], b1[0], b1[1], b1[2])
+            de = d0 * e0 + d1 * e1 + d2 * e2
+            d0, d1, d2 = _unit_or(d0 - de * e0, d1 - de * e1, d2 - de * e2, s, s, s)
+        d[i, 0], d[i, 1], d[i, 2] = d0, d1, d2
+    return d, found

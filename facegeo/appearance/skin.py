@@ -388,6 +388,7 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     # Everything per chunk, written straight into the outputs: no (N, L, 3) float64 copy of
     # the whole input (those passes cost a third of the fit at 512 functions).
     D = np.empty((N, L, C), np.float32)
+    S = np.empty((N, L, C), np.float32)
     shadow = np.empty((N, L), bool)
     sat = np.zeros((N, L), bool)
     if chunk is None:
@@ -424,6 +425,9 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                          specular_gate, stats, D[sl] if _skin_fit.KERNELS else None)
         if res["D"] is not None:  # else the final separation wrote D[sl] itself
             D[sl] = res["D"] * E[None]  # float32 on assignment
+        # S here, on the worker (not after all chunks, serially): D + S = R up to one float32
+        # rounding
+        np.subtract(R[sl], D[sl], out=S[sl], dtype=np.float32)
         return {k: res[k] for k in out}
 
     for res in _map_chunks(run, starts, threads):
@@ -431,7 +435,6 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
             out[k].append(res[k])
     cat = {k: np.concatenate(val) if val else np.zeros((0,)) for k, val in out.items()}
     flags = cat["flags"].astype(np.int32)
-    S = np.subtract(R, D, dtype=np.float32)  # D + S = R up to one float32 rounding
     hidden = np.zeros((N, L), bool) if vis is None else ~vis
     valid = (flags & (FLAG_BLACK | FLAG_SHADOWED)) == 0
     return SkinFit(lights=lights, view=v, normal=cat["n"], normal_moment=cat["nm"],
@@ -586,9 +589,16 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
         flags |= np.where(sing2, FLAG_SINGULAR, 0)
         Smu = np.maximum(mu_s, 0.0) / np.sqrt(3.0)
     # k: the lobe's scale at the final normal (fit_lambertian_lobe, on the final |D|)
-    x = np.maximum(n @ l.T, 0.0)
     rho_d = np.pi * np.maximum(k, 0.0)[:, None] * d0
-    cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
+    if _skin_fit.KERNELS:
+        from facegeo.appearance._skin_kernels_samples import cast_shadow
+
+        cast = cast_shadow(np.ascontiguousarray(shadow), np.ascontiguousarray(n, np.float64),
+                           np.ascontiguousarray(l), np.ascontiguousarray(k, np.float64),
+                           2.0 * threshold * np.asarray(ref, np.float64))
+    else:
+        x = np.maximum(n @ l.T, 0.0)
+        cast = shadow & (np.maximum(k, 0.0)[:, None] * x > 2.0 * threshold * ref[:, None])
     nv = np.einsum("ni,ni->n", n, v)
     flags |= np.where(nv < GRAZING_COS, FLAG_GRAZING_VIEW, 0)
     rho_s = specular_energy(Smu, shadow, lights, n, v, eta) if not single else np.zeros(n_f)
