@@ -180,6 +180,30 @@ def _dfs_transitions(n: int, r: int, budget: int) -> np.ndarray | None:
     return np.array(delta, np.int64) if found else None
 
 
+#: Long-run codes found by a search for codes invariant under a free group of affine maps of
+#: the n-cube (``scripts/search_long_run_codes.py``, which regenerates them): ``n`` -> (first
+#: block of transitions ``T``, the bit permutation ``pi`` as its cycles, number of blocks ``G``).
+#: The code is ``T, pi(T), pi**2(T), …`` (``G`` blocks, ``pi`` applied to each transition).
+_ORBIT_CODES = {
+    # gap 6 (Goddyn & Gvozdjak 2003's optimum for 8 bits): S = 17, 479 306 search nodes
+    8: ("01264703265710325471032576103546", ((0, 1, 2, 3), (4, 5, 6, 7)), 8),
+}
+
+
+def _orbit_transitions(T: str, cycles: tuple, G: int) -> np.ndarray:
+    """Transitions of the code ``T, pi(T), …, pi**(G - 1)(T)`` (``pi`` by its ``cycles``):
+    (G * len(T),) int64."""
+    n = sum(len(c) for c in cycles)
+    pi = np.arange(n)
+    for c in cycles:
+        pi[list(c)] = np.roll(c, -1)
+    block = np.array([int(ch) for ch in T], np.int64)
+    out = [block]
+    for _ in range(G - 1):
+        out.append(pi[out[-1]])
+    return np.concatenate(out)
+
+
 def _compose(A: np.ndarray, n: int, B: np.ndarray, m: int, s: int) -> np.ndarray:
     """Goddyn, Lawrence & Nemeth 1988, Theorem 1: an (n + m)-bit cyclic Gray code from an
     n-bit one (transitions ``A``) and an m-bit one (``B``), ``n >= m``, odd ``s``, ``t = 2**m
@@ -207,6 +231,9 @@ def _transitions(n: int) -> tuple[np.ndarray, int]:
             if d is not None:
                 return d, r
     best = None
+    if n in _ORBIT_CODES:
+        d = _orbit_transitions(*_ORBIT_CODES[n])
+        best = (d, _cyclic_min_gap(d))
     for m in range(1, n // 2 + 1):
         A, _ = _transitions(n - m)
         B, _ = _transitions(m)
