@@ -16,10 +16,11 @@ Private helpers of :mod:`facegeo.geometry.structured_light` (patterns) and
   only as reliable as its own decision *and* the base plane's.
 * ``"minsw"`` — a *long-run* Gray code (Gupta et al. 2013's "max min-SW" code): consecutive
   stripes still differ in one plane, but every plane's interior stripes are long (at least
-  :func:`long_run_min_run` stripes; 7 for 10 bits against 2 for the reflected code), so the
-  finest pattern survives a blur that erases the reflected code's last planes. Built by
-  :func:`long_run_transitions` (Goddyn, Lawrence & Nemeth 1988, Theorem 1). It has no binary
-  prefix structure: decoding goes through a code → stripe table (:func:`stripe_table`).
+  :func:`long_run_min_run` stripes; 8 for 10 bits, the optimum and Gupta et al.'s, against 2
+  for the reflected code), so the finest pattern survives a blur that erases the reflected
+  code's last planes. Built by :func:`long_run_transitions` (a stored 8-bit code found by a
+  symmetric search, and Goddyn, Lawrence & Nemeth 1988, Theorem 1). It has no binary prefix
+  structure: decoding goes through a code → stripe table (:func:`stripe_table`).
 
 References
 ----------
@@ -30,8 +31,10 @@ Goddyn, Lawrence, Nemeth. Gray codes with optimized run lengths. Utilitas Mathem
 179–192 (Theorem 1, as restated by Goddyn & Gvozdjak 2003).
 
 Goddyn, Gvozdjak. Binary Gray codes with long bit runs. Electron. J. Combin. 10, 2003, #R27
-(the optimum min-runs by exhaustive search: 8 for 10 bits; not reached here, see
-:func:`long_run_transitions`).
+(the optimum min-runs by exhaustive search: 6 for 8 bits, 8 for 10 bits, both reached here;
+codes invariant under a bit permutation, the idea of the search in
+``scripts/search_long_run_codes.py``; their refined recursive construction is not
+implemented).
 """
 
 from __future__ import annotations
@@ -191,8 +194,11 @@ _ORBIT_CODES = {
 
 
 def _orbit_transitions(T: str, cycles: tuple, G: int) -> np.ndarray:
-    """Transitions of the code ``T, pi(T), …, pi**(G - 1)(T)`` (``pi`` by its ``cycles``):
-    (G * len(T),) int64."""
+    """Transitions of the code ``T, pi(T), …, pi**(G - 1)(T)``: (G * len(T),) int64.
+
+    ``T`` is the first block, one decimal digit per transition (bit index, so ``n <= 10``);
+    ``pi`` the bit permutation given by its ``cycles`` (each cycle maps an entry to the next);
+    block ``j + 1`` is ``pi`` applied to every transition of block ``j``."""
     n = sum(len(c) for c in cycles)
     pi = np.arange(n)
     for c in cycles:
@@ -256,15 +262,26 @@ def long_run_transitions(n: int) -> np.ndarray:
       gap ``r <= n`` it finds within 20 000 placed words: 1, 2, 2, 2, 4, 4 for ``n = 1 …
       6`` (optimal up to 5 bits: the search exhausts ``r + 1`` without a cycle, e.g. no
       3- or 4-bit cycle has gap 3; for 6 bits the search for 5 runs out of budget);
+    * ``n = 8``: a stored code of gap 6 (``_ORBIT_CODES``), the orbit of a 32-transition block
+      under the affine map ``x -> pi(x) XOR S`` of the 8-cube (``pi`` two 4-cycles of bits,
+      ``S = 17``), which acts freely with order 8: 8 blocks, block ``j + 1`` is ``pi`` of
+      block ``j``. Found by the depth-first search of ``scripts/search_long_run_codes.py``
+      (numba, 479 306 nodes, about 11 CPU-s; it regenerates the stored block, a slow test checks
+      that) — the symmetry is what makes it tractable: every placed transition places 8
+      words;
     * ``n >= 7``: Goddyn, Lawrence & Nemeth 1988, Theorem 1 (:func:`_compose`), over every
       split ``n = (n - m) + m`` with ``m <= n / 2`` and every odd ``s < 2**m``, keeping the
-      largest cyclic gap (first found on ties).
+      largest cyclic gap (the stored code when it is as good; first found on ties). From the
+      8-bit code of gap 6, ``10 = 8 + 2`` with ``s = 3`` gives gap 8: a bit of the 8-bit code
+      waits at least 6 of its letters plus 2 of the 2-bit code's (one every 4 letters), a bit
+      of the 2-bit code 2 × 4 letters.
 
-    Reached: 5, 5, 6, 7, 8, 8 for ``n = 7 … 12`` (the table in ``docs/structured-light.md``,
-    tested). Goddyn & Gvozdjak 2003 list the optima 5, 6, 7, 8 for ``n = 7 … 10``: Theorem 1
-    alone stops at 7 for 10 bits (10 = 5 + 5 needs ``s, t = 15, 17``, and a gap of 4 in the
-    5-bit code of the 17 letters meets the two adjacent letters of every period: 7 steps);
-    their optimum needs their refined construction, not implemented.
+    Reached: 5, 6, 6, 8, 8, 8 for ``n = 7 … 12`` and 9, 9, 11, 11 for ``13 … 16`` (the table
+    in ``docs/structured-light.md``, tested up to 12). Goddyn & Gvozdjak 2003 list the optima
+    5, 6, 7, 8 for ``n = 7 … 10``: all reached but 9 bits (6; the orbit search for gap 7 with
+    two 4-cycles and a fixed bit ran out of budget). Theorem 1 alone stops at 7 for 10 bits
+    (10 = 5 + 5 needs ``s, t = 15, 17``, and a gap of 4 in the 5-bit code of the 17 letters
+    meets the two adjacent letters of every period: 7 steps).
 
     Parameters
     ----------
