@@ -6,9 +6,9 @@ The code is sought as the orbit of one block under an affine map of the n-cube,
 is ``G`` blocks of ``P = 2**n / G`` transitions, block ``j`` being ``pi**j`` applied to the
 first block ``T``, so the words are ``w[j P + i] = W_j XOR pi**j(p_i)`` with ``p_i`` the prefix
 XOR of ``T`` and ``W_{j+1} = W_j XOR pi**j(S)``, ``S = p_P``. Only ``T`` (``P`` transitions)
-is searched; each placed transition places ``G`` words at once, which prunes hard. This is the
-symmetry idea of Goddyn & Gvozdjak 2003 (Electron. J. Combin. 10, #R27: codes invariant under a
-bit rotation), with a group chosen to act freely: for ``n = 8`` a rotation of all eight bits
+is searched; each placed transition places ``G`` words at once, which prunes hard (restricting
+a Gray-code search to codes with a symmetry is a standard device; this particular search is
+this project's). The group must act freely on the words: for ``n = 8`` a rotation of all eight bits
 cannot (``A**4`` then has fixed points for every even-weight ``S``), two 4-cycles with ``S``
 odd on each can (``A**4`` is the complement, ``A**8`` the identity: ``G = 8``).
 

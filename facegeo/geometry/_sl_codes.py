@@ -31,10 +31,9 @@ Goddyn, Lawrence, Nemeth. Gray codes with optimized run lengths. Utilitas Mathem
 179–192 (Theorem 1, as restated by Goddyn & Gvozdjak 2003).
 
 Goddyn, Gvozdjak. Binary Gray codes with long bit runs. Electron. J. Combin. 10, 2003, #R27
-(the optimum min-runs by exhaustive search: 6 for 8 bits, 8 for 10 bits, both reached here;
-codes invariant under a bit permutation, the idea of the search in
-``scripts/search_long_run_codes.py``; their refined recursive construction is not
-implemented).
+(the optimum min-runs: 6 for 8 bits, 8 for 10 bits, both reached here — 8 bits by the
+symmetric search of ``scripts/search_long_run_codes.py``, this project's, not theirs; their
+refined recursive construction is not implemented).
 """
 
 from __future__ import annotations
