@@ -16,10 +16,11 @@ Private helpers of :mod:`facegeo.geometry.structured_light` (patterns) and
   only as reliable as its own decision *and* the base plane's.
 * ``"minsw"`` — a *long-run* Gray code (Gupta et al. 2013's "max min-SW" code): consecutive
   stripes still differ in one plane, but every plane's interior stripes are long (at least
-  :func:`long_run_min_run` stripes; 7 for 10 bits against 2 for the reflected code), so the
-  finest pattern survives a blur that erases the reflected code's last planes. Built by
-  :func:`long_run_transitions` (Goddyn, Lawrence & Nemeth 1988, Theorem 1). It has no binary
-  prefix structure: decoding goes through a code → stripe table (:func:`stripe_table`).
+  :func:`long_run_min_run` stripes; 8 for 10 bits, the optimum and Gupta et al.'s, against 2
+  for the reflected code), so the finest pattern survives a blur that erases the reflected
+  code's last planes. Built by :func:`long_run_transitions` (a stored 8-bit code found by a
+  symmetric search, and Goddyn, Lawrence & Nemeth 1988, Theorem 1). It has no binary prefix
+  structure: decoding goes through a code → stripe table (:func:`stripe_table`).
 
 References
 ----------
@@ -30,8 +31,9 @@ Goddyn, Lawrence, Nemeth. Gray codes with optimized run lengths. Utilitas Mathem
 179–192 (Theorem 1, as restated by Goddyn & Gvozdjak 2003).
 
 Goddyn, Gvozdjak. Binary Gray codes with long bit runs. Electron. J. Combin. 10, 2003, #R27
-(the optimum min-runs by exhaustive search: 8 for 10 bits; not reached here, see
-:func:`long_run_transitions`).
+(the optimum min-runs: 6 for 8 bits, 8 for 10 bits, both reached here — 8 bits by the
+symmetric search of ``scripts/search_long_run_codes.py``, this project's, not theirs; their
+refined recursive construction is not implemented).
 """
 
 from __future__ import annotations
@@ -180,6 +182,33 @@ def _dfs_transitions(n: int, r: int, budget: int) -> np.ndarray | None:
     return np.array(delta, np.int64) if found else None
 
 
+#: Long-run codes found by a search for codes invariant under a free group of affine maps of
+#: the n-cube (``scripts/search_long_run_codes.py``, which regenerates them): ``n`` -> (first
+#: block of transitions ``T``, the bit permutation ``pi`` as its cycles, number of blocks ``G``).
+#: The code is ``T, pi(T), pi**2(T), …`` (``G`` blocks, ``pi`` applied to each transition).
+_ORBIT_CODES = {
+    # gap 6 (Goddyn & Gvozdjak 2003's optimum for 8 bits): S = 17, 479 306 search nodes
+    8: ("01264703265710325471032576103546", ((0, 1, 2, 3), (4, 5, 6, 7)), 8),
+}
+
+
+def _orbit_transitions(T: str, cycles: tuple, G: int) -> np.ndarray:
+    """Transitions of the code ``T, pi(T), …, pi**(G - 1)(T)``: (G * len(T),) int64.
+
+    ``T`` is the first block, one decimal digit per transition (bit index, so ``n <= 10``);
+    ``pi`` the bit permutation given by its ``cycles`` (each cycle maps an entry to the next);
+    block ``j + 1`` is ``pi`` applied to every transition of block ``j``."""
+    n = sum(len(c) for c in cycles)
+    pi = np.arange(n)
+    for c in cycles:
+        pi[list(c)] = np.roll(c, -1)
+    block = np.array([int(ch) for ch in T], np.int64)
+    out = [block]
+    for _ in range(G - 1):
+        out.append(pi[out[-1]])
+    return np.concatenate(out)
+
+
 def _compose(A: np.ndarray, n: int, B: np.ndarray, m: int, s: int) -> np.ndarray:
     """Goddyn, Lawrence & Nemeth 1988, Theorem 1: an (n + m)-bit cyclic Gray code from an
     n-bit one (transitions ``A``) and an m-bit one (``B``), ``n >= m``, odd ``s``, ``t = 2**m
@@ -207,6 +236,9 @@ def _transitions(n: int) -> tuple[np.ndarray, int]:
             if d is not None:
                 return d, r
     best = None
+    if n in _ORBIT_CODES:
+        d = _orbit_transitions(*_ORBIT_CODES[n])
+        best = (d, _cyclic_min_gap(d))
     for m in range(1, n // 2 + 1):
         A, _ = _transitions(n - m)
         B, _ = _transitions(m)
@@ -229,15 +261,26 @@ def long_run_transitions(n: int) -> np.ndarray:
       gap ``r <= n`` it finds within 20 000 placed words: 1, 2, 2, 2, 4, 4 for ``n = 1 …
       6`` (optimal up to 5 bits: the search exhausts ``r + 1`` without a cycle, e.g. no
       3- or 4-bit cycle has gap 3; for 6 bits the search for 5 runs out of budget);
+    * ``n = 8``: a stored code of gap 6 (``_ORBIT_CODES``), the orbit of a 32-transition block
+      under the affine map ``x -> pi(x) XOR S`` of the 8-cube (``pi`` two 4-cycles of bits,
+      ``S = 17``), which acts freely with order 8: 8 blocks, block ``j + 1`` is ``pi`` of
+      block ``j``. Found by the depth-first search of ``scripts/search_long_run_codes.py``
+      (numba, 479 306 nodes, about 11 CPU-s; it regenerates the stored block, a slow test checks
+      that) — the symmetry is what makes it tractable: every placed transition places 8
+      words;
     * ``n >= 7``: Goddyn, Lawrence & Nemeth 1988, Theorem 1 (:func:`_compose`), over every
       split ``n = (n - m) + m`` with ``m <= n / 2`` and every odd ``s < 2**m``, keeping the
-      largest cyclic gap (first found on ties).
+      largest cyclic gap (the stored code when it is as good; first found on ties). From the
+      8-bit code of gap 6, ``10 = 8 + 2`` with ``s = 3`` gives gap 8: a bit of the 8-bit code
+      waits at least 6 of its letters plus 2 of the 2-bit code's (one every 4 letters), a bit
+      of the 2-bit code 2 × 4 letters.
 
-    Reached: 5, 5, 6, 7, 8, 8 for ``n = 7 … 12`` (the table in ``docs/structured-light.md``,
-    tested). Goddyn & Gvozdjak 2003 list the optima 5, 6, 7, 8 for ``n = 7 … 10``: Theorem 1
-    alone stops at 7 for 10 bits (10 = 5 + 5 needs ``s, t = 15, 17``, and a gap of 4 in the
-    5-bit code of the 17 letters meets the two adjacent letters of every period: 7 steps);
-    their optimum needs their refined construction, not implemented.
+    Reached: 5, 6, 6, 8, 8, 8 for ``n = 7 … 12`` and 9, 9, 11, 11 for ``13 … 16`` (the table
+    in ``docs/structured-light.md``, tested up to 12). Goddyn & Gvozdjak 2003 list the optima
+    5, 6, 7, 8 for ``n = 7 … 10``: all reached but 9 bits (6; the orbit search for gap 7 with
+    two 4-cycles and a fixed bit ran out of budget). Theorem 1 alone stops at 7 for 10 bits
+    (10 = 5 + 5 needs ``s, t = 15, 17``, and a gap of 4 in the 5-bit code of the 17 letters
+    meets the two adjacent letters of every period: 7 steps).
 
     Parameters
     ----------
