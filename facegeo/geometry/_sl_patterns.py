@@ -136,7 +136,7 @@ class PatternSpec:
         ``"xor02"`` / ``"xor04"`` its bit planes XORed with the plane of stripe width 2 / 4
         (every projected pattern is high-frequency, so the global light of interreflections
         is the same under a pattern and its inverse); ``"minsw"`` a long-run Gray code (every
-        interior stripe of every plane >= 7 stripes wide at 10 bits: it survives subsurface
+        interior stripe of every plane >= 8 stripes wide at 10 bits: it survives subsurface
         blur; at most 16 bits). See :mod:`facegeo.geometry._sl_codes`.
         Frames of family ``c`` are named ``"{c}_{axis}_{bit:02d}"``; the default
         ``("gray",)`` keeps the classic names (and is left out of :meth:`to_dict`).
