@@ -108,6 +108,11 @@ SAME_VIEW_RAD = 1e-7
 BLEND_MIN_SHARE = 1e-3
 #: A bilinear tap farther than this many texel spacings from the hit point lies on another chart.
 TAP_MAX_TEXELS = 3.0
+#: Read, relight and resynthesise float16 fields and fits in one compiled pass
+#: (:meth:`facegeo.render._fitstore.FitStore.relit_rows`) where it applies (full resynthesis,
+#: ``light_step = 1``, float16 field and D on the light-stage grid). False: always the numpy
+#: read (float32 copies of R, D and S, Eq. 4 as a matrix product), which it is tested against.
+FUSED_READ = True
 #: Functions per resynthesis chunk: ``CHUNK_SAMPLES // L`` (bounded temporaries).
 CHUNK_SAMPLES = 1 << 19
 #: Functions per ordered camera pair that :func:`cross_validated_shrinkage` resynthesises
@@ -593,35 +598,29 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                 raise InputError(f"camera {src.name}: resynthesis needs its skin-model fit "
                                  "(run 'facegeo fit SCAN')")
             fidx, fitted = src.fit.locate(rows)
+        fused = (FUSED_READ and resynthesis is True and step == 1
+                 and src.fit.uses_stored_kernel(src.field, lights, active.size))
+        st["fused_read"] = st.get("fused_read", False) or fused
         for c0 in range(0, k_idx.size, chunk):
             sl = slice(c0, min(k_idx.size, c0 + chunk))
             t0 = time.perf_counter()
-            R = np.asarray(src.field[rows[sl]], np.float32)
-            out = _relight(R, W)
-            outs = [out] * V
-            ok = np.isfinite(out).all(axis=1)
-            st["samples"] += int(ok.sum())
-            t1 = time.perf_counter()
-            st["seconds_read"] += t1 - t0
-            if resynthesis:
-                todo = np.flatnonzero(ok & fitted[sl] & ~same[sl])
+            if fused:  # read, naive value and resynthesis in one compiled pass
+                want = fitted[sl] & ~same[sl]
+                out, relit, ok, back = src.fit.relit_rows(src.field, rows[sl], fidx[sl], want,
+                                                          vn[sl], w, lights)
+                st["seconds_resynthesis"] += time.perf_counter() - t0
+                st["samples"] += int(ok.sum())
                 st["unfitted"] += int(np.count_nonzero(ok & ~fitted[sl]))
-                if todo.size:
-                    every = todo.size == R.shape[0]  # no copy of the chunk when all are to do
-                    fit = src.fit.skin_fit(fidx[sl] if every else fidx[sl][todo],
-                                           R if every else R[todo], lights)
-                    t2 = time.perf_counter()
-                    st["seconds_fit"] += t2 - t1
-                    relit, back = _resynthesize_relit(fit, vn[sl][todo], w, active, w_act,
-                                                      diffuse_only=resynthesis == "diffuse",
-                                                      light_step=step)
-                    st["seconds_resynthesis"] += time.perf_counter() - t2
-                    # the fitted normal puts v_n below the horizon while the mesh sees the
-                    # texel (grazing views): keep the measured function rather than black
-                    use = todo[~back]
-                    outs = [_shrunk(out, use, relit[~back], lam, copy=V > 1) for lam in lams]
-                    st["resynthesized"] += int(use.size)
-                    st["backfacing_fallback"] += int(back.sum())
+                todo = np.flatnonzero(ok & want)
+                use = todo[~back[todo]]
+                outs = [_shrunk(out, use, relit[use], lam, copy=V > 1) for lam in lams]
+                st["resynthesized"] += int(use.size)
+                st["backfacing_fallback"] += int(back[todo].sum())
+            else:
+                outs, ok = _read_and_resynthesize(
+                    src, rows[sl], fidx[sl] if resynthesis else None,
+                    fitted[sl] if resynthesis else None, same[sl], vn[sl], W, w, active, w_act,
+                    lights, V, lams, resynthesis, step, st, t0)
             kk = k_idx[sl][ok]
             for v in range(V):
                 acc[v, kk] += b[sl][ok, None] * outs[v][ok]
@@ -632,6 +631,49 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     for key in ("seconds_read", "seconds_fit", "seconds_resynthesis"):
         st[key] = round(st[key], 4)
     return colour if shrinkage_set is not None else colour[0]
+
+
+def _read_and_resynthesize(src, rows, fidx, fitted, same, vn, W, w, active, w_act, lights, V,
+                           lams, resynthesis, step, st, t0):
+    """One chunk of :func:`shade_texels` without the fused pass (the naive baseline, the
+    ``"diffuse"`` ablation, ``light_step > 1``, fits not stored as float16): Eq. 4 of the
+    field rows (from the float16 bits as the fused pass does it, else a float32 matrix
+    product), then for resynthesis the rows widened to float32, the fits read (D,
+    S = R − D) and :func:`_resynthesize_relit`. Returns each shrinkage's values ``(n, 3)`` and the rows
+    whose samples are all finite; updates the counts and seconds in ``st``."""
+    if src.field.dtype == np.float16:  # Eq. 4 from the bits, as the fused pass computes it
+        from facegeo.appearance._skin_resynth import relight_stored
+
+        out, ok = relight_stored(src.field, rows, w)
+        R = np.asarray(src.field[rows], np.float32) if resynthesis else None
+    else:
+        R = np.asarray(src.field[rows], np.float32)
+        out = _relight(R, W)
+        ok = np.isfinite(out).all(axis=1)
+    outs = [out] * V
+    st["samples"] += int(ok.sum())
+    t1 = time.perf_counter()
+    st["seconds_read"] += t1 - t0
+    if resynthesis:
+        todo = np.flatnonzero(ok & fitted & ~same)
+        st["unfitted"] += int(np.count_nonzero(ok & ~fitted))
+        if todo.size:
+            every = todo.size == len(rows)  # no copy of the chunk when all are to do
+            fit = src.fit.skin_fit(fidx if every else fidx[todo],
+                                   R if every else R[todo], lights)
+            t2 = time.perf_counter()
+            st["seconds_fit"] += t2 - t1
+            relit, back = _resynthesize_relit(fit, vn[todo], w, active, w_act,
+                                              diffuse_only=resynthesis == "diffuse",
+                                              light_step=step)
+            st["seconds_resynthesis"] += time.perf_counter() - t2
+            # the fitted normal puts v_n below the horizon while the mesh sees the
+            # texel (grazing views): keep the measured function rather than black
+            use = todo[~back]
+            outs = [_shrunk(out, use, relit[~back], lam, copy=V > 1) for lam in lams]
+            st["resynthesized"] += int(use.size)
+            st["backfacing_fallback"] += int(back.sum())
+    return outs, ok
 
 
 def _shrunk(naive, use, relit, lam: float, *, copy: bool):
