@@ -30,6 +30,11 @@ floating-point units — pays ≈ 5 ns for even when vectorised), the chroma shi
 (overlapping). Vectorising the loop over lights (LLVM does, 4 lanes) bought nothing
 measurable on that CPU; skipping what adds 0 and removing roots and divisions did.
 
+:func:`relit_stored_grid` runs :func:`resynth_relit_grid`'s per-function code on stored
+float16 functions, decoding their bits through a 65,536-entry table (exact) one function at a
+time, and gives the measured function's Eq. 4 (the naive value) from the same read
+(:func:`relight_stored`: the naive value alone).
+
 Kernels are compiled on first use and cached on disk (``cache=True``); the threading layer is
 chosen by ``facegeo/__init__.py`` (``NUMBA_THREADING_LAYER_PRIORITY``).
 """

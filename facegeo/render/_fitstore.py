@@ -12,7 +12,9 @@ Private module behind :mod:`facegeo.render`. A camera's folder ``<dest>/<camera>
 The specular component is not stored: S = R − D with R the projected field (the fit's own
 definition, so D + S reproduces the measured function exactly and a view equal to the source
 view returns it unchanged). With float16 D, S differs from the fit's by at most D's rounding
-(2⁻¹¹ of D).
+(2⁻¹¹ of D). :meth:`FitStore.relit_rows` reads float16 R and D in the compiled pass of
+:func:`facegeo.appearance._skin_resynth.relit_stored` (no float32 copies; S formed there as
+:meth:`FitStore.skin_fit` forms it).
 """
 
 from __future__ import annotations

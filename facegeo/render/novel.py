@@ -54,6 +54,12 @@ resynthesis, each equal bit for bit to its own call.
 Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthesize_relit`):
 Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised
 samples are computed only at the lights that carry energy and never stored.
+Where the field and the fit's D are stored as float16 (the default) and ``light_step = 1``,
+each chunk of texels is read, relit naively and resynthesised in one compiled pass
+(:data:`FUSED_READ`, :meth:`facegeo.render._fitstore.FitStore.relit_rows`): the float16 bits
+are decoded exactly inside the kernel, R, D and S are never widened into float32 arrays and
+the naive Eq. 4 is no matrix product (same samples, same resynthesis code; the naive sums
+are float64, the sgemm's were float32).
 
 **Speed against accuracy (optional, not the paper):** ``light_step = k > 1`` evaluates the
 resynthesised function once per k × k block of the light grid, at the block's energy centroid
@@ -385,6 +391,18 @@ def _relight(R, W) -> np.ndarray:
     return (R.reshape(R.shape[0], -1) @ W.astype(np.float32)).astype(np.float64)
 
 
+def _naive_rows(field, rows, W, w):
+    """Eq. (4) of field rows, ``(n, 3)`` float64, and which rows are finite: from the float16
+    bits in one compiled pass (:func:`facegeo.appearance._skin_resynth.relight_stored`, the
+    naive value the fused pass gives, float64 sums), else :func:`_relight`."""
+    if field.dtype == np.float16 and field.ndim == 3 and field.shape[2] == 3:
+        from facegeo.appearance._skin_resynth import relight_stored
+
+        return relight_stored(field, rows, w)
+    out = _relight(field[rows], W)
+    return out, np.isfinite(out).all(axis=1)
+
+
 def _check_light_step(light_step, lights) -> int:
     from facegeo.appearance._skin_resynth import check_light_step
 
@@ -455,17 +473,30 @@ def cross_validated_shrinkage(sources, weights, lights, *,
             rows_s, _ = src.rows_of(tex)
             fidx, _ = src.fit.locate(rows_s)
             pairs.append(other.name)
+            fused = FUSED_READ and step == 1 and src.fit.uses_stored_kernel(src.field, lights,
+                                                                             active.size)
             for c0 in range(0, tex.size, chunk):
                 sl = slice(c0, min(tex.size, c0 + chunk))
-                R = np.asarray(src.field[rows_s[sl]], np.float32)
-                q = _relight(R, W)
-                m = _relight(other.field[rows_o[sl]], W)
-                ok = np.isfinite(q).all(axis=1) & np.isfinite(m).all(axis=1)
+                vb = other.v_world[rows_o[sl]]
+                m, ok = _naive_rows(other.field, rows_o[sl], W, w)
+                if fused:  # as shade_texels: one compiled pass over the float16 storage
+                    q, p, ok_q, back = src.fit.relit_rows(src.field, rows_s[sl], fidx[sl],
+                                                          np.ones(vb.shape[0], bool), vb, w,
+                                                          lights)
+                    ok &= ok_q
+                    q, p, m, back = q[ok], p[ok], m[ok], back[ok]
+                else:
+                    q, ok_q = _naive_rows(src.field, rows_s[sl], W, w)
+                    ok &= ok_q
+                    if not ok.any():
+                        continue
+                    R = np.asarray(src.field[rows_s[sl][ok]], np.float32)
+                    q, m = q[ok], m[ok]
+                    fit = src.fit.skin_fit(fidx[sl][ok], R, lights)
+                    p, back = _resynthesize_relit(fit, vb[ok], w, active, w_act,
+                                                  light_step=step)
                 if not ok.any():
                     continue
-                R, q, m, vb = R[ok], q[ok], m[ok], other.v_world[rows_o[sl]][ok]
-                fit = src.fit.skin_fit(fidx[sl][ok], R, lights)
-                p, back = _resynthesize_relit(fit, vb, w, active, w_act, light_step=step)
                 p = np.where(back[:, None], q, p)
                 d = p - q
                 sums += [float((d * (m - q)).sum()), float((d * d).sum()),
@@ -639,17 +670,9 @@ def _read_and_resynthesize(src, rows, fidx, fitted, same, vn, W, w, active, w_ac
     ``"diffuse"`` ablation, ``light_step > 1``, fits not stored as float16): Eq. 4 of the
     field rows (from the float16 bits as the fused pass does it, else a float32 matrix
     product), then for resynthesis the rows widened to float32, the fits read (D,
-    S = R − D) and :func:`_resynthesize_relit`. Returns each shrinkage's values ``(n, 3)`` and the rows
-    whose samples are all finite; updates the counts and seconds in ``st``."""
-    if src.field.dtype == np.float16:  # Eq. 4 from the bits, as the fused pass computes it
-        from facegeo.appearance._skin_resynth import relight_stored
-
-        out, ok = relight_stored(src.field, rows, w)
-        R = np.asarray(src.field[rows], np.float32) if resynthesis else None
-    else:
-        R = np.asarray(src.field[rows], np.float32)
-        out = _relight(R, W)
-        ok = np.isfinite(out).all(axis=1)
+    S = R − D) and :func:`_resynthesize_relit`. Returns each shrinkage's values ``(n, 3)``
+    and the rows whose samples are all finite; updates the counts and seconds in ``st``."""
+    out, ok = _naive_rows(src.field, rows, W, w)
     outs = [out] * V
     st["samples"] += int(ok.sum())
     t1 = time.perf_counter()
@@ -659,8 +682,8 @@ def _read_and_resynthesize(src, rows, fidx, fitted, same, vn, W, w, active, w_ac
         st["unfitted"] += int(np.count_nonzero(ok & ~fitted))
         if todo.size:
             every = todo.size == len(rows)  # no copy of the chunk when all are to do
-            fit = src.fit.skin_fit(fidx if every else fidx[todo],
-                                   R if every else R[todo], lights)
+            R = np.asarray(src.field[rows if every else rows[todo]], np.float32)
+            fit = src.fit.skin_fit(fidx if every else fidx[todo], R, lights)
             t2 = time.perf_counter()
             st["seconds_fit"] += t2 - t1
             relit, back = _resynthesize_relit(fit, vn[todo], w, active, w_act,

@@ -490,10 +490,10 @@ def bench_resynth_kernel(quick: bool) -> list[BenchRow]:
             got = {}
 
             def kernel(vec, step):
-                def run():
+                def call():
                     RS.VECTOR_KERNEL = vec
                     return None, RS.resynthesize_relit(fit, vn, w, light_step=step)
-                return run
+                return call
 
             cases = (("scalar resynth_relit, exact", kernel(False, 1)),
                      ("grid resynth_relit_grid, exact", kernel(True, 1)),
