@@ -561,7 +561,8 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     stats : dict, optional — filled with counts and the seconds spent reading the fields
         (``seconds_read``: rows gathered, converted to float32, relit by Eq. 4), reading the
         fits (``seconds_fit``: D, S = R − D, maps) and resynthesising
-        (``seconds_resynthesis``)
+        (``seconds_resynthesis``); with the fused float16 pass (``fused_read`` True) the
+        reads happen inside it and are counted in ``seconds_resynthesis``
     shrinkage_set : sequence of (mapping str -> float or None), optional — several
         ``shrinkage`` values at once (full resynthesis only; ``shrinkage`` is then ignored):
         the fields are read and the functions resynthesised once, and each value blends its
