@@ -26,6 +26,10 @@ SHRINK_RECOVERY_ABS = 1e-3
 #: ``sky``: the paper-preset benchmark measured 0.28 % at step 2; the tiny grid (16 × 8) is
 #: coarser, so a looser bound — a render that ignores the option gives 0 and fails.
 LIGHT_STEP_2_IMAGE_REL_MAX = 0.05
+#: The fused float16 pass (FUSED_READ) against the numpy read of the same texels (float32
+#: copies of R, D, S, then the kernels): max |Δ| / max |colour|. Both decode the same exact
+#: float32 samples and run the same per-function code, so only summation order could differ.
+FUSED_READ_REL = 1e-6
 
 
 @pytest.fixture(scope="module")
@@ -437,3 +441,35 @@ def test_shrinkage_set_renders_each_shrinkage_as_its_own_call(parts):
     assert not np.array_equal(shrunk.image, paper.image)
     with pytest.raises(InputError, match="shrinkage_set"):
         render_view(*args, samples=vs, resynthesis=False, shrinkage_set=[None])
+
+
+def test_fused_float16_read_equals_the_numpy_read(parts, monkeypatch):
+    """shade_texels with the fused pass (float16 field and D decoded in the kernel, naive and
+    resynthesised Eq. 4 from one read) against FUSED_READ = False on a view 30° from a
+    source camera, both cameras blended: same counts, colours within FUSED_READ_REL. The
+    resynthesised colours differ from the naive ones by far more, so a fused pass that
+    dropped the resynthesis, or read the wrong fit rows, would fail."""
+    from facegeo.render import novel, orbit_camera, shade_texels
+
+    srcs = parts["sources"]
+    src = srcs[0]
+    assert src.field.dtype == np.float16 and src.fit.D.dtype == np.float16
+    t = _fitted_texels(src)
+    p = parts["texels"].p_world[t]
+    far = orbit_camera(parts["rig"].camera(src.name), 30.0).center_world
+    w = _weights(parts["rig"].lights, 3)
+    kw = {"lights": parts["lights"]}
+    st_f: dict = {}
+    fused = shade_texels(t, p, far, srcs, w, stats=st_f, **kw)
+    naive = shade_texels(t, p, far, srcs, w, resynthesis=False, **kw)
+    monkeypatch.setattr(novel, "FUSED_READ", False)
+    st_n: dict = {}
+    ref = shade_texels(t, p, far, srcs, w, stats=st_n, **kw)
+    assert st_f["fused_read"] and not st_n["fused_read"]
+    for key in ("samples", "resynthesized", "unfitted", "backfacing_fallback"):
+        assert st_f[key] == st_n[key], key
+    assert st_f["resynthesized"] > 0
+    scale = np.nanmax(np.abs(ref))
+    assert np.array_equal(np.isnan(fused), np.isnan(ref))
+    assert np.nanmax(np.abs(fused - ref)) <= FUSED_READ_REL * scale
+    assert np.nanmax(np.abs(fused - naive)) > 1e3 * FUSED_READ_REL * scale

@@ -262,3 +262,115 @@ def test_lean_factors_match_the_scalar_ones():
         gf = K._geometry(nl, nv, nh, vh) * K._fresnel(vh, e2)
         num, den = K._gf_ratio(nl, nv, nh, vh, e2)
         assert den > 0.0 and abs(num / den - gf) <= FACTOR_REL * max(gf, 1e-300)
+
+
+# ----------------------------------------------------------------------------- float16 storage
+
+#: The fused pass over float16 storage (``relit_stored``) against the float32 path it replaces
+#: (R and D widened by numpy, S = R − D, ``resynthesize_relit``): per function, |Δ| relative to
+#: the function's largest |value|. The samples are bit-identical and the resynthesis runs the
+#: same per-function code, so only the order of float64 sums could differ.
+STORED_RELIT_REL = 1e-12
+#: The fused naive value (float64 sums of the float32 samples times float64 weights) against
+#: the float32 matrix product ``R.reshape(n, 3L) @ W``: per function and channel, |Δ| relative
+#: to Σ_l |w_l R_l| (the sgemm rounds weights and partial sums to float32: ≈ 1e-7 of that).
+STORED_NAIVE_REL = 1e-6
+
+
+def _float16_bits_to_float32(bits):
+    """An independent decoder (IEEE 754 binary16 → value, float64 arithmetic) of every
+    non-NaN bit pattern."""
+    b = bits.astype(np.int64)
+    sign = np.where(b >> 15, -1.0, 1.0)
+    e = (b >> 10) & 0x1F
+    m = (b & 0x3FF).astype(np.float64)
+    val = np.where(e == 0, m * 2.0 ** -24, (1.0 + m / 1024.0) * 2.0 ** (e - 15.0))
+    val = np.where(e == 0x1F, np.inf, val)
+    return sign * val
+
+
+def test_half_table_decodes_every_float16_exactly():
+    """The decode table against an independent bit decoder for all 65,536 patterns: ±0 (sign
+    kept), subnormals (2⁻²⁴ … ), the largest finite 65504, ±inf; NaN patterns stay NaN with
+    their sign. And it is what numpy's astype gives."""
+    t = _skin_resynth.half_table()
+    bits = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16)
+    nan = (bits & 0x7C00) == 0x7C00
+    nan &= (bits & 0x3FF) != 0
+    want = _float16_bits_to_float32(bits[~nan]).astype(np.float32)
+    assert np.array_equal(t[~nan].view(np.uint32), want.view(np.uint32))  # bit for bit
+    assert np.isnan(t[nan]).all() and np.array_equal(np.signbit(t[nan]), bits[nan] >= 0x8000)
+    assert t[0x0001] == 2.0 ** -24 and t[0x03FF] == 1023 * 2.0 ** -24 and t[0x7BFF] == 65504
+    assert np.signbit(t[0x8000]) and t[0x8000] == 0.0
+    r = np.random.default_rng(3).normal(0, 100, 1000).astype(np.float16)
+    assert np.array_equal(t[r.view(np.uint16)].view(np.uint32), r.astype(np.float32).view(np.uint32))
+
+
+def _stored(hard):
+    """The hard cases stored as float16 (R = D + S and D), with float16 extremes planted in R
+    and D: zeros, subnormals, the largest finite value, values whose difference R − D rounds
+    in float32 (65504 − 2⁻²⁴), and one row with an inf and one with a NaN sample."""
+    lights, fit, vn, w = hard
+    R16 = (fit.diffuse.astype(np.float64) + fit.specular).astype(np.float16)
+    D16 = fit.diffuse.astype(np.float16)
+    bits = R16.view(np.uint16)
+    dbits = D16.view(np.uint16)
+    bits[1, :40, 0] = 0x0001  # the smallest subnormal
+    bits[2, :40, 1] = 0x03FF  # the largest subnormal
+    bits[3, 7, :] = 0x7BFF  # 65504
+    dbits[3, 7, :] = 0x0001  # R − D = 65504 − 2⁻²⁴: rounds in float32
+    bits[4, :, 2] = 0  # a zero channel
+    dbits[6, :, :] = 0x0002
+    bits[8, 11, 1] = 0x7C00  # +inf
+    bits[9, 3, 0] = 0x7E00  # NaN
+    return lights, fit, vn, w, R16, D16
+
+
+def _stored_reference(fit, R16, D16, vn, w):
+    """The path the fused pass replaces: R, D widened by numpy, S = R − D in float32, the
+    naive value as a float32 matrix product, ``resynthesize_relit`` on the widened fit."""
+    R = R16.astype(np.float32)
+    D = D16.astype(np.float32)
+    n, L, _ = R.shape
+    W = np.zeros((L, 3, 3))
+    W[:, np.arange(3), np.arange(3)] = w
+    with np.errstate(invalid="ignore"):  # the planted inf and NaN rows
+        naive = (R.reshape(n, -1) @ W.reshape(3 * L, 3).astype(np.float32)).astype(np.float64)
+    ok = np.isfinite(naive).all(axis=1)
+    relit = np.zeros((n, 3))
+    f = replace(fit, diffuse=D[ok], specular=R[ok] - D[ok], normal=fit.normal[ok],
+                view=fit.view[ok], alpha_0=fit.alpha_0[ok], alpha_1=fit.alpha_1[ok],
+                cast_shadow=fit.cast_shadow[ok], flags=fit.flags[ok])
+    relit[ok] = _skin_resynth.resynthesize_relit(f, vn[ok], w)
+    with np.errstate(invalid="ignore"):
+        mag = np.einsum("nlc,lc->nc", np.abs(R.astype(np.float64)), np.abs(w))
+    return naive, relit, ok, mag
+
+
+def test_stored_pass_equals_the_float32_path_on_hard_cases_and_float16_extremes(hard):
+    """relit_stored (float16 bits decoded in the kernel, naive value and resynthesis in one
+    pass) against the float32 path on the hard cases (v_n = v_0, back-facing and grazing
+    views, shadowed lobes, zero specular, zero diffuse samples) with float16 extremes: the
+    resynthesised sums to STORED_RELIT_REL, the naive sums to STORED_NAIVE_REL, non-finite
+    rows flagged with NaN naive values. A decode that mishandled subnormals, the largest
+    value or the float32 rounding of R − D, or a finite check that missed inf/NaN, fails."""
+    lights, fit, vn, w, R16, D16 = _stored(hard)
+    n = R16.shape[0]
+    assert _skin_resynth.stored_kernel_applies(R16, D16, lights, int(np.any(w != 0, 1).sum()),
+                                               False)
+    rows = np.arange(n)[::-1].copy()  # rows read out of order, as a field's gather
+    naive, relit, finite = _skin_resynth.relit_stored(
+        R16[::-1].copy(), rows, D16, np.arange(n), np.ones(n, bool), normal=fit.normal,
+        view=fit.view, alpha_0=fit.alpha_0, alpha_1=fit.alpha_1, cast_shadow=fit.cast_shadow,
+        eta=fit.eta, lights=lights, v_n=vn, weights=w)
+    ref_naive, ref_relit, ref_ok, mag = _stored_reference(fit, R16, D16, vn, w)
+    assert np.array_equal(finite, ref_ok) and not finite[8] and not finite[9]
+    assert np.isnan(naive[~finite]).all()
+    ok = finite
+    assert np.all(np.abs(naive[ok] - ref_naive[ok]) <= STORED_NAIVE_REL * mag[ok])
+    scale = np.abs(ref_relit).max(axis=1, keepdims=True)
+    assert np.all(np.abs(relit - ref_relit) <= STORED_RELIT_REL * scale)
+    assert np.all(relit[~finite] == 0.0)
+    # the naive-only kernel gives the same naive values bit for bit
+    naive2, finite2 = _skin_resynth.relight_stored(R16, np.arange(n), w)
+    assert np.array_equal(finite2, finite) and np.array_equal(naive2[ok], naive[ok])

@@ -415,6 +415,125 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     return out
 
 
+_HALF_TABLE: np.ndarray | None = None
+
+
+def half_table() -> np.ndarray:
+    """``(65536,)`` float32, read-only: the value of every float16 bit pattern, as numpy's
+    ``astype(np.float32)`` gives it (exact: subnormals, ±0, ±inf and NaN payloads included);
+    the decode table of :func:`relit_stored` (numba has no float16 type)."""
+    global _HALF_TABLE
+    if _HALF_TABLE is None:
+        t = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16).view(np.float16)
+        _HALF_TABLE = t.astype(np.float32)
+        _HALF_TABLE.setflags(write=False)
+    return _HALF_TABLE
+
+
+def relight_stored(field, field_rows, weights):
+    """Eq. 4 of stored float16 measured functions, ``Σ_l w_l ⊙ R_l``, read in one compiled
+    pass from their bits (``_skin_resynth_kernels.relight_stored``; no float32 copy of the
+    rows, no matrix product): float64 sums of the exact float32 samples times the float64
+    weights, the naive value :func:`relit_stored` gives.
+
+    Parameters
+    ----------
+    field : (T, L, 3) float16 array or memmap; field_rows : (n,) int
+    weights : (L, 3)
+
+    Returns
+    -------
+    (n, 3) float64 — NaN where any of the row's samples is not finite; (n,) bool — finite
+    """
+    from facegeo.appearance._skin_resynth_kernels import relight_stored as kernel
+
+    if field.dtype != np.float16 or field.ndim != 3 or field.shape[2] != 3:
+        raise InputError(f"field: expected (T, L, 3) float16, got {field.shape} {field.dtype}")
+    w = as_array(weights, "weights", shape=(field.shape[1], 3))
+    active = np.flatnonzero(np.any(w != 0, axis=1)).astype(np.int64)
+    return kernel(np.asarray(field).view(np.uint16), np.ascontiguousarray(field_rows, np.int64),
+                  half_table(), active, np.ascontiguousarray(w[active], np.float64))
+
+
+def stored_kernel_applies(field, diffuse, lights, n_active: int, single_channel: bool) -> bool:
+    """Whether :func:`relit_stored` serves these stored functions: the compiled kernels on
+    (``KERNELS``, ``VECTOR_KERNEL``), a light-stage grid with at least half its lights carrying
+    energy (where :func:`resynthesize_relit` runs ``resynth_relit_grid``), a 3-channel fit,
+    and field and diffuse component both stored as ``(·, L, 3)`` float16."""
+    return bool(KERNELS and VECTOR_KERNEL and lights.grid is not None and not single_channel
+                and 2 * int(n_active) >= lights.n_lights
+                and field.dtype == np.float16 and diffuse.dtype == np.float16
+                and field.ndim == 3 and field.shape[1:] == (lights.n_lights, 3)
+                and diffuse.ndim == 3 and diffuse.shape[1:] == field.shape[1:])
+
+
+def relit_stored(field, field_rows, diffuse, diffuse_rows, todo, *, normal, view, alpha_0,
+                 alpha_1, cast_shadow, eta, lights, v_n, weights,
+                 specular_skip: float = SPECULAR_SKIP):
+    """Eq. 4 of stored measured functions and of the same functions resynthesised for v_n
+    (§4.3, Eq. 9), in one compiled pass over their float16 storage.
+
+    What a renderer otherwise does in three steps — the rows of the field read and widened to
+    float32 and relit (``R.reshape(n, 3L) @ W``), D read and widened, S = R − D, then
+    :func:`resynthesize_relit` — with R, D and S never widened into arrays: the kernel
+    ``_skin_resynth_kernels.relit_stored_grid`` decodes one function's float16 bits at a time
+    (:func:`half_table`, exact) and runs ``resynth_relit_grid``'s per-function code on them.
+    The samples are bit-identical to that path's (S = R − D rounded to float32 as numpy
+    does); the resynthesised sums are the grid kernel's, the naive sums are float64 sums of
+    the float32 samples times the float64 weights (the sgemm rounds weights and partial sums
+    to float32: a relative difference of order 1e-7). Only where
+    :func:`stored_kernel_applies`.
+
+    Parameters
+    ----------
+    field : (T, L, 3) float16 array or memmap — measured functions R; function i is row
+        ``field_rows[i]``
+    diffuse : (F, L, 3) float16 array or memmap — the fit's diffuse component D; row
+        ``diffuse_rows[i]``
+    todo : (n,) bool — functions to resynthesise (others get only the naive value)
+    normal, view : (n, 3) float64, unit; alpha_0, alpha_1 : (n,) float64; cast_shadow :
+        (n, L) bool; eta : float — the fit's parameters of each function (``SkinFit``)
+    lights : LightSet; v_n : (3,) or (n, 3) unit, the light set's frame
+    weights : (L, 3) — Eq. 4 weights
+
+    Returns
+    -------
+    naive : (n, 3) float64 — Eq. 4 of the measured function; NaN where any of its samples is
+        not finite (as a matrix product gives)
+    relit : (n, 3) float64 — Eq. 4 of the resynthesised function where ``todo``, finite and
+        ``n·v_n > 0``; the measured function's where v_n is the source view (SAME_VIEW_TOL);
+        0 elsewhere
+    finite : (n,) bool
+    """
+    field_rows = np.ascontiguousarray(field_rows, np.int64)
+    n = field_rows.size
+    L = lights.n_lights
+    w = as_array(weights, "weights", shape=(L, 3))
+    vn = check_views(v_n, n)
+    normal = np.ascontiguousarray(normal, np.float64)
+    view = np.ascontiguousarray(view, np.float64)
+    same = np.linalg.norm(vn - view, axis=1) <= SAME_VIEW_TOL
+    todo = np.asarray(todo, bool) & (np.einsum("ni,ni->n", normal, vn) > 0)
+    active = np.flatnonzero(np.any(w != 0, axis=1)).astype(np.int64)
+    nt, npf = lights.grid
+    c = np.ascontiguousarray
+    from facegeo.appearance._skin_resynth_kernels import relit_stored_grid
+
+    naive, relit, finite = relit_stored_grid(
+        np.asarray(field).view(np.uint16), field_rows, np.asarray(diffuse).view(np.uint16),
+        c(diffuse_rows, np.int64), half_table(), c(todo & ~same),
+        c(lights.intensities, np.float64), c(lights.directions, np.float64),
+        c(lights.solid_angles, np.float64), c(cast_shadow, np.bool_), normal, view, vn,
+        c(alpha_0, np.float64), c(alpha_1, np.float64), int(nt), int(npf), float(eta),
+        float(specular_skip), active, c(w[active], np.float64))
+    keep = np.flatnonzero(todo & same & finite)  # the source's own view: the measured function
+    if keep.size:
+        R = np.asarray(field[field_rows[keep]], np.float32)
+        D = np.asarray(diffuse[np.asarray(diffuse_rows, np.int64)[keep]], np.float32)
+        relit[keep] = np.einsum("nlc,lc->nc", D.astype(np.float64) + (R - D), w)
+    return naive, relit, finite
+
+
 def check_light_step(light_step, lights) -> int:
     """``light_step`` as an int ≥ 1 that divides the light-stage grid (any value > 1 needs the
     grid); raises InputError naming what is wrong."""

@@ -30,6 +30,11 @@ floating-point units — pays ≈ 5 ns for even when vectorised), the chroma shi
 (overlapping). Vectorising the loop over lights (LLVM does, 4 lanes) bought nothing
 measurable on that CPU; skipping what adds 0 and removing roots and divisions did.
 
+:func:`relit_stored_grid` runs :func:`resynth_relit_grid`'s per-function code on stored
+float16 functions, decoding their bits through a 65,536-entry table (exact) one function at a
+time, and gives the measured function's Eq. 4 (the naive value) from the same read
+(:func:`relight_stored`: the naive value alone).
+
 Kernels are compiled on first use and cached on disk (``cache=True``); the threading layer is
 chosen by ``facegeo/__init__.py`` (``NUMBA_THREADING_LAYER_PRIORITY``).
 """
@@ -723,19 +728,11 @@ def _relit_lights(nx, ny, nz, vx, vy, vz, ux, uy, uz, al0, al1, nv0, nvn, lobe, 
     return acc_r, acc_g, acc_b
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FMV)
-def resynth_relit_grid(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, nt, npf, eta,
-                       skip, Dq, Eq, dq, castq, active, w):
-    """:func:`resynth_relit` on the light-stage grid without the lobe cone, vectorised over
-    lights (see the section comment); same parameters minus ``grid``, ``lobe_tol`` and
-    ``delta``. Returns (N, 3) float64 (0 for back-facing and ``same`` functions)."""
-    N = D.shape[0]
-    L = dirs.shape[0]
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
+def _active_constants(active, dq, Eq):
+    """The output lights' directions, intensities and reciprocal intensities, contiguous in
+    visiting order (``active``)."""
     A = active.size
-    out = np.zeros((N, 3))
-    e2 = eta * eta - 1.0
-    iE = 1.0 / E
-    # the output lights' constants, contiguous in visiting order
     lA = np.empty((A, 3))
     eA = np.empty((A, 3))
     ieA = np.empty((A, 3))
@@ -745,43 +742,176 @@ def resynth_relit_grid(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back,
             lA[k, c] = dq[j, c]
             eA[k, c] = Eq[j, c]
             ieA[k, c] = 1.0 / Eq[j, c]
+    return lA, eA, ieA
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FMV)
+def resynth_relit_grid(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, nt, npf, eta,
+                       skip, Dq, Eq, dq, castq, active, w):
+    """:func:`resynth_relit` on the light-stage grid without the lobe cone, vectorised over
+    lights (see the section comment); same parameters minus ``grid``, ``lobe_tol`` and
+    ``delta``. Returns (N, 3) float64 (0 for back-facing and ``same`` functions)."""
+    N = D.shape[0]
+    out = np.zeros((N, 3))
+    e2 = eta * eta - 1.0
+    iE = 1.0 / E
+    lA, eA, ieA = _active_constants(active, dq, Eq)
     for i in prange(N):
         if back[i] or same[i]:
             continue
-        micro = np.empty(L)
-        do_spec = _prepare(i, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
-        nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
-        if lobe:
-            _micro_nodes(i, nrm, v0, dirs, e2, micro)
-        # the lights that can contribute, compacted: a zero diffuse sample with no possible
-        # specular sample (n·l ≤ 0, l occluded, no lobe) adds exactly 0 — about half the
-        # lights of a function lie below its horizon
-        nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
-        dk = np.empty((A, 3))
-        lit = np.empty(A)
-        lk = np.empty((A, 3))
-        ek = np.empty((A, 3))
-        iek = np.empty((A, 3))
-        wk = np.empty((A, 3))
-        m = 0
-        for k in range(A):
-            j = active[k]
-            d0, d1, d2 = Dq[i, j, 0], Dq[i, j, 1], Dq[i, j, 2]
-            shadowed = castq[i, j]
-            spec = lobe and not shadowed and nx * lA[k, 0] + ny * lA[k, 1] + nz * lA[k, 2] > 0.0
-            if not (spec or d0 != 0.0 or d1 != 0.0 or d2 != 0.0):
-                continue
-            dk[m, 0], dk[m, 1], dk[m, 2] = d0, d1, d2
-            lit[m] = 0.0 if shadowed else 1.0
-            for c in range(3):
-                lk[m, c] = lA[k, c]
-                ek[m, c] = eA[k, c]
-                iek[m, c] = ieA[k, c]
-                wk[m, c] = w[k, c]
-            m += 1
-        acc_r, acc_g, acc_b = _relit_lights(
-            nx, ny, nz, v0[i, 0], v0[i, 1], v0[i, 2], vn[i, 0], vn[i, 1], vn[i, 2], a0[i], a1[i],
-            nv0, nvn, lobe, inv_nvn, e2, nt, npf, micro, dk[:m], lit[:m], lk[:m], ek[:m],
-            iek[:m], wk[:m])
-        out[i, 0], out[i, 1], out[i, 2] = acc_r, acc_g, acc_b
+        out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, i, D, S, iE, dirs, sa, cast, nrm, v0, vn,
+                                                     a0, a1, nt, npf, e2, skip, Dq, castq,
+                                                     active, lA, eA, ieA, w)
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
+def _grid_one(i, di, D, S, iE, dirs, sa, cast, nrm, v0, vn, a0, a1, nt, npf, e2, skip, Dq,
+              castq, active, lA, eA, ieA, w):
+    """Eq. 4 on function ``i`` resynthesised (:func:`resynth_relit_grid`'s body): its samples
+    are ``D[di]``, ``S[di]`` and ``Dq[di]`` (``di = i`` for whole arrays, 0 for one function's
+    decoded scratch rows), the rest of its data at row ``i``. Returns the three sums."""
+    L = dirs.shape[0]
+    A = active.size
+    micro = np.empty(L)
+    do_spec = _prepare(di, D, S, iE, dirs, sa, nrm, v0, e2, skip, micro)
+    nv0, nvn, lobe, inv_nvn = _view_cosines(i, nrm, v0, vn, do_spec)
+    if lobe:
+        _micro_nodes(i, nrm, v0, dirs, e2, micro)
+    # the lights that can contribute, compacted: a zero diffuse sample with no possible
+    # specular sample (n·l ≤ 0, l occluded, no lobe) adds exactly 0 — about half the
+    # lights of a function lie below its horizon
+    nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+    dk = np.empty((A, 3))
+    lit = np.empty(A)
+    lk = np.empty((A, 3))
+    ek = np.empty((A, 3))
+    iek = np.empty((A, 3))
+    wk = np.empty((A, 3))
+    m = 0
+    for k in range(A):
+        j = active[k]
+        d0, d1, d2 = Dq[di, j, 0], Dq[di, j, 1], Dq[di, j, 2]
+        shadowed = castq[i, j]
+        spec = lobe and not shadowed and nx * lA[k, 0] + ny * lA[k, 1] + nz * lA[k, 2] > 0.0
+        if not (spec or d0 != 0.0 or d1 != 0.0 or d2 != 0.0):
+            continue
+        dk[m, 0], dk[m, 1], dk[m, 2] = d0, d1, d2
+        lit[m] = 0.0 if shadowed else 1.0
+        for c in range(3):
+            lk[m, c] = lA[k, c]
+            ek[m, c] = eA[k, c]
+            iek[m, c] = ieA[k, c]
+            wk[m, c] = w[k, c]
+        m += 1
+    return _relit_lights(
+        nx, ny, nz, v0[i, 0], v0[i, 1], v0[i, 2], vn[i, 0], vn[i, 1], vn[i, 2], a0[i], a1[i],
+        nv0, nvn, lobe, inv_nvn, e2, nt, npf, micro, dk[:m], lit[:m], lk[:m], ek[:m],
+        iek[:m], wk[:m])
+
+
+# ------------------------------------------------------------------------------- stored functions
+#
+# relit_stored_grid: the render's read of a chunk of stored functions and their resynthesis in
+# one pass. The field R and the diffuse component D are stored as float16 (numba has no
+# float16 type): the kernel reads their raw bits (uint16) and decodes them through a table of
+# the 65,536 float32 values numpy's ``astype(np.float32)`` gives (exact: subnormals, ±inf and
+# NaN payloads included), one function's rows at a time into scratch rows that stay in cache.
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
+def _naive_row(Rb, r, half, Rf, active, w):
+    """Row ``r`` of the float16 bits ``Rb`` decoded into ``Rf[0]`` (float32, exact) and Eq. 4
+    of it, ``Σ_k w_k ⊙ R_{active[k]}`` (float64 sums of the float32 samples times the float64
+    weights, in light order); NaN sums and False where any sample, at any light, is not
+    finite (as ``R.reshape(n, 3L) @ W`` gives). Returns the three sums and that flag."""
+    L = Rf.shape[1]
+    bad = 0
+    for j in range(L):
+        for c in range(3):
+            x = half[Rb[r, j, c]]
+            Rf[0, j, c] = x
+            bad += 0 if math.isfinite(x) else 1
+    if bad:
+        return np.nan, np.nan, np.nan, False
+    s0 = s1 = s2 = 0.0
+    for k in range(active.size):
+        j = active[k]
+        s0 += w[k, 0] * Rf[0, j, 0]
+        s1 += w[k, 1] * Rf[0, j, 1]
+        s2 += w[k, 2] * Rf[0, j, 2]
+    return s0, s1, s2, True
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FMV)
+def relight_stored(Rb, rrows, half, active, w):
+    """Eq. 4 of stored measured functions from their float16 bits (:func:`_naive_row` per
+    row ``rrows[i]`` of ``Rb``): ``(N, 3)`` float64 (NaN rows where a sample is not finite)
+    and ``(N,)`` bool, the rows that are finite."""
+    N = rrows.size
+    L = Rb.shape[1]
+    naive = np.empty((N, 3))
+    finite = np.empty(N, np.bool_)
+    for i in prange(N):
+        Rf = np.empty((1, L, 3), np.float32)
+        s0, s1, s2, ok = _naive_row(Rb, rrows[i], half, Rf, active, w)
+        naive[i, 0], naive[i, 1], naive[i, 2] = s0, s1, s2
+        finite[i] = ok
+    return naive, finite
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FMV)
+def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, v0, vn, a0, a1,
+                      nt, npf, eta, skip, active, w):
+    """Eq. 4 of stored measured functions (the naive value) and of the same functions
+    resynthesised for v_n (:func:`resynth_relit_grid`), from float16 bits, in one pass.
+
+    Parameters
+    ----------
+    Rb : (T, L, 3) uint16 — the field's float16 bits; function i is row ``rrows[i]``
+    Db : (F, L, 3) uint16 — the stored diffuse component's float16 bits; row ``drows[i]``
+    half : (65536,) float32 — the value of every float16 bit pattern
+    todo : (N,) bool — functions to resynthesise (fitted, n·v_n > 0, not the source view)
+    E, dirs, sa : the light set's (L, 3) intensities, (L, 3) directions, (L,) solid angles
+    cast, nrm, v0, vn, a0, a1 : per function (row i), as :func:`resynth_relit_grid`
+    active : (A,) int64 — the lights with weight; w : (A, 3) float64 their weights
+
+    Returns
+    -------
+    naive : (N, 3) float64 — ``Σ_l w_l ⊙ R_l`` over ``active`` (NaN where any sample of the
+        row, at any light, is not finite, as a matrix product with zero weights gives)
+    relit : (N, 3) float64 — Eq. 4 of the resynthesised function where ``todo`` and finite,
+        else 0; its samples are exactly :func:`resynth_relit_grid`'s with D = R's float32
+        values decoded, S = R − D rounded to float32 (as ``FitStore.skin_fit`` forms them)
+    finite : (N,) bool
+    """
+    N = rrows.size
+    L = dirs.shape[0]
+    naive = np.empty((N, 3))
+    out = np.zeros((N, 3))
+    finite = np.empty(N, np.bool_)
+    e2 = eta * eta - 1.0
+    iE = 1.0 / E
+    lA, eA, ieA = _active_constants(active, dirs, E)
+    for i in prange(N):
+        r = rrows[i]
+        Rf = np.empty((1, L, 3), np.float32)
+        s0, s1, s2, ok = _naive_row(Rb, r, half, Rf, active, w)
+        naive[i, 0], naive[i, 1], naive[i, 2] = s0, s1, s2
+        finite[i] = ok
+        if not ok:
+            continue
+        if not todo[i]:
+            continue
+        d = drows[i]
+        Df = np.empty((1, L, 3), np.float32)
+        Sf = np.empty((1, L, 3), np.float32)
+        for j in range(L):
+            for c in range(3):
+                x = half[Db[d, j, c]]
+                Df[0, j, c] = x
+                Sf[0, j, c] = Rf[0, j, c] - x  # float32 − float32: rounded as numpy's
+        out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm, v0,
+                                                    vn, a0, a1, nt, npf, e2, skip, Df, cast,
+                                                    active, lA, eA, ieA, w)
+    return naive, out, finite

@@ -12,7 +12,9 @@ Private module behind :mod:`facegeo.render`. A camera's folder ``<dest>/<camera>
 The specular component is not stored: S = R − D with R the projected field (the fit's own
 definition, so D + S reproduces the measured function exactly and a view equal to the source
 view returns it unchanged). With float16 D, S differs from the fit's by at most D's rounding
-(2⁻¹¹ of D).
+(2⁻¹¹ of D). :meth:`FitStore.relit_rows` reads float16 R and D in the compiled pass of
+:func:`facegeo.appearance._skin_resynth.relit_stored` (no float32 copies; S formed there as
+:meth:`FitStore.skin_fit` forms it).
 """
 
 from __future__ import annotations
@@ -187,3 +189,46 @@ class FitStore:
                        saturated=maps["saturated"], flags=p["flags"].astype(np.int32),
                        valid=p["valid"].astype(bool), eta=self.eta,
                        single_channel=self.single_channel)
+
+    def relit_rows(self, field, field_rows, idx, todo, v_n, weights, lights):
+        """Eq. 4 of measured functions and of the same functions resynthesised for v_n, read
+        and resynthesised in one compiled pass over the float16 field and D
+        (:func:`facegeo.appearance._skin_resynth.relit_stored`; R, D and S are not built as
+        float32 arrays). Only where ``uses_stored_kernel``.
+
+        Parameters
+        ----------
+        field : (T, L, 3) float16 memmap — the camera's projected field
+        field_rows : (n,) int — rows of ``field``; idx : (n,) int — their fit indices
+        todo : (n,) bool — rows to resynthesise (fitted, not the source view)
+        v_n : (n, 3) float64, unit, the light set's frame; weights : (L, 3); lights : LightSet
+
+        Returns
+        -------
+        naive, relit : (n, 3) float64 — as ``relit_stored`` (NaN naive where a sample is not
+            finite; relit 0 where not resynthesised)
+        finite : (n,) bool
+        back : (n,) bool — the fit's FLAG_BACKFACING or n·v_n ≤ 0 (the caller keeps the
+            naive value there)
+        """
+        from facegeo.appearance._skin_resynth import relit_stored
+        from facegeo.appearance.skin import FLAG_BACKFACING
+
+        idx = np.asarray(idx, np.int64)
+        L = field.shape[1]
+        p = {k: self.params[k][idx] for k in ("view", "normal", "alpha_0", "alpha_1", "flags")}
+        cast = np.unpackbits(self.params["cast_shadow"][idx], axis=1, count=L).astype(bool)
+        naive, relit, finite = relit_stored(
+            field, field_rows, self.D, idx, todo, normal=p["normal"], view=p["view"],
+            alpha_0=p["alpha_0"], alpha_1=p["alpha_1"], cast_shadow=cast, eta=self.eta,
+            lights=lights, v_n=v_n, weights=weights)
+        back = (((p["flags"].astype(np.int32) & FLAG_BACKFACING) != 0)
+                | (np.einsum("ni,ni->n", p["normal"], np.asarray(v_n, np.float64)) <= 0))
+        return naive, relit, finite, back
+
+    def uses_stored_kernel(self, field, lights, n_active: int) -> bool:
+        """Whether :meth:`relit_rows` serves this camera (float16 field and D, a 3-channel fit
+        on the light-stage grid with at least half its lights carrying energy)."""
+        from facegeo.appearance._skin_resynth import stored_kernel_applies
+
+        return stored_kernel_applies(field, self.D, lights, n_active, self.single_channel)

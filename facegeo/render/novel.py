@@ -54,6 +54,12 @@ resynthesis, each equal bit for bit to its own call.
 Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthesize_relit`):
 Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised
 samples are computed only at the lights that carry energy and never stored.
+Where the field and the fit's D are stored as float16 (the default) and ``light_step = 1``,
+each chunk of texels is read, relit naively and resynthesised in one compiled pass
+(:data:`FUSED_READ`, :meth:`facegeo.render._fitstore.FitStore.relit_rows`): the float16 bits
+are decoded exactly inside the kernel, R, D and S are never widened into float32 arrays and
+the naive Eq. 4 is no matrix product (same samples, same resynthesis code; the naive sums
+are float64, the sgemm's were float32).
 
 **Speed against accuracy (optional, not the paper):** ``light_step = k > 1`` evaluates the
 resynthesised function once per k × k block of the light grid, at the block's energy centroid
@@ -108,6 +114,11 @@ SAME_VIEW_RAD = 1e-7
 BLEND_MIN_SHARE = 1e-3
 #: A bilinear tap farther than this many texel spacings from the hit point lies on another chart.
 TAP_MAX_TEXELS = 3.0
+#: Read, relight and resynthesise float16 fields and fits in one compiled pass
+#: (:meth:`facegeo.render._fitstore.FitStore.relit_rows`) where it applies (full resynthesis,
+#: ``light_step = 1``, float16 field and D on the light-stage grid). False: always the numpy
+#: read (float32 copies of R, D and S, Eq. 4 as a matrix product), which it is tested against.
+FUSED_READ = True
 #: Functions per resynthesis chunk: ``CHUNK_SAMPLES // L`` (bounded temporaries).
 CHUNK_SAMPLES = 1 << 19
 #: Functions per ordered camera pair that :func:`cross_validated_shrinkage` resynthesises
@@ -380,6 +391,18 @@ def _relight(R, W) -> np.ndarray:
     return (R.reshape(R.shape[0], -1) @ W.astype(np.float32)).astype(np.float64)
 
 
+def _naive_rows(field, rows, W, w):
+    """Eq. (4) of field rows, ``(n, 3)`` float64, and which rows are finite: from the float16
+    bits in one compiled pass (:func:`facegeo.appearance._skin_resynth.relight_stored`, the
+    naive value the fused pass gives, float64 sums), else :func:`_relight`."""
+    if field.dtype == np.float16 and field.ndim == 3 and field.shape[2] == 3:
+        from facegeo.appearance._skin_resynth import relight_stored
+
+        return relight_stored(field, rows, w)
+    out = _relight(field[rows], W)
+    return out, np.isfinite(out).all(axis=1)
+
+
 def _check_light_step(light_step, lights) -> int:
     from facegeo.appearance._skin_resynth import check_light_step
 
@@ -450,17 +473,30 @@ def cross_validated_shrinkage(sources, weights, lights, *,
             rows_s, _ = src.rows_of(tex)
             fidx, _ = src.fit.locate(rows_s)
             pairs.append(other.name)
+            fused = FUSED_READ and step == 1 and src.fit.uses_stored_kernel(src.field, lights,
+                                                                             active.size)
             for c0 in range(0, tex.size, chunk):
                 sl = slice(c0, min(tex.size, c0 + chunk))
-                R = np.asarray(src.field[rows_s[sl]], np.float32)
-                q = _relight(R, W)
-                m = _relight(other.field[rows_o[sl]], W)
-                ok = np.isfinite(q).all(axis=1) & np.isfinite(m).all(axis=1)
+                vb = other.v_world[rows_o[sl]]
+                m, ok = _naive_rows(other.field, rows_o[sl], W, w)
+                if fused:  # as shade_texels: one compiled pass over the float16 storage
+                    q, p, ok_q, back = src.fit.relit_rows(src.field, rows_s[sl], fidx[sl],
+                                                          np.ones(vb.shape[0], bool), vb, w,
+                                                          lights)
+                    ok &= ok_q
+                    q, p, m, back = q[ok], p[ok], m[ok], back[ok]
+                else:
+                    q, ok_q = _naive_rows(src.field, rows_s[sl], W, w)
+                    ok &= ok_q
+                    if not ok.any():
+                        continue
+                    R = np.asarray(src.field[rows_s[sl][ok]], np.float32)
+                    q, m = q[ok], m[ok]
+                    fit = src.fit.skin_fit(fidx[sl][ok], R, lights)
+                    p, back = _resynthesize_relit(fit, vb[ok], w, active, w_act,
+                                                  light_step=step)
                 if not ok.any():
                     continue
-                R, q, m, vb = R[ok], q[ok], m[ok], other.v_world[rows_o[sl]][ok]
-                fit = src.fit.skin_fit(fidx[sl][ok], R, lights)
-                p, back = _resynthesize_relit(fit, vb, w, active, w_act, light_step=step)
                 p = np.where(back[:, None], q, p)
                 d = p - q
                 sums += [float((d * (m - q)).sum()), float((d * d).sum()),
@@ -525,7 +561,8 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     stats : dict, optional — filled with counts and the seconds spent reading the fields
         (``seconds_read``: rows gathered, converted to float32, relit by Eq. 4), reading the
         fits (``seconds_fit``: D, S = R − D, maps) and resynthesising
-        (``seconds_resynthesis``)
+        (``seconds_resynthesis``); with the fused float16 pass (``fused_read`` True) the
+        reads happen inside it and are counted in ``seconds_resynthesis``
     shrinkage_set : sequence of (mapping str -> float or None), optional — several
         ``shrinkage`` values at once (full resynthesis only; ``shrinkage`` is then ignored):
         the fields are read and the functions resynthesised once, and each value blends its
@@ -593,35 +630,29 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                 raise InputError(f"camera {src.name}: resynthesis needs its skin-model fit "
                                  "(run 'facegeo fit SCAN')")
             fidx, fitted = src.fit.locate(rows)
+        fused = (FUSED_READ and resynthesis is True and step == 1
+                 and src.fit.uses_stored_kernel(src.field, lights, active.size))
+        st["fused_read"] = st.get("fused_read", False) or fused
         for c0 in range(0, k_idx.size, chunk):
             sl = slice(c0, min(k_idx.size, c0 + chunk))
             t0 = time.perf_counter()
-            R = np.asarray(src.field[rows[sl]], np.float32)
-            out = _relight(R, W)
-            outs = [out] * V
-            ok = np.isfinite(out).all(axis=1)
-            st["samples"] += int(ok.sum())
-            t1 = time.perf_counter()
-            st["seconds_read"] += t1 - t0
-            if resynthesis:
-                todo = np.flatnonzero(ok & fitted[sl] & ~same[sl])
+            if fused:  # read, naive value and resynthesis in one compiled pass
+                want = fitted[sl] & ~same[sl]
+                out, relit, ok, back = src.fit.relit_rows(src.field, rows[sl], fidx[sl], want,
+                                                          vn[sl], w, lights)
+                st["seconds_resynthesis"] += time.perf_counter() - t0
+                st["samples"] += int(ok.sum())
                 st["unfitted"] += int(np.count_nonzero(ok & ~fitted[sl]))
-                if todo.size:
-                    every = todo.size == R.shape[0]  # no copy of the chunk when all are to do
-                    fit = src.fit.skin_fit(fidx[sl] if every else fidx[sl][todo],
-                                           R if every else R[todo], lights)
-                    t2 = time.perf_counter()
-                    st["seconds_fit"] += t2 - t1
-                    relit, back = _resynthesize_relit(fit, vn[sl][todo], w, active, w_act,
-                                                      diffuse_only=resynthesis == "diffuse",
-                                                      light_step=step)
-                    st["seconds_resynthesis"] += time.perf_counter() - t2
-                    # the fitted normal puts v_n below the horizon while the mesh sees the
-                    # texel (grazing views): keep the measured function rather than black
-                    use = todo[~back]
-                    outs = [_shrunk(out, use, relit[~back], lam, copy=V > 1) for lam in lams]
-                    st["resynthesized"] += int(use.size)
-                    st["backfacing_fallback"] += int(back.sum())
+                todo = np.flatnonzero(ok & want)
+                use = todo[~back[todo]]
+                outs = [_shrunk(out, use, relit[use], lam, copy=V > 1) for lam in lams]
+                st["resynthesized"] += int(use.size)
+                st["backfacing_fallback"] += int(back[todo].sum())
+            else:
+                outs, ok = _read_and_resynthesize(
+                    src, rows[sl], fidx[sl] if resynthesis else None,
+                    fitted[sl] if resynthesis else None, same[sl], vn[sl], W, w, active, w_act,
+                    lights, V, lams, resynthesis, step, st, t0)
             kk = k_idx[sl][ok]
             for v in range(V):
                 acc[v, kk] += b[sl][ok, None] * outs[v][ok]
@@ -632,6 +663,41 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
     for key in ("seconds_read", "seconds_fit", "seconds_resynthesis"):
         st[key] = round(st[key], 4)
     return colour if shrinkage_set is not None else colour[0]
+
+
+def _read_and_resynthesize(src, rows, fidx, fitted, same, vn, W, w, active, w_act, lights, V,
+                           lams, resynthesis, step, st, t0):
+    """One chunk of :func:`shade_texels` without the fused pass (the naive baseline, the
+    ``"diffuse"`` ablation, ``light_step > 1``, fits not stored as float16): Eq. 4 of the
+    field rows (from the float16 bits as the fused pass does it, else a float32 matrix
+    product), then for resynthesis the rows widened to float32, the fits read (D,
+    S = R − D) and :func:`_resynthesize_relit`. Returns each shrinkage's values ``(n, 3)``
+    and the rows whose samples are all finite; updates the counts and seconds in ``st``."""
+    out, ok = _naive_rows(src.field, rows, W, w)
+    outs = [out] * V
+    st["samples"] += int(ok.sum())
+    t1 = time.perf_counter()
+    st["seconds_read"] += t1 - t0
+    if resynthesis:
+        todo = np.flatnonzero(ok & fitted & ~same)
+        st["unfitted"] += int(np.count_nonzero(ok & ~fitted))
+        if todo.size:
+            every = todo.size == len(rows)  # no copy of the chunk when all are to do
+            R = np.asarray(src.field[rows if every else rows[todo]], np.float32)
+            fit = src.fit.skin_fit(fidx if every else fidx[todo], R, lights)
+            t2 = time.perf_counter()
+            st["seconds_fit"] += t2 - t1
+            relit, back = _resynthesize_relit(fit, vn[todo], w, active, w_act,
+                                              diffuse_only=resynthesis == "diffuse",
+                                              light_step=step)
+            st["seconds_resynthesis"] += time.perf_counter() - t2
+            # the fitted normal puts v_n below the horizon while the mesh sees the
+            # texel (grazing views): keep the measured function rather than black
+            use = todo[~back]
+            outs = [_shrunk(out, use, relit[~back], lam, copy=V > 1) for lam in lams]
+            st["resynthesized"] += int(use.size)
+            st["backfacing_fallback"] += int(back.sum())
+    return outs, ok
 
 
 def _shrunk(naive, use, relit, lam: float, *, copy: bool):

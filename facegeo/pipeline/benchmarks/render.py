@@ -394,7 +394,8 @@ def _kernel_inputs(n: int, seed: int = 0):
     """``n`` paper-model functions on the paper preset's 64 × 32 light grid as the paper
     benchmark builds and stores them (:func:`_texel_params`; R and D float16, S = R − D;
     normals within 70° of v_0 = +z), novel
-    views ≈ 30° away, and the ``sky`` weights."""
+    views ≈ 30° away, and the ``sky`` weights. Returns the fit (R, D widened to float32), the
+    views, the weights and the stored float16 R and D."""
     import numpy as np
 
     from facegeo.appearance import skin
@@ -408,8 +409,9 @@ def _kernel_inputs(n: int, seed: int = 0):
     nrm = np.stack([np.sin(ang) * np.cos(az), np.sin(ang) * np.sin(az), np.cos(ang)], 1)
     prm = _texel_params(np.arange(n), seed)  # the paper benchmark's per-texel parameters
     v0 = np.tile([0.0, 0.0, 1.0], (n, 1))
-    R = skin.paper_reflectance(nrm, v0, lights, prm).astype(np.float16).astype(np.float32)
-    D = _paper_diffuse(nrm, v0, lights, prm).astype(np.float16).astype(np.float32)
+    R16 = skin.paper_reflectance(nrm, v0, lights, prm).astype(np.float16)
+    D16 = _paper_diffuse(nrm, v0, lights, prm).astype(np.float16)
+    R, D = R16.astype(np.float32), D16.astype(np.float32)
     z = np.zeros(n)
     no = np.zeros((n, lights.n_lights), bool)
     fit = skin.SkinFit(lights=lights, view=v0, normal=nrm, normal_moment=nrm,
@@ -422,7 +424,39 @@ def _kernel_inputs(n: int, seed: int = 0):
     vn = skin.normalize(np.tile([np.sin(a), 0.0, np.cos(a)], (n, 1))
                         + rng.normal(0.0, 0.05, (n, 3)))
     w = E.light_stage_weights(builtin_env("sky"), 64, 32)
-    return fit, vn, w
+    return fit, vn, w, R16, D16
+
+
+def _read_then_resynthesize(fit, R16, D16, vn, w):
+    """What the render did per chunk before the fused pass: R and D widened to float32 by
+    numpy, the naive Eq. 4 as ``(n, 3L) @ (3L, 3)`` sgemm, S = R − D, then
+    ``resynthesize_relit``. Returns the naive and the resynthesised sums."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from facegeo.appearance import _skin_resynth as RS
+    from facegeo.render.novel import _relight, _relight_matrix
+
+    R = np.asarray(R16, np.float32)
+    naive = _relight(R, _relight_matrix(w))
+    D = np.asarray(D16, np.float32)
+    f = replace(fit, diffuse=D, specular=R - D)
+    return naive, RS.resynthesize_relit(f, vn, w)
+
+
+def _stored_pass(fit, R16, D16, vn, w):
+    """The fused pass (``_skin_resynth.relit_stored``) on the same stored functions."""
+    import numpy as np
+
+    from facegeo.appearance import _skin_resynth as RS
+
+    n = R16.shape[0]
+    naive, relit, _ = RS.relit_stored(
+        R16, np.arange(n), D16, np.arange(n), np.ones(n, bool), normal=fit.normal,
+        view=fit.view, alpha_0=fit.alpha_0, alpha_1=fit.alpha_1, cast_shadow=fit.cast_shadow,
+        eta=fit.eta, lights=fit.lights, v_n=vn, weights=w)
+    return naive, relit
 
 
 @register("render.resynth_kernel")
@@ -430,9 +464,14 @@ def bench_resynth_kernel(quick: bool) -> list[BenchRow]:
     """Eq. 9 + Eq. 4 on resynthesised functions (``resynthesize_relit``), the kernels alone:
     the grid kernel ``resynth_relit_grid`` (the default) against the scalar ``resynth_relit``
     (the kernel before it, kept as its reference), at 1 and 2 threads, exact (every light)
-    and ``light_step=4`` (which runs the scalar kernel). Speed: function-lights per second
-    (wall); extras: CPU nanoseconds per function and light (process time, both threads —
-    steadier than wall time when other jobs share the cores). Error: max |Δ| / max |scalar|.
+    and ``light_step=4`` (which runs the scalar kernel); and the read of the stored float16
+    functions with them: the render's path before the fused pass (R and D widened by numpy,
+    naive Eq. 4 by sgemm, S = R − D, the grid kernel: :func:`_read_then_resynthesize`)
+    against the fused pass that decodes the bits in the kernel (``relit_stored``). Speed:
+    function-lights per second (wall); extras: CPU nanoseconds per function and light
+    (process time, both threads — steadier than wall time when other jobs share the cores).
+    Error: max |Δ| / max |scalar| of the resynthesised sums (and for the two read rows, of
+    the naive sums: max |Δ| / max |naive| against the sgemm's).
     """
     import numpy as np
     from numba import get_num_threads, set_num_threads
@@ -440,7 +479,7 @@ def bench_resynth_kernel(quick: bool) -> list[BenchRow]:
     from facegeo.appearance import _skin_resynth as RS
 
     n = KERNEL_FUNCTIONS // (4 if quick else 1)
-    fit, vn, w = _kernel_inputs(n)
+    fit, vn, w, R16, D16 = _kernel_inputs(n)
     L = fit.lights.n_lights
     active = int(np.any(w != 0, axis=1).sum())
     rows = []
@@ -449,20 +488,34 @@ def bench_resynth_kernel(quick: bool) -> list[BenchRow]:
         for threads in (1, 2):
             set_num_threads(min(threads, saved_threads))
             got = {}
-            for label, vec, step in (("scalar resynth_relit, exact", False, 1),
-                                     ("grid resynth_relit_grid, exact", True, 1),
-                                     ("light_step=4", True, 4)):
-                RS.VECTOR_KERNEL = vec
-                RS.resynthesize_relit(fit, vn, w, light_step=step)  # compiled, warm
+
+            def kernel(vec, step):
+                def call():
+                    RS.VECTOR_KERNEL = vec
+                    return None, RS.resynthesize_relit(fit, vn, w, light_step=step)
+                return call
+
+            cases = (("scalar resynth_relit, exact", kernel(False, 1)),
+                     ("grid resynth_relit_grid, exact", kernel(True, 1)),
+                     ("light_step=4", kernel(True, 4)),
+                     ("read float16 + sgemm + grid kernel (before)",
+                      lambda: _read_then_resynthesize(fit, R16, D16, vn, w)),
+                     ("fused float16 pass relit_stored",
+                      lambda: _stored_pass(fit, R16, D16, vn, w)))
+            for label, run in cases:
+                run()  # compiled, warm
                 wall, cpu = float("inf"), float("inf")
                 for _ in range(2 if quick else 3):
                     t0, c0 = time.perf_counter(), time.process_time()
-                    out = RS.resynthesize_relit(fit, vn, w, light_step=step)
+                    naive, out = run()
                     wall = min(wall, time.perf_counter() - t0)
                     cpu = min(cpu, time.process_time() - c0)
-                got[label] = (wall, cpu, out)
+                got[label] = (wall, cpu, out, naive)
+                RS.VECTOR_KERNEL = saved_vec
             ref = got["scalar resynth_relit, exact"]
-            for label, (wall, cpu, out) in got.items():
+            before = got["read float16 + sgemm + grid kernel (before)"]
+            naive_ref = before[3]
+            for label, (wall, cpu, out, naive) in got.items():
                 work = n * active  # function-lights of the exact path
                 rows.append(BenchRow(
                     "render.resynth_kernel",
@@ -471,11 +524,14 @@ def bench_resynth_kernel(quick: bool) -> list[BenchRow]:
                     work / wall, "function-lights/s",
                     float(np.abs(out - ref[2]).max() / np.abs(ref[2]).max()),
                     "max |Δ| / max |scalar exact|",
-                    ratios={"vs scalar": round(ref[0] / wall, 3)},
-                    baseline_threads={"vs scalar": threads},
+                    ratios={"vs scalar": round(ref[0] / wall, 3),
+                            "vs read before": round(before[0] / wall, 3)},
+                    baseline_threads={"vs scalar": threads, "vs read before": threads},
                     extra={"cpu_ns_per_function_light": round(cpu / work * 1e9, 1),
                            "wall_ns_per_function_light": round(wall / work * 1e9, 1),
-                           "cpu_us_per_function": round(cpu / n * 1e6, 1)},
+                           "cpu_us_per_function": round(cpu / n * 1e6, 1),
+                           "naive_max_rel_vs_sgemm": None if naive is None else
+                           float(np.abs(naive - naive_ref).max() / np.abs(naive_ref).max())},
                     threads=threads))
     finally:
         set_num_threads(saved_threads)
