@@ -117,6 +117,9 @@ def test_exr_channel_names_and_compression(tmp_path):
     assert f.header()["compression"] == OpenEXR.ZIP_COMPRESSION
     f = OpenEXR.File(str(tmp_path / "y.exr"), separate_channels=True)
     assert set(f.channels()) == {"Y"}
+    write_image(tmp_path / "rgba.exr", np.ones((4, 6, 4), np.float32), half=True)
+    f = OpenEXR.File(str(tmp_path / "rgba.exr"), separate_channels=True)
+    assert set(f.channels()) == {"R", "G", "B", "A"}
 
 
 def test_exr_refuses_integers_and_half_overflow(tmp_path):
@@ -125,7 +128,16 @@ def test_exr_refuses_integers_and_half_overflow(tmp_path):
     big = np.full((4, 4), 70000.0, np.float32)
     with pytest.raises(InputError, match="exceed the half-float range"):
         write_image(tmp_path / "a.exr", big, half=True)
+    # a NaN beside the overflow must not hide it, whatever its sign
+    for v in (65520.0, -1e6):
+        mixed = np.array([[np.nan, 1.0], [v, np.inf]], np.float32)
+        with pytest.raises(InputError, match="1 value"):
+            write_image(tmp_path / "a.exr", mixed, half=True)
     assert not list(tmp_path.iterdir())
+    # inf and NaN are not overflows: stored as half inf / NaN
+    special = np.array([[np.nan, np.inf], [-np.inf, 65504.0]], np.float32)
+    back = read_image(write_image(tmp_path / "s.exr", special, half=True))
+    assert np.array_equal(back, special.astype(np.float16), equal_nan=True)
 
 
 def test_opencv_cannot_do_exr(tmp_path):
