@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,6 +61,7 @@ _BOARD_KEYS = ("squares_x", "squares_y", "square_length", "marker_length", "dict
 # memory; pixel-centre rays, which give p_world, stay float64.
 _RAY_CACHE: OrderedDict = OrderedDict()
 _RAY_CACHE_SIZE = 4
+_RAY_CACHE_LOCK = threading.Lock()  # renders may run on several threads (synth calibration)
 
 
 def aruco_dictionary_names() -> list[str]:
@@ -406,10 +408,11 @@ def _camera_rays(camera: Camera, ss: int):
     """Normalised (z = 1) undistorted rays: pixel centres ``(H, W, 2)`` float64 and the ``ss²``
     sub-pixel grids ``[(H, W, 2) float32, ...]``; cached for the last few intrinsics used."""
     key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), ss)
-    hit = _RAY_CACHE.get(key)
-    if hit is not None:
-        _RAY_CACHE.move_to_end(key)
-        return hit
+    with _RAY_CACHE_LOCK:
+        hit = _RAY_CACHE.get(key)
+        if hit is not None:
+            _RAY_CACHE.move_to_end(key)
+            return hit
     grid = camera.pixel_grid()
     centre = camera.unproject(grid)[..., :2]
     offsets = (np.arange(ss) + 0.5) / ss - 0.5
@@ -424,9 +427,10 @@ def _camera_rays(camera: Camera, ss: int):
     for a in subs + [centre]:
         a.setflags(write=False)
     value = (centre, subs)
-    _RAY_CACHE[key] = value
-    while len(_RAY_CACHE) > _RAY_CACHE_SIZE:
-        _RAY_CACHE.popitem(last=False)
+    with _RAY_CACHE_LOCK:  # two threads may have computed the same rays: either will do
+        _RAY_CACHE[key] = value
+        while len(_RAY_CACHE) > _RAY_CACHE_SIZE:
+            _RAY_CACHE.popitem(last=False)
     return value
 
 
