@@ -119,7 +119,7 @@ def _srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
 def _srgb8_from_float32(x: np.ndarray) -> np.ndarray:
     """``rint(255 · linear_to_srgb(clip(x, 0, 1)))`` as uint8 for finite float32 ``x``, by table.
 
-    Identical to the formula for every float32 input (checked for all 2^30 float32 values of
+    Identical to the formula for every float32 input (checked for all 1,065,353,217 float32s of
     [0, 1] in ``tests/test_imageio.py``; values outside clip first), ≈ 10× faster: two gathers
     and a compare instead of a float64 power per channel. The code is the number of thresholds
     ``t_c <= x`` (:func:`_srgb8_tables`); a bucket holds at most one.
