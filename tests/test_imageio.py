@@ -117,6 +117,9 @@ def test_exr_channel_names_and_compression(tmp_path):
     assert f.header()["compression"] == OpenEXR.ZIP_COMPRESSION
     f = OpenEXR.File(str(tmp_path / "y.exr"), separate_channels=True)
     assert set(f.channels()) == {"Y"}
+    write_image(tmp_path / "rgba.exr", np.ones((4, 6, 4), np.float32), half=True)
+    f = OpenEXR.File(str(tmp_path / "rgba.exr"), separate_channels=True)
+    assert set(f.channels()) == {"R", "G", "B", "A"}
 
 
 def test_exr_refuses_integers_and_half_overflow(tmp_path):
@@ -125,7 +128,16 @@ def test_exr_refuses_integers_and_half_overflow(tmp_path):
     big = np.full((4, 4), 70000.0, np.float32)
     with pytest.raises(InputError, match="exceed the half-float range"):
         write_image(tmp_path / "a.exr", big, half=True)
+    # a NaN beside the overflow must not hide it, whatever its sign
+    for v in (65520.0, -1e6):
+        mixed = np.array([[np.nan, 1.0], [v, np.inf]], np.float32)
+        with pytest.raises(InputError, match="1 value"):
+            write_image(tmp_path / "a.exr", mixed, half=True)
     assert not list(tmp_path.iterdir())
+    # inf and NaN are not overflows: stored as half inf / NaN
+    special = np.array([[np.nan, np.inf], [-np.inf, 65504.0]], np.float32)
+    back = read_image(write_image(tmp_path / "s.exr", special, half=True))
+    assert np.array_equal(back, special.astype(np.float16), equal_nan=True)
 
 
 def test_opencv_cannot_do_exr(tmp_path):
@@ -444,6 +456,48 @@ def test_encode_clips_out_of_range():
     assert encode(x, "srgb", np.uint8).tolist() == [0, 0, 255, 255]
     with pytest.raises(InputError, match="non-finite"):
         encode(np.array([np.nan]), "srgb", np.uint8)
+
+
+def _srgb8_formula(x32: np.ndarray) -> np.ndarray:
+    """The reference: the sRGB curve in float64, rounded to 8-bit codes (the non-table path)."""
+    x = np.clip(x32.astype(np.float64), 0.0, 1.0)
+    return np.rint(linear_to_srgb(x) * 255).astype(np.uint8)
+
+
+def test_srgb8_table_equals_formula_at_every_boundary():
+    """The float32 → sRGB uint8 table gives the formula's code at each code boundary, one float32
+    step below it, and on random, out-of-range and signed-zero inputs (exact: codes equal)."""
+    from facegeo.capture.response import _srgb8_tables
+
+    base, thr = _srgb8_tables()
+    t = np.sort(thr[np.isfinite(thr)])
+    assert t.size == 255  # one boundary per code 1..255
+    below = np.nextafter(t, np.float32(-1.0))
+    x = np.concatenate([t, below, _rng(11).random(200_000).astype(np.float32) ** 3,
+                        np.array([-0.0, 0.0, -3.0, 1.0, 1.5, 7e30, np.float32(1e-45)], np.float32)])
+    got = encode(x, "srgb", np.uint8)
+    assert got.dtype == np.uint8
+    assert np.array_equal(got, _srgb8_formula(x))
+    # a boundary off by one float32 step would fail here: the codes just below are one less
+    assert np.array_equal(encode(below, "srgb", np.uint8).astype(int) + 1,
+                          encode(t, "srgb", np.uint8).astype(int))
+    # an image keeps its shape
+    img = _rng(12).random((5, 7, 3)).astype(np.float32)
+    assert np.array_equal(encode(img, "srgb", np.uint8), _srgb8_formula(img))
+
+
+@pytest.mark.slow
+def test_srgb8_table_equals_formula_for_every_float32_in_unit_interval():
+    """Exhaustive: all 1,065,353,217 float32 values of [0, 1] encode to the formula's code."""
+    one = int(np.float32(1.0).view(np.uint32))
+    step = 1 << 23
+    for start in range(0, one + 1, step):
+        bits = np.arange(start, min(start + step, one + 1), dtype=np.uint32)
+        x = bits.view(np.float32)
+        got = encode(x, "srgb", np.uint8)
+        want = _srgb8_formula(x)
+        bad = np.flatnonzero(got != want)
+        assert bad.size == 0, (float(x[bad[0]]), int(got[bad[0]]), int(want[bad[0]]))
 
 
 def test_table_response_round_trip_per_channel():

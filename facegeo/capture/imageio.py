@@ -739,14 +739,17 @@ def _write_exr(path: Path, a: np.ndarray, *, half: bool) -> None:
             f" ({path})"
         )
     if half:
-        finite = np.isfinite(a)
-        big = finite & (np.abs(a) > _HALF_MAX)
-        if big.any():
-            raise InputError(
-                f"write_image: {int(big.sum())} value(s) exceed the half-float range ±65504 "
-                f"(max |value| {float(np.abs(a[finite]).max()):.6g}); write float32 instead "
-                f"({path})"
-            )
+        # a NaN-ignoring range check first (two passes, no temporaries); count only if it fails
+        if not (np.fmax.reduce(a, axis=None) <= _HALF_MAX
+                and np.fmin.reduce(a, axis=None) >= -_HALF_MAX):
+            finite = np.isfinite(a)
+            big = finite & (np.abs(a) > _HALF_MAX)
+            if big.any():
+                raise InputError(
+                    f"write_image: {int(big.sum())} value(s) exceed the half-float range ±65504 "
+                    f"(max |value| {float(np.abs(a[finite]).max()):.6g}); write float32 instead "
+                    f"({path})"
+                )
         a = a.astype(np.float16, copy=False)
     else:
         a = a.astype(np.float32, copy=False)
@@ -754,9 +757,8 @@ def _write_exr(path: Path, a: np.ndarray, *, half: bool) -> None:
 
     if a.ndim == 2:
         channels = {"Y": np.ascontiguousarray(a)}
-    else:
-        names = "RGBA"[: a.shape[2]]
-        channels = {n: np.ascontiguousarray(a[..., i]) for i, n in enumerate(names)}
+    else:  # the bindings split an interleaved "RGB"/"RGBA" array into R, G, B(, A) channels
+        channels = {"RGBA"[: a.shape[2]]: np.ascontiguousarray(a)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(path) as tmp:
         OpenEXR.File(header, channels).write(str(tmp))

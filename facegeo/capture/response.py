@@ -19,6 +19,7 @@ IEC 61966-2-1:1999, the sRGB transfer function.
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -68,6 +69,66 @@ def linear_to_srgb(x: Any) -> np.ndarray:
     """The sRGB encoding curve (IEC 61966-2-1), linear ``[0, 1]`` to encoded ``[0, 1]``."""
     x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1.0 / 2.4) - 0.055)
+
+
+#: Float32 bit patterns are bucketed by their top bits (sign, exponent and 7 mantissa bits) for
+#: :func:`_srgb8_from_float32`; every bucket of [0, 1] holds at most one uint8 code boundary.
+_SRGB8_BUCKET_SHIFT = 16
+
+
+@functools.cache
+def _srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
+    """Look-up tables of :func:`_srgb8_from_float32`, derived from the curve itself.
+
+    For each code ``c`` in 1..255 the threshold ``t_c`` is the smallest float32 ``x`` in
+    ``[0, 1]`` whose formula code ``rint(255 · linear_to_srgb(x))`` is at least ``c`` (bisection
+    over the float32 bit patterns, which order non-negative floats). A bucket of bit patterns
+    ``b >> 16`` then stores ``base`` (the number of thresholds below the bucket's first value)
+    and ``thr`` (the one threshold inside it, +inf when none).
+
+    Returns
+    -------
+    base : (B,) uint8
+    thr : (B,) float32
+    """
+    code_max = 255
+    c = np.arange(1, code_max + 1)
+    one = int(np.float32(1.0).view(np.uint32))
+    lo = np.zeros(code_max, np.int64)
+    hi = np.full(code_max, one, np.int64)
+    while np.any(lo < hi):
+        mid = (lo + hi) // 2
+        x = mid.astype(np.uint32).view(np.float32).astype(np.float64)
+        ok = np.rint(linear_to_srgb(x) * code_max) >= c
+        hi = np.where(ok, mid, hi)
+        lo = np.where(ok, lo, mid + 1)
+    t_bits = lo.astype(np.uint32)
+    bucket = t_bits >> _SRGB8_BUCKET_SHIFT
+    n_buckets = (one >> _SRGB8_BUCKET_SHIFT) + 1
+    if np.bincount(bucket).max() > 1:  # the curve's steepest part decides; fixed by the curve
+        raise RuntimeError("sRGB look-up: a bucket holds two code boundaries; lower the shift")
+    starts = np.arange(n_buckets, dtype=np.uint32) << _SRGB8_BUCKET_SHIFT
+    base = np.searchsorted(t_bits, starts, side="left").astype(np.uint8)
+    thr = np.full(n_buckets, np.inf, np.float32)
+    thr[bucket] = t_bits.view(np.float32)
+    base.setflags(write=False)
+    thr.setflags(write=False)
+    return base, thr
+
+
+def _srgb8_from_float32(x: np.ndarray) -> np.ndarray:
+    """``rint(255 · linear_to_srgb(clip(x, 0, 1)))`` as uint8 for finite float32 ``x``, by table.
+
+    Identical to the formula for every float32 input (checked for all 1,065,353,217 float32s of
+    [0, 1] in ``tests/test_imageio.py``; values outside clip first), ≈ 10× faster: two gathers
+    and a compare instead of a float64 power per channel. The code is the number of thresholds
+    ``t_c <= x`` (:func:`_srgb8_tables`); a bucket holds at most one.
+    """
+    x = np.clip(x, np.float32(0.0), np.float32(1.0))
+    # clip keeps -0.0: drop the sign bit so it lands in bucket 0 like +0.0
+    i = (x.view(np.uint32) & np.uint32(0x7FFFFFFF)) >> _SRGB8_BUCKET_SHIFT
+    base, thr = _srgb8_tables()
+    return base[i] + (x >= thr[i]).view(np.uint8)
 
 
 # --------------------------------------------------------------------------- responses
@@ -228,6 +289,8 @@ class Response:
         if dtype not in _INT_DTYPES:
             raise InputError(f"encode: expected dtype uint8, uint16 or float, got {dtype}")
         code_max = int(np.iinfo(dtype).max)
+        if self.kind == "srgb" and dtype == np.uint8 and x.dtype == np.float32:
+            return _srgb8_from_float32(x)  # the same codes as the formula below, by table
         x = np.clip(x.astype(np.float64, copy=False), 0.0, 1.0)
         if self.kind != "table":
             return np.rint(self._encode(x) * code_max).astype(dtype)

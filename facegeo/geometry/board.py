@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,6 +61,7 @@ _BOARD_KEYS = ("squares_x", "squares_y", "square_length", "marker_length", "dict
 # memory; pixel-centre rays, which give p_world, stay float64.
 _RAY_CACHE: OrderedDict = OrderedDict()
 _RAY_CACHE_SIZE = 4
+_RAY_CACHE_LOCK = threading.Lock()  # renders may run on several threads (synth calibration)
 
 
 def aruco_dictionary_names() -> list[str]:
@@ -301,7 +303,10 @@ class CharucoBoard:
         d0 = float(n_cam @ t)  # > 0 ⇔ the camera is on the printed (−z) side
         W_m, H_m = self.size
 
+        R_xy = np.ascontiguousarray(R[:, :2])  # board x, y axes in the camera frame
+
         def hit(x_n):
+            """Where rays ``x_n`` (…, 2) meet the board: (ok, p_cam, xb, yb), metres."""
             den = n_cam[0] * x_n[..., 0] + n_cam[1] * x_n[..., 1] + n_cam[2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 s = d0 / den
@@ -310,9 +315,12 @@ class CharucoBoard:
             p_cam[..., 0] = s * x_n[..., 0]
             p_cam[..., 1] = s * x_n[..., 1]
             p_cam[..., 2] = s
-            p_board = (p_cam - t) @ R  # R_board_cam @ (p − t)
-            xb = p_board[..., 0]
-            yb = p_board[..., 1]
+            # p_board = R_board_cam @ (p − t), x and y only; one (N, 3) @ (3, 2) product (the
+            # same float64 values as the full per-row (…, 3) @ (3, 3) product, 1.5× faster)
+            d = (p_cam - t).reshape(-1, 3)
+            p_xy = (d @ R_xy).reshape(x_n.shape[:-1] + (2,))
+            xb = p_xy[..., 0]
+            yb = p_xy[..., 1]
             with np.errstate(invalid="ignore"):
                 ok &= (xb >= 0) & (xb <= W_m) & (yb >= 0) & (yb <= H_m)
             return ok, p_cam, xb, yb
@@ -320,8 +328,16 @@ class CharucoBoard:
         acc = np.zeros((camera.height, camera.width), dtype=np.float64)
         for x_n in sub_rays:
             ok, _, xb, yb = hit(x_n)
-            val = _bilinear(tex, np.where(ok, xb / m - 0.5, 0.0), np.where(ok, yb / m - 0.5, 0.0))
-            acc += np.where(ok, val, 0.0)
+            # texel coordinates (float64, then float32 in the lookup); 0 where the ray misses
+            u = xb / m
+            u -= 0.5
+            u[~ok] = 0.0
+            v = yb / m
+            v -= 0.5
+            v[~ok] = 0.0
+            val = _bilinear(tex, u, v)
+            val[~ok] = 0.0
+            acc += val
         reflectance = (acc / (ss * ss)).astype(np.float32)
 
         mask, p_cam, _, _ = hit(centre_rays)
@@ -392,10 +408,11 @@ def _camera_rays(camera: Camera, ss: int):
     """Normalised (z = 1) undistorted rays: pixel centres ``(H, W, 2)`` float64 and the ``ss²``
     sub-pixel grids ``[(H, W, 2) float32, ...]``; cached for the last few intrinsics used."""
     key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), ss)
-    hit = _RAY_CACHE.get(key)
-    if hit is not None:
-        _RAY_CACHE.move_to_end(key)
-        return hit
+    with _RAY_CACHE_LOCK:
+        hit = _RAY_CACHE.get(key)
+        if hit is not None:
+            _RAY_CACHE.move_to_end(key)
+            return hit
     grid = camera.pixel_grid()
     centre = camera.unproject(grid)[..., :2]
     offsets = (np.arange(ss) + 0.5) / ss - 0.5
@@ -410,9 +427,10 @@ def _camera_rays(camera: Camera, ss: int):
     for a in subs + [centre]:
         a.setflags(write=False)
     value = (centre, subs)
-    _RAY_CACHE[key] = value
-    while len(_RAY_CACHE) > _RAY_CACHE_SIZE:
-        _RAY_CACHE.popitem(last=False)
+    with _RAY_CACHE_LOCK:  # two threads may have computed the same rays: either will do
+        _RAY_CACHE[key] = value
+        while len(_RAY_CACHE) > _RAY_CACHE_SIZE:
+            _RAY_CACHE.popitem(last=False)
     return value
 
 

@@ -410,6 +410,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     goes last. Returns the number of frames written."""
     from facegeo.capture import imageio, scan as scanmod
     from facegeo.geometry.structured_light import pattern_value_at
+    from facegeo.synth.render import _ordered_map
 
     rng = np.random.default_rng(seed)
     frames = 0
@@ -440,16 +441,23 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     exposure = 3.0  # maps a white board under unit irradiance (0.85/π) to ≈ 0.81
     n_total = len(poses) * len(rig.cameras)
     done = 0
-    for vi, T_world_board in enumerate(poses):
-        for cam in rig.cameras:
-            bv = board.render(cam, cam.T_cam_world @ T_world_board)
-            img = exposure * (bv.reflectance / np.pi + 0.01)
-            img = _noisy(np.repeat(img[..., None], 3, axis=2).astype(np.float32), 1.0)
-            path = scanmod.frame_path(root, calib_files, camera=cam.name, view=vi)
-            imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
-            frames += 1
-            done += 1
-            tick("calib", done, n_total)
+
+    def calib_frame(item):  # noise-free linear frame of one (view, camera), on a worker thread
+        _, T_world_board, cam = item
+        bv = board.render(cam, cam.T_cam_world @ T_world_board)
+        img = exposure * (bv.reflectance / np.pi + 0.01)
+        return np.repeat(img[..., None], 3, axis=2).astype(np.float32)
+
+    # Board renders run 2 ahead on threads (numpy and OpenCV release the GIL); noise, encoding
+    # and writing stay here, in frame order, so the noise stream is the same.
+    views = [(vi, T, cam) for vi, T in enumerate(poses) for cam in rig.cameras]
+    for (vi, _, cam), img in _ordered_map(calib_frame, views, workers=2):
+        img = _noisy(img, 1.0)
+        path = scanmod.frame_path(root, calib_files, camera=cam.name, view=vi)
+        imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
+        frames += 1
+        done += 1
+        tick("calib", done, n_total)
     manifest["calib"] = {"board": "calib/board.json", "response": "srgb", "views": len(poses),
                          "files": calib_files}
 
@@ -460,23 +468,28 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     proj_files = scanmod.DEFAULT_FILES["calib.projector"]
     n_total = len(proj_poses) * len(rig.cameras) * len(sl_names)
     done = 0
-    for vi, T_world_board in enumerate(proj_poses):
+    def projector_view(item):  # the board seen by one camera, lit by the projector (a worker)
+        _, T_world_board, cam = item
         n_board = T_world_board.R[:, 2] * -1.0  # printed side faces -z_board
-        for cam in rig.cameras:
-            bv = board.render(cam, cam.T_cam_world @ T_world_board)
-            p = bv.p_world[bv.mask]
-            e_proj, q_proj = _projector_irradiance(proj, p, np.broadcast_to(n_board, p.shape))
-            base = bv.reflectance[bv.mask] / np.pi
-            for name in sl_names:
-                pat = pattern_value_at(spec, name, q_proj)
-                val = np.zeros(bv.mask.shape, np.float32)
-                val[bv.mask] = exposure * base * (e_proj * pat + 0.02)
-                img = _noisy(np.repeat(val[..., None], 3, axis=2), 1.0)
-                path = scanmod.frame_path(root, proj_files, camera=cam.name, view=vi, frame=name)
-                imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
-                frames += 1
-                done += 1
-                tick("calib.projector", done, n_total)
+        bv = board.render(cam, cam.T_cam_world @ T_world_board)
+        p = bv.p_world[bv.mask]
+        e_proj, q_proj = _projector_irradiance(proj, p, np.broadcast_to(n_board, p.shape))
+        base = bv.reflectance[bv.mask] / np.pi
+        return bv.mask, base, e_proj, q_proj
+
+    views = [(vi, T, cam) for vi, T in enumerate(proj_poses) for cam in rig.cameras]
+    for (vi, _, cam), (mask, base, e_proj, q_proj) in _ordered_map(projector_view, views,
+                                                                   workers=2):
+        for name in sl_names:
+            pat = pattern_value_at(spec, name, q_proj)
+            val = np.zeros(mask.shape, np.float32)
+            val[mask] = exposure * base * (e_proj * pat + 0.02)
+            img = _noisy(np.repeat(val[..., None], 3, axis=2), 1.0)
+            path = scanmod.frame_path(root, proj_files, camera=cam.name, view=vi, frame=name)
+            imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
+            frames += 1
+            done += 1
+            tick("calib.projector", done, n_total)
     manifest["calib"]["projector"] = {"views": len(proj_poses), "files": proj_files}
     seconds["calib"] = time.perf_counter() - t0
 
