@@ -482,6 +482,24 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
     return out
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _block_row(D, di, cast, ci, members, starts, share, Dq, castq, qi):
+    """One function's block summaries (:func:`block_outputs`): ``Dq[qi, b]`` and
+    ``castq[qi, b]`` from its diffuse samples ``D[di]`` and occlusion ``cast[ci]``."""
+    for b in range(starts.size - 1):
+        r = g = bl = c = 0.0
+        for m in range(starts[b], starts[b + 1]):
+            l = members[m]
+            s = share[m]
+            r += s * D[di, l, 0]
+            g += s * D[di, l, 1]
+            bl += s * D[di, l, 2]
+            if cast[ci, l]:
+                c += s
+        Dq[qi, b, 0], Dq[qi, b, 1], Dq[qi, b, 2] = r, g, bl
+        castq[qi, b] = c > 0.5
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def block_outputs(D, cast, members, starts, share):
     """Per function, the diffuse samples and occlusion of output lights that summarise blocks
@@ -496,18 +514,7 @@ def block_outputs(D, cast, members, starts, share):
     Dq = np.empty((N, B, 3), np.float32)
     castq = np.empty((N, B), np.bool_)
     for i in prange(N):
-        for b in range(B):
-            r = g = bl = c = 0.0
-            for m in range(starts[b], starts[b + 1]):
-                l = members[m]
-                s = share[m]
-                r += s * D[i, l, 0]
-                g += s * D[i, l, 1]
-                bl += s * D[i, l, 2]
-                if cast[i, l]:
-                    c += s
-            Dq[i, b, 0], Dq[i, b, 1], Dq[i, b, 2] = r, g, bl
-            castq[i, b] = c > 0.5
+        _block_row(D, i, cast, i, members, starts, share, Dq, castq, i)
     return Dq, castq
 
 
@@ -760,17 +767,18 @@ def resynth_relit_grid(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back,
         if back[i] or same[i]:
             continue
         out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, i, D, S, iE, dirs, sa, cast, nrm, v0, vn,
-                                                     a0, a1, nt, npf, e2, skip, Dq, castq,
+                                                     a0, a1, nt, npf, e2, skip, Dq, castq, i,
                                                      active, lA, eA, ieA, w)
     return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
 def _grid_one(i, di, D, S, iE, dirs, sa, cast, nrm, v0, vn, a0, a1, nt, npf, e2, skip, Dq,
-              castq, active, lA, eA, ieA, w):
+              castq, qi, active, lA, eA, ieA, w):
     """Eq. 4 on function ``i`` resynthesised (:func:`resynth_relit_grid`'s body): its samples
     are ``D[di]``, ``S[di]`` and ``Dq[di]`` (``di = i`` for whole arrays, 0 for one function's
-    decoded scratch rows), the rest of its data at row ``i``. Returns the three sums."""
+    decoded scratch rows), the output lights' occlusion ``castq[qi]``, the rest of its data
+    at row ``i``. Returns the three sums."""
     L = dirs.shape[0]
     A = active.size
     micro = np.empty(L)
@@ -792,7 +800,7 @@ def _grid_one(i, di, D, S, iE, dirs, sa, cast, nrm, v0, vn, a0, a1, nt, npf, e2,
     for k in range(A):
         j = active[k]
         d0, d1, d2 = Dq[di, j, 0], Dq[di, j, 1], Dq[di, j, 2]
-        shadowed = castq[i, j]
+        shadowed = castq[qi, j]
         spec = lobe and not shadowed and nx * lA[k, 0] + ny * lA[k, 1] + nz * lA[k, 2] > 0.0
         if not (spec or d0 != 0.0 or d1 != 0.0 or d2 != 0.0):
             continue
@@ -862,7 +870,7 @@ def relight_stored(Rb, rrows, half, active, w):
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FMV)
 def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, v0, vn, a0, a1,
-                      nt, npf, eta, skip, active, w):
+                      nt, npf, eta, skip, active, w, members, starts, share, dq, Eq, wq):
     """Eq. 4 of stored measured functions (the naive value) and of the same functions
     resynthesised for v_n (:func:`resynth_relit_grid`), from float16 bits, in one pass.
 
@@ -874,7 +882,14 @@ def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, 
     todo : (N,) bool — functions to resynthesise (fitted, n·v_n > 0, not the source view)
     E, dirs, sa : the light set's (L, 3) intensities, (L, 3) directions, (L,) solid angles
     cast, nrm, v0, vn, a0, a1 : per function (row i), as :func:`resynth_relit_grid`
-    active : (A,) int64 — the lights with weight; w : (A, 3) float64 their weights
+    active : (A,) int64 — the lights with weight; w : (A, 3) float64 their weights (the naive
+        value, and the resynthesis' output lights when ``starts`` is empty)
+    members, starts, share : ``light_step > 1`` — the output lights' blocks of measured
+        lights (:func:`block_outputs`: each function's block diffuse samples and occlusion
+        are formed here from its decoded D and its cast shadows); ``starts`` of size 0: the
+        output lights are the measured lights ``active``
+    dq, Eq, wq : (B, 3) float64 — the blocks' directions, intensities and weights (unused
+        when ``starts`` is empty)
 
     Returns
     -------
@@ -887,12 +902,21 @@ def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, 
     """
     N = rrows.size
     L = dirs.shape[0]
+    B = starts.size - 1
+    blocks = B >= 0
     naive = np.empty((N, 3))
     out = np.zeros((N, 3))
     finite = np.empty(N, np.bool_)
     e2 = eta * eta - 1.0
     iE = 1.0 / E
-    lA, eA, ieA = _active_constants(active, dirs, E)
+    if blocks:
+        qactive = np.arange(B)
+        lA, eA, ieA = _active_constants(qactive, dq, Eq)
+        wA = wq
+    else:
+        qactive = active
+        lA, eA, ieA = _active_constants(active, dirs, E)
+        wA = w
     for i in prange(N):
         r = rrows[i]
         Rf = np.empty((1, L, 3), np.float32)
@@ -911,7 +935,16 @@ def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, 
                 x = half[Db[d, j, c]]
                 Df[0, j, c] = x
                 Sf[0, j, c] = Rf[0, j, c] - x  # float32 − float32: rounded as numpy's
+        if blocks:
+            Dq = np.empty((1, max(B, 0), 3), np.float32)
+            cq = np.empty((1, max(B, 0)), np.bool_)
+            _block_row(Df, 0, cast, i, members, starts, share, Dq, cq, 0)
+            qi = 0
+        else:
+            Dq = Df
+            cq = cast[i:i + 1]
+            qi = 0
         out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm, v0,
-                                                    vn, a0, a1, nt, npf, e2, skip, Df, cast,
-                                                    active, lA, eA, ieA, w)
+                                                    vn, a0, a1, nt, npf, e2, skip, Dq, cq, qi,
+                                                    qactive, lA, eA, ieA, wA)
     return naive, out, finite
