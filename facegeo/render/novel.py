@@ -54,12 +54,13 @@ resynthesis, each equal bit for bit to its own call.
 Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthesize_relit`):
 Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised
 samples are computed only at the lights that carry energy and never stored.
-Where the field and the fit's D are stored as float16 (the default) and ``light_step = 1``,
-each chunk of texels is read, relit naively and resynthesised in one compiled pass
-(:data:`FUSED_READ`, :meth:`facegeo.render._fitstore.FitStore.relit_rows`): the float16 bits
-are decoded exactly inside the kernel, R, D and S are never widened into float32 arrays and
-the naive Eq. 4 is no matrix product (same samples, same resynthesis code; the naive sums
-are float64, the sgemm's were float32).
+Where the field and the fit's D are stored as float16 (the default), each chunk of texels
+(:data:`STORED_CHUNK` functions) is read, relit naively and resynthesised in one compiled pass
+(:data:`FUSED_READ`, :meth:`facegeo.render._fitstore.FitStore.relit_rows`), at any
+``light_step`` and whatever number of lights carry energy: the float16 bits are decoded
+exactly inside the kernel, R, D and S are never widened into float32 arrays and the naive
+Eq. 4 is no matrix product (same samples, same resynthesis code; the naive sums are float64,
+the sgemm's were float32).
 
 **Speed against accuracy (optional, not the paper):** ``light_step = k > 1`` evaluates the
 resynthesised function once per k × k block of the light grid, at the block's energy centroid
@@ -116,8 +117,9 @@ BLEND_MIN_SHARE = 1e-3
 TAP_MAX_TEXELS = 3.0
 #: Read, relight and resynthesise float16 fields and fits in one compiled pass
 #: (:meth:`facegeo.render._fitstore.FitStore.relit_rows`) where it applies (full resynthesis,
-#: ``light_step = 1``, float16 field and D on the light-stage grid). False: always the numpy
-#: read (float32 copies of R, D and S, Eq. 4 as a matrix product), which it is tested against.
+#: float16 field and D on the light-stage grid; any ``light_step``, any number of lights with
+#: energy). False: always the numpy read (float32 copies of R, D and S, Eq. 4 as a matrix
+#: product, the block summaries by ``block_outputs``), which it is tested against.
 FUSED_READ = True
 #: Functions per resynthesis chunk: ``CHUNK_SAMPLES // L`` (bounded temporaries).
 CHUNK_SAMPLES = 1 << 19
