@@ -415,11 +415,51 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     return out
 
 
-#: Functions per work item of the compiled float16 passes' parallel loop (numba's dynamic
-#: scheduling, ``numba.parallel_chunksize``): functions differ in cost (back-facing and
-#: source-view ones are skipped), and with numba's default static split one thread waits
-#: for the other at the end of every call.
-PARALLEL_CHUNK = 16
+#: Functions per work item of the compiled float16 passes: of :func:`relight_stored`'s
+#: parallel loop (numba's dynamic scheduling, ``numba.parallel_chunksize``) and of the
+#: pieces :func:`relit_stored` hands to its threads. Functions differ in cost (back-facing
+#: and source-view ones are skipped), and with numba's default static split one thread
+#: waits for the other at the end of every call.
+PARALLEL_CHUNK = 32
+
+
+def _on_threads(run, n: int) -> None:
+    """``run(lo, hi)`` over pieces of ``range(n)`` of :data:`PARALLEL_CHUNK` functions, taken
+    in turn by ``numba.get_num_threads()`` Python threads (the serial kernels release the
+    GIL): dynamic scheduling without a ``parallel=True`` kernel to compile."""
+    import itertools
+    import threading
+
+    from numba import get_num_threads
+
+    k = PARALLEL_CHUNK
+    threads = min(get_num_threads(), -(-n // k))
+    if threads <= 1:
+        run(0, n)
+        return
+    pieces = itertools.count(0, k)
+    lock = threading.Lock()
+    errors: list = []
+
+    def worker():
+        try:
+            while True:
+                with lock:
+                    lo = next(pieces)
+                if lo >= n or errors:
+                    return
+                run(lo, min(n, lo + k))
+        except BaseException as e:  # re-raised in the caller
+            errors.append(e)
+
+    pool = [threading.Thread(target=worker) for _ in range(threads - 1)]
+    for t in pool:
+        t.start()
+    worker()
+    for t in pool:
+        t.join()
+    if errors:
+        raise errors[0]
 
 
 def _scheduled(kernel, *args):
@@ -546,13 +586,17 @@ def relit_stored(field, field_rows, diffuse, diffuse_rows, todo, *, normal, view
         blocks = _output_blocks(lights, w, step)
     from facegeo.appearance._skin_resynth_kernels import relit_stored_grid
 
-    naive, relit, finite = _scheduled(
-        relit_stored_grid, np.asarray(field).view(np.uint16), field_rows, np.asarray(diffuse).view(np.uint16),
-        c(diffuse_rows, np.int64), half_table(), c(todo & ~same),
-        c(lights.intensities, np.float64), c(lights.directions, np.float64),
-        c(lights.solid_angles, np.float64), c(cast_shadow, np.bool_), normal, view, vn,
-        c(alpha_0, np.float64), c(alpha_1, np.float64), int(nt), int(npf), float(eta),
-        float(specular_skip), active, c(w[active], np.float64), *blocks)
+    naive = np.empty((n, 3))
+    relit = np.zeros((n, 3))
+    finite = np.empty(n, bool)
+    args = (np.asarray(field).view(np.uint16), field_rows, np.asarray(diffuse).view(np.uint16),
+            c(diffuse_rows, np.int64), half_table(), c(todo & ~same),
+            c(lights.intensities, np.float64), c(lights.directions, np.float64),
+            c(lights.solid_angles, np.float64), c(cast_shadow, np.bool_), normal, view, vn,
+            c(alpha_0, np.float64), c(alpha_1, np.float64), int(nt), int(npf), float(eta),
+            float(specular_skip), active, c(w[active], np.float64), *blocks, naive, relit,
+            finite)
+    _on_threads(lambda lo, hi: relit_stored_grid(lo, hi, *args), n)
     keep = np.flatnonzero(todo & same & finite)  # the source's own view: the measured function
     if keep.size:
         R = np.asarray(field[field_rows[keep]], np.float32)

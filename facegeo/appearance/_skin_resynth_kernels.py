@@ -873,11 +873,17 @@ def relight_stored(Rb, rrows, half, active, w):
     return naive, finite
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FMV)
-def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, v0, vn, a0, a1,
-                      nt, npf, eta, skip, active, w, members, starts, share, dq, Eq, wq):
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
+def relit_stored_grid(lo, hi, Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, v0, vn, a0,
+                      a1, nt, npf, eta, skip, active, w, members, starts, share, dq, Eq, wq, naive,
+                      out, finite):
     """Eq. 4 of stored measured functions (the naive value) and of the same functions
-    resynthesised for v_n (:func:`resynth_relit_grid`), from float16 bits, in one pass.
+    resynthesised for v_n (:func:`resynth_relit_grid`), from float16 bits, in one pass, for
+    functions ``lo ≤ i < hi`` (written into ``naive``, ``out``, ``finite``).
+
+    Serial, without the GIL: ``_skin_resynth.relit_stored`` runs pieces of the range on
+    Python threads. A ``parallel=True`` loop compiled its body twice (the loop index is
+    int64 when typed, uint64 in the outlined loop) and took ≈ 21 CPU-s to compile cold.
 
     Parameters
     ----------
@@ -896,22 +902,19 @@ def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, 
     dq, Eq, wq : (B, 3) float64 — the blocks' directions, intensities and weights (unused
         when ``starts`` is empty)
 
-    Returns
-    -------
+    Outputs (rows ``lo:hi`` written)
+    --------------------------------
     naive : (N, 3) float64 — ``Σ_l w_l ⊙ R_l`` over ``active`` (NaN where any sample of the
         row, at any light, is not finite, as a matrix product with zero weights gives)
-    relit : (N, 3) float64 — Eq. 4 of the resynthesised function where ``todo`` and finite,
-        else 0; its samples are exactly :func:`resynth_relit_grid`'s with D = R's float32
-        values decoded, S = R − D rounded to float32 (as ``FitStore.skin_fit`` forms them)
+    out : (N, 3) float64, zeros on entry — Eq. 4 of the resynthesised function where ``todo``
+        and finite; its samples are exactly :func:`resynth_relit_grid`'s with D = R's
+        float32 values decoded, S = R − D rounded to float32 (as ``FitStore.skin_fit`` forms
+        them)
     finite : (N,) bool
     """
-    N = rrows.size
     L = dirs.shape[0]
     B = starts.size - 1
     blocks = B >= 0
-    naive = np.empty((N, 3))
-    out = np.zeros((N, 3))
-    finite = np.empty(N, np.bool_)
     e2 = eta * eta - 1.0
     iE = 1.0 / E
     if blocks:
@@ -922,9 +925,13 @@ def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, 
         qactive = active
         lA, eA, ieA = _active_constants(active, dirs, E)
         wA = w
-    for i in prange(N):
+    Rf = np.empty((1, L, 3), np.float32)
+    Df = np.empty((1, L, 3), np.float32)
+    Sf = np.empty((1, L, 3), np.float32)
+    Dq = np.empty((1, max(B, 0), 3), np.float32)
+    cq = np.empty((1, max(B, 0)), np.bool_)
+    for i in range(lo, hi):
         r = rrows[i]
-        Rf = np.empty((1, L, 3), np.float32)
         s0, s1, s2, ok = _naive_row(Rb, r, half, Rf, active, w)
         naive[i, 0], naive[i, 1], naive[i, 2] = s0, s1, s2
         finite[i] = ok
@@ -933,23 +940,17 @@ def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, 
         if not todo[i]:
             continue
         d = drows[i]
-        Df = np.empty((1, L, 3), np.float32)
-        Sf = np.empty((1, L, 3), np.float32)
         for j in range(L):
             for c in range(3):
                 x = half[Db[d, j, c]]
                 Df[0, j, c] = x
                 Sf[0, j, c] = Rf[0, j, c] - x  # float32 − float32: rounded as numpy's
         if blocks:
-            Dq = np.empty((1, max(B, 0), 3), np.float32)
-            cq = np.empty((1, max(B, 0)), np.bool_)
             _block_row(Df, 0, cast, i, members, starts, share, Dq, cq, 0)
-            qi = 0
+            out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm,
+                                                        v0, vn, a0, a1, nt, npf, e2, skip, Dq,
+                                                        cq, 0, qactive, lA, eA, ieA, wA)
         else:
-            Dq = Df
-            cq = cast[i:i + 1]
-            qi = 0
-        out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm, v0,
-                                                    vn, a0, a1, nt, npf, e2, skip, Dq, cq, qi,
-                                                    qactive, lA, eA, ieA, wA)
-    return naive, out, finite
+            out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm,
+                                                        v0, vn, a0, a1, nt, npf, e2, skip, Df,
+                                                        cast, i, qactive, lA, eA, ieA, wA)
