@@ -1,7 +1,8 @@
 """Compiled (numba) kernels of the skin model's resynthesis (Debevec et al. 2000, §4.3, Eq. 9).
 
 Private module behind :mod:`facegeo.appearance._skin_resynth`. One reflectance function per
-iteration of a ``prange`` loop (both cores when numba has two threads); per function, one loop
+iteration of a ``prange`` loop (both cores when numba has two threads; :func:`relit_stored_grid`
+is serial over a range of functions, run in pieces on Python threads); per function, one loop
 over its lights computes what the numpy reference (``_skin_resynth`` with ``KERNELS = False``)
 builds as ``(n, L, 3)`` temporaries: the diffuse chroma shift from v_0 to v_n (Eq. 6–7
 inverted and re-applied, :func:`_skin_resynth.resynthesize_diffuse`), Eq. 9's specular sample
