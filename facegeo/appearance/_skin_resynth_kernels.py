@@ -946,12 +946,13 @@ def relit_stored_grid(lo, hi, Rb, rrows, Db, drows, half, todo, E, dirs, sa, cas
                 x = half[Db[d, j, c]]
                 Df[0, j, c] = x
                 Sf[0, j, c] = Rf[0, j, c] - x  # float32 − float32: rounded as numpy's
+        # one call site (one compiled specialisation of _grid_one): the output lights'
+        # samples and occlusion are the blocks' or the function's own
         if blocks:
             _block_row(Df, 0, cast, i, members, starts, share, Dq, cq, 0)
-            out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm,
-                                                        v0, vn, a0, a1, nt, npf, e2, skip, Dq,
-                                                        cq, 0, qactive, lA, eA, ieA, wA)
+            Dout, cout, qi = Dq, cq, 0
         else:
-            out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm,
-                                                        v0, vn, a0, a1, nt, npf, e2, skip, Df,
-                                                        cast, i, qactive, lA, eA, ieA, wA)
+            Dout, cout, qi = Df, cast, i
+        out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm, v0,
+                                                    vn, a0, a1, nt, npf, e2, skip, Dout, cout,
+                                                    qi, qactive, lA, eA, ieA, wA)
