@@ -443,12 +443,15 @@ def test_shrinkage_set_renders_each_shrinkage_as_its_own_call(parts):
         render_view(*args, samples=vs, resynthesis=False, shrinkage_set=[None])
 
 
-def test_fused_float16_read_equals_the_numpy_read(parts, monkeypatch):
+@pytest.mark.parametrize("light_step,lit", [(1, "all"), (2, "all"), (1, "few"), (2, "few")])
+def test_fused_float16_read_equals_the_numpy_read(parts, monkeypatch, light_step, lit):
     """shade_texels with the fused pass (float16 field and D decoded in the kernel, naive and
     resynthesised Eq. 4 from one read) against FUSED_READ = False on a view 30° from a
-    source camera, both cameras blended: same counts, colours within FUSED_READ_REL. The
-    resynthesised colours differ from the naive ones by far more, so a fused pass that
-    dropped the resynthesis, or read the wrong fit rows, would fail."""
+    source camera, both cameras blended: same counts, colours within FUSED_READ_REL — at
+    every light and with ``light_step = 2`` (block summaries formed in the pass), under
+    weights on every light and on three lights only (the numpy read then runs the scalar
+    kernel). The resynthesised colours differ from the naive ones by far more, so a fused
+    pass that dropped the resynthesis, or read the wrong fit rows, would fail."""
     from facegeo.render import novel, orbit_camera, shade_texels
 
     srcs = parts["sources"]
@@ -458,10 +461,15 @@ def test_fused_float16_read_equals_the_numpy_read(parts, monkeypatch):
     p = parts["texels"].p_world[t]
     far = orbit_camera(parts["rig"].camera(src.name), 30.0).center_world
     w = _weights(parts["rig"].lights, 3)
-    kw = {"lights": parts["lights"]}
+    if lit == "few":  # a sun-like map: three lights of the upper hemisphere carry energy
+        keep = np.flatnonzero(parts["lights"].directions[:, 1] > 0.3)[[0, 7, 19]]
+        w_few = np.zeros_like(w)
+        w_few[keep] = 50.0 * w[keep]
+        w = w_few
+    kw = {"lights": parts["lights"], "light_step": light_step}
     st_f: dict = {}
     fused = shade_texels(t, p, far, srcs, w, stats=st_f, **kw)
-    naive = shade_texels(t, p, far, srcs, w, resynthesis=False, **kw)
+    naive = shade_texels(t, p, far, srcs, w, resynthesis=False, lights=parts["lights"])
     monkeypatch.setattr(novel, "FUSED_READ", False)
     st_n: dict = {}
     ref = shade_texels(t, p, far, srcs, w, stats=st_n, **kw)

@@ -415,6 +415,62 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     return out
 
 
+#: Functions per work item of the compiled float16 passes: of :func:`relight_stored`'s
+#: parallel loop (numba's dynamic scheduling, ``numba.parallel_chunksize``) and of the
+#: pieces :func:`relit_stored` hands to its threads. Functions differ in cost (back-facing
+#: and source-view ones are skipped), and with numba's default static split one thread
+#: waits for the other at the end of every call.
+PARALLEL_CHUNK = 32
+
+
+def _on_threads(run, n: int) -> None:
+    """``run(lo, hi)`` over pieces of ``range(n)`` of :data:`PARALLEL_CHUNK` functions, taken
+    in turn by ``numba.get_num_threads()`` Python threads (the serial kernels release the
+    GIL): dynamic scheduling without a ``parallel=True`` kernel to compile."""
+    import itertools
+    import threading
+
+    from numba import get_num_threads
+
+    k = PARALLEL_CHUNK
+    threads = min(get_num_threads(), -(-n // k))
+    if threads <= 1:
+        run(0, n)
+        return
+    pieces = itertools.count(0, k)
+    lock = threading.Lock()
+    errors: list = []
+
+    def worker():
+        try:
+            while True:
+                with lock:
+                    lo = next(pieces)
+                if lo >= n or errors:
+                    return
+                run(lo, min(n, lo + k))
+        except BaseException as e:  # re-raised in the caller
+            errors.append(e)
+
+    pool = [threading.Thread(target=worker) for _ in range(threads - 1)]
+    for t in pool:
+        t.start()
+    worker()
+    for t in pool:
+        t.join()
+    if errors:
+        raise errors[0]
+
+
+def _scheduled(kernel, *args):
+    """``kernel(*args)`` with its ``prange`` loop scheduled dynamically in work items of
+    :data:`PARALLEL_CHUNK` iterations."""
+    from numba import parallel_chunksize
+
+    with parallel_chunksize(PARALLEL_CHUNK):
+        return kernel(*args)
+
+
 _HALF_TABLE: np.ndarray | None = None
 
 
@@ -451,17 +507,18 @@ def relight_stored(field, field_rows, weights):
         raise InputError(f"field: expected (T, L, 3) float16, got {field.shape} {field.dtype}")
     w = as_array(weights, "weights", shape=(field.shape[1], 3))
     active = np.flatnonzero(np.any(w != 0, axis=1)).astype(np.int64)
-    return kernel(np.asarray(field).view(np.uint16), np.ascontiguousarray(field_rows, np.int64),
-                  half_table(), active, np.ascontiguousarray(w[active], np.float64))
+    return _scheduled(kernel, np.asarray(field).view(np.uint16),
+                      np.ascontiguousarray(field_rows, np.int64), half_table(), active,
+                      np.ascontiguousarray(w[active], np.float64))
 
 
 def stored_kernel_applies(field, diffuse, lights, n_active: int, single_channel: bool) -> bool:
     """Whether :func:`relit_stored` serves these stored functions: the compiled kernels on
-    (``KERNELS``, ``VECTOR_KERNEL``), a light-stage grid with at least half its lights carrying
-    energy (where :func:`resynthesize_relit` runs ``resynth_relit_grid``), a 3-channel fit,
-    and field and diffuse component both stored as ``(·, L, 3)`` float16."""
+    (``KERNELS``, ``VECTOR_KERNEL``), a light-stage grid, a 3-channel fit, and field and
+    diffuse component both stored as ``(·, L, 3)`` float16. Any number of lights with
+    energy (``n_active``, kept for the callers; a map whose energy sits in a few lights costs
+    the per-function read and set-up plus those lights), any ``light_step``."""
     return bool(KERNELS and VECTOR_KERNEL and lights.grid is not None and not single_channel
-                and 2 * int(n_active) >= lights.n_lights
                 and field.dtype == np.float16 and diffuse.dtype == np.float16
                 and field.ndim == 3 and field.shape[1:] == (lights.n_lights, 3)
                 and diffuse.ndim == 3 and diffuse.shape[1:] == field.shape[1:])
@@ -469,7 +526,7 @@ def stored_kernel_applies(field, diffuse, lights, n_active: int, single_channel:
 
 def relit_stored(field, field_rows, diffuse, diffuse_rows, todo, *, normal, view, alpha_0,
                  alpha_1, cast_shadow, eta, lights, v_n, weights,
-                 specular_skip: float = SPECULAR_SKIP):
+                 specular_skip: float = SPECULAR_SKIP, light_step: int = 1):
     """Eq. 4 of stored measured functions and of the same functions resynthesised for v_n
     (§4.3, Eq. 9), in one compiled pass over their float16 storage.
 
@@ -495,6 +552,10 @@ def relit_stored(field, field_rows, diffuse, diffuse_rows, todo, *, normal, view
         (n, L) bool; eta : float — the fit's parameters of each function (``SkinFit``)
     lights : LightSet; v_n : (3,) or (n, 3) unit, the light set's frame
     weights : (L, 3) — Eq. 4 weights
+    light_step : int ≥ 1 — the resynthesised function evaluated once per ``k × k`` block of
+        the grid (:func:`resynthesize_relit`'s option, not the paper; its block summaries of
+        D and of the occlusion formed from the decoded rows as ``block_outputs`` forms them);
+        the naive value keeps every light
 
     Returns
     -------
@@ -517,15 +578,25 @@ def relit_stored(field, field_rows, diffuse, diffuse_rows, todo, *, normal, view
     active = np.flatnonzero(np.any(w != 0, axis=1)).astype(np.int64)
     nt, npf = lights.grid
     c = np.ascontiguousarray
+    step = check_light_step(light_step, lights)
+    if step == 1:  # the output lights are the measured ones (``starts`` empty)
+        none = np.zeros(0, np.int64)
+        blocks = (none, none, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
+    else:
+        blocks = _output_blocks(lights, w, step)
     from facegeo.appearance._skin_resynth_kernels import relit_stored_grid
 
-    naive, relit, finite = relit_stored_grid(
-        np.asarray(field).view(np.uint16), field_rows, np.asarray(diffuse).view(np.uint16),
-        c(diffuse_rows, np.int64), half_table(), c(todo & ~same),
-        c(lights.intensities, np.float64), c(lights.directions, np.float64),
-        c(lights.solid_angles, np.float64), c(cast_shadow, np.bool_), normal, view, vn,
-        c(alpha_0, np.float64), c(alpha_1, np.float64), int(nt), int(npf), float(eta),
-        float(specular_skip), active, c(w[active], np.float64))
+    naive = np.empty((n, 3))
+    relit = np.zeros((n, 3))
+    finite = np.empty(n, bool)
+    args = (np.asarray(field).view(np.uint16), field_rows, np.asarray(diffuse).view(np.uint16),
+            c(diffuse_rows, np.int64), half_table(), c(todo & ~same),
+            c(lights.intensities, np.float64), c(lights.directions, np.float64),
+            c(lights.solid_angles, np.float64), c(cast_shadow, np.bool_), normal, view, vn,
+            c(alpha_0, np.float64), c(alpha_1, np.float64), int(nt), int(npf), float(eta),
+            float(specular_skip), active, c(w[active], np.float64), *blocks, naive, relit,
+            finite)
+    _on_threads(lambda lo, hi: relit_stored_grid(lo, hi, *args), n)
     keep = np.flatnonzero(todo & same & finite)  # the source's own view: the measured function
     if keep.size:
         R = np.asarray(field[field_rows[keep]], np.float32)

@@ -1,7 +1,8 @@
 """Compiled (numba) kernels of the skin model's resynthesis (Debevec et al. 2000, §4.3, Eq. 9).
 
 Private module behind :mod:`facegeo.appearance._skin_resynth`. One reflectance function per
-iteration of a ``prange`` loop (both cores when numba has two threads); per function, one loop
+iteration of a ``prange`` loop (both cores when numba has two threads; :func:`relit_stored_grid`
+is serial over a range of functions, run in pieces on Python threads); per function, one loop
 over its lights computes what the numpy reference (``_skin_resynth`` with ``KERNELS = False``)
 builds as ``(n, L, 3)`` temporaries: the diffuse chroma shift from v_0 to v_n (Eq. 6–7
 inverted and re-applied, :func:`_skin_resynth.resynthesize_diffuse`), Eq. 9's specular sample
@@ -33,7 +34,12 @@ measurable on that CPU; skipping what adds 0 and removing roots and divisions di
 :func:`relit_stored_grid` runs :func:`resynth_relit_grid`'s per-function code on stored
 float16 functions, decoding their bits through a 65,536-entry table (exact) one function at a
 time, and gives the measured function's Eq. 4 (the naive value) from the same read
-(:func:`relight_stored`: the naive value alone).
+(:func:`relight_stored`: the naive value alone). It serves every light count and, with
+block arguments, ``light_step > 1`` (each function's block summaries formed from its decoded
+rows by :func:`_block_row`, :func:`block_outputs`'s code); its per-function code is always
+the grid kernel's, whose nodes are computed up front — for a map whose energy sits in a few
+lights that costs ≈ 20 µs per function, against the scalar kernel's lazy nodes, but the
+read it saves costs more.
 
 Kernels are compiled on first use and cached on disk (``cache=True``); the threading layer is
 chosen by ``facegeo/__init__.py`` (``NUMBA_THREADING_LAYER_PRIORITY``).
@@ -482,6 +488,24 @@ def resynth_relit(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back, grid
     return out
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+def _block_row(D, di, cast, ci, members, starts, share, Dq, castq, qi):
+    """One function's block summaries (:func:`block_outputs`): ``Dq[qi, b]`` and
+    ``castq[qi, b]`` from its diffuse samples ``D[di]`` and occlusion ``cast[ci]``."""
+    for b in range(starts.size - 1):
+        r = g = bl = c = 0.0
+        for m in range(starts[b], starts[b + 1]):
+            l = members[m]
+            s = share[m]
+            r += s * D[di, l, 0]
+            g += s * D[di, l, 1]
+            bl += s * D[di, l, 2]
+            if cast[ci, l]:
+                c += s
+        Dq[qi, b, 0], Dq[qi, b, 1], Dq[qi, b, 2] = r, g, bl
+        castq[qi, b] = c > 0.5
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
 def block_outputs(D, cast, members, starts, share):
     """Per function, the diffuse samples and occlusion of output lights that summarise blocks
@@ -496,18 +520,7 @@ def block_outputs(D, cast, members, starts, share):
     Dq = np.empty((N, B, 3), np.float32)
     castq = np.empty((N, B), np.bool_)
     for i in prange(N):
-        for b in range(B):
-            r = g = bl = c = 0.0
-            for m in range(starts[b], starts[b + 1]):
-                l = members[m]
-                s = share[m]
-                r += s * D[i, l, 0]
-                g += s * D[i, l, 1]
-                bl += s * D[i, l, 2]
-                if cast[i, l]:
-                    c += s
-            Dq[i, b, 0], Dq[i, b, 1], Dq[i, b, 2] = r, g, bl
-            castq[i, b] = c > 0.5
+        _block_row(D, i, cast, i, members, starts, share, Dq, castq, i)
     return Dq, castq
 
 
@@ -760,17 +773,18 @@ def resynth_relit_grid(D, S, E, dirs, sa, cast, nrm, v0, vn, a0, a1, same, back,
         if back[i] or same[i]:
             continue
         out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, i, D, S, iE, dirs, sa, cast, nrm, v0, vn,
-                                                     a0, a1, nt, npf, e2, skip, Dq, castq,
+                                                     a0, a1, nt, npf, e2, skip, Dq, castq, i,
                                                      active, lA, eA, ieA, w)
     return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
 def _grid_one(i, di, D, S, iE, dirs, sa, cast, nrm, v0, vn, a0, a1, nt, npf, e2, skip, Dq,
-              castq, active, lA, eA, ieA, w):
+              castq, qi, active, lA, eA, ieA, w):
     """Eq. 4 on function ``i`` resynthesised (:func:`resynth_relit_grid`'s body): its samples
     are ``D[di]``, ``S[di]`` and ``Dq[di]`` (``di = i`` for whole arrays, 0 for one function's
-    decoded scratch rows), the rest of its data at row ``i``. Returns the three sums."""
+    decoded scratch rows), the output lights' occlusion ``castq[qi]``, the rest of its data
+    at row ``i``. Returns the three sums."""
     L = dirs.shape[0]
     A = active.size
     micro = np.empty(L)
@@ -792,7 +806,7 @@ def _grid_one(i, di, D, S, iE, dirs, sa, cast, nrm, v0, vn, a0, a1, nt, npf, e2,
     for k in range(A):
         j = active[k]
         d0, d1, d2 = Dq[di, j, 0], Dq[di, j, 1], Dq[di, j, 2]
-        shadowed = castq[i, j]
+        shadowed = castq[qi, j]
         spec = lobe and not shadowed and nx * lA[k, 0] + ny * lA[k, 1] + nz * lA[k, 2] > 0.0
         if not (spec or d0 != 0.0 or d1 != 0.0 or d2 != 0.0):
             continue
@@ -860,11 +874,17 @@ def relight_stored(Rb, rrows, half, active, w):
     return naive, finite
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FMV)
-def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, v0, vn, a0, a1,
-                      nt, npf, eta, skip, active, w):
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FMV)
+def relit_stored_grid(lo, hi, Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, v0, vn, a0,
+                      a1, nt, npf, eta, skip, active, w, members, starts, share, dq, Eq, wq, naive,
+                      out, finite):
     """Eq. 4 of stored measured functions (the naive value) and of the same functions
-    resynthesised for v_n (:func:`resynth_relit_grid`), from float16 bits, in one pass.
+    resynthesised for v_n (:func:`resynth_relit_grid`), from float16 bits, in one pass, for
+    functions ``lo ≤ i < hi`` (written into ``naive``, ``out``, ``finite``).
+
+    Serial, without the GIL: ``_skin_resynth.relit_stored`` runs pieces of the range on
+    Python threads. A ``parallel=True`` loop compiled its body twice (the loop index is
+    int64 when typed, uint64 in the outlined loop) and took ≈ 21 CPU-s to compile cold.
 
     Parameters
     ----------
@@ -874,28 +894,45 @@ def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, 
     todo : (N,) bool — functions to resynthesise (fitted, n·v_n > 0, not the source view)
     E, dirs, sa : the light set's (L, 3) intensities, (L, 3) directions, (L,) solid angles
     cast, nrm, v0, vn, a0, a1 : per function (row i), as :func:`resynth_relit_grid`
-    active : (A,) int64 — the lights with weight; w : (A, 3) float64 their weights
+    active : (A,) int64 — the lights with weight; w : (A, 3) float64 their weights (the naive
+        value, and the resynthesis' output lights when ``starts`` is empty)
+    members, starts, share : ``light_step > 1`` — the output lights' blocks of measured
+        lights (:func:`block_outputs`: each function's block diffuse samples and occlusion
+        are formed here from its decoded D and its cast shadows); ``starts`` of size 0: the
+        output lights are the measured lights ``active``
+    dq, Eq, wq : (B, 3) float64 — the blocks' directions, intensities and weights (unused
+        when ``starts`` is empty)
 
-    Returns
-    -------
+    Outputs (rows ``lo:hi`` written)
+    --------------------------------
     naive : (N, 3) float64 — ``Σ_l w_l ⊙ R_l`` over ``active`` (NaN where any sample of the
         row, at any light, is not finite, as a matrix product with zero weights gives)
-    relit : (N, 3) float64 — Eq. 4 of the resynthesised function where ``todo`` and finite,
-        else 0; its samples are exactly :func:`resynth_relit_grid`'s with D = R's float32
-        values decoded, S = R − D rounded to float32 (as ``FitStore.skin_fit`` forms them)
+    out : (N, 3) float64, zeros on entry — Eq. 4 of the resynthesised function where ``todo``
+        and finite; its samples are exactly :func:`resynth_relit_grid`'s with D = R's
+        float32 values decoded, S = R − D rounded to float32 (as ``FitStore.skin_fit`` forms
+        them)
     finite : (N,) bool
     """
-    N = rrows.size
     L = dirs.shape[0]
-    naive = np.empty((N, 3))
-    out = np.zeros((N, 3))
-    finite = np.empty(N, np.bool_)
+    B = starts.size - 1
+    blocks = B >= 0
     e2 = eta * eta - 1.0
     iE = 1.0 / E
-    lA, eA, ieA = _active_constants(active, dirs, E)
-    for i in prange(N):
+    if blocks:
+        qactive = np.arange(B)
+        lA, eA, ieA = _active_constants(qactive, dq, Eq)
+        wA = wq
+    else:
+        qactive = active
+        lA, eA, ieA = _active_constants(active, dirs, E)
+        wA = w
+    Rf = np.empty((1, L, 3), np.float32)
+    Df = np.empty((1, L, 3), np.float32)
+    Sf = np.empty((1, L, 3), np.float32)
+    Dq = np.empty((1, max(B, 0), 3), np.float32)
+    cq = np.empty((1, max(B, 0)), np.bool_)
+    for i in range(lo, hi):
         r = rrows[i]
-        Rf = np.empty((1, L, 3), np.float32)
         s0, s1, s2, ok = _naive_row(Rb, r, half, Rf, active, w)
         naive[i, 0], naive[i, 1], naive[i, 2] = s0, s1, s2
         finite[i] = ok
@@ -904,14 +941,18 @@ def relit_stored_grid(Rb, rrows, Db, drows, half, todo, E, dirs, sa, cast, nrm, 
         if not todo[i]:
             continue
         d = drows[i]
-        Df = np.empty((1, L, 3), np.float32)
-        Sf = np.empty((1, L, 3), np.float32)
         for j in range(L):
             for c in range(3):
                 x = half[Db[d, j, c]]
                 Df[0, j, c] = x
                 Sf[0, j, c] = Rf[0, j, c] - x  # float32 − float32: rounded as numpy's
+        # one call site (one compiled specialisation of _grid_one): the output lights'
+        # samples and occlusion are the blocks' or the function's own
+        if blocks:
+            _block_row(Df, 0, cast, i, members, starts, share, Dq, cq, 0)
+            Dout, cout, qi = Dq, cq, 0
+        else:
+            Dout, cout, qi = Df, cast, i
         out[i, 0], out[i, 1], out[i, 2] = _grid_one(i, 0, Df, Sf, iE, dirs, sa, cast, nrm, v0,
-                                                    vn, a0, a1, nt, npf, e2, skip, Df, cast,
-                                                    active, lA, eA, ieA, w)
-    return naive, out, finite
+                                                    vn, a0, a1, nt, npf, e2, skip, Dout, cout,
+                                                    qi, qactive, lA, eA, ieA, wA)

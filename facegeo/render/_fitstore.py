@@ -190,7 +190,7 @@ class FitStore:
                        valid=p["valid"].astype(bool), eta=self.eta,
                        single_channel=self.single_channel)
 
-    def relit_rows(self, field, field_rows, idx, todo, v_n, weights, lights):
+    def relit_rows(self, field, field_rows, idx, todo, v_n, weights, lights, light_step=1):
         """Eq. 4 of measured functions and of the same functions resynthesised for v_n, read
         and resynthesised in one compiled pass over the float16 field and D
         (:func:`facegeo.appearance._skin_resynth.relit_stored`; R, D and S are not built as
@@ -202,6 +202,7 @@ class FitStore:
         field_rows : (n,) int — rows of ``field``; idx : (n,) int — their fit indices
         todo : (n,) bool — rows to resynthesise (fitted, not the source view)
         v_n : (n, 3) float64, unit, the light set's frame; weights : (L, 3); lights : LightSet
+        light_step : int ≥ 1 — resynthesis on k × k blocks of the grid (``relit_stored``)
 
         Returns
         -------
@@ -221,14 +222,14 @@ class FitStore:
         naive, relit, finite = relit_stored(
             field, field_rows, self.D, idx, todo, normal=p["normal"], view=p["view"],
             alpha_0=p["alpha_0"], alpha_1=p["alpha_1"], cast_shadow=cast, eta=self.eta,
-            lights=lights, v_n=v_n, weights=weights)
+            lights=lights, v_n=v_n, weights=weights, light_step=light_step)
         back = (((p["flags"].astype(np.int32) & FLAG_BACKFACING) != 0)
                 | (np.einsum("ni,ni->n", p["normal"], np.asarray(v_n, np.float64)) <= 0))
         return naive, relit, finite, back
 
     def uses_stored_kernel(self, field, lights, n_active: int) -> bool:
         """Whether :meth:`relit_rows` serves this camera (float16 field and D, a 3-channel fit
-        on the light-stage grid with at least half its lights carrying energy)."""
+        on the light-stage grid; any number of lights with energy, any ``light_step``)."""
         from facegeo.appearance._skin_resynth import stored_kernel_applies
 
         return stored_kernel_applies(field, self.D, lights, n_active, self.single_channel)

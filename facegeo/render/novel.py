@@ -54,12 +54,13 @@ resynthesis, each equal bit for bit to its own call.
 Resynthesis is relit in one fused pass (:func:`facegeo.appearance.skin.resynthesize_relit`):
 Eq. 9 still interpolates the measured lobe over the whole light set, but the resynthesised
 samples are computed only at the lights that carry energy and never stored.
-Where the field and the fit's D are stored as float16 (the default) and ``light_step = 1``,
-each chunk of texels is read, relit naively and resynthesised in one compiled pass
-(:data:`FUSED_READ`, :meth:`facegeo.render._fitstore.FitStore.relit_rows`): the float16 bits
-are decoded exactly inside the kernel, R, D and S are never widened into float32 arrays and
-the naive Eq. 4 is no matrix product (same samples, same resynthesis code; the naive sums
-are float64, the sgemm's were float32).
+Where the field and the fit's D are stored as float16 (the default), each chunk of texels
+(:data:`STORED_CHUNK` functions) is read, relit naively and resynthesised in one compiled pass
+(:data:`FUSED_READ`, :meth:`facegeo.render._fitstore.FitStore.relit_rows`), at any
+``light_step`` and whatever number of lights carry energy: the float16 bits are decoded
+exactly inside the kernel, R, D and S are never widened into float32 arrays and the naive
+Eq. 4 is no matrix product (same samples, same resynthesis code; the naive sums are float64,
+the sgemm's were float32).
 
 **Speed against accuracy (optional, not the paper):** ``light_step = k > 1`` evaluates the
 resynthesised function once per k × k block of the light grid, at the block's energy centroid
@@ -116,11 +117,18 @@ BLEND_MIN_SHARE = 1e-3
 TAP_MAX_TEXELS = 3.0
 #: Read, relight and resynthesise float16 fields and fits in one compiled pass
 #: (:meth:`facegeo.render._fitstore.FitStore.relit_rows`) where it applies (full resynthesis,
-#: ``light_step = 1``, float16 field and D on the light-stage grid). False: always the numpy
-#: read (float32 copies of R, D and S, Eq. 4 as a matrix product), which it is tested against.
+#: float16 field and D on the light-stage grid; any ``light_step``, any number of lights with
+#: energy). False: always the numpy read (float32 copies of R, D and S, Eq. 4 as a matrix
+#: product, the block summaries by ``block_outputs``), which it is tested against.
 FUSED_READ = True
 #: Functions per resynthesis chunk: ``CHUNK_SAMPLES // L`` (bounded temporaries).
 CHUNK_SAMPLES = 1 << 19
+#: Functions per call of the compiled float16 passes (the fused read and the naive baseline's
+#: Eq. 4 from the bits): they hold no ``(n, L, 3)`` temporaries, only the chunk's unpacked
+#: cast-shadow map (``n·L`` bytes), so a chunk is large — each call ends with one thread
+#: waiting for the other, which at ``CHUNK_SAMPLES // L`` = 256 functions cost ≈ 40 % more
+#: CPU time than the work itself (paper view, 2 threads).
+STORED_CHUNK = 16384
 #: Functions per ordered camera pair that :func:`cross_validated_shrinkage` resynthesises
 #: (an even subset of the texels both cameras measured; λ is one scalar per camera).
 SHRINK_FUNCTIONS = 4096
@@ -391,11 +399,17 @@ def _relight(R, W) -> np.ndarray:
     return (R.reshape(R.shape[0], -1) @ W.astype(np.float32)).astype(np.float64)
 
 
+def _stored_half(field) -> bool:
+    """Whether the field is stored as ``(T, L, 3)`` float16 (read from its bits by the
+    compiled passes)."""
+    return field.dtype == np.float16 and field.ndim == 3 and field.shape[2] == 3
+
+
 def _naive_rows(field, rows, W, w):
     """Eq. (4) of field rows, ``(n, 3)`` float64, and which rows are finite: from the float16
     bits in one compiled pass (:func:`facegeo.appearance._skin_resynth.relight_stored`, the
     naive value the fused pass gives, float64 sums), else :func:`_relight`."""
-    if field.dtype == np.float16 and field.ndim == 3 and field.shape[2] == 3:
+    if _stored_half(field):
         from facegeo.appearance._skin_resynth import relight_stored
 
         return relight_stored(field, rows, w)
@@ -473,16 +487,16 @@ def cross_validated_shrinkage(sources, weights, lights, *,
             rows_s, _ = src.rows_of(tex)
             fidx, _ = src.fit.locate(rows_s)
             pairs.append(other.name)
-            fused = FUSED_READ and step == 1 and src.fit.uses_stored_kernel(src.field, lights,
-                                                                             active.size)
-            for c0 in range(0, tex.size, chunk):
-                sl = slice(c0, min(tex.size, c0 + chunk))
+            fused = FUSED_READ and src.fit.uses_stored_kernel(src.field, lights, active.size)
+            n_chunk = STORED_CHUNK if fused else chunk
+            for c0 in range(0, tex.size, n_chunk):
+                sl = slice(c0, min(tex.size, c0 + n_chunk))
                 vb = other.v_world[rows_o[sl]]
                 m, ok = _naive_rows(other.field, rows_o[sl], W, w)
                 if fused:  # as shade_texels: one compiled pass over the float16 storage
                     q, p, ok_q, back = src.fit.relit_rows(src.field, rows_s[sl], fidx[sl],
                                                           np.ones(vb.shape[0], bool), vb, w,
-                                                          lights)
+                                                          lights, step)
                     ok &= ok_q
                     q, p, m, back = q[ok], p[ok], m[ok], back[ok]
                 else:
@@ -630,16 +644,18 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                 raise InputError(f"camera {src.name}: resynthesis needs its skin-model fit "
                                  "(run 'facegeo fit SCAN')")
             fidx, fitted = src.fit.locate(rows)
-        fused = (FUSED_READ and resynthesis is True and step == 1
+        fused = (FUSED_READ and resynthesis is True
                  and src.fit.uses_stored_kernel(src.field, lights, active.size))
         st["fused_read"] = st.get("fused_read", False) or fused
-        for c0 in range(0, k_idx.size, chunk):
-            sl = slice(c0, min(k_idx.size, c0 + chunk))
+        n_chunk = STORED_CHUNK if fused or (not resynthesis and _stored_half(src.field)) \
+            else chunk
+        for c0 in range(0, k_idx.size, n_chunk):
+            sl = slice(c0, min(k_idx.size, c0 + n_chunk))
             t0 = time.perf_counter()
             if fused:  # read, naive value and resynthesis in one compiled pass
                 want = fitted[sl] & ~same[sl]
                 out, relit, ok, back = src.fit.relit_rows(src.field, rows[sl], fidx[sl], want,
-                                                          vn[sl], w, lights)
+                                                          vn[sl], w, lights, step)
                 st["seconds_resynthesis"] += time.perf_counter() - t0
                 st["samples"] += int(ok.sum())
                 st["unfitted"] += int(np.count_nonzero(ok & ~fitted[sl]))
