@@ -425,8 +425,9 @@ def test_image_wavelet_pieces_read_fewer_entries(image_case):
         k4, _ = m4.budget(w, 0.01, total=True)
         assert C.relative_rmse(m4.relight(w, terms=k4), ref) <= 0.01
         assert m4.entries_read(w, k4) < 0.8 * m1.entries_read(w, k1), name
-    with pytest.raises(InputError, match="pieces"):
-        C.fit_image_wavelet(f, *GRID, pix, pieces=0)
+    for bad in (0, 2.5, "four"):
+        with pytest.raises(InputError, match="pieces"):
+            C.fit_image_wavelet(f, *GRID, pix, pieces=bad)
 
 
 def test_image_wavelet_numpy_fallback_equals_the_kernels(image_case, monkeypatch):

@@ -371,8 +371,9 @@ class ImageWaveletField:
 
     def budget(self, weights: Any, target_error: float, *,
                total: bool = False) -> tuple[int, float]:
-        """The smallest K whose relight from the K largest lighting coefficients is within
-        ``target_error`` (relative RMSE), and that error's estimate.
+        """The smallest K whose relight from the K largest lighting terms (the pieces of
+        :data:`PIECES`, largest ``|ŵ|·rms`` first; with one piece per slab the lighting
+        coefficients) is within ``target_error`` (relative RMSE), and that error's estimate.
 
         ``total=False``: within ``target_error`` of the relight from all the coefficients —
         the truncation error e_t(K) alone, measured in the spatial coefficient domain on the
@@ -761,6 +762,18 @@ def _energy_bins(m2: np.ndarray, lo: float) -> np.ndarray:
     return np.clip(((np.log2(m2) - lo) * THRESHOLD_BINS_PER_OCTAVE).astype(np.int64), 0, n_bins)
 
 
+def _count(x: Any, name: str, lo: int) -> int:
+    """``x`` as an integer ≥ ``lo``, else :class:`InputError` naming ``name``."""
+    try:
+        n = int(x)
+        ok = n == x and n >= lo
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(f"{name}: expected an integer ≥ {lo}, got {fmt_value(x)}")
+    return n
+
+
 def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
                       target_error: float = 0.01, check_pixels: int = CHECK_PIXELS,
                       seed: int = 0, pieces: int = PIECES) -> ImageWaveletField:
@@ -803,7 +816,7 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     alone; the bands' low-pass rows (float64) then take the remaining levels together. The same
     steps on the same values as one transform of the whole grid, so the same coefficients.
     Memory: one band's light coefficients, :data:`SLAB_CHUNK` slabs of one band's grid, the
-    low-pass grid ``L · 3 · G / FIT_BAND_ROWS²`` float64 and the kept entries (12 bytes each
+    low-pass grid ``L · 3 · G / FIT_BAND_ROWS²`` float64 and the kept entries (20 bytes each
     until sorted) — not the whole field's coefficients (``P · L · 3`` float32, twice a float16
     field; ``field`` may be a ``numpy.memmap``). Deviations from the papers:
     Haar, not the 8 × 8 DCT of JPEG, across the image (one orthonormal transform whose
@@ -818,12 +831,8 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     _check_pow2(n_theta, n_phi)
     t = check_positive(target_error, "target_error")
     n_p, n_l, _ = f.shape
-    n_check = int(check_pixels)
-    if n_check < 0 or n_check != check_pixels:
-        raise InputError(f"check_pixels: expected an integer ≥ 0, got {fmt_value(check_pixels)}")
-    n_pc = int(pieces)
-    if n_pc < 1 or n_pc != pieces:
-        raise InputError(f"pieces: expected an integer ≥ 1, got {fmt_value(pieces)}")
+    n_check = _count(check_pixels, "check_pixels", 0)
+    n_pc = _count(pieces, "pieces", 1)
     pixel_pos, (gh, gw) = _check_pixels(pixels, n_p)
     grid = (gh, gw)
     blocks, _ = finest_blocks(pixel_pos, grid)
