@@ -453,7 +453,7 @@ def truncation_errors_rgbx(ptr, n_seg, pos, code, pw, idx, lw,
 @njit(nogil=True, cache=True)
 def relight_one_thread(weights, light_levels, n_theta, n_phi, k, ptr, n_seg, pos, code, pw,
                        acc, grid_h, grid_w, blocked, levels, pixel_pos, order, blocks, block_px,
-                       ll, tab, clear, out):  # pragma: no cover - compiled
+                       ll, tab, clear, out, scale):  # pragma: no cover - compiled
     """A whole one-thread relight in one compiled call (the Python-level steps between the
     kernels cost ≈ 0.5 ms with cold caches): the lighting's non-standard light Haar
     coefficients, the ``k`` largest (``k`` = 0: every non-zero one, at least one) in index
@@ -462,7 +462,12 @@ def relight_one_thread(weights, light_levels, n_theta, n_phi, k, ptr, n_seg, pos
     :func:`inverse_haar_at_pixels` into ``out`` ``(P, 3)`` (``clear``: ``acc`` left zeroed). ``weights`` ``(L, 3)`` float64 (validated),
     ``light_levels`` the light grid's levels, ``ll`` and ``tab`` scratch; the rest as those
     kernels. The same operations as the Python-level path, so the same result bit for bit.
-    Returns False, having done nothing, when ``weights`` holds a NaN or infinity (else True)."""
+    Returns False, having done nothing, when ``weights`` holds a NaN or infinity (else True).
+
+    ``scale`` ``(L·n,)`` float64: the model stores each light coefficient's slab as ``n`` pieces
+    (``n`` = ``scale.size // L``; piece ``p`` of slab ``p // n``); the terms are pieces, the
+    ``k`` largest ``Σ_c |wc[p // n, c]| · scale[p]``, each weighted by its slab's coefficient.
+    One piece per slab and ``scale`` all ones: the K largest coefficients, as before."""
     for j in range(weights.shape[0]):
         for c in range(3):
             if not np.isfinite(weights[j, c]):
@@ -484,13 +489,26 @@ def relight_one_thread(weights, light_levels, n_theta, n_phi, k, ptr, n_seg, pos
             if wc[j * n_theta + i, 0] != 0 or wc[j * n_theta + i, 1] != 0 or \
                     wc[j * n_theta + i, 2] != 0:
                 nonzero += 1
-    if k == 0:
-        k = max(1, nonzero)
-    idx = top_k_index_order(wc, k)
+    n_pc = scale.size // n_l
+    if n_pc == 1:
+        if k == 0:
+            k = max(1, nonzero)
+        idx = top_k_index_order(wc, k)
+    else:
+        ws = np.zeros((scale.size, 3))
+        nonzero = 0
+        for q in range(scale.size):
+            ws[q, 0] = (abs(wc[q // n_pc, 0]) + abs(wc[q // n_pc, 1]) + abs(wc[q // n_pc, 2])) \
+                * scale[q]
+            if ws[q, 0] != 0:
+                nonzero += 1
+        if k == 0:
+            k = max(1, nonzero)
+        idx = top_k_index_order(ws, k)
     lw = np.empty((idx.size, 3), np.float32)
     for q in range(idx.size):
         for c in range(3):
-            lw[q, c] = np.float32(wc[idx[q], c])
+            lw[q, c] = np.float32(wc[idx[q] // n_pc, c])
     scatter_add_rgbx(ptr, n_seg, pos, code, pw, idx, lw, acc, tab, 0, acc.shape[0])
     inverse_haar_at_pixels(acc, grid_h, grid_w, blocked, levels, pixel_pos, order, out, blocks,
                            block_px, ll, clear)

@@ -21,8 +21,10 @@ of twenty" in storage and computation). Two schemes are implemented here:
   fields: the light Haar coefficients of every pixel, each seen as an image across the pixels,
   in a spatial Haar basis too (the "JPEG-domain" compression of Smith & Rowe that the paper
   cites, with Haar for the DCT), one global threshold on the 4-D coefficients, 6-byte entries;
-  relit in the compressed domain from the top-K lighting coefficients, one inverse spatial
-  transform at the end: smaller *and* faster.
+  relit in the compressed domain from the top-K lighting terms (each slab stored as magnitude
+  pieces, the terms pieces), one inverse spatial transform at the end: smaller *and* faster;
+  K from a target on the total relit error (the field's own error estimated on stored check
+  pixels) or on the truncation alone.
 
 All take the weights of :func:`facegeo.lighting.envmap.light_stage_weights` (δA included).
 

@@ -280,7 +280,10 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     def new_buf() -> np.ndarray:
         return np.empty((min(rows, n_p), n_cols), np.float32)
 
-    with _blas_single_thread():
+    import contextlib
+
+    # the fused kernel calls no BLAS: no thread-pool limit to set (≈ 0.1 ms a call)
+    with contextlib.nullcontext() if fused else _blas_single_thread():
         if workers <= 1 or len(starts) < 2:
             buf = new_buf() if need_buf else None
             for r0 in starts:
