@@ -16,7 +16,7 @@ import math
 import numpy as np
 from numba import njit
 
-from facegeo.appearance._skin_kernels import _FM
+from facegeo.appearance._skin_kernels import _FM, _I0
 
 # ------------------------------------------------------------------------------- separation
 
@@ -376,7 +376,7 @@ def median_ratios(R, valid, lo, hi):
     mgb = np.empty(N)
     for i in range(N):
         b = np.empty(L)
-        k = 0
+        k = _I0
         for j in range(L):
             if valid[i, j]:
                 b[k] = R[i, j, 0] + R[i, j, 1] + R[i, j, 2]
@@ -386,7 +386,7 @@ def median_ratios(R, valid, lo, hi):
             p90 = 0.0
         rg = np.empty(L)
         gb = np.empty(L)
-        m = 0
+        m = _I0
         for j in range(L):
             if not valid[i, j]:
                 continue
