@@ -396,6 +396,16 @@ def _compact(w_i, L):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _take_row(a, i, idx):
+    """``a[i, idx]`` as a new array, in one loop: the same values as the fancy-indexing
+    expression, whose numba implementation costs far more compile time."""
+    out = np.empty(idx.size)
+    for q in range(idx.size):
+        out[q] = a[i, idx[q]]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
     """(α_0, α_1) grid direct search of ``_skin_fit.fit_ramp`` at a fixed normal, N functions.
 
@@ -409,22 +419,12 @@ def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
     for i in range(N):
         idx = _compact(wd[i], L)
         m = idx.size
-        # the usable samples' inputs, gathered in one loop (not six fancy-indexing
-        # expressions: the same values, a fraction of the compile time)
-        xs = np.empty(m)
-        nls = np.empty(m)
-        wds = np.empty(m)
-        As = np.empty(m)
-        Rds = np.empty(m)
-        Rms = np.empty(m)
-        for q in range(m):
-            j = idx[q]
-            xs[q] = x[i, j]
-            nls[q] = nl[i, j]
-            wds[q] = wd[i, j]
-            As[q] = A[i, j]
-            Rds[q] = Rd[i, j]
-            Rms[q] = Rdms[i, j]
+        xs = _take_row(x, i, idx)
+        nls = _take_row(nl, i, idx)
+        wds = _take_row(wd, i, idx)
+        As = _take_row(A, i, idx)
+        Rds = _take_row(Rd, i, idx)
+        Rms = _take_row(Rdms, i, idx)
         two_1mds = 2.0 * (1.0 - ds[i])
         ds2k = 1.0 - ds[i] * ds[i]
         sxx = 0.0
@@ -908,32 +908,23 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
     for i in range(N):
         idx = _compact(wd[i], L)
         m = idx.size
-        # the usable samples' inputs, gathered in one loop (not eleven fancy-indexing
-        # expressions: the same values, a fraction of the compile time)
         lx = np.empty(m)
         ly = np.empty(m)
         lz = np.empty(m)
         sqw = np.empty(m)
-        As = np.empty(m)
-        Rds = np.empty(m)
-        Rms = np.empty(m)
-        xs = np.empty(m)
-        nls = np.empty(m)
-        Bs = np.empty(m)
-        cws = np.empty(m)
         for q in range(m):
             j = idx[q]
             lx[q] = dirs[j, 0]
             ly[q] = dirs[j, 1]
             lz[q] = dirs[j, 2]
             sqw[q] = math.sqrt(wd[i, j])
-            As[q] = A[i, j]
-            Rds[q] = Rd[i, j]
-            Rms[q] = Rdms[i, j]
-            xs[q] = x_fix[i, j]
-            nls[q] = nl_fix[i, j]
-            Bs[q] = B[i, j]
-            cws[q] = cw[i, j]
+        As = _take_row(A, i, idx)
+        Rds = _take_row(Rd, i, idx)
+        Rms = _take_row(Rdms, i, idx)
+        xs = _take_row(x_fix, i, idx)
+        nls = _take_row(nl_fix, i, idx)
+        Bs = _take_row(B, i, idx)
+        cws = _take_row(cw, i, idx)
         two_1mds = 2.0 * (1.0 - ds[i])
         ds2k = 1.0 - ds[i] * ds[i]
         x = out[i].copy()
