@@ -1248,11 +1248,13 @@ def test_resynthesis_kernel_threads_do_not_change_the_result():
     assert np.array_equal(a[1], b[1])
 
 
-def test_compile_helper_warms_the_fits_polish_signature():
+def test_compile_helper_warms_the_fits_polish_signature(monkeypatch):
     """The compile helper process (``_skin_fit.start_compile_helper``) compiles
     ``ramp_polish`` from ``_polish_warm_args``: that must be the very signature the fit calls,
     else the helper's work is wasted and the fit compiles the kernel again (one signature
-    after both). With a warm cache no helper starts."""
+    after both). With a warm cache, or no free core, no helper starts."""
+    import os
+
     from facegeo.appearance import _skin_fit
     from facegeo.appearance._skin_kernels import ramp_polish
 
@@ -1270,5 +1272,11 @@ def test_compile_helper_warms_the_fits_polish_signature():
         _skin_fit.start_compile_helper()
         assert _skin_fit._helper["proc"] is None and _skin_fit._helper["checked"]
         _skin_fit.join_compile_helper()
+        # a busy machine: no helper even where the cache is cold
+        monkeypatch.setattr(_skin_fit, "_polish_cache_cold", lambda: True)
+        monkeypatch.setattr(os, "getloadavg", lambda: (1e3, 1e3, 1e3))
+        _skin_fit._helper.update(proc=None, checked=False)
+        _skin_fit.start_compile_helper()
+        assert _skin_fit._helper["proc"] is None
     finally:
         _skin_fit._helper.update(state)
