@@ -1008,32 +1008,41 @@ def test_parallel_chunks_equal_serial_fit():
         assert np.array_equal(getattr(a, k), getattr(b, k)), k
 
 
-def test_kernels_do_not_race_across_numba_threads():
-    """Every prange kernel of the fit (set-up, d_0 medians, separations, lobe and ramp searches,
-    polishes, ρ_s) on two numba threads against one, bit for bit: each iteration must touch only
-    its own function's rows (a scratch buffer shared across iterations, or a sum written by
-    several, would differ). fit_reflectance runs them on one numba thread per worker, so this
-    calls one chunk directly."""
-    import numba
+def test_fit_kernels_are_serial():
+    """The fit's kernels run one function per loop iteration on the calling thread
+    (``threads=`` parallelises whole chunks): none may be compiled with ``parallel=True``,
+    whose parfor lowering compiled every loop body twice (a serial and a gufunc version, with
+    int64 and uint64 indices) and made up about half of a cold first fit's ≈ 100 CPU-s
+    (docs/skin.md, compile time)."""
+    from numba.core.registry import CPUDispatcher
 
-    from facegeo.appearance._skin_kernels_samples import prepare_chunk
+    from facegeo.appearance import _skin_kernels, _skin_kernels_samples
 
-    if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("numba has one thread")
-    rng = np.random.default_rng(33)
-    lights = skin.LightSet.from_grid(32, 16)
-    R, _ = _mixed_functions(rng, lights, 30, 18)
-    out = []
-    for t in (1, 2):
-        with skin._numba_threads(t):
-            Rw, sat, shadow, bmax, ref = prepare_chunk(
-                np.ascontiguousarray(R), lights.intensities, np.inf, skin.SHADOW_THRESHOLD,
-                np.ones((1, 1), bool), False)
-            out.append(skin._fit_chunk(Rw, np.broadcast_to(V0, (len(R), 3)), lights, shadow,
-                                       sat, False, 1.4, skin.SearchDepth(),
-                                       skin.SHADOW_THRESHOLD, None, 1, 0.0, (bmax, ref)))
-    for k in out[0]:
-        assert np.array_equal(out[0][k], out[1][k]), k
+    found = 0
+    for mod in (_skin_kernels, _skin_kernels_samples):
+        for name, obj in vars(mod).items():
+            if isinstance(obj, CPUDispatcher) and obj.__module__ == mod.__name__:
+                found += 1
+                assert not obj.targetoptions.get("parallel"), f"{mod.__name__}.{name}"
+    assert found >= 30
+
+
+def test_selection_equals_numpy_quantile():
+    """The kernels' order-statistic selection (``_percentile_select``, replacing
+    ``np.partition``) against ``np.quantile``, exactly: ties (integer values), one value,
+    sorted and reversed input, the quantiles the fit uses; the input is not modified."""
+    from facegeo.appearance._skin_kernels_samples import _percentile_select
+
+    rng = np.random.default_rng(35)
+    cases = [rng.normal(size=301), rng.integers(0, 4, 257).astype(np.float64), np.ones(9),
+             np.arange(50.0), np.arange(50.0)[::-1].copy(), np.array([2.5])]
+    for a in cases:
+        for k in sorted({1, a.size // 2 + 1, a.size}):
+            for q in (0.0, 0.5, 0.9, 0.99, 1.0):
+                before = a.copy()
+                assert _percentile_select(a, k, q) == np.quantile(a[:k], q), (a[:5], k, q)
+                assert np.array_equal(a, before)
+    assert np.isnan(_percentile_select(np.zeros(3), 0, 0.5))
 
 
 def test_chunk_setup_kernel_equals_numpy_steps():
@@ -1237,3 +1246,37 @@ def test_resynthesis_kernel_threads_do_not_change_the_result():
     for k in ("reflectance", "diffuse", "specular", "flags"):
         assert np.array_equal(getattr(a[0], k), getattr(b[0], k)), k
     assert np.array_equal(a[1], b[1])
+
+
+def test_compile_helper_warms_the_fits_polish_signature(monkeypatch):
+    """The compile helper process (``_skin_fit.start_compile_helper``) compiles
+    ``ramp_polish`` from ``_polish_warm_args``: that must be the very signature the fit calls,
+    else the helper's work is wasted and the fit compiles the kernel again (one signature
+    after both). With a warm cache, or no free core, no helper starts."""
+    import os
+
+    from facegeo.appearance import _skin_fit
+    from facegeo.appearance._skin_kernels import ramp_polish
+
+    rng = np.random.default_rng(36)
+    lights = skin.LightSet.from_grid(16, 8)
+    R = skin.paper_reflectance(_random_normals(rng, 5, 30.0), V0, lights,
+                               _paper_params(rng, 5))
+    skin.fit_reflectance(R, V0, lights)
+    _skin_fit.compile_polish()
+    assert len(ramp_polish.signatures) == 1, ramp_polish.signatures
+    assert not _skin_fit._polish_cache_cold()
+    state = dict(_skin_fit._helper)
+    try:
+        _skin_fit._helper.update(proc=None, checked=False)
+        _skin_fit.start_compile_helper()
+        assert _skin_fit._helper["proc"] is None and _skin_fit._helper["checked"]
+        _skin_fit.join_compile_helper()
+        # a busy machine: no helper even where the cache is cold
+        monkeypatch.setattr(_skin_fit, "_polish_cache_cold", lambda: True)
+        monkeypatch.setattr(os, "getloadavg", lambda: (1e3, 1e3, 1e3))
+        _skin_fit._helper.update(proc=None, checked=False)
+        _skin_fit.start_compile_helper()
+        assert _skin_fit._helper["proc"] is None
+    finally:
+        _skin_fit._helper.update(state)

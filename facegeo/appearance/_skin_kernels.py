@@ -1,7 +1,8 @@
 """Compiled (numba) kernels of the skin-model fit's searches (Debevec et al. 2000, §4.2).
 
 Private module behind :mod:`facegeo.appearance._skin_fit`. Each kernel runs one reflectance
-function per iteration of a ``prange`` loop (both cores when numba has two threads) and fuses
+function per iteration of a plain (serial) loop — ``skin.fit_reflectance(threads=)`` runs
+whole chunks on worker threads — and fuses
 what the numpy reference (``_skin_fit`` with ``KERNELS = False``) does with ``(n, K, L)``
 temporaries into loops over the function's usable lights. They reproduce the reference's
 algorithms exactly — the same compass/grid direct search (same candidate order, so the same
@@ -35,6 +36,14 @@ tie-breaking), the same Levenberg–Marquardt steps — and agree with it to rou
 
 Kernels are compiled on first use and cached on disk (``cache=True``). The per-sample kernels
 (separations, the ramp's inputs, ρ_s, d_0's median ratios) are in ``_skin_kernels_samples``.
+
+**Compile time** (a cold cache's first fit; docs/skin.md): no kernel is ``parallel=True`` —
+parfor lowering compiled every loop body twice (the serial and the gufunc version, int64 and
+uint64 indices) for threads the fit never used; no ``np.partition`` (≈ 12 s alone:
+``_skin_kernels_samples._select`` instead); per-sample inputs gathered in explicit loops, not
+fancy indexing. ``inline="always"`` stays only where the helper's arithmetic takes the
+caller's ``fastmath`` flags (FMA contraction): LLVM-level inlining would keep the helper's own
+flags and change results by rounding; helpers without such arithmetic are ordinary calls.
 """
 
 from __future__ import annotations
@@ -42,7 +51,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 #: Floors of :func:`facegeo.appearance._skin_fit._misfit_from_sums` (same values).
 _TINY = 1e-300
@@ -52,13 +61,18 @@ _TINY = 1e-300
 _OFFS2 = np.array([[0.0, 0.0], [0.0, -1.0], [0.0, 1.0], [-1.0, 0.0], [-1.0, -1.0], [-1.0, 1.0],
                    [1.0, 0.0], [1.0, -1.0], [1.0, 1.0]])
 
+#: Zero as an int64 for loop-carried counters passed to other kernels: a variable started at a
+#: literal ``0`` is typed ``Literal[int](0)`` in numba's first inference pass, and the callee
+#: is compiled for that type as well as for int64 (measured: ≈ 0.3–0.9 CPU-s per callee).
+_I0 = np.int64(0)
+
 _FM = {"contract"}  # FMA contraction only: sums keep their order (results match to rounding)
 #: Branch-free inner loops: reassociation too, so that their sums vectorise (AVX2: 4 lanes);
 #: results then differ from the sequential sums by rounding only.
 _FMV = {"contract", "reassoc"}
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _misfit(syy, sxy, sxx):
     if sxx > _TINY and syy > _TINY and sxy > 0.0:
         return 1.0 - sxy * sxy / (sxx * syy)
@@ -73,7 +87,7 @@ def _unit3(a0, a1, a2):
     return 0.0, 0.0, 1.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _pattern_move(best, u0, u1, step, halvings, levels):
     """One move of ``_skin_fit.direct_search`` (subset mode): to the best candidate; the step
     halves when the centre stayed best."""
@@ -89,7 +103,7 @@ def _pattern_move(best, u0, u1, step, halvings, levels):
 _IDX2 = np.array([[4, 3, 5], [1, 0, 2], [7, 6, 8]])
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _cached_value(k, shift, prev):
     """Candidate k's objective from the previous iteration, or NaN when it was not evaluated
     there. After a move to the previous pattern's candidate ``shift`` (≥ 1: same step), the new
@@ -215,13 +229,13 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
     u0 = 0.0
     u1 = 0.0
     step = step0
-    halvings = 0
+    halvings = _I0  # int64, not a literal (see _I0)
     val = val0
     have_centre = False
     sq2 = math.sqrt(2.0)
     prev = np.empty(9)  # the previous pattern's values (_cached_value)
     cur = np.empty(9)
-    shift = 0
+    shift = _I0
     for _ in range(levels * moves):
         if halvings > levels:
             break
@@ -243,7 +257,7 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
                 nb = _lobe_anchor(cx, cy, cz, rho_new, lx, ly, lz, wy, wd, band, mom)
             ax, ay, az = cx, cy, cz
             rho = rho_new
-        best = 0
+        best = _I0
         bval = np.inf
         for k in range(9):
             f = _cached_value(k, shift, prev)
@@ -283,7 +297,7 @@ def _lobe_one(y, w, dirs, sa, ns, t1, t2, step0, levels, moves, out_u, i):
     return val0, val, max(k, 0.0)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def lobe_search(y, w, dirs, sa, ns, t1, t2, step0, levels, moves):
     """Lambertian-lobe direct search of ``_skin_fit.fit_lambertian_lobe`` for N functions.
 
@@ -297,7 +311,7 @@ def lobe_search(y, w, dirs, sa, ns, t1, t2, step0, levels, moves):
     kk = np.empty(N)
     v0 = np.empty(N)
     v1 = np.empty(N)
-    for i in prange(N):
+    for i in range(N):
         a, b, c = _lobe_one(y[i], w[i], dirs, sa, ns, t1, t2, step0, levels, moves, u, i)
         v0[i] = a
         v1[i] = b
@@ -381,7 +395,17 @@ def _compact(w_i, L):
     return idx[:m]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy")
+def _take_row(a, i, idx):
+    """``a[i, idx]`` as a new array, in one loop: the same values as the fancy-indexing
+    expression, whose numba implementation costs far more compile time."""
+    out = np.empty(idx.size)
+    for q in range(idx.size):
+        out[q] = a[i, idx[q]]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
     """(α_0, α_1) grid direct search of ``_skin_fit.fit_ramp`` at a fixed normal, N functions.
 
@@ -392,32 +416,33 @@ def ramp_search(x, nl, wd, A, Rd, Rdms, ds, step0, levels, moves, sing_sin2):
     N, L = x.shape
     p = np.zeros((N, 2))
     val = np.empty(N)
-    for i in prange(N):
+    for i in range(N):
         idx = _compact(wd[i], L)
-        xs = x[i][idx]
-        nls = nl[i][idx]
-        wds = wd[i][idx]
-        As = A[i][idx]
-        Rds = Rd[i][idx]
-        Rms = Rdms[i][idx]
+        m = idx.size
+        xs = _take_row(x, i, idx)
+        nls = _take_row(nl, i, idx)
+        wds = _take_row(wd, i, idx)
+        As = _take_row(A, i, idx)
+        Rds = _take_row(Rd, i, idx)
+        Rms = _take_row(Rdms, i, idx)
         two_1mds = 2.0 * (1.0 - ds[i])
         ds2k = 1.0 - ds[i] * ds[i]
         sxx = 0.0
-        for j in range(idx.size):
+        for j in range(m):
             sxx += wds[j] * nls[j] * nls[j]
         u0 = 0.0
         u1 = 0.0
         step = step0
-        halvings = 0
+        halvings = _I0
         v = np.inf
         have_centre = False
         prev = np.empty(9)  # the previous pattern's values (_cached_value)
         cur = np.empty(9)
-        shift = 0
+        shift = _I0
         for _ in range(levels * moves):
             if halvings > levels:
                 break
-            best = 0
+            best = _I0
             bval = np.inf
             for k in range(9):
                 f = _cached_value(k, shift, prev)
@@ -829,7 +854,7 @@ def _solve_small(A, b, P):
     return True
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _polish_start(JtJ, g, cur, row, P, save):
     """:func:`ramp_polish`'s recorded start: ``save`` writes JᵀJ, Jᵀr and Σ r² (``cur``) into
     ``row`` (``P² + P + 1``), else reads JᵀJ and Jᵀr back and returns the recorded Σ r²."""
@@ -852,7 +877,7 @@ def _polish_start(JtJ, g, cur, row, P, save):
     return row[q]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds, iterations,
                 sing_sin2, B, cw, chroma, xtol, start, start_mode):
     """Levenberg–Marquardt polish of ``fit_ramp``'s residuals for N functions: the steps of
@@ -880,20 +905,26 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
     nrm = P == 4
     out = p0.copy()
     val = np.empty(N)
-    for i in prange(N):
+    for i in range(N):
         idx = _compact(wd[i], L)
         m = idx.size
-        lx = dirs[idx, 0].copy()
-        ly = dirs[idx, 1].copy()
-        lz = dirs[idx, 2].copy()
-        sqw = np.sqrt(wd[i][idx])  # array
-        As = A[i][idx]
-        Rds = Rd[i][idx]
-        Rms = Rdms[i][idx]
-        xs = x_fix[i][idx]
-        nls = nl_fix[i][idx]
-        Bs = B[i][idx]
-        cws = cw[i][idx]
+        lx = np.empty(m)
+        ly = np.empty(m)
+        lz = np.empty(m)
+        sqw = np.empty(m)
+        for q in range(m):
+            j = idx[q]
+            lx[q] = dirs[j, 0]
+            ly[q] = dirs[j, 1]
+            lz[q] = dirs[j, 2]
+            sqw[q] = math.sqrt(wd[i, j])
+        As = _take_row(A, i, idx)
+        Rds = _take_row(Rd, i, idx)
+        Rms = _take_row(Rdms, i, idx)
+        xs = _take_row(x_fix, i, idx)
+        nls = _take_row(nl_fix, i, idx)
+        Bs = _take_row(B, i, idx)
+        cws = _take_row(cw, i, idx)
         two_1mds = 2.0 * (1.0 - ds[i])
         ds2k = 1.0 - ds[i] * ds[i]
         x = out[i].copy()
@@ -907,7 +938,8 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
         # JtJ, g are those of the current x (kept across rejected steps)
         if start_mode == 2:
             # the lobe rows' part at p0 from the earlier polish, plus the chromaticity rows'
-            cur = _polish_start(JtJ, g, 0.0, start[i], P, False) + _polish_residuals_chroma(
+            save = start_mode == 1  # False here (a bool variable: one compiled _polish_start)
+            cur = _polish_start(JtJ, g, 0.0, start[i], P, save) + _polish_residuals_chroma(
                 x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, As, Bs, cws)
             _polish_jacobian_chroma(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, As, Bs,
                                     cws, JtJ, g)
@@ -918,7 +950,7 @@ def ramp_polish(p0, normal, t1, t2, v, dirs, x_fix, nl_fix, wd, A, Rd, Rdms, ds,
             _polish_jacobian(x, nrm, normal[i], t1[i], t2[i], v[i], lx, ly, lz, sqw, As, Rds,
                              Rms, two_1mds, ds2k, sing_sin2, xs, nls, JtJ, g, Bs, cws, chroma)
             if start_mode == 1:
-                _polish_start(JtJ, g, cur, start[i], P, True)
+                _polish_start(JtJ, g, cur, start[i], P, start_mode == 1)
         for it in range(iterations):
             for a in range(P):
                 for q in range(P):

@@ -6,7 +6,7 @@ the steps between the searches that the numpy reference (``_skin_fit`` with
 function — the §4.2 separations with the Eq. 6–7 ramp chromaticity, the ramp search's
 per-sample inputs, the specular energy ρ_s (Fig. 14 d) and d_0's median ratios. Each is tested
 equal to its numpy reference in ``tests/test_skin_model.py``. Compiled on first use, cached on
-disk.
+disk; serial loops over the functions, as in ``_skin_kernels`` (see its compile-time notes).
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from facegeo.appearance._skin_kernels import _FM
+from facegeo.appearance._skin_kernels import _FM, _I0
 
 # ------------------------------------------------------------------------------- separation
 
@@ -111,7 +111,7 @@ def _diffuse_row(R, i, mu_s, E, D, out, direct):
             D[j, 2] = R[i, j, 2] - sp
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2, E, out):
     """§4.2 colour-space separation of every sample with the Eq. 6–7 ramp chromaticity.
 
@@ -147,7 +147,7 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2, E, out):
     mu_s = np.empty((N, Lw))
     y = np.empty((N, L))
     singular = np.zeros(N, np.bool_)
-    for i in prange(N):
+    for i in range(N):
         if uniform:
             # the chromaticity is the function's d_0 for every sample (once, not per sample)
             cx, cy, cz, ds, det = _chromaticity(d0[i, 0], d0[i, 1], d0[i, 2], 0.0, s)
@@ -159,7 +159,7 @@ def separate_ramp(R, d0, nrm, v, dirs, a0, a1, uniform, sing_sin2, E, out):
     return D, mu_s, y, singular
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def ramp_inputs(R, w, sa, dirs, nrm, v, d0, mirror_sigma):
     """Per-sample inputs of ``_skin_fit.fit_ramp`` (its numpy preamble, fused): the weights
     ``w δA (1 − exp(−(1 − l·r)/σ))`` with ``r = 2(n·v)n − v`` (mirror samples down-weighted),
@@ -174,7 +174,7 @@ def ramp_inputs(R, w, sa, dirs, nrm, v, d0, mirror_sigma):
     Rd = np.empty((N, L))
     Rdms = np.empty((N, L))
     ds = np.empty(N)
-    for i in prange(N):
+    for i in range(N):
         nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
         nv0 = nx * v[i, 0] + ny * v[i, 1] + nz * v[i, 2]
         rx, ry, rz = 2.0 * nv0 * nx - v[i, 0], 2.0 * nv0 * ny - v[i, 1], 2.0 * nv0 * nz - v[i, 2]
@@ -220,7 +220,7 @@ def _ramp_colour_row(R, i, d0x, d0y, d0z, dsi, ds2, Rd, Rdms, A):
         A[j] = a if regular else 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def specular_energy(S, shadow, dirs, sa, nrm, v, eta):
     """ρ_s of ``_skin_fit.specular_energy`` (Fig. 14 d), fused: per function
     ``Σ_l S_l (n·v)(n·h_l) / (F G (v·h_l)) δA_l`` over unshadowed lights with S > 0, n·l > 0,
@@ -230,7 +230,7 @@ def specular_energy(S, shadow, dirs, sa, nrm, v, eta):
     N, L = S.shape
     out = np.zeros(N)
     e2 = eta * eta - 1.0
-    for i in prange(N):
+    for i in range(N):
         nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
         vx, vy, vz = v[i, 0], v[i, 1], v[i, 2]
         nv = nx * vx + ny * vy + nz * vz
@@ -269,30 +269,62 @@ def specular_energy(S, shadow, dirs, sa, nrm, v, eta):
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
+def _select(a, k, i0):
+    """The ``i0``-th smallest of ``a[:k]`` and the smallest value after it in that order
+    (``(a_(i0), a_(i0+1))``, both a_(i0) when ``i0 = k − 1``), with ``a[:k]`` reordered:
+    Wirth's selection (Hoare partitions around ``a[i0]``; equal values are swapped, so ties
+    cost no more than distinct values), O(k) expected. The same order statistics as
+    ``np.partition`` — whose numba implementation took ≈ 12 s of the first fit's compile
+    (bounds checks formatting error messages, ``np.unique`` of the kth). No NaN in ``a[:k]``."""
+    lo = 0
+    hi = k - 1
+    while lo < hi:
+        x = a[i0]
+        i = lo
+        j = hi
+        while True:
+            while a[i] < x:
+                i += 1
+            while x < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+            if i > j:
+                break
+        if j < i0:
+            lo = i
+        if i0 < i:
+            hi = j
+    x = a[i0]
+    y = x
+    if i0 + 1 < k:
+        y = a[i0 + 1]
+        for j in range(i0 + 2, k):
+            if a[j] < y:
+                y = a[j]
+    return x, y
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _percentile_select(a, k, q):
     """Linear-interpolation quantile ``q`` of ``a[:k]`` (numpy's default, as
     ``_skin_fit._row_nanquantile`` computes it; NaN when k = 0) without sorting: the two order
-    statistics it needs by selection (``np.partition``, O(k))."""
+    statistics it needs by selection (:func:`_select` on a copy, O(k)). No NaN in ``a[:k]``."""
     if k == 0:
         return np.nan
     pos = q * (k - 1)
     i0 = int(math.floor(pos))
-    part = np.partition(a[:k], i0)
-    lo = part[i0]
-    hi = lo
-    if i0 + 1 < k:
-        hi = part[i0 + 1]
-        for j in range(i0 + 2, k):
-            if part[j] < hi:
-                hi = part[j]
+    lo, hi = _select(a[:k].copy(), k, i0)
     t = pos - i0
     if t >= 0.5:
         return hi - (hi - lo) * (1.0 - t)
     return lo + (hi - lo) * t
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _percentile_high(a, k, q):
     """:func:`_percentile_select` for a high quantile (the 99th percentile of 2048 samples
     needs the 21st and 22nd largest values): the ``k − ⌊q (k − 1)⌋`` largest values kept in a
@@ -332,7 +364,7 @@ def _percentile_high(a, k, q):
     return lo + (hi - lo) * t
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def median_ratios(R, valid, lo, hi):
     """The two medians of ``_skin_fit.initial_diffuse_chromaticity`` (§4.2), per function:
     over valid samples with brightness (R + G + B) in ``[lo, hi] ×`` the 90th percentile of
@@ -342,9 +374,9 @@ def median_ratios(R, valid, lo, hi):
     N, L, _ = R.shape
     mrg = np.empty(N)
     mgb = np.empty(N)
-    for i in prange(N):
+    for i in range(N):
         b = np.empty(L)
-        k = 0
+        k = _I0
         for j in range(L):
             if valid[i, j]:
                 b[k] = R[i, j, 0] + R[i, j, 1] + R[i, j, 2]
@@ -354,7 +386,7 @@ def median_ratios(R, valid, lo, hi):
             p90 = 0.0
         rg = np.empty(L)
         gb = np.empty(L)
-        m = 0
+        m = _I0
         for j in range(L):
             if not valid[i, j]:
                 continue
@@ -372,7 +404,7 @@ def median_ratios(R, valid, lo, hi):
 # ------------------------------------------------------------------------------- chunk set-up
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def prepare_chunk(R, E, saturation, threshold, visibility, has_visibility):
     """The fit's per-sample set-up of one chunk (``skin.fit_reflectance`` before §4.2), fused.
 
@@ -403,7 +435,7 @@ def prepare_chunk(R, E, saturation, threshold, visibility, has_visibility):
     shadow = np.empty((N, L), np.bool_)
     bmax = np.empty(N)
     ref = np.empty(N)
-    for i in prange(N):
+    for i in range(N):
         b = np.empty(L)
         bz = np.empty(L)
         nz = np.empty(L)
@@ -441,7 +473,7 @@ def prepare_chunk(R, E, saturation, threshold, visibility, has_visibility):
 # ------------------------------------------------------------------------------- ramp rows
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def chroma_rows(R, w, sa, dirs, nrm, v, A, ds, rows, chroma_sigma):
     """The chromaticity rows of ``_skin_fit.fit_ramp``'s second polish for the functions
     ``rows`` (``_skin_fit._chroma_rows``, fused; no copy of ``R[rows]``): ``B = R·s −
@@ -466,7 +498,7 @@ def chroma_rows(R, w, sa, dirs, nrm, v, A, ds, rows, chroma_sigma):
     s = 1.0 / math.sqrt(3.0)
     B = np.empty((n, L))
     cw = np.empty((n, L))
-    for q in prange(n):
+    for q in range(n):
         i = rows[q]
         nx, ny, nz = nrm[q, 0], nrm[q, 1], nrm[q, 2]
         nv = nx * v[q, 0] + ny * v[q, 1] + nz * v[q, 2]
@@ -497,7 +529,7 @@ def _chroma_b_row(R, i, A, ds, B):
         B[j] = (R[i, j, 0] + R[i, j, 1] + R[i, j, 2]) * s - A[j] * ds
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_FM)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
 def colour_scatter(R, valid, b1, b2):
     """Per function, the scatter of the valid samples' colours in the plane ⊥ s
     (``_skin_fit._d0_from_ratios``): with ``u_1 = R·b_1``, ``u_2 = R·b_2``, the sums
@@ -506,7 +538,7 @@ def colour_scatter(R, valid, b1, b2):
     a = np.empty(N)
     b = np.empty(N)
     c = np.empty(N)
-    for i in prange(N):
+    for i in range(N):
         s11 = s12 = s22 = 0.0
         for j in range(L):
             if valid[i, j]:

@@ -358,9 +358,12 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     """
     R, single = check_reflectance(R, lights)
     N, L, C = R.shape
-    v = check_views(v, N)
+    # one writable C-contiguous float64 copy (N × 3): a read-only or broadcast view would give
+    # the compiled kernels a second type signature, i.e. a second cold compile of each
+    v = np.array(check_views(v, N), np.float64, order="C")
     if d_0 is not None:
-        d_0 = check_unit_vectors(as_array(d_0, "d_0", shape=(N, 3)), "d_0", tol=1e-6)
+        d_0 = np.array(check_unit_vectors(as_array(d_0, "d_0", shape=(N, 3)), "d_0", tol=1e-6),
+                       np.float64, order="C")
     depth = depth or SearchDepth()
     eta = float(eta)
     if not (np.isfinite(eta) and eta > 1.0):
@@ -380,6 +383,9 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         raise InputError(f"specular_gate: expected a finite number >= 0 (noise σ's), got "
                          f"{fmt_value(specular_gate)}")
     vis = None if visibility is None else check_mask(visibility, "visibility", N, L)
+    if _skin_fit.KERNELS and not single and _check_threads(threads) >= 2:
+        # a cold numba cache: the polish kernel compiles in a second process meanwhile
+        _skin_fit.start_compile_helper()
     if single:
         log.info("single-channel reflectance functions: colour separation is impossible; "
                  "fitting the diffuse lobe alone")
