@@ -1246,37 +1246,3 @@ def test_resynthesis_kernel_threads_do_not_change_the_result():
     for k in ("reflectance", "diffuse", "specular", "flags"):
         assert np.array_equal(getattr(a[0], k), getattr(b[0], k)), k
     assert np.array_equal(a[1], b[1])
-
-
-def test_compile_helper_warms_the_fits_polish_signature(monkeypatch):
-    """The compile helper process (``_skin_fit.start_compile_helper``) compiles
-    ``ramp_polish`` from ``_polish_warm_args``: that must be the very signature the fit calls,
-    else the helper's work is wasted and the fit compiles the kernel again (one signature
-    after both). With a warm cache, or no free core, no helper starts."""
-    import os
-
-    from facegeo.appearance import _skin_fit
-    from facegeo.appearance._skin_kernels import ramp_polish
-
-    rng = np.random.default_rng(36)
-    lights = skin.LightSet.from_grid(16, 8)
-    R = skin.paper_reflectance(_random_normals(rng, 5, 30.0), V0, lights,
-                               _paper_params(rng, 5))
-    skin.fit_reflectance(R, V0, lights)
-    _skin_fit.compile_polish()
-    assert len(ramp_polish.signatures) == 1, ramp_polish.signatures
-    assert not _skin_fit._polish_cache_cold()
-    state = dict(_skin_fit._helper)
-    try:
-        _skin_fit._helper.update(proc=None, checked=False)
-        _skin_fit.start_compile_helper()
-        assert _skin_fit._helper["proc"] is None and _skin_fit._helper["checked"]
-        _skin_fit.join_compile_helper()
-        # a busy machine: no helper even where the cache is cold
-        monkeypatch.setattr(_skin_fit, "_polish_cache_cold", lambda: True)
-        monkeypatch.setattr(os, "getloadavg", lambda: (1e3, 1e3, 1e3))
-        _skin_fit._helper.update(proc=None, checked=False)
-        _skin_fit.start_compile_helper()
-        assert _skin_fit._helper["proc"] is None
-    finally:
-        _skin_fit._helper.update(state)

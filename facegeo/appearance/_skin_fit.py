@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import threading
 import warnings
 from dataclasses import dataclass
 
@@ -808,7 +807,6 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
                             int(depth.alpha_levels), int(depth.moves), SINGULAR_SIN2)
     n_out = n
     if depth.polish:
-        join_compile_helper()  # the polish kernel from the helper's cache, if one runs
         p0 = c(p if not depth.polish_normal else np.concatenate([p, np.zeros_like(p)], axis=1))
         dirs = c(lights.directions)
 
@@ -839,117 +837,6 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         if depth.polish_normal:
             n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
     return p[:, 0], p[:, 1], n_out, misfit
-
-
-#: On a cold numba cache, compile the polish kernel (``_skin_kernels.ramp_polish`` with its
-#: Jacobian and residual kernels: ≈ 40 % of the first fit's ≈ 35 CPU-s of compilation) in a
-#: helper process while this one compiles the other kernels, when the caller gave the fit two
-#: threads (:func:`start_compile_helper`; docs/skin.md, compile time). False: never.
-COMPILE_HELPER = True
-
-_helper = {"proc": None, "checked": False}
-_helper_lock = threading.Lock()
-
-
-def _polish_warm_args():
-    """Arguments of the one ``ramp_polish`` signature :func:`_fit_ramp_compiled` uses (every
-    array C-contiguous float64, Python int / float / bool scalars), for one function with no
-    usable sample: the call returns at once, but compiles (or loads) that signature."""
-    row = np.zeros((1, 3))
-    per = np.zeros((1, 3))
-    return (np.zeros((1, 4)), row, row, row, row, np.zeros((3, 3)), per, per, per, per, per,
-            per, np.zeros(1), 1, float(SINGULAR_SIN2), per, per, False, float(POLISH_XTOL),
-            np.zeros((1, 21)), 0)
-
-
-def compile_polish():
-    """Compile (or load from numba's on-disk cache) the polish kernel's signature: what the
-    helper process of :func:`start_compile_helper` runs."""
-    from facegeo.appearance._skin_kernels import ramp_polish
-
-    ramp_polish(*_polish_warm_args())
-
-
-def _polish_cache_cold():
-    """Whether ``ramp_polish`` has neither a compiled signature in this process nor an entry
-    in numba's on-disk cache (its index, read through numba's private cache object: any
-    surprise there counts as warm, so no helper starts)."""
-    from facegeo.appearance._skin_kernels import ramp_polish
-
-    if ramp_polish.signatures:
-        return False
-    try:
-        return not ramp_polish._cache._cache_file._load_index()
-    except Exception:  # noqa: BLE001 - numba internals moved: behave as before (no helper)
-        return False
-
-
-def _core_free():
-    """Whether another core looks free: the 1-minute load average below the core count − ½.
-    Measured at load 2.5–3 on two cores, the helper made the cold first fit slower (40.3 s
-    against 37.2 s without it, +4 CPU-s for its own start-up and the duplicated library
-    compiles): it only pays where the second core is idle."""
-    import os
-
-    try:
-        return os.getloadavg()[0] < (os.cpu_count() or 1) - 0.5
-    except OSError:
-        return False
-
-
-def start_compile_helper():
-    """Start compiling the polish kernel in a helper process (``python -c``, the same
-    interpreter, ``facegeo`` and ``NUMBA_CACHE_DIR``) if its cache is cold and a core looks
-    free (:func:`_core_free`), once per process.
-
-    numba compiles under a process-wide lock, so a second thread cannot help; a second process
-    can, and writes the compiled kernel to the shared on-disk cache (``cache=True``), which
-    this process then loads (:func:`join_compile_helper`, before the first polish). The fit's
-    results do not depend on it: if the helper fails, this process compiles the kernel itself.
-    """
-    import os
-    import subprocess
-    import sys
-
-    with _helper_lock:
-        if _helper["checked"] or not COMPILE_HELPER:
-            return
-        _helper["checked"] = True
-        if not _core_free() or not _polish_cache_cold():
-            return
-        import numba
-
-        import facegeo
-
-        env = dict(os.environ)
-        root = os.path.dirname(os.path.dirname(os.path.abspath(facegeo.__file__)))
-        env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in [env.get("PYTHONPATH")] if p])
-        if numba.config.CACHE_DIR:
-            env["NUMBA_CACHE_DIR"] = numba.config.CACHE_DIR
-        try:
-            _helper["proc"] = subprocess.Popen(
-                [sys.executable, "-c",
-                 "from facegeo.appearance._skin_fit import compile_polish; compile_polish()"],
-                env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL)
-            log.info("compiling the skin fit's polish kernel in a helper process (pid %d)",
-                     _helper["proc"].pid)
-        except OSError as exc:
-            log.info("no compile helper process (%s): compiling here", exc)
-
-
-def join_compile_helper(timeout: float = 900.0):
-    """Wait for :func:`start_compile_helper`'s process (if any) to finish, so that the polish
-    kernel is loaded from the cache it wrote instead of compiled again here."""
-    with _helper_lock:
-        proc = _helper["proc"]
-        if proc is None:
-            return
-        try:
-            proc.wait(timeout=timeout)
-        except Exception:  # noqa: BLE001 - a stuck helper: compile here instead
-            proc.kill()
-        _helper["proc"] = None
 
 
 def specular_energy(S, shadow, lights: LightSet, n, v, eta):

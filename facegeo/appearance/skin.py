@@ -383,9 +383,6 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         raise InputError(f"specular_gate: expected a finite number >= 0 (noise σ's), got "
                          f"{fmt_value(specular_gate)}")
     vis = None if visibility is None else check_mask(visibility, "visibility", N, L)
-    if _skin_fit.KERNELS and not single and _check_threads(threads) >= 2:
-        # a cold numba cache: the polish kernel compiles in a second process meanwhile
-        _skin_fit.start_compile_helper()
     if single:
         log.info("single-channel reflectance functions: colour separation is impossible; "
                  "fitting the diffuse lobe alone")
