@@ -431,6 +431,15 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
         sigma = noise * white * np.sqrt(1.0 + np.clip(img / white, 0, None))
         return img + (sigma * noise_rng.standard_normal(img.shape)).astype(np.float32)
 
+    def _write_srgb(path, img, stage):
+        # one 8-bit sRGB frame with the capture noise (drawn in frame order), counted for the
+        # progress of ``stage``
+        nonlocal frames, done
+        imageio.write_image(path, imageio.encode(_noisy(img, 1.0), "srgb", np.uint8))
+        frames += 1
+        done += 1
+        tick(stage, done, n_total)
+
     # ---- calibration: board views seen by all cameras at once, then close views of each
     #      camera (boards.rig_calibration_views) ----
     t0 = time.perf_counter()
@@ -452,12 +461,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     # and writing stay here, in frame order, so the noise stream is the same.
     views = [(vi, T, cam) for vi, T in enumerate(poses) for cam in rig.cameras]
     for (vi, _, cam), img in _ordered_map(calib_frame, views, workers=2):
-        img = _noisy(img, 1.0)
-        path = scanmod.frame_path(root, calib_files, camera=cam.name, view=vi)
-        imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
-        frames += 1
-        done += 1
-        tick("calib", done, n_total)
+        _write_srgb(scanmod.frame_path(root, calib_files, camera=cam.name, view=vi), img, "calib")
     manifest["calib"] = {"board": "calib/board.json", "response": "srgb", "views": len(poses),
                          "files": calib_files}
 
@@ -484,12 +488,8 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
             pat = pattern_value_at(spec, name, q_proj)
             val = np.zeros(mask.shape, np.float32)
             val[mask] = exposure * base * (e_proj * pat + 0.02)
-            img = _noisy(np.repeat(val[..., None], 3, axis=2), 1.0)
-            path = scanmod.frame_path(root, proj_files, camera=cam.name, view=vi, frame=name)
-            imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
-            frames += 1
-            done += 1
-            tick("calib.projector", done, n_total)
+            _write_srgb(scanmod.frame_path(root, proj_files, camera=cam.name, view=vi, frame=name),
+                        np.repeat(val[..., None], 3, axis=2), "calib.projector")
     manifest["calib"]["projector"] = {"views": len(proj_poses), "files": proj_files}
     seconds["calib"] = time.perf_counter() - t0
 
@@ -507,12 +507,8 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
         for name, img in render_sl_frames(renderer, spec, cam, projector=proj,
                                           supersample=preset.sl_supersample, exposure=exposure,
                                           ambient=0.02, effects=sl_effects):
-            img = _noisy(img, 1.0)
-            path = scanmod.frame_path(root, sl_files, camera=cam.name, frame=name)
-            imageio.write_image(path, imageio.encode(img, "srgb", np.uint8))
-            frames += 1
-            done += 1
-            tick("structured_light", done, n_total)
+            _write_srgb(scanmod.frame_path(root, sl_files, camera=cam.name, frame=name), img,
+                        "structured_light")
     manifest["structured_light"] = {"response": "srgb", "projector": proj.name, "frames": sl_names,
                                     "files": sl_files, "patterns": spec.to_dict()}
     if sl_effects is not None:
