@@ -406,6 +406,19 @@ def test_image_wavelet_total_budget(image_case):
         bare.budget(w, 0.01, total=True)
     with pytest.raises(InputError, match="check_pixels"):
         C.fit_image_wavelet(f, *GRID, pix, check_pixels=-1)
+    with pytest.raises(InputError, match="check_pixels"):
+        C.fit_image_wavelet(f, *GRID, pix, check_pixels=float("inf"))
+    with pytest.raises(InputError, match="target_error"):
+        m.relight(w, total=True)  # a total target needs the target
+
+
+def test_image_wavelet_check_rows_keep_float32_beyond_float16(image_case):
+    # A float32 field brighter than float16's 65504: the check rows stay float32 (in float16
+    # they would be inf and every total-budget estimate NaN); the estimate stays finite.
+    f, pix, ws = image_case
+    m = C.fit_image_wavelet(np.asarray(f, np.float32) * 1e6, *GRID, pix, target_error=0.02)
+    assert m.check_rows.dtype == np.float32 and np.isfinite(m.check_rows).all()
+    assert np.isfinite(m.field_error_estimate(ws["sun"]))
 
 
 def test_image_wavelet_pieces_read_fewer_entries(image_case):
@@ -425,7 +438,7 @@ def test_image_wavelet_pieces_read_fewer_entries(image_case):
         k4, _ = m4.budget(w, 0.01, total=True)
         assert C.relative_rmse(m4.relight(w, terms=k4), ref) <= 0.01
         assert m4.entries_read(w, k4) < 0.8 * m1.entries_read(w, k1), name
-    for bad in (0, 2.5, "four"):
+    for bad in (0, 2.5, "four", True, float("inf")):
         with pytest.raises(InputError, match="pieces"):
             C.fit_image_wavelet(f, *GRID, pix, pieces=bad)
 

@@ -19,8 +19,8 @@ the end: the sum runs in the compressed domain and touches only the K slabs' sto
 
 Each slab is stored as :data:`PIECES` pieces by entry magnitude, and the terms are pieces
 (largest ``|ŵ_j| · rms(piece)`` first): a slab's small entries are read only where its
-lighting coefficient makes them count — a deviation from whole-slab terms that reads 2–3×
-fewer entries for the same relit error. K comes from a target on the truncation error, or on
+lighting coefficient makes them count — a deviation from whole-slab terms that reads 2.1–3.2×
+fewer entries (sun 1.3×, ``docs/lighting.md``) for the same relit error. K comes from a target on the truncation error, or on
 the total error against exact Eq. (4) (``budget(…, total=True)``: the field's own error under
 the lighting estimated on :data:`CHECK_PIXELS` stored exact pixels, combined in quadrature).
 """
@@ -85,7 +85,7 @@ TOTAL_MARGIN = 0.1
 #: (the error a piece's entries remove per entry read, for orthogonal entries), so the small
 #: entries of a slab are read only where its lighting coefficient makes them count. Measured on
 #: the generator's face at field target 1.5 % and a 1 % total target (``docs/lighting.md``):
-#: entries read 1 piece → 4 pieces 2.0–2.4× fewer on the ten maps.
+#: entries read 1 piece → 4 pieces 2.1–3.2× fewer on the ten maps (sun 1.3×).
 PIECES = 4
 
 
@@ -176,7 +176,7 @@ class ImageWaveletField:
         8-bit rounding of the kept values not included).
     check_index : (n,) int32 or None
         Field rows of the check pixels (a uniform random sample, sorted; :data:`CHECK_PIXELS`).
-    check_rows : (n, L, 3) float16 or None
+    check_rows : (n, L, 3) float16 (float32 where float16 would overflow) or None
         Their exact reflectance functions (as given to the fit, rounded to float16): the relit
         error of the compressed field under a lighting is estimated on them
         (:meth:`field_error_estimate`).
@@ -480,7 +480,8 @@ class ImageWaveletField:
         weights : (L, 3) float
             Eq. (4) weights (δA included).
         terms : int, optional
-            K, the lighting coefficients kept (Ng et al. 2003's non-linear approximation).
+            K, the pieces of lighting coefficients kept, 1 … L·``pieces`` (Ng et al. 2003's
+            non-linear approximation; with ``pieces=1`` the coefficients themselves).
         target_error : float, optional
             Instead of ``terms``: K from :meth:`budget`. Neither: every non-zero lighting
             coefficient (the compressed transport's own error only).
@@ -498,6 +499,9 @@ class ImageWaveletField:
 
         if int(workers) < 1:
             raise InputError(f"workers: expected ≥ 1, got {fmt_value(workers)}")
+        if total and target_error is None:
+            raise InputError("relight: total=True needs target_error (the total relit error "
+                             "to reach)")
         if total and target_error is not None:
             if terms is not None:
                 raise InputError("relight: give terms or target_error, not both")
@@ -766,8 +770,8 @@ def _count(x: Any, name: str, lo: int) -> int:
     """``x`` as an integer ≥ ``lo``, else :class:`InputError` naming ``name``."""
     try:
         n = int(x)
-        ok = n == x and n >= lo
-    except (TypeError, ValueError):
+        ok = not isinstance(x, (bool, np.bool_)) and n == x and n >= lo
+    except (TypeError, ValueError, OverflowError):
         ok = False
     if not ok:
         raise InputError(f"{name}: expected an integer ≥ {lo}, got {fmt_value(x)}")
@@ -944,7 +948,13 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
     log.info("image wavelet field: %d entries (%.3g %% of P·L), field error %.3g for target %g",
              pos.size, 100 * frac, field_error, t)
     check = np.sort(np.random.default_rng(seed).choice(n_p, min(n_check, n_p), replace=False))
-    check_rows = np.asarray(f[check], np.float16) if check.size else None
+    check_rows = None
+    if check.size:
+        # float16 like a stored field, unless that would overflow (then float32: an inf row
+        # would make every estimate NaN)
+        rows32 = np.asarray(f[check], np.float32)
+        big = np.abs(rows32[np.isfinite(rows32)]).max(initial=0.0) > np.finfo(np.float16).max
+        check_rows = rows32 if big else rows32.astype(np.float16)
     return ImageWaveletField(ptr, int(n_seg), pos, code, int(code_base), pixel_pos, int(n_theta),
                              int(n_phi), grid, float(frac), field_error,
                              check.astype(np.int32) if check.size else None, check_rows, n_pc)
