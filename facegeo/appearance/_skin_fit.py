@@ -266,8 +266,8 @@ def _lobe_residuals_sqrtw(y, sqw, x):
     return yw
 
 
-#: Run the searches and the polish in the compiled kernels of ``_skin_kernels`` (numba; one
-#: function per ``prange`` iteration). False: the numpy reference below, which the kernels are
+#: Run the searches and the polish in the compiled kernels of ``_skin_kernels`` (numba; serial
+#: loops over a chunk's functions, chunks spread over Python threads). False: the numpy reference below, which the kernels are
 #: tested against.
 KERNELS = True
 

@@ -684,7 +684,7 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
 def _read_and_resynthesize(src, rows, fidx, fitted, same, vn, W, w, active, w_act, lights, V,
                            lams, resynthesis, step, st, t0):
     """One chunk of :func:`shade_texels` without the fused pass (the naive baseline, the
-    ``"diffuse"`` ablation, ``light_step > 1``, fits not stored as float16): Eq. 4 of the
+    ``"diffuse"`` ablation, fits not stored as float16): Eq. 4 of the
     field rows (from the float16 bits as the fused pass does it, else a float32 matrix
     product), then for resynthesis the rows widened to float32, the fits read (D,
     S = R − D) and :func:`_resynthesize_relit`. Returns each shrinkage's values ``(n, 3)``

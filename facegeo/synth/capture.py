@@ -457,7 +457,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
         img = exposure * (bv.reflectance / np.pi + 0.01)
         return np.repeat(img[..., None], 3, axis=2).astype(np.float32)
 
-    # Board renders run 2 ahead on threads (numpy and OpenCV release the GIL); noise, encoding
+    # Board renders run ahead on two worker threads (up to four in flight) (numpy and OpenCV release the GIL); noise, encoding
     # and writing stay here, in frame order, so the noise stream is the same.
     views = [(vi, T, cam) for vi, T in enumerate(poses) for cam in rig.cameras]
     for (vi, _, cam), img in _ordered_map(calib_frame, views, workers=2):
