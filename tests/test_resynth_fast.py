@@ -356,8 +356,7 @@ def test_stored_pass_equals_the_float32_path_on_hard_cases_and_float16_extremes(
     value or the float32 rounding of R − D, or a finite check that missed inf/NaN, fails."""
     lights, fit, vn, w, R16, D16 = _stored(hard)
     n = R16.shape[0]
-    assert _skin_resynth.stored_kernel_applies(R16, D16, lights, int(np.any(w != 0, 1).sum()),
-                                               False)
+    assert _skin_resynth.stored_kernel_applies(R16, D16, lights, False)
     rows = np.arange(n)[::-1].copy()  # rows read out of order, as a field's gather
     naive, relit, finite = _skin_resynth.relit_stored(
         R16[::-1].copy(), rows, D16, np.arange(n), np.ones(n, bool), normal=fit.normal,

@@ -512,12 +512,12 @@ def relight_stored(field, field_rows, weights):
                       np.ascontiguousarray(w[active], np.float64))
 
 
-def stored_kernel_applies(field, diffuse, lights, n_active: int, single_channel: bool) -> bool:
+def stored_kernel_applies(field, diffuse, lights, single_channel: bool) -> bool:
     """Whether :func:`relit_stored` serves these stored functions: the compiled kernels on
     (``KERNELS``, ``VECTOR_KERNEL``), a light-stage grid, a 3-channel fit, and field and
     diffuse component both stored as ``(·, L, 3)`` float16. Any number of lights with
-    energy (``n_active``, kept for the callers; a map whose energy sits in a few lights costs
-    the per-function read and set-up plus those lights), any ``light_step``."""
+    energy (a map whose energy sits in a few lights costs the per-function read and set-up
+    plus those lights), any ``light_step``."""
     return bool(KERNELS and VECTOR_KERNEL and lights.grid is not None and not single_channel
                 and field.dtype == np.float16 and diffuse.dtype == np.float16
                 and field.ndim == 3 and field.shape[1:] == (lights.n_lights, 3)

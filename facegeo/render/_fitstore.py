@@ -227,9 +227,9 @@ class FitStore:
                 | (np.einsum("ni,ni->n", p["normal"], np.asarray(v_n, np.float64)) <= 0))
         return naive, relit, finite, back
 
-    def uses_stored_kernel(self, field, lights, n_active: int) -> bool:
+    def uses_stored_kernel(self, field, lights) -> bool:
         """Whether :meth:`relit_rows` serves this camera (float16 field and D, a 3-channel fit
         on the light-stage grid; any number of lights with energy, any ``light_step``)."""
         from facegeo.appearance._skin_resynth import stored_kernel_applies
 
-        return stored_kernel_applies(field, self.D, lights, n_active, self.single_channel)
+        return stored_kernel_applies(field, self.D, lights, self.single_channel)

@@ -487,7 +487,7 @@ def cross_validated_shrinkage(sources, weights, lights, *,
             rows_s, _ = src.rows_of(tex)
             fidx, _ = src.fit.locate(rows_s)
             pairs.append(other.name)
-            fused = FUSED_READ and src.fit.uses_stored_kernel(src.field, lights, active.size)
+            fused = FUSED_READ and src.fit.uses_stored_kernel(src.field, lights)
             n_chunk = STORED_CHUNK if fused else chunk
             for c0 in range(0, tex.size, n_chunk):
                 sl = slice(c0, min(tex.size, c0 + n_chunk))
@@ -645,7 +645,7 @@ def shade_texels(texel_ids, p_world, center_world, sources, weights, lights, *,
                                  "(run 'facegeo fit SCAN')")
             fidx, fitted = src.fit.locate(rows)
         fused = (FUSED_READ and resynthesis is True
-                 and src.fit.uses_stored_kernel(src.field, lights, active.size))
+                 and src.fit.uses_stored_kernel(src.field, lights))
         st["fused_read"] = st.get("fused_read", False) or fused
         n_chunk = STORED_CHUNK if fused or (not resynthesis and _stored_half(src.field)) \
             else chunk
