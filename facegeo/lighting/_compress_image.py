@@ -922,7 +922,8 @@ def fit_image_wavelet(field: Any, n_theta: int, n_phi: int, pixels: Any, *,
         rows = row_of[full[cc]]  # a detail cell of a block without pixels is 0, never kept
         keys.append((jj + j0).astype(np.int64) * n_rows + rows)
         codes.append(encode_rgb(x[jj, :, cc], code_base)[0])
-        mags.append(m2[jj, cc])
+        if n_pc > 1:  # the magnitudes only where they split slabs into pieces
+            mags.append(m2[jj, cc])
 
     for b in range(n_band):
         for j0, x, full in band_slabs(b):
