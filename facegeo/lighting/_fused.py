@@ -4,9 +4,10 @@ the same pass. Private to :mod:`facegeo.lighting.relight` (imported only when nu
 installed); see :func:`facegeo.lighting.relight.relight_field` and ``docs/lighting.md``.
 
 The half → float conversion is :func:`facegeo.surface._half.half_to_float32` (shared with the
-skin fit's streaming; one copy), inlined into these loops. It has two exact versions, chosen per
-call by the ``f16c`` flag (a loop-invariant branch that LLVM moves out of the loops, so each
-version vectorises on its own):
+skin fit's streaming; one copy), inlined into these loops. It has two exact versions, chosen
+per call by the ``f16c`` flag (a loop-invariant branch that LLVM moves out of the loops, so each
+version vectorises on its own; where numba compiles for a CPU without F16C only the portable one
+is compiled, see that module):
 
 * ``f16c=True``: an LLVM ``fpext half → float``, which the vectoriser turns into the CPU's
   ``vcvtph2ps`` (8 halves per instruction); only on CPUs with F16C.

@@ -16,7 +16,13 @@ It sits in ``surface/`` because both ``appearance/`` and ``lighting/`` need it a
 import the other (``docs/design.md``, layering conventions ← … ← surface ← appearance, lighting).
 
 Each conversion has two exact implementations, chosen per call by the ``f16c`` flag (a
-loop-invariant branch that LLVM moves out of the loops, so each version vectorises on its own):
+loop-invariant branch that LLVM moves out of the loops, so each version vectorises on its own).
+Where numba compiles for a CPU without F16C (:func:`host_has_f16c` false, e.g.
+``NUMBA_CPU_NAME=x86-64``) only the portable one is compiled and the flag is ignored: LLVM lowers
+its ``half`` type there to a runtime call (``__extendhfsf2``) that numba cannot link, and a
+kernel containing it crashed even when called with ``f16c=False``. (A compile-time flag via
+``numba.literally`` was tried instead: its dispatch cost ≈ 16 ms per call.) Numba keys its disk
+cache by CPU, so a cache built with F16C is not loaded on a CPU without it.
 
 * ``f16c=True``: LLVM ``fpext half → float`` / ``fptrunc float → half``, which the vectoriser
   turns into the CPU's ``vcvtph2ps`` / ``vcvtps2ph`` (8 values per instruction); only on CPUs with
@@ -27,13 +33,14 @@ loop-invariant branch that LLVM moves out of the loops, so each version vectoris
 Both directions equal numpy's casts for every input: ``half → float`` is exact for normals,
 subnormals, ±0, ±inf and NaN; ``float → half`` rounds to nearest, ties to even, produces half
 subnormals, overflows to ±inf from 65520 up (65519.99… rounds to 65504), keeps ±0 and ±inf, and
-maps NaN to a quiet NaN of the same sign (the payload is not kept: numpy keeps its top bits,
-F16C and the bit path return the canonical ``0x7E00``). ``tests/test_half.py`` checks every half
+maps NaN to a quiet NaN of the same sign (the payload need not match: numpy and F16C keep its
+top bits, the bit path returns ``0x7E00`` with the sign). ``tests/test_half.py`` checks every half
 and the float32 neighbours of every rounding boundary against numpy. No ``fastmath`` in the row
 kernels (the portable encoder's ``x + 0.5`` must round as IEEE says).
 
 Numba caches compiled kernels on disk keyed by the calling module's source file: after editing
-this module, clear the ``__pycache__`` of modules that inline its functions (``_fused.py``).
+this module, clear the ``__pycache__`` of modules whose kernels inline its functions
+(``lighting/_fused.py``).
 """
 
 from __future__ import annotations
@@ -43,7 +50,7 @@ import functools
 import numpy as np
 from llvmlite import ir
 from numba import njit, types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 from facegeo.errors import InputError, ShapeError
 
@@ -60,13 +67,19 @@ __all__ = [
 
 @functools.lru_cache(maxsize=1)
 def host_has_f16c() -> bool:
-    """Whether this CPU has the F16C instructions (``vcvtph2ps`` / ``vcvtps2ph``), as LLVM sees
-    the host; ``False`` when that cannot be determined (the portable conversion is then used).
-    Cached for the process."""
+    """Whether numba compiles for a CPU with F16C (``vcvtph2ps`` / ``vcvtps2ph``): the host's
+    features as numba's code generator sees them (``NUMBA_CPU_FEATURES`` when set, e.g. for a
+    ``NUMBA_CPU_NAME=generic`` cache, which has none; no F16C when ``NUMBA_ENABLE_AVX=0``, F16C
+    being a VEX instruction). ``False`` when that cannot be determined (the portable conversion
+    is then used). Cached for the process."""
     try:
-        import llvmlite.binding as llvm
+        from numba.core import config
+        from numba.core.codegen import get_host_cpu_features
 
-        return bool(llvm.get_host_cpu_features().get("f16c", False))
+        features = config.CPU_FEATURES
+        if features is None:
+            features = get_host_cpu_features()
+        return bool(config.ENABLE_AVX) and "+f16c" in str(features).split(",")
     except Exception:  # noqa: BLE001 - unknown host: use the portable conversion
         return False
 
@@ -112,15 +125,7 @@ def _float32_bits(typingctx, x):  # pragma: no cover - compiled
 
 
 @njit(inline="always", cache=True)
-def half_to_float32(h16, f16c):  # pragma: no cover - compiled
-    """float16 bits ``h16`` (uint16) → float32, exactly (numpy's ``astype(np.float32)``).
-
-    ``f16c``: LLVM ``fpext`` (``vcvtph2ps``); otherwise sign, exponent and mantissa are moved
-    into float32 position (exponent 31 → 255 for inf/NaN), reinterpreted and multiplied by
-    2^112, which rebiases normals and normalises subnormals in one exact float multiply.
-    """
-    if f16c:
-        return _fpext_half(h16)
+def _half_to_float32_bits(h16):  # pragma: no cover - compiled
     x = np.uint32(h16)
     em = x & np.uint32(0x7FFF)
     big = (em + np.uint32(0x400)) >> np.uint32(15)  # 1 for inf/NaN (exponent 31)
@@ -130,26 +135,7 @@ def half_to_float32(h16, f16c):  # pragma: no cover - compiled
 
 
 @njit(inline="always", cache=True)
-def float32_to_half(x, f16c):  # pragma: no cover - compiled
-    """float32 ``x`` → float16 bits (uint16), exactly numpy's ``np.float32(x).astype(np.float16)``
-    (round to nearest even; NaN → quiet NaN, payload not kept).
-
-    ``f16c``: LLVM ``fptrunc`` (``vcvtps2ph``). Otherwise, on ``a = |x|``'s bits (F. Giesen's
-    round-to-nearest-even float → half):
-
-    * ``a ≥ 2^16`` (65536, inf, NaN): ``0x7C00`` (inf), or ``0x7E00`` (NaN) above inf's bits;
-    * ``a < 2^-14`` (half subnormal or zero): ``a + 0.5`` in float32 puts the value's multiple
-      of 2^-24 (the half subnormal step) in the low mantissa bits, rounded to nearest even by
-      the FPU; subtracting 0.5's bits leaves the half bits (0x400 when it rounds up to the
-      smallest normal);
-    * otherwise: rebias the exponent (−112 << 23) and add ``0xFFF`` plus the kept mantissa's
-      lowest bit (ties to even) before dropping 13 bits; a carry rolls into the exponent, and
-      65520 ≤ a < 65536 carries into exponent 31 with a zero mantissa: inf.
-
-    All three are computed and selected (no data-dependent branches).
-    """
-    if f16c:
-        return _fptrunc_half(x)
+def _float32_to_half_bits(x):  # pragma: no cover - compiled
     u = _float32_bits(x)
     sign = (u >> np.uint32(16)) & np.uint32(0x8000)
     a = u & np.uint32(0x7FFFFFFF)
@@ -160,6 +146,66 @@ def float32_to_half(x, f16c):  # pragma: no cover - compiled
     big = np.uint32(0x7E00) if a > np.uint32(0x7F800000) else np.uint32(0x7C00)
     r = big if a >= np.uint32(0x47800000) else r  # 0x47800000: 2^16
     return np.uint16((r | sign) & np.uint32(0xFFFF))
+
+
+def half_to_float32(h16, f16c):
+    """float16 bits ``h16`` (uint16) → float32, exactly (numpy's ``astype(np.float32)``).
+
+    In numba code (inlined): ``f16c=True``: LLVM ``fpext`` (``vcvtph2ps``). ``f16c=False``: sign, exponent and mantissa
+    moved into float32 position (exponent 31 → 255 for inf/NaN), reinterpreted and multiplied
+    by 2^112, which rebiases normals and normalises subnormals in one exact float multiply.
+    Called from Python (a reference, not used by the kernels): numpy's cast.
+    """
+    return np.uint16(h16).view(np.float16).astype(np.float32)
+
+
+def float32_to_half(x, f16c):
+    """float32 ``x`` → float16 bits (uint16), exactly numpy's ``np.float32(x).astype(np.float16)``
+    (round to nearest even; NaN → quiet NaN, payload not kept).
+
+    In numba code (inlined): ``f16c=True``: LLVM ``fptrunc`` (``vcvtps2ph``). ``f16c=False``, on ``a = |x|``'s bits
+    (F. Giesen's round-to-nearest-even float → half):
+
+    * ``a ≥ 2^16`` (65536, inf, NaN): ``0x7C00`` (inf), or ``0x7E00`` (NaN) above inf's bits;
+    * ``a < 2^-14`` (half subnormal or zero): ``a + 0.5`` in float32 puts the value's multiple
+      of 2^-24 (the half subnormal step) in the low mantissa bits, rounded to nearest even by
+      the FPU; subtracting 0.5's bits leaves the half bits (0x400 when it rounds up to the
+      smallest normal);
+    * otherwise: rebias the exponent (−112 << 23) and add ``0xFFF`` plus the kept mantissa's
+      lowest bit (ties to even) before dropping 13 bits; a carry rolls into the exponent, and
+      65520 ≤ a < 65536 carries into exponent 31 with a zero mantissa: inf.
+
+    All three are computed and selected (no data-dependent branches). Called from Python (a
+    reference, not used by the kernels): numpy's cast.
+    """
+    with np.errstate(over="ignore"):
+        return np.float32(x).astype(np.float16).view(np.uint16)
+
+
+@overload(half_to_float32, inline="always")
+def _half_to_float32_jit(h16, f16c):
+    if not host_has_f16c():  # never LLVM's half type where it cannot be compiled
+        return lambda h16, f16c: _half_to_float32_bits(h16)  # pragma: no cover - compiled
+
+    def impl(h16, f16c):  # pragma: no cover - compiled
+        if f16c:
+            return _fpext_half(h16)
+        return _half_to_float32_bits(h16)
+
+    return impl
+
+
+@overload(float32_to_half, inline="always")
+def _float32_to_half_jit(x, f16c):
+    if not host_has_f16c():
+        return lambda x, f16c: _float32_to_half_bits(x)  # pragma: no cover - compiled
+
+    def impl(x, f16c):  # pragma: no cover - compiled
+        if f16c:
+            return _fptrunc_half(x)
+        return _float32_to_half_bits(x)
+
+    return impl
 
 
 @njit(nogil=True, cache=True, boundscheck=False)
@@ -173,7 +219,7 @@ def decode_rows(bits, out, f16c):  # pragma: no cover - compiled
     out : (n, m) float32, C-contiguous
         Written.
     f16c : bool
-        Use the CPU's F16C conversion (the caller checks the CPU has it).
+        Use the CPU's F16C conversion (ignored where numba compiles for a CPU without it).
     """
     n, m = bits.shape
     for i in range(n):
@@ -193,7 +239,7 @@ def encode_rows(x, out, f16c):  # pragma: no cover - compiled
     out : (n, m) uint16, C-contiguous
         Written with float16 bits (``a16.view(np.uint16)``).
     f16c : bool
-        Use the CPU's F16C conversion (the caller checks the CPU has it).
+        Use the CPU's F16C conversion (ignored where numba compiles for a CPU without it).
     """
     n, m = x.shape
     for i in range(n):
