@@ -16,19 +16,21 @@ It sits in ``surface/`` because both ``appearance/`` and ``lighting/`` need it a
 import the other (``docs/design.md``, layering conventions ← … ← surface ← appearance, lighting).
 
 Each conversion has two exact implementations, chosen per call by the ``f16c`` flag (a
-loop-invariant branch that LLVM moves out of the loops, so each version vectorises on its own).
-Where numba compiles for a CPU without F16C (:func:`host_has_f16c` false, e.g.
-``NUMBA_CPU_NAME=x86-64``) only the portable one is compiled and the flag is ignored: LLVM lowers
-its ``half`` type there to a runtime call (``__extendhfsf2``) that numba cannot link, and a
-kernel containing it crashed even when called with ``f16c=False``. (A compile-time flag via
-``numba.literally`` was tried instead: its dispatch cost ≈ 16 ms per call.) Numba keys its disk
-cache by CPU, so a cache built with F16C is not loaded on a CPU without it.
+loop-invariant branch that LLVM moves out of the loops, so each version vectorises on its own):
 
 * ``f16c=True``: LLVM ``fpext half → float`` / ``fptrunc float → half``, which the vectoriser
   turns into the CPU's ``vcvtph2ps`` / ``vcvtps2ph`` (8 values per instruction); only on CPUs with
   F16C (:func:`host_has_f16c`).
 * ``f16c=False``: integer bit manipulation for any CPU, computed without data-dependent branches
   (both candidate results, then selects).
+
+Where numba compiles for a CPU without F16C (:func:`host_has_f16c` false, e.g.
+``NUMBA_CPU_NAME=x86-64``) only the portable version is compiled and the flag is ignored: LLVM
+lowers its ``half`` type there to a runtime call (``__extendhfsf2``) that numba cannot link, and
+a kernel containing it aborted even when called with ``f16c=False`` (so did the relighting
+kernel before this module). A compile-time flag (``numba.literally``) was tried instead: its
+dispatch costs ≈ 16 ms per call. Numba keys its disk cache by CPU, so a cache built with F16C is
+not loaded on a CPU without it.
 
 Both directions equal numpy's casts for every input: ``half → float`` is exact for normals,
 subnormals, ±0, ±inf and NaN; ``float → half`` rounds to nearest, ties to even, produces half
@@ -151,9 +153,10 @@ def _float32_to_half_bits(x):  # pragma: no cover - compiled
 def half_to_float32(h16, f16c):
     """float16 bits ``h16`` (uint16) → float32, exactly (numpy's ``astype(np.float32)``).
 
-    In numba code (inlined): ``f16c=True``: LLVM ``fpext`` (``vcvtph2ps``). ``f16c=False``: sign, exponent and mantissa
-    moved into float32 position (exponent 31 → 255 for inf/NaN), reinterpreted and multiplied
-    by 2^112, which rebiases normals and normalises subnormals in one exact float multiply.
+    In numba code (inlined): ``f16c=True``: LLVM ``fpext`` (``vcvtph2ps``). ``f16c=False``:
+    sign, exponent and mantissa moved into float32 position (exponent 31 → 255 for inf/NaN),
+    reinterpreted and multiplied by 2^112, which rebiases normals and normalises subnormals in
+    one exact float multiply.
     Called from Python (a reference, not used by the kernels): numpy's cast.
     """
     return np.uint16(h16).view(np.float16).astype(np.float32)
@@ -161,10 +164,10 @@ def half_to_float32(h16, f16c):
 
 def float32_to_half(x, f16c):
     """float32 ``x`` → float16 bits (uint16), exactly numpy's ``np.float32(x).astype(np.float16)``
-    (round to nearest even; NaN → quiet NaN, payload not kept).
+    (round to nearest even; NaN → a quiet NaN, payload need not match).
 
-    In numba code (inlined): ``f16c=True``: LLVM ``fptrunc`` (``vcvtps2ph``). ``f16c=False``, on ``a = |x|``'s bits
-    (F. Giesen's round-to-nearest-even float → half):
+    In numba code (inlined): ``f16c=True``: LLVM ``fptrunc`` (``vcvtps2ph``). ``f16c=False``,
+    on the bits of ``a = |x|`` (F. Giesen's round-to-nearest-even float → half):
 
     * ``a ≥ 2^16`` (65536, inf, NaN): ``0x7C00`` (inf), or ``0x7E00`` (NaN) above inf's bits;
     * ``a < 2^-14`` (half subnormal or zero): ``a + 0.5`` in float32 puts the value's multiple
