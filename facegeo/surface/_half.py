@@ -290,6 +290,18 @@ def _check_pair(src, name: str, dtype, out, out_name: str, out_dtype) -> None:
         raise InputError(f"{out_name}: overlaps {name}; pass a separate output array")
 
 
+def _convert(kernel, src, name: str, dtype, out, out_dtype) -> np.ndarray:
+    """Validate, allocate ``out`` when ``None``, and run the row ``kernel`` on 2-D views (float16
+    arrays as their uint16 bits)."""
+    _check_pair(src, name, dtype, out, "out", out_dtype)
+    if out is None:
+        out = np.empty(src.shape, out_dtype)
+    if src.size:
+        bits = (lambda a: a.view(np.uint16) if a.dtype == np.float16 else a)
+        kernel(_rows(bits(src), readonly=True), _rows(bits(out)), host_has_f16c())
+    return out
+
+
 def halves_to_float32(a16: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """float16 → float32, exactly as ``a16.astype(np.float32)``, compiled (F16C where the CPU
     has it).
@@ -313,12 +325,7 @@ def halves_to_float32(a16: np.ndarray, out: np.ndarray | None = None) -> np.ndar
     InputError
         ``out`` read-only or overlapping ``a16``.
     """
-    _check_pair(a16, "a16", np.float16, out, "out", np.float32)
-    if out is None:
-        out = np.empty(a16.shape, np.float32)
-    if a16.size:
-        decode_rows(_rows(a16.view(np.uint16), readonly=True), _rows(out), host_has_f16c())
-    return out
+    return _convert(decode_rows, a16, "a16", np.float16, out, np.float32)
 
 
 def float32_to_halves(a32: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -345,9 +352,4 @@ def float32_to_halves(a32: np.ndarray, out: np.ndarray | None = None) -> np.ndar
     InputError
         ``out`` read-only or overlapping ``a32``.
     """
-    _check_pair(a32, "a32", np.float32, out, "out", np.float16)
-    if out is None:
-        out = np.empty(a32.shape, np.float16)
-    if a32.size:
-        encode_rows(_rows(a32, readonly=True), _rows(out.view(np.uint16)), host_has_f16c())
-    return out
+    return _convert(encode_rows, a32, "a32", np.float32, out, np.float16)
