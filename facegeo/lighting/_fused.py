@@ -3,8 +3,11 @@ each half widened to float32 in registers and multiplied into three channel accu
 the same pass. Private to :mod:`facegeo.lighting.relight` (imported only when numba is
 installed); see :func:`facegeo.lighting.relight.relight_field` and ``docs/lighting.md``.
 
-Two exact half → float conversions, chosen per call by the ``f16c`` flag (a loop-invariant
-branch that LLVM moves out of the loops, so each version vectorises on its own):
+The half → float conversion is :func:`facegeo.surface._half.half_to_float32` (shared with the
+skin fit's streaming; one copy), inlined into these loops. It has two exact versions, chosen
+per call by the ``f16c`` flag (a loop-invariant branch that LLVM moves out of the loops, so each
+version vectorises on its own; where numba compiles for a CPU without F16C only the portable one
+is compiled, see that module):
 
 * ``f16c=True``: an LLVM ``fpext half → float``, which the vectoriser turns into the CPU's
   ``vcvtph2ps`` (8 halves per instruction); only on CPUs with F16C.
@@ -13,52 +16,20 @@ branch that LLVM moves out of the loops, so each version vectorises on its own):
 
 Both are exact for normals, subnormals, ±0, ±inf and NaN. ``fastmath`` allows reassociation
 and FMA contraction only (vectorised sums), never nnan/ninf, so NaN/inf samples propagate as
-IEEE arithmetic says. Compiled once and cached on disk (numba keys the cache by CPU).
+IEEE arithmetic says. Compiled once and cached on disk (numba keys the cache by CPU; it does not
+see edits to ``surface/_half.py``, so clear this module's ``__pycache__`` after changing that).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
+
+from facegeo.surface._half import half_to_float32 as _half
 
 __all__ = ["fused_half_dot"]
 
 _FASTMATH = {"reassoc", "contract"}
-
-
-@intrinsic
-def _fpext_half(typingctx, x):  # pragma: no cover - compiled
-    sig = types.float32(types.uint16)
-
-    def codegen(context, builder, signature, args):
-        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
-
-    return sig, codegen
-
-
-@intrinsic
-def _bits_as_float32(typingctx, x):  # pragma: no cover - compiled
-    sig = types.float32(types.uint32)
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.FloatType())
-
-    return sig, codegen
-
-
-@njit(inline="always", cache=True)
-def _half(h16, f16c):  # pragma: no cover - compiled
-    """float16 bits ``h16`` (uint16) → float32, exactly."""
-    if f16c:
-        return _fpext_half(h16)
-    x = np.uint32(h16)
-    em = x & np.uint32(0x7FFF)
-    big = (em + np.uint32(0x400)) >> np.uint32(15)  # 1 for inf/NaN (exponent 31)
-    bits = (((x & np.uint32(0x8000)) << np.uint32(16)) | (em << np.uint32(13))
-            | (big * np.uint32(0x7F800000)))
-    return _bits_as_float32(bits) * np.float32(5.192296858534828e33)  # × 2^112
 
 
 @njit(nogil=True, cache=True, boundscheck=False, fastmath=_FASTMATH)

@@ -130,12 +130,13 @@ FUSED_ROWS = 3
 
 
 def _host_has_f16c() -> bool:
+    """Whether the CPU has F16C (:func:`facegeo.surface._half.host_has_f16c`; ``False`` without
+    numba, imported here on first use so ``import`` stays light)."""
     try:
-        import llvmlite.binding as llvm
-
-        return bool(llvm.get_host_cpu_features().get("f16c", False))
-    except Exception:  # noqa: BLE001 - unknown host: use the portable conversion
+        from facegeo.surface._half import host_has_f16c
+    except ImportError:  # numba missing: the fused kernel is not used either
         return False
+    return host_has_f16c()
 
 
 def _fused_kernel(conversion: str | None = None):
