@@ -416,6 +416,8 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     # Everything per chunk, written straight into the outputs: no (N, L, 3) float64 copy of
     # the whole input (those passes cost a third of the fit at 512 functions).
     D = _check_out(diffuse_out, "diffuse_out", (N, L, C), (np.float32, np.float16), R)
+    if D.dtype == np.float16:
+        from facegeo.surface._half import float32_to_halves
     S = np.empty((N, L, C), np.float32) if specular else None
     shadow = np.empty((N, L), bool)
     sat = np.zeros((N, L), bool)
@@ -456,7 +458,7 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         if res["D"] is not None:  # else the final separation wrote D32 itself
             D32[...] = res["D"] * E[None]  # float32 on assignment
         if D.dtype != np.float32:
-            D[sl] = D32  # rounded, on the worker
+            float32_to_halves(D32, D[sl])  # rounded as numpy's cast, on the worker (compiled)
         if S is not None:
             # S here, on the worker (not after all chunks, serially), from the stored D: D + S
             # = R up to one float32 rounding
