@@ -21,6 +21,9 @@ kept busy (peak memory in the row's own column): the paper preset's 200 k texels
 10× this case, not 400× the 512-function rows (whose per-function CPU time does not hold at
 scale: page faults on the outputs, allocator churn, the chunk tail at two threads). Its
 ``200k functions, s`` column is 10 × its wall time — measured, at the run's load.
+``skin.fit_stream`` times the fit stage's own loop (:func:`facegeo.pipeline.fit.fit_chunks`:
+float16 field memory map in, D to a float16 store) on 200,704 functions, beside the same
+functions' in-cache rate measured in the run.
 """
 
 from __future__ import annotations
