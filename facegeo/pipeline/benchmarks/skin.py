@@ -229,7 +229,7 @@ def bench_fit_scale(quick: bool) -> list[BenchRow]:
 @one_blas_thread
 def bench_fit_stream(quick: bool) -> list[BenchRow]:
     """The fit stage's own loop (:func:`facegeo.pipeline.fit.fit_chunks`) on the paper preset's
-    per-camera size: 200,704 generator functions (98 copies of 2,048; 10 with ``quick``)
+    per-camera size: 200,704 generator functions (98 copies of 2,048; 2 with ``quick``)
     stored as a float16 field memory map on disk, as the project stage writes it, fitted in
     chunks of 2,048 on two threads into a ``FitWriter`` (D float16 on disk). Beside it, the
     same functions' in-cache rate (the 2,048 fitted in one call, repeated): the limit a
@@ -248,7 +248,7 @@ def bench_fit_stream(quick: bool) -> list[BenchRow]:
     base = 2048
     lights, nrm, v0, R = _generator_case(base, 3)
     skin.fit_reflectance(R[:4], v0, lights, threads=threads)  # compile / load the kernels
-    reps = 10 if quick else 98
+    reps = 2 if quick else 98
     n = base * reps
     R16 = R.astype(np.float16)
     R32 = R16.astype(np.float32)  # the values the stream fits
