@@ -164,3 +164,50 @@ def test_truth_on_another_mesh_is_the_generators_surface(reconstructed):
     n_ref /= np.linalg.norm(n_ref, axis=1, keepdims=True)
     err = np.degrees(np.arccos(np.clip((truth.n * n_ref).sum(1), -1, 1)))
     assert err.max() < TRUTH_NORMAL_TOL_DEG
+
+
+def test_fit_chunks_streams_like_one_fit(tmp_path):
+    """The stage's loop (reused buffers, D straight into the store's float16 memory map, no S)
+    stores what one ``fit_reflectance`` call on the float32 rows gives: the same parameters and
+    float16(D) bit for bit; a function with a non-finite sample is fitted as black, flagged,
+    and reported not finite."""
+    from facegeo.appearance import skin
+    from facegeo.pipeline.fit import fit_chunks
+    from facegeo.render import FitStore, FitWriter
+
+    rng = np.random.default_rng(5)
+    lights = skin.LightSet.from_grid(16, 8)
+    T = 9
+    ang = np.radians(rng.uniform(0, 30, T))
+    az = rng.uniform(0, 2 * np.pi, T)
+    n = np.stack([np.sin(ang) * np.cos(az), np.sin(ang) * np.sin(az), np.cos(ang)], 1)
+    p = skin.SkinParams(rng.uniform(0.3, 0.7, (T, 1)) * np.array([0.8, 0.5, 0.35]),
+                        rng.uniform(0.2, 0.4, T), rng.uniform(-0.5, -0.2, T),
+                        rng.uniform(0.3, 0.8, T), rng.uniform(0.3, 0.45, T))
+    v = np.array([0.0, 0.0, 1.0])
+    field = np.lib.format.open_memmap(tmp_path / "R.npy", mode="w+", dtype=np.float16,
+                                      shape=(T, lights.n_lights, 3))
+    field[:] = skin.paper_reflectance(n, v, lights, p)
+    field[4, 7, 1] = np.nan  # a masked sample
+    field.flush()
+    field = np.load(tmp_path / "R.npy", mmap_mode="r")
+    rows = np.array([0, 2, 3, 4, 6, 7, 8])
+    v_world = np.tile(v, (T, 1))
+    texel = np.arange(T) + 100
+    writer = FitWriter(tmp_path / "cam", rows.size, lights.n_lights, 3, "float16")
+    got = list(fit_chunks(field, rows, v_world, lights, writer, texel, chunk=3, threads=2))
+    writer.close()
+    assert [g[0].tolist() for g in got] == [[0, 2, 3], [4, 6, 7], [8]]
+    ok = np.concatenate([g[2] for g in got])
+    assert ok.tolist() == [r != 4 for r in rows]
+    R = field[rows].astype(np.float32)
+    R[~ok] = 0.0
+    ref = skin.fit_reflectance(R, v_world[rows], lights)
+    store = FitStore.load(tmp_path / "cam")
+    assert np.array_equal(store.rows, rows) and np.array_equal(store.texel_index, texel[rows])
+    assert np.array_equal(np.asarray(store.D), ref.diffuse.astype(np.float16))
+    for k in ("normal", "alpha_0", "alpha_1", "rho_d", "rho_s", "flags"):
+        assert np.array_equal(store.params[k], getattr(ref, k)), k
+    assert store.params["flags"][~ok][0] & skin.FLAG_BLACK
+    with pytest.raises(InputError, match="do not fit"):
+        FitWriter(tmp_path / "cam2", 2, lights.n_lights, 3).diffuse_slot(3)

@@ -1246,3 +1246,50 @@ def test_resynthesis_kernel_threads_do_not_change_the_result():
     for k in ("reflectance", "diffuse", "specular", "flags"):
         assert np.array_equal(getattr(a[0], k), getattr(b[0], k)), k
     assert np.array_equal(a[1], b[1])
+
+
+def test_fit_writes_into_caller_outputs():
+    """diffuse_out float32: the same D, written where the caller said (chunks of 4, two
+    threads); float16: D is float16(D) of the float32 fit and S is formed from that rounded D
+    (D + S = R to one float32 rounding); specular=False: S is not formed, every parameter the
+    same; a fit without S refuses what needs it."""
+    rng = np.random.default_rng(41)
+    lights = skin.LightSet.from_grid(32, 16)
+    R, _ = _mixed_functions(rng, lights, 6, 4)
+    R = R.astype(np.float32)
+    ref = skin.fit_reflectance(R, V0, lights, chunk=4, threads=2)
+    out32 = np.full(R.shape, np.nan, np.float32)
+    a = skin.fit_reflectance(R, V0, lights, chunk=4, threads=2, diffuse_out=out32)
+    assert a.diffuse is out32 and np.array_equal(out32, ref.diffuse)
+    assert np.array_equal(a.specular, ref.specular)
+    out16 = np.full(R.shape, np.nan, np.float16)
+    b = skin.fit_reflectance(R, V0, lights, chunk=4, threads=2, diffuse_out=out16)
+    assert b.diffuse is out16 and np.array_equal(out16, ref.diffuse.astype(np.float16))
+    assert np.array_equal(b.specular, R - out16.astype(np.float32))
+    c = skin.fit_reflectance(R, V0, lights, chunk=4, threads=2, specular=False)
+    assert c.specular is None and np.array_equal(c.diffuse, ref.diffuse)
+    for k in ("normal", "alpha_0", "alpha_1", "rho_d", "rho_s", "flags", "shadow"):
+        assert np.array_equal(getattr(c, k), getattr(ref, k)), k
+        assert np.array_equal(getattr(b, k), getattr(ref, k)), k
+    with pytest.raises(InputError, match="specular=False"):
+        c.reflectance
+    with pytest.raises(InputError, match="specular=False"):
+        skin.resynthesize(c, np.array([0.5, 0.0, np.sqrt(0.75)]))
+
+
+def test_fit_output_arrays_are_checked():
+    rng = np.random.default_rng(42)
+    lights = skin.LightSet.from_grid(16, 8)
+    R = skin.paper_reflectance(_random_normals(rng, 3, 20.0), V0, lights,
+                               _paper_params(rng, 3)).astype(np.float32)
+    ro = np.zeros(R.shape, np.float32)
+    ro.setflags(write=False)
+    for bad, err, what in [(np.zeros((3, lights.n_lights, 1), np.float32), ShapeError, "shape"),
+                           (np.zeros(R.shape), InputError, "dtype"),
+                           (ro, InputError, "read-only"),
+                           (np.zeros((3, lights.n_lights, 6), np.float32)[..., :3], InputError,
+                            "C-contiguous"),
+                           (R, InputError, "overlaps"),
+                           ([[0.0]], InputError, "numpy array")]:
+        with pytest.raises(err, match=what):
+            skin.fit_reflectance(R, V0, lights, diffuse_out=bad)

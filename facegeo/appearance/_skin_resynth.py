@@ -266,6 +266,7 @@ def resynthesize(fit, v_n, *, view_independent_form: bool = False,
     -------
     Resynthesis
     """
+    fit._need_specular("resynthesize")
     if view_independent_form:
         check_views(v_n, fit.diffuse.shape[0])
         fit = view_independent(fit, specular_skip=specular_skip)
@@ -371,6 +372,7 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     -------
     (N, C) float64
     """
+    fit._need_specular("resynthesize_relit")
     N, L, C = fit.diffuse.shape
     w = as_array(weights, "weights", shape=(L, C))
     tol = -1.0 if lobe_tol is None else float(lobe_tol)

@@ -126,7 +126,10 @@ class SkinFit:
     rho_s : (N,) float64
         Specular energy (Fig. 14 d).
     diffuse, specular : (N, L, C) float32
-        D and S of the final separation, in the input's units (D + S = R).
+        D and S of the final separation, in the input's units (D + S = R). ``diffuse`` is
+        float16 when the caller had it written into a float16 array, ``specular`` None when
+        the caller did not ask for it (:func:`fit_reflectance`'s ``diffuse_out``,
+        ``specular``).
     shadow : (N, L) bool
         Shadow map (§4.4): thresholded brightness or the caller's visibility; the analysis
         ignores these samples. Includes attached shadows (n·l ≤ 0) and the dark terminator.
@@ -165,7 +168,15 @@ class SkinFit:
     @property
     def reflectance(self) -> np.ndarray:
         """D + S, ``(N, L, C)`` float32: the measured functions (the separation recombines)."""
+        self._need_specular("reflectance")
         return self.diffuse + self.specular
+
+    def _need_specular(self, what: str) -> None:
+        if self.specular is None:
+            from facegeo.errors import InputError
+
+            raise InputError(f"{what}: this fit holds no specular component (fitted with "
+                             "specular=False); refit with specular=True")
 
     def save(self, path) -> None:
         """Write the fit to one ``.npz`` file, atomically (:func:`facegeo.fsutil.atomic_path`).
@@ -181,6 +192,7 @@ class SkinFit:
         """
         from facegeo.fsutil import atomic_path
 
+        self._need_specular("SkinFit.save")
         arrays = {k: np.asarray(getattr(self, k)) for k in _SKINFIT_ARRAYS}
         lt = self.lights
         arrays.update(lights_directions=lt.directions, lights_solid_angles=lt.solid_angles,
@@ -283,7 +295,8 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                     eta: float = 1.4, depth: SearchDepth | None = None,
                     shadow_threshold: float = SHADOW_THRESHOLD, d_0=None, rounds: int = 1,
                     chunk: int | None = None, threads: int = 1,
-                    specular_gate: float = 0.0) -> SkinFit:
+                    specular_gate: float = 0.0, diffuse_out=None,
+                    specular: bool = True) -> SkinFit:
     """Fit the paper's skin model to reflectance functions (Debevec et al. 2000, §4.2 and §4.4).
 
     Steps, each vectorised over a chunk of functions:
@@ -351,6 +364,18 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         the paper's ``S = max(μ_s, 0) s``. For noisy captures (3 suits Gaussian noise: small
         preset with 0.5 % noise, resynthesis 2.4× → 3.0× better than naive); on noise-free
         or merely mismatched data it cuts real specular tails.
+    diffuse_out : (N, L, C) float32 or float16 ndarray, optional
+        Where to write D instead of a fresh float32 array (the result's ``diffuse`` is then
+        this array), e.g. the slice of the memory-mapped store the fits go to
+        (:meth:`facegeo.render.FitWriter.diffuse_slot`): with float16, D is rounded there by
+        the worker threads and S is formed from the rounded D, so D + S = R still holds to one
+        float32 rounding. C-contiguous, writable, not overlapping ``R``.
+    specular : bool
+        Form S = R − D (default). False: the result's ``specular`` is None — for a caller that
+        keeps D only (the fit stage stores D; S = R − D is formed again from the field when
+        needed), one pass over the samples and ≈ 25 KB of fresh memory per function saved
+        (2048 lights; first touches of fresh memory cost a quarter of a 20 k-function call's
+        CPU time here, docs/skin.md).
 
     Returns
     -------
@@ -390,8 +415,10 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                            "cast")}
     # Everything per chunk, written straight into the outputs: no (N, L, 3) float64 copy of
     # the whole input (those passes cost a third of the fit at 512 functions).
-    D = np.empty((N, L, C), np.float32)
-    S = np.empty((N, L, C), np.float32)
+    D = _check_out(diffuse_out, "diffuse_out", (N, L, C), (np.float32, np.float16), R)
+    if D.dtype == np.float16:
+        from facegeo.surface._half import float32_to_halves
+    S = np.empty((N, L, C), np.float32) if specular else None
     shadow = np.empty((N, L), bool)
     sat = np.zeros((N, L), bool)
     if chunk is None:
@@ -402,6 +429,8 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     def run(i):
         # one chunk, written straight into the outputs (disjoint slices of D, shadow, sat)
         sl = slice(i, min(N, i + int(chunk)))
+        # the final separation writes D ⊙ E as float32: into D itself, or a chunk scratch
+        D32 = D[sl] if D.dtype == np.float32 else np.empty((sl.stop - i, L, C), np.float32)
         stats = None
         if _skin_fit.KERNELS:
             # white balance, saturation, shadow map and the brightness statistics in one pass
@@ -425,12 +454,15 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                                     saturated=sat[sl])
         res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
                          shadow_threshold, None if d_0 is None else d_0[sl], rounds,
-                         specular_gate, stats, D[sl] if _skin_fit.KERNELS else None)
-        if res["D"] is not None:  # else the final separation wrote D[sl] itself
-            D[sl] = res["D"] * E[None]  # float32 on assignment
-        # S here, on the worker (not after all chunks, serially): D + S = R up to one float32
-        # rounding
-        np.subtract(R[sl], D[sl], out=S[sl], dtype=np.float32)
+                         specular_gate, stats, D32 if _skin_fit.KERNELS else None)
+        if res["D"] is not None:  # else the final separation wrote D32 itself
+            D32[...] = res["D"] * E[None]  # float32 on assignment
+        if D.dtype != np.float32:
+            float32_to_halves(D32, D[sl])  # rounded as numpy's cast, on the worker (compiled)
+        if S is not None:
+            # S here, on the worker (not after all chunks, serially), from the stored D: D + S
+            # = R up to one float32 rounding
+            np.subtract(R[sl], D[sl], out=S[sl], dtype=np.float32)
         return {k: res[k] for k in out}
 
     for res in _map_chunks(run, starts, threads):
@@ -446,6 +478,31 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
                    rho_s=cat["rs"], diffuse=D, specular=S, shadow=shadow,
                    cast_shadow=cat["cast"] | hidden, saturated=sat,
                    flags=flags, valid=valid, eta=eta, single_channel=single)
+
+
+def _check_out(out, name, shape, dtypes, R):
+    """A caller's output array for :func:`fit_reflectance` (a fresh float32 one when None):
+    a C-contiguous, writable ndarray of ``shape`` and one of ``dtypes`` that does not overlap
+    the input ``R``."""
+    from facegeo.errors import InputError, ShapeError
+
+    if out is None:
+        return np.empty(shape, np.float32)
+    if not isinstance(out, np.ndarray):
+        raise InputError(f"{name}: expected a numpy array, got {type(out).__name__}")
+    if out.shape != tuple(shape):
+        raise ShapeError(f"{name}: expected shape {tuple(shape)}, got {out.shape}")
+    if out.dtype not in [np.dtype(d) for d in dtypes]:
+        raise InputError(f"{name}: expected dtype {' or '.join(np.dtype(d).name for d in dtypes)}"
+                         f", got {out.dtype}")
+    if not out.flags.writeable:
+        raise InputError(f"{name}: the array is read-only")
+    if not out.flags.c_contiguous:
+        raise InputError(f"{name}: expected a C-contiguous array (a slice of whole rows)")
+    if np.may_share_memory(out, R):
+        raise InputError(f"{name}: overlaps the reflectance functions R (an input is never "
+                         "written over)")
+    return out
 
 
 def _map_chunks(run, starts, threads):

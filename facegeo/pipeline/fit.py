@@ -194,6 +194,90 @@ def reflectance_mosaic(R, n_theta: int, n_phi: int, *, scale: int = 4, cols: int
     return encode(np.clip(out, 0, 1), "srgb", np.uint8)
 
 
+def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float = 1.4,
+               depth=None, chunk: int = 2048, threads: int = 1):
+    """Fit rows ``rows`` of a camera's projected field chunk by chunk into ``writer``; yields
+    ``(rows of the chunk, SkinFit, finite)`` per chunk (the fit stage's loop, also timed by
+    ``facegeo bench skin.fit_stream``).
+
+    Bounded memory and no fresh memory per chunk: the rows are gathered into reused buffers
+    and widened to float32 in others; D is written by the fit straight into the store's memory
+    map (``FitWriter.diffuse_slot``); S is not formed (the store keeps D; S = R − D). A
+    function with any non-finite sample (a masked pixel) is fitted as black and flagged
+    (``finite`` False). Pipelined: while one chunk is fitted (on a background thread, which
+    runs ``fit_reflectance`` and its ``threads`` workers), the next chunk's rows are read and
+    the caller handles the previous one's results, so the cores do not wait for the serial
+    steps (two sets of buffers). The results are those of fitting each chunk in turn.
+
+    Parameters
+    ----------
+    field : (T, L, C) float16 or float32 array or memmap
+    rows : (n,) int, increasing — the rows to fit
+    v_world : (T, 3) float64 — toward the camera, per row
+    lights : LightSet
+    writer : FitWriter — announced for ``n`` functions
+    texel_index : (T,) int — each row's texel
+    eta, depth, chunk, threads — as :func:`facegeo.appearance.skin.fit_reflectance`
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from facegeo.appearance.skin import fit_reflectance
+
+    rows = np.asarray(rows, np.int64)
+    chunk = int(chunk)
+    k_max = max(1, min(chunk, rows.size))
+    L, C = field.shape[1], field.shape[2]
+    starts = list(range(0, rows.size, chunk))
+    sets = [(np.empty((k_max, L, C), field.dtype),
+             np.empty((k_max, L, C), np.float32) if field.dtype != np.float32 else None)
+            for _ in range(min(2, len(starts)))]
+
+    def read(q):
+        # chunk q's rows, widened and masked, in buffer set q % 2
+        rr = rows[starts[q]:starts[q] + chunk]
+        gathered, wide = sets[q % 2]
+        k = rr.size
+        g = np.take(field, rr, axis=0, out=gathered[:k], mode="clip")  # rows are in range
+        R = g if wide is None else _float32_rows(g, wide[:k])
+        ok = np.isfinite(R).all(axis=(1, 2))
+        if not ok.all():
+            R[~ok] = 0.0  # masked samples: fitted as black, flagged
+        return rr, R, ok
+
+    def submit(pool, q, got):
+        rr, R, _ = got
+        # the slot of the next fits: the writer has every earlier chunk when this is called
+        return pool.submit(fit_reflectance, R, v_world[rr], lights, eta=eta, depth=depth,
+                           threads=threads, diffuse_out=writer.diffuse_slot(rr.size),
+                           specular=False)
+
+    if not starts:
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="facegeo-fit") as pool:
+        cur = read(0)
+        job = submit(pool, 0, cur)
+        for q in range(len(starts)):
+            nxt = read(q + 1) if q + 1 < len(starts) else None  # while chunk q is fitted
+            fit = job.result()
+            rr, _, ok = cur
+            writer.write(rr, texel_index[rr], fit)
+            if nxt is not None:
+                job = submit(pool, q + 1, nxt)
+            yield rr, fit, ok  # the caller's work on chunk q runs while q + 1 is fitted
+            cur = nxt
+
+
+def _float32_rows(a, out):
+    """``a`` widened into ``out`` (float32, same shape); returns ``out``. float16: the compiled
+    exact conversion (numpy's cast costs ≈ 6× more here)."""
+    if a.dtype == np.float16:
+        from facegeo.surface._half import halves_to_float32
+
+        return halves_to_float32(a, out)
+    np.copyto(out, a, casting="same_kind")
+    return out
+
+
 def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all",
                  views: list | None = None, max_texels: int | None = None, eta: float = 1.4,
                  chunk: int = 2048, diffuse_dtype: str = "float16", gt_functions: int = 256,
@@ -231,7 +315,6 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     from facegeo.appearance.skin import (
         FLAG_NAMES,
         SearchDepth,
-        fit_reflectance,
         resynthesize,
     )
     from facegeo.capture import imageio
@@ -302,16 +385,13 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         t0 = time.perf_counter()
         writer = FitWriter(dest / src.name, rows.size, lights.n_lights,
                            src.field.shape[2], diffuse_dtype)
-        flags = np.zeros(0, np.int32)
-        for s in range(0, rows.size, int(chunk)):
-            rr = rows[s:s + int(chunk)]
-            R = np.asarray(src.field[rr], np.float32)
-            ok = np.isfinite(R).all(axis=(1, 2))
-            R = np.where(ok[:, None, None], R, 0.0)  # masked samples: fitted as black, flagged
-            fit = fit_reflectance(R, src.v_world[rr], lights, eta=eta, depth=depth,
-                                  threads=threads)
-            writer.write(rr, src.texel_index[rr], fit)
-            flags = np.concatenate([flags, fit.flags])
+        flag_parts = []
+        done = 0
+        for rr, fit, ok in fit_chunks(src.field, rows, src.v_world, lights, writer,
+                                      src.texel_index, eta=eta, depth=depth, chunk=int(chunk),
+                                      threads=threads):
+            flag_parts.append(fit.flags)
+            done += len(rr)
             t_id = src.texel_index[rr]
             wc = np.where(fit.valid & ok, src.weight[rr].astype(np.float64), 0.0)
             acc["normal"][t_id] += wc[:, None] * fit.normal
@@ -319,8 +399,9 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             acc["rho_s"][t_id] += wc * fit.rho_s
             wsum[t_id] += wc
             if progress:
-                progress("fit", total + s + len(rr), n_all)
+                progress("fit", total + done, n_all)
         writer.close()
+        flags = np.concatenate(flag_parts) if flag_parts else np.zeros(0, np.int32)
         total += rows.size
         seconds = time.perf_counter() - t0
         per_cam[src.name] = {

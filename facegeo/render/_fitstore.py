@@ -76,10 +76,26 @@ class FitWriter:
         self.eta = 1.4
         self.single = False
 
+    def diffuse_slot(self, k: int) -> np.ndarray:
+        """Where the next ``k`` fits' D goes in the store (a slice of its memory map): pass it
+        as ``fit_reflectance(diffuse_out=…)`` and :meth:`write` has no D to copy."""
+        k = int(k)
+        if not 0 <= k <= self.n - self.done:
+            raise InputError(f"{self.dir}: {k} more fits do not fit ({self.done} of {self.n} "
+                             "written)")
+        return self.D[self.done:self.done + k]
+
     def write(self, rows, texel_index, fit) -> None:
         """Append the fits of field rows ``rows`` (texels ``texel_index``)."""
         k = len(rows)
-        self.D[self.done:self.done + k] = fit.diffuse
+        if k > self.n - self.done:
+            raise InputError(f"{self.dir}: {k} more fits do not fit ({self.done} of {self.n} "
+                             "written)")
+        dst = self.D[self.done:self.done + k]
+        d = fit.diffuse
+        if not (d.dtype == dst.dtype and d.shape == dst.shape
+                and d.__array_interface__["data"][0] == dst.__array_interface__["data"][0]):
+            dst[...] = d  # else the fit wrote into diffuse_slot(k) itself
         self.done += k
         self.rows.append(np.asarray(rows, np.int64))
         self.texels.append(np.asarray(texel_index, np.int64))
