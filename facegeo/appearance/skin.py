@@ -156,7 +156,7 @@ class SkinFit:
     rho_d: np.ndarray
     rho_s: np.ndarray
     diffuse: np.ndarray
-    specular: np.ndarray
+    specular: np.ndarray | None
     shadow: np.ndarray
     cast_shadow: np.ndarray
     saturated: np.ndarray
