@@ -11,8 +11,9 @@ contiguously, for any number B of environments (a GEMV-like GEMM; a batch of B m
 GEMM). float16 rows are converted chunk-wise to float32 (numpy float16 arithmetic is ≈ 30×
 slower, ``einsum`` ≈ 9× — DESIGN §6); for one environment on a float16 field a fused numba
 kernel (:mod:`facegeo.lighting._fused`) widens each half in registers (the CPU's F16C
-``vcvtph2ps`` where available) and accumulates the three channel sums of three rows at a time
-in the same pass (measured ratios in ``docs/lighting.md``).
+``vcvtph2ps`` where available) and accumulates the three channel sums of several rows at a time
+in the same pass, against one channel-interleaved weight vector that stays in L1 (measured
+ratios in ``docs/lighting.md``).
 
 Light colour (paper §3.3, "we normalize the reflectance functions based on the light source
 color"): an OLAT frame taken with light colour ``c_l`` is ``R_l ⊙ c_l``; pass ``light_color``
@@ -231,10 +232,11 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     kernel : {"fused", "blas"}, optional
         ``"fused"``: one environment on a float16 field goes through a compiled (numba) kernel
         that converts each row's halves to float32 in registers (F16C where the CPU has it)
-        and accumulates the dot products of three rows in the same pass (no converted chunk
-        is written back to memory; exact conversion, float32 accumulation in vector lanes). ``"blas"``: OpenCV's F16C conversion
-        into a cache-resident chunk, then BLAS. Default: ``"fused"`` when numba is installed and
-        the call is one environment on a float16 field, else ``"blas"``.
+        and accumulates the dot products of :data:`FUSED_ROWS` rows in the same pass (no
+        converted chunk is written back to memory; exact conversion, float32 accumulation in
+        vector lanes). ``"blas"``: OpenCV's F16C conversion into a cache-resident chunk, then
+        BLAS. Default: ``"fused"`` when numba is installed and the call is one environment on a
+        float16 field, else ``"blas"``.
 
     Returns
     -------
