@@ -337,12 +337,13 @@ def _recompute_nonfinite_rows(f: np.ndarray, w: np.ndarray, active: np.ndarray,
 
     A masked sample (NaN, or inf from float16 overflow) at an unlit light makes the dense sum
     NaN (NaN · 0); the row's true value uses the lit lights only. Rows still non-finite have a
-    masked sample at a lit light and stay so. One pass over ``out``; the field rows are read
-    again only for the (rare) bad rows.
+    masked sample at a lit light and stay so. One flat pass over ``out``; the field rows are
+    read again only for the (rare) bad rows.
     """
-    bad = np.flatnonzero(~np.isfinite(out).all(axis=1))
-    if bad.size == 0:
-        return
+    ok = np.isfinite(out)
+    if ok.all():  # the usual case, one flat pass (a per-row .all(axis=1) over 3 channels costs
+        return  # ≈ 20 ns a row: 7 ms for the paper's 345,600 pixels, 5 % of a relight)
+    bad = np.flatnonzero(~ok.all(axis=1))
     sub = np.asarray(f[bad][:, active], np.float64)  # (n_bad, L', 3)
     redo = np.einsum("plc,blc->pbc", sub, w[:, active])
     out[bad] = redo.reshape(bad.size, -1).astype(np.float32)
