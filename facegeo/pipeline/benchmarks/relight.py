@@ -68,6 +68,14 @@ def _autogroup() -> bool | None:
         return None
 
 
+#: Seconds to wait after a multi-threaded BLAS call before timing anything else: OpenBLAS's idle
+#: workers busy-wait (by default ≈ 2^28 cycles, ≈ 0.1 s) before they sleep, holding a core.
+#: Measured (quiet rounds, 1.5 GB field): a two-thread relight right after a two-thread
+#: ``sgemv`` read 19.6 GB/s (best of 8; process CPU 1.94 × wall, the spinning worker
+#: included), after a 0.3 s pause 30.6 GB/s — the interleaved probes had been slowing the
+#: relight they were compared with (and inflating its CPU time).
+BLAS_SPIN_SECONDS = 0.3
+
 #: Row width (float32 values, 12 KB: the paper field's 2048-light rows) in which the pure-read
 #: probe reads the field's bytes.
 READ_ROW = 3072
@@ -218,6 +226,7 @@ def _interleaved_fraction(field: np.ndarray, w: np.ndarray, probe_bytes: int,
                     bw_long = max(bw_long, passes * a.nbytes / t / 1e9)
             if n == 1:
                 cpu_probe = min(cpu_probe, c / (a.nbytes / 1e9))
+        time.sleep(BLAS_SPIN_SECONDS)  # OpenBLAS's two-thread workers stop spinning
         with limit_threads(1):
             _, c = cpu_timed(probe_two_python_threads)
         cpu_probe_2 = min(cpu_probe_2, c / (a.nbytes / 1e9))
