@@ -120,6 +120,8 @@ def test_f16c_kernel_sums_in_the_order_of_the_three_weight_vector_kernel():
         fused_half_dot(h, wc[0], wc[1], wc[2], want, True)
         fused_half_dot_f16c(h, wc[0], wc[1], wc[2], w, got)
         assert np.array_equal(got, want), f"L' = {n_l}"
+    with pytest.raises(ShapeError, match="fused_half_dot_f16c"):  # no unchecked reads past wi
+        fused_half_dot_f16c(h, wc[0], wc[1], wc[2], w[:-8].copy(), got)
 
 
 @pytest.mark.parametrize("kernel", ["fused", "blas"])

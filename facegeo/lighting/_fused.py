@@ -1,7 +1,12 @@
-"""The fused float16 relighting kernel (numba): Eq. (4) of Debevec et al. 2000 on float16 rows,
+"""The fused float16 relighting kernels (numba): Eq. (4) of Debevec et al. 2000 on float16 rows,
 each half widened to float32 in registers and multiplied into three channel accumulators in
 the same pass. Private to :mod:`facegeo.lighting.relight` (imported only when numba is
 installed); see :func:`facegeo.lighting.relight.relight_field` and ``docs/lighting.md``.
+
+:func:`fused_half_dot` reads three per-channel weight vectors and runs with either conversion;
+:func:`fused_half_dot_f16c` (F16C only) gives the same sums in the same order from one
+channel-interleaved weight vector that stays in L1, its inner loop written as LLVM IR
+(:func:`_make_rows_dot`): the relight at the memory's rate.
 
 The half → float conversion is :func:`facegeo.surface._half.half_to_float32` (shared with the
 skin fit's streaming; one copy), inlined into these loops. It has two exact versions, chosen
@@ -28,9 +33,10 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from facegeo.errors import ShapeError
 from facegeo.surface._half import half_to_float32 as _half
 
-__all__ = ["fused_half_dot", "fused_half_dot_f16c", "INTERLEAVED_ROWS"]
+__all__ = ["INTERLEAVED_ROWS", "fused_half_dot", "fused_half_dot_f16c"]
 
 _FASTMATH = {"reassoc", "contract"}
 
@@ -234,7 +240,8 @@ def fused_half_dot_f16c(h, w0, w1, w2, wi, out):  # pragma: no cover - compiled
     every eight halves it widens; their L2 → L1 traffic held its out-of-cache stream to 0.82–0.89
     of a one-thread ``sgemv`` (measured, 1 GB field). ``wi`` (24 KB) stays in L1, and one fused
     multiply-add per half (instead of three, two of them by zero) leaves the loop bound by
-    memory: 1.0–1.13 of ``sgemv``, 0.99 of a pure read of the same bytes.
+    memory: 1.06–1.17 of a one-thread ``sgemv``, 0.93–0.99 of a pure read of the same bytes
+    (``docs/lighting.md``).
 
     How: eight halves from column j (a multiple of 8) of a row are widened (``vcvtph2ps``) and
     multiplied by ``wi[j:j+8]`` into one of three 8-lane accumulators, chosen by ``j/8 mod 3``
@@ -251,7 +258,11 @@ def fused_half_dot_f16c(h, w0, w1, w2, wi, out):  # pragma: no cover - compiled
     half now reaches only its own channel's sum (there it also reached the other two through
     a multiply by zero weight).
     """
-    n = h.shape[0]
+    n, m = h.shape
+    if (wi.shape[0] != m or w0.shape[0] != m or w1.shape[0] != m or w2.shape[0] != m
+            or out.shape[0] != n or out.shape[1] != 3):  # the IR reads without bounds checks
+        raise ShapeError("fused_half_dot_f16c: expected weights of h.shape[1] entries and out "
+                         "of shape (h.shape[0], 3)")
     n3 = n - n % 3  # rows fused_half_dot sums three at a time
     p = 0
     while p + INTERLEAVED_ROWS <= n3:
