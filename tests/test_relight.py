@@ -80,8 +80,48 @@ def test_both_half_conversions_are_exact_in_every_lane_and_row_of_a_block(conver
     assert np.array_equal(np.isnan(got), np.isnan(want))
     ok = ~np.isnan(want)
     assert np.array_equal(got[ok], want[ok])
-    fin = np.isfinite(want)  # other channels: 0 · half; NaN when the half is NaN/inf (IEEE)
-    assert np.all(out[fin, 1:] == 0) and np.all(np.isnan(out[~fin, 1:]))
+    fin = np.isfinite(want)
+    # three weight vectors (the bit kernel, and the F16C kernel's last n mod 3 rows, which go
+    # through it): 0 · half in the other channels, NaN for a NaN/inf half (IEEE); the F16C
+    # kernel's interleaved weights: a half reaches only its own channel's sum
+    three = np.ones(bits.size, bool)
+    if conversion == "f16c":
+        three[: bits.size - bits.size % 3] = False
+        assert np.all(out[~three, 1:] == 0)
+    assert np.all(out[three & fin, 1:] == 0) and np.all(np.isnan(out[three & ~fin, 1:]))
+
+
+def test_f16c_kernel_sums_in_the_order_of_the_three_weight_vector_kernel():
+    # fused_half_dot_f16c (one interleaved weight vector, 4 rows per pass, LLVM IR) must give the
+    # sums of fused_half_dot (three weight vectors, 3 rows, LLVM's loop vectoriser) in the same
+    # order: every width 3L' for L' = 1 … 40 and 2048 (24-column body, left-over 8-column
+    # chunks, scalar remainder) and row counts hitting 4-row blocks, single rows and the n mod 3
+    # rows. Signed halves over four decades, so a changed summation order changes the rounding.
+    # Metric: bit-exact (np.array_equal; −0 == +0).
+    pytest.importorskip("numba")
+    if not R._host_has_f16c():
+        pytest.skip("this CPU has no F16C")
+    from numba.core.codegen import get_host_cpu_features
+
+    if "+avx512f" in str(get_host_cpu_features()).split(","):
+        pytest.skip("AVX-512: LLVM may vectorise the reference kernel 16 lanes wide")
+    from facegeo.lighting._fused import fused_half_dot, fused_half_dot_f16c
+
+    rng = np.random.default_rng(11)
+    for n_l in [*range(1, 41), 2048]:
+        m = 3 * n_l
+        n = 11 if n_l < 2048 else 7
+        x = rng.standard_normal((n, m)) * 10.0 ** rng.uniform(-2, 2, (n, m))
+        h = x.astype(np.float16).view(np.uint16)
+        w = rng.random(m).astype(np.float32)
+        wc = [np.where(np.arange(m) % 3 == c, w, 0).astype(np.float32) for c in range(3)]
+        want = np.empty((n, 3), np.float32)
+        got = np.empty((n, 3), np.float32)
+        fused_half_dot(h, wc[0], wc[1], wc[2], want, True)
+        fused_half_dot_f16c(h, wc[0], wc[1], wc[2], w, got)
+        assert np.array_equal(got, want), f"L' = {n_l}"
+    with pytest.raises(ShapeError, match="fused_half_dot_f16c"):  # no unchecked reads past wi
+        fused_half_dot_f16c(h, wc[0], wc[1], wc[2], w[:-8].copy(), got)
 
 
 @pytest.mark.parametrize("kernel", ["fused", "blas"])

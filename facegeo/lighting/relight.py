@@ -11,8 +11,9 @@ contiguously, for any number B of environments (a GEMV-like GEMM; a batch of B m
 GEMM). float16 rows are converted chunk-wise to float32 (numpy float16 arithmetic is ≈ 30×
 slower, ``einsum`` ≈ 9× — DESIGN §6); for one environment on a float16 field a fused numba
 kernel (:mod:`facegeo.lighting._fused`) widens each half in registers (the CPU's F16C
-``vcvtph2ps`` where available) and accumulates the three channel sums of three rows at a time
-in the same pass (measured ratios in ``docs/lighting.md``).
+``vcvtph2ps`` where available) and accumulates the three channel sums of several rows at a time
+in the same pass, against one channel-interleaved weight vector that stays in L1 (measured
+ratios in ``docs/lighting.md``).
 
 Light colour (paper §3.3, "we normalize the reflectance functions based on the light source
 color"): an OLAT frame taken with light colour ``c_l`` is ``R_l ⊙ c_l``; pass ``light_color``
@@ -122,11 +123,14 @@ _FUSED: Any = None  # the compiled kernel, None until first use, False when numb
 #: use of :func:`_fused_kernel`.
 FUSED_CONVERSION: str | None = None
 
-#: Field rows accumulated together by the fused kernel: each weight load is reused for this many
-#: rows (3 rows × 3 channels = 9 vector accumulators, within AVX2's 16 registers). Measured in
-#: cache on one core, 200 rows × 2048 lights: 1 row 7.2 G halves/s, 2 rows 11.9, 3 rows 14.7,
-#: 4 rows 13.6 (register spills).
-FUSED_ROWS = 3
+#: Field rows accumulated together by the fused kernel: 4 with F16C
+#: (:func:`facegeo.lighting._fused.fused_half_dot_f16c`, one channel-interleaved weight vector
+#: held in L1; 4 rows × 3 phase accumulators), 3 with the portable bit conversion
+#: (:func:`facegeo.lighting._fused.fused_half_dot`, three weight vectors; 3 rows × 3 channels = 9
+#: vector accumulators; measured in cache on one core, 200 rows × 2048 lights: 1 row 7.2 G
+#: halves/s, 2 rows 11.9, 3 rows 14.7, 4 rows 13.6, register spills). Set with
+#: :data:`FUSED_CONVERSION` on first use of :func:`_fused_kernel`.
+FUSED_ROWS: int | None = None
 
 
 def _host_has_f16c() -> bool:
@@ -140,31 +144,47 @@ def _host_has_f16c() -> bool:
 
 
 def _fused_kernel(conversion: str | None = None):
-    """The fused float16 dot-product kernel (:func:`facegeo.lighting._fused.fused_half_dot`),
-    or ``False`` when numba is not installed (the OpenCV/BLAS path is used instead).
+    """The fused float16 dot-product kernel, or ``False`` when numba is not installed (the
+    OpenCV/BLAS path is used instead).
 
-    Returns ``kernel(h, w0, w1, w2, out)`` with the half → float conversion fixed:
-    ``conversion`` ``"f16c"`` (the CPU's ``vcvtph2ps``) or ``"bits"`` (portable bit
-    manipulation); default the host's best, recorded in :data:`FUSED_CONVERSION`. Compiled on
-    first use and cached on disk. Measured in cache on one core, 2048-light rows: 4.3 G halves/s
-    for the bit manipulation one row at a time, 7.2 with F16C, 14.7 with F16C and
-    :data:`FUSED_ROWS` rows per pass (``docs/lighting.md``).
+    Returns ``kernel(h, w0, w1, w2, out, wi=None)`` (``h`` (n, 3L') uint16 bits of float16
+    rows, C-contiguous; ``w_c`` (3L',) float32 channel c's weights on its columns, zero
+    elsewhere; ``wi = w0 + w1 + w2``, computed when not given; ``out`` (n, 3) float32) with the
+    half → float conversion fixed: ``conversion`` ``"f16c"`` (the CPU's ``vcvtph2ps``;
+    :func:`facegeo.lighting._fused.fused_half_dot_f16c`, the weights interleaved in one vector
+    that stays in L1) or ``"bits"`` (portable bit manipulation;
+    :func:`facegeo.lighting._fused.fused_half_dot`); default the host's best, recorded in
+    :data:`FUSED_CONVERSION` and :data:`FUSED_ROWS`. Both give the same sums in the same order
+    (up to the sign of a zero sum). Compiled on first use and cached on disk. Measured in cache
+    on one core, 2048-light rows: 4.3 G halves/s for the bit manipulation one row at a time, 7.2
+    with F16C, 14.7 with F16C and three rows per pass; out of cache the interleaved kernel
+    reads as fast as a pure read of the field (``docs/lighting.md``).
     """
-    global _FUSED, FUSED_CONVERSION
+    global _FUSED, FUSED_CONVERSION, FUSED_ROWS
     if conversion is None:
         if _FUSED is None:
             FUSED_CONVERSION = "f16c" if _host_has_f16c() else "bits"
             _FUSED = _fused_kernel(FUSED_CONVERSION)
+            if _FUSED:
+                from facegeo.lighting._fused import INTERLEAVED_ROWS
+
+                FUSED_ROWS = INTERLEAVED_ROWS if FUSED_CONVERSION == "f16c" else 3
         return _FUSED
     check_choice(conversion, "conversion", ("f16c", "bits"))
     try:
-        from facegeo.lighting._fused import fused_half_dot
+        from facegeo.lighting._fused import fused_half_dot, fused_half_dot_f16c
     except ImportError:
         return False
-    f16c = conversion == "f16c"
+    if conversion == "f16c" and _host_has_f16c():
+        def kernel(h, w0, w1, w2, out, wi=None):
+            if wi is None:
+                wi = w0 + w1 + w2
+            fused_half_dot_f16c(np.ascontiguousarray(h), w0, w1, w2, wi, out)
+    else:  # without F16C the "f16c" flag is ignored (surface._half): the bit conversion
+        f16c = conversion == "f16c"
 
-    def kernel(h, w0, w1, w2, out):
-        fused_half_dot(h, w0, w1, w2, out, f16c)
+        def kernel(h, w0, w1, w2, out, wi=None):
+            fused_half_dot(h, w0, w1, w2, out, f16c)
 
     return kernel
 
@@ -212,10 +232,11 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
     kernel : {"fused", "blas"}, optional
         ``"fused"``: one environment on a float16 field goes through a compiled (numba) kernel
         that converts each row's halves to float32 in registers (F16C where the CPU has it)
-        and accumulates the dot products of three rows in the same pass (no converted chunk
-        is written back to memory; exact conversion, float32 accumulation in vector lanes). ``"blas"``: OpenCV's F16C conversion
-        into a cache-resident chunk, then BLAS. Default: ``"fused"`` when numba is installed and
-        the call is one environment on a float16 field, else ``"blas"``.
+        and accumulates the dot products of :data:`FUSED_ROWS` rows in the same pass (no
+        converted chunk is written back to memory; exact conversion, float32 accumulation in
+        vector lanes). ``"blas"``: OpenCV's F16C conversion into a cache-resident chunk, then
+        BLAS. Default: ``"fused"`` when numba is installed and the call is one environment on a
+        float16 field, else ``"blas"``.
 
     Returns
     -------
@@ -251,6 +272,7 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
                          "weights and a float16 field")
     if single:
         Wc = [np.ascontiguousarray(W[:, c]) for c in range(3)]
+        Wi = Wc[0] + Wc[1] + Wc[2]  # column j's weight for its own channel j mod 3
     per_chunk = FUSED_CHUNK_BYTES // (2 * n_cols) if fused else CHUNK_BYTES // (4 * n_cols)
     rows = int(chunk_rows or max(1, per_chunk))
     out = np.empty((n_p, 3 * n_b), np.float32)
@@ -263,7 +285,7 @@ def relight_field(field: Any, weights: Any, *, light_color: Any = None,
         else:
             src = f2[r0:r1]
         if fused:
-            fused(np.asarray(src).view(np.uint16), Wc[0], Wc[1], Wc[2], out[r0:r1])
+            fused(np.asarray(src).view(np.uint16), Wc[0], Wc[1], Wc[2], out[r0:r1], Wi)
             return
         if src.dtype != np.float32:
             # float16 → float32, chunk-wise (never float16 arithmetic)
@@ -315,12 +337,13 @@ def _recompute_nonfinite_rows(f: np.ndarray, w: np.ndarray, active: np.ndarray,
 
     A masked sample (NaN, or inf from float16 overflow) at an unlit light makes the dense sum
     NaN (NaN · 0); the row's true value uses the lit lights only. Rows still non-finite have a
-    masked sample at a lit light and stay so. One pass over ``out``; the field rows are read
-    again only for the (rare) bad rows.
+    masked sample at a lit light and stay so. One flat pass over ``out``; the field rows are
+    read again only for the (rare) bad rows.
     """
-    bad = np.flatnonzero(~np.isfinite(out).all(axis=1))
-    if bad.size == 0:
-        return
+    ok = np.isfinite(out)
+    if ok.all():  # the usual case, one flat pass (a per-row .all(axis=1) over 3 channels costs
+        return  # ≈ 25 ns a row: ≈ 9 ms for the paper's 345,600 pixels, ≈ 6 % of a relight)
+    bad = np.flatnonzero(~ok.all(axis=1))
     sub = np.asarray(f[bad][:, active], np.float64)  # (n_bad, L', 3)
     redo = np.einsum("plc,blc->pbc", sub, w[:, active])
     out[bad] = redo.reshape(bad.size, -1).astype(np.float32)
