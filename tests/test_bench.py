@@ -125,8 +125,10 @@ def test_at_threads_is_the_strongest_method_within_the_thread_count():
           "sgemv (OpenBLAS), 2 threads": 21.0, "sgemv (OpenBLAS), 3 threads": 25.0}
     bw = Bandwidth(28.0, f"{PURE_READ}, 2 threads", 2, 1 << 20, by)
     assert bw.at_threads(1) == 15.0  # sgemv beats the pure read at 1 thread here
+    assert bw.method_at(1) == "sgemv (OpenBLAS), 1 thread"
     assert bw.at_threads(2) == 28.0
     assert bw.at_threads(3) == 28.0  # max over ≤ 3 threads, not the 3-thread method
+    assert bw.method_at(3) == f"{PURE_READ}, 2 threads"
     assert bw.read_once_seconds(15e9, threads=1) == pytest.approx(1.0)
 
 

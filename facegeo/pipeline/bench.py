@@ -212,11 +212,16 @@ class Bandwidth:
     by_method: dict
     unavailable: dict = field(default_factory=dict)
 
+    def method_at(self, n: int) -> str:
+        """The strongest method that used at most ``n`` threads (the one that sets the limit a
+        job on ``n`` threads is held against; :attr:`method` when none used so few)."""
+        within = [k for k in self.by_method if _method_threads(k) <= n]
+        return max(within, key=self.by_method.get, default=self.method)
+
     def at_threads(self, n: int) -> float:
         """Best bandwidth (GB/s) among methods that used at most ``n`` threads: the strongest
-        probe a job on ``n`` threads is measured against."""
-        best = [v for k, v in self.by_method.items() if _method_threads(k) <= n]
-        return max(best, default=self.gbps)
+        probe a job on ``n`` threads is measured against (:meth:`method_at` names it)."""
+        return self.by_method.get(self.method_at(n), self.gbps)
 
     def read_once_seconds(self, nbytes: float, threads: int | None = None) -> float:
         """Seconds to read ``nbytes`` once at this bandwidth (at ``threads``, else the best)."""

@@ -24,7 +24,7 @@ def bench_read_bandwidth(quick: bool) -> list[BenchRow]:
         n = _method_threads(method)
         extra = {"MiB": round(bw.nbytes / 2**20), "best of": 3,
                  # the figure a job on n threads is held against (Bandwidth.at_threads)
-                 "sets the limit at this thread count": gbps == bw.at_threads(n)}
+                 "sets the limit at this thread count": method == bw.method_at(n)}
         if bw.unavailable:
             extra["not measured"] = "; ".join(f"{k}: {v}" for k, v in bw.unavailable.items())
         rows.append(BenchRow("memory.read_bandwidth", f"read a float32 array once: {method}",
