@@ -44,7 +44,9 @@ def _random_half_field(n_p: int, n_l: int, seed: int) -> np.ndarray:
 
 
 def _bandwidth() -> tuple[float, int]:
-    """GB/s of this run's memory-read probe at the relighting's thread count, and its size."""
+    """GB/s of this run's memory-read probe at the relighting's thread count (the strongest of
+    ``sgemv`` and the compiled pure read at ≤ 2 threads,
+    :meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`), and its size."""
     bw = read_bandwidth()
     return bw.at_threads(RELIGHT_THREADS), bw.nbytes
 
