@@ -195,8 +195,9 @@ class Bandwidth:
     threads : int
         Threads of that method.
     nbytes : int
-        Bytes of the array read (≥ 512 MiB by default: far larger than any cache); the pure
-        read reads its whole 12 KB rows (all but < 12 KB of it) and is rated by the bytes it read.
+        Bytes of the array read (≥ 512 MiB by default: far larger than any cache). The pure
+        read reads the whole 12 KB rows the array holds (all but its last < 12 KB) and is rated
+        by the bytes it read.
     by_method : dict
         ``{"numpy sum, 1 thread": GB/s, "<PURE_READ>, 1 thread": …, "sgemv (OpenBLAS),
         2 threads": …, …}``; every key ends in ``, N thread(s)``.
@@ -384,8 +385,9 @@ def read_bandwidth(nbytes: int | None = None, *, repeat: int = 3, max_threads: i
 
     * a numpy sum, 1 thread;
     * the compiled pure read (:func:`pure_read_kernel`: 12 KB rows, four at a time) on 1 …
-      ``max_threads`` Python threads, one contiguous part each (:func:`pure_read`) — the
-      strongest here, up to 1.4× what ``sgemv`` reads;
+      ``max_threads`` Python threads, one contiguous part each (:func:`pure_read`) — usually
+      the strongest here (measured 1.13–1.38× what ``sgemv`` reads at one thread, load
+      0.5–2.6; at two threads ``sgemv`` won one of ten probes);
     * an OpenBLAS ``sgemv`` (``A @ x``, ``A`` of shape (N, 1024)) on 1 … ``max_threads`` BLAS
       threads; after each multi-threaded call the probe sleeps :data:`BLAS_SPIN_SECONDS`, so
       OpenBLAS's spinning workers slow neither the next method nor whatever the caller times
