@@ -12,10 +12,14 @@ import math
 import numpy as np
 import pytest
 
-from facegeo.errors import InputError
+from facegeo.errors import InputError, ShapeError
 from facegeo.pipeline import bench
 from facegeo.pipeline.bench import (
+    PURE_READ,
+    READ_ROW,
+    Bandwidth,
     BenchRow,
+    pure_read,
     read_bandwidth,
     register,
     registered,
@@ -96,6 +100,85 @@ def test_read_bandwidth_measures_methods_and_threads():
     assert bw.read_once_seconds(bw.gbps * 1e9) == pytest.approx(1.0)
     with pytest.raises(InputError, match="nbytes"):
         read_bandwidth(10)
+
+
+def test_read_bandwidth_includes_the_pure_read_at_one_and_two_threads(monkeypatch):
+    """A tiny array (1 MiB, one pass each): the compiled pure read is a method beside numpy sum
+    and sgemv at 1 and 2 threads, and the best figure is the maximum over all of them."""
+    monkeypatch.setattr(bench, "_BANDWIDTH", {})
+    bw = read_bandwidth(1 << 20, repeat=1, max_threads=2)
+    assert set(bw.by_method) == {
+        "numpy sum, 1 thread", f"{PURE_READ}, 1 thread", f"{PURE_READ}, 2 threads",
+        "sgemv (OpenBLAS), 1 thread", "sgemv (OpenBLAS), 2 threads"}
+    assert bw.unavailable == {}
+    assert bw.gbps == max(bw.by_method.values()) and bw.by_method[bw.method] == bw.gbps
+    assert bw.threads == bench._method_threads(bw.method)
+    assert bw.at_threads(1) == max(v for k, v in bw.by_method.items() if k.endswith("1 thread"))
+
+
+def test_at_threads_is_the_strongest_method_within_the_thread_count():
+    """Figures chosen so that each wrong rule gives a different answer: the best method overall
+    runs on 2 threads, the best at 1 thread is not the pure read, and a 3-thread method is
+    weaker than a 2-thread one."""
+    by = {"numpy sum, 1 thread": 11.0, f"{PURE_READ}, 1 thread": 14.0,
+          "sgemv (OpenBLAS), 1 thread": 15.0, f"{PURE_READ}, 2 threads": 28.0,
+          "sgemv (OpenBLAS), 2 threads": 21.0, "sgemv (OpenBLAS), 3 threads": 25.0}
+    bw = Bandwidth(28.0, f"{PURE_READ}, 2 threads", 2, 1 << 20, by)
+    assert bw.at_threads(1) == 15.0  # sgemv beats the pure read at 1 thread here
+    assert bw.method_at(1) == "sgemv (OpenBLAS), 1 thread"
+    assert bw.at_threads(2) == 28.0
+    assert bw.at_threads(3) == 28.0  # max over ≤ 3 threads, not the 3-thread method
+    assert bw.method_at(3) == f"{PURE_READ}, 2 threads"
+    assert bw.read_once_seconds(15e9, threads=1) == pytest.approx(1.0)
+
+
+def test_pure_read_reads_every_row_on_any_thread_count():
+    """The kernel's sum over small integers is exact, so it shows every row was read: 4k + 3
+    rows (the tail the four-row loop leaves) split over 1, 2 and 3 Python threads."""
+    rows = np.arange(4 * 5 + 3, dtype=np.float32)[:, None] * np.ones((1, READ_ROW), np.float32)
+    rows[:, 1] += 1.0  # not constant along a row
+    want = float(rows.sum(dtype=np.float64))
+    for threads in (1, 2, 3):
+        assert pure_read(rows, threads) == want, threads
+    assert pure_read(rows[:5], 1) == float(rows[:5].sum(dtype=np.float64))
+
+
+def test_pure_read_rejects_what_it_cannot_read():
+    a = np.ones((8, 64), np.float32)
+    with pytest.raises(ShapeError, match="rows: expected a C-contiguous"):
+        pure_read(a[:, ::2], 1)
+    with pytest.raises(ShapeError, match="float64"):
+        pure_read(a.astype(np.float64), 1)
+    with pytest.raises(InputError, match="threads"):
+        pure_read(a, 0)
+
+
+def test_read_bandwidth_pauses_for_blas_spin_after_multithread_sgemv(monkeypatch):
+    """OpenBLAS's idle workers spin after a multi-threaded call: the probe sleeps
+    BLAS_SPIN_SECONDS after each one (so also before returning), never after one thread."""
+    slept = []
+    monkeypatch.setattr(bench.time, "sleep", slept.append)
+    monkeypatch.setattr(bench, "_BANDWIDTH", {})
+    read_bandwidth(1 << 20, repeat=1, max_threads=1)
+    assert slept == []
+    read_bandwidth(1 << 20, repeat=1, max_threads=2, fresh=True)
+    assert slept == [bench.BLAS_SPIN_SECONDS]
+
+
+def test_read_bandwidth_without_the_compiled_read_keeps_sgemv_and_says_so(monkeypatch):
+    monkeypatch.setattr(bench, "_compile_pure_read", lambda: (None, "numba compile failed (test)"))
+    monkeypatch.setattr(bench, "_BANDWIDTH", {})
+    bw = read_bandwidth(1 << 20, repeat=1, max_threads=2)
+    assert not any(k.startswith("pure read") for k in bw.by_method)
+    assert {"sgemv (OpenBLAS), 1 thread", "sgemv (OpenBLAS), 2 threads"} <= set(bw.by_method)
+    assert bw.unavailable == {PURE_READ: "numba compile failed (test)"}
+    with pytest.raises(InputError, match="numba compile failed"):
+        pure_read(np.ones((4, 8), np.float32), 1)
+    from facegeo.pipeline.benchmarks.memory import bench_read_bandwidth
+
+    monkeypatch.setattr(bench, "BANDWIDTH_BYTES", 1 << 20)
+    rows = bench_read_bandwidth(True)
+    assert all("numba compile failed" in r.extra["not measured"] for r in rows)
 
 
 def test_peak_rss_sees_an_allocation():

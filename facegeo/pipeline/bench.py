@@ -17,7 +17,9 @@ benchmark's peak resident memory. The rules are in ``docs/benchmarks.md``.
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib
+import itertools
 import json
 import logging
 import os
@@ -30,25 +32,30 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.errors import InputError
-from facegeo.fsutil import atomic_write_text
 from facegeo.checks import fmt_value
+from facegeo.errors import InputError, ShapeError
+from facegeo.fsutil import atomic_write_text
 
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "BenchRow",
+    "BLAS_SPIN_SECONDS",
+    "PURE_READ",
+    "READ_ROW",
     "Bandwidth",
-    "register",
-    "registered",
-    "run_benchmarks",
-    "write_reports",
+    "BenchRow",
     "best_of",
-    "read_bandwidth",
     "blas_threads",
     "limit_threads",
     "peak_rss_mb",
+    "pure_read",
+    "pure_read_kernel",
+    "read_bandwidth",
+    "register",
+    "registered",
     "reset_peak_rss",
+    "run_benchmarks",
+    "write_reports",
 ]
 
 
@@ -159,6 +166,22 @@ def limit_threads(n: int) -> Iterator[None]:
         yield
 
 
+#: Seconds to wait after a multi-threaded BLAS call before timing anything else: OpenBLAS's idle
+#: workers busy-wait (by default ≈ 2^28 cycles, ≈ 0.1 s) before they sleep, holding a core.
+#: Measured (quiet rounds, 1.5 GB field): a two-thread relight right after a two-thread
+#: ``sgemv`` read 19.6 GB/s (best of 8; process CPU 1.94 × wall, the spinning worker
+#: included), after a 0.3 s pause 30.6 GB/s — the interleaved probes had been slowing the
+#: relight they were compared with (and inflating its CPU time).
+BLAS_SPIN_SECONDS = 0.3
+
+#: Row width (float32 values, 12 KB: the paper field's 2048-light rows) in which the pure read
+#: (:func:`pure_read_kernel`) reads its bytes.
+READ_ROW = 3072
+
+#: Name of the compiled pure read in :attr:`Bandwidth.by_method` (before ``, N thread(s)``).
+PURE_READ = "pure read (numba float32 sum, 12 KB rows, 4 at a time)"
+
+
 @dataclass
 class Bandwidth:
     """Memory read bandwidth measured in this run (the roofline for streaming benchmarks).
@@ -172,9 +195,15 @@ class Bandwidth:
     threads : int
         Threads of that method.
     nbytes : int
-        Bytes read per pass (the array is ≥ 512 MiB by default: far larger than any cache).
+        Bytes of the array read (≥ 512 MiB by default: far larger than any cache). The pure
+        read reads the whole 12 KB rows the array holds (all but its last < 12 KB) and is rated
+        by the bytes it read.
     by_method : dict
-        ``{"numpy sum, 1 thread": GB/s, "sgemv (OpenBLAS), 1 thread": …, …}``.
+        ``{"numpy sum, 1 thread": GB/s, "<PURE_READ>, 1 thread": …, "sgemv (OpenBLAS),
+        2 threads": …, …}``; every key ends in ``, N thread(s)``.
+    unavailable : dict
+        Methods that could not run, with the reason (``{PURE_READ: "numba: …"}``); empty when
+        every method ran.
     """
 
     gbps: float
@@ -182,11 +211,18 @@ class Bandwidth:
     threads: int
     nbytes: int
     by_method: dict
+    unavailable: dict = field(default_factory=dict)
+
+    def method_at(self, n: int) -> str:
+        """The strongest method that used at most ``n`` threads (the one that sets the limit a
+        job on ``n`` threads is held against; :attr:`method` when none used so few)."""
+        within = [k for k in self.by_method if _method_threads(k) <= n]
+        return max(within, key=self.by_method.get, default=self.method)
 
     def at_threads(self, n: int) -> float:
-        """Best bandwidth (GB/s) among methods that used at most ``n`` threads."""
-        best = [v for k, v in self.by_method.items() if _method_threads(k) <= n]
-        return max(best, default=self.gbps)
+        """Best bandwidth (GB/s) among methods that used at most ``n`` threads: the strongest
+        probe a job on ``n`` threads is measured against (:meth:`method_at` names it)."""
+        return self.by_method.get(self.method_at(n), self.gbps)
 
     def read_once_seconds(self, nbytes: float, threads: int | None = None) -> float:
         """Seconds to read ``nbytes`` once at this bandwidth (at ``threads``, else the best)."""
@@ -197,7 +233,6 @@ class Bandwidth:
 def one_blas_thread(fn: BenchFn) -> BenchFn:
     """Decorator: run a benchmark with BLAS limited to one thread (``threadpoolctl``), so that
     its rows can honestly say ``threads=1`` for numpy/scipy code that calls BLAS."""
-    import functools
 
     @functools.wraps(fn)
     def wrapped(quick: bool) -> list[BenchRow]:
@@ -213,6 +248,128 @@ def _method_threads(key: str) -> int:
     return int(key.rsplit(", ", 1)[1].split()[0])
 
 
+def _threads_label(n: int) -> str:
+    return f"{n} thread{'s' if n > 1 else ''}"
+
+
+@functools.lru_cache(maxsize=1)
+def _compile_pure_read() -> tuple[Callable | None, str | None]:
+    """The compiled pure read and ``None``, or ``None`` and why it could not be compiled."""
+    try:
+        from numba import njit
+    except ImportError as exc:
+        return None, f"numba not importable ({exc})"
+
+    @njit(nogil=True, boundscheck=False, fastmath=True)
+    def read_rows(a):  # pragma: no cover - compiled
+        n, m = a.shape
+        s = np.float32(0)
+        p = 0
+        while p + 3 < n:  # four rows a pass: four independent load streams
+            x0 = np.float32(0)
+            x1 = np.float32(0)
+            x2 = np.float32(0)
+            x3 = np.float32(0)
+            for j in range(m):
+                x0 += a[p, j]
+                x1 += a[p + 1, j]
+                x2 += a[p + 2, j]
+                x3 += a[p + 3, j]
+            s += x0 + x1 + x2 + x3
+            p += 4
+        while p < n:  # the last n % 4 rows: every byte counted is read
+            x0 = np.float32(0)
+            for j in range(m):
+                x0 += a[p, j]
+            s += x0
+            p += 1
+        return s
+
+    try:
+        read_rows(np.zeros((5, 8), np.float32))  # compile now, outside any timing
+    except Exception as exc:  # noqa: BLE001 - any compile failure leaves sgemv as the probe
+        log.warning("pure-read probe not compiled, sgemv and numpy sum only: %s", exc)
+        return None, f"numba compile failed ({type(exc).__name__}: {exc})"
+    return read_rows, None
+
+
+def pure_read_kernel() -> Callable | None:
+    """The compiled pure read, ``read(a) -> float32``: sums a C-contiguous ``(n, m)`` float32
+    array four rows at a time (vectorised, ``fastmath`` so the sums use parallel lanes; the
+    result only keeps the loads from being optimised away), then the last ``n % 4`` rows;
+    ``nogil``, so Python threads run it in parallel. Compiled on first use (≈ 1 s, outside
+    any timing); ``None`` when numba is missing or the compile fails (the reason is in
+    :attr:`Bandwidth.unavailable`).
+
+    The strongest read measured here, so the memory-read limit (DESIGN §8: a flattering ratio
+    is a bug): a kernel at the memory's limit scores above 1 against ``sgemv`` alone. Measured
+    (quiet rounds, paper-size relighting field, best of 5, two threads on two halves): this
+    float32 sum 38.4 GB/s, a uint32 OR of four rows 32.0, a uint16 OR 28.3, two-thread
+    ``sgemv`` 27.7; one thread 20.1 / 19.6 / 17.6. 12 KB rows (:data:`READ_ROW`) read faster
+    four at a time than 4 KB rows (``sgemv``'s 1024 columns) or one at a time (one thread,
+    1 GB, load ≈ 4: 21.1 against 19.3 and 15.4; ``sgemv`` 15.1).
+    """
+    return _compile_pure_read()[0]
+
+
+def pure_read(rows: np.ndarray, threads: int = 1, kernel: Callable | None = None) -> float:
+    """Read ``rows`` once with the pure read on ``threads`` Python threads, each running
+    :func:`pure_read_kernel` on one contiguous part (``threads == 1``: in the calling thread).
+
+    Parameters
+    ----------
+    rows : (n, m) float32, C-contiguous
+        The bytes to read, as rows (:data:`READ_ROW` values wide for the kernel's best speed).
+    threads : int
+        Python threads (≥ 1); part ``i`` is rows ``[n·i // threads, n·(i+1) // threads)``.
+    kernel : callable, optional
+        The compiled read (default :func:`pure_read_kernel`; pass it to skip the lookup).
+
+    Returns
+    -------
+    float
+        The sum of every value read (what keeps the loads from being optimised away; ``fastmath``
+        reorders it, exact only for values whose partial sums are exact in float32).
+
+    Raises
+    ------
+    ShapeError
+        ``rows`` not a C-contiguous 2-D float32 array.
+    InputError
+        ``threads`` < 1, or the kernel unavailable (numba missing or not compiling).
+    """
+    import threading
+
+    if not (isinstance(rows, np.ndarray) and rows.ndim == 2 and rows.dtype == np.float32
+            and rows.flags.c_contiguous):
+        got = (f"{type(rows).__name__}" if not isinstance(rows, np.ndarray) else
+               f"{rows.dtype} array of shape {rows.shape}"
+               f"{'' if rows.flags.c_contiguous else ', not C-contiguous'}")
+        raise ShapeError(f"rows: expected a C-contiguous (n, m) float32 array, got {got}")
+    if int(threads) < 1:
+        raise InputError(f"threads: expected at least 1, got {threads}")
+    read = kernel if kernel is not None else pure_read_kernel()
+    if read is None:
+        raise InputError(f"pure read unavailable: {_compile_pure_read()[1]}")
+    threads = int(threads)
+    if threads == 1:
+        return float(read(rows))
+    n = rows.shape[0]
+    bounds = [n * i // threads for i in range(threads + 1)]
+    sums = [0.0] * threads
+
+    def part(i: int, b0: int, b1: int) -> None:
+        sums[i] = float(read(rows[b0:b1]))
+
+    ts = [threading.Thread(target=part, args=(i, b0, b1))
+          for i, (b0, b1) in enumerate(itertools.pairwise(bounds))]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    return sum(sums)
+
+
 _BANDWIDTH: dict[int, Bandwidth] = {}
 
 #: Bytes :func:`read_bandwidth` reads by default (512 MiB, far beyond any cache; tests lower it).
@@ -223,42 +380,65 @@ def read_bandwidth(nbytes: int | None = None, *, repeat: int = 3, max_threads: i
                    fresh: bool = False) -> Bandwidth:
     """Measure the memory read bandwidth in this run (cached per run and size).
 
-    Reads one float32 array of ``nbytes`` (≥ 512 MiB by default) with a numpy sum on one thread
-    and with an OpenBLAS ``sgemv`` (``A @ x``, ``A`` of shape (N, 1024)) on 1 … ``max_threads``
-    threads; best of ``repeat`` passes each. :func:`run_benchmarks` clears the cache, so every
-    run measures its own figure under the same machine load as its benchmarks.
+    Reads one float32 array of ``nbytes`` (≥ 512 MiB by default), best of ``repeat`` passes
+    each, with three methods:
+
+    * a numpy sum, 1 thread;
+    * the compiled pure read (:func:`pure_read_kernel`: 12 KB rows, four at a time) on 1 …
+      ``max_threads`` Python threads, one contiguous part each (:func:`pure_read`) — usually
+      the strongest here (measured 1.13–1.38× what ``sgemv`` reads at one thread, load
+      0.5–2.6; at two threads ``sgemv`` won one of ten probes);
+    * an OpenBLAS ``sgemv`` (``A @ x``, ``A`` of shape (N, 1024)) on 1 … ``max_threads`` BLAS
+      threads; after each multi-threaded call the probe sleeps :data:`BLAS_SPIN_SECONDS`, so
+      OpenBLAS's spinning workers slow neither the next method nor whatever the caller times
+      after this returns.
+
+    Without numba (or when the compile fails) the pure read is left out, the reason goes to
+    :attr:`Bandwidth.unavailable` and the methods' names say what was measured. A job on ``n``
+    threads is held against :meth:`Bandwidth.at_threads` ``(n)``, the strongest method at ≤ ``n``
+    threads. :func:`run_benchmarks` clears the cache, so every run measures its own figure under
+    the same machine load as its benchmarks.
 
     Parameters
     ----------
     nbytes : int, optional
-        Size of the array read, bytes (rounded down to whole rows of 4 KiB); default
-        :data:`BANDWIDTH_BYTES`.
+        Size of the array read, bytes (rounded down to whole rows of 4 KiB; at least one 12 KiB
+        row of the pure read); default :data:`BANDWIDTH_BYTES`.
     repeat : int
         Passes per method; the best is kept.
     max_threads : int, optional
-        Largest BLAS thread count tried (default: the CPU count).
+        Largest thread count tried (default: the CPU count).
     fresh : bool
         Measure again even if this size was measured in this run.
     """
     nbytes = BANDWIDTH_BYTES if nbytes is None else int(nbytes)
-    if nbytes < 4096:
-        raise InputError(f"nbytes: expected at least 4096 bytes, got {nbytes}")
+    if nbytes < 4 * READ_ROW:
+        raise InputError(f"nbytes: expected at least {4 * READ_ROW} bytes (one {READ_ROW}-value "
+                         f"float32 row of the pure read), got {nbytes}")
     if not fresh and nbytes in _BANDWIDTH:
         return _BANDWIDTH[nbytes]
     cols = 1024
     a = np.ones((nbytes // (4 * cols), cols), dtype=np.float32)
     x = np.ones(cols, dtype=np.float32)
     size = a.nbytes
+    n_rows = a.size // READ_ROW
+    rows = a.reshape(-1)[: n_rows * READ_ROW].reshape(n_rows, READ_ROW)  # a view: same bytes
+    read, why_not = _compile_pure_read()
     by: dict[str, float] = {}
     t, _ = best_of(lambda: a.sum(dtype=np.float32), repeat)
     by["numpy sum, 1 thread"] = size / t / 1e9
     for n in range(1, (max_threads or os.cpu_count() or 1) + 1):
+        if read is not None:
+            t, _ = best_of(lambda n=n: pure_read(rows, n, read), repeat)
+            by[f"{PURE_READ}, {_threads_label(n)}"] = rows.nbytes / t / 1e9
         with limit_threads(n):
             t, _ = best_of(lambda: a @ x, repeat)
-        by[f"sgemv (OpenBLAS), {n} thread{'s' if n > 1 else ''}"] = size / t / 1e9
-    del a
+        by[f"sgemv (OpenBLAS), {_threads_label(n)}"] = size / t / 1e9
+        if n > 1:  # OpenBLAS's idle workers stop spinning before anything else is timed
+            time.sleep(BLAS_SPIN_SECONDS)
     method = max(by, key=by.get)
-    bw = Bandwidth(by[method], method, _method_threads(method), size, by)
+    bw = Bandwidth(by[method], method, _method_threads(method), size, by,
+                   {} if read is not None else {PURE_READ: why_not})
     _BANDWIDTH[nbytes] = bw
     return bw
 
@@ -411,9 +591,9 @@ def write_reports(rows: list[BenchRow], out_dir: str | Path) -> tuple[Path, Path
     atomic_write_text(jpath, json.dumps({"meta": meta, "rows": [asdict(r) for r in rows]}, indent=2,
                                         default=_json_default))
     head = [
-        f"facegeo bench, {meta['time']}: {meta['cpus']} CPUs, BLAS threads {meta['blas threads']}, "
-        f"Python {meta['python']}, load average {meta['load average']} (other jobs slow "
-        "every figure; compare ratios from one run).",
+        (f"facegeo bench, {meta['time']}: {meta['cpus']} CPUs, BLAS threads "
+         f"{meta['blas threads']}, Python {meta['python']}, load average {meta['load average']} "
+         "(other jobs slow every figure; compare ratios from one run)."),
     ]
     if "read bandwidth" in meta:
         bw = meta["read bandwidth"]
@@ -421,6 +601,7 @@ def write_reports(rows: list[BenchRow], out_dir: str | Path) -> tuple[Path, Path
         head.append(
             f"Memory read bandwidth measured in this run ({bw['nbytes'] / 2**20:.0f} MiB array, "
             f"GB/s): {figs}."
+            + "".join(f" Not measured: {k} ({v})." for k, v in bw["unavailable"].items())
         )
     head.append("Rules: docs/benchmarks.md (equal thread counts; baselines named for what they "
                 "are; physical limits measured in the same run).")

@@ -12,11 +12,19 @@ the field itself in the relight's access pattern (:func:`_interleaved_fraction`)
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, read_bandwidth, register
+# the pure read, its row width and the BLAS spin pause are shared with read_bandwidth
+from facegeo.pipeline.bench import (
+    BLAS_SPIN_SECONDS,
+    READ_ROW,
+    BenchRow,
+    best_of,
+    pure_read,
+    pure_read_kernel,
+    read_bandwidth,
+    register,
+)
 
 #: relight_field spreads chunks over this many Python threads (BLAS single-threaded in each).
 RELIGHT_THREADS = 2
@@ -36,7 +44,9 @@ def _random_half_field(n_p: int, n_l: int, seed: int) -> np.ndarray:
 
 
 def _bandwidth() -> tuple[float, int]:
-    """GB/s of this run's memory-read probe at the relighting's thread count, and its size."""
+    """GB/s of this run's memory-read probe at the relighting's thread count (the strongest of
+    ``sgemv`` and the compiled pure read at ≤ 2 threads,
+    :meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`), and its size."""
     bw = read_bandwidth()
     return bw.at_threads(RELIGHT_THREADS), bw.nbytes
 
@@ -68,59 +78,6 @@ def _autogroup() -> bool | None:
         return None
 
 
-#: Seconds to wait after a multi-threaded BLAS call before timing anything else: OpenBLAS's idle
-#: workers busy-wait (by default ≈ 2^28 cycles, ≈ 0.1 s) before they sleep, holding a core.
-#: Measured (quiet rounds, 1.5 GB field): a two-thread relight right after a two-thread
-#: ``sgemv`` read 19.6 GB/s (best of 8; process CPU 1.94 × wall, the spinning worker
-#: included), after a 0.3 s pause 30.6 GB/s — the interleaved probes had been slowing the
-#: relight they were compared with (and inflating its CPU time).
-BLAS_SPIN_SECONDS = 0.3
-
-#: Row width (float32 values, 12 KB: the paper field's 2048-light rows) in which the pure-read
-#: probe reads the field's bytes.
-READ_ROW = 3072
-
-
-@functools.lru_cache(maxsize=1)
-def _field_read_kernel():
-    """A compiled pure read: ``read(a)`` sums an ``(n, READ_ROW)`` float32 array four rows at a
-    time (vectorised, ``fastmath`` so the sums use parallel lanes; the result only keeps the
-    loads from being optimised away) — the fused relighting kernel's access pattern without its
-    arithmetic. ``None`` without numba.
-
-    The strongest of the reads measured here (quiet rounds, paper-size field, best of 5, two
-    threads on two halves): this float32 sum 38.4 GB/s, a uint32 OR of four rows 32.0, a
-    uint16 OR 28.3, two-thread ``sgemv`` 27.7; one thread 20.1 / 19.6 / 17.6. 12 KB rows read
-    faster four at a time than 4 KB rows (``sgemv``'s 1024 columns) or one at a time (one
-    thread, 1 GB, load ≈ 4: 21.1 against 19.3 and 15.4; ``sgemv`` 15.1).
-    """
-    try:
-        from numba import njit
-    except ImportError:
-        return None
-
-    @njit(nogil=True, boundscheck=False, fastmath=True)
-    def read_rows(a):  # pragma: no cover - compiled
-        n, m = a.shape
-        s = np.float32(0)
-        p = 0
-        while p + 3 < n:
-            x0 = np.float32(0)
-            x1 = np.float32(0)
-            x2 = np.float32(0)
-            x3 = np.float32(0)
-            for j in range(m):
-                x0 += a[p, j]
-                x1 += a[p + 1, j]
-                x2 += a[p + 2, j]
-                x3 += a[p + 3, j]
-            s += x0 + x1 + x2 + x3
-            p += 4
-        return s
-
-    return read_rows
-
-
 def _interleaved_fraction(field: np.ndarray, w: np.ndarray, probe_bytes: int,
                           rounds: int = 3) -> dict:
     """The relight's fraction of one read with the bandwidth probed *between* relights.
@@ -137,9 +94,9 @@ def _interleaved_fraction(field: np.ndarray, w: np.ndarray, probe_bytes: int,
       threads it runs), so only a probe of the relight's length sees the same CPU share.
 
     * *pure read of the field*: the field's own bytes (as float32 rows of 12 KB) read by
-      :func:`_field_read_kernel` (the relight's access pattern without its arithmetic) on one
-      thread and on two Python threads (the faster of two halves and of the relight's chunks
-      shared) — the strongest probe found here: quiet, it reads up to 1.4× what ``sgemv``
+      :func:`~facegeo.pipeline.bench.pure_read_kernel` (the relight's access pattern without
+      its arithmetic) on one thread and on two Python threads (the faster of two halves and of
+      the relight's chunks shared) — the strongest probe found here: quiet, it reads up to 1.4× what ``sgemv``
       reads, so against ``sgemv`` alone a relight at the memory's limit would score above 1
       (flattering).
 
@@ -179,7 +136,7 @@ def _interleaved_fraction(field: np.ndarray, w: np.ndarray, probe_bytes: int,
         for t in ts:
             t.join()
 
-    read = _field_read_kernel()
+    read = pure_read_kernel()
     flat = field.reshape(-1).view(np.uint8)
     n_rows = flat.size // (4 * READ_ROW)
     rows = flat[: n_rows * 4 * READ_ROW].view(np.float32).reshape(n_rows, READ_ROW)
@@ -194,12 +151,7 @@ def _interleaved_fraction(field: np.ndarray, w: np.ndarray, probe_bytes: int,
     # (a descheduled thread's chunks go to the other); quiet, halves read faster (paper-size
     # field, best of 5: 38.4 against 28.8 GB/s), under load shared chunks can
     def read_two_python_threads() -> None:
-        mid = n_rows // 2
-        ts = [threading.Thread(target=read, args=(r,)) for r in (rows[:mid], rows[mid:])]
-        for t in ts:
-            t.start()
-        for t in ts:
-            t.join()
+        pure_read(rows, RELIGHT_THREADS, read)
 
     def read_shared_chunks() -> None:
         from concurrent.futures import ThreadPoolExecutor

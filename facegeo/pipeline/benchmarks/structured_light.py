@@ -7,7 +7,12 @@ frames (40 float32 frames). Rows:
   pixel, its ratio to the numpy reference (same frames, same thread count: both are
   single-threaded numpy) and its fraction of the **read-once limit**: the time to read every
   frame once at the memory bandwidth measured in the same run
-  (:func:`facegeo.pipeline.bench.read_bandwidth`), at 1 thread and at the machine's best.
+  (:func:`facegeo.pipeline.bench.read_bandwidth`), at 1 thread and at the machine's best. The
+  limit at ``n`` threads is the strongest probe at ≤ ``n`` threads
+  (:meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`): of a numpy sum, OpenBLAS ``sgemv``
+  and — since it joined the probe, usually the strongest, up to 1.4× ``sgemv`` — the compiled
+  pure read (:func:`facegeo.pipeline.bench.pure_read_kernel`); the method that set it is in the
+  read-once row's ``extra``. (Against ``sgemv`` alone the fractions were up to 1.4× higher.)
 * ``numpy reference decode`` — :func:`reference_decode_gray`, the straightforward vectorised
   numpy decode a competent user would write: per bit, compare pattern vs inverse over the whole
   frame, Gray → binary by a running XOR, shift the bit into an int32 code. (Stacking all bits
@@ -136,6 +141,7 @@ def bench_decode_gray(quick: bool) -> list[BenchRow]:
             "read-once limit: frames read once at the bandwidth measured in this run",
             limit_1, "Mpx/s",
             extra={"1-thread GB/s": round(bw.at_threads(1), 2),
+                   "1-thread method": bw.method_at(1),
                    "best GB/s": round(bw.gbps, 2), "best method": bw.method,
                    "Mpx/s at best": round(limit_all, 1)},
             threads=1,
@@ -192,7 +198,9 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
       against the Gray decode's in the same run;
     * the read-once limit: the bytes of the frames as they sit in memory (42 × H × W × 3
       bytes of 8-bit RGB) read once at the 1-thread bandwidth measured in the same run
-      (:meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`; the best bandwidth in ``extra``);
+      (:meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`: the strongest of numpy sum,
+      ``sgemv`` and the compiled pure read at ≤ that thread count, usually the pure read; the
+      method that set it and the best bandwidth in ``extra``);
     * end to end from files — the frames written as PNG, then read one at a
       time (``cv2.imread``) and streamed into the decoder; the read alone is timed separately,
       so the decode's share of the wall time is visible.
@@ -289,7 +297,8 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
             + ("s" if nt > 1 else ""), mpx, "Mpx/s", wrong(res.x, res.y, res.valid),
             "fraction of pixels not decoded to the true projector pixel", ratios=ratios,
             extra={**size, "ms": round(1e3 * t, 1), "CPU ms (all threads)": cpu[nt],
-                   f"{nt}-thread GB/s": round(bw.at_threads(nt), 2)}, threads=nt,
+                   f"{nt}-thread GB/s": round(bw.at_threads(nt), 2),
+                   f"{nt}-thread method": bw.method_at(nt)}, threads=nt,
             baseline_threads={k: nt if "read-once" in k else 1 for k in ratios}))
     mpx_s = w * h / t_s / 1e6
     mpx_m = w * h / t_m / 1e6
@@ -318,6 +327,7 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
                  f"({nbytes / 1e6:.0f} MB), read once at the 1-thread bandwidth measured in this "
                  "run", limit_1, "Mpx/s",
                  extra={**size, "1-thread GB/s": round(bw.at_threads(1), 2),
+                        "1-thread method": bw.method_at(1),
                         "best GB/s": round(bw.gbps, 2), "best method": bw.method,
                         "Mpx/s at best": round(limit_all, 1)}, threads=1),
     ]
