@@ -205,11 +205,11 @@ def test_output_into_a_closed_pipe_exits_quietly(args, status, tiny_scan):
     # `facegeo ... | head -1`: the reader goes away before facegeo writes. Close our end of the
     # pipe at once; facegeo's write then fails with EPIPE (BrokenPipeError in Python).
     args = [str(tiny_scan) if a == "SCAN" else a for a in args]
-    p = subprocess.Popen([sys.executable, "-m", "facegeo.cli", *args], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE)
-    p.stdout.close()
-    err = p.stderr.read().decode()
-    code = p.wait(timeout=120)
+    with subprocess.Popen([sys.executable, "-m", "facegeo.cli", *args], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE) as p:  # closes stderr too (no ResourceWarning)
+        p.stdout.close()
+        err = p.stderr.read().decode()
+        code = p.wait(timeout=120)
     assert err.strip() == "", err  # no traceback, no "Exception ignored ... BrokenPipeError"
     assert code == status
 

@@ -214,11 +214,13 @@ def test_load_ict_head_drops_overlays(shared_data):
     for g in ("lacrimalfluid", "eyeblend", "eyeocclusion", "eyelashes"):
         assert g in dropped, f"overlay {g} dropped"
     assert not any("face" in g.lower() for g in clean.metadata["dropped_groups"]), "face kept"
-    n_poly = sum(1 for line in open(path) if line.startswith("f "))
+    with open(path) as fh:
+        lines = fh.readlines()
+    n_poly = sum(1 for line in lines if line.startswith("f "))
     assert len(full.faces) > n_poly, "quads triangulated (more triangles than OBJ faces)"
     assert full.visual.uv.shape == (len(full.vertices), 2), "UVs kept"
     src = full.metadata["source_vertex_index"]
-    raw = np.array([ln.split()[1:4] for ln in open(path) if ln.startswith("v ")], float)
+    raw = np.array([ln.split()[1:4] for ln in lines if ln.startswith("v ")], float)
     assert np.allclose(full.vertices, raw[src] * 0.01 + full.metadata["translation_m"],
                        atol=1e-12), "vertices = file positions × 0.01 + translation"
 

@@ -174,7 +174,8 @@ def test_ground_truth_transform_parts_and_landmarks(heads, tmp_path, shared_data
     T = np.array(json.loads((tmp_path / "head_transform.json").read_text())["world_from_file"])
     vm = np.load(tmp_path / "vertex_map.npz")
     path = shared_file(shared_data, f"faces/{name}")
-    raw = np.array([ln.split()[1:4] for ln in open(path) if ln.startswith("v ")], float)
+    with open(path) as fh:
+        raw = np.array([ln.split()[1:4] for ln in fh if ln.startswith("v ")], float)
     src = vm["source_vertex_index"]
     world = raw[src] @ T[:3, :3].T + T[:3, 3]
     assert np.allclose(world, mesh.vertices, atol=1e-12), "file → world transform reproduces the mesh"

@@ -30,6 +30,7 @@ gamma, or a tabulated Debevec–Malik curve); saturated and black-clipped sample
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import functools
 import logging
@@ -221,7 +222,10 @@ def _quiet_native_output() -> Iterator[None]:
                     pass
             _flush_c_stdio()
             try:
-                sink = _quiet_sink or tempfile.TemporaryFile()  # kept open and reused
+                if _quiet_sink is None:
+                    _quiet_sink = tempfile.TemporaryFile()  # kept open and reused ...
+                    atexit.register(_quiet_sink.close)  # ... closed at exit (no warning)
+                sink = _quiet_sink
                 for fd in (1, 2):
                     _quiet_saved[fd] = os.dup(fd)
                     os.dup2(sink.fileno(), fd)
