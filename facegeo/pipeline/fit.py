@@ -200,14 +200,14 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
     ``(rows of the chunk, SkinFit, finite)`` per chunk (the fit stage's loop, also timed by
     ``facegeo bench skin.fit_stream``).
 
-    Bounded memory and no fresh memory per chunk: the rows are gathered into reused buffers
-    and widened to float32 in others; D is written by the fit straight into the store's memory
-    map (``FitWriter.diffuse_slot``); S is not formed (the store keeps D; S = R − D). A
-    function with any non-finite sample (a masked pixel) is fitted as black and flagged
-    (``finite`` False). Pipelined: while one chunk is fitted (on a background thread, which
-    runs ``fit_reflectance`` and its ``threads`` workers), the next chunk's rows are read and
-    the caller handles the previous one's results, so the cores do not wait for the serial
-    steps (two sets of buffers). The results are those of fitting each chunk in turn.
+    Bounded memory and no fresh memory per chunk: the rows are gathered and widened to float32
+    into reused buffers (one compiled pass for a float16 field); D is written by the fit
+    straight into the store's memory map (``FitWriter.diffuse_slot``); S is not formed (the
+    store keeps D; S = R − D). A function with any non-finite sample (a masked pixel) is
+    fitted as black and flagged (``finite`` False). Pipelined: while one chunk is fitted (on a
+    background thread, which runs ``fit_reflectance`` and its ``threads`` workers), the next
+    chunk's rows are read and the caller handles the previous one's results, so the cores do
+    not wait for the serial steps (two sets of buffers). The results are those of fitting each chunk in turn.
 
     Parameters
     ----------
@@ -228,7 +228,11 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
     k_max = max(1, min(chunk, rows.size))
     L, C = field.shape[1], field.shape[2]
     starts = list(range(0, rows.size, chunk))
-    sets = [(np.empty((k_max, L, C), field.dtype),
+    # a float16 field (a C-contiguous memory map, as the project stage writes it) is gathered
+    # and widened in one compiled pass that also finds the non-finite rows: no float16 copy,
+    # no separate pass (≈ 4 ms a chunk of 2,048 at 2048 lights against ≈ 38 ms)
+    half = field.dtype == np.float16 and field.flags.c_contiguous
+    sets = [(None if half else np.empty((k_max, L, C), field.dtype),
              np.empty((k_max, L, C), np.float32) if field.dtype != np.float32 else None)
             for _ in range(min(2, len(starts)))]
 
@@ -237,9 +241,15 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
         rr = rows[starts[q]:starts[q] + chunk]
         gathered, wide = sets[q % 2]
         k = rr.size
-        g = np.take(field, rr, axis=0, out=gathered[:k], mode="clip")  # rows are in range
-        R = g if wide is None else _float32_rows(g, wide[:k])
-        ok = np.isfinite(R).all(axis=(1, 2))
+        if half:
+            from facegeo.surface._half import gather_halves_to_float32
+
+            R = wide[:k]
+            ok = gather_halves_to_float32(field.view(np.ndarray), rr, R)
+        else:
+            g = np.take(field, rr, axis=0, out=gathered[:k], mode="clip")  # rows are in range
+            R = g if wide is None else _float32_rows(g, wide[:k])
+            ok = np.isfinite(R).all(axis=(1, 2))
         if not ok.all():
             R[~ok] = 0.0  # masked samples: fitted as black, flagged
         return rr, R, ok
