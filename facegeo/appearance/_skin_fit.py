@@ -694,8 +694,7 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     # only lights some function of the chunk uses (the shadowed half of the sphere drops out)
     used = np.flatnonzero(w.any(axis=0))
     if used.size < lights.n_lights:
-        lights = LightSet(lights.directions[used], lights.solid_angles[used],
-                          lights.intensities[used], None)
+        lights = lights.subset(used)
         R, w = R[:, used], w[:, used]
         sub = None if sub is None else sub[used]
     l = lights.directions
