@@ -366,7 +366,7 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         or merely mismatched data it cuts real specular tails.
     diffuse_out : (N, L, C) float32 or float16 ndarray, optional
         Where to write D instead of a fresh float32 array (the result's ``diffuse`` is then
-        this array), e.g. the slice of the memory-mapped store the fits go to
+        this array), e.g. the buffer the fit store writes to disk
         (:meth:`facegeo.render.FitWriter.diffuse_slot`): with float16, D is rounded there by
         the worker threads and S is formed from the rounded D, so D + S = R still holds to one
         float32 rounding. C-contiguous, writable, not overlapping ``R``.

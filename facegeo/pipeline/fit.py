@@ -202,7 +202,7 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
 
     Bounded memory and no fresh memory per chunk: the rows are gathered and widened to float32
     into reused buffers (one compiled pass for a float16 field); D is written by the fit
-    straight into the store's memory map (``FitWriter.diffuse_slot``); S is not formed (the
+    straight into the store's write buffer (``FitWriter.diffuse_slot``); S is not formed (the
     store keeps D; S = R − D). A function with any non-finite sample (a masked pixel) is
     fitted as black and flagged (``finite`` False). Pipelined: while one chunk is fitted (on a
     background thread, which runs ``fit_reflectance`` and its ``threads`` workers), the next
