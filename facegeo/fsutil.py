@@ -10,6 +10,9 @@
   a scan directory (:data:`WRITTEN_RECORD`), so that replacing a scan removes only those and
   carries every other file over (:func:`carry_over`).
 * :func:`remove_tree`: deletes a directory tree without ever following a symlink.
+* :class:`NpyRowFile`: a ``.npy`` file of known shape, preallocated and written block by block
+  (direct writes for aligned blocks, :func:`aligned_empty`): large arrays written in chunks
+  without a page fault per page of a memory map or new page-cache memory per write.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "load_json_
            "WRITTEN_RECORD", "read_written_record", "write_written_record", "add_to_written_record",
            "list_files",
            "remove_tree", "staging_dir", "swap_in_dir", "clean_stale_siblings", "carry_over",
-           "staged_directory"]
+           "staged_directory", "NpyRowFile", "aligned_empty", "DIRECT_ALIGN"]
 
 log = logging.getLogger(__name__)
 
@@ -427,3 +430,128 @@ def staged_directory(target: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             remove_tree(tmp)
         raise
+
+
+#: Alignment of :class:`NpyRowFile`'s data and of direct (``O_DIRECT``) writes, bytes.
+DIRECT_ALIGN = 4096
+
+
+def aligned_empty(shape, dtype, align: int = DIRECT_ALIGN):
+    """``np.empty(shape, dtype)`` whose data starts at a multiple of ``align`` bytes (what a
+    direct write needs of its buffer; :meth:`NpyRowFile.write`)."""
+    import numpy as np
+
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    raw = np.empty(n + align, np.uint8)
+    skip = (-raw.ctypes.data) % align
+    return raw[skip:skip + n].view(dtype).reshape(shape)
+
+
+class NpyRowFile:
+    """A ``.npy`` file of a known shape, written block of rows by block of rows.
+
+    The file (header and all its data) is created at once and its blocks reserved
+    (``posix_fallocate``; a plain size where the filesystem cannot). The header is padded to
+    :data:`DIRECT_ALIGN` bytes, so that a block whose buffer, length and place in the file are
+    multiples of it (:func:`aligned_empty`; rows of 12 KB at 2048 lights × 3 float16) goes to
+    the disk directly (``O_DIRECT``, past the page cache); any other block, or a filesystem
+    without direct I/O (tmpfs), is written through the page cache with ``pwrite``. Why
+    (measured here, ext4 on a virtual disk, 1.2 GB in blocks of 25 MB): new page-cache memory
+    costs the guest ≈ 3 ms of kernel time per MB (a memory map of a new file written in place:
+    a page fault per 4 KB on top), so a buffered write of 1.2 GB took 4.1 s of CPU, a direct
+    one 0.08 s of CPU and 1.1 s of waiting for the disk. The price: a reader right after
+    finds the data on disk, not in the page cache (1.2 GB read back through a memory map in
+    2.2 s). The file opens with ``np.load`` (``mmap_mode`` too) like any ``.npy``.
+
+    Parameters
+    ----------
+    path : path
+        Created or replaced (written in place: callers stage the directory it is in).
+    shape : tuple of int
+        The whole array's shape; rows are along the first axis.
+    dtype : numpy dtype
+    direct : bool
+        Try direct writes for aligned blocks (default); False: always through the page cache.
+    """
+
+    def __init__(self, path, shape, dtype, *, direct: bool = True):
+        import numpy as np
+
+        self.path = Path(path)
+        self.dtype = np.dtype(dtype)
+        self.shape = tuple(int(x) for x in shape)
+        if not self.shape or min(self.shape) < 0:
+            raise ValueError(f"NpyRowFile: expected a non-empty shape of sizes >= 0, got {shape}")
+        # the .npy 1.0 header (magic, version, length, dict), padded with spaces to the
+        # alignment, so that the data starts on an aligned offset
+        text = ("{'descr': %r, 'fortran_order': False, 'shape': %r, }"
+                % (np.lib.format.dtype_to_descr(self.dtype), self.shape))
+        self.offset = DIRECT_ALIGN * -(-(len(text) + 11) // DIRECT_ALIGN)
+        head = (b"\x93NUMPY\x01\x00" + (self.offset - 10).to_bytes(2, "little")
+                + (text + " " * (self.offset - 11 - len(text)) + "\n").encode("latin1"))
+        self.row_shape = self.shape[1:]
+        self.row_bytes = int(np.prod(self.row_shape, dtype=np.int64)) * self.dtype.itemsize
+        size = self.offset + self.shape[0] * self.row_bytes
+        self._direct = None
+        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666)
+        try:
+            os.write(self._fd, head)
+            try:
+                os.posix_fallocate(self._fd, 0, size)
+            except (AttributeError, OSError):  # no reservation here: a sparse file of that size
+                os.ftruncate(self._fd, size)
+            if direct and hasattr(os, "O_DIRECT"):
+                try:
+                    self._direct = os.open(self.path, os.O_WRONLY | os.O_DIRECT)
+                except OSError:  # e.g. tmpfs: page-cache writes only
+                    self._direct = None
+        except BaseException:
+            os.close(self._fd)
+            raise
+
+    def write(self, start: int, block) -> None:
+        """Write ``block`` (``(k, *row shape)``, this file's dtype, C-contiguous) as rows
+        ``start … start + k − 1``."""
+        import numpy as np
+
+        start = int(start)
+        if not (isinstance(block, np.ndarray) and block.dtype == self.dtype
+                and block.shape[1:] == self.row_shape and block.flags.c_contiguous):
+            got = (block.dtype, block.shape) if isinstance(block, np.ndarray) else type(block)
+            raise ValueError(f"{self.path}: expected a C-contiguous {self.dtype} block of rows "
+                             f"{self.row_shape}, got {got}")
+        if start < 0 or start + block.shape[0] > self.shape[0]:
+            raise ValueError(f"{self.path}: rows {start}..{start + block.shape[0]} outside "
+                             f"0..{self.shape[0]}")
+        view = memoryview(block.reshape(-1).view(np.uint8))
+        pos = self.offset + start * self.row_bytes
+        fd = self._fd
+        if (self._direct is not None and pos % DIRECT_ALIGN == 0
+                and view.nbytes % DIRECT_ALIGN == 0 and block.ctypes.data % DIRECT_ALIGN == 0):
+            fd = self._direct
+        while view.nbytes:
+            try:
+                n = os.pwrite(fd, view, pos)
+            except OSError:
+                if fd != self._direct:
+                    raise
+                os.close(self._direct)  # direct writes refused here: the page cache from now on
+                self._direct = None
+                fd = self._fd
+                continue
+            view, pos = view[n:], pos + n
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        for name in ("_direct", "_fd"):
+            fd = getattr(self, name, None)
+            if fd is not None:
+                setattr(self, name, None)
+                os.close(fd)
+
+    def __del__(self):
+        try:
+            self.close()
+        except OSError:  # pragma: no cover - shutdown
+            pass

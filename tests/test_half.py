@@ -182,6 +182,47 @@ def test_float16_memmap_chunks_convert_in_place(tmp_path):
     assert np.array_equal(H.halves_to_float32(ro[2:5]), ro[2:5].astype(np.float32))
 
 
+@pytest.mark.parametrize("f16c", _f16c_values())
+def test_gather_decode_equals_numpy_and_finds_non_finite_rows(f16c):
+    """decode_gather_rows: every half (64 rows of 1024) gathered in a shuffled order with
+    repeats equals numpy's take-then-cast, and each row's finiteness equals numpy's (rows
+    holding ±inf or NaN are not finite; the largest finite halves and subnormals are)."""
+    bits = np.arange(65536, dtype=np.uint16).reshape(64, 1024)
+    rng = np.random.default_rng(7)
+    rows = np.concatenate([rng.permutation(64), [3, 3, 63]]).astype(np.int64)
+    out = np.empty((rows.size, 1024), np.float32)
+    finite = np.empty(rows.size, bool)
+    H.decode_gather_rows(bits, rows, out, finite, f16c)
+    want = bits.view(np.float16)[rows].astype(np.float32)
+    assert np.array_equal(out, want, equal_nan=True)
+    assert np.array_equal(finite, np.isfinite(want).all(axis=1))
+    assert 0 < finite.sum() < rows.size  # both kinds present
+
+
+def test_gather_wrapper_reads_a_memmap_and_rejects_bad_arguments(tmp_path):
+    path = tmp_path / "R.npy"
+    mm = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=(9, 4, 3))
+    mm[...] = np.arange(108, dtype=np.float16).reshape(9, 4, 3)
+    mm[5, 2, 1] = np.nan
+    mm.flush()
+    del mm
+    ro = np.load(path, mmap_mode="r")
+    out = np.full((3, 4, 3), -1.0, np.float32)
+    ok = H.gather_halves_to_float32(ro, [8, 5, 0], out)
+    assert np.array_equal(out, ro[[8, 5, 0]].astype(np.float32), equal_nan=True)
+    assert ok.tolist() == [True, False, True]
+    with pytest.raises(InputError, match=r"rows: expected indices in \[0, 9\), got 0\.\.9"):
+        H.gather_halves_to_float32(ro, [0, 9], np.empty((2, 4, 3), np.float32))
+    with pytest.raises(ShapeError, match=r"out: expected shape \(2, 4, 3\)"):
+        H.gather_halves_to_float32(ro, [0, 1], np.empty((2, 12), np.float32))
+    with pytest.raises(ShapeError, match=r"a16: expected a float16 ndarray, got float32"):
+        H.gather_halves_to_float32(out, [0], out[:1])
+    buf = np.zeros(48, np.float32)
+    with pytest.raises(InputError, match=r"out: overlaps a16"):
+        H.gather_halves_to_float32(buf.view(np.float16).reshape(8, 12), [0],
+                                   buf[12:24].reshape(1, 12))
+
+
 def test_wrappers_reject_bad_arrays_naming_the_argument():
     x32 = np.zeros((4, 6), np.float32)
     x16 = np.zeros((4, 6), np.float16)

@@ -132,6 +132,16 @@ class SearchDepth:
         search's result with ``κ M Σ w_c μ_s² / Σ w_c |R|²`` added — the paper's fit to the
         observed chromaticities, weighted by how much the lobe criterion leaves undecided.
         0: the lobe criterion alone (the behaviour before issue 13's fix).
+    sample_lights : int
+        Lights the ramp's search and both polishes use: with more than twice this many, an
+        even subsample of at least this many (:func:`light_subsample`); then ``finish``
+        iterations on all lights take the subsample's minimum to all lights' minimum. 0: all
+        lights throughout. Deviation for speed (issue 13's 200 k functions a minute): five
+        parameters need far fewer than 2048 samples to land in the minimum's basin, and the
+        finishing steps start inside it.
+    finish : int
+        Levenberg–Marquardt iterations on all lights after the subsample's polishes (each
+        function stops earlier once its step is below ``POLISH_XTOL``).
     """
 
     levels: int = 10
@@ -142,6 +152,32 @@ class SearchDepth:
     alpha_levels: int = 4
     polish_normal: bool = True
     chroma: float = 300.0
+    sample_lights: int = 512
+    finish: int = 1
+
+
+def light_subsample(lights: LightSet, at_least: int) -> np.ndarray | None:
+    """An even subsample of ``lights`` with at least ``at_least`` lights, as an ``(L,)`` bool
+    mask; None when the set has at most twice that many (or ``at_least`` ≤ 0).
+
+    On the light-stage grid every s-th azimuth of every s-th inclination (docs/conventions.md
+    light index ``l = j·n_theta + i``), s the largest stride that keeps ``at_least`` lights:
+    2048 lights (64 × 32) → 512 (32 × 16). A free list keeps every s-th light in its order.
+    """
+    k = int(at_least)
+    L = lights.n_lights
+    if k <= 0 or L <= 2 * k:
+        return None
+    if lights.grid is not None:
+        n_theta, n_phi = lights.grid
+        s = 1
+        while -(-n_theta // (s + 1)) * -(-n_phi // (s + 1)) >= k:
+            s += 1
+        if s < 2:
+            return None
+        idx = np.arange(L)
+        return (idx % n_theta % s == 0) & (idx // n_theta % s == 0)
+    return np.arange(L) % (L // k) == 0
 
 
 def direct_search(objective, x0: np.ndarray, step0, levels: int, moves: int, *,
@@ -654,12 +690,13 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     """
     if KERNELS:
         return _fit_ramp_compiled(R, w, lights, n, v, d_0, depth)
+    sub = light_subsample(lights, depth.sample_lights)
     # only lights some function of the chunk uses (the shadowed half of the sphere drops out)
     used = np.flatnonzero(w.any(axis=0))
     if used.size < lights.n_lights:
-        lights = LightSet(lights.directions[used], lights.solid_angles[used],
-                          lights.intensities[used], None)
+        lights = lights.subset(used)
         R, w = R[:, used], w[:, used]
+        sub = None if sub is None else sub[used]
     l = lights.directions
     lt = np.ascontiguousarray(l.T)
     s = S_WHITE
@@ -677,7 +714,6 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     A = (Rd - Rs * ds[:, None]) / np.where(ds2 > 0, ds2, 1.0)[:, None]
     A = np.where((ds2 > 0)[:, None], A, 0.0)
     Rdms = Rd - Rs
-    sqw = np.sqrt(wd)
     B, cw1 = _chroma_rows(R, w, lights, n, v, A, ds)
     cw = np.zeros_like(cw1)  # the chromaticity rows' weights: off in the first polish
 
@@ -686,37 +722,48 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     # fixed normal (the search, and the polish without the normal): n·l, cos θ_i cos θ_r
     nl_fix = np.maximum(n @ lt, 0.0)  # (N, L)
     x_fix = np.clip(nl_fix, 0.0, 1.0) * np.clip(nv0, 0.0, 1.0)[:, None]
-    sxx_fix = np.sum(wd * nl_fix * nl_fix, axis=1)  # (N,)
-    wnl_fix = (wd * nl_fix)[:, :, None]
-    wdc = wd[:, :, None]
 
     def mu_d(p, xcos, sel):
         return ramp_mu_d(p, xcos, A[sel], Rd[sel], Rdms[sel], ds[sel])
 
-    def residuals(p, rows=slice(None)):
-        # p = (α_0, α_1[, u, w]): optional tangent-plane offsets of the normal
-        if p.shape[-1] == 4:
-            nk = normalize(n[rows][:, None, :] + p[..., 2:3] * t1[rows][:, None, :]
-                           + p[..., 3:4] * t2[rows][:, None, :])
-            nl = np.maximum(nk @ lt, 0.0)  # (n, K, L)
-            nv = np.einsum("nkc,nc->nk", nk, v[rows])[..., None]
-            xcos = np.clip(nl, 0.0, 1.0) * np.clip(nv, 0.0, 1.0)
-        else:
-            nl = nl_fix[rows][:, None, :]
-            xcos = x_fix[rows][:, None, :]
-        res = _lobe_residuals_sqrtw(mu_d(p, xcos, rows), sqw[rows], nl)
-        return np.concatenate([res, mu_s(p, xcos, rows) * cw[rows][:, None, :]], axis=-1)
+    def problem(wd, keep=None):
+        """The residuals and the search's objective for the sample weights ``wd``; ``keep``
+        (L,) bool: the lights the chromaticity rows use (all when None)."""
+        sqw = np.sqrt(wd)
+        sxx_fix = np.sum(wd * nl_fix * nl_fix, axis=1)  # (N,)
+        wnl_fix = (wd * nl_fix)[:, :, None]
+        wdc = wd[:, :, None]
 
-    def objective(p, rows):
-        # Σ residuals² of the fixed-normal ramp in closed form from the three weighted sums
-        m = mu_d(p, x_fix[rows][:, None, :], rows)
-        syy = ((m * m) @ wdc[rows])[..., 0]
-        sxy = (m @ wnl_fix[rows])[..., 0]
-        sxx = sxx_fix[rows][:, None]
-        ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
-        fit = 1.0 - sxy * sxy / np.where(ok, sxx * syy, 1.0)
-        return np.where(ok, fit, np.where(syy > 1e-300, 1.0, syy))
+        def residuals(p, rows=slice(None)):
+            # p = (α_0, α_1[, u, w]): optional tangent-plane offsets of the normal
+            if p.shape[-1] == 4:
+                nk = normalize(n[rows][:, None, :] + p[..., 2:3] * t1[rows][:, None, :]
+                               + p[..., 3:4] * t2[rows][:, None, :])
+                nl = np.maximum(nk @ lt, 0.0)  # (n, K, L)
+                nv = np.einsum("nkc,nc->nk", nk, v[rows])[..., None]
+                xcos = np.clip(nl, 0.0, 1.0) * np.clip(nv, 0.0, 1.0)
+            else:
+                nl = nl_fix[rows][:, None, :]
+                xcos = x_fix[rows][:, None, :]
+            res = _lobe_residuals_sqrtw(mu_d(p, xcos, rows), sqw[rows], nl)
+            c = cw[rows] if keep is None else cw[rows] * keep
+            return np.concatenate([res, mu_s(p, xcos, rows) * c[:, None, :]], axis=-1)
 
+        def objective(p, rows):
+            # Σ residuals² of the fixed-normal ramp in closed form from the three weighted sums
+            m = mu_d(p, x_fix[rows][:, None, :], rows)
+            syy = ((m * m) @ wdc[rows])[..., 0]
+            sxy = (m @ wnl_fix[rows])[..., 0]
+            sxx = sxx_fix[rows][:, None]
+            ok = (sxx > 1e-300) & (syy > 1e-300) & (sxy > 0)
+            fit = 1.0 - sxy * sxy / np.where(ok, sxx * syy, 1.0)
+            return np.where(ok, fit, np.where(syy > 1e-300, 1.0, syy))
+
+        return residuals, objective
+
+    # the search and the polishes on the light subsample (all lights when it is None), the
+    # finishing iterations on all lights
+    residuals, objective = problem(wd, None) if sub is None else problem(wd * sub, sub)
     n_out = n
     x0 = np.zeros((n.shape[0], 2))
     p, misfit = direct_search(objective, x0, depth.alpha_step, depth.alpha_levels, depth.moves,
@@ -734,6 +781,10 @@ def fit_ramp(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
             p[sel], misfit[sel] = gauss_newton_polish(
                 lambda q: residuals(q, sel), ps[sel], iterations=depth.polish,
                 forward=POLISH_FORWARD)
+        if sub is not None and depth.finish:
+            # from the subsample's minimum to all lights' (the same rows, cw 0 where unused)
+            p, misfit = gauss_newton_polish(problem(wd)[0], p, iterations=depth.finish,
+                                            forward=POLISH_FORWARD)
         if depth.polish_normal:
             n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
             p = p[:, :2]
@@ -803,7 +854,11 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
     wd, x_fix, nl_fix, A, Rd, Rdms, ds = ramp_inputs(
         c(R, np.float64), c(w, np.float64), c(lights.solid_angles), c(lights.directions), n, v,
         d_0, float(MIRROR_SIGMA))
-    p, misfit = ramp_search(x_fix, nl_fix, wd, A, Rd, Rdms, ds, float(depth.alpha_step),
+    # the search and the polishes on the light subsample (the kernels use the samples of
+    # nonzero weight), the finishing iterations on all lights
+    sub = light_subsample(lights, depth.sample_lights)
+    ws = wd if sub is None else wd * sub
+    p, misfit = ramp_search(x_fix, nl_fix, ws, A, Rd, Rdms, ds, float(depth.alpha_step),
                             int(depth.alpha_levels), int(depth.moves), SINGULAR_SIN2)
     n_out = n
     if depth.polish:
@@ -814,26 +869,37 @@ def _fit_ramp_compiled(R, w, lights: LightSet, n, v, d_0, depth: SearchDepth):
         # the lobe rows' JᵀJ, Jᵀr, Σ r² at p0, recorded by the first polish for the second
         start = np.empty((p0.shape[0], P * P + P + 1))
 
-        def polish(rows, B, cw, chroma, mode):
+        def polish(rows, B, cw, chroma, mode, x0, wgt, iterations):
             # per-function arguments of the functions ``rows`` (None: all)
             f = (lambda a: a) if rows is None else (lambda a: c(a[rows]))
-            return ramp_polish(f(p0), f(n), f(t1), f(t2), f(v), dirs, f(x_fix), f(nl_fix),
-                               f(wd), f(A), f(Rd), f(Rdms), f(ds), int(depth.polish),
+            return ramp_polish(f(x0), f(n), f(t1), f(t2), f(v), dirs, f(x_fix), f(nl_fix),
+                               f(wgt), f(A), f(Rd), f(Rdms), f(ds), int(iterations),
                                SINGULAR_SIN2, B, cw, chroma, float(POLISH_XTOL), f(start), mode)
 
         zero = np.zeros_like(wd)  # no chromaticity rows in the first polish
-        p, misfit = polish(None, zero, zero, False, 1)
+        p, misfit = polish(None, zero, zero, False, 1, p0, ws, depth.polish)
         lam = depth.chroma * np.maximum(misfit, 0.0)
         sel = np.flatnonzero(lam > CHROMA_MIN_WEIGHT)
+        rows = None if sel.size == p.shape[0] else sel
         if sel.size:
             # second polish from the search's result with the chromaticity rows weighted by
             # the lobe misfit the first polish left (see fit_ramp); their inputs only for
             # the functions that need them
-            rows = None if sel.size == p.shape[0] else sel
             B, cw1 = chroma_rows(c(R, np.float64), c(w, np.float64), c(lights.solid_angles),
                                  dirs, c(n[sel]), c(v[sel]), c(A[sel]), c(ds[sel]),
                                  sel.astype(np.int64), float(CHROMA_SIGMA))
-            p[sel], misfit[sel] = polish(rows, B, c(np.sqrt(lam[sel])[:, None] * cw1), True, 2)
+            cw = c(np.sqrt(lam[sel])[:, None] * cw1)
+            p[sel], misfit[sel] = polish(rows, B, cw, True, 2, p0, ws, depth.polish)
+        if sub is not None and depth.finish:
+            # from the subsample's minimum to all lights': without and with the rows
+            p1 = c(p)
+            rest = np.setdiff1d(np.arange(p.shape[0]), sel, assume_unique=True)
+            if rest.size:
+                q = None if rest.size == p.shape[0] else rest
+                p[rest], misfit[rest] = polish(q, zero[:rest.size], zero[:rest.size], False, 0,
+                                               p1, wd, depth.finish)
+            if sel.size:
+                p[sel], misfit[sel] = polish(rows, B, cw, True, 0, p1, wd, depth.finish)
         if depth.polish_normal:
             n_out = normalize(n + p[:, 2:3] * t1 + p[:, 3:4] * t2)
     return p[:, 0], p[:, 1], n_out, misfit

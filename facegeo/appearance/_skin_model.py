@@ -121,6 +121,11 @@ class LightSet:
                 raise InputError("intensities: every light intensity must be > 0")
         return cls(dirs, sa, e, None)
 
+    def subset(self, index) -> LightSet:
+        """The lights ``index`` (an index or bool array) as a free list (``grid`` None)."""
+        return LightSet(self.directions[index], self.solid_angles[index],
+                        self.intensities[index], None)
+
     @property
     def n_lights(self) -> int:
         return int(self.directions.shape[0])

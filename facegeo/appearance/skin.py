@@ -366,7 +366,7 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         or merely mismatched data it cuts real specular tails.
     diffuse_out : (N, L, C) float32 or float16 ndarray, optional
         Where to write D instead of a fresh float32 array (the result's ``diffuse`` is then
-        this array), e.g. the slice of the memory-mapped store the fits go to
+        this array), e.g. the buffer the fit store writes to disk
         (:meth:`facegeo.render.FitWriter.diffuse_slot`): with float16, D is rounded there by
         the worker threads and S is formed from the rounded D, so D + S = R still holds to one
         float32 rounding. C-contiguous, writable, not overlapping ``R``.
@@ -598,6 +598,7 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
     flags |= np.where(few & ~black, FLAG_SHADOWED, 0)
     w = valid_s.astype(np.float64)
     s = S_WHITE
+    R0, w0, lights0 = R, w, lights  # the samples of the starting normals (all, or a subsample)
     if single:
         flags |= FLAG_SINGLE_CHANNEL
         d0 = np.broadcast_to(s, (n_f, 3)).copy()
@@ -606,15 +607,21 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
     else:
         # the median-ratio estimate only where no d_0 is given (skipped work, not a fallback)
         d0 = d_0 if d_0 is not None else initial_diffuse_chromaticity(R, valid_s)[0]
+        # the initial separation, moment and lobe only serve as starts (of the ramp fit and of
+        # the final lobe fit on all lights): on the ramp's light subsample where it has one
+        sub = _skin_fit.light_subsample(lights, depth.sample_lights)
+        if sub is not None:
+            idx = np.flatnonzero(sub)
+            R0, w0, lights0 = R[:, idx], w[:, idx], lights.subset(idx)
         if _skin_fit.KERNELS:
-            _, _, y0, sing0 = _separate_ramp(R, d0, None, v, lights, None, None)
+            _, _, y0, sing0 = _separate_ramp(R0, d0, None, v, lights0, None, None)
         else:
-            D0, _, _, _, _, sing = separate_colour(R, d0[:, None, :], s)
+            D0, _, _, _, _, sing = separate_colour(R0, d0[:, None, :], s)
             sing0 = sing[:, 0]
             y0 = np.linalg.norm(D0, axis=2)
         flags |= np.where(sing0, FLAG_SINGULAR, 0)
-    nm = moment_normal(y0, w, lights, v)
-    n1, k, mm, m1 = fit_lambertian_lobe(y0, w, lights, nm, depth)
+    nm = moment_normal(y0, w0, lights0, v)
+    n1, k, mm, m1 = fit_lambertian_lobe(y0, w0, lights0, nm, depth)
     if single:
         a0 = np.zeros(n_f)
         a1 = np.zeros(n_f)

@@ -10,6 +10,9 @@ skin fit or relight of 10⁸–10⁹ values cannot afford. This module holds
 * two row kernels, :func:`decode_rows` and :func:`encode_rows` (``nogil``: callers' threads run
   them in parallel), and their Python wrappers :func:`halves_to_float32` and
   :func:`float32_to_halves` for arrays of any shape;
+* a gathering decoder, :func:`decode_gather_rows` / :func:`gather_halves_to_float32`: chosen
+  rows of a float16 array (a field's memory map) widened into a reused buffer in one pass,
+  with each row's finiteness (the skin fit stage's read);
 * the host check :func:`host_has_f16c`.
 
 It sits in ``surface/`` because both ``appearance/`` and ``lighting/`` need it and neither may
@@ -57,10 +60,12 @@ from numba.extending import intrinsic, overload
 from facegeo.errors import InputError, ShapeError
 
 __all__ = [
+    "decode_gather_rows",
     "decode_rows",
     "encode_rows",
     "float32_to_half",
     "float32_to_halves",
+    "gather_halves_to_float32",
     "half_to_float32",
     "halves_to_float32",
     "host_has_f16c",
@@ -233,6 +238,34 @@ def decode_rows(bits, out, f16c):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True, boundscheck=False)
+def decode_gather_rows(bits, rows, out, finite, f16c):  # pragma: no cover - compiled
+    """``out[q, j] = half_to_float32(bits[rows[q], j])`` and ``finite[q]`` = no infinity or NaN
+    in that row, in one pass (no gathered float16 copy, no separate finiteness pass).
+
+    Parameters
+    ----------
+    bits : (T, m) uint16, C-contiguous
+        float16 values as their bits.
+    rows : (n,) int64, each in [0, T) (not checked here: :func:`gather_halves_to_float32`)
+    out : (n, m) float32, C-contiguous
+    finite : (n,) bool
+    f16c : bool
+    """
+    m = bits.shape[1]
+    for q in range(rows.size):
+        b = bits[rows[q]]
+        o = out[q]
+        # bit 15 of (exponent bits + 0x0400) is set only for an all-ones exponent (inf, NaN):
+        # an integer OR reduction, which vectorises beside the conversion
+        acc = np.int32(0)
+        for j in range(m):
+            h = b[j]
+            acc |= (np.int32(h) & np.int32(0x7C00)) + np.int32(0x0400)
+            o[j] = half_to_float32(h, f16c)
+        finite[q] = (acc & np.int32(0x8000)) == 0
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
 def encode_rows(x, out, f16c):  # pragma: no cover - compiled
     """``out[i, j] = float32_to_half(x[i, j])``: float16 bits, rounded as numpy rounds.
 
@@ -253,11 +286,13 @@ def encode_rows(x, out, f16c):  # pragma: no cover - compiled
 
 
 def _rows(a: np.ndarray, *, readonly: bool = False) -> np.ndarray:
-    """A C-contiguous array as a plain 2-D ndarray view (rows of the last axis; 0-d and 1-D as
-    one row). ``readonly``: the view is marked read-only, so writable and read-only sources
-    (a memory-map opened ``mode="r"``) share one compiled specialisation of the kernels."""
+    """A C-contiguous array as a plain 2-D ndarray view of one row (the whole array: rows of the
+    last axis — three values for an ``(N, L, 3)`` field — left the kernels' inner loops too
+    short to vectorise, 2 ns a value against 0.3). ``readonly``: the view is marked read-only,
+    so writable and read-only sources (a memory-map opened ``mode="r"``) share one compiled
+    specialisation of the kernels."""
     v = np.asarray(a)
-    v = v.reshape(-1, v.shape[-1]) if v.ndim >= 2 else v.reshape(1, -1)
+    v = v.reshape(1, -1)
     if readonly:
         v = v.view()
         v.flags.writeable = False
@@ -353,3 +388,55 @@ def float32_to_halves(a32: np.ndarray, out: np.ndarray | None = None) -> np.ndar
         ``out`` read-only or overlapping ``a32``.
     """
     return _convert(encode_rows, a32, "a32", np.float32, out, np.float16)
+
+
+def gather_halves_to_float32(a16: np.ndarray, rows, out: np.ndarray) -> np.ndarray:
+    """Rows ``rows`` of a float16 array widened to float32 into ``out``, exactly as
+    ``a16[rows].astype(np.float32)``, in one compiled pass; returns each row's finiteness.
+
+    Parameters
+    ----------
+    a16 : (T, ...) float16, C-contiguous
+        E.g. a reflectance field's memory map (read in place, never written).
+    rows : (n,) int array_like, each in [0, T)
+    out : (n, ...) float32, C-contiguous, writable
+        The trailing shape of ``a16``; not overlapping it.
+
+    Returns
+    -------
+    (n,) bool
+        True where the row holds no infinity or NaN.
+
+    Raises
+    ------
+    ShapeError
+        Wrong dtypes or shapes, a non-contiguous array.
+    InputError
+        A row index out of range; ``out`` read-only or overlapping ``a16``.
+    """
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    if rows.ndim != 1:
+        raise ShapeError(f"rows: expected a 1-D index array, got shape {rows.shape}")
+    if not isinstance(a16, np.ndarray) or a16.dtype != np.float16 or a16.ndim < 1:
+        got = a16.dtype if isinstance(a16, np.ndarray) else type(a16).__name__
+        raise ShapeError(f"a16: expected a float16 ndarray, got {got}")
+    T = a16.shape[0]
+    if rows.size and (rows.min() < 0 or rows.max() >= T):
+        raise InputError(f"rows: expected indices in [0, {T}), got {rows.min()}..{rows.max()}")
+    if not isinstance(out, np.ndarray) or out.shape != (rows.size,) + a16.shape[1:]:
+        got = out.shape if isinstance(out, np.ndarray) else type(out).__name__
+        raise ShapeError(f"out: expected shape {(rows.size,) + a16.shape[1:]}, got {got}")
+    _check_pair(a16, "a16", np.float16, None, "out", np.float32)
+    if out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ShapeError(f"out: expected a C-contiguous float32 array, got {out.dtype}")
+    if not out.flags.writeable:
+        raise InputError("out: the array is read-only; pass a writable array")
+    if np.shares_memory(a16, out):
+        raise InputError("out: overlaps a16; pass a separate output array")
+    finite = np.ones(rows.size, bool)
+    if rows.size and out.size:
+        m = int(np.prod(a16.shape[1:], dtype=np.int64))
+        bits = a16.view(np.uint16).reshape(T, m)
+        bits.flags.writeable = False  # one specialisation for writable and read-only sources
+        decode_gather_rows(bits, rows, out.reshape(rows.size, m), finite, host_has_f16c())
+    return finite

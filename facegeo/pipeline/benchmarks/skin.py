@@ -15,6 +15,10 @@ before them) is timed in the same run at the same threads. The machine is shared
 rows of one run; rows also record the process CPU time (``cpu functions/s``, all threads),
 which other jobs' load inflates less than wall time.
 
+The generator rows also time the fit with the ramp on all 2048 lights
+(``SearchDepth(sample_lights=0)``, the fit before the light subsample) back to back, as a
+ratio and its error.
+
 The ``skin.fit_scale`` benchmark times one ``fit_reflectance`` call on 20,480 generator functions (the
 512 repeated 40 times; 4,096 with ``--quick``) at two threads, wall and CPU time, the cores it
 kept busy (peak memory in the row's own column): the paper preset's 200 k texels per camera are
@@ -168,17 +172,25 @@ def bench_fit(quick: bool) -> list[BenchRow]:
         n / t, "functions/s", error=e["normal median error, deg"],
         error_unit="median normal error, degrees (paper mode)", threads=1,
         extra={**e, "n": n, "cpu functions/s": cpu, minutes: 200_000 / (n / t) / 60}))
+    # the ramp on all 2048 lights (the fit before issue 13's fourth round), back to back
+    every = skin.SearchDepth(sample_lights=0)
     for threads in (1, cores) if cores >= 2 else (1,):
+        t_all, res_all, cpu_all = fit(every, threads=threads, generator=True)
         t, res, cpu = fit(threads=threads, generator=True)
         ang = np.degrees(np.arccos(np.clip(np.sum(res.normal * g_nrm, 1), -1, 1)))
+        ang_all = np.degrees(np.arccos(np.clip(np.sum(res_all.normal * g_nrm, 1), -1, 1)))
         rows.append(BenchRow(
             "skin.fit", f"fit_reflectance, 2048 lights, generator BRDF (mismatched), default "
             f"depth, {threads} thread{'s' if threads > 1 else ''}", n / t, "functions/s",
             error=float(np.median(ang)),
             error_unit="median normal error, degrees (generator BRDF, d_0 estimated)",
             threads=threads,
+            ratios={"vs the ramp on all lights (sample_lights=0)": t_all / t},
+            baseline_threads={"vs the ramp on all lights (sample_lights=0)": threads},
             extra={"n": n, "seconds": t, "cpu functions/s": cpu,
                    "specular share of the energy": float(res.specular.sum() / g_R.sum()),
+                   "all lights: functions/s": n / t_all, "all lights: cpu functions/s": cpu_all,
+                   "all lights: median normal error, deg": float(np.median(ang_all)),
                    minutes: 200_000 / (n / t) / 60}))
     return rows
 
