@@ -133,14 +133,16 @@ class SearchDepth:
         observed chromaticities, weighted by how much the lobe criterion leaves undecided.
         0: the lobe criterion alone (the behaviour before issue 13's fix).
     sample_lights : int
-        Lights the ramp's search and both polishes use: with more than twice this many, an
-        even subsample of at least this many (:func:`light_subsample`); then ``finish``
-        iterations on all lights take the subsample's minimum to all lights' minimum. 0: all
-        lights throughout. Deviation for speed (issue 13's 200 k functions a minute): five
-        parameters need far fewer than 2048 samples to land in the minimum's basin, and the
-        finishing steps start inside it.
+        With more than twice this many lights, the fit's starts (initial separation, moment
+        normal, first lobe fit), the ramp's search and both polishes use an even subsample of
+        at least this many (:func:`light_subsample`); then ``finish`` iterations on all lights
+        take the subsample's minimum to all lights' (a one-step estimator: from inside the
+        basin one Gauss–Newton step lands where the all-lights fit does, to a small fraction
+        of its noise error; tested), and the final separation and lobe fit use all lights.
+        0: all lights throughout. Deviation for speed (issue 13's 200 k functions a minute):
+        five parameters need far fewer than 2048 samples to reach their minimum's basin.
     finish : int
-        Levenberg–Marquardt iterations on all lights after the subsample's polishes (each
+        Levenberg–Marquardt iterations on all lights after the subsample's polishes (a
         function stops earlier once its step is below ``POLISH_XTOL``).
     """
 

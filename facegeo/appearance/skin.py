@@ -119,6 +119,8 @@ class SkinFit:
     lobe_misfit_moment, lobe_misfit : (N,) float64
         Relative misfit 1 − cos² of the Lambertian lobe to the initial diffuse brightness at
         the moment normal and at the searched normal (how much the search improves).
+        These four are the fit's starts: above twice ``SearchDepth.sample_lights`` lights
+        they are computed on the light subsample (:func:`_skin_fit.light_subsample`).
     d_0 : (N, 3) float64, unit; alpha_0, alpha_1 : (N,) float64
         The chromaticity ramp (Eq. 6–7).
     rho_d : (N, 3) float64
