@@ -432,6 +432,14 @@ def staged_directory(target: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+def _pwrite(fd: int, data, pos: int) -> int:
+    """``os.pwrite`` where the platform has it (not Windows: seek, then write)."""
+    if hasattr(os, "pwrite"):
+        return os.pwrite(fd, data, pos)
+    os.lseek(fd, pos, os.SEEK_SET)
+    return os.write(fd, data)
+
+
 #: Alignment of :class:`NpyRowFile`'s data and of direct (``O_DIRECT``) writes, bytes.
 DIRECT_ALIGN = 4096
 
@@ -532,7 +540,7 @@ class NpyRowFile:
             fd = self._direct
         while view.nbytes:
             try:
-                n = os.pwrite(fd, view, pos)
+                n = _pwrite(fd, view, pos)
             except OSError:
                 if fd != self._direct:
                     raise

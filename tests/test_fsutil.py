@@ -65,3 +65,16 @@ def test_aligned_blocks_direct_and_others_buffered_give_the_same_file(tmp_path, 
     f.write(4, odd)
     f.close()
     assert np.array_equal(np.load(tmp_path / "d.npy"), want)
+
+
+def test_without_pwrite_the_file_is_the_same(tmp_path, monkeypatch):
+    """Platforms without os.pwrite (Windows): seek and write give the same file."""
+    import os
+
+    want = np.arange(24, dtype=np.float32).reshape(6, 4)
+    monkeypatch.delattr(os, "pwrite")
+    f = NpyRowFile(tmp_path / "e.npy", want.shape, np.float32, direct=False)
+    f.write(3, np.ascontiguousarray(want[3:]))
+    f.write(0, np.ascontiguousarray(want[:3]))
+    f.close()
+    assert np.array_equal(np.load(tmp_path / "e.npy"), want)
