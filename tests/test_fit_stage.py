@@ -167,7 +167,7 @@ def test_truth_on_another_mesh_is_the_generators_surface(reconstructed):
 
 
 def test_fit_chunks_streams_like_one_fit(tmp_path):
-    """The stage's loop (reused buffers, D straight into the store's float16 memory map, no S)
+    """The stage's loop (reused buffers, D into a reused buffer and then the store, no S)
     stores what one ``fit_reflectance`` call on the float32 rows gives: the same parameters and
     float16(D) bit for bit; a function with a non-finite sample is fitted as black, flagged,
     and reported not finite."""
@@ -211,3 +211,12 @@ def test_fit_chunks_streams_like_one_fit(tmp_path):
     assert store.params["flags"][~ok][0] & skin.FLAG_BLACK
     with pytest.raises(InputError, match="do not fit"):
         FitWriter(tmp_path / "cam2", 2, lights.n_lights, 3).diffuse_slot(3)
+    # the writer's own slot: a fit written into it is stored as is, chunk after chunk
+    w2 = FitWriter(tmp_path / "cam3", 6, lights.n_lights, 3, "float16")
+    for r0 in (0, 3):
+        f = skin.fit_reflectance(R[r0:r0 + 3], v_world[r0:r0 + 3], lights, specular=False,
+                                 diffuse_out=w2.diffuse_slot(3))
+        w2.write(rows[r0:r0 + 3], texel[rows[r0:r0 + 3]], f)
+    w2.close()
+    assert np.array_equal(np.load(tmp_path / "cam3" / "D.npy"),
+                          ref.diffuse[:6].astype(np.float16))

@@ -203,13 +203,13 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
     Bounded memory and no fresh memory per chunk: the rows are gathered and widened to float32
     into reused buffers (one compiled pass for a float16 field); D is written by the fit
     straight into a reused buffer of the store's dtype, from which the writer stores it; S is
-    not formed (the store keeps D; S = R − D). A function with any non-finite sample (a masked pixel) is
-    fitted as black and flagged (``finite`` False). Pipelined: while one chunk is fitted (on a
-    background thread, which runs ``fit_reflectance`` and its ``threads`` workers), the next
-    chunk's rows are read, the previous chunk is stored and the caller handles its results, so
-    the cores do not wait for the serial steps (two sets of buffers: a yielded fit's arrays,
-    ``diffuse`` included, are reused once the generator resumes). The results are those of
-    fitting each chunk in turn.
+    not formed (the store keeps D; S = R − D). A function with any non-finite sample (a
+    masked pixel) is fitted as black and flagged (``finite`` False). Pipelined: while one
+    chunk is fitted (on a background thread, which runs ``fit_reflectance`` and its
+    ``threads`` workers), the next chunk's rows are read, the previous chunk is stored and the
+    caller handles its results, so the cores do not wait for the serial steps (two sets of
+    buffers: a yielded fit's ``diffuse`` is overwritten after the generator resumes; copy it
+    to keep it). The results are those of fitting each chunk in turn.
 
     Parameters
     ----------

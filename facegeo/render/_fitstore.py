@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from facegeo.errors import InputError
+from facegeo.fsutil import NpyRowFile, aligned_empty
 
 FIT_FILE = "fit.npz"
 DIFFUSE_FILE = "D.npy"
@@ -66,8 +67,6 @@ class FitWriter:
 
     def __init__(self, directory, n: int, n_lights: int, channels: int = 3,
                  dtype: str = "float16"):
-        from facegeo.fsutil import NpyRowFile, aligned_empty
-
         if dtype not in ("float16", "float32"):
             raise InputError(f"diffuse_dtype: expected 'float16' or 'float32', got {dtype!r}")
         self.dir = Path(directory)
