@@ -79,7 +79,7 @@ KERNEL_RHO_S_REL = 1e-4
 #: The ramp fit on a light subsample plus one finishing step on all lights (the default at
 #: 2048 lights) against the fit on all lights throughout, noisy paper-mode data (0.5 % of the
 #: peak): median |Δα| as a fraction of the all-lights fit's own median |α − α_true| (measured
-#: 0.009–0.042 over three seeds; without the finishing step 0.17–0.8).
+#: 0.009–0.041 over three seeds; without the finishing step 0.17–0.8).
 SUBSAMPLE_ALPHA_OF_ERROR = 0.1
 #: Analytic Jacobian of the polish residuals against central differences (h = 1e-6): max
 #: |ΔJ| / max |J|.
