@@ -32,6 +32,7 @@ __all__ = [
     "light_directions",
     "light_index",
     "light_grid_indices",
+    "stratified_light_subset",
     "light_solid_angles",
     "direction_angles",
     "nearest_light_index",
@@ -283,6 +284,37 @@ def light_grid_indices(l, n_theta: int) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of :func:`light_index`: ``(i_theta, j_phi)`` from light index ``l``."""
     l = np.asarray(l)
     return l % int(n_theta), l // int(n_theta)
+
+
+#: Fractional part of the golden ratio: the offsets ``frac(k·g)`` spread as evenly as any
+#: sequence can (a Kronecker sequence), whatever the number of strata.
+_GOLDEN = 0.6180339887498949
+
+
+def stratified_light_subset(n_lights: int, k: int) -> np.ndarray:
+    """``min(k, n_lights)`` light indices, sorted, that stand for all ``n_lights`` lights.
+
+    For an error summed over a few lights as an estimate of the sum over all of them (every
+    light counted equally). The index range is cut into ``k`` strata of consecutive lights and
+    stratum ``s`` gives the light at offset ``⌊frac(s·g)·len_s⌋``, ``g`` the golden ratio's
+    fractional part. In the light stage's theta-fastest order (``l = j·n_theta + i``) a stratum
+    is a run of azimuths within one or a few inclinations, so the subset covers every
+    inclination evenly and spreads its azimuths over the whole circle. A plain stride
+    (``arange(0, L, L // k)``) does not: when the stride is a multiple of ``n_theta / 2`` it
+    keeps one or two azimuths (512 lights, stride 16 on 32 azimuths: the plane in front of and
+    behind the face only). Works for any light order (a light list too); no randomness.
+    """
+    for name, v in (("n_lights", n_lights), ("k", k)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise InputError(f"{name}: expected a positive integer, got {fmt_value(v)}")
+    n, k = int(n_lights), int(k)
+    if k >= n:
+        return np.arange(n)
+    s = np.arange(k)
+    start = s * n // k
+    length = (s + 1) * n // k - start
+    offset = np.floor(np.mod(s * _GOLDEN, 1.0) * length).astype(np.int64)
+    return start + np.minimum(offset, length - 1)
 
 
 def light_solid_angles(n_theta: int, n_phi: int, *, exact: bool = False) -> np.ndarray:

@@ -131,12 +131,15 @@ def _bad_inputs(tmp_path, scan):
                            ["--preset", "'huge'"]),
         "no such scan": (["info", str(tmp_path / "nowhere")], 2,
                          [str(tmp_path / "nowhere"), "not found"]),
+        "project --gt-lights 0": (["project", str(scan), "--gt-lights", "0"], 2,
+                                  ["--gt-lights", "integer >= 1"]),
     }
 
 
 BAD_INPUTS = ["seed -1", "seed text", "noise -0.1", "OUT is a file", "OUT under a file",
               "OUT not writable", "bench --out is a file", "bench --out not writable",
-              "rig string focal length", "demo SCAN is a file", "unknown preset", "no such scan"]
+              "rig string focal length", "demo SCAN is a file", "unknown preset", "no such scan",
+              "project --gt-lights 0"]
 
 
 @pytest.mark.parametrize("case", BAD_INPUTS)

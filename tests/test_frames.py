@@ -20,6 +20,7 @@ from facegeo.frames import (
     nearest_light_index,
     rotation_from_rvec,
     rvec_from_rotation,
+    stratified_light_subset,
 )
 from facegeo.fsutil import atomic_path, atomic_write_text
 
@@ -42,6 +43,30 @@ def test_solid_angles_sum_to_4pi_at_paper_grid():
 def test_exact_solid_angles_sum_to_4pi(grid):
     total = light_solid_angles(*grid, exact=True).sum()
     assert abs(total / (4 * np.pi) - 1) < EXACT_SOLID_ANGLE_TOL
+
+
+@pytest.mark.parametrize("grid,k", [((32, 16), 32), ((64, 32), 16), ((16, 8), 16), ((64, 32), 32)])
+def test_stratified_light_subset_covers_inclinations_and_azimuths(grid, k):
+    n_theta, n_phi = grid
+    L = n_theta * n_phi
+    sel = stratified_light_subset(L, k)
+    assert sel.size == k and np.all(np.diff(sel) > 0) and sel.min() >= 0 and sel.max() < L
+    # one light in each stratum of consecutive indices
+    assert np.array_equal(sel * k // L, np.arange(k))
+    i, j = light_grid_indices(sel, n_theta)
+    rows_per_stratum = max(1, L // k // n_theta)
+    assert np.unique(j).size >= min(n_phi, k) // rows_per_stratum
+    # azimuths spread over the circle, unlike a stride of n_theta / 2 (two azimuths)
+    assert np.unique(i).size >= min(k, n_theta) // 2
+    assert np.abs(np.exp(2j * np.pi * (i + 0.5) / n_theta).mean()) < 0.25
+
+
+def test_stratified_light_subset_all_lights_and_bad_input():
+    assert np.array_equal(stratified_light_subset(20, 20), np.arange(20))
+    assert np.array_equal(stratified_light_subset(20, 64), np.arange(20))
+    for bad in ((0, 4), (10, 0), (10, 2.5), (True, 3)):
+        with pytest.raises(InputError):
+            stratified_light_subset(*bad)
 
 
 def test_light_index_round_trip_and_directions():

@@ -39,8 +39,9 @@ Ground-truth metrics (synthetic scans):
   texel is visible in the reference when it is no farther from the camera than the farthest of
   the four ground-truth hits around its projection (+ 1 mm).
 * ``projection_rel_rmse``: ``sqrt(Σ_t a_t Σ_{c,l} (R − R_ref)² / Σ_t a_t Σ_{c,l} R_ref²)`` over
-  texels with weight above ``gt_weight_min`` (per camera), every camera, a regular subset of at
-  most ``gt_lights`` lights, ``a_t`` the surface area the texel stands for
+  texels with weight above ``gt_weight_min`` (per camera), every camera, a stratified subset of
+  at most ``gt_lights`` lights (:func:`facegeo.frames.stratified_light_subset`: every inclination,
+  azimuths spread over the circle), ``a_t`` the surface area the texel stands for
   (:func:`texel_areas`; so the figure is a mean over the surface, not over however the atlas
   samples it). ``R_ref`` is the generator's exact shading (true rig; the same normals,
   material — ``material_at``, part materials included — and shadow rays as its frames) of the
@@ -68,6 +69,7 @@ from typing import Any
 import numpy as np
 
 from facegeo.errors import InputError
+from facegeo.frames import stratified_light_subset
 from facegeo.fsutil import atomic_write_text, staged_directory
 from facegeo.pipeline.bench import peak_rss_mb
 from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
@@ -307,6 +309,13 @@ def _tap_pixels(view, q: np.ndarray):
     return view.take(np.flatnonzero(need[pix]))
 
 
+#: Lights the ground-truth comparison shades by default (a stratified subset). On the small preset
+#: (512 lights) 128 estimate the all-lights figure within 0.5 % of itself (3.096 against 3.110 %)
+#: at ≈ 2 s a camera; 32 scattered by ±0.27 points between subsets (random draws) and a stride
+#: of 16 (the former choice: two azimuths, in front of and behind the face) read 2.870 %.
+GT_LIGHTS = 128
+
+
 def _projection_error(renderer, camera, texels, ref, field, area,
                       n_lights: int, gt_lights: int, weight_min: float,
                       stage_lights=None) -> dict[str, float]:
@@ -348,8 +357,7 @@ def _projection_error(renderer, camera, texels, ref, field, area,
     q = camera.project(texels.p_world[tex])[0]
     sampler = frame_sampler(q, camera.width, camera.height)
     pixels = _tap_pixels(renderer.surface_view(true_cam), q)
-    step = max(1, -(-n_lights // gt_lights))
-    lights = np.arange(0, n_lights, step)
+    lights = stratified_light_subset(n_lights, gt_lights)
     # Gather the compared samples chunk by chunk along texels (bounded resident memory).
     est_all = np.concatenate([chunk[keep[s:s + len(chunk)]][:, lights]
                               for s, chunk in rf_iter_chunks(field.directory)])
@@ -395,7 +403,7 @@ def _error_metrics(e: dict[str, float]) -> dict[str, Any]:
 def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "ground_truth",
                 min_cos: float | None = None, feather_px: float | None = None,
                 depth_jump: float | None = None, dtype: str = "float16",
-                block_lights: int | None = None, gt_lights: int = 32,
+                block_lights: int | None = None, gt_lights: int = GT_LIGHTS,
                 gt_weight_min: float = 0.3, cameras: list[str] | None = None,
                 atlas_settings: dict | None = None) -> dict:
     """Project every camera's OLAT frames onto the atlas texels into ``out_dir/project/``.
@@ -415,7 +423,8 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
     dtype, block_lights
         See :func:`facegeo.surface.reflectance.project_camera`.
     gt_lights, gt_weight_min
-        Ground-truth comparison: at most this many lights; texels above this weight.
+        Ground-truth comparison: at most this many lights (a stratified subset,
+        :data:`GT_LIGHTS` by default); texels above this weight.
     cameras : list of str, optional
         Default every camera of the scan.
     atlas_settings : dict, optional
@@ -450,7 +459,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
                      mesh: str = "ground_truth", min_cos: float | None = None,
                      feather_px: float | None = None, depth_jump: float | None = None,
                      dtype: str = "float16", block_lights: int | None = None,
-                     gt_lights: int = 32, gt_weight_min: float = 0.3,
+                     gt_lights: int = GT_LIGHTS, gt_weight_min: float = 0.3,
                      cameras: list[str] | None = None) -> tuple[dict, dict]:
     """Write the ``project`` products of ``scan`` into ``dest`` from the atlas in ``atlas_dir``.
 
@@ -462,6 +471,8 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     from facegeo.surface.pullpush import pull_push
     from facegeo.surface.visibility import RayScene
 
+    if isinstance(gt_lights, bool) or not isinstance(gt_lights, (int, np.integer)) or gt_lights < 1:
+        raise InputError(f"gt_lights: expected a positive integer, got {fmt_value(gt_lights)}")
     t_start = time.perf_counter()
     atlas = Atlas.load(atlas_dir / "atlas.npz")
     texels = Texels.load(atlas_dir / "texels.npz")

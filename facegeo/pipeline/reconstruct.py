@@ -180,7 +180,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
                                          "trim_quantile": 0.02}))
 
     if "atlas" in names:
-        from facegeo.pipeline.project import atlas_products, project_products
+        from facegeo.pipeline.project import GT_LIGHTS, atlas_products, project_products
 
         mesh_after = ("mesh",) if use_mesh == "reconstructed" else ()
 
@@ -238,7 +238,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
             StageSpec("project", run_project, after=("atlas",) + mesh_after + rig_after,
                       inputs=lambda d: _group_inputs(scan, "olat") + mesh_inputs(),
                       settings={"mesh": use_mesh, "rig": use_rig, "dtype": "float16",
-                                "gt_lights": 32,
+                                "gt_lights": GT_LIGHTS,
                                 "gt_weight_min": 0.3}),
             StageSpec("relight", run_relight, after=("atlas", "project"),
                       inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),

@@ -275,7 +275,7 @@ def bench_project(quick: bool) -> list[BenchRow]:
 
 @register("surface.resolution")
 def bench_resolution(quick: bool) -> list[BenchRow]:
-    from facegeo.pipeline.project import run_atlas, run_project
+    from facegeo.pipeline.project import GT_LIGHTS, run_atlas, run_project
     from facegeo.synth.capture import generate_scan
 
     rows = []
@@ -285,13 +285,13 @@ def bench_resolution(quick: bool) -> list[BenchRow]:
         for tpm in (0.25, 0.5, 1.0):
             out = Path(tmp) / f"out{tpm}"
             am = run_atlas(root, out, texels_per_mm=tpm)
-            pm = run_project(root, out, gt_lights=32)
+            pm = run_project(root, out)
             proj_s = sum(c["seconds_projection"] + c["seconds_visibility"]
                          for c in pm["cameras"].values())
             rows.append(BenchRow(
                 "surface.resolution", f"{'tiny' if quick else 'small'} scan, {tpm} texels/mm",
                 am["texels"] / (am["seconds"] + proj_s) / 1e3, "ktexels/s (atlas+project)",
-                pm["projection_rel_rmse"], "projection_rel_rmse (weight > 0.3, 32 lights)",
+                pm["projection_rel_rmse"], f"projection_rel_rmse (weight > 0.3, {GT_LIGHTS} lights)",
                 {}, {"texels": am["texels"], "atlas s": am["seconds"],
                      "project s": round(proj_s, 3),
                      "visibility_agreement": pm["visibility_agreement"]},
