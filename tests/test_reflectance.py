@@ -583,3 +583,26 @@ def test_mesh_file_reference_is_the_closest_ground_truth_point(tiny, tmp_path):
         assert figs["file"]["projection_reference_offset_mm"] < 1e-3
     a, b = figs["gt"]["projection_rel_rmse"], figs["file"]["projection_rel_rmse"]
     assert abs(a - b) <= MESH_FILE_METRIC_REL_TOL * a, (a, b)
+
+
+def test_gather_field_samples_equals_fancy_indexing(tmp_path):
+    """Chosen rows × lights of a stored field, read a chunk at a time in the stored dtype."""
+    from facegeo.surface.reflectance import gather_field_samples
+
+    rng = np.random.default_rng(4)
+    R = np.lib.format.open_memmap(tmp_path / "R.npy", mode="w+", dtype=np.float16,
+                                  shape=(50, 12, 3))
+    R[:] = rng.random((50, 12, 3)).astype(np.float16)
+    R.flush()
+    full = np.array(R)
+    del R
+    rows = np.array([3, 7, 8, 20, 21, 49, 0])
+    lights = np.array([0, 5, 11])
+    got = gather_field_samples(tmp_path, rows, lights, chunk_texels=3)
+    assert got.dtype == np.float16
+    np.testing.assert_array_equal(got, full[rows][:, lights])
+    assert gather_field_samples(tmp_path, [], lights).shape == (0, 3, 3)
+    with pytest.raises(InputError, match="rows"):
+        gather_field_samples(tmp_path, [50], lights)
+    with pytest.raises(InputError, match="lights"):
+        gather_field_samples(tmp_path, rows, [12])

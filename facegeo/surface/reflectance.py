@@ -97,7 +97,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
     "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
-    "open_field", "iter_field_chunks", "BlendedField", "blend_fields", "open_blended",
+    "open_field", "iter_field_chunks", "gather_field_samples", "BlendedField", "blend_fields", "open_blended",
     "BLENDED_FILE", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
     "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS", "OCCLUSION_METHODS",
 ]
@@ -632,6 +632,29 @@ def iter_field_chunks(directory, chunk_texels: int = 8192, name: str = "R.npy"):
         chunk = np.array(R[s:s + chunk_texels], dtype=np.float32)
         _release_rows(R, s, s + len(chunk), write=False)  # keep resident memory at one chunk
         yield s, chunk
+
+
+def gather_field_samples(directory, rows, lights, *, chunk_texels: int = 8192,
+                         name: str = "R.npy") -> np.ndarray:
+    """``R[rows][:, lights]`` of a stored field, ``(n, K, 3)`` in its stored dtype, read
+    straight from the memory map ``chunk_texels`` rows at a time (the pages read are released
+    after each step, as :func:`iter_field_chunks` does): no float32 copy of whole rows when a
+    few lights of many texels are wanted (a comparison with ground truth)."""
+    R = open_field(directory, name)
+    rows = np.asarray(rows, np.int64).reshape(-1)
+    lights = np.asarray(lights, np.int64).reshape(-1)
+    if rows.size and (rows.min() < 0 or rows.max() >= R.shape[0]):
+        raise InputError(f"rows: expected indices in [0, {R.shape[0]}) of {directory}, got "
+                         f"{rows.min()}..{rows.max()}")
+    if lights.size and (lights.min() < 0 or lights.max() >= R.shape[1]):
+        raise InputError(f"lights: expected indices in [0, {R.shape[1]}) of {directory}, got "
+                         f"{lights.min()}..{lights.max()}")
+    out = np.empty((rows.size, lights.size, 3), R.dtype)
+    for a in range(0, rows.size, chunk_texels):
+        r = rows[a:a + chunk_texels]
+        out[a:a + r.size] = R[r[:, None], lights[None, :]]
+        _release_rows(R, int(r.min()), int(r.max()) + 1, write=False)
+    return out
 
 
 #: File name of the blended field in its folder. Not ``R.npy``: consumers find the per-camera
