@@ -331,6 +331,8 @@ def test_run_project_writes_products_and_metrics(tiny, tmp_path):
     assert pm["visibility_agreement"] >= VISIBILITY_AGREEMENT_MIN
     assert pm["projection_rel_rmse"] <= PROJECTION_REL_RMSE_TINY
     assert pm["projection_rel_rmse_per_texel"] <= PROJECTION_REL_RMSE_TINY
+    # every weighted texel, grazing views and feathered edges included: worse than the headline
+    assert pm["projection_rel_rmse_all_weights"] > pm["projection_rel_rmse"], pm
     assert pm["projection_rel_rmse_off_shadow_edges"] <= PROJECTION_OFF_EDGES_TINY
     assert pm["projection_shadow_edge_error_share"] >= SHADOW_EDGE_SHARE_MIN
     assert pm["projection_reference"] == "texel"

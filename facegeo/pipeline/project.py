@@ -51,7 +51,9 @@ Ground-truth metrics (synthetic scans):
   ``projection_reference_offset_mm``), so a misplaced surface shows up as misregistration.
   Masked (NaN) samples are left out. Beside it, for comparison and diagnosis:
   ``projection_rel_rmse_per_texel`` (every texel counted once, the metric before area
-  weighting), ``projection_rel_rmse_off_shadow_edges`` (area-weighted, only samples whose four
+  weighting), ``projection_rel_rmse_all_weights`` (area-weighted over every texel the camera
+  weights at all: the grazing views and the feathered bands at silhouettes and occlusion edges
+  that the threshold leaves out), ``projection_rel_rmse_off_shadow_edges`` (area-weighted, only samples whose four
   bilinear taps are all lit or all dark in the generator's noiseless frame),
   ``projection_shadow_edge_samples`` (the fraction of compared samples that straddle such an
   edge) and ``projection_shadow_edge_error_share`` (their share of Σ a_t err²). Each camera's
@@ -325,15 +327,19 @@ def _projection_error(renderer, camera, texels, ref, field, area,
 
     Returns ``se``/``sr`` (Σ a_t err², Σ a_t ref², area-weighted), ``se_texel``/``sr_texel``
     (every texel counted once, the former metric), ``se_off``/``sr_off`` (area-weighted,
-    samples off shadow edges), ``edge_samples``, ``samples``.
+    samples off shadow edges), ``edge_samples``, ``samples`` — all over texels with weight
+    above ``weight_min`` — and ``se_all``/``sr_all`` (area-weighted, every weighted texel).
     """
     from facegeo.surface.reflectance import frame_sampler, gather_field_samples, sample_frame
     from facegeo.synth.render import SurfaceView
 
-    keep = field.weight > weight_min
+    # Every weighted texel is compared; the headline sums keep those above weight_min (the
+    # all-texel sums, se_all / sr_all, show what the threshold leaves out: grazing views and
+    # the feathered bands at silhouettes and occlusion edges).
+    keep = field.weight > 0
     sel = np.flatnonzero(keep)
     out = dict.fromkeys(("se", "sr", "se_texel", "sr_texel", "se_off", "sr_off",
-                         "edge_samples", "samples"), 0.0)
+                         "edge_samples", "samples", "se_all", "sr_all"), 0.0)
     if sel.size == 0:
         return out
     tex = field.texel_index[sel]
@@ -360,7 +366,9 @@ def _projection_error(renderer, camera, texels, ref, field, area,
     # The compared samples, in the stored dtype (bounded resident memory: the rows are read
     # a chunk at a time; at the paper preset 174 k texels × 128 lights × 3 float16, 134 MB).
     est_all = gather_field_samples(field.directory, sel, lights)
-    a = np.asarray(area, np.float64)[tex]
+    a_all = np.asarray(area, np.float64)[tex]
+    heavy = field.weight[sel] > weight_min
+    a = np.where(heavy, a_all, 0.0)
     stage = np.arange(n_lights) if stage_lights is None else np.asarray(stage_lights)
     for k, l in enumerate(stage[lights]):
         r = renderer.shade_stage_light(view, rig.lights, int(l)).astype(np.float64)
@@ -372,10 +380,14 @@ def _projection_error(renderer, camera, texels, ref, field, area,
         e2 = np.where(ok, ((est - r) ** 2).sum(axis=1), 0.0)
         r2 = np.where(ok, (r ** 2).sum(axis=1), 0.0)
         off = ok & ((mix <= 0.0) | (mix >= 1.0))
+        out["se_all"] += float(a_all @ e2)
+        out["sr_all"] += float(a_all @ r2)
+        ok &= heavy
+        off &= heavy
         out["se"] += float(a @ e2)
         out["sr"] += float(a @ r2)
-        out["se_texel"] += float(e2.sum())
-        out["sr_texel"] += float(r2.sum())
+        out["se_texel"] += float(e2[heavy].sum())
+        out["sr_texel"] += float(r2[heavy].sum())
         out["se_off"] += float(a[off] @ e2[off])
         out["sr_off"] += float(a[off] @ r2[off])
         out["edge_samples"] += int(np.count_nonzero(ok & ~off))
@@ -391,6 +403,7 @@ def _error_metrics(e: dict[str, float]) -> dict[str, Any]:
     return {
         "projection_rel_rmse": rel(e["se"], e["sr"]),
         "projection_rel_rmse_per_texel": rel(e["se_texel"], e["sr_texel"]),
+        "projection_rel_rmse_all_weights": rel(e.get("se_all", 0.0), e.get("sr_all", 0.0)),
         "projection_rel_rmse_off_shadow_edges": rel(e["se_off"], e["sr_off"]),
         "projection_shadow_edge_samples": (round(e["edge_samples"] / e["samples"], 6)
                                            if e["samples"] else None),
