@@ -37,7 +37,8 @@ Ground-truth metrics (synthetic scans):
   silhouettes and occlusion edges, the fraction whose occlusion decision agrees with the
   generator's own per-pixel closest hits (``ground_truth/geometry_<camera>.npz``, true rig): a
   texel is visible in the reference when it is no farther from the camera than the farthest of
-  the four ground-truth hits around its projection (+ 1 mm).
+  the four ground-truth hits around its projection (+ 1 mm). ``visibility_compared`` /
+  ``visibility_compared_fraction``: how many of the in-image, facing texels that is.
 * ``projection_rel_rmse``: ``sqrt(Σ_t a_t Σ_{c,l} (R − R_ref)² / Σ_t a_t Σ_{c,l} R_ref²)`` over
   texels with weight above ``gt_weight_min`` (per camera), every camera, a stratified subset of
   at most ``gt_lights`` lights (:func:`facegeo.frames.stratified_light_subset`: every inclination,
@@ -262,6 +263,7 @@ def _visibility_agreement(scan, cam_name: str, camera, texels, vis, depth_jump: 
         return None
     agree = ref[sel] == vis.unoccluded[idx[sel]]
     return {"agreement": float(agree.mean()), "compared": int(sel.size),
+            "candidates": int(idx.size),
             "occluded_reference": int(np.count_nonzero(~ref[sel]))}
 
 
@@ -547,6 +549,9 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             if agr is not None:
                 entry["visibility_agreement"] = round(agr["agreement"], 6)
                 entry["visibility_compared"] = agr["compared"]
+                # what the comparison leaves out (silhouettes, depth jumps) is not hidden
+                entry["visibility_compared_fraction"] = round(
+                    agr["compared"] / max(agr["candidates"], 1), 6)
         if renderer is not None:
             t3 = time.perf_counter()
             e = _projection_error(renderer, camera, texels, ref, field, area, scan.n_lights,
