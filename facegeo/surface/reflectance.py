@@ -624,10 +624,21 @@ def open_field(directory, name: str = "R.npy") -> np.ndarray:
     return np.load(path, mmap_mode="r")
 
 
-def iter_field_chunks(directory, chunk_texels: int = 8192, name: str = "R.npy"):
+#: Bytes of one float32 chunk when a field is streamed along texels (texels × lights × 3 × 4;
+#: :func:`iter_field_chunks`, :func:`blend_fields`): the callers' temporaries are a few times
+#: this (the paper preset's 2048 lights at a fixed 8,192 texels made 201 MB chunks and a
+#: 2.07 GB peak in the blend, the projection stage's largest).
+_BLEND_CHUNK_BYTES = 32 << 20
+
+
+def iter_field_chunks(directory, chunk_texels: int | None = None, name: str = "R.npy"):
     """Yield ``(start, R[start:stop] as float32)`` chunks along texels (never computing in
-    float16); ``name`` as in :func:`open_field`."""
+    float16); ``name`` as in :func:`open_field`. Default ``chunk_texels``: as many as make a
+    32 MB float32 chunk (a fixed 8,192 made 201 MB chunks at 2048 lights, and a caller's
+    temporaries several times that)."""
     R = open_field(directory, name)
+    if chunk_texels is None:
+        chunk_texels = max(1, _BLEND_CHUNK_BYTES // (max(R.shape[1], 1) * 3 * 4))
     for s in range(0, R.shape[0], chunk_texels):
         chunk = np.array(R[s:s + chunk_texels], dtype=np.float32)
         _release_rows(R, s, s + len(chunk), write=False)  # keep resident memory at one chunk
@@ -711,7 +722,7 @@ def _camera_field(item) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
 
 
 def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
-                 chunk_texels: int = 8192) -> BlendedField:
+                 chunk_texels: int | None = None) -> BlendedField:
     """Blend per-camera fields into one field for fixed-viewpoint uses, streamed along texels.
 
     ``R_b[t, l] = Σ_c w_c(t) R_c[t, l] / Σ_c w_c(t)`` over the cameras ``c`` that weight texel
@@ -731,8 +742,9 @@ def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
         Created; receives the files listed in :class:`BlendedField`.
     dtype : {"float16", "float32"}
         On-disk type (computation is float32).
-    chunk_texels : int
-        Texels of the blend computed per step (resident memory ≈ ``chunk × L × 3 × 16`` B).
+    chunk_texels : int, optional
+        Texels of the blend computed per step (resident memory ≈ ``chunk × L × 3 × 24`` B);
+        default: as many as make a 32 MB float32 chunk (1,365 texels at 2048 lights).
 
     Returns
     -------
@@ -745,12 +757,15 @@ def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
     """
     if dtype not in ("float16", "float32"):
         raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
-    if int(chunk_texels) != chunk_texels or chunk_texels < 1:
+    if chunk_texels is not None and (isinstance(chunk_texels, bool)
+                                     or int(chunk_texels) != chunk_texels or chunk_texels < 1):
         raise InputError(f"chunk_texels: expected a positive integer, got {fmt_value(chunk_texels)}")
     cams = [_camera_field(f) for f in fields]
     if not cams:
         raise InputError("fields: expected at least one projected camera field")
     L = cams[0][1].shape[1]
+    if chunk_texels is None:
+        chunk_texels = max(1, _BLEND_CHUNK_BYTES // (L * 3 * 4))
     for name, R, _, _ in cams:
         if R.shape[1:] != (L, 3):
             raise ShapeError(f"fields: camera {fmt_value(name)} has R of shape {R.shape}, "
