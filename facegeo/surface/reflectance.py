@@ -624,6 +624,9 @@ def open_field(directory, name: str = "R.npy") -> np.ndarray:
     return np.load(path, mmap_mode="r")
 
 
+#: Blend float16 fields with the compiled kernels (False: the numpy reference path).
+BLEND_KERNELS = True
+
 #: Bytes of one float32 chunk when a field is streamed along texels (texels × lights × 3 × 4;
 #: :func:`iter_field_chunks`, :func:`blend_fields`): the callers' temporaries are a few times
 #: this (the paper preset's 2048 lights at a fixed 8,192 texels made 201 MB chunks and a
@@ -778,6 +781,15 @@ def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
     wsum = np.zeros(U.size, np.float32)
     ncam = np.zeros(U.size, np.int16)
     step = int(chunk_texels)
+    # float16 in and out: the compiled blend on the bits (_blend_kernels: the same float32
+    # steps and roundings, bit for bit; ≈ 7× faster at the paper preset)
+    compiled = BLEND_KERNELS and out.dtype == np.float16 and all(
+        R.dtype == np.float16 for _, R, _, _ in cams)
+    if compiled:
+        from facegeo.surface._blend_kernels import accumulate_rows, quotient_rows
+        from facegeo.surface._half import host_has_f16c
+
+        f16c = host_has_f16c()
     for s in range(0, U.size, step):
         u = U[s:s + step]
         num = np.zeros((u.size, L, 3), np.float32)
@@ -786,17 +798,29 @@ def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
             a, b = np.searchsorted(idx, [u[0], u[-1] + 1])
             if b <= a:
                 continue
-            rows = np.array(R[a:b], dtype=np.float32)
-            _release_rows(R, a, b, write=False)
             pos = np.searchsorted(u, idx[a:b])  # unique within one camera
-            ok = np.isfinite(rows)
-            wc = np.broadcast_to(w[a:b, None, None], rows.shape)
-            num[pos] += np.where(ok, wc * rows, 0.0)
-            den[pos] += np.where(ok, wc, 0.0)
+            if compiled:
+                bits = np.asarray(R[a:b]).view(np.uint16).reshape(b - a, L * 3)
+                accumulate_rows(bits, pos.astype(np.int64), w[a:b], num.reshape(u.size, L * 3),
+                                den.reshape(u.size, L * 3), f16c)
+                _release_rows(R, a, b, write=False)
+            else:
+                rows = np.array(R[a:b], dtype=np.float32)
+                _release_rows(R, a, b, write=False)
+                ok = np.isfinite(rows)
+                wc = np.broadcast_to(w[a:b, None, None], rows.shape)
+                with np.errstate(invalid="ignore"):  # 0 · inf of a masked sample, left out
+                    num[pos] += np.where(ok, wc * rows, 0.0)
+                den[pos] += np.where(ok, wc, 0.0)
             wsum[s + pos] += w[a:b]
             ncam[s + pos] += 1
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out[s:s + u.size] = np.where(den > 0, num / den, np.nan)
+        if compiled:
+            quotient_rows(num.reshape(u.size, L * 3), den.reshape(u.size, L * 3),
+                          np.asarray(out[s:s + u.size]).view(np.uint16).reshape(u.size, L * 3),
+                          f16c)
+        else:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out[s:s + u.size] = np.where(den > 0, num / den, np.nan)
         _release_rows(out, s, s + u.size, write=True)
     del out
     np.save(directory / "texel_index.npy", U.astype(np.int64))
