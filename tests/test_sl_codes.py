@@ -98,16 +98,20 @@ def test_stored_orbit_code_is_a_symmetric_gray_code_with_gap_6():
 
 
 @pytest.mark.slow
-def test_search_script_regenerates_the_stored_orbit_code():
+def test_search_script_regenerates_the_stored_orbit_code(monkeypatch):
     """``scripts/search_long_run_codes.py`` with its defaults finds exactly the stored block
     (deterministic depth-first search, numba; 11 CPU-s, 26-34 s wall under load)."""
     import importlib.util
+    import sys
     from pathlib import Path
 
     pytest.importorskip("numba")
     path = Path(__file__).resolve().parents[1] / "scripts" / "search_long_run_codes.py"
     spec = importlib.util.spec_from_file_location("search_long_run_codes", path)
     mod = importlib.util.module_from_spec(spec)
+    # registered under its name, as an import would: numba's disk cache of a kernel that calls
+    # another looks the callee's module up by name (else the second run fails to load it)
+    monkeypatch.setitem(sys.modules, spec.name, mod)
     spec.loader.exec_module(mod)
     n, r, cycles, G, budget = mod.DEFAULT
     S, T, _ = mod.search(n, r, cycles, G, budget)

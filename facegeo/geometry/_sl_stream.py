@@ -555,7 +555,8 @@ class StreamDecoder:
             if phase_here:
                 S, C, _ = (v.reshape(-1)[sl] for v in self.phase[axis])
                 N = spec.phase_steps
-                phi = np.mod(np.arctan2(S, C), np.float32(2 * np.pi)).astype(np.float32)
+                phi = np.mod(np.arctan2(S.astype(np.float64), C.astype(np.float64)).astype(
+                    np.float32), np.float32(2 * np.pi)).astype(np.float32)
                 phi[phi >= 2 * np.pi] = 0.0
                 B = (2.0 / N) * np.hypot(S, C)
                 fm[axis][sl] = B
@@ -800,8 +801,12 @@ def _partial_codes(binary, u, n, step, n_stripes, hint, table=None, word=None):
         if amb.size:
             ca = binary[amb] * step + 0.5 * (step - 1.0)
             cb = flip[amb] * step + 0.5 * (step - 1.0)
-            da = np.abs(np.angle(np.exp(1j * (phi[amb] - kk * (ca + 0.5)))))
-            db = np.abs(np.angle(np.exp(1j * (phi[amb] - kk * (cb + 0.5)))))
+            # wrapped to [-pi, pi] by arithmetic alone, as the kernel does (no libm / SIMD
+            # differences in sin, cos, atan2 at the pick's threshold)
+            xa = phi[amb] - kk * (ca + 0.5)
+            xb = phi[amb] - kk * (cb + 0.5)
+            da = np.abs(xa - 2 * np.pi * np.rint(xa / (2 * np.pi)))
+            db = np.abs(xb - 2 * np.pi * np.rint(xb / (2 * np.pi)))
             dmin, dmax = np.minimum(da, db), np.maximum(da, db)
             good = (dmin < 0.5 * np.pi) & ((dmax >= 0.5 * np.pi) | (np.abs(ca - cb) < 0.5 * period))
             picked[amb] = good
