@@ -317,9 +317,10 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     polish : int or None — Levenberg–Marquardt iterations after the ramp search
         (``SearchDepth.polish``); None (default) keeps the skin module's default depth (10
         steps, then the chromaticity polish that pins the ramp's scale, docs/skin.md). Small
-        preset: normals 1.44°, albedo 10.9 %, ρs 17 %, resynthesis 2.5× / 1.6× better than naive
-        at 30° / 60° over both turns (2.9× / 1.9× over the one-sided turns measured before);
-        ``polish=0`` gives 4.11°, 14.5 %, 96 %, 1.6× / 1.2× one-sided (docs/render.md).
+        preset: normals 1.44°, albedo 10.9 %, ρs 17 %, resynthesis 2.9× / 1.9× better than naive
+        at 30° / 60° over the one-sided turns measured then; ``polish=0`` gives 4.11°, 14.5 %,
+        96 %, 1.6× / 1.2× (docs/render.md). Over both turns (another run: all texels): 2.5× /
+        1.6× where the one-sided rule read 3.1× / 2.0×.
     progress : callable(stage, done, total), optional — called per chunk with functions fitted
 
     Returns
@@ -487,7 +488,7 @@ def _ground_truth(gt, renderer, stage, atlas, tex, src, rows, lights, cam_dir, n
     for deg in angles:
         # Both turns, +θ and −θ, for every function: picking per function the turn that keeps
         # the view higher above the surface (as this once did) left out the grazing views and
-        # flattered the figure 3–4× (docs/skin.md). Views from below the true surface see
+        # flattered the figure 2.4–3× (docs/render.md). Views from below the true surface see
         # nothing of it: counted (``resynthesis_backfacing_<θ>``), not compared.
         for sign in (1.0, -1.0):
             vn = _rotate_views(v0, sign * float(deg))

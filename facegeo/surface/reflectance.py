@@ -630,7 +630,7 @@ BLEND_KERNELS = True
 #: Bytes of one float32 chunk when a field is streamed along texels (texels × lights × 3 × 4;
 #: :func:`iter_field_chunks`, :func:`blend_fields`): the callers' temporaries are a few times
 #: this (the paper preset's 2048 lights at a fixed 8,192 texels made 201 MB chunks and a
-#: 2.07 GB peak in the blend, the projection stage's largest).
+#: 1.97 GB peak of the projection stage, the blend's doing).
 _BLEND_CHUNK_BYTES = 32 << 20
 
 
