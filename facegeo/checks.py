@@ -14,6 +14,7 @@ length) or a leading ``...`` (any number of leading axes, including none)::
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from numbers import Integral
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ __all__ = [
     "as_array",
     "check_finite",
     "check_positive",
+    "check_positive_int",
     "check_choice",
     "check_unit_vectors",
     "format_shape",
@@ -171,6 +173,22 @@ def check_positive(value: Any, name: str, *, allow_zero: bool = False) -> float:
     if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
         rel = ">= 0" if allow_zero else "> 0"
         raise InputError(f"{name}: expected a finite number {rel}, got {fmt_value(value)}")
+    return v
+
+
+def check_positive_int(value: Any, name: str) -> int:
+    """Return ``int(value)`` for a positive integer (Python or numpy int, or an integral float;
+    not a bool); else raise :class:`InputError` naming ``name``."""
+    v = None
+    if isinstance(value, bool):
+        pass
+    elif isinstance(value, Integral):
+        v = int(value)
+    elif (isinstance(value, (float, np.floating)) and np.isfinite(value)
+          and float(value).is_integer()):
+        v = int(value)
+    if v is None or v <= 0:
+        raise InputError(f"{name}: expected a positive integer, got {fmt_value(value)}")
     return v
 
 

@@ -302,7 +302,7 @@ def _cmd_project(args) -> int:
 
     if args.out is not None:
         _check_output_dir(args.out, "--out")
-    kw = {} if args.gt_lights is None else {"gt_lights": args.gt_lights}
+    kw = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
     m = run_project(args.scan, args.out, rig=args.rig, mesh=args.mesh, cameras=args.camera,
                     dtype=args.dtype, **kw)
     _print_metrics("project", m)
@@ -557,9 +557,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="project only this camera (repeatable; default: all)")
     s.add_argument("--dtype", choices=["float16", "float32"], default="float16",
                    help="storage type of the fields on disk")
-    s.add_argument("--gt-lights", type=_pos_int, default=None,
+    s.add_argument("--gt-lights", type=_pos_int, default=argparse.SUPPRESS,
                    help="lights compared against ground truth on synthetic scans (a stratified "
-                        "subset; default 128)")
+                        "subset; default: facegeo.pipeline.project.GT_LIGHTS, 128)")
     s.set_defaults(func=_cmd_project)
 
     s = sub.add_parser("relight", parents=common,

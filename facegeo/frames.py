@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facegeo.checks import as_array, fmt_value
+from facegeo.checks import as_array, check_positive_int, fmt_value
 from facegeo.errors import InputError
 
 __all__ = [
@@ -298,16 +298,14 @@ def stratified_light_subset(n_lights: int, k: int) -> np.ndarray:
     light counted equally). The index range is cut into ``k`` strata of consecutive lights and
     stratum ``s`` gives the light at offset ``⌊frac(s·g)·len_s⌋``, ``g`` the golden ratio's
     fractional part. In the light stage's theta-fastest order (``l = j·n_theta + i``) a stratum
-    is a run of azimuths within one or a few inclinations, so the subset covers every
-    inclination evenly and spreads its azimuths over the whole circle. A plain stride
+    is a run of azimuths within one or a few inclinations, so with ``k ≥ n_phi`` the subset
+    covers every inclination evenly (with fewer lights, one in every ``n_phi / k`` inclinations)
+    and spreads its azimuths over the whole circle. A plain stride
     (``arange(0, L, L // k)``) does not: when the stride is a multiple of ``n_theta / 2`` it
     keeps one or two azimuths (512 lights, stride 16 on 32 azimuths: the plane in front of and
     behind the face only). Works for any light order (a light list too); no randomness.
     """
-    for name, v in (("n_lights", n_lights), ("k", k)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise InputError(f"{name}: expected a positive integer, got {fmt_value(v)}")
-    n, k = int(n_lights), int(k)
+    n, k = check_positive_int(n_lights, "n_lights"), check_positive_int(k, "k")
     if k >= n:
         return np.arange(n)
     s = np.arange(k)

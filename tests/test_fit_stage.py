@@ -123,6 +123,8 @@ def test_fit_errors_name_what_is_missing(reconstructed, tmp_path):
         run_fit(root, out_dir=tmp_path / "x", texels="some")
     with pytest.raises(InputError, match="reconstruct"):
         run_fit(root, out_dir=tmp_path / "empty")
+    with pytest.raises(InputError, match="gt_angles"):  # 0 is the source view's own figure
+        run_fit(root, out_dir=tmp_path / "x", gt_angles=[30.0, 0.0])
 
 
 def test_mosaic_tiles_are_light_grid_images():

@@ -61,6 +61,14 @@ def test_stratified_light_subset_covers_inclinations_and_azimuths(grid, k):
     assert np.abs(np.exp(2j * np.pi * (i + 0.5) / n_theta).mean()) < 0.25
 
 
+@pytest.mark.parametrize("n,k", [(20, 7), (2048, 100), (13, 12), (5, 1)])
+def test_stratified_light_subset_one_light_per_stratum_when_k_does_not_divide(n, k):
+    sel = stratified_light_subset(n, k)
+    s = np.arange(k)
+    assert sel.size == k and np.all(np.diff(sel) > 0)
+    assert np.all((s * n // k <= sel) & (sel < (s + 1) * n // k))
+
+
 def test_stratified_light_subset_all_lights_and_bad_input():
     assert np.array_equal(stratified_light_subset(20, 20), np.arange(20))
     assert np.array_equal(stratified_light_subset(20, 64), np.arange(20))

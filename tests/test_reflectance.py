@@ -339,6 +339,8 @@ def test_run_project_writes_products_and_metrics(tiny, tmp_path):
     for name in scan.camera_names:
         c = pm["cameras"][name]
         assert 0.2 < c["visible_fraction"] < 0.7
+        # the agreement's share of the in-image, facing texels (tiny's 4 mm pixels: ≈ 0.42)
+        assert 0.3 < c["visibility_compared_fraction"] <= 1.0
         R = open_field(out / "project" / name)
         assert R.shape == (c["weighted_texels"], scan.n_lights, 3)
     blended = open_blended(out / "project" / "blended")  # the stage writes the blended field
@@ -608,6 +610,10 @@ def test_gather_field_samples_equals_fancy_indexing(tmp_path):
         gather_field_samples(tmp_path, [50], lights)
     with pytest.raises(InputError, match="lights"):
         gather_field_samples(tmp_path, rows, [12])
+    with pytest.raises(InputError, match="integer indices"):
+        gather_field_samples(tmp_path, np.ones(50, bool), lights)  # a mask is not indices
+    with pytest.raises(InputError, match="chunk_texels"):
+        gather_field_samples(tmp_path, rows, lights, chunk_texels=0)
 
 
 def test_compiled_blend_equals_the_numpy_path_bit_for_bit(tmp_path, monkeypatch):

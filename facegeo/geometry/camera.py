@@ -30,12 +30,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
-from numbers import Integral
 from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array, check_positive, fmt_value
+from facegeo.checks import as_array, check_positive, check_positive_int, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.frames import Pose
 
@@ -56,17 +55,7 @@ _CAMERA_KEYS = ("name", "width", "height", "K", "dist", "T_cam_world")
 
 def _check_int(value: Any, name: str) -> int:
     """A positive integer (Python or numpy int, or an integral float); else :class:`InputError`."""
-    if isinstance(value, bool):
-        raise InputError(f"{name}: expected a positive integer, got {fmt_value(value)}")
-    if isinstance(value, Integral):
-        v = int(value)
-    elif isinstance(value, float) and np.isfinite(value) and float(value).is_integer():
-        v = int(value)
-    else:
-        raise InputError(f"{name}: expected a positive integer, got {fmt_value(value)}")
-    if v <= 0:
-        raise InputError(f"{name}: expected a positive integer, got {fmt_value(value)}")
-    return v
+    return check_positive_int(value, name)
 
 
 def _dist8(dist: np.ndarray) -> np.ndarray:

@@ -30,12 +30,13 @@ and code family, the lit pixels that leave each bit unresolved and those it inva
   on the axes with phase frames, against the pixel centre's true projector coordinate.
 
 The *interior* is the head mask eroded by one pixel, minus pixels whose footprint's half
-extent ``h`` (above: central differences of the true projector coordinate) reaches 4 projector
-pixels on either axis — a jump of ≈ 16 projector pixels to one neighbour (``h`` is half the mean
-of the two central differences): occlusion edges, where a pixel mixes two surfaces and no single
-true coordinate exists. Smaller jumps (oblique surfaces, a pixel integrating a few projector
-pixels) stay in: on the small preset ≈ 150 such pixels carry ≈ 3/4 of cam_left's squared
-phase error (0.050 px RMS; ≈ 0.026 without them — a 4-pixel jump test would drop them).
+extent ``h`` (above: the mean of the two central differences of the true projector
+coordinate, each half a one-sided jump) reaches 4 projector pixels on either axis — a jump of
+≈ 16 projector pixels to one neighbour: occlusion edges, where a pixel mixes two surfaces
+and no single true coordinate exists. Smaller jumps (oblique surfaces, a pixel integrating a
+few projector pixels) stay in: on the small preset ≈ 150 such pixels carry ≈ 3/4 of
+cam_left's squared phase error (its RMS ≈ 0.050 px, ≈ 0.026 without them — a 4-pixel jump
+test would drop them).
 ``exact_code_fraction_all`` counts every valid pixel on the head.
 """
 

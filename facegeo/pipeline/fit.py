@@ -98,13 +98,18 @@ def needed_texels(specs, cameras: dict, atlas, texels, scene=None) -> np.ndarray
     return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
 
-def _check_settings(*, texels="all", max_texels=None, chunk=1, **_ignored) -> None:
+def _check_settings(*, texels="all", max_texels=None, chunk=1, gt_angles=(30.0, 60.0),
+                    **_ignored) -> None:
     if texels not in ("all", "views"):
         raise InputError(f"texels: expected 'all' or 'views', got {fmt_value(texels)}")
     if max_texels is not None and int(max_texels) < 1:
         raise InputError(f"max_texels: expected a positive count, got {fmt_value(max_texels)}")
     if int(chunk) < 1:
         raise InputError(f"chunk: expected a positive count, got {fmt_value(chunk)}")
+    for a in gt_angles:  # 0 would be the source view's own key (resynthesis_rel_rmse_0)
+        if isinstance(a, bool) or not isinstance(a, (int, float)) or not 0 < abs(a) < 180:
+            raise InputError(f"gt_angles: expected angles in degrees with 0 < |θ| < 180, got "
+                             f"{fmt_value(a)} in {fmt_value(list(gt_angles))}")
 
 
 def _exact_functions(renderer, stage, p, n, v, face_in, sk) -> np.ndarray:
@@ -342,7 +347,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     project_dir = Path(project_dir)
     dest = Path(dest)
     atlas_dir = Path(atlas_dir) if atlas_dir is not None else project_dir.parent / "atlas"
-    _check_settings(texels=texels, max_texels=max_texels, chunk=chunk)
+    _check_settings(texels=texels, max_texels=max_texels, chunk=chunk, gt_angles=gt_angles)
     for f in ("atlas.npz", "texels.npz"):
         if not (atlas_dir / f).is_file():
             raise InputError(f"fit: {atlas_dir / f} is missing; run 'facegeo reconstruct SCAN' "

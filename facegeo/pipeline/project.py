@@ -54,8 +54,9 @@ Ground-truth metrics (synthetic scans):
   ``projection_rel_rmse_per_texel`` (every texel counted once, the metric before area
   weighting), ``projection_rel_rmse_all_weights`` (area-weighted over every texel the camera
   weights at all: the grazing views and the feathered bands at silhouettes and occlusion edges
-  that the threshold leaves out), ``projection_rel_rmse_off_shadow_edges`` (area-weighted, only samples whose four
-  bilinear taps are all lit or all dark in the generator's noiseless frame),
+  that the threshold leaves out), ``projection_rel_rmse_off_shadow_edges`` (area-weighted,
+  only samples whose four bilinear taps are all lit or all dark in the generator's noiseless
+  frame),
   ``projection_shadow_edge_samples`` (the fraction of compared samples that straddle such an
   edge) and ``projection_shadow_edge_error_share`` (their share of Σ a_t err²). Each camera's
   entry has the same keys.
@@ -76,7 +77,7 @@ from facegeo.frames import stratified_light_subset
 from facegeo.fsutil import atomic_write_text, staged_directory
 from facegeo.pipeline.bench import peak_rss_mb
 from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
-from facegeo.checks import fmt_value
+from facegeo.checks import check_positive_int, fmt_value
 
 log = logging.getLogger(__name__)
 
@@ -485,8 +486,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     from facegeo.surface.pullpush import pull_push
     from facegeo.surface.visibility import RayScene
 
-    if isinstance(gt_lights, bool) or not isinstance(gt_lights, (int, np.integer)) or gt_lights < 1:
-        raise InputError(f"gt_lights: expected a positive integer, got {fmt_value(gt_lights)}")
+    gt_lights = check_positive_int(gt_lights, "gt_lights")
     t_start = time.perf_counter()
     atlas = Atlas.load(atlas_dir / "atlas.npz")
     texels = Texels.load(atlas_dir / "texels.npz")

@@ -89,7 +89,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from facegeo.checks import as_array, fmt_value
+from facegeo.checks import as_array, check_positive_int, fmt_value
 from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
     "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
-    "open_field", "iter_field_chunks", "gather_field_samples", "BlendedField", "blend_fields", "open_blended",
+    "open_field", "iter_field_chunks", "gather_field_samples",
+    "BlendedField", "blend_fields", "open_blended",
     "BLENDED_FILE", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
     "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS", "OCCLUSION_METHODS",
 ]
@@ -640,32 +641,66 @@ def iter_field_chunks(directory, chunk_texels: int | None = None, name: str = "R
     32 MB float32 chunk (a fixed 8,192 made 201 MB chunks at 2048 lights, and a caller's
     temporaries several times that)."""
     R = open_field(directory, name)
-    if chunk_texels is None:
-        chunk_texels = max(1, _BLEND_CHUNK_BYTES // (max(R.shape[1], 1) * 3 * 4))
+    chunk_texels = _chunk_rows(R, chunk_texels)
     for s in range(0, R.shape[0], chunk_texels):
         chunk = np.array(R[s:s + chunk_texels], dtype=np.float32)
         _release_rows(R, s, s + len(chunk), write=False)  # keep resident memory at one chunk
         yield s, chunk
 
 
-def gather_field_samples(directory, rows, lights, *, chunk_texels: int = 8192,
+def _chunk_rows(R, chunk_texels) -> int:
+    """Rows of ``R`` per streamed step: ``chunk_texels`` (checked), or by default as many as
+    make a :data:`_BLEND_CHUNK_BYTES` float32 chunk."""
+    if chunk_texels is not None:
+        return check_positive_int(chunk_texels, "chunk_texels")
+    return max(1, _BLEND_CHUNK_BYTES // (max(int(np.prod(R.shape[1:])), 1) * 4))
+
+
+def _index_array(a, name: str) -> np.ndarray:
+    """``a`` as a 1-D int64 index array; a bool mask or non-integer values are an error."""
+    a = np.asarray(a)
+    if a.size and a.dtype.kind not in "iu":
+        raise InputError(f"{name}: expected integer indices, got dtype {a.dtype}")
+    return a.astype(np.int64).reshape(-1)
+
+
+def gather_field_samples(directory, rows, lights, *, chunk_texels: int | None = None,
                          name: str = "R.npy") -> np.ndarray:
-    """``R[rows][:, lights]`` of a stored field, ``(n, K, 3)`` in its stored dtype, read
-    straight from the memory map ``chunk_texels`` rows at a time (the pages read are released
-    after each step, as :func:`iter_field_chunks` does): no float32 copy of whole rows when a
-    few lights of many texels are wanted (a comparison with ground truth)."""
+    """Chosen rows and lights of a stored field, read straight from its memory map.
+
+    ``R[rows][:, lights]`` in the stored dtype, ``chunk_texels`` rows at a time (the pages read
+    are released after each step, as :func:`iter_field_chunks` does): no float32 copy of whole
+    rows when a few lights of many texels are wanted (a comparison with ground truth).
+
+    Parameters
+    ----------
+    directory : path-like — a camera folder (``name`` as in :func:`open_field`)
+    rows : (n,) int — rows of ``R`` (texels of the field, in any order)
+    lights : (K,) int — light indices
+    chunk_texels : int, optional — rows per step (default: a 32 MB float32 chunk of rows)
+
+    Returns
+    -------
+    (n, K, C) array, the field's dtype (C = 3 for RGB)
+
+    Raises
+    ------
+    InputError
+        Indices that are not integers or out of range, a bad ``chunk_texels``.
+    """
     R = open_field(directory, name)
-    rows = np.asarray(rows, np.int64).reshape(-1)
-    lights = np.asarray(lights, np.int64).reshape(-1)
+    rows = _index_array(rows, "rows")
+    lights = _index_array(lights, "lights")
+    step = _chunk_rows(R, chunk_texels)
     if rows.size and (rows.min() < 0 or rows.max() >= R.shape[0]):
         raise InputError(f"rows: expected indices in [0, {R.shape[0]}) of {directory}, got "
                          f"{rows.min()}..{rows.max()}")
     if lights.size and (lights.min() < 0 or lights.max() >= R.shape[1]):
         raise InputError(f"lights: expected indices in [0, {R.shape[1]}) of {directory}, got "
                          f"{lights.min()}..{lights.max()}")
-    out = np.empty((rows.size, lights.size, 3), R.dtype)
-    for a in range(0, rows.size, chunk_texels):
-        r = rows[a:a + chunk_texels]
+    out = np.empty((rows.size, lights.size) + R.shape[2:], R.dtype)
+    for a in range(0, rows.size, step):
+        r = rows[a:a + step]
         out[a:a + r.size] = R[r[:, None], lights[None, :]]
         _release_rows(R, int(r.min()), int(r.max()) + 1, write=False)
     return out
@@ -760,15 +795,13 @@ def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
     """
     if dtype not in ("float16", "float32"):
         raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
-    if chunk_texels is not None and (isinstance(chunk_texels, bool)
-                                     or int(chunk_texels) != chunk_texels or chunk_texels < 1):
-        raise InputError(f"chunk_texels: expected a positive integer, got {fmt_value(chunk_texels)}")
+    if chunk_texels is not None:
+        check_positive_int(chunk_texels, "chunk_texels")
     cams = [_camera_field(f) for f in fields]
     if not cams:
         raise InputError("fields: expected at least one projected camera field")
     L = cams[0][1].shape[1]
-    if chunk_texels is None:
-        chunk_texels = max(1, _BLEND_CHUNK_BYTES // (L * 3 * 4))
+    chunk_texels = _chunk_rows(cams[0][1], chunk_texels)
     for name, R, _, _ in cams:
         if R.shape[1:] != (L, 3):
             raise ShapeError(f"fields: camera {fmt_value(name)} has R of shape {R.shape}, "

@@ -291,7 +291,8 @@ def bench_resolution(quick: bool) -> list[BenchRow]:
             rows.append(BenchRow(
                 "surface.resolution", f"{'tiny' if quick else 'small'} scan, {tpm} texels/mm",
                 am["texels"] / (am["seconds"] + proj_s) / 1e3, "ktexels/s (atlas+project)",
-                pm["projection_rel_rmse"], f"projection_rel_rmse (weight > 0.3, {GT_LIGHTS} lights)",
+                pm["projection_rel_rmse"],
+                f"projection_rel_rmse (weight > 0.3, {GT_LIGHTS} lights)",
                 {}, {"texels": am["texels"], "atlas s": am["seconds"],
                      "project s": round(proj_s, 3),
                      "visibility_agreement": pm["visibility_agreement"]},
