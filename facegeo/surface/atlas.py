@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array, fmt_value
+from facegeo.checks import as_array, check_positive_int, fmt_value
 from facegeo.errors import InputError, MissingDependencyError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -228,8 +228,7 @@ def split_mesh(vertices: Any, faces: Any, max_faces: int = DEFAULT_SPLIT_FACES
         Face indices of each piece, covering every face once.
     """
     V, F = _mesh_arrays(vertices, faces)
-    if int(max_faces) != max_faces or max_faces < 1:
-        raise InputError(f"max_faces: expected a positive integer, got {fmt_value(max_faces)}")
+    max_faces = check_positive_int(max_faces, "max_faces")
     c = V[F].mean(axis=1)
     todo = [np.arange(len(F))]
     out: list[np.ndarray] = []

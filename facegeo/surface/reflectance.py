@@ -543,10 +543,8 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
     t0 = time.perf_counter()
     if dtype not in ("float16", "float32"):
         raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
-    if int(n_lights) != n_lights or n_lights < 1:
-        raise InputError(f"n_lights: expected a positive integer, got {fmt_value(n_lights)}")
-    if int(block_lights) != block_lights or block_lights < 1:
-        raise InputError(f"block_lights: expected a positive integer, got {fmt_value(block_lights)}")
+    n_lights = check_positive_int(n_lights, "n_lights")
+    block_lights = check_positive_int(block_lights, "block_lights")
     W, H = (int(s) for s in size)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

@@ -79,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import as_array, check_finite, fmt_value
+from facegeo.checks import as_array, check_finite, check_positive_int, fmt_value
 from facegeo.errors import InputError, MissingDependencyError, ShapeError
 from facegeo.surface._vis_util import (
     _cross,
@@ -306,8 +306,7 @@ class RayScene:
         self.n_threads = _default_threads() if n_threads is None else n_threads
         if chunk_size is None:
             chunk_size = _DEFAULT_CHUNK
-        if int(chunk_size) != chunk_size or chunk_size < 1:
-            raise InputError(f"chunk_size: expected a positive integer, got {fmt_value(chunk_size)}")
+        chunk_size = check_positive_int(chunk_size, "chunk_size")
         self._chunk = int(chunk_size)
 
         self._watertight = bool(watertight)
@@ -372,8 +371,7 @@ class RayScene:
 
     @n_threads.setter
     def n_threads(self, value: int) -> None:
-        if isinstance(value, bool) or int(value) != value or value < 1:
-            raise InputError(f"n_threads: expected a positive integer, got {fmt_value(value)}")
+        value = check_positive_int(value, "n_threads")
         self._n_threads = int(value)
 
     @property
