@@ -1,11 +1,11 @@
-"""facegeo.fsutil.NpyRowFile: a preallocated .npy written block by block with pwrite."""
+"""facegeo.fsutil: NpyRowFile (a preallocated .npy written block by block) and read_ahead."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from facegeo.fsutil import NpyRowFile
+from facegeo.fsutil import NpyRowFile, read_ahead
 
 
 @pytest.mark.parametrize("dtype", [np.float16, np.float32, np.int64])
@@ -78,3 +78,61 @@ def test_without_pwrite_the_file_is_the_same(tmp_path, monkeypatch):
     f.write(0, np.ascontiguousarray(want[:3]))
     f.close()
     assert np.array_equal(np.load(tmp_path / "e.npy"), want)
+
+
+@pytest.mark.parametrize("workers", [0, 1, 2, 3])
+def test_read_ahead_yields_in_order_and_bounds_what_is_in_flight(workers):
+    import threading
+    import time
+
+    lock = threading.Lock()
+    state = {"running": 0, "peak": 0, "started": 0}
+
+    def fn(i):
+        with lock:
+            state["started"] += 1
+            state["running"] += 1
+            state["peak"] = max(state["peak"], state["running"])
+        time.sleep(0.002 * (i % 3))  # out-of-order completion
+        with lock:
+            state["running"] -= 1
+        return i, np.zeros(10)
+
+    got = [i for i, _ in read_ahead(fn, range(40), workers=workers)]
+    assert got == list(range(40))
+    assert state["peak"] <= max(workers, 1)
+    # early close: nothing more starts than was in flight
+    state["started"] = 0
+    gen = read_ahead(fn, range(1000), workers=workers)
+    next(gen)
+    gen.close()
+    assert state["started"] <= 1 + 2 * max(workers, 1)
+
+
+def test_read_ahead_bounds_bytes_and_raises_in_place():
+    seen = []
+
+    def big(i):
+        seen.append(i)
+        return np.zeros(1000)  # 8 kB
+
+    gen = read_ahead(big, range(100), workers=2, max_bytes=8000)  # one 8 kB result ahead
+    next(gen)
+    import time
+
+    time.sleep(0.05)
+    # the first batch (2 · workers) went out before the size was known; with one result
+    # allowed in flight and three pending, nothing more is started (without the bound: a fifth)
+    assert len(seen) == 4
+    gen.close()
+
+    def bad(i):
+        if i == 5:
+            raise ValueError("frame 5 is corrupt")
+        return i
+
+    out = []
+    with pytest.raises(ValueError, match="frame 5"):
+        for x in read_ahead(bad, range(10), workers=2):
+            out.append(x)
+    assert out == [0, 1, 2, 3, 4]

@@ -125,6 +125,13 @@ def test_write_load_round_trip_identical_arrays(scan_dir):
             want = _linear_image(400 + 10 * ci + light) * (light + 1)
             assert frame.dtype == np.float32 and frame.shape == (H, W, 3)
             assert np.array_equal(frame, want)
+    # read ahead on two threads: the same frames, in the same order
+    for cam in scan.camera_names:
+        seq = list(scan.iter_olat(cam, return_mask=True))
+        par = list(scan.iter_olat(cam, return_mask=True, read_ahead=2))
+        assert [x[0] for x in par] == [x[0] for x in seq]
+        for a, b in zip(seq, par):
+            assert np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
     # uint16 sRGB structured light: exactly linearize(stored codes); within half an LSB of
     # the sRGB slope of the original linear values (worst case over pixels)
     x = _linear_image(300 + 2)  # cam_a, frame index 2

@@ -115,13 +115,25 @@ class _ScanReaders:
         return a
 
     def iter_olat(self, camera: str, lights: Sequence[int] | None = None, *,
-                  return_mask: bool = False, subtract_ambient: bool = False) -> Iterator[tuple]:
+                  return_mask: bool = False, subtract_ambient: bool = False,
+                  read_ahead: int = 0) -> Iterator[tuple]:
         """Yield ``(light, frame)`` (or ``(light, frame, valid)``) for ``lights`` (default the
-        lights ``camera`` has, in light-index order), reading one frame at a time."""
-        for light in self.camera_frames("olat", camera) if lights is None else lights:
+        lights ``camera`` has, in light-index order), reading one frame at a time.
+
+        ``read_ahead=N`` (N ≥ 2) reads and decodes the next frames on N threads while the caller
+        works on this one (:func:`facegeo.fsutil.read_ahead`; a few frames in flight, bounded
+        in bytes). Image reads hide native libraries' console output while they run
+        (``imageio``), so what other threads print meanwhile goes to the debug log: use it
+        where nothing reports progress during the loop (the projection does not)."""
+        from facegeo.fsutil import read_ahead as ahead
+
+        def read(light):
             out = self.olat_frame(camera, light, return_mask=return_mask,
                                   subtract_ambient=subtract_ambient)
-            yield (light, *out) if return_mask else (light, out)
+            return (light, *out) if return_mask else (light, out)
+
+        yield from ahead(read, self.camera_frames("olat", camera) if lights is None else lights,
+                         workers=int(read_ahead))
 
     def sl_frame(self, camera: str, frame: str, *, return_mask: bool = False,
                  luminance: bool = False):
