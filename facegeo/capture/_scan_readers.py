@@ -167,14 +167,21 @@ class _ScanReaders:
         return (lin, valid) if return_mask else lin
 
     def iter_sl(self, camera: str, frames: Sequence[str] | None = None, *,
-                luminance: bool = False, return_mask: bool = False) -> Iterator[tuple]:
+                luminance: bool = False, return_mask: bool = False,
+                read_ahead: int = 0) -> Iterator[tuple]:
         """Yield ``(name, frame)`` (or ``(name, frame, valid)``) for ``frames`` (default the
         frames ``camera`` has, in capture order), reading one frame at a time: only the frame
-        being yielded is held, so a decoder that accumulates bit planes never holds the group.
+        being yielded is held (with ``read_ahead``, also the few read ahead, bounded in bytes:
+        see :meth:`iter_olat`), so a decoder that accumulates bit planes never holds the group.
         See :meth:`sl_frame` for ``luminance``."""
-        for name in self.camera_frames("structured_light", camera) if frames is None else frames:
+        from facegeo.fsutil import read_ahead as ahead
+
+        def read(name):
             out = self.sl_frame(camera, name, return_mask=return_mask, luminance=luminance)
-            yield (name, *out) if return_mask else (name, out)
+            return (name, *out) if return_mask else (name, out)
+
+        yield from ahead(read, self.camera_frames("structured_light", camera)
+                         if frames is None else frames, workers=int(read_ahead))
 
     def projector_frame(self, camera: str, view: int, frame: str, *, return_mask: bool = False,
                         luminance: bool = False):

@@ -204,7 +204,7 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     phase_axes = tuple(spec.phase_axes) if spec.phase_steps else ()
     for cam in cams:
         tc = time.perf_counter()
-        frames = ((n, scan.sl_frame(cam, n)) for n in names)
+        frames = scan.iter_sl(cam, names, read_ahead=2)  # the next frames read meanwhile
         res = decode_stream(frames, spec, **used)
         d = dest / cam
         d.mkdir(parents=True, exist_ok=True)
