@@ -342,7 +342,6 @@ def test_obj_check_can_fail(tmp_path):
     p = tmp_path / "small.obj"
     p.write_text(_SMALL_OBJ)
     ours, *_ = _our_triangles(p)
-    wrong = ours.copy()
     theirs = _triangle_multiset(_trimesh_triangles(p))
     rotated = ours.copy()
     rotated[0] = ours[0][[1, 2, 0]]  # the same triangle, another starting corner: still equal
