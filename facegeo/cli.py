@@ -22,23 +22,31 @@ log = logging.getLogger("facegeo")
 def _progress_factory(enabled: bool):
     """Return ``(tick, close)``: tick(stage, done, total) drives one tqdm bar per stage."""
     bars = {}
+    stream = []  # the console stream the bars write to, opened with the first bar
     if not enabled:
         return (lambda stage, done, total: None), (lambda: None)
     from tqdm import tqdm
+
+    from facegeo.capture.imageio import console_stream
 
     def tick(stage, done, total):
         bar = bars.get(stage)
         if bar is None:
             for b in bars.values():
                 b.close()
+            if not stream:  # not sys.stderr: images read on other threads redirect it
+                stream.append(console_stream())
             bar = bars[stage] = tqdm(total=total, desc=f"{stage:>18}", unit="frame",
-                                     leave=True, file=sys.stderr, dynamic_ncols=True)
+                                     leave=True, file=stream[0], dynamic_ncols=True)
         bar.n = done
         bar.refresh()
 
     def close():
         for b in bars.values():
             b.close()
+        bars.clear()
+        while stream:
+            stream.pop().close()
 
     return tick, close
 
@@ -319,7 +327,7 @@ def _cmd_relight(args) -> int:
         m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
                         out_dir=args.out, projection=args.projection,
                         solid_angle="exact" if args.exact_solid_angles else "paper",
-                        progress=tick)
+                        progress=tick, read_ahead=2)
     finally:
         close()
     print(f"{m['view']}: {m['active_lights']}/{m['n_lights']} lights lit, "

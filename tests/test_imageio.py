@@ -574,3 +574,19 @@ def test_bmp_and_netpbm_read_bit_exact_with_header_info(tmp_path, suffix, shape,
     p.write_bytes(p.read_bytes()[:-4])
     with pytest.raises(ScanFormatError, match=r"truncated (BMP|PPM) file"):
         read_image_info(p)
+
+
+def test_console_stream_reaches_stderr_while_an_image_is_read(capfd):
+    """Progress written to console_stream() while another thread reads an image (its output
+    hidden: fds 1 / 2 and sys.stderr redirected) reaches the real stderr; sys.stderr does not."""
+    from facegeo.capture import imageio as io_
+
+    with io_._quiet_native_output():  # as a read on another thread would hold it
+        stream = io_.console_stream()
+        stream.write("progress 1/2\n")
+        print("hidden meanwhile", file=sys.stderr)
+    stream.write("progress 2/2\n")
+    stream.close()
+    err = capfd.readouterr().err
+    assert "progress 1/2" in err and "progress 2/2" in err
+    assert "hidden meanwhile" not in err

@@ -238,6 +238,8 @@ def test_relit_olat_frames_equal_the_generators_render(tiny_scan):
     got = R.relight_scan_view(scan, name, w)
     assert got.shape == ref.shape
     assert np.max(np.abs(got - ref)) <= CONSISTENCY_REL * np.max(ref)
+    # the frames read ahead on two threads: the same image, bit for bit
+    assert np.array_equal(R.relight_scan_view(scan, name, w, read_ahead=2), got)
 
 
 @pytest.mark.slow

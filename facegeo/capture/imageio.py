@@ -42,7 +42,7 @@ import threading
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -70,6 +70,7 @@ __all__ = [
     "WRITE_SUFFIXES",
     "RESPONSE_KINDS",
     "read_image",
+    "console_stream",
     "read_image_size",
     "read_image_info",
     "write_image",
@@ -260,6 +261,21 @@ def _quiet_native_output() -> Iterator[None]:
                     _quiet_sink.truncate()
                 if noise.strip():
                     log.debug("native library output hidden: %s", noise.strip())
+
+
+def console_stream() -> TextIO:
+    """A new text stream on the process's standard error as it is outside native-output hiding.
+
+    While an image is read (:func:`_quiet_native_output`), file descriptors 1 and 2 and
+    ``sys.stdout`` / ``sys.stderr`` point elsewhere, process-wide; a progress bar that another
+    thread writes meanwhile would land in the debug log. This stream writes to a duplicate of
+    the real descriptor 2, so it reaches the terminal whatever is being read. Line-buffered;
+    the caller closes it.
+    """
+    with _quiet_lock:
+        fd = _quiet_saved.get(2, 2) if _quiet_users else 2
+        enc = getattr(sys.__stderr__, "encoding", None) or "utf-8"
+        return os.fdopen(os.dup(fd), "w", buffering=1, encoding=enc, errors="replace")
 
 
 def _exr_open(path: Path, *, header_only: bool):

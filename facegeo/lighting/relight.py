@@ -398,7 +398,8 @@ def relight_frames(frames: Iterable[tuple[int, np.ndarray]], weights: Any, n_lig
 
 
 def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool = False,
-                      progress: Callable[[int], None] | None = None) -> np.ndarray:
+                      progress: Callable[[int], None] | None = None,
+                      read_ahead: int = 0) -> np.ndarray:
     """Relight one camera of a scan from its OLAT frames, reading only lights with non-zero
     weight (Eq. 4).
 
@@ -410,6 +411,11 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
         Eq. (4) weights for the scan's light stage (δA included).
     normalize_color : bool
         Divide by the rig's light colour (the frames then read as for a white light).
+    progress : callable(k), optional
+    read_ahead : int
+        Threads reading the next frames meanwhile (``Scan.iter_olat(read_ahead=)``; what other
+        threads print while images are read goes to the debug log, so ``progress`` should
+        write to :func:`facegeo.capture.imageio.console_stream`).
 
     Returns
     -------
@@ -422,8 +428,8 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
     if active.size == 0:
         cam = scan.camera(camera)
         return np.zeros((cam.height, cam.width, 3), np.float32)
-    return relight_frames(scan.iter_olat(camera, active.tolist()), w, n_l, light_color=color,
-                          progress=progress)
+    return relight_frames(scan.iter_olat(camera, active.tolist(), read_ahead=read_ahead), w,
+                          n_l, light_color=color, progress=progress)
 
 
 def tint_clothing(white: Any, black: Any, color: Any) -> np.ndarray:

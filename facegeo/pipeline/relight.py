@@ -175,8 +175,8 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
                      env: str | os.PathLike, rotate: float = 0.0, view: str = "texture",
                      atlas_dir: str | os.PathLike | None = None, projection: str = "latlong",
                      solid_angle: str = "paper", reference: bool = True,
-                     progress: Callable[[str, int, int], None] | None = None
-                     ) -> tuple[dict, dict]:
+                     progress: Callable[[str, int, int], None] | None = None,
+                     read_ahead: int = 0) -> tuple[dict, dict]:
     """Write the ``relight`` products of ``scan`` into ``dest``: the relit image as EXR and a
     tone-mapped PNG (Debevec et al. 2000 §3.3, Eq. 4).
 
@@ -212,6 +212,9 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
         under the same weights (:meth:`facegeo.synth.render.ReferenceRenderer.render_lights`, one
         shading per lit light) and report the relit image's error against it.
     progress : callable(stage, done, total), optional
+    read_ahead : int
+        Camera view: threads reading the next OLAT frames meanwhile
+        (:func:`facegeo.lighting.relight.relight_scan_view`).
 
     Returns
     -------
@@ -278,7 +281,8 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
                        "reason": "the generator's reference is rendered per camera view"}
     else:
         tick = (lambda k: progress("relight", k + 1, active)) if progress else None
-        img = relight_scan_view(scan, view, w, normalize_color=True, progress=tick)
+        img = relight_scan_view(scan, view, w, normalize_color=True, progress=tick,
+                                read_ahead=read_ahead)
         mean_src = img.reshape(-1, 3)
         t_relit = time.perf_counter()
         ref_metrics = _reference_error(scan, view, w, img) if reference else \
@@ -343,7 +347,8 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
                 out_dir: str | os.PathLike | None = None, projection: str = "latlong",
                 solid_angle: str = "paper", field_dir: str | os.PathLike | None = None,
                 reference: bool = False,
-                progress: Callable[[str, int, int], None] | None = None) -> dict:
+                progress: Callable[[str, int, int], None] | None = None,
+                read_ahead: int = 0) -> dict:
     """Relight one camera of a scan, or its texture atlas, with an environment map and write
     the images.
 
@@ -374,6 +379,8 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
         (:func:`relight_products`; off by default here: one shading per lit light).
     progress : callable(stage, done, total), optional
         Per active light (camera view) or per camera (texture view).
+    read_ahead : int
+        See :func:`relight_products` (the CLI reads two ahead).
 
     Returns
     -------
@@ -394,7 +401,7 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     metrics, _ = relight_products(scan, fdir / "project", out, env=env_path, rotate=rotate_deg,
                                   view=view, atlas_dir=fdir / "atlas", projection=projection,
                                   solid_angle=solid_angle, reference=reference,
-                                  progress=progress)
+                                  progress=progress, read_ahead=read_ahead)
     stem = Path(metrics["files"]["exr"]).stem
     atomic_write_text(out / f"{stem}.json", json.dumps(metrics, indent=2))
     return metrics
