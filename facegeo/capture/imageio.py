@@ -270,12 +270,15 @@ def console_stream() -> TextIO:
     ``sys.stdout`` / ``sys.stderr`` point elsewhere, process-wide; a progress bar that another
     thread writes meanwhile would land in the debug log. This stream writes to a duplicate of
     the real descriptor 2, so it reaches the terminal whatever is being read. Line-buffered;
-    the caller closes it.
+    the caller closes it. Without a usable descriptor 2 (a closed stderr) it writes nowhere.
     """
+    enc = getattr(sys.__stderr__, "encoding", None) or "utf-8"
     with _quiet_lock:
-        fd = _quiet_saved.get(2, 2) if _quiet_users else 2
-        enc = getattr(sys.__stderr__, "encoding", None) or "utf-8"
-        return os.fdopen(os.dup(fd), "w", buffering=1, encoding=enc, errors="replace")
+        try:
+            fd = os.dup(_quiet_saved.get(2, 2) if _quiet_users else 2)
+        except OSError:
+            return open(os.devnull, "w", encoding=enc)
+    return os.fdopen(fd, "w", buffering=1, encoding=enc, errors="replace")
 
 
 def _exr_open(path: Path, *, header_only: bool):
