@@ -318,6 +318,7 @@ def _cmd_project(args) -> int:
 
 
 def _cmd_relight(args) -> int:
+    from facegeo.fsutil import READ_AHEAD_WORKERS
     from facegeo.pipeline.relight import run_relight
 
     if args.out is not None:
@@ -327,7 +328,7 @@ def _cmd_relight(args) -> int:
         m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
                         out_dir=args.out, projection=args.projection,
                         solid_angle="exact" if args.exact_solid_angles else "paper",
-                        progress=tick, read_ahead=2)
+                        progress=tick, read_ahead=READ_AHEAD_WORKERS)
     finally:
         close()
     print(f"{m['view']}: {m['active_lights']}/{m['n_lights']} lights lit, "

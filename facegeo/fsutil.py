@@ -35,7 +35,8 @@ __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "load_json_
            "WRITTEN_RECORD", "read_written_record", "write_written_record", "add_to_written_record",
            "list_files",
            "remove_tree", "staging_dir", "swap_in_dir", "clean_stale_siblings", "carry_over",
-           "staged_directory", "NpyRowFile", "aligned_empty", "DIRECT_ALIGN", "read_ahead"]
+           "staged_directory", "NpyRowFile", "aligned_empty", "DIRECT_ALIGN", "read_ahead",
+           "READ_AHEAD_WORKERS"]
 
 log = logging.getLogger(__name__)
 
@@ -575,7 +576,14 @@ def _nbytes(x) -> int:
     return int(getattr(x, "nbytes", 0) or 0)
 
 
-def read_ahead(fn: Callable, items: Iterable, *, workers: int = 2,
+#: Threads the stages read frames ahead on (project, decode, ``facegeo relight --view``): the
+#: paper preset's OLAT frames take 9–16 ms each to read and decode, and a camera's projection
+#: took 28–35 s reading them in turn against 18–25 s with two threads ahead; the machines have
+#: two cores.
+READ_AHEAD_WORKERS = 2
+
+
+def read_ahead(fn: Callable, items: Iterable, *, workers: int = READ_AHEAD_WORKERS,
                max_bytes: int = 256 << 20) -> Iterator:
     """Yield ``fn(item)`` for each item, in order, computed ahead on ``workers`` threads.
 

@@ -52,7 +52,7 @@ import numpy as np
 
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError
-from facegeo.fsutil import atomic_path, staged_directory
+from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_path, staged_directory
 from facegeo.pipeline.bench import peak_rss_mb
 
 log = logging.getLogger(__name__)
@@ -204,7 +204,8 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     phase_axes = tuple(spec.phase_axes) if spec.phase_steps else ()
     for cam in cams:
         tc = time.perf_counter()
-        frames = scan.iter_sl(cam, names, read_ahead=2)  # the next frames read meanwhile
+        # the next frames read and decoded meanwhile
+        frames = scan.iter_sl(cam, names, read_ahead=READ_AHEAD_WORKERS)
         res = decode_stream(frames, spec, **used)
         d = dest / cam
         d.mkdir(parents=True, exist_ok=True)

@@ -74,7 +74,7 @@ import numpy as np
 
 from facegeo.errors import InputError
 from facegeo.frames import stratified_light_subset
-from facegeo.fsutil import atomic_write_text, staged_directory
+from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_write_text, staged_directory
 from facegeo.pipeline.bench import peak_rss_mb
 from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 from facegeo.checks import check_positive_int, fmt_value
@@ -320,12 +320,6 @@ def _tap_pixels(view, q: np.ndarray):
 #: of 16 (the former choice: two azimuths, in front of and behind the face) read 2.870 %.
 GT_LIGHTS = 128
 
-#: Threads that read and decode the next OLAT frames while one is projected
-#: (``Scan.iter_olat(read_ahead=)``): the paper preset's 2048 frames a camera are 9–16 ms each
-#: to read, and the projection of a camera took 28–34 s reading them in turn, 18–21 s with two
-#: threads ahead (``/tmp/m24/projra.py``).
-READ_AHEAD = 2
-
 
 def _projection_error(renderer, camera, texels, ref, field, area,
                       n_lights: int, gt_lights: int, weight_min: float,
@@ -528,7 +522,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
         vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
         t1 = time.perf_counter()
         field = rf.project_camera(
-            scan.iter_olat(name, return_mask=True, read_ahead=READ_AHEAD),
+            scan.iter_olat(name, return_mask=True, read_ahead=READ_AHEAD_WORKERS),
             vis, (camera.width, camera.height),
             scan.n_lights, dest / name, dtype=dtype,
             block_lights=block_lights or rf.DEFAULT_BLOCK_LIGHTS)

@@ -630,7 +630,7 @@ BLEND_KERNELS = True
 #: :func:`iter_field_chunks`, :func:`blend_fields`): the callers' temporaries are a few times
 #: this (the paper preset's 2048 lights at a fixed 8,192 texels made 201 MB chunks and a
 #: 1.97 GB peak of the projection stage, the blend's doing).
-_BLEND_CHUNK_BYTES = 32 << 20
+_STREAM_CHUNK_BYTES = 32 << 20
 
 
 def iter_field_chunks(directory, chunk_texels: int | None = None, name: str = "R.npy"):
@@ -648,10 +648,10 @@ def iter_field_chunks(directory, chunk_texels: int | None = None, name: str = "R
 
 def _chunk_rows(R, chunk_texels) -> int:
     """Rows of ``R`` per streamed step: ``chunk_texels`` (checked), or by default as many as
-    make a :data:`_BLEND_CHUNK_BYTES` float32 chunk."""
+    make a :data:`_STREAM_CHUNK_BYTES` float32 chunk."""
     if chunk_texels is not None:
         return check_positive_int(chunk_texels, "chunk_texels")
-    return max(1, _BLEND_CHUNK_BYTES // (max(int(np.prod(R.shape[1:])), 1) * 4))
+    return max(1, _STREAM_CHUNK_BYTES // (max(int(np.prod(R.shape[1:])), 1) * 4))
 
 
 def _index_array(a, name: str) -> np.ndarray:
@@ -793,8 +793,6 @@ def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
     """
     if dtype not in ("float16", "float32"):
         raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
-    if chunk_texels is not None:
-        check_positive_int(chunk_texels, "chunk_texels")
     cams = [_camera_field(f) for f in fields]
     if not cams:
         raise InputError("fields: expected at least one projected camera field")
