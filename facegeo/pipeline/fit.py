@@ -37,6 +37,11 @@ synthetic scan's ground truth (generator renderer, ground-truth mesh) over fitte
   camera; views from below the true surface are not compared, their share is
   ``resynthesis_backfacing`` (at 30° / 60°); beside it ``resynthesis_naive_rel_rmse`` (the
   measured function reused unchanged) and at 0° the projection's own error.
+
+The texels meet the truth where the ``project`` stage's do
+(:meth:`facegeo.synth.render.ReferenceRenderer.texel_truth`); with a rig other than the true
+one, after the same rigid gauge alignment (:func:`facegeo.pipeline.project.truth_gauge`,
+``gauge_rotation_deg`` / ``gauge_translation_mm``), the view directions turned with it.
 """
 
 from __future__ import annotations
@@ -339,7 +344,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     )
     from facegeo.capture import imageio
     from facegeo.pipeline.bench import peak_rss_mb
-    from facegeo.pipeline.project import stage_rig
+    from facegeo.pipeline.project import stage_rig, truth_gauge
     from facegeo.render import FitWriter, atlas_scene, light_set, load_sources
     from facegeo.surface.atlas import Atlas, Texels
 
@@ -376,11 +381,13 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         settings["views"] = list(specs)
         need = needed_texels(specs, cam_table, atlas, tex, atlas_scene(atlas))
         t_views = time.perf_counter() - t0
-    renderer = None
+    renderer = T_true = None
+    gauge: dict[str, float] = {}
     if scan.synthetic and "skin" in scan.ground_truth_keys:
         from facegeo.synth.render import load_ground_truth
 
         renderer = load_ground_truth(scan)
+        T_true, gauge = truth_gauge(renderer, atlas, rig_used)
     T = len(tex)
     acc = {"normal": np.zeros((T, 3)), "rho_d": np.zeros((T, 3)), "rho_s": np.zeros(T)}
     wsum = np.zeros(T)
@@ -434,8 +441,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             pick = rows[even_subset(rows.size, int(mosaic) ** 2)]
             mosaic_R = np.asarray(src.field[pick], np.float32)
         if renderer is not None and rows.size:
-            _ground_truth(gt, renderer, the_rig.lights, atlas, tex, src, rows, lights,
-                          dest / src.name, gt_functions, gt_angles, resynthesize)
+            _ground_truth(gt, renderer, atlas, tex, src, lights, dest / src.name,
+                          gt_functions, gt_angles, resynthesize, T_true)
     files = _write_maps(dest, tex, acc, wsum)
     if mosaic_R is not None:
         imageio.write_image(dest / "mosaic.png", reflectance_mosaic(
@@ -449,6 +456,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                                                   1e-9), 1),
         "files": files,
     }
+    metrics.update(gauge)
     if renderer is not None and gt["n_err"]:
         ne = np.concatenate(gt["n_err"])
         metrics["normal_median_error_deg"] = round(float(np.median(ne)), 4)
@@ -465,14 +473,21 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     return metrics, settings
 
 
-def _ground_truth(gt, renderer, stage, atlas, tex, src, rows, lights, cam_dir, n_max, angles,
-                  resynthesize):
-    """Accumulate the ground-truth comparisons of one camera's fits (see module docstring)."""
+def _ground_truth(gt, renderer, atlas, tex, src, lights, cam_dir, n_max, angles, resynthesize,
+                  T_true=None):
+    """Accumulate the ground-truth comparisons of one camera's fits (see module docstring).
+
+    The truth is the generator's: its light stage and, with ``T_true`` (the gauge alignment of
+    a rig other than the true one, :func:`facegeo.pipeline.project.truth_gauge`), the texels
+    and view directions moved into its frame. Fitted normals are compared as they are: the
+    fit places them in the light stage's frame, which is the generator's."""
     from facegeo.render import FitStore
 
+    stage = renderer.rig.lights
+    to_true = (lambda v: v) if T_true is None else T_true.apply_direction
     store = FitStore.load(cam_dir)
     valid = store.params["valid"].astype(bool)
-    truth = renderer.texel_truth(atlas, tex, store.texel_index)
+    truth = renderer.texel_truth(atlas, tex, store.texel_index, T_true=T_true)
     sk = renderer.material_at(truth.p, truth.face)
     a0 = np.asarray(sk.alpha_0, np.float64).reshape(-1, 3)
     rs = np.asarray(sk.rho_s, np.float64).reshape(-1)
@@ -488,7 +503,7 @@ def _ground_truth(gt, renderer, stage, atlas, tex, src, rows, lights, cam_dir, n
     p, n, face_in = truth.p[sub], truth.n[sub], truth.face[sub]
     skin_sub = renderer.material_at(p, face_in)
     v0 = src.v_world[store.rows[sub]]
-    ref0 = _exact_functions(renderer, stage, p, n, v0, face_in, skin_sub)
+    ref0 = _exact_functions(renderer, stage, p, n, to_true(v0), face_in, skin_sub)
     _add(gt["sums"], "resynthesis_rel_rmse_0", R, ref0)
     for deg in angles:
         # Both turns, +θ and −θ, for every function: picking per function the turn that keeps
@@ -497,14 +512,15 @@ def _ground_truth(gt, renderer, stage, atlas, tex, src, rows, lights, cam_dir, n
         # nothing of it: counted (``resynthesis_backfacing_<θ>``), not compared.
         for sign in (1.0, -1.0):
             vn = _rotate_views(v0, sign * float(deg))
-            front = np.einsum("ni,ni->n", vn, n) > 0
+            vn_true = to_true(vn)
+            front = np.einsum("ni,ni->n", vn_true, n) > 0
             key = f"{deg:g}"
             gt["backfacing"][key] = gt["backfacing"].get(key, 0) + int((~front).sum())
             gt["views"][key] = gt["views"].get(key, 0) + int(front.size)
             if not front.any():
                 continue
             f = np.flatnonzero(front)
-            ref = _exact_functions(renderer, stage, p[f], n[f], vn[f], face_in[f],
+            ref = _exact_functions(renderer, stage, p[f], n[f], vn_true[f], face_in[f],
                                    renderer.material_at(p[f], face_in[f]))
             est = resynthesize(fit, vn).reflectance[f]
             _add(gt["sums"], f"resynthesis_rel_rmse_{key}", est, ref)

@@ -39,6 +39,7 @@ lights) (:func:`facegeo.lighting.envmap.shipped_map`).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -216,21 +217,28 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                name: str | None = None, blend_power: float | None = None,
                rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
-               progress=None, shrinkage_cache: dict | None = None) -> dict:
+               progress=None, cache: dict | None = None) -> dict:
     """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
     ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
     the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem).
 
     With full resynthesis the shrunk render, the naive baseline (λ = 0) and the paper's λ = 1
     come from one read of the fields and one resynthesis (``render_view(shrinkage_set=)``, each
-    bit for bit its own render). ``shrinkage_cache``: a dict shared by the views of one stage;
-    the cross-validated λ depends on the environment's weights and the light step, not on the
-    view, so it is computed once per (weights, light step) and reused."""
+    bit for bit its own render). ``cache``: a dict shared by the views of one stage for what
+    does not depend on the view: the cross-validated λ (once per environment weights and light
+    step) and the gauge alignment of the reference (once per atlas and rig).
+
+    With a rig other than the true one (a calibration's), the reference is rendered from the
+    novel camera moved into the generator's frame by the gauge alignment of the atlas mesh
+    (:func:`facegeo.pipeline.project.truth_gauge`; ``gauge_rotation_deg`` /
+    ``gauge_translation_mm``): the rig's world frame is its own gauge, and a camera placed in
+    it sees the generator's head from where the reconstruction's camera sees the
+    reconstruction."""
     from facegeo.capture import imageio
     from facegeo.fsutil import atomic_write_text
     from facegeo.lighting import envmap as E
     from facegeo.pipeline.fit import _camera_table
-    from facegeo.pipeline.project import stage_rig
+    from facegeo.pipeline.project import stage_rig, truth_gauge
     from facegeo.pipeline.relight import tone_map
     from facegeo.render import (
         atlas_scene,
@@ -274,13 +282,13 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     if resynthesis is True and shrink_mode == "cross-validated":
         key = (hashlib.sha1(np.ascontiguousarray(w, np.float64).tobytes()).hexdigest(),
                int(light_step))
-        if shrinkage_cache is not None and key in shrinkage_cache:
-            factors, shrink_stats = shrinkage_cache[key]
+        if cache is not None and key in cache:
+            factors, shrink_stats = cache[key]
         else:
             factors, shrink_stats = cross_validated_shrinkage(sources, w, lights,
                                                               light_step=light_step)
-            if shrinkage_cache is not None:
-                shrinkage_cache[key] = (factors, shrink_stats)
+            if cache is not None:
+                cache[key] = (factors, shrink_stats)
     elif resynthesis is True and isinstance(shrink_mode, float):
         factors = {src.name: shrink_mode for src in sources}
     shrunk = factors is not None and any(f != 1.0 for f in factors.values())
@@ -359,8 +367,19 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
 
         t0 = time.perf_counter()
         renderer = load_ground_truth(scan)
-        ref = renderer.render_lights(camera, stage, w)
-        mask = renderer.surface_view(camera).mask
+        gkey = ("gauge", rig_used, hashlib.sha1(
+            np.ascontiguousarray(atlas.vertices, np.float64).tobytes()).hexdigest())
+        if cache is not None and gkey in cache:
+            T_true, gauge = cache[gkey]
+        else:
+            T_true, gauge = truth_gauge(renderer, atlas, rig_used)
+            if cache is not None:
+                cache[gkey] = (T_true, gauge)
+        metrics.update(gauge)
+        ref_camera = camera if T_true is None else dataclasses.replace(
+            camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
+        ref = renderer.render_lights(ref_camera, renderer.rig.lights, w)
+        mask = renderer.surface_view(ref_camera).mask
         tick(steps)
         metrics["seconds_reference"] = round(time.perf_counter() - t0, 4)
         imageio.write_image(dest / f"{stem}_reference.exr", ref)
@@ -409,12 +428,12 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     resynthesis as written beside it).
     """
     per_view = {}
-    lam_cache: dict = {}  # the cross-validated λ, once per environment (render_one)
+    cache: dict = {}  # the cross-validated λ and the reference's gauge (render_one)
     for k, spec in enumerate(views):
         tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(views) * n)) \
             if progress else None
         m = render_one(scan, out, dest, camera_spec=spec, env=env, progress=tick,
-                       shrinkage_cache=lam_cache, **settings)
+                       cache=cache, **settings)
         per_view[m["name"]] = {key: v for key, v in m.items() if key != "stats"}
     metrics: dict[str, Any] = {"views": per_view, "env": str(env)}
     psnr = [v["psnr_db"] for v in per_view.values() if v.get("psnr_db") is not None]

@@ -314,7 +314,21 @@ class ReferenceRenderer:
                 and bool(np.allclose(np.asarray(vertices), self.vertices[vm], rtol=0.0,
                                      atol=1e-9)))
 
-    def texel_truth(self, atlas, texels, tex=None) -> TexelTruth:
+    def gauge_alignment(self, vertices):
+        """``T_true_mesh`` (:class:`facegeo.frames.Pose`): the rigid transform that best brings
+        ``vertices`` (N, 3) — a reconstruction's, in the world frame of the rig it was made
+        with — onto the generator's surface (trimmed point-to-plane ICP,
+        :func:`facegeo.geometry.mesh.align_to_surface`).
+
+        A calibrated rig's world frame is a gauge choice (``docs/calibration.md``): a head
+        reconstructed with it sits millimetres from where the generator put it, and comparing
+        its texels with the truth at their own coordinates measures that choice, not the
+        reconstruction. The transform uses only the geometry, never the values compared."""
+        from facegeo.geometry.mesh import align_to_surface
+
+        return align_to_surface(np.asarray(vertices, np.float64), self.vertices, self.faces)
+
+    def texel_truth(self, atlas, texels, tex=None, *, T_true=None) -> TexelTruth:
         """The generator's surface at atlas texels: the point each texel is compared at.
 
         On the generator's own mesh (:meth:`is_mesh`; a file holding it included) a texel is its
@@ -328,12 +342,18 @@ class ReferenceRenderer:
         atlas : facegeo.surface.atlas.Atlas
         texels : facegeo.surface.atlas.Texels
         tex : (N,) int, optional — texel indices (default all)
+        T_true : facegeo.frames.Pose, optional
+            Maps the texels' world frame into the generator's (:meth:`gauge_alignment`, for a
+            mesh made with a rig other than the true one); the texels are moved by it and then
+            take the closest point. ``offset`` is measured after the move.
         """
         from facegeo.geometry.mesh import closest_surface_points
 
         tex = np.arange(len(texels)) if tex is None else np.asarray(tex, np.int64)
         p_tex = texels.p_world[tex]
-        if self.is_mesh(atlas.vertices, atlas.vertex_map):
+        if T_true is not None:
+            p_tex = T_true.apply(p_tex)
+        if T_true is None and self.is_mesh(atlas.vertices, atlas.vertex_map):
             face, bary, p = atlas.face_map[texels.face[tex]], texels.bary[tex], p_tex
         else:
             face, bary, p = closest_surface_points(self.vertices, self.faces, p_tex)
