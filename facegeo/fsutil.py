@@ -20,12 +20,14 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import os
 import re
 import shutil
 import stat
 import tempfile
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -86,6 +88,7 @@ def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterat
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+    _note_written(path.parent, [path.name])
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -98,6 +101,12 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "ut
     """Write ``text`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding=encoding)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 hex digest of a file's bytes (read in blocks, not held in memory)."""
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def load_json_file(path: str | os.PathLike, what: str, parse):
@@ -178,11 +187,54 @@ def write_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> P
 def add_to_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> Path:
     """Add paths to the record of the files facegeo wrote in ``root`` (created if absent).
 
-    Stages that write products into a scan (``out/...``) call this after writing, so a later
-    ``facegeo synth --overwrite`` removes those products with the scan they were computed from
-    instead of carrying them over as the user's files.
+    Products written into a scan (``out/...``) are added by :func:`atomic_path` and
+    :func:`staged_directory` themselves (:func:`_note_written`), so a later ``facegeo synth
+    --overwrite`` removes them with the scan they were computed from instead of carrying them
+    over as the user's files.
     """
     return write_written_record(root, (read_written_record(root) or set()) | set(rel_paths))
+
+
+#: How many directories above a written file :func:`_note_written` looks for a scan's written
+#: record (``SCAN/out/<stage>/<camera>/file`` is four below ``SCAN``).
+_RECORD_SEARCH_DEPTH = 5
+_record_lock = threading.Lock()
+
+
+def _note_written(parent: Path, names: list[str]) -> None:
+    """Add files just written (``parent / name``) to the written record of the scan they lie
+    in, if any: the nearest of ``parent``'s first :data:`_RECORD_SEARCH_DEPTH` ancestors
+    holding :data:`WRITTEN_RECORD` (only synthetic scans carry one). Files inside hidden
+    directories (staging folders, ``.NAME.facegeo-tmp-…``) and the record itself are skipped.
+    A record that cannot be updated costs a warning, never the write that succeeded."""
+    d = Path(parent).absolute()
+    for _ in range(_RECORD_SEARCH_DEPTH):
+        if (d / WRITTEN_RECORD).is_file():
+            break
+        if d.parent == d:
+            return
+        d = d.parent
+    else:
+        return
+    try:
+        prefix = Path(parent).absolute().relative_to(d).as_posix()
+    except ValueError:
+        return
+    rels = []
+    for name in names:
+        rel = name if prefix == "." else f"{prefix}/{name}"
+        parts = rel.split("/")
+        if rel == WRITTEN_RECORD or any(p.startswith(".") for p in parts[:-1]):
+            continue
+        rels.append(rel)
+    if not rels:
+        return
+    try:
+        with _record_lock:
+            add_to_written_record(d, rels)
+    except (OSError, ValueError) as exc:
+        log.warning("%s: could not add %d written file(s) to the record (%s); a later "
+                    "'facegeo synth --overwrite' keeps them", d / WRITTEN_RECORD, len(rels), exc)
 
 
 def list_files(root: str | os.PathLike) -> list[str]:
@@ -434,6 +486,7 @@ def staged_directory(target: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             remove_tree(tmp)
         raise
+    _note_written(target.parent, [target.name + "/" + r for r in list_files(target)])
 
 
 def _pwrite(fd: int, data, pos: int) -> int:

@@ -131,6 +131,21 @@ def test_mesh_without_faces_is_an_error():
         build_atlas(v, np.zeros((4, 2), np.int64))
 
 
+def test_unreadable_mesh_files_are_input_errors(tmp_path):
+    """A mesh path that is not a mesh (an image, random bytes, a point cloud) is the user's
+    mistake: an InputError naming the file, not trimesh's own exception."""
+    from facegeo.pipeline.project import load_mesh
+
+    (tmp_path / "env.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    (tmp_path / "noise.ply").write_bytes(bytes(range(256)))
+    (tmp_path / "cloud.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\n"
+                                        "property float x\nproperty float y\nproperty float z\n"
+                                        "end_header\n0 0 0\n1 0 0\n0 1 0\n")
+    for name in ("env.png", "noise.ply", "cloud.ply"):
+        with pytest.raises(InputError, match=name):
+            load_mesh(None, str(tmp_path / name))
+
+
 def test_degenerate_faces_are_reported_or_dropped():
     v, f = _sphere(2)
     bad = np.vstack([f, [[0, 0, 1]], [[0, 1, 1]]])  # repeated indices

@@ -242,6 +242,33 @@ def test_relit_olat_frames_equal_the_generators_render(tiny_scan):
     assert np.array_equal(R.relight_scan_view(scan, name, w, read_ahead=2), got)
 
 
+def test_a_nan_pixel_in_a_frame_is_an_error_naming_the_file(tiny_scan, tmp_path):
+    """A corrupt frame (a NaN pixel) read by the relighting is named in the error, as
+    ``facegeo info --full`` names it — not a message about the relit image's encoding."""
+    import shutil
+
+    from facegeo.capture import imageio
+    from facegeo.capture.scan import load_scan
+
+    scan = tiny_scan[0]
+    root = tmp_path / "nan"
+    shutil.copytree(scan.root, root)
+    copy = load_scan(root)
+    name = copy.camera_names[0]
+    path = copy.olat_path(name, 3)
+    frame = imageio.read_image(path).astype(np.float32)
+    frame[5, 7, 1] = np.nan
+    path.unlink()
+    imageio.write_image(path, frame)
+    lights = copy.rig.lights
+    w = np.tile(lights.solid_angles[:, None], (1, 3))  # every light: frame 3 is read
+    with pytest.raises(InputError, match=r"0003\.exr: 1 pixel\(s\) are NaN or infinite "
+                                         r"\(first at row, col \(5, 7\)\).*light 3"):
+        R.relight_scan_view(copy, name, w)
+    w[3] = 0.0  # the bad frame carries no energy: not read, no error
+    assert np.isfinite(R.relight_scan_view(copy, name, w)).all()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("axis", [(1, 0, 0), (-1, 0, 0), (0, 1, 0)])
 def test_axis_lobe_lights_the_face_from_the_expected_side(tiny_scan, axis):
@@ -455,6 +482,32 @@ def test_texture_relight_without_a_projected_field_says_what_to_run(tiny_scan, t
 
     with pytest.raises(InputError, match="facegeo project"):
         relight_texture(tmp_path, np.ones((tiny_scan[0].n_lights, 3)))
+
+
+def test_a_projection_onto_another_atlas_is_refused(projected, tmp_path):
+    """The atlas rebuilt after the projection (other texel density): the fields' texel indices
+    would address other texels — a garbage image, silently, when they stay in range. The
+    readers compare the projection's recorded atlas fingerprint and say what to re-run."""
+    import shutil
+
+    from facegeo.pipeline.fit import run_fit
+    from facegeo.pipeline.project import ATLAS_FINGERPRINT, run_atlas
+    from facegeo.pipeline.relight import relight_texture
+    from facegeo.pipeline.render import run_render
+
+    scan, out = projected
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    assert (copy / "project" / ATLAS_FINGERPRINT).is_file()
+    w = np.ones((scan.n_lights, 3))
+    relight_texture(copy, w)  # the projection's own atlas: fine
+    run_atlas(scan.root, copy, texels_per_mm=2.0)  # more texels: every old index in range
+    with pytest.raises(InputError, match="projected onto another atlas"):
+        relight_texture(copy, w)
+    with pytest.raises(InputError, match="projected onto another atlas"):
+        run_fit(scan.root, copy)
+    with pytest.raises(InputError, match="projected onto another atlas"):
+        run_render(scan.root, copy, camera_spec=scan.camera_names[0], resynthesis=False)
 
 
 @pytest.mark.slow

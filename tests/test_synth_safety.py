@@ -152,6 +152,31 @@ def test_overwrite_keeps_user_files_and_removes_only_facegeo_files(old_scan):
     assert not leftovers(root.parent)
 
 
+def test_products_written_into_the_scan_are_recorded_and_replaced_with_it(old_scan):
+    """Products of the stages (a staged folder, single files) go into the scan's record as they
+    are written, so regenerating the scan removes them — they were computed from the old scan —
+    while the user's own file in ``out/`` stays."""
+    from facegeo.pipeline.project import run_atlas
+
+    root = old_scan
+    run_atlas(root, texels_per_mm=0.3)  # out/atlas/ (staged) and out/metrics.json (atomic)
+    fsutil.atomic_write_text(root / "out" / "views" / "note.json", "{}")
+    (root / "out" / "mine.txt").write_text("my notes")
+    rec = fsutil.read_written_record(root)
+    assert {"out/metrics.json", "out/atlas/atlas.npz", "out/atlas/texels.npz",
+            "out/atlas/stage.json", "out/views/note.json"} <= rec
+    assert "out/mine.txt" not in rec
+    assert not any(".facegeo-tmp-" in r for r in rec)  # staging folders never recorded
+
+    summary = generate_scan(root, "tiny", seed=2, overwrite=True)
+
+    assert summary.kept == ["out/mine.txt"]
+    assert (root / "out" / "mine.txt").read_text() == "my notes"
+    for gone in ("out/metrics.json", "out/atlas", "out/views"):
+        assert not (root / gone).exists(), gone
+    assert not leftovers(root.parent)
+
+
 @pytest.mark.slow
 def test_scan_without_record_keeps_files_its_manifest_does_not_list(old_scan):
     """A synthetic scan written before the record existed: the manifest tells facegeo's files

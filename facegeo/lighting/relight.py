@@ -420,6 +420,12 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
     Returns
     -------
     (H, W, 3) float32
+
+    Raises
+    ------
+    InputError
+        A frame read holds NaN or infinite pixels (naming the first such file; the relit image
+        is checked once, and only then are the frames read again to find it).
     """
     n_l = scan.n_lights
     w = normalize_weights(weights, n_l)[0]
@@ -428,8 +434,25 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
     if active.size == 0:
         cam = scan.camera(camera)
         return np.zeros((cam.height, cam.width, 3), np.float32)
-    return relight_frames(scan.iter_olat(camera, active.tolist(), read_ahead=read_ahead), w,
-                          n_l, light_color=color, progress=progress)
+    img = relight_frames(scan.iter_olat(camera, active.tolist(), read_ahead=read_ahead), w,
+                         n_l, light_color=color, progress=progress)
+    if not np.isfinite(img).all():
+        _raise_first_nonfinite_frame(scan, camera, active)
+    return img
+
+
+def _raise_first_nonfinite_frame(scan, camera: str, lights) -> None:
+    """Raise an InputError naming the first of ``lights``' frames with a non-finite pixel."""
+    for l, frame in scan.iter_olat(camera, [int(x) for x in lights]):
+        bad = ~np.isfinite(frame).all(axis=-1)
+        if bad.any():
+            r, c = (int(x) for x in np.argwhere(bad)[0])
+            raise InputError(
+                f"{scan.olat_path(camera, l)}: {int(bad.sum())} pixel(s) are NaN or infinite "
+                f"(first at row, col ({r}, {c})) (camera {camera!r}, light {l}); "
+                f"`facegeo info {scan.root} --full` checks every frame")
+    raise InputError(f"camera {camera!r}: the relit image is not finite (the weights or the "
+                     f"light colour overflow float32)")
 
 
 def tint_clothing(white: Any, black: Any, color: Any) -> np.ndarray:

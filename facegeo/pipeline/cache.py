@@ -32,7 +32,7 @@ from typing import Any
 
 from facegeo import __version__
 from facegeo.errors import InputError
-from facegeo.fsutil import atomic_write_text, clean_stale_siblings, staged_directory
+from facegeo.fsutil import atomic_write_text, clean_stale_siblings, file_sha256, staged_directory
 from facegeo.checks import fmt_value
 
 log = logging.getLogger(__name__)
@@ -136,8 +136,7 @@ class _HashMemo:
         hit = self.memo.get(k)
         if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
             return hit[2]
-        with open(p, "rb") as fh:
-            h = hashlib.file_digest(fh, "sha256").hexdigest()
+        h = file_sha256(p)
         self.memo[k] = [st.st_size, st.st_mtime_ns, h]
         self.changed = True
         return h

@@ -344,7 +344,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     )
     from facegeo.capture import imageio
     from facegeo.pipeline.bench import peak_rss_mb
-    from facegeo.pipeline.project import stage_rig, truth_gauge
+    from facegeo.pipeline.project import check_projection_atlas, stage_rig, truth_gauge
     from facegeo.render import FitWriter, atlas_scene, light_set, load_sources
     from facegeo.surface.atlas import Atlas, Texels
 
@@ -359,6 +359,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                              "(the atlas stage) first")
     atlas = Atlas.load(atlas_dir / "atlas.npz")
     tex = Texels.load(atlas_dir / "texels.npz")
+    check_projection_atlas(project_dir, atlas_dir / "texels.npz")
     sources = load_sources(project_dir)
     the_rig, rig_used = stage_rig(scan, rig)
     lights = light_set(the_rig.lights)

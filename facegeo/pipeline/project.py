@@ -19,6 +19,8 @@ it is missing) and writes ``out_dir/project/``:
                               (read with facegeo.surface.reflectance.open_blended)
     preview.png               the mean over lights, blended over cameras, pull–push filled
                               (display only: unseen texels are never counted as measured)
+    atlas.sha256              SHA-256 of the atlas's texels.npz the fields index: readers
+                              refuse a projection onto another atlas (check_projection_atlas)
     stage.json
 
 Each stage writes into a temporary sibling folder that replaces the old one only when complete,
@@ -79,7 +81,7 @@ import numpy as np
 
 from facegeo.errors import InputError
 from facegeo.frames import stratified_light_subset
-from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_write_text, staged_directory
+from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_write_text, file_sha256, staged_directory
 from facegeo.pipeline.bench import peak_rss_mb
 from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 from facegeo.checks import check_positive_int, fmt_value
@@ -122,8 +124,33 @@ def load_mesh(scan, mesh: str = "ground_truth") -> tuple[np.ndarray, np.ndarray,
     path = Path(mesh)
     if not path.is_file():
         raise InputError(f"mesh: {path} is not a file")
-    m = trimesh.load(path, process=False, force="mesh")
+    try:
+        m = trimesh.load(path, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types for unknown or unreadable files
+        raise InputError(f"mesh: cannot read {path} as a mesh (PLY, OBJ, GLB, STL, OFF): "
+                         f"{type(exc).__name__}: {exc}") from exc
+    if len(getattr(m, "faces", ())) == 0:  # a point cloud, a scene without triangles
+        raise InputError(f"mesh: {path} holds no triangles (read a {type(m).__name__} with "
+                         f"{len(getattr(m, 'vertices', ()))} vertices)")
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64), str(path)
+
+
+#: File in the ``project`` folder naming the atlas its fields index (SHA-256 of texels.npz).
+ATLAS_FINGERPRINT = "atlas.sha256"
+
+
+def check_projection_atlas(project_dir, texels_path) -> None:
+    """Raise an InputError when the fields in ``project_dir`` were projected onto another
+    atlas than ``texels_path`` (``texel_index.npy`` would index the wrong texels: an atlas
+    rebuilt with other settings after the projection). Projections written before the
+    fingerprint was recorded are not checked (their index ranges still are, by the readers)."""
+    f = Path(project_dir) / ATLAS_FINGERPRINT
+    if not f.is_file():
+        return
+    if f.read_text(encoding="utf-8").strip() != file_sha256(texels_path):
+        raise InputError(f"{project_dir} was projected onto another atlas than {texels_path} "
+                         f"(the atlas was rebuilt after the projection); re-run 'facegeo "
+                         f"project' (or 'facegeo reconstruct') so the fields index this atlas")
 
 
 def _record(out_dir: Path, stage_dir: Path, name: str, settings: dict, metrics: dict) -> None:
@@ -603,6 +630,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     png = np.clip(np.nan_to_num(img) / max(scale, 1e-12), 0, 1) ** (1 / 2.2)
     cv2.imwrite(str(dest / "preview.png"),
                 (png[..., ::-1] * 255 + 0.5).astype(np.uint8))
+    atomic_write_text(dest / ATLAS_FINGERPRINT, file_sha256(atlas_dir / "texels.npz") + "\n")
     metrics: dict[str, Any] = {
         "texels": int(T), "lights": int(scan.n_lights), "rig": rig_used,
         "cameras": per_cam,

@@ -68,6 +68,9 @@ def _project_cameras(project_dir: Path, texels_path: Path) -> list[Path]:
         raise InputError(f"{project_dir.parent}: relighting in texture space needs the texture "
                          f"atlas ({texels_path}) and the surface reflectance field "
                          f"({project_dir}/<camera>/R.npy); run 'facegeo project SCAN' first")
+    from facegeo.pipeline.project import check_projection_atlas
+
+    check_projection_atlas(project_dir, texels_path)
     return cams
 
 

@@ -238,7 +238,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     from facegeo.fsutil import atomic_write_text
     from facegeo.lighting import envmap as E
     from facegeo.pipeline.fit import _camera_table
-    from facegeo.pipeline.project import stage_rig, truth_gauge
+    from facegeo.pipeline.project import check_projection_atlas, stage_rig, truth_gauge
     from facegeo.pipeline.relight import tone_map
     from facegeo.render import (
         atlas_scene,
@@ -275,6 +275,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     lights = light_set(stage)
     atlas = Atlas.load(out / "atlas" / "atlas.npz")
     texels = Texels.load(out / "atlas" / "texels.npz")
+    check_projection_atlas(out / "project", out / "atlas" / "texels.npz")
     sources = load_sources(out / "project", (out / "fit") if resynthesis else None)
     t_load = time.perf_counter()
     has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys)
