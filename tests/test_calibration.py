@@ -426,6 +426,18 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
         assert np.allclose(rig2.camera(name).K, rig.camera(name).K, rtol=1e-9)
         assert m2["cameras"][name]["reprojection_rms_px"] == pytest.approx(
             m["cameras"][name]["reprojection_rms_px"], rel=1e-9)
+    # a failed run leaves no folder of its own behind: neither the scan's out/calibrate
+    # (staged) nor a new folder given as out_dir
+    from facegeo.errors import InputError
+
+    for out in (None, tmp_path / "new"):
+        with pytest.raises(InputError, match="no camera 'cam_mid'"):
+            run_calibrate(tmp_path / "scan", out, reference="cam_mid")
+    assert not (tmp_path / "scan" / "out" / "calibrate").exists()
+    assert not (tmp_path / "new").exists()
+    # the default folder: written whole (staged) when the run succeeds
+    run_calibrate(tmp_path / "scan", cross_validation=False)
+    assert (tmp_path / "scan" / "out" / "calibrate" / "rig.json").is_file()
 
 
 #: local-homography projector corners vs the exact map, Gray-quantised codes: worst, projector px

@@ -312,6 +312,11 @@ def test_run_relight_writes_exr_png_and_metrics(tiny_scan, tmp_path):
     assert m["active_lights"] == len(calls) and m["view"] == scan.camera_names[1]
     # Σ w vs ∫ L: the paper's midpoint δA on the tiny 16 × 8 grid reads 0.6 % high
     assert np.allclose(m["energy_ratio"], 1.0, atol=0.01)
+    # the exact δA rule writes files of its own beside the paper rule's, never over them
+    mx = run_relight(scan.root, env_file, rotate_deg=30, view=scan.camera_names[1],
+                     out_dir=tmp_path / "out", solid_angle="exact")
+    assert mx["files"]["exr"] != m["files"]["exr"] and mx["files"]["exr"].endswith("_exact.exr")
+    assert np.array_equal(imageio.read_image(m["files"]["exr"]), exr)
 
 
 @pytest.mark.slow

@@ -261,6 +261,11 @@ def test_run_render_writes_images_and_metrics(parts):
     assert m["coverage"] > 0.8
     doc = json.loads((root / "out" / "metrics.json").read_text())
     assert doc["views"]["views"]["o30"]["psnr_db"] == m["psnr_db"]
+    # the report's speed-against-error row of the standalone views has their figures
+    from facegeo.pipeline.report import summary_rows
+
+    row = next(r for r in summary_rows(doc) if r["stage"] == "views")
+    assert row["errors"]["psnr_db_min"] <= m["psnr_db"] and row["seconds"] > 0
 
 
 def test_run_render_errors(parts, tmp_path):

@@ -41,7 +41,7 @@ import numpy as np
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import Pose
-from facegeo.fsutil import atomic_write_text
+from facegeo.fsutil import atomic_write_text, staged_directory
 
 log = logging.getLogger(__name__)
 
@@ -281,7 +281,10 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool =
     scan_dir : path-like or Scan
         A scan directory (:func:`facegeo.capture.scan.load_scan`) or a loaded scan.
     out_dir : path-like, optional
-        Where to write the products (default ``<scan>/out/calibrate``).
+        Where to write the products. Default ``<scan>/out/calibrate``, written into a staging
+        folder swapped in when complete (a failed run leaves the previous calibration as it
+        was); a folder you give is written into, and removed again when this run created it
+        and failed before writing anything into it.
     model, legacy, loss, reference, cross_validation, progress
         See :func:`calibrate_products`.
 
@@ -291,10 +294,23 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool =
         The metrics of :func:`calibrate_products`.
     """
     scan = _scan(scan_dir)
-    out = Path(out_dir) if out_dir is not None else scan.out_dir / "calibrate"
-    metrics, _ = calibrate_products(scan, out, model=model, legacy=legacy, loss=loss,
-                                    reference=reference, cross_validation=cross_validation,
-                                    progress=progress)
+    kw = dict(model=model, legacy=legacy, loss=loss, reference=reference,
+              cross_validation=cross_validation, progress=progress)
+    if out_dir is None:  # the scan's own out/calibrate: staged, swapped in only when complete
+        out = scan.out_dir / "calibrate"
+        with staged_directory(out) as tmp:
+            metrics, _ = calibrate_products(scan, tmp, **kw)
+            atomic_write_text(tmp / "metrics.json",
+                              json.dumps({"calibrate": metrics}, indent=1) + "\n")
+        return metrics
+    out = Path(out_dir)  # a folder of the user's: written into; removed again if created empty
+    created = not out.exists()
+    try:
+        metrics, _ = calibrate_products(scan, out, **kw)
+    except BaseException:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
     atomic_write_text(out / "metrics.json", json.dumps({"calibrate": metrics}, indent=1) + "\n")
     return metrics
 

@@ -295,7 +295,10 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     rot = f"{float(rotate):g}".replace("-", "m")
-    stem = f"{_safe_stem(Path(str(env)).stem)}_rot{rot}_{_safe_stem(view)}"
+    # the δA rule is part of the name when it is not the default (an exact-solid-angle relight
+    # does not overwrite the paper's)
+    rule = "" if solid_angle == "paper" else f"_{_safe_stem(solid_angle)}"
+    stem = f"{_safe_stem(Path(str(env)).stem)}_rot{rot}_{_safe_stem(view)}{rule}"
     exr = imageio.write_image(dest / f"{stem}.exr", img)  # atomic (temporary file + rename)
     png_img, exposure = tone_map(img)
     png = imageio.write_image(dest / f"{stem}.png", png_img)

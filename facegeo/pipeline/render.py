@@ -436,7 +436,14 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
         m = render_one(scan, out, dest, camera_spec=spec, env=env, progress=tick,
                        cache=cache, **settings)
         per_view[m["name"]] = {key: v for key, v in m.items() if key != "stats"}
-    metrics: dict[str, Any] = {"views": per_view, "env": str(env)}
+    return {"views": per_view, "env": str(env), **_views_summary(per_view)}
+
+
+def _views_summary(per_view: dict) -> dict:
+    """The figures over several views' metrics: ``psnr_db_min`` / ``_mean``,
+    ``naive_psnr_db_mean``, ``psnr_gain_db_min``, ``psnr_gain_db_covered_min``,
+    ``paper_psnr_db_mean`` (each over the views that have it) and ``seconds`` (their sum)."""
+    metrics: dict[str, Any] = {}
     psnr = [v["psnr_db"] for v in per_view.values() if v.get("psnr_db") is not None]
     naive = [v["naive_psnr_db"] for v in per_view.values() if v.get("naive_psnr_db") is not None]
     gain = [v["psnr_gain_db"] for v in per_view.values() if v.get("psnr_gain_db") is not None]
@@ -454,7 +461,7 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     paper = [v["paper_psnr_db"] for v in per_view.values() if v.get("paper_psnr_db") is not None]
     if paper:
         metrics["paper_psnr_db_mean"] = round(float(np.mean(paper)), 4)
-    metrics["seconds"] = round(sum(v["seconds"] for v in per_view.values()), 4)
+    metrics["seconds"] = round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)
     return metrics
 
 
@@ -476,4 +483,6 @@ def _merge_metrics(out: Path, stem: str, metrics: dict) -> None:
         doc = {}
     views = doc.get("views", {}) if isinstance(doc.get("views"), dict) else {}
     views[stem] = {k: v for k, v in metrics.items() if k not in ("stats",)}
-    record_metrics(out, "views", {"views": views})
+    # the summary figures beside the views, as the render stage records them (the report's
+    # speed-against-error row)
+    record_metrics(out, "views", {"views": views, **_views_summary(views)})
