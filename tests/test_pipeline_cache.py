@@ -143,6 +143,22 @@ def test_corrupt_manifest_reruns(scan):
     assert calls == ["a"]  # b's key depends only on a's key, which is unchanged
 
 
+def test_products_of_a_standalone_command_are_rebuilt_with_a_warning(scan, caplog):
+    """A stage folder whose manifest has no key (``facegeo atlas`` / ``project`` write their
+    own) cannot be trusted by the cache: rebuilt, and the log says so — not silently."""
+    import json
+    import logging
+
+    calls: list[str] = []
+    (scan / "out" / "a").mkdir(parents=True)
+    (scan / "out" / "a" / MANIFEST_NAME).write_text(json.dumps(
+        {"stage": "a", "settings": {"texels_per_mm": 2.0}, "metrics": {}}))
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.cache"):
+        _toy_pipeline(calls).run(scan)
+    assert calls == ["a", "b"]
+    assert "outside the stage cache" in caplog.text and "texels_per_mm" in caplog.text
+
+
 def test_from_and_only(scan):
     calls: list[str] = []
     p = _toy_pipeline(calls)

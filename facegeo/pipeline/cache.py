@@ -269,6 +269,7 @@ class Pipeline:
                     result = StageResult(spec.name, key, False, 0.0, cached.get("metrics", {}),
                                          final)
                 else:
+                    self._warn_if_standalone(final)
                     result = self._run_stage(spec, scan_dir, out, key, stage_settings, inputs,
                                              keys, progress)
                     record_metrics(out, spec.name, result.metrics)
@@ -306,6 +307,20 @@ class Pipeline:
         }
         blob = _canonical_json(doc, f"stage {spec.name!r} settings")
         return hashlib.sha256(blob.encode()).hexdigest(), inputs
+
+    @staticmethod
+    def _warn_if_standalone(final: Path) -> None:
+        """Say so when the products about to be replaced were written by a stage's own
+        command (``facegeo atlas``, ``facegeo project``: a manifest without a key), whose
+        settings the cache cannot know: they are rebuilt with the pipeline's settings."""
+        try:
+            m = json.loads((final / MANIFEST_NAME).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return
+        if isinstance(m, dict) and "key" not in m:
+            log.warning("%s was written by 'facegeo %s' outside the stage cache (settings %s); "
+                        "rebuilding it with the pipeline's settings", final, final.name,
+                        m.get("settings", {}))
 
     @staticmethod
     def _cached_manifest(final: Path, key: str) -> dict | None:
