@@ -37,12 +37,16 @@ FLAG_GRAZING_VIEW = 32  #: n·v below GRAZING_COS: the view grazes the surface
 FLAG_SPECULAR_IN_SHADOW = 64  #: resynthesis: some specular samples came from shadowed lights
 FLAG_SPECULAR_SKIPPED = 128  #: resynthesis: negligible specular energy, specular not modelled
 FLAG_BACKFACING = 256  #: resynthesis: the novel view is at or below the surface's horizon
+#: some samples were masked by the caller (untrusted pixels: black-clipped, saturated or
+#: non-finite, e.g. the projected field's NaN samples) and left out
+FLAG_MASKED = 512
 
 FLAG_NAMES = {
     FLAG_BLACK: "black", FLAG_SINGULAR: "singular", FLAG_SHADOWED: "shadowed",
     FLAG_SATURATED: "saturated", FLAG_SINGLE_CHANNEL: "single_channel",
     FLAG_GRAZING_VIEW: "grazing_view", FLAG_SPECULAR_IN_SHADOW: "specular_in_shadow",
     FLAG_SPECULAR_SKIPPED: "specular_skipped", FLAG_BACKFACING: "backfacing",
+    FLAG_MASKED: "masked",
 }
 
 #: Minimum number of unshadowed, unsaturated samples for a lobe fit.
@@ -952,12 +956,13 @@ def specular_energy(S, shadow, lights: LightSet, n, v, eta):
     return np.maximum(out, 0.0)
 
 
-def check_reflectance(R, lights: LightSet):
-    """Validate reflectance functions: ``(N, L, 3)``, ``(N, L, 1)`` or ``(N, L)``, finite, ≥ 0.
+def check_reflectance(R, lights: LightSet, masked=None):
+    """Validate reflectance functions: ``(N, L, 3)``, ``(N, L, 1)`` or ``(N, L)``, finite, ≥ 0
+    — except at the samples ``masked`` ``(N, L)`` bool marks, whose values are not checked.
 
     Returns ``(R (N, L, C) in its own dtype, single_channel)``: callers convert per chunk.
     """
-    R = as_array(R, "R", dtype=None)
+    R = as_array(R, "R", dtype=None, finite=masked is None)
     if R.ndim == 2:
         R = R[..., None]
     if R.ndim != 3 or R.shape[2] not in (1, 3):
@@ -967,7 +972,17 @@ def check_reflectance(R, lights: LightSet):
                          f"got shape {R.shape}")
     if not (np.issubdtype(R.dtype, np.floating) or np.issubdtype(R.dtype, np.integer)):
         raise InputError(f"R: expected real numbers, got dtype {R.dtype}")
-    if np.any(R < 0):
+    keep = None
+    if masked is not None:
+        keep = ~check_mask(masked, "masked", R.shape[0], R.shape[1])[..., None]
+        if np.issubdtype(R.dtype, np.floating):
+            bad = ~np.isfinite(R) & keep
+            if bad.any():
+                raise InputError(f"R: {int(bad.sum())} non-finite value(s) (NaN or inf) outside "
+                                 f"the masked samples; first at index "
+                                 f"{tuple(int(i) for i in np.argwhere(bad)[0])}")
+    neg = R < 0 if keep is None else (R < 0) & keep
+    if np.any(neg):
         raise InputError("R: reflectance must be >= 0 (subtract the ambient frame and clip)")
     return R, R.shape[2] == 1
 

@@ -38,6 +38,7 @@ from facegeo.appearance._skin_fit import (
     FLAG_BACKFACING,
     FLAG_BLACK,
     FLAG_GRAZING_VIEW,
+    FLAG_MASKED,
     FLAG_NAMES,
     FLAG_SATURATED,
     FLAG_SHADOWED,
@@ -89,7 +90,7 @@ __all__ = [
     "view_independent",
     "direct_search", "flag_names", "check_mask", "FLAG_NAMES", "FLAG_BLACK", "FLAG_SINGULAR", "FLAG_SHADOWED",
     "FLAG_SATURATED", "FLAG_SINGLE_CHANNEL", "FLAG_GRAZING_VIEW", "FLAG_SPECULAR_IN_SHADOW",
-    "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
+    "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "FLAG_MASKED", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
 ]
 
 #: Samples (functions × lights) per chunk of the analysis. With the compiled kernels
@@ -140,6 +141,8 @@ class SkinFit:
         twice the threshold), plus every light the caller's visibility hides: occluded lights.
         Resynthesis puts no specular lobe there (§4.4).
     saturated : (N, L) bool
+        Samples left out of the analysis as untrusted: saturated (``saturation``) or masked by
+        the caller (``masked``; :data:`FLAG_SATURATED` and :data:`FLAG_MASKED` say which).
     flags : (N,) int32; valid : (N,) bool
     eta : float
     single_channel : bool
@@ -294,6 +297,7 @@ def shadow_map(R, *, threshold: float = SHADOW_THRESHOLD, visibility=None, satur
 
 
 def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: float | None = None,
+                    masked=None,
                     eta: float = 1.4, depth: SearchDepth | None = None,
                     shadow_threshold: float = SHADOW_THRESHOLD, d_0=None, rounds: int = 1,
                     chunk: int | None = None, threads: int = 1,
@@ -303,8 +307,9 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
 
     Steps, each vectorised over a chunk of functions:
 
-    1. White-balance by the light intensities; mask saturated samples; shadow map (§4.4,
-       :func:`shadow_map`); the analysis runs on unshadowed, unsaturated samples.
+    1. White-balance by the light intensities; mask saturated samples and the caller's masked
+       ones; shadow map (§4.4, :func:`shadow_map`); the analysis runs on unshadowed,
+       unsaturated, unmasked samples.
     2. Initial uniform diffuse chromaticity d_0 from the median R/G and G/B ratios in a
        brightness range, and a colour-space separation with it (§4.2, :func:`separate_colour`).
     3. Normal: the closed-form first moment Σ D ω δA (Ma et al. 2007), then the Lambertian-lobe
@@ -332,6 +337,13 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         True where the light is visible from the point (shadow rays); False lights are shadowed.
     saturation : float, optional
         Samples with any channel ≥ this value (input units) are masked as saturated.
+    masked : (N, L) bool, optional
+        True where a sample cannot be trusted (a masked pixel: black-clipped, saturated or
+        non-finite — the projected field's NaN samples). Its value is ignored (it may be NaN)
+        and taken as 0 (so D = S = 0 there); it is left out of the analysis like a saturated
+        sample (in ``saturated``) and its function is flagged :data:`FLAG_MASKED`. Black-clipped
+        samples are dark, so the shadow map marks them shadowed, as it would the measured
+        zeros; a function keeps a valid fit while MIN_SAMPLES lit samples remain.
     eta : float
         Index of refraction for F (ρ_s estimate).
     depth : SearchDepth, optional
@@ -383,7 +395,7 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
     -------
     SkinFit
     """
-    R, single = check_reflectance(R, lights)
+    R, single = check_reflectance(R, lights, masked)
     N, L, C = R.shape
     # one writable C-contiguous float64 copy (N × 3): a read-only or broadcast view would give
     # the compiled kernels a second type signature, i.e. a second cold compile of each
@@ -410,6 +422,9 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         raise InputError(f"specular_gate: expected a finite number >= 0 (noise σ's), got "
                          f"{fmt_value(specular_gate)}")
     vis = None if visibility is None else check_mask(visibility, "visibility", N, L)
+    mask = None if masked is None else check_mask(masked, "masked", N, L)
+    if mask is not None and not mask.any():
+        mask = None
     if single:
         log.info("single-channel reflectance functions: colour separation is impossible; "
                  "fitting the diffuse lobe alone")
@@ -434,22 +449,35 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         # the final separation writes D ⊙ E as float32: into D itself, or a chunk scratch
         D32 = D[sl] if D.dtype == np.float32 else np.empty((sl.stop - i, L, C), np.float32)
         stats = None
+        Rs = R[sl]
+        m = None if mask is None else mask[sl]
+        if m is not None and m.any():
+            # masked samples as 0: a value the steps below ignore (saturated) or read as dark
+            Rs = np.where(m[..., None], np.zeros((), Rs.dtype), Rs)
+        else:
+            m = None
         if _skin_fit.KERNELS:
             # white balance, saturation, shadow map and the brightness statistics in one pass
             from facegeo.appearance._skin_kernels_samples import prepare_chunk
 
-            Rs = R[sl]
             if Rs.dtype not in (np.float32, np.float64):  # float16 maps, integers: one kernel
                 Rs = Rs.astype(np.float64)
+            # a masked sample's 0 counts in the statistics as a saturated one's does (as 0)
             Rw, sat[sl], shadow[sl], bmax, ref = prepare_chunk(
                 np.ascontiguousarray(Rs), np.ascontiguousarray(E, np.float64),
                 np.inf if saturation is None else float(saturation), float(shadow_threshold),
                 no_vis if vis is None else np.ascontiguousarray(vis[sl]), vis is not None)
             stats = (bmax, ref)
+            sat_only = sat[sl].any(axis=1) if m is not None else None
+            if m is not None:
+                sat[sl] |= m
         else:
-            Rc = np.asarray(R[sl], np.float64)
+            Rc = np.asarray(Rs, np.float64)
             if saturation is not None:
                 sat[sl] = (Rc >= float(saturation)).any(axis=2)
+            sat_only = sat[sl].any(axis=1) if m is not None else None
+            if m is not None:
+                sat[sl] |= m
             Rw = Rc / E[None]
             shadow[sl] = shadow_map(Rw, threshold=shadow_threshold,
                                     visibility=None if vis is None else vis[sl],
@@ -457,14 +485,18 @@ def fit_reflectance(R, v, lights: LightSet, *, visibility=None, saturation: floa
         res = _fit_chunk(Rw, v[sl], lights, shadow[sl], sat[sl], single, eta, depth,
                          shadow_threshold, None if d_0 is None else d_0[sl], rounds,
                          specular_gate, stats, D32 if _skin_fit.KERNELS else None)
+        if m is not None:  # FLAG_SATURATED for saturation only, FLAG_MASKED for the mask
+            res["flags"] = (res["flags"] & ~FLAG_SATURATED
+                            | np.where(sat_only, FLAG_SATURATED, 0)
+                            | np.where(m.any(axis=1), FLAG_MASKED, 0))
         if res["D"] is not None:  # else the final separation wrote D32 itself
             D32[...] = res["D"] * E[None]  # float32 on assignment
         if D.dtype != np.float32:
             float32_to_halves(D32, D[sl])  # rounded as numpy's cast, on the worker (compiled)
         if S is not None:
             # S here, on the worker (not after all chunks, serially), from the stored D: D + S
-            # = R up to one float32 rounding
-            np.subtract(R[sl], D[sl], out=S[sl], dtype=np.float32)
+            # = R up to one float32 rounding (masked samples: 0 − D, D = 0 there)
+            np.subtract(Rs, D[sl], out=S[sl], dtype=np.float32)
         return {k: res[k] for k in out}
 
     for res in _map_chunks(run, starts, threads):

@@ -35,7 +35,8 @@ def _luminance(lin: np.ndarray) -> np.ndarray:
 class _ScanReaders:
     """Reading methods mixed into :class:`~facegeo.capture.scan.Scan`."""
 
-    def _read(self, group: str, camera: str, path: Path, *, return_mask: bool):
+    def _read(self, group: str, camera: str, path: Path, *, return_mask: bool,
+              clipped_valid: bool = False):
         raw = read_image(path)
         cam = self.camera(camera)
         h, w = raw.shape[:2]
@@ -49,12 +50,14 @@ class _ScanReaders:
             return lin, None
         if raw.dtype.kind == "f":
             valid = np.isfinite(raw) if raw.ndim == 2 else np.isfinite(raw).all(axis=-1)
+        elif clipped_valid:
+            valid = ~saturated_mask(raw)
         else:
             valid = ~(saturated_mask(raw) | clipped_mask(raw))
         return lin, valid
 
     def olat_frame(self, camera: str, light: int | str, *, return_mask: bool = False,
-                   subtract_ambient: bool = False):
+                   subtract_ambient: bool = False, black_clipped: str = "masked"):
         """One OLAT frame, linear.
 
         Parameters
@@ -68,6 +71,12 @@ class _ScanReaders:
         subtract_ambient : bool
             Subtract :meth:`ambient_frame` (needs ``olat.ambient``). The difference is not
             clipped: noise leaves small negative values where a light adds nothing.
+        black_clipped : {"masked", "dark"}
+            With ``return_mask``: ``"masked"`` (the convention) flags black-clipped samples of
+            integer frames as untrusted; ``"dark"`` counts them as measured dark values (the
+            true value lies below one code value) and flags only saturated ones — what the
+            projection of a one-light-at-a-time frame wants, where most of the head is in
+            shadow (:func:`facegeo.pipeline.project.run_project`).
 
         Returns
         -------
@@ -78,13 +87,17 @@ class _ScanReaders:
             False where a sample is saturated or black-clipped (integer frames) or non-finite
             (float frames).
         """
-        lin, valid = self._olat_read(camera, self.olat_path(camera, light), return_mask)
+        check_choice(black_clipped, "black_clipped", ("masked", "dark"))
+        lin, valid = self._olat_read(camera, self.olat_path(camera, light), return_mask,
+                                     clipped_valid=black_clipped == "dark")
         if subtract_ambient:
             lin = lin - self.ambient_frame(camera)
         return (lin, valid) if return_mask else lin
 
-    def _olat_read(self, camera: str, path: Path, return_mask: bool):
-        lin, valid = self._read("olat", camera, path, return_mask=return_mask)
+    def _olat_read(self, camera: str, path: Path, return_mask: bool, *,
+                   clipped_valid: bool = False):
+        lin, valid = self._read("olat", camera, path, return_mask=return_mask,
+                                clipped_valid=clipped_valid)
         exposure = float(self._section("olat").get("exposure", 1.0))
         if exposure != 1.0:
             lin = lin / np.float32(exposure)
@@ -116,7 +129,7 @@ class _ScanReaders:
 
     def iter_olat(self, camera: str, lights: Sequence[int] | None = None, *,
                   return_mask: bool = False, subtract_ambient: bool = False,
-                  read_ahead: int = 0) -> Iterator[tuple]:
+                  read_ahead: int = 0, black_clipped: str = "masked") -> Iterator[tuple]:
         """Yield ``(light, frame)`` (or ``(light, frame, valid)``) for ``lights`` (default the
         lights ``camera`` has, in light-index order), reading one frame at a time.
 
@@ -124,12 +137,13 @@ class _ScanReaders:
         works on this one (:func:`facegeo.fsutil.read_ahead`; a few frames in flight, bounded
         in bytes). Image reads hide native libraries' console output while they run
         (``imageio``), so what other threads print meanwhile goes to the debug log: use it
-        where nothing reports progress during the loop (the projection does not)."""
+        where nothing reports progress during the loop (the projection does not).
+        ``black_clipped``: see :meth:`olat_frame`."""
         from facegeo.fsutil import read_ahead as ahead
 
         def read(light):
             out = self.olat_frame(camera, light, return_mask=return_mask,
-                                  subtract_ambient=subtract_ambient)
+                                  subtract_ambient=subtract_ambient, black_clipped=black_clipped)
             return (light, *out) if return_mask else (light, out)
 
         yield from ahead(read, self.camera_frames("olat", camera) if lights is None else lights,

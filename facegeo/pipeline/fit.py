@@ -22,8 +22,11 @@ needs (the renderer's bilinear taps, :func:`facegeo.render.trace_view`); ``max_t
 subsamples each camera's selection evenly (the tiny preset, tests). The renderer falls back to
 a texel's measured function where it has no fit (counted as ``unfitted``).
 
-Metrics: per camera ``functions``, ``seconds``, ``functions_per_second``, flag counts; with the
-synthetic scan's ground truth (generator renderer, ground-truth mesh) over fitted, valid texels:
+Metrics: per camera ``functions``, ``seconds``, ``functions_per_second``, ``valid_functions``,
+flag counts (``masked``: functions with masked samples, each left out alone); ``valid_functions``
+overall (0 is logged as a warning with the flag counts); with the synthetic scan's ground truth
+(generator renderer, ground-truth mesh) over fitted, valid texels (``gt_valid_functions``; the
+medians are null when there are none):
 
 * ``normal_median_error_deg`` — against the generator's shading normal at the texel;
 * ``albedo_rel_error`` — median ``|ρ_d − α_0| / |α_0|`` with α_0 the generator's diffuse colour
@@ -212,8 +215,12 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
     Bounded memory and no fresh memory per chunk: the rows are gathered and widened to float32
     into reused buffers (one compiled pass for a float16 field); D is written by the fit
     straight into a reused buffer of the store's dtype, from which the writer stores it; S is
-    not formed (the store keeps D; S = R − D). A function with any non-finite sample (a
-    masked pixel) is fitted as black and flagged (``finite`` False). Pipelined: while one
+    not formed (the store keeps D; S = R − D). Non-finite samples (the projection's masked
+    pixels: black-clipped, saturated or non-finite) are masked sample by sample
+    (``fit_reflectance(masked=…)``: left out of the analysis, D = 0 there, ``FLAG_MASKED``);
+    ``finite`` is False for a function that had any. A 16-bit PNG scan's black-clipped
+    shadows are masked in every function, so masking whole functions fitted none of them.
+    Pipelined: while one
     chunk is fitted (on a background thread, which runs ``fit_reflectance`` and its
     ``threads`` workers), the next chunk's rows are read, the previous chunk is stored and the
     caller handles its results, so the cores do not wait for the serial steps (two sets of
@@ -229,6 +236,10 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
     writer : FitWriter — announced for ``n`` functions
     texel_index : (T,) int — each row's texel
     eta, depth, chunk, threads — as :func:`facegeo.appearance.skin.fit_reflectance`
+
+    Yields
+    ------
+    rows : (k,) int64; fit : SkinFit; finite : (k,) bool — no sample of the function was masked
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -251,7 +262,7 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
             for _ in range(min(2, len(starts)))]
 
     def read(q):
-        # chunk q's rows, widened and masked, in buffer set q % 2
+        # chunk q's rows, widened, and their masked samples (None: none), in buffer set q % 2
         rr = rows[starts[q]:starts[q] + chunk]
         gathered, wide, _ = sets[q % 2]
         k = rr.size
@@ -264,15 +275,20 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
             g = np.take(field, rr, axis=0, out=gathered[:k], mode="clip")  # rows are in range
             R = g if wide is None else _float32_rows(g, wide[:k])
             ok = np.isfinite(R).all(axis=(1, 2))
-        if not ok.all():
-            R[~ok] = 0.0  # masked samples: fitted as black, flagged
-        return rr, R, ok
+        masked = None
+        if not ok.all():  # masked samples, sample by sample (only the rows that have any)
+            bad = np.flatnonzero(~ok)
+            m = ~np.isfinite(R[bad]).all(axis=2)
+            R[bad] = np.where(m[..., None], np.float32(0.0), R[bad])
+            masked = np.zeros((k, L), bool)
+            masked[bad] = m
+        return rr, R, ok, masked
 
     def submit(pool, q, got):
-        rr, R, _ = got
-        return pool.submit(fit_reflectance, R, v_world[rr], lights, eta=eta, depth=depth,
-                           threads=threads, diffuse_out=sets[q % 2][2][:rr.size],
-                           specular=False)
+        rr, R, _, masked = got
+        return pool.submit(fit_reflectance, R, v_world[rr], lights, masked=masked, eta=eta,
+                           depth=depth, threads=threads,
+                           diffuse_out=sets[q % 2][2][:rr.size], specular=False)
 
     if not starts:
         return
@@ -284,7 +300,7 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
             fit = job.result()
             if nxt is not None:
                 job = submit(pool, q + 1, nxt)  # the cores fit q + 1 while q is stored
-            rr, _, ok = cur
+            rr, _, ok, _ = cur
             writer.write(rr, texel_index[rr], fit)
             yield rr, fit, ok  # the caller's work on chunk q runs while q + 1 is fitted
             cur = nxt
@@ -415,13 +431,16 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                            src.field.shape[2], diffuse_dtype)
         flag_parts = []
         done = 0
-        for rr, fit, ok in fit_chunks(src.field, rows, src.v_world, lights, writer,
-                                      src.texel_index, eta=eta, depth=depth, chunk=int(chunk),
-                                      threads=threads):
+        n_valid = 0
+        for rr, fit, _ in fit_chunks(src.field, rows, src.v_world, lights, writer,
+                                     src.texel_index, eta=eta, depth=depth, chunk=int(chunk),
+                                     threads=threads):
             flag_parts.append(fit.flags)
             done += len(rr)
+            n_valid += int(np.count_nonzero(fit.valid))
             t_id = src.texel_index[rr]
-            wc = np.where(fit.valid & ok, src.weight[rr].astype(np.float64), 0.0)
+            # masked samples are left out of each fit (fit_chunks): a valid fit counts
+            wc = np.where(fit.valid, src.weight[rr].astype(np.float64), 0.0)
             acc["normal"][t_id] += wc[:, None] * fit.normal
             acc["rho_d"][t_id] += wc[:, None] * fit.rho_d
             acc["rho_s"][t_id] += wc * fit.rho_s
@@ -436,8 +455,12 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             "functions": int(rows.size), "measured_texels": int(src.texel_index.size),
             "seconds": round(seconds, 4),
             "functions_per_second": round(rows.size / max(seconds, 1e-9), 1),
+            "valid_functions": n_valid,
             "flags": {name: int(np.count_nonzero(flags & bit)) for bit, name in FLAG_NAMES.items()},
         }
+        if rows.size and n_valid == 0:
+            log.warning("fit: camera %s: none of its %d functions has a valid fit (flags: %s)",
+                        src.name, rows.size, _flag_summary(per_cam[src.name]["flags"]))
         if mosaic and mosaic_R is None and rows.size:
             pick = rows[even_subset(rows.size, int(mosaic) ** 2)]
             mosaic_R = np.asarray(src.field[pick], np.float32)
@@ -458,13 +481,21 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         "files": files,
     }
     metrics.update(gauge)
+    metrics["valid_functions"] = int(sum(c["valid_functions"] for c in per_cam.values()))
+    if total and not metrics["valid_functions"]:
+        counts: dict[str, int] = {}
+        for c in per_cam.values():
+            for k, x in c["flags"].items():
+                counts[k] = counts.get(k, 0) + x
+        log.warning("fit: no valid function among %d (flags: %s); the maps are empty and the "
+                    "ground-truth medians are null", total, _flag_summary(counts))
     if renderer is not None and gt["n_err"]:
         ne = np.concatenate(gt["n_err"])
-        metrics["normal_median_error_deg"] = round(float(np.median(ne)), 4)
-        metrics["albedo_rel_error"] = round(float(np.median(np.concatenate(gt["a_err"]))), 5)
-        metrics["specular_energy_rel_error"] = round(
-            float(np.median(np.concatenate(gt["s_err"]))), 5)
         metrics["gt_valid_functions"] = int(ne.size)
+        # medians over no valid function are null, not NaN (JSON has no NaN)
+        metrics["normal_median_error_deg"] = _median(ne, 4)
+        metrics["albedo_rel_error"] = _median(np.concatenate(gt["a_err"]), 5)
+        metrics["specular_energy_rel_error"] = _median(np.concatenate(gt["s_err"]), 5)
         for key, (se, sr) in sorted(gt["sums"].items()):
             metrics[key] = round(float(np.sqrt(se / sr)), 5) if sr > 0 else None
         for key, nb in sorted(gt["backfacing"].items()):
@@ -472,6 +503,16 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     return metrics, settings
+
+
+def _median(a, digits):
+    """Rounded median of ``a``, or None when ``a`` is empty."""
+    return round(float(np.median(a)), digits) if a.size else None
+
+
+def _flag_summary(counts: dict) -> str:
+    """``"black 120, singular 120"``: the non-zero flag counts, or ``"none"``."""
+    return ", ".join(f"{k} {x}" for k, x in counts.items() if x) or "none"
 
 
 def _ground_truth(gt, renderer, atlas, tex, src, lights, cam_dir, n_max, angles, resynthesize,
@@ -500,6 +541,9 @@ def _ground_truth(gt, renderer, atlas, tex, src, lights, cam_dir, n_max, angles,
     if sub.size == 0:
         return
     R = np.asarray(src.field[store.rows[sub]], np.float32)
+    # masked samples (NaN) as the fit took them, 0 (fit_chunks): S = R − D = 0 there, and the
+    # measured function compared as the fit saw it (no NaN: EXR scans are unchanged)
+    R = np.where(np.isfinite(R), R, np.float32(0.0))
     fit = store.skin_fit(sub, R, lights)
     p, n, face_in = truth.p[sub], truth.n[sub], truth.face[sub]
     skin_sub = renderer.material_at(p, face_in)

@@ -577,7 +577,11 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
         vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
         t1 = time.perf_counter()
         field = rf.project_camera(
-            scan.iter_olat(name, return_mask=True, read_ahead=READ_AHEAD_WORKERS),
+            # black-clipped pixels are the dark samples a one-light frame is mostly made of:
+            # measured (below one code value), not masked — masking them left 59 % of a 16-bit
+            # PNG scan's samples NaN and every function incomplete; saturated ones stay masked
+            scan.iter_olat(name, return_mask=True, read_ahead=READ_AHEAD_WORKERS,
+                           black_clipped="dark"),
             vis, (camera.width, camera.height),
             scan.n_lights, dest / name, dtype=dtype,
             block_lights=block_lights or rf.DEFAULT_BLOCK_LIGHTS)

@@ -62,8 +62,10 @@ nearest 4.29 % against bilinear's 2.85 %, and shifting the positions by 0.25 px 
 (docs/surface.md, "Where the small preset's projection error comes from").
 
 The validity mask is remapped the same way (as a float image of the *invalid* pixels): a sample
-with any weight on a masked pixel (saturated, clipped, non-finite) is stored as NaN — never
-trusted, never a fake value — while the texel's weight stays light-independent.
+with any weight on a masked pixel (whatever the caller's mask holds: the project stage masks
+saturated and non-finite pixels, and counts black-clipped ones as the measured dark values they
+are — docs/scan-format.md) is stored as NaN — never trusted, never a fake value — while the
+texel's weight stays light-independent.
 
 Transpose strategy and memory: a frame is one light for all texels, the on-disk field is chunked
 along texels (``(T_c, L, 3)`` C order, each texel's function contiguous). Frames are gathered
