@@ -117,4 +117,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from facegeo.cli import run_script  # one-line errors and exit statuses, as the CLI
+
+    run_script(main)

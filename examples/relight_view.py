@@ -26,14 +26,13 @@ from pathlib import Path
 import numpy as np
 
 from facegeo.capture import imageio
-from facegeo.capture.scan import load_scan
+from facegeo.capture.scan import Scan, load_scan
 from facegeo.lighting import envmap
 from facegeo.lighting.relight import relight_scan_view
 from facegeo.pipeline.relight import tone_map
 
 
-def relight(scan_dir: Path, env: envmap.EnvironmentMap, camera: str | None, out: Path) -> Path:
-    scan = load_scan(scan_dir)
+def relight(scan: Scan, env: envmap.EnvironmentMap, camera: str | None, out: Path) -> Path:
     camera = camera or scan.camera_names[0]
     lights = scan.rig.lights
     w = envmap.light_stage_weights(env, lights.n_theta, lights.n_phi)
@@ -66,14 +65,17 @@ def main(argv: list[str] | None = None) -> int:
         scan_dir = tmp / "scan"
         generate_scan(scan_dir, preset="tiny")
         env = envmap.axis_lobe_map(32)
-        relight(scan_dir, env, a.camera, a.out or tmp / "relit")
+        relight(load_scan(scan_dir), env, a.camera, a.out or tmp / "relit")
         return 0
     if a.scan is None or a.env is None:
         ap.error("give SCAN and ENV (or --tiny)")
+    scan = load_scan(a.scan)  # a wrong SCAN fails before the map is read
     env = envmap.read_envmap(a.env, rotate_deg=a.rotate)
-    relight(a.scan, env, a.camera, a.out or a.scan / "out" / "example_relight")
+    relight(scan, env, a.camera, a.out or a.scan / "out" / "example_relight")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from facegeo.cli import run_script  # one-line errors and exit statuses, as the CLI
+
+    run_script(main)

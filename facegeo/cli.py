@@ -62,36 +62,59 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-def _nonneg_int(text: str) -> int:
-    """argparse type: an integer >= 0."""
+def _int_at_least(text: str, low: int) -> int:
+    """``text`` as an integer >= ``low``; the message names the bound the option has."""
     try:
         v = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {fmt_value(text)}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {v}")
+        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got "
+                                         f"{fmt_value(text)}") from None
+    if v < low:
+        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {v}")
     return v
+
+
+def _nonneg_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    return _int_at_least(text, 0)
 
 
 def _pos_int(text: str) -> int:
     """argparse type: an integer >= 1."""
-    v = _nonneg_int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {v}")
-    return v
+    return _int_at_least(text, 1)
 
 
-def _nonneg_float(text: str) -> float:
-    """argparse type: a finite number >= 0."""
+def _finite_float(text: str, expected: str, ok) -> float:
+    """``text`` as a finite float for which ``ok(v)`` holds, else "expected {expected}"."""
     import math
 
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {fmt_value(text)}") from None
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {fmt_value(text)}") from None
+    if not (math.isfinite(v) and ok(v)):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text}")
     return v
+
+
+def _nonneg_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    return _finite_float(text, "a finite number >= 0", lambda v: v >= 0)
+
+
+def _pos_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    return _finite_float(text, "a finite number > 0", lambda v: v > 0)
+
+
+#: Largest |angle| of an environment rotation on the command line, degrees (a full turn).
+_MAX_ROTATE_DEG = 360.0
+
+
+def _rotate_deg(text: str) -> float:
+    """argparse type: an environment rotation in degrees, finite, |angle| <= 360."""
+    return _finite_float(text, f"a finite angle in degrees, |angle| <= {_MAX_ROTATE_DEG:g}",
+                         lambda v: abs(v) <= _MAX_ROTATE_DEG)
 
 
 def _check_output_dir(path: str | os.PathLike, what: str) -> Path:
@@ -299,7 +322,8 @@ def _cmd_atlas(args) -> int:
     if args.out is not None:
         _check_output_dir(args.out, "--out")
     m = run_atlas(args.scan, args.out, mesh=args.mesh,
-                  texels_per_mm=None if args.size else args.texels_per_mm, size=args.size,
+                  texels_per_mm=None if args.size is not None else args.texels_per_mm,
+                  size=args.size,
                   padding=args.padding, split_faces=args.split_faces or None, repair=args.repair)
     _print_metrics("atlas", m)
     return 0
@@ -319,10 +343,14 @@ def _cmd_project(args) -> int:
 
 def _cmd_relight(args) -> int:
     from facegeo.fsutil import READ_AHEAD_WORKERS
+    from facegeo.lighting.envmap import SHIPPED_MAPS
     from facegeo.pipeline.relight import run_relight
 
     if args.out is not None:
         _check_output_dir(args.out, "--out")
+    if not Path(args.env).exists() and args.env not in SHIPPED_MAPS:
+        raise InputError(f"env: {args.env} is not a file and not a shipped environment map "
+                         f"({', '.join(SHIPPED_MAPS)})")
     tick, close = _progress_factory(not args.quiet)
     try:
         m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
@@ -390,6 +418,13 @@ def _cmd_stage(args) -> int:
 def _cmd_render(args) -> int:
     from facegeo.pipeline.render import run_render
 
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.render import check_render_args
+
+    # before any stage runs (atlas, project and fit take minutes on the larger presets)
+    check_render_args(load_scan(args.scan), camera_spec=args.camera, env=args.env,
+                      rotate_deg=args.rotate, shrinkage=args.shrinkage,
+                      light_step=args.light_step, resynthesis=not args.naive)
     print(f"render: products of {args.scan} up to the fit (cached):")
     _run_reconstruct(args.scan, args, until="fit")
     tick, close = _progress_factory(not args.quiet)
@@ -542,9 +577,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "e.g. SCAN/out/mesh/mesh.ply from 'facegeo mesh' ('facegeo "
                         "reconstruct --mesh reconstructed' does this for you)")
     g = s.add_mutually_exclusive_group()
-    g.add_argument("--texels-per-mm", type=_nonneg_float, default=1.0,
+    g.add_argument("--texels-per-mm", type=_pos_float, default=1.0,
                    help="atlas resolution on the surface")
-    g.add_argument("--size", type=_nonneg_int, default=None, help="atlas size in texels instead")
+    g.add_argument("--size", type=int, default=None,
+                   help="atlas size in texels instead (16 to 32768)")
     s.add_argument("--padding", type=_nonneg_int, default=2, help="texels between charts")
     s.add_argument("--split-faces", type=_nonneg_int, default=DEFAULT_SPLIT_FACES,
                    help="parameterise in pieces of about this many triangles (0: one piece)")
@@ -579,7 +615,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=".exr/.hdr environment map, or a shipped map: sky, studio")
     s.add_argument("--projection", choices=["latlong", "mirrorball", "angular"],
                    default="latlong", help="how the map stores directions")
-    s.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
+    s.add_argument("--rotate", type=_rotate_deg, default=0.0, metavar="DEG",
                    help="rotate the environment about +Y (degrees, +Z toward +X)")
     s.add_argument("--view", default=None, metavar="CAMERA",
                    help="camera name (default: the first) or 'texture'")
@@ -614,7 +650,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "novel cameras ('front': the rig's frontal view), or a camera JSON file")
     s.add_argument("--env", default="sky", help="an .exr/.hdr lat-long map, or a built-in: "
                    "sky, uniform, axis_lobes")
-    s.add_argument("--rotate", type=float, default=0.0, help="environment rotation about +Y, "
+    s.add_argument("--rotate", type=_rotate_deg, default=0.0, help="environment rotation about +Y, "
                    "degrees")
     s.add_argument("--supersample", type=_pos_int, default=1, help="s x s rays per pixel")
     s.add_argument("--naive", action="store_true", help="no resynthesis: the source cameras' "
@@ -676,6 +712,23 @@ def _quiet_stdout() -> None:
 def _one_line(exc: BaseException) -> str:
     text = " ".join(str(exc).split())
     return text or type(exc).__name__
+
+
+def run_script(main_fn) -> None:
+    """Run a script's ``main()`` (the examples') with the CLI's handling of user mistakes:
+    facegeo's errors and the environment's refusals (``OSError``) print one line ``PROG:
+    error: ...`` on stderr with status 2, Ctrl-C prints ``interrupted`` with 130; otherwise
+    ``main``'s return value is the status. Raises SystemExit."""
+    prog = Path(sys.argv[0]).name or "facegeo"
+    try:
+        code = int(main_fn() or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        code = 130
+    except (FacegeoError, OSError) as exc:
+        print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
+        code = 2
+    raise SystemExit(code)
 
 
 def main(argv: list[str] | None = None) -> int:

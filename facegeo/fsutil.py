@@ -472,10 +472,12 @@ def staged_directory(target: str | os.PathLike) -> Iterator[Path]:
 
     The products of a step are written into the yielded directory; only when the block
     finishes does :func:`swap_in_dir` put them at ``target`` (the old ``target`` is removed
-    after). On an exception (Ctrl-C included) the staging directory is removed and ``target``
-    is untouched. Leftovers of killed runs are tidied first (:func:`clean_stale_siblings`).
+    after). On an exception (Ctrl-C included) the staging directory is removed, ``target``
+    is untouched, and the parent folders this call created are removed again while empty.
+    Leftovers of killed runs are tidied first (:func:`clean_stale_siblings`).
     """
     target = Path(target)
+    created = [p for p in target.absolute().parents if not p.exists()]  # innermost first
     target.parent.mkdir(parents=True, exist_ok=True)
     clean_stale_siblings(target)
     tmp = staging_dir(target, "tmp")
@@ -485,6 +487,11 @@ def staged_directory(target: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         with contextlib.suppress(OSError):
             remove_tree(tmp)
+        for p in created:  # innermost first; a folder something else wrote into stays
+            try:
+                p.rmdir()
+            except OSError:
+                break
         raise
     _note_written(target.parent, [target.name + "/" + r for r in list_files(target)])
 

@@ -133,13 +133,32 @@ def _bad_inputs(tmp_path, scan):
                          [str(tmp_path / "nowhere"), "not found"]),
         "project --gt-lights 0": (["project", str(scan), "--gt-lights", "0"], 2,
                                   ["--gt-lights", "integer >= 1"]),
+        # an option's message states the bound the option has (was ">= 0" for ">= 1" options)
+        "render --supersample -2": (["render", str(scan), "--camera", "front",
+                                     "--supersample", "-2"], 2,
+                                    ["--supersample", "integer >= 1", "-2"]),
+        "render --supersample text": (["render", str(scan), "--camera", "front",
+                                       "--supersample", "abc"], 2,
+                                      ["--supersample", "integer >= 1", "'abc'"]),
+        "render --light-step -1": (["render", str(scan), "--camera", "front",
+                                    "--light-step", "-1"], 2,
+                                   ["--light-step", "integer >= 1", "-1"]),
+        "atlas --texels-per-mm nan": (["atlas", str(scan), "--texels-per-mm", "nan"], 2,
+                                      ["--texels-per-mm", "finite number > 0", "nan"]),
+        "info on a file": (["info", str(a_file)], 2, [str(a_file), "not a directory"]),
+        "relight unknown env": (["relight", str(scan), "--env", "skyy"], 2,
+                                ["skyy", "not a file", "sky, studio"]),
+        "relight --rotate inf": (["relight", str(scan), "--env", "sky", "--rotate", "inf"], 2,
+                                 ["--rotate", "inf", "360"]),
     }
 
 
 BAD_INPUTS = ["seed -1", "seed text", "noise -0.1", "OUT is a file", "OUT under a file",
               "OUT not writable", "bench --out is a file", "bench --out not writable",
               "rig string focal length", "demo SCAN is a file", "unknown preset", "no such scan",
-              "project --gt-lights 0"]
+              "project --gt-lights 0", "render --supersample -2", "render --supersample text",
+              "render --light-step -1", "atlas --texels-per-mm nan", "info on a file",
+              "relight unknown env", "relight --rotate inf"]
 
 
 @pytest.mark.parametrize("case", BAD_INPUTS)
@@ -167,6 +186,82 @@ def test_bad_input_gives_one_line_and_status_2(case, tmp_path, tiny_scan, capfd,
     for w in words:
         assert w in lines[0], (w, lines[0])
     assert not (tmp_path / "new").exists()
+
+
+# ============================================ arguments checked before the stages they follow
+#
+# `facegeo render` runs atlas, project and fit first and `facegeo calibrate` detects every
+# board: a typo in their own arguments must fail before that work, not minutes after it.
+
+
+def _early_inputs(tmp_path):
+    """``{case: (argv after the command's SCAN, words the single stderr line must contain)}``."""
+    a_file = tmp_path / "a_file.txt"
+    a_file.write_text("not an image")
+    render = ["render", "SCAN", "--camera"]
+    return {
+        "unknown camera": (render + ["orbit:fronnt:30"],
+                           ["camera spec", "'fronnt'", "cam_left, cam_right"]),
+        "missing camera file": (render + [str(tmp_path / "cam.json")],
+                                [str(tmp_path / "cam.json"), "does not exist"]),
+        "absurd orbit angle": (render + ["orbit:front:1e308"], ["1e308", "<= 360"]),
+        "unknown env": (render + ["front", "--env", "skyy"],
+                        ["env", "skyy", "uniform, axis_lobes, sky, studio"]),
+        "missing env file": (render + ["front", "--env", str(tmp_path / "nope.exr")],
+                             [str(tmp_path / "nope.exr"), "not a file"]),
+        "env file not an image": (render + ["front", "--env", str(a_file)],
+                                  [str(a_file), "unsupported image format"]),
+        "shrinkage 2": (render + ["front", "--shrinkage", "2"], ["shrinkage", "[0, 1]", "2"]),
+        "shrinkage text": (render + ["front", "--shrinkage", "most"], ["shrinkage", "'most'"]),
+        "light step 1000": (render + ["front", "--light-step", "1000"],
+                            ["light_step", "1000", "(16, 8)"]),
+        "rotate nan": (render + ["front", "--rotate", "nan"], ["--rotate", "nan", "360"]),
+        "calibrate reference": (["calibrate", "SCAN", "--reference", "cam_mid"],
+                                ["reference", "'cam_mid'", "cam_left, cam_right"]),
+    }
+
+
+EARLY_INPUTS = ["unknown camera", "missing camera file", "absurd orbit angle", "unknown env",
+                "missing env file", "env file not an image", "shrinkage 2", "shrinkage text",
+                "light step 1000", "rotate nan", "calibrate reference"]
+
+
+@pytest.mark.parametrize("case", EARLY_INPUTS)
+def test_render_and_calibrate_check_their_arguments_before_any_stage(case, tmp_path,
+                                                                      tiny_scan_master, capfd,
+                                                                      monkeypatch):
+    import facegeo.geometry.calibration as calibration
+    import facegeo.pipeline.reconstruct as reconstruct
+    import facegeo.pipeline.render as render
+
+    def must_not_run(*a, **k):
+        raise AssertionError("a stage started before the arguments were checked")
+
+    # the calibrate stage's own work starts with the board detection (its argument checks
+    # come first in calibrate_products)
+    for mod, name in ((reconstruct, "run_reconstruct"), (render, "run_render"),
+                      (calibration, "detect_boards")):
+        monkeypatch.setattr(mod, name, must_not_run)
+    scan = tmp_path / "scan"
+    shutil.copytree(tiny_scan_master, scan)
+    argv, words = _early_inputs(tmp_path)[case]
+    try:
+        code = main([str(scan) if a == "SCAN" else a for a in argv])
+    except SystemExit as exc:  # argparse
+        code = exc.code
+    err = capfd.readouterr().err
+    lines = _stderr_lines(err)
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert not (scan / "out").exists()  # no stage product (out/atlas, out/calibrate, ...)
+
+
+def test_atlas_size_0_names_the_size_range(tiny_scan, capfd):
+    # was "texels_per_mm and size: give one resolution, not both" (0 read as "no --size")
+    assert main(["atlas", str(tiny_scan), "--size", "0"]) == 2
+    lines = _stderr_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "size: expected an integer in [16, 32768], got 0" in lines[0]
 
 
 def _run(args, **kw):

@@ -28,6 +28,18 @@ def test_every_example_has_a_run_line():
         assert '"""' in text.splitlines()[0] and "Run:" in text, f"{p.name}: no docstring/Run line"
 
 
+@pytest.mark.parametrize("script, extra", [("relight_view", ["env.exr"]), ("turntable", []),
+                                            ("structured_light_mesh", [])])
+def test_examples_report_a_missing_scan_in_one_line(script, extra, tmp_path):
+    """A user mistake is one line ``error: ...`` on stderr and status 2, as in the CLI."""
+    nope = tmp_path / "nope"
+    r = subprocess.run([sys.executable, str(EXAMPLES / f"{script}.py"), str(nope), *extra],
+                       capture_output=True, text=True, timeout=300)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert lines == [f"{script}.py: error: {nope}: scan directory not found"], r.stderr
+
+
 @pytest.mark.slow
 def test_relight_view_tiny(tmp_path):
     ex = _load("relight_view")

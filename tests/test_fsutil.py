@@ -136,3 +136,26 @@ def test_read_ahead_bounds_bytes_and_raises_in_place():
         for x in read_ahead(bad, range(10), workers=2):
             out.append(x)
     assert out == [0, 1, 2, 3, 4]
+
+
+def test_staged_directory_leaves_no_parent_it_made_when_the_block_fails(tmp_path):
+    """A failed stage leaves the folders as they were: the parents the staging created are
+    removed again (``facegeo atlas --out NEW --size 0`` left an empty NEW), a parent that
+    existed or that something else wrote into stays; success keeps them all."""
+    from facegeo.fsutil import staged_directory
+
+    target = tmp_path / "new" / "out" / "atlas"
+    with pytest.raises(RuntimeError):
+        with staged_directory(target) as tmp:
+            (tmp / "half.npz").write_bytes(b"x")
+            raise RuntimeError("bad --size")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    (tmp_path / "new").mkdir()
+    (tmp_path / "new" / "mine.txt").write_text("keep")
+    with pytest.raises(RuntimeError):
+        with staged_directory(target):
+            raise RuntimeError("again")
+    assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["mine.txt"]
+    with staged_directory(target) as tmp:
+        (tmp / "atlas.npz").write_bytes(b"ok")
+    assert (target / "atlas.npz").read_bytes() == b"ok"

@@ -705,6 +705,9 @@ def load_scan(path: str | os.PathLike, *, check: str = "quick") -> Scan:
     p = Path(path)
     if p.is_dir():
         root, toml = p, p / MANIFEST_NAME
+    elif p.is_file() and p.suffix.lower() != ".toml":
+        raise _err("not a directory: a scan is a directory holding scan.toml (give the "
+                   "directory, or its scan.toml)", path=p)
     elif p.is_file():
         root, toml = p.parent, p
     else:

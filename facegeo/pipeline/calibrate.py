@@ -294,6 +294,7 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool =
         The metrics of :func:`calibrate_products`.
     """
     scan = _scan(scan_dir)
+    _check_request(scan, reference)  # before any folder is made
     kw = dict(model=model, legacy=legacy, loss=loss, reference=reference,
               cross_validation=cross_validation, progress=progress)
     if out_dir is None:  # the scan's own out/calibrate: staged, swapped in only when complete
@@ -313,6 +314,21 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool =
         raise
     atomic_write_text(out / "metrics.json", json.dumps({"calibrate": metrics}, indent=1) + "\n")
     return metrics
+
+
+def _check_request(scan, reference) -> None:
+    """What a calibration needs from the scan, checked before any board is detected (seconds
+    to minutes): board views, and ``reference`` naming one of its cameras (or its projector
+    when the scan has projector board views)."""
+    if not scan.has("calib"):
+        raise InputError(f"{scan.root}: the scan has no [calib] section (no board views)")
+    if reference is not None:
+        names = list(scan.camera_names)
+        if scan.rig.projector is not None and scan.has("calib.projector"):
+            names.append(scan.rig.projector.name)
+        if reference not in names:
+            raise InputError(f"reference: no camera {fmt_value(reference)}; cameras: "
+                             f"{', '.join(names)}")
 
 
 def _scan(scan):
@@ -405,8 +421,7 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     scan = _scan(scan)
     settings = {"model": model, "legacy": bool(legacy), "loss": loss, "reference": reference,
                 "cross_validation": bool(cross_validation)}
-    if not scan.has("calib"):
-        raise InputError(f"{scan.root}: the scan has no [calib] section (no board views)")
+    _check_request(scan, reference)
     out = Path(dest)
     out.mkdir(parents=True, exist_ok=True)
     board = scan.board

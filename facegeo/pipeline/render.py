@@ -56,8 +56,8 @@ from facegeo.errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BUILTIN_ENVS", "SHRINKAGE_CHOICES", "builtin_env", "image_metrics", "render_one",
-           "render_products", "run_render"]
+__all__ = ["BUILTIN_ENVS", "SHRINKAGE_CHOICES", "builtin_env", "check_render_args",
+           "image_metrics", "render_one", "render_products", "run_render"]
 
 BUILTIN_ENVS = ("uniform", "axis_lobes", "sky", "studio")
 #: The environment of the ``render`` stage of ``facegeo reconstruct``.
@@ -96,6 +96,29 @@ def _load_env(env, projection: str, rotate_deg: float):
                              f"({', '.join(BUILTIN_ENVS)})")
         return E.read_envmap(path, projection, rotate_deg=rotate_deg)
     return m.rotated(math.radians(rotate_deg)) if rotate_deg else m
+
+
+def check_render_args(scan, *, camera_spec, env="axis_lobes", rotate_deg: float = 0.0,
+                      projection: str = "latlong", shrinkage: str | float = SHRINKAGE_DEFAULT,
+                      light_step: int = 1, resynthesis: bool | str = True, rig=None) -> None:
+    """Check a render request against the scan before any stage runs; raise InputError.
+
+    :func:`render_one` checks the same (with the same messages) once its inputs are there, but
+    ``facegeo render`` first builds atlas, project and fit (minutes on the larger presets): the
+    CLI calls this first. Checked: the camera spec against the cameras a view may name (the
+    rig's — every rig a scan's stages use has the scan's cameras — and the generator's novel
+    ones), the environment (a built-in name, or a file that reads as a map), the shrinkage and,
+    with resynthesis, the light step against the light-stage grid."""
+    from facegeo.appearance._skin_resynth import check_light_step
+    from facegeo.pipeline.fit import _camera_table
+    from facegeo.render import light_set, parse_camera_spec
+
+    rig = scan.rig if rig is None else rig
+    parse_camera_spec(camera_spec, _camera_table(scan, rig))
+    _load_env(env, projection, rotate_deg)
+    _check_shrinkage(shrinkage)
+    if resynthesis:
+        check_light_step(light_step, light_set(rig.lights))
 
 
 def _check_shrinkage(shrinkage):

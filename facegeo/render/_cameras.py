@@ -19,8 +19,24 @@ from facegeo.errors import InputError
 from facegeo.frames import Pose
 from facegeo.geometry.camera import Camera
 
-#: ``orbit:<camera>:<degrees>`` (e.g. ``orbit:cam_left:-30``).
-_ORBIT = re.compile(r"^orbit:(?P<cam>[^:]+):(?P<deg>[-+]?[0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)$")
+#: ``orbit:<camera>:<degrees>`` (e.g. ``orbit:cam_left:-30``); the angle is checked by
+#: :func:`_orbit_degrees`.
+_ORBIT = re.compile(r"^orbit:(?P<cam>[^:]+):(?P<deg>[^:]*)$")
+#: Largest |angle| of an orbit in a camera spec, degrees: a full turn. A larger angle is a
+#: typo (and 1e308 would reach the rotation as garbage).
+MAX_ORBIT_DEG = 360.0
+
+
+def _orbit_degrees(value: Any, spec: Any) -> float:
+    """The orbit angle of ``spec`` as a float: finite, |angle| <= :data:`MAX_ORBIT_DEG`."""
+    try:
+        deg = float(value)
+    except (TypeError, ValueError):
+        deg = math.nan
+    if not (math.isfinite(deg) and abs(deg) <= MAX_ORBIT_DEG):
+        raise InputError(f"camera spec {fmt_value(spec)}: expected an orbit angle in degrees "
+                         f"with |angle| <= {MAX_ORBIT_DEG:g}, got {fmt_value(value)}")
+    return deg
 
 
 def _rotation_y(angle: float) -> np.ndarray:
@@ -111,7 +127,8 @@ def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
     spec : Camera, dict, or str
         A :class:`Camera`; a dict ``{"orbit": degrees, "from": name}`` or a camera dict
         (``Camera.to_dict``); a string ``"orbit:<name>:<degrees>"``, the name of one of
-        ``cameras``, or a path to a JSON file holding a camera dict.
+        ``cameras``, or a path to a JSON file holding a camera dict. An orbit's angle is a
+        finite number of degrees with |angle| <= :data:`MAX_ORBIT_DEG` (360).
     cameras : mapping of str -> Camera
         The cameras a spec may name (the scan's cameras, the generator's novel ones).
     center : (3,) float, metres
@@ -120,6 +137,12 @@ def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
     Returns
     -------
     Camera
+
+    Raises
+    ------
+    InputError
+        An unknown camera name, an orbit angle that is not a number or beyond ±360°, a
+        ``.json`` spec naming no file (or invalid JSON), any other unrecognised spec.
     """
     def named(name: str) -> Camera:
         if name == FRONT and name not in cameras:
@@ -135,17 +158,20 @@ def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
         if "orbit" in spec:
             if "from" not in spec:
                 raise InputError("camera spec: an orbit needs 'from': <camera name>")
-            return orbit_camera(named(str(spec["from"])), float(spec["orbit"]), center=center,
-                                name=spec.get("name"))
+            return orbit_camera(named(str(spec["from"])), _orbit_degrees(spec["orbit"], spec),
+                                center=center, name=spec.get("name"))
         return Camera.from_dict(spec, where="camera spec")
     if isinstance(spec, str):
         m = _ORBIT.match(spec.strip())
         if m:
-            return orbit_camera(named(m["cam"]), float(m["deg"]), center=center)
+            return orbit_camera(named(m["cam"]), _orbit_degrees(m["deg"], spec), center=center)
         if spec in cameras or spec == FRONT:
             return named(spec)
         path = Path(spec)
-        if path.suffix.lower() == ".json" and path.is_file():
+        if path.suffix.lower() == ".json":
+            if not path.is_file():
+                raise InputError(f"camera spec: camera JSON file {path} "
+                                 f"{'is not a file' if path.exists() else 'does not exist'}")
             try:
                 d = json.loads(path.read_text(encoding="utf-8"))
             except ValueError as exc:
