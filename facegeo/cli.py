@@ -282,18 +282,27 @@ def _cmd_calibrate(args) -> int:
                       reference=args.reference, legacy=args.legacy_board,
                       cross_validation=not args.no_cross_validation,
                       progress=None if args.quiet else (lambda s: print(s, file=sys.stderr)))
-    cols = ("model", "reprojection_rms_px", "views_used", "cross_validation_px",
-            "projection_uncertainty_rms_px", "focal_rel_error", "principal_point_error_px")
-    print("camera      " + "  ".join(f"{c:>14.14}" for c in cols))
-    for name, cm in m.get("cameras", {}).items():
+    # (header, metrics key[, fallback key]): the errors against the generator's truth on a
+    # synthetic scan, else against a reference calibration shipped with the data (real scans)
+    cols = (("model", "model"), ("rms px", "reprojection_rms_px"), ("views", "views_used"),
+            ("cv px", "cross_validation_px"), ("unc px", "projection_uncertainty_rms_px"),
+            ("focal err", "focal_rel_error", "reference_focal_rel_error"),
+            ("pp err px", "principal_point_error_px", "reference_principal_point_error_px"))
+    cams = m.get("cameras", {})
+    ref = any("focal_rel_error" not in cm and "reference_focal_rel_error" in cm
+              for cm in cams.values())
+    print("camera      " + "  ".join(f"{c[0]:>10}" for c in cols)
+          + ("   (errors against the data set's reference calibration)" if ref else ""))
+    for name, cm in cams.items():
         cells = []
         for c in cols:
-            v = cm.get(c)
+            v = next((cm[k] for k in c[1:] if cm.get(k) is not None), None)
             if isinstance(v, str):
-                cells.append(f"{v:>14.14}")
+                cells.append(f"{v:>10.10}")
             else:
-                cells.append(f"{v:>14.4g}" if isinstance(v, (int, float)) else f"{'-':>14}")
+                cells.append(f"{v:>10.4g}" if isinstance(v, (int, float)) else f"{'-':>10}")
         print(f"{name:<12}" + "  ".join(cells))
+    _print_skipped_views(Path(args.out) if args.out else Path(args.scan) / "out" / "calibrate")
     proj = m.get("projector", {})
     if proj:
         print("projector: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
@@ -302,16 +311,36 @@ def _cmd_calibrate(args) -> int:
     return 0
 
 
+def _print_skipped_views(out: Path) -> None:
+    """One line per calibration view the detection skipped, with its reason (from the
+    stage's ``detections.json``)."""
+    try:
+        dets = json.loads((out / "detections.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return
+    for cam, views in dets.items() if isinstance(dets, dict) else ():
+        for v in views if isinstance(views, list) else ():
+            if isinstance(v, dict) and not v.get("found", True):
+                print(f"skipped {cam} {v.get('name')}: {v.get('reason')}")
+
+
 def _print_metrics(title: str, metrics: dict) -> None:
     """A short, flat view of a stage's metrics (nested dicts one level deep)."""
     def fmt(v):
         return f"{v:.4g}" if isinstance(v, float) else str(v)
 
+    def flat(d: dict) -> str:
+        return ", ".join(f"{ik}={fmt(iv)}" for ik, iv in d.items()
+                         if not isinstance(iv, (dict, list)))
+
     print(title)
     for k, v in metrics.items():
-        if isinstance(v, dict):
-            inner = ", ".join(f"{ik}={fmt(iv)}" for ik, iv in v.items() if not isinstance(iv, dict))
-            print(f"  {k}: {inner}")
+        if isinstance(v, dict) and v and all(isinstance(iv, dict) for iv in v.values()):
+            print(f"  {k}:")  # one entry per camera (say): a line each
+            for ik, iv in v.items():
+                print(f"    {ik}: {flat(iv)}")
+        elif isinstance(v, dict):
+            print(f"  {k}: {flat(v)}")
         elif not isinstance(v, list):
             print(f"  {k}: {fmt(v)}")
 
@@ -649,7 +678,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="'orbit:CAMERA:DEGREES', a camera name of the rig or the generator's "
                         "novel cameras ('front': the rig's frontal view), or a camera JSON file")
     s.add_argument("--env", default="sky", help="an .exr/.hdr lat-long map, or a built-in: "
-                   "sky, uniform, axis_lobes")
+                   "sky, studio, uniform, axis_lobes")
     s.add_argument("--rotate", type=_rotate_deg, default=0.0, help="environment rotation about +Y, "
                    "degrees")
     s.add_argument("--supersample", type=_pos_int, default=1, help="s x s rays per pixel")

@@ -476,3 +476,35 @@ def test_info_counts_hard_linked_files_once(tiny_scan, capsys):
     after = [ln for ln in capsys.readouterr().out.splitlines() if "size on disk" in ln]
     assert after[0].split("(inputs)")[0] == before[0].split("(inputs)")[0]
     assert after[0].endswith("0 B (out/)")
+
+
+def test_calibrate_table_on_a_real_data_set(shared_data, tmp_path, capsys):
+    """``facegeo calibrate`` on OpenCV's stereo chessboards: readable column headers, the
+    errors against the data set's reference calibration in the table (they printed '-': the
+    table read only the synthetic ground truth's keys), and the view the detector skipped
+    named with its reason (it was only in detections.json)."""
+    src = shared_data / "calibration" / "opencv_stereo_chessboards"
+    if not src.is_dir():
+        pytest.skip(f"{src} is absent")
+    scan = tmp_path / "st"
+    assert main(["import", str(src), str(scan), "--dataset", "opencv-stereo"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(scan), "-q"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    head = next(line for line in out if line.startswith("camera"))
+    assert "focal err" in head and "reference calibration" in head, head
+    for cam in ("left", "right"):
+        row = next(line for line in out if line.startswith(cam)).split()
+        assert "-" not in row[-2:], row  # focal and principal-point errors are numbers
+        assert float(row[-2]) < 0.01, row  # measured 0.0041 / 0.0011 (docs/calibration.md)
+    assert any(line.startswith("skipped left view_004.jpg: no 9×6 chessboard found")
+               for line in out), out
+
+
+def test_project_prints_a_line_per_camera(tiny_scan, capsys):
+    """``facegeo project`` prints each camera's figures (its ``cameras:`` line was empty: the
+    per-camera entries are dicts, which the flat printer left out)."""
+    assert main(["project", str(tiny_scan), "--gt-lights", "4", "--camera", "cam_left"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    i = out.index("  cameras:")
+    assert out[i + 1].startswith("    cam_left: ") and "visible_fraction=" in out[i + 1], out

@@ -163,6 +163,35 @@ def test_direction_weights_voronoi():
     assert np.max(np.abs(wc[:, 0] / areas - 1)) <= 0.05  # pixel-level assignment of the cells
 
 
+def test_light_weights_take_a_grid_or_a_list_of_lights():
+    """One entry point for a rig's lights: the grid gets light_stage_weights (either δA rule);
+    a full-sphere list with its Voronoi solid angles gets direction_weights' weights; a dome
+    (horizon axis) integrates the map above the horizon only, over the list's clipped cells."""
+    from facegeo.geometry.lights import LightList
+    from facegeo.geometry.rig import LightStage
+
+    env = E.analytic_map(_smooth, 64)
+    for sa in ("paper", "exact"):
+        np.testing.assert_array_equal(E.light_weights(env, LightStage(n_theta=16, n_phi=8),
+                                                      solid_angle=sa),
+                                      E.light_stage_weights(env, 16, 8, solid_angle=sa))
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(60, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    w_ref, areas = E.direction_weights(env, v)
+    full = LightList(directions=v)  # default δA: the Voronoi areas
+    np.testing.assert_allclose(full.solid_angles, areas, rtol=1e-9)
+    np.testing.assert_allclose(E.light_weights(env, full), w_ref, rtol=1e-12)
+    up = v[v[:, 1] > 0.05]
+    dome = LightList(directions=up, horizon_axis=(0.0, 1.0, 0.0))
+    w = E.light_weights(E.analytic_map(_const, 64), dome)
+    # a constant map: each weight is its (clipped) cell's area; together the upper hemisphere
+    np.testing.assert_allclose(w[:, 0], dome.solid_angles, rtol=1e-12)
+    assert abs(w[:, 0].sum() / (2 * np.pi) - 1) < 1e-6
+    lit_below = E.analytic_map(lambda d: np.where(d[..., 1:2] < 0, 1.0, 0.0) * np.ones(3), 64)
+    assert np.abs(E.light_weights(lit_below, dome)).max() < 1e-12  # below the horizon: unseen
+
+
 def test_direction_weights_bad_input():
     env = E.analytic_map(_const, 16)
     with pytest.raises(ShapeError, match="at least 4"):

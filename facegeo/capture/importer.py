@@ -33,12 +33,28 @@ from facegeo.capture.scan import MANIFEST_NAME, Scan, write_manifest
 from facegeo.checks import check_choice, fmt_value
 from facegeo.errors import ScanFormatError
 
-__all__ = ["import_folder", "IMPORT_MODES"]
+__all__ = ["import_folder", "IMPORT_MODES", "check_destination"]
 
 log = logging.getLogger(__name__)
 
 #: How files are carried from the source folder to the scan.
 IMPORT_MODES = ("link", "copy")
+
+
+def check_destination(src: Path, dest: Path) -> None:
+    """Where an import may write: a new path or an empty directory, outside the source folder.
+
+    Importing never writes into the source (the data set, a real capture): a destination
+    inside it — or the source itself — would add a scan to it. Raises ScanFormatError naming
+    the destination.
+    """
+    s, d = Path(src).resolve(), Path(dest).resolve()
+    if d == s or s in d.parents:
+        raise _err(f"inside the source folder {src}; importing never writes into the source — "
+                   "choose a destination outside it", path=dest)
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        raise _err("destination exists and is not an empty directory; importing never "
+                   "overwrites", path=dest)
 
 
 def _read_description(path: Path) -> dict:
@@ -117,9 +133,7 @@ def import_folder(src: str | os.PathLike, dest: str | os.PathLike,
                    key="import", path=where)
     mode = mode if mode is not None else opts.get("mode", "link")
     check_choice(mode, "mode", IMPORT_MODES)
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
-        raise _err("destination exists and is not an empty directory; importing never "
-                   "overwrites", path=dest)
+    check_destination(src, dest)
     source = Scan(src, manifest, manifest_path=where)
     rig_file = source.root / source.manifest["scan"]["rig"]
     if rig is not None:

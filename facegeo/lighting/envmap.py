@@ -42,6 +42,7 @@ __all__ = [
     "PROJECTIONS", "NEGATIVE_CLIP_TOLERANCE", "EnvironmentMap", "read_envmap", "axis_lobe_map",
     "analytic_map", "pixel_directions", "pixel_solid_angles", "directions_to_pixels",
     "rotation_y", "light_stage_radiance", "light_stage_weights", "direction_weights",
+    "light_weights",
     "SHIPPED_MAPS", "procedural_map", "shipped_map", "shipped_map_path", "write_shipped_maps",
 ]
 
@@ -511,6 +512,41 @@ def direction_weights(env: EnvironmentMap, directions: Any, *, supersample: int 
     if not has.all():
         mean[~has] = env.radiance(v[~has])
     return mean * areas[:, None], areas
+
+
+def light_weights(env: EnvironmentMap, lights: Any, *, solid_angle: str = "paper",
+                  supersample: int = 2) -> np.ndarray:
+    """Eq. (4) weights ``(L, 3)`` for a rig's lights, whichever kind: the light-stage grid
+    (:func:`light_stage_weights`, with its ``solid_angle`` rule) or a list of lights
+    (:class:`facegeo.geometry.lights.LightList`: a real rig's directions, e.g. a flash dome).
+
+    For a list, ``w_l = L̄_l · δA_l``: ``δA_l`` the list's own solid angles (its Voronoi cells,
+    clipped at the horizon for a dome — what every stage integrating over these lights uses),
+    ``L̄_l`` the environment's mean radiance over the directions nearest light ``l`` (over the
+    hemisphere above the horizon for a dome; a light no sample falls nearest takes the map's
+    value in its direction). ``solid_angle`` applies to the grid only.
+    """
+    if hasattr(lights, "n_theta") and hasattr(lights, "n_phi"):
+        return light_stage_weights(env, lights.n_theta, lights.n_phi, solid_angle=solid_angle)
+    from scipy.spatial import cKDTree
+
+    v = as_array(lights.directions, "lights.directions", shape=(None, 3))
+    om_l = np.asarray(lights.solid_angles, np.float64)
+    d, om, rad = _samples(env, supersample)
+    axis = getattr(lights, "horizon_axis", None)
+    if axis is not None:
+        keep = d @ np.asarray(axis, np.float64) >= 0.0
+        d, om, rad = d[keep], om[keep], rad[keep]
+    _, idx = cKDTree(v).query(d)
+    area = np.bincount(idx, weights=om, minlength=v.shape[0])
+    integ = np.stack([np.bincount(idx, weights=om * rad[:, c], minlength=v.shape[0])
+                      for c in range(3)], axis=-1)
+    mean = np.empty_like(integ)
+    has = area > 0
+    mean[has] = integ[has] / area[has, None]
+    if not has.all():
+        mean[~has] = env.radiance(v[~has])
+    return mean * om_l[:, None]
 
 
 # --------------------------------------------------------------------------- shipped maps

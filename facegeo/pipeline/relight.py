@@ -170,6 +170,9 @@ def resolve_env(env: str | os.PathLike, projection: str = "latlong", *, rotate_d
     if not math.isfinite(float(rotate_deg)):
         raise InputError(f"rotate: expected a finite angle in degrees, got {fmt_value(rotate_deg)}")
     if not Path(env).exists() and str(env) in E.SHIPPED_MAPS:
+        if projection != "latlong":
+            raise InputError(f"projection: the shipped map {fmt_value(str(env))} is lat-long; "
+                             f"--projection {projection} applies to map files")
         return E.shipped_map(str(env)).rotated(math.radians(float(rotate_deg)))
     return E.read_envmap(env, projection, rotate_deg=rotate_deg)
 
@@ -258,7 +261,7 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
                 "reference": bool(reference)}
     lights = scan.rig.lights
     t_env = time.perf_counter()
-    w = E.light_stage_weights(env_map, lights.n_theta, lights.n_phi, solid_angle=solid_angle)
+    w = E.light_weights(env_map, lights, solid_angle=solid_angle)  # a grid or a light list
     integral = env_map.integral()
     active = int(np.count_nonzero(np.any(w != 0, axis=1)))
     t_w = time.perf_counter()
@@ -295,10 +298,11 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     rot = f"{float(rotate):g}".replace("-", "m")
-    # the δA rule is part of the name when it is not the default (an exact-solid-angle relight
-    # does not overwrite the paper's)
+    # the projection and the δA rule are part of the name when they are not the defaults (a
+    # map read as a mirror ball, or an exact-solid-angle relight, does not overwrite the others)
     rule = "" if solid_angle == "paper" else f"_{_safe_stem(solid_angle)}"
-    stem = f"{_safe_stem(Path(str(env)).stem)}_rot{rot}_{_safe_stem(view)}{rule}"
+    proj_tag = "" if env_map.projection == "latlong" else f"_{env_map.projection}"
+    stem = f"{_safe_stem(Path(str(env)).stem)}{proj_tag}_rot{rot}_{_safe_stem(view)}{rule}"
     exr = imageio.write_image(dest / f"{stem}.exr", img)  # atomic (temporary file + rename)
     png_img, exposure = tone_map(img)
     png = imageio.write_image(dest / f"{stem}.png", png_img)

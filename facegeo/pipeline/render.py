@@ -293,7 +293,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     camera = parse_camera_spec(camera_spec, _camera_table(scan, the_rig))
     environment = _load_env(env, projection, rotate_deg)
     stage = the_rig.lights
-    w = E.light_stage_weights(environment, stage.n_theta, stage.n_phi, solid_angle=solid_angle)
+    w = E.light_weights(environment, stage, solid_angle=solid_angle)  # a grid or a light list
     w = w / stage.color_rgb[None, :]  # image in the environment's units (field = colour × R)
     lights = light_set(stage)
     atlas = Atlas.load(out / "atlas" / "atlas.npz")
