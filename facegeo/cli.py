@@ -346,26 +346,56 @@ def _print_metrics(title: str, metrics: dict) -> None:
 
 
 def _cmd_atlas(args) -> int:
+    """The ``atlas`` stage: in ``SCAN/out`` the cached stage of ``facegeo reconstruct`` with
+    these settings (so later stages reuse it); with ``--out``, on its own, outside the cache."""
     from facegeo.pipeline.project import run_atlas
 
-    if args.out is not None:
-        _check_output_dir(args.out, "--out")
-    m = run_atlas(args.scan, args.out, mesh=args.mesh,
-                  texels_per_mm=None if args.size is not None else args.texels_per_mm,
-                  size=args.size,
-                  padding=args.padding, split_faces=args.split_faces or None, repair=args.repair)
+    settings = {"texels_per_mm": None if args.size is not None else args.texels_per_mm,
+                "size": args.size, "padding": args.padding,
+                "split_faces": args.split_faces or None, "repair": args.repair}
+    if args.out is None:
+        results = _run_reconstruct(args.scan, args, until="atlas", settings={"atlas": settings})
+        _print_metrics("atlas", _stage_metrics(results, "atlas"))
+        return 0
+    _check_output_dir(args.out, "--out")
+    m = run_atlas(args.scan, args.out, mesh=_standalone_mesh(args), **settings)
     _print_metrics("atlas", m)
     return 0
 
 
+def _standalone_mesh(args) -> str:
+    """``--mesh`` for a stage run outside the cache: ``auto`` is the synthetic scan's true
+    mesh (a reconstruction needs the cached stages: run without ``--out``)."""
+    if args.mesh != "auto":
+        if args.mesh == "reconstructed":
+            raise InputError("--mesh reconstructed needs the cached mesh stage: run without "
+                             "--out, or give the mesh file (SCAN/out/mesh/mesh.ply)")
+        return args.mesh
+    return "ground_truth"
+
+
+def _stage_metrics(results, name: str) -> dict:
+    """The metrics of stage ``name`` among a pipeline run's results (ran or cached)."""
+    return next((r.metrics for r in results if r.name == name), {})
+
+
 def _cmd_project(args) -> int:
+    """The ``project`` stage: in ``SCAN/out`` the cached stage of ``facegeo reconstruct`` (the
+    atlas before it, cached too); with ``--out`` or ``--camera``, on its own, outside the
+    cache."""
     from facegeo.pipeline.project import run_project
 
+    kw = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
+    if args.out is None and args.camera is None:
+        args.rig = args.rig or "auto"
+        results = _run_reconstruct(args.scan, args, until="project",
+                                   settings={"project": {"dtype": args.dtype, **kw}})
+        _print_metrics("project", _stage_metrics(results, "project"))
+        return 0
     if args.out is not None:
         _check_output_dir(args.out, "--out")
-    kw = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
-    m = run_project(args.scan, args.out, rig=args.rig, mesh=args.mesh, cameras=args.camera,
-                    dtype=args.dtype, **kw)
+    m = run_project(args.scan, args.out, rig=args.rig, mesh=_standalone_mesh(args),
+                    cameras=args.camera, dtype=args.dtype, **kw)
     _print_metrics("project", m)
     return 0
 
@@ -415,18 +445,20 @@ def _stage_line(result) -> str:
     return f"  {result.name:<10} {what}; {text}"
 
 
-def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None) -> None:
+def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
+                     settings=None) -> list:
     from facegeo.pipeline.reconstruct import run_reconstruct
 
     tick, close = _progress_factory(not args.quiet)
     try:
-        run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"), rig=getattr(args, "rig", "auto"),
-                        from_stage=from_stage,
-                        only=only, until=until, progress=tick,
-                        on_stage=lambda r: (close(), print(_stage_line(r))))
+        results = run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"),
+                                  rig=getattr(args, "rig", "auto"), settings=settings,
+                                  from_stage=from_stage, only=only, until=until, progress=tick,
+                                  on_stage=lambda r: (close(), print(_stage_line(r))))
     finally:
         close()
     _write_report(Path(scan) / "out")
+    return results
 
 
 def _write_report(out: Path) -> None:
@@ -600,11 +632,13 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("atlas", parents=common,
                        help="UV atlas (xatlas) and texel table of the scan's mesh")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
-    s.add_argument("--out", default=None, help="products folder (default: SCAN/out; writes atlas/)")
-    s.add_argument("--mesh", default="ground_truth",
-                   help="'ground_truth' (a synthetic scan's true mesh) or a mesh file in metres, "
-                        "e.g. SCAN/out/mesh/mesh.ply from 'facegeo mesh' ('facegeo "
-                        "reconstruct --mesh reconstructed' does this for you)")
+    s.add_argument("--out", default=None,
+                   help="products folder (default: SCAN/out, where the atlas is the cached stage "
+                        "later stages reuse; another folder: the stage on its own)")
+    s.add_argument("--mesh", default="auto",
+                   help="auto (a synthetic scan's true mesh, else the reconstruction), "
+                        "ground_truth, reconstructed (the cached mesh stage) or a mesh file in "
+                        "metres")
     g = s.add_mutually_exclusive_group()
     g.add_argument("--texels-per-mm", type=_pos_float, default=1.0,
                    help="atlas resolution on the surface")
@@ -615,25 +649,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="parameterise in pieces of about this many triangles (0: one piece)")
     s.add_argument("--repair", action="store_true",
                    help="drop degenerate and non-manifold faces instead of refusing the mesh")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_atlas)
 
     s = sub.add_parser("project", parents=common,
                        help="project every camera's OLAT frames onto the atlas texels")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--out", default=None,
-                   help="products folder (default: SCAN/out; writes project/, builds atlas/ first)")
+                   help="products folder (default: SCAN/out, where the projection and the atlas "
+                        "before it are cached stages later stages reuse; another folder: the "
+                        "stage on its own)")
     s.add_argument("--rig", default=None, metavar="RIG",
                    help="rig to project with: ground_truth (default on a synthetic scan), scan "
                         "(the scan's rig.json, default otherwise), calibrated "
                         "(SCAN/out/calibrate/rig.json) or a rig file")
-    s.add_argument("--mesh", default="ground_truth", help="as for facegeo atlas")
+    s.add_argument("--mesh", default="auto", help="as for facegeo atlas")
     s.add_argument("--camera", action="append", default=None,
-                   help="project only this camera (repeatable; default: all)")
+                   help="project only this camera (repeatable; default: all; the stage then "
+                        "runs on its own, outside the cache)")
     s.add_argument("--dtype", choices=["float16", "float32"], default="float16",
                    help="storage type of the fields on disk")
     s.add_argument("--gt-lights", type=_pos_int, default=argparse.SUPPRESS,
                    help="lights compared against ground truth on synthetic scans (a stratified "
                         "subset; default: facegeo.pipeline.project.GT_LIGHTS, 128)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_project)
 
     s = sub.add_parser("relight", parents=common,

@@ -508,3 +508,19 @@ def test_project_prints_a_line_per_camera(tiny_scan, capsys):
     out = capsys.readouterr().out.splitlines()
     i = out.index("  cameras:")
     assert out[i + 1].startswith("    cam_left: ") and "visible_fraction=" in out[i + 1], out
+
+
+def test_atlas_and_project_are_the_cached_stages_later_commands_reuse(tiny_scan, capsys):
+    """``facegeo atlas`` and ``facegeo project`` (default products folder) run the cached
+    stages of ``facegeo reconstruct`` with their settings: a later ``facegeo fit`` reuses them
+    (it rebuilt both: their manifests had no key). ``--out`` still runs a stage on its own."""
+    assert main(["atlas", str(tiny_scan), "-q"]) == 0
+    assert main(["project", str(tiny_scan), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "atlas      cached" in out and "project    ran" in out, out
+    assert main(["fit", str(tiny_scan), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "atlas      cached" in out and "project    cached" in out, out
+    assert main(["atlas", str(tiny_scan), "--out", str(tiny_scan.parent / "elsewhere"),
+                 "--texels-per-mm", "0.5"]) == 0
+    assert (tiny_scan.parent / "elsewhere" / "atlas" / "texels.npz").is_file()
