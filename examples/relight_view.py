@@ -35,7 +35,7 @@ from facegeo.pipeline.relight import tone_map
 def relight(scan: Scan, env: envmap.EnvironmentMap, camera: str | None, out: Path) -> Path:
     camera = camera or scan.camera_names[0]
     lights = scan.rig.lights
-    w = envmap.light_stage_weights(env, lights.n_theta, lights.n_phi)
+    w = envmap.light_weights(env, lights)  # the θ × φ grid or a real rig's list of lights
     active = int(np.count_nonzero(np.any(w != 0, axis=1)))
     img = relight_scan_view(scan, camera, w, normalize_color=True)
     out.mkdir(parents=True, exist_ok=True)
@@ -61,11 +61,13 @@ def main(argv: list[str] | None = None) -> int:
     if a.tiny:
         from facegeo.synth.capture import generate_scan
 
-        tmp = Path(tempfile.mkdtemp(prefix="facegeo-example-"))
-        scan_dir = tmp / "scan"
-        generate_scan(scan_dir, preset="tiny")
-        env = envmap.axis_lobe_map(32)
-        relight(load_scan(scan_dir), env, a.camera, a.out or tmp / "relit")
+        # the scan lives only as long as the relight; the images stay (in --out, or a folder
+        # of their own that the script prints)
+        out = a.out or Path(tempfile.mkdtemp(prefix="facegeo-example-relit-"))
+        with tempfile.TemporaryDirectory(prefix="facegeo-example-") as tmp:
+            scan_dir = Path(tmp) / "scan"
+            generate_scan(scan_dir, preset="tiny")
+            relight(load_scan(scan_dir), envmap.axis_lobe_map(32), a.camera, out)
         return 0
     if a.scan is None or a.env is None:
         ap.error("give SCAN and ENV (or --tiny)")

@@ -109,3 +109,19 @@ def test_turntable_tiny(tmp_path):
     # the frame at 0 deg is the source camera: the naive render reproduces it closely
     front = [r for r in res if r["camera_spec"].endswith(":0")][0]
     assert front["psnr_db"] > 35
+
+
+def test_relight_view_on_the_real_yale_capture(shared_data, tmp_path):
+    """The example on a real capture whose lights are a list, not the θ × φ grid (it computed
+    grid weights and stopped with AttributeError 'n_theta')."""
+    from facegeo.capture.datasets import import_dataset
+
+    src = shared_file(shared_data, "olat/yale_b01")
+    env = shared_file(shared_data, "envmaps/forest.exr")
+    import_dataset("yale-b", src, tmp_path / "yale")
+    ex = _load("relight_view")
+    assert ex.main([str(tmp_path / "yale"), str(env), "--out", str(tmp_path / "o")]) == 0
+    from facegeo.capture.imageio import read_image
+
+    img = read_image(next((tmp_path / "o").glob("relit_*.exr")))
+    assert np.isfinite(img).all() and img.mean() > 0
