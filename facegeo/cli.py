@@ -449,6 +449,8 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
                      settings=None) -> list:
     from facegeo.pipeline.reconstruct import run_reconstruct
 
+    if getattr(args, "max_coarse_px", None) is not None:  # only when given: default keys stay
+        settings = {**(settings or {}), "decode": {"max_coarse_px": args.max_coarse_px}}
     tick, close = _progress_factory(not args.quiet)
     try:
         results = run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"),
@@ -515,6 +517,15 @@ def _cmd_reconstruct(args) -> int:
           f"{Path(args.scan) / 'out'})")
     _run_reconstruct(args.scan, args, from_stage=args.from_stage, only=args.only)
     return 0
+
+
+def _max_coarse_option(s) -> None:
+    """``--max-coarse-px``: the decode stage's setting (only sent when given, so the cache
+    keys of the default runs do not change)."""
+    s.add_argument("--max-coarse-px", type=_pos_float, default=None, metavar="PX",
+                   help="decode: accept codes naming a block of up to PX projector pixels "
+                        "(default: half a phase period on a phase axis, else one stripe; "
+                        "docs/structured-light.md)")
 
 
 def _common_options() -> argparse.ArgumentParser:
@@ -706,6 +717,8 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("scan", metavar="SCAN", help="scan directory")
         s.add_argument("--mesh", default="auto", help=mesh_help)
         s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
+        if name in ("decode", "mesh"):
+            _max_coarse_option(s)
         s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         s.set_defaults(func=_cmd_stage)
 
@@ -747,6 +760,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rerun this stage and every later one even if cached")
     g.add_argument("--only", default=None, metavar="STAGE",
                    help="run only this stage (its input stages must be current)")
+    _max_coarse_option(s)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_reconstruct)
 

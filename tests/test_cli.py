@@ -524,3 +524,17 @@ def test_atlas_and_project_are_the_cached_stages_later_commands_reuse(tiny_scan,
     assert main(["atlas", str(tiny_scan), "--out", str(tiny_scan.parent / "elsewhere"),
                  "--texels-per-mm", "0.5"]) == 0
     assert (tiny_scan.parent / "elsewhere" / "atlas" / "texels.npz").is_file()
+
+
+def test_max_coarse_px_reaches_the_decode_stage(monkeypatch, tiny_scan):
+    """``--max-coarse-px`` is the decode stage's setting (it had no flag); absent, no decode
+    settings are sent, so the default runs' cache keys do not change."""
+    import facegeo.pipeline.reconstruct as reconstruct
+
+    seen = []
+    monkeypatch.setattr(reconstruct, "run_reconstruct",
+                        lambda *a, **k: seen.append(k.get("settings")) or [])
+    monkeypatch.setattr("facegeo.cli._write_report", lambda out: None)
+    assert main(["decode", str(tiny_scan), "--max-coarse-px", "16", "-q"]) == 0
+    assert main(["reconstruct", str(tiny_scan), "-q"]) == 0
+    assert seen == [{"decode": {"max_coarse_px": 16.0}}, None], seen

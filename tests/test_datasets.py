@@ -110,7 +110,34 @@ def test_three_phase_is_a_phase_only_spec(converted):
     scan = converted.get("three-phase") or pytest.skip("no phase data")
     spec = scan.pattern_spec("structured_light")
     assert spec.phase_steps == 3 and not spec.gray
-    assert scan.sl_frames == ["phase_x_0", "phase_x_1", "phase_x_2"]
+    assert scan.sl_frames == ["phase_y_0", "phase_y_1", "phase_y_2"]
+
+
+def test_three_phase_declares_the_axis_its_fringes_vary_along(converted):
+    """The imported scan's frames, decoded on the axis the scan declares: the wrapped phase
+    must advance along that image axis. Metric: median |wrapped step| between neighbouring
+    face pixels (intensity > 0.01, below the bright band of the top 20 rows), radians per pixel
+    (measured 0.10 down the rows, 0.03 across the columns: the fringes are horizontal bands)."""
+    from facegeo.geometry.structured_light import decode_phase
+
+    scan = converted.get("three-phase") or pytest.skip("no phase data")
+    spec = scan.pattern_spec("structured_light")
+    (axis,) = spec.phase_axes
+    frames = {n: scan.sl_frame("cam", n) for n in scan.sl_frames}
+    wrapped, _ = decode_phase(frames, spec, axis)
+    face = np.mean([f.mean(axis=-1) if f.ndim == 3 else f for f in frames.values()], axis=0) > 0.01
+    face[:20] = False
+
+    def median_step(img_axis):
+        d = np.angle(np.exp(1j * np.diff(wrapped, axis=img_axis)))
+        both = np.diff(face.astype(np.int8), axis=img_axis) == 0
+        both &= np.take(face, range(face.shape[img_axis] - 1), axis=img_axis)
+        return float(np.median(np.abs(d[both & np.isfinite(d)])))
+
+    along_rows, along_cols = median_step(0), median_step(1)
+    # projector axis "y" (rows) must vary down the image, "x" (columns) across it
+    declared, other = (along_rows, along_cols) if axis == "y" else (along_cols, along_rows)
+    assert declared > 2.0 * other, (axis, along_rows, along_cols)
 
 
 def test_bad_input_is_refused_and_leaves_nothing(tmp_path, shared_data):
@@ -130,6 +157,11 @@ def test_bad_input_is_refused_and_leaves_nothing(tmp_path, shared_data):
     with pytest.raises(InputError, match="never overwrites"):
         import_dataset("graycode-mannequin", src, busy)
     assert (busy / "mine.txt").read_text() == "keep"
+    # never into the source folder (it wrote a scan into the shared data set)
+    before = sorted(p.name for p in partial.iterdir())
+    with pytest.raises(InputError, match="inside the source folder"):
+        import_dataset("graycode-mannequin", partial, partial / "scan")
+    assert sorted(p.name for p in partial.iterdir()) == before
     with pytest.raises(InputError, match="not the expected data set"):
         import_dataset("three-phase", src, tmp_path / "other")
 

@@ -356,6 +356,104 @@ def scan_spec_bits(scan, axis):
     return PatternSpec.from_dict(scan.sl_patterns).n_bits(axis)
 
 
+def _write_sl_scan(root, spec, *, declare_patterns=True, noise=0.002):
+    """A one-camera structured-light scan of the ``_frames`` scene under ``spec`` (8-bit PNG,
+    linear response, an uncalibrated projector of the spec's size); with
+    ``declare_patterns=False`` the manifest has no ``[structured_light.patterns]`` table.
+    Returns the loaded scan and the frames as written."""
+    import cv2
+
+    from facegeo.capture.scan import load_scan, new_manifest, write_manifest
+    from facegeo.frames import look_at
+    from facegeo.geometry.camera import Camera
+    from facegeo.geometry.rig import Projector, Rig
+
+    frames, _, _ = _frames(spec, dtype=np.uint8, noise=noise)
+    root.mkdir(parents=True)
+    K = np.array([[150.0, 0.0, 64.3], [0.0, 152.0, 44.1], [0.0, 0.0, 1.0]])
+    cam = Camera("cam", CAM_W, CAM_H, K, np.zeros(5), look_at((0.0, 0.0, 1.0), (0.0, 0.0, 0.0)))
+    Rig(cameras=[cam], projector=Projector("projector", spec.width, spec.height),
+        lights=None).save(root / "rig.json")
+    (root / "structured_light" / "cam").mkdir(parents=True)
+    for n, f in frames.items():
+        assert cv2.imwrite(str(root / "structured_light" / "cam" / f"{n}.png"), f)
+    m = new_manifest("sl_test", synthetic=False)
+    m["structured_light"] = {"response": "linear", "projector": "projector",
+                             "frames": list(frames),
+                             "files": "structured_light/{camera}/{frame}.png"}
+    if declare_patterns:
+        m["structured_light"]["patterns"] = spec.to_dict()
+    write_manifest(root, m)
+    return load_scan(root), frames
+
+
+def test_decode_without_a_patterns_table_takes_the_projector_defaults(tmp_path):
+    """docs/scan-format.md: ``patterns`` defaults to ``{}``, width / height to the rig
+    projector's: a scan without the table decodes as PatternSpec's defaults at that size —
+    the same arrays, bit for bit, as the scan that spells the table out."""
+    from facegeo.pipeline.decode import run_decode
+
+    spec = PatternSpec(PROJ_W, PROJ_H)
+    bare, _ = _write_sl_scan(tmp_path / "bare", spec, declare_patterns=False)
+    full, _ = _write_sl_scan(tmp_path / "full", spec)
+    assert "patterns" not in bare.manifest["structured_light"] or \
+        not bare.manifest["structured_light"]["patterns"]
+    m = run_decode(bare, tmp_path / "out_bare")
+    ref = run_decode(full, tmp_path / "out_full")
+    assert m["patterns"] == spec.to_dict()
+    assert m["valid_fraction"] == ref["valid_fraction"] > 0.5
+    with np.load(tmp_path / "out_bare" / "decode" / "cam" / "decode.npz") as a, \
+            np.load(tmp_path / "out_full" / "decode" / "cam" / "decode.npz") as b:
+        for k in ("x", "y", "valid", "confidence"):
+            np.testing.assert_array_equal(a[k], b[k])
+    # frames that are not the default set: the error says the defaults were assumed
+    phase = PatternSpec(PROJ_W, PROJ_H, gray=False, inverse=False, white_black=False,
+                        phase_steps=3, phase_axes=("y",))
+    odd, _ = _write_sl_scan(tmp_path / "odd", phase, declare_patterns=False)
+    with pytest.raises(InputError, match=r"patterns\] is absent, so the default pattern set of "
+                                         r"the 200 x 120 projector was assumed"):
+        run_decode(odd, tmp_path / "out_odd")
+
+
+def test_phase_only_decode_writes_wrapped_phase_and_quality(tmp_path, caplog):
+    """A phase-only set (no Gray code) has no absolute coordinates: decode.npz stays invalid,
+    one warning says why, and phase.npz holds the wrapped phase (equal to decode_phase on the
+    scan's own frames within 1e-4 rad, max abs) and the quality map; the metrics say
+    ``phase_only`` and the usable fraction (lit columns: every pixel usable; shadowed: none)."""
+    import logging
+
+    from facegeo.pipeline.decode import run_decode
+
+    spec = PatternSpec(PROJ_W, PROJ_H, gray=False, inverse=False, white_black=False,
+                       phase_steps=3, phase_axes=("y",))
+    scan, _ = _write_sl_scan(tmp_path / "scan", spec)
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.decode"):
+        m = run_decode(scan, tmp_path / "out")
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "phase-only" in warnings[0].getMessage()
+    assert "no Gray code" in warnings[0].getMessage()
+    assert m["phase_only"] is True and m["cameras"]["cam"]["phase_only"] is True
+    assert m["valid_fraction"] == 0.0
+    d = tmp_path / "out" / "decode" / "cam"
+    with np.load(d / "decode.npz") as z:
+        assert not z["valid"].any()
+    with np.load(d / "phase.npz") as z:
+        assert sorted(z.files) == ["modulation_y", "quality_y", "usable_y", "wrapped_y"]
+        wrapped, quality, usable = z["wrapped_y"], z["quality_y"], z["usable_y"]
+        modulation = z["modulation_y"]
+    frames = {n: scan.sl_frame("cam", n) for n in scan.sl_frames}
+    ph, mod = decode_phase(frames, spec, "y")
+    ok = np.isfinite(ph)
+    assert np.max(np.abs(wrapped[ok] - ph[ok])) <= 1e-4
+    assert np.max(np.abs(modulation - mod)) <= 1e-5
+    assert wrapped.dtype == np.float32 and quality.dtype == np.float32 and usable.dtype == bool
+    assert ((quality >= 0) & (quality <= 1)).all()
+    assert m["quality_fraction"] == pytest.approx(usable.mean())
+    # _frames' projector shadow (columns < 12: ambient 0.02 and noise, quality median 0.12)
+    assert usable[:, 12:].mean() >= 0.99 and usable[:, :12].mean() <= 0.01  # 0.997 / 0.002
+    assert (d / "phase_y.png").is_file() and (d / "quality_y.png").is_file()
+
+
 def test_noise_free_phase_accuracy(tiny):
     """Noise-free renders: centre-sampled pixels <= 0.05 projector px RMS (the decoder's own
     error); 3 x 3 box-filtered pixels (the generator's sensor) against the centre's truth are
@@ -526,6 +624,23 @@ def test_real_face_threephase_wrapped_phase_and_quality(shared_data):
     assert 0.2 < face.mean() < 0.6
     assert np.median(res.modulation["y"][face] / res.lit[face]) > 0.3  # fringe quality
     assert not res.valid.any()  # no Gray code to unwrap with: no coordinates claimed
+
+
+@pytest.mark.shared_data
+def test_real_face_threephase_scan_decodes_to_phase_and_quality(shared_data, tmp_path):
+    """The imported three-phase scan through the decode stage: phase only, no coordinates, the
+    face's pixels above the quality threshold (measured 0.335 of the image; the lit face and
+    the bright band at the top: 0.336)."""
+    from facegeo.capture.datasets import import_dataset
+    from facegeo.pipeline.decode import run_decode
+
+    src = shared_file(shared_data, "structured_light/face_threephase")
+    scan = import_dataset("three-phase", src, tmp_path / "scan")
+    m = run_decode(scan, tmp_path / "out")
+    assert m["phase_only"] is True and m["valid_fraction"] == 0.0
+    assert 0.2 < m["quality_fraction"] < 0.5, m["quality_fraction"]
+    with np.load(tmp_path / "out" / "decode" / "cam" / "phase.npz") as z:
+        assert np.isfinite(z["wrapped_y"][z["usable_y"]]).all()
 
 
 # ---------------------------------------------------------------- memory

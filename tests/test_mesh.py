@@ -285,3 +285,39 @@ def test_column_only_decode_meshes(tiny, tmp_path):
     assert m["points"] > 1000
     assert all(c["rejected"]["inconsistent"] == 0 for c in m["cameras"].values())
     assert m["points_rms_error_mm"] < 1.0
+
+
+def test_uncalibrated_projector_is_named_before_any_triangulation(tmp_path):
+    """A rig whose projector is a ``rig.Projector`` (resolution only): the stage says in one
+    line that the projector is uncalibrated, how to calibrate it and, for a scan with two
+    cameras, where the camera–camera path through matching codes lives (the hand-written
+    fixture: two cameras, projector 'proj' 16 × 8, uncalibrated)."""
+    import shutil
+    from pathlib import Path
+
+    from facegeo.capture.scan import load_scan
+    from facegeo.geometry.triangulation import triangulate_maps
+    from facegeo.pipeline.mesh import mesh_products, write_decode_npz
+
+    src = Path(__file__).parent / "fixtures" / "scans" / "structured_light_only"
+    shutil.copytree(src, tmp_path / "scan")
+    scan = load_scan(tmp_path / "scan")
+    assert not scan.rig.projector.calibrated
+    for c in scan.camera_names:
+        cam = scan.camera(c)
+        nan = np.full((cam.height, cam.width), np.nan, np.float32)
+        write_decode_npz(tmp_path / "decode" / c / "decode.npz",
+                         {"x": nan, "y": nan, "confidence": np.zeros_like(nan),
+                          "valid": np.zeros(nan.shape, bool), "sigma_x": nan, "sigma_y": nan})
+    (tmp_path / "out").mkdir()
+    with pytest.raises(InputError) as err:
+        mesh_products(scan, tmp_path / "decode", tmp_path / "out", rig="scan")
+    msg = str(err.value)
+    assert "\n" not in msg
+    for part in ("projector 'proj'", "is uncalibrated", "facegeo calibrate", "[calib.projector]",
+                 "--rig calibrated", "triangulate_camera_pair", "two or more cameras"):
+        assert part in msg, part
+    # the library function says the same thing when called directly
+    cam = scan.camera(scan.camera_names[0])
+    with pytest.raises(InputError, match="got Camera, Projector; an uncalibrated projector"):
+        triangulate_maps(cam, scan.rig.projector, np.zeros((cam.height, cam.width)))

@@ -149,3 +149,27 @@ def test_calibrated_rig_without_a_calibration_is_a_clear_error(tiny_scan, tmp_pa
     assert not (root / "out" / "mesh").exists()
     with pytest.raises(InputError, match="rig: expected one of"):
         reconstruct.run_reconstruct(root, rig="calibrate")
+
+
+@pytest.mark.parametrize("fixture, command, says", [
+    ("light_stage_v2", "decode", "has no structured-light frames to decode"),
+    ("light_stage_v2", "mesh", "has no structured light to mesh"),
+    ("calibration_corners", "mesh", "has no structured light to mesh"),
+    ("calibration_corners", "decode", "has no structured-light frames to decode"),
+    ("calibration_corners", "fit", "has no OLAT frames for the 'fit' stage"),
+])
+def test_stage_command_names_what_the_scan_lacks(tmp_path, capsys, fixture, command, says):
+    """`facegeo decode` on an OLAT-only scan, `facegeo mesh` on a calibration-only one: the
+    error names the missing input (not a mesh option, not an unknown stage)."""
+    import shutil
+    from pathlib import Path
+
+    src = Path(__file__).parent / "fixtures" / "scans" / fixture
+    shutil.copytree(src, tmp_path / "scan")
+    assert main([command, str(tmp_path / "scan"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert says in err, err
+    assert "unknown stage" not in err and "--mesh" not in err
+    # --only / --from name the flag as well
+    assert main(["reconstruct", str(tmp_path / "scan"), "--only", command, "-q"]) == 2
+    assert f"--only '{command}': scan" in capsys.readouterr().err

@@ -488,12 +488,12 @@ def test_import_refuses_a_description_that_does_not_match_the_folder(tmp_path):
     assert not (tmp_path / "scan").exists()
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "x").write_text("x")
-    with pytest.raises(ScanFormatError, match=r"not an empty directory"):
+    with pytest.raises(InputError, match=r"not an empty directory"):
         import_folder(src, tmp_path / "full", desc)
     # never into the source (a data set, a real capture): not inside it, not the folder itself
     before = sorted(p.relative_to(src).as_posix() for p in src.rglob("*"))
     for dest in (src / "scan", src, src / "olat" / "x"):
-        with pytest.raises(ScanFormatError, match=r"inside the source folder"):
+        with pytest.raises(InputError, match=r"inside the source folder"):
             import_folder(src, dest, desc)
     assert sorted(p.relative_to(src).as_posix() for p in src.rglob("*")) == before
 

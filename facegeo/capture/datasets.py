@@ -15,7 +15,8 @@ when it is complete and validated.
                        elevation, 8-bit frames, an ambient frame to subtract; a light list.
 ``graycode-mannequin`` An 18-frame Gray-code capture (``1.jpg`` … ``18.jpg``) without
                        inverse or white/black frames: row and column bits interleaved.
-``three-phase``        A three-step phase-shift capture of a face (``phase1.png`` …).
+``three-phase``        A three-step phase-shift capture of a face (``phase1.png`` …):
+                       horizontal fringes, phase along the rows (axis ``y``), no Gray code.
 =====================  =====================================================================
 
 What none of these data sets publish is written as a *nominal* value and said so in the
@@ -35,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.capture.importer import _carry
+from facegeo.capture.importer import _carry, check_destination
 from facegeo.capture.scan import MANIFEST_NAME, Scan, load_scan, new_manifest, write_manifest
 from facegeo.checks import check_choice
 from facegeo.errors import InputError
@@ -248,14 +249,18 @@ def _three_phase(src: Path, root: Path, mode: str) -> dict:
 
     paths = _need(src, [f"phase{k}.png" for k in (1, 2, 3)])
     w, h = _image_size(paths[0])
+    # The fringes are horizontal bands: the wrapped phase advances down the image (median
+    # |dphi/drow| 0.10 rad per pixel against 0.03 per column), so the phase codes projector
+    # rows, axis "y" (test_three_phase_declares_the_axis_its_fringes_vary_along).
     spec = PatternSpec(width=w, height=h, gray=False, inverse=False, white_black=False,
-                       phase_steps=3, phase_axes=("x",))
+                       phase_steps=3, phase_axes=("y",))
     return _sl_scan(
         root, mode, name="face_threephase", paths=paths,
-        frames=[f"phase_x_{k}" for k in range(3)], spec=spec, suffix=".png",
-        description="Three-step phase shift of a face, fringes across the image columns, no "
-                    "Gray code (wrapped phase only). Projector resolution and fringe period are "
-                    "not published: the pattern space is nominally the camera's size.",
+        frames=[f"phase_y_{k}" for k in range(3)], spec=spec, suffix=".png",
+        description="Three-step phase shift of a face, horizontal fringes (the phase varies "
+                    "down the image rows: projector axis y), no Gray code (wrapped phase only). "
+                    "Projector resolution and fringe period are not published: the pattern "
+                    "space is nominally the camera's size.",
         metadata={"dataset": "three-phase",
                   "nominal": ["cameras", "projector resolution", "phase period"]})
 
@@ -303,9 +308,7 @@ def import_dataset(kind: str, src: str | os.PathLike, dest: str | os.PathLike, *
     src, dest = Path(src), Path(dest)
     if not src.is_dir():
         raise InputError(f"{src}: source folder not found")
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
-        raise InputError(f"{dest}: exists and is not an empty directory; importing never "
-                         "overwrites")
+    check_destination(src, dest)  # new or empty, never inside the source
     dest.parent.mkdir(parents=True, exist_ok=True)
     clean_stale_siblings(dest)
     tmp = staging_dir(dest, "tmp")

@@ -31,7 +31,7 @@ from typing import Any
 from facegeo.capture._scan_schema import _err
 from facegeo.capture.scan import MANIFEST_NAME, Scan, write_manifest
 from facegeo.checks import check_choice, fmt_value
-from facegeo.errors import ScanFormatError
+from facegeo.errors import InputError, ScanFormatError
 
 __all__ = ["import_folder", "IMPORT_MODES", "check_destination"]
 
@@ -45,16 +45,17 @@ def check_destination(src: Path, dest: Path) -> None:
     """Where an import may write: a new path or an empty directory, outside the source folder.
 
     Importing never writes into the source (the data set, a real capture): a destination
-    inside it — or the source itself — would add a scan to it. Raises ScanFormatError naming
-    the destination.
+    inside it — or the source itself — would add a scan to it. Raises InputError naming the
+    destination (shared by :func:`import_folder` and
+    :func:`facegeo.capture.datasets.import_dataset`).
     """
     s, d = Path(src).resolve(), Path(dest).resolve()
     if d == s or s in d.parents:
-        raise _err(f"inside the source folder {src}; importing never writes into the source — "
-                   "choose a destination outside it", path=dest)
+        raise InputError(f"{dest}: inside the source folder {src}; importing never writes into "
+                         "the source — choose a destination outside it")
     if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
-        raise _err("destination exists and is not an empty directory; importing never "
-                   "overwrites", path=dest)
+        raise InputError(f"{dest}: exists and is not an empty directory; importing never "
+                         "overwrites")
 
 
 def _read_description(path: Path) -> dict:

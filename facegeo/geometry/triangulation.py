@@ -354,7 +354,10 @@ def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None
     carries the noise and the camera pixel centre does not.
     """
     if not isinstance(camera, Camera) or not isinstance(projector, Camera):
-        raise InputError("camera, projector: expected facegeo.geometry.camera.Camera objects")
+        uncal = ("; an uncalibrated projector (a rig.Projector: resolution only) must be "
+                 "calibrated first" if getattr(projector, "calibrated", True) is False else "")
+        raise InputError("camera, projector: expected facegeo.geometry.camera.Camera objects, "
+                         f"got {type(camera).__name__}, {type(projector).__name__}{uncal}")
     x = as_array(x, "x", shape=(None, None), finite=False)
     shape = x.shape
     if shape != (camera.height, camera.width):

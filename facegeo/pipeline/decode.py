@@ -15,6 +15,22 @@
 
 and records the metrics in ``out_dir/metrics.json`` under ``"decode"``.
 
+A **phase-only** pattern set (phase shifts and no Gray / XOR / min-SW code, e.g. the shared
+three-step face) cannot be unwrapped to absolute projector coordinates: ``decode.npz`` then
+holds no valid pixel, one warning says why, and the measurement is written instead per camera:
+
+    <camera>/phase.npz    per phase axis ``a``: float32 (H, W) ``wrapped_a`` (radians in
+                          [0, 2 pi), NaN at zero modulation), ``modulation_a`` (fringe
+                          amplitude B, fraction of full scale), ``quality_a`` (fringe contrast
+                          ``clip(2 B / lit, 0, 1)``, ``lit`` the phase offset 2 A: the decoder's
+                          own quality measure), bool ``usable_a`` (not in shadow and
+                          ``quality_a >= min_modulation``; saturation is not checked here)
+    <camera>/phase_a.png, quality_a.png   false colour (turbo over [0, 2 pi) / [0, 1]; black =
+                          not usable / shadow)
+
+with ``phase_only: true`` and ``quality_fraction`` (usable pixels of the image, per camera and
+pooled) in the metrics.
+
 Metrics, per camera and pooled: ``valid_fraction`` (of the image, and ``valid_of_surface``: of
 the pixels that see the head when the scan has ground truth), per-bit losses (``bits``: per axis
 and code family, the lit pixels that leave each bit unresolved and those it invalidates; see
@@ -147,10 +163,14 @@ def code_accuracy(x, y, valid, gt: dict, *, axes=("x", "y"), phase_axes=()) -> d
     }
 
 
-def _false_colour(values: np.ndarray, valid: np.ndarray, size: int, path: Path) -> None:
+def _false_colour(values: np.ndarray, valid: np.ndarray, size: int, path: Path, *,
+                  span: float | None = None) -> None:
+    """Turbo PNG of ``values`` over ``[0, span]`` (default ``size - 1``: projector pixels);
+    black where not ``valid``."""
     import cv2
 
-    v = np.nan_to_num(np.asarray(values, np.float64) / max(size - 1, 1), nan=0.0)
+    span = max(size - 1, 1) if span is None else span
+    v = np.nan_to_num(np.asarray(values, np.float64) / span, nan=0.0)
     u8 = np.clip(np.rint(v * 255.0), 0, 255).astype(np.uint8)
     bgr = cv2.applyColorMap(u8, cv2.COLORMAP_TURBO)
     bgr[~valid] = 0
@@ -165,6 +185,46 @@ def _axes_coded(spec) -> tuple[str, ...]:
     return tuple(a for a in ("x", "y") if spec.n_bits(a))
 
 
+def _scan_pattern_spec(scan):
+    """The scan's :class:`PatternSpec`: its ``[structured_light.patterns]`` through
+    :meth:`Scan.pattern_spec` (``width`` / ``height`` default to the rig's projector), or, when
+    the table is absent or empty, the documented defaults for the rig projector's resolution
+    (``docs/scan-format.md``). Returns ``(spec, declared)``."""
+    from facegeo.geometry.structured_light import PatternSpec
+
+    spec = scan.pattern_spec("structured_light")
+    if spec is not None:
+        return spec, True
+    proj = scan.rig.projector
+    if proj is None:
+        raise InputError(f"scan {scan.root}: [structured_light] declares no patterns and the rig "
+                         "has no projector to take the pattern set's resolution from")
+    return PatternSpec(width=proj.width, height=proj.height), False
+
+
+def _write_phase_products(res, spec, d: Path, min_modulation: float) -> np.ndarray:
+    """``phase.npz`` and the phase / quality PNGs of a phase-only decode (module docstring).
+
+    The wrapped phase and modulation are :func:`decode_stream`'s own (``res.wrapped``,
+    ``res.modulation``; :func:`facegeo.geometry.structured_light.decode_phase` computes the same
+    from whole frames). Returns the (H, W) bool mask usable on every phase axis."""
+    arrays, usable_all = {}, None
+    lit = np.asarray(res.lit, np.float32)
+    for a in spec.phase_axes:
+        wrapped, B = res.wrapped[a], res.modulation[a]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            quality = np.where(lit > 0, np.clip(2.0 * B / lit, 0.0, 1.0), 0.0).astype(np.float32)
+        usable = ~res.shadow & (quality >= min_modulation) & np.isfinite(wrapped)
+        arrays.update({f"wrapped_{a}": wrapped, f"modulation_{a}": B,
+                       f"quality_{a}": quality, f"usable_{a}": usable})
+        _false_colour(wrapped, usable, 0, d / f"phase_{a}.png", span=2.0 * np.pi)
+        _false_colour(quality, ~res.shadow, 0, d / f"quality_{a}.png", span=1.0)
+        usable_all = usable if usable_all is None else usable_all & usable
+    with atomic_path(d / "phase.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    return usable_all
+
+
 def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
                     **settings) -> tuple[dict, dict]:
     """Write the ``decode`` products of ``scan`` into ``dest`` (module docstring).
@@ -172,26 +232,28 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     The work of :func:`run_decode` without the staging. ``settings`` are
     :data:`DECODE_DEFAULTS` keys. Returns ``(metrics, settings)``.
     """
-    from facegeo.geometry.structured_light import (
-        PatternSpec,
-        decode_stream,
-        pattern_names,
-    )
+    from facegeo.geometry.structured_light import decode_stream, pattern_names
 
     unknown = sorted(set(settings) - set(DECODE_DEFAULTS))
     if unknown:
         raise InputError(f"decode settings: unknown {unknown}; valid: {sorted(DECODE_DEFAULTS)}")
     used = {**DECODE_DEFAULTS, **settings}
-    spec = PatternSpec.from_dict(scan.sl_patterns)
+    if not scan.has("structured_light"):
+        raise InputError(f"scan {scan.root}: no structured-light frames to decode (the manifest "
+                         "has no [structured_light] group)")
+    spec, declared = _scan_pattern_spec(scan)
     names = scan.sl_frames
     spec_names = pattern_names(spec)
     if sorted(names) != sorted(spec_names):
         extra = sorted(set(names) - set(spec_names))
         missing = [n for n in spec_names if n not in names]
+        what = ("the pattern set [structured_light.patterns]" if declared else
+                f"[structured_light.patterns] is absent, so the default pattern set of the "
+                f"{spec.width} x {spec.height} projector was assumed; it")
         raise InputError(
-            f"scan {scan.root}: structured_light.frames lists {len(names)} frames, the pattern "
-            f"set [structured_light.patterns] has {len(spec_names)}; missing {missing[:8]}, "
-            f"extra {extra[:8]}")
+            f"scan {scan.root}: structured_light.frames lists {len(names)} frames, {what} has "
+            f"{len(spec_names)}; missing {missing[:8]}, extra {extra[:8]}"
+            + ("" if declared else "; declare the patterns in the manifest"))
     cams = list(scan.camera_names) if cameras is None else list(cameras)
     for c in cams:
         if c not in scan.camera_names:
@@ -202,6 +264,15 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
               "exact": 0.0, "compared": 0, "se": 0.0, "n_phase": 0}
     axes = _axes_coded(spec)
     phase_axes = tuple(spec.phase_axes) if spec.phase_steps else ()
+    phase_only = bool(phase_axes) and not axes
+    if phase_only:
+        log.warning(
+            "decode: the pattern set is phase-only (%d-step phase on axis %s, no Gray code): "
+            "without code bits the wrapped phase cannot be unwrapped to absolute projector "
+            "coordinates, so decode.npz has no valid pixel; the wrapped phase and its quality "
+            "map are written to <camera>/phase.npz (and phase_*.png, quality_*.png)",
+            spec.phase_steps, ", ".join(phase_axes))
+        pooled["usable"] = 0
     for cam in cams:
         tc = time.perf_counter()
         # the next frames read and decoded meanwhile
@@ -220,6 +291,11 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
             "bits": res.bits,
             "seconds": round(time.perf_counter() - tc, 4),
         }
+        if phase_only:
+            usable = _write_phase_products(res, spec, d, used["min_modulation"])
+            m["phase_only"] = True
+            m["quality_fraction"] = float(usable.mean())
+            pooled["usable"] += int(usable.sum())
         pooled["valid"] += int(res.valid.sum())
         pooled["pixels"] += int(res.valid.size)
         gt = ground_truth_projector(scan, cam) if scan.synthetic else None
@@ -237,12 +313,19 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
                 pooled["se"] += acc["phase_rms_error_proj_px"] ** 2 * k
                 pooled["n_phase"] += k
         per_cam[cam] = m
-        log.info("decode %s: %.1f %% valid", cam, 100 * m["valid_fraction"])
+        if phase_only:
+            log.info("decode %s: phase only, %.1f %% of the pixels above the quality threshold",
+                     cam, 100 * m["quality_fraction"])
+        else:
+            log.info("decode %s: %.1f %% valid", cam, 100 * m["valid_fraction"])
     metrics: dict[str, Any] = {
         "cameras": per_cam,
         "patterns": spec.to_dict(),
         "valid_fraction": pooled["valid"] / max(pooled["pixels"], 1),
     }
+    if phase_only:
+        metrics["phase_only"] = True
+        metrics["quality_fraction"] = pooled["usable"] / max(pooled["pixels"], 1)
     if pooled["surface"]:
         metrics["valid_of_surface"] = pooled["valid_surface"] / pooled["surface"]
         metrics["exact_code_fraction"] = (pooled["exact"] / pooled["compared"]

@@ -15,7 +15,9 @@ Rig: ``rig="ground_truth"`` (default when the scan has one) uses the true rig th
 rendered with, ``rig="scan"`` the scan's ``rig.json``, ``rig="calibrated"`` the ``calibrate``
 stage's ``out/calibrate/rig.json`` (or give a rig file). With any rig but the true one, the
 ground-truth metrics are also given after the best rigid alignment of the points to the true
-surface (``after_rigid_alignment``: a calibrated rig's world frame is its own gauge).
+surface (``after_rigid_alignment``: a calibrated rig's world frame is its own gauge). A rig
+whose projector is uncalibrated (a :class:`facegeo.geometry.rig.Projector`) is refused first,
+with what would calibrate it.
 
 Ground-truth metrics (synthetic scans; the mesh is ``scan.ground_truth_path("mesh")``):
 
@@ -371,6 +373,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     the_rig, rig_used = stage_rig(scan, rig)
     if the_rig.projector is None:
         raise InputError(f"scan {scan.root}: the rig has no projector to triangulate against")
+    _check_projector_calibrated(scan, the_rig, rig_used)
     if cameras is None:
         names = [n for n in scan.camera_names if (decode_dir / n / "decode.npz").is_file()]
         if not names:
@@ -446,6 +449,30 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                                            align=rig_used != "ground_truth"))
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     return metrics, settings
+
+
+def _check_projector_calibrated(scan, the_rig, rig_used: str) -> None:
+    """Raise :class:`InputError` in one line when the rig's projector is uncalibrated (a
+    :class:`facegeo.geometry.rig.Projector`: resolution only, no intrinsics or pose), saying
+    what would mesh the scan."""
+    from facegeo.geometry.camera import Camera
+
+    proj = the_rig.projector
+    if isinstance(proj, Camera):
+        return
+    n_cams = len(scan.camera_names)
+    pair = ("with its two or more cameras, camera-camera triangulation through matching "
+            "projector codes exists in the library only "
+            "(facegeo.geometry.triangulation.triangulate_camera_pair, needs x and y codes and "
+            "calibrated cameras), not in this stage" if n_cams >= 2 else
+            "with one camera, camera-camera triangulation through matching projector codes "
+            "(facegeo.geometry.triangulation.triangulate_camera_pair) does not apply either")
+    raise InputError(
+        f"scan {scan.root}: the projector {proj.name!r} of the {rig_used!r} rig is uncalibrated "
+        f"(resolution {proj.width} x {proj.height} only, no intrinsics or pose); meshing from "
+        "camera-projector correspondences needs its calibration: run `facegeo calibrate` on a "
+        "scan with projector board views ([calib.projector]) and mesh with --rig calibrated, or "
+        f"give a rig whose projector is calibrated (the scan's rig.json, or rig=PATH); {pair}")
 
 
 def _mm(v) -> float:

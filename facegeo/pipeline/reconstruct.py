@@ -103,6 +103,26 @@ def _applicable(scan, mesh: str) -> list[str]:
     return stages
 
 
+#: What a stage reads from the scan, for the message when the scan lacks it.
+_STAGE_NEEDS = {
+    "calibrate": "no board views to calibrate (no [calib] group)",
+    "decode": "no structured-light frames to decode (no [structured_light] group)",
+    "mesh": "no structured light to mesh (no [structured_light] group)",
+}
+
+
+def _check_stage_has_input(scan, stage: str | None, flag: str | None) -> None:
+    """Raise :class:`InputError` naming what the scan lacks when ``stage`` is a stage of the
+    chain that this scan has no input for (``facegeo mesh`` on a calibration-only scan);
+    ``flag`` (``"--only"``, ``"--from"``) prefixes the message."""
+    if stage is None or stage not in STAGES or stage in _applicable(scan, "auto"):
+        return
+    lacks = _STAGE_NEEDS.get(stage, f"no OLAT frames for the {stage!r} stage (no [olat] group)")
+    have = ", ".join(f"[{g}]" for g in ("calib", "structured_light", "olat") if scan.has(g))
+    raise InputError(f"{flag + ' ' + repr(stage) + ': ' if flag else ''}scan {scan.root} has "
+                     f"{lacks}; it has {have or 'no frame groups'}")
+
+
 def _resolve_rig(scan, rig: str, stages: list[str]) -> str:
     if rig not in RIG_CHOICES:
         raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)}, got {fmt_value(rig)}")
@@ -287,6 +307,8 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
     scan = load_scan(scan_dir)  # validated once, before any stage starts
     if settings:
         json.dumps(settings)  # fail early on values that cannot enter a cache key
+    for name, flag in ((until, None), (only, "--only"), (from_stage, "--from")):
+        _check_stage_has_input(scan, name, flag)
     pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig)
     return pipeline.run(scan_dir, settings=settings, from_stage=from_stage, only=only,
                         until=until, progress=progress, on_stage=on_stage)
