@@ -489,6 +489,18 @@ def test_calibrate_table_on_a_real_data_set(shared_data, tmp_path, capsys):
     scan = tmp_path / "st"
     assert main(["import", str(src), str(scan), "--dataset", "opencv-stereo"]) == 0
     capsys.readouterr()
+    # a view without a board (the import hard-links the frames: unlink, never write through)
+    import cv2
+
+    blank = scan / "calib" / "right" / "view_002.jpg"
+    size = cv2.imread(str(blank), 0).shape
+    ino = blank.stat().st_ino
+    original = next((f, f.read_bytes()) for f in src.iterdir() if f.stat().st_ino == ino) \
+        if any(f.stat().st_ino == ino for f in src.iterdir()) else None
+    blank.unlink()
+    cv2.imwrite(str(blank), np.full(size, 128, np.uint8))
+    if original is not None:  # linked: the data set's file is untouched
+        assert original[0].read_bytes() == original[1]
     assert main(["calibrate", str(scan), "-q"]) == 0
     out = capsys.readouterr().out.splitlines()
     head = next(line for line in out if line.startswith("camera"))
@@ -497,7 +509,7 @@ def test_calibrate_table_on_a_real_data_set(shared_data, tmp_path, capsys):
         row = next(line for line in out if line.startswith(cam)).split()
         assert "-" not in row[-2:], row  # focal and principal-point errors are numbers
         assert float(row[-2]) < 0.01, row  # measured 0.0041 / 0.0011 (docs/calibration.md)
-    assert any(line.startswith("skipped left view_004.jpg: no 9×6 chessboard found")
+    assert any(line.startswith("skipped right view_002.jpg: no 9×6 chessboard found")
                for line in out), out
 
 
