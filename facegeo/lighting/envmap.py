@@ -487,7 +487,7 @@ def direction_weights(env: EnvironmentMap, directions: Any, *, supersample: int 
     solid_angles : (N,) float64, steradians
         Voronoi cell areas (sum 4π).
     """
-    from scipy.spatial import SphericalVoronoi, cKDTree
+    from scipy.spatial import SphericalVoronoi
 
     v = as_array(directions, "directions", shape=(None, 3))
     if v.shape[0] < 4:
@@ -501,7 +501,21 @@ def direction_weights(env: EnvironmentMap, directions: Any, *, supersample: int 
         raise InputError(f"directions: cannot build the spherical Voronoi cells ({exc}); "
                          f"directions must be distinct and not all on one great circle") from exc
     areas = sv.calculate_areas()
+    return _nearest_light_mean(env, v, supersample) * areas[:, None], areas
+
+
+def _nearest_light_mean(env: EnvironmentMap, v: np.ndarray, supersample: int,
+                        horizon_axis: Any = None) -> np.ndarray:
+    """Mean radiance ``(N, 3)`` of the environment over the directions nearest each light
+    direction ``v`` (its spherical Voronoi cell, by assigning every (sub-)pixel to the nearest
+    light; above the horizon only, with ``horizon_axis``); a light no sample falls nearest
+    takes the map's value in its own direction."""
+    from scipy.spatial import cKDTree
+
     d, om, rad = _samples(env, supersample)
+    if horizon_axis is not None:
+        keep = d @ np.asarray(horizon_axis, np.float64) >= 0.0
+        d, om, rad = d[keep], om[keep], rad[keep]
     _, idx = cKDTree(v).query(d)
     area = np.bincount(idx, weights=om, minlength=v.shape[0])
     integ = np.stack([np.bincount(idx, weights=om * rad[:, c], minlength=v.shape[0])
@@ -511,7 +525,7 @@ def direction_weights(env: EnvironmentMap, directions: Any, *, supersample: int 
     mean[has] = integ[has] / area[has, None]
     if not has.all():
         mean[~has] = env.radiance(v[~has])
-    return mean * areas[:, None], areas
+    return mean
 
 
 def light_weights(env: EnvironmentMap, lights: Any, *, solid_angle: str = "paper",
@@ -528,24 +542,9 @@ def light_weights(env: EnvironmentMap, lights: Any, *, solid_angle: str = "paper
     """
     if hasattr(lights, "n_theta") and hasattr(lights, "n_phi"):
         return light_stage_weights(env, lights.n_theta, lights.n_phi, solid_angle=solid_angle)
-    from scipy.spatial import cKDTree
-
     v = as_array(lights.directions, "lights.directions", shape=(None, 3))
     om_l = np.asarray(lights.solid_angles, np.float64)
-    d, om, rad = _samples(env, supersample)
-    axis = getattr(lights, "horizon_axis", None)
-    if axis is not None:
-        keep = d @ np.asarray(axis, np.float64) >= 0.0
-        d, om, rad = d[keep], om[keep], rad[keep]
-    _, idx = cKDTree(v).query(d)
-    area = np.bincount(idx, weights=om, minlength=v.shape[0])
-    integ = np.stack([np.bincount(idx, weights=om * rad[:, c], minlength=v.shape[0])
-                      for c in range(3)], axis=-1)
-    mean = np.empty_like(integ)
-    has = area > 0
-    mean[has] = integ[has] / area[has, None]
-    if not has.all():
-        mean[~has] = env.radiance(v[~has])
+    mean = _nearest_light_mean(env, v, supersample, getattr(lights, "horizon_axis", None))
     return mean * om_l[:, None]
 
 
