@@ -385,8 +385,11 @@ def _cmd_project(args) -> int:
     cache."""
     from facegeo.pipeline.project import run_project
 
+    from facegeo.pipeline.reconstruct import RIG_CHOICES
+
     kw = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
-    if args.out is None and args.camera is None:
+    # a rig file is not one of the pipeline's rigs: the stage on its own, as with --out
+    if args.out is None and args.camera is None and args.rig in (None, *RIG_CHOICES):
         args.rig = args.rig or "auto"
         results = _run_reconstruct(args.scan, args, until="project",
                                    settings={"project": {"dtype": args.dtype, **kw}})
@@ -677,7 +680,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--mesh", default="auto", help="as for facegeo atlas")
     s.add_argument("--camera", action="append", default=None,
                    help="project only this camera (repeatable; default: all; the stage then "
-                        "runs on its own, outside the cache)")
+                        "runs on its own, outside the cache, as with a rig file)")
     s.add_argument("--dtype", choices=["float16", "float32"], default="float16",
                    help="storage type of the fields on disk")
     s.add_argument("--gt-lights", type=_pos_int, default=argparse.SUPPRESS,

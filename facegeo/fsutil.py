@@ -195,44 +195,58 @@ def add_to_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> 
     return write_written_record(root, (read_written_record(root) or set()) | set(rel_paths))
 
 
-#: How many directories above a written file :func:`_note_written` looks for a scan's written
-#: record (``SCAN/out/<stage>/<camera>/file`` is four below ``SCAN``).
+#: How many directories above a written file :func:`_note_written` looks for the scan it lies
+#: in (``SCAN/out/<stage>/<camera>/file`` is four below ``SCAN``).
 _RECORD_SEARCH_DEPTH = 5
+#: The folder of a scan whose files :func:`_note_written` records: the products folder.
+_PRODUCTS = "out"
 _record_lock = threading.Lock()
 
 
 def _note_written(parent: Path, names: list[str]) -> None:
-    """Add files just written (``parent / name``) to the written record of the scan they lie
-    in, if any: the nearest of ``parent``'s first :data:`_RECORD_SEARCH_DEPTH` ancestors
-    holding :data:`WRITTEN_RECORD` (only synthetic scans carry one). Files inside hidden
-    directories (staging folders, ``.NAME.facegeo-tmp-…``) and the record itself are skipped.
-    A record that cannot be updated costs a warning, never the write that succeeded."""
-    d = Path(parent).absolute()
-    for _ in range(_RECORD_SEARCH_DEPTH):
-        if (d / WRITTEN_RECORD).is_file():
-            break
-        if d.parent == d:
-            return
-        d = d.parent
-    else:
-        return
+    """Add products just written (``parent / name``) to the written record of the scan they
+    lie in: the nearest of ``parent``'s first :data:`_RECORD_SEARCH_DEPTH` ancestors holding
+    a ``scan.toml`` (so a scan nested in another owns its files), when it carries a record
+    (only synthetic scans do) and the files lie in its products folder ``out/`` — what a file
+    saved elsewhere in the scan with the library (a rig of yours, say) is not: it stays the
+    user's. Files inside hidden directories (staging folders, ``.NAME.facegeo-tmp-…``) are
+    skipped. The lines are appended under a file lock (two processes writing into one scan
+    keep both their entries). A record that cannot be updated costs a warning, never the
+    write that succeeded."""
     try:
-        prefix = Path(parent).absolute().relative_to(d).as_posix()
-    except ValueError:
+        here = Path(parent).absolute()
+        d = here
+        for _ in range(_RECORD_SEARCH_DEPTH):
+            if (d / "scan.toml").is_file():
+                break
+            if d.parent == d:
+                return
+            d = d.parent
+        else:
+            return
+        if not (d / WRITTEN_RECORD).is_file():
+            return
+        prefix = here.relative_to(d).as_posix()
+    except (OSError, ValueError):
         return
     rels = []
     for name in names:
         rel = name if prefix == "." else f"{prefix}/{name}"
         parts = rel.split("/")
-        if rel == WRITTEN_RECORD or any(p.startswith(".") for p in parts[:-1]):
+        if (parts[0] != _PRODUCTS or len(parts) < 2 or "\n" in rel
+                or any(p.startswith(".") for p in parts[:-1])):
             continue
         rels.append(rel)
     if not rels:
         return
     try:
-        with _record_lock:
-            add_to_written_record(d, rels)
-    except (OSError, ValueError) as exc:
+        with _record_lock, open(d / WRITTEN_RECORD, "a", encoding="utf-8") as fh:
+            with contextlib.suppress(ImportError, OSError):
+                import fcntl
+
+                fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
+            fh.write("".join(r + "\n" for r in rels))
+    except OSError as exc:
         log.warning("%s: could not add %d written file(s) to the record (%s); a later "
                     "'facegeo synth --overwrite' keeps them", d / WRITTEN_RECORD, len(rels), exc)
 

@@ -536,6 +536,10 @@ def test_atlas_and_project_are_the_cached_stages_later_commands_reuse(tiny_scan,
     assert main(["atlas", str(tiny_scan), "--out", str(tiny_scan.parent / "elsewhere"),
                  "--texels-per-mm", "0.5"]) == 0
     assert (tiny_scan.parent / "elsewhere" / "atlas" / "texels.npz").is_file()
+    # a rig file is not a pipeline rig: the stage on its own (it was refused once routed)
+    rig = tiny_scan / "ground_truth" / "rig.json"
+    assert main(["project", str(tiny_scan), "--rig", str(rig), "--gt-lights", "4", "-q"]) == 0
+    assert "project    " not in capsys.readouterr().out  # no pipeline stage line
 
 
 def test_max_coarse_px_reaches_the_decode_stage(monkeypatch, tiny_scan):

@@ -158,19 +158,28 @@ def test_products_written_into_the_scan_are_recorded_and_replaced_with_it(old_sc
     while the user's own file in ``out/`` stays."""
     from facegeo.pipeline.project import run_atlas
 
+    from facegeo.geometry.rig import Rig
+
     root = old_scan
     run_atlas(root, texels_per_mm=0.3)  # out/atlas/ (staged) and out/metrics.json (atomic)
     fsutil.atomic_write_text(root / "out" / "views" / "note.json", "{}")
     (root / "out" / "mine.txt").write_text("my notes")
+    # saved with the library but not a product: outside out/, or in a scan nested in this one
+    Rig.load(root / "rig.json").save(root / "my_rig.json")
+    nested = root / "imports" / "inner"
+    nested.mkdir(parents=True)
+    (nested / "scan.toml").write_text("# another scan's manifest\n")
+    fsutil.atomic_write_text(nested / "out" / "metrics.json", "{}")
     rec = fsutil.read_written_record(root)
     assert {"out/metrics.json", "out/atlas/atlas.npz", "out/atlas/texels.npz",
             "out/atlas/stage.json", "out/views/note.json"} <= rec
-    assert "out/mine.txt" not in rec
+    assert not {"out/mine.txt", "my_rig.json", "imports/inner/out/metrics.json"} & rec
     assert not any(".facegeo-tmp-" in r for r in rec)  # staging folders never recorded
 
     summary = generate_scan(root, "tiny", seed=2, overwrite=True)
 
-    assert summary.kept == ["out/mine.txt"]
+    assert sorted(summary.kept) == ["imports/inner/out/metrics.json", "imports/inner/scan.toml",
+                                    "my_rig.json", "out/mine.txt"]
     assert (root / "out" / "mine.txt").read_text() == "my notes"
     for gone in ("out/metrics.json", "out/atlas", "out/views"):
         assert not (root / gone).exists(), gone

@@ -246,8 +246,8 @@ def detect_chessboard(image, spec: ChessboardSpec, *, name: str = "image",
     check_choice(method, "method", ("auto", "sb", "classic"))
     if method == "auto":
         got = detect_chessboard(image, spec, name=name, method="sb")
-        if got.found or (spec.cols + spec.rows) % 2 == 0:  # ends alike: no safe reordering
-            return got
+        if got.found or (spec.cols + spec.rows) % 2 == 0 or spec.cols < 3:
+            return got  # found; or ends alike / too narrow to tell the order: no fallback
         got = detect_chessboard(image, spec, name=name, method="classic")
         if not got.found:
             return got

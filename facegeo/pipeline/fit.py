@@ -473,7 +473,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             _ground_truth(gt, renderer, atlas, tex, src, lights, dest / src.name,
                           gt_functions, gt_angles, resynthesize, T_true)
     files = _write_maps(dest, tex, acc, wsum)
-    if mosaic_R is not None:
+    if mosaic_R is not None and hasattr(the_rig.lights, "n_theta"):  # a θ × φ grid to lay out
         imageio.write_image(dest / "mosaic.png", reflectance_mosaic(
             mosaic_R, the_rig.lights.n_theta, the_rig.lights.n_phi, cols=int(mosaic)))
         files["mosaic"] = "mosaic.png"

@@ -300,7 +300,8 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     rot = f"{float(rotate):g}".replace("-", "m")
     # the projection and the δA rule are part of the name when they are not the defaults (a
     # map read as a mirror ball, or an exact-solid-angle relight, does not overwrite the others)
-    rule = "" if solid_angle == "paper" else f"_{_safe_stem(solid_angle)}"
+    rule = ("" if solid_angle == "paper" or not hasattr(lights, "n_theta")  # a list: its own δA
+            else f"_{_safe_stem(solid_angle)}")
     proj_tag = "" if env_map.projection == "latlong" else f"_{env_map.projection}"
     stem = f"{_safe_stem(Path(str(env)).stem)}{proj_tag}_rot{rot}_{_safe_stem(view)}{rule}"
     exr = imageio.write_image(dest / f"{stem}.exr", img)  # atomic (temporary file + rename)
