@@ -200,6 +200,9 @@ def add_to_written_record(root: str | os.PathLike, rel_paths: Iterable[str]) -> 
 _RECORD_SEARCH_DEPTH = 5
 #: The folder of a scan whose files :func:`_note_written` records: the products folder.
 _PRODUCTS = "out"
+#: A record grown past this by appends (the same products written run after run) is rewritten
+#: without its repeated lines.
+_RECORD_COMPACT_BYTES = 1 << 20
 _record_lock = threading.Lock()
 
 
@@ -246,6 +249,9 @@ def _note_written(parent: Path, names: list[str]) -> None:
 
                 fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
             fh.write("".join(r + "\n" for r in rels))
+            fh.flush()
+            if fh.tell() > _RECORD_COMPACT_BYTES:  # reruns append the same paths again
+                write_written_record(d, read_written_record(d) or ())
     except OSError as exc:
         log.warning("%s: could not add %d written file(s) to the record (%s); a later "
                     "'facegeo synth --overwrite' keeps them", d / WRITTEN_RECORD, len(rels), exc)

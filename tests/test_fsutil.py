@@ -159,3 +159,20 @@ def test_staged_directory_leaves_no_parent_it_made_when_the_block_fails(tmp_path
     with staged_directory(target) as tmp:
         (tmp / "atlas.npz").write_bytes(b"ok")
     assert (target / "atlas.npz").read_bytes() == b"ok"
+
+
+def test_written_record_appends_products_and_compacts(tmp_path, monkeypatch):
+    """Products written into a scan's out/ are appended to its record (a rerun appends the
+    same paths again); past a size the record is rewritten once per path, header kept."""
+    from facegeo import fsutil
+
+    root = tmp_path / "scan"
+    root.mkdir()
+    (root / "scan.toml").write_text("")
+    fsutil.write_written_record(root, ["scan.toml"])
+    monkeypatch.setattr(fsutil, "_RECORD_COMPACT_BYTES", 600)
+    for _ in range(30):
+        fsutil.atomic_write_text(root / "out" / "metrics.json", "{}")
+    text = (root / fsutil.WRITTEN_RECORD).read_text()
+    assert fsutil.read_written_record(root) == {"scan.toml", "out/metrics.json"}
+    assert text.startswith("#") and len(text) <= 600 + 40, len(text)
