@@ -654,6 +654,18 @@ def test_a_rig_in_another_world_frame_is_compared_after_the_gauge_alignment(tiny
                              resynthesis=False, rig=rig, name="v")
              for tag, rig in (("true", "ground_truth"), ("moved", rig_path))}
     assert abs(views["moved"]["gauge_translation_mm"] - moved["gauge_translation_mm"]) < 1e-9
+    # the alignment is computed once per process for the same two meshes (project, then the
+    # render above took it from the first)
+    from facegeo.pipeline.project import truth_gauge
+
+    calls = []
+    real = type(gt).gauge_alignment
+    gt.gauge_alignment = lambda v: calls.append(1) or real(gt, v)
+    try:
+        truth_gauge(gt, Atlas.load(tmp_path / "moved" / "atlas" / "atlas.npz"), "calibrated")
+    finally:
+        del gt.gauge_alignment
+    assert calls == []
     a, b = views["true"]["rel_rmse_covered"], views["moved"]["rel_rmse_covered"]
     assert a < 0.2 and abs(a - b) <= GAUGE_METRIC_REL_TOL * a, (a, b)
     from facegeo.pipeline.fit import run_fit

@@ -249,7 +249,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     come from one read of the fields and one resynthesis (``render_view(shrinkage_set=)``, each
     bit for bit its own render). ``cache``: a dict shared by the views of one stage for what
     does not depend on the view: the cross-validated λ (once per environment weights and light
-    step) and the gauge alignment of the reference (once per atlas and rig).
+    step).
 
     With a rig other than the true one (a calibration's), the reference is rendered from the
     novel camera moved into the generator's frame by the gauge alignment of the atlas mesh
@@ -391,14 +391,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
 
         t0 = time.perf_counter()
         renderer = load_ground_truth(scan)
-        gkey = ("gauge", rig_used, hashlib.sha1(
-            np.ascontiguousarray(atlas.vertices, np.float64).tobytes()).hexdigest())
-        if cache is not None and gkey in cache:
-            T_true, gauge = cache[gkey]
-        else:
-            T_true, gauge = truth_gauge(renderer, atlas, rig_used)
-            if cache is not None:
-                cache[gkey] = (T_true, gauge)
+        T_true, gauge = truth_gauge(renderer, atlas, rig_used)
         metrics.update(gauge)
         ref_camera = camera if T_true is None else dataclasses.replace(
             camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
@@ -452,7 +445,7 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     resynthesis as written beside it).
     """
     per_view = {}
-    cache: dict = {}  # the cross-validated λ and the reference's gauge (render_one)
+    cache: dict = {}  # the cross-validated λ, once per environment (render_one)
     for k, spec in enumerate(views):
         tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(views) * n)) \
             if progress else None
