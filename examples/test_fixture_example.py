@@ -5,7 +5,10 @@ Run:  python -m pytest -q examples/test_fixture_example.py
 The session-scoped fixtures build a tiny synthetic scan once (a few seconds) and run
 ``facegeo reconstruct`` on it (atlas → project, cached under ``SCAN/out/``); tests then read the
 projected surface reflectance field and the ground truth the generator wrote beside the scan.
-Swap ``generate_scan`` for ``load_scan("path/to/your/scan")`` to test against a real capture.
+To test against a real capture, swap ``generate_scan`` for ``load_scan("path/to/your/scan")``
+and leave out what only a synthetic scan has (``ground_truth_path``: the true rig and mesh):
+on a real scan ``reconstruct`` also runs the stages its data calls for (calibrate, decode,
+mesh) and writes into the scan's ``out/`` (copy the scan first if it must stay untouched).
 """
 
 from __future__ import annotations
@@ -52,7 +55,8 @@ def test_field_matches_the_frames(tiny_scan, field):
     cam = tiny_scan.camera_names[0]
     # A synthetic scan's rig.json is the nominal rig (what a user would measure before
     # calibration); the frames were rendered with the perturbed true rig in ground_truth/, and
-    # `reconstruct` projects with that one on synthetic scans until calibration is a stage.
+    # `reconstruct` projects with that one on a synthetic scan (rig "auto"; the calibrated rig
+    # with rig="calibrated").
     camera = Rig.load(tiny_scan.ground_truth_path("rig")).camera(cam)
     R = open_field(field / "project" / cam)                 # (T_c, L, 3) float16 memory map
     index = np.load(field / "project" / cam / "texel_index.npy")

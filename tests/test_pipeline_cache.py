@@ -195,3 +195,36 @@ def test_bad_definitions_and_settings(scan):
         Pipeline([StageSpec("a", run)]).run(scan, settings={"zz": {}})
     with pytest.raises(InputError, match="does not exist"):
         Pipeline([StageSpec("a", run, inputs=lambda d: [d / "missing.bin"])]).run(scan)
+
+
+def test_a_lost_or_corrupt_metrics_file_is_whole_again_after_a_cached_run(scan, caplog):
+    """Cached stages put their manifest's metrics back into metrics.json (a deleted file made
+    'facegeo report' fail until every stage reran; a corrupt one was silently replaced by the
+    stages that reran alone)."""
+    import json
+    import logging
+
+    calls: list[str] = []
+    _toy_pipeline(calls).run(scan)
+    path = scan / "out" / "metrics.json"
+    want = json.loads(path.read_text())
+    path.unlink()
+    calls.clear()
+    _toy_pipeline(calls).run(scan)
+    assert calls == [] and json.loads(path.read_text()) == want
+    path.write_text("{not json")
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.cache"):
+        _toy_pipeline(calls).run(scan)
+    assert "unreadable" in caplog.text and json.loads(path.read_text()) == want
+
+
+def test_stage_settings_are_checked_before_any_stage_runs(scan):
+    """A misspelt setting, or a stage's settings that are not a mapping, is an InputError
+    before anything runs (it was a TypeError inside the stage, after the stages before it)."""
+    calls: list[str] = []
+    with pytest.raises(InputError, match=r"settings\['b'\]: unknown \['scal'\]; the stage's "
+                                         r"settings are scale"):
+        _toy_pipeline(calls).run(scan, settings={"b": {"scal": 2}})
+    with pytest.raises(InputError, match=r"settings\['b'\]: expected a mapping"):
+        _toy_pipeline(calls).run(scan, settings={"b": "x"})
+    assert calls == []

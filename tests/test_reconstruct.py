@@ -91,6 +91,18 @@ def test_bad_stage_name_and_missing_mesh(tiny_scan, tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_mesh_or_rig_as_a_stage_setting_is_refused(tiny_scan):
+    """mesh and rig are the chain's choices: given as a stage's setting they changed its cache
+    key and were ignored (the atlas stayed on the generator's mesh)."""
+    from facegeo.errors import InputError
+    from facegeo.pipeline.reconstruct import run_reconstruct
+
+    for stage, key in (("atlas", "mesh"), ("project", "rig")):
+        with pytest.raises(InputError, match=rf"settings\['{stage}'\]: {key} is chosen for "
+                                             rf"the whole chain"):
+            run_reconstruct(tiny_scan, settings={stage: {key: "reconstructed"}})
+
+
 def test_stage_commands_and_render(tiny_scan, capsys):
     """`facegeo decode` runs one stage (and what it needs); `facegeo render` adds a view."""
     assert main(["decode", str(tiny_scan), "-q"]) == 0

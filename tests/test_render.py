@@ -486,3 +486,13 @@ def test_fused_float16_read_equals_the_numpy_read(parts, monkeypatch, light_step
     assert np.array_equal(np.isnan(fused), np.isnan(ref))
     assert np.nanmax(np.abs(fused - ref)) <= FUSED_READ_REL * scale
     assert np.nanmax(np.abs(fused - naive)) > 1e3 * FUSED_READ_REL * scale
+
+
+def test_load_sources_takes_paths_as_strings(parts):
+    """Both folders may be given as strings (the fit folder as a string was a TypeError)."""
+    from facegeo.render import load_sources
+
+    out = parts["root"] / "out"
+    got = load_sources(str(out / "project"), str(out / "fit"))
+    assert [s.name for s in got] == [s.name for s in parts["sources"]]
+    assert all(s.fit is not None for s in got)

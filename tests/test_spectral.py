@@ -709,3 +709,17 @@ def test_fit_albedo_flags_skipped_steps():
     assert bad.skipped_steps[0] > 0 and bad.skipped_steps[1] == 0, bad.skipped_steps
     assert bad.flags[0] & _inverse.FLAG_SKIPPED_STEPS, "flagged"
     assert not bad.flags[1] & _inverse.FLAG_SKIPPED_STEPS, "only the broken texel"
+
+
+def test_first_spectral_call_leaves_numpy_print_options_alone():
+    """colour-science's import sets ``np.set_printoptions(legacy="1.13")`` process-wide; the
+    first spectral call (which imports it) must not change how the user's arrays print. In a
+    fresh interpreter: this process may have imported colour already."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np; before = np.get_printoptions(); "
+            "from facegeo.appearance import spectral; spectral.skin_rgb(0.03, 0.05, 0.008); "
+            "assert np.get_printoptions() == before, np.get_printoptions(); print('ok')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]

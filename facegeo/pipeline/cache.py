@@ -148,13 +148,19 @@ class _HashMemo:
 
 
 def record_metrics(out_dir: str | os.PathLike, name: str, metrics: dict) -> None:
-    """Set ``out_dir/metrics.json[name] = metrics`` (other entries kept; atomic write)."""
+    """Set ``out_dir/metrics.json[name] = metrics`` (other entries kept; atomic write). A file
+    that cannot be read as a JSON object is started afresh with a warning (a pipeline run puts
+    every cached stage's metrics back from its manifest)."""
     path = Path(out_dir) / "metrics.json"
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
         if not isinstance(doc, dict):
-            doc = {}
-    except (OSError, ValueError):
+            raise ValueError("not a JSON object")
+    except FileNotFoundError:
+        doc = {}
+    except (OSError, ValueError) as exc:
+        log.warning("%s: unreadable (%s); starting it afresh — 'facegeo reconstruct' puts "
+                    "every cached stage's metrics back", path, exc)
         doc = {}
     doc[name] = metrics
     atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True, allow_nan=False))
@@ -239,6 +245,17 @@ class Pipeline:
         if unknown:
             raise InputError(f"settings for unknown stages {sorted(unknown)}; stages are "
                              f"{', '.join(self.names)}")
+        for spec in self.stages:  # before any stage runs: a typo would surface stages later
+            given = settings.get(spec.name)
+            if given is None:
+                continue
+            if not isinstance(given, Mapping):
+                raise InputError(f"settings[{spec.name!r}]: expected a mapping of setting names "
+                                 f"to values, got {fmt_value(given)}")
+            bad = sorted(set(given) - set(spec.settings)) if spec.settings else []
+            if bad:
+                raise InputError(f"settings[{spec.name!r}]: unknown {bad}; the stage's settings "
+                                 f"are {', '.join(sorted(spec.settings))}")
         out = scan_dir / self.out_name
         out.mkdir(parents=True, exist_ok=True)
         for name in self.names:  # leftovers of killed runs (only folders this code names)
@@ -268,6 +285,9 @@ class Pipeline:
                 if cached is not None and not forced:
                     result = StageResult(spec.name, key, False, 0.0, cached.get("metrics", {}),
                                          final)
+                    # the manifest's metrics back into metrics.json: a lost or rewritten file
+                    # is whole again after any run, not only after the stages that reran
+                    record_metrics(out, spec.name, result.metrics)
                 else:
                     self._warn_if_standalone(final)
                     result = self._run_stage(spec, scan_dir, out, key, stage_settings, inputs,

@@ -307,6 +307,11 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
     scan = load_scan(scan_dir)  # validated once, before any stage starts
     if settings:
         json.dumps(settings)  # fail early on values that cannot enter a cache key
+        for stage, given in settings.items():  # the chain's own choices, not a stage's
+            clash = sorted({"mesh", "rig"} & set(given)) if isinstance(given, Mapping) else []
+            if clash:
+                raise InputError(f"settings[{stage!r}]: {', '.join(clash)} is chosen for the whole "
+                                 f"chain: pass mesh= / rig= (--mesh / --rig), not a stage setting")
     for name, flag in ((until, None), (only, "--only"), (from_stage, "--from")):
         _check_stage_has_input(scan, name, flag)
     pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig)

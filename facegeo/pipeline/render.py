@@ -184,7 +184,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     ----------
     scan_dir : path-like or Scan
     out_dir : path-like, optional — default the scan's ``out/`` (holding ``atlas/``,
-        ``project/``, ``fit/``); images go to ``out_dir/render/``
+        ``project/``, ``fit/``); images go to ``out_dir/views/``
     camera_spec : str, dict or Camera — ``"orbit:<camera>:<degrees>"``, a camera name (the
         scan's, or the generator's novel cameras), a camera JSON file or dict
         (:func:`facegeo.render.parse_camera_spec`)

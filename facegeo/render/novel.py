@@ -331,6 +331,7 @@ def load_sources(project_dir, fit_dir=None, *, cameras=None) -> list[SourceCamer
     from facegeo.surface.reflectance import open_field
 
     project_dir = Path(project_dir)
+    fit_dir = None if fit_dir is None else Path(fit_dir)
     dirs = sorted(p for p in project_dir.glob("*") if (p / "R.npy").is_file()) \
         if project_dir.is_dir() else []
     if cameras is not None:

@@ -35,6 +35,10 @@ from facegeo.checks import fmt_value
 __all__ = ["XYZ_TO_LINEAR_SRGB", "rgb_weights", "spectrum_to_rgb", "spectrum_to_xyz"]
 
 def _colour_module():
+    """colour-science, imported without changing the caller's process: its import sets
+    ``np.set_printoptions(legacy="1.13")`` for everyone (a user's printed arrays and doctests
+    changed after their first spectral call), so numpy's print options are put back."""
+    options = np.get_printoptions()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # colour-science warns that matplotlib is absent
@@ -43,6 +47,8 @@ def _colour_module():
         raise MissingDependencyError(
             "facegeo.appearance.spectral needs colour-science for the CIE tables: pip install colour-science"
         ) from exc
+    finally:
+        np.set_printoptions(**options)
     return colour
 
 
