@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -451,6 +452,7 @@ def _stage_line(result) -> str:
 def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
                      settings=None) -> list:
     from facegeo.pipeline.reconstruct import run_reconstruct
+    from facegeo.pipeline.report import write_report
 
     if getattr(args, "max_coarse_px", None) is not None:  # only when given: default keys stay
         settings = {**(settings or {}), "decode": {"max_coarse_px": args.max_coarse_px}}
@@ -460,6 +462,14 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
                                   rig=getattr(args, "rig", "auto"), settings=settings,
                                   from_stage=from_stage, only=only, until=until, progress=tick,
                                   on_stage=lambda r: (close(), print(_stage_line(r))))
+    except FacegeoError:
+        close()
+        # the report too, with the failed stage marked (metrics.json's last_run_failed); its
+        # own trouble never hides the stage's error
+        if (Path(scan) / "out" / "metrics.json").is_file():
+            with contextlib.suppress(FacegeoError, OSError):
+                write_report(Path(scan) / "out")
+        raise
     finally:
         close()
     _write_report(Path(scan) / "out")

@@ -115,10 +115,17 @@ def test_interrupted_stage_keeps_earlier_products_and_resumes(scan):
     assert (scan / "out" / "b" / "total.txt").read_text() == before_b
     assert not (scan / "out" / "b" / "half-written.txt").exists()
     assert _partials(scan) == []
+    # metrics.json keeps b's previous figures (its products are still those) and says it failed
+    import json
+
+    b = json.loads((scan / "out" / "metrics.json").read_text())["b"]
+    assert b["total"] == int(before_b) and b["last_run_failed"] == "RuntimeError: boom in b"
     calls.clear()
     _toy_pipeline(calls).run(scan)
     assert calls == ["b"]  # resumes: a is current
     assert (scan / "out" / "b" / "total.txt").read_text() == "20"
+    b = json.loads((scan / "out" / "metrics.json").read_text())["b"]
+    assert "last_run_failed" not in b  # the successful run replaced the entry
 
 
 def test_killed_run_leftovers_are_cleaned(scan):

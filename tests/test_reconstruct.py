@@ -7,6 +7,7 @@ import json
 import pytest
 
 from facegeo.cli import main
+from facegeo.errors import InputError
 from facegeo.pipeline import reconstruct
 
 
@@ -81,6 +82,19 @@ def test_failed_stage_keeps_earlier_products(tiny_scan, monkeypatch, capsys):
     assert (tiny_scan / "out" / "atlas" / "stage.json").read_bytes() == before
     assert (tiny_scan / "out" / "project" / "stage.json").is_file()  # old products intact
     assert not [p for p in (tiny_scan / "out").iterdir() if ".facegeo-tmp-" in p.name]
+    # the failure is on record beside the figures of the products still there, and a user
+    # error (exit 2) also rewrites the report with it
+    doc = json.loads((tiny_scan / "out" / "metrics.json").read_text())
+    assert doc["project"]["last_run_failed"] == "RuntimeError: injected failure in project"
+    assert "projection_rel_rmse" in doc["project"]
+
+    def refuse(*a, **k):
+        raise InputError("injected refusal in project")
+
+    monkeypatch.setattr(project, "project_products", refuse)
+    (tiny_scan / "out" / "report.html").unlink(missing_ok=True)
+    assert main(["reconstruct", str(tiny_scan), "--from", "project", "-q"]) == 2
+    assert "injected refusal" in (tiny_scan / "out" / "report.html").read_text()
 
 
 def test_bad_stage_name_and_missing_mesh(tiny_scan, tmp_path, capsys):

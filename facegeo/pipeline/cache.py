@@ -166,6 +166,23 @@ def record_metrics(out_dir: str | os.PathLike, name: str, metrics: dict) -> None
     atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True, allow_nan=False))
 
 
+def _record_failure(out: Path, name: str, final: Path, exc: BaseException) -> None:
+    """Mark stage ``name``'s entry in ``out/metrics.json``: ``last_run_failed`` (one line),
+    beside the metrics of the products still on disk (the previous run's manifest's, or none).
+    A later successful run replaces the whole entry."""
+    try:
+        old = json.loads((final / MANIFEST_NAME).read_text(encoding="utf-8")).get("metrics", {})
+        if not isinstance(old, dict):
+            old = {}
+    except (OSError, ValueError, AttributeError):
+        old = {}
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    try:
+        record_metrics(out, name, {**old, "last_run_failed": f"{type(exc).__name__}: {text}"})
+    except (OSError, ValueError) as err:  # never hide the stage's own error behind this one
+        log.warning("%s: could not record the failure of stage %s (%s)", out, name, err)
+
+
 class Pipeline:
     """An ordered chain of :class:`StageSpec` run against one scan directory.
 
@@ -290,8 +307,15 @@ class Pipeline:
                     record_metrics(out, spec.name, result.metrics)
                 else:
                     self._warn_if_standalone(final)
-                    result = self._run_stage(spec, scan_dir, out, key, stage_settings, inputs,
-                                             keys, progress)
+                    try:
+                        result = self._run_stage(spec, scan_dir, out, key, stage_settings,
+                                                 inputs, keys, progress)
+                    except Exception as exc:
+                        # the products on disk are the previous run's (or none): their metrics
+                        # stay, with the failure beside them, so the report does not read as
+                        # if this run had not failed
+                        _record_failure(out, spec.name, final, exc)
+                        raise
                     record_metrics(out, spec.name, result.metrics)
                 results.append(result)
                 if on_stage is not None:

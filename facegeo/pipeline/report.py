@@ -20,11 +20,13 @@ from typing import Any
 from facegeo import __version__
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text
+from facegeo.pipeline.reconstruct import STAGES
 
 __all__ = ["PIPELINE_ORDER", "REPORT_NAME", "write_report", "summary_rows", "summary_table"]
 
-#: Stage order of the whole pipeline; stages not listed come after these, alphabetically.
-PIPELINE_ORDER = ("calibrate", "decode", "mesh", "atlas", "project", "fit", "relight", "render")
+#: Stage order of the whole pipeline (the order ``facegeo reconstruct`` runs them); stages not
+#: listed come after these, alphabetically.
+PIPELINE_ORDER = STAGES
 REPORT_NAME = "report.html"
 #: At most this many images per stage (the first ones in path order).
 MAX_IMAGES_PER_STAGE = 24
