@@ -166,15 +166,21 @@ def record_metrics(out_dir: str | os.PathLike, name: str, metrics: dict) -> None
     atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True, allow_nan=False))
 
 
+def _read_manifest(final: Path) -> dict | None:
+    """The ``stage.json`` of stage folder ``final`` as a dict, or None (absent, unreadable)."""
+    try:
+        m = json.loads((final / MANIFEST_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return m if isinstance(m, dict) else None
+
+
 def _record_failure(out: Path, name: str, final: Path, exc: BaseException) -> None:
     """Mark stage ``name``'s entry in ``out/metrics.json``: ``last_run_failed`` (one line),
     beside the metrics of the products still on disk (the previous run's manifest's, or none).
     A later successful run replaces the whole entry."""
-    try:
-        old = json.loads((final / MANIFEST_NAME).read_text(encoding="utf-8")).get("metrics", {})
-        if not isinstance(old, dict):
-            old = {}
-    except (OSError, ValueError, AttributeError):
+    old = (_read_manifest(final) or {}).get("metrics", {})
+    if not isinstance(old, dict):
         old = {}
     text = " ".join(str(exc).split()) or type(exc).__name__
     try:
@@ -357,22 +363,16 @@ class Pipeline:
         """Say so when the products about to be replaced were written by a stage's own
         command (``facegeo atlas``, ``facegeo project``: a manifest without a key), whose
         settings the cache cannot know: they are rebuilt with the pipeline's settings."""
-        try:
-            m = json.loads((final / MANIFEST_NAME).read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            return
-        if isinstance(m, dict) and "key" not in m:
+        m = _read_manifest(final)
+        if m is not None and "key" not in m:
             log.warning("%s was written by 'facegeo %s' outside the stage cache (settings %s); "
                         "rebuilding it with the pipeline's settings", final, final.name,
                         m.get("settings", {}))
 
     @staticmethod
     def _cached_manifest(final: Path, key: str) -> dict | None:
-        try:
-            m = json.loads((final / MANIFEST_NAME).read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            return None
-        return m if isinstance(m, dict) and m.get("key") == key else None
+        m = _read_manifest(final)
+        return m if m is not None and m.get("key") == key else None
 
     def _run_stage(self, spec, scan_dir, out, key, stage_settings, inputs, keys, progress):
         final = out / spec.name
