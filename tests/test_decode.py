@@ -845,19 +845,28 @@ def test_compiled_finish_equals_numpy_reference(kw, monkeypatch):
                                    atol=KERNEL_MODULATION_TOL)
 
 
-@pytest.mark.parametrize("dtype,channels,tile,parallel,diff,full", [
-    (np.uint8, 3, 64, True, True, None), (np.uint8, 3, 64, False, False, None),
-    (np.uint8, 1, 4096, False, True, None), (np.uint8, 4, 128, False, True, None),
-    (np.uint8, 3, 100, False, True, 200.0), (np.uint16, 3, 100, True, True, None)])
+@pytest.mark.parametrize("dtype,channels,tile,parallel,diff,full,vector,wdtype", [
+    (np.uint8, 3, 64, True, True, None, True, np.uint16),
+    (np.uint8, 3, 64, False, False, None, True, np.uint16),
+    (np.uint8, 3, 100, False, True, None, True, np.uint8),
+    (np.uint8, 3, 96, True, True, None, True, np.uint32),
+    (np.uint8, 3, 4096, False, True, None, True, np.uint16),
+    (np.uint8, 3, 100, True, True, None, False, np.uint16),
+    (np.uint8, 1, 4096, False, True, None, True, np.uint16),
+    (np.uint8, 4, 128, False, True, None, True, np.uint16),
+    (np.uint8, 3, 100, False, True, 200.0, True, np.uint16),
+    (np.uint16, 3, 100, True, True, None, True, np.uint16)])
 def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, tile, parallel,
-                                                             diff, full):
+                                                             diff, full, vector, wdtype):
     """Several pairs folded tile-major (``pairs_tiled``: integer channel sums in int16 lanes
     for 8-bit frames, int32 for 16-bit, tiles of any size, prange, the margin from the sums'
     difference or from the two float32 products, a full scale where the difference is not
-    exact) update words, margins and ``L_max`` / ``L_min`` *bit for bit* as the
-    frame-by-frame ``pair_update`` does, pair after pair. Fails if the tiled kernel decides a
-    bit on the wrong side, rounds a margin or a luminance differently, overflows a lane or
-    skips a tile's tail."""
+    exact; for 8-bit RGB the vector block of ``_sl_vec.pair_rgb8`` with its scalar tail, on
+    8-, 16- and 32-bit decision words, or the plain loops) update words, margins and
+    ``L_max`` / ``L_min`` *bit for bit* as the frame-by-frame ``pair_update`` does, pair after
+    pair. Fails if the tiled kernel decides a bit on the wrong side, rounds a margin or a
+    luminance differently, overflows a lane, splits the interleaved channels wrongly or skips
+    a tile's tail."""
     from facegeo.geometry import _sl_kernels as k
 
     rng = np.random.default_rng(4)
@@ -866,12 +875,14 @@ def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, ti
     frames = [rng.integers(0, top, shape, endpoint=True).astype(dtype) for _ in range(6)]
     frames[3] = frames[2].copy()  # a tie: pos == neg must not set the bit
     scale = 1.0 / ((full or top) * channels)
-    pos, neg, rows, bits, planes = [0, 2, 5], [1, 3, 4], [0, 1, 1], [9, 3, 0], [2, 0, 1]
-    state = [np.zeros((2, 23, 37), np.uint16), np.zeros((3, 23, 37), np.uint8),
+    top_bit = 8 * np.dtype(wdtype).itemsize - 1
+    pos, neg, rows, bits, planes = [0, 2, 5], [1, 3, 4], [0, 1, 1], [min(9, top_bit), 3, 0], \
+        [2, 0, 1]
+    state = [np.zeros((2, 23, 37), wdtype), np.zeros((3, 23, 37), np.uint8),
              rng.random((23, 37), dtype=np.float32), rng.random((23, 37), dtype=np.float32)]
     ref = [s.copy() for s in state]
     k.pairs_tiled(frames, pos, neg, scale, rows, bits, planes, *state[:2], 510.0, *state[2:],
-                  tile=tile, parallel=parallel, diff_margin=diff)
+                  tile=tile, parallel=parallel, diff_margin=diff, vector=vector)
     for p, q, r, b, m in zip(pos, neg, rows, bits, planes):
         k.pair_update(frames[p], k.channel_sum(frames[q]), ref[0][r], b, ref[1][m], 510.0,
                       ref[2], ref[3], pos_scale=scale, neg_scale=scale)
@@ -879,6 +890,45 @@ def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, ti
         np.testing.assert_array_equal(got, want)
     assert state[1].max() > 100 and state[0].any()  # margins and bits were written
     assert k.tiled_ok(np.uint8, 3, 1 / 765, 510.0) and not k.tiled_ok(np.float32, 3, 1.0, 510.0)
+
+
+@pytest.mark.slow
+def test_vector_pair_block_is_exact_on_a_baseline_x86_cpu(tmp_path):
+    """The 8-bit RGB vector block (``_sl_vec.pair_rgb8``: byte shuffles of 96 interleaved
+    bytes, a vector ``llvm.rint``, prefetches) compiled for a baseline x86-64 CPU (SSE2 only,
+    ``NUMBA_CPU_NAME=x86-64``, a fresh disk cache, a fresh interpreter), where LLVM lowers the
+    shuffles to other instructions than on an AVX-512 machine: the tiled kernel must still
+    equal the plain tile loops bit for bit (tails included) — fails if the block's lowering
+    anywhere changes a value, or the kernel cannot be compiled there."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import facegeo
+
+    code = (
+        "import numpy as np\n"
+        "from facegeo.geometry import _sl_kernels as k\n"
+        "rng = np.random.default_rng(9)\n"
+        "fr = [rng.integers(0, 256, (29, 41, 3), dtype=np.uint8) for _ in range(4)]\n"
+        "fr[3] = fr[2].copy()\n"
+        "out = []\n"
+        "for vector in (True, False):\n"
+        "    st = [np.zeros((1, 29, 41), np.uint16), np.zeros((2, 29, 41), np.uint8),\n"
+        "          np.full((29, 41), -np.inf, np.float32), np.full((29, 41), np.inf, np.float32)]\n"
+        "    k.pairs_tiled(fr, [0, 2], [1, 3], 1 / 765, [0, 0], [4, 0], [1, 0], *st[:2], 510.0,\n"
+        "                  *st[2:], tile=96, parallel=False, vector=vector)\n"
+        "    out.append(st)\n"
+        "assert all(np.array_equal(a, b) for a, b in zip(*out))\n"
+        "assert out[0][1].max() > 100 and out[0][0].any()\n"
+        "print('ok')\n")
+    env = dict(os.environ, NUMBA_CPU_NAME="x86-64", NUMBA_CPU_FEATURES="+sse2",
+               NUMBA_CACHE_DIR=str(tmp_path / "numba"),
+               PYTHONPATH=str(Path(facegeo.__file__).resolve().parents[1]))
+    out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True,
+                         timeout=600, env=env, cwd=tmp_path)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-2000:])
 
 
 def test_diff_margin_is_exact_or_declined():

@@ -207,8 +207,10 @@ def _pairs_tiled(parallel: bool):
     repeated): the channel sums of an RGB frame 0.16 ns a pixel in int16 lanes against 0.30 in
     int32, the pair update 0.31 ns against 0.38 (the float32 products in int32 lanes).
 
-    ``parallel`` is the only closure constant: the helpers are module globals (see
-    ``_sums_tile``), so the kernel is compiled once per machine, not once per process."""
+    ``parallel`` is the only closure cell (read in the body: numba's cache keys a kernel on its
+    cells, not on the decorator's flags — before, the serial and the parallel kernel shared one
+    cache entry and whichever was compiled last ran for both); the helpers are module globals
+    (see ``_sums_tile``), so the kernel is compiled once per machine, not once per process."""
     from numba import njit, prange
 
     _tile_helpers()
@@ -218,7 +220,10 @@ def _pairs_tiled(parallel: bool):
               lmin, tile, lo_init, k):  # pragma: no cover - compiled
         # lo_init: the channel sums' lane type (int16 / int32) at its largest value
         P = lmax.shape[0]
-        for ti in prange((P + tile - 1) // tile):  # tiles outermost (a thread's share) ...
+        n_tiles = (P + tile - 1) // tile
+        if not parallel:  # (the cache key, see above)
+            n_tiles = n_tiles + 0
+        for ti in prange(n_tiles):  # tiles outermost (a thread's share) ...
             a = ti * tile
             b = min(P, a + tile)
             lo = np.full(b - a, lo_init)  # running min / max channel sum
@@ -231,6 +236,72 @@ def _pairs_tiled(parallel: bool):
                 _sums_tile(frames[neg[o]][C * a:C * b], C, sq)
                 _pair_tile(sp, sq, scale, words[rows[o]][a:b], bitvals[o],
                            margin[planes[o]][a:b], steps, hi, lo, k)
+            _merge_tile(hi, lo, scale, lmax[a:b], lmin[a:b])
+
+    return pairs
+
+
+# The vector block and prefetch of 8-bit RGB pairs (facegeo.geometry._sl_vec), set by
+# _pairs_rgb8(): module globals for the same reason as the tile helpers.
+_pair_rgb8 = _prefetch = None
+
+
+@functools.cache
+def _pairs_rgb8(parallel: bool):
+    """Tile-major pair kernel for 8-bit RGB frames with the one-product margin (``k > 0``):
+    :func:`_pairs_tiled`'s loops as one vector block per 32 pixels
+    (:func:`facegeo.geometry._sl_vec.pair_rgb8`, the same values bit for bit) with each
+    frame prefetched :data:`~facegeo.geometry._sl_vec.PREFETCH_BYTES` ahead; the tile's last
+    ``n mod 32`` pixels go through the plain helpers.
+
+    ``parallel`` is read in the body, so it is a closure cell and part of numba's cache key
+    (a flag of the decorator alone is not: the serial and the parallel kernel shared one
+    cache entry, and whichever was compiled last ran for both)."""
+    global _pair_rgb8, _prefetch
+    from numba import njit, prange
+
+    from facegeo.geometry import _sl_vec
+
+    _tile_helpers()
+    _pair_rgb8, _prefetch = _sl_vec.pair_rgb8, _sl_vec.prefetch
+    lanes, ahead = _sl_vec.LANES, _sl_vec.PREFETCH_BYTES
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", parallel=parallel)
+    def pairs(frames, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax,
+              lmin, tile, k):  # pragma: no cover - compiled
+        P = lmax.shape[0]
+        n_tiles = (P + tile - 1) // tile
+        if not parallel:  # (the cache key, see above)
+            n_tiles = n_tiles + 0
+        for ti in prange(n_tiles):
+            a = ti * tile
+            b = min(P, a + tile)
+            n = b - a
+            n_vec = n - n % lanes
+            lo = np.full(n, np.int16(32767))  # running min / max channel sum
+            hi = np.full(n, np.int16(-1))
+            sp = np.empty(n % lanes, np.int16)  # the tail's channel sums
+            sq = np.empty(n % lanes, np.int16)
+            for o in range(pos.shape[0]):
+                fp = frames[pos[o]]
+                fq = frames[neg[o]]
+                wv = words[rows[o]][a:b]
+                mg = margin[planes[o]][a:b]
+                bv = bitvals[o]
+                for t in range(0, n_vec, lanes):
+                    q = 3 * (a + t) + ahead
+                    _prefetch(fp, q)
+                    _prefetch(fq, q)
+                    _prefetch(fp, q + 64)
+                    _prefetch(fq, q + 64)
+                    _prefetch(fp, q + 128)
+                    _prefetch(fq, q + 128)
+                    _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t)
+                if n_vec < n:
+                    _sums_tile(fp[3 * (a + n_vec):3 * b], 3, sp)
+                    _sums_tile(fq[3 * (a + n_vec):3 * b], 3, sq)
+                    _pair_tile(sp, sq, scale, wv[n_vec:], bv, mg[n_vec:], steps, hi[n_vec:],
+                               lo[n_vec:], k)
             _merge_tile(hi, lo, scale, lmax[a:b], lmin[a:b])
 
     return pairs
@@ -276,7 +347,7 @@ def tiled_ok(dtype, channels: int, scale: float, steps: float) -> bool:
 
 def pairs_tiled(frames, pos, neg, scale: float, rows, bits, planes, words, margin,
                 steps: float, lmax, lmin, *, tile: int = TILE, parallel: bool = True,
-                diff_margin: bool = True) -> None:
+                diff_margin: bool = True, vector: bool = True) -> None:
     """Fold several pattern / inverse pairs into the accumulators in place, **tile-major**.
 
     The pixels are cut into tiles of ``tile`` pixels (outer loop, ``prange`` over the tiles:
@@ -320,6 +391,9 @@ def pairs_tiled(frames, pos, neg, scale: float, rows, bits, planes, words, margi
         Take the margin from the sums' difference when :func:`_diff_margin` finds that exact
         for this ``scale`` / ``steps`` (8-bit frames); False: always the two float32 products
         (the tests compare both).
+    vector : bool
+        8-bit RGB frames with the one-product margin: the vector block and prefetch of
+        :func:`_pairs_rgb8` (default); False: the plain tile loops (the tests compare both).
     """
     from numba.typed import List
 
@@ -336,6 +410,12 @@ def pairs_tiled(frames, pos, neg, scale: float, rows, bits, planes, words, margi
     top = int(np.iinfo(f0.dtype).max) * C
     k = _diff_margin(top, float(scale), float(steps)) if diff_margin else 0.0
     lane = np.int16 if top < 2 ** 15 else np.int32  # 8-bit frames: twice the lanes
+    if f0.dtype == np.uint8 and C == 3 and k > 0 and vector:
+        _pairs_rgb8(bool(parallel))(
+            flats, idx(pos), idx(neg), np.float32(scale), idx(rows), bitvals, idx(planes), W,
+            margin.reshape(margin.shape[0], -1), np.float32(steps), lmax.reshape(-1),
+            lmin.reshape(-1), int(tile), np.float32(k))
+        return
     _pairs_tiled(bool(parallel))(
         flats, C, idx(pos), idx(neg), np.float32(scale), idx(rows), bitvals, idx(planes), W,
         margin.reshape(margin.shape[0], -1), np.float32(steps), lmax.reshape(-1),
