@@ -985,6 +985,49 @@ def test_grouped_decode_equals_frame_by_frame(group_frames, mixed):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_chunk_by_chunk_fold_equals_the_whole_image_fold(monkeypatch, threads):
+    """Held frames (``decode_frames`` with a mapping) fold their pairs chunk by chunk into
+    chunk-sized words and margins just before each chunk is finished
+    (``StreamDecoder._chunk_groups`` / ``_fold_chunk``); the same frames streamed frame by frame
+    fold into the full-size accumulators first. Gray + long-run (its table translation per
+    chunk) + XOR codes, phase on both axes, chunks that do not divide the image (a short last
+    one), 1 and 2 threads: codes, validity, statistics and every float output identical, the
+    chunk path taken, and its full-size margin planes never written — fails if a chunk is
+    folded at the wrong columns, twice or not at all, or a table code is left untranslated."""
+    import facegeo.geometry._sl_stream as S
+
+    spec = PatternSpec(PROJ_W, PROJ_H, codes=("gray", "minsw", "xor04"), phase_steps=3)
+    frames, _, _ = _frames(spec, noise=0.01, seed=8, dtype=np.uint8)
+    frames = {n: np.stack([f, np.roll(f, 1, axis=1), f], axis=2) for n, f in frames.items()}
+    monkeypatch.setattr(S, "_CHUNK", 1000)  # the test frames hold 6,144 pixels
+    folds, decoders = [], []
+    fold = S.StreamDecoder._fold_chunk
+    finish = S.StreamDecoder.finish
+
+    def spy_fold(self, sl, groups):
+        folds.append((sl.start, sl.stop))
+        return fold(self, sl, groups)
+
+    def spy_finish(self, **kw):
+        decoders.append(self)
+        return finish(self, **kw)
+
+    monkeypatch.setattr(S.StreamDecoder, "_fold_chunk", spy_fold)
+    monkeypatch.setattr(S.StreamDecoder, "finish", spy_finish)
+    got = S.decode_frames(frames, spec, threads=threads)
+    n_pix = next(iter(frames.values())).shape[0] * next(iter(frames.values())).shape[1]
+    assert sorted(folds) == [(p, min(p + 1000, n_pix)) for p in range(0, n_pix, 1000)]
+    assert not decoders[0].margin.any() and not decoders[0].folded
+    folds.clear()
+    want = S.decode_frames(iter(frames.items()), spec, threads=threads)
+    assert not folds  # streamed: the whole-image fold
+    assert want.valid.mean() > 0.5 and got.bits == want.bits
+    for name in ("x", "y", "valid", "valid_x", "valid_y", "confidence", "sigma_x", "sigma_y",
+                 "direct", "global_", "lit", "shadow"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
 def test_threads_do_not_change_the_decode_and_are_checked():
     """Two threads (tiles of the pair kernel, chunks of the finish; chunks smaller than the
     image so both threads work and their statistics are summed) decode exactly as one; a

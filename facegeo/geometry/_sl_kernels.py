@@ -45,7 +45,7 @@ import functools
 
 import numpy as np
 
-__all__ = ["TILE", "channel_sum", "lum_reference", "luminance", "pair_reference", "pair_update",
+__all__ = ["TILE", "PairGroup", "channel_sum", "lum_reference", "luminance", "pair_reference", "pair_update",
            "pairs_tiled", "phase_reference", "phase_update", "sum_dtype", "tiled_ok"]
 
 
@@ -217,15 +217,16 @@ def _pairs_tiled(parallel: bool):
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", parallel=parallel)
     def pairs(frames, C, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax,
-              lmin, tile, lo_init, k):  # pragma: no cover - compiled
-        # lo_init: the channel sums' lane type (int16 / int32) at its largest value
-        P = lmax.shape[0]
-        n_tiles = (P + tile - 1) // tile
+              lmin, tile, lo_init, k, p_lo, p_hi, off):  # pragma: no cover - compiled
+        # lo_init: the channel sums' lane type (int16 / int32) at its largest value; pixels
+        # p_lo … p_hi - 1 of the frames, accumulator column = pixel - off
+        n_tiles = (p_hi - p_lo + tile - 1) // tile
         if not parallel:  # (the cache key, see above)
             n_tiles = n_tiles + 0
         for ti in prange(n_tiles):  # tiles outermost (a thread's share) ...
-            a = ti * tile
-            b = min(P, a + tile)
+            a = p_lo + ti * tile
+            b = min(p_hi, a + tile)
+            a_, b_ = a - off, b - off
             lo = np.full(b - a, lo_init)  # running min / max channel sum
             hi = np.full(b - a, lo_init)
             hi[:] = -1
@@ -234,9 +235,9 @@ def _pairs_tiled(parallel: bool):
             for o in range(pos.shape[0]):  # ... every pair over the tile, in cache
                 _sums_tile(frames[pos[o]][C * a:C * b], C, sp)
                 _sums_tile(frames[neg[o]][C * a:C * b], C, sq)
-                _pair_tile(sp, sq, scale, words[rows[o]][a:b], bitvals[o],
-                           margin[planes[o]][a:b], steps, hi, lo, k)
-            _merge_tile(hi, lo, scale, lmax[a:b], lmin[a:b])
+                _pair_tile(sp, sq, scale, words[rows[o]][a_:b_], bitvals[o],
+                           margin[planes[o]][a_:b_], steps, hi, lo, k)
+            _merge_tile(hi, lo, scale, lmax[a_:b_], lmin[a_:b_])
 
     return pairs
 
@@ -268,14 +269,14 @@ def _pairs_rgb8(parallel: bool):
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", parallel=parallel)
     def pairs(frames, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax,
-              lmin, tile, k):  # pragma: no cover - compiled
-        P = lmax.shape[0]
-        n_tiles = (P + tile - 1) // tile
+              lmin, tile, k, p_lo, p_hi, off):  # pragma: no cover - compiled
+        n_tiles = (p_hi - p_lo + tile - 1) // tile
         if not parallel:  # (the cache key, see above)
             n_tiles = n_tiles + 0
         for ti in prange(n_tiles):
-            a = ti * tile
-            b = min(P, a + tile)
+            a = p_lo + ti * tile
+            b = min(p_hi, a + tile)
+            a_, b_ = a - off, b - off
             n = b - a
             n_vec = n - n % lanes
             lo = np.full(n, np.int16(32767))  # running min / max channel sum
@@ -285,8 +286,8 @@ def _pairs_rgb8(parallel: bool):
             for o in range(pos.shape[0]):
                 fp = frames[pos[o]]
                 fq = frames[neg[o]]
-                wv = words[rows[o]][a:b]
-                mg = margin[planes[o]][a:b]
+                wv = words[rows[o]][a_:b_]
+                mg = margin[planes[o]][a_:b_]
                 bv = bitvals[o]
                 for t in range(0, n_vec, lanes):
                     q = 3 * (a + t) + ahead
@@ -302,7 +303,7 @@ def _pairs_rgb8(parallel: bool):
                     _sums_tile(fq[3 * (a + n_vec):3 * b], 3, sq)
                     _pair_tile(sp, sq, scale, wv[n_vec:], bv, mg[n_vec:], steps, hi[n_vec:],
                                lo[n_vec:], k)
-            _merge_tile(hi, lo, scale, lmax[a:b], lmin[a:b])
+            _merge_tile(hi, lo, scale, lmax[a_:b_], lmin[a_:b_])
 
     return pairs
 
@@ -395,31 +396,63 @@ def pairs_tiled(frames, pos, neg, scale: float, rows, bits, planes, words, margi
         8-bit RGB frames with the one-product margin: the vector block and prefetch of
         :func:`_pairs_rgb8` (default); False: the plain tile loops (the tests compare both).
     """
-    from numba.typed import List
+    PairGroup(frames, pos, neg, scale, rows, bits, planes, steps, words.dtype,
+              parallel=parallel, diff_margin=diff_margin, vector=vector).run(
+        words, margin, lmax, lmin, tile=tile)
 
-    f0, C = _flat(frames[0])
-    if not tiled_ok(f0.dtype, C, scale, steps):
-        raise ValueError(f"pairs_tiled: frames of dtype {f0.dtype} with {C} channels at scale "
-                         f"{scale} are not exact in the integer domain (check tiled_ok first)")
-    flats = List()
-    for f in frames:
-        flats.append(np.ascontiguousarray(f).reshape(-1))
-    W = words.reshape(words.shape[0], -1)
-    idx = lambda v: np.ascontiguousarray(v, np.int64)
-    bitvals = (np.ones(len(bits), W.dtype) << np.asarray(bits, W.dtype)).astype(W.dtype)
-    top = int(np.iinfo(f0.dtype).max) * C
-    k = _diff_margin(top, float(scale), float(steps)) if diff_margin else 0.0
-    lane = np.int16 if top < 2 ** 15 else np.int32  # 8-bit frames: twice the lanes
-    if f0.dtype == np.uint8 and C == 3 and k > 0 and vector:
-        _pairs_rgb8(bool(parallel))(
-            flats, idx(pos), idx(neg), np.float32(scale), idx(rows), bitvals, idx(planes), W,
-            margin.reshape(margin.shape[0], -1), np.float32(steps), lmax.reshape(-1),
-            lmin.reshape(-1), int(tile), np.float32(k))
-        return
-    _pairs_tiled(bool(parallel))(
-        flats, C, idx(pos), idx(neg), np.float32(scale), idx(rows), bitvals, idx(planes), W,
-        margin.reshape(margin.shape[0], -1), np.float32(steps), lmax.reshape(-1),
-        lmin.reshape(-1), int(tile), lane(np.iinfo(lane).max), np.float32(k))
+
+class PairGroup:
+    """A group of pattern / inverse pairs prepared once for :func:`pairs_tiled`'s kernels and
+    folded over any run of pixels (:meth:`run`), so a decode can fold and finish chunk by chunk
+    with chunk-sized accumulators (``StreamDecoder.finish``) without preparing the frames'
+    list for every chunk. The parameters are :func:`pairs_tiled`'s; ``word_dtype`` is the
+    decision words' dtype."""
+
+    def __init__(self, frames, pos, neg, scale: float, rows, bits, planes, steps: float,
+                 word_dtype, *, parallel: bool = True, diff_margin: bool = True,
+                 vector: bool = True):
+        from numba.typed import List
+
+        f0, C = _flat(frames[0])
+        if not tiled_ok(f0.dtype, C, scale, steps):
+            raise ValueError(f"pairs_tiled: frames of dtype {f0.dtype} with {C} channels at "
+                             f"scale {scale} are not exact in the integer domain (check "
+                             "tiled_ok first)")
+        self.flats = List()
+        for f in frames:
+            self.flats.append(np.ascontiguousarray(f).reshape(-1))
+        self.pixels = f0.size // C
+        idx = lambda v: np.ascontiguousarray(v, np.int64)
+        self.pos, self.neg, self.rows, self.planes = idx(pos), idx(neg), idx(rows), idx(planes)
+        wd = np.dtype(word_dtype)
+        self.bitvals = (np.ones(len(bits), wd) << np.asarray(bits, wd)).astype(wd)
+        top = int(np.iinfo(f0.dtype).max) * C
+        self.k = np.float32(_diff_margin(top, float(scale), float(steps)) if diff_margin
+                            else 0.0)
+        self.scale, self.steps, self.C = np.float32(scale), np.float32(steps), C
+        lane = np.int16 if top < 2 ** 15 else np.int32  # 8-bit frames: twice the lanes
+        self.lo_init = lane(np.iinfo(lane).max)
+        self.rgb8 = bool(f0.dtype == np.uint8 and C == 3 and self.k > 0 and vector)
+        self.kernel = (_pairs_rgb8 if self.rgb8 else _pairs_tiled)(bool(parallel))
+
+    def run(self, words, margin, lmax, lmin, *, start: int = 0, stop: int | None = None,
+            offset: int = 0, tile: int = TILE) -> None:
+        """Fold pixels ``start … stop - 1`` (flat, row-major) into the accumulators, whose
+        column ``p - offset`` is pixel ``p``: ``words`` (F, N), ``margin`` (n, N), ``lmax`` /
+        ``lmin`` (N,), or the full-size (…, H, W) arrays with ``offset`` 0."""
+        stop = self.pixels if stop is None else int(stop)
+        W = words.reshape(words.shape[0], -1)
+        M = margin.reshape(margin.shape[0], -1)
+        if W.dtype != self.bitvals.dtype:
+            raise ValueError(f"PairGroup.run: words of dtype {W.dtype}, prepared for "
+                             f"{self.bitvals.dtype}")
+        args = (self.pos, self.neg, self.scale, self.rows, self.bitvals, self.planes, W, M,
+                self.steps, lmax.reshape(-1), lmin.reshape(-1), int(tile))
+        if self.rgb8:
+            self.kernel(self.flats, *args, self.k, int(start), stop, int(offset))
+        else:
+            self.kernel(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
+                        int(offset))
 
 
 def _flat(a: np.ndarray) -> tuple[np.ndarray, int]:

@@ -8,7 +8,10 @@ frame is read once, no float32 luminance plane), and so is the per-pixel part of
 :meth:`StreamDecoder.finish` (``_sl_finish``; the numpy reference stays, ``KERNELS = False``).
 Frames the caller already holds (``decode_frames`` given a mapping, list or tuple) are not
 folded one by one: their 8-bit / 16-bit pairs wait in one group (references, no copies) that
-:func:`_sl_kernels.pairs_tiled` folds tile-major at :meth:`StreamDecoder.finish`. A stream (a
+:meth:`StreamDecoder.finish` folds chunk by chunk, each chunk's pairs tile-major
+(:class:`_sl_kernels.PairGroup`; 8-bit RGB through the vector block of ``_sl_vec``) into
+chunk-sized words and margins just before the chunk is finished, so the full-size words and
+margin planes are never written. A stream (a
 generator) is folded frame by frame: buffering its frames for a group needs copies (the
 caller may reuse a frame's buffer), and copied groups measured no faster than frame by frame
 (``STREAM_GROUP_BYTES = 0``; ``docs/structured-light.md``). The finish runs its chunks on
@@ -16,10 +19,11 @@ caller may reuse a frame's buffer), and copied groups measured no faster than fr
 
 Memory, for ``P`` camera pixels and ``n`` stored bit planes (all code families and axes):
 
-* with inverse frames: one uint8 margin per bit plane and pixel (``|pattern - inverse|`` in steps
-  of 1/510 of full scale, saturating at 0.5) and the bit decisions packed into one integer word
-  per pixel, family and axis; at most one frame waits for its partner (as its exact integer
-  channel sum for 8-bit / 16-bit frames: 2 / 4 bytes a pixel, else float32 luminance);
+* with inverse frames, streamed: one uint8 margin per bit plane and pixel (``|pattern -
+  inverse|`` in steps of 1/510 of full scale, saturating at 0.5) and the bit decisions packed
+  into one integer word per pixel, family and axis; at most one frame waits for its partner (as
+  its exact integer channel sum for 8-bit / 16-bit frames: 2 / 4 bytes a pixel, else float32
+  luminance); held: the same for one chunk of pixels per thread only;
 * without inverse frames (the bit threshold comes from the data): the frames themselves as
   float16 (2 bytes per plane and pixel), since the per-pixel threshold is known only at the end;
 * float32 per pixel: white, black, the running max / min over the binary frames (Nayar et al.
@@ -36,6 +40,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -51,7 +56,10 @@ log = logging.getLogger(__name__)
 
 _AXES = ("x", "y")
 _MARGIN_STEPS = 510.0  # uint8 margin quantisation: 1/510 of full scale, saturating at 0.5
-_CHUNK = 1 << 16  # pixels per chunk when finishing (a thread's unit of work)
+#: Pixels per chunk when finishing (a thread's unit of work). 131,072: the benchmark's held
+#: 1280 × 1024 frames decode in 14.8 ms at one thread against 15.6 / 17.0 / 19.2 ms with chunks
+#: of 65,536 / 32,768 / 16,384 (the per-chunk calls' fixed costs; `/tmp/m26/prof3.py`).
+_CHUNK = 1 << 17
 #: Byte budget of a group of streamed (not held) 8-bit / 16-bit pair frames copied for the
 #: tile-major kernel (``StreamDecoder.group_bytes``); 0: frame by frame.
 STREAM_GROUP_BYTES = 0
@@ -216,6 +224,7 @@ class StreamDecoder:
         self.group_bytes = float(group_bytes)
         self.copy_group = bool(copy_group)
         self.threads = _check_threads(threads)
+        self.folded = False  # a pair frame went into the full-size accumulators
 
     # ---------------------------------------------------------------- accumulation
 
@@ -233,8 +242,15 @@ class StreamDecoder:
                           for c, a in self.families}
         else:
             self.values = np.zeros((n, H, W), np.float16)
-        self.lmax = np.full((H, W), -np.inf, np.float32) if n else None
-        self.lmin = np.full((H, W), np.inf, np.float32) if n else None
+        # with inverse frames L_max / L_min are set up when the first pair is folded
+        # (_start_minmax): a decode that folds and finishes chunk by chunk (finish) fills
+        # them there, never touching a full-size plane it does not write
+        if n and spec.inverse:
+            self.lmax, self.lmin = np.empty((H, W), np.float32), np.empty((H, W), np.float32)
+        else:
+            self.lmax = np.full((H, W), -np.inf, np.float32) if n else None
+            self.lmin = np.full((H, W), np.inf, np.float32) if n else None
+        self.minmax_started = not (n and spec.inverse)
         self.white = self.black = None
         N = spec.phase_steps
         self.phase_max = np.zeros((H, W), np.float32) if N else None
@@ -304,6 +320,7 @@ class StreamDecoder:
     def _fold_pair(self, key, inverse: bool, a, scale: float, fused: bool) -> None:
         """Frame by frame: fold a pair frame with its waiting partner, or make it wait (as its
         exact channel sum when ``fused``, else ``a`` is its float32 luminance)."""
+        self._start_minmax()
         other = self.pending.pop(key, None)
         if other is None:
             # the waiting half of the pair: its exact channel sum (or luminance)
@@ -316,6 +333,15 @@ class StreamDecoder:
         _kern.pair_update(pos, neg, self.signs[(code, axis)], self.spec.n_bits(axis) - 1 - index,
                           self.margin[self.plane_index[key]], _MARGIN_STEPS, self.lmax,
                           self.lmin, pos_scale=ps, neg_scale=ns)
+
+    def _start_minmax(self) -> None:
+        """Set the full-size L_max / L_min to -inf / inf before the first pair is folded into
+        them; marks the accumulators as used (no chunk-by-chunk finish then)."""
+        self.folded = True
+        if not self.minmax_started:
+            self.lmax.fill(-np.inf)
+            self.lmin.fill(np.inf)
+            self.minmax_started = True
 
     def _add_to_group(self, key, inverse: bool, a: np.ndarray, scale: float) -> None:
         """Buffer a pair frame for the tile-major group kernel; flush at the byte budget."""
@@ -336,6 +362,7 @@ class StreamDecoder:
         group, self.group, self.group_nbytes = self.group, [], 0
         if not group:
             return
+        self._start_minmax()
         where = {(key, inv): j for j, (key, inv, _, _) in enumerate(group)}
         frames = [g[2] for g in group]
         import numba
@@ -374,8 +401,6 @@ class StreamDecoder:
             raise InputError(
                 f"frames: {len(self.seen)} frame(s) given, the pattern set has "
                 f"{len(self.table)}; missing {missing[:12]}{' ...' if len(missing) > 12 else ''}")
-        if not self.finished:
-            self._flush_group()
         vals = {}
         for key, v in (("min_contrast", min_contrast), ("rel_contrast", rel_contrast),
                        ("shadow_threshold", shadow_threshold), ("min_modulation", min_modulation),
@@ -390,6 +415,10 @@ class StreamDecoder:
         if self.finished:
             raise InputError("StreamDecoder.finish: already finished (its accumulators hold the "
                              "result now); start a new decoder")
+        # frames the caller holds, none folded yet: folded and finished chunk by chunk below
+        groups = self._chunk_groups()
+        if groups is None:
+            self._flush_group()
         self.finished = True
         # an axis with bits or phase frames is written at every pixel by _finish_chunk (no
         # fill: a fresh plane's pages are touched once, by the kernel); the others stay NaN
@@ -419,9 +448,10 @@ class StreamDecoder:
         fw = {a: v.reshape(-1) for a, v in wrapped.items()}
         fm = {a: v.reshape(-1) for a, v in modulation.items()}
         P = H * W
-        if KERNELS and spec.inverse:
+        if KERNELS and spec.inverse and groups is None:
             # the compiled finish decodes a table code (the long-run "minsw") from its
-            # stripes' Gray words: its stored decision words are translated once, here
+            # stripes' Gray words: its stored decision words are translated once, here (a
+            # chunk-by-chunk finish translates each chunk's, _fold_chunk)
             from facegeo.geometry._sl_finish import stripe_gray_words
 
             for a in _AXES:
@@ -438,7 +468,8 @@ class StreamDecoder:
             def run(sl):
                 b = {a: {c: {k: [0] * len(v) for k, v in d.items()} if isinstance(d, dict)
                          else 0 for c, d in ax.items()} for a, ax in bits.items()}
-                self._finish_chunk(sl, flat, fw, fm, b, vals, max_coarse_px)
+                self._finish_chunk(sl, flat, fw, fm, b, vals, max_coarse_px,
+                                   self._fold_chunk(sl, groups) if groups else None)
                 return b
 
             with ThreadPoolExecutor(threads) as pool:
@@ -446,7 +477,8 @@ class StreamDecoder:
                     _add_bits(bits, b)
         else:
             for sl in chunks:
-                self._finish_chunk(sl, flat, fw, fm, bits, vals, max_coarse_px)
+                self._finish_chunk(sl, flat, fw, fm, bits, vals, max_coarse_px,
+                                   self._fold_chunk(sl, groups) if groups else None)
         coded = [a for a in _AXES if spec.n_bits(a)]
         lit_any = ~out["shadow"]
         if not lit_any.any():
@@ -463,7 +495,73 @@ class StreamDecoder:
     def _chunk_lum(self, arr, sl):
         return None if arr is None else arr.reshape(-1)[sl]
 
-    def _finish_chunk(self, sl, flat, fw, fm, bits, vals, max_coarse_px) -> None:
+    def _chunk_groups(self) -> dict | None:
+        """The pair frames as one :class:`~facegeo.geometry._sl_kernels.PairGroup` per axis
+        when the finish can fold them chunk by chunk — the compiled kernels, inverse frames,
+        every pair frame still held in the group (nothing folded or pending: frames the caller
+        holds, ``decode_frames`` with a mapping, list or tuple) — else None.
+
+        Folding a chunk's pairs just before finishing it keeps the decision words, the margins
+        and the channel sums in chunk-sized buffers in cache: the full-size words (2 bytes a
+        pixel per family and axis) and margin planes (1 byte a pixel per bit) are never written
+        and read back, nor held at the peak. The same kernels and values as the whole-image
+        fold (tested)."""
+        if not (KERNELS and self.spec.inverse and self.planes) or self.folded or self.pending:
+            return None
+        where = {(key, inv): j for j, (key, inv, _, _) in enumerate(self.group)}
+        if len(where) != len(self.group) or len(where) != 2 * len(self.planes) or any(
+                (pl, inv) not in where for pl in self.planes for inv in (False, True)):
+            return None
+        frames = [g[2] for g in self.group]
+        groups = {}
+        for axis in _AXES:
+            n = self.spec.n_bits(axis)
+            keys = [pl for pl in self.planes if pl[1] == axis]
+            if not keys:
+                continue
+            groups[axis] = _kern.PairGroup(
+                frames, [where[(k, False)] for k in keys], [where[(k, True)] for k in keys],
+                self.group[0][3], [self.spec.codes.index(k[0]) for k in keys],
+                [n - 1 - k[2] for k in keys], [self.plane_index[k] for k in keys],
+                _MARGIN_STEPS, _word_dtype(n), parallel=False)
+        self.group, self.group_nbytes = [], 0
+        self._chunk_local = threading.local()  # _fold_chunk's buffers, one set per thread
+        return groups
+
+    def _fold_chunk(self, sl, groups) -> tuple:
+        """Fold the pairs over pixels ``sl`` into chunk-sized words and margins (columns from
+        0) and into L_max / L_min at ``sl``; returns ``(margin, words by axis)`` for
+        :meth:`_finish_chunk`."""
+        n_pix = sl.stop - sl.start
+        # chunk buffers kept per thread (flat, so a short last chunk's views stay contiguous)
+        bufs = getattr(self._chunk_local, "bufs", None)
+        if bufs is None or bufs[0].size < len(self.planes) * n_pix:
+            F = len(self.spec.codes)
+            bufs = (np.empty(len(self.planes) * n_pix, np.uint8),
+                    {a: np.empty(F * n_pix, _word_dtype(self.spec.n_bits(a))) for a in groups})
+            self._chunk_local.bufs = bufs
+        margin = bufs[0][:len(self.planes) * n_pix].reshape(-1, n_pix)  # every plane written
+        words = {}
+        for a, w in bufs[1].items():
+            words[a] = w[:len(self.spec.codes) * n_pix].reshape(-1, n_pix)
+            words[a].fill(0)
+        lmax, lmin = self.lmax.reshape(-1)[sl], self.lmin.reshape(-1)[sl]
+        lmax.fill(-np.inf)
+        lmin.fill(np.inf)
+        for a, g in groups.items():
+            g.run(words[a], margin, lmax, lmin, start=sl.start, stop=sl.stop, offset=sl.start)
+        from facegeo.geometry._sl_finish import stripe_gray_words
+
+        for a in groups:
+            n = self.spec.n_bits(a)
+            for f, c in enumerate(self.spec.codes):
+                if stripe_table(c, n) is not None:
+                    stripe_gray_words(c, n, words[a][f])
+        return margin, words
+
+    def _finish_chunk(self, sl, flat, fw, fm, bits, vals, max_coarse_px, acc=None) -> None:
+        """Finish pixels ``sl``; ``acc``: the chunk's own ``(margin, words)`` from
+        :meth:`_fold_chunk` in place of the full-size accumulators."""
         spec = self.spec
         has_bin = bool(self.planes)
         lmax = self._chunk_lum(self.lmax, sl)
@@ -527,7 +625,7 @@ class StreamDecoder:
                 self._decode_axis_compiled(
                     axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
                     out=(flat[axis][sl], flat[f"sigma_{axis}"][sl], flat[f"valid_{axis}"][sl],
-                         conf_all))
+                         conf_all), acc=acc)
                 continue
             coord = np.full(n_pix, np.nan, np.float32)
             sig = np.full(n_pix, np.nan, np.float32)
@@ -546,7 +644,7 @@ class StreamDecoder:
                     vals["min_modulation"], vals["saturation"], fw[axis][sl], B)
                 coord, sig, ok, conf = self._decode_axis_compiled(
                     axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
-                    (phi, pok, k, period))
+                    (phi, pok, k, period), acc=acc)
                 fin.phase_merge(coord, sig, ok, conf, phi, B, pconf, pok, k,
                                 vals["noise_sigma"], N, step,
                                 (flat[axis][sl], flat[f"sigma_{axis}"][sl],
@@ -572,7 +670,7 @@ class StreamDecoder:
                 decode = self._decode_axis_compiled if KERNELS else self._decode_axis
                 coord, sig, ok, conf = decode(
                     axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim, vals, bits[axis],
-                    hint)
+                    hint, **({"acc": acc} if KERNELS else {}))
             if phase_here:
                 k = 2.0 * np.pi * spec.phase_periods(axis) / size
                 if n:
@@ -603,7 +701,7 @@ class StreamDecoder:
         return v > 0, 2.0 * np.abs(v)
 
     def _decode_axis_compiled(self, axis, n, s, size, sl, tau, ref, shadow, thr, coarse_lim,
-                              vals, stats, hint=None, out=None):
+                              vals, stats, hint=None, out=None, acc=None):
         """:meth:`_decode_axis` in the compiled per-pixel kernel (``_sl_finish``): the same
         results, one pass per pixel over its words and margins instead of numpy planes.
         ``out``: write the axis's final outputs there (see ``_sl_finish.decode_axis``)."""
@@ -612,10 +710,11 @@ class StreamDecoder:
         codes = self.spec.codes
         F = len(codes)
         n_pix = sl.stop - sl.start
-        if self.spec.inverse:  # the stored words and margins, columns sl
-            p0 = sl.start
-            signs = self.sign_words[axis].reshape(F, -1)
-            marg = self.margin.reshape(len(self.planes), -1)
+        if self.spec.inverse:  # the stored words and margins, columns sl (or the chunk's
+            # own, from column 0: _fold_chunk)
+            p0 = 0 if acc is not None else sl.start
+            signs = acc[1][axis] if acc is not None else self.sign_words[axis].reshape(F, -1)
+            marg = acc[0] if acc is not None else self.margin.reshape(len(self.planes), -1)
             kidx = np.array([[self.plane_index[(c, axis, i)] for i in range(n)] for c in codes])
             mscale = 1.0 / _MARGIN_STEPS
         else:  # decisions and margins against the pixel's threshold, then the same kernel
