@@ -288,10 +288,11 @@ def test_column_only_decode_meshes(tiny, tmp_path):
 
 
 def test_uncalibrated_projector_is_named_before_any_triangulation(tmp_path):
-    """A rig whose projector is a ``rig.Projector`` (resolution only): the stage says in one
-    line that the projector is uncalibrated, how to calibrate it and, for a scan with two
-    cameras, where the camera–camera path through matching codes lives (the hand-written
-    fixture: two cameras, projector 'proj' 16 × 8, uncalibrated)."""
+    """A rig whose projector is a ``rig.Projector`` (resolution only) and decodes the
+    camera–camera route cannot use (here: no code at all): the stage says in one line that the
+    projector is uncalibrated, what camera–camera triangulation through matching codes needs
+    and how to calibrate the projector instead (the hand-written fixture: two cameras,
+    projector 'proj' 16 × 8, uncalibrated). Meshing such a rig: tests/test_mesh_camera_pair.py."""
     import shutil
     from pathlib import Path
 

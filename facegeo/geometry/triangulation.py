@@ -33,7 +33,8 @@ reprojection consistency test.
 :func:`fuse_cameras` checks every camera's points against the other cameras' point maps
 (free-space violations are rejected, agreeing points are averaged with inverse-variance weights)
 and :func:`triangulate_camera_pair` triangulates two cameras through matching projector codes,
-for rigs whose projector is not calibrated.
+for rigs whose projector is not calibrated (:func:`triangulate_camera_pairs`: every camera
+against every other, merged per camera, ready for :func:`fuse_cameras`).
 
 References
 ----------
@@ -71,6 +72,7 @@ __all__ = [
     "neighbour_spacing",
     "solve_along_rays",
     "triangulate_camera_pair",
+    "triangulate_camera_pairs",
     "triangulate_maps",
 ]
 
@@ -644,7 +646,8 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
 
     B's decode maps pixel → code; the inverse near A's code is fitted as a local affine map
     ``q_B ≈ M·(x, y) + m`` over B's ``k`` pixels nearest in code space (a k-d tree over B's
-    codes), so no projector calibration is needed.
+    codes), so no projector calibration is needed. A's pixels are matched in blocks of
+    65,536, so the fit's temporaries stay bounded (≈ 30 MB) whatever the image size.
 
     Parameters
     ----------
@@ -662,6 +665,18 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
     jac : (H_a, W_a, 2, 2) float64, ``∂q_B/∂(x, y)`` (pixels of B per projector pixel), for
         propagating the decode noise.
     """
+    q_b, jac, _, _ = _match_codes(x_a, y_a, x_b, y_b, k=k, max_code_dist=max_code_dist)
+    return q_b, jac
+
+
+#: A pixels per block of :func:`match_projector_codes` (its temporaries are ≈ 0.5 kB a pixel).
+_MATCH_CHUNK = 1 << 16
+
+
+def _match_codes(x_a, y_a, x_b, y_b, *, k: int = 8, max_code_dist: float | None = None):
+    """:func:`match_projector_codes`, plus the variance of each fitted B location from the local
+    fit's misfit, ``(H_a, W_a, 2)`` pixels² of B, and the fit's normalised leverage at A's code,
+    ``(H_a, W_a)`` (:func:`_affine_inverse`)."""
     from scipy.spatial import cKDTree
 
     xa, ya = (as_array(v, n, finite=False) for v, n in ((x_a, "x_a"), (y_a, "y_a")))
@@ -673,10 +688,12 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
         raise InputError(f"k: expected >= 3 neighbours for an affine fit, got {k}")
     q_b = np.full(xa.shape + (2,), np.nan)
     jac = np.full(xa.shape + (2, 2), np.nan)
+    var_fit = np.full(xa.shape + (2,), np.nan)
+    lev = np.full(xa.shape, np.nan)
     okb = np.isfinite(xb) & np.isfinite(yb)
     oka = np.isfinite(xa) & np.isfinite(ya)
     if okb.sum() < k or not oka.any():
-        return q_b, jac
+        return q_b, jac, var_fit, lev
     rb, cb_ = np.nonzero(okb)
     codes_b = np.stack([xb[okb], yb[okb]], 1)
     tree = cKDTree(codes_b)
@@ -684,6 +701,26 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
     if max_code_dist is None:
         spacing = tree.query(codes_b, k=2)[0][:, 1]
         max_code_dist = 2.0 * float(np.median(spacing))
+    out = [np.full((ca.shape[0], 2), np.nan), np.full((ca.shape[0], 2, 2), np.nan),
+           np.full((ca.shape[0], 2), np.nan), np.full(ca.shape[0], np.nan)]
+    for lo in range(0, ca.shape[0], _MATCH_CHUNK):  # bounded memory: (chunk, k, 3) at a time
+        sl = slice(lo, lo + _MATCH_CHUNK)
+        for o, v in zip(out, _affine_inverse(tree, codes_b, rb, cb_, ca[sl], k, max_code_dist)):
+            o[sl] = v
+    q_b[oka], jac[oka], var_fit[oka], lev[oka] = out
+    return q_b, jac, var_fit, lev
+
+
+def _affine_inverse(tree, codes_b, rb, cb_, ca, k: int, max_code_dist: float):
+    """B pixel, ``∂q_B/∂code``, the fit's variance and leverage at each code of ``ca``
+    ``(M, 2)``, from B's ``k`` nearest codes; NaN where unmatched.
+
+    The variance of the fitted location is the regression's: the residual scatter of B's
+    pixels about the local affine map, per axis ``Σ res² / (k − 3)`` (0 for ``k = 3``), times
+    the intercept's leverage ``(G⁻¹)₃₃``. The leverage is returned normalised, ``k·(G⁻¹)₃₃``:
+    ≈ 1 when A's code sits among the neighbours' codes, large when the fit extrapolates
+    (A's code outside them, e.g. at the border of B's decoded region).
+    """
     dist, nn = tree.query(ca, k=k)
     X = codes_b[nn] - ca[:, None, :]  # (M, k, 2) centred on A's code
     Xh = np.concatenate([X, np.ones(X.shape[:2] + (1,))], -1)  # (M, k, 3)
@@ -694,30 +731,45 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
     scale = np.einsum("mki,mki->m", X, X) / k
     good = (dist[:, 0] <= max_code_dist) & (np.abs(det) > 1e-9 * np.maximum(scale, 1e-12) ** 2)
     sol = np.full((ca.shape[0], 3, 2), np.nan)
+    lev = np.full(ca.shape[0], np.nan)
     if good.any():
         sol[good] = np.linalg.solve(G[good], rhs[good])
+        lev[good] = np.linalg.inv(G[good])[:, 2, 2]
     qa = sol[:, 2, :]  # value at A's code (X = 0)
     J = np.swapaxes(sol[:, :2, :], 1, 2)  # (M, 2 [q], 2 [code])
+    res = Y - np.einsum("mki,mij->mkj", Xh, sol)
+    v_fit = (res**2).sum(1) / max(k - 3, 1) * lev[:, None]  # (M, 2), pixels² of B
     # the fitted location must stay among the neighbours (no extrapolation across holes)
     span = np.linalg.norm(Y - Y.mean(1, keepdims=True), axis=-1).max(1)
     far = np.linalg.norm(qa - Y.mean(1), axis=1) > span + 1.0
     qa[far] = np.nan
-    q_b[oka] = qa
-    jac[oka] = J
-    return q_b, jac
+    return qa, J, v_fit, lev * k
 
 
 def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
-                            sigma_px: float = 0.3, k: int = 8, max_sigma_ratio: float = 5.0,
-                            min_angle_deg: float = 3.0, max_chi: float = 4.0) -> PointMap:
+                            sigma_px: float = 0.3, sigma_x=None, sigma_y=None, k: int = 8,
+                            max_sigma_ratio: float = 5.0, min_angle_deg: float = 3.0,
+                            max_chi: float = 4.0,
+                            max_leverage: float | None = 3.0) -> PointMap:
     """Triangulate camera A's pixels against camera B through matching projector codes.
 
     For rigs with an uncalibrated projector: each A pixel is matched to the sub-pixel location in
     B that decoded the same projector code (:func:`match_projector_codes`), then the A ray is
     intersected with B's ray by minimising B's reprojection error (:func:`solve_along_rays`
-    with B as the "other" view). The matching noise in B is the decode noise ``sigma_px``
-    (projector pixels, both A's and B's, added in quadrature) mapped through the local
-    ``∂q_B/∂code``; the B-epipolar residual is the consistency check (``max_chi``).
+    with B as the "other" view); the B-epipolar residual is the consistency check
+    (``max_chi``).
+
+    The matching noise in B has two parts: A's decode noise (``sigma_x``, ``sigma_y``, else
+    ``sigma_px``) mapped through the local ``∂q_B/∂code``, and the variance of the local fit
+    itself (its residual scatter times the intercept's leverage), which carries B's own decode
+    noise — averaged over the ``k`` neighbours — and the misfit of a locally affine
+    code → B-pixel map. (Until this version ``sigma_px`` was taken as A's and B's noise added
+    in quadrature, which over-stated σ by √2: on the analytic sphere with 0.3 px codes,
+    ``std(error/σ)`` was 0.71–0.76 and is now 0.97–1.03.) A match the fit extrapolates (normalised leverage ``k·(G⁻¹)₃₃`` above ``max_leverage``: A's code lies
+    outside B's neighbouring codes, as at the border of B's decoded region) gets no point
+    (reason :data:`UNCERTAIN`): on the tiny synthetic scan those ≈ 7 % of the matches carried
+    2.2 mm RMS depth error against 0.6 mm for the rest, and made the mesh's 95th-percentile
+    error 1.3 mm instead of 0.7.
 
     Parameters
     ----------
@@ -725,21 +777,49 @@ def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
     x_a, y_a : (H_a, W_a) float, projector pixels (NaN invalid); both coordinates are needed
     x_b, y_b : (H_b, W_b) float
     sigma_px : float, projector pixels
+        A's decode noise (1 σ) where ``sigma_x`` / ``sigma_y`` give none.
+    sigma_x, sigma_y : (H_a, W_a) float, projector pixels, optional
+        A's decode noise per pixel and axis (NaN → ``sigma_px``), as in
+        :func:`triangulate_maps`: e.g. a phase-shift column with a Gray-code row, σ 0.08 and
+        0.29 px.
     k, max_sigma_ratio, min_angle_deg, max_chi
         See :func:`match_projector_codes` and :func:`triangulate_maps`.
+    max_leverage : float or None
+        Largest normalised leverage of the code match (≈ 1 inside B's codes); ``None`` keeps
+        every match.
 
     Returns
     -------
     PointMap
         On A's pixel grid.
     """
+    return _camera_pair(cam_a, cam_b, x_a, y_a, x_b, y_b, sigma_px=sigma_px, sigma_x=sigma_x,
+                        sigma_y=sigma_y, k=k, max_sigma_ratio=max_sigma_ratio,
+                        min_angle_deg=min_angle_deg, max_chi=max_chi,
+                        max_leverage=max_leverage)[0]
+
+
+def _camera_pair(cam_a, cam_b, x_a, y_a, x_b, y_b, *, sigma_px, sigma_x, sigma_y, k,
+                 max_sigma_ratio, min_angle_deg, max_chi,
+                 max_leverage) -> tuple[PointMap, np.ndarray]:
+    """:func:`triangulate_camera_pair`, plus the share of each pixel's matching variance that
+    comes from A's own code, ``(H_a, W_a)`` (0..1, NaN unmatched)."""
     xa = as_array(x_a, "x_a", shape=(cam_a.height, cam_a.width), finite=False)
-    q_b, jac = match_projector_codes(xa, y_a, x_b, y_b, k=k)
+    q_b, jac, var_fit, lev = _match_codes(xa, y_a, x_b, y_b, k=k)
     shape = xa.shape
-    s = check_positive(sigma_px, "sigma_px") * np.sqrt(2.0)
-    # σ of q_B: J·J^T s² — use each pixel axis's standard deviation (correlation ignored)
-    sq = s * np.sqrt((jac**2).sum(-1))  # (H, W, 2)
+    d0 = check_positive(sigma_px, "sigma_px")
+    s = np.stack([np.full(shape, d0) if m is None else _map(m, n, shape)
+                  for m, n in ((sigma_x, "sigma_x"), (sigma_y, "sigma_y"))], -1)
+    s = np.where(np.isfinite(s) & (s > 0), s, d0)  # (H, W, 2 [code]), projector pixels
+    # σ of q_B: J·diag(s²)·J^T — each pixel axis's standard deviation (correlation ignored)
+    var_a = (jac**2 * (s**2)[..., None, :]).sum(-1)  # (H, W, 2), pixels² of B
+    sq = np.sqrt(var_a + var_fit)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share_a = var_a.sum(-1) / (var_a + var_fit).sum(-1)
     ok = np.isfinite(q_b).all(-1) & np.isfinite(sq).all(-1) & (sq > 0).all(-1)
+    with np.errstate(invalid="ignore"):
+        extrapolated = ok & (lev > max_leverage) if max_leverage is not None else ok & False
+    ok &= ~extrapolated
     idx = np.flatnonzero(ok)
     o, d = cam_a.pixel_rays(cam_a.pixel_grid().reshape(-1, 2)[idx])
     fit = solve_along_rays(o, d, cam_b, q_b.reshape(-1, 2)[idx], sq.reshape(-1, 2)[idx])
@@ -748,5 +828,124 @@ def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
     p, sig, chi, reason = _classify(reason, idx, fit, o, d, max_sigma_ratio=max_sigma_ratio,
                                     max_sigma=None, min_angle_deg=min_angle_deg,
                                     max_chi=max_chi)
-    return PointMap(cam_a.name, p.reshape(shape + (3,)), sig.reshape(shape), chi.reshape(shape),
-                    np.ones(shape, np.float32), reason.reshape(shape), cam_a.center_world.copy())
+    reason[extrapolated.ravel()] = UNCERTAIN
+    pm = PointMap(cam_a.name, p.reshape(shape + (3,)), sig.reshape(shape), chi.reshape(shape),
+                  np.ones(shape, np.float32), reason.reshape(shape), cam_a.center_world.copy())
+    return pm, share_a
+
+
+def triangulate_camera_pairs(cameras: list[Camera], x: list, y: list, *, confidence=None,
+                             sigma_px=0.3, sigma_x=None, sigma_y=None, k: int = 8,
+                             max_sigma_ratio: float = 5.0, min_angle_deg: float = 3.0,
+                             max_chi: float = 4.0, max_leverage: float | None = 3.0,
+                             tol_sigmas: float = 4.0, tol_floor: float = 1e-3,
+                             spike_sigmas: float = 6.0,
+                             spike_floor: float = 1e-3) -> tuple[list[PointMap], dict]:
+    """Every camera's points against every other camera, through matching projector codes.
+
+    The camera–camera counterpart of calling :func:`triangulate_maps` once per camera, for rigs
+    whose projector is uncalibrated: camera A's pixels are triangulated against each other
+    camera B in turn (:func:`triangulate_camera_pair`, all ordered pairs), and the estimates of
+    one A pixel — all on A's ray — are merged: the inverse-variance mean of the depths that
+    agree with the most certain one within ``tol_sigmas·sqrt(σ_i² + σ_best²) + tol_floor``
+    (the others are dropped). A's own code noise is common to all of A's pairs, so it is not
+    averaged down: with normalised weights ``ŵ_i`` and ``a_i`` the share of pair i's matching
+    variance that comes from A's code (the rest is B's fit, independent between partners),
+    ``σ² = Σ ŵ_i² σ_i² (1 − a_i) + (Σ ŵ_i σ_i √a_i)²``. Isolated wrong depths are then
+    rejected as in :func:`triangulate_maps` (reason :data:`OUTLIER`). The result, one map per
+    camera on its own pixel grid, goes to :func:`fuse_cameras` like the camera–projector maps.
+    Memory: besides the inputs and the finished maps (one per camera, as the camera–projector
+    route keeps), only camera A's maps against its partners are held at a time (one
+    :class:`PointMap` and one share map per partner) while they are merged.
+
+    Parameters
+    ----------
+    cameras : list of Camera
+        At least two; the maps' sizes are the cameras'.
+    x, y : list of (H_c, W_c) float, projector pixels (NaN invalid)
+        Each camera's decoded projector column and row; mask invalid or low-confidence codes as
+        NaN first (they are neither triangulated nor matched against).
+    confidence : list of (H_c, W_c) float, 0..1, optional
+        Stored in the maps (default 1).
+    sigma_px : float or sequence of float, projector pixels
+        Each camera's decode noise (1 σ) where ``sigma_x`` / ``sigma_y`` give none.
+    sigma_x, sigma_y : list of (H_c, W_c) float (or None), projector pixels, optional
+        Each camera's decode noise per pixel and axis (:func:`triangulate_camera_pair`).
+    k, max_sigma_ratio, min_angle_deg, max_chi, max_leverage
+        :func:`triangulate_camera_pair`.
+    tol_sigmas, tol_floor : float, tol_floor in metres
+        Agreement of one pixel's estimates from different partners.
+    spike_sigmas, spike_floor : float, spike_floor in metres
+        :func:`triangulate_maps`.
+
+    Returns
+    -------
+    maps : list of PointMap
+        One per camera, in order; ``reason`` where no partner gave a point is the furthest any
+        partner got (e.g. :data:`INCONSISTENT` over :data:`NO_CODE`).
+    partners : dict
+        ``{camera A: {camera B: points of A triangulated against B}}``.
+    """
+    cams = list(cameras)
+    if len(cams) < 2 or len(x) != len(cams) or len(y) != len(cams):
+        raise InputError(f"cameras, x, y: expected two or more cameras with one x and one y map "
+                         f"each, got {len(cams)} cameras, {len(x)} x and {len(y)} y maps")
+    s = np.broadcast_to(np.asarray(sigma_px, np.float64), (len(cams),))
+    for c, v in zip(cams, s):
+        check_positive(float(v), f"sigma_px ({c.name})")
+    maps, partners = [], {}
+    for a, ca in enumerate(cams):
+        pair_maps, shares = [], []
+        partners[ca.name] = {}
+        for b, cb in enumerate(cams):
+            if b == a:
+                continue
+            pm, share = _camera_pair(
+                ca, cb, x[a], y[a], x[b], y[b], sigma_px=float(s[a]),
+                sigma_x=None if sigma_x is None else sigma_x[a],
+                sigma_y=None if sigma_y is None else sigma_y[a], k=k,
+                max_sigma_ratio=max_sigma_ratio, min_angle_deg=min_angle_deg, max_chi=max_chi,
+                max_leverage=max_leverage)
+            partners[ca.name][cb.name] = int(pm.valid.sum())
+            pair_maps.append(pm)
+            shares.append(share)
+        pm = _merge_along_rays(pair_maps, shares, tol_sigmas, tol_floor)
+        del pair_maps, shares
+        if confidence is not None and confidence[a] is not None:
+            pm.confidence = _map(confidence[a], "confidence", pm.reason.shape, np.float32)
+        _reject_spikes(pm, spike_sigmas, spike_floor)
+        maps.append(pm)
+    return maps, partners
+
+
+def _merge_along_rays(maps: list[PointMap], share_a: list[np.ndarray], tol_sigmas: float,
+                      tol_floor: float) -> PointMap:
+    """One camera's point maps against several partners, merged into one
+    (:func:`triangulate_camera_pairs`)."""
+    if len(maps) == 1:
+        return maps[0]
+    D = np.stack([m.depth for m in maps])  # (J, H, W), NaN without a point
+    S = np.stack([np.where(m.valid, m.sigma, np.nan) for m in maps])
+    ok = np.isfinite(D) & np.isfinite(S)
+    best = np.argmin(np.where(ok, S, np.inf), axis=0)[None]
+    d0 = np.take_along_axis(D, best, 0)
+    s0 = np.take_along_axis(S, best, 0)
+    with np.errstate(invalid="ignore"):
+        agree = ok & (np.abs(D - d0) <= tol_sigmas * np.sqrt(S**2 + s0**2) + tol_floor)
+    S1 = np.where(agree, S, 1.0)
+    w = np.where(agree, 1.0 / S1**2, 0.0)
+    wsum = w.sum(0)
+    have = wsum > 0
+    wn = w / np.where(have, wsum, 1.0)
+    a = np.clip(np.nan_to_num(np.stack(share_a), nan=1.0), 0.0, 1.0)
+    depth = (wn * np.where(agree, D, 0.0)).sum(0)
+    var = (wn**2 * S1**2 * (1 - a)).sum(0) + (wn * S1 * np.sqrt(a)).sum(0) ** 2
+    p_best = np.take_along_axis(np.stack([m.p_world for m in maps]), best[..., None], 0)[0]
+    c = maps[0].center_world
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ray = (p_best - c) / d0[0][..., None]
+    p = np.where(have[..., None], c + depth[..., None] * ray, np.nan)
+    chi = np.take_along_axis(np.stack([m.chi for m in maps]), best, 0)[0]
+    reason = np.where(have, OK, np.stack([m.reason for m in maps]).max(0)).astype(np.uint8)
+    return PointMap(maps[0].camera, p, np.where(have, np.sqrt(var), np.nan),
+                    np.where(have, chi, np.nan), maps[0].confidence, reason, c.copy())

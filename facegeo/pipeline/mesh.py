@@ -15,9 +15,17 @@ Rig: ``rig="ground_truth"`` (default when the scan has one) uses the true rig th
 rendered with, ``rig="scan"`` the scan's ``rig.json``, ``rig="calibrated"`` the ``calibrate``
 stage's ``out/calibrate/rig.json`` (or give a rig file). With any rig but the true one, the
 ground-truth metrics are also given after the best rigid alignment of the points to the true
-surface (``after_rigid_alignment``: a calibrated rig's world frame is its own gauge). A rig
-whose projector is uncalibrated (a :class:`facegeo.geometry.rig.Projector`) is refused first,
-with what would calibrate it.
+surface (``after_rigid_alignment``: a calibrated rig's world frame is its own gauge).
+
+Triangulation (``"triangulation"`` in the metrics): ``"camera-projector"`` — each camera's rays
+against the calibrated projector (:func:`facegeo.geometry.triangulation.triangulate_maps`); or,
+when the rig's projector is uncalibrated (a :class:`facegeo.geometry.rig.Projector`: resolution
+only), ``"camera-camera"`` — every camera against every other through matching projector codes
+(:func:`facegeo.geometry.triangulation.triangulate_camera_pairs`), which needs two or more
+cameras whose decodes have both ``x`` and ``y`` (cameras without are left out and listed under
+``skipped_cameras``; fewer than two left is a one-line :class:`InputError` saying what would
+calibrate the projector). Either way the per-camera point maps go through the same fusion,
+normals, Poisson, trimming and metrics.
 
 Ground-truth metrics (synthetic scans; the mesh is ``scan.ground_truth_path("mesh")``):
 
@@ -333,7 +341,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         Poisson over all cameras' fused points, or the direct pixel-grid mesh of the first
         camera (the cheap one-camera path).
     min_confidence, default_sigma_px, max_sigma_ratio, max_chi
-        :func:`facegeo.geometry.triangulation.triangulate_maps`.
+        :func:`facegeo.geometry.triangulation.triangulate_maps` (camera-camera:
+        :func:`facegeo.geometry.triangulation.triangulate_camera_pairs`).
     fuse_sigmas : float
         :func:`facegeo.geometry.triangulation.fuse_cameras` tolerance.
     normals_k : int
@@ -353,8 +362,11 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     Returns
     -------
     metrics : dict
+        ``triangulation`` (``"camera-projector"`` or ``"camera-camera"``, module docstring),
         ``cameras`` (per camera: pixels with a point, counts per rejection reason, median σ in
-        mm), ``points``, ``confirmed_fraction``, ``median_sigma_mm``, ``mesh`` (the
+        mm; camera-camera also ``partners``: points against each other camera, and
+        ``decode_sigma_px``: the decode's median ``x``/``y`` σ), ``skipped_cameras`` (when
+        any), ``points``, ``confirmed_fraction``, ``median_sigma_mm``, ``mesh`` (the
         reconstruction's settings and counts: depth, point weight, trim quantile, …),
         ``faces``, ``vertices``, ``area_mm2``, ``unobserved_area_mm2``,
         ``unobserved_area_fraction``, seconds per step, and on synthetic scans
@@ -373,7 +385,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     the_rig, rig_used = stage_rig(scan, rig)
     if the_rig.projector is None:
         raise InputError(f"scan {scan.root}: the rig has no projector to triangulate against")
-    _check_projector_calibrated(scan, the_rig, rig_used)
+    pair_route = not the_rig.projector_calibrated
     if cameras is None:
         names = [n for n in scan.camera_names if (decode_dir / n / "decode.npz").is_file()]
         if not names:
@@ -394,21 +406,28 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                 "target_faces": target_faces, "observed_radius_mm": observed_radius_mm,
                 "gt_samples": gt_samples}
     cams = [the_rig.camera(n) for n in names]
-    maps = []
+    extra: dict[str, Any] = {}
     t0 = time.perf_counter()
-    for cam in cams:
-        d = load_decode(decode_dir / cam.name / "decode.npz", (cam.height, cam.width))
-        maps.append(tr.triangulate_maps(
-            cam, the_rig.projector, d["x"], d.get("y"), valid=d.get("valid"),
-            confidence=d.get("confidence"), sigma_x=d.get("sigma_x"), sigma_y=d.get("sigma_y"),
-            min_confidence=min_confidence, default_sigma_px=default_sigma_px,
-            max_sigma_ratio=max_sigma_ratio, max_chi=max_chi))
+    if pair_route:
+        cams, maps, extra = _camera_pair_maps(
+            scan, the_rig, rig_used, cams, decode_dir, min_confidence=min_confidence,
+            default_sigma_px=default_sigma_px, max_sigma_ratio=max_sigma_ratio, max_chi=max_chi)
+        names = [c.name for c in cams]
+    else:
+        maps = []
+        for cam in cams:
+            d = load_decode(decode_dir / cam.name / "decode.npz", (cam.height, cam.width))
+            maps.append(tr.triangulate_maps(
+                cam, the_rig.projector, d["x"], d.get("y"), valid=d.get("valid"),
+                confidence=d.get("confidence"), sigma_x=d.get("sigma_x"),
+                sigma_y=d.get("sigma_y"), min_confidence=min_confidence,
+                default_sigma_px=default_sigma_px, max_sigma_ratio=max_sigma_ratio,
+                max_chi=max_chi))
     t1 = time.perf_counter()
     fused = tr.fuse_cameras(maps, cams, tol_sigmas=fuse_sigmas)
     t2 = time.perf_counter()
     if len(fused) < 10:
-        raise InputError(f"{decode_dir}: only {len(fused)} points triangulated (cameras "
-                         f"{', '.join(names)}); the decode maps hold no usable codes")
+        raise _too_few_points(decode_dir, len(fused), names, maps, pair_route)
     normals = gm.oriented_normals(fused.p_world, fused.view_dirs, k=normals_k)
     t3 = time.perf_counter()
     spacing = tr.neighbour_spacing(fused.p_world)
@@ -431,8 +450,13 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         per_cam[m.camera] = {"points": int(m.valid.sum()), "rejected": m.reason_counts(),
                              "median_sigma_mm": _mm(np.median(m.sigma[m.valid]))
                              if m.valid.any() else None}
+        if pair_route:
+            per_cam[m.camera]["partners"] = extra["partners"][m.camera]
+            per_cam[m.camera]["decode_sigma_px"] = extra["decode_sigma_px"][m.camera]
     metrics: dict[str, Any] = {
-        "rig": rig_used, "cameras": per_cam, "points": len(fused),
+        "rig": rig_used,
+        "triangulation": "camera-camera" if pair_route else "camera-projector",
+        "cameras": per_cam, "points": len(fused),
         "confirmed_fraction": round(float(fused.confirmed.mean()), 6),
         "median_sigma_mm": _mm(np.median(fused.sigma)),
         "neighbour_spacing_mm": _mm(spacing), "observed_radius_mm": _mm(r_obs),
@@ -443,6 +467,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         "seconds_triangulate": round(t1 - t0, 4), "seconds_fuse": round(t2 - t1, 4),
         "seconds_normals": round(t3 - t2, 4), "seconds_mesh": round(t4 - t3, 4),
     }
+    if extra.get("skipped_cameras"):
+        metrics["skipped_cameras"] = extra["skipped_cameras"]
     if scan.synthetic and "mesh" in scan.ground_truth_keys:
         # a calibrated rig's world frame is a gauge choice: report the shape error too
         metrics.update(ground_truth_errors(scan, fused.p_world, mesh, far, gt_samples,
@@ -451,28 +477,109 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     return metrics, settings
 
 
-def _check_projector_calibrated(scan, the_rig, rig_used: str) -> None:
-    """Raise :class:`InputError` in one line when the rig's projector is uncalibrated (a
-    :class:`facegeo.geometry.rig.Projector`: resolution only, no intrinsics or pose), saying
-    what would mesh the scan."""
-    from facegeo.geometry.camera import Camera
+def _camera_pair_maps(scan, the_rig, rig_used: str, cams: list, decode_dir: Path, *,
+                      min_confidence: float, default_sigma_px: float, max_sigma_ratio: float,
+                      max_chi: float) -> tuple[list, list, dict]:
+    """Point maps of the cameras triangulated against each other through matching projector
+    codes (the rig's projector is uncalibrated): ``(cameras used, maps, extra metrics)``.
 
+    Each camera's codes are masked to its valid pixels with ``confidence >= min_confidence``
+    and both ``x`` and ``y``; its decode noise is its ``sigma_x``/``sigma_y`` maps
+    (``default_sigma_px`` where they give none; their medians are recorded as
+    ``decode_sigma_px``). Cameras without any such pixel are left out (``skipped_cameras``);
+    fewer than two left raises :class:`InputError`.
+    """
+    from facegeo.geometry import triangulation as tr
+
+    if len(cams) < 2:
+        one = cams[0].name if cams else None
+        why = (f"the scan has one ({one!r})" if len(scan.camera_names) < 2 else
+               f"only {one!r} is meshed (the cameras with decode maps, or the cameras setting)")
+        raise _uncalibrated_projector_error(scan, the_rig, rig_used, why)
+    used, xs, ys, confs, sxs, sys_, sig, skipped = [], [], [], [], [], [], {}, {}
+    for cam in cams:
+        d = load_decode(decode_dir / cam.name / "decode.npz", (cam.height, cam.width))
+        x, y = d["x"], d.get("y")
+        ok = np.isfinite(x) & (np.isfinite(y) if y is not None else False)
+        if "valid" in d:
+            ok &= d["valid"].astype(bool)
+        conf = d.get("confidence")
+        if conf is not None:
+            with np.errstate(invalid="ignore"):
+                ok &= ~(conf < min_confidence)
+        if not ok.any():
+            skipped[cam.name] = "no valid pixel with both x and y codes"
+            continue
+        sig[cam.name] = {}
+        for axis, out in (("x", sxs), ("y", sys_)):
+            m = d.get("sigma_" + axis)
+            v = m[ok] if m is not None else np.zeros(0)
+            v = v[np.isfinite(v) & (v > 0)]
+            sig[cam.name][axis] = round(float(np.median(v)), 6) if v.size else None
+            out.append(m)
+        used.append(cam)
+        xs.append(np.where(ok, x, np.nan))
+        ys.append(np.where(ok, y, np.nan))
+        confs.append(conf)
+    if len(used) < 2:
+        lack = list(skipped)
+        why = (f"{', '.join(repr(n) for n in lack)} {'has' if len(lack) == 1 else 'have'} no "
+               "valid pixel with both x and y codes (a column-only or row-only decode cannot be "
+               "matched between cameras)")
+        if used:
+            why += f", leaving only {used[0].name!r}"
+        raise _uncalibrated_projector_error(scan, the_rig, rig_used, why)
+    if skipped:
+        log.warning("mesh: camera-camera triangulation without %s (%s)", ", ".join(skipped),
+                    "; ".join(f"{k}: {v}" for k, v in skipped.items()))
+    maps, partners = tr.triangulate_camera_pairs(
+        used, xs, ys, confidence=confs, sigma_px=default_sigma_px, sigma_x=sxs, sigma_y=sys_,
+        max_sigma_ratio=max_sigma_ratio, max_chi=max_chi)
+    return used, maps, {"partners": partners, "decode_sigma_px": sig,
+                        "skipped_cameras": skipped}
+
+
+def _too_few_points(decode_dir: Path, n: int, names: list, maps: list,
+                    pair_route: bool) -> InputError:
+    """The one-line :class:`InputError` when triangulation leaves fewer than 10 points: what
+    rejected the decoded pixels, and what to check when it was the consistency test."""
+    from facegeo.geometry.triangulation import REASONS
+
+    counts = dict.fromkeys(REASONS[2:], 0)
+    for m in maps:
+        for k, v in m.reason_counts().items():
+            if k in counts:
+                counts[k] += v
+    what = (f"{decode_dir}: only {n} points triangulated (cameras {', '.join(names)}, "
+            f"{'camera-camera' if pair_route else 'camera-projector'} triangulation)")
+    rejected = {k: v for k, v in sorted(counts.items(), key=lambda kv: -kv[1]) if v}
+    if not rejected:
+        return InputError(f"{what}; the decode maps hold no usable codes")
+    why = ", ".join(f"{k} {v}" for k, v in rejected.items())
+    hint = ""
+    if next(iter(rejected)) == "inconsistent":
+        hint = ("; 'inconsistent' means the codes disagree with the rig's geometry by more "
+                "than max_chi σ (" + ("the epipolar residual between the cameras" if pair_route
+                                      else "the camera-projector reprojection residual")
+                + "): check the rig's calibration — a nominal rig.json is no calibration; run "
+                "`facegeo calibrate` and mesh with --rig calibrated")
+    return InputError(f"{what}; the decoded pixels were rejected as: {why}{hint}")
+
+
+def _uncalibrated_projector_error(scan, the_rig, rig_used: str, why: str) -> InputError:
+    """The one-line :class:`InputError` for a rig whose projector is uncalibrated (a
+    :class:`facegeo.geometry.rig.Projector`: resolution only, no intrinsics or pose) when the
+    cameras cannot be triangulated against each other either; ``why`` says what is missing."""
     proj = the_rig.projector
-    if isinstance(proj, Camera):
-        return
-    n_cams = len(scan.camera_names)
-    pair = ("with its two or more cameras, camera-camera triangulation through matching "
-            "projector codes exists in the library only "
-            "(facegeo.geometry.triangulation.triangulate_camera_pair, needs x and y codes and "
-            "calibrated cameras), not in this stage" if n_cams >= 2 else
-            "with one camera, camera-camera triangulation through matching projector codes "
-            "(facegeo.geometry.triangulation.triangulate_camera_pair) does not apply either")
-    raise InputError(
+    return InputError(
         f"scan {scan.root}: the projector {proj.name!r} of the {rig_used!r} rig is uncalibrated "
-        f"(resolution {proj.width} x {proj.height} only, no intrinsics or pose); meshing from "
-        "camera-projector correspondences needs its calibration: run `facegeo calibrate` on a "
-        "scan with projector board views ([calib.projector]) and mesh with --rig calibrated, or "
-        f"give a rig whose projector is calibrated (the scan's rig.json, or rig=PATH); {pair}")
+        f"(resolution {proj.width} x {proj.height} only, no intrinsics or pose), so the mesh "
+        "stage triangulates camera against camera through matching projector codes "
+        "(facegeo.geometry.triangulation.triangulate_camera_pair), which needs two or more "
+        f"cameras whose decodes have both x and y codes, and {why}; to mesh from "
+        "camera-projector correspondences instead, calibrate the projector: run `facegeo "
+        "calibrate` on a scan with projector board views ([calib.projector]) and mesh with "
+        "--rig calibrated, or give a rig whose projector is calibrated (rig=PATH)")
 
 
 def _mm(v) -> float:
