@@ -126,6 +126,11 @@ def _check_output_dir(path: str | os.PathLike, what: str) -> Path:
     actually be created (a real probe, not ``os.access``: root ignores permission bits, and
     read-only mounts or ``/proc`` refuse anyway).
 
+    Every message names the option, the path given and what is wrong with it (``--out
+    /proc/foo: cannot create it: /proc, its nearest existing folder, refuses new files (...)``),
+    not only the operating system's reason: creating a file in ``/proc`` fails with "No such
+    file or directory", which says nothing about which path or why.
+
     Raises
     ------
     InputError
@@ -135,20 +140,25 @@ def _check_output_dir(path: str | os.PathLike, what: str) -> Path:
 
     p = Path(path)
     if p.exists() and not p.is_dir():
-        raise InputError(f"{what}: {p} is an existing file; expected a directory (or a path to "
-                         "create one at)")
+        raise InputError(f"{what} {p}: an existing file, not a directory; expected a directory "
+                         "(or a path to create one at)")
     probe = p
     while not probe.exists():
         if probe.parent == probe:  # pragma: no cover - the root always exists
             break
         probe = probe.parent
     if not probe.is_dir():
-        raise InputError(f"{what}: cannot create {p}: {probe} is a file, not a directory")
+        raise InputError(f"{what} {p}: cannot create it: {probe} is a file, not a directory")
     try:
         tempfile.TemporaryFile(dir=probe).close()
     except OSError as exc:
-        raise InputError(f"{what}: cannot write in {probe} ({exc.strerror or exc}); expected a "
-                         "writable directory") from exc
+        why = f"a test file there was refused: {exc.strerror or exc}"
+        if probe == p:
+            raise InputError(f"{what} {p}: cannot write in this directory ({why}); expected a "
+                             "writable directory") from exc
+        raise InputError(f"{what} {p}: cannot create it: {probe}, its nearest existing folder, "
+                         f"refuses new files ({why}); expected a path in a writable "
+                         "directory") from exc
     return p
 
 
@@ -445,17 +455,24 @@ def _stage_line(result) -> str:
         figs["error"] = figs["error"][:117] + "..."
     text = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                      for k, v in figs.items())
-    what = f"ran in {result.seconds:.1f} s" if result.ran else "cached (inputs unchanged)"
+    if result.ran:  # and why: a user who changed nothing sees "facegeo code changed"
+        what = f"ran in {result.seconds:.1f} s" + (f" ({result.reason})" if result.reason
+                                                     else "")
+    else:
+        what = "cached (inputs unchanged)"
     return f"  {result.name:<10} {what}; {text}"
 
 
 def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
                      settings=None) -> list:
+    """``run_reconstruct`` with progress bars, one line per stage and the report; ``scan`` is
+    the scan directory or the loaded :class:`~facegeo.capture.scan.Scan`."""
     from facegeo.pipeline.reconstruct import run_reconstruct
     from facegeo.pipeline.report import write_report
 
     if getattr(args, "max_coarse_px", None) is not None:  # only when given: default keys stay
         settings = {**(settings or {}), "decode": {"max_coarse_px": args.max_coarse_px}}
+    out = (Path(scan) if isinstance(scan, (str, os.PathLike)) else scan.root) / "out"
     tick, close = _progress_factory(not args.quiet)
     try:
         results = run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"),
@@ -466,13 +483,13 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
         close()
         # the report too, with the failed stage marked (metrics.json's last_run_failed); its
         # own trouble never hides the stage's error
-        if (Path(scan) / "out" / "metrics.json").is_file():
+        if (out / "metrics.json").is_file():
             with contextlib.suppress(FacegeoError, OSError):
-                write_report(Path(scan) / "out")
+                write_report(out)
         raise
     finally:
         close()
-    _write_report(Path(scan) / "out")
+    _write_report(out)
     return results
 
 
@@ -497,15 +514,17 @@ def _cmd_render(args) -> int:
     from facegeo.capture.scan import load_scan
     from facegeo.pipeline.render import check_render_args
 
+    # loaded and validated once: the checks, the stages up to the fit and the render share it
+    scan = load_scan(args.scan)
     # before any stage runs (atlas, project and fit take minutes on the larger presets)
-    check_render_args(load_scan(args.scan), camera_spec=args.camera, env=args.env,
+    check_render_args(scan, camera_spec=args.camera, env=args.env,
                       rotate_deg=args.rotate, shrinkage=args.shrinkage,
                       light_step=args.light_step, resynthesis=not args.naive)
     print(f"render: products of {args.scan} up to the fit (cached):")
-    _run_reconstruct(args.scan, args, until="fit")
+    _run_reconstruct(scan, args, until="fit")
     tick, close = _progress_factory(not args.quiet)
     try:
-        m = run_render(args.scan, camera_spec=args.camera, env=args.env,
+        m = run_render(scan, camera_spec=args.camera, env=args.env,
                        rotate_deg=args.rotate, supersample=args.supersample,
                        resynthesis=not args.naive, shrinkage=args.shrinkage,
                        light_step=args.light_step, progress=tick)
@@ -516,7 +535,7 @@ def _cmd_render(args) -> int:
     if m.get("shrinkage_factors"):
         figs["shrinkage"] = ", ".join(f"{c} {lam:.3f}" for c, lam in m["shrinkage_factors"].items())
     print(f"rendered {m['name']}: " + ", ".join(f"{k}={v}" for k, v in figs.items()))
-    print(f"images: {Path(args.scan) / 'out' / 'views' / m['files']['png']} (+ .exr)")
+    print(f"images: {scan.root / 'out' / 'views' / m['files']['png']} (+ .exr)")
     return 0
 
 
@@ -627,7 +646,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bench", parents=common,
                        help="run registered benchmarks (speed against error)")
-    s.add_argument("names", nargs="*", default=[], help="benchmarks or prefixes (none: all)")
+    s.add_argument("names", nargs="*", default=[],
+                   help="benchmarks to run: names, or the start of names ('visibility', 'vis', "
+                        "'visibility.closest'; --list shows them); none: all")
     s.add_argument("--quick", action="store_true", help="smaller problem sizes")
     s.add_argument("--out", default="bench-out", help="folder for bench.json and bench.md")
     s.add_argument("--list", action="store_true", help="list the registered benchmarks")

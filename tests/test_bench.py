@@ -57,6 +57,45 @@ def test_unknown_benchmark_lists_available():
         run_benchmarks(["no.such.bench"])
 
 
+def test_names_select_by_prefix_of_the_whole_name():
+    """A name selects every benchmark it starts (``facegeo bench --help``: "names, or the start
+    of names"), also inside a dotted part — except a whole registered name, which selects
+    itself alone; one that selects nothing lists every name."""
+    from facegeo.pipeline.bench import select_benchmarks
+
+    names = registered()
+    vis = [n for n in names if n.startswith("visibility.")]
+    assert vis == ["visibility.closest_hit", "visibility.occluded"]
+    assert select_benchmarks(["visibility.closest"]) == ["visibility.closest_hit"]
+    assert select_benchmarks(["vis"]) == vis
+    assert select_benchmarks(["visibility"]) == vis
+    assert select_benchmarks(["visibility.occluded"]) == ["visibility.occluded"]
+    # in registry order, each once; "surface.visibility" is not under "vis"
+    assert select_benchmarks(["visibility.occ", "vis", "spectral.f"]) == \
+        ["spectral.forward"] + vis
+    assert select_benchmarks([]) == select_benchmarks(None) == names
+    # a whole name selects itself alone, not the names it starts ("skin.fit_scale" …)
+    assert select_benchmarks(["skin.fit"]) == ["skin.fit"]
+    assert select_benchmarks(["render.novel_view"]) == ["render.novel_view"]
+    assert select_benchmarks(["skin.fit_"]) == ["skin.fit_scale", "skin.fit_stream"]
+    with pytest.raises(InputError, match=r"unknown benchmark\(s\) 'visibility.closer'.*"
+                                         r"available: .*visibility.closest_hit"):
+        select_benchmarks(["visibility.closer", "vis"])
+
+
+def test_bench_cli_runs_a_prefix_of_a_dotted_part(monkeypatch, tmp_path, capsys):
+    from facegeo.cli import main
+
+    ran = []
+    registered()  # the real ones imported first (a later import would register them twice)
+    monkeypatch.setattr(bench, "read_bandwidth", lambda *a, **k: None)
+    for name in ("visibility.closest_hit", "visibility.occluded"):
+        monkeypatch.setitem(bench._REGISTRY, name, lambda quick, name=name: ran.append(name)
+                            or [BenchRow(name, "stub", 1.0, "x/s", threads=1)])
+    assert main(["bench", "visibility.closest", "--quick", "--out", str(tmp_path)]) == 0
+    assert ran == ["visibility.closest_hit"]
+
+
 def test_reports_written_and_escaped(tmp_path):
     @register("test.dummy")
     def _dummy(quick):
@@ -80,6 +119,16 @@ def test_reports_written_and_escaped(tmp_path):
     line = table[2]
     assert "a\\|b" in line and "max \\|e\\|" in line and "vs \\|ref\\| [2 thr]: 1.5" in line
     assert "n \\|x\\|=3" in line and "\n" not in line
+
+
+def test_report_folder_errors_name_the_folder(tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    with pytest.raises(InputError, match=f"bench output folder {a_file}: an existing file"):
+        write_reports([], a_file)
+    with pytest.raises(InputError, match=f"{a_file / 'sub' / 'x'}: cannot create it: {a_file} "
+                                         "is a file, not a directory"):
+        write_reports([], a_file / "sub" / "x")
 
 
 def test_table_cell_count_fails_for_an_unescaped_pipe():
@@ -275,3 +324,49 @@ def test_reference_decode_matches_truth_on_small_frames():
     frames["gray_x_03"], frames["gray_x_03_inv"] = frames["gray_x_03_inv"], frames["gray_x_03"]
     px2, _, _ = reference_decode_gray(frames, spec)
     assert np.mean(px2 != tx) > 0.5
+
+
+def test_previous_checkout_copy_is_one_cached_folder_per_checkout(tmp_path, monkeypatch):
+    """``FACEGEO_BENCH_PREVIOUS``: the previous checkout's visibility modules are copied into
+    one cache folder per checkout, reused by later runs (files unchanged, so numba's cache of
+    the kernels beside them stays valid); nothing is left in the temporary folder per run."""
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    import facegeo
+    from facegeo.pipeline.benchmarks import visibility as vis_bench
+
+    pkg = "_facegeo_previous_vis"
+    checkout = Path(facegeo.__file__).resolve().parent.parent
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
+    monkeypatch.setenv("FACEGEO_CACHE_DIR", str(tmp_path / "cache"))
+
+    def forget() -> dict:
+        return {m: sys.modules.pop(m) for m in list(sys.modules)
+                if m == pkg or m.startswith(pkg + ".")}
+
+    def load():
+        monkeypatch.setattr(sys, "path", list(sys.path))
+        forget()
+        return vis_bench._load_previous(str(checkout))
+
+    saved = forget()
+    try:
+        scene_cls = load()
+        assert scene_cls.__name__ == "RayScene" and scene_cls.__module__ == f"{pkg}.visibility"
+        folder = vis_bench._previous_package_dir(checkout)
+        assert folder.parent == tmp_path / "cache" / "prev-vis"
+        files = sorted(p.name for p in (folder / pkg).glob("*.py"))
+        assert files == ["__init__.py", "_vis_kernels.py", "_vis_util.py", "visibility.py"]
+        stamps = {p: p.stat().st_mtime_ns for p in (folder / pkg).glob("*.py")}
+        assert "from facegeo.surface import _vis" not in (folder / pkg / "visibility.py").read_text()
+        load()  # a second run: the same folder, no file rewritten
+        assert sorted((tmp_path / "cache" / "prev-vis").iterdir()) == [folder]
+        assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
+        assert list(tmp.iterdir()) == []  # no facegeo-prev-vis-* left per run
+    finally:
+        forget()
+        sys.modules.update(saved)

@@ -554,3 +554,44 @@ def test_max_coarse_px_reaches_the_decode_stage(monkeypatch, tiny_scan):
     assert main(["decode", str(tiny_scan), "--max-coarse-px", "16", "-q"]) == 0
     assert main(["reconstruct", str(tiny_scan), "-q"]) == 0
     assert seen == [{"decode": {"max_coarse_px": 16.0}}, None], seen
+
+
+def test_render_loads_the_scan_once(monkeypatch, tiny_scan, capsys):
+    """``facegeo render`` validates the scan once: its argument check, the stages up to the
+    fit and the render share the loaded scan (it was loaded three times)."""
+    import facegeo.capture.scan as scan_mod
+    import facegeo.pipeline.reconstruct as reconstruct
+    import facegeo.pipeline.render as render
+
+    loads, got = [], []
+    real = scan_mod.load_scan
+    monkeypatch.setattr(scan_mod, "load_scan", lambda *a, **k: loads.append(a) or real(*a, **k))
+    monkeypatch.setattr(reconstruct, "run_reconstruct",
+                        lambda scan, **k: got.append(("reconstruct", scan, k["until"])) or [])
+    monkeypatch.setattr("facegeo.cli._write_report", lambda out: got.append(("report", out)))
+    monkeypatch.setattr(render, "run_render", lambda scan, **k: got.append(("render", scan)) or
+                        {"name": "v", "files": {"png": "v.png"}})
+    assert main(["render", str(tiny_scan), "--camera", "front", "-q"]) == 0
+    assert len(loads) == 1
+    assert [g[0] for g in got] == ["reconstruct", "report", "render"]
+    assert isinstance(got[0][1], scan_mod.Scan) and got[2][1] is got[0][1]
+    assert got[0][2] == "fit" and got[1][1] == tiny_scan / "out"
+    assert str(tiny_scan / "out" / "views" / "v.png") in capsys.readouterr().out
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux procfs")
+@pytest.mark.parametrize("out, words", [
+    ("/proc/facegeo-bench", ["--out /proc/facegeo-bench", "cannot create it", "/proc",
+                             "refuses new files", "writable"]),
+    ("/proc/facegeo-bench/deeper", ["--out /proc/facegeo-bench/deeper", "cannot create it",
+                                    "/proc, its nearest existing folder"]),
+    ("/proc", ["--out /proc", "cannot write in this directory", "writable"]),
+])
+def test_bench_out_errors_name_the_path_and_what_is_wrong(out, words, capfd):
+    """``facegeo bench --out /proc/foo`` said only "No such file or directory" (of a probe
+    file in /proc): the line names the path given, the folder that refuses and why."""
+    assert main(["bench", "vis", "--out", out]) == 2
+    lines = _stderr_lines(capfd.readouterr().err)
+    assert len(lines) == 1, lines
+    for w in words:
+        assert w in lines[0], (w, lines[0])

@@ -235,3 +235,108 @@ def test_stage_settings_are_checked_before_any_stage_runs(scan):
     with pytest.raises(InputError, match=r"settings\['b'\]: expected a mapping"):
         _toy_pipeline(calls).run(scan, settings={"b": "x"})
     assert calls == []
+
+
+def test_code_change_reruns_and_says_why(scan, monkeypatch):
+    """A change of facegeo's code without a version bump (the code fingerprint) reruns every
+    stage, records the fingerprint in the manifest and names the reason; the same fingerprint
+    keeps the products."""
+    monkeypatch.setattr(cache, "code_fingerprint", lambda: "code-1")
+    calls: list[str] = []
+    _toy_pipeline(calls).run(scan)
+    manifest = json.loads((scan / "out" / "a" / MANIFEST_NAME).read_text())
+    assert manifest["facegeo_code"] == "code-1"
+    calls.clear()
+    res = _toy_pipeline(calls).run(scan)
+    assert calls == [] and [r.reason for r in res] == [None, None]
+    monkeypatch.setattr(cache, "code_fingerprint", lambda: "code-2")
+    res = _toy_pipeline(calls).run(scan)
+    assert calls == ["a", "b"]
+    assert res[0].reason == "facegeo code changed"
+    assert res[1].reason.startswith("facegeo code changed")  # and its upstream a's key
+    assert json.loads((scan / "out" / "a" / MANIFEST_NAME).read_text())["reason"] == \
+        "facegeo code changed"
+
+
+def test_products_from_before_code_fingerprints_are_recomputed_once(scan):
+    """A manifest written before the fingerprint was part of the key (no ``facegeo_code``)
+    is not a crash: the stage reruns once, saying so, and is cached after."""
+    calls: list[str] = []
+    _toy_pipeline(calls).run(scan)
+    for stage in ("a", "b"):  # as an older facegeo wrote it: another key, no fingerprint
+        path = scan / "out" / stage / MANIFEST_NAME
+        m = json.loads(path.read_text())
+        del m["facegeo_code"]
+        m["key"] = "0" * 64
+        path.write_text(json.dumps(m))
+    calls.clear()
+    res = _toy_pipeline(calls).run(scan)
+    assert calls == ["a", "b"]
+    assert "facegeo code changed" in res[0].reason and "predate" in res[0].reason
+    calls.clear()
+    _toy_pipeline(calls).run(scan)
+    assert calls == []
+
+
+def test_rerun_reasons_name_what_changed(scan):
+    calls: list[str] = []
+    res = _toy_pipeline(calls).run(scan)
+    assert [r.reason for r in res] == ["no finished products yet"] * 2
+    res = _toy_pipeline(calls).run(scan, settings={"b": {"scale": 3}})
+    assert res[1].reason == "settings changed: scale"
+    (scan / "data.txt").write_text("7")
+    res = _toy_pipeline(calls).run(scan, settings={"b": {"scale": 3}})
+    assert res[0].reason == "input files changed: data.txt"
+    assert res[1].reason == "upstream stage a changed"
+    res = _toy_pipeline(calls).run(scan, settings={"b": {"scale": 3}}, from_stage="a")
+    assert [r.reason for r in res] == ["forced by --from a"] * 2
+
+
+def test_code_fingerprint_hashes_the_package_sources_only(tmp_path, monkeypatch):
+    """The fingerprint reads the ``.py`` files where the imported package is (an installed
+    copy as well as a checkout), in path order; byte-code, numba caches and hidden files do
+    not change it, an edit, a rename or a new source file does."""
+    import facegeo
+
+    pkg = tmp_path / "site-packages" / "facegeo"
+    (pkg / "sub" / "__pycache__").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("__version__ = '1'\n")
+    (pkg / "sub" / "mod.py").write_text("x = 1\n")
+    fingerprint = cache._source_fingerprint.__wrapped__  # not memoised: each call reads
+
+    first = fingerprint(pkg)
+    assert len(first) == 64
+    monkeypatch.setattr(facegeo, "__file__", str(pkg / "__init__.py"))  # installed elsewhere
+    assert cache.code_fingerprint() == first
+    monkeypatch.undo()
+    assert cache.code_fingerprint() != first  # this checkout again
+    (pkg / "sub" / "__pycache__" / "mod.cpython-312.pyc").write_bytes(b"\0" * 10)
+    (pkg / "sub" / "__pycache__" / "mod.f-1.py312.nbi").write_bytes(b"\0" * 10)
+    (pkg / "sub" / "__pycache__" / "stray.py").write_text("y = 2\n")
+    (pkg / "sub" / ".#mod.py").write_text("lock\n")
+    (pkg / "notes.txt").write_text("not code\n")
+    assert fingerprint(pkg) == first
+    (pkg / "sub" / "mod.py").write_text("x = 2\n")
+    assert fingerprint(pkg) != first
+    (pkg / "sub" / "mod.py").write_text("x = 1\n")
+    assert fingerprint(pkg) == first
+    (pkg / "sub" / "mod.py").rename(pkg / "sub" / "other.py")  # same bytes, another file
+    assert fingerprint(pkg) != first
+    (pkg / "sub" / "other.py").rename(pkg / "sub" / "mod.py")
+    (pkg / "new.py").write_text("")
+    assert fingerprint(pkg) != first
+
+
+def test_code_fingerprint_is_computed_once_per_process(tmp_path, monkeypatch):
+    import facegeo
+
+    pkg = tmp_path / "facegeo"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    reads = []
+    real = cache.Path.read_bytes
+    monkeypatch.setattr(cache.Path, "read_bytes", lambda self: reads.append(self) or real(self))
+    monkeypatch.setattr(facegeo, "__file__", str(pkg / "__init__.py"))
+    first = cache.code_fingerprint()
+    assert reads == [pkg / "__init__.py"]
+    assert cache.code_fingerprint() == first and len(reads) == 1

@@ -199,3 +199,19 @@ def test_stage_command_names_what_the_scan_lacks(tmp_path, capsys, fixture, comm
     # --only / --from name the flag as well
     assert main(["reconstruct", str(tmp_path / "scan"), "--only", command, "-q"]) == 2
     assert f"--only '{command}': scan" in capsys.readouterr().err
+
+
+def test_a_loaded_scan_is_used_as_it_is(tiny_scan, monkeypatch):
+    """``run_reconstruct`` takes a loaded scan (``facegeo render`` passes its own) and does
+    not load it again."""
+    import facegeo.capture.scan as scan_mod
+
+    scan = scan_mod.load_scan(tiny_scan)
+
+    def no_second_load(*a, **k):
+        raise AssertionError("the scan was loaded again")
+
+    monkeypatch.setattr(scan_mod, "load_scan", no_second_load)
+    results = reconstruct.run_reconstruct(scan, until="atlas")
+    assert [r.name for r in results] == ["atlas"]
+    assert results[0].out_dir == tiny_scan / "out" / "atlas"

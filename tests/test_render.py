@@ -496,3 +496,28 @@ def test_load_sources_takes_paths_as_strings(parts):
     got = load_sources(str(out / "project"), str(out / "fit"))
     assert [s.name for s in got] == [s.name for s in parts["sources"]]
     assert all(s.fit is not None for s in got)
+
+
+def test_render_stage_hashes_the_texel_table_once(parts, tmp_path, monkeypatch):
+    """The render stage checks that the projection indexes this atlas (a SHA-256 of
+    ``texels.npz``, ≈ 10 MB on the small preset) once per stage, not once per view; a texel
+    table changed between stages is still caught."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline import project
+    from facegeo.pipeline.render import render_products
+
+    root = parts["root"]
+    out = root / "out"
+    assert (out / "project" / project.ATLAS_FINGERPRINT).is_file()  # the check hashes
+    hashed = []
+    real = project.file_sha256
+    monkeypatch.setattr(project, "file_sha256", lambda p: hashed.append(p) or real(p))
+    views = ["cam_left", "orbit:cam_left:30", "orbit:cam_left:-30"]
+    m = render_products(load_scan(root), out, tmp_path / "views", views=views, env="uniform",
+                        resynthesis=False, baseline=False, reference=False)
+    assert len(m["views"]) == len(views)
+    assert hashed == [out / "atlas" / "texels.npz"]
+    # each stage call checks afresh
+    render_products(load_scan(root), out, tmp_path / "again", views=views[:2], env="uniform",
+                    resynthesis=False, baseline=False, reference=False)
+    assert len(hashed) == 2

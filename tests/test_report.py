@@ -47,7 +47,9 @@ def _out(tmp_path):
         "atlas": {"seconds": 2.03, "mesh": "ground truth <mesh.ply> & more", "charts": 9},
         "custom": {"seconds": {"total": 1.5}, "phase_rms_error_proj_px": 0.04},
     }
-    (out / "atlas").mkdir(parents=True)
+    for stage in metrics:  # every entry's products are on disk (a manifest, at least)
+        (out / stage).mkdir(parents=True)
+        (out / stage / "stage.json").write_text("{}")
     (out / "project" / "cam_left").mkdir(parents=True)
     (out / "metrics.json").write_text(json.dumps(metrics))
     write_image(out / "project" / "preview.png", np.zeros((4, 4, 3), np.uint8))
@@ -90,3 +92,31 @@ def test_missing_metrics_is_a_clear_error(tmp_path):
     (tmp_path / "metrics.json").write_text("[1, 2]")
     with pytest.raises(InputError, match="JSON object"):
         write_report(tmp_path)
+
+
+def test_a_stage_folder_deleted_by_hand_is_dropped_from_report_and_metrics(tmp_path):
+    """An entry whose products were deleted (folder gone, or emptied) since its stage ran is
+    dropped from metrics.json and not shown, and the page names it once; an entry recording
+    a failed run (no products by nature) is kept."""
+    import shutil
+
+    out, metrics = _out(tmp_path)
+    write_report(out)
+    assert set(json.loads((out / "metrics.json").read_text())) == set(metrics)  # all there
+    shutil.rmtree(out / "project")
+    (out / "atlas" / "stage.json").unlink()  # emptied
+    doc = json.loads((out / "metrics.json").read_text())
+    doc["mesh"] = {"last_run_failed": "RuntimeError: boom"}  # failed before any products
+    (out / "metrics.json").write_text(json.dumps(doc))
+    page = write_report(out).read_text()
+    assert set(json.loads((out / "metrics.json").read_text())) == {"custom", "mesh"}
+    p = _Collect()
+    p.feed(page)
+    p.close()
+    assert "project" not in p.ids and "atlas" not in p.ids and p.srcs == []
+    assert {"custom", "mesh"} <= p.ids
+    text = " ".join("".join(p.text).split())
+    assert "(and dropped from metrics.json): atlas, project;" in text
+    assert "projection_rel_rmse" not in text
+    # named once: the next report has nothing left to drop
+    assert "dropped" not in write_report(out).read_text()

@@ -55,6 +55,7 @@ __all__ = [
     "registered",
     "reset_peak_rss",
     "run_benchmarks",
+    "select_benchmarks",
     "write_reports",
 ]
 
@@ -474,6 +475,34 @@ def peak_rss_mb() -> float:
     return kib / 1024.0
 
 
+def select_benchmarks(names: list[str] | None = None) -> list[str]:
+    """The registered benchmarks that ``names`` select, in registry (sorted) order.
+
+    An entry that is a registered name selects that benchmark alone (``"skin.fit"``, not
+    ``skin.fit_scale`` beside it); any other entry selects every registered name that **starts
+    with** it, as text: a stage (``"visibility"``), part of a stage's name (``"vis"``: every
+    ``visibility.*``) or part of a dotted part (``"visibility.closest"``:
+    ``visibility.closest_hit``). No names (or None): all of them.
+
+    Raises
+    ------
+    InputError
+        An entry that selects nothing; the message lists every registered name.
+    """
+    available = registered()
+    if not names:
+        return available
+    unknown = [q for q in names if not any(n.startswith(q) for n in available)]
+    if unknown:
+        raise InputError(
+            f"unknown benchmark(s) {', '.join(map(repr, unknown))} (not a registered name or the "
+            f"start of one); available: {', '.join(available)}"
+        )
+    exact = set(names) & set(available)
+    return [n for n in available
+            if n in exact or any(n.startswith(q) for q in names if q not in exact)]
+
+
 def run_benchmarks(
     names: list[str] | None = None,
     *,
@@ -482,18 +511,9 @@ def run_benchmarks(
 ) -> list[BenchRow]:
     """Run the selected benchmarks (all by default) and return their rows.
 
-    ``names`` entries match a registered name exactly or as a prefix (``"visibility"``).
+    ``names``: registered names or prefixes of them (:func:`select_benchmarks`).
     """
-    available = registered()
-    if names:
-        chosen = [n for n in available if any(n == q or n.startswith(q + ".") for q in names)]
-        unknown = [q for q in names if not any(n == q or n.startswith(q + ".") for n in available)]
-        if unknown:
-            raise InputError(
-                f"unknown benchmark(s) {', '.join(unknown)}; available: {', '.join(available)}"
-            )
-    else:
-        chosen = available
+    chosen = select_benchmarks(names)
     _BANDWIDTH.clear()  # measured again in this run, under this run's load ...
     if progress:
         progress("memory read bandwidth")
@@ -566,9 +586,26 @@ def _json_default(x):
 
 
 def write_reports(rows: list[BenchRow], out_dir: str | Path) -> tuple[Path, Path]:
-    """Write ``bench.json`` and ``bench.md`` into ``out_dir`` (atomically); return their paths."""
+    """Write ``bench.json`` and ``bench.md`` into ``out_dir`` (atomically); return their paths.
+
+    Raises
+    ------
+    InputError
+        ``out_dir`` cannot be created (an existing file, a file on its path, a folder that
+        refuses it); the message names ``out_dir`` and the reason.
+    """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise InputError(f"bench output folder {out}: an existing file, not a directory") from None
+    except OSError as exc:
+        base = out.parent
+        while not base.exists() and base.parent != base:
+            base = base.parent
+        why = (f"{base} is a file, not a directory" if not base.is_dir() else
+               f"{base}, its nearest existing folder, refuses it ({exc.strerror or exc})")
+        raise InputError(f"bench output folder {out}: cannot create it: {why}") from exc
     meta = {
         "python": platform.python_version(),
         "machine": platform.machine(),

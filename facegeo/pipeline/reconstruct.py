@@ -7,8 +7,10 @@ The chain (Debevec et al. 2000 from capture to novel views)::
     atlas ─► project ─► relight, fit ─► render         if it has [olat] (atlas needs a mesh)
 
 Each stage is a :class:`facegeo.pipeline.cache.StageSpec`: it reruns only when the content of
-the files it reads, its settings, an earlier stage's key or the facegeo version changed
-(:mod:`facegeo.pipeline.cache`), and every stage's metrics are gathered in
+the files it reads, its settings, an earlier stage's key, the facegeo version or facegeo's code
+(:func:`facegeo.pipeline.cache.code_fingerprint`) changed (:mod:`facegeo.pipeline.cache`; the
+line ``facegeo reconstruct`` prints for a stage that ran says why), and every stage's metrics
+are gathered in
 ``SCAN/out/metrics.json``. A stage is left out when the scan has nothing for it (a calibration-
 only scan runs ``calibrate``; a structured-light-only scan runs ``decode → mesh``).
 
@@ -287,7 +289,9 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
 
     Parameters
     ----------
-    scan_dir : path-like
+    scan_dir : path-like or facegeo.capture.scan.Scan
+        The scan directory, or the scan already loaded (``facegeo render`` loads it once for
+        its own checks and passes it on: not validated a second time).
     mesh, rig : str
         See :func:`reconstruct_pipeline`.
     settings : mapping of stage -> mapping, optional
@@ -301,10 +305,13 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
     progress, on_stage : callable, optional
         See :meth:`facegeo.pipeline.cache.Pipeline.run`.
     """
-    from facegeo.capture.scan import load_scan
+    from facegeo.capture.scan import Scan, load_scan
 
-    scan_dir = Path(scan_dir)
-    scan = load_scan(scan_dir)  # validated once, before any stage starts
+    if isinstance(scan_dir, Scan):
+        scan, scan_dir = scan_dir, scan_dir.root
+    else:
+        scan_dir = Path(scan_dir)
+        scan = load_scan(scan_dir)  # validated once, before any stage starts
     if settings:
         json.dumps(settings)  # fail early on values that cannot enter a cache key
         for stage, given in settings.items():  # the chain's own choices, not a stage's

@@ -249,7 +249,9 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     come from one read of the fields and one resynthesis (``render_view(shrinkage_set=)``, each
     bit for bit its own render). ``cache``: a dict shared by the views of one stage for what
     does not depend on the view: the cross-validated λ (once per environment weights and light
-    step).
+    step) and the check that the projection indexes this atlas (``check_projection_atlas``
+    hashes ``texels.npz``, ≈ 10 MB on the small preset: once per stage, keyed by the files'
+    size and modification time, not once per view).
 
     With a rig other than the true one (a calibration's), the reference is rendered from the
     novel camera moved into the generator's frame by the gauge alignment of the atlas mesh
@@ -298,7 +300,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     lights = light_set(stage)
     atlas = Atlas.load(out / "atlas" / "atlas.npz")
     texels = Texels.load(out / "atlas" / "texels.npz")
-    check_projection_atlas(out / "project", out / "atlas" / "texels.npz")
+    _check_projection_atlas_once(check_projection_atlas, out, cache)
     sources = load_sources(out / "project", (out / "fit") if resynthesis else None)
     t_load = time.perf_counter()
     has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys)
@@ -431,6 +433,31 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     return metrics
 
 
+def _file_state(path: Path) -> tuple | None:
+    """(size, mtime_ns) of ``path``, or None when it does not exist."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_size, st.st_mtime_ns
+
+
+def _check_projection_atlas_once(check, out: Path, cache: dict | None) -> None:
+    """``check(out/project, out/atlas/texels.npz)`` (``check_projection_atlas``: a SHA-256 of
+    the texel table), skipped when ``cache`` holds a pass for the same two files at the same
+    (size, mtime_ns): the views of one render stage share the atlas and the projection."""
+    from facegeo.pipeline.project import ATLAS_FINGERPRINT
+
+    texels, fingerprint = out / "atlas" / "texels.npz", out / "project" / ATLAS_FINGERPRINT
+    key = ("projection_atlas_checked", str(texels), _file_state(texels),
+           _file_state(fingerprint))
+    if cache is not None and key in cache:
+        return
+    check(out / "project", texels)
+    if cache is not None:
+        cache[key] = True
+
+
 def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_ENV,
                     progress=None, **settings) -> dict:
     """The ``render`` stage of ``facegeo reconstruct``: every view in ``views`` under ``env``
@@ -445,7 +472,7 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     resynthesis as written beside it).
     """
     per_view = {}
-    cache: dict = {}  # the cross-validated λ, once per environment (render_one)
+    cache: dict = {}  # the cross-validated λ and the atlas check, once a stage (render_one)
     for k, spec in enumerate(views):
         tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(views) * n)) \
             if progress else None

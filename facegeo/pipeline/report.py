@@ -5,7 +5,10 @@ The report is built only from what the stages left in ``SCAN/out/``: ``metrics.j
 per stage, written by :mod:`facegeo.pipeline.cache`) and the PNG images in each stage's folder.
 It references the images by relative path (nothing is copied), so the page opens from the
 ``out/`` folder in any browser, and it is rewritten atomically after every run. A stage that has
-not run yet is simply absent; the page says which of the pipeline's stages it shows.
+not run yet is simply absent; the page says which of the pipeline's stages it shows. A stage whose
+folder was deleted (or emptied) by hand is absent too: writing the report drops its entry from
+``metrics.json`` (:func:`facegeo.pipeline.cache.forget_missing_stages`) and the page names it
+once, as deleted, instead of showing figures of products that are gone.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from typing import Any
 from facegeo import __version__
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text
+from facegeo.pipeline.cache import forget_missing_stages
 from facegeo.pipeline.reconstruct import STAGES
 
 __all__ = ["PIPELINE_ORDER", "REPORT_NAME", "write_report", "summary_rows", "summary_table"]
@@ -170,6 +174,12 @@ svg text { font-size: 12px; }
 def write_report(out_dir, *, title: str | None = None) -> Path:
     """Write ``OUT/report.html`` from ``OUT/metrics.json`` and the stages' PNG images.
 
+    An entry of ``metrics.json`` whose products are gone (its folder ``OUT/<stage>/`` deleted
+    or emptied by hand since the stage ran) is **dropped**, from ``metrics.json`` as well
+    (:func:`facegeo.pipeline.cache.forget_missing_stages`; entries that record a failed run,
+    ``last_run_failed``, are kept): the page shows only products that exist, and names the
+    dropped stages once (rerunning ``facegeo reconstruct`` rebuilds them).
+
     Parameters
     ----------
     out_dir : path-like
@@ -188,6 +198,7 @@ def write_report(out_dir, *, title: str | None = None) -> Path:
         ``metrics.json`` is missing or not a JSON object.
     """
     out_dir = Path(out_dir)
+    dropped = forget_missing_stages(out_dir)
     metrics = _load_metrics(out_dir)
     stages = _ordered(metrics)
     title = title or f"facegeo report: {out_dir.resolve().parent.name}"
@@ -196,9 +207,13 @@ def write_report(out_dir, *, title: str | None = None) -> Path:
     body = [f"<h1>{esc(title)}</h1>",
             f"<p>facegeo {esc(__version__)}, written {esc(time.strftime('%Y-%m-%d %H:%M:%S'))}."
             f" Stages shown: {esc(', '.join(stages)) or 'none'}; pipeline: "
-            f"{esc(' → '.join(PIPELINE_ORDER))}.</p>",
-            "<h2>Speed against error</h2>", "<table><tr><th>stage</th><th>seconds</th>"
-            "<th>error metrics</th></tr>"]
+            f"{esc(' → '.join(PIPELINE_ORDER))}.</p>"]
+    if dropped:
+        body.append(f'<p class="dropped">Products deleted since they were made, so not shown '
+                    f'(and dropped from metrics.json): {esc(", ".join(dropped))}; '
+                    "<code>facegeo reconstruct</code> rebuilds them.</p>")
+    body += ["<h2>Speed against error</h2>", "<table><tr><th>stage</th><th>seconds</th>"
+             "<th>error metrics</th></tr>"]
     for r in rows:
         sec = f"{r['seconds']:.2f}" if r["seconds"] is not None else "—"
         errs = "<br>".join(f"{esc(k)} = {esc(_fmt(v))}" for k, v in r["errors"].items()) or "—"

@@ -33,13 +33,20 @@ the second core.
 
 Before/after in one run: with ``FACEGEO_BENCH_PREVIOUS=/path/to/other/checkout`` (for example
 the main worktree while a branch is being measured), ``visibility.closest_hit`` also loads that
-checkout's ``facegeo/surface/visibility.py`` and its two private modules (copied to a temporary
-package, so both versions share nothing but numpy, numba and embreex), builds the same scene
+checkout's ``facegeo/surface/visibility.py`` and its two private modules (copied into a package
+of their own, so both versions share nothing but numpy, numba and embreex), builds the same scene
 with it and interleaves its calls with the others; its rows state whether its results are
-bit-identical to this version's.
+bit-identical to this version's. The copy is a cache, one folder per checkout under facegeo's
+cache folder (``$FACEGEO_CACHE_DIR``, else ``$XDG_CACHE_HOME/facegeo``, else
+``~/.cache/facegeo``; ``prev-vis/<hash of the checkout's path>``), refreshed from the checkout on
+every run and reused: numba caches the compiled kernels (``cache=True``) beside the copied
+sources, so a second run does not compile them again, and no run leaves a folder behind in
+``/tmp``.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -146,29 +153,53 @@ def _thread_rows(name: str, label: str, ours: dict, raw: dict, n: int, baseline:
     return rows
 
 
+def _previous_package_dir(root) -> Path:
+    """The cache folder of the copy of checkout ``root`` (one per checkout, reused by every
+    run): ``<facegeo cache>/prev-vis/<first 16 hex digits of SHA-256 of root's resolved path>``."""
+    import hashlib
+
+    from facegeo.appearance.spectral import default_cache_dir
+
+    digest = hashlib.sha256(str(Path(root).resolve()).encode()).hexdigest()[:16]
+    return default_cache_dir() / "prev-vis" / digest
+
+
 def _load_previous(root: str):
     """``RayScene`` of another facegeo checkout ``root`` (its ``facegeo/surface/visibility.py``,
-    ``_vis_kernels.py`` and ``_vis_util.py``, copied into a temporary package whose imports of
-    each other are redirected to it), for before/after timings in one process. One previous
-    checkout per process: later calls return the first one loaded."""
+    ``_vis_kernels.py`` and ``_vis_util.py``, copied into a package whose imports of each other
+    are redirected to it), for before/after timings in one process. One previous checkout per
+    process: later calls return the first one loaded.
+
+    The copy lives in :func:`_previous_package_dir` (a cache, one per checkout; not a new
+    temporary folder per run): a file is rewritten only when the checkout's version differs,
+    so numba's on-disk cache of the compiled kernels beside it stays valid between runs."""
     import importlib
     import re
     import sys
-    import tempfile
-    from pathlib import Path
+
+    from facegeo.errors import InputError
+    from facegeo.fsutil import atomic_write_text
 
     src = Path(root) / "facegeo" / "surface"
     pkg = "_facegeo_previous_vis"
     if pkg not in sys.modules:
-        tmp = Path(tempfile.mkdtemp(prefix="facegeo-prev-vis-"))
-        (tmp / pkg).mkdir()
-        (tmp / pkg / "__init__.py").write_text("")
-        for mod in ("visibility", "_vis_kernels", "_vis_util"):
-            text = (src / f"{mod}.py").read_text()
+        if not (src / "visibility.py").is_file():
+            raise InputError(f"FACEGEO_BENCH_PREVIOUS={root}: not a facegeo checkout (no "
+                             f"{src / 'visibility.py'})")
+        base = _previous_package_dir(root)
+        (base / pkg).mkdir(parents=True, exist_ok=True)
+        for mod in ("__init__", "visibility", "_vis_kernels", "_vis_util"):
+            text = "" if mod == "__init__" else (src / f"{mod}.py").read_text()
             text = re.sub(r"facegeo\.surface\.(_vis_\w+)", pkg + r".\1", text)
             text = text.replace("from facegeo.surface import _vis", f"from {pkg} import _vis")
-            (tmp / pkg / f"{mod}.py").write_text(text)
-        sys.path.insert(0, str(tmp))
+            dest = base / pkg / f"{mod}.py"
+            try:
+                same = dest.read_text() == text
+            except OSError:
+                same = False
+            if not same:  # unchanged files keep their mtime: numba's cache index stays valid
+                atomic_write_text(dest, text)
+        sys.path.insert(0, str(base))
     return importlib.import_module(f"{pkg}.visibility").RayScene
 
 
