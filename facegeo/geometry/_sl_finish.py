@@ -123,7 +123,8 @@ def _kernel():
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def axis_pixels(signs, marg, mscale, kidx, base, tabs, words, use_tabs, n, step, n_stripes,
                     coarse_lim, tol, p0, tau, ref, lit, phi, pok, has_hint, kk, period,
-                    coord_out, sig_out, ok_out, conf_out, final, counts):  # pragma: no cover
+                    coord_out, sig_out, ok_out, conf_out, final, counts, mmin,
+                    has_min):  # pragma: no cover
         F = signs.shape[0]
         P = tau.shape[0]
         full = (np.int64(1) << n) - 1
@@ -167,7 +168,11 @@ def _kernel():
             for f in range(F):
                 # the smallest margin over the planes (the XOR base lowers the margins above it
                 # to its own: the smallest is unchanged); a pass per plane over the tile
-                for i in range(n):
+                if has_min:  # taken while the pairs were folded (_sl_kernels: mmin)
+                    mrow = mmin[f, a0:a0 + nt]
+                    for t in range(nt):
+                        miv[t] = mrow[t]
+                for i in range(0 if has_min else n):
                     mrow = marg[kidx[f, i], a0:a0 + nt]
                     if i == 0:
                         for t in range(nt):
@@ -422,7 +427,7 @@ def prepare(white, black, lmax, lmin, shadow_threshold, min_contrast, rel_contra
 
 
 def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim, tol, tau, ref,
-                lit, hint=None, out=None, p0=0, tables=None):
+                lit, hint=None, out=None, p0=0, tables=None, mmin=None):
     """Decode one axis for a run of pixels (see the module docstring).
 
     Parameters
@@ -455,6 +460,10 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
         the phase's pick, as a Gray one (the candidates: the table at the projected word and
         at the word with that plane flipped); otherwise it is invalid (a resolved subset of
         its planes names no block of stripes).
+    mmin : (F, N) array of ``marg``'s dtype, optional
+        Per family the smallest of its planes' margins (same columns), when the pair kernel
+        kept it (``_sl_kernels.PairGroup.run(mmin=)``): the kernel then skips its plane-by-plane
+        min (the same values).
 
     out : tuple, optional
         ``(coord, sig, ok, conf_all)`` (P,) arrays to write the axis's final outputs into
@@ -491,7 +500,8 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
               np.asarray(base, np.int64), tabs, words, use, int(n), float(step), int(n_stripes),
               float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
-              float(period), coord, sig, ok, conf, out is not None, counts)
+              float(period), coord, sig, ok, conf, out is not None, counts,
+              mmin if mmin is not None else marg[:1], mmin is not None)
     c = counts
     return coord, sig, ok, conf, c[:, :n], c[:, n:2 * n], int(c[0, 2 * n])
 

@@ -248,14 +248,17 @@ _pair_rgb8 = _prefetch = None
 
 
 @functools.cache
-def _pairs_rgb8(parallel: bool):
+def _pairs_rgb8(parallel: bool, with_min: bool = False):
     """Tile-major pair kernel for 8-bit RGB frames with the one-product margin (``k > 0``):
     :func:`_pairs_tiled`'s loops as one vector block per 32 pixels
     (:func:`facegeo.geometry._sl_vec.pair_rgb8`, the same values bit for bit) with each
     frame prefetched :data:`~facegeo.geometry._sl_vec.PREFETCH_BYTES` ahead; the tile's last
-    ``n mod 32`` pixels go through the plain helpers.
+    ``n mod 32`` pixels go through the plain helpers. ``with_min``: also the running min of each
+    code family's margins (``mmin``, row ``rows[o]``), which the finish would otherwise take
+    plane by plane (``_sl_finish``: ``mmin``).
 
-    ``parallel`` is read in the body, so it is a closure cell and part of numba's cache key
+    ``parallel`` and ``with_min`` are read in the body, so they are closure cells and part of
+    numba's cache key
     (a flag of the decorator alone is not: the serial and the parallel kernel shared one
     cache entry, and whichever was compiled last ran for both)."""
     global _pair_rgb8, _prefetch
@@ -269,7 +272,7 @@ def _pairs_rgb8(parallel: bool):
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", parallel=parallel)
     def pairs(frames, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax,
-              lmin, tile, k, p_lo, p_hi, off):  # pragma: no cover - compiled
+              lmin, tile, k, p_lo, p_hi, off, mmin):  # pragma: no cover - compiled
         n_tiles = (p_hi - p_lo + tile - 1) // tile
         if not parallel:  # (the cache key, see above)
             n_tiles = n_tiles + 0
@@ -288,6 +291,7 @@ def _pairs_rgb8(parallel: bool):
                 fq = frames[neg[o]]
                 wv = words[rows[o]][a_:b_]
                 mg = margin[planes[o]][a_:b_]
+                mm = mmin[rows[o]][a_:b_]
                 bv = bitvals[o]
                 for t in range(0, n_vec, lanes):
                     q = 3 * (a + t) + ahead
@@ -297,12 +301,18 @@ def _pairs_rgb8(parallel: bool):
                     _prefetch(fq, q + 64)
                     _prefetch(fp, q + 128)
                     _prefetch(fq, q + 128)
-                    _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t)
+                    if with_min:
+                        _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t, mm)
+                    else:
+                        _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t, None)
                 if n_vec < n:
                     _sums_tile(fp[3 * (a + n_vec):3 * b], 3, sp)
                     _sums_tile(fq[3 * (a + n_vec):3 * b], 3, sq)
                     _pair_tile(sp, sq, scale, wv[n_vec:], bv, mg[n_vec:], steps, hi[n_vec:],
                                lo[n_vec:], k)
+                    if with_min:
+                        for t in range(n_vec, n):
+                            mm[t] = min(mm[t], mg[t])
             _merge_tile(hi, lo, scale, lmax[a_:b_], lmin[a_:b_])
 
     return pairs
@@ -433,13 +443,18 @@ class PairGroup:
         lane = np.int16 if top < 2 ** 15 else np.int32  # 8-bit frames: twice the lanes
         self.lo_init = lane(np.iinfo(lane).max)
         self.rgb8 = bool(f0.dtype == np.uint8 and C == 3 and self.k > 0 and vector)
-        self.kernel = (_pairs_rgb8 if self.rgb8 else _pairs_tiled)(bool(parallel))
+        self.parallel = bool(parallel)
+        self.kernel = (_pairs_rgb8 if self.rgb8 else _pairs_tiled)(self.parallel)
 
     def run(self, words, margin, lmax, lmin, *, start: int = 0, stop: int | None = None,
-            offset: int = 0, tile: int = TILE) -> None:
+            offset: int = 0, tile: int = TILE, mmin=None) -> bool:
         """Fold pixels ``start … stop - 1`` (flat, row-major) into the accumulators, whose
         column ``p - offset`` is pixel ``p``: ``words`` (F, N), ``margin`` (n, N), ``lmax`` /
-        ``lmin`` (N,), or the full-size (…, H, W) arrays with ``offset`` 0."""
+        ``lmin`` (N,), or the full-size (…, H, W) arrays with ``offset`` 0.
+
+        ``mmin``: (F, N) uint8, the running min of each code family's margins, updated when
+        the 8-bit RGB vector kernel runs (it costs nothing there); returns whether it was
+        (otherwise the finish takes the min plane by plane)."""
         stop = self.pixels if stop is None else int(stop)
         W = words.reshape(words.shape[0], -1)
         M = margin.reshape(margin.shape[0], -1)
@@ -449,10 +464,15 @@ class PairGroup:
         args = (self.pos, self.neg, self.scale, self.rows, self.bitvals, self.planes, W, M,
                 self.steps, lmax.reshape(-1), lmin.reshape(-1), int(tile))
         if self.rgb8:
-            self.kernel(self.flats, *args, self.k, int(start), stop, int(offset))
+            if mmin is not None:
+                _pairs_rgb8(self.parallel, True)(self.flats, *args, self.k, int(start), stop,
+                                                 int(offset), mmin.reshape(mmin.shape[0], -1))
+                return True
+            self.kernel(self.flats, *args, self.k, int(start), stop, int(offset), M)
         else:
             self.kernel(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
                         int(offset))
+        return False
 
 
 def _flat(a: np.ndarray) -> tuple[np.ndarray, int]:

@@ -530,26 +530,32 @@ class StreamDecoder:
 
     def _fold_chunk(self, sl, groups) -> tuple:
         """Fold the pairs over pixels ``sl`` into chunk-sized words and margins (columns from
-        0) and into L_max / L_min at ``sl``; returns ``(margin, words by axis)`` for
-        :meth:`_finish_chunk`."""
+        0) and into L_max / L_min at ``sl``; returns ``(margin, words by axis, mmin)`` for
+        :meth:`_finish_chunk`, and by axis each code family's smallest margin where the pair
+        kernel kept it (``mmin``)."""
         n_pix = sl.stop - sl.start
         # chunk buffers kept per thread (flat, so a short last chunk's views stay contiguous)
         bufs = getattr(self._chunk_local, "bufs", None)
         if bufs is None or bufs[0].size < len(self.planes) * n_pix:
             F = len(self.spec.codes)
             bufs = (np.empty(len(self.planes) * n_pix, np.uint8),
-                    {a: np.empty(F * n_pix, _word_dtype(self.spec.n_bits(a))) for a in groups})
+                    {a: np.empty(F * n_pix, _word_dtype(self.spec.n_bits(a))) for a in groups},
+                    {a: np.empty(F * n_pix, np.uint8) for a in groups})
             self._chunk_local.bufs = bufs
         margin = bufs[0][:len(self.planes) * n_pix].reshape(-1, n_pix)  # every plane written
-        words = {}
+        words, mmin = {}, {}
         for a, w in bufs[1].items():
             words[a] = w[:len(self.spec.codes) * n_pix].reshape(-1, n_pix)
             words[a].fill(0)
+            mmin[a] = bufs[2][a][:len(self.spec.codes) * n_pix].reshape(-1, n_pix)
+            mmin[a].fill(255)
         lmax, lmin = self.lmax.reshape(-1)[sl], self.lmin.reshape(-1)[sl]
         lmax.fill(-np.inf)
         lmin.fill(np.inf)
         for a, g in groups.items():
-            g.run(words[a], margin, lmax, lmin, start=sl.start, stop=sl.stop, offset=sl.start)
+            if not g.run(words[a], margin, lmax, lmin, start=sl.start, stop=sl.stop,
+                         offset=sl.start, mmin=mmin[a]):
+                del mmin[a]  # not kept by this kernel: the finish takes it plane by plane
         from facegeo.geometry._sl_finish import stripe_gray_words
 
         for a in groups:
@@ -557,10 +563,10 @@ class StreamDecoder:
             for f, c in enumerate(self.spec.codes):
                 if stripe_table(c, n) is not None:
                     stripe_gray_words(c, n, words[a][f])
-        return margin, words
+        return margin, words, mmin
 
     def _finish_chunk(self, sl, flat, fw, fm, bits, vals, max_coarse_px, acc=None) -> None:
-        """Finish pixels ``sl``; ``acc``: the chunk's own ``(margin, words)`` from
+        """Finish pixels ``sl``; ``acc``: the chunk's own ``(margin, words, mmin)`` from
         :meth:`_fold_chunk` in place of the full-size accumulators."""
         spec = self.spec
         has_bin = bool(self.planes)
@@ -737,7 +743,8 @@ class StreamDecoder:
                     stripe_gray_words(c, n, signs[f])
         coord, sig, ok, conf, unresolved, lost, disagree = decode_axis(
             signs, marg, mscale, kidx, base, n, float(1 << s), n_stripes, coarse_lim,
-            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out, p0, tables)
+            vals["vote_tolerance_px"], tau, ref, ~shadow, hint, out, p0, tables,
+            acc[2].get(axis) if acc is not None else None)
         for f, c in enumerate(codes):
             for i in range(n):
                 stats[c]["unresolved"][i] += int(unresolved[f, i])

@@ -83,22 +83,26 @@ def _rgb_sums(builder, p):
 
 
 @intrinsic
-def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t):  # pragma: no cover
+def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
+              mmin):  # pragma: no cover - compiled
     """Fold pixels ``off … off + 31`` of pattern ``fp`` / inverse ``fq`` (flat uint8 RGB
     frames) into tile positions ``t … t + 31``: ``words[t+i] |= bitval`` where the pattern's
     channel sum is larger, ``margin[t+i] = min(rint(float32(|s_p - s_q|) · k), 255)``,
-    ``hi`` / ``lo`` (int16) the running max / min of both sums."""
+    ``hi`` / ``lo`` (int16) the running max / min of both sums; ``mmin`` (uint8, or None) the
+    running min of the margins (the code family's smallest margin, for the finish)."""
     if not (isinstance(fp, types.Array) and fp.dtype == types.uint8 and fq == fp
             and isinstance(words, types.Array) and isinstance(words.dtype, types.Integer)
             and not words.dtype.signed and isinstance(margin, types.Array)
             and margin.dtype == types.uint8 and isinstance(hi, types.Array)
-            and hi.dtype == types.int16 and lo == hi):
+            and hi.dtype == types.int16 and lo == hi
+            and (mmin == margin or isinstance(mmin, types.NoneType))):
         return None
+    with_min = not isinstance(mmin, types.NoneType)
     sig = types.void(fp, fq, types.int64, words, words.dtype, margin, types.float32, hi, lo,
-                     types.int64)
+                     types.int64, mmin)
 
     def codegen(context, builder, signature, args):
-        fpv, fqv, offv, wv, bvv, mv, kv, hv, lv, tv = args
+        fpv, fqv, offv, wv, bvv, mv, kv, hv, lv, tv, mmv = args
         three = builder.mul(offv, ir.Constant(_I64, 3))
         sp = _rgb_sums(builder, builder.gep(_data(context, builder, signature.args[0], fpv),
                                             [three]))
@@ -119,9 +123,14 @@ def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t):  # p
                            _vec(_I32))
         top = ir.Constant(_vec(_I32), [255] * LANES)
         r = builder.select(builder.icmp_signed("<", r, top), r, top)
-        builder.store(builder.trunc(r, _vec(_I8)),
-                      _at(builder, _data(context, builder, signature.args[5], mv), tv,
-                          _vec(_I8)), align=1)
+        m8 = builder.trunc(r, _vec(_I8))
+        builder.store(m8, _at(builder, _data(context, builder, signature.args[5], mv), tv,
+                              _vec(_I8)), align=1)
+        if with_min:
+            mp = _at(builder, _data(context, builder, signature.args[10], mmv), tv, _vec(_I8))
+            old = builder.load(mp, align=1)
+            builder.store(builder.select(builder.icmp_unsigned("<", m8, old), m8, old), mp,
+                          align=1)
         hp = _at(builder, _data(context, builder, signature.args[7], hv), tv, _vec(_I16))
         lp = _at(builder, _data(context, builder, signature.args[8], lv), tv, _vec(_I16))
         h = builder.load(hp, align=2)
