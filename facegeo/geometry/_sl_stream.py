@@ -233,24 +233,19 @@ class StreamDecoder:
         self.shape = (H, W)
         spec = self.spec
         n = len(self.planes)
-        if spec.inverse:
-            self.margin = np.zeros((n, H, W), np.uint8)
-            # per axis one (families, H, W) block, so the finish kernel reads them together
-            self.sign_words = {a: np.zeros((len(spec.codes), H, W), _word_dtype(spec.n_bits(a)))
-                               for a in _AXES if spec.n_bits(a)}
-            self.signs = {(c, a): self.sign_words[a][spec.codes.index(c)]
-                          for c, a in self.families}
-        else:
+        # with inverse frames the full-size margins and decision words are made, and L_max /
+        # L_min set to -inf / inf, when the first pair is folded into them (_start_fold): a
+        # decode that folds and finishes chunk by chunk (finish) has no such planes, and
+        # writes L_max / L_min (the direct / global outputs) chunk by chunk
+        self.margin = self.sign_words = self.signs = None
+        if not spec.inverse:
             self.values = np.zeros((n, H, W), np.float16)
-        # with inverse frames L_max / L_min are set up when the first pair is folded
-        # (_start_minmax): a decode that folds and finishes chunk by chunk (finish) fills
-        # them there, never touching a full-size plane it does not write
         if n and spec.inverse:
             self.lmax, self.lmin = np.empty((H, W), np.float32), np.empty((H, W), np.float32)
         else:
             self.lmax = np.full((H, W), -np.inf, np.float32) if n else None
             self.lmin = np.full((H, W), np.inf, np.float32) if n else None
-        self.minmax_started = not (n and spec.inverse)
+        self.fold_started = not (n and spec.inverse)
         self.white = self.black = None
         N = spec.phase_steps
         self.phase_max = np.zeros((H, W), np.float32) if N else None
@@ -320,7 +315,7 @@ class StreamDecoder:
     def _fold_pair(self, key, inverse: bool, a, scale: float, fused: bool) -> None:
         """Frame by frame: fold a pair frame with its waiting partner, or make it wait (as its
         exact channel sum when ``fused``, else ``a`` is its float32 luminance)."""
-        self._start_minmax()
+        self._start_fold()
         other = self.pending.pop(key, None)
         if other is None:
             # the waiting half of the pair: its exact channel sum (or luminance)
@@ -334,14 +329,22 @@ class StreamDecoder:
                           self.margin[self.plane_index[key]], _MARGIN_STEPS, self.lmax,
                           self.lmin, pos_scale=ps, neg_scale=ns)
 
-    def _start_minmax(self) -> None:
-        """Set the full-size L_max / L_min to -inf / inf before the first pair is folded into
-        them; marks the accumulators as used (no chunk-by-chunk finish then)."""
+    def _start_fold(self) -> None:
+        """Before the first pair is folded into the full-size accumulators: make the margins
+        and decision words, set L_max / L_min to -inf / inf; marks the accumulators as used
+        (no chunk-by-chunk finish then)."""
         self.folded = True
-        if not self.minmax_started:
-            self.lmax.fill(-np.inf)
-            self.lmin.fill(np.inf)
-            self.minmax_started = True
+        if self.fold_started:
+            return
+        spec, (H, W) = self.spec, self.shape
+        self.margin = np.zeros((len(self.planes), H, W), np.uint8)
+        # per axis one (families, H, W) block, so the finish kernel reads them together
+        self.sign_words = {a: np.zeros((len(spec.codes), H, W), _word_dtype(spec.n_bits(a)))
+                           for a in _AXES if spec.n_bits(a)}
+        self.signs = {(c, a): self.sign_words[a][spec.codes.index(c)] for c, a in self.families}
+        self.lmax.fill(-np.inf)
+        self.lmin.fill(np.inf)
+        self.fold_started = True
 
     def _add_to_group(self, key, inverse: bool, a: np.ndarray, scale: float) -> None:
         """Buffer a pair frame for the tile-major group kernel; flush at the byte budget."""
@@ -362,7 +365,7 @@ class StreamDecoder:
         group, self.group, self.group_nbytes = self.group, [], 0
         if not group:
             return
-        self._start_minmax()
+        self._start_fold()
         where = {(key, inv): j for j, (key, inv, _, _) in enumerate(group)}
         frames = [g[2] for g in group]
         import numba
