@@ -516,6 +516,7 @@ class StreamDecoder:
                 (pl, inv) not in where for pl in self.planes for inv in (False, True)):
             return None
         frames = [g[2] for g in self.group]
+        flats = _kern.PairGroup.flat_list(frames)  # one list for both axes
         groups = {}
         for axis in _AXES:
             n = self.spec.n_bits(axis)
@@ -526,7 +527,7 @@ class StreamDecoder:
                 frames, [where[(k, False)] for k in keys], [where[(k, True)] for k in keys],
                 self.group[0][3], [self.spec.codes.index(k[0]) for k in keys],
                 [n - 1 - k[2] for k in keys], [self.plane_index[k] for k in keys],
-                _MARGIN_STEPS, _word_dtype(n), parallel=False)
+                _MARGIN_STEPS, _word_dtype(n), parallel=False, flats=flats)
         self.group, self.group_nbytes = [], 0
         self._chunk_local = threading.local()  # _fold_chunk's buffers, one set per thread
         return groups
