@@ -931,6 +931,53 @@ def test_vector_pair_block_is_exact_on_a_baseline_x86_cpu(tmp_path):
     assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-2000:])
 
 
+def test_tile_kernels_are_cached_under_their_flags_and_the_vector_code():
+    """numba's disk cache keys a kernel on its file and its closure cells, not on the
+    decorator's flags or on other files: the tile kernels read ``parallel`` (and ``with_min``)
+    in their bodies, and the 8-bit RGB kernel the source hash of ``_sl_vec.py``, whose code
+    generation it inlines — fails if a serial and a parallel build could share one cache entry
+    again, or an edit of ``_sl_vec.py`` could leave a stale compiled kernel in use."""
+    from facegeo.geometry import _sl_kernels as k
+    from facegeo.geometry import _sl_vec
+
+    def cells(kernel):
+        fn = kernel.py_func
+        return dict(zip(fn.__code__.co_freevars, (c.cell_contents for c in fn.__closure__)))
+
+    assert cells(k._pairs_tiled(False))["parallel"] is False
+    assert cells(k._pairs_tiled(True))["parallel"] is True
+    for parallel, with_min in ((False, False), (True, True)):
+        c = cells(k._pairs_rgb8(parallel, with_min))
+        assert (c["parallel"], c["with_min"]) == (parallel, with_min)
+        assert c["vec_source"] == _sl_vec.source_hash() and len(c["vec_source"]) == 64
+    for name in ("parallel", "vec_source"):  # read in the body, not only captured
+        assert name in k._pairs_rgb8(False).py_func.__code__.co_freevars
+
+
+def test_vector_pair_block_takes_strided_accumulators_through_the_plain_loops():
+    """The vector block stores 32 consecutive elements: decision words / margins given as a
+    strided view (every other column of a larger array) must take the plain loops, which
+    honour strides — the same values as contiguous accumulators, and nothing written in the
+    view's gaps. Fails if the block writes strided views as if contiguous."""
+    from facegeo.geometry import _sl_kernels as k
+
+    rng = np.random.default_rng(11)
+    fr = [rng.integers(0, 256, (17, 64, 3), dtype=np.uint8) for _ in range(4)]
+    args = ([0, 2], [1, 3], 1 / 765, [0, 0], [4, 1], [1, 0])
+    want = [np.zeros((1, 17, 64), np.uint16), np.zeros((2, 17, 64), np.uint8),
+            np.full((17, 64), -np.inf, np.float32), np.full((17, 64), np.inf, np.float32)]
+    k.pairs_tiled(fr, *args, *want[:2], 510.0, *want[2:], tile=64, parallel=False)
+    big_w = np.zeros((1, 17, 128), np.uint16)
+    big_m = np.zeros((2, 17, 128), np.uint8)
+    lmax, lmin = np.full((17, 64), -np.inf, np.float32), np.full((17, 64), np.inf, np.float32)
+    k.pairs_tiled(fr, *args, big_w[:, :, ::2], big_m[:, :, ::2], 510.0, lmax, lmin, tile=64,
+                  parallel=False)
+    np.testing.assert_array_equal(big_w[:, :, ::2], want[0])
+    np.testing.assert_array_equal(big_m[:, :, ::2], want[1])
+    assert not big_w[:, :, 1::2].any() and not big_m[:, :, 1::2].any()
+    assert want[0].any() and want[1].max() > 100
+
+
 def test_diff_margin_is_exact_or_declined():
     """``_diff_margin``: the margin of 8-bit RGB sums at the default full scale is
     ``rint(|s1 - s2| · 2/3)`` for every pair of sums (checked here independently of the
@@ -991,8 +1038,8 @@ def test_chunk_by_chunk_fold_equals_the_whole_image_fold(monkeypatch, threads):
     chunk-sized words and margins just before each chunk is finished
     (``StreamDecoder._chunk_groups`` / ``_fold_chunk``); the same frames streamed frame by frame
     fold into the full-size accumulators first. Gray + long-run (its table translation per
-    chunk) + XOR codes, phase on both axes, chunks that do not divide the image (a short last
-    one), 1 and 2 threads: codes, validity, statistics and every float output identical, the
+    chunk) + XOR codes, phase on x (so x takes the finish's phase route, y the code-only one),
+    chunks that do not divide the image (a short last one), 1 and 2 threads: codes, validity, statistics and every float output identical, the
     chunk path taken, and its full-size margin planes never made — fails if a chunk is
     folded at the wrong columns, twice or not at all, or a table code is left untranslated."""
     import facegeo.geometry._sl_stream as S
@@ -1000,7 +1047,7 @@ def test_chunk_by_chunk_fold_equals_the_whole_image_fold(monkeypatch, threads):
     spec = PatternSpec(PROJ_W, PROJ_H, codes=("gray", "minsw", "xor04"), phase_steps=3)
     frames, _, _ = _frames(spec, noise=0.01, seed=8, dtype=np.uint8)
     frames = {n: np.stack([f, np.roll(f, 1, axis=1), f], axis=2) for n, f in frames.items()}
-    monkeypatch.setattr(S, "_CHUNK", 1000)  # the test frames hold 6,144 pixels
+    monkeypatch.setattr(S, "_CHUNK", 1000)  # the test frames hold 11,700 pixels
     folds, decoders = [], []
     fold = S.StreamDecoder._fold_chunk
     finish = S.StreamDecoder.finish

@@ -257,8 +257,8 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
     code family's margins (``mmin``, row ``rows[o]``), which the finish would otherwise take
     plane by plane (``_sl_finish``: ``mmin``).
 
-    ``parallel`` and ``with_min`` are read in the body, so they are closure cells and part of
-    numba's cache key
+    ``parallel``, ``with_min`` and the source hash of ``_sl_vec.py`` are read in the body, so they
+    are closure cells and part of numba's cache key
     (a flag of the decorator alone is not: the serial and the parallel kernel shared one
     cache entry, and whichever was compiled last ran for both)."""
     global _pair_rgb8, _prefetch
@@ -269,12 +269,16 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
     _tile_helpers()
     _pair_rgb8, _prefetch = _sl_vec.pair_rgb8, _sl_vec.prefetch
     lanes, ahead = _sl_vec.LANES, _sl_vec.PREFETCH_BYTES
+    # numba's disk cache sees this file (its modification time) and the kernel's closure cells,
+    # not _sl_vec.py, whose code generation the kernel inlines: the source hash of _sl_vec.py
+    # is a cell, read below, so an edit there compiles the kernel again
+    vec_source = _sl_vec.source_hash()
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", parallel=parallel)
     def pairs(frames, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax,
               lmin, tile, k, p_lo, p_hi, off, mmin):  # pragma: no cover - compiled
         n_tiles = (p_hi - p_lo + tile - 1) // tile
-        if not parallel:  # (the cache key, see above)
+        if not parallel or not vec_source:  # (the cache key, see above)
             n_tiles = n_tiles + 0
         for ti in prange(n_tiles):
             a = p_lo + ti * tile
@@ -442,6 +446,9 @@ class PairGroup:
         self.rgb8 = bool(f0.dtype == np.uint8 and C == 3 and self.k > 0 and vector)
         self.parallel = bool(parallel)
         self.kernel = (_pairs_rgb8 if self.rgb8 else _pairs_tiled)(self.parallel)
+        # built here, not in the chunk threads that run it (one dispatcher, one compile)
+        self.kernel_min = _pairs_rgb8(self.parallel, True) if self.rgb8 else None
+        self.plain = _pairs_tiled(self.parallel) if self.rgb8 else self.kernel
 
     @staticmethod
     def flat_list(frames):
@@ -470,15 +477,18 @@ class PairGroup:
                              f"{self.bitvals.dtype}")
         args = (self.pos, self.neg, self.scale, self.rows, self.bitvals, self.planes, W, M,
                 self.steps, lmax.reshape(-1), lmin.reshape(-1), int(tile))
-        if self.rgb8:
-            if mmin is not None:
-                _pairs_rgb8(self.parallel, True)(self.flats, *args, self.k, int(start), stop,
-                                                 int(offset), mmin.reshape(mmin.shape[0], -1))
+        MM = None if mmin is None else mmin.reshape(mmin.shape[0], -1)
+        # the vector block stores 32 consecutive elements: C-contiguous accumulators only
+        # (a strided view takes the plain loops, which honour strides)
+        if self.rgb8 and all(a.flags.c_contiguous for a in (W, M, lmax, lmin)
+                             if a is not None):
+            if MM is not None and MM.flags.c_contiguous:
+                self.kernel_min(self.flats, *args, self.k, int(start), stop, int(offset), MM)
                 return True
             self.kernel(self.flats, *args, self.k, int(start), stop, int(offset), M)
-        else:
-            self.kernel(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
-                        int(offset))
+            return False
+        self.plain(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
+                   int(offset))
         return False
 
 

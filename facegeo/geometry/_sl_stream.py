@@ -58,7 +58,8 @@ _AXES = ("x", "y")
 _MARGIN_STEPS = 510.0  # uint8 margin quantisation: 1/510 of full scale, saturating at 0.5
 #: Pixels per chunk when finishing (a thread's unit of work). 131,072: the benchmark's held
 #: 1280 × 1024 frames decode in 14.8 ms at one thread against 15.6 / 17.0 / 19.2 ms with chunks
-#: of 65,536 / 32,768 / 16,384 (the per-chunk calls' fixed costs; `/tmp/m26/prof3.py`).
+#: of 65,536 / 32,768 / 16,384 (the per-chunk calls' fixed costs; measured with ``_CHUNK`` set
+#: before ``decode_frames`` on ``facegeo bench structured_light.decode_stream``'s frames).
 _CHUNK = 1 << 17
 #: Byte budget of a group of streamed (not held) 8-bit / 16-bit pair frames copied for the
 #: tile-major kernel (``StreamDecoder.group_bytes``); 0: frame by frame.

@@ -28,7 +28,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["LANES", "PREFETCH_BYTES", "pair_rgb8", "prefetch"]
+__all__ = ["LANES", "PREFETCH_BYTES", "pair_rgb8", "prefetch", "source_hash"]
 
 #: Pixels per :func:`pair_rgb8` call.
 LANES = 32
@@ -37,6 +37,22 @@ PREFETCH_BYTES = 4096
 
 _I8, _I16, _I32, _I64 = ir.IntType(8), ir.IntType(16), ir.IntType(32), ir.IntType(64)
 _F32 = ir.FloatType()
+
+
+def source_hash() -> str:
+    """SHA-256 of this file: a closure cell of the kernels that inline this code generation,
+    so numba's disk cache (which sees only the kernel's own file) compiles them again after
+    an edit here."""
+    import hashlib
+    from pathlib import Path
+
+    return hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+
+
+def _c1d(a, dtype) -> bool:
+    """A C-contiguous 1-D array of ``dtype`` (the vector block loads and stores consecutive
+    elements: a strided view would be read and written in its gaps)."""
+    return isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" and a.dtype == dtype
 
 
 def _vec(t, n: int = LANES) -> ir.VectorType:
@@ -90,11 +106,10 @@ def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
     channel sum is larger, ``margin[t+i] = min(rint(float32(|s_p - s_q|) · k), 255)``,
     ``hi`` / ``lo`` (int16) the running max / min of both sums; ``mmin`` (uint8, or None) the
     running min of the margins (the code family's smallest margin, for the finish)."""
-    if not (isinstance(fp, types.Array) and fp.dtype == types.uint8 and fq == fp
-            and isinstance(words, types.Array) and isinstance(words.dtype, types.Integer)
-            and not words.dtype.signed and isinstance(margin, types.Array)
-            and margin.dtype == types.uint8 and isinstance(hi, types.Array)
-            and hi.dtype == types.int16 and lo == hi
+    if not (_c1d(fp, types.uint8) and fq == fp and isinstance(words, types.Array)
+            and isinstance(words.dtype, types.Integer) and not words.dtype.signed
+            and _c1d(words, words.dtype) and _c1d(margin, types.uint8)
+            and _c1d(hi, types.int16) and lo == hi
             and (mmin == margin or isinstance(mmin, types.NoneType))):
         return None
     with_min = not isinstance(mmin, types.NoneType)
