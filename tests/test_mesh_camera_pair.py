@@ -234,3 +234,22 @@ def test_pairs_need_two_cameras():
     x, y, _ = _sphere_decode(cams[0], proj, 0.0, 0)
     with pytest.raises(InputError, match="two or more cameras"):
         tr.triangulate_camera_pairs(cams[:1], [x], [y])
+
+
+def test_pair_arguments_are_checked():
+    """Bad per-camera arguments are an :class:`InputError` naming the argument (not numpy's
+    broadcast error or a bare IndexError), and ``max_leverage`` must be a positive number: NaN
+    would silently turn the extrapolation check off, a negative value reject every match."""
+    cams, proj = _three_cameras()
+    dec = [_sphere_decode(c, proj, 0.0, i) for i, c in enumerate(cams)]
+    xs, ys = [d[0] for d in dec], [d[1] for d in dec]
+    with pytest.raises(InputError, match=r"sigma_px: expected one number or one per camera"):
+        tr.triangulate_camera_pairs(cams, xs, ys, sigma_px=[0.3, 0.3])
+    with pytest.raises(InputError, match=r"sigma_x: expected one map \(or None\) per camera"):
+        tr.triangulate_camera_pairs(cams, xs, ys, sigma_x=[None])
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(InputError, match="max_leverage"):
+            tr.triangulate_camera_pairs(cams, xs, ys, max_leverage=bad)
+        with pytest.raises(InputError, match="max_leverage"):
+            tr.triangulate_camera_pair(cams[0], cams[1], xs[0], ys[0], xs[1], ys[1],
+                                       max_leverage=bad)

@@ -805,6 +805,8 @@ def _camera_pair(cam_a, cam_b, x_a, y_a, x_b, y_b, *, sigma_px, sigma_x, sigma_y
     """:func:`triangulate_camera_pair`, plus the share of each pixel's matching variance that
     comes from A's own code, ``(H_a, W_a)`` (0..1, NaN unmatched)."""
     xa = as_array(x_a, "x_a", shape=(cam_a.height, cam_a.width), finite=False)
+    if max_leverage is not None:
+        check_positive(max_leverage, "max_leverage")  # also refuses NaN (no silent 'off')
     q_b, jac, var_fit, lev = _match_codes(xa, y_a, x_b, y_b, k=k)
     shape = xa.shape
     d0 = check_positive(sigma_px, "sigma_px")
@@ -890,9 +892,17 @@ def triangulate_camera_pairs(cameras: list[Camera], x: list, y: list, *, confide
     if len(cams) < 2 or len(x) != len(cams) or len(y) != len(cams):
         raise InputError(f"cameras, x, y: expected two or more cameras with one x and one y map "
                          f"each, got {len(cams)} cameras, {len(x)} x and {len(y)} y maps")
-    s = np.broadcast_to(np.asarray(sigma_px, np.float64), (len(cams),))
+    sp = np.asarray(sigma_px, np.float64)
+    if sp.ndim > 1 or (sp.ndim == 1 and sp.size not in (1, len(cams))):
+        raise InputError(f"sigma_px: expected one number or one per camera ({len(cams)}), got "
+                         f"shape {sp.shape}")
+    s = np.broadcast_to(sp.reshape(-1) if sp.ndim else sp, (len(cams),))
     for c, v in zip(cams, s):
         check_positive(float(v), f"sigma_px ({c.name})")
+    for name, maps_ in (("sigma_x", sigma_x), ("sigma_y", sigma_y), ("confidence", confidence)):
+        if maps_ is not None and len(maps_) != len(cams):
+            raise InputError(f"{name}: expected one map (or None) per camera ({len(cams)}), got "
+                             f"{len(maps_)}")
     maps, partners = [], {}
     for a, ca in enumerate(cams):
         pair_maps, shares = [], []

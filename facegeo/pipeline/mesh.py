@@ -575,7 +575,7 @@ def _uncalibrated_projector_error(scan, the_rig, rig_used: str, why: str) -> Inp
         f"scan {scan.root}: the projector {proj.name!r} of the {rig_used!r} rig is uncalibrated "
         f"(resolution {proj.width} x {proj.height} only, no intrinsics or pose), so the mesh "
         "stage triangulates camera against camera through matching projector codes "
-        "(facegeo.geometry.triangulation.triangulate_camera_pair), which needs two or more "
+        "(facegeo.geometry.triangulation.triangulate_camera_pairs), which needs two or more "
         f"cameras whose decodes have both x and y codes, and {why}; to mesh from "
         "camera-projector correspondences instead, calibrate the projector: run `facegeo "
         "calibrate` on a scan with projector board views ([calib.projector]) and mesh with "
