@@ -323,8 +323,18 @@ def test_code_fingerprint_hashes_the_package_sources_only(tmp_path, monkeypatch)
     (pkg / "sub" / "mod.py").rename(pkg / "sub" / "other.py")  # same bytes, another file
     assert fingerprint(pkg) != first
     (pkg / "sub" / "other.py").rename(pkg / "sub" / "mod.py")
+    # code that runs in no stage (the command line, benchmarks, the report page) is left out
+    (pkg / "pipeline" / "benchmarks").mkdir(parents=True)
+    for rel in ("cli.py", "pipeline/bench.py", "pipeline/report.py", "pipeline/benchmarks/x.py"):
+        (pkg / rel).write_text("edited = True\n")
+    assert fingerprint(pkg) == first
+    (pkg / "pipeline" / "mesh.py").write_text("")  # stage code is not
+    assert fingerprint(pkg) != first
+    (pkg / "pipeline" / "mesh.py").unlink()
     (pkg / "new.py").write_text("")
     assert fingerprint(pkg) != first
+    monkeypatch.setenv(cache.CODE_KEY_ENV, "ignore")  # a developer's opt-out
+    assert cache.code_fingerprint() == "ignored"
 
 
 def test_code_fingerprint_is_computed_once_per_process(tmp_path, monkeypatch):

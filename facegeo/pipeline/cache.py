@@ -121,12 +121,25 @@ class StageResult:
     reason: str | None = None
 
 
+#: Package files that run in no stage, left out of :func:`code_fingerprint` (relative paths;
+#: a trailing ``/``: a folder): the command line (its choices reach a stage as settings, which
+#: are in the key), the benchmarks and the report page (written after the stages, from their
+#: products). An edit there reruns nothing.
+NOT_STAGE_CODE = ("cli.py", "__main__.py", "pipeline/bench.py", "pipeline/report.py",
+                  "pipeline/benchmarks/")
+#: Set to ``ignore`` to leave facegeo's code out of the stage keys (a developer editing code
+#: that does not change the products, at their own risk: products of other code are reused).
+CODE_KEY_ENV = "FACEGEO_STAGE_KEY_CODE"
+
+
 def _is_source_file(rel: Path) -> bool:
     """Whether ``rel`` (relative to the package folder) is a source file of the fingerprint:
     a ``.py`` file outside ``__pycache__`` and hidden folders (numba's and Python's caches,
-    editors' lock files such as ``.#x.py``)."""
+    editors' lock files such as ``.#x.py``) and not in :data:`NOT_STAGE_CODE`."""
+    posix = rel.as_posix()
     return rel.suffix == ".py" and not any(part == "__pycache__" or part.startswith(".")
-                                           for part in rel.parts)
+                                           for part in rel.parts) and not any(
+        posix.startswith(x) if x.endswith("/") else posix == x for x in NOT_STAGE_CODE)
 
 
 def code_fingerprint() -> str:
@@ -134,7 +147,10 @@ def code_fingerprint() -> str:
     (relative path and bytes, in sorted path order) of the package this process imported —
     ``Path(facegeo.__file__).parent``, so an editable checkout and an installed wheel are both
     hashed where they are. ``__pycache__`` folders and hidden files are left out (byte-code
-    and numba's caches change without the code changing).
+    and numba's caches change without the code changing), and so are the files of
+    :data:`NOT_STAGE_CODE`, which run in no stage. With the environment variable
+    :data:`CODE_KEY_ENV` set to ``ignore`` the fingerprint is ``"ignored"`` (code left out of
+    the keys).
 
     Computed once per process and memoised (measured on the 2-core development VM: 4–5 ms for
     112 files, 2.1 MB, with the files in the page cache; ≈ 11 ms after evicting them; 0.05 ms
@@ -147,8 +163,10 @@ def code_fingerprint() -> str:
     Returns
     -------
     str
-        64 hexadecimal digits, or ``"unavailable"``.
+        64 hexadecimal digits, ``"unavailable"`` or ``"ignored"``.
     """
+    if os.environ.get(CODE_KEY_ENV, "").strip().lower() == "ignore":
+        return "ignored"
     return _source_fingerprint(Path(facegeo.__file__).resolve().parent)
 
 
