@@ -35,7 +35,7 @@ def _progress_factory(enabled: bool):
         if bar is None:
             for b in bars.values():
                 b.close()
-            if not stream:  # not sys.stderr: images read on other threads redirect it
+            if not stream:  # the real stderr, past the reads' filtering of native noise
                 stream.append(console_stream())
             bar = bars[stage] = tqdm(total=total, desc=f"{stage:>18}", unit="frame",
                                      leave=True, file=stream[0], dynamic_ncols=True)

@@ -135,9 +135,8 @@ class _ScanReaders:
 
         ``read_ahead=N`` (N ≥ 2) reads and decodes the next frames on N threads while the caller
         works on this one (:func:`facegeo.fsutil.read_ahead`; a few frames in flight, bounded
-        in bytes). Image reads hide native libraries' console output while they run
-        (``imageio``), so what other threads print meanwhile goes to the debug log: use it
-        where nothing reports progress during the loop (the projection does not).
+        in bytes). Image reads keep only native libraries' own failure messages off the
+        console (``imageio``); what other threads print meanwhile reaches the terminal.
         ``black_clipped``: see :meth:`olat_frame`."""
         from facegeo.fsutil import read_ahead as ahead
 

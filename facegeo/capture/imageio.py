@@ -16,7 +16,9 @@ Formats
   parsing its documented header and chunk offset table (the bindings expose neither pixel types
   nor the chunk table without decoding), Radiance HDR from its resolution line.
 * What OpenEXR and OpenCV print on their own while failing on a corrupt file is hidden (logged
-  at DEBUG level); the :class:`ImageReadError` raised names the file and the problem.
+  at DEBUG level); the :class:`ImageReadError` raised names the file and the problem. Only
+  those lines: whatever else is printed while an image is read, by any thread, reaches the
+  terminal (see :func:`_quiet_native_output`).
 
 Radiometry (``docs/conventions.md``): every pixel value inside the library is linear float32.
 8/16-bit frames are linearised by a declared :class:`Response` (``"linear"``, ``"srgb"``, a
@@ -30,19 +32,13 @@ gamma, or a tabulated Debevec–Malik curve); saturated and black-clipped sample
 
 from __future__ import annotations
 
-import atexit
-import contextlib
-import functools
 import logging
 import os
 import struct
-import sys
-import tempfile
-import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 
@@ -62,6 +58,7 @@ from facegeo.capture.response import (  # re-exported: part of this module's pub
     srgb_to_linear,
 )
 from facegeo.checks import fmt_value
+from facegeo.capture._native_output import _quiet_native_output, console_stream  # re-exported
 
 __all__ = [
     "ImageReadError",
@@ -175,111 +172,6 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 
 #: The first four bytes of every OpenEXR file.
 EXR_MAGIC = b"\x76\x2f\x31\x01"
-
-@functools.lru_cache(maxsize=1)
-def _libc():
-    import ctypes
-
-    return ctypes.CDLL(None)
-
-
-def _flush_c_stdio() -> None:
-    """``fflush(NULL)``: push C stdio buffers (where ``std::cout`` lands) to their fds now."""
-    try:
-        _libc().fflush(None)
-    except Exception:  # pragma: no cover - no C library to ask
-        pass
-
-
-_quiet_lock = threading.Lock()
-_quiet_users = 0
-_quiet_saved: dict[int, int] = {}
-_quiet_streams: tuple = ()
-_quiet_sink: Any = None
-
-
-@contextlib.contextmanager
-def _quiet_native_output() -> Iterator[None]:
-    """Hide what a native image library prints while it runs; log it at DEBUG level instead.
-
-    The OpenEXR bindings print "Warning: Exception raised reading pixel data ..." through
-    Python's ``sys.stdout``, the OpenEXR core library writes "(EXR_ERR_BAD_CHUNK_LEADER) ..."
-    to file descriptor 2 past Python, and OpenCV warns about truncated PNGs on fd 2. The error
-    we raise already says what is wrong, so for the duration of the call fds 1 and 2 point at a
-    temporary file and ``sys.stdout`` / ``sys.stderr`` at string buffers. Nested and concurrent
-    uses share one redirection (reference-counted), so threads reading images at once are not
-    serialised; the price is that while any read runs, *anything* printed (a progress bar in
-    another thread, say) goes to the debug log, not the terminal.
-    """
-    global _quiet_users, _quiet_sink, _quiet_streams
-    import io
-
-    with _quiet_lock:
-        if _quiet_users == 0:
-            for stream in (sys.stdout, sys.stderr):
-                try:
-                    stream.flush()
-                except Exception:  # pragma: no cover - a closed or replaced stream
-                    pass
-            _flush_c_stdio()
-            try:
-                if _quiet_sink is None:
-                    _quiet_sink = tempfile.TemporaryFile()  # kept open and reused ...
-                    atexit.register(_quiet_sink.close)  # ... closed at exit (no warning)
-                sink = _quiet_sink
-                for fd in (1, 2):
-                    _quiet_saved[fd] = os.dup(fd)
-                    os.dup2(sink.fileno(), fd)
-            except (OSError, ValueError):  # no usable fd 1/2: restore what was swapped
-                for fd, saved in _quiet_saved.items():
-                    os.dup2(saved, fd)
-                    os.close(saved)
-                _quiet_saved.clear()
-                sink = None
-            _quiet_sink = sink
-            _quiet_streams = (sys.stdout, sys.stderr)
-            sys.stdout, sys.stderr = io.StringIO(), io.StringIO()
-        _quiet_users += 1
-    try:
-        yield
-    finally:
-        with _quiet_lock:
-            _quiet_users -= 1
-            if _quiet_users == 0:
-                noise = sys.stdout.getvalue() + sys.stderr.getvalue()
-                sys.stdout, sys.stderr = _quiet_streams
-                _quiet_streams = ()
-                if _quiet_sink is not None:
-                    _flush_c_stdio()
-                    for fd, saved in _quiet_saved.items():
-                        os.dup2(saved, fd)
-                        os.close(saved)
-                    _quiet_saved.clear()
-                    _quiet_sink.seek(0)
-                    noise += _quiet_sink.read().decode("utf-8", "replace")
-                    _quiet_sink.seek(0)
-                    _quiet_sink.truncate()
-                if noise.strip():
-                    log.debug("native library output hidden: %s", noise.strip())
-
-
-def console_stream() -> TextIO:
-    """A new text stream on the process's standard error as it is outside native-output hiding.
-
-    While an image is read (:func:`_quiet_native_output`), file descriptors 1 and 2 and
-    ``sys.stdout`` / ``sys.stderr`` point elsewhere, process-wide; a progress bar that another
-    thread writes meanwhile would land in the debug log. This stream writes to a duplicate of
-    the real descriptor 2, so it reaches the terminal whatever is being read. Line-buffered;
-    the caller closes it. Without a usable descriptor 2 (a closed stderr) it writes nowhere.
-    """
-    enc = getattr(sys.__stderr__, "encoding", None) or "utf-8"
-    with _quiet_lock:
-        try:
-            fd = os.dup(_quiet_saved.get(2, 2) if _quiet_users else 2)
-        except OSError:
-            return open(os.devnull, "w", encoding=enc)
-    return os.fdopen(fd, "w", buffering=1, encoding=enc, errors="replace")
-
 
 def _exr_open(path: Path, *, header_only: bool):
     import OpenEXR  # deferred

@@ -413,9 +413,9 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
         Divide by the rig's light colour (the frames then read as for a white light).
     progress : callable(k), optional
     read_ahead : int
-        Threads reading the next frames meanwhile (``Scan.iter_olat(read_ahead=)``; what other
-        threads print while images are read goes to the debug log, so ``progress`` should
-        write to :func:`facegeo.capture.imageio.console_stream`).
+        Threads reading the next frames meanwhile (``Scan.iter_olat(read_ahead=)``; what
+        ``progress`` prints meanwhile reaches the terminal: image reads hide only native
+        libraries' own failure messages).
 
     Returns
     -------
