@@ -26,3 +26,24 @@ def shared_file(shared_data: Path, rel: str) -> Path:
     if not p.exists():
         pytest.skip(f"shared data file {p} is absent")
     return p
+
+
+@pytest.fixture
+def baseline_cpu_python(tmp_path):
+    """``run(code)``: ``code`` in a fresh interpreter whose numba compiles for a baseline x86-64
+    CPU (``NUMBA_CPU_NAME=x86-64``, SSE2 only) into a fresh disk cache, with this checkout's
+    facegeo first on the path; returns the ``subprocess.CompletedProcess`` (text output). For
+    kernels whose code generation depends on the host's instruction set."""
+    import subprocess
+    import sys
+
+    import facegeo
+
+    def run(code: str):
+        env = dict(os.environ, NUMBA_CPU_NAME="x86-64", NUMBA_CPU_FEATURES="+sse2",
+                   NUMBA_CACHE_DIR=str(tmp_path / "numba"),
+                   PYTHONPATH=str(Path(facegeo.__file__).resolve().parents[1]))
+        return subprocess.run([sys.executable, "-c", code], check=False, capture_output=True,
+                              text=True, timeout=600, env=env, cwd=tmp_path)
+
+    return run

@@ -893,20 +893,13 @@ def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, ti
 
 
 @pytest.mark.slow
-def test_vector_pair_block_is_exact_on_a_baseline_x86_cpu(tmp_path):
+def test_vector_pair_block_is_exact_on_a_baseline_x86_cpu(baseline_cpu_python):
     """The 8-bit RGB vector block (``_sl_vec.pair_rgb8``: byte shuffles of 96 interleaved
     bytes, a vector ``llvm.rint``, prefetches) compiled for a baseline x86-64 CPU (SSE2 only,
     ``NUMBA_CPU_NAME=x86-64``, a fresh disk cache, a fresh interpreter), where LLVM lowers the
     shuffles to other instructions than on an AVX-512 machine: the tiled kernel must still
     equal the plain tile loops bit for bit (tails included) — fails if the block's lowering
     anywhere changes a value, or the kernel cannot be compiled there."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    import facegeo
-
     code = (
         "import numpy as np\n"
         "from facegeo.geometry import _sl_kernels as k\n"
@@ -923,11 +916,7 @@ def test_vector_pair_block_is_exact_on_a_baseline_x86_cpu(tmp_path):
         "assert all(np.array_equal(a, b) for a, b in zip(*out))\n"
         "assert out[0][1].max() > 100 and out[0][0].any()\n"
         "print('ok')\n")
-    env = dict(os.environ, NUMBA_CPU_NAME="x86-64", NUMBA_CPU_FEATURES="+sse2",
-               NUMBA_CACHE_DIR=str(tmp_path / "numba"),
-               PYTHONPATH=str(Path(facegeo.__file__).resolve().parents[1]))
-    out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True,
-                         timeout=600, env=env, cwd=tmp_path)
+    out = baseline_cpu_python(code)
     assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-2000:])
 
 

@@ -250,20 +250,13 @@ def test_wrappers_reject_bad_arrays_naming_the_argument():
 
 
 @pytest.mark.slow
-def test_kernels_compile_and_stay_exact_for_a_cpu_without_f16c(tmp_path):
+def test_kernels_compile_and_stay_exact_for_a_cpu_without_f16c(baseline_cpu_python):
     """Numba compiling for a CPU without F16C (``NUMBA_CPU_NAME=x86-64``, a fresh disk cache, in
     a fresh interpreter): the kernels must not contain LLVM's ``half`` type (lowered there to an
     unlinkable ``__extendhfsf2`` call: the process aborted or crashed, even with
     ``f16c=False``), the host check must say no F16C, and the portable conversions must equal
     numpy (bit-exact, every half both ways; the relighting kernel too, which inlines the
     decoder)."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    import facegeo
-
     code = (
         "import numpy as np, warnings\n"
         "warnings.simplefilter('ignore')\n"
@@ -280,9 +273,5 @@ def test_kernels_compile_and_stay_exact_for_a_cpu_without_f16c(tmp_path):
         "got = R.relight_field(field, np.ones((1, 3)), kernel='fused')[:, 0]\n"
         "assert np.array_equal(got[ok.ravel()], f.ravel()[ok.ravel()])\n"
         "print('ok')\n")
-    env = dict(os.environ, NUMBA_CPU_NAME="x86-64", NUMBA_CPU_FEATURES="+sse2",
-               NUMBA_CACHE_DIR=str(tmp_path / "numba"),
-               PYTHONPATH=str(Path(facegeo.__file__).resolve().parents[1]))
-    out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True,
-                         timeout=600, env=env, cwd=tmp_path)
+    out = baseline_cpu_python(code)
     assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-2000:])
