@@ -322,3 +322,24 @@ def test_uncalibrated_projector_is_named_before_any_triangulation(tmp_path):
     cam = scan.camera(scan.camera_names[0])
     with pytest.raises(InputError, match="got Camera, Projector; an uncalibrated projector"):
         triangulate_maps(cam, scan.rig.projector, np.zeros((cam.height, cam.width)))
+
+
+def test_a_camera_whose_decode_disagrees_with_the_rig_is_warned_about(caplog):
+    """A camera that loses most of its triangulated pixels as 'inconsistent' (the rig's
+    geometry does not fit its decode: a projector kept at nominal numbers lost all of
+    cam_right's 24,885 in an audit, silently) gets a warning in the log and the metrics that
+    says what to do; a calibrated rig's handful does not."""
+    import logging
+
+    from facegeo.pipeline.mesh import _geometry_warnings
+
+    per_cam = {"cam_left": {"rejected": {"ok": 24066, "inconsistent": 444}},
+               "cam_right": {"rejected": {"ok": 0, "inconsistent": 24885}}}
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.mesh"):
+        w = _geometry_warnings(per_cam, pair_route=False)
+    assert len(w) == 1 and w[0].startswith("camera cam_right: 24885 of 24885 triangulated")
+    assert "calibrated\": false" in w[0] and "[calib.projector]" in w[0]
+    assert "cam_right" in caplog.text
+    assert "facegeo calibrate" in _geometry_warnings(per_cam, pair_route=True)[0]
+    ok = {"cam_left": {"rejected": {"ok": 22694, "inconsistent": 2}}}
+    assert _geometry_warnings(ok, pair_route=True) == []

@@ -259,6 +259,8 @@ def test_run_render_writes_images_and_metrics(parts):
     assert set(m["shrinkage_factors"]) == {"cam_left", "cam_right"}
     assert all(0.0 <= lam <= 1.0 for lam in m["shrinkage_factors"].values())
     assert m["coverage"] > 0.8
+    # of the head the generator sees; at most the render's own coverage share of it
+    assert 0.5 < m["head_coverage"] <= 1.0
     doc = json.loads((root / "out" / "metrics.json").read_text())
     assert doc["views"]["views"]["o30"]["psnr_db"] == m["psnr_db"]
     # the report's speed-against-error row of the standalone views has their figures

@@ -86,6 +86,23 @@ def test_summary_is_speed_against_error(tmp_path):
     assert "projection_rel_rmse 0.049" in summary_table(metrics)
 
 
+def test_summary_shows_a_calibrated_rigs_aligned_shape_error():
+    """A mesh made with a rig other than the true one (its own world frame) is summarised by
+    its error after the rigid alignment (the shape), not by the gauge-dominated figures in the
+    generator's frame; a true-rig mesh keeps its figures as they are."""
+    shape = {"points_rms_error_mm": 0.081, "mesh_p95_error_mm": 0.215,
+             "normal_median_error_deg": 1.34, "alignment_translation_mm": 4.08}
+    calibrated = {"seconds": 3.5, "points_rms_error_mm": 2.816, "mesh_p95_error_mm": 3.771,
+                  "normal_median_error_deg": 1.5, "after_rigid_alignment": shape}
+    row = summary_rows({"mesh": calibrated})[0]
+    assert row["errors"] == {"points_rms_error_mm_aligned": 0.081,
+                             "mesh_p95_error_mm_aligned": 0.215,
+                             "normal_median_error_deg_aligned": 1.34}
+    assert "mesh_p95_error_mm_aligned 0.215" in summary_table({"mesh": calibrated})
+    true_rig = {k: v for k, v in calibrated.items() if k != "after_rigid_alignment"}
+    assert summary_rows({"mesh": true_rig})[0]["errors"]["mesh_p95_error_mm"] == 3.771
+
+
 def test_missing_metrics_is_a_clear_error(tmp_path):
     with pytest.raises(InputError, match="metrics.json.*facegeo reconstruct"):
         write_report(tmp_path)

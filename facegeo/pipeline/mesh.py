@@ -469,6 +469,9 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     }
     if extra.get("skipped_cameras"):
         metrics["skipped_cameras"] = extra["skipped_cameras"]
+    warnings = _geometry_warnings(per_cam, pair_route)
+    if warnings:
+        metrics["warnings"] = warnings
     if scan.synthetic and "mesh" in scan.ground_truth_keys:
         # a calibrated rig's world frame is a gauge choice: report the shape error too
         metrics.update(ground_truth_errors(scan, fused.p_world, mesh, far, gt_samples,
@@ -566,6 +569,35 @@ def _too_few_points(decode_dir: Path, n: int, names: list, maps: list,
     return InputError(f"{what}; the decoded pixels were rejected as: {why}{hint}")
 
 
+#: A camera whose decoded pixels disagree with the rig's geometry ('inconsistent') at more than
+#: this fraction of those it triangulated is warned about: a calibrated rig loses next to none
+#: there (the small preset: 0–5 of ≈ 24,000 a camera, either route), a projector kept at its
+#: nominal numbers without calibration all of one camera's (24,885 of 24,885).
+INCONSISTENT_WARN_FRACTION = 0.5
+
+
+def _geometry_warnings(per_cam: dict, pair_route: bool) -> list[str]:
+    """Warnings (logged, and listed in the metrics) for cameras that lost most of their
+    decoded pixels as inconsistent with the rig: the geometry does not fit the decode."""
+    out = []
+    for name, c in per_cam.items():
+        r = c["rejected"]
+        tried = r.get("ok", 0) + r.get("inconsistent", 0)
+        if tried and r.get("inconsistent", 0) > INCONSISTENT_WARN_FRACTION * tried:
+            fix = ("the cameras' calibration does not fit the decodes: calibrate them "
+                   "(`facegeo calibrate`) and mesh with --rig calibrated" if pair_route else
+                   "a projector kept at nominal (datasheet) numbers, or cameras or projector "
+                   "moved since calibration? calibrate the projector ([calib.projector] board "
+                   "views, `facegeo calibrate`, --rig calibrated), or mark it uncalibrated in "
+                   "rig.json (\"calibrated\": false) to mesh camera against camera")
+            out.append(f"camera {name}: {r['inconsistent']} of {tried} triangulated pixels "
+                       f"({100.0 * r['inconsistent'] / tried:.0f} %) disagree with the rig's "
+                       f"geometry ('inconsistent') and were dropped; {fix}")
+    for w in out:
+        log.warning("mesh: %s", w)
+    return out
+
+
 def _uncalibrated_projector_error(scan, the_rig, rig_used: str, why: str) -> InputError:
     """The one-line :class:`InputError` for a rig whose projector is uncalibrated (a
     :class:`facegeo.geometry.rig.Projector`: resolution only, no intrinsics or pose) when the
@@ -579,7 +611,8 @@ def _uncalibrated_projector_error(scan, the_rig, rig_used: str, why: str) -> Inp
         f"cameras whose decodes have both x and y codes, and {why}; to mesh from "
         "camera-projector correspondences instead, calibrate the projector: run `facegeo "
         "calibrate` on a scan with projector board views ([calib.projector]) and mesh with "
-        "--rig calibrated, or give a rig whose projector is calibrated (rig=PATH)")
+        "--rig calibrated, or put a calibrated projector into the scan's rig.json and mesh "
+        "with --rig scan (rig=PATH from Python)")
 
 
 def _mm(v) -> float:

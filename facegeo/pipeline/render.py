@@ -25,10 +25,12 @@ renderer; ``mask`` = the reference's pixels that see the head):
   ``shrinkage_factors`` (λ per source camera), ``shrinkage_cross_validation`` and, beside the
   main render, the paper's resynthesis as written (λ = 1): ``paper_psnr_db``,
   ``paper_psnr_db_covered``, ``paper_rel_rmse`` (``_covered``);
-* ``coverage``: the fraction of the mask whose texels some source camera measured (pixels
-  outside it are filled from the nearest measured pixel within ``fill_px``, else black, in
-  both renders, and count as errors), and the ``*_covered`` variants of PSNR / relative RMSE
-  over covered pixels only.
+* ``coverage``: the fraction of the render's surface pixels (rays that hit the atlas mesh)
+  whose texels some source camera measured (pixels outside it are filled from the nearest
+  measured pixel within ``fill_px``, else black, in both renders, and count as errors);
+  ``head_coverage``: the fraction of the reference's head mask rendered from measured texels
+  (what the reconstruction lacks counts here, not in ``coverage``); and the ``*_covered``
+  variants of PSNR / relative RMSE over covered pixels only.
 
 Environments: a path to an ``.exr``/``.hdr`` map (``projection`` lat-long by default), or a
 built-in name: ``"uniform"`` (radiance 1 everywhere, the generator's ``uniform`` renders),
@@ -407,6 +409,11 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         files["error_png"] = imageio.write_image(dest / f"{stem}_error.png",
                                                  _error_heatmap(res.image, ref, mask)).name
         cov = mask & res.covered
+        # of the head the generator sees from this camera, the part rendered from measured
+        # texels (`coverage` counts against the render's own surface, which lacks whatever the
+        # reconstruction lacks: a camera-camera mesh ends where one camera stopped decoding)
+        metrics["head_coverage"] = round(float(cov.sum() / max(mask.sum(), 1)), 6)
+
         def figures(prefix, image):
             """``{prefix}psnr_db``, ``rel_rmse`` and their ``_covered`` forms; the two PSNRs."""
             a, c = image_metrics(image, ref, mask), image_metrics(image, ref, cov)
