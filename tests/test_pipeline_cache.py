@@ -350,3 +350,27 @@ def test_code_fingerprint_is_computed_once_per_process(tmp_path, monkeypatch):
     first = cache.code_fingerprint()
     assert reads == [pkg / "__init__.py"]
     assert cache.code_fingerprint() == first and len(reads) == 1
+
+
+def test_stages_made_from_replaced_upstream_products_are_marked_stale(scan):
+    """After an upstream stage runs again on its own (``facegeo mesh`` after a full
+    reconstruct), the downstream products on disk were made from its previous products: the
+    report marks their entries ``stale_upstream`` (the summary table says so) until they run
+    again, and a run of the whole chain clears the mark."""
+    from facegeo.pipeline.cache import mark_stale_stages
+    from facegeo.pipeline.report import summary_table
+
+    calls: list[str] = []
+    _toy_pipeline(calls).run(scan)
+    out = scan / "out"
+    assert mark_stale_stages(out) == {}
+    (scan / "data.txt").write_text("1 2 3 4")
+    _toy_pipeline(calls).run(scan, only="a")  # a again, b left as it was
+    assert calls == ["a", "b", "a"]
+    assert mark_stale_stages(out) == {"b": ["a"]}
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["b"]["stale_upstream"] == ["a"] and doc["b"]["total"] == 12  # figures kept
+    assert "[stale: made from an older a]" in summary_table(doc)
+    _toy_pipeline(calls).run(scan)  # b reruns: its entry is rewritten, the mark goes
+    assert mark_stale_stages(out) == {}
+    assert "stale_upstream" not in json.loads((out / "metrics.json").read_text())["b"]

@@ -47,7 +47,7 @@ from facegeo.checks import fmt_value
 log = logging.getLogger(__name__)
 
 __all__ = ["StageSpec", "StageContext", "StageResult", "Pipeline", "MANIFEST_NAME", "code_fingerprint",
-           "forget_missing_stages", "record_metrics"]
+           "forget_missing_stages", "mark_stale_stages", "record_metrics"]
 
 #: The manifest written last into every finished stage folder.
 MANIFEST_NAME = "stage.json"
@@ -296,6 +296,54 @@ def forget_missing_stages(out_dir: str | os.PathLike) -> list[str]:
                  "'facegeo reconstruct' rebuilds them", path, ", ".join(gone))
         atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True, allow_nan=False))
     return gone
+
+
+def mark_stale_stages(out_dir: str | os.PathLike) -> dict[str, list[str]]:
+    """Mark in ``out_dir/metrics.json`` every stage whose products were made from upstream
+    products that have since been replaced; return ``{stage: [changed upstream stages]}``.
+
+    A stage's manifest records the keys of the stages it read (``upstream``); when one of those
+    stages has run again since (``facegeo mesh`` alone after a full ``reconstruct``: the atlas,
+    projection, fit and render on disk were made from the previous mesh), its entry gets
+    ``stale_upstream`` (the changed upstream stages; the report and the summary table show it)
+    until it runs again — a successful run rewrites the whole entry, so the mark goes with it.
+    The figures stay: they describe the products on disk. The file is rewritten (atomically)
+    only when a mark changes; a missing or unreadable file is left as it is."""
+    out_dir = Path(out_dir)
+    path = out_dir / "metrics.json"
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(doc, dict):
+        return {}
+    keys: dict[str, str | None] = {}
+
+    def key_of(name: str) -> str | None:
+        if name not in keys:
+            m = _read_manifest(out_dir / name)
+            keys[name] = m.get("key") if m is not None else None
+        return keys[name]
+
+    stale, changed = {}, False
+    for name, entry in doc.items():
+        if not isinstance(entry, dict) or not isinstance(name, str) or "/" in name:
+            continue
+        m = _read_manifest(out_dir / name) if name not in (".", "..") else None
+        upstream = m.get("upstream") if m is not None else None
+        moved = sorted(a for a, k in upstream.items() if key_of(a) != k) \
+            if isinstance(upstream, dict) else []
+        if moved:
+            stale[name] = moved
+        if moved != entry.get("stale_upstream", []):
+            if moved:
+                entry["stale_upstream"] = moved
+            else:
+                entry.pop("stale_upstream", None)
+            changed = True
+    if changed:
+        atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True, allow_nan=False))
+    return stale
 
 
 def _read_manifest(final: Path) -> dict | None:

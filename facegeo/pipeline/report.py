@@ -23,7 +23,7 @@ from typing import Any
 from facegeo import __version__
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text
-from facegeo.pipeline.cache import forget_missing_stages
+from facegeo.pipeline.cache import forget_missing_stages, mark_stale_stages
 from facegeo.pipeline.reconstruct import STAGES
 
 __all__ = ["PIPELINE_ORDER", "REPORT_NAME", "write_report", "summary_rows", "summary_table"]
@@ -96,8 +96,10 @@ def summary_rows(metrics: dict) -> list[dict]:
     Returns
     -------
     list of dict
-        ``{"stage", "seconds", "errors": {name: value}}`` in pipeline order; ``seconds`` is None
-        when the stage did not record it. A stage run on a rig other than the true one (a
+        ``{"stage", "seconds", "errors": {name: value}, "stale": [stage, …]}`` in pipeline
+        order; ``seconds`` is None when the stage did not record it; ``stale`` lists the upstream
+        stages that ran again since this stage's products were made
+        (:func:`facegeo.pipeline.cache.mark_stale_stages`). A stage run on a rig other than the true one (a
         calibration's: its world frame is its own) shows its ``after_rigid_alignment`` figures
         as ``<name>_aligned`` in place of the same figures in the generator's frame (the gauge
         dominates those: 2–4 mm against a 0.08 mm shape error on the small preset).
@@ -118,8 +120,9 @@ def summary_rows(metrics: dict) -> list[dict]:
             # the one after the rigid alignment, shown in their place
             errors = {f"{k}_aligned": v for k, v in _errors_of(aligned).items()} | {
                 k: v for k, v in errors.items() if k not in _errors_of(aligned)}
+        stale = m.get("stale_upstream")
         rows.append({"stage": stage, "seconds": sec if isinstance(sec, (int, float)) else None,
-                     "errors": errors})
+                     "errors": errors, "stale": list(stale) if isinstance(stale, list) else []})
     return rows
 
 
@@ -138,6 +141,8 @@ def summary_table(metrics: dict) -> str:
     for r in rows:
         sec = f"{r['seconds']:.2f}" if r["seconds"] is not None else "—"
         errs = ", ".join(f"{k} {_fmt(v)}" for k, v in r["errors"].items()) or "—"
+        if r.get("stale"):
+            errs = f"[stale: made from an older {', '.join(r['stale'])}] " + errs
         lines.append(f"{r['stage']:<10} {sec:>9}  {errs}")
     return "\n".join(lines)
 
@@ -214,6 +219,7 @@ def write_report(out_dir, *, title: str | None = None) -> Path:
     """
     out_dir = Path(out_dir)
     dropped = forget_missing_stages(out_dir)
+    mark_stale_stages(out_dir)
     metrics = _load_metrics(out_dir)
     stages = _ordered(metrics)
     title = title or f"facegeo report: {out_dir.resolve().parent.name}"
@@ -232,6 +238,9 @@ def write_report(out_dir, *, title: str | None = None) -> Path:
     for r in rows:
         sec = f"{r['seconds']:.2f}" if r["seconds"] is not None else "—"
         errs = "<br>".join(f"{esc(k)} = {esc(_fmt(v))}" for k, v in r["errors"].items()) or "—"
+        if r.get("stale"):
+            errs = (f'<em class="stale">stale: made from an older {esc(", ".join(r["stale"]))}'
+                    " (run <code>facegeo reconstruct</code>)</em><br>" + errs)
         body.append(f'<tr><td><a href="#{esc(r["stage"])}">{esc(r["stage"])}</a></td>'
                     f'<td class="num">{sec}</td><td>{errs}</td></tr>')
     body.append("</table>")
