@@ -314,10 +314,15 @@ def _cmd_calibrate(args) -> int:
                 cells.append(f"{v:>10.4g}" if isinstance(v, (int, float)) else f"{'-':>10}")
         print(f"{name:<12}" + "  ".join(cells))
     _print_skipped_views(Path(args.out) if args.out else Path(args.scan) / "out" / "calibrate")
-    proj = m.get("projector", {})
-    if proj:
+    proj = m.get("projector") or {}
+    for why in proj.get("skipped") or ():  # "projector view 0 cam_left: <reason>"
+        print(f"skipped {why}")
+    if proj.get("calibrated") is False:  # why, and what the calibrated rig.json holds instead
+        print(proj["summary"])
+    elif proj:
         print("projector: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                         for k, v in proj.items() if not isinstance(v, dict)))
+                                         for k, v in proj.items()
+                                         if not isinstance(v, (dict, list))))
     print(f"wrote {args.out or Path(args.scan) / 'out' / 'calibrate'}")
     return 0
 

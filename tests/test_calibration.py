@@ -444,6 +444,8 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
     assert (tmp_path / "out" / "metrics.json").exists()
     # one projector view cannot calibrate the projector: said in the metrics, rig keeps nominal
     assert "need 3" in m["projector"]["error"]
+    assert m["projector"]["calibrated"] is False and m["projector"]["rig_json"] == "nominal"
+    assert "did not calibrate it" in m["projector"]["summary"]
     # the stage form: same products but no metrics file; JSON-safe metrics and settings back
     import json
 
@@ -473,6 +475,153 @@ def test_run_calibrate_on_synthetic_scan(tmp_path):
     # the default folder: written whole (staged) when the run succeeds
     run_calibrate(tmp_path / "scan", cross_validation=False)
     assert (tmp_path / "scan" / "out" / "calibrate" / "rig.json").is_file()
+
+
+# ------------------------------------------------------------------ uncalibrated projector
+#: the stage's cameras on the `projector_scan` (240 × 360 px, 12 + 4 board views, seed 0),
+#: against ground_truth/rig.json: reprojection RMS, px (measured 0.153 / 0.146; seeds 1-3
+#: ≤ 0.178) ...
+STAGE_CAMERA_RMS_PX = 0.3
+#: ... focal max |f/f_true − 1| (measured 2.3e-4 / 1.7e-3; seeds 1-3 ≤ 2.1e-3) ...
+STAGE_CAMERA_FOCAL_REL_TOL = 0.005
+#: ... ‖c − c_true‖, px (measured 6.0 / 2.5; seeds 1-3 ≤ 9.6: a 12° camera's principal point is
+#: nearly its rotation, docs/calibration.md) ...
+STAGE_CAMERA_PRINCIPAL_TOL_PX = 15.0
+#: ... camera rotation and centre after the rigid alignment of the rig, ° and mm (measured
+#: 0.33° / 1.8 mm worst camera; seeds 1-3 ≤ 0.48° / 2.1 mm)
+STAGE_CAMERA_ROTATION_TOL_DEG = 1.0
+STAGE_CAMERA_TRANSLATION_TOL_MM = 5.0
+#: the projector calibrated from its 4 board views starting from an uncalibrated rig.json entry
+#: (resolution only), against the truth: focal max |f/f_true − 1| (measured 1.5e-3; seeds 1-3
+#: ≤ 5.8e-3; from the nominal entry: the same figures to every digit) ...
+UNCAL_PROJECTOR_FOCAL_REL_TOL = 0.01
+#: ... ‖c − c_true‖, projector px of 256 × 192 (measured 1.69; seeds 1-3 ≤ 1.93) ...
+UNCAL_PROJECTOR_PRINCIPAL_TOL_PX = 5.0
+#: ... pose after the rigid alignment of the rig, ° and mm (measured 0.16° / 1.8 mm; seeds 1-3
+#: ≤ 0.28° / 5.9 mm: the focal-distance trade of 4 views at 1.06 m) ...
+UNCAL_PROJECTOR_ROTATION_TOL_DEG = 0.6
+UNCAL_PROJECTOR_TRANSLATION_TOL_MM = 10.0
+#: ... and the joint reprojection RMS, projector px (measured 0.043; seeds 1-3 ≤ 0.050)
+UNCAL_PROJECTOR_RMS_PX = 0.15
+
+
+@pytest.fixture(scope="module")
+def projector_scan(tmp_path_factory):
+    """A small synthetic scan with projector board views (240 × 360 px cameras, 12 camera
+    views, a 256 × 192 projector seen in 4 board views; no phase frames, 8 lights; ≈ 4 s).
+    Tests take a variant of it with :func:`_projector_variant`."""
+    from facegeo.synth.capture import Preset, generate_scan
+
+    root = tmp_path_factory.mktemp("projector_scan") / "scan"
+    generate_scan(root, Preset("uncaltest", 1 / 2, 4, 2, 3, (256, 192), 12, 4, 0,
+                               olat_half=False, sl_supersample=1), seed=0)
+    return root
+
+
+def _projector_variant(src, dest, *, projector: str, views: bool):
+    """``src`` hard-linked into ``dest`` (the stage only reads the scan; rig.json and scan.toml
+    are replaced, not written through) with rig.json's projector ``"uncalibrated"`` (a
+    resolution-only entry) or ``"nominal"`` (kept), and without ``[calib.projector]`` unless
+    ``views``. Returns the scan's nominal rig."""
+    import os
+    import shutil
+    import tomllib
+
+    from facegeo.capture.scan import write_manifest
+    from facegeo.geometry.rig import Projector, Rig
+
+    shutil.copytree(src, dest, copy_function=os.link)
+    rig = Rig.load(dest / "rig.json")
+    if projector == "uncalibrated":
+        p = rig.projector
+        rig.projector = Projector(p.name, p.width, p.height)
+        (dest / "rig.json").unlink()
+        rig.save(dest / "rig.json")
+    if not views:
+        m = tomllib.loads((dest / "scan.toml").read_text(encoding="utf-8"))
+        del m["calib"]["projector"]
+        (dest / "scan.toml").unlink()
+        write_manifest(dest, m)
+    return rig
+
+
+def _assert_cameras_calibrated(metrics, rig, truth):
+    """The stage's cameras against the truth, with the tolerances above."""
+    for name in truth.camera_names:
+        cm, c, t = metrics["cameras"][name], rig.camera(name), truth.camera(name)
+        assert cm["reprojection_rms_px"] < STAGE_CAMERA_RMS_PX, name
+        assert max(abs(c.fx / t.fx - 1), abs(c.fy / t.fy - 1)) < STAGE_CAMERA_FOCAL_REL_TOL
+        assert np.hypot(c.cx - t.cx, c.cy - t.cy) < STAGE_CAMERA_PRINCIPAL_TOL_PX, name
+        assert cm["rotation_error_deg"] < STAGE_CAMERA_ROTATION_TOL_DEG, name
+        assert cm["translation_error_mm"] < STAGE_CAMERA_TRANSLATION_TOL_MM, name
+
+
+@pytest.mark.parametrize("projector", ["uncalibrated", "nominal"])
+def test_projector_without_board_views_is_kept_and_reported(projector_scan, tmp_path, capsys,
+                                                            projector):
+    """No ``[calib.projector]`` board views: the cameras calibrate as usual, the projector
+    entry of rig.json is written unchanged (an uncalibrated one has no pose to move: the stage
+    crashed on it with "'Projector' object has no attribute 'replace'"), and the metrics and
+    the printed summary say it was not calibrated, why, and what rig.json holds instead (a
+    nominal projector was kept silently, as if calibrated)."""
+    import json
+
+    from facegeo.cli import main
+    from facegeo.geometry.rig import Projector, Rig
+
+    scan = tmp_path / "scan"
+    nominal = _projector_variant(projector_scan, scan, projector=projector, views=False)
+    out = tmp_path / "cal"
+    assert main(["calibrate", str(scan), "--out", str(out), "-q",
+                 "--no-cross-validation"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    metrics = json.loads((out / "metrics.json").read_text())["calibrate"]
+    rig = Rig.load(out / "rig.json")
+    _assert_cameras_calibrated(metrics, rig, Rig.load(scan / "ground_truth" / "rig.json"))
+    # written unchanged: the scan has no world frame, so the nominal frame is the world's
+    assert rig.projector == nominal.projector
+    assert isinstance(rig.projector, Projector) == (projector == "uncalibrated")
+    pm = metrics["projector"]
+    assert pm["calibrated"] is False and pm["rig_json"] == projector
+    assert pm["reason"] == "no [calib.projector] board views"
+    assert "projector_reprojection_rms_px" not in metrics
+    assert not (out / "projector.yml").exists()
+    line = next(ln for ln in printed if ln.startswith("projector"))
+    assert line == pm["summary"]
+    for part in ("not calibrated (no [calib.projector] board views)", f"rig.json's {projector} "
+                 "projector"):
+        assert part in line, line
+
+
+def test_projector_calibrates_from_an_uncalibrated_entry(projector_scan, tmp_path):
+    """rig.json's projector is a resolution-only entry (the start of every real rig) and the
+    scan has projector board views: the projector is calibrated from them with no nominal
+    intrinsics (Zhang start, the pinhole model, then the joint bundle adjustment) and lands
+    within the tolerances above of the true projector, the cameras as usual. (The stage
+    failed with "'Projector' object has no attribute 'dist'".)"""
+    from facegeo.capture.scan import load_scan
+    from facegeo.geometry.camera import Camera
+    from facegeo.geometry.rig import Rig
+    from facegeo.pipeline import calibrate as stage
+
+    scan = tmp_path / "scan"
+    _projector_variant(projector_scan, scan, projector="uncalibrated", views=True)
+    out = tmp_path / "cal"
+    metrics, _ = stage.calibrate_products(load_scan(scan), out, cross_validation=False)
+    rig = Rig.load(out / "rig.json")
+    truth = Rig.load(scan / "ground_truth" / "rig.json")
+    _assert_cameras_calibrated(metrics, rig, truth)
+    pm, p, t = metrics["projector"], rig.projector, truth.projector
+    assert isinstance(p, Camera) and p.size == (256, 192)
+    assert pm["calibrated"] is True and pm["start"] == "uncalibrated"
+    assert pm["model"] == stage.PROJECTOR_MODEL and p.dist.size == 0
+    assert pm["views_used"] == 4
+    assert max(abs(p.fx / t.fx - 1), abs(p.fy / t.fy - 1)) < UNCAL_PROJECTOR_FOCAL_REL_TOL
+    assert np.hypot(p.cx - t.cx, p.cy - t.cy) < UNCAL_PROJECTOR_PRINCIPAL_TOL_PX
+    assert pm["rotation_error_deg"] < UNCAL_PROJECTOR_ROTATION_TOL_DEG
+    assert pm["translation_error_mm"] < UNCAL_PROJECTOR_TRANSLATION_TOL_MM
+    assert pm["reprojection_rms_px"] < UNCAL_PROJECTOR_RMS_PX
+    assert (out / "projector.yml").is_file() and (out / "residuals_projector.png").is_file()
 
 
 #: local-homography projector corners vs the exact map, Gray-quantised codes: worst, projector px

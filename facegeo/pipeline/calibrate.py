@@ -12,15 +12,19 @@ warning) and writes
 * ``rig.json`` — the scan's rig with the calibrated cameras (``Rig`` serialisation); the world
   frame is the scan's: the calibrated rig is aligned to the nominal ``rig.json`` by the rigid
   transform averaged over the cameras; the projector is the jointly calibrated one when the scan
-  has projector views that calibrate (else copied unchanged), the lights are copied;
+  has projector views that calibrate, else ``rig.json``'s own (a nominal projector camera
+  placed in the world frame, an uncalibrated resolution-only entry copied unchanged: it has no
+  pose), the lights are copied;
 * ``<camera>.yml`` — OpenCV FileStorage: ``camera_matrix``, ``distortion_coefficients``,
   ``image_width``, ``image_height``, ``avg_reprojection_error``, ``per_view_reprojection_errors``;
 * ``residuals_<camera>.png`` — residual vectors over the image (×``RESIDUAL_GAIN``) and a
   histogram of their lengths, drawn with OpenCV (matplotlib is not a dependency);
 * ``detections.json`` — the per-image detection report;
-* with ``calib/projector/`` views: the projector (Moreno & Taubin local homographies, then the
-  joint bundle adjustment), its YAML and residual plot; otherwise ``metrics["projector"]``
-  says why it was not calibrated and ``rig.json`` keeps the nominal projector;
+* with ``calib/projector/`` views: the projector (Moreno & Taubin local homographies, a
+  separate solve from the Zhang start — no nominal intrinsics needed: an uncalibrated
+  ``rig.json`` entry gets :data:`PROJECTOR_MODEL` — then the joint bundle adjustment), its YAML
+  and residual plot; otherwise ``metrics["projector"]`` says that it was not calibrated, why,
+  and what ``rig.json`` keeps instead (also logged as a warning);
 * ``metrics.json`` — ``{"calibrate": metrics}`` (the dict returned), by ``run_calibrate`` only.
 
 ``calibrate_products(scan, dest, **settings) -> (metrics, settings)`` is the same work as a
@@ -57,6 +61,14 @@ MIN_VIEWS_ALONE = 3
 
 #: Pixels per image side whose rays place a calibrated rig on a reference rig (:func:`_align`).
 ALIGN_GRID = 7
+
+#: Lens model of a projector calibrated from an uncalibrated ``rig.json`` entry (resolution
+#: only: no distortion vector to take the model from, as a nominal projector camera gives).
+#: Pinhole: 3-5 projector views are too few to hold any out for ``model="auto"`` or to pin
+#: distortion terms down, and it is the model of the default rig's projector and of the
+#: projector benchmark. From a nominal pinhole entry the result is the same to every digit
+#: (the separate solve starts from Zhang's closed form, not from the nominal ``K``).
+PROJECTOR_MODEL = "pinhole"
 
 
 def _working_point(cameras) -> np.ndarray:
@@ -144,6 +156,35 @@ def _world_frame(scan, rig_cal, obs, proj_name, nominal) -> tuple[Pose, Pose, st
     T_rig_world = rig_cal.T_world_board[key]
     return (T_rig_world, T_rig_world.inverse() @ T_rig_nom,
             f"board of view {w['board_view']} (camera {w['camera']})")
+
+
+def _projector_not_calibrated(projector, attempt: dict | None) -> dict:
+    """``metrics["projector"]`` of a projector the stage did not calibrate: ``calibrated``
+    (False), ``reason``, ``rig_json`` (what the calibrated ``rig.json`` holds instead:
+    ``"nominal"`` — the scan's projector camera as given; ``"uncalibrated"`` — resolution only)
+    and ``summary`` (one line for the CLI), beside ``attempt``'s keys (a failed attempt:
+    ``error``, ``views_detected`` ...). ``attempt`` is None when the scan has no projector
+    board views."""
+    from facegeo.geometry.camera import Camera
+
+    m = dict(attempt or {})
+    if attempt is None:
+        why = "no [calib.projector] board views"
+    else:
+        why = ("its [calib.projector] board views did not calibrate it: "
+               f"{attempt.get('error', 'no usable view')}")
+    if isinstance(projector, Camera):
+        kept, what = "nominal", ("rig.json's nominal projector (its intrinsics and pose as "
+                                 "given, not measured)")
+    else:
+        kept, what = "uncalibrated", ("rig.json's uncalibrated projector (resolution only: no "
+                                      "intrinsics, no pose)")
+    m.update({"calibrated": False, "reason": why, "rig_json": kept,
+              "summary": f"projector: not calibrated ({why}); the calibrated "
+                         f"rig.json keeps {what}"
+                         + ("; board views under [calib.projector] calibrate it"
+                            if attempt is None else "")})
+    return m
 
 
 def _lights_to_world(lights, T_world_nom: Pose):
@@ -392,9 +433,13 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         solution; dropped views re-posed),
         cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
         std_px: {fx, fy, cx, cy}[, focal_rel_error, principal_point_error_px,
-        rotation_error_deg, translation_error_mm]}}, "projector": {views_used,
-        reprojection_rms_px, separate_rms_px[, focal_rel_error, focal_rel_error_without_joint,
-        ...]} or {"error": why}, "seconds"}`` (non-finite numbers as None). View k of every
+        rotation_error_deg, translation_error_mm]}}, "projector": {calibrated: true,
+        views_used, model, start ("nominal" or "uncalibrated": the rig.json entry it started
+        from), reprojection_rms_px, separate_rms_px[, focal_rel_error,
+        focal_rel_error_without_joint, ...]} or {calibrated: false, reason, rig_json
+        ("nominal" or "uncalibrated": what the calibrated rig.json holds), summary (one line)[,
+        error (the failed attempt's)]} or None (no projector), "seconds"}`` (non-finite
+        numbers as None). View k of every
         camera is taken to be the same board pose (the scan format's ``calib`` views are
         simultaneous). Ground-truth errors (synthetic scans) compare with
         ``ground_truth/rig.json`` after the best rigid alignment of the whole rig (the world
@@ -414,6 +459,7 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         BoardDetection, calibrate_camera, calibrate_rig, cross_validate, detect_boards,
         detection_report, model_of_dist, usable_detections,
     )
+    from facegeo.geometry.camera import Camera
     from facegeo.geometry.rig import Rig
 
     say = progress or (lambda msg: None)
@@ -514,15 +560,20 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     proj_name = None
     if proj_obs:
         pj = nominal.projector
-        pmodel = model_of_dist(pj.dist)
+        # an uncalibrated projector (resolution only) starts from no intrinsics: the separate
+        # solve's Zhang start needs none, its model is PROJECTOR_MODEL
+        nominal_k = isinstance(pj, Camera)
+        pmodel = model_of_dist(pj.dist) if nominal_k else PROJECTOR_MODEL
         try:
             pc = calibrate_camera([p for p, _ in proj_obs.values()],
-                                  [q for _, q in proj_obs.values()], pj.size, model=pmodel,
-                                  name=pj.name, reject_views=False)
+                                  [q for _, q in proj_obs.values()], (pj.width, pj.height),
+                                  model=pmodel, name=pj.name, reject_views=False)
             proj_name = pj.name
             init[proj_name] = pc.camera
             obs[proj_name] = proj_obs
-            proj_metrics.update({"views_used": pc.n_views_used, "separate_rms_px": pc.rms_px})
+            proj_metrics.update({"views_used": pc.n_views_used, "separate_rms_px": pc.rms_px,
+                                 "model": pmodel,
+                                 "start": "nominal" if nominal_k else "uncalibrated"})
         except InputError as exc:
             proj_metrics["error"] = str(exc)
     say("bundle-adjust the rig")
@@ -540,8 +591,13 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     if proj_name is not None:
         pr = rig_cal.camera(proj_name)
         projector = pr.replace(T_cam_world=pr.T_cam_world @ T_rig_world)
-    elif projector is not None:  # uncalibrated: where the nominal rig puts it
-        projector = projector.replace(T_cam_world=projector.T_cam_world @ T_world_nom.inverse())
+    elif projector is not None:
+        proj_metrics = _projector_not_calibrated(projector, proj_metrics)
+        log.warning("%s", proj_metrics["summary"])
+        if isinstance(projector, Camera):  # nominal numbers: where the nominal rig puts it
+            projector = projector.replace(
+                T_cam_world=projector.T_cam_world @ T_world_nom.inverse())
+        # else a Projector (resolution only) has no pose to move: written unchanged
     rig = Rig(cams, projector, _lights_to_world(nominal.lights, T_world_nom))
     rig.save(out / "rig.json")
     truth = None
@@ -585,11 +641,12 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     metrics["rig_reference"] = rig_cal.reference
     if proj_name is not None:
         pr = rig_cal.camera(proj_name)
+        proj_metrics["calibrated"] = True
         proj_metrics["reprojection_rms_px"] = rig_cal.rms_px[proj_name]
         r, q = rig_cal.residuals[proj_name]
         _residual_plot(out / f"residuals_{proj_name}.png", pr.size, r, q, proj_name)
         _write_yaml(out / f"{proj_name}.yml", pr, rig_cal.rms_px[proj_name], [])
-        if truth is not None and truth.projector is not None:
+        if truth is not None and truth.projector_calibrated:
             t = truth.projector
             T_est = pr.T_cam_world @ T_gt
             sep = init[proj_name]
