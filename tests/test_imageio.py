@@ -921,3 +921,85 @@ def test_noise_patterns_do_not_take_facegeos_own_messages(tmp_path):
         "Corrupt JPEG data: 563 extraneous bytes before marker 0xd9",
         "[ WARN:0@0.021] global grfmt_png.cpp:793 readFromStreamOrBuffer PNG input buffer is",
         "[ERROR:0@0.022] global loadsave.cpp:1390 imdecode_ imdecode_(''): can't read data"))
+
+
+def test_a_descriptor_saved_during_a_read_and_put_back_after_does_not_loop(capfd):
+    """The dup / dup2 idiom around a read leaves fd 1 on the readers' pipe after it ends; the
+    next read must keep sending lines to the real stdout (it took the pipe for the
+    destination: the pump wrote its own output back into the pipe, spinning, and everything
+    printed after was lost)."""
+    from facegeo.capture import _native_output as no_
+
+    with no_._quiet_native_output():
+        saved = os.dup(1)  # a user silencing fd 1 meanwhile ...
+    os.dup2(saved, 1)  # ... and putting it back after the read: fd 1 is now the pipe
+    os.close(saved)
+    with no_._quiet_native_output():
+        os.write(1, b"during the next read\n")
+    os.write(1, b"after it\n")
+    print("printed after", flush=True)
+    deadline = time.monotonic() + 10
+    out = ""
+    while time.monotonic() < deadline and "printed after" not in out:
+        out += capfd.readouterr().out
+        time.sleep(0.01)
+    assert out.splitlines() == ["during the next read", "after it", "printed after"]
+
+
+def _run_python(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+
+
+def test_a_child_forked_during_a_read_writes_to_the_real_stdout():
+    """A child forked while a read is open (multiprocessing with fork beside read-ahead
+    threads) writes to the process's real stdout, not into the parent's pipe that nothing in
+    the child drains (its output was lost once the parent exited)."""
+    r = _run_python(
+        "import os, time\n"
+        "from facegeo.capture import _native_output as no_\n"
+        "with no_._quiet_native_output():\n"
+        "    pid = os.fork()\n"
+        "    if pid == 0:\n"
+        "        time.sleep(0.5)\n"  # the parent is gone by then
+        "        os.write(1, b'child done\\n')\n"
+        "        with no_._quiet_native_output():\n"  # the child's own reads work
+        "            os.write(1, b'child read\\n')\n"
+        "        os._exit(0)\n"
+        "print('parent done', flush=True)\n")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == ["parent done", "child done", "child read"]
+
+
+def test_lines_printed_while_a_read_is_open_at_exit_are_not_lost():
+    """A read still open when the interpreter exits (a daemon thread inside one): what was
+    printed meanwhile reaches stdout / stderr (it was left in the pipe: 0–2 of 5 lines
+    arrived, the stderr line never)."""
+    r = _run_python(
+        "import os, threading, time\n"
+        "from facegeo.capture import _native_output as no_\n"
+        "inside = threading.Event()\n"
+        "def reader():\n"
+        "    with no_._quiet_native_output():\n"
+        "        inside.set()\n"
+        "        time.sleep(30)\n"
+        "threading.Thread(target=reader, daemon=True).start()\n"
+        "inside.wait(10)\n"
+        "for i in range(5):\n"
+        "    print(f'line {i}')\n"
+        "os.write(2, b'err line\\n')\n")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == [f"line {i}" for i in range(5)]
+    assert r.stderr == "err line\n"
+
+
+def test_exr_noise_is_hidden_whatever_the_path():
+    """OpenEXR's own line names the file first; a path with parentheses (``scan (2)``) is
+    still noise, facegeo's message quoting one is not."""
+    from facegeo.capture import _native_output as no_
+
+    assert no_._NOISE_RE.search("/tmp/scan (2)/mid.exr: (EXR_ERR_BAD_CHUNK_LEADER) Preparing "
+                                "to read scanline 32")
+    assert not no_._NOISE_RE.search(
+        "/tmp/scan (2)/mid.exr: cannot read OpenEXR pixel data (truncated or corrupt file: "
+        "/tmp/scan (2)/mid.exr: (EXR_ERR_BAD_CHUNK_LEADER) bad)")

@@ -13,6 +13,7 @@ reaches the terminal. :func:`_quiet_native_output` says how.
 from __future__ import annotations
 
 import array
+import atexit
 import contextlib
 import functools
 import logging
@@ -48,8 +49,9 @@ def _flush_c_stdio() -> None:
 #: against OpenEXR 3.5 and the OpenCV 5.0 wheels.
 _NOISE_PATTERNS = (
     # OpenEXR core on fd 2: "<file>: (EXR_ERR_BAD_CHUNK_LEADER) Preparing to read scanline ...";
-    # no parenthesis before the code, so a message that quotes one (as ours may) still passes
-    r"^[^()]*: \(EXR_ERR_[A-Z0-9_]+\) ",
+    # the file's path may hold anything (parentheses too); facegeo's own message quoting one
+    # ("cannot read OpenEXR ... (truncated or corrupt file: <file>: (EXR_ERR_...") passes
+    r"^(?!.*cannot read OpenEXR ).*?: \(EXR_ERR_[A-Z0-9_]+\) ",
     # the OpenEXR Python bindings, through sys.stdout, when the pixel data cannot be decoded
     r"^Warning: Exception raised reading pixel data ",
     # libpng inside OpenCV on fd 2: "libpng error: bad adaptive filter value"
@@ -158,7 +160,16 @@ class _Channel:
             return False
         try:
             st = os.fstat(saved)
-            if (st.st_dev, st.st_ino) != self.real_id:  # a new destination: lines go there
+            if (st.st_dev, st.st_ino) == self.pipe_id:
+                # fd already points at our pipe: someone saved it during a read and put it back
+                # after (the dup / dup2 idiom). Lines keep going where they went, and put_back
+                # restores that destination — taking the pipe for one would loop the pump's
+                # output back into its own pipe for ever
+                os.close(saved)
+                saved = _fd_above_std(os.dup(self.real)) if self.real >= 0 else -1
+                if saved < 0:
+                    return False
+            elif (st.st_dev, st.st_ino) != self.real_id:  # a new destination: lines go there
                 real = _fd_above_std(os.dup(saved))
                 with self.lock:
                     old, self.real, self.real_id = self.real, real, (st.st_dev, st.st_ino)
@@ -547,3 +558,57 @@ def console_stream() -> TextIO:
         except OSError:
             return open(os.devnull, "w", encoding=enc)
     return os.fdopen(fd, "w", buffering=1, encoding=enc, errors="replace")
+
+
+def _after_fork_in_child() -> None:
+    """In a forked child: undo a redirection the parent had open (the child would write into
+    the parent's pipe, which nothing in the child drains: its output lost once the parent
+    exits, or a writer blocked on the full pipe), close the parent's pipes, and start from no
+    redirection with fresh locks (one held by another parent thread at the fork would never be
+    released). The child makes its own pump at its first read."""
+    global _quiet_users, _quiet_window, _quiet_lock, _pump, _reading, _noise_lock
+    window = _quiet_window
+    if window is not None:
+        for ch in window.channels:
+            if ch.saved >= 0:
+                try:
+                    os.dup2(ch.saved, ch.fd)
+                except OSError:  # pragma: no cover
+                    pass
+        for name, stand_in in window.streams.items():
+            if getattr(sys, name) is stand_in:
+                setattr(sys, name, stand_in._stream)
+    pump = _pump
+    if pump is not None:
+        fds = [pump._wake_r, pump._wake_w] if hasattr(pump, "_wake_r") else []
+        for ch in pump.channels.values():
+            fds += [ch.read_end, ch.write_end, ch.real, ch.saved]
+        for fd in fds:
+            if fd is not None and fd > 2:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+    _pump = None
+    _quiet_users, _quiet_window = 0, None
+    _quiet_lock = threading.Lock()
+    _noise_lock = threading.Lock()
+    _reading = threading.local()
+
+
+def _at_exit() -> None:
+    """At interpreter exit with a read still open (a daemon thread reading, an interrupted
+    read): put the descriptors and streams back and let the pump pass on what is in the pipes
+    while it still runs (daemon threads stop after the exit handlers), so the last lines
+    printed are not left in a pipe."""
+    global _quiet_users, _quiet_window
+    with _quiet_lock:
+        window, _quiet_window = _quiet_window, None
+        _quiet_users = 0
+        if window is not None:
+            _restore(window)
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+atexit.register(_at_exit)
