@@ -593,6 +593,37 @@ def test_projector_without_board_views_is_kept_and_reported(projector_scan, tmp_
         assert part in line, line
 
 
+def test_an_uncalibrated_projector_as_reference_names_why(projector_scan, tmp_path, monkeypatch):
+    """``--reference`` naming a projector the stage cannot calibrate is one clear error saying
+    why — no board views (checked before any detection), or views that did not calibrate it —
+    not the bundle adjustment's "no camera 'projector'" after all the detection."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.cli import main
+    from facegeo.errors import InputError
+    from facegeo.pipeline import calibrate as stage
+
+    scan = tmp_path / "scan"
+    name = _projector_variant(projector_scan, scan, projector="uncalibrated",
+                              views=False).projector.name
+    assert main(["calibrate", str(scan), "--out", str(tmp_path / "cal"), "-q",
+                 "--no-cross-validation", "--reference", name]) == 2
+    with pytest.raises(InputError, match=rf"reference: the projector '{name}' can hold the "
+                                         r"rig's frame only when it is calibrated"):
+        stage.run_calibrate(scan, tmp_path / "cal1", reference=name)
+    scan2 = tmp_path / "scan2"
+    _projector_variant(projector_scan, scan2, projector="uncalibrated", views=True)
+
+    def too_few(*a, **k):
+        raise InputError("projector: 1 of 4 projector views have ≥ 6 decodable corners, need 3")
+
+    monkeypatch.setattr(stage, "_projector_observations", too_few)
+    with pytest.raises(InputError, match=rf"reference: the projector '{name}' cannot hold the "
+                                         r"rig's frame: it was not calibrated \(projector: 1 "
+                                         r"of 4 projector views"):
+        stage.calibrate_products(load_scan(scan2), tmp_path / "cal2", reference=name,
+                                 cross_validation=False)
+
+
 def test_projector_calibrates_from_an_uncalibrated_entry(projector_scan, tmp_path):
     """rig.json's projector is a resolution-only entry (the start of every real rig) and the
     scan has projector board views: the projector is calibrated from them with no nominal

@@ -947,7 +947,8 @@ def test_vector_pair_block_takes_strided_accumulators_through_the_plain_loops():
     """The vector block stores 32 consecutive elements: decision words / margins given as a
     strided view (every other column of a larger array) must take the plain loops, which
     honour strides — the same values as contiguous accumulators, and nothing written in the
-    view's gaps. Fails if the block writes strided views as if contiguous."""
+    view's gaps; a crop no reshape can view (it would be copied and the results lost) is
+    refused. Fails if the block writes strided views as if contiguous."""
     from facegeo.geometry import _sl_kernels as k
 
     rng = np.random.default_rng(11)
@@ -965,6 +966,11 @@ def test_vector_pair_block_takes_strided_accumulators_through_the_plain_loops():
     np.testing.assert_array_equal(big_m[:, :, ::2], want[1])
     assert not big_w[:, :, 1::2].any() and not big_m[:, :, 1::2].any()
     assert want[0].any() and want[1].max() > 100
+    # a crop that no reshape can view (it would be copied, and the results lost): refused
+    crop_w = np.zeros((1, 17, 96), np.uint16)[:, :, :64]
+    with pytest.raises(ValueError, match=r"words: .* cannot be seen as .* without a copy"):
+        k.pairs_tiled(fr, *args, crop_w, np.zeros((2, 17, 64), np.uint8), 510.0, lmax, lmin,
+                      tile=64, parallel=False)
 
 
 def test_diff_margin_is_exact_or_declined():

@@ -325,7 +325,7 @@ def test_code_fingerprint_hashes_the_package_sources_only(tmp_path, monkeypatch)
     (pkg / "sub" / "other.py").rename(pkg / "sub" / "mod.py")
     # code that runs in no stage (the command line, benchmarks, the report page) is left out
     (pkg / "pipeline" / "benchmarks").mkdir(parents=True)
-    for rel in ("cli.py", "pipeline/bench.py", "pipeline/report.py", "pipeline/benchmarks/x.py"):
+    for rel in ("cli.py", "pipeline/report.py", "pipeline/benchmarks/x.py"):
         (pkg / rel).write_text("edited = True\n")
     assert fingerprint(pkg) == first
     (pkg / "pipeline" / "mesh.py").write_text("")  # stage code is not
@@ -374,3 +374,19 @@ def test_stages_made_from_replaced_upstream_products_are_marked_stale(scan):
     _toy_pipeline(calls).run(scan)  # b reruns: its entry is rewritten, the mark goes
     assert mark_stale_stages(out) == {}
     assert "stale_upstream" not in json.loads((out / "metrics.json").read_text())["b"]
+
+
+def test_staleness_reaches_every_stage_made_from_replaced_products(tmp_path):
+    """a → b → c: when a runs again alone, c (made from b, made from the old a) is as stale
+    as b, and both name the stage that ran again."""
+    from facegeo.pipeline.cache import mark_stale_stages
+
+    out = tmp_path / "out"
+    for name, key, up in (("a", "a2", None), ("b", "b1", {"a": "a1"}), ("c", "c1", {"b": "b1"})):
+        (out / name).mkdir(parents=True)
+        doc = {"key": key} | ({"upstream": up} if up else {})
+        (out / name / "stage.json").write_text(json.dumps(doc))
+    (out / "metrics.json").write_text(json.dumps({"a": {}, "b": {}, "c": {}}))
+    assert mark_stale_stages(out) == {"b": ["a"], "c": ["a"]}
+    (out / "b" / "stage.json").write_text(json.dumps({"key": "b2", "upstream": {"a": "a2"}}))
+    assert mark_stale_stages(out) == {"c": ["b"]}

@@ -470,14 +470,15 @@ class PairGroup:
         the 8-bit RGB vector kernel runs (it costs nothing there); returns whether it was
         (otherwise the finish takes the min plane by plane)."""
         stop = self.pixels if stop is None else int(stop)
-        W = words.reshape(words.shape[0], -1)
-        M = margin.reshape(margin.shape[0], -1)
+        W, M = _view(words, (words.shape[0], -1), "words"), _view(margin, (margin.shape[0], -1),
+                                                                   "margin")
+        lmax, lmin = _view(lmax, (-1,), "lmax"), _view(lmin, (-1,), "lmin")
         if W.dtype != self.bitvals.dtype:
             raise ValueError(f"PairGroup.run: words of dtype {W.dtype}, prepared for "
                              f"{self.bitvals.dtype}")
         args = (self.pos, self.neg, self.scale, self.rows, self.bitvals, self.planes, W, M,
-                self.steps, lmax.reshape(-1), lmin.reshape(-1), int(tile))
-        MM = None if mmin is None else mmin.reshape(mmin.shape[0], -1)
+                self.steps, lmax, lmin, int(tile))
+        MM = None if mmin is None else _view(mmin, (mmin.shape[0], -1), "mmin")
         # the vector block stores 32 consecutive elements: C-contiguous accumulators only
         # (a strided view takes the plain loops, which honour strides)
         if self.rgb8 and all(a.flags.c_contiguous for a in (W, M, lmax, lmin)
@@ -490,6 +491,20 @@ class PairGroup:
         self.plain(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
                    int(offset))
         return False
+
+
+def _view(a: np.ndarray, shape: tuple, name: str) -> np.ndarray:
+    """``a`` reshaped to ``shape`` as a view of the same memory — the kernels write into it —
+    or ValueError: ``reshape`` would copy an accumulator whose layout cannot be reshaped in
+    place (a column crop of a larger array, say) and the results would be lost with the copy."""
+    v = a.view()
+    try:
+        v.shape = shape
+    except AttributeError:
+        raise ValueError(f"{name}: an array of shape {a.shape} and strides {a.strides} that "
+                         f"cannot be seen as {shape} without a copy (results written into a "
+                         "copy would be lost); pass a C-contiguous array") from None
+    return v
 
 
 def _flat(a: np.ndarray) -> tuple[np.ndarray, int]:

@@ -123,10 +123,10 @@ class StageResult:
 
 #: Package files that run in no stage, left out of :func:`code_fingerprint` (relative paths;
 #: a trailing ``/``: a folder): the command line (its choices reach a stage as settings, which
-#: are in the key), the benchmarks and the report page (written after the stages, from their
-#: products). An edit there reruns nothing.
-NOT_STAGE_CODE = ("cli.py", "__main__.py", "pipeline/bench.py", "pipeline/report.py",
-                  "pipeline/benchmarks/")
+#: are in the key), the registered benchmarks and the report page (written after the stages,
+#: from their products). An edit there reruns nothing. (``pipeline/bench.py`` is stage code:
+#: the stages measure their peak memory with its ``peak_rss_mb``.)
+NOT_STAGE_CODE = ("cli.py", "__main__.py", "pipeline/report.py", "pipeline/benchmarks/")
 #: Set to ``ignore`` to leave facegeo's code out of the stage keys (a developer editing code
 #: that does not change the products, at their own risk: products of other code are reused).
 CODE_KEY_ENV = "FACEGEO_STAGE_KEY_CODE"
@@ -303,9 +303,10 @@ def mark_stale_stages(out_dir: str | os.PathLike) -> dict[str, list[str]]:
     products that have since been replaced; return ``{stage: [changed upstream stages]}``.
 
     A stage's manifest records the keys of the stages it read (``upstream``); when one of those
-    stages has run again since (``facegeo mesh`` alone after a full ``reconstruct``: the atlas,
-    projection, fit and render on disk were made from the previous mesh), its entry gets
-    ``stale_upstream`` (the changed upstream stages; the report and the summary table show it)
+    stages has run again since, or is itself stale (``facegeo mesh`` alone after a full
+    ``reconstruct``: the atlas, projection, relight, fit and render on disk were all made from
+    the previous mesh), its entry gets ``stale_upstream`` (the stages that ran again since, here
+    ``["mesh"]``; the report and the summary table show it)
     until it runs again — a successful run rewrites the whole entry, so the mark goes with it.
     The figures stay: they describe the products on disk. The file is rewritten (atomically)
     only when a mark changes; a missing or unreadable file is left as it is."""
@@ -325,14 +326,32 @@ def mark_stale_stages(out_dir: str | os.PathLike) -> dict[str, list[str]]:
             keys[name] = m.get("key") if m is not None else None
         return keys[name]
 
+    upstream_of: dict[str, dict] = {}
+    for name in doc:
+        if isinstance(name, str) and name not in (".", "..") and "/" not in name:
+            m = _read_manifest(out_dir / name)
+            if m is not None and isinstance(m.get("upstream"), dict):
+                upstream_of[name] = m["upstream"]
+    roots: dict[str, set] = {}  # stage -> the upstream stages that ran again since
+
+    def roots_of(name: str, seen: tuple = ()) -> set:
+        # direct: an upstream stage whose key moved; indirect: an upstream stage that is
+        # itself stale (its products, and so this stage's, come from replaced ones)
+        if name not in roots:
+            found: set = set()
+            for a, k in upstream_of.get(name, {}).items():
+                if key_of(a) != k:
+                    found.add(a)
+                elif a not in seen:
+                    found |= roots_of(a, seen + (name,))
+            roots[name] = found
+        return roots[name]
+
     stale, changed = {}, False
     for name, entry in doc.items():
         if not isinstance(entry, dict) or not isinstance(name, str) or "/" in name:
             continue
-        m = _read_manifest(out_dir / name) if name not in (".", "..") else None
-        upstream = m.get("upstream") if m is not None else None
-        moved = sorted(a for a, k in upstream.items() if key_of(a) != k) \
-            if isinstance(upstream, dict) else []
+        moved = sorted(roots_of(name))
         if moved:
             stale[name] = moved
         if moved != entry.get("stale_upstream", []):

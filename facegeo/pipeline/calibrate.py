@@ -171,8 +171,9 @@ def _projector_not_calibrated(projector, attempt: dict | None) -> dict:
     if attempt is None:
         why = "no [calib.projector] board views"
     else:
-        why = ("its [calib.projector] board views did not calibrate it: "
-               f"{attempt.get('error', 'no usable view')}")
+        err = str(attempt.get("error", "no usable view"))
+        err = err[len("projector: "):] if err.startswith("projector: ") else err
+        why = f"its [calib.projector] board views did not calibrate it: {err}"
     if isinstance(projector, Camera):
         kept, what = "nominal", ("rig.json's nominal projector (its intrinsics and pose as "
                                  "given, not measured)")
@@ -367,6 +368,12 @@ def _check_request(scan, reference) -> None:
         names = list(scan.camera_names)
         if scan.rig.projector is not None and scan.has("calib.projector"):
             names.append(scan.rig.projector.name)
+        proj = scan.rig.projector
+        if reference not in names and proj is not None and reference == proj.name:
+            raise InputError(f"reference: the projector {fmt_value(reference)} can hold the "
+                             "rig's frame only when it is calibrated, from [calib.projector] "
+                             f"board views, which the scan has not; give a camera: "
+                             f"{', '.join(names)}")
         if reference not in names:
             raise InputError(f"reference: no camera {fmt_value(reference)}; cameras: "
                              f"{', '.join(names)}")
@@ -581,6 +588,11 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     refine = set(calibs) | ({proj_name} if proj_name else set())
     if reference is None and scan.camera_names[0] not in calibs:
         reference = next(iter(calibs))  # the rig frame: a camera calibrated from its own views
+    pj = nominal.projector
+    if reference is not None and pj is not None and reference == pj.name and proj_name is None:
+        why = (proj_metrics or {}).get("error", "the scan has no [calib.projector] board views")
+        raise InputError(f"reference: the projector {pj.name!r} cannot hold the rig's frame: "
+                         f"it was not calibrated ({why}); give a camera as --reference")
     rig_cal = calibrate_rig(obs, init, reference=reference, loss=loss, models=models,
                             refine_intrinsics=refine)
     T_rig_world, T_world_nom, metrics["world"] = _world_frame(scan, rig_cal, obs, proj_name,

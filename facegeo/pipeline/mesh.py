@@ -368,7 +368,9 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         ``decode_sigma_px``: the decode's median ``x``/``y`` σ), ``skipped_cameras`` (when
         any), ``points``, ``confirmed_fraction``, ``median_sigma_mm``, ``mesh`` (the
         reconstruction's settings and counts: depth, point weight, trim quantile, …),
-        ``faces``, ``vertices``, ``area_mm2``, ``unobserved_area_mm2``,
+        ``faces``, ``vertices``, ``area_mm2``, ``unobserved_area_mm2``, ``warnings`` (when a
+        camera lost most of its triangulated pixels as inconsistent with the rig,
+        :data:`INCONSISTENT_WARN_FRACTION`: also logged),
         ``unobserved_area_fraction``, seconds per step, and on synthetic scans
         ``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg``.
     settings : dict
@@ -582,7 +584,8 @@ def _geometry_warnings(per_cam: dict, pair_route: bool) -> list[str]:
     out = []
     for name, c in per_cam.items():
         r = c["rejected"]
-        tried = r.get("ok", 0) + r.get("inconsistent", 0)
+        # every pixel that got a triangulation (the rest had no code, or one too uncertain)
+        tried = sum(v for k, v in r.items() if k not in ("no_code", "behind", "uncertain"))
         if tried and r.get("inconsistent", 0) > INCONSISTENT_WARN_FRACTION * tried:
             fix = ("the cameras' calibration does not fit the decodes: calibrate them "
                    "(`facegeo calibrate`) and mesh with --rig calibrated" if pair_route else
