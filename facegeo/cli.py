@@ -499,10 +499,11 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
 
 
 def _write_report(out: Path) -> None:
+    from facegeo.pipeline.cache import stale_stages
     from facegeo.pipeline.report import summary_table, write_report
 
     path = write_report(out)
-    print(summary_table(json.loads((out / "metrics.json").read_text())))
+    print(summary_table(json.loads((out / "metrics.json").read_text()), stale_stages(out)))
     print(f"report: {path}")
 
 

@@ -354,32 +354,32 @@ def test_code_fingerprint_is_computed_once_per_process(tmp_path, monkeypatch):
 
 def test_stages_made_from_replaced_upstream_products_are_marked_stale(scan):
     """After an upstream stage runs again on its own (``facegeo mesh`` after a full
-    reconstruct), the downstream products on disk were made from its previous products: the
-    report marks their entries ``stale_upstream`` (the summary table says so) until they run
-    again, and a run of the whole chain clears the mark."""
-    from facegeo.pipeline.cache import mark_stale_stages
+    reconstruct), the downstream products on disk were made from its previous products: they
+    are stale (the summary table says so, the figures stay) until they run again, and a run of
+    the whole chain clears it."""
+    from facegeo.pipeline.cache import stale_stages
     from facegeo.pipeline.report import summary_table
 
     calls: list[str] = []
     _toy_pipeline(calls).run(scan)
     out = scan / "out"
-    assert mark_stale_stages(out) == {}
+    assert stale_stages(out) == {}
     (scan / "data.txt").write_text("1 2 3 4")
     _toy_pipeline(calls).run(scan, only="a")  # a again, b left as it was
     assert calls == ["a", "b", "a"]
-    assert mark_stale_stages(out) == {"b": ["a"]}
+    assert stale_stages(out) == {"b": ["a"]}
     doc = json.loads((out / "metrics.json").read_text())
-    assert doc["b"]["stale_upstream"] == ["a"] and doc["b"]["total"] == 12  # figures kept
-    assert "[stale: made from an older a]" in summary_table(doc)
-    _toy_pipeline(calls).run(scan)  # b reruns: its entry is rewritten, the mark goes
-    assert mark_stale_stages(out) == {}
-    assert "stale_upstream" not in json.loads((out / "metrics.json").read_text())["b"]
+    assert doc["b"]["total"] == 12  # the figures of the products on disk
+    assert "b" in summary_table(doc, stale_stages(out)).split("[stale: made from an older a]")[0]
+    assert "[stale" not in summary_table(doc)
+    _toy_pipeline(calls).run(scan)  # b reruns
+    assert stale_stages(out) == {}
 
 
 def test_staleness_reaches_every_stage_made_from_replaced_products(tmp_path):
     """a → b → c: when a runs again alone, c (made from b, made from the old a) is as stale
     as b, and both name the stage that ran again."""
-    from facegeo.pipeline.cache import mark_stale_stages
+    from facegeo.pipeline.cache import stale_stages
 
     out = tmp_path / "out"
     for name, key, up in (("a", "a2", None), ("b", "b1", {"a": "a1"}), ("c", "c1", {"b": "b1"})):
@@ -387,6 +387,6 @@ def test_staleness_reaches_every_stage_made_from_replaced_products(tmp_path):
         doc = {"key": key} | ({"upstream": up} if up else {})
         (out / name / "stage.json").write_text(json.dumps(doc))
     (out / "metrics.json").write_text(json.dumps({"a": {}, "b": {}, "c": {}}))
-    assert mark_stale_stages(out) == {"b": ["a"], "c": ["a"]}
+    assert stale_stages(out) == {"b": ["a"], "c": ["a"]}
     (out / "b" / "stage.json").write_text(json.dumps({"key": "b2", "upstream": {"a": "a2"}}))
-    assert mark_stale_stages(out) == {"c": ["b"]}
+    assert stale_stages(out) == {"c": ["b"]}

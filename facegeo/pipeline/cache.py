@@ -47,7 +47,7 @@ from facegeo.checks import fmt_value
 log = logging.getLogger(__name__)
 
 __all__ = ["StageSpec", "StageContext", "StageResult", "Pipeline", "MANIFEST_NAME", "code_fingerprint",
-           "forget_missing_stages", "mark_stale_stages", "record_metrics"]
+           "forget_missing_stages", "record_metrics", "stale_stages"]
 
 #: The manifest written last into every finished stage folder.
 MANIFEST_NAME = "stage.json"
@@ -298,26 +298,17 @@ def forget_missing_stages(out_dir: str | os.PathLike) -> list[str]:
     return gone
 
 
-def mark_stale_stages(out_dir: str | os.PathLike) -> dict[str, list[str]]:
-    """Mark in ``out_dir/metrics.json`` every stage whose products were made from upstream
-    products that have since been replaced; return ``{stage: [changed upstream stages]}``.
+def stale_stages(out_dir: str | os.PathLike) -> dict[str, list[str]]:
+    """The stages under ``out_dir`` whose products were made from upstream products that have
+    since been replaced: ``{stage: [the upstream stages that ran again since]}``.
 
     A stage's manifest records the keys of the stages it read (``upstream``); when one of those
     stages has run again since, or is itself stale (``facegeo mesh`` alone after a full
     ``reconstruct``: the atlas, projection, relight, fit and render on disk were all made from
-    the previous mesh), its entry gets ``stale_upstream`` (the stages that ran again since, here
-    ``["mesh"]``; the report and the summary table show it)
-    until it runs again — a successful run rewrites the whole entry, so the mark goes with it.
-    The figures stay: they describe the products on disk. The file is rewritten (atomically)
-    only when a mark changes; a missing or unreadable file is left as it is."""
+    the previous mesh), the stage is stale — here ``{"atlas": ["mesh"], ..., "render":
+    ["mesh"]}`` — until it runs again. Read from the stage folders' manifests each time (not
+    stored): the report and the printed summary show it."""
     out_dir = Path(out_dir)
-    path = out_dir / "metrics.json"
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-    if not isinstance(doc, dict):
-        return {}
     keys: dict[str, str | None] = {}
 
     def key_of(name: str) -> str | None:
@@ -327,11 +318,14 @@ def mark_stale_stages(out_dir: str | os.PathLike) -> dict[str, list[str]]:
         return keys[name]
 
     upstream_of: dict[str, dict] = {}
-    for name in doc:
-        if isinstance(name, str) and name not in (".", "..") and "/" not in name:
-            m = _read_manifest(out_dir / name)
-            if m is not None and isinstance(m.get("upstream"), dict):
-                upstream_of[name] = m["upstream"]
+    try:
+        folders = [p.name for p in out_dir.iterdir() if p.is_dir()]
+    except OSError:
+        return {}
+    for name in folders:
+        m = _read_manifest(out_dir / name)
+        if m is not None and isinstance(m.get("upstream"), dict):
+            upstream_of[name] = m["upstream"]
     roots: dict[str, set] = {}  # stage -> the upstream stages that ran again since
 
     def roots_of(name: str, seen: tuple = ()) -> set:
@@ -347,22 +341,7 @@ def mark_stale_stages(out_dir: str | os.PathLike) -> dict[str, list[str]]:
             roots[name] = found
         return roots[name]
 
-    stale, changed = {}, False
-    for name, entry in doc.items():
-        if not isinstance(entry, dict) or not isinstance(name, str) or "/" in name:
-            continue
-        moved = sorted(roots_of(name))
-        if moved:
-            stale[name] = moved
-        if moved != entry.get("stale_upstream", []):
-            if moved:
-                entry["stale_upstream"] = moved
-            else:
-                entry.pop("stale_upstream", None)
-            changed = True
-    if changed:
-        atomic_write_text(path, json.dumps(doc, indent=2, sort_keys=True, allow_nan=False))
-    return stale
+    return {name: sorted(r) for name in sorted(upstream_of) if (r := roots_of(name))}
 
 
 def _read_manifest(final: Path) -> dict | None:

@@ -23,7 +23,7 @@ from typing import Any
 from facegeo import __version__
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text
-from facegeo.pipeline.cache import forget_missing_stages, mark_stale_stages
+from facegeo.pipeline.cache import forget_missing_stages, stale_stages
 from facegeo.pipeline.reconstruct import STAGES
 
 __all__ = ["PIPELINE_ORDER", "REPORT_NAME", "write_report", "summary_rows", "summary_table"]
@@ -90,7 +90,7 @@ def _is_error_metric(name: str) -> bool:
     return any(w in low for w in _ERROR_WORDS)
 
 
-def summary_rows(metrics: dict) -> list[dict]:
+def summary_rows(metrics: dict, stale: dict | None = None) -> list[dict]:
     """One row per stage: its time and its top-level error metrics (speed against error).
 
     Returns
@@ -98,8 +98,8 @@ def summary_rows(metrics: dict) -> list[dict]:
     list of dict
         ``{"stage", "seconds", "errors": {name: value}, "stale": [stage, …]}`` in pipeline
         order; ``seconds`` is None when the stage did not record it; ``stale`` lists the upstream
-        stages that ran again since this stage's products were made
-        (:func:`facegeo.pipeline.cache.mark_stale_stages`). A stage run on a rig other than the true one (a
+        stages that ran again since this stage's products were made (from ``stale``, the
+        ``{stage: [...]}`` of :func:`facegeo.pipeline.cache.stale_stages`; empty without it). A stage run on a rig other than the true one (a
         calibration's: its world frame is its own) shows its ``after_rigid_alignment`` figures
         as ``<name>_aligned`` in place of the same figures in the generator's frame (the gauge
         dominates those: 2–4 mm against a 0.08 mm shape error on the small preset).
@@ -120,9 +120,8 @@ def summary_rows(metrics: dict) -> list[dict]:
             # the one after the rigid alignment, shown in their place
             errors = {f"{k}_aligned": v for k, v in _errors_of(aligned).items()} | {
                 k: v for k, v in errors.items() if k not in _errors_of(aligned)}
-        stale = m.get("stale_upstream")
         rows.append({"stage": stage, "seconds": sec if isinstance(sec, (int, float)) else None,
-                     "errors": errors, "stale": list(stale) if isinstance(stale, list) else []})
+                     "errors": errors, "stale": list((stale or {}).get(stage, []))})
     return rows
 
 
@@ -132,9 +131,10 @@ def _errors_of(m: dict) -> dict:
             if _is_error_metric(k) and isinstance(v, (int, float)) and not isinstance(v, bool)}
 
 
-def summary_table(metrics: dict) -> str:
-    """The speed-against-error summary as plain text, for the terminal."""
-    rows = summary_rows(metrics)
+def summary_table(metrics: dict, stale: dict | None = None) -> str:
+    """The speed-against-error summary as plain text, for the terminal (``stale``: see
+    :func:`summary_rows`)."""
+    rows = summary_rows(metrics, stale)
     if not rows:
         return "no stage metrics"
     lines = [f"{'stage':<10} {'seconds':>9}  error metrics"]
@@ -219,11 +219,10 @@ def write_report(out_dir, *, title: str | None = None) -> Path:
     """
     out_dir = Path(out_dir)
     dropped = forget_missing_stages(out_dir)
-    mark_stale_stages(out_dir)
     metrics = _load_metrics(out_dir)
     stages = _ordered(metrics)
     title = title or f"facegeo report: {out_dir.resolve().parent.name}"
-    rows = summary_rows(metrics)
+    rows = summary_rows(metrics, stale_stages(out_dir))
     esc = html.escape
     body = [f"<h1>{esc(title)}</h1>",
             f"<p>facegeo {esc(__version__)}, written {esc(time.strftime('%Y-%m-%d %H:%M:%S'))}."
