@@ -285,14 +285,16 @@ def _cmd_demo(args) -> int:
 
 def _cmd_calibrate(args) -> int:
     """Calibrate the scan's cameras (and projector, when it has board views) from ``calib/``."""
-    from facegeo.pipeline.calibrate import run_calibrate
+    from facegeo.pipeline.calibrate import SUMMARY_RECORD, run_calibrate
 
     if args.out is not None:
         _check_output_dir(args.out, "--out")
-    m = run_calibrate(args.scan, args.out, model=args.model, loss=args.loss,
-                      reference=args.reference, legacy=args.legacy_board,
-                      cross_validation=not args.no_cross_validation,
-                      progress=None if args.quiet else (lambda s: print(s, file=sys.stderr)))
+    # "projector: not calibrated (...)" is printed below, beside the table: not its warning too
+    with _without_records("facegeo.pipeline.calibrate", SUMMARY_RECORD, "projector"):
+        m = run_calibrate(args.scan, args.out, model=args.model, loss=args.loss,
+                          reference=args.reference, legacy=args.legacy_board,
+                          cross_validation=not args.no_cross_validation,
+                          progress=None if args.quiet else (lambda s: print(s, file=sys.stderr)))
     # (header, metrics key[, fallback key]): the errors against the generator's truth on a
     # synthetic scan, else against a reference calibration shipped with the data (real scans)
     cols = (("model", "model"), ("rms px", "reprojection_rms_px"), ("views", "views_used"),
@@ -325,6 +327,21 @@ def _cmd_calibrate(args) -> int:
                                          if not isinstance(v, (dict, list))))
     print(f"wrote {args.out or Path(args.scan) / 'out' / 'calibrate'}")
     return 0
+
+
+@contextlib.contextmanager
+def _without_records(logger: str, attr: str, value: str):
+    """Drop the records of ``logger`` whose attribute ``attr`` is ``value`` while the block
+    runs (a library warning that repeats a line the command prints itself)."""
+    def keep(record) -> bool:
+        return getattr(record, attr, None) != value
+
+    target = logging.getLogger(logger)
+    target.addFilter(keep)
+    try:
+        yield
+    finally:
+        target.removeFilter(keep)
 
 
 def _print_skipped_views(out: Path) -> None:
@@ -502,8 +519,10 @@ def _write_report(out: Path) -> None:
     from facegeo.pipeline.cache import stale_stages
     from facegeo.pipeline.report import summary_table, write_report
 
-    path = write_report(out)
-    print(summary_table(json.loads((out / "metrics.json").read_text()), stale_stages(out)))
+    # read from the stages' manifests once, for the report and the summary printed here
+    stale = stale_stages(out)
+    path = write_report(out, stale=stale)
+    print(summary_table(json.loads((out / "metrics.json").read_text()), stale))
     print(f"report: {path}")
 
 

@@ -523,3 +523,41 @@ def test_render_stage_hashes_the_texel_table_once(parts, tmp_path, monkeypatch):
     render_products(load_scan(root), out, tmp_path / "again", views=views[:2], env="uniform",
                     resynthesis=False, baseline=False, reference=False)
     assert len(hashed) == 2
+
+
+def test_render_stage_reads_its_inputs_once_and_renders_the_same_images(parts, tmp_path,
+                                                                        monkeypatch):
+    """The views of one render stage share the atlas, texel table and source cameras (read
+    once, not once per view); every image is bit for bit the one a view rendered on its own
+    makes, and each view gets its own memory maps of the fields (their pages leave with the
+    view, as when each view read its own)."""
+    import facegeo.render as R
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.render import render_one, render_products
+    from facegeo.surface.atlas import Atlas, Texels
+
+    root = parts["root"]
+    out = root / "out"
+    scan = load_scan(root)
+    views = ["cam_left", "orbit:cam_left:30", "orbit:cam_left:-30"]
+    kw = dict(env="sky", reference=False)
+    alone = tmp_path / "alone"
+    for spec in views:  # no cache: each view reads its own inputs (the reference images)
+        render_one(scan, out, alone, camera_spec=spec, **kw)
+    reads = []
+    for owner, name in ((Atlas, "load"), (Texels, "load"), (R, "load_sources")):
+        real = getattr(owner, name)
+        monkeypatch.setattr(owner, name,
+                            lambda *a, _r=real, _n=name, **k: reads.append(_n) or _r(*a, **k))
+    fields = []
+    real_render = R.render_view
+    monkeypatch.setattr(R, "render_view", lambda cam, scene, atlas, texels, sources, *a, **k:
+                        fields.append(sources[0].field) or real_render(cam, scene, atlas,
+                                                                       texels, sources, *a, **k))
+    m = render_products(scan, out, tmp_path / "shared", views=views, **kw)
+    assert sorted(reads) == ["load", "load", "load_sources"], reads
+    assert len({id(f) for f in fields}) == len(views) and len(fields) == len(views)
+    for name in m["views"]:
+        for suffix in (".exr", "_naive.exr", ".png", "_naive.png"):
+            a = (alone / f"{name}{suffix}").read_bytes()
+            assert (tmp_path / "shared" / f"{name}{suffix}").read_bytes() == a, (name, suffix)

@@ -24,7 +24,8 @@ warning) and writes
   separate solve from the Zhang start — no nominal intrinsics needed: an uncalibrated
   ``rig.json`` entry gets :data:`PROJECTOR_MODEL` — then the joint bundle adjustment), its YAML
   and residual plot; otherwise ``metrics["projector"]`` says that it was not calibrated, why,
-  and what ``rig.json`` keeps instead (also logged as a warning);
+  and what ``rig.json`` keeps instead (also logged as a warning, its record marked with
+  :data:`SUMMARY_RECORD`: ``facegeo calibrate`` prints the line itself and drops the record);
 * ``metrics.json`` — ``{"calibrate": metrics}`` (the dict returned), by ``run_calibrate`` only.
 
 ``calibrate_products(scan, dest, **settings) -> (metrics, settings)`` is the same work as a
@@ -53,6 +54,10 @@ __all__ = ["run_calibrate", "calibrate_products", "RESIDUAL_GAIN"]
 
 #: Residual vectors are drawn this many times longer than they are.
 RESIDUAL_GAIN = 100.0
+
+#: Attribute of a log record that repeats a line of the metrics (``"projector"``: the warning
+#: of ``metrics["projector"]["summary"]``), for a caller that prints that line itself.
+SUMMARY_RECORD = "facegeo_summary"
 
 
 #: Fewest usable board views a camera is calibrated from on its own; a rig camera with fewer
@@ -605,7 +610,8 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         projector = pr.replace(T_cam_world=pr.T_cam_world @ T_rig_world)
     elif projector is not None:
         proj_metrics = _projector_not_calibrated(projector, proj_metrics)
-        log.warning("%s", proj_metrics["summary"])
+        # marked, so a caller that shows the summary itself (facegeo calibrate) can drop it
+        log.warning("%s", proj_metrics["summary"], extra={SUMMARY_RECORD: "projector"})
         if isinstance(projector, Camera):  # nominal numbers: where the nominal rig puts it
             projector = projector.replace(
                 T_cam_world=projector.T_cam_world @ T_world_nom.inverse())

@@ -429,7 +429,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     fused = tr.fuse_cameras(maps, cams, tol_sigmas=fuse_sigmas)
     t2 = time.perf_counter()
     if len(fused) < 10:
-        raise _too_few_points(decode_dir, len(fused), names, maps, pair_route)
+        raise _too_few_points(scan, rig_used, decode_dir, len(fused), names, maps, pair_route)
     normals = gm.oriented_normals(fused.p_world, fused.view_dirs, k=normals_k)
     t3 = time.perf_counter()
     spacing = tr.neighbour_spacing(fused.p_world)
@@ -544,10 +544,11 @@ def _camera_pair_maps(scan, the_rig, rig_used: str, cams: list, decode_dir: Path
                         "skipped_cameras": skipped}
 
 
-def _too_few_points(decode_dir: Path, n: int, names: list, maps: list,
+def _too_few_points(scan, rig_used: str, decode_dir: Path, n: int, names: list, maps: list,
                     pair_route: bool) -> InputError:
-    """The one-line :class:`InputError` when triangulation leaves fewer than 10 points: what
-    rejected the decoded pixels, and what to check when it was the consistency test."""
+    """The one-line :class:`InputError` when triangulation leaves fewer than 10 points: the
+    scan and rig first, what rejected the decoded pixels, and what to do when it was the
+    consistency test (the rig's geometry does not fit the decodes)."""
     from facegeo.geometry.triangulation import REASONS
 
     counts = dict.fromkeys(REASONS[2:], 0)
@@ -555,19 +556,30 @@ def _too_few_points(decode_dir: Path, n: int, names: list, maps: list,
         for k, v in m.reason_counts().items():
             if k in counts:
                 counts[k] += v
-    what = (f"{decode_dir}: only {n} points triangulated (cameras {', '.join(names)}, "
-            f"{'camera-camera' if pair_route else 'camera-projector'} triangulation)")
+    route = "camera-camera" if pair_route else "camera-projector"
+    what = (f"scan {scan.root}: the mesh stage triangulated only {n} points with the "
+            f"{rig_used!r} rig ({route} triangulation of cameras {', '.join(names)}, decodes "
+            f"in {decode_dir})")
     rejected = {k: v for k, v in sorted(counts.items(), key=lambda kv: -kv[1]) if v}
     if not rejected:
-        return InputError(f"{what}; the decode maps hold no usable codes")
+        return InputError(f"{what}; the decode maps hold no usable codes: check the "
+                          "structured-light frames and rerun the decode stage (`facegeo decode "
+                          f"{scan.root}`)")
     why = ", ".join(f"{k} {v}" for k, v in rejected.items())
     hint = ""
     if next(iter(rejected)) == "inconsistent":
+        if scan.has("calib"):
+            fix = (f"run `facegeo calibrate {scan.root}` (its [calib] board views) and mesh "
+                   "with --rig calibrated")
+        else:
+            fix = ("the scan has no [calib] board views to calibrate from: put a calibrated "
+                   "rig into its rig.json and mesh with --rig scan")
+        residual = ("the epipolar residual between the cameras: the cameras' calibration "
+                    "does not fit the decodes" if pair_route
+                    else "the camera-projector reprojection residual")
         hint = ("; 'inconsistent' means the codes disagree with the rig's geometry by more "
-                "than max_chi σ (" + ("the epipolar residual between the cameras" if pair_route
-                                      else "the camera-projector reprojection residual")
-                + "): check the rig's calibration — a nominal rig.json is no calibration; run "
-                "`facegeo calibrate` and mesh with --rig calibrated")
+                f"than max_chi σ ({residual}), as with a nominal rig.json, which is no "
+                f"calibration; to fix it, {fix}")
     return InputError(f"{what}; the decoded pixels were rejected as: {why}{hint}")
 
 

@@ -251,9 +251,11 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     come from one read of the fields and one resynthesis (``render_view(shrinkage_set=)``, each
     bit for bit its own render). ``cache``: a dict shared by the views of one stage for what
     does not depend on the view: the cross-validated λ (once per environment weights and light
-    step) and the check that the projection indexes this atlas (``check_projection_atlas``
+    step), the check that the projection indexes this atlas (``check_projection_atlas``
     hashes ``texels.npz``, ≈ 10 MB on the small preset: once per stage, keyed by the files'
-    size and modification time, not once per view).
+    size and modification time, not once per view) and the atlas, texel table, ray scene and
+    source cameras (:func:`_view_inputs`: read once, the fields' memory maps reopened per
+    view).
 
     With a rig other than the true one (a calibration's), the reference is rendered from the
     novel camera moved into the generator's frame by the gauge alignment of the atlas mesh
@@ -268,16 +270,13 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     from facegeo.pipeline.project import check_projection_atlas, stage_rig, truth_gauge
     from facegeo.pipeline.relight import tone_map
     from facegeo.render import (
-        atlas_scene,
         cross_validated_shrinkage,
         light_set,
-        load_sources,
         parse_camera_spec,
         render_view,
         trace_view,
     )
     from facegeo.render.novel import BLEND_POWER
-    from facegeo.surface.atlas import Atlas, Texels
 
     t_start = time.perf_counter()
     out, dest = Path(out), Path(dest)
@@ -300,10 +299,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     w = E.light_weights(environment, stage, solid_angle=solid_angle)  # a grid or a light list
     w = w / stage.color_rgb[None, :]  # image in the environment's units (field = colour × R)
     lights = light_set(stage)
-    atlas = Atlas.load(out / "atlas" / "atlas.npz")
-    texels = Texels.load(out / "atlas" / "texels.npz")
-    _check_projection_atlas_once(check_projection_atlas, out, cache)
-    sources = load_sources(out / "project", (out / "fit") if resynthesis else None)
+    atlas, texels, scene, sources = _view_inputs(out, bool(resynthesis), cache,
+                                                 check_projection_atlas)
     t_load = time.perf_counter()
     has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys)
     factors, shrink_stats = None, None
@@ -327,7 +324,6 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         if progress:
             progress("render", k, steps)
 
-    scene = atlas_scene(atlas)
     samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
     tick(1)
     bp = BLEND_POWER if blend_power is None else float(blend_power)
@@ -447,6 +443,57 @@ def _file_state(path: Path) -> tuple | None:
     except FileNotFoundError:
         return None
     return st.st_size, st.st_mtime_ns
+
+
+def _inputs_state(out: Path, with_fit: bool) -> tuple:
+    """(path, size, mtime_ns) of every file :func:`_view_inputs` reads: the atlas and texel
+    table, the projected fields' folders and, with the fits, the fit folders."""
+    files = [out / "atlas" / "atlas.npz", out / "atlas" / "texels.npz"]
+    for part in ("project", "fit") if with_fit else ("project",):
+        files += sorted(p for p in (out / part).glob("*/*") if p.is_file())
+    return tuple((str(f), _file_state(f)) for f in files)
+
+
+def _fresh_map(a):
+    """A new read-only memory map of the file behind ``a`` (``a`` itself if it is not one)."""
+    path = getattr(a, "filename", None)
+    return np.load(path, mmap_mode="r") if path else a
+
+
+def _view_inputs(out: Path, with_fit: bool, cache: dict | None, check) -> tuple:
+    """``(atlas, texels, scene, sources)`` of a view: ``out/atlas/atlas.npz``, its texel table,
+    the atlas mesh's ray scene and :func:`facegeo.render.load_sources` of ``out/project`` (and
+    ``out/fit`` when ``with_fit``), after ``check`` (:func:`_check_projection_atlas_once`).
+
+    With a ``cache`` (one render stage's views) they are read once and shared by the views: one
+    slot, replaced when a view asks for other inputs or a file changed (size, mtime_ns), so the
+    stage holds one set, as one view did. The fields ``R`` and the fits' ``D`` are memory maps,
+    opened afresh per view: the pages a view reads leave the resident set with its maps, as
+    they did when every view loaded its own."""
+    from facegeo.render import atlas_scene, load_sources
+    from facegeo.surface.atlas import Atlas, Texels
+
+    key = ("view_inputs", str(out), with_fit, _inputs_state(out, with_fit)) \
+        if cache is not None else None
+    slot = cache.get("view_inputs") if cache is not None else None
+    if slot is not None and slot[0] == key:
+        atlas, texels, scene, sources = slot[1]
+        _check_projection_atlas_once(check, out, cache)
+    else:
+        if cache is not None:
+            cache.pop("view_inputs", None)  # one set at a time
+        atlas = Atlas.load(out / "atlas" / "atlas.npz")
+        texels = Texels.load(out / "atlas" / "texels.npz")
+        _check_projection_atlas_once(check, out, cache)
+        sources = load_sources(out / "project", (out / "fit") if with_fit else None)
+        scene = atlas_scene(atlas)
+        if cache is None:
+            return atlas, texels, scene, sources
+        cache["view_inputs"] = (key, (atlas, texels, scene, sources))
+    return atlas, texels, scene, [dataclasses.replace(
+        src, field=_fresh_map(src.field),
+        fit=None if src.fit is None else dataclasses.replace(src.fit, D=_fresh_map(src.fit.D)))
+        for src in sources]
 
 
 def _check_projection_atlas_once(check, out: Path, cache: dict | None) -> None:

@@ -191,7 +191,7 @@ svg text { font-size: 12px; }
 """
 
 
-def write_report(out_dir, *, title: str | None = None) -> Path:
+def write_report(out_dir, *, title: str | None = None, stale: dict | None = None) -> Path:
     """Write ``OUT/report.html`` from ``OUT/metrics.json`` and the stages' PNG images.
 
     An entry of ``metrics.json`` whose products are gone (its folder ``OUT/<stage>/`` deleted
@@ -206,6 +206,9 @@ def write_report(out_dir, *, title: str | None = None) -> Path:
         A scan's ``out/`` folder (``facegeo reconstruct`` writes it).
     title : str, optional
         Page title (default: the scan folder's name).
+    stale : dict of str -> list of str, optional
+        :func:`facegeo.pipeline.cache.stale_stages` of ``out_dir`` when the caller has it
+        already (the CLI prints it in its summary too); read from the manifests when None.
 
     Returns
     -------
@@ -222,7 +225,7 @@ def write_report(out_dir, *, title: str | None = None) -> Path:
     metrics = _load_metrics(out_dir)
     stages = _ordered(metrics)
     title = title or f"facegeo report: {out_dir.resolve().parent.name}"
-    rows = summary_rows(metrics, stale_stages(out_dir))
+    rows = summary_rows(metrics, stale_stages(out_dir) if stale is None else stale)
     esc = html.escape
     body = [f"<h1>{esc(title)}</h1>",
             f"<p>facegeo {esc(__version__)}, written {esc(time.strftime('%Y-%m-%d %H:%M:%S'))}."

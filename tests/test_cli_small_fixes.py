@@ -1,0 +1,115 @@
+"""Small fixes of the command line: what it prints once, what it computes once, and what its
+messages say."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import test_calibration
+import test_mesh_camera_pair
+from test_calibration import _projector_variant
+
+#: Module-scoped fixtures of other stages' tests: a scan with projector board views, and the
+#: tiny scan with decode maps from its ground truth.
+projector_scan = test_calibration.projector_scan
+tiny = test_mesh_camera_pair.tiny
+
+
+def test_calibrate_says_projector_not_calibrated_once(projector_scan, tmp_path, capsys,
+                                                      caplog):
+    """``facegeo calibrate`` on a scan whose projector it cannot calibrate says so once, on
+    stdout beside the table (it also came as the stage's warning on stderr); the stage's
+    metrics keep the summary, and the stage called as a library still logs the warning."""
+    from facegeo.cli import main
+    from facegeo.pipeline.calibrate import run_calibrate
+
+    scan = tmp_path / "scan"
+    _projector_variant(projector_scan, scan, projector="uncalibrated", views=False)
+    out = tmp_path / "cal"
+    with caplog.at_level(logging.WARNING):
+        assert main(["calibrate", str(scan), "--out", str(out), "-q",
+                     "--no-cross-validation"]) == 0
+    said = capsys.readouterr()
+    pm = json.loads((out / "metrics.json").read_text())["calibrate"]["projector"]
+    assert pm["calibrated"] is False and pm["summary"].startswith("projector: not calibrated (")
+    logged = [r.getMessage() for r in caplog.records if "not calibrated" in r.getMessage()]
+    printed = [ln for ln in (said.out + said.err).splitlines() if "not calibrated" in ln]
+    assert printed == [pm["summary"]] and not logged, (printed, logged)
+    assert pm["summary"] in said.out
+    # the library's callers (facegeo reconstruct, scripts) still get the warning
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.calibrate"):
+        m = run_calibrate(scan, tmp_path / "lib", cross_validation=False)
+    assert [r.getMessage() for r in caplog.records
+            if "not calibrated" in r.getMessage()] == [m["projector"]["summary"]]
+    assert m["projector"] == pm
+
+
+def _stale_out(root):
+    """``root/out`` with stages a → b → c whose ``a`` ran again since b was made (b and c
+    stale)."""
+    out = root / "out"
+    for name, key, up in (("a", "a2", None), ("b", "b1", {"a": "a1"}), ("c", "c1", {"b": "b1"})):
+        (out / name).mkdir(parents=True)
+        doc = {"key": key} | ({"upstream": up} if up else {})
+        (out / name / "stage.json").write_text(json.dumps(doc))
+    (out / "metrics.json").write_text(json.dumps({"a": {"seconds": 1.0}, "b": {"seconds": 2.0},
+                                                  "c": {"seconds": 3.0}}))
+    return out
+
+
+def test_cli_reads_stale_stages_once_for_report_and_summary(tmp_path, monkeypatch, capsys):
+    """``facegeo report`` (and every command that ends with the summary) reads the stages'
+    staleness once and gives it to both the report and the printed table, which come out as
+    before (each computing its own)."""
+    import re
+
+    import facegeo.pipeline.cache as cache
+    import facegeo.pipeline.report as report
+    from facegeo.cli import main
+
+    out = _stale_out(tmp_path / "scan")
+    expected = cache.stale_stages(out)
+    assert expected == {"b": ["a"], "c": ["a"]}
+    table = report.summary_table(json.loads((out / "metrics.json").read_text()), expected)
+    page = report.write_report(out).read_text()
+    calls = []
+    real = cache.stale_stages
+    counting = lambda d: calls.append(d) or real(d)  # noqa: E731
+    monkeypatch.setattr(cache, "stale_stages", counting)
+    monkeypatch.setattr(report, "stale_stages", counting)
+    assert main(["report", str(tmp_path / "scan")]) == 0
+    assert calls == [out], calls
+    printed = capsys.readouterr().out
+    assert table in printed and "[stale: made from an older a]" in table
+    written = re.sub(r"written [0-9: -]+\.", "", (out / "report.html").read_text())
+    assert written == re.sub(r"written [0-9: -]+\.", "", page)
+
+
+def test_nominal_rig_rejecting_every_point_names_the_scan_and_what_to_do(tiny, tmp_path):
+    """Camera–camera route with the scan's nominal cameras (rig.json, not calibrated) and an
+    uncalibrated projector: every decoded pixel is inconsistent with the rig. The one-line
+    error starts with the scan (it started with the decode folder), names the rig, and says
+    what to do: calibrate the cameras and mesh with the calibrated rig."""
+    import pytest
+
+    from facegeo.errors import InputError
+    from facegeo.geometry.rig import Projector, Rig
+    from facegeo.pipeline.mesh import mesh_products
+
+    scan, _ = tiny
+    p = scan.rig.projector
+    nominal = Rig(scan.rig.cameras, Projector(p.name, p.width, p.height), scan.rig.lights)
+    rig_path = nominal.save(tmp_path / "rig_nominal.json")
+    dest = tmp_path / "mesh"
+    dest.mkdir()
+    with pytest.raises(InputError) as err:
+        mesh_products(scan, scan.out_dir / "decode", dest, depth=6, rig=str(rig_path))
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"scan {scan.root}: "), msg
+    for part in ("only 0 points", str(rig_path), "camera-camera", "inconsistent",
+                 str(scan.out_dir / "decode"), f"facegeo calibrate {scan.root}",
+                 "--rig calibrated"):
+        assert part in msg, (part, msg)
