@@ -113,3 +113,92 @@ def test_nominal_rig_rejecting_every_point_names_the_scan_and_what_to_do(tiny, t
                  str(scan.out_dir / "decode"), f"facegeo calibrate {scan.root}",
                  "--rig calibrated"):
         assert part in msg, (part, msg)
+
+
+#: The start of the warning ``--rig auto`` logs when it takes the true rig over an
+#: uncalibrated rig.json projector.
+_AUTO_RIG_WARNING = ("rig auto: using the generator's true rig; rig.json's projector is "
+                     "uncalibrated")
+
+
+def test_rig_auto_over_uncalibrated_projector_warns_once_per_run(tiny, tmp_path, caplog,
+                                                                 capsys, monkeypatch):
+    """``--rig auto`` on a synthetic scan whose rig.json projector is uncalibrated still takes
+    the generator's true rig, and says so in one warning of the pipeline's logger: once when
+    the chain is built (not once per stage that uses the rig), once through ``facegeo mesh``
+    (stderr, as a logged warning). With the scan's own calibrated projector, or an explicit
+    ``--rig``, nothing is said."""
+    import facegeo.cli as cli
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.cache import Pipeline
+    from facegeo.pipeline.reconstruct import reconstruct_pipeline
+
+    scan_cal, _ = tiny
+    assert scan_cal.rig.projector_calibrated
+    root = tmp_path / "scan"
+    _projector_variant(scan_cal.root, root, projector="uncalibrated", views=True)
+    scan = load_scan(root)
+    assert not scan.rig.projector_calibrated
+
+    def warned() -> list[str]:
+        return [r.getMessage() for r in caplog.records if r.name == "facegeo.pipeline.reconstruct"
+                and _AUTO_RIG_WARNING in r.getMessage()]
+
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.reconstruct"):
+        pipeline = reconstruct_pipeline(scan, rig="auto")
+    rigs = {s.name: s.settings["rig"] for s in pipeline.stages if "rig" in s.settings}
+    assert "mesh" in rigs and set(rigs.values()) == {"ground_truth"}, rigs  # the choice is kept
+    assert len(warned()) == 1, warned()
+    assert "--rig scan" in warned()[0]
+
+    for s, rig in ((scan_cal, "auto"), (scan, "scan"), (scan, "ground_truth")):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.reconstruct"):
+            reconstruct_pipeline(s, rig=rig)
+        assert warned() == [], (s.root, rig, warned())
+
+    # the command line: the chain is built once per run; the stages themselves are not run
+    runs = []
+    monkeypatch.setattr(Pipeline, "run", lambda self, *a, **k: runs.append(self) or [])
+    monkeypatch.setattr(cli, "_write_report", lambda out: None)
+    caplog.clear()
+    capsys.readouterr()
+    with caplog.at_level(logging.WARNING):
+        assert cli.main(["mesh", str(root), "-q"]) == 0
+    said = capsys.readouterr()
+    printed = [ln for ln in (said.out + said.err).splitlines() if _AUTO_RIG_WARNING in ln]
+    assert len(runs) == 1 and len(warned()) == 1 and printed == [], (runs, warned(), printed)
+
+
+def test_calibrate_says_camera_with_few_views_once(tmp_path, capsys, caplog):
+    """``facegeo calibrate`` on a rig whose camera saw 2 board views: the warning that its
+    intrinsics stay nominal comes once on stderr (it came as the stage's logged warning and
+    again through the progress lines), with or without ``-q``; the metrics keep it, and the
+    stage called as a library without ``progress`` still logs it."""
+    from facegeo.cli import main
+    from facegeo.pipeline.calibrate import run_calibrate
+    from test_calibration import _corner_list_scan
+
+    root = tmp_path / "scan"
+    root.mkdir()
+    _corner_list_scan(root, nominal_intrinsics=True, views_b=[0, 2])
+    said_it = "camera cam_b: 2 usable board view(s)"
+    for quiet in ((), ("-q",)):
+        out = tmp_path / f"cal{len(quiet)}"
+        caplog.clear()
+        capsys.readouterr()
+        with caplog.at_level(logging.WARNING):
+            assert main(["calibrate", str(root), "--out", str(out), "--no-cross-validation",
+                         *quiet]) == 0
+        said = capsys.readouterr()
+        # a logged record reaches stderr through the CLI's logging handler
+        logged = [r.getMessage() for r in caplog.records if said_it in r.getMessage()]
+        printed = [ln for ln in (said.out + said.err).splitlines() if said_it in ln]
+        assert len(logged) + len(printed) == 1, (quiet, logged, printed)
+        cm = json.loads((out / "metrics.json").read_text())["calibrate"]["cameras"]["cam_b"]
+        assert cm["intrinsics"] == "nominal" and said_it in cm["warning"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.calibrate"):
+        m = run_calibrate(root, tmp_path / "lib", cross_validation=False)
+    assert [r.getMessage() for r in caplog.records
+            if said_it in r.getMessage()] == [m["cameras"]["cam_b"]["warning"]]

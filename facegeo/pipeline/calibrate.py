@@ -433,7 +433,8 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     cross_validation : bool
         Run the two-halves check per camera (needs ≥ 6 usable views).
     progress : callable(str), optional
-        Called with a short message per step (not a setting).
+        Called with a short message per step (not a setting); warnings are logged, not sent
+        here.
 
     Returns
     -------
@@ -516,8 +517,8 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
             why = (f"camera {name}: {len(found)} usable board view(s), fewer than "
                    f"{MIN_VIEWS_ALONE} to calibrate it alone; its intrinsics are the nominal "
                    "rig.json's and only its pose is solved, jointly with the rig")
+            # logged only, not said as a step too: `facegeo calibrate` shows both on stderr
             log.warning(why)
-            say(why)
             obs[name] = {view_key[id(d)]: (d.p_board, d.q) for d in found}
             metrics["cameras"][name] = {
                 "model": "nominal", "intrinsics": "nominal", "warning": why,

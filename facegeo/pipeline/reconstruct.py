@@ -25,7 +25,10 @@ Which mesh and which rig the surface stages use:
   ``"ground_truth"``, ``"calibrated"`` or ``"scan"`` choose explicitly (``"calibrated"`` on a
   synthetic scan runs the whole chain from the board images: its errors against the ground
   truth are end to end; ``mesh`` then also reports them after the best rigid alignment, since
-  a calibrated rig's world frame is its own gauge).
+  a calibrated rig's world frame is its own gauge). When ``"auto"`` takes the true rig for a
+  chain that meshes structured light while ``rig.json``'s projector is uncalibrated, the true
+  projector is information a real scan would not have: the run logs one warning saying so
+  (``"scan"`` meshes camera against camera instead).
 
 A calibration that fails (no board found in a camera's views, say) ends the run with the error
 when the rig it should produce is used downstream; otherwise ``calibrate`` records the failure
@@ -35,6 +38,7 @@ in its metrics (``"error"``) and the other stages go on.
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -43,6 +47,8 @@ from facegeo.checks import fmt_value
 from facegeo.errors import FacegeoError, InputError
 from facegeo.pipeline.cache import Pipeline, StageContext, StageResult, StageSpec
 from facegeo.render._cameras import FRONT, NOVEL_ORBITS
+
+log = logging.getLogger(__name__)
 
 __all__ = ["STAGES", "MESH_CHOICES", "RIG_CHOICES", "reconstruct_pipeline", "run_reconstruct"]
 
@@ -126,10 +132,22 @@ def _check_stage_has_input(scan, stage: str | None, flag: str | None) -> None:
 
 
 def _resolve_rig(scan, rig: str, stages: list[str]) -> str:
+    """The rig the chain's stages use (module docstring); ``stages`` are the chain's.
+
+    ``"auto"`` on a synthetic scan is the generator's true rig; when the chain meshes
+    structured light and ``rig.json``'s projector is uncalibrated, that choice is logged as a
+    warning (once: the pipeline is built once per run), since the true projector is what a real
+    scan would not have.
+    """
     if rig not in RIG_CHOICES:
         raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)}, got {fmt_value(rig)}")
     has_gt = scan.synthetic and "rig" in scan.ground_truth_keys
     if rig == "auto":
+        if has_gt and "mesh" in stages and not scan.rig.projector_calibrated:
+            log.warning("rig auto: using the generator's true rig; rig.json's projector is "
+                        "uncalibrated (give --rig scan to mesh camera against camera%s)",
+                        ", or --rig calibrated after facegeo calibrate"
+                        if "calibrate" in stages else "")
         return "ground_truth" if has_gt else ("calibrated" if "calibrate" in stages else "scan")
     if rig == "ground_truth" and not has_gt:
         raise InputError(f"rig 'ground_truth': scan {scan.root} has no ground-truth rig")
