@@ -941,6 +941,14 @@ def test_tile_kernels_are_cached_under_their_flags_and_the_vector_code():
         assert c["vec_source"] == _sl_vec.source_hash() and len(c["vec_source"]) == 64
     for name in ("parallel", "vec_source"):  # read in the body, not only captured
         assert name in k._pairs_rgb8(False).py_func.__code__.co_freevars
+    # the finish kernels that inline _sl_vec's direct block, and the fused chunk kernel that
+    # inlines the pair kernel and the finish, key on those files' sources the same way
+    import facegeo.geometry._sl_finish as fin
+
+    fin._fused()
+    assert cells(fin._direct)["vec_source"] == _sl_vec.source_hash()
+    assert cells(fin._kernel()[0])["vec_source"] == _sl_vec.source_hash()
+    assert len(cells(fin._fused())["sources"]) == 64
 
 
 def test_vector_pair_block_takes_strided_accumulators_through_the_plain_loops():
@@ -1094,3 +1102,150 @@ def test_threads_do_not_change_the_decode_and_are_checked():
     for bad in (0, 1.5, numba.config.NUMBA_NUM_THREADS + 1):
         with pytest.raises(InputError, match="threads"):
             S.decode_frames(frames, spec, threads=bad)
+
+
+def _rgb8(frames, seed=1):
+    """8-bit RGB frames from gray ones: G jittered by a few levels, R = B = the gray value."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for n, f in frames.items():
+        g = np.clip(np.rint(np.asarray(f, np.float64) * 255), 0, 255).astype(np.int64)
+        out[n] = np.ascontiguousarray(np.stack(
+            [g, np.clip(g + rng.integers(-3, 4, g.shape), 0, 255), g], -1).astype(np.uint8))
+    return out
+
+
+@pytest.mark.parametrize("kw,chunk,sub,threads", [
+    (dict(), None, None, 1),
+    (dict(codes=("gray", "xor02", "xor04")), 777, 100, 2),
+    (dict(codes=("minsw",)), None, 64, 1),
+    (dict(codes=("gray", "minsw"), white_black=False), 1000, 333, 2),
+    (dict(n_bits_x=5, n_bits_y=0), None, 50, 1),
+])
+def test_fused_chunk_kernel_equals_the_chunk_by_chunk_path(kw, chunk, sub, threads, monkeypatch):
+    """Held 8-bit RGB frames fold and finish in one compiled call a chunk
+    (``_sl_finish.fused_chunk``: the pair kernel, the stripe translation of a table code,
+    prepare's start with lit from the held white / black frames, each axis, ``valid``) —
+    against the chunk-by-chunk Python path (``FUSED = False``) on blurred noisy frames whose
+    partial codes, votes and dark pixels take every branch; sub-runs and chunks that do not
+    divide the frame, two threads. Fails if the fused kernel changes one output or statistic,
+    or does not run."""
+    from scipy.ndimage import gaussian_filter
+
+    import facegeo.geometry._sl_finish as fin
+    import facegeo.geometry._sl_stream as S
+
+    spec = PatternSpec(PROJ_W, PROJ_H, **kw)
+    frames, _, _ = _frames(spec, noise=0.01, seed=5)
+    frames = _rgb8({n: gaussian_filter(f, 1.2) for n, f in frames.items()})
+    if chunk:
+        monkeypatch.setattr(S, "_CHUNK", chunk)
+    if sub:
+        monkeypatch.setattr(S, "_FUSED_SUB", sub)
+    calls = []
+    real = fin.fused_chunk
+    monkeypatch.setattr(fin, "fused_chunk", lambda *a: calls.append(1) or real(*a))
+    results = {}
+    for fused in (True, False):
+        monkeypatch.setattr(S, "FUSED", fused)
+        results[fused] = decode_stream(frames, spec, threads=threads)
+    assert calls, "the fused kernel did not run"
+    got, want = results[True], results[False]
+    assert want.valid.any() and not want.valid.all()
+    assert sum(sum(want.bits["x"][c]["unresolved"]) for c in spec.codes) > 50
+    assert got.bits == want.bits
+    for name in ("x", "y", "sigma_x", "sigma_y", "confidence", "direct", "global_", "lit",
+                 "valid", "valid_x", "valid_y", "shadow"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+@pytest.mark.parametrize("wdtype,mdtype", [(np.uint16, np.uint8), (np.uint8, np.uint8),
+                                           (np.uint32, np.float32)])
+def test_direct_vector_block_equals_its_scalar_loop(wdtype, mdtype):
+    """``_sl_vec.direct_block`` (16 pixels of the fully resolved pass in <16 x i32 / float>
+    lanes) against the same function's scalar loop (runs shorter than 16 pixels take only the
+    loop): decision words with an XOR base, codes past the last stripe, unlit and unreliable
+    pixels, NaN and tiny references, NaN running confidences — every output equal bit for bit
+    (NaN where NaN). Fails if the block's lanes compute one value differently."""
+    import facegeo.geometry._sl_finish as fin
+
+    fin._kernel()
+    rng = np.random.default_rng(4)
+    P = 16 * 7 + 5
+    n = 10
+    sg = rng.integers(0, 1 << n, P).astype(wdtype) if wdtype != np.uint8 else \
+        rng.integers(0, 256, P).astype(wdtype)
+    mi = (rng.integers(0, 256, P) if mdtype == np.uint8 else rng.random(P) * 0.5).astype(mdtype)
+    tau = rng.choice([0.0, 0.05, 0.3, 1.0], P).astype(np.float32)
+    lit = rng.random(P) > 0.2
+    ref = rng.choice([0.5, 1e-14, 0.0, np.nan, 0.02], P).astype(np.float32)
+    q0 = rng.choice([1.0, 0.4, np.nan, 0.0], P).astype(np.float32)
+    args = (1 / 510 if mdtype == np.uint8 else 1.0, 0b1100000000, 7, 1000, True, 1.0, 0.0,
+            1 / np.sqrt(12))
+    outs = []
+    for pieces in ([slice(0, P)], [slice(a, min(P, a + 15)) for a in range(0, P, 15)]):
+        cov, sov, qov = np.empty(P, np.float32), np.empty(P, np.float32), q0.copy()
+        oov, slv = np.empty(P, bool), np.empty(P, np.uint8)
+        n_slow = 0
+        for s in pieces:
+            n_slow += fin._direct(sg[s], mi[s], tau[s], lit[s], ref[s], cov[s], sov[s], oov[s],
+                                  qov[s], slv[s], np.float32(args[0]), *args[1:7],
+                                  np.float32(args[7]))
+        outs.append((cov, sov, qov, oov, slv, n_slow))
+    (a, b) = outs
+    for name, x, y in zip(("coord", "sigma", "conf", "ok", "slow"), a[:5], b[:5]):
+        assert x.tobytes() == y.tobytes(), name
+    assert a[5] == b[5] == int(b[4].sum())
+    assert 0 < b[3].sum() < P and 0 < b[4].sum() < P and np.isnan(b[2]).any()
+
+
+@pytest.mark.slow
+def test_fused_decode_is_exact_on_a_baseline_x86_cpu(baseline_cpu_python):
+    """The fused chunk kernel with its vector blocks (``_sl_vec.pair_rgb8``,
+    ``direct_block``) compiled for a baseline x86-64 CPU (SSE2 only, a fresh cache and
+    interpreter), where LLVM lowers the 16- and 32-lane blocks to narrower instructions: the
+    decode of held 8-bit RGB frames must equal the chunk-by-chunk Python path with the
+    blocks' scalar tails — fails if a lowering there changes a value, or it cannot compile."""
+    code = (
+        "import numpy as np\n"
+        "import facegeo.geometry._sl_stream as S\n"
+        "from facegeo.geometry.structured_light import PatternSpec, decode_stream, "
+        "pattern_image, pattern_names\n"
+        "spec = PatternSpec(96, 40)\n"
+        "rng = np.random.default_rng(2)\n"
+        "fr = {}\n"
+        "for n in pattern_names(spec):\n"
+        "    g = np.clip(pattern_image(spec, n) * 200 + 20 + rng.normal(0, 6, (40, 96)), 0, 255)\n"
+        "    fr[n] = np.repeat(np.rint(g).astype(np.uint8)[..., None], 3, axis=2)\n"
+        "res = []\n"
+        "for fused in (True, False):\n"
+        "    S.FUSED = fused\n"
+        "    res.append(decode_stream(fr, spec))\n"
+        "for k in ('x', 'y', 'sigma_x', 'confidence', 'valid', 'lit', 'direct'):\n"
+        "    assert np.array_equal(getattr(res[0], k), getattr(res[1], k), equal_nan=True), k\n"
+        "assert res[0].bits == res[1].bits and res[0].valid.mean() > 0.5\n"
+        "print('ok')\n")
+    out = baseline_cpu_python(code)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-2000:])
+
+
+def test_int_margin_is_exact_or_declined():
+    """``_int_margin``: the vector block's margin ``min(((2 d + 1) · m) >> 16, 255)`` equals the
+    one-product float32 margin ``min(rint(float32(d) · k), 255)`` for every sum difference of
+    8-bit RGB frames at the default full scale (checked here independently, all 766
+    differences); a ``k`` where no multiplier near ``k · 2**15`` works is declined (0) and the
+    pair group then takes the plain loops — fails if a multiplier that changes one margin is
+    accepted, or the vector block runs without one."""
+    from facegeo.geometry import _sl_kernels as k
+
+    kk = k._diff_margin(765, 1 / 765, 510.0)
+    m = k._int_margin(765, kk)
+    assert m == 21846
+    d = np.arange(766)
+    want = np.minimum(np.rint(d.astype(np.float32) * np.float32(kk)), 255)
+    np.testing.assert_array_equal(np.minimum(((2 * d + 1) * m) >> 16, 255), want)
+    assert k._int_margin(765, 0.7) == 0  # rint(d · 0.7) is no high multiply of 2 d + 1
+    rng = np.random.default_rng(0)
+    fr = [rng.integers(0, 256, (8, 40, 3), dtype=np.uint8) for _ in range(2)]
+    g = k.PairGroup(fr, [0], [1], 1 / 765, [0], [0], [0], 510.0, np.uint16, parallel=False)
+    assert g.rgb8 and g.mul == m

@@ -25,13 +25,20 @@ steps in the same order), so codes, validity and statistics are identical and ``
 former kernel on the benchmark's frames). Margins are never NaN here (the decoder rejects
 non-finite frames), so plain ``min`` stands for ``np.minimum``.
 
-The fully-resolved pass writes its selects as ``np.maximum`` / ``np.minimum`` (numba vectorises
-those, not ``min`` / ``max`` / conditional expressions on floats). One axis of the benchmark's
+The fully-resolved pass of a lone family writing the final outputs runs over the whole run at
+once, 16 pixels at a time in a block of LLVM vector code (``_sl_vec.direct_block``; a scalar
+loop with the same steps for the last pixels): 1.42 → 0.78 ns a pixel-axis for the benchmark's
+chunks (the 512-pixel tiles' fixed costs and numba's 8-lane loop); other passes write their
+selects as ``np.maximum`` / ``np.minimum`` (numba vectorises those, not ``min`` / ``max`` /
+conditional expressions on floats). One axis of the benchmark's
 1280 × 1024 frames (10 Gray bits, every pixel resolved) in one call, 1 thread, CPU time, load
 ≈ 11: 5.5–5.8 ns a pixel, against 13.3–18.4 for the former kernel (a per-pixel threshold
 search, ten per-plane reliability passes, a separate store loop with a gather), interleaved.
-The kernels are serial; ``StreamDecoder.finish`` runs the chunks of
-2**16 pixels on its ``threads`` Python threads (the kernels release the GIL).
+The kernels are serial; ``StreamDecoder.finish`` runs the chunks on its ``threads`` Python
+threads (the kernels release the GIL).
+
+:func:`fused_chunk` runs the whole fold and finish of a chunk of held 8-bit RGB frames in one
+compiled call (pair kernel, start, axes, validity), in cache-sized sub-runs.
 """
 
 from __future__ import annotations
@@ -43,7 +50,8 @@ import numpy as np
 
 from facegeo.geometry._sl_codes import long_run_words, stripe_table
 
-__all__ = ["decode_axis", "phase", "phase_merge", "prepare", "stripe_gray_words"]
+__all__ = ["code_tables", "decode_axis", "fused_chunk", "phase", "phase_merge", "prepare",
+           "stripe_gray_tables", "stripe_gray_words"]
 
 _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 
@@ -52,13 +60,21 @@ _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 # the pickled contents of its closure cells, and a dispatcher pickles differently in every
 # process, so kernels that closed over their helpers were compiled again in every process
 # (~20 s, measured); globals are not part of the key.
-_min_nan = _max_nan = _store = _binary = None
+_min_nan = _max_nan = _store = _binary = _direct = _start = _direct_block = _lit_rgb8 = None
+_lanes = 16
 
 
 @functools.cache
 def _kernel():
-    global _min_nan, _max_nan, _store, _binary
+    global _min_nan, _max_nan, _store, _binary, _direct, _start, _direct_block, _lanes, _lit_rgb8
     from numba import njit
+
+    from facegeo.geometry import _sl_vec
+
+    _direct_block, _lanes, _lit_rgb8 = _sl_vec.direct_block, _sl_vec.DIRECT_LANES, _sl_vec.lit_rgb8
+    # numba's cache sees this file, not _sl_vec.py, whose code the kernels inline: its source
+    # hash is a closure cell of direct (read there), so an edit of _sl_vec.py compiles again
+    vec_source = _sl_vec.source_hash()
 
     def min_nan(a, b):  # np.minimum: NaN propagates
         if a <= b:
@@ -96,11 +112,105 @@ def _kernel():
         x ^= x >> 16
         return x
 
+    def direct(sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, mscale, high, sb, n_stripes,
+               one_stripe_ok, step, c0, sig_one):
+        # the fully resolved pass of one family writing the axis's final outputs (see
+        # axis_pixels): one loop of compares and selects that LLVM vectorises (the former
+        # np.maximum / np.minimum chains and the 0 / 0 NaN took 1.42 ns a pixel, this
+        # 0.5); the same values. A slow pixel (a plane below tau) keeps its running min of
+        # the confidence (its own path sets it after) and is flagged in slv.
+        zero = np.float32(0.0)
+        one = np.float32(1.0)
+        tiny = np.float32(1e-12)
+        nan = np.float32(np.nan)
+        if not vec_source:  # (the cache key, see above)
+            zero = one
+        n_slow = np.int32(0)
+        h32 = np.int32(high)
+        s32 = np.int32(sb)
+        ns32 = np.int32(min(n_stripes, 2 ** 31 - 1))
+        P = tau.shape[0]
+        lanes = _lanes
+        n_vec = P - P % lanes
+        for t in range(0, n_vec, lanes):  # _sl_vec.direct_block: the same steps, 16 lanes
+            n_slow += np.int32(_direct_block(sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, t,
+                                             mscale, high, sb, n_stripes, one_stripe_ok, step,
+                                             c0, sig_one))
+        for t in range(n_vec, P):  # the tail
+            x = np.int32(sg[t])  # n <= 31 bits
+            x ^= h32 * ((x >> s32) & np.int32(1))
+            x ^= x >> np.int32(1)
+            x ^= x >> np.int32(2)
+            x ^= x >> np.int32(4)
+            x ^= x >> np.int32(8)
+            x ^= x >> np.int32(16)
+            m = np.float32(mi[t]) * mscale
+            good = m >= tau[t]
+            slv[t] = np.uint8(not good)
+            n_slow += np.int32(not good)
+            o = lit[t] & (x < ns32) & one_stripe_ok & good
+            z = zero if o else nan
+            oov[t] = o
+            cov[t] = np.float32(np.float64(x) * step + c0) + z
+            sov[t] = sig_one + z
+            r = ref[t]
+            q = m / (r if (r >= tiny or r != r) else tiny)  # np.maximum(r, tiny)
+            q = q if (q >= zero or q != q) else zero  # np.maximum(q, 0)
+            q = q if (q <= one or q != q) else one  # np.minimum(q, 1)
+            v = q * np.float32(o)
+            qo = qov[t]
+            w = qo if (qo <= v or qo != qo) else v  # np.minimum(qo, v)
+            qov[t] = w if good else qo
+        return n_slow
+
     helper = njit(cache=True, nogil=True, boundscheck=False, inline="always")
     _binary = helper(binary)
+    _direct = njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")(direct)
     _min_nan = helper(min_nan)
     _max_nan = helper(max_nan)
     _store = helper(store)
+
+    def start(white, black, w_scale, b_scale, has_wb, lmax, lmin, shadow_thr, min_c, rel_c, direct,
+              glob, lit_out, shadow, litb, tau, conf):
+        # fused_chunk's prepare over one run (views): prepare's steps with separate outputs,
+        # lit = white - black from the held 8-bit RGB frames (their luminance as
+        # _sl_kernels.luminance computes it), the lit flags the axis kernel takes and the
+        # running confidence's start; returns the lit pixels
+        zero = np.float32(0.0)
+        if not vec_source:  # (the cache key: _sl_vec's code is inlined)
+            zero = np.float32(1.0)
+        for t in range(lmax.shape[0]):
+            mx = lmax[t]
+            mn = lmin[t]
+            d = mx - mn
+            direct[t] = d
+            glob[t] = np.float32(2.0) * _max_nan(mn, zero)
+            tau[t] = _max_nan(min_c, rel_c * d)
+        P = lmax.shape[0]
+        if has_wb:  # the luminance kernel's steps: exact channel sums, then float32
+            n_vec = P - P % 32
+            for t in range(0, n_vec, 32):  # _sl_vec.lit_rgb8: the same, 32 pixels a block
+                _lit_rgb8(white, black, t, w_scale, b_scale, lit_out)
+            for t in range(n_vec, P):
+                sw = np.uint32(white[3 * t]) + np.uint32(white[3 * t + 1]) + \
+                    np.uint32(white[3 * t + 2])
+                sb = np.uint32(black[3 * t]) + np.uint32(black[3 * t + 1]) + \
+                    np.uint32(black[3 * t + 2])
+                lit_out[t] = np.float32(sw) * w_scale - np.float32(sb) * b_scale
+        else:
+            for t in range(P):
+                lit_out[t] = direct[t]
+        n = 0
+        for t in range(P):
+            li = lit_out[t]
+            sh = not (li >= shadow_thr)
+            shadow[t] = sh
+            litb[t] = not sh
+            n += np.int64(not sh)
+            conf[t] = np.float32(1.0)
+        return n
+
+    _start = njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")(start)
 
     @njit(cache=True, nogil=True, boundscheck=False)
     def prepare(white, black, has_wb, lmax, lmin, shadow_thr, min_c, rel_c, lit_out, shadow,
@@ -127,40 +237,40 @@ def _kernel():
                     has_min):  # pragma: no cover
         F = signs.shape[0]
         P = tau.shape[0]
+        if not vec_source:  # (the cache key: _direct inlines _sl_vec's code)
+            P = P + 0
         full = (np.int64(1) << n) - 1
         half_pi = 0.5 * math.pi
         two_pi64 = 2.0 * math.pi
         inf32 = np.float32(np.inf)
         tiny = np.float32(1e-12)
         sqrt12 = math.sqrt(12.0)
-        T = _TILE
-        wrd = np.empty(T, np.int64)
+        direct = F == 1 and final
+        # one family writing the final outputs needs no per-family rows: the whole run is one
+        # tile (its fast pass in one call; a tile's fixed costs were 0.3 ns a pixel at 512)
+        T = max(P, 1) if direct else _TILE
+        Tf = 1 if direct else T
         mi = np.empty(T, marg.dtype)  # the smallest stored margin of a family
         slow = np.empty(T, np.uint8)  # 1: a plane is unreliable (the scalar path)
-        cf = np.empty((F, T))
-        sf = np.empty((F, T))
-        wf = np.empty((F, T))
-        qf = np.empty((F, T), np.float32)
-        of = np.empty((F, T), np.bool_)
+        cf = np.empty((F, Tf))
+        sf = np.empty((F, Tf))
+        wf = np.empty((F, Tf))
+        qf = np.empty((F, Tf), np.float32)
+        of = np.empty((F, Tf), np.bool_)
         agree = np.zeros(F, np.int64)
         c0 = 0.5 * (step - 1.0)
         one_stripe_ok = step <= coarse_lim + 1e-9  # a fully resolved code names one stripe
         sig_one = 1.0 * step / sqrt12
         zero32 = np.float32(0.0)
         sig_one32 = np.float32(sig_one)
-        big32 = np.float32(3e38)  # max(conf * ok, big) = big: min(conf_all, big) keeps conf_all
-        qs = np.empty(T, np.float32)  # conf_all before this axis (direct)
-        direct = F == 1 and final
         for t0 in range(0, P, T):
             nt = min(T, P - t0)
             a0 = p0 + t0
-            wrdv = wrd[:nt]
             miv = mi[:nt]
             slv = slow[:nt]
             tauv = tau[t0:t0 + nt]
             litv = lit[t0:t0 + nt]
             refv = ref[t0:t0 + nt]
-            qsv = qs[:nt]
             cov = coord_out[t0:t0 + nt]
             sov = sig_out[t0:t0 + nt]
             oov = ok_out[t0:t0 + nt]
@@ -168,7 +278,7 @@ def _kernel():
             for f in range(F):
                 # the smallest margin over the planes (the XOR base lowers the margins above it
                 # to its own: the smallest is unchanged); a pass per plane over the tile
-                if has_min:  # taken while the pairs were folded (_sl_kernels: mmin)
+                if has_min and not direct:  # taken while the pairs were folded (mmin)
                     mrow = mmin[f, a0:a0 + nt]
                     for t in range(nt):
                         miv[t] = mrow[t]
@@ -185,32 +295,19 @@ def _kernel():
                 # pass (np.maximum / np.minimum are the NaN-propagating selects of the
                 # reference and vectorise where numba's float min / max / conditional
                 # expressions stay scalar); the others (few) take the scalar path after
-                sg = signs[f, a0:a0 + nt]
+                sg = signs[f][a0:a0 + nt]  # (C-contiguous: the vector block's type)
                 ut = use_tabs[f]  # a table code: sg holds its stripes' Gray words
                 b = base[f]
                 high = ((np.int64(1) << b) - 1) << (n - b) if b > 0 else np.int64(0)
                 sb = n - 1 - b if b > 0 else 0
                 n_slow = np.int32(0)
                 if direct:  # one family, final outputs: written here (the store, fused)
-                    for t in range(nt):
-                        x = _binary(sg[t], high, sb)
-                        wrdv[t] = x
-                        m = np.float32(miv[t]) * mscale
-                        sl = np.uint8(not (m >= tauv[t]))
-                        slv[t] = sl
-                        n_slow += np.int32(sl)
-                        o = litv[t] & (x < n_stripes) & one_stripe_ok & (sl == 0)
-                        z = zero32 / np.float32(o)  # + z: NaN where not ok (0 / 0), else exact
-                        oov[t] = o
-                        cov[t] = np.float32(np.float64(np.int32(x)) * step + c0) + z
-                        sov[t] = sig_one32 + z
-                        q = m / np.maximum(refv[t], tiny)
-                        q = np.minimum(np.maximum(q, zero32), np.float32(1.0))
-                        # the running min over the axes; a slow pixel's is set by its path below
-                        # (from qsv, the value before this axis)
-                        qsv[t] = qov[t]
-                        qov[t] = np.minimum(qov[t], np.maximum(q * np.float32(o),
-                                                               big32 * np.float32(sl)))
+                    dargs = (tauv, litv, refv, cov, sov, oov, qov, slv, mscale, high, sb,
+                             n_stripes, one_stripe_ok, step, c0, sig_one32)
+                    if has_min:
+                        n_slow = _direct(sg, mmin[f][a0:a0 + nt], *dargs)
+                    else:
+                        n_slow = _direct(sg, miv, *dargs)
                 else:
                     cfv = cf[f, :nt]
                     sfv = sf[f, :nt]
@@ -219,7 +316,6 @@ def _kernel():
                     qfv = qf[f, :nt]
                     for t in range(nt):
                         x = _binary(sg[t], high, sb)
-                        wrdv[t] = x
                         m = np.float32(miv[t]) * mscale
                         sl = np.uint8(not (m >= tauv[t]))
                         slv[t] = sl
@@ -245,7 +341,7 @@ def _kernel():
                         r &= (full & ~high) | (high * ((r >> sb) & 1))
                     u = ~r & full
                     isl = lit[t0 + t]
-                    binary = wrd[t]
+                    binary = _binary(sg[t], high, sb)
                     bl = 0
                     t2 = u
                     while t2:
@@ -316,7 +412,8 @@ def _kernel():
                         oov[t] = ok
                         cov[t] = np.float32(cst * step + c0) + z
                         sov[t] = np.float32(sig) + z
-                        qov[t] = np.minimum(qsv[t], q * np.float32(ok))
+                        # (the fast pass left a slow pixel's running min as it was)
+                        qov[t] = np.minimum(qov[t], q * np.float32(ok))
                         continue
                     cf[f, t] = cst * step + c0
                     sf[f, t] = sig
@@ -412,6 +509,134 @@ def _kernel():
     return axis_pixels, prepare, phase_pixels, phase_merge
 
 
+# The kernels the fused chunk kernel calls, set by _fused(): module globals (see _min_nan).
+_pairs_min = _axis_px = None
+
+
+@functools.cache
+def _fused():
+    """The fused chunk kernel of a decode of held 8-bit RGB frames (see :func:`fused_chunk`).
+
+    It calls the pair kernel of ``_sl_kernels`` and :func:`decode_axis`'s kernel, compiled into
+    it: the sources of ``_sl_kernels.py``, ``_sl_vec.py`` and this file are a closure cell read
+    in the body, so numba's disk cache (which sees this file only) compiles it again after an
+    edit of any of them."""
+    global _pairs_min, _axis_px
+    import hashlib
+    from pathlib import Path
+
+    from numba import njit
+
+    from facegeo.geometry import _sl_kernels
+
+    _axis_px = _kernel()[0]
+    _pairs_min = _sl_kernels._pairs_rgb8(False, True)
+    here = Path(__file__).parent
+    sources = hashlib.sha256(b"".join(
+        (here / f).read_bytes() for f in ("_sl_finish.py", "_sl_kernels.py", "_sl_vec.py"))
+    ).hexdigest()
+
+    @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    def fused(frames, p_lo, p_hi, sub, scale, k, steps, mscale, gx, gy, ax, ay, bx, by,
+              margin, lmax, lmin, tau, litb, white, black, w_scale, b_scale, has_wb, shadow_thr,
+              min_c, rel_c, direct, glob, lit_out, shadow, conf, valid, ox,
+              oy):  # pragma: no cover
+        n_lit = 0
+        if not sources:  # (the cache key, see above)
+            n_lit = 1
+        inf32 = np.float32(np.inf)
+        has_x = ax[0].shape[0] > 0
+        has_y = ay[0].shape[0] > 0
+        for a in range(p_lo, p_hi, sub):
+            b = min(p_hi, a + sub)
+            S = b - a
+            lmax[:S] = -inf32
+            lmin[:S] = inf32
+            # the axes' pairs over pixels a … b - 1, into columns 0 … S - 1 of the buffers
+            if has_x:
+                bx[0][:, :S] = 0
+                bx[1][:, :S] = 255
+                _pairs_min(frames, gx[0], gx[1], scale, gx[2], gx[3], gx[4], bx[0], margin,
+                           steps, lmax, lmin, S, k, a, b, a, bx[1])
+                for f in range(bx[0].shape[0]):  # a table code: its stripes' Gray words
+                    if ax[3][f]:
+                        w = bx[0][f, :S]
+                        for t in range(S):
+                            w[t] = ax[6][f, w[t]]
+            if has_y:
+                by[0][:, :S] = 0
+                by[1][:, :S] = 255
+                _pairs_min(frames, gy[0], gy[1], scale, gy[2], gy[3], gy[4], by[0], margin,
+                           steps, lmax, lmin, S, k, a, b, a, by[1])
+                for f in range(by[0].shape[0]):
+                    if ay[3][f]:
+                        w = by[0][f, :S]
+                        for t in range(S):
+                            w[t] = ay[6][f, w[t]]
+            # prepare's per-pixel start (the same steps), into the full-size outputs (loops over
+            # views of the run: indexing the full-size arrays at a + t kept them scalar)
+            n_lit += _start(white[3 * a:3 * b] if has_wb else white,
+                            black[3 * a:3 * b] if has_wb else black, w_scale, b_scale, has_wb,
+                            lmax[:S], lmin[:S], shadow_thr, min_c, rel_c, direct[a:b],
+                            glob[a:b], lit_out[a:b], shadow[a:b], litb[:S], tau[:S], conf[a:b])
+            if has_x:
+                _axis_px(bx[0], margin, mscale, ax[0], ax[1], ax[2], ax[4], ax[3], ax[5],
+                         ax[7], ax[8], ax[9], ax[10], 0, tau[:S], direct[a:b], litb[:S],
+                         ax[11], ax[12], False, 0.0, 0.0, ox[0][a:b], ox[1][a:b], ox[2][a:b],
+                         conf[a:b], True, ox[3], bx[1], True)
+            if has_y:
+                _axis_px(by[0], margin, mscale, ay[0], ay[1], ay[2], ay[4], ay[3], ay[5],
+                         ay[7], ay[8], ay[9], ay[10], 0, tau[:S], direct[a:b], litb[:S],
+                         ay[11], ay[12], False, 0.0, 0.0, oy[0][a:b], oy[1][a:b], oy[2][a:b],
+                         conf[a:b], True, oy[3], by[1], True)
+            vv = valid[a:b]
+            if has_x and has_y:
+                vx = ox[2][a:b]
+                vy = oy[2][a:b]
+                for t in range(S):
+                    vv[t] = vx[t] & vy[t]
+            else:
+                vv[:] = ox[2][a:b] if has_x else oy[2][a:b]
+        return n_lit
+
+    return fused
+
+
+def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, bufs, white,
+                black, wb_scales, thresholds, outs) -> int:
+    """Fold and finish pixels ``start … stop - 1`` of held 8-bit RGB pattern / inverse pairs
+    in one compiled call, ``sub`` pixels at a time: per sub-run the pair kernel
+    (``_sl_kernels._pairs_rgb8``, with each family's smallest margin) of each axis into
+    sub-run-sized words, margins and ``L_max`` / ``L_min``, a table code's words translated
+    (:func:`stripe_gray_words`), :func:`prepare`'s start written to the outputs (``lit`` from
+    the held white / black frames' channel sums), each axis decoded (:func:`decode_axis` with
+    ``out``), and ``valid``. The same kernels and steps as the chunk-by-chunk Python path
+    (``StreamDecoder._fold_chunk`` / ``_finish_chunk``), so the same values (tested); the
+    buffers stay in cache and no Python runs between the steps (that path's per-call costs were
+    ≈ 1 ms of a 12 ms decode, and its chunks too large for the buffers to stay in L2).
+
+    ``scale``, ``k``, ``steps``: the pair kernel's (``k`` the integer margin multiplier,
+    ``_sl_kernels.PairGroup.mul``); ``mscale``: the margins' unit. ``pairs``: per axis
+    ``(pos, neg, rows, bitvals, planes)`` (empty arrays for an axis without bits); ``axes``:
+    per axis ``(kidx, base, tabs, use, words, n, gray tables (F, 2**n), step, n_stripes,
+    coarse_lim, tol, phi, pok)`` (``StreamDecoder._fused_plan``); ``bufs``: per axis ``(words,
+    mmin)`` (F, ≥ sub) plus the shared ``(margin, lmax, lmin, tau, lit)``; ``white``,
+    ``black``: the held frames, flat (empty without them), ``wb_scales`` their luminance
+    scales; ``thresholds``: ``(has_wb, shadow, min_contrast, rel_contrast)``; ``outs``:
+    ``(direct, global, lit, shadow, confidence, valid)`` flat and per axis ``(coord, sigma,
+    ok, counts)``. Returns the number of lit pixels."""
+    (gx, gy), (ax, ay), ((bx, by), shared), (ox, oy) = pairs, axes, bufs, outs[6:]
+    margin, lmax, lmin, tau, litb = shared
+    has_wb, shadow_thr, min_c, rel_c = thresholds
+    direct, glob, lit_out, shadow, conf, valid = outs[:6]
+    return _fused()(frames, int(start), int(stop), int(sub), np.float32(scale), np.int64(k),
+                    np.float32(steps), np.float32(mscale), gx, gy, ax, ay, bx, by, margin,
+                    lmax, lmin, tau, litb, white, black, np.float32(wb_scales[0]),
+                    np.float32(wb_scales[1]), bool(has_wb), np.float32(shadow_thr),
+                    np.float32(min_c), np.float32(rel_c), direct, glob, lit_out, shadow, conf,
+                    valid, ox, oy)
+
+
 def prepare(white, black, lmax, lmin, shadow_threshold, min_contrast, rel_contrast, lit_out,
             shadow, tau) -> None:
     """Per-pixel start of the finish with binary frames, in place on (P,) float32 views:
@@ -491,12 +716,7 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
     else:
         phi, pok, kk, period = hint
         has = True
-    use = np.array([t is not None for t in tables] if tables is not None else [False] * F)
-    tabs = np.zeros((F, (1 << n) if use.any() else 1), np.uint16)
-    words = np.zeros_like(tabs)
-    for f in np.flatnonzero(use):
-        tabs[f] = stripe_table(tables[f], n)
-        words[f] = long_run_words(n)
+    tabs, words, use = code_tables(tables if tables is not None else [None] * F, n)
     _kernel()[0](signs, marg, np.float32(mscale), np.asarray(kidx, np.int64),
               np.asarray(base, np.int64), tabs, words, use, int(n), float(step), int(n_stripes),
               float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
@@ -528,6 +748,30 @@ def phase_merge(coord, sig, ok, conf, phi, B, pconf, usable, k, noise_sigma, N, 
     _kernel()[3](coord, sig, ok, conf, phi, B, pconf, usable, float(k),
                  np.float32(noise_sigma * math.sqrt(2.0 / N)),
                  np.float32(step / math.sqrt(12.0) + 1e-6), *out)
+
+
+def code_tables(tables, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`decode_axis`'s per-family tables for ``tables`` (per family a table code's name
+    or None): the code → stripe tables and the projected words (F, 2**n) uint16 (one zero
+    column when no family has a table) and which families use them (F,) bool."""
+    F = len(tables)
+    use = np.array([t is not None for t in tables], bool)
+    tabs = np.zeros((F, (1 << n) if use.any() else 1), np.uint16)
+    words = np.zeros_like(tabs)
+    for f in np.flatnonzero(use):
+        tabs[f] = stripe_table(tables[f], n)
+        words[f] = long_run_words(n)
+    return tabs, words, use
+
+
+def stripe_gray_tables(tables, n: int, dtype) -> np.ndarray:
+    """Per family (``tables`` as in :func:`code_tables`) the table :func:`stripe_gray_words`
+    applies, (F, 2**n) of the words' ``dtype`` (one zero column when no family has a table)."""
+    out = np.zeros((len(tables), (1 << n) if any(t is not None for t in tables) else 1), dtype)
+    for f, c in enumerate(tables):
+        if c is not None:
+            out[f] = _stripe_gray(c, n)
+    return out
 
 
 @functools.cache

@@ -132,7 +132,7 @@ TILE = 65536
 # numba's cache keys a function on the pickled contents of its closure cells, and a cell
 # holding a dispatcher pickles differently in every process, so a kernel that closed over its
 # helpers was compiled anew in every process.
-_sums_tile = _pair_tile = _merge_tile = None
+_sums_tile = _pair_tile = _merge_tile = _pair_tile_int = None
 
 
 @functools.cache
@@ -142,7 +142,7 @@ def _tile_helpers() -> None:
     The loops run over views, bounded by a view's length: indexing a full-size array at
     ``a + t`` kept them scalar (4-5x slower, measured). The channel count is a constant in each
     branch of ``_sums_tile`` (a run-time count in the index kept the loop scalar)."""
-    global _sums_tile, _pair_tile, _merge_tile
+    global _sums_tile, _pair_tile, _merge_tile, _pair_tile_int
     from numba import njit
 
     def sums_tile(f, C, out):  # pragma: no cover - compiled
@@ -185,6 +185,20 @@ def _tile_helpers() -> None:
                 hi[t] = max(hi[t], max(a, b))
                 lo[t] = min(lo[t], min(a, b))
 
+    def pair_tile_int(sp, sq, wr, bv, mg, hi, lo, mul):  # pragma: no cover - compiled
+        # the vector block's steps (_sl_vec.pair_rgb8) for a tile's last pixels: the integer
+        # margin min(((2 d + 1) mul) >> 16, 255) (_int_margin)
+        for t in range(wr.shape[0]):
+            a = sp[t]
+            b = sq[t]
+            wr[t] |= bv * wr.dtype.type(a > b)
+            mx = max(a, b)
+            mn = min(a, b)
+            m = ((np.int64(2) * np.int64(mx - mn) + 1) * mul) >> 16
+            mg[t] = np.uint8(min(m, np.int64(255)))
+            hi[t] = max(hi[t], mx)
+            lo[t] = min(lo[t], mn)
+
     def merge_tile(hi, lo, scale, lmax, lmin):  # pragma: no cover - compiled
         for t in range(lmax.shape[0]):
             lmax[t] = max(lmax[t], np.float32(hi[t]) * scale)
@@ -192,6 +206,7 @@ def _tile_helpers() -> None:
 
     jit = njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     _sums_tile, _pair_tile, _merge_tile = jit(sums_tile), jit(pair_tile), jit(merge_tile)
+    _pair_tile_int = jit(pair_tile_int)
 
 
 @functools.cache
@@ -290,21 +305,37 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
             hi = np.full(n, np.int16(-1))
             sp = np.empty(n % lanes, np.int16)  # the tail's channel sums
             sq = np.empty(n % lanes, np.int16)
-            for o in range(pos.shape[0]):
+            n_pairs = pos.shape[0]
+            for o in range(n_pairs):
                 fp = frames[pos[o]]
                 fq = frames[neg[o]]
+                # past the end of this pair's run the prefetch runs on into the next pair's
+                # (the next tile's first pair after the last): the core does not wait at
+                # each run's start (tiles of 16,384 pixels: 40 runs of 48 KB)
+                last = o + 1 == n_pairs
+                fp2 = frames[pos[0 if last else o + 1]]
+                fq2 = frames[neg[0 if last else o + 1]]
+                skip = 0 if last else 3 * (a - b)
                 wv = words[rows[o]][a_:b_]
                 mg = margin[planes[o]][a_:b_]
                 mm = mmin[rows[o]][a_:b_]
                 bv = bitvals[o]
                 for t in range(0, n_vec, lanes):
                     q = 3 * (a + t) + ahead
-                    _prefetch(fp, q)
-                    _prefetch(fq, q)
-                    _prefetch(fp, q + 64)
-                    _prefetch(fq, q + 64)
-                    _prefetch(fp, q + 128)
-                    _prefetch(fq, q + 128)
+                    if q < 3 * b:
+                        _prefetch(fp, q)
+                        _prefetch(fq, q)
+                        _prefetch(fp, q + 64)
+                        _prefetch(fq, q + 64)
+                        _prefetch(fp, q + 128)
+                        _prefetch(fq, q + 128)
+                    else:
+                        _prefetch(fp2, q + skip)
+                        _prefetch(fq2, q + skip)
+                        _prefetch(fp2, q + skip + 64)
+                        _prefetch(fq2, q + skip + 64)
+                        _prefetch(fp2, q + skip + 128)
+                        _prefetch(fq2, q + skip + 128)
                     if with_min:
                         _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t, mm)
                     else:
@@ -312,8 +343,8 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
                 if n_vec < n:
                     _sums_tile(fp[3 * (a + n_vec):3 * b], 3, sp)
                     _sums_tile(fq[3 * (a + n_vec):3 * b], 3, sq)
-                    _pair_tile(sp, sq, scale, wv[n_vec:], bv, mg[n_vec:], steps, hi[n_vec:],
-                               lo[n_vec:], k)
+                    _pair_tile_int(sp, sq, wv[n_vec:], bv, mg[n_vec:], hi[n_vec:], lo[n_vec:],
+                                   k)
                     if with_min:
                         for t in range(n_vec, n):
                             mm[t] = min(mm[t], mg[t])
@@ -328,6 +359,28 @@ def _float_margin(sp, sq, scale, steps) -> np.ndarray:
     f32 = np.float32
     d = sp.astype(f32) * f32(scale) - sq.astype(f32) * f32(scale)
     return np.minimum(np.rint(np.abs(d) * f32(steps)), f32(255.0)).astype(np.int64)
+
+
+@functools.cache
+def _int_margin(top: int, k: float) -> int:
+    """The multiplier ``m`` of the 8-bit RGB vector block's integer margin
+    (``_sl_vec.pair_rgb8``: ``min(((2 d + 1) · m) >> 16, 255)``, a 16-bit high multiply) that
+    equals the one-product margin ``min(rint(float32(d) · k), 255)`` (:func:`_diff_margin`'s)
+    for **every** sum difference ``0 <= d <= top``, checked exhaustively over the two
+    multipliers nearest ``k · 2**15``; 0 when neither does (the kernel then takes the plain
+    loops). ``(2 d + 1) m / 2**16 ≈ d k + k / 2``: for ``k = 2/3`` (8-bit RGB at the default
+    full scale, ``m = 21846``) ``floor(d · 2/3 + 1/3)`` is ``rint(d · 2/3)``, whose fractions are
+    0, 1/3 and 2/3."""
+    k32 = np.float32(k)
+    if not 0 < k32 or top > 1023:
+        return 0
+    d = np.arange(top + 1, dtype=np.int64)
+    want = np.minimum(np.rint(d.astype(np.float32) * k32), np.float32(255.0)).astype(np.int64)
+    base = float(k32) * 32768.0
+    for m in sorted({int(np.floor(base)), int(np.ceil(base))}):
+        if 0 < m < 2 ** 16 and np.array_equal(np.minimum(((2 * d + 1) * m) >> 16, 255), want):
+            return m
+    return 0
 
 
 @functools.cache
@@ -443,7 +496,9 @@ class PairGroup:
         self.scale, self.steps, self.C = np.float32(scale), np.float32(steps), C
         lane = np.int16 if top < 2 ** 15 else np.int32  # 8-bit frames: twice the lanes
         self.lo_init = lane(np.iinfo(lane).max)
-        self.rgb8 = bool(f0.dtype == np.uint8 and C == 3 and self.k > 0 and vector)
+        # the vector block's integer margin multiplier (0: the plain loops)
+        self.mul = np.int64(_int_margin(top, float(self.k)) if self.k > 0 else 0)
+        self.rgb8 = bool(f0.dtype == np.uint8 and C == 3 and self.mul > 0 and vector)
         self.parallel = bool(parallel)
         self.kernel = (_pairs_rgb8 if self.rgb8 else _pairs_tiled)(self.parallel)
         # built here, not in the chunk threads that run it (one dispatcher, one compile)
@@ -484,9 +539,10 @@ class PairGroup:
         if self.rgb8 and all(a.flags.c_contiguous for a in (W, M, lmax, lmin)
                              if a is not None):
             if MM is not None and MM.flags.c_contiguous:
-                self.kernel_min(self.flats, *args, self.k, int(start), stop, int(offset), MM)
+                self.kernel_min(self.flats, *args, self.mul, int(start), stop, int(offset),
+                                MM)
                 return True
-            self.kernel(self.flats, *args, self.k, int(start), stop, int(offset), M)
+            self.kernel(self.flats, *args, self.mul, int(start), stop, int(offset), M)
             return False
         self.plain(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
                    int(offset))

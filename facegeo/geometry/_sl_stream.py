@@ -56,10 +56,12 @@ log = logging.getLogger(__name__)
 
 _AXES = ("x", "y")
 _MARGIN_STEPS = 510.0  # uint8 margin quantisation: 1/510 of full scale, saturating at 0.5
-#: Pixels per chunk when finishing (a thread's unit of work). 131,072: the benchmark's held
-#: 1280 × 1024 frames decode in 14.8 ms at one thread against 15.6 / 17.0 / 19.2 ms with chunks
-#: of 65,536 / 32,768 / 16,384 (the per-chunk calls' fixed costs; measured with ``_CHUNK`` set
-#: before ``decode_frames`` on ``facegeo bench structured_light.decode_stream``'s frames).
+#: Pixels per chunk when finishing (a thread's unit of work). 131,072: on the chunk-by-chunk
+#: Python path the benchmark's held 1280 × 1024 frames decoded in 14.8 ms at one thread against
+#: 15.6 / 17.0 / 19.2 ms with chunks of 65,536 / 32,768 / 16,384 (the per-chunk calls' fixed
+#: costs; measured with ``_CHUNK`` set before ``decode_frames`` on ``facegeo bench
+#: structured_light.decode_stream``'s frames). The fused kernel (:data:`FUSED`) works through a
+#: chunk in sub-runs of :data:`_FUSED_SUB` pixels.
 _CHUNK = 1 << 17
 #: Byte budget of a group of streamed (not held) 8-bit / 16-bit pair frames copied for the
 #: tile-major kernel (``StreamDecoder.group_bytes``); 0: frame by frame.
@@ -67,6 +69,14 @@ STREAM_GROUP_BYTES = 0
 #: Decode the bits in the compiled per-pixel kernel (``_sl_finish``); False: the numpy
 #: reference (``_bit_words`` / ``_decode_axis`` / ``_partial_codes``), used by the tests.
 KERNELS = True
+#: Held 8-bit RGB frames without phase frames fold and finish in one compiled call a chunk
+#: (``_sl_finish.fused_chunk``), :data:`_FUSED_SUB` pixels at a time; False: the chunk-by-chunk
+#: Python path (the same values; tests compare them).
+FUSED = True
+#: Sub-run of the fused kernel: its buffers (words, margins, L_max / L_min, thresholds) stay
+#: in cache. The bench's decode, 1 thread, interleaved in one process (30 rounds, best): 8,192 /
+#: 16,384 / 32,768 / 65,536 / 131,072 pixels 10.7 / 10.1 / 9.5 / 9.5 / 10.2 ms.
+_FUSED_SUB = 32768
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,6 +258,7 @@ class StreamDecoder:
             self.lmin = np.full((H, W), np.inf, np.float32) if n else None
         self.fold_started = not (n and spec.inverse)
         self.white = self.black = None
+        self.raw_wb = {}  # kind -> (held 8-bit RGB frame, luminance scale): see add
         N = spec.phase_steps
         self.phase_max = np.zeros((H, W), np.float32) if N else None
         self.phase = {a: [np.zeros((H, W), np.float32) for _ in range(3)]
@@ -279,13 +290,20 @@ class StreamDecoder:
         # float32 luminance plane (_sl_kernels); other frames: their luminance first
         fused = (_kern.sum_dtype(a.dtype, a.shape[2] if a.ndim == 3 else 1) is not None
                  and (p.kind == "phase" or (p.kind == "gray" and self.spec.inverse)))
-        if not fused:
+        # a held 8-bit RGB white / black frame is kept as it is: the fused chunk kernel sums
+        # its channels where it needs them (no float32 plane); others, or if that kernel does
+        # not run, get their luminance (_wb_luminance)
+        raw = (p.kind in ("white", "black") and not self.copy_group and a.dtype == np.uint8
+               and a.ndim == 3 and a.shape[2] == 3 and a.flags.c_contiguous)
+        if not fused and not raw:
             lum = _luminance(a, name, None, self.full_scale)
             a, scale = lum, 1.0
         if self.shape is None:
             self._allocate(a.shape[:2])
         self.seen.add(name)
-        if p.kind == "white":
+        if raw:
+            self.raw_wb[p.kind] = (a, scale)
+        elif p.kind == "white":
             self.white = lum
         elif p.kind == "black":
             self.black = lum
@@ -434,15 +452,21 @@ class StreamDecoder:
                     np.full((H, W), np.nan, np.float32)
         # direct / global / lit are written over the accumulators they come from (chunk by
         # chunk, after the chunk has read them): 3 full-size planes less at the peak
+        fused_ok = self._fused_ok(groups)
+        if fused_ok and spec.white_black:  # lit from the held white / black frames
+            self.white = np.empty((H, W), np.float32)
+        else:
+            self._wb_luminance()
         nan_plane = lambda: np.full((H, W), np.nan, np.float32)
         out["direct"] = self.lmax if self.planes else nan_plane()
         out["global_"] = self.lmin if self.planes else nan_plane()
         out["lit"] = self.white if spec.white_black else (
             out["direct"] if self.planes else nan_plane())
-        out["valid_x"] = np.zeros((H, W), bool)
-        out["valid_y"] = np.zeros((H, W), bool)
-        out["confidence"] = np.zeros((H, W), np.float32)
-        out["shadow"] = np.zeros((H, W), bool)
+        # the fused chunk kernel writes every pixel of these (coded axes): no fill
+        for k in ("valid_x", "valid_y", "confidence", "shadow"):
+            written = fused_ok and (k[-2:] not in ("_x", "_y") or spec.n_bits(k[-1]))
+            out[k] = np.empty((H, W), np.float32 if k == "confidence" else bool) if written \
+                else np.zeros((H, W), np.float32 if k == "confidence" else bool)
         wrapped = {a: np.full((H, W), np.nan, np.float32) for a in self.phase}
         modulation = {a: np.zeros((H, W), np.float32) for a in self.phase}
         bits = {a: {c: {"unresolved": [0] * spec.n_bits(a), "lost": [0] * spec.n_bits(a)}
@@ -464,6 +488,29 @@ class StreamDecoder:
                         stripe_gray_words(c, spec.n_bits(a), self.sign_words[a][f])
         chunks = [slice(p0, min(P, p0 + _CHUNK)) for p0 in range(0, P, _CHUNK)]
         threads = self.threads if KERNELS else 1
+        fused = self._fused_plan(groups, flat, vals, max_coarse_px) if groups else None
+        if fused is not None:  # one compiled call a chunk (_sl_finish.fused_chunk)
+            out["valid"] = fused["valid"].reshape(H, W)
+            if threads == 1:  # one call for the image (its sub-runs keep the buffers small)
+                chunks = [slice(0, P)]
+
+            def run(sl):
+                b = {a: {c: {k: [0] * len(v) for k, v in d.items()} if isinstance(d, dict)
+                         else 0 for c, d in ax.items()} for a, ax in bits.items()}
+                return self._fused_chunk(fused, sl, b), b
+
+            if threads > 1 and len(chunks) > 1:
+                from concurrent.futures import ThreadPoolExecutor
+
+                with ThreadPoolExecutor(threads) as pool:
+                    done = list(pool.map(run, chunks))
+            else:
+                done = [run(sl) for sl in chunks]
+            for _, b in done:
+                _add_bits(bits, b)
+            if not sum(n for n, _ in done):
+                self._no_lit(out, shadow_threshold)
+            return StreamDecode(wrapped=wrapped, modulation=modulation, bits=bits, **out)
         if threads > 1 and len(chunks) > 1:
             # the chunks write disjoint slices; the compiled kernels release the GIL, so
             # Python threads run them in parallel (per-chunk statistics, summed after)
@@ -484,17 +531,131 @@ class StreamDecoder:
                 self._finish_chunk(sl, flat, fw, fm, bits, vals, max_coarse_px,
                                    self._fold_chunk(sl, groups) if groups else None)
         coded = [a for a in _AXES if spec.n_bits(a)]
-        lit_any = ~out["shadow"]
-        if not lit_any.any():
-            raise InputError(
-                f"frames: no pixel is lit by the projector (lit level below shadow_threshold="
-                f"{shadow_threshold} of full scale everywhere; max lit "
-                f"{float(np.nanmax(out['lit'])) if np.isfinite(out['lit']).any() else 0:.4g}): "
-                "all-dark frames, a wrong full_scale or frames of another capture")
+        if out["shadow"].all():
+            self._no_lit(out, shadow_threshold)
         out["valid"] = np.full((H, W), bool(coded))  # no coded axis: nothing is valid
         for a in coded:
             out["valid"] &= out[f"valid_{a}"]
         return StreamDecode(wrapped=wrapped, modulation=modulation, bits=bits, **out)
+
+    @staticmethod
+    def _no_lit(out, shadow_threshold) -> None:
+        """Raise the error for frames where no pixel is lit by the projector."""
+        lit = out["lit"]
+        top = float(np.nanmax(lit)) if np.isfinite(lit).any() else 0
+        raise InputError(
+            f"frames: no pixel is lit by the projector (lit level below shadow_threshold="
+            f"{shadow_threshold} of full scale everywhere; max lit {top:.4g}): all-dark "
+            "frames, a wrong full_scale or frames of another capture")
+
+    def _wb_luminance(self) -> None:
+        """The float32 luminance of white / black frames kept as they were (``raw_wb``)."""
+        for kind, (a, scale) in self.raw_wb.items():
+            setattr(self, kind, _kern.luminance(a, scale))
+        self.raw_wb = {}
+
+    def _fused_ok(self, groups) -> bool:
+        """Whether :meth:`finish` takes the fused chunk kernel (see :meth:`_fused_plan`)."""
+        if not (FUSED and KERNELS and groups and not self.phase
+                and all(g.rgb8 for g in groups.values())):
+            return False
+        if self.spec.white_black and len(self.raw_wb) != 2:
+            return False
+        g0 = next(iter(groups.values()))
+        return all(g.scale == g0.scale and g.mul == g0.mul and g.flats is g0.flats
+                   for g in groups.values())
+
+    def _fused_plan(self, groups, flat, vals, max_coarse_px) -> dict | None:
+        """What :func:`_sl_finish.fused_chunk` needs, prepared once per decode — or None when
+        the decode takes the chunk-by-chunk Python path: frames other than 8-bit RGB (the
+        pair kernel's vector block), phase frames, the numpy reference (``KERNELS = False``)
+        or ``FUSED = False``."""
+        spec = self.spec
+        if not self._fused_ok(groups):
+            return None
+        g0 = next(iter(groups.values()))
+        from facegeo.geometry import _sl_finish as fin
+
+        F = len(spec.codes)
+        plan = {"flats": g0.flats, "scale": g0.scale, "k": g0.mul, "steps": g0.steps,
+                "pairs": [], "axes": [], "outs": [], "n": {}, "words": {}}
+        e64 = np.zeros(0, np.int64)
+        for axis in _AXES:
+            n = spec.n_bits(axis)
+            g = groups.get(axis)
+            if g is None:  # an axis without bits: empty stand-ins of the same types
+                plan["pairs"].append((e64, e64, e64, np.zeros(0, np.uint8), e64))
+                plan["axes"].append((np.zeros((0, 1), np.int64), e64, np.zeros((1, 1), np.uint16),
+                                     np.zeros(1, bool), np.zeros((1, 1), np.uint16), 1,
+                                     np.zeros((1, 1), np.uint8), 1.0, 1, 1.0, 0.0,
+                                     np.zeros(1, np.float32), np.zeros(1, bool)))
+                plan["outs"].append((np.zeros(0, np.float32), np.zeros(0, np.float32),
+                                     np.zeros(0, bool)))
+                plan["words"][axis] = np.uint8
+                continue
+            size = spec.width if axis == "x" else spec.height
+            s = spec.stripe_shift(axis)
+            tables = [c if stripe_table(c, n) is not None else None for c in spec.codes]
+            tabs, words, use = fin.code_tables(tables, n)
+            wd = _word_dtype(n)
+            plan["pairs"].append((g.pos, g.neg, g.rows, g.bitvals, g.planes))
+            plan["axes"].append((
+                np.array([[self.plane_index[(c, axis, i)] for i in range(n)]
+                          for c in spec.codes], np.int64),
+                np.array([-1 if base_plane(c, n) is None else base_plane(c, n)
+                          for c in spec.codes], np.int64),
+                tabs, use, words, int(n), fin.stripe_gray_tables(tables, n, wd),
+                float(1 << s), int(-(-size // (1 << s))),
+                float(max_coarse_px if max_coarse_px is not None else float(1 << s)),
+                float(vals["vote_tolerance_px"]), np.zeros(1, np.float32), np.zeros(1, bool)))
+            plan["outs"].append((flat[axis], flat[f"sigma_{axis}"], flat[f"valid_{axis}"]))
+            plan["n"][axis] = n
+            plan["words"][axis] = wd
+        plan["valid"] = np.empty(flat["direct"].size, bool)
+        has_wb = bool(spec.white_black)
+        empty = np.zeros(0, np.uint8)
+        plan["white"] = self.raw_wb["white"][0].reshape(-1) if has_wb else empty
+        plan["black"] = self.raw_wb["black"][0].reshape(-1) if has_wb else empty
+        plan["wb_scales"] = (self.raw_wb["white"][1], self.raw_wb["black"][1]) if has_wb \
+            else (1.0, 1.0)
+        plan["thresholds"] = (has_wb, vals["shadow_threshold"], vals["min_contrast"],
+                              vals["rel_contrast"])
+        plan["flat"] = (flat["direct"], flat["global_"], flat["lit"], flat["shadow"],
+                        flat["confidence"], plan["valid"])
+        plan["F"], plan["K"] = F, len(self.planes)
+        return plan
+
+    def _fused_chunk(self, plan, sl, bits) -> int:
+        """Fold and finish pixels ``sl`` in one compiled call (``_sl_finish.fused_chunk``) with
+        this thread's buffers; adds the chunk's per-bit statistics to ``bits``; returns the
+        number of lit pixels."""
+        from facegeo.geometry import _sl_finish as fin
+
+        sub = min(_FUSED_SUB, sl.stop - sl.start)
+        bufs = getattr(self._chunk_local, "fused", None)
+        if bufs is None or bufs[1][1].size < sub:
+            F = plan["F"]
+            per_axis = tuple((np.empty((F, sub), plan["words"][a]), np.empty((F, sub), np.uint8))
+                             for a in _AXES)
+            shared = (np.empty((plan["K"], sub), np.uint8), np.empty(sub, np.float32),
+                      np.empty(sub, np.float32), np.empty(sub, np.float32), np.empty(sub, bool))
+            bufs = (per_axis, shared)
+            self._chunk_local.fused = bufs
+        counts = {a: np.zeros((plan["F"], 2 * plan["n"].get(a, 0) + 1), np.int64) for a in _AXES}
+        outs = tuple(o + (counts[a],) for o, a in zip(plan["outs"], _AXES))
+        n_lit = fin.fused_chunk(
+            plan["flats"], sl.start, sl.stop, sub, plan["scale"], plan["k"], plan["steps"],
+            1.0 / _MARGIN_STEPS, plan["pairs"], plan["axes"], bufs, plan["white"],
+            plan["black"], plan["wb_scales"], plan["thresholds"], plan["flat"] + outs)
+        for a, n in plan["n"].items():
+            c = counts[a]
+            for f, code in enumerate(self.spec.codes):
+                st = bits[a][code]
+                for i in range(n):
+                    st["unresolved"][i] += int(c[f, i])
+                    st["lost"][i] += int(c[f, n + i])
+            bits[a]["votes_disagree"] += int(c[0, 2 * n])
+        return n_lit
 
     def _chunk_lum(self, arr, sl):
         return None if arr is None else arr.reshape(-1)[sl]

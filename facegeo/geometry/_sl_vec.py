@@ -1,12 +1,17 @@
-"""LLVM vector code for the tile kernel of 8-bit RGB pattern / inverse pairs (numba intrinsics).
+"""LLVM vector code of the structured-light decode's hot loops (numba intrinsics).
 
-Private to :mod:`facegeo.geometry._sl_kernels` (imported by its kernel factory only).
+Private to :mod:`facegeo.geometry._sl_kernels` and :mod:`facegeo.geometry._sl_finish`
+(imported by their kernel factories only).
 
 :func:`pair_rgb8` folds 32 pixels of one pattern / inverse pair into a tile's accumulators in
 one block of vector instructions: both frames' 96 interleaved bytes are loaded, split into their
 R, G and B lanes by byte shuffles and summed to int16 channel sums; then the decision bit, the
 uint8 margin and the running max / min — exactly what ``_sums_tile`` twice and ``_pair_tile``
-(the ``k > 0`` branch) do over the same 32 pixels, bit for bit (tested). numba's own code for
+(the ``k > 0`` branch) do over the same 32 pixels, bit for bit (tested). The margin is taken as
+a 16-bit high multiply, ``min(((2 d + 1) · m) >> 16, 255)`` (``pmulhuw`` with AVX-512 BW):
+``_sl_kernels._int_margin`` finds the ``m`` that gives the float32 margin for every sum
+difference, checked exhaustively (the float32 product, rint and conversions were a dozen of
+the block's ≈ 60 instructions). numba's own code for
 those loops loads the interleaved channels with gathers-by-shuffle per channel and runs the
 sums and the update as separate passes through the tile; on AMD znver5 (AVX-512 VBMI) the
 block runs at 0.022 against 0.056 ns a pixel for the channel sums in cache, and — with the
@@ -19,7 +24,13 @@ byte at an offset of an array; a hint, never a fault, also past the array's end.
 prefetches the pair's bytes :data:`PREFETCH_BYTES` ahead: a tile reads each frame in one run,
 and the hardware prefetcher alone left the core waiting at each of the 40 runs' starts and
 between the compute bursts (2.7 ms of the 5.3 above; prefetch distances 512 / 2,048 / 4,096 /
-8,192 / 32,768 bytes: 4.6 / 3.1 / 2.5 / 2.5 / 2.6 ms).
+8,192 / 32,768 bytes: 4.6 / 3.1 / 2.5 / 2.5 / 2.6 ms). Past the end of a pair's run the kernel
+prefetches the next pair's first bytes.
+
+:func:`direct_block` is the finish's fully resolved pass (``_sl_finish``) over 16 pixels in
+<16 x i32 / float> lanes: numba's loop ran 8 lanes wide (int64 words, NaN-safe selects as
+compare chains) at 0.65 ns a pixel in cache, the block at 0.42. :func:`lit_rgb8` makes the lit
+level (white − black) of 32 pixels from the held 8-bit RGB frames.
 """
 
 from __future__ import annotations
@@ -28,10 +39,13 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["LANES", "PREFETCH_BYTES", "pair_rgb8", "prefetch", "source_hash"]
+__all__ = ["DIRECT_LANES", "LANES", "PREFETCH_BYTES", "direct_block", "lit_rgb8", "pair_rgb8",
+           "prefetch", "source_hash"]
 
 #: Pixels per :func:`pair_rgb8` call.
 LANES = 32
+#: Pixels per :func:`direct_block` call.
+DIRECT_LANES = 16
 #: How far ahead of the pixel being folded the kernel prefetches each frame, in bytes.
 PREFETCH_BYTES = 4096
 
@@ -53,6 +67,13 @@ def _c1d(a, dtype) -> bool:
     """A C-contiguous 1-D array of ``dtype`` (the vector block loads and stores consecutive
     elements: a strided view would be read and written in its gaps)."""
     return isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" and a.dtype == dtype
+
+
+def _has_feature(context, name: str) -> bool:
+    """Whether numba compiles for a CPU with instruction-set feature ``name`` (its target
+    machine's features: the host's, or ``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``)."""
+    features = getattr(context.codegen(), "_tm_features", "") or ""
+    return f"+{name}" in features.split(",")
 
 
 def _vec(t, n: int = LANES) -> ir.VectorType:
@@ -103,7 +124,9 @@ def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
               mmin):  # pragma: no cover - compiled
     """Fold pixels ``off … off + 31`` of pattern ``fp`` / inverse ``fq`` (flat uint8 RGB
     frames) into tile positions ``t … t + 31``: ``words[t+i] |= bitval`` where the pattern's
-    channel sum is larger, ``margin[t+i] = min(rint(float32(|s_p - s_q|) · k), 255)``,
+    channel sum is larger, ``margin[t+i] = min(((2 |s_p - s_q| + 1) · k) >> 16, 255)`` — with
+    the integer ``k`` of ``_sl_kernels._int_margin``, exactly the one-product float32 margin
+    ``min(rint(float32(|s_p - s_q|) · k_f), 255)`` for every difference (checked there),
     ``hi`` / ``lo`` (int16) the running max / min of both sums; ``mmin`` (uint8, or None) the
     running min of the margins (the code family's smallest margin, for the finish)."""
     if not (_c1d(fp, types.uint8) and fq == fp and isinstance(words, types.Array)
@@ -113,7 +136,7 @@ def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
             and (mmin == margin or isinstance(mmin, types.NoneType))):
         return None
     with_min = not isinstance(mmin, types.NoneType)
-    sig = types.void(fp, fq, types.int64, words, words.dtype, margin, types.float32, hi, lo,
+    sig = types.void(fp, fq, types.int64, words, words.dtype, margin, types.int64, hi, lo,
                      types.int64, mmin)
 
     def codegen(context, builder, signature, args):
@@ -131,14 +154,23 @@ def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
         builder.store(w, wp, align=signature.args[3].dtype.bitwidth // 8)
         mx = builder.select(gt, sp, sq)
         mn = builder.select(gt, sq, sp)
-        d = builder.sitofp(builder.sext(builder.sub(mx, mn), _vec(_I32)), _vec(_F32))
-        rint = _declare(builder.module, "llvm.rint.v32f32",
-                        ir.FunctionType(_vec(_F32), [_vec(_F32)]))
-        r = builder.fptosi(builder.call(rint, [builder.fmul(d, _splat(builder, kv, _vec(_F32)))]),
-                           _vec(_I32))
-        top = ir.Constant(_vec(_I32), [255] * LANES)
-        r = builder.select(builder.icmp_signed("<", r, top), r, top)
-        m8 = builder.trunc(r, _vec(_I8))
+        # the margin as a high multiply of 16-bit lanes: pmulhuw (one instruction for 32 lanes,
+        # where the float32 product, rint and conversions took a dozen) where the target has
+        # AVX-512 BW; elsewhere the same value from 32-bit products
+        v16, v32i = _vec(_I16), _vec(_I32)
+        d2 = builder.add(builder.shl(builder.sub(mx, mn), ir.Constant(v16, [1] * LANES)),
+                         ir.Constant(v16, [1] * LANES))  # 2 d + 1 <= 2 * 1023 + 1
+        mul16 = _splat(builder, builder.trunc(kv, _I16), v16)  # k < 2**16 (_int_margin)
+        if _has_feature(context, "avx512bw"):
+            mulhu = _declare(builder.module, "llvm.x86.avx512.pmulhu.w.512",
+                             ir.FunctionType(v16, [v16, v16]))
+            r16 = builder.call(mulhu, [d2, mul16])
+        else:
+            prod = builder.mul(builder.zext(d2, v32i), builder.zext(mul16, v32i))
+            r16 = builder.trunc(builder.lshr(prod, ir.Constant(v32i, [16] * LANES)), v16)
+        top = ir.Constant(v16, [255] * LANES)
+        r16 = builder.select(builder.icmp_unsigned("<", r16, top), r16, top)
+        m8 = builder.trunc(r16, _vec(_I8))
         builder.store(m8, _at(builder, _data(context, builder, signature.args[5], mv), tv,
                               _vec(_I8)), align=1)
         if with_min:
@@ -171,6 +203,124 @@ def prefetch(typingctx, a, off):  # pragma: no cover - compiled
         fn = _declare(builder.module, "llvm.prefetch.p0",
                       ir.FunctionType(ir.VoidType(), [p8, _I32, _I32, _I32]))
         builder.call(fn, [p, ir.Constant(_I32, 0), ir.Constant(_I32, 3), ir.Constant(_I32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def direct_block(typingctx, sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, t, mscale, high, sb,
+                 n_stripes, one_ok, step, c0, sig_one):  # pragma: no cover - compiled
+    """The fully resolved pass of ``_sl_finish``'s ``direct`` over pixels ``t … t + 15`` in
+    one block of <16 x i32 / float> lanes (numba's loop ran 8 lanes wide with int64 words and
+    NaN-safe selects as compare chains: 0.65 ns a pixel). Per pixel, as that loop: the decision
+    word ``sg`` (uint8 / 16 / 32) as a binary stripe index (the XOR base folded in with
+    ``high`` / ``sb``, then Gray → binary by a prefix XOR), the family's smallest margin ``mi``
+    (uint8 steps, or float32) times ``mscale`` against ``tau`` (``slv`` = not reliable),
+    validity ``oov`` = ``lit`` and index < ``n_stripes`` and ``one_ok`` and reliable,
+    ``cov = float32(float64(x) · step + c0)`` and ``sov = sig_one`` (+ NaN where not valid),
+    and the running confidence ``qov = min(qov, clip(m / max(ref, 1e-12), 0, 1) · valid)``
+    where reliable — with numpy's NaN rules
+    for ``np.maximum`` / ``np.minimum``. Returns how many of the 16 are not reliable."""
+    ok = (isinstance(sg, types.Array) and isinstance(sg.dtype, types.Integer)
+          and not sg.dtype.signed and _c1d(sg, sg.dtype)
+          and (_c1d(mi, types.uint8) or _c1d(mi, types.float32))
+          and _c1d(tau, types.float32) and _c1d(lit, types.boolean) and _c1d(ref, types.float32)
+          and _c1d(cov, types.float32) and _c1d(sov, types.float32)
+          and _c1d(oov, types.boolean) and _c1d(qov, types.float32) and _c1d(slv, types.uint8))
+    if not ok:
+        return None
+    sig = types.int64(sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, types.int64, types.float32,
+                      types.int64, types.int64, types.int64, types.boolean, types.float64,
+                      types.float64, types.float32)
+    n = DIRECT_LANES
+
+    def codegen(context, builder, signature, args):
+        (sgv, miv, tauv, litv, refv, covv, sovv, oovv, qovv, slvv, tv, msc, hi, sbv, nsv, oneok,
+         stepv, c0v, sigv) = args
+        A = signature.args
+        v32, vf, vd, v8, v1 = _vec(_I32, n), _vec(_F32, n), _vec(ir.DoubleType(), n), \
+            _vec(_I8, n), _vec(ir.IntType(1), n)
+
+        def ptr(i, elt):
+            return _at(builder, _data(context, builder, A[i], args[i]), tv, elt)
+
+        wbits = A[0].dtype.bitwidth
+        w = builder.load(ptr(0, _vec(ir.IntType(wbits), n)), align=wbits // 8)
+        x = builder.zext(w, v32) if wbits < 32 else w
+        # the XOR base: planes above it were projected XORed with it (high = 0 otherwise)
+        bit = builder.and_(builder.lshr(x, _splat(builder, builder.trunc(sbv, _I32), v32)),
+                           ir.Constant(v32, [1] * n))
+        x = builder.xor(x, builder.mul(_splat(builder, builder.trunc(hi, _I32), v32), bit))
+        for k in (1, 2, 4, 8, 16):  # Gray -> binary
+            x = builder.xor(x, builder.lshr(x, ir.Constant(v32, [k] * n)))
+        mv = builder.load(ptr(1, v8), align=1) if A[1].dtype == types.uint8 else \
+            builder.load(ptr(1, vf), align=4)
+        m = builder.fmul(builder.uitofp(mv, vf) if A[1].dtype == types.uint8 else mv,
+                         _splat(builder, msc, vf))
+        good = builder.fcmp_ordered(">=", m, builder.load(ptr(2, vf), align=4))
+        bad = builder.not_(good)
+        builder.store(builder.zext(bad, v8), ptr(9, v8), align=1)
+        lit8 = builder.load(ptr(3, v8), align=1)
+        big = ir.Constant(_I64, 2**31 - 1)  # n_stripes as int32 (words < 2**31)
+        ns = builder.trunc(builder.select(builder.icmp_signed(">", nsv, big), big, nsv), _I32)
+        o = builder.and_(builder.icmp_unsigned("!=", lit8, ir.Constant(v8, None)),
+                         builder.icmp_signed("<", x, _splat(builder, ns, v32)))
+        o = builder.and_(o, good)
+        o = builder.and_(o, _splat(builder, builder.trunc(oneok, ir.IntType(1))
+                                   if oneok.type != ir.IntType(1) else oneok, v1))
+        builder.store(builder.zext(o, v8), ptr(7, v8), align=1)
+        nan = ir.Constant(_F32, float("nan"))
+        z = builder.select(o, ir.Constant(vf, [0.0] * n), ir.Constant(vf, [nan.constant] * n))
+        c = builder.fadd(builder.fmul(builder.sitofp(x, vd), _splat(builder, stepv, vd)),
+                         _splat(builder, c0v, vd))
+        builder.store(builder.fadd(builder.fptrunc(c, vf), z), ptr(5, vf), align=4)
+        builder.store(builder.fadd(_splat(builder, sigv, vf), z), ptr(6, vf), align=4)
+        r = builder.load(ptr(4, vf), align=4)
+        tiny = _splat(builder, ir.Constant(_F32, 1e-12), vf)
+        r = builder.select(builder.fcmp_unordered(">=", r, tiny), r, tiny)  # np.maximum
+        q = builder.fdiv(m, r)
+        zero, one = ir.Constant(vf, [0.0] * n), ir.Constant(vf, [1.0] * n)
+        q = builder.select(builder.fcmp_unordered(">=", q, zero), q, zero)  # np.maximum(q, 0)
+        q = builder.select(builder.fcmp_unordered("<=", q, one), q, one)  # np.minimum(q, 1)
+        v = builder.fmul(q, builder.uitofp(o, vf))
+        qp = ptr(8, vf)
+        qo = builder.load(qp, align=4)
+        keep = builder.or_(builder.fcmp_ordered("<=", qo, v),
+                           builder.fcmp_unordered("uno", qo, qo))  # np.minimum(qo, v)
+        w_ = builder.select(keep, qo, v)
+        builder.store(builder.select(good, w_, qo), qp, align=4)
+        cnt = builder.bitcast(bad, ir.IntType(n))
+        ctpop = _declare(builder.module, f"llvm.ctpop.i{n}",
+                         ir.FunctionType(ir.IntType(n), [ir.IntType(n)]))
+        return builder.zext(builder.call(ctpop, [cnt]), _I64)
+
+    return sig, codegen
+
+
+@intrinsic
+def lit_rgb8(typingctx, white, black, t, w_scale, b_scale,
+             out):  # pragma: no cover - compiled
+    """``out[t … t + 31] = float32(Σ white) · w_scale − float32(Σ black) · b_scale`` over
+    the channel sums of pixels ``t … t + 31`` of two flat 8-bit RGB frames (the byte shuffles of
+    :func:`pair_rgb8`): white − black as ``_sl_kernels.luminance`` makes each, bit for bit (a
+    sum of three bytes is exact in int16 and in float32)."""
+    if not (_c1d(white, types.uint8) and black == white and _c1d(out, types.float32)):
+        return None
+    sig = types.void(white, black, types.int64, types.float32, types.float32, out)
+
+    def codegen(context, builder, signature, args):
+        wv, bv, tv, ws, bs, ov = args
+        A = signature.args
+        three = builder.mul(tv, ir.Constant(_I64, 3))
+        vf = _vec(_F32)
+        sw = builder.uitofp(_rgb_sums(builder, builder.gep(_data(context, builder, A[0], wv),
+                                                           [three])), vf)
+        sb = builder.uitofp(_rgb_sums(builder, builder.gep(_data(context, builder, A[1], bv),
+                                                           [three])), vf)
+        li = builder.fsub(builder.fmul(sw, _splat(builder, ws, vf)),
+                          builder.fmul(sb, _splat(builder, bs, vf)))
+        builder.store(li, _at(builder, _data(context, builder, A[5], ov), tv, vf), align=4)
         return context.get_dummy_value()
 
     return sig, codegen
