@@ -855,6 +855,7 @@ def test_compiled_finish_equals_numpy_reference(kw, monkeypatch):
     (np.uint8, 1, 4096, False, True, None, True, np.uint16),
     (np.uint8, 4, 128, False, True, None, True, np.uint16),
     (np.uint8, 3, 100, False, True, 200.0, True, np.uint16),
+    (np.uint8, 3, 100, False, True, 250.0, True, np.uint16),
     (np.uint16, 3, 100, True, True, None, True, np.uint16)])
 def test_tiled_pair_kernel_equals_the_frame_by_frame_updates(dtype, channels, tile, parallel,
                                                              diff, full, vector, wdtype):
@@ -1249,3 +1250,81 @@ def test_int_margin_is_exact_or_declined():
     fr = [rng.integers(0, 256, (8, 40, 3), dtype=np.uint8) for _ in range(2)]
     g = k.PairGroup(fr, [0], [1], 1 / 765, [0], [0], [0], 510.0, np.uint16, parallel=False)
     assert g.rgb8 and g.mul == m
+
+
+
+def test_vector_block_keeps_a_float_margin_where_no_multiplier_fits():
+    """8-bit RGB at a full scale of 250: the one-product float32 margin is exact
+    (``_diff_margin`` 0.68) but no 16-bit multiplier gives it (``_int_margin`` 0): the vector
+    block must still run, with the float32 margin (``margin_k`` float), and the fused decode with
+    it — fails if such captures fall back to the plain loops or the fused kernel breaks on a
+    float ``k``."""
+    import facegeo.geometry._sl_stream as S
+    from facegeo.geometry import _sl_kernels as k
+
+    rng = np.random.default_rng(0)
+    fr = [rng.integers(0, 251, (8, 40, 3), dtype=np.uint8) for _ in range(2)]
+    g = k.PairGroup(fr, [0], [1], 1 / 750, [0], [0], [0], 510.0, np.uint16, parallel=False)
+    assert g.rgb8 and g.mul == 0 and isinstance(g.margin_k, np.float32) and g.margin_k > 0
+    spec = PatternSpec(PROJ_W, PROJ_H)
+    frames, _, _ = _frames(spec, noise=0.01, seed=5)
+    frames = _rgb8({n: np.minimum(f, 250 / 255) for n, f in frames.items()})
+    got = decode_stream(frames, spec, full_scale=250)
+    old = S.FUSED
+    try:
+        S.FUSED = False
+        want = decode_stream(frames, spec, full_scale=250)
+    finally:
+        S.FUSED = old
+    assert want.valid.mean() > 0.5
+    for name in ("x", "y", "confidence", "valid", "lit", "direct"):
+        assert getattr(got, name).tobytes() == getattr(want, name).tobytes(), name
+
+
+def test_white_black_frames_may_share_a_reused_buffer():
+    """A caller feeding ``StreamDecoder`` one reused buffer (a camera's frame buffer,
+    ``copy_group=False``, frame by frame) for the white and then the black frame: the decoder
+    must take what it needs at ``add`` — fails if it keeps a reference to the buffer and decodes
+    white = black (no pixel lit) or with the buffer's later content."""
+    from facegeo.geometry._sl_stream import StreamDecoder
+
+    spec = PatternSpec(PROJ_W, PROJ_H)
+    frames, _, _ = _frames(spec, noise=0.005, seed=2)
+    frames = _rgb8(frames)
+    want = decode_stream(dict(frames), spec)
+    dec = StreamDecoder(spec, copy_group=False)
+    buf = np.empty_like(frames["white"])
+    for n, f in frames.items():
+        buf[...] = f
+        dec.add(n, buf)
+    buf[...] = 0  # the caller's next use of its buffer
+    got = dec.finish()
+    assert want.valid.mean() > 0.5
+    for name in ("x", "y", "valid", "lit", "shadow"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+def test_empty_held_frames_give_the_input_error():
+    """Held 8-bit RGB frames of zero rows (the fused path's sub-runs would be empty): the
+    decoder's own error, not a crash in the compiled kernel."""
+    spec = PatternSpec(PROJ_W, PROJ_H)
+    frames = {n: np.zeros((0, 12, 3), np.uint8) for n in pattern_names(spec)}
+    with pytest.raises(InputError, match="no pixel is lit"):
+        decode_stream(frames, spec)
+
+
+def test_compiled_outputs_use_one_nan():
+    """Every NaN the compiled finish writes into ``x`` / ``σ`` is the same (x86's 0 / 0, sign bit
+    set: what the finish wrote before its vector block), from the fast pass and the per-pixel
+    path alike — fails if the two paths mix NaN encodings in one plane."""
+    from scipy.ndimage import gaussian_filter
+
+    spec = PatternSpec(PROJ_W, PROJ_H)
+    frames, _, _ = _frames(spec, noise=0.01, seed=5)
+    frames = _rgb8({n: gaussian_filter(f, 1.2) for n, f in frames.items()})
+    res = decode_stream(frames, spec)
+    assert sum(sum(res.bits["x"][c]["unresolved"]) for c in spec.codes) > 50
+    for name in ("x", "sigma_x", "y"):
+        a = getattr(res, name)
+        bits = np.unique(a[np.isnan(a)].view(np.uint32))
+        assert bits.tolist() == [0xFFC00000], (name, [hex(b) for b in bits])

@@ -122,7 +122,6 @@ def _kernel():
         zero = np.float32(0.0)
         one = np.float32(1.0)
         tiny = np.float32(1e-12)
-        nan = np.float32(np.nan)
         if not vec_source:  # (the cache key, see above)
             zero = one
         n_slow = np.int32(0)
@@ -149,7 +148,7 @@ def _kernel():
             slv[t] = np.uint8(not good)
             n_slow += np.int32(not good)
             o = lit[t] & (x < ns32) & one_stripe_ok & good
-            z = zero if o else nan
+            z = zero / np.float32(o)  # + z: NaN where not ok (x86's 0 / 0, as the block)
             oov[t] = o
             cov[t] = np.float32(np.float64(x) * step + c0) + z
             sov[t] = sig_one + z
@@ -615,21 +614,21 @@ def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, 
     buffers stay in cache and no Python runs between the steps (that path's per-call costs were
     ≈ 1 ms of a 12 ms decode, and its chunks too large for the buffers to stay in L2).
 
-    ``scale``, ``k``, ``steps``: the pair kernel's (``k`` the integer margin multiplier,
-    ``_sl_kernels.PairGroup.mul``); ``mscale``: the margins' unit. ``pairs``: per axis
-    ``(pos, neg, rows, bitvals, planes)`` (empty arrays for an axis without bits); ``axes``:
-    per axis ``(kidx, base, tabs, use, words, n, gray tables (F, 2**n), step, n_stripes,
+    ``scale``, ``k``, ``steps``: the pair kernel's (``k`` the integer margin multiplier or the
+    float32 ``k``, ``_sl_kernels.PairGroup.margin_k``); ``mscale``: the margins' unit. ``pairs``:
+    per axis ``(pos, neg, rows, bitvals, planes)`` (empty arrays for an axis without bits);
+    ``axes``: per axis ``(kidx, base, tabs, use, words, n, gray tables (F, 2**n), step, n_stripes,
     coarse_lim, tol, phi, pok)`` (``StreamDecoder._fused_plan``); ``bufs``: per axis ``(words,
     mmin)`` (F, ≥ sub) plus the shared ``(margin, lmax, lmin, tau, lit)``; ``white``,
     ``black``: the held frames, flat (empty without them), ``wb_scales`` their luminance
     scales; ``thresholds``: ``(has_wb, shadow, min_contrast, rel_contrast)``; ``outs``:
-    ``(direct, global, lit, shadow, confidence, valid)`` flat and per axis ``(coord, sigma,
-    ok, counts)``. Returns the number of lit pixels."""
+    ``(direct, global, lit, shadow, confidence, valid)`` flat and per axis ``(coord, sigma, ok,
+    counts)``. Returns the number of lit pixels."""
     (gx, gy), (ax, ay), ((bx, by), shared), (ox, oy) = pairs, axes, bufs, outs[6:]
     margin, lmax, lmin, tau, litb = shared
     has_wb, shadow_thr, min_c, rel_c = thresholds
     direct, glob, lit_out, shadow, conf, valid = outs[:6]
-    return _fused()(frames, int(start), int(stop), int(sub), np.float32(scale), np.int64(k),
+    return _fused()(frames, int(start), int(stop), int(sub), np.float32(scale), k,
                     np.float32(steps), np.float32(mscale), gx, gy, ax, ay, bx, by, margin,
                     lmax, lmin, tau, litb, white, black, np.float32(wb_scales[0]),
                     np.float32(wb_scales[1]), bool(has_wb), np.float32(shadow_thr),

@@ -257,6 +257,30 @@ def _pairs_tiled(parallel: bool):
     return pairs
 
 
+def _tail(sp, sq, scale, wr, bv, mg, steps, hi, lo, k):  # pragma: no cover - compiled only
+    """The 8-bit RGB kernel's last ``n mod 32`` pixels of a tile: ``_pair_tile`` with a float32
+    ``k``, ``_pair_tile_int`` with the integer multiplier (the vector block's two margins);
+    chosen by ``k``'s type when numba compiles the kernel (:func:`_register_tail`)."""
+    raise NotImplementedError("compiled only")
+
+
+@functools.cache
+def _register_tail() -> None:
+    """Register :func:`_tail`'s compiled implementations (one per type of ``k``)."""
+    from numba import types
+    from numba.extending import overload
+
+    @overload(_tail)
+    def _tail_impl(sp, sq, scale, wr, bv, mg, steps, hi, lo, k):
+        if isinstance(k, types.Integer):
+            def impl(sp, sq, scale, wr, bv, mg, steps, hi, lo, k):  # pragma: no cover
+                _pair_tile_int(sp, sq, wr, bv, mg, hi, lo, k)
+        else:
+            def impl(sp, sq, scale, wr, bv, mg, steps, hi, lo, k):  # pragma: no cover
+                _pair_tile(sp, sq, scale, wr, bv, mg, steps, hi, lo, k)
+        return impl
+
+
 # The vector block and prefetch of 8-bit RGB pairs (facegeo.geometry._sl_vec), set by
 # _pairs_rgb8(): module globals for the same reason as the tile helpers.
 _pair_rgb8 = _prefetch = None
@@ -282,6 +306,7 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
     from facegeo.geometry import _sl_vec
 
     _tile_helpers()
+    _register_tail()
     _pair_rgb8, _prefetch = _sl_vec.pair_rgb8, _sl_vec.prefetch
     lanes, ahead = _sl_vec.LANES, _sl_vec.PREFETCH_BYTES
     # numba's disk cache sees this file (its modification time) and the kernel's closure cells,
@@ -343,8 +368,8 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
                 if n_vec < n:
                     _sums_tile(fp[3 * (a + n_vec):3 * b], 3, sp)
                     _sums_tile(fq[3 * (a + n_vec):3 * b], 3, sq)
-                    _pair_tile_int(sp, sq, wv[n_vec:], bv, mg[n_vec:], hi[n_vec:], lo[n_vec:],
-                                   k)
+                    _tail(sp, sq, scale, wv[n_vec:], bv, mg[n_vec:], steps, hi[n_vec:],
+                          lo[n_vec:], k)
                     if with_min:
                         for t in range(n_vec, n):
                             mm[t] = min(mm[t], mg[t])
@@ -496,9 +521,11 @@ class PairGroup:
         self.scale, self.steps, self.C = np.float32(scale), np.float32(steps), C
         lane = np.int16 if top < 2 ** 15 else np.int32  # 8-bit frames: twice the lanes
         self.lo_init = lane(np.iinfo(lane).max)
-        # the vector block's integer margin multiplier (0: the plain loops)
+        self.rgb8 = bool(f0.dtype == np.uint8 and C == 3 and self.k > 0 and vector)
+        # the vector block's margin: the integer multiplier where one gives the float32 margins
+        # (a 16-bit high multiply), else the float32 k (numba compiles the block for each)
         self.mul = np.int64(_int_margin(top, float(self.k)) if self.k > 0 else 0)
-        self.rgb8 = bool(f0.dtype == np.uint8 and C == 3 and self.mul > 0 and vector)
+        self.margin_k = self.mul if self.mul > 0 else self.k
         self.parallel = bool(parallel)
         self.kernel = (_pairs_rgb8 if self.rgb8 else _pairs_tiled)(self.parallel)
         # built here, not in the chunk threads that run it (one dispatcher, one compile)
@@ -539,10 +566,10 @@ class PairGroup:
         if self.rgb8 and all(a.flags.c_contiguous for a in (W, M, lmax, lmin)
                              if a is not None):
             if MM is not None and MM.flags.c_contiguous:
-                self.kernel_min(self.flats, *args, self.mul, int(start), stop, int(offset),
-                                MM)
+                self.kernel_min(self.flats, *args, self.margin_k, int(start), stop,
+                                int(offset), MM)
                 return True
-            self.kernel(self.flats, *args, self.mul, int(start), stop, int(offset), M)
+            self.kernel(self.flats, *args, self.margin_k, int(start), stop, int(offset), M)
             return False
         self.plain(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
                    int(offset))

@@ -234,6 +234,9 @@ class StreamDecoder:
         self.group_nbytes = 0
         self.group_bytes = float(group_bytes)
         self.copy_group = bool(copy_group)
+        # every frame is held by the caller until finish (decode_frames with a mapping, list or
+        # tuple): pairs wait uncopied in one group, a white / black frame is kept as it is
+        self.holds_frames = math.isinf(self.group_bytes) and not self.copy_group
         self.threads = _check_threads(threads)
         self.folded = False  # a pair frame went into the full-size accumulators
 
@@ -293,7 +296,7 @@ class StreamDecoder:
         # a held 8-bit RGB white / black frame is kept as it is: the fused chunk kernel sums
         # its channels where it needs them (no float32 plane); others, or if that kernel does
         # not run, get their luminance (_wb_luminance)
-        raw = (p.kind in ("white", "black") and not self.copy_group and a.dtype == np.uint8
+        raw = (p.kind in ("white", "black") and self.holds_frames and a.dtype == np.uint8
                and a.ndim == 3 and a.shape[2] == 3 and a.flags.c_contiguous)
         if not fused and not raw:
             lum = _luminance(a, name, None, self.full_scale)
@@ -562,7 +565,7 @@ class StreamDecoder:
         if self.spec.white_black and len(self.raw_wb) != 2:
             return False
         g0 = next(iter(groups.values()))
-        return all(g.scale == g0.scale and g.mul == g0.mul and g.flats is g0.flats
+        return all(g.scale == g0.scale and g.margin_k == g0.margin_k and g.flats is g0.flats
                    for g in groups.values())
 
     def _fused_plan(self, groups, flat, vals, max_coarse_px) -> dict | None:
@@ -577,7 +580,7 @@ class StreamDecoder:
         from facegeo.geometry import _sl_finish as fin
 
         F = len(spec.codes)
-        plan = {"flats": g0.flats, "scale": g0.scale, "k": g0.mul, "steps": g0.steps,
+        plan = {"flats": g0.flats, "scale": g0.scale, "k": g0.margin_k, "steps": g0.steps,
                 "pairs": [], "axes": [], "outs": [], "n": {}, "words": {}}
         e64 = np.zeros(0, np.int64)
         for axis in _AXES:
@@ -623,6 +626,7 @@ class StreamDecoder:
         plan["flat"] = (flat["direct"], flat["global_"], flat["lit"], flat["shadow"],
                         flat["confidence"], plan["valid"])
         plan["F"], plan["K"] = F, len(self.planes)
+        fin._fused()  # built here, not in the chunk threads (one dispatcher, one compile)
         return plan
 
     def _fused_chunk(self, plan, sl, bits) -> int:
@@ -631,7 +635,7 @@ class StreamDecoder:
         number of lit pixels."""
         from facegeo.geometry import _sl_finish as fin
 
-        sub = min(_FUSED_SUB, sl.stop - sl.start)
+        sub = max(1, min(_FUSED_SUB, sl.stop - sl.start))  # (an empty image: no sub-runs)
         bufs = getattr(self._chunk_local, "fused", None)
         if bufs is None or bufs[1][1].size < sub:
             F = plan["F"]

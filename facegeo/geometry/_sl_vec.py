@@ -119,25 +119,60 @@ def _rgb_sums(builder, p):
     return acc
 
 
+def _margin_float(builder, mx, mn, kv):
+    """``min(rint(float32(mx - mn) · k), 255)`` as <32 x i8> (``k`` float32)."""
+    d = builder.sitofp(builder.sext(builder.sub(mx, mn), _vec(_I32)), _vec(_F32))
+    rint = _declare(builder.module, "llvm.rint.v32f32", ir.FunctionType(_vec(_F32), [_vec(_F32)]))
+    r = builder.fptosi(builder.call(rint, [builder.fmul(d, _splat(builder, kv, _vec(_F32)))]),
+                       _vec(_I32))
+    top = ir.Constant(_vec(_I32), [255] * LANES)
+    r = builder.select(builder.icmp_signed("<", r, top), r, top)
+    return builder.trunc(r, _vec(_I8))
+
+
+def _margin_mulhi(context, builder, mx, mn, kv):
+    """``min(((2 (mx - mn) + 1) · k) >> 16, 255)`` as <32 x i8> (``k`` an integer below 2**16):
+    a high multiply of 16-bit lanes — ``pmulhuw`` where the target has AVX-512 BW (one
+    instruction for 32 lanes, where the float32 product, rint and conversions of
+    :func:`_margin_float` take a dozen), the same value from 32-bit products elsewhere."""
+    v16, v32i = _vec(_I16), _vec(_I32)
+    d2 = builder.add(builder.shl(builder.sub(mx, mn), ir.Constant(v16, [1] * LANES)),
+                     ir.Constant(v16, [1] * LANES))  # 2 d + 1 <= 2 * 1023 + 1
+    mul16 = _splat(builder, builder.trunc(kv, _I16), v16)
+    if _has_feature(context, "avx512bw"):
+        mulhu = _declare(builder.module, "llvm.x86.avx512.pmulhu.w.512",
+                         ir.FunctionType(v16, [v16, v16]))
+        r16 = builder.call(mulhu, [d2, mul16])
+    else:
+        prod = builder.mul(builder.zext(d2, v32i), builder.zext(mul16, v32i))
+        r16 = builder.trunc(builder.lshr(prod, ir.Constant(v32i, [16] * LANES)), v16)
+    top = ir.Constant(v16, [255] * LANES)
+    r16 = builder.select(builder.icmp_unsigned("<", r16, top), r16, top)
+    return builder.trunc(r16, _vec(_I8))
+
+
 @intrinsic
 def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
               mmin):  # pragma: no cover - compiled
     """Fold pixels ``off … off + 31`` of pattern ``fp`` / inverse ``fq`` (flat uint8 RGB
     frames) into tile positions ``t … t + 31``: ``words[t+i] |= bitval`` where the pattern's
-    channel sum is larger, ``margin[t+i] = min(((2 |s_p - s_q| + 1) · k) >> 16, 255)`` — with
-    the integer ``k`` of ``_sl_kernels._int_margin``, exactly the one-product float32 margin
-    ``min(rint(float32(|s_p - s_q|) · k_f), 255)`` for every difference (checked there),
+    channel sum is larger, ``margin[t+i] = min(rint(float32(|s_p - s_q|) · k), 255)`` for a
+    float ``k``, or ``min(((2 |s_p - s_q| + 1) · k) >> 16, 255)`` for an integer ``k`` (the
+    multiplier of ``_sl_kernels._int_margin``: the same margins, checked there for every
+    difference),
     ``hi`` / ``lo`` (int16) the running max / min of both sums; ``mmin`` (uint8, or None) the
     running min of the margins (the code family's smallest margin, for the finish)."""
     if not (_c1d(fp, types.uint8) and fq == fp and isinstance(words, types.Array)
             and isinstance(words.dtype, types.Integer) and not words.dtype.signed
             and _c1d(words, words.dtype) and _c1d(margin, types.uint8)
             and _c1d(hi, types.int16) and lo == hi
-            and (mmin == margin or isinstance(mmin, types.NoneType))):
+            and (mmin == margin or isinstance(mmin, types.NoneType))
+            and isinstance(k, (types.Integer, types.Float))):
         return None
     with_min = not isinstance(mmin, types.NoneType)
-    sig = types.void(fp, fq, types.int64, words, words.dtype, margin, types.int64, hi, lo,
-                     types.int64, mmin)
+    int_k = isinstance(k, types.Integer)
+    sig = types.void(fp, fq, types.int64, words, words.dtype, margin,
+                     types.int64 if int_k else types.float32, hi, lo, types.int64, mmin)
 
     def codegen(context, builder, signature, args):
         fpv, fqv, offv, wv, bvv, mv, kv, hv, lv, tv, mmv = args
@@ -154,23 +189,10 @@ def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
         builder.store(w, wp, align=signature.args[3].dtype.bitwidth // 8)
         mx = builder.select(gt, sp, sq)
         mn = builder.select(gt, sq, sp)
-        # the margin as a high multiply of 16-bit lanes: pmulhuw (one instruction for 32 lanes,
-        # where the float32 product, rint and conversions took a dozen) where the target has
-        # AVX-512 BW; elsewhere the same value from 32-bit products
-        v16, v32i = _vec(_I16), _vec(_I32)
-        d2 = builder.add(builder.shl(builder.sub(mx, mn), ir.Constant(v16, [1] * LANES)),
-                         ir.Constant(v16, [1] * LANES))  # 2 d + 1 <= 2 * 1023 + 1
-        mul16 = _splat(builder, builder.trunc(kv, _I16), v16)  # k < 2**16 (_int_margin)
-        if _has_feature(context, "avx512bw"):
-            mulhu = _declare(builder.module, "llvm.x86.avx512.pmulhu.w.512",
-                             ir.FunctionType(v16, [v16, v16]))
-            r16 = builder.call(mulhu, [d2, mul16])
+        if int_k:
+            m8 = _margin_mulhi(context, builder, mx, mn, kv)
         else:
-            prod = builder.mul(builder.zext(d2, v32i), builder.zext(mul16, v32i))
-            r16 = builder.trunc(builder.lshr(prod, ir.Constant(v32i, [16] * LANES)), v16)
-        top = ir.Constant(v16, [255] * LANES)
-        r16 = builder.select(builder.icmp_unsigned("<", r16, top), r16, top)
-        m8 = builder.trunc(r16, _vec(_I8))
+            m8 = _margin_float(builder, mx, mn, kv)
         builder.store(m8, _at(builder, _data(context, builder, signature.args[5], mv), tv,
                               _vec(_I8)), align=1)
         if with_min:
@@ -270,8 +292,9 @@ def direct_block(typingctx, sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, t, m
         o = builder.and_(o, _splat(builder, builder.trunc(oneok, ir.IntType(1))
                                    if oneok.type != ir.IntType(1) else oneok, v1))
         builder.store(builder.zext(o, v8), ptr(7, v8), align=1)
-        nan = ir.Constant(_F32, float("nan"))
-        z = builder.select(o, ir.Constant(vf, [0.0] * n), ir.Constant(vf, [nan.constant] * n))
+        # the NaN of x86's 0 / 0 (sign bit set), as the former kernel made it at run time
+        nan = builder.bitcast(ir.Constant(v32, [0xFFC00000 - 2**32] * n), vf)
+        z = builder.select(o, ir.Constant(vf, [0.0] * n), nan)
         c = builder.fadd(builder.fmul(builder.sitofp(x, vd), _splat(builder, stepv, vd)),
                          _splat(builder, c0v, vd))
         builder.store(builder.fadd(builder.fptrunc(c, vf), z), ptr(5, vf), align=4)
