@@ -129,11 +129,7 @@ def _fused_truth(maps, cams, p_true, tol_sigmas=4.0, tol_floor=1e-3):
         for b, (mb, cb) in enumerate(zip(maps, cams)):
             if b == a:
                 continue
-            q, front = cb.project(p)
-            ok = front & cb.in_image(q)
-            qi = np.rint(np.where(ok[:, None], q, 0)).astype(np.int64)
-            qi[:, 0] = qi[:, 0].clip(0, cb.width - 1)
-            qi[:, 1] = qi[:, 1].clip(0, cb.height - 1)
+            qi, ok = tr._pixel_of(cb, p)
             D = np.where(ok, depth_med[b][qi[:, 1], qi[:, 0]], np.nan)
             sb = mb.sigma[qi[:, 1], qi[:, 0]]
             sb = np.where(np.isfinite(sb), sb, s)

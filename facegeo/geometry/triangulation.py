@@ -606,6 +606,18 @@ class FusedPoints:
         return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
+def _pixel_of(cam: Camera, p) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel of ``cam`` each world point ``p`` (N, 3) falls in, (N, 2) int64 (column, row),
+    clipped to the image, and whether it is in front and inside the image (N,) bool: the
+    partner pixel :func:`fuse_cameras` compares a point with."""
+    q, front = cam.project(p)
+    ok = front & cam.in_image(q)
+    qi = np.rint(np.where(ok[:, None], q, 0)).astype(np.int64)
+    qi[:, 0] = qi[:, 0].clip(0, cam.width - 1)
+    qi[:, 1] = qi[:, 1].clip(0, cam.height - 1)
+    return qi, ok
+
+
 def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: float = 4.0,
                  tol_floor: float = 1e-3, average: bool = True,
                  cluster_spacings: float | None = 2.0,
@@ -686,11 +698,7 @@ def fuse_cameras(maps: list[PointMap], cameras: list[Camera], *, tol_sigmas: flo
         for b, (mb, cb) in enumerate(zip(maps, cameras)):
             if b == a:
                 continue
-            q, front = cb.project(p)
-            ok = front & cb.in_image(q)
-            qi = np.rint(np.where(ok[:, None], q, 0)).astype(np.int64)
-            qi[:, 0] = qi[:, 0].clip(0, cb.width - 1)
-            qi[:, 1] = qi[:, 1].clip(0, cb.height - 1)
+            qi, ok = _pixel_of(cb, p)
             pix[b] = (qi[:, 1], qi[:, 0])
             D = np.where(ok, depth_med[b][qi[:, 1], qi[:, 0]], np.nan)
             sb = mb.sigma[qi[:, 1], qi[:, 0]]
