@@ -68,8 +68,14 @@ _NOISE_RE_BYTES = re.compile("|".join(_NOISE_PATTERNS).encode())
 _HOLD_MAX = 1 << 16
 _CHUNK = 1 << 16
 #: How long restoring the descriptors waits at most for the pump to pass on what is in their
-#: pipes (normally nothing, or microseconds' worth).
-_DRAIN_TIMEOUT = 0.5
+#: pipes (normally nothing, or microseconds' worth). Past it, lines printed next can overtake
+#: those still in a pipe — the one place the mechanism can reorder a thread's own lines. It was
+#: 0.5 s until a CI run at load ≈ 5 delivered a line's text after its newline (2026-11-24,
+#: ``test_prints_of_other_threads_reach_the_real_stdout_in_a_subprocess``; not reproduced
+#: since, 23 runs quiet or beside 6 CPU-bound processes, so this bound is only the likeliest
+#: cause); the wait ends as soon as the pipes are empty, so a longer bound costs nothing while
+#: the pump runs.
+_DRAIN_TIMEOUT = 5.0
 #: Pipes can be waited on with ``selectors`` (not on Windows: sockets only; a thread each there).
 _PIPES_SELECTABLE = os.name != "nt"
 try:  # POSIX: numbering descriptors, sizing pipes, asking what a pipe holds
@@ -473,6 +479,9 @@ def _restore(window: _Window) -> None:
         for ch in window.channels:  # usually idle at once: nothing was written
             while ch.idle() is False and time.monotonic() < deadline:
                 time.sleep(0.0002)
+            if ch.idle() is False:  # the pump is stuck (its destination does not read)
+                log.debug("fd %d: its pipe was not drained in %.1f s; lines printed next may "
+                          "come before the ones still in it", ch.fd, _DRAIN_TIMEOUT)
             if ch.held and _pump is not None:
                 _pump.release_held()
         for name, stand_in in window.streams.items():
