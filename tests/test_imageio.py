@@ -766,9 +766,15 @@ def test_prints_of_other_threads_reach_the_real_stdout_in_a_subprocess(tmp_path)
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stderr == ""  # no decoder noise
-    lines = r.stdout.splitlines()
-    assert lines == [f"user line {i}" for i in range(128)] + [
+    want = [f"user line {i}" for i in range(128)] + [
         f"frames {4 * (42 + len(broken))} {4 * len(broken)}"]
+    # every line's text, once and in order. Its newline may land elsewhere: print() holds the
+    # stream it fetched, so a line started just before a read and finished just after it has
+    # its text in the pipe and its newline straight on the terminal — the limitation
+    # _quiet_native_output documents ("a stream object kept from before the read"), seen once
+    # in a CI run at load 5 ('', 'user line 127frames 188 20')
+    assert r.stdout.replace("\n", "") == "".join(want)
+    assert r.stdout.count("\n") == len(want)
 
 
 def test_an_exception_inside_a_read_restores_descriptors_and_streams(tmp_path, capfd):

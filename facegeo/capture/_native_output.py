@@ -69,12 +69,12 @@ _HOLD_MAX = 1 << 16
 _CHUNK = 1 << 16
 #: How long restoring the descriptors waits at most for the pump to pass on what is in their
 #: pipes (normally nothing, or microseconds' worth). Past it, lines printed next can overtake
-#: those still in a pipe — the one place the mechanism can reorder a thread's own lines. It was
-#: 0.5 s until a CI run at load ≈ 5 delivered a line's text after its newline (2026-11-24,
-#: ``test_prints_of_other_threads_reach_the_real_stdout_in_a_subprocess``; not reproduced
-#: since, 23 runs quiet or beside 6 CPU-bound processes, so this bound is only the likeliest
-#: cause); the wait ends as soon as the pipes are empty, so a longer bound costs nothing while
-#: the pump runs.
+#: those still in a pipe. It was 0.5 s until a CI run at load ≈ 5 delivered a line's text after
+#: its newline (2026-11-24, ``test_prints_of_other_threads_reach_the_real_stdout_in_a_subprocess``,
+#: not reproduced in 23 runs since) — more likely the documented race of a ``print`` that
+#: fetched the real stream before a read began and wrote its newline after the read ended
+#: (:func:`_quiet_native_output`), but a loaded machine can starve the pump too; the wait ends
+#: as soon as the pipes are empty, so a longer bound costs nothing while the pump runs.
 _DRAIN_TIMEOUT = 5.0
 #: Pipes can be waited on with ``selectors`` (not on Windows: sockets only; a thread each there).
 _PIPES_SELECTABLE = os.name != "nt"
@@ -137,9 +137,9 @@ class _Channel:
 
     While images are read, ``fd`` points at the pipe and the pump passes every line it
     receives on to ``real`` (a duplicate of what ``fd`` pointed at when the redirection began,
-    or of an earlier one when that is the same file), unchanged and at once, except lines matching :data:`_NOISE_PATTERNS` and an empty line
-    right after one (OpenCV ends its messages with two newlines), which are kept for the
-    debug log. An unfinished line is passed on as soon as it arrives, unless it looks like
+    or of an earlier one when that is the same file), unchanged and at once, except lines
+    matching :data:`_NOISE_PATTERNS` and an empty line right after one (OpenCV ends its
+    messages with two newlines), which are kept for the debug log. An unfinished line is passed on as soon as it arrives, unless it looks like
     noise: then it waits for its end. Between reads the pipe idles (what a child process
     started during a read still writes to it is passed on too).
     """
