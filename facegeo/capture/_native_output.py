@@ -139,9 +139,10 @@ class _Channel:
     receives on to ``real`` (a duplicate of what ``fd`` pointed at when the redirection began,
     or of an earlier one when that is the same file), unchanged and at once, except lines
     matching :data:`_NOISE_PATTERNS` and an empty line right after one (OpenCV ends its
-    messages with two newlines), which are kept for the debug log. An unfinished line is passed on as soon as it arrives, unless it looks like
-    noise: then it waits for its end. Between reads the pipe idles (what a child process
-    started during a read still writes to it is passed on too).
+    messages with two newlines), which are kept for the debug log. An unfinished line is
+    passed on as soon as it arrives, unless it looks like noise: then it waits for its end.
+    Between reads the pipe idles (what a child process started during a read still writes to
+    it is passed on too).
     """
 
     def __init__(self, fd: int):
