@@ -921,6 +921,48 @@ def test_vector_pair_block_is_exact_on_a_baseline_x86_cpu(baseline_cpu_python):
     assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-2000:])
 
 
+@pytest.mark.parametrize("rows", [[0, 0, 0], [1, 1, 0, 0, 1], [0, 1, 0, 1], [2, 2, 2, 2, 2]])
+def test_two_pair_vector_block_equals_the_frame_by_frame_updates(rows):
+    """Consecutive pairs of one code family fold two at a time (``_sl_vec.pair2_rgb8``: the
+    family's words, running max / min and smallest margin loaded and stored once for both),
+    an odd one or a change of family alone (``pair_rgb8``), each group's tail through the plain
+    loops and the prefetch running on into the next group: words, every plane's margin,
+    ``L_max`` / ``L_min`` and the family minima must equal the pair-by-pair updates bit for bit
+    for any grouping. Fails if a group ORs a bit into the wrong family, stores one pair's
+    margin in the other's plane, or drops the second pair of a group (or a group's tail)."""
+    from facegeo.geometry import _sl_kernels as k
+
+    rng = np.random.default_rng(11)
+    n = len(rows)
+    H, W = 19, 53  # 1,007 pixels: tiles of 100 and 1,007 end in tails of 4 and 15
+    frames = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(2 * n)]
+    frames[3] = frames[2].copy()  # a tie: pos == neg must not set the bit
+    scale = 1.0 / 765
+    pos, neg = list(range(0, 2 * n, 2)), list(range(1, 2 * n, 2))
+    bits = [n - 1 - i for i in range(n)]
+    planes = list(rng.permutation(n))
+    F = max(rows) + 1
+    for tile, with_min in ((100, True), (H * W, True), (100, False)):
+        state = [np.zeros((F, H, W), np.uint16), np.zeros((n, H, W), np.uint8),
+                 rng.random((H, W), dtype=np.float32), rng.random((H, W), dtype=np.float32)]
+        ref = [s.copy() for s in state]
+        g = k.PairGroup(frames, pos, neg, scale, rows, bits, planes, 510.0, np.uint16,
+                        parallel=False)
+        assert g.rgb8
+        mmin = np.full((F, H * W), 255, np.uint8)
+        assert g.run(*state, tile=tile, mmin=mmin if with_min else None) == with_min
+        for p, q, r, b, m in zip(pos, neg, rows, bits, planes):
+            k.pair_update(frames[p], k.channel_sum(frames[q]), ref[0][r], b, ref[1][m], 510.0,
+                          ref[2], ref[3], pos_scale=scale, neg_scale=scale)
+        for got, want in zip(state, ref):
+            np.testing.assert_array_equal(got, want)
+        for f in range(F if with_min else 0):
+            fam = [planes[i] for i in range(n) if rows[i] == f]  # none: untouched
+            want = ref[1][fam].min(axis=0).reshape(-1) if fam else np.full(H * W, 255)
+            np.testing.assert_array_equal(mmin[f], want)
+        assert state[1].max() > 100 and state[0].any()
+
+
 def test_tile_kernels_are_cached_under_their_flags_and_the_vector_code():
     """numba's disk cache keys a kernel on its file and its closure cells, not on the
     decorator's flags or on other files: the tile kernels read ``parallel`` (and ``with_min``)

@@ -283,7 +283,7 @@ def _register_tail() -> None:
 
 # The vector block and prefetch of 8-bit RGB pairs (facegeo.geometry._sl_vec), set by
 # _pairs_rgb8(): module globals for the same reason as the tile helpers.
-_pair_rgb8 = _prefetch = None
+_pair_rgb8 = _pair2_rgb8 = _prefetch = None
 
 
 @functools.cache
@@ -291,23 +291,25 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
     """Tile-major pair kernel for 8-bit RGB frames with the one-product margin (``k > 0``):
     :func:`_pairs_tiled`'s loops as one vector block per 32 pixels
     (:func:`facegeo.geometry._sl_vec.pair_rgb8`, the same values bit for bit) with each
-    frame prefetched :data:`~facegeo.geometry._sl_vec.PREFETCH_BYTES` ahead; the tile's last
-    ``n mod 32`` pixels go through the plain helpers. ``with_min``: also the running min of each
-    code family's margins (``mmin``, row ``rows[o]``), which the finish would otherwise take
-    plane by plane (``_sl_finish``: ``mmin``).
+    frame prefetched :data:`~facegeo.geometry._sl_vec.PREFETCH_BYTES` ahead; two consecutive
+    pairs of one code family (``rows``) fold together
+    (:func:`~facegeo.geometry._sl_vec.pair2_rgb8`), an odd one or a change of family alone;
+    the tile's last ``n mod 32`` pixels go through the plain helpers. ``with_min``: also the
+    running min of each code family's margins (``mmin``, row ``rows[o]``), which the finish
+    would otherwise take plane by plane (``_sl_finish``: ``mmin``).
 
     ``parallel``, ``with_min`` and the source hash of ``_sl_vec.py`` are read in the body, so they
     are closure cells and part of numba's cache key
     (a flag of the decorator alone is not: the serial and the parallel kernel shared one
     cache entry, and whichever was compiled last ran for both)."""
-    global _pair_rgb8, _prefetch
+    global _pair_rgb8, _pair2_rgb8, _prefetch
     from numba import njit, prange
 
     from facegeo.geometry import _sl_vec
 
     _tile_helpers()
     _register_tail()
-    _pair_rgb8, _prefetch = _sl_vec.pair_rgb8, _sl_vec.prefetch
+    _pair_rgb8, _pair2_rgb8, _prefetch = _sl_vec.pair_rgb8, _sl_vec.pair2_rgb8, _sl_vec.prefetch
     lanes, ahead = _sl_vec.LANES, _sl_vec.PREFETCH_BYTES
     # numba's disk cache sees this file (its modification time) and the kernel's closure cells,
     # not _sl_vec.py, whose code generation the kernel inlines: the source hash of _sl_vec.py
@@ -331,48 +333,88 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
             sp = np.empty(n % lanes, np.int16)  # the tail's channel sums
             sq = np.empty(n % lanes, np.int16)
             n_pairs = pos.shape[0]
-            for o in range(n_pairs):
-                fp = frames[pos[o]]
-                fq = frames[neg[o]]
-                # past the end of this pair's run the prefetch runs on into the next pair's
-                # (the next tile's first pair after the last): the core does not wait at
+            o = 0
+            while o < n_pairs:
+                # two consecutive pairs of one family fold together (pair2_rgb8): the family's
+                # accumulators are loaded and stored once for both
+                two = o + 1 < n_pairs and rows[o + 1] == rows[o]
+                o2 = o + 1 if two else o
+                fp, fq = frames[pos[o]], frames[neg[o]]
+                fp2, fq2 = frames[pos[o2]], frames[neg[o2]]
+                # past the end of this group's run the prefetch runs on into the next group's
+                # (the next tile's first group after the last): the core does not wait at
                 # each run's start (tiles of 16,384 pixels: 40 runs of 48 KB)
-                last = o + 1 == n_pairs
-                fp2 = frames[pos[0 if last else o + 1]]
-                fq2 = frames[neg[0 if last else o + 1]]
+                last = o2 + 1 == n_pairs
+                nx = 0 if last else o2 + 1
+                nx2 = nx + 1 if nx + 1 < n_pairs and rows[nx + 1] == rows[nx] else nx
+                np1, nq1 = frames[pos[nx]], frames[neg[nx]]
+                np2, nq2 = frames[pos[nx2]], frames[neg[nx2]]
                 skip = 0 if last else 3 * (a - b)
                 wv = words[rows[o]][a_:b_]
                 mg = margin[planes[o]][a_:b_]
+                mg2 = margin[planes[o2]][a_:b_]
                 mm = mmin[rows[o]][a_:b_]
-                bv = bitvals[o]
-                for t in range(0, n_vec, lanes):
-                    q = 3 * (a + t) + ahead
-                    if q < 3 * b:
-                        _prefetch(fp, q)
-                        _prefetch(fq, q)
-                        _prefetch(fp, q + 64)
-                        _prefetch(fq, q + 64)
-                        _prefetch(fp, q + 128)
-                        _prefetch(fq, q + 128)
-                    else:
-                        _prefetch(fp2, q + skip)
-                        _prefetch(fq2, q + skip)
-                        _prefetch(fp2, q + skip + 64)
-                        _prefetch(fq2, q + skip + 64)
-                        _prefetch(fp2, q + skip + 128)
-                        _prefetch(fq2, q + skip + 128)
-                    if with_min:
-                        _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t, mm)
-                    else:
-                        _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t, None)
+                bv, bv2 = bitvals[o], bitvals[o2]
+                # a block advances 96 bytes a frame: two lines from q cover every byte once
+                if two:
+                    for t in range(0, n_vec, lanes):
+                        q = 3 * (a + t) + ahead
+                        if q < 3 * b:
+                            _prefetch(fp, q)
+                            _prefetch(fq, q)
+                            _prefetch(fp2, q)
+                            _prefetch(fq2, q)
+                            _prefetch(fp, q + 64)
+                            _prefetch(fq, q + 64)
+                            _prefetch(fp2, q + 64)
+                            _prefetch(fq2, q + 64)
+                        else:
+                            _prefetch(np1, q + skip)
+                            _prefetch(nq1, q + skip)
+                            _prefetch(np2, q + skip)
+                            _prefetch(nq2, q + skip)
+                            _prefetch(np1, q + skip + 64)
+                            _prefetch(nq1, q + skip + 64)
+                            _prefetch(np2, q + skip + 64)
+                            _prefetch(nq2, q + skip + 64)
+                        if with_min:
+                            _pair2_rgb8(fp, fq, fp2, fq2, a + t, wv, bv, bv2, mg, mg2, k, hi,
+                                        lo, t, mm)
+                        else:
+                            _pair2_rgb8(fp, fq, fp2, fq2, a + t, wv, bv, bv2, mg, mg2, k, hi,
+                                        lo, t, None)
+                else:
+                    for t in range(0, n_vec, lanes):
+                        q = 3 * (a + t) + ahead
+                        if q < 3 * b:
+                            _prefetch(fp, q)
+                            _prefetch(fq, q)
+                            _prefetch(fp, q + 64)
+                            _prefetch(fq, q + 64)
+                        else:
+                            _prefetch(np1, q + skip)
+                            _prefetch(nq1, q + skip)
+                            _prefetch(np2, q + skip)
+                            _prefetch(nq2, q + skip)
+                            _prefetch(np1, q + skip + 64)
+                            _prefetch(nq1, q + skip + 64)
+                            _prefetch(np2, q + skip + 64)
+                            _prefetch(nq2, q + skip + 64)
+                        if with_min:
+                            _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t, mm)
+                        else:
+                            _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t, None)
                 if n_vec < n:
-                    _sums_tile(fp[3 * (a + n_vec):3 * b], 3, sp)
-                    _sums_tile(fq[3 * (a + n_vec):3 * b], 3, sq)
-                    _tail(sp, sq, scale, wv[n_vec:], bv, mg[n_vec:], steps, hi[n_vec:],
-                          lo[n_vec:], k)
-                    if with_min:
-                        for t in range(n_vec, n):
-                            mm[t] = min(mm[t], mg[t])
+                    for oo in range(o, o2 + 1):
+                        g = mg if oo == o else mg2
+                        _sums_tile(frames[pos[oo]][3 * (a + n_vec):3 * b], 3, sp)
+                        _sums_tile(frames[neg[oo]][3 * (a + n_vec):3 * b], 3, sq)
+                        _tail(sp, sq, scale, wv[n_vec:], bitvals[oo], g[n_vec:], steps,
+                              hi[n_vec:], lo[n_vec:], k)
+                        if with_min:
+                            for t in range(n_vec, n):
+                                mm[t] = min(mm[t], g[t])
+                o = o2 + 1
             _merge_tile(hi, lo, scale, lmax[a_:b_], lmin[a_:b_])
 
     return pairs

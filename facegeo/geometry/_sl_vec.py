@@ -19,13 +19,21 @@ prefetch below — a 10-pair group of 1280 × 1024 frames at 1 thread in 2.46 ag
 (one read of the 20 frames: 2.13 ms). On other x86 CPUs LLVM lowers the same shuffles to
 narrower instructions: slower, the same values.
 
+:func:`pair2_rgb8` folds two pairs of one code family in one block: the family's decision
+words, running max / min and smallest margin are loaded and stored once for both pairs (each
+pair still stores its own margin plane). With one pair a block those accumulators' load /
+store traffic between L1 and L2 was as large as the frames' bytes; the bench decode's 20 pairs
+(1280 × 1024, 40 frames, runs of 32,768 pixels) folded in 5.4–5.6 ms one pair a block and in
+4.7–4.8 ms two (four a block: 5.4 ms). The kernel prefetches two lines a frame a block (a
+block advances 96 bytes a frame, so lines ``q`` and ``q + 64`` cover every byte).
+
 :func:`prefetch` issues a software prefetch (``llvm.prefetch``: read, high locality) for the
 byte at an offset of an array; a hint, never a fault, also past the array's end. The kernel
 prefetches the pair's bytes :data:`PREFETCH_BYTES` ahead: a tile reads each frame in one run,
 and the hardware prefetcher alone left the core waiting at each of the 40 runs' starts and
 between the compute bursts (2.7 ms of the 5.3 above; prefetch distances 512 / 2,048 / 4,096 /
-8,192 / 32,768 bytes: 4.6 / 3.1 / 2.5 / 2.5 / 2.6 ms). Past the end of a pair's run the kernel
-prefetches the next pair's first bytes.
+8,192 / 32,768 bytes: 4.6 / 3.1 / 2.5 / 2.5 / 2.6 ms). Past the end of a group's run the kernel
+prefetches the next group's first bytes.
 
 :func:`direct_block` is the finish's fully resolved pass (``_sl_finish``) over 16 pixels in
 <16 x i32 / float> lanes: numba's loop ran 8 lanes wide (int64 words, NaN-safe selects as
@@ -39,8 +47,8 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["DIRECT_LANES", "LANES", "PREFETCH_BYTES", "direct_block", "lit_rgb8", "pair_rgb8",
-           "prefetch", "source_hash"]
+__all__ = ["DIRECT_LANES", "LANES", "PREFETCH_BYTES", "direct_block", "lit_rgb8", "pair2_rgb8",
+           "pair_rgb8", "prefetch", "source_hash"]
 
 #: Pixels per :func:`pair_rgb8` call.
 LANES = 32
@@ -151,6 +159,61 @@ def _margin_mulhi(context, builder, mx, mn, kv):
     return builder.trunc(r16, _vec(_I8))
 
 
+def _pair_args_ok(fp, fq, words, margin, hi, lo, k, mmin) -> bool:
+    return (_c1d(fp, types.uint8) and fq == fp and isinstance(words, types.Array)
+            and isinstance(words.dtype, types.Integer) and not words.dtype.signed
+            and _c1d(words, words.dtype) and _c1d(margin, types.uint8)
+            and _c1d(hi, types.int16) and lo == hi
+            and (mmin == margin or isinstance(mmin, types.NoneType))
+            and isinstance(k, (types.Integer, types.Float)))
+
+
+def _fold_pairs(context, builder, frames, three, kv, int_k):
+    """Per pair of ``frames`` (``(type, value)`` of pattern and inverse) its decision, larger
+    and smaller channel sum and uint8 margin over the 32 pixels at byte ``three``."""
+    out = []
+    for (pty, pv), (qty, qv) in frames:
+        sp = _rgb_sums(builder, builder.gep(_data(context, builder, pty, pv), [three]))
+        sq = _rgb_sums(builder, builder.gep(_data(context, builder, qty, qv), [three]))
+        gt = builder.icmp_signed(">", sp, sq)
+        mx = builder.select(gt, sp, sq)
+        mn = builder.select(gt, sq, sp)
+        m8 = (_margin_mulhi(context, builder, mx, mn, kv) if int_k
+              else _margin_float(builder, mx, mn, kv))
+        out.append((gt, mx, mn, m8))
+    return out
+
+
+def _update(context, builder, sig, folded, bitvals, margins, wv, hv, lv, mmv, tv, iw, ih, imm):
+    """Store the folded pairs into the accumulators at tile position ``tv``: the decision bits
+    ORed into the words (argument ``iw``), each pair's margin into its plane, the running
+    max / min of the sums (``ih``, ``ih + 1``) and, with ``imm``, the family's smallest margin."""
+    wbits = sig.args[iw].dtype.bitwidth
+    wt = _vec(ir.IntType(wbits))
+    wp = _at(builder, _data(context, builder, sig.args[iw], wv), tv, wt)
+    w = builder.load(wp, align=wbits // 8)
+    mx = mn = m_lo = None
+    for (gt, x, y, m8), bv, (mty, mv) in zip(folded, bitvals, margins):
+        w = builder.or_(w, builder.select(gt, _splat(builder, bv, wt), ir.Constant(wt, None)))
+        builder.store(m8, _at(builder, _data(context, builder, mty, mv), tv, _vec(_I8)), align=1)
+        mx = x if mx is None else builder.select(builder.icmp_signed(">", x, mx), x, mx)
+        mn = y if mn is None else builder.select(builder.icmp_signed("<", y, mn), y, mn)
+        m_lo = m8 if m_lo is None else builder.select(builder.icmp_unsigned("<", m8, m_lo),
+                                                      m8, m_lo)
+    builder.store(w, wp, align=wbits // 8)
+    if imm is not None:
+        mp = _at(builder, _data(context, builder, sig.args[imm], mmv), tv, _vec(_I8))
+        old = builder.load(mp, align=1)
+        builder.store(builder.select(builder.icmp_unsigned("<", m_lo, old), m_lo, old), mp,
+                      align=1)
+    hp = _at(builder, _data(context, builder, sig.args[ih], hv), tv, _vec(_I16))
+    lp = _at(builder, _data(context, builder, sig.args[ih + 1], lv), tv, _vec(_I16))
+    h = builder.load(hp, align=2)
+    lo_ = builder.load(lp, align=2)
+    builder.store(builder.select(builder.icmp_signed(">", mx, h), mx, h), hp, align=2)
+    builder.store(builder.select(builder.icmp_signed("<", mn, lo_), mn, lo_), lp, align=2)
+
+
 @intrinsic
 def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
               mmin):  # pragma: no cover - compiled
@@ -162,12 +225,7 @@ def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
     difference),
     ``hi`` / ``lo`` (int16) the running max / min of both sums; ``mmin`` (uint8, or None) the
     running min of the margins (the code family's smallest margin, for the finish)."""
-    if not (_c1d(fp, types.uint8) and fq == fp and isinstance(words, types.Array)
-            and isinstance(words.dtype, types.Integer) and not words.dtype.signed
-            and _c1d(words, words.dtype) and _c1d(margin, types.uint8)
-            and _c1d(hi, types.int16) and lo == hi
-            and (mmin == margin or isinstance(mmin, types.NoneType))
-            and isinstance(k, (types.Integer, types.Float))):
+    if not _pair_args_ok(fp, fq, words, margin, hi, lo, k, mmin):
         return None
     with_min = not isinstance(mmin, types.NoneType)
     int_k = isinstance(k, types.Integer)
@@ -176,36 +234,40 @@ def pair_rgb8(typingctx, fp, fq, off, words, bitval, margin, k, hi, lo, t,
 
     def codegen(context, builder, signature, args):
         fpv, fqv, offv, wv, bvv, mv, kv, hv, lv, tv, mmv = args
+        A = signature.args
         three = builder.mul(offv, ir.Constant(_I64, 3))
-        sp = _rgb_sums(builder, builder.gep(_data(context, builder, signature.args[0], fpv),
-                                            [three]))
-        sq = _rgb_sums(builder, builder.gep(_data(context, builder, signature.args[1], fqv),
-                                            [three]))
-        wt = _vec(ir.IntType(signature.args[3].dtype.bitwidth))
-        wp = _at(builder, _data(context, builder, signature.args[3], wv), tv, wt)
-        gt = builder.icmp_signed(">", sp, sq)
-        w = builder.load(wp, align=signature.args[3].dtype.bitwidth // 8)
-        w = builder.or_(w, builder.select(gt, _splat(builder, bvv, wt), ir.Constant(wt, None)))
-        builder.store(w, wp, align=signature.args[3].dtype.bitwidth // 8)
-        mx = builder.select(gt, sp, sq)
-        mn = builder.select(gt, sq, sp)
-        if int_k:
-            m8 = _margin_mulhi(context, builder, mx, mn, kv)
-        else:
-            m8 = _margin_float(builder, mx, mn, kv)
-        builder.store(m8, _at(builder, _data(context, builder, signature.args[5], mv), tv,
-                              _vec(_I8)), align=1)
-        if with_min:
-            mp = _at(builder, _data(context, builder, signature.args[10], mmv), tv, _vec(_I8))
-            old = builder.load(mp, align=1)
-            builder.store(builder.select(builder.icmp_unsigned("<", m8, old), m8, old), mp,
-                          align=1)
-        hp = _at(builder, _data(context, builder, signature.args[7], hv), tv, _vec(_I16))
-        lp = _at(builder, _data(context, builder, signature.args[8], lv), tv, _vec(_I16))
-        h = builder.load(hp, align=2)
-        lo_ = builder.load(lp, align=2)
-        builder.store(builder.select(builder.icmp_signed(">", mx, h), mx, h), hp, align=2)
-        builder.store(builder.select(builder.icmp_signed("<", mn, lo_), mn, lo_), lp, align=2)
+        folded = _fold_pairs(context, builder, [((A[0], fpv), (A[1], fqv))], three, kv, int_k)
+        _update(context, builder, signature, folded, [bvv], [(A[5], mv)], wv, hv, lv, mmv,
+                tv, 3, 7, 10 if with_min else None)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def pair2_rgb8(typingctx, fp, fq, fp2, fq2, off, words, bitval, bitval2, margin, margin2, k, hi,
+               lo, t, mmin):  # pragma: no cover - compiled
+    """:func:`pair_rgb8` for two pairs of one code family at once (``fp`` / ``fq`` with
+    ``bitval`` and ``margin``, ``fp2`` / ``fq2`` with ``bitval2`` and ``margin2``): the same
+    values as two calls, with the family's words, running max / min and smallest margin
+    loaded and stored once for both (those accumulators' traffic between the caches bounded
+    the fold: a 20-pair decode's pairs ran at ≈ 0.7 of the frames' read speed)."""
+    if not (_pair_args_ok(fp, fq, words, margin, hi, lo, k, mmin) and fp2 == fp and fq2 == fp
+            and margin2 == margin):
+        return None
+    with_min = not isinstance(mmin, types.NoneType)
+    int_k = isinstance(k, types.Integer)
+    sig = types.void(fp, fq, fp2, fq2, types.int64, words, words.dtype, words.dtype, margin,
+                     margin2, types.int64 if int_k else types.float32, hi, lo, types.int64, mmin)
+
+    def codegen(context, builder, signature, args):
+        fpv, fqv, fp2v, fq2v, offv, wv, bvv, bv2v, mv, m2v, kv, hv, lv, tv, mmv = args
+        A = signature.args
+        three = builder.mul(offv, ir.Constant(_I64, 3))
+        folded = _fold_pairs(context, builder, [((A[0], fpv), (A[1], fqv)),
+                                                ((A[2], fp2v), (A[3], fq2v))], three, kv, int_k)
+        _update(context, builder, signature, folded, [bvv, bv2v], [(A[8], mv), (A[9], m2v)],
+                wv, hv, lv, mmv, tv, 5, 11, 14 if with_min else None)
         return context.get_dummy_value()
 
     return sig, codegen
