@@ -169,23 +169,26 @@ def _kernel():
     _max_nan = helper(max_nan)
     _store = helper(store)
 
-    def start(white, black, w_scale, b_scale, has_wb, lmax, lmin, shadow_thr, min_c, rel_c, direct,
-              glob, lit_out, shadow, litb, tau, conf):
+    def start(white, black, w_scale, b_scale, has_wb, hsum, lsum, scale, shadow_thr, min_c,
+              rel_c, direct, glob, lit_out, shadow, litb, tau, conf):
         # fused_chunk's prepare over one run (views): prepare's steps with separate outputs,
-        # lit = white - black from the held 8-bit RGB frames (their luminance as
-        # _sl_kernels.luminance computes it), the lit flags the axis kernel takes and the
-        # running confidence's start; returns the lit pixels
+        # L_max / L_min from the pair kernel's running max / min channel sums (times scale:
+        # the max of the products is the product of the max, float32 rounding being monotone,
+        # so the same values as the kernel's own merge), lit = white - black from the held
+        # 8-bit RGB frames (their luminance as _sl_kernels.luminance computes it), the lit
+        # flags the axis kernel takes and the running confidence's start; returns the lit
+        # pixels
         zero = np.float32(0.0)
         if not vec_source:  # (the cache key: _sl_vec's code is inlined)
             zero = np.float32(1.0)
-        for t in range(lmax.shape[0]):
-            mx = lmax[t]
-            mn = lmin[t]
+        for t in range(hsum.shape[0]):
+            mx = np.float32(hsum[t]) * scale
+            mn = np.float32(lsum[t]) * scale
             d = mx - mn
             direct[t] = d
             glob[t] = np.float32(2.0) * _max_nan(mn, zero)
             tau[t] = _max_nan(min_c, rel_c * d)
-        P = lmax.shape[0]
+        P = hsum.shape[0]
         if has_wb:  # the luminance kernel's steps: exact channel sums, then float32
             n_vec = P - P % 32
             for t in range(0, n_vec, 32):  # _sl_vec.lit_rgb8: the same, 32 pixels a block
@@ -537,26 +540,26 @@ def _fused():
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
     def fused(frames, p_lo, p_hi, sub, scale, k, steps, mscale, gx, gy, ax, ay, bx, by,
-              margin, lmax, lmin, tau, litb, white, black, w_scale, b_scale, has_wb, shadow_thr,
+              margin, hsum, lsum, tau, litb, white, black, w_scale, b_scale, has_wb, shadow_thr,
               min_c, rel_c, direct, glob, lit_out, shadow, conf, valid, ox,
               oy):  # pragma: no cover
         n_lit = 0
         if not sources:  # (the cache key, see above)
             n_lit = 1
-        inf32 = np.float32(np.inf)
+        no_f = tau[:0]  # (the pair kernel's L_max / L_min: unused with caller-held sums)
         has_x = ax[0].shape[0] > 0
         has_y = ay[0].shape[0] > 0
         for a in range(p_lo, p_hi, sub):
             b = min(p_hi, a + sub)
             S = b - a
-            lmax[:S] = -inf32
-            lmin[:S] = inf32
+            hsum[:S] = -1  # the running max / min channel sums of both axes' pairs
+            lsum[:S] = 32767
             # the axes' pairs over pixels a … b - 1, into columns 0 … S - 1 of the buffers
             if has_x:
                 bx[0][:, :S] = 0
                 bx[1][:, :S] = 255
                 _pairs_min(frames, gx[0], gx[1], scale, gx[2], gx[3], gx[4], bx[0], margin,
-                           steps, lmax, lmin, S, k, a, b, a, bx[1])
+                           steps, no_f, no_f, S, k, a, b, a, bx[1], True, hsum, lsum)
                 for f in range(bx[0].shape[0]):  # a table code: its stripes' Gray words
                     if ax[3][f]:
                         w = bx[0][f, :S]
@@ -566,7 +569,7 @@ def _fused():
                 by[0][:, :S] = 0
                 by[1][:, :S] = 255
                 _pairs_min(frames, gy[0], gy[1], scale, gy[2], gy[3], gy[4], by[0], margin,
-                           steps, lmax, lmin, S, k, a, b, a, by[1])
+                           steps, no_f, no_f, S, k, a, b, a, by[1], True, hsum, lsum)
                 for f in range(by[0].shape[0]):
                     if ay[3][f]:
                         w = by[0][f, :S]
@@ -576,7 +579,7 @@ def _fused():
             # views of the run: indexing the full-size arrays at a + t kept them scalar)
             n_lit += _start(white[3 * a:3 * b] if has_wb else white,
                             black[3 * a:3 * b] if has_wb else black, w_scale, b_scale, has_wb,
-                            lmax[:S], lmin[:S], shadow_thr, min_c, rel_c, direct[a:b],
+                            hsum[:S], lsum[:S], scale, shadow_thr, min_c, rel_c, direct[a:b],
                             glob[a:b], lit_out[a:b], shadow[a:b], litb[:S], tau[:S], conf[a:b])
             if has_x:
                 _axis_px(bx[0], margin, mscale, ax[0], ax[1], ax[2], ax[4], ax[3], ax[5],
@@ -606,7 +609,8 @@ def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, 
     """Fold and finish pixels ``start … stop - 1`` of held 8-bit RGB pattern / inverse pairs
     in one compiled call, ``sub`` pixels at a time: per sub-run the pair kernel
     (``_sl_kernels._pairs_rgb8``, with each family's smallest margin) of each axis into
-    sub-run-sized words, margins and ``L_max`` / ``L_min``, a table code's words translated
+    sub-run-sized words, margins and the running max / min channel sums of both axes' pairs
+    (``L_max`` / ``L_min`` are those times ``scale``), a table code's words translated
     (:func:`stripe_gray_words`), :func:`prepare`'s start written to the outputs (``lit`` from
     the held white / black frames' channel sums), each axis decoded (:func:`decode_axis` with
     ``out``), and ``valid``. The same kernels and steps as the chunk-by-chunk Python path
@@ -619,18 +623,19 @@ def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, 
     per axis ``(pos, neg, rows, bitvals, planes)`` (empty arrays for an axis without bits);
     ``axes``: per axis ``(kidx, base, tabs, use, words, n, gray tables (F, 2**n), step, n_stripes,
     coarse_lim, tol, phi, pok)`` (``StreamDecoder._fused_plan``); ``bufs``: per axis ``(words,
-    mmin)`` (F, ≥ sub) plus the shared ``(margin, lmax, lmin, tau, lit)``; ``white``,
+    mmin)`` (F, ≥ sub) plus the shared ``(margin, hsum, lsum, tau, lit)`` (``hsum`` /
+    ``lsum`` int16); ``white``,
     ``black``: the held frames, flat (empty without them), ``wb_scales`` their luminance
     scales; ``thresholds``: ``(has_wb, shadow, min_contrast, rel_contrast)``; ``outs``:
     ``(direct, global, lit, shadow, confidence, valid)`` flat and per axis ``(coord, sigma, ok,
     counts)``. Returns the number of lit pixels."""
     (gx, gy), (ax, ay), ((bx, by), shared), (ox, oy) = pairs, axes, bufs, outs[6:]
-    margin, lmax, lmin, tau, litb = shared
+    margin, hsum, lsum, tau, litb = shared
     has_wb, shadow_thr, min_c, rel_c = thresholds
     direct, glob, lit_out, shadow, conf, valid = outs[:6]
     return _fused()(frames, int(start), int(stop), int(sub), np.float32(scale), k,
                     np.float32(steps), np.float32(mscale), gx, gy, ax, ay, bx, by, margin,
-                    lmax, lmin, tau, litb, white, black, np.float32(wb_scales[0]),
+                    hsum, lsum, tau, litb, white, black, np.float32(wb_scales[0]),
                     np.float32(wb_scales[1]), bool(has_wb), np.float32(shadow_thr),
                     np.float32(min_c), np.float32(rel_c), direct, glob, lit_out, shadow, conf,
                     valid, ox, oy)

@@ -318,7 +318,8 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", parallel=parallel)
     def pairs(frames, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax,
-              lmin, tile, k, p_lo, p_hi, off, mmin):  # pragma: no cover - compiled
+              lmin, tile, k, p_lo, p_hi, off, mmin, sums, hsum,
+              lsum):  # pragma: no cover - compiled
         n_tiles = (p_hi - p_lo + tile - 1) // tile
         if not parallel or not vec_source:  # (the cache key, see above)
             n_tiles = n_tiles + 0
@@ -328,8 +329,12 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
             a_, b_ = a - off, b - off
             n = b - a
             n_vec = n - n % lanes
-            lo = np.full(n, np.int16(32767))  # running min / max channel sum
-            hi = np.full(n, np.int16(-1))
+            if sums:  # the caller's running max / min channel sums (lmax / lmin untouched)
+                hi = hsum[a_:b_]
+                lo = lsum[a_:b_]
+            else:  # the tile's, merged into lmax / lmin below
+                lo = np.full(n, np.int16(32767))
+                hi = np.full(n, np.int16(-1))
             sp = np.empty(n % lanes, np.int16)  # the tail's channel sums
             sq = np.empty(n % lanes, np.int16)
             n_pairs = pos.shape[0]
@@ -415,7 +420,8 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
                             for t in range(n_vec, n):
                                 mm[t] = min(mm[t], g[t])
                 o = o2 + 1
-            _merge_tile(hi, lo, scale, lmax[a_:b_], lmin[a_:b_])
+            if not sums:
+                _merge_tile(hi, lo, scale, lmax[a_:b_], lmin[a_:b_])
 
     return pairs
 
@@ -607,11 +613,13 @@ class PairGroup:
         # (a strided view takes the plain loops, which honour strides)
         if self.rgb8 and all(a.flags.c_contiguous for a in (W, M, lmax, lmin)
                              if a is not None):
+            no = np.empty(0, np.int16)  # (no caller-held channel sums)
             if MM is not None and MM.flags.c_contiguous:
                 self.kernel_min(self.flats, *args, self.margin_k, int(start), stop,
-                                int(offset), MM)
+                                int(offset), MM, False, no, no)
                 return True
-            self.kernel(self.flats, *args, self.margin_k, int(start), stop, int(offset), M)
+            self.kernel(self.flats, *args, self.margin_k, int(start), stop, int(offset), M,
+                        False, no, no)
             return False
         self.plain(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
                    int(offset))

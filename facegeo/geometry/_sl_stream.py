@@ -641,8 +641,8 @@ class StreamDecoder:
             F = plan["F"]
             per_axis = tuple((np.empty((F, sub), plan["words"][a]), np.empty((F, sub), np.uint8))
                              for a in _AXES)
-            shared = (np.empty((plan["K"], sub), np.uint8), np.empty(sub, np.float32),
-                      np.empty(sub, np.float32), np.empty(sub, np.float32), np.empty(sub, bool))
+            shared = (np.empty((plan["K"], sub), np.uint8), np.empty(sub, np.int16),
+                      np.empty(sub, np.int16), np.empty(sub, np.float32), np.empty(sub, bool))
             bufs = (per_axis, shared)
             self._chunk_local.fused = bufs
         counts = {a: np.zeros((plan["F"], 2 * plan["n"].get(a, 0) + 1), np.int64) for a in _AXES}
