@@ -1164,6 +1164,8 @@ def _rgb8(frames, seed=1):
     (dict(codes=("minsw",)), None, 64, 1),
     (dict(codes=("gray", "minsw"), white_black=False), 1000, 333, 2),
     (dict(n_bits_x=5, n_bits_y=0), None, 50, 1),
+    (dict(white_black=False), None, 333, 1),
+    (dict(codes=("xor04",)), 777, 100, 2),
 ])
 def test_fused_chunk_kernel_equals_the_chunk_by_chunk_path(kw, chunk, sub, threads, monkeypatch):
     """Held 8-bit RGB frames fold and finish in one compiled call a chunk
@@ -1200,6 +1202,62 @@ def test_fused_chunk_kernel_equals_the_chunk_by_chunk_path(kw, chunk, sub, threa
     for name in ("x", "y", "sigma_x", "sigma_y", "confidence", "direct", "global_", "lit",
                  "valid", "valid_x", "valid_y", "shadow"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+@pytest.mark.parametrize("has_wb", [True, False])
+def test_start_vector_block_equals_the_start_loops(has_wb):
+    """The fused finish's start 32 pixels a block (``_sl_vec.start_block``: ``L_max`` /
+    ``L_min`` from the running channel sums, direct, global, the reliability threshold, lit
+    from the held white / black frames or ``direct``, shadow, the lit flags, the confidence's
+    start, the lit count) equals ``_sl_finish``'s ``start`` loops bit for bit, with lit levels
+    exactly at the shadow threshold, zero contrast and zero sums. Fails if the block rounds a
+    product differently, takes ``>`` for ``>=`` at the threshold, or counts the lit pixels
+    wrongly."""
+    from numba import njit
+
+    import facegeo.geometry._sl_finish as fin
+    from facegeo.geometry import _sl_vec
+
+    fin._kernel()
+    start = fin._start
+    block = _sl_vec.start_block
+    rng = np.random.default_rng(3)
+    P = 96
+    hsum = rng.integers(0, 766, P).astype(np.int16)
+    lsum = np.minimum(rng.integers(0, 766, P), hsum).astype(np.int16)
+    lsum[:4] = hsum[:4]  # no contrast
+    hsum[4:6] = lsum[4:6] = 0
+    white = rng.integers(0, 256, 3 * P).astype(np.uint8)
+    black = rng.integers(0, 256, 3 * P).astype(np.uint8)
+    ws, bs, scale = np.float32(1 / 765), np.float32(1 / 765), np.float32(1 / 765)
+    lit_ref = (white.reshape(-1, 3).sum(1).astype(np.float32) * ws
+               - black.reshape(-1, 3).sum(1).astype(np.float32) * bs)
+    thr = np.float32(lit_ref[7]) if has_wb else np.float32(hsum[7] - lsum[7]) * scale
+    args = (np.float32(0.005), np.float32(0.15))
+
+    @njit
+    def blocks(out):
+        n = 0
+        for t in range(0, P, 32):
+            n += block(hsum, lsum, scale, white, black, ws, bs, has_wb, args[0], args[1], thr,
+                       *out, t)
+        return n
+
+    outs = []
+    for use_block in (True, False):
+        o = [np.full(P, np.nan, np.float32) for _ in range(3)] + [np.zeros(P, bool),
+                                                                   np.zeros(P, bool)] + \
+            [np.full(P, np.nan, np.float32), np.zeros(P, np.float32)]
+        if use_block:
+            n = blocks(tuple(o))
+        else:
+            n = start(white, black, ws, bs, has_wb, hsum, lsum, scale, thr, *args, *o)
+        outs.append((n, o))
+    (n1, got), (n2, want) = outs
+    assert n1 == n2 and 0 < n1 < P
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g.view(np.uint8), w.view(np.uint8))
+    assert not got[3][7]  # a lit level exactly at the threshold is lit
 
 
 @pytest.mark.parametrize("wdtype,mdtype", [(np.uint16, np.uint8), (np.uint8, np.uint8),
@@ -1244,11 +1302,12 @@ def test_direct_vector_block_equals_its_scalar_loop(wdtype, mdtype):
 
 @pytest.mark.slow
 def test_fused_decode_is_exact_on_a_baseline_x86_cpu(baseline_cpu_python):
-    """The fused chunk kernel with its vector blocks (``_sl_vec.pair_rgb8``,
-    ``direct_block``) compiled for a baseline x86-64 CPU (SSE2 only, a fresh cache and
-    interpreter), where LLVM lowers the 16- and 32-lane blocks to narrower instructions: the
-    decode of held 8-bit RGB frames must equal the chunk-by-chunk Python path with the
-    blocks' scalar tails — fails if a lowering there changes a value, or it cannot compile."""
+    """The fused chunk kernel with its vector blocks (``_sl_vec.pair_rgb8``, ``pair2_rgb8``,
+    ``start_block``, ``direct_block``) compiled for a baseline x86-64 CPU (SSE2 only, a fresh
+    cache and interpreter), where LLVM lowers the 16- and 32-lane blocks to narrower
+    instructions: the decode of held 8-bit RGB frames must equal the chunk-by-chunk Python path
+    with the blocks' scalar tails — fails if a lowering there changes a value, or it cannot
+    compile."""
     code = (
         "import numpy as np\n"
         "import facegeo.geometry._sl_stream as S\n"

@@ -61,17 +61,20 @@ _TILE = 512  # pixels per tile: the plane-major passes run over a tile in cache
 # process, so kernels that closed over their helpers were compiled again in every process
 # (~20 s, measured); globals are not part of the key.
 _min_nan = _max_nan = _store = _binary = _direct = _start = _direct_block = _lit_rgb8 = None
+_direct_consts = _xor_base = _start_block = None
 _lanes = 16
 
 
 @functools.cache
 def _kernel():
     global _min_nan, _max_nan, _store, _binary, _direct, _start, _direct_block, _lanes, _lit_rgb8
+    global _direct_consts, _xor_base, _start_block
     from numba import njit
 
     from facegeo.geometry import _sl_vec
 
     _direct_block, _lanes, _lit_rgb8 = _sl_vec.direct_block, _sl_vec.DIRECT_LANES, _sl_vec.lit_rgb8
+    _start_block = _sl_vec.start_block
     # numba's cache sees this file, not _sl_vec.py, whose code the kernels inline: its source
     # hash is a closure cell of direct (read there), so an edit of _sl_vec.py compiles again
     vec_source = _sl_vec.source_hash()
@@ -111,6 +114,19 @@ def _kernel():
         x ^= x >> 8
         x ^= x >> 16
         return x
+
+    def direct_consts(step, coarse_lim):
+        # the fully resolved pass's per-axis constants: a stripe's centre offset, whether a
+        # fully resolved code names one stripe, and its sigma (float32)
+        return (0.5 * (step - 1.0), step <= coarse_lim + 1e-9,
+                np.float32(1.0 * step / math.sqrt(12.0)))
+
+    def xor_base(b, n):
+        # a family's XOR base plane b (or -1) as the pass takes it: the planes above it as a
+        # mask, and the bit that holds the base
+        if b > 0:
+            return ((np.int64(1) << b) - 1) << (n - b), n - 1 - b
+        return np.int64(0), 0
 
     def direct(sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, mscale, high, sb, n_stripes,
                one_stripe_ok, step, c0, sig_one):
@@ -168,6 +184,8 @@ def _kernel():
     _min_nan = helper(min_nan)
     _max_nan = helper(max_nan)
     _store = helper(store)
+    _direct_consts = helper(direct_consts)
+    _xor_base = helper(xor_base)
 
     def start(white, black, w_scale, b_scale, has_wb, hsum, lsum, scale, shadow_thr, min_c,
               rel_c, direct, glob, lit_out, shadow, litb, tau, conf):
@@ -236,7 +254,10 @@ def _kernel():
     def axis_pixels(signs, marg, mscale, kidx, base, tabs, words, use_tabs, n, step, n_stripes,
                     coarse_lim, tol, p0, tau, ref, lit, phi, pok, has_hint, kk, period,
                     coord_out, sig_out, ok_out, conf_out, final, counts, mmin,
-                    has_min):  # pragma: no cover
+                    has_min, fast_done, slow_in):  # pragma: no cover
+        # fast_done: one family writing the final outputs whose fully resolved pass has run
+        # already (the fused chunk kernel's block loop) with the slow flags in slow_in: only
+        # the slow pixels are decoded here
         F = signs.shape[0]
         P = tau.shape[0]
         if not vec_source:  # (the cache key: _direct inlines _sl_vec's code)
@@ -260,11 +281,9 @@ def _kernel():
         qf = np.empty((F, Tf), np.float32)
         of = np.empty((F, Tf), np.bool_)
         agree = np.zeros(F, np.int64)
-        c0 = 0.5 * (step - 1.0)
-        one_stripe_ok = step <= coarse_lim + 1e-9  # a fully resolved code names one stripe
+        c0, one_stripe_ok, sig_one32 = _direct_consts(step, coarse_lim)
         sig_one = 1.0 * step / sqrt12
         zero32 = np.float32(0.0)
-        sig_one32 = np.float32(sig_one)
         for t0 in range(0, P, T):
             nt = min(T, P - t0)
             a0 = p0 + t0
@@ -300,10 +319,12 @@ def _kernel():
                 sg = signs[f][a0:a0 + nt]  # (C-contiguous: the vector block's type)
                 ut = use_tabs[f]  # a table code: sg holds its stripes' Gray words
                 b = base[f]
-                high = ((np.int64(1) << b) - 1) << (n - b) if b > 0 else np.int64(0)
-                sb = n - 1 - b if b > 0 else 0
+                high, sb = _xor_base(b, n)
                 n_slow = np.int32(0)
-                if direct:  # one family, final outputs: written here (the store, fused)
+                if direct and fast_done:  # the slow flags of the pass that ran
+                    slv = slow_in[t0:t0 + nt]
+                    n_slow = np.int32(1)
+                elif direct:  # one family, final outputs: written here (the store, fused)
                     dargs = (tauv, litv, refv, cov, sov, oov, qov, slv, mscale, high, sb,
                              n_stripes, one_stripe_ok, step, c0, sig_one32)
                     if has_min:
@@ -549,6 +570,15 @@ def _fused():
         no_f = tau[:0]  # (the pair kernel's L_max / L_min: unused with caller-held sums)
         has_x = ax[0].shape[0] > 0
         has_y = ay[0].shape[0] > 0
+        # the block loop below: every coded axis of one family
+        fast = (has_x or has_y) and (not has_x or bx[0].shape[0] == 1) and (
+            not has_y or by[0].shape[0] == 1)
+        slx = np.empty(sub if fast else 1, np.uint8)  # the block loop's slow flags
+        sly = np.empty(sub if fast else 1, np.uint8)
+        c0x, okx, sgx = _direct_consts(ax[7], ax[9])
+        c0y, oky, sgy = _direct_consts(ay[7], ay[9])
+        hx, sbx = _xor_base(ax[1][0] if has_x else -1, ax[5])
+        hy, sby = _xor_base(ay[1][0] if has_y else -1, ay[5])
         for a in range(p_lo, p_hi, sub):
             b = min(p_hi, a + sub)
             S = b - a
@@ -575,22 +605,66 @@ def _fused():
                         w = by[0][f, :S]
                         for t in range(S):
                             w[t] = ay[6][f, w[t]]
-            # prepare's per-pixel start (the same steps), into the full-size outputs (loops over
-            # views of the run: indexing the full-size arrays at a + t kept them scalar)
-            n_lit += _start(white[3 * a:3 * b] if has_wb else white,
-                            black[3 * a:3 * b] if has_wb else black, w_scale, b_scale, has_wb,
-                            hsum[:S], lsum[:S], scale, shadow_thr, min_c, rel_c, direct[a:b],
-                            glob[a:b], lit_out[a:b], shadow[a:b], litb[:S], tau[:S], conf[a:b])
-            if has_x:
+            # every coded axis of one code family (its fully resolved pass writes the final
+            # outputs): the start and both axes' passes 32 pixels a block (_sl_vec.start_block,
+            # direct_block), so the start's planes are read back from L1, not from L2 after a
+            # pass over the whole run; then each axis's slow pixels (a plane below tau), and
+            # the run's last S mod 32 pixels (or, with an ensemble of codes, the whole run)
+            # phase by phase. The same values: each pixel takes the same steps, and the running
+            # confidence's min over the axes commutes
+            nv = S - S % 32 if fast else 0
+            dv = direct[a:b]
+            cv = conf[a:b]
+            wv = white[3 * a:3 * b] if has_wb else white
+            kv = black[3 * a:3 * b] if has_wb else black
+            n_sx = 0
+            n_sy = 0
+            for t in range(0, nv, 32):
+                n_lit += _start_block(hsum, lsum, scale, wv, kv, w_scale, b_scale, has_wb, min_c,
+                                      rel_c, shadow_thr, dv, glob[a:b], lit_out[a:b],
+                                      shadow[a:b], litb, tau, cv, t)
+                if has_x:
+                    for u in (t, t + 16):
+                        n_sx += _direct_block(bx[0][0], bx[1][0], tau, litb, dv, ox[0][a:b],
+                                              ox[1][a:b], ox[2][a:b], cv, slx, u, mscale, hx,
+                                              sbx, ax[8], okx, ax[7], c0x, sgx)
+                if has_y:
+                    for u in (t, t + 16):
+                        n_sy += _direct_block(by[0][0], by[1][0], tau, litb, dv, oy[0][a:b],
+                                              oy[1][a:b], oy[2][a:b], cv, sly, u, mscale, hy,
+                                              sby, ay[8], oky, ay[7], c0y, sgy)
+            if n_sx:
                 _axis_px(bx[0], margin, mscale, ax[0], ax[1], ax[2], ax[4], ax[3], ax[5],
-                         ax[7], ax[8], ax[9], ax[10], 0, tau[:S], direct[a:b], litb[:S],
-                         ax[11], ax[12], False, 0.0, 0.0, ox[0][a:b], ox[1][a:b], ox[2][a:b],
-                         conf[a:b], True, ox[3], bx[1], True)
-            if has_y:
+                         ax[7], ax[8], ax[9], ax[10], 0, tau[:nv], dv[:nv], litb[:nv],
+                         ax[11], ax[12], False, 0.0, 0.0, ox[0][a:a + nv], ox[1][a:a + nv],
+                         ox[2][a:a + nv], cv[:nv], True, ox[3], bx[1], True, True, slx)
+            if n_sy:
                 _axis_px(by[0], margin, mscale, ay[0], ay[1], ay[2], ay[4], ay[3], ay[5],
-                         ay[7], ay[8], ay[9], ay[10], 0, tau[:S], direct[a:b], litb[:S],
-                         ay[11], ay[12], False, 0.0, 0.0, oy[0][a:b], oy[1][a:b], oy[2][a:b],
-                         conf[a:b], True, oy[3], by[1], True)
+                         ay[7], ay[8], ay[9], ay[10], 0, tau[:nv], dv[:nv], litb[:nv],
+                         ay[11], ay[12], False, 0.0, 0.0, oy[0][a:a + nv], oy[1][a:a + nv],
+                         oy[2][a:a + nv], cv[:nv], True, oy[3], by[1], True, True, sly)
+            if nv < S:
+                # prepare's per-pixel start (the same steps), into the full-size outputs (loops
+                # over views of the run: indexing the full-size arrays at a + t kept them
+                # scalar)
+                c = a + nv
+                n_lit += _start(white[3 * c:3 * b] if has_wb else white,
+                                black[3 * c:3 * b] if has_wb else black, w_scale, b_scale,
+                                has_wb, hsum[nv:S], lsum[nv:S], scale, shadow_thr, min_c, rel_c,
+                                direct[c:b], glob[c:b], lit_out[c:b], shadow[c:b], litb[nv:S],
+                                tau[nv:S], conf[c:b])
+                if has_x:
+                    _axis_px(bx[0], margin, mscale, ax[0], ax[1], ax[2], ax[4], ax[3], ax[5],
+                             ax[7], ax[8], ax[9], ax[10], nv, tau[nv:S], direct[c:b],
+                             litb[nv:S], ax[11], ax[12], False, 0.0, 0.0, ox[0][c:b],
+                             ox[1][c:b], ox[2][c:b], conf[c:b], True, ox[3], bx[1], True, False,
+                             slx)
+                if has_y:
+                    _axis_px(by[0], margin, mscale, ay[0], ay[1], ay[2], ay[4], ay[3], ay[5],
+                             ay[7], ay[8], ay[9], ay[10], nv, tau[nv:S], direct[c:b],
+                             litb[nv:S], ay[11], ay[12], False, 0.0, 0.0, oy[0][c:b],
+                             oy[1][c:b], oy[2][c:b], conf[c:b], True, oy[3], by[1], True, False,
+                             sly)
             vv = valid[a:b]
             if has_x and has_y:
                 vx = ox[2][a:b]
@@ -613,7 +687,11 @@ def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, 
     (``L_max`` / ``L_min`` are those times ``scale``), a table code's words translated
     (:func:`stripe_gray_words`), :func:`prepare`'s start written to the outputs (``lit`` from
     the held white / black frames' channel sums), each axis decoded (:func:`decode_axis` with
-    ``out``), and ``valid``. The same kernels and steps as the chunk-by-chunk Python path
+    ``out``), and ``valid``. When every coded axis has one code family, the start and both
+    axes' fully resolved passes run 32 pixels a block (``_sl_vec.start_block``,
+    ``direct_block``), then each axis's slow pixels (``axis_pixels`` with ``fast_done``) and
+    the sub-run's last ``S mod 32`` pixels step by step. The same kernels and steps as the
+    chunk-by-chunk Python path
     (``StreamDecoder._fold_chunk`` / ``_finish_chunk``), so the same values (tested); the
     buffers stay in cache and no Python runs between the steps (that path's per-call costs were
     ≈ 1 ms of a 12 ms decode, and its chunks too large for the buffers to stay in L2).
@@ -725,7 +803,8 @@ def decode_axis(signs, marg, mscale, kidx, base, n, step, n_stripes, coarse_lim,
               np.asarray(base, np.int64), tabs, words, use, int(n), float(step), int(n_stripes),
               float(coarse_lim), float(tol), int(p0), tau, ref, lit, phi, pok, has, float(kk),
               float(period), coord, sig, ok, conf, out is not None, counts,
-              mmin if mmin is not None else marg[:1], mmin is not None)
+              mmin if mmin is not None else marg[:1], mmin is not None, False,
+              np.zeros(1, np.uint8))
     c = counts
     return coord, sig, ok, conf, c[:, :n], c[:, n:2 * n], int(c[0, 2 * n])
 

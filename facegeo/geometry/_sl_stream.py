@@ -153,7 +153,7 @@ def _check_frame(frame: Any, name: str, shape) -> np.ndarray:
 def _lum_scale(a: np.ndarray, full_scale: float | None) -> float:
     """Luminance = channel sum times this: ``1 / (C · full scale)``."""
     if full_scale is None:
-        full_scale = float(np.iinfo(a.dtype).max) if a.dtype.kind in "iu" else 1.0
+        full_scale = float(_kern.int_max(a.dtype)) if a.dtype.kind in "iu" else 1.0
     C = a.shape[2] if a.ndim == 3 else 1
     return 1.0 / (full_scale * C)
 
