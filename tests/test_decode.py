@@ -1196,6 +1196,10 @@ def test_fused_chunk_kernel_equals_the_chunk_by_chunk_path(kw, chunk, sub, threa
         results[fused] = decode_stream(frames, spec, threads=threads)
     assert calls, "the fused kernel did not run"
     got, want = results[True], results[False]
+    # the planes its block loop may store non-temporally are 64-byte aligned (else the plain
+    # stores run: the same values, tested here either way)
+    assert all(getattr(got, k).ctypes.data % 64 == 0 for k in ("x", "sigma_x", "global_", "lit",
+                                                               "shadow") if spec.n_bits("x"))
     assert want.valid.any() and not want.valid.all()
     assert sum(sum(want.bits["x"][c]["unresolved"]) for c in spec.codes) > 50
     assert got.bits == want.bits
@@ -1204,18 +1208,19 @@ def test_fused_chunk_kernel_equals_the_chunk_by_chunk_path(kw, chunk, sub, threa
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
 
 
-@pytest.mark.parametrize("has_wb", [True, False])
-def test_start_vector_block_equals_the_start_loops(has_wb):
+@pytest.mark.parametrize("has_wb,nt", [(True, False), (False, False), (True, True)])
+def test_start_vector_block_equals_the_start_loops(has_wb, nt):
     """The fused finish's start 32 pixels a block (``_sl_vec.start_block``: ``L_max`` /
     ``L_min`` from the running channel sums, direct, global, the reliability threshold, lit
     from the held white / black frames or ``direct``, shadow, the lit flags, the confidence's
     start, the lit count) equals ``_sl_finish``'s ``start`` loops bit for bit, with lit levels
-    exactly at the shadow threshold, zero contrast and zero sums. Fails if the block rounds a
-    product differently, takes ``>`` for ``>=`` at the threshold, or counts the lit pixels
-    wrongly."""
+    exactly at the shadow threshold, zero contrast and zero sums, its outputs stored plainly or
+    non-temporally (``nt``: 64-byte aligned planes). Fails if the block rounds a product
+    differently, takes ``>`` for ``>=`` at the threshold, or counts the lit pixels wrongly."""
     from numba import njit
 
     import facegeo.geometry._sl_finish as fin
+    from facegeo.fsutil import aligned_empty
     from facegeo.geometry import _sl_vec
 
     fin._kernel()
@@ -1240,14 +1245,19 @@ def test_start_vector_block_equals_the_start_loops(has_wb):
         n = 0
         for t in range(0, P, 32):
             n += block(hsum, lsum, scale, white, black, ws, bs, has_wb, args[0], args[1], thr,
-                       *out, t)
+                       *out, t, nt)
         return n
+
+    def plane(dtype, fill):
+        a = aligned_empty(P, dtype, 64)
+        a[:] = fill
+        return a
 
     outs = []
     for use_block in (True, False):
-        o = [np.full(P, np.nan, np.float32) for _ in range(3)] + [np.zeros(P, bool),
-                                                                   np.zeros(P, bool)] + \
-            [np.full(P, np.nan, np.float32), np.zeros(P, np.float32)]
+        o = [plane(np.float32, np.nan) for _ in range(3)] + [plane(bool, False),
+                                                              plane(bool, False)] + \
+            [plane(np.float32, np.nan), plane(np.float32, 0)]
         if use_block:
             n = blocks(tuple(o))
         else:

@@ -49,6 +49,7 @@ import numpy as np
 
 from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ShapeError
+from facegeo.fsutil import aligned_empty
 from facegeo.geometry import _sl_kernels as _kern
 from facegeo.geometry._sl_codes import base_plane, stripe_table
 
@@ -77,6 +78,9 @@ FUSED = True
 #: in cache. The bench's decode, 1 thread, interleaved in one process (30 rounds, best): 8,192 /
 #: 16,384 / 32,768 / 65,536 / 131,072 pixels 10.7 / 10.1 / 9.5 / 9.5 / 10.2 ms.
 _FUSED_SUB = 32768
+#: Alignment (bytes) of the output planes the fused kernel writes: its block loop stores the
+#: ones nobody reads back non-temporally, which needs each vector aligned (``fused_chunk``).
+_ALIGN = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -254,8 +258,8 @@ class StreamDecoder:
         self.margin = self.sign_words = self.signs = None
         if not spec.inverse:
             self.values = np.zeros((n, H, W), np.float16)
-        if n and spec.inverse:
-            self.lmax, self.lmin = np.empty((H, W), np.float32), np.empty((H, W), np.float32)
+        if n and spec.inverse:  # (aligned: the fused chunk kernel's non-temporal stores)
+            self.lmax, self.lmin = (aligned_empty((H, W), np.float32, _ALIGN) for _ in range(2))
         else:
             self.lmax = np.full((H, W), -np.inf, np.float32) if n else None
             self.lmin = np.full((H, W), np.inf, np.float32) if n else None
@@ -451,13 +455,13 @@ class StreamDecoder:
         for a in _AXES:
             written = spec.n_bits(a) or a in self.phase
             for k in (a, f"sigma_{a}"):
-                out[k] = np.empty((H, W), np.float32) if written else \
+                out[k] = aligned_empty((H, W), np.float32, _ALIGN) if written else \
                     np.full((H, W), np.nan, np.float32)
         # direct / global / lit are written over the accumulators they come from (chunk by
         # chunk, after the chunk has read them): 3 full-size planes less at the peak
         fused_ok = self._fused_ok(groups)
         if fused_ok and spec.white_black:  # lit from the held white / black frames
-            self.white = np.empty((H, W), np.float32)
+            self.white = aligned_empty((H, W), np.float32, _ALIGN)
         else:
             self._wb_luminance()
         nan_plane = lambda: np.full((H, W), np.nan, np.float32)
@@ -468,8 +472,8 @@ class StreamDecoder:
         # the fused chunk kernel writes every pixel of these (coded axes): no fill
         for k in ("valid_x", "valid_y", "confidence", "shadow"):
             written = fused_ok and (k[-2:] not in ("_x", "_y") or spec.n_bits(k[-1]))
-            out[k] = np.empty((H, W), np.float32 if k == "confidence" else bool) if written \
-                else np.zeros((H, W), np.float32 if k == "confidence" else bool)
+            dt = np.float32 if k == "confidence" else bool
+            out[k] = aligned_empty((H, W), dt, _ALIGN) if written else np.zeros((H, W), dt)
         wrapped = {a: np.full((H, W), np.nan, np.float32) for a in self.phase}
         modulation = {a: np.zeros((H, W), np.float32) for a in self.phase}
         bits = {a: {c: {"unresolved": [0] * spec.n_bits(a), "lost": [0] * spec.n_bits(a)}

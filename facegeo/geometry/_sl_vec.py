@@ -43,7 +43,10 @@ fused finish's start over 32 pixels (``L_max`` / ``L_min`` from the pairs' runni
 direct, global, the reliability threshold, lit, shadow, the confidence's start): the fused
 chunk kernel runs it and both axes' direct blocks 32 pixels at a time, so the start's planes
 are read back from L1 instead of after a pass over the whole run (the bench decode's start and
-axes 2.6–2.7 → 2.0–2.2 ms; the decode 8.9–9.8 → 8.3–8.4 ms in ``facegeo bench``).
+axes 2.6–2.7 → 2.0–2.2 ms; the decode 8.9–9.8 → 8.3–8.4 ms in ``facegeo bench``). The
+outputs nobody reads back are stored non-temporally there when their planes are aligned (no
+read for ownership of 25 of the 36 bytes a pixel: the start and axes → 1.7–1.8 ms, the decode
+→ 7.8–8.7 ms); :func:`store_fence` orders those stores before the kernel returns.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ from numba import types
 from numba.extending import intrinsic
 
 __all__ = ["DIRECT_LANES", "LANES", "PREFETCH_BYTES", "direct_block", "lit_rgb8", "pair2_rgb8",
-           "pair_rgb8", "prefetch", "source_hash", "start_block"]
+           "pair_rgb8", "prefetch", "source_hash", "start_block", "store_fence"]
 
 #: Pixels per :func:`pair_rgb8` call.
 LANES = 32
@@ -299,7 +302,7 @@ def prefetch(typingctx, a, off):  # pragma: no cover - compiled
 
 @intrinsic
 def direct_block(typingctx, sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, t, mscale, high, sb,
-                 n_stripes, one_ok, step, c0, sig_one):  # pragma: no cover - compiled
+                 n_stripes, one_ok, step, c0, sig_one, nt):  # pragma: no cover - compiled
     """The fully resolved pass of ``_sl_finish``'s ``direct`` over pixels ``t … t + 15`` in
     one block of <16 x i32 / float> lanes (numba's loop ran 8 lanes wide with int64 words and
     NaN-safe selects as compare chains: 0.65 ns a pixel). Per pixel, as that loop: the decision
@@ -310,7 +313,9 @@ def direct_block(typingctx, sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, t, m
     ``cov = float32(float64(x) · step + c0)`` and ``sov = sig_one`` (+ NaN where not valid),
     and the running confidence ``qov = min(qov, clip(m / max(ref, 1e-12), 0, 1) · valid)``
     where reliable — with numpy's NaN rules
-    for ``np.maximum`` / ``np.minimum``. Returns how many of the 16 are not reliable."""
+    for ``np.maximum`` / ``np.minimum``. ``nt``: ``cov`` / ``sov`` stored non-temporally (the
+    caller guarantees 64-byte aligned vectors; :func:`_store_out`). Returns how many of the 16
+    are not reliable."""
     ok = (isinstance(sg, types.Array) and isinstance(sg.dtype, types.Integer)
           and not sg.dtype.signed and _c1d(sg, sg.dtype)
           and (_c1d(mi, types.uint8) or _c1d(mi, types.float32))
@@ -321,12 +326,12 @@ def direct_block(typingctx, sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, t, m
         return None
     sig = types.int64(sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, types.int64, types.float32,
                       types.int64, types.int64, types.int64, types.boolean, types.float64,
-                      types.float64, types.float32)
+                      types.float64, types.float32, types.boolean)
     n = DIRECT_LANES
 
     def codegen(context, builder, signature, args):
         (sgv, miv, tauv, litv, refv, covv, sovv, oovv, qovv, slvv, tv, msc, hi, sbv, nsv, oneok,
-         stepv, c0v, sigv) = args
+         stepv, c0v, sigv, ntv) = args
         A = signature.args
         v32, vf, vd, v8, v1 = _vec(_I32, n), _vec(_F32, n), _vec(ir.DoubleType(), n), \
             _vec(_I8, n), _vec(ir.IntType(1), n)
@@ -364,8 +369,9 @@ def direct_block(typingctx, sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, t, m
         z = builder.select(o, ir.Constant(vf, [0.0] * n), nan)
         c = builder.fadd(builder.fmul(builder.sitofp(x, vd), _splat(builder, stepv, vd)),
                          _splat(builder, c0v, vd))
-        builder.store(builder.fadd(builder.fptrunc(c, vf), z), ptr(5, vf), align=4)
-        builder.store(builder.fadd(_splat(builder, sigv, vf), z), ptr(6, vf), align=4)
+        nt = _flag(builder, ntv)
+        _store_out(builder, builder.fadd(builder.fptrunc(c, vf), z), ptr(5, vf), nt, 4 * n)
+        _store_out(builder, builder.fadd(_splat(builder, sigv, vf), z), ptr(6, vf), nt, 4 * n)
         r = builder.load(ptr(4, vf), align=4)
         tiny = _splat(builder, ir.Constant(_F32, 1e-12), vf)
         r = builder.select(builder.fcmp_unordered(">=", r, tiny), r, tiny)  # np.maximum
@@ -416,6 +422,44 @@ def lit_rgb8(typingctx, white, black, t, w_scale, b_scale,
     return sig, codegen
 
 
+def _store_out(builder, v, p, nt, align: int) -> None:
+    """Store output vector ``v`` at ``p``: a non-temporal store (``!nontemporal``: no read for
+    ownership, the line goes to memory past the caches) where the run-time flag ``nt`` is set
+    — the caller guarantees ``p`` is then aligned to ``align`` bytes (one vector, at most
+    64) — else a plain store."""
+    with builder.if_else(nt) as (streaming, plain):
+        with streaming:
+            st = builder.store(v, p, align=align)
+            st.set_metadata("nontemporal", builder.module.add_metadata([ir.Constant(_I32, 1)]))
+        with plain:
+            el = v.type.element
+            builder.store(v, p, align=4 if isinstance(el, ir.FloatType) else el.width // 8)
+
+
+@intrinsic
+def store_fence(typingctx):  # pragma: no cover - compiled
+    """Order the non-temporal stores before it ahead of every later store (``llvm.x86.sse.sfence``
+    on x86; nothing elsewhere): they are weakly ordered, and another thread reads the outputs
+    once the kernel returns."""
+    sig = types.void()
+
+    def codegen(context, builder, signature, args):
+        if _has_feature(context, "sse"):
+            fn = _declare(builder.module, "llvm.x86.sse.sfence",
+                          ir.FunctionType(ir.VoidType(), []))
+            builder.call(fn, [])
+        else:
+            builder.fence("seq_cst")
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+def _flag(builder, v):
+    """A numba boolean argument as an i1."""
+    return v if v.type == ir.IntType(1) else builder.trunc(v, ir.IntType(1))
+
+
 def _max_nan_v(builder, a, b):
     """``_sl_finish``'s ``max_nan`` (``np.maximum``: NaN propagates, ties keep ``a``) on
     float vectors: ``a`` where ``a >= b``, else ``b`` where ``b > a`` or ``b`` is NaN, else
@@ -427,15 +471,17 @@ def _max_nan_v(builder, a, b):
 
 @intrinsic
 def start_block(typingctx, hsum, lsum, scale, white, black, w_scale, b_scale, has_wb, min_c,
-                rel_c, shadow_thr, direct, glob, lit, shadow, litb, tau, conf,
-                t):  # pragma: no cover - compiled
+                rel_c, shadow_thr, direct, glob, lit, shadow, litb, tau, conf, t,
+                nt):  # pragma: no cover - compiled
     """The fused finish's start over pixels ``t … t + 31`` of a run (``_sl_finish``'s
     ``start``, the same values bit for bit): ``L_max`` / ``L_min`` as the running max / min
     channel sums ``hsum`` / ``lsum`` (int16) times ``scale``, ``direct = L_max - L_min``,
     ``glob = 2 max(L_min, 0)``, ``tau = max(min_c, rel_c · direct)`` (NaN-propagating
     maxima), ``lit`` = white − black from the held 8-bit RGB frames' channel sums when
     ``has_wb`` (:func:`lit_rgb8`), else ``direct``; ``shadow = not (lit >= shadow_thr)``, ``litb
-    = not shadow``, ``conf = 1``. Returns how many of the 32 are lit."""
+    = not shadow``, ``conf = 1``. ``nt``: ``glob``, ``lit`` and ``shadow`` (which nothing reads
+    back) stored non-temporally (the caller guarantees aligned vectors: 128 bytes of float32,
+    32 of flags). Returns how many of the 32 are lit."""
     f32 = types.float32
     ok = (_c1d(hsum, types.int16) and lsum == hsum and _c1d(white, types.uint8)
           and black == white and all(_c1d(x, f32) for x in (direct, glob, lit, tau, conf))
@@ -443,11 +489,11 @@ def start_block(typingctx, hsum, lsum, scale, white, black, w_scale, b_scale, ha
     if not ok:
         return None
     sig = types.int64(hsum, lsum, f32, white, black, f32, f32, types.boolean, f32, f32, f32,
-                      direct, glob, lit, shadow, litb, tau, conf, types.int64)
+                      direct, glob, lit, shadow, litb, tau, conf, types.int64, types.boolean)
 
     def codegen(context, builder, signature, args):
         (hv, lv, sc, wv, bv, ws, bs, hwb, mnc, rlc, thr, dv, gv, lov, shv, lbv, tav, cfv,
-         tv) = args
+         tv, ntv) = args
         A = signature.args
         vf, v16, v8 = _vec(_F32), _vec(_I16), _vec(_I8)
 
@@ -459,28 +505,30 @@ def start_block(typingctx, hsum, lsum, scale, white, black, w_scale, b_scale, ha
         mn = builder.fmul(builder.sitofp(builder.load(ptr(1, v16), align=2), vf), s)
         d = builder.fsub(mx, mn)
         builder.store(d, ptr(11, vf), align=4)
+        nt = _flag(builder, ntv)
         zero = ir.Constant(vf, [0.0] * LANES)
-        builder.store(builder.fmul(ir.Constant(vf, [2.0] * LANES), _max_nan_v(builder, mn, zero)),
-                      ptr(12, vf), align=4)
+        _store_out(builder, builder.fmul(ir.Constant(vf, [2.0] * LANES),
+                                         _max_nan_v(builder, mn, zero)), ptr(12, vf), nt, 64)
         builder.store(_max_nan_v(builder, _splat(builder, mnc, vf),
                                  builder.fmul(_splat(builder, rlc, vf), d)), ptr(16, vf), align=4)
-        lp = ptr(13, vf)
-        flag = hwb if hwb.type == ir.IntType(1) else builder.trunc(hwb, ir.IntType(1))
-        with builder.if_else(flag) as (with_wb, without):
+        with builder.if_else(_flag(builder, hwb)) as (with_wb, without):
             with with_wb:
                 three = builder.mul(tv, ir.Constant(_I64, 3))
                 sw = builder.uitofp(_rgb_sums(builder, builder.gep(
                     _data(context, builder, A[3], wv), [three])), vf)
                 sb = builder.uitofp(_rgb_sums(builder, builder.gep(
                     _data(context, builder, A[4], bv), [three])), vf)
-                builder.store(builder.fsub(builder.fmul(sw, _splat(builder, ws, vf)),
-                                           builder.fmul(sb, _splat(builder, bs, vf))), lp,
-                              align=4)
+                lw = builder.fsub(builder.fmul(sw, _splat(builder, ws, vf)),
+                                  builder.fmul(sb, _splat(builder, bs, vf)))
+                from_wb = builder.block
             with without:
-                builder.store(d, lp, align=4)
-        li = builder.load(lp, align=4)
+                from_d = builder.block
+        li = builder.phi(vf)
+        li.add_incoming(lw, from_wb)
+        li.add_incoming(d, from_d)
+        _store_out(builder, li, ptr(13, vf), nt, 64)
         lit_ = builder.fcmp_ordered(">=", li, _splat(builder, thr, vf))  # not shadow
-        builder.store(builder.zext(builder.not_(lit_), v8), ptr(14, v8), align=1)
+        _store_out(builder, builder.zext(builder.not_(lit_), v8), ptr(14, v8), nt, LANES)
         builder.store(builder.zext(lit_, v8), ptr(15, v8), align=1)
         builder.store(ir.Constant(vf, [1.0] * LANES), ptr(17, vf), align=4)
         ctpop = _declare(builder.module, f"llvm.ctpop.i{LANES}",
