@@ -1165,6 +1165,7 @@ def _rgb8(frames, seed=1):
     (dict(codes=("gray", "minsw"), white_black=False), 1000, 333, 2),
     (dict(n_bits_x=5, n_bits_y=0), None, 50, 1),
     (dict(white_black=False), None, 333, 1),
+    (dict(white_black=False), None, None, 1),
     (dict(codes=("xor04",)), 777, 100, 2),
 ])
 def test_fused_chunk_kernel_equals_the_chunk_by_chunk_path(kw, chunk, sub, threads, monkeypatch):

@@ -479,9 +479,10 @@ def start_block(typingctx, hsum, lsum, scale, white, black, w_scale, b_scale, ha
     ``glob = 2 max(L_min, 0)``, ``tau = max(min_c, rel_c · direct)`` (NaN-propagating
     maxima), ``lit`` = white − black from the held 8-bit RGB frames' channel sums when
     ``has_wb`` (:func:`lit_rgb8`), else ``direct``; ``shadow = not (lit >= shadow_thr)``, ``litb
-    = not shadow``, ``conf = 1``. ``nt``: ``glob``, ``lit`` and ``shadow`` (which nothing reads
-    back) stored non-temporally (the caller guarantees aligned vectors: 128 bytes of float32,
-    32 of flags). Returns how many of the 32 are lit."""
+    = not shadow``, ``conf = 1``. ``nt``: ``glob``, ``shadow`` and, with white / black frames,
+    ``lit`` (which nothing reads back; without them ``lit`` may be ``direct``'s own plane)
+    stored non-temporally (the caller guarantees aligned vectors: 128 bytes of float32, 32 of
+    flags). Returns how many of the 32 are lit."""
     f32 = types.float32
     ok = (_c1d(hsum, types.int16) and lsum == hsum and _c1d(white, types.uint8)
           and black == white and all(_c1d(x, f32) for x in (direct, glob, lit, tau, conf))
@@ -526,7 +527,9 @@ def start_block(typingctx, hsum, lsum, scale, white, black, w_scale, b_scale, ha
         li = builder.phi(vf)
         li.add_incoming(lw, from_wb)
         li.add_incoming(d, from_d)
-        _store_out(builder, li, ptr(13, vf), nt, 64)
+        # without white / black frames lit is direct, and its plane may be direct's own
+        # (StreamDecoder.finish), which the axes read back: stored plainly then
+        _store_out(builder, li, ptr(13, vf), builder.and_(nt, _flag(builder, hwb)), 64)
         lit_ = builder.fcmp_ordered(">=", li, _splat(builder, thr, vf))  # not shadow
         _store_out(builder, builder.zext(builder.not_(lit_), v8), ptr(14, v8), nt, LANES)
         builder.store(builder.zext(lit_, v8), ptr(15, v8), align=1)
