@@ -713,13 +713,15 @@ def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, 
     margin, hsum, lsum, tau, litb = shared
     has_wb, shadow_thr, min_c, rel_c = thresholds
     direct, glob, lit_out, shadow, conf, valid = outs[:6]
-    # the block loop's outputs nobody reads back (global, lit, shadow, each axis's coordinate and
-    # sigma) are stored non-temporally when every block of them is aligned to its vector: the
-    # planes at 64 bytes (StreamDecoder allocates them so) and every sub-run at a multiple of 32
-    # pixels. Measured (bench decode, 1 thread): the start and the axes 5.1-5.4 -> 4.5-4.6 M
-    # cycles, the decode 7.75-7.93 -> 7.31-7.56 ms
+    # the block loop's outputs the kernel does not read back (global, shadow, each axis's
+    # coordinate and sigma, and lit with white / black frames: without them lit may be direct's
+    # own plane) are stored non-temporally when every block of them is aligned to its vector:
+    # the planes at 64 bytes (StreamDecoder allocates them so) and every sub-run starting at a
+    # multiple of 32 pixels. Measured (bench decode, 1 thread): the start and the axes 5.1-5.4
+    # -> 4.5-4.6 M cycles, the decode 7.75-7.93 -> 7.31-7.56 ms
     planes = [glob, lit_out, shadow] + [o[i] for o in (ox, oy) if o[0].size for i in (0, 1)]
-    nt = int(start) % 32 == 0 and int(sub) % 32 == 0 and all(
+    start, stop, sub = int(start), int(stop), int(sub)
+    nt = start % 32 == 0 and (sub % 32 == 0 or stop - start <= sub) and all(
         p.ctypes.data % 64 == 0 for p in planes)
     return _fused()(frames, int(start), int(stop), int(sub), np.float32(scale), k,
                     np.float32(steps), np.float32(mscale), gx, gy, ax, ay, bx, by, margin,

@@ -79,7 +79,7 @@ FUSED = True
 #: 16,384 / 32,768 / 65,536 / 131,072 pixels 10.7 / 10.1 / 9.5 / 9.5 / 10.2 ms.
 _FUSED_SUB = 32768
 #: Alignment (bytes) of the output planes the fused kernel writes: its block loop stores the
-#: ones nobody reads back non-temporally, which needs each vector aligned (``fused_chunk``).
+#: ones it does not read back non-temporally, which needs each vector aligned (``fused_chunk``).
 _ALIGN = 64
 
 

@@ -44,9 +44,9 @@ direct, global, the reliability threshold, lit, shadow, the confidence's start):
 chunk kernel runs it and both axes' direct blocks 32 pixels at a time, so the start's planes
 are read back from L1 instead of after a pass over the whole run (the bench decode's start and
 axes 2.6–2.7 → 2.0–2.2 ms; the decode 8.9–9.8 → 8.3–8.4 ms in ``facegeo bench``). The
-outputs nobody reads back are stored non-temporally there when their planes are aligned (no
-read for ownership of 25 of the 36 bytes a pixel: the start and axes → 1.7–1.8 ms, the decode
-→ 7.8–8.7 ms); :func:`store_fence` orders those stores before the kernel returns.
+outputs the kernel does not read back are stored non-temporally there when their planes are
+aligned (no read for ownership of 25 of the 36 bytes a pixel: the start and axes → 1.7–1.8 ms,
+the decode → 7.8–8.7 ms); :func:`store_fence` orders those stores before the kernel returns.
 """
 
 from __future__ import annotations
@@ -480,9 +480,9 @@ def start_block(typingctx, hsum, lsum, scale, white, black, w_scale, b_scale, ha
     maxima), ``lit`` = white − black from the held 8-bit RGB frames' channel sums when
     ``has_wb`` (:func:`lit_rgb8`), else ``direct``; ``shadow = not (lit >= shadow_thr)``, ``litb
     = not shadow``, ``conf = 1``. ``nt``: ``glob``, ``shadow`` and, with white / black frames,
-    ``lit`` (which nothing reads back; without them ``lit`` may be ``direct``'s own plane)
-    stored non-temporally (the caller guarantees aligned vectors: 128 bytes of float32, 32 of
-    flags). Returns how many of the 32 are lit."""
+    ``lit`` (which the kernel does not read back; without them ``lit`` may be ``direct``'s own
+    plane) stored non-temporally (the caller guarantees aligned vectors: 128 bytes of float32,
+    32 of flags). Returns how many of the 32 are lit."""
     f32 = types.float32
     ok = (_c1d(hsum, types.int16) and lsum == hsum and _c1d(white, types.uint8)
           and black == white and all(_c1d(x, f32) for x in (direct, glob, lit, tau, conf))
