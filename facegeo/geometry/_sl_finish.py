@@ -560,7 +560,7 @@ def _fused():
     ).hexdigest()
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-    def fused(frames, p_lo, p_hi, sub, scale, k, steps, mscale, gx, gy, ax, ay, bx, by,
+    def fused(addrs, size, p_lo, p_hi, sub, scale, k, steps, mscale, gx, gy, ax, ay, bx, by,
               margin, hsum, lsum, tau, litb, white, black, w_scale, b_scale, has_wb, shadow_thr,
               min_c, rel_c, direct, glob, lit_out, shadow, conf, valid, ox, oy,
               nt):  # pragma: no cover
@@ -588,8 +588,8 @@ def _fused():
             if has_x:
                 bx[0][:, :S] = 0
                 bx[1][:, :S] = 255
-                _pairs_min(frames, gx[0], gx[1], scale, gx[2], gx[3], gx[4], bx[0], margin,
-                           steps, no_f, no_f, S, k, a, b, a, bx[1], True, hsum, lsum)
+                _pairs_min(addrs, size, gx[0], gx[1], scale, gx[2], gx[3], gx[4], bx[0],
+                           margin, steps, no_f, no_f, S, k, a, b, a, bx[1], True, hsum, lsum)
                 for f in range(bx[0].shape[0]):  # a table code: its stripes' Gray words
                     if ax[3][f]:
                         w = bx[0][f, :S]
@@ -598,8 +598,8 @@ def _fused():
             if has_y:
                 by[0][:, :S] = 0
                 by[1][:, :S] = 255
-                _pairs_min(frames, gy[0], gy[1], scale, gy[2], gy[3], gy[4], by[0], margin,
-                           steps, no_f, no_f, S, k, a, b, a, by[1], True, hsum, lsum)
+                _pairs_min(addrs, size, gy[0], gy[1], scale, gy[2], gy[3], gy[4], by[0],
+                           margin, steps, no_f, no_f, S, k, a, b, a, by[1], True, hsum, lsum)
                 for f in range(by[0].shape[0]):
                     if ay[3][f]:
                         w = by[0][f, :S]
@@ -698,7 +698,8 @@ def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, 
     buffers stay in cache and no Python runs between the steps (that path's per-call costs were
     ≈ 1 ms of a 12 ms decode, and its chunks too large for the buffers to stay in L2).
 
-    ``scale``, ``k``, ``steps``: the pair kernel's (``k`` the integer margin multiplier or the
+    ``frames``: the held pair frames (``_sl_kernels.FrameSet``). ``scale``, ``k``, ``steps``:
+    the pair kernel's (``k`` the integer margin multiplier or the
     float32 ``k``, ``_sl_kernels.PairGroup.margin_k``); ``mscale``: the margins' unit. ``pairs``:
     per axis ``(pos, neg, rows, bitvals, planes)`` (empty arrays for an axis without bits);
     ``axes``: per axis ``(kidx, base, tabs, use, words, n, gray tables (F, 2**n), step, n_stripes,
@@ -723,7 +724,7 @@ def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, 
     start, stop, sub = int(start), int(stop), int(sub)
     nt = start % 32 == 0 and (sub % 32 == 0 or stop - start <= sub) and all(
         p.ctypes.data % 64 == 0 for p in planes)
-    return _fused()(frames, int(start), int(stop), int(sub), np.float32(scale), k,
+    return _fused()(frames.addrs, frames.size, start, stop, sub, np.float32(scale), k,
                     np.float32(steps), np.float32(mscale), gx, gy, ax, ay, bx, by, margin,
                     hsum, lsum, tau, litb, white, black, np.float32(wb_scales[0]),
                     np.float32(wb_scales[1]), bool(has_wb), np.float32(shadow_thr),

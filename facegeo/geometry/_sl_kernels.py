@@ -284,7 +284,7 @@ def _register_tail() -> None:
 
 # The vector block and prefetch of 8-bit RGB pairs (facegeo.geometry._sl_vec), set by
 # _pairs_rgb8(): module globals for the same reason as the tile helpers.
-_pair_rgb8 = _pair2_rgb8 = _prefetch = None
+_pair_rgb8 = _pair2_rgb8 = _prefetch = _u8_ptr = None
 
 
 @functools.cache
@@ -303,14 +303,15 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
     are closure cells and part of numba's cache key
     (a flag of the decorator alone is not: the serial and the parallel kernel shared one
     cache entry, and whichever was compiled last ran for both)."""
-    global _pair_rgb8, _pair2_rgb8, _prefetch
-    from numba import njit, prange
+    global _pair_rgb8, _pair2_rgb8, _prefetch, _u8_ptr
+    from numba import carray, njit, prange
 
     from facegeo.geometry import _sl_vec
 
     _tile_helpers()
     _register_tail()
     _pair_rgb8, _pair2_rgb8, _prefetch = _sl_vec.pair_rgb8, _sl_vec.pair2_rgb8, _sl_vec.prefetch
+    _u8_ptr = _sl_vec.u8_ptr
     lanes, ahead = _sl_vec.LANES, _sl_vec.PREFETCH_BYTES
     # numba's disk cache sees this file (its modification time) and the kernel's closure cells,
     # not _sl_vec.py, whose code generation the kernel inlines: the source hash of _sl_vec.py
@@ -318,9 +319,11 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
     vec_source = _sl_vec.source_hash()
 
     @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", parallel=parallel)
-    def pairs(frames, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax,
+    def pairs(addrs, size, pos, neg, scale, rows, bitvals, planes, words, margin, steps, lmax,
               lmin, tile, k, p_lo, p_hi, off, mmin, sums, hsum,
               lsum):  # pragma: no cover - compiled
+        # addrs / size: the frames' data addresses and their length (uint8 elements, all the
+        # same), viewed in place (FrameSet: the caller keeps the arrays alive)
         n_tiles = (p_hi - p_lo + tile - 1) // tile
         if not parallel or not vec_source:  # (the cache key, see above)
             n_tiles = n_tiles + 0
@@ -345,16 +348,20 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
                 # accumulators are loaded and stored once for both
                 two = o + 1 < n_pairs and rows[o + 1] == rows[o]
                 o2 = o + 1 if two else o
-                fp, fq = frames[pos[o]], frames[neg[o]]
-                fp2, fq2 = frames[pos[o2]], frames[neg[o2]]
+                fp = carray(_u8_ptr(addrs[pos[o]]), size)
+                fq = carray(_u8_ptr(addrs[neg[o]]), size)
+                fp2 = carray(_u8_ptr(addrs[pos[o2]]), size)
+                fq2 = carray(_u8_ptr(addrs[neg[o2]]), size)
                 # past the end of this group's run the prefetch runs on into the next group's
                 # (the next tile's first group after the last): the core does not wait at
                 # each run's start (tiles of 16,384 pixels: 40 runs of 48 KB)
                 last = o2 + 1 == n_pairs
                 nx = 0 if last else o2 + 1
                 nx2 = nx + 1 if nx + 1 < n_pairs and rows[nx + 1] == rows[nx] else nx
-                np1, nq1 = frames[pos[nx]], frames[neg[nx]]
-                np2, nq2 = frames[pos[nx2]], frames[neg[nx2]]
+                np1 = carray(_u8_ptr(addrs[pos[nx]]), size)
+                nq1 = carray(_u8_ptr(addrs[neg[nx]]), size)
+                np2 = carray(_u8_ptr(addrs[pos[nx2]]), size)
+                nq2 = carray(_u8_ptr(addrs[neg[nx2]]), size)
                 skip = 0 if last else 3 * (a - b)
                 wv = words[rows[o]][a_:b_]
                 mg = margin[planes[o]][a_:b_]
@@ -413,8 +420,10 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
                 if n_vec < n:
                     for oo in range(o, o2 + 1):
                         g = mg if oo == o else mg2
-                        _sums_tile(frames[pos[oo]][3 * (a + n_vec):3 * b], 3, sp)
-                        _sums_tile(frames[neg[oo]][3 * (a + n_vec):3 * b], 3, sq)
+                        _sums_tile(carray(_u8_ptr(addrs[pos[oo]]), size)[3 * (a + n_vec):3 * b],
+                                   3, sp)
+                        _sums_tile(carray(_u8_ptr(addrs[neg[oo]]), size)[3 * (a + n_vec):3 * b],
+                                   3, sq)
                         _tail(sp, sq, scale, wv[n_vec:], bitvals[oo], g[n_vec:], steps,
                               hi[n_vec:], lo[n_vec:], k)
                         if with_min:
@@ -548,13 +557,42 @@ def pairs_tiled(frames, pos, neg, scale: float, rows, bits, planes, words, margi
         words, margin, lmax, lmin, tile=tile)
 
 
+class FrameSet:
+    """Held frames as the pair kernels take them: flat C-contiguous views of one size (kept
+    alive here while any kernel runs on them), their data addresses (int64) and element count
+    for the 8-bit RGB kernel, which views each frame in place (``numba.carray``), and a numba
+    typed list of them for the plain tile loops, made on first use (≈ 4 µs a frame; the 8-bit
+    RGB decode paid it on every call when all kernels took the list)."""
+
+    def __init__(self, frames):
+        self.arrays = [np.ascontiguousarray(f).reshape(-1) for f in frames]
+        sizes = {a.size for a in self.arrays}
+        if len(sizes) != 1:
+            raise ValueError(f"FrameSet: frames of {len(sizes)} different sizes; one size only")
+        self.size = sizes.pop()
+        self.addrs = np.array([a.__array_interface__["data"][0] for a in self.arrays], np.int64)
+        self._typed = None
+
+    def __len__(self) -> int:
+        return len(self.arrays)
+
+    @property
+    def typed(self):
+        """The frames as a numba typed list (made once)."""
+        if self._typed is None:
+            from numba.typed import List
+
+            self._typed = List(self.arrays)
+        return self._typed
+
+
 class PairGroup:
     """A group of pattern / inverse pairs prepared once for :func:`pairs_tiled`'s kernels and
     folded over any run of pixels (:meth:`run`), so a decode can fold and finish chunk by chunk
     with chunk-sized accumulators (``StreamDecoder.finish``) without preparing the frames'
     list for every chunk. The parameters are :func:`pairs_tiled`'s; ``word_dtype`` is the
-    decision words' dtype; ``flats``: the frames as :meth:`flat_list` made them, to share one
-    list between groups of the same frames (building it costs ≈ 4 µs a frame)."""
+    decision words' dtype; ``flats``: the frames as a :class:`FrameSet`, to share one set
+    between groups of the same frames."""
 
     def __init__(self, frames, pos, neg, scale: float, rows, bits, planes, steps: float,
                  word_dtype, *, parallel: bool = True, diff_margin: bool = True,
@@ -564,7 +602,7 @@ class PairGroup:
             raise ValueError(f"pairs_tiled: frames of dtype {f0.dtype} with {C} channels at "
                              f"scale {scale} are not exact in the integer domain (check "
                              "tiled_ok first)")
-        self.flats = self.flat_list(frames) if flats is None else flats
+        self.flats = FrameSet(frames) if flats is None else flats
         self.pixels = f0.size // C
         idx = lambda v: np.ascontiguousarray(v, np.int64)
         self.pos, self.neg, self.rows, self.planes = idx(pos), idx(neg), idx(rows), idx(planes)
@@ -586,16 +624,6 @@ class PairGroup:
         # built here, not in the chunk threads that run it (one dispatcher, one compile)
         self.kernel_min = _pairs_rgb8(self.parallel, True) if self.rgb8 else None
         self.plain = _pairs_tiled(self.parallel) if self.rgb8 else self.kernel
-
-    @staticmethod
-    def flat_list(frames):
-        """The frames as the kernels take them: a numba typed list of flat views."""
-        from numba.typed import List
-
-        flats = List()
-        for f in frames:
-            flats.append(np.ascontiguousarray(f).reshape(-1))
-        return flats
 
     def run(self, words, margin, lmax, lmin, *, start: int = 0, stop: int | None = None,
             offset: int = 0, tile: int = TILE, mmin=None) -> bool:
@@ -621,14 +649,15 @@ class PairGroup:
         if self.rgb8 and all(a.flags.c_contiguous for a in (W, M, lmax, lmin)
                              if a is not None):
             no = np.empty(0, np.int16)  # (no caller-held channel sums)
+            fs = self.flats
             if MM is not None and MM.flags.c_contiguous:
-                self.kernel_min(self.flats, *args, self.margin_k, int(start), stop,
+                self.kernel_min(fs.addrs, fs.size, *args, self.margin_k, int(start), stop,
                                 int(offset), MM, False, no, no)
                 return True
-            self.kernel(self.flats, *args, self.margin_k, int(start), stop, int(offset), M,
-                        False, no, no)
+            self.kernel(fs.addrs, fs.size, *args, self.margin_k, int(start), stop, int(offset),
+                        M, False, no, no)
             return False
-        self.plain(self.flats, self.C, *args, self.lo_init, self.k, int(start), stop,
+        self.plain(self.flats.typed, self.C, *args, self.lo_init, self.k, int(start), stop,
                    int(offset))
         return False
 

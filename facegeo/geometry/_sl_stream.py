@@ -686,7 +686,7 @@ class StreamDecoder:
                 (pl, inv) not in where for pl in self.planes for inv in (False, True)):
             return None
         frames = [g[2] for g in self.group]
-        flats = _kern.PairGroup.flat_list(frames)  # one list for both axes
+        flats = _kern.FrameSet(frames)  # one set for both axes
         groups = {}
         for axis in _AXES:
             n = self.spec.n_bits(axis)
