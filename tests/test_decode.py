@@ -1442,3 +1442,25 @@ def test_compiled_outputs_use_one_nan():
         a = getattr(res, name)
         bits = np.unique(a[np.isnan(a)].view(np.uint32))
         assert bits.tolist() == [0xFFC00000], (name, [hex(b) for b in bits])
+
+
+def test_frame_set_refuses_frames_of_another_size_or_dtype():
+    """The pair kernels read every held frame as the first one's dtype and size (the 8-bit RGB
+    kernel views each in place from its address): a frame of another dtype or size must be
+    refused, not read as raw bytes — fails if ``FrameSet`` (or ``pairs_tiled`` through it)
+    accepts one."""
+    from facegeo.geometry import _sl_kernels as k
+
+    rng = np.random.default_rng(5)
+    frames = [rng.integers(0, 256, (29, 41, 3), dtype=np.uint8) for _ in range(4)]
+    fs = k.FrameSet(frames)
+    assert len(fs) == 4 and fs.size == 29 * 41 * 3 and len(fs.typed) == 4
+    assert fs.addrs[0] == frames[0].__array_interface__["data"][0]
+    for bad in (frames[1].astype(np.uint16), frames[1][:, :40]):
+        with pytest.raises(ValueError, match="sizes / dtypes"):
+            k.FrameSet([frames[0], bad])
+        state = [np.zeros((1, 29, 41), np.uint16), np.zeros((2, 29, 41), np.uint8),
+                 np.zeros((29, 41), np.float32), np.zeros((29, 41), np.float32)]
+        with pytest.raises(ValueError, match="sizes / dtypes"):
+            k.pairs_tiled([frames[0], bad, frames[2], frames[3]], [0, 2], [1, 3], 1 / 765,
+                          [0, 0], [1, 0], [1, 0], *state[:2], 510.0, *state[2:])

@@ -284,7 +284,7 @@ def _register_tail() -> None:
 
 # The vector block and prefetch of 8-bit RGB pairs (facegeo.geometry._sl_vec), set by
 # _pairs_rgb8(): module globals for the same reason as the tile helpers.
-_pair_rgb8 = _pair2_rgb8 = _prefetch = _u8_ptr = None
+_pair_rgb8 = _pair2_rgb8 = _prefetch = _u8_ptr = _prefetch2 = None
 
 
 @functools.cache
@@ -303,7 +303,7 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
     are closure cells and part of numba's cache key
     (a flag of the decorator alone is not: the serial and the parallel kernel shared one
     cache entry, and whichever was compiled last ran for both)."""
-    global _pair_rgb8, _pair2_rgb8, _prefetch, _u8_ptr
+    global _pair_rgb8, _pair2_rgb8, _prefetch, _u8_ptr, _prefetch2
     from numba import carray, njit, prange
 
     from facegeo.geometry import _sl_vec
@@ -312,6 +312,15 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
     _register_tail()
     _pair_rgb8, _pair2_rgb8, _prefetch = _sl_vec.pair_rgb8, _sl_vec.pair2_rgb8, _sl_vec.prefetch
     _u8_ptr = _sl_vec.u8_ptr
+
+    def prefetch2(f, g, q):  # pragma: no cover - compiled
+        # a block advances 96 bytes a frame: two lines from q cover every byte once
+        _prefetch(f, q)
+        _prefetch(g, q)
+        _prefetch(f, q + 64)
+        _prefetch(g, q + 64)
+
+    _prefetch2 = njit(cache=True, nogil=True, inline="always")(prefetch2)
     lanes, ahead = _sl_vec.LANES, _sl_vec.PREFETCH_BYTES
     # numba's disk cache sees this file (its modification time) and the kernel's closure cells,
     # not _sl_vec.py, whose code generation the kernel inlines: the source hash of _sl_vec.py
@@ -368,28 +377,15 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
                 mg2 = margin[planes[o2]][a_:b_]
                 mm = mmin[rows[o]][a_:b_]
                 bv, bv2 = bitvals[o], bitvals[o2]
-                # a block advances 96 bytes a frame: two lines from q cover every byte once
                 if two:
                     for t in range(0, n_vec, lanes):
                         q = 3 * (a + t) + ahead
                         if q < 3 * b:
-                            _prefetch(fp, q)
-                            _prefetch(fq, q)
-                            _prefetch(fp2, q)
-                            _prefetch(fq2, q)
-                            _prefetch(fp, q + 64)
-                            _prefetch(fq, q + 64)
-                            _prefetch(fp2, q + 64)
-                            _prefetch(fq2, q + 64)
-                        else:
-                            _prefetch(np1, q + skip)
-                            _prefetch(nq1, q + skip)
-                            _prefetch(np2, q + skip)
-                            _prefetch(nq2, q + skip)
-                            _prefetch(np1, q + skip + 64)
-                            _prefetch(nq1, q + skip + 64)
-                            _prefetch(np2, q + skip + 64)
-                            _prefetch(nq2, q + skip + 64)
+                            _prefetch2(fp, fq, q)
+                            _prefetch2(fp2, fq2, q)
+                        else:  # (the next group's)
+                            _prefetch2(np1, nq1, q + skip)
+                            _prefetch2(np2, nq2, q + skip)
                         if with_min:
                             _pair2_rgb8(fp, fq, fp2, fq2, a + t, wv, bv, bv2, mg, mg2, k, hi,
                                         lo, t, mm)
@@ -400,19 +396,10 @@ def _pairs_rgb8(parallel: bool, with_min: bool = False):
                     for t in range(0, n_vec, lanes):
                         q = 3 * (a + t) + ahead
                         if q < 3 * b:
-                            _prefetch(fp, q)
-                            _prefetch(fq, q)
-                            _prefetch(fp, q + 64)
-                            _prefetch(fq, q + 64)
+                            _prefetch2(fp, fq, q)
                         else:
-                            _prefetch(np1, q + skip)
-                            _prefetch(nq1, q + skip)
-                            _prefetch(np2, q + skip)
-                            _prefetch(nq2, q + skip)
-                            _prefetch(np1, q + skip + 64)
-                            _prefetch(nq1, q + skip + 64)
-                            _prefetch(np2, q + skip + 64)
-                            _prefetch(nq2, q + skip + 64)
+                            _prefetch2(np1, nq1, q + skip)
+                            _prefetch2(np2, nq2, q + skip)
                         if with_min:
                             _pair_rgb8(fp, fq, a + t, wv, bv, mg, k, hi, lo, t, mm)
                         else:
@@ -558,18 +545,20 @@ def pairs_tiled(frames, pos, neg, scale: float, rows, bits, planes, words, margi
 
 
 class FrameSet:
-    """Held frames as the pair kernels take them: flat C-contiguous views of one size (kept
-    alive here while any kernel runs on them), their data addresses (int64) and element count
-    for the 8-bit RGB kernel, which views each frame in place (``numba.carray``), and a numba
-    typed list of them for the plain tile loops, made on first use (≈ 4 µs a frame; the 8-bit
-    RGB decode paid it on every call when all kernels took the list)."""
+    """Held frames as the pair kernels take them: flat C-contiguous views of one size and
+    dtype (kept alive here while any kernel runs on them), their data addresses (int64) and
+    element count for the 8-bit RGB kernel, which views each frame in place (``numba.carray``),
+    and a numba typed list of them for the plain tile loops, made on first use (≈ 4 µs a frame;
+    the 8-bit RGB decode paid it on every call when all kernels took the list). Frames of
+    another size or dtype: ValueError (the kernels read every frame as the first one's)."""
 
     def __init__(self, frames):
         self.arrays = [np.ascontiguousarray(f).reshape(-1) for f in frames]
-        sizes = {a.size for a in self.arrays}
-        if len(sizes) != 1:
-            raise ValueError(f"FrameSet: frames of {len(sizes)} different sizes; one size only")
-        self.size = sizes.pop()
+        kinds = {(a.size, a.dtype) for a in self.arrays}
+        if len(kinds) != 1:
+            raise ValueError(f"FrameSet: frames of {len(kinds)} different sizes / dtypes "
+                             f"({sorted((n, str(d)) for n, d in kinds)[:4]}); one of each only")
+        self.size = self.arrays[0].size
         self.addrs = np.array([a.__array_interface__["data"][0] for a in self.arrays], np.int64)
         self._typed = None
 
