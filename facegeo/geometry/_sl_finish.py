@@ -693,21 +693,20 @@ def fused_chunk(frames, start, stop, sub, scale, k, steps, mscale, pairs, axes, 
     axes' fully resolved passes run 32 pixels a block (``_sl_vec.start_block``,
     ``direct_block``), then each axis's slow pixels (``axis_pixels`` with ``fast_done``) and
     the sub-run's last ``S mod 32`` pixels step by step. The same kernels and steps as the
-    chunk-by-chunk Python path
-    (``StreamDecoder._fold_chunk`` / ``_finish_chunk``), so the same values (tested); the
-    buffers stay in cache and no Python runs between the steps (that path's per-call costs were
-    ≈ 1 ms of a 12 ms decode, and its chunks too large for the buffers to stay in L2).
+    chunk-by-chunk Python path (``StreamDecoder._fold_chunk`` / ``_finish_chunk``), so the same
+    values (tested); the buffers stay in cache and no Python runs between the steps (that
+    path's per-call costs were ≈ 1 ms of a 12 ms decode, and its chunks too large for the
+    buffers to stay in L2).
 
     ``frames``: the held pair frames (``_sl_kernels.FrameSet``). ``scale``, ``k``, ``steps``:
-    the pair kernel's (``k`` the integer margin multiplier or the
-    float32 ``k``, ``_sl_kernels.PairGroup.margin_k``); ``mscale``: the margins' unit. ``pairs``:
-    per axis ``(pos, neg, rows, bitvals, planes)`` (empty arrays for an axis without bits);
-    ``axes``: per axis ``(kidx, base, tabs, use, words, n, gray tables (F, 2**n), step, n_stripes,
+    the pair kernel's (``k`` the integer margin multiplier or the float32 ``k``,
+    ``_sl_kernels.PairGroup.margin_k``); ``mscale``: the margins' unit. ``pairs``: per axis
+    ``(pos, neg, rows, bitvals, planes)`` (empty arrays for an axis without bits); ``axes``: per
+    axis ``(kidx, base, tabs, use, words, n, gray tables (F, 2**n), step, n_stripes,
     coarse_lim, tol, phi, pok)`` (``StreamDecoder._fused_plan``); ``bufs``: per axis ``(words,
-    mmin)`` (F, ≥ sub) plus the shared ``(margin, hsum, lsum, tau, lit)`` (``hsum`` /
-    ``lsum`` int16); ``white``,
-    ``black``: the held frames, flat (empty without them), ``wb_scales`` their luminance
-    scales; ``thresholds``: ``(has_wb, shadow, min_contrast, rel_contrast)``; ``outs``:
+    mmin)`` (F, ≥ sub) plus the shared ``(margin, hsum, lsum, tau, lit)`` (``hsum`` / ``lsum``
+    int16); ``white``, ``black``: the held frames, flat (empty without them), ``wb_scales``
+    their luminance scales; ``thresholds``: ``(has_wb, shadow, min_contrast, rel_contrast)``; ``outs``:
     ``(direct, global, lit, shadow, confidence, valid)`` flat and per axis ``(coord, sigma, ok,
     counts)``. Returns the number of lit pixels."""
     (gx, gy), (ax, ay), ((bx, by), shared), (ox, oy) = pairs, axes, bufs, outs[6:]
