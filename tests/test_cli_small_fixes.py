@@ -126,8 +126,9 @@ def test_rig_auto_over_uncalibrated_projector_warns_once_per_run(tiny, tmp_path,
     """``--rig auto`` on a synthetic scan whose rig.json projector is uncalibrated still takes
     the generator's true rig, and says so in one warning of the pipeline's logger: once when
     the chain is built (not once per stage that uses the rig), once through ``facegeo mesh``
-    (stderr, as a logged warning). With the scan's own calibrated projector, or an explicit
-    ``--rig``, nothing is said."""
+    (stderr, as a logged warning). With the scan's own calibrated projector, an explicit
+    ``--rig``, or a run that does not mesh (``facegeo project`` with the true mesh, ``--only
+    atlas``), nothing is said."""
     import facegeo.cli as cli
     from facegeo.capture.scan import load_scan
     from facegeo.pipeline.cache import Pipeline
@@ -156,6 +157,17 @@ def test_rig_auto_over_uncalibrated_projector_warns_once_per_run(tiny, tmp_path,
         with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.reconstruct"):
             reconstruct_pipeline(s, rig=rig)
         assert warned() == [], (s.root, rig, warned())
+    # only a run that may mesh says it: until / only a stage that needs no mesh stage (the
+    # scan's true mesh stands in for it here) is silent
+    full = reconstruct_pipeline(scan, rig="auto")
+    for kw, meshes in ((dict(until="mesh"), True), (dict(only="mesh"), True),
+                       (dict(until="decode"), False), (dict(only="atlas"), False),
+                       (dict(until="project"), False), (dict(until="project", only="mesh"), False)):
+        assert ("mesh" in full.stages_run(**kw)) == meshes, kw
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.reconstruct"):
+            reconstruct_pipeline(scan, rig="auto", **kw)
+        assert len(warned()) == int(meshes), (kw, warned())
 
     # the command line: the chain is built once per run; the stages themselves are not run
     runs = []
@@ -168,6 +180,10 @@ def test_rig_auto_over_uncalibrated_projector_warns_once_per_run(tiny, tmp_path,
     said = capsys.readouterr()
     printed = [ln for ln in (said.out + said.err).splitlines() if _AUTO_RIG_WARNING in ln]
     assert len(runs) == 1 and len(warned()) == 1 and printed == [], (runs, warned(), printed)
+    caplog.clear()  # facegeo project does not mesh here: nothing said
+    with caplog.at_level(logging.WARNING):
+        assert cli.main(["project", str(root), "-q"]) == 0
+    assert len(runs) == 2 and warned() == [], (runs, warned())
 
 
 def test_calibrate_says_camera_with_few_views_once(tmp_path, capsys, caplog):

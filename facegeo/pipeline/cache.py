@@ -477,7 +477,7 @@ class Pipeline:
         self._check_stage(from_stage, "--from")
         self._check_stage(only, "--only")
         self._check_stage(until, "until")
-        wanted = None if until is None else set(self._upstream_closure(until)) | {until}
+        wanted = None if until is None else self._upstream_closure(until) | {until}
         settings = dict(settings or {})
         unknown = set(settings) - set(self.names)
         if unknown:
@@ -553,6 +553,16 @@ class Pipeline:
         return results
 
     # ------------------------------------------------------------------ internals
+
+    def stages_run(self, *, only: str | None = None, until: str | None = None) -> list[str]:
+        """The stages :meth:`run` may run with these arguments, in order: ``only`` alone (the
+        others' products are only checked), else ``until`` and the stages it reads from, else
+        every stage (cached ones are not run again)."""
+        self._check_stage(only, "--only")
+        self._check_stage(until, "until")
+        wanted = None if until is None else self._upstream_closure(until) | {until}
+        return [n for n in self.names if (wanted is None or n in wanted)
+                and (only is None or n == only)]
 
     def _upstream_closure(self, name: str) -> set[str]:
         by_name = {s.name: s for s in self.stages}

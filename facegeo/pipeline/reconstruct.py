@@ -134,20 +134,13 @@ def _check_stage_has_input(scan, stage: str | None, flag: str | None) -> None:
 def _resolve_rig(scan, rig: str, stages: list[str]) -> str:
     """The rig the chain's stages use (module docstring); ``stages`` are the chain's.
 
-    ``"auto"`` on a synthetic scan is the generator's true rig; when the chain meshes
-    structured light and ``rig.json``'s projector is uncalibrated, that choice is logged as a
-    warning (once: the pipeline is built once per run), since the true projector is what a real
-    scan would not have.
+    ``"auto"`` on a synthetic scan is the generator's true rig (:func:`_warn_true_rig` says so
+    where that stands in for an uncalibrated projector).
     """
     if rig not in RIG_CHOICES:
         raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)}, got {fmt_value(rig)}")
     has_gt = scan.synthetic and "rig" in scan.ground_truth_keys
     if rig == "auto":
-        if has_gt and "mesh" in stages and not scan.rig.projector_calibrated:
-            log.warning("rig auto: using the generator's true rig; rig.json's projector is "
-                        "uncalibrated (give --rig scan to mesh camera against camera%s)",
-                        ", or --rig calibrated after facegeo calibrate"
-                        if "calibrate" in stages else "")
         return "ground_truth" if has_gt else ("calibrated" if "calibrate" in stages else "scan")
     if rig == "ground_truth" and not has_gt:
         raise InputError(f"rig 'ground_truth': scan {scan.root} has no ground-truth rig")
@@ -157,7 +150,21 @@ def _resolve_rig(scan, rig: str, stages: list[str]) -> str:
     return rig
 
 
-def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipeline:
+def _warn_true_rig(scan, rig: str, use_rig: str, runs: list[str], stages: list[str]) -> None:
+    """Log once (the pipeline is built once per run) that ``--rig auto`` took the generator's
+    true rig for a ``mesh`` stage this run may run while ``rig.json``'s projector is uncalibrated:
+    the true projector is what a real scan would not have. ``runs``: the stages the run may run
+    (``Pipeline.stages_run``); ``stages``: all of the chain's."""
+    if rig == "auto" and use_rig == "ground_truth" and "mesh" in runs \
+            and not scan.rig.projector_calibrated:
+        log.warning("rig auto: using the generator's true rig; rig.json's projector is "
+                    "uncalibrated (give --rig scan to mesh camera against camera%s)",
+                    ", or --rig calibrated after facegeo calibrate"
+                    if "calibrate" in stages else "")
+
+
+def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
+                         only: str | None = None, until: str | None = None) -> Pipeline:
     """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct`` for one scan.
 
     Parameters
@@ -169,6 +176,9 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
         docstring).
     rig : str
         ``"auto"``, ``"ground_truth"``, ``"calibrated"`` or ``"scan"`` (module docstring).
+    only, until : str, optional
+        The run's ``--only`` / ``until`` (:meth:`Pipeline.run`), when known: the warning about
+        ``--rig auto`` is given only when the run may mesh.
     """
     from facegeo.pipeline.fit import FIT_SETTINGS
     from facegeo.pipeline.render import RENDER_DEFAULT_ENV, SHRINKAGE_DEFAULT
@@ -294,7 +304,9 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto") -> Pipe
     if not specs:
         raise InputError(f"scan {scan.root}: nothing to reconstruct (no [calib], "
                          "[structured_light] or [olat] frames)")
-    return Pipeline(specs)
+    pipeline = Pipeline(specs)
+    _warn_true_rig(scan, rig, use_rig, pipeline.stages_run(only=only, until=until), names)
+    return pipeline
 
 
 def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
@@ -339,6 +351,6 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
                                  f"chain: pass mesh= / rig= (--mesh / --rig), not a stage setting")
     for name, flag in ((until, None), (only, "--only"), (from_stage, "--from")):
         _check_stage_has_input(scan, name, flag)
-    pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig)
+    pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until)
     return pipeline.run(scan_dir, settings=settings, from_stage=from_stage, only=only,
                         until=until, progress=progress, on_stage=on_stage)
