@@ -409,6 +409,17 @@ def direct_block(typingctx, sg, mi, tau, lit, ref, cov, sov, oov, qov, slv, t, m
     return sig, codegen
 
 
+def _lit_lanes(context, builder, white, black, tv, ws, bs):
+    """White − black of pixels ``t … t + 31`` of two flat 8-bit RGB frames (``(type, value)``
+    each), ``float32(Σ white) · ws − float32(Σ black) · bs``, <32 x float>."""
+    vf = _vec(_F32)
+    three = builder.mul(tv, ir.Constant(_I64, 3))
+    sw, sb = (builder.uitofp(_rgb_sums(builder, builder.gep(
+        _data(context, builder, ty, v), [three])), vf) for ty, v in (white, black))
+    return builder.fsub(builder.fmul(sw, _splat(builder, ws, vf)),
+                        builder.fmul(sb, _splat(builder, bs, vf)))
+
+
 @intrinsic
 def lit_rgb8(typingctx, white, black, t, w_scale, b_scale,
              out):  # pragma: no cover - compiled
@@ -423,15 +434,9 @@ def lit_rgb8(typingctx, white, black, t, w_scale, b_scale,
     def codegen(context, builder, signature, args):
         wv, bv, tv, ws, bs, ov = args
         A = signature.args
-        three = builder.mul(tv, ir.Constant(_I64, 3))
-        vf = _vec(_F32)
-        sw = builder.uitofp(_rgb_sums(builder, builder.gep(_data(context, builder, A[0], wv),
-                                                           [three])), vf)
-        sb = builder.uitofp(_rgb_sums(builder, builder.gep(_data(context, builder, A[1], bv),
-                                                           [three])), vf)
-        li = builder.fsub(builder.fmul(sw, _splat(builder, ws, vf)),
-                          builder.fmul(sb, _splat(builder, bs, vf)))
-        builder.store(li, _at(builder, _data(context, builder, A[5], ov), tv, vf), align=4)
+        li = _lit_lanes(context, builder, (A[0], wv), (A[1], bv), tv, ws, bs)
+        builder.store(li, _at(builder, _data(context, builder, A[5], ov), tv, _vec(_F32)),
+                      align=4)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -529,13 +534,7 @@ def start_block(typingctx, hsum, lsum, scale, white, black, w_scale, b_scale, ha
                                  builder.fmul(_splat(builder, rlc, vf), d)), ptr(16, vf), align=4)
         with builder.if_else(_flag(builder, hwb)) as (with_wb, without):
             with with_wb:
-                three = builder.mul(tv, ir.Constant(_I64, 3))
-                sw = builder.uitofp(_rgb_sums(builder, builder.gep(
-                    _data(context, builder, A[3], wv), [three])), vf)
-                sb = builder.uitofp(_rgb_sums(builder, builder.gep(
-                    _data(context, builder, A[4], bv), [three])), vf)
-                lw = builder.fsub(builder.fmul(sw, _splat(builder, ws, vf)),
-                                  builder.fmul(sb, _splat(builder, bs, vf)))
+                lw = _lit_lanes(context, builder, (A[3], wv), (A[4], bv), tv, ws, bs)
                 from_wb = builder.block
             with without:
                 from_d = builder.block
