@@ -497,32 +497,12 @@ class ReferenceRenderer:
         return out
 
     def shadow_origins(self, p, face) -> np.ndarray:
-        """Shadow-ray origins ``(P, 3)``: points on faces lifted onto the smooth surface.
+        """Shadow-ray origins ``(P, 3)``: points on faces lifted onto the smooth surface
+        (Hanika 2021; :func:`facegeo.surface.shadows.lifted_origins` with this mesh's shading
+        normals)."""
+        from facegeo.surface.shadows import lifted_origins
 
-        Hanika 2021 (Ray Tracing Gems II, ch. 4, "Hacking the shadow terminator"): with
-        barycentrics b_k of p on its face, vertices v_k and shading normals n_k,
-        ``p' = p − Σ_k b_k min(0, (p − v_k)·n_k) n_k`` — the barycentric mean of p's
-        projections onto the vertices' tangent planes, each used only where p lies below the
-        plane (convex regions move out, concave ones stay). Zero on flat regions; at most
-        ≈ the triangle's sagitta off the faceted surface.
-        """
-        p = np.asarray(p, dtype=float)
-        f = self.faces[np.asarray(face, np.int64)]
-        tri = self.vertices[f]  # (P, 3, 3)
-        nrm = self.vertex_normals[f]
-        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        d = p - tri[:, 0]
-        d11, d12, d22 = (np.einsum("pc,pc->p", e1, e1), np.einsum("pc,pc->p", e1, e2),
-                         np.einsum("pc,pc->p", e2, e2))
-        d1, d2 = np.einsum("pc,pc->p", d, e1), np.einsum("pc,pc->p", d, e2)
-        den = d11 * d22 - d12 * d12
-        with np.errstate(invalid="ignore", divide="ignore"):
-            b1 = (d22 * d1 - d12 * d2) / den
-            b2 = (d11 * d2 - d12 * d1) / den
-        bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
-        below = np.minimum(np.einsum("pkc,pkc->pk", p[:, None, :] - tri, nrm), 0.0)
-        lift = -np.einsum("pk,pkc->pc", bary * below, nrm)
-        return np.where(np.isfinite(lift), p + lift, p)
+        return lifted_origins(self.vertices, self.faces, self.vertex_normals, p, face)
 
     @cached_property
     def welded_faces(self) -> np.ndarray:

@@ -1,0 +1,266 @@
+"""Geometric shadow maps and shadow-consistent bilinear taps (facegeo.surface.shadows).
+
+The scene is analytic: a tessellated ground plane z = 0 under a square occluder at height
+``H_OCC``; a light at a known position casts the square's shadow, whose outline on the plane is
+the square projected from the light — so which plane points are lit is known exactly, and a
+camera looking down at the plane sees a frame whose values are known at every pixel centre.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facegeo.errors import InputError, ShapeError
+from facegeo.frames import look_at
+from facegeo.geometry.camera import Camera
+from facegeo.geometry.lights import LightList
+from facegeo.surface.atlas import vertex_normals
+from facegeo.surface.reflectance import frame_sampler, sample_frame, sample_taps
+from facegeo.surface.shadows import ShadowRays, lifted_origins, shadow_taps
+from facegeo.surface.visibility import RayScene
+
+#: Height (m) of the occluding square over the plane, its half-size (m) and centre.
+H_OCC, HALF, CENTRE = 0.05, 0.03, np.array([0.01, -0.005])
+#: Light positions (m): one steep and oblique, one low (long shadow), one distant direction.
+LIGHTS = np.array([[0.21, 0.13, 0.6], [-0.3, 0.12, 0.45]])
+#: Points within this distance (m) of the analytic shadow outline are not compared (the ray
+#: origins are lifted eps = 1e-5 × scene size off the plane; float32 rays).
+EDGE_MARGIN = 2e-4
+#: Renormalised float32 bilinear weights sum to 1 within this (a lit sample reads 1 − 6e-8).
+WEIGHT_SUM_TOL = 1e-6
+#: Linearity for one light: max |S(a + b) − S(a) − S(b)| relative to max |S(a + b)|.
+LINEARITY_REL_TOL = 1e-6
+
+
+def _plane_and_square(n: int = 24, size: float = 0.3):
+    """Plane z = 0 over [-size, size]² as an n × n grid (normals +z), and the occluder square
+    at z = H_OCC (normals −z toward the plane, two triangles), in one mesh."""
+    xs = np.linspace(-size, size, n + 1)
+    X, Y = np.meshgrid(xs, xs)
+    V = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    F = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    sx, sy = CENTRE
+    sq = np.array([[sx - HALF, sy - HALF, H_OCC], [sx + HALF, sy - HALF, H_OCC],
+                   [sx + HALF, sy + HALF, H_OCC], [sx - HALF, sy + HALF, H_OCC]])
+    k = len(V)
+    Fs = np.array([[k, k + 2, k + 1], [k, k + 3, k + 2]])  # wound to face −z
+    return np.concatenate([V, sq]), np.concatenate([F, Fs])
+
+
+def _analytic_lit(xy: np.ndarray, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For plane points ``xy`` ``(P, 2)``: lit by the point light (not in the square's
+    shadow), and the distance (m, on the plane) to the shadow's outline."""
+    # the segment from (x, y, 0) to the light crosses z = H_OCC at s = H_OCC / light_z
+    s = H_OCC / light[2]
+    cross = xy + s * (light[None, :2] - xy)
+    off = np.abs(cross - CENTRE[None, :]) - HALF  # inside the square where both < 0
+    inside = (off < 0).all(axis=1)
+    # distance to the outline in the crossing plane, scaled back to the plane (1 / (1 − s))
+    d_out = np.where(inside, -off.max(axis=1), np.linalg.norm(np.maximum(off, 0), axis=1))
+    return ~inside, d_out / (1 - s)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    V, F = _plane_and_square()
+    return V, F, ShadowRays(RayScene(V, F), vertex_normals(V, F))
+
+
+def _on_plane(rays: ShadowRays, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Face and barycentrics of the plane at positions ``xy`` ``(P, 2)`` (traced from below,
+    so the occluder does not get in the way)."""
+    o = np.concatenate([xy, np.full((len(xy), 1), -0.2)], axis=1)
+    h = rays.scene.closest_hit(o, np.broadcast_to([0.0, 0.0, 1.0], o.shape),
+                               fields=("face", "bary"))
+    assert h.hit.all() and (h.face < len(rays.scene.faces) - 2).all()
+    return h.face, h.bary
+
+
+def _points_on_plane(rays: ShadowRays, xy: np.ndarray):
+    return rays.points(*_on_plane(rays, xy))
+
+
+def test_lifted_origins_flat_and_convex():
+    V, F = _plane_and_square()
+    rng = np.random.default_rng(0)
+    face = rng.integers(0, len(F) - 2, 500)
+    bary = rng.dirichlet(np.ones(3), 500)
+    p = np.einsum("pk,pkc->pc", bary, V[F[face]])
+    # flat: every vertex tangent plane holds the point, nothing moves
+    np.testing.assert_array_equal(lifted_origins(V, F, vertex_normals(V, F), p, face), p)
+    # convex: a coarse sphere's face points move out toward the sphere, never inward
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    Vs, Fs = np.asarray(ico.vertices), np.asarray(ico.faces)
+    fs = rng.integers(0, len(Fs), 500)
+    bs = rng.dirichlet(np.ones(3), 500)
+    ps = np.einsum("pk,pkc->pc", bs, Vs[Fs[fs]])
+    lifted = lifted_origins(Vs, Fs, Vs / 0.1, ps, fs)
+    r0, r1 = np.linalg.norm(ps, axis=1), np.linalg.norm(lifted, axis=1)
+    assert (r1 >= r0 - 1e-15).all() and (r1 > r0).mean() > 0.9
+
+
+@pytest.mark.parametrize("k", [0, 1])
+def test_lit_matches_the_analytic_shadow(scene, k):
+    V, F, rays = scene
+    rng = np.random.default_rng(k)
+    xy = rng.uniform(-0.1, 0.1, (4000, 2))
+    pts = _points_on_plane(rays, xy)
+    truth, dist = _analytic_lit(xy, LIGHTS[k])
+    got = rays.lit(pts, position=LIGHTS[k])
+    far = dist > EDGE_MARGIN
+    assert (~truth[far]).sum() > 100 and truth[far].sum() > 100  # both sides sampled
+    np.testing.assert_array_equal(got[far], truth[far])
+    # a subset of rows gives the same answers
+    rows = np.flatnonzero(far)[::7]
+    np.testing.assert_array_equal(rays.lit(pts, rows, position=LIGHTS[k]), got[rows])
+
+
+def test_lit_distant_light_and_facing(scene):
+    V, F, rays = scene
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-0.1, 0.1, (3000, 2))
+    pts = _points_on_plane(rays, xy)
+    d = np.array([0.3, -0.2, 0.8])
+    d /= np.linalg.norm(d)
+    far_light = d * 1e4  # a distant light is the limit of a far point light
+    truth, dist = _analytic_lit(xy, far_light)
+    got = rays.lit(pts, direction=d)
+    keep = dist > EDGE_MARGIN
+    np.testing.assert_array_equal(got[keep], truth[keep])
+    # a light below the plane: every plane point faces away (attached shadow)
+    assert not rays.lit(pts, direction=-d).any()
+    with pytest.raises(InputError, match="position or its direction"):
+        rays.lit(pts)
+
+
+def test_terminator_one_ring_counts_as_lit():
+    """A coarse convex sphere casts no shadow on itself: every point whose shading normal faces
+    the light is lit, although a ray from the faceted surface meets a neighbouring facet."""
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    V, F = np.asarray(ico.vertices), np.asarray(ico.faces)
+    rays = ShadowRays(RayScene(V, F), V / 0.1)
+    rng = np.random.default_rng(2)
+    face = rng.integers(0, len(F), 20000)
+    pts = rays.points(face, rng.dirichlet(np.ones(3), 20000))
+    light = np.array([0.4, 0.9, 0.2])
+    to_l = light[None, :] - pts.origin
+    facing = np.einsum("pc,pc->p", pts.n, to_l) > 0
+    got = rays.lit(pts, position=light)
+    np.testing.assert_array_equal(got, facing)
+    # the plain test (from the faceted point, eps along the face normal) shadows some of them
+    geo = np.cross(V[F[face, 1]] - V[F[face, 0]], V[F[face, 2]] - V[F[face, 0]])
+    plain = rays.scene.segment_visible(pts.p, light, normals=geo)
+    assert (facing & ~plain).sum() > 20
+
+
+def _camera():
+    K = np.array([[460.0, 0.0, 61.3], [0.0, 455.0, 52.8], [0.0, 0.0, 1.0]])  # fx ≠ fy, off-centre
+    return Camera("top", 124, 106, K, np.zeros(5), look_at([0.02, -0.03, 0.5], [0.0, 0.0, 0.0]))
+
+
+def _behind_square(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """Whether the segments ``p0 → p1`` ``(P, 3)`` cross the occluding square."""
+    s = (H_OCC - p0[:, 2]) / (p1[:, 2] - p0[:, 2])
+    x = p0 + s[:, None] * (p1 - p0)
+    inside = (np.abs(x[:, :2] - CENTRE[None, :]) < HALF).all(axis=1)
+    return inside & (s > 0) & (s < 1)
+
+
+def _frame(camera, light):
+    """The analytic OLAT frame — a white plane at unit irradiance where lit, sampled at pixel
+    centres — and each pixel's distance (m) to the shadow outline, ``(H·W,)``."""
+    q = camera.pixel_grid().reshape(-1, 2)
+    o, d = camera.pixel_rays(q)
+    t = -o[:, 2] / d[:, 2]
+    on_plane = o + t[:, None] * d
+    lit, dist = _analytic_lit(on_plane[:, :2], light)
+    # pixels that see the square's (unlit) back instead: 0, and never "sure" of anything
+    hidden = _behind_square(on_plane, o)
+    lit &= ~hidden
+    dist[hidden] = 0.0
+    frame = np.repeat(lit.astype(np.float32)[:, None], 3, 1)
+    return frame.reshape(camera.height, camera.width, 3), dist
+
+
+def _samples(rays, cam, seed, n):
+    """Plane positions ``xy`` whose bilinear taps lie inside the camera, their pixel positions
+    ``q`` and (face, bary)."""
+    xy = np.random.default_rng(seed).uniform(-0.07, 0.07, (n, 2))
+    p = np.concatenate([xy, np.zeros((n, 1))], axis=1)
+    q = cam.project(p)[0]
+    ok = ((q[:, 0] > 0.5) & (q[:, 0] < cam.width - 1.5)
+          & (q[:, 1] > 0.5) & (q[:, 1] < cam.height - 1.5))
+    ok &= ~_behind_square(p, np.broadcast_to(cam.center_world, p.shape))  # seen by the camera
+    xy, q = xy[ok], q[ok]
+    return xy, q, *_on_plane(rays, xy)
+
+
+def test_shadow_taps_recover_hard_edges(scene):
+    V, F, rays = scene
+    cam = _camera()
+    xy, q, face, bary = _samples(rays, cam, 3, 15000)
+    st = shadow_taps(rays, cam, q, face, bary, LightList(positions=LIGHTS, solid_angles=np.ones(len(LIGHTS))))
+    rng = np.random.default_rng(3)
+    for k in range(len(LIGHTS)):
+        frame, pix_dist = _frame(cam, LIGHTS[k])
+        truth, dist = _analytic_lit(xy, LIGHTS[k])
+        plain = sample_taps(frame, st.index, st.weight)
+        s = plain.copy()
+        changed = st.apply(k, frame, s)
+        straddle = np.ptp(frame.reshape(-1, 3)[st.index][..., 0], axis=1) > 0
+        sure = (dist > EDGE_MARGIN) & (pix_dist[st.index] > EDGE_MARGIN).all(axis=1)
+        assert (straddle & sure).sum() > 20 and changed <= straddle.sum()
+        # where the taps straddle the edge, the texel's own value comes back exactly
+        np.testing.assert_allclose(s[straddle & sure, 0], truth[straddle & sure], rtol=0,
+                                   atol=WEIGHT_SUM_TOL)
+        # bilinear mixed them: the error the taps remove
+        assert np.abs(plain[straddle & sure, 0] - truth[straddle & sure]).mean() > 0.1
+        # elsewhere nothing changes
+        np.testing.assert_array_equal(s[~straddle], plain[~straddle])
+        # linear in the frame for a given light: the taps depend on the geometry only
+        a = frame * 0.3
+        b = frame * 0.7 + 0.1 * rng.random(frame.shape).astype(np.float32)
+        sa, sb, sab = (sample_taps(x, st.index, st.weight) for x in (a, b, a + b))
+        for x, y in ((a, sa), (b, sb), (a + b, sab)):
+            st.apply(k, x, y)
+        assert np.abs(sab - (sa + sb)).max() <= LINEARITY_REL_TOL * np.abs(sab).max()
+    assert st.samples == 4 * len(LIGHTS) * len(q) and st.changed > 0 and st.seconds > 0
+
+
+def test_shadow_taps_honour_masks_and_check_input(scene):
+    V, F, rays = scene
+    cam = _camera()
+    xy, q, face, bary = _samples(rays, cam, 4, 3000)
+    st = shadow_taps(rays, cam, q, face, bary, LightList(positions=LIGHTS, solid_angles=np.ones(len(LIGHTS))))
+    frame, pix_dist = _frame(cam, LIGHTS[0])
+    truth, dist = _analytic_lit(xy, LIGHTS[0])
+    flat = frame.reshape(-1, 3)[:, 0]
+    sure = (dist > EDGE_MARGIN) & (pix_dist[st.index] > EDGE_MARGIN).all(axis=1)
+    i = np.flatnonzero((np.ptp(flat[st.index], axis=1) > 0) & sure)[0]
+    taps = st.index[i]
+    mine = taps[flat[taps] == float(truth[i])]  # the taps on the texel's side of the edge
+    other = taps[flat[taps] != float(truth[i])]
+    sampler = frame_sampler(q, cam.width, cam.height)
+    for masked, expect_nan in ((other[0], False), (mine[0], True)):
+        valid = np.ones((cam.height, cam.width), bool)
+        valid.reshape(-1)[masked] = False
+        s = sample_frame(frame, sampler, valid)
+        assert np.isnan(s[i]).all()  # plain bilinear touched the masked pixel
+        st.apply(0, frame, s, valid)
+        assert np.isnan(s[i]).all() == expect_nan
+        if not expect_nan:
+            assert abs(s[i, 0] - truth[i]) <= WEIGHT_SUM_TOL
+    s0 = sample_taps(frame, st.index, st.weight)
+    with pytest.raises(ShapeError, match="samples"):
+        st.apply(0, frame, s0[:-1])
+    with pytest.raises(InputError, match="out of range"):
+        st.apply(len(LIGHTS), frame, s0)
+    with pytest.raises(InputError, match="min_cos"):
+        shadow_taps(rays, cam, q, face, bary, LightList(positions=LIGHTS, solid_angles=np.ones(len(LIGHTS))), min_cos=1.5)
