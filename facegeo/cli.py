@@ -421,6 +421,8 @@ def _cmd_project(args) -> int:
     from facegeo.pipeline.reconstruct import RIG_CHOICES
 
     kw = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
+    if not args.shadow_taps:
+        kw["shadow_taps"] = False
     # a rig file is not one of the pipeline's rigs: the stage on its own, as with --out
     if args.out is None and args.camera is None and args.rig in (None, *RIG_CHOICES):
         args.rig = args.rig or "auto"
@@ -742,6 +744,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gt-lights", type=_pos_int, default=argparse.SUPPRESS,
                    help="lights compared against ground truth on synthetic scans (a stratified "
                         "subset; default: facegeo.pipeline.project.GT_LIGHTS, 128)")
+    s.add_argument("--no-shadow-taps", dest="shadow_taps", action="store_false",
+                   help="plain bilinear sampling everywhere (default: samples whose taps straddle "
+                        "a cast-shadow edge take the taps on their own side, decided by the mesh "
+                        "and the rig's lights; docs/surface.md)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_project)
 

@@ -522,6 +522,27 @@ def test_project_prints_a_line_per_camera(tiny_scan, capsys):
     assert out[i + 1].startswith("    cam_left: ") and "visible_fraction=" in out[i + 1], out
 
 
+def test_no_shadow_taps_reaches_the_project_stage(monkeypatch, tiny_scan):
+    """``--no-shadow-taps`` is the project stage's ``shadow_taps=False``: through the cached
+    stage (a setting, so its key changes) and on its own (``--camera``)."""
+    import facegeo.pipeline.project as project
+    import facegeo.pipeline.reconstruct as reconstruct
+
+    seen = []
+    monkeypatch.setattr(reconstruct, "run_reconstruct",
+                        lambda *a, **k: seen.append(k.get("settings")) or [])
+    monkeypatch.setattr("facegeo.cli._stage_metrics", lambda results, name: {})
+    monkeypatch.setattr("facegeo.cli._write_report", lambda out: None)
+    monkeypatch.setattr(project, "run_project",
+                        lambda *a, **k: seen.append(k.get("shadow_taps")) or {})
+    assert main(["project", str(tiny_scan), "--no-shadow-taps", "-q"]) == 0
+    assert main(["project", str(tiny_scan), "-q"]) == 0
+    assert main(["project", str(tiny_scan), "--camera", "cam_left", "--no-shadow-taps"]) == 0
+    assert seen[0]["project"]["shadow_taps"] is False, seen
+    assert "shadow_taps" not in seen[1]["project"], seen  # the default: the stage's own True
+    assert seen[2] is False, seen
+
+
 def test_atlas_and_project_are_the_cached_stages_later_commands_reuse(tiny_scan, capsys):
     """``facegeo atlas`` and ``facegeo project`` (default products folder) run the cached
     stages of ``facegeo reconstruct`` with their settings: a later ``facegeo fit`` reuses them

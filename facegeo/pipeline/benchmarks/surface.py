@@ -25,6 +25,14 @@ of candidates that still need a ray.
 pass over the frames and the field (a numpy copy of the same bytes, same run), and the
 ``cv2.remap`` sampler against a numpy gather of precomputed bilinear taps per frame.
 
+``surface.shadow_taps``: the projection with and without the shadow-consistent taps
+(:mod:`facegeo.surface.shadows`) on a synthetic scan (tiny with ``quick``, else small; true rig,
+ground-truth mesh, atlas at 1 texel/mm, frames read from disk as the stage reads them):
+``projection_rel_rmse`` against the projection's time, the plain bilinear projection of the same
+run as the baseline; and the taps' cost per light at the paper preset's sizes (82 k-face head,
+2 texels/mm, a 480 × 720 camera, the 64 × 32 stage; random frames, so time only) against
+``project_camera``'s own time per light there.
+
 ``surface.resolution``: atlas resolution (texels/mm) against time against projection error
 (``projection_rel_rmse`` of :func:`facegeo.pipeline.project.run_project`) on a tiny synthetic
 scan generated in a temporary folder, true rig, ground-truth mesh.
@@ -270,6 +278,88 @@ def bench_project(quick: bool) -> list[BenchRow]:
     rows.append(BenchRow("surface.project", "numpy gather of 4 precomputed taps (reference)",
                          T / t_np / 1e6, "Mtexels/s", None, None, {}, {"texels": T},
                          threads=1))
+    return rows
+
+
+@register("surface.shadow_taps")
+def bench_shadow_taps(quick: bool) -> list[BenchRow]:
+    from facegeo.geometry.rig import default_rig
+    from facegeo.pipeline.project import GT_LIGHTS, run_atlas, run_project
+    from facegeo.surface.atlas import build_atlas, rasterize_texels
+    from facegeo.surface.reflectance import (
+        camera_visibility, frame_sampler, project_camera, sample_frame,
+    )
+    from facegeo.surface.shadows import ShadowRays, shadow_taps
+    from facegeo.surface.visibility import RayScene
+    from facegeo.synth.capture import generate_scan
+
+    rows = []
+    preset = "tiny" if quick else "small"
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "scan"
+        generate_scan(root, preset, seed=0)
+        out = Path(tmp) / "out"
+        run_atlas(root, out, texels_per_mm=1.0)
+        figs = {}
+        for taps in (False, True):
+            pm = run_project(root, out, shadow_taps=taps)
+            cams = pm["cameras"].values()
+            secs = sum(c["seconds_projection"] for c in cams)
+            work = sum(c["weighted_texels"] for c in cams) * pm["lights"]
+            figs[taps] = (pm, secs, work)
+        for taps in (False, True):
+            pm, secs, work = figs[taps]
+            ratios = {} if not taps else {"vs plain bilinear": figs[False][1] / secs}
+            extra = {"seconds": round(secs, 3), "lights": pm["lights"],
+                     "off shadow edges": pm["projection_rel_rmse_off_shadow_edges"]}
+            if taps:
+                extra["re-interpolated"] = round(float(np.mean(
+                    [c["shadow_edge_samples"] for c in pm["cameras"].values()])), 6)
+                extra["taps s"] = round(sum(c["seconds_shadow_taps"]
+                                            for c in pm["cameras"].values()), 3)
+            rows.append(BenchRow(
+                "surface.shadow_taps",
+                f"{preset} scan, project stage, {'shadow-consistent taps' if taps else 'plain bilinear'}",
+                work / secs / 1e6, "Mtexel·lights/s", pm["projection_rel_rmse"],
+                f"projection_rel_rmse (weight > 0.3, {GT_LIGHTS} lights, ground-truth mesh)",
+                ratios, extra, threads=_CPU,
+                baseline_threads={"vs plain bilinear": _CPU} if taps else {}))
+    # Paper-preset sizes: the taps' time per light against the projection's own.
+    V, F = _head(6)
+    atlas = build_atlas(V, F, texels_per_mm=2.0)
+    tx = rasterize_texels(atlas)
+    rig = default_rig()
+    cam = rig.camera("cam_left")
+    vis = camera_visibility(tx, cam, RayScene(V, F))
+    sel = np.flatnonzero(vis.weight > 0)
+    rays = ShadowRays(RayScene(atlas.vertices, atlas.faces), atlas.normals)
+    st = shadow_taps(rays, cam, vis.q[sel], tx.face[sel], tx.bary[sel], rig.lights)
+    W, H = cam.width, cam.height
+    L = 16 if quick else 64
+    lights = np.linspace(0, rig.lights.n_lights - 1, L).astype(int)
+    rng = np.random.default_rng(4)
+    frames = [rng.random((H, W, 3), dtype=np.float32) for _ in range(4)]
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        project_camera(((k, frames[k % 4]) for k in range(L)), vis, (W, H), L, Path(tmp) / "p")
+        t_proj = (time.perf_counter() - t0) / L
+    sampler = frame_sampler(vis.q[sel], W, H)
+    samples = [sample_frame(frames[k % 4], sampler) for k in range(4)]
+    t0 = time.perf_counter()
+    for k, l in enumerate(lights):
+        st.apply(int(l), frames[k % 4], samples[k % 4])
+    t_taps = (time.perf_counter() - t0) / L
+    n_lights = rig.lights.n_lights
+    rows.append(BenchRow(
+        "surface.shadow_taps", "paper sizes: shadow-consistent taps per light",
+        sel.size / t_taps / 1e6, "Msamples/s", None, None,
+        {"vs project_camera per light": t_proj / t_taps},
+        {"samples": int(sel.size), "tap pixels": int(len(st.pixels.p)),
+         "ms per light": round(t_taps * 1e3, 2),
+         "project_camera ms per light": round(t_proj * 1e3, 2),
+         f"seconds for {n_lights} lights": round(t_taps * n_lights, 1),
+         "re-interpolated": round(st.changed / max(st.samples, 1), 6)},
+        threads=_CPU, baseline_threads={"vs project_camera per light": _CPU}))
     return rows
 
 
