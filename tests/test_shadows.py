@@ -16,14 +16,25 @@ from facegeo.frames import look_at
 from facegeo.geometry.camera import Camera
 from facegeo.geometry.lights import LightList
 from facegeo.surface.atlas import vertex_normals
-from facegeo.surface.reflectance import frame_sampler, sample_frame, sample_taps
+from facegeo.surface.reflectance import bilinear_taps, frame_sampler, sample_frame, sample_taps
 from facegeo.surface.shadows import ShadowRays, lifted_origins, shadow_taps
 from facegeo.surface.visibility import RayScene
 
 #: Height (m) of the occluding square over the plane, its half-size (m) and centre.
 H_OCC, HALF, CENTRE = 0.05, 0.03, np.array([0.01, -0.005])
-#: Light positions (m): one steep and oblique, one low (long shadow), one distant direction.
+#: Light positions (m): one steep and oblique, one lower (a longer shadow).
 LIGHTS = np.array([[0.21, 0.13, 0.6], [-0.3, 0.12, 0.45]])
+#: A distant light's direction (toward it).
+DISTANT = np.array([0.3, -0.2, 0.8]) / np.linalg.norm([0.3, -0.2, 0.8])
+#: A light between the plane and the square (under its centre): the square is beyond it.
+UNDER = np.array([0.01, -0.005, 0.03])
+#: A grazing light: n·l ≈ 0.1 on the plane, below SHADOW_TAPS_MIN_COS, with a long shadow.
+GRAZING = np.array([-1.0, 0.05, 0.11])
+#: Each side of a shadow outline holds at least this many of the compared points / samples.
+MIN_PER_SIDE, MIN_EDGE_SAMPLES = 100, 20
+#: Plain bilinear's mean error at the straddling samples of a 0/1 edge (≈ 0.17 measured; 0.25
+#: for edges uniformly placed between pixel centres): what the taps remove.
+BILINEAR_EDGE_ERR_MIN = 0.1
 #: Points within this distance (m) of the analytic shadow outline are not compared (the ray
 #: origins are lifted eps = 1e-5 × scene size off the plane; float32 rays).
 EDGE_MARGIN = 2e-4
@@ -40,7 +51,8 @@ def _plane_and_square(n: int = 24, size: float = 0.3):
     X, Y = np.meshgrid(xs, xs)
     V = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
     idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+    c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
     F = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
     sx, sy = CENTRE
     sq = np.array([[sx - HALF, sy - HALF, H_OCC], [sx + HALF, sy - HALF, H_OCC],
@@ -113,29 +125,31 @@ def test_lit_matches_the_analytic_shadow(scene, k):
     truth, dist = _analytic_lit(xy, LIGHTS[k])
     got = rays.lit(pts, position=LIGHTS[k])
     far = dist > EDGE_MARGIN
-    assert (~truth[far]).sum() > 100 and truth[far].sum() > 100  # both sides sampled
+    assert min((~truth[far]).sum(), truth[far].sum()) > MIN_PER_SIDE  # both sides sampled
     np.testing.assert_array_equal(got[far], truth[far])
     # a subset of rows gives the same answers
     rows = np.flatnonzero(far)[::7]
     np.testing.assert_array_equal(rays.lit(pts, rows, position=LIGHTS[k]), got[rows])
 
 
-def test_lit_distant_light_and_facing(scene):
+def test_lit_distant_light_facing_and_segment_end(scene):
     V, F, rays = scene
     rng = np.random.default_rng(5)
     xy = rng.uniform(-0.1, 0.1, (3000, 2))
     pts = _points_on_plane(rays, xy)
-    d = np.array([0.3, -0.2, 0.8])
-    d /= np.linalg.norm(d)
-    far_light = d * 1e4  # a distant light is the limit of a far point light
-    truth, dist = _analytic_lit(xy, far_light)
-    got = rays.lit(pts, direction=d)
+    truth, dist = _analytic_lit(xy, DISTANT * 1e4)  # a distant light: a far point light's limit
+    got = rays.lit(pts, direction=DISTANT)
     keep = dist > EDGE_MARGIN
+    assert min((~truth[keep]).sum(), truth[keep].sum()) > MIN_PER_SIDE
     np.testing.assert_array_equal(got[keep], truth[keep])
     # a light below the plane: every plane point faces away (attached shadow)
-    assert not rays.lit(pts, direction=-d).any()
+    assert not rays.lit(pts, direction=-DISTANT).any()
+    # the segment ends at the light: the square beyond a light under it casts nothing
+    assert rays.lit(pts, position=UNDER).all()
     with pytest.raises(InputError, match="position or its direction"):
         rays.lit(pts)
+    with pytest.raises(InputError, match="integer row indices"):
+        rays.lit(pts, np.ones(len(xy), bool), direction=DISTANT)
 
 
 def test_terminator_one_ring_counts_as_lit():
@@ -154,10 +168,43 @@ def test_terminator_one_ring_counts_as_lit():
     facing = np.einsum("pc,pc->p", pts.n, to_l) > 0
     got = rays.lit(pts, position=light)
     np.testing.assert_array_equal(got, facing)
-    # the plain test (from the faceted point, eps along the face normal) shadows some of them
+    # the same through rows (how ShadowTaps asks for its texels)
+    rows = np.flatnonzero(facing)[::3]
+    np.testing.assert_array_equal(rays.lit(pts, rows, position=light), facing[rows])
+    # the origins are lifted (Hanika): from the faceted point the same segments self-shadow
+    np.testing.assert_array_equal(pts.origin, lifted_origins(V, F, V / 0.1, pts.p, face))
     geo = np.cross(V[F[face, 1]] - V[F[face, 0]], V[F[face, 2]] - V[F[face, 0]])
     plain = rays.scene.segment_visible(pts.p, light, normals=geo)
-    assert (facing & ~plain).sum() > 20
+    assert (facing & ~plain).sum() > MIN_EDGE_SAMPLES
+
+
+def test_one_ring_rule_without_the_lift():
+    """From the faceted points themselves (origins not lifted) a convex sphere's segments meet
+    neighbouring facets; every such hit is on the point's 1-ring, and counts as lit."""
+    import trimesh
+
+    from facegeo.surface.shadows import SurfacePoints
+
+    ico = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    V, F = np.asarray(ico.vertices), np.asarray(ico.faces)
+    rays = ShadowRays(RayScene(V, F), V / 0.1)
+    rng = np.random.default_rng(8)
+    face = rng.integers(0, len(F), 20000)
+    pts = rays.points(face, rng.dirichlet(np.ones(3), 20000))
+    flat = SurfacePoints(p=pts.p, origin=pts.p, n=pts.n, face=pts.face, ok=pts.ok,
+                         start=pts.p + rays.scene.eps * pts.n)
+    light = np.array([0.4, 0.9, 0.2])
+    facing = np.einsum("pc,pc->p", flat.n, light[None, :] - flat.origin) > 0
+    blocked = ~rays.scene.segment_visible(flat.start, light)
+    assert (facing & blocked).sum() > MIN_EDGE_SAMPLES  # what the rule has to resolve
+    np.testing.assert_array_equal(rays.lit(flat, position=light), facing)
+    rows = np.flatnonzero(facing & blocked)
+    assert rays.lit(flat, rows, position=light).all()
+
+
+def _near():
+    """The near-field LIGHTS as a light list (δA weights unused here)."""
+    return LightList(positions=LIGHTS, solid_angles=np.ones(len(LIGHTS)))
 
 
 def _camera():
@@ -205,23 +252,31 @@ def _samples(rays, cam, seed, n):
 def test_shadow_taps_recover_hard_edges(scene):
     V, F, rays = scene
     cam = _camera()
-    xy, q, face, bary = _samples(rays, cam, 3, 15000)
-    st = shadow_taps(rays, cam, q, face, bary, LightList(positions=LIGHTS, solid_angles=np.ones(len(LIGHTS))))
+    xy, q, face, bary = _samples(rays, cam, 3, 40000)
+    near = _near()
+    distant = LightList(directions=[DISTANT], solid_angles=[1.0])
     rng = np.random.default_rng(3)
-    for k in range(len(LIGHTS)):
-        frame, pix_dist = _frame(cam, LIGHTS[k])
-        truth, dist = _analytic_lit(xy, LIGHTS[k])
+    for lights, where in ((near, LIGHTS), (distant, [DISTANT * 1e4])):
+        _check_edges(rays, cam, xy, q, face, bary, lights, where, rng)
+
+
+def _check_edges(rays, cam, xy, q, face, bary, lights, where, rng):
+    st = shadow_taps(rays, cam, q, face, bary, lights)
+    for k in range(len(where)):
+        frame, pix_dist = _frame(cam, where[k])
+        truth, dist = _analytic_lit(xy, where[k])
         plain = sample_taps(frame, st.index, st.weight)
         s = plain.copy()
         changed = st.apply(k, frame, s)
         straddle = np.ptp(frame.reshape(-1, 3)[st.index][..., 0], axis=1) > 0
         sure = (dist > EDGE_MARGIN) & (pix_dist[st.index] > EDGE_MARGIN).all(axis=1)
-        assert (straddle & sure).sum() > 20 and changed <= straddle.sum()
+        assert (straddle & sure).sum() > MIN_EDGE_SAMPLES and changed <= straddle.sum()
         # where the taps straddle the edge, the texel's own value comes back exactly
         np.testing.assert_allclose(s[straddle & sure, 0], truth[straddle & sure], rtol=0,
                                    atol=WEIGHT_SUM_TOL)
         # bilinear mixed them: the error the taps remove
-        assert np.abs(plain[straddle & sure, 0] - truth[straddle & sure]).mean() > 0.1
+        err = np.abs(plain[straddle & sure, 0] - truth[straddle & sure]).mean()
+        assert err > BILINEAR_EDGE_ERR_MIN
         # elsewhere nothing changes
         np.testing.assert_array_equal(s[~straddle], plain[~straddle])
         # linear in the frame for a given light: the taps depend on the geometry only
@@ -231,14 +286,29 @@ def test_shadow_taps_recover_hard_edges(scene):
         for x, y in ((a, sa), (b, sb), (a + b, sab)):
             st.apply(k, x, y)
         assert np.abs(sab - (sa + sb)).max() <= LINEARITY_REL_TOL * np.abs(sab).max()
-    assert st.samples == 4 * len(LIGHTS) * len(q) and st.changed > 0 and st.seconds > 0
+    assert st.samples == 4 * len(where) * len(q) and st.changed > 0 and st.seconds > 0
+
+
+def test_shadow_taps_leave_grazing_light_alone(scene):
+    """Below SHADOW_TAPS_MIN_COS the taps stay bilinear: near the terminator the shading fades
+    by itself."""
+    V, F, rays = scene
+    cam = _camera()
+    xy, q, face, bary = _samples(rays, cam, 6, 15000)
+    frame, _ = _frame(cam, GRAZING)
+    lights = LightList(positions=[GRAZING], solid_angles=[1.0])
+    plain = sample_taps(frame, *bilinear_taps(q, cam.width, cam.height))
+    s = plain.copy()
+    assert shadow_taps(rays, cam, q, face, bary, lights).apply(0, frame, s) == 0
+    np.testing.assert_array_equal(s, plain)
+    assert shadow_taps(rays, cam, q, face, bary, lights, min_cos=0.0).apply(0, frame, s) > 0
 
 
 def test_shadow_taps_honour_masks_and_check_input(scene):
     V, F, rays = scene
     cam = _camera()
     xy, q, face, bary = _samples(rays, cam, 4, 3000)
-    st = shadow_taps(rays, cam, q, face, bary, LightList(positions=LIGHTS, solid_angles=np.ones(len(LIGHTS))))
+    st = shadow_taps(rays, cam, q, face, bary, _near())
     frame, pix_dist = _frame(cam, LIGHTS[0])
     truth, dist = _analytic_lit(xy, LIGHTS[0])
     flat = frame.reshape(-1, 3)[:, 0]
@@ -251,6 +321,8 @@ def test_shadow_taps_honour_masks_and_check_input(scene):
     for masked, expect_nan in ((other[0], False), (mine[0], True)):
         valid = np.ones((cam.height, cam.width), bool)
         valid.reshape(-1)[masked] = False
+        frame = frame.copy()
+        frame.reshape(-1, 3)[masked] = np.nan  # a non-finite pixel, masked as the stage does
         s = sample_frame(frame, sampler, valid)
         assert np.isnan(s[i]).all()  # plain bilinear touched the masked pixel
         st.apply(0, frame, s, valid)
@@ -262,5 +334,9 @@ def test_shadow_taps_honour_masks_and_check_input(scene):
         st.apply(0, frame, s0[:-1])
     with pytest.raises(InputError, match="out of range"):
         st.apply(len(LIGHTS), frame, s0)
+    with pytest.raises(ShapeError, match="frame"):
+        st.apply(0, frame.transpose(1, 0, 2), s0)
+    with pytest.raises(ShapeError, match="one row per sample"):
+        shadow_taps(rays, cam, q, face[:-1], bary, _near())
     with pytest.raises(InputError, match="min_cos"):
-        shadow_taps(rays, cam, q, face, bary, LightList(positions=LIGHTS, solid_angles=np.ones(len(LIGHTS))), min_cos=1.5)
+        shadow_taps(rays, cam, q, face, bary, _near(), min_cos=1.5)

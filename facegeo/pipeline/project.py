@@ -36,9 +36,10 @@ scan's (nominal) ``rig.json``, or a rig file.
 Shadow-consistent taps (``shadow_taps=True``, the default): where a sample's bilinear taps
 straddle a cast-shadow edge, the atlas mesh and the rig's lights decide which taps share the
 texel's side and only those are read (:mod:`facegeo.surface.shadows`); per camera
-``shadow_edge_samples`` (fraction re-interpolated) and ``seconds_shadow_taps``. The rig's
-lights must be in its world frame (a calibrated rig's are the scan's nominal ones: its gauge,
-≈ 0.2° and 3.6 mm on the small preset, moves a shadow edge on the skin by ≈ 0.1 mm).
+``shadow_edge_samples`` (fraction re-interpolated) and ``seconds_shadow_taps`` (their part of
+``seconds_projection``). The rig's lights must be in its world frame (a calibrated rig's are
+the scan's nominal ones: its gauge, ≈ 0.2° and 3.6 mm on the small preset, moves a shadow edge
+on the skin by ≈ 0.1 mm); wrong light positions pick the wrong side of an edge.
 
 Ground-truth metrics (synthetic scans):
 
@@ -282,7 +283,8 @@ def truth_gauge(renderer, atlas, rig_used: str) -> tuple[Any, dict]:
     far that was (``gauge_rotation_deg``, ``gauge_translation_mm``). Shared by the
     ``project``, ``fit`` and ``render`` stages' ground-truth comparisons. Without it a
     calibrated rig's 0.2° / 3.5 mm frame offset (small preset, seed 0) read as a
-    ``projection_rel_rmse`` of 12.0 % where the aligned figure is 3.0 % (true rig: 3.1 %).
+    ``projection_rel_rmse`` of 12.0 % where the aligned figure is 3.0 % (true rig: 3.1 %; both
+    plain bilinear, before the shadow-consistent taps).
     The alignment (≈ 1.6 s on the small preset's reconstruction) is kept for the process,
     keyed by the two meshes' contents, so the stages of one ``reconstruct`` compute it once.
     """
@@ -390,7 +392,8 @@ def _tap_pixels(view, q: np.ndarray):
 
 
 #: Lights the ground-truth comparison shades by default (a stratified subset). On the small preset
-#: (512 lights) 128 estimate the all-lights figure within 0.5 % of itself (3.096 against 3.110 %)
+#: (512 lights) 128 estimate the all-lights figure within 0.5 % of itself (plain bilinear: 3.096
+#: against 3.110 %)
 #: at ≈ 2 s a camera; 32 scattered by ±0.27 points between subsets (random draws) and a stride
 #: of 16 (the former choice: two azimuths, in front of and behind the face) read 2.870 %.
 GT_LIGHTS = 128
@@ -588,8 +591,11 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     shadow_rays = None
     if shadow_taps:
         if the_rig.lights is None or the_rig.lights.n_lights != scan.n_lights:
-            log.warning("project: the rig has no light positions for the scan's %d lights; "
-                        "samples at shadow edges stay plain bilinear", scan.n_lights)
+            have = ("no lights" if the_rig.lights is None
+                    else f"{the_rig.lights.n_lights} lights")
+            log.warning("project: the rig has %s, the scan's frames %d: samples at shadow edges "
+                        "stay plain bilinear (shadow_taps reads false per camera)", have,
+                        scan.n_lights)
         else:
             from facegeo.surface.shadows import ShadowRays
 
@@ -614,14 +620,14 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
         camera = the_rig.camera(name)
         t0 = time.perf_counter()
         vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
+        t1 = time.perf_counter()
         taps = None
-        if shadow_rays is not None:
+        if shadow_rays is not None:  # built and applied within seconds_projection
             from facegeo.surface.shadows import shadow_taps as make_taps
 
             sel = np.flatnonzero(vis.weight > 0)
             taps = make_taps(shadow_rays, camera, vis.q[sel], texels.face[sel],
                              texels.bary[sel], the_rig.lights)
-        t1 = time.perf_counter()
         field = rf.project_camera(
             # black-clipped pixels are the dark samples a one-light frame is mostly made of:
             # measured (below one code value), not masked — masking them left 59 % of a 16-bit

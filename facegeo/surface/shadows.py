@@ -21,13 +21,16 @@ direction l from it:
 * a point with ``n·l <= 0`` faces away from the light (attached shadow): unlit;
 * otherwise the segment to the light (or the ray, for a distant light) starts at the point
   **lifted onto the smooth surface** the shading normals describe (Hanika 2021, Ray Tracing
-  Gems II ch. 4, :func:`lifted_origins`), ``eps`` along n, and is traced with Embree's any-hit
-  query (:meth:`~facegeo.surface.visibility.RayScene.segment_visible`);
+  Gems II ch. 4, :func:`lifted_origins`), ``eps`` along n, and ends ``eps`` short of the
+  light; it is traced with Embree's any-hit query
+  (:meth:`~facegeo.surface.visibility.RayScene.occluded`, as
+  :meth:`~facegeo.surface.visibility.RayScene.segment_visible` does);
 * a blocked segment is traced again for its first hit: a hit on the point's own face or a face
   sharing a vertex position with it (its 1-ring) is the faceted mesh shadowing the smooth
-  surface it stands for — the terminator problem — and counts as lit. (The synthetic
-  generator retraces such rays from an origin lifted by the face's size instead; the two
-  policies differ only in creases.)
+  surface it stands for — the terminator problem — and counts as lit, whatever lies beyond
+  it. (The synthetic generator retraces such rays from an origin lifted by the face's size
+  instead, and its shading normals keep creases sharper than 60°, where a reconstructed or
+  atlas mesh's are smooth: the decisions can differ in creases and behind a 1-ring hit.)
 
 How much the origin matters (small preset, ground-truth mesh, 32 stratified lights, texels of
 weight > 0.3; ``/tmp/m29`` scripts, docs/surface.md): plain bilinear 3.26 %; shadow-consistent
@@ -53,8 +56,8 @@ from facegeo.errors import InputError, ShapeError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["lifted_origins", "ShadowRays", "ShadowTaps", "shadow_taps", "light_positions",
-           "SHADOW_TAPS_MIN_COS"]
+__all__ = ["lifted_origins", "ShadowRays", "SurfacePoints", "ShadowTaps", "shadow_taps",
+           "light_positions", "SHADOW_TAPS_MIN_COS"]
 
 #: A sample is re-interpolated only where its texel's shading normal has ``n·l`` at least this:
 #: nearer the terminator the shading itself goes to zero smoothly and the lit/unlit split of
@@ -106,11 +109,16 @@ def lifted_origins(vertices, faces, vertex_normals, p, face) -> np.ndarray:
 
 
 def light_positions(lights) -> tuple[np.ndarray | None, np.ndarray]:
-    """``(positions, directions)`` of a rig's lights: positions ``(L, 3)`` metres (None when
-    the lights are distant) and unit directions ``(L, 3)`` toward them, world frame.
+    """Where a rig's lights are.
 
-    ``lights`` is a :class:`facegeo.geometry.rig.LightStage` or a
-    :class:`facegeo.geometry.lights.LightList`.
+    Parameters
+    ----------
+    lights : facegeo.geometry.rig.LightStage or facegeo.geometry.lights.LightList
+
+    Returns
+    -------
+    positions : (L, 3) float64, metres, world frame, or None when the lights are distant
+    directions : (L, 3) float64, unit, world frame — from the stage's centre toward each light
     """
     directions = np.asarray(lights.directions, np.float64)
     if hasattr(lights, "is_distant"):  # a light stage: center + radius·ω unless distant
@@ -132,7 +140,9 @@ class ShadowRays:
     """
 
     def __init__(self, scene, vertex_normals) -> None:
-        n = as_array(vertex_normals, "vertex_normals", shape=(len(scene.vertices), 3))
+        # NaN rows (vertices whose face normals cancel) are allowed: their points are never lit
+        n = as_array(vertex_normals, "vertex_normals", shape=(len(scene.vertices), 3),
+                     finite=False)
         self.scene = scene
         self.vertex_normals = n
         _, weld = np.unique(scene.vertices, axis=0, return_inverse=True)
@@ -140,7 +150,19 @@ class ShadowRays:
         self._welded = weld.reshape(-1)[scene.faces]
 
     def points(self, face, bary) -> SurfacePoints:
-        """The surface points at barycentrics ``bary`` ``(P, 3)`` of faces ``face`` ``(P,)``."""
+        """The surface points at barycentrics of faces of the mesh.
+
+        Parameters
+        ----------
+        face : (P,) int — face indices into the scene's ``faces``
+        bary : (P, 3) float64 — barycentric weights of each face's corners
+
+        Returns
+        -------
+        SurfacePoints
+            Positions, shading normals (interpolated, unit; ``ok`` False where undefined),
+            lifted shadow-ray origins and the rays' starts.
+        """
         face = np.asarray(face, np.int64)
         bary = np.asarray(bary, np.float64)
         V, F = self.scene.vertices, self.scene.faces
@@ -158,22 +180,39 @@ class ShadowRays:
                              start=o + self.scene.eps * n)
 
     def adjacent(self, face_a, face_b) -> np.ndarray:
-        """Whether faces ``face_a[i]`` and ``face_b[i]`` are the same or share a vertex
-        position, ``(N,)`` bool."""
+        """Whether faces ``face_a[i]`` and ``face_b[i]`` (``(N,)`` int each) are the same or
+        share a vertex position (UV seams welded); ``(N,)`` bool."""
         a = self._welded[np.asarray(face_a, np.int64)]
         b = self._welded[np.asarray(face_b, np.int64)]
         return np.any(a[:, :, None] == b[:, None, :], axis=(1, 2))
 
     def lit(self, pts: SurfacePoints, rows=None, *, position=None, direction=None) -> np.ndarray:
-        """``(N,)`` bool: which of the points ``pts`` (all, or ``rows`` of them) the light
-        reaches. Give the light's ``position`` ``(3,)`` (metres, near field) or unit
-        ``direction`` ``(3,)`` (distant). Points with ``ok`` False are unlit."""
+        """Which points the light reaches (module docstring: the shadow test).
+
+        Parameters
+        ----------
+        pts : SurfacePoints
+        rows : (N,) int, optional
+            Rows of ``pts`` to test (default all).
+        position : (3,) float64, metres, world frame, optional
+            A near-field light's position ...
+        direction : (3,) float64, unit, world frame, optional
+            ... or a distant light's direction (toward it); exactly one of the two.
+
+        Returns
+        -------
+        (N,) bool
+            True where the light reaches the point; points with ``ok`` False are unlit.
+        """
         if (position is None) == (direction is None):
             raise InputError("lit: give the light's position or its direction (one of them)")
         if rows is None:
             start, n, ok, face = pts.start, pts.n, pts.ok, pts.face
         else:
-            rows = np.asarray(rows, np.int64)
+            rows = np.asarray(rows)
+            if rows.dtype.kind not in "iu":
+                raise InputError(f"rows: expected integer row indices, got dtype {rows.dtype}")
+            rows = rows.astype(np.int64, copy=False)
             start, n, ok, face = pts.start[rows], pts.n[rows], pts.ok[rows], pts.face[rows]
         scene = self.scene
         eps = scene.eps
@@ -228,6 +267,7 @@ class ShadowTaps:
 
     Attributes
     ----------
+    size : (int, int) — the camera's (width, height), pixels
     index : (N, 4) int64 — flat pixel index of each sample's bilinear taps
     weight : (N, 4) float32 — their bilinear weights
     tap : (N, 4) int64 — each tap's row in ``pixels``
@@ -235,12 +275,14 @@ class ShadowTaps:
         where it hits nothing: never counted lit or dark)
     texels : SurfacePoints — the samples' own points
     rays : ShadowRays
-    positions, directions : the lights (:func:`light_positions`)
+    positions : (L, 3) float64, metres, world frame, or None (distant lights)
+    directions : (L, 3) float64, unit, world frame — toward each light
     min_cos : float — :data:`SHADOW_TAPS_MIN_COS`
     changed, samples, seconds : running totals — samples re-interpolated, samples seen, seconds
-        spent in :meth:`apply`
+        spent building (:func:`shadow_taps`) and in :meth:`apply`
     """
 
+    size: tuple[int, int]
     index: np.ndarray
     weight: np.ndarray
     tap: np.ndarray
@@ -267,14 +309,26 @@ class ShadowTaps:
 
     def apply(self, light: int, frame: np.ndarray, samples: np.ndarray,
               valid: np.ndarray | None = None) -> int:
-        """Re-interpolate, in place, the ``samples`` ``(N, 3)`` float32 of ``frame``
-        ``(H, W, 3)`` (light ``light``) whose taps mix lit and shadowed pixels.
+        """Re-interpolate, in place, the samples whose taps mix lit and shadowed pixels.
 
         Such a sample takes the bilinear weights of the taps on its texel's side (lit or
         shadowed), renormalised; it is left as it was when its texel's ``n·l`` is below
-        ``min_cos``, or no tap is on its side. With ``valid`` ``(H, W)`` bool, a sample with
-        weight on a masked tap is NaN (as :func:`facegeo.surface.reflectance.sample_frame`).
-        Returns the number of samples changed.
+        ``min_cos``, or no tap is on its side.
+
+        Parameters
+        ----------
+        light : int — the frame's light index
+        frame : (H, W, 3) float32 or float16, linear radiance
+        samples : (N, 3) float32 — the frame's bilinear samples (``sample_frame``), in the
+            order of :attr:`index`; changed in place
+        valid : (H, W) bool, optional — a re-interpolated sample with weight on a masked tap is
+            NaN (as :func:`facegeo.surface.reflectance.sample_frame`); one whose masked taps
+            are all on the other side is finite
+
+        Returns
+        -------
+        int
+            The number of samples changed.
         """
         t0 = time.perf_counter()
         if not 0 <= int(light) < len(self.directions):
@@ -283,6 +337,12 @@ class ShadowTaps:
         n = len(self.index)
         if samples.shape != (n, 3):
             raise ShapeError(f"samples: expected shape ({n}, 3), got {samples.shape}")
+        if np.shape(frame) != (*self.size[::-1], 3):
+            raise ShapeError(f"frame: expected shape ({self.size[1]}, {self.size[0]}, 3), "
+                             f"got {np.shape(frame)}")
+        if valid is not None and np.shape(valid) != self.size[::-1]:
+            raise ShapeError(f"valid: expected shape ({self.size[1]}, {self.size[0]}), "
+                             f"got {np.shape(valid)}")
         kw = self._light(int(light))
         # per tap pixel: 1 lit, 2 shadowed, 0 no surface; a sample is mixed when its taps' codes
         # OR to 3
@@ -307,6 +367,8 @@ class ShadowTaps:
                 rows, w, total = rows[keep], w[keep], total[keep]
                 flat = np.asarray(frame).reshape(-1, frame.shape[-1])
                 taps = flat[self.index[rows]].astype(np.float32, copy=False)  # (M, 4, 3)
+                # a tap left out must not reach the value, not even as 0 · NaN
+                taps = np.where((w > 0)[..., None], taps, np.float32(0))
                 value = np.einsum("mk,mkc->mc", w / total[:, None], taps, dtype=np.float32)
                 if valid is not None:
                     bad = ~np.asarray(valid, bool).reshape(-1)[self.index[rows]]
@@ -321,7 +383,9 @@ class ShadowTaps:
 
 def shadow_taps(rays: ShadowRays, camera, q, face, bary, lights, *,
                 min_cos: float = SHADOW_TAPS_MIN_COS) -> ShadowTaps:
-    """The :class:`ShadowTaps` of samples at pixel positions ``q`` ``(N, 2)`` of ``camera``.
+    """The :class:`ShadowTaps` of samples at pixel positions ``q`` ``(N, 2)`` of ``camera``:
+    their bilinear taps, the surface point each tap pixel's centre ray hits, and the samples'
+    own surface points.
 
     Parameters
     ----------
@@ -332,11 +396,21 @@ def shadow_taps(rays: ShadowRays, camera, q, face, bary, lights, *,
     face, bary : (N,) int, (N, 3) float64 — each sample's surface point on ``rays``' mesh
     lights : LightStage or LightList — the frames' lights, in light-index order
     min_cos : float — :data:`SHADOW_TAPS_MIN_COS`
+
+    Returns
+    -------
+    ShadowTaps
     """
     from facegeo.surface.reflectance import bilinear_taps
 
+    t0 = time.perf_counter()
     if not 0.0 <= float(min_cos) < 1.0:
         raise InputError(f"min_cos: expected a number in [0, 1), got {fmt_value(min_cos)}")
+    face = np.asarray(face)
+    bary = as_array(bary, "bary", shape=(None, 3))
+    if not (len(q) == len(face) == len(bary)):
+        raise ShapeError(f"q, face, bary: one row per sample, got {len(q)}, {len(face)}, "
+                         f"{len(bary)} rows")
     index, weight = bilinear_taps(q, camera.width, camera.height)
     upix, tap = np.unique(index, return_inverse=True)
     tap = tap.reshape(index.shape)
@@ -353,7 +427,9 @@ def shadow_taps(rays: ShadowRays, camera, q, face, bary, lights, *,
     pixels = rays.points(face_p, bary_p)
     pixels.ok[~hit] = False
     positions, directions = light_positions(lights)
-    return ShadowTaps(index=index, weight=weight, tap=tap, pixels=pixels,
-                      texels=rays.points(face, bary), rays=rays, positions=positions,
-                      directions=directions, min_cos=float(min_cos))
+    texels = rays.points(face, bary)
+    return ShadowTaps(size=(int(camera.width), int(camera.height)), index=index, weight=weight,
+                      tap=tap, pixels=pixels, texels=texels, rays=rays, positions=positions,
+                      directions=directions, min_cos=float(min_cos),
+                      seconds=time.perf_counter() - t0)
 

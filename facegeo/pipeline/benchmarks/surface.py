@@ -317,9 +317,9 @@ def bench_shadow_taps(quick: bool) -> list[BenchRow]:
                     [c["shadow_edge_samples"] for c in pm["cameras"].values()])), 6)
                 extra["taps s"] = round(sum(c["seconds_shadow_taps"]
                                             for c in pm["cameras"].values()), 3)
+            how = "shadow-consistent taps" if taps else "plain bilinear"
             rows.append(BenchRow(
-                "surface.shadow_taps",
-                f"{preset} scan, project stage, {'shadow-consistent taps' if taps else 'plain bilinear'}",
+                "surface.shadow_taps", f"{preset} scan, project stage, {how}",
                 work / secs / 1e6, "Mtexel·lights/s", pm["projection_rel_rmse"],
                 f"projection_rel_rmse (weight > 0.3, {GT_LIGHTS} lights, ground-truth mesh)",
                 ratios, extra, threads=_CPU,
