@@ -152,9 +152,10 @@ def test_lit_distant_light_facing_and_segment_end(scene):
         rays.lit(pts, np.ones(len(xy), bool), direction=DISTANT)
 
 
-def test_terminator_one_ring_counts_as_lit():
-    """A coarse convex sphere casts no shadow on itself: every point whose shading normal faces
-    the light is lit, although a ray from the faceted surface meets a neighbouring facet."""
+@pytest.fixture(scope="module")
+def sphere():
+    """A coarse icosphere (radius 0.1 m, 320 faces) with radial shading normals, and 20,000
+    random points on its faces."""
     import trimesh
 
     ico = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
@@ -162,8 +163,18 @@ def test_terminator_one_ring_counts_as_lit():
     rays = ShadowRays(RayScene(V, F), V / 0.1)
     rng = np.random.default_rng(2)
     face = rng.integers(0, len(F), 20000)
-    pts = rays.points(face, rng.dirichlet(np.ones(3), 20000))
-    light = np.array([0.4, 0.9, 0.2])
+    return V, F, rays, face, rays.points(face, rng.dirichlet(np.ones(3), 20000))
+
+
+#: A light over the sphere (m).
+SPHERE_LIGHT = np.array([0.4, 0.9, 0.2])
+
+
+def test_terminator_one_ring_counts_as_lit(sphere):
+    """A coarse convex sphere casts no shadow on itself: every point whose shading normal faces
+    the light is lit, although a ray from the faceted surface meets a neighbouring facet."""
+    V, F, rays, face, pts = sphere
+    light = SPHERE_LIGHT
     to_l = light[None, :] - pts.origin
     facing = np.einsum("pc,pc->p", pts.n, to_l) > 0
     got = rays.lit(pts, position=light)
@@ -178,22 +189,15 @@ def test_terminator_one_ring_counts_as_lit():
     assert (facing & ~plain).sum() > MIN_EDGE_SAMPLES
 
 
-def test_one_ring_rule_without_the_lift():
+def test_one_ring_rule_without_the_lift(sphere):
     """From the faceted points themselves (origins not lifted) a convex sphere's segments meet
     neighbouring facets; every such hit is on the point's 1-ring, and counts as lit."""
-    import trimesh
-
     from facegeo.surface.shadows import SurfacePoints
 
-    ico = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
-    V, F = np.asarray(ico.vertices), np.asarray(ico.faces)
-    rays = ShadowRays(RayScene(V, F), V / 0.1)
-    rng = np.random.default_rng(8)
-    face = rng.integers(0, len(F), 20000)
-    pts = rays.points(face, rng.dirichlet(np.ones(3), 20000))
+    V, F, rays, face, pts = sphere
     flat = SurfacePoints(p=pts.p, origin=pts.p, n=pts.n, face=pts.face, ok=pts.ok,
                          start=pts.p + rays.scene.eps * pts.n)
-    light = np.array([0.4, 0.9, 0.2])
+    light = SPHERE_LIGHT
     facing = np.einsum("pc,pc->p", flat.n, light[None, :] - flat.origin) > 0
     blocked = ~rays.scene.segment_visible(flat.start, light)
     assert (facing & blocked).sum() > MIN_EDGE_SAMPLES  # what the rule has to resolve
