@@ -58,7 +58,7 @@ from facegeo.errors import InputError, ShapeError
 log = logging.getLogger(__name__)
 
 __all__ = ["lifted_origins", "ShadowRays", "SurfacePoints", "ShadowTaps", "shadow_taps",
-           "light_positions", "SHADOW_TAPS_MIN_COS"]
+           "side_weights", "edge_weights", "light_positions", "SHADOW_TAPS_MIN_COS"]
 
 #: A sample is re-interpolated only where its texel's shading normal has ``n·l`` at least this:
 #: nearer the terminator the shading itself goes to zero smoothly and the lit/unlit split of
@@ -259,6 +259,12 @@ class SurfacePoints:
     ok: np.ndarray
     start: np.ndarray
 
+    def take(self, rows) -> SurfacePoints:
+        """The points ``rows`` (an integer index array)."""
+        rows = np.asarray(rows, np.int64)
+        return SurfacePoints(self.p[rows], self.origin[rows], self.n[rows], self.face[rows],
+                             self.ok[rows], self.start[rows])
+
 
 @dataclass
 class ShadowTaps:
@@ -359,20 +365,10 @@ class ShadowTaps:
                                == 3)
         changed = 0
         if mixed.size:
-            t = self.texels
-            if "position" in kw:
-                l = kw["position"][None, :] - t.start[mixed]
-                l /= np.linalg.norm(l, axis=1, keepdims=True)
-            else:
-                l = kw["direction"][None, :]
-            steep = np.einsum("pc,pc->p", t.n[mixed], l) >= self.min_cos
-            rows = mixed[steep]
+            rows, w = edge_weights(self.rays, self.texels, mixed, self.weight[mixed],
+                                   code[self.tap[mixed]], min_cos=self.min_cos, **kw)
             if rows.size:
-                own = np.where(self.rays.lit(t, rows, **kw), 1, 2).astype(np.uint8)
-                w = self.weight[rows] * (code[self.tap[rows]] == own[:, None])
                 total = w.sum(axis=1)
-                keep = total > 0
-                rows, w, total = rows[keep], w[keep], total[keep]
                 flat = np.asarray(frame).reshape(-1, frame.shape[-1])
                 taps = flat[self.index[rows]].astype(np.float32, copy=False)  # (M, 4, 3)
                 # a tap left out must not reach the value, not even as 0 · NaN
@@ -387,6 +383,73 @@ class ShadowTaps:
         self.samples += n
         self.seconds += time.perf_counter() - t0
         return changed
+
+
+def edge_weights(rays: ShadowRays, samples: SurfacePoints, rows, weight, codes, *,
+                 position=None, direction=None, min_cos: float = SHADOW_TAPS_MIN_COS
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Which samples across a cast-shadow edge are re-interpolated, and with which weights.
+
+    Of the samples ``rows`` whose bilinear taps mix lit and shadowed points under one light,
+    those whose own shading normal has ``n·l >= min_cos`` take the weights of the taps on
+    their own side (:func:`side_weights`); nearer the terminator the shading goes to zero
+    smoothly and the split is the normals', not an occluder's. Shared by the projection
+    (:meth:`ShadowTaps.apply`) and the novel-view renderer
+    (:func:`facegeo.render.novel.render_view`).
+
+    Parameters
+    ----------
+    rays : ShadowRays
+    samples : SurfacePoints — the samples' own points
+    rows : (M,) int64 — rows of ``samples`` whose taps are mixed
+    weight, codes : (M, 4) — those rows' bilinear weights and tap codes (1 lit, 2 shadowed,
+        0 no surface)
+    position, direction : the light (:meth:`ShadowRays.lit`)
+    min_cos : float
+
+    Returns
+    -------
+    rows : (K,) int64 — the samples to re-interpolate
+    weight : (K, 4) — their taps' weights on their own side, not renormalised (each row has
+        a positive sum)
+    """
+    rows = np.asarray(rows, np.int64)
+    if position is not None:
+        l = np.asarray(position, np.float64)[None, :] - samples.start[rows]
+        l /= np.linalg.norm(l, axis=1, keepdims=True)
+    else:
+        l = np.asarray(direction, np.float64)[None, :]
+    steep = np.einsum("pc,pc->p", samples.n[rows], l) >= min_cos
+    if not steep.any():
+        return rows[:0], np.asarray(weight)[:0]
+    sel = rows[steep]
+    own = np.where(rays.lit(samples, sel, position=position, direction=direction), 1,
+                   2).astype(np.uint8)
+    w, keep = side_weights(np.asarray(weight)[steep], np.asarray(codes)[steep], own)
+    return sel[keep], w[keep]
+
+
+def side_weights(weight, codes, own) -> tuple[np.ndarray, np.ndarray]:
+    """The bilinear weights of the taps on a sample's own side of a cast-shadow edge.
+
+    Shared by the projection (:meth:`ShadowTaps.apply`: camera pixels as taps, texels as
+    samples) and the novel-view renderer (:func:`facegeo.render.novel.render_view`: texels as
+    taps, pixels as samples).
+
+    Parameters
+    ----------
+    weight : (M, 4) float — the samples' bilinear weights
+    codes : (M, 4) uint8 — each tap's code under the light: 1 lit, 2 shadowed, 0 no surface
+    own : (M,) uint8 — the sample's own code (1 or 2)
+
+    Returns
+    -------
+    weight : (M, 4) float — ``weight`` where the tap's code is the sample's, else 0 (not
+        renormalised)
+    keep : (M,) bool — some tap is on the sample's side (the others keep their weights)
+    """
+    w = weight * (codes == np.asarray(own)[:, None])
+    return w, w.sum(axis=1) > 0
 
 
 def shadow_taps(rays: ShadowRays, camera, q, face, bary, lights, *,
