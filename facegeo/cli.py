@@ -554,7 +554,8 @@ def _cmd_render(args) -> int:
         m = run_render(scan, camera_spec=args.camera, env=args.env,
                        rotate_deg=args.rotate, supersample=args.supersample,
                        resynthesis=not args.naive, shrinkage=args.shrinkage,
-                       light_step=args.light_step, progress=tick)
+                       light_step=args.light_step, shadow_taps=args.shadow_taps,
+                       progress=tick)
     finally:
         close()
     figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "paper_psnr_db", "psnr_gain_db",
@@ -809,6 +810,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--light-step", type=_pos_int, default=1, metavar="K",
                    help="speed against accuracy (not the paper): resynthesise once per K x K "
                         "block of lights (default 1: every light; docs/render.md)")
+    s.add_argument("--no-shadow-taps", dest="shadow_taps", action="store_false",
+                   help="plain bilinear texel taps across the key lights' cast-shadow edges "
+                        "(default: taps on the pixel's side of the edge, decided on the mesh; "
+                        "docs/render.md)")
     s.add_argument("--mesh", default="auto", help=mesh_help)
     s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

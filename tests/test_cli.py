@@ -543,6 +543,21 @@ def test_no_shadow_taps_reaches_the_project_stage(monkeypatch, tiny_scan):
     assert seen[2] is False, seen
 
 
+def test_no_shadow_taps_reaches_the_render(monkeypatch, tiny_scan):
+    """``facegeo render --no-shadow-taps`` renders with ``shadow_taps=False``; the default is
+    True."""
+    import facegeo.pipeline.render as render
+
+    seen = []
+    monkeypatch.setattr("facegeo.cli._run_reconstruct", lambda *a, **k: None)
+    monkeypatch.setattr(render, "run_render", lambda *a, **k: seen.append(k["shadow_taps"]) or
+                        {"name": "v", "files": {"png": "v.png"}})
+    assert main(["render", str(tiny_scan), "--camera", "orbit:cam_left:15", "-q",
+                 "--no-shadow-taps"]) == 0
+    assert main(["render", str(tiny_scan), "--camera", "orbit:cam_left:15", "-q"]) == 0
+    assert seen == [False, True], seen
+
+
 def test_atlas_and_project_are_the_cached_stages_later_commands_reuse(tiny_scan, capsys):
     """``facegeo atlas`` and ``facegeo project`` (default products folder) run the cached
     stages of ``facegeo reconstruct`` with their settings: a later ``facegeo fit`` reuses them

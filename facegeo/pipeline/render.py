@@ -179,7 +179,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                blend_power: float | None = None, rig: str | None = None,
                solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
-               progress=None) -> dict:
+               shadow_taps: bool = True, progress=None) -> dict:
     """Render a novel view of a reconstructed scan under an environment; write the images.
 
     Parameters
@@ -215,6 +215,10 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         shrinkage's cross-validation) evaluates the new functions once per k × k block of
         lights (:func:`facegeo.render.shade_texels`; docs/render.md has time against error);
         the naive and the paper's renders beside it stay exact
+    shadow_taps : bool — shadow-consistent texel taps at the cast-shadow edges of the
+        environment's key lights, decided on the atlas mesh
+        (:func:`facegeo.render.render_shadows`; every render of the view, the naive baseline
+        included); False: plain bilinear texel taps
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
         each step (rays, render, naive baseline, reference)
 
@@ -231,7 +235,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                          resynthesis=resynthesis, baseline=baseline, reference=reference,
                          name=name, blend_power=blend_power, rig=rig, solid_angle=solid_angle,
                          fill_px=fill_px, shrinkage=shrinkage, light_step=light_step,
-                         progress=progress)
+                         shadow_taps=shadow_taps, progress=progress)
     _merge_metrics(out, metrics["name"], metrics)
     return metrics
 
@@ -242,7 +246,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                name: str | None = None, blend_power: float | None = None,
                rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
-               progress=None, cache: dict | None = None) -> dict:
+               shadow_taps: bool = True, progress=None, cache: dict | None = None) -> dict:
     """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
     ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
     the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem).
@@ -325,6 +329,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
             progress("render", k, steps)
 
     samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
+    shadows = _view_shadows(atlas, scene, texels, stage, cache) if shadow_taps else None
     tick(1)
     bp = BLEND_POWER if blend_power is None else float(blend_power)
     naive = paper = None
@@ -337,7 +342,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         sets += [None] if share_paper else []
         got = render_view(camera, scene, atlas, texels, sources, w, lights, blend_power=bp,
                           samples=samples, fill_px=fill_px, light_step=light_step,
-                          shrinkage_set=sets)
+                          shrinkage_set=sets, shadows=shadows)
         res = got[0]
         naive = got[1] if baseline else None
         paper = got[-1] if share_paper else None
@@ -345,17 +350,17 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     else:
         res = render_view(camera, scene, atlas, texels, sources, w, lights,
                           resynthesis=resynthesis, blend_power=bp, samples=samples,
-                          fill_px=fill_px, shrinkage=factors,
+                          fill_px=fill_px, shrinkage=factors, shadows=shadows,
                           light_step=light_step if resynthesis is True else 1)
         tick(2)
         if baseline and resynthesis:
             naive = render_view(camera, scene, atlas, texels, sources, w, lights,
                                 resynthesis=False, blend_power=bp, samples=samples,
-                                fill_px=fill_px)
+                                fill_px=fill_px, shadows=shadows)
             tick(3)
     if paper_too and paper is None:
         paper = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=True,
-                            blend_power=bp, samples=samples, fill_px=fill_px)
+                            blend_power=bp, samples=samples, fill_px=fill_px, shadows=shadows)
         tick(3 + int(naive is not None))
     env_tag = env if isinstance(env, str) and env in BUILTIN_ENVS else (
         Path(env).stem if isinstance(env, (str, Path)) else "env")
@@ -373,6 +378,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         else camera.to_dict(), "env": str(env) if not isinstance(env, E.EnvironmentMap)
         else "EnvironmentMap", "rotate_deg": float(rotate_deg), "supersample": int(supersample),
         "resynthesis": resynthesis, "blend_power": bp, "fill_px": float(fill_px),
+        "shadow_taps": bool(shadow_taps),
         "shrinkage": shrink_mode, "shrinkage_factors": factors,
         "light_step": int(light_step) if resynthesis is True else 1,
         "shrinkage_cross_validation": shrink_stats,
@@ -434,6 +440,25 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     atomic_write_text(dest / f"{stem}.json", json.dumps(metrics, indent=2, allow_nan=False))
     log.info("rendered %s (%s) in %.2f s", stem, camera.name, metrics["seconds"])
     return metrics
+
+
+def _view_shadows(atlas, scene, texels, stage, cache: dict | None):
+    """:func:`facegeo.render.render_shadows` of the atlas under ``stage``, once a stage (kept in
+    ``cache`` beside the view inputs it was built from)."""
+    from facegeo.render import render_shadows
+    from facegeo.surface.shadows import light_positions
+
+    positions, directions = light_positions(stage)
+    # the cached value holds the scene (its rays), so its id names no other live scene
+    key = ("view_shadows", id(scene), hashlib.sha1(
+        np.ascontiguousarray(directions).tobytes()
+        + (b"" if positions is None else np.ascontiguousarray(positions).tobytes())).hexdigest())
+    if cache is not None and cache.get("view_shadows", (None,))[0] == key:
+        return cache["view_shadows"][1]
+    shadows = render_shadows(atlas, scene, texels, stage)
+    if cache is not None:
+        cache["view_shadows"] = (key, shadows)
+    return shadows
 
 
 def _file_state(path: Path) -> tuple | None:

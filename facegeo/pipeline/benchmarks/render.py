@@ -283,6 +283,9 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
     answer (its functions at the novel view, relit) over an even subset of ≤ 1024 pool texels,
     for the setting and for the exact path, and the profile (seconds reading the fields,
     reading the fits, resynthesising, the rest of the shading = blending and bookkeeping).
+    The exact row also times the same view with the render stage's shadow-consistent texel
+    taps (``seconds_per_view_with_shadow_taps``, ``seconds_shadow_taps_build_per_stage``,
+    ``shadow_lights``, ``shadow_edge_samples``; :func:`facegeo.render.render_shadows`).
     """
     from facegeo.capture import imageio
     from facegeo.lighting import envmap as E
@@ -292,6 +295,7 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
     from facegeo.render.novel import (
         cross_validated_shrinkage,
         even_subset,
+        render_shadows,
         render_view,
         shade_texels,
         trace_view,
@@ -352,6 +356,23 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
                 t_write = time.perf_counter() - t1
             col = shade_texels(ref_ids, texels.p_world[ref_ids], novel.center_world, sources, w,
                                lights, resynthesis=resyn, shrinkage=factors, light_step=step)
+            if label == settings[0][0]:
+                # what the render stage's default shadow-consistent texel taps add to the
+                # exact view (their accuracy is an image's, measured in docs/render.md)
+                t0 = time.perf_counter()
+                shadows = render_shadows(atlas, scene, texels, stage)
+                t_build = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                tapped = render_view(novel, scene, atlas, texels, sources, w, lights,
+                                     samples=vs, resynthesis=resyn, shrinkage=factors,
+                                     light_step=step, shadows=shadows)
+                taps_extra = {
+                    "seconds_per_view_with_shadow_taps": round(
+                        time.perf_counter() - t0 + t_trace, 3),
+                    "seconds_shadow_taps_build_per_stage": round(t_build, 3),
+                    "shadow_lights": tapped.stats["shadow_lights"],
+                    "shadow_edge_samples": tapped.stats["shadow_edge_samples"],
+                    "seconds_shadows": tapped.stats["seconds_shadows"]}
             results[label] = (res, t_view, t_shrink, t_write, factors, col, cpu_view)
         exact, exact_col = results[settings[0][0]][0], results[settings[0][0]][5]
         cov = exact.covered
@@ -389,7 +410,8 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
                        "resynthesized": s["resynthesized"],
                        "setup_seconds": {"geometry": round(t_geo, 1),
                                          "generate_functions": round(t_gen, 1)},
-                       "camera_functions_stored": n_fun, "pool_step": pool_step},
+                       "camera_functions_stored": n_fun, "pool_step": pool_step,
+                       **(taps_extra if label == settings[0][0] else {})},
                 threads=2))
     return rows
 
