@@ -667,8 +667,9 @@ def test_a_rig_in_another_world_frame_is_compared_after_the_gauge_alignment(tiny
     assert abs(a - b) <= GAUGE_METRIC_REL_TOL * a, (a, b)
     # The render's reference is taken from the camera moved by the same alignment: a view of
     # the measured functions (no resynthesis) scores as in the true frame. (Plain texel taps:
-    # the renderer needs a light-stage grid, so rig_path's lights stay where they were while
-    # the mesh moved, and shadow edges decided on the mesh would move against the frames.)
+    # rig_path keeps the light-stage grid, whose lights stay where they were while the mesh
+    # moved, so shadow edges decided on the mesh would move against the frames; the moved
+    # light list would light the view with other Eq. 4 weights, its own δA.)
     from facegeo.pipeline.render import run_render
 
     views = {tag: run_render(scan.root, tmp_path / tag, camera_spec="cam_right", env="sky",

@@ -36,15 +36,28 @@ _MAPS = ("shadow", "cast_shadow", "saturated")
 
 
 def light_set(stage):
-    """The :class:`facegeo.appearance.skin.LightSet` of a rig's light stage.
+    """The :class:`facegeo.appearance.skin.LightSet` of a rig's lights.
 
     Directions are the stage's (toward each light from the stage centre); near-field lights
     are treated as distant from the surface point, as :func:`fit_reflectance` requires (the
-    direction error is at most the head radius over the stage radius, ≈ 6° at 1.5 m).
+    direction error is at most the head radius over the stage radius, ≈ 6° at 1.5 m). A
+    light-stage grid (:class:`facegeo.geometry.rig.LightStage`) keeps its grid (bilinear
+    interpolation in Eq. 9, the compiled grid kernels, ``light_step``); a free list
+    (:class:`facegeo.geometry.lights.LightList`: a real rig's measured positions) gives a free
+    light set with the list's δA and intensities (Eq. 9 interpolates between the three
+    nearest lights; ``light_step`` must be 1).
     """
     from facegeo.appearance.skin import LightSet
 
-    return LightSet.from_grid(stage.n_theta, stage.n_phi, stage.color)
+    if hasattr(stage, "n_theta"):
+        return LightSet.from_grid(stage.n_theta, stage.n_phi, stage.color)
+    dark = np.flatnonzero(np.any(np.asarray(stage.intensities) <= 0, axis=1))
+    if dark.size:
+        names = ", ".join(stage.names[i] for i in dark[:5]) + (", ..." if dark.size > 5 else "")
+        raise InputError(f"lights: the skin model needs every light brighter than 0 in every "
+                         f"channel; {dark.size} are not ({names}): leave them out of the rig's "
+                         "light list")
+    return LightSet.from_directions(stage.directions, stage.solid_angles, stage.intensities)
 
 
 class FitWriter:
