@@ -42,7 +42,7 @@ __all__ = [
     "PROJECTIONS", "NEGATIVE_CLIP_TOLERANCE", "EnvironmentMap", "read_envmap", "axis_lobe_map",
     "analytic_map", "pixel_directions", "pixel_solid_angles", "directions_to_pixels",
     "rotation_y", "light_stage_radiance", "light_stage_weights", "direction_weights",
-    "light_weights",
+    "light_weights", "field_weights",
     "SHIPPED_MAPS", "procedural_map", "shipped_map", "shipped_map_path", "write_shipped_maps",
 ]
 
@@ -546,6 +546,25 @@ def light_weights(env: EnvironmentMap, lights: Any, *, solid_angle: str = "paper
     om_l = np.asarray(lights.solid_angles, np.float64)
     mean = _nearest_light_mean(env, v, supersample, getattr(lights, "horizon_axis", None))
     return mean * om_l[:, None]
+
+
+def field_weights(weights, lights) -> np.ndarray:
+    """Eq. (4) weights ``(L, 3)`` in the units of a reflectance field measured under ``lights``.
+
+    A frame under light l holds ``f · cos θ · e_l`` for the light's own RGB intensity e_l, so
+    an environment's weights (:func:`light_weights`) are divided by it light by light: the
+    grid's one colour, a list's per-light ``intensities`` (a light of intensity 0 in a channel
+    has black frames there and gets weight 0). The image is then in the environment's units.
+    """
+    w = np.asarray(weights, np.float64)
+    if hasattr(lights, "n_theta"):
+        e = np.broadcast_to(np.asarray(lights.color_rgb, np.float64), w.shape)
+    else:
+        e = np.asarray(lights.intensities, np.float64)
+    if e.shape != w.shape:
+        raise ShapeError(f"weights: expected shape {e.shape} for these lights, got {w.shape}")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(e > 0, w / np.where(e > 0, e, 1.0), 0.0)
 
 
 # --------------------------------------------------------------------------- shipped maps

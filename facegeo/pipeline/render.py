@@ -301,8 +301,9 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     environment = _load_env(env, projection, rotate_deg)
     stage = the_rig.lights
     w = E.light_weights(environment, stage, solid_angle=solid_angle)  # a grid or a light list
-    w = w / stage.color_rgb[None, :]  # image in the environment's units (field = colour × R)
-    lights = light_set(stage)
+    w = E.field_weights(w, stage)  # image in the environment's units (field = intensity × R)
+    # the skin model's light set only where it resynthesises (a naive render needs none)
+    lights = light_set(stage) if resynthesis else None
     atlas, texels, scene, sources = _view_inputs(out, bool(resynthesis), cache,
                                                  check_projection_atlas)
     t_load = time.perf_counter()

@@ -271,7 +271,8 @@ def atlas_scene(atlas):
 
 @dataclass
 class RenderShadows:
-    """Shadow-consistent texel taps for a render (module docstring, step 4).
+    """Shadow-consistent texel taps for a render (module docstring, step 4, "Shadow-consistent
+    texel taps").
 
     Built by :func:`render_shadows`.
 
@@ -318,19 +319,24 @@ def render_shadows(atlas, scene, texels, stage, *, key_share: float | None = Non
     """
     from facegeo.surface.shadows import SHADOW_TAPS_MIN_COS, ShadowRays, light_positions
 
-    share = SHADOW_KEY_SHARE if key_share is None else float(key_share)
-    if not 0.0 < share <= 1.0:
+    share = SHADOW_KEY_SHARE if key_share is None else key_share
+    if isinstance(share, bool) or not isinstance(share, (int, float, np.number)) \
+            or not 0.0 < float(share) <= 1.0:
         raise InputError(f"key_share: expected a number in (0, 1], got {fmt_value(key_share)}")
     most = SHADOW_MAX_LIGHTS if max_lights is None else max_lights
-    if isinstance(most, bool) or int(most) != most or most < 1:
+    if isinstance(most, bool) or not isinstance(most, (int, float, np.number)) \
+            or not np.isfinite(most) or int(most) != most or most < 1:
         raise InputError(f"max_lights: expected an integer >= 1, got {fmt_value(max_lights)}")
+    if not hasattr(stage, "directions"):
+        raise InputError(f"stage: expected the rig's lights (a LightStage or LightList), got "
+                         f"{fmt_value(stage)}")
     if scene.n_faces != len(atlas.faces):
         raise ShapeError(f"scene: {scene.n_faces} faces, but the atlas has {len(atlas.faces)}; "
                          "build it with atlas_scene(atlas)")
     rays = ShadowRays(scene, atlas.normals)
     positions, directions = light_positions(stage)
     return RenderShadows(rays, rays.points(texels.face, texels.bary), positions, directions,
-                         share, int(most), SHADOW_TAPS_MIN_COS)
+                         float(share), int(most), SHADOW_TAPS_MIN_COS)
 
 
 def key_lights(weights, key_share: float, max_lights: int) -> np.ndarray:
@@ -342,6 +348,20 @@ def key_lights(weights, key_share: float, max_lights: int) -> np.ndarray:
         return np.zeros(0, np.int64)
     order = np.argsort(-e, kind="stable")
     return order[e[order] >= key_share * total][:max_lights].astype(np.int64)
+
+
+def _check_shadows(shadows, scene, texels, weights) -> None:
+    """``shadows`` was built for this render's atlas (scene, texel table) and lights."""
+    if not isinstance(shadows, RenderShadows):
+        raise InputError(f"shadows: expected a RenderShadows (render_shadows), got "
+                         f"{type(shadows).__name__}")
+    if shadows.rays.scene is not scene or len(shadows.texels.p) != len(texels):
+        raise InputError("shadows: built for another atlas; build them with "
+                         "render_shadows(atlas, scene, texels, stage) of this render")
+    n = np.shape(weights)[0]
+    if len(shadows.directions) != n:
+        raise ShapeError(f"shadows: built for {len(shadows.directions)} lights, but the "
+                         f"weights have {n}")
 
 
 def _shadow_edges(vs: ViewSamples, shadows: RenderShadows, weights) -> list:
@@ -359,7 +379,6 @@ def _shadow_edges(vs: ViewSamples, shadows: RenderShadows, weights) -> list:
     used = vs.taps >= 0
     tex, inv = np.unique(vs.taps[used], return_inverse=True)
     t_pts = shadows.texels.take(tex)
-    s_pts = rays.points(vs.face, vs.bary)
     codes = np.zeros(vs.taps.shape, np.uint8)
     edges = []
     for light in lights:
@@ -370,10 +389,12 @@ def _shadow_edges(vs: ViewSamples, shadows: RenderShadows, weights) -> list:
         mixed = np.flatnonzero(np.bitwise_or.reduce(codes, axis=1) == 3)
         if mixed.size == 0:
             continue
-        rows, w = edge_weights(rays, s_pts, mixed, vs.tap_weight[mixed], codes[mixed],
-                               min_cos=shadows.min_cos, **kw)
-        if rows.size:
-            edges.append((int(light), rows, w))
+        # the samples' own points (lifted shadow-ray origins) only where the taps are mixed
+        pts = rays.points(vs.face[mixed], vs.bary[mixed])
+        local, w = edge_weights(rays, pts, np.arange(mixed.size), vs.tap_weight[mixed],
+                                codes[mixed], min_cos=shadows.min_cos, **kw)
+        if local.size:
+            edges.append((int(light), mixed[local], w))
     return edges
 
 
@@ -951,14 +972,18 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
         baseline and the paper's λ = 1 render of the view, each equal to its own
         ``render_view`` call (full resynthesis only)
     shadows : RenderShadows, optional — shadow-consistent texel taps for the environment's
-        key lights (:func:`render_shadows`; module docstring, step 4); None: plain bilinear
+        key lights (:func:`render_shadows`; module docstring, step 4); None: plain bilinear.
+        Its mesh and lights must be this render's (the lights in the atlas's world frame)
 
     Returns
     -------
     RenderResult, or a list of them (one per ``shrinkage_set`` entry, sharing the trace and
     the shading's counts and seconds)
         ``stats`` holds :func:`shade_texels`'s counts and seconds, ``seconds_trace``,
-        ``seconds_shade``, ``seconds_image`` (taps → image) and the total ``seconds``.
+        ``seconds_shade``, ``seconds_image`` (taps → image) and the total ``seconds``; with
+        ``shadows``, ``shadow_lights`` (key lights whose edges moved some sample),
+        ``shadow_edge_samples`` (samples moved, summed over those lights) and
+        ``seconds_shadows`` (within ``seconds_shade``).
     """
     t0 = time.perf_counter()
     vs = samples if samples is not None else trace_view(camera, scene, atlas, texels,
@@ -972,6 +997,7 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
                           shrinkage_set=shrinkage_set)
     edges = []
     if shadows is not None:
+        _check_shadows(shadows, scene, texels, weights)
         # per key light: the samples across its cast-shadow edges, and the texels they read
         # relit by that light alone (Eq. 4 is linear in the weights; λ_c and the blend are
         # the environment's), for the correction Σ_k (b_k(l) − b_k) C_k(l) of _view_image
