@@ -594,3 +594,36 @@ def test_a_real_capture_with_a_list_of_lights_relights(shared_data, tmp_path):
     np.testing.assert_allclose(img, R.relight_scan_view(scan, m["view"], w,
                                                         normalize_color=True), rtol=1e-6)
     assert img.max() > 0
+
+
+def test_a_light_list_relights_each_frame_by_its_own_intensity(shared_data, tmp_path):
+    """A list of lights with uneven intensities: the scan view relit with colour normalisation
+    is Eq. 4 with each light's weight divided by that light's own intensity, not by their mean
+    (light_colors); the grid's is its one colour."""
+    import json
+
+    from facegeo.capture.datasets import import_dataset
+    from facegeo.capture.scan import load_scan
+    from facegeo.geometry.lights import light_colors
+    from facegeo.geometry.rig import LightStage
+
+    grid = LightStage(8, 4, color=(0.9, 1.0, 1.1))
+    assert np.array_equal(light_colors(grid), [0.9, 1.0, 1.1])
+    src = shared_data / "olat" / "yale_b01"
+    if not src.is_dir():
+        pytest.skip(f"{src} is absent")
+    scan = import_dataset("yale-b", src, tmp_path / "yale")
+    doc = json.loads((scan.root / "rig.json").read_text())
+    n = scan.rig.lights.n_lights
+    e = np.linspace(0.5, 2.0, 3 * n).reshape(n, 3)
+    doc["lights"]["intensities"] = e.tolist()
+    (scan.root / "rig.json").write_text(json.dumps(doc))
+    scan = load_scan(scan.root)
+    assert np.array_equal(light_colors(scan.rig.lights), e)
+    view = scan.camera_names[0]
+    w = E.light_weights(E.shipped_map("sky"), scan.rig.lights)
+    got = R.relight_scan_view(scan, view, w, normalize_color=True)
+    want = R.relight_scan_view(scan, view, w / e, normalize_color=False)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7 * float(want.max()))
+    mean = R.relight_scan_view(scan, view, w / e.mean(axis=0), normalize_color=False)
+    assert not np.allclose(got, mean, rtol=1e-3)

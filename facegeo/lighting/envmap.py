@@ -556,11 +556,11 @@ def field_weights(weights, lights) -> np.ndarray:
     grid's one colour, a list's per-light ``intensities`` (a light of intensity 0 in a channel
     has black frames there and gets weight 0). The image is then in the environment's units.
     """
+    from facegeo.geometry.lights import light_colors
+
     w = np.asarray(weights, np.float64)
-    if hasattr(lights, "n_theta"):
-        e = np.broadcast_to(np.asarray(lights.color_rgb, np.float64), w.shape)
-    else:
-        e = np.asarray(lights.intensities, np.float64)
+    e = light_colors(lights)
+    e = np.broadcast_to(e, w.shape) if e.shape == (3,) and w.ndim == 2 else e
     if e.shape != w.shape:
         raise ShapeError(f"weights: expected shape {e.shape} for these lights, got {w.shape}")
     with np.errstate(divide="ignore", invalid="ignore"):

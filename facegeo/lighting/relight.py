@@ -430,7 +430,9 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
     n_l = scan.n_lights
     w = normalize_weights(weights, n_l)[0]
     active = np.flatnonzero(np.any(w != 0, axis=1))
-    color = scan.rig.lights.color_rgb if normalize_color else None
+    from facegeo.geometry.lights import light_colors
+
+    color = light_colors(scan.rig.lights) if normalize_color else None
     if active.size == 0:
         cam = scan.camera(camera)
         return np.zeros((cam.height, cam.width, 3), np.float32)

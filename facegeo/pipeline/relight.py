@@ -268,10 +268,11 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     extra: dict[str, Any] = {}
     ref_metrics: dict[str, Any]
     if texture:
+        from facegeo.geometry.lights import light_colors
         from facegeo.surface.atlas import Texels
 
         tick = (lambda k, n: progress("relight", k, n)) if progress else None
-        texel_rgb, _, cams = relight_texture(None, w, light_color=lights.color_rgb,
+        texel_rgb, _, cams = relight_texture(None, w, light_color=light_colors(lights),
                                              progress=tick, project_dir=proj,
                                              atlas_dir=texels_path.parent)
         texels = Texels.load(texels_path)
@@ -341,7 +342,9 @@ def _reference_error(scan, view: str, w: np.ndarray, img: np.ndarray) -> dict:
 
     renderer = load_ground_truth(scan)
     lights = scan.rig.lights
-    wn = w / np.broadcast_to(np.asarray(lights.color_rgb, float), w.shape)
+    from facegeo.lighting.envmap import field_weights
+
+    wn = field_weights(w, lights)
     ref = renderer.render_lights(renderer.rig.camera(view), lights, wn).astype(np.float64)
     got = img.astype(np.float64)
     ok = np.isfinite(got).all(axis=-1) & np.isfinite(ref).all(axis=-1)
