@@ -35,12 +35,12 @@ from facegeo.errors import InputError
 __all__ = ["LightSet", "LightList", "voronoi_solid_angles", "directions_from_azimuth_elevation",
            "light_colors", "LIGHT_LIST_KIND"]
 
+
 def light_colors(lights) -> np.ndarray:
     """The colour each frame was lit with: ``(3,)`` for a light-stage grid (one colour), the
     per-light ``intensities`` ``(L, 3)`` for a :class:`LightList` (float64, linear RGB). An
     environment's Eq. (4) weights are divided by it to relight frames in the environment's
-    units (``light_color`` of :mod:`facegeo.lighting.relight`,
-    :func:`facegeo.lighting.envmap.field_weights`)."""
+    units (:func:`facegeo.lighting.envmap.field_weights`)."""
     if hasattr(lights, "n_theta"):
         return np.asarray(lights.color_rgb, np.float64)
     return np.asarray(lights.intensities, np.float64)

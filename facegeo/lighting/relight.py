@@ -427,17 +427,18 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
         A frame read holds NaN or infinite pixels (naming the first such file; the relit image
         is checked once, and only then are the frames read again to find it).
     """
+    from facegeo.lighting.envmap import field_weights
+
     n_l = scan.n_lights
     w = normalize_weights(weights, n_l)[0]
+    if normalize_color:  # each light's own colour (a list's per-light intensities)
+        w = field_weights(w, scan.rig.lights)
     active = np.flatnonzero(np.any(w != 0, axis=1))
-    from facegeo.geometry.lights import light_colors
-
-    color = light_colors(scan.rig.lights) if normalize_color else None
     if active.size == 0:
         cam = scan.camera(camera)
         return np.zeros((cam.height, cam.width, 3), np.float32)
     img = relight_frames(scan.iter_olat(camera, active.tolist(), read_ahead=read_ahead), w,
-                         n_l, light_color=color, progress=progress)
+                         n_l, progress=progress)
     if not np.isfinite(img).all():
         _raise_first_nonfinite_frame(scan, camera, active)
     return img

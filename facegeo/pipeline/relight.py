@@ -268,11 +268,11 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     extra: dict[str, Any] = {}
     ref_metrics: dict[str, Any]
     if texture:
-        from facegeo.geometry.lights import light_colors
         from facegeo.surface.atlas import Texels
 
         tick = (lambda k, n: progress("relight", k, n)) if progress else None
-        texel_rgb, _, cams = relight_texture(None, w, light_color=light_colors(lights),
+        # each light's own colour (a list's per-light intensities; a dark light weighs 0)
+        texel_rgb, _, cams = relight_texture(None, E.field_weights(w, lights),
                                              progress=tick, project_dir=proj,
                                              atlas_dir=texels_path.parent)
         texels = Texels.load(texels_path)
