@@ -299,9 +299,9 @@ class RenderShadows:
 
     def light(self, light: int) -> dict:
         """``position=`` or ``direction=`` of one light (:meth:`ShadowRays.lit`)."""
-        if self.positions is not None:
-            return {"position": self.positions[light]}
-        return {"direction": self.directions[light]}
+        from facegeo.surface.shadows import light_kwargs
+
+        return light_kwargs(self.positions, self.directions, light)
 
 
 def render_shadows(atlas, scene, texels, stage, *, key_share: float | None = None,

@@ -58,7 +58,8 @@ from facegeo.errors import InputError, ShapeError
 log = logging.getLogger(__name__)
 
 __all__ = ["lifted_origins", "ShadowRays", "SurfacePoints", "ShadowTaps", "shadow_taps",
-           "side_weights", "edge_weights", "light_positions", "SHADOW_TAPS_MIN_COS"]
+           "side_weights", "edge_weights", "light_positions", "light_kwargs",
+           "SHADOW_TAPS_MIN_COS"]
 
 #: A sample is re-interpolated only where its texel's shading normal has ``n·l`` at least this:
 #: nearer the terminator the shading itself goes to zero smoothly and the lit/unlit split of
@@ -127,6 +128,14 @@ def light_positions(lights) -> tuple[np.ndarray | None, np.ndarray]:
                 directions)
     pos = getattr(lights, "positions", None)
     return (None if pos is None else np.asarray(pos, np.float64)), directions
+
+
+def light_kwargs(positions, directions, light: int) -> dict:
+    """``position=`` (near-field) or ``direction=`` (distant) of light ``light`` for
+    :meth:`ShadowRays.lit`, from :func:`light_positions`' two arrays."""
+    if positions is not None:
+        return {"position": positions[light]}
+    return {"direction": directions[light]}
 
 
 class ShadowRays:
@@ -314,10 +323,6 @@ class ShadowTaps:
         code[~self.pixels.ok] = 0
         return code
 
-    def _light(self, light: int) -> dict:
-        if self.positions is not None:
-            return {"position": self.positions[light]}
-        return {"direction": self.directions[light]}
 
     def apply(self, light: int, frame: np.ndarray, samples: np.ndarray,
               valid: np.ndarray | None = None) -> int:
@@ -355,7 +360,7 @@ class ShadowTaps:
         if valid is not None and np.shape(valid) != self.size[::-1]:
             raise ShapeError(f"valid: expected shape ({self.size[1]}, {self.size[0]}), "
                              f"got {np.shape(valid)}")
-        kw = self._light(int(light))
+        kw = light_kwargs(self.positions, self.directions, int(light))
         # per tap pixel: 1 lit, 2 shadowed, 0 no surface; a sample is mixed when its taps' codes
         # OR to 3
         code = self._pixel_codes(kw)
