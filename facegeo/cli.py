@@ -555,7 +555,7 @@ def _cmd_render(args) -> int:
                        rotate_deg=args.rotate, supersample=args.supersample,
                        resynthesis=not args.naive, shrinkage=args.shrinkage,
                        light_step=args.light_step, shadow_taps=args.shadow_taps,
-                       progress=tick)
+                       image_detail=args.image_detail, progress=tick)
     finally:
         close()
     figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "paper_psnr_db", "psnr_gain_db",
@@ -813,6 +813,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-shadow-taps", dest="shadow_taps", action="store_false",
                    help="plain bilinear texel taps across the key lights' cast-shadow edges "
                         "(default: taps on the pixel's side of the edge, decided on the mesh; "
+                        "docs/render.md)")
+    s.add_argument("--no-image-detail", dest="image_detail", action="store_false",
+                   help="render in texture space only, the paper's way (default: the source "
+                        "cameras' relit captures, projected per pixel, carry the detail finer "
+                        "than a texel, and the naive baseline is that projection; "
                         "docs/render.md)")
     s.add_argument("--mesh", default="auto", help=mesh_help)
     s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)

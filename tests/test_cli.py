@@ -543,19 +543,21 @@ def test_no_shadow_taps_reaches_the_project_stage(monkeypatch, tiny_scan):
     assert seen[2] is False, seen
 
 
-def test_no_shadow_taps_reaches_the_render(monkeypatch, tiny_scan):
-    """``facegeo render --no-shadow-taps`` renders with ``shadow_taps=False``; the default is
-    True."""
+def test_no_shadow_taps_and_no_image_detail_reach_the_render(monkeypatch, tiny_scan):
+    """``facegeo render --no-shadow-taps`` / ``--no-image-detail`` render with
+    ``shadow_taps=False`` / ``image_detail=False``; the defaults are True."""
     import facegeo.pipeline.render as render
 
     seen = []
     monkeypatch.setattr("facegeo.cli._run_reconstruct", lambda *a, **k: None)
-    monkeypatch.setattr(render, "run_render", lambda *a, **k: seen.append(k["shadow_taps"]) or
+    monkeypatch.setattr(render, "run_render",
+                        lambda *a, **k: seen.append((k["shadow_taps"], k["image_detail"])) or
                         {"name": "v", "files": {"png": "v.png"}})
-    assert main(["render", str(tiny_scan), "--camera", "orbit:cam_left:15", "-q",
-                 "--no-shadow-taps"]) == 0
-    assert main(["render", str(tiny_scan), "--camera", "orbit:cam_left:15", "-q"]) == 0
-    assert seen == [False, True], seen
+    view = ["render", str(tiny_scan), "--camera", "orbit:cam_left:15", "-q"]
+    assert main(view + ["--no-shadow-taps"]) == 0
+    assert main(view + ["--no-image-detail"]) == 0
+    assert main(view) == 0
+    assert seen == [(False, True), (True, False), (True, True)], seen
 
 
 def test_atlas_and_project_are_the_cached_stages_later_commands_reuse(tiny_scan, capsys):

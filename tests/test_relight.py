@@ -265,8 +265,16 @@ def test_a_nan_pixel_in_a_frame_is_an_error_naming_the_file(tiny_scan, tmp_path)
     with pytest.raises(InputError, match=r"0003\.exr: 1 pixel\(s\) are NaN or infinite "
                                          r"\(first at row, col \(5, 7\)\).*light 3"):
         R.relight_scan_view(copy, name, w)
+    # with return_mask the pixel is flagged untrusted instead (the renderer's image-space
+    # detail leaves it out), and every other pixel is the plain relighting's
+    img, valid = R.relight_scan_view(copy, name, w, return_mask=True)
+    assert not valid[5, 7] and valid.sum() == valid.size - 1
+    assert np.array_equal(img[5, 7], np.zeros(3, np.float32))
+    plain = R.relight_scan_view(scan, name, w)
+    assert np.abs(img - plain)[valid].max() <= 1e-6 * np.abs(plain).max()
     w[3] = 0.0  # the bad frame carries no energy: not read, no error
     assert np.isfinite(R.relight_scan_view(copy, name, w)).all()
+    assert R.relight_scan_view(copy, name, w, return_mask=True)[1].all()
 
 
 @pytest.mark.slow

@@ -399,7 +399,7 @@ def relight_frames(frames: Iterable[tuple[int, np.ndarray]], weights: Any, n_lig
 
 def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool = False,
                       progress: Callable[[int], None] | None = None,
-                      read_ahead: int = 0) -> np.ndarray:
+                      read_ahead: int = 0, return_mask: bool = False):
     """Relight one camera of a scan from its OLAT frames, reading only lights with non-zero
     weight (Eq. 4).
 
@@ -416,10 +416,15 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
         Threads reading the next frames meanwhile (``Scan.iter_olat(read_ahead=)``; what
         ``progress`` prints meanwhile reaches the terminal: image reads hide only native
         libraries' own failure messages).
+    return_mask : bool
+        Also return where the relit image can be trusted: False where a lit frame's pixel is
+        untrusted (saturated or non-finite; black-clipped pixels count as measured dark
+        values, as the projection reads them: ``Scan.olat_frame(black_clipped="dark")``).
+        Such pixels are 0 in the image, and no error is raised for them.
 
     Returns
     -------
-    (H, W, 3) float32
+    (H, W, 3) float32, and with ``return_mask`` ``valid`` (H, W) bool
 
     Raises
     ------
@@ -434,9 +439,23 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
     if normalize_color:  # each light's own colour (a list's per-light intensities)
         w = field_weights(w, scan.rig.lights)
     active = np.flatnonzero(np.any(w != 0, axis=1))
+    cam = scan.camera(camera)
+    valid = np.ones((cam.height, cam.width), bool)
     if active.size == 0:
-        cam = scan.camera(camera)
-        return np.zeros((cam.height, cam.width, 3), np.float32)
+        img = np.zeros((cam.height, cam.width, 3), np.float32)
+        return (img, valid) if return_mask else img
+    if return_mask:
+        def frames():
+            for l, frame, ok in scan.iter_olat(camera, active.tolist(), return_mask=True,
+                                               read_ahead=read_ahead, black_clipped="dark"):
+                ok = ok & np.isfinite(frame).all(axis=-1)
+                valid[...] &= ok
+                yield l, np.where(ok[..., None], frame, 0.0)
+        img = relight_frames(frames(), w, n_l, progress=progress)
+        img[~valid] = 0.0
+        valid &= np.isfinite(img).all(axis=-1)  # an overflowing weight
+        img[~valid] = 0.0
+        return img, valid
     img = relight_frames(scan.iter_olat(camera, active.tolist(), read_ahead=read_ahead), w,
                          n_l, progress=progress)
     if not np.isfinite(img).all():

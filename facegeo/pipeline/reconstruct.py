@@ -299,7 +299,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             StageSpec("render", run_render, after=("atlas", "project", "fit") + rig_after,
                       inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
                       settings={"views": views, "env": RENDER_DEFAULT_ENV, "rig": use_rig,
-                                "shrinkage": SHRINKAGE_DEFAULT, "shadow_taps": True}),
+                                "shrinkage": SHRINKAGE_DEFAULT, "shadow_taps": True,
+                                "image_detail": True}),
         ]
     if not specs:
         raise InputError(f"scan {scan.root}: nothing to reconstruct (no [calib], "

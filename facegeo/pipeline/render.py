@@ -179,7 +179,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                blend_power: float | None = None, rig: str | None = None,
                solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
-               shadow_taps: bool = True, progress=None) -> dict:
+               shadow_taps: bool = True, image_detail: bool = True, progress=None) -> dict:
     """Render a novel view of a reconstructed scan under an environment; write the images.
 
     Parameters
@@ -219,6 +219,12 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         environment's key lights, decided on the atlas mesh
         (:func:`facegeo.render.render_shadows`; every render of the view, the naive baseline
         included); False: plain bilinear texel taps
+    image_detail : bool — image-space detail (:mod:`facegeo.render.detail`): the source
+        cameras' captures relit under ``env`` and projected per pixel move every render of
+        the view by their difference from the texture-space naive render, so the naive
+        baseline is that per-pixel projection and the resynthesis adds its predicted change
+        to it; the texture-space figures are kept as ``texture_*``. False: texture space
+        only (the paper)
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
         each step (rays, render, naive baseline, reference)
 
@@ -235,7 +241,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                          resynthesis=resynthesis, baseline=baseline, reference=reference,
                          name=name, blend_power=blend_power, rig=rig, solid_angle=solid_angle,
                          fill_px=fill_px, shrinkage=shrinkage, light_step=light_step,
-                         shadow_taps=shadow_taps, progress=progress)
+                         shadow_taps=shadow_taps, image_detail=image_detail,
+                         progress=progress)
     _merge_metrics(out, metrics["name"], metrics)
     return metrics
 
@@ -246,7 +253,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                name: str | None = None, blend_power: float | None = None,
                rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
-               shadow_taps: bool = True, progress=None, cache: dict | None = None) -> dict:
+               shadow_taps: bool = True, image_detail: bool = True, progress=None,
+               cache: dict | None = None) -> dict:
     """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
     ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
     the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem).
@@ -266,7 +274,10 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     (:func:`facegeo.pipeline.project.truth_gauge`; ``gauge_rotation_deg`` /
     ``gauge_translation_mm``): the rig's world frame is its own gauge, and a camera placed in
     it sees the generator's head from where the reconstruction's camera sees the
-    reconstruction."""
+    reconstruction.
+
+    With ``image_detail`` the source cameras' relit captures (:func:`_source_images`, once per
+    environment weights in ``cache``) join every render of the view (``render_view(detail=)``)."""
     from facegeo.capture import imageio
     from facegeo.fsutil import atomic_write_text
     from facegeo.lighting import envmap as E
@@ -331,6 +342,14 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
 
     samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
     shadows = _view_shadows(atlas, scene, texels, stage, cache) if shadow_taps else None
+    if image_detail:
+        from facegeo.render.novel import key_lights
+
+        keys = () if shadows is None else tuple(int(k) for k in key_lights(
+            w, shadows.key_share, shadows.max_lights))
+        detail, t_sources = _source_images(scan, the_rig, rig_used, sources, w, keys, cache)
+    else:
+        detail, t_sources = None, None
     tick(1)
     bp = BLEND_POWER if blend_power is None else float(blend_power)
     naive = paper = None
@@ -343,7 +362,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         sets += [None] if share_paper else []
         got = render_view(camera, scene, atlas, texels, sources, w, lights, blend_power=bp,
                           samples=samples, fill_px=fill_px, light_step=light_step,
-                          shrinkage_set=sets, shadows=shadows)
+                          shrinkage_set=sets, shadows=shadows, detail=detail)
         res = got[0]
         naive = got[1] if baseline else None
         paper = got[-1] if share_paper else None
@@ -352,16 +371,17 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         res = render_view(camera, scene, atlas, texels, sources, w, lights,
                           resynthesis=resynthesis, blend_power=bp, samples=samples,
                           fill_px=fill_px, shrinkage=factors, shadows=shadows,
-                          light_step=light_step if resynthesis is True else 1)
+                          light_step=light_step if resynthesis is True else 1, detail=detail)
         tick(2)
         if baseline and resynthesis:
             naive = render_view(camera, scene, atlas, texels, sources, w, lights,
                                 resynthesis=False, blend_power=bp, samples=samples,
-                                fill_px=fill_px, shadows=shadows)
+                                fill_px=fill_px, shadows=shadows, detail=detail)
             tick(3)
     if paper_too and paper is None:
         paper = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=True,
-                            blend_power=bp, samples=samples, fill_px=fill_px, shadows=shadows)
+                            blend_power=bp, samples=samples, fill_px=fill_px, shadows=shadows,
+                            detail=detail)
         tick(3 + int(naive is not None))
     env_tag = env if isinstance(env, str) and env in BUILTIN_ENVS else (
         Path(env).stem if isinstance(env, (str, Path)) else "env")
@@ -379,7 +399,11 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         else camera.to_dict(), "env": str(env) if not isinstance(env, E.EnvironmentMap)
         else "EnvironmentMap", "rotate_deg": float(rotate_deg), "supersample": int(supersample),
         "resynthesis": resynthesis, "blend_power": bp, "fill_px": float(fill_px),
-        "shadow_taps": bool(shadow_taps),
+        "shadow_taps": bool(shadow_taps), "image_detail": bool(image_detail),
+        "detail_fraction": round(res.stats["detail_pixels"] / max(int(res.covered.sum()), 1), 6)
+        if detail is not None else None,
+        # relighting the source cameras' captures for the detail (0: another view's reused)
+        "seconds_source_images": t_sources,
         "shrinkage": shrink_mode, "shrinkage_factors": factors,
         "light_step": int(light_step) if resynthesis is True else 1,
         "shrinkage_cross_validation": shrink_stats,
@@ -427,8 +451,12 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
 
         m, mc = figures("", res.image)
         metrics["mask_pixels"] = m["pixels"]
+        if detail is not None:  # the texture-space figures (the paper's render path)
+            figures("texture_", res.texture)
         if naive is not None:
             nm, nc = figures("naive_", naive.image)
+            if detail is not None:
+                figures("texture_naive_", naive.texture)
             if m["psnr_db"] is not None and nm["psnr_db"] is not None:
                 metrics["psnr_gain_db"] = round(m["psnr_db"] - nm["psnr_db"], 4)
             if mc["psnr_db"] is not None and nc["psnr_db"] is not None:
@@ -441,6 +469,34 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     atomic_write_text(dest / f"{stem}.json", json.dumps(metrics, indent=2, allow_nan=False))
     log.info("rendered %s (%s) in %.2f s", stem, camera.name, metrics["seconds"])
     return metrics
+
+
+def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
+                   cache: dict | None) -> tuple:
+    """The source cameras' OLAT captures relit with the render's weights ``w``
+    (:class:`facegeo.render.detail.SourceImage`, the rig's cameras: the ones the projection
+    used) with the frames of the key lights ``keys`` (shadow-consistent taps), and the seconds
+    this call spent building them (0: reused from ``cache``, where they are kept once per
+    weights, key lights and rig)."""
+    from facegeo.fsutil import READ_AHEAD_WORKERS
+    from facegeo.lighting.relight import relight_scan_view
+    from facegeo.render.detail import SourceImage
+
+    key = ("source_images", hashlib.sha1(np.ascontiguousarray(w, np.float64).tobytes())
+           .hexdigest(), rig_used, tuple(src.name for src in sources), keys)
+    if cache is not None and key in cache:
+        return cache[key], 0.0
+    t0 = time.perf_counter()
+    images = []
+    for src in sources:
+        img, valid = relight_scan_view(scan, src.name, w, return_mask=True,
+                                       read_ahead=READ_AHEAD_WORKERS)
+        frames = {k: scan.olat_frame(src.name, k, return_mask=True, black_clipped="dark")
+                  for k in keys}
+        images.append(SourceImage(the_rig.camera(src.name), img, valid, frames))
+    if cache is not None:
+        cache[key] = images
+    return images, round(time.perf_counter() - t0, 4)
 
 
 def _view_shadows(atlas, scene, texels, stage, cache: dict | None):

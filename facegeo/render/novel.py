@@ -254,12 +254,15 @@ class RenderResult:
     covered : (H, W) bool — every sample of the pixel hit the mesh and had measured texels
     mask : (H, W) bool — some sample of the pixel hit the mesh
     stats : dict — counts and timings (texels shaded, samples resynthesised, active lights …)
+    texture : (H, W, 3) float32 or None — with image-space detail, the texture-space image
+        before it (``render_view(detail=)``); None otherwise
     """
 
     image: np.ndarray
     covered: np.ndarray
     mask: np.ndarray
     stats: dict = field(default_factory=dict)
+    texture: np.ndarray | None = None
 
 
 def atlas_scene(atlas):
@@ -287,6 +290,8 @@ class RenderShadows:
     max_lights : int — at most this many lights, the strongest first
         (:data:`SHADOW_MAX_LIGHTS`)
     min_cos : float — :data:`facegeo.surface.shadows.SHADOW_TAPS_MIN_COS`
+    stage : LightStage or LightList, optional — the lights themselves (the image-space detail's
+        shadow-consistent taps in the source images, :mod:`facegeo.render.detail`)
     """
 
     rays: object
@@ -296,6 +301,7 @@ class RenderShadows:
     key_share: float
     max_lights: int
     min_cos: float
+    stage: object = None
 
     def light(self, light: int) -> dict:
         """``position=`` or ``direction=`` of one light (:meth:`ShadowRays.lit`)."""
@@ -336,7 +342,7 @@ def render_shadows(atlas, scene, texels, stage, *, key_share: float | None = Non
     rays = ShadowRays(scene, atlas.normals)
     positions, directions = light_positions(stage)
     return RenderShadows(rays, rays.points(texels.face, texels.bary), positions, directions,
-                         float(share), int(most), SHADOW_TAPS_MIN_COS)
+                         float(share), int(most), SHADOW_TAPS_MIN_COS, stage)
 
 
 def key_lights(weights, key_share: float, max_lights: int) -> np.ndarray:
@@ -942,7 +948,8 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
                 supersample: int = 1, resynthesis: bool = True,
                 blend_power: float = BLEND_POWER, samples: ViewSamples | None = None,
                 fill_px: float = 0.0, shrinkage=None, light_step: int = 1,
-                shrinkage_set=None, shadows: RenderShadows | None = None
+                shrinkage_set=None, shadows: RenderShadows | None = None,
+                detail=None
                 ) -> RenderResult | list[RenderResult]:
     """Render ``camera`` under Eq. (4) light ``weights`` from the measured reflectance field.
 
@@ -974,6 +981,11 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
     shadows : RenderShadows, optional — shadow-consistent texel taps for the environment's
         key lights (:func:`render_shadows`; module docstring, step 4); None: plain bilinear.
         Its mesh and lights must be this render's (the lights in the atlas's world frame)
+    detail : sequence of SourceImage, optional — image-space detail (module docstring, step 5;
+        :mod:`facegeo.render.detail`): the source cameras' captures relit with these
+        ``weights``; every render of the view moves by (their per-pixel projection − the
+        texture-space naive render) where both exist, so the naive baseline becomes that
+        projection. None: texture space only (the paper)
 
     Returns
     -------
@@ -983,8 +995,54 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
         ``seconds_shade``, ``seconds_image`` (taps → image) and the total ``seconds``; with
         ``shadows``, ``shadow_lights`` (key lights whose edges moved some sample),
         ``shadow_edge_samples`` (samples moved, summed over those lights) and
-        ``seconds_shadows`` (within ``seconds_shade``).
+        ``seconds_shadows`` (within ``seconds_shade``); with ``detail``, ``detail_pixels``
+        (pixels the source images moved), ``detail_cameras`` and ``seconds_detail``, and
+        ``RenderResult.texture`` holds the texture-space image before the detail.
     """
+    args = (camera, scene, atlas, texels, sources, weights, lights)
+    kw = dict(supersample=supersample, blend_power=blend_power, fill_px=fill_px,
+              light_step=light_step, shadows=shadows)
+    if detail is None:
+        return _render_texture(*args, samples=samples, resynthesis=resynthesis,
+                               shrinkage=shrinkage, shrinkage_set=shrinkage_set, **kw)
+    from facegeo.render.detail import project_source_images
+
+    t0 = time.perf_counter()
+    vs = samples if samples is not None else trace_view(camera, scene, atlas, texels,
+                                                         supersample=supersample)
+    t_trace = time.perf_counter() - t0  # the texture pass gets the samples traced
+    single = shrinkage_set is None
+    if resynthesis is True:  # the naive render (λ = 0) from the same pass
+        sets = ([shrinkage] if single else list(shrinkage_set)) + \
+            [{src.name: 0.0 for src in sources}]
+        got = _render_texture(*args, samples=vs, resynthesis=True, shrinkage=None,
+                              shrinkage_set=sets, **kw)
+        results, naive = got[:-1], got[-1]
+    else:
+        results = [_render_texture(*args, samples=vs, resynthesis=resynthesis,
+                                   shrinkage=shrinkage, shrinkage_set=shrinkage_set, **kw)]
+        naive = results[0] if resynthesis is False else _render_texture(
+            *args, samples=vs, resynthesis=False, shrinkage=None, shrinkage_set=None, **kw)
+    st: dict = {}
+    d_img = vs.to_image(project_source_images(vs, detail, scene, atlas, blend_power=blend_power,
+                                              weights=weights, shadows=shadows, stats=st),
+                        fill=np.nan)
+    use = naive.covered & np.isfinite(d_img).all(axis=2)
+    delta = np.where(use[..., None], d_img - naive.image, 0.0).astype(np.float32)
+    st["detail_pixels"] = int(use.sum())
+    for r in results:
+        r.texture = r.image
+        r.image = r.image + delta
+        r.stats.update(st)
+        r.stats["seconds_trace"] = round(r.stats["seconds_trace"] + t_trace, 4)
+        r.stats["seconds"] = round(r.stats["seconds"] + t_trace + st["seconds_detail"], 4)
+    return results[0] if single else results
+
+
+def _render_texture(camera, scene, atlas, texels, sources, weights, lights, *, supersample,
+                    resynthesis, blend_power, samples, fill_px, shrinkage, light_step,
+                    shrinkage_set, shadows):
+    """:func:`render_view` in texture space only (no ``detail``)."""
     t0 = time.perf_counter()
     vs = samples if samples is not None else trace_view(camera, scene, atlas, texels,
                                                          supersample=supersample)

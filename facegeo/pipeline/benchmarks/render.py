@@ -285,16 +285,26 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
     reading the fits, resynthesising, the rest of the shading = blending and bookkeeping).
     The exact row also times the same view with the render stage's shadow-consistent texel
     taps (``seconds_per_view_with_shadow_taps``, ``seconds_shadow_taps_build_per_stage``,
-    ``shadow_lights``, ``shadow_edge_samples``; :func:`facegeo.render.render_shadows`).
+    ``shadow_lights``, ``shadow_edge_samples``; :func:`facegeo.render.render_shadows`) and
+    with the taps and the stage's image-space detail (``seconds_per_view_with_taps_and_
+    image_detail``, ``seconds_image_detail``, ``image_detail_pixels``;
+    :mod:`facegeo.render.detail`; blank source captures stand in — the time does not depend
+    on their pixels).
     """
     from facegeo.capture import imageio
     from facegeo.lighting import envmap as E
     from facegeo.pipeline.relight import tone_map
     from facegeo.pipeline.render import builtin_env
     from facegeo.render._fitstore import light_set
+    import dataclasses
+
+    import numpy as np
+
+    from facegeo.render.detail import SourceImage
     from facegeo.render.novel import (
         cross_validated_shrinkage,
         even_subset,
+        key_lights,
         render_shadows,
         render_view,
         shade_texels,
@@ -366,13 +376,34 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
                 tapped = render_view(novel, scene, atlas, texels, sources, w, lights,
                                      samples=vs, resynthesis=resyn, shrinkage=factors,
                                      light_step=step, shadows=shadows)
+                t_taps = time.perf_counter() - t0 + t_trace
+                # and what the image-space detail adds (facegeo.render.detail): the source
+                # images' projection and their key lights' shadow-consistent taps; its time
+                # does not depend on the pixels, so blank captures of the source cameras'
+                # size stand in (relighting a scan's frames is timed in docs/render.md)
+                keys = key_lights(w, shadows.key_share, shadows.max_lights)
+                blank = [SourceImage(rig.camera(src.name),
+                                     np.zeros((rig.camera(src.name).height,
+                                               rig.camera(src.name).width, 3), np.float32),
+                                     np.ones((rig.camera(src.name).height,
+                                              rig.camera(src.name).width), bool))
+                         for src in sources]
+                blank = [dataclasses.replace(b, key_frames={int(k): (b.image, b.valid)
+                                                            for k in keys}) for b in blank]
+                t0 = time.perf_counter()
+                detailed = render_view(novel, scene, atlas, texels, sources, w, lights,
+                                       samples=vs, resynthesis=resyn, shrinkage=factors,
+                                       light_step=step, shadows=shadows, detail=blank)
                 taps_extra = {
-                    "seconds_per_view_with_shadow_taps": round(
-                        time.perf_counter() - t0 + t_trace, 3),
+                    "seconds_per_view_with_shadow_taps": round(t_taps, 3),
                     "seconds_shadow_taps_build_per_stage": round(t_build, 3),
                     "shadow_lights": tapped.stats["shadow_lights"],
                     "shadow_edge_samples": tapped.stats["shadow_edge_samples"],
-                    "seconds_shadows": tapped.stats["seconds_shadows"]}
+                    "seconds_shadows": tapped.stats["seconds_shadows"],
+                    "seconds_per_view_with_taps_and_image_detail": round(
+                        time.perf_counter() - t0 + t_trace, 3),
+                    "seconds_image_detail": detailed.stats["seconds_detail"],
+                    "image_detail_pixels": detailed.stats["detail_pixels"]}
             results[label] = (res, t_view, t_shrink, t_write, factors, col, cpu_view)
         exact, exact_col = results[settings[0][0]][0], results[settings[0][0]][5]
         cov = exact.covered
