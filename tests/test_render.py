@@ -287,6 +287,14 @@ def test_run_render_writes_images_and_metrics(parts):
     for k in ("texture_psnr_db_covered", "texture_naive_psnr_db_covered"):
         assert np.isfinite(m[k]), k
     assert m["naive_psnr_db_covered"] > m["texture_naive_psnr_db_covered"]
+    # a view rendered on its own keeps the relit source images for the next one under `sky`
+    kept = list((d / ".source_images").glob("*.npz"))
+    assert len(kept) == 1, kept
+    again = run_render(root, camera_spec="orbit:cam_left:30", env="sky", name="o30_again")
+    assert again["seconds_source_images"] == 0.0
+    from facegeo.capture import imageio
+
+    assert np.array_equal(imageio.read_image(d / "o30_again.exr"), imageio.read_image(d / "o30.exr"))
     m0 = run_render(root, camera_spec="orbit:cam_left:30", env="sky", name="o30_texture",
                     image_detail=False)
     assert m0["image_detail"] is False and "texture_psnr_db_covered" not in m0

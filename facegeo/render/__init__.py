@@ -2,6 +2,8 @@
 
 * :mod:`facegeo.render.novel` — primary rays → texels → per-source-camera resynthesis (§4.3)
   → Eq. (4) relighting → view-dependent blending → image; the naive baseline.
+* :mod:`facegeo.render.detail` — image-space detail: the source cameras' relit captures
+  projected per pixel (``render_view(detail=)``).
 * camera specs (``orbit:<camera>:<degrees>``, names, JSON) and the per-camera skin-model fit
   store live in private modules re-exported here.
 """
@@ -14,6 +16,7 @@ from facegeo.render._cameras import (
     parse_camera_spec,
 )
 from facegeo.render._fitstore import FitStore, FitWriter, light_set
+from facegeo.render.detail import SourceImage, project_source_images
 from facegeo.render.novel import (
     RenderResult,
     RenderShadows,
@@ -36,6 +39,7 @@ __all__ = [
     "RenderResult",
     "RenderShadows",
     "SourceCamera",
+    "SourceImage",
     "ViewSamples",
     "atlas_scene",
     "cross_validated_shrinkage",
@@ -44,6 +48,7 @@ __all__ = [
     "load_sources",
     "orbit_camera",
     "parse_camera_spec",
+    "project_source_images",
     "render_shadows",
     "render_view",
     "shade_texels",

@@ -13,7 +13,7 @@ facing, unoccluded, with the projection's own foreshortening and edge-feathering
 ``w_c``) contributes its relit image sampled bilinearly where the point projects
 (:func:`facegeo.surface.reflectance.sample_frame`: a tap on a masked pixel leaves that camera
 out), blended with the renderer's view-dependent weight ``b_c = w_c / max(θ_c, θ_floor)^p``
-(cameras below :data:`facegeo.render.novel.BLEND_MIN_SHARE` of a sample's blend left out, as
+(cameras below :data:`facegeo.render._blend.BLEND_MIN_SHARE` of a sample's blend left out, as
 for texels).
 
 :func:`facegeo.render.novel.render_view` (``detail=``) adds the difference between this
@@ -36,6 +36,7 @@ import numpy as np
 
 from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ShapeError
+from facegeo.render._blend import BLEND_MIN_SHARE, SAME_VIEW_RAD, _angle, key_lights
 
 __all__ = ["SourceImage", "project_source_images", "sample_normals"]
 
@@ -51,7 +52,7 @@ class SourceImage:
         the field's units (:func:`facegeo.lighting.relight.relight_scan_view`)
     valid : (H, W) bool — False where some lit frame's pixel is untrusted (saturated)
     key_frames : mapping light -> (frame (H, W, 3), valid (H, W)) — the OLAT frames of the
-        environment's key lights (:func:`facegeo.render.novel.key_lights`), for
+        environment's key lights (:func:`facegeo.render._blend.key_lights`), for
         shadow-consistent taps at their cast-shadow edges; empty: plain bilinear sampling
     """
 
@@ -117,7 +118,6 @@ def project_source_images(vs, images, scene, atlas, *, blend_power: float, weigh
     -------
     (P, 3) float32 — NaN where no source camera sees the sample's point with trusted pixels
     """
-    from facegeo.render.novel import BLEND_MIN_SHARE, SAME_VIEW_RAD, _angle
     from facegeo.surface.reflectance import camera_visibility, frame_sampler, sample_frame
 
     t0 = time.perf_counter()
@@ -130,8 +130,6 @@ def project_source_images(vs, images, scene, atlas, *, blend_power: float, weigh
     P = len(p)
     keys = np.zeros(0, np.int64)
     if shadows is not None:
-        from facegeo.render.novel import key_lights
-
         if weights is None or getattr(shadows, "stage", None) is None:
             raise InputError("project_source_images: shadows need the weights and a "
                              "RenderShadows with its stage (render_shadows)")
