@@ -6,8 +6,12 @@
 
     <name>.exr, <name>.png                the render (Debevec et al. 2000 §4.5,
                                           :func:`facegeo.render.render_view`)
-    <name>_naive.exr/.png                 the naive baseline: the source cameras' measured
-                                          functions relit and blended, no resynthesis
+    <name>_naive.exr/.png                 the naive baseline: the source cameras' relit
+                                          captures projected per pixel (with
+                                          ``image_detail``, the default; else their measured
+                                          functions relit and blended), no resynthesis
+    .source_images/<hash>.npz             the relit source captures of the image-space detail,
+                                          kept for the next view under the same environment
     <name>_reference.exr/.png             the generator's reference (synthetic scans)
     <name>_error.png                      |render − reference| heat map (synthetic scans)
     <name>.json                           the view's metrics
@@ -30,7 +34,11 @@ renderer; ``mask`` = the reference's pixels that see the head):
   measured pixel within ``fill_px``, else black, in both renders, and count as errors);
   ``head_coverage``: the fraction of the reference's head mask rendered from measured texels
   (what the reconstruction lacks counts here, not in ``coverage``); and the ``*_covered``
-  variants of PSNR / relative RMSE over covered pixels only.
+  variants of PSNR / relative RMSE over covered pixels only;
+* with image-space detail (``image_detail``, :mod:`facegeo.render.detail`): ``texture_*`` and
+  ``texture_naive_*``, the same figures of the texture-space renders before the detail,
+  ``detail_fraction`` (covered pixels the source images reached) and
+  ``seconds_source_images`` (relighting the captures; 0 when reused).
 
 Environments: a path to an ``.exr``/``.hdr`` map (``projection`` lat-long by default), or a
 built-in name: ``"uniform"`` (radiance 1 everywhere, the generator's ``uniform`` renders),
@@ -46,6 +54,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import re
 import time
 from pathlib import Path
@@ -230,7 +239,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         to it; the texture-space figures are kept as ``texture_*``. False: texture space
         only (the paper)
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
-        each step (rays, render, naive baseline, reference)
+        each step (rays — with image detail, relighting the source captures too, ≈ 40 s at the
+        paper preset the first time under an environment —, render, naive baseline, reference)
 
     Returns
     -------
@@ -306,11 +316,14 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     if resynthesis and not (out / "fit").is_dir():
         raise InputError(f"render: {out / 'fit'} is missing; run 'facegeo fit SCAN' first (or "
                          "render the naive baseline with resynthesis=False)")
+    try:
+        project_settings = json.loads((out / "project" / "stage.json").read_text())["settings"]
+    except (OSError, ValueError, KeyError, TypeError):
+        project_settings = {}
+    if not isinstance(project_settings, dict):
+        project_settings = {}
     if rig is None:
-        try:
-            rig = json.loads((out / "project" / "stage.json").read_text())["settings"]["rig"]
-        except (OSError, ValueError, KeyError):
-            rig = None
+        rig = project_settings.get("rig")
     the_rig, rig_used = stage_rig(scan, rig)
     camera = parse_camera_spec(camera_spec, _camera_table(scan, the_rig))
     environment = _load_env(env, projection, rotate_deg)
@@ -346,6 +359,9 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
 
     samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
     shadows = _view_shadows(atlas, scene, texels, stage, cache) if shadow_taps else None
+    # the source images' visibility weights as the projection's (its stage's settings)
+    vis_kw = {k: project_settings[k] for k in ("min_cos", "feather_px", "depth_jump")
+              if k in project_settings}
     if image_detail:
         from facegeo.render.novel import key_lights
 
@@ -371,7 +387,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         sets += [None] if share_paper else []
         got = render_view(camera, scene, atlas, texels, sources, w, lights, blend_power=bp,
                           samples=samples, fill_px=fill_px, light_step=light_step,
-                          shrinkage_set=sets, shadows=shadows, detail=detail)
+                          shrinkage_set=sets, shadows=shadows, detail=detail,
+                          detail_visibility=vis_kw)
         res = got[0]
         naive = got[1] if baseline else None
         paper = got[-1] if share_paper else None
@@ -380,17 +397,19 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         res = render_view(camera, scene, atlas, texels, sources, w, lights,
                           resynthesis=resynthesis, blend_power=bp, samples=samples,
                           fill_px=fill_px, shrinkage=factors, shadows=shadows,
-                          light_step=light_step if resynthesis is True else 1, detail=detail)
+                          light_step=light_step if resynthesis is True else 1, detail=detail,
+                          detail_visibility=vis_kw)
         tick(2)
         if baseline and resynthesis:
             naive = render_view(camera, scene, atlas, texels, sources, w, lights,
                                 resynthesis=False, blend_power=bp, samples=samples,
-                                fill_px=fill_px, shadows=shadows, detail=detail)
+                                fill_px=fill_px, shadows=shadows, detail=detail,
+                                detail_visibility=vis_kw)
             tick(3)
     if paper_too and paper is None:
         paper = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=True,
                             blend_power=bp, samples=samples, fill_px=fill_px, shadows=shadows,
-                            detail=detail)
+                            detail=detail, detail_visibility=vis_kw)
         tick(3 + int(naive is not None))
     env_tag = env if isinstance(env, str) and env in BUILTIN_ENVS else (
         Path(env).stem if isinstance(env, (str, Path)) else "env")
@@ -488,9 +507,11 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
     this call spent building them (0: reused).
 
     Kept once per weights, key lights, rig and cameras in ``cache`` (a stage's views) and, with
-    ``disk``, in a file there named by those and the state (path, size, modification time) of
-    the scan manifest and of every frame the relighting reads: read back instead of relit while
-    none of them changed, written atomically, the :data:`SOURCE_IMAGES_KEEP` newest kept."""
+    ``disk``, in a file there named by those, facegeo's code fingerprint, the OLAT response
+    curve and the state (path, size, modification time) of the scan manifest and of every frame
+    the relighting reads: read back instead of relit while none of them changed (a file that
+    does not read is removed and the images relit), written atomically, the
+    :data:`SOURCE_IMAGES_KEEP` most recently used kept; a failed write only logs a warning."""
     from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_path
     from facegeo.lighting.relight import relight_scan_view
     from facegeo.render.detail import SourceImage
@@ -507,10 +528,15 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
         files += [scan.olat_path(c, k) for c in names for k in sorted(set(lit) | set(keys))]
         try:
             state = [(str(f), f.stat().st_size, f.stat().st_mtime_ns) for f in files]
-        except OSError:
-            state = None  # a frame missing: the relighting below names it
+            resp = scan.response("olat")
+            state.append((resp.kind, resp.gamma, resp.file, None if resp.table is None else
+                          hashlib.sha1(np.ascontiguousarray(resp.table).tobytes()).hexdigest()))
+        except (OSError, KeyError, ValueError):
+            state = None  # a frame or the response missing: the relighting below names it
         if state is not None:
-            name = hashlib.sha1(repr((key, state)).encode()).hexdigest()[:24]
+            from facegeo.pipeline.cache import code_fingerprint
+
+            name = hashlib.sha1(repr((key, state, code_fingerprint())).encode()).hexdigest()[:24]
             path = disk / f"{name}.npz"
     if path is not None and path.is_file():
         try:
@@ -519,11 +545,13 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
                                       {k: (z[f"{c}/{k}/frame"], z[f"{c}/{k}/valid"])
                                        for k in keys})
                           for c in names]
+            os.utime(path)  # most recently used: kept longest
             if cache is not None:
                 cache[key] = images
             return images, 0.0
-        except (OSError, ValueError, KeyError):
-            log.warning("%s: unreadable; relighting the source images again", path)
+        except Exception as exc:  # truncated or foreign: a cache, not an input — rebuild it
+            log.warning("%s: unreadable (%s); relighting the source images again", path, exc)
+            path.unlink(missing_ok=True)
     t0 = time.perf_counter()
     images = []
     for src in sources:
@@ -541,12 +569,28 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
             arrays[f"{c}/image"], arrays[f"{c}/valid"] = im.image, im.valid
             for k, (frame, ok) in im.key_frames.items():
                 arrays[f"{c}/{k}/frame"], arrays[f"{c}/{k}/valid"] = frame, ok
-        with atomic_path(path) as tmp:
-            np.savez(tmp, **arrays)
-        old = sorted(disk.glob("*.npz"), key=lambda f: f.stat().st_mtime)
-        for f in old[:-SOURCE_IMAGES_KEEP]:
-            f.unlink(missing_ok=True)
+        try:
+            with atomic_path(path) as tmp:
+                np.savez(tmp, **arrays)
+            _prune(disk, SOURCE_IMAGES_KEEP)
+        except OSError as exc:  # the render does not need the cache
+            log.warning("%s: could not keep the relit source images (%s)", disk, exc)
     return images, round(time.perf_counter() - t0, 4)
+
+
+def _prune(folder: Path, keep: int) -> None:
+    """Remove all but the ``keep`` most recently modified ``*.npz`` files of ``folder``
+    (hidden ones — another process's file being written — left alone)."""
+    dated = []
+    for f in folder.glob("*.npz"):
+        if f.name.startswith("."):
+            continue
+        try:
+            dated.append((f.stat().st_mtime_ns, f))
+        except FileNotFoundError:  # removed meanwhile by another render
+            continue
+    for _, f in sorted(dated)[:-keep]:
+        f.unlink(missing_ok=True)
 
 
 def _view_shadows(atlas, scene, texels, stage, cache: dict | None):
@@ -658,7 +702,8 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     resynthesis as written beside it).
     """
     per_view = {}
-    cache: dict = {}  # the cross-validated λ and the atlas check, once a stage (render_one)
+    # the cross-validated λ, the atlas check and the relit source images, once a stage
+    cache: dict = {}
     for k, spec in enumerate(views):
         tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(views) * n)) \
             if progress else None

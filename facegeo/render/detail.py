@@ -38,7 +38,7 @@ from facegeo.checks import as_array, fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.render._blend import BLEND_MIN_SHARE, SAME_VIEW_RAD, _angle, key_lights
 
-__all__ = ["SourceImage", "project_source_images", "sample_normals"]
+__all__ = ["SourceImage", "check_source_images", "project_source_images", "sample_normals"]
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,24 @@ class SourceImage:
                                  f"{shape + (3,)}, {shape}")
 
 
+def check_source_images(images) -> list:
+    """``images`` as a list: a non-empty sequence of :class:`SourceImage`, one per camera."""
+    if isinstance(images, SourceImage) or not isinstance(images, (list, tuple)):
+        raise InputError(f"detail: expected a list of SourceImage (one per source camera), got "
+                         f"{type(images).__name__}")
+    images = list(images)
+    if not images:
+        raise InputError("detail: no source images (None renders without image detail)")
+    for k, im in enumerate(images):
+        if not isinstance(im, SourceImage):
+            raise InputError(f"detail[{k}]: expected a SourceImage, got {type(im).__name__}")
+    names = [im.camera.name for im in images]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise InputError(f"detail: camera(s) {', '.join(map(fmt_value, twice))} given twice")
+    return images
+
+
 def sample_normals(atlas, face, bary) -> tuple[np.ndarray, np.ndarray]:
     """Shading normals (vertex normals interpolated, unit) and geometric normals of the atlas
     mesh at hit points given by ``face`` ``(P,)`` and barycentrics ``bary`` ``(P, 3)``."""
@@ -92,7 +110,8 @@ def sample_normals(atlas, face, bary) -> tuple[np.ndarray, np.ndarray]:
 
 
 def project_source_images(vs, images, scene, atlas, *, blend_power: float, weights=None,
-                          shadows=None, stats: dict | None = None) -> np.ndarray:
+                          shadows=None, visibility: dict | None = None,
+                          stats: dict | None = None) -> np.ndarray:
     """Per pixel sample of ``vs``, the source images blended as the module docstring says.
 
     Parameters
@@ -110,6 +129,10 @@ def project_source_images(vs, images, scene, atlas, *, blend_power: float, weigh
         straddle that light's cast-shadow edge (decided on the atlas mesh) takes the light's
         share from the taps on its own side, ``+ w_l ⊙ (side − bilinear)`` — the
         projection's own :class:`facegeo.surface.shadows.ShadowTaps`
+    visibility : dict, optional — ``min_cos``, ``feather_px``, ``depth_jump`` of
+        :func:`facegeo.surface.reflectance.camera_visibility`: the projection's own (the
+        ``project`` stage's settings), so that the weights ``w_c`` are the texels'; default
+        the projection's defaults
     stats : dict, optional — filled with ``detail_cameras`` (samples each camera contributed
         to), ``detail_shadow_samples`` (samples the key lights' taps moved) and
         ``seconds_detail``
@@ -121,6 +144,16 @@ def project_source_images(vs, images, scene, atlas, *, blend_power: float, weigh
     from facegeo.surface.reflectance import camera_visibility, frame_sampler, sample_frame
 
     t0 = time.perf_counter()
+    images = check_source_images(images)
+    if isinstance(blend_power, bool) or not isinstance(blend_power, (int, float, np.number)) \
+            or not np.isfinite(blend_power) or blend_power < 0:
+        raise InputError(f"blend_power: expected a finite number >= 0, got "
+                         f"{fmt_value(blend_power)}")
+    vis_kw = dict(visibility or {})
+    extra = set(vis_kw) - {"min_cos", "feather_px", "depth_jump"}
+    if extra:
+        raise InputError(f"visibility: unknown setting(s) {', '.join(sorted(extra))} (expected "
+                         "min_cos, feather_px, depth_jump)")
     if vs.face is None or vs.bary is None:
         raise InputError("project_source_images: the view samples keep no faces "
                          "(trace them with trace_view)")
@@ -140,7 +173,7 @@ def project_source_images(vs, images, scene, atlas, *, blend_power: float, weigh
     n_moved = 0
     for src in images:
         cam = src.camera
-        vis = camera_visibility(points, cam, scene)
+        vis = camera_visibility(points, cam, scene, **vis_kw)
         sel = np.flatnonzero(vis.weight > 0)
         if sel.size == 0:
             parts.append((sel, np.zeros(0), np.zeros((0, 3), np.float32)))
@@ -160,8 +193,10 @@ def project_source_images(vs, images, scene, atlas, *, blend_power: float, weigh
                 plain = sample_frame(frame, sampler, np.asarray(ok, bool))
                 side = plain.copy()
                 if taps.apply(k, frame, side, np.asarray(ok, bool)):
-                    # Eq. 4 is linear in the frames: the light's share moves to its side's taps
-                    val = val + (w[k] * (side - plain)).astype(np.float32)
+                    # Eq. 4 is linear in the frames: the light's share moves to its side's
+                    # taps; rows the taps left alone (equal, or NaN in both) stay as they are
+                    same = (side == plain) | (np.isnan(side) & np.isnan(plain))
+                    val = val + np.where(same, 0.0, w[k] * (side - plain)).astype(np.float32)
             n_moved += taps.changed
         theta = _angle(vis.v_world[sel], vs.v_world[sel])
         b = vis.weight[sel].astype(np.float64) / np.maximum(theta, SAME_VIEW_RAD) ** blend_power
