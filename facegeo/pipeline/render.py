@@ -526,13 +526,13 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
         lit = [int(k) for k in np.flatnonzero(np.any(np.asarray(w) != 0, axis=1))]
         files = [f for f in [getattr(scan, "manifest_path", None)] if f is not None]
         files += [scan.olat_path(c, k) for c in names for k in sorted(set(lit) | set(keys))]
-        try:
-            state = [(str(f), f.stat().st_size, f.stat().st_mtime_ns) for f in files]
+        state = [(str(f), _file_state(f)) for f in files]  # a missing frame: None, and the
+        try:                                                 # relighting below names it
             resp = scan.response("olat")
             state.append((resp.kind, resp.gamma, resp.file, None if resp.table is None else
                           hashlib.sha1(np.ascontiguousarray(resp.table).tobytes()).hexdigest()))
         except (OSError, KeyError, ValueError):
-            state = None  # a frame or the response missing: the relighting below names it
+            state = None  # the response does not read: no cache, the relighting names it
         if state is not None:
             from facegeo.pipeline.cache import code_fingerprint
 

@@ -296,8 +296,6 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
     from facegeo.pipeline.relight import tone_map
     from facegeo.pipeline.render import builtin_env
     from facegeo.render._fitstore import light_set
-    import dataclasses
-
     import numpy as np
 
     from facegeo.render.detail import SourceImage
@@ -382,14 +380,11 @@ def bench_novel_view_paper(quick: bool) -> list[BenchRow]:
                 # does not depend on the pixels, so blank captures of the source cameras'
                 # size stand in (relighting a scan's frames is timed in docs/render.md)
                 keys = key_lights(w, shadows.key_share, shadows.max_lights)
-                blank = [SourceImage(rig.camera(src.name),
-                                     np.zeros((rig.camera(src.name).height,
-                                               rig.camera(src.name).width, 3), np.float32),
-                                     np.ones((rig.camera(src.name).height,
-                                              rig.camera(src.name).width), bool))
-                         for src in sources]
-                blank = [dataclasses.replace(b, key_frames={int(k): (b.image, b.valid)
-                                                            for k in keys}) for b in blank]
+                blank = []
+                for cam in (rig.camera(src.name) for src in sources):
+                    img = np.zeros((cam.height, cam.width, 3), np.float32)
+                    ok = np.ones((cam.height, cam.width), bool)
+                    blank.append(SourceImage(cam, img, ok, {int(k): (img, ok) for k in keys}))
                 t0 = time.perf_counter()
                 detailed = render_view(novel, scene, atlas, texels, sources, w, lights,
                                        samples=vs, resynthesis=resyn, shrinkage=factors,
