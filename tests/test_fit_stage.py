@@ -132,6 +132,28 @@ def test_fit_errors_name_what_is_missing(reconstructed, tmp_path):
         run_fit(root, out_dir=tmp_path / "empty")
     with pytest.raises(InputError, match="gt_angles"):  # 0 is the source view's own figure
         run_fit(root, out_dir=tmp_path / "x", gt_angles=[30.0, 0.0])
+    for bad in (0, 1.5, True, "3"):
+        with pytest.raises(InputError, match="supersample"):
+            run_fit(root, out_dir=tmp_path / "x", supersample=bad)
+
+
+def test_views_texels_follow_the_renders_supersampling(reconstructed):
+    """``texels="views"`` fits what the views' s × s rays tap: at s = 3 (whose grid holds the
+    pixel centre) a superset of the pixel centres' texels, reaching past them at the edges."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.fit import _camera_table, needed_texels
+    from facegeo.pipeline.project import stage_rig
+    from facegeo.surface.atlas import Atlas, Texels
+
+    root, _ = reconstructed
+    atlas = Atlas.load(root / "out" / "atlas" / "atlas.npz")
+    tex = Texels.load(root / "out" / "atlas" / "texels.npz")
+    scan = load_scan(root)
+    rig, _ = stage_rig(scan, None)
+    table = _camera_table(scan, rig)
+    one = needed_texels(["orbit:cam_left:30"], table, atlas, tex)
+    three = needed_texels(["orbit:cam_left:30"], table, atlas, tex, supersample=3)
+    assert np.isin(one, three).all() and three.size > one.size
 
 
 def test_mosaic_tiles_are_light_grid_images():

@@ -550,6 +550,40 @@ def test_threaded_shading_is_identical_to_serial(tiny_scan):
                           gt.render_lights(cam, lights, w, workers=3))
 
 
+def test_render_lights_supersample_integrates_the_pixel_footprint(tiny_scan):
+    """``supersample = s``: each pixel is the mean of the s × s pixel-centre renders of cameras
+    whose principal point moves by the sub-pixel offsets (−1/3, 0, 1/3 px at s = 3) — the
+    regular grid of a box-filtered pixel; rays that miss count as 0, so silhouette pixels
+    are partly covered. s = 1 is the pixel centre; a bad s is refused."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.errors import InputError
+    from facegeo.synth.render import load_ground_truth
+
+    root, _ = tiny_scan
+    gt = load_ground_truth(load_scan(root))
+    cam, lights = gt.rig.cameras[0], gt.rig.lights
+    w = np.random.default_rng(1).random((lights.n_lights, 3)) * 0.05
+    s = 3
+    box = gt.render_lights(cam, lights, w, supersample=s)
+    acc = np.zeros(box.shape, np.float64)
+    for dy in (np.arange(s) + 0.5) / s - 0.5:
+        for dx in (np.arange(s) + 0.5) / s - 0.5:
+            K = cam.K.copy()
+            K[0, 2] -= dx  # pixel x of the shifted camera = pixel x + dx of this one
+            K[1, 2] -= dy
+            acc += gt.render_lights(cam.replace(K=K), lights, w)
+    acc /= s * s
+    assert np.abs(box - acc).max() <= 1e-5 * np.abs(acc).max()
+    point = gt.render_lights(cam, lights, w)
+    assert np.array_equal(point, gt.render_lights(cam, lights, w, supersample=1))
+    # the footprint differs from the centre at edges: partly covered silhouette pixels
+    mask1, mask3 = gt.surface_view(cam).mask, gt.surface_view(cam, supersample=s).mask
+    assert (mask3 & ~mask1).sum() > 0
+    assert np.abs(box - point).max() > 0.01 * np.abs(point).max()
+    with pytest.raises(InputError, match="supersample"):
+        gt.render_lights(cam, lights, w, supersample=0)
+
+
 def test_png16_olat_frames_round_trip_within_quantisation(tmp_path):
     """16-bit sRGB PNG OLAT frames with an exposure load back as radiance within the encoding's
     quantisation; clipped highlights are masked."""

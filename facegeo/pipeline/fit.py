@@ -73,7 +73,7 @@ __all__ = ["FIT_SETTINGS", "default_views", "fit_products", "needed_texels", "ru
 FIT_SETTINGS: dict[str, Any] = {
     "texels": "all", "views": None, "max_texels": None, "eta": 1.4, "chunk": 2048,
     "diffuse_dtype": "float16", "gt_functions": 256, "gt_angles": [30.0, 60.0],
-    "mosaic": 8, "rig": None, "polish": None,
+    "mosaic": 8, "rig": None, "polish": None, "supersample": 1,
 }
 
 
@@ -100,20 +100,26 @@ def _camera_table(scan, rig) -> dict:
     return cams
 
 
-def needed_texels(specs, cameras: dict, atlas, texels, scene=None) -> np.ndarray:
-    """Sorted texels any of the views ``specs`` needs (their bilinear taps)."""
+def needed_texels(specs, cameras: dict, atlas, texels, scene=None, *,
+                  supersample: int = 1) -> np.ndarray:
+    """Sorted texels any of the views ``specs`` needs (their bilinear taps), traced with
+    ``supersample × supersample`` rays per pixel (the render's own samples)."""
     from facegeo.render import atlas_scene, parse_camera_spec, trace_view
 
     scene = scene if scene is not None else atlas_scene(atlas)
-    parts = [trace_view(parse_camera_spec(s, cameras), scene, atlas, texels).needed_texels
+    parts = [trace_view(parse_camera_spec(s, cameras), scene, atlas, texels,
+                        supersample=supersample).needed_texels
              for s in specs]
     return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
 
 def _check_settings(*, texels="all", max_texels=None, chunk=1, gt_angles=(30.0, 60.0),
-                    **_ignored) -> None:
+                    supersample=1, **_ignored) -> None:
     if texels not in ("all", "views"):
         raise InputError(f"texels: expected 'all' or 'views', got {fmt_value(texels)}")
+    if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) \
+            or supersample < 1:
+        raise InputError(f"supersample: expected an integer >= 1, got {fmt_value(supersample)}")
     if max_texels is not None and int(max_texels) < 1:
         raise InputError(f"max_texels: expected a positive count, got {fmt_value(max_texels)}")
     if int(chunk) < 1:
@@ -325,7 +331,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                  views: list | None = None, max_texels: int | None = None, eta: float = 1.4,
                  chunk: int = 2048, diffuse_dtype: str = "float16", gt_functions: int = 256,
                  gt_angles=(30.0, 60.0), mosaic: int = 8, rig: str | None = None,
-                 polish: int | None = None, progress=None) -> tuple[dict, dict]:
+                 polish: int | None = None, supersample: int = 1,
+                 progress=None) -> tuple[dict, dict]:
     """Fit the skin model to every camera's projected field; write the ``fit`` products.
 
     Parameters
@@ -336,6 +343,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     atlas_dir : path, optional — default ``project_dir/../atlas``
     texels : {"all", "views"} — fit every measured texel, or only those ``views`` need
     views : list of camera specs, optional — default :func:`default_views`
+    supersample : int — with ``texels="views"``, the views' rays per pixel (s × s): the texels
+        their supersampled renders tap (the ``render`` stage's own setting)
     max_texels : int, optional — at most this many functions per camera (even subsample)
     eta : float — index of refraction (ρ_s, Eq. 9)
     chunk : int — functions read and fitted at a time
@@ -372,7 +381,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     project_dir = Path(project_dir)
     dest = Path(dest)
     atlas_dir = Path(atlas_dir) if atlas_dir is not None else project_dir.parent / "atlas"
-    _check_settings(texels=texels, max_texels=max_texels, chunk=chunk, gt_angles=gt_angles)
+    _check_settings(texels=texels, max_texels=max_texels, chunk=chunk, gt_angles=gt_angles,
+                    supersample=supersample)
     for f in ("atlas.npz", "texels.npz"):
         if not (atlas_dir / f).is_file():
             raise InputError(f"fit: {atlas_dir / f} is missing; run 'facegeo reconstruct SCAN' "
@@ -389,7 +399,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     settings = {"texels": texels, "views": views, "max_texels": max_texels, "eta": eta,
                 "chunk": int(chunk), "diffuse_dtype": diffuse_dtype,
                 "gt_functions": gt_functions, "gt_angles": list(gt_angles), "mosaic": mosaic,
-                "rig": rig_used, "polish": polish}
+                "rig": rig_used, "polish": polish, "supersample": int(supersample)}
     depth = SearchDepth() if polish is None else SearchDepth(polish=int(polish))
     cam_table = _camera_table(scan, the_rig)
     need = None
@@ -400,7 +410,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             [c.name for c in the_rig.cameras],
             [n for n in cam_table if n not in the_rig.camera_names])
         settings["views"] = list(specs)
-        need = needed_texels(specs, cam_table, atlas, tex, atlas_scene(atlas))
+        need = needed_texels(specs, cam_table, atlas, tex, atlas_scene(atlas),
+                             supersample=supersample)
         t_views = time.perf_counter() - t0
     renderer = T_true = None
     gauge: dict[str, float] = {}

@@ -63,6 +63,12 @@ RIG_CHOICES = ("auto", "ground_truth", "calibrated", "scan")
 #: the source cameras' mean view of the head) orbited by these angles (degrees) — views no
 #: source camera saw (on the two-camera presets, 15° and 45° beyond the outermost camera).
 RENDER_ORBITS = NOVEL_ORBITS
+#: Rays per pixel (s × s, a box filter over the pixel) of the render stage's views and of the
+#: generator's references they are compared with: a camera's pixel integrates its footprint,
+#: and at 1 (pixel centres) the hard shadow edges' point samples are an error floor every
+#: method shares (docs/render.md, "The pixel footprint"). The fit stage fits the texels the
+#: views' supersampled rays tap.
+RENDER_SUPERSAMPLE = 3
 
 
 def _common_inputs(scan) -> list[Path]:
@@ -280,7 +286,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                                    progress=ctx.progress, **ctx.settings)
 
         views = [f"orbit:{FRONT}:{d:g}" for d in RENDER_ORBITS]
-        fit_settings = dict(FIT_SETTINGS, texels="views", views=views, rig=use_rig)
+        fit_settings = dict(FIT_SETTINGS, texels="views", views=views, rig=use_rig,
+                            supersample=RENDER_SUPERSAMPLE)
         specs += [
             StageSpec("atlas", run_atlas, after=mesh_after, inputs=lambda d: mesh_inputs(),
                       settings={"mesh": use_mesh, "texels_per_mm": 1.0, "size": None, "padding": 2,
@@ -300,7 +307,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                       inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
                       settings={"views": views, "env": RENDER_DEFAULT_ENV, "rig": use_rig,
                                 "shrinkage": SHRINKAGE_DEFAULT, "shadow_taps": True,
-                                "image_detail": True}),
+                                "image_detail": True, "supersample": RENDER_SUPERSAMPLE}),
         ]
     if not specs:
         raise InputError(f"scan {scan.root}: nothing to reconstruct (no [calib], "

@@ -206,7 +206,11 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     env : str or EnvironmentMap — an ``.exr``/``.hdr`` file or a built-in name
     rotate_deg : float, degrees — environment rotation about +Y
     projection : {"latlong", "mirrorball", "angular"} — of an environment file
-    supersample : int — s × s rays per pixel
+    supersample : int — s × s rays per pixel (a box filter over the pixel); the reference
+        integrates the same footprint (``reference_supersample``). 1: pixel centres, where a
+        hard shadow edge's point sample is a step no resampling of the captures places
+        (docs/render.md, "The pixel footprint"); the ``render`` stage uses
+        :data:`facegeo.pipeline.reconstruct.RENDER_SUPERSAMPLE`
     resynthesis : bool or "diffuse" — False: render only the naive baseline as the main
         image; ``"diffuse"``: the diffuse-only ablation (:func:`facegeo.render.shade_texels`)
     baseline : bool — also render the naive baseline
@@ -454,10 +458,14 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         metrics.update(gauge)
         ref_camera = camera if T_true is None else dataclasses.replace(
             camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
-        ref = renderer.render_lights(ref_camera, renderer.rig.lights, w)
-        mask = renderer.surface_view(ref_camera).mask
+        # the reference integrates the render's own pixel footprint (s × s box): a point
+        # sample of a hard shadow edge is not what a camera records, and comparing pixel
+        # centres with a box-filtered render (or the reverse) would measure the sampling
+        ref = renderer.render_lights(ref_camera, renderer.rig.lights, w, supersample=supersample)
+        mask = renderer.surface_view(ref_camera, supersample=supersample).mask
         tick(steps)
         metrics["seconds_reference"] = round(time.perf_counter() - t0, 4)
+        metrics["reference_supersample"] = int(supersample)
         imageio.write_image(dest / f"{stem}_reference.exr", ref)
         files["reference_png"] = imageio.write_image(dest / f"{stem}_reference.png",
                                                      _expose(ref, exposure)).name

@@ -628,7 +628,7 @@ class ReferenceRenderer:
         for l, rad in _ordered_map(self._stage_light_shader(view, lights), idx, workers):
             yield int(l), view.to_image(rad)
 
-    def render_lights(self, camera, lights, weights, *, workers: int = 2,
+    def render_lights(self, camera, lights, weights, *, supersample: int = 1, workers: int = 2,
                       progress: Callable[[int], None] | None = None) -> np.ndarray:
         """Image ``(H, W, 3)`` float32 of the head lit by the light stage with RGB ``weights``.
 
@@ -636,9 +636,14 @@ class ReferenceRenderer:
         environment of radiance ``L(ω)``, pass ``weights[l] = L(ω_l) · δA_l`` — Debevec et al.
         2000 Eq. (4). Lights with zero weight are skipped (only lights that carry energy). The
         sum runs in light-index order in float64 whatever ``workers`` is.
+
+        ``supersample = s`` integrates the pixel's footprint: the mean of s × s rays on the
+        regular sub-pixel grid of :meth:`surface_view` (a box filter; rays that miss the head
+        count as 0), what a sensor pixel records; 1 (the default, and the OLAT frames) samples
+        the pixel centre.
         """
         w = as_array(weights, "weights", shape=(lights.n_lights, 3))
-        view = self.surface_view(camera)
+        view = self.surface_view(camera, supersample=supersample)
         acc = np.zeros((view.n_samples, 3), np.float64)
         active = np.flatnonzero(np.any(w != 0, axis=1))
         shade = self._stage_light_shader(view, lights)
