@@ -42,6 +42,10 @@ def test_second_run_does_no_work_and_metrics_gather(tiny_scan, capsys):
     assert {v["camera"] for v in metrics["render"]["views"].values()} == {
         f"front_orbit{d:g}" for d in reconstruct.RENDER_ORBITS}
     assert metrics["render"]["psnr_db_min"] > 10
+    # rendered at the stage's 3 × 3 rays and compared with references of the same footprint
+    assert {v["supersample"] for v in metrics["render"]["views"].values()} \
+        == {v["reference_supersample"] for v in metrics["render"]["views"].values()} \
+        == {reconstruct.RENDER_SUPERSAMPLE}
     assert "psnr_gain_db_covered_min" in metrics["render"]
     assert (tiny_scan / "out" / "report.html").is_file()
     # the projection is compared with the generator's exact shading (tiny preset: ≈ 5–7 %,
@@ -215,3 +219,24 @@ def test_a_loaded_scan_is_used_as_it_is(tiny_scan, monkeypatch):
     results = reconstruct.run_reconstruct(scan, until="atlas")
     assert [r.name for r in results] == ["atlas"]
     assert results[0].out_dir == tiny_scan / "out" / "atlas"
+
+
+def test_fit_and_render_share_the_supersample(tiny_scan, monkeypatch):
+    """The render stage renders at ``RENDER_SUPERSAMPLE`` rays per pixel and the fit fits the
+    texels those rays tap; a render supersample given alone carries over to the fit, one
+    given to both is kept."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.cache import Pipeline
+
+    pipeline = reconstruct.reconstruct_pipeline(load_scan(tiny_scan))
+    spec = {s.name: s.settings for s in pipeline.stages}
+    assert spec["render"]["supersample"] == spec["fit"]["supersample"] \
+        == reconstruct.RENDER_SUPERSAMPLE == 3
+    seen = []
+    monkeypatch.setattr(Pipeline, "run", lambda self, root, *, settings=None, **kw:
+                        seen.append(settings) or [])
+    reconstruct.run_reconstruct(tiny_scan, settings={"render": {"supersample": 2}})
+    reconstruct.run_reconstruct(tiny_scan, settings={"render": {"supersample": 2},
+                                                     "fit": {"supersample": 4, "eta": 1.3}})
+    assert seen[0]["fit"] == {"supersample": 2} and seen[0]["render"] == {"supersample": 2}
+    assert seen[1]["fit"] == {"supersample": 4, "eta": 1.3}

@@ -60,7 +60,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import fmt_value
+from facegeo.checks import check_positive_int, fmt_value
 from facegeo.errors import InputError
 from facegeo.fsutil import staged_directory
 from facegeo.render.novel import even_subset
@@ -117,9 +117,7 @@ def _check_settings(*, texels="all", max_texels=None, chunk=1, gt_angles=(30.0, 
                     supersample=1, **_ignored) -> None:
     if texels not in ("all", "views"):
         raise InputError(f"texels: expected 'all' or 'views', got {fmt_value(texels)}")
-    if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) \
-            or supersample < 1:
-        raise InputError(f"supersample: expected an integer >= 1, got {fmt_value(supersample)}")
+    check_positive_int(supersample, "supersample")
     if max_texels is not None and int(max_texels) < 1:
         raise InputError(f"max_texels: expected a positive count, got {fmt_value(max_texels)}")
     if int(chunk) < 1:

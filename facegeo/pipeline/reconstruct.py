@@ -357,6 +357,14 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
             if clash:
                 raise InputError(f"settings[{stage!r}]: {', '.join(clash)} is chosen for the whole "
                                  f"chain: pass mesh= / rig= (--mesh / --rig), not a stage setting")
+        # the fit fits the texels the render's rays tap: a render supersample given alone
+        # carries over to the fit (a fit traced at other sub-pixel offsets leaves texels the
+        # render taps unfitted)
+        render_given = settings.get("render")
+        if isinstance(render_given, Mapping) and "supersample" in render_given:
+            fit_given = dict(settings.get("fit") or {})
+            fit_given.setdefault("supersample", render_given["supersample"])
+            settings = {**settings, "fit": fit_given}
     for name, flag in ((until, None), (only, "--only"), (from_stage, "--from")):
         _check_stage_has_input(scan, name, flag)
     pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until)

@@ -62,7 +62,7 @@ from typing import Any
 
 import numpy as np
 
-from facegeo.checks import fmt_value
+from facegeo.checks import check_positive_int, fmt_value
 from facegeo.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -314,6 +314,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     t_start = time.perf_counter()
     out, dest = Path(out), Path(dest)
     shrink_mode = _check_shrinkage(shrinkage)
+    supersample = check_positive_int(supersample, "supersample")
     for need in ("atlas/atlas.npz", "atlas/texels.npz"):
         if not (out / need).is_file():
             raise InputError(f"render: {out / need} is missing; run 'facegeo reconstruct SCAN' first")

@@ -45,7 +45,7 @@ from functools import cached_property
 
 import numpy as np
 
-from facegeo.checks import as_array, fmt_value
+from facegeo.checks import as_array, check_positive_int, fmt_value
 from facegeo.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -643,7 +643,8 @@ class ReferenceRenderer:
         the pixel centre.
         """
         w = as_array(weights, "weights", shape=(lights.n_lights, 3))
-        view = self.surface_view(camera, supersample=supersample)
+        view = self.surface_view(camera, supersample=check_positive_int(supersample,
+                                                                         "supersample"))
         acc = np.zeros((view.n_samples, 3), np.float64)
         active = np.flatnonzero(np.any(w != 0, axis=1))
         shade = self._stage_light_shader(view, lights)
