@@ -227,14 +227,12 @@ def _rot_deg(Ra, Rb) -> float:
 
 
 def _write_yaml(path: Path, cam, rms: float, per_view) -> None:
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    fs.write("image_width", int(cam.width))
-    fs.write("image_height", int(cam.height))
-    fs.write("camera_matrix", np.asarray(cam.K, np.float64))
-    fs.write("distortion_coefficients", np.asarray(cam.dist, np.float64).reshape(-1, 1))
-    fs.write("avg_reprojection_error", float(rms))
-    fs.write("per_view_reprojection_errors", np.asarray(per_view, np.float64).reshape(-1, 1))
-    fs.release()
+    """``<camera>.yml`` as OpenCV's calibration sample writes it (no pose), atomically."""
+    from facegeo.capture.opencv_storage import write_opencv_camera
+
+    write_opencv_camera(path, cam, pose=False, extra={
+        "avg_reprojection_error": float(rms),
+        "per_view_reprojection_errors": np.asarray(per_view, np.float64).reshape(-1, 1)})
 
 
 def _residual_plot(path: Path, size, r: np.ndarray, q: np.ndarray, title: str) -> None:
