@@ -7,7 +7,9 @@ rig, then renders and writes, per camera:
   each camera (intrinsics; :func:`facegeo.synth.boards.rig_calibration_views`), 8-bit sRGB PNG;
 * the board under every structured-light pattern at a few poses (projector calibration);
 * structured-light frames of the head (white/black, Gray code with inverse frames, phase
-  shift), with projector shadows and camera occlusion traced by Embree, 8-bit sRGB PNG;
+  shift), with projector shadows and camera occlusion traced by Embree, 8-bit sRGB PNG — on
+  request Gray code only, a projector the cameras out-resolve, frames a camera lost
+  (:mod:`facegeo.synth.sl_conditions`);
 * one OLAT frame per light of the light stage in light-index order (the paper's capture order:
   θ fastest), linear EXR;
 * ``ground_truth/``: mesh, rig, skin field (re-evaluable anywhere), per-vertex parameters,
@@ -38,6 +40,15 @@ from facegeo.synth.boards import (
     board_for_cameras,
     calibration_board_poses,
     rig_calibration_views,
+)
+from facegeo.synth.sl_conditions import (
+    camera_px_per_projector_px,
+    check_projector_scale,
+    check_sl_phase_steps,
+    projector_coordinates,
+    projector_size_for_scale,
+    resolve_lost_frames,
+    shared_code_fraction,
 )
 
 log = logging.getLogger(__name__)
@@ -120,6 +131,10 @@ class SynthSummary:
     #: Files of the replaced scan that facegeo had not written, carried into the new one
     #: (relative paths; ``PATH.keep`` where the new scan writes the same path).
     kept: list = field(default_factory=list)
+    #: The projector's (width, height), pixels (the preset's unless ``projector_scale``).
+    projector_size: tuple | None = None
+    #: Camera → structured-light frames left unwritten and declared missing (``sl_missing``).
+    sl_missing: dict = field(default_factory=dict)
 
     @property
     def frames_per_second(self) -> float:
@@ -218,6 +233,47 @@ def build_rig(preset: Preset):
     return Rig(cameras=list(rig.cameras), projector=proj, lights=lights)
 
 
+def _build_rigs(preset: Preset, mesh, seed: int):
+    """The nominal rig (:func:`build_rig`, framed on a real face) and the true one
+    (:func:`perturbed_rig`), with which every frame is rendered."""
+    nominal_rig = build_rig(preset)
+    if mesh.metadata.get("face_landmarks") is not None:  # a real face: fill the frame with it
+        nominal_rig = frame_rig(nominal_rig, mesh.metadata["face_landmarks"])
+    return nominal_rig, perturbed_rig(nominal_rig, seed)
+
+
+def _rescale_projector(preset: Preset, projector_scale: float, renderer, mesh, seed: int):
+    """The preset, nominal and true rigs with a projector whose pixel spans ``projector_scale``
+    camera pixels on the head, and what was measured.
+
+    The ratio of the preset's projector is measured on the true rig's cameras
+    (:func:`facegeo.synth.sl_conditions.camera_px_per_projector_px`, averaged over cameras),
+    the projector resized (:func:`facegeo.synth.sl_conditions.projector_size_for_scale`) and
+    the rigs rebuilt: the cameras, and the seeded errors' draws, are the same. Returns
+    ``(preset, nominal_rig, rig, info)``, ``info`` the ``scan.metadata.projector_scale`` entry.
+    """
+    def measure(rig):
+        qs = {c.name: projector_coordinates(renderer.surface_view(c), rig.projector)
+              for c in rig.cameras}
+        return qs, {n: camera_px_per_projector_px(q) for n, q in qs.items()}
+
+    _, rig = _build_rigs(preset, mesh, seed)
+    _, ratio = measure(rig)
+    size = projector_size_for_scale(preset.projector_size, float(np.mean(list(ratio.values()))),
+                                    projector_scale)
+    preset = replace(preset, projector_size=size)
+    nominal_rig, rig = _build_rigs(preset, mesh, seed)
+    qs, ratio = measure(rig)
+    info = {"requested": projector_scale, "projector_size": list(size),
+            "camera_px_per_projector_px": ratio,
+            "shared_code_fraction": {n: shared_code_fraction(q) for n, q in qs.items()}}
+    log.info("projector_scale %s: a %d x %d projector, %s camera px per projector px, codes "
+             "shared by %s", projector_scale, *size,
+             ", ".join(f"{v:.2f}" for v in ratio.values()),
+             ", ".join(f"{v:.3f}" for v in info["shared_code_fraction"].values()))
+    return preset, nominal_rig, rig, info
+
+
 def _board_for_rig(rig):
     """A ChArUco board whose 5 squares span ~60 % of the narrowest camera view at the head, as
     tall as that image allows (:func:`facegeo.synth.boards.board_for_cameras`)."""
@@ -255,6 +311,9 @@ def generate_scan(
     progress: Callable[[str, int, int], None] | None = None,
     sl_effects=None,
     sl_codes=("gray",),
+    sl_phase_steps: int | None = None,
+    projector_scale: float | None = None,
+    sl_missing: dict[str, list[str] | str] | None = None,
 ) -> SynthSummary:
     """Synthesise a light-stage capture into the scan directory ``out``.
 
@@ -297,6 +356,24 @@ def generate_scan(
         Code families the projector shows, each a full set of bit planes (Gupta et al. 2013's
         ensemble of codes; :class:`facegeo.geometry.structured_light.PatternSpec`); recorded in
         the scan's ``[structured_light.patterns]`` and decoded with a consistency vote.
+    sl_phase_steps : int, optional
+        Phase-shift frames per axis, overriding the preset's ``phase_steps`` (3): 0 projects
+        Gray code only (with inverse frames, white and black), as real Gray-code scanners do.
+    projector_scale : float, optional
+        Resize the projector so one projector pixel spans about ``projector_scale`` camera
+        pixels on the face, linear (the median over each camera's head pixels, averaged over the
+        cameras; :mod:`facegeo.synth.sl_conditions`): 4 makes cameras that out-resolve the
+        projector, many camera pixels sharing one code (issue 34). Default: the preset's
+        ``projector_size`` (at ``tiny`` ≈ 0.75 camera pixels per projector pixel). The size
+        chosen and the measured ratio and code sharing are recorded in
+        ``scan.metadata.projector_scale``.
+    sl_missing : dict of str to (list of str or str), optional
+        Structured-light frames a camera lost: camera name → frame names, or the name of a
+        set in :data:`facegeo.synth.sl_conditions.LOST_FRAME_PATTERNS` (``"issue34"``: the last
+        column bit's pattern frame, both frames of the second-to-last row bit and the last row
+        bit's inverse). Those frames are not written and are declared in
+        ``[structured_light.cameras.<camera>] missing``; every other frame is the one the full
+        scan has (noise is drawn for the lost frames too).
 
     Returns
     -------
@@ -305,7 +382,8 @@ def generate_scan(
     Raises
     ------
     InputError
-        An invalid argument; ``out`` is a file, not writable, a non-empty directory without a
+        An invalid argument (an unknown camera or frame in ``sl_missing`` lists the valid
+        ones); ``out`` is a file, not writable, a non-empty directory without a
         manifest, a real capture (its ``scan.toml`` lacks ``scan.synthetic = true``), or a
         scan and ``overwrite`` is false. Raised before anything is written.
 
@@ -338,6 +416,10 @@ def generate_scan(
                 raise InputError(f"sl_effects: expected a SkinEffects or a dict, got "
                                  f"{type(sl_effects).__name__}")
             sl_effects = SkinEffects.from_dict(sl_effects)
+    projector_scale = check_projector_scale(projector_scale)
+    sl_phase_steps = check_sl_phase_steps(sl_phase_steps)
+    if sl_phase_steps is not None:
+        preset = replace(preset, phase_steps=sl_phase_steps)
     _replaceable_files(root, overwrite=overwrite)  # read-only: refuse a real capture at once
     tick = progress or (lambda stage, done, total: None)
     seconds: dict[str, float] = {}
@@ -349,20 +431,22 @@ def generate_scan(
     # Ground truth is stored as PLY with float32 vertices: render exactly that geometry, so the
     # mesh in ground_truth/ reproduces every frame bit for bit.
     mesh.vertices = np.asarray(mesh.vertices, np.float32).astype(np.float64)
-    nominal_rig = build_rig(preset)
-    if mesh.metadata.get("face_landmarks") is not None:  # a real face: fill the frame with it
-        nominal_rig = frame_rig(nominal_rig, mesh.metadata["face_landmarks"])
-    rig = perturbed_rig(nominal_rig, seed)  # the true rig: every frame is rendered with it
+    nominal_rig, rig = _build_rigs(preset, mesh, seed)
     landmarks = mesh.metadata.get("face_landmarks")
     if landmarks is not None:  # a real face: regions on its landmarks
         skin_field = SkinField.for_landmarks(landmarks, seed=seed, **skin_kwargs)
     else:
         skin_field = SkinField.for_mesh(mesh, seed=seed, **skin_kwargs)
     renderer = ReferenceRenderer.from_mesh(mesh, skin_field, parts=mesh.metadata["part_labels"])
+    metadata = {}
+    if projector_scale is not None:  # cameras that out-resolve the projector (issue 34)
+        preset, nominal_rig, rig, metadata["projector_scale"] = _rescale_projector(
+            preset, projector_scale, renderer, mesh, seed)
     board = _board_for_rig(rig)
     spec = PatternSpec(width=rig.projector.width, height=rig.projector.height,
                        phase_steps=preset.phase_steps, codes=sl_codes)
     sl_names = pattern_names(spec)
+    lost = resolve_lost_frames(sl_missing, [c.name for c in rig.cameras], sl_names, spec)
     seconds["setup"] = time.perf_counter() - t0
 
     # 3. Tidy leftovers of a killed run, then decide what the old directory holds (refusing a
@@ -379,7 +463,8 @@ def generate_scan(
             tmp, name=root.name, preset=preset, head=head, skin=skin, seed=seed, noise=noise,
             olat_format=olat_format, mesh=mesh, nominal_rig=nominal_rig, rig=rig,
             skin_field=skin_field, renderer=renderer, board=board, spec=spec,
-            sl_names=sl_names, tick=tick, seconds=seconds, sl_effects=sl_effects)
+            sl_names=sl_names, tick=tick, seconds=seconds, sl_effects=sl_effects, lost=lost,
+            metadata=metadata)
         fsutil.write_written_record(tmp, fsutil.list_files(tmp))
         carried: list[str] = []
         if ours is not None:
@@ -400,14 +485,18 @@ def generate_scan(
                         n_lights=rig.lights.n_lights, image_size=(rig.cameras[0].width,
                                                                   rig.cameras[0].height),
                         n_faces=len(mesh.faces), frames_written=frames, seconds=seconds,
-                        kept=carried)
+                        kept=carried, projector_size=(rig.projector.width, rig.projector.height),
+                        sl_missing=lost)
 
 
 def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_format, mesh,
                 nominal_rig, rig, skin_field, renderer, board, spec, sl_names, tick,
-                seconds, sl_effects=None) -> int:
+                seconds, sl_effects=None, lost=None, metadata=None) -> int:
     """Render and write a whole scan into the (empty, staging) directory ``root``; the manifest
-    goes last. Returns the number of frames written."""
+    goes last. Returns the number of frames written.
+
+    ``lost``: camera → structured-light frames not written (declared missing); ``metadata``:
+    entries for ``scan.metadata``."""
     from facegeo.capture import imageio, scan as scanmod
     from facegeo.geometry.structured_light import pattern_value_at
     from facegeo.synth.render import _ordered_map
@@ -420,7 +509,10 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
         f"facegeo synthetic capture, preset {preset.name}, head {head}, skin {skin}, seed {seed}, "
         f"noise {noise}"
     )
+    if metadata:
+        manifest["scan"].setdefault("metadata", {}).update(metadata)
     nominal_rig.save(root / manifest["scan"]["rig"])
+    lost = lost or {}
     noise_rng = np.random.default_rng([seed, 1])
 
     def _noisy(img, white):
@@ -496,7 +588,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     # ---- structured light on the head ----
     t0 = time.perf_counter()
     sl_files = scanmod.DEFAULT_FILES["structured_light"]
-    n_total = len(rig.cameras) * len(sl_names)
+    n_total = len(rig.cameras) * len(sl_names) - sum(len(v) for v in lost.values())
     done = 0
     from facegeo.synth.sl_effects import render_sl_frames
 
@@ -507,10 +599,15 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
         for name, img in render_sl_frames(renderer, spec, cam, projector=proj,
                                           supersample=preset.sl_supersample, exposure=exposure,
                                           ambient=0.02, effects=sl_effects):
+            if name in lost.get(cam.name, ()):
+                _noisy(img, 1.0)  # a lost frame: its noise is drawn, so the others are unchanged
+                continue
             _write_srgb(scanmod.frame_path(root, sl_files, camera=cam.name, frame=name), img,
                         "structured_light")
     manifest["structured_light"] = {"response": "srgb", "projector": proj.name, "frames": sl_names,
                                     "files": sl_files, "patterns": spec.to_dict()}
+    if lost:
+        manifest["structured_light"]["cameras"] = {c: {"missing": list(f)} for c, f in lost.items()}
     if sl_effects is not None:
         manifest["scan"].setdefault("metadata", {})["sl_effects"] = sl_effects.to_dict()
     seconds["structured_light"] = time.perf_counter() - t0
