@@ -162,6 +162,24 @@ def _check_output_dir(path: str | os.PathLike, what: str) -> Path:
     return p
 
 
+def _sl_missing_arg(values) -> dict | None:
+    """``--sl-missing CAM=FRAME[,FRAME...]`` or ``CAM=PATTERN`` (repeated) as the generator's
+    ``sl_missing`` mapping."""
+    if not values:
+        return None
+    from facegeo.synth.sl_conditions import LOST_FRAME_PATTERNS
+
+    out: dict = {}
+    for v in values:
+        cam, sep, frames = v.partition("=")
+        if not sep or not cam or not frames:
+            raise InputError(f"--sl-missing: expected CAMERA=FRAME[,FRAME...] or CAMERA=PATTERN "
+                             f"({', '.join(LOST_FRAME_PATTERNS)}), got {v!r}")
+        out[cam] = frames if frames in LOST_FRAME_PATTERNS else [
+            f.strip() for f in frames.split(",") if f.strip()]
+    return out
+
+
 def _cmd_synth(args) -> int:
     from facegeo.synth.capture import generate_scan
 
@@ -176,7 +194,10 @@ def _cmd_synth(args) -> int:
                                 olat_format=args.olat_format,
                                 overwrite=args.overwrite,
                                 progress=tick, sl_effects=effects,
-                                sl_codes=tuple(c.strip() for c in args.sl_codes.split(",")))
+                                sl_codes=tuple(c.strip() for c in args.sl_codes.split(",")),
+                                sl_phase_steps=args.sl_phase_steps,
+                                projector_scale=args.projector_scale,
+                                sl_missing=_sl_missing_arg(args.sl_missing))
     finally:
         close()
     secs = " ".join(f"{k}={v:.1f}s" for k, v in summary.seconds.items())
@@ -205,8 +226,12 @@ def _cmd_import(args) -> int:
             raise InputError("--rig goes with --description; a --dataset writes its own rig")
         from facegeo.capture.datasets import import_dataset
 
-        scan = import_dataset(args.dataset, args.src, args.dest, mode="copy" if args.copy else "link")
+        scan = import_dataset(args.dataset, args.src, args.dest,
+                              mode="copy" if args.copy else "link", scale=args.scale)
     else:
+        if args.scale is not None:
+            raise InputError("--scale goes with --dataset (a known data set's frames are "
+                             "reduced on import); a --description imports frames as they are")
         from facegeo.capture.importer import import_folder
 
         scan = import_folder(args.src, args.dest, args.description, rig=args.rig,
@@ -645,6 +670,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sl-interreflection", type=_nonneg_float, default=0.0,
                    help="strength of a low-frequency interreflection term in the "
                         "structured-light frames (0: none)")
+    s.add_argument("--sl-phase-steps", type=_nonneg_int, default=None, metavar="N",
+                   help="phase-shift steps of the structured light (default the preset's; 0: "
+                        "Gray code with inverses and white / black only, as many real scanners)")
+    s.add_argument("--projector-scale", type=_pos_float, default=None, metavar="N",
+                   help="a projector whose pixel covers about N x N camera pixels on the face "
+                        "(the cameras out-resolve the projector; docs/synth.md)")
+    s.add_argument("--sl-missing", action="append", default=None,
+                   metavar="CAM=FRAME[,FRAME...]|CAM=issue34",
+                   help="structured-light frames a camera lost (not written, declared missing "
+                        "in the manifest); repeat per camera")
     s.add_argument("--overwrite", action="store_true", help="replace an existing synthetic scan at OUT (a real capture is refused; files "
                         "facegeo did not write are kept)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -661,8 +696,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rig", metavar="RIG.json", help="with --description: the rig file, if "
                    "SRC has none")
     s.add_argument("--dataset", choices=["opencv-stereo", "yale-b", "graycode-mannequin",
-                                         "three-phase"],
+                                         "three-phase", "3dunderworld"],
                    help="convert a known public data set (docs/datasets.md)")
+    s.add_argument("--scale", type=float, choices=(1.0, 0.5, 0.25), default=None,
+                   help="with --dataset 3dunderworld: frames reduced by an exact 1/2 or 1/4 box "
+                        "mean (written as PNG), intrinsics scaled by the pixel-centre rule; "
+                        "relative to the source frames")
     s.add_argument("--copy", action="store_true", help="copy files instead of hard-linking them")
     s.set_defaults(func=_cmd_import)
 
