@@ -38,9 +38,19 @@ __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "load_json_
            "list_files",
            "remove_tree", "staging_dir", "swap_in_dir", "clean_stale_siblings", "carry_over",
            "staged_directory", "NpyRowFile", "aligned_empty", "DIRECT_ALIGN", "read_ahead",
-           "READ_AHEAD_WORKERS"]
+           "READ_AHEAD_WORKERS", "file_state"]
 
 log = logging.getLogger(__name__)
+
+
+def file_state(path: str | os.PathLike) -> tuple | None:
+    """``(size, mtime_ns)`` of ``path``, or None when it cannot be stat-ed (a cache key part:
+    a rewritten file changes it without reading the file)."""
+    try:
+        st = Path(path).stat()
+    except OSError:
+        return None
+    return st.st_size, st.st_mtime_ns
 
 #: Name of the record, at the top of a scan directory, of every file facegeo wrote there: a
 #: text file, one POSIX path relative to the scan directory per line, ``#`` lines are comments.

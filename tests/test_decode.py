@@ -350,6 +350,10 @@ def test_run_decode_products_and_preset_accuracy(tiny, tmp_path):
         assert (d / "x.png").is_file() and (d / "y.png").is_file()
         bits = m["cameras"][cam]["bits"]
         assert len(bits["x"]["gray"]["unresolved"]) == scan_spec_bits(scan, "x")
+        # every frame there: each camera decodes the scan's set as it is (tests/test_decode_plan.py)
+        plan = m["cameras"][cam]["plan"]
+        assert plan["patterns"] == m["patterns"] and plan["half_pairs"] == plan["dropped"] == []
+    assert m["skipped_cameras"] == []
 
 
 def scan_spec_bits(scan, axis):

@@ -65,6 +65,7 @@ from facegeo.geometry._sl_patterns import (  # noqa: F401 (re-exported)
 )
 
 __all__ = [
+    "CameraDecodePlan",
     "GrayDecode",
     "PatternSpec",
     "PhaseDecode",
@@ -76,7 +77,9 @@ __all__ = [
     "pattern_image",
     "pattern_names",
     "pattern_value_at",
+    "plan_camera_decode",
     "unwrap_with_gray",
+    "with_stand_in_partners",
 ]
 
 # --------------------------------------------------------------------------- decoders
@@ -87,6 +90,14 @@ from facegeo.geometry._sl_decode import (
     decode_gray,
     decode_phase,
     unwrap_with_gray,
+)
+
+# --------------------------------------------------------------------------- per-camera plans
+# A camera's own pattern set from the frames it has (lost frames): _sl_plan, re-exported.
+from facegeo.geometry._sl_plan import (  # noqa: E402
+    CameraDecodePlan,
+    plan_camera_decode,
+    with_stand_in_partners,
 )
 
 # --------------------------------------------------------------------------- streaming decode

@@ -15,6 +15,29 @@
 
 and records the metrics in ``out_dir/metrics.json`` under ``"decode"``.
 
+**Cameras with lost frames.** Each camera is decoded from the frames it has
+(:meth:`Scan.camera_frames`: the manifest's per-camera ``missing``, ``bits_x`` / ``bits_y``)
+with its own pattern set, planned for every camera before any frame is read
+(:func:`facegeo.geometry.structured_light.plan_camera_decode`; docs/structured-light.md,
+*Cameras with lost frames*): a bit with one frame of its pair left is decoded against
+``(white + black) / 2`` (the decoder is fed ``white + black - frame`` as the missing partner);
+an axis that lost a bit (both frames) keeps the bits before it, so its codes name blocks of
+``2**(n - n')`` of the scan's codes — ``x`` / ``y`` are then the block's centre in the full set's
+projector pixels, ``sigma = block / sqrt(12)``; phase is dropped on an axis whose frames are
+incomplete or whose blocks outgrow half a period. A camera with no structured-light frame (a
+camera of the calibration only) is skipped with a log line and listed in ``skipped_cameras``;
+a camera left with nothing to decode stops the stage, naming it and its missing frames, before
+any camera is decoded. Each camera's metrics hold its ``plan``
+(:meth:`CameraDecodePlan.to_dict`: ``bits`` and ``block_px`` per axis, ``half_pairs`` decoded
+against the mid level, ``lost_bits``, ``dropped`` frames, the camera's ``patterns``).
+
+While the stage runs, each finished camera's folder is also kept in
+``out_dir/decode/.partial/<camera>/`` (hard links and ``partial.json``: a key of the camera's
+plan, the settings, facegeo's code and the size / mtime of the manifest, the response table
+and every frame it reads). If a later camera fails, the next run takes the finished cameras
+from there (their metrics say ``reused: true``) instead of decoding them again; the folder goes
+with the old stage folder when the stage completes.
+
 A **phase-only** pattern set (phase shifts and no Gray / XOR / min-SW code, e.g. the shared
 three-step face) cannot be unwrapped to absolute projector coordinates: ``decode.npz`` then
 holds no valid pixel, one warning says why, and the measurement is written instead per camera:
@@ -31,7 +54,8 @@ holds no valid pixel, one warning says why, and the measurement is written inste
 with ``phase_only: true`` and ``quality_fraction`` (usable pixels of the image, per camera and
 pooled) in the metrics.
 
-Metrics, per camera and pooled: ``valid_fraction`` (of the image, and ``valid_of_surface``: of
+Metrics, per camera and pooled: ``skipped_cameras`` (pooled: the list), ``plan`` (per camera,
+above), ``valid_fraction`` (of the image, and ``valid_of_surface``: of
 the pixels that see the head when the scan has ground truth), per-bit losses (``bits``: per axis
 and code family, the lit pixels that leave each bit unresolved and those it invalidates; see
 :class:`facegeo.geometry._sl_stream.StreamDecode`), and with ground truth (a synthetic scan's
@@ -41,7 +65,9 @@ and code family, the lit pixels that leave each bit unresolved and those it inva
   decoded projector pixel ``round(x), round(y)`` is one the camera pixel sees: within
   ``0.5 + h`` of the true coordinate of the pixel centre, ``h`` the half extent of the camera
   pixel's footprint in the projector (``0.5 (|∂q/∂col| + |∂q/∂row|)`` per axis). A camera pixel
-  that covers two projector pixels integrates both; naming either is exact.
+  that covers two projector pixels integrates both; naming either is exact. On an axis where a
+  camera lost bits (and has no phase) its code names a block: exact when within
+  ``block / 2 + h`` of the truth.
 * ``phase_rms_error_proj_px`` — RMS of ``x - q_x`` (and ``y - q_y``) over valid interior pixels
   on the axes with phase frames, against the pixel centre's true projector coordinate.
 
@@ -58,8 +84,11 @@ test would drop them).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
+import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -68,13 +97,25 @@ import numpy as np
 
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError
-from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_path, staged_directory
+from facegeo.fsutil import (
+    READ_AHEAD_WORKERS,
+    file_state,
+    atomic_path,
+    atomic_write_text,
+    clean_stale_siblings,
+    remove_tree,
+    staged_directory,
+    staging_dir,
+    swap_in_dir,
+)
 from facegeo.pipeline.bench import peak_rss_mb
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "DECODE_DEFAULTS",
+    "PARTIAL_DIR",
+    "camera_plans",
     "code_accuracy",
     "decode_products",
     "ground_truth_projector",
@@ -87,6 +128,12 @@ DECODE_DEFAULTS = {"min_contrast": 0.005, "rel_contrast": 0.15, "shadow_threshol
                    "vote_tolerance_px": 0.0, "saturation": 0.98}
 
 _EDGE_JUMP_PX = 4.0
+
+#: Folder of the stage folder (``out/decode/.partial/<camera>/``) where each finished camera's
+#: products wait while later cameras decode; removed with the old stage folder when the stage
+#: completes (docs/structured-light.md, *Cameras with lost frames*).
+PARTIAL_DIR = ".partial"
+_PARTIAL_RECORD = "partial.json"
 
 
 def _scan(scan_dir):
@@ -124,7 +171,8 @@ def ground_truth_projector(scan, camera: str) -> dict[str, np.ndarray] | None:
     return {"q": q, "mask": mask, "interior": interior, "half_extent": h}
 
 
-def code_accuracy(x, y, valid, gt: dict, *, axes=("x", "y"), phase_axes=()) -> dict[str, Any]:
+def code_accuracy(x, y, valid, gt: dict, *, axes=("x", "y"), phase_axes=(),
+                  block_px: dict | None = None) -> dict[str, Any]:
     """``exact_code_fraction`` (interior and all) and ``phase_rms_error_proj_px`` of a decode.
 
     Parameters
@@ -134,6 +182,10 @@ def code_accuracy(x, y, valid, gt: dict, *, axes=("x", "y"), phase_axes=()) -> d
     gt : dict from :func:`ground_truth_projector`
     axes : axes the patterns code (the others are not compared)
     phase_axes : axes with phase frames (the RMS is over these)
+    block_px : dict axis -> int, projector px, optional
+        Axes whose codes name blocks of this many projector pixels (a camera that lost bits:
+        the coordinate is the block's centre): exact there when within ``block / 2 + h`` of
+        the truth, i.e. the block holds a projector pixel the camera pixel sees.
 
     Returns
     -------
@@ -143,9 +195,12 @@ def code_accuracy(x, y, valid, gt: dict, *, axes=("x", "y"), phase_axes=()) -> d
     q, h, mask, interior = gt["q"], gt["half_extent"], gt["mask"], gt["interior"]
     coords = {"x": np.asarray(x, np.float64), "y": np.asarray(y, np.float64)}
     exact = np.ones(mask.shape, bool)
+    block_px = block_px or {}
     with np.errstate(invalid="ignore"):
         for i, a in enumerate(("x", "y")):
-            if a in axes:
+            if a in axes and block_px.get(a, 1) > 1:
+                exact &= np.abs(coords[a] - q[..., i]) <= h[..., i] + 0.5 * block_px[a]
+            elif a in axes:
                 exact &= np.abs(np.floor(coords[a] + 0.5) - q[..., i]) <= h[..., i] + 0.5
     v_all = np.asarray(valid, bool) & mask
     v_in = v_all & interior
@@ -225,15 +280,76 @@ def _write_phase_products(res, spec, d: Path, min_modulation: float) -> np.ndarr
     return usable_all
 
 
+def camera_plans(scan, spec, cameras: list[str], *, declared: bool = True) -> dict:
+    """Each camera's :class:`~facegeo.geometry.structured_light.CameraDecodePlan` from the
+    frames it has (:meth:`Scan.camera_frames`) and its declared ``bits_x`` / ``bits_y``.
+
+    Raises
+    ------
+    InputError
+        Naming every camera that has structured-light frames but nothing decodable left, and
+        the frames it lacks — before any frame is read.
+    """
+    from facegeo.geometry.structured_light import plan_camera_decode
+
+    plans = {}
+    for cam in cameras:
+        bits = scan.sl_bits(cam) if declared else None
+        plans[cam] = plan_camera_decode(spec, scan.camera_frames("structured_light", cam),
+                                        max_bits=bits, camera=cam)
+    bad = {c: p for c, p in plans.items() if p.action == "undecodable"}
+    if bad:
+        what = "; ".join(
+            f"camera {c!r}: {p.reason} (it lacks {scan.missing_frames('structured_light', c)[:12]})"
+            for c, p in bad.items())
+        raise InputError(f"scan {scan.root}: nothing to decode on {len(bad)} camera(s): {what}; "
+                         "give the frames, or leave the camera out (cameras=[...], --cameras) "
+                         "or mark all its structured-light frames missing to skip it")
+    return plans
+
+
+def _decode_camera(scan, cam: str, plan, d: Path, used: dict, phase_only: bool):
+    """Decode ``cam`` with its plan into ``d``; returns ``(metrics, x, y, valid)``."""
+    from facegeo.geometry.structured_light import decode_stream, with_stand_in_partners
+
+    tc = time.perf_counter()
+    spec = plan.spec
+    # the next frames read and decoded meanwhile; half pairs completed by stand-in partners
+    frames = scan.iter_sl(cam, list(plan.frames), read_ahead=READ_AHEAD_WORKERS)
+    res = decode_stream(with_stand_in_partners(frames, plan), spec, **used)
+    d.mkdir(parents=True, exist_ok=True)
+    with atomic_path(d / "decode.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, x=res.x, y=res.y, confidence=res.confidence,
+                            valid=res.valid, sigma_x=res.sigma_x, sigma_y=res.sigma_y)
+    _false_colour(res.x, res.valid_x, spec.width, d / "x.png")
+    _false_colour(res.y, res.valid_y, spec.height, d / "y.png")
+    m: dict[str, Any] = {
+        "valid_fraction": float(res.valid.mean()),
+        "lit_fraction": float((~res.shadow).mean()),
+        "bits": res.bits,
+        "plan": plan.to_dict(),
+    }
+    if phase_only:
+        usable = _write_phase_products(res, spec, d, used["min_modulation"])
+        m["phase_only"] = True
+        m["quality_fraction"] = float(usable.mean())
+        m["usable_pixels"] = int(usable.sum())
+    m["seconds"] = round(time.perf_counter() - tc, 4)
+    return m, res.x, res.y, res.valid
+
+
 def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
-                    **settings) -> tuple[dict, dict]:
+                    partial_dir: Path | None = None, **settings) -> tuple[dict, dict]:
     """Write the ``decode`` products of ``scan`` into ``dest`` (module docstring).
 
     The work of :func:`run_decode` without the staging. ``settings`` are
-    :data:`DECODE_DEFAULTS` keys. Returns ``(metrics, settings)``.
+    :data:`DECODE_DEFAULTS` keys. Every camera is planned first (:func:`camera_plans`: an
+    undecodable camera stops the stage before any work); each is then decoded with its own
+    pattern set. ``partial_dir`` (the stage folder's ``.partial``, :data:`PARTIAL_DIR`): each
+    finished camera is also kept there, and a camera whose frames and settings are unchanged
+    since is taken from there instead of decoded again — so a camera that fails does not cost
+    the ones finished before it. Returns ``(metrics, settings)``.
     """
-    from facegeo.geometry.structured_light import decode_stream, pattern_names
-
     unknown = sorted(set(settings) - set(DECODE_DEFAULTS))
     if unknown:
         raise InputError(f"decode settings: unknown {unknown}; valid: {sorted(DECODE_DEFAULTS)}")
@@ -242,76 +358,49 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
         raise InputError(f"scan {scan.root}: no structured-light frames to decode (the manifest "
                          "has no [structured_light] group)")
     spec, declared = _scan_pattern_spec(scan)
-    names = scan.sl_frames
-    spec_names = pattern_names(spec)
-    if sorted(names) != sorted(spec_names):
-        extra = sorted(set(names) - set(spec_names))
-        missing = [n for n in spec_names if n not in names]
-        what = ("the pattern set [structured_light.patterns]" if declared else
-                f"[structured_light.patterns] is absent, so the default pattern set of the "
-                f"{spec.width} x {spec.height} projector was assumed; it")
-        raise InputError(
-            f"scan {scan.root}: structured_light.frames lists {len(names)} frames, {what} has "
-            f"{len(spec_names)}; missing {missing[:8]}, extra {extra[:8]}"
-            + ("" if declared else "; declare the patterns in the manifest"))
+    _check_frames_are_the_set(scan, spec, declared)
     cams = list(scan.camera_names) if cameras is None else list(cameras)
     for c in cams:
         if c not in scan.camera_names:
             raise InputError(f"cameras: unknown camera {fmt_value(c)}; the scan has {scan.camera_names}")
+    plans = camera_plans(scan, spec, cams, declared=declared)
     t0 = time.perf_counter()
     per_cam: dict[str, dict] = {}
+    skipped: list[str] = []
     pooled = {"valid": 0, "pixels": 0, "surface": 0, "valid_surface": 0,
-              "exact": 0.0, "compared": 0, "se": 0.0, "n_phase": 0}
-    axes = _axes_coded(spec)
-    phase_axes = tuple(spec.phase_axes) if spec.phase_steps else ()
-    phase_only = bool(phase_axes) and not axes
+              "exact": 0.0, "compared": 0, "se": 0.0, "n_phase": 0, "usable": 0}
+    phase_only = bool(spec.phase_steps and spec.phase_axes) and not _axes_coded(spec)
     if phase_only:
         log.warning(
             "decode: the pattern set is phase-only (%d-step phase on axis %s, no Gray code): "
             "without code bits the wrapped phase cannot be unwrapped to absolute projector "
             "coordinates, so decode.npz has no valid pixel; the wrapped phase and its quality "
             "map are written to <camera>/phase.npz (and phase_*.png, quality_*.png)",
-            spec.phase_steps, ", ".join(phase_axes))
-        pooled["usable"] = 0
+            spec.phase_steps, ", ".join(spec.phase_axes))
     for cam in cams:
-        tc = time.perf_counter()
-        # the next frames read and decoded meanwhile
-        frames = scan.iter_sl(cam, names, read_ahead=READ_AHEAD_WORKERS)
-        res = decode_stream(frames, spec, **used)
-        d = dest / cam
-        d.mkdir(parents=True, exist_ok=True)
-        with atomic_path(d / "decode.npz") as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, x=res.x, y=res.y, confidence=res.confidence,
-                                valid=res.valid, sigma_x=res.sigma_x, sigma_y=res.sigma_y)
-        _false_colour(res.x, res.valid_x, spec.width, d / "x.png")
-        _false_colour(res.y, res.valid_y, spec.height, d / "y.png")
-        m: dict[str, Any] = {
-            "valid_fraction": float(res.valid.mean()),
-            "lit_fraction": float((~res.shadow).mean()),
-            "bits": res.bits,
-            "seconds": round(time.perf_counter() - tc, 4),
-        }
-        if phase_only:
-            usable = _write_phase_products(res, spec, d, used["min_modulation"])
-            m["phase_only"] = True
-            m["quality_fraction"] = float(usable.mean())
-            pooled["usable"] += int(usable.sum())
-        pooled["valid"] += int(res.valid.sum())
-        pooled["pixels"] += int(res.valid.size)
+        plan = plans[cam]
+        if plan.action == "skip":
+            log.info("decode %s: skipped, %s", cam, plan.reason)
+            skipped.append(cam)
+            continue
+        if not plan.complete:
+            log.info("decode %s: %s", cam, _plan_summary(plan))
+        key = _partial_key(scan, cam, plan, used) if partial_dir is not None else None
+        m = _reuse_partial(partial_dir, cam, key, dest / cam)
+        if m is not None:
+            with np.load(dest / cam / "decode.npz") as z:
+                x, y, valid = z["x"], z["y"], z["valid"]
+            log.info("decode %s: taken from %s (decoded by an earlier run that did not finish)",
+                     cam, partial_dir / cam)
+        else:
+            m, x, y, valid = _decode_camera(scan, cam, plan, dest / cam, used, phase_only)
+            _keep_partial(partial_dir, cam, key, dest / cam, m)
+        pooled["usable"] += m.pop("usable_pixels", 0) if phase_only else 0
+        pooled["valid"] += int(valid.sum())
+        pooled["pixels"] += int(valid.size)
         gt = ground_truth_projector(scan, cam) if scan.synthetic else None
         if gt is not None:
-            acc = code_accuracy(res.x, res.y, res.valid, gt, axes=axes, phase_axes=phase_axes)
-            m.update(acc)
-            m["valid_of_surface"] = float((res.valid & gt["mask"]).sum() / max(gt["mask"].sum(), 1))
-            pooled["surface"] += int(gt["mask"].sum())
-            pooled["valid_surface"] += int((res.valid & gt["mask"]).sum())
-            if acc["exact_code_fraction"] is not None:
-                pooled["exact"] += acc["exact_code_fraction"] * acc["compared_pixels"]
-                pooled["compared"] += acc["compared_pixels"]
-            if acc["phase_rms_error_proj_px"] is not None:
-                k = acc["compared_pixels"] * sum(a in axes for a in phase_axes)
-                pooled["se"] += acc["phase_rms_error_proj_px"] ** 2 * k
-                pooled["n_phase"] += k
+            m.update(_accumulate_accuracy(x, y, valid, gt, plan, pooled))
         per_cam[cam] = m
         if phase_only:
             log.info("decode %s: phase only, %.1f %% of the pixels above the quality threshold",
@@ -320,6 +409,7 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
             log.info("decode %s: %.1f %% valid", cam, 100 * m["valid_fraction"])
     metrics: dict[str, Any] = {
         "cameras": per_cam,
+        "skipped_cameras": skipped,
         "patterns": spec.to_dict(),
         "valid_fraction": pooled["valid"] / max(pooled["pixels"], 1),
     }
@@ -335,6 +425,137 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     metrics["seconds"] = round(time.perf_counter() - t0, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     return metrics, {**used, "cameras": cams}
+
+
+def _check_frames_are_the_set(scan, spec, declared: bool) -> None:
+    """``structured_light.frames`` must be ``spec``'s pattern set (the cameras' own subsets
+    are planned per camera)."""
+    from facegeo.geometry.structured_light import pattern_names
+
+    names = scan.sl_frames
+    spec_names = pattern_names(spec)
+    if sorted(names) != sorted(spec_names):
+        extra = sorted(set(names) - set(spec_names))
+        missing = [n for n in spec_names if n not in names]
+        what = ("the pattern set [structured_light.patterns]" if declared else
+                f"[structured_light.patterns] is absent, so the default pattern set of the "
+                f"{spec.width} x {spec.height} projector was assumed; it")
+        raise InputError(
+            f"scan {scan.root}: structured_light.frames lists {len(names)} frames, {what} has "
+            f"{len(spec_names)}; missing {missing[:8]}, extra {extra[:8]}"
+            + ("" if declared else "; declare the patterns in the manifest"))
+
+
+def _plan_summary(plan) -> str:
+    """One line: what a camera with lost frames decodes."""
+    parts = [f"{a}: {v['bits']} of {v['bits_scan']} bits"
+             + (f" ({v['block_px']}-px blocks, {v['limited_by']})" if v["limited_by"] else "")
+             for a, v in plan.axes.items() if v["bits_scan"]]
+    if plan.half_pairs:
+        parts.append("half pairs against (white + black) / 2: "
+                     + ", ".join(h["present"] for h in plan.half_pairs))
+    parts += [f"{d['what']} dropped ({d['why']})" for d in plan.dropped
+              if not d["what"].startswith("gray ")]
+    return "; ".join(parts)
+
+
+def _accumulate_accuracy(x, y, valid, gt: dict, plan, pooled: dict) -> dict:
+    """The camera's :func:`code_accuracy` and ``valid_of_surface``, added into ``pooled``."""
+    spec = plan.spec
+    axes = _axes_coded(spec)
+    phase_axes = tuple(spec.phase_axes) if spec.phase_steps else ()
+    block = {a: v["block_px"] for a, v in plan.axes.items()
+             if v["bits"] and v["codes_per_block"] > 1 and a not in phase_axes}
+    acc = code_accuracy(x, y, valid, gt, axes=axes, phase_axes=phase_axes, block_px=block)
+    on = valid & gt["mask"]
+    acc["valid_of_surface"] = float(on.sum() / max(gt["mask"].sum(), 1))
+    pooled["surface"] += int(gt["mask"].sum())
+    pooled["valid_surface"] += int(on.sum())
+    if acc["exact_code_fraction"] is not None:
+        pooled["exact"] += acc["exact_code_fraction"] * acc["compared_pixels"]
+        pooled["compared"] += acc["compared_pixels"]
+    if acc["phase_rms_error_proj_px"] is not None:
+        k = acc["compared_pixels"] * sum(a in axes for a in phase_axes)
+        pooled["se"] += acc["phase_rms_error_proj_px"] ** 2 * k
+        pooled["n_phase"] += k
+    return acc
+
+
+# --------------------------------------------------------------------------- partial products
+
+
+
+def _partial_key(scan, cam: str, plan, used: dict) -> str | None:
+    """SHA-256 of what a camera's decode depends on: its plan, the settings, facegeo's code and
+    the state (size, mtime_ns) of the manifest, of the response table and of every frame the
+    plan reads; None when that state cannot be read (no partial kept)."""
+    from facegeo.pipeline.cache import code_fingerprint
+
+    try:
+        files = [scan.manifest_path] + [scan.sl_path(cam, f) for f in plan.frames]
+        resp = scan.response("structured_light")
+    except (OSError, InputError):
+        return None
+    state = [(str(f), file_state(f)) for f in files]
+    table = None if resp.table is None else hashlib.sha256(
+        np.ascontiguousarray(resp.table).tobytes()).hexdigest()
+    doc = {"camera": cam, "plan": plan.to_dict(), "settings": used, "files": state,
+           "response": [resp.kind, resp.gamma, table], "code": code_fingerprint()}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _reuse_partial(partial_dir: Path | None, cam: str, key: str | None, d: Path) -> dict | None:
+    """Link ``partial_dir/<cam>``'s products into ``d`` when its key is ``key``; returns the
+    camera's stored metrics (marked ``reused``), else None (nothing, stale or unreadable)."""
+    if partial_dir is None or key is None:
+        return None
+    src = partial_dir / cam
+    try:
+        rec = json.loads((src / _PARTIAL_RECORD).read_text(encoding="utf-8"))
+        if not isinstance(rec, dict) or rec.get("key") != key:
+            return None
+        d.mkdir(parents=True, exist_ok=True)
+        for f in sorted(src.iterdir()):
+            if f.name != _PARTIAL_RECORD and f.is_file():
+                _link_or_copy(f, d / f.name)
+        return {**rec["metrics"], "reused": True}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        if (src / _PARTIAL_RECORD).exists():
+            log.warning("%s: unusable (%s); decoding %s again", src, exc, cam)
+        remove_tree(d)
+        return None
+
+
+def _keep_partial(partial_dir: Path | None, cam: str, key: str | None, d: Path,
+                  m: dict) -> None:
+    """Keep camera ``cam``'s finished products (folder ``d``) in ``partial_dir/<cam>`` (hard
+    links, swapped in whole; the record with ``key`` and the metrics written last). A failure
+    only logs a warning: the stage does not need it."""
+    if partial_dir is None or key is None:
+        return
+    target = partial_dir / cam
+    tmp = None
+    try:
+        partial_dir.mkdir(parents=True, exist_ok=True)
+        clean_stale_siblings(target)
+        tmp = staging_dir(target)
+        for f in sorted(d.iterdir()):
+            if f.is_file():
+                _link_or_copy(f, tmp / f.name)
+        atomic_write_text(tmp / _PARTIAL_RECORD, json.dumps(
+            {"camera": cam, "key": key, "metrics": m}, indent=1, sort_keys=True))
+        swap_in_dir(tmp, target)
+    except OSError as exc:
+        log.warning("%s: could not keep camera %s's finished decode (%s)", target, cam, exc)
+        if tmp is not None:
+            remove_tree(tmp)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
 
 
 def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None,
@@ -357,13 +578,13 @@ def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None,
     dict
         The metrics (module docstring).
     """
-    from facegeo.fsutil import atomic_write_text
     from facegeo.pipeline.cache import record_metrics
 
     scan = _scan(scan_dir)
     out = Path(out_dir) if out_dir is not None else scan.out_dir
     with staged_directory(out / "decode") as tmp:
-        metrics, used = decode_products(scan, tmp, cameras=cameras, **settings)
+        metrics, used = decode_products(scan, tmp, cameras=cameras,
+                                        partial_dir=out / "decode" / PARTIAL_DIR, **settings)
         atomic_write_text(tmp / "stage.json", json.dumps(
             {"stage": "decode", "settings": used, "metrics": metrics}, indent=2, sort_keys=True))
         record_metrics(out, "decode", metrics)

@@ -215,9 +215,11 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
 
     if "decode" in names:
         def run_decode(ctx: StageContext) -> dict:
-            from facegeo.pipeline.decode import decode_products
+            from facegeo.pipeline.decode import PARTIAL_DIR, decode_products
 
-            metrics, _ = decode_products(scan, ctx.out_dir, **ctx.settings)
+            # finished cameras wait in out/decode/.partial until the stage completes
+            metrics, _ = decode_products(scan, ctx.out_dir, **ctx.settings,
+                                         partial_dir=ctx.out_dir.parent / "decode" / PARTIAL_DIR)
             return metrics
 
         specs.append(StageSpec("decode", run_decode,

@@ -64,6 +64,7 @@ import numpy as np
 
 from facegeo.checks import check_positive_int, fmt_value
 from facegeo.errors import InputError
+from facegeo.fsutil import file_state
 
 log = logging.getLogger(__name__)
 
@@ -535,7 +536,7 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
         lit = [int(k) for k in np.flatnonzero(np.any(np.asarray(w) != 0, axis=1))]
         files = [f for f in [getattr(scan, "manifest_path", None)] if f is not None]
         files += [scan.olat_path(c, k) for c in names for k in sorted(set(lit) | set(keys))]
-        state = [(str(f), _file_state(f)) for f in files]  # a missing frame: None, and the
+        state = [(str(f), file_state(f)) for f in files]  # a missing frame: None, and the
         try:                                                 # relighting below names it
             resp = scan.response("olat")
             state.append((resp.kind, resp.gamma, resp.file, None if resp.table is None else
@@ -621,14 +622,6 @@ def _view_shadows(atlas, scene, texels, stage, cache: dict | None):
     return shadows
 
 
-def _file_state(path: Path) -> tuple | None:
-    """(size, mtime_ns) of ``path``, or None when it does not exist."""
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return None
-    return st.st_size, st.st_mtime_ns
-
 
 def _inputs_state(out: Path, with_fit: bool) -> tuple:
     """(path, size, mtime_ns) of every file :func:`_view_inputs` reads: the atlas and texel
@@ -636,7 +629,7 @@ def _inputs_state(out: Path, with_fit: bool) -> tuple:
     files = [out / "atlas" / "atlas.npz", out / "atlas" / "texels.npz"]
     for part in ("project", "fit") if with_fit else ("project",):
         files += sorted(p for p in (out / part).glob("*/*") if p.is_file())
-    return tuple((str(f), _file_state(f)) for f in files)
+    return tuple((str(f), file_state(f)) for f in files)
 
 
 def _fresh_map(a):
@@ -688,8 +681,8 @@ def _check_projection_atlas_once(check, out: Path, cache: dict | None) -> None:
     from facegeo.pipeline.project import ATLAS_FINGERPRINT
 
     texels, fingerprint = out / "atlas" / "texels.npz", out / "project" / ATLAS_FINGERPRINT
-    key = ("projection_atlas_checked", str(texels), _file_state(texels),
-           _file_state(fingerprint))
+    key = ("projection_atlas_checked", str(texels), file_state(texels),
+           file_state(fingerprint))
     if cache is not None and key in cache:
         return
     check(out / "project", texels)
