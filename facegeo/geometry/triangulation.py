@@ -418,7 +418,7 @@ def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None
                      confidence=None, sigma_x=None, sigma_y=None, min_confidence: float = 0.2,
                      default_sigma_px: float = 0.3, footprint_ratio: float | None = 2.0,
                      max_sigma_ratio: float = 5.0, max_sigma: float | None = None,
-                     min_angle_deg: float = 3.0, max_chi: float = 4.0, spike_sigmas: float = 6.0,
+                     min_angle_deg: float | None = None, max_chi: float = 4.0, spike_sigmas: float = 6.0,
                      spike_floor: float = 1e-3) -> PointMap:
     """Triangulate one camera's decode maps against the projector.
 
@@ -445,9 +445,10 @@ def triangulate_maps(camera: Camera, projector: Camera, x, y=None, *, valid=None
         :data:`UNCERTAIN`): near-parallel ray/plane, grazing surfaces, silhouettes.
     max_sigma : float, metres, optional
         Absolute σ limit as well.
-    min_angle_deg : float, degrees
+    min_angle_deg : float, degrees, optional
         Reject points whose effective triangulation angle (:attr:`RayFit.sin_angle`) is below
         this (reason :data:`UNCERTAIN`): a camera ray nearly parallel to the projector's plane.
+        Default from the rig: :func:`rig_min_angle_deg` of the solved rays (at most 3°).
     max_chi : float
         Reject points whose camera–projector residual exceeds this many σ (reason
         :data:`INCONSISTENT`; only where ``y`` was decoded).
@@ -522,7 +523,9 @@ def _classify(reason, idx, fit: RayFit, o, d, *, max_sigma_ratio, max_sigma, min
     live = reason == OK
     with np.errstate(invalid="ignore"):
         narrow = np.zeros(n, bool)
-        narrow[idx] = fit.sin_angle < np.sin(np.radians(min_angle_deg))
+        narrow[idx] = fit.sin_angle < np.sin(np.radians(
+            rig_min_angle_deg(fit.sin_angle[live[idx]]) if min_angle_deg is None
+            else min_angle_deg))
         reason[live & (~np.isfinite(sig) | narrow)] = UNCERTAIN
         live = reason == OK
         if live.any():
@@ -535,6 +538,43 @@ def _classify(reason, idx, fit: RayFit, o, d, *, max_sigma_ratio, max_sigma, min
     good = reason[idx] == OK
     p[idx[good]] = o[good] + fit.t[good, None] * d[good]
     return p, sig, chi, reason
+
+
+#: Upper bound of the rig-derived smallest ray angle, degrees (the fixed limit of earlier
+#: versions: wide rigs are judged as before).
+MIN_ANGLE_CAP_DEG = 3.0
+#: The rig-derived smallest ray angle as a fraction of the rig's median ray angle.
+MIN_ANGLE_FRACTION = 0.25
+#: Lower bound of the rig-derived smallest ray angle, degrees: rays that meet at less are
+#: rejected however narrow the whole rig is (a camera that sees the projector's planes
+#: edge-on).
+MIN_ANGLE_FLOOR_DEG = 0.5
+
+
+def rig_min_angle_deg(sin_angle) -> float:
+    """Smallest accepted angle between the two rays of a point, from the rig itself, degrees.
+
+    ``MIN_ANGLE_FRACTION × median ray angle`` over the solved rays, clipped to
+    ``[MIN_ANGLE_FLOOR_DEG, MIN_ANGLE_CAP_DEG]``: a stereo pair 40 mm apart at 1 m meets at
+    ≈ 2.3° everywhere, and a fixed 3° limit rejected every one of its points; a point whose
+    rays meet at a quarter of the rig's usual angle is the grazing, ill-conditioned case the
+    limit is for. The depth's σ carries the rest (``max_sigma_ratio``).
+
+    Parameters
+    ----------
+    sin_angle : (N,) float
+        Sine of each solved point's ray angle (NaN ignored).
+
+    Returns
+    -------
+    float, degrees (the cap when no angle is finite)
+    """
+    a = np.degrees(np.arcsin(np.clip(np.asarray(sin_angle, np.float64), 0.0, 1.0)))
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return MIN_ANGLE_CAP_DEG
+    return float(np.clip(MIN_ANGLE_FRACTION * np.median(a), MIN_ANGLE_FLOOR_DEG,
+                         MIN_ANGLE_CAP_DEG))
 
 
 def _median3(a: np.ndarray) -> np.ndarray:
@@ -843,7 +883,7 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
         Neighbours of the local affine fit (>= 3).
     max_code_dist : float, projector pixels, optional
         No match when B's nearest code is farther than this from A's. Default twice the median
-        code-space spacing of B's pixels.
+        code-space spacing of B's pixels, at least :data:`MIN_CODE_DIST`.
 
     Returns
     -------
@@ -855,6 +895,8 @@ def match_projector_codes(x_a, y_a, x_b, y_b, *, k: int = 8,
     return q_b, jac
 
 
+#: Floor of the default code-distance limit of :func:`match_projector_codes`, projector pixels.
+MIN_CODE_DIST = 0.5
 #: A pixels per block of :func:`match_projector_codes` (its temporaries are ≈ 0.5 kB a pixel).
 _MATCH_CHUNK = 1 << 16
 
@@ -885,8 +927,10 @@ def _match_codes(x_a, y_a, x_b, y_b, *, k: int = 8, max_code_dist: float | None 
     tree = cKDTree(codes_b)
     ca = np.stack([xa[oka], ya[oka]], 1)
     if max_code_dist is None:
+        # never 0: where the cameras out-resolve the projector most of B's pixels share
+        # their code with a neighbour and the median spacing is 0
         spacing = tree.query(codes_b, k=2)[0][:, 1]
-        max_code_dist = 2.0 * float(np.median(spacing))
+        max_code_dist = max(2.0 * float(np.median(spacing)), MIN_CODE_DIST)
     out = [np.full((ca.shape[0], 2), np.nan), np.full((ca.shape[0], 2, 2), np.nan),
            np.full((ca.shape[0], 2), np.nan), np.full(ca.shape[0], np.nan)]
     for lo in range(0, ca.shape[0], _MATCH_CHUNK):  # bounded memory: (chunk, k, 3) at a time
@@ -934,7 +978,7 @@ def _affine_inverse(tree, codes_b, rb, cb_, ca, k: int, max_code_dist: float):
 
 def triangulate_camera_pair(cam_a: Camera, cam_b: Camera, x_a, y_a, x_b, y_b, *,
                             sigma_px: float = 0.3, sigma_x=None, sigma_y=None, k: int = 8,
-                            max_sigma_ratio: float = 5.0, min_angle_deg: float = 3.0,
+                            max_sigma_ratio: float = 5.0, min_angle_deg: float | None = None,
                             max_chi: float = 4.0,
                             max_leverage: float | None = 3.0) -> PointMap:
     """Triangulate camera A's pixels against camera B through matching projector codes.
@@ -1068,7 +1112,7 @@ def _camera_pair(cam_a, cam_b, x_a, y_a, x_b, y_b, *, sigma_px, sigma_x, sigma_y
 
 def triangulate_camera_pairs(cameras: list[Camera], x: list, y: list, *, confidence=None,
                              sigma_px=0.3, sigma_x=None, sigma_y=None, k: int = 8,
-                             max_sigma_ratio: float = 5.0, min_angle_deg: float = 3.0,
+                             max_sigma_ratio: float = 5.0, min_angle_deg: float | None = None,
                              max_chi: float = 4.0, max_leverage: float | None = 3.0,
                              tol_sigmas: float = 4.0, tol_floor: float = 1e-3,
                              spike_sigmas: float = 6.0,
