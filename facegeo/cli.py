@@ -521,6 +521,9 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
 
     if getattr(args, "max_coarse_px", None) is not None:  # only when given: default keys stay
         settings = {**(settings or {}), "decode": {"max_coarse_px": args.max_coarse_px}}
+    mesh_set = {k: getattr(args, k) for k in _MESH_OPTIONS if getattr(args, k, None) is not None}
+    if mesh_set:
+        settings = {**(settings or {}), "mesh": mesh_set}
     out = (Path(scan) if isinstance(scan, (str, os.PathLike)) else scan.root) / "out"
     tick, close = _progress_factory(not args.quiet)
     try:
@@ -602,6 +605,42 @@ def _cmd_reconstruct(args) -> int:
           f"{Path(args.scan) / 'out'})")
     _run_reconstruct(args.scan, args, from_stage=args.from_stage, only=args.only)
     return 0
+
+
+#: ``facegeo mesh`` / ``reconstruct`` options that are mesh-stage settings of the same name.
+_MESH_OPTIONS = ("depth", "max_distance_mm", "min_angle_deg", "code_interpolation")
+
+
+def _int_or_auto(text: str):
+    """argparse type: ``auto`` or an integer."""
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer, got {text!r}") from None
+
+
+def _mm_or_auto(text: str):
+    """argparse type: ``auto`` or a finite number > 0."""
+    return text if text == "auto" else _pos_float(text)
+
+
+def _mesh_options(s) -> None:
+    """The mesh stage's Poisson, trim and triangulation settings (only sent when given, so
+    the cache keys of the default runs do not change)."""
+    s.add_argument("--depth", type=_int_or_auto, default=None, metavar="N|auto",
+                   help="mesh: Poisson octree depth, 4-12 (default auto: from the points' "
+                        "extent and spacing; docs/mesh.md)")
+    s.add_argument("--max-distance-mm", type=_mm_or_auto, default=None, metavar="MM|auto",
+                   help="mesh: trim mesh vertices farther than this from every point (default "
+                        "auto: agreed with the Poisson cell)")
+    s.add_argument("--min-angle-deg", type=_nonneg_float, default=None, metavar="DEG",
+                   help="mesh: reject points whose rays meet at less than this (default: from "
+                        "the rig, a quarter of its median ray angle within [0.5, 3] degrees)")
+    s.add_argument("--code-interpolation", choices=["auto", "on", "off"], default=None,
+                   help="mesh, camera-camera route: interpolate codes shared by many pixels "
+                        "(default auto: when the cameras out-resolve the projector)")
 
 
 def _max_coarse_option(s) -> None:
@@ -824,6 +863,8 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
         if name in ("decode", "mesh"):
             _max_coarse_option(s)
+        if name == "mesh":
+            _mesh_options(s)
         s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         s.set_defaults(func=_cmd_stage)
 
@@ -875,6 +916,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--only", default=None, metavar="STAGE",
                    help="run only this stage (its input stages must be current)")
     _max_coarse_option(s)
+    _mesh_options(s)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_reconstruct)
 

@@ -13,9 +13,10 @@ camera's full-resolution pixels share their code with a 4-neighbour.
 a window around each pixel (a window spanning a few code regions): the plane's value at the
 pixel centre is a continuous, sub-region code, the way a region's centroid is a sub-pixel
 location of its code, but at every pixel. This is the "code map interpolated within a region"
-alternative to matching region centroids; on the bust at quarter resolution it gave
-0.164 mm median / 0.325 mm p95 from the scanner's reference cloud for 204 k points, against
-0.183 / 0.422 mm for 37 k code-centroid matches (``facegeo bench structured_light.real_bust``).
+alternative to matching region centroids; on the bust at quarter resolution the mesh stage's
+points lie 0.166 mm median / 0.318 mm p95 from the scanner's reference cloud (188 k points),
+against 0.183 / 0.422 mm for 37 k code-centroid matches (``tests/test_real_bust_mesh.py``
+measures both in one run; ``docs/mesh.md``).
 
 References
 ----------

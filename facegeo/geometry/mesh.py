@@ -9,7 +9,10 @@
   lie farther than ``max_distance`` from every input point, are removed (Poisson closes the
   surface; the face is open, and the closing skin is invented), then connected components
   smaller than ``min_component`` of the largest, then optional quadric decimation. Runs
-  single-threaded, so the same input gives the same mesh.
+  single-threaded, so the same input gives the same mesh. ``depth="auto"`` and
+  ``max_distance="auto"`` derive both from the points (:func:`poisson_depth_for`,
+  :func:`trim_distance_for`) so that the trim agrees with the Poisson cell (issue 34: a fixed
+  depth 7 and a trim of 1.5 fine spacings removed 90 % of a real bust's mesh).
 * :func:`grid_mesh` — the cheap one-camera path: two triangles per 2 × 2 block of pixels that
   all hold points and whose depths do not jump.
 * :func:`surface_errors` — distances and normal angles against a reference mesh (Open3D
@@ -25,24 +28,54 @@ References
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from facegeo.checks import as_array, check_positive
+from facegeo.checks import as_array, check_positive, check_positive_int, fmt_value
 from facegeo.errors import InputError, ShapeError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "Mesh",
+    "PoissonDepth",
     "align_to_surface",
     "area_beyond",
     "face_areas",
     "grid_mesh",
+    "median_neighbour_distance",
     "oriented_normals",
+    "poisson_depth_for",
     "poisson_mesh",
     "sample_surface",
     "surface_errors",
+    "trim_distance_for",
 ]
+
+#: ``depth="auto"``: the smallest octree depth whose cell is at most this many neighbour
+#: spacings (the points' median 6th-neighbour distance), so the cell lands in (1.375, 2.75]
+#: spacings. Measured (docs/mesh.md, *Poisson depth and trim from the points*): finer cells
+#: follow the point noise (normals 2–9× worse below 1.25 spacings on noisy analytic surfaces),
+#: coarser ones round off detail; on the real bust (2.3 and 2.5 spacings, two decodes) and the
+#: synthetic small face (1.4) this picks the depth with the best normals or distances of those
+#: measured.
+AUTO_CELL_SPACINGS = 2.75
+#: ``depth="auto"`` goes no deeper (time and memory; docs/mesh.md).
+AUTO_MAX_DEPTH = 10
+#: ``depth="auto"`` goes no shallower (the smallest depth :func:`poisson_mesh` takes).
+AUTO_MIN_DEPTH = 4
+#: ``max_distance="auto"`` keeps a vertex within ``max(AUTO_TRIM_SPACINGS × spacing,
+#: AUTO_TRIM_CELLS × cell)`` of a point (:func:`trim_distance_for`).
+AUTO_TRIM_SPACINGS = 1.5
+AUTO_TRIM_CELLS = 1.0
+#: The density trim never removes a vertex whose Poisson density (≈ log2 of the sampling
+#: density its support was splatted at) is within this many octaves of the median density of the
+#: vertices near the points: a well-sampled surface is not thinned, whatever the quantile.
+DENSITY_FLOOR_OCTAVES = 1.0
+#: Points queried to estimate the neighbour spacing (an evenly strided subset).
+SPACING_QUERIES = 50_000
 
 
 @dataclass
@@ -160,9 +193,188 @@ def _components(F, n_vertices):
     return lab[: len(F)]
 
 
-def poisson_mesh(points, normals, *, depth: int = 7, point_weight: float = 4.0,
+@dataclass(frozen=True)
+class PoissonDepth:
+    """The octree depth chosen for a point cloud, and the figures it was chosen from.
+
+    Attributes
+    ----------
+    depth : int
+    cell : float, metres
+        Side of a finest octree cell, ``scale × side / 2^depth``.
+    side : float, metres
+        Longest side of the points' axis-aligned bounding box (Open3D's PoissonRecon grids the
+        cube of ``scale`` × this side around the box's centre).
+    spacing : float, metres
+        The points' median 6th-neighbour distance (:func:`median_neighbour_distance`).
+    limited_by : {"spacing", "max_depth", "min_depth"}
+        What set the depth: the spacing rule, or one of the bounds.
+    """
+
+    depth: int
+    cell: float
+    side: float
+    spacing: float
+    limited_by: str
+
+
+def median_neighbour_distance(points, k: int = 6, *, max_queries: int = SPACING_QUERIES,
+                              tree=None) -> float:
+    """Median distance of a point to its ``k``-th nearest neighbour, metres.
+
+    The sampling scale of a point cloud (≈ 1.4 point spacings for ``k = 6`` on a surface); the
+    same figure as :func:`facegeo.geometry.triangulation.neighbour_spacing`, which queries every
+    point, estimated here from at most ``max_queries`` evenly strided points (exact when there
+    are fewer): at 3 M points the full query holds ≈ 340 MB of neighbour lists for one number.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, metres, N ≥ 2
+    k : int
+    max_queries : int
+    tree : scipy.spatial.cKDTree, optional
+        A tree already built over ``points`` (reused, not rebuilt).
+    """
+    p = as_array(points, "points", shape=(None, 3))
+    if len(p) < 2:
+        raise InputError(f"points: need at least 2 points for a spacing, got {len(p)}")
+    k = check_positive_int(k, "k")
+    m = check_positive_int(max_queries, "max_queries")
+    if tree is None:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(p)
+    stride = -(-len(p) // m)  # ceil: at most m queries
+    d, _ = tree.query(p[::stride], k=min(k + 1, len(p)))
+    return float(np.median(d[:, -1]))
+
+
+def _cube_side(p) -> float:
+    return float((p.max(axis=0) - p.min(axis=0)).max())
+
+
+def _check_depth(depth, name="depth", *, allow_auto=True):
+    if allow_auto and isinstance(depth, str) and depth == "auto":
+        return "auto"
+    ok = not isinstance(depth, (bool, str))
+    if ok:
+        try:
+            ok = int(depth) == depth and 4 <= int(depth) <= 12
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+    if not ok:
+        what = "'auto' or an integer" if allow_auto else "an integer"
+        raise InputError(f"{name}: expected {what} in [4, 12], got {fmt_value(depth)}")
+    return int(depth)
+
+
+def poisson_depth_for(points, *, spacing: float | None = None, scale: float = 1.1,
+                      cell_spacings: float = AUTO_CELL_SPACINGS,
+                      min_depth: int = AUTO_MIN_DEPTH,
+                      max_depth: int = AUTO_MAX_DEPTH) -> PoissonDepth:
+    """The Poisson octree depth whose cell matches the points' sampling.
+
+    The smallest depth whose cell ``scale × side / 2^depth`` is at most ``cell_spacings`` ×
+    the points' median 6th-neighbour distance, within ``[min_depth, max_depth]``: with the
+    default 2.75 the cell lands in (1.375, 2.75] spacings, fine enough to keep what the sampling
+    resolves and coarse enough that screened Poisson does not follow the point noise (measured
+    on noisy analytic surfaces, the synthetic faces and the real bust: docs/mesh.md).
+
+    Parameters
+    ----------
+    points : (N, 3) float64, metres, N ≥ 2
+    spacing : float, metres, optional
+        The points' median 6th-neighbour distance, when already known (default: measured,
+        :func:`median_neighbour_distance`).
+    scale : float
+        PoissonRecon's bounding-cube scale (:func:`poisson_mesh`).
+    cell_spacings : float
+        Largest cell, in spacings.
+    min_depth, max_depth : int, in [4, 12]
+        Bounds of the depth; ``max_depth`` bounds time and memory, which follow the octree
+        (≈ 4× a level): 1–3 M points at depth 9 ≈ 15 s and ≈ 0.35–0.5 GB, 3 M at depth 10
+        64 s and 1.4 GB (docs/mesh.md).
+
+    Returns
+    -------
+    PoissonDepth
+
+    Raises
+    ------
+    InputError
+        A bound outside [4, 12] or ``min_depth > max_depth``; points with no extent or a zero
+        spacing (most points duplicated).
+    """
+    p = as_array(points, "points", shape=(None, 3))
+    lo = _check_depth(min_depth, "min_depth", allow_auto=False)
+    hi = _check_depth(max_depth, "max_depth", allow_auto=False)
+    if lo > hi:
+        raise InputError(f"min_depth: {lo} is above max_depth {hi}")
+    s = check_positive(scale, "scale")
+    c = check_positive(cell_spacings, "cell_spacings")
+    h = _spacing_of(p, spacing)
+    side = _cube_side(p)
+    if side <= 0:
+        raise InputError("points: all points coincide; there is no extent to grid")
+    # smallest d with s·side/2^d ≤ c·h
+    want = int(np.ceil(np.log2(s * side / (c * h)) - 1e-9))
+    depth = min(max(want, lo), hi)
+    limited_by = "spacing" if depth == want else ("max_depth" if want > hi else "min_depth")
+    return PoissonDepth(depth, s * side / 2**depth, side, h, limited_by)
+
+
+def _spacing_of(p, spacing, tree=None) -> float:
+    if spacing is not None:
+        return check_positive(spacing, "spacing")
+    h = median_neighbour_distance(p, tree=tree)
+    if h <= 0:
+        raise InputError("points: the median 6th-neighbour distance is 0 (most points are "
+                         "duplicated); remove the duplicates or pass spacing=")
+    return h
+
+
+def trim_distance_for(spacing: float, cell: float) -> float:
+    """The distance from the points beyond which a Poisson vertex counts as invented, metres.
+
+    ``max(AUTO_TRIM_SPACINGS × spacing, AUTO_TRIM_CELLS × cell)`` = ``max(1.5 h, 1 cell)``. A
+    vertex of a well-sampled analytic surface lies within ≈ 0.8 spacings of a sample; a coarse
+    cell rounds the surface off, by up to ≈ 0.2 cell on analytic detail and by more on a real
+    capture's gaps and correlated errors (on the real bust at quarter resolution, depth 8, the
+    vertices on the reference surface are within 1.05 spacings of a point at the 95th
+    percentile, 2.5 at the 98th; the skin Poisson invents starts ≈ 6 spacings out). At the auto
+    depth the trim is 1.5–2.75 spacings. A fixed 1.5 spacings removed 90 % of a depth-7 bust at
+    full resolution, whose 2 mm cells were ≈ 13 spacings (issue 34).
+
+    Parameters
+    ----------
+    spacing : float, metres — the points' median 6th-neighbour distance
+    cell : float, metres — the Poisson cell (:class:`PoissonDepth`)
+    """
+    h = check_positive(spacing, "spacing")
+    c = check_positive(cell, "cell")
+    return max(AUTO_TRIM_SPACINGS * h, AUTO_TRIM_CELLS * c)
+
+
+def _check_max_distance(max_distance):
+    if max_distance is None or (isinstance(max_distance, str) and max_distance == "auto"):
+        return max_distance
+    bad = isinstance(max_distance, (bool, str))
+    if not bad:
+        try:
+            v = float(max_distance)
+            bad = not (np.isfinite(v) and v > 0)
+        except (TypeError, ValueError):
+            bad = True
+    if bad:
+        raise InputError(f"max_distance: expected 'auto', None or a distance > 0 in metres, got "
+                         f"{fmt_value(max_distance)}")
+    return v
+
+
+def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float = 4.0,
                  scale: float = 1.1, samples_per_node: float = 1.5,
-                 trim_quantile: float = 0.02, max_distance: float | None = 2e-3,
+                 trim_quantile: float = 0.02, max_distance: float | str | None = 2e-3,
+                 spacing: float | None = None, max_depth: int = AUTO_MAX_DEPTH,
                  min_component: float = 0.05, target_faces: int | None = None) -> Mesh:
     """Screened Poisson surface of oriented points, trimmed to where the points are.
 
@@ -170,18 +382,29 @@ def poisson_mesh(points, normals, *, depth: int = 7, point_weight: float = 4.0,
     ----------
     points : (N, 3) float64, metres, world frame
     normals : (N, 3) float64, unit, oriented outward (toward the cameras)
-    depth : int
+    depth : int in [4, 12], or "auto"
         Octree depth (grid ≤ 2^depth per side over ``scale`` × the points' bounding cube).
+        ``"auto"``: the depth whose cell matches the points' spacing
+        (:func:`poisson_depth_for`, at most ``max_depth``).
     point_weight : float
         Screening weight of the point interpolation term (Kazhdan & Hoppe 2013, α).
     scale, samples_per_node
         Open3D / PoissonRecon settings.
     trim_quantile : float, 0..1
-        Remove vertices whose Poisson density (the octree depth of the samples supporting them)
-        is below this quantile of all vertices' densities.
-    max_distance : float, metres, optional
+        Remove vertices whose Poisson density (≈ log2 of the sampling density of the samples
+        supporting them) is below this quantile of all vertices' densities — but never a vertex
+        within :data:`DENSITY_FLOOR_OCTAVES` of the median density of the vertices near the
+        points (within ``max_distance``; all vertices without a distance trim), so a
+        well-sampled surface is not thinned into holes.
+    max_distance : float (metres), "auto" or None
         Also remove vertices farther than this from every input point (no invented skin where
-        no camera saw the face). ``None`` keeps them.
+        no camera saw the face). ``"auto"``: :func:`trim_distance_for` the spacing and the
+        Poisson cell, so the trim agrees with the depth. ``None`` keeps them.
+    spacing : float, metres, optional
+        The points' median 6th-neighbour distance if already known (default: measured when
+        ``depth`` or ``max_distance`` is ``"auto"``).
+    max_depth : int in [4, 12]
+        Deepest depth ``"auto"`` chooses.
     min_component : float, 0..1
         Remove connected components with fewer faces than this fraction of the largest one.
     target_faces : int, optional
@@ -190,7 +413,17 @@ def poisson_mesh(points, normals, *, depth: int = 7, point_weight: float = 4.0,
     Returns
     -------
     Mesh
-        ``info`` records every setting and how many vertices each step removed.
+        ``info`` records every setting, the chosen depth (``depth``, ``depth_auto``,
+        ``depth_limited_by``), ``cell_mm``, ``spacing_mm`` (None when not needed),
+        ``max_distance_mm`` and ``max_distance_auto``, the density threshold, and how many
+        vertices each step removed (``trimmed_density``, ``trimmed_distance``,
+        ``trimmed_components``, ``decimated``).
+
+    Raises
+    ------
+    InputError
+        Fewer than 10 points; ``depth`` not ``"auto"`` nor an integer in [4, 12];
+        ``max_distance`` not ``"auto"``, None nor a positive distance; a setting out of range.
 
     Notes
     -----
@@ -204,41 +437,78 @@ def poisson_mesh(points, normals, *, depth: int = 7, point_weight: float = 4.0,
     if p.shape[0] < 10:
         raise InputError(f"points: need at least 10 oriented points for a Poisson mesh, got "
                          f"{p.shape[0]}")
-    if isinstance(depth, bool) or int(depth) != depth or not 4 <= depth <= 12:
-        raise InputError(f"depth: expected an integer in [4, 12], got {depth!r}")
+    depth = _check_depth(depth)
+    max_depth = _check_depth(max_depth, "max_depth", allow_auto=False)
+    max_distance = _check_max_distance(max_distance)
     if not 0.0 <= trim_quantile < 1.0:
         raise InputError(f"trim_quantile: expected a value in [0, 1), got {trim_quantile!r}")
     if not 0.0 <= min_component <= 1.0:
         raise InputError(f"min_component: expected a fraction in [0, 1], got {min_component!r}")
     check_positive(point_weight, "point_weight", allow_zero=True)
+    scale = check_positive(scale, "scale")
+    if spacing is not None:
+        spacing = check_positive(spacing, "spacing")
     t0 = time.perf_counter()
-    o3d = _o3d()
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        m, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            _pcd(p, n), depth=int(depth), scale=float(scale), linear_fit=False, n_threads=1,
-            samples_per_node=float(samples_per_node), point_weight=float(point_weight))
-    t1 = time.perf_counter()
-    V = np.asarray(m.vertices, np.float64).copy()
-    F = np.asarray(m.triangles, np.int64).copy()
-    dens = np.asarray(dens, np.float64)
-    info = {"depth": int(depth), "point_weight": float(point_weight), "scale": float(scale),
-            "samples_per_node": float(samples_per_node), "trim_quantile": float(trim_quantile),
-            "max_distance_mm": None if max_distance is None else 1e3 * float(max_distance),
-            "min_component": float(min_component), "target_faces": target_faces,
-            "points": int(p.shape[0]), "poisson_vertices": len(V),
-            "poisson_faces": len(F), "seconds_poisson": round(t1 - t0, 4)}
-    keep = np.ones(len(V), bool)
-    if trim_quantile > 0 and len(V):
-        keep &= dens >= np.quantile(dens, trim_quantile)
-    info["trimmed_density"] = int((~keep).sum())
-    if max_distance is not None and len(V):
+    tree = None
+    if max_distance is not None or (spacing is None and depth == "auto"):
         from scipy.spatial import cKDTree
 
-        dist, _ = cKDTree(p).query(V, k=1, distance_upper_bound=2 * max_distance)
-        far = keep & ~(dist <= check_positive(max_distance, "max_distance"))
-        keep &= ~far
+        tree = cKDTree(p)
+    if spacing is None and "auto" in (depth, max_distance):
+        spacing = _spacing_of(p, None, tree)
+    if depth == "auto":
+        grid = poisson_depth_for(p, spacing=spacing, scale=scale, max_depth=max_depth)
+        depth_used, cell, limited_by = grid.depth, grid.cell, grid.limited_by
+    else:
+        depth_used, cell, limited_by = depth, scale * _cube_side(p) / 2**depth, "given"
+    r = trim_distance_for(spacing, cell) if max_distance == "auto" else max_distance
+    log.debug("poisson_mesh: %d points, depth %d (%s), cell %.3g mm, spacing %s mm, trim %s mm",
+              len(p), depth_used, limited_by, 1e3 * cell,
+              None if spacing is None else f"{1e3 * spacing:.3g}",
+              None if r is None else f"{1e3 * r:.3g}")
+    o3d = _o3d()
+    t_poisson = time.perf_counter()
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        m, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+            _pcd(p, n), depth=int(depth_used), scale=float(scale), linear_fit=False,
+            n_threads=1, samples_per_node=float(samples_per_node),
+            point_weight=float(point_weight))
+    t1 = time.perf_counter()
+    V = np.asarray(m.vertices, np.float64).copy()
+    F = np.asarray(m.triangles, np.int64)
+    dens = np.asarray(dens, np.float64).copy()
+    del m
+    info = {"depth": int(depth_used), "depth_auto": depth == "auto",
+            "depth_limited_by": limited_by, "cell_mm": 1e3 * cell,
+            "spacing_mm": None if spacing is None else 1e3 * spacing,
+            "point_weight": float(point_weight), "scale": float(scale),
+            "samples_per_node": float(samples_per_node), "trim_quantile": float(trim_quantile),
+            "max_distance_mm": None if r is None else 1e3 * r,
+            "max_distance_auto": max_distance == "auto",
+            "min_component": float(min_component), "target_faces": target_faces,
+            "points": int(p.shape[0]), "poisson_vertices": len(V),
+            "poisson_faces": len(F), "seconds_spacing": round(t_poisson - t0, 4),
+            "seconds_poisson": round(t1 - t_poisson, 4)}
+    near = np.ones(len(V), bool)
+    if r is not None and len(V):
+        dist, _ = tree.query(V, k=1, distance_upper_bound=2 * r)
+        near = dist <= r
+        del dist
+    del tree
+    keep = np.ones(len(V), bool)
+    info["density_threshold"] = None
+    if trim_quantile > 0 and len(V):
+        floor = np.median(dens[near] if near.any() else dens) - DENSITY_FLOOR_OCTAVES
+        thr = min(float(np.quantile(dens, trim_quantile)), float(floor))
+        keep &= dens >= thr
+        info["density_threshold"] = round(thr, 4)
+    info["trimmed_density"] = int((~keep).sum())
+    if r is not None:
+        far = keep & ~near
+        keep &= near
         info["trimmed_distance"] = int(far.sum())
     V, F, _ = _compact(V, F, keep)
+    n_before = len(V)
     lab = _components(F, len(V))
     if lab.size:
         counts = np.bincount(lab)
@@ -250,6 +520,8 @@ def poisson_mesh(points, normals, *, depth: int = 7, point_weight: float = 4.0,
         used = np.zeros(len(V), bool)
         used[F.ravel()] = True
         V, F, _ = _compact(V, F, used)
+    info["trimmed_components"] = n_before - len(V)
+    n_before = len(V)
     if target_faces is not None and len(F) > target_faces:
         mm = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V),
                                        o3d.utility.Vector3iVector(F.astype(np.int32)))
@@ -257,6 +529,7 @@ def poisson_mesh(points, normals, *, depth: int = 7, point_weight: float = 4.0,
         mm.remove_unreferenced_vertices()
         V = np.asarray(mm.vertices, np.float64).copy()
         F = np.asarray(mm.triangles, np.int64).copy()
+    info["decimated"] = n_before - len(V)
     vn = _vertex_normals(V, F)
     info.update({"vertices": len(V), "faces": len(F),
                  "seconds": round(time.perf_counter() - t0, 4)})
