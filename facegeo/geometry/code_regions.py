@@ -1,0 +1,189 @@
+"""Code regions matched by their centroids: points where per-pixel code matching leaves holes.
+
+Where the cameras out-resolve the projector, every decoded code is a region of camera pixels.
+The mesh stage matches interpolated codes pixel by pixel
+(:func:`facegeo.geometry.code_maps.interpolate_code_map`), and drops pixels whose window's
+codes scatter (mixed surfaces, wrong low bits): on the real two-camera bust of the shared data
+those drops left holes of a few millimetres (hair, the oblique cheek) in which both cameras
+still decoded most pixels. A region's *centroid* averages all its pixels, wrong bits at its
+border included, and is the classic way a two-camera scanner matches codes (Herakleous &
+Poullis 2014, 3DUNDERWORLD-SLS; the data set's own reconstruction): here it fills those holes
+only, far from every per-pixel point, so the per-pixel points (0.166 mm median against the
+reference) are not diluted by the coarser centroid ones (0.34 mm median).
+
+:func:`code_region_centroids` averages each camera's pixels per code key at a common code
+resolution; :func:`triangulate_region_centroids` intersects camera A's centroid ray with camera
+B's centroid by :func:`facegeo.geometry.triangulation.solve_along_rays`, with the centroid's
+covariance from the region's spread, and rejects what the epipolar test, the ray angle or the
+depth's σ refuses.
+
+References
+----------
+Herakleous & Poullis, *3DUNDERWORLD-SLS: an open-source structured-light scanning system for
+rapid geometry acquisition*, arXiv:1406.6595 (2014).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facegeo.checks import as_array
+from facegeo.errors import InputError, ShapeError
+
+__all__ = ["RegionCentroids", "RegionPoints", "code_region_centroids",
+           "triangulate_region_centroids"]
+
+
+@dataclass(frozen=True, eq=False)
+class RegionCentroids:
+    """Pixels averaged per code key.
+
+    Attributes
+    ----------
+    key : (M,) int64, sorted
+        ``(floor((x + ½) / block_x) << 24) | floor((y + ½) / block_y)``.
+    q : (M, 2) float64, pixels (column, row)
+        Centroid of the region's pixels (pixel-centre convention).
+    count : (M,) int64
+    cov : (M, 2, 2) float64, pixels²
+        Covariance of the centroid: the region's pixel scatter over ``count``, plus a floor of
+        1/12 px² per axis over ``count`` (a one-pixel region's quantisation).
+    """
+
+    key: np.ndarray
+    q: np.ndarray
+    count: np.ndarray
+    cov: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RegionPoints:
+    """Centroid-matched points of camera A against camera B.
+
+    Attributes
+    ----------
+    p_world : (N, 3) float64, metres, world frame
+    sigma : (N,) float64, metres, 1 σ along A's ray
+    pixel : (N, 2) int, A's pixel nearest the centroid (column, row)
+    chi : (N,) float64, B's normalised epipolar residual
+    counts : dict, the candidate regions and why the others were refused
+    """
+
+    p_world: np.ndarray
+    sigma: np.ndarray
+    pixel: np.ndarray
+    chi: np.ndarray
+    counts: dict
+
+
+def code_region_centroids(x, y, *, block_x: float, block_y: float) -> RegionCentroids:
+    """Average each camera pixel per code key at a code resolution of ``block_x × block_y``.
+
+    Parameters
+    ----------
+    x, y : (H, W) float, projector pixels, NaN where invalid
+    block_x, block_y : float, projector pixels, >= 1
+        Code block of the coarser of the cameras to be matched, per axis (a Gray code with
+        ``s`` bits dropped names blocks of ``2^s`` pixels).
+
+    Returns
+    -------
+    RegionCentroids
+    """
+    xa = as_array(x, "x", finite=False)
+    ya = as_array(y, "y", shape=xa.shape, finite=False)
+    if xa.ndim != 2:
+        raise ShapeError(f"x, y: expected two (H, W) code maps, got shape {xa.shape}")
+    for v, n in ((block_x, "block_x"), (block_y, "block_y")):
+        if not (np.isfinite(v) and v >= 1.0):
+            raise InputError(f"{n}: expected a code block >= 1 projector pixel, got {v!r}")
+    ok = np.isfinite(xa) & np.isfinite(ya)
+    rows, cols = np.nonzero(ok)
+    kx = np.floor((xa[ok] + 0.5) / block_x).astype(np.int64)
+    ky = np.floor((ya[ok] + 0.5) / block_y).astype(np.int64)
+    if kx.size and (kx.min() < 0 or ky.min() < 0 or ky.max() >= 1 << 24):
+        raise InputError("x, y: codes outside the projector (negative or beyond 2^24 blocks)")
+    key = (kx << 24) | ky
+    uniq, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    c = cols.astype(np.float64)
+    r = rows.astype(np.float64)
+    mc = np.bincount(inv, c) / cnt
+    mr = np.bincount(inv, r) / cnt
+    dc, dr = c - mc[inv], r - mr[inv]
+    cov = np.empty((uniq.size, 2, 2))
+    cov[:, 0, 0] = np.bincount(inv, dc * dc) / cnt
+    cov[:, 1, 1] = np.bincount(inv, dr * dr) / cnt
+    cov[:, 0, 1] = cov[:, 1, 0] = np.bincount(inv, dc * dr) / cnt
+    cov[:, 0, 0] += 1.0 / 12.0
+    cov[:, 1, 1] += 1.0 / 12.0
+    cov /= cnt[:, None, None]
+    return RegionCentroids(uniq, np.stack([mc, mr], -1), cnt, cov)
+
+
+def triangulate_region_centroids(cam_a, cam_b, cen_a: RegionCentroids, cen_b: RegionCentroids,
+                                 *, max_chi: float = 4.0, min_angle_deg: float = 0.5,
+                                 max_sigma: float | None = None) -> RegionPoints:
+    """Triangulate the centroids of every code key both cameras have.
+
+    Both centroids are noisy, so the point is solved along each camera's centroid ray against
+    the other's centroid (:func:`facegeo.geometry.triangulation.solve_along_rays`, weighted by
+    the sum of the two centroids' covariances in pixels — the cameras' scales are similar) and
+    the two solutions are averaged by inverse variance. On the real bust (1/4 resolution,
+    distances to the scanner's cloud): along A's rays 0.245 / 0.560 mm (median / p95), along
+    B's 0.234 / 0.517, averaged 0.216 / 0.501.
+
+    Parameters
+    ----------
+    cam_a, cam_b : Camera
+    cen_a, cen_b : RegionCentroids
+        At the same code resolution.
+    max_chi : float
+        Reject points whose residual in either camera exceeds this many σ.
+    min_angle_deg : float, degrees
+        Reject points whose rays meet at less.
+    max_sigma : float, metres, optional
+        Reject points whose σ exceeds this.
+
+    Returns
+    -------
+    RegionPoints
+        ``pixel`` in camera A.
+    """
+    from facegeo.geometry.triangulation import solve_along_rays
+
+    common, ia, ib = np.intersect1d(cen_a.key, cen_b.key, assume_unique=True,
+                                    return_indices=True)
+    counts = {"regions_a": int(cen_a.key.size), "regions_b": int(cen_b.key.size),
+              "common": int(common.size)}
+    if common.size == 0:
+        counts["points"] = 0
+        return RegionPoints(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2), int), np.zeros(0),
+                            counts)
+    q_a, q_b = cen_a.q[ia], cen_b.q[ib]
+    cov = cen_a.cov[ia] + cen_b.cov[ib]
+    o_a, d_a = cam_a.pixel_rays(q_a)
+    o_b, d_b = cam_b.pixel_rays(q_b)
+    f_a = solve_along_rays(o_a, d_a, cam_b, q_b, cov_other=cov)
+    f_b = solve_along_rays(o_b, d_b, cam_a, q_a, cov_other=cov)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        solved = np.ones(common.size, bool)
+        for f in (f_a, f_b):
+            solved &= np.isfinite(f.t) & (f.t > 0) & np.isfinite(f.sigma_t) & (f.sigma_t > 0)
+        narrow = np.minimum(f_a.sin_angle, f_b.sin_angle) < np.sin(np.radians(min_angle_deg))
+        chi = np.maximum(f_a.chi, f_b.chi)
+        bad_chi = chi > max_chi
+        w_a, w_b = 1.0 / f_a.sigma_t**2, 1.0 / f_b.sigma_t**2
+        p = ((o_a + f_a.t[:, None] * d_a) * w_a[:, None]
+             + (o_b + f_b.t[:, None] * d_b) * w_b[:, None]) / (w_a + w_b)[:, None]
+        # σ along A's ray of the average: the two solutions' errors are mostly independent
+        sigma = np.sqrt(1.0 / (w_a + w_b))
+        big = (sigma > max_sigma) if max_sigma is not None else np.zeros(common.size, bool)
+    keep = solved & ~narrow & ~bad_chi & ~big
+    counts.update({"unsolved": int((~solved).sum()), "narrow": int((solved & narrow).sum()),
+                   "inconsistent": int((solved & ~narrow & bad_chi).sum()),
+                   "uncertain": int((solved & ~narrow & ~bad_chi & big).sum()),
+                   "points": int(keep.sum())})
+    pix = np.clip(np.rint(q_a[keep]).astype(int), 0, [cam_a.width - 1, cam_a.height - 1])
+    return RegionPoints(p[keep], sigma[keep], pix, chi[keep], counts)
