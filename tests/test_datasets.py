@@ -88,12 +88,132 @@ def test_yale_light_directions_agree_with_the_frames(converted):
 
 
 def test_yale_ambient_is_subtracted(converted):
+    """Metric: max |difference| against max(raw − ambient, 0), linear units (exact: one float32
+    subtraction)."""
     scan = converted.get("yale-b") or pytest.skip("no Yale B data")
     raw = scan.olat_frame("cam", 0)
     amb = scan.ambient_frame("cam")
-    np.testing.assert_allclose(scan.olat_frame("cam", 0, subtract_ambient=True), raw - amb,
-                               atol=1e-7)
+    np.testing.assert_allclose(scan.olat_frame("cam", 0, subtract_ambient=True),
+                               np.maximum(raw - amb, 0), atol=1e-7)
     assert amb.mean() > 0
+
+
+# ------------------------------------------------------- Yale subjects as shipped (issue 36)
+def _fake_yale_subject(shared_data, folder, ambient=None):
+    """yale_b01's 64 flashes copied into ``folder``, with ``ambient`` (uint8 array) written as
+    its ``_Ambient.pgm`` instead of the real one (None: the real one)."""
+    import cv2
+
+    src = shared_file(shared_data, "olat/yale_b01")
+    folder.mkdir()
+    for q in src.iterdir():
+        shutil.copyfile(q, folder / q.name)
+    if ambient is not None:
+        assert cv2.imwrite(str(folder / "yaleB01_P00_Ambient.pgm"), ambient)
+    return folder
+
+
+def test_yale_uncropped_ambient_is_dropped_with_a_warning_naming_the_source(
+        tmp_path, shared_data, caplog):
+    """Most Extended Yale B subjects ship a 640 x 480 (uncropped) ambient frame beside 168 x 192
+    flashes; the crop is not published, so the scan goes without an ambient frame."""
+    import logging
+
+    rng = np.random.default_rng(1)
+    src = _fake_yale_subject(shared_data, tmp_path / "yaleB11",
+                             rng.integers(0, 30, (480, 640), dtype=np.uint8))
+    with caplog.at_level(logging.WARNING, logger="facegeo.capture.datasets"):
+        scan = import_dataset("yale-b", src, tmp_path / "scan")
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and str(src / "yaleB01_P00_Ambient.pgm") in warned[0]
+    assert "640 x 480" in warned[0] and "facegeo-tmp" not in warned[0]
+    assert "ambient" not in scan.manifest["olat"] and scan.ambient_path("cam") is None
+    assert scan.manifest["scan"]["metadata"]["ambient"]["size"] == [640, 480]
+    assert "dropped" in scan.manifest["scan"]["description"]
+    assert scan.rig.lights.n_lights == 64
+    load_scan(scan.root, check="full")
+    from facegeo.errors import ScanFormatError
+
+    with pytest.raises(ScanFormatError, match="no ambient frame"):
+        scan.olat_frame("cam", 0, subtract_ambient=True)
+
+
+def test_dataset_errors_name_the_source_file_not_the_staging_folder(tmp_path, shared_data):
+    """A flash of the wrong size fails validation in the staging folder; the message names the
+    data set's file (and where it would have gone in the scan), never the staging path."""
+    import cv2
+
+    from facegeo.errors import ScanFormatError
+
+    src = _fake_yale_subject(shared_data, tmp_path / "yaleB02")
+    bad = src / "yaleB01_P00A+035E+15.pgm"
+    assert cv2.imwrite(str(bad), np.zeros((480, 640), np.uint8))
+    with pytest.raises(ScanFormatError) as info:
+        import_dataset("yale-b", src, tmp_path / "scan")
+    text = str(info.value)
+    assert text.startswith(f"{bad} [olat.files]: image is 640×480 px"), text
+    assert "(in the scan: olat/cam/A+035E+15.pgm)" in text
+    assert "facegeo-tmp" not in text and info.value.path == bad
+    assert info.value.key == "olat.files"
+    assert not (tmp_path / "scan").exists()
+    assert not [p for p in tmp_path.iterdir() if "facegeo-tmp" in p.name]
+
+
+# ------------------------------------------------------- ambient subtraction clipped at 0
+def test_subtract_ambient_clips_at_zero_and_counts_the_clipped_pixels(tmp_path, shared_data):
+    """An ambient frame brighter than the flashes in places (the user's subject: differences
+    down to -0.16): the subtraction returns max(frame - ambient, 0), which the skin fit accepts;
+    the clipped pixels come back as a mask and a per-frame count. Metric: exact equality
+    (one float32 subtraction, then 0)."""
+    import cv2
+
+    from facegeo.appearance._skin_fit import check_reflectance
+    from facegeo.appearance.skin import LightSet
+
+    rng = np.random.default_rng(2)
+    ambient = rng.integers(0, 60, (192, 168), dtype=np.uint8)  # up to 0.23 in linear units
+    src = _fake_yale_subject(shared_data, tmp_path / "yaleB13", ambient)
+    scan = import_dataset("yale-b", src, tmp_path / "scan")
+    amb = ambient.astype(np.float32) / 255
+    raw = scan.olat_frame("cam", "A+000E+00")
+    diff = raw - amb[..., None]
+    assert diff.min() < -0.15  # the condition the user met
+
+    out, valid, clipped = scan.olat_frame("cam", "A+000E+00", subtract_ambient=True,
+                                          return_mask=True, return_clipped=True)
+    assert out.dtype == np.float32 and out.min() == 0.0
+    np.testing.assert_array_equal(out, np.maximum(diff, 0))
+    np.testing.assert_array_equal(clipped, (diff < 0).any(axis=-1))
+    # a clipped sample is a measured dark value, not an untrusted one: the mask is unchanged
+    np.testing.assert_array_equal(valid, scan.olat_frame("cam", "A+000E+00", return_mask=True)[1])
+    light = scan.light_names.index("A+000E+00")
+    assert scan.ambient_clipped("cam") == {("cam", light): int(clipped.sum())}
+    # the compatible call: a bare frame
+    assert isinstance(scan.olat_frame("cam", 0, subtract_ambient=True), np.ndarray)
+    assert scan.olat_frame("cam", 0, return_clipped=True)[1].sum() == 0  # no subtraction
+
+    # every frame through iter_olat: non-negative, counted, accepted by the fit
+    frames, total = [], 0
+    for _, f, c in scan.iter_olat("cam", subtract_ambient=True, return_clipped=True):
+        assert f.min() >= 0.0
+        frames.append(f[::16, ::16].reshape(-1, 3))
+        total += int(c.sum())
+    counts = scan.ambient_clipped("cam")
+    assert len(counts) == 64 and sum(counts.values()) == total > 0
+    R = np.stack(frames, axis=1)  # (N, 64, 3)
+    lights = LightSet.from_directions(scan.rig.lights.directions)
+    check_reflectance(R, lights, None)  # raised "R: reflectance must be >= 0" before
+
+
+def test_subtract_ambient_frame_keeps_nan_and_marks_channels():
+    from facegeo.capture._scan_readers import subtract_ambient_frame
+
+    f = np.array([[[0.5, 0.2, np.nan], [0.1, 0.1, 0.1]]], np.float32)  # (1, 2, 3)
+    a = np.array([[[0.4, 0.3, 0.0], [0.0, 0.0, 0.0]]], np.float32)
+    d, clipped = subtract_ambient_frame(f, a)
+    assert np.isnan(d[0, 0, 2]) and d[0, 0, 1] == 0.0
+    assert d[0, 0, 0] == np.float32(0.5) - np.float32(0.4)
+    np.testing.assert_array_equal(clipped, [[True, False]])
 
 
 def test_graycode_mannequin_bits_are_interleaved_rows_first(converted):
@@ -167,9 +287,9 @@ def test_bad_input_is_refused_and_leaves_nothing(tmp_path, shared_data):
 
 
 def test_registry_lists_every_converter():
-    # 3dunderworld has its own module, tests/test_dataset_3dunderworld.py (subfolders per
-    # camera, a scale option, a reference cloud)
-    assert set(DATASETS) == set(SOURCES) | {"3dunderworld"}
+    # 3dunderworld and diligent have their own modules, tests/test_dataset_3dunderworld.py
+    # (subfolders per camera, a scale option, a reference cloud) and test_dataset_diligent.py
+    assert set(DATASETS) == set(SOURCES) | {"3dunderworld", "diligent"}
 
 
 def test_cli_import_dataset_and_description(tmp_path, shared_data, capsys):

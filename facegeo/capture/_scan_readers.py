@@ -3,7 +3,10 @@ one at a time (:class:`facegeo.capture.scan.Scan`'s reading methods, kept in the
 
 Every frame is read through :func:`facegeo.capture.imageio.read_image` and linearised with the
 group's response; ``return_mask`` adds the clipped/saturated sample mask; ``luminance=True``
-returns Rec. 709 luminance (:data:`LUMINANCE_WEIGHTS`). See ``docs/scan-format.md`` (*Streaming*).
+returns Rec. 709 luminance (:data:`LUMINANCE_WEIGHTS`). OLAT frames read with
+``subtract_ambient=True`` are ``max(frame − ambient, 0)`` (:func:`subtract_ambient_frame`), the
+clipped pixels counted (:meth:`_ScanReaders.ambient_clipped`). See ``docs/scan-format.md``
+(*Streaming*).
 """
 
 from __future__ import annotations
@@ -23,6 +26,26 @@ from facegeo.errors import InputError
 #: Linear-RGB → luminance weights (Rec. 709 / sRGB primaries, the library's RGB; ITU-R BT.709
 #: item 3.2): ``Y = 0.2126 R + 0.7152 G + 0.0722 B``.
 LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+def subtract_ambient_frame(frame: np.ndarray, ambient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``max(frame − ambient, 0)`` and where the clip acted.
+
+    Parameters
+    ----------
+    frame, ambient : (H, W, C) float32, linear radiance, same shape
+
+    Returns
+    -------
+    difference : (H, W, C) float32, ≥ 0 (NaN stays NaN)
+    clipped : (H, W) bool
+        Pixels where ``frame − ambient < 0`` in some channel (set to 0 there).
+    """
+    d = np.subtract(frame, ambient, dtype=np.float32)
+    neg = d < 0  # False at NaN: NaN stays NaN
+    d[neg] = 0.0
+    clipped = neg.any(axis=-1) if neg.ndim == 3 else neg
+    return d, clipped
 
 
 def _luminance(lin: np.ndarray) -> np.ndarray:
@@ -57,7 +80,8 @@ class _ScanReaders:
         return lin, valid
 
     def olat_frame(self, camera: str, light: int | str, *, return_mask: bool = False,
-                   subtract_ambient: bool = False, black_clipped: str = "masked"):
+                   subtract_ambient: bool = False, black_clipped: str = "masked",
+                   return_clipped: bool = False):
         """One OLAT frame, linear.
 
         Parameters
@@ -69,30 +93,53 @@ class _ScanReaders:
         return_mask : bool
             Also return where the samples can be trusted.
         subtract_ambient : bool
-            Subtract :meth:`ambient_frame` (needs ``olat.ambient``). The difference is not
-            clipped: noise leaves small negative values where a light adds nothing.
+            Subtract :meth:`ambient_frame` (needs ``olat.ambient``) and clip the difference at
+            0 (:func:`subtract_ambient_frame`): noise, or an ambient frame a little brighter
+            than the flash frame, would leave negative radiance where the light adds nothing,
+            which no reflectance fit accepts. The pixels clipped are counted per frame
+            (:meth:`ambient_clipped`) and returned with ``return_clipped``.
         black_clipped : {"masked", "dark"}
             With ``return_mask``: ``"masked"`` (the convention) flags black-clipped samples of
             integer frames as untrusted; ``"dark"`` counts them as measured dark values (the
             true value lies below one code value) and flags only saturated ones — what the
             projection of a one-light-at-a-time frame wants, where most of the head is in
             shadow (:func:`facegeo.pipeline.project.run_project`).
+        return_clipped : bool
+            Also return the ``(H, W)`` bool mask of pixels where the ambient subtraction was
+            clipped at 0 in some channel (all False without ``subtract_ambient``). A clipped
+            sample is a measured dark value (0), not an untrusted one: ``valid`` is unchanged.
 
         Returns
         -------
         frame : (H, W, 3) float32, linear radiance
-            The linearised pixel values divided by ``[olat] exposure``. Grey frames are
-            repeated to three channels; alpha is dropped.
+            The linearised pixel values divided by ``[olat] exposure``; ≥ 0 with
+            ``subtract_ambient`` (for integer frames). Grey frames are repeated to three
+            channels; alpha is dropped.
         valid : (H, W) bool, only with ``return_mask``
             False where a sample is saturated or black-clipped (integer frames) or non-finite
             (float frames).
+        clipped : (H, W) bool, only with ``return_clipped``, last
+            Where ``frame − ambient`` was negative in some channel and was set to 0.
         """
         check_choice(black_clipped, "black_clipped", ("masked", "dark"))
         lin, valid = self._olat_read(camera, self.olat_path(camera, light), return_mask,
                                      clipped_valid=black_clipped == "dark")
+        clipped = None
         if subtract_ambient:
-            lin = lin - self.ambient_frame(camera)
-        return (lin, valid) if return_mask else lin
+            lin, clipped = subtract_ambient_frame(lin, self.ambient_frame(camera))
+            counts = self.__dict__.setdefault("_ambient_clipped", {})
+            counts[(camera, self._light_index(light))] = int(np.count_nonzero(clipped))
+        elif return_clipped:
+            clipped = np.zeros(lin.shape[:2], bool)
+        out = (lin,) + ((valid,) if return_mask else ()) + ((clipped,) if return_clipped else ())
+        return out[0] if len(out) == 1 else out
+
+    def ambient_clipped(self, camera: str | None = None) -> dict:
+        """Pixels clipped at 0 by the ambient subtraction, per frame read so far with
+        ``subtract_ambient=True``: ``{(camera, light index): pixels}`` (only ``camera``'s frames
+        when given). A frame read again replaces its count. Empty before any such read."""
+        counts = dict(self.__dict__.get("_ambient_clipped", {}))
+        return counts if camera is None else {k: v for k, v in counts.items() if k[0] == camera}
 
     def _olat_read(self, camera: str, path: Path, return_mask: bool, *,
                    clipped_valid: bool = False):
@@ -129,21 +176,24 @@ class _ScanReaders:
 
     def iter_olat(self, camera: str, lights: Sequence[int] | None = None, *,
                   return_mask: bool = False, subtract_ambient: bool = False,
-                  read_ahead: int = 0, black_clipped: str = "masked") -> Iterator[tuple]:
-        """Yield ``(light, frame)`` (or ``(light, frame, valid)``) for ``lights`` (default the
-        lights ``camera`` has, in light-index order), reading one frame at a time.
+                  read_ahead: int = 0, black_clipped: str = "masked",
+                  return_clipped: bool = False) -> Iterator[tuple]:
+        """Yield ``(light, frame)`` (or ``(light, frame, valid)``; ``return_clipped`` adds the
+        ambient-clipped mask last) for ``lights`` (default the lights ``camera`` has, in
+        light-index order), reading one frame at a time.
 
         ``read_ahead=N`` (N ≥ 2) reads and decodes the next frames on N threads while the caller
         works on this one (:func:`facegeo.fsutil.read_ahead`; a few frames in flight, bounded
         in bytes). Image reads keep only native libraries' own failure messages off the
         console (``imageio``); what other threads print meanwhile reaches the terminal.
-        ``black_clipped``: see :meth:`olat_frame`."""
+        ``black_clipped``, ``subtract_ambient``: see :meth:`olat_frame`."""
         from facegeo.fsutil import read_ahead as ahead
 
         def read(light):
             out = self.olat_frame(camera, light, return_mask=return_mask,
-                                  subtract_ambient=subtract_ambient, black_clipped=black_clipped)
-            return (light, *out) if return_mask else (light, out)
+                                  subtract_ambient=subtract_ambient, black_clipped=black_clipped,
+                                  return_clipped=return_clipped)
+            return (light, *out) if isinstance(out, tuple) else (light, out)
 
         yield from ahead(read, self.camera_frames("olat", camera) if lights is None else lights,
                          workers=int(read_ahead))

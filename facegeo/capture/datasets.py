@@ -12,7 +12,13 @@ when it is complete and validated.
                        kept under ``reference/``.
 ``yale-b``             One subject and pose of the Extended Yale Face Database B
                        (``yaleB01_P00A+035E+15.pgm`` …): 64 flashes named by azimuth and
-                       elevation, 8-bit frames, an ambient frame to subtract; a light list.
+                       elevation, 8-bit frames, an ambient frame to subtract (dropped with a
+                       warning when it is the uncropped 640 × 480 frame); a light list.
+``diligent``           One DiLiGenT photometric-stereo object (``ballPNG/``: ``001.png`` …,
+                       ``light_directions.txt``, ``light_intensities.txt``, ``mask.png``,
+                       ``Normal_gt.mat``): 96 distant lights with RGB intensities, linear
+                       frames, the mask and the ground-truth normals (camera frame) under
+                       ``reference/``.
 ``graycode-mannequin`` An 18-frame Gray-code capture (``1.jpg`` … ``18.jpg``) without
                        inverse or white/black frames: row and column bits interleaved.
 ``three-phase``        A three-step phase-shift capture of a face (``phase1.png`` …):
@@ -31,8 +37,13 @@ The 3DUNDERWORLD cameras are the scanner's own calibration (an OpenCV FileStorag
 
 What none of the other data sets publish is written as a *nominal* value and said so in the
 manifest's description and ``[scan.metadata]``: the cameras' intrinsics before calibration
-(focal length = image width, principal point at the centre, no distortion), the distance of the
-Yale camera, and the resolution of the projectors (the pattern space).
+(focal length = image width, principal point at the centre, no distortion; DiLiGenT's from its
+50 mm lens, :data:`DILIGENT_FOCAL_PX`), the distance of the Yale and DiLiGenT cameras, and the
+resolution of the projectors (the pattern space).
+
+Errors name the data set's files: a converter builds the scan in a staging folder, and an
+error about a file there (the validation of a frame's size, say) is reported against the
+source file it was carried from, with its place in the scan added (:func:`import_dataset`).
 """
 
 from __future__ import annotations
@@ -43,21 +54,42 @@ import logging
 import os
 import re
 from collections.abc import Callable
+from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
 
-from facegeo.capture.importer import _carry, check_destination
+from facegeo.capture.importer import _carry as _link_or_copy
+from facegeo.capture.importer import check_destination
 from facegeo.capture.opencv_storage import read_matrices
 from facegeo.capture.scan import MANIFEST_NAME, Scan, load_scan, new_manifest, write_manifest
 from facegeo.checks import check_choice
-from facegeo.errors import InputError
+from facegeo.errors import FacegeoError, InputError, ScanFormatError
 from facegeo.fsutil import atomic_write_text, clean_stale_siblings, staging_dir, swap_in_dir, \
     remove_tree
 
-__all__ = ["DATASETS", "import_dataset", "yale_light_direction"]
+__all__ = ["DATASETS", "DILIGENT_FOCAL_PX", "import_dataset", "yale_light_direction"]
 
 log = logging.getLogger(__name__)
+
+
+#: Staging path -> the source file it was made from, for the conversion running in this context
+#: (set by :func:`import_dataset`), so that an error about a file of the scan being built names
+#: the data set's own file instead of the staging folder.
+_SOURCES: ContextVar[dict[Path, Path] | None] = ContextVar("_SOURCES", default=None)
+
+
+def _note_source(dst: Path, src: Path) -> None:
+    """Record that the scan's file ``dst`` (in the staging folder) comes from ``src``."""
+    sources = _SOURCES.get()
+    if sources is not None:
+        sources[Path(dst)] = Path(src)
+
+
+def _carry(src: Path, dst: Path, mode: str) -> str:
+    """Hard-link (or copy) one source file into the scan, recording where it came from."""
+    _note_source(dst, src)
+    return _link_or_copy(src, dst, mode)
 
 
 def _nominal_camera(name: str, width: int, height: int, eye=(0.0, 0.0, 1.0)):
@@ -153,6 +185,23 @@ def yale_light_direction(azimuth_deg, elevation_deg) -> np.ndarray:
     return d.reshape(np.broadcast(np.asarray(azimuth_deg), np.asarray(elevation_deg)).shape + (3,))
 
 
+def _yale_ambient(ambient: Path, size: tuple[int, int]) -> dict | None:
+    """Whether the ambient frame can go into the scan: None if it has the flashes' ``size``,
+    else why it is dropped (logged as a warning naming the file).
+
+    In the cropped Extended Yale B most subjects' ``_Ambient.pgm`` is the uncropped 640 × 480
+    camera frame; the crop that made the 168 × 192 flashes is not published, so the ambient
+    frame cannot be brought to them and the scan goes without one."""
+    a = _image_size(ambient)
+    if a == tuple(size):
+        return None
+    why = (f"{a[0]} x {a[1]} px, the flashes {size[0]} x {size[1]} px (an uncropped frame; the "
+           "crop that made the flashes is not published)")
+    log.warning("%s: ambient frame dropped: %s; the scan has no ambient frame to subtract",
+                ambient, why)
+    return {"file": ambient.name, "size": list(a), "dropped": why}
+
+
 def _yale_b(src: Path, root: Path, mode: str) -> dict:
     from facegeo.geometry.lights import LightList
     from facegeo.geometry.rig import Rig
@@ -171,6 +220,8 @@ def _yale_b(src: Path, root: Path, mode: str) -> dict:
     subject, pose = keys.pop()
     ambient = src / f"{subject}_P{pose}_Ambient.pgm"
     w, h = _image_size(lights[0][0])
+    dropped = _yale_ambient(ambient, (w, h)) if ambient.is_file() else None
+    has_ambient = ambient.is_file() and dropped is None
     names = [f"A{m['az']}E{m['el']}" for _, m in lights]
     dirs = yale_light_direction([int(m["az"]) for _, m in lights], [int(m["el"]) for _, m in lights])
     cam = _nominal_camera("cam", w, h, eye=(0.0, 0.0, 1.5))
@@ -182,17 +233,172 @@ def _yale_b(src: Path, root: Path, mode: str) -> dict:
         f"{subject}_P{pose}", synthetic=False,
         description=f"Extended Yale Face Database B, subject {subject}, pose {pose}: "
                     f"{len(lights)} flashes named by azimuth/elevation, 8-bit frames"
-                    + (", an ambient frame" if ambient.is_file() else "")
+                    + (", an ambient frame" if has_ambient else "")
+                    + (f" (the ambient frame {ambient.name} was dropped: {dropped['dropped']})"
+                       if dropped else "")
                     + ". Camera intrinsics and distance are nominal; the frames' response is not "
                       "published (read as linear); solid angles are spherical Voronoi cells of "
                       "the flash directions over the whole sphere.")
     manifest["scan"]["metadata"] = {"dataset": "yale-b", "nominal": ["cameras", "response"]}
+    if dropped:
+        manifest["scan"]["metadata"]["ambient"] = dropped
     manifest["olat"] = {"response": "linear", "n_lights": len(lights),
                         "files": "olat/{camera}/{light_name}.pgm"}
-    if ambient.is_file():
+    if has_ambient:
         _carry(ambient, root / "olat" / "cam" / "ambient.pgm", mode)
         manifest["olat"]["ambient"] = "olat/{camera}/ambient.pgm"
     return manifest
+
+
+# ---------------------------------------------------------------- DiLiGenT
+#: Nominal focal length of the DiLiGenT camera in pixels of its frames: a 50 mm lens on the
+#: 2448 x 2048 sensor of 3.45 um pixels, the data set's 612 x 512 frames being that sensor
+#: reduced by 4 (13.8 um per frame pixel): 50 / 0.0138 = 3623 px. Our assumption, not
+#: published with the frames; at that focal length a 300 px crop spans 4.7 deg, so the camera is
+#: nearly orthographic and nothing per pixel depends on it.
+DILIGENT_FOCAL_PX = 50e-3 / (4 * 3.45e-6)
+#: Nominal distance of the DiLiGenT camera from the object (metres, on world +z).
+DILIGENT_DISTANCE_M = 1.5
+_DILIGENT_FILES = ("filenames.txt", "light_directions.txt", "light_intensities.txt", "mask.png")
+
+
+def _read_table(path: Path, columns: int, what: str) -> np.ndarray:
+    """A whitespace-separated text table of ``columns`` finite numbers per line, ``(n, columns)``
+    float64; errors name the file and the line."""
+    rows = []
+    for k, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            v = [float(x) for x in line.split()]
+        except ValueError:
+            v = []
+        if len(v) != columns or not np.isfinite(v).all():
+            raise InputError(f"{path}, line {k}: expected {columns} numbers ({what}), got "
+                             f"{line.strip()!r}")
+        rows.append(v)
+    if not rows:
+        raise InputError(f"{path}: empty; expected one line of {what} per light")
+    return np.array(rows, np.float64)
+
+
+def _diligent_normals(mat: Path, size: tuple[int, int], R_cam_world: np.ndarray) -> np.ndarray:
+    """``Normal_gt.mat`` (key ``Normal_gt``, H x W x 3, DiLiGenT's axes = the world frame here)
+    as ``(H, W, 3)`` float64 unit normals in the camera frame, NaN where the file has none
+    (its zero vectors, outside the mask)."""
+    import scipy.io
+
+    try:
+        m = scipy.io.loadmat(mat)
+    except (NotImplementedError, ValueError, OSError) as exc:  # v7.3 (HDF5), not MATLAB
+        raise InputError(f"{mat}: cannot read it as a MATLAB v5 file ({exc})") from None
+    if "Normal_gt" not in m:
+        raise InputError(f"{mat}: no variable 'Normal_gt' (has "
+                         f"{', '.join(k for k in m if not k.startswith('__')) or 'none'})")
+    n_world = np.asarray(m["Normal_gt"], np.float64)
+    w, h = size
+    if n_world.shape != (h, w, 3):
+        raise InputError(f"{mat} [Normal_gt]: shape {n_world.shape}, expected ({h}, {w}, 3) "
+                         "(the frames' height x width x 3)")
+    norm = np.linalg.norm(n_world, axis=-1)
+    none = ~(norm > 0.5) | ~np.isfinite(norm)  # zero vectors outside the object
+    n_cam = n_world @ R_cam_world.T
+    n_cam /= np.where(none, 1.0, norm)[..., None]
+    n_cam[none] = np.nan
+    return n_cam
+
+
+def _diligent(src: Path, root: Path, mode: str) -> dict:
+    from facegeo.geometry.lights import LightList
+    from facegeo.geometry.rig import Rig
+
+    names_txt, dirs_txt, inten_txt, mask_png = _need(src, _DILIGENT_FILES)
+    files = [ln.strip() for ln in names_txt.read_text(encoding="utf-8").splitlines() if ln.strip()]
+    frames = _need(src, files)
+    dirs = _read_table(dirs_txt, 3, "a light direction x y z")
+    inten = _read_table(inten_txt, 3, "a light's R G B intensity")
+    for what, table, path in (("directions", dirs, dirs_txt), ("intensities", inten, inten_txt)):
+        if len(table) != len(files):
+            raise InputError(f"{path}: {len(table)} {what}, but {names_txt.name} names "
+                             f"{len(files)} frames; expected one line per frame")
+    if (inten <= 0).any():
+        k = int(np.flatnonzero((inten <= 0).any(axis=1))[0])
+        raise InputError(f"{inten_txt}, line {k + 1}: intensities must be > 0, got {inten[k]}")
+    suffixes = {p.suffix.lower() for p in frames}
+    if len(suffixes) != 1:
+        raise InputError(f"{names_txt}: frames of several kinds ({', '.join(sorted(suffixes))}); "
+                         "expected one image format")
+    suffix = suffixes.pop()
+    w, h = _image_size(frames[0])
+    if _image_size(mask_png) != (w, h):
+        mw, mh = _image_size(mask_png)
+        raise InputError(f"{mask_png}: {mw} x {mh} px, the frames {w} x {h} px")
+    names = [p.stem for p in frames]
+
+    f = DILIGENT_FOCAL_PX
+    from facegeo.frames import look_at
+    from facegeo.geometry.camera import Camera
+
+    K = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    cam = Camera("cam", int(w), int(h), K, np.zeros(5),
+                 look_at((0.0, 0.0, DILIGENT_DISTANCE_M), (0.0, 0.0, 0.0)))
+    # DiLiGenT's axes (x right, y up, z toward the camera) are the world frame of a camera on
+    # +z looking at the origin with +y up: its lights go in as they are
+    Rig(cameras=[cam], projector=None,
+        lights=LightList(directions=dirs, intensities=inten, names=names,
+                         horizon_axis=(0.0, 0.0, 1.0))).save(root / "rig.json")
+    for p, name in zip(frames, names):
+        _carry(p, root / "olat" / "cam" / f"{name}{suffix}", mode)
+    _carry(mask_png, root / "reference" / "mask.png", mode)
+    reference = {"mask": "reference/mask.png"}
+    mat = src / "Normal_gt.mat"
+    if mat.is_file():
+        R_cam_world = np.asarray(cam.T_cam_world.R, np.float64)
+        n_cam = _diligent_normals(mat, (w, h), R_cam_world)
+        out = root / "reference" / "normals.npy"
+        _note_source(out, mat)
+        np.save(out, n_cam)
+        reference["normals"] = "reference/normals.npy"
+
+    obj = re.sub(r"PNG$", "", src.name) or src.name
+    depth = "16-bit" if _frame_bits(frames[0]) == 16 else "8-bit"
+    manifest = new_manifest(
+        f"diligent_{obj}", synthetic=False,
+        description=f"DiLiGenT photometric-stereo object {obj!r} (Shi et al. 2016): "
+                    f"{len(frames)} frames ({depth} {suffix[1:].upper()}, linear), one per "
+                    "calibrated distant light (directions and RGB intensities from "
+                    "light_directions.txt and light_intensities.txt: divide each frame by its "
+                    "light's intensity before fitting). Camera intrinsics and distance are "
+                    f"nominal (f = {f:.0f} px: a 50 mm lens, 13.8 um frame pixels; principal "
+                    f"point at the frame centre; {DILIGENT_DISTANCE_M} m on +z): nearly "
+                    "orthographic. reference/mask.png: the object; reference/normals.npy: the "
+                    "ground-truth normals in the camera frame (x right, y down, z away from the "
+                    "camera), NaN outside the object. Solid angles: spherical Voronoi cells "
+                    "clipped at the plane facing the camera (the lights' hemisphere).")
+    manifest["scan"]["metadata"] = {
+        "dataset": "diligent", "object": obj, "nominal": ["cameras"],
+        "camera": {"focal_px": f, "why": "50 mm lens / (4 x 3.45 um): the 2448 x 2048 sensor "
+                   "reduced by 4 to 612 x 512 (assumed); crop offset unknown, principal point "
+                   "at the frame centre", "distance_m": DILIGENT_DISTANCE_M},
+        "frames": f"{depth}, linear response; hard links (or copies) of the source files",
+        "source_frames": {n: p.name for n, p in zip(names, frames)},
+        "normals": ("reference/normals.npy: (H, W, 3) float64, unit, camera frame (x right, y "
+                    "down, z forward) = DiLiGenT's (x right, y up, z toward the camera) with y "
+                    "and z negated; NaN outside the mask; a normal facing the camera is (0, 0, -1)")
+        if "normals" in reference else "none (no Normal_gt.mat)",
+    }
+    manifest["olat"] = {"response": "linear", "n_lights": len(frames),
+                        "files": "olat/{camera}/{light_name}" + suffix}
+    manifest["reference"] = reference
+    return manifest
+
+
+def _frame_bits(path: Path) -> int:
+    """Bits per sample of an image file (8 or 16), from its header."""
+    from facegeo.capture.imageio import read_image_info
+
+    info = read_image_info(path, verify=False)
+    return 16 if np.dtype(info.dtype).itemsize == 2 else 8
 
 
 # ---------------------------------------------------------------- structured light
@@ -345,6 +551,7 @@ def _reduce_frame(src: Path, dst: Path, n: int, size: tuple[int, int]) -> None:
 
     from facegeo.capture.imageio import read_image, write_image
 
+    _note_source(dst, src)
     img = read_image(src)
     h, w = img.shape[:2]
     if (w, h) != (size[0] * n, size[1] * n):
@@ -492,6 +699,7 @@ DATASETS: dict[str, Callable[..., dict]] = {
     "graycode-mannequin": _graycode_mannequin,
     "three-phase": _three_phase,
     "3dunderworld": _underworld,
+    "diligent": _diligent,
 }
 
 
@@ -528,8 +736,9 @@ def import_dataset(kind: str, src: str | os.PathLike, dest: str | os.PathLike, *
         ``dest`` is a file or a non-empty directory; a ``scale`` the data set's converter does
         not take, or that does not divide its frames.
     ScanFormatError
-        The converted scan does not validate (a frame of the wrong size, a truncated file: the
-        message names the file).
+        The converted scan does not validate (a frame of the wrong size, a truncated file): the
+        message and ``path`` name the source file, ``(in the scan: <relative path>)`` added —
+        never the staging folder.
     """
     check_choice(kind, "dataset", tuple(DATASETS))
     check_choice(mode, "mode", ("link", "copy"))
@@ -550,12 +759,79 @@ def import_dataset(kind: str, src: str | os.PathLike, dest: str | os.PathLike, *
     dest.parent.mkdir(parents=True, exist_ok=True)
     clean_stale_siblings(dest)
     tmp = staging_dir(dest, "tmp")
+    sources: dict[Path, Path] = {}
+    token = _SOURCES.set(sources)
     try:
         manifest = convert(src, tmp, mode, **options)
         write_manifest(tmp, manifest)
         swap_in_dir(tmp, dest)
+    except FacegeoError as exc:
+        remove_tree(tmp)
+        named = _named_by_source(exc, tmp, dest, sources)
+        if named is exc:
+            raise
+        raise named.with_traceback(exc.__traceback__) from None
     except BaseException:
         remove_tree(tmp)
         raise
+    finally:
+        _SOURCES.reset(token)
     log.info("converted %s data set %s into %s", kind, src, dest)
     return load_scan(dest / MANIFEST_NAME)
+
+
+def _named_by_source(exc: FacegeoError, tmp: Path, dest: Path,
+                     sources: dict[Path, Path]) -> FacegeoError:
+    """``exc`` with every path into the staging folder ``tmp`` replaced by what the user knows:
+    the source file a scan file was carried (or reduced) from, ``(in the scan: <rel>)`` added,
+    or else the file's place under ``dest`` (a file the converter wrote: the rig, a reference).
+    The same exception type, the same ``key``; ``exc`` itself when it names no staging path.
+    """
+    roots = {str(tmp), os.path.realpath(tmp)}
+    text = str(exc)
+    if not any(r in text for r in roots):
+        return exc
+
+    def rel_of(q: Path) -> Path | None:
+        text_q = str(q)
+        for r in roots:
+            if text_q.startswith(r + os.sep):
+                return Path(text_q[len(r) + 1:])
+        return None
+
+    # staged file -> its source, longest paths first (a file's path before its folder's)
+    swaps = sorted(((os.path.join(r, q.relative_to(tmp)), str(original))
+                    for q, original in sources.items() for r in roots),
+                   key=lambda t: -len(t[0]))
+
+    def rewrite(message: str) -> str:
+        for staged, original in swaps:
+            message = message.replace(staged, original)
+        for r in roots:
+            message = message.replace(r, str(dest))
+        return message
+
+    if isinstance(exc, ScanFormatError):
+        where = ([str(exc.path)] if exc.path is not None else []) + (
+            [f"[{exc.key}]"] if exc.key is not None else [])
+        prefix = (" ".join(where) + ": ") if where else ""
+        body = text[len(prefix):] if text.startswith(prefix) else text
+        path = exc.path
+        rel = rel_of(path) if path is not None else None
+        if rel is not None:
+            original = sources.get(tmp / rel)
+            if original is not None:
+                path = original
+                body = f"{rewrite(body)} (in the scan: {rel.as_posix()})"
+            else:
+                path = dest / rel
+                body = rewrite(body)
+        else:
+            body = rewrite(body)
+            if path is not None and str(path) in roots:  # the staging folder itself
+                path = dest
+        return ScanFormatError(body, path=path, key=exc.key)
+    try:
+        return type(exc)(rewrite(text))
+    except TypeError:  # an error type with another constructor: leave it as it is
+        return exc
