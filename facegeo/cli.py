@@ -519,8 +519,10 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
     from facegeo.pipeline.reconstruct import run_reconstruct
     from facegeo.pipeline.report import write_report
 
-    if getattr(args, "max_coarse_px", None) is not None:  # only when given: default keys stay
-        settings = {**(settings or {}), "decode": {"max_coarse_px": args.max_coarse_px}}
+    dec = {k: getattr(args, k) for k in ("max_coarse_px", "rel_contrast")
+           if getattr(args, k, None) is not None}  # only when given: default keys stay
+    if dec:
+        settings = {**(settings or {}), "decode": dec}
     mesh_set = {k: getattr(args, k) for k in _MESH_OPTIONS if getattr(args, k, None) is not None}
     if mesh_set:
         settings = {**(settings or {}), "mesh": mesh_set}
@@ -608,7 +610,8 @@ def _cmd_reconstruct(args) -> int:
 
 
 #: ``facegeo mesh`` / ``reconstruct`` options that are mesh-stage settings of the same name.
-_MESH_OPTIONS = ("depth", "max_distance_mm", "min_angle_deg", "code_interpolation")
+_MESH_OPTIONS = ("depth", "max_distance_mm", "min_angle_deg", "code_interpolation",
+                 "min_confidence")
 
 
 def _int_or_auto(text: str):
@@ -638,6 +641,10 @@ def _mesh_options(s) -> None:
     s.add_argument("--min-angle-deg", type=_nonneg_float, default=None, metavar="DEG",
                    help="mesh: reject points whose rays meet at less than this (default: from "
                         "the rig, a quarter of its median ray angle within [0.5, 3] degrees)")
+    s.add_argument("--min-confidence", type=_nonneg_float, default=None, metavar="C",
+                   help="mesh: triangulate decoded pixels of at least this confidence, 0-1 "
+                        "(default 0.2; the real bust meshes with 0.05 and --rel-contrast 0.05, "
+                        "docs/mesh.md)")
     s.add_argument("--code-interpolation", choices=["auto", "on", "off"], default=None,
                    help="mesh, camera-camera route: interpolate codes shared by many pixels "
                         "(default auto: when the cameras out-resolve the projector)")
@@ -649,6 +656,11 @@ def _max_coarse_option(s) -> None:
     s.add_argument("--max-coarse-px", type=_pos_float, default=None, metavar="PX",
                    help="decode: accept codes naming a block of up to PX projector pixels "
                         "(default: half a phase period on a phase axis, else one stripe; "
+                        "docs/structured-light.md)")
+    s.add_argument("--rel-contrast", type=_nonneg_float, default=None, metavar="R",
+                   help="decode: a bit is reliable when its pattern / inverse margin is at least "
+                        "R of the pixel's direct light (default 0.15; lower keeps more pixels "
+                        "of a low-contrast capture at some cost in exact codes, "
                         "docs/structured-light.md)")
 
 
@@ -735,7 +747,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rig", metavar="RIG.json", help="with --description: the rig file, if "
                    "SRC has none")
     s.add_argument("--dataset", choices=["opencv-stereo", "yale-b", "graycode-mannequin",
-                                         "three-phase", "3dunderworld"],
+                                         "three-phase", "3dunderworld", "diligent"],
                    help="convert a known public data set (docs/datasets.md)")
     s.add_argument("--scale", type=float, choices=(1.0, 0.5, 0.25), default=None,
                    help="with --dataset 3dunderworld: frames reduced by an exact 1/2 or 1/4 box "
