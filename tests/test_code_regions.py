@@ -117,3 +117,33 @@ def test_no_common_code_gives_no_point(rig):
 def test_bad_blocks_are_refused(kw):
     with pytest.raises(InputError, match="block"):
         code_region_centroids(np.zeros((2, 2)), np.zeros((2, 2)), **kw)
+
+
+def test_code_block_reads_the_gray_block_from_sigma():
+    from facegeo.geometry.code_regions import code_block
+
+    assert code_block(np.full((3, 3), 4 / np.sqrt(12))) == 4.0
+    assert code_block(np.full((3, 3), 1 / np.sqrt(12))) == 1.0
+    assert code_block(np.full((3, 3), 0.05)) == 1.0  # a phase decode: finer than a pixel
+    assert code_block(np.full((3, 3), np.nan)) == 1.0
+
+
+def test_hole_fill_adds_points_only_in_the_holes(rig):
+    from facegeo.geometry.code_regions import hole_fill_points
+
+    a, b, proj = rig
+    xa, ya = _codes(a, proj)
+    xb, yb = _codes(b, proj)
+    full = hole_fill_points([a, b], [xa, xb], [ya, yb], [(1, 1), (1, 1)], np.zeros((0, 3)),
+                            min_gap=1e-3)
+    p = full["p_world"]
+    assert len(p) > 1000 and (full["camera"] == 0).all()
+    # existing points everywhere but a 4 cm disc: the fill lands in the disc only
+    hole = np.linalg.norm(p[:, :2], axis=1) < 0.02
+    fill = hole_fill_points([a, b], [xa, xb], [ya, yb], [(1, 1), (1, 1)], p[~hole],
+                            min_gap=3e-3)
+    got = np.linalg.norm(fill["p_world"][:, :2], axis=1)
+    assert len(got) > 0.5 * hole.sum()
+    assert (got < 0.02 + 3e-3).all()
+    with pytest.raises(InputError, match="min_gap"):
+        hole_fill_points([a, b], [xa, xb], [ya, yb], [(1, 1), (1, 1)], p, min_gap=0.0)

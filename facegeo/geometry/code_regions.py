@@ -32,8 +32,8 @@ import numpy as np
 from facegeo.checks import as_array
 from facegeo.errors import InputError, ShapeError
 
-__all__ = ["RegionCentroids", "RegionPoints", "code_region_centroids",
-           "triangulate_region_centroids"]
+__all__ = ["RegionCentroids", "RegionPoints", "code_block", "code_region_centroids",
+           "hole_fill_points", "triangulate_region_centroids"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,3 +187,64 @@ def triangulate_region_centroids(cam_a, cam_b, cen_a: RegionCentroids, cen_b: Re
                    "points": int(keep.sum())})
     pix = np.clip(np.rint(q_a[keep]).astype(int), 0, [cam_a.width - 1, cam_a.height - 1])
     return RegionPoints(p[keep], sigma[keep], pix, chi[keep], counts)
+
+
+def code_block(sigma) -> float:
+    """A decode's code block, projector pixels: ``median(σ)·√12`` of a Gray-code decode
+    (its σ is ``block / √12``) rounded to a power of two, at least 1.
+
+    Parameters
+    ----------
+    sigma : (H, W) float, projector pixels (NaN where invalid)
+    """
+    s = np.asarray(sigma, np.float64)
+    s = s[np.isfinite(s) & (s > 0)]
+    if s.size == 0:
+        return 1.0
+    b = float(np.median(s)) * np.sqrt(12.0)
+    return float(2.0 ** max(0, round(np.log2(max(b, 1.0)))))
+
+
+def hole_fill_points(cameras, x, y, blocks, p_existing, *, min_gap: float,
+                     max_chi: float = 4.0, min_angle_deg: float = 0.5) -> dict:
+    """Centroid-matched points of every camera pair, kept only where no existing point is
+    within ``min_gap`` (the holes per-pixel matching left).
+
+    Parameters
+    ----------
+    cameras : list of Camera
+    x, y : list of (H_c, W_c) float, projector pixels (NaN invalid), one per camera
+    blocks : list of (float, float), projector pixels
+        Each camera's code block per axis (:func:`code_block`); a pair matches at the coarser.
+    p_existing : (N, 3) float64, metres, world frame
+    min_gap : float, metres
+
+    Returns
+    -------
+    dict with ``p_world`` (M, 3), ``sigma`` (M,), ``camera`` (M,) int (the pair's first
+    camera), ``pixel`` (M, 2) int, ``counts`` (per pair, plus ``kept``).
+    """
+    from scipy.spatial import cKDTree
+
+    if not (np.isfinite(min_gap) and min_gap > 0):
+        raise InputError(f"min_gap: expected a distance > 0 in metres, got {min_gap!r}")
+    tree = cKDTree(np.asarray(p_existing, np.float64)) if len(p_existing) else None
+    parts, counts = [], {}
+    for a in range(len(cameras)):
+        for b in range(a + 1, len(cameras)):
+            bx = max(blocks[a][0], blocks[b][0])
+            by = max(blocks[a][1], blocks[b][1])
+            ca = code_region_centroids(x[a], y[a], block_x=bx, block_y=by)
+            cb = code_region_centroids(x[b], y[b], block_x=bx, block_y=by)
+            r = triangulate_region_centroids(cameras[a], cameras[b], ca, cb, max_chi=max_chi,
+                                             min_angle_deg=min_angle_deg)
+            far = np.ones(len(r.p_world), bool) if tree is None else \
+                tree.query(r.p_world, distance_upper_bound=min_gap)[0] > min_gap
+            counts[f"{cameras[a].name}-{cameras[b].name}"] = {**r.counts, "kept": int(far.sum())}
+            parts.append((r.p_world[far], r.sigma[far], np.full(int(far.sum()), a),
+                          r.pixel[far]))
+    if not parts:
+        return {"p_world": np.zeros((0, 3)), "sigma": np.zeros(0), "camera": np.zeros(0, int),
+                "pixel": np.zeros((0, 2), int), "counts": counts}
+    p, s, c, q = (np.concatenate(v) for v in zip(*parts))
+    return {"p_world": p, "sigma": s, "camera": c, "pixel": q, "counts": counts}
