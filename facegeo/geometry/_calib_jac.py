@@ -20,35 +20,38 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["INTRINSIC_ORDER", "BlockJacobian", "block_lm", "group_indicator", "project_with_jac",
+__all__ = ["INTRINSIC_ORDER", "BlockJacobian", "GroupLayout", "block_lm", "group_indicator",
+           "held_out_residual", "leave_out_steps", "project_with_jac", "reduced_blocks",
            "rodrigues_batch", "rotate_with_jac"]
 
 #: Column order of the intrinsic derivatives returned by :func:`project_with_jac`.
 INTRINSIC_ORDER = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 
 
-def rodrigues_batch(rvecs: np.ndarray):
+def rodrigues_batch(rvecs: np.ndarray, jac: bool = True):
     """Rotation matrices and their derivatives for a batch of axis-angle vectors.
 
     Parameters
     ----------
     rvecs : (V, 3) float64, radians
+    jac : bool
+        Also return the derivative.
 
     Returns
     -------
     R : (V, 3, 3) float64
-    dR : (V, 3, 3, 3) float64
+    dR : (V, 3, 3, 3) float64 (with ``jac``)
         ``dR[v, k, i, j] = ∂R_ij / ∂r_k``.
     """
     rvecs = np.asarray(rvecs, np.float64).reshape(-1, 3)
     V = rvecs.shape[0]
     R = np.empty((V, 3, 3))
     dR = np.empty((V, 3, 3, 3))
-    for v in range(V):  # one 3-vector per view
+    for v in range(V):  # one 3-vector per view (2 µs a call: faster than numpy's overhead)
         Rv, J = cv2.Rodrigues(rvecs[v])
         R[v] = Rv
         dR[v] = J.reshape(3, 3, 3)  # OpenCV: J[k, 3 i + j] = ∂R_ij/∂r_k
-    return R, dR
+    return (R, dR) if jac else R
 
 
 def rotate_with_jac(R, dR, p):
@@ -153,6 +156,46 @@ def group_indicator(group: np.ndarray, n_groups: int):
     return csr_matrix((np.ones(M), (group, np.arange(M))), shape=(int(n_groups), M))
 
 
+class GroupLayout:
+    """Rows grouped into a padded ``(n_groups, L, …)`` array, ``L`` the largest group.
+
+    Per-group sums become one batched matrix product (``A[g]ᵀ A[g]``) instead of a sparse
+    product over outer products: 5× faster on a 13-view calibration. Rows already sorted by
+    group in groups of equal size (a single camera's views with whole boards) are a reshape;
+    otherwise they are scattered into zero padding (zero rows add nothing to any sum).
+
+    Parameters
+    ----------
+    group : (M,) int
+        Group of each row.
+    n_groups : int
+    """
+
+    def __init__(self, group: np.ndarray, n_groups: int):
+        group = np.asarray(group, np.intp)
+        G = int(n_groups)
+        counts = np.bincount(group, minlength=G)
+        self.n_groups, self.L, self.M = G, int(counts.max(initial=0)), group.shape[0]
+        sorted_equal = (self.L * G == self.M and bool(np.all(group[:-1] <= group[1:]))
+                        if self.M else True)
+        if sorted_equal:
+            self.pos = None
+        else:  # row m → g·L + (its rank within its group)
+            order = np.argsort(group, kind="stable")
+            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            rank = np.empty(self.M, np.intp)
+            rank[order] = np.arange(self.M) - np.repeat(starts, counts)
+            self.pos = group * self.L + rank
+
+    def pad(self, A: np.ndarray) -> np.ndarray:
+        """Rows ``(M, k)`` → ``(n_groups, L, k)`` (zeros where a group has fewer rows)."""
+        if self.pos is None:
+            return A.reshape(self.n_groups, self.L, -1)
+        out = np.zeros((self.n_groups * self.L, A.shape[1]))
+        out[self.pos] = A
+        return out.reshape(self.n_groups, self.L, -1)
+
+
 class BlockJacobian:
     """A calibration Jacobian in its block-sparse form.
 
@@ -169,9 +212,17 @@ class BlockJacobian:
     n_groups : int
     """
 
-    def __init__(self, Ja, Jb, group, n_groups, indicator=None):
+    def __init__(self, Ja, Jb, group, n_groups, indicator=None, layout=None):
+        # ``indicator`` (a :func:`group_indicator` matrix) is accepted for older callers and
+        # unused: the per-group sums go through a :class:`GroupLayout`
         self.Ja, self.Jb, self.group, self.n_groups = Ja, Jb, group, int(n_groups)
-        self._S = group_indicator(group, n_groups) if indicator is None else indicator
+        self._layout = layout
+
+    @property
+    def layout(self) -> GroupLayout:
+        if self._layout is None:
+            self._layout = GroupLayout(self.group, self.n_groups)
+        return self._layout
 
     def matvec(self, dx: np.ndarray) -> np.ndarray:
         """``J · dx``, (M,)."""
@@ -193,19 +244,19 @@ class BlockJacobian:
         J[np.arange(M)[:, None], na + b * self.group[:, None] + np.arange(b)] = self.Jb
         return J
 
-    def normal(self, r):
+    def grams(self, r) -> np.ndarray:
+        """Per group g, the Gram matrix of its rows of ``[Ja | Jb | r]``: ``(G, k, k)`` with
+        ``k = n_dense + block + 1`` — its blocks are group g's share of ``JᵀJ`` and ``Jᵀr``."""
+        A = self.layout.pad(np.concatenate([self.Ja, self.Jb, r[:, None]], axis=1))
+        return A.transpose(0, 2, 1) @ A
+
+    def normal(self, r, grams=None):
         """Blocks of ``JᵀJ`` and ``Jᵀr``: ``U (na, na)``, ``W (G, na, b)``, ``V (G, b, b)``,
         ``ga (na,)``, ``gb (G, b)``."""
-        Ja, Jb, S = self.Ja, self.Jb, self._S
-        M, na = Ja.shape
-        b = Jb.shape[1]
-        G = self.n_groups
-        U = Ja.T @ Ja
-        W = np.asarray(S @ (Ja[:, :, None] * Jb[:, None, :]).reshape(M, na * b)).reshape(G, na, b)
-        V = np.asarray(S @ (Jb[:, :, None] * Jb[:, None, :]).reshape(M, b * b)).reshape(G, b, b)
-        ga = Ja.T @ r
-        gb = np.asarray(S @ (Jb * r[:, None]))
-        return U, W, V, ga, gb
+        na, b = self.Ja.shape[1], self.Jb.shape[1]
+        Gm = self.grams(r) if grams is None else grams
+        return (Gm[:, :na, :na].sum(0), Gm[:, :na, na:na + b], Gm[:, na:na + b, na:na + b],
+                Gm[:, :na, -1].sum(0), Gm[:, na:na + b, -1])
 
     def jtj(self) -> np.ndarray:
         """The dense normal matrix ``JᵀJ`` (for the covariance), from the blocks."""
@@ -223,8 +274,106 @@ class BlockJacobian:
         return A
 
 
+def reduced_blocks(grams: np.ndarray, na: int):
+    """Each group's share of the Schur-reduced normal equations on the dense parameters.
+
+    With group g's blocks ``U_g = Ja_gᵀJa_g``, ``W_g = Ja_gᵀJb_g``, ``V_g = Jb_gᵀJb_g``,
+    ``a_g = Ja_gᵀr_g``, ``b_g = Jb_gᵀr_g`` (from :meth:`BlockJacobian.grams`), eliminating the
+    group's own block gives ``S_g = U_g − W_g V_g⁻¹ W_gᵀ`` and ``s_g = a_g − W_g V_g⁻¹ b_g``:
+    the Gauss–Newton step of the dense parameters over any set F of groups solves
+    ``(Σ_{g∈F} S_g) δ = −Σ_{g∈F} s_g`` (the bundle-adjustment Schur complement, summed by group).
+
+    Parameters
+    ----------
+    grams : (G, k, k) float64
+    na : int
+        Number of dense parameters (the first ``na`` columns).
+
+    Returns
+    -------
+    S : (G, na, na) float64
+    s : (G, na) float64
+    """
+    U = grams[:, :na, :na]
+    W = grams[:, :na, na:-1]
+    V = grams[:, na:-1, na:-1]
+    a = grams[:, :na, -1]
+    b = grams[:, na:-1, -1]
+    WVi = np.linalg.solve(V, W.transpose(0, 2, 1)).transpose(0, 2, 1)  # W V⁻¹ (V symmetric)
+    S = U - WVi @ W.transpose(0, 2, 1)
+    s = a - np.einsum("gab,gb->ga", WVi, b)
+    return S, s
+
+
+def leave_out_steps(S: np.ndarray, s: np.ndarray, folds) -> np.ndarray:
+    """One Gauss–Newton step of the dense parameters with each fold of groups left out.
+
+    From a solution of the whole problem, the problem without fold F starts at the same point
+    with normal equations ``Σ_{g∉F} S_g`` and gradient ``Σ_{g∉F} s_g`` (:func:`reduced_blocks`);
+    its step ``δ_F = −(Σ_{g∉F} S_g)⁻¹ Σ_{g∉F} s_g`` is the leave-out solution to first order
+    (exact for a linear model, where it is the PRESS / jackknife identity; the board poses of
+    the other groups follow from the Schur back-substitution and are not needed here).
+
+    Parameters
+    ----------
+    S : (G, na, na), s : (G, na)
+        From :func:`reduced_blocks`.
+    folds : sequence of sequences of int
+        The groups of each fold.
+
+    Returns
+    -------
+    (F, na) float64
+        ``δ_F`` per fold (NaN where the remaining normal matrix is singular).
+    """
+    S_all, s_all = S.sum(0), s.sum(0)
+    out = np.full((len(folds), S.shape[1]), np.nan)
+    for f, F in enumerate(folds):
+        F = np.asarray(F, np.intp)
+        A = S_all - S[F].sum(0)
+        g = s_all - s[F].sum(0)
+        try:
+            out[f] = -np.linalg.solve(A, g)
+        except np.linalg.LinAlgError:
+            pass
+    return out
+
+
+def held_out_residual(grams: np.ndarray, na: int, delta: np.ndarray) -> np.ndarray:
+    """Per group, ``min over δb of ‖r + Ja δ + Jb δb‖²`` from its Gram blocks
+    (:meth:`BlockJacobian.grams`): the group's squared residual, to second order, after its own
+    block is re-solved for a change ``δ`` of the dense parameters (the PRESS identity of linear
+    least squares when δ is the leave-out step).
+
+    Parameters
+    ----------
+    grams : (G, k, k) float64
+    na : int
+    delta : (G, na) float64
+        The change of the dense parameters, per group.
+
+    Returns
+    -------
+    (G,) float64
+    """
+    U = grams[:, :na, :na]
+    W = grams[:, :na, na:-1]
+    V = grams[:, na:-1, na:-1]
+    a = grams[:, :na, -1]
+    b = grams[:, na:-1, -1]
+    rr = grams[:, -1, -1]
+    e2 = rr + 2.0 * np.einsum("ga,ga->g", a, delta) + np.einsum("ga,gab,gb->g", delta, U, delta)
+    h = b + np.einsum("gab,ga->gb", W, delta)
+    e2 -= np.einsum("gb,gb->g", h, np.linalg.solve(V, h[..., None])[..., 0])
+    return np.clip(e2, 0.0, None)
+
+
 def _schur_step(U, W, V, ga, gb, lam):
-    """Solve ``(JᵀJ + λ diag JᵀJ) δ = −Jᵀr`` by the Schur complement on the dense block."""
+    """Solve ``(JᵀJ + λ diag JᵀJ) δ = −Jᵀr`` by the Schur complement on the dense block.
+
+    Returns ``δ`` and the decrease of ``‖r‖²`` the linear model predicts for it,
+    ``−2 δᵀJᵀr − δᵀJᵀJ δ`` (from the blocks: no pass over the residuals).
+    """
     na = U.shape[0]
     b = V.shape[1]
     Ud = U + lam * np.diag(np.diag(U)) + 1e-300 * np.eye(na)
@@ -232,12 +381,15 @@ def _schur_step(U, W, V, ga, gb, lam):
     Vd = V.copy()
     Vd[:, idx, idx] *= 1.0 + lam
     Vi = np.linalg.inv(Vd)  # (G, b, b)
-    WVi = np.einsum("gab,gbc->gac", W, Vi)  # (G, na, b)
+    WVi = W @ Vi  # (G, na, b)
     Sm = Ud - np.einsum("gab,gcb->ac", WVi, W)
     rhs = -ga + np.einsum("gab,gb->a", WVi, gb)
     da = np.linalg.solve(Sm, rhs)
     db = -np.einsum("gab,gb->ga", Vi, gb + np.einsum("gab,a->gb", W, da))
-    return np.concatenate([da, db.ravel()])
+    quad = (da @ U @ da + 2.0 * np.einsum("a,gab,gb->", da, W, db)
+            + np.einsum("ga,gab,gb->", db, V, db))
+    pred = -2.0 * (ga @ da + np.sum(gb * db)) - quad
+    return np.concatenate([da, db.ravel()]), float(pred)
 
 
 def block_lm(fun_jac, x0, *, max_iter: int = 100, ftol: float = 1e-12):
@@ -274,7 +426,7 @@ def block_lm(fun_jac, x0, *, max_iter: int = 100, ftol: float = 1e-12):
         done = False
         while True:
             try:
-                dx = _schur_step(U, W, V, ga, gb, lam)
+                dx, pred = _schur_step(U, W, V, ga, gb, lam)
             except np.linalg.LinAlgError:
                 dx = None
             if dx is None or not np.all(np.isfinite(dx)):
@@ -284,17 +436,17 @@ def block_lm(fun_jac, x0, *, max_iter: int = 100, ftol: float = 1e-12):
                     done = True
                     break
                 continue
-            r_lin = r + J.matvec(dx)
-            pred = cost - float(r_lin @ r_lin)
             if pred <= ftol * cost:  # converged: no decrease left to predict
                 done = True
                 break
-            r_new, _ = fun_jac(x + dx, False)
+            # the Jacobian with the trial residuals: steps are mostly accepted, and an accepted
+            # step then needs no second evaluation
+            r_new, J_new = fun_jac(x + dx, True)
             cost_new = float(r_new @ r_new) if np.all(np.isfinite(r_new)) else np.inf
             rho = (cost - cost_new) / pred
             if rho > 0:
                 done = cost - cost_new <= ftol * cost
-                x, cost = x + dx, cost_new
+                x, cost, r, J = x + dx, cost_new, r_new, J_new
                 lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
                 break
@@ -303,7 +455,6 @@ def block_lm(fun_jac, x0, *, max_iter: int = 100, ftol: float = 1e-12):
             if lam > 1e16:
                 done = True
                 break
-        r, J = fun_jac(x, True)
         if done:
             break
     return x, r, J, it

@@ -7,10 +7,12 @@ The public namespace of three private modules:
   circle grids; :func:`usable_detections` lists every skipped image with its reason.
 * :mod:`._calib_solve` — :func:`calibrate_camera`: facegeo's own solver (Zhang start, joint
   least squares over intrinsics, distortion and per-view poses; robust loss; outlier-view
-  rejection; parameter standard deviations from ``σ² (JᵀJ)⁻¹``; mrcal-style projection
-  uncertainty over the image).
+  rejection; parameter standard deviations from ``σ² (JᵀJ)⁻¹`` raised to the jackknife over
+  views from 6 views on (``sigma_method``); leave-one-view-out cross-validation;
+  mrcal-style projection uncertainty over the image).
 * :mod:`._calib_select` — :func:`select_model` (``model="auto"``): the distortion model per
-  camera by k-fold cross-validation over its views, the simplest within noise of the best.
+  camera — degenerate lenses refused (:func:`lens_degeneracy`), a more complex model only when
+  its leave-one-view-out held-out gain exceeds the noise.
 * :mod:`._calib_projector` — :func:`projector_corners`: board corners in projector pixels by
   Moreno & Taubin's local homographies over the decoded structured light.
 * :mod:`._calib_rig` — :func:`calibrate_rig` (bundle adjustment of N cameras and the board
@@ -40,28 +42,19 @@ from facegeo.geometry._calib_projector import (
     PROJECTOR_MIN_PIXELS, PROJECTOR_WINDOW_PX, projector_corners,
 )
 from facegeo.geometry._calib_rig import RigCalibration, calibrate_rig, cross_validate
-from facegeo.geometry._calib_select import AUTO_CANDIDATES
-from facegeo.geometry._calib_select import select_model as _select_model
+from facegeo.geometry._calib_select import AUTO_CANDIDATES, lens_degeneracy, select_model
 from facegeo.geometry._calib_solve import (
-    MODEL_FREE, MODELS, CameraCalibration, calibrate_camera, model_of_dist, project_points,
-    rotate_rvec,
+    JACKKNIFE_MIN_VIEWS, MODEL_FREE, MODELS, CameraCalibration, calibrate_camera, model_of_dist,
+    project_points, rotate_rvec,
 )
 
 __all__ = [
-    "AUTO_CANDIDATES", "MIN_CORNERS_PER_VIEW", "MODEL_FREE", "MODELS",
+    "AUTO_CANDIDATES", "JACKKNIFE_MIN_VIEWS", "MIN_CORNERS_PER_VIEW", "MODEL_FREE", "MODELS",
     "BoardDetection", "ChessboardSpec", "CircleGridSpec", "CameraCalibration", "RigCalibration",
     "as_corner_lists", "detect_boards", "detect_charuco", "detect_chessboard",
     "detect_circle_grid", "detection_report", "usable_detections",
     "PROJECTOR_MIN_PIXELS", "PROJECTOR_WINDOW_PX", "projector_corners",
-    "calibrate_camera", "calibrate_rig", "cross_validate", "model_of_dist", "project_points", "rotate_rvec",
-    "select_model",
+    "calibrate_camera", "calibrate_rig", "cross_validate", "lens_degeneracy", "model_of_dist",
+    "project_points", "rotate_rvec", "select_model",
 ]
-
-
-def select_model(object_points, image_points, image_size, **kwargs) -> dict:
-    """Choose a camera's distortion model by k-fold cross-validation over its views
-    (:func:`._calib_select.select_model` with facegeo's solver, :func:`calibrate_camera`;
-    keyword arguments as there)."""
-    return _select_model(object_points, image_points, image_size, solve=calibrate_camera,
-                         models=MODELS, **kwargs)
 
