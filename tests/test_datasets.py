@@ -61,8 +61,10 @@ def test_opencv_stereo_keeps_the_published_intrinsics(converted):
     scan = converted.get("opencv-stereo") or pytest.skip("no OpenCV stereo data")
     assert scan.calib_views("left") == list(range(13)) == scan.calib_views("right")
     ref = json.loads(scan.reference_path("intrinsics").read_text())
+    # left: OpenCV's single-camera calibration of these images; stereo_calib's kept apart
     K = np.array(ref["cameras"]["left"]["K"])
-    assert K.shape == (3, 3) and K[0, 0] == pytest.approx(534.803, abs=1e-3)
+    assert K.shape == (3, 3) and K[0, 2] == pytest.approx(342.283, abs=1e-3)
+    assert np.array(ref["stereo_calib"]["left"]["K"])[0, 0] == pytest.approx(534.803, abs=1e-3)
     assert np.array(ref["left_single_camera"]["K"])[0, 2] == pytest.approx(342.283, abs=1e-3)
 
 

@@ -134,8 +134,9 @@ def _opencv_stereo(src: Path, root: Path, mode: str) -> dict:
     for cam, paths in files.items():
         for view, p in enumerate(paths):
             _carry(p, root / "calib" / cam / f"view_{view:03d}.jpg", mode)
-    ref = {"source": "OpenCV samples/data (stereo_calib output intrinsics.yml; calibration "
-                     "sample output left_intrinsics.yml)", "cameras": {}}
+    ref = {"source": "OpenCV samples/data (left: the calibration sample's output "
+                     "left_intrinsics.yml; right: stereo_calib's output intrinsics.yml, its "
+                     "left under stereo_calib)", "cameras": {}}
     if (src / "intrinsics.yml").is_file():
         m = read_matrices(src / "intrinsics.yml", ("M1", "D1", "M2", "D2"))
         ref["cameras"] = {"left": {"K": m["M1"].tolist(), "dist": m["D1"].ravel().tolist()},
@@ -145,6 +146,11 @@ def _opencv_stereo(src: Path, root: Path, mode: str) -> dict:
                           ("camera_matrix", "distortion_coefficients"))
         ref["left_single_camera"] = {"K": m["camera_matrix"].tolist(),
                                      "dist": m["distortion_coefficients"].ravel().tolist()}
+        # the left camera's reference is OpenCV's own single-camera calibration of these
+        # images; stereo_calib's M1 (cx 335.7 against 342.3) is a joint stereo fit, kept apart
+        if "left" in ref["cameras"]:
+            ref["stereo_calib"] = {"left": ref["cameras"]["left"]}
+        ref["cameras"]["left"] = ref["left_single_camera"]
     manifest = new_manifest(
         "opencv_stereo_chessboards", synthetic=False,
         description="OpenCV's stereo calibration samples: 13 chessboard views per camera "
