@@ -45,6 +45,14 @@ medians are null when there are none):
   57 % of Σ err² at 30° — so it moves by ±20 % with the sample of functions compared, where
   the median does not.
 
+**A single-view scan without geometry** (Yale B, DiLiGenT: one camera, a light list, no
+structured light, no mesh) is fitted in image space instead — every masked pixel a texel, the
+per-pixel photometric models of :mod:`facegeo.appearance.photometric` chosen by
+cross-validation over the lights, the held-out lights scored against the Lambertian least
+squares: :func:`fit_image_products` (:mod:`facegeo.pipeline._fit_image`; settings
+:data:`IMAGE_FIT_SETTINGS`, ``hold_out`` every other light by default). ``run_fit`` and
+``facegeo reconstruct`` take that path when :func:`image_space_scan` says so.
+
 The texels meet the truth where the ``project`` stage's do
 (:meth:`facegeo.synth.render.ReferenceRenderer.texel_truth`); with a rig other than the true
 one, after the same rigid gauge alignment (:func:`facegeo.pipeline.project.truth_gauge`,
@@ -63,11 +71,13 @@ import numpy as np
 from facegeo.checks import check_positive_int, fmt_value
 from facegeo.errors import InputError
 from facegeo.fsutil import staged_directory
+from facegeo.pipeline._fit_image import IMAGE_FIT_SETTINGS, fit_image_products, image_space_scan
 from facegeo.render.novel import even_subset
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FIT_SETTINGS", "default_views", "fit_products", "needed_texels", "run_fit"]
+__all__ = ["FIT_SETTINGS", "IMAGE_FIT_SETTINGS", "default_views", "fit_products",
+           "fit_image_products", "image_space_scan", "needed_texels", "run_fit"]
 
 #: Default settings of the ``fit`` stage (JSON-serialisable, part of its cache key).
 FIT_SETTINGS: dict[str, Any] = {
@@ -602,14 +612,16 @@ def _add(gt, key, est, ref):
 
 
 def run_fit(scan_dir, out_dir=None, **settings) -> dict:
-    """Fit the skin model to a scan's projected fields into ``out_dir/fit/`` (staged).
+    """Fit the skin model to a scan's projected fields into ``out_dir/fit/`` (staged); on a
+    single-view scan without geometry (:func:`image_space_scan`), the per-pixel photometric
+    models in image space (:func:`fit_image_products`).
 
     Parameters
     ----------
     scan_dir : path-like or Scan
     out_dir : path-like, optional — default the scan's ``out/`` (must hold ``atlas/`` and
-        ``project/``)
-    **settings — see :func:`fit_products`
+        ``project/``, except in image space)
+    **settings — see :func:`fit_products` (image space: :func:`fit_image_products`)
 
     Returns
     -------
@@ -617,9 +629,14 @@ def run_fit(scan_dir, out_dir=None, **settings) -> dict:
     """
     from facegeo.pipeline.project import _record, _scan
 
-    _check_settings(**settings)
     scan = _scan(scan_dir)
     out = Path(out_dir) if out_dir is not None else scan.out_dir
+    if image_space_scan(scan):
+        with staged_directory(out / "fit") as tmp:
+            metrics, used = fit_image_products(scan, tmp, **settings)
+            _record(out, tmp, "fit", used, metrics)
+        return metrics
+    _check_settings(**settings)
     if not (out / "project").is_dir():
         raise InputError(f"fit: {out / 'project'} is missing; run 'facegeo reconstruct SCAN' first")
     with staged_directory(out / "fit") as tmp:

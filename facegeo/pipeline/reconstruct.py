@@ -5,6 +5,7 @@ The chain (Debevec et al. 2000 from capture to novel views)::
     calibrate ─► (rig, residuals)                      if the scan has [calib]
     decode ─► mesh                                     if it has [structured_light]
     atlas ─► project ─► relight, fit ─► render         if it has [olat] (atlas needs a mesh)
+    fit (image space)                                  [olat] of one camera and no geometry
 
 Each stage is a :class:`facegeo.pipeline.cache.StageSpec`: it reruns only when the content of
 the files it reads, its settings, an earlier stage's key, the facegeo version or facegeo's code
@@ -29,6 +30,11 @@ Which mesh and which rig the surface stages use:
   chain that meshes structured light while ``rig.json``'s projector is uncalibrated, the true
   projector is information a real scan would not have: the run logs one warning saying so
   (``"scan"`` meshes camera against camera instead).
+
+A single-view OLAT scan without geometry (one camera, no structured light, no ground-truth mesh,
+``mesh="auto"``: Yale B, DiLiGenT) has no atlas to build: its chain is the ``fit`` stage alone,
+in image space (:func:`facegeo.pipeline.fit.fit_image_products`; every masked pixel a texel).
+Give ``--mesh PATH`` to fit it on a mesh instead.
 
 A calibration that fails (no board found in a camera's views, say) ends the run with the error
 when the rig it should produce is used downstream; otherwise ``calibrate`` records the failure
@@ -107,12 +113,16 @@ def _resolve_mesh(scan, mesh: str) -> str:
 
 
 def _applicable(scan, mesh: str) -> list[str]:
+    from facegeo.pipeline._fit_image import image_space_scan
+
     stages = []
     if scan.has("calib"):
         stages.append("calibrate")
     if scan.has("structured_light"):
         stages += ["decode", "mesh"]
-    if scan.has("olat") and scan.camera_names:
+    if image_space_scan(scan, mesh):
+        stages.append("fit")  # in image space: no geometry to build an atlas on
+    elif scan.has("olat") and scan.camera_names:
         stages += ["atlas", "project", "relight", "fit", "render"]
     return stages
 
@@ -236,6 +246,27 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                                settings={"rig": use_rig, "method": "poisson", "depth": 7,
                                          "point_weight": 4.0,
                                          "trim_quantile": 0.02}))
+
+    if "fit" in names and "atlas" not in names:  # a single-view scan, fitted in image space
+        from facegeo.pipeline._fit_image import IMAGE_FIT_SETTINGS
+
+        def run_fit_image(ctx: StageContext) -> dict:
+            from facegeo.pipeline._fit_image import fit_image_products
+
+            metrics, _ = fit_image_products(scan, ctx.out_dir, progress=ctx.progress,
+                                            **ctx.settings)
+            return metrics
+
+        def image_inputs(d) -> list[Path]:
+            # the frames, the ambient frame, the mask and reference normals (scored against)
+            extra = [scan.ambient_path(c) for c in scan.camera_names]
+            extra += [scan.reference_path(k) for k in sorted(scan.reference_keys)]
+            return _group_inputs(scan, "olat") + [p for p in extra
+                                                  if p is not None and p.is_file()]
+
+        # the scan's own rig.json: the lights' directions and the camera are all it reads
+        specs.append(StageSpec("fit", run_fit_image, inputs=image_inputs,
+                               settings=dict(IMAGE_FIT_SETTINGS)))
 
     if "atlas" in names:
         from facegeo.pipeline.project import GT_LIGHTS, atlas_products, project_products
