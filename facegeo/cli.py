@@ -526,6 +526,9 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
     mesh_set = {k: getattr(args, k) for k in _MESH_OPTIONS if getattr(args, k, None) is not None}
     if mesh_set:
         settings = {**(settings or {}), "mesh": mesh_set}
+    fit_set = {k: getattr(args, k) for k in _FIT_OPTIONS if getattr(args, k, None) is not None}
+    if fit_set:
+        settings = {**(settings or {}), "fit": fit_set}
     out = (Path(scan) if isinstance(scan, (str, os.PathLike)) else scan.root) / "out"
     tick, close = _progress_factory(not args.quiet)
     try:
@@ -648,6 +651,48 @@ def _mesh_options(s) -> None:
     s.add_argument("--code-interpolation", choices=["auto", "on", "off"], default=None,
                    help="mesh, camera-camera route: interpolate codes shared by many pixels "
                         "(default auto: when the cameras out-resolve the projector)")
+
+
+#: ``facegeo fit`` options that are image-space fit settings of the same name
+#: (:data:`facegeo.pipeline.fit.IMAGE_FIT_SETTINGS`; a multi-view fit refuses them by name).
+_FIT_OPTIONS = ("hold_out", "light_cone_deg", "light_gains", "light_weights", "max_pixels")
+
+
+def _hold_out(text: str):
+    """argparse type of ``--hold-out``: ``every_other``, ``none``, ``EVERY:OFFSET`` or light
+    names separated by commas."""
+    if text in ("every_other", "none"):
+        return text
+    every, sep, offset = text.partition(":")
+    if sep and every.isdigit() and offset.isdigit():
+        if int(every) < 2 or int(offset) >= int(every):
+            raise argparse.ArgumentTypeError(f"EVERY:OFFSET: expected EVERY >= 2 and 0 <= OFFSET "
+                                             f"< EVERY, got {text!r}")
+        return {"every": int(every), "offset": int(offset)}
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected every_other, none, EVERY:OFFSET or light "
+                                         f"names, got {text!r}")
+    return names
+
+
+def _fit_options(s) -> None:
+    """Settings of the image-space fit of a single-view capture (docs/photometric.md); only
+    sent when given."""
+    s.add_argument("--hold-out", type=_hold_out, default=None,
+                   metavar="every_other|none|EVERY:OFFSET|NAME,...",
+                   help="single-view fit: lights left out of the fit and predicted (default "
+                        "every_other; 2:1 fits positions 1, 3, ...)")
+    s.add_argument("--light-cone-deg", type=_pos_float, default=None, metavar="DEG",
+                   help="single-view fit: only lights strictly within DEG of the camera")
+    s.add_argument("--light-gains", choices=["auto", "given", "fit"], default=None,
+                   help="single-view fit: per-light gains as given, fitted, or fitted when every "
+                        "light has the same intensity (auto, default)")
+    s.add_argument("--light-weights", choices=["uniform", "cells"], default=None,
+                   help="single-view fit: weights of the fitted lights (default uniform; cells: "
+                        "their solid angles)")
+    s.add_argument("--max-pixels", type=_pos_int, default=None, metavar="N",
+                   help="single-view fit: fit at most N pixels of the mask (a regular subset)")
 
 
 def _max_coarse_option(s) -> None:
@@ -877,6 +922,8 @@ def build_parser() -> argparse.ArgumentParser:
             _max_coarse_option(s)
         if name == "mesh":
             _mesh_options(s)
+        if name == "fit":
+            _fit_options(s)
         s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         s.set_defaults(func=_cmd_stage)
 
