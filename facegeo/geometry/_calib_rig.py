@@ -28,9 +28,9 @@ from facegeo.geometry._calib_jac import (
     rodrigues_batch,
     rotate_with_jac,
 )
+from facegeo.geometry._calib_camera import calibrate_camera
 from facegeo.geometry._calib_solve import (
     _Model,
-    calibrate_camera,
     minimise,
     model_of_dist,
     project_points,

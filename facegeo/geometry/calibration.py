@@ -5,7 +5,7 @@ The public namespace of three private modules:
 * :mod:`._calib_detect` — board detection with a per-image report: ChArUco (OpenCV ≥ 4.7
   ``CharucoDetector``, legacy pattern option), plain chessboards (``findChessboardCornersSB``),
   circle grids; :func:`usable_detections` lists every skipped image with its reason.
-* :mod:`._calib_solve` — :func:`calibrate_camera`: facegeo's own solver (Zhang start, joint
+* :mod:`._calib_solve` (:func:`calibrate_camera` in :mod:`._calib_camera`): facegeo's own solver (Zhang start, joint
   least squares over intrinsics, distortion and per-view poses; robust loss; outlier-view
   rejection; parameter standard deviations from ``σ² (JᵀJ)⁻¹`` raised to the jackknife over
   views from 6 views on (``sigma_method``); leave-one-view-out cross-validation;
@@ -43,9 +43,10 @@ from facegeo.geometry._calib_projector import (
 )
 from facegeo.geometry._calib_rig import RigCalibration, calibrate_rig, cross_validate
 from facegeo.geometry._calib_select import AUTO_CANDIDATES, lens_degeneracy, select_model
+from facegeo.geometry._calib_camera import calibrate_camera
 from facegeo.geometry._calib_solve import (
-    JACKKNIFE_MIN_VIEWS, MODEL_FREE, MODELS, CameraCalibration, calibrate_camera, model_of_dist,
-    project_points, rotate_rvec,
+    JACKKNIFE_MIN_VIEWS, MODEL_FREE, MODELS, CameraCalibration, model_of_dist, project_points,
+    rotate_rvec,
 )
 
 __all__ = [
