@@ -1146,11 +1146,15 @@ def test_projector_views_with_undecodable_corners_are_a_clear_error(tmp_path):
             p = tmp_path / f"v{v}_{name}.png"
             cv2.imwrite(str(p), white if name == "white" else grey)
             paths[(v, name)] = p
+    names = pattern_names(spec)
     scan = SimpleNamespace(
-        sl_patterns=spec.to_dict(), camera_names=["cam"],
+        pattern_spec=lambda group: spec, projector_frames=names, camera_names=["cam"],
+        camera_frames=lambda group, name: [(v, f) for v in range(3) for f in names],
+        has=lambda group: False, root=tmp_path,
         manifest={"calib": {"projector": {"views": 3}}},
         response=lambda key: SimpleNamespace(linearize=lambda a: a.astype(np.float32) / 255),
-        projector_view_paths=lambda name, v: {n: paths[(v, n)] for n in pattern_names(spec)})
-    with pytest.raises(InputError, match=r"0 of 3 projector views.*need 3.*projector view 0 "
-                                         r"cam: only 0 corners decodable \(need 6\)"):
+        projector_view_paths=lambda name, v: {n: paths[(v, n)] for n in names})
+    with pytest.raises(InputError, match=r"0 of 3 projector views.*need 3.*projector view 0, "
+                                         r"camera cam \(v0_white.png\): only 0 of \d+ corners "
+                                         r"decodable \(need 6"):
         _projector_observations(scan, BOARD, False)

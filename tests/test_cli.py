@@ -509,8 +509,8 @@ def test_calibrate_table_on_a_real_data_set(shared_data, tmp_path, capsys):
         row = next(line for line in out if line.startswith(cam)).split()
         assert "-" not in row[-2:], row  # focal and principal-point errors are numbers
         assert float(row[-2]) < 0.01, row  # measured 0.0041 / 0.0011 (docs/calibration.md)
-    assert any(line.startswith("skipped right view_002.jpg: no 9×6 chessboard found")
-               for line in out), out
+    assert any(line.startswith("skipped right view 2 (calib/right/view_002.jpg): no 9×6 "
+                               "chessboard found") for line in out), out
 
 
 def test_project_prints_a_line_per_camera(tiny_scan, capsys):

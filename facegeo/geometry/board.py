@@ -1,4 +1,6 @@
-"""The ChArUco calibration board: its geometry, its printed texture, and exact synthetic views.
+"""Calibration boards: the ChArUco board's geometry, printed texture and exact synthetic views,
+and the same for every board kind a scan may declare (plain chessboards and circle grids:
+:func:`render_board`, :func:`board_texture`, :func:`board_extent`).
 
 Board frame (OpenCV's ``CharucoBoard`` object frame): origin at the board's top-left corner, x
 along the ``squares_x`` direction, y along ``squares_y`` (down the printed image), z = 0 on the
@@ -22,11 +24,24 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
 
+from facegeo.geometry._board_kinds import (  # noqa: F401 (re-exported)
+    BLACK_REFLECTANCE,
+    CHESSBOARD_MARGIN_SQUARES,
+    CIRCLE_RADIUS_FRACTION,
+    WHITE_REFLECTANCE,
+    board_extent,
+    board_outline,
+    board_pitch,
+    board_points,
+    board_texture,
+    board_to_dict,
+    save_board,
+)
 from facegeo.geometry.camera import Camera
 from facegeo.checks import as_array, check_positive, fmt_value
 from facegeo.errors import InputError
@@ -36,6 +51,16 @@ from facegeo.fsutil import atomic_write_text, load_json_file
 __all__ = [
     "CharucoBoard",
     "BoardView",
+    "board_extent",
+    "board_outline",
+    "board_pitch",
+    "board_points",
+    "board_texture",
+    "board_to_dict",
+    "render_board",
+    "save_board",
+    "CHESSBOARD_MARGIN_SQUARES",
+    "CIRCLE_RADIUS_FRACTION",
     "random_board_poses",
     "aruco_dictionary_names",
     "WHITE_REFLECTANCE",
@@ -44,10 +69,8 @@ __all__ = [
     "BOARD_VERSION",
 ]
 
-#: Diffuse reflectance of the board's white paper (linear, unitless).
-WHITE_REFLECTANCE = 0.85
-#: Diffuse reflectance of the board's black ink (linear, unitless).
-BLACK_REFLECTANCE = 0.04
+# WHITE_REFLECTANCE, BLACK_REFLECTANCE: the paper's and the ink's diffuse reflectance (linear),
+# defined with the board kinds (facegeo.geometry._board_kinds) and re-exported here.
 #: ``"format"`` tag of a board file.
 BOARD_FORMAT = "facegeo-charuco-board"
 #: Version of the board file layout.
@@ -108,6 +131,7 @@ class CharucoBoard:
         ``squares_x·squares_y // 2`` markers.
     """
 
+    board_kind: ClassVar[str] = "charuco"
     squares_x: int = 7
     squares_y: int = 5
     square_length: float = 0.04
@@ -258,12 +282,7 @@ class CharucoBoard:
         supersample: int = 3,
         px_per_square: int | None = None,
     ) -> BoardView:
-        """Render the camera's view of the board's reflectance.
-
-        Each pixel is sampled by ``supersample × supersample`` rays through a regular sub-pixel
-        grid; each ray is undistorted exactly (:meth:`Camera.unproject`), intersected with the
-        board plane, and the texture is sampled bilinearly at the hit point. Pixels average their
-        samples (box filter); samples that miss the board, or hit its back, contribute 0.
+        """Render the camera's view of the board's reflectance (:func:`render_board`).
 
         Parameters
         ----------
@@ -280,70 +299,8 @@ class CharucoBoard:
         -------
         BoardView
         """
-        if not isinstance(camera, Camera):
-            raise InputError(f"camera: expected a Camera, got {type(camera).__name__}")
-        if not isinstance(T_cam_board, Pose):
-            raise InputError(f"T_cam_board: expected a Pose, got {type(T_cam_board).__name__}")
-        ss = supersample
-        if isinstance(ss, bool) or not isinstance(ss, (int, np.integer)) or ss < 1:
-            raise InputError(f"supersample: expected an integer >= 1, got {fmt_value(ss)}")
-        ss = int(ss)
-        R = T_cam_board.R
-        t = T_cam_board.t
-        if px_per_square is None:
-            z = T_cam_board.apply(self.outline(4))[:, 2]
-            z_min = float(z.min()) if np.all(z > 0) else 0.0
-            f = max(camera.fx, camera.fy)
-            want = 2.0 * f * self.square_length / z_min if z_min > 0 else 512
-            px_per_square = int(min(512, max(32, math.ceil(want))))
-        tex, m = self.texture(px_per_square)
-        centre_rays, sub_rays = _camera_rays(camera, ss)
-
-        n_cam = R[:, 2]  # board z axis in the camera frame
-        d0 = float(n_cam @ t)  # > 0 ⇔ the camera is on the printed (−z) side
-        W_m, H_m = self.size
-
-        R_xy = np.ascontiguousarray(R[:, :2])  # board x, y axes in the camera frame
-
-        def hit(x_n):
-            """Where rays ``x_n`` (…, 2) meet the board: (ok, p_cam, xb, yb), metres."""
-            den = n_cam[0] * x_n[..., 0] + n_cam[1] * x_n[..., 1] + n_cam[2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s = d0 / den
-            ok = (den > 0) & np.isfinite(s) & (d0 > 0)
-            p_cam = np.empty(x_n.shape[:-1] + (3,))
-            p_cam[..., 0] = s * x_n[..., 0]
-            p_cam[..., 1] = s * x_n[..., 1]
-            p_cam[..., 2] = s
-            # p_board = R_board_cam @ (p − t), x and y only; one (N, 3) @ (3, 2) product (the
-            # same float64 values as the full per-row (…, 3) @ (3, 3) product, 1.5× faster)
-            d = (p_cam - t).reshape(-1, 3)
-            p_xy = (d @ R_xy).reshape(x_n.shape[:-1] + (2,))
-            xb = p_xy[..., 0]
-            yb = p_xy[..., 1]
-            with np.errstate(invalid="ignore"):
-                ok &= (xb >= 0) & (xb <= W_m) & (yb >= 0) & (yb <= H_m)
-            return ok, p_cam, xb, yb
-
-        acc = np.zeros((camera.height, camera.width), dtype=np.float64)
-        for x_n in sub_rays:
-            ok, _, xb, yb = hit(x_n)
-            # texel coordinates (float64, then float32 in the lookup); 0 where the ray misses
-            u = xb / m
-            u -= 0.5
-            u[~ok] = 0.0
-            v = yb / m
-            v -= 0.5
-            v[~ok] = 0.0
-            val = _bilinear(tex, u, v)
-            val[~ok] = 0.0
-            acc += val
-        reflectance = (acc / (ss * ss)).astype(np.float32)
-
-        mask, p_cam, _, _ = hit(centre_rays)
-        p_world = camera.T_cam_world.inverse().apply(p_cam)
-        p_world[~mask] = np.nan
-        return BoardView(reflectance, mask, p_world)
+        return render_board(self, camera, T_cam_board, supersample=supersample,
+                            px_per_square=px_per_square)
 
     # ------------------------------------------------------------------ JSON
 
@@ -399,6 +356,105 @@ class CharucoBoard:
             Unreadable file, invalid JSON, or a missing / unknown / bad field (named).
         """
         return load_json_file(path, "board", cls.from_dict)
+
+
+# --------------------------------------------------------------------------- any board kind
+# Extent, outline, points and texture of every kind: facegeo.geometry._board_kinds.
+
+
+def render_board(board, camera: Camera, T_cam_board: Pose, *, supersample: int = 3,
+                 px_per_square: int | None = None) -> BoardView:
+    """Render a camera's view of a printed board's reflectance, any board kind.
+
+    Each pixel is sampled by ``supersample × supersample`` rays through a regular sub-pixel
+    grid; each ray is undistorted exactly (:meth:`Camera.unproject`), intersected with the
+    board plane, and the texture (:func:`board_texture`) is sampled bilinearly at the hit point.
+    Pixels average their samples (box filter); samples that miss the sheet
+    (:func:`board_extent`), or hit its back, contribute 0.
+
+    Parameters
+    ----------
+    board : CharucoBoard, ChessboardSpec or CircleGridSpec
+    camera : Camera
+    T_cam_board : Pose
+        Board frame to camera frame.
+    supersample : int, optional
+        Samples per pixel along each axis.
+    px_per_square : int, optional
+        Texels per :func:`board_pitch`; default: about two texels per camera pixel at the
+        sheet's nearest corner (at least 32, at most 512).
+
+    Returns
+    -------
+    BoardView
+    """
+    if not isinstance(camera, Camera):
+        raise InputError(f"camera: expected a Camera, got {type(camera).__name__}")
+    if not isinstance(T_cam_board, Pose):
+        raise InputError(f"T_cam_board: expected a Pose, got {type(T_cam_board).__name__}")
+    ss = supersample
+    if isinstance(ss, bool) or not isinstance(ss, (int, np.integer)) or ss < 1:
+        raise InputError(f"supersample: expected an integer >= 1, got {fmt_value(ss)}")
+    ss = int(ss)
+    R = T_cam_board.R
+    t = T_cam_board.t
+    if px_per_square is None:
+        z = T_cam_board.apply(board_outline(board, 4))[:, 2]
+        z_min = float(z.min()) if np.all(z > 0) else 0.0
+        f = max(camera.fx, camera.fy)
+        want = 2.0 * f * board_pitch(board) / z_min if z_min > 0 else 512
+        px_per_square = int(min(512, max(32, math.ceil(want))))
+    tex, m = board_texture(board, px_per_square)
+    centre_rays, sub_rays = _camera_rays(camera, ss)
+
+    n_cam = R[:, 2]  # board z axis in the camera frame
+    d0 = float(n_cam @ t)  # > 0 ⇔ the camera is on the printed (−z) side
+    x0, y0, x1, y1 = board_extent(board)
+
+    R_xy = np.ascontiguousarray(R[:, :2])  # board x, y axes in the camera frame
+
+    def hit(x_n):
+        """Where rays ``x_n`` (…, 2) meet the board: (ok, p_cam, xb, yb), metres."""
+        den = n_cam[0] * x_n[..., 0] + n_cam[1] * x_n[..., 1] + n_cam[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = d0 / den
+        ok = (den > 0) & np.isfinite(s) & (d0 > 0)
+        p_cam = np.empty(x_n.shape[:-1] + (3,))
+        p_cam[..., 0] = s * x_n[..., 0]
+        p_cam[..., 1] = s * x_n[..., 1]
+        p_cam[..., 2] = s
+        # p_board = R_board_cam @ (p − t), x and y only; one (N, 3) @ (3, 2) product (the
+        # same float64 values as the full per-row (…, 3) @ (3, 3) product, 1.5× faster)
+        d = (p_cam - t).reshape(-1, 3)
+        p_xy = (d @ R_xy).reshape(x_n.shape[:-1] + (2,))
+        xb = p_xy[..., 0]
+        yb = p_xy[..., 1]
+        with np.errstate(invalid="ignore"):
+            ok &= (xb >= x0) & (xb <= x1) & (yb >= y0) & (yb <= y1)
+        return ok, p_cam, xb, yb
+
+    acc = np.zeros((camera.height, camera.width), dtype=np.float64)
+    for x_n in sub_rays:
+        ok, _, xb, yb = hit(x_n)
+        # texel coordinates (float64, then float32 in the lookup); 0 where the ray misses
+        # (x0 = 0 for a ChArUco board: xb − 0.0 is xb exactly, its renders are unchanged)
+        u = xb - x0
+        u /= m
+        u -= 0.5
+        u[~ok] = 0.0
+        v = yb - y0
+        v /= m
+        v -= 0.5
+        v[~ok] = 0.0
+        val = _bilinear(tex, u, v)
+        val[~ok] = 0.0
+        acc += val
+    reflectance = (acc / (ss * ss)).astype(np.float32)
+
+    mask, p_cam, _, _ = hit(centre_rays)
+    p_world = camera.T_cam_world.inverse().apply(p_cam)
+    p_world[~mask] = np.nan
+    return BoardView(reflectance, mask, p_world)
 
 
 # --------------------------------------------------------------------------- helpers

@@ -1,4 +1,4 @@
-"""The calibrate stage: cameras and rig from a scan's ChArUco views (issue 9).
+"""The calibrate stage: cameras, rig and projector from a scan's board views (issues 9, 35).
 
 ``run_calibrate(scan_dir, out_dir)`` (``facegeo calibrate``) reads every camera's
 ``calib/<camera>/`` views, detects the board
@@ -20,8 +20,11 @@ warning) and writes
 * ``residuals_<camera>.png`` — residual vectors over the image (×``RESIDUAL_GAIN``) and a
   histogram of their lengths, drawn with OpenCV (matplotlib is not a dependency);
 * ``detections.json`` — the per-image detection report;
-* with ``calib/projector/`` views: the projector (Moreno & Taubin local homographies, a
-  separate solve from the Zhang start — no nominal intrinsics needed: an uncalibrated
+* with ``[calib.projector]`` views: the projector — the board (any kind the cameras accept)
+  found in each view's white frame, the view's patterns decoded (its own frames and
+  patterns, or ``[structured_light]``'s), Moreno & Taubin local homographies
+  (:mod:`facegeo.pipeline._calibrate_projector`), a separate solve from the Zhang start — no
+  nominal intrinsics needed: an uncalibrated
   ``rig.json`` entry gets :data:`PROJECTOR_MODEL` — then the joint bundle adjustment), its YAML
   and residual plot; otherwise ``metrics["projector"]`` says that it was not calibrated, why,
   and what ``rig.json`` keeps instead (also logged as a warning, its record marked with
@@ -47,6 +50,13 @@ from facegeo.checks import fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import Pose
 from facegeo.fsutil import atomic_write_text, staged_directory
+from facegeo.pipeline._calibrate_projector import (  # noqa: F401 (SUMMARY_RECORD re-exported)
+    SUMMARY_RECORD,
+    projector_observations as _projector_observations,
+    projector_spec,
+    view_label,
+    view_rejections,
+)
 
 log = logging.getLogger(__name__)
 
@@ -55,9 +65,8 @@ __all__ = ["run_calibrate", "calibrate_products", "RESIDUAL_GAIN"]
 #: Residual vectors are drawn this many times longer than they are.
 RESIDUAL_GAIN = 100.0
 
-#: Attribute of a log record that repeats a line of the metrics (``"projector"``: the warning
-#: of ``metrics["projector"]["summary"]``), for a caller that prints that line itself.
-SUMMARY_RECORD = "facegeo_summary"
+# SUMMARY_RECORD (the log-record attribute of a line the metrics repeat) is defined beside the
+# projector's observations, which log one too, and re-exported here.
 
 
 #: Fewest usable board views a camera is calibrated from on its own; a rig camera with fewer
@@ -267,57 +276,10 @@ def _residual_plot(path: Path, size, r: np.ndarray, q: np.ndarray, title: str) -
         raise InputError(f"{path}: could not write the residual plot")
 
 
-def _projector_observations(scan, board, legacy):
-    """Board corners in projector pixels for every projector-calibration view (Moreno & Taubin
-    local homographies, averaged over the cameras that saw a corner), and the cameras' own
-    corners of those views (so the bundle adjustment ties the projector to the cameras)."""
-    from facegeo.capture.imageio import read_image
-    from facegeo.geometry.calibration import detect_charuco, projector_corners
-    from facegeo.geometry.structured_light import PatternSpec, decode_gray
-
-    spec = PatternSpec.from_dict(scan.sl_patterns)
-    resp = scan.response("calib.projector")
-    n_views = scan.manifest["calib"]["projector"]["views"]
-    proj_obs, cam_obs = {}, {n: {} for n in scan.camera_names}
-    skipped, n_corners = [], 0
-    for v in range(n_views):
-        acc: dict[int, list] = {}
-        for name in scan.camera_names:
-            paths = scan.projector_view_paths(name, v)
-            raw = {k: read_image(p) for k, p in paths.items()}
-            lin = {k: resp.linearize(a) for k, a in raw.items()}
-            lin = {k: a.mean(axis=-1) if a.ndim == 3 else a for k, a in lin.items()}
-            white = raw["white"] if "white" in raw else raw[next(iter(raw))]
-            det = detect_charuco(white, board, name=f"projector view {v} {name}", legacy=legacy)
-            if not det.found:
-                skipped.append(f"{det.name}: {det.reason}")
-                continue
-            dec = decode_gray(lin, spec)
-            qp, ok, _ = projector_corners(det.q, dec.q_proj, dec.valid)
-            if ok.sum() < 6:
-                skipped.append(f"projector view {v} {name}: only {int(ok.sum())} corners "
-                               "decodable (need 6)")
-                continue
-            cam_obs[name][f"p{v}"] = (det.p_board, det.q)
-            for i, q in zip(det.ids[ok], qp[ok]):
-                acc.setdefault(int(i), []).append(q)
-        if len(acc) >= 6:
-            ids = np.array(sorted(acc))
-            proj_obs[f"p{v}"] = (board.chessboard_corners()[ids],
-                                 np.array([np.mean(acc[i], axis=0) for i in ids]))
-            n_corners += len(ids)
-    if len(proj_obs) < 3:
-        raise InputError(
-            f"projector: {len(proj_obs)} of {n_views} projector views have ≥ 6 decodable "
-            f"corners, need 3" + (f" (skipped — {'; '.join(skipped)})" if skipped else ""))
-    return proj_obs, cam_obs, {"views_detected": len(proj_obs), "corners": n_corners,
-                               "skipped": skipped}
-
-
 def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool = False,
                   loss: str = "linear", reference: str | None = None,
                   cross_validation: bool = True, progress=None) -> dict:
-    """Calibrate a scan's cameras and rig from its ChArUco ``calib/`` views (``facegeo
+    """Calibrate a scan's cameras and rig from its ``calib/`` board views (``facegeo
     calibrate``): :func:`calibrate_products` into ``out_dir``, plus ``out_dir/metrics.json``
     (``{"calibrate": metrics}``).
 
@@ -440,12 +402,14 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         ``{"cameras": {name: {model, [model_selection: {reason, best, folds, scores},]
         [intrinsics: "nominal", warning (a camera posed only),] reprojection_rms_px,
         views_used, views_detected, rejected
-        (why each dropped view was dropped), per_view_rms_px (view → RMS at the camera's own
-        solution; dropped views re-posed),
+        (why each dropped view was dropped, named ``"view 3 (FILE)"``), per_view_rms_px (view
+        index → RMS at the camera's own solution; dropped views re-posed),
         cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
         std_px: {fx, fy, cx, cy}[, focal_rel_error, principal_point_error_px,
         rotation_error_deg, translation_error_mm]}}, "projector": {calibrated: true,
-        views_used, model, start ("nominal" or "uncalibrated": the rig.json entry it started
+        views_detected, corners, skipped (one line per view and camera not used, naming the
+        file and why), decoded (the codes: "gray", "gray+phase(x)" ...), views_used, model,
+        start ("nominal" or "uncalibrated": the rig.json entry it started
         from), reprojection_rms_px, separate_rms_px[, focal_rel_error,
         focal_rel_error_without_joint, ...]} or {calibrated: false, reason, rig_json
         ("nominal" or "uncalibrated": what the calibrated rig.json holds), summary (one line)[,
@@ -485,23 +449,41 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     nominal = scan.rig
     corner_lists = scan.manifest["calib"].get("corners") is not None
     metrics: dict = {"cameras": {}, "model": model}
-    report, obs, calibs = {}, {}, {}
+    # the projector's patterns, checked before minutes of camera work (not fatal: the
+    # projector is then reported not calibrated, with this error)
+    proj_error = None
+    if nominal.projector is not None and scan.has("calib.projector"):
+        try:
+            projector_spec(scan)
+        except InputError as exc:
+            proj_error = str(exc)
+            pj = nominal.projector
+            if reference is not None and reference == pj.name:
+                raise InputError(f"reference: the projector {pj.name!r} cannot hold the rig's "
+                                 f"frame: it cannot be calibrated ({proj_error}); give a "
+                                 "camera as --reference") from exc
+    report, obs, calibs, cam_dets = {}, {}, {}, {}
     for name in scan.camera_names:
         cam0 = nominal.camera(name)
         if corner_lists:  # published detections: straight to the solver (scan format v2)
             say(f"corner lists {name}")
-            dets = [BoardDetection(f"view_{v:03d}", cam0.size, True, "", cv.ids,
+            views = sorted(scan.calib_corners(name))
+            dets = [BoardDetection(f"view {v}", cam0.size, True, "", cv.ids,
                                    cv.object_points, cv.image_points)
                     for v, cv in sorted(scan.calib_corners(name).items())]
         else:
             say(f"detect {name}")
             paths = scan.calib_view_paths(name)
+            views = scan.calib_views(name)
+            # named by view index and file: the base name alone need not be unique
             dets = detect_boards([read_image(p) for p in paths], board,
-                                 names=[p.name for p in paths], legacy=legacy)
+                                 names=[view_label(scan, v, p) for v, p in zip(views, paths)],
+                                 legacy=legacy)
+            cam_dets[name] = dict(zip(views, dets))
         report[name] = detection_report(dets)
         # the bundle adjustment ties a board pose across cameras by view index, not file name
-        views = sorted(scan.calib_corners(name)) if corner_lists else scan.calib_views(name)
-        view_key = {id(d): f"v{v}" for d, v in zip(dets, views)}
+        view_of = {id(d): v for d, v in zip(dets, views)}
+        view_key = {i: f"v{v}" for i, v in view_of.items()}
         # in a rig, a camera with 1-2 views is posed with its nominal intrinsics (below)
         rig_scan = len(scan.camera_names) > 1
         found = usable_detections(
@@ -533,8 +515,10 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         obs[name] = {view_key[id(d)]: (d.p_board, d.q) for d, u in zip(found, c.views_used)
                      if u}
         m = {"model": c.model, "views_detected": len(found), "views_used": c.n_views_used,
-             "rejected": c.rejected, "camera_rms_px": c.rms_px,
-             "per_view_rms_px": {d.name: float(r) for d, r in zip(found, c.per_view_rms_px)},
+             "rejected": view_rejections(c.rejected, [d.name for d in found]),
+             "camera_rms_px": c.rms_px,
+             "per_view_rms_px": {str(view_of[id(d)]): float(r)
+                                 for d, r in zip(found, c.per_view_rms_px)},
              "std_px": {k: c.std[k] for k in ("fx", "fy", "cx", "cy")}}
         if c.model_selection is not None:
             m["model_selection"] = {k: c.model_selection[k]
@@ -553,12 +537,17 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
             m["cross_validation_px"] = None
         metrics["cameras"][name] = m
     proj_obs, proj_metrics = {}, None
-    if nominal.projector is not None and scan.has("calib.projector"):
+    if proj_error is not None:
+        proj_metrics = {"error": proj_error}
+    elif nominal.projector is not None and scan.has("calib.projector"):
         say("projector corners")
         try:
-            proj_obs, cam_extra, proj_metrics = _projector_observations(scan, board, legacy)
-            for n, o in cam_extra.items():
-                obs[n].update(o)
+            proj_obs, cam_extra, proj_metrics = _projector_observations(
+                scan, board, legacy, cam_dets,
+                {n: (c.camera, c.rms_px) for n, c in calibs.items()})
+            for n, o in cam_extra.items():  # a [calib] view's pose: the camera path's own
+                for k, val in o.items():
+                    obs.setdefault(n, {}).setdefault(k, val)
         except InputError as exc:
             proj_metrics = {"error": str(exc)}
     if not calibs:

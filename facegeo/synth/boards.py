@@ -42,7 +42,8 @@ from facegeo.errors import InputError
 from facegeo.frames import Pose, rotation_from_rvec
 from facegeo.geometry.camera import Camera
 
-__all__ = ["CLOSE_VIEWS", "CORNER_CELL", "CORNER_TRIES", "board_coverage", "board_for_cameras",
+__all__ = ["BOARD_KINDS", "CLOSE_VIEWS", "CORNER_CELL", "CORNER_TRIES", "board_coverage",
+           "board_for_cameras",
            "calibration_board_poses", "rig_calibration_views"]
 
 #: Image anchors cycled through by the views of one camera: the four corners, then the centre
@@ -92,7 +93,7 @@ def _inside(cam: Camera, p_cam: np.ndarray, margin_px: float, cos_max: float, no
 def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 3,
                             tilt_deg=(45.0, 60.0), fill=(0.6, 0.85), roll_deg=(-30.0, 30.0),
                             margin_px: float = 2.0, max_view_angle_deg: float = 75.0,
-                            max_tries: int = 4000) -> list[Pose]:
+                            max_tries: int = 4000, also_seen_by=()) -> list[Pose]:
     """World poses of a calibration board that constrain every camera's intrinsics.
 
     View k targets camera ``cameras[k mod C]`` (C cameras): the board is tilted by an angle drawn
@@ -110,11 +111,12 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
     ``shared_every``-th, starting with view 0; ``shared_every=1``: all; 0: none) must satisfy
     this in every camera. Where a shared view cannot be placed in half of ``max_tries`` draws, its tilt
     and fill are scaled down gradually over the remaining draws (to half the drawn values at
-    most).
+    most). Every view must also satisfy it in each of ``also_seen_by`` (a projector whose
+    calibration views need not be shared by every camera: one camera and the projector).
 
     Parameters
     ----------
-    board : CharucoBoard
+    board : CharucoBoard, ChessboardSpec or CircleGridSpec
     cameras : sequence of Camera
         Cameras (a projector too: it is an inverse camera) in the world frame.
     n : int
@@ -130,6 +132,8 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
         Largest angle between a viewing ray and the board normal.
     max_tries : int
         Draws per view before relaxing (shared views) or giving up.
+    also_seen_by : sequence of Camera
+        Cameras (a projector) that must see every view whole too, never targeted.
 
     Returns
     -------
@@ -159,10 +163,13 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
     cos_pre = math.cos(math.radians(max_view_angle_deg - 3.0))
     rng = np.random.default_rng(rng)
     C = len(cams)
-    W_m, H_m = board.size
-    c_board = np.array([W_m / 2.0, H_m / 2.0, 0.0])
-    outline = board.outline(8)
-    inner = board.chessboard_corners()
+    from facegeo.geometry.board import board_extent, board_outline, board_points
+
+    x0, y0, x1, y1 = board_extent(board)
+    W_m, H_m = x1 - x0, y1 - y0
+    c_board = np.array([(x0 + x1) / 2.0, (y0 + y1) / 2.0, 0.0])
+    outline = board_outline(board, 8)
+    inner = board_points(board)
     per_cam = [len(range(ci, n, C)) for ci in range(C)]
     # shared views target the narrow cameras (field of view within 1.5× the narrowest): a board
     # filling a wide camera (a projector) would overflow a narrow one
@@ -188,6 +195,7 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
         j = k // C
         m = per_cam[ci]
         others = [c for c in cams if c is not cam] if shared else []
+        must = others + [c for c in also_seen_by if all(c is not o for o in others)]
         ax, ay = _ANCHORS[j % len(_ANCHORS)] if not shared or C == 1 else (0.0, 0.0)
         T_wc = cam.T_cam_world.inverse()
         corner = None if (ax == 0.0 or others) else np.array(
@@ -262,7 +270,7 @@ def calibration_board_poses(board, cameras, n: int, rng, *, shared_every: int = 
                     continue
             T_world_board = T_wc @ Pose(R, t)
             good = True
-            for o in others:
+            for o in must:
                 T_ob = o.T_cam_world @ T_world_board
                 if not _inside(o, T_ob.apply(outline), margin_px, cos_max, T_ob.R[:, 2])[0]:
                     good = False
@@ -294,7 +302,7 @@ def rig_calibration_views(board, cameras, n: int, rng, *, close_per_camera: int 
 
     Parameters
     ----------
-    board : CharucoBoard
+    board : CharucoBoard, ChessboardSpec or CircleGridSpec
     cameras : sequence of Camera
         The rig's cameras (not the projector), world frame.
     n : int
@@ -324,15 +332,31 @@ def rig_calibration_views(board, cameras, n: int, rng, *, close_per_camera: int 
     return poses
 
 
-def board_for_cameras(cameras, *, fill: float = 0.6, squares: int = 5, dictionary="DICT_4X4_50"):
-    """A ChArUco board for a rig's calibration views, shaped like the narrowest camera's image.
+#: Board kinds :func:`board_for_cameras` makes (the scan format's ``calib.board`` kinds).
+BOARD_KINDS = ("charuco", "chessboard", "circles")
 
-    The square is a multiple of 4 mm (marker ¾ of it) such that ``squares`` squares span
-    ``fill`` of the narrowest camera's image width at its distance from the world origin (the
-    head); the other side has as many squares as the image's aspect ratio allows (at least 4),
-    so the board covers a portrait image's height too. Covering the image is what pins a narrow
-    camera's principal point (:func:`rig_calibration_views`), and the taller board doubles the
-    corners per view (default rig: 5 × 7 squares, 24 corners, against 5 × 4 and 12 before).
+
+def board_for_cameras(cameras, *, fill: float = 0.6, squares: int = 5, dictionary="DICT_4X4_50",
+                      kind: str = "charuco"):
+    """A calibration board for a rig's calibration views, shaped like the narrowest camera's
+    image.
+
+    The ChArUco square is a multiple of 4 mm (marker ¾ of it) such that ``squares`` squares
+    span ``fill`` of the narrowest camera's image width at its distance from the world origin
+    (the head); the other side has as many squares as the image's aspect ratio allows (at least
+    4), so the board covers a portrait image's height too. Covering the image is what pins a
+    narrow camera's principal point (:func:`rig_calibration_views`), and the taller board
+    doubles the corners per view (default rig: 5 × 7 squares, 24 corners, against 5 × 4 and 12
+    before).
+
+    The other kinds print on that ChArUco board's sheet (about the same size, so the same
+    poses fit the images): a plain chessboard of squares ⅝ of the ChArUco square (rounded to
+    1 mm) with as many inner corners as the sheet holds inside its white border
+    (``facegeo.geometry.board.CHESSBOARD_MARGIN_SQUARES``), ``cols + rows`` odd so its two ends
+    differ (the detector's numbering is then unambiguous; default rig: 4 × 7 corners, 18 mm);
+    or an asymmetric circle grid (OpenCV's kind) of 4 circles per row, as many rows as fit, an odd
+    number of them (a grid with an even number of rows looks the same turned half round;
+    default rig: 4 × 11, spacing 25 mm).
 
     Parameters
     ----------
@@ -341,16 +365,19 @@ def board_for_cameras(cameras, *, fill: float = 0.6, squares: int = 5, dictionar
     fill : float
         Fraction of the narrowest image width the ``squares`` squares span at the head.
     squares : int
-        Squares along the image's x axis (board x).
+        Squares along the image's x axis (board x) of the ChArUco board.
     dictionary : str
         ArUco dictionary (must hold ``⌊squares_x · squares_y / 2⌋`` markers).
+    kind : {"charuco", "chessboard", "circles"}
 
     Returns
     -------
-    CharucoBoard
+    CharucoBoard, ChessboardSpec or CircleGridSpec
     """
+    from facegeo.checks import check_choice
     from facegeo.geometry.board import CharucoBoard  # local import: board needs cv2
 
+    check_choice(kind, "kind", BOARD_KINDS)
     cams = list(cameras)
     if not cams or not all(isinstance(c, Camera) for c in cams):
         raise InputError("cameras: expected a non-empty sequence of Camera")
@@ -361,8 +388,28 @@ def board_for_cameras(cameras, *, fill: float = 0.6, squares: int = 5, dictionar
     i = int(np.argmin(widths))
     square = max(round(fill * widths[i] / squares / 0.004), 1) * 0.004  # marker = ¾ exactly
     squares_y = max(4, int(squares * cams[i].height / cams[i].width))
-    return CharucoBoard(squares_x=int(squares), squares_y=squares_y, square_length=square,
-                        marker_length=square * 0.75, dictionary=dictionary)
+    charuco = CharucoBoard(squares_x=int(squares), squares_y=squares_y, square_length=square,
+                           marker_length=square * 0.75, dictionary=dictionary)
+    if kind == "charuco":
+        return charuco
+    from facegeo.geometry._calib_detect import ChessboardSpec, CircleGridSpec
+    from facegeo.geometry.board import CHESSBOARD_MARGIN_SQUARES
+
+    W, H = charuco.size
+    if kind == "chessboard":
+        s = round(max(round(square * 0.625 / 0.001), 1) * 0.001, 6)
+        border = 2.0 * (1.0 + CHESSBOARD_MARGIN_SQUARES)  # outer squares and white border
+        cols = max(int(W / s - border + 1e-9) + 1, 3)
+        rows = max(int(H / s - border + 1e-9) + 1, 2)
+        if (cols + rows) % 2 == 0:
+            rows -= 1
+        return ChessboardSpec(cols=cols, rows=rows, square_size=s)
+    # asymmetric grid: a row spans 3.5 spacings, plus one spacing of border on each side
+    s = round(max(round(W / 5.5 / 0.001), 1) * 0.001, 6)
+    rows = max(int((H - 2.0 * s) / (s / 2.0) + 1e-9) + 1, 3)
+    if rows % 2 == 0:
+        rows -= 1
+    return CircleGridSpec(cols=4, rows=rows, spacing=s, asymmetric=True)
 
 
 def board_coverage(board, camera: Camera, T_cam_boards, grid=(8, 8)) -> float:
@@ -370,7 +417,7 @@ def board_coverage(board, camera: Camera, T_cam_boards, grid=(8, 8)) -> float:
 
     Parameters
     ----------
-    board : CharucoBoard
+    board : CharucoBoard, ChessboardSpec or CircleGridSpec
     camera : Camera
     T_cam_boards : sequence of Pose
         Views in the camera's frame.
@@ -381,9 +428,11 @@ def board_coverage(board, camera: Camera, T_cam_boards, grid=(8, 8)) -> float:
     -------
     float in [0, 1]
     """
+    from facegeo.geometry.board import board_points
+
     gx, gy = int(grid[0]), int(grid[1])
     hit = np.zeros((gy, gx), bool)
-    P = board.chessboard_corners()
+    P = board_points(board)
     for T in T_cam_boards:
         q, front = camera.project_cam(T.apply(P))
         ok = front & camera.in_image(q)

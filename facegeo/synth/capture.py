@@ -4,7 +4,8 @@
 rig, then renders and writes, per camera:
 
 * ChArUco board views seen by every camera at once (stereo) and close, image-filling views of
-  each camera (intrinsics; :func:`facegeo.synth.boards.rig_calibration_views`), 8-bit sRGB PNG;
+  each camera (intrinsics; :func:`facegeo.synth.boards.rig_calibration_views`), 8-bit sRGB PNG
+  (on request a plain chessboard or a circle grid instead: ``calib_board``);
 * the board under every structured-light pattern at a few poses (projector calibration);
 * structured-light frames of the head (white/black, Gray code with inverse frames, phase
   shift), with projector shadows and camera occlusion traced by Embree, 8-bit sRGB PNG — on
@@ -37,6 +38,7 @@ from facegeo.errors import InputError
 from facegeo.frames import Pose, look_at, rotation_from_rvec
 from facegeo.checks import fmt_value
 from facegeo.synth.boards import (
+    BOARD_KINDS,
     board_for_cameras,
     calibration_board_poses,
     rig_calibration_views,
@@ -82,6 +84,18 @@ class Preset:
         Structured-light frames integrate s × s rays per pixel (a box-filtered pixel, so
         stripes finer than a pixel blur as they would on a sensor); OLAT frames and the
         reference renders sample the pixel centre exactly.
+    projector_tilt_deg : (float, float)
+        Range of the board's tilt in the projector-calibration views, degrees from the
+        targeted camera's axis.
+    projector_views_shared : bool
+        Every projector-calibration view is seen whole by every camera and the projector,
+        where the cameras' axes meet (default). False: view k is placed for camera ``k mod
+        C`` alone and the projector — pushed toward that camera's image corners and at the
+        distance where it fills ``projector_fill`` of its image — so the views cover more of
+        the projector's image and a range of depths (what pins a projector's focal length and
+        principal point; the other cameras may see part of the board or none).
+    projector_fill : (float, float)
+        Fraction of the targeted camera's image the board spans in unshared projector views.
     """
 
     name: str
@@ -95,6 +109,9 @@ class Preset:
     phase_steps: int = 3
     olat_half: bool = True
     sl_supersample: int = 3
+    projector_tilt_deg: tuple[float, float] = (20.0, 40.0)
+    projector_views_shared: bool = True
+    projector_fill: tuple[float, float] = (0.6, 0.85)
 
 
 PRESETS: dict[str, Preset] = {
@@ -110,6 +127,11 @@ HEAD_DIAGONAL_RANGE_M = (0.1, 1.0)
 #: Exposure of 16-bit PNG OLAT frames (pixel = radiance × exposure before the sRGB curve): a
 #: white Lambertian surface facing a light (radiance 1/π) encodes at ≈ 0.64 of full scale.
 OLAT_PNG_EXPOSURE = 2.0
+
+#: Brightest linear value of a projector-calibration view's white frame: a view that would
+#: exceed it at the capture's exposure is exposed less (clipped whites bias the fringes' phase
+#: and the board's corners; the default, shared views at the head's distance stay below it).
+PROJECTOR_VIEW_PEAK = 0.9
 
 #: How far the true rig departs from the nominal one (1 σ): what a calibration must recover.
 RIG_PERTURBATION = {"position_m": 0.002, "rotation_deg": 0.2, "focal_rel": 0.005,
@@ -274,10 +296,11 @@ def _rescale_projector(preset: Preset, projector_scale: float, renderer, mesh, s
     return preset, nominal_rig, rig, info
 
 
-def _board_for_rig(rig):
+def _board_for_rig(rig, kind: str = "charuco"):
     """A ChArUco board whose 5 squares span ~60 % of the narrowest camera view at the head, as
-    tall as that image allows (:func:`facegeo.synth.boards.board_for_cameras`)."""
-    return board_for_cameras(rig.cameras)
+    tall as that image allows, or a chessboard or circle grid on its sheet
+    (:func:`facegeo.synth.boards.board_for_cameras`)."""
+    return board_for_cameras(rig.cameras, kind=kind)
 
 
 def _novel_cameras(rig) -> list:
@@ -314,6 +337,7 @@ def generate_scan(
     sl_phase_steps: int | None = None,
     projector_scale: float | None = None,
     sl_missing: dict[str, list[str] | str] | None = None,
+    calib_board: str = "charuco",
 ) -> SynthSummary:
     """Synthesise a light-stage capture into the scan directory ``out``.
 
@@ -374,6 +398,12 @@ def generate_scan(
         bit's inverse). Those frames are not written and are declared in
         ``[structured_light.cameras.<camera>] missing``; every other frame is the one the full
         scan has (noise is drawn for the lost frames too).
+    calib_board : {"charuco", "chessboard", "circles"}
+        The calibration board of the camera and projector views (the scan has one
+        ``calib.board``): a ChArUco board (default), a plain chessboard or an asymmetric circle
+        grid printed on the same sheet (:func:`facegeo.synth.boards.board_for_cameras`). The
+        plain boards are the common projector–camera set-up: found in each projector view's
+        white frame, under the projector's full light.
 
     Returns
     -------
@@ -408,6 +438,9 @@ def generate_scan(
     preset, skin_kwargs, root = _validate_arguments(
         out, preset, head=head, units=units, seed=seed, noise=noise, skin=skin,
         olat_format=olat_format, progress=progress)
+    if calib_board not in BOARD_KINDS:
+        raise InputError(f"calib_board: unknown {fmt_value(calib_board)}; expected one of "
+                         f"{', '.join(BOARD_KINDS)}")
     if sl_effects is not None:
         from facegeo.synth.sl_effects import SkinEffects
 
@@ -442,7 +475,7 @@ def generate_scan(
     if projector_scale is not None:  # cameras that out-resolve the projector (issue 34)
         preset, nominal_rig, rig, metadata["projector_scale"] = _rescale_projector(
             preset, projector_scale, renderer, mesh, seed)
-    board = _board_for_rig(rig)
+    board = _board_for_rig(rig, calib_board)
     spec = PatternSpec(width=rig.projector.width, height=rig.projector.height,
                        phase_steps=preset.phase_steps, codes=sl_codes)
     sl_names = pattern_names(spec)
@@ -498,6 +531,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     ``lost``: camera → structured-light frames not written (declared missing); ``metadata``:
     entries for ``scan.metadata``."""
     from facegeo.capture import imageio, scan as scanmod
+    from facegeo.geometry.board import render_board, save_board
     from facegeo.geometry.structured_light import pattern_value_at
     from facegeo.synth.render import _ordered_map
 
@@ -536,7 +570,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     #      camera (boards.rig_calibration_views) ----
     t0 = time.perf_counter()
     board_path = root / "calib" / "board.json"
-    board.save(board_path)
+    save_board(board, board_path)
     poses = rig_calibration_views(board, rig.cameras, preset.calib_views, rng)
     calib_files = scanmod.DEFAULT_FILES["calib"]
     exposure = 3.0  # maps a white board under unit irradiance (0.85/π) to ≈ 0.81
@@ -545,7 +579,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
 
     def calib_frame(item):  # noise-free linear frame of one (view, camera), on a worker thread
         _, T_world_board, cam = item
-        bv = board.render(cam, cam.T_cam_world @ T_world_board)
+        bv = render_board(board, cam, cam.T_cam_world @ T_world_board)
         img = exposure * (bv.reflectance / np.pi + 0.01)
         return np.repeat(img[..., None], 3, axis=2).astype(np.float32)
 
@@ -559,15 +593,23 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
 
     # ---- projector calibration: the board under every pattern ----
     proj = rig.projector
-    proj_poses = calibration_board_poses(board, list(rig.cameras) + [proj], preset.projector_views,
-                                         rng, shared_every=1, tilt_deg=(20.0, 40.0))
+    if preset.projector_views_shared:
+        proj_poses = calibration_board_poses(board, list(rig.cameras) + [proj],
+                                             preset.projector_views, rng, shared_every=1,
+                                             tilt_deg=tuple(preset.projector_tilt_deg))
+    else:  # one camera and the projector: more of the projector's image, more depths
+        proj_poses = calibration_board_poses(board, list(rig.cameras), preset.projector_views,
+                                             rng, shared_every=0,
+                                             tilt_deg=tuple(preset.projector_tilt_deg),
+                                             fill=tuple(preset.projector_fill),
+                                             also_seen_by=[proj])
     proj_files = scanmod.DEFAULT_FILES["calib.projector"]
     n_total = len(proj_poses) * len(rig.cameras) * len(sl_names)
     done = 0
     def projector_view(item):  # the board seen by one camera, lit by the projector (a worker)
         _, T_world_board, cam = item
         n_board = T_world_board.R[:, 2] * -1.0  # printed side faces -z_board
-        bv = board.render(cam, cam.T_cam_world @ T_world_board)
+        bv = render_board(board, cam, cam.T_cam_world @ T_world_board)
         p = bv.p_world[bv.mask]
         e_proj, q_proj = _projector_irradiance(proj, p, np.broadcast_to(n_board, p.shape))
         base = bv.reflectance[bv.mask] / np.pi
@@ -576,10 +618,14 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     views = [(vi, T, cam) for vi, T in enumerate(proj_poses) for cam in rig.cameras]
     for (vi, _, cam), (mask, base, e_proj, q_proj) in _ordered_map(projector_view, views,
                                                                    workers=2):
+        # a camera exposes a pose so that its white frame does not clip: a board nearer the
+        # projector than the head is lit several times more (unshared views come to 0.5 m)
+        peak = float((base * (e_proj + 0.02)).max()) if base.size else 0.0
+        gain = exposure if exposure * peak <= PROJECTOR_VIEW_PEAK else PROJECTOR_VIEW_PEAK / peak
         for name in sl_names:
             pat = pattern_value_at(spec, name, q_proj)
             val = np.zeros(mask.shape, np.float32)
-            val[mask] = exposure * base * (e_proj * pat + 0.02)
+            val[mask] = gain * base * (e_proj * pat + 0.02)
             _write_srgb(scanmod.frame_path(root, proj_files, camera=cam.name, view=vi, frame=name),
                         np.repeat(val[..., None], 3, axis=2), "calib.projector")
     manifest["calib"]["projector"] = {"views": len(proj_poses), "files": proj_files}

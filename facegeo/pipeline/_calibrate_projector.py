@@ -1,0 +1,287 @@
+"""The calibrate stage's projector views: board corners in projector pixels, any board kind.
+
+Each ``[calib.projector]`` view is one board pose seen by the cameras under every pattern of
+the group (its own ``frames`` / ``patterns``, or ``[structured_light]``'s when it declares
+none: :meth:`facegeo.capture.scan.Scan.pattern_spec`). Per view and camera:
+
+1. **the board** is found in the view's ``white`` frame — the board under the projector's full
+   light, which is all a plain chessboard or circle grid in a dark room shows — with the
+   detector of the scan's board kind (:func:`facegeo.geometry._calib_detect.detect_board`).
+   Without a ``white`` frame the pixelwise maximum over the view's frames stands in for it
+   (each pixel is lit in one frame of a pattern / inverse pair). Where the board is not found
+   there and the camera's ``[calib]`` views include a file of this projector view (a
+   ``[calib]`` template pointing at the projector captures: the same pose), that view's
+   detection is used;
+2. **the patterns** are decoded (:func:`facegeo.geometry.structured_light.decode_stream`:
+   Gray code and, where the spec has it, phase shift, which makes the codes sub-pixel);
+3. **each corner's projector position** is the local homography of the decoded pixels around
+   it applied to the corner (:func:`facegeo.geometry._calib_projector.projector_corners`,
+   Moreno & Taubin 2012).
+
+A corner's projector position is averaged over the cameras that decoded it. A view is used
+when at least :data:`MIN_PROJECTOR_CORNERS` of its corners decoded; the projector needs
+:data:`MIN_PROJECTOR_VIEWS` such views. A view a camera could not use is skipped with its
+reason (view, camera and file named), never silently.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from facegeo.errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: Attribute of a log record that repeats a line of the metrics (``"projector"``: the warning
+#: of ``metrics["projector"]["summary"]``; ``"projector_skipped"``: the skipped views), for a
+#: caller that prints that line itself (``facegeo calibrate``).
+SUMMARY_RECORD = "facegeo_summary"
+
+__all__ = ["MIN_PROJECTOR_CORNERS", "MIN_PROJECTOR_VIEWS", "POSE_CHECK_FACTOR",
+           "POSE_CHECK_FLOOR_PX", "projector_spec",
+           "projector_observations", "view_label", "view_rejections"]
+
+#: Fewest decoded corners a projector view needs (over its cameras).
+MIN_PROJECTOR_CORNERS = 6
+#: Fewest usable projector views the projector is calibrated from.
+MIN_PROJECTOR_VIEWS = 3
+
+
+def projector_spec(scan):
+    """The pattern spec of ``[calib.projector]``, checked against its frames before any image
+    is read.
+
+    Returns
+    -------
+    PatternSpec
+
+    Raises
+    ------
+    InputError
+        The group declares no patterns and the scan has no ``[structured_light.patterns]`` to
+        take them from, or its frames lack some the spec's decoding needs (named).
+    """
+    from facegeo.geometry.structured_light import pattern_names
+
+    spec = scan.pattern_spec("calib.projector")
+    if spec is None:
+        raise InputError(
+            "projector: [calib.projector] declares no patterns (calib.projector.patterns) and "
+            "the scan has no [structured_light.patterns] to take them from; give "
+            "calib.projector.frames and calib.projector.patterns (docs/scan-format.md)")
+    have = set(scan.projector_frames)
+    lacking = [n for n in pattern_names(spec) if n not in have]
+    if lacking:
+        raise InputError(
+            f"projector: calib.projector frames lack {', '.join(lacking[:6])}"
+            + (f" and {len(lacking) - 6} more" if len(lacking) > 6 else "")
+            + " of the pattern spec; the projector views cannot be decoded")
+    return spec
+
+
+def _rel(scan, path: Path) -> str:
+    try:
+        return Path(path).relative_to(scan.root).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def view_label(scan, view: int, path) -> str:
+    """A board view's label in reports and messages: ``"view 3 (calib/cam/graycode_40.png)"``
+    (its index and its file relative to the scan; the base name alone need not be unique)."""
+    return f"view {int(view)} ({_rel(scan, path)})"
+
+
+def _calib_files(scan, camera: str) -> dict:
+    """``{resolved path: view}`` of ``camera``'s ``[calib]`` image files (empty without)."""
+    if not scan.has("calib") or not scan.calib_images:
+        return {}
+    return {Path(p).resolve(): int(w)
+            for w, p in zip(scan.calib_views(camera), scan.calib_view_paths(camera))}
+
+
+def _same_pose(calib_files: dict, paths: dict) -> int | None:
+    """The ``[calib]`` view whose file is one of this projector view's frames (a ``[calib]``
+    template pointing at the projector captures), else None."""
+    for p in paths.values():
+        w = calib_files.get(Path(p).resolve())
+        if w is not None:
+            return w
+    return None
+
+
+def _lit_image(raw: dict):
+    """The board under full projector light: the ``white`` frame, else the pixelwise maximum
+    over the frames."""
+    if "white" in raw:
+        return raw["white"], "white"
+    it = iter(raw.values())
+    lit = np.array(next(it), copy=True)
+    for a in it:
+        np.maximum(lit, a, out=lit)
+    return lit, "max over frames"
+
+
+#: A projector view's board, as a camera found it, is not used when its pose fits the camera's
+#: own calibration worse than this many times the camera's reprojection RMS ...
+POSE_CHECK_FACTOR = 3.0
+#: ... and than this, pixels (the camera solve's outlier rule, ``calibrate_camera``).
+POSE_CHECK_FLOOR_PX = 0.5
+
+
+def _pose_rms(camera, p_board, q) -> float:
+    """RMS (pixels) of the board's corners about their best pose in ``camera``."""
+    import cv2
+
+    ok, rv, tv = cv2.solvePnP(p_board, q, camera.K, camera.dist)
+    if not ok:
+        return float("inf")
+    ok, rv, tv = cv2.solvePnP(p_board, q, camera.K, camera.dist, rv, tv, True,
+                              cv2.SOLVEPNP_ITERATIVE)
+    pr, _ = cv2.projectPoints(p_board, rv, tv, camera.K, camera.dist)
+    return float(np.sqrt(np.mean(np.sum((pr.reshape(-1, 2) - q) ** 2, axis=1))))
+
+
+def projector_observations(scan, board, legacy: bool = False, camera_detections=None,
+                           cameras=None):
+    """Board corners in projector pixels for every projector view, and the cameras' corners
+    of those views.
+
+    Parameters
+    ----------
+    scan : Scan
+        With ``[calib.projector]``.
+    board : CharucoBoard, ChessboardSpec or CircleGridSpec
+        ``scan.board``.
+    legacy : bool
+        ChArUco boards printed by OpenCV < 4.6.
+    camera_detections : dict, optional
+        ``{camera: {calib view: BoardDetection}}`` of the camera path, for views whose file is
+        also a frame of a projector view (same pose).
+    cameras : dict, optional
+        ``{camera: (Camera, reprojection RMS px)}``, the cameras as calibrated from their own
+        views: a board whose pose fits one worse than ``max(POSE_CHECK_FACTOR · RMS,
+        POSE_CHECK_FLOOR_PX)`` is a detector error, and that camera's view is skipped.
+
+    Returns
+    -------
+    proj_obs : dict
+        ``{pose key: ((N, 3) float64 board points, metres; (N, 2) float64 projector pixels)}``;
+        the key is ``"p<view>"``, or ``"v<w>"`` when projector view ``view`` is ``[calib]``
+        view ``w`` of the cameras (the same pose: the rig's bundle adjustment ties them).
+    cam_obs : dict
+        ``{camera: {pose key: (board points, camera pixels)}}``: the cameras' own corners of
+        these poses (for a ``"v<w>"`` pose the caller keeps the camera path's where it has
+        them).
+    metrics : dict
+        ``views_detected`` (usable views), ``corners`` (their total), ``skipped`` (one line per
+        view and camera not used: ``"projector view 3, camera cam_left (FILE): reason"``),
+        ``decoded`` (the codes decoded: ``"gray"``, ``"gray+phase(x)"``, ...).
+
+    Raises
+    ------
+    InputError
+        No pattern spec or frames it needs (:func:`projector_spec`), or fewer than
+        :data:`MIN_PROJECTOR_VIEWS` usable views (every skipped view listed with its reason).
+    """
+    from facegeo.capture.imageio import read_image
+    from facegeo.geometry._calib_detect import detect_board
+    from facegeo.geometry._calib_projector import projector_corners
+    from facegeo.geometry.structured_light import decode_stream
+
+    spec = projector_spec(scan)
+    resp = scan.response("calib.projector")
+    n_views = int(scan.manifest["calib"]["projector"]["views"])
+    has_view = {n: {v for v, _ in scan.camera_frames("calib.projector", n)}
+                for n in scan.camera_names}
+    camera_detections = camera_detections or {}
+    calib_files = {n: _calib_files(scan, n) for n in scan.camera_names}
+    proj_obs, cam_obs = {}, {n: {} for n in scan.camera_names}
+    skipped, n_corners = [], 0
+    for v in range(n_views):
+        acc: dict[int, list] = {}
+        p_of: dict[int, np.ndarray] = {}
+        poses, view_cams = set(), {}
+        for name in scan.camera_names:
+            if v not in has_view[name]:
+                continue  # declared missing (calib.projector.cameras)
+            paths = scan.projector_view_paths(name, v)
+            raw = {k: read_image(p) for k, p in paths.items()}
+            lit, what = _lit_image(raw)
+            src = paths["white"] if "white" in paths else paths[next(iter(paths))]
+            label = (f"projector view {v}, camera {name} ("
+                     + (_rel(scan, src) if what == "white" else
+                        f"{what}, {_rel(scan, Path(src).parent)}") + ")")
+            det = detect_board(lit, board, name=label, legacy=legacy)
+            w = _same_pose(calib_files[name], paths)
+            poses.add(w)
+            if not det.found and w is not None:
+                own = camera_detections.get(name, {}).get(w)
+                if own is not None and own.found:
+                    log.info("%s: %s; using the board of its [calib] view %d", label,
+                             det.reason, w)
+                    det = own
+            if not det.found:
+                skipped.append(f"{label}: {det.reason}")
+                continue
+            if name in (cameras or {}):
+                cam, rms = cameras[name]
+                lim = max(POSE_CHECK_FACTOR * rms, POSE_CHECK_FLOOR_PX)
+                r = _pose_rms(cam, det.p_board, det.q)
+                if not r <= lim:
+                    skipped.append(f"{label}: the board's pose fits camera {name}'s calibration "
+                                   f"to {r:.3g} px RMS (limit {lim:.3g} px): a detector error")
+                    continue
+            lin = {k: resp.linearize(a) for k, a in raw.items()}
+            dec = decode_stream(lin, spec)
+            q_map = np.stack([dec.x, dec.y], -1).astype(np.float64)
+            qp, ok, _ = projector_corners(det.q, q_map, dec.valid)
+            if ok.sum() < MIN_PROJECTOR_CORNERS:
+                skipped.append(f"{label}: only {int(ok.sum())} of {det.n_corners} corners "
+                               f"decodable (need {MIN_PROJECTOR_CORNERS}; "
+                               f"{100 * dec.valid.mean():.0f} % of the pixels decoded)")
+                continue
+            view_cams[name] = det
+            for i, p, q in zip(det.ids[ok], det.p_board[ok], qp[ok]):
+                acc.setdefault(int(i), []).append(q)
+                p_of[int(i)] = p
+        # the same pose as a [calib] view when every camera says so
+        key = f"v{poses.pop()}" if len(poses) == 1 and None not in poses else f"p{v}"
+        if len(acc) < MIN_PROJECTOR_CORNERS:
+            if view_cams:
+                skipped.append(f"projector view {v}: {len(acc)} corners decoded over its "
+                               f"cameras (need {MIN_PROJECTOR_CORNERS})")
+            continue
+        for name, det in view_cams.items():
+            cam_obs[name][key] = (det.p_board, det.q)
+        ids = np.array(sorted(acc))
+        proj_obs[key] = (np.array([p_of[i] for i in ids]),
+                         np.array([np.mean(acc[i], axis=0) for i in ids]))
+        n_corners += len(ids)
+    if skipped:  # marked like the stage's summary: `facegeo calibrate` prints each line itself
+        log.warning("projector: skipped %d view image(s): %s", len(skipped), "; ".join(skipped),
+                    extra={SUMMARY_RECORD: "projector_skipped"})
+    if len(proj_obs) < MIN_PROJECTOR_VIEWS:
+        raise InputError(
+            f"projector: {len(proj_obs)} of {n_views} projector views have ≥ "
+            f"{MIN_PROJECTOR_CORNERS} decodable corners, need {MIN_PROJECTOR_VIEWS}"
+            + (f" (skipped — {'; '.join(skipped)})" if skipped else ""))
+    decoded = "+".join(spec.codes) + (f"+phase({','.join(spec.phase_axes)})"
+                                      if spec.phase_steps and spec.phase_axes else "")
+    return proj_obs, cam_obs, {"views_detected": len(proj_obs), "corners": n_corners,
+                               "skipped": skipped, "decoded": decoded}
+
+
+def view_rejections(rejected, names) -> list[str]:
+    """``calibrate_camera``'s rejection reasons (``"view i: ..."``, ``i`` the position among
+    the views it was given) with each view's own label (``names[i]``: the scan's view index
+    and file)."""
+    def sub(m):
+        i = int(m.group(1))
+        return f"{names[i]}:" if 0 <= i < len(names) else m.group(0)
+
+    return [re.sub(r"^view (\d+):", sub, r) for r in rejected]
