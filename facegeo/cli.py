@@ -197,7 +197,8 @@ def _cmd_synth(args) -> int:
                                 sl_codes=tuple(c.strip() for c in args.sl_codes.split(",")),
                                 sl_phase_steps=args.sl_phase_steps,
                                 projector_scale=args.projector_scale,
-                                sl_missing=_sl_missing_arg(args.sl_missing))
+                                sl_missing=_sl_missing_arg(args.sl_missing),
+                                calib_board=args.calib_board)
     finally:
         close()
     secs = " ".join(f"{k}={v:.1f}s" for k, v in summary.seconds.items())
@@ -315,7 +316,9 @@ def _cmd_calibrate(args) -> int:
     if args.out is not None:
         _check_output_dir(args.out, "--out")
     # "projector: not calibrated (...)" is printed below, beside the table: not its warning too
-    with _without_records("facegeo.pipeline.calibrate", SUMMARY_RECORD, "projector"):
+    with _without_records("facegeo.pipeline.calibrate", SUMMARY_RECORD, "projector"), \
+            _without_records("facegeo.pipeline._calibrate_projector", SUMMARY_RECORD,
+                             "projector_skipped"):
         m = run_calibrate(args.scan, args.out, model=args.model, loss=args.loss,
                           reference=args.reference, legacy=args.legacy_board,
                           cross_validation=not args.no_cross_validation,
@@ -766,6 +769,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sl-interreflection", type=_nonneg_float, default=0.0,
                    help="strength of a low-frequency interreflection term in the "
                         "structured-light frames (0: none)")
+    s.add_argument("--calib-board", default="charuco", choices=["charuco", "chessboard", "circles"],
+                   help="the calibration board of the camera and projector views (a plain "
+                        "chessboard or an asymmetric circle grid under the projector's Gray "
+                        "code: the common procam set-up; docs/calibration.md)")
     s.add_argument("--sl-phase-steps", type=_nonneg_int, default=None, metavar="N",
                    help="phase-shift steps of the structured light (default the preset's; 0: "
                         "Gray code with inverses and white / black only, as many real scanners)")

@@ -243,7 +243,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
 
         specs.append(StageSpec("mesh", run_mesh, after=("decode",) + rig_after,
                                inputs=lambda d: _common_inputs(scan),
-                               settings={"rig": use_rig, "method": "poisson", "depth": 7,
+                               settings={"rig": use_rig, "method": "poisson", "depth": "auto",
                                          "point_weight": 4.0,
                                          "trim_quantile": 0.02}))
 
