@@ -16,16 +16,15 @@ the decode is sparse, which the code-centroid baseline still matches).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-SRC = Path(__file__).resolve().parents[2] / "shared" / "data" / "structured_light" / \
-    "alexander_quarter"
+from conftest import SHARED_DATA
+
+SRC = SHARED_DATA / "structured_light" / "alexander_quarter"
 
 pytestmark = [
-    pytest.mark.skipif(not SRC.is_dir(), reason=f"shared data absent ({SRC})"),
+    pytest.mark.skipif(not SRC.is_dir(), reason=f"{SRC} is absent (set FACEGEO_SHARED_DATA)"),
     pytest.mark.slow,
 ]
 
