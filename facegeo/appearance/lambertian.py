@@ -329,11 +329,8 @@ def fit_lambertian(R, directions, *, intensities=None, channels: str = "each",
         fitted lights that do not span 3-D (every pixel would be degenerate).
     """
     check_choice(channels, "channels", CHANNELS)
-    R = _reflectance(R)
+    R, D = _field_and_lights(R, directions)
     N, L, C = R.shape
-    D = _unit_directions(directions, "directions")
-    if D.shape[0] != L:
-        raise ShapeError(f"directions: {D.shape[0]} lights, but R has {L} (axis 1)")
     E = _intensities(intensities, L, C, channels)
     pinv_D = _pinv_spanning(D, "directions")
     V = None if valid is None else _sample_mask(valid, N, L)
@@ -352,6 +349,44 @@ def fit_lambertian(R, directions, *, intensities=None, channels: str = "each",
     return LambertianFit(b=b, valid=np.isfinite(b).all(axis=(1, 2)), n_lights_used=used,
                          channels=channels)
 
+
+
+
+def _field_and_lights(R, directions):
+    """``R`` checked (:func:`_reflectance`) and the unit ``directions`` (L, 3), one per light of
+    R's axis 1."""
+    R = _reflectance(R)
+    D = _unit_directions(directions, "directions")
+    if D.shape[0] != R.shape[1]:
+        raise ShapeError(f"directions: {D.shape[0]} lights, but R has {R.shape[1]} (axis 1)")
+    return R, D
+
+def _add_held_out(sums: np.ndarray, p, obs, trust) -> None:
+    """Add a chunk's held-out error to ``sums`` = (Σ|e|, Σe², Σo, Σo²) in place: prediction
+    ``p`` and observation ``obs`` (n, Lh, C), only where ``trust`` (n, Lh)."""
+    e = np.where(trust[..., None], p - obs, 0.0)
+    o = np.where(trust[..., None], obs, 0.0)
+    sums += (np.abs(e).sum(), (e * e).sum(), o.sum(), (o * o).sum())
+
+
+def _relative_errors(sums: np.ndarray, samples: int) -> tuple[float, float]:
+    """``(rel_mae, rel_rmse)`` of :func:`_add_held_out`'s sums (NaN without samples)."""
+    if not samples:
+        return float("nan"), float("nan")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return float(sums[0] / sums[2]), float(np.sqrt(sums[1] / sums[3]))
+
+
+def _normal_errors(normal, ref, m) -> tuple[float | None, float | None, int]:
+    """Mean and median angle (degrees) of ``normal`` against ``ref`` over the rows ``m`` where
+    both are finite, and how many were compared; ``(None, None, 0)`` without a reference."""
+    if ref is None:
+        return None, None, 0
+    err = angular_error_deg(normal[m], ref[m])
+    err = err[np.isfinite(err)]
+    if not err.size:
+        return None, None, 0
+    return float(err.mean()), float(np.median(err)), int(err.size)
 
 def held_out_lambertian(R, directions, *, fit=None, held=None, intensities=None,
                         mask=None, normal_ref=None, channels: str = "each",
@@ -388,11 +423,8 @@ def held_out_lambertian(R, directions, *, fit=None, held=None, intensities=None,
     """
     t0 = time.perf_counter()
     check_choice(channels, "channels", CHANNELS)
-    R = _reflectance(R)
+    R, D = _field_and_lights(R, directions)
     N, L, C = R.shape
-    D = _unit_directions(directions, "directions")
-    if D.shape[0] != L:
-        raise ShapeError(f"directions: {D.shape[0]} lights, but R has {L} (axis 1)")
     fit_l, held_l = _fit_and_held(fit, held, L)
     E = _intensities(intensities, L, C, channels)
     pinv_D = _pinv_spanning(D[fit_l], "directions[fit]")
@@ -426,23 +458,11 @@ def held_out_lambertian(R, directions, *, fit=None, held=None, intensities=None,
         samples += int(np.count_nonzero(trust))
         if grey:
             obs = obs.mean(axis=2, keepdims=True)
-        p = _predict(bc[ok], D[held_l], E[held_l])
-        e = np.where(trust[..., None], p - obs, 0.0)
-        o = np.where(trust[..., None], obs, 0.0)
-        sums += (np.abs(e).sum(), (e * e).sum(), o.sum(), (o * o).sum())
+        _add_held_out(sums, _predict(bc[ok], D[held_l], E[held_l]), obs, trust)
     result = LambertianFit(b=b, valid=np.isfinite(b).all(axis=(1, 2)), n_lights_used=used,
                            channels=channels)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rel_mae = float(sums[0] / sums[2]) if samples else float("nan")
-        rel_rmse = float(np.sqrt(sums[1] / sums[3])) if samples else float("nan")
-    mean_err = median_err = None
-    compared = 0
-    if ref is not None:
-        err = angular_error_deg(result.normal[m], ref[m])
-        err = err[np.isfinite(err)]
-        compared = int(err.size)
-        if compared:
-            mean_err, median_err = float(err.mean()), float(np.median(err))
+    rel_mae, rel_rmse = _relative_errors(sums, samples)
+    mean_err, median_err, compared = _normal_errors(result.normal, ref, m)
     score = HeldOutScore(
         rel_mae=rel_mae, rel_rmse=rel_rmse, samples=samples, untrusted=untrusted,
         pixels=int(m.sum()), pixels_unfitted=int(np.count_nonzero(m & ~result.valid)),

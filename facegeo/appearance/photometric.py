@@ -89,14 +89,16 @@ from facegeo.appearance import _photometric_kernels as K_
 from facegeo.appearance.lambertian import (
     CHANNELS,
     HeldOutScore,
+    _add_held_out,
+    _field_and_lights,
     _fit_and_held,
     _intensities,
     _mask_rows,
-    _reflectance,
+    _normal_errors,
+    _relative_errors,
     _sample_mask,
     _unit_directions,
     _usable,
-    angular_error_deg,
     held_out_lambertian,
 )
 from facegeo.checks import as_array, check_choice, check_positive_int, fmt_value
@@ -486,11 +488,8 @@ def fit_photometric(R, directions, *, view, intensities=None, channels: str = "e
     check_choice(channels, "channels", CHANNELS)
     check_choice(criterion, "criterion", CRITERIA)
     check_choice(light_gains, "light_gains", LIGHT_GAINS)
-    R = _reflectance(R)
+    R, D = _field_and_lights(R, directions)
     N, L, C = R.shape
-    D = _unit_directions(directions, "directions")
-    if D.shape[0] != L:
-        raise ShapeError(f"directions: {D.shape[0]} lights, but R has {L} (axis 1)")
     if L < 3:
         raise InputError(f"directions: a fit needs at least 3 lights, got {L}")
     v = _views(view, N)
@@ -779,11 +778,8 @@ def held_out_photometric(R, directions, *, view, fit=None, held=None, intensitie
         (they fit the same pixels: at least 3 usable, non-coplanar fitted lights).
     """
     t0 = time.perf_counter()
-    R = _reflectance(R)
+    R, D = _field_and_lights(R, directions)
     N, L, C = R.shape
-    D = _unit_directions(directions, "directions")
-    if D.shape[0] != L:
-        raise ShapeError(f"directions: {D.shape[0]} lights, but R has {L} (axis 1)")
     fit_l, held_l = _fit_and_held(fit, held, L)
     m = np.ones(N, bool) if mask is None else _mask_rows(mask, "mask", N)
     V = None if valid is None else _sample_mask(valid, N, L)
@@ -812,21 +808,10 @@ def held_out_photometric(R, directions, *, view, fit=None, held=None, intensitie
         samples += int(np.count_nonzero(trust))
         if channels == "grey":
             obs = obs.mean(axis=2, keepdims=True)
-        p = _predict_rows(model, r, D[held_l], E_all[held_l], model.view[r])
-        e = np.where(trust[..., None], p - obs, 0.0)
-        o = np.where(trust[..., None], obs, 0.0)
-        sums += (np.abs(e).sum(), (e * e).sum(), o.sum(), (o * o).sum())
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rel_mae = float(sums[0] / sums[2]) if samples else float("nan")
-        rel_rmse = float(np.sqrt(sums[1] / sums[3])) if samples else float("nan")
-    mean_err = median_err = None
-    compared = 0
-    if ref is not None:
-        err = angular_error_deg(model.normal[m], ref[m])
-        err = err[np.isfinite(err)]
-        compared = int(err.size)
-        if compared:
-            mean_err, median_err = float(err.mean()), float(np.median(err))
+        _add_held_out(sums, _predict_rows(model, r, D[held_l], E_all[held_l], model.view[r]),
+                      obs, trust)
+    rel_mae, rel_rmse = _relative_errors(sums, samples)
+    mean_err, median_err, compared = _normal_errors(model.normal, ref, m)
     if lam.samples != samples:
         log.warning("held-out: the Lambertian baseline compared %d samples, this model %d "
                     "(pixels one of them could not fit)", lam.samples, samples)
