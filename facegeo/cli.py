@@ -522,16 +522,12 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
     from facegeo.pipeline.reconstruct import run_reconstruct
     from facegeo.pipeline.report import write_report
 
-    dec = {k: getattr(args, k) for k in ("max_coarse_px", "rel_contrast")
-           if getattr(args, k, None) is not None}  # only when given: default keys stay
-    if dec:
-        settings = {**(settings or {}), "decode": dec}
-    mesh_set = {k: getattr(args, k) for k in _MESH_OPTIONS if getattr(args, k, None) is not None}
-    if mesh_set:
-        settings = {**(settings or {}), "mesh": mesh_set}
-    fit_set = {k: getattr(args, k) for k in _FIT_OPTIONS if getattr(args, k, None) is not None}
-    if fit_set:
-        settings = {**(settings or {}), "fit": fit_set}
+    # stage settings from the options given (only then: the default runs' cache keys stay)
+    for stage, keys in (("decode", ("max_coarse_px", "rel_contrast")), ("mesh", _MESH_OPTIONS),
+                        ("fit", _FIT_OPTIONS)):
+        given = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
+        if given:
+            settings = {**(settings or {}), stage: given}
     out = (Path(scan) if isinstance(scan, (str, os.PathLike)) else scan.root) / "out"
     tick, close = _progress_factory(not args.quiet)
     try:
