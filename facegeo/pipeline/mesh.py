@@ -254,7 +254,7 @@ def write_points_ply(path, points, normals, confidence, sigma, camera, confirmed
     path = Path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write("\n".join(head).encode("ascii"))
-        fh.write(rec.tobytes())
+        fh.write(rec.view(np.uint8))  # no bytes copy of the records
     return path
 
 
@@ -444,50 +444,58 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                 sigma_y=d.get("sigma_y"), min_confidence=min_confidence,
                 default_sigma_px=default_sigma_px, max_sigma_ratio=max_sigma_ratio,
                 max_chi=max_chi, min_angle_deg=min_angle_deg))
+    _return_freed_memory()
     t1 = time.perf_counter()
-    fused = tr.fuse_cameras(maps, cams, tol_sigmas=fuse_sigmas)
+    fused = tr.fuse_cameras(maps, cams, tol_sigmas=fuse_sigmas, drop_gains=True)
     t2 = time.perf_counter()
     if len(fused) < 10:
         raise _too_few_points(scan, rig_used, decode_dir, len(fused), names, maps, pair_route)
+    per_cam = {m.camera: _camera_metrics(m, extra if pair_route else None) for m in maps}
+    # the maps are done with (the grid mesh reads the first one's points)
+    grid_map = maps[0] if method == "grid" else None
+    del maps
+    _return_freed_memory()
     normals = gm.oriented_normals(fused.p_world, fused.view_dirs, k=normals_k)
     t3 = time.perf_counter()
-    spacing = tr.neighbour_spacing(fused.p_world)
+    # the points' file and figures first: Poisson gets the points and normals alone
+    write_points_ply(dest / "points.ply", fused.p_world, normals, fused.confidence,
+                     fused.sigma, fused.camera, fused.confirmed)
+    n_points = len(fused)
+    confirmed_fraction = round(float(fused.confirmed.mean()), 6)
+    median_sigma_mm = _mm(np.median(fused.sigma))
+    points = fused.p_world
+    del fused
+    _return_freed_memory()
+    t3b = time.perf_counter()
+    spacing = tr.neighbour_spacing(points)
+    _return_freed_memory()  # its k-d tree's (a quarter GB of 6.6 M points')
     r_obs = 1.5 * spacing if observed_radius_mm is None else observed_radius_mm * 1e-3
     max_d = r_obs if max_distance_mm is None else (
         "auto" if max_distance_mm == "auto" else float(max_distance_mm) * 1e-3)
     if method == "poisson":
-        mesh = gm.poisson_mesh(fused.p_world, normals, depth=depth, point_weight=point_weight,
+        mesh = gm.poisson_mesh(points, normals, depth=depth, point_weight=point_weight,
                                trim_quantile=trim_quantile, max_distance=max_d, spacing=spacing,
                                min_component=min_component, target_faces=target_faces)
     else:
-        mesh = gm.grid_mesh(maps[0].p_world, maps[0].valid, center_world=cams[0].center_world)
+        mesh = gm.grid_mesh(grid_map.p_world, grid_map.valid, center_world=cams[0].center_world)
     t4 = time.perf_counter()
-    write_points_ply(dest / "points.ply", fused.p_world, normals, fused.confidence,
-                     fused.sigma, fused.camera, fused.confirmed)
+    del normals
     _write_mesh_ply(dest / "mesh.ply", mesh.vertices, mesh.faces)
-    area_out, far = gm.area_beyond(mesh.vertices, mesh.faces, fused.p_world, r_obs)
+    area_out, far = gm.area_beyond(mesh.vertices, mesh.faces, points, r_obs)
     area = mesh.area
-    per_cam = {}
-    for m in maps:
-        per_cam[m.camera] = {"points": int(m.valid.sum()), "rejected": m.reason_counts(),
-                             "median_sigma_mm": _mm(np.median(m.sigma[m.valid]))
-                             if m.valid.any() else None}
-        if pair_route:
-            per_cam[m.camera]["partners"] = extra["partners"][m.camera]
-            per_cam[m.camera]["decode_sigma_px"] = extra["decode_sigma_px"][m.camera]
     metrics: dict[str, Any] = {
         "rig": rig_used,
         "triangulation": "camera-camera" if pair_route else "camera-projector",
-        "cameras": per_cam, "points": len(fused),
-        "confirmed_fraction": round(float(fused.confirmed.mean()), 6),
-        "median_sigma_mm": _mm(np.median(fused.sigma)),
+        "cameras": per_cam, "points": n_points,
+        "confirmed_fraction": confirmed_fraction,
+        "median_sigma_mm": median_sigma_mm,
         "neighbour_spacing_mm": _mm(spacing), "observed_radius_mm": _mm(r_obs),
         "method": method, "mesh": mesh.info, "faces": len(mesh.faces),
         "vertices": len(mesh.vertices), "area_mm2": round(area * 1e6, 3),
         "unobserved_area_mm2": round(area_out * 1e6, 3),
         "unobserved_area_fraction": round(area_out / area, 6) if area > 0 else None,
         "seconds_triangulate": round(t1 - t0, 4), "seconds_fuse": round(t2 - t1, 4),
-        "seconds_normals": round(t3 - t2, 4), "seconds_mesh": round(t4 - t3, 4),
+        "seconds_normals": round(t3 - t2, 4), "seconds_mesh": round(t4 - t3b, 4),
     }
     if extra.get("skipped_cameras"):
         metrics["skipped_cameras"] = extra["skipped_cameras"]
@@ -498,10 +506,43 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         metrics["warnings"] = warnings
     if scan.synthetic and "mesh" in scan.ground_truth_keys:
         # a calibrated rig's world frame is a gauge choice: report the shape error too
-        metrics.update(ground_truth_errors(scan, fused.p_world, mesh, far, gt_samples,
+        metrics.update(ground_truth_errors(scan, points, mesh, far, gt_samples,
                                            align=rig_used != "ground_truth"))
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     return metrics, settings
+
+
+_MALLOC_TRIM = None
+
+
+def _return_freed_memory() -> None:
+    """Give the C heap's free pages back to the system (glibc ``malloc_trim``; a no-op
+    elsewhere). numpy takes arrays under 32 MB — the steps' per-block temporaries — from the
+    heap, and glibc keeps the freed ones resident: between the stage's steps at full
+    resolution that was ≈ 0.3–0.7 GB of the next step's peak (docs/mesh.md, *Memory at full
+    resolution*)."""
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        _MALLOC_TRIM = False
+        try:
+            import ctypes
+
+            _MALLOC_TRIM = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):
+            pass
+    if _MALLOC_TRIM:
+        _MALLOC_TRIM(0)
+
+
+def _camera_metrics(pm, extra: dict | None) -> dict:
+    """One camera's metrics from its point map (``extra``: the camera-camera route's)."""
+    v = pm.valid_at
+    out = {"points": int(np.count_nonzero(v)), "rejected": pm.reason_counts(),
+           "median_sigma_mm": _mm(np.median(pm.point_sigma[v])) if v.any() else None}
+    if extra is not None:
+        out["partners"] = extra["partners"][pm.camera]
+        out["decode_sigma_px"] = extra["decode_sigma_px"][pm.camera]
+    return out
 
 
 def _camera_pair_maps(scan, the_rig, rig_used: str, cams: list, decode_dir: Path, *,
@@ -510,6 +551,10 @@ def _camera_pair_maps(scan, the_rig, rig_used: str, cams: list, decode_dir: Path
                       ) -> tuple[list, list, dict]:
     """Point maps of the cameras triangulated against each other through matching projector
     codes (the rig's projector is uncalibrated): ``(cameras used, maps, extra metrics)``.
+
+    One camera's ``(H, W)`` decode maps are held at a time, reduced to its decoded pixels
+    (:class:`facegeo.geometry.code_maps.CodeSet`) before the next is read; the triangulation
+    works on those (:func:`facegeo.geometry.triangulation.triangulate_code_sets`).
 
     Each camera's codes are masked to its valid pixels with ``confidence >= min_confidence``
     and both ``x`` and ``y``; its decode noise is its ``sigma_x``/``sigma_y`` maps
@@ -524,14 +569,15 @@ def _camera_pair_maps(scan, the_rig, rig_used: str, cams: list, decode_dir: Path
         why = (f"the scan has one ({one!r})" if len(scan.camera_names) < 2 else
                f"only {one!r} is meshed (the cameras with decode maps, or the cameras setting)")
         raise _uncalibrated_projector_error(scan, the_rig, rig_used, why)
-    used, xs, ys, confs, sxs, sys_, sig, skipped = [], [], [], [], [], [], {}, {}
+    used, codes, sig, skipped, interp = [], [], {}, {}, {}
     for cam in cams:
+        # one camera's (H, W) maps at a time, reduced to its decoded pixels (a CodeSet)
         d = load_decode(decode_dir / cam.name / "decode.npz", (cam.height, cam.width))
-        x, y = d["x"], d.get("y")
+        x, y = d.pop("x"), d.pop("y", None)
         ok = np.isfinite(x) & (np.isfinite(y) if y is not None else False)
         if "valid" in d:
-            ok &= d["valid"].astype(bool)
-        conf = d.get("confidence")
+            ok &= d.pop("valid").astype(bool)
+        conf = d.pop("confidence", None)
         if conf is not None:
             with np.errstate(invalid="ignore"):
                 ok &= ~(conf < min_confidence)
@@ -539,16 +585,26 @@ def _camera_pair_maps(scan, the_rig, rig_used: str, cams: list, decode_dir: Path
             skipped[cam.name] = "no valid pixel with both x and y codes"
             continue
         sig[cam.name] = {}
-        for axis, out in (("x", sxs), ("y", sys_)):
+        for axis in ("x", "y"):
             m = d.get("sigma_" + axis)
             v = m[ok] if m is not None else np.zeros(0)
             v = v[np.isfinite(v) & (v > 0)]
             sig[cam.name][axis] = round(float(np.median(v)), 6) if v.size else None
-            out.append(m)
         used.append(cam)
-        xs.append(np.where(ok, x, np.nan))
-        ys.append(np.where(ok, y, np.nan))
-        confs.append(conf)
+        xm, ym = np.where(ok, x, np.nan), np.where(ok, y, np.nan)
+        del x, y, ok
+        cs, interp[cam.name] = _interpolated_codes(
+            xm, ym, d.get("sigma_x"), d.get("sigma_y"), conf, default_sigma_px,
+            code_interpolation)
+        del d, xm, ym, conf
+        codes.append(cs)
+        _return_freed_memory()
+        if interp[cam.name]["interpolated"]:
+            log.info("mesh %s: %.0f %% of the decoded pixels share their code with a neighbour "
+                     "(the camera out-resolves the projector): codes interpolated over a %d-px "
+                     "window, %d pixels kept", cam.name,
+                     100 * interp[cam.name]["shared_code_fraction"], interp[cam.name]["window"],
+                     interp[cam.name]["pixels"])
     if len(used) < 2:
         lack = list(skipped)
         why = (f"{', '.join(repr(n) for n in lack)} {'has' if len(lack) == 1 else 'have'} no "
@@ -560,19 +616,10 @@ def _camera_pair_maps(scan, the_rig, rig_used: str, cams: list, decode_dir: Path
     if skipped:
         log.warning("mesh: camera-camera triangulation without %s (%s)", ", ".join(skipped),
                     "; ".join(f"{k}: {v}" for k, v in skipped.items()))
-    interp = {}
-    for i, cam in enumerate(used):
-        xs[i], ys[i], sxs[i], sys_[i], interp[cam.name] = _interpolated_codes(
-            xs[i], ys[i], sxs[i], sys_[i], default_sigma_px, code_interpolation)
-        if interp[cam.name]["interpolated"]:
-            log.info("mesh %s: %.0f %% of the decoded pixels share their code with a neighbour "
-                     "(the camera out-resolves the projector): codes interpolated over a %d-px "
-                     "window, %d pixels kept", cam.name,
-                     100 * interp[cam.name]["shared_code_fraction"], interp[cam.name]["window"],
-                     interp[cam.name]["pixels"])
-    maps, partners = tr.triangulate_camera_pairs(
-        used, xs, ys, confidence=confs, sigma_px=default_sigma_px, sigma_x=sxs, sigma_y=sys_,
-        max_sigma_ratio=max_sigma_ratio, max_chi=max_chi, min_angle_deg=min_angle_deg)
+    maps, partners = tr.triangulate_code_sets(
+        used, codes, sigma_px=default_sigma_px, max_sigma_ratio=max_sigma_ratio,
+        max_chi=max_chi, min_angle_deg=min_angle_deg)
+    del codes
     return used, maps, {"partners": partners, "decode_sigma_px": sig,
                         "skipped_cameras": skipped, "code_interpolation": interp}
 
@@ -597,38 +644,49 @@ MAX_CODE_SCATTER = 5.0
 CODE_MIN_COUNT = 8
 
 
-def _interpolated_codes(x, y, sx, sy, default_sigma_px: float, mode: str):
-    """One camera's code maps for camera-camera matching: interpolated
-    (:func:`facegeo.geometry.code_maps.interpolate_code_map`) when many pixels share a code
+def _interpolated_codes(x, y, sx, sy, confidence, default_sigma_px: float, mode: str):
+    """One camera's codes for camera-camera matching, compressed to its decoded pixels
+    (:class:`facegeo.geometry.code_maps.CodeSet`): interpolated
+    (:func:`facegeo.geometry.code_maps.interpolate_code_values`) when many pixels share a code
     (``mode`` ``"auto"``: :data:`SHARED_CODE_LIMIT`; ``"on"``; ``"off"``), else as decoded.
-    Returns ``x, y, sigma_x, sigma_y`` and a metrics dict."""
+
+    ``x``, ``y`` are the ``(H, W)`` code maps masked to the usable pixels (NaN elsewhere),
+    ``sx``, ``sy`` the decode's σ maps (or None), ``confidence`` its confidence map (or None).
+    Returns the code set and a metrics dict."""
     import math
 
-    from facegeo.geometry.code_maps import (code_region_size, interpolate_code_map,
-                                            shared_code_fraction)
+    from facegeo.geometry.code_maps import (CodeNoise, CodeSet, code_region_size,
+                                            interpolate_code_values, shared_code_fraction)
 
     frac = shared_code_fraction(x, y)
     info = {"shared_code_fraction": round(frac, 4), "interpolated": False}
     if mode == "off" or (mode == "auto" and frac < SHARED_CODE_LIMIT):
-        return x, y, sx, sy, info
+        return CodeSet.from_maps(x, y, sigma_x=sx, sigma_y=sy, confidence=confidence), info
     size = code_region_size(x, y)
     window = max(5, 2 * math.ceil(math.sqrt(size)) + 1)
+    index = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
     out, sig = [], []
-    ok = np.ones(x.shape, bool)
+    ok = np.ones(index.size, bool)
     for c, s in ((x, sx), (y, sy)):
         # the decode's own σ is its code block's staircase, block / √12 (Gray code)
-        s_block = np.full(c.shape, default_sigma_px) if s is None else np.where(
-            np.isfinite(s) & (s > 0), s, default_sigma_px)
-        r = interpolate_code_map(c, window=window, min_count=CODE_MIN_COUNT)
+        if s is None:
+            s_block = np.full(index.size, default_sigma_px)
+        else:
+            s = s.reshape(-1)[index]
+            s_block = np.where(np.isfinite(s) & (s > 0), s, default_sigma_px)
+        code, rms = interpolate_code_values(c, index, window=window, min_count=CODE_MIN_COUNT)
         with np.errstate(invalid="ignore"):
-            ok &= np.isfinite(r.code) & (r.sigma <= MAX_CODE_SCATTER * np.maximum(
+            ok &= np.isfinite(code) & (rms <= MAX_CODE_SCATTER * np.maximum(
                 s_block, 1.0 / math.sqrt(12.0)))
-        out.append(r.code)
-        sig.append(np.maximum(r.sigma, s_block).astype(np.float32))
-    xi, yi = (np.where(ok, v, np.nan) for v in out)
+        out.append(code)
+        sig.append(np.maximum(rms, s_block).astype(np.float32))
+    conf = None if confidence is None else confidence.reshape(-1)[index[ok]]
+    # σ is known where the plane was fitted (NaN elsewhere, as the decode's off its pixels)
+    codes = CodeSet(x.shape, index[ok], out[0][ok], out[1][ok], confidence=conf,
+                    noise=CodeNoise(x.shape, index, np.stack(sig, 1)))
     info.update({"interpolated": True, "window": window, "region_pixels": round(size, 2),
-                 "pixels": int(ok.sum()), "pixels_decoded": int(np.isfinite(x).sum())})
-    return xi, yi, sig[0], sig[1], info
+                 "pixels": int(ok.sum()), "pixels_decoded": int(index.size)})
+    return codes, info
 
 
 def _too_few_points(scan, rig_used: str, decode_dir: Path, n: int, names: list, maps: list,
