@@ -613,7 +613,7 @@ def _cmd_reconstruct(args) -> int:
 
 #: ``facegeo mesh`` / ``reconstruct`` options that are mesh-stage settings of the same name.
 _MESH_OPTIONS = ("depth", "max_distance_mm", "min_angle_deg", "code_interpolation",
-                 "min_confidence")
+                 "min_confidence", "hole_fill")
 
 
 def _int_or_auto(text: str):
@@ -650,6 +650,9 @@ def _mesh_options(s) -> None:
     s.add_argument("--code-interpolation", choices=["auto", "on", "off"], default=None,
                    help="mesh, camera-camera route: interpolate codes shared by many pixels "
                         "(default auto: when the cameras out-resolve the projector)")
+    s.add_argument("--hole-fill", choices=["auto", "on", "off"], default=None,
+                   help="mesh, camera-camera route: fill the holes per-pixel matching leaves "
+                        "with code-region centroid points (default auto: on there)")
 
 
 #: ``facegeo fit`` options that are image-space fit settings of the same name

@@ -147,3 +147,28 @@ def test_hole_fill_adds_points_only_in_the_holes(rig):
     assert (got < 0.02 + 3e-3).all()
     with pytest.raises(InputError, match="min_gap"):
         hole_fill_points([a, b], [xa, xb], [ya, yb], [(1, 1), (1, 1)], p, min_gap=0.0)
+
+
+def test_coarsened_centroids_equal_the_coarse_reduction(rig, monkeypatch):
+    """Merging fine regions' moments gives what reducing the maps at the coarse block gives,
+    and the banded reduction equals one band over the whole image."""
+    import facegeo.geometry.code_regions as cr
+
+    a, _, proj = rig
+    x, y = _codes(a, proj)
+    monkeypatch.setattr(cr, "CENTROID_ROWS", 7)  # many bands, regions across them
+    fine = code_region_centroids(x, y, block_x=1, block_y=2)
+    coarse = code_region_centroids(x, y, block_x=4, block_y=8)
+    merged = cr.coarsen_centroids(fine, 4, 4)
+    np.testing.assert_array_equal(merged.key, coarse.key)
+    np.testing.assert_array_equal(merged.count, coarse.count)
+    np.testing.assert_allclose(merged.q, coarse.q, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(merged.cov, coarse.cov, rtol=1e-6, atol=1e-12)
+    monkeypatch.setattr(cr, "CENTROID_ROWS", 10**6)  # one band
+    whole = code_region_centroids(x, y, block_x=1, block_y=2)
+    np.testing.assert_array_equal(whole.key, fine.key)
+    np.testing.assert_allclose(whole.q, fine.q, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(whole.cov, fine.cov, rtol=1e-6, atol=1e-12)
+    assert cr.coarsen_centroids(fine, 1, 1) is fine
+    with pytest.raises(InputError, match="factor"):
+        cr.coarsen_centroids(fine, 1.5, 1)

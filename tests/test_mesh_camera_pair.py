@@ -255,3 +255,66 @@ def test_pair_arguments_are_checked():
         with pytest.raises(InputError, match="max_leverage"):
             tr.triangulate_camera_pair(cams[0], cams[1], xs[0], ys[0], xs[1], ys[1],
                                        max_leverage=bad)
+
+
+#: Radius of the low-confidence patch the hole-fill test cuts into both cameras' decodes, metres.
+HOLE_RADIUS = 0.03
+
+
+def test_hole_fill_closes_a_patch_per_pixel_matching_refuses(tiny, tmp_path):
+    """Both cameras decode a surface patch with confidence 0.1: per-pixel matching (0.2) leaves
+    a hole there, the code-region centroid fill (0.05) puts points into it and only there."""
+    from facegeo.pipeline.mesh import (FILL_GAP_SPACINGS, ground_truth_decode, read_points_ply,
+                                       write_decode_npz)
+
+    scan, rig_path = tiny
+    dec = tmp_path / "decode"
+    maps = {c: ground_truth_decode(scan, c, noise_px=0.1, seed=1) for c in scan.camera_names}
+    first = maps[scan.camera_names[0]]
+    centre = np.median(first["p_world"][first["valid"]], axis=0)
+    for c, d in maps.items():
+        near = np.linalg.norm(d["p_world"] - centre, axis=-1) < HOLE_RADIUS
+        assert near.sum() > 20, c
+        d["confidence"] = np.where(near, np.float32(0.1), d["confidence"])
+        write_decode_npz(dec / c / "decode.npz", d)
+
+    def mesh(name, **kw):
+        from facegeo.pipeline.mesh import mesh_products
+
+        dest = tmp_path / name
+        dest.mkdir()
+        m, _ = mesh_products(scan, dec, dest, rig=str(rig_path), depth=6, **kw)
+        pts = read_points_ply(dest / "points.ply")
+        return m, np.stack([pts["x"], pts["y"], pts["z"]], 1), pts
+
+    off, p_off, _ = mesh("off", hole_fill="off")
+    assert "hole_fill" not in off
+    inner = 0.6 * HOLE_RADIUS
+    assert (np.linalg.norm(p_off - centre, axis=1) < inner).sum() == 0  # the hole
+    on, p_on, pts = mesh("on")
+    f = on["hole_fill"]
+    assert f["points"] > 5 and on["points"] == off["points"] + f["points"]
+    added = p_on[off["points"]:]
+    assert (np.linalg.norm(added - centre, axis=1) < inner).sum() > 5
+    # filled only where no per-pixel point is near
+    from scipy.spatial import cKDTree
+
+    gap = cKDTree(p_off).query(added)[0]
+    assert gap.min() > 0.99 * f["min_gap_mm"] * 1e-3
+    assert f["min_gap_mm"] > 0 and FILL_GAP_SPACINGS >= 1
+    assert np.all(pts["confidence"][off["points"]:] == pytest.approx(0.05))
+    assert np.all(pts["confirmed"][off["points"]:])
+    # the filled points are as good as the scan's tolerance for camera-camera points
+    assert on["points_rms_error_mm"] <= TINY_PAIR_POINTS_RMS_MM
+    with pytest.raises(InputError, match="hole_fill"):
+        mesh("bad", hole_fill="yes")
+
+
+def test_too_few_points_names_each_threshold_and_its_setting(tiny, tmp_path):
+    scan, rig_path = tiny
+    with pytest.raises(InputError) as err:
+        _mesh(scan, tmp_path, "narrow", rig=str(rig_path), min_angle_deg=89.0)
+    msg = str(err.value)
+    assert "\n" not in msg and "triangulated only" in msg
+    for part in ("uncertain", "min_angle_deg=89.0", "--min-angle-deg", "max_sigma_ratio=5.0"):
+        assert part in msg, part

@@ -124,6 +124,7 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool, Any]]] = {
         "frames": ("frames", True, None),
         "files": ("template", False, DEFAULT_FILES["structured_light"]),
         "patterns": ("table", False, {}),
+        "decode": ("table", False, None),
         "cameras": ("cameras", False, None),
     },
     "olat": {

@@ -32,8 +32,9 @@ import numpy as np
 from facegeo.checks import as_array
 from facegeo.errors import InputError, ShapeError
 
-__all__ = ["RegionCentroids", "RegionPoints", "code_block", "code_region_centroids",
-           "hole_fill_points", "triangulate_region_centroids"]
+__all__ = ["RegionCentroids", "RegionPoints", "centroid_fill_points", "code_block",
+           "code_region_centroids", "coarsen_centroids", "hole_fill_points",
+           "triangulate_region_centroids"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,8 +79,57 @@ class RegionPoints:
     counts: dict
 
 
+#: Rows of the code maps reduced at a time by :func:`code_region_centroids` (its temporaries
+#: are a few arrays of one such band's decoded pixels, not of the whole image: at 4896 px wide,
+#: 256 rows are 1.25 M pixels, ≈ 60 MB of temporaries).
+CENTROID_ROWS = 256
+_KEY_BITS = 24
+
+
+def _from_moments(key, n, sc, sr, scc, srr, scr) -> RegionCentroids:
+    """Centroids and their covariance from each region's pixel moments (Σ1, Σc, Σr, Σc², Σr²,
+    Σcr): the scatter about the mean plus the 1/12 px² quantisation floor, over the count."""
+    n = n.astype(np.int64)
+    nf = n.astype(np.float64)
+    mc, mr = sc / nf, sr / nf
+    cov = np.empty((key.size, 2, 2))
+    # the scatter from moments; clipped at 0 against rounding on one-pixel regions
+    cov[:, 0, 0] = np.maximum(scc / nf - mc * mc, 0.0) + 1.0 / 12.0
+    cov[:, 1, 1] = np.maximum(srr / nf - mr * mr, 0.0) + 1.0 / 12.0
+    cov[:, 0, 1] = cov[:, 1, 0] = scr / nf - mc * mr
+    cov /= nf[:, None, None]
+    return RegionCentroids(key, np.stack([mc, mr], -1), n, cov)
+
+
+def _merge_moments(parts) -> RegionCentroids:
+    """Sum the moments of the same key over ``parts`` (each ``(key, n, Σc, Σr, Σc², Σr², Σcr)``,
+    keys unique within a part)."""
+    if not parts:
+        z = np.zeros(0)
+        return _from_moments(np.zeros(0, np.int64), np.zeros(0, np.int64), z, z, z, z, z)
+    cols = [np.concatenate(v) for v in zip(*parts)]
+    key, inv = np.unique(cols[0], return_inverse=True)
+    sums = [np.bincount(inv, v.astype(np.float64), minlength=key.size) for v in cols[1:]]
+    return _from_moments(key, *sums)
+
+
+def _moments_of(cen: RegionCentroids):
+    """``(n, Σc, Σr, Σc², Σr², Σcr)`` of each region, recovered from its centroid, count and
+    covariance (the inverse of :func:`_from_moments`)."""
+    n = cen.count.astype(np.float64)
+    mc, mr = cen.q[:, 0], cen.q[:, 1]
+    var_c = cen.cov[:, 0, 0] * n - 1.0 / 12.0
+    var_r = cen.cov[:, 1, 1] * n - 1.0 / 12.0
+    cv = cen.cov[:, 0, 1] * n
+    return (n, n * mc, n * mr, n * (var_c + mc * mc), n * (var_r + mr * mr),
+            n * (cv + mc * mr))
+
+
 def code_region_centroids(x, y, *, block_x: float, block_y: float) -> RegionCentroids:
     """Average each camera pixel per code key at a code resolution of ``block_x × block_y``.
+
+    The maps are reduced :data:`CENTROID_ROWS` rows at a time to per-key moments, which are
+    then summed over the bands (a region spanning bands gets all its pixels).
 
     Parameters
     ----------
@@ -99,27 +149,48 @@ def code_region_centroids(x, y, *, block_x: float, block_y: float) -> RegionCent
     for v, n in ((block_x, "block_x"), (block_y, "block_y")):
         if not (np.isfinite(v) and v >= 1.0):
             raise InputError(f"{n}: expected a code block >= 1 projector pixel, got {v!r}")
-    ok = np.isfinite(xa) & np.isfinite(ya)
-    rows, cols = np.nonzero(ok)
-    kx = np.floor((xa[ok] + 0.5) / block_x).astype(np.int64)
-    ky = np.floor((ya[ok] + 0.5) / block_y).astype(np.int64)
-    if kx.size and (kx.min() < 0 or ky.min() < 0 or ky.max() >= 1 << 24):
-        raise InputError("x, y: codes outside the projector (negative or beyond 2^24 blocks)")
-    key = (kx << 24) | ky
-    uniq, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    c = cols.astype(np.float64)
-    r = rows.astype(np.float64)
-    mc = np.bincount(inv, c) / cnt
-    mr = np.bincount(inv, r) / cnt
-    dc, dr = c - mc[inv], r - mr[inv]
-    cov = np.empty((uniq.size, 2, 2))
-    cov[:, 0, 0] = np.bincount(inv, dc * dc) / cnt
-    cov[:, 1, 1] = np.bincount(inv, dr * dr) / cnt
-    cov[:, 0, 1] = cov[:, 1, 0] = np.bincount(inv, dc * dr) / cnt
-    cov[:, 0, 0] += 1.0 / 12.0
-    cov[:, 1, 1] += 1.0 / 12.0
-    cov /= cnt[:, None, None]
-    return RegionCentroids(uniq, np.stack([mc, mr], -1), cnt, cov)
+    parts = []
+    for r0 in range(0, xa.shape[0], CENTROID_ROWS):
+        xs, ys = xa[r0:r0 + CENTROID_ROWS], ya[r0:r0 + CENTROID_ROWS]
+        ok = np.isfinite(xs) & np.isfinite(ys)
+        rows, cols = np.nonzero(ok)
+        if rows.size == 0:
+            continue
+        kx = np.floor((xs[ok] + 0.5) / block_x).astype(np.int64)
+        ky = np.floor((ys[ok] + 0.5) / block_y).astype(np.int64)
+        if kx.min() < 0 or ky.min() < 0 or ky.max() >= 1 << _KEY_BITS:
+            raise InputError("x, y: codes outside the projector (negative or beyond 2^24 "
+                             "blocks)")
+        key, inv, cnt = np.unique((kx << _KEY_BITS) | ky, return_inverse=True,
+                                  return_counts=True)
+        del kx, ky
+        c = cols.astype(np.float64)
+        r = (rows + r0).astype(np.float64)
+        parts.append((key, cnt) + tuple(np.bincount(inv, w, minlength=key.size)
+                                        for w in (c, r, c * c, r * r, c * r)))
+    return _merge_moments(parts)
+
+
+def coarsen_centroids(cen: RegionCentroids, factor_x: int, factor_y: int) -> RegionCentroids:
+    """The centroids of ``cen`` at a code block ``factor_x × factor_y`` times coarser: the
+    regions whose keys fall in one coarse key merged, exactly as
+    :func:`code_region_centroids` at the coarser block gives them (``floor(floor(u / b) / k) =
+    floor(u / (b k))`` for whole ``k``), to rounding.
+
+    Parameters
+    ----------
+    cen : RegionCentroids
+    factor_x, factor_y : int, >= 1
+    """
+    fx, fy = int(factor_x), int(factor_y)
+    if fx != factor_x or fy != factor_y or fx < 1 or fy < 1:
+        raise InputError(f"factor_x, factor_y: expected whole numbers >= 1, got "
+                         f"{factor_x!r}, {factor_y!r}")
+    if fx == fy == 1:
+        return cen
+    kx = (cen.key >> _KEY_BITS) // fx
+    ky = (cen.key & ((1 << _KEY_BITS) - 1)) // fy
+    return _merge_moments([((kx << _KEY_BITS) | ky,) + _moments_of(cen)])
 
 
 def triangulate_region_centroids(cam_a, cam_b, cen_a: RegionCentroids, cen_b: RegionCentroids,
@@ -208,14 +279,42 @@ def code_block(sigma) -> float:
 def hole_fill_points(cameras, x, y, blocks, p_existing, *, min_gap: float,
                      max_chi: float = 4.0, min_angle_deg: float = 0.5) -> dict:
     """Centroid-matched points of every camera pair, kept only where no existing point is
-    within ``min_gap`` (the holes per-pixel matching left).
+    within ``min_gap`` (the holes per-pixel matching left): :func:`centroid_fill_points` from
+    the code maps.
 
     Parameters
     ----------
     cameras : list of Camera
     x, y : list of (H_c, W_c) float, projector pixels (NaN invalid), one per camera
     blocks : list of (float, float), projector pixels
-        Each camera's code block per axis (:func:`code_block`); a pair matches at the coarser.
+        Each camera's code block per axis (:func:`code_block`, a power of two); a pair matches
+        at the coarser.
+    p_existing : (N, 3) float64, metres, world frame
+    min_gap : float, metres
+
+    Returns
+    -------
+    dict, as :func:`centroid_fill_points`.
+    """
+    cens = [code_region_centroids(xc, yc, block_x=b[0], block_y=b[1])
+            for xc, yc, b in zip(x, y, blocks)]
+    return centroid_fill_points(cameras, cens, blocks, p_existing, min_gap=min_gap,
+                                max_chi=max_chi, min_angle_deg=min_angle_deg)
+
+
+def centroid_fill_points(cameras, centroids, blocks, p_existing, *, min_gap: float,
+                         max_chi: float = 4.0, min_angle_deg: float = 0.5) -> dict:
+    """Centroid-matched points of every camera pair, kept only where no existing point is
+    within ``min_gap``.
+
+    Parameters
+    ----------
+    cameras : list of Camera
+    centroids : list of RegionCentroids
+        One per camera, each at that camera's own code block (:func:`code_region_centroids`).
+    blocks : list of (float, float), projector pixels, powers of two
+        Each camera's code block per axis; a pair matches at the coarser
+        (:func:`coarsen_centroids`).
     p_existing : (N, 3) float64, metres, world frame
     min_gap : float, metres
 
@@ -234,8 +333,8 @@ def hole_fill_points(cameras, x, y, blocks, p_existing, *, min_gap: float,
         for b in range(a + 1, len(cameras)):
             bx = max(blocks[a][0], blocks[b][0])
             by = max(blocks[a][1], blocks[b][1])
-            ca = code_region_centroids(x[a], y[a], block_x=bx, block_y=by)
-            cb = code_region_centroids(x[b], y[b], block_x=bx, block_y=by)
+            ca, cb = (coarsen_centroids(centroids[i], round(bx / blocks[i][0]),
+                                        round(by / blocks[i][1])) for i in (a, b))
             r = triangulate_region_centroids(cameras[a], cameras[b], ca, cb, max_chi=max_chi,
                                              min_angle_deg=min_angle_deg)
             far = np.ones(len(r.p_world), bool) if tree is None else \

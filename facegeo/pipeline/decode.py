@@ -87,6 +87,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import shutil
 import time
@@ -120,6 +121,7 @@ __all__ = [
     "decode_products",
     "ground_truth_projector",
     "run_decode",
+    "scan_decode_settings",
 ]
 
 #: Settings of :func:`facegeo.geometry.structured_light.decode_stream` used by the stage.
@@ -240,6 +242,24 @@ def _axes_coded(spec) -> tuple[str, ...]:
     return tuple(a for a in ("x", "y") if spec.n_bits(a))
 
 
+def scan_decode_settings(scan) -> dict:
+    """The decode settings the scan declares for its captures (``[structured_light.decode]``,
+    :data:`DECODE_DEFAULTS` keys; ``docs/scan-format.md``): the stage's defaults for this scan,
+    under any setting given to the stage. An importer writes them for a scanner whose frames
+    need other thresholds than the generator's (3DUNDERWORLD: ``rel_contrast`` 0.05)."""
+    table = scan.manifest.get("structured_light", {}).get("decode") or {}
+    unknown = sorted(set(table) - set(DECODE_DEFAULTS))
+    if unknown:
+        raise InputError(f"{scan.manifest_path}: [structured_light.decode]: unknown "
+                         f"{unknown}; valid: {sorted(DECODE_DEFAULTS)}")
+    for k, v in table.items():
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
+                              or not math.isfinite(v) or v < 0):
+            raise InputError(f"{scan.manifest_path}: [structured_light.decode] {k}: expected "
+                             f"a number >= 0, got {fmt_value(v)}")
+    return dict(table)
+
+
 def _scan_pattern_spec(scan):
     """The scan's :class:`PatternSpec`: its ``[structured_light.patterns]`` through
     :meth:`Scan.pattern_spec` (``width`` / ``height`` default to the rig's projector), or, when
@@ -353,10 +373,10 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     unknown = sorted(set(settings) - set(DECODE_DEFAULTS))
     if unknown:
         raise InputError(f"decode settings: unknown {unknown}; valid: {sorted(DECODE_DEFAULTS)}")
-    used = {**DECODE_DEFAULTS, **settings}
     if not scan.has("structured_light"):
         raise InputError(f"scan {scan.root}: no structured-light frames to decode (the manifest "
                          "has no [structured_light] group)")
+    used = {**DECODE_DEFAULTS, **scan_decode_settings(scan), **settings}
     spec, declared = _scan_pattern_spec(scan)
     _check_frames_are_the_set(scan, spec, declared)
     cams = list(scan.camera_names) if cameras is None else list(cameras)
@@ -422,6 +442,9 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
                                           if pooled["compared"] else None)
         metrics["phase_rms_error_proj_px"] = (float(np.sqrt(pooled["se"] / pooled["n_phase"]))
                                               if pooled["n_phase"] else None)
+    from_scan = {k: used[k] for k in scan_decode_settings(scan) if k not in settings}
+    if from_scan:
+        metrics["settings_from_scan"] = from_scan  # [structured_light.decode], not overridden
     metrics["seconds"] = round(time.perf_counter() - t0, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     return metrics, {**used, "cameras": cams}
