@@ -481,12 +481,15 @@ def _cmd_relight(args) -> int:
         m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
                         out_dir=args.out, projection=args.projection,
                         solid_angle="exact" if args.exact_solid_angles else "paper",
-                        progress=tick, read_ahead=READ_AHEAD_WORKERS)
+                        progress=tick, read_ahead=READ_AHEAD_WORKERS, model=args.model)
     finally:
         close()
-    print(f"{m['view']}: {m['active_lights']}/{m['n_lights']} lights lit, "
+    what = ("directions of the fitted model" if m.get("model") == "fitted" else "lights lit")
+    print(f"{m['view']}: {m['active_lights']}/{m['n_lights']} {what}, "
           f"sum(w)/integral(L) = {', '.join(f'{r:.4f}' for r in m['energy_ratio'])}, "
           f"{m['seconds']['total']:.2f} s")
+    if m.get("energy_note"):
+        print(f"note: {m['energy_note']}")
     print(f"wrote {m['files']['exr']} and {m['files']['png']}")
     if "measured" in m["files"]:
         print(f"measured texels: {m['measured_texels']}/{m['texels']} ({m['files']['measured']})")
@@ -575,6 +578,17 @@ def _cmd_render(args) -> int:
 
     # loaded and validated once: the checks, the stages up to the fit and the render share it
     scan = load_scan(args.scan)
+    from facegeo.pipeline.fit import image_space_scan
+
+    if image_space_scan(scan, getattr(args, "mesh", "auto")):
+        raise InputError(
+            f"render: {args.scan} is a single-view scan without geometry (one camera, no "
+            "structured light, no mesh): it is fitted in image space (per-pixel normals, albedo "
+            "and specular lobes), with no surface to see from another viewpoint. What works: "
+            f"'facegeo fit {args.scan}' (the fitted maps in out/fit/), 'facegeo relight "
+            f"{args.scan} --env ENV --model fitted' (the camera's view under any environment "
+            "from the fitted model), or --mesh PATH (a mesh of the object, metres) to fit per "
+            "texel and render novel views")
     # before any stage runs (atlas, project and fit take minutes on the larger presets)
     check_render_args(scan, camera_spec=args.camera, env=args.env,
                       rotate_deg=args.rotate, shrinkage=args.shrinkage,
@@ -907,6 +921,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera name (default: the first) or 'texture'")
     s.add_argument("--exact-solid-angles", action="store_true",
                    help="exact cell solid angles instead of the paper's sin(phi) rule")
+    s.add_argument("--model", choices=["measured", "fitted"], default="measured",
+                   help="measured: Eq. 4 on the measured frames (only what the lights cover); "
+                        "fitted: a single-view scan's image-space fit (out/fit) evaluated for "
+                        "every direction of the environment, specular lobes from the model")
     s.add_argument("--out", default=None, help="output folder (default: SCAN/out/relit)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_relight)

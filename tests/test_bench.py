@@ -31,7 +31,8 @@ from facegeo.pipeline.bench import (
 # Benchmarks whose quick form takes more than a few seconds here (measured: spectral ≈ 24 s,
 # synth ≈ 27 s, mesh.full_resolution ≈ 16 s — two subprocesses — on the shared 2-core machine).
 _SLOW = {"spectral.forward", "spectral.inverse", "synth.generate", "surface.project",
-         "surface.resolution", "relight.compress", "mesh.full_resolution"}
+         "surface.resolution", "relight.compress", "mesh.full_resolution",
+         "photometric.real"}
 
 
 @pytest.fixture(autouse=True)
@@ -270,7 +271,7 @@ def _check_rows(name: str, rows: list[BenchRow]) -> None:
 
 
 #: Benchmarks that measure on the real data in ``../shared/data`` (no rows without it).
-_SHARED_DATA = {"calibration.real"}
+_SHARED_DATA = {"calibration.real", "photometric.real"}
 
 
 def _bench_params():

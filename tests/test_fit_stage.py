@@ -97,16 +97,25 @@ def test_fit_store_round_trip_resynthesises_like_the_fit(reconstructed):
     from facegeo.render import light_set, load_sources
     from facegeo.synth.render import load_ground_truth
 
+    from dataclasses import replace
+
+    from facegeo.pipeline.fit import _near_field
+    from facegeo.surface.atlas import Texels
+
     root, _ = reconstructed
     src = load_sources(root / "out" / "project", root / "out" / "fit", cameras=["cam_left"])[0]
-    lights = light_set(load_ground_truth(root).rig.lights)
+    stage = load_ground_truth(root).rig.lights
+    lights = light_set(stage)
     store = src.fit
     idx = np.arange(min(40, len(store)))
     R = np.asarray(src.field[store.rows[idx]], np.float32)
-    fresh = skin.fit_reflectance(R, src.v_world[store.rows[idx]], lights,
-                                 depth=skin.SearchDepth() if FIT_SETTINGS["polish"] is None
-                                 else skin.SearchDepth(polish=FIT_SETTINGS["polish"]))
-    loaded = store.skin_fit(idx, R, lights)
+    # the stage fits each light where it is (a near-field stage: FIT_SETTINGS near_field auto)
+    near = _near_field(stage, Texels.load(root / "out" / "atlas" / "texels.npz"),
+                       FIT_SETTINGS["near_field"]).take(src.texel_index[store.rows[idx]])
+    fresh = skin.fit_reflectance_near(R, src.v_world[store.rows[idx]], lights, near,
+                                      depth=skin.SearchDepth() if FIT_SETTINGS["polish"] is None
+                                      else skin.SearchDepth(polish=FIT_SETTINGS["polish"]))
+    loaded = replace(store.skin_fit(idx, R, lights), near=near)
     # refitting in other chunks changes the search's rounding only (fit_reflectance docs)
     for k in ("normal", "alpha_0", "alpha_1", "rho_s", "d_0"):
         assert np.allclose(getattr(loaded, k), getattr(fresh, k), rtol=REFIT_RTOL, atol=1e-9), k

@@ -692,7 +692,11 @@ def test_a_rig_in_another_world_frame_is_compared_after_the_gauge_alignment(tiny
     assert a < 0.2 and abs(a - b) <= GAUGE_METRIC_REL_TOL * a, (a, b)
     from facegeo.pipeline.fit import run_fit
 
-    fits = {tag: run_fit(scan.root, tmp_path / tag, rig=rig, max_texels=300)
+    # distant lights (near_field "off"): the moved frame keeps the light stage where it was
+    # while the mesh moved 4.1 mm, and a near-field fit sees that offset (≈ 0.15° of light
+    # direction at 1.5 m, 0.35° against 0.43° median normal error) — an inconsistency of this
+    # test's frame, not of the gauge alignment it checks
+    fits = {tag: run_fit(scan.root, tmp_path / tag, rig=rig, max_texels=300, near_field="off")
             for tag, rig in (("true", "ground_truth"), ("moved", rig_path))}
     # The fit meets the truth at the aligned texels: the same normals, albedo and source-view
     # functions (the turned views are not compared: the moved frame's +Y is 1° off, and its

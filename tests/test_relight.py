@@ -341,7 +341,7 @@ def test_relight_products_camera_view_metrics_files_and_settings(tiny_scan, tmp_
     cam = scan.camera_names[1]
     m, settings = relight_products(scan, None, tmp_path / "d", env="sky", rotate=-40, view=cam)
     assert settings == {"env": "sky", "rotate": -40.0, "view": cam, "projection": "latlong",
-                        "solid_angle": "paper", "reference": True}
+                        "solid_angle": "paper", "reference": True, "model": "measured"}
     ref = m["reference"]
     assert ref["computed"] and ref["pixels"] > 0
     assert ref["relative_rmse"] <= CONSISTENCY_REL and ref["max_abs_over_max"] <= CONSISTENCY_REL

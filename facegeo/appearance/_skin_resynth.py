@@ -125,7 +125,7 @@ def interpolate_on_lights(values, lights: LightSet, dirs):
     return np.einsum("nmk,nmkc->nmc", w, vals)
 
 
-def resynthesize_diffuse(D, E, n, v0, vn, alpha_0, alpha_1, lights):
+def resynthesize_diffuse(D, E, n, v0, vn, alpha_0, alpha_1, lights, dirs=None):
     """Diffuse component chroma-shifted from v_0 to v_n (§4.3).
 
     For each sample, the chrominance shift of the original view is inverted (Eq. 6 inverted,
@@ -136,6 +136,9 @@ def resynthesize_diffuse(D, E, n, v0, vn, alpha_0, alpha_1, lights):
     ----------
     D : (n, L, 3) float64, input units; E : (L, 3) light intensities
     n, v0, vn : (n, 3) float64, unit; alpha_0, alpha_1 : (n,) float64
+    dirs : (n, L, 3) float64, unit, optional
+        Each function's own light directions (a near-field stage,
+        :mod:`facegeo.appearance._near_field`); default the light set's.
 
     Returns
     -------
@@ -144,14 +147,14 @@ def resynthesize_diffuse(D, E, n, v0, vn, alpha_0, alpha_1, lights):
     Dw = D / E[None]
     b = np.linalg.norm(Dw, axis=2)
     c = normalize(Dw, fallback=S_WHITE)
-    nl = n @ lights.directions.T
+    nl = n @ lights.directions.T if dirs is None else np.einsum("ni,nli->nl", n, dirs)
     f0 = ramp_f(nl, _dot(n, v0)[:, None], alpha_0[:, None], alpha_1[:, None])
     fn = ramp_f(nl, _dot(n, vn)[:, None], alpha_0[:, None], alpha_1[:, None])
     d, _ = invert_ramp(c, f0)
     return b[..., None] * ramp_chromaticity(d, fn) * E[None]
 
 
-def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta):
+def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta, near=None):
     """Specular reflectance function for a novel view by Eq. 9 (Debevec et al. 2000, §4.3).
 
     For each light l_p: ``H = normalize(v_n + l_p)``, the source light
@@ -172,21 +175,34 @@ def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta):
     where n·l_p ≤ 0 or n·v_n ≤ 0, and where H is undefined (l_p = −v_n). Denominators are
     floored at COS_FLOOR; results are finite.
 
+    Near-field stage (``near``, :mod:`facegeo.appearance._near_field`): l_p is each light's
+    true direction from the point, the measured samples are divided by their falloff before
+    the interpolation, l_q is read where the ray from the point along it meets the light
+    sphere, and the result carries the target light's falloff: Eq. 9 with every light where it
+    is (the paper's stage is treated as distant).
+
     Parameters
     ----------
     sigma : (n, L) float64 — white-balanced specular sample per colour channel
     shadow : (n, L) bool, occluded lights (``SkinFit.cast_shadow``)
     n, v0, vn : (n, 3) float64, unit
+    near : NearField of the n functions, optional
 
     Returns
     -------
     spec : (n, L) float64
     hidden : (n,) bool — some l_q fell in a shadowed source direction with lit l_p
     """
-    lp = lights.directions[None]
+    if near is None:
+        lp = lights.directions[None]
+        nlp = n @ lights.directions.T  # (n, L)
+        fall = None
+    else:
+        lp, fall = near.light_geometry(lights.directions)
+        nlp = np.einsum("ni,nli->nl", n, lp)
+        sigma = sigma / fall
     nv0 = _dot(n, v0)[:, None]
     nvn = _dot(n, vn)[:, None]
-    nlp = n @ lights.directions.T  # (n, L)
     # the measured samples as microfacet values ρ_s P(h_l) ∝ S_l (n·v_0)/(G F) on the nodes
     h0 = normalize(lp + v0[:, None, :], fallback=n[:, None, :] * np.ones_like(lp))
     nh0 = _dot(h0, n[:, None, :])
@@ -200,7 +216,11 @@ def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta):
     Hv0 = _dot(H, v0[:, None, :])
     lq = 2.0 * Hv0[..., None] * H - v0[:, None, :]
     lq = normalize(lq, fallback=n[:, None, :] * np.ones_like(lq))
-    vals = interpolate_on_lights(np.stack([micro, shadow.astype(np.float64)], axis=2), lights, lq)
+    where = lq
+    if near is not None:  # the stage direction of the light the point sees along l_q
+        where = near.stage_directions(lq)
+    vals = interpolate_on_lights(np.stack([micro, shadow.astype(np.float64)], axis=2), lights,
+                                 where)
     m_q, sh_q = vals[..., 0], vals[..., 1] > 0.5
     nH = _dot(H, n[:, None, :])
     nlq = _dot(lq, n[:, None, :])
@@ -210,6 +230,8 @@ def resynthesize_specular(sigma, shadow, n, v0, vn, lights, eta):
     ok = (hn > 1e-9) & (nH > 0) & (nlp > 0) & (nlq > 0) & (nvn > 0) & (nv0 > 0) & ~shadow
     hidden_l = ok & sh_q  # the source saw these microfacets only through an occluded light
     spec = np.where(ok, m_q * G_n * F_n / np.maximum(nvn, COS_FLOOR), 0.0)
+    if fall is not None:
+        spec *= fall
     return np.maximum(spec, 0.0), hidden_l.any(axis=1)
 
 
@@ -255,7 +277,9 @@ def resynthesize(fit, v_n, *, view_independent_form: bool = False,
 
     With ``KERNELS`` (default) the work runs in the compiled kernel
     ``_skin_resynth_kernels.resynth_full`` (one function per thread, no ``(N, L, 3)``
-    temporaries); it equals this module's numpy path to rounding.
+    temporaries); it equals this module's numpy path to rounding. A near-field fit
+    (``fit.near``, :func:`facegeo.appearance.skin.fit_reflectance_near`) runs the numpy path
+    with each light's true direction and falloff (:func:`resynthesize_specular`).
 
     Parameters
     ----------
@@ -277,7 +301,7 @@ def resynthesize(fit, v_n, *, view_independent_form: bool = False,
         S = fit.specular.astype(np.float64)
         return Resynthesis((D + S).astype(np.float32), D.astype(np.float32),
                            S.astype(np.float32), flags)
-    if KERNELS:
+    if KERNELS and getattr(fit, "near", None) is None:
         from facegeo.appearance._skin_resynth_kernels import resynth_full
 
         refl, diff, spec, kflags = resynth_full(
@@ -296,8 +320,12 @@ def _resynthesize_numpy(fit, vn, flags, same, back, todo, specular_skip) -> Resy
     S_new = S.copy()
     E = fit.lights.intensities
     n, v0 = fit.normal[todo], fit.view[todo]
+    near = getattr(fit, "near", None)
+    dirs = None
+    if near is not None:
+        dirs, _ = near.take(todo).light_geometry(fit.lights.directions)
     D_new[todo] = resynthesize_diffuse(D[todo], E, n, v0, vn[todo], fit.alpha_0[todo],
-                                       fit.alpha_1[todo], fit.lights)
+                                       fit.alpha_1[todo], fit.lights, dirs)
     sigma = (S[todo] / E[None]).mean(axis=2)
     total = np.abs((D[todo] + S[todo]) / E[None]).mean(axis=2) @ fit.lights.solid_angles
     energy = sigma @ fit.lights.solid_angles
@@ -307,7 +335,8 @@ def _resynthesize_numpy(fit, vn, flags, same, back, todo, specular_skip) -> Resy
     ts = todo[do_spec]
     if ts.size:
         spec, hidden = resynthesize_specular(sigma[do_spec], fit.cast_shadow[ts], fit.normal[ts],
-                                             fit.view[ts], vn[ts], fit.lights, fit.eta)
+                                             fit.view[ts], vn[ts], fit.lights, fit.eta,
+                                             None if near is None else near.take(ts))
         S_new[ts] = spec[..., None] * E[None]
         flags[ts[hidden]] |= FLAG_SPECULAR_IN_SHADOW
     D_new[back] = 0.0
@@ -382,7 +411,11 @@ def resynthesize_relit(fit, v_n, weights, *, specular_skip: float = SPECULAR_SKI
     if step > 1 and (not KERNELS or fit.single_channel or C != 3):
         raise InputError("light_step > 1 needs the compiled kernels (KERNELS) and a 3-channel "
                          "fit")
-    if not KERNELS or fit.single_channel or C != 3:
+    near = getattr(fit, "near", None) is not None
+    if step > 1 and near:
+        raise InputError("light_step > 1: a near-field fit (SkinFit.near) is resynthesised at "
+                         "every light; use light_step=1")
+    if not KERNELS or fit.single_channel or C != 3 or near:
         r = resynthesize(fit, v_n, specular_skip=specular_skip)
         return np.einsum("nlc,lc->nc", r.reflectance, w)
     vn, _, same, back = _views_and_masks(fit, v_n)

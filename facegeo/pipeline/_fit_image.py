@@ -143,7 +143,8 @@ def _toward_camera(camera) -> np.ndarray:
 def fit_image_products(scan, dest, *, hold_out="every_other", light_cone_deg=None,
                        channels="auto", mask="auto", folds=8, eta=1.4,
                        light_weights="uniform", light_gains="auto", models="all",
-                       criterion="sse", max_pixels=None, progress=None) -> tuple[dict, dict]:
+                       criterion="sse", max_pixels=None, progress=None,
+                       threads=None) -> tuple[dict, dict]:
     """Fit the per-pixel photometric models of a single-view scan in image space; write the
     products (module docstring) into ``dest``.
 
@@ -168,6 +169,9 @@ def fit_image_products(scan, dest, *, hold_out="every_other", light_cone_deg=Non
     models : "all" or a list of model names
     max_pixels : int, optional — at most this many pixels of the mask, an even subsample
     progress : callable(stage, done, total), optional
+    threads : int, optional — worker threads of the fit (not a setting: the results do not
+        depend on it); default both cores when numba has them (``facegeo bench photometric``
+        sets it to compare at equal threads)
 
     Returns
     -------
@@ -233,7 +237,8 @@ def fit_image_products(scan, dest, *, hold_out="every_other", light_cone_deg=Non
         I = np.asarray(lights.intensities if getattr(lights, "intensities", None) is not None
                        else np.ones((D_all.shape[0], 3)), np.float64)
         gains = "fit" if np.ptp(I, axis=0).max() == 0 else "given"
-    threads = max(1, min(2, int(numba.config.NUMBA_NUM_THREADS)))
+    threads = (max(1, min(2, int(numba.config.NUMBA_NUM_THREADS))) if threads is None
+               else max(1, int(threads)))
     kw = {"folds": int(folds), "eta": float(eta), "criterion": criterion, "threads": threads,
           "light_weights": lw, "light_gains": "fit" if gains == "fit" else None}
     if models != "all":

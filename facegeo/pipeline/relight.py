@@ -36,10 +36,17 @@ from facegeo.checks import check_choice, fmt_value
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_relight", "relight_products", "relight_texture", "resolve_env", "tone_map"]
+__all__ = ["run_relight", "relight_products", "relight_texture", "relight_fitted", "resolve_env",
+           "tone_map", "energy_note"]
 
 #: Tone mapping: the 99.5th percentile of luminance maps to this display value before sRGB.
 TONE_MAP_WHITE = 0.9
+#: Below this share of the environment's energy (Σ w / ∫ L, any channel) the lights keep, the
+#: metrics and the CLI say so (a dome of the upper hemisphere keeps ≈ 0.79 of a sky).
+DOME_ENERGY_NOTE = 0.95
+#: ``model="fitted"``: the environment is sampled on this (n_θ, n_φ) grid of directions (exact
+#: cell solid angles, every direction of the sphere) and the fitted model evaluated at each.
+FITTED_GRID = (64, 32)
 
 
 def tone_map(img: np.ndarray, *, percentile: float = 99.5) -> tuple[np.ndarray, float]:
@@ -182,7 +189,8 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
                      atlas_dir: str | os.PathLike | None = None, projection: str = "latlong",
                      solid_angle: str = "paper", reference: bool = True,
                      progress: Callable[[str, int, int], None] | None = None,
-                     read_ahead: int = 0) -> tuple[dict, dict]:
+                     read_ahead: int = 0, model: str = "measured",
+                     fit_dir: str | os.PathLike | None = None) -> tuple[dict, dict]:
     """Write the ``relight`` products of ``scan`` into ``dest``: the relit image as EXR and a
     tone-mapped PNG (Debevec et al. 2000 §3.3, Eq. 4).
 
@@ -221,13 +229,24 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     read_ahead : int
         Camera view: threads reading the next OLAT frames meanwhile
         (:func:`facegeo.lighting.relight.relight_scan_view`).
+    model : {"measured", "fitted"}
+        ``"measured"`` (default): Eq. 4 on the measured OLAT frames or field — the image holds
+        only what the lights cover. ``"fitted"``: the camera view from the fitted per-pixel
+        models of an image-space fit (``fit_dir/photometric.npz``, :func:`relight_fitted`):
+        the environment sampled on every direction (:data:`FITTED_GRID`), each direction's
+        light predicted by the model — the specular lobe evaluated from its fitted parameters,
+        not interpolated between measured lights.
+    fit_dir : path, optional
+        The ``fit`` stage's folder for ``model="fitted"`` (default ``SCAN/out/fit``).
 
     Returns
     -------
     metrics : dict
         ``files`` (``exr``, ``png``; ``measured`` for the texture view), ``energy_ratio``
         (``Σ_l w_l / ∫ L dω`` per channel: the light-basis projection's energy check, 1 up to the
-        δA rule), ``active_lights``, ``mean_radiance``, ``reference`` (relative RMSE and max
+        δA rule), ``energy_note`` (a sentence when the lights keep less than
+        :data:`DOME_ENERGY_NOTE` of the environment's energy, e.g. a dome's upper hemisphere,
+        else None), ``model``, ``active_lights``, ``mean_radiance``, ``reference`` (relative RMSE and max
         error of the relit image against the generator's render, when computed, else the reason
         it was not), ``seconds``.
     settings : dict
@@ -239,9 +258,13 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
 
     t0 = time.perf_counter()
     check_choice(solid_angle, "solid_angle", ("paper", "exact"))
+    check_choice(model, "model", ("measured", "fitted"))
     names = scan.camera_names
     texture = view == "texture"
-    if texture:
+    fitted_path = None
+    if model == "fitted":
+        fitted_path = _fitted_model_path(scan, view, fit_dir)
+    elif texture:
         if project_dir is None:
             raise InputError("project_dir: view='texture' relights the projected surface "
                              "reflectance field; give the 'project' stage's folder (run "
@@ -258,11 +281,14 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     env_map = resolve_env(env, projection, rotate_deg=rotate)
     settings = {"env": str(env), "rotate": float(rotate), "view": view,
                 "projection": env_map.projection, "solid_angle": solid_angle,
-                "reference": bool(reference)}
+                "reference": bool(reference), "model": model}
     lights = scan.rig.lights
     t_env = time.perf_counter()
-    w = E.light_weights(env_map, lights, solid_angle=solid_angle)  # a grid or a light list
     integral = env_map.integral()
+    if fitted_path is not None:
+        return _relight_fitted_products(scan, view, env_map, fitted_path, Path(dest), env,
+                                        rotate, settings, t0, integral)
+    w = E.light_weights(env_map, lights, solid_angle=solid_angle)  # a grid or a light list
     active = int(np.count_nonzero(np.any(w != 0, axis=1)))
     t_w = time.perf_counter()
     extra: dict[str, Any] = {}
@@ -316,7 +342,8 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
         "scan": str(scan.root), "view": view, "env": str(env),
         "projection": env_map.projection, "rotate_deg": float(rotate),
         "solid_angle": solid_angle, "n_lights": int(lights.n_lights), "active_lights": active,
-        "energy_ratio": (w.sum(0) / np.where(integral > 0, integral, 1)).tolist(),
+        "energy_ratio": (ratio := (w.sum(0) / np.where(integral > 0, integral, 1))).tolist(),
+        "energy_note": energy_note(ratio, lights.n_lights), "model": model,
         "mean_radiance": (mean_src.mean(0) if len(mean_src) else np.zeros(3)).tolist(),
         "reference": ref_metrics, "tone_map_exposure": exposure,
         "files": files, **extra,
@@ -324,6 +351,117 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
                     "reference": t_ref - t_relit, "total": time.perf_counter() - t0},
     }
     log.info("relit %s with %s (%d active lights) in %.2f s", view, env, active,
+             metrics["seconds"]["total"])
+    return metrics, settings
+
+
+def energy_note(ratio, n_lights: int) -> str | None:
+    """The sentence a user reads when the lights keep only part of the environment's energy
+    (``Σ w / ∫ L`` below :data:`DOME_ENERGY_NOTE` in any channel), else None."""
+    r = float(np.min(ratio))
+    if not r < DOME_ENERGY_NOTE:
+        return None
+    return (f"the {n_lights} lights keep only {r:.0%} of the environment's energy "
+            f"(sum(w)/integral(L) = {r:.2f}): the rest arrives from directions no light covers "
+            "(e.g. below a dome) and is missing from the relit image; --model fitted predicts "
+            "every direction from a single-view scan's fitted model")
+
+
+def _fitted_model_path(scan, view: str, fit_dir) -> Path:
+    """``fit_dir/photometric.npz`` of an image-space fit of ``view``, or a clear error."""
+    if view == "texture" or view not in scan.camera_names:
+        raise InputError(f"view: --model fitted relights a camera of a single-view scan fitted "
+                         f"in image space; got {fmt_value(view)} (cameras: "
+                         f"{', '.join(scan.camera_names)})")
+    path = (Path(fit_dir) if fit_dir is not None else scan.out_dir / "fit") / "photometric.npz"
+    if not path.is_file():
+        raise InputError(f"{path} is missing: --model fitted needs the image-space fit of a "
+                         f"single-view scan; run 'facegeo fit {scan.root}' first (a scan with a "
+                         "mesh is fitted per texel: relight it with --model measured or render "
+                         "it with 'facegeo render')")
+    return path
+
+
+def relight_fitted(path, env_map, *, grid=FITTED_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """The camera image under an environment predicted by an image-space fit's models.
+
+    Eq. 4 of Debevec et al. 2000 with the fitted per-pixel models in place of measured
+    reflectance functions: ``Σ_k L̄_k δA_k ⊙ f(ω_k)``, ω_k every cell centre of a
+    ``grid = (n_θ, n_φ)`` lat-long grid over the sphere (exact cell solid angles, so
+    ``Σ w = ∫ L``), f the pixel's model evaluated at ω_k
+    (:func:`facegeo.appearance.photometric.predict_environment`: Lambertian, shadow map, and
+    the Torrance–Sparrow lobe from its fitted parameters). A grey fit is relit channel by
+    channel (its albedo times each channel's light).
+
+    Parameters
+    ----------
+    path : path — ``photometric.npz`` with ``rows`` and ``image_size`` (the fit stage's)
+    env_map : EnvironmentMap
+    grid : (int, int)
+
+    Returns
+    -------
+    image : (H, W, 3) float32 — 0 where no pixel was fitted
+    weights : (n_θ n_φ, 3) float64 — the Eq. 4 weights used (δA included)
+    """
+    from facegeo.appearance.photometric import load_photometric, predict_environment
+    from facegeo.appearance.skin import LightSet
+    from facegeo.lighting import envmap as E
+
+    model = load_photometric(path)
+    with np.load(path) as z:
+        if "rows" not in z.files or "image_size" not in z.files:
+            raise InputError(f"{path}: no 'rows' / 'image_size' arrays (not written by the fit "
+                             "stage; re-run 'facegeo fit')")
+        rows = z["rows"].astype(np.int64)
+        W, H = (int(x) for x in z["image_size"])
+    nt, npf = (int(g) for g in grid)
+    w = E.light_stage_weights(env_map, nt, npf, solid_angle="exact")
+    dirs = LightSet.from_grid(nt, npf).directions
+    lit = np.any(w != 0, axis=1)
+    if model.b_lambert.shape[1] == 3:
+        vals = predict_environment(model, dirs[lit], w[lit])
+    else:
+        vals = np.concatenate([predict_environment(model, dirs[lit], w[lit, c])
+                               for c in range(3)], axis=1)
+    img = np.zeros((H * W, 3), np.float32)
+    img[rows] = np.nan_to_num(vals, nan=0.0)
+    return img.reshape(H, W, 3), w
+
+
+def _relight_fitted_products(scan, view, env_map, path, dest: Path, env, rotate, settings, t0,
+                             integral) -> tuple[dict, dict]:
+    """:func:`relight_products` for ``model="fitted"``."""
+    from facegeo.capture import imageio
+
+    t_w = time.perf_counter()
+    img, w = relight_fitted(path, env_map)
+    t_relit = time.perf_counter()
+    dest.mkdir(parents=True, exist_ok=True)
+    rot = f"{float(rotate):g}".replace("-", "m")
+    proj_tag = "" if env_map.projection == "latlong" else f"_{env_map.projection}"
+    stem = f"{_safe_stem(Path(str(env)).stem)}{proj_tag}_rot{rot}_{_safe_stem(view)}_fitted"
+    exr = imageio.write_image(dest / f"{stem}.exr", img)
+    png_img, exposure = tone_map(img)
+    png = imageio.write_image(dest / f"{stem}.png", png_img)
+    ratio = w.sum(0) / np.where(integral > 0, integral, 1)
+    flat = img.reshape(-1, 3)
+    lit_px = flat[np.any(flat != 0, axis=1)]
+    metrics = {
+        "scan": str(scan.root), "view": view, "env": str(env), "model": "fitted",
+        "fit": str(path), "projection": env_map.projection, "rotate_deg": float(rotate),
+        "solid_angle": "exact", "n_lights": int(w.shape[0]),
+        "active_lights": int(np.count_nonzero(np.any(w != 0, axis=1))),
+        "grid": list(FITTED_GRID), "energy_ratio": ratio.tolist(),
+        "energy_note": energy_note(ratio, int(w.shape[0])),
+        "mean_radiance": (lit_px.mean(0) if len(lit_px) else np.zeros(3)).tolist(),
+        "reference": {"computed": False,
+                      "reason": "the fitted model predicts lights no frame measured"},
+        "tone_map_exposure": exposure, "files": {"exr": str(exr), "png": str(png)},
+        "seconds": {"env": t_w - t0, "weights": 0.0, "relight": t_relit - t_w,
+                    "reference": 0.0, "total": time.perf_counter() - t0},
+    }
+    log.info("relit %s from the fitted model with %s in %.2f s", view, env,
              metrics["seconds"]["total"])
     return metrics, settings
 
@@ -362,7 +500,7 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
                 solid_angle: str = "paper", field_dir: str | os.PathLike | None = None,
                 reference: bool = False,
                 progress: Callable[[str, int, int], None] | None = None,
-                read_ahead: int = 0) -> dict:
+                read_ahead: int = 0, model: str = "measured") -> dict:
     """Relight one camera of a scan, or its texture atlas, with an environment map and write
     the images.
 
@@ -395,6 +533,9 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
         Per active light (camera view) or per camera (texture view).
     read_ahead : int
         See :func:`relight_products` (the CLI reads two ahead).
+    model : {"measured", "fitted"}
+        See :func:`relight_products` (``"fitted"``: the image-space fit in
+        ``field_dir/fit``, default ``SCAN/out/fit``).
 
     Returns
     -------
@@ -415,7 +556,8 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     metrics, _ = relight_products(scan, fdir / "project", out, env=env_path, rotate=rotate_deg,
                                   view=view, atlas_dir=fdir / "atlas", projection=projection,
                                   solid_angle=solid_angle, reference=reference,
-                                  progress=progress, read_ahead=read_ahead)
+                                  progress=progress, read_ahead=read_ahead, model=model,
+                                  fit_dir=fdir / "fit")
     stem = Path(metrics["files"]["exr"]).stem
     atomic_write_text(out / f"{stem}.json", json.dumps(metrics, indent=2))
     return metrics

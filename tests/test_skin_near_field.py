@@ -1,0 +1,175 @@
+"""The skin model on a near-field light stage (issue 36): each light where it is.
+
+The generator's light stage has a radius of 1.5 m; a head ≈ 0.1 m across sees its lights up to
+≈ 4° away from the stage directions, with ±14 % falloff. Fitting them as distant lights (the
+paper's assumption) cost the fit stage its normals, its albedo and most of Eq. 9's gain
+(docs/skin.md, "Near-field light stages"); :func:`skin.fit_reflectance_near` fits and
+resynthesises with every light's true direction and falloff.
+
+A few hundred pixels of the small preset's first camera, exact generator functions (its
+mismatched BRDF, cast shadows) under the near-field stage: seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from facegeo.appearance import skin
+
+#: Median normal error of the near-field fit over valid functions, degrees (measured 0.18°;
+#: the distant-light fit of the same functions 1.34°).
+NEAR_NORMAL_MEDIAN_DEG = 0.5
+#: Median albedo error against the generator's Lambertian-equivalent albedo (measured 3.0 %
+#: on 400 pixels; the stage 2.4 %; issue 13's bar 3 % with a margin for the sample).
+NEAR_ALBEDO_MEDIAN_REL = 0.04
+#: Resynthesis relative RMSE (pooled over both turns about +Y, views in front of the true
+#: surface) at least this many times lower than the naive reuse's (issue 13's bar; measured
+#: 3.5× / 3.6× at 30° / 60° on 400 pixels; distant lights 0.86× / 1.5×).
+NEAR_RESYNTH_VS_NAIVE = 3.0
+#: D + S = R for the measured functions, in float32 ulps of the largest sample.
+RECOMBINE_ULPS = 2
+#: Compiled near-field steps against their numpy reference, relative to the largest sample.
+KERNEL_REL = 1e-6
+PIXELS = 300
+
+
+@pytest.fixture(scope="module")
+def near_case():
+    from facegeo.lighting.envmap import rotation_y
+    from facegeo.synth.capture import PRESETS, build_head, build_rig
+    from facegeo.synth.render import ReferenceRenderer
+    from facegeo.synth.skin import SkinField
+
+    pre = PRESETS["small"]
+    mesh = build_head("procedural", subdivisions=pre.head_subdivisions, seed=0)
+    rig = build_rig(pre)
+    stage = rig.lights
+    assert np.isfinite(stage.radius), "the generator's stage is near-field"
+    ren = ReferenceRenderer.from_mesh(mesh, SkinField.for_mesh(mesh, seed=0))
+    view = ren.surface_view(rig.cameras[0])
+    idx = np.sort(np.random.default_rng(0).choice(view.n_samples, PIXELS, replace=False))
+    sel = np.zeros(view.n_samples, bool)
+    sel[idx] = True
+    pos = np.asarray(stage.center) + stage.radius * stage.directions
+    col = np.asarray(stage.color, float)
+
+    def olat(vw):
+        return np.stack([ren.shade_point_light(vw, pos[l], col, stage_radius=stage.radius,
+                                               sel=sel) for l in range(stage.n_lights)], axis=1)
+
+    v0, n = view.v_world[idx], view.n_world[idx]
+    novel = {}
+    for deg in (30.0, 60.0):
+        for sign in (1.0, -1.0):
+            vn = v0 @ rotation_y(np.radians(sign * deg)).T
+            v_all = view.v_world.copy()
+            v_all[idx] = vn
+            novel[(deg, sign)] = (vn, olat(replace(view, v_world=v_all)))
+    lights = skin.LightSet.from_grid(stage.n_theta, stage.n_phi, stage.color)
+    near = skin.NearField(view.p_world[idx] - np.asarray(stage.center), stage.radius)
+    return {"R": olat(view), "v0": v0, "n": n, "novel": novel, "lights": lights, "near": near,
+            "material": (view.alpha_0[idx], view.alpha_1[idx], view.rho_s[idx],
+                         view.roughness[idx])}
+
+
+def _median_normal_error(fit, n):
+    cos = np.clip(np.sum(fit.normal * n, axis=1), -1.0, 1.0)
+    return float(np.median(np.degrees(np.arccos(cos))[fit.valid]))
+
+
+def _resynthesis_vs_naive(fit, case, deg):
+    """(relative RMSE of the resynthesis, of the naive reuse) pooled over both turns."""
+    se = sn = sr = 0.0
+    for sign in (1.0, -1.0):
+        vn, ref = case["novel"][(deg, sign)]
+        front = (np.sum(vn * case["n"], axis=1) > 0) & fit.valid
+        est = skin.resynthesize(fit, vn).reflectance
+        se += float(((est[front] - ref[front]) ** 2).sum())
+        sn += float(((case["R"][front] - ref[front]) ** 2).sum())
+        sr += float((ref[front] ** 2).sum())
+    return np.sqrt(se / sr), np.sqrt(sn / sr)
+
+
+def test_near_field_fit_recovers_normals_and_albedo(near_case):
+    from facegeo.appearance.brdf import lambertian_equivalent_albedo
+
+    c = near_case
+    fit = skin.fit_reflectance_near(c["R"], c["v0"], c["lights"], c["near"])
+    distant = skin.fit_reflectance(c["R"], c["v0"], c["lights"])
+    err, err_far = _median_normal_error(fit, c["n"]), _median_normal_error(distant, c["n"])
+    ref = lambertian_equivalent_albedo(c["n"], c["v0"], *c["material"],
+                                       c["lights"].directions, c["lights"].solid_angles)
+    alb = np.linalg.norm(fit.rho_d - ref, axis=1) / np.linalg.norm(ref, axis=1)
+    print(f"near-field fit: normals {err:.3f}° (as distant lights {err_far:.3f}°), "
+          f"albedo {np.median(alb[fit.valid]):.4f}")
+    assert err <= NEAR_NORMAL_MEDIAN_DEG
+    assert err < err_far, "the near-field fit must beat the distant-light one"
+    assert np.median(alb[fit.valid]) <= NEAR_ALBEDO_MEDIAN_REL
+
+
+def test_near_field_resynthesis_beats_naive_3x(near_case):
+    c = near_case
+    fit = skin.fit_reflectance_near(c["R"], c["v0"], c["lights"], c["near"])
+    ulp = np.spacing(np.float32(np.abs(c["R"]).max()))
+    assert np.abs(fit.diffuse + fit.specular - c["R"]).max() <= RECOMBINE_ULPS * ulp
+    same = skin.resynthesize(fit, c["v0"]).reflectance
+    assert np.abs(same - c["R"]).max() <= RECOMBINE_ULPS * ulp, "the source view is kept"
+    for deg in (30.0, 60.0):
+        ours, naive = _resynthesis_vs_naive(fit, c, deg)
+        print(f"near-field resynthesis {deg:.0f}°: {ours:.3f} vs naive {naive:.3f} "
+              f"({naive / ours:.2f}×)")
+        assert ours * NEAR_RESYNTH_VS_NAIVE <= naive
+
+
+def test_near_field_rejects_points_outside_the_stage():
+    from facegeo.errors import InputError
+
+    with pytest.raises(InputError, match="inside the light sphere"):
+        skin.NearField(np.array([[0.0, 0.0, 2.0]]), 1.5)
+    with pytest.raises(InputError, match="radius"):
+        skin.NearField(np.zeros((1, 3)), np.inf)
+
+
+def test_near_field_masked_samples_stay_out_and_zero(near_case):
+    """Masked samples (NaN in a projected field) are left out and get D = S = 0."""
+    c = near_case
+    R = c["R"][:40].copy()
+    masked = np.zeros(R.shape[:2], bool)
+    masked[:, ::7] = True
+    R[masked] = np.nan
+    fit = skin.fit_reflectance_near(R, c["v0"][:40], c["lights"], c["near"].take(np.arange(40)),
+                                    masked=masked)
+    assert np.all(fit.diffuse[masked] == 0) and np.all(fit.specular[masked] == 0)
+    assert np.isfinite(fit.normal).all() and np.isfinite(fit.diffuse).all()
+    assert np.all(fit.flags[fit.valid] & skin.FLAG_MASKED)
+
+
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_kernels_match_the_numpy_reference(near_case, with_mask, monkeypatch):
+    """The compiled near-field steps (``_near_field.KERNELS``) against the numpy path: the
+    resampled functions and the measured separation, max |difference| relative to the
+    largest sample (float32 storage: a few ulps)."""
+    from facegeo.appearance import _near_field
+
+    c = near_case
+    R = c["R"][:60].astype(np.float32)
+    near = c["near"].take(np.arange(60))
+    masked = None
+    if with_mask:
+        masked = np.zeros(R.shape[:2], bool)
+        masked[:, ::5] = True
+        R = np.where(masked[..., None], np.float32(0.0), R)
+    got = {}
+    for k in (True, False):
+        monkeypatch.setattr(_near_field, "KERNELS", k)
+        Rd, md = _near_field.distant_equivalent(R, near, c["lights"], masked)
+        fit = skin.fit_reflectance_near(R, c["v0"][:60], c["lights"], near, masked=masked)
+        got[k] = (Rd, md, fit.diffuse)
+    scale = float(np.abs(R).max())
+    assert np.abs(got[True][0] - got[False][0]).max() <= KERNEL_REL * scale
+    assert np.abs(got[True][2] - got[False][2]).max() <= KERNEL_REL * scale
+    if with_mask:
+        assert np.array_equal(got[True][1], got[False][1])
