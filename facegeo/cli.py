@@ -326,7 +326,8 @@ def _cmd_calibrate(args) -> int:
     # (header, metrics key[, fallback key]): the errors against the generator's truth on a
     # synthetic scan, else against a reference calibration shipped with the data (real scans)
     cols = (("model", "model"), ("rms px", "reprojection_rms_px"), ("views", "views_used"),
-            ("cv px", "cross_validation_px"), ("unc px", "projection_uncertainty_rms_px"),
+            ("cv px", "cross_validation_px"), ("loo px", "leave_one_out_held_out_rms_px"),
+            ("unc px", "projection_uncertainty_rms_px"),
             ("focal err", "focal_rel_error", "reference_focal_rel_error"),
             ("pp err px", "principal_point_error_px", "reference_principal_point_error_px"))
     cams = m.get("cameras", {})
@@ -844,16 +845,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", choices=["auto", "pinhole", "k1", "k1k2", "opencv4", "opencv5",
                                         "rational8"],
                    default="auto", help="lens distortion model of every camera; auto: chosen per "
-                   "camera by k-fold cross-validation over its views (held-out reprojection "
-                   "error, the simplest model within one standard error of the best)")
+                   "camera (and for the projector) by leave-one-view-out cross-validation "
+                   "(a more complex model only when its held-out gain exceeds the noise; "
+                   "degenerate lenses refused)")
     s.add_argument("--loss", choices=["linear", "soft_l1", "huber", "cauchy", "arctan"],
                    default="linear", help="robust loss of the least-squares solves")
     s.add_argument("--reference", default=None,
                    help="camera held fixed in the bundle adjustment (default: the first)")
-    s.add_argument("--legacy-board", action="store_true",
-                   help="ChArUco board printed by OpenCV < 4.6 (setLegacyPattern)")
+    s.add_argument("--legacy-board", action="store_const", const=True, default=None,
+                   help="ChArUco board in OpenCV's legacy pattern (OpenCV < 4.6, "
+                   "setLegacyPattern); default: the board description's legacy key, else "
+                   "read both ways where they differ (an even row count)")
     s.add_argument("--no-cross-validation", action="store_true",
-                   help="skip the two-halves cross-validation")
+                   help="skip the cross-validation (two halves, leave one view out)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     s.set_defaults(func=_cmd_calibrate)
 

@@ -90,10 +90,10 @@ def test_writer_is_atomic_and_writes_units_and_extras(tmp_path):
 
 def test_calibrate_stage_yaml_is_the_same_writer(tmp_path):
     """facegeo calibrate's <camera>.yml comes from write_opencv_camera (no pose)."""
-    from facegeo.pipeline.calibrate import _write_yaml
+    from facegeo.pipeline._calibrate_products import write_yaml
 
     cam = _camera()
-    _write_yaml(tmp_path / "cam.yml", cam, 0.25, [0.2, 0.3])
+    write_yaml(tmp_path / "cam.yml", cam, 0.25, [0.2, 0.3])
     back = read_opencv_camera(tmp_path / "cam.yml", "cam_a")
     assert np.array_equal(back.K, cam.K) and np.array_equal(back.dist, cam.dist)
     assert read_matrices(tmp_path / "cam.yml", ["avg_reprojection_error"])[

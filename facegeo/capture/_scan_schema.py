@@ -59,8 +59,12 @@ TEMPLATE_FIELDS = {
 _ALT_FIELDS = {
     "olat": {"light": ("light_name", "index", "number")},
     "calib": {"view": ("index", "number")},
+    "calib.projector": {"frame": ("index", "number")},
     "structured_light": {"frame": ("index", "number")},
 }
+#: Groups whose description may declare named per-view template fields (``fields = { pose =
+#: [3, 7, 12] }``, v2): each a list of one integer or string per view, or one value for all.
+FIELD_GROUPS = ("calib", "calib.projector")
 #: Fields that only a version-2 template may use.
 V2_TEMPLATE_FIELDS = ("light_name", "index", "number")
 #: A template ending in this suffix matches one file of any readable image suffix (v2).
@@ -71,11 +75,14 @@ CORNER_SUFFIXES = (".npz", ".csv")
 BOARD_KINDS = ("charuco", "chessboard", "circles")
 
 #: Keys (dotted) that exist only in version 2; a version-1 manifest using one is an error.
-V2_KEYS = ("scan.world", "calib.images", "calib.corners", "calib.cameras",
+V2_KEYS = ("scan.world", "calib.images", "calib.corners", "calib.cameras", "calib.fields",
            "calib.projector.frames", "calib.projector.patterns", "calib.projector.cameras",
+           "calib.projector.fields", "calib.projector.response",
            "structured_light.cameras", "olat.ambient", "olat.cameras", "reference")
 
-#: Default response of each section that declares one (calib.projector uses calib's).
+#: Default response of each section that declares one (calib.projector: its own ``response``
+#: when it declares one — its Gray-code frames may be float EXR where the board photos are
+#: 8-bit sRGB — else calib's).
 DEFAULT_RESPONSES = {"calib": "srgb", "structured_light": "srgb", "olat": "linear"}
 
 #: How OLAT file numbers map to the library's light index l = j·n_theta + i.
@@ -109,10 +116,13 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool, Any]]] = {
         "images": ("bool", False, None),
         "corners": ("template", False, None),
         "cameras": ("cameras", False, None),
+        "fields": ("fields", False, None),
         "projector": ("section", False, None),
     },
     "calib.projector": {
         "views": ("count", True, None),
+        "response": ("response", False, None),
+        "fields": ("fields", False, None),
         "files": ("template", False, DEFAULT_FILES["calib.projector"]),
         "frames": ("frames", False, None),
         "patterns": ("table", False, None),
@@ -181,9 +191,39 @@ def _check_rel_path(rel: Any, key: str, where: Any) -> str:
     return rel
 
 
-def _check_template(t: Any, group: str, key: str, where: Any) -> str:
+def _check_fields(v: Any, key: str, where: Any) -> dict:
+    """``<group>.fields`` (v2): ``{name: value or [value per view]}``, each value an integer or
+    a string; names are identifiers other than the built-in template fields."""
+    if not isinstance(v, Mapping) or not v:
+        raise _err(f"expected a table of named fields (e.g. {{ pose = [3, 7, 12] }}), got "
+                   f"{fmt_value(v)}", key=key, path=where)
+    builtin = set(_SAMPLE_FIELDS)
+    out = {}
+    for name, vals in v.items():
+        k = f"{key}.{name}"
+        if not isinstance(name, str) or not name.isidentifier() or name in builtin:
+            raise _err(f"field name {fmt_value(name)}: expected an identifier other than the "
+                       f"built-in fields {', '.join(sorted(builtin))}", key=k, path=where)
+        items = vals if isinstance(vals, list) else [vals]
+        bad = [x for x in items if isinstance(x, bool) or not isinstance(x, (int, str))]
+        if not items or bad:
+            raise _err(f"expected an integer or a string, or a list of one per view, got "
+                       f"{fmt_value(bad[0] if bad else vals)}", key=k, path=where)
+        out[name] = list(vals) if isinstance(vals, list) else vals
+    return out
+
+
+def _template_names(t: str) -> set:
+    return {name for _, name, _, _ in string.Formatter().parse(t) if name is not None}
+
+
+def _check_template(t: Any, group: str, key: str, where: Any, declared=None) -> str:
+    """A group's path template: its fields valid for ``group`` (built-in ones and the names
+    ``declared`` in the group's ``fields``, which stand for ``{view}``), every required field
+    used, a relative path with an image (or corner-list) suffix."""
     if not isinstance(t, str) or not t:
         raise _err(f"expected a path template string, got {fmt_value(t)}", key=key, path=where)
+    declared = dict(declared or {})
     need = TEMPLATE_FIELDS[group]
     alt = _ALT_FIELDS.get(group, {})
     example = DEFAULT_FILES.get(group, {"calib.corners": "calib/{camera}/corners.npz",
@@ -195,7 +235,7 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
             f"bad template {fmt_value(t)} ({exc}); for example {fmt_value(example)}", key=key, path=where
         ) from exc
     used = set()
-    valid = need + tuple(a for alts in alt.values() for a in alts)
+    valid = need + tuple(a for alts in alt.values() for a in alts) + tuple(declared)
     for _, name, _, conv in parsed:
         if name is None:
             continue
@@ -218,6 +258,8 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
                        + "; they name the same thing, use one", key=key, path=where)
         if both:
             used.add(n)
+    if used & set(declared):  # a declared per-view field names the view
+        used.add("view")
     # v2: a template may leave out {camera} when the rig has one camera (checked at load).
     missing = [n for n in need if n not in used and n != "camera"]
     if missing:
@@ -229,7 +271,8 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
             path=where,
         )
     try:
-        sample = t.format(**_SAMPLE_FIELDS)
+        sample = t.format(**_SAMPLE_FIELDS, **{n: (v[0] if isinstance(v, list) else v)
+                                               for n, v in declared.items()})
     except (ValueError, TypeError, IndexError, KeyError) as exc:
         raise _err(
             f"template {fmt_value(t)} cannot be formatted ({exc}); for example {fmt_value(example)}",
@@ -252,7 +295,7 @@ def _check_template(t: Any, group: str, key: str, where: Any) -> str:
     return t
 
 
-def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
+def _check_value(kind: str, v: Any, key: str, where: Any, section: str, declared=None) -> Any:
     if kind == "format":
         if v != FORMAT:
             raise _err(
@@ -299,7 +342,9 @@ def _check_value(kind: str, v: Any, key: str, where: Any, section: str) -> Any:
         return _check_rel_path(v, key, where)
     if kind == "template":
         sub = {"calib.corners": "calib.corners", "olat.ambient": "olat.ambient"}.get(key, section)
-        return _check_template(v, sub, key, where)
+        return _check_template(v, sub, key, where, declared if sub == section else None)
+    if kind == "fields":
+        return _check_fields(v, key, where)
     if kind == "board":
         if isinstance(v, str):
             return _check_rel_path(v, key, where)
@@ -478,6 +523,8 @@ def _check_table(section: str, table: Any, where: Any) -> dict:
             path=where,
         )
     out = {}
+    declared = (_check_fields(table["fields"], f"{section}.fields", where)
+                if "fields" in table and "fields" in spec else None)
     for k, (kind, required, default) in spec.items():
         key = f"{section}.{k}"
         if kind == "section":
@@ -488,8 +535,33 @@ def _check_table(section: str, table: Any, where: Any) -> dict:
             if default is not None:
                 out[k] = copy.deepcopy(default)
             continue
-        out[k] = _check_value(kind, table[k], key, where, section)
+        out[k] = _check_value(kind, table[k], key, where, section, declared)
+    if declared:
+        _check_declared_views(section, out, declared, where)
     return out
+
+
+def _check_declared_views(section: str, out: dict, declared: dict, where: Any) -> None:
+    """A group's declared per-view fields: one value per view, and — when its template names a
+    view by them alone (no ``{view}``, ``{index}``, ``{number}``) — a different file per view."""
+    n = out["views"]
+    for name, vals in declared.items():
+        if isinstance(vals, list) and len(vals) != n:
+            raise _err(f"{len(vals)} values for {n} views ({section}.views); give one per view, "
+                       "or one value for all", key=f"{section}.fields.{name}", path=where)
+    names = _template_names(out["files"])
+    if names & {"view", "index", "number"} - ({"index", "number"} if section != "calib" else set()):
+        return
+    per_view = [tuple((vals[v] if isinstance(vals, list) else vals)
+                      for name, vals in sorted(declared.items()) if name in names)
+                for v in range(n)]
+    seen: dict = {}
+    for v, key in enumerate(per_view):
+        if key in seen:
+            raise _err(f"views {seen[key]} and {v} fill {fmt_value(out['files'])} with the same "
+                       f"fields {key}: two views, one file; give each view its own values (or use "
+                       "{view})", key=f"{section}.fields", path=where)
+        seen[key] = v
 
 
 def _v2_keys_used(manifest: Mapping[str, Any]) -> list[str]:

@@ -271,8 +271,12 @@ class Scan(_ScanReaders, _ScanValidation):
 
     def response(self, group: str) -> Response:
         """The declared :class:`~facegeo.capture.imageio.Response` of a frame group
-        (``calib.projector`` frames use ``calib.response``)."""
-        sect = "calib" if group == "calib.projector" else group
+        (``calib.projector`` frames: ``calib.projector.response`` when declared — board
+        Gray-code frames may be float EXR beside 8-bit sRGB board photos — else
+        ``calib.response``)."""
+        sect = group
+        if group == "calib.projector" and self._section(group).get("response") is None:
+            sect = "calib"
         r = self._responses.get(sect)
         if r is None:
             spec = self._section(sect)["response"]
@@ -290,8 +294,15 @@ class Scan(_ScanReaders, _ScanValidation):
         k = f"{group}.{key}"
         # The v2 alternatives of the group's item field ({index}, {number}, {light_name});
         # str.format ignores the fields a template does not use.
+        if group in ("calib", "calib.projector") and "view" in fields:
+            # the fields the description declares per view ({pose} ...), by the view's index
+            for name, vals in (self._section(group).get("fields") or {}).items():
+                fields[name] = vals[fields["view"]] if isinstance(vals, list) else vals
         if group == "calib" and "view" in fields:
             fields.update(index=fields["view"], number=fields["view"] + 1)
+        elif group == "calib.projector" and "frame" in fields:
+            i = {f: i for i, f in enumerate(self.projector_frames)}.get(fields["frame"], 0)
+            fields.update(index=i, number=i + 1)
         elif group == "structured_light" and "frame" in fields:
             i = self._frame_positions.get(fields["frame"], 0)
             fields.update(index=i, number=i + 1)

@@ -13,7 +13,8 @@ Pixel convention: OpenCV's and facegeo's — integer coordinates are pixel centr
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import logging
+from dataclasses import dataclass, field, replace
 
 import cv2
 from typing import ClassVar
@@ -22,6 +23,8 @@ import numpy as np
 
 from facegeo.checks import as_array, check_choice, check_positive, fmt_value
 from facegeo.errors import InputError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "BoardDetection",
@@ -32,6 +35,7 @@ __all__ = [
     "detect_circle_grid",
     "detect_board",
     "detect_boards",
+    "charuco_reading",
     "usable_detections",
     "detection_report",
 ]
@@ -123,6 +127,9 @@ class BoardDetection:
         Object points of the detected corners.
     q : (N, 2) float64, pixels
         Sub-pixel image positions (x = column, y = row; integers are pixel centres).
+    legacy : bool or None
+        ChArUco: the pattern reading used (OpenCV's legacy pattern or not); None for the
+        other kinds.
     """
 
     name: str
@@ -132,6 +139,7 @@ class BoardDetection:
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     p_board: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     q: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    legacy: bool | None = None
 
     @property
     def n_corners(self) -> int:
@@ -174,7 +182,7 @@ def _result(name, size, ids, p_board, q, *, min_corners: int, what: str) -> Boar
     )
 
 
-def detect_charuco(image, board, *, name: str = "image", legacy: bool = False,
+def detect_charuco(image, board, *, name: str = "image", legacy: bool | None = None,
                    min_corners: int = MIN_CORNERS_PER_VIEW) -> BoardDetection:
     """Detect a ChArUco board with OpenCV ≥ 4.7's ``cv2.aruco.CharucoDetector``.
 
@@ -185,9 +193,11 @@ def detect_charuco(image, board, *, name: str = "image", legacy: bool = False,
     board : facegeo.geometry.board.CharucoBoard
     name : str, optional
         Label used in the report.
-    legacy : bool, optional
+    legacy : bool or None, optional
         ``CharucoBoard.setLegacyPattern(True)``: boards printed by OpenCV < 4.6 with an even
-        number of rows start with a white square.
+        number of rows start with a white square. None (default): the board's own
+        :attr:`~facegeo.geometry.board.CharucoBoard.legacy` (the new pattern when the board
+        does not declare it; :func:`detect_boards` reads an undeclared set both ways).
     min_corners : int, optional
 
     Returns
@@ -198,9 +208,9 @@ def detect_charuco(image, board, *, name: str = "image", legacy: bool = False,
     """
     g = _gray8(image, name)
     size = (g.shape[1], g.shape[0])
+    use = bool(board.legacy if legacy is None else legacy)
     cvb = board.to_cv2()
-    if legacy:
-        cvb.setLegacyPattern(True)
+    cvb.setLegacyPattern(use)
     det = cv2.aruco.CharucoDetector(cvb)
     corners, ids, marker_corners, marker_ids = det.detectBoard(g)
     if marker_ids is None or len(marker_ids) == 0:
@@ -219,8 +229,8 @@ def detect_charuco(image, board, *, name: str = "image", legacy: bool = False,
     if ids.max() >= board.n_corners:
         return BoardDetection(name, size, False, "corner ids exceed the board definition")
     p_board = board.chessboard_corners()[ids]
-    return _result(name, size, ids, p_board, corners.reshape(-1, 2), min_corners=min_corners,
-                   what="ChArUco")
+    return replace(_result(name, size, ids, p_board, corners.reshape(-1, 2),
+                           min_corners=min_corners, what="ChArUco"), legacy=use)
 
 
 def detect_chessboard(image, spec: ChessboardSpec, *, name: str = "image",
@@ -492,9 +502,28 @@ def detect_circle_grid(image, spec: CircleGridSpec, *, name: str = "image") -> B
                           why or f"no {spec.cols}×{spec.rows} {kind} circle grid found")
 
 
-def detect_boards(images, board, *, names=None, legacy: bool = False,
+def charuco_reading(board, legacy: bool | None = None) -> bool | None:
+    """The ChArUco pattern to read ``board`` with: ``legacy`` when given, else the board's
+    declaration; None when neither says and the two patterns differ (an even row count:
+    :attr:`~facegeo.geometry.board.CharucoBoard.legacy_matters`) — read both ways
+    (:func:`detect_boards`); False for an odd row count (the same board either way)."""
+    if legacy is not None:
+        return bool(legacy)
+    if board.legacy is not None:
+        return board.legacy
+    return None if board.legacy_matters else False
+
+
+def detect_boards(images, board, *, names=None, legacy: bool | None = None,
                   method: str = "auto") -> list[BoardDetection]:
     """Detect a board in every image of one camera.
+
+    A ChArUco board with an even row count whose pattern is declared neither by ``legacy`` nor
+    by the board (:func:`charuco_reading` None) is read both ways — OpenCV's new pattern and
+    its legacy one (OpenCV < 4.6) — and the reading that finds more corners over the images is
+    kept (the new pattern on a tie); each detection's ``legacy`` says which. A wrong reading
+    finds the markers but interpolates few or no corners (the squares' colours are swapped),
+    so the counts are far apart on a real set.
 
     Parameters
     ----------
@@ -503,8 +532,10 @@ def detect_boards(images, board, *, names=None, legacy: bool = False,
     board : CharucoBoard, ChessboardSpec or CircleGridSpec
     names : sequence of str, optional
         Labels for the report (default ``"view_000"``…).
-    legacy, method
-        Passed to :func:`detect_charuco` / :func:`detect_chessboard`.
+    legacy : bool or None
+        ChArUco pattern (:func:`detect_charuco`); None: the board's, else both readings.
+    method
+        Passed to :func:`detect_chessboard`.
 
     Returns
     -------
@@ -520,7 +551,6 @@ def detect_boards(images, board, *, names=None, legacy: bool = False,
     names = [f"view_{i:03d}" for i in range(len(images))] if names is None else list(names)
     if len(names) != len(images):
         raise InputError(f"names: {len(names)} labels for {len(images)} images")
-    out: list[BoardDetection] = []
     size0 = None
     for img, nm in zip(images, names):
         shape = np.shape(img)
@@ -532,11 +562,24 @@ def detect_boards(images, board, *, names=None, legacy: bool = False,
                 f"images: {nm} is {size[0]}×{size[1]} px but {names[0]} is {size0[0]}×"
                 f"{size0[1]} px; one camera's calibration views must share one image size"
             )
-        out.append(detect_board(img, board, name=nm, legacy=legacy, method=method))
-    return out
+    reading = (charuco_reading(board, legacy) if getattr(board, "board_kind", None) == "charuco"
+               else False)
+    readings = (False, True) if reading is None else (reading,)
+    out: dict = {r: [] for r in readings}
+    for img, nm in zip(images, names):
+        for r in readings:
+            out[r].append(detect_board(img, board, name=nm, legacy=r, method=method))
+    if len(readings) == 1:
+        return out[readings[0]]
+    n = {r: sum(d.n_corners for d in out[r] if d.found) for r in readings}
+    best = True if n[True] > n[False] else False
+    log.info("ChArUco %d×%d board, pattern not declared: read as %s (%d corners; the other "
+             "pattern %d)", board.squares_x, board.squares_y,
+             "OpenCV's legacy pattern" if best else "the new pattern", n[best], n[not best])
+    return out[best]
 
 
-def detect_board(image, board, *, name: str = "image", legacy: bool = False,
+def detect_board(image, board, *, name: str = "image", legacy: bool | None = None,
                  method: str = "auto") -> BoardDetection:
     """Detect a board of any kind in one image: :func:`detect_charuco`,
     :func:`detect_chessboard` or :func:`detect_circle_grid` by the type of ``board``.

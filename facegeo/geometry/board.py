@@ -117,7 +117,7 @@ class BoardView:
 
 @dataclass(frozen=True)
 class CharucoBoard:
-    """A ChArUco board (OpenCV's new-style pattern; no legacy even-row layout).
+    """A ChArUco board.
 
     Parameters
     ----------
@@ -129,6 +129,15 @@ class CharucoBoard:
     dictionary : str
         Name of an OpenCV predefined dictionary (:func:`aruco_dictionary_names`) with at least
         ``squares_x·squares_y // 2`` markers.
+    legacy : bool or None
+        OpenCV's legacy pattern (``cv2.aruco.CharucoBoard.setLegacyPattern``: boards made by
+        OpenCV < 4.6 — and by many printed-board generators since — whose even row count
+        starts with a white square). ``True`` / ``False``: that pattern; ``None`` (default,
+        ``"auto"`` in a board file): not declared — the new pattern when drawn, and a set of
+        views is read both ways and the reading with more corners taken
+        (:func:`facegeo.geometry.calibration.detect_boards`). With an odd ``squares_y`` the
+        two patterns are the same board (:attr:`legacy_matters` is False) and the key is
+        moot.
     """
 
     board_kind: ClassVar[str] = "charuco"
@@ -137,8 +146,13 @@ class CharucoBoard:
     square_length: float = 0.04
     marker_length: float = 0.03
     dictionary: str = "DICT_5X5_100"
+    legacy: bool | None = None
 
     def __post_init__(self):
+        if self.legacy is not None and not isinstance(self.legacy, (bool, np.bool_)):
+            raise InputError(f"legacy: expected true, false or \"auto\" (not declared), got "
+                             f"{fmt_value(self.legacy)}")
+        object.__setattr__(self, "legacy", None if self.legacy is None else bool(self.legacy))
         for name in ("squares_x", "squares_y"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
@@ -186,14 +200,29 @@ class CharucoBoard:
         """``(width_m, height_m)``: board extent along board x and y, metres."""
         return (self.squares_x * self.square_length, self.squares_y * self.square_length)
 
+    @property
+    def legacy_matters(self) -> bool:
+        """Whether OpenCV's legacy and new patterns differ for this board (an even
+        ``squares_y``: the legacy pattern then starts with a white square)."""
+        return self.squares_y % 2 == 0
+
+    def with_legacy(self, legacy: bool | None) -> CharucoBoard:
+        """This board with :attr:`legacy` set (``dataclasses.replace``)."""
+        from dataclasses import replace
+
+        return replace(self, legacy=legacy)
+
     def to_cv2(self):
-        """The equivalent ``cv2.aruco.CharucoBoard``."""
-        return cv2.aruco.CharucoBoard(
+        """The equivalent ``cv2.aruco.CharucoBoard`` (legacy pattern set when :attr:`legacy`)."""
+        b = cv2.aruco.CharucoBoard(
             (self.squares_x, self.squares_y),
             self.square_length,
             self.marker_length,
             self._cv2_dictionary(),
         )
+        if self.legacy:
+            b.setLegacyPattern(True)
+        return b
 
     def chessboard_corners(self) -> np.ndarray:
         """Inner chessboard corners in OpenCV's ChArUco id order (x fastest).
@@ -305,8 +334,9 @@ class CharucoBoard:
     # ------------------------------------------------------------------ JSON
 
     def to_dict(self) -> dict:
-        """JSON-ready mapping (lengths in metres)."""
-        return {
+        """JSON-ready mapping (lengths in metres); ``legacy`` only when declared (a board
+        without it reads as ``"auto"``, and version-1 files stay as they were)."""
+        d = {
             "format": BOARD_FORMAT,
             "version": BOARD_VERSION,
             "squares_x": self.squares_x,
@@ -315,11 +345,15 @@ class CharucoBoard:
             "marker_length": self.marker_length,
             "dictionary": self.dictionary,
         }
+        if self.legacy is not None:
+            d["legacy"] = self.legacy
+        return d
 
     @classmethod
     def from_dict(cls, d: Any) -> CharucoBoard:
-        """Inverse of :meth:`to_dict`; errors name the field."""
-        allowed = ("format", "version") + _BOARD_KEYS
+        """Inverse of :meth:`to_dict`; errors name the field. ``legacy`` is optional:
+        ``true``, ``false`` or ``"auto"`` (the same as leaving it out)."""
+        allowed = ("format", "version") + _BOARD_KEYS + ("legacy",)
         if not isinstance(d, dict):
             raise InputError(f"board: expected a mapping, got {type(d).__name__}")
         for k in _BOARD_KEYS:
@@ -334,7 +368,12 @@ class CharucoBoard:
             raise InputError(
                 f"version: this facegeo reads board version {BOARD_VERSION}, got {fmt_value(d['version'])}"
             )
-        return cls(**{k: d[k] for k in _BOARD_KEYS})
+        legacy = d.get("legacy", "auto")
+        if legacy == "auto":
+            legacy = None
+        elif not isinstance(legacy, bool):
+            raise InputError(f"legacy: expected true, false or \"auto\", got {fmt_value(legacy)}")
+        return cls(**{k: d[k] for k in _BOARD_KEYS}, legacy=legacy)
 
     def to_json(self) -> str:
         """Pretty, strict JSON text, newline-terminated."""

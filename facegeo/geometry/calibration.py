@@ -10,6 +10,8 @@ The public namespace of three private modules:
   rejection; parameter standard deviations from ``σ² (JᵀJ)⁻¹`` raised to the jackknife over
   views from 6 views on (``sigma_method``); leave-one-view-out cross-validation;
   mrcal-style projection uncertainty over the image).
+* :mod:`._calib_model` — the distortion models (:data:`MODELS`), the intrinsic parameter
+  vector and the projection kernels the solvers share.
 * :mod:`._calib_select` — :func:`select_model` (``model="auto"``): the distortion model per
   camera — degenerate lenses refused (:func:`lens_degeneracy`), a more complex model only when
   its leave-one-view-out held-out gain exceeds the noise.
@@ -35,7 +37,8 @@ from __future__ import annotations
 
 from facegeo.geometry._calib_detect import (
     MIN_CORNERS_PER_VIEW, BoardDetection, ChessboardSpec, CircleGridSpec, as_corner_lists,
-    detect_boards, detect_charuco, detect_chessboard, detect_circle_grid, detection_report,
+    charuco_reading, detect_boards, detect_charuco, detect_chessboard, detect_circle_grid,
+    detection_report,
     usable_detections,
 )
 from facegeo.geometry._calib_projector import (
@@ -52,7 +55,7 @@ from facegeo.geometry._calib_solve import (
 __all__ = [
     "AUTO_CANDIDATES", "JACKKNIFE_MIN_VIEWS", "MIN_CORNERS_PER_VIEW", "MODEL_FREE", "MODELS",
     "BoardDetection", "ChessboardSpec", "CircleGridSpec", "CameraCalibration", "RigCalibration",
-    "as_corner_lists", "detect_boards", "detect_charuco", "detect_chessboard",
+    "as_corner_lists", "charuco_reading", "detect_boards", "detect_charuco", "detect_chessboard",
     "detect_circle_grid", "detection_report", "usable_detections",
     "PROJECTOR_MIN_PIXELS", "PROJECTOR_WINDOW_PX", "projector_corners",
     "calibrate_camera", "calibrate_rig", "cross_validate", "lens_degeneracy", "model_of_dist",

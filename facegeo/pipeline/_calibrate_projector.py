@@ -146,7 +146,7 @@ def _pose_rms(camera, p_board, q) -> float:
     return float(np.sqrt(np.mean(np.sum((pr.reshape(-1, 2) - q) ** 2, axis=1))))
 
 
-def projector_observations(scan, board, legacy: bool = False, camera_detections=None,
+def projector_observations(scan, board, legacy: bool | None = None, camera_detections=None,
                            cameras=None):
     """Board corners in projector pixels for every projector view, and the cameras' corners
     of those views.
@@ -157,8 +157,9 @@ def projector_observations(scan, board, legacy: bool = False, camera_detections=
         With ``[calib.projector]``.
     board : CharucoBoard, ChessboardSpec or CircleGridSpec
         ``scan.board``.
-    legacy : bool
-        ChArUco boards printed by OpenCV < 4.6.
+    legacy : bool or None
+        The ChArUco pattern the cameras' views were read with (:func:`~facegeo.geometry.
+        calibration.detect_boards`); None: the board's own declaration.
     camera_detections : dict, optional
         ``{camera: {calib view: BoardDetection}}`` of the camera path, for views whose file is
         also a frame of a projector view (same pose).

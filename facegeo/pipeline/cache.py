@@ -23,6 +23,14 @@ something it depends on changed:
 
 Content hashes of large input files are memoised by (size, modification time) in
 ``out/.facegeo-hashes.json``, so a warm run does not reread the frames.
+
+A stage's own command can make its products as the stage (``facegeo calibrate`` into
+``out/calibrate``: :meth:`Pipeline.run` with ``settings_by``): the manifest records the
+command, and its settings are the user's. A later pipeline run (``facegeo reconstruct``,
+``facegeo mesh``) keeps them — it reuses those products, or reruns the stage with those settings
+when code or inputs changed — instead of replacing them with a stage made with its default
+settings; a run that asks for other settings of that stage explicitly is refused with the
+differing settings named (:func:`_command_settings`).
 """
 
 from __future__ import annotations
@@ -367,6 +375,40 @@ def _record_failure(out: Path, name: str, final: Path, exc: BaseException) -> No
         log.warning("%s: could not record the failure of stage %s (%s)", out, name, err)
 
 
+def _command_settings(name: str, final: Path, previous: dict | None, given, settings: dict
+                      ) -> tuple[dict, str | None]:
+    """The settings stage ``name`` runs with, and the command they belong to.
+
+    When the products on disk (``previous``: their manifest) were made by the stage's own
+    command (``settings_by``, e.g. ``"facegeo calibrate"``), their settings are the user's and
+    are kept: with no explicit settings for the stage in this run (``given`` None or empty),
+    this run's ``settings`` (the stage's defaults) give way to them; explicit settings that
+    agree with them are fine; explicit settings that differ are refused — running would replace
+    the user's products with ones made otherwise. Otherwise ``settings`` as they are.
+
+    Raises
+    ------
+    InputError
+        ``given`` differs from the command's settings; the message names each differing
+        setting with both values and says how to proceed.
+    """
+    by = (previous or {}).get("settings_by")
+    kept = (previous or {}).get("settings")
+    if not by or "key" not in previous or not isinstance(kept, dict):
+        return settings, None
+    differ = sorted(k for k in (given or {}) if kept.get(k, ...) != given[k])
+    if differ:
+        both = "; ".join(f"{k}: {fmt_value(kept.get(k))} there, {fmt_value(given[k])} asked"
+                         for k in differ)
+        raise InputError(f"stage {name!r}: {final} was made by '{by}' with other settings "
+                         f"({both}); this run would replace it. Run '{by}' again with the "
+                         f"settings wanted, or remove {final} to let this run make its own")
+    if kept != settings:
+        log.info("stage %s: keeping the settings of '%s' that made %s (%s)", name, by, final,
+                 ", ".join(f"{k}={fmt_value(v)}" for k, v in sorted(kept.items())))
+    return dict(kept), by
+
+
 def _rerun_reason(previous: dict | None, doc: dict) -> str:
     """Why a stage whose products are not current runs: what differs between the manifest of
     the products on disk (``previous``, None when there is none) and the key document ``doc``
@@ -449,6 +491,7 @@ class Pipeline:
         until: str | None = None,
         progress: Callable[[str, int, int], None] | None = None,
         on_stage: Callable[[StageResult], None] | None = None,
+        settings_by: str | None = None,
     ) -> list[StageResult]:
         """Run every stage whose products are missing or stale; return one result per stage.
 
@@ -470,6 +513,12 @@ class Pipeline:
             Passed to the stages.
         on_stage : callable(StageResult), optional
             Called after each stage (ran or cached), e.g. to print a line.
+        settings_by : str, optional
+            The command whose settings ``settings`` are (``"facegeo calibrate"``: a stage's own
+            command run as the stage): they may name settings the stage's defaults do not, the
+            manifest records the command, and later runs keep its settings
+            (:func:`_command_settings`). Without it, a stage whose products were made by its
+            command keeps that command's settings.
         """
         scan_dir = Path(scan_dir)
         if not scan_dir.is_dir():
@@ -490,7 +539,8 @@ class Pipeline:
             if not isinstance(given, Mapping):
                 raise InputError(f"settings[{spec.name!r}]: expected a mapping of setting names "
                                  f"to values, got {fmt_value(given)}")
-            bad = sorted(set(given) - set(spec.settings)) if spec.settings else []
+            bad = (sorted(set(given) - set(spec.settings))
+                   if spec.settings and settings_by is None else [])
             if bad:
                 raise InputError(f"settings[{spec.name!r}]: unknown {bad}; the stage's settings "
                                  f"are {', '.join(sorted(spec.settings))}")
@@ -508,10 +558,14 @@ class Pipeline:
                     continue
                 forced = forced or spec.name in (from_stage, only)
                 stage_settings = {**spec.settings, **settings.get(spec.name, {})}
-                key, doc = self._key(spec, scan_dir, stage_settings, keys, memo)
-                keys[spec.name] = key
                 final = out / spec.name
                 previous = _read_manifest(final)
+                by = settings_by
+                if settings_by is None:  # products of the stage's own command keep its settings
+                    stage_settings, by = _command_settings(
+                        spec.name, final, previous, settings.get(spec.name), stage_settings)
+                key, doc = self._key(spec, scan_dir, stage_settings, keys, memo)
+                keys[spec.name] = key
                 cached = previous if previous is not None and previous.get("key") == key else None
                 if only is not None and spec.name != only:
                     if cached is None and spec.name in self._upstream_closure(only):
@@ -537,7 +591,7 @@ class Pipeline:
                     log.info("stage %s: running (%s)", spec.name, reason)
                     try:
                         result = self._run_stage(spec, scan_dir, out, key, doc, progress,
-                                                 reason)
+                                                 reason, settings_by=by)
                     except Exception as exc:
                         # the products on disk are the previous run's (or none): their metrics
                         # stay, with the failure beside them, so the report does not read as
@@ -602,7 +656,7 @@ class Pipeline:
                         "rebuilding it with the pipeline's settings", final, final.name,
                         m.get("settings", {}))
 
-    def _run_stage(self, spec, scan_dir, out, key, doc, progress, reason):
+    def _run_stage(self, spec, scan_dir, out, key, doc, progress, reason, settings_by=None):
         final = out / spec.name
         log.debug("stage %s: key %s", spec.name, key[:12])
         t0 = time.perf_counter()
@@ -626,6 +680,8 @@ class Pipeline:
                 "reason": reason,
                 "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             }
+            if settings_by:  # not in the key: the products are the same whoever asked
+                manifest["settings_by"] = settings_by
             # the manifest is written last: a folder without it is never taken as finished
             atomic_write_text(tmp / MANIFEST_NAME,
                               json.dumps(manifest, indent=2, sort_keys=True, allow_nan=False))

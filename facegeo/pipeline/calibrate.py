@@ -16,7 +16,12 @@ warning) and writes
   placed in the world frame, an uncalibrated resolution-only entry copied unchanged: it has no
   pose), the lights are copied;
 * ``<camera>.yml`` — OpenCV FileStorage: ``camera_matrix``, ``distortion_coefficients``,
-  ``image_width``, ``image_height``, ``avg_reprojection_error``, ``per_view_reprojection_errors``;
+  ``image_width``, ``image_height``, ``avg_reprojection_error``, ``per_view_reprojection_errors``,
+  ``distortion_model`` (the model chosen: which coefficients were solved for);
+* ``stereo_<reference>_<camera>.yml`` — with two or more cameras, the rig's extrinsics for
+  OpenCV's tools, one file per camera beside the reference camera (``M1, D1, M2, D2, R, T, E,
+  F`` as ``cv2.stereoCalibrate`` / ``stereo_calib`` name them, ``T`` in metres:
+  :func:`~facegeo.pipeline._calibrate_products.write_stereo_pairs`); ``metrics["opencv_stereo"]`` lists them;
 * ``residuals_<camera>.png`` — residual vectors over the image (×``RESIDUAL_GAIN``) and a
   histogram of their lengths, drawn with OpenCV (matplotlib is not a dependency);
 * ``detections.json`` — the per-image detection report;
@@ -24,9 +29,10 @@ warning) and writes
   found in each view's white frame, the view's patterns decoded (its own frames and
   patterns, or ``[structured_light]``'s), Moreno & Taubin local homographies
   (:mod:`facegeo.pipeline._calibrate_projector`), a separate solve from the Zhang start — no
-  nominal intrinsics needed: an uncalibrated
-  ``rig.json`` entry gets :data:`PROJECTOR_MODEL` — then the joint bundle adjustment), its YAML
-  and residual plot; otherwise ``metrics["projector"]`` says that it was not calibrated, why,
+  nominal intrinsics needed; its distortion model chosen as a camera's, ``model="auto"`` with
+  the rig file's model — :data:`PROJECTOR_MODEL` for an uncalibrated entry — as fallback; σ,
+  projection uncertainty and cross-validation as a camera's — then the joint bundle
+  adjustment), its YAML and residual plot; otherwise ``metrics["projector"]`` says that it was not calibrated, why,
   and what ``rig.json`` keeps instead (also logged as a warning, its record marked with
   :data:`SUMMARY_RECORD`: ``facegeo calibrate`` prints the line itself and drops the record);
 * ``metrics.json`` — ``{"calibrate": metrics}`` (the dict returned), by ``run_calibrate`` only.
@@ -43,13 +49,21 @@ import logging
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError
 from facegeo.frames import Pose
-from facegeo.fsutil import atomic_write_text, staged_directory
+from facegeo.fsutil import atomic_write_text
+from facegeo.pipeline._calibrate_products import (  # noqa: F401 (re-exported)
+    CV_HALVES_MIN_VIEWS,
+    LOO_MIN_VIEWS,
+    RESIDUAL_GAIN,
+    residual_plot,
+    solve_metrics,
+    write_stereo_pairs,
+    write_yaml,
+)
 from facegeo.pipeline._calibrate_projector import (  # noqa: F401 (SUMMARY_RECORD re-exported)
     SUMMARY_RECORD,
     projector_observations as _projector_observations,
@@ -60,10 +74,9 @@ from facegeo.pipeline._calibrate_projector import (  # noqa: F401 (SUMMARY_RECOR
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_calibrate", "calibrate_products", "RESIDUAL_GAIN"]
+__all__ = ["run_calibrate", "calibrate_products", "calibrate_inputs", "RESIDUAL_GAIN"]
 
-#: Residual vectors are drawn this many times longer than they are.
-RESIDUAL_GAIN = 100.0
+# RESIDUAL_GAIN (residual vectors' drawing scale): defined with the plots, re-exported.
 
 # SUMMARY_RECORD (the log-record attribute of a line the metrics repeat) is defined beside the
 # projector's observations, which log one too, and re-exported here.
@@ -76,12 +89,12 @@ MIN_VIEWS_ALONE = 3
 #: Pixels per image side whose rays place a calibrated rig on a reference rig (:func:`_align`).
 ALIGN_GRID = 7
 
-#: Lens model of a projector calibrated from an uncalibrated ``rig.json`` entry (resolution
-#: only: no distortion vector to take the model from, as a nominal projector camera gives).
-#: Pinhole: 3-5 projector views are too few to hold any out for ``model="auto"`` or to pin
-#: distortion terms down, and it is the model of the default rig's projector and of the
-#: projector benchmark. From a nominal pinhole entry the result is the same to every digit
-#: (the separate solve starts from Zhang's closed form, not from the nominal ``K``).
+#: Fallback lens model of a projector calibrated from an uncalibrated ``rig.json`` entry
+#: (resolution only: no distortion vector to take the model from, as a nominal projector camera
+#: gives). The projector goes through the cameras' model selection (``model="auto"``: issue 35 —
+#: on a real procam capture the selection preferred ``k1``, held-out 0.219 vs 0.260 px, and
+#: forcing pinhole moved the projector's cy by ≈ 125 px); this model is used only when its views
+#: are too few to hold one out (3), and when the stage's ``model`` is not ``auto``.
 PROJECTOR_MODEL = "pinhole"
 
 
@@ -235,48 +248,7 @@ def _rot_deg(Ra, Rb) -> float:
     return float(np.degrees(np.linalg.norm(rvec_from_rotation(Ra @ Rb.T))))
 
 
-def _write_yaml(path: Path, cam, rms: float, per_view) -> None:
-    """``<camera>.yml`` as OpenCV's calibration sample writes it (no pose), atomically."""
-    from facegeo.capture.opencv_storage import write_opencv_camera
-
-    write_opencv_camera(path, cam, pose=False, extra={
-        "avg_reprojection_error": float(rms),
-        "per_view_reprojection_errors": np.asarray(per_view, np.float64).reshape(-1, 1)})
-
-
-def _residual_plot(path: Path, size, r: np.ndarray, q: np.ndarray, title: str) -> None:
-    """Residual vectors over the image (left) and a histogram of ‖r‖ (right), as a PNG."""
-    W, H = size
-    s = min(1.0, 640.0 / max(W, H))
-    w, h = max(int(W * s), 1), max(int(H * s), 1)
-    img = np.full((h + 40, w + 320, 3), 255, np.uint8)
-    cv2.rectangle(img, (0, 40), (w - 1, h + 39), (0, 0, 0), 1)
-    for (x, y), (dx, dy) in zip(q, r):
-        p0 = (int(round(x * s)), int(round(y * s)) + 40)
-        p1 = (int(round((x + RESIDUAL_GAIN * dx) * s)), int(round((y + RESIDUAL_GAIN * dy) * s))
-              + 40)
-        cv2.line(img, p0, p1, (200, 0, 0), 1, cv2.LINE_AA)
-        cv2.circle(img, p0, 1, (0, 0, 0), -1)
-    mag = np.linalg.norm(r, axis=-1)
-    hist, edges = np.histogram(mag, bins=30, range=(0.0, max(float(mag.max()), 1e-9)))
-    x0, y0, bw, bh = w + 20, 60, 280, h - 40
-    top = max(int(hist.max()), 1)
-    for i, c in enumerate(hist):
-        x = x0 + int(i * bw / len(hist))
-        cv2.rectangle(img, (x, y0 + bh - int(bh * c / top)), (x + int(bw / len(hist)) - 1,
-                                                                 y0 + bh), (0, 0, 200), -1)
-    cv2.line(img, (x0, y0 + bh), (x0 + bw, y0 + bh), (0, 0, 0), 1)
-    cv2.putText(img, f"|r| px: 0 .. {edges[-1]:.3g}", (x0, y0 + bh + 18),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, f"{title}  RMS {np.sqrt(np.mean(mag ** 2)):.3f} px  (vectors x"
-                f"{RESIDUAL_GAIN:g})", (5, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1,
-                cv2.LINE_AA)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), img[..., ::-1]):
-        raise InputError(f"{path}: could not write the residual plot")
-
-
-def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool = False,
+def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool | None = None,
                   loss: str = "linear", reference: str | None = None,
                   cross_validation: bool = True, progress=None) -> dict:
     """Calibrate a scan's cameras and rig from its ``calib/`` board views (``facegeo
@@ -288,10 +260,13 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool =
     scan_dir : path-like or Scan
         A scan directory (:func:`facegeo.capture.scan.load_scan`) or a loaded scan.
     out_dir : path-like, optional
-        Where to write the products. Default ``<scan>/out/calibrate``, written into a staging
-        folder swapped in when complete (a failed run leaves the previous calibration as it
-        was); a folder you give is written into, and removed again when this run created it
-        and failed before writing anything into it.
+        Where to write the products. Default ``<scan>/out/calibrate``: the ``calibrate`` stage
+        of the stage cache, with these settings recorded as the user's (:func:`_run_as_stage`:
+        ``facegeo reconstruct`` / ``mesh`` reuse it; a current stage is not redone), written
+        into a staging folder swapped in when complete (a failed run leaves the previous
+        calibration as it was; the same when that folder is given by name); another folder
+        you give is written into, and removed again when this run created it and failed
+        before writing anything into it.
     model, legacy, loss, reference, cross_validation, progress
         See :func:`calibrate_products`.
 
@@ -304,13 +279,11 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool =
     _check_request(scan, reference)  # before any folder is made
     kw = dict(model=model, legacy=legacy, loss=loss, reference=reference,
               cross_validation=cross_validation, progress=progress)
-    if out_dir is None:  # the scan's own out/calibrate: staged, swapped in only when complete
-        out = scan.out_dir / "calibrate"
-        with staged_directory(out) as tmp:
-            metrics, _ = calibrate_products(scan, tmp, **kw)
-            atomic_write_text(tmp / "metrics.json",
-                              json.dumps({"calibrate": metrics}, indent=1) + "\n")
-        return metrics
+    own = scan.root / "out" / "calibrate"
+    if out_dir is None or Path(out_dir).resolve() == own.resolve():
+        # the scan's own out/calibrate: the calibrate stage of the cache (given by name too:
+        # written directly, a previous stage manifest would go on describing other products)
+        return _run_as_stage(scan, kw)
     out = Path(out_dir)  # a folder of the user's: written into; removed again if created empty
     created = not out.exists()
     try:
@@ -321,6 +294,74 @@ def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool =
         raise
     atomic_write_text(out / "metrics.json", json.dumps({"calibrate": metrics}, indent=1) + "\n")
     return metrics
+
+
+#: The command named in the stage manifest of a ``run_calibrate`` into ``out/calibrate``.
+COMMAND = "facegeo calibrate"
+
+
+def calibrate_inputs(scan) -> list[Path]:
+    """The scan files the ``calibrate`` stage reads, in the stage key's order: the manifest,
+    the rig file, the ground-truth files (they feed the error metrics) and every camera's
+    ``[calib]`` files — the inputs of ``facegeo reconstruct``'s ``calibrate`` stage, so that a
+    ``facegeo calibrate`` run and the pipeline compute one key
+    (``tests/test_calib_products.py`` checks that they agree)."""
+    files = [scan.manifest_path, scan.root / scan.manifest["scan"]["rig"]]
+    files += [scan.ground_truth_path(k) for k in sorted(scan.ground_truth_keys)
+              if scan.ground_truth_path(k).is_file()]
+    for cam in scan.camera_names:
+        files += [p for _, p in scan.expected_files("calib", cam)]
+    return files
+
+
+def _run_as_stage(scan, kw: dict) -> dict:
+    """``run_calibrate`` into the scan's ``out/calibrate``: the ``calibrate`` stage of the stage
+    cache (:class:`facegeo.pipeline.cache.Pipeline`; its key made of the same inputs as
+    ``facegeo reconstruct``'s stage), with this command's settings recorded as the user's
+    (``settings_by``): ``facegeo reconstruct`` and ``facegeo mesh`` reuse the products, or rerun
+    the stage with these settings, and never replace them with a calibration made otherwise.
+    Products are written into a staging folder swapped in when complete (a failed run leaves
+    the previous calibration as it was); when they are current (same settings, inputs and code)
+    nothing is redone and their metrics are returned."""
+    from facegeo.pipeline.cache import Pipeline, StageSpec
+
+    progress = kw.pop("progress")
+    settings = {"model": kw["model"], "legacy": None if kw["legacy"] is None
+                else bool(kw["legacy"]), "loss": kw["loss"], "reference": kw["reference"],
+                "cross_validation": bool(kw["cross_validation"])}
+
+    def run(ctx) -> dict:
+        metrics, _ = calibrate_products(scan, ctx.out_dir, progress=progress, **ctx.settings)
+        atomic_write_text(ctx.out_dir / "metrics.json",
+                          json.dumps({"calibrate": metrics}, indent=1) + "\n")
+        return metrics
+
+    spec = StageSpec("calibrate", run, inputs=lambda d: calibrate_inputs(scan),
+                     settings=settings)
+    [result] = Pipeline([spec]).run(scan.root, settings={"calibrate": settings},
+                                    settings_by=COMMAND)
+    if not result.ran:
+        log.info("calibrate: %s is current (same settings, inputs and code): reused",
+                 result.out_dir)
+    return result.metrics
+
+
+def _board_reading(board, legacy: bool | None) -> tuple[bool | None, dict]:
+    """The ChArUco pattern to read ``board`` with, and ``metrics["board"]``: ``kind``,
+    ``legacy`` (None while undecided: the first camera's views decide) and ``legacy_from``
+    (the setting, the board description, an odd row count, or — filled in once read —
+    detection)."""
+    from facegeo.geometry.calibration import charuco_reading
+
+    kind = getattr(type(board), "board_kind", None)
+    if kind != "charuco":
+        return False, {"kind": kind}
+    use = charuco_reading(board, legacy)
+    why = ("the legacy setting (--legacy-board)" if legacy is not None else
+           "the board description" if board.legacy is not None else
+           "an odd row count: both patterns are the same board" if use is not None else
+           "to be detected")
+    return use, {"kind": kind, "legacy": use, "legacy_from": why}
 
 
 def _check_request(scan, reference) -> None:
@@ -363,7 +404,7 @@ def _json_safe(obj):
     return obj
 
 
-def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
+def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None = None,
                        loss: str = "linear", reference: str | None = None,
                        cross_validation: bool = True, progress=None) -> tuple[dict, dict]:
     """Write the ``calibrate`` products of ``scan`` into ``dest``; return ``(metrics, settings)``.
@@ -381,11 +422,19 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     dest : path-like
         The folder to write into (created).
     model : {"auto", "pinhole", "k1", "k1k2", "opencv4", "opencv5", "rational8"}
-        Distortion model of every camera; ``"auto"`` (default) chooses per camera by k-fold
-        cross-validation over its views (:func:`facegeo.geometry.calibration.select_model`;
-        the choice and every candidate's held-out score go to the metrics).
-    legacy : bool
-        Boards printed by OpenCV < 4.6 (``setLegacyPattern``).
+        Distortion model of every camera; ``"auto"`` (default) chooses per camera by
+        leave-one-view-out cross-validation over its views, refusing degenerate lenses
+        (:func:`facegeo.geometry.calibration.select_model`; the choice, every candidate's
+        held-out score and why each other one was not taken go to the metrics). The projector
+        goes through the same selection with ``"auto"``; with a named model it keeps its rig
+        file's (:data:`PROJECTOR_MODEL` for an uncalibrated entry).
+    legacy : bool or None
+        A ChArUco board's pattern: OpenCV's legacy one (boards made by OpenCV < 4.6,
+        ``setLegacyPattern``) or not. None (default): the board description's ``legacy``
+        key; where it declares none and the two patterns differ (an even row count), the first
+        camera's views are read both ways and the reading with more corners is used for every
+        camera and the projector (:func:`facegeo.geometry.calibration.detect_boards`;
+        ``metrics["board"]`` says which and why).
     loss : str
         Robust loss of the solves (``"linear"``, ``"soft_l1"``, ``"huber"``, ``"cauchy"``).
     reference : str, optional
@@ -405,15 +454,22 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         (why each dropped view was dropped, named ``"view 3 (FILE)"``), per_view_rms_px (view
         index → RMS at the camera's own solution; dropped views re-posed),
         cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
-        std_px: {fx, fy, cx, cy}[, focal_rel_error, principal_point_error_px,
+        std_px: {fx, fy, cx, cy}, std_formal_px, sigma_method, sigma_inflation,
+        [leave_one_out_held_out_rms_px, leave_one_out_projection_rms_px,
+        leave_one_out_predicted_rms_px,] cross_validation_method (:func:`~facegeo.pipeline._calibrate_products.solve_metrics`)
+        [, focal_rel_error, principal_point_error_px,
         rotation_error_deg, translation_error_mm]}}, "projector": {calibrated: true,
         views_detected, corners, skipped (one line per view and camera not used, naming the
-        file and why), decoded (the codes: "gray", "gray+phase(x)" ...), views_used, model,
+        file and why), decoded (the codes: "gray", "gray+phase(x)" ...), views_used, model
+        (chosen as a camera's), model_fallback, the statistics of a camera's solve
+        (:func:`~facegeo.pipeline._calibrate_products.solve_metrics`: σ, model_selection, projection uncertainty, cross-validation),
         start ("nominal" or "uncalibrated": the rig.json entry it started
         from), reprojection_rms_px, separate_rms_px[, focal_rel_error,
         focal_rel_error_without_joint, ...]} or {calibrated: false, reason, rig_json
         ("nominal" or "uncalibrated": what the calibrated rig.json holds), summary (one line)[,
-        error (the failed attempt's)]} or None (no projector), "seconds"}`` (non-finite
+        error (the failed attempt's)]} or None (no projector), "opencv_stereo": {reference,
+        files: {camera: file name}[, skipped: {camera: why}]} (two or more cameras),
+        "seconds"}`` (non-finite
         numbers as None). View k of every
         camera is taken to be the same board pose (the scan format's ``calib`` views are
         simultaneous). Ground-truth errors (synthetic scans) compare with
@@ -440,8 +496,8 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     scan = _scan(scan)
-    settings = {"model": model, "legacy": bool(legacy), "loss": loss, "reference": reference,
-                "cross_validation": bool(cross_validation)}
+    settings = {"model": model, "legacy": None if legacy is None else bool(legacy),
+                "loss": loss, "reference": reference, "cross_validation": bool(cross_validation)}
     _check_request(scan, reference)
     out = Path(dest)
     out.mkdir(parents=True, exist_ok=True)
@@ -449,6 +505,7 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
     nominal = scan.rig
     corner_lists = scan.manifest["calib"].get("corners") is not None
     metrics: dict = {"cameras": {}, "model": model}
+    legacy, metrics["board"] = _board_reading(board, legacy)
     # the projector's patterns, checked before minutes of camera work (not fatal: the
     # projector is then reported not calibrated, with this error)
     proj_error = None
@@ -480,6 +537,11 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
                                  names=[view_label(scan, v, p) for v, p in zip(views, paths)],
                                  legacy=legacy)
             cam_dets[name] = dict(zip(views, dets))
+            if legacy is None and any(d.found for d in dets):  # read both ways: now fixed
+                legacy = next(d.legacy for d in dets if d.found)
+                metrics["board"].update(legacy=legacy, legacy_from=(
+                    f"detected: camera {name}'s views read both ways, "
+                    f"{'the legacy' if legacy else 'the new'} pattern found more corners"))
         report[name] = detection_report(dets)
         # the bundle adjustment ties a board pose across cameras by view index, not file name
         view_of = {id(d): v for d, v in zip(dets, views)}
@@ -518,23 +580,11 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
              "rejected": view_rejections(c.rejected, [d.name for d in found]),
              "camera_rms_px": c.rms_px,
              "per_view_rms_px": {str(view_of[id(d)]): float(r)
-                                 for d, r in zip(found, c.per_view_rms_px)},
-             "std_px": {k: c.std[k] for k in ("fx", "fy", "cx", "cy")}}
-        if c.model_selection is not None:
-            m["model_selection"] = {k: c.model_selection[k]
-                                    for k in ("reason", "best", "folds", "scores")}
-        u = c.projection_uncertainty()
-        m["projection_uncertainty_rms_px"] = u["rms_px"]
-        m["projection_uncertainty_max_px"] = u["max_px"]
-        if cross_validation and len(found) >= 6:
+                                 for d, r in zip(found, c.per_view_rms_px)}}
+        if cross_validation:
             say(f"cross-validate {name}")
-            cv = cross_validate([d.p_board for d in found], [d.q for d in found], cam0.size,
-                                model=c.model, loss=loss, reject_views=False)
-            m["cross_validation_px"] = cv["diff_rms_px"]
-            m["cross_validation_max_px"] = cv["diff_max_px"]
-            m["cross_validation_predicted_px"] = cv["predicted_rms_px"]
-        else:
-            m["cross_validation_px"] = None
+        m.update(solve_metrics(c, [d.p_board for d in found], [d.q for d in found],
+                                loss=loss, cross_validation=cross_validation))
         metrics["cameras"][name] = m
     proj_obs, proj_metrics = {}, None
     if proj_error is not None:
@@ -564,20 +614,34 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         # solve's Zhang start needs none, its model is PROJECTOR_MODEL
         nominal_k = isinstance(pj, Camera)
         pmodel = model_of_dist(pj.dist) if nominal_k else PROJECTOR_MODEL
+        pP, pQ = [p for p, _ in proj_obs.values()], [q for _, q in proj_obs.values()]
         try:
-            pc = calibrate_camera([p for p, _ in proj_obs.values()],
-                                  [q for _, q in proj_obs.values()], (pj.width, pj.height),
-                                  model=pmodel, name=pj.name, reject_views=False)
+            # the cameras' selection (model="auto"), the rig file's model its fallback; a
+            # model the user forces on the cameras is not forced on the projector
+            pc = calibrate_camera(pP, pQ, (pj.width, pj.height),
+                                  model="auto" if model == "auto" else pmodel,
+                                  auto_fallback=pmodel, name=pj.name, loss=loss,
+                                  reject_views=False)
             proj_name = pj.name
             init[proj_name] = pc.camera
             obs[proj_name] = proj_obs
+            proj_models = {proj_name: pc.model}
+            if cross_validation:
+                say("cross-validate the projector")
             proj_metrics.update({"views_used": pc.n_views_used, "separate_rms_px": pc.rms_px,
-                                 "model": pmodel,
-                                 "start": "nominal" if nominal_k else "uncalibrated"})
+                                 "model": pc.model, "model_fallback": pmodel,
+                                 "start": "nominal" if nominal_k else "uncalibrated",
+                                 **solve_metrics(pc, pP, pQ, loss=loss,
+                                                  cross_validation=cross_validation)})
+            if pc.model_selection is not None:
+                log.info("projector %s: distortion model %s", proj_name,
+                         pc.model_selection["reason"])
         except InputError as exc:
             proj_metrics["error"] = str(exc)
     say("bundle-adjust the rig")
     models = {n: c.model for n, c in calibs.items()}
+    if proj_name is not None:  # "k1" keeps k2, p1, p2 at 0 in the joint solve too
+        models.update(proj_models)
     refine = set(calibs) | ({proj_name} if proj_name else set())
     if reference is None and scan.camera_names[0] not in calibs:
         reference = next(iter(calibs))  # the rig frame: a camera calibrated from its own views
@@ -606,6 +670,8 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         # else a Projector (resolution only) has no pose to move: written unchanged
     rig = Rig(cams, projector, _lights_to_world(nominal.lights, T_world_nom))
     rig.save(out / "rig.json")
+    if len(cams) > 1:
+        metrics["opencv_stereo"] = write_stereo_pairs(out, cams, rig_cal.reference)
     truth = None
     if "rig" in scan.ground_truth_keys:
         truth = Rig.load(scan.ground_truth_path("rig"))
@@ -619,9 +685,9 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         r, q = rig_cal.residuals[c.name]
         per_view = (calibs[c.name].per_view_rms_px if c.name in calibs
                     else np.full(0, np.nan))
-        _write_yaml(out / f"{c.name}.yml", c, rig_cal.rms_px[c.name],
-                    per_view[np.isfinite(per_view)])
-        _residual_plot(out / f"residuals_{c.name}.png", c.size, r, q, c.name)
+        write_yaml(out / f"{c.name}.yml", c, rig_cal.rms_px[c.name],
+                    per_view[np.isfinite(per_view)], m["model"])
+        residual_plot(out / f"residuals_{c.name}.png", c.size, r, q, c.name)
         if truth is not None:
             t = truth.camera(c.name)
             T_est = c.T_cam_world @ T_gt
@@ -650,8 +716,9 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool = False,
         proj_metrics["calibrated"] = True
         proj_metrics["reprojection_rms_px"] = rig_cal.rms_px[proj_name]
         r, q = rig_cal.residuals[proj_name]
-        _residual_plot(out / f"residuals_{proj_name}.png", pr.size, r, q, proj_name)
-        _write_yaml(out / f"{proj_name}.yml", pr, rig_cal.rms_px[proj_name], [])
+        residual_plot(out / f"residuals_{proj_name}.png", pr.size, r, q, proj_name)
+        write_yaml(out / f"{proj_name}.yml", pr, rig_cal.rms_px[proj_name], [],
+                    proj_metrics["model"])
         if truth is not None and truth.projector_calibrated:
             t = truth.projector
             T_est = pr.T_cam_world @ T_gt

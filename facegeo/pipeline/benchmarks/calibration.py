@@ -11,6 +11,9 @@ model, one thread each): solve time, RMS, and the parameter differences to OpenC
   (:data:`CV2_FLAGS`), and ``model="auto"`` (every candidate solved, degenerate lenses refused,
   leave-one-view-out held-out error, jackknife σ) against one 5-term OpenCV calibration;
 * ``calibration.projector`` — projector focal error with and without the joint refinement;
+* ``calibration.hdr`` — Debevec–Malik response recovery and merge (``capture.hdr``) against
+  ``cv2.createCalibrateDebevec`` / ``createMergeDebevec`` on one bracket: time beside the
+  error to the true curve and radiance (why facegeo keeps its own: ``capture/hdr.py``);
 * ``calibration.model`` — the distortion model chosen per camera (``model="auto"``) against
   the fixed 5-term model on the `small` preset's narrow camera (12° × 19°, 240 × 360 px): solve
   time against the principal-point error, and ``auto``'s time against one OpenCV calibration.
@@ -292,4 +295,87 @@ def bench_model(quick: bool) -> list[BenchRow]:
                        "std_c_px": round(float(np.hypot(c.std["cx"], c.std["cy"])), 3),
                        "sigma_method": c.sigma_method,
                        "rms_px": round(c.rms_px, 4), "noise_px": 0.15}))
+    return rows
+
+
+#: The camera curve of the ``calibration.hdr`` bracket: exposure x ∈ [0, 1] → code
+#: ``255 · x^0.45 (1.1 − 0.1 x)`` (not a gamma: a recovery that assumes one is visibly off).
+def _hdr_code(x):
+    x = np.clip(x, 0.0, 1.0)
+    return np.round(255 * (x ** 0.45 * (1.1 - 0.1 * x))).astype(np.uint8)
+
+
+def _hdr_bracket(n_stops: int = 18, shape=(60, 80), seed: int = 1):
+    """A scene of log-uniform radiance over four decades, independent per channel (channels
+    clip in different exposures), bracketed one stop apart; and the true inverse curve at
+    each code."""
+    rng = np.random.default_rng(seed)
+    e = np.exp(rng.uniform(np.log(1e-3), np.log(10.0), size=shape + (3,)))
+    times = 2.0 ** np.arange(-(n_stops // 2), n_stops - n_stops // 2)
+    x = np.linspace(0, 1, 200001)
+    inverse = np.interp(np.arange(256), 255 * (x ** 0.45 * (1.1 - 0.1 * x)), x)
+    return e, times, np.stack([_hdr_code(e * t) for t in times]), inverse
+
+
+@register("calibration.hdr")
+@one_blas_thread
+def bench_hdr(quick: bool) -> list[BenchRow]:
+    """Debevec–Malik response recovery and merge (``facegeo.capture.hdr``) against OpenCV's
+    ``cv2.createCalibrateDebevec`` / ``createMergeDebevec`` on the same 18-exposure bracket
+    (60 × 80 px), one thread each: time against the error to the true curve (codes 8–247,
+    normalised at code 128) and the merged radiance's error to the true radiance (pixels well
+    exposed — code 64–191 — in some exposure; median-normalised), both with the true curve."""
+    import cv2
+
+    from facegeo.capture import hdr
+
+    e, times, stack, inverse = _hdr_bracket()
+    bgr = [np.ascontiguousarray(s[..., ::-1]) for s in stack]
+    t32 = times.astype(np.float32)
+    ref = inverse / inverse[128]
+    rows = []
+    prev = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        for n in (70,) if quick else (70, 1000):
+            (t_ours, t_cv), (rec, resp) = _interleaved(
+                [lambda: hdr.recover_response(stack, times, lam=10.0, n_samples=n),
+                 lambda: cv2.createCalibrateDebevec(n, 10.0, False).process(bgr, t32)],
+                1 if n > 200 else 3)
+            curves = {"ours": np.exp(rec.g),
+                      "cv2": resp.reshape(256, 3)[:, ::-1].astype(np.float64)}
+            err = {k: float(np.abs((c / c[128])[8:248] / ref[8:248, None] - 1).max())
+                   for k, c in curves.items()}
+            vs = "vs cv2.createCalibrateDebevec (1 thread)"
+            rows.append(BenchRow(
+                "calibration.hdr", f"facegeo recover_response, {n} samples, λ = 10, "
+                f"{len(times)} exposures", 1.0 / t_ours, "solves/s", error=err["ours"],
+                error_unit="max |Δg|/g vs the true curve", ratios={vs: t_cv / t_ours},
+                threads=1, baseline_threads={vs: 1},
+                extra={"seconds": round(t_ours, 4), "cv2_seconds": round(t_cv, 4),
+                       "cv2_error": err["cv2"]}))
+        resp_true = np.maximum(inverse, inverse[1])
+        resp_cv = np.repeat(resp_true[:, None], 3, 1).astype(np.float32).reshape(256, 1, 3)
+        merge_cv = cv2.createMergeDebevec()
+        (t_ours, t_cv), (ours, theirs) = _interleaved(
+            [lambda: hdr.merge_exposures(stack, times, np.log(resp_true))[0],
+             lambda: merge_cv.process(bgr, t32, resp_cv)[..., ::-1]], 3)
+    finally:
+        cv2.setNumThreads(prev)
+    good = np.any((stack >= 64) & (stack <= 191), axis=0)
+    merr = {}
+    for k, rad in (("ours", ours), ("cv2", theirs)):
+        r = rad[good] / e[good]
+        merr[k] = float(np.abs(r / np.median(r) - 1).max())
+    vs = "vs cv2.createMergeDebevec (1 thread)"
+    mpx = stack.shape[1] * stack.shape[2] * len(times) / 1e6
+    rows.append(BenchRow(
+        "calibration.hdr", f"facegeo merge_exposures, {len(times)} exposures, the true curve",
+        mpx / t_ours, "Mpx/s (input)", error=merr["ours"],
+        error_unit="max |ΔE|/E, well-exposed pixels", ratios={vs: t_cv / t_ours}, threads=1,
+        baseline_threads={vs: 1},
+        extra={"seconds": round(t_ours, 5), "cv2_seconds": round(t_cv, 5),
+               "cv2_error": merr["cv2"],
+               "why_ours": "OpenCV weights a pixel's channels by their mean hat weight: a "
+                           "channel clipped in one exposure still counts"}))
     return rows
