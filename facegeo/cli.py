@@ -449,16 +449,24 @@ def _cmd_project(args) -> int:
 
     from facegeo.pipeline.reconstruct import RIG_CHOICES
 
-    kw = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
-    if not args.shadow_taps:
-        kw["shadow_taps"] = False
+    # --gt-lights: the evaluation's comparison with the generator, shown beside the stage's
+    gt = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
+    kw = {} if args.shadow_taps else {"shadow_taps": False}
     # a rig file is not one of the pipeline's rigs: the stage on its own, as with --out
     if args.out is None and args.camera is None and args.rig in (None, *RIG_CHOICES):
+        from facegeo.capture.scan import load_scan
+        from facegeo.evaluate.projection import has_projection_truth, with_projection_figures
+
         args.rig = args.rig or "auto"
         results = _run_reconstruct(args.scan, args, until="project",
                                    settings={"project": {"dtype": args.dtype, **kw}})
-        _print_metrics("project", _stage_metrics(results, "project"))
+        m = _stage_metrics(results, "project")
+        scan = load_scan(args.scan)
+        if has_projection_truth(scan) and (scan.out_dir / "project" / "rig.json").is_file():
+            m = with_projection_figures(scan, scan.out_dir, m, **gt)
+        _print_metrics("project", m)
         return 0
+    kw.update(gt)
     if args.out is not None:
         _check_output_dir(args.out, "--out")
     m = run_project(args.scan, args.out, rig=args.rig, mesh=_standalone_mesh(args),
@@ -535,10 +543,12 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
     out = (Path(scan) if isinstance(scan, (str, os.PathLike)) else scan.root) / "out"
     tick, close = _progress_factory(not args.quiet)
     try:
-        results = run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"),
-                                  rig=getattr(args, "rig", "auto"), settings=settings,
-                                  from_stage=from_stage, only=only, until=until, progress=tick,
-                                  on_stage=lambda r: (close(), print(_stage_line(r))))
+        with _engine(args) as engine:
+            results = run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"),
+                                      rig=getattr(args, "rig", "auto"), settings=settings,
+                                      from_stage=from_stage, only=only, until=until,
+                                      progress=tick, engine=engine,
+                                      on_stage=lambda r: (close(), print(_stage_line(r))))
     except FacegeoError:
         close()
         # the report too, with the failed stage marked (metrics.json's last_run_failed); its
@@ -549,8 +559,53 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
         raise
     finally:
         close()
+    _print_run(out)
     _write_report(out)
     return results
+
+
+def _engine(args):
+    """The engine of ``--workers`` / ``--scheduler`` / ``--memory-limit`` (in process when none
+    is given; :func:`facegeo.pipeline.engine.make_engine`), to use as a context manager: a
+    local cluster is closed with it, whatever happens."""
+    from facegeo.pipeline.engine import make_engine
+
+    workers, scheduler = getattr(args, "workers", None), getattr(args, "scheduler", None)
+    if (workers is not None or scheduler is not None) and not args.verbose:
+        import distributed  # noqa: F401  (sets its loggers to INFO when imported)
+
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+    engine = make_engine(workers, scheduler, getattr(args, "memory_limit", None))
+    if engine.kind != "in-process":
+        limit = ("its own limit" if engine.memory_limit is None
+                 else f"{engine.memory_limit / 2 ** 30:.2f} GiB")
+        print(f"engine: {engine.kind}, {engine.n_workers} workers × 1 thread, {limit} each; "
+              f"dashboard {engine.dashboard}")
+    return engine
+
+
+def _engine_options(s) -> None:
+    """``--workers N`` / ``--scheduler ADDRESS`` / ``--memory-limit SIZE`` (docs/scale.md)."""
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=_pos_int, default=None, metavar="N",
+                   help="run the stages' tasks (decode: one per camera) on a local Dask "
+                        "cluster of N worker processes × 1 thread (default: in this process)")
+    g.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run them on a running Dask cluster (tcp://host:8786 or a scheduler "
+                        "file); its workers must see the scan at the same path")
+    s.add_argument("--memory-limit", default=None, metavar="SIZE",
+                   help="memory of each --workers worker (e.g. 2GiB; default: the machine's "
+                        "memory / N); a task that cannot fit stops the run before it starts")
+
+
+def _print_run(out: Path) -> None:
+    """The rig, mesh and world frame the run's products were made with (``out/run/run.json``,
+    :func:`facegeo.pipeline.reconstruct.record_run`)."""
+    try:
+        run = json.loads((out / "run" / "run.json").read_text(encoding="utf-8"))
+        print(f"run: rig {run['rig']}, mesh {run['mesh']}, world frame {run['world']}")
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
 
 
 def _write_report(out: Path) -> None:
@@ -611,6 +666,29 @@ def _cmd_render(args) -> int:
         figs["shrinkage"] = ", ".join(f"{c} {lam:.3f}" for c, lam in m["shrinkage_factors"].items())
     print(f"rendered {m['name']}: " + ", ".join(f"{k}={v}" for k, v in figs.items()))
     print(f"images: {scan.root / 'out' / 'views' / m['files']['png']} (+ .exr)")
+    return 0
+
+
+def _cmd_evaluate(args) -> int:
+    """``facegeo evaluate SCAN``: the products in SCAN/out against the scan's references
+    (:mod:`facegeo.evaluate`), a short table and ``out/evaluate/metrics.json``."""
+    from facegeo.evaluate import run_evaluate, summary_rows
+
+    out = Path(args.out) if args.out is not None else Path(args.scan) / "out"
+    kw = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
+    tick, close = _progress_factory(not args.quiet)
+    try:
+        m = run_evaluate(args.scan, out, progress=tick, **kw)
+    finally:
+        close()
+    rows = summary_rows(m)
+    if not rows:
+        print(f"evaluate: nothing to compare in {out} (no products with a reference of their "
+              "kind: ground_truth/ or [reference])")
+    for stage, key, value in rows:
+        print(f"  {stage:<10} {key:<40} {value:.6g}" if isinstance(value, float)
+              else f"  {stage:<10} {key:<40} {value}")
+    print(f"metrics: {out / 'evaluate' / 'metrics.json'}")
     return 0
 
 
@@ -903,7 +981,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="storage type of the fields on disk")
     s.add_argument("--gt-lights", type=_pos_int, default=argparse.SUPPRESS,
                    help="lights compared against ground truth on synthetic scans (a stratified "
-                        "subset; default: facegeo.pipeline.project.GT_LIGHTS, 128)")
+                        "subset; default: facegeo.evaluate.projection.GT_LIGHTS, 128)")
     s.add_argument("--no-shadow-taps", dest="shadow_taps", action="store_false",
                    help="plain bilinear sampling everywhere (default: samples whose taps straddle "
                         "a cast-shadow edge take the taps on their own side, decided by the mesh "
@@ -948,6 +1026,7 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
         if name in ("decode", "mesh"):
             _max_coarse_option(s)
+            _engine_options(s)
         if name == "mesh":
             _mesh_options(s)
         if name == "fit":
@@ -993,7 +1072,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("reconstruct", parents=common,
                        help="run every stage the scan has input for (calibrate, decode, mesh, "
-                            "atlas, project, fit, render), cached")
+                            "atlas, project, fit, render) and evaluate the products, cached")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--mesh", default="auto", help=mesh_help)
     s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
@@ -1004,8 +1083,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run only this stage (its input stages must be current)")
     _max_coarse_option(s)
     _mesh_options(s)
+    _engine_options(s)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_reconstruct)
+
+    s = sub.add_parser("evaluate", parents=common,
+                       help="compare the products in SCAN/out with the scan's references "
+                            "(ground truth, reference cloud, intrinsics, normals, images)")
+    s.add_argument("scan", metavar="SCAN", help="scan directory")
+    s.add_argument("--out", default=None,
+                   help="products folder (default: SCAN/out); writes OUT/evaluate/")
+    s.add_argument("--gt-lights", type=_pos_int, default=argparse.SUPPRESS,
+                   help="lights the projection is compared at on synthetic scans (a "
+                        "stratified subset; default: facegeo.evaluate.projection.GT_LIGHTS, 128)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    s.set_defaults(func=_cmd_evaluate)
 
     s = sub.add_parser("report", parents=common,
                        help="write SCAN/out/report.html from the stages' metrics and images")

@@ -32,7 +32,7 @@ from facegeo.pipeline.bench import (
 # synth ≈ 27 s, mesh.full_resolution ≈ 16 s — two subprocesses — on the shared 2-core machine).
 _SLOW = {"spectral.forward", "spectral.inverse", "synth.generate", "surface.project",
          "surface.resolution", "relight.compress", "mesh.full_resolution",
-         "photometric.real"}
+         "mesh.real_bust", "photometric.real", "scale.decode"}
 
 
 @pytest.fixture(autouse=True)
@@ -271,7 +271,7 @@ def _check_rows(name: str, rows: list[BenchRow]) -> None:
 
 
 #: Benchmarks that measure on the real data in ``../shared/data`` (no rows without it).
-_SHARED_DATA = {"calibration.real", "photometric.real"}
+_SHARED_DATA = {"calibration.real", "mesh.real_bust", "photometric.real"}
 
 
 def _bench_params():

@@ -1,9 +1,11 @@
-"""The package map of docs/design.md: a lower part never imports a higher one, and no module
-imports another that imports it back (lazy, function-level imports included)."""
+"""The package map of docs/design.md: a lower part never imports a higher one, no module
+imports another that imports it back (lazy, function-level imports included), and the stages
+never read the truth: the generator's and the references' comparisons are facegeo.evaluate's."""
 
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -22,6 +24,9 @@ RANKS = {
     "render": 6,
     "synth": 7,
     "pipeline": 8,
+    # beside the pipeline: the reconstruct run registers it as its last stage, and it reads
+    # what the stages wrote (their product files, their rig choices)
+    "evaluate": 8,
     "cli": 9, "__main__": 9,
 }
 
@@ -104,3 +109,130 @@ def test_no_import_cycles_between_modules():
 def test_rank_check_can_fail(dep, module):
     """The check above would flag a geometry module importing the generator."""
     assert RANKS[_part(dep)] > RANKS[_part(module)]
+
+
+# ---------------------------------------------------------------- stages never read the truth
+
+#: The parts whose every module is stage code (DESIGN §2: "Stages make products and never read
+#: the truth").
+STAGE_PARTS = ("geometry", "surface", "appearance", "lighting", "render")
+#: Modules of ``pipeline/`` that are not stages: the cache and the run, the report, the
+#: benchmarks (they may use the generator; they move out of pipeline/ later).
+NOT_STAGES = {"facegeo.pipeline", "facegeo.pipeline.cache", "facegeo.pipeline.reconstruct",
+              "facegeo.pipeline.report", "facegeo.pipeline.bench"}
+
+#: Stage modules that still import the generator to compute their errors: the list shrinks as
+#: their comparisons move into facegeo.evaluate (issue 37). Each names what is left.
+SYNTH_IMPORTS_LEFT = {
+    "facegeo.pipeline.fit": "ground-truth normals, albedo, ρs and resynthesis errors "
+                            "(_ground_truth, _exact_functions; load_ground_truth in "
+                            "fit_products); facegeo.evaluate.skin_fit computes them from the "
+                            "products already",
+    "facegeo.pipeline.relight": "the generator's reference image of a relit camera "
+                                "(_reference_error)",
+}
+
+#: Stage modules that read ground_truth/ files or [reference] answers through the scan.
+#: ``input``: the truth chosen as a stage's input (a diagnostic run with the true rig or mesh,
+#: the generator's novel cameras as view specs) — stays; ``metrics``: errors computed in the
+#: stage — moves into facegeo.evaluate (issue 37), and the entry with it.
+TRUTH_READS_LEFT = {
+    "facegeo.pipeline.project": "input: stage_rig / load_mesh ('ground_truth' rig and mesh)",
+    "facegeo.pipeline.fit": "input: the generator's novel cameras (_camera_table); metrics: "
+                            "the skin-fit errors",
+    "facegeo.pipeline.calibrate": "metrics: errors against ground_truth/rig.json and the "
+                                  "reference intrinsics",
+    "facegeo.pipeline.mesh": "metrics: ground_truth_errors; input: ground_truth_decode "
+                             "(decode maps made from the truth, for tests and benchmarks)",
+    "facegeo.pipeline.decode": "metrics: decode errors against the true geometry",
+    "facegeo.pipeline._fit_image": "metrics: normals against [reference] normals; input: "
+                                   "[reference] mask, the pixels fitted",
+}
+
+#: Stage modules that import facegeo.evaluate, and why (a shim for callers not yet moved).
+EVALUATE_IMPORTS_LEFT = {
+    "facegeo.pipeline.project": "names truth_gauge, texel_areas, _projection_error, "
+                                "_error_metrics, GT_LIGHTS for pipeline/fit.py, benchmarks and "
+                                "tests/test_reflectance.py; run_project(evaluate=True) returns "
+                                "the figures beside the stage's",
+    "facegeo.pipeline.render": "run_render(reference=True) returns the figures beside the "
+                               "view's; render_one renders the paper's λ = 1 beside a shrunk "
+                               "view only when a reference exists (has_view_reference)",
+}
+
+
+def _stage_modules(graph: dict[str, set[str]]) -> list[str]:
+    return sorted(m for m in graph
+                  if _part(m) in STAGE_PARTS
+                  or (_part(m) == "pipeline" and m not in NOT_STAGES
+                      and not m.startswith("facegeo.pipeline.benchmarks")))
+
+
+def _reads_truth(path: Path) -> bool:
+    """Whether a file calls ``*.ground_truth_path`` / ``*.reference_path`` or imports
+    ``facegeo.capture.references`` (the scan's truth and reference answers)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and node.attr in ("ground_truth_path",
+                                                             "reference_path"):
+            return True
+        if isinstance(node, ast.ImportFrom) and node.module == "facegeo.capture.references":
+            return True
+    return False
+
+
+def _path_of(module: str) -> Path:
+    p = PKG.parent / module.replace(".", "/")
+    return p / "__init__.py" if p.is_dir() else p.with_suffix(".py")
+
+
+@functools.lru_cache(maxsize=1)
+def _graph_once() -> dict[str, set[str]]:
+    """:func:`_graph` once for the checks below (parsing every file takes seconds)."""
+    return _graph()
+
+
+def _offenders(graph, test) -> set[str]:
+    return {m for m in _stage_modules(graph) if test(m)}
+
+
+def test_stage_modules_do_not_import_the_generator():
+    graph = _graph_once()
+    found = _offenders(graph, lambda m: any(d == "facegeo.synth" or d.startswith("facegeo.synth.")
+                                            for d in graph[m]))
+    new = sorted(found - set(SYNTH_IMPORTS_LEFT))
+    assert not new, ("stage modules importing facegeo.synth (compute errors in facegeo.evaluate "
+                     "instead):\n" + "\n".join(new))
+    moved = sorted(set(SYNTH_IMPORTS_LEFT) - found)
+    assert not moved, f"no longer import facegeo.synth: drop from SYNTH_IMPORTS_LEFT: {moved}"
+
+
+def test_stage_modules_read_no_truth_beyond_the_allow_list():
+    graph = _graph_once()
+    found = _offenders(graph, lambda m: _reads_truth(_path_of(m)))
+    new = sorted(found - set(TRUTH_READS_LEFT))
+    assert not new, "stage modules reading ground_truth/ or [reference]:\n" + "\n".join(new)
+    moved = sorted(set(TRUTH_READS_LEFT) - found)
+    assert not moved, f"read no truth any more: drop from TRUTH_READS_LEFT: {moved}"
+
+
+def test_stage_modules_import_the_evaluation_only_where_listed():
+    graph = _graph_once()
+    found = _offenders(graph, lambda m: any(d == "facegeo.evaluate"
+                                            or d.startswith("facegeo.evaluate.")
+                                            for d in graph[m]))
+    new = sorted(found - set(EVALUATE_IMPORTS_LEFT))
+    assert not new, "stage modules importing facegeo.evaluate:\n" + "\n".join(new)
+    moved = sorted(set(EVALUATE_IMPORTS_LEFT) - found)
+    assert not moved, f"no longer import facegeo.evaluate: drop from EVALUATE_IMPORTS_LEFT: {moved}"
+
+
+def test_the_truth_checks_can_fail(tmp_path):
+    """The checks above see a lazy import of the generator and a ground-truth read."""
+    f = tmp_path / "stage.py"
+    f.write_text("def run(scan):\n    from facegeo.synth.render import load_ground_truth\n"
+                 "    return scan.ground_truth_path('rig')\n", encoding="utf-8")
+    assert "facegeo.synth.render" in _imports(f)
+    assert _reads_truth(f)
+    assert "facegeo.pipeline.project" in _stage_modules(_graph_once())
+    assert "facegeo.pipeline.reconstruct" not in _stage_modules(_graph_once())

@@ -36,22 +36,32 @@ def test_second_run_does_no_work_and_metrics_gather(tiny_scan, capsys):
     assert metrics["decode"]["exact_code_fraction"] >= 0.99
     assert metrics["mesh"]["points_rms_error_mm"] < 0.5
     assert metrics["mesh"]["mesh_p95_error_mm"] < 1.0
-    # every novel view was rendered and compared with the generator's reference
+    # every novel view was rendered, and the evaluation (the last stage) compared it with the
+    # generator's reference
     assert len(metrics["render"]["views"]) == len(reconstruct.RENDER_ORBITS)
     # orbits of the rig's frontal camera: views no source camera saw
     assert {v["camera"] for v in metrics["render"]["views"].values()} == {
         f"front_orbit{d:g}" for d in reconstruct.RENDER_ORBITS}
-    assert metrics["render"]["psnr_db_min"] > 10
+    evaluated = metrics["evaluate"]
+    assert set(evaluated["render"]["views"]) == set(metrics["render"]["views"])
+    assert evaluated["render"]["psnr_db_min"] > 10
     # rendered at the stage's 3 × 3 rays and compared with references of the same footprint
     assert {v["supersample"] for v in metrics["render"]["views"].values()} \
-        == {v["reference_supersample"] for v in metrics["render"]["views"].values()} \
+        == {v["reference_supersample"] for v in evaluated["render"]["views"].values()} \
         == {reconstruct.RENDER_SUPERSAMPLE}
-    assert "psnr_gain_db_covered_min" in metrics["render"]
+    assert "psnr_gain_db_covered_min" in evaluated["render"]
     assert (tiny_scan / "out" / "report.html").is_file()
     # the projection is compared with the generator's exact shading (tiny preset: ≈ 5–7 %,
     # dominated by bilinear sampling across cast-shadow edges at 80 × 120 px)
-    assert metrics["project"]["projection_rel_rmse"] < 0.10
-    assert metrics["project"]["visibility_agreement"] > 0.99
+    assert evaluated["project"]["projection_rel_rmse"] < 0.10
+    assert evaluated["project"]["visibility_agreement"] > 0.99
+    # the stages themselves never read the truth: their metrics hold none of it
+    assert "projection_rel_rmse" not in metrics["project"]
+    assert "psnr_db_min" not in metrics["render"]
+    # the reference renders are the evaluation's products, not the render stage's
+    assert not list((tiny_scan / "out" / "render").glob("*_reference.exr"))
+    assert len(list((tiny_scan / "out" / "evaluate" / "render").glob("*_reference.exr"))) \
+        == len(reconstruct.RENDER_ORBITS)
 
 
 def test_setting_change_and_only(tiny_scan):
@@ -63,13 +73,31 @@ def test_setting_change_and_only(tiny_scan):
                                 on_stage=lambda r: ran.append((r.name, r.ran)))
     assert ran == [("atlas", False), ("project", False)]
     ran.clear()
-    reconstruct.run_reconstruct(tiny_scan, settings={"project": {"gt_lights": 8}}, until="project",
-                                on_stage=lambda r: ran.append((r.name, r.ran)))
+    reconstruct.run_reconstruct(tiny_scan, settings={"project": {"shadow_taps": False}},
+                                until="project", on_stage=lambda r: ran.append((r.name, r.ran)))
     assert ran == [("atlas", False), ("project", True)]
     ran.clear()
     reconstruct.run_reconstruct(tiny_scan, only="atlas",
                                 on_stage=lambda r: ran.append((r.name, r.ran)))
     assert ran == [("atlas", True)]
+
+
+def test_the_run_records_and_prints_its_rig_mesh_and_world(tiny_scan, capsys):
+    """Issue 37: the run says which rig, mesh and world frame its products were made with, and
+    records it (out/run/run.json, metrics.json → run; the report keeps the entry)."""
+    capsys.readouterr()
+    assert main(["reconstruct", str(tiny_scan), "--only", "atlas", "-q"]) == 0
+    printed = capsys.readouterr().out
+    want = {"rig": "ground_truth", "mesh": "ground_truth",
+            "world": "the generator's (ground_truth/rig.json)"}
+    assert "run: rig ground_truth, mesh ground_truth, world frame the generator's" in printed
+    assert json.loads((tiny_scan / "out" / "run" / "run.json").read_text()) == want
+    assert json.loads((tiny_scan / "out" / "metrics.json").read_text())["run"] == want
+    assert "world frame the generator" in (tiny_scan / "out" / "report.html").read_text()
+    from facegeo.capture.scan import load_scan
+
+    assert reconstruct.run_choices(load_scan(tiny_scan), rig="scan")["world"] \
+        == "the scan's rig.json (nominal)"
 
 
 def test_failed_stage_keeps_earlier_products(tiny_scan, monkeypatch, capsys):
@@ -90,7 +118,8 @@ def test_failed_stage_keeps_earlier_products(tiny_scan, monkeypatch, capsys):
     # error (exit 2) also rewrites the report with it
     doc = json.loads((tiny_scan / "out" / "metrics.json").read_text())
     assert doc["project"]["last_run_failed"] == "RuntimeError: injected failure in project"
-    assert "projection_rel_rmse" in doc["project"]
+    # (the stage's own figures: its comparisons with the truth are the evaluate stage's)
+    assert "unseen_fraction" in doc["project"]
 
     def refuse(*a, **k):
         raise InputError("injected refusal in project")

@@ -1,9 +1,10 @@
 """Reference answers of a real scan (``[reference]`` in ``scan.toml``), read for the metrics.
 
 Real data sets publish some answers — intrinsics from the authors' own calibration, a scanned
-point cloud — that a stage can be compared with, as synthetic scans are compared with their
-``ground_truth/``. This module reads them into arrays; the stages report their error against
-them beside (or, on real scans, instead of) the ground-truth errors.
+point cloud — that a stage's products can be compared with, as synthetic scans are compared
+with their ``ground_truth/``. This module reads them into arrays for
+:mod:`facegeo.evaluate` (:mod:`facegeo.evaluate.intrinsics`; ``pipeline/calibrate.py`` still
+reads them too until its comparison moves there, issue 37).
 
 Reference intrinsics (``[reference] intrinsics = "reference/intrinsics.json"``), JSON, one of:
 

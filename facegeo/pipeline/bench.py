@@ -130,6 +130,13 @@ def _discover() -> None:
             importlib.import_module(f"{pkg.__name__}.{info.name}")
 
 
+def shared_data_dir() -> Path:
+    """The real data sets' folder benchmarks measure on: ``FACEGEO_SHARED_DATA``, else
+    ``../shared/data`` beside the checkout (a benchmark gives no rows when it is absent)."""
+    default = Path(__file__).resolve().parents[3] / "shared" / "data"
+    return Path(os.environ.get("FACEGEO_SHARED_DATA", default))
+
+
 def registered() -> list[str]:
     """Names of all registered benchmarks, sorted."""
     _discover()

@@ -74,7 +74,8 @@ from facegeo.pipeline._calibrate_projector import (  # noqa: F401 (SUMMARY_RECOR
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_calibrate", "calibrate_products", "calibrate_inputs", "RESIDUAL_GAIN"]
+__all__ = ["CALIBRATE_DEFAULTS", "run_calibrate", "calibrate_products", "calibrate_inputs",
+           "RESIDUAL_GAIN"]
 
 # RESIDUAL_GAIN (residual vectors' drawing scale): defined with the plots, re-exported.
 
@@ -248,6 +249,12 @@ def _rot_deg(Ra, Rb) -> float:
     return float(np.degrees(np.linalg.norm(rvec_from_rotation(Ra @ Rb.T))))
 
 
+#: The ``calibrate`` stage's settings by default: ``facegeo calibrate``'s defaults, so that its
+#: run into the scan's ``out/calibrate`` and ``facegeo reconstruct``'s stage compute one key.
+CALIBRATE_DEFAULTS = {"model": "auto", "legacy": None, "loss": "linear", "reference": None,
+                      "cross_validation": True}
+
+
 def run_calibrate(scan_dir, out_dir=None, *, model: str = "auto", legacy: bool | None = None,
                   loss: str = "linear", reference: str | None = None,
                   cross_validation: bool = True, progress=None) -> dict:
@@ -307,10 +314,15 @@ def calibrate_inputs(scan) -> list[Path]:
     ``facegeo calibrate`` run and the pipeline compute one key
     (``tests/test_calib_products.py`` checks that they agree)."""
     files = [scan.manifest_path, scan.root / scan.manifest["scan"]["rig"]]
+    board = scan.manifest.get("calib", {}).get("board")
+    if isinstance(board, str) and (scan.root / board).is_file():  # a board file, not a table
+        files.append(scan.root / board)
     files += [scan.ground_truth_path(k) for k in sorted(scan.ground_truth_keys)
               if scan.ground_truth_path(k).is_file()]
     for cam in scan.camera_names:
         files += [p for _, p in scan.expected_files("calib", cam)]
+        if "projector" in scan.manifest.get("calib", {}):
+            files += [p for _, p in scan.expected_files("calib.projector", cam)]
     return files
 
 

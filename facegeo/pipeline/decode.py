@@ -38,6 +38,17 @@ and every frame it reads). If a later camera fails, the next run takes the finis
 from there (their metrics say ``reused: true``) instead of decoding them again; the folder goes
 with the old stage folder when the stage completes.
 
+**Engines.** Each camera's decode is one task (:func:`decode_camera_task`: small arguments —
+the loaded scan (manifest and rig, kilobytes), the camera, its plan, the staging folder — and
+a small dict back) of an
+:class:`facegeo.pipeline.engine.Engine`: in process by default (one camera after another, as
+before engines existed), or on a Dask cluster (``--workers N``, ``--scheduler ADDRESS``) where
+cameras decode in parallel, each worker writing its camera's folder into the stage's staging
+folder and its ``.partial`` copy. The products are byte-identical whatever the engine; the
+metrics gain ``engine`` (the workers, their memory limit, each camera's worker, seconds and
+peak memory) on a cluster. Each camera's working set (:func:`decode_working_set`, from its
+pixel count) is checked against a worker's memory before any task is submitted.
+
 A **phase-only** pattern set (phase shifts and no Gray / XOR / min-SW code, e.g. the shared
 three-step face) cannot be unwrapped to absolute projector coordinates: ``decode.npz`` then
 holds no valid pixel, one warning says why, and the measurement is written instead per camera:
@@ -117,8 +128,11 @@ __all__ = [
     "DECODE_DEFAULTS",
     "PARTIAL_DIR",
     "camera_plans",
+    "DECODE_BYTES_PER_PIXEL",
     "code_accuracy",
+    "decode_camera_task",
     "decode_products",
+    "decode_working_set",
     "ground_truth_projector",
     "run_decode",
     "scan_decode_settings",
@@ -359,17 +373,27 @@ def _decode_camera(scan, cam: str, plan, d: Path, used: dict, phase_only: bool):
 
 
 def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
-                    partial_dir: Path | None = None, **settings) -> tuple[dict, dict]:
+                    partial_dir: Path | None = None, engine=None, progress=None,
+                    **settings) -> tuple[dict, dict]:
     """Write the ``decode`` products of ``scan`` into ``dest`` (module docstring).
 
     The work of :func:`run_decode` without the staging. ``settings`` are
     :data:`DECODE_DEFAULTS` keys. Every camera is planned first (:func:`camera_plans`: an
     undecodable camera stops the stage before any work); each is then decoded with its own
-    pattern set. ``partial_dir`` (the stage folder's ``.partial``, :data:`PARTIAL_DIR`): each
-    finished camera is also kept there, and a camera whose frames and settings are unchanged
-    since is taken from there instead of decoded again — so a camera that fails does not cost
-    the ones finished before it. Returns ``(metrics, settings)``.
+    pattern set, as one task of ``engine`` (:mod:`facegeo.pipeline.engine`; default in
+    process, one camera after another) writing its folder ``dest/<camera>``. ``partial_dir``
+    (the stage folder's ``.partial``, :data:`PARTIAL_DIR`): each finished camera is also kept
+    there, and a camera whose frames and settings are unchanged since is taken from there
+    instead of decoded again — so a camera that fails does not cost the ones finished before
+    it (nor, on a cluster, the ones finished beside it). ``progress(stage, done, total)`` is
+    called as cameras finish. Returns ``(metrics, settings)``.
+
+    With a cluster engine the workers must see ``dest`` and the scan at the same paths (one
+    machine, or a shared file system); each camera's working set
+    (:func:`decode_working_set`) is checked against a worker's memory before any is submitted.
     """
+    from facegeo.pipeline.engine import InProcessEngine, Task
+
     unknown = sorted(set(settings) - set(DECODE_DEFAULTS))
     if unknown:
         raise InputError(f"decode settings: unknown {unknown}; valid: {sorted(DECODE_DEFAULTS)}")
@@ -384,11 +408,8 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
         if c not in scan.camera_names:
             raise InputError(f"cameras: unknown camera {fmt_value(c)}; the scan has {scan.camera_names}")
     plans = camera_plans(scan, spec, cams, declared=declared)
+    engine = InProcessEngine() if engine is None else engine
     t0 = time.perf_counter()
-    per_cam: dict[str, dict] = {}
-    skipped: list[str] = []
-    pooled = {"valid": 0, "pixels": 0, "surface": 0, "valid_surface": 0,
-              "exact": 0.0, "compared": 0, "se": 0.0, "n_phase": 0, "usable": 0}
     phase_only = bool(spec.phase_steps and spec.phase_axes) and not _axes_coded(spec)
     if phase_only:
         log.warning(
@@ -397,36 +418,24 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
             "coordinates, so decode.npz has no valid pixel; the wrapped phase and its quality "
             "map are written to <camera>/phase.npz (and phase_*.png, quality_*.png)",
             spec.phase_steps, ", ".join(spec.phase_axes))
-    for cam in cams:
-        plan = plans[cam]
-        if plan.action == "skip":
-            log.info("decode %s: skipped, %s", cam, plan.reason)
-            skipped.append(cam)
-            continue
-        if not plan.complete:
-            log.info("decode %s: %s", cam, _plan_summary(plan))
-        key = _partial_key(scan, cam, plan, used) if partial_dir is not None else None
-        m = _reuse_partial(partial_dir, cam, key, dest / cam)
-        if m is not None:
-            with np.load(dest / cam / "decode.npz") as z:
-                x, y, valid = z["x"], z["y"], z["valid"]
-            log.info("decode %s: taken from %s (decoded by an earlier run that did not finish)",
-                     cam, partial_dir / cam)
-        else:
-            m, x, y, valid = _decode_camera(scan, cam, plan, dest / cam, used, phase_only)
-            _keep_partial(partial_dir, cam, key, dest / cam, m)
-        pooled["usable"] += m.pop("usable_pixels", 0) if phase_only else 0
-        pooled["valid"] += int(valid.sum())
-        pooled["pixels"] += int(valid.size)
-        gt = ground_truth_projector(scan, cam) if scan.synthetic else None
-        if gt is not None:
-            m.update(_accumulate_accuracy(x, y, valid, gt, plan, pooled))
-        per_cam[cam] = m
-        if phase_only:
-            log.info("decode %s: phase only, %.1f %% of the pixels above the quality threshold",
-                     cam, 100 * m["quality_fraction"])
-        else:
-            log.info("decode %s: %.1f %% valid", cam, 100 * m["valid_fraction"])
+    skipped = [c for c in cams if plans[c].action == "skip"]
+    for cam in skipped:
+        log.info("decode %s: skipped, %s", cam, plans[cam].reason)
+    # the loaded scan travels as it is (its manifest and rig: kilobytes), checked once here:
+    # a worker loading it again would validate every frame's header per task
+    tasks = [Task(cam, decode_camera_task,
+                  (scan, cam, plans[cam], str(dest), used, phase_only,
+                   None if partial_dir is None else str(partial_dir)),
+                  working_set=decode_working_set(scan, cam))
+             for cam in cams if cam not in skipped]
+    results = engine.map("decode", tasks, progress=progress)
+    per_cam: dict[str, dict] = {}
+    pooled = dict.fromkeys(_POOLED, 0)
+    pooled.update(exact=0.0, se=0.0)
+    for t, r in zip(tasks, results):  # in camera order, whatever order they finished in
+        per_cam[t.name] = r["metrics"]
+        for k in _POOLED:
+            pooled[k] += r["pooled"][k]
     metrics: dict[str, Any] = {
         "cameras": per_cam,
         "skipped_cameras": skipped,
@@ -447,7 +456,86 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
         metrics["settings_from_scan"] = from_scan  # [structured_light.decode], not overridden
     metrics["seconds"] = round(time.perf_counter() - t0, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    if engine.kind != "in-process":
+        metrics["engine"] = _engine_metrics(engine, [t.name for t in tasks])
     return metrics, {**used, "cameras": cams}
+
+
+#: Counts each camera's task adds into the pooled metrics (in camera order).
+_POOLED = ("valid", "pixels", "surface", "valid_surface", "exact", "compared", "se", "n_phase",
+           "usable")
+
+#: Bytes of memory one camera pixel costs a decode task, all frames streamed
+#: (:func:`decode_working_set`): :func:`decode_stream`'s state and temporaries, measured at
+#: 69 B/px (42 uint8 RGB frames of 2448 x 1632, peak RSS above the interpreter's), plus the
+#: frames in flight — the one decoded and :data:`READ_AHEAD_WORKERS` read ahead, float32 RGB
+#: (12 B/px each) — plus the products written (x, y, confidence, sigma_x, sigma_y, valid and
+#: the PNGs' buffers, ≈ 30 B/px).
+DECODE_BYTES_PER_PIXEL = 69 + 12 * (READ_AHEAD_WORKERS + 1) + 30
+#: ... and with ground truth, for the accuracy figures: the true surface points (float64
+#: (H, W, 3)), the projector coordinates and footprints (2 × float64 (H, W, 2)), masks and
+#: temporaries ≈ 100 B/px.
+DECODE_GT_BYTES_PER_PIXEL = 100
+
+
+def decode_working_set(scan, camera: str) -> int:
+    """Memory (bytes) one camera's decode task needs: the camera's pixels (from the rig) times
+    :data:`DECODE_BYTES_PER_PIXEL` (plus :data:`DECODE_GT_BYTES_PER_PIXEL` on a synthetic scan
+    with ground truth)."""
+    cam = scan.rig.camera(camera)
+    per_px = DECODE_BYTES_PER_PIXEL + (DECODE_GT_BYTES_PER_PIXEL if scan.synthetic else 0)
+    return int(cam.width) * int(cam.height) * per_px
+
+
+def _engine_metrics(engine, names: list[str]) -> dict:
+    """The engine's summary and, per task of this stage, the worker, seconds and peak memory."""
+    recs = {r.task: r for r in engine.records if r.stage == "decode" and r.task in names}
+    out = engine.describe()
+    out["tasks"] = {n: {"worker": recs[n].worker, "seconds": round(recs[n].seconds, 4),
+                        "peak_rss_mb": None if recs[n].peak_rss_mb is None
+                        else round(recs[n].peak_rss_mb, 1)}
+                    for n in names if n in recs}
+    return out
+
+
+def decode_camera_task(scan, cam: str, plan, dest: str, used: dict, phase_only: bool,
+                       partial_dir: str | None) -> dict:
+    """One camera's share of the stage, run by an engine (in process or on a worker).
+
+    Takes the camera from ``partial_dir`` when an earlier run finished it, else decodes it
+    into ``dest/<cam>`` and keeps it there; computes its metrics (and accuracy, with ground
+    truth). Returns ``{"metrics": ..., "pooled": ...}``: the camera's metrics and its counts
+    for the pooled figures (:data:`_POOLED`) — small, whatever the camera's size.
+    """
+    scan = _scan(scan)
+    d = Path(dest) / cam
+    partial = None if partial_dir is None else Path(partial_dir)
+    if not plan.complete:
+        log.info("decode %s: %s", cam, _plan_summary(plan))
+    key = _partial_key(scan, cam, plan, used) if partial is not None else None
+    m = _reuse_partial(partial, cam, key, d)
+    if m is not None:
+        with np.load(d / "decode.npz") as z:
+            x, y, valid = z["x"], z["y"], z["valid"]
+        log.info("decode %s: taken from %s (decoded by an earlier run that did not finish)",
+                 cam, partial / cam)
+    else:
+        m, x, y, valid = _decode_camera(scan, cam, plan, d, used, phase_only)
+        _keep_partial(partial, cam, key, d, m)
+    pooled = dict.fromkeys(_POOLED, 0)
+    pooled.update(exact=0.0, se=0.0)
+    pooled["usable"] += m.pop("usable_pixels", 0) if phase_only else 0
+    pooled["valid"] += int(valid.sum())
+    pooled["pixels"] += int(valid.size)
+    gt = ground_truth_projector(scan, cam) if scan.synthetic else None
+    if gt is not None:
+        m.update(_accumulate_accuracy(x, y, valid, gt, plan, pooled))
+    if phase_only:
+        log.info("decode %s: phase only, %.1f %% of the pixels above the quality threshold",
+                 cam, 100 * m["quality_fraction"])
+    else:
+        log.info("decode %s: %.1f %% valid", cam, 100 * m["valid_fraction"])
+    return {"metrics": m, "pooled": pooled}
 
 
 def _check_frames_are_the_set(scan, spec, declared: bool) -> None:
@@ -581,8 +669,8 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None,
-               **settings) -> dict:
+def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None, engine=None,
+               progress=None, **settings) -> dict:
     """Decode every camera's structured-light frames into ``out_dir/decode/``.
 
     Parameters
@@ -592,6 +680,12 @@ def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None,
         Default the scan's ``out/``.
     cameras : list of str, optional
         Default every camera.
+    engine : facegeo.pipeline.engine.Engine, optional
+        Where the cameras' tasks run (default: in this process, one camera after another;
+        :func:`facegeo.pipeline.engine.make_engine` for ``--workers`` / ``--scheduler``). The
+        products are the same bytes whatever the engine.
+    progress : callable(stage, done, total), optional
+        Called as cameras finish.
     **settings
         :func:`facegeo.geometry.structured_light.decode_stream` thresholds
         (:data:`DECODE_DEFAULTS`).
@@ -607,7 +701,8 @@ def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None,
     out = Path(out_dir) if out_dir is not None else scan.out_dir
     with staged_directory(out / "decode") as tmp:
         metrics, used = decode_products(scan, tmp, cameras=cameras,
-                                        partial_dir=out / "decode" / PARTIAL_DIR, **settings)
+                                        partial_dir=out / "decode" / PARTIAL_DIR,
+                                        engine=engine, progress=progress, **settings)
         atomic_write_text(tmp / "stage.json", json.dumps(
             {"stage": "decode", "settings": used, "metrics": metrics}, indent=2, sort_keys=True))
         record_metrics(out, "decode", metrics)

@@ -6,6 +6,8 @@ The chain (Debevec et al. 2000 from capture to novel views)::
     decode ─► mesh                                     if it has [structured_light]
     atlas ─► project ─► relight, fit ─► render         if it has [olat] (atlas needs a mesh)
     fit (image space)                                  [olat] of one camera and no geometry
+    evaluate                                           last: every product against the
+                                                       scan's references (facegeo.evaluate)
 
 Each stage is a :class:`facegeo.pipeline.cache.StageSpec`: it reruns only when the content of
 the files it reads, its settings, an earlier stage's key, the facegeo version or facegeo's code
@@ -36,6 +38,11 @@ A single-view OLAT scan without geometry (one camera, no structured light, no gr
 in image space (:func:`facegeo.pipeline.fit.fit_image_products`; every masked pixel a texel).
 Give ``--mesh PATH`` to fit it on a mesh instead.
 
+The last stage, ``evaluate`` (:mod:`facegeo.evaluate`), compares every earlier stage's products
+with the scan's references (the generator's truth, ``[reference]`` answers): the stages
+themselves never read the truth. Every run records what it used — ``{"rig", "mesh", "world"}``
+(:func:`run_choices`) — in ``out/run/run.json`` and ``out/metrics.json`` → ``"run"``.
+
 A calibration that fails (no board found in a camera's views, say) ends the run with the error
 when the rig it should produce is used downstream; otherwise ``calibrate`` records the failure
 in its metrics (``"error"``) and the other stages go on.
@@ -56,10 +63,12 @@ from facegeo.render._cameras import FRONT, NOVEL_ORBITS
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STAGES", "MESH_CHOICES", "RIG_CHOICES", "reconstruct_pipeline", "run_reconstruct"]
+__all__ = ["STAGES", "MESH_CHOICES", "RIG_CHOICES", "reconstruct_pipeline", "record_run",
+           "run_choices", "run_reconstruct"]
 
 #: Every stage ``facegeo reconstruct`` knows, in pipeline order.
-STAGES = ("calibrate", "decode", "mesh", "atlas", "project", "relight", "fit", "render")
+STAGES = ("calibrate", "decode", "mesh", "atlas", "project", "relight", "fit", "render",
+          "evaluate")
 #: Values of ``mesh`` besides a mesh file.
 MESH_CHOICES = ("auto", "ground_truth", "reconstructed")
 #: Values of ``rig``.
@@ -139,7 +148,8 @@ def _check_stage_has_input(scan, stage: str | None, flag: str | None) -> None:
     """Raise :class:`InputError` naming what the scan lacks when ``stage`` is a stage of the
     chain that this scan has no input for (``facegeo mesh`` on a calibration-only scan);
     ``flag`` (``"--only"``, ``"--from"``) prefixes the message."""
-    if stage is None or stage not in STAGES or stage in _applicable(scan, "auto"):
+    if stage is None or stage not in STAGES or stage == "evaluate" \
+            or stage in _applicable(scan, "auto"):
         return
     lacks = _STAGE_NEEDS.get(stage, f"no OLAT frames for the {stage!r} stage (no [olat] group)")
     have = ", ".join(f"[{g}]" for g in ("calib", "structured_light", "olat") if scan.has(g))
@@ -179,8 +189,62 @@ def _warn_true_rig(scan, rig: str, use_rig: str, runs: list[str], stages: list[s
                     if "calibrate" in stages else "")
 
 
+def _choices(scan, mesh: str, rig: str) -> tuple[list[str], str | None, str]:
+    """The chain's stages, the mesh of its surface stages (None without them) and its rig."""
+    names = _applicable(scan, mesh)
+    use_mesh = _resolve_mesh(scan, mesh) if "atlas" in names else None
+    return names, use_mesh, _resolve_rig(scan, rig, names)
+
+
+#: Where ``run_reconstruct`` records the run's choices (``RUN_RECORD/run.json``, and
+#: ``out/metrics.json`` → ``"run"``).
+RUN_RECORD = "run"
+
+
+def run_choices(scan, *, mesh: str = "auto", rig: str = "auto") -> dict:
+    """What a run of the chain uses: ``{"rig", "mesh", "world"}``.
+
+    ``rig`` and ``mesh`` are the chain's resolved choices (``"ground_truth"``, ``"calibrated"``,
+    ``"scan"``; ``"ground_truth"``, ``"reconstructed"`` or a file — ``"reconstructed"`` too when
+    the chain meshes structured light and has no surface stages —, None when it makes or uses
+    no mesh); ``world`` says whose world frame the products are in: the
+    generator's (the true rig), the calibration's (its own description, ``out/calibrate``'s
+    ``world`` when it ran) or the scan's ``rig.json``.
+    """
+    names, use_mesh, use_rig = _choices(scan, mesh, rig)
+    if use_mesh is None and "mesh" in names:  # no surface stages: the chain's mesh is its own
+        use_mesh = "reconstructed"
+    if use_rig == "ground_truth":
+        world = "the generator's (ground_truth/rig.json)"
+    elif use_rig == "calibrated":
+        world = "the calibration's"
+        try:
+            doc = json.loads((scan.out_dir / "calibrate" / "stage.json").read_text("utf-8"))
+            if isinstance(doc.get("metrics", {}).get("world"), str):
+                world = f"the calibration's: {doc['metrics']['world']}"
+        except (OSError, ValueError, AttributeError):
+            pass
+    else:
+        world = f"the scan's {scan.manifest['scan']['rig']} (nominal)"
+    return {"rig": use_rig, "mesh": use_mesh, "world": world}
+
+
+def record_run(scan, choices: dict) -> None:
+    """Write ``choices`` (:func:`run_choices`) to ``out/run/run.json`` and ``out/metrics.json``
+    → ``"run"`` (atomic writes; the folder keeps the entry when the report drops the entries of
+    deleted products)."""
+    from facegeo.fsutil import atomic_write_text
+    from facegeo.pipeline.cache import record_metrics
+
+    folder = scan.out_dir / RUN_RECORD
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(folder / "run.json", json.dumps(choices, indent=2) + "\n")
+    record_metrics(scan.out_dir, RUN_RECORD, choices)
+
+
 def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
-                         only: str | None = None, until: str | None = None) -> Pipeline:
+                         only: str | None = None, until: str | None = None,
+                         engine=None) -> Pipeline:
     """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct`` for one scan.
 
     Parameters
@@ -195,14 +259,15 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
     only, until : str, optional
         The run's ``--only`` / ``until`` (:meth:`Pipeline.run`), when known: the warning about
         ``--rig auto`` is given only when the run may mesh.
+    engine : facegeo.pipeline.engine.Engine, optional
+        Where the stages that split into tasks run them (``decode``: one task per camera);
+        default in process. Not part of any stage's key: the products are the same bytes.
     """
     from facegeo.pipeline.fit import FIT_SETTINGS
     from facegeo.pipeline.render import RENDER_DEFAULT_ENV, SHRINKAGE_DEFAULT
     from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 
-    names = _applicable(scan, mesh)
-    use_mesh = _resolve_mesh(scan, mesh) if "atlas" in names else None
-    use_rig = _resolve_rig(scan, rig, names)
+    names, use_mesh, use_rig = _choices(scan, mesh, rig)
     # the stages that work in the rig's frame wait for the calibration when they use its rig
     rig_after = ("calibrate",) if use_rig == "calibrated" else ()
     specs: list[StageSpec] = []
@@ -219,9 +284,12 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                 return {"error": str(e)}
             return metrics
 
+        from facegeo.pipeline.calibrate import CALIBRATE_DEFAULTS, calibrate_inputs
+
+        # the same inputs and settings as `facegeo calibrate`: its products are this stage's
         specs.append(StageSpec("calibrate", run_calibrate,
-                               inputs=lambda d: _group_inputs(scan, "calib"),
-                               settings={"model": "auto", "cross_validation": True}))
+                               inputs=lambda d: calibrate_inputs(scan),
+                               settings=dict(CALIBRATE_DEFAULTS)))
 
     if "decode" in names:
         def run_decode(ctx: StageContext) -> dict:
@@ -229,7 +297,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
 
             # finished cameras wait in out/decode/.partial until the stage completes
             metrics, _ = decode_products(scan, ctx.out_dir, **ctx.settings,
-                                         partial_dir=ctx.out_dir.parent / "decode" / PARTIAL_DIR)
+                                         partial_dir=ctx.out_dir.parent / "decode" / PARTIAL_DIR,
+                                         engine=engine, progress=ctx.progress)
             return metrics
 
         specs.append(StageSpec("decode", run_decode,
@@ -269,7 +338,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                                settings=dict(IMAGE_FIT_SETTINGS)))
 
     if "atlas" in names:
-        from facegeo.pipeline.project import GT_LIGHTS, atlas_products, project_products
+        from facegeo.pipeline.project import atlas_products, project_products
 
         mesh_after = ("mesh",) if use_mesh == "reconstructed" else ()
 
@@ -328,8 +397,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             StageSpec("project", run_project, after=("atlas",) + mesh_after + rig_after,
                       inputs=lambda d: _group_inputs(scan, "olat") + mesh_inputs(),
                       settings={"mesh": use_mesh, "rig": use_rig, "dtype": "float16",
-                                "gt_lights": GT_LIGHTS,
-                                "gt_weight_min": 0.3, "shadow_taps": True}),
+                                "shadow_taps": True}),
             StageSpec("relight", run_relight, after=("atlas", "project"),
                       inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
                       settings={"env": RENDER_DEFAULT_ENV, "rotate": 0.0, "view": "texture",
@@ -345,9 +413,26 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
     if not specs:
         raise InputError(f"scan {scan.root}: nothing to reconstruct (no [calib], "
                          "[structured_light] or [olat] frames)")
+    specs.append(_evaluate_spec(scan, [s.name for s in specs]))
     pipeline = Pipeline(specs)
     _warn_true_rig(scan, rig, use_rig, pipeline.stages_run(only=only, until=until), names)
     return pipeline
+
+
+def _evaluate_spec(scan, names: list[str]) -> StageSpec:
+    """The last stage: every earlier stage's products against the scan's references
+    (:func:`facegeo.evaluate.evaluate_products`), rerun when a product, a reference or a
+    setting changed."""
+    from facegeo.evaluate import EVALUATE_SETTINGS, evaluation_inputs
+
+    def run_evaluate(ctx: StageContext) -> dict:
+        from facegeo.evaluate import evaluate_products
+
+        return evaluate_products(scan, ctx.out_dir.parent, ctx.out_dir, stages=names,
+                                 progress=ctx.progress, **ctx.settings)
+
+    return StageSpec("evaluate", run_evaluate, after=tuple(names),
+                     inputs=lambda d: evaluation_inputs(scan), settings=dict(EVALUATE_SETTINGS))
 
 
 def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
@@ -355,7 +440,8 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
                     from_stage: str | None = None, only: str | None = None,
                     until: str | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
-                    on_stage: Callable[[StageResult], None] | None = None) -> list[StageResult]:
+                    on_stage: Callable[[StageResult], None] | None = None,
+                    engine=None) -> list[StageResult]:
     """Run every stage of ``facegeo reconstruct`` whose products are missing or stale.
 
     Parameters
@@ -375,6 +461,9 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
         Run that stage and what it needs, nothing after it (``facegeo decode SCAN``, ...).
     progress, on_stage : callable, optional
         See :meth:`facegeo.pipeline.cache.Pipeline.run`.
+    engine : facegeo.pipeline.engine.Engine, optional
+        See :func:`reconstruct_pipeline` (the caller creates and closes it:
+        ``with make_engine(workers, scheduler, memory_limit) as engine: ...``).
     """
     from facegeo.capture.scan import Scan, load_scan
 
@@ -400,6 +489,11 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
             settings = {**settings, "fit": fit_given}
     for name, flag in ((until, None), (only, "--only"), (from_stage, "--from")):
         _check_stage_has_input(scan, name, flag)
-    pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until)
-    return pipeline.run(scan_dir, settings=settings, from_stage=from_stage, only=only,
-                        until=until, progress=progress, on_stage=on_stage)
+    pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until,
+                                    engine=engine)
+    try:
+        return pipeline.run(scan_dir, settings=settings, from_stage=from_stage, only=only,
+                            until=until, progress=progress, on_stage=on_stage)
+    finally:  # what the products on disk were made with, failed run or not
+        if (Path(scan_dir) / "out").is_dir():
+            record_run(scan, run_choices(scan, mesh=mesh, rig=rig))

@@ -12,33 +12,30 @@
                                           functions relit and blended), no resynthesis
     .source_images/<hash>.npz             the relit source captures of the image-space detail,
                                           kept for the next view under the same environment
-    <name>_reference.exr/.png             the generator's reference (synthetic scans)
-    <name>_error.png                      |render − reference| heat map (synthetic scans)
-    <name>.json                           the view's metrics
+    <name>_camera.json                    the camera the view was rendered from
+    <name>_weights.npy                    (L, 3) float64: the environment's Eq. (4) field weights
+    <name>_covered.png                    255 where a pixel was rendered from measured texels
+    <name>_texture.exr, _naive_texture.exr  with image-space detail: the texture-space renders
+    <name>_paper.exr                      with a shrinkage λ ≠ 1 and a reference to compare
+                                          with: the paper's resynthesis as written (λ = 1)
+    <name>.json                           the view's metrics (``exposure``: of the PNGs)
 
 and merges the view's metrics into ``out/metrics.json`` → ``"views"`` → ``"views"`` → name.
 
-Metrics against the generator's reference (same camera, same Eq. (4) weights, its exact
-renderer; ``mask`` = the reference's pixels that see the head):
+The stage never reads the truth: :mod:`facegeo.evaluate.views` compares these files with the
+generator's reference of the same camera (``psnr_db``, ``rel_rmse``, their naive, paper,
+texture-space and covered-pixel forms, ``head_coverage``). :func:`run_render`, the standalone
+runner, returns those figures beside the view's own (``reference=True``) and writes the
+reference and error images beside the view.
 
-* ``psnr_db`` = 10 log10(peak² / MSE), MSE over the mask's pixels and channels, peak = the
-  reference's maximum over the mask; ``rel_rmse`` = sqrt(Σ err² / Σ ref²) over the mask;
-* the same for the naive baseline (``naive_psnr_db``, ``naive_rel_rmse``) and the gain
-  ``psnr_gain_db`` (``psnr_gain_db_covered`` over covered pixels);
-* with the cross-validated shrinkage (the default, :func:`facegeo.render.cross_validated_shrinkage`):
-  ``shrinkage_factors`` (λ per source camera), ``shrinkage_cross_validation`` and, beside the
-  main render, the paper's resynthesis as written (λ = 1): ``paper_psnr_db``,
-  ``paper_psnr_db_covered``, ``paper_rel_rmse`` (``_covered``);
-* ``coverage``: the fraction of the render's surface pixels (rays that hit the atlas mesh)
-  whose texels some source camera measured (pixels outside it are filled from the nearest
-  measured pixel within ``fill_px``, else black, in both renders, and count as errors);
-  ``head_coverage``: the fraction of the reference's head mask rendered from measured texels
-  (what the reconstruction lacks counts here, not in ``coverage``); and the ``*_covered``
-  variants of PSNR / relative RMSE over covered pixels only;
-* with image-space detail (``image_detail``, :mod:`facegeo.render.detail`): ``texture_*`` and
-  ``texture_naive_*``, the same figures of the texture-space renders before the detail,
-  ``detail_fraction`` (covered pixels the source images reached) and
-  ``seconds_source_images`` (relighting the captures; 0 when reused).
+Metrics of the view itself: ``coverage``, the fraction of the render's surface pixels (rays
+that hit the atlas mesh) whose texels some source camera measured (pixels outside it are
+filled from the nearest measured pixel within ``fill_px``, else black, in every render);
+with the cross-validated shrinkage (the default, :func:`facegeo.render.cross_validated_shrinkage`)
+``shrinkage_factors`` (λ per source camera) and ``shrinkage_cross_validation``; with
+image-space detail (``image_detail``, :mod:`facegeo.render.detail`) ``detail_fraction``
+(covered pixels the source images reached) and ``seconds_source_images`` (relighting the
+captures; 0 when reused).
 
 Environments: a path to an ``.exr``/``.hdr`` map (``projection`` lat-long by default), or a
 built-in name: ``"uniform"`` (radiance 1 everywhere, the generator's ``uniform`` renders),
@@ -69,7 +66,7 @@ from facegeo.fsutil import file_state
 log = logging.getLogger(__name__)
 
 __all__ = ["BUILTIN_ENVS", "SHRINKAGE_CHOICES", "builtin_env", "check_render_args",
-           "image_metrics", "render_one", "render_products", "run_render"]
+           "render_one", "render_products", "run_render"]
 
 BUILTIN_ENVS = ("uniform", "axis_lobes", "sky", "studio")
 #: The environment of the ``render`` stage of ``facegeo reconstruct``.
@@ -158,33 +155,8 @@ def _check_shrinkage(shrinkage):
     return lam
 
 
-def image_metrics(img, ref, mask) -> dict:
-    """PSNR (dB, peak = max of ``ref`` over ``mask``) and relative RMSE over ``mask``."""
-    m = np.asarray(mask, bool)
-    if not m.any():
-        return {"psnr_db": None, "rel_rmse": None, "pixels": 0}
-    e = img[m].astype(np.float64) - ref[m]
-    mse = float((e ** 2).mean())
-    peak = float(ref[m].max())
-    den = float((ref[m].astype(np.float64) ** 2).sum())
-    psnr = 10.0 * math.log10(peak ** 2 / mse) if mse > 0 and peak > 0 else math.inf
-    return {"psnr_db": round(psnr, 4) if math.isfinite(psnr) else None,
-            "rel_rmse": round(math.sqrt(float((e ** 2).sum()) / den), 6) if den > 0 else None,
-            "pixels": int(m.sum())}
-
-
 def _safe(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.+-]+", "_", text).strip("_") or "view"
-
-
-def _error_heatmap(img, ref, mask) -> np.ndarray:
-    import cv2
-
-    err = np.linalg.norm(img.astype(np.float64) - ref, axis=2)
-    top = float(np.percentile(np.linalg.norm(ref[mask], axis=1), 99)) if mask.any() else 1.0
-    g = np.clip(err / max(0.25 * top, 1e-12), 0, 1)
-    bgr = cv2.applyColorMap((g * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
-    return np.where(mask[..., None], bgr[..., ::-1], 0).astype(np.uint8)
 
 
 def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_deg: float = 0.0,
@@ -215,7 +187,10 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     resynthesis : bool or "diffuse" — False: render only the naive baseline as the main
         image; ``"diffuse"``: the diffuse-only ablation (:func:`facegeo.render.shade_texels`)
     baseline : bool — also render the naive baseline
-    reference : bool — compare with the generator's reference (synthetic scans)
+    reference : bool — when the scan has a reference to compare with (synthetic scans), write
+        what the comparison reads (the paper's λ = 1 render beside a shrunk one) and return
+        the figures of :func:`facegeo.evaluate.views.evaluate_view` beside the view's own,
+        the reference and error images written beside the view
     name : str, optional — output stem (default from the camera and environment)
     blend_power : float, optional — view-dependent weight exponent
     rig : str, optional — :func:`facegeo.pipeline.project.stage_rig`; default as the ``project`` stage used
@@ -245,12 +220,13 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         only (the paper)
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
         each step (rays — with image detail, relighting the source captures too, ≈ 40 s at the
-        paper preset the first time under an environment —, render, naive baseline, reference)
+        paper preset the first time under an environment —, render, naive baseline)
 
     Returns
     -------
-    dict — the view's metrics (files, timings, ``psnr_db`` …)
+    dict — the view's metrics (files, timings; with a reference ``psnr_db`` …)
     """
+    from facegeo.evaluate.views import evaluate_view, has_view_reference
     from facegeo.pipeline.project import _scan
 
     scan = _scan(scan_dir)
@@ -262,6 +238,10 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                          fill_px=fill_px, shrinkage=shrinkage, light_step=light_step,
                          shadow_taps=shadow_taps, image_detail=image_detail,
                          progress=progress)
+    if reference and has_view_reference(scan):
+        figures = evaluate_view(scan, out, out / "views", metrics["name"], out / "views")
+        metrics["files"].update(figures.pop("files"))
+        metrics.update(figures)
     _merge_metrics(out, metrics["name"], metrics)
     return metrics
 
@@ -288,12 +268,9 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     source cameras (:func:`_view_inputs`: read once, the fields' memory maps reopened per
     view).
 
-    With a rig other than the true one (a calibration's), the reference is rendered from the
-    novel camera moved into the generator's frame by the gauge alignment of the atlas mesh
-    (:func:`facegeo.pipeline.project.truth_gauge`; ``gauge_rotation_deg`` /
-    ``gauge_translation_mm``): the rig's world frame is its own gauge, and a camera placed in
-    it sees the generator's head from where the reconstruction's camera sees the
-    reconstruction.
+    ``reference``: with a reference to compare with (synthetic scans), the paper's λ = 1
+    render is made beside a shrunk one, for :mod:`facegeo.evaluate.views`; the view never
+    reads the reference itself.
 
     With ``image_detail`` the source cameras' relit captures (:func:`_source_images`, once per
     environment weights in ``cache``) join every render of the view (``render_view(detail=)``)."""
@@ -301,7 +278,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     from facegeo.fsutil import atomic_write_text
     from facegeo.lighting import envmap as E
     from facegeo.pipeline.fit import _camera_table
-    from facegeo.pipeline.project import check_projection_atlas, stage_rig, truth_gauge
+    from facegeo.evaluate.views import has_view_reference
+    from facegeo.pipeline.project import check_projection_atlas, stage_rig
     from facegeo.pipeline.relight import tone_map
     from facegeo.render import (
         cross_validated_shrinkage,
@@ -341,7 +319,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     atlas, texels, scene, sources = _view_inputs(out, bool(resynthesis), cache,
                                                  check_projection_atlas)
     t_load = time.perf_counter()
-    has_ref = bool(reference and scan.synthetic and "skin" in scan.ground_truth_keys)
+    compare = bool(reference and has_view_reference(scan))
     factors, shrink_stats = None, None
     if resynthesis is True and shrink_mode == "cross-validated":
         key = (hashlib.sha1(np.ascontiguousarray(w, np.float64).tobytes()).hexdigest(),
@@ -356,8 +334,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     elif resynthesis is True and isinstance(shrink_mode, float):
         factors = {src.name: shrink_mode for src in sources}
     shrunk = factors is not None and any(f != 1.0 for f in factors.values())
-    paper_too = bool(shrunk and has_ref)
-    steps = 2 + int(bool(baseline and resynthesis)) + int(has_ref) + int(paper_too)
+    paper_too = bool(shrunk and compare)
+    steps = 2 + int(bool(baseline and resynthesis)) + int(paper_too)
 
     def tick(k: int) -> None:
         if progress:
@@ -451,56 +429,19 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         "seconds_load": round(t_load - t_start, 4),
         "coverage": round(float(res.covered.sum() / max(res.mask.sum(), 1)), 6),
     }
-    if has_ref:
-        from facegeo.synth.render import load_ground_truth
-
-        t0 = time.perf_counter()
-        renderer = load_ground_truth(scan)
-        T_true, gauge = truth_gauge(renderer, atlas, rig_used)
-        metrics.update(gauge)
-        ref_camera = camera if T_true is None else dataclasses.replace(
-            camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
-        # the reference integrates the render's own pixel footprint (s × s box): a point
-        # sample of a hard shadow edge is not what a camera records, and comparing pixel
-        # centres with a box-filtered render (or the reverse) would measure the sampling
-        ref = renderer.render_lights(ref_camera, renderer.rig.lights, w, supersample=supersample)
-        mask = renderer.surface_view(ref_camera, supersample=supersample).mask
-        tick(steps)
-        metrics["seconds_reference"] = round(time.perf_counter() - t0, 4)
-        metrics["reference_supersample"] = int(supersample)
-        imageio.write_image(dest / f"{stem}_reference.exr", ref)
-        files["reference_png"] = imageio.write_image(dest / f"{stem}_reference.png",
-                                                     _expose(ref, exposure)).name
-        files["error_png"] = imageio.write_image(dest / f"{stem}_error.png",
-                                                 _error_heatmap(res.image, ref, mask)).name
-        cov = mask & res.covered
-        # of the head the generator sees from this camera, the part rendered from measured
-        # texels (`coverage` counts against the render's own surface, which lacks whatever the
-        # reconstruction lacks: a camera-camera mesh ends where one camera stopped decoding)
-        metrics["head_coverage"] = round(float(cov.sum() / max(mask.sum(), 1)), 6)
-
-        def figures(prefix, image):
-            """``{prefix}psnr_db``, ``rel_rmse`` and their ``_covered`` forms; the two PSNRs."""
-            a, c = image_metrics(image, ref, mask), image_metrics(image, ref, cov)
-            metrics.update({f"{prefix}psnr_db": a["psnr_db"], f"{prefix}rel_rmse": a["rel_rmse"],
-                            f"{prefix}psnr_db_covered": c["psnr_db"],
-                            f"{prefix}rel_rmse_covered": c["rel_rmse"]})
-            return a, c
-
-        m, mc = figures("", res.image)
-        metrics["mask_pixels"] = m["pixels"]
-        if detail is not None:  # the texture-space figures (the paper's render path)
-            figures("texture_", res.texture)
+    # what the evaluation reads (facegeo.evaluate.views): the camera, the weights, the
+    # covered pixels and the renders beside the main one
+    atomic_write_text(dest / f"{stem}_camera.json", json.dumps(camera.to_dict(), indent=2))
+    np.save(dest / f"{stem}_weights.npy", np.asarray(w, np.float64))
+    imageio.write_image(dest / f"{stem}_covered.png",
+                        np.where(res.covered, 255, 0).astype(np.uint8))
+    if detail is not None:  # the texture-space renders (the paper's render path)
+        imageio.write_image(dest / f"{stem}_texture.exr", res.texture)
         if naive is not None:
-            nm, nc = figures("naive_", naive.image)
-            if detail is not None:
-                figures("texture_naive_", naive.texture)
-            if m["psnr_db"] is not None and nm["psnr_db"] is not None:
-                metrics["psnr_gain_db"] = round(m["psnr_db"] - nm["psnr_db"], 4)
-            if mc["psnr_db"] is not None and nc["psnr_db"] is not None:
-                metrics["psnr_gain_db_covered"] = round(mc["psnr_db"] - nc["psnr_db"], 4)
-        if paper is not None:
-            figures("paper_", paper.image)
+            imageio.write_image(dest / f"{stem}_naive_texture.exr", naive.texture)
+    if paper is not None:
+        imageio.write_image(dest / f"{stem}_paper.exr", paper.image)
+    metrics["exposure"] = float(exposure)
     metrics["files"] = files
     metrics["name"] = stem
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
@@ -695,13 +636,10 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     """The ``render`` stage of ``facegeo reconstruct``: every view in ``views`` under ``env``
     into ``dest`` (:func:`render_one`); returns the stage's metrics.
 
-    Metrics: ``views`` (per view, as :func:`run_render`), and over the views with a reference
-    ``psnr_db_min``, ``psnr_db_mean``, ``naive_psnr_db_mean``, ``psnr_gain_db_min`` (the
-    novel-view goal of issue 14: resynthesis at least 3 dB better than the naive baseline) and
-    ``psnr_gain_db_covered_min`` (the same over the pixels whose surface a source camera
-    measured: the part of the head no camera saw has no mesh and is black in both renders);
-    ``paper_psnr_db_mean`` when the views were rendered with a shrinkage λ ≠ 1 (the paper's
-    resynthesis as written beside it).
+    Metrics: ``views`` (per view, as :func:`render_one`), ``env`` and ``seconds`` (the views'
+    sum). The figures against references (``psnr_db_min`` …, the novel-view goal of issue 14:
+    resynthesis at least 3 dB better than the naive baseline) are the ``evaluate`` stage's
+    (:mod:`facegeo.evaluate.views`).
     """
     per_view = {}
     # the cross-validated λ, the atlas check and the relit source images, once a stage
@@ -712,33 +650,17 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
         m = render_one(scan, out, dest, camera_spec=spec, env=env, progress=tick,
                        cache=cache, **settings)
         per_view[m["name"]] = {key: v for key, v in m.items() if key != "stats"}
-    return {"views": per_view, "env": str(env), **_views_summary(per_view)}
+    return {"views": per_view, "env": str(env),
+            "seconds": round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)}
 
 
 def _views_summary(per_view: dict) -> dict:
-    """The figures over several views' metrics: ``psnr_db_min`` / ``_mean``,
-    ``naive_psnr_db_mean``, ``psnr_gain_db_min``, ``psnr_gain_db_covered_min``,
-    ``paper_psnr_db_mean`` (each over the views that have it) and ``seconds`` (their sum)."""
-    metrics: dict[str, Any] = {}
-    psnr = [v["psnr_db"] for v in per_view.values() if v.get("psnr_db") is not None]
-    naive = [v["naive_psnr_db"] for v in per_view.values() if v.get("naive_psnr_db") is not None]
-    gain = [v["psnr_gain_db"] for v in per_view.values() if v.get("psnr_gain_db") is not None]
-    gain_cov = [v["psnr_gain_db_covered"] for v in per_view.values()
-                if v.get("psnr_gain_db_covered") is not None]
-    if psnr:
-        metrics["psnr_db_min"] = round(min(psnr), 4)
-        metrics["psnr_db_mean"] = round(float(np.mean(psnr)), 4)
-    if naive:
-        metrics["naive_psnr_db_mean"] = round(float(np.mean(naive)), 4)
-    if gain:
-        metrics["psnr_gain_db_min"] = round(min(gain), 4)
-    if gain_cov:
-        metrics["psnr_gain_db_covered_min"] = round(min(gain_cov), 4)
-    paper = [v["paper_psnr_db"] for v in per_view.values() if v.get("paper_psnr_db") is not None]
-    if paper:
-        metrics["paper_psnr_db_mean"] = round(float(np.mean(paper)), 4)
-    metrics["seconds"] = round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)
-    return metrics
+    """The views' ``seconds`` (their sum) and, over the views that have them, the evaluation's
+    figures (:func:`facegeo.evaluate.views.views_summary`: ``psnr_db_min`` …)."""
+    from facegeo.evaluate.views import views_summary
+
+    return {**views_summary(per_view),
+            "seconds": round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)}
 
 
 def _expose(img, exposure: float) -> np.ndarray:

@@ -9,6 +9,13 @@ not run yet is simply absent; the page says which of the pipeline's stages it sh
 folder was deleted (or emptied) by hand is absent too: writing the report drops its entry from
 ``metrics.json`` (:func:`facegeo.pipeline.cache.forget_missing_stages`) and the page names it
 once, as deleted, instead of showing figures of products that are gone.
+
+The figures against references are the ``evaluate`` stage's (:mod:`facegeo.evaluate`, entry
+``"evaluate"`` of ``metrics.json``, one sub-entry per compared stage): the speed-against-error
+summary shows each beside the time of the stage whose products it measures (the ``project``
+row's ``projection_rel_rmse``, the ``render`` row's ``psnr_db_min``), and the ``evaluate`` row
+the headline figures of compared stages that have no row of their own (a ``facegeo evaluate``
+of products made elsewhere).
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from facegeo import __version__
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_write_text
 from facegeo.pipeline.cache import forget_missing_stages, stale_stages
-from facegeo.pipeline.reconstruct import STAGES
+from facegeo.pipeline.reconstruct import RUN_RECORD, STAGES
 
 __all__ = ["PIPELINE_ORDER", "REPORT_NAME", "write_report", "summary_rows", "summary_table"]
 
@@ -104,15 +111,23 @@ def summary_rows(metrics: dict, stale: dict | None = None) -> list[dict]:
         as ``<name>_aligned`` in place of the same figures in the generator's frame (the gauge
         dominates those: 2–4 mm against a 0.08 mm shape error on the small preset).
     """
+    from facegeo.evaluate.evaluation import summary_rows as evaluation_headlines
+
+    evaluated = metrics.get("evaluate") if isinstance(metrics.get("evaluate"), dict) else {}
     rows = []
     for stage in _ordered(metrics):
         m = metrics[stage]
-        if not isinstance(m, dict):
+        if not isinstance(m, dict) or stage == RUN_RECORD:  # the run's choices: no stage
             continue
         sec = m.get("seconds")
         if isinstance(sec, dict):
             sec = sec.get("total")
-        errors = _errors_of(m)
+        if stage == "evaluate":  # figures of compared stages without a row of their own
+            errors = {f"{s}.{k}": v for s, k, v in evaluation_headlines(m)
+                      if not isinstance(metrics.get(s), dict)
+                      and isinstance(v, (int, float)) and not isinstance(v, bool)}
+        else:  # the stage's own figures and the evaluation's of its products
+            errors = _errors_of(m) | _errors_of(evaluated.get(stage) or {})
         aligned = m.get("after_rigid_alignment")
         if isinstance(aligned, dict) and _errors_of(aligned):
             # a rig other than the true one has its own world frame: the figures in the
@@ -231,6 +246,11 @@ def write_report(out_dir, *, title: str | None = None, stale: dict | None = None
             f"<p>facegeo {esc(__version__)}, written {esc(time.strftime('%Y-%m-%d %H:%M:%S'))}."
             f" Stages shown: {esc(', '.join(stages)) or 'none'}; pipeline: "
             f"{esc(' → '.join(PIPELINE_ORDER))}.</p>"]
+    run = metrics.get(RUN_RECORD)
+    if isinstance(run, dict):
+        body.append(f"<p>Made with rig <code>{esc(str(run.get('rig')))}</code>, mesh "
+                    f"<code>{esc(str(run.get('mesh')))}</code>, world frame "
+                    f"{esc(str(run.get('world')))}.</p>")
     if dropped:
         body.append(f'<p class="dropped">Products deleted since they were made, so not shown '
                     f'(and dropped from metrics.json): {esc(", ".join(dropped))}; '

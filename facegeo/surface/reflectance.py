@@ -96,6 +96,17 @@ import numpy as np
 
 from facegeo.checks import as_array, check_positive_int, fmt_value
 from facegeo.errors import InputError, ShapeError
+from facegeo.surface._zarr_field import (
+    DEFAULT_FIELD_FORMAT,
+    FIELD_FORMATS,
+    create_field,
+    field_chunk_bounds,
+    field_location,
+    find_field,
+    open_zarr_field,
+    write_field,
+    write_field_chunk,
+)
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +114,8 @@ __all__ = [
     "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
     "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
     "open_field", "iter_field_chunks", "gather_field_samples",
+    "FIELD_FORMATS", "DEFAULT_FIELD_FORMAT", "create_field", "field_chunk_bounds",
+    "field_location", "find_field", "open_zarr_field", "write_field", "write_field_chunk",
     "BlendedField", "blend_fields", "open_blended",
     "BLENDED_FILE", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
     "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS", "OCCLUSION_METHODS",
@@ -508,10 +521,28 @@ def _release_rows(mm: np.memmap, t0: int, t1: int, *, write: bool) -> None:
         m.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
 
 
+def _new_field(directory: Path, field_format: str, dtype: str, shape: tuple, lights: int):
+    """The writable field of :func:`project_camera`: ``R.npy`` memory-mapped, or the Zarr
+    store ``R.zarr`` chunked ``_TRANSPOSE_TEXELS × lights`` (the other format's file of an
+    earlier run is removed: :func:`open_field` would read it first)."""
+    zarr_loc = field_location(directory, "R.npy")
+    if field_format == "npy":
+        if Path(zarr_loc).exists():
+            import shutil
+
+            shutil.rmtree(zarr_loc)
+        return np.lib.format.open_memmap(directory / "R.npy", mode="w+", dtype=dtype,
+                                         shape=shape)
+    (directory / "R.npy").unlink(missing_ok=True)
+    loc = create_field(directory, shape, dtype=dtype, chunks=(_TRANSPOSE_TEXELS, lights),
+                       overwrite=True)
+    return open_zarr_field(loc, mode="r+")
+
+
 def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int],
                    n_lights: int, directory, *, dtype: str = "float16",
                    block_lights: int = DEFAULT_BLOCK_LIGHTS,
-                   shadows=None) -> ProjectedField:
+                   shadows=None, field_format: str = DEFAULT_FIELD_FORMAT) -> ProjectedField:
     """Project one camera's OLAT frames onto its visible texels, streaming frame by frame.
 
     Implements Debevec et al. 2000 Eq. (2) per texel: ``R_c[t, l] = L_l(q_c(t))``, the frame of
@@ -539,6 +570,10 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
     shadows : facegeo.surface.shadows.ShadowTaps, optional
         Built for this camera's projected texels (those with ``weight > 0``, in texel order) and
         the frames' lights; its running totals count the samples it changed.
+    field_format : {"npy", "zarr"}
+        ``R.npy`` (default; what the other stages look for) or the Zarr store ``R.zarr``
+        chunked ``4096 texels × block_lights lights`` (:mod:`facegeo.surface._zarr_field`:
+        each light block fills whole chunks). :func:`open_field` reads either.
 
     Returns
     -------
@@ -556,6 +591,9 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
         raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
     n_lights = check_positive_int(n_lights, "n_lights")
     block_lights = check_positive_int(block_lights, "block_lights")
+    if field_format not in FIELD_FORMATS:
+        raise InputError(f"field_format: expected one of {', '.join(FIELD_FORMATS)}, got "
+                         f"{fmt_value(field_format)}")
     W, H = (int(s) for s in size)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -566,8 +604,7 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
                          f"samples, the camera projects {sel.size} texels")
     L = int(n_lights)
     B = int(min(block_lights, L))
-    R = np.lib.format.open_memmap(directory / "R.npy", mode="w+", dtype=dtype,
-                                  shape=(sel.size, L, 3))
+    R = _new_field(directory, field_format, dtype, (sel.size, L, 3), B)
     buf = np.empty((B, sel.size, 3), np.float32)  # frame-major: each frame one contiguous row
     n_masked = n_overflow = 0
     count = 0
@@ -630,13 +667,19 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
                           n_masked=n_masked, n_overflow=n_overflow, seconds=seconds)
 
 
-def open_field(directory, name: str = "R.npy") -> np.ndarray:
-    """Memory-map a camera's ``R.npy`` ``(T_c, L, 3)`` read-only (``name=BLENDED_FILE``: the
-    blended field of :func:`blend_fields`)."""
-    path = Path(directory) / name
-    if not path.is_file():
-        raise InputError(f"{path}: no projected field here (run the projection first)")
-    return np.load(path, mmap_mode="r")
+def open_field(directory, name: str = "R.npy"):
+    """A camera's field ``R`` ``(T_c, L, 3)``, read-only (``name=BLENDED_FILE``: the blended
+    field of :func:`blend_fields`), in either format: ``directory/R.npy`` memory-mapped, else
+    the Zarr store ``directory/R.zarr`` (:mod:`facegeo.surface._zarr_field`; ``directory`` may
+    then be an fsspec URL). Both index like arrays along texels and lights (``R[t0:t1]``,
+    ``R[t0:t1, l0:l1]`` return numpy arrays; a Zarr field reads only the chunks covered)."""
+    found = find_field(directory, name)
+    if found is None:
+        where = field_location(directory, name)
+        raise InputError(f"{directory}: no projected field here (neither {name} nor "
+                         f"{Path(str(where)).name}; run the projection first)")
+    kind, loc = found
+    return np.load(loc, mmap_mode="r") if kind == "npy" else open_zarr_field(loc)
 
 
 #: Blend float16 fields with the compiled kernels (False: the numpy reference path).
@@ -651,9 +694,10 @@ _STREAM_CHUNK_BYTES = 32 << 20
 
 def iter_field_chunks(directory, chunk_texels: int | None = None, name: str = "R.npy"):
     """Yield ``(start, R[start:stop] as float32)`` chunks along texels (never computing in
-    float16); ``name`` as in :func:`open_field`. Default ``chunk_texels``: as many as make a
-    32 MB float32 chunk (a fixed 8,192 made 201 MB chunks at 2048 lights, and a caller's
-    temporaries several times that)."""
+    float16); ``name`` as in :func:`open_field` (either format). Default ``chunk_texels``: as
+    many as make a 32 MB float32 chunk (a fixed 8,192 made 201 MB chunks at 2048 lights, and a
+    caller's temporaries several times that); for a Zarr field rounded to whole chunks of its
+    store (at least one), so that no stored chunk is read twice."""
     R = open_field(directory, name)
     chunk_texels = _chunk_rows(R, chunk_texels)
     for s in range(0, R.shape[0], chunk_texels):
@@ -667,7 +711,11 @@ def _chunk_rows(R, chunk_texels) -> int:
     make a :data:`_STREAM_CHUNK_BYTES` float32 chunk."""
     if chunk_texels is not None:
         return check_positive_int(chunk_texels, "chunk_texels")
-    return max(1, _STREAM_CHUNK_BYTES // (max(int(np.prod(R.shape[1:])), 1) * 4))
+    rows = max(1, _STREAM_CHUNK_BYTES // (max(int(np.prod(R.shape[1:])), 1) * 4))
+    stored = getattr(R, "chunks", None)  # a Zarr field: whole chunks of texels
+    if isinstance(stored, tuple) and stored and not isinstance(R, np.ndarray):
+        rows = max(stored[0], rows - rows % stored[0])
+    return rows
 
 
 def _index_array(a, name: str) -> np.ndarray:
@@ -713,9 +761,13 @@ def gather_field_samples(directory, rows, lights, *, chunk_texels: int | None = 
         raise InputError(f"lights: expected indices in [0, {R.shape[1]}) of {directory}, got "
                          f"{lights.min()}..{lights.max()}")
     out = np.empty((rows.size, lights.size) + R.shape[2:], R.dtype)
+    zarr_field = not isinstance(R, np.ndarray)
     for a in range(0, rows.size, step):
         r = rows[a:a + step]
-        out[a:a + r.size] = R[r[:, None], lights[None, :]]
+        if zarr_field:  # orthogonal selection: the chunks holding these rows and lights
+            out[a:a + r.size] = R.get_orthogonal_selection((r, lights, slice(None)))
+        else:
+            out[a:a + r.size] = R[r[:, None], lights[None, :]]
         _release_rows(R, int(r.min()), int(r.max()) + 1, write=False)
     return out
 

@@ -1,0 +1,266 @@
+"""Rendered novel views against the generator's reference of the same camera (synthetic scans).
+
+Reads one view of the ``render`` stage (``out/render/`` or ``facegeo render``'s ``out/views/``)
+by its stem: ``<stem>.json`` (the view's metrics: ``rig``, ``supersample``, ``exposure``),
+``<stem>_camera.json`` (the camera it was rendered from), ``<stem>_weights.npy`` (the Eq. (4)
+field weights of the environment, ``(L, 3)`` float64), ``<stem>.exr`` (the render),
+``<stem>_covered.png`` (255 where the render's pixel was rendered from measured texels) and,
+when the stage made them, ``<stem>_naive.exr``, ``<stem>_texture.exr``,
+``<stem>_naive_texture.exr`` (the texture-space renders before the image-space detail) and
+``<stem>_paper.exr`` (the paper's resynthesis as written, λ = 1). It writes
+``<stem>_reference.exr/.png`` and ``<stem>_error.png`` into the folder it is given.
+
+Metrics against the generator's reference (same camera, same Eq. (4) weights, its exact
+renderer integrating the render's own pixel footprint, ``reference_supersample``;
+``mask`` = the reference's pixels that see the head):
+
+* ``psnr_db`` = 10 log10(peak² / MSE), MSE over the mask's pixels and channels, peak = the
+  reference's maximum over the mask; ``rel_rmse`` = sqrt(Σ err² / Σ ref²) over the mask;
+* the same for the naive baseline (``naive_psnr_db``, ``naive_rel_rmse``) and the gain
+  ``psnr_gain_db`` (``psnr_gain_db_covered`` over covered pixels);
+* ``paper_psnr_db`` (``_covered``), ``paper_rel_rmse`` (``_covered``) for the paper's λ = 1;
+* ``head_coverage``: the fraction of the reference's head mask rendered from measured texels;
+  the ``*_covered`` variants of PSNR / relative RMSE over covered pixels only;
+* with image-space detail: ``texture_*`` and ``texture_naive_*``, the same figures of the
+  texture-space renders;
+* with a rig other than the true one, the reference is rendered from the camera moved into the
+  generator's frame by the gauge alignment of the atlas mesh
+  (:func:`facegeo.evaluate.gauge.truth_gauge`; ``gauge_rotation_deg`` /
+  ``gauge_translation_mm``).
+
+A real scan's reference images — a witness camera photographed under a known environment —
+are ``[reference] images.<camera>.<env> = "reference/…"`` entries (a linear ``.exr`` or
+``.hdr`` of the camera's size; ``<env>`` the environment as the view names it: a built-in
+name, or a map file's stem): a view of that camera under that environment is compared with it
+by :func:`evaluate_view_against_image`, the same figures over the pixels where the reference
+is finite and not black (``mask``; the reference's own extent, without a head mask).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facegeo.errors import InputError
+from facegeo.evaluate.gauge import truth_gauge
+
+__all__ = ["evaluate_view", "evaluate_view_against_image", "has_view_reference",
+           "image_metrics", "reference_image_key", "view_figures", "views_summary"]
+
+
+def has_view_reference(scan) -> bool:
+    """Whether the scan carries the generator's truth a view is compared with."""
+    return bool(scan.synthetic and "skin" in scan.ground_truth_keys)
+
+
+def image_metrics(img, ref, mask) -> dict:
+    """PSNR (dB, peak = max of ``ref`` over ``mask``) and relative RMSE over ``mask``.
+
+    Parameters
+    ----------
+    img, ref : (H, W, 3) float32, linear radiance
+    mask : (H, W) bool
+    """
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return {"psnr_db": None, "rel_rmse": None, "pixels": 0}
+    e = img[m].astype(np.float64) - ref[m]
+    mse = float((e ** 2).mean())
+    peak = float(ref[m].max())
+    den = float((ref[m].astype(np.float64) ** 2).sum())
+    psnr = 10.0 * math.log10(peak ** 2 / mse) if mse > 0 and peak > 0 else math.inf
+    return {"psnr_db": round(psnr, 4) if math.isfinite(psnr) else None,
+            "rel_rmse": round(math.sqrt(float((e ** 2).sum()) / den), 6) if den > 0 else None,
+            "pixels": int(m.sum())}
+
+
+def _error_heatmap(img, ref, mask) -> np.ndarray:
+    import cv2
+
+    err = np.linalg.norm(img.astype(np.float64) - ref, axis=2)
+    top = float(np.percentile(np.linalg.norm(ref[mask], axis=1), 99)) if mask.any() else 1.0
+    g = np.clip(err / max(0.25 * top, 1e-12), 0, 1)
+    bgr = cv2.applyColorMap((g * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    return np.where(mask[..., None], bgr[..., ::-1], 0).astype(np.uint8)
+
+
+def _read_view(folder: Path, stem: str) -> dict:
+    """The files of one rendered view (module docstring); missing optional ones are None."""
+    from facegeo.capture import imageio
+    from facegeo.geometry.camera import Camera
+
+    need = [folder / f"{stem}.json", folder / f"{stem}_camera.json",
+            folder / f"{stem}_weights.npy", folder / f"{stem}.exr", folder / f"{stem}_covered.png"]
+    missing = [p.name for p in need if not p.is_file()]
+    if missing:
+        raise InputError(f"evaluate: view {stem!r} in {folder} lacks {', '.join(missing)} "
+                         "(rendered before the views recorded them?); render it again")
+    meta = json.loads(need[0].read_text(encoding="utf-8"))
+    cam = Camera.from_dict(json.loads(need[1].read_text(encoding="utf-8")),
+                           where=str(need[1]))
+
+    def image(suffix):
+        p = folder / f"{stem}{suffix}.exr"
+        return imageio.read_image(p).astype(np.float32) if p.is_file() else None
+
+    return {"meta": meta, "camera": cam, "weights": np.load(need[2]),
+            "image": image(""), "naive": image("_naive"), "texture": image("_texture"),
+            "naive_texture": image("_naive_texture"), "paper": image("_paper"),
+            "covered": imageio.read_image(need[4]) > 0}
+
+
+def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> dict:
+    """One rendered view against the generator's reference (module docstring).
+
+    Parameters
+    ----------
+    scan : facegeo.capture.scan.Scan
+        A synthetic scan (:func:`has_view_reference`).
+    out : path-like
+        The folder holding ``atlas/`` (the gauge alignment's mesh).
+    views_dir : path-like
+        The folder holding the view's files.
+    stem : str
+        The view's file stem (its ``name``).
+    dest : path-like
+        Where the reference and the error heat map are written.
+    renderer : facegeo.synth.render.ReferenceRenderer, optional
+        The generator's truth already loaded (default: loaded from the scan).
+
+    Returns
+    -------
+    dict
+        The figures (module docstring), ``seconds_reference``, ``reference_supersample``,
+        ``files`` (``reference_png``, ``error_png``, relative to ``dest``).
+    """
+    from facegeo.capture import imageio
+    from facegeo.capture.response import encode
+    from facegeo.surface.atlas import Atlas
+
+    views_dir, dest = Path(views_dir), Path(dest)
+    v = _read_view(views_dir, stem)
+    meta, camera = v["meta"], v["camera"]
+    supersample = int(meta.get("supersample", 1))
+    t0 = time.perf_counter()
+    if renderer is None:
+        from facegeo.synth.render import load_ground_truth
+
+        renderer = load_ground_truth(scan)
+    atlas = Atlas.load(Path(out) / "atlas" / "atlas.npz")
+    T_true, gauge = truth_gauge(renderer, atlas, meta.get("rig"))
+    metrics: dict[str, Any] = dict(gauge)
+    ref_camera = camera if T_true is None else dataclasses.replace(
+        camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
+    # the reference integrates the render's own pixel footprint (s × s box): a point
+    # sample of a hard shadow edge is not what a camera records, and comparing pixel
+    # centres with a box-filtered render (or the reverse) would measure the sampling
+    ref = renderer.render_lights(ref_camera, renderer.rig.lights, v["weights"],
+                                 supersample=supersample)
+    mask = renderer.surface_view(ref_camera, supersample=supersample).mask
+    metrics["seconds_reference"] = round(time.perf_counter() - t0, 4)
+    metrics["reference_supersample"] = supersample
+    dest.mkdir(parents=True, exist_ok=True)
+    imageio.write_image(dest / f"{stem}_reference.exr", ref)
+    exposure = np.float32(meta.get("exposure", 1.0))
+    files = {"reference_png": imageio.write_image(
+        dest / f"{stem}_reference.png",
+        encode(np.clip(ref * exposure, 0.0, 1.0), "srgb", np.uint8)).name,
+        "error_png": imageio.write_image(dest / f"{stem}_error.png",
+                                         _error_heatmap(v["image"], ref, mask)).name}
+    metrics.update(view_figures(v, ref, mask))
+    metrics["files"] = files
+    return metrics
+
+
+def view_figures(v: dict, ref, mask) -> dict:
+    """The figures of a view's renders ``v`` (:func:`_read_view`) against a reference image
+    ``ref`` ``(H, W, 3)`` over the pixels ``mask`` ``(H, W)`` (module docstring)."""
+    metrics: dict[str, Any] = {}
+    cov = mask & v["covered"]
+    # of the head the generator sees from this camera, the part rendered from measured
+    # texels (`coverage` counts against the render's own surface, which lacks whatever the
+    # reconstruction lacks: a camera-camera mesh ends where one camera stopped decoding)
+    metrics["head_coverage"] = round(float(cov.sum() / max(mask.sum(), 1)), 6)
+
+    def figures(prefix, image):
+        """``{prefix}psnr_db``, ``rel_rmse`` and their ``_covered`` forms; the two PSNRs."""
+        a, c = image_metrics(image, ref, mask), image_metrics(image, ref, cov)
+        metrics.update({f"{prefix}psnr_db": a["psnr_db"], f"{prefix}rel_rmse": a["rel_rmse"],
+                        f"{prefix}psnr_db_covered": c["psnr_db"],
+                        f"{prefix}rel_rmse_covered": c["rel_rmse"]})
+        return a, c
+
+    m, mc = figures("", v["image"])
+    metrics["mask_pixels"] = m["pixels"]
+    if v["texture"] is not None:  # the texture-space figures (the paper's render path)
+        figures("texture_", v["texture"])
+    if v["naive"] is not None:
+        nm, nc = figures("naive_", v["naive"])
+        if v["naive_texture"] is not None:
+            figures("texture_naive_", v["naive_texture"])
+        if m["psnr_db"] is not None and nm["psnr_db"] is not None:
+            metrics["psnr_gain_db"] = round(m["psnr_db"] - nm["psnr_db"], 4)
+        if mc["psnr_db"] is not None and nc["psnr_db"] is not None:
+            metrics["psnr_gain_db_covered"] = round(mc["psnr_db"] - nc["psnr_db"], 4)
+    if v["paper"] is not None:
+        figures("paper_", v["paper"])
+    return metrics
+
+
+def reference_image_key(camera: str, env: str) -> str:
+    """The ``[reference]`` key of a reference image of ``camera`` under ``env``: a built-in
+    environment's name or a map file's stem (the render's ``env`` as it recorded it)."""
+    return f"images.{camera}.{Path(str(env)).stem}"
+
+
+def evaluate_view_against_image(scan, views_dir, stem: str) -> dict | None:
+    """One rendered view against the scan's reference image of its camera and environment
+    (module docstring); None when the scan has none for it."""
+    from facegeo.capture import imageio
+
+    v = _read_view(Path(views_dir), stem)
+    key = reference_image_key(v["camera"].name, v["meta"].get("env", ""))
+    if key not in scan.reference_keys:
+        return None
+    path = scan.reference_path(key)
+    ref = np.asarray(imageio.read_image(path), np.float32)
+    if ref.ndim == 2:
+        ref = np.repeat(ref[..., None], 3, axis=2)
+    if ref.shape[:2] != v["image"].shape[:2] or ref.shape[2] < 3:
+        raise InputError(f"[reference] {key}: {path} is {ref.shape[1]} x {ref.shape[0]} with "
+                         f"{ref.shape[2]} channel(s); the view {stem!r} is "
+                         f"{v['image'].shape[1]} x {v['image'].shape[0]} RGB")
+    ref = ref[..., :3]
+    mask = np.isfinite(ref).all(axis=2) & (ref.max(axis=2) > 0)
+    return {"reference": f"{key} ({path.name})", **view_figures(v, np.nan_to_num(ref), mask)}
+
+
+def views_summary(per_view: dict) -> dict:
+    """The figures over several views: ``psnr_db_min`` / ``_mean``, ``naive_psnr_db_mean``,
+    ``psnr_gain_db_min``, ``psnr_gain_db_covered_min``, ``paper_psnr_db_mean`` (each over the
+    views that have it)."""
+    def values(key):
+        return [v[key] for v in per_view.values() if v.get(key) is not None]
+
+    metrics: dict[str, Any] = {}
+    psnr, naive = values("psnr_db"), values("naive_psnr_db")
+    gain, gain_cov = values("psnr_gain_db"), values("psnr_gain_db_covered")
+    if psnr:
+        metrics["psnr_db_min"] = round(min(psnr), 4)
+        metrics["psnr_db_mean"] = round(float(np.mean(psnr)), 4)
+    if naive:
+        metrics["naive_psnr_db_mean"] = round(float(np.mean(naive)), 4)
+    if gain:
+        metrics["psnr_gain_db_min"] = round(min(gain), 4)
+    if gain_cov:
+        metrics["psnr_gain_db_covered_min"] = round(min(gain_cov), 4)
+    paper = values("paper_psnr_db")
+    if paper:
+        metrics["paper_psnr_db_mean"] = round(float(np.mean(paper)), 4)
+    return metrics

@@ -1,0 +1,220 @@
+"""Scaling out (issue 38): the decode stage on one worker against two, beside the in-process run;
+and the cost of storing a reflectance field as Zarr against ``.npy``.
+
+``scale.decode`` — one synthetic scan (the generator at :data:`SCAN_PRESET`, or the quick
+preset: two cameras, Gray code with inverses, white / black and 3-step phase on x) decoded by
+:func:`facegeo.pipeline.decode.run_decode` four ways, each timed best of ``repeat`` after one
+untimed warm-up run (imports and numba compilation in every process), into a fresh folder:
+
+* ``in-process engine, 1 thread`` — the default engine, numba and BLAS limited to one thread:
+  the baseline of the one-worker row (equal threads);
+* ``in-process engine, 2 threads`` — numba's parallel loops on two threads: the baseline of the
+  two-worker row at **equal threads** (two workers × one thread each);
+* ``LocalCluster, 1 worker × 1 thread`` and ``2 workers × 1 thread`` — :class:`DaskEngine`
+  with :data:`WORKER_LIMIT` per worker, numba at one thread a worker
+  (:data:`facegeo.pipeline.engine.WORKER_ENV`). The cluster's start (seconds) is in ``extra``,
+  outside the timed runs.
+
+Speed is frames decoded per second (cameras × frames); the error is the fraction of product
+files (``decode.npz``, the PNGs) that are not byte-identical to the in-process run (0 expected).
+Each cluster row states every worker's peak resident memory during its tasks (reset at each
+task's start) and the per-camera task seconds, whose mean over the frames and megapixels of a
+camera is the model's decode cost (``seconds per megapixel-frame``, docs/scale.md). On a
+2-core machine shared with other jobs two workers can at best halve the time; the per-camera
+tasks are the unit of parallelism, so a scan of two cameras has exactly two.
+
+``scale.field`` — a float16 field ``(T, L, 3)`` written chunk by chunk and read back in
+texel chunks, as ``R.npy`` (memory map, :func:`facegeo.surface.reflectance.iter_field_chunks`)
+and as a Zarr store (:func:`facegeo.surface.reflectance.write_field`, zstd chunks of
+4,096 texels × 64 lights): throughput in texel·lights per second, bytes on disk per
+texel·light, and the largest difference between what was written and what is read (0
+expected: float16 in, float16 out). One thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from facegeo.pipeline.bench import BenchRow, limit_threads, peak_rss_mb, register, reset_peak_rss
+
+#: Memory limit of each worker (bytes or a size string).
+WORKER_LIMIT = "1GiB"
+#: Generator settings of the full run's scan: the default rig's two cameras at full size
+#: (480 × 720), a 1024 × 768 projector, two lights (the OLAT frames are not decoded), few
+#: board views, one ray per structured-light pixel (the frames only need to decode).
+SCAN_PRESET = dict(camera_scale=1.0, projector_size=(1024, 768))
+#: ... and the quick run's: half the size.
+QUICK_PRESET = dict(camera_scale=0.5, projector_size=(512, 384))
+
+
+def _scan(root: Path, quick: bool) -> Path:
+    from facegeo.synth.capture import Preset, generate_scan
+
+    p = QUICK_PRESET if quick else SCAN_PRESET
+    preset = Preset("scale-bench", p["camera_scale"], 2, 1, 4, p["projector_size"], 3, 1, 3,
+                    sl_supersample=1)
+    generate_scan(root, preset, seed=0, noise=0.005)
+    return root
+
+
+@contextlib.contextmanager
+def _numba_threads(n: int):
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a dependency
+        yield
+        return
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.suffix in (".npz", ".png")}
+
+
+def _timed_runs(scan: Path, out: Path, tag: str, repeat: int, engine=None):
+    """Warm-up then ``repeat`` timed runs of the decode stage; returns (best seconds, metrics of
+    the best run, its product folder)."""
+    from facegeo.pipeline.decode import run_decode
+
+    run_decode(scan, out / f"{tag}-warm", engine=engine)
+    best = None
+    for i in range(repeat):
+        dest = out / f"{tag}-{i}"
+        t0 = time.perf_counter()
+        m = run_decode(scan, dest, engine=engine)
+        t = time.perf_counter() - t0
+        if best is None or t < best[0]:
+            best = (t, m, dest / "decode")
+    return best
+
+
+@register("scale.decode")
+def bench_scale_decode(quick: bool) -> list[BenchRow]:
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.engine import make_engine
+
+    repeat = 2 if quick else 3
+    rows: list[BenchRow] = []
+    with tempfile.TemporaryDirectory(prefix="facegeo-scale-") as tmp:
+        tmp = Path(tmp)
+        scan = _scan(tmp / "scan", quick)
+        s = load_scan(scan)
+        cams = list(s.camera_names)
+        n_frames = len(s.sl_frames)
+        mpx = {c: s.rig.camera(c).width * s.rig.camera(c).height / 1e6 for c in cams}
+        frames = n_frames * len(cams)
+        size = f"{len(cams)} cameras × {n_frames} frames of {s.rig.camera(cams[0]).width} × " \
+               f"{s.rig.camera(cams[0]).height}"
+        results = {}
+        for threads in (1, 2):
+            with limit_threads(threads), _numba_threads(threads):
+                reset_peak_rss()
+                t, m, dest = _timed_runs(scan, tmp / "runs", f"inproc{threads}", repeat)
+                results[f"in-process engine, {threads} thread{'s' * (threads > 1)}"] = dict(
+                    seconds=t, metrics=m, dest=dest, threads=threads, peak=peak_rss_mb())
+        ref = _digests(results["in-process engine, 1 thread"]["dest"])
+        for n in (1, 2):
+            t0 = time.perf_counter()
+            with make_engine(workers=n, memory_limit=WORKER_LIMIT) as eng:
+                start = time.perf_counter() - t0
+                t, m, dest = _timed_runs(scan, tmp / "runs", f"workers{n}", repeat, engine=eng)
+                per_worker: dict[str, float] = {}
+                task_s = []
+                for r in eng.records:
+                    if r.peak_rss_mb is not None:
+                        per_worker[r.worker] = max(per_worker.get(r.worker, 0.0), r.peak_rss_mb)
+                    task_s.append((r.task, r.seconds))
+                results[f"LocalCluster, {n} worker{'s' * (n > 1)} × 1 thread"] = dict(
+                    seconds=t, metrics=m, dest=dest, threads=n, start=start,
+                    worker_peaks=sorted(round(v, 1) for v in per_worker.values()),
+                    limit_mb=eng.memory_limit / 2 ** 20, tasks=task_s)
+        for case, r in results.items():
+            got = _digests(r["dest"])
+            differ = sum(got.get(k) != v for k, v in ref.items()) + len(set(got) - set(ref))
+            extra = {"scan": size, "seconds (best of %d)" % repeat: round(r["seconds"], 3)}
+            ratios, base_threads = {}, {}
+            if case.startswith("LocalCluster"):
+                n = r["threads"]
+                equal = results[f"in-process engine, {n} thread{'s' * (n > 1)}"]["seconds"]
+                ratios[f"vs in-process engine, {n} thread{'s' * (n > 1)} (equal threads)"] = \
+                    equal / r["seconds"]
+                base_threads[f"vs in-process engine, {n} thread{'s' * (n > 1)} (equal threads)"] = n
+                if n > 1:
+                    one = results["LocalCluster, 1 worker × 1 thread"]["seconds"]
+                    ratios["vs LocalCluster, 1 worker × 1 thread"] = one / r["seconds"]
+                    base_threads["vs LocalCluster, 1 worker × 1 thread"] = 1
+                decode_s = [c["seconds"] for c in r["metrics"]["cameras"].values()]
+                extra.update({
+                    "cluster start s": round(r["start"], 2),
+                    "worker memory limit MiB": round(r["limit_mb"]),
+                    "worker peak RSS MiB": r["worker_peaks"],
+                    "decode s per camera (best run)": [round(x, 3) for x in decode_s],
+                    "decode s per megapixel-frame": round(
+                        float(np.mean([x / (mpx[c] * n_frames) for c, x in
+                                       zip(r["metrics"]["cameras"], decode_s)])), 4),
+                })
+            else:
+                extra["peak RSS MiB (this process)"] = round(r["peak"], 1)
+            rows.append(BenchRow("scale.decode", f"decode, {case}", frames / r["seconds"],
+                                 "frames/s", error=differ / max(len(ref), 1),
+                                 error_unit="product files not byte-identical to in-process",
+                                 ratios=ratios, extra=extra, threads=r["threads"],
+                                 baseline_threads=base_threads))
+    return rows
+
+
+@register("scale.field")
+def bench_scale_field(quick: bool) -> list[BenchRow]:
+    from facegeo.surface import reflectance as rf
+
+    T, L = (20_000, 128) if quick else (100_000, 256)
+    rng = np.random.default_rng(0)
+    rows: list[BenchRow] = []
+    with tempfile.TemporaryDirectory(prefix="facegeo-field-") as tmp, limit_threads(1):
+        tmp = Path(tmp)
+        # a smooth field with noise (compresses like a measured one, not like constant data)
+        base = rng.random((T, 1, 3), dtype=np.float32)
+        ramp = np.cos(np.linspace(0, 3, L, dtype=np.float32))[None, :, None] ** 2
+        R = (base * ramp + 0.01 * rng.standard_normal((T, L, 3), dtype=np.float32))
+        R = R.astype(np.float16)
+        for fmt in ("npy", "zarr"):
+            d = tmp / fmt
+            d.mkdir()
+            t0 = time.perf_counter()
+            if fmt == "npy":
+                mm = np.lib.format.open_memmap(d / "R.npy", mode="w+", dtype="float16",
+                                               shape=R.shape)
+                for s in range(0, T, 4096):
+                    mm[s:s + 4096] = R[s:s + 4096]
+                mm.flush()
+                del mm
+            else:
+                rf.write_field(d, R)
+            t_write = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            err = 0.0
+            for s, chunk in rf.iter_field_chunks(d):
+                err = max(err, float(np.nanmax(np.abs(chunk - R[s:s + len(chunk)]))))
+            t_read = time.perf_counter() - t0
+            nbytes = sum(p.stat().st_size for p in d.rglob("*") if p.is_file())
+            for what, t in (("write", t_write), ("read (float32 chunks)", t_read)):
+                rows.append(BenchRow(
+                    "scale.field", f"field {what}, {fmt}", T * L / t / 1e6, "M texel·lights/s",
+                    error=err, error_unit="max |read − written| (float16 units)",
+                    extra={"field": f"{T} × {L} × 3 float16",
+                           "bytes per texel·light on disk": round(nbytes / (T * L), 3),
+                           "seconds": round(t, 3)}, threads=1))
+    return rows

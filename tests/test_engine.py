@@ -1,0 +1,296 @@
+"""The execution engine (facegeo.pipeline.engine) and the decode stage on it.
+
+What is compared, stated with each assertion:
+
+* products — every file of ``out/decode/<camera>/`` byte for byte (SHA-256) between the
+  in-process run and a ``LocalCluster`` of two workers × one thread;
+* metrics — the stage's metrics with the timings (``seconds``, ``peak_rss_mb``) and the
+  cluster's own ``engine`` entry left out, equal as JSON;
+* memory — a task's working set against a worker's budget (``MEMORY_FRACTION`` × limit −
+  ``WORKER_BASE_BYTES``), checked before anything runs.
+
+The cluster tests start two worker processes with a small memory limit and close them (context
+manager) whatever happens.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from facegeo.errors import InputError
+from facegeo.pipeline.engine import (
+    MAX_RESULT_BYTES,
+    MEMORY_FRACTION,
+    WORKER_BASE_BYTES,
+    InProcessEngine,
+    Task,
+    make_engine,
+    parse_memory,
+)
+
+#: Memory limit of each worker of the test clusters (the tiny scan's camera needs ≈ 5 MB).
+WORKER_LIMIT = "700MiB"
+#: Products must be the same bytes whatever the engine.
+PRODUCTS_EQUAL = "sha256"
+_TIMINGS = ("seconds", "peak_rss_mb")
+
+
+# ------------------------------------------------------------------ task functions (importable)
+
+
+def _square(x: int) -> dict:
+    return {"x": x, "square": x * x}
+
+
+def _not_a_dict(x: int):
+    return [x]
+
+
+def _too_big(n: int) -> dict:
+    return {"payload": b"\0" * n}
+
+
+def _write_then_return(path: str) -> dict:
+    Path(path).write_text("done", encoding="utf-8")
+    return {"path": path}
+
+
+def _fail_later(seconds: float) -> dict:
+    time.sleep(seconds)
+    raise ValueError("camera broken on purpose")
+
+
+# ------------------------------------------------------------------ in process
+
+
+def test_in_process_runs_in_order_with_progress():
+    calls = []
+    eng = InProcessEngine()
+    tasks = [Task(f"t{i}", _square, (i,)) for i in (3, 1, 2)]
+    out = eng.map("demo", tasks, progress=lambda *a: calls.append(a))
+    assert out == [{"x": 3, "square": 9}, {"x": 1, "square": 1}, {"x": 2, "square": 4}]
+    assert calls == [("demo", 0, 3), ("demo", 1, 3), ("demo", 2, 3), ("demo", 3, 3)]
+    assert [r.task for r in eng.records] == ["t3", "t1", "t2"]
+    assert all(r.worker == "in-process" for r in eng.records)
+
+
+def test_results_must_be_small_dicts():
+    eng = InProcessEngine()
+    with pytest.raises(InputError, match="returned list"):
+        eng.map("demo", [Task("a", _not_a_dict, (1,))])
+    with pytest.raises(InputError, match="over the"):
+        eng.map("demo", [Task("big", _too_big, (MAX_RESULT_BYTES + 10,))])
+    with pytest.raises(InputError, match="unique"):
+        eng.map("demo", [Task("a", _square, (1,)), Task("a", _square, (2,))])
+
+
+def test_working_set_over_the_budget_stops_before_any_task(tmp_path):
+    limit = 1 << 30
+    budget = int(limit * MEMORY_FRACTION) - WORKER_BASE_BYTES
+    eng = InProcessEngine(memory_limit=limit)
+    assert eng.task_budget() == budget
+    marker = tmp_path / "ran.txt"
+    tasks = [Task("first", _write_then_return, (str(marker),), working_set=budget),
+             Task("cam_big", _square, (1,), working_set=budget + 1)]
+    with pytest.raises(InputError, match=r"task 'cam_big' needs .* MiB") as info:
+        eng.map("decode", tasks)
+    assert "--memory-limit" in str(info.value)
+    assert not marker.exists()  # checked before the first task ran
+    # at the budget it runs
+    assert eng.map("decode", tasks[:1]) == [{"path": str(marker)}]
+    # no limit: no check
+    assert InProcessEngine().map("decode", tasks[1:]) == [{"x": 1, "square": 1}]
+
+
+@pytest.mark.parametrize("value,expected", [
+    (None, None), (1024, 1024), ("2GiB", 2 << 30), ("1.5 GB", 1_500_000_000),
+    ("512MB", 512_000_000), ("700MiB", 700 << 20)])
+def test_parse_memory(value, expected):
+    assert parse_memory(value) == expected
+
+
+@pytest.mark.parametrize("bad", ["lots", "2 parsecs", -1, 0, True, [1]])
+def test_parse_memory_rejects(bad):
+    with pytest.raises(InputError, match="memory_limit"):
+        parse_memory(bad)
+
+
+def test_make_engine_options():
+    with pytest.raises(InputError, match="give one"):
+        make_engine(workers=2, scheduler="tcp://127.0.0.1:1")
+    with pytest.raises(InputError, match="own"):
+        make_engine(scheduler="tcp://127.0.0.1:1", memory_limit="1GiB")
+    eng = make_engine()
+    assert eng.kind == "in-process" and eng.memory_limit is None
+    assert make_engine(memory_limit="1GiB").memory_limit == 1 << 30
+
+
+def test_in_process_path_imports_no_dask(tmp_path):
+    """The default path (make demo, the tests) needs no cluster: neither dask nor distributed
+    is imported by the engine or the decode stage's module."""
+    code = (
+        "import sys\n"
+        "from facegeo.pipeline.engine import make_engine, Task\n"
+        "import facegeo.pipeline.decode\n"
+        "e = make_engine()\n"
+        "print(e.map('s', [Task('a', dict, ())]))\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120)
+    assert out.stdout.splitlines() == ["[{}]", "[]"], out.stdout + out.stderr
+
+
+# ------------------------------------------------------------------ the decode stage
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    from facegeo.synth.capture import generate_scan
+
+    root = tmp_path_factory.mktemp("engine") / "tiny"
+    generate_scan(root, "tiny", noise=0.005)
+    return root
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "stage.json"}
+
+
+def _without_timings(metrics: dict) -> dict:
+    m = json.loads(json.dumps(metrics))
+    m.pop("engine", None)
+    for k in _TIMINGS:
+        m.pop(k, None)
+    for cam in m["cameras"].values():
+        for k in _TIMINGS:
+            cam.pop(k, None)
+    return m
+
+
+def test_decode_memory_check_names_the_camera(tiny, tmp_path):
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.decode import decode_working_set, run_decode
+
+    scan = load_scan(tiny)
+    need = decode_working_set(scan, "cam_left")
+    assert need == 80 * 120 * (need // (80 * 120)) and need > 0
+    # a budget one byte short of the camera's working set
+    limit = int((need - 1 + WORKER_BASE_BYTES) / MEMORY_FRACTION)
+    eng = InProcessEngine(memory_limit=limit)
+    assert eng.task_budget() < need
+    with pytest.raises(InputError, match="task 'cam_left' needs"):
+        run_decode(scan, tmp_path / "out", engine=eng)
+    assert not (tmp_path / "out" / "decode").exists()
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with make_engine(workers=2, memory_limit=WORKER_LIMIT) as eng:
+        yield eng
+
+
+@pytest.mark.slow
+def test_decode_two_workers_equals_in_process(tiny, tmp_path, cluster):
+    """Every decode product is the same bytes in process and on two workers; the metrics are
+    equal but for timings; each camera ran as its own task on a worker of the cluster."""
+    from facegeo.pipeline.decode import run_decode
+
+    ref = run_decode(tiny, tmp_path / "one")
+    calls = []
+    m = run_decode(tiny, tmp_path / "two", engine=cluster, progress=lambda *a: calls.append(a))
+    a, b = _digests(tmp_path / "one" / "decode"), _digests(tmp_path / "two" / "decode")
+    assert a.keys() == b.keys() and any(k.endswith("decode.npz") for k in a)
+    assert a == b, PRODUCTS_EQUAL
+    assert _without_timings(m) == _without_timings(ref)
+    assert calls[0] == ("decode", 0, 2) and calls[-1] == ("decode", 2, 2)
+    eng = m["engine"]
+    assert eng["kind"] == "local-cluster" and eng["workers"] == 2
+    assert eng["memory_limit_mb"] == parse_memory(WORKER_LIMIT) / 2 ** 20
+    assert set(eng["tasks"]) == {"cam_left", "cam_right"}
+    for t in eng["tasks"].values():
+        assert t["worker"].startswith("tcp://")
+        assert t["peak_rss_mb"] < eng["memory_limit_mb"]
+    assert "engine" not in ref  # the in-process metrics are as before
+
+
+@pytest.mark.slow
+def test_cluster_failure_raises_and_keeps_finished_work(tmp_path, cluster):
+    done = tmp_path / "finished.txt"
+    tasks = [Task("good", _write_then_return, (str(done),)),
+             Task("bad", _fail_later, (1.0,))]
+    with pytest.raises(ValueError, match="broken on purpose"):
+        cluster.map("demo", tasks)
+    assert done.read_text(encoding="utf-8") == "done"
+    # the cluster is still usable, and results come back in task order
+    out = cluster.map("demo", [Task(f"s{i}", _square, (i,)) for i in range(4)])
+    assert [r["square"] for r in out] == [0, 1, 4, 9]
+
+
+@pytest.mark.slow
+def test_cluster_checks_results_on_the_worker(cluster):
+    with pytest.raises(InputError, match="over the"):
+        cluster.map("demo", [Task("big", _too_big, (MAX_RESULT_BYTES + 10,))])
+    budget = cluster.task_budget()
+    assert budget == int(parse_memory(WORKER_LIMIT) * cluster.memory_fraction) - WORKER_BASE_BYTES
+    with pytest.raises(InputError, match="task 'huge' needs"):
+        cluster.map("demo", [Task("huge", _square, (1,), working_set=budget + 1)])
+
+
+@pytest.mark.slow
+def test_a_camera_failing_on_a_worker_keeps_the_others(tiny, tmp_path, cluster):
+    """cam_right's frame does not read on its worker: the stage fails with the reader's error,
+    cam_left's finished decode waits in out/decode/.partial (written by its own worker); once
+    the frame is back the next cluster run takes cam_left from there, byte-identical."""
+    import shutil
+
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.decode import run_decode
+
+    shutil.copytree(tiny, tmp_path / "scan")
+    scan = load_scan(tmp_path / "scan")  # validated while whole; the frame breaks later
+    bad = tmp_path / "scan" / "structured_light" / "cam_right" / "gray_x_03.png"
+    good = bad.read_bytes()
+    bad.write_bytes(b"not a png")
+    out = tmp_path / "out"
+    with pytest.raises(Exception, match="gray_x_03"):  # the reader's own error, naming the file
+        run_decode(scan, out, engine=cluster)
+    record = out / "decode" / ".partial" / "cam_left" / "partial.json"
+    assert record.is_file()
+    kept = _digests(record.parent)
+    assert not (out / "decode" / ".partial" / "cam_right").exists()
+    assert not (out / "decode" / "stage.json").exists()  # no finished stage
+    bad.write_bytes(good)
+    m = run_decode(scan, out, engine=cluster)
+    assert m["cameras"]["cam_left"].get("reused") is True
+    assert "reused" not in m["cameras"]["cam_right"]
+    now = _digests(out / "decode" / "cam_left")
+    assert now == {k: v for k, v in kept.items() if k != "partial.json"}
+    assert not (out / "decode" / ".partial").exists()  # gone with the stage's completion
+
+
+@pytest.mark.slow
+def test_scheduler_address_runs_the_same_path(tiny, tmp_path, cluster):
+    """``--scheduler ADDRESS``: a client of a running scheduler (here the test cluster's) sees
+    its workers and their memory limit, decodes the same bytes, and closing it leaves the
+    cluster running."""
+    from facegeo.pipeline.decode import run_decode
+
+    address = cluster.cluster.scheduler_address
+    with make_engine(scheduler=address) as eng:
+        assert eng.kind == "scheduler" and eng.n_workers == 2
+        assert eng.memory_limit == cluster.memory_limit
+        run_decode(tiny, tmp_path / "sched", engine=eng)
+    run_decode(tiny, tmp_path / "local", engine=cluster)  # still running
+    assert _digests(tmp_path / "sched" / "decode") == _digests(tmp_path / "local" / "decode")
+    from facegeo.pipeline.engine import DaskEngine
+
+    with pytest.raises(InputError, match="cannot connect"):  # nothing listens on port 9
+        DaskEngine.connect("tcp://127.0.0.1:9", timeout="2s")
