@@ -452,6 +452,8 @@ def _cmd_project(args) -> int:
     # --gt-lights: the evaluation's comparison with the generator, shown beside the stage's
     gt = {"gt_lights": args.gt_lights} if hasattr(args, "gt_lights") else {}
     kw = {} if args.shadow_taps else {"shadow_taps": False}
+    if args.field_format != "npy":
+        kw["field_format"] = args.field_format
     # a rig file is not one of the pipeline's rigs: the stage on its own, as with --out
     if args.out is None and args.camera is None and args.rig in (None, *RIG_CHOICES):
         from facegeo.capture.scan import load_scan
@@ -475,6 +477,22 @@ def _cmd_project(args) -> int:
     return 0
 
 
+def _add_envmap_options(s) -> None:
+    """``--projection`` and ``--envmap-convention`` of an environment file (relight, render;
+    docs/lighting.md; the names of facegeo.lighting.envmap.PROJECTIONS / LATLONG_CONVENTIONS,
+    listed here so that --help needs no numpy)."""
+    s.add_argument("--projection", choices=["latlong", "mirror-ball", "angular", "cube",
+                                            "mirrorball"], default="latlong",
+                   help="how the map file stores directions: latlong (2:1), mirror-ball (1:1; "
+                        "'mirrorball' is the same), angular (1:1), cube (horizontal cross 4:3 "
+                        "or strip 6:1)")
+    s.add_argument("--envmap-convention", choices=["facegeo", "u0_at_plus_z", "blender"],
+                   default="facegeo", metavar="NAME",
+                   help="orientation of a lat-long file: facegeo (+Z at the centre column, "
+                        "OpenEXR/Mitsuba), u0_at_plus_z (+Z at the left edge: the front-back "
+                        "mirror image), blender (+X at the centre: Blender, three.js)")
+
+
 def _cmd_relight(args) -> int:
     from facegeo.fsutil import READ_AHEAD_WORKERS
     from facegeo.lighting.envmap import SHIPPED_MAPS
@@ -489,6 +507,7 @@ def _cmd_relight(args) -> int:
     try:
         m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
                         out_dir=args.out, projection=args.projection,
+                        convention=args.envmap_convention,
                         solid_angle="exact" if args.exact_solid_angles else "paper",
                         progress=tick, read_ahead=READ_AHEAD_WORKERS, model=args.model)
     finally:
@@ -588,8 +607,9 @@ def _engine_options(s) -> None:
     """``--workers N`` / ``--scheduler ADDRESS`` / ``--memory-limit SIZE`` (docs/scale.md)."""
     g = s.add_mutually_exclusive_group()
     g.add_argument("--workers", type=_pos_int, default=None, metavar="N",
-                   help="run the stages' tasks (decode: one per camera) on a local Dask "
-                        "cluster of N worker processes × 1 thread (default: in this process)")
+                   help="run the stages' tasks (decode, project: one per camera) on a local "
+                        "Dask cluster of N worker processes × 1 thread (default: in this "
+                        "process)")
     g.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run them on a running Dask cluster (tcp://host:8786 or a scheduler "
                         "file); its workers must see the scan at the same path")
@@ -647,6 +667,7 @@ def _cmd_render(args) -> int:
             "texel and render novel views")
     # before any stage runs (atlas, project and fit take minutes on the larger presets)
     check_render_args(scan, camera_spec=args.camera, env=args.env,
+                      projection=args.projection, convention=args.envmap_convention,
                       rotate_deg=args.rotate, shrinkage=args.shrinkage,
                       light_step=args.light_step, resynthesis=not args.naive)
     print(f"render: products of {args.scan} up to the fit (cached):")
@@ -654,6 +675,7 @@ def _cmd_render(args) -> int:
     tick, close = _progress_factory(not args.quiet)
     try:
         m = run_render(scan, camera_spec=args.camera, env=args.env,
+                       projection=args.projection, convention=args.envmap_convention,
                        rotate_deg=args.rotate, supersample=args.supersample,
                        resynthesis=not args.naive, shrinkage=args.shrinkage,
                        light_step=args.light_step, shadow_taps=args.shadow_taps,
@@ -689,6 +711,19 @@ def _cmd_evaluate(args) -> int:
         print(f"  {stage:<10} {key:<40} {value:.6g}" if isinstance(value, float)
               else f"  {stage:<10} {key:<40} {value}")
     print(f"metrics: {out / 'evaluate' / 'metrics.json'}")
+    return 0
+
+
+def _cmd_export(args) -> int:
+    """``facegeo export SCAN``: the fitted model as ``OUT/export/model.glb`` + textures."""
+    from facegeo.pipeline.export import run_export
+
+    out = Path(args.out) if args.out is not None else Path(args.scan) / "out"
+    m = run_export(args.scan, out, format=args.format)
+    print(f"export: {m['vertices']} vertices, {m['faces']} faces, atlas "
+          f"{m['atlas_size'][0]}x{m['atlas_size'][1]}, {m['fitted_texels']} of {m['texels']} "
+          f"texels fitted, roughness {m['roughness']:.3f}")
+    print(f"model: {out / 'export' / 'model.glb'} (textures beside it)")
     return 0
 
 
@@ -987,6 +1022,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "a cast-shadow edge take the taps on their own side, decided by the mesh "
                         "and the rig's lights; docs/surface.md)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    s.add_argument("--field-format", choices=["npy", "zarr"], default="npy",
+                   help="how each camera's field is stored: R.npy (default) or a chunked "
+                        "R.zarr (docs/surface.md, docs/scale.md)")
+    _engine_options(s)
     s.set_defaults(func=_cmd_project)
 
     s = sub.add_parser("relight", parents=common,
@@ -995,8 +1034,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--env", required=True, metavar="FILE|NAME",
                    help=".exr/.hdr environment map, or a shipped map: sky, studio")
-    s.add_argument("--projection", choices=["latlong", "mirrorball", "angular"],
-                   default="latlong", help="how the map stores directions")
+    _add_envmap_options(s)
     s.add_argument("--rotate", type=_rotate_deg, default=0.0, metavar="DEG",
                    help="rotate the environment about +Y (degrees, +Z toward +X)")
     s.add_argument("--view", default=None, metavar="CAMERA",
@@ -1041,8 +1079,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--camera", required=True, metavar="SPEC",
                    help="'orbit:CAMERA:DEGREES', a camera name of the rig or the generator's "
                         "novel cameras ('front': the rig's frontal view), or a camera JSON file")
-    s.add_argument("--env", default="sky", help="an .exr/.hdr lat-long map, or a built-in: "
-                   "sky, studio, uniform, axis_lobes")
+    s.add_argument("--env", default="sky", help="an .exr/.hdr map (lat-long unless "
+                   "--projection), or a built-in: sky, studio, uniform, axis_lobes")
+    _add_envmap_options(s)
     s.add_argument("--rotate", type=_rotate_deg, default=0.0, help="environment rotation about +Y, "
                    "degrees")
     s.add_argument("--supersample", type=_pos_int, default=1, help="s x s rays per pixel")
@@ -1098,6 +1137,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "stratified subset; default: facegeo.evaluate.projection.GT_LIGHTS, 128)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_evaluate)
+
+    s = sub.add_parser("export", parents=common,
+                       help="write the fitted model (mesh, albedo, normal and roughness) as a "
+                            "glTF 2.0 .glb with its textures, for Blender, three.js, trimesh")
+    s.add_argument("scan", metavar="SCAN", help="scan directory (its fit done: facegeo fit SCAN)")
+    s.add_argument("--out", default=None,
+                   help="products folder holding atlas/ and fit/ (default: SCAN/out); writes "
+                        "OUT/export/")
+    s.add_argument("--format", default="glb", choices=["glb"], help="file format (glTF binary)")
+    s.set_defaults(func=_cmd_export)
 
     s = sub.add_parser("report", parents=common,
                        help="write SCAN/out/report.html from the stages' metrics and images")

@@ -32,7 +32,7 @@ from facegeo.pipeline.bench import (
 # synth ≈ 27 s, mesh.full_resolution ≈ 16 s — two subprocesses — on the shared 2-core machine).
 _SLOW = {"spectral.forward", "spectral.inverse", "synth.generate", "surface.project",
          "surface.resolution", "relight.compress", "mesh.full_resolution",
-         "mesh.real_bust", "photometric.real", "scale.decode"}
+         "mesh.real_bust", "photometric.real", "scale.decode", "scale.project"}
 
 
 @pytest.fixture(autouse=True)

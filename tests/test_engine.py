@@ -9,6 +9,13 @@ What is compared, stated with each assertion:
 * memory — a task's working set against a worker's budget (``MEMORY_FRACTION`` × limit −
   ``WORKER_BASE_BYTES``), checked before anything runs.
 
+The ``project`` stage on the engine (one task per camera) is compared the same way: its products
+byte for byte — each camera's task runs the same code on the same inputs in one process, and the
+blend and the preview run on the client in camera order, so nothing depends on where a camera
+ran (equal bytes, not merely 1e-6). With ``field_format="zarr"`` each camera's ``R.zarr`` holds
+the ``.npy`` run's float16 values exactly, and the relight stage reads it through the
+reflectance module's readers.
+
 The cluster tests start two worker processes with a small memory limit and close them (context
 manager) whatever happens.
 """
@@ -22,6 +29,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from facegeo.errors import InputError
@@ -39,7 +47,11 @@ from facegeo.pipeline.engine import (
 WORKER_LIMIT = "700MiB"
 #: Products must be the same bytes whatever the engine.
 PRODUCTS_EQUAL = "sha256"
-_TIMINGS = ("seconds", "peak_rss_mb")
+#: Relit texels from a Zarr field against the same field as .npy: the same float16 samples
+#: through the same relighting, so equal to float32 rounding (relative, worst texel).
+ZARR_RELIT_RTOL = 1e-6
+_TIMINGS = ("seconds", "peak_rss_mb", "seconds_visibility", "seconds_projection",
+            "texels_per_second", "seconds_shadow_taps", "seconds_blend")
 
 
 # ------------------------------------------------------------------ task functions (importable)
@@ -294,3 +306,110 @@ def test_scheduler_address_runs_the_same_path(tiny, tmp_path, cluster):
 
     with pytest.raises(InputError, match="cannot connect"):  # nothing listens on port 9
         DaskEngine.connect("tcp://127.0.0.1:9", timeout="2s")
+
+
+# ------------------------------------------------------------------ the project stage
+
+
+def test_project_memory_check_names_the_camera(tiny, tmp_path):
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.project import run_atlas, run_project
+
+    scan = load_scan(tiny)
+    run_atlas(scan, tmp_path / "out")
+    eng = InProcessEngine(memory_limit=int((1 << 20) + WORKER_BASE_BYTES / MEMORY_FRACTION))
+    assert 0 < eng.task_budget() < 2 << 20  # ≈ 0.8 MiB: below any camera's need
+    with pytest.raises(InputError, match="project: task 'cam_left' needs"):
+        run_project(scan, tmp_path / "out", engine=eng, evaluate=False)
+    assert not (tmp_path / "out" / "project").exists()
+
+
+def test_working_set_grows_with_what_the_task_holds():
+    from types import SimpleNamespace
+
+    from facegeo.pipeline.project import (
+        PROJECT_BYTES_PER_PIXEL,
+        PROJECT_BYTES_PER_TEXEL_LIGHT,
+        project_working_set,
+    )
+
+    cam = SimpleNamespace(width=640, height=480)  # only the pixel count is read
+    a = project_working_set(cam, 10_000, 5_000, 64)
+    assert a - project_working_set(SimpleNamespace(width=320, height=480), 10_000, 5_000, 64) \
+        == 320 * 480 * PROJECT_BYTES_PER_PIXEL
+    assert project_working_set(cam, 10_000, 5_000, 128) - a == \
+        10_000 * 64 * PROJECT_BYTES_PER_TEXEL_LIGHT
+    assert project_working_set(cam, 10_000, 5_000, 64, shadow_taps=False) < a
+
+
+@pytest.mark.slow
+def test_project_two_workers_equals_in_process(tiny, tmp_path, cluster):
+    """Every project product is the same bytes in process and on two workers; the metrics are
+    equal but for timings; each camera ran as its own task on a worker."""
+    from facegeo.pipeline.project import run_atlas, run_project
+
+    run_atlas(tiny, tmp_path / "one")
+    run_atlas(tiny, tmp_path / "two")
+    ref = run_project(tiny, tmp_path / "one", evaluate=False)
+    calls = []
+    m = run_project(tiny, tmp_path / "two", engine=cluster, evaluate=False,
+                    progress=lambda *a: calls.append(a))
+    a, b = _digests(tmp_path / "one" / "project"), _digests(tmp_path / "two" / "project")
+    assert a.keys() == b.keys() and "cam_left/R.npy" in a and "preview.png" in a
+    assert a == b, PRODUCTS_EQUAL
+    assert _without_timings(m) == _without_timings(ref)
+    assert calls[0] == ("project", 0, 2) and calls[-1] == ("project", 2, 2)
+    eng = m["engine"]
+    assert eng["kind"] == "local-cluster" and eng["workers"] == 2
+    assert eng["memory_limit_mb"] == parse_memory(WORKER_LIMIT) / 2 ** 20
+    assert set(eng["tasks"]) == {"cam_left", "cam_right"}
+    for t in eng["tasks"].values():
+        assert t["worker"].startswith("tcp://")
+        assert t["peak_rss_mb"] < eng["memory_limit_mb"]
+    assert "engine" not in ref
+
+
+def test_zarr_fields_end_to_end(tiny, tmp_path):
+    """``field_format="zarr"`` through ``facegeo reconstruct --until project`` writes
+    ``<camera>/R.zarr`` (no R.npy) holding the .npy run's values; the relight stage reads it."""
+    import shutil
+
+    from facegeo.pipeline.reconstruct import run_reconstruct
+    from facegeo.pipeline.relight import relight_texture
+    from facegeo.surface.reflectance import field_folders, open_field
+
+    scans = {}
+    for fmt in ("npy", "zarr"):
+        shutil.copytree(tiny, tmp_path / fmt)
+        run_reconstruct(tmp_path / fmt, until="project",
+                        settings={"project": {"field_format": fmt}})
+        scans[fmt] = tmp_path / fmt / "out"
+    proj_z = scans["zarr"] / "project"
+    cams = field_folders(proj_z)
+    assert [c.name for c in cams] == ["cam_left", "cam_right"]
+    for c in cams:
+        assert (c / "R.zarr" / "zarr.json").is_file() and not (c / "R.npy").exists()
+        a = np.asarray(open_field(scans["npy"] / "project" / c.name))
+        b = np.asarray(open_field(c)[:])
+        assert a.dtype == b.dtype == np.float16
+        np.testing.assert_array_equal(a, b)  # the same float16 samples, NaN where masked
+    L = a.shape[1]
+    w = np.random.default_rng(3).uniform(0.0, 1.0, (L, 3)).astype(np.float32) / L
+    relit = {}
+    for fmt, out in scans.items():
+        r, _, names = relight_texture(out, w)
+        assert names == ["cam_left", "cam_right"]
+        relit[fmt] = r
+    ok = np.isfinite(relit["npy"])
+    assert ok.any() and np.array_equal(ok, np.isfinite(relit["zarr"]))
+    rel = np.abs(relit["zarr"][ok] - relit["npy"][ok]) / np.maximum(np.abs(relit["npy"][ok]),
+                                                                    1e-12)
+    assert rel.max() <= ZARR_RELIT_RTOL
+
+
+def test_unknown_field_format_is_an_error(tiny, tmp_path):
+    from facegeo.pipeline.project import run_atlas, run_project
+
+    run_atlas(tiny, tmp_path / "out")
+    with pytest.raises(InputError, match="field_format: expected one of npy, zarr"):
+        run_project(tiny, tmp_path / "out", field_format="hdf5", evaluate=False)

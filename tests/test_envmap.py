@@ -17,7 +17,10 @@ from conftest import shared_file
 #: Pixel round trip directions → pixels → directions, max |Δ| in pixels.
 ROUNDTRIP_PX = 1e-9
 #: Σ pixel solid angles vs 4π, relative (lat-long exact; disc maps lose a sliver at the rim).
-SPHERE_AREA_REL = {"latlong": 1e-12, "mirrorball": 2e-3, "angular": 2e-3}
+SPHERE_AREA_REL = {"latlong": 1e-12, "mirror-ball": 2e-3, "angular": 2e-3, "cube": 1e-12}
+
+#: Map size (height, width) per projection in the projection tests (a cube: the 4:3 cross).
+SIZES = {"latlong": (24, 48), "mirror-ball": (24, 24), "angular": (24, 24), "cube": (24, 32)}
 #: Energy Σ_l w_l vs the map's integral, relative, per channel (issue 12).
 ENERGY_PAPER_REL = 5e-3
 ENERGY_EXACT_REL = 1e-3
@@ -37,7 +40,7 @@ def _smooth(v):
 
 @pytest.mark.parametrize("projection", E.PROJECTIONS)
 def test_pixel_directions_round_trip(projection):
-    h, w = 24, (48 if projection == "latlong" else 24)
+    h, w = SIZES[projection]
     d, valid = E.pixel_directions(projection, h, w)
     assert np.allclose(np.linalg.norm(d[valid], axis=-1), 1.0, atol=1e-12)
     q = E.directions_to_pixels(projection, d[valid], h, w)
@@ -47,7 +50,7 @@ def test_pixel_directions_round_trip(projection):
 
 @pytest.mark.parametrize("projection", E.PROJECTIONS)
 def test_pixel_solid_angles_cover_the_sphere(projection):
-    h, w = 256, (512 if projection == "latlong" else 256)
+    h, w = (12 * s for s in SIZES[projection])
     total = E.pixel_solid_angles(projection, h, w).sum()
     assert abs(total / (4 * np.pi) - 1) <= SPHERE_AREA_REL[projection]
 
@@ -66,7 +69,7 @@ def test_latlong_follows_openexr_orientation():
     assert d[0, 0, 1] > 0.9 and d[-1, 0, 1] < -0.9            # top row up, bottom row down
 
 
-@pytest.mark.parametrize("projection", ["mirrorball", "angular"])
+@pytest.mark.parametrize("projection", ["mirror-ball", "mirrorball", "angular"])
 def test_disc_maps_centre_is_plus_z_right_is_plus_x(projection):
     q = E.directions_to_pixels(projection, [[0, 0, 1.0], [1.0, 0, 0], [0, 1.0, 0]], 101, 101)
     assert np.allclose(q[0], [50, 50])
@@ -81,7 +84,7 @@ def test_disc_maps_centre_is_plus_z_right_is_plus_x(projection):
 def test_axis_lobe_map_colours_per_axis(projection):
     env = E.axis_lobe_map(96, projection=projection)
     for axis, colour in E.AXIS_LOBE_COLORS.items():
-        if projection != "latlong" and axis == (0, 0, -1):
+        if projection in ("mirror-ball", "angular") and axis == (0, 0, -1):
             continue  # -Z is the disc's rim: a lookup there is a ring of pixels
         got = env.radiance(np.asarray(axis, float))
         assert np.allclose(got, colour, atol=0.05), (axis, got)
@@ -97,10 +100,11 @@ def test_rotation_turns_plus_z_toward_plus_x():
     assert w[l, 2] > 5 * max(w[l, 0], w[l, 1])
 
 
-@pytest.mark.parametrize("projection", ["mirrorball", "angular"])
+@pytest.mark.parametrize("projection", ["mirror-ball", "angular", "cube"])
 def test_projections_agree_on_the_light_basis(projection):
     ll = E.light_stage_radiance(E.analytic_map(_smooth, 64), 16, 8)
-    other = E.light_stage_radiance(E.analytic_map(_smooth, 128, projection=projection), 16, 8)
+    other = E.light_stage_radiance(E.analytic_map(_smooth, 96 if projection == "cube" else 128,
+                                                   projection=projection), 16, 8)
     assert np.max(np.abs(other / ll - 1)) <= CROSS_PROJECTION_REL
 
 

@@ -28,20 +28,35 @@ TRUTH_POINT_TOL_M = 1e-6
 TRUTH_NORMAL_TOL_DEG = 1e-3
 
 
+#: Functions per camera in the evaluation's resynthesis comparison (its gt_functions).
+TEST_GT_FUNCTIONS = 24
+
+
+def _fit_and_evaluate(root, **settings) -> dict:
+    """The fit stage's metrics, with the evaluation of its products (``facegeo evaluate``,
+    the fit only) under ``"evaluate"``: the stage reads no truth (issue 37)."""
+    from facegeo.evaluate import run_evaluate
+    from facegeo.pipeline.fit import run_fit
+
+    metrics = run_fit(root, **settings)
+    metrics["evaluate"] = run_evaluate(root, stages=["fit"], gt_functions=TEST_GT_FUNCTIONS)
+    return metrics
+
+
 @pytest.fixture(scope="module")
 def reconstructed(tmp_path_factory):
-    """A tiny synthetic scan with atlas + project (coarse atlas) and a subsampled fit."""
+    """A tiny synthetic scan with atlas + project (coarse atlas), a subsampled fit and its
+    evaluation against the generator."""
     from facegeo.cli import main
-    from facegeo.pipeline.fit import run_fit
     from facegeo.pipeline.project import run_project
 
     root = tmp_path_factory.mktemp("render") / "scan"
     assert main(["synth", str(root), "--preset", "tiny", "-q"]) == 0
     run_project(root, atlas_settings={"texels_per_mm": TEST_TEXELS_PER_MM}, gt_lights=4)
     calls = []
-    metrics = run_fit(root, texels="views", views=["cam_left", "orbit:cam_left:30"],
-                      max_texels=TEST_MAX_TEXELS, gt_functions=24, mosaic=4,
-                      progress=lambda *a: calls.append(a))
+    metrics = _fit_and_evaluate(root, texels="views", views=["cam_left", "orbit:cam_left:30"],
+                                max_texels=TEST_MAX_TEXELS, mosaic=4,
+                                progress=lambda *a: calls.append(a))
     metrics["_progress"] = calls
     return root, metrics
 
@@ -58,6 +73,13 @@ def test_fit_stage_writes_products_and_metrics(reconstructed):
     assert (fit_dir / "mosaic.png").is_file() and (fit_dir / "fitted.png").is_file()
     doc = json.loads((root / "out" / "metrics.json").read_text())
     assert doc["fit"]["functions"] == 2 * TEST_MAX_TEXELS
+    # the stage's own metrics hold no figure against the truth; the evaluation's do
+    truth_keys = ("normal_median_error_deg", "albedo_rel_error", "gt_valid_functions",
+                  "resynthesis_rel_rmse_30")
+    assert not any(k in doc["fit"] or k in m for k in truth_keys), sorted(doc["fit"])
+    assert doc["evaluate"]["fit"] == m["evaluate"]["fit"]
+    stage_m, m = m, m["evaluate"]["fit"]
+    assert m["gt_valid_functions"] > 0
     for k in ("normal_median_error_deg", "albedo_rel_error", "specular_energy_rel_error",
               "resynthesis_rel_rmse_30", "resynthesis_rel_rmse_60",
               "resynthesis_naive_rel_rmse_30", "resynthesis_rel_rmse_0"):
@@ -72,7 +94,7 @@ def test_fit_stage_writes_products_and_metrics(reconstructed):
         got, naive = (m[f"resynthesis_rel_rmse_{a}_median"],
                       m[f"resynthesis_naive_rel_rmse_{a}_median"])
         assert 0 < got < naive, (a, got, naive)
-    stage, done, total = m["_progress"][-1]
+    stage, done, total = stage_m["_progress"][-1]
     assert stage == "fit" and done == total == 2 * TEST_MAX_TEXELS, "progress ends at the total"
 
 
@@ -139,8 +161,8 @@ def test_fit_errors_name_what_is_missing(reconstructed, tmp_path):
         run_fit(root, out_dir=tmp_path / "x", texels="some")
     with pytest.raises(InputError, match="reconstruct"):
         run_fit(root, out_dir=tmp_path / "empty")
-    with pytest.raises(InputError, match="gt_angles"):  # 0 is the source view's own figure
-        run_fit(root, out_dir=tmp_path / "x", gt_angles=[30.0, 0.0])
+    with pytest.raises(InputError, match="gt_functions.*evaluat"):  # moved (issue 37)
+        run_fit(root, out_dir=tmp_path / "x", gt_functions=8)
     for bad in (0, 1.5, True, "3"):
         with pytest.raises(InputError, match="supersample"):
             run_fit(root, out_dir=tmp_path / "x", supersample=bad)
@@ -291,14 +313,13 @@ PNG16_COVERAGE_MIN = 0.9
 def reconstructed_png16(tmp_path_factory):
     """The ``reconstructed`` scan written with 16-bit PNG OLAT frames (sRGB, exposure 2)."""
     from facegeo.cli import main
-    from facegeo.pipeline.fit import run_fit
     from facegeo.pipeline.project import run_project
 
     root = tmp_path_factory.mktemp("png16") / "scan"
     assert main(["synth", str(root), "--preset", "tiny", "--olat-format", "png16", "-q"]) == 0
     run_project(root, atlas_settings={"texels_per_mm": TEST_TEXELS_PER_MM}, gt_lights=4)
-    metrics = run_fit(root, texels="views", views=["cam_left", "orbit:cam_left:30"],
-                      max_texels=TEST_MAX_TEXELS, gt_functions=24, mosaic=4)
+    metrics = _fit_and_evaluate(root, texels="views", views=["cam_left", "orbit:cam_left:30"],
+                                max_texels=TEST_MAX_TEXELS, mosaic=4)
     return root, metrics
 
 
@@ -315,6 +336,7 @@ def test_png16_scan_fits_like_the_exr_scan(reconstructed, reconstructed_png16):
         # black-clipped shadow pixels are measured dark values (the projection reads them
         # so): only the few samples above saturation are masked
         assert c["flags"]["masked"] <= PNG16_MASKED_SHARE_MAX * c["functions"], (cam, c)
+    png, exr = png["evaluate"]["fit"], exr["evaluate"]["fit"]  # the evaluation's figures
     figures = (f"png16 normals {png['normal_median_error_deg']}°, albedo "
                f"{png['albedo_rel_error']}; EXR {exr['normal_median_error_deg']}°, "
                f"{exr['albedo_rel_error']}")
@@ -331,11 +353,12 @@ def test_png16_scan_fits_like_the_exr_scan(reconstructed, reconstructed_png16):
 
 def test_no_valid_function_writes_null_medians(reconstructed, tmp_path, caplog):
     """Fields with nothing to fit (every sample masked) give a fit stage that reports 0 valid
-    functions, null medians (JSON has no NaN: it crashed on NaN) and a warning naming the
-    flags."""
+    functions and a warning naming the flags, and an evaluation with null medians (JSON has no
+    NaN: it crashed on NaN)."""
     import logging
     import shutil
 
+    from facegeo.evaluate import run_evaluate
     from facegeo.pipeline.fit import run_fit
 
     root, _ = reconstructed
@@ -349,13 +372,15 @@ def test_no_valid_function_writes_null_medians(reconstructed, tmp_path, caplog):
         del R
     with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.fit"):
         m = run_fit(root, out_dir=out, texels="views", views=["cam_left"],
-                    max_texels=TEST_MAX_TEXELS // 4, gt_functions=8, mosaic=0)
-    doc = json.loads((out / "metrics.json").read_text())["fit"]  # strict JSON parses
-    assert m["valid_functions"] == doc["valid_functions"] == 0
-    assert doc["gt_valid_functions"] == 0 and doc["texels_fitted"] == 0
+                    max_texels=TEST_MAX_TEXELS // 4, mosaic=0)
+    run_evaluate(root, out, stages=["fit"], gt_functions=8)
+    docs = json.loads((out / "metrics.json").read_text())  # strict JSON parses
+    doc, ev = docs["fit"], docs["evaluate"]["fit"]
+    assert m["valid_functions"] == doc["valid_functions"] == 0 and doc["texels_fitted"] == 0
+    assert ev["gt_valid_functions"] == 0
     for k in ("normal_median_error_deg", "albedo_rel_error", "specular_energy_rel_error"):
-        assert doc[k] is None, k
-    for k, x in doc.items():
+        assert ev[k] is None, k
+    for k, x in {**doc, **ev}.items():
         assert not isinstance(x, float) or np.isfinite(x), k
     assert any("no valid function" in r.getMessage() and "black" in r.getMessage()
                for r in caplog.records), [r.getMessage() for r in caplog.records]

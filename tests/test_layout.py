@@ -122,15 +122,9 @@ NOT_STAGES = {"facegeo.pipeline", "facegeo.pipeline.cache", "facegeo.pipeline.re
               "facegeo.pipeline.report", "facegeo.pipeline.bench"}
 
 #: Stage modules that still import the generator to compute their errors: the list shrinks as
-#: their comparisons move into facegeo.evaluate (issue 37). Each names what is left.
-SYNTH_IMPORTS_LEFT = {
-    "facegeo.pipeline.fit": "ground-truth normals, albedo, ρs and resynthesis errors "
-                            "(_ground_truth, _exact_functions; load_ground_truth in "
-                            "fit_products); facegeo.evaluate.skin_fit computes them from the "
-                            "products already",
-    "facegeo.pipeline.relight": "the generator's reference image of a relit camera "
-                                "(_reference_error)",
-}
+#: their comparisons move into facegeo.evaluate (issue 37). Each names what is left (none:
+#: the fit's and the relight's moved last).
+SYNTH_IMPORTS_LEFT: dict[str, str] = {}
 
 #: Stage modules that read ground_truth/ files or [reference] answers through the scan.
 #: ``input``: the truth chosen as a stage's input (a diagnostic run with the true rig or mesh,
@@ -138,12 +132,12 @@ SYNTH_IMPORTS_LEFT = {
 #: stage — moves into facegeo.evaluate (issue 37), and the entry with it.
 TRUTH_READS_LEFT = {
     "facegeo.pipeline.project": "input: stage_rig / load_mesh ('ground_truth' rig and mesh)",
-    "facegeo.pipeline.fit": "input: the generator's novel cameras (_camera_table); metrics: "
-                            "the skin-fit errors",
+    "facegeo.pipeline.fit": "input: the generator's novel cameras as view specs "
+                            "(_camera_table)",
     "facegeo.pipeline.calibrate": "metrics: errors against ground_truth/rig.json and the "
                                   "reference intrinsics",
-    "facegeo.pipeline.mesh": "metrics: ground_truth_errors; input: ground_truth_decode "
-                             "(decode maps made from the truth, for tests and benchmarks)",
+    "facegeo.pipeline.mesh": "input: ground_truth_decode (decode maps made from the truth, "
+                             "for tests and benchmarks)",
     "facegeo.pipeline.decode": "metrics: decode errors against the true geometry",
     "facegeo.pipeline._fit_image": "metrics: normals against [reference] normals; input: "
                                    "[reference] mask, the pixels fitted",
@@ -151,10 +145,10 @@ TRUTH_READS_LEFT = {
 
 #: Stage modules that import facegeo.evaluate, and why (a shim for callers not yet moved).
 EVALUATE_IMPORTS_LEFT = {
-    "facegeo.pipeline.project": "names truth_gauge, texel_areas, _projection_error, "
-                                "_error_metrics, GT_LIGHTS for pipeline/fit.py, benchmarks and "
-                                "tests/test_reflectance.py; run_project(evaluate=True) returns "
-                                "the figures beside the stage's",
+    "facegeo.pipeline.project": "run_project(evaluate=True) returns the figures beside the "
+                                "stage's; names GT_LIGHTS for benchmarks/surface.py (its "
+                                "truth_gauge, texel_areas, _projection_error, _error_metrics "
+                                "shims have no caller left since issue 37's fit move)",
     "facegeo.pipeline.render": "run_render(reference=True) returns the figures beside the "
                                "view's; render_one renders the paper's λ = 1 beside a shrunk "
                                "view only when a reference exists (has_view_reference)",

@@ -541,7 +541,7 @@ def test_zbuffer_falls_back_to_rays_when_the_mesh_reaches_behind_the_camera(smal
 
 
 def test_texel_areas_sum_to_the_charted_surface(tiny):
-    from facegeo.pipeline.project import texel_areas
+    from facegeo.evaluate.gauge import texel_areas
 
     _, _, atlas, texels, _, _ = tiny
     a = texel_areas(atlas, texels)
@@ -555,7 +555,8 @@ def test_projection_error_uses_the_generators_part_materials(tiny, tmp_path):
     """Frames of a head whose right half is 'teeth' (a uniform part material): the metric's
     reference must shade with the part's material (Renderer.material_at), not the skin field —
     with the skin field the same samples are far off."""
-    from facegeo.pipeline.project import _error_metrics, _projection_error, texel_areas
+    from facegeo.evaluate.gauge import texel_areas
+    from facegeo.evaluate.projection import _error_metrics, _projection_error
     from facegeo.synth.render import ReferenceRenderer
 
     scan, gt, atlas, texels, _, vis = tiny
@@ -678,7 +679,7 @@ def test_a_rig_in_another_world_frame_is_compared_after_the_gauge_alignment(tiny
     assert abs(views["moved"]["gauge_translation_mm"] - moved["gauge_translation_mm"]) < 1e-9
     # the alignment is computed once per process for the same two meshes (project, then the
     # render above took it from the first)
-    from facegeo.pipeline.project import truth_gauge
+    from facegeo.evaluate.gauge import truth_gauge
 
     calls = []
     real = type(gt).gauge_alignment
@@ -696,11 +697,17 @@ def test_a_rig_in_another_world_frame_is_compared_after_the_gauge_alignment(tiny
     # while the mesh moved 4.1 mm, and a near-field fit sees that offset (≈ 0.15° of light
     # direction at 1.5 m, 0.35° against 0.43° median normal error) — an inconsistency of this
     # test's frame, not of the gauge alignment it checks
-    fits = {tag: run_fit(scan.root, tmp_path / tag, rig=rig, max_texels=300, near_field="off")
-            for tag, rig in (("true", "ground_truth"), ("moved", rig_path))}
-    # The fit meets the truth at the aligned texels: the same normals, albedo and source-view
-    # functions (the turned views are not compared: the moved frame's +Y is 1° off, and its
-    # light stage was not turned with it — a real gauge's small inconsistency).
+    from facegeo.capture.scan import load_scan
+    from facegeo.evaluate.skin_fit import evaluate_skin_fit
+
+    fits = {}
+    for tag, rig in (("true", "ground_truth"), ("moved", rig_path)):
+        run_fit(scan.root, tmp_path / tag, rig=rig, max_texels=300, near_field="off")
+        fits[tag] = evaluate_skin_fit(load_scan(scan.root), tmp_path / tag, renderer=gt)
+    # The fit meets the truth at the aligned texels (facegeo.evaluate.skin_fit, from the fit's
+    # products): the same normals, albedo and source-view functions (the turned views are not
+    # compared: the moved frame's +Y is 1° off, and its light stage was not turned with it — a
+    # real gauge's small inconsistency).
     assert fits["moved"]["gauge_rotation_deg"] == moved["gauge_rotation_deg"]
     for key in ("normal_median_error_deg", "albedo_rel_error", "resynthesis_rel_rmse_0"):
         a, b = fits["true"][key], fits["moved"][key]

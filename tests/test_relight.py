@@ -330,32 +330,33 @@ def test_run_relight_writes_exr_png_and_metrics(tiny_scan, tmp_path):
 @pytest.mark.slow
 def test_relight_products_camera_view_metrics_files_and_settings(tiny_scan, tmp_path):
     # The stage function for 'facegeo reconstruct': the shipped sky map on a camera view.
-    # Relit-vs-reference: the generator's render under the same Eq. (4) weights equals the
-    # relit OLAT frames to float32 precision (relative RMSE metric, CONSISTENCY_REL); the EXR
-    # holds exactly the relit image; energy Σw/∫L is the paper δA's midpoint excess on the
-    # tiny 16 × 8 grid (h/sin h − 1 = 0.65 %, the same in every channel); no JSON of its own.
+    # The EXR holds exactly the relit image; relit-vs-reference (the evaluation's comparison,
+    # facegeo.evaluate.relit: the stage reads no truth): the generator's render under the same
+    # Eq. (4) weights equals the relit OLAT frames to float32 precision (relative RMSE,
+    # CONSISTENCY_REL); energy Σw/∫L is the paper δA's midpoint excess on the tiny 16 × 8 grid
+    # (h/sin h − 1 = 0.65 %, the same in every channel); no JSON of its own.
     from facegeo.capture import imageio
+    from facegeo.evaluate.relit import relit_error
     from facegeo.pipeline.relight import relight_products
 
     scan, _ = tiny_scan
     cam = scan.camera_names[1]
     m, settings = relight_products(scan, None, tmp_path / "d", env="sky", rotate=-40, view=cam)
     assert settings == {"env": "sky", "rotate": -40.0, "view": cam, "projection": "latlong",
-                        "solid_angle": "paper", "reference": True, "model": "measured"}
-    ref = m["reference"]
-    assert ref["computed"] and ref["pixels"] > 0
-    assert ref["relative_rmse"] <= CONSISTENCY_REL and ref["max_abs_over_max"] <= CONSISTENCY_REL
+                        "solid_angle": "paper", "model": "measured"}
+    assert "reference" not in m, "the stage computes no error against the truth"
     lights = scan.rig.lights
     w = E.light_stage_weights(E.shipped_map("sky").rotated(np.radians(-40)), lights.n_theta,
                               lights.n_phi)
     exr = imageio.read_image(m["files"]["exr"])
     assert np.array_equal(exr, R.relight_scan_view(scan, cam, w, normalize_color=True))
+    ref = relit_error(scan, cam, w, exr)
+    assert ref["computed"] and ref["pixels"] > 0
+    assert ref["relative_rmse"] <= CONSISTENCY_REL and ref["max_abs_over_max"] <= CONSISTENCY_REL
     h = np.pi / (2 * lights.n_phi)
     assert np.allclose(m["energy_ratio"], h / np.sin(h), rtol=1e-4)
     assert sorted(p.suffix for p in (tmp_path / "d").iterdir()) == [".exr", ".png"]
-    assert "seconds" in m and m["seconds"]["reference"] >= 0
-    m2, _ = relight_products(scan, None, tmp_path / "e", env="sky", view=cam, reference=False)
-    assert m2["reference"] == {"computed": False, "reason": "reference=False"}
+    assert "seconds" in m and set(m["seconds"]) == {"env", "weights", "relight", "total"}
     with pytest.raises(InputError, match="solid_angle"):
         relight_products(scan, None, tmp_path / "f", env="sky", view=cam, solid_angle="midpoint")
 
@@ -363,9 +364,12 @@ def test_relight_products_camera_view_metrics_files_and_settings(tiny_scan, tmp_
 @pytest.mark.slow
 def test_relight_products_reference_error_detects_a_wrong_image(tiny_scan, tmp_path,
                                                                monkeypatch):
-    # The reference metric must be able to fail: relighting with weights that forgot δA
-    # (the bug Eq. 4's δA guards against) is far from the generator's render.
+    # The reference metric (facegeo.evaluate.relit) must be able to fail: relighting with
+    # weights that forgot δA (the bug Eq. 4's δA guards against) is far from the generator's
+    # render.
     import facegeo.lighting.relight as RL
+    from facegeo.capture import imageio
+    from facegeo.evaluate.relit import relit_error
     from facegeo.pipeline.relight import relight_products
 
     scan, _ = tiny_scan
@@ -373,8 +377,12 @@ def test_relight_products_reference_error_detects_a_wrong_image(tiny_scan, tmp_p
     dA = light_solid_angles(scan.rig.lights.n_theta, scan.rig.lights.n_phi)
     monkeypatch.setattr(RL, "relight_scan_view",
                         lambda sc, cam, w, **kw: real(sc, cam, w / dA[:, None], **kw))
-    m, _ = relight_products(scan, None, tmp_path, env="studio", view=scan.camera_names[0])
-    assert m["reference"]["relative_rmse"] > 0.5
+    cam = scan.camera_names[0]
+    m, _ = relight_products(scan, None, tmp_path, env="studio", view=cam)
+    w = E.light_stage_weights(E.shipped_map("studio"), scan.rig.lights.n_theta,
+                              scan.rig.lights.n_phi)
+    got = relit_error(scan, cam, w, imageio.read_image(m["files"]["exr"]))
+    assert got["relative_rmse"] > 0.5
 
 
 @pytest.mark.slow
@@ -542,7 +550,7 @@ def test_relight_products_texture_view_reads_the_stage_folders(projected, tmp_pa
     scan, out = projected
     m, settings = relight_products(scan, out / "project", tmp_path / "a", env="studio",
                                    view="texture")
-    assert settings["view"] == "texture" and not m["reference"]["computed"]
+    assert settings["view"] == "texture" and "reference" not in m
     assert m["measured_texels"] > 0
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == [
         "studio_rot0_texture.exr", "studio_rot0_texture.png", "studio_rot0_texture_measured.png"]

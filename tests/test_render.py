@@ -819,7 +819,7 @@ def test_fit_and_render_on_a_rig_with_a_free_light_list(parts, tmp_path):
     run_project(root, out, rig=rig, atlas_settings={"texels_per_mm": TEST_TEXELS_PER_MM},
                 gt_lights=4)
     fit = run_fit(root, out, rig=rig, texels="views", views=["orbit:cam_left:30"],
-                  max_texels=TEST_MAX_TEXELS, gt_functions=8, mosaic=4)
+                  max_texels=TEST_MAX_TEXELS, mosaic=4)
     assert fit["functions"] > 0
     got = run_render(root, out, camera_spec="orbit:cam_left:30", env="sky", rig=rig,
                      name="list")

@@ -20,6 +20,21 @@ Distances are in millimetres.
   mesh — and then ``points_rms_error_mm``, the ``mesh`` stage's own figure against the
   generator's mesh), when there are points.
 
+Against a reference mesh, over the mesh stage's observed region (``out/mesh/observed_faces.npy``:
+the faces within its observed radius of a fused point) — the figures the ``mesh`` stage
+reported until issue 37 moved them here (:func:`observed_surface_errors`):
+
+* ``mesh_p95_error_mm``: 95th percentile distance to the reference surface of ``n_samples``
+  area-uniform samples (seed 0) of the observed faces;
+* ``normal_median_error_deg``: median angle between the mesh's vertex normals (of the observed
+  faces) and the reference's interpolated vertex normals at the closest point (the generator's
+  shading normals, ``ground_truth/vertex_params.npz``, where it has them);
+* on the generator's mesh, with a mesh stage ``rig`` other than the true one (its world frame
+  is its own gauge), the same three figures again under ``after_rigid_alignment``, after the
+  rigid transform that best fits the points to the true surface
+  (:func:`facegeo.geometry.mesh.align_to_surface`), with ``alignment_rotation_deg`` /
+  ``alignment_translation_mm``.
+
 A reference mesh is compared through its surface: the cloud is ``n_samples`` area-uniform
 samples of it (its vertices may lie millimetres apart) and the point-to-plane distance is the
 exact distance to its triangles.
@@ -36,7 +51,7 @@ import numpy as np
 from facegeo.errors import InputError
 
 __all__ = ["CLOUD_SETTINGS", "evaluate_mesh_against_reference", "mesh_to_reference",
-           "reference_surface"]
+           "observed_surface_errors", "reference_surface"]
 
 #: Settings of the comparison (the ``evaluate`` stage's, under ``mesh``).
 CLOUD_SETTINGS = {"n_samples": 100_000, "k_plane": 8, "extent_mm": 2.0, "coverage_mm": 1.0}
@@ -143,6 +158,69 @@ def mesh_to_reference(V, F, ref_points, ref_faces=None, points=None, *,
     return out
 
 
+def _mm(v) -> float:
+    return round(float(v) * 1e3, 6)
+
+
+def observed_surface_errors(V, F, observed, points, ref_V, ref_F, ref_normals=None, *,
+                            n_samples: int = 100_000, align: bool = False) -> dict:
+    """``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg`` of a mesh
+    against a reference surface over its observed faces (module docstring).
+
+    Parameters
+    ----------
+    V : (V, 3) float64, metres; F : (F, 3) int — the mesh
+    observed : (F,) bool — the observed faces (``observed_faces.npy``)
+    points : (P, 3) float64, metres — the fused points
+    ref_V, ref_F — the reference surface (metres, the same world frame)
+    ref_normals : (len(ref_V), 3), optional — its shading normals (default: from its faces)
+    n_samples : int — area-uniform samples of the observed faces
+    align : bool — also the figures after the best rigid alignment of the points to the
+        reference (``after_rigid_alignment``)
+    """
+    from facegeo.geometry import mesh as gm
+
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    keep_f = np.asarray(observed, bool)
+    if keep_f.shape != (len(F),):
+        raise InputError(f"observed_faces: expected {len(F)} flags (one per mesh face), got "
+                         f"shape {keep_f.shape}; rerun the mesh stage")
+
+    def errors(pts, verts, vn) -> dict:
+        d_pts = gm.surface_errors(pts, ref_V, ref_F)
+        got = {"points_rms_error_mm": _mm(np.sqrt(np.mean(d_pts ** 2)))}
+        if keep_f.any():
+            S, _ = gm.sample_surface(verts, F[keep_f], int(n_samples))
+            got["mesh_p95_error_mm"] = _mm(np.percentile(gm.surface_errors(S, ref_V, ref_F), 95))
+            vin = np.zeros(len(verts), bool)
+            vin[F[keep_f].ravel()] = True
+            _, ang = gm.surface_errors(verts[vin], ref_V, ref_F, normals=vn[vin],
+                                       ref_normals=ref_normals)
+            got["normal_median_error_deg"] = round(float(np.degrees(np.median(ang))), 4)
+        return got
+
+    vn = gm._vertex_normals(V, F)  # the mesh stage's own normals (geometry.mesh.Mesh)
+    out = errors(points, V, vn)
+    if align:
+        T = gm.align_to_surface(points, ref_V, ref_F)
+        out["after_rigid_alignment"] = {
+            **errors(T.apply(points), T.apply(V), T.apply_direction(vn)),
+            "alignment_rotation_deg": round(float(np.degrees(np.linalg.norm(T.rvec))), 6),
+            "alignment_translation_mm": _mm(np.linalg.norm(T.t))}
+    return out
+
+
+def _generator_normals(scan, n_vertices: int) -> np.ndarray | None:
+    """The generator's shading normals of its mesh's vertices, or None."""
+    if not (scan.synthetic and "vertex_params" in scan.ground_truth_keys):
+        return None
+    with np.load(scan.ground_truth_path("vertex_params")) as z:
+        if "normals" in z.files and z["normals"].shape == (n_vertices, 3):
+            return z["normals"].astype(np.float64)
+    return None
+
+
 def evaluate_mesh_against_reference(scan, out, **settings) -> dict:
     """``out/mesh/mesh.ply`` (and ``points.ply``) against :func:`reference_surface`; ``{}``
     when the scan has no reference surface or the mesh stage has no mesh."""
@@ -160,6 +238,17 @@ def evaluate_mesh_against_reference(scan, out, **settings) -> dict:
 
         points = np.asarray(o3d.io.read_point_cloud(str(out / "mesh" / "points.ply")).points)
     kw = {**CLOUD_SETTINGS, **settings}
-    figures = mesh_to_reference(np.asarray(m.vertices), np.asarray(m.faces), ref[0], ref[1],
-                                points, **kw)
+    V, F = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+    figures = mesh_to_reference(V, F, ref[0], ref[1], points, **kw)
+    observed = out / "mesh" / "observed_faces.npy"
+    if ref[1] is not None and points is not None and len(points) and observed.is_file():
+        from facegeo.evaluate._products import has_stage, stage_manifest
+
+        generator = ref[2].startswith("generator mesh")
+        rig = (stage_manifest(out, "mesh").get("settings", {}).get("rig")
+               if has_stage(out, "mesh") else None)
+        figures.update(observed_surface_errors(
+            V, F, np.load(observed), points, ref[0], ref[1],
+            _generator_normals(scan, len(ref[0])) if generator else None,
+            n_samples=kw["n_samples"], align=generator and rig != "ground_truth"))
     return {"reference": ref[2], **figures}

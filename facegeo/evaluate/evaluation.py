@@ -25,6 +25,7 @@ from typing import Any
 
 from facegeo.checks import check_positive_int
 from facegeo.evaluate.projection import GT_LIGHTS, GT_WEIGHT_MIN
+from facegeo.evaluate.skin_fit import GT_ANGLES, GT_FUNCTIONS, check_gt_angles
 
 log = logging.getLogger(__name__)
 
@@ -32,9 +33,11 @@ __all__ = ["EVALUATE_SETTINGS", "HEADLINES", "evaluate_products", "evaluation_in
            "run_evaluate", "summary_rows"]
 
 #: Settings of the evaluation (the ``evaluate`` stage's cache key): the projection's comparison
-#: (:mod:`facegeo.evaluate.projection`) and the mesh's (:mod:`facegeo.evaluate.cloud`).
+#: (:mod:`facegeo.evaluate.projection`), the mesh's (:mod:`facegeo.evaluate.cloud`) and the
+#: skin fit's (:mod:`facegeo.evaluate.skin_fit`: functions per camera, view turns in degrees).
 EVALUATE_SETTINGS: dict[str, Any] = {"gt_lights": GT_LIGHTS, "gt_weight_min": GT_WEIGHT_MIN,
-                                     "mesh_samples": 100_000}
+                                     "mesh_samples": 100_000, "gt_functions": GT_FUNCTIONS,
+                                     "gt_angles": list(GT_ANGLES)}
 
 #: The figures :func:`summary_rows` shows per compared stage, in order.
 HEADLINES: dict[str, tuple[str, ...]] = {
@@ -43,7 +46,7 @@ HEADLINES: dict[str, tuple[str, ...]] = {
                   "reference_focal_rel_error_max", "reference_principal_point_error_px_max"),
     "mesh": ("mesh_to_reference_plane_median_mm", "mesh_to_reference_plane_p95_mm",
              "mesh_to_reference_median_mm", "reference_coverage",
-             "points_to_reference_median_mm"),
+             "points_to_reference_median_mm", "points_rms_error_mm", "mesh_p95_error_mm"),
     "project": ("projection_rel_rmse", "visibility_agreement"),
     "fit": ("normal_median_error_deg", "normal_mean_error_deg", "albedo_rel_error",
             "resynthesis_rel_rmse_30", "resynthesis_rel_rmse_60"),
@@ -94,27 +97,9 @@ def _evaluate_views(scan, out: Path, part: str, dest: Path, renderer: Callable) 
     return {"views": per_view, **views_summary(per_view)}
 
 
-def _skin_fit_figures(scan, out: Path, renderer) -> dict:
-    """:func:`facegeo.evaluate.skin_fit.evaluate_skin_fit`, or — while ``pipeline/fit.py``
-    still computes the same figures itself (issue 37; equal to 1e-6,
-    ``tests/test_evaluate.py``) — the stage's, marked ``computed_by``, so a run does not pay for
-    the comparison twice. Once the stage drops its copy, the evaluation computes them."""
-    from facegeo.evaluate import skin_fit, views
-    from facegeo.evaluate._products import has_stage, stage_manifest
-
-    if has_stage(out, "fit"):
-        m = stage_manifest(out, "fit").get("metrics", {})
-        if "gt_valid_functions" in m:
-            keep = {k: v for k, v in m.items() if k == "gt_valid_functions"
-                    or k.startswith(("normal_median", "albedo_rel", "specular_energy",
-                                     "resynthesis_", "gauge_"))}
-            return {**keep, "computed_by": "the fit stage (pipeline/fit.py, not moved yet)"}
-    return skin_fit.evaluate_skin_fit(
-        scan, out, renderer=renderer() if views.has_view_reference(scan) else None)
-
-
 def evaluate_products(scan, out, dest, *, gt_lights: int = GT_LIGHTS,
                       gt_weight_min: float = GT_WEIGHT_MIN, mesh_samples: int = 100_000,
+                      gt_functions: int = GT_FUNCTIONS, gt_angles=GT_ANGLES,
                       stages: list[str] | None = None,
                       progress: Callable[[str, int, int], None] | None = None) -> dict:
     """Compare the products in ``out`` with the scan's references; write ``dest/metrics.json``.
@@ -131,6 +116,9 @@ def evaluate_products(scan, out, dest, *, gt_lights: int = GT_LIGHTS,
         The projection's comparison (:func:`facegeo.evaluate.projection.evaluate_projection`).
     mesh_samples : int
         Area-uniform samples of the mesh (:func:`facegeo.evaluate.cloud.mesh_to_reference`).
+    gt_functions, gt_angles
+        The skin fit's comparison (:func:`facegeo.evaluate.skin_fit.evaluate_skin_fit`):
+        functions per camera, view turns in degrees.
     stages : list of str, optional
         Compare only these stages' products (default: every stage with products).
     progress : callable(stage, done, total), optional
@@ -142,12 +130,14 @@ def evaluate_products(scan, out, dest, *, gt_lights: int = GT_LIGHTS,
         One entry per compared stage (its figures) and ``seconds`` per comparison under
         ``seconds_by_stage``; stages without products or references are absent.
     """
-    from facegeo.evaluate import cloud, intrinsics, normals, projection, relit, views
+    from facegeo.evaluate import cloud, intrinsics, normals, projection, relit, skin_fit, views
     from facegeo.evaluate._products import has_stage
     from facegeo.fsutil import atomic_write_text
 
     gt_lights = check_positive_int(gt_lights, "gt_lights")
     mesh_samples = check_positive_int(mesh_samples, "mesh_samples")
+    gt_functions = check_positive_int(gt_functions, "gt_functions")
+    gt_angles = check_gt_angles(gt_angles)
     out, dest = Path(out), Path(dest)
     truth: dict[str, Any] = {}
 
@@ -172,8 +162,10 @@ def evaluate_products(scan, out, dest, *, gt_lights: int = GT_LIGHTS,
             scan, out, gt_lights=gt_lights, gt_weight_min=gt_weight_min,
             renderer=renderer())))
     if wanted("fit"):  # a multi-view fit against the generator; an image-space one's normals
-        jobs.append(("fit", lambda: {**_skin_fit_figures(scan, out, renderer),
-                                     **normals.evaluate_normals(scan, out)}))
+        jobs.append(("fit", lambda: {**skin_fit.evaluate_skin_fit(
+            scan, out, renderer=renderer() if views.has_view_reference(scan) else None,
+            gt_functions=gt_functions, gt_angles=gt_angles),
+            **normals.evaluate_normals(scan, out)}))
     if wanted("relit"):  # facegeo relight's camera views (the relight stage's is the atlas)
         jobs.append(("relit", lambda: relit.evaluate_relit(scan, out)))
     images = any(k.startswith("images.") for k in scan.reference_keys)

@@ -49,6 +49,7 @@ from facegeo.checks import check_positive_int
 from facegeo.frames import stratified_light_subset
 from facegeo.evaluate._products import stage_rig_product
 from facegeo.evaluate.gauge import texel_areas, truth_gauge
+from facegeo.surface.reflectance import has_field
 
 __all__ = ["GT_LIGHTS", "GT_WEIGHT_MIN", "VISIBILITY_FILE", "evaluate_projection",
            "has_projection_truth", "with_projection_figures"]
@@ -288,7 +289,7 @@ def evaluate_projection(scan, out, *, gt_lights: int = GT_LIGHTS,
         T_true, gauge = truth_gauge(renderer, atlas, rig_used)
         ref = renderer.texel_truth(atlas, texels, T_true=T_true)
         area = texel_areas(atlas, texels)
-    names = [c.name for c in the_rig.cameras if (out / "project" / c.name / "R.npy").is_file()]
+    names = [c.name for c in the_rig.cameras if has_field(out / "project" / c.name)]
     per_cam: dict[str, Any] = {}
     err_sums: dict[str, float] = {}
     for name in names:

@@ -457,7 +457,7 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     metrics["seconds"] = round(time.perf_counter() - t0, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     if engine.kind != "in-process":
-        metrics["engine"] = _engine_metrics(engine, [t.name for t in tasks])
+        metrics["engine"] = engine.stage_metrics("decode", [t.name for t in tasks])
     return metrics, {**used, "cameras": cams}
 
 
@@ -485,17 +485,6 @@ def decode_working_set(scan, camera: str) -> int:
     cam = scan.rig.camera(camera)
     per_px = DECODE_BYTES_PER_PIXEL + (DECODE_GT_BYTES_PER_PIXEL if scan.synthetic else 0)
     return int(cam.width) * int(cam.height) * per_px
-
-
-def _engine_metrics(engine, names: list[str]) -> dict:
-    """The engine's summary and, per task of this stage, the worker, seconds and peak memory."""
-    recs = {r.task: r for r in engine.records if r.stage == "decode" and r.task in names}
-    out = engine.describe()
-    out["tasks"] = {n: {"worker": recs[n].worker, "seconds": round(recs[n].seconds, 4),
-                        "peak_rss_mb": None if recs[n].peak_rss_mb is None
-                        else round(recs[n].peak_rss_mb, 1)}
-                    for n in names if n in recs}
-    return out
 
 
 def decode_camera_task(scan, cam: str, plan, dest: str, used: dict, phase_only: bool,

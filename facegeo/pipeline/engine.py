@@ -1,8 +1,8 @@
 """Where a stage's tasks run: in this process, on a Dask ``LocalCluster`` or on an existing cluster.
 
-A stage that splits its work into independent tasks (``decode``: one task per camera) hands
-them to an :class:`Engine` and gets back one small dict per task (metrics, counts). Three
-modes behind one interface (issue 38):
+A stage that splits its work into independent tasks (``decode``, ``project``: one task per
+camera) hands them to an :class:`Engine` and gets back one small dict per task (metrics,
+counts). Three modes behind one interface (issue 38):
 
 * :class:`InProcessEngine` — the default: the tasks run one after another in this process, in
   the order given. Dask is not imported on this path (``make demo`` and the tests need no
@@ -243,6 +243,17 @@ class Engine:
                 "memory_limit_mb": None if self.memory_limit is None
                 else round(self.memory_limit / 2 ** 20, 1),
                 "dashboard": self.dashboard}
+
+    def stage_metrics(self, stage: str, names: Sequence[str]) -> dict:
+        """:meth:`describe` and, per task of ``stage`` named in ``names``, the worker, seconds
+        and peak memory it ran with (the ``engine`` entry of a stage's metrics on a cluster)."""
+        recs = {r.task: r for r in self.records if r.stage == stage and r.task in names}
+        out = self.describe()
+        out["tasks"] = {n: {"worker": recs[n].worker, "seconds": round(recs[n].seconds, 4),
+                            "peak_rss_mb": None if recs[n].peak_rss_mb is None
+                            else round(recs[n].peak_rss_mb, 1)}
+                        for n in names if n in recs}
+        return out
 
     def task_budget(self) -> int | None:
         """Bytes a task's working set may take on one worker (None: not limited)."""

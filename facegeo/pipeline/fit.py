@@ -24,31 +24,10 @@ a texel's measured function where it has no fit (counted as ``unfitted``).
 
 Metrics: per camera ``functions``, ``seconds``, ``functions_per_second``, ``valid_functions``,
 flag counts (``masked``: functions with masked samples, each left out alone); ``valid_functions``
-overall (0 is logged as a warning with the flag counts); with the synthetic scan's ground truth
-(generator renderer, ground-truth mesh) over fitted, valid texels (``gt_valid_functions``; the
-medians are null when there are none):
-
-* ``normal_median_error_deg`` — against the generator's shading normal at the texel;
-* ``albedo_rel_error`` — median ``|ρ_d − ρ_ref| / |ρ_ref|`` with ρ_ref the albedo of the
-  paper's Lambertian lobe that the generator's diffuse term has at the true normal and view
-  (:func:`facegeo.appearance.brdf.lambertian_equivalent_albedo`: what a perfect diffuse fit
-  returns; the skin model's tests use the same reference). ``albedo_rel_error_alpha0``
-  compares with the generator's α_0 (its colour at normal incidence and view) instead, as
-  this metric did until 2026-12-02: α_0 is not a Lambertian albedo (the generator's BRDF is
-  not the paper's model), and on the small preset α_0 and ρ_ref differ by 7.4 % (median), so
-  that figure cannot reach 3 % however good the fit;
-* ``specular_energy_rel_error`` — median ``|ρ_s − ρ_s,gen| / ρ_s,gen`` (same caveat);
-* ``resynthesis_rel_rmse`` at 30° and 60° — the fitted functions resynthesised for the source
-  view turned by +θ and by −θ about the vertical axis (both, for every function), against the
-  generator's exact functions from that view (its renderer's shading of every light, cast
-  shadows included), ``sqrt(Σ err² / Σ ref²)`` over at most ``gt_functions`` functions per
-  camera; views from below the true surface are not compared, their share is
-  ``resynthesis_backfacing`` (at 30° / 60°); beside it ``resynthesis_naive_rel_rmse`` (the
-  measured function reused unchanged) and at 0° the projection's own error. Each also as the
-  median over functions of the function's own relative RMSE (``…_median``): the pooled figure
-  is dominated by a few functions — on the small preset 10 of 14,418 turned functions carry
-  57 % of Σ err² at 30° — so it moves by ±20 % with the sample of functions compared, where
-  the median does not.
+overall (0 is logged as a warning with the flag counts). The stage reads no truth: the fits'
+errors against a synthetic scan's generator (normals, albedo, ρs, resynthesis at turned views)
+are computed from these products by :mod:`facegeo.evaluate.skin_fit` (``facegeo evaluate``, the
+``evaluate`` stage of ``facegeo reconstruct``; its settings ``gt_functions``, ``gt_angles``).
 
 **A single-view scan without geometry** (Yale B, DiLiGenT: one camera, a light list, no
 structured light, no mesh) is fitted in image space instead — every masked pixel a texel, the
@@ -62,20 +41,15 @@ squares: :func:`fit_image_products` (:mod:`facegeo.pipeline._fit_image`; setting
 1.5 m) is not distant from a head ≈ 0.1 m across — the light directions move by up to ≈ 4°
 and their falloff by ±14 % over the face. The fit takes each texel's offset from the stage
 centre and fits each light where it is
-(:func:`facegeo.appearance.skin.fit_reflectance_near`); the resynthesis compared here uses
-the same geometry (Eq. 9 with true directions). docs/skin.md, "Near-field light stages".
-
-The texels meet the truth where the ``project`` stage's do
-(:meth:`facegeo.synth.render.ReferenceRenderer.texel_truth`); with a rig other than the true
-one, after the same rigid gauge alignment (:func:`facegeo.pipeline.project.truth_gauge`,
-``gauge_rotation_deg`` / ``gauge_translation_mm``), the view directions turned with it.
+(:func:`facegeo.appearance.skin.fit_reflectance_near`); the renderer's resynthesis and the
+evaluation's use the same geometry (Eq. 9 with true directions, :func:`_near_field`).
+docs/skin.md, "Near-field light stages".
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -95,8 +69,8 @@ __all__ = ["FIT_SETTINGS", "IMAGE_FIT_SETTINGS", "default_views", "fit_products"
 #: Default settings of the ``fit`` stage (JSON-serialisable, part of its cache key).
 FIT_SETTINGS: dict[str, Any] = {
     "texels": "all", "views": None, "max_texels": None, "eta": 1.4, "chunk": 2048,
-    "diffuse_dtype": "float16", "gt_functions": 256, "gt_angles": [30.0, 60.0],
-    "mosaic": 8, "rig": None, "polish": None, "supersample": 1, "near_field": "auto",
+    "diffuse_dtype": "float16", "mosaic": 8, "rig": None, "polish": None, "supersample": 1,
+    "near_field": "auto",
 }
 
 
@@ -136,8 +110,13 @@ def needed_texels(specs, cameras: dict, atlas, texels, scene=None, *,
     return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
 
-def _check_settings(*, texels="all", max_texels=None, chunk=1, gt_angles=(30.0, 60.0),
-                    supersample=1, near_field="auto", **_ignored) -> None:
+def _check_settings(*, texels="all", max_texels=None, chunk=1, supersample=1,
+                    near_field="auto", **others) -> None:
+    moved = sorted({"gt_functions", "gt_angles"} & set(others))
+    if moved:  # issue 37: the stage reads no truth; its comparison is the evaluation's
+        raise InputError(f"{', '.join(moved)}: a setting of the evaluation now, not of the fit "
+                         "(facegeo.evaluate.run_evaluate(..., gt_functions=…, gt_angles=…), or "
+                         "settings={'evaluate': {...}} of facegeo reconstruct)")
     if texels not in ("all", "views"):
         raise InputError(f"texels: expected 'all' or 'views', got {fmt_value(texels)}")
     if near_field not in ("auto", "off"):
@@ -147,41 +126,6 @@ def _check_settings(*, texels="all", max_texels=None, chunk=1, gt_angles=(30.0, 
         raise InputError(f"max_texels: expected a positive count, got {fmt_value(max_texels)}")
     if int(chunk) < 1:
         raise InputError(f"chunk: expected a positive count, got {fmt_value(chunk)}")
-    for a in gt_angles:  # 0 would be the source view's own key (resynthesis_rel_rmse_0)
-        if isinstance(a, bool) or not isinstance(a, (int, float)) or not 0 < abs(a) < 180:
-            raise InputError(f"gt_angles: expected angles in degrees with 0 < |θ| < 180, got "
-                             f"{fmt_value(a)} in {fmt_value(list(gt_angles))}")
-
-
-def _exact_functions(renderer, stage, p, n, v, face_in, sk) -> np.ndarray:
-    """The generator's exact OLAT functions ``(N, L, 3)`` of points seen from directions v."""
-    from facegeo.synth.render import SurfaceView
-
-    N = p.shape[0]
-    view = SurfaceView("fit-truth", (1, N), np.ones((1, N), bool), np.arange(N), p, n, v,
-                       face_in, np.asarray(sk.alpha_0, np.float32).reshape(-1, 3),
-                       np.asarray(sk.alpha_1, np.float32).reshape(-1, 3),
-                       np.asarray(sk.rho_s, np.float32).reshape(-1),
-                       np.asarray(sk.roughness, np.float32).reshape(-1))
-    return np.stack([renderer.shade_stage_light(view, stage, l) for l in range(stage.n_lights)],
-                    axis=1)
-
-
-def _rotate_views(v, deg):
-    """v turned by ``deg`` degrees about +Y (world frame)."""
-    from facegeo.lighting.envmap import rotation_y
-
-    return v @ rotation_y(np.radians(deg)).T
-
-
-def _rel_rmse(est, ref):
-    den = float((ref.astype(np.float64) ** 2).sum())
-    return float(np.sqrt(((est.astype(np.float64) - ref) ** 2).sum() / den)) if den > 0 else None
-
-
-def _angle_deg(a, b):
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1),
-                                 np.einsum("ni,ni->n", a, b)))
 
 
 def _write_maps(dest: Path, texels, acc: dict, wsum: np.ndarray) -> dict:
@@ -358,8 +302,8 @@ def _float32_rows(a, out):
 
 def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all",
                  views: list | None = None, max_texels: int | None = None, eta: float = 1.4,
-                 chunk: int = 2048, diffuse_dtype: str = "float16", gt_functions: int = 256,
-                 gt_angles=(30.0, 60.0), mosaic: int = 8, rig: str | None = None,
+                 chunk: int = 2048, diffuse_dtype: str = "float16", mosaic: int = 8,
+                 rig: str | None = None,
                  polish: int | None = None, supersample: int = 1, near_field: str = "auto",
                  progress=None) -> tuple[dict, dict]:
     """Fit the skin model to every camera's projected field; write the ``fit`` products.
@@ -378,8 +322,6 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     eta : float — index of refraction (ρ_s, Eq. 9)
     chunk : int — functions read and fitted at a time
     diffuse_dtype : {"float16", "float32"} — storage of D
-    gt_functions : int — functions per camera in the resynthesis ground-truth comparison
-    gt_angles : sequence of float, degrees
     mosaic : int — the mosaic shows mosaic × mosaic functions (0: none)
     rig : str, optional — rig for view specs (:func:`facegeo.pipeline.project.stage_rig`)
     polish : int or None — Levenberg–Marquardt iterations after the ramp search
@@ -388,7 +330,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         preset: normals 1.44°, albedo 10.9 %, ρs 17 %, resynthesis 2.9× / 1.9× better than naive
         at 30° / 60° over the one-sided turns measured then; ``polish=0`` gives 4.11°, 14.5 %,
         96 %, 1.6× / 1.2× (docs/render.md). Over both turns (another run: all texels): 2.5× /
-        1.6× where the one-sided rule read 3.1× / 2.0×.
+        1.6× where the one-sided rule read 3.1× / 2.0×. (These errors are
+        :mod:`facegeo.evaluate.skin_fit`'s figures now.)
     near_field : {"auto", "off"} — "auto" (default): on a light stage of finite radius, each
         light where it is (:func:`facegeo.appearance.skin.fit_reflectance_near`: the texel's
         offset from the stage centre gives every light's true direction and falloff, in the fit
@@ -400,14 +343,10 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     -------
     (metrics, settings)
     """
-    from facegeo.appearance.skin import (
-        FLAG_NAMES,
-        SearchDepth,
-        resynthesize,
-    )
+    from facegeo.appearance.skin import FLAG_NAMES, SearchDepth
     from facegeo.capture import imageio
     from facegeo.pipeline.bench import peak_rss_mb
-    from facegeo.pipeline.project import check_projection_atlas, stage_rig, truth_gauge
+    from facegeo.pipeline.project import check_projection_atlas, stage_rig
     from facegeo.render import FitWriter, atlas_scene, light_set, load_sources
     from facegeo.surface.atlas import Atlas, Texels
 
@@ -415,7 +354,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     project_dir = Path(project_dir)
     dest = Path(dest)
     atlas_dir = Path(atlas_dir) if atlas_dir is not None else project_dir.parent / "atlas"
-    _check_settings(texels=texels, max_texels=max_texels, chunk=chunk, gt_angles=gt_angles,
+    _check_settings(texels=texels, max_texels=max_texels, chunk=chunk,
                     supersample=supersample, near_field=near_field)
     for f in ("atlas.npz", "texels.npz"):
         if not (atlas_dir / f).is_file():
@@ -431,8 +370,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         raise InputError(f"{project_dir}: fields hold {sources[0].field.shape[1]} lights, the rig "
                          f"{lights.n_lights}")
     settings = {"texels": texels, "views": views, "max_texels": max_texels, "eta": eta,
-                "chunk": int(chunk), "diffuse_dtype": diffuse_dtype,
-                "gt_functions": gt_functions, "gt_angles": list(gt_angles), "mosaic": mosaic,
+                "chunk": int(chunk), "diffuse_dtype": diffuse_dtype, "mosaic": mosaic,
                 "rig": rig_used, "polish": polish, "supersample": int(supersample),
                 "near_field": near_field}
     near_all = _near_field(the_rig.lights, tex, near_field)
@@ -449,19 +387,10 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         need = needed_texels(specs, cam_table, atlas, tex, atlas_scene(atlas),
                              supersample=supersample)
         t_views = time.perf_counter() - t0
-    renderer = T_true = None
-    gauge: dict[str, float] = {}
-    if scan.synthetic and "skin" in scan.ground_truth_keys:
-        from facegeo.synth.render import load_ground_truth
-
-        renderer = load_ground_truth(scan)
-        T_true, gauge = truth_gauge(renderer, atlas, rig_used)
     T = len(tex)
     acc = {"normal": np.zeros((T, 3)), "rho_d": np.zeros((T, 3)), "rho_s": np.zeros(T)}
     wsum = np.zeros(T)
     per_cam: dict[str, Any] = {}
-    gt = {"n_err": [], "a_err": [], "a0_err": [], "s_err": [], "sums": {}, "per_function": {},
-          "backfacing": {}, "views": {}}
     mosaic_R = None
     total = 0
     selections = []
@@ -517,9 +446,6 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         if mosaic and mosaic_R is None and rows.size:
             pick = rows[even_subset(rows.size, int(mosaic) ** 2)]
             mosaic_R = np.asarray(src.field[pick], np.float32)
-        if renderer is not None and rows.size:
-            _ground_truth(gt, renderer, atlas, tex, src, lights, dest / src.name,
-                          gt_functions, gt_angles, resynthesize, T_true, near)
     files = _write_maps(dest, tex, acc, wsum)
     if mosaic_R is not None and hasattr(the_rig.lights, "n_theta"):  # a θ × φ grid to lay out
         imageio.write_image(dest / "mosaic.png", reflectance_mosaic(
@@ -533,38 +459,17 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                                                   1e-9), 1),
         "files": files,
     }
-    metrics.update(gauge)
     metrics["valid_functions"] = int(sum(c["valid_functions"] for c in per_cam.values()))
     if total and not metrics["valid_functions"]:
         counts: dict[str, int] = {}
         for c in per_cam.values():
             for k, x in c["flags"].items():
                 counts[k] = counts.get(k, 0) + x
-        log.warning("fit: no valid function among %d (flags: %s); the maps are empty and the "
-                    "ground-truth medians are null", total, _flag_summary(counts))
-    if renderer is not None and gt["n_err"]:
-        ne = np.concatenate(gt["n_err"])
-        metrics["gt_valid_functions"] = int(ne.size)
-        # medians over no valid function are null, not NaN (JSON has no NaN)
-        metrics["normal_median_error_deg"] = _median(ne, 4)
-        metrics["albedo_rel_error"] = _median(np.concatenate(gt["a_err"]), 5)
-        metrics["albedo_rel_error_alpha0"] = _median(np.concatenate(gt["a0_err"]), 5)
-        metrics["specular_energy_rel_error"] = _median(np.concatenate(gt["s_err"]), 5)
-        for key, (se, sr) in sorted(gt["sums"].items()):
-            metrics[key] = round(float(np.sqrt(se / sr)), 5) if sr > 0 else None
-        for key, parts in sorted(gt["per_function"].items()):
-            # "resynthesis_rel_rmse_30" -> "resynthesis_rel_rmse_30_median"
-            metrics[f"{key}_median"] = _median(np.concatenate(parts), 5)
-        for key, nb in sorted(gt["backfacing"].items()):
-            metrics[f"resynthesis_backfacing_{key}"] = round(nb / max(gt["views"][key], 1), 5)
+        log.warning("fit: no valid function among %d (flags: %s); the maps are empty", total,
+                    _flag_summary(counts))
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     return metrics, settings
-
-
-def _median(a, digits):
-    """Rounded median of ``a``, or None when ``a`` is empty."""
-    return round(float(np.median(a)), digits) if a.size else None
 
 
 def _flag_summary(counts: dict) -> str:
@@ -581,87 +486,6 @@ def _near_field(stage, tex, mode):
     if mode == "off" or not np.isfinite(radius) or not hasattr(stage, "n_theta"):
         return None
     return NearField(tex.p_world - np.asarray(stage.center, np.float64), float(radius))
-
-
-def _ground_truth(gt, renderer, atlas, tex, src, lights, cam_dir, n_max, angles, resynthesize,
-                  T_true=None, near=None):
-    """Accumulate the ground-truth comparisons of one camera's fits (see module docstring).
-
-    The truth is the generator's: its light stage and, with ``T_true`` (the gauge alignment of
-    a rig other than the true one, :func:`facegeo.pipeline.project.truth_gauge`), the texels
-    and view directions moved into its frame. Fitted normals are compared as they are: the
-    fit places them in the light stage's frame, which is the generator's."""
-    from facegeo.appearance.brdf import lambertian_equivalent_albedo
-    from facegeo.render import FitStore
-
-    stage = renderer.rig.lights
-    to_true = (lambda v: v) if T_true is None else T_true.apply_direction
-    store = FitStore.load(cam_dir)
-    valid = store.params["valid"].astype(bool)
-    truth = renderer.texel_truth(atlas, tex, store.texel_index, T_true=T_true)
-    sk = renderer.material_at(truth.p, truth.face)
-    a0 = np.asarray(sk.alpha_0, np.float64).reshape(-1, 3)
-    rs = np.asarray(sk.rho_s, np.float64).reshape(-1)
-    gt["n_err"].append(_angle_deg(store.params["normal"], truth.n)[valid])
-    gt["a0_err"].append((np.linalg.norm(store.params["rho_d"] - a0, axis=1)
-                         / np.linalg.norm(a0, axis=1))[valid])
-    # the albedo of the paper's Lambertian lobe that the generator's (non-Lambertian) diffuse
-    # term has at the true normal and view: what a perfect fit returns
-    rho_ref = lambertian_equivalent_albedo(
-        truth.n[valid], to_true(src.v_world[store.rows[valid]]), a0[valid],
-        np.asarray(sk.alpha_1, np.float64).reshape(-1, 3)[valid], rs[valid],
-        np.asarray(sk.roughness, np.float64).reshape(-1)[valid], stage.directions,
-        lights.solid_angles)
-    gt["a_err"].append(np.linalg.norm(store.params["rho_d"][valid] - rho_ref, axis=1)
-                       / np.maximum(np.linalg.norm(rho_ref, axis=1), 1e-300))
-    gt["s_err"].append((np.abs(store.params["rho_s"] - rs) / np.maximum(rs, 1e-12))[valid])
-    sub = np.flatnonzero(valid)[even_subset(int(valid.sum()), n_max)]
-    if sub.size == 0:
-        return
-    R = np.asarray(src.field[store.rows[sub]], np.float32)
-    # masked samples (NaN) as the fit took them, 0 (fit_chunks): S = R − D = 0 there, and the
-    # measured function compared as the fit saw it (no NaN: EXR scans are unchanged)
-    R = np.where(np.isfinite(R), R, np.float32(0.0))
-    fit = store.skin_fit(sub, R, lights)
-    if near is not None:  # the fit's own texel positions (not the truth's)
-        fit = replace(fit, near=near.take(store.rows[sub]))
-    p, n, face_in = truth.p[sub], truth.n[sub], truth.face[sub]
-    skin_sub = renderer.material_at(p, face_in)
-    v0 = src.v_world[store.rows[sub]]
-    ref0 = _exact_functions(renderer, stage, p, n, to_true(v0), face_in, skin_sub)
-    _add(gt, "resynthesis_rel_rmse_0", R, ref0)
-    for deg in angles:
-        # Both turns, +θ and −θ, for every function: picking per function the turn that keeps
-        # the view higher above the surface (as this once did) left out the grazing views and
-        # flattered the figure 2.4–3× (docs/render.md). Views from below the true surface see
-        # nothing of it: counted (``resynthesis_backfacing_<θ>``), not compared.
-        for sign in (1.0, -1.0):
-            vn = _rotate_views(v0, sign * float(deg))
-            vn_true = to_true(vn)
-            front = np.einsum("ni,ni->n", vn_true, n) > 0
-            key = f"{deg:g}"
-            gt["backfacing"][key] = gt["backfacing"].get(key, 0) + int((~front).sum())
-            gt["views"][key] = gt["views"].get(key, 0) + int(front.size)
-            if not front.any():
-                continue
-            f = np.flatnonzero(front)
-            ref = _exact_functions(renderer, stage, p[f], n[f], vn_true[f], face_in[f],
-                                   renderer.material_at(p[f], face_in[f]))
-            est = resynthesize(fit, vn).reflectance[f]
-            _add(gt, f"resynthesis_rel_rmse_{key}", est, ref)
-            _add(gt, f"resynthesis_naive_rel_rmse_{key}", R[f], ref)
-
-
-def _add(gt, key, est, ref):
-    """Add functions ``est`` against ``ref`` (N, L, C) to the pooled sums of ``key`` and their
-    per-function relative RMSE (functions with some reference energy) to its list."""
-    se, sr = gt["sums"].get(key, (0.0, 0.0))
-    ok = np.isfinite(est).all(axis=(1, 2))
-    e2 = ((est[ok].astype(np.float64) - ref[ok]) ** 2).sum(axis=(1, 2))
-    r2 = (ref[ok].astype(np.float64) ** 2).sum(axis=(1, 2))
-    gt["sums"][key] = (se + float(e2.sum()), sr + float(r2.sum()))
-    lit = r2 > 0
-    gt["per_function"].setdefault(key, []).append(np.sqrt(e2[lit] / r2[lit]))
 
 
 def run_fit(scan_dir, out_dir=None, **settings) -> dict:

@@ -7,15 +7,17 @@ of the decode stage) and writes ``out_dir/mesh/``:
     points.ply    fused points: x y z, nx ny nz (toward the observing camera), confidence,
                   sigma (1 σ along the camera ray, metres), camera (index), confirmed
     mesh.ply      the trimmed Poisson mesh (metres, world frame)
+    observed_faces.npy
+                  (F,) bool: the mesh faces within ``observed_radius`` of a fused point (the
+                  observed region; the evaluation's mesh figures are taken over it)
     stage.json    settings and metrics
 
 and records its metrics in ``out_dir/metrics.json`` under ``"mesh"``.
 
 Rig: ``rig="ground_truth"`` (default when the scan has one) uses the true rig the frames were
 rendered with, ``rig="scan"`` the scan's ``rig.json``, ``rig="calibrated"`` the ``calibrate``
-stage's ``out/calibrate/rig.json`` (or give a rig file). With any rig but the true one, the
-ground-truth metrics are also given after the best rigid alignment of the points to the true
-surface (``after_rigid_alignment``: a calibrated rig's world frame is its own gauge).
+stage's ``out/calibrate/rig.json`` (or give a rig file); the choice is the ``rig`` of the
+metrics.
 
 Triangulation (``"triangulation"`` in the metrics): ``"camera-projector"`` — each camera's rays
 against the calibrated projector (:func:`facegeo.geometry.triangulation.triangulate_maps`); or,
@@ -27,16 +29,16 @@ cameras whose decodes have both ``x`` and ``y`` (cameras without are left out an
 calibrate the projector). Either way the per-camera point maps go through the same fusion,
 normals, Poisson, trimming and metrics.
 
-Ground-truth metrics (synthetic scans; the mesh is ``scan.ground_truth_path("mesh")``):
-
-* ``points_rms_error_mm``: RMS unsigned distance of the fused points to the true surface.
-* ``mesh_p95_error_mm``: 95th percentile distance to the true surface of area-uniform samples
-  of the mesh inside the observed region (within ``observed_radius`` of a fused point).
-* ``normal_median_error_deg``: median angle between the mesh's vertex normals and the true
-  surface's interpolated vertex normals at the closest point, observed region only.
 * ``unobserved_area_mm2`` / ``unobserved_area_fraction``: mesh area farther than
   ``observed_radius`` from every fused point — "no mesh where no camera saw the face"
-  (``observed_radius`` defaults to 1.5 sampling spacings, see :func:`mesh_products`).
+  (``observed_radius`` defaults to 1.5 sampling spacings, see :func:`mesh_products`); the
+  other faces are ``observed_faces.npy``.
+
+The stage reads no truth: the errors against a synthetic scan's true surface (or a real
+scan's reference mesh) — ``points_rms_error_mm``, ``mesh_p95_error_mm`` and
+``normal_median_error_deg`` over the observed region, with any rig but the true one also
+``after_rigid_alignment`` — are :mod:`facegeo.evaluate.cloud`'s, from these products
+(``facegeo evaluate``, the ``evaluate`` stage; issue 37 moved them out of this module).
 
 :func:`ground_truth_decode` makes decode maps from a synthetic scan's per-camera ground-truth
 geometry (project the true surface point of each pixel into the projector, drop projector
@@ -63,7 +65,6 @@ __all__ = [
     "DECODE_KEYS",
     "decode_from_surface",
     "ground_truth_decode",
-    "ground_truth_errors",
     "load_decode",
     "mesh_products",
     "read_points_ply",
@@ -333,8 +334,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                   fuse_sigmas: float = 4.0, normals_k: int = 24, depth: int | str = "auto",
                   point_weight: float = 4.0, trim_quantile: float = 0.02,
                   max_distance_mm: float | str | None = "auto", min_component: float = 0.05,
-                  target_faces: int | None = None, observed_radius_mm: float | None = None,
-                  gt_samples: int = 100_000) -> tuple[dict, dict]:
+                  target_faces: int | None = None,
+                  observed_radius_mm: float | None = None) -> tuple[dict, dict]:
     """Write ``points.ply`` and ``mesh.ply`` of ``scan`` into ``dest`` from ``decode_dir``.
 
     The work of :func:`run_mesh` without the staging. Returns ``(metrics, settings)``.
@@ -384,12 +385,10 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         observed radius (``observed_radius_mm``), as before issue 34, which on a real scan at
         full resolution (0.23 mm) trimmed away 9,911 of 11,080 vertices of a depth-7 mesh.
     observed_radius_mm : float, millimetres, optional
-        The observed region for the ground-truth metrics and ``unobserved_area_mm2``: within
+        The observed region (``observed_faces.npy``, ``unobserved_area_mm2``): within
         this of a fused point. Default 1.5 × the points' median 6th-neighbour distance
         (:func:`facegeo.geometry.triangulation.neighbour_spacing`; ≈ 2.0 mm on the small
         preset, 5.5 mm on the tiny one), recorded in the metrics.
-    gt_samples : int
-        Area-uniform mesh samples for ``mesh_p95_error_mm``.
 
     Returns
     -------
@@ -403,8 +402,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         ``faces``, ``vertices``, ``area_mm2``, ``unobserved_area_mm2``, ``warnings`` (when a
         camera lost most of its triangulated pixels as inconsistent with the rig,
         :data:`INCONSISTENT_WARN_FRACTION`: also logged),
-        ``unobserved_area_fraction``, seconds per step, and on synthetic scans
-        ``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg``.
+        ``unobserved_area_fraction``, seconds per step.
     settings : dict
     """
     from facegeo.geometry import mesh as gm
@@ -448,8 +446,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                 "fuse_sigmas": fuse_sigmas, "normals_k": normals_k, "depth": depth,
                 "point_weight": point_weight, "trim_quantile": trim_quantile,
                 "max_distance_mm": max_distance_mm, "min_component": min_component,
-                "target_faces": target_faces, "observed_radius_mm": observed_radius_mm,
-                "gt_samples": gt_samples}
+                "target_faces": target_faces, "observed_radius_mm": observed_radius_mm}
     cams = [the_rig.camera(n) for n in names]
     extra: dict[str, Any] = {}
     t0 = time.perf_counter()
@@ -513,6 +510,9 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     del normals
     _write_mesh_ply(dest / "mesh.ply", mesh.vertices, mesh.faces)
     area_out, far = gm.area_beyond(mesh.vertices, mesh.faces, points, r_obs)
+    with atomic_path(dest / "observed_faces.npy") as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, ~far)
     area = mesh.area
     metrics: dict[str, Any] = {
         "rig": rig_used,
@@ -537,10 +537,6 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     warnings = _geometry_warnings(per_cam, pair_route)
     if warnings:
         metrics["warnings"] = warnings
-    if scan.synthetic and "mesh" in scan.ground_truth_keys:
-        # a calibrated rig's world frame is a gauge choice: report the shape error too
-        metrics.update(ground_truth_errors(scan, points, mesh, far, gt_samples,
-                                           align=rig_used != "ground_truth"))
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     return metrics, settings
 
@@ -898,47 +894,3 @@ def _uncalibrated_projector_error(scan, the_rig, rig_used: str, why: str) -> Inp
 
 def _mm(v) -> float:
     return round(float(v) * 1e3, 6)
-
-
-def ground_truth_errors(scan, points, mesh, far_faces, n_samples: int = 100_000, *,
-                        align: bool = False) -> dict:
-    """``points_rms_error_mm``, ``mesh_p95_error_mm``, ``normal_median_error_deg`` (module).
-
-    ``far_faces`` marks the mesh faces outside the observed region (left out of the mesh
-    figures). With ``align`` the same figures are also given under ``after_rigid_alignment``,
-    after moving the points and the mesh by the rigid transform that best fits the points to
-    the true surface (:func:`facegeo.geometry.mesh.align_to_surface`), with
-    ``alignment_rotation_deg`` / ``alignment_translation_mm`` saying how far that was.
-    """
-    from facegeo.geometry import mesh as gm
-
-    V, F = _load_gt_mesh(scan)
-    ref_n = None
-    if "vertex_params" in scan.ground_truth_keys:
-        with np.load(scan.ground_truth_path("vertex_params")) as z:
-            if "normals" in z.files and z["normals"].shape == V.shape:
-                ref_n = z["normals"].astype(np.float64)  # the renderer's shading normals
-    keep_f = ~far_faces
-
-    def errors(pts, m) -> dict:
-        d_pts = gm.surface_errors(pts, V, F)
-        out = {"points_rms_error_mm": _mm(np.sqrt(np.mean(d_pts**2)))}
-        if keep_f.any():
-            S, _ = gm.sample_surface(m.vertices, m.faces[keep_f], n_samples)
-            out["mesh_p95_error_mm"] = _mm(np.percentile(gm.surface_errors(S, V, F), 95))
-            vin = np.zeros(len(m.vertices), bool)
-            vin[m.faces[keep_f].ravel()] = True
-            _, ang = gm.surface_errors(m.vertices[vin], V, F, normals=m.vertex_normals[vin],
-                                       ref_normals=ref_n)
-            out["normal_median_error_deg"] = round(float(np.degrees(np.median(ang))), 4)
-        return out
-
-    out = errors(points, mesh)
-    if align:
-        T = gm.align_to_surface(points, V, F)
-        moved = gm.Mesh(T.apply(mesh.vertices), mesh.faces, T.apply_direction(mesh.vertex_normals))
-        out["after_rigid_alignment"] = {
-            **errors(T.apply(points), moved),
-            "alignment_rotation_deg": round(float(np.degrees(np.linalg.norm(T.rvec))), 6),
-            "alignment_translation_mm": _mm(np.linalg.norm(T.t))}
-    return out

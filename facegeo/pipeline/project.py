@@ -41,6 +41,19 @@ texel's side and only those are read (:mod:`facegeo.surface.shadows`); per camer
 the scan's nominal ones: its gauge, ≈ 0.2° and 3.6 mm on the small preset, moves a shadow edge
 on the skin by ≈ 0.1 mm); wrong light positions pick the wrong side of an edge.
 
+**Engines and formats** (issue 38). Each camera is one task (:func:`project_camera_task`:
+small arguments — the loaded scan and rig, paths, settings — and a small dict back) of an
+:class:`facegeo.pipeline.engine.Engine`: in process by default (one camera after another, the
+same bytes as before engines existed), or on a Dask cluster (``facegeo reconstruct --workers N``
+/ ``--scheduler ADDRESS``) whose workers write their camera's folder into the stage's staging
+folder; the products are byte-identical whatever the engine, and the metrics gain ``engine``
+(workers, memory limit, each camera's worker, seconds and peak memory) on a cluster. Each
+camera's working set (:func:`project_working_set`) is checked against a worker's memory before
+any task is submitted. The blend and the preview follow on the client, in camera order. With
+``field_format="zarr"`` each camera's field is the Zarr store ``<camera>/R.zarr`` instead of
+``R.npy`` (the blend stays ``R_blend.npy``); the later stages find and read either
+(:func:`facegeo.surface.reflectance.field_folders`, ``open_field``).
+
 The stage never reads the truth: it writes what it measured, and :mod:`facegeo.evaluate`
 compares it with references (:mod:`facegeo.evaluate.projection`: the generator's exact shading
 and per-pixel hits on synthetic scans). For the comparison it also writes ``rig.json`` (the rig
@@ -68,7 +81,8 @@ from facegeo.checks import check_positive_int, fmt_value
 log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
-           "peak_rss_mb", "stage_rig", "STAGE_RIGS", "texel_areas"]
+           "peak_rss_mb", "project_camera_task", "project_working_set", "stage_rig",
+           "STAGE_RIGS", "texel_areas"]
 
 # Moved to facegeo.evaluate (issue 37), named here for the callers not yet moved: the fit
 # stage imports truth_gauge from here (pipeline/fit.py), tests/test_reflectance.py the others.
@@ -260,7 +274,8 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
                 block_lights: int | None = None, gt_lights: int = GT_LIGHTS,
                 gt_weight_min: float = GT_WEIGHT_MIN, cameras: list[str] | None = None,
                 atlas_settings: dict | None = None, shadow_taps: bool = True,
-                evaluate: bool = True) -> dict:
+                evaluate: bool = True, field_format: str = "npy", engine=None,
+                progress=None) -> dict:
     """Project every camera's OLAT frames onto the atlas texels into ``out_dir/project/``.
 
     Parameters
@@ -290,6 +305,18 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         Default every camera of the scan.
     atlas_settings : dict, optional
         Keyword arguments for :func:`run_atlas` when the atlas is missing.
+    field_format : {"npy", "zarr"}
+        How each camera's field is stored: ``<camera>/R.npy`` (default) or the Zarr store
+        ``<camera>/R.zarr`` chunked along texels and lights
+        (:func:`facegeo.surface.reflectance.project_camera`); the readers
+        (:func:`facegeo.surface.reflectance.open_field`, :func:`~facegeo.surface.reflectance.
+        field_folders`) take either. The blend stays ``blended/R_blend.npy``.
+    engine : facegeo.pipeline.engine.Engine, optional
+        Where the cameras' tasks run (default in process, one camera after another;
+        :func:`facegeo.pipeline.engine.make_engine` for ``--workers`` / ``--scheduler``; the
+        workers must see the scan and ``out_dir`` at the same paths).
+    progress : callable(stage, done, total), optional
+        Called as cameras finish.
     evaluate : bool
         After the stage, compare its products with the scan's references
         (:func:`facegeo.evaluate.projection.evaluate_projection`) and return the figures
@@ -318,7 +345,8 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         metrics, settings = project_products(
             scan, atlas_dir, tmp, rig=rig, mesh=mesh, min_cos=min_cos, feather_px=feather_px,
             depth_jump=depth_jump, dtype=dtype, block_lights=block_lights, cameras=cameras,
-            shadow_taps=shadow_taps)
+            shadow_taps=shadow_taps, field_format=field_format, engine=engine,
+            progress=progress)
         _record(out, tmp, "project", settings, metrics)
     if evaluate:
         from facegeo.pipeline.cache import record_metrics
@@ -333,25 +361,34 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
                      mesh: str = "ground_truth", min_cos: float | None = None,
                      feather_px: float | None = None, depth_jump: float | None = None,
                      dtype: str = "float16", block_lights: int | None = None,
-                     cameras: list[str] | None = None,
-                     shadow_taps: bool = True) -> tuple[dict, dict]:
+                     cameras: list[str] | None = None, shadow_taps: bool = True,
+                     field_format: str = "npy", engine=None,
+                     progress=None) -> tuple[dict, dict]:
     """Write the ``project`` products of ``scan`` into ``dest`` from the atlas in ``atlas_dir``.
 
     The work of :func:`run_project` without the staging (the stage cache of
     :mod:`facegeo.pipeline.cache` stages it too). Returns ``(metrics, settings)``. Besides
     the fields it writes what the evaluation compares (module docstring): ``rig.json`` and
     per camera ``visibility.npz``.
-    """
-    from facegeo.surface import reflectance as rf
-    from facegeo.surface.atlas import Atlas, Texels
-    from facegeo.surface.pullpush import pull_push
-    from facegeo.surface.visibility import RayScene
 
+    Each camera is one task of ``engine`` (:func:`project_camera_task`; default in process,
+    one camera after another, the same bytes as before engines existed); its working set
+    (:func:`project_working_set`) is checked against a worker's memory before any task is
+    submitted. The blend and the preview run here afterwards, streaming the cameras' fields
+    chunk by chunk in camera order. ``progress(stage, done, total)`` is called as cameras
+    finish.
+    """
+    from facegeo.pipeline.engine import InProcessEngine, Task
+    from facegeo.surface import reflectance as rf
+    from facegeo.surface.atlas import Texels
+    from facegeo.surface.pullpush import pull_push
+
+    if field_format not in rf.FIELD_FORMATS:
+        raise InputError(f"field_format: expected one of {', '.join(rf.FIELD_FORMATS)}, got "
+                         f"{fmt_value(field_format)}")
+    engine = InProcessEngine() if engine is None else engine
     t_start = time.perf_counter()
-    atlas = Atlas.load(atlas_dir / "atlas.npz")
     texels = Texels.load(atlas_dir / "texels.npz")
-    V, F, _ = load_mesh(scan, mesh)
-    scene = RayScene(V, F)
     the_rig, rig_used = stage_rig(scan, rig)
     names = list(cameras) if cameras is not None else scan.camera_names
     for n in names:
@@ -359,78 +396,48 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             raise InputError(f"cameras: unknown camera {fmt_value(n)}; the scan has {scan.camera_names}")
     vis_kw = {k: v for k, v in (("min_cos", min_cos), ("feather_px", feather_px),
                                 ("depth_jump", depth_jump)) if v is not None}
-    jump = depth_jump if depth_jump is not None else rf.DEFAULT_DEPTH_JUMP
+    block = block_lights or rf.DEFAULT_BLOCK_LIGHTS
     settings = {"rig": rig_used, "mesh": mesh, **vis_kw, "dtype": dtype,
-                "block_lights": block_lights or rf.DEFAULT_BLOCK_LIGHTS, "cameras": names,
-                "shadow_taps": bool(shadow_taps)}
-    shadow_rays = None
-    if shadow_taps:
-        if the_rig.lights is None or the_rig.lights.n_lights != scan.n_lights:
-            have = ("no lights" if the_rig.lights is None
-                    else f"{the_rig.lights.n_lights} lights")
-            log.warning("project: the rig has %s, the scan's frames %d: samples at shadow edges "
-                        "stay plain bilinear (shadow_taps reads false per camera)", have,
-                        scan.n_lights)
-        else:
-            from facegeo.surface.shadows import ShadowRays
-
-            # the atlas's own mesh and shading normals: the texels' faces index it
-            shadow_rays = ShadowRays(RayScene(atlas.vertices, atlas.faces), atlas.normals)
+                "block_lights": block, "cameras": names, "shadow_taps": bool(shadow_taps)}
+    if field_format != "npy":  # the default leaves stage.json as it was
+        settings["field_format"] = field_format
+    use_taps = bool(shadow_taps)
+    if shadow_taps and (the_rig.lights is None or the_rig.lights.n_lights != scan.n_lights):
+        have = "no lights" if the_rig.lights is None else f"{the_rig.lights.n_lights} lights"
+        log.warning("project: the rig has %s, the scan's frames %d: samples at shadow edges "
+                    "stay plain bilinear (shadow_taps reads false per camera)", have,
+                    scan.n_lights)
+        use_taps = False
     the_rig.save(dest / "rig.json")  # the rig the fields were projected with (evaluate reads it)
+    n_faces = _mesh_faces(scan, mesh)
+    # the loaded scan and rig travel as they are (kilobytes); each task loads the atlas, the
+    # texels and the mesh itself (once per process: _camera_inputs)
+    tasks = [Task(name, project_camera_task,
+                  (scan, str(atlas_dir), str(dest), name, the_rig, mesh, vis_kw, dtype, block,
+                   use_taps, field_format),
+                  working_set=project_working_set(the_rig.camera(name), len(texels), n_faces,
+                                                  min(block, scan.n_lights), use_taps))
+             for name in names]
+    try:
+        results = engine.map("project", tasks, progress=progress)
+    finally:  # in process the scenes go with the stage (a worker keeps one set for the next run)
+        _INPUTS_CACHE.clear()
+    per_cam: dict[str, Any] = {t.name: r["metrics"] for t, r in zip(tasks, results)}
     T = len(texels)
-    per_cam: dict[str, Any] = {}
     seen = np.zeros(T, bool)
     colour = np.zeros((T, 3))
     wsum = np.zeros(T)
-    for name in names:
-        camera = the_rig.camera(name)
-        t0 = time.perf_counter()
-        vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
-        t1 = time.perf_counter()
-        taps = None
-        if shadow_rays is not None:  # built and applied within seconds_projection
-            from facegeo.surface.shadows import shadow_taps as make_taps
-
-            sel = np.flatnonzero(vis.weight > 0)
-            taps = make_taps(shadow_rays, camera, vis.q[sel], texels.face[sel],
-                             texels.bary[sel], the_rig.lights)
-        field = rf.project_camera(
-            # black-clipped pixels are the dark samples a one-light frame is mostly made of:
-            # measured (below one code value), not masked — masking them left 59 % of a 16-bit
-            # PNG scan's samples NaN and every function incomplete; saturated ones stay masked
-            scan.iter_olat(name, return_mask=True, read_ahead=READ_AHEAD_WORKERS,
-                           black_clipped="dark"),
-            vis, (camera.width, camera.height),
-            scan.n_lights, dest / name, dtype=dtype,
-            block_lights=block_lights or rf.DEFAULT_BLOCK_LIGHTS, shadows=taps)
-        t2 = time.perf_counter()
-        seen[field.texel_index] = True
+    for name in names:  # camera order, whatever order the tasks finished in
+        idx = np.load(dest / name / "texel_index.npy")
+        weight = np.load(dest / name / "weight.npy")
+        seen[idx] = True
         for s, chunk in rf.iter_field_chunks(dest / name):
-            sl = field.texel_index[s:s + len(chunk)]
-            w = field.weight[s:s + len(chunk)].astype(np.float64)
+            sl = idx[s:s + len(chunk)]
+            w = weight[s:s + len(chunk)].astype(np.float64)
             m = np.nanmean(chunk, axis=1)
             ok = np.isfinite(m).all(axis=1)
             colour[sl[ok]] += w[ok, None] * m[ok]
             wsum[sl[ok]] += w[ok]
-        entry = {
-            "visible_fraction": round(vis.visible_fraction, 6),
-            "weighted_texels": int(field.texel_index.size),
-            "seconds_visibility": round(t1 - t0, 4),
-            "seconds_projection": round(t2 - t1, 4),
-            "texels_per_second": round(field.texel_index.size * scan.n_lights
-                                       / max(t2 - t1, 1e-9), 1),
-            "masked_samples": field.n_masked,
-            "float16_overflow": field.n_overflow,
-            "shadow_taps": taps is not None,
-        }
-        if taps is not None:
-            entry["shadow_edge_samples"] = round(taps.changed / max(taps.samples, 1), 6)
-            entry["seconds_shadow_taps"] = round(taps.seconds, 4)
-        # the occlusion decision, for the evaluation's comparison with other visibility
-        np.savez_compressed(dest / name / VISIBILITY_FILE, in_image=vis.in_image,
-                            facing=vis.facing, unoccluded=vis.unoccluded,
-                            depth_jump=np.float64(jump))
-        per_cam[name] = entry
     np.save(dest / "seen.npy", seen)
     t_b = time.perf_counter()
     blended = rf.blend_fields([dest / n for n in names], dest / "blended", dtype=dtype)
@@ -454,4 +461,137 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     }
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    if engine.kind != "in-process":
+        metrics["engine"] = engine.stage_metrics("project", [t.name for t in tasks])
     return metrics, settings
+
+
+#: Bytes a projection task needs per texel of the atlas, whatever the camera sees:
+#: :func:`facegeo.surface.reflectance.camera_visibility`'s arrays over every texel (q, weight,
+#: v_world, the masks, the camera-frame points and normals and their temporaries) and the texel
+#: table itself (positions, normals, faces, barycentrics) ≈ 400 B; the sampler's remap maps,
+#: the shadow taps and a sampled frame per projected texel ≈ 200 B more (bounded by T).
+PROJECT_BYTES_PER_TEXEL = 600
+#: ... per texel and light of a light block: the float32 RGB block buffer (12 B).
+PROJECT_BYTES_PER_TEXEL_LIGHT = 12
+#: ... per camera pixel: the frames in flight (the one sampled and ``READ_AHEAD_WORKERS`` read
+#: ahead, float32 RGB, 12 B/px each) with their masks, the decoded 16-bit or 8-bit image, the
+#: depth image and z-buffer of the visibility (float64) ≈ 40 B/px.
+PROJECT_BYTES_PER_PIXEL = 12 * (READ_AHEAD_WORKERS + 1) + 40
+#: ... per mesh triangle: Embree's BVH and the mesh arrays, for the visibility's scene and (with
+#: shadow taps) the atlas mesh's shadow-ray scene ≈ 250 B each.
+PROJECT_BYTES_PER_FACE = 250
+
+
+def project_working_set(camera, n_texels: int, n_faces: int, block_lights: int,
+                        shadow_taps: bool = True) -> int:
+    """Memory (bytes) one camera's projection task needs (an upper bound: every texel of the
+    atlas counted as projected): :data:`PROJECT_BYTES_PER_TEXEL` × texels +
+    :data:`PROJECT_BYTES_PER_TEXEL_LIGHT` × texels × ``block_lights`` +
+    :data:`PROJECT_BYTES_PER_PIXEL` × the camera's pixels + :data:`PROJECT_BYTES_PER_FACE` ×
+    triangles (twice with shadow taps: the atlas mesh's own scene)."""
+    T = int(n_texels)
+    return (T * (PROJECT_BYTES_PER_TEXEL + PROJECT_BYTES_PER_TEXEL_LIGHT * int(block_lights))
+            + int(camera.width) * int(camera.height) * PROJECT_BYTES_PER_PIXEL
+            + int(n_faces) * PROJECT_BYTES_PER_FACE * (2 if shadow_taps else 1))
+
+
+def _mesh_faces(scan, mesh: str) -> int:
+    """Triangles of the stage's mesh, from the file's header where it has one (PLY), else by
+    loading it."""
+    if mesh == "ground_truth" and "mesh" not in scan.ground_truth_keys:
+        return len(load_mesh(scan, mesh)[1])  # raises, naming what to give instead
+    path = scan.ground_truth_path("mesh") if mesh == "ground_truth" else Path(mesh)
+    if path.suffix.lower() == ".ply" and path.is_file():
+        with open(path, "rb") as fh:
+            for _ in range(64):
+                line = fh.readline()
+                if line.startswith(b"element face"):
+                    return int(line.split()[2])
+                if not line or line.startswith(b"end_header"):
+                    break
+    return len(load_mesh(scan, mesh)[1])
+
+
+_INPUTS_CACHE: dict[tuple, tuple] = {}
+
+
+def _camera_inputs(scan, atlas_dir: Path, mesh: str, shadow_taps: bool):
+    """``(texels, scene, shadow_rays)`` of a projection task, loaded once per process for the
+    same files (keyed by their size and mtime; one entry kept): every camera of a run shares
+    them, in process as on a worker."""
+    from facegeo.fsutil import file_state
+    from facegeo.surface.atlas import Atlas, Texels
+    from facegeo.surface.visibility import RayScene
+
+    mesh_path = scan.ground_truth_path("mesh") if mesh == "ground_truth" else Path(mesh)
+    key = tuple((str(f), file_state(f)) for f in (atlas_dir / "atlas.npz",
+                                                   atlas_dir / "texels.npz", mesh_path))
+    key += (bool(shadow_taps),)
+    if key not in _INPUTS_CACHE:
+        _INPUTS_CACHE.clear()
+        texels = Texels.load(atlas_dir / "texels.npz")
+        V, F, _ = load_mesh(scan, mesh)
+        scene = RayScene(V, F)
+        shadow_rays = None
+        if shadow_taps:
+            from facegeo.surface.shadows import ShadowRays
+
+            atlas = Atlas.load(atlas_dir / "atlas.npz")
+            # the atlas's own mesh and shading normals: the texels' faces index it
+            shadow_rays = ShadowRays(RayScene(atlas.vertices, atlas.faces), atlas.normals)
+        _INPUTS_CACHE[key] = (texels, scene, shadow_rays)
+    return _INPUTS_CACHE[key]
+
+
+def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mesh: str,
+                        vis_kw: dict, dtype: str, block_lights: int, shadow_taps: bool,
+                        field_format: str = "npy") -> dict:
+    """One camera's share of the ``project`` stage, run by an engine (in process or on a
+    worker): its visibility, shadow taps and field written into ``dest/<name>``
+    (:func:`facegeo.surface.reflectance.project_camera`) with ``visibility.npz``. Returns
+    ``{"metrics": ...}``: the camera's metrics, small whatever its size."""
+    from facegeo.surface import reflectance as rf
+
+    scan = _scan(scan)
+    texels, scene, shadow_rays = _camera_inputs(scan, Path(atlas_dir), mesh, shadow_taps)
+    d = Path(dest) / name
+    camera = the_rig.camera(name)
+    jump = vis_kw.get("depth_jump", rf.DEFAULT_DEPTH_JUMP)
+    t0 = time.perf_counter()
+    vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
+    t1 = time.perf_counter()
+    taps = None
+    if shadow_rays is not None:  # built and applied within seconds_projection
+        from facegeo.surface.shadows import shadow_taps as make_taps
+
+        sel = np.flatnonzero(vis.weight > 0)
+        taps = make_taps(shadow_rays, camera, vis.q[sel], texels.face[sel],
+                         texels.bary[sel], the_rig.lights)
+    field = rf.project_camera(
+        # black-clipped pixels are the dark samples a one-light frame is mostly made of:
+        # measured (below one code value), not masked — masking them left 59 % of a 16-bit
+        # PNG scan's samples NaN and every function incomplete; saturated ones stay masked
+        scan.iter_olat(name, return_mask=True, read_ahead=READ_AHEAD_WORKERS,
+                       black_clipped="dark"),
+        vis, (camera.width, camera.height), scan.n_lights, d, dtype=dtype,
+        block_lights=block_lights, shadows=taps, field_format=field_format)
+    t2 = time.perf_counter()
+    entry = {
+        "visible_fraction": round(vis.visible_fraction, 6),
+        "weighted_texels": int(field.texel_index.size),
+        "seconds_visibility": round(t1 - t0, 4),
+        "seconds_projection": round(t2 - t1, 4),
+        "texels_per_second": round(field.texel_index.size * scan.n_lights
+                                   / max(t2 - t1, 1e-9), 1),
+        "masked_samples": field.n_masked,
+        "float16_overflow": field.n_overflow,
+        "shadow_taps": taps is not None,
+    }
+    if taps is not None:
+        entry["shadow_edge_samples"] = round(taps.changed / max(taps.samples, 1), 6)
+        entry["seconds_shadow_taps"] = round(taps.seconds, 4)
+    # the occlusion decision, for the evaluation's comparison with other visibility
+    np.savez_compressed(d / VISIBILITY_FILE, in_image=vis.in_image, facing=vis.facing,
+                        unoccluded=vis.unoccluded, depth_jump=np.float64(jump))
+    return {"metrics": entry}

@@ -260,7 +260,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
         The run's ``--only`` / ``until`` (:meth:`Pipeline.run`), when known: the warning about
         ``--rig auto`` is given only when the run may mesh.
     engine : facegeo.pipeline.engine.Engine, optional
-        Where the stages that split into tasks run them (``decode``: one task per camera);
+        Where the stages that split into tasks run them (``decode``, ``project``: one task per
+        camera);
         default in process. Not part of any stage's key: the products are the same bytes.
     """
     from facegeo.pipeline.fit import FIT_SETTINGS
@@ -359,7 +360,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
 
         def run_project(ctx: StageContext) -> dict:
             metrics, _ = project_products(scan, ctx.upstream["atlas"], ctx.out_dir,
-                                          mesh=mesh_of(ctx), **without_mesh(ctx))
+                                          mesh=mesh_of(ctx), **without_mesh(ctx),
+                                          engine=engine, progress=ctx.progress)
             return metrics
 
         def run_relight(ctx: StageContext) -> dict:
@@ -397,7 +399,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             StageSpec("project", run_project, after=("atlas",) + mesh_after + rig_after,
                       inputs=lambda d: _group_inputs(scan, "olat") + mesh_inputs(),
                       settings={"mesh": use_mesh, "rig": use_rig, "dtype": "float16",
-                                "shadow_taps": True}),
+                                "shadow_taps": True, "field_format": "npy"}),
             StageSpec("relight", run_relight, after=("atlas", "project"),
                       inputs=lambda d: _common_inputs(scan) + env_inputs(RENDER_DEFAULT_ENV),
                       settings={"env": RENDER_DEFAULT_ENV, "rotate": 0.0, "view": "texture",

@@ -69,8 +69,9 @@ def _safe_stem(text: str) -> str:
 
 def _project_cameras(project_dir: Path, texels_path: Path) -> list[Path]:
     """The camera folders of ``project_dir`` that hold a projected field, sorted."""
-    cams = (sorted(p for p in project_dir.glob("*") if (p / "R.npy").is_file())
-            if project_dir.is_dir() else [])
+    from facegeo.surface.reflectance import field_folders
+
+    cams = field_folders(project_dir)  # R.npy or R.zarr
     if not cams or not texels_path.is_file():
         raise InputError(f"{project_dir.parent}: relighting in texture space needs the texture "
                          f"atlas ({texels_path}) and the surface reflectance field "
@@ -165,7 +166,8 @@ def _texture_dirs(field_dir, project_dir, atlas_dir) -> tuple[Path, Path]:
     return proj, atlas / "texels.npz"
 
 
-def resolve_env(env: str | os.PathLike, projection: str = "latlong", *, rotate_deg: float = 0.0):
+def resolve_env(env: str | os.PathLike, projection: str = "latlong", *, rotate_deg: float = 0.0,
+                convention: str = "facegeo"):
     """An :class:`~facegeo.lighting.envmap.EnvironmentMap` from a file, or a shipped map's name.
 
     ``env`` is an existing ``.exr``/``.hdr`` path (read with ``projection``), or the name of a
@@ -177,20 +179,24 @@ def resolve_env(env: str | os.PathLike, projection: str = "latlong", *, rotate_d
     if not math.isfinite(float(rotate_deg)):
         raise InputError(f"rotate: expected a finite angle in degrees, got {fmt_value(rotate_deg)}")
     if not Path(env).exists() and str(env) in E.SHIPPED_MAPS:
+        if convention != "facegeo":
+            raise InputError(f"convention: the shipped map {fmt_value(str(env))} is in facegeo's "
+                             f"lat-long convention; --envmap-convention applies to map files")
         if projection != "latlong":
             raise InputError(f"projection: the shipped map {fmt_value(str(env))} is lat-long; "
                              f"--projection {projection} applies to map files")
         return E.shipped_map(str(env)).rotated(math.radians(float(rotate_deg)))
-    return E.read_envmap(env, projection, rotate_deg=rotate_deg)
+    return E.read_envmap(env, projection, rotate_deg=rotate_deg, convention=convention)
 
 
 def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os.PathLike, *,
                      env: str | os.PathLike, rotate: float = 0.0, view: str = "texture",
                      atlas_dir: str | os.PathLike | None = None, projection: str = "latlong",
-                     solid_angle: str = "paper", reference: bool = True,
+                     solid_angle: str = "paper",
                      progress: Callable[[str, int, int], None] | None = None,
                      read_ahead: int = 0, model: str = "measured",
-                     fit_dir: str | os.PathLike | None = None) -> tuple[dict, dict]:
+                     fit_dir: str | os.PathLike | None = None,
+                     convention: str = "facegeo") -> tuple[dict, dict]:
     """Write the ``relight`` products of ``scan`` into ``dest``: the relit image as EXR and a
     tone-mapped PNG (Debevec et al. 2000 §3.3, Eq. 4).
 
@@ -217,14 +223,12 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
         lights.
     atlas_dir : path, optional
         The ``atlas`` stage's folder (``texels.npz``); default ``project_dir/../atlas``.
-    projection : {"latlong", "mirrorball", "angular"}
+    projection : {"latlong", "mirror-ball", "angular", "cube"} (or "mirrorball")
         Of an environment file.
+    convention : str
+        Of a lat-long environment file (:data:`facegeo.lighting.envmap.LATLONG_CONVENTIONS`).
     solid_angle : {"paper", "exact"}
         δA rule of the light-basis projection (:func:`facegeo.lighting.envmap.light_stage_weights`).
-    reference : bool
-        On a synthetic scan with ground truth and a camera view: render the generator's image
-        under the same weights (:meth:`facegeo.synth.render.ReferenceRenderer.render_lights`, one
-        shading per lit light) and report the relit image's error against it.
     progress : callable(stage, done, total), optional
     read_ahead : int
         Camera view: threads reading the next OLAT frames meanwhile
@@ -246,9 +250,10 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
         (``Σ_l w_l / ∫ L dω`` per channel: the light-basis projection's energy check, 1 up to the
         δA rule), ``energy_note`` (a sentence when the lights keep less than
         :data:`DOME_ENERGY_NOTE` of the environment's energy, e.g. a dome's upper hemisphere,
-        else None), ``model``, ``active_lights``, ``mean_radiance``, ``reference`` (relative RMSE and max
-        error of the relit image against the generator's render, when computed, else the reason
-        it was not), ``seconds``.
+        else None), ``model``, ``active_lights``, ``mean_radiance``, ``seconds``. The stage reads
+        no truth: a camera view's error against the generator's render under the same weights
+        is :func:`facegeo.evaluate.relit.evaluate_relit`'s (``facegeo evaluate``, from the
+        files :func:`run_relight` writes).
     settings : dict
         The settings that determine the products (for the stage cache key).
     """
@@ -278,10 +283,12 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
         if view not in names:
             raise InputError(f"view: unknown camera {fmt_value(view)}; the scan has "
                              f"{', '.join(names)} (or 'texture')")
-    env_map = resolve_env(env, projection, rotate_deg=rotate)
+    env_map = resolve_env(env, projection, rotate_deg=rotate, convention=convention)
     settings = {"env": str(env), "rotate": float(rotate), "view": view,
                 "projection": env_map.projection, "solid_angle": solid_angle,
-                "reference": bool(reference), "model": model}
+                "model": model}
+    if env_map.convention != "facegeo":  # only then: the default keeps the stage's cache key
+        settings["convention"] = env_map.convention
     lights = scan.rig.lights
     t_env = time.perf_counter()
     integral = env_map.integral()
@@ -292,7 +299,6 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     active = int(np.count_nonzero(np.any(w != 0, axis=1)))
     t_w = time.perf_counter()
     extra: dict[str, Any] = {}
-    ref_metrics: dict[str, Any]
     if texture:
         from facegeo.surface.atlas import Texels
 
@@ -310,17 +316,12 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
                  "mask": texels.to_image(measured.astype(np.uint8) * 255, fill=0)}
         mean_src = texel_rgb[measured]
         t_relit = time.perf_counter()
-        ref_metrics = {"computed": False,
-                       "reason": "the generator's reference is rendered per camera view"}
     else:
         tick = (lambda k: progress("relight", k + 1, active)) if progress else None
         img = relight_scan_view(scan, view, w, normalize_color=True, progress=tick,
                                 read_ahead=read_ahead)
         mean_src = img.reshape(-1, 3)
         t_relit = time.perf_counter()
-        ref_metrics = _reference_error(scan, view, w, img) if reference else \
-            {"computed": False, "reason": "reference=False"}
-    t_ref = time.perf_counter()
 
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
@@ -329,7 +330,8 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     # map read as a mirror ball, or an exact-solid-angle relight, does not overwrite the others)
     rule = ("" if solid_angle == "paper" or not hasattr(lights, "n_theta")  # a list: its own δA
             else f"_{_safe_stem(solid_angle)}")
-    proj_tag = "" if env_map.projection == "latlong" else f"_{env_map.projection}"
+    proj_tag = ("" if env_map.projection == "latlong" else f"_{env_map.projection}") + (
+        "" if env_map.convention == "facegeo" else f"_{env_map.convention}")
     stem = f"{_safe_stem(Path(str(env)).stem)}{proj_tag}_rot{rot}_{_safe_stem(view)}{rule}"
     exr = imageio.write_image(dest / f"{stem}.exr", img)  # atomic (temporary file + rename)
     png_img, exposure = tone_map(img)
@@ -340,15 +342,14 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
                                                     extra.pop("mask")))
     metrics = {
         "scan": str(scan.root), "view": view, "env": str(env),
-        "projection": env_map.projection, "rotate_deg": float(rotate),
-        "solid_angle": solid_angle, "n_lights": int(lights.n_lights), "active_lights": active,
+        "projection": env_map.projection, "envmap_convention": env_map.convention,
+        "rotate_deg": float(rotate), "solid_angle": solid_angle, "n_lights": int(lights.n_lights), "active_lights": active,
         "energy_ratio": (ratio := (w.sum(0) / np.where(integral > 0, integral, 1))).tolist(),
         "energy_note": energy_note(ratio, lights.n_lights), "model": model,
         "mean_radiance": (mean_src.mean(0) if len(mean_src) else np.zeros(3)).tolist(),
-        "reference": ref_metrics, "tone_map_exposure": exposure,
-        "files": files, **extra,
+        "tone_map_exposure": exposure, "files": files, **extra,
         "seconds": {"env": t_env - t0, "weights": t_w - t_env, "relight": t_relit - t_w,
-                    "reference": t_ref - t_relit, "total": time.perf_counter() - t0},
+                    "total": time.perf_counter() - t0},
     }
     log.info("relit %s with %s (%d active lights) in %.2f s", view, env, active,
              metrics["seconds"]["total"])
@@ -439,7 +440,8 @@ def _relight_fitted_products(scan, view, env_map, path, dest: Path, env, rotate,
     t_relit = time.perf_counter()
     dest.mkdir(parents=True, exist_ok=True)
     rot = f"{float(rotate):g}".replace("-", "m")
-    proj_tag = "" if env_map.projection == "latlong" else f"_{env_map.projection}"
+    proj_tag = ("" if env_map.projection == "latlong" else f"_{env_map.projection}") + (
+        "" if env_map.convention == "facegeo" else f"_{env_map.convention}")
     stem = f"{_safe_stem(Path(str(env)).stem)}{proj_tag}_rot{rot}_{_safe_stem(view)}_fitted"
     exr = imageio.write_image(dest / f"{stem}.exr", img)
     png_img, exposure = tone_map(img)
@@ -449,58 +451,28 @@ def _relight_fitted_products(scan, view, env_map, path, dest: Path, env, rotate,
     lit_px = flat[np.any(flat != 0, axis=1)]
     metrics = {
         "scan": str(scan.root), "view": view, "env": str(env), "model": "fitted",
-        "fit": str(path), "projection": env_map.projection, "rotate_deg": float(rotate),
+        "fit": str(path), "projection": env_map.projection,
+        "envmap_convention": env_map.convention, "rotate_deg": float(rotate),
         "solid_angle": "exact", "n_lights": int(w.shape[0]),
         "active_lights": int(np.count_nonzero(np.any(w != 0, axis=1))),
         "grid": list(FITTED_GRID), "energy_ratio": ratio.tolist(),
         "energy_note": energy_note(ratio, int(w.shape[0])),
         "mean_radiance": (lit_px.mean(0) if len(lit_px) else np.zeros(3)).tolist(),
-        "reference": {"computed": False,
-                      "reason": "the fitted model predicts lights no frame measured"},
         "tone_map_exposure": exposure, "files": {"exr": str(exr), "png": str(png)},
         "seconds": {"env": t_w - t0, "weights": 0.0, "relight": t_relit - t_w,
-                    "reference": 0.0, "total": time.perf_counter() - t0},
+                    "total": time.perf_counter() - t0},
     }
     log.info("relit %s from the fitted model with %s in %.2f s", view, env,
              metrics["seconds"]["total"])
     return metrics, settings
 
 
-def _reference_error(scan, view: str, w: np.ndarray, img: np.ndarray) -> dict:
-    """Relit image vs the generator's render under the same Eq. (4) weights (synthetic scans).
-
-    The frames were normalised by the light colour, the generator's OLAT shading includes it:
-    the reference is ``render_lights(w / colour)``. Metrics over pixels where both are finite:
-    relative RMSE ``‖img − ref‖ / ‖ref‖`` and ``max |img − ref| / max ref``.
-    """
-    if not (scan.synthetic and "skin" in scan.ground_truth_keys
-            and "mesh" in scan.ground_truth_keys):
-        return {"computed": False, "reason": "no generator ground truth in this scan"}
-    from facegeo.synth.render import load_ground_truth
-
-    renderer = load_ground_truth(scan)
-    lights = scan.rig.lights
-    from facegeo.lighting.envmap import field_weights
-
-    wn = field_weights(w, lights)
-    ref = renderer.render_lights(renderer.rig.camera(view), lights, wn).astype(np.float64)
-    got = img.astype(np.float64)
-    ok = np.isfinite(got).all(axis=-1) & np.isfinite(ref).all(axis=-1)
-    if not ok.any():
-        return {"computed": False, "reason": "no finite pixels to compare"}
-    d = got[ok] - ref[ok]
-    return {"computed": True, "pixels": int(ok.sum()),
-            "relative_rmse": float(np.linalg.norm(d) / max(np.linalg.norm(ref[ok]), 1e-300)),
-            "max_abs_over_max": float(np.abs(d).max() / max(np.abs(ref[ok]).max(), 1e-300))}
-
-
 def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
                 rotate_deg: float = 0.0, view: str | None = None,
                 out_dir: str | os.PathLike | None = None, projection: str = "latlong",
                 solid_angle: str = "paper", field_dir: str | os.PathLike | None = None,
-                reference: bool = False,
                 progress: Callable[[str, int, int], None] | None = None,
-                read_ahead: int = 0, model: str = "measured") -> dict:
+                read_ahead: int = 0, model: str = "measured", convention: str = "facegeo") -> dict:
     """Relight one camera of a scan, or its texture atlas, with an environment map and write
     the images.
 
@@ -520,15 +492,14 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     out_dir : path, optional
         Default ``SCAN/out/relit`` (``out/relight`` is the cached stage of ``facegeo
         reconstruct``, which replaces its folder when it reruns).
-    projection : {"latlong", "mirrorball", "angular"}
+    projection : {"latlong", "mirror-ball", "angular", "cube"} (or "mirrorball")
+    convention : str
+        Of a lat-long environment file (:data:`facegeo.lighting.envmap.LATLONG_CONVENTIONS`).
     solid_angle : {"paper", "exact"}
         δA rule of the light-basis projection (:func:`facegeo.lighting.envmap.light_stage_weights`).
     field_dir : path, optional
         For ``view="texture"``: the folder with ``atlas/`` and ``project/`` (default
         ``SCAN/out``).
-    reference : bool
-        Also render the generator's reference image on a synthetic scan and report the error
-        (:func:`relight_products`; off by default here: one shading per lit light).
     progress : callable(stage, done, total), optional
         Per active light (camera view) or per camera (texture view).
     read_ahead : int
@@ -555,9 +526,9 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     out = Path(out_dir) if out_dir is not None else scan.out_dir / "relit"
     metrics, _ = relight_products(scan, fdir / "project", out, env=env_path, rotate=rotate_deg,
                                   view=view, atlas_dir=fdir / "atlas", projection=projection,
-                                  solid_angle=solid_angle, reference=reference,
+                                  solid_angle=solid_angle,
                                   progress=progress, read_ahead=read_ahead, model=model,
-                                  fit_dir=fdir / "fit")
+                                  fit_dir=fdir / "fit", convention=convention)
     stem = Path(metrics["files"]["exr"]).stem
     atomic_write_text(out / f"{stem}.json", json.dumps(metrics, indent=2))
     return metrics

@@ -95,25 +95,29 @@ def builtin_env(name: str):
                      f"{', '.join(BUILTIN_ENVS)} (or give an .exr/.hdr file)")
 
 
-def _load_env(env, projection: str, rotate_deg: float):
+def _load_env(env, projection: str, rotate_deg: float, convention: str = "facegeo"):
     from facegeo.lighting import envmap as E
 
     if isinstance(env, E.EnvironmentMap):
         m = env
     elif isinstance(env, str) and env in BUILTIN_ENVS:
+        if E.canonical_projection(projection) != "latlong" or convention != "facegeo":
+            raise InputError(f"env: the built-in environment {fmt_value(env)} has no file; "
+                             f"--projection and --envmap-convention apply to map files")
         m = builtin_env(env)
     else:
         path = Path(env)
         if not path.is_file():
             raise InputError(f"env: {path} is not a file and not a built-in environment "
                              f"({', '.join(BUILTIN_ENVS)})")
-        return E.read_envmap(path, projection, rotate_deg=rotate_deg)
+        return E.read_envmap(path, projection, rotate_deg=rotate_deg, convention=convention)
     return m.rotated(math.radians(rotate_deg)) if rotate_deg else m
 
 
 def check_render_args(scan, *, camera_spec, env="axis_lobes", rotate_deg: float = 0.0,
                       projection: str = "latlong", shrinkage: str | float = SHRINKAGE_DEFAULT,
-                      light_step: int = 1, resynthesis: bool | str = True, rig=None) -> None:
+                      light_step: int = 1, resynthesis: bool | str = True, rig=None,
+                      convention: str = "facegeo") -> None:
     """Check a render request against the scan before any stage runs; raise InputError.
 
     :func:`render_one` checks the same (with the same messages) once its inputs are there, but
@@ -128,7 +132,7 @@ def check_render_args(scan, *, camera_spec, env="axis_lobes", rotate_deg: float 
 
     rig = scan.rig if rig is None else rig
     parse_camera_spec(camera_spec, _camera_table(scan, rig))
-    _load_env(env, projection, rotate_deg)
+    _load_env(env, projection, rotate_deg, convention)
     _check_shrinkage(shrinkage)
     if resynthesis:
         check_light_step(light_step, light_set(rig.lights))
@@ -165,7 +169,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                blend_power: float | None = None, rig: str | None = None,
                solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
-               shadow_taps: bool = True, image_detail: bool = True, progress=None) -> dict:
+               shadow_taps: bool = True, image_detail: bool = True, progress=None,
+               convention: str = "facegeo") -> dict:
     """Render a novel view of a reconstructed scan under an environment; write the images.
 
     Parameters
@@ -178,7 +183,9 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         (:func:`facegeo.render.parse_camera_spec`)
     env : str or EnvironmentMap — an ``.exr``/``.hdr`` file or a built-in name
     rotate_deg : float, degrees — environment rotation about +Y
-    projection : {"latlong", "mirrorball", "angular"} — of an environment file
+    projection : {"latlong", "mirror-ball", "angular", "cube"} — of an environment file
+    convention : str — of a lat-long environment file
+        (:data:`facegeo.lighting.envmap.LATLONG_CONVENTIONS`: "facegeo", "u0_at_plus_z", "blender")
     supersample : int — s × s rays per pixel (a box filter over the pixel); the reference
         integrates the same footprint (``reference_supersample``). 1: pixel centres, where a
         hard shadow edge's point sample is a step no resampling of the captures places
@@ -237,7 +244,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                          name=name, blend_power=blend_power, rig=rig, solid_angle=solid_angle,
                          fill_px=fill_px, shrinkage=shrinkage, light_step=light_step,
                          shadow_taps=shadow_taps, image_detail=image_detail,
-                         progress=progress)
+                         progress=progress, convention=convention)
     if reference and has_view_reference(scan):
         figures = evaluate_view(scan, out, out / "views", metrics["name"], out / "views")
         metrics["files"].update(figures.pop("files"))
@@ -253,7 +260,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
                shadow_taps: bool = True, image_detail: bool = True, progress=None,
-               cache: dict | None = None) -> dict:
+               cache: dict | None = None, convention: str = "facegeo") -> dict:
     """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
     ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
     the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem).
@@ -310,7 +317,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         rig = project_settings.get("rig")
     the_rig, rig_used = stage_rig(scan, rig)
     camera = parse_camera_spec(camera_spec, _camera_table(scan, the_rig))
-    environment = _load_env(env, projection, rotate_deg)
+    environment = _load_env(env, projection, rotate_deg, convention)
     stage = the_rig.lights
     w = E.light_weights(environment, stage, solid_angle=solid_angle)  # a grid or a light list
     w = E.field_weights(w, stage)  # image in the environment's units (field = intensity × R)

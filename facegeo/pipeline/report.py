@@ -128,7 +128,9 @@ def summary_rows(metrics: dict, stale: dict | None = None) -> list[dict]:
                       and isinstance(v, (int, float)) and not isinstance(v, bool)}
         else:  # the stage's own figures and the evaluation's of its products
             errors = _errors_of(m) | _errors_of(evaluated.get(stage) or {})
-        aligned = m.get("after_rigid_alignment")
+        # the stage's own (older metrics) or, since issue 37, the evaluation's of its products
+        aligned = m.get("after_rigid_alignment") or (evaluated.get(stage) or {}).get(
+            "after_rigid_alignment")
         if isinstance(aligned, dict) and _errors_of(aligned):
             # a rig other than the true one has its own world frame: the figures in the
             # generator's frame are mostly that gauge (millimetres); the shape's own error is

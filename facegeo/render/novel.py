@@ -491,12 +491,11 @@ def load_sources(project_dir, fit_dir=None, *, cameras=None) -> list[SourceCamer
     cameras : list of str, optional — default every camera folder with a field
     """
     from facegeo.render._fitstore import FitStore
-    from facegeo.surface.reflectance import open_field
+    from facegeo.surface.reflectance import field_folders, open_field
 
     project_dir = Path(project_dir)
     fit_dir = None if fit_dir is None else Path(fit_dir)
-    dirs = sorted(p for p in project_dir.glob("*") if (p / "R.npy").is_file()) \
-        if project_dir.is_dir() else []
+    dirs = field_folders(project_dir)  # R.npy or R.zarr
     if cameras is not None:
         known = {p.name: p for p in dirs}
         missing = [c for c in cameras if c not in known]

@@ -113,7 +113,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
     "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
-    "open_field", "iter_field_chunks", "gather_field_samples",
+    "open_field", "has_field", "field_folders", "iter_field_chunks", "gather_field_samples",
     "FIELD_FORMATS", "DEFAULT_FIELD_FORMAT", "create_field", "field_chunk_bounds",
     "field_location", "find_field", "open_zarr_field", "write_field", "write_field_chunk",
     "BlendedField", "blend_fields", "open_blended",
@@ -680,6 +680,21 @@ def open_field(directory, name: str = "R.npy"):
                          f"{Path(str(where)).name}; run the projection first)")
     kind, loc = found
     return np.load(loc, mmap_mode="r") if kind == "npy" else open_zarr_field(loc)
+
+
+def has_field(directory, name: str = "R.npy") -> bool:
+    """True when ``directory`` holds the field ``name`` in either format (``R.npy`` or the
+    Zarr store ``R.zarr``): what :func:`open_field` would open."""
+    return find_field(directory, name) is not None
+
+
+def field_folders(project_dir) -> list[Path]:
+    """The camera folders of a ``project`` stage folder that hold a projected field (either
+    format), sorted by name; none when ``project_dir`` is not a folder."""
+    project_dir = Path(project_dir)
+    if not project_dir.is_dir():
+        return []
+    return sorted(p for p in project_dir.iterdir() if p.is_dir() and has_field(p))
 
 
 #: Blend float16 fields with the compiled kernels (False: the numpy reference path).

@@ -35,8 +35,7 @@ def bench_novel_view(quick: bool) -> list[BenchRow]:
         generate_scan(root, "tiny")
         run_project(root, atlas_settings={"texels_per_mm": 0.5}, gt_lights=4)
         t0 = time.perf_counter()
-        fm = run_fit(root, texels="views", views=[spec], max_texels=300 if quick else None,
-                     gt_functions=16)
+        fm = run_fit(root, texels="views", views=[spec], max_texels=300 if quick else None)
         t_fit = time.perf_counter() - t0
         out = {}
         for resyn in (True, False):

@@ -81,23 +81,38 @@ def _numba_threads(n: int):
 def _digests(folder: Path) -> dict[str, str]:
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(folder.rglob("*"))
-            if p.is_file() and p.suffix in (".npz", ".png")}
+            if p.is_file() and p.suffix in (".npz", ".png", ".npy")}
 
 
-def _timed_runs(scan: Path, out: Path, tag: str, repeat: int, engine=None):
-    """Warm-up then ``repeat`` timed runs of the decode stage; returns (best seconds, metrics of
-    the best run, its product folder)."""
+def _run_decode(scan: Path, dest: Path, engine) -> dict:
     from facegeo.pipeline.decode import run_decode
 
-    run_decode(scan, out / f"{tag}-warm", engine=engine)
+    return run_decode(scan, dest, engine=engine)
+
+
+def _run_project(scan: Path, dest: Path, engine) -> dict:
+    """The project stage alone: the atlas is copied in from ``scan/../atlas`` (built once)."""
+    import shutil
+
+    from facegeo.pipeline.project import run_project
+
+    shutil.copytree(Path(scan).parent / "atlas", dest / "atlas")
+    return run_project(scan, dest, engine=engine, evaluate=False)
+
+
+def _timed_runs(scan: Path, out: Path, tag: str, repeat: int, engine=None, stage="decode"):
+    """Warm-up then ``repeat`` timed runs of ``stage`` (``"decode"`` or ``"project"``); returns
+    (best seconds, metrics of the best run, its product folder)."""
+    run = _run_decode if stage == "decode" else _run_project
+    run(scan, out / f"{tag}-warm", engine)
     best = None
     for i in range(repeat):
         dest = out / f"{tag}-{i}"
         t0 = time.perf_counter()
-        m = run_decode(scan, dest, engine=engine)
+        m = run(scan, dest, engine)
         t = time.perf_counter() - t0
         if best is None or t < best[0]:
-            best = (t, m, dest / "decode")
+            best = (t, m, dest / stage)
     return best
 
 
@@ -217,4 +232,117 @@ def bench_scale_field(quick: bool) -> list[BenchRow]:
                     extra={"field": f"{T} × {L} × 3 float16",
                            "bytes per texel·light on disk": round(nbytes / (T * L), 3),
                            "seconds": round(t, 3)}, threads=1))
+    return rows
+
+
+#: Generator settings of ``scale.project``'s scan (full run): the default rig's two cameras at
+#: half size (240 × 360), 32 × 16 = 512 lights; the quick run uses the ``tiny`` preset (80 ×
+#: 120, 128 lights).
+PROJECT_PRESET = dict(camera_scale=0.5, n_theta=32, n_phi=16)
+
+
+def _olat_scan(root: Path, quick: bool) -> Path:
+    from facegeo.synth.capture import PRESETS, Preset, generate_scan
+
+    if quick:
+        preset = PRESETS["tiny"]
+    else:
+        p = PROJECT_PRESET
+        preset = Preset("scale-project", p["camera_scale"], p["n_theta"], p["n_phi"], 5,
+                        (256, 192), 3, 1, 3)
+    generate_scan(root, preset, seed=0, noise=0.005)
+    return root
+
+
+@register("scale.project")
+def bench_scale_project(quick: bool) -> list[BenchRow]:
+    """The projection stage (one task per camera: visibility, shadow taps, sampling, field
+    written; then the blend and preview on the client) in process at 1 and 2 threads, on one
+    worker and on two, best of ``repeat`` after a warm-up; products compared byte for byte with
+    the in-process run. Speed in texel·lights per second (projected texels of every camera ×
+    lights / stage seconds); per worker its peak RSS and the per-camera task seconds, and the
+    model's projection cost (task seconds per projected texel·light, per camera)."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.engine import make_engine
+    from facegeo.pipeline.project import project_working_set, run_atlas
+
+    repeat = 2 if quick else 3
+    rows: list[BenchRow] = []
+    with tempfile.TemporaryDirectory(prefix="facegeo-scale-project-") as tmp:
+        tmp = Path(tmp)
+        scan = _olat_scan(tmp / "scan", quick)
+        run_atlas(scan, tmp)  # tmp/atlas, copied into every run's folder
+        s = load_scan(scan)
+        cams = list(s.camera_names)
+        cam0 = s.rig.camera(cams[0])
+        size = f"{len(cams)} cameras × {s.n_lights} lights of {cam0.width} × {cam0.height}"
+        results = {}
+        for threads in (1, 2):
+            with limit_threads(threads), _numba_threads(threads):
+                reset_peak_rss()
+                t, m, dest = _timed_runs(scan, tmp / "runs", f"inproc{threads}", repeat,
+                                         stage="project")
+                results[f"in-process engine, {threads} thread{'s' * (threads > 1)}"] = dict(
+                    seconds=t, metrics=m, dest=dest, threads=threads, peak=peak_rss_mb())
+        ref_m = results["in-process engine, 1 thread"]["metrics"]
+        texel_lights = sum(c["weighted_texels"] for c in ref_m["cameras"].values()) * s.n_lights
+        ref = _digests(results["in-process engine, 1 thread"]["dest"])
+        for n in (1, 2):
+            t0 = time.perf_counter()
+            with make_engine(workers=n, memory_limit=WORKER_LIMIT) as eng:
+                start = time.perf_counter() - t0
+                t, m, dest = _timed_runs(scan, tmp / "runs", f"workers{n}", repeat, engine=eng,
+                                         stage="project")
+                per_worker: dict[str, float] = {}
+                for r in eng.records:
+                    if r.peak_rss_mb is not None:
+                        per_worker[r.worker] = max(per_worker.get(r.worker, 0.0), r.peak_rss_mb)
+                results[f"LocalCluster, {n} worker{'s' * (n > 1)} × 1 thread"] = dict(
+                    seconds=t, metrics=m, dest=dest, threads=n, start=start,
+                    worker_peaks=sorted(round(v, 1) for v in per_worker.values()),
+                    limit_mb=eng.memory_limit / 2 ** 20)
+        from facegeo.surface.atlas import Texels
+
+        n_texels = len(Texels.load(tmp / "atlas" / "texels.npz"))
+        from facegeo.pipeline.project import _mesh_faces
+
+        need = project_working_set(cam0, n_texels, _mesh_faces(s, "ground_truth"),
+                                   min(64, s.n_lights))
+        for case, r in results.items():
+            got = _digests(r["dest"])
+            differ = sum(got.get(k) != v for k, v in ref.items()) + len(set(got) - set(ref))
+            extra = {"scan": size, "texels": n_texels,
+                     "seconds (best of %d)" % repeat: round(r["seconds"], 3)}
+            ratios, base_threads = {}, {}
+            if case.startswith("LocalCluster"):
+                n = r["threads"]
+                base = f"in-process engine, {n} thread{'s' * (n > 1)}"
+                key = f"vs {base} (equal threads)"
+                ratios[key] = results[base]["seconds"] / r["seconds"]
+                base_threads[key] = n
+                if n > 1:
+                    one = results["LocalCluster, 1 worker × 1 thread"]["seconds"]
+                    ratios["vs LocalCluster, 1 worker × 1 thread"] = one / r["seconds"]
+                    base_threads["vs LocalCluster, 1 worker × 1 thread"] = 1
+                task = r["metrics"]["engine"]["tasks"]
+                cams_m = r["metrics"]["cameras"]
+                extra.update({
+                    "cluster start s": round(r["start"], 2),
+                    "worker memory limit MiB": round(r["limit_mb"]),
+                    "worker peak RSS MiB": r["worker_peaks"],
+                    "working set MiB (project_working_set, per task)": round(need / 2 ** 20, 1),
+                    "task s per camera (best run)": [round(task[c]["seconds"], 3)
+                                                     for c in cams_m],
+                    "task µs per projected texel·light": [
+                        round(1e6 * task[c]["seconds"] / (cams_m[c]["weighted_texels"]
+                                                          * s.n_lights), 4) for c in cams_m],
+                    "blend s (client)": r["metrics"]["seconds_blend"],
+                })
+            else:
+                extra["peak RSS MiB (this process)"] = round(r["peak"], 1)
+            rows.append(BenchRow("scale.project", f"project, {case}", texel_lights / r["seconds"]
+                                 / 1e6, "M texel·lights/s", error=differ / max(len(ref), 1),
+                                 error_unit="product files not byte-identical to in-process",
+                                 ratios=ratios, extra=extra, threads=r["threads"],
+                                 baseline_threads=base_threads))
     return rows
