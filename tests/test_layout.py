@@ -146,9 +146,8 @@ TRUTH_READS_LEFT = {
 #: Stage modules that import facegeo.evaluate, and why (a shim for callers not yet moved).
 EVALUATE_IMPORTS_LEFT = {
     "facegeo.pipeline.project": "run_project(evaluate=True) returns the figures beside the "
-                                "stage's; names GT_LIGHTS for benchmarks/surface.py (its "
-                                "truth_gauge, texel_areas, _projection_error, _error_metrics "
-                                "shims have no caller left since issue 37's fit move)",
+                                "stage's; its gt_lights / gt_weight_min defaults and the "
+                                "visibility file name are the evaluation's",
     "facegeo.pipeline.render": "run_render(reference=True) returns the figures beside the "
                                "view's; render_one renders the paper's λ = 1 beside a shrunk "
                                "view only when a reference exists (has_view_reference)",

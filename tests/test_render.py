@@ -408,6 +408,26 @@ def test_run_render_light_step_is_recorded_and_near_exact(parts):
     assert 0.0 < rel < LIGHT_STEP_2_IMAGE_REL_MAX, rel
 
 
+def test_one_map_file_read_two_ways_renders_to_two_files(parts, tmp_path):
+    """A map file read with another convention names its own view (as relight does): the two
+    renders of one file do not overwrite each other, and differ (the map is mirrored)."""
+    from facegeo.capture import imageio
+    from facegeo.lighting import envmap as E
+    from facegeo.pipeline.render import run_render
+
+    root = parts["root"]
+    path = tmp_path / "lobes.exr"
+    imageio.write_image(path, E.axis_lobe_map(32).image)
+    kw = dict(camera_spec="cam_left", env=str(path), baseline=False, reference=False,
+              resynthesis=False)
+    run_render(root, **kw)
+    run_render(root, convention="u0_at_plus_z", **kw)
+    d = root / "out" / "views"
+    a = imageio.read_image(d / "cam_left_lobes.exr").astype(np.float64)
+    b = imageio.read_image(d / "cam_left_lobes_u0_at_plus_z.exr").astype(np.float64)
+    assert np.abs(a - b).max() > 1e-3 * np.abs(a).max()
+
+
 def test_grazing_views_fall_back_to_measured_not_black(parts):
     """Where the fitted normal calls a steep novel view back-facing (the mesh still sees the
     texel), the renderer keeps the measured function: nothing turns black that was lit."""

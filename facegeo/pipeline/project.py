@@ -82,18 +82,14 @@ log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
            "peak_rss_mb", "project_camera_task", "project_working_set", "stage_rig",
-           "STAGE_RIGS", "texel_areas"]
+           "STAGE_RIGS"]
 
-# Moved to facegeo.evaluate (issue 37), named here for the callers not yet moved: the fit
-# stage imports truth_gauge from here (pipeline/fit.py), tests/test_reflectance.py the others.
-# Delete with those imports.
-from facegeo.evaluate.gauge import texel_areas, truth_gauge  # noqa: E402,F401
-from facegeo.evaluate.projection import (  # noqa: E402,F401
+# The evaluation's comparison that run_project(evaluate=True) returns beside the stage's
+# figures, its defaults, and the visibility file the evaluation reads (issue 37).
+from facegeo.evaluate.projection import (  # noqa: E402
     GT_LIGHTS,
     GT_WEIGHT_MIN,
     VISIBILITY_FILE,
-    _error_metrics,
-    _projection_error,
     with_projection_figures,
 )
 

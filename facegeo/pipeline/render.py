@@ -402,8 +402,14 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                             blend_power=bp, samples=samples, fill_px=fill_px, shadows=shadows,
                             detail=detail, detail_visibility=vis_kw)
         tick(3 + int(naive is not None))
+    # a map file read with another projection or convention names its own files (as relight's)
+    from facegeo.lighting.envmap import canonical_projection
+
+    proj = canonical_projection(projection)
     env_tag = env if isinstance(env, str) and env in BUILTIN_ENVS else (
-        Path(env).stem if isinstance(env, (str, Path)) else "env")
+        (Path(env).stem if isinstance(env, (str, Path)) else "env")
+        + ("" if proj == "latlong" else f"_{proj}")
+        + ("" if convention == "facegeo" else f"_{convention}"))
     stem = _safe(name or f"{camera.name}_{env_tag}")
     dest.mkdir(parents=True, exist_ok=True)
     files = {"exr": imageio.write_image(dest / f"{stem}.exr", res.image).name}
