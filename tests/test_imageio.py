@@ -629,7 +629,9 @@ def _fd_id(fd):
 
 def _corrupt_files(tmp_path):
     """Files whose decoding makes a native library print, with what it prints (checked against
-    the debug log, so that "nothing on the terminal" is not passed by printing nothing)."""
+    the debug log, so that "nothing on the terminal" is not passed by printing nothing). An
+    entry that is a tuple is met by any one of its lines: which library reports a truncated PNG
+    depends on OpenCV's version (libpng up to 5.0; 5.1 checks the stream itself)."""
     rng = _rng(6)
     out = {}
     exr = write_image(tmp_path / "mid.exr", rng.random((64, 64, 3)).astype(np.float32))
@@ -640,7 +642,7 @@ def _corrupt_files(tmp_path):
     out[exr] = ("(EXR_ERR_BAD_CHUNK_LEADER)", "Warning: Exception raised reading pixel data")
     png = write_image(tmp_path / "cut.png", rng.integers(0, 255, (40, 48, 3), dtype=np.uint8))
     png.write_bytes(png.read_bytes()[:200])
-    out[png] = ("PNG input buffer is incomplete",)
+    out[png] = (("PNG input buffer is incomplete", "Unexpected end of input stream"),)
     png = write_image(tmp_path / "filter.png", rng.integers(0, 255, (40, 48, 3), dtype=np.uint8))
     data = bytearray(png.read_bytes())
     n = len(data) // 2
@@ -670,7 +672,8 @@ def test_native_noise_of_every_decoder_is_hidden_and_logged(tmp_path, capfd, cap
     logged = "\n".join(r.getMessage() for r in caplog.records)
     for p, says in files.items():
         for s in says:
-            assert s in logged, (p.name, s)
+            alternatives = s if isinstance(s, tuple) else (s,)
+            assert any(a in logged for a in alternatives), (p.name, s)
 
 
 def test_other_threads_prints_reach_stdout_while_images_are_read_ahead(tmp_path, capfd,
