@@ -270,7 +270,7 @@ def _cmd_info(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from facegeo.pipeline.bench import registered, run_benchmarks, write_reports
+    from facegeo.bench import registered, run_benchmarks, write_reports
 
     if args.list:
         print("\n".join(registered()))

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from facegeo.errors import InputError, ShapeError
-from facegeo.pipeline import bench
-from facegeo.pipeline.bench import (
+from facegeo import bench
+from facegeo.bench import (
     PURE_READ,
     READ_ROW,
     Bandwidth,
@@ -62,7 +62,7 @@ def test_names_select_by_prefix_of_the_whole_name():
     """A name selects every benchmark it starts (``facegeo bench --help``: "names, or the start
     of names"), also inside a dotted part — except a whole registered name, which selects
     itself alone; one that selects nothing lists every name."""
-    from facegeo.pipeline.bench import select_benchmarks
+    from facegeo.bench import select_benchmarks
 
     names = registered()
     vis = [n for n in names if n.startswith("visibility.")]
@@ -224,7 +224,7 @@ def test_read_bandwidth_without_the_compiled_read_keeps_sgemv_and_says_so(monkey
     assert bw.unavailable == {PURE_READ: "numba compile failed (test)"}
     with pytest.raises(InputError, match="numba compile failed"):
         pure_read(np.ones((4, 8), np.float32), 1)
-    from facegeo.pipeline.benchmarks.memory import bench_read_bandwidth
+    from facegeo.bench.memory import bench_read_bandwidth
 
     monkeypatch.setattr(bench, "BANDWIDTH_BYTES", 1 << 20)
     rows = bench_read_bandwidth(True)
@@ -239,7 +239,7 @@ def test_peak_rss_sees_an_allocation():
     import sys
 
     code = ("import numpy as np\n"
-            "from facegeo.pipeline import bench\n"
+            "from facegeo import bench\n"
             "assert bench.reset_peak_rss()\n"
             "before = bench.peak_rss_mb()\n"
             "a = np.ones(64 << 20, dtype=np.uint8)\n"
@@ -313,7 +313,7 @@ def test_decode_benchmark_reports_reference_and_read_once_limit():
 
 def test_reference_decode_matches_truth_on_small_frames():
     from facegeo.geometry.structured_light import PatternSpec
-    from facegeo.pipeline.benchmarks.structured_light import _frames, reference_decode_gray
+    from facegeo.bench.structured_light import _frames, reference_decode_gray
 
     spec = PatternSpec(width=1024, height=768, white_black=False)
     frames, _, tx, ty, _ = _frames(64, 48, spec)
@@ -336,7 +336,7 @@ def test_previous_checkout_copy_is_one_cached_folder_per_checkout(tmp_path, monk
     from pathlib import Path
 
     import facegeo
-    from facegeo.pipeline.benchmarks import visibility as vis_bench
+    from facegeo.bench import visibility as vis_bench
 
     pkg = "_facegeo_previous_vis"
     checkout = Path(facegeo.__file__).resolve().parent.parent

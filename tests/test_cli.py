@@ -163,7 +163,7 @@ BAD_INPUTS = ["seed -1", "seed text", "noise -0.1", "OUT is a file", "OUT under 
 
 @pytest.mark.parametrize("case", BAD_INPUTS)
 def test_bad_input_gives_one_line_and_status_2(case, tmp_path, tiny_scan, capfd, monkeypatch):
-    import facegeo.pipeline.bench as bench
+    import facegeo.bench as bench
     import facegeo.synth.capture as synth_capture
 
     def must_not_run(*a, **k):

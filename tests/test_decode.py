@@ -662,7 +662,7 @@ def test_memory_42_full_resolution_frames_under_1_5_gb():
     code = textwrap.dedent("""
         import numpy as np
         from facegeo.geometry.structured_light import PatternSpec, pattern_names, decode_stream
-        from facegeo.pipeline.bench import peak_rss_mb, reset_peak_rss
+        from facegeo.rss import peak_rss_mb, reset_peak_rss
         spec = PatternSpec(1024, 768)
         names = pattern_names(spec)
         assert len(names) == 42

@@ -220,7 +220,7 @@ def test_memory_follows_the_decoded_pixels_not_the_image(monkeypatch):
                       (_point_maps, "_WINDOW_CHUNK"), (_rays, "_SOLVE_CHUNK")):
         monkeypatch.setattr(mod, name, 4096)
 
-    from facegeo.pipeline.benchmarks.mesh import _ellipsoid_hits, _ellipsoid_rig
+    from facegeo.bench.mesh import _ellipsoid_hits, _ellipsoid_rig
 
     rig = _ellipsoid_rig(0.5)
     xs, ys = [], []

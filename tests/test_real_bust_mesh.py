@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import SHARED_DATA
-from facegeo.pipeline.benchmarks.real_bust import code_centroid_baseline
+from facegeo.bench.real_bust import code_centroid_baseline
 
 SRC = SHARED_DATA / "structured_light" / "alexander_quarter"
 

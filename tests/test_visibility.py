@@ -722,7 +722,7 @@ def test_bench_loads_a_previous_checkout_beside_this_one(tmp_path):
     from pathlib import Path
 
     import facegeo
-    from facegeo.pipeline.benchmarks.visibility import _load_previous, _same_hits
+    from facegeo.bench.visibility import _load_previous, _same_hits
 
     root = Path(facegeo.__file__).parent.parent
     Prev = _load_previous(str(root))

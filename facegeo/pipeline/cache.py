@@ -132,9 +132,9 @@ class StageResult:
 #: Package files that run in no stage, left out of :func:`code_fingerprint` (relative paths;
 #: a trailing ``/``: a folder): the command line (its choices reach a stage as settings, which
 #: are in the key), the registered benchmarks and the report page (written after the stages,
-#: from their products). An edit there reruns nothing. (``pipeline/bench.py`` is stage code:
-#: the stages measure their peak memory with its ``peak_rss_mb``.)
-NOT_STAGE_CODE = ("cli.py", "__main__.py", "pipeline/report.py", "pipeline/benchmarks/")
+#: from their products). An edit there reruns nothing. (``rss.py`` is stage code: the stages
+#: measure their peak memory with its ``peak_rss_mb``.)
+NOT_STAGE_CODE = ("cli.py", "__main__.py", "pipeline/report.py", "bench/")
 #: Set to ``ignore`` to leave facegeo's code out of the stage keys (a developer editing code
 #: that does not change the products, at their own risk: products of other code are reused).
 CODE_KEY_ENV = "FACEGEO_STAGE_KEY_CODE"

@@ -120,7 +120,7 @@ from facegeo.fsutil import (
     staging_dir,
     swap_in_dir,
 )
-from facegeo.pipeline.bench import peak_rss_mb
+from facegeo.rss import peak_rss_mb
 
 log = logging.getLogger(__name__)
 

@@ -191,7 +191,7 @@ def _checked_result(task: str, result) -> dict | None:
 def _run_on_worker(task: str, fn, args, kwargs) -> tuple[dict | None, dict]:
     """Run one task in a worker process: its peak memory measured from a reset (one thread per
     worker: the peak is this task's), its result checked before it leaves the worker."""
-    from facegeo.pipeline.bench import peak_rss_mb, reset_peak_rss
+    from facegeo.rss import peak_rss_mb, reset_peak_rss
 
     reset = reset_peak_rss()
     t0 = time.perf_counter()
@@ -298,7 +298,7 @@ class Engine:
         return self._map(stage, tasks, progress)
 
     def _map(self, stage, tasks, progress):
-        from facegeo.pipeline.bench import peak_rss_mb
+        from facegeo.rss import peak_rss_mb
 
         out = []
         for i, t in enumerate(tasks):

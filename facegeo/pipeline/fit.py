@@ -345,7 +345,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     """
     from facegeo.appearance.skin import FLAG_NAMES, SearchDepth
     from facegeo.capture import imageio
-    from facegeo.pipeline.bench import peak_rss_mb
+    from facegeo.rss import peak_rss_mb
     from facegeo.pipeline.project import check_projection_atlas, stage_rig
     from facegeo.render import FitWriter, atlas_scene, light_set, load_sources
     from facegeo.surface.atlas import Atlas, Texels

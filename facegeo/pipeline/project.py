@@ -74,7 +74,7 @@ import numpy as np
 
 from facegeo.errors import InputError
 from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_write_text, file_sha256, staged_directory
-from facegeo.pipeline.bench import peak_rss_mb
+from facegeo.rss import peak_rss_mb
 from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 from facegeo.checks import check_positive_int, fmt_value
 

@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, one_blas_thread, register
+from facegeo.bench import BenchRow, best_of, one_blas_thread, register
 
 
 def _case(n: int, seed: int, n_theta: int = 64, n_phi: int = 32):

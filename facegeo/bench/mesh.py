@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, register
+from facegeo.bench import BenchRow, register
 
 _PHASE_PERIOD_PX = 16.0
 _IMAGE_NOISE_REL = 0.05
@@ -340,7 +340,7 @@ def write_full_resolution_scan(root, scale: float = 1.0) -> Path:
     p = true.projector
     Rig(true.cameras, Projector(p.name, p.width, p.height), None).save(root / "rig.json")
     man = new_manifest("full_resolution_ellipsoid", synthetic=False, description=(
-        "facegeo.pipeline.benchmarks.mesh: two cameras 20 degrees apart, an analytic "
+        "facegeo.bench.mesh: two cameras 20 degrees apart, an analytic "
         "ellipsoid, an uncalibrated 1024 x 768 projector"))
     write_manifest(root, man, overwrite=True)
     return root
@@ -440,7 +440,7 @@ print(json.dumps({"seconds": seconds, "peak_rss_mb": peak[0], "points": m["point
 
 _DECODE_WORKER = """
 import json, sys, time
-from facegeo.pipeline.benchmarks.mesh import decode_full_resolution
+from facegeo.bench.mesh import decode_full_resolution
 root, scale = sys.argv[1], float(sys.argv[2])
 r = decode_full_resolution(root, scale)
 r["peak_rss_mb"] = [float(l.split()[1]) / 1024 for l in open("/proc/self/status")

@@ -1,19 +1,19 @@
 """The machine's memory read bandwidth, measured in this run: the physical limit of every
 streaming benchmark (decode reads its frames once; relighting reads the field once per map).
 
-:func:`facegeo.pipeline.bench.read_bandwidth` measures it once per run (cached); this benchmark
+:func:`facegeo.bench.read_bandwidth` measures it once per run (cached); this benchmark
 reports each method and thread count as a row so the limit the other rows cite is visible: a
-numpy sum (1 thread), the compiled pure read (:func:`facegeo.pipeline.bench.pure_read_kernel`,
+numpy sum (1 thread), the compiled pure read (:func:`facegeo.bench.pure_read_kernel`,
 1 … N Python threads) and OpenBLAS ``sgemv`` (1 … N BLAS threads). A benchmark on ``n``
 threads is held against the strongest of them at ≤ ``n`` threads
-(:meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`) — here usually the pure read, up to
+(:meth:`~facegeo.bench.Bandwidth.at_threads`) — here usually the pure read, up to
 1.4× what ``sgemv`` reads. A method that could not run (the pure read without numba) is named
 with its reason in every row's ``not measured``.
 """
 
 from __future__ import annotations
 
-from facegeo.pipeline.bench import BenchRow, _method_threads, read_bandwidth, register
+from facegeo.bench import BenchRow, _method_threads, read_bandwidth, register
 
 
 @register("memory.read_bandwidth")

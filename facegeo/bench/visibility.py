@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, register
+from facegeo.bench import BenchRow, best_of, register
 
 _THREADS = (1, 2)
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from facegeo.pipeline.bench import BenchRow, limit_threads, register
+from facegeo.bench import BenchRow, limit_threads, register
 
 #: The objects: (name, importer, folder under olat/, fit-stage settings of the protocol).
 OBJECTS = (
@@ -36,9 +36,9 @@ BASELINE = "per-pixel Lambertian least squares (pinv, numpy)"
 def bench_real(quick: bool) -> list[BenchRow]:
     from facegeo.capture.datasets import import_dataset
     from facegeo.pipeline._fit_image import fit_image_products
-    from facegeo.pipeline.benchmarks.calibration import _shared_data
+    from facegeo.bench import shared_data_dir
 
-    root = _shared_data() / "olat"
+    root = shared_data_dir() / "olat"
     rows: list[BenchRow] = []
     thread_counts = (1,) if quick else (1, 2)
     with tempfile.TemporaryDirectory(prefix="facegeo-bench-photometric-") as tmp:

@@ -2,7 +2,7 @@
 memory bandwidth measured in the same run, batches of environments, and compressed fields
 (rank / coefficient budget against relit-image error, time and storage).
 
-The bandwidth is this run's probe (:func:`facegeo.pipeline.bench.read_bandwidth`, the best
+The bandwidth is this run's probe (:func:`facegeo.bench.read_bandwidth`, the best
 method at the relighting's two threads: the roofline for streaming a field); the relighting
 figure is "one read of the float16 field at that bandwidth" divided by the measured relighting
 time (1.0 = at the memory limit). Because the load moves on a shared machine, the same ratio is
@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 # the pure read, its row width and the BLAS spin pause are shared with read_bandwidth
-from facegeo.pipeline.bench import (
+from facegeo.bench import (
     BLAS_SPIN_SECONDS,
     READ_ROW,
     BenchRow,
@@ -46,7 +46,7 @@ def _random_half_field(n_p: int, n_l: int, seed: int) -> np.ndarray:
 def _bandwidth() -> tuple[float, int]:
     """GB/s of this run's memory-read probe at the relighting's thread count (the strongest of
     ``sgemv`` and the compiled pure read at ≤ 2 threads,
-    :meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`), and its size."""
+    :meth:`~facegeo.bench.Bandwidth.at_threads`), and its size."""
     bw = read_bandwidth()
     return bw.at_threads(RELIGHT_THREADS), bw.nbytes
 
@@ -94,7 +94,7 @@ def _interleaved_fraction(field: np.ndarray, w: np.ndarray, probe_bytes: int,
       threads it runs), so only a probe of the relight's length sees the same CPU share.
 
     * *pure read of the field*: the field's own bytes (as float32 rows of 12 KB) read by
-      :func:`~facegeo.pipeline.bench.pure_read_kernel` (the relight's access pattern without
+      :func:`~facegeo.bench.pure_read_kernel` (the relight's access pattern without
       its arithmetic) on one thread and on two Python threads (the faster of two halves and of
       the relight's chunks shared) — the strongest probe found here: quiet, it reads up to 1.4× what ``sgemv``
       reads, so against ``sgemv`` alone a relight at the memory's limit would score above 1
@@ -112,7 +112,7 @@ def _interleaved_fraction(field: np.ndarray, w: np.ndarray, probe_bytes: int,
     import time
 
     from facegeo.lighting.relight import relight_field
-    from facegeo.pipeline.bench import limit_threads
+    from facegeo.bench import limit_threads
 
     cols = 1024
     a = np.ones((probe_bytes // (4 * cols), cols), np.float32)
@@ -509,13 +509,13 @@ def image_wavelet_rows(field, pixels, n_theta: int, n_phi: int,
     from facegeo.lighting import compress as C
     from facegeo.lighting import envmap as E
     from facegeo.lighting.relight import relight_field
-    from facegeo.pipeline.bench import peak_rss_mb, reset_peak_rss
-    from facegeo.pipeline.benchmarks.calibration import _shared_data
+    from facegeo.bench import peak_rss_mb, reset_peak_rss
+    from facegeo.bench import shared_data_dir
 
     field = np.asarray(field, np.float16)
     n_p, n_l, _ = field.shape
     envs = _envs(n_theta, n_phi)
-    for path in sorted((_shared_data() / "envmaps").glob("*.exr")):
+    for path in sorted((shared_data_dir() / "envmaps").glob("*.exr")):
         envs[path.stem] = E.light_stage_weights(E.read_envmap(path), n_theta, n_phi,
                                                 solid_angle="exact")
     refs = {k: relight_field(field, w) for k, w in envs.items()}

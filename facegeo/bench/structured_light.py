@@ -7,11 +7,11 @@ frames (40 float32 frames). Rows:
   pixel, its ratio to the numpy reference (same frames, same thread count: both are
   single-threaded numpy) and its fraction of the **read-once limit**: the time to read every
   frame once at the memory bandwidth measured in the same run
-  (:func:`facegeo.pipeline.bench.read_bandwidth`), at 1 thread and at the machine's best. The
+  (:func:`facegeo.bench.read_bandwidth`), at 1 thread and at the machine's best. The
   limit at ``n`` threads is the strongest probe at ≤ ``n`` threads
-  (:meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`): of a numpy sum, OpenBLAS ``sgemv``
+  (:meth:`~facegeo.bench.Bandwidth.at_threads`): of a numpy sum, OpenBLAS ``sgemv``
   and — since it joined the probe, usually the strongest, up to 1.4× ``sgemv`` — the compiled
-  pure read (:func:`facegeo.pipeline.bench.pure_read_kernel`); the method that set it is in the
+  pure read (:func:`facegeo.bench.pure_read_kernel`); the method that set it is in the
   read-once row's ``extra``. (Against ``sgemv`` alone the fractions were up to 1.4× higher.)
 * ``numpy reference decode`` — :func:`reference_decode_gray`, the straightforward vectorised
   numpy decode a competent user would write: per bit, compare pattern vs inverse over the whole
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, read_bandwidth, register
+from facegeo.bench import BenchRow, best_of, read_bandwidth, register
 
 
 def reference_decode_gray(frames, spec, min_contrast: float = 0.01):
@@ -198,7 +198,7 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
       against the Gray decode's in the same run;
     * the read-once limit: the bytes of the frames as they sit in memory (42 × H × W × 3
       bytes of 8-bit RGB) read once at the 1-thread bandwidth measured in the same run
-      (:meth:`~facegeo.pipeline.bench.Bandwidth.at_threads`: the strongest of numpy sum,
+      (:meth:`~facegeo.bench.Bandwidth.at_threads`: the strongest of numpy sum,
       ``sgemv`` and the compiled pure read at ≤ that thread count, usually the pure read; the
       method that set it and the best bandwidth in ``extra``);
     * end to end from files — the frames written as PNG, then read one at a

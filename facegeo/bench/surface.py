@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, register
+from facegeo.bench import BenchRow, best_of, register
 
 #: Cores of this machine: xatlas and the mixed atlas+project pass use all of them.
 _CPU = os.cpu_count() or 1

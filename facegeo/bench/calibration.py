@@ -25,13 +25,11 @@ machine is shared: interleaving exposes both to the same load).
 from __future__ import annotations
 
 import logging
-import os
 import time
-from pathlib import Path
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, one_blas_thread, register
+from facegeo.bench import BenchRow, one_blas_thread, register, shared_data_dir
 
 log = logging.getLogger(__name__)
 
@@ -55,11 +53,6 @@ def _cv2_flags(model: str, fix_aspect_ratio=None) -> int:
              "k1k2": cv2.CALIB_FIX_K3 | zero, "opencv4": cv2.CALIB_FIX_K3, "opencv5": 0,
              "rational8": cv2.CALIB_RATIONAL_MODEL}[model]
     return flags | (cv2.CALIB_FIX_ASPECT_RATIO if fix_aspect_ratio is not None else 0)
-
-
-def _shared_data() -> Path:
-    default = Path(__file__).resolve().parents[4] / "shared" / "data"
-    return Path(os.environ.get("FACEGEO_SHARED_DATA", default))
 
 
 def _interleaved(fns, repeat: int):
@@ -163,7 +156,7 @@ def bench_real(quick: bool) -> list[BenchRow]:
 
     from facegeo.geometry.calibration import ChessboardSpec, detect_boards, usable_detections
 
-    d = _shared_data() / "calibration" / "opencv_stereo_chessboards"
+    d = shared_data_dir() / "calibration" / "opencv_stereo_chessboards"
     if not d.is_dir():
         log.warning("calibration.real: %s is absent; no rows", d)
         return []

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, limit_threads, peak_rss_mb, register, reset_peak_rss
+from facegeo.bench import BenchRow, limit_threads, peak_rss_mb, register, reset_peak_rss
 
 #: Memory limit of each worker (bytes or a size string).
 WORKER_LIMIT = "1GiB"

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from facegeo.pipeline.bench import BenchRow, best_of, register
+from facegeo.bench import BenchRow, best_of, register
 
 
 @register("render.novel_view")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, register
+from facegeo.bench import BenchRow, register
 
 
 @register("synth.generate")

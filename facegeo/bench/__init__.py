@@ -1,9 +1,9 @@
 """Benchmark registry: speed against error, never wall-clock asserts.
 
 A benchmark is a function registered with :func:`register`; it returns a list of
-:class:`BenchRow`. Benchmarks live in the modules of the :mod:`facegeo.pipeline.benchmarks` package
-(one per stage); :func:`run_benchmarks` imports them all, runs the selected ones and
-:func:`write_reports` writes ``bench.json`` and ``bench.md``.
+:class:`BenchRow`. Benchmarks live in this package's modules, one per stage (they may use the
+generator and the evaluation, which the stages never do); :func:`run_benchmarks` imports them
+all, runs the selected ones and :func:`write_reports` writes ``bench.json`` and ``bench.md``.
 
 Timings on these shared machines are noisy: a row should carry a *ratio* measured in the same
 run (ours against the strongest fair baseline, at the same thread count) beside absolute
@@ -35,6 +35,7 @@ import numpy as np
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError, ShapeError
 from facegeo.fsutil import atomic_write_text
+from facegeo.rss import peak_rss_mb, reset_peak_rss
 
 log = logging.getLogger(__name__)
 
@@ -123,11 +124,9 @@ def register(name: str) -> Callable[[BenchFn], BenchFn]:
 
 
 def _discover() -> None:
-    import facegeo.pipeline.benchmarks as pkg
-
-    for info in pkgutil.iter_modules(pkg.__path__):
+    for info in pkgutil.iter_modules(__path__):
         if not info.name.startswith("_"):
-            importlib.import_module(f"{pkg.__name__}.{info.name}")
+            importlib.import_module(f"{__name__}.{info.name}")
 
 
 def shared_data_dir() -> Path:
@@ -449,37 +448,6 @@ def read_bandwidth(nbytes: int | None = None, *, repeat: int = 3, max_threads: i
                    {} if read is not None else {PURE_READ: why_not})
     _BANDWIDTH[nbytes] = bw
     return bw
-
-
-def _status_kib(field_name: str) -> float | None:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(field_name + ":"):
-                    return float(line.split()[1])
-    except OSError:
-        return None
-    return None
-
-
-def reset_peak_rss() -> bool:
-    """Reset the process's peak-RSS counter (Linux ``/proc/self/clear_refs``); True if it did."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process, MiB (since the last :func:`reset_peak_rss`)."""
-    kib = _status_kib("VmHWM")
-    if kib is None:  # pragma: no cover - non-Linux
-        import resource
-
-        kib = float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
-    return kib / 1024.0
 
 
 def select_benchmarks(names: list[str] | None = None) -> list[str]:

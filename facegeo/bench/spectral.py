@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, best_of, blas_threads, register
+from facegeo.bench import BenchRow, best_of, blas_threads, register
 
 
 def _with_threads(rows: list[BenchRow]) -> list[BenchRow]:

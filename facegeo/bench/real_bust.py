@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.pipeline.bench import BenchRow, register, shared_data_dir
+from facegeo.bench import BenchRow, register, shared_data_dir
 
 __all__ = ["bench_real_bust", "code_centroid_baseline"]
 

@@ -1,1 +1,0 @@
-"""Registered benchmarks, one module per stage; :mod:`facegeo.pipeline.bench` imports them all."""
