@@ -219,7 +219,7 @@ def detect_charuco(image, board, *, name: str = "image", legacy: bool | None = N
             f"no ArUco markers of {board.dictionary} found (wrong dictionary or board, or no "
             "board in view)",
         )
-    if ids is None or corners is None:
+    if ids is None or corners is None or len(ids) == 0:  # OpenCV 5.1: empty arrays, not None
         return BoardDetection(
             name, size, False,
             f"{len(marker_ids)} marker(s) found but no ChArUco corners interpolated (check "
