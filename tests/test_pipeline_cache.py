@@ -391,3 +391,24 @@ def test_staleness_reaches_every_stage_made_from_replaced_products(tmp_path):
     assert stale_stages(out) == {"b": ["a"], "c": ["a"]}
     (out / "b" / "stage.json").write_text(json.dumps({"key": "b2", "upstream": {"a": "a2"}}))
     assert stale_stages(out) == {"c": ["b"]}
+
+
+def test_paths_a_stage_records_point_where_its_folder_ends_up(scan):
+    """A stage writes into a staging folder and records the files it wrote there; the metrics
+    (returned, in its manifest and in out/metrics.json) name them in out/<stage>/, which
+    exists after the run (relight's ``files`` pointed into the deleted staging folder)."""
+    def run(ctx):
+        p = ctx.out_dir / "img.png"
+        p.write_text("x")
+        return {"files": {"png": str(p), "list": [p, str(ctx.out_dir)]}, "other": "img.png"}
+
+    (res,) = Pipeline([StageSpec("a", run)]).run(scan)
+    final = scan / "out" / "a"
+    assert res.metrics["files"] == {"png": str(final / "img.png"),
+                                    "list": [str(final / "img.png"), str(final)]}
+    assert res.metrics["other"] == "img.png"
+    manifest = json.loads((final / MANIFEST_NAME).read_text())
+    assert manifest["metrics"]["files"]["png"] == str(final / "img.png")
+    doc = json.loads((scan / "out" / "metrics.json").read_text())
+    assert doc["a"]["files"]["png"] == str(final / "img.png")
+    assert (final / "img.png").is_file()

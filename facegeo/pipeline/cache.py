@@ -113,6 +113,24 @@ class StageContext:
     progress: Callable[[str, int, int], None] | None = None
 
 
+def _relocated(value, tmp: Path, final: Path):
+    """``value`` (a stage's metrics: dicts, lists, strings) with every string path inside the
+    staging folder ``tmp`` rewritten into ``final``, where the folder is swapped in (a stage
+    records the files it wrote where it wrote them; ``metrics.json`` pointed into a deleted
+    staging folder)."""
+    if isinstance(value, dict):
+        return {k: _relocated(v, tmp, final) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_relocated(v, tmp, final) for v in value)
+    if isinstance(value, Path):
+        value = str(value)
+    if isinstance(value, str):
+        t = str(tmp)
+        if value == t or value.startswith(t + os.sep):
+            return str(final) + value[len(t):]
+    return value
+
+
 @dataclass
 class StageResult:
     """The outcome of one stage in one run: ``ran`` is False when its cached products were used;
@@ -657,6 +675,8 @@ class Pipeline:
                         m.get("settings", {}))
 
     def _run_stage(self, spec, scan_dir, out, key, doc, progress, reason, settings_by=None):
+        """Run one stage into a staging folder swapped in as ``out/<stage>`` when it finishes;
+        paths into the staging folder in its metrics are recorded as their final place."""
         final = out / spec.name
         log.debug("stage %s: key %s", spec.name, key[:12])
         t0 = time.perf_counter()
@@ -670,7 +690,7 @@ class Pipeline:
                 raise InputError(f"stage {fmt_value(spec.name)} returned {type(metrics).__name__}, "
                                  "expected a dict of metrics")
             seconds = time.perf_counter() - t0
-            metrics = {**metrics, "seconds": round(seconds, 4)}
+            metrics = {**_relocated(metrics, tmp, final), "seconds": round(seconds, 4)}
             # what went into the key (facegeo_code: the code fingerprint), so a later run can
             # say why it reran the stage
             manifest = {
