@@ -323,6 +323,12 @@ def _cmd_calibrate(args) -> int:
                           reference=args.reference, legacy=args.legacy_board,
                           cross_validation=not args.no_cross_validation,
                           progress=None if args.quiet else (lambda s: print(s, file=sys.stderr)))
+    # the errors against the scan's references are the evaluation's (the stage reads none)
+    from facegeo.capture.scan import load_scan
+    from facegeo.evaluate.intrinsics import with_calibration_errors
+
+    m = with_calibration_errors(load_scan(args.scan), m, Path(args.out) if args.out
+                                else Path(args.scan) / "out" / "calibrate")
     # (header, metrics key[, fallback key]): the errors against the generator's truth on a
     # synthetic scan, else against a reference calibration shipped with the data (real scans)
     cols = (("model", "model"), ("rms px", "reprojection_rms_px"), ("views", "views_used"),

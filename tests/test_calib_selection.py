@@ -332,3 +332,43 @@ def test_real_sigma_predicts_leave_one_view_out_spread(opencv_auto, side):
     assert np.all(ratio <= SIGMA_RATIO_TOL) and np.all(ratio >= 1 / SIGMA_RATIO_TOL), ratio
     formal = np.array([c.std_formal[k] for k in keys]) / spread
     assert formal.min() < 1 / SIGMA_RATIO_TOL, formal
+
+
+#: facegeo's corners (sector detector + refinement, ``detect_boards``) against OpenCV's sample's
+#: corners on OpenCV's stereo chessboards, ``model="auto"``: leave-one-view-out held-out RMS
+#: not worse than this factor of OpenCV's corners' (measured left 0.183 vs 0.241, right 0.192
+#: vs 0.332 px: 0.76 / 0.58)
+CORNERS_HELD_OUT_FACTOR = 1.0
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_real_facegeo_corners_cross_validate_within_a_pixel(shared_data, opencv_auto, side):
+    """The stage's cross-validation of facegeo's own corners ≤ 1 px on both cameras (issue 35),
+    side by side with OpenCV's corners. One two-halves split is one draw: the right camera read
+    1.08 px at seed 0 (OpenCV's corners 0.60) and 0.44 / 1.03 / 0.63 at seeds 1-3 (OpenCV's
+    1.07 / 0.39 / 0.92), so the stage combines ``CV_SPLITS`` splits: measured facegeo's corners
+    left 0.14 / right 0.84 px, OpenCV's 1.03 / 0.79 px. Corner windows were no remedy (a
+    refinement half-window of 0.5 × the spacing: right 0.24-0.53 px but the left camera worse
+    and views rejected; docs/calibration.md)."""
+    from facegeo.geometry.calibration import ChessboardSpec, detect_boards
+    from facegeo.pipeline._calibrate_products import CV_SPLITS
+
+    d, _, _, c_cv = opencv_auto[side]
+    files = sorted(d.glob(f"{side}*.jpg"))
+    dets = [x for x in detect_boards([cv2.imread(str(f)) for f in files],
+                                     ChessboardSpec(9, 6, 0.025)) if x.found]
+    assert len(dets) == len(files)
+    P, Q = [x.p_board for x in dets], [x.q for x in dets]
+    c = calibrate_camera(P, Q, (640, 480), model="auto", name=side)
+    cv = cross_validate(P, Q, (640, 480), model=c.model, reject_views=False, splits=CV_SPLITS)
+    assert cv["splits"] == CV_SPLITS and len(cv["split_diff_rms_px"]) == CV_SPLITS
+    assert cv["diff_rms_px"] <= CV_HELD_OUT_PX, cv["split_diff_rms_px"]
+    assert cv["diff_rms_px"] <= CV_PREDICTED_FACTOR * cv["predicted_rms_px"], cv
+    # the combination is the RMS of the splits, the first split the seed-0 check
+    assert cv["diff_rms_px"] == pytest.approx(np.sqrt(np.mean(np.square(
+        cv["split_diff_rms_px"]))), rel=1e-12)
+    one = cross_validate(P, Q, (640, 480), model=c.model, reject_views=False)
+    assert one["diff_rms_px"] == pytest.approx(cv["split_diff_rms_px"][0], rel=1e-12)
+    held = c.leave_one_out()["held_out_rms_px"]
+    held_cv = c_cv.leave_one_out()["held_out_rms_px"]
+    assert held <= CORNERS_HELD_OUT_FACTOR * held_cv, (held, held_cv)

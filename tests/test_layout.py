@@ -136,8 +136,6 @@ TRUTH_READS_LEFT = {
     "facegeo.pipeline.project": "input: stage_rig / load_mesh ('ground_truth' rig and mesh)",
     "facegeo.pipeline.fit": "input: the generator's novel cameras as view specs "
                             "(_camera_table)",
-    "facegeo.pipeline.calibrate": "metrics: errors against ground_truth/rig.json and the "
-                                  "reference intrinsics",
     "facegeo.pipeline.mesh": "input: ground_truth_decode (decode maps made from the truth, "
                              "for tests and benchmarks)",
     "facegeo.pipeline.decode": "metrics: decode errors against the true geometry",

@@ -31,16 +31,21 @@ from facegeo.geometry.camera import Camera
 
 # ---- tolerances (named, with units), measured on PROCAM seed 0 (seeds 1-2 in brackets)
 #: circle grid, projector against the generator's true projector: focal max |f/f_true − 1|
-#: (measured 4.8e-5; seeds 1-2: 4.4e-4, 3.8e-4) ...
+#: (measured 2.0e-4 since the local homographies weight each axis by its decode noise, 4.8e-5
+#: before; seeds 1-2: 4.8e-4, 3.8e-4) ...
 CIRCLES_FOCAL_REL = 1e-3
-#: ... and ‖c − c_true‖, projector px of 128 × 96 (measured 0.07; seeds 1-2: 0.21, 0.05)
+#: ... and ‖c − c_true‖, projector px of 128 × 96 (measured 0.076, 0.07 before; seeds 1-2:
+#: 0.20, 0.22)
 CIRCLES_PRINCIPAL_PX = 0.5
 #: plain chessboard, the test's variant (no [structured_light], one white frame blank): focal
-#: (measured 5.7e-4; the unmodified capture 5.5e-4, seeds 1-2: 1.5e-3, 1.1e-3) ...
-CHESSBOARD_FOCAL_REL = 3e-3
-#: ... and principal point, projector px (measured 0.61; unmodified 0.60, seeds 1-2: 0.14,
-#: 0.60): the brief's 0.1 % / 0.5 px hold for circles, not for chessboards at this image size
-CHESSBOARD_PRINCIPAL_PX = 1.2
+#: (measured 8.3e-4; the unmodified capture 6.8e-4, seeds 1-2: 1.9e-3, 1.0e-3 — the issue's
+#: 0.1 % on seed 0 only: the cameras' own focal errors, 0.11-0.12 % on seed 1, reach the
+#: projector through the joint adjustment) ...
+CHESSBOARD_FOCAL_REL = 1e-3
+#: ... and principal point, projector px (measured 0.38; unmodified 0.44, seeds 1-2: 0.12,
+#: 0.39 — the issue's 0.5 px on every seed since the local homographies weight each projector
+#: axis by its decode noise: 0.84 / 0.13 / 0.60 before, docs/calibration.md)
+CHESSBOARD_PRINCIPAL_PX = 0.5
 #: joint reprojection RMS of the projector, projector px (measured 0.016 both)
 PROJECTOR_RMS_PX = 0.05
 #: detected board points against their exact projection, RMS px (render → detect round trip
@@ -143,7 +148,11 @@ def test_procam_chessboard_without_structured_light(chessboard_scan, tmp_path, c
     t = Rig.load(scan / "ground_truth" / "rig.json").projector
     assert max(abs(p.fx / t.fx - 1), abs(p.fy / t.fy - 1)) < CHESSBOARD_FOCAL_REL
     assert np.hypot(p.cx - t.cx, p.cy - t.cy) < CHESSBOARD_PRINCIPAL_PX
-    assert pm["focal_rel_error"] < CHESSBOARD_FOCAL_REL  # the metrics say the same
+    from facegeo.evaluate.intrinsics import with_calibration_errors
+
+    # the evaluation's figures (the stage reads no truth) say the same
+    assert with_calibration_errors(s, metrics, out)["projector"]["focal_rel_error"] \
+        < CHESSBOARD_FOCAL_REL
     # one entry per view although every file is "graycode_40.png"
     dets = json.loads((out / "detections.json").read_text())
     for cam, cm in metrics["cameras"].items():
@@ -181,6 +190,9 @@ def test_procam_circle_grid(circles_scan, tmp_path):
     run_reconstruct(scan, until="calibrate")
     staged = json.loads((scan / "out" / "metrics.json").read_text())["calibrate"]["projector"]
     assert staged["calibrated"] is True
+    from facegeo.evaluate.intrinsics import evaluate_calibration
+
+    staged = evaluate_calibration(load_scan(scan), scan / "out")["projector"]  # the truth's
     assert staged["focal_rel_error"] < CIRCLES_FOCAL_REL
     assert staged["principal_point_error_px"] < CIRCLES_PRINCIPAL_PX
 

@@ -108,9 +108,19 @@ def _opencv_stereo(src: Path, root: Path, mode: str) -> dict:
     for cam, paths in files.items():
         for view, p in enumerate(paths):
             _carry(p, root / "calib" / cam / f"view_{view:03d}.jpg", mode)
+    # the data has no single-camera calibration of the right images (only left_intrinsics.yml):
+    # the right reference is stereo_calib's M2, a joint fit (fixed aspect, k3 and tangential
+    # terms at 0, shared focal). OpenCV's own single-camera calibration of the 13 right views
+    # with the calibration sample's flags (fix aspect ratio; the same procedure gives the left
+    # camera within 0.09 px of left_intrinsics.yml) lands 8.8 px from M2's principal point and
+    # 1.3 % from its focal; facegeo's 10.8 px, 0.38 % (2026-12-02)
     ref = {"source": "OpenCV samples/data (left: the calibration sample's output "
                      "left_intrinsics.yml; right: stereo_calib's output intrinsics.yml, its "
-                     "left under stereo_calib)", "cameras": {}}
+                     "left under stereo_calib)",
+           "note": "right: no single-camera reference ships with the data; M2 is the stereo "
+                   "calibration's joint fit, 8.8 px (principal point) and 1.3 % (focal) from "
+                   "OpenCV's single-camera calibration of the right views",
+           "cameras": {}}
     if (src / "intrinsics.yml").is_file():
         m = read_matrices(src / "intrinsics.yml", ("M1", "D1", "M2", "D2"))
         ref["cameras"] = {"left": {"K": m["M1"].tolist(), "dist": m["D1"].ravel().tolist()},
@@ -129,7 +139,11 @@ def _opencv_stereo(src: Path, root: Path, mode: str) -> dict:
         "opencv_stereo_chessboards", synthetic=False,
         description="OpenCV's stereo calibration samples: 13 chessboard views per camera "
                     "(9 x 6 inner corners, 25 mm squares). Camera intrinsics in rig.json are "
-                    "nominal (f = image width); the published ones are under reference/.")
+                    "nominal (f = image width); the published ones are under reference/: "
+                    "left, OpenCV's single-camera calibration (left_intrinsics.yml); right, "
+                    "the stereo calibration's M2 (intrinsics.yml; no single-camera one is "
+                    "published), 8.8 px in principal point and 1.3 % in focal from OpenCV's "
+                    "own single-camera calibration of the right views.")
     manifest["scan"]["metadata"] = {"dataset": "opencv-stereo", "source_views": list(_OPENCV_VIEWS),
                                     "nominal": ["cameras"]}
     manifest["calib"] = {"board": {"kind": "chessboard", "cols": 9, "rows": 6,

@@ -10,8 +10,9 @@ fewer than :data:`MIN_VIEWS_ALONE` views keeps its nominal intrinsics and is onl
 warning) and writes
 
 * ``rig.json`` — the scan's rig with the calibrated cameras (``Rig`` serialisation); the world
-  frame is the scan's: the calibrated rig is aligned to the nominal ``rig.json`` by the rigid
-  transform averaged over the cameras; the projector is the jointly calibrated one when the scan
+  frame is ``scan.world`` when declared, else the board of view 0 of the first camera (a
+  synthetic scan, or lights on a θ × φ grid: the nominal ``rig.json``'s frame, the calibrated
+  rig placed on it by a working-volume fit; :func:`_world_frame`); the projector is the jointly calibrated one when the scan
   has projector views that calibrate, else ``rig.json``'s own (a nominal projector camera
   placed in the world frame, an uncalibrated resolution-only entry copied unchanged: it has no
   pose), the lights are copied;
@@ -161,16 +162,37 @@ def _world_frame(scan, rig_cal, obs, proj_name, nominal) -> tuple[Pose, Pose, st
     camera's); ``T_world_nominal`` maps points of the scan's nominal ``rig.json`` frame (where
     its lights and an uncalibrated projector live) into the world frame. ``scan.world``
     (format v2) decides: ``{camera, board_view}`` — the board's frame in that view (the bundle
-    adjustment's pose of that board); ``{transform}`` — ``p_world = T · p_nominal``. Without it
-    the world is the nominal rig's frame: the calibrated rig is placed on the nominal one by the
-    working-volume fit (:func:`_align`), so the products stay in the frame the rest of the scan
-    uses.
+    adjustment's pose of that board); ``{transform}`` — ``p_world = T · p_nominal``, the
+    calibrated rig placed on the nominal one by the working-volume fit (:func:`_align`).
+
+    Without it (issues 35, 37) the world is the board of view 0 of the scan's first camera
+    (:func:`_default_board_view`: the lowest view that camera used when view 0 is not one of
+    them): a measured frame, where the nominal ``rig.json``'s frame is a guess (15 mm and 0.43°
+    from the board on a real capture). Two cases keep the nominal frame instead, placed by the
+    working-volume fit: a synthetic scan (its ``rig.json`` frame is the generator's world, where
+    its truth, lights and novel cameras are given — the generator declares no ``world``), and a
+    rig whose lights are the θ × φ grid (its axes are the rig frame's: it cannot turn with a
+    board; :func:`_lights_to_world`). ``what`` says which frame was taken and why.
     """
     cams = [c for c in rig_cal.cameras if c.name != proj_name]
     T_rig_nom = _align(cams, nominal.cameras)
     w = scan.world
     if w is None:
-        return T_rig_nom, Pose.identity(), "the nominal rig.json frame (working-volume fit)"
+        from facegeo.geometry.lights import LightList
+
+        if scan.synthetic:
+            return (T_rig_nom, Pose.identity(), "the nominal rig.json frame (working-volume "
+                    "fit): a synthetic scan's rig.json frame is the generator's world")
+        if nominal.lights is not None and not isinstance(nominal.lights, LightList):
+            return (T_rig_nom, Pose.identity(), "the nominal rig.json frame (working-volume "
+                    "fit): the rig's lights are a θ × φ grid, whose axes cannot turn with "
+                    "a board (declare scan.world to choose)")
+        cam, view = _default_board_view(scan, obs)
+        T_rig_world = rig_cal.T_world_board[f"v{view}"]
+        why = "" if view == 0 else f"; view 0 not used by {cam}"
+        return (T_rig_world, T_rig_world.inverse() @ T_rig_nom,
+                f"board of view {view} (camera {cam}): no scan.world declared, the board of "
+                f"view 0 of the first camera{why}")
     if "T_world_rig" in w:
         T_world_nom = Pose.from_matrix(w["T_world_rig"])
         return T_rig_nom @ T_world_nom.inverse(), T_world_nom, "scan.world.transform"
@@ -184,6 +206,17 @@ def _world_frame(scan, rig_cal, obs, proj_name, nominal) -> tuple[Pose, Pose, st
     T_rig_world = rig_cal.T_world_board[key]
     return (T_rig_world, T_rig_world.inverse() @ T_rig_nom,
             f"board of view {w['board_view']} (camera {w['camera']})")
+
+
+def _default_board_view(scan, obs) -> tuple[str, int]:
+    """The board pose that holds the world frame when the scan declares none: view 0 of the
+    scan's first camera, else the lowest ``[calib]`` view that camera used (its board views
+    are keyed ``v<view>``; a camera with none passes to the next)."""
+    for cam in scan.camera_names:
+        views = sorted(int(k[1:]) for k in obs.get(cam, {}) if k[:1] == "v" and k[1:].isdigit())
+        if views:
+            return cam, views[0]
+    raise InputError(f"{scan.root}: no camera has a usable board view to hold the world frame")
 
 
 def _projector_not_calibrated(projector, attempt: dict | None) -> dict:
@@ -309,16 +342,15 @@ COMMAND = "facegeo calibrate"
 
 def calibrate_inputs(scan) -> list[Path]:
     """The scan files the ``calibrate`` stage reads, in the stage key's order: the manifest,
-    the rig file, the ground-truth files (they feed the error metrics) and every camera's
-    ``[calib]`` files — the inputs of ``facegeo reconstruct``'s ``calibrate`` stage, so that a
-    ``facegeo calibrate`` run and the pipeline compute one key
+    the rig file, a board file and every camera's ``[calib]`` files (no ground truth nor
+    ``[reference]``: the errors against them are the evaluation's,
+    :mod:`facegeo.evaluate.intrinsics`) — the inputs of ``facegeo reconstruct``'s
+    ``calibrate`` stage, so that a ``facegeo calibrate`` run and the pipeline compute one key
     (``tests/test_calib_products.py`` checks that they agree)."""
     files = [scan.manifest_path, scan.root / scan.manifest["scan"]["rig"]]
     board = scan.manifest.get("calib", {}).get("board")
     if isinstance(board, str) and (scan.root / board).is_file():  # a board file, not a table
         files.append(scan.root / board)
-    files += [scan.ground_truth_path(k) for k in sorted(scan.ground_truth_keys)
-              if scan.ground_truth_path(k).is_file()]
     for cam in scan.camera_names:
         files += [p for _, p in scan.expected_files("calib", cam)]
         if "projector" in scan.manifest.get("calib", {}):
@@ -469,24 +501,23 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
         std_px: {fx, fy, cx, cy}, std_formal_px, sigma_method, sigma_inflation,
         [leave_one_out_held_out_rms_px, leave_one_out_projection_rms_px,
         leave_one_out_predicted_rms_px,] cross_validation_method (:func:`~facegeo.pipeline._calibrate_products.solve_metrics`)
-        [, focal_rel_error, principal_point_error_px,
-        rotation_error_deg, translation_error_mm]}}, "projector": {calibrated: true,
+        }}, "projector": {calibrated: true,
         views_detected, corners, skipped (one line per view and camera not used, naming the
         file and why), decoded (the codes: "gray", "gray+phase(x)" ...), views_used, model
         (chosen as a camera's), model_fallback, the statistics of a camera's solve
         (:func:`~facegeo.pipeline._calibrate_products.solve_metrics`: σ, model_selection, projection uncertainty, cross-validation),
         start ("nominal" or "uncalibrated": the rig.json entry it started
-        from), reprojection_rms_px, separate_rms_px[, focal_rel_error,
-        focal_rel_error_without_joint, ...]} or {calibrated: false, reason, rig_json
+        from), reprojection_rms_px, separate_rms_px, separate_intrinsics ({fx, fy, cx,
+        cy} of the separate solve, before the joint adjustment)} or {calibrated: false, reason, rig_json
         ("nominal" or "uncalibrated": what the calibrated rig.json holds), summary (one line)[,
         error (the failed attempt's)]} or None (no projector), "opencv_stereo": {reference,
         files: {camera: file name}[, skipped: {camera: why}]} (two or more cameras),
-        "seconds"}`` (non-finite
-        numbers as None). View k of every
+        reprojection_rms_px_max, "seconds"}`` (non-finite numbers as None). View k of every
         camera is taken to be the same board pose (the scan format's ``calib`` views are
-        simultaneous). Ground-truth errors (synthetic scans) compare with
-        ``ground_truth/rig.json`` after the best rigid alignment of the whole rig (the world
-        frame is a gauge choice); rotation/translation errors are those of each camera pose.
+        simultaneous). The stage reads no reference: the errors against the generator's rig
+        or a real scan's ``[reference]`` intrinsics are
+        :func:`facegeo.evaluate.intrinsics.evaluate_calibration`'s (``facegeo calibrate``
+        prints them beside these, :func:`~facegeo.evaluate.intrinsics.with_calibration_errors`).
     settings : dict
         The settings used (JSON-serialisable; the stage cache keys on them).
 
@@ -641,6 +672,8 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
             if cross_validation:
                 say("cross-validate the projector")
             proj_metrics.update({"views_used": pc.n_views_used, "separate_rms_px": pc.rms_px,
+                                 "separate_intrinsics": {k: float(getattr(pc.camera, k))
+                                                         for k in ("fx", "fy", "cx", "cy")},
                                  "model": pc.model, "model_fallback": pmodel,
                                  "start": "nominal" if nominal_k else "uncalibrated",
                                  **solve_metrics(pc, pP, pQ, loss=loss,
@@ -684,11 +717,6 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
     rig.save(out / "rig.json")
     if len(cams) > 1:
         metrics["opencv_stereo"] = write_stereo_pairs(out, cams, rig_cal.reference)
-    truth = None
-    if "rig" in scan.ground_truth_keys:
-        truth = Rig.load(scan.ground_truth_path("rig"))
-    if truth is not None:
-        T_gt = _align([c for c in rig_cal.cameras if c.name != proj_name], truth.cameras)
     for c in rig_cal.cameras:
         if c.name == proj_name:
             continue
@@ -700,28 +728,6 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
         write_yaml(out / f"{c.name}.yml", c, rig_cal.rms_px[c.name],
                     per_view[np.isfinite(per_view)], m["model"])
         residual_plot(out / f"residuals_{c.name}.png", c.size, r, q, c.name)
-        if truth is not None:
-            t = truth.camera(c.name)
-            T_est = c.T_cam_world @ T_gt
-            m["focal_rel_error"] = float(max(abs(c.fx / t.fx - 1), abs(c.fy / t.fy - 1)))
-            m["principal_point_error_px"] = float(np.hypot(c.cx - t.cx, c.cy - t.cy))
-            m["rotation_error_deg"] = _rot_deg(T_est.R, t.T_cam_world.R)
-            m["translation_error_mm"] = float(
-                np.linalg.norm(T_est.origin_of_a_in_b - t.center_world) * 1e3)
-            n = nominal.camera(c.name)
-            m["nominal_focal_rel_error"] = float(abs(n.fx / t.fx - 1))
-            m["nominal_principal_point_error_px"] = float(np.hypot(n.cx - t.cx, n.cy - t.cy))
-    # published answers of a real scan ([reference] intrinsics), compared the same way
-    from facegeo.capture.references import reference_intrinsics
-
-    for name, K in reference_intrinsics(scan).items():
-        if name in metrics["cameras"] and name != proj_name:
-            c = rig_cal.camera(name)
-            m = metrics["cameras"][name]
-            m["reference_focal_rel_error"] = float(max(abs(c.fx / K[0, 0] - 1),
-                                                       abs(c.fy / K[1, 1] - 1)))
-            m["reference_principal_point_error_px"] = float(np.hypot(c.cx - K[0, 2],
-                                                                     c.cy - K[1, 2]))
     metrics["rig_reference"] = rig_cal.reference
     if proj_name is not None:
         pr = rig_cal.camera(proj_name)
@@ -731,26 +737,13 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
         residual_plot(out / f"residuals_{proj_name}.png", pr.size, r, q, proj_name)
         write_yaml(out / f"{proj_name}.yml", pr, rig_cal.rms_px[proj_name], [],
                     proj_metrics["model"])
-        if truth is not None and truth.projector_calibrated:
-            t = truth.projector
-            T_est = pr.T_cam_world @ T_gt
-            sep = init[proj_name]
-            proj_metrics.update({
-                "focal_rel_error": float(max(abs(pr.fx / t.fx - 1), abs(pr.fy / t.fy - 1))),
-                "focal_rel_error_without_joint": float(
-                    max(abs(sep.fx / t.fx - 1), abs(sep.fy / t.fy - 1))),
-                "principal_point_error_px": float(np.hypot(pr.cx - t.cx, pr.cy - t.cy)),
-                "rotation_error_deg": _rot_deg(T_est.R, t.T_cam_world.R),
-                "translation_error_mm": float(
-                    np.linalg.norm(T_est.origin_of_a_in_b - t.center_world) * 1e3),
-            })
     metrics["projector"] = proj_metrics
-    # headline figures over the cameras (the worst one), for the summary table and the report
-    for key in ("reprojection_rms_px", "focal_rel_error", "principal_point_error_px",
-                "reference_focal_rel_error", "reference_principal_point_error_px"):
-        vals = [c[key] for c in metrics["cameras"].values() if isinstance(c.get(key), float)]
-        if vals:
-            metrics[f"{key}_max"] = float(max(vals))
+    # the headline over the cameras (the worst one), for the summary table and the report;
+    # the errors against references are the evaluation's (facegeo.evaluate.intrinsics)
+    vals = [c["reprojection_rms_px"] for c in metrics["cameras"].values()
+            if isinstance(c.get("reprojection_rms_px"), float)]
+    if vals:
+        metrics["reprojection_rms_px_max"] = float(max(vals))
     if proj_metrics and isinstance(proj_metrics.get("reprojection_rms_px"), float):
         metrics["projector_reprojection_rms_px"] = proj_metrics["reprojection_rms_px"]
     metrics["seconds"] = time.perf_counter() - t0
