@@ -31,15 +31,19 @@ def tiny_scan(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def field(tiny_scan):
-    """The reconstruct products up to the projected field: ``out/atlas``, ``out/project``."""
-    results = run_reconstruct(tiny_scan.root, until="project")
+    """The reconstruct products up to the projected field: ``out/atlas``, ``out/project``,
+    on the generator's true rig and mesh (the default, ``"auto"``, is the whole chain: the
+    calibrated rig and the reconstructed mesh, calibrate → decode → mesh first)."""
+    results = run_reconstruct(tiny_scan.root, rig="ground_truth", mesh="ground_truth",
+                              until="project")
     assert [r.name for r in results] == ["atlas", "project"]
     return tiny_scan.out_dir
 
 
 def test_reconstruct_is_cached(tiny_scan, field):
     # a second run finds every stage current and does no work
-    again = run_reconstruct(tiny_scan.root, until="project")
+    again = run_reconstruct(tiny_scan.root, rig="ground_truth", mesh="ground_truth",
+                            until="project")
     assert all(not r.ran for r in again)
 
 
@@ -57,8 +61,8 @@ def test_field_matches_the_frames(tiny_scan, field):
     cam = tiny_scan.camera_names[0]
     # A synthetic scan's rig.json is the nominal rig (what a user would measure before
     # calibration); the frames were rendered with the perturbed true rig in ground_truth/, and
-    # `reconstruct` projects with that one on a synthetic scan (rig "auto"; the calibrated rig
-    # with rig="calibrated").
+    # the fixture projects with that one (rig="ground_truth"; the default "auto" is the
+    # calibrated rig when the boards calibrate).
     camera = Rig.load(tiny_scan.ground_truth_path("rig")).camera(cam)
     R = open_field(field / "project" / cam)                 # (T_c, L, 3) float16 memory map
     index = np.load(field / "project" / cam / "texel_index.npy")

@@ -198,7 +198,8 @@ def _cmd_synth(args) -> int:
                                 sl_phase_steps=args.sl_phase_steps,
                                 projector_scale=args.projector_scale,
                                 sl_missing=_sl_missing_arg(args.sl_missing),
-                                calib_board=args.calib_board)
+                                calib_board=args.calib_board, witness=args.witness,
+                                light_error_deg=args.light_error)
     finally:
         close()
     secs = " ".join(f"{k}={v:.1f}s" for k, v in summary.seconds.items())
@@ -304,9 +305,35 @@ def _cmd_demo(args) -> int:
         print(f"synthesised in {time.perf_counter() - t0:.1f} s")
     scan = load_scan(root)
     print(summarize(scan))
-    print("reconstructing (stages cached under out/; a second run does no work):")
+    print("reconstructing: the whole chain, calibrated rig and reconstructed mesh (stages "
+          "cached under out/; a second run does no work):")
     _run_reconstruct(root, args)
+    if args.no_diagnostic:
+        return 0
+    print("the stage-alone pass: the same stages fed the generator's rig and mesh (a "
+          "diagnostic, cached under out/diagnostic/):")
+    _run_diagnostic(root, args)
     return 0
+
+
+def _run_diagnostic(root: Path, args) -> None:
+    """:func:`facegeo.pipeline.reconstruct.run_diagnostic` with one line per stage, then the
+    chain's figures beside the stage-alone ones and the report rewritten with both."""
+    from facegeo.pipeline.reconstruct import DIAGNOSTIC_DIR, run_diagnostic
+    from facegeo.pipeline.report import chain_and_stage_alone_table, write_report
+
+    out = root / "out"
+    tick, close = _progress_factory(not args.quiet)
+    try:
+        with _engine(args) as engine:
+            run_diagnostic(root, progress=tick, engine=engine,
+                           on_stage=lambda r: (close(), print(_stage_line(r))))
+    finally:
+        close()
+    write_report(out / DIAGNOSTIC_DIR, title=f"facegeo report: {root.name}, stages alone")
+    print("the chain's figures beside the stage-alone ones (evaluate):")
+    print(chain_and_stage_alone_table(out))
+    _write_report(out, quiet=True)
 
 
 def _cmd_calibrate(args) -> int:
@@ -417,10 +444,13 @@ def _cmd_atlas(args) -> int:
     """The ``atlas`` stage: in ``SCAN/out`` the cached stage of ``facegeo reconstruct`` with
     these settings (so later stages reuse it); with ``--out``, on its own, outside the cache."""
     from facegeo.pipeline.project import run_atlas
+    from facegeo.surface.atlas import check_atlas_settings
 
     settings = {"texels_per_mm": None if args.size is not None else args.texels_per_mm,
                 "size": args.size, "padding": args.padding,
                 "split_faces": args.split_faces or None, "repair": args.repair}
+    check_atlas_settings(texels_per_mm=settings["texels_per_mm"], size=args.size,
+                         padding=args.padding)  # before the mesh stages the chain runs first
     if args.out is None:
         results = _run_reconstruct(args.scan, args, until="atlas", settings={"atlas": settings})
         _print_metrics("atlas", _stage_metrics(results, "atlas"))
@@ -630,18 +660,21 @@ def _print_run(out: Path) -> None:
     try:
         run = json.loads((out / "run" / "run.json").read_text(encoding="utf-8"))
         print(f"run: rig {run['rig']}, mesh {run['mesh']}, world frame {run['world']}")
+        if run.get("rig_note"):
+            print(f"  ({run['rig_note']})")
     except (OSError, ValueError, KeyError, TypeError):
         pass
 
 
-def _write_report(out: Path) -> None:
+def _write_report(out: Path, *, quiet: bool = False) -> None:
     from facegeo.pipeline.cache import stale_stages
     from facegeo.pipeline.report import summary_table, write_report
 
     # read from the stages' manifests once, for the report and the summary printed here
     stale = stale_stages(out)
     path = write_report(out, stale=stale)
-    print(summary_table(json.loads((out / "metrics.json").read_text()), stale))
+    if not quiet:  # (quiet: the demo's second writing, the table printed already)
+        print(summary_table(json.loads((out / "metrics.json").read_text()), stale))
     print(f"report: {path}")
 
 
@@ -685,11 +718,12 @@ def _cmd_render(args) -> int:
                        rotate_deg=args.rotate, supersample=args.supersample,
                        resynthesis=not args.naive, shrinkage=args.shrinkage,
                        light_step=args.light_step, shadow_taps=args.shadow_taps,
-                       image_detail=args.image_detail, progress=tick)
+                       image_detail=args.image_detail, infer=args.infer, progress=tick)
     finally:
         close()
     figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "paper_psnr_db", "psnr_gain_db",
-                                   "coverage", "seconds_render") if m.get(k) is not None}
+                                   "coverage", "inferred_pixel_fraction", "seconds_render")
+            if m.get(k) is not None}
     if m.get("shrinkage_factors"):
         figs["shrinkage"] = ", ".join(f"{c} {lam:.3f}" for c, lam in m["shrinkage_factors"].items())
     print(f"rendered {m['name']}: " + ", ".join(f"{k}={v}" for k, v in figs.items()))
@@ -878,9 +912,11 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("synth", parents=common,
                        help="write a synthetic light-stage scan with ground truth")
     s.add_argument("out", metavar="OUT", help="scan directory to create")
-    s.add_argument("--preset", default="small", choices=["tiny", "small", "paper"],
+    s.add_argument("--preset", default="small",
+                   choices=["tiny", "small", "paper", "modern", "modern_tiny"],
                    help="capture size: tiny (seconds; test fixtures), small (demo default), "
-                        "paper (2 cameras 480x720, 64x32 lights)")
+                        "paper (2 cameras 480x720, 64x32 lights), modern (16 cameras 80x120, "
+                        "16x32 lights), modern_tiny (16 cameras, 8x4 lights; tests)")
     s.add_argument("--head", default="procedural",
                    help="'procedural' or a mesh file (OBJ/PLY/GLB, +Y up, facing +Z)")
     s.add_argument("--units", default="cm", choices=["cm", "mm", "m"], help="units of --head mesh")
@@ -916,6 +952,15 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="CAM=FRAME[,FRAME...]|CAM=issue34",
                    help="structured-light frames a camera lost (not written, declared missing "
                         "in the manifest); repeat per camera")
+    s.add_argument("--light-error", type=_nonneg_float, default=0.0, metavar="DEG",
+                   help="light-stage calibration error in rig.json's lights: each light's "
+                        "direction off by DEG (1 sigma per axis; 0.5 is realistic) and its "
+                        "distance by 5 mm x DEG/0.5, as a light list; ground_truth keeps the "
+                        "exact grid (default 0: the exact grid)")
+    s.add_argument("--witness", action="store_true",
+                   help="add a calibration-only camera 'witness' (board views only, 40 deg "
+                        "from the capture cameras) and its reference images under axis_lobes "
+                        "([reference] images.witness.axis_lobes; docs/synth.md)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing synthetic scan at OUT (a real capture is refused; files "
                         "facegeo did not write are kept)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -987,9 +1032,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="products folder (default: SCAN/out, where the atlas is the cached stage "
                         "later stages reuse; another folder: the stage on its own)")
     s.add_argument("--mesh", default="auto",
-                   help="auto (a synthetic scan's true mesh, else the reconstruction), "
-                        "ground_truth, reconstructed (the cached mesh stage) or a mesh file in "
-                        "metres")
+                   help="auto (the reconstruction when the scan has structured light, else "
+                        "a synthetic scan's true mesh), ground_truth, reconstructed (the cached "
+                        "mesh stage) or a mesh file in metres")
     g = s.add_mutually_exclusive_group()
     g.add_argument("--texels-per-mm", type=_pos_float, default=1.0,
                    help="atlas resolution on the surface")
@@ -1011,9 +1056,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "before it are cached stages later stages reuse; another folder: the "
                         "stage on its own)")
     s.add_argument("--rig", default=None, metavar="RIG",
-                   help="rig to project with: ground_truth (default on a synthetic scan), scan "
-                        "(the scan's rig.json, default otherwise), calibrated "
-                        "(SCAN/out/calibrate/rig.json) or a rig file")
+                   help="rig to project with: auto (default: as for facegeo reconstruct, the "
+                        "calibrated rig when the scan has board views; with --out or --camera "
+                        "a synthetic scan's true rig, else rig.json), ground_truth, scan (the "
+                        "scan's rig.json), calibrated (SCAN/out/calibrate/rig.json) or a rig file")
     s.add_argument("--mesh", default="auto", help="as for facegeo atlas")
     s.add_argument("--camera", action="append", default=None,
                    help="project only this camera (repeatable; default: all; the stage then "
@@ -1055,11 +1101,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_relight)
 
-    rig_help = ("rig of the stages after calibration: 'auto' (a synthetic scan's true rig, else "
-                "the calibrated one when the scan has board views, else the scan's rig.json), "
-                "'ground_truth', 'calibrated' or 'scan'")
-    mesh_help = ("surface stages' mesh: 'auto' (a synthetic scan's ground-truth mesh, else the "
-                 "reconstructed one), 'ground_truth', 'reconstructed', or a mesh file in metres")
+    rig_help = ("rig of the stages after calibration: 'auto' (the calibrated one when the scan "
+                "has board views and the calibration succeeds, synthetic or not; else the "
+                "scan's rig.json, a synthetic scan's true rig), 'ground_truth' (a diagnostic), "
+                "'calibrated' or 'scan'")
+    mesh_help = ("surface stages' mesh: 'auto' (the reconstructed one when the scan has "
+                 "structured light, synthetic or not; else a synthetic scan's ground-truth "
+                 "mesh), 'ground_truth' (a diagnostic), 'reconstructed', or a mesh file in "
+                 "metres")
     for name, text in (("decode", "decode the structured-light frames (cached stage)"),
                        ("mesh", "decode, triangulate and mesh the structured light (cached)"),
                        ("fit", "fit the skin model to the surface reflectance field (cached, "
@@ -1084,7 +1133,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scan", metavar="SCAN", help="scan directory")
     s.add_argument("--camera", required=True, metavar="SPEC",
                    help="'orbit:CAMERA:DEGREES', a camera name of the rig or the generator's "
-                        "novel cameras ('front': the rig's frontal view), or a camera JSON file")
+                        "novel cameras ('front': the rig's frontal view), a camera JSON file, "
+                        "or an OpenCV FileStorage camera (.yml/.yaml/.xml: camera_matrix, "
+                        "distortion_coefficients, R/T or rvec/tvec in metres), in the world "
+                        "frame of the rig the render uses (docs/render.md)")
     s.add_argument("--env", default="sky", help="an .exr/.hdr map (lat-long unless "
                    "--projection), or a built-in: sky, studio, uniform, axis_lobes")
     _add_envmap_options(s)
@@ -1109,6 +1161,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="render in texture space only, the paper's way (default: the source "
                         "cameras' relit captures, projected per pixel, carry the detail finer "
                         "than a texel, and the naive baseline is that projection; "
+                        "docs/render.md)")
+    s.add_argument("--no-infer", dest="infer", action="store_false",
+                   help="leave surface no camera saw black, the paper's way (default: inferred "
+                        "from its texture-space neighbours, marked in NAME_inferred.png; "
                         "docs/render.md)")
     s.add_argument("--mesh", default="auto", help=mesh_help)
     s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
@@ -1166,6 +1222,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="capture size when the scan is synthesised")
     s.add_argument("--seed", type=_nonneg_int, default=0, help="seed when the scan is synthesised")
     s.add_argument("--regenerate", action="store_true", help="rebuild the scan even if present")
+    s.add_argument("--no-diagnostic", action="store_true",
+                   help="run the chain only, not the stage-alone pass (the same stages fed the "
+                        "generator's rig and mesh, into SCAN/out/diagnostic/)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_demo)
     return p

@@ -123,12 +123,16 @@ _AUTO_RIG_WARNING = ("rig auto: using the generator's true rig; rig.json's proje
 
 def test_rig_auto_over_uncalibrated_projector_warns_once_per_run(tiny, tmp_path, caplog,
                                                                  capsys, monkeypatch):
-    """``--rig auto`` on a synthetic scan whose rig.json projector is uncalibrated still takes
-    the generator's true rig, and says so in one warning of the pipeline's logger: once when
-    the chain is built (not once per stage that uses the rig), once through ``facegeo mesh``
-    (stderr, as a logged warning). With the scan's own calibrated projector, an explicit
-    ``--rig``, or a run that does not mesh (``facegeo project`` with the true mesh, ``--only
-    atlas``), nothing is said."""
+    """``--rig auto`` on a synthetic scan whose rig.json projector is uncalibrated and whose
+    calibration failed (the tiny boards; issue 37: ``auto`` is the calibrated rig when the
+    calibration succeeds) falls back to the generator's true rig, and says so in one warning
+    of the pipeline's logger: once when the chain is built (not once per stage that uses the
+    rig), once through ``facegeo mesh`` (stderr, as a logged warning). With the scan's own
+    calibrated projector, an explicit ``--rig``, a calibration that succeeded, or a run that
+    does not mesh (``facegeo project`` with the true mesh, ``--only atlas``), nothing is said."""
+    from facegeo.pipeline.cache import StageResult
+
+    failed = "calib/ views: no ArUco markers found"
     import facegeo.cli as cli
     from facegeo.capture.scan import load_scan
     from facegeo.pipeline.cache import Pipeline
@@ -146,44 +150,55 @@ def test_rig_auto_over_uncalibrated_projector_warns_once_per_run(tiny, tmp_path,
                 and _AUTO_RIG_WARNING in r.getMessage()]
 
     with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.reconstruct"):
-        pipeline = reconstruct_pipeline(scan, rig="auto")
+        pipeline = reconstruct_pipeline(scan, rig="auto", calibration_error=failed)
     rigs = {s.name: s.settings["rig"] for s in pipeline.stages if "rig" in s.settings}
     assert "mesh" in rigs and set(rigs.values()) == {"ground_truth"}, rigs  # the choice is kept
     assert len(warned()) == 1, warned()
     assert "--rig scan" in warned()[0]
 
-    for s, rig in ((scan_cal, "auto"), (scan, "scan"), (scan, "ground_truth")):
+    for s, rig, error in ((scan_cal, "auto", failed), (scan, "scan", None),
+                          (scan, "ground_truth", None), (scan, "auto", None)):
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.reconstruct"):
-            reconstruct_pipeline(s, rig=rig)
+            reconstruct_pipeline(s, rig=rig, calibration_error=error)
         assert warned() == [], (s.root, rig, warned())
-    # only a run that may mesh says it: until / only a stage that needs no mesh stage (the
-    # scan's true mesh stands in for it here) is silent
-    full = reconstruct_pipeline(scan, rig="auto")
+    # only a run that may mesh says it: until / only a stage before the mesh stage, or one
+    # that needs none, is silent (the chain's atlas and project now wait for the mesh stage)
+    full = reconstruct_pipeline(scan, rig="auto", calibration_error=failed)
     for kw, meshes in ((dict(until="mesh"), True), (dict(only="mesh"), True),
                        (dict(until="decode"), False), (dict(only="atlas"), False),
-                       (dict(until="project"), False), (dict(until="project", only="mesh"), False)):
+                       (dict(until="project"), True), (dict(until="project", only="mesh"), True)):
         assert ("mesh" in full.stages_run(**kw)) == meshes, kw
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.reconstruct"):
-            reconstruct_pipeline(scan, rig="auto", **kw)
+            reconstruct_pipeline(scan, rig="auto", calibration_error=failed, **kw)
         assert len(warned()) == int(meshes), (kw, warned())
 
     # the command line: the chain is built once per run; the stages themselves are not run
+    # (the calibration, run first by "auto", records the failure the tiny boards give)
     runs = []
-    monkeypatch.setattr(Pipeline, "run", lambda self, *a, **k: runs.append(self) or [])
-    monkeypatch.setattr(cli, "_write_report", lambda out: None)
+
+    def fake_run(self, *a, **k):
+        runs.append(self)
+        if k.get("until") == "calibrate":
+            return [StageResult("calibrate", "key", True, 0.0, {"error": failed},
+                                root / "out" / "calibrate")]
+        return []
+
+    monkeypatch.setattr(Pipeline, "run", fake_run)
+    monkeypatch.setattr(cli, "_write_report", lambda out, **kw: None)
     caplog.clear()
     capsys.readouterr()
     with caplog.at_level(logging.WARNING):
         assert cli.main(["mesh", str(root), "-q"]) == 0
     said = capsys.readouterr()
     printed = [ln for ln in (said.out + said.err).splitlines() if _AUTO_RIG_WARNING in ln]
-    assert len(runs) == 1 and len(warned()) == 1 and printed == [], (runs, warned(), printed)
-    caplog.clear()  # facegeo project does not mesh here: nothing said
+    # two runs: the calibration first, then the chain it decides
+    assert len(runs) == 2 and len(warned()) == 1 and printed == [], (runs, warned(), printed)
+    caplog.clear()  # facegeo project on the true mesh does not mesh: nothing said
     with caplog.at_level(logging.WARNING):
-        assert cli.main(["project", str(root), "-q"]) == 0
-    assert len(runs) == 2 and warned() == [], (runs, warned())
+        assert cli.main(["project", str(root), "--mesh", "ground_truth", "-q"]) == 0
+    assert warned() == [], (runs, warned())
 
 
 def test_calibrate_says_camera_with_few_views_once(tmp_path, capsys, caplog):

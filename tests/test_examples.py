@@ -106,9 +106,11 @@ def test_turntable_tiny(tmp_path):
     generate_scan(scan, preset="tiny")
     res = ex.turntable(scan, step=90.0, env="sky", naive=True, out_gif=tmp_path / "t.gif")
     assert len(res) == 3 and (tmp_path / "t.gif").stat().st_size > 0
-    # the frame at 0 deg is the source camera: the naive render reproduces it closely
+    # the frame at 0 deg is the source camera: the naive render reproduces it closely. On the
+    # chain (the reconstructed mesh, issue 37) measured 31.7 dB (the true mesh gave > 35); a
+    # flat mean-colour image scores 13.7-17.5 dB, a black one 13.0
     front = [r for r in res if r["camera_spec"].endswith(":0")][0]
-    assert front["psnr_db"] > 35
+    assert front["psnr_db"] > 30
 
 
 def test_relight_view_on_the_real_yale_capture(shared_data, tmp_path):

@@ -1006,3 +1006,124 @@ def test_image_detail_checks_its_input(parts):
         project_source_images(dataclasses.replace(vs, face=None),
                               [SourceImage(cam, good, np.ones(good.shape[:2], bool))],
                               parts["scene"], parts["atlas"], blend_power=8.0)
+
+
+# ----------------------------------------------------------------------------- what no camera saw
+
+
+def test_inferred_texels_keep_measured_ones_and_follow_the_shading():
+    """infer_texel_colours: measured rows unchanged bit for bit; a missing texel inside a field of
+    constant albedo under Lambertian shading gets that albedo times its own shading (the
+    pull–push of colour / shading is exact on a constant), not its neighbours' colour."""
+    from facegeo.render.novel import infer_texel_colours, lambert_irradiance
+    from facegeo.surface.atlas import Texels
+
+    h, w = 8, 10
+    rr, cc = np.mgrid[0:h, 0:w]
+    n = np.stack([np.sin(cc / w), np.zeros_like(cc, float), np.cos(cc / w)], -1).reshape(-1, 3)
+    tex = Texels(row=rr.ravel(), col=cc.ravel(), face=np.zeros(h * w, np.int64),
+                 bary=np.zeros((h * w, 3)), p_world=np.zeros((h * w, 3)), n_world=n,
+                 n_geom=n, index_map=np.arange(h * w).reshape(h, w))
+    dirs = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    wts = np.array([[1.0, 0.8, 0.6], [0.3, 0.3, 0.3], [0.0, 0.0, 0.0]])
+    e = lambert_irradiance(n, dirs, wts)
+    albedo = np.array([0.5, 0.3, 0.2])
+    colour = (albedo * e).astype(np.float32)[None].repeat(2, axis=0)
+    colour[1] *= 2  # a second render, inferred from its own values
+    need = np.arange(h * w)
+    holes = (rr.ravel() >= 3) & (rr.ravel() < 5) & (cc.ravel() >= 4)
+    given = colour.copy()
+    given[:, holes] = np.nan
+    got, inferred = infer_texel_colours(tex, need, given, shading=e)
+    assert np.array_equal(inferred, holes)
+    assert np.array_equal(got[:, ~holes], colour[:, ~holes])  # bit for bit
+    # float32 colours over float64 shading and back: a few ulps
+    np.testing.assert_allclose(got[:, holes], colour[:, holes], rtol=1e-5)
+    plain, _ = infer_texel_colours(tex, need, given)
+    assert np.isfinite(plain).all()
+    # without the shading, the hole takes its neighbours' colours: wrong where the shading varies
+    assert np.abs(plain[:, holes] - colour[:, holes]).max() > 1e-3
+    none, nothing = infer_texel_colours(tex, need, colour)
+    assert not nothing.any() and np.array_equal(none, colour)
+
+
+def test_render_view_infer_leaves_no_hit_pixel_black(parts):
+    """render_view(infer=True): every pixel whose rays hit the mesh has a value; covered
+    pixels are those of infer=False bit for bit; inferred pixels are marked, never covered."""
+    from facegeo.render import orbit_camera, render_view
+
+    cam = orbit_camera(parts["rig"].camera("cam_left"), -60.0)
+    w = _weights(parts["rig"].lights, 5)
+    args = (cam, parts["scene"], parts["atlas"], parts["texels"], parts["sources"], w,
+            parts["lights"])
+    a = render_view(*args, resynthesis=False)
+    b = render_view(*args, resynthesis=False, infer=True,
+                    light_directions=parts["rig"].lights.directions)
+    assert (a.mask & ~(a.image > 0).any(axis=2)).any()  # the fixture has unseen surface
+    assert not (b.mask & ~(b.image > 0).any(axis=2)).any()
+    assert np.array_equal(a.covered, b.covered)
+    assert np.array_equal(a.image[a.covered], b.image[b.covered])
+    assert b.inferred.any() and not (b.inferred & b.covered).any()
+    assert b.stats["texels_inferred"] > 0 and b.stats["samples_inferred_texels"] > 0
+
+
+# ----------------------------------------------------------------------------- camera files
+
+
+def test_render_camera_from_opencv_yaml_and_a_warning_when_it_misses_the_head(parts, tmp_path,
+                                                                             caplog):
+    """``render --camera FILE``: an OpenCV FileStorage YAML camera (R/T, or rvec/tvec) renders
+    as the same camera from facegeo's JSON; a camera looking away from the head logs one
+    warning naming the file and the share of its pixels on the surface."""
+    import logging
+
+    import cv2
+
+    from facegeo.capture.opencv_storage import write_opencv_camera
+    from facegeo.pipeline.render import run_render
+    from facegeo.render import orbit_camera, parse_camera_spec
+
+    cam = orbit_camera(parts["rig"].camera("cam_left"), 30.0, name="yaml_view")
+    yml = write_opencv_camera(tmp_path / "yaml_view.yml", cam)
+    got = parse_camera_spec(str(yml), {})
+    assert got.name == "yaml_view"
+    # written with 17 digits: the same float64 values
+    assert np.array_equal(got.K, cam.K) and np.array_equal(got.dist, cam.dist)
+    assert np.allclose(got.T_cam_world.matrix, cam.T_cam_world.matrix, atol=1e-15)
+    # rvec / tvec (solvePnP's names) instead of R / T
+    rvec = cv2.Rodrigues(cam.T_cam_world.R)[0]
+    pnp = write_opencv_camera(tmp_path / "pnp.yaml", cam, pose=False,
+                              extra={"rvec": rvec, "tvec": cam.T_cam_world.t.reshape(3, 1)})
+    assert np.allclose(parse_camera_spec(str(pnp), {}).T_cam_world.matrix,
+                       cam.T_cam_world.matrix, atol=1e-12)
+    bare = write_opencv_camera(tmp_path / "bare.yml", cam, pose=False)
+    with pytest.raises(InputError, match="no camera pose"):
+        parse_camera_spec(str(bare), {})
+    with pytest.raises(InputError, match="does not exist"):
+        parse_camera_spec(str(tmp_path / "none.yml"), {})
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.render"):
+        m = run_render(parts["root"], camera_spec=str(yml), env="sky", reference=False,
+                       baseline=False, image_detail=False)
+    assert m["surface_pixel_fraction"] > 0.05
+    assert not [r for r in caplog.records if "hardly looks" in r.getMessage()]
+    away = cam.replace(name="away", T_cam_world=cam.T_cam_world.__class__(
+        cam.T_cam_world.R, cam.T_cam_world.t + np.array([0.0, 0.0, -5.0])))  # behind it
+    f = write_opencv_camera(tmp_path / "away.yml", away)
+    with caplog.at_level(logging.WARNING, logger="facegeo.pipeline.render"):
+        m = run_render(parts["root"], camera_spec=str(f), env="sky", reference=False,
+                       baseline=False, image_detail=False)
+    warned = [r.getMessage() for r in caplog.records if "hardly looks" in r.getMessage()]
+    assert len(warned) == 1 and str(f) in warned[0], warned
+    assert m["surface_pixel_fraction"] < 0.05
+
+
+def test_reference_views_are_the_scans_cameras_with_reference_images():
+    from types import SimpleNamespace
+
+    from facegeo.pipeline.render import reference_views
+
+    scan = SimpleNamespace(camera_names=["cam_left", "witness"], reference_keys=[
+        "images.witness.axis_lobes", "images.witness.grace", "images.nope.sky",
+        "normals.witness", "images.cam_left.sky"])
+    assert reference_views(scan) == [("cam_left", "sky"), ("witness", "axis_lobes")]
+    assert reference_views(SimpleNamespace(camera_names=["a"], reference_keys=[])) == []

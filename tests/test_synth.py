@@ -635,3 +635,94 @@ def test_unchecked_brdf_equals_checked():
     rho, m = rng.random(500), 0.2 + rng.random(500) * 0.3
     assert np.array_equal(synthetic_skin_brdf(n, l, v, a0, a1, rho, m),
                           synthetic_skin_brdf_unchecked(n, l, v, a0, a1, rho, m))
+
+
+# ---------------------------------------------------------------- camera count (issue 38)
+
+#: Fraction of every ring camera's image the head covers (ground-truth mask): measured
+#: 0.30–0.37 on modern_tiny's 16 cameras (80 × 120 px).
+RING_HEAD_FILL_MIN = 0.25
+
+
+def test_preset_camera_count_default_keeps_the_default_rig():
+    from facegeo.geometry.rig import default_rig
+    from facegeo.synth.capture import PRESETS, build_rig
+
+    for name in ("tiny", "small", "paper"):
+        assert PRESETS[name].n_cameras == 0
+        rig = build_rig(PRESETS[name])
+        assert [c.name for c in rig.cameras] == [c.name for c in default_rig().cameras]
+
+
+def test_ring_cameras_see_the_head_from_a_band():
+    from facegeo.errors import InputError
+    from facegeo.synth.capture import PRESETS, RING_BAND, build_rig, ring_cameras
+
+    rig = build_rig(PRESETS["modern"])
+    assert len(rig.cameras) == 16 and rig.lights.n_lights == 512
+    yaw = [np.degrees(np.arctan2(c.center_world[0], c.center_world[2])) for c in rig.cameras]
+    assert min(yaw) == pytest.approx(-RING_BAND["yaw_deg"]) and max(yaw) == pytest.approx(
+        RING_BAND["yaw_deg"])
+    assert len({round(c.fx, 6) for c in rig.cameras}) == 16  # no two cameras identical
+    for c in rig.cameras:  # every one aims at the head centre
+        q, front = c.project(np.zeros((1, 3)))
+        assert front[0] and abs(q[0, 0] - c.cx) < 2.0 and abs(q[0, 1] - c.cy) < 2.0
+    with pytest.raises(InputError, match="n_cameras"):
+        ring_cameras(0)
+
+
+def test_modern_tiny_preset_generates(tmp_path):
+    """16 cameras × 32 lights: every camera sees the head, the six nearest the projector see
+    the projector views, the others declare them missing."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.synth.capture import generate_scan
+
+    s = generate_scan(tmp_path / "scan", "modern_tiny")
+    scan = load_scan(tmp_path / "scan")
+    assert s.n_cameras == 16 and scan.n_lights == 32
+    assert scan.cameras_with_frames("olat") == scan.camera_names
+    assert scan.cameras_with_frames("structured_light") == scan.camera_names
+    assert scan.cameras_with_frames("calib.projector") == [f"cam_{i:02d}" for i in range(5, 11)]
+    for name in scan.camera_names:
+        mask = np.load(scan.ground_truth_path(f"geometry_{name}"))["mask"]
+        assert mask.mean() >= RING_HEAD_FILL_MIN, (name, mask.mean())
+
+
+# ---------------------------------------------------------------- light calibration error
+
+#: RMS angle between the perturbed and the true light directions at σ = 0.5° per tangent axis
+#: (expected 0.5·√2 = 0.71°; measured 0.746° over tiny's 128 lights, seed 0), degrees.
+LIGHT_ANGLE_RMS_RANGE_DEG = (0.6, 0.85)
+#: Their distances' spread at the default 5 mm (measured 5.75 mm), millimetres.
+LIGHT_RADIUS_SD_RANGE_MM = (4.0, 7.5)
+
+
+def test_perturbed_lights_sizes_and_order():
+    from facegeo.errors import InputError
+    from facegeo.synth.capture import PRESETS, build_rig, perturbed_lights
+
+    grid = build_rig(PRESETS["tiny"]).lights
+    lst = perturbed_lights(grid, 0, 0.5)
+    assert lst.n_lights == grid.n_lights and lst.names[:2] == ("0000", "0001")
+    cos = np.clip((lst.directions * grid.directions).sum(axis=1), -1.0, 1.0)
+    rms = float(np.sqrt(np.mean(np.degrees(np.arccos(cos)) ** 2)))
+    assert LIGHT_ANGLE_RMS_RANGE_DEG[0] <= rms <= LIGHT_ANGLE_RMS_RANGE_DEG[1], rms
+    sd = 1000.0 * float(np.linalg.norm(lst.positions, axis=1).std())
+    assert LIGHT_RADIUS_SD_RANGE_MM[0] <= sd <= LIGHT_RADIUS_SD_RANGE_MM[1], sd
+    exact = perturbed_lights(grid, 0, 0.0)  # σ = 0: the grid itself, as a list
+    assert np.abs(exact.positions - grid.positions).max() < 1e-12
+    with pytest.raises(InputError, match="light_error_deg"):
+        perturbed_lights(grid, 0, -1.0)
+
+
+def test_light_error_goes_to_the_scan_rig_only(tmp_path):
+    from facegeo.capture.scan import load_scan
+    from facegeo.geometry.lights import LightList
+    from facegeo.geometry.rig import LightStage, Rig
+    from facegeo.synth.capture import generate_scan
+
+    generate_scan(tmp_path / "scan", "tiny", light_error_deg=0.5)
+    scan = load_scan(tmp_path / "scan")
+    assert isinstance(scan.rig.lights, LightList) and scan.n_lights == 128
+    truth = Rig.load(scan.ground_truth_path("rig"))
+    assert isinstance(truth.lights, LightStage)  # the frames' exact grid

@@ -369,6 +369,15 @@ class Scan(_ScanReaders, _ScanValidation):
         gone = self._declared_missing(group, camera)
         return [k for k in self._all_keys(group) if k not in gone]
 
+    def cameras_with_frames(self, group: str) -> list[str]:
+        """The cameras that have at least one frame of ``group``, in rig order: a camera that
+        declares every frame of the group missing (a calibration-only camera, seen in the
+        board views alone) is left out. Empty when the scan has no such group."""
+        if not self.has(group):
+            return []
+        keys = set(self._all_keys(group))
+        return [c for c in self.camera_names if keys - self._declared_missing(group, c)]
+
     def missing_frames(self, group: str, camera: str) -> list:
         """The frames of ``group`` that ``camera`` lacks (see :meth:`camera_frames`)."""
         self._check_camera(camera)

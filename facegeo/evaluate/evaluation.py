@@ -97,6 +97,80 @@ def _evaluate_views(scan, out: Path, part: str, dest: Path, renderer: Callable) 
     return {"views": per_view, **views_summary(per_view)}
 
 
+#: Folder under the scan's ``out/`` where the generator's reference renders of the views are
+#: kept (:class:`_CachedReferences`), shared by the chain's evaluation and the stage-alone
+#: pass's (``out/diagnostic/``), which renders the chain's own views.
+REFERENCE_CACHE = ".reference-renders"
+#: At most this many reference renders are kept (the oldest go first): a demo's passes need 4.
+REFERENCE_CACHE_MAX = 16
+
+
+class _CachedReferences:
+    """The generator's truth (``facegeo.synth.render.ReferenceRenderer``) with its
+    :meth:`render_lights` — a view's reference image, the evaluation's dominant cost (≈ 20 s
+    a view on the small preset) — kept on disk under ``folder``, keyed by what the image
+    depends on: the camera (its ``to_dict``), the lights' weights, the supersampling, the
+    generator's truth files' content and facegeo's code (:func:`facegeo.pipeline.cache.
+    code_fingerprint`). Everything else is the renderer's own."""
+
+    def __init__(self, renderer, folder: Path, truth_digest: str):
+        self._r, self._folder, self._truth = renderer, Path(folder), truth_digest
+
+    def __getattr__(self, name):
+        return getattr(self._r, name)
+
+    def _key(self, camera, lights, weights, supersample: int) -> str:
+        import hashlib
+
+        import numpy as np
+
+        from facegeo.pipeline.cache import code_fingerprint
+
+        h = hashlib.sha256()
+        h.update(json.dumps({"camera": camera.to_dict(), "supersample": int(supersample),
+                             "n_lights": int(lights.n_lights), "truth": self._truth,
+                             "code": code_fingerprint()}, sort_keys=True).encode())
+        h.update(np.ascontiguousarray(np.asarray(weights, np.float64)).tobytes())
+        return h.hexdigest()[:32]
+
+    def render_lights(self, camera, lights, weights, *, supersample: int = 1, **kw):
+        import numpy as np
+
+        from facegeo.fsutil import atomic_path
+
+        path = self._folder / f"{self._key(camera, lights, weights, supersample)}.npy"
+        if path.is_file():
+            try:
+                log.info("evaluate: reference render of %s from the cache", camera.name)
+                return np.load(path)
+            except (OSError, ValueError):  # a damaged entry: rendered again
+                pass
+        image = self._r.render_lights(camera, lights, weights, supersample=supersample, **kw)
+        self._folder.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.save(f, image)
+        kept = sorted(self._folder.glob("*.npy"), key=lambda q: q.stat().st_mtime)
+        for old in kept[:max(0, len(kept) - REFERENCE_CACHE_MAX)]:
+            old.unlink(missing_ok=True)
+        return image
+
+
+def _truth_digest(scan) -> str:
+    """The content of the generator's truth files (``ground_truth/``: what a reference render
+    depends on besides its camera and weights)."""
+    import hashlib
+
+    from facegeo.fsutil import file_sha256
+
+    h = hashlib.sha256()
+    for k in sorted(scan.ground_truth_keys):
+        path = scan.ground_truth_path(k)
+        if path.is_file() and k in ("mesh", "rig", "skin", "vertex_params", "parts"):
+            h.update(f"{k}:{file_sha256(path)};".encode())
+    return h.hexdigest()
+
+
 def evaluate_products(scan, out, dest, *, gt_lights: int = GT_LIGHTS,
                       gt_weight_min: float = GT_WEIGHT_MIN, mesh_samples: int = 100_000,
                       gt_functions: int = GT_FUNCTIONS, gt_angles=GT_ANGLES,
@@ -145,7 +219,10 @@ def evaluate_products(scan, out, dest, *, gt_lights: int = GT_LIGHTS,
         if "r" not in truth:
             from facegeo.synth.render import load_ground_truth
 
-            truth["r"] = load_ground_truth(scan)
+            # the views' reference renders kept across runs and passes (the chain's and the
+            # stage-alone one share them: the latter renders the chain's views)
+            truth["r"] = _CachedReferences(load_ground_truth(scan),
+                                           scan.out_dir / REFERENCE_CACHE, _truth_digest(scan))
         return truth["r"]
 
     def wanted(name: str) -> bool:

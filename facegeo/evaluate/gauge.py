@@ -4,7 +4,9 @@ A calibrated rig's world frame is its own gauge choice: before a product in that
 compared with the generator's truth, the atlas mesh is brought onto the true surface by the
 best rigid transform (:func:`truth_gauge`). :func:`texel_areas` weights per-texel statistics by
 the surface each texel stands for, so a figure is a mean over the surface, not over however
-the atlas samples it.
+the atlas samples it. :func:`chain_views_in_truth` gives the chain's rendered views' cameras in
+the generator's frame: the cameras its references are rendered from, and the views the
+stage-alone pass (``out/diagnostic/``) renders.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["texel_areas", "truth_gauge"]
+__all__ = ["chain_views_in_truth", "texel_areas", "truth_gauge"]
 
 #: truth_gauge's alignments of this process, by the meshes' contents (a few at most).
 _GAUGES: dict[str, Any] = {}
@@ -89,3 +91,60 @@ def texel_areas(atlas, texels) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         per_face = np.where(auv > 0, a3 / auv, 0.0)
     return per_face[texels.face]
+
+
+def chain_views_in_truth(scan, out) -> list[dict] | None:
+    """The cameras of the views the ``render`` stage rendered into ``out/render/``, moved into
+    the generator's world frame: the cameras the evaluation renders their references from
+    (:func:`facegeo.evaluate.views.evaluate_view`: the same :func:`truth_gauge` of the stage's
+    atlas; unmoved when the stage used the true rig).
+
+    The stage-alone pass (:func:`facegeo.pipeline.reconstruct.run_diagnostic`) renders these
+    views with the true rig and mesh, so both passes are compared with the very same reference
+    images (rendered once: :data:`facegeo.evaluate.evaluation.REFERENCE_CACHE`), and the
+    figures side by side differ only by what the chain's calibration and mesh did.
+
+    Parameters
+    ----------
+    scan : facegeo.capture.scan.Scan
+        A synthetic scan (the generator's truth).
+    out : path-like
+        The chain's products folder (``SCAN/out``).
+
+    Returns
+    -------
+    list of dict or None
+        Camera dicts (:meth:`facegeo.geometry.camera.Camera.to_dict`, named as the stage named
+        them), in the stage's view order; None when ``out`` holds no finished render stage.
+    """
+    import dataclasses
+    import json
+    from pathlib import Path
+
+    from facegeo.evaluate._products import has_stage, stage_manifest
+    from facegeo.geometry.camera import Camera
+    from facegeo.surface.atlas import Atlas
+    from facegeo.synth.render import load_ground_truth
+
+    out = Path(out)
+    if not (has_stage(out, "render") and has_stage(out, "atlas")):
+        return None
+    views = stage_manifest(out, "render").get("metrics", {}).get("views") or {}
+    cams: list[dict] = []
+    renderer = atlas = None
+    for stem in views:
+        cam_path = out / "render" / f"{stem}_camera.json"
+        meta_path = out / "render" / f"{stem}.json"
+        if not (cam_path.is_file() and meta_path.is_file()):
+            return None
+        camera = Camera.from_dict(json.loads(cam_path.read_text(encoding="utf-8")),
+                                  where=str(cam_path))
+        rig_used = json.loads(meta_path.read_text(encoding="utf-8")).get("rig")
+        if rig_used != "ground_truth":
+            if renderer is None:
+                renderer = load_ground_truth(scan)
+                atlas = Atlas.load(out / "atlas" / "atlas.npz")
+            T_true, _ = truth_gauge(renderer, atlas, rig_used)
+            camera = dataclasses.replace(camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
+        cams.append(camera.to_dict())
+    return cams or None

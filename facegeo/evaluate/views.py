@@ -8,7 +8,8 @@ field weights of the environment, ``(L, 3)`` float64), ``<stem>.exr`` (the rende
 when the stage made them, ``<stem>_naive.exr``, ``<stem>_texture.exr``,
 ``<stem>_naive_texture.exr`` (the texture-space renders before the image-space detail) and
 ``<stem>_paper.exr`` (the paper's resynthesis as written, λ = 1). It writes
-``<stem>_reference.exr/.png`` and ``<stem>_error.png`` into the folder it is given.
+``<stem>_reference.exr/.png``, ``<stem>_reference_mask.png`` (255 where the reference sees
+the head) and ``<stem>_error.png`` into the folder it is given.
 
 Metrics against the generator's reference (same camera, same Eq. (4) weights, its exact
 renderer integrating the render's own pixel footprint, ``reference_supersample``;
@@ -20,6 +21,7 @@ renderer integrating the render's own pixel footprint, ``reference_supersample``
   ``psnr_gain_db`` (``psnr_gain_db_covered`` over covered pixels);
 * ``paper_psnr_db`` (``_covered``), ``paper_rel_rmse`` (``_covered``) for the paper's λ = 1;
 * ``head_coverage``: the fraction of the reference's head mask rendered from measured texels;
+  ``black_head_pixels``: the mask's pixels the render left black (0 in every channel);
   the ``*_covered`` variants of PSNR / relative RMSE over covered pixels only;
 * with image-space detail: ``texture_*`` and ``texture_naive_*``, the same figures of the
   texture-space renders;
@@ -51,7 +53,8 @@ from facegeo.errors import InputError
 from facegeo.evaluate.gauge import truth_gauge
 
 __all__ = ["evaluate_view", "evaluate_view_against_image", "has_view_reference",
-           "image_metrics", "reference_image_key", "view_figures", "views_summary"]
+           "image_metrics", "reference_image_key", "render_gain", "view_figures",
+           "views_summary"]
 
 
 def has_view_reference(scan) -> bool:
@@ -78,6 +81,41 @@ def image_metrics(img, ref, mask) -> dict:
     return {"psnr_db": round(psnr, 4) if math.isfinite(psnr) else None,
             "rel_rmse": round(math.sqrt(float((e ** 2).sum()) / den), 6) if den > 0 else None,
             "pixels": int(m.sum())}
+
+
+def render_gain(image, naive, ref, head_mask, covered) -> dict:
+    """What a render gains over the naive baseline against a reference, in image space: the
+    criterion of issue 37 ("tests that fail when the render is wrong").
+
+    Parameters
+    ----------
+    image, naive, ref : (H, W, 3) float32, linear radiance — the render, the naive baseline
+        and the reference of the same camera and environment
+    head_mask : (H, W) bool — the reference's pixels that see the head
+    covered : (H, W) bool — the render's pixels rendered from measured texels
+
+    Returns
+    -------
+    dict
+        ``gain_covered_db``: PSNR(image) − PSNR(naive) over ``head_mask & covered``;
+        ``gain_head_db``: the same over ``head_mask``; ``black_head_pixels``: pixels of
+        ``head_mask`` where ``image`` is 0 (or not finite) in every channel. A PSNR is
+        ``image_metrics``'s (peak = the reference's maximum over the pixels); a gain is None
+        when a mask is empty or a PSNR infinite.
+    """
+    image, naive, ref = (np.asarray(a, np.float32) for a in (image, naive, ref))
+    head = np.asarray(head_mask, bool)
+    cov = head & np.asarray(covered, bool)
+
+    def gain(mask):
+        a, b = image_metrics(image, ref, mask), image_metrics(naive, ref, mask)
+        if a["psnr_db"] is None or b["psnr_db"] is None:
+            return None
+        return round(a["psnr_db"] - b["psnr_db"], 4)
+
+    dark = ~(np.isfinite(image) & (image > 0)).any(axis=2)
+    return {"gain_covered_db": gain(cov), "gain_head_db": gain(head),
+            "black_head_pixels": int((head & dark).sum())}
 
 
 def _error_heatmap(img, ref, mask) -> np.ndarray:
@@ -167,6 +205,8 @@ def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> di
     metrics["reference_supersample"] = supersample
     dest.mkdir(parents=True, exist_ok=True)
     imageio.write_image(dest / f"{stem}_reference.exr", ref)
+    imageio.write_image(dest / f"{stem}_reference_mask.png",
+                        np.where(mask, 255, 0).astype(np.uint8))
     exposure = np.float32(meta.get("exposure", 1.0))
     files = {"reference_png": imageio.write_image(
         dest / f"{stem}_reference.png",
@@ -198,6 +238,9 @@ def view_figures(v: dict, ref, mask) -> dict:
 
     m, mc = figures("", v["image"])
     metrics["mask_pixels"] = m["pixels"]
+    # a render that leaves seen head black (surface no camera saw, without infer)
+    metrics["black_head_pixels"] = int((mask & ~(np.isfinite(v["image"])
+                                                 & (v["image"] > 0)).any(axis=2)).sum())
     if v["texture"] is not None:  # the texture-space figures (the paper's render path)
         figures("texture_", v["texture"])
     if v["naive"] is not None:

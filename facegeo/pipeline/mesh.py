@@ -424,7 +424,14 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         raise InputError(f"scan {scan.root}: the rig has no projector to triangulate against")
     pair_route = not the_rig.projector_calibrated
     if cameras is None:
-        names = [n for n in scan.camera_names if (decode_dir / n / "decode.npz").is_file()]
+        # (a scan without structured-light frames may bring its decode maps: every camera)
+        sl_cams = (scan.cameras_with_frames("structured_light")
+                   if scan.has("structured_light") else scan.camera_names)
+        for n in scan.camera_names:
+            if n not in sl_cams:
+                log.info("mesh %s: skipped, every structured-light frame declared missing (a "
+                         "camera of the calibration only)", n)
+        names = [n for n in sl_cams if (decode_dir / n / "decode.npz").is_file()]
         if not names:
             raise InputError(f"{decode_dir}: no <camera>/decode.npz for any of the scan's cameras "
                              f"({', '.join(scan.camera_names)}); run the decode stage first")

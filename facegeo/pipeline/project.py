@@ -386,10 +386,15 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     t_start = time.perf_counter()
     texels = Texels.load(atlas_dir / "texels.npz")
     the_rig, rig_used = stage_rig(scan, rig)
-    names = list(cameras) if cameras is not None else scan.camera_names
+    names = list(cameras) if cameras is not None else scan.cameras_with_frames("olat")
     for n in names:
         if n not in scan.camera_names:
             raise InputError(f"cameras: unknown camera {fmt_value(n)}; the scan has {scan.camera_names}")
+    if cameras is None:  # a calibration-only camera (every OLAT frame declared missing)
+        for n in scan.camera_names:
+            if n not in names:
+                log.info("project %s: skipped, every OLAT frame declared missing (a camera of "
+                         "the calibration only)", n)
     vis_kw = {k: v for k, v in (("min_cos", min_cos), ("feather_px", feather_px),
                                 ("depth_jump", depth_jump)) if v is not None}
     block = block_lights or rf.DEFAULT_BLOCK_LIGHTS

@@ -17,21 +17,28 @@ are gathered in
 ``SCAN/out/metrics.json``. A stage is left out when the scan has nothing for it (a calibration-
 only scan runs ``calibrate``; a structured-light-only scan runs ``decode → mesh``).
 
-Which mesh and which rig the surface stages use:
+Which mesh and which rig the stages use — the chain is the default (issue 37):
 
-* ``mesh="auto"`` (the default): a synthetic scan's ground-truth mesh, so the surface stages'
-  errors measure the surface methods alone, and the reconstructed mesh of the ``mesh`` stage
-  otherwise; ``"ground_truth"``, ``"reconstructed"`` or a mesh file (metres) choose explicitly.
-* ``rig="auto"`` (the default): a synthetic scan's true rig (``ground_truth/rig.json``), so the
-  later stages' errors are their own; otherwise the ``calibrate`` stage's rig
-  (``out/calibrate/rig.json``) when the scan has board views, else the scan's ``rig.json``.
-  ``"ground_truth"``, ``"calibrated"`` or ``"scan"`` choose explicitly (``"calibrated"`` on a
-  synthetic scan runs the whole chain from the board images: its errors against the ground
-  truth are end to end; ``mesh`` then also reports them after the best rigid alignment, since
-  a calibrated rig's world frame is its own gauge). When ``"auto"`` takes the true rig for a
-  chain that meshes structured light while ``rig.json``'s projector is uncalibrated, the true
-  projector is information a real scan would not have: the run logs one warning saying so
-  (``"scan"`` meshes camera against camera instead).
+* ``mesh="auto"`` (the default): the reconstructed mesh of the ``mesh`` stage whenever the scan
+  has structured light, synthetic or not; a synthetic scan without structured light takes the
+  generator's mesh (there is no other). ``"ground_truth"``, ``"reconstructed"`` or a mesh file
+  (metres) choose explicitly.
+* ``rig="auto"`` (the default): the ``calibrate`` stage's rig (``out/calibrate/rig.json``)
+  whenever the scan has board views, synthetic or not, so a synthetic scan's figures are the
+  whole chain's, end to end; without board views the scan's ``rig.json`` (a synthetic scan:
+  the generator's true rig, ``ground_truth/rig.json``). When the calibration fails (the tiny
+  preset's 80 × 120 px board views show no marker) ``auto`` falls back to that same rig, the
+  run logs a warning and records why (``"rig_note"`` in the run record, below).
+  ``"ground_truth"``, ``"calibrated"`` or ``"scan"`` choose explicitly. A calibrated rig's
+  world frame is its own gauge: the evaluation reports the mesh also after the best rigid
+  alignment, and moves the novel views' cameras into the generator's frame by that alignment.
+  When ``rig`` is the true rig for a chain that meshes structured light while ``rig.json``'s
+  projector is uncalibrated, the true projector is information a real scan would not have: the
+  run logs one warning saying so (``"scan"`` meshes camera against camera instead).
+* The stage-alone figures are a diagnostic: ``--rig ground_truth --mesh ground_truth`` feeds the
+  same stages the generator's rig and mesh, so their errors are the surface methods' own.
+  :func:`run_diagnostic` runs that pass into ``out/diagnostic/`` (its own cached pipeline,
+  :data:`DIAGNOSTIC_DIR`); ``facegeo demo`` runs both and the report shows the two side by side.
 
 A single-view OLAT scan without geometry (one camera, no structured light, no ground-truth mesh,
 ``mesh="auto"``: Yale B, DiLiGenT) has no atlas to build: its chain is the ``fit`` stage alone,
@@ -63,8 +70,8 @@ from facegeo.render._cameras import FRONT, NOVEL_ORBITS
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STAGES", "MESH_CHOICES", "RIG_CHOICES", "reconstruct_pipeline", "record_run",
-           "run_choices", "run_reconstruct"]
+__all__ = ["STAGES", "DIAGNOSTIC_DIR", "MESH_CHOICES", "RIG_CHOICES", "reconstruct_pipeline",
+           "record_run", "run_choices", "run_diagnostic", "run_reconstruct"]
 
 #: Every stage ``facegeo reconstruct`` knows, in pipeline order.
 STAGES = ("calibrate", "decode", "mesh", "atlas", "project", "relight", "fit", "render",
@@ -102,11 +109,11 @@ def _group_inputs(scan, group: str) -> list[Path]:
 
 
 def _resolve_mesh(scan, mesh: str) -> str:
-    if mesh == "auto":
-        if "mesh" in scan.ground_truth_keys:
-            return "ground_truth"
+    if mesh == "auto":  # the chain's own mesh whenever it makes one (module docstring)
         if scan.has("structured_light"):
             return "reconstructed"
+        if "mesh" in scan.ground_truth_keys:
+            return "ground_truth"
         raise InputError(f"scan {scan.root}: no structured light to build a mesh from and no "
                          "ground-truth mesh; give --mesh PATH (a mesh in metres)")
     if mesh == "ground_truth" and "mesh" not in scan.ground_truth_keys:
@@ -157,17 +164,21 @@ def _check_stage_has_input(scan, stage: str | None, flag: str | None) -> None:
                      f"{lacks}; it has {have or 'no frame groups'}")
 
 
-def _resolve_rig(scan, rig: str, stages: list[str]) -> str:
+def _resolve_rig(scan, rig: str, stages: list[str], calibration_error: str | None = None) -> str:
     """The rig the chain's stages use (module docstring); ``stages`` are the chain's.
 
-    ``"auto"`` on a synthetic scan is the generator's true rig (:func:`_warn_true_rig` says so
-    where that stands in for an uncalibrated projector).
+    ``"auto"`` is the calibrated rig whenever the chain calibrates, unless
+    ``calibration_error`` says the calibration failed: then, as without board views, the scan's
+    ``rig.json`` — a synthetic scan's true rig (:func:`_warn_true_rig` says so where that stands
+    in for an uncalibrated projector).
     """
     if rig not in RIG_CHOICES:
         raise InputError(f"rig: expected one of {', '.join(RIG_CHOICES)}, got {fmt_value(rig)}")
     has_gt = scan.synthetic and "rig" in scan.ground_truth_keys
     if rig == "auto":
-        return "ground_truth" if has_gt else ("calibrated" if "calibrate" in stages else "scan")
+        if "calibrate" in stages and calibration_error is None:
+            return "calibrated"
+        return "ground_truth" if has_gt else "scan"
     if rig == "ground_truth" and not has_gt:
         raise InputError(f"rig 'ground_truth': scan {scan.root} has no ground-truth rig")
     if rig == "calibrated" and "calibrate" not in stages:
@@ -189,20 +200,25 @@ def _warn_true_rig(scan, rig: str, use_rig: str, runs: list[str], stages: list[s
                     if "calibrate" in stages else "")
 
 
-def _choices(scan, mesh: str, rig: str) -> tuple[list[str], str | None, str]:
+def _choices(scan, mesh: str, rig: str, calibration_error: str | None = None
+             ) -> tuple[list[str], str | None, str]:
     """The chain's stages, the mesh of its surface stages (None without them) and its rig."""
     names = _applicable(scan, mesh)
     use_mesh = _resolve_mesh(scan, mesh) if "atlas" in names else None
-    return names, use_mesh, _resolve_rig(scan, rig, names)
+    return names, use_mesh, _resolve_rig(scan, rig, names, calibration_error)
 
 
+#: The diagnostic pass's products folder inside ``out/`` (:func:`run_diagnostic`).
+DIAGNOSTIC_DIR = "diagnostic"
 #: Where ``run_reconstruct`` records the run's choices (``RUN_RECORD/run.json``, and
 #: ``out/metrics.json`` → ``"run"``).
 RUN_RECORD = "run"
 
 
-def run_choices(scan, *, mesh: str = "auto", rig: str = "auto") -> dict:
-    """What a run of the chain uses: ``{"rig", "mesh", "world"}``.
+def run_choices(scan, *, mesh: str = "auto", rig: str = "auto",
+                calibration_error: str | None = None) -> dict:
+    """What a run of the chain uses: ``{"rig", "mesh", "world"}`` (and ``"rig_note"`` when
+    ``rig="auto"`` fell back from a calibration that failed with ``calibration_error``).
 
     ``rig`` and ``mesh`` are the chain's resolved choices (``"ground_truth"``, ``"calibrated"``,
     ``"scan"``; ``"ground_truth"``, ``"reconstructed"`` or a file — ``"reconstructed"`` too when
@@ -211,7 +227,7 @@ def run_choices(scan, *, mesh: str = "auto", rig: str = "auto") -> dict:
     generator's (the true rig), the calibration's (its own description, ``out/calibrate``'s
     ``world`` when it ran) or the scan's ``rig.json``.
     """
-    names, use_mesh, use_rig = _choices(scan, mesh, rig)
+    names, use_mesh, use_rig = _choices(scan, mesh, rig, calibration_error)
     if use_mesh is None and "mesh" in names:  # no surface stages: the chain's mesh is its own
         use_mesh = "reconstructed"
     if use_rig == "ground_truth":
@@ -226,7 +242,17 @@ def run_choices(scan, *, mesh: str = "auto", rig: str = "auto") -> dict:
             pass
     else:
         world = f"the scan's {scan.manifest['scan']['rig']} (nominal)"
-    return {"rig": use_rig, "mesh": use_mesh, "world": world}
+    choices = {"rig": use_rig, "mesh": use_mesh, "world": world}
+    if rig == "auto" and calibration_error is not None and "calibrate" in names:
+        choices["rig_note"] = _fallback_note(calibration_error)
+    return choices
+
+
+def _fallback_note(calibration_error: str) -> str:
+    """Why ``rig="auto"`` did not take the calibrated rig (the run record's ``rig_note``)."""
+    first = " ".join(calibration_error.split())
+    return (f"rig auto: the calibration failed ({first[:120]}{'…' if len(first) > 120 else ''})"
+            "; the chain fell back to the rig the scan has without boards")
 
 
 def record_run(scan, choices: dict) -> None:
@@ -244,7 +270,8 @@ def record_run(scan, choices: dict) -> None:
 
 def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                          only: str | None = None, until: str | None = None,
-                         engine=None) -> Pipeline:
+                         engine=None, calibration_error: str | None = None,
+                         diagnostic: bool = False, views: list | None = None) -> Pipeline:
     """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct`` for one scan.
 
     Parameters
@@ -263,12 +290,29 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
         Where the stages that split into tasks run them (``decode``, ``project``: one task per
         camera);
         default in process. Not part of any stage's key: the products are the same bytes.
+    calibration_error : str, optional
+        The ``calibrate`` stage's recorded failure, when it failed: ``rig="auto"`` then falls
+        back (module docstring; :func:`run_reconstruct` runs the calibration first to know).
+    diagnostic : bool
+        The stage-alone pass (:func:`run_diagnostic`): the stages after the calibration, fed
+        the generator's rig and mesh (``mesh`` and ``rig`` must be ``"ground_truth"``), into
+        ``out/diagnostic/`` (:data:`DIAGNOSTIC_DIR`); no ``calibrate`` stage (it has no
+        upstream: its figures are the chain's).
+    views : list of camera specs, optional
+        The novel views the ``fit`` and ``render`` stages work for (default: orbits of the
+        rig's frontal camera by :data:`RENDER_ORBITS`; the diagnostic pass: the chain's views
+        in the generator's frame, camera dicts).
     """
     from facegeo.pipeline.fit import FIT_SETTINGS
     from facegeo.pipeline.render import RENDER_DEFAULT_ENV, SHRINKAGE_DEFAULT
     from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 
-    names, use_mesh, use_rig = _choices(scan, mesh, rig)
+    names, use_mesh, use_rig = _choices(scan, mesh, rig, calibration_error)
+    if diagnostic:
+        if (mesh, rig) != ("ground_truth", "ground_truth"):
+            raise InputError(f"the diagnostic pass feeds the stages the generator's rig and mesh:"
+                             f" got mesh={mesh!r}, rig={rig!r}")
+        names = [n for n in names if n != "calibrate"]
     # the stages that work in the rig's frame wait for the calibration when they use its rig
     rig_after = ("calibrate",) if use_rig == "calibrated" else ()
     specs: list[StageSpec] = []
@@ -280,7 +324,9 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             try:
                 metrics, _ = calibrate_products(scan, ctx.out_dir, **ctx.settings)
             except FacegeoError as e:
-                if use_rig == "calibrated":  # the later stages need its rig
+                # the later stages need its rig when chosen explicitly; "auto" falls back
+                # (run_reconstruct reads the recorded failure)
+                if use_rig == "calibrated" and rig != "auto":
                     raise
                 return {"error": str(e)}
             return metrics
@@ -389,7 +435,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             return render_products(scan, ctx.upstream["atlas"].parent, ctx.out_dir,
                                    progress=ctx.progress, **ctx.settings)
 
-        views = [f"orbit:{FRONT}:{d:g}" for d in RENDER_ORBITS]
+        if views is None:
+            views = [f"orbit:{FRONT}:{d:g}" for d in RENDER_ORBITS]
         fit_settings = dict(FIT_SETTINGS, texels="views", views=views, rig=use_rig,
                             supersample=RENDER_SUPERSAMPLE)
         specs += [
@@ -416,7 +463,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
         raise InputError(f"scan {scan.root}: nothing to reconstruct (no [calib], "
                          "[structured_light] or [olat] frames)")
     specs.append(_evaluate_spec(scan, [s.name for s in specs]))
-    pipeline = Pipeline(specs)
+    pipeline = Pipeline(specs, out_name=f"out/{DIAGNOSTIC_DIR}" if diagnostic else "out")
     _warn_true_rig(scan, rig, use_rig, pipeline.stages_run(only=only, until=until), names)
     return pipeline
 
@@ -491,11 +538,110 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
             settings = {**settings, "fit": fit_given}
     for name, flag in ((until, None), (only, "--only"), (from_stage, "--from")):
         _check_stage_has_input(scan, name, flag)
-    pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until,
-                                    engine=engine)
+    calibration_error: str | None = None
+    done: list[StageResult] = []
     try:
-        return pipeline.run(scan_dir, settings=settings, from_stage=from_stage, only=only,
-                            until=until, progress=progress, on_stage=on_stage)
+        if rig == "auto" and "calibrate" in _applicable(scan, mesh):
+            # "auto" is the calibrated rig if the calibration succeeds: run it first (cached
+            # like any stage) and fall back when it recorded a failure (module docstring)
+            done, calibration_error = _calibrate_first(scan, scan_dir, mesh, settings,
+                                                       from_stage, only, until, progress,
+                                                       on_stage)
+            if calibration_error is not None:
+                log.warning("%s", _fallback_note(calibration_error))
+            if "calibrate" in (only, until):
+                return done
+            if from_stage == "calibrate":  # it ran: the rest reruns, not the calibration again
+                from_stage = next(s for s in STAGES[1:] if s in _applicable(scan, mesh)
+                                  or s == "evaluate")
+        pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until,
+                                        engine=engine, calibration_error=calibration_error)
+
+        def report(result: StageResult) -> None:
+            if on_stage is not None and not (done and result.name == "calibrate"):
+                on_stage(result)
+
+        results = pipeline.run(scan_dir, settings=settings, from_stage=from_stage, only=only,
+                               until=until, progress=progress, on_stage=report)
+        return done + [r for r in results if not (done and r.name == "calibrate")]
     finally:  # what the products on disk were made with, failed run or not
         if (Path(scan_dir) / "out").is_dir():
-            record_run(scan, run_choices(scan, mesh=mesh, rig=rig))
+            record_run(scan, run_choices(scan, mesh=mesh, rig=rig,
+                                         calibration_error=calibration_error))
+
+
+def _calibrate_first(scan, scan_dir, mesh, settings, from_stage, only, until, progress,
+                     on_stage) -> tuple[list[StageResult], str | None]:
+    """Run (or find cached) the ``calibrate`` stage of a ``rig="auto"`` run; return its
+    results and its recorded failure (None when it succeeded or is not run now).
+
+    A run with ``--only`` another stage, or one that stops before any stage that needs the
+    rig (``until="decode"``), does not calibrate: the failure is read from the calibration's
+    products on disk, if any.
+    """
+    needs = "calibrate" in reconstruct_pipeline(scan, mesh=mesh, rig="auto").stages_run(
+        until=until)
+    if (only is not None and only != "calibrate") or (only is None and not needs):
+        try:
+            doc = json.loads((scan.out_dir / "calibrate" / "stage.json").read_text("utf-8"))
+            error = doc.get("metrics", {}).get("error")
+        except (OSError, ValueError, AttributeError):
+            error = None
+        return [], error if isinstance(error, str) else None
+    first = reconstruct_pipeline(scan, mesh=mesh, rig="auto", until="calibrate")
+    given = {k: v for k, v in (settings or {}).items() if k == "calibrate"}
+    done = first.run(scan_dir, settings=given, until="calibrate", progress=progress,
+                     on_stage=on_stage, from_stage="calibrate" if from_stage == "calibrate"
+                     else None, only=only)
+    error = next((r.metrics.get("error") for r in done if r.name == "calibrate"), None)
+    return done, error if isinstance(error, str) else None
+
+
+def run_diagnostic(scan_dir, *, progress: Callable[[str, int, int], None] | None = None,
+                   on_stage: Callable[[StageResult], None] | None = None,
+                   engine=None) -> list[StageResult]:
+    """The stage-alone pass: the chain's stages after the calibration fed the generator's
+    true rig and mesh (``rig="ground_truth"``, ``mesh="ground_truth"``), cached in
+    ``out/diagnostic/`` (:data:`DIAGNOSTIC_DIR`, its own ``metrics.json``) beside the chain's
+    ``out/``; the report shows its figures beside the chain's.
+
+    Its novel views are the chain's (``out/render/``), moved into the generator's frame by the
+    evaluation's gauge alignment (:func:`facegeo.evaluate.gauge.chain_views_in_truth`): the
+    two passes are compared with the same reference images, which the evaluation renders once
+    (:data:`facegeo.evaluate.evaluation.REFERENCE_CACHE`) — run it after the chain.
+
+    Parameters
+    ----------
+    scan_dir : path-like or facegeo.capture.scan.Scan
+        A synthetic scan (one with a ground-truth rig and mesh).
+    progress, on_stage, engine
+        As for :func:`run_reconstruct`.
+
+    Raises
+    ------
+    InputError
+        The scan has no ground-truth rig or mesh (a real capture: no diagnostic pass).
+    """
+    from facegeo.capture.scan import Scan, load_scan
+
+    scan = scan_dir if isinstance(scan_dir, Scan) else load_scan(scan_dir)
+    if "mesh" not in scan.ground_truth_keys:
+        raise InputError(f"diagnostic pass: scan {scan.root} has no ground-truth mesh")
+    from facegeo.evaluate.gauge import chain_views_in_truth
+
+    # the chain's own views, in the generator's frame: both passes then meet the same
+    # reference images (rendered once); before the chain rendered, the default orbits
+    views = chain_views_in_truth(scan, scan.out_dir)
+    pipeline = reconstruct_pipeline(scan, mesh="ground_truth", rig="ground_truth",
+                                    engine=engine, diagnostic=True, views=views)
+    results = pipeline.run(scan.root, progress=progress, on_stage=on_stage)
+    from facegeo.fsutil import atomic_write_text
+    from facegeo.pipeline.cache import record_metrics
+
+    out = scan.root / pipeline.out_name
+    choices = {"rig": "ground_truth", "mesh": "ground_truth",
+               "world": "the generator's (ground_truth/rig.json)"}
+    (out / RUN_RECORD).mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / RUN_RECORD / "run.json", json.dumps(choices, indent=2) + "\n")
+    record_metrics(out, RUN_RECORD, choices)
+    return results

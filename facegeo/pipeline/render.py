@@ -15,6 +15,8 @@
     <name>_camera.json                    the camera the view was rendered from
     <name>_weights.npy                    (L, 3) float64: the environment's Eq. (4) field weights
     <name>_covered.png                    255 where a pixel was rendered from measured texels
+    <name>_inferred.png                   255 where a surface pixel holds a value inferred,
+                                          not measured (``infer``: surface no camera saw)
     <name>_texture.exr, _naive_texture.exr  with image-space detail: the texture-space renders
     <name>_paper.exr                      with a shrinkage λ ≠ 1 and a reference to compare
                                           with: the paper's resynthesis as written (λ = 1)
@@ -30,7 +32,12 @@ reference and error images beside the view.
 
 Metrics of the view itself: ``coverage``, the fraction of the render's surface pixels (rays
 that hit the atlas mesh) whose texels some source camera measured (pixels outside it are
-filled from the nearest measured pixel within ``fill_px``, else black, in every render);
+filled from the nearest measured pixel within ``fill_px``, then with ``infer``, the default,
+from texels inferred in texture space — :func:`facegeo.render.novel.infer_texel_colours` —,
+else black, in every render); ``inferred_pixel_fraction`` (surface pixels holding an inferred
+value), ``inferred_texel_fraction`` (atlas texels no source camera measured),
+``black_surface_pixels`` and ``surface_pixel_fraction`` (the image's share of surface pixels;
+under :data:`CAMERA_HIT_MIN` a warning says the camera hardly looks at the surface);
 with the cross-validated shrinkage (the default, :func:`facegeo.render.cross_validated_shrinkage`)
 ``shrinkage_factors`` (λ per source camera) and ``shrinkage_cross_validation``; with
 image-space detail (``image_detail``, :mod:`facegeo.render.detail`) ``detail_fraction``
@@ -65,8 +72,9 @@ from facegeo.fsutil import file_state
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BUILTIN_ENVS", "SHRINKAGE_CHOICES", "builtin_env", "check_render_args",
-           "render_one", "render_products", "run_render"]
+__all__ = ["BUILTIN_ENVS", "CAMERA_HIT_MIN", "SHRINKAGE_CHOICES", "builtin_env",
+           "check_render_args", "reference_views", "render_one", "render_products",
+           "run_render"]
 
 BUILTIN_ENVS = ("uniform", "axis_lobes", "sky", "studio")
 #: The environment of the ``render`` stage of ``facegeo reconstruct``.
@@ -79,6 +87,9 @@ SHRINKAGE_DEFAULT = "cross-validated"
 SOURCE_IMAGES_DIR = ".source_images"
 SOURCE_IMAGES_KEEP = 4
 _ENV_HEIGHT = 64
+#: A view whose pixels hit the atlas mesh less than this share of the image is logged as a
+#: warning (a camera file in another world frame, or aimed away from the head).
+CAMERA_HIT_MIN = 0.05
 
 
 def builtin_env(name: str):
@@ -170,7 +181,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
                shadow_taps: bool = True, image_detail: bool = True, progress=None,
-               convention: str = "facegeo") -> dict:
+               convention: str = "facegeo", infer: bool = True) -> dict:
     """Render a novel view of a reconstructed scan under an environment; write the images.
 
     Parameters
@@ -225,6 +236,10 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         baseline is that per-pixel projection and the resynthesis adds its predicted change
         to it; the texture-space figures are kept as ``texture_*``. False: texture space
         only (the paper)
+    infer : bool — cover what no camera saw: surface pixels whose texels no source camera
+        measured take values inferred in texture space (pull–push of colour over Lambertian
+        shading, :func:`facegeo.render.render_view` ``infer``), marked in
+        ``<name>_inferred.png``; covered pixels unchanged bit for bit. False: black (the paper)
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
         each step (rays — with image detail, relighting the source captures too, ≈ 40 s at the
         paper preset the first time under an environment —, render, naive baseline)
@@ -244,7 +259,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                          name=name, blend_power=blend_power, rig=rig, solid_angle=solid_angle,
                          fill_px=fill_px, shrinkage=shrinkage, light_step=light_step,
                          shadow_taps=shadow_taps, image_detail=image_detail,
-                         progress=progress, convention=convention)
+                         progress=progress, convention=convention, infer=infer)
     if reference and has_view_reference(scan):
         figures = evaluate_view(scan, out, out / "views", metrics["name"], out / "views")
         metrics["files"].update(figures.pop("files"))
@@ -260,7 +275,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
                shadow_taps: bool = True, image_detail: bool = True, progress=None,
-               cache: dict | None = None, convention: str = "facegeo") -> dict:
+               cache: dict | None = None, convention: str = "facegeo",
+               infer: bool = True) -> dict:
     """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
     ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
     the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem).
@@ -349,6 +365,14 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
             progress("render", k, steps)
 
     samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
+    light_dirs = np.asarray(stage.directions, np.float64) if infer else None
+    hit_fraction = float(samples.mask.mean())
+    if hit_fraction < CAMERA_HIT_MIN:
+        log.warning("render: camera %s (%s) hardly looks at the reconstructed surface: %.2f %% "
+                    "of its pixels hit the mesh (under %g %%); a camera file must be in the "
+                    "rig's world frame (%s rig; docs/render.md)",
+                    camera_spec if isinstance(camera_spec, (str, Path)) else "given",
+                    camera.name, 100 * hit_fraction, 100 * CAMERA_HIT_MIN, rig_used)
     shadows = _view_shadows(atlas, scene, texels, stage, cache) if shadow_taps else None
     # the source images' visibility weights as the projection's (its stage's settings)
     vis_kw = {k: project_settings[k] for k in ("min_cos", "feather_px", "depth_jump")
@@ -379,7 +403,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         got = render_view(camera, scene, atlas, texels, sources, w, lights, blend_power=bp,
                           samples=samples, fill_px=fill_px, light_step=light_step,
                           shrinkage_set=sets, shadows=shadows, detail=detail,
-                          detail_visibility=vis_kw)
+                          detail_visibility=vis_kw, infer=infer, light_directions=light_dirs)
         res = got[0]
         naive = got[1] if baseline else None
         paper = got[-1] if share_paper else None
@@ -389,18 +413,19 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                           resynthesis=resynthesis, blend_power=bp, samples=samples,
                           fill_px=fill_px, shrinkage=factors, shadows=shadows,
                           light_step=light_step if resynthesis is True else 1, detail=detail,
-                          detail_visibility=vis_kw)
+                          detail_visibility=vis_kw, infer=infer, light_directions=light_dirs)
         tick(2)
         if baseline and resynthesis:
             naive = render_view(camera, scene, atlas, texels, sources, w, lights,
                                 resynthesis=False, blend_power=bp, samples=samples,
                                 fill_px=fill_px, shadows=shadows, detail=detail,
-                                detail_visibility=vis_kw)
+                                detail_visibility=vis_kw, infer=infer, light_directions=light_dirs)
             tick(3)
     if paper_too and paper is None:
         paper = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=True,
                             blend_power=bp, samples=samples, fill_px=fill_px, shadows=shadows,
-                            detail=detail, detail_visibility=vis_kw)
+                            detail=detail, detail_visibility=vis_kw, infer=infer,
+                            light_directions=light_dirs)
         tick(3 + int(naive is not None))
     # a map file read with another projection or convention names its own files (as relight's)
     from facegeo.lighting.envmap import canonical_projection
@@ -441,6 +466,14 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
         "seconds_naive": naive.stats["seconds"] if naive is not None and not shared else None,
         "seconds_load": round(t_load - t_start, 4),
         "coverage": round(float(res.covered.sum() / max(res.mask.sum(), 1)), 6),
+        "surface_pixel_fraction": round(hit_fraction, 6),
+        # what no camera saw (infer): the atlas's texels no source camera measured, and the
+        # surface pixels of the view holding an inferred sample (<stem>_inferred.png)
+        "infer": bool(infer),
+        "inferred_texel_fraction": _unmeasured_texel_fraction(texels, sources),
+        "inferred_pixel_fraction": round(float(
+            res.inferred.sum() / max(res.mask.sum(), 1)), 6),
+        "black_surface_pixels": int((res.mask & ~(res.image > 0).any(axis=2)).sum()),
     }
     # what the evaluation reads (facegeo.evaluate.views): the camera, the weights, the
     # covered pixels and the renders beside the main one
@@ -448,6 +481,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     np.save(dest / f"{stem}_weights.npy", np.asarray(w, np.float64))
     imageio.write_image(dest / f"{stem}_covered.png",
                         np.where(res.covered, 255, 0).astype(np.uint8))
+    imageio.write_image(dest / f"{stem}_inferred.png",
+                        np.where(res.inferred, 255, 0).astype(np.uint8))
     if detail is not None:  # the texture-space renders (the paper's render path)
         imageio.write_image(dest / f"{stem}_texture.exr", res.texture)
         if naive is not None:
@@ -461,6 +496,15 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     atomic_write_text(dest / f"{stem}.json", json.dumps(metrics, indent=2, allow_nan=False))
     log.info("rendered %s (%s) in %.2f s", stem, camera.name, metrics["seconds"])
     return metrics
+
+
+def _unmeasured_texel_fraction(texels, sources) -> float:
+    """The share of the atlas's texels that no source camera measured (a row of no projected
+    field): what a render with ``infer`` covers by inference."""
+    seen = np.zeros(len(texels), bool)
+    for src in sources:
+        seen[np.asarray(src.texel_index, np.int64)] = True
+    return round(float(1.0 - seen.mean()), 6) if seen.size else 0.0
 
 
 def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
@@ -649,6 +693,11 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     """The ``render`` stage of ``facegeo reconstruct``: every view in ``views`` under ``env``
     into ``dest`` (:func:`render_one`); returns the stage's metrics.
 
+    Besides ``views``, every scan camera with a reference image ``[reference]
+    images.<camera>.<env>`` (a witness camera; :func:`reference_views`) is rendered under that
+    environment, so the evaluation compares it
+    (:func:`facegeo.evaluate.views.evaluate_view_against_image`).
+
     Metrics: ``views`` (per view, as :func:`render_one`), ``env`` and ``seconds`` (the views'
     sum). The figures against references (``psnr_db_min`` …, the novel-view goal of issue 14:
     resynthesis at least 3 dB better than the naive baseline) are the ``evaluate`` stage's
@@ -657,14 +706,39 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     per_view = {}
     # the cross-validated λ, the atlas check and the relit source images, once a stage
     cache: dict = {}
-    for k, spec in enumerate(views):
-        tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(views) * n)) \
+    jobs = [(spec, env) for spec in views] + reference_views(scan)
+    for k, (spec, view_env) in enumerate(jobs):
+        tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(jobs) * n)) \
             if progress else None
-        m = render_one(scan, out, dest, camera_spec=spec, env=env, progress=tick,
+        m = render_one(scan, out, dest, camera_spec=spec, env=view_env, progress=tick,
                        cache=cache, **settings)
         per_view[m["name"]] = {key: v for key, v in m.items() if key != "stats"}
     return {"views": per_view, "env": str(env),
             "seconds": round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)}
+
+
+def reference_views(scan) -> list[tuple[str, str]]:
+    """``(camera, env)`` of every ``[reference] images.<camera>.<env>`` key of ``scan`` whose
+    camera is one of the scan's and whose environment is a built-in one (:data:`BUILTIN_ENVS`);
+    the keys only, never the images (the evaluation reads those). A reference under a map
+    file is skipped with a log line: the key names the file's stem, not the file."""
+    try:
+        keys = list(scan.reference_keys)
+        cameras = set(scan.camera_names)
+    except (AttributeError, TypeError):
+        return []
+    found = []
+    for key in sorted(keys):
+        parts = key.split(".", 2)
+        if len(parts) != 3 or parts[0] != "images" or parts[1] not in cameras:
+            continue
+        if parts[2] not in BUILTIN_ENVS:
+            log.info("render: [reference] %s is under %r, not a built-in environment (%s); "
+                     "render that camera with 'facegeo render --env FILE'", key, parts[2],
+                     ", ".join(BUILTIN_ENVS))
+            continue
+        found.append((parts[1], parts[2]))
+    return found
 
 
 def _views_summary(per_view: dict) -> dict:

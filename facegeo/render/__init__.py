@@ -4,7 +4,7 @@
   → Eq. (4) relighting → view-dependent blending → image; the naive baseline.
 * :mod:`facegeo.render.detail` — image-space detail: the source cameras' relit captures
   projected per pixel (``render_view(detail=)``).
-* camera specs (``orbit:<camera>:<degrees>``, names, JSON) and the per-camera skin-model fit
+* camera specs (``orbit:<camera>:<degrees>``, names, JSON, OpenCV FileStorage) and the per-camera skin-model fit
   store live in private modules re-exported here.
 """
 
@@ -12,6 +12,7 @@ from facegeo.render._cameras import (
     FRONT,
     NOVEL_ORBITS,
     front_camera,
+    opencv_camera_file,
     orbit_camera,
     parse_camera_spec,
 )
@@ -46,6 +47,7 @@ __all__ = [
     "front_camera",
     "light_set",
     "load_sources",
+    "opencv_camera_file",
     "orbit_camera",
     "parse_camera_spec",
     "project_source_images",

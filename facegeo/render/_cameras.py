@@ -177,5 +177,60 @@ def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
             except ValueError as exc:
                 raise InputError(f"camera spec {path}: not valid JSON ({exc})") from exc
             return Camera.from_dict(d, where=str(path))
+        if path.suffix.lower() in OPENCV_SUFFIXES:
+            return opencv_camera_file(path)
     raise InputError(f"camera spec {fmt_value(spec)}: expected 'orbit:<camera>:<degrees>', a camera "
-                     f"name ({', '.join(cameras)}), a camera JSON file, or a camera dict")
+                     f"name ({', '.join(cameras)}), a camera JSON file, an OpenCV "
+                     "FileStorage file (.yml, .yaml, .xml), or a camera dict")
+
+
+#: Suffixes of a camera spec read as an OpenCV FileStorage file (:func:`opencv_camera_file`).
+OPENCV_SUFFIXES = (".yml", ".yaml", ".xml")
+
+
+def opencv_camera_file(path) -> Camera:
+    """A camera from an OpenCV FileStorage file (YAML or XML), named after the file's stem.
+
+    ``camera_matrix``, ``distortion_coefficients``, ``image_width`` / ``image_height`` and the
+    world → camera pose ``R`` (3 × 3 or a Rodrigues vector), ``T`` in metres
+    (:func:`facegeo.capture.opencv_storage.read_opencv_camera`; a 3DUNDERWORLD ``calib.xml``
+    too), or, where the file has no ``R``/``T``, ``rvec``/``tvec`` (``cv2.solvePnP``'s names,
+    the same convention ``X_cam = R(rvec) X_world + tvec``). The world is the rig's frame the
+    render uses (docs/render.md); a file with no pose at all is refused.
+    """
+    from facegeo.capture.opencv_storage import read_matrices, read_opencv_camera
+    from facegeo.frames import Pose, rotation_from_rvec
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"camera spec: OpenCV camera file {path} "
+                         f"{'is not a file' if path.exists() else 'does not exist'}")
+    cam = read_opencv_camera(path, name=path.stem)
+    try:
+        rt = read_matrices(path, ["R", "T"])
+    except InputError:
+        rt = None
+    if rt is None:
+        try:
+            m = read_matrices(path, ["rvec", "tvec"])
+        except InputError:
+            if "Camera" in _top_keys(path):  # 3DUNDERWORLD: its pose is required and read
+                return cam
+            raise InputError(f"{path}: no camera pose (R and T, or rvec and tvec: world → "
+                             "camera, metres, in the rig's world frame)") from None
+        r, t = m["rvec"].ravel(), m["tvec"].ravel()
+        if r.size != 3 or t.size != 3:
+            raise InputError(f"{path} [rvec, tvec]: expected 3 elements each, got {r.size} and "
+                             f"{t.size}")
+        cam = cam.replace(T_cam_world=Pose(rotation_from_rvec(r), t))
+    return cam
+
+
+def _top_keys(path: Path) -> list[str]:
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        return list(fs.root().keys())
+    finally:
+        fs.release()

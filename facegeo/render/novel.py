@@ -26,7 +26,11 @@ For a camera the light stage never had, under an environment given as Eq. (4) li
    samples with supersampling; pixels whose taps no camera measured are not covered (0, and
    False in ``RenderResult.covered``); with ``fill_px > 0`` such samples take the colour of
    the nearest pixel with measured samples within that distance (hole filling for display:
-   the silhouette ring the projection leaves out) and stay False in ``covered``.
+   the silhouette ring the projection leaves out) and stay False in ``covered``; with
+   ``infer`` (not the paper) every other hit sample takes its texels' values inferred from
+   their measured neighbours in texture space (:func:`infer_texel_colours`: pull–push of
+   colour over Lambertian shading), else the nearest pixel's, and is marked in
+   ``RenderResult.inferred``: no surface pixel is black.
    **Shadow-consistent texel taps** (``shadows=``, :func:`render_shadows`; the paper's §4.4
    shadow maps "using our geometric model", as the projection does them,
    :mod:`facegeo.surface.shadows`): for each *key light* of the environment (a sun, a studio
@@ -110,6 +114,7 @@ from facegeo.render._blend import (
     _angle,
     key_lights,
 )
+from facegeo.render._infer import infer_texel_colours, lambert_irradiance
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +131,8 @@ __all__ = [
     "atlas_scene",
     "cross_validated_shrinkage",
     "even_subset",
+    "infer_texel_colours",
+    "lambert_irradiance",
     "key_lights",
     "load_sources",
     "pixel_sample_rays",
@@ -265,6 +272,9 @@ class RenderResult:
     stats : dict — counts and timings (texels shaded, samples resynthesised, active lights …)
     texture : (H, W, 3) float32 or None — with image-space detail, the texture-space image
         before it (``render_view(detail=)``); None otherwise
+    inferred : (H, W) bool — pixels of ``mask`` holding a hit sample whose value was not
+        measured but inferred (``fill_px``, and with ``render_view(infer=True)`` the inferred
+        texels and the nearest-pixel fill); none of them is ``covered``
     """
 
     image: np.ndarray
@@ -272,6 +282,7 @@ class RenderResult:
     mask: np.ndarray
     stats: dict = field(default_factory=dict)
     texture: np.ndarray | None = None
+    inferred: np.ndarray | None = None
 
 
 def atlas_scene(atlas):
@@ -884,7 +895,8 @@ def _shrunk(naive, use, relit, lam: float, *, copy: bool):
 
 def _fill_uncovered(vs: ViewSamples, val, cov, max_px: float):
     """Give uncovered hit samples the mean colour of the nearest pixel with covered samples
-    (Euclidean distance transform, OpenCV), if it lies within ``max_px`` pixels."""
+    (Euclidean distance transform, OpenCV), if it lies within ``max_px`` pixels; returns the
+    new values and the samples filled ``(P,)`` bool."""
     import cv2
 
     h, w = vs.shape
@@ -896,7 +908,7 @@ def _fill_uncovered(vs: ViewSamples, val, cov, max_px: float):
     has = cnt > 0
     miss = np.flatnonzero(~cov)
     if not has.any() or miss.size == 0:
-        return val, 0
+        return val, np.zeros(cov.shape, bool)
     mean = acc / np.maximum(cnt, 1.0)[:, None]
     src = np.where(has, 0, 1).astype(np.uint8).reshape(h, w)
     dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
@@ -906,7 +918,9 @@ def _fill_uncovered(vs: ViewSamples, val, cov, max_px: float):
     near = dist.ravel()[pix[miss]] <= max_px
     out = val.copy()
     out[miss[near]] = mean[nearest[pix[miss[near]]]]
-    return out, int(near.sum())
+    done = np.zeros(cov.shape, bool)
+    done[miss[near]] = True
+    return out, done
 
 
 def _resynthesize_relit(fit, vn, w, active, w_act, *, diffuse_only: bool = False,
@@ -941,8 +955,8 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
                 blend_power: float = BLEND_POWER, samples: ViewSamples | None = None,
                 fill_px: float = 0.0, shrinkage=None, light_step: int = 1,
                 shrinkage_set=None, shadows: RenderShadows | None = None,
-                detail=None, detail_visibility: dict | None = None
-                ) -> RenderResult | list[RenderResult]:
+                detail=None, detail_visibility: dict | None = None, infer: bool = False,
+                light_directions=None) -> RenderResult | list[RenderResult]:
     """Render ``camera`` under Eq. (4) light ``weights`` from the measured reflectance field.
 
     See the module docstring for the steps (Debevec et al. 2000 §4.5).
@@ -982,6 +996,15 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
         ``feather_px``, ``depth_jump``) for the source images' weights
         (:func:`facegeo.render.detail.project_source_images`); default the projection's
         defaults
+    infer : bool — cover what no camera saw: every hit sample gets a value, those whose texels
+        no source camera measured from their texels inferred in texture space
+        (:func:`infer_texel_colours`, pull–push; after ``fill_px``), a sample with no tap on a
+        chart from the nearest pixel with a value; marked in ``RenderResult.inferred``, never
+        ``covered``. Covered pixels are the same bit for bit with or without it. False: such
+        samples stay black (the paper)
+    light_directions : (L, 3) float64, unit, world frame, optional — toward each light of the
+        rig: with ``infer``, the inference is of colour over each texel's Lambertian
+        irradiance (:func:`infer_texel_colours`); None: of colour
 
     Returns
     -------
@@ -998,7 +1021,8 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
     """
     args = (camera, scene, atlas, texels, sources, weights, lights)
     kw = dict(supersample=supersample, blend_power=blend_power, fill_px=fill_px,
-              light_step=light_step, shadows=shadows)
+              light_step=light_step, shadows=shadows, infer=bool(infer),
+              light_directions=light_directions)
     if detail is None:
         return _render_texture(*args, samples=samples, resynthesis=resynthesis,
                                shrinkage=shrinkage, shrinkage_set=shrinkage_set, **kw)
@@ -1045,7 +1069,7 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
 
 def _render_texture(camera, scene, atlas, texels, sources, weights, lights, *, supersample,
                     resynthesis, blend_power, samples, fill_px, shrinkage, light_step,
-                    shrinkage_set, shadows):
+                    shrinkage_set, shadows, infer=False, light_directions=None):
     """:func:`render_view` in texture space only (no ``detail``)."""
     t0 = time.perf_counter()
     vs = samples if samples is not None else trace_view(camera, scene, atlas, texels,
@@ -1053,10 +1077,21 @@ def _render_texture(camera, scene, atlas, texels, sources, weights, lights, *, s
     t1 = time.perf_counter()
     need = vs.needed_texels
     stats: dict = {}
+    # with infer and resynthesis, the naive colours (λ = 0) from the same pass: what the
+    # texels no camera measured are inferred from, in every render (infer_texel_colours)
+    with_naive = bool(infer) and resynthesis is True
+    sets = shrinkage_set
+    if with_naive:
+        sets = ([shrinkage] if shrinkage_set is None else list(shrinkage_set)) \
+            + [{src.name: 0.0 for src in sources}]
     colour = shade_texels(need, texels.p_world[need], camera.center_world, sources, weights,
                           lights, resynthesis=resynthesis, blend_power=blend_power,
-                          shrinkage=shrinkage, light_step=light_step, stats=stats,
-                          shrinkage_set=shrinkage_set)
+                          shrinkage=None if with_naive else shrinkage, light_step=light_step,
+                          stats=stats, shrinkage_set=sets)
+    base = None
+    if with_naive:
+        base = colour[-1]
+        colour = colour[:-1] if shrinkage_set is not None else colour[0]
     edges = []
     if shadows is not None:
         _check_shadows(shadows, scene, texels, weights)
@@ -1077,18 +1112,39 @@ def _render_texture(camera, scene, atlas, texels, sources, weights, lights, *, s
             n_rows += rows.size
         stats.update({"shadow_lights": len(edges), "shadow_edge_samples": int(n_rows),
                       "seconds_shadows": round(time.perf_counter() - ts, 4)})
+    inferred = [None] * (1 if shrinkage_set is None else len(colour))
+    if infer:
+        ti = time.perf_counter()
+        cols = colour[None] if shrinkage_set is None else colour
+        src_col = cols[-1:] if base is None else base[None]
+        shading = None
+        if light_directions is not None and not np.isfinite(src_col).all():
+            shading = lambert_irradiance(texels.n_world[need], light_directions, weights,
+                                         p_world=texels.p_world[need],
+                                         scene=scene)
+        filled, miss = infer_texel_colours(texels, need, src_col, shading=shading)
+        inferred = cols.copy()
+        inferred[:, miss] = filled[0, miss]
+        stats.update({"texels_inferred": int(miss.sum()),
+                      "seconds_infer": round(time.perf_counter() - ti, 4)})
     t2 = time.perf_counter()
     if shrinkage_set is None:
-        return _view_image(vs, need, colour, fill_px, stats, t0, t1, t2, edges)
+        return _view_image(vs, need, colour, fill_px, stats, t0, t1, t2, edges, inferred[0])
     return [_view_image(vs, need, c, fill_px, dict(stats), t0, t1, t2,
-                        [(r, ws, tx, one[v]) for r, ws, tx, one in edges])
+                        [(r, ws, tx, one[v]) for r, ws, tx, one in edges], inferred[v])
             for v, c in enumerate(colour)]
 
 
 def _view_image(vs: ViewSamples, need, colour, fill_px, stats, t0, t1, t2,
-                edges=()) -> RenderResult:
+                edges=(), inferred_colour=None) -> RenderResult:
     """:func:`render_view`'s last step: texel colours → tap-weighted pixel samples → image,
     with ``covered``, hole filling and the timings (``t0``–``t2``: start, traced, shaded).
+
+    ``inferred_colour`` ``(K, 3)``: ``colour`` with the texels no camera measured inferred
+    (:func:`infer_texel_colours`); given, every hit sample gets a value: covered samples keep
+    theirs (bit for bit), then ``fill_px``, then the inferred texels, then the nearest pixel
+    with a value at any distance (a sample with no tap on a chart). The pixels holding such a
+    sample are ``RenderResult.inferred``.
 
     ``edges``: per key light ``(rows, side weights (M, 4), texels, their colours under that
     light alone (T, 3))``; a row's value moves by ``Σ_k (b_k(l) − b_k) C_k(l)``, with b(l)
@@ -1117,16 +1173,39 @@ def _view_image(vs: ViewSamples, need, colour, fill_px, stats, t0, t1, t2,
         corr = np.einsum("mk,mkc->mc", delta, np.where(g[..., None], c_l, 0.0))
         val[rows[ok]] += corr[ok]
     val = np.where(cov[:, None], val, 0.0).astype(np.float32)
-    filled = 0
+    filled = np.zeros(cov.shape, bool)
     if fill_px > 0:
         val, filled = _fill_uncovered(vs, val, cov, float(fill_px))
+    from_texels = np.zeros(cov.shape, bool)
+    nearest = np.zeros(cov.shape, bool)
+    if inferred_colour is not None:
+        # samples no measured tap reached: their inferred texels (pull–push in texture space,
+        # infer_texel_colours), then whatever has no tap on a chart the nearest pixel's colour
+        todo = np.flatnonzero(~cov & ~filled)
+        if todo.size and need.size:
+            c_i = inferred_colour[pos[todo]]
+            g = (vs.taps[todo] >= 0) & np.isfinite(c_i).all(axis=2)
+            w_i = np.where(g, vs.tap_weight[todo], 0.0)
+            t_i = w_i.sum(axis=1)
+            ok = t_i > 0
+            v_i = np.einsum("pk,pkc->pc", w_i[ok], np.where(g[ok][..., None], c_i[ok], 0.0)) \
+                / t_i[ok, None]
+            val[todo[ok]] = v_i
+            from_texels[todo[ok]] = True
+        if not (cov | filled | from_texels).all():
+            val, nearest = _fill_uncovered(vs, val, cov | filled | from_texels, np.inf)
     image = vs.to_image(val)
     covered = vs.to_image(cov.astype(np.float32)) >= 1.0 - 1e-6
-    stats["samples_filled"] = filled
+    inferred = vs.to_image((~cov & (filled | from_texels | nearest)).astype(np.float32)) > 0
+    stats["samples_filled"] = int(filled.sum())
+    if inferred_colour is not None:
+        stats["samples_inferred_texels"] = int(from_texels.sum())
+        stats["samples_inferred_nearest"] = int(nearest.sum())
     stats.update({"pixels": int(vs.shape[0] * vs.shape[1]),
                   "samples_hit": int(vs.pixel_index.size),
                   "samples_covered": int(cov.sum()),
                   "seconds_trace": round(t1 - t0, 4), "seconds_shade": round(t2 - t1, 4),
                   "seconds_image": round(time.perf_counter() - t2, 4),
                   "seconds": round(time.perf_counter() - t0, 4)})
-    return RenderResult(image, covered & vs.mask, vs.mask, stats)
+    return RenderResult(image, covered & vs.mask, vs.mask, stats,
+                        inferred=inferred & vs.mask)

@@ -55,7 +55,7 @@ from facegeo.errors import InputError, MissingDependencyError, ShapeError
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "MeshReport", "Atlas", "Texels", "check_mesh", "split_mesh", "build_atlas",
+    "MeshReport", "Atlas", "Texels", "check_mesh", "check_atlas_settings", "split_mesh", "build_atlas",
     "rasterize_texels", "vertex_normals", "export_mesh_uv", "DEFAULT_SPLIT_FACES",
     "DEFAULT_MAX_CHART_FACES",
 ]
@@ -341,6 +341,20 @@ class Atlas:
                        rep, float(d["seconds"]), int(d["n_pieces"]))
 
 
+def check_atlas_settings(*, texels_per_mm=None, size=None, padding=0) -> None:
+    """Raise :class:`InputError` naming the setting when the atlas resolution or padding is
+    not one :func:`build_atlas` accepts (checked by the command line before the stages that
+    build the mesh run, so that a wrong ``--size`` costs no decode)."""
+    if texels_per_mm is not None and size is not None:
+        raise InputError("texels_per_mm and size: give one resolution, not both")
+    if texels_per_mm is not None and not (np.isfinite(texels_per_mm) and texels_per_mm > 0):
+        raise InputError(f"texels_per_mm: expected a finite number > 0, got {fmt_value(texels_per_mm)}")
+    if size is not None and (int(size) != size or not 16 <= size <= 1 << 15):
+        raise InputError(f"size: expected an integer in [16, 32768], got {fmt_value(size)}")
+    if int(padding) != padding or padding < 0:
+        raise InputError(f"padding: expected an integer >= 0, got {fmt_value(padding)}")
+
+
 def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None,
                 size: int | None = None, padding: int = 2, max_chart_area: float = 0.0,
                 max_boundary_length: float = 0.0, max_iterations: int = 1,
@@ -394,14 +408,7 @@ def build_atlas(vertices: Any, faces: Any, *, texels_per_mm: float | None = None
     except ImportError as exc:  # pragma: no cover - a declared dependency
         raise MissingDependencyError("build_atlas needs xatlas (pip install xatlas)") from exc
     V, F, report = check_mesh(vertices, faces, repair=repair)
-    if texels_per_mm is not None and size is not None:
-        raise InputError("texels_per_mm and size: give one resolution, not both")
-    if texels_per_mm is not None and not (np.isfinite(texels_per_mm) and texels_per_mm > 0):
-        raise InputError(f"texels_per_mm: expected a finite number > 0, got {fmt_value(texels_per_mm)}")
-    if size is not None and (int(size) != size or not 16 <= size <= 1 << 15):
-        raise InputError(f"size: expected an integer in [16, 32768], got {fmt_value(size)}")
-    if int(padding) != padding or padding < 0:
-        raise InputError(f"padding: expected an integer >= 0, got {fmt_value(padding)}")
+    check_atlas_settings(texels_per_mm=texels_per_mm, size=size, padding=padding)
     if normals is None:
         N = vertex_normals(V, F)
     else:

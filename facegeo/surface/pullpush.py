@@ -1,15 +1,17 @@
 """Pull–push hole filling in texture space (Gortler et al. 1996, *The Lumigraph*, §3.4).
 
-Texels no camera sees are *flagged*, never measured; for display only, :func:`pull_push` fills
-them from their neighbours across a pyramid:
+Texels no camera sees are *flagged*, never measured; :func:`pull_push` fills them from their
+neighbours across a pyramid, for the atlas previews and for the novel-view renderer's inferred
+texels (:func:`facegeo.render.novel.infer_texel_colours`: surface no camera saw, marked as
+inferred and never counted as measured):
 
 * **pull**: each coarser level holds the weighted mean of 2 × 2 finer texels, with weight the
   sum of the (clamped) finer weights, clamped to 1;
 * **push**: each finer texel keeps its own value in proportion to its clamped weight ``w`` and
   takes ``1 − w`` from the coarser level (nearest-neighbour upsampled).
 
-Texels with weight ≥ 1 are returned unchanged, so measured data is never altered; the output is
-for pictures (atlas previews, exported textures), not for any figure.
+Texels with weight ≥ 1 are returned unchanged, so measured data is never altered; the filled
+values are inferences, kept apart from measured ones by the caller's mask.
 """
 
 from __future__ import annotations

@@ -35,13 +35,31 @@ import numpy as np
 
 from facegeo import fsutil
 from facegeo.errors import InputError
-from facegeo.frames import Pose, look_at, rotation_from_rvec
+from facegeo.frames import look_at
 from facegeo.checks import fmt_value
 from facegeo.synth.boards import (
     BOARD_KINDS,
     board_for_cameras,
     calibration_board_poses,
     rig_calibration_views,
+)
+from facegeo.synth.rigs import (  # noqa: F401  (re-exported: capture's public names)
+    LIGHT_PERTURBATION,
+    PROJECTOR_VIEW_MAX_ANGLE_DEG,
+    RIG_PERTURBATION,
+    RING_BAND,
+    WITNESS_ANGLE_DEG,
+    WITNESS_ENV,
+    WITNESS_ENV_HEIGHT,
+    WITNESS_NAME,
+    WITNESS_SUPERSAMPLE,
+    _with_witness,
+    perturbed_lights,
+    perturbed_rig,
+    projector_view_cameras,
+    ring_cameras,
+    witness_camera,
+    witness_weights,
 )
 from facegeo.synth.sl_conditions import (
     camera_px_per_projector_px,
@@ -55,8 +73,9 @@ from facegeo.synth.sl_conditions import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Preset", "PRESETS", "generate_scan", "SynthSummary", "build_rig", "build_head",
-           "frame_rig", "face_fill"]
+__all__ = ["Preset", "PRESETS", "RING_BAND", "generate_scan", "SynthSummary", "build_rig",
+           "build_head", "frame_rig", "face_fill", "ring_cameras", "perturbed_lights",
+           "witness_camera"]
 
 
 @dataclass(frozen=True)
@@ -96,6 +115,17 @@ class Preset:
         principal point; the other cameras may see part of the board or none).
     projector_fill : (float, float)
         Fraction of the targeted camera's image the board spans in unshared projector views.
+    n_cameras : int
+        Capture cameras. 0 (default): the default rig's two cameras
+        (:func:`facegeo.geometry.rig.default_rig`), so the presets' draws are unchanged; N > 0:
+        N cameras on a band around the head (:func:`ring_cameras`), every one aimed at the head
+        centre and seeing the face or the side of the head (a modern multi-camera stage,
+        issue 38).
+    corner_views : int
+        Corner calibration views per camera (:func:`facegeo.synth.boards.rig_calibration_views`
+        ``corner_per_camera``; :data:`facegeo.synth.boards.CORNER_VIEWS`): boards pushed into
+        each image corner in turn, after the shared and close views, whose draws they leave
+        unchanged. 0 (default): none.
     """
 
     name: str
@@ -112,12 +142,21 @@ class Preset:
     projector_tilt_deg: tuple[float, float] = (20.0, 40.0)
     projector_views_shared: bool = True
     projector_fill: tuple[float, float] = (0.6, 0.85)
+    n_cameras: int = 0
+    corner_views: int = 0
 
 
 PRESETS: dict[str, Preset] = {
     "tiny": Preset("tiny", 1 / 6, 16, 8, 4, (256, 192), 3, 1, 3, olat_half=False),
     "small": Preset("small", 1 / 2, 32, 16, 5, (512, 384), 30, 4, 3),
     "paper": Preset("paper", 1.0, 64, 32, 6, (1024, 768), 30, 6, 3, sl_supersample=2),
+    # A modern multi-camera stage (issue 38): 16 cameras x 512 lights (16 x 32) at 80 x 120 px,
+    # so its 8,192 OLAT frames stay small (16 x 512 x 80 x 120 x RGB float16: 0.47 GB in
+    # memory as one field; docs/synth.md, Presets).
+    "modern": Preset("modern", 1 / 6, 16, 32, 4, (256, 192), 6, 1, 3, n_cameras=16),
+    # The same 16-camera band with 8 x 4 lights and one shared calibration view: the test size.
+    "modern_tiny": Preset("modern_tiny", 1 / 6, 8, 4, 4, (256, 192), 1, 1, 3, olat_half=False,
+                          sl_supersample=1, n_cameras=16),
 }
 
 #: Bounding-box diagonal a head mesh must have once converted to metres (a real head is
@@ -132,10 +171,6 @@ OLAT_PNG_EXPOSURE = 2.0
 #: exceed it at the capture's exposure is exposed less (clipped whites bias the fringes' phase
 #: and the board's corners; the default, shared views at the head's distance stay below it).
 PROJECTOR_VIEW_PEAK = 0.9
-
-#: How far the true rig departs from the nominal one (1 σ): what a calibration must recover.
-RIG_PERTURBATION = {"position_m": 0.002, "rotation_deg": 0.2, "focal_rel": 0.005,
-                    "principal_px": 3.0, "k1": 0.01}
 
 
 @dataclass
@@ -205,44 +240,15 @@ def build_head(head: str = "procedural", *, units: str = "cm", subdivisions: int
     return mesh
 
 
-def perturbed_rig(rig, seed: int):
-    """The rig as built: the nominal ``rig`` with seeded errors of the sizes in
-    :data:`RIG_PERTURBATION` in every camera's and the projector's pose and intrinsics.
-
-    The synthetic capture renders with this true rig and writes the nominal one as the scan's
-    ``rig.json`` — what a real rig's owner knows before calibration — and the true one to
-    ``ground_truth/rig.json``, so calibration has something real to recover.
-    """
-    from facegeo.geometry.rig import Rig
-
-    rng = np.random.default_rng([seed, 7])
-    P = RIG_PERTURBATION
-
-    def jitter(cam, *, distortion: bool):
-        K = cam.K.copy()
-        K[0, 0] *= 1 + P["focal_rel"] * rng.standard_normal()
-        K[1, 1] *= 1 + P["focal_rel"] * rng.standard_normal()
-        # principal_px is at a 480-px-wide image; scale to this image
-        K[:2, 2] += P["principal_px"] * (cam.width / 480.0) * rng.standard_normal(2)
-        dist = cam.dist.copy()
-        if distortion and dist.size:
-            dist[0] += P["k1"] * rng.standard_normal()
-        # perturb the camera's pose in the world: rotate about and move its centre
-        dR = rotation_from_rvec(np.deg2rad(P["rotation_deg"]) * rng.standard_normal(3))
-        c = cam.center_world + P["position_m"] * rng.standard_normal(3)
-        R = dR @ cam.T_cam_world.R
-        return cam.replace(K=K, dist=dist, T_cam_world=Pose(R, -R @ c))
-
-    cams = [jitter(c, distortion=True) for c in rig.cameras]
-    proj = None if rig.projector is None else jitter(rig.projector, distortion=False)
-    return Rig(cameras=cams, projector=proj, lights=rig.lights)
-
-
 def build_rig(preset: Preset):
-    """The nominal default rig (paper-shaped) resized to the preset."""
+    """The nominal default rig (paper-shaped) resized to the preset; with
+    ``preset.n_cameras`` > 0 its two cameras replaced by :func:`ring_cameras`."""
     from facegeo.geometry.rig import Rig, default_rig
 
     rig = default_rig()
+    if preset.n_cameras:
+        rig = Rig(cameras=ring_cameras(preset.n_cameras), projector=rig.projector,
+                  lights=rig.lights)
     if preset.camera_scale != 1.0:
         rig = rig.scaled(preset.camera_scale)
     proj = rig.projector
@@ -338,6 +344,8 @@ def generate_scan(
     projector_scale: float | None = None,
     sl_missing: dict[str, list[str] | str] | None = None,
     calib_board: str = "charuco",
+    witness: bool = False,
+    light_error_deg: float = 0.0,
 ) -> SynthSummary:
     """Synthesise a light-stage capture into the scan directory ``out``.
 
@@ -371,8 +379,8 @@ def generate_scan(
         Replace an existing **synthetic** scan at ``out`` (see *Data safety*).
     progress : callable(stage, done, total), optional
         Called as work proceeds, with stages ``"calib"``, ``"calib.projector"``,
-        ``"structured_light"``, ``"olat"`` and ``"ground_truth"`` (the CLI draws one progress
-        bar per stage).
+        ``"structured_light"``, ``"olat"``, ``"ground_truth"`` and, with ``witness``,
+        ``"reference"`` (the CLI draws one progress bar per stage).
     sl_effects : facegeo.synth.sl_effects.SkinEffects or dict, optional
         Subsurface blur and interreflection in the structured-light frames (default: sharp,
         direct-only frames); recorded in ``scan.metadata.sl_effects``.
@@ -404,6 +412,25 @@ def generate_scan(
         grid printed on the same sheet (:func:`facegeo.synth.boards.board_for_cameras`). The
         plain boards are the common projector–camera set-up: found in each projector view's
         white frame, under the projector's full light.
+    witness : bool
+        Add a calibration-only camera :data:`WITNESS_NAME` (``"witness"``) at a viewpoint the
+        capture cameras do not share (:func:`witness_camera`: 40° from each, above the face),
+        in ``rig.json`` (nominal) and ``ground_truth/rig.json`` (with its own seeded errors,
+        like the others). It sees the camera-calibration board views (``[calib]``, so the
+        calibrated rig places it) and declares every projector-view, structured-light and
+        OLAT frame missing (``[<group>.cameras.witness] missing``). Its reference image — the
+        true head under :data:`WITNESS_ENV` through the true witness camera, Eq. (4) with the
+        render stage's weights (:func:`witness_weights`), :data:`WITNESS_SUPERSAMPLE`² rays per
+        pixel, linear float32 EXR — is written to ``reference/witness_axis_lobes.exr`` and
+        declared as ``[reference] images.witness.axis_lobes``. The capture cameras' frames
+        differ from the scan without it (the shared board views must also be seen whole by
+        the witness), not their rig.
+    light_error_deg : float
+        Light-stage calibration error (1 σ, degrees per tangent axis) in the scan's nominal
+        light list (:func:`perturbed_lights`; :data:`LIGHT_PERTURBATION` suggests 0.5° with
+        5 mm of distance): ``rig.json``'s lights become that list, ``ground_truth/rig.json``
+        keeps the exact grid every frame is rendered with (the frames do not change). 0
+        (default): ``rig.json`` has the exact grid, as before.
 
     Returns
     -------
@@ -449,6 +476,10 @@ def generate_scan(
                 raise InputError(f"sl_effects: expected a SkinEffects or a dict, got "
                                  f"{type(sl_effects).__name__}")
             sl_effects = SkinEffects.from_dict(sl_effects)
+    if not isinstance(witness, bool):
+        raise InputError(f"witness: expected True or False, got {fmt_value(witness)}")
+    if light_error_deg:  # validated here, before anything is built
+        perturbed_lights(build_rig(preset).lights, seed, light_error_deg)
     projector_scale = check_projector_scale(projector_scale)
     sl_phase_steps = check_sl_phase_steps(sl_phase_steps)
     if sl_phase_steps is not None:
@@ -476,10 +507,20 @@ def generate_scan(
         preset, nominal_rig, rig, metadata["projector_scale"] = _rescale_projector(
             preset, projector_scale, renderer, mesh, seed)
     board = _board_for_rig(rig, calib_board)
+    calibration_only: tuple[str, ...] = ()
+    if witness:  # a calibration-only camera (issue 37): after the board, sized on the others
+        nominal_rig, rig = _with_witness(nominal_rig, rig, seed)
+        calibration_only = (WITNESS_NAME,)
+    if light_error_deg:  # the owner's light list, off by a calibration error (issue 37)
+        from facegeo.geometry.rig import Rig
+
+        nominal_rig = Rig(cameras=nominal_rig.cameras, projector=nominal_rig.projector,
+                          lights=perturbed_lights(rig.lights, seed, light_error_deg))
     spec = PatternSpec(width=rig.projector.width, height=rig.projector.height,
                        phase_steps=preset.phase_steps, codes=sl_codes)
     sl_names = pattern_names(spec)
-    lost = resolve_lost_frames(sl_missing, [c.name for c in rig.cameras], sl_names, spec)
+    lost = resolve_lost_frames(sl_missing, [c.name for c in rig.cameras
+                                            if c.name not in calibration_only], sl_names, spec)
     seconds["setup"] = time.perf_counter() - t0
 
     # 3. Tidy leftovers of a killed run, then decide what the old directory holds (refusing a
@@ -497,7 +538,7 @@ def generate_scan(
             olat_format=olat_format, mesh=mesh, nominal_rig=nominal_rig, rig=rig,
             skin_field=skin_field, renderer=renderer, board=board, spec=spec,
             sl_names=sl_names, tick=tick, seconds=seconds, sl_effects=sl_effects, lost=lost,
-            metadata=metadata)
+            metadata=metadata, calibration_only=calibration_only)
         fsutil.write_written_record(tmp, fsutil.list_files(tmp))
         carried: list[str] = []
         if ours is not None:
@@ -524,12 +565,15 @@ def generate_scan(
 
 def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_format, mesh,
                 nominal_rig, rig, skin_field, renderer, board, spec, sl_names, tick,
-                seconds, sl_effects=None, lost=None, metadata=None) -> int:
+                seconds, sl_effects=None, lost=None, metadata=None,
+                calibration_only=()) -> int:
     """Render and write a whole scan into the (empty, staging) directory ``root``; the manifest
     goes last. Returns the number of frames written.
 
     ``lost``: camera → structured-light frames not written (declared missing); ``metadata``:
-    entries for ``scan.metadata``."""
+    entries for ``scan.metadata``; ``calibration_only``: names of cameras that see only the
+    camera-calibration views (every other group's frames declared missing) and get reference
+    images (:data:`WITNESS_ENV`)."""
     from facegeo.capture import imageio, scan as scanmod
     from facegeo.geometry.board import render_board, save_board
     from facegeo.geometry.structured_light import pattern_value_at
@@ -571,7 +615,8 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     t0 = time.perf_counter()
     board_path = root / "calib" / "board.json"
     save_board(board, board_path)
-    poses = rig_calibration_views(board, rig.cameras, preset.calib_views, rng)
+    poses = rig_calibration_views(board, rig.cameras, preset.calib_views, rng,
+                                  corner_per_camera=preset.corner_views)
     calib_files = scanmod.DEFAULT_FILES["calib"]
     exposure = 3.0  # maps a white board under unit irradiance (0.85/π) to ≈ 0.81
     n_total = len(poses) * len(rig.cameras)
@@ -593,18 +638,21 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
 
     # ---- projector calibration: the board under every pattern ----
     proj = rig.projector
+    # the cameras that see the projector views: those near the projector's axis (all of the
+    # default rig's; the middle of a ring; never a calibration-only camera)
+    proj_cams = projector_view_cameras(rig, exclude=calibration_only)
     if preset.projector_views_shared:
-        proj_poses = calibration_board_poses(board, list(rig.cameras) + [proj],
+        proj_poses = calibration_board_poses(board, proj_cams + [proj],
                                              preset.projector_views, rng, shared_every=1,
                                              tilt_deg=tuple(preset.projector_tilt_deg))
     else:  # one camera and the projector: more of the projector's image, more depths
-        proj_poses = calibration_board_poses(board, list(rig.cameras), preset.projector_views,
+        proj_poses = calibration_board_poses(board, proj_cams, preset.projector_views,
                                              rng, shared_every=0,
                                              tilt_deg=tuple(preset.projector_tilt_deg),
                                              fill=tuple(preset.projector_fill),
                                              also_seen_by=[proj])
     proj_files = scanmod.DEFAULT_FILES["calib.projector"]
-    n_total = len(proj_poses) * len(rig.cameras) * len(sl_names)
+    n_total = len(proj_poses) * len(proj_cams) * len(sl_names)
     done = 0
     def projector_view(item):  # the board seen by one camera, lit by the projector (a worker)
         _, T_world_board, cam = item
@@ -615,7 +663,7 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
         base = bv.reflectance[bv.mask] / np.pi
         return bv.mask, base, e_proj, q_proj
 
-    views = [(vi, T, cam) for vi, T in enumerate(proj_poses) for cam in rig.cameras]
+    views = [(vi, T, cam) for vi, T in enumerate(proj_poses) for cam in proj_cams]
     for (vi, _, cam), (mask, base, e_proj, q_proj) in _ordered_map(projector_view, views,
                                                                    workers=2):
         # a camera exposes a pose so that its white frame does not clip: a board nearer the
@@ -629,16 +677,21 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
             _write_srgb(scanmod.frame_path(root, proj_files, camera=cam.name, view=vi, frame=name),
                         np.repeat(val[..., None], 3, axis=2), "calib.projector")
     manifest["calib"]["projector"] = {"views": len(proj_poses), "files": proj_files}
+    unseen = [c.name for c in rig.cameras if all(c is not p for p in proj_cams)]
+    if unseen:  # cameras without projector views declare every view missing
+        manifest["calib"]["projector"]["cameras"] = {
+            c: {"missing": list(range(len(proj_poses)))} for c in unseen}
     seconds["calib"] = time.perf_counter() - t0
 
     # ---- structured light on the head ----
     t0 = time.perf_counter()
     sl_files = scanmod.DEFAULT_FILES["structured_light"]
-    n_total = len(rig.cameras) * len(sl_names) - sum(len(v) for v in lost.values())
+    capture = [c for c in rig.cameras if c.name not in calibration_only]
+    n_total = len(capture) * len(sl_names) - sum(len(v) for v in lost.values())
     done = 0
     from facegeo.synth.sl_effects import render_sl_frames
 
-    for cam in rig.cameras:
+    for cam in capture:
         # the skin BRDF under the projector as a point light with Embree shadows, the pattern
         # modulating it per projector pixel (and, with sl_effects, blurred by subsurface
         # scattering and lifted by interreflection; synth.sl_effects)
@@ -652,8 +705,10 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
                         "structured_light")
     manifest["structured_light"] = {"response": "srgb", "projector": proj.name, "frames": sl_names,
                                     "files": sl_files, "patterns": spec.to_dict()}
-    if lost:
-        manifest["structured_light"]["cameras"] = {c: {"missing": list(f)} for c, f in lost.items()}
+    sl_gone = {c: list(f) for c, f in lost.items()}
+    sl_gone.update({c: list(sl_names) for c in calibration_only})
+    if sl_gone:
+        manifest["structured_light"]["cameras"] = {c: {"missing": f} for c, f in sl_gone.items()}
     if sl_effects is not None:
         manifest["scan"].setdefault("metadata", {})["sl_effects"] = sl_effects.to_dict()
     seconds["structured_light"] = time.perf_counter() - t0
@@ -663,11 +718,11 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     olat_files = scanmod.DEFAULT_FILES["olat"]
     if olat_format == "png16":
         olat_files = olat_files.rsplit(".", 1)[0] + ".png"
-    n_total = len(rig.cameras) * rig.lights.n_lights
+    n_total = len(capture) * rig.lights.n_lights
     done = 0
     uniform_renders = {}
     solid = rig.lights.solid_angles
-    for cam in rig.cameras:
+    for cam in capture:
         acc = np.zeros((cam.height, cam.width, 3), np.float64)
         for l, img in renderer.olat_images(cam, rig.lights):
             acc += solid[l] * img  # the uniform-environment reference (Eq. 4), noise-free
@@ -686,6 +741,9 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
                         "exposure": 1.0 if olat_format == "exr" else OLAT_PNG_EXPOSURE,
                         "n_lights": rig.lights.n_lights, "light_order": "theta-fastest",
                         "files": olat_files}
+    if calibration_only:
+        manifest["olat"]["cameras"] = {c: {"missing": list(range(rig.lights.n_lights))}
+                                       for c in calibration_only}
     seconds["olat"] = time.perf_counter() - t0
 
     # ---- ground truth ----
@@ -694,10 +752,36 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
                              tick=tick)
     manifest["ground_truth"] = gt
     seconds["ground_truth"] = time.perf_counter() - t0
+    if calibration_only:
+        t0 = time.perf_counter()
+        manifest["reference"] = _write_witness_references(root, rig, renderer,
+                                                          calibration_only, tick=tick)
+        seconds["reference"] = time.perf_counter() - t0
 
     scanmod.write_manifest(root, manifest)
     return frames
 
+
+
+def _write_witness_references(root: Path, rig, renderer, names, *, tick) -> dict:
+    """The reference images of the calibration-only cameras ``names``: the true head through
+    the true camera under :data:`WITNESS_ENV`, Eq. (4) (Debevec et al. 2000) over the true
+    light stage with :func:`witness_weights`, :data:`WITNESS_SUPERSAMPLE`² rays per pixel,
+    linear float32 EXR. Returns the ``[reference]`` table (``images.<camera>.<env>``, the key
+    ``facegeo.evaluate.views.reference_image_key`` reads)."""
+    from facegeo.capture import imageio
+
+    w = witness_weights(rig.lights)
+    images: dict = {}
+    for k, name in enumerate(names):
+        tick("reference", k, len(names))
+        cam = rig.camera(name)
+        img = renderer.render_lights(cam, rig.lights, w, supersample=WITNESS_SUPERSAMPLE)
+        rel = f"reference/{name}_{WITNESS_ENV}.exr"
+        imageio.write_image(root / rel, img.astype(np.float32), half=False)
+        images[name] = {WITNESS_ENV: rel}
+    tick("reference", len(names), len(names))
+    return {"images": images}
 
 
 # ---------------------------------------------------------------------------- data safety

@@ -1,0 +1,173 @@
+"""Issue 37: the chain is the default. ``reconstruct`` with ``--rig auto --mesh auto`` runs the
+whole chain — the calibrated rig when the boards calibrate, the reconstructed mesh whenever the
+scan has structured light, synthetic or not — and the stage-alone figures (the same stages fed
+the generator's rig and mesh) are a diagnostic pass of their own (``out/diagnostic/``).
+
+The figures asserted here are the chain's, with the values measured on 2026-12-02 in the
+comments (seed 0; ``facegeo demo SCAN --preset tiny|small`` prints both columns).
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from facegeo.pipeline import reconstruct
+
+# --------------------------------------------------------------------------- tolerances
+# tiny preset (80 × 120 px cameras): the boards show no marker, so "auto" falls back to the
+# generator's rig; the mesh is the chain's own (camera–projector structured light)
+#: projection against the generator's exact shading, on the reconstructed mesh (measured 8.10 %;
+#: stage alone, on the true mesh: 4.04 %)
+TINY_PROJECTION_REL_RMSE = 0.10
+#: novel views: PSNR gain over the naive render on covered pixels, worst of the four orbits
+#: (measured +1.19 dB; stage alone +2.16 dB)
+TINY_GAIN_COVERED_DB = 0.8
+#: ... and over the whole head mask, worst view (measured +0.0018 dB: the reconstruction's
+#: missing geometry renders black in both; stage alone +1.19 dB)
+TINY_GAIN_HEAD_DB = -0.05
+
+# small preset (240 × 360 px, 512 lights, 30 board views): the calibrated rig (0.20° / 3.56 mm
+# from the generator's frame), the reconstructed mesh (0.078 mm points RMS after alignment)
+#: projection (measured 4.08 % on 2026-12-02; issue 37 quoted 2.87 % before the evaluation
+#: moved; stage alone 1.40 %)
+SMALL_PROJECTION_REL_RMSE = 0.05
+#: novel views, covered pixels, worst of the four orbits: issue 37's bar, 3 dB (measured
+#: +3.36 dB at +30°; −30° +3.66, −60° +7.82, +60° +5.15; stage alone +4.15 dB worst). Over
+#: the whole head mask the chain gains +0.008 dB at worst (the reconstruction's missing
+#: geometry is background in every render): issue 37's 1 dB there is not met yet.
+SMALL_GAIN_COVERED_DB = 3.0
+
+
+@pytest.fixture(scope="module")
+def tiny_chain(tmp_path_factory):
+    """A tiny scan run as ``facegeo demo`` runs it: the chain, then the stage-alone pass."""
+    from facegeo.synth.capture import generate_scan
+
+    root = tmp_path_factory.mktemp("chain") / "tiny"
+    generate_scan(root, "tiny", seed=0)
+    reconstruct.run_reconstruct(root)
+    reconstruct.run_diagnostic(root)
+    chain = json.loads((root / "out" / "metrics.json").read_text())
+    alone = json.loads((root / "out" / reconstruct.DIAGNOSTIC_DIR / "metrics.json").read_text())
+    return root, chain, alone
+
+
+@pytest.mark.slow
+def test_the_default_run_is_the_chain(tiny_chain):
+    root, chain, alone = tiny_chain
+    assert chain["run"]["mesh"] == "reconstructed"
+    # the tiny boards calibrate nothing: "auto" falls back, and the record says why
+    assert "error" in chain["calibrate"]
+    assert chain["run"]["rig"] == "ground_truth"
+    assert chain["run"]["rig_note"].startswith("rig auto: the calibration failed")
+    # the atlas is built on the chain's mesh, not the generator's
+    atlas = json.loads((root / "out" / "atlas" / "stage.json").read_text())
+    assert atlas["settings"]["mesh"] == "reconstructed"
+    # the diagnostic pass: the true rig and mesh, no calibration of its own
+    assert alone["run"] == {"rig": "ground_truth", "mesh": "ground_truth",
+                            "world": "the generator's (ground_truth/rig.json)"}
+    assert "calibrate" not in alone
+
+
+@pytest.mark.slow
+def test_the_chains_figures_on_the_tiny_preset(tiny_chain):
+    _, chain, alone = tiny_chain
+    ev, ev_alone = chain["evaluate"], alone["evaluate"]
+    assert ev["project"]["projection_rel_rmse"] <= TINY_PROJECTION_REL_RMSE
+    assert ev["render"]["psnr_gain_db_covered_min"] >= TINY_GAIN_COVERED_DB
+    assert ev["render"]["psnr_gain_db_min"] >= TINY_GAIN_HEAD_DB
+    # the chain's mesh costs the surface stages something: the stage-alone figures are better
+    assert ev_alone["project"]["projection_rel_rmse"] < ev["project"]["projection_rel_rmse"]
+    assert ev_alone["render"]["psnr_gain_db_covered_min"] \
+        > ev["render"]["psnr_gain_db_covered_min"]
+
+
+@pytest.mark.slow
+def test_both_passes_meet_the_same_references(tiny_chain):
+    """The stage-alone pass renders the chain's views (moved into the generator's frame), so
+    the two are compared with one set of reference images, rendered once."""
+    root, chain, alone = tiny_chain
+    views, views_alone = chain["evaluate"]["render"]["views"], \
+        alone["evaluate"]["render"]["views"]
+    assert set(views) == set(views_alone) and len(views) == len(reconstruct.RENDER_ORBITS)
+    refs = sorted((root / "out" / ".reference-renders").glob("*.npy"))
+    assert len(refs) == len(views)  # one per view, not one per view and pass
+    from facegeo.capture.imageio import read_image
+
+    for stem in views:
+        a = read_image(root / "out" / "evaluate" / "render" / f"{stem}_reference.exr")
+        b = read_image(root / "out" / reconstruct.DIAGNOSTIC_DIR / "evaluate" / "render"
+                       / f"{stem}_reference.exr")
+        assert (a == b).all(), stem  # bit for bit
+
+
+@pytest.mark.slow
+def test_the_report_shows_chain_and_stage_alone(tiny_chain):
+    from facegeo.pipeline.report import chain_and_stage_alone, write_report
+
+    root, chain, alone = tiny_chain
+    rows = {(r["stage"], r["figure"]): r for r in chain_and_stage_alone(root / "out")}
+    r = rows[("project", "projection_rel_rmse")]
+    assert r["chain"] == chain["evaluate"]["project"]["projection_rel_rmse"]
+    assert r["stage_alone"] == alone["evaluate"]["project"]["projection_rel_rmse"]
+    assert rows[("render", "psnr_gain_db_covered_min")]["stage_alone"] \
+        == alone["evaluate"]["render"]["psnr_gain_db_covered_min"]
+    page = write_report(root / "out").read_text()
+    assert "The chain and the stages alone" in page
+    # without a diagnostic pass there is nothing to show beside the chain
+    assert chain_and_stage_alone(root / "out" / "nowhere") == []
+
+
+def test_auto_takes_the_calibrated_rig_and_reconstructed_mesh_before_any_run(tmp_path):
+    """Resolved from what the scan holds: board views → the calibrated rig, structured light
+    → the reconstructed mesh, synthetic or not; the truth only when asked for."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.synth.capture import Preset, generate_scan
+
+    preset = Preset("choices", 1 / 6, 4, 2, 2, (64, 48), 2, 1, 0, olat_half=False,
+                    sl_supersample=1)
+    generate_scan(tmp_path / "scan", preset, seed=0)
+    scan = load_scan(tmp_path / "scan")
+    assert reconstruct.run_choices(scan)["rig"] == "calibrated"
+    assert reconstruct.run_choices(scan)["mesh"] == "reconstructed"
+    assert reconstruct.run_choices(scan, rig="ground_truth", mesh="ground_truth") == {
+        "rig": "ground_truth", "mesh": "ground_truth",
+        "world": "the generator's (ground_truth/rig.json)"}
+    # a calibration that failed: the fallback is on record
+    got = reconstruct.run_choices(scan, calibration_error="no board found")
+    assert got["rig"] == "ground_truth" and "no board found" in got["rig_note"]
+    # the stages of the default pipeline wait for the calibration and the mesh
+    spec = {s.name: s for s in reconstruct.reconstruct_pipeline(scan).stages}
+    assert "calibrate" in spec["project"].after and "mesh" in spec["atlas"].after
+    assert spec["project"].settings["rig"] == "calibrated"
+    assert spec["atlas"].settings["mesh"] == "reconstructed"
+    # the diagnostic pipeline: the truth, no calibration, its own folder
+    diag = reconstruct.reconstruct_pipeline(scan, rig="ground_truth", mesh="ground_truth",
+                                            diagnostic=True)
+    assert "calibrate" not in diag.names and diag.out_name == "out/diagnostic"
+    assert {s.name: s for s in diag.stages}["project"].settings["rig"] == "ground_truth"
+    from facegeo.errors import InputError
+
+    with pytest.raises(InputError, match="diagnostic pass feeds"):
+        reconstruct.reconstruct_pipeline(scan, diagnostic=True)
+
+
+@pytest.mark.slow
+def test_the_chains_figures_on_the_small_preset(tmp_path):
+    """The demo's scan: the whole chain on the calibrated rig, as ``facegeo demo`` runs it.
+    Minutes (``slow``)."""
+    from facegeo.synth.capture import generate_scan
+
+    root = tmp_path / "small"
+    generate_scan(root, "small", seed=0)
+    reconstruct.run_reconstruct(root)
+    m = json.loads((root / "out" / "metrics.json").read_text())
+    assert m["run"]["rig"] == "calibrated" and m["run"]["mesh"] == "reconstructed"
+    assert "rig_note" not in m["run"]
+    ev = m["evaluate"]
+    print({k: ev["project"][k] for k in ("projection_rel_rmse", "visibility_agreement")},
+          {k: v for k, v in ev["render"].items() if k != "views"})
+    assert ev["project"]["projection_rel_rmse"] <= SMALL_PROJECTION_REL_RMSE
+    assert ev["render"]["psnr_gain_db_covered_min"] >= SMALL_GAIN_COVERED_DB
