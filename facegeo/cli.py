@@ -541,11 +541,13 @@ def _cmd_relight(args) -> int:
                          f"({', '.join(SHIPPED_MAPS)})")
     tick, close = _progress_factory(not args.quiet)
     try:
-        m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
-                        out_dir=args.out, projection=args.projection,
-                        convention=args.envmap_convention,
-                        solid_angle="exact" if args.exact_solid_angles else "paper",
-                        progress=tick, read_ahead=READ_AHEAD_WORKERS, model=args.model)
+        with _engine(args) as engine:
+            m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
+                            out_dir=args.out, projection=args.projection,
+                            convention=args.envmap_convention,
+                            solid_angle="exact" if args.exact_solid_angles else "paper",
+                            progress=tick, read_ahead=READ_AHEAD_WORKERS, model=args.model,
+                            engine=engine, store=args.store)
     finally:
         close()
     what = ("directions of the fitted model" if m.get("model") == "fitted" else "lights lit")
@@ -643,7 +645,8 @@ def _engine_options(s) -> None:
     """``--workers N`` / ``--scheduler ADDRESS`` / ``--memory-limit SIZE`` (docs/scale.md)."""
     g = s.add_mutually_exclusive_group()
     g.add_argument("--workers", type=_pos_int, default=None, metavar="N",
-                   help="run the stages' tasks (decode, project: one per camera) on a local "
+                   help="run the stages' tasks (decode, project: one per camera; fit, "
+                        "relight: per chunk of texels) on a local "
                         "Dask cluster of N worker processes × 1 thread (default: in this "
                         "process)")
     g.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -1099,6 +1102,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "every direction of the environment, specular lobes from the model")
     s.add_argument("--out", default=None, help="output folder (default: SCAN/out/relit)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    _engine_options(s)
+    s.add_argument("--store", default=None, metavar="URL",
+                   help="--view texture: the tasks' relit rows in this fsspec store "
+                        "(s3://bucket/prefix) instead of the output folder, for workers that "
+                        "share no disk (docs/scale.md)")
     s.set_defaults(func=_cmd_relight)
 
     rig_help = ("rig of the stages after calibration: 'auto' (the calibrated one when the scan "
@@ -1119,7 +1127,7 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
         if name in ("decode", "mesh"):
             _max_coarse_option(s)
-            _engine_options(s)
+        _engine_options(s)
         if name == "mesh":
             _mesh_options(s)
         if name == "fit":

@@ -93,6 +93,14 @@ def test_in_process_runs_in_order_with_progress():
     assert all(r.worker == "in-process" for r in eng.records)
 
 
+def test_progress_counts_task_sizes():
+    """``progress`` counts each task's ``size`` (a fit task: its functions), not tasks."""
+    calls = []
+    tasks = [Task(f"t{i}", _square, (i,), size=n) for i, n in ((1, 5), (2, 0), (3, 7))]
+    InProcessEngine().map("fit", tasks, progress=lambda *a: calls.append(a))
+    assert calls == [("fit", 0, 12), ("fit", 5, 12), ("fit", 5, 12), ("fit", 12, 12)]
+
+
 def test_results_must_be_small_dicts():
     eng = InProcessEngine()
     with pytest.raises(InputError, match="returned list"):

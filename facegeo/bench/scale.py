@@ -1,4 +1,5 @@
-"""Scaling out (issue 38): the decode stage on one worker against two, beside the in-process run;
+"""Scaling out (issue 38): the decode, project and whole reconstruct runs on one worker against
+two, beside the in-process run;
 and the cost of storing a reflectance field as Zarr against ``.npy``.
 
 ``scale.decode`` — one synthetic scan (the generator at :data:`SCAN_PRESET`, or the quick
@@ -343,6 +344,190 @@ def bench_scale_project(quick: bool) -> list[BenchRow]:
             rows.append(BenchRow("scale.project", f"project, {case}", texel_lights / r["seconds"]
                                  / 1e6, "M texel·lights/s", error=differ / max(len(ref), 1),
                                  error_unit="product files not byte-identical to in-process",
+                                 ratios=ratios, extra=extra, threads=r["threads"],
+                                 baseline_threads=base_threads))
+    return rows
+
+
+#: ``scale.reconstruct``: memory limit of each worker, the full run. The ``modern`` preset at
+#: :data:`RECONSTRUCT_SETTINGS`' 1.35 texels/mm (≈ 78 k texels): the largest task, a relight of
+#: 32,766 rows × 512 lights, states 129 MiB and a projection ≈ 106 MiB, over the 300 MiB
+#: interpreter — 0.8 × 640 MiB holds either; the 16 cameras' fields (≈ 2.4 GB float16) are
+#: ≈ 3.6× this.
+RECONSTRUCT_WORKER_LIMIT = "640MiB"
+#: ... the quick run's (``modern_tiny``: 32 lights, a coarse atlas).
+RECONSTRUCT_QUICK_LIMIT = "512MiB"
+#: Stage settings of the runs: the reconstruct defaults but for a subsampled fit (every
+#: function the views need, at 512 lights, would take most of an hour here), an atlas a little
+#: finer than the default (a field of several worker limits) and, quick, a coarse atlas.
+RECONSTRUCT_SETTINGS = {"atlas": {"texels_per_mm": 1.35}, "fit": {"max_texels": 1500}}
+RECONSTRUCT_QUICK_SETTINGS = {"atlas": {"texels_per_mm": 0.35},
+                              "fit": {"max_texels": 64, "chunk": 32}}
+#: The stages compared and timed (``facegeo reconstruct --until fit``, then ``--only relight``).
+RECONSTRUCT_STAGES = ("decode", "mesh", "atlas", "project", "fit", "relight")
+
+
+def _linked_copy(src: Path, dest: Path) -> Path:
+    """The scan's files hard-linked into ``dest`` (no copy of the frames; its own ``out/``)."""
+    import os
+    import shutil
+
+    shutil.copytree(src, dest, copy_function=os.link,
+                    ignore=shutil.ignore_patterns("out"))
+    return dest
+
+
+def _mpx_frames(scan: Path) -> float:
+    """Megapixels × structured-light frames of a scan, over its cameras."""
+    from facegeo.capture.scan import load_scan
+
+    s = load_scan(scan)
+    return sum(s.rig.camera(c).width * s.rig.camera(c).height for c in s.camera_names) \
+        * len(s.sl_frames) / 1e6
+
+
+def _compare_products(a: Path, b: Path) -> tuple[int, int, float]:
+    """(files, files not byte-identical, largest relative difference of their arrays)."""
+    worst, differ, n = 0.0, 0, 0
+    da = {str(p.relative_to(a)): p for p in sorted(a.rglob("*"))
+          if p.is_file() and p.suffix in (".npz", ".npy", ".png", ".exr", ".ply")}
+    for name, p in da.items():
+        n += 1
+        q = b / name
+        if not q.is_file():
+            differ += 1
+            worst = float("inf")
+            continue
+        if p.read_bytes() == q.read_bytes():
+            continue
+        differ += 1
+        if p.suffix == ".npy":
+            pairs = [(np.load(p), np.load(q))]
+        elif p.suffix == ".npz":
+            with np.load(p) as x, np.load(q) as y:
+                pairs = [(x[k], y[k]) for k in x.files if "seconds" not in k]  # timings
+        else:
+            worst = float("inf")
+            continue
+        for x, y in pairs:
+            if x.dtype.kind != "f" or x.shape != y.shape:
+                worst = max(worst, 0.0 if np.array_equal(x, y) else float("inf"))
+                continue
+            x, y = x.astype(np.float64), y.astype(np.float64)
+            ok = np.isfinite(x) & np.isfinite(y)
+            if not np.array_equal(np.isfinite(x), np.isfinite(y)):
+                worst = float("inf")
+            if ok.any():
+                scale = max(float(np.abs(x[ok]).max()), 1e-30)
+                worst = max(worst, float(np.abs(x[ok] - y[ok]).max()) / scale)
+    return n, differ, worst
+
+
+@register("scale.reconstruct")
+def bench_scale_reconstruct(quick: bool) -> list[BenchRow]:
+    """``facegeo reconstruct`` of the ``modern`` preset (16 cameras × 512 lights; quick:
+    ``modern_tiny``) through decode, mesh, atlas, project, fit and relight, three ways: in
+    process (numba's two threads), on a ``LocalCluster`` of one worker and of two, each worker
+    limited to :data:`RECONSTRUCT_WORKER_LIMIT` — the cameras' reflectance fields together are
+    several times that (``fields / worker limit``). One run each (minutes), from a fresh
+    ``out/``; every product of every stage compared with the in-process run's (files not
+    byte-identical, and their arrays' largest relative difference). Speed: projected
+    texel·lights per second of the whole run; per stage its seconds, and per cluster stage the
+    workers' peak RSS."""
+    from facegeo.pipeline.engine import make_engine
+    from facegeo.pipeline.reconstruct import run_reconstruct
+    from facegeo.synth.capture import generate_scan
+
+    preset = "modern_tiny" if quick else "modern"
+    limit = RECONSTRUCT_QUICK_LIMIT if quick else RECONSTRUCT_WORKER_LIMIT
+    settings = RECONSTRUCT_QUICK_SETTINGS if quick else RECONSTRUCT_SETTINGS
+    rows: list[BenchRow] = []
+    with tempfile.TemporaryDirectory(prefix="facegeo-scale-rec-") as tmp:
+        tmp = Path(tmp)
+        t0 = time.perf_counter()
+        generate_scan(tmp / "scan", preset, seed=0)
+        t_synth = time.perf_counter() - t0
+        results = {}
+        for case, workers in (("in-process", None), ("LocalCluster, 1 worker × 1 thread", 1),
+                              ("LocalCluster, 2 workers × 1 thread", 2)):
+            scan = _linked_copy(tmp / "scan", tmp / f"run-{workers or 0}")
+            reset_peak_rss()
+            t0 = time.perf_counter()
+            with make_engine(workers=workers, memory_limit=limit if workers else None) as eng:
+                start = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                res = run_reconstruct(scan, until="fit", settings=settings, engine=eng)
+                res += run_reconstruct(scan, only="relight", settings=settings, engine=eng)
+                total = time.perf_counter() - t0
+                peaks: dict[str, dict[str, float]] = {}
+                for r in eng.records:
+                    if r.peak_rss_mb is not None and workers:
+                        w = peaks.setdefault(r.stage, {})
+                        w[r.worker] = max(w.get(r.worker, 0.0), r.peak_rss_mb)
+                n_tasks = {st: sum(r.stage == st for r in eng.records) for st in RECONSTRUCT_STAGES}
+            results[case] = dict(seconds=total, start=start, threads=workers or 2,
+                                 stages={r.name: r.seconds for r in res},
+                                 peaks=peaks, tasks=n_tasks, out=scan / "out",
+                                 peak=peak_rss_mb(),
+                                 limit_mb=None if not workers
+                                 else round(eng.memory_limit / 2 ** 20))
+        ref = results["in-process"]
+        proj = ref["out"] / "project"
+        field_bytes = sum(p.stat().st_size for p in proj.glob("*/R.npy"))
+        import json
+
+        pm = json.loads((ref["out"] / "metrics.json").read_text())["project"]
+        texel_lights = sum(c["weighted_texels"] for c in pm["cameras"].values()) * pm["lights"]
+        lim = results["LocalCluster, 1 worker × 1 thread"]["limit_mb"]
+        for case, r in results.items():
+            doc = json.loads((r["out"] / "metrics.json").read_text())
+            fm = doc["fit"]
+            fit_s = sum(c["seconds"] for c in fm["cameras"].values())
+            relit_rows = sum(c["weighted_texels"] for c in pm["cameras"].values())
+            costs = {
+                "fit µs per function·light (task seconds)": round(
+                    1e6 * fit_s / max(fm["functions"] * fm["lights"], 1), 4),
+                "relight µs per texel·light (stage seconds)": round(
+                    1e6 * r["stages"]["relight"] / max(relit_rows * pm["lights"], 1), 5),
+                "project µs per projected texel·light (stage seconds)": round(
+                    1e6 * r["stages"]["project"] / max(texel_lights, 1), 4),
+                "decode s per megapixel-frame (stage seconds)": round(
+                    r["stages"]["decode"] / max(doc["decode"].get("megapixel_frames", 0) or
+                                                _mpx_frames(r["out"].parent), 1e-9), 4),
+            }
+            files = differ = 0
+            worst = 0.0
+            for st in RECONSTRUCT_STAGES:
+                n, d, w = _compare_products(ref["out"] / st, r["out"] / st)
+                files, differ, worst = files + n, differ + d, max(worst, w)
+            extra = {"scan": f"{preset}: {len(pm['cameras'])} cameras × {pm['lights']} lights, "
+                             f"{pm['texels']} texels",
+                     "synth s": round(t_synth, 1), "seconds": round(r["seconds"], 2),
+                     "stage s": {k: round(v, 2) for k, v in r["stages"].items()},
+                     "per-camera fields GB": round(field_bytes / 1e9, 3),
+                     "fields / worker limit": round(field_bytes / (lim * 2 ** 20), 2),
+                     "files compared": files, "files not byte-identical": differ,
+                     "max relative difference": worst, **costs}
+            ratios, base_threads = {}, {}
+            if case.startswith("LocalCluster"):
+                extra.update({"cluster start s": round(r["start"], 2),
+                              "worker memory limit MiB": r["limit_mb"],
+                              "tasks per stage": r["tasks"],
+                              "worker peak RSS MiB per stage": {
+                                  st: sorted(round(v, 1) for v in w.values())
+                                  for st, w in r["peaks"].items()}})
+                ratios["vs in-process (2 threads)"] = ref["seconds"] / r["seconds"]
+                base_threads["vs in-process (2 threads)"] = 2
+                if r["threads"] == 2:
+                    one = results["LocalCluster, 1 worker × 1 thread"]["seconds"]
+                    ratios["vs LocalCluster, 1 worker × 1 thread"] = one / r["seconds"]
+                    base_threads["vs LocalCluster, 1 worker × 1 thread"] = 1
+            else:
+                extra["peak RSS MiB (this process)"] = round(r["peak"], 1)
+            rows.append(BenchRow("scale.reconstruct", f"reconstruct, {case}",
+                                 texel_lights / r["seconds"] / 1e6, "M texel·lights/s",
+                                 error=worst, error_unit="max relative difference of any "
+                                 "product array to in-process (0: every file byte-identical)",
                                  ratios=ratios, extra=extra, threads=r["threads"],
                                  baseline_threads=base_threads))
     return rows

@@ -49,6 +49,8 @@ docs/skin.md, "Near-field light stages".
 from __future__ import annotations
 
 import logging
+import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -63,8 +65,9 @@ from facegeo.render.novel import even_subset
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FIT_SETTINGS", "IMAGE_FIT_SETTINGS", "default_views", "fit_products",
-           "fit_image_products", "image_space_scan", "needed_texels", "run_fit"]
+__all__ = ["FIT_SETTINGS", "FIT_TASK_CHUNKS", "IMAGE_FIT_SETTINGS", "default_views",
+           "fit_chunk_task", "fit_products", "fit_image_products", "fit_working_set",
+           "image_space_scan", "needed_texels", "run_fit"]
 
 #: Default settings of the ``fit`` stage (JSON-serialisable, part of its cache key).
 FIT_SETTINGS: dict[str, Any] = {
@@ -84,16 +87,25 @@ def default_views(cameras: list[str], novel: list[str] = ()) -> list[str]:
 
 
 def _camera_table(scan, rig) -> dict:
-    """Cameras a view spec may name: the rig's and the generator's novel ones."""
+    """Cameras a view spec may name: the rig's, the generator's novel ones, and ``front``
+    (:func:`facegeo.render.front_camera`) made from the capture cameras alone — the cameras
+    with OLAT frames, so that neither the generator's novel cameras nor a calibration-only
+    witness camera moves the rig's frontal view and the orbits around it."""
     import json
 
     from facegeo.geometry.camera import Camera
+    from facegeo.render._cameras import FRONT, front_camera
 
     cams = {c.name: c for c in rig.cameras}
+    capture = scan.cameras_with_frames("olat") if scan.has("olat") else []
+    capture = [n for n in capture if n in cams] or list(cams)
+    front = front_camera({n: cams[n] for n in capture}) if capture else None
     if "novel_cameras" in scan.ground_truth_keys:
         for d in json.loads(scan.ground_truth_path("novel_cameras").read_text(encoding="utf-8")):
             c = Camera.from_dict(d, where="ground_truth/novel_cameras.json")
             cams[c.name] = c
+    if front is not None and FRONT not in cams:
+        cams[FRONT] = front
     return cams
 
 
@@ -184,7 +196,8 @@ def reflectance_mosaic(R, n_theta: int, n_phi: int, *, scale: int = 4, cols: int
 
 
 def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float = 1.4,
-               depth=None, chunk: int = 2048, threads: int = 1, near=None):
+               depth=None, chunk: int = 2048, threads: int = 1, near=None,
+               per_row: bool = True):
     """Fit rows ``rows`` of a camera's projected field chunk by chunk into ``writer``; yields
     ``(rows of the chunk, SkinFit, finite)`` per chunk (the fit stage's loop, also timed by
     ``facegeo bench skin.fit_stream``).
@@ -215,6 +228,9 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
     eta, depth, chunk, threads — as :func:`facegeo.appearance.skin.fit_reflectance`
     near : NearField of every row (T rows), optional — a near-field light stage: each chunk is
         fitted by :func:`facegeo.appearance.skin.fit_reflectance_near` (each light where it is)
+    per_row : bool — True (default): ``v_world``, ``texel_index`` and ``near`` hold every row
+        of the field (indexed by row); False: one entry per entry of ``rows`` (indexed by
+        position; a fit task holds only its own functions', :func:`fit_chunk_task`)
 
     Yields
     ------
@@ -263,8 +279,12 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
             masked[bad] = m
         return rr, R, ok, masked
 
+    def at(q, rr):  # the entries of v_world / texel_index / near for chunk q's rows
+        return rr if per_row else np.arange(starts[q], starts[q] + rr.size)
+
     def submit(pool, q, got):
         rr, R, _, masked = got
+        rr = at(q, rr)
         if near is not None:
             return pool.submit(fit_reflectance_near, R, v_world[rr], lights, near.take(rr),
                                masked=masked, eta=eta, depth=depth, threads=threads,
@@ -284,7 +304,7 @@ def fit_chunks(field, rows, v_world, lights, writer, texel_index, *, eta: float 
             if nxt is not None:
                 job = submit(pool, q + 1, nxt)  # the cores fit q + 1 while q is stored
             rr, _, ok, _ = cur
-            writer.write(rr, texel_index[rr], fit)
+            writer.write(rr, texel_index[at(q, rr)], fit)
             yield rr, fit, ok  # the caller's work on chunk q runs while q + 1 is fitted
             cur = nxt
 
@@ -305,7 +325,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                  chunk: int = 2048, diffuse_dtype: str = "float16", mosaic: int = 8,
                  rig: str | None = None,
                  polish: int | None = None, supersample: int = 1, near_field: str = "auto",
-                 progress=None) -> tuple[dict, dict]:
+                 engine=None, progress=None) -> tuple[dict, dict]:
     """Fit the skin model to every camera's projected field; write the ``fit`` products.
 
     Parameters
@@ -337,7 +357,13 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
         offset from the stage centre gives every light's true direction and falloff, in the fit
         and in Eq. 9); "off": every light distant, as the paper. Small preset (r = 1.5 m):
         docs/skin.md, "Near-field light stages".
-    progress : callable(stage, done, total), optional — called per chunk with functions fitted
+    engine : facegeo.pipeline.engine.Engine, optional — where the fit tasks run (default in
+        process): each camera's selection in tasks of :data:`FIT_TASK_CHUNKS` fit chunks
+        (:func:`fit_chunk_task`), each checked against a worker's memory
+        (:func:`fit_working_set`) before any runs; the products are the same whatever the
+        engine (the maps are blended here afterwards, in camera and chunk order)
+    progress : callable(stage, done, total), optional — called as fit tasks finish, with
+        the functions fitted
 
     Returns
     -------
@@ -345,9 +371,12 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     """
     from facegeo.appearance.skin import FLAG_NAMES, SearchDepth
     from facegeo.capture import imageio
+    from facegeo.fsutil import NpyRowFile
+    from facegeo.pipeline.engine import InProcessEngine, Task
+    from facegeo.render._fitstore import DIFFUSE_FILE
     from facegeo.rss import peak_rss_mb
     from facegeo.pipeline.project import check_projection_atlas, stage_rig
-    from facegeo.render import FitWriter, atlas_scene, light_set, load_sources
+    from facegeo.render import atlas_scene, light_set, load_sources
     from facegeo.surface.atlas import Atlas, Texels
 
     t_start = time.perf_counter()
@@ -374,7 +403,7 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                 "rig": rig_used, "polish": polish, "supersample": int(supersample),
                 "near_field": near_field}
     near_all = _near_field(the_rig.lights, tex, near_field)
-    depth = SearchDepth() if polish is None else SearchDepth(polish=int(polish))
+    SearchDepth() if polish is None else SearchDepth(polish=int(polish))  # checked here
     cam_table = _camera_table(scan, the_rig)
     need = None
     t_views = 0.0
@@ -400,39 +429,47 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             r, seen = src.rows_of(need)
             rows = np.unique(r[seen])
         selections.append(rows[even_subset(rows.size, max_texels)])
-    n_all = int(sum(r.size for r in selections))
-    # both cores when numba has them (the fit is bit-identical at any thread count, so the
-    # thread count is not a setting of the stage's cache key)
-    import numba
-
-    threads = max(1, min(2, int(numba.config.NUMBA_NUM_THREADS)))
+    # each camera's selection in tasks of whole fit chunks (the same chunks as one loop over
+    # the camera: the fits are those of fitting each chunk in turn, wherever a task runs)
+    engine = InProcessEngine() if engine is None else engine
+    parts_dir = dest / _PARTS
+    tasks = []
+    for src, rows in zip(sources, selections):
+        cam_parts = parts_dir / src.name
+        cam_parts.mkdir(parents=True, exist_ok=True)
+        np.save(cam_parts / "rows.npy", rows)
+        if near_all is not None:  # each selected function's offset from the stage centre
+            np.save(cam_parts / "offsets.npy", near_all.offsets[src.texel_index[rows]])
+        (dest / src.name).mkdir(parents=True, exist_ok=True)
+        NpyRowFile(dest / src.name / DIFFUSE_FILE, (rows.size, lights.n_lights,
+                                                    src.field.shape[2]), diffuse_dtype).close()
+        for a, b in task_bounds(rows.size, int(chunk)):
+            tasks.append(Task(
+                f"{src.name} {a}:{b}", fit_chunk_task,
+                (str(project_dir / src.name), str(cam_parts), str(dest / src.name / DIFFUSE_FILE), a, b,
+                 the_rig.lights, None if near_all is None else float(near_all.radius), eta,
+                 polish, int(chunk), diffuse_dtype),
+                working_set=fit_working_set(b - a, lights.n_lights, src.field.shape[2],
+                                            int(chunk), diffuse_dtype,
+                                            gathered=not isinstance(src.field, np.ndarray)),
+                size=b - a))
+    results = engine.map("fit", tasks, progress=progress)
+    by_task = dict(zip((t.name for t in tasks), results))
     for src, rows in zip(sources, selections):
         t0 = time.perf_counter()
-        writer = FitWriter(dest / src.name, rows.size, lights.n_lights,
-                           src.field.shape[2], diffuse_dtype)
-        flag_parts = []
-        done = 0
-        n_valid = 0
-        near = None if near_all is None else near_all.take(src.texel_index)
-        for rr, fit, _ in fit_chunks(src.field, rows, src.v_world, lights, writer,
-                                     src.texel_index, eta=eta, depth=depth, chunk=int(chunk),
-                                     threads=threads, near=near):
-            flag_parts.append(fit.flags)
-            done += len(rr)
-            n_valid += int(np.count_nonzero(fit.valid))
-            t_id = src.texel_index[rr]
-            # masked samples are left out of each fit (fit_chunks): a valid fit counts
-            wc = np.where(fit.valid, src.weight[rr].astype(np.float64), 0.0)
-            acc["normal"][t_id] += wc[:, None] * fit.normal
-            acc["rho_d"][t_id] += wc[:, None] * fit.rho_d
-            acc["rho_s"][t_id] += wc * fit.rho_s
-            wsum[t_id] += wc
-            if progress:
-                progress("fit", total + done, n_all)
-        writer.close()
-        flags = np.concatenate(flag_parts) if flag_parts else np.zeros(0, np.int32)
+        names = [f"{src.name} {a}:{b}" for a, b in task_bounds(rows.size, int(chunk))]
+        fits = merge_fit_parts(dest / src.name, parts_dir / src.name, names, lights.n_lights)
+        n_valid = int(np.count_nonzero(fits["valid"]))
+        rr, t_id = fits["rows"], fits["texel_index"]
+        # masked samples are left out of each fit (fit_chunks): a valid fit counts
+        wc = np.where(fits["valid"], src.weight[rr].astype(np.float64), 0.0)
+        acc["normal"][t_id] += wc[:, None] * fits["normal"]
+        acc["rho_d"][t_id] += wc[:, None] * fits["rho_d"]
+        acc["rho_s"][t_id] += wc * fits["rho_s"]
+        wsum[t_id] += wc
+        flags = fits["flags"]
         total += rows.size
-        seconds = time.perf_counter() - t0
+        seconds = sum(by_task[n]["seconds"] for n in names) + time.perf_counter() - t0
         per_cam[src.name] = {
             "functions": int(rows.size), "measured_texels": int(src.texel_index.size),
             "seconds": round(seconds, 4),
@@ -445,7 +482,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                         src.name, rows.size, _flag_summary(per_cam[src.name]["flags"]))
         if mosaic and mosaic_R is None and rows.size:
             pick = rows[even_subset(rows.size, int(mosaic) ** 2)]
-            mosaic_R = np.asarray(src.field[pick], np.float32)
+            mosaic_R = np.asarray(_take_rows(src.field, pick), np.float32)
+    shutil.rmtree(parts_dir, ignore_errors=True)
     files = _write_maps(dest, tex, acc, wsum)
     if mosaic_R is not None and hasattr(the_rig.lights, "n_theta"):  # a θ × φ grid to lay out
         imageio.write_image(dest / "mosaic.png", reflectance_mosaic(
@@ -469,7 +507,187 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                     _flag_summary(counts))
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    if engine.kind != "in-process":
+        metrics["engine"] = engine.stage_metrics("fit", [t.name for t in tasks])
     return metrics, settings
+
+
+#: Fit chunks per fit task: a task fits ``FIT_TASK_CHUNKS × chunk`` functions of one camera
+#: (16,384 at the default chunk), enough to amortise a task's start (opening the field, a
+#: few ms) and few enough that a camera of 174 k functions is ≈ 11 tasks for the workers.
+FIT_TASK_CHUNKS = 8
+#: Bytes a fit task needs per sample (function × light × channel) of a fit chunk: the two
+#: buffer sets of :func:`fit_chunks` (float32 rows and D, ≤ 8 B each) and the fit's own
+#: temporaries — 10 B/sample with distant lights (2,048 functions × 512 lights, one thread:
+#: RSS 181 → 212 MB), more near-field (each function's light directions and falloff): a fresh
+#: worker's fit task of the ``modern`` preset (one chunk of 1,500 functions × 512 lights × 3,
+#: near field) peaked at 425–428 MiB, ≈ 165 MiB over a worker's 257–262 MiB after its decode
+#: tasks (part of it the fit's compiled kernels, loaded once): 64 B/sample (141 MiB) keeps this
+#: set plus ``WORKER_BASE_BYTES`` (300 MiB) above the measured peaks (``bench
+#: scale.reconstruct``).
+FIT_BYTES_PER_CHUNK_SAMPLE = 64
+#: ... per function of the task: its fit parameters until they are saved (23 float64, flags,
+#: valid: 189 B), its row, texel, view and offset (64 B); plus 3 bit-packed maps of L bits.
+FIT_BYTES_PER_FUNCTION = 256
+_PARTS = ".parts"
+
+
+def task_bounds(n: int, chunk: int, chunks_per_task: int | None = None) -> list[tuple[int, int]]:
+    """``(a, b)`` ranges of a camera's ``n`` selected functions, one per fit task: whole
+    multiples of ``chunk`` (so each task's chunks are the one-loop run's chunks)."""
+    step = int(chunk) * int(chunks_per_task or FIT_TASK_CHUNKS)
+    return [(a, min(a + step, n)) for a in range(0, int(n), step)]
+
+
+def fit_working_set(n_functions: int, n_lights: int, channels: int, chunk: int,
+                    diffuse_dtype: str = "float16", *, gathered: bool = False) -> int:
+    """Memory (bytes) one fit task needs: :data:`FIT_BYTES_PER_CHUNK_SAMPLE` × the samples of a
+    fit chunk + (:data:`FIT_BYTES_PER_FUNCTION` + 3 × L / 8) × the task's functions, + the
+    task's field rows as float16 when they are ``gathered`` from a Zarr store first (2 B a
+    sample; a ``.npy`` field is memory-mapped and read chunk by chunk)."""
+    n, L, C = int(n_functions), int(n_lights), int(channels)
+    k = min(int(chunk), max(n, 1))
+    return (k * L * C * FIT_BYTES_PER_CHUNK_SAMPLE + n * (FIT_BYTES_PER_FUNCTION + 3 * -(-L // 8))
+            + (n * L * C * 2 if gathered else 0))
+
+
+class _PartWriter:
+    """The :class:`~facegeo.render.FitWriter` of one fit task: D rows ``a:b`` written in place
+    into the camera's ``D.npy`` (created whole by the stage; tasks write disjoint rows), the
+    fit parameters kept for :meth:`save`."""
+
+    def __init__(self, diffuse_path: str, rows: np.ndarray, a: int, dtype: str):
+        from facegeo.render._fitstore import _MAPS, _PER_FUNCTION
+
+        self.path = diffuse_path
+        self.dtype = np.dtype(dtype)
+        self.rows = rows  # the camera's rows of this task's functions
+        self.done = 0
+        with open(diffuse_path, "rb") as fh:
+            np.lib.format.read_magic(fh)
+            shape, _, dt = np.lib.format.read_array_header_1_0(fh)
+            self._offset = fh.tell()
+        if np.dtype(dt) != self.dtype:
+            raise InputError(f"{diffuse_path}: D is {dt}, the task writes {self.dtype}")
+        self._row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * self.dtype.itemsize
+        self._start = self._offset + int(a) * self._row_bytes
+        self._fd = os.open(diffuse_path, os.O_WRONLY)
+        self._names = (_PER_FUNCTION, _MAPS)
+        self.parts: dict[str, list] = {k: [] for k in _PER_FUNCTION + _MAPS}
+        self.texels: list[np.ndarray] = []
+        self.eta, self.single = 1.4, False
+
+    def write(self, rows, texel_index, fit) -> None:
+        k = len(rows)
+        d = np.ascontiguousarray(fit.diffuse, dtype=self.dtype)
+        view, pos = memoryview(d).cast("B"), self._start + self.done * self._row_bytes
+        while view:
+            n = os.pwrite(self._fd, view, pos)
+            view, pos = view[n:], pos + n
+        self.done += k
+        self.texels.append(np.asarray(texel_index, np.int64))
+        per_function, maps = self._names
+        for name in per_function:
+            self.parts[name].append(np.asarray(getattr(fit, name)))
+        for name in maps:
+            self.parts[name].append(np.packbits(np.asarray(getattr(fit, name), bool), axis=1))
+        self.eta, self.single = float(fit.eta), bool(fit.single_channel)
+
+    def save(self, path: Path) -> None:
+        os.close(self._fd)
+        if self.done != self.rows.size:
+            raise InputError(f"{self.path}: {self.done} fits written, {self.rows.size} announced")
+        arrays = {k: np.concatenate(v) for k, v in self.parts.items() if v}
+        with open(path, "wb") as fh:  # a fresh file in the stage's own staging folder
+            np.savez(fh, rows=self.rows, texel_index=np.concatenate(self.texels),
+                     eta=np.array(self.eta), single_channel=np.array(self.single), **arrays)
+
+
+def _take_rows(field, rows) -> np.ndarray:
+    """``field[rows]`` of a memory-mapped ``.npy`` or a Zarr field (reading only the chunks the
+    rows fall in)."""
+    if isinstance(field, np.ndarray):
+        return np.asarray(field[rows])
+    return np.ascontiguousarray(field.oindex[np.asarray(rows, np.int64)])
+
+
+def _drop_projection_inputs() -> None:
+    """Drop the projection's per-process inputs (texels, ray scenes) that a worker keeps from
+    the ``project`` stage for its next camera: a fit or relight task does not need them. (It
+    does not bring a worker's resident memory back down by itself, measured: the engine's
+    check before each stage restarts a worker that holds too much,
+    :meth:`facegeo.pipeline.engine.DaskEngine._resident_check`.)"""
+    import sys
+
+    project = sys.modules.get("facegeo.pipeline.project")
+    if project is not None and project._INPUTS_CACHE:
+        project._INPUTS_CACHE.clear()
+
+
+def fit_chunk_task(field_dir: str, parts_dir: str, diffuse_path: str, a: int, b: int, stage,
+                   radius: float | None, eta: float, polish: int | None, chunk: int,
+                   diffuse_dtype: str) -> dict:
+    """One fit task: functions ``a:b`` of a camera's selection (``parts_dir/rows.npy``) fitted
+    chunk by chunk (:func:`fit_chunks`), D written into rows ``a:b`` of ``diffuse_path``, the
+    parameters into ``parts_dir/<a>.npz``. Reads only its rows of the field (a ``.npy`` memory
+    map, or the Zarr chunks they fall in), of ``v_world.npy`` and ``texel_index.npy``.
+    Returns ``{"functions", "seconds"}``."""
+    from facegeo.appearance.skin import NearField, SearchDepth
+    from facegeo.render import light_set
+    from facegeo.surface.reflectance import open_field
+
+    t0 = time.perf_counter()
+    _drop_projection_inputs()
+    d, parts = Path(field_dir), Path(parts_dir)
+    rows = np.array(np.load(parts / "rows.npy", mmap_mode="r")[a:b], np.int64)
+    R = open_field(d)
+    v_world = np.asarray(np.load(d / "v_world.npy", mmap_mode="r")[rows], np.float64)
+    texel_index = np.asarray(np.load(d / "texel_index.npy", mmap_mode="r")[rows], np.int64)
+    near = None if radius is None else NearField(
+        np.load(parts / "offsets.npy", mmap_mode="r")[a:b], radius)
+    if isinstance(R, np.ndarray):  # memory-mapped: fit_chunks gathers each chunk's rows
+        field, frows = R, rows
+    else:  # Zarr: the task's rows, read once from the chunks they fall in
+        field, frows = _take_rows(R, rows), np.arange(rows.size)
+    import numba
+
+    threads = max(1, min(2, int(numba.config.NUMBA_NUM_THREADS)))
+    depth = SearchDepth() if polish is None else SearchDepth(polish=int(polish))
+    writer = _PartWriter(diffuse_path, rows, a, diffuse_dtype)
+    try:
+        for _ in fit_chunks(field, frows, v_world, light_set(stage), writer, texel_index,
+                            eta=eta, depth=depth, chunk=chunk, threads=threads, near=near,
+                            per_row=False):
+            pass
+    finally:
+        if writer.done != rows.size:
+            os.close(writer._fd)
+    writer.save(parts / f"{a:012d}.npz")
+    return {"functions": int(rows.size), "seconds": time.perf_counter() - t0}
+
+
+def merge_fit_parts(cam_dir: Path, parts_dir: Path, task_names: list[str],
+                    n_lights: int) -> dict:
+    """Write ``cam_dir/fit.npz`` from the camera's fit tasks' parameters (in row order; what
+    :class:`~facegeo.render.FitWriter` writes); returns the merged arrays."""
+    from facegeo.render._fitstore import _MAPS, _PER_FUNCTION, FIT_FILE
+
+    got: dict[str, list] = {k: [] for k in ("rows", "texel_index") + _PER_FUNCTION + _MAPS}
+    eta, single = np.array(1.4), np.array(False)
+    for name in task_names:
+        a = int(name.rsplit(" ", 1)[1].split(":")[0])
+        with np.load(parts_dir / f"{a:012d}.npz") as z:
+            for k in got:
+                if k in z.files:
+                    got[k].append(z[k])
+            eta, single = z["eta"], z["single_channel"]
+    arrays = {k: (np.concatenate(v) if v else np.zeros((0,))) for k, v in got.items()}
+    if not got["rows"]:
+        arrays["rows"] = arrays["texel_index"] = np.zeros(0, np.int64)
+    front = {k: arrays.pop(k) for k in ("rows", "texel_index")}
+    np.savez(cam_dir / FIT_FILE, **front, eta=eta, single_channel=single,
+             n_lights=np.array(int(n_lights)), **arrays)
+    return {**front, **arrays}
 
 
 def _flag_summary(counts: dict) -> str:
@@ -488,7 +706,7 @@ def _near_field(stage, tex, mode):
     return NearField(tex.p_world - np.asarray(stage.center, np.float64), float(radius))
 
 
-def run_fit(scan_dir, out_dir=None, **settings) -> dict:
+def run_fit(scan_dir, out_dir=None, *, engine=None, **settings) -> dict:
     """Fit the skin model to a scan's projected fields into ``out_dir/fit/`` (staged); on a
     single-view scan without geometry (:func:`image_space_scan`), the per-pixel photometric
     models in image space (:func:`fit_image_products`).
@@ -498,6 +716,8 @@ def run_fit(scan_dir, out_dir=None, **settings) -> dict:
     scan_dir : path-like or Scan
     out_dir : path-like, optional — default the scan's ``out/`` (must hold ``atlas/`` and
         ``project/``, except in image space)
+    engine : facegeo.pipeline.engine.Engine, optional — where the fit tasks run
+        (:func:`fit_products`; image space: in process)
     **settings — see :func:`fit_products` (image space: :func:`fit_image_products`)
 
     Returns
@@ -518,6 +738,6 @@ def run_fit(scan_dir, out_dir=None, **settings) -> dict:
         raise InputError(f"fit: {out / 'project'} is missing; run 'facegeo reconstruct SCAN' first")
     with staged_directory(out / "fit") as tmp:
         metrics, used = fit_products(scan, out / "project", tmp, atlas_dir=out / "atlas",
-                                     **settings)
+                                     engine=engine, **settings)
         _record(out, tmp, "fit", used, metrics)
     return metrics

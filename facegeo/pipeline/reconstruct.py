@@ -414,7 +414,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             from facegeo.pipeline.relight import relight_products
 
             metrics, _ = relight_products(scan, ctx.upstream["project"], ctx.out_dir,
-                                          atlas_dir=ctx.upstream["atlas"], **ctx.settings)
+                                          atlas_dir=ctx.upstream["atlas"], engine=engine,
+                                          **ctx.settings)
             return metrics
 
         def env_inputs(env: str) -> list[Path]:
@@ -426,7 +427,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
 
             metrics, _ = fit_products(scan, ctx.upstream["project"], ctx.out_dir,
                                       atlas_dir=ctx.upstream["atlas"], progress=ctx.progress,
-                                      **ctx.settings)
+                                      engine=engine, **ctx.settings)
             return metrics
 
         def run_render(ctx: StageContext) -> dict:

@@ -36,8 +36,8 @@ from facegeo.checks import check_choice, fmt_value
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_relight", "relight_products", "relight_texture", "relight_fitted", "resolve_env",
-           "tone_map", "energy_note"]
+__all__ = ["run_relight", "relight_products", "relight_rows_task", "relight_texture",
+           "relight_fitted", "relight_working_set", "resolve_env", "tone_map", "energy_note"]
 
 #: Tone mapping: the 99.5th percentile of luminance maps to this display value before sRGB.
 TONE_MAP_WHITE = 0.9
@@ -82,11 +82,126 @@ def _project_cameras(project_dir: Path, texels_path: Path) -> list[Path]:
     return cams
 
 
+#: Texels (rows of a camera's field) per relight task: 32,768 × 512 lights × 3 float16 =
+#: 96 MiB of field a task at the modern preset's lights (a camera of 174 k texels: 6 tasks).
+RELIGHT_TASK_TEXELS = 32768
+#: Bytes a relight task needs per sample (texel × light × channel) of its rows: the rows read
+#: (float16 from a Zarr store, or the memory map's pages, resident once read: 2 B; 4 B for a
+#: float32 field).
+RELIGHT_BYTES_PER_SAMPLE = 2
+#: ... and once: :func:`facegeo.lighting.relight.relight_field`'s chunk buffers (its
+#: ``FUSED_CHUNK_BYTES`` = 16 MiB of float16, or ``CHUNK_BYTES`` of float32, per thread: one
+#: thread on a worker) and the relit rows (12 B a texel, counted per texel below).
+RELIGHT_BYTES_FIXED = 32 << 20
+RELIGHT_BYTES_PER_TEXEL = 3 * 4 + 3 * 8
+
+
+def relight_working_set(n_texels: int, n_lights: int, itemsize: int = 2) -> int:
+    """Memory (bytes) one relight task needs for ``n_texels`` rows of a field of ``n_lights``
+    lights: the rows (:data:`RELIGHT_BYTES_PER_SAMPLE` × ``itemsize`` / 2 a sample), the relit
+    rows and their float64 blend (:data:`RELIGHT_BYTES_PER_TEXEL`), the relighting's chunk
+    buffers (:data:`RELIGHT_BYTES_FIXED`)."""
+    n, L = int(n_texels), int(n_lights)
+    return (n * L * 3 * RELIGHT_BYTES_PER_SAMPLE * int(itemsize) // 2
+            + n * RELIGHT_BYTES_PER_TEXEL + RELIGHT_BYTES_FIXED)
+
+
+def _task_rows(R, w) -> int:
+    """Rows per relight task: :data:`RELIGHT_TASK_TEXELS` rounded down to whole chunks of
+    :func:`~facegeo.lighting.relight.relight_field` (at least one), so that every task's
+    chunks are the whole field's chunks and its relit rows the same bytes."""
+    from facegeo.lighting import relight as RL
+
+    n_l = R.shape[1]
+    active = np.flatnonzero(np.any(w != 0, axis=(0, 2)))
+    n_cols = 3 * (active.size if active.size <= RL.SPARSE_FRACTION * n_l else n_l)
+    fused = w.shape[0] == 1 and R.dtype == np.float16 and RL._fused_kernel()
+    per = (RL.FUSED_CHUNK_BYTES // (2 * max(n_cols, 1)) if fused
+           else RL.CHUNK_BYTES // (4 * max(n_cols, 1)))
+    per = max(1, per)
+    return max(per, RELIGHT_TASK_TEXELS - RELIGHT_TASK_TEXELS % per)
+
+
+def relight_rows_task(field: tuple[str, str], relit: str, s0: int, s1: int, weights,
+                      light_color=None) -> dict:
+    """One relight task: rows ``s0:s1`` of a camera's field relit (Eq. 4,
+    :func:`facegeo.lighting.relight.relight_field`) into rows ``s0:s1`` of ``relit``.
+
+    ``field`` is ``(kind, location)`` (:func:`facegeo.surface.reflectance.find_field`: an
+    ``R.npy`` path, or a Zarr store — a folder or an fsspec URL); ``relit`` the ``(T_c, 3)``
+    float32 rows the stage created: a ``.npy`` file, or a Zarr array (a path ending in
+    ``.zarr`` or a URL: workers that share no disk). Tasks write disjoint rows (whole chunks
+    of a Zarr array). Reads only its rows (a memory map, or the Zarr chunks they fall in)."""
+    from facegeo.lighting.relight import relight_field
+    from facegeo.surface._zarr_field import open_zarr_field
+
+    from facegeo.pipeline.fit import _drop_projection_inputs
+
+    t0 = time.perf_counter()
+    _drop_projection_inputs()
+    kind, loc = field
+    R = np.load(loc, mmap_mode="r") if kind == "npy" else open_zarr_field(loc)
+    rows = R[s0:s1]  # a view of the memory map, or the Zarr chunks read
+    out = relight_field(rows, weights, light_color=light_color, workers=1)
+    if _is_zarr_target(relit):
+        import zarr
+
+        zarr.open_array(relit, mode="r+")[s0:s1] = out
+    else:
+        dst = np.load(relit, mmap_mode="r+")
+        dst[s0:s1] = out
+        dst.flush()
+        del dst
+    return {"texels": int(s1 - s0), "seconds": time.perf_counter() - t0}
+
+
+def _is_zarr_target(location: str) -> bool:
+    return "://" in str(location) or str(location).endswith(".zarr")
+
+
+def _relit_rows_target(parts, cam: str, n: int, step: int) -> str:
+    """Create the ``(n, 3)`` float32 relit rows of camera ``cam`` in ``parts`` (a folder: a
+    ``.npy``; an fsspec URL: a Zarr array chunked by ``step`` rows, one chunk a task)."""
+    if isinstance(parts, str) and "://" in parts and not parts.startswith("file://"):
+        import zarr
+
+        loc = f"{parts.rstrip('/')}/{cam}.zarr"
+        zarr.create_array(store=loc, shape=(n, 3), chunks=(max(min(step, n), 1), 3),
+                          dtype="float32", fill_value=np.nan, overwrite=True)
+        return loc
+    folder = Path(parts[len("file://"):] if isinstance(parts, str)
+                  and parts.startswith("file://") else parts)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{cam}.npy"
+    np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(n, 3)).flush()
+    return str(path)
+
+
+def _read_relit_rows(location: str) -> np.ndarray:
+    if _is_zarr_target(location):
+        import zarr
+
+        return np.asarray(zarr.open_array(location, mode="r")[:])
+    return np.load(location)
+
+
+def _remove_relit_rows(location: str) -> None:
+    if "://" in location:
+        import fsspec
+
+        fs, path = fsspec.core.url_to_fs(location)
+        if fs.exists(path):
+            fs.rm(path, recursive=True)
+    else:
+        Path(location).unlink(missing_ok=True)
+
+
 def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
                     light_color: Any = None,
                     progress: Callable[[int, int], None] | None = None,
                     project_dir: str | os.PathLike | None = None,
                     atlas_dir: str | os.PathLike | None = None,
+                    engine=None, parts_dir: str | os.PathLike | None = None,
                     ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Relight the surface reflectance field in texture space (Eq. 4 on every camera's field,
     blended per texel by the camera weights).
@@ -112,10 +227,21 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
         Divide the weights by the recording light's colour (see
         :func:`facegeo.lighting.relight.relight_field`).
     progress : callable(done, total), optional
-        Called after each camera.
+        Called as each camera's last task finishes (in process: after each camera).
     project_dir, atlas_dir : path, optional
         The ``project`` and ``atlas`` stage folders when they are not ``field_dir/project``
         and ``field_dir/atlas`` (the cached stages of ``facegeo reconstruct``).
+    engine : facegeo.pipeline.engine.Engine, optional
+        Where the relight tasks run (default in process): each camera's field in tasks of
+        :data:`RELIGHT_TASK_TEXELS` rows (:func:`relight_rows_task`), each checked against a
+        worker's memory (:func:`relight_working_set`) before any runs. The blend runs here,
+        in camera order: the result is the same whatever the engine.
+    parts_dir : path or str, optional
+        Where the tasks' relit rows go (``<camera>.npy``, removed afterwards): a folder, on a
+        cluster one the workers share; or an fsspec URL (``s3://bucket/tmp``: a Zarr array
+        per camera, for workers that share no disk — with fields in a store too,
+        :func:`facegeo.surface.reflectance.find_field`). Default: a temporary folder (in
+        process only).
 
     Returns
     -------
@@ -125,33 +251,71 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
         ``Σ_c w_c(t)`` over the cameras blended (per channel); 0 where unmeasured.
     cameras : list of str
     """
-    from facegeo.lighting.relight import relight_field
+    import shutil
+    import tempfile
+
+    from facegeo.lighting.relight import normalize_weights
+    from facegeo.pipeline.engine import InProcessEngine, Task
     from facegeo.surface.atlas import Texels
-    from facegeo.surface.reflectance import open_field
+    from facegeo.surface.reflectance import find_field, open_field
 
     proj, texels_path = _texture_dirs(field_dir, project_dir, atlas_dir)
     cams = _project_cameras(proj, texels_path)
     n_t = len(Texels.load(texels_path))
-    acc = np.zeros((n_t, 3))
-    wsum = np.zeros((n_t, 3))
-    for k, cam in enumerate(cams):
-        R = open_field(cam)
-        idx = np.load(cam / "texel_index.npy")
-        wc = np.load(cam / "weight.npy").astype(np.float64)
-        if R.ndim != 3 or R.shape[0] != idx.size or wc.shape != idx.shape:
-            raise InputError(f"{cam}: R.npy {R.shape}, texel_index.npy {idx.shape} and "
-                             f"weight.npy {wc.shape} disagree (re-run 'facegeo project')")
-        if idx.size and (idx.min() < 0 or idx.max() >= n_t):
-            raise InputError(f"{cam}/texel_index.npy: indices outside the atlas's {n_t} "
-                             f"texels (the atlas was rebuilt after the projection; re-run "
-                             f"'facegeo project')")
-        relit = relight_field(R, weights, light_color=light_color).astype(np.float64)
-        ok = np.isfinite(relit)
-        # texel_index is unique within a camera: plain fancy-index accumulation is exact
-        acc[idx] += np.where(ok, wc[:, None] * np.where(ok, relit, 0.0), 0.0)
-        wsum[idx] += np.where(ok, wc[:, None], 0.0)
-        if progress:
-            progress(k + 1, len(cams))
+    engine = InProcessEngine() if engine is None else engine
+    if parts_dir is None and engine.kind != "in-process":
+        raise InputError("relight_texture: parts_dir: a folder the workers share, for their "
+                         "relit rows (a temporary folder of this machine serves in process only)")
+    own = parts_dir is None
+    parts = tempfile.mkdtemp(prefix="facegeo-relight-") if own else parts_dir
+    tasks, layout = [], []
+    try:
+        for cam in cams:
+            R = open_field(cam)
+            idx = np.load(cam / "texel_index.npy")
+            wc = np.load(cam / "weight.npy").astype(np.float64)
+            if R.ndim != 3 or R.shape[0] != idx.size or wc.shape != idx.shape:
+                raise InputError(f"{cam}: R.npy {R.shape}, texel_index.npy {idx.shape} and "
+                                 f"weight.npy {wc.shape} disagree (re-run 'facegeo project')")
+            if idx.size and (idx.min() < 0 or idx.max() >= n_t):
+                raise InputError(f"{cam}/texel_index.npy: indices outside the atlas's {n_t} "
+                                 f"texels (the atlas was rebuilt after the projection; re-run "
+                                 f"'facegeo project')")
+            step = _task_rows(R, normalize_weights(weights, R.shape[1], light_color))
+            relit_path = _relit_rows_target(parts, cam.name, idx.size, step)
+            layout.append((cam, relit_path))
+            kind, loc = find_field(cam)  # the field itself: a path, or a store's URL
+            for s0 in range(0, idx.size, step):
+                s1 = min(s0 + step, idx.size)
+                tasks.append(Task(f"{cam.name} {s0}:{s1}", relight_rows_task,
+                                  ((kind, str(loc)), relit_path, s0, s1, weights, light_color),
+                                  working_set=relight_working_set(s1 - s0, R.shape[1],
+                                                                  R.dtype.itemsize),
+                                  size=int(s1 == idx.size)))  # progress: per camera
+        told = [0]
+
+        def tick(stage, k, n):  # (cameras whose last rows are relit, cameras)
+            if k > told[0]:
+                told[0] = k
+                progress(k, n)
+
+        engine.map("relight", tasks, progress=tick if progress else None)
+        acc = np.zeros((n_t, 3))
+        wsum = np.zeros((n_t, 3))
+        for cam, relit_path in layout:  # camera order, wherever the tasks ran
+            idx = np.load(cam / "texel_index.npy")
+            wc = np.load(cam / "weight.npy").astype(np.float64)
+            relit = _read_relit_rows(relit_path).astype(np.float64)
+            ok = np.isfinite(relit)
+            # texel_index is unique within a camera: plain fancy-index accumulation is exact
+            acc[idx] += np.where(ok, wc[:, None] * np.where(ok, relit, 0.0), 0.0)
+            wsum[idx] += np.where(ok, wc[:, None], 0.0)
+    finally:
+        if own:
+            shutil.rmtree(parts, ignore_errors=True)
+        else:
+            for _, relit_path in layout:
+                _remove_relit_rows(relit_path)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(wsum > 0, acc / wsum, np.nan).astype(np.float32)
     return out, wsum, [c.name for c in cams]
@@ -196,7 +360,8 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
                      progress: Callable[[str, int, int], None] | None = None,
                      read_ahead: int = 0, model: str = "measured",
                      fit_dir: str | os.PathLike | None = None,
-                     convention: str = "facegeo") -> tuple[dict, dict]:
+                     convention: str = "facegeo", engine=None,
+                     store: str | os.PathLike | None = None) -> tuple[dict, dict]:
     """Write the ``relight`` products of ``scan`` into ``dest``: the relit image as EXR and a
     tone-mapped PNG (Debevec et al. 2000 §3.3, Eq. 4).
 
@@ -242,6 +407,15 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
         not interpolated between measured lights.
     fit_dir : path, optional
         The ``fit`` stage's folder for ``model="fitted"`` (default ``SCAN/out/fit``).
+    engine : facegeo.pipeline.engine.Engine, optional
+        Where the texture view's relight tasks run (:func:`relight_texture`; their relit rows
+        go to ``dest/.parts``, removed afterwards); default in process. The metrics gain
+        ``engine`` on a cluster.
+    store : str or path, optional
+        ``--store URL``: the texture view's relit rows go to Zarr arrays under
+        ``URL/relight/`` (removed afterwards) instead of ``dest/.parts``, for workers that
+        share no disk; the fields are read wherever they are (a ``R.zarr.url`` link in a
+        camera folder names a field in a store, :func:`facegeo.surface._zarr_field.link_field`).
 
     Returns
     -------
@@ -260,6 +434,7 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     from facegeo.capture import imageio
     from facegeo.lighting import envmap as E
     from facegeo.lighting.relight import relight_scan_view
+    from facegeo.surface._zarr_field import store_location
 
     t0 = time.perf_counter()
     check_choice(solid_angle, "solid_angle", ("paper", "exact"))
@@ -304,9 +479,18 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
 
         tick = (lambda k, n: progress("relight", k, n)) if progress else None
         # each light's own colour (a list's per-light intensities; a dark light weighs 0)
-        texel_rgb, _, cams = relight_texture(None, E.field_weights(w, lights),
-                                             progress=tick, project_dir=proj,
-                                             atlas_dir=texels_path.parent)
+        parts = (Path(dest) / ".parts" if store is None
+                 else str(store_location(store, "relight", f"parts-{os.getpid()}")))
+        try:
+            texel_rgb, _, cams = relight_texture(None, E.field_weights(w, lights),
+                                                 progress=tick, project_dir=proj,
+                                                 atlas_dir=texels_path.parent, engine=engine,
+                                                 parts_dir=parts)
+        finally:
+            import shutil
+
+            if store is None:
+                shutil.rmtree(parts, ignore_errors=True)
         texels = Texels.load(texels_path)
         measured = np.isfinite(texel_rgb).all(axis=1)
         img = texels.to_image(np.where(measured[:, None], texel_rgb, 0.0).astype(np.float32),
@@ -351,6 +535,9 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
         "seconds": {"env": t_env - t0, "weights": t_w - t_env, "relight": t_relit - t_w,
                     "total": time.perf_counter() - t0},
     }
+    if texture and engine is not None and engine.kind != "in-process":
+        metrics["engine"] = engine.stage_metrics(
+            "relight", [r.task for r in engine.records if r.stage == "relight"])
     log.info("relit %s with %s (%d active lights) in %.2f s", view, env, active,
              metrics["seconds"]["total"])
     return metrics, settings
@@ -472,7 +659,8 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
                 out_dir: str | os.PathLike | None = None, projection: str = "latlong",
                 solid_angle: str = "paper", field_dir: str | os.PathLike | None = None,
                 progress: Callable[[str, int, int], None] | None = None,
-                read_ahead: int = 0, model: str = "measured", convention: str = "facegeo") -> dict:
+                read_ahead: int = 0, model: str = "measured", convention: str = "facegeo",
+                engine=None, store: str | os.PathLike | None = None) -> dict:
     """Relight one camera of a scan, or its texture atlas, with an environment map and write
     the images.
 
@@ -507,6 +695,10 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
     model : {"measured", "fitted"}
         See :func:`relight_products` (``"fitted"``: the image-space fit in
         ``field_dir/fit``, default ``SCAN/out/fit``).
+    engine : facegeo.pipeline.engine.Engine, optional
+        Where the texture view's tasks run (:func:`relight_texture`); default in process.
+    store : str or path, optional
+        See :func:`relight_products`.
 
     Returns
     -------
@@ -528,7 +720,8 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
                                   view=view, atlas_dir=fdir / "atlas", projection=projection,
                                   solid_angle=solid_angle,
                                   progress=progress, read_ahead=read_ahead, model=model,
-                                  fit_dir=fdir / "fit", convention=convention)
+                                  fit_dir=fdir / "fit", convention=convention,
+                                  engine=engine, store=store)
     stem = Path(metrics["files"]["exr"]).stem
     atomic_write_text(out / f"{stem}.json", json.dumps(metrics, indent=2))
     return metrics

@@ -41,8 +41,11 @@ __all__ = [
     "field_chunk_bounds",
     "field_location",
     "find_field",
+    "LINK_SUFFIX",
     "is_url",
+    "link_field",
     "open_zarr_field",
+    "store_location",
     "write_field",
     "write_field_chunk",
 ]
@@ -91,15 +94,57 @@ def _store_exists(location) -> bool:
     return fs.exists(f"{path.rstrip('/')}/zarr.json")
 
 
+#: Suffix of a link file: ``R.zarr.url`` in a stage folder holds the URL of the camera's field
+#: kept in a store elsewhere (``--store URL``, :func:`link_field`).
+LINK_SUFFIX = ".url"
+
+
+def store_location(store, *parts: str) -> str | Path:
+    """``store/part/part…``: a place in a store (a folder, a ``file://`` URL or an fsspec URL
+    such as ``s3://bucket/scan``; ``memory://`` in tests). A folder stays a :class:`Path`."""
+    if not isinstance(store, (str, Path)) or not str(store).strip():
+        raise InputError(f"store: expected a folder or an fsspec URL (s3://bucket/prefix), got "
+                         f"{fmt_value(store)}")
+    d = _local(store)
+    if isinstance(d, Path):
+        return d.joinpath(*parts)
+    return "/".join([d.rstrip("/")] + [p.strip("/") for p in parts])
+
+
+def link_field(directory, location, name: str = "R.npy") -> Path:
+    """Record in the folder ``directory`` that its field ``name`` is the Zarr store at
+    ``location`` (e.g. in ``s3://…``): the file ``<stem>.zarr.url`` (written atomically), which
+    :func:`find_field` — and so every reader of :mod:`facegeo.surface.reflectance` — follows.
+    Returns the link file's path."""
+    from facegeo.fsutil import atomic_write_text
+
+    if not _store_exists(location):
+        raise InputError(f"{location}: no Zarr field here to link to (create_field first)")
+    link = Path(str(field_location(directory, name)) + LINK_SUFFIX)
+    link.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(link, str(location) + "\n")
+    return link
+
+
 def find_field(directory, name: str = "R.npy") -> tuple[str, str | Path] | None:
     """``("npy", path)`` when ``directory/name`` is a file, else ``("zarr", store)`` when the
-    Zarr store of the same stem exists, else None (``directory`` may be an fsspec URL: Zarr
-    only)."""
+    Zarr store of the same stem exists, or a link file (:func:`link_field`) names one, else
+    None (``directory`` may be an fsspec URL: Zarr only)."""
     d = _local(directory)
     if isinstance(d, Path) and (d / name).is_file():
         return "npy", d / name
     loc = field_location(directory, name)
-    return ("zarr", loc) if _store_exists(loc) else None
+    if _store_exists(loc):
+        return "zarr", loc
+    if isinstance(loc, Path):
+        link = Path(str(loc) + LINK_SUFFIX)
+        if link.is_file():
+            target = link.read_text(encoding="utf-8").strip()
+            if not _store_exists(target):
+                raise InputError(f"{link}: the field it names, {target}, is not there (the "
+                                 "store was removed or is not reachable from here)")
+            return "zarr", _local(target)
+    return None
 
 
 def create_field(directory, shape, *, dtype: str = "float16", name: str = "R.npy",
