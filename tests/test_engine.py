@@ -217,6 +217,23 @@ def cluster():
         yield eng
 
 
+def _assert_same_run_on_two_workers(stage, a, b, m, ref, calls):
+    """A stage run on the two-worker cluster against the in-process run: the same product
+    bytes (``a``, ``b``: digests), the same metrics but for timings and the engine's record,
+    progress from 0 to 2 cameras, one task per camera on a worker within its memory limit."""
+    assert a == b, PRODUCTS_EQUAL
+    assert _without_timings(m) == _without_timings(ref)
+    assert calls[0] == (stage, 0, 2) and calls[-1] == (stage, 2, 2)
+    eng = m["engine"]
+    assert eng["kind"] == "local-cluster" and eng["workers"] == 2
+    assert eng["memory_limit_mb"] == parse_memory(WORKER_LIMIT) / 2 ** 20
+    assert set(eng["tasks"]) == {"cam_left", "cam_right"}
+    for t in eng["tasks"].values():
+        assert t["worker"].startswith("tcp://")
+        assert t["peak_rss_mb"] < eng["memory_limit_mb"]
+    assert "engine" not in ref  # the in-process metrics are as before
+
+
 @pytest.mark.slow
 def test_decode_two_workers_equals_in_process(tiny, tmp_path, cluster):
     """Every decode product is the same bytes in process and on two workers; the metrics are
@@ -228,17 +245,7 @@ def test_decode_two_workers_equals_in_process(tiny, tmp_path, cluster):
     m = run_decode(tiny, tmp_path / "two", engine=cluster, progress=lambda *a: calls.append(a))
     a, b = _digests(tmp_path / "one" / "decode"), _digests(tmp_path / "two" / "decode")
     assert a.keys() == b.keys() and any(k.endswith("decode.npz") for k in a)
-    assert a == b, PRODUCTS_EQUAL
-    assert _without_timings(m) == _without_timings(ref)
-    assert calls[0] == ("decode", 0, 2) and calls[-1] == ("decode", 2, 2)
-    eng = m["engine"]
-    assert eng["kind"] == "local-cluster" and eng["workers"] == 2
-    assert eng["memory_limit_mb"] == parse_memory(WORKER_LIMIT) / 2 ** 20
-    assert set(eng["tasks"]) == {"cam_left", "cam_right"}
-    for t in eng["tasks"].values():
-        assert t["worker"].startswith("tcp://")
-        assert t["peak_rss_mb"] < eng["memory_limit_mb"]
-    assert "engine" not in ref  # the in-process metrics are as before
+    _assert_same_run_on_two_workers("decode", a, b, m, ref, calls)
 
 
 @pytest.mark.slow
@@ -364,17 +371,7 @@ def test_project_two_workers_equals_in_process(tiny, tmp_path, cluster):
                     progress=lambda *a: calls.append(a))
     a, b = _digests(tmp_path / "one" / "project"), _digests(tmp_path / "two" / "project")
     assert a.keys() == b.keys() and "cam_left/R.npy" in a and "preview.png" in a
-    assert a == b, PRODUCTS_EQUAL
-    assert _without_timings(m) == _without_timings(ref)
-    assert calls[0] == ("project", 0, 2) and calls[-1] == ("project", 2, 2)
-    eng = m["engine"]
-    assert eng["kind"] == "local-cluster" and eng["workers"] == 2
-    assert eng["memory_limit_mb"] == parse_memory(WORKER_LIMIT) / 2 ** 20
-    assert set(eng["tasks"]) == {"cam_left", "cam_right"}
-    for t in eng["tasks"].values():
-        assert t["worker"].startswith("tcp://")
-        assert t["peak_rss_mb"] < eng["memory_limit_mb"]
-    assert "engine" not in ref
+    _assert_same_run_on_two_workers("project", a, b, m, ref, calls)
 
 
 def test_zarr_fields_end_to_end(tiny, tmp_path):

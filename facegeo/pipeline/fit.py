@@ -403,7 +403,8 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
                 "rig": rig_used, "polish": polish, "supersample": int(supersample),
                 "near_field": near_field}
     near_all = _near_field(the_rig.lights, tex, near_field)
-    SearchDepth() if polish is None else SearchDepth(polish=int(polish))  # checked here
+    if polish is not None:  # a bad polish fails here, before any task is submitted
+        SearchDepth(polish=int(polish))
     cam_table = _camera_table(scan, the_rig)
     need = None
     t_views = 0.0
