@@ -124,8 +124,9 @@ def test_workers_holding_memory_are_restarted_before_a_stage(cluster):
 
     budget = cluster.memory_fraction * cluster.memory_limit
     before = cluster.restarts
-    cluster.map("hold", [Task(f"h{i}", _hold, (300 << 20,)) for i in range(2)])
+    cluster.client.run(_hold, 300 << 20)  # on every worker once (two tasks may share one)
     rss = cluster.client.run(_resident_bytes)
+    assert max(rss.values()) + (1 << 20) < budget  # no worker paused by the test itself
     assert max(rss.values()) > 300 << 20
     cluster.map("small", [Task("s", _nothing, working_set=1 << 20)])
     assert cluster.restarts == before  # fits beside what the workers hold
@@ -134,6 +135,30 @@ def test_workers_holding_memory_are_restarted_before_a_stage(cluster):
     assert cluster.restarts == before + 1
     after = cluster.client.run(_resident_bytes)
     assert max(after.values()) < min(rss.values()) - (200 << 20)  # the held memory is gone
+
+
+@pytest.mark.slow
+def test_a_stage_whose_workers_are_all_paused_stops_with_what_they_hold(cluster, monkeypatch):
+    """Every worker past Dask's pause threshold (memory an earlier task left): the stage
+    stops with :class:`StalledError` naming what each holds, instead of waiting for ever
+    (Dask has no task timeout); the workers are restarted after, for the module's others."""
+    from facegeo.pipeline import engine as E
+
+    monkeypatch.setattr(E, "STALL_POLL_SECONDS", 0.2)
+    monkeypatch.setattr(E, "STALL_SECONDS", 1.0)
+    # as if the memory were taken during the stage: the check before a stage would restart
+    # workers that hold it already (the test above)
+    monkeypatch.setattr(cluster, "_resident_check", lambda stage, tasks: None)
+    pause = cluster.memory_fraction * cluster.memory_limit
+    base = max(cluster.client.run(E._resident_bytes).values())
+    try:
+        # past pause, under the nanny's terminate threshold (0.95): paused, not restarted
+        cluster.client.run(_hold, int(pause - base + 0.07 * cluster.memory_limit))
+        with pytest.raises(E.StalledError, match=r"st: 1 task\(s\) cannot run .*paused"):
+            cluster.map("st", [E.Task("x", _nothing)])
+    finally:
+        cluster.client.restart(wait_for_workers=True)
+    assert cluster.map("after", [E.Task("y", _nothing)]) == [{}]
 
 
 def _fit(root, out: Path, monkeypatch=None, tasks_chunks=None, **kw):

@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from facegeo.checks import fmt_value
-from facegeo.errors import InputError
+from facegeo.errors import FacegeoError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -67,11 +67,13 @@ __all__ = [
     "ENGINE_KINDS",
     "MAX_RESULT_BYTES",
     "MEMORY_FRACTION",
+    "STALL_SECONDS",
     "WORKER_BASE_BYTES",
     "WORKER_ENV",
     "DaskEngine",
     "Engine",
     "InProcessEngine",
+    "StalledError",
     "Task",
     "TaskRecord",
     "make_engine",
@@ -96,6 +98,13 @@ MAX_RESULT_BYTES = 1 << 20
 #: together: Dask's default ``distributed.worker.memory.pause`` (a :class:`DaskEngine` reads
 #: the cluster's configured value instead).
 MEMORY_FRACTION = 0.8
+#: Seconds a cluster stage waits for a task at a time before it looks at the workers
+#: (:class:`_Quiet`).
+STALL_POLL_SECONDS = 5.0
+#: Seconds every worker may stay paused (or the cluster without workers) before a stage
+#: stops with :class:`StalledError`: twice Dask's default ``distributed.comm.timeouts.connect``
+#: (30 s), room for a nanny to restart a worker that passed the ``terminate`` threshold.
+STALL_SECONDS = 60.0
 #: Resident memory of a worker process before its first task's data: Python, numpy, OpenCV,
 #: numba and ``distributed`` itself (measured: 234–246 MiB for a decode worker after a task
 #: on the tiny preset's 80 × 120 cameras, whose data is negligible; rounded up).
@@ -137,6 +146,11 @@ def parse_memory(value, what: str = "memory_limit") -> int | None:
 
 def _mb(n: int | float | None) -> str:
     return "no limit" if n is None else f"{n / 2 ** 20:,.0f} MiB"
+
+
+class StalledError(FacegeoError, RuntimeError):
+    """A cluster stage whose remaining tasks cannot run: every worker paused at its memory
+    limit, or no worker left (:class:`_Quiet`)."""
 
 
 @dataclass(frozen=True)
@@ -460,7 +474,7 @@ class DaskEngine(Engine):
             self.restarts += 1
 
     def _map(self, stage, tasks, progress):
-        from distributed import as_completed
+        from distributed import wait
 
         self._resident_check(stage, tasks)
         futures = {}
@@ -471,24 +485,36 @@ class DaskEngine(Engine):
         results: dict[str, Any] = {}
         done = 0
         failed: tuple[str, BaseException] | None = None
+        pending = dict(futures)
+        quiet = _Quiet(self, stage)
         try:
-            for f in as_completed(list(futures)):
-                name = futures[f]
-                try:
-                    result, info = f.result()  # a task's exception is raised here
-                except Exception as exc:  # the others finish: their products are kept
-                    if failed is None:
-                        failed = (name, exc)
-                        log.error("%s: task %r failed (%s); waiting for the %d other tasks "
-                                  "still running so that their work is kept", stage, name,
-                                  exc, len(tasks) - done - 1)
+            while pending:
+                try:  # a bounded wait, so that a cluster that cannot go on is noticed
+                    finished = wait(list(pending), timeout=STALL_POLL_SECONDS,
+                                    return_when="FIRST_COMPLETED").done
+                except TimeoutError:
+                    quiet.check(len(pending))
                     continue
-                results[name] = result
-                self.records.append(TaskRecord(stage, name, info["worker"], info["seconds"],
-                                               info["peak_rss_mb"]))
-                done += 1
-                if progress:
-                    progress(stage, done, len(tasks), name=name)
+                quiet.reset()
+                for f in finished:
+                    pending.pop(f, None)
+                for f in sorted(finished, key=lambda f: futures[f]):
+                    name = futures[f]
+                    try:
+                        result, info = f.result()  # a task's exception is raised here
+                    except Exception as exc:  # the others finish: their products are kept
+                        if failed is None:
+                            failed = (name, exc)
+                            log.error("%s: task %r failed (%s); waiting for the %d other "
+                                      "tasks still running so that their work is kept", stage,
+                                      name, exc, len(pending))
+                        continue
+                    results[name] = result
+                    self.records.append(TaskRecord(stage, name, info["worker"],
+                                                   info["seconds"], info["peak_rss_mb"]))
+                    done += 1
+                    if progress:
+                        progress(stage, done, len(tasks), name=name)
         except BaseException:  # Ctrl-C, or the client lost: stop everything
             self.client.cancel([f for f in futures if not f.done()])
             raise
@@ -503,6 +529,47 @@ class DaskEngine(Engine):
         finally:
             if self.cluster is not None:
                 self.cluster.close()
+
+
+class _Quiet:
+    """How long a cluster has finished no task, and whether it can go on: a stage whose
+    workers are all paused (resident memory past Dask's ``pause`` threshold, held by what an
+    earlier task left) or all gone would otherwise wait for ever — Dask has no task timeout,
+    and a paused worker's memory does not come back by itself. After
+    :data:`STALL_SECONDS` of both, the stage stops with what each worker holds; while tasks
+    merely run long, it waits."""
+
+    def __init__(self, engine: DaskEngine, stage: str):
+        self.engine, self.stage = engine, stage
+        self.reset()
+
+    def reset(self) -> None:
+        self.since: float | None = None  # when every worker was first seen stuck
+
+    def check(self, n_left: int) -> None:
+        try:
+            workers = self.engine.client.scheduler_info().get("workers", {})
+        except Exception:  # noqa: BLE001 - the client's own errors surface on the next wait
+            return
+        stuck = not workers or all(w.get("status") == "paused" for w in workers.values())
+        if not stuck:
+            self.since = None
+            return
+        now = time.monotonic()
+        if self.since is None:
+            self.since = now
+            return
+        if now - self.since < STALL_SECONDS:
+            return
+        held = {a: _mb(int((w.get("metrics") or {}).get("memory") or 0))
+                for a, w in workers.items()}
+        what = (f"every worker is paused at its memory limit ({held}, "
+                f"limit {_mb(self.engine.memory_limit)} each)" if workers
+                else "the cluster has no workers")
+        raise StalledError(
+            f"{self.stage}: {n_left} task(s) cannot run for {now - self.since:.0f} s: {what}; "
+            "give the workers more memory (--memory-limit), restart them between stages, or "
+            "run in one process")
 
 
 def _resident_bytes() -> int:
