@@ -412,3 +412,18 @@ def test_paths_a_stage_records_point_where_its_folder_ends_up(scan):
     doc = json.loads((scan / "out" / "metrics.json").read_text())
     assert doc["a"]["files"]["png"] == str(final / "img.png")
     assert (final / "img.png").is_file()
+
+
+def test_a_stages_own_time_breakdown_is_kept_beside_its_wall_time(scan):
+    """``seconds`` is the stage's wall time, a float, for every stage; a stage that records
+    its own breakdown there (relight: env, weights, relight, total) keeps it as
+    ``seconds_parts`` (the cache used to overwrite it)."""
+    parts = {"env": 0.25, "relight": 0.5, "total": 0.75}
+
+    def run_c(ctx):
+        (ctx.out_dir / "c.txt").write_text("c")
+        return {"seconds": dict(parts)}
+
+    Pipeline([StageSpec("c", run_c)]).run(scan)
+    metrics = json.loads((scan / "out" / "c" / MANIFEST_NAME).read_text())["metrics"]
+    assert isinstance(metrics["seconds"], float) and metrics["seconds_parts"] == parts

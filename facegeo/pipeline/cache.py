@@ -690,7 +690,10 @@ class Pipeline:
                 raise InputError(f"stage {fmt_value(spec.name)} returned {type(metrics).__name__}, "
                                  "expected a dict of metrics")
             seconds = time.perf_counter() - t0
-            metrics = {**_relocated(metrics, tmp, final), "seconds": round(seconds, 4)}
+            metrics = _relocated(metrics, tmp, final)
+            if isinstance(metrics.get("seconds"), dict):  # a stage's own breakdown (relight)
+                metrics["seconds_parts"] = metrics["seconds"]
+            metrics = {**metrics, "seconds": round(seconds, 4)}  # the stage's wall time
             # what went into the key (facegeo_code: the code fingerprint), so a later run can
             # say why it reran the stage
             manifest = {
