@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -154,6 +155,15 @@ def test_a_stage_whose_workers_are_all_paused_stops_with_what_they_hold(cluster,
     try:
         # past pause, under the nanny's terminate threshold (0.95): paused, not restarted
         cluster.client.run(_hold, int(pause - base + 0.07 * cluster.memory_limit))
+        # each worker's memory monitor pauses it on its next look (every 100 ms; seconds
+        # apart on a loaded machine): a task sent before would run on the one still awake
+        for _ in range(300):
+            info = cluster.client.scheduler_info()["workers"].values()
+            if all(w.get("status") == "paused" for w in info):
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail(f"workers not paused: {[w.get('status') for w in info]}")
         with pytest.raises(E.StalledError, match=r"st: 1 task\(s\) cannot run .*paused"):
             cluster.map("st", [E.Task("x", _nothing)])
     finally:
