@@ -31,6 +31,7 @@ from facegeo.geometry._calib_jac import (
 from facegeo.geometry._calib_camera import calibrate_camera
 from facegeo.geometry._calib_solve import (
     _Model,
+    inside_hull,
     minimise,
     model_of_dist,
     project_points,
@@ -315,13 +316,6 @@ def calibrate_rig(observations: dict, cameras: dict, *, reference: str | None = 
 CV_REGIONS = ("covered", "image")
 
 
-def _inside_hull(points: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``(G,)`` bool: which pixels ``q`` lie inside (or on) the convex hull of ``points``."""
-    hull = cv2.convexHull(np.asarray(points, np.float32)).reshape(-1, 2)
-    return np.array([cv2.pointPolygonTest(hull, (float(x), float(y)), False) >= 0
-                     for x, y in q], bool)
-
-
 def cross_validate(object_points, image_points, image_size, *, grid=(16, 12), seed=0,
                    region: str = "covered", splits: int = 1, **kwargs) -> dict:
     """mrcal-style cross-validation: two solves on disjoint halves of the views.
@@ -418,8 +412,8 @@ def cross_validate(object_points, image_points, image_size, *, grid=(16, 12), se
     # the region both solves were fitted on: inside the hull of each half's used corners
     ua_used = [i for j, i in enumerate(ia) if a.views_used[j]]
     ub_used = [i for j, i in enumerate(ib) if b.views_used[j]]
-    covered = (_inside_hull(np.concatenate([Q[i] for i in ua_used]), q)
-               & _inside_hull(np.concatenate([Q[i] for i in ub_used]), q))
+    covered = (inside_hull(np.concatenate([Q[i] for i in ua_used]), q)
+               & inside_hull(np.concatenate([Q[i] for i in ub_used]), q))
 
     def compare(sel):
         if sel.sum() < 3:

@@ -6,7 +6,9 @@ none: :meth:`facegeo.capture.scan.Scan.pattern_spec`). Per view and camera:
 
 1. **the board** is found in the view's ``white`` frame — the board under the projector's full
    light, which is all a plain chessboard or circle grid in a dark room shows — with the
-   detector of the scan's board kind (:func:`facegeo.geometry._calib_detect.detect_board`).
+   detector of the scan's board kind (:func:`facegeo.geometry._calib_detect.detect_board`;
+   a plain chessboard's corners refined in linear light where the camera's own views chose
+   that, :func:`facegeo.geometry._calib_detect.detect_boards`).
    Without a ``white`` frame the pixelwise maximum over the view's frames stands in for it
    (each pixel is lit in one frame of a pattern / inverse pair). Where the board is not found
    there and the camera's ``[calib]`` views include a file of this projector view (a
@@ -201,6 +203,8 @@ def projector_observations(scan, board, legacy: bool | None = None, camera_detec
                 for n in scan.camera_names}
     camera_detections = camera_detections or {}
     calib_files = {n: _calib_files(scan, n) for n in scan.camera_names}
+    lin_refine = {n: any(d.refinement == "linear" for d in camera_detections.get(n, {}).values())
+                  for n in scan.camera_names}
     proj_obs, cam_obs = {}, {n: {} for n in scan.camera_names}
     skipped, n_corners = [], 0
     for v in range(n_views):
@@ -217,7 +221,10 @@ def projector_observations(scan, board, legacy: bool | None = None, camera_detec
             label = (f"projector view {v}, camera {name} ("
                      + (_rel(scan, src) if what == "white" else
                         f"{what}, {_rel(scan, Path(src).parent)}") + ")")
-            det = detect_board(lit, board, name=label, legacy=legacy)
+            # the refinement the camera's own views chose (detect_boards), in this group's
+            # response: a plain chessboard's corners in linear light or on the stored values
+            det = detect_board(lit, board, name=label, legacy=legacy,
+                               linearize=resp.linearize if lin_refine.get(name) else None)
             w = _same_pose(calib_files[name], paths)
             poses.add(w)
             if not det.found and w is not None:

@@ -2,7 +2,10 @@
 
 ``run_calibrate(scan_dir, out_dir)`` (``facegeo calibrate``) reads every camera's
 ``calib/<camera>/`` views, detects the board
-(:func:`facegeo.geometry.calibration.detect_boards`), calibrates each camera
+(:func:`facegeo.geometry.calibration.detect_boards`; a plain chessboard's corners refined on
+the stored values or in linear light through ``[calib] response``, whichever fits the board's
+local homographies better per camera — ``metrics["cameras"][name]["corner_refinement"]``),
+calibrates each camera
 (:func:`~facegeo.geometry.calibration.calibrate_camera`; by default its distortion model is
 chosen by k-fold cross-validation over its views, ``model="auto"``), cross-validates it,
 bundle-adjusts the rig (:func:`~facegeo.geometry.calibration.calibrate_rig`; a camera with
@@ -429,6 +432,14 @@ def _check_request(scan, reference) -> None:
                              f"{', '.join(names)}")
 
 
+def _linearizer(scan, group: str):
+    """The ``group``'s stored values → linear light, for the chessboard corners' sub-pixel
+    refinement (:func:`facegeo.geometry.calibration.detect_boards` decides per camera whether
+    to refine there); None for a linear response (the two are one)."""
+    resp = scan.response(group)
+    return None if resp.kind == "linear" else resp.linearize
+
+
 def _scan(scan):
     from facegeo.capture.scan import Scan, load_scan
 
@@ -496,8 +507,10 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
         [intrinsics: "nominal", warning (a camera posed only),] reprojection_rms_px,
         views_used, views_detected, rejected
         (why each dropped view was dropped, named ``"view 3 (FILE)"``), per_view_rms_px (view
-        index → RMS at the camera's own solution; dropped views re-posed),
-        cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px,
+        index → RMS at the camera's own solution; dropped views re-posed), corner_refinement
+        ("encoded" or "linear": a plain chessboard's; None for other boards and corner lists),
+        cross_validation_px, cross_validation_predicted_px, projection_uncertainty_rms_px
+        (where the views have corners), projection_uncertainty_image_rms_px (whole image),
         std_px: {fx, fy, cx, cy}, std_formal_px, sigma_method, sigma_inflation,
         [leave_one_out_held_out_rms_px, leave_one_out_projection_rms_px,
         leave_one_out_predicted_rms_px,] cross_validation_method (:func:`~facegeo.pipeline._calibrate_products.solve_metrics`)
@@ -578,7 +591,7 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
             # named by view index and file: the base name alone need not be unique
             dets = detect_boards([read_image(p) for p in paths], board,
                                  names=[view_label(scan, v, p) for v, p in zip(views, paths)],
-                                 legacy=legacy)
+                                 legacy=legacy, linearize=_linearizer(scan, "calib"))
             cam_dets[name] = dict(zip(views, dets))
             if legacy is None and any(d.found for d in dets):  # read both ways: now fixed
                 legacy = next(d.legacy for d in dets if d.found)
@@ -620,6 +633,7 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
         obs[name] = {view_key[id(d)]: (d.p_board, d.q) for d, u in zip(found, c.views_used)
                      if u}
         m = {"model": c.model, "views_detected": len(found), "views_used": c.n_views_used,
+             "corner_refinement": found[0].refinement,
              "rejected": view_rejections(c.rejected, [d.name for d in found]),
              "camera_rms_px": c.rms_px,
              "per_view_rms_px": {str(view_of[id(d)]): float(r)
