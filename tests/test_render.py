@@ -132,6 +132,9 @@ def test_front_camera_is_the_rigs_mean_view_and_orbits_of_it_are_novel():
     assert parse_camera_spec(FRONT, {**pair, FRONT: pair["a"]}) is pair["a"]
     with pytest.raises(InputError, match="'front', the rig's frontal view"):
         parse_camera_spec("orbit:nope:10", pair)
+    # a scan with a camera named "front" lists it once
+    with pytest.raises(InputError, match=r"known cameras are a, b, front$"):
+        parse_camera_spec("orbit:nope:10", {**pair, FRONT: pair["a"]})
 
 
 # ----------------------------------------------------------------------------- tracing

@@ -148,8 +148,9 @@ def parse_camera_spec(spec: Any, cameras: Mapping[str, Camera], *,
         if name == FRONT and name not in cameras:
             return front_camera(cameras, center=center)
         if name not in cameras:
+            front = "" if FRONT in cameras else f" (and '{FRONT}', the rig's frontal view)"
             raise InputError(f"camera spec: unknown camera {fmt_value(name)}; known cameras are "
-                             f"{', '.join(cameras)} (and '{FRONT}', the rig's frontal view)")
+                             f"{', '.join(cameras)}{front}")
         return cameras[name]
 
     if isinstance(spec, Camera):
