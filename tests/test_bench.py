@@ -271,7 +271,7 @@ def _check_rows(name: str, rows: list[BenchRow]) -> None:
 
 
 #: Benchmarks that measure on the real data in ``../shared/data`` (no rows without it).
-_SHARED_DATA = {"calibration.real", "mesh.real_bust", "photometric.real"}
+_SHARED_DATA = {"calibration.real", "calibration.stereo", "mesh.real_bust", "photometric.real"}
 
 
 def _bench_params():

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -186,6 +187,87 @@ def bench_real(quick: bool) -> list[BenchRow]:
                 error=c.rms_px - rms_cv, error_unit="RMS − cv2 RMS, px",
                 ratios={vs: t_cv / t_ours}, threads=1, baseline_threads={vs: 1}, extra=extra))
     return rows
+
+
+#: What the stereo rows compare with.
+_VS_STEREO = "vs cv2.stereoCalibrate (1 thread)"
+
+
+@register("calibration.stereo")
+@one_blas_thread
+def bench_stereo(quick: bool) -> list[BenchRow]:
+    """OpenCV's stereo chessboards: facegeo's rig bundle adjustment
+    (:func:`~facegeo.geometry.calibration.calibrate_rig`, both cameras' 5-term intrinsics
+    refined with the relative pose and the board poses) against ``cv2.stereoCalibrate``
+    (``CALIB_USE_INTRINSIC_GUESS``: the same unknowns) on the same corners of the views both
+    cameras found, both started from the same per-camera calibrations (facegeo's
+    ``calibrate_camera``, 5-term). Error: the two solutions' RMS and how far apart they land
+    (focal, relative rotation, baseline)."""
+    import cv2
+
+    from facegeo.geometry.calibration import (
+        ChessboardSpec,
+        calibrate_camera,
+        calibrate_rig,
+        detect_boards,
+    )
+
+    d = shared_data_dir() / "calibration" / "opencv_stereo_chessboards"
+    if not d.is_dir():
+        log.warning("calibration.stereo: %s is absent; no rows", d)
+        return []
+    spec = ChessboardSpec(9, 6, 0.025)
+    dets = {}
+    for side in ("left", "right"):
+        files = sorted(d.glob(f"{side}*.jpg"))
+        imgs = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+        found = detect_boards(imgs, spec, names=[f.name for f in files], method="classic")
+        dets[side] = {f.name[len(side):]: x for f, x in zip(files, found) if x.found}
+    both = sorted(set(dets["left"]) & set(dets["right"]))
+    size = dets["left"][both[0]].image_size
+    P = [dets["left"][v].p_board.astype(np.float64) for v in both]
+    Q = {s: [dets[s][v].q.astype(np.float64) for v in both] for s in ("left", "right")}
+    cams = {s: calibrate_camera(P, Q[s], size, model="opencv5", reject_views=False).camera
+            for s in ("left", "right")}
+    cams = {s: replace(c, name=s) for s, c in cams.items()}
+    obs = {s: {v: (p, q) for v, p, q in zip(both, P, Q[s])} for s in ("left", "right")}
+    P32 = [p.astype(np.float32) for p in P]
+    Q32 = {s: [q.astype(np.float32) for q in Q[s]] for s in Q}
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-6)
+    prev = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        (t_ours, t_cv), (rig, cv) = _interleaved(
+            [lambda: calibrate_rig(obs, cams, reference="left", models={"left": "opencv5",
+                                                                          "right": "opencv5"}),
+             lambda: cv2.stereoCalibrate(
+                 P32, Q32["left"], Q32["right"], cams["left"].K.copy(), cams["left"].dist.copy(),
+                 cams["right"].K.copy(), cams["right"].dist.copy(), size,
+                 flags=cv2.CALIB_USE_INTRINSIC_GUESS, criteria=crit)],
+            3 if quick else 7)
+    finally:
+        cv2.setNumThreads(prev)
+    rms_cv, K1, _, K2, _, R_cv, T_cv = cv[:7]
+    L, R = rig.camera("left"), rig.camera("right")
+    T_rl = R.T_cam_world @ L.T_cam_world.inverse()  # right from left, as OpenCV's R, T
+    dR = T_rl.R @ np.asarray(R_cv).T
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
+    n = sum(len(q) for q in Q["left"]) + sum(len(q) for q in Q["right"])
+    rms_ours = float(np.sqrt(sum(rig.rms_px[s] ** 2 * sum(len(q) for q in Q[s])
+                                 for s in ("left", "right")) / n))
+    extra = {"seconds": round(t_ours, 4), "cv2_seconds": round(t_cv, 4), "views": len(both),
+             "rms_px": round(rms_ours, 5), "cv2_rms_px": round(float(rms_cv), 5),
+             "max_abs_diff_focal_px": round(float(max(
+                 abs(L.fx - K1[0, 0]), abs(L.fy - K1[1, 1]), abs(R.fx - K2[0, 0]),
+                 abs(R.fy - K2[1, 1]))), 4),
+             "relative_rotation_diff_deg": round(angle, 5),
+             "baseline_diff_mm": round(float(np.linalg.norm(T_rl.t - np.ravel(T_cv))) * 1e3, 4)}
+    return [BenchRow(
+        "calibration.stereo", f"facegeo calibrate_rig (5-term, intrinsics refined), OpenCV "
+        f"left/right*.jpg ({len(both)} views both found, 54 corners)", len(both) / t_ours,
+        "views/s", error=rms_ours - float(rms_cv), error_unit="RMS − cv2 RMS, px",
+        ratios={_VS_STEREO: t_cv / t_ours}, threads=1, baseline_threads={_VS_STEREO: 1},
+        extra=extra)]
 
 
 @register("calibration.projector")
