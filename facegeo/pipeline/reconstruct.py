@@ -35,6 +35,12 @@ Which mesh and which rig the stages use — the chain is the default (issue 37):
   When ``rig`` is the true rig for a chain that meshes structured light while ``rig.json``'s
   projector is uncalibrated, the true projector is information a real scan would not have: the
   run logs one warning saying so (``"scan"`` meshes camera against camera instead).
+* With the reconstructed mesh the atlas — and so the projection, fit and renders — is built on
+  the mesh stage's *filled* surface (``mesh_filled.ply``: closed over what the structured light
+  did not reach, its inferred faces left unmeasured and inferred in the renders; issue 37,
+  :mod:`facegeo.pipeline.project`), the atlas setting ``surface`` (:data:`SURFACES`;
+  ``"trimmed"``: ``mesh.ply``). ``mesh.ply`` stays the measured product the mesh figures are
+  taken on.
 * The stage-alone figures are a diagnostic: ``--rig ground_truth --mesh ground_truth`` feeds the
   same stages the generator's rig and mesh, so their errors are the surface methods' own.
   :func:`run_diagnostic` runs that pass into ``out/diagnostic/`` (its own cached pipeline,
@@ -70,7 +76,8 @@ from facegeo.render._cameras import FRONT, NOVEL_ORBITS
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STAGES", "DIAGNOSTIC_DIR", "MESH_CHOICES", "RIG_CHOICES", "reconstruct_pipeline",
+__all__ = ["STAGES", "DIAGNOSTIC_DIR", "MESH_CHOICES", "RIG_CHOICES", "SURFACES",
+           "SURFACE_DEFAULT", "reconstruct_pipeline", "reconstructed_surface",
            "record_run", "run_choices", "run_diagnostic", "run_reconstruct"]
 
 #: Every stage ``facegeo reconstruct`` knows, in pipeline order.
@@ -91,6 +98,43 @@ RENDER_ORBITS = NOVEL_ORBITS
 #: method shares (docs/render.md, "The pixel footprint"). The fit stage fits the texels the
 #: views' supersampled rays tap.
 RENDER_SUPERSAMPLE = 3
+
+
+#: Which of the ``mesh`` stage's surfaces the atlas (and so the projection, fit and renders) is
+#: built on when the mesh is the reconstructed one — the atlas setting ``surface``:
+#: ``"filled"`` (``mesh_filled.ply``: closed over what the structured light did not reach, its
+#: inferred faces marked, issue 37) or ``"trimmed"`` (``mesh.ply``, the measured surface alone).
+SURFACES = ("filled", "trimmed")
+SURFACE_DEFAULT = "filled"
+
+
+def reconstructed_surface(mesh_dir, surface: str = SURFACE_DEFAULT) -> Path:
+    """The ``mesh`` stage's surface file for the atlas setting ``surface`` (:data:`SURFACES`):
+    ``mesh_filled.ply`` or ``mesh.ply``; ``"filled"`` falls back to ``mesh.ply`` (with a log
+    line) when the stage wrote no filled surface (the grid method, ``fill_distance_mm=None``).
+    """
+    from facegeo.pipeline.mesh import FILLED_MESH
+
+    if surface not in SURFACES:
+        raise InputError(f"atlas surface: expected one of {', '.join(SURFACES)}, got "
+                         f"{fmt_value(surface)}")
+    mesh_dir = Path(mesh_dir)
+    if surface == "filled":
+        if (mesh_dir / FILLED_MESH).is_file():
+            return mesh_dir / FILLED_MESH
+        log.info("atlas: %s has no %s (no filled surface made); the trimmed mesh.ply is used",
+                 mesh_dir, FILLED_MESH)
+    return mesh_dir / "mesh.ply"
+
+
+def _atlas_surface(atlas_dir) -> str:
+    """The ``surface`` setting the atlas in ``atlas_dir`` was built with (its ``stage.json``;
+    ``"trimmed"`` for an atlas without one, from before the setting)."""
+    try:
+        doc = json.loads((Path(atlas_dir) / "stage.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return "trimmed"
+    return doc.get("settings", {}).get("surface", "trimmed")
 
 
 def _common_inputs(scan) -> list[Path]:
@@ -361,7 +405,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                                inputs=lambda d: _common_inputs(scan),
                                settings={"rig": use_rig, "method": "poisson", "depth": "auto",
                                          "point_weight": 4.0,
-                                         "trim_quantile": 0.02}))
+                                         "trim_quantile": 0.02, "fill_distance_mm": "auto"}))
 
     if "fit" in names and "atlas" not in names:  # a single-view scan, fitted in image space
         from facegeo.pipeline._fit_image import IMAGE_FIT_SETTINGS
@@ -390,8 +434,12 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
         mesh_after = ("mesh",) if use_mesh == "reconstructed" else ()
 
         def mesh_of(ctx: StageContext) -> str:
-            return (str(ctx.upstream["mesh"] / "mesh.ply") if use_mesh == "reconstructed"
-                    else use_mesh)
+            if use_mesh != "reconstructed":
+                return use_mesh
+            # the atlas's setting; the project stage takes the surface its atlas was built on
+            surface = (ctx.settings.get("surface") if "surface" in ctx.settings
+                       else _atlas_surface(ctx.upstream["atlas"]))
+            return str(reconstructed_surface(ctx.upstream["mesh"], surface))
 
         def mesh_inputs() -> list[Path]:
             if use_mesh == "ground_truth":
@@ -399,7 +447,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             return [] if use_mesh == "reconstructed" else [Path(use_mesh)]
 
         def without_mesh(ctx: StageContext) -> dict:
-            return {k: v for k, v in ctx.settings.items() if k != "mesh"}
+            return {k: v for k, v in ctx.settings.items() if k not in ("mesh", "surface")}
 
         def run_atlas(ctx: StageContext) -> dict:
             return atlas_products(scan, ctx.out_dir, mesh=mesh_of(ctx), **without_mesh(ctx))
@@ -443,7 +491,9 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
         specs += [
             StageSpec("atlas", run_atlas, after=mesh_after, inputs=lambda d: mesh_inputs(),
                       settings={"mesh": use_mesh, "texels_per_mm": 1.0, "size": None, "padding": 2,
-                                "split_faces": DEFAULT_SPLIT_FACES, "repair": False}),
+                                "split_faces": DEFAULT_SPLIT_FACES, "repair": False,
+                                **({"surface": SURFACE_DEFAULT}
+                                   if use_mesh == "reconstructed" else {})}),
             StageSpec("project", run_project, after=("atlas",) + mesh_after + rig_after,
                       inputs=lambda d: _group_inputs(scan, "olat") + mesh_inputs(),
                       settings={"mesh": use_mesh, "rig": use_rig, "dtype": "float16",
