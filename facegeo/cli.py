@@ -593,7 +593,7 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
 
     # stage settings from the options given (only then: the default runs' cache keys stay)
     for stage, keys in (("decode", ("max_coarse_px", "rel_contrast")), ("mesh", _MESH_OPTIONS),
-                        ("fit", _FIT_OPTIONS)):
+                        ("atlas", ("surface",)), ("fit", _FIT_OPTIONS)):
         given = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
         if given:
             settings = {**(settings or {}), stage: given}
@@ -784,7 +784,7 @@ def _cmd_reconstruct(args) -> int:
 
 #: ``facegeo mesh`` / ``reconstruct`` options that are mesh-stage settings of the same name.
 _MESH_OPTIONS = ("depth", "max_distance_mm", "min_angle_deg", "code_interpolation",
-                 "min_confidence", "hole_fill")
+                 "min_confidence", "hole_fill", "fill_distance_mm")
 
 
 def _int_or_auto(text: str):
@@ -824,6 +824,18 @@ def _mesh_options(s) -> None:
     s.add_argument("--hole-fill", choices=["auto", "on", "off"], default=None,
                    help="mesh, camera-camera route: fill the holes per-pixel matching leaves "
                         "with code-region centroid points (default auto: on there)")
+    s.add_argument("--fill-distance-mm", type=_mm_or_auto, default=None, metavar="MM|auto",
+                   help="mesh: the filled surface (mesh_filled.ply) keeps the Poisson surface "
+                        "within this of a point (default auto: 0.15 x the points' extent; "
+                        "docs/mesh.md)")
+
+
+def _surface_option(s) -> None:
+    """The atlas's ``surface`` setting (sent only when given)."""
+    s.add_argument("--surface", choices=["filled", "trimmed"], default=None,
+                   help="with the reconstructed mesh: build the atlas on the filled surface "
+                        "(default; what the structured light did not reach is inferred) or on "
+                        "the trimmed mesh.ply alone")
 
 
 #: ``facegeo fit`` options that are image-space fit settings of the same name
@@ -1132,6 +1144,7 @@ def build_parser() -> argparse.ArgumentParser:
             _mesh_options(s)
         if name == "fit":
             _fit_options(s)
+            _surface_option(s)
         s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         s.set_defaults(func=_cmd_stage)
 
@@ -1192,6 +1205,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run only this stage (its input stages must be current)")
     _max_coarse_option(s)
     _mesh_options(s)
+    _surface_option(s)
     _engine_options(s)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_reconstruct)

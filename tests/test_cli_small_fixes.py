@@ -233,3 +233,25 @@ def test_calibrate_says_camera_with_few_views_once(tmp_path, capsys, caplog):
         m = run_calibrate(root, tmp_path / "lib", cross_validation=False)
     assert [r.getMessage() for r in caplog.records
             if said_it in r.getMessage()] == [m["cameras"]["cam_b"]["warning"]]
+
+
+def test_fill_distance_and_surface_options_reach_their_stages(tmp_path, monkeypatch):
+    """``--fill-distance-mm`` is the mesh stage's ``fill_distance_mm``, ``--surface`` the
+    atlas's ``surface``; options not given send nothing (the default runs' cache keys stay)."""
+    import facegeo.pipeline.reconstruct as R
+    from facegeo import cli
+    from facegeo.errors import InputError
+
+    seen = []
+
+    def fake(scan, **kw):
+        seen.append(kw["settings"])
+        raise InputError("stopped by the test")
+
+    monkeypatch.setattr(R, "run_reconstruct", fake)
+    argv = ["reconstruct", str(tmp_path), "-q"]
+    assert cli.main(argv + ["--surface", "trimmed", "--fill-distance-mm", "20"]) == 2
+    assert cli.main(argv) == 2
+    assert cli.main(["fit", str(tmp_path), "-q", "--surface", "filled"]) == 2
+    assert seen == [{"mesh": {"fill_distance_mm": 20.0}, "atlas": {"surface": "trimmed"}},
+                    None, {"atlas": {"surface": "filled"}}]
