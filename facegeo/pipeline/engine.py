@@ -536,8 +536,8 @@ class _Quiet:
     workers are all paused (resident memory past Dask's ``pause`` threshold, held by what an
     earlier task left) or all gone would otherwise wait for ever — Dask has no task timeout,
     and a paused worker's memory does not come back by itself. After
-    :data:`STALL_SECONDS` of both, the stage stops with what each worker holds; while tasks
-    merely run long, it waits."""
+    :data:`STALL_SECONDS` of either, the stage stops with what each worker holds; while
+    tasks merely run long, it waits."""
 
     def __init__(self, engine: DaskEngine, stage: str):
         self.engine, self.stage = engine, stage
