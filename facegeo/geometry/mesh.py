@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -46,6 +47,7 @@ __all__ = [
     "face_areas",
     "fill_distance_for",
     "grid_mesh",
+    "inferred_faces_path",
     "median_neighbour_distance",
     "oriented_normals",
     "poisson_depth_for",
@@ -589,6 +591,14 @@ def _decimate(V, F, target_faces):
     mm.remove_unreferenced_vertices()
     return (np.asarray(mm.vertices, np.float64).copy(),
             np.asarray(mm.triangles, np.int64).copy())
+
+
+def inferred_faces_path(mesh_path) -> Path:
+    """Where a mesh file's inferred-face flags lie (:attr:`Mesh.inferred_faces`, ``(F,)``
+    bool): ``<stem>_inferred.npy`` beside it — the mesh stage writes them for its filled
+    surface, the atlas reads them for any mesh file."""
+    mesh_path = Path(mesh_path)
+    return mesh_path.with_name(mesh_path.stem + "_inferred.npy")
 
 
 def fill_distance_for(points) -> float:

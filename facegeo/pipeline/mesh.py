@@ -72,6 +72,7 @@ import numpy as np
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError
 from facegeo.fsutil import atomic_path, atomic_write_text, staged_directory
+from facegeo.geometry.mesh import inferred_faces_path
 from facegeo.pipeline._mesh_codes import (  # the stage's code settings, re-exported
     CODE_MIN_COUNT, FILL_GAP_SPACINGS, FILL_MIN_CONFIDENCE, MAX_CODE_SCATTER, SHARED_CODE_LIMIT,
     _fill_centroids, _fill_holes, _interpolated_codes, _mm)
@@ -581,7 +582,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
 
 #: The filled surface's files in the mesh stage's folder (module docstring).
 FILLED_MESH = "mesh_filled.ply"
-FILLED_INFERRED = "mesh_filled_inferred.npy"
+FILLED_INFERRED = inferred_faces_path(FILLED_MESH).name
 
 
 def _write_filled(dest: Path, filled) -> dict:
@@ -589,7 +590,7 @@ def _write_filled(dest: Path, filled) -> dict:
     from facegeo.geometry.mesh import face_areas
 
     _write_mesh_ply(dest / FILLED_MESH, filled.vertices, filled.faces)
-    with atomic_path(dest / FILLED_INFERRED) as tmp, open(tmp, "wb") as f:
+    with atomic_path(inferred_faces_path(dest / FILLED_MESH)) as tmp, open(tmp, "wb") as f:
         np.save(f, np.asarray(filled.inferred_faces, bool))
     a = face_areas(filled.vertices, filled.faces)
     total, inferred = float(a.sum()), float(a[filled.inferred_faces].sum())

@@ -97,6 +97,7 @@ from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_write_text, file_sha256, s
 from facegeo.rss import peak_rss_mb
 from facegeo.surface.atlas import DEFAULT_SPLIT_FACES
 from facegeo.checks import check_positive_int, fmt_value
+from facegeo.geometry.mesh import inferred_faces_path  # re-exported
 
 log = logging.getLogger(__name__)
 
@@ -157,12 +158,6 @@ def load_mesh(scan, mesh: str = "ground_truth") -> tuple[np.ndarray, np.ndarray,
 
 #: Texels of the atlas on inferred faces (module docstring), in the ``atlas`` folder.
 INFERRED_TEXELS = "inferred_texels.npy"
-
-
-def inferred_faces_path(mesh_path) -> Path:
-    """The inferred-face flags that may lie beside a mesh file: ``<stem>_inferred.npy``."""
-    mesh_path = Path(mesh_path)
-    return mesh_path.with_name(mesh_path.stem + "_inferred.npy")
 
 
 def load_inferred_faces(scan, mesh: str, n_faces: int) -> np.ndarray | None:
