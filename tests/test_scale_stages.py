@@ -138,37 +138,105 @@ def test_workers_holding_memory_are_restarted_before_a_stage(cluster):
     assert max(after.values()) < min(rss.values()) - (200 << 20)  # the held memory is gone
 
 
-@pytest.mark.slow
-def test_a_stage_whose_workers_are_all_paused_stops_with_what_they_hold(cluster, monkeypatch):
-    """Every worker past Dask's pause threshold (memory an earlier task left): the stage
-    stops with :class:`StalledError` naming what each holds, instead of waiting for ever
-    (Dask has no task timeout); the workers are restarted after, for the module's others."""
+def _pause_every_worker(cluster, E) -> None:
+    """Leave every worker of ``cluster`` holding memory past Dask's pause threshold (under
+    the nanny's terminate threshold, 0.95: paused, not restarted) and wait until the
+    scheduler sees them all paused."""
+    pause = cluster.memory_fraction * cluster.memory_limit
+    base = max(cluster.client.run(E._resident_bytes).values())
+    cluster.client.run(_hold, int(pause - base + 0.07 * cluster.memory_limit))
+    # each worker's memory monitor pauses it on its next look (every 100 ms; seconds apart
+    # on a loaded machine): a task sent before would run on the one still awake
+    for _ in range(300):
+        info = cluster.client.scheduler_info()["workers"].values()
+        if all(w.get("status") == "paused" for w in info):
+            return
+        time.sleep(0.1)
+    pytest.fail(f"workers not paused: {[w.get('status') for w in info]}")
+
+
+@pytest.fixture
+def quick_stall(cluster, monkeypatch):
+    """The stall settings lowered to a second, the check before a stage off (as if the
+    memory were taken during the stage: that check would restart workers that hold it
+    already, the test above); the workers restarted after, for the module's other tests."""
     from facegeo.pipeline import engine as E
 
     monkeypatch.setattr(E, "STALL_POLL_SECONDS", 0.2)
     monkeypatch.setattr(E, "STALL_SECONDS", 1.0)
-    # as if the memory were taken during the stage: the check before a stage would restart
-    # workers that hold it already (the test above)
+    monkeypatch.setattr(E, "STALL_RESTART_SECONDS", 0.5)
     monkeypatch.setattr(cluster, "_resident_check", lambda stage, tasks: None)
-    pause = cluster.memory_fraction * cluster.memory_limit
-    base = max(cluster.client.run(E._resident_bytes).values())
     try:
-        # past pause, under the nanny's terminate threshold (0.95): paused, not restarted
-        cluster.client.run(_hold, int(pause - base + 0.07 * cluster.memory_limit))
-        # each worker's memory monitor pauses it on its next look (every 100 ms; seconds
-        # apart on a loaded machine): a task sent before would run on the one still awake
-        for _ in range(300):
-            info = cluster.client.scheduler_info()["workers"].values()
-            if all(w.get("status") == "paused" for w in info):
-                break
-            time.sleep(0.1)
-        else:
-            pytest.fail(f"workers not paused: {[w.get('status') for w in info]}")
-        with pytest.raises(E.StalledError, match=r"st: 1 task\(s\) cannot run .*paused"):
-            cluster.map("st", [E.Task("x", _nothing)])
+        yield E
     finally:
         cluster.client.restart(wait_for_workers=True)
     assert cluster.map("after", [E.Task("y", _nothing)]) == [{}]
+
+
+@pytest.mark.slow
+def test_paused_idle_workers_of_the_engines_cluster_are_restarted(cluster, quick_stall):
+    """Every worker of the engine's own ``LocalCluster`` paused with no task running (memory
+    an earlier task left; CI met it in the fit of ``scale.reconstruct``): the engine restarts
+    them and the stage finishes."""
+    E = quick_stall
+    before = cluster.restarts
+    _pause_every_worker(cluster, E)
+    assert cluster.map("st", [E.Task("x", _nothing), E.Task("z", _nothing)]) == [{}, {}]
+    assert cluster.restarts == before + 1
+    info = cluster.client.scheduler_info()["workers"].values()
+    assert not any(w.get("status") == "paused" for w in info)
+
+
+@pytest.mark.slow
+def test_paused_idle_workers_of_a_running_scheduler_stop_the_stage(cluster, quick_stall,
+                                                                    monkeypatch):
+    """A running scheduler's workers are not the engine's to restart: the stage stops with
+    :class:`StalledError` naming what each holds, instead of waiting for ever (Dask has no
+    task timeout)."""
+    E = quick_stall
+    monkeypatch.setattr(cluster, "kind", "scheduler")
+    before = cluster.restarts
+    _pause_every_worker(cluster, E)
+    with pytest.raises(E.StalledError, match=r"st: 1 task\(s\) cannot run .*paused"):
+        cluster.map("st", [E.Task("x", _nothing)])
+    assert cluster.restarts == before
+
+
+def _paused_while_running(n_bytes: int) -> dict:
+    """A task whose own memory pauses its worker: it waits until its worker is paused, stays
+    a second longer and lets its memory go."""
+    from distributed import get_worker
+    from distributed.core import Status
+
+    held = np.ones(int(n_bytes), np.uint8)
+    worker = get_worker()
+    for _ in range(100):
+        if worker.status == Status.paused:
+            break
+        time.sleep(0.1)
+    paused = worker.status == Status.paused
+    time.sleep(1.5)
+    del held
+    return {"paused": paused}
+
+
+@pytest.mark.slow
+def test_workers_paused_by_their_running_tasks_are_waited_for(cluster, quick_stall,
+                                                              monkeypatch):
+    """A paused worker still running a task is not stuck (the task ends and frees its
+    memory): with the stall limit (1 s) below the tasks' time paused and no restart allowed,
+    the stage finishes."""
+    E = quick_stall
+    monkeypatch.setattr(E, "STALL_RESTARTS", 0)
+    pause = cluster.memory_fraction * cluster.memory_limit
+    base = max(cluster.client.run(E._resident_bytes).values())
+    n = int(pause - base + 0.07 * cluster.memory_limit)
+    before = len(cluster.records)
+    out = cluster.map("run", [E.Task("a", _paused_while_running, (n,)),
+                              E.Task("b", _paused_while_running, (n,))])
+    assert out == [{"paused": True}, {"paused": True}]
+    workers = {r.worker for r in cluster.records[before:]}
+    assert len(workers) == 2  # both workers paused at once: the case the stall check sees
 
 
 def _fit(root, out: Path, monkeypatch=None, tasks_chunks=None, **kw):

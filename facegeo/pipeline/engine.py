@@ -67,6 +67,8 @@ __all__ = [
     "ENGINE_KINDS",
     "MAX_RESULT_BYTES",
     "MEMORY_FRACTION",
+    "STALL_RESTARTS",
+    "STALL_RESTART_SECONDS",
     "STALL_SECONDS",
     "WORKER_BASE_BYTES",
     "WORKER_ENV",
@@ -101,10 +103,18 @@ MEMORY_FRACTION = 0.8
 #: Seconds a cluster stage waits for a task at a time before it looks at the workers
 #: (:class:`_Quiet`).
 STALL_POLL_SECONDS = 5.0
-#: Seconds every worker may stay paused (or the cluster without workers) before a stage
-#: stops with :class:`StalledError`: twice Dask's default ``distributed.comm.timeouts.connect``
-#: (30 s), room for a nanny to restart a worker that passed the ``terminate`` threshold.
+#: Seconds every worker may stay paused with no task running (or the cluster without
+#: workers) before a stage stops with :class:`StalledError`: twice Dask's default
+#: ``distributed.comm.timeouts.connect`` (30 s), room for a nanny to restart a worker that
+#: passed the ``terminate`` threshold.
 STALL_SECONDS = 60.0
+#: Seconds every worker of a ``LocalCluster`` the engine started may stay paused with no task
+#: running before the engine restarts them (:class:`_Quiet`): two looks, so that a worker
+#: between two tasks is not taken for a stuck one.
+STALL_RESTART_SECONDS = 10.0
+#: Restarts of paused, idle workers a stage may make before it stops with
+#: :class:`StalledError` instead (memory that a fresh worker fills again is not a leftover).
+STALL_RESTARTS = 2
 #: Resident memory of a worker process before its first task's data: Python, numpy, OpenCV,
 #: numba and ``distributed`` itself (measured: 234–246 MiB for a decode worker after a task
 #: on the tiny preset's 80 × 120 cameras, whose data is negligible; rounded up).
@@ -150,7 +160,8 @@ def _mb(n: int | float | None) -> str:
 
 class StalledError(FacegeoError, RuntimeError):
     """A cluster stage whose remaining tasks cannot run: every worker paused at its memory
-    limit, or no worker left (:class:`_Quiet`)."""
+    limit with no task running (after :data:`STALL_RESTARTS` restarts, on a ``LocalCluster``
+    the engine started), or no worker left (:class:`_Quiet`)."""
 
 
 @dataclass(frozen=True)
@@ -377,7 +388,7 @@ class DaskEngine(Engine):
         pause = dask.config.get("distributed.worker.memory.pause", MEMORY_FRACTION)
         fraction = float(pause) if pause else 0.95
         super().__init__(max(len(workers), 1), limit, fraction)
-        self.restarts = 0  # workers restarted before a stage (_resident_check)
+        self.restarts = 0  # workers restarted before a stage (_resident_check) or in one (_Quiet)
         self.kind = kind
         self.client = client
         self.cluster = cluster
@@ -477,15 +488,14 @@ class DaskEngine(Engine):
         from distributed import wait
 
         self._resident_check(stage, tasks)
-        futures = {}
+        pending = {}  # future -> task name; a finished one is dropped (its worker may restart)
         for t in tasks:
             f = self.client.submit(_run_on_worker, t.name, t.fn, t.args, t.kwargs,
                                    key=f"{stage}-{t.name}-{os.urandom(4).hex()}", pure=False)
-            futures[f] = t.name
+            pending[f] = t.name
         results: dict[str, Any] = {}
         done = 0
         failed: tuple[str, BaseException] | None = None
-        pending = dict(futures)
         quiet = _Quiet(self, stage)
         try:
             while pending:
@@ -496,10 +506,8 @@ class DaskEngine(Engine):
                     quiet.check(len(pending))
                     continue
                 quiet.reset()
-                for f in finished:
-                    pending.pop(f, None)
-                for f in sorted(finished, key=lambda f: futures[f]):
-                    name = futures[f]
+                for f in sorted(finished, key=lambda f: pending[f]):
+                    name = pending.pop(f)
                     try:
                         result, info = f.result()  # a task's exception is raised here
                     except Exception as exc:  # the others finish: their products are kept
@@ -515,8 +523,9 @@ class DaskEngine(Engine):
                     done += 1
                     if progress:
                         progress(stage, done, len(tasks), name=name)
+                del finished
         except BaseException:  # Ctrl-C, or the client lost: stop everything
-            self.client.cancel([f for f in futures if not f.done()])
+            self.client.cancel(list(pending))
             raise
         if failed is not None:
             raise failed[1]
@@ -532,15 +541,24 @@ class DaskEngine(Engine):
 
 
 class _Quiet:
-    """How long a cluster has finished no task, and whether it can go on: a stage whose
-    workers are all paused (resident memory past Dask's ``pause`` threshold, held by what an
-    earlier task left) or all gone would otherwise wait for ever — Dask has no task timeout,
-    and a paused worker's memory does not come back by itself. After
-    :data:`STALL_SECONDS` of either, the stage stops with what each worker holds; while
-    tasks merely run long, it waits."""
+    """Whether a cluster that finishes no task can go on. A stage whose workers are all paused
+    (resident memory past Dask's ``pause`` threshold) with no task running — memory an
+    earlier task left: freed arrays the allocator keeps, per-process caches — or whose
+    cluster has no worker would otherwise wait for ever: Dask has no task timeout, and a
+    paused worker's memory does not come back by itself. A paused worker that is still
+    running a task is not stuck (the task's own memory paused it; it ends).
+
+    On a ``LocalCluster`` the engine started, workers stuck for :data:`STALL_RESTART_SECONDS`
+    are restarted (``Client.restart_workers``; their queued tasks run again elsewhere or on
+    the fresh process, and the tasks write whole files, so a task run twice writes the same
+    products), at most :data:`STALL_RESTARTS` times a stage. Otherwise, after
+    :data:`STALL_SECONDS`, the stage stops with :class:`StalledError` naming what each
+    worker holds. Measured (CI, ``scale.reconstruct`` quick, 512 MiB workers): a fit worker
+    paused at 411 MiB between two tasks."""
 
     def __init__(self, engine: DaskEngine, stage: str):
         self.engine, self.stage = engine, stage
+        self.restarts = 0
         self.reset()
 
     def reset(self) -> None:
@@ -551,7 +569,10 @@ class _Quiet:
             workers = self.engine.client.scheduler_info().get("workers", {})
         except Exception:  # noqa: BLE001 - the client's own errors surface on the next wait
             return
-        stuck = not workers or all(w.get("status") == "paused" for w in workers.values())
+        stuck = not workers or all(
+            w.get("status") == "paused"
+            and not ((w.get("metrics") or {}).get("task_counts") or {}).get("executing")
+            for w in workers.values())
         if not stuck:
             self.since = None
             return
@@ -559,13 +580,24 @@ class _Quiet:
         if self.since is None:
             self.since = now
             return
-        if now - self.since < STALL_SECONDS:
-            return
         held = {a: _mb(int((w.get("metrics") or {}).get("memory") or 0))
                 for a, w in workers.items()}
-        what = (f"every worker is paused at its memory limit ({held}, "
-                f"limit {_mb(self.engine.memory_limit)} each)" if workers
-                else "the cluster has no workers")
+        if (workers and self.engine.kind == "local-cluster" and self.restarts < STALL_RESTARTS
+                and now - self.since >= STALL_RESTART_SECONDS):
+            log.warning("%s: every worker is paused at its memory limit with no task running "
+                        "(%s, limit %s each; %d task(s) left): restarting them", self.stage,
+                        held, _mb(self.engine.memory_limit), n_left)
+            self.engine.client.restart_workers(list(workers), raise_for_error=False)
+            self.restarts += 1
+            self.engine.restarts += 1
+            self.since = None
+            return
+        if now - self.since < STALL_SECONDS:
+            return
+        what = (f"every worker is paused at its memory limit with no task running ({held}, "
+                f"limit {_mb(self.engine.memory_limit)} each"
+                + (f"; restarted {self.restarts} time(s) in this stage" if self.restarts
+                   else "") + ")" if workers else "the cluster has no workers")
         raise StalledError(
             f"{self.stage}: {n_left} task(s) cannot run for {now - self.since:.0f} s: {what}; "
             "give the workers more memory (--memory-limit), restart them between stages, or "
