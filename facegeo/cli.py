@@ -490,6 +490,8 @@ def _cmd_project(args) -> int:
     kw = {} if args.shadow_taps else {"shadow_taps": False}
     if args.field_format != "npy":
         kw["field_format"] = args.field_format
+    if args.store is not None:
+        kw["store"] = args.store
     # a rig file is not one of the pipeline's rigs: the stage on its own, as with --out
     if args.out is None and args.camera is None and args.rig in (None, *RIG_CHOICES):
         from facegeo.capture.scan import load_scan
@@ -511,6 +513,15 @@ def _cmd_project(args) -> int:
                     cameras=args.camera, dtype=args.dtype, **kw)
     _print_metrics("project", m)
     return 0
+
+
+def _store_option(s) -> None:
+    """``--store URL`` of the projection (project, reconstruct; docs/scale.md §3)."""
+    s.add_argument("--store", default=None, metavar="URL",
+                   help="write the cameras' reflectance fields as Zarr arrays into this folder "
+                        "or fsspec store (s3://bucket/prefix) instead of the output folder, "
+                        "which keeps a link to each: projection tasks that share no disk "
+                        "(docs/scale.md)")
 
 
 def _add_envmap_options(s) -> None:
@@ -597,6 +608,9 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
         given = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
         if given:
             settings = {**(settings or {}), stage: given}
+    if getattr(args, "store", None) is not None:  # the projection's fields in the store
+        settings = {**(settings or {}),
+                    "project": {**(settings or {}).get("project", {}), "store": args.store}}
     out = (Path(scan) if isinstance(scan, (str, os.PathLike)) else scan.root) / "out"
     tick, close = _progress_factory(not args.quiet)
     try:
@@ -1092,6 +1106,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--field-format", choices=["npy", "zarr"], default="npy",
                    help="how each camera's field is stored: R.npy (default) or a chunked "
                         "R.zarr (docs/surface.md, docs/scale.md)")
+    _store_option(s)
     _engine_options(s)
     s.set_defaults(func=_cmd_project)
 
@@ -1206,6 +1221,7 @@ def build_parser() -> argparse.ArgumentParser:
     _max_coarse_option(s)
     _mesh_options(s)
     _surface_option(s)
+    _store_option(s)
     _engine_options(s)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_reconstruct)

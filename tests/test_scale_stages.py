@@ -427,3 +427,87 @@ def test_store_location_and_link_errors(tmp_path):
         store_location("  ", "x")
     with pytest.raises(InputError, match="no Zarr field here"):
         link_field(tmp_path, "memory://h5-nothing/R.zarr")
+
+
+def _assert_store_run_equal(ref: Path, got: Path, store_root: str) -> None:
+    """A ``--store`` projection (``got``) against the ``.npy`` run (``ref``): every camera
+    folder holds a link into ``store_root`` (no field of its own) and its small files, equal
+    byte for byte; the fields read through the links equal the ``.npy`` fields (the same
+    float16 samples); the blend equal."""
+    from facegeo.surface._zarr_field import find_field
+    from facegeo.surface.reflectance import field_folders, open_field
+
+    cams = field_folders(ref)
+    assert [c.name for c in field_folders(got)] == [c.name for c in cams]
+    for cam in cams:
+        g = got / cam.name
+        assert not (g / "R.npy").exists() and not (g / "R.zarr").exists()
+        kind, loc = find_field(g)
+        assert kind == "zarr" and str(loc).startswith(store_root), loc
+        np.testing.assert_array_equal(np.asarray(open_field(g)[:]), np.load(cam / "R.npy"))
+        for f in ("texel_index.npy", "weight.npy", "v_world.npy", "visibility.npz"):
+            assert (g / f).read_bytes() == (cam / f).read_bytes(), (cam.name, f)
+    blend = "blended/R_blend.npy"
+    assert np.array_equal(np.load(ref / blend), np.load(got / blend), equal_nan=True)
+
+
+def test_projection_into_a_store_equals_the_npy_run(projected, tmp_path):
+    """``run_project(store=URL)`` in process with a ``memory://`` store: the fields are Zarr
+    arrays under ``URL/project/run-<id>/<camera>/R.zarr`` linked from the stage folder, and
+    every product equals the ``.npy`` run's."""
+    import fsspec
+
+    from facegeo.pipeline.project import run_project
+
+    shutil.copytree(projected / "out" / "atlas", tmp_path / "out" / "atlas")
+    store = f"memory://facegeo-project-{tmp_path.name}"
+    run_project(projected, tmp_path / "out", evaluate=False, store=store)
+    try:
+        _assert_store_run_equal(projected / "out" / "project", tmp_path / "out" / "project",
+                                f"{store}/project/run-")
+        stage = json.loads((tmp_path / "out" / "project" / "stage.json").read_text())
+        assert stage["settings"]["store"] == store
+        assert stage["settings"]["field_format"] == "zarr"
+    finally:
+        fsspec.filesystem("memory").rm(f"/facegeo-project-{tmp_path.name}", recursive=True)
+
+
+@pytest.mark.slow
+def test_projection_tasks_write_into_a_store_on_two_workers(projected, tmp_path, cluster):
+    """The same on a two-worker ``LocalCluster`` with the store a folder outside ``out/``:
+    the tasks write their fields there and their small files through it (nothing into the
+    stage folder), and the products equal the in-process ``.npy`` run's."""
+    from facegeo.pipeline.project import run_project
+
+    shutil.copytree(projected / "out" / "atlas", tmp_path / "out" / "atlas")
+    store = tmp_path / "store"
+    run_project(projected, tmp_path / "out", evaluate=False, store=str(store), engine=cluster)
+    _assert_store_run_equal(projected / "out" / "project", tmp_path / "out" / "project",
+                            str(store / "project" / "run-"))
+    runs = list((store / "project").iterdir())
+    assert len(runs) == 1 and sorted(p.name for p in runs[0].iterdir()) == [
+        "cam_left", "cam_right"]
+
+
+def test_cli_project_store_links_the_fields_and_is_cached(projected, tmp_path, capsys):
+    """``facegeo project SCAN --store DIR``: the cached stage's camera folders link into
+    ``DIR/project/run-<id>/``; the same command again reuses the stage (one run folder in the
+    store); each field has a row per texel of its folder's ``texel_index``."""
+    from facegeo.cli import main
+    from facegeo.surface.reflectance import field_folders, find_field, open_field
+
+    scan = tmp_path / "scan"
+    shutil.copytree(projected, scan, ignore=shutil.ignore_patterns("out"))
+    store = tmp_path / "store"
+    for _ in range(2):
+        assert main(["project", str(scan), "--store", str(store), "--mesh", "ground_truth",
+                     "--gt-lights", "2", "-q"]) == 0
+    assert len(list((store / "project").iterdir())) == 1
+    cams = field_folders(scan / "out" / "project")
+    assert [c.name for c in cams] == ["cam_left", "cam_right"]
+    for cam in cams:
+        kind, loc = find_field(cam)
+        assert kind == "zarr" and str(loc).startswith(str(store / "project" / "run-"))
+        n = len(np.load(cam / "texel_index.npy"))
+        R = open_field(cam)
+        assert R.shape == (n, 128, 3) and np.isfinite(np.asarray(R[:64])).any()

@@ -328,7 +328,7 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
                 gt_weight_min: float = GT_WEIGHT_MIN, cameras: list[str] | None = None,
                 atlas_settings: dict | None = None, shadow_taps: bool = True,
                 evaluate: bool = True, field_format: str = "npy", engine=None,
-                progress=None) -> dict:
+                progress=None, store=None) -> dict:
     """Project every camera's OLAT frames onto the atlas texels into ``out_dir/project/``.
 
     Parameters
@@ -364,6 +364,9 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         (:func:`facegeo.surface.reflectance.project_camera`); the readers
         (:func:`facegeo.surface.reflectance.open_field`, :func:`~facegeo.surface.reflectance.
         field_folders`) take either. The blend stays ``blended/R_blend.npy``.
+    store : path-like or str, optional
+        ``--store URL``: the fields as Zarr arrays in this folder or fsspec store, linked from
+        the stage folder (:func:`project_products`).
     engine : facegeo.pipeline.engine.Engine, optional
         Where the cameras' tasks run (default in process, one camera after another;
         :func:`facegeo.pipeline.engine.make_engine` for ``--workers`` / ``--scheduler``; the
@@ -399,7 +402,7 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
             scan, atlas_dir, tmp, rig=rig, mesh=mesh, min_cos=min_cos, feather_px=feather_px,
             depth_jump=depth_jump, dtype=dtype, block_lights=block_lights, cameras=cameras,
             shadow_taps=shadow_taps, field_format=field_format, engine=engine,
-            progress=progress)
+            progress=progress, store=store)
         _record(out, tmp, "project", settings, metrics)
     if evaluate:
         from facegeo.pipeline.cache import record_metrics
@@ -416,7 +419,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
                      dtype: str = "float16", block_lights: int | None = None,
                      cameras: list[str] | None = None, shadow_taps: bool = True,
                      field_format: str = "npy", engine=None,
-                     progress=None) -> tuple[dict, dict]:
+                     progress=None, store=None) -> tuple[dict, dict]:
     """Write the ``project`` products of ``scan`` into ``dest`` from the atlas in ``atlas_dir``.
 
     The work of :func:`run_project` without the staging (the stage cache of
@@ -430,6 +433,15 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     submitted. The blend and the preview run here afterwards, streaming the cameras' fields
     chunk by chunk in camera order. ``progress(stage, done, total)`` is called as cameras
     finish.
+
+    With ``store`` (``--store URL``: a folder or an fsspec URL) the fields are Zarr arrays in
+    the store, under ``project/run-<id>/<camera>/R.zarr`` (a new ``<id>`` each run, so a
+    cached stage's links never point at a later run's data), and each camera folder of
+    ``dest`` holds a link to its field (``R.zarr.url``) beside its small files, which the
+    tasks put in the store and this function brings down: the tasks write nothing to a shared
+    disk (they still read the scan's frames and the atlas from their folders).
+    The stage folder — links included — is still swapped in whole; an earlier run's data in
+    the store is left there (remove it yourself once no stage folder links to it).
     """
     from facegeo.pipeline.engine import InProcessEngine, Task
     from facegeo.surface import reflectance as rf
@@ -440,6 +452,14 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
         raise InputError(f"field_format: expected one of {', '.join(rf.FIELD_FORMATS)}, got "
                          f"{fmt_value(field_format)}")
     engine = InProcessEngine() if engine is None else engine
+    run_loc = None
+    if store is not None:  # a field in a store is a Zarr field
+        import uuid
+
+        from facegeo.surface._zarr_field import copy_files, store_location
+
+        run_loc = store_location(store, "project", f"run-{uuid.uuid4().hex[:12]}")
+        field_format = "zarr"
     t_start = time.perf_counter()
     texels = Texels.load(atlas_dir / "texels.npz")
     the_rig, rig_used = stage_rig(scan, rig)
@@ -459,6 +479,8 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
                 "block_lights": block, "cameras": names, "shadow_taps": bool(shadow_taps)}
     if field_format != "npy":  # the default leaves stage.json as it was
         settings["field_format"] = field_format
+    if run_loc is not None:
+        settings["store"] = str(store)
     use_taps = bool(shadow_taps)
     if shadow_taps and (the_rig.lights is None or the_rig.lights.n_lights != scan.n_lights):
         have = "no lights" if the_rig.lights is None else f"{the_rig.lights.n_lights} lights"
@@ -472,7 +494,8 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     # texels and the mesh itself (once per process: _camera_inputs)
     tasks = [Task(name, project_camera_task,
                   (scan, str(atlas_dir), str(dest), name, the_rig, mesh, vis_kw, dtype, block,
-                   use_taps, field_format),
+                   use_taps, field_format,
+                   None if run_loc is None else str(store_location(run_loc, name))),
                   working_set=project_working_set(the_rig.camera(name), len(texels), n_faces,
                                                   min(block, scan.n_lights), use_taps))
              for name in names]
@@ -481,6 +504,9 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     finally:  # in process the scenes go with the stage (a worker keeps one set for the next run)
         _INPUTS_CACHE.clear()
     per_cam: dict[str, Any] = {t.name: r["metrics"] for t, r in zip(tasks, results)}
+    if run_loc is not None:  # the tasks' small files, from the store into the stage folder
+        for name in names:
+            copy_files(store_location(run_loc, name, STORE_FILES), dest / name)
     T = len(texels)
     seen = np.zeros(T, bool)
     colour = np.zeros((T, 3))
@@ -611,17 +637,46 @@ def _camera_inputs(scan, atlas_dir: Path, mesh: str, shadow_taps: bool):
 
 def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mesh: str,
                         vis_kw: dict, dtype: str, block_lights: int, shadow_taps: bool,
-                        field_format: str = "npy") -> dict:
+                        field_format: str = "npy", store_dir: str | None = None) -> dict:
     """One camera's share of the ``project`` stage, run by an engine (in process or on a
     worker): its visibility, shadow taps and field written into ``dest/<name>``
     (:func:`facegeo.surface.reflectance.project_camera`) with ``visibility.npz``. Returns
-    ``{"metrics": ...}``: the camera's metrics, small whatever its size."""
+    ``{"metrics": ...}``: the camera's metrics, small whatever its size.
+
+    With ``store_dir`` (a folder or fsspec URL in the ``--store``, one per camera) the task
+    writes nothing to a shared disk (it reads the scan's frames and the atlas): the Zarr field is written at ``store_dir/R.zarr``, the small files
+    (``texel_index``, ``weight``, ``v_world``, ``visibility.npz`` and the field's link) into a
+    temporary folder of the worker and copied to ``store_dir/files/``, from where
+    :func:`project_products` brings them into ``dest/<name>``."""
+    if store_dir is None:
+        return _project_camera(scan, atlas_dir, Path(dest) / name, name, the_rig, mesh,
+                               vis_kw, dtype, block_lights, shadow_taps, field_format, None)
+    import tempfile
+
+    from facegeo.surface._zarr_field import copy_files, store_location
+
+    with tempfile.TemporaryDirectory(prefix="facegeo-project-") as tmp:
+        d = Path(tmp) / name
+        out = _project_camera(scan, atlas_dir, d, name, the_rig, mesh, vis_kw, dtype,
+                              block_lights, shadow_taps, "zarr", store_dir)
+        copy_files(d, store_location(store_dir, STORE_FILES))
+    return out
+
+
+#: Sub-folder of a camera's place in the ``--store`` holding its small files on their way to
+#: the stage folder (:func:`project_camera_task`).
+STORE_FILES = "files"
+
+
+def _project_camera(scan, atlas_dir: str, d: Path, name: str, the_rig, mesh: str,
+                    vis_kw: dict, dtype: str, block_lights: int, shadow_taps: bool,
+                    field_format: str, field_store) -> dict:
+    """:func:`project_camera_task`'s work, into the camera folder ``d``."""
     from facegeo.surface import reflectance as rf
 
     scan = _scan(scan)
     texels, scene, shadow_rays, inferred = _camera_inputs(scan, Path(atlas_dir), mesh,
                                                           shadow_taps)
-    d = Path(dest) / name
     camera = the_rig.camera(name)
     jump = vis_kw.get("depth_jump", rf.DEFAULT_DEPTH_JUMP)
     t0 = time.perf_counter()
@@ -645,7 +700,8 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
         scan.iter_olat(name, return_mask=True, read_ahead=READ_AHEAD_WORKERS,
                        black_clipped="dark"),
         vis, (camera.width, camera.height), scan.n_lights, d, dtype=dtype,
-        block_lights=block_lights, shadows=taps, field_format=field_format)
+        block_lights=block_lights, shadows=taps, field_format=field_format,
+        field_store=field_store)
     t2 = time.perf_counter()
     entry = {
         "visible_fraction": round(vis.visible_fraction, 6),

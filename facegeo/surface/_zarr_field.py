@@ -46,6 +46,7 @@ __all__ = [
     "link_field",
     "open_zarr_field",
     "store_location",
+    "copy_files",
     "write_field",
     "write_field_chunk",
 ]
@@ -124,6 +125,36 @@ def link_field(directory, location, name: str = "R.npy") -> Path:
     link.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(link, str(location) + "\n")
     return link
+
+
+def copy_files(src, dst) -> list[str]:
+    """Copy the files directly inside ``src`` (not its sub-folders) into ``dst``; either may be
+    a folder or an fsspec URL (``--store``: a task's small products go up to the store, the
+    client brings them down into its stage folder). Written atomically where ``dst`` is a
+    folder. Returns the names copied, sorted."""
+    import fsspec
+
+    from facegeo.fsutil import atomic_write_bytes
+
+    def fs_of(loc):
+        loc = _local(loc)
+        return fsspec.core.url_to_fs(str(loc))
+
+    sfs, spath = fs_of(src)
+    names = sorted(Path(e["name"]).name for e in sfs.ls(spath, detail=True)
+                   if e.get("type") == "file")
+    dloc = _local(dst)
+    if isinstance(dloc, Path):
+        dloc.mkdir(parents=True, exist_ok=True)
+    else:
+        dfs, dpath = fs_of(dloc)
+    for n in names:
+        data = sfs.cat_file(f"{spath.rstrip('/')}/{n}")
+        if isinstance(dloc, Path):
+            atomic_write_bytes(dloc / n, data)
+        else:
+            dfs.pipe_file(f"{dpath.rstrip('/')}/{n}", data)
+    return names
 
 
 def find_field(directory, name: str = "R.npy") -> tuple[str, str | Path] | None:

@@ -521,10 +521,13 @@ def _release_rows(mm: np.memmap, t0: int, t1: int, *, write: bool) -> None:
         m.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
 
 
-def _new_field(directory: Path, field_format: str, dtype: str, shape: tuple, lights: int):
+def _new_field(directory: Path, field_format: str, dtype: str, shape: tuple, lights: int,
+               field_store=None):
     """The writable field of :func:`project_camera`: ``R.npy`` memory-mapped, or the Zarr
-    store ``R.zarr`` chunked ``_TRANSPOSE_TEXELS × lights`` (the other format's file of an
-    earlier run is removed: :func:`open_field` would read it first)."""
+    store ``R.zarr`` chunked ``_TRANSPOSE_TEXELS × lights`` — in ``directory``, or in
+    ``field_store`` (a folder or an fsspec URL) with a link to it in ``directory``
+    (:func:`~facegeo.surface._zarr_field.link_field`). The other format's file of an earlier
+    run is removed: :func:`open_field` would read it first."""
     zarr_loc = field_location(directory, "R.npy")
     if field_format == "npy":
         if Path(zarr_loc).exists():
@@ -534,15 +537,20 @@ def _new_field(directory: Path, field_format: str, dtype: str, shape: tuple, lig
         return np.lib.format.open_memmap(directory / "R.npy", mode="w+", dtype=dtype,
                                          shape=shape)
     (directory / "R.npy").unlink(missing_ok=True)
-    loc = create_field(directory, shape, dtype=dtype, chunks=(_TRANSPOSE_TEXELS, lights),
-                       overwrite=True)
+    loc = create_field(directory if field_store is None else field_store, shape, dtype=dtype,
+                       chunks=(_TRANSPOSE_TEXELS, lights), overwrite=True)
+    if field_store is not None:
+        from facegeo.surface._zarr_field import link_field
+
+        link_field(directory, loc)
     return open_zarr_field(loc, mode="r+")
 
 
 def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int],
                    n_lights: int, directory, *, dtype: str = "float16",
                    block_lights: int = DEFAULT_BLOCK_LIGHTS,
-                   shadows=None, field_format: str = DEFAULT_FIELD_FORMAT) -> ProjectedField:
+                   shadows=None, field_format: str = DEFAULT_FIELD_FORMAT,
+                   field_store=None) -> ProjectedField:
     """Project one camera's OLAT frames onto its visible texels, streaming frame by frame.
 
     Implements Debevec et al. 2000 Eq. (2) per texel: ``R_c[t, l] = L_l(q_c(t))``, the frame of
@@ -574,6 +582,11 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
         ``R.npy`` (default; what the other stages look for) or the Zarr store ``R.zarr``
         chunked ``4096 texels × block_lights lights`` (:mod:`facegeo.surface._zarr_field`:
         each light block fills whole chunks). :func:`open_field` reads either.
+    field_store : path-like or str, optional
+        ``field_format="zarr"`` only: create the Zarr store in this folder or fsspec URL
+        (``s3://bucket/…/cam_0``; ``--store``) instead of ``directory``, which gets a link to
+        it (``R.zarr.url``, :func:`~facegeo.surface._zarr_field.link_field`) beside the small
+        files; every reader follows the link.
 
     Returns
     -------
@@ -594,6 +607,9 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
     if field_format not in FIELD_FORMATS:
         raise InputError(f"field_format: expected one of {', '.join(FIELD_FORMATS)}, got "
                          f"{fmt_value(field_format)}")
+    if field_store is not None and field_format != "zarr":
+        raise InputError(f"field_store: a field in a store is a Zarr field; got field_format "
+                         f"{fmt_value(field_format)}")
     W, H = (int(s) for s in size)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -604,7 +620,7 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
                          f"samples, the camera projects {sel.size} texels")
     L = int(n_lights)
     B = int(min(block_lights, L))
-    R = _new_field(directory, field_format, dtype, (sel.size, L, 3), B)
+    R = _new_field(directory, field_format, dtype, (sel.size, L, 3), B, field_store)
     buf = np.empty((B, sel.size, 3), np.float32)  # frame-major: each frame one contiguous row
     n_masked = n_overflow = 0
     count = 0
