@@ -53,6 +53,11 @@ SMALL_GAIN_COVERED_DB = 2.9
 #: +1.18, +30° +0.08; on the trimmed mesh +0.014 dB worst). Issue 37's 1 dB there is not met:
 #: the inferred pixels carry the same values in the render and the naive baseline
 #: (docs/render.md, *Surface no point supports*). PSNR went up 2.6–6.6 dB in every view.
+#: Re-measured 2026-12-02 (``facegeo demo``, same figures): the head-mask pixels no ray hits
+#: and the inferred ones hold 73–98 % of the naive render's whole-head squared error, most of
+#: it from the filled surface's shape and extent (docs/render.md, *Where the chain's
+#: whole-head error comes from*); at +30° / +60° even perfect inferred pixels would give
+#: +0.51 / +0.09 dB.
 SMALL_GAIN_HEAD_DB = 0.05
 #: Head-mask pixels left black, worst view, fraction of the mask: measured 0.220 at −60°
 #: (7,054 of 32,099 px; +60° 6,237, −30° 730, +30° 435); on the trimmed mesh 0.415 (13,317;

@@ -24,6 +24,10 @@ A corner's projector position is averaged over the cameras that decoded it. A vi
 when at least :data:`MIN_PROJECTOR_CORNERS` of its corners decoded; the projector needs
 :data:`MIN_PROJECTOR_VIEWS` such views. A view a camera could not use is skipped with its
 reason (view, camera and file named), never silently.
+
+The rig's bundle adjustment then refines the projector jointly with the cameras or keeps its
+separate solve, whichever predicts held-out projector corners better
+(:func:`projector_rig`).
 """
 
 from __future__ import annotations
@@ -43,8 +47,8 @@ log = logging.getLogger(__name__)
 #: caller that prints that line itself (``facegeo calibrate``).
 SUMMARY_RECORD = "facegeo_summary"
 
-__all__ = ["MIN_PROJECTOR_CORNERS", "MIN_PROJECTOR_VIEWS", "POSE_CHECK_FACTOR",
-           "POSE_CHECK_FLOOR_PX", "projector_spec",
+__all__ = ["CHOICE_MIN_VIEWS", "MIN_PROJECTOR_CORNERS", "MIN_PROJECTOR_VIEWS", "POSE_CHECK_FACTOR",
+           "POSE_CHECK_FLOOR_PX", "SOLVES", "projector_rig", "projector_spec",
            "projector_observations", "view_label", "view_rejections"]
 
 #: Fewest decoded corners a projector view needs (over its cameras).
@@ -293,3 +297,128 @@ def view_rejections(rejected, names) -> list[str]:
         return f"{names[i]}:" if 0 <= i < len(names) else m.group(0)
 
     return [re.sub(r"^view (\d+):", sub, r) for r in rejected]
+
+
+#: Fewest projector poses for the joint / separate choice (:func:`projector_rig`): each held
+#: out in turn leaves the separate solve its :data:`MIN_PROJECTOR_VIEWS`.
+CHOICE_MIN_VIEWS = MIN_PROJECTOR_VIEWS + 1
+
+#: The two projector solves :func:`projector_rig` chooses between.
+SOLVES = ("joint", "separate")
+
+
+def _held_out(rig_cal, name: str, key, p, q) -> np.ndarray:
+    """Squared residuals (px²) of pose ``key``'s projector corners ``q`` predicted by
+    ``rig_cal``: the board where the cameras put it (``T_world_board[key]``: the projector did
+    not see it in this solve), through the projector's solved pose and intrinsics."""
+    c = rig_cal.camera(name)
+    pr, _ = c.project_cam(c.T_cam_world.apply(rig_cal.T_world_board[key].apply(p)))
+    return np.sum((pr - q) ** 2, axis=1)
+
+
+def projector_rig(obs: dict, init: dict, name: str, model: str, *, reference, loss: str,
+                  models: dict, refine: set):
+    """The rig's bundle adjustment with the projector solved jointly with the cameras or kept
+    at its separate solve (its pose only solved), whichever predicts held-out projector corners
+    better; no truth read.
+
+    Moreno & Taubin (2012) refine the projector jointly with the camera (their stereo
+    calibration after each device's own): its intrinsics then also answer to the board poses
+    the cameras measure, which helps when its own views leave focal and distance traded (4
+    views on the ``small`` preset) and hurts when the cameras' poses of the board are biased. The score of either solve is a
+    **leave-one-projector-pose-out** prediction: for each projector pose ``k`` the projector is
+    solved without its corners of ``k`` (separately, ``calibrate_camera`` with ``model``; for
+    the joint candidate also refined in the rig), the rig places board ``k`` from the cameras'
+    corners, and the projector's corners of ``k`` are predicted through the projector's pose and
+    intrinsics — the camera-to-projector correspondence structured light triangulates. The
+    separate solve is taken when its held-out mean squared error per pose is lower than the
+    joint's by more than the noise — the rule of the model selection
+    (:data:`~facegeo.geometry._calib_select.AUTO_GAIN_NOISE` standard errors of the per-pose
+    paired differences) — else the joint solve is kept (Moreno & Taubin's, and the stage's
+    before). With fewer than :data:`CHOICE_MIN_VIEWS` poses the joint solve is kept unscored.
+
+    Parameters
+    ----------
+    obs, init : dict
+        :func:`~facegeo.geometry.calibration.calibrate_rig`'s observations and initial
+        cameras, the projector ``name`` among them (``init[name]``: its separate solve).
+    name : str
+        The projector.
+    model : str
+        The projector's distortion model (its separate solve's).
+    reference, loss, models
+        As :func:`~facegeo.geometry.calibration.calibrate_rig`'s.
+    refine : set of str
+        The cameras whose intrinsics the bundle adjustment refines (the projector's own entry
+        is decided here).
+
+    Returns
+    -------
+    rig_cal : RigCalibration
+        The chosen solve's bundle adjustment.
+    choice : dict
+        ``solve`` (``"joint"`` or ``"separate"``), ``solve_reason``,
+        ``solve_held_out_rms_px`` (``{joint, separate}``, None when not scored),
+        ``solve_held_out_poses``, ``solve_gain_px2`` / ``solve_gain_se_px2`` (the separate
+        solve's mean held-out gain per pose over the joint one and its standard error; when
+        scored) and ``joint_intrinsics`` (``{fx, fy, cx, cy}`` of the joint
+        solve).
+    """
+    from facegeo.geometry._calib_select import AUTO_GAIN_NOISE, AUTO_TIE_PX2
+    from facegeo.geometry.calibration import calibrate_camera, calibrate_rig
+
+    proj = obs[name]
+    size = init[name].size
+    base = set(refine) - {name}
+    refines = {"joint": base | {name}, "separate": base}
+
+    def rig(o, i, which):
+        return calibrate_rig(o, i, reference=reference, loss=loss, models=models,
+                             refine_intrinsics=refines[which])
+
+    full = {"joint": rig(obs, init, "joint")}
+    joint_k = full["joint"].camera(name)
+    choice = {"joint_intrinsics": {k: float(getattr(joint_k, k)) for k in ("fx", "fy", "cx",
+                                                                            "cy")},
+              "solve_held_out_rms_px": {s: None for s in SOLVES}, "solve_held_out_poses": 0}
+    if len(proj) < CHOICE_MIN_VIEWS:
+        choice.update(solve="joint", solve_reason=(
+            f"joint: {len(proj)} projector poses, fewer than {CHOICE_MIN_VIEWS} to hold one "
+            "out; not scored"))
+        return full["joint"], choice
+    sq = {s: [] for s in SOLVES}  # per held-out pose: its corners' squared residuals
+    for k in proj:
+        sub = {kk: v for kk, v in proj.items() if kk != k}
+        try:
+            pc = calibrate_camera([p for p, _ in sub.values()], [q for _, q in sub.values()],
+                                  size, model=model, loss=loss, reject_views=False, name=name)
+            o, i = {**obs, name: sub}, {**init, name: pc.camera}
+            r = {s: rig(o, i, s) for s in SOLVES}
+        except InputError as exc:  # a subset that does not solve: this pose is not scored
+            log.info("projector %s: pose %s not held out: %s", name, k, exc)
+            continue
+        if all(k in r[s].T_world_board for s in SOLVES):  # the cameras saw it (the stage's
+            for s in SOLVES:                               # projector poses always are)
+                sq[s].append(_held_out(r[s], name, k, *proj[k]))
+    n = len(sq["joint"])
+    if n < 2:
+        choice.update(solve="joint", solve_reason=(
+            f"joint: only {n} projector pose(s) could be held out (solved without it, its "
+            "board placed by a camera); not scored"))
+        return full["joint"], choice
+    score = {s: float(np.sqrt(np.mean(np.concatenate(sq[s])))) for s in SOLVES}
+    # paired per pose, as the model selection's gain (AUTO_GAIN_NOISE standard errors)
+    d = np.array([np.mean(a) - np.mean(b) for a, b in zip(sq["joint"], sq["separate"])])
+    gain, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(n))
+    best = "separate" if gain > AUTO_GAIN_NOISE * se + AUTO_TIE_PX2 else "joint"
+    choice.update(solve=best, solve_held_out_rms_px=score, solve_held_out_poses=n,
+                  solve_gain_px2=gain, solve_gain_se_px2=se, solve_reason=(
+                      f"{best}: held-out projector corners {score['joint']:.4g} px RMS joint, "
+                      f"{score['separate']:.4g} px separate (leave one of {n} projector poses "
+                      f"out, its board placed by the cameras); the separate solve gains "
+                      f"{gain:.3g} ± {se:.3g} px² per pose"
+                      + ("" if best == "separate" else
+                         f", not above the noise ({AUTO_GAIN_NOISE:g} standard error)")))
+    if best == "separate":
+        full["separate"] = rig(obs, init, "separate")
+    return full[best], choice

@@ -35,8 +35,10 @@ warning) and writes
   (:mod:`facegeo.pipeline._calibrate_projector`), a separate solve from the Zhang start — no
   nominal intrinsics needed; its distortion model chosen as a camera's, ``model="auto"`` with
   the rig file's model — :data:`PROJECTOR_MODEL` for an uncalibrated entry — as fallback; σ,
-  projection uncertainty and cross-validation as a camera's — then the joint bundle
-  adjustment), its YAML and residual plot; otherwise ``metrics["projector"]`` says that it was not calibrated, why,
+  projection uncertainty and cross-validation as a camera's — then the rig's bundle adjustment
+  with the projector refined jointly or kept at its separate solve, whichever predicts
+  held-out projector corners better: :func:`~facegeo.pipeline._calibrate_projector.
+  projector_rig`), its YAML and residual plot; otherwise ``metrics["projector"]`` says that it was not calibrated, why,
   and what ``rig.json`` keeps instead (also logged as a warning, its record marked with
   :data:`SUMMARY_RECORD`: ``facegeo calibrate`` prints the line itself and drops the record);
 * ``metrics.json`` — ``{"calibrate": metrics}`` (the dict returned), by ``run_calibrate`` only.
@@ -71,6 +73,7 @@ from facegeo.pipeline._calibrate_products import (  # noqa: F401 (re-exported)
 from facegeo.pipeline._calibrate_projector import (  # noqa: F401 (SUMMARY_RECORD re-exported)
     SUMMARY_RECORD,
     projector_observations as _projector_observations,
+    projector_rig as _projector_rig,
     projector_spec,
     view_label,
     view_rejections,
@@ -521,7 +524,11 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
         (:func:`~facegeo.pipeline._calibrate_products.solve_metrics`: σ, model_selection, projection uncertainty, cross-validation),
         start ("nominal" or "uncalibrated": the rig.json entry it started
         from), reprojection_rms_px, separate_rms_px, separate_intrinsics ({fx, fy, cx,
-        cy} of the separate solve, before the joint adjustment)} or {calibrated: false, reason, rig_json
+        cy} of the separate solve, before the rig's adjustment), joint_intrinsics (the joint
+        solve's), solve ("joint" or "separate": the one in rig.json), solve_reason,
+        solve_held_out_rms_px ({joint, separate}: leave-one-projector-pose-out RMS, px; None
+        unscored), solve_held_out_poses, solve_gain_px2 / solve_gain_se_px2 (the separate
+        solve's held-out gain per pose and its standard error)} or {calibrated: false, reason, rig_json
         ("nominal" or "uncalibrated": what the calibrated rig.json holds), summary (one line)[,
         error (the failed attempt's)]} or None (no projector), "opencv_stereo": {reference,
         files: {camera: file name}[, skipped: {camera: why}]} (two or more cameras),
@@ -709,8 +716,16 @@ def calibrate_products(scan, dest, *, model: str = "auto", legacy: bool | None =
         why = (proj_metrics or {}).get("error", "the scan has no [calib.projector] board views")
         raise InputError(f"reference: the projector {pj.name!r} cannot hold the rig's frame: "
                          f"it was not calibrated ({why}); give a camera as --reference")
-    rig_cal = calibrate_rig(obs, init, reference=reference, loss=loss, models=models,
-                            refine_intrinsics=refine)
+    if proj_name is not None:  # joint or separate projector: held-out projector corners
+        say("choose the projector's solve")
+        rig_cal, choice = _projector_rig(obs, init, proj_name, proj_models[proj_name],
+                                         reference=reference, loss=loss, models=models,
+                                         refine=refine)
+        proj_metrics.update(choice)
+        log.info("projector %s: %s", proj_name, choice["solve_reason"])
+    else:
+        rig_cal = calibrate_rig(obs, init, reference=reference, loss=loss, models=models,
+                                refine_intrinsics=refine)
     T_rig_world, T_world_nom, metrics["world"] = _world_frame(scan, rig_cal, obs, proj_name,
                                                               nominal)
     cams = [c.replace(T_cam_world=c.T_cam_world @ T_rig_world) for c in rig_cal.cameras
