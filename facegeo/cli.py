@@ -490,8 +490,9 @@ def _cmd_project(args) -> int:
     kw = {} if args.shadow_taps else {"shadow_taps": False}
     if args.field_format != "npy":
         kw["field_format"] = args.field_format
-    if args.store is not None:
-        kw["store"] = args.store
+    if args.store is not None and not (args.out is None and args.camera is None
+                                       and args.rig in (None, *RIG_CHOICES)):
+        kw["store"] = args.store  # on its own (in the pipeline: run_reconstruct(store=))
     # a rig file is not one of the pipeline's rigs: the stage on its own, as with --out
     if args.out is None and args.camera is None and args.rig in (None, *RIG_CHOICES):
         from facegeo.capture.scan import load_scan
@@ -518,10 +519,10 @@ def _cmd_project(args) -> int:
 def _store_option(s) -> None:
     """``--store URL`` of the projection (project, reconstruct; docs/scale.md §3)."""
     s.add_argument("--store", default=None, metavar="URL",
-                   help="write the cameras' reflectance fields as Zarr arrays into this folder "
-                        "or fsspec store (s3://bucket/prefix) instead of the output folder, "
-                        "which keeps a link to each: projection tasks that share no disk "
-                        "(docs/scale.md)")
+                   help="a folder or fsspec store (s3://bucket/prefix) for tasks that write "
+                        "to no shared disk: the cameras' reflectance fields stay there as Zarr "
+                        "arrays, linked from the output folder; the fit's tasks write D and "
+                        "their parameters through it (docs/scale.md)")
 
 
 def _add_envmap_options(s) -> None:
@@ -608,9 +609,6 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
         given = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
         if given:
             settings = {**(settings or {}), stage: given}
-    if getattr(args, "store", None) is not None:  # the projection's fields in the store
-        settings = {**(settings or {}),
-                    "project": {**(settings or {}).get("project", {}), "store": args.store}}
     out = (Path(scan) if isinstance(scan, (str, os.PathLike)) else scan.root) / "out"
     tick, close = _progress_factory(not args.quiet)
     try:
@@ -619,6 +617,7 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
                                       rig=getattr(args, "rig", "auto"), settings=settings,
                                       from_stage=from_stage, only=only, until=until,
                                       progress=tick, engine=engine,
+                                      store=getattr(args, "store", None),
                                       on_stage=lambda r: (close(), print(_stage_line(r))))
     except FacegeoError:
         close()
@@ -1160,6 +1159,7 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "fit":
             _fit_options(s)
             _surface_option(s)
+            _store_option(s)
         s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         s.set_defaults(func=_cmd_stage)
 

@@ -156,29 +156,29 @@ def _pause_every_worker(cluster, E) -> None:
 
 
 @pytest.fixture
-def quick_stall(cluster, monkeypatch):
-    """The stall settings lowered to a second, the check before a stage off (as if the
-    memory were taken during the stage: that check would restart workers that hold it
-    already, the test above); the workers restarted after, for the module's other tests."""
+def stall_cluster(monkeypatch):
+    """A two-worker cluster of its own (what these tests do to its workers never reaches the
+    module's other tests), with the stall settings lowered to a second and the check before a
+    stage off (as if the memory were taken during the stage: that check would restart workers
+    that hold it already, the test above)."""
     from facegeo.pipeline import engine as E
 
     monkeypatch.setattr(E, "STALL_POLL_SECONDS", 0.2)
     monkeypatch.setattr(E, "STALL_SECONDS", 1.0)
     monkeypatch.setattr(E, "STALL_RESTART_SECONDS", 0.5)
-    monkeypatch.setattr(cluster, "_resident_check", lambda stage, tasks: None)
-    try:
-        yield E
-    finally:
-        cluster.client.restart(wait_for_workers=True)
-    assert cluster.map("after", [E.Task("y", _nothing)]) == [{}]
+    with make_engine(workers=2, memory_limit=WORKER_LIMIT) as eng:
+        monkeypatch.setattr(eng, "_resident_check", lambda stage, tasks: None)
+        yield eng
 
 
 @pytest.mark.slow
-def test_paused_idle_workers_of_the_engines_cluster_are_restarted(cluster, quick_stall):
+def test_paused_idle_workers_of_the_engines_cluster_are_restarted(stall_cluster):
     """Every worker of the engine's own ``LocalCluster`` paused with no task running (memory
     an earlier task left; CI met it in the fit of ``scale.reconstruct``): the engine restarts
     them and the stage finishes."""
-    E = quick_stall
+    from facegeo.pipeline import engine as E
+
+    cluster = stall_cluster
     before = cluster.restarts
     _pause_every_worker(cluster, E)
     assert cluster.map("st", [E.Task("x", _nothing), E.Task("z", _nothing)]) == [{}, {}]
@@ -188,12 +188,14 @@ def test_paused_idle_workers_of_the_engines_cluster_are_restarted(cluster, quick
 
 
 @pytest.mark.slow
-def test_paused_idle_workers_of_a_running_scheduler_stop_the_stage(cluster, quick_stall,
+def test_paused_idle_workers_of_a_running_scheduler_stop_the_stage(stall_cluster,
                                                                     monkeypatch):
     """A running scheduler's workers are not the engine's to restart: the stage stops with
     :class:`StalledError` naming what each holds, instead of waiting for ever (Dask has no
     task timeout)."""
-    E = quick_stall
+    from facegeo.pipeline import engine as E
+
+    cluster = stall_cluster
     monkeypatch.setattr(cluster, "kind", "scheduler")
     before = cluster.restarts
     _pause_every_worker(cluster, E)
@@ -221,12 +223,13 @@ def _paused_while_running(n_bytes: int) -> dict:
 
 
 @pytest.mark.slow
-def test_workers_paused_by_their_running_tasks_are_waited_for(cluster, quick_stall,
-                                                              monkeypatch):
+def test_workers_paused_by_their_running_tasks_are_waited_for(stall_cluster, monkeypatch):
     """A paused worker still running a task is not stuck (the task ends and frees its
     memory): with the stall limit (1 s) below the tasks' time paused and no restart allowed,
     the stage finishes."""
-    E = quick_stall
+    from facegeo.pipeline import engine as E
+
+    cluster = stall_cluster
     monkeypatch.setattr(E, "STALL_RESTARTS", 0)
     pause = cluster.memory_fraction * cluster.memory_limit
     base = max(cluster.client.run(E._resident_bytes).values())
@@ -511,3 +514,41 @@ def test_cli_project_store_links_the_fields_and_is_cached(projected, tmp_path, c
         n = len(np.load(cam / "texel_index.npy"))
         R = open_field(cam)
         assert R.shape == (n, 128, 3) and np.isfinite(np.asarray(R[:64])).any()
+
+
+def test_fit_through_a_store_equals_the_folder_run(projected, tmp_path, monkeypatch):
+    """``fit(store=URL)`` in process with a ``memory://`` store (each task's rows, view
+    directions, texels and offsets sent with it; its D rows and parameters written into the
+    store): the same bytes as the run through the stage folder; the run's folder in the store
+    removed after."""
+    import fsspec
+
+    _fit(projected, tmp_path / "folder", monkeypatch, tasks_chunks=2)
+    store = f"memory://facegeo-fit-{tmp_path.name}"
+    _fit(projected, tmp_path / "store", monkeypatch, tasks_chunks=2, store=store)
+    assert _digests(tmp_path / "folder" / "fit") == _digests(tmp_path / "store" / "fit")
+    fs = fsspec.filesystem("memory")
+    assert not fs.exists(f"/facegeo-fit-{tmp_path.name}/fit") or not fs.ls(
+        f"/facegeo-fit-{tmp_path.name}/fit")
+    stage = json.loads((tmp_path / "store" / "fit" / "stage.json").read_text())
+    assert stage["settings"]["store"] == store
+
+
+@pytest.mark.slow
+def test_projection_and_fit_through_a_store_on_two_workers(projected, tmp_path, monkeypatch,
+                                                           cluster):
+    """Projection and fit on two workers with a folder as the store (the fields stay there,
+    linked; the fit tasks read them there and write D and their parameters through it): the
+    fit's products the same bytes as the in-process run through the stage folders."""
+    from facegeo.pipeline.project import run_project
+
+    _fit(projected, tmp_path / "one", monkeypatch, tasks_chunks=2)
+    out = tmp_path / "two"
+    shutil.copytree(projected / "out" / "atlas", out / "atlas")
+    store = tmp_path / "store"
+    run_project(projected, out, evaluate=False, store=str(store), engine=cluster)
+    m = _fit(projected, out, monkeypatch, tasks_chunks=2, engine=cluster, store=str(store))
+    assert _digests(tmp_path / "one" / "fit") == _digests(out / "fit")
+    assert len(m["engine"]["tasks"]) == 2 * 3
+    assert sorted(p.name for p in store.iterdir()) == ["fit", "project"]
+    assert not any((store / "fit").iterdir())  # the fit's run folder removed

@@ -115,6 +115,10 @@ STALL_RESTART_SECONDS = 10.0
 #: Restarts of paused, idle workers a stage may make before it stops with
 #: :class:`StalledError` instead (memory that a fresh worker fills again is not a leftover).
 STALL_RESTARTS = 2
+#: Seconds between the two looks that find a restarted cluster settled
+#: (:meth:`DaskEngine.restart`), and the longest it waits for that.
+SETTLE_SECONDS = 1.0
+SETTLE_TIMEOUT_SECONDS = 60.0
 #: Resident memory of a worker process before its first task's data: Python, numpy, OpenCV,
 #: numba and ``distributed`` itself (measured: 234–246 MiB for a decode worker after a task
 #: on the tiny preset's 80 × 120 cameras, whose data is negligible; rounded up).
@@ -455,6 +459,26 @@ class DaskEngine(Engine):
             client.close()
             raise
 
+    def restart(self) -> None:
+        """Restart every worker (``Client.restart``) and wait until the cluster has settled:
+        the same workers, all running, on two looks :data:`SETTLE_SECONDS` apart. Each nanny
+        also restarts the worker it saw exit, after the scheduler has counted the workers
+        back; a second restart in that time closed both nannies (seen here: a stage's restart
+        3 s after another), so the next restart waits for this one to end."""
+        self.client.restart(wait_for_workers=True)
+        seen = None
+        deadline = time.monotonic() + SETTLE_TIMEOUT_SECONDS
+        while time.monotonic() < deadline:
+            workers = self.client.scheduler_info().get("workers", {})
+            now = (frozenset(workers), all(w.get("status") == "running"
+                                           for w in workers.values()))
+            if now == seen and now[1] and len(now[0]) >= self.n_workers:
+                return
+            seen = now
+            time.sleep(SETTLE_SECONDS)
+        log.warning("workers restarted but not settled after %.0f s: %s",
+                    SETTLE_TIMEOUT_SECONDS, sorted(seen[0]) if seen else "none")
+
     def _resident_check(self, stage: str, tasks) -> None:
         """Restart the workers (of a ``LocalCluster``; a running scheduler's are only warned
         about) when one of them holds so much memory already (left by an earlier stage: freed
@@ -481,18 +505,27 @@ class DaskEngine(Engine):
             log.info("%s: workers %s hold %s already, + a task of %s > %s: restarting them",
                      stage, sorted(over), [_mb(r) for r in over.values()], _mb(need),
                      _mb(limit))
-            self.client.restart(wait_for_workers=True)
+            self.restart()
             self.restarts += 1
 
     def _map(self, stage, tasks, progress):
         from distributed import wait
 
         self._resident_check(stage, tasks)
-        pending = {}  # future -> task name; a finished one is dropped (its worker may restart)
-        for t in tasks:
-            f = self.client.submit(_run_on_worker, t.name, t.fn, t.args, t.kwargs,
-                                   key=f"{stage}-{t.name}-{os.urandom(4).hex()}", pure=False)
-            pending[f] = t.name
+        by_name = {t.name: t for t in tasks}
+
+        def submit(names) -> dict:
+            out = {}
+            for n in names:
+                t = by_name[n]
+                f = self.client.submit(_run_on_worker, t.name, t.fn, t.args, t.kwargs,
+                                       key=f"{stage}-{t.name}-{os.urandom(4).hex()}",
+                                       pure=False)
+                out[f] = t.name
+            return out
+
+        # future -> task name; a finished one is dropped as soon as it is read
+        pending = submit(t.name for t in tasks)
         results: dict[str, Any] = {}
         done = 0
         failed: tuple[str, BaseException] | None = None
@@ -503,7 +536,20 @@ class DaskEngine(Engine):
                     finished = wait(list(pending), timeout=STALL_POLL_SECONDS,
                                     return_when="FIRST_COMPLETED").done
                 except TimeoutError:
-                    quiet.check(len(pending))
+                    if quiet.check(len(pending)):  # every worker paused and idle: restart
+                        left = sorted(pending.values())
+                        self.client.cancel(list(pending))
+                        pending = {}
+                        try:
+                            self.restart()
+                        except (TimeoutError, OSError) as exc:
+                            raise StalledError(
+                                f"{stage}: {len(left)} task(s) left; every worker was paused "
+                                f"at its memory limit with no task running, and restarting "
+                                f"them failed ({exc}); give the workers more memory "
+                                "(--memory-limit) or run in one process") from exc
+                        self.restarts += 1
+                        pending = submit(left)  # a task writes whole files: run again
                     continue
                 quiet.reset()
                 for f in sorted(finished, key=lambda f: pending[f]):
@@ -549,9 +595,12 @@ class _Quiet:
     running a task is not stuck (the task's own memory paused it; it ends).
 
     On a ``LocalCluster`` the engine started, workers stuck for :data:`STALL_RESTART_SECONDS`
-    are restarted (``Client.restart_workers``; their queued tasks run again elsewhere or on
-    the fresh process, and the tasks write whole files, so a task run twice writes the same
-    products), at most :data:`STALL_RESTARTS` times a stage. Otherwise, after
+    are restarted — :meth:`check` says so and the stage cancels its tasks left, restarts every
+    worker (``Client.restart``; per-worker ``Client.restart_workers`` once left both nannies
+    closed on a loaded machine, each restarting its exited worker beside the scheduler's
+    restart) and submits those tasks again (a task writes
+    whole files, so one run twice writes the same products) — at most :data:`STALL_RESTARTS`
+    times a stage. Otherwise, after
     :data:`STALL_SECONDS`, the stage stops with :class:`StalledError` naming what each
     worker holds. Measured (CI, ``scale.reconstruct`` quick, 512 MiB workers): a fit worker
     paused at 411 MiB between two tasks."""
@@ -564,22 +613,24 @@ class _Quiet:
     def reset(self) -> None:
         self.since: float | None = None  # when every worker was first seen stuck
 
-    def check(self, n_left: int) -> None:
+    def check(self, n_left: int) -> bool:
+        """True when the caller should restart the workers (see the class); raises
+        :class:`StalledError` when the stage cannot go on."""
         try:
             workers = self.engine.client.scheduler_info().get("workers", {})
         except Exception:  # noqa: BLE001 - the client's own errors surface on the next wait
-            return
+            return False
         stuck = not workers or all(
             w.get("status") == "paused"
             and not ((w.get("metrics") or {}).get("task_counts") or {}).get("executing")
             for w in workers.values())
         if not stuck:
             self.since = None
-            return
+            return False
         now = time.monotonic()
         if self.since is None:
             self.since = now
-            return
+            return False
         held = {a: _mb(int((w.get("metrics") or {}).get("memory") or 0))
                 for a, w in workers.items()}
         if (workers and self.engine.kind == "local-cluster" and self.restarts < STALL_RESTARTS
@@ -587,13 +638,11 @@ class _Quiet:
             log.warning("%s: every worker is paused at its memory limit with no task running "
                         "(%s, limit %s each; %d task(s) left): restarting them", self.stage,
                         held, _mb(self.engine.memory_limit), n_left)
-            self.engine.client.restart_workers(list(workers), raise_for_error=False)
             self.restarts += 1
-            self.engine.restarts += 1
             self.since = None
-            return
+            return True
         if now - self.since < STALL_SECONDS:
-            return
+            return False
         what = (f"every worker is paused at its memory limit with no task running ({held}, "
                 f"limit {_mb(self.engine.memory_limit)} each"
                 + (f"; restarted {self.restarts} time(s) in this stage" if self.restarts

@@ -542,7 +542,7 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
                     until: str | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
                     on_stage: Callable[[StageResult], None] | None = None,
-                    engine=None) -> list[StageResult]:
+                    engine=None, store: str | None = None) -> list[StageResult]:
     """Run every stage of ``facegeo reconstruct`` whose products are missing or stale.
 
     Parameters
@@ -565,6 +565,10 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
     engine : facegeo.pipeline.engine.Engine, optional
         See :func:`reconstruct_pipeline` (the caller creates and closes it:
         ``with make_engine(workers, scheduler, memory_limit) as engine: ...``).
+    store : str, optional
+        ``--store URL`` (a folder or an fsspec URL): the ``store`` setting of the stages that
+        take one — ``project`` (the fields stay in the store, linked) and ``fit`` (its tasks'
+        D and parameters go through it) — where the scan has them (docs/scale.md §3).
     """
     from facegeo.capture.scan import Scan, load_scan
 
@@ -608,6 +612,11 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
                                   or s == "evaluate")
         pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until,
                                         engine=engine, calibration_error=calibration_error)
+        if store is not None:  # the stages with a store setting, where the scan has them
+            settings = dict(settings or {})
+            for spec in pipeline.stages:
+                if "store" in (spec.settings or {}):
+                    settings[spec.name] = {**(settings.get(spec.name) or {}), "store": store}
 
         def report(result: StageResult) -> None:
             if on_stage is not None and not (done and result.name == "calibrate"):
