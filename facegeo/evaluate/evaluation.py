@@ -107,8 +107,8 @@ REFERENCE_CACHE_MAX = 16
 
 class _CachedReferences:
     """The generator's truth (``facegeo.synth.render.ReferenceRenderer``) with its
-    :meth:`render_lights` — a view's reference image, the evaluation's dominant cost (≈ 20 s
-    a view on the small preset) — kept on disk under ``folder``, keyed by what the image
+    :meth:`render_lights` — a view's reference image, the evaluation's dominant cost (≈ 12 s
+    a view on the small preset with the compiled shading, ≈ 20 s before) — kept on disk under ``folder``, keyed by what the image
     depends on: the camera (its ``to_dict``), the lights' weights, the supersampling, the
     generator's truth files' content and facegeo's code (:func:`facegeo.pipeline.cache.
     code_fingerprint`). Everything else is the renderer's own."""

@@ -2,11 +2,13 @@
 
 A calibrated rig's world frame is its own gauge choice: before a product in that frame is
 compared with the generator's truth, the atlas mesh is brought onto the true surface by the
-best rigid transform (:func:`truth_gauge`). :func:`texel_areas` weights per-texel statistics by
-the surface each texel stands for, so a figure is a mean over the surface, not over however
-the atlas samples it. :func:`chain_views_in_truth` gives the chain's rendered views' cameras in
-the generator's frame: the cameras its references are rendered from, and the views the
-stage-alone pass (``out/diagnostic/``) renders.
+best rigid transform (:func:`truth_gauge`), fitted on the measured surface only: vertices the
+mesh stage inferred (hole filling, :func:`inferred_atlas_vertices`) are skipped.
+:func:`texel_areas` weights per-texel statistics by the surface each texel stands for, so a
+figure is a mean over the surface, not over however the atlas samples it.
+:func:`chain_views_in_truth` gives the chain's rendered views' cameras in the generator's
+frame: the cameras its references are rendered from, and the views the stage-alone pass
+(``out/diagnostic/``) renders.
 """
 
 from __future__ import annotations
@@ -15,13 +17,65 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["chain_views_in_truth", "texel_areas", "truth_gauge"]
+__all__ = ["chain_views_in_truth", "inferred_atlas_vertices", "texel_areas",
+           "truth_gauge"]
 
 #: truth_gauge's alignments of this process, by the meshes' contents (a few at most).
 _GAUGES: dict[str, Any] = {}
+#: truth_gauge aligns on every vertex when fewer measured ones than this remain.
+GAUGE_MIN_VERTICES = 100
 
 
-def truth_gauge(renderer, atlas, rig_used: str) -> tuple[Any, dict]:
+def inferred_atlas_vertices(out, atlas) -> np.ndarray | None:
+    """``(V',)`` bool: the atlas vertices that lie only on faces the mesh stage marked as
+    inferred — surface it filled where no camera measured (``<stem>_inferred.npy`` beside the
+    atlas's input mesh, named by :func:`facegeo.geometry.mesh.inferred_faces_path`, read
+    through ``atlas.face_map``). A vertex shared with a measured face is measured. None when
+    the atlas's mesh has no such flags (the generator's mesh, the trimmed surface, an atlas
+    written before the atlas stage recorded its mesh).
+
+    Parameters
+    ----------
+    out : path-like
+        The products folder holding ``atlas/stage.json`` (whose ``metrics.mesh`` names the mesh
+        file; a moved products folder is looked up under ``out/mesh/`` by its name).
+    atlas : facegeo.surface.atlas.Atlas
+
+    Raises
+    ------
+    InputError
+        The flags are not one boolean per face of the mesh the atlas was cut from.
+    """
+    from pathlib import Path
+
+    from facegeo.errors import InputError
+    from facegeo.evaluate._products import has_stage, stage_manifest
+    from facegeo.geometry.mesh import inferred_faces_path
+
+    out = Path(out)
+    if not has_stage(out, "atlas"):
+        return None
+    mesh = stage_manifest(out, "atlas").get("metrics", {}).get("mesh")
+    if not isinstance(mesh, str) or mesh == "ground_truth":
+        return None
+    path = inferred_faces_path(mesh)
+    if not path.is_file():
+        path = inferred_faces_path(out / "mesh" / Path(mesh).name)
+        if not path.is_file():
+            return None
+    flags = np.load(path)
+    face_map = np.asarray(atlas.face_map, np.int64)
+    if flags.dtype != bool or flags.ndim != 1 or (face_map.size and
+                                                   int(face_map.max()) >= flags.size):
+        raise InputError(f"{path}: expected one bool per face of {mesh} (the atlas uses faces "
+                         f"up to {int(face_map.max()) if face_map.size else -1}), got "
+                         f"{flags.shape} {flags.dtype}; rerun the mesh and atlas stages")
+    measured = np.zeros(len(atlas.vertices), bool)
+    measured[atlas.faces[~flags[face_map]].ravel()] = True
+    return ~measured
+
+
+def truth_gauge(renderer, atlas, rig_used: str, *, skip=None) -> tuple[Any, dict]:
     """Where a stage's texels meet the generator's truth: ``(T_true_world, metrics)``.
 
     With the true rig (``rig_used == "ground_truth"``) the stage's world frame is the
@@ -36,7 +90,14 @@ def truth_gauge(renderer, atlas, rig_used: str) -> tuple[Any, dict]:
     ``projection_rel_rmse`` of 12.0 % where the aligned figure is 3.0 % (true rig: 3.1 %; both
     plain bilinear, before the shadow-consistent taps).
     The alignment (≈ 1.6 s on the small preset's reconstruction) is kept for the process,
-    keyed by the two meshes' contents, so the comparisons of one run compute it once.
+    keyed by the two meshes' contents and ``skip``, so the comparisons of one run compute it
+    once.
+
+    The alignment is fitted on the measured surface only: the vertices ``skip`` marks (the
+    surface the mesh stage inferred, :func:`inferred_atlas_vertices`) are left out, since a
+    hole filling that bulges or sags would otherwise pull the frame toward its own error; the
+    metrics say how many (``gauge_inferred_vertices_skipped``, with ``skip`` given). With
+    fewer than :data:`GAUGE_MIN_VERTICES` measured vertices every vertex is used.
 
     Parameters
     ----------
@@ -46,21 +107,36 @@ def truth_gauge(renderer, atlas, rig_used: str) -> tuple[Any, dict]:
         The stage's atlas (vertices in metres, the stage's world frame).
     rig_used : str
         The rig the stage used (``"ground_truth"``, ``"scan"``, ``"calibrated"`` or a file).
+    skip : (V',) bool, optional
+        Atlas vertices left out of the alignment (:func:`inferred_atlas_vertices`).
     """
     if rig_used == "ground_truth":
         return None, {}
     import hashlib
 
+    from facegeo.errors import InputError
+
+    vertices = np.asarray(atlas.vertices, np.float64)
+    extra: dict[str, int] = {}
+    if skip is not None:
+        skip = np.asarray(skip)
+        if skip.shape != (len(vertices),) or skip.dtype != bool:
+            raise InputError(f"skip: expected ({len(vertices)},) bool, one flag per atlas "
+                             f"vertex, got {skip.shape} {skip.dtype}")
+        if int((~skip).sum()) < GAUGE_MIN_VERTICES:
+            skip = np.zeros(len(vertices), bool)
+        extra["gauge_inferred_vertices_skipped"] = int(skip.sum())
+        vertices = vertices[~skip]
     key = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in (
-        atlas.vertices, atlas.faces, renderer.vertices, renderer.faces))).hexdigest()
+        vertices, atlas.faces, renderer.vertices, renderer.faces))).hexdigest()
     T = _GAUGES.get(key)
     if T is None:
-        T = renderer.gauge_alignment(atlas.vertices)
+        T = renderer.gauge_alignment(vertices)
         if len(_GAUGES) >= 8:
             _GAUGES.pop(next(iter(_GAUGES)))
         _GAUGES[key] = T
     return T, {"gauge_rotation_deg": round(float(np.degrees(np.linalg.norm(T.rvec))), 6),
-               "gauge_translation_mm": round(float(np.linalg.norm(T.t)) * 1e3, 4)}
+               "gauge_translation_mm": round(float(np.linalg.norm(T.t)) * 1e3, 4), **extra}
 
 
 def texel_areas(atlas, texels) -> np.ndarray:
@@ -144,7 +220,8 @@ def chain_views_in_truth(scan, out) -> list[dict] | None:
             if renderer is None:
                 renderer = load_ground_truth(scan)
                 atlas = Atlas.load(out / "atlas" / "atlas.npz")
-            T_true, _ = truth_gauge(renderer, atlas, rig_used)
+            T_true, _ = truth_gauge(renderer, atlas, rig_used,
+                                    skip=inferred_atlas_vertices(out, atlas))
             camera = dataclasses.replace(camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
         cams.append(camera.to_dict())
     return cams or None

@@ -48,7 +48,7 @@ import numpy as np
 from facegeo.checks import check_positive_int
 from facegeo.frames import stratified_light_subset
 from facegeo.evaluate._products import stage_rig_product
-from facegeo.evaluate.gauge import texel_areas, truth_gauge
+from facegeo.evaluate.gauge import inferred_atlas_vertices, texel_areas, truth_gauge
 from facegeo.surface.reflectance import has_field
 
 __all__ = ["GT_LIGHTS", "GT_WEIGHT_MIN", "VISIBILITY_FILE", "evaluate_projection",
@@ -286,7 +286,8 @@ def evaluate_projection(scan, out, *, gt_lights: int = GT_LIGHTS,
             from facegeo.synth.render import load_ground_truth
 
             renderer = load_ground_truth(scan)
-        T_true, gauge = truth_gauge(renderer, atlas, rig_used)
+        T_true, gauge = truth_gauge(renderer, atlas, rig_used,
+                                    skip=inferred_atlas_vertices(out, atlas))
         ref = renderer.texel_truth(atlas, texels, T_true=T_true)
         area = texel_areas(atlas, texels)
     names = [c.name for c in the_rig.cameras if has_field(out / "project" / c.name)]

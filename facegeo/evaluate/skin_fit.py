@@ -49,7 +49,7 @@ import numpy as np
 from facegeo.checks import check_positive_int, fmt_value
 from facegeo.errors import InputError
 from facegeo.evaluate._products import has_stage, stage_manifest
-from facegeo.evaluate.gauge import truth_gauge
+from facegeo.evaluate.gauge import inferred_atlas_vertices, truth_gauge
 
 __all__ = ["GT_ANGLES", "GT_FUNCTIONS", "check_gt_angles", "evaluate_skin_fit",
            "fit_truth_figures"]
@@ -249,7 +249,8 @@ def evaluate_skin_fit(scan, out, *, renderer=None, gt_functions: int = GT_FUNCTI
     lights = light_set(the_rig.lights)
     atlas = Atlas.load(out / "atlas" / "atlas.npz")
     tex = Texels.load(out / "atlas" / "texels.npz")
-    T_true, gauge = truth_gauge(renderer, atlas, rig_used)
+    T_true, gauge = truth_gauge(renderer, atlas, rig_used,
+                                skip=inferred_atlas_vertices(out, atlas))
     near_all = _near_field(the_rig.lights, tex, settings.get("near_field", "off"))
     gt: dict[str, Any] = {"n_err": [], "a_err": [], "a0_err": [], "s_err": [], "sums": {},
                           "per_function": {}, "backfacing": {}, "views": {}}

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from facegeo.errors import InputError
-from facegeo.evaluate.gauge import truth_gauge
+from facegeo.evaluate.gauge import inferred_atlas_vertices, truth_gauge
 
 __all__ = ["evaluate_view", "evaluate_view_against_image", "has_view_reference",
            "image_metrics", "reference_image_key", "render_gain", "view_figures",
@@ -191,7 +191,8 @@ def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> di
 
         renderer = load_ground_truth(scan)
     atlas = Atlas.load(Path(out) / "atlas" / "atlas.npz")
-    T_true, gauge = truth_gauge(renderer, atlas, meta.get("rig"))
+    T_true, gauge = truth_gauge(renderer, atlas, meta.get("rig"),
+                                skip=inferred_atlas_vertices(out, atlas))
     metrics: dict[str, Any] = dict(gauge)
     ref_camera = camera if T_true is None else dataclasses.replace(
         camera, T_cam_world=camera.T_cam_world @ T_true.inverse())

@@ -47,6 +47,7 @@ import numpy as np
 
 from facegeo.checks import as_array, check_positive_int, fmt_value
 from facegeo.errors import InputError
+from facegeo.synth._terminator import terminator_self_shadow_fraction  # re-exported
 
 log = logging.getLogger(__name__)
 
@@ -254,6 +255,7 @@ class ReferenceRenderer:
         # id(view) -> (weak reference to the view, its shadow origins); an entry leaves with
         # its view (weakref.finalize), so the cache never keeps a view alive
         self._origins: dict[int, tuple] = {}
+        self._terms: dict[int, tuple] = {}  # id(view) -> (weak ref, _view_terms), the same way
         self.rig = None  # the true rig, when rebuilt from a scan (load_ground_truth)
 
     def material_at(self, p_world, face):
@@ -603,16 +605,73 @@ class ReferenceRenderer:
         return self._stage_light_shader(view, lights)(l)
 
     def _stage_light_shader(self, view: SurfaceView, lights) -> Callable[[int], np.ndarray]:
-        """``l -> shade_stage_light(view, lights, l)``, with the stage's light directions
-        computed once (not once per light)."""
+        """``l -> shade_stage_light(view, lights, l)``: :meth:`_stage_light_rows` scattered
+        into every sample of the view (0 where unlit or shadowed)."""
+        rows_of = self._stage_light_rows(view, lights)
+
+        def shade(l):
+            rows, rad = rows_of(l)
+            out = np.zeros((view.n_samples, 3), np.float32)
+            out[rows] = rad
+            return out
+
+        return shade
+
+    def _stage_light_rows(self, view: SurfaceView, lights):
+        """``l -> (rows, radiance (R, 3) float32)``: the samples of ``view`` light ``l`` of the
+        stage reaches (lit and unshadowed, in sample order) and their radiance toward the
+        camera — what :meth:`shade_point_light` / :meth:`shade_directional_light` give at those
+        samples (0 elsewhere), computed by the compiled kernels of
+        :mod:`facegeo.synth._shade_kernels` (the light-independent terms once per view)."""
+        from facegeo.synth import _shade_kernels as K
+
         color = np.asarray(lights.color, float)
-        directions = lights.directions
-        if np.isfinite(lights.radius):
-            center = np.asarray(lights.center, float)
-            radius = lights.radius
-            return lambda l: self.shade_point_light(view, center + radius * directions[l], color,
-                                                    stage_radius=radius)
-        return lambda l: self.shade_directional_light(view, directions[l], color)
+        directions = np.asarray(lights.directions, float)
+        point = bool(np.isfinite(lights.radius))
+        center = np.asarray(lights.center, float)
+        radius = float(lights.radius) if point else 1.0
+        terms = self._view_terms(view)
+        origins = self._view_origins(view) if self.shadows else None
+
+        def rows_of(l):
+            if point:
+                pos = center + radius * directions[l]
+                kw = {"light_pos": pos}
+            else:
+                pos = directions[l] / np.linalg.norm(directions[l])
+                kw = {"light_dir": pos}
+            rows = K.lit_rows(view.p_world, view.n_world, pos, not point)
+            if self.shadows and rows.size:
+                vis = self._unshadowed(view.p_world.take(rows, axis=0), view.face.take(rows),
+                                       view.n_world.take(rows, axis=0),
+                                       origins=origins.take(rows, axis=0), **kw)
+                if not vis.all():
+                    rows = rows[vis]
+            m2, nv = terms[0], terms[2]
+            exp_b = np.exp(K.beckmann_exponents(rows, view.p_world, view.n_world, view.v_world,
+                                                nv, m2, pos, not point))
+            rad = K.shade_rows(rows, exp_b, view.p_world, view.n_world, view.v_world,
+                               view.alpha_0, view.alpha_1, view.rho_s, *terms, self.eta, pos,
+                               not point, radius, color)
+            return rows, rad
+
+        return rows_of
+
+    def _view_terms(self, view: SurfaceView) -> tuple:
+        """The light-independent BRDF terms of a view's samples
+        (:func:`facegeo.synth._shade_kernels.view_terms`) and the ρ_dr table they index:
+        ``(m², π·m², nv, t_r, j, fy, table, n_mu)``, once per view (cached like
+        :meth:`_view_origins`)."""
+        from facegeo.synth._shade_kernels import light_independent_terms
+
+        key = id(view)
+        hit = self._terms.get(key)
+        if hit is not None and hit[0]() is view:
+            return hit[1]
+        terms = light_independent_terms(view, self.eta)
+        self._terms[key] = (weakref.ref(view), terms)
+        weakref.finalize(view, _forget, self._terms, key)
+        return terms
 
     def olat_images(self, camera, lights, indices=None, *, workers: int = 2
                     ) -> Iterator[tuple[int, np.ndarray]]:
@@ -645,11 +704,13 @@ class ReferenceRenderer:
         w = as_array(weights, "weights", shape=(lights.n_lights, 3))
         view = self.surface_view(camera, supersample=check_positive_int(supersample,
                                                                          "supersample"))
+        from facegeo.synth._shade_kernels import accumulate
+
         acc = np.zeros((view.n_samples, 3), np.float64)
         active = np.flatnonzero(np.any(w != 0, axis=1))
-        shade = self._stage_light_shader(view, lights)
-        for k, (l, rad) in enumerate(_ordered_map(shade, active, workers)):
-            acc += rad * w[l][None, :]
+        shade = self._stage_light_rows(view, lights)
+        for k, (l, (rows, rad)) in enumerate(_ordered_map(shade, active, workers)):
+            accumulate(acc, rows, rad, np.ascontiguousarray(w[l], np.float64))  # += rad · w_l
             if progress:
                 progress(k)
         return view.to_image(acc.astype(np.float32))
@@ -663,61 +724,6 @@ class ReferenceRenderer:
             raise InputError(f"indices: expected light indices in [0, {lights.n_lights}), "
                              f"got {np.asarray(indices).tolist()!r:.80}")
         return idx
-
-
-def terminator_self_shadow_fraction(renderer: ReferenceRenderer, cameras, lights,
-                                    indices=None) -> dict:
-    """Fraction of lit samples that the renderer shadows by their own or an adjacent triangle.
-
-    For every camera and stage light (``indices``, default all), a sample is *lit* when its
-    shading normal faces the light (cos θᵢ > 0) — the samples the shading would light without
-    shadows. The renderer decides which lit samples are shadowed, exactly as in every frame,
-    and reports the face that blocks the deciding shadow ray; the sample counts as
-    *self-shadowed* when that face is its own or shares a vertex position with it (welded
-    across UV seams): the terminator artefact, not a cast shadow.
-
-    Parameters
-    ----------
-    renderer : ReferenceRenderer
-    cameras : Camera or sequence of Camera
-    lights : facegeo.geometry.rig.LightStage
-    indices : sequence of int, optional
-        Light indices (default every light).
-
-    Returns
-    -------
-    dict
-        ``fraction`` (self-shadowed / lit samples, summed over cameras and lights),
-        ``self_shadowed``, ``lit``, ``shadowed`` (all blocked lit samples) as counts.
-    """
-    cams = [cameras] if hasattr(cameras, "pixel_rays") else list(cameras)
-    idx = ReferenceRenderer._check_indices(lights, indices)
-    n_lit = n_self = n_shadow = 0
-    for cam in cams:
-        view = renderer.surface_view(cam)
-        for l in idx:
-            if np.isfinite(lights.radius):
-                pos = np.asarray(lights.center, float) + lights.radius * lights.directions[l]
-                to_l = pos[None, :] - view.p_world
-                dist = np.linalg.norm(to_l, axis=1)
-                ldir = to_l / dist[:, None]
-                kw = {"light_pos": pos}
-            else:
-                ldir = np.broadcast_to(lights.directions[l], view.p_world.shape)
-                dist = np.full(view.n_samples, np.inf)
-                kw = {"light_dir": np.asarray(lights.directions[l], float)}
-            lit = np.einsum("pc,pc->p", view.n_world, ldir) > 0
-            if not lit.any():
-                continue
-            p, face, n = view.p_world[lit], view.face[lit], view.n_world[lit]
-            vis, blocker = renderer._shadow_test(p, face, n, **kw)
-            blocked = ~vis
-            n_lit += int(lit.sum())
-            n_shadow += int(blocked.sum())
-            if blocked.any():
-                n_self += int(np.count_nonzero(renderer.adjacent(face[blocked], blocker[blocked])))
-    return {"fraction": n_self / n_lit if n_lit else 0.0, "self_shadowed": n_self, "lit": n_lit,
-            "shadowed": n_shadow}
 
 
 def _check_skin_sample(skin, n: int) -> None:
