@@ -4,18 +4,12 @@ renderer's module docstring and docs/synth.md give its figures)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
-
-if TYPE_CHECKING:
-    from facegeo.synth.render import ReferenceRenderer
 
 __all__ = ["terminator_self_shadow_fraction"]
 
 
-def terminator_self_shadow_fraction(renderer: ReferenceRenderer, cameras, lights,
-                                    indices=None) -> dict:
+def terminator_self_shadow_fraction(renderer, cameras, lights, indices=None) -> dict:
     """Fraction of lit samples that the renderer shadows by their own or an adjacent triangle.
 
     For every camera and stage light (``indices``, default all), a sample is *lit* when its
@@ -27,7 +21,7 @@ def terminator_self_shadow_fraction(renderer: ReferenceRenderer, cameras, lights
 
     Parameters
     ----------
-    renderer : ReferenceRenderer
+    renderer : facegeo.synth.render.ReferenceRenderer
     cameras : Camera or sequence of Camera
     lights : facegeo.geometry.rig.LightStage
     indices : sequence of int, optional
@@ -39,10 +33,9 @@ def terminator_self_shadow_fraction(renderer: ReferenceRenderer, cameras, lights
         ``fraction`` (self-shadowed / lit samples, summed over cameras and lights),
         ``self_shadowed``, ``lit``, ``shadowed`` (all blocked lit samples) as counts.
     """
-    from facegeo.synth.render import ReferenceRenderer
-
     cams = [cameras] if hasattr(cameras, "pixel_rays") else list(cameras)
-    idx = ReferenceRenderer._check_indices(lights, indices)
+    # the renderer's own class (this module is imported by facegeo.synth.render)
+    idx = type(renderer)._check_indices(lights, indices)
     n_lit = n_self = n_shadow = 0
     for cam in cams:
         view = renderer.surface_view(cam)
