@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import time
 from pathlib import Path
@@ -132,8 +133,12 @@ def test_workers_holding_memory_are_restarted_before_a_stage(cluster):
     cluster.map("small", [Task("s", _nothing, working_set=1 << 20)])
     assert cluster.restarts == before  # fits beside what the workers hold
     need = int(budget - min(rss.values())) + (1 << 20)
+    env = os.environ.get("NUMBA_NUM_THREADS")
     cluster.map("big", [Task("b", _nothing, working_set=need)])
     assert cluster.restarts == before + 1
+    # the nannies (in this process) set the workers' NUMBA_NUM_THREADS=1 here as they
+    # respawn them; the engine puts this process's own back (numba refused to run after)
+    assert os.environ.get("NUMBA_NUM_THREADS") == env
     after = cluster.client.run(_resident_bytes)
     assert max(after.values()) < min(rss.values()) - (200 << 20)  # the held memory is gone
 

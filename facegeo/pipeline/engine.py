@@ -429,10 +429,12 @@ class DaskEngine(Engine):
             _restore_environ(environ)
         try:
             client = Client(cluster)
-            return cls(client, "local-cluster", cluster)
+            eng = cls(client, "local-cluster", cluster)
         except BaseException:
             cluster.close()
             raise
+        eng._environ = environ  # put back after every restart (:meth:`_put_environ_back`)
+        return eng
 
     @classmethod
     def connect(cls, address: str, timeout: str | float = "30s") -> DaskEngine:
@@ -465,19 +467,22 @@ class DaskEngine(Engine):
         also restarts the worker it saw exit, after the scheduler has counted the workers
         back; a second restart in that time closed both nannies (seen here: a stage's restart
         3 s after another), so the next restart waits for this one to end."""
-        self.client.restart(wait_for_workers=True)
-        seen = None
-        deadline = time.monotonic() + SETTLE_TIMEOUT_SECONDS
-        while time.monotonic() < deadline:
-            workers = self.client.scheduler_info().get("workers", {})
-            now = (frozenset(workers), all(w.get("status") == "running"
-                                           for w in workers.values()))
-            if now == seen and now[1] and len(now[0]) >= self.n_workers:
-                return
-            seen = now
-            time.sleep(SETTLE_SECONDS)
-        log.warning("workers restarted but not settled after %.0f s: %s",
-                    SETTLE_TIMEOUT_SECONDS, sorted(seen[0]) if seen else "none")
+        try:
+            self.client.restart(wait_for_workers=True)
+            seen = None
+            deadline = time.monotonic() + SETTLE_TIMEOUT_SECONDS
+            while time.monotonic() < deadline:
+                workers = self.client.scheduler_info().get("workers", {})
+                now = (frozenset(workers), all(w.get("status") == "running"
+                                               for w in workers.values()))
+                if now == seen and now[1] and len(now[0]) >= self.n_workers:
+                    return
+                seen = now
+                time.sleep(SETTLE_SECONDS)
+            log.warning("workers restarted but not settled after %.0f s: %s",
+                        SETTLE_TIMEOUT_SECONDS, sorted(seen[0]) if seen else "none")
+        finally:
+            self._put_environ_back()  # the nannies set the workers' variables here again
 
     def _resident_check(self, stage: str, tasks) -> None:
         """Restart the workers (of a ``LocalCluster``; a running scheduler's are only warned
@@ -573,6 +578,8 @@ class DaskEngine(Engine):
         except BaseException:  # Ctrl-C, or the client lost: stop everything
             self.client.cancel(list(pending))
             raise
+        finally:  # a nanny that restarted a worker on its own set the workers' variables here
+            self._put_environ_back()
         if failed is not None:
             raise failed[1]
         return [results[t.name] for t in tasks]
@@ -584,6 +591,18 @@ class DaskEngine(Engine):
         finally:
             if self.cluster is not None:
                 self.cluster.close()
+            self._put_environ_back()
+
+    def _put_environ_back(self) -> None:
+        """Put this process's environment back as it was before the ``LocalCluster`` started:
+        its nannies run in this process and set the workers' variables
+        (:data:`WORKER_ENV`: ``NUMBA_NUM_THREADS=1``) in ``os.environ`` each time they spawn
+        a worker — at a restart too — and this process's numba then refused to run with its
+        own thread count (``Cannot set NUMBA_NUM_THREADS to a different value``, seen in the
+        tests after a restart)."""
+        environ = getattr(self, "_environ", None)
+        if environ is not None:
+            _restore_environ(environ)
 
 
 class _Quiet:
