@@ -526,7 +526,9 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
             mosaic_R = np.asarray(_take_rows(src.field, pick), np.float32)
     shutil.rmtree(parts_dir, ignore_errors=True)
     if run_loc is not None:  # the run's D arrays and parameter files, now in the stage
-        _remove_location(run_loc)
+        from facegeo.surface._zarr_field import remove_location
+
+        remove_location(run_loc)
     files = _write_maps(dest, tex, acc, wsum)
     if mosaic_R is not None and hasattr(the_rig.lights, "n_theta"):  # a θ × φ grid to lay out
         imageio.write_image(dest / "mosaic.png", reflectance_mosaic(
@@ -666,48 +668,9 @@ class _PartWriter:
         buf = io.BytesIO()
         np.savez(buf, rows=self.rows, texel_index=np.concatenate(self.texels),
                  eta=np.array(self.eta), single_channel=np.array(self.single), **arrays)
-        _put_bytes(path, buf.getvalue())
+        from facegeo.surface._zarr_field import put_bytes
 
-
-def _put_bytes(location, data: bytes) -> None:
-    """``data`` as the file ``location`` (a path: a fresh file of a staging folder; or an
-    fsspec URL)."""
-    from facegeo.surface._zarr_field import is_url
-
-    if is_url(str(location)):
-        import fsspec
-
-        fs, path = fsspec.core.url_to_fs(str(location))
-        fs.pipe_file(path, data)
-    else:
-        Path(location).parent.mkdir(parents=True, exist_ok=True)
-        Path(location).write_bytes(data)
-
-
-def _get_bytes(location) -> bytes:
-    """The file ``location`` (a path or an fsspec URL)."""
-    from facegeo.surface._zarr_field import is_url
-
-    if is_url(str(location)):
-        import fsspec
-
-        fs, path = fsspec.core.url_to_fs(str(location))
-        return fs.cat_file(path)
-    return Path(location).read_bytes()
-
-
-def _remove_location(location) -> None:
-    """Remove a folder of a store (a path or an fsspec URL), whatever it holds."""
-    from facegeo.surface._zarr_field import is_url
-
-    if is_url(str(location)):
-        import fsspec
-
-        fs, path = fsspec.core.url_to_fs(str(location))
-        if fs.exists(path):
-            fs.rm(path, recursive=True)
-    else:
-        shutil.rmtree(location, ignore_errors=True)
+        put_bytes(path, buf.getvalue())
 
 
 def _copy_diffuse(location, path: Path, chunk: int) -> None:
@@ -814,11 +777,11 @@ def merge_fit_parts(cam_dir: Path, parts_dir, task_names: list[str],
     eta, single = np.array(1.4), np.array(False)
     import io
 
-    from facegeo.surface._zarr_field import store_location
+    from facegeo.surface._zarr_field import get_bytes, store_location
 
     for name in task_names:
         a = int(name.rsplit(" ", 1)[1].split(":")[0])
-        with np.load(io.BytesIO(_get_bytes(store_location(parts_dir, f"{a:012d}.npz")))) as z:
+        with np.load(io.BytesIO(get_bytes(store_location(parts_dir, f"{a:012d}.npz")))) as z:
             for k in got:
                 if k in z.files:
                     got[k].append(z[k])

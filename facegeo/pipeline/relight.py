@@ -185,17 +185,6 @@ def _read_relit_rows(location: str) -> np.ndarray:
     return np.load(location)
 
 
-def _remove_relit_rows(location: str) -> None:
-    if "://" in location:
-        import fsspec
-
-        fs, path = fsspec.core.url_to_fs(location)
-        if fs.exists(path):
-            fs.rm(path, recursive=True)
-    else:
-        Path(location).unlink(missing_ok=True)
-
-
 def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
                     light_color: Any = None,
                     progress: Callable[[int, int], None] | None = None,
@@ -314,8 +303,10 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
         if own:
             shutil.rmtree(parts, ignore_errors=True)
         else:
+            from facegeo.surface._zarr_field import remove_location
+
             for _, relit_path in layout:
-                _remove_relit_rows(relit_path)
+                remove_location(relit_path)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(wsum > 0, acc / wsum, np.nan).astype(np.float32)
     return out, wsum, [c.name for c in cams]

@@ -47,6 +47,9 @@ __all__ = [
     "open_zarr_field",
     "store_location",
     "copy_files",
+    "get_bytes",
+    "put_bytes",
+    "remove_location",
     "write_field",
     "write_field_chunk",
 ]
@@ -127,33 +130,65 @@ def link_field(directory, location, name: str = "R.npy") -> Path:
     return link
 
 
+def put_bytes(location, data: bytes) -> None:
+    """``data`` as the file ``location``: a path (written atomically, its folder created) or
+    an fsspec URL."""
+    loc = _local(location)
+    if isinstance(loc, Path):
+        from facegeo.fsutil import atomic_write_bytes
+
+        loc.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(loc, data)
+    else:
+        import fsspec
+
+        fs, path = fsspec.core.url_to_fs(loc)
+        fs.pipe_file(path, data)
+
+
+def get_bytes(location) -> bytes:
+    """The file ``location`` (a path or an fsspec URL)."""
+    loc = _local(location)
+    if isinstance(loc, Path):
+        return loc.read_bytes()
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(loc)
+    return fs.cat_file(path)
+
+
+def remove_location(location) -> None:
+    """Remove a file or a folder — a path or a place in an fsspec store — whatever it holds;
+    nothing when it is not there."""
+    loc = _local(location)
+    if isinstance(loc, Path):
+        if loc.is_dir():
+            import shutil
+
+            shutil.rmtree(loc, ignore_errors=True)
+        else:
+            loc.unlink(missing_ok=True)
+        return
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(loc)
+    if fs.exists(path):
+        fs.rm(path, recursive=True)
+
+
 def copy_files(src, dst) -> list[str]:
     """Copy the files directly inside ``src`` (not its sub-folders) into ``dst``; either may be
     a folder or an fsspec URL (``--store``: a task's small products go up to the store, the
-    client brings them down into its stage folder). Written atomically where ``dst`` is a
-    folder. Returns the names copied, sorted."""
+    client brings them down into its stage folder; :func:`put_bytes`, :func:`get_bytes`).
+    Returns the names copied, sorted."""
     import fsspec
 
-    from facegeo.fsutil import atomic_write_bytes
-
-    def fs_of(loc):
-        loc = _local(loc)
-        return fsspec.core.url_to_fs(str(loc))
-
-    sfs, spath = fs_of(src)
-    names = sorted(Path(e["name"]).name for e in sfs.ls(spath, detail=True)
+    loc = _local(src)
+    fs, path = fsspec.core.url_to_fs(str(loc))
+    names = sorted(Path(e["name"]).name for e in fs.ls(path, detail=True)
                    if e.get("type") == "file")
-    dloc = _local(dst)
-    if isinstance(dloc, Path):
-        dloc.mkdir(parents=True, exist_ok=True)
-    else:
-        dfs, dpath = fs_of(dloc)
     for n in names:
-        data = sfs.cat_file(f"{spath.rstrip('/')}/{n}")
-        if isinstance(dloc, Path):
-            atomic_write_bytes(dloc / n, data)
-        else:
-            dfs.pipe_file(f"{dpath.rstrip('/')}/{n}", data)
+        put_bytes(store_location(dst, n), get_bytes(store_location(src, n)))
     return names
 
 
