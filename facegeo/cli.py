@@ -490,11 +490,11 @@ def _cmd_project(args) -> int:
     kw = {} if args.shadow_taps else {"shadow_taps": False}
     if args.field_format != "npy":
         kw["field_format"] = args.field_format
-    if args.store is not None and not (args.out is None and args.camera is None
-                                       and args.rig in (None, *RIG_CHOICES)):
-        kw["store"] = args.store  # on its own (in the pipeline: run_reconstruct(store=))
     # a rig file is not one of the pipeline's rigs: the stage on its own, as with --out
-    if args.out is None and args.camera is None and args.rig in (None, *RIG_CHOICES):
+    cached = args.out is None and args.camera is None and args.rig in (None, *RIG_CHOICES)
+    if args.store is not None and not cached:
+        kw["store"] = args.store  # on its own (in the pipeline: run_reconstruct(store=))
+    if cached:
         from facegeo.capture.scan import load_scan
         from facegeo.evaluate.projection import has_projection_truth, with_projection_figures
 
@@ -517,7 +517,8 @@ def _cmd_project(args) -> int:
 
 
 def _store_option(s) -> None:
-    """``--store URL`` of the projection (project, reconstruct; docs/scale.md §3)."""
+    """``--store URL`` of the projection and the fit (project, fit, reconstruct;
+    docs/scale.md §3)."""
     s.add_argument("--store", default=None, metavar="URL",
                    help="a folder or fsspec store (s3://bucket/prefix) for tasks that write "
                         "to no shared disk: the cameras' reflectance fields stay there as Zarr "
