@@ -84,3 +84,23 @@ def test_compiled_shading_follows_float64_parameters(truth):
                                       stage_radius=lights.radius)
         np.testing.assert_array_equal(truth.shade_stage_light(view, lights, l), ref,
                                       err_msg=f"light {l}")
+
+
+def test_a_stage_light_on_the_surface_is_refused_by_both_paths(truth):
+    """A point light exactly on a sample has no direction there: the compiled path refuses it
+    as the numpy reference does (before, it left that sample unlit without a word)."""
+    from facegeo.errors import InputError
+
+    cam, lights = truth.rig.cameras[0], truth.rig.lights
+    view = truth.surface_view(cam)
+    l = LIGHTS[1]
+    pos = np.asarray(lights.center, float) + lights.radius * lights.directions[l]
+    p = view.p_world.copy()
+    p[view.n_samples // 2] = pos  # one sample moved onto the light
+    on = dataclasses.replace(view, p_world=p)
+    with pytest.raises(InputError, match="lies on the surface"):
+        truth.shade_point_light(on, pos, np.asarray(lights.color, float),
+                                stage_radius=lights.radius)
+    with pytest.raises(InputError, match=f"light {l} at .* lies on the surface"):
+        truth._stage_light_shader(on, lights)(l)
+    truth._stage_light_shader(view, lights)(l)  # the untouched view shades

@@ -123,11 +123,15 @@ def lit_rows(p, n, pos, directional):
     """The samples a light faces (``cos θ_i > 0``), in sample order.
 
     ``pos`` is the light's position (a point light) or its unit direction (``directional``).
+    A point light exactly on a sample has no direction there: ``ValueError`` (the caller says
+    which light, as :meth:`~facegeo.synth.render.ReferenceRenderer.shade_point_light` does).
     """
     count = p.shape[0]
     rows = np.empty(count, np.int64)
     k = 0
     for s in range(count):
+        if not directional and p[s, 0] == pos[0] and p[s, 1] == pos[1] and p[s, 2] == pos[2]:
+            raise ValueError("the light lies on the surface")
         lx, ly, lz, _ = _to_light(p, s, pos, directional, 1.0)
         if _dot3(n[s, 0], n[s, 1], n[s, 2], lx, ly, lz) > 0.0:
             rows[k] = s

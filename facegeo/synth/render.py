@@ -640,7 +640,11 @@ class ReferenceRenderer:
             else:
                 pos = directions[l] / np.linalg.norm(directions[l])
                 kw = {"light_dir": pos}
-            rows = K.lit_rows(view.p_world, view.n_world, pos, not point)
+            try:
+                rows = K.lit_rows(view.p_world, view.n_world, pos, not point)
+            except ValueError:  # the kernel's one error: a point light on a sample
+                raise InputError(f"shade_stage_light: light {l} at {fmt_value(pos.tolist())} "
+                                 "lies on the surface") from None
             if self.shadows and rows.size:
                 vis = self._unshadowed(view.p_world.take(rows, axis=0), view.face.take(rows),
                                        view.n_world.take(rows, axis=0),
