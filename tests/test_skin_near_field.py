@@ -29,6 +29,11 @@ NEAR_ALBEDO_MEDIAN_REL = 0.04
 #: surface) at least this many times lower than the naive reuse's (issue 13's bar; measured
 #: 3.5× / 3.6× at 30° / 60° on 400 pixels; distant lights 0.86× / 1.5×).
 NEAR_RESYNTH_VS_NAIVE = 3.0
+#: The same with the stage given as a light list with positions (pipeline.fit._near_field: the
+#: lights' mean distance as the radius): measured 0.544° (0.545° with the lights' distances
+#: jittered 5 mm), the distant-light fit 1.285°. Above the grid's 0.17° because a free list is
+#: resampled by the 3 nearest lights (skin_resynth.interpolate_on_lights), not bilinearly.
+LIST_NORMAL_MEDIAN_DEG = 0.7
 #: D + S = R for the measured functions, in float32 ulps of the largest sample.
 RECOMBINE_ULPS = 2
 #: Compiled near-field steps against their numpy reference, relative to the largest sample.
@@ -173,3 +178,61 @@ def test_kernels_match_the_numpy_reference(near_case, with_mask, monkeypatch):
     assert np.abs(got[True][2] - got[False][2]).max() <= KERNEL_REL * scale
     if with_mask:
         assert np.array_equal(got[True][1], got[False][1])
+
+
+def _stage_as_list(case, radius_jitter_m=0.0):
+    """The near case's stage grid as a light list with positions (a real rig's form), its
+    lights moved along their own directions by ``radius_jitter_m`` (1 σ, seeded)."""
+    from facegeo.geometry.lights import LightList
+    from facegeo.synth.capture import PRESETS, build_rig
+
+    stage = build_rig(PRESETS["small"]).lights
+    r = stage.radius + radius_jitter_m * np.random.default_rng(3).standard_normal(stage.n_lights)
+    return stage, LightList(positions=np.asarray(stage.center) + r[:, None] * stage.directions,
+                            intensities=np.tile(np.asarray(stage.color, float),
+                                                (stage.n_lights, 1)),
+                            center=stage.center)
+
+
+@pytest.mark.parametrize("jitter_m", [0.0, 0.005])
+def test_a_light_list_with_positions_is_fitted_near_field(near_case, jitter_m):
+    """The fit stage's near field for a light list (pipeline.fit._near_field): its lights'
+    mean distance as the radius. Before, a list was fitted as distant lights (docs/synth.md:
+    the grid written as a list cost the fit 1.2° of normals on ``tiny``)."""
+    from types import SimpleNamespace
+
+    from facegeo.pipeline.fit import _near_field
+    from facegeo.render import light_set
+
+    c = near_case
+    stage, lights_list = _stage_as_list(c, jitter_m)
+    tex = SimpleNamespace(p_world=c["near"].offsets + np.asarray(stage.center))
+    near = _near_field(lights_list, tex, "auto")
+    assert near is not None and abs(near.radius - stage.radius) < 3 * jitter_m + 1e-12
+    lights = light_set(lights_list)
+    fit = skin.fit_reflectance_near(c["R"], c["v0"], lights, near)
+    distant = skin.fit_reflectance(c["R"], c["v0"], lights)
+    err, err_far = _median_normal_error(fit, c["n"]), _median_normal_error(distant, c["n"])
+    print(f"light list (radius jitter {jitter_m * 1e3:g} mm): normals {err:.3f}° near field, "
+          f"{err_far:.3f}° as distant lights")
+    assert err <= LIST_NORMAL_MEDIAN_DEG
+    assert err < 0.5 * err_far
+
+
+def test_a_light_list_far_from_a_sphere_is_fitted_as_distant_with_a_warning(near_case, caplog):
+    from types import SimpleNamespace
+
+    from facegeo.geometry.lights import LightList
+    from facegeo.pipeline.fit import _near_field
+
+    stage, _ = _stage_as_list(near_case)
+    r = np.where(np.arange(stage.n_lights) % 2, 1.0, 2.0)  # half the lights at 1 m, half at 2
+    lst = LightList(positions=np.asarray(stage.center) + r[:, None] * stage.directions,
+                    center=stage.center)
+    tex = SimpleNamespace(p_world=near_case["near"].offsets + np.asarray(stage.center))
+    with caplog.at_level("WARNING"):
+        assert _near_field(lst, tex, "auto") is None
+    assert "33.3 % off their mean" in caplog.text
+    assert _near_field(lst, tex, "off") is None
+    directions_only = LightList(directions=stage.directions)
+    assert _near_field(directions_only, tex, "auto") is None  # distant lights

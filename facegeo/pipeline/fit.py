@@ -355,8 +355,9 @@ def fit_products(scan, project_dir, dest, *, atlas_dir=None, texels: str = "all"
     near_field : {"auto", "off"} — "auto" (default): on a light stage of finite radius, each
         light where it is (:func:`facegeo.appearance.skin.fit_reflectance_near`: the texel's
         offset from the stage centre gives every light's true direction and falloff, in the fit
-        and in Eq. 9); "off": every light distant, as the paper. Small preset (r = 1.5 m):
-        docs/skin.md, "Near-field light stages".
+        and in Eq. 9); "off": every light distant, as the paper. A light list with positions
+        is near-field too, at its lights' mean distance (:func:`_near_field`). Small preset
+        (r = 1.5 m): docs/skin.md, "Near-field light stages".
     engine : facegeo.pipeline.engine.Engine, optional — where the fit tasks run (default in
         process): each camera's selection in tasks of :data:`FIT_TASK_CHUNKS` fit chunks
         (:func:`fit_chunk_task`), each checked against a worker's memory
@@ -800,15 +801,47 @@ def _flag_summary(counts: dict) -> str:
     return ", ".join(f"{k} {x}" for k, x in counts.items() if x) or "none"
 
 
+#: A light list's lights may sit at different distances from its centre; the near field takes
+#: their mean (:func:`_near_field`) while the farthest is within this fraction of it.
+LIST_RADIUS_SPREAD = 0.05
+
+
 def _near_field(stage, tex, mode):
     """The :class:`~facegeo.appearance.skin.NearField` of every texel (the texel's offset from
-    the stage centre), or None: ``mode`` "off", distant lights, or a light list."""
+    the stage centre), or None: ``mode`` "off" or distant lights.
+
+    A light-stage grid gives its radius r. A light list with positions (a real rig's measured
+    lights, or the generator's ``light_error_deg`` list) gives the mean distance r̄ of its
+    lights from its centre: :class:`NearField` has one radius, and a light at r_l = r̄ + Δ is
+    then placed Δ off along its own direction, which moves its direction seen from a point δ
+    off the centre by at most |δ||Δ|/r̄² and its falloff by at most 2|δ||Δ|/r̄² (relative) —
+    0.013° and 4.4e-4 for a head point 0.1 m off centre, lights at 1.5 m ± 5 mm, against the
+    ≈ 4° and ±14 % the distant treatment costs there. A list whose distances spread by more
+    than :data:`LIST_RADIUS_SPREAD` of r̄ is fitted as distant lights, with a warning (the
+    treatment before lists had a near field)."""
     from facegeo.appearance.skin import NearField
 
-    radius = getattr(stage, "radius", np.inf)
-    if mode == "off" or not np.isfinite(radius) or not hasattr(stage, "n_theta"):
+    if mode == "off":
         return None
-    return NearField(tex.p_world - np.asarray(stage.center, np.float64), float(radius))
+    center = np.asarray(stage.center, np.float64)
+    if hasattr(stage, "n_theta"):
+        radius = float(getattr(stage, "radius", np.inf))
+        if not np.isfinite(radius):
+            return None
+    else:
+        positions = getattr(stage, "positions", None)
+        if positions is None:  # a list of directions: distant lights
+            return None
+        dist = np.linalg.norm(np.asarray(positions, np.float64) - center, axis=1)
+        radius = float(dist.mean())
+        spread = float(np.abs(dist - radius).max()) / radius
+        if spread > LIST_RADIUS_SPREAD:
+            log.warning("fit: the light list's lights lie %.4g–%.4g m from its centre, %.1f %% "
+                        "off their mean (the near field takes one radius, at most %g %% off): "
+                        "fitting them as distant lights", dist.min(), dist.max(),
+                        100 * spread, 100 * LIST_RADIUS_SPREAD)
+            return None
+    return NearField(tex.p_world - center, radius)
 
 
 def run_fit(scan_dir, out_dir=None, *, engine=None, **settings) -> dict:
