@@ -18,8 +18,9 @@ model's assumptions hold):
 
 * :func:`distant_equivalent` — each reflectance function divided by its falloff and resampled
   at the stage's own directions ω_l as seen from p: the value at ω_l is read where the ray
-  from p along ω_l meets the light sphere (bilinear on the grid,
-  :func:`facegeo.appearance._skin_resynth.interpolate_on_lights`). The fit runs on it
+  from p along ω_l meets the light sphere (bilinear on the grid, barycentric on a free list's
+  spherical triangulation: :func:`facegeo.appearance._skin_resynth.interpolate_on_lights`).
+  The fit runs on it
   unchanged (the paper's distant-light analysis, §4.2).
 * :func:`separate_measured` — the final separation of §4.2 (Eq. 6 per sample, then the
   colour-space separation) applied to the *measured* samples with their true directions ω_l(p),
@@ -150,7 +151,7 @@ def distant_equivalent(R, near: NearField, lights: LightSet, masked=None):
     ----------
     R : (N, L, C) float32, finite (masked samples 0)
     near : NearField of the N functions
-    lights : LightSet — the stage's grid (bilinear) or a free list (3 nearest)
+    lights : LightSet — the stage's grid (bilinear) or a free list (barycentric)
     masked : (N, L) bool, optional
 
     Returns
@@ -182,7 +183,8 @@ def distant_equivalent(R, near: NearField, lights: LightSet, masked=None):
         parts = [R[sl].astype(np.float64) / a_src[..., None]]
         if masked is not None:
             parts.append(masked[sl, :, None].astype(np.float64))
-        vals = interpolate_on_lights(np.concatenate(parts, axis=2), lights, src)
+        vals = interpolate_on_lights(np.concatenate(parts, axis=2), lights, src,
+                                     free="barycentric")
         out[sl] = vals[..., :C]
         if masked is not None:
             mout[sl] = vals[..., C] > 0.0
