@@ -762,6 +762,7 @@ def test_compiled_blend_equals_the_numpy_path_bit_for_bit(tmp_path, monkeypatch)
         w[:3] = 0.0
         np.save(d / "weight.npy", w)
     cams = [tmp_path / n for n in "abc"]
+    from facegeo.surface import _blend
     from facegeo.surface import _blend_kernels as bk
 
     calls = []
@@ -769,7 +770,7 @@ def test_compiled_blend_equals_the_numpy_path_bit_for_bit(tmp_path, monkeypatch)
     monkeypatch.setattr(bk, "accumulate_rows", lambda *a: calls.append(1) or kernel(*a))
     got = {}
     for flag in (True, False):
-        monkeypatch.setattr(rf, "BLEND_KERNELS", flag)
+        monkeypatch.setattr(_blend, "BLEND_KERNELS", flag)
         b = blend_fields(cams, tmp_path / f"blend{flag}", chunk_texels=9)
         got[flag] = (np.asarray(b.field()).view(np.uint16), b.texel_index, b.weight, b.n_cameras)
     assert calls, "the compiled path ran"

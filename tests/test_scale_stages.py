@@ -443,7 +443,7 @@ def _assert_store_run_equal(ref: Path, got: Path, store_root: str) -> None:
     byte for byte; the fields read through the links equal the ``.npy`` fields (the same
     float16 samples); the blend equal."""
     from facegeo.surface._zarr_field import find_field
-    from facegeo.surface.reflectance import field_folders, open_field
+    from facegeo.surface.reflectance import field_folders, open_blended, open_field
 
     cams = field_folders(ref)
     assert [c.name for c in field_folders(got)] == [c.name for c in cams]
@@ -455,8 +455,8 @@ def _assert_store_run_equal(ref: Path, got: Path, store_root: str) -> None:
         np.testing.assert_array_equal(np.asarray(open_field(g)[:]), np.load(cam / "R.npy"))
         for f in ("texel_index.npy", "weight.npy", "v_world.npy", "visibility.npz"):
             assert (g / f).read_bytes() == (cam / f).read_bytes(), (cam.name, f)
-    blend = "blended/R_blend.npy"
-    assert np.array_equal(np.load(ref / blend), np.load(got / blend), equal_nan=True)
+    a, b = open_blended(ref / "blended").field(), open_blended(got / "blended").field()
+    assert np.array_equal(np.asarray(a[:]), np.asarray(b[:]), equal_nan=True)
 
 
 def test_projection_into_a_store_equals_the_npy_run(projected, tmp_path):
@@ -494,7 +494,7 @@ def test_projection_tasks_write_into_a_store_on_two_workers(projected, tmp_path,
                             str(store / "project" / "run-"))
     runs = list((store / "project").iterdir())
     assert len(runs) == 1 and sorted(p.name for p in runs[0].iterdir()) == [
-        "cam_left", "cam_right"]
+        "blended", "cam_left", "cam_right"]
 
 
 def test_cli_project_store_links_the_fields_and_is_cached(projected, tmp_path, capsys):

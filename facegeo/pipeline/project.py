@@ -34,7 +34,8 @@ it is missing) and writes ``out_dir/project/``:
     <camera>/texel_index.npy  (T_c,) int64; weight.npy (T_c,) float32; v_world.npy (T_c, 3)
     seen.npy                  (T,) bool: some camera has a non-zero weight
     blended/R_blend.npy       (U, L, 3) float16: Σ_c w_c R_c / Σ_c w_c per texel, for
-                              fixed-viewpoint uses (facegeo.surface.reflectance.blend_fields);
+                              fixed-viewpoint uses (facegeo.surface.reflectance.blend_fields;
+                              R_blend.zarr, or a link to it, when a cluster blends Zarr fields);
     blended/texel_index.npy   (U,) int64; weight.npy (U,) float32 Σ_c w_c; n_cameras.npy (U,)
                               (read with facegeo.surface.reflectance.open_blended)
     preview.png               the mean over lights, blended over cameras, pull–push filled
@@ -66,13 +67,21 @@ small arguments — the loaded scan and rig, paths, settings — and a small dic
 :class:`facegeo.pipeline.engine.Engine`: in process by default (one camera after another, the
 same bytes as before engines existed), or on a Dask cluster (``facegeo reconstruct --workers N``
 / ``--scheduler ADDRESS``) whose workers write their camera's folder into the stage's staging
-folder; the products are byte-identical whatever the engine, and the metrics gain ``engine``
+folder; the products are byte-identical whatever the engine (the blend's values too, its
+format following the engine and the fields: below), and the metrics gain ``engine``
 (workers, memory limit, each camera's worker, seconds and peak memory) on a cluster. Each
 camera's working set (:func:`project_working_set`) is checked against a worker's memory before
-any task is submitted. The blend and the preview follow on the client, in camera order. With
-``field_format="zarr"`` each camera's field is the Zarr store ``<camera>/R.zarr`` instead of
-``R.npy`` (the blend stays ``R_blend.npy``); the later stages find and read either
-(:func:`facegeo.surface.reflectance.field_folders`, ``open_field``).
+any task is submitted. The preview follows on the client, in camera order; the blend too in
+process, and on a cluster as tasks of whole chunks of texels (:func:`blend_on_engine`: each
+reads only its rows of every camera's field and writes its rows of the blend, the same bits).
+With ``field_format="zarr"`` each camera's field is the Zarr store ``<camera>/R.zarr`` instead
+of ``R.npy``; the later stages find and read either
+(:func:`facegeo.surface.reflectance.field_folders`, ``open_field``). The blend is
+``R_blend.npy`` in process whatever the format (the same bytes as before); on a cluster it
+follows the fields: ``R_blend.npy`` written in place by the tasks for ``.npy`` fields,
+``blended/R_blend.zarr`` for Zarr fields, and with ``store=`` the Zarr array in the store beside
+the cameras' fields, linked (``R_blend.zarr.url``); :func:`facegeo.surface.reflectance.
+open_blended` reads any of them.
 
 The stage never reads the truth: it writes what it measured, and :mod:`facegeo.evaluate`
 compares it with references (:mod:`facegeo.evaluate.projection`: the generator's exact shading
@@ -103,6 +112,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
            "peak_rss_mb", "project_camera_task", "project_working_set", "stage_rig",
+           "blend_on_engine", "blend_task_rows", "blend_working_set",
            "inferred_faces_path", "load_inferred_faces", "INFERRED_TEXELS", "STAGE_RIGS"]
 
 # The evaluation's comparison that run_project(evaluate=True) returns beside the stage's
@@ -363,7 +373,8 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         ``<camera>/R.zarr`` chunked along texels and lights
         (:func:`facegeo.surface.reflectance.project_camera`); the readers
         (:func:`facegeo.surface.reflectance.open_field`, :func:`~facegeo.surface.reflectance.
-        field_folders`) take either. The blend stays ``blended/R_blend.npy``.
+        field_folders`) take either. The blend is ``blended/R_blend.npy`` in process, and on a
+        cluster follows the fields (:func:`blend_on_engine`).
     store : path-like or str, optional
         ``--store URL``: the fields as Zarr arrays in this folder or fsspec store, linked from
         the stage folder (:func:`project_products`).
@@ -430,16 +441,19 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     Each camera is one task of ``engine`` (:func:`project_camera_task`; default in process,
     one camera after another, the same bytes as before engines existed); its working set
     (:func:`project_working_set`) is checked against a worker's memory before any task is
-    submitted. The blend and the preview run here afterwards, streaming the cameras' fields
-    chunk by chunk in camera order. ``progress(stage, done, total)`` is called as cameras
-    finish.
+    submitted. The preview runs here afterwards, streaming the cameras' fields chunk by chunk
+    in camera order, and so does the blend in process; another engine blends in tasks of
+    texel chunks (:func:`blend_on_engine`, the same bits). ``progress(stage, done, total)`` is
+    called as cameras finish.
 
     With ``store`` (``--store URL``: a folder or an fsspec URL) the fields are Zarr arrays in
     the store, under ``project/run-<id>/<camera>/R.zarr`` (a new ``<id>`` each run, so a
     cached stage's links never point at a later run's data), and each camera folder of
     ``dest`` holds a link to its field (``R.zarr.url``) beside its small files, which the
-    tasks put in the store and this function brings down: the tasks write nothing to a shared
-    disk (they still read the scan's frames and the atlas from their folders).
+    tasks put in the store and this function brings down (then removes from the store): the
+    tasks write nothing to a shared disk (they still read the scan's frames and the atlas from
+    their folders). On a cluster the blend is there too, ``project/run-<id>/blended/
+    R_blend.zarr``, linked from ``dest/blended``.
     The stage folder — links included — is still swapped in whole; an earlier run's data in
     the store is left there (remove it yourself once no stage folder links to it).
     """
@@ -456,7 +470,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     if store is not None:  # a field in a store is a Zarr field
         import uuid
 
-        from facegeo.surface._zarr_field import copy_files, store_location
+        from facegeo.surface._zarr_field import copy_files, remove_location, store_location
 
         run_loc = store_location(store, "project", f"run-{uuid.uuid4().hex[:12]}")
         field_format = "zarr"
@@ -507,6 +521,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     if run_loc is not None:  # the tasks' small files, from the store into the stage folder
         for name in names:
             copy_files(store_location(run_loc, name, STORE_FILES), dest / name)
+            remove_location(store_location(run_loc, name, STORE_FILES))  # down: not kept twice
     T = len(texels)
     seen = np.zeros(T, bool)
     colour = np.zeros((T, 3))
@@ -524,7 +539,14 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             wsum[sl[ok]] += w[ok]
     np.save(dest / "seen.npy", seen)
     t_b = time.perf_counter()
-    blended = rf.blend_fields([dest / n for n in names], dest / "blended", dtype=dtype)
+    blend_names: list[str] = []
+    if engine.kind == "in-process":  # one loop here, as before engines existed (the same bytes)
+        blended = rf.blend_fields([dest / n for n in names], dest / BLEND_DIR, dtype=dtype)
+    else:  # tasks per chunk of texels, each reading its rows of the fields where they are
+        blended, blend_names = blend_on_engine(engine, [dest / n for n in names],
+                                               dest / BLEND_DIR, dtype=dtype,
+                                               store_dir=None if run_loc is None
+                                               else store_location(run_loc, BLEND_DIR))
     seconds_blend = time.perf_counter() - t_b
     preview = np.where(wsum[:, None] > 0, colour / np.maximum(wsum, 1e-30)[:, None], np.nan)
     img = pull_push(texels.to_image(preview), texels.to_image(
@@ -546,8 +568,116 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     if engine.kind != "in-process":
-        metrics["engine"] = engine.stage_metrics("project", [t.name for t in tasks])
+        metrics["engine"] = engine.stage_metrics("project",
+                                                 [t.name for t in tasks] + blend_names)
     return metrics, settings
+
+
+#: Folder of the blend, in the stage folder and (``store=``) beside the cameras in the store.
+BLEND_DIR = "blended"
+#: Rows (texels) of the blend a task computes at most, whatever a worker's memory allows (as a
+#: fit task's 16,384 functions: enough to amortise opening every camera's field).
+BLEND_TASK_TEXELS = 16384
+#: Bytes a blend task needs per sample (texel × light × channel) of its rows: the float32
+#: numerator and denominator (8 B), the block written (≤ 4 B) and one camera's rows read
+#: (widened to float32 with the numpy path's masks and products: ≤ 20 B).
+BLEND_BYTES_PER_SAMPLE = 32
+#: ... per row and camera: the row's place in the block (int64) and weight (float32), sent
+#: with the task.
+BLEND_BYTES_PER_ROW_CAMERA = 12
+
+
+def blend_working_set(n_rows: int, n_lights: int, n_cameras: int) -> int:
+    """Memory (bytes) of one blend task of ``n_rows`` texels: :data:`BLEND_BYTES_PER_SAMPLE`
+    × its samples (``n_rows × n_lights × 3``) + :data:`BLEND_BYTES_PER_ROW_CAMERA` × rows ×
+    cameras (an upper bound: every camera counted as seeing every row)."""
+    n = int(n_rows)
+    return n * (int(n_lights) * 3 * BLEND_BYTES_PER_SAMPLE
+                + int(n_cameras) * BLEND_BYTES_PER_ROW_CAMERA)
+
+
+def blend_task_rows(n_lights: int, n_cameras: int, field_chunk: int,
+                    budget: int | None) -> tuple[int, int]:
+    """``(rows, chunk)``: texels per blend task and per chunk of a Zarr blend.
+
+    As many rows as fit ``budget`` (a worker's task budget; None: unlimited) by
+    :func:`blend_working_set`, at most :data:`BLEND_TASK_TEXELS`; rounded down to whole
+    ``field_chunk`` (the fields' texels per stored chunk) when that many fit, and then the
+    blend's chunk is the fields' (a task writes whole chunks of it), else the blend's chunk is
+    the task's rows."""
+    rows = int(BLEND_TASK_TEXELS)
+    if budget is not None:
+        per_row = blend_working_set(1, n_lights, n_cameras)
+        rows = min(rows, max(1, int(budget) // per_row))
+    unit = max(1, int(field_chunk))
+    if rows >= unit:
+        return rows - rows % unit, unit
+    return rows, rows
+
+
+def blend_on_engine(engine, fields: list, directory: Path, *, dtype: str = "float16",
+                    store_dir=None):
+    """The blend of :func:`facegeo.surface.reflectance.blend_fields` — the same values, bit
+    for bit — as tasks of ``engine``, one per chunk of texels (:func:`blend_task_rows`), each
+    reading only its rows of each camera's field (:func:`~facegeo.surface.reflectance.
+    blend_rows_task`) where the field is (an ``.npy`` memory map, a Zarr store, a store linked
+    from the camera folder).
+
+    Where the blend goes follows the fields: ``.npy`` fields (the workers share the stage
+    folder) — ``directory/R_blend.npy``, created whole here, each task writing its rows in
+    place; Zarr fields — the Zarr array ``directory/R_blend.zarr`` chunked along texels (each
+    task writes whole chunks: no lock); with ``store_dir`` (``store=``), whatever the fields,
+    the array ``store_dir/R_blend.zarr`` linked from ``directory`` (``R_blend.zarr.url``, as
+    the cameras' fields are). ``texel_index``, ``weight`` and ``n_cameras`` are written here.
+
+    Returns ``(BlendedField, task names)``.
+    """
+    from facegeo.pipeline.engine import Task
+    from facegeo.surface import reflectance as rf
+    from facegeo.surface._zarr_field import (DEFAULT_CHUNK_LIGHTS, DEFAULT_CHUNK_TEXELS,
+                                             create_field, link_field)
+
+    if dtype not in ("float16", "float32"):
+        raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
+    fields = [Path(f) for f in fields]
+    cams, U = rf.blend_sources(fields)
+    found = [rf.find_field(f) for f in fields]
+    L = int(cams[0][1].shape[1])
+    zarr_blend = store_dir is not None or any(kind == "zarr" for kind, _ in found)
+    field_chunk = (cams[0][1].chunks[0] if not isinstance(cams[0][1], np.ndarray)
+                   else DEFAULT_CHUNK_TEXELS)
+    rows, chunk = blend_task_rows(L, len(cams), field_chunk, engine.task_budget())
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    if not zarr_blend:  # the workers share this disk: they wrote the fields here
+        out = np.lib.format.open_memmap(directory / rf.BLENDED_FILE, mode="w+", dtype=dtype,
+                                        shape=(U.size, L, 3))
+        del out
+        out_loc = str(directory / rf.BLENDED_FILE)
+    else:
+        out_loc = str(create_field(directory if store_dir is None else store_dir,
+                                   (U.size, L, 3), dtype=dtype, name=rf.BLENDED_FILE,
+                                   chunks=(chunk, DEFAULT_CHUNK_LIGHTS)))
+    compiled = rf.blend_compiled(cams, dtype)
+    tasks = []
+    for s in range(0, U.size, rows):
+        u = U[s:s + rows]
+        sources = []
+        for (_, _, idx, w), (kind, loc) in zip(cams, found):
+            a, b = (int(i) for i in np.searchsorted(idx, [u[0], u[-1] + 1]))
+            if b > a:
+                sources.append((kind, str(loc), a, b, np.searchsorted(u, idx[a:b]), w[a:b]))
+        tasks.append(Task(f"blend {s}:{s + u.size}", rf.blend_rows_task,
+                          (sources, out_loc, s, int(u.size), L, dtype, compiled),
+                          working_set=blend_working_set(u.size, L, len(sources))))
+    engine.map("project", tasks)
+    if store_dir is not None:
+        link_field(directory, out_loc, name=rf.BLENDED_FILE)
+    wsum, ncam = rf.blend_weights(cams, U)
+    rf.save_blend_index(directory, U, wsum, ncam)
+    log.info("blend: %d cameras -> %d texels × %d lights in %d tasks", len(cams), U.size, L,
+             len(tasks))
+    return rf.BlendedField(directory, U, wsum, ncam, L), [t.name for t in tasks]
 
 
 #: Bytes a projection task needs per texel of the atlas, whatever the camera sees:

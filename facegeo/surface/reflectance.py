@@ -85,8 +85,6 @@ field once per light and measured 2.9× slower (``facegeo bench surface.project`
 from __future__ import annotations
 
 import logging
-import mmap
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,6 +94,24 @@ import numpy as np
 
 from facegeo.checks import as_array, check_positive_int, fmt_value
 from facegeo.errors import InputError, ShapeError
+from facegeo.surface._blend import (
+    BLENDED_FILE,
+    BlendedField,
+    blend_block,
+    blend_compiled,
+    blend_fields,
+    blend_rows_task,
+    blend_sources,
+    blend_weights,
+    open_blended,
+    save_blend_index,
+)
+from facegeo.surface._field_io import (
+    _chunk_rows,
+    _release_rows,
+    has_field,
+    open_field,
+)
 from facegeo.surface._zarr_field import (
     DEFAULT_FIELD_FORMAT,
     FIELD_FORMATS,
@@ -116,7 +132,8 @@ __all__ = [
     "open_field", "has_field", "field_folders", "iter_field_chunks", "gather_field_samples",
     "FIELD_FORMATS", "DEFAULT_FIELD_FORMAT", "create_field", "field_chunk_bounds",
     "field_location", "find_field", "open_zarr_field", "write_field", "write_field_chunk",
-    "BlendedField", "blend_fields", "open_blended",
+    "BlendedField", "blend_fields", "open_blended", "blend_sources", "blend_block",
+    "blend_compiled", "blend_weights", "blend_rows_task", "save_blend_index",
     "BLENDED_FILE", "DEFAULT_MIN_COS", "DEFAULT_FEATHER_PX",
     "DEFAULT_DEPTH_JUMP", "DEFAULT_JUMP_PX", "DEFAULT_BLOCK_LIGHTS", "OCCLUSION_METHODS",
 ]
@@ -493,34 +510,6 @@ class ProjectedField:
         return open_field(self.directory)
 
 
-def _release_rows(mm: np.memmap, t0: int, t1: int, *, write: bool) -> None:
-    """Drop rows ``t0:t1`` of a memory-mapped array from this process's resident set.
-
-    File-backed pages count in the resident set once touched; a texel-major write of a light
-    block touches a page of every texel, so without this the resident set would grow toward the
-    size of the field. The pages are released with ``madvise(MADV_DONTNEED)``: on Linux a
-    shared file mapping's dirty pages stay dirty in the page cache (the kernel writes them back
-    once, later). They used to be flushed (``msync``) first, which wrote every touched page to
-    the disk once per light block: 68 GB of disk writes for a paper-preset camera's 2.1 GB
-    field (32 blocks of 64 lights; 174 k texels, 47.7 s), against 2.1–4.2 GB and 26–28 s without
-    (``/tmp/m23/projw.py``, issue 11). Elsewhere (``MADV_DONTNEED`` may discard a
-    shared mapping's changes) written pages are still flushed first.
-    """
-    m = getattr(mm, "_mmap", None)
-    if m is None or t1 <= t0:
-        return
-    row = int(np.prod(mm.shape[1:])) * mm.dtype.itemsize
-    base = int(getattr(mm, "offset", 0)) % mmap.ALLOCATIONGRANULARITY
-    lo = base + t0 * row
-    hi = base + t1 * row
-    lo -= lo % mmap.PAGESIZE
-    hi = min(hi + (-hi) % mmap.PAGESIZE, len(m))
-    if write and not sys.platform.startswith("linux"):
-        m.flush(lo, hi - lo)
-    if hasattr(m, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
-        m.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
-
-
 def _new_field(directory: Path, field_format: str, dtype: str, shape: tuple, lights: int,
                field_store=None):
     """The writable field of :func:`project_camera`: ``R.npy`` memory-mapped, or the Zarr
@@ -683,27 +672,6 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
                           n_masked=n_masked, n_overflow=n_overflow, seconds=seconds)
 
 
-def open_field(directory, name: str = "R.npy"):
-    """A camera's field ``R`` ``(T_c, L, 3)``, read-only (``name=BLENDED_FILE``: the blended
-    field of :func:`blend_fields`), in either format: ``directory/R.npy`` memory-mapped, else
-    the Zarr store ``directory/R.zarr`` (:mod:`facegeo.surface._zarr_field`; ``directory`` may
-    then be an fsspec URL). Both index like arrays along texels and lights (``R[t0:t1]``,
-    ``R[t0:t1, l0:l1]`` return numpy arrays; a Zarr field reads only the chunks covered)."""
-    found = find_field(directory, name)
-    if found is None:
-        where = field_location(directory, name)
-        raise InputError(f"{directory}: no projected field here (neither {name} nor "
-                         f"{Path(str(where)).name}; run the projection first)")
-    kind, loc = found
-    return np.load(loc, mmap_mode="r") if kind == "npy" else open_zarr_field(loc)
-
-
-def has_field(directory, name: str = "R.npy") -> bool:
-    """True when ``directory`` holds the field ``name`` in either format (``R.npy`` or the
-    Zarr store ``R.zarr``): what :func:`open_field` would open."""
-    return find_field(directory, name) is not None
-
-
 def field_folders(project_dir) -> list[Path]:
     """The camera folders of a ``project`` stage folder that hold a projected field (either
     format), sorted by name; none when ``project_dir`` is not a folder."""
@@ -711,16 +679,6 @@ def field_folders(project_dir) -> list[Path]:
     if not project_dir.is_dir():
         return []
     return sorted(p for p in project_dir.iterdir() if p.is_dir() and has_field(p))
-
-
-#: Blend float16 fields with the compiled kernels (False: the numpy reference path).
-BLEND_KERNELS = True
-
-#: Bytes of one float32 chunk when a field is streamed along texels (texels × lights × 3 × 4;
-#: :func:`iter_field_chunks`, :func:`blend_fields`): the callers' temporaries are a few times
-#: this (the paper preset's 2048 lights at a fixed 8,192 texels made 201 MB chunks and a
-#: 1.97 GB peak of the projection stage, the blend's doing).
-_STREAM_CHUNK_BYTES = 32 << 20
 
 
 def iter_field_chunks(directory, chunk_texels: int | None = None, name: str = "R.npy"):
@@ -735,18 +693,6 @@ def iter_field_chunks(directory, chunk_texels: int | None = None, name: str = "R
         chunk = np.array(R[s:s + chunk_texels], dtype=np.float32)
         _release_rows(R, s, s + len(chunk), write=False)  # keep resident memory at one chunk
         yield s, chunk
-
-
-def _chunk_rows(R, chunk_texels) -> int:
-    """Rows of ``R`` per streamed step: ``chunk_texels`` (checked), or by default as many as
-    make a :data:`_STREAM_CHUNK_BYTES` float32 chunk."""
-    if chunk_texels is not None:
-        return check_positive_int(chunk_texels, "chunk_texels")
-    rows = max(1, _STREAM_CHUNK_BYTES // (max(int(np.prod(R.shape[1:])), 1) * 4))
-    stored = getattr(R, "chunks", None)  # a Zarr field: whole chunks of texels
-    if isinstance(stored, tuple) and stored and not isinstance(R, np.ndarray):
-        rows = max(stored[0], rows - rows % stored[0])
-    return rows
 
 
 def _index_array(a, name: str) -> np.ndarray:
@@ -801,175 +747,3 @@ def gather_field_samples(directory, rows, lights, *, chunk_texels: int | None = 
             out[a:a + r.size] = R[r[:, None], lights[None, :]]
         _release_rows(R, int(r.min()), int(r.max()) + 1, write=False)
     return out
-
-
-#: File name of the blended field in its folder. Not ``R.npy``: consumers find the per-camera
-#: fields as the folders of ``out/project/`` holding an ``R.npy``, and the blend is not a camera.
-BLENDED_FILE = "R_blend.npy"
-
-
-@dataclass
-class BlendedField:
-    """The weighted blend of the per-camera fields, as written by :func:`blend_fields`.
-
-    Attributes
-    ----------
-    directory : pathlib.Path
-        Holds ``R_blend.npy`` ``(U, L, 3)`` (float16 or float32, C order: chunked along
-        texels), ``texel_index.npy`` ``(U,)`` int64, ``weight.npy`` ``(U,)`` float32 and
-        ``n_cameras.npy`` ``(U,)`` int16.
-    texel_index : (U,) int64
-        Texels some camera weights (> 0), ascending.
-    weight : (U,) float32
-        ``Σ_c w_c`` over the cameras that weight the texel.
-    n_cameras : (U,) int16
-        How many cameras weight the texel.
-    n_lights : int
-    """
-
-    directory: Path
-    texel_index: np.ndarray
-    weight: np.ndarray
-    n_cameras: np.ndarray
-    n_lights: int
-
-    def field(self) -> np.ndarray:
-        """The memory-mapped blended ``R`` ``(U, L, 3)`` (read-only)."""
-        return open_field(self.directory, name=BLENDED_FILE)
-
-
-def _camera_field(item) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
-    """(name, R memmap, texel_index, weight) of a ProjectedField or a camera folder."""
-    d = Path(item.directory if isinstance(item, ProjectedField) else item)
-    R = open_field(d)
-    try:
-        idx = np.load(d / "texel_index.npy")
-        w = np.load(d / "weight.npy")
-    except FileNotFoundError as exc:
-        raise InputError(f"{d}: texel_index.npy and weight.npy must sit beside R.npy "
-                         f"(a folder written by project_camera)") from exc
-    if idx.shape != (R.shape[0],) or w.shape != (R.shape[0],):
-        raise ShapeError(f"{d}: R.npy {R.shape}, texel_index.npy {idx.shape} and weight.npy "
-                         f"{w.shape} disagree (expected {R.shape[0]} texels each)")
-    if idx.size > 1 and not np.all(np.diff(idx) > 0):
-        raise InputError(f"{d}: texel_index.npy must be strictly ascending")
-    return d.name, R, idx.astype(np.int64), w.astype(np.float32)
-
-
-def blend_fields(fields: Iterable, directory, *, dtype: str = "float16",
-                 chunk_texels: int | None = None) -> BlendedField:
-    """Blend per-camera fields into one field for fixed-viewpoint uses, streamed along texels.
-
-    ``R_b[t, l] = Σ_c w_c(t) R_c[t, l] / Σ_c w_c(t)`` over the cameras ``c`` that weight texel
-    ``t`` — the issue's "blended field" beside the per-camera fields ``R_c`` of Debevec et al.
-    2000 Eq. (2) taken onto the surface (§2.1). The weights are light-independent
-    (:func:`camera_visibility`), so the blend is linear in the frames and relighting it
-    (Eq. 4) equals blending the relit cameras. A masked sample (NaN in ``R_c``) is left out of
-    its texel's blend for that light and channel and the other cameras are renormalised; with
-    no finite sample left the result is NaN (never a fake value). The blend discards the view
-    dependence (``v_c``): it suits a viewpoint near the cameras, not novel views.
-
-    Parameters
-    ----------
-    fields : iterable of ProjectedField or path-like
-        Camera folders written by :func:`project_camera` (same number of lights).
-    directory : path-like
-        Created; receives the files listed in :class:`BlendedField`.
-    dtype : {"float16", "float32"}
-        On-disk type (computation is float32).
-    chunk_texels : int, optional
-        Texels of the blend computed per step (resident memory ≈ ``chunk × L × 3 × 24`` B);
-        default: as many as make a 32 MB float32 chunk (1,365 texels at 2048 lights).
-
-    Returns
-    -------
-    BlendedField
-
-    Raises
-    ------
-    InputError
-        No fields, fields with different light counts, unknown ``dtype``, malformed folders.
-    """
-    if dtype not in ("float16", "float32"):
-        raise InputError(f"dtype: expected 'float16' or 'float32', got {fmt_value(dtype)}")
-    cams = [_camera_field(f) for f in fields]
-    if not cams:
-        raise InputError("fields: expected at least one projected camera field")
-    L = cams[0][1].shape[1]
-    chunk_texels = _chunk_rows(cams[0][1], chunk_texels)
-    for name, R, _, _ in cams:
-        if R.shape[1:] != (L, 3):
-            raise ShapeError(f"fields: camera {fmt_value(name)} has R of shape {R.shape}, "
-                             f"expected (T_c, {L}, 3) like {fmt_value(cams[0][0])}")
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    U = np.unique(np.concatenate([idx for _, _, idx, _ in cams]))
-    out = np.lib.format.open_memmap(directory / BLENDED_FILE, mode="w+", dtype=dtype,
-                                    shape=(U.size, L, 3))
-    wsum = np.zeros(U.size, np.float32)
-    ncam = np.zeros(U.size, np.int16)
-    step = int(chunk_texels)
-    # float16 in and out: the compiled blend on the bits (_blend_kernels: the same float32
-    # steps and roundings, bit for bit; ≈ 7× faster at the paper preset)
-    compiled = BLEND_KERNELS and out.dtype == np.float16 and all(
-        R.dtype == np.float16 for _, R, _, _ in cams)
-    if compiled:
-        from facegeo.surface._blend_kernels import accumulate_rows, quotient_rows
-        from facegeo.surface._half import host_has_f16c
-
-        f16c = host_has_f16c()
-    for s in range(0, U.size, step):
-        u = U[s:s + step]
-        num = np.zeros((u.size, L, 3), np.float32)
-        den = np.zeros((u.size, L, 3), np.float32)
-        for _, R, idx, w in cams:
-            a, b = np.searchsorted(idx, [u[0], u[-1] + 1])
-            if b <= a:
-                continue
-            pos = np.searchsorted(u, idx[a:b])  # unique within one camera
-            if compiled:
-                bits = np.asarray(R[a:b]).view(np.uint16).reshape(b - a, L * 3)
-                accumulate_rows(bits, pos.astype(np.int64), w[a:b], num.reshape(u.size, L * 3),
-                                den.reshape(u.size, L * 3), f16c)
-                _release_rows(R, a, b, write=False)
-            else:
-                rows = np.array(R[a:b], dtype=np.float32)
-                _release_rows(R, a, b, write=False)
-                ok = np.isfinite(rows)
-                wc = np.broadcast_to(w[a:b, None, None], rows.shape)
-                with np.errstate(invalid="ignore"):  # 0 · inf of a masked sample, left out
-                    num[pos] += np.where(ok, wc * rows, 0.0)
-                den[pos] += np.where(ok, wc, 0.0)
-            wsum[s + pos] += w[a:b]
-            ncam[s + pos] += 1
-        if compiled:
-            quotient_rows(num.reshape(u.size, L * 3), den.reshape(u.size, L * 3),
-                          np.asarray(out[s:s + u.size]).view(np.uint16).reshape(u.size, L * 3),
-                          f16c)
-        else:
-            with np.errstate(invalid="ignore", divide="ignore"):
-                out[s:s + u.size] = np.where(den > 0, num / den, np.nan)
-        _release_rows(out, s, s + u.size, write=True)
-    del out
-    np.save(directory / "texel_index.npy", U.astype(np.int64))
-    np.save(directory / "weight.npy", wsum)
-    np.save(directory / "n_cameras.npy", ncam)
-    log.info("blend: %d cameras -> %d texels × %d lights", len(cams), U.size, L)
-    return BlendedField(directory, U.astype(np.int64), wsum, ncam, int(L))
-
-
-def open_blended(directory) -> BlendedField:
-    """Read the blended field written by :func:`blend_fields` (``R`` stays memory-mapped:
-    :meth:`BlendedField.field`, or ``iter_field_chunks(directory, name=BLENDED_FILE)``)."""
-    d = Path(directory)
-    R = open_field(d, name=BLENDED_FILE)
-    try:
-        idx, w, n = (np.load(d / f) for f in ("texel_index.npy", "weight.npy",
-                                               "n_cameras.npy"))
-    except FileNotFoundError as exc:
-        raise InputError(f"{d}: texel_index.npy, weight.npy and n_cameras.npy must sit beside "
-                         f"{BLENDED_FILE} (a folder written by blend_fields)") from exc
-    if not (idx.shape == w.shape == n.shape == (R.shape[0],)):
-        raise ShapeError(f"{d}: {BLENDED_FILE} {R.shape}, texel_index.npy {idx.shape}, "
-                         f"weight.npy {w.shape}, n_cameras.npy {n.shape} disagree")
-    return BlendedField(d, idx.astype(np.int64), w, n, int(R.shape[1]))
