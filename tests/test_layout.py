@@ -150,8 +150,9 @@ EVALUATE_IMPORTS_LEFT = {
                                 "stage's; its gt_lights / gt_weight_min defaults and the "
                                 "visibility file name are the evaluation's",
     "facegeo.pipeline.render": "run_render(reference=True) returns the figures beside the "
-                               "view's; render_one renders the paper's λ = 1 beside a shrunk "
-                               "view only when a reference exists (has_view_reference)",
+                               "view's",
+    "facegeo.pipeline._render_view": "render_one renders the paper's λ = 1 beside a shrunk "
+                                     "view only when a reference exists (has_view_reference)",
 }
 
 

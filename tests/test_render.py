@@ -313,7 +313,7 @@ def test_run_render_writes_images_and_metrics(parts):
     # SOURCE_IMAGES_KEEP; a file that does not read is rebuilt, not an error
     import os
 
-    import facegeo.pipeline.render as stage_render
+    import facegeo.pipeline._render_view as stage_render  # where the pruning reads the setting
     from facegeo.capture.scan import load_scan
 
     frame = load_scan(root).olat_path("cam_left", 0)

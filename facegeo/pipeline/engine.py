@@ -1,8 +1,9 @@
 """Where a stage's tasks run: in this process, on a Dask ``LocalCluster`` or on an existing cluster.
 
 A stage that splits its work into independent tasks (``decode``, ``project``: one task per
-camera; ``fit``: whole fit chunks of a camera's functions; the texture ``relight``: whole
-relighting chunks of a camera's texels) hands them to an :class:`Engine` and gets back one small dict per task (metrics,
+camera, and on a cluster the projection's blend per chunk of texels; ``fit``: whole fit chunks
+of a camera's functions; the texture ``relight``: whole relighting chunks of a camera's
+texels; ``render``: one task per view) hands them to an :class:`Engine` and gets back one small dict per task (metrics,
 counts). Three modes behind one interface (issue 38):
 
 * :class:`InProcessEngine` — the default: the tasks run one after another in this process, in

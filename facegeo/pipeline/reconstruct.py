@@ -482,7 +482,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             from facegeo.pipeline.render import render_products
 
             return render_products(scan, ctx.upstream["atlas"].parent, ctx.out_dir,
-                                   progress=ctx.progress, **ctx.settings)
+                                   progress=ctx.progress, engine=engine, **ctx.settings)
 
         if views is None:
             views = [f"orbit:{FRONT}:{d:g}" for d in RENDER_ORBITS]

@@ -53,125 +53,40 @@ lights) (:func:`facegeo.lighting.envmap.shipped_map`).
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import json
 import logging
-import math
 import os
-import re
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from facegeo.checks import check_positive_int, fmt_value
-from facegeo.errors import InputError
-from facegeo.fsutil import file_state
+from facegeo.pipeline._render_view import (  # noqa: F401 (re-exported)
+    BUILTIN_ENVS,
+    CAMERA_HIT_MIN,
+    RENDER_DEFAULT_ENV,
+    SHRINKAGE_CHOICES,
+    SHRINKAGE_DEFAULT,
+    SOURCE_IMAGES_DIR,
+    SOURCE_IMAGES_KEEP,
+    _check_shrinkage,
+    _cross_validated_factors,
+    _field_weights,
+    _load_env,
+    _render_rig,
+    _source_images,
+    _view_inputs,
+    _view_shadows,
+    builtin_env,
+    check_render_args,
+    render_one,
+)
 
 log = logging.getLogger(__name__)
 
 __all__ = ["BUILTIN_ENVS", "CAMERA_HIT_MIN", "SHRINKAGE_CHOICES", "builtin_env",
            "check_render_args", "reference_views", "render_one", "render_products",
-           "run_render"]
-
-BUILTIN_ENVS = ("uniform", "axis_lobes", "sky", "studio")
-#: The environment of the ``render`` stage of ``facegeo reconstruct``.
-RENDER_DEFAULT_ENV = "sky"
-#: Values of ``shrinkage`` besides a number in [0, 1] (:func:`run_render`).
-SHRINKAGE_CHOICES = ("cross-validated", "none")
-SHRINKAGE_DEFAULT = "cross-validated"
-#: Where a view rendered on its own (``facegeo render``) keeps the relit source images of the
-#: image-space detail, under its folder (``out/views/``), and how many environments' worth.
-SOURCE_IMAGES_DIR = ".source_images"
-SOURCE_IMAGES_KEEP = 4
-_ENV_HEIGHT = 64
-#: A view whose pixels hit the atlas mesh less than this share of the image is logged as a
-#: warning (a camera file in another world frame, or aimed away from the head).
-CAMERA_HIT_MIN = 0.05
-
-
-def builtin_env(name: str):
-    """A built-in :class:`facegeo.lighting.envmap.EnvironmentMap` (see module docstring)."""
-    from facegeo.lighting import envmap as E
-
-    if name == "uniform":
-        return E.analytic_map(lambda v: np.ones(v.shape[:-1] + (3,)), _ENV_HEIGHT)
-    if name == "axis_lobes":
-        return E.axis_lobe_map(_ENV_HEIGHT)
-    if name in E.SHIPPED_MAPS:  # the procedural maps shipped with facegeo (sky, studio)
-        return E.shipped_map(name)
-    raise InputError(f"env: unknown built-in environment {fmt_value(name)}; built-ins are "
-                     f"{', '.join(BUILTIN_ENVS)} (or give an .exr/.hdr file)")
-
-
-def _load_env(env, projection: str, rotate_deg: float, convention: str = "facegeo"):
-    from facegeo.lighting import envmap as E
-
-    if isinstance(env, E.EnvironmentMap):
-        m = env
-    elif isinstance(env, str) and env in BUILTIN_ENVS:
-        if E.canonical_projection(projection) != "latlong" or convention != "facegeo":
-            raise InputError(f"env: the built-in environment {fmt_value(env)} has no file; "
-                             f"--projection and --envmap-convention apply to map files")
-        m = builtin_env(env)
-    else:
-        path = Path(env)
-        if not path.is_file():
-            raise InputError(f"env: {path} is not a file and not a built-in environment "
-                             f"({', '.join(BUILTIN_ENVS)})")
-        return E.read_envmap(path, projection, rotate_deg=rotate_deg, convention=convention)
-    return m.rotated(math.radians(rotate_deg)) if rotate_deg else m
-
-
-def check_render_args(scan, *, camera_spec, env="axis_lobes", rotate_deg: float = 0.0,
-                      projection: str = "latlong", shrinkage: str | float = SHRINKAGE_DEFAULT,
-                      light_step: int = 1, resynthesis: bool | str = True, rig=None,
-                      convention: str = "facegeo") -> None:
-    """Check a render request against the scan before any stage runs; raise InputError.
-
-    :func:`render_one` checks the same (with the same messages) once its inputs are there, but
-    ``facegeo render`` first builds atlas, project and fit (minutes on the larger presets): the
-    CLI calls this first. Checked: the camera spec against the cameras a view may name (the
-    rig's — every rig a scan's stages use has the scan's cameras — and the generator's novel
-    ones), the environment (a built-in name, or a file that reads as a map), the shrinkage and,
-    with resynthesis, the light step against the light-stage grid."""
-    from facegeo.appearance._skin_resynth import check_light_step
-    from facegeo.pipeline.fit import _camera_table
-    from facegeo.render import light_set, parse_camera_spec
-
-    rig = scan.rig if rig is None else rig
-    parse_camera_spec(camera_spec, _camera_table(scan, rig))
-    _load_env(env, projection, rotate_deg, convention)
-    _check_shrinkage(shrinkage)
-    if resynthesis:
-        check_light_step(light_step, light_set(rig.lights))
-
-
-def _check_shrinkage(shrinkage):
-    """``"cross-validated"``, ``"none"`` (→ None) or a float λ in [0, 1]."""
-    if isinstance(shrinkage, str):
-        if shrinkage == "none":
-            return None
-        if shrinkage in SHRINKAGE_CHOICES:
-            return shrinkage
-        try:
-            shrinkage = float(shrinkage)
-        except ValueError:
-            raise InputError(f"shrinkage: expected {' or '.join(SHRINKAGE_CHOICES)} or a number "
-                             f"in [0, 1], got {fmt_value(shrinkage)}") from None
-    if shrinkage is None:
-        return None
-    lam = float(shrinkage)
-    if not (0.0 <= lam <= 1.0):
-        raise InputError(f"shrinkage: a factor must lie in [0, 1] (1 = the paper's resynthesis, "
-                         f"0 = the naive baseline), got {fmt_value(shrinkage)}")
-    return lam
-
-
-def _safe(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.+-]+", "_", text).strip("_") or "view"
+           "render_view_task", "render_working_set", "run_render"]
 
 
 def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_deg: float = 0.0,
@@ -268,428 +183,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     return metrics
 
 
-def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
-               rotate_deg: float = 0.0, projection: str = "latlong", supersample: int = 1,
-               resynthesis: bool | str = True, baseline: bool = True, reference: bool = True,
-               name: str | None = None, blend_power: float | None = None,
-               rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
-               shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
-               shadow_taps: bool = True, image_detail: bool = True, progress=None,
-               cache: dict | None = None, convention: str = "facegeo",
-               infer: bool = True) -> dict:
-    """Render one view of ``scan`` from the products in ``out`` (``atlas/``, ``project/``,
-    ``fit/``) into the folder ``dest``; returns the view's metrics (:func:`run_render` without
-    the merge into ``out/metrics.json``; ``metrics["name"]`` is the files' stem).
-
-    With full resynthesis the shrunk render, the naive baseline (λ = 0) and the paper's λ = 1
-    come from one read of the fields and one resynthesis (``render_view(shrinkage_set=)``, each
-    bit for bit its own render). ``cache``: a dict shared by the views of one stage for what
-    does not depend on the view: the cross-validated λ (once per environment weights and light
-    step), the check that the projection indexes this atlas (``check_projection_atlas``
-    hashes ``texels.npz``, ≈ 10 MB on the small preset: once per stage, keyed by the files'
-    size and modification time, not once per view) and the atlas, texel table, ray scene and
-    source cameras (:func:`_view_inputs`: read once, the fields' memory maps reopened per
-    view).
-
-    ``reference``: with a reference to compare with (synthetic scans), the paper's λ = 1
-    render is made beside a shrunk one, for :mod:`facegeo.evaluate.views`; the view never
-    reads the reference itself.
-
-    With ``image_detail`` the source cameras' relit captures (:func:`_source_images`, once per
-    environment weights in ``cache``) join every render of the view (``render_view(detail=)``)."""
-    from facegeo.capture import imageio
-    from facegeo.fsutil import atomic_write_text
-    from facegeo.lighting import envmap as E
-    from facegeo.pipeline.fit import _camera_table
-    from facegeo.evaluate.views import has_view_reference
-    from facegeo.pipeline.project import check_projection_atlas, stage_rig
-    from facegeo.pipeline.relight import tone_map
-    from facegeo.render import (
-        cross_validated_shrinkage,
-        light_set,
-        parse_camera_spec,
-        render_view,
-        trace_view,
-    )
-    from facegeo.render.novel import BLEND_POWER
-
-    t_start = time.perf_counter()
-    out, dest = Path(out), Path(dest)
-    shrink_mode = _check_shrinkage(shrinkage)
-    supersample = check_positive_int(supersample, "supersample")
-    for need in ("atlas/atlas.npz", "atlas/texels.npz"):
-        if not (out / need).is_file():
-            raise InputError(f"render: {out / need} is missing; run 'facegeo reconstruct SCAN' first")
-    if resynthesis and not (out / "fit").is_dir():
-        raise InputError(f"render: {out / 'fit'} is missing; run 'facegeo fit SCAN' first (or "
-                         "render the naive baseline with resynthesis=False)")
-    try:
-        project_settings = json.loads((out / "project" / "stage.json").read_text())["settings"]
-    except (OSError, ValueError, KeyError, TypeError):
-        project_settings = {}
-    if not isinstance(project_settings, dict):
-        project_settings = {}
-    if rig is None:
-        rig = project_settings.get("rig")
-    the_rig, rig_used = stage_rig(scan, rig)
-    camera = parse_camera_spec(camera_spec, _camera_table(scan, the_rig))
-    environment = _load_env(env, projection, rotate_deg, convention)
-    stage = the_rig.lights
-    w = E.light_weights(environment, stage, solid_angle=solid_angle)  # a grid or a light list
-    w = E.field_weights(w, stage)  # image in the environment's units (field = intensity × R)
-    # the skin model's light set only where it resynthesises (a naive render needs none)
-    lights = light_set(stage) if resynthesis else None
-    atlas, texels, scene, sources = _view_inputs(out, bool(resynthesis), cache,
-                                                 check_projection_atlas)
-    t_load = time.perf_counter()
-    compare = bool(reference and has_view_reference(scan))
-    factors, shrink_stats = None, None
-    if resynthesis is True and shrink_mode == "cross-validated":
-        key = (hashlib.sha1(np.ascontiguousarray(w, np.float64).tobytes()).hexdigest(),
-               int(light_step))
-        if cache is not None and key in cache:
-            factors, shrink_stats = cache[key]
-        else:
-            factors, shrink_stats = cross_validated_shrinkage(sources, w, lights,
-                                                              light_step=light_step)
-            if cache is not None:
-                cache[key] = (factors, shrink_stats)
-    elif resynthesis is True and isinstance(shrink_mode, float):
-        factors = {src.name: shrink_mode for src in sources}
-    shrunk = factors is not None and any(f != 1.0 for f in factors.values())
-    paper_too = bool(shrunk and compare)
-    steps = 2 + int(bool(baseline and resynthesis)) + int(paper_too)
-
-    def tick(k: int) -> None:
-        if progress:
-            progress("render", k, steps)
-
-    samples = trace_view(camera, scene, atlas, texels, supersample=supersample)
-    light_dirs = np.asarray(stage.directions, np.float64) if infer else None
-    hit_fraction = float(samples.mask.mean())
-    if hit_fraction < CAMERA_HIT_MIN:
-        log.warning("render: camera %s (%s) hardly looks at the reconstructed surface: %.2f %% "
-                    "of its pixels hit the mesh (under %g %%); a camera file must be in the "
-                    "rig's world frame (%s rig; docs/render.md)",
-                    camera_spec if isinstance(camera_spec, (str, Path)) else "given",
-                    camera.name, 100 * hit_fraction, 100 * CAMERA_HIT_MIN, rig_used)
-    shadows = _view_shadows(atlas, scene, texels, stage, cache) if shadow_taps else None
-    # the source images' visibility weights as the projection's (its stage's settings)
-    vis_kw = {k: project_settings[k] for k in ("min_cos", "feather_px", "depth_jump")
-              if k in project_settings}
-    if image_detail:
-        from facegeo.render.novel import key_lights
-
-        keys = () if shadows is None else tuple(int(k) for k in key_lights(
-            w, shadows.key_share, shadows.max_lights))
-        # a stage keeps them in memory for its views; a view rendered on its own keeps them
-        # on disk for the next view under the same environment (at the paper preset they
-        # take ≈ 40 s: 2 × 2048 frames read)
-        detail, t_sources = _source_images(scan, the_rig, rig_used, sources, w, keys, cache,
-                                           None if cache is not None
-                                           else dest / SOURCE_IMAGES_DIR)
-    else:
-        detail, t_sources = None, None
-    tick(1)
-    bp = BLEND_POWER if blend_power is None else float(blend_power)
-    naive = paper = None
-    # the paper's §4.3 as written (λ = 1), for the metrics, shares the pass only at the same
-    # light step (the paper's render always evaluates every light)
-    share_paper = paper_too and light_step == 1
-    shared = resynthesis is True and (baseline or share_paper)
-    if shared:
-        sets = [factors] + ([{src.name: 0.0 for src in sources}] if baseline else [])
-        sets += [None] if share_paper else []
-        got = render_view(camera, scene, atlas, texels, sources, w, lights, blend_power=bp,
-                          samples=samples, fill_px=fill_px, light_step=light_step,
-                          shrinkage_set=sets, shadows=shadows, detail=detail,
-                          detail_visibility=vis_kw, infer=infer, light_directions=light_dirs)
-        res = got[0]
-        naive = got[1] if baseline else None
-        paper = got[-1] if share_paper else None
-        tick(2 + int(naive is not None) + int(paper is not None))
-    else:
-        res = render_view(camera, scene, atlas, texels, sources, w, lights,
-                          resynthesis=resynthesis, blend_power=bp, samples=samples,
-                          fill_px=fill_px, shrinkage=factors, shadows=shadows,
-                          light_step=light_step if resynthesis is True else 1, detail=detail,
-                          detail_visibility=vis_kw, infer=infer, light_directions=light_dirs)
-        tick(2)
-        if baseline and resynthesis:
-            naive = render_view(camera, scene, atlas, texels, sources, w, lights,
-                                resynthesis=False, blend_power=bp, samples=samples,
-                                fill_px=fill_px, shadows=shadows, detail=detail,
-                                detail_visibility=vis_kw, infer=infer, light_directions=light_dirs)
-            tick(3)
-    if paper_too and paper is None:
-        paper = render_view(camera, scene, atlas, texels, sources, w, lights, resynthesis=True,
-                            blend_power=bp, samples=samples, fill_px=fill_px, shadows=shadows,
-                            detail=detail, detail_visibility=vis_kw, infer=infer,
-                            light_directions=light_dirs)
-        tick(3 + int(naive is not None))
-    # a map file read with another projection or convention names its own files (as relight's)
-    from facegeo.lighting.envmap import canonical_projection
-
-    proj = canonical_projection(projection)
-    env_tag = env if isinstance(env, str) and env in BUILTIN_ENVS else (
-        (Path(env).stem if isinstance(env, (str, Path)) else "env")
-        + ("" if proj == "latlong" else f"_{proj}")
-        + ("" if convention == "facegeo" else f"_{convention}"))
-    stem = _safe(name or f"{camera.name}_{env_tag}")
-    dest.mkdir(parents=True, exist_ok=True)
-    files = {"exr": imageio.write_image(dest / f"{stem}.exr", res.image).name}
-    png, exposure = tone_map(res.image)
-    files["png"] = imageio.write_image(dest / f"{stem}.png", png).name
-    if naive is not None:
-        imageio.write_image(dest / f"{stem}_naive.exr", naive.image)
-        files["naive_png"] = imageio.write_image(
-            dest / f"{stem}_naive.png", _expose(naive.image, exposure)).name
-    metrics: dict[str, Any] = {
-        "camera": camera.name, "camera_spec": camera_spec if isinstance(camera_spec, str)
-        else camera.to_dict(), "env": str(env) if not isinstance(env, E.EnvironmentMap)
-        else "EnvironmentMap", "rotate_deg": float(rotate_deg), "supersample": int(supersample),
-        "resynthesis": resynthesis, "blend_power": bp, "fill_px": float(fill_px),
-        "shadow_taps": bool(shadow_taps), "image_detail": bool(image_detail),
-        "detail_fraction": round(res.stats["detail_pixels"] / max(int(res.covered.sum()), 1), 6)
-        if detail is not None else None,
-        # relighting the source cameras' captures for the detail (0: another view's reused)
-        "seconds_source_images": t_sources,
-        "shrinkage": shrink_mode, "shrinkage_factors": factors,
-        "light_step": int(light_step) if resynthesis is True else 1,
-        "shrinkage_cross_validation": shrink_stats,
-        "rig": rig_used,
-        "size": [camera.width, camera.height], "active_lights": res.stats["active_lights"],
-        "stats": res.stats, "seconds_render": res.stats["seconds"],
-        # one pass rendered the naive baseline (and the paper's λ = 1) beside the view: its
-        # time is in seconds_render, and there is no separate naive time
-        "shared_pass": bool(shared),
-        "seconds_naive": naive.stats["seconds"] if naive is not None and not shared else None,
-        "seconds_load": round(t_load - t_start, 4),
-        "coverage": round(float(res.covered.sum() / max(res.mask.sum(), 1)), 6),
-        "surface_pixel_fraction": round(hit_fraction, 6),
-        # what no camera saw (infer): the atlas's texels no source camera measured, and the
-        # surface pixels of the view holding an inferred sample (<stem>_inferred.png)
-        "infer": bool(infer),
-        "inferred_texel_fraction": _unmeasured_texel_fraction(texels, sources),
-        "inferred_pixel_fraction": round(float(
-            res.inferred.sum() / max(res.mask.sum(), 1)), 6),
-        "black_surface_pixels": int((res.mask & ~(res.image > 0).any(axis=2)).sum()),
-    }
-    # what the evaluation reads (facegeo.evaluate.views): the camera, the weights, the
-    # covered pixels and the renders beside the main one
-    atomic_write_text(dest / f"{stem}_camera.json", json.dumps(camera.to_dict(), indent=2))
-    np.save(dest / f"{stem}_weights.npy", np.asarray(w, np.float64))
-    imageio.write_image(dest / f"{stem}_covered.png",
-                        np.where(res.covered, 255, 0).astype(np.uint8))
-    imageio.write_image(dest / f"{stem}_inferred.png",
-                        np.where(res.inferred, 255, 0).astype(np.uint8))
-    if detail is not None:  # the texture-space renders (the paper's render path)
-        imageio.write_image(dest / f"{stem}_texture.exr", res.texture)
-        if naive is not None:
-            imageio.write_image(dest / f"{stem}_naive_texture.exr", naive.texture)
-    if paper is not None:
-        imageio.write_image(dest / f"{stem}_paper.exr", paper.image)
-    metrics["exposure"] = float(exposure)
-    metrics["files"] = files
-    metrics["name"] = stem
-    metrics["seconds"] = round(time.perf_counter() - t_start, 4)
-    atomic_write_text(dest / f"{stem}.json", json.dumps(metrics, indent=2, allow_nan=False))
-    log.info("rendered %s (%s) in %.2f s", stem, camera.name, metrics["seconds"])
-    return metrics
-
-
-def _unmeasured_texel_fraction(texels, sources) -> float:
-    """The share of the atlas's texels that no source camera measured (a row of no projected
-    field): what a render with ``infer`` covers by inference."""
-    seen = np.zeros(len(texels), bool)
-    for src in sources:
-        seen[np.asarray(src.texel_index, np.int64)] = True
-    return round(float(1.0 - seen.mean()), 6) if seen.size else 0.0
-
-
-def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
-                   cache: dict | None, disk: Path | None = None) -> tuple:
-    """The source cameras' OLAT captures relit with the render's weights ``w``
-    (:class:`facegeo.render.detail.SourceImage`, the rig's cameras: the ones the projection
-    used) with the frames of the key lights ``keys`` (shadow-consistent taps), and the seconds
-    this call spent building them (0: reused).
-
-    Kept once per weights, key lights, rig and cameras in ``cache`` (a stage's views) and, with
-    ``disk``, in a file there named by those, facegeo's code fingerprint, the OLAT response
-    curve and the state (path, size, modification time) of the scan manifest and of every frame
-    the relighting reads: read back instead of relit while none of them changed (a file that
-    does not read is removed and the images relit), written atomically, the
-    :data:`SOURCE_IMAGES_KEEP` most recently used kept; a failed write only logs a warning."""
-    from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_path
-    from facegeo.lighting.relight import relight_scan_view
-    from facegeo.render.detail import SourceImage
-
-    names = tuple(src.name for src in sources)
-    key = ("source_images", hashlib.sha1(np.ascontiguousarray(w, np.float64).tobytes())
-           .hexdigest(), rig_used, names, keys)
-    if cache is not None and key in cache:
-        return cache[key], 0.0
-    path = None
-    if disk is not None:
-        lit = [int(k) for k in np.flatnonzero(np.any(np.asarray(w) != 0, axis=1))]
-        files = [f for f in [getattr(scan, "manifest_path", None)] if f is not None]
-        files += [scan.olat_path(c, k) for c in names for k in sorted(set(lit) | set(keys))]
-        state = [(str(f), file_state(f)) for f in files]  # a missing frame: None, and the
-        try:                                                 # relighting below names it
-            resp = scan.response("olat")
-            state.append((resp.kind, resp.gamma, resp.file, None if resp.table is None else
-                          hashlib.sha1(np.ascontiguousarray(resp.table).tobytes()).hexdigest()))
-        except (OSError, KeyError, ValueError):
-            state = None  # the response does not read: no cache, the relighting names it
-        if state is not None:
-            from facegeo.pipeline.cache import code_fingerprint
-
-            name = hashlib.sha1(repr((key, state, code_fingerprint())).encode()).hexdigest()[:24]
-            path = disk / f"{name}.npz"
-    if path is not None and path.is_file():
-        try:
-            with np.load(path) as z:
-                images = [SourceImage(the_rig.camera(c), z[f"{c}/image"], z[f"{c}/valid"],
-                                      {k: (z[f"{c}/{k}/frame"], z[f"{c}/{k}/valid"])
-                                       for k in keys})
-                          for c in names]
-            os.utime(path)  # most recently used: kept longest
-            if cache is not None:
-                cache[key] = images
-            return images, 0.0
-        except Exception as exc:  # truncated or foreign: a cache, not an input — rebuild it
-            log.warning("%s: unreadable (%s); relighting the source images again", path, exc)
-            path.unlink(missing_ok=True)
-    t0 = time.perf_counter()
-    images = []
-    for src in sources:
-        img, valid = relight_scan_view(scan, src.name, w, return_mask=True,
-                                       read_ahead=READ_AHEAD_WORKERS)
-        frames = {k: scan.olat_frame(src.name, k, return_mask=True, black_clipped="dark")
-                  for k in keys}
-        images.append(SourceImage(the_rig.camera(src.name), img, valid, frames))
-    if cache is not None:
-        cache[key] = images
-    if path is not None:
-        arrays = {}
-        for im in images:
-            c = im.camera.name
-            arrays[f"{c}/image"], arrays[f"{c}/valid"] = im.image, im.valid
-            for k, (frame, ok) in im.key_frames.items():
-                arrays[f"{c}/{k}/frame"], arrays[f"{c}/{k}/valid"] = frame, ok
-        try:
-            with atomic_path(path) as tmp:
-                np.savez(tmp, **arrays)
-            _prune(disk, SOURCE_IMAGES_KEEP)
-        except OSError as exc:  # the render does not need the cache
-            log.warning("%s: could not keep the relit source images (%s)", disk, exc)
-    return images, round(time.perf_counter() - t0, 4)
-
-
-def _prune(folder: Path, keep: int) -> None:
-    """Remove all but the ``keep`` most recently modified ``*.npz`` files of ``folder``
-    (hidden ones — another process's file being written — left alone)."""
-    dated = []
-    for f in folder.glob("*.npz"):
-        if f.name.startswith("."):
-            continue
-        try:
-            dated.append((f.stat().st_mtime_ns, f))
-        except FileNotFoundError:  # removed meanwhile by another render
-            continue
-    for _, f in sorted(dated)[:-keep]:
-        f.unlink(missing_ok=True)
-
-
-def _view_shadows(atlas, scene, texels, stage, cache: dict | None):
-    """:func:`facegeo.render.render_shadows` of the atlas under ``stage``, once a stage (kept in
-    ``cache`` beside the view inputs it was built from)."""
-    from facegeo.render import render_shadows
-    from facegeo.surface.shadows import light_positions
-
-    positions, directions = light_positions(stage)
-    # the cached value holds the scene (its rays), so its id names no other live scene
-    key = ("view_shadows", id(scene), hashlib.sha1(
-        np.ascontiguousarray(directions).tobytes()
-        + (b"" if positions is None else np.ascontiguousarray(positions).tobytes())).hexdigest())
-    if cache is not None and cache.get("view_shadows", (None,))[0] == key:
-        return cache["view_shadows"][1]
-    shadows = render_shadows(atlas, scene, texels, stage)
-    if cache is not None:
-        cache["view_shadows"] = (key, shadows)
-    return shadows
-
-
-
-def _inputs_state(out: Path, with_fit: bool) -> tuple:
-    """(path, size, mtime_ns) of every file :func:`_view_inputs` reads: the atlas and texel
-    table, the projected fields' folders and, with the fits, the fit folders."""
-    files = [out / "atlas" / "atlas.npz", out / "atlas" / "texels.npz"]
-    for part in ("project", "fit") if with_fit else ("project",):
-        files += sorted(p for p in (out / part).glob("*/*") if p.is_file())
-    return tuple((str(f), file_state(f)) for f in files)
-
-
-def _fresh_map(a):
-    """A new read-only memory map of the file behind ``a`` (``a`` itself if it is not one)."""
-    path = getattr(a, "filename", None)
-    return np.load(path, mmap_mode="r") if path else a
-
-
-def _view_inputs(out: Path, with_fit: bool, cache: dict | None, check) -> tuple:
-    """``(atlas, texels, scene, sources)`` of a view: ``out/atlas/atlas.npz``, its texel table,
-    the atlas mesh's ray scene and :func:`facegeo.render.load_sources` of ``out/project`` (and
-    ``out/fit`` when ``with_fit``), after ``check`` (:func:`_check_projection_atlas_once`).
-
-    With a ``cache`` (one render stage's views) they are read once and shared by the views: one
-    slot, replaced when a view asks for other inputs or a file changed (size, mtime_ns), so the
-    stage holds one set, as one view did. The fields ``R`` and the fits' ``D`` are memory maps,
-    opened afresh per view: the pages a view reads leave the resident set with its maps, as
-    they did when every view loaded its own."""
-    from facegeo.render import atlas_scene, load_sources
-    from facegeo.surface.atlas import Atlas, Texels
-
-    key = ("view_inputs", str(out), with_fit, _inputs_state(out, with_fit)) \
-        if cache is not None else None
-    slot = cache.get("view_inputs") if cache is not None else None
-    if slot is not None and slot[0] == key:
-        atlas, texels, scene, sources = slot[1]
-        _check_projection_atlas_once(check, out, cache)
-    else:
-        if cache is not None:
-            cache.pop("view_inputs", None)  # one set at a time
-        atlas = Atlas.load(out / "atlas" / "atlas.npz")
-        texels = Texels.load(out / "atlas" / "texels.npz")
-        _check_projection_atlas_once(check, out, cache)
-        sources = load_sources(out / "project", (out / "fit") if with_fit else None)
-        scene = atlas_scene(atlas)
-        if cache is None:
-            return atlas, texels, scene, sources
-        cache["view_inputs"] = (key, (atlas, texels, scene, sources))
-    return atlas, texels, scene, [dataclasses.replace(
-        src, field=_fresh_map(src.field),
-        fit=None if src.fit is None else dataclasses.replace(src.fit, D=_fresh_map(src.fit.D)))
-        for src in sources]
-
-
-def _check_projection_atlas_once(check, out: Path, cache: dict | None) -> None:
-    """``check(out/project, out/atlas/texels.npz)`` (``check_projection_atlas``: a SHA-256 of
-    the texel table), skipped when ``cache`` holds a pass for the same two files at the same
-    (size, mtime_ns): the views of one render stage share the atlas and the projection."""
-    from facegeo.pipeline.project import ATLAS_FINGERPRINT
-
-    texels, fingerprint = out / "atlas" / "texels.npz", out / "project" / ATLAS_FINGERPRINT
-    key = ("projection_atlas_checked", str(texels), file_state(texels),
-           file_state(fingerprint))
-    if cache is not None and key in cache:
-        return
-    check(out / "project", texels)
-    if cache is not None:
-        cache[key] = True
-
-
 def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_ENV,
-                    progress=None, **settings) -> dict:
+                    progress=None, engine=None, **settings) -> dict:
     """The ``render`` stage of ``facegeo reconstruct``: every view in ``views`` under ``env``
     into ``dest`` (:func:`render_one`); returns the stage's metrics.
 
@@ -698,23 +193,286 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     environment, so the evaluation compares it
     (:func:`facegeo.evaluate.views.evaluate_view_against_image`).
 
+    ``engine`` (:mod:`facegeo.pipeline.engine`): None or in process — the views one after
+    another sharing one cache (:func:`render_one`); a Dask engine — each view is one task
+    (:func:`render_view_task`) writing into its own folder under ``dest``, whose files the
+    client moves into ``dest`` in view order. The cross-validated λ is computed once per
+    environment on the client first (:func:`_shared_shrinkage`) and handed to the tasks, so
+    every task renders with the λ the in-process stage uses; the source captures of the
+    image-space detail are relit there too, once per environment
+    (:func:`_shared_source_images`), into ``dest/.view_tasks/.source_images``, which the
+    tasks read (their ``seconds_source_images`` are 0; the client's are the stage's
+    ``seconds_source_images``). The files are the same bytes whatever the engine; the folder
+    ``dest/.view_tasks`` is removed when the stage ends.
+
     Metrics: ``views`` (per view, as :func:`render_one`), ``env`` and ``seconds`` (the views'
-    sum). The figures against references (``psnr_db_min`` …, the novel-view goal of issue 14:
+    sum); on a cluster ``seconds_source_images`` and ``engine``
+    (:meth:`facegeo.pipeline.engine.Engine.stage_metrics`). The
+    figures against references (``psnr_db_min`` …, the novel-view goal of issue 14:
     resynthesis at least 3 dB better than the naive baseline) are the ``evaluate`` stage's
     (:mod:`facegeo.evaluate.views`).
     """
-    per_view = {}
-    # the cross-validated λ, the atlas check and the relit source images, once a stage
-    cache: dict = {}
     jobs = [(spec, env) for spec in views] + reference_views(scan)
-    for k, (spec, view_env) in enumerate(jobs):
-        tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(jobs) * n)) \
-            if progress else None
-        m = render_one(scan, out, dest, camera_spec=spec, env=view_env, progress=tick,
-                       cache=cache, **settings)
-        per_view[m["name"]] = {key: v for key, v in m.items() if key != "stats"}
-    return {"views": per_view, "env": str(env),
-            "seconds": round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)}
+    if engine is not None and engine.kind != "in-process":
+        per_view, names, t_sources = _render_views_as_tasks(scan, Path(out), Path(dest), jobs,
+                                                            engine, progress, settings)
+    else:
+        per_view, names = {}, None
+        # the cross-validated λ, the atlas check and the relit source images, once a stage
+        cache: dict = {}
+        for k, (spec, view_env) in enumerate(jobs):
+            tick = (lambda stage, d, n, k=k: progress("render", k * n + d, len(jobs) * n)) \
+                if progress else None
+            m = render_one(scan, out, dest, camera_spec=spec, env=view_env, progress=tick,
+                           cache=cache, **settings)
+            per_view[m["name"]] = {key: v for key, v in m.items() if key != "stats"}
+    metrics = {"views": per_view, "env": str(env),
+               "seconds": round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)}
+    if names is not None:
+        metrics["seconds_source_images"] = t_sources  # on the client, before the tasks
+        metrics["engine"] = engine.stage_metrics("render", names)
+    return metrics
+
+
+#: Folder of ``dest`` holding the view tasks' folders while a render stage runs on a cluster
+#: (:func:`render_products`); removed when the stage ends.
+VIEW_TASKS_DIR = ".view_tasks"
+
+
+def _render_views_as_tasks(scan, out: Path, dest: Path, jobs: list, engine, progress,
+                           settings: dict) -> tuple[dict, list[str], float]:
+    """The views ``jobs`` (``(camera_spec, env)``) as tasks of ``engine``, one a view
+    (:func:`render_view_task`), each into ``dest/.view_tasks/<k>``; their files moved into
+    ``dest`` in view order (a later view of the same name replaces an earlier one's files, as
+    in process). Returns the per-view metrics, the tasks' names and the seconds the client
+    spent relighting the source captures (:func:`_shared_source_images`)."""
+    import shutil
+
+    from facegeo.pipeline.engine import Task
+
+    opts = {**_render_one_defaults(), **settings}
+    sizes = _client_inputs(scan, out, opts)
+    root = dest / VIEW_TASKS_DIR
+    needs = [0 if sizes is None else _view_working_set(scan, spec, opts, sizes)
+             for spec, _ in jobs]
+
+    def tasks_with(shared: dict) -> list:
+        return [Task(f"{k:03d} {spec if isinstance(spec, str) else 'camera'} "
+                     f"{view_env if isinstance(view_env, str) else 'env'}", render_view_task,
+                     (scan, str(out), str(root / f"{k:03d}"), spec, view_env, shared, settings,
+                      str(root / SOURCE_IMAGES_DIR)), working_set=need)
+                for k, ((spec, view_env), need) in enumerate(zip(jobs, needs))]
+
+    engine.check_fits("render", tasks_with({}))  # before the client's own work
+    made = not dest.exists()
+    shared, t_sources = {}, 0.0
+    try:
+        if sizes is not None:
+            shared = _shared_shrinkage(jobs, opts, sizes)
+            t_sources = _shared_source_images(scan, jobs, opts, sizes, root / SOURCE_IMAGES_DIR)
+        sizes = None  # the client's inputs go before the tasks run
+        tasks = tasks_with(shared)
+        results = engine.map("render", tasks, progress=progress)
+        dest.mkdir(parents=True, exist_ok=True)
+        per_view: dict = {}
+        for k, r in enumerate(results):  # in view order, whatever order they finished in
+            for f in sorted((root / f"{k:03d}").iterdir()):
+                os.replace(f, dest / f.name)
+            m = r["metrics"]
+            per_view.pop(m["name"], None)  # a later view of the same name: last, as in process
+            per_view[m["name"]] = m
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+        if made and dest.is_dir() and not any(dest.iterdir()):
+            dest.rmdir()  # a stage that failed leaves no folder it made
+    return per_view, [t.name for t in tasks], t_sources
+
+
+def _client_inputs(scan, out: Path, opts: dict) -> dict | None:
+    """What the client of a cluster render stage reads once before the views' tasks: the rig,
+    the source cameras (``with_fit`` as the views), the atlas's texel and triangle counts —
+    for :func:`_shared_shrinkage` and the tasks' working sets — after the check that the
+    projection indexes this atlas. None when an input is missing (each task then raises
+    :func:`render_one`'s error itself)."""
+    from facegeo.pipeline.project import check_projection_atlas
+
+    with_fit = bool(opts["resynthesis"])
+    if not all((out / f).is_file() for f in ("atlas/atlas.npz", "atlas/texels.npz")) or (
+            with_fit and not (out / "fit").is_dir()):
+        return None
+    _, the_rig, rig_used = _render_rig(scan, out, opts["rig"])
+    atlas, texels, scene, sources = _view_inputs(out, with_fit, None, check_projection_atlas)
+    return {"rig": the_rig, "rig_used": rig_used, "atlas": atlas, "texels": texels,
+            "scene": scene, "sources": sources}
+
+
+def _view_working_set(scan, spec, opts: dict, sizes: dict) -> int:
+    """:func:`render_working_set` of the view ``spec`` (its camera parsed here: a bad spec
+    raises before any task runs)."""
+    from facegeo.pipeline.fit import _camera_table
+    from facegeo.render import parse_camera_spec
+
+    camera = parse_camera_spec(spec, _camera_table(scan, sizes["rig"]))
+    detail_px = sum(int(c.width) * int(c.height) for c in (
+        sizes["rig"].camera(src.name) for src in sizes["sources"])) if opts["image_detail"] \
+        else 0
+    return render_working_set(camera, int(opts["supersample"]), sizes["sources"],
+                              len(sizes["texels"]), len(sizes["atlas"].faces),
+                              detail_pixels=detail_px)
+
+
+#: Bytes a view task needs whatever its size, over the engine's ``WORKER_BASE_BYTES``: the
+#: renderer's imports and compiled kernels. With the figures below, measured against a
+#: worker's peak resident memory less a 246 MiB interpreter (the engine's measured figure):
+#: tiny preset (80 × 120 px, s = 3, 2 × 128 lights) 130–141 MiB, estimated 158 MiB; small
+#: preset (240 × 360 px, s = 3, 2 × 512 lights) 709–724 MiB, estimated 745 MiB.
+RENDER_BASE_BYTES = 64 << 20
+#: ... per ray sample (pixels × supersample²): the samples' hit points,
+#: texel taps and weights (:func:`facegeo.render.trace_view`), their colours in up to three
+#: renders (shrunk, naive, paper's) with the texture-space copies and the fill-in's
+#: accumulators (float64) ≈ 400 B.
+RENDER_BYTES_PER_SAMPLE = 400
+#: ... per atlas texel: the texel table (positions, normals, faces, barycentrics), the
+#: shadow taps' arrays and the inferred colours ≈ 200 B.
+RENDER_BYTES_PER_TEXEL = 200
+#: ... per atlas triangle: the atlas mesh and Embree's BVH ≈ 250 B (as the projection's).
+RENDER_BYTES_PER_FACE = 250
+#: ... per source-camera pixel with image-space detail: its relit capture and validity
+#: (float32 RGB + bool, 13 B) and as many frames of the key lights
+#: (:data:`facegeo.render.novel.SHADOW_MAX_LIGHTS` at most).
+RENDER_BYTES_PER_SOURCE_PIXEL = 13
+#: ... per function-light sample of the resynthesis's chunk
+#: (:data:`facegeo.render.novel.CHUNK_SAMPLES` at a time): RGB float64 in ≈ 4 temporaries.
+RENDER_BYTES_PER_CHUNK_SAMPLE = 3 * 8 * 4
+#: Field rows a ray sample can read per source camera (its bilinear texel taps).
+RENDER_TAPS_PER_SAMPLE = 4
+
+
+def render_working_set(camera, supersample: int, sources, n_texels: int, n_faces: int, *,
+                       detail_pixels: int = 0) -> int:
+    """Memory (bytes) one view's task needs (an upper bound): :data:`RENDER_BASE_BYTES` +
+    :data:`RENDER_BYTES_PER_SAMPLE` × the view's ray samples + :data:`RENDER_BYTES_PER_TEXEL`
+    × texels + :data:`RENDER_BYTES_PER_FACE` × triangles + the resynthesis chunk's
+    (:data:`RENDER_BYTES_PER_CHUNK_SAMPLE` × ``CHUNK_SAMPLES``) + per
+    source camera the field rows the samples can touch (memory-mapped pages count in a
+    worker's resident memory: at most :data:`RENDER_TAPS_PER_SAMPLE` rows a sample, at most
+    the field, R and the fit's D) + the source captures of the image-space detail, relit
+    and with their key-light frames: :data:`RENDER_BYTES_PER_SOURCE_PIXEL` × (1 +
+    ``SHADOW_MAX_LIGHTS``) × ``detail_pixels``.
+
+    Parameters
+    ----------
+    camera : facegeo.calib.Camera — the view's camera (its width and height)
+    supersample : int — s: s × s rays a pixel
+    sources : list of facegeo.render.SourceCamera — ``field`` (rows, L, 3) and ``fit.D``
+    n_texels, n_faces : int — of the atlas
+    detail_pixels : int — the source cameras' pixels, summed, with image-space detail
+        (:mod:`facegeo.render.detail`); 0 without
+    """
+    from facegeo.render.novel import CHUNK_SAMPLES, SHADOW_MAX_LIGHTS
+
+    samples = int(camera.width) * int(camera.height) * int(supersample) ** 2
+    total = (RENDER_BASE_BYTES + samples * RENDER_BYTES_PER_SAMPLE
+             + int(n_texels) * RENDER_BYTES_PER_TEXEL
+             + int(n_faces) * RENDER_BYTES_PER_FACE
+             + CHUNK_SAMPLES * RENDER_BYTES_PER_CHUNK_SAMPLE)
+    for src in sources:
+        for a in (src.field, None if src.fit is None else src.fit.D):
+            if a is None:
+                continue
+            rows = int(a.shape[0])
+            row_bytes = int(np.prod(a.shape[1:])) * np.dtype(a.dtype).itemsize
+            total += min(rows, RENDER_TAPS_PER_SAMPLE * samples) * row_bytes
+    return int(total + int(detail_pixels) * RENDER_BYTES_PER_SOURCE_PIXEL
+               * (1 + SHADOW_MAX_LIGHTS))
+
+
+def _render_one_defaults() -> dict:
+    """:func:`render_one`'s keyword defaults (what a stage's ``settings`` leave out)."""
+    import inspect
+
+    return {k: p.default for k, p in inspect.signature(render_one).parameters.items()
+            if p.kind is p.KEYWORD_ONLY and p.default is not p.empty}
+
+
+def _distinct_envs(jobs: list) -> list:
+    """The environments of ``jobs`` (``(camera_spec, env)``), each once, in first-seen order
+    (names and paths by value, map objects by identity)."""
+    found = {}
+    for _, env in jobs:
+        found.setdefault(env if isinstance(env, (str, Path)) else id(env), env)
+    return list(found.values())
+
+
+def _shared_shrinkage(jobs: list, opts: dict, inputs: dict) -> dict:
+    """The cross-validated λ of every environment among ``jobs``, computed here as the
+    in-process stage computes it for its first view under that environment
+    (:func:`_cross_validated_factors`, in one process, from the same inputs): ``{cache key:
+    (factors, stats)}``, kilobytes, for the view tasks' caches (each task computing its own
+    could differ in the last bits: a worker's numba runs one thread). Empty when the views
+    take no cross-validated λ. ``inputs``: :func:`_client_inputs`. Measured on the tiny
+    preset: 0.02 s an environment once numba's kernels are compiled (8.6 s with the compile,
+    the first time in a process)."""
+    from facegeo.render import light_set
+
+    if opts["resynthesis"] is not True or _check_shrinkage(opts["shrinkage"]) != \
+            "cross-validated":
+        return {}
+    stage = inputs["rig"].lights
+    lights = light_set(stage)
+    cache: dict = {}
+    for env in _distinct_envs(jobs):
+        w = _field_weights(env, stage, opts["projection"], opts["rotate_deg"],
+                           opts["convention"], opts["solid_angle"])
+        _cross_validated_factors(inputs["sources"], w, lights, opts["light_step"], cache)
+    return cache
+
+
+def _shared_source_images(scan, jobs: list, opts: dict, inputs: dict, disk: Path) -> float:
+    """The source cameras' captures relit under every environment among ``jobs``, with the
+    frames of the key lights, as :func:`render_one` makes them for a view
+    (:func:`_source_images`), written into ``disk`` — the folder the view tasks read them from
+    (a task whose set is not there, e.g. one pruned past :data:`SOURCE_IMAGES_KEEP`
+    environments, relights its own). Relit once here rather than once a worker (measured on
+    the small preset: 12 s in process, 19–20 s in each of two one-thread workers at once).
+    Returns the seconds spent; 0 without image detail. ``inputs``: :func:`_client_inputs`."""
+    from facegeo.render.novel import key_lights
+
+    if not opts["image_detail"]:
+        return 0.0
+    stage = inputs["rig"].lights
+    shadows = _view_shadows(inputs["atlas"], inputs["scene"], inputs["texels"], stage,
+                            None) if opts["shadow_taps"] else None
+    seconds = 0.0
+    for env in _distinct_envs(jobs):
+        w = _field_weights(env, stage, opts["projection"], opts["rotate_deg"],
+                           opts["convention"], opts["solid_angle"])
+        keys = () if shadows is None else tuple(int(k) for k in key_lights(
+            w, shadows.key_share, shadows.max_lights))
+        _, t = _source_images(scan, inputs["rig"], inputs["rig_used"], inputs["sources"], w,
+                              keys, None, disk)
+        seconds += t
+    return round(seconds, 4)
+
+
+def render_view_task(scan, out: str, task_dir: str, camera_spec, env, shared: dict,
+                     settings: dict, source_images_dir: str | None = None) -> dict:
+    """One view of the ``render`` stage, run by an engine's worker: :func:`render_one` into
+    ``task_dir`` with a cache of its own seeded with ``shared`` (the stage's cross-validated λ,
+    :func:`_shared_shrinkage`), reading the relit source captures of the image-space detail
+    from ``source_images_dir`` (:func:`_shared_source_images`; relit and kept there when
+    missing). Returns ``{"metrics": ...}``: the
+    view's metrics without its ``stats``, small whatever the view's size."""
+    from facegeo.pipeline.project import _scan
+
+    cache = dict(shared)
+    m = render_one(_scan(scan), Path(out), Path(task_dir), camera_spec=camera_spec, env=env,
+                   cache=cache, source_images_dir=source_images_dir, **settings)
+    if any(isinstance(k, tuple) and k[0] == "shrinkage" for k in set(cache) - set(shared)):
+        log.warning("render %s: the cross-validated λ was computed again in the task (its "
+                    "weights differ from the stage's); it may differ from the in-process "
+                    "stage's in the last bits", m["name"])
+    return {"metrics": {k: v for k, v in m.items() if k != "stats"}}
 
 
 def reference_views(scan) -> list[tuple[str, str]]:
@@ -748,13 +506,6 @@ def _views_summary(per_view: dict) -> dict:
 
     return {**views_summary(per_view),
             "seconds": round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)}
-
-
-def _expose(img, exposure: float) -> np.ndarray:
-    """8-bit sRGB with a given exposure (so a render and its reference share one)."""
-    from facegeo.capture.response import encode
-
-    return encode(np.clip(img * np.float32(exposure), 0.0, 1.0), "srgb", np.uint8)
 
 
 def _merge_metrics(out: Path, stem: str, metrics: dict) -> None:
