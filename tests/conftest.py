@@ -47,3 +47,33 @@ def baseline_cpu_python(tmp_path):
                               text=True, timeout=600, env=env, cwd=tmp_path)
 
     return run
+
+
+#: Memory limit of each worker of the scale tests' two-worker cluster (``cluster``): a test
+#: module may set its own ``WORKER_LIMIT``.
+SCALE_WORKER_LIMIT = "800MiB"
+
+
+@pytest.fixture(scope="module")
+def cluster(request):
+    """A two-worker Dask ``LocalCluster`` engine for one test module (workers limited to the
+    module's ``WORKER_LIMIT``, default :data:`SCALE_WORKER_LIMIT`)."""
+    from facegeo.pipeline.engine import make_engine
+
+    limit = getattr(request.module, "WORKER_LIMIT", SCALE_WORKER_LIMIT)
+    with make_engine(workers=2, memory_limit=limit) as eng:
+        yield eng
+
+
+@pytest.fixture(scope="module")
+def projected(tmp_path_factory):
+    """A tiny synthetic scan with its atlas and in-process projection (``.npy`` fields), made
+    once per test module."""
+    from facegeo.pipeline.project import run_atlas, run_project
+    from facegeo.synth.capture import generate_scan
+
+    root = tmp_path_factory.mktemp("projected") / "tiny"
+    generate_scan(root, "tiny")
+    run_atlas(root)
+    run_project(root, evaluate=False)
+    return root

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from facegeo.errors import InputError
-from facegeo.pipeline.engine import InProcessEngine, make_engine
+from facegeo.pipeline.engine import InProcessEngine
 
 #: Memory limit of each worker of the test cluster (a blend task of 4,096 texels × 128 lights
 #: needs ≈ 50 MB).
@@ -42,25 +42,6 @@ _INDEX_FILES = ("texel_index.npy", "weight.npy", "n_cameras.npy")
 
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-@pytest.fixture(scope="module")
-def projected(tmp_path_factory):
-    """A tiny synthetic scan with its atlas and in-process projection (``.npy`` fields)."""
-    from facegeo.pipeline.project import run_atlas, run_project
-    from facegeo.synth.capture import generate_scan
-
-    root = tmp_path_factory.mktemp("blend") / "tiny"
-    generate_scan(root, "tiny")
-    run_atlas(root)
-    run_project(root, evaluate=False)
-    return root
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    with make_engine(workers=2, memory_limit=WORKER_LIMIT) as eng:
-        yield eng
 
 
 def _bits(R) -> np.ndarray:

@@ -21,7 +21,6 @@ from pathlib import Path
 import pytest
 
 from facegeo.errors import InputError
-from facegeo.pipeline.engine import make_engine
 
 #: Memory limit of each worker of the test cluster (as tests/test_scale_stages.py; a tiny
 #: scan's view task peaks at ≈ 140 MiB over the interpreter).
@@ -48,12 +47,6 @@ def fitted(tmp_path_factory):
     run_project(root, atlas_settings={"texels_per_mm": TEST_TEXELS_PER_MM}, evaluate=False)
     run_fit(root, texels="views", views=list(VIEWS), max_texels=TEST_MAX_TEXELS, mosaic=4)
     return root
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    with make_engine(workers=2, memory_limit=WORKER_LIMIT) as eng:
-        yield eng
 
 
 def _timeless(doc):

@@ -84,25 +84,6 @@ def _assert_products_equal(a: Path, b: Path, what: str) -> None:
                 assert np.array_equal(x, y), (what, name, k)
 
 
-@pytest.fixture(scope="module")
-def projected(tmp_path_factory):
-    """A tiny synthetic scan with its atlas and projection (``.npy`` fields)."""
-    from facegeo.pipeline.project import run_atlas, run_project
-    from facegeo.synth.capture import generate_scan
-
-    root = tmp_path_factory.mktemp("scale") / "tiny"
-    generate_scan(root, "tiny")
-    run_atlas(root)
-    run_project(root, evaluate=False)
-    return root
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    with make_engine(workers=2, memory_limit=WORKER_LIMIT) as eng:
-        yield eng
-
-
 _HELD: list = []
 
 
