@@ -243,6 +243,22 @@ def _cmd_import(args) -> int:
     return 0
 
 
+def _cmd_push(args) -> int:
+    """``facegeo push SCAN URL``: the scan's input files into ``URL/scan/`` (docs/scale.md §3)."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline._scan_store import put_scan
+
+    scan = load_scan(args.scan)
+    tick, close = _progress_factory(not args.quiet)
+    try:
+        done = put_scan(scan, args.url, progress=tick)
+    finally:
+        close()
+    print(f"pushed {done['files']} files ({done['bytes'] / 1e6:.1f} MB) of {scan.root} to "
+          f"{done['location']}")
+    return 0
+
+
 def _cmd_info(args) -> int:
     from facegeo.capture.scan import load_scan, summarize
 
@@ -517,13 +533,15 @@ def _cmd_project(args) -> int:
 
 
 def _store_option(s) -> None:
-    """``--store URL`` of the projection and the fit (project, fit, reconstruct;
-    docs/scale.md §3)."""
+    """``--store URL`` of the decode, the projection and the fit (decode, mesh, project, fit,
+    reconstruct; docs/scale.md §3)."""
     s.add_argument("--store", default=None, metavar="URL",
                    help="a folder or fsspec store (s3://bucket/prefix) for tasks that write "
-                        "to no shared disk: the cameras' reflectance fields stay there as Zarr "
-                        "arrays, linked from the output folder; the fit's tasks write D and "
-                        "their parameters through it (docs/scale.md)")
+                        "to no shared disk: the decode's tasks write through it (and read "
+                        "their frames from URL/scan/ once 'facegeo push' put the scan there); "
+                        "the cameras' reflectance fields stay there as Zarr arrays, linked "
+                        "from the output folder; the fit's tasks write D and their parameters "
+                        "through it (docs/scale.md)")
 
 
 def _add_envmap_options(s) -> None:
@@ -1015,6 +1033,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--copy", action="store_true", help="copy files instead of hard-linking them")
     s.set_defaults(func=_cmd_import)
 
+    s = sub.add_parser("push", parents=common,
+                       help="copy a scan's input files into a store (URL/scan/), for --store "
+                            "runs whose workers share no disk with this machine")
+    s.add_argument("scan", metavar="SCAN", help="scan directory")
+    s.add_argument("url", metavar="URL", help="a folder or fsspec store (s3://bucket/prefix)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_push)
+
     s = sub.add_parser("info", parents=common, help="summarise and validate a scan directory")
     s.add_argument("scan", metavar="SCAN", help="scan directory (or its scan.toml)")
     s.add_argument("--full", action="store_true",
@@ -1154,6 +1180,7 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
         if name in ("decode", "mesh"):
             _max_coarse_option(s)
+            _store_option(s)
         _engine_options(s)
         if name == "mesh":
             _mesh_options(s)

@@ -26,6 +26,7 @@ import hashlib
 import json
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -211,12 +212,6 @@ def test_decode_memory_check_names_the_camera(tiny, tmp_path):
     assert not (tmp_path / "out" / "decode").exists()
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    with make_engine(workers=2, memory_limit=WORKER_LIMIT) as eng:
-        yield eng
-
-
 def _assert_same_run_on_two_workers(stage, a, b, m, ref, calls):
     """A stage run on the two-worker cluster against the in-process run: the same product
     bytes (``a``, ``b``: digests), the same metrics but for timings and the engine's record,
@@ -227,7 +222,11 @@ def _assert_same_run_on_two_workers(stage, a, b, m, ref, calls):
     eng = m["engine"]
     assert eng["kind"] == "local-cluster" and eng["workers"] == 2
     assert eng["memory_limit_mb"] == parse_memory(WORKER_LIMIT) / 2 ** 20
-    assert set(eng["tasks"]) == {"cam_left", "cam_right"}
+    # one task per camera (and the projection's blend, in tasks of texel chunks)
+    cams = {"cam_left", "cam_right"}
+    assert cams <= set(eng["tasks"])
+    assert all(k.startswith("blend ") for k in set(eng["tasks"]) - cams)
+    assert stage == "project" or set(eng["tasks"]) == cams
     for t in eng["tasks"].values():
         assert t["worker"].startswith("tcp://")
         assert t["peak_rss_mb"] < eng["memory_limit_mb"]
@@ -418,3 +417,77 @@ def test_unknown_field_format_is_an_error(tiny, tmp_path):
     run_atlas(tiny, tmp_path / "out")
     with pytest.raises(InputError, match="field_format: expected one of npy, zarr"):
         run_project(tiny, tmp_path / "out", field_format="hdf5", evaluate=False)
+
+
+# ------------------------------------------------------------------ decode through a store
+
+
+def test_decode_through_a_store_reads_the_pushed_scan_and_writes_through_it(tiny, tmp_path,
+                                                                           monkeypatch):
+    """``run_decode(store=URL)`` after ``put_scan``: each task fetches only its camera's
+    frames (and the rig, the ground truth it compares with) from ``URL/scan``, decodes from
+    that copy, writes through ``URL/decode/run-…`` (removed after), and the stage's products
+    are the folder run's bytes. Without a pushed scan the tasks read the scan folder."""
+    import facegeo.pipeline.decode as dec
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline._scan_store import put_scan
+    from facegeo.pipeline.decode import run_decode
+
+    scan = load_scan(tiny)
+    ref = run_decode(scan, tmp_path / "ref")
+    store = tmp_path / "store"
+    pushed = put_scan(scan, store)
+    assert pushed["files"] == 1 + sum(1 for p in scan.input_files() if p.is_file())
+    assert (store / "scan" / "scan.toml").is_file()
+    roots = []
+    real = dec._decode_camera_task
+    monkeypatch.setattr(dec, "_decode_camera_task",
+                        lambda s, *a: roots.append(Path(s.root)) or real(s, *a))
+    m = run_decode(scan, tmp_path / "via", store=store)
+    assert m["frames_from"] == "store"
+    assert len(roots) == 2 and all(str(r).startswith(tempfile.gettempdir()) for r in roots)
+    assert all(r != scan.root for r in roots)
+    a, b = _digests(tmp_path / "ref" / "decode"), _digests(tmp_path / "via" / "decode")
+    assert a == b and any(k.endswith("decode.npz") for k in a)
+    assert _without_timings({**m, "frames_from": None}) == _without_timings(
+        {**ref, "frames_from": None})
+    assert not any((store / "decode").iterdir())  # the run's folder removed
+    # only what a task reads is fetched: not the OLAT frames, not the calibration views
+    from facegeo.pipeline._scan_store import sl_task_files
+
+    files = sl_task_files(scan, "cam_left", scan.sl_frames)
+    assert files and all("olat" not in f and "calib" not in f for f in files)
+    assert "rig.json" in files
+    roots.clear()
+    m2 = run_decode(scan, tmp_path / "plain", store=tmp_path / "empty_store")
+    assert m2["frames_from"] == "scan folder" and roots == [scan.root, scan.root]
+    assert _digests(tmp_path / "plain" / "decode") == a
+
+
+@pytest.mark.slow
+def test_decode_through_a_store_on_two_workers(tiny, tmp_path, cluster):
+    """The same on the two-worker cluster: the products are the in-process run's bytes."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline._scan_store import put_scan
+    from facegeo.pipeline.decode import run_decode
+
+    scan = load_scan(tiny)
+    ref = run_decode(scan, tmp_path / "ref")
+    put_scan(scan, tmp_path / "store")
+    m = run_decode(scan, tmp_path / "two", engine=cluster, store=tmp_path / "store")
+    assert m["frames_from"] == "store" and set(m["engine"]["tasks"]) == {"cam_left", "cam_right"}
+    assert _digests(tmp_path / "ref" / "decode") == _digests(tmp_path / "two" / "decode")
+    assert _without_timings({**m, "frames_from": None}) == _without_timings(
+        {**ref, "frames_from": None})
+
+
+def test_a_file_missing_from_the_store_is_named(tiny, tmp_path):
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline._scan_store import fetch_scan_files, put_scan, scan_location
+
+    scan = load_scan(tiny)
+    put_scan(scan, tmp_path / "store")
+    with pytest.raises(InputError, match=r"structured_light/nope\.png: the scan's file .* is "
+                                         r"not in the store"):
+        fetch_scan_files(scan, scan_location(tmp_path / "store"),
+                         ["rig.json", "structured_light/nope.png"], tmp_path / "local")

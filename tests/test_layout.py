@@ -140,6 +140,8 @@ TRUTH_READS_LEFT = {
     "facegeo.pipeline.fit": "input: the generator's novel cameras as view specs "
                             "(_camera_table)",
     "facegeo.pipeline.decode": "metrics: decode errors against the true geometry",
+    "facegeo.pipeline._scan_store": "input: the ground-truth files a decode task fetches from "
+                                    "a store for decode's own metrics (goes with decode's)",
     "facegeo.pipeline._fit_image": "metrics: normals against [reference] normals; input: "
                                    "[reference] mask, the pixels fitted",
 }

@@ -159,6 +159,20 @@ class Scan(_ScanReaders, _ScanValidation):
     def __repr__(self) -> str:
         return f"Scan({self.name!r}, root={str(self.root)!r})"
 
+    def relocated(self, root: str | os.PathLike) -> Scan:
+        """This scan read from another folder that holds (some of) its files at the same
+        relative paths — a worker's local copy of the frames its task needs, fetched from a
+        store (:mod:`facegeo.pipeline._scan_store`). The manifest, the rig and the responses
+        already read are shared, not read again; every path resolves under ``root``."""
+        other = copy.copy(self)
+        other.root = Path(root).absolute()
+        other.manifest_path = other.root / MANIFEST_NAME
+        other._resolve = _Resolver(other.root)
+        other._find = _SuffixFinder()
+        other._ambient = dict(self._ambient)
+        other._responses = dict(self._responses)
+        return other
+
     # ------------------------------------------------------------------ manifest
 
     @property

@@ -374,7 +374,7 @@ def _decode_camera(scan, cam: str, plan, d: Path, used: dict, phase_only: bool):
 
 def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
                     partial_dir: Path | None = None, engine=None, progress=None,
-                    **settings) -> tuple[dict, dict]:
+                    store=None, **settings) -> tuple[dict, dict]:
     """Write the ``decode`` products of ``scan`` into ``dest`` (module docstring).
 
     The work of :func:`run_decode` without the staging. ``settings`` are
@@ -389,8 +389,18 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     called as cameras finish. Returns ``(metrics, settings)``.
 
     With a cluster engine the workers must see ``dest`` and the scan at the same paths (one
-    machine, or a shared file system); each camera's working set
+    machine, or a shared file system) — unless ``store`` is given; each camera's working set
     (:func:`decode_working_set`) is checked against a worker's memory before any is submitted.
+
+    With ``store`` (``--store URL``: a folder or an fsspec URL) the tasks write nothing to a
+    shared disk: each decodes into a temporary folder of its worker and copies its products
+    to ``URL/decode/run-<id>/<camera>/files/``, which this function brings into ``dest`` and
+    then removes from the store. When the store also holds the scan (``URL/scan/``,
+    :func:`facegeo.pipeline._scan_store.put_scan`, ``facegeo push``) each task fetches only
+    the files it reads from there (:func:`facegeo.pipeline._scan_store.sl_task_files`), so
+    the workers need no copy of the scan folder either; else they read the scan folder. The
+    metrics' ``frames_from`` says which. ``partial_dir`` is not used with a store (a finished
+    camera is kept by the stage, not by the tasks).
     """
     from facegeo.pipeline.engine import InProcessEngine, Task
 
@@ -421,14 +431,47 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     skipped = [c for c in cams if plans[c].action == "skip"]
     for cam in skipped:
         log.info("decode %s: skipped, %s", cam, plans[cam].reason)
+    run_loc = frames_from = None
+    if store is not None:
+        import uuid
+
+        from facegeo.pipeline._scan_store import has_scan, scan_location
+        from facegeo.surface._zarr_field import store_location
+
+        run_loc = store_location(store, "decode", f"run-{uuid.uuid4().hex[:12]}")
+        frames_from = scan_location(store) if has_scan(store) else None
+        partial_dir = None
     # the loaded scan travels as it is (its manifest and rig: kilobytes), checked once here:
     # a worker loading it again would validate every frame's header per task
-    tasks = [Task(cam, decode_camera_task,
-                  (scan, cam, plans[cam], str(dest), used, phase_only,
-                   None if partial_dir is None else str(partial_dir)),
-                  working_set=decode_working_set(scan, cam))
-             for cam in cams if cam not in skipped]
-    results = engine.map("decode", tasks, progress=progress)
+    tasks = []
+    for cam in cams:
+        if cam in skipped:
+            continue
+        via = None
+        if run_loc is not None:
+            from facegeo.pipeline._scan_store import sl_task_files
+            from facegeo.surface._zarr_field import store_location
+
+            via = {"store_dir": str(store_location(run_loc, cam)),
+                   "frames_from": None if frames_from is None else str(frames_from),
+                   "files": (sl_task_files(scan, cam, plans[cam].frames)
+                             if frames_from is not None else [])}
+        tasks.append(Task(cam, decode_camera_task,
+                          (scan, cam, plans[cam], str(dest), used, phase_only,
+                           None if partial_dir is None else str(partial_dir), via),
+                          working_set=decode_working_set(scan, cam)))
+    try:
+        results = engine.map("decode", tasks, progress=progress)
+        if run_loc is not None:  # the tasks' products, from the store into the stage folder
+            from facegeo.surface._zarr_field import STORE_FILES, copy_files, store_location
+
+            for t in tasks:
+                copy_files(store_location(run_loc, t.name, STORE_FILES), Path(dest) / t.name)
+    finally:
+        if run_loc is not None:
+            from facegeo.surface._zarr_field import remove_location
+
+            remove_location(run_loc)
     per_cam: dict[str, dict] = {}
     pooled = dict.fromkeys(_POOLED, 0)
     pooled.update(exact=0.0, se=0.0)
@@ -454,11 +497,13 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     from_scan = {k: used[k] for k in scan_decode_settings(scan) if k not in settings}
     if from_scan:
         metrics["settings_from_scan"] = from_scan  # [structured_light.decode], not overridden
+    if store is not None:
+        metrics["frames_from"] = "store" if frames_from is not None else "scan folder"
     metrics["seconds"] = round(time.perf_counter() - t0, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     if engine.kind != "in-process":
         metrics["engine"] = engine.stage_metrics("decode", [t.name for t in tasks])
-    return metrics, {**used, "cameras": cams}
+    return metrics, {**used, "cameras": cams, **({"store": str(store)} if store else {})}
 
 
 #: Counts each camera's task adds into the pooled metrics (in camera order).
@@ -488,14 +533,39 @@ def decode_working_set(scan, camera: str) -> int:
 
 
 def decode_camera_task(scan, cam: str, plan, dest: str, used: dict, phase_only: bool,
-                       partial_dir: str | None) -> dict:
+                       partial_dir: str | None, via: dict | None = None) -> dict:
     """One camera's share of the stage, run by an engine (in process or on a worker).
 
     Takes the camera from ``partial_dir`` when an earlier run finished it, else decodes it
     into ``dest/<cam>`` and keeps it there; computes its metrics (and accuracy, with ground
     truth). Returns ``{"metrics": ..., "pooled": ...}``: the camera's metrics and its counts
     for the pooled figures (:data:`_POOLED`) — small, whatever the camera's size.
+
+    ``via`` (``--store``, :func:`decode_products`): ``store_dir`` — decode into a temporary
+    folder and copy the products to ``store_dir/files/``; ``frames_from`` and ``files`` — read
+    the scan's ``files`` from the store's copy of the scan (fetched into the temporary folder)
+    instead of the scan folder.
     """
+    if via is None:
+        return _decode_camera_task(scan, cam, plan, dest, used, phase_only, partial_dir)
+    import tempfile
+
+    from facegeo.pipeline._scan_store import fetch_scan_files
+    from facegeo.surface._zarr_field import STORE_FILES, copy_files, store_location
+
+    with tempfile.TemporaryDirectory(prefix="facegeo-decode-") as tmp:
+        scan = _scan(scan)
+        if via.get("frames_from"):
+            scan = fetch_scan_files(scan, via["frames_from"], via["files"], Path(tmp) / "scan")
+        out = _decode_camera_task(scan, cam, plan, str(Path(tmp) / "out"), used, phase_only,
+                                  None)
+        copy_files(Path(tmp) / "out" / cam, store_location(via["store_dir"], STORE_FILES))
+    return out
+
+
+def _decode_camera_task(scan, cam: str, plan, dest: str, used: dict, phase_only: bool,
+                        partial_dir: str | None) -> dict:
+    """:func:`decode_camera_task` reading the scan where it is and writing into ``dest``."""
     scan = _scan(scan)
     d = Path(dest) / cam
     partial = None if partial_dir is None else Path(partial_dir)
@@ -659,7 +729,7 @@ def _link_or_copy(src: Path, dst: Path) -> None:
 
 
 def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None, engine=None,
-               progress=None, **settings) -> dict:
+               progress=None, store=None, **settings) -> dict:
     """Decode every camera's structured-light frames into ``out_dir/decode/``.
 
     Parameters
@@ -675,6 +745,9 @@ def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None, engi
         products are the same bytes whatever the engine.
     progress : callable(stage, done, total), optional
         Called as cameras finish.
+    store : str or path, optional
+        ``--store URL``: the tasks write through the store and read their frames from its
+        copy of the scan when it has one (:func:`decode_products`).
     **settings
         :func:`facegeo.geometry.structured_light.decode_stream` thresholds
         (:data:`DECODE_DEFAULTS`).
@@ -691,7 +764,8 @@ def run_decode(scan_dir, out_dir=None, *, cameras: list[str] | None = None, engi
     with staged_directory(out / "decode") as tmp:
         metrics, used = decode_products(scan, tmp, cameras=cameras,
                                         partial_dir=out / "decode" / PARTIAL_DIR,
-                                        engine=engine, progress=progress, **settings)
+                                        engine=engine, progress=progress, store=store,
+                                        **settings)
         atomic_write_text(tmp / "stage.json", json.dumps(
             {"stage": "decode", "settings": used, "metrics": metrics}, indent=2, sort_keys=True))
         record_metrics(out, "decode", metrics)

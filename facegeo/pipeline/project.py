@@ -470,7 +470,8 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     if store is not None:  # a field in a store is a Zarr field
         import uuid
 
-        from facegeo.surface._zarr_field import copy_files, remove_location, store_location
+        from facegeo.surface._zarr_field import (STORE_FILES, copy_files, remove_location,
+                                                 store_location)
 
         run_loc = store_location(store, "project", f"run-{uuid.uuid4().hex[:12]}")
         field_format = "zarr"
@@ -783,7 +784,7 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
                                vis_kw, dtype, block_lights, shadow_taps, field_format, None)
     import tempfile
 
-    from facegeo.surface._zarr_field import copy_files, store_location
+    from facegeo.surface._zarr_field import STORE_FILES, copy_files, store_location
 
     with tempfile.TemporaryDirectory(prefix="facegeo-project-") as tmp:
         d = Path(tmp) / name
@@ -793,9 +794,6 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
     return out
 
 
-#: Sub-folder of a camera's place in the ``--store`` holding its small files on their way to
-#: the stage folder (:func:`project_camera_task`).
-STORE_FILES = "files"
 
 
 def _project_camera(scan, atlas_dir: str, d: Path, name: str, the_rig, mesh: str,

@@ -315,7 +315,8 @@ def record_run(scan, choices: dict) -> None:
 def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                          only: str | None = None, until: str | None = None,
                          engine=None, calibration_error: str | None = None,
-                         diagnostic: bool = False, views: list | None = None) -> Pipeline:
+                         diagnostic: bool = False, views: list | None = None,
+                         store=None) -> Pipeline:
     """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct`` for one scan.
 
     Parameters
@@ -332,8 +333,10 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
         ``--rig auto`` is given only when the run may mesh.
     engine : facegeo.pipeline.engine.Engine, optional
         Where the stages that split into tasks run them (``decode``, ``project``: one task per
-        camera);
-        default in process. Not part of any stage's key: the products are the same bytes.
+        camera; ``fit``, ``relight``: chunks; ``render``: one task per view); default in
+        process. Not part of any stage's key: the products are the same bytes.
+    store : str, optional
+        The ``decode`` stage's tasks write through this store (:func:`run_reconstruct`).
     calibration_error : str, optional
         The ``calibrate`` stage's recorded failure, when it failed: ``rig="auto"`` then falls
         back (module docstring; :func:`run_reconstruct` runs the calibration first to know).
@@ -387,9 +390,11 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             from facegeo.pipeline.decode import PARTIAL_DIR, decode_products
 
             # finished cameras wait in out/decode/.partial until the stage completes
+            # with a store the tasks write through it (not a setting: the products are the
+            # same bytes wherever the tasks wrote them on their way)
             metrics, _ = decode_products(scan, ctx.out_dir, **ctx.settings,
                                          partial_dir=ctx.out_dir.parent / "decode" / PARTIAL_DIR,
-                                         engine=engine, progress=ctx.progress)
+                                         engine=engine, progress=ctx.progress, store=store)
             return metrics
 
         specs.append(StageSpec("decode", run_decode,
@@ -568,7 +573,10 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
     store : str, optional
         ``--store URL`` (a folder or an fsspec URL): the ``store`` setting of the stages that
         take one — ``project`` (the fields stay in the store, linked) and ``fit`` (its tasks'
-        D and parameters go through it) — where the scan has them (docs/scale.md §3).
+        D and parameters go through it) — where the scan has them, and the ``decode`` stage's
+        tasks (they write through the store and, when it holds the scan — ``facegeo push`` —
+        read their frames from it; :func:`facegeo.pipeline.decode.decode_products`; not a
+        setting: the products are the same) (docs/scale.md §3).
     """
     from facegeo.capture.scan import Scan, load_scan
 
@@ -611,7 +619,8 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
                 from_stage = next(s for s in STAGES[1:] if s in _applicable(scan, mesh)
                                   or s == "evaluate")
         pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until,
-                                        engine=engine, calibration_error=calibration_error)
+                                        engine=engine, calibration_error=calibration_error,
+                                        store=store)
         if store is not None:  # the stages with a store setting, where the scan has them
             settings = dict(settings or {})
             for spec in pipeline.stages:

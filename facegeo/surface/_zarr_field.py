@@ -49,6 +49,7 @@ __all__ = [
     "copy_files",
     "get_bytes",
     "put_bytes",
+    "STORE_FILES",
     "remove_location",
     "write_field",
     "write_field_chunk",
@@ -101,6 +102,11 @@ def _store_exists(location) -> bool:
 #: Suffix of a link file: ``R.zarr.url`` in a stage folder holds the URL of the camera's field
 #: kept in a store elsewhere (``--store URL``, :func:`link_field`).
 LINK_SUFFIX = ".url"
+
+
+#: Sub-folder of a task's place in a ``--store`` holding its small products on their way to
+#: the stage folder (the projection's and the decode's tasks: :func:`copy_files`).
+STORE_FILES = "files"
 
 
 def store_location(store, *parts: str) -> str | Path:
