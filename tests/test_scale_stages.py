@@ -478,6 +478,79 @@ def test_projection_tasks_write_into_a_store_on_two_workers(projected, tmp_path,
         "blended", "cam_left", "cam_right"]
 
 
+def test_projection_reads_the_pushed_scan_atlas_and_mesh_from_the_store(projected, tmp_path,
+                                                                        monkeypatch):
+    """With the scan pushed into the store (``put_scan``) the projection's tasks read nothing
+    from the client's disk: each fetches its camera's OLAT frames, the atlas and the mesh
+    (put into ``URL/project/run-<id>/inputs`` by the client, removed after) into its
+    temporary folder and projects from there; the products equal the ``.npy`` run's."""
+    import facegeo.pipeline.project as proj
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline._scan_store import put_scan
+
+    shutil.copytree(projected / "out" / "atlas", tmp_path / "out" / "atlas")
+    store = tmp_path / "store"
+    scan = load_scan(projected)
+    put_scan(scan, store)
+    seen = []
+    real = proj._project_camera
+    monkeypatch.setattr(proj, "_project_camera", lambda sc, atlas_dir, *a: seen.append(
+        (Path(sc.root), Path(atlas_dir))) or real(sc, atlas_dir, *a))
+    m = proj.run_project(scan, tmp_path / "out", evaluate=False, store=str(store))
+    assert m["frames_from"] == "store"
+    assert len(seen) == 2
+    for root, atlas_dir in seen:  # the task's own copies, not the scan or the stage folders
+        assert root != scan.root and atlas_dir != tmp_path / "out" / "atlas"
+        assert root.parent == atlas_dir.parent
+    _assert_store_run_equal(projected / "out" / "project", tmp_path / "out" / "project",
+                            str(store / "project" / "run-"))
+    (run,) = list((store / "project").iterdir())
+    assert sorted(p.name for p in run.iterdir()) == ["cam_left", "cam_right"]  # inputs gone
+
+
+def test_projection_from_the_store_fetches_a_mesh_file(projected, tmp_path, monkeypatch):
+    """A mesh given as a file (the mesh stage's, here a copy of the true one outside the scan)
+    goes to the tasks through the store too: each task projects onto its fetched copy, and
+    the products equal the run that read the file where it is."""
+    import facegeo.pipeline.project as proj
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline._scan_store import put_scan
+
+    scan = load_scan(projected)
+    mesh = tmp_path / "meshes" / "surface.ply"
+    mesh.parent.mkdir()
+    shutil.copyfile(scan.ground_truth_path("mesh"), mesh)
+    for run in ("here", "via"):
+        shutil.copytree(projected / "out" / "atlas", tmp_path / run / "atlas")
+    proj.run_project(scan, tmp_path / "here", evaluate=False, mesh=str(mesh))
+    store = tmp_path / "store"
+    put_scan(scan, store)
+    meshes = []
+    real = proj._project_camera
+    monkeypatch.setattr(proj, "_project_camera", lambda sc, atlas_dir, d, name, rig, m, *a:
+                        meshes.append(Path(m)) or real(sc, atlas_dir, d, name, rig, m, *a))
+    proj.run_project(scan, tmp_path / "via", evaluate=False, mesh=str(mesh), store=str(store))
+    assert len(meshes) == 2 and all(m != mesh and m.name == mesh.name for m in meshes)
+    _assert_store_run_equal(tmp_path / "here" / "project", tmp_path / "via" / "project",
+                            str(store / "project" / "run-"))
+
+
+@pytest.mark.slow
+def test_projection_from_the_pushed_scan_on_two_workers(projected, tmp_path, cluster):
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline._scan_store import put_scan
+    from facegeo.pipeline.project import run_project
+
+    shutil.copytree(projected / "out" / "atlas", tmp_path / "out" / "atlas")
+    store = tmp_path / "store"
+    put_scan(load_scan(projected), store)
+    m = run_project(projected, tmp_path / "out", evaluate=False, store=str(store),
+                    engine=cluster)
+    assert m["frames_from"] == "store"
+    _assert_store_run_equal(projected / "out" / "project", tmp_path / "out" / "project",
+                            str(store / "project" / "run-"))
+
+
 def test_cli_project_store_links_the_fields_and_is_cached(projected, tmp_path, capsys):
     """``facegeo project SCAN --store DIR``: the cached stage's camera folders link into
     ``DIR/project/run-<id>/``; the same command again reuses the stage (one run folder in the

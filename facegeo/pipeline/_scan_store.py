@@ -24,7 +24,7 @@ from facegeo.errors import InputError
 log = logging.getLogger(__name__)
 
 __all__ = ["SCAN_IN_STORE", "scan_location", "has_scan", "put_scan", "relative_files",
-           "fetch_scan_files", "sl_task_files"]
+           "fetch_scan_files", "sl_task_files", "olat_task_files", "put_files", "fetch_files"]
 
 #: The folder of a store holding the scan's input files (``URL/scan/``).
 SCAN_IN_STORE = "scan"
@@ -130,3 +130,47 @@ def sl_task_files(scan, camera: str, frames) -> list[str]:
         if k in keys:
             paths.append(scan.ground_truth_path(k))
     return relative_files(scan, paths)
+
+
+def olat_task_files(scan, camera: str, *, ground_truth_mesh: bool = False) -> list[str]:
+    """What a projection task of ``camera`` reads from the scan: the rig file, the camera's
+    OLAT frames and ambient frame (:meth:`~facegeo.capture.scan.Scan.expected_files`), the
+    OLAT response table (if any) and, with ``ground_truth_mesh`` (``--mesh ground_truth``),
+    the true mesh — relative paths for :func:`fetch_scan_files`."""
+    from collections.abc import Mapping
+
+    m = scan.manifest
+    paths = [scan.root / m["scan"]["rig"]]
+    paths += [p for _, p in scan.expected_files("olat", camera)]
+    spec = m.get("olat", {}).get("response")
+    if isinstance(spec, Mapping) and spec.get("kind") == "table":
+        paths.append(scan.root / spec["file"])
+    if ground_truth_mesh:
+        paths.append(scan.ground_truth_path("mesh"))
+    return relative_files(scan, paths)
+
+
+def put_files(paths, location) -> list[str]:
+    """Copy the files ``paths`` (from this machine) into the store folder ``location`` by
+    their names: the stage products a task reads (the atlas, the mesh), put once by the client
+    for every task. Returns the names."""
+    from facegeo.surface._zarr_field import put_bytes, store_location
+
+    names = []
+    for p in paths:
+        p = Path(p)
+        put_bytes(store_location(location, p.name), p.read_bytes())
+        names.append(p.name)
+    return names
+
+
+def fetch_files(location, names, local_dir) -> Path:
+    """Fetch the files ``names`` of the store folder ``location`` (:func:`put_files`) into
+    ``local_dir``; returns it."""
+    from facegeo.surface._zarr_field import get_bytes, store_location
+
+    local_dir = Path(local_dir)
+    local_dir.mkdir(parents=True, exist_ok=True)
+    for n in names:
+        (local_dir / n).write_bytes(get_bytes(store_location(location, n)))
+    return local_dir

@@ -451,8 +451,12 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     cached stage's links never point at a later run's data), and each camera folder of
     ``dest`` holds a link to its field (``R.zarr.url``) beside its small files, which the
     tasks put in the store and this function brings down (then removes from the store): the
-    tasks write nothing to a shared disk (they still read the scan's frames and the atlas from
-    their folders). On a cluster the blend is there too, ``project/run-<id>/blended/
+    tasks write nothing to a shared disk. When the store also holds the scan (``URL/scan/``,
+    :func:`facegeo.pipeline._scan_store.put_scan`, ``facegeo push``) they read nothing from it
+    either: this function puts the atlas and a mesh file into ``project/run-<id>/inputs``
+    (removed when the tasks are done) and each task fetches them with its camera's OLAT
+    frames (:func:`project_camera_task`; ``metrics["frames_from"]``). On a cluster the blend
+    is there too, ``project/run-<id>/blended/
     R_blend.zarr``, linked from ``dest/blended``.
     The stage folder — links included — is still swapped in whole; an earlier run's data in
     the store is left there (remove it yourself once no stage folder links to it).
@@ -505,19 +509,46 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
         use_taps = False
     the_rig.save(dest / "rig.json")  # the rig the fields were projected with (evaluate reads it)
     n_faces = _mesh_faces(scan, mesh)
+    inputs_loc = via = None
+    if run_loc is not None:
+        from facegeo.pipeline._scan_store import has_scan, put_files
+
+        if has_scan(store):  # the tasks read the scan's copy in the store, and the inputs here
+            inputs_loc = store_location(run_loc, STORE_INPUTS)
+            atlas_files = [Path(atlas_dir) / f for f in ("atlas.npz", "texels.npz",
+                                                         INFERRED_TEXELS)]
+            via = {"inputs": str(inputs_loc),
+                   "atlas": put_files([f for f in atlas_files if f.is_file()],
+                                      store_location(inputs_loc, "atlas"))}
+            if mesh != "ground_truth":
+                mesh_files = [Path(mesh), inferred_faces_path(mesh)]
+                via["mesh"] = put_files([f for f in mesh_files if f.is_file()],
+                                        store_location(inputs_loc, "mesh"))
     # the loaded scan and rig travel as they are (kilobytes); each task loads the atlas, the
     # texels and the mesh itself (once per process: _camera_inputs)
-    tasks = [Task(name, project_camera_task,
-                  (scan, str(atlas_dir), str(dest), name, the_rig, mesh, vis_kw, dtype, block,
-                   use_taps, field_format,
-                   None if run_loc is None else str(store_location(run_loc, name))),
-                  working_set=project_working_set(the_rig.camera(name), len(texels), n_faces,
-                                                  min(block, scan.n_lights), use_taps))
-             for name in names]
+    tasks = []
+    for name in names:
+        task_via = None
+        if via is not None:
+            from facegeo.pipeline._scan_store import olat_task_files, scan_location
+
+            task_via = {**via, "frames_from": str(scan_location(store)),
+                        "files": olat_task_files(scan, name,
+                                                 ground_truth_mesh=mesh == "ground_truth")}
+        tasks.append(Task(name, project_camera_task,
+                          (scan, str(atlas_dir), str(dest), name, the_rig, mesh, vis_kw, dtype,
+                           block, use_taps, field_format,
+                           None if run_loc is None else str(store_location(run_loc, name)),
+                           task_via),
+                          working_set=project_working_set(the_rig.camera(name), len(texels),
+                                                          n_faces, min(block, scan.n_lights),
+                                                          use_taps)))
     try:
         results = engine.map("project", tasks, progress=progress)
     finally:  # in process the scenes go with the stage (a worker keeps one set for the next run)
         _INPUTS_CACHE.clear()
+        if inputs_loc is not None:
+            remove_location(inputs_loc)
     per_cam: dict[str, Any] = {t.name: r["metrics"] for t, r in zip(tasks, results)}
     if run_loc is not None:  # the tasks' small files, from the store into the stage folder
         for name in names:
@@ -568,6 +599,8 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     }
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    if run_loc is not None:  # where the tasks read the frames, the atlas and the mesh
+        metrics["frames_from"] = "store" if via is not None else "scan folder"
     if engine.kind != "in-process":
         metrics["engine"] = engine.stage_metrics("project",
                                                  [t.name for t in tasks] + blend_names)
@@ -766,9 +799,15 @@ def _camera_inputs(scan, atlas_dir: Path, mesh: str, shadow_taps: bool):
     return _INPUTS_CACHE[key]
 
 
+#: Sub-folder of a run's place in the ``--store`` holding the stage inputs the tasks read
+#: (the atlas, the mesh), put there by the client when the store holds the scan.
+STORE_INPUTS = "inputs"
+
+
 def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mesh: str,
                         vis_kw: dict, dtype: str, block_lights: int, shadow_taps: bool,
-                        field_format: str = "npy", store_dir: str | None = None) -> dict:
+                        field_format: str = "npy", store_dir: str | None = None,
+                        via: dict | None = None) -> dict:
     """One camera's share of the ``project`` stage, run by an engine (in process or on a
     worker): its visibility, shadow taps and field written into ``dest/<name>``
     (:func:`facegeo.surface.reflectance.project_camera`) with ``visibility.npz``. Returns
@@ -778,7 +817,12 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
     writes nothing to a shared disk (it reads the scan's frames and the atlas): the Zarr field is written at ``store_dir/R.zarr``, the small files
     (``texel_index``, ``weight``, ``v_world``, ``visibility.npz`` and the field's link) into a
     temporary folder of the worker and copied to ``store_dir/files/``, from where
-    :func:`project_products` brings them into ``dest/<name>``."""
+    :func:`project_products` brings them into ``dest/<name>``.
+
+    ``via`` (the store holds the scan, :func:`facegeo.pipeline._scan_store.put_scan`): the
+    task reads nothing from the client's disk either — it fetches its camera's OLAT frames
+    (``files`` of the scan's copy ``frames_from``), the atlas and the mesh (``inputs``, put
+    there by :func:`project_products`) into its temporary folder and projects from those."""
     if store_dir is None:
         return _project_camera(scan, atlas_dir, Path(dest) / name, name, the_rig, mesh,
                                vis_kw, dtype, block_lights, shadow_taps, field_format, None)
@@ -787,6 +831,16 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
     from facegeo.surface._zarr_field import STORE_FILES, copy_files, store_location
 
     with tempfile.TemporaryDirectory(prefix="facegeo-project-") as tmp:
+        if via is not None:
+            from facegeo.pipeline._scan_store import fetch_files, fetch_scan_files
+
+            scan = fetch_scan_files(scan, via["frames_from"], via["files"], Path(tmp) / "scan")
+            atlas_dir = str(fetch_files(store_location(via["inputs"], "atlas"), via["atlas"],
+                                        Path(tmp) / "atlas"))
+            if mesh != "ground_truth":
+                local = fetch_files(store_location(via["inputs"], "mesh"), via["mesh"],
+                                    Path(tmp) / "mesh")
+                mesh = str(local / Path(mesh).name)
         d = Path(tmp) / name
         out = _project_camera(scan, atlas_dir, d, name, the_rig, mesh, vis_kw, dtype,
                               block_lights, shadow_taps, "zarr", store_dir)
