@@ -857,9 +857,9 @@ def _mesh_options(s) -> None:
                    help="mesh, camera-camera route: fill the holes per-pixel matching leaves "
                         "with code-region centroid points (default auto: on there)")
     s.add_argument("--fill-distance-mm", type=_mm_or_auto, default=None, metavar="MM|auto",
-                   help="mesh: the filled surface (mesh_filled.ply) keeps the Poisson surface "
-                        "within this of a point (default auto: 0.15 x the points' extent; "
-                        "docs/mesh.md)")
+                   help="mesh: the filled surface (mesh_filled.ply, its own Poisson solve in a "
+                        "cube 4 x the points' extent) keeps the surface within this of a point "
+                        "(default auto: 0.28 x the points' extent; docs/mesh.md)")
 
 
 def _surface_option(s) -> None:

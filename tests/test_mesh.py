@@ -465,3 +465,76 @@ def test_a_camera_whose_decode_disagrees_with_the_rig_is_warned_about(caplog):
     assert "facegeo calibrate" in _geometry_warnings(per_cam, pair_route=True)[0]
     ok = {"cam_left": {"rejected": {"ok": 22694, "inconsistent": 2}}}
     assert _geometry_warnings(ok, pair_route=True) == []
+
+
+#: An ellipsoid head stand-in (half-axes x, y, z, metres; asymmetric so a swapped axis shows),
+#: offset from the origin, sampled within 65° of +Z (the cameras' side) with a square hole
+#: on the cheek: the filled surface continues it past the edge of the data and over the hole.
+ELLIPSOID_AXES = np.array([0.075, 0.10, 0.09])
+ELLIPSOID_CENTRE = np.array([0.01, -0.02, 0.005])
+#: The filled surface's inferred vertices against the true ellipsoid, 95th percentile, metres /
+#: degrees (fill_distance 30 mm; measured 2026-12-03 in the 4 × extent cube: 1.0 mm and 7.5°;
+#: in the trimmed mesh's 1.1 × cube, the fill before: 9.4 mm and 44°, a bulge pressed against
+#: the cube's faces).
+TOL_FILL_ELLIPSOID_P95_M = 2.0e-3
+TOL_FILL_ELLIPSOID_P95_DEG = 12.0
+
+
+def _ellipsoid_front(n=12000, seed=0):
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=(4 * n, 3))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    keep = (w[:, 2] > np.cos(np.radians(65))) & ~(
+        (np.abs(w[:, 0] - 0.35) < 0.15) & (np.abs(w[:, 1] + 0.2) < 0.15))
+    w = w[keep][:n]
+    p = w / np.linalg.norm(w / ELLIPSOID_AXES, axis=1)[:, None]  # on the ellipsoid along w
+    g = p / ELLIPSOID_AXES**2  # the implicit function's gradient: the outward normal
+    return p + ELLIPSOID_CENTRE, g / np.linalg.norm(g, axis=1, keepdims=True)
+
+
+def test_filled_surface_follows_an_ellipsoid_beyond_the_data():
+    """The filled surface's own solve in the larger cube (``fill_scale``) continues a
+    front-sampled ellipsoid past the data's edge and over a hole within a few millimetres and
+    degrees; cut from the trimmed mesh's solve (``fill_scale=scale``, the fill before issue 37's
+    second solve) it bulges several times farther."""
+    import trimesh
+
+    p, u = _ellipsoid_front()
+    s = trimesh.creation.icosphere(subdivisions=6)
+    Ve = np.asarray(s.vertices) * ELLIPSOID_AXES + ELLIPSOID_CENTRE
+    Fe = np.asarray(s.faces)
+
+    def inferred_p95(fill_scale):
+        m = gm.poisson_mesh(p, u, depth="auto", max_distance="auto", fill_distance=30e-3,
+                            fill_scale=fill_scale)
+        f = m.filled
+        assert f.info["fill_scale"] == fill_scale and f.inferred_faces.sum() > 1000
+        # the fill's cell is no coarser than the trimmed mesh's
+        assert f.info["fill_cell_mm"] <= m.info["cell_mm"] * (1 + 1e-9)
+        iv = np.unique(f.faces[f.inferred_faces])
+        d, ang = gm.surface_errors(f.vertices[iv], Ve, Fe, normals=f.vertex_normals[iv])
+        # the measured part is the trimmed mesh's surface (its own solve: the same area)
+        a = gm.face_areas(f.vertices, f.faces)
+        assert abs(a[~f.inferred_faces].sum() - m.area) < TOL_FILL_MEASURED_AREA * m.area
+        return np.percentile(d, 95), np.degrees(np.percentile(ang, 95))
+
+    d_new, a_new = inferred_p95(gm.AUTO_FILL_SCALE)
+    assert d_new < TOL_FILL_ELLIPSOID_P95_M and a_new < TOL_FILL_ELLIPSOID_P95_DEG
+    d_old, a_old = inferred_p95(1.1)
+    assert d_old > 3 * d_new and a_old > 3 * a_new
+
+
+def test_fill_depth_matches_the_trimmed_cell():
+    # side 0.216 m, cell 3.714 mm (1.1 × side / 2^6): 4 × side needs depth 8 (3.38 mm)
+    assert gm.fill_depth_for(0.216, 1.1 * 0.216 / 64, 4.0) == 8
+    assert gm.fill_depth_for(0.216, 1.1 * 0.216 / 64, 1.1) == 6
+    assert gm.fill_depth_for(1.0, 1e-6, 4.0) == 12  # capped
+    with pytest.raises(InputError, match="fill_scale"):
+        gm.fill_depth_for(0.2, 1e-3, 0.0)
+    # the filled surface drops the zero-area faces the atlas refuses: repeated or collinear
+    V = np.array([[0.0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0], [2e-3, 0, 0]])
+    F = np.array([[0, 1, 2], [0, 1, 1], [0, 1, 3]])
+    assert gm.degenerate_faces(V, F).tolist() == [False, True, True]
+    with pytest.raises(InputError, match="fill_scale"):
+        gm.poisson_mesh(*_holed_cap(), depth=6, max_distance=3e-3, fill_distance="auto",
+                        fill_scale=-1.0)

@@ -13,6 +13,9 @@
   ``max_distance="auto"`` derive both from the points (:func:`poisson_depth_for`,
   :func:`trim_distance_for`) so that the trim agrees with the Poisson cell (issue 34: a fixed
   depth 7 and a trim of 1.5 fine spacings removed 90 % of a real bust's mesh).
+  With ``fill_distance`` it also returns the *filled* surface (issue 37): a second solve over
+  a cube :data:`AUTO_FILL_SCALE` times the points' extent, trimmed by distance alone, whose
+  surface beyond the data is not pressed against the cube's faces.
 * :func:`grid_mesh` — the cheap one-camera path: two triangles per 2 × 2 block of pixels that
   all hold points and whose depths do not jump.
 * :func:`surface_errors` (in :mod:`facegeo.geometry._mesh_measure`, re-exported here) —
@@ -51,12 +54,15 @@ from facegeo.geometry._mesh_measure import (  # noqa: F401  (re-exported)
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "AUTO_FILL_SCALE",
     "Mesh",
     "PoissonDepth",
     "align_to_surface",
     "area_beyond",
     "closest_surface_points",
+    "degenerate_faces",
     "face_areas",
+    "fill_depth_for",
     "fill_distance_for",
     "grid_mesh",
     "inferred_faces_path",
@@ -91,11 +97,22 @@ AUTO_TRIM_CELLS = 1.0
 DENSITY_FLOOR_OCTAVES = 1.0
 #: ``fill_distance="auto"``: the filled surface keeps the Poisson vertices within this fraction of
 #: the points' extent (the longest side of their bounding box) of a point — a bound on how far
-#: the closed Poisson surface is followed beyond the data (:func:`fill_distance_for`). On the
-#: generator's heads (extent ≈ 0.2 m: ≈ 30 mm) the Poisson surface 15–25 mm from the points
-#: lies a median 6 mm from the true head, 25–40 mm out 12 mm, 40–80 mm out 30 mm (tiny preset,
-#: seed 0; docs/mesh.md, *The filled surface*).
-AUTO_FILL_EXTENT_FRACTION = 0.15
+#: the closed Poisson surface is followed beyond the data (:func:`fill_distance_for`; ≈ 60 mm on
+#: the generator's 0.22 m heads). In the trimmed mesh's 1.1 × cube that surface balloons (tiny
+#: preset, seed 0: 15–25 mm from the points a median 6 mm from the true head, 40–80 mm out
+#: 30 mm) and the bound was 0.15; the filled surface's own solve in the
+#: :data:`AUTO_FILL_SCALE` cube stays within a median 1.4 mm of the small preset's head (normals
+#: 4.7°) out to 60 mm, 1.5 mm (6.3°) to 90 mm, where it starts to leave it (docs/mesh.md,
+#: *The filled surface*).
+AUTO_FILL_EXTENT_FRACTION = 0.28
+#: The filled surface comes from its own Poisson solve over a bounding cube this many times the
+#: points' extent (:func:`poisson_mesh` ``fill_scale``), at the depth whose cell is no coarser
+#: than the trimmed mesh's. In PoissonRecon's cube of 1.1 × the extent the closed surface beyond
+#: the data is pressed against the cube's faces (Neumann boundary): on the small preset's chain
+#: (seed 0) its inferred part lay a median 3.1 mm from the true head, 98 % outside it, normals
+#: 17° off, with a flat cap above the head. In a cube of 4 × the extent: 1.1 mm, normals 4.6°
+#: (docs/mesh.md, *The filled surface*).
+AUTO_FILL_SCALE = 4.0
 #: Points queried to estimate the neighbour spacing (an evenly strided subset).
 SPACING_QUERIES = 50_000
 
@@ -381,7 +398,8 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
                  trim_quantile: float = 0.02, max_distance: float | str | None = 2e-3,
                  spacing: float | None = None, max_depth: int = AUTO_MAX_DEPTH,
                  min_component: float = 0.05, target_faces: int | None = None,
-                 fill_distance: float | str | None = None) -> Mesh:
+                 fill_distance: float | str | None = None,
+                 fill_scale: float = AUTO_FILL_SCALE) -> Mesh:
     """Screened Poisson surface of oriented points, trimmed to where the points are.
 
     Parameters
@@ -416,13 +434,21 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
     target_faces : int, optional
         Quadric decimation to at most this many faces (after trimming).
     fill_distance : float (metres), "auto" or None
-        Also make the *filled* surface (``Mesh.filled``): the same Poisson solution trimmed
-        only by distance — vertices within ``fill_distance`` of a point (at least the trim
-        distance), no density trim — so it closes over holes and continues the surface past
-        the edge of what the points reached, but no farther than this bound from the data
-        (no balloon). Its faces with a vertex farther than the trim distance (``max_distance``)
+        Also make the *filled* surface (``Mesh.filled``): a Poisson solution (its own, in the
+        ``fill_scale`` cube) trimmed only by distance — vertices within ``fill_distance`` of a
+        point (at least the trim distance), no density trim — so it closes over holes and
+        continues the surface past the edge of what the points reached, but no farther than
+        this bound from the data (no balloon). Its faces with a vertex farther than the trim distance (``max_distance``)
         from every point are ``inferred_faces``. ``"auto"``: :func:`fill_distance_for`.
         None (default): no filled surface. Needs ``max_distance``.
+    fill_scale : float
+        The filled surface's Poisson solve grids a cube of ``fill_scale`` × the points' extent
+        (:data:`AUTO_FILL_SCALE`), at the smallest depth (at most 12) whose cell is no coarser
+        than this solve's: a second solve, whose surface away from the data is not pressed
+        against the cube's faces. Equal to ``scale``: the filled surface is cut from this
+        solve (its measured faces are then exactly the trimmed mesh's). Its zero-area faces
+        (repeated or collinear corners, which the atlas refuses) are dropped
+        (``info["degenerate_faces_dropped"]``).
 
     Returns
     -------
@@ -432,8 +458,8 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
         ``max_distance_mm`` and ``max_distance_auto``, the density threshold, and how many
         vertices each step removed (``trimmed_density``, ``trimmed_distance``,
         ``trimmed_components``, ``decimated``). With ``fill_distance``, ``filled`` holds the
-        filled surface; its ``info`` has ``fill_distance_mm``, ``faces``, ``vertices`` and
-        ``inferred_faces`` (their count).
+        filled surface; its ``info`` has ``fill_distance_mm``, ``fill_scale``, ``fill_depth``,
+        ``fill_cell_mm``, ``faces``, ``vertices`` and ``inferred_faces`` (their count).
 
     Raises
     ------
@@ -467,6 +493,7 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
         raise InputError(f"min_component: expected a fraction in [0, 1], got {min_component!r}")
     check_positive(point_weight, "point_weight", allow_zero=True)
     scale = check_positive(scale, "scale")
+    fill_scale = check_positive(fill_scale, "fill_scale")
     if spacing is not None:
         spacing = check_positive(spacing, "spacing")
     t0 = time.perf_counter()
@@ -487,18 +514,9 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
               len(p), depth_used, limited_by, 1e3 * cell,
               None if spacing is None else f"{1e3 * spacing:.3g}",
               None if r is None else f"{1e3 * r:.3g}")
-    o3d = _o3d()
     t_poisson = time.perf_counter()
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        m, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            _pcd(p, n), depth=int(depth_used), scale=float(scale), linear_fit=False,
-            n_threads=1, samples_per_node=float(samples_per_node),
-            point_weight=float(point_weight))
+    V, F, dens = _poisson_solve(p, n, depth_used, scale, samples_per_node, point_weight)
     t1 = time.perf_counter()
-    V = np.asarray(m.vertices, np.float64).copy()
-    F = np.asarray(m.triangles, np.int64)
-    dens = np.asarray(dens, np.float64).copy()
-    del m
     info = {"depth": int(depth_used), "depth_auto": depth == "auto",
             "depth_limited_by": limited_by, "cell_mm": 1e3 * cell,
             "spacing_mm": None if spacing is None else 1e3 * spacing,
@@ -518,10 +536,26 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
         dist, _ = tree.query(V, k=1, distance_upper_bound=2 * max(r, r_fill or 0.0))
         near = dist <= r
     filled = None
-    if r_fill is not None:  # the filled surface from the same solution (issue 37)
-        filled = _filled_surface(V, F, dist <= r_fill, min_component, target_faces, tree,
-                                 r, info | {"fill_distance_mm": 1e3 * r_fill,
-                                            "fill_distance_auto": fill_distance == "auto"})
+    if r_fill is not None:  # the filled surface (issue 37)
+        fill_info = info | {"fill_distance_mm": 1e3 * r_fill,
+                            "fill_distance_auto": fill_distance == "auto",
+                            "fill_scale": fill_scale}
+        if fill_scale == scale:  # cut from this solve
+            Vf, Ff, dist_f = V, F, dist
+            fill_info.update(fill_depth=int(depth_used), fill_cell_mm=1e3 * cell)
+        else:  # its own solve in the larger cube, no coarser a cell
+            t_fill = time.perf_counter()
+            depth_f = fill_depth_for(_cube_side(p), cell, fill_scale)
+            Vf, Ff, _ = _poisson_solve(p, n, depth_f, fill_scale, samples_per_node,
+                                       point_weight)
+            dist_f, _ = tree.query(Vf, k=1, distance_upper_bound=2 * r_fill)
+            fill_info.update(fill_depth=depth_f,
+                             fill_cell_mm=1e3 * fill_scale * _cube_side(p) / 2**depth_f,
+                             seconds_fill_poisson=round(time.perf_counter() - t_fill, 4))
+            info["seconds_fill_poisson"] = fill_info["seconds_fill_poisson"]
+        filled = _filled_surface(Vf, Ff, dist_f <= r_fill, min_component, target_faces, tree,
+                                 r, fill_info)
+        del Vf, Ff, dist_f
     del dist, tree
     keep = np.ones(len(V), bool)
     info["density_threshold"] = None
@@ -548,6 +582,36 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
     info.update({"vertices": len(V), "faces": len(F),
                  "seconds": round(time.perf_counter() - t0, 4)})
     return Mesh(V, F, vn, info, filled=filled)
+
+
+def _poisson_solve(p, n, depth, scale, samples_per_node, point_weight):
+    """Open3D's screened Poisson reconstruction (Kazhdan & Hoppe 2013), single-threaded:
+    ``(V, F, density)``, float64 / int64 / float64."""
+    o3d = _o3d()
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        m, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+            _pcd(p, n), depth=int(depth), scale=float(scale), linear_fit=False,
+            n_threads=1, samples_per_node=float(samples_per_node),
+            point_weight=float(point_weight))
+    return (np.asarray(m.vertices, np.float64).copy(), np.asarray(m.triangles, np.int64).copy(),
+            np.asarray(dens, np.float64).copy())
+
+
+def fill_depth_for(side: float, cell: float, fill_scale: float) -> int:
+    """The octree depth of the filled surface's solve: the smallest whose cell
+    ``fill_scale × side / 2^depth`` is at most ``cell`` (the trimmed mesh's), in [4, 12].
+
+    Parameters
+    ----------
+    side : float, metres — the longest side of the points' bounding box
+    cell : float, metres — the trimmed mesh's Poisson cell
+    fill_scale : float — the filled surface's cube, in extents (:data:`AUTO_FILL_SCALE`)
+    """
+    s = check_positive(side, "side")
+    c = check_positive(cell, "cell")
+    f = check_positive(fill_scale, "fill_scale")
+    want = int(np.ceil(np.log2(f * s / c) - 1e-9))
+    return min(max(want, AUTO_MIN_DEPTH), 12)
 
 
 def _drop_small_components(V, F, min_component):
@@ -609,16 +673,45 @@ def _filled_surface(V, F, keep, min_component, target_faces, tree, r, info) -> M
     V, F, _ = _compact(V, F, keep)
     V, F, _, _ = _drop_small_components(V, F, min_component)
     V, F = _decimate(V, F, target_faces)
+    # marching cubes leaves the odd zero-area face, which the atlas refuses (ICT head, 4 × cube)
+    flat = degenerate_faces(V, F)
+    if flat.any():
+        used = np.zeros(len(V), bool)
+        used[F[~flat].ravel()] = True
+        V, F, _ = _compact(V, F[~flat], used)
     if len(V):
         d, _ = tree.query(V, k=1, distance_upper_bound=2 * r)
         inferred = ~(d <= r)[F].all(axis=1)
     else:
         inferred = np.zeros(len(F), bool)
     info = {k: info[k] for k in ("depth", "cell_mm", "spacing_mm", "max_distance_mm",
-                                 "fill_distance_mm", "fill_distance_auto", "min_component",
+                                 "fill_distance_mm", "fill_distance_auto", "fill_scale",
+                                 "fill_depth", "fill_cell_mm", "min_component",
                                  "target_faces", "poisson_vertices", "poisson_faces")}
-    info.update({"vertices": len(V), "faces": len(F), "inferred_faces": int(inferred.sum())})
+    info.update({"vertices": len(V), "faces": len(F), "inferred_faces": int(inferred.sum()),
+                 "degenerate_faces_dropped": int(flat.sum())})
     return Mesh(V, F, _vertex_normals(V, F), info, inferred_faces=inferred)
+
+
+#: A face is degenerate when ``|e1 × e2| <= DEGENERATE_SIN × max(|e1|², |e2|²)`` (collinear to
+#: float64 working precision; the same test as :mod:`facegeo.surface.visibility`) or it repeats
+#: a vertex: :func:`degenerate_faces`, which the atlas uses too.
+DEGENERATE_SIN = 1e-12
+
+
+def degenerate_faces(V, F) -> np.ndarray:
+    """``(F,)`` bool: faces with a repeated vertex or collinear corners (the filled surface
+    drops them; :func:`facegeo.surface.atlas.check_mesh` reports or repairs them)."""
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    if not len(F):
+        return np.zeros(0, bool)
+    e1 = V[F[:, 1]] - V[F[:, 0]]
+    e2 = V[F[:, 2]] - V[F[:, 0]]
+    cr = np.linalg.norm(np.cross(e1, e2), axis=1)
+    big = np.maximum(np.einsum("ij,ij->i", e1, e1), np.einsum("ij,ij->i", e2, e2))
+    repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 0] == F[:, 2])
+    return repeated | ~(cr > DEGENERATE_SIN * big)
 
 
 def grid_mesh(p_grid, valid=None, *, max_edge_ratio: float = 4.0,

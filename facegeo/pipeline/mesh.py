@@ -11,10 +11,11 @@ of the decode stage) and writes ``out_dir/mesh/``:
                   (F,) bool: the mesh faces within ``observed_radius`` of a fused point (the
                   observed region; the evaluation's mesh figures are taken over it)
     mesh_filled.ply
-                  the filled surface (issue 37): the same Poisson solution trimmed only by
-                  distance, within ``fill_distance`` of a point, so it closes over what the
-                  structured light did not reach (under the jaw, beside the nose, the cheeks
-                  past the cameras) — what the atlas and the renders use by default
+                  the filled surface (issue 37): a Poisson solution over a larger cube
+                  (``fill_scale``) trimmed only by distance, within ``fill_distance`` of a
+                  point, so it closes over what the structured light did not reach (under
+                  the jaw, beside the nose, the cheeks and the side of the head past the
+                  cameras) — what the atlas and the renders use by default
                   (:mod:`facegeo.pipeline.reconstruct`, atlas setting ``surface``)
     mesh_filled_inferred.npy
                   (F_filled,) bool: its *inferred* faces, those with a vertex farther than
@@ -249,7 +250,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                   max_distance_mm: float | str | None = "auto", min_component: float = 0.05,
                   target_faces: int | None = None,
                   observed_radius_mm: float | None = None,
-                  fill_distance_mm: float | str | None = "auto") -> tuple[dict, dict]:
+                  fill_distance_mm: float | str | None = "auto",
+                  fill_scale: float | None = None) -> tuple[dict, dict]:
     """Write ``points.ply`` and ``mesh.ply`` of ``scan`` into ``dest`` from ``decode_dir``.
 
     The work of :func:`run_mesh` without the staging. Returns ``(metrics, settings)``.
@@ -306,8 +308,13 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     fill_distance_mm : float, millimetres, "auto" or None
         The filled surface's bound (``mesh_filled.ply``, module docstring): Poisson vertices
         within this of a fused point (at least the trim distance). ``"auto"`` (default):
-        :func:`facegeo.geometry.mesh.fill_distance_for` (0.15 × the points' extent, ≈ 30 mm
+        :func:`facegeo.geometry.mesh.fill_distance_for` (0.28 × the points' extent, ≈ 60 mm
         on a head); None: no filled surface.
+    fill_scale : float, optional
+        The filled surface's own Poisson solve grids a cube of this many times the points'
+        extent (:func:`facegeo.geometry.mesh.poisson_mesh` ``fill_scale``; default
+        :data:`facegeo.geometry.mesh.AUTO_FILL_SCALE`, 4; ``1.1``, the trimmed mesh's cube, cuts
+        the filled surface from the trimmed mesh's solve as before).
 
     Returns
     -------
@@ -375,11 +382,13 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                 "point_weight": point_weight, "trim_quantile": trim_quantile,
                 "max_distance_mm": max_distance_mm, "min_component": min_component,
                 "target_faces": target_faces, "observed_radius_mm": observed_radius_mm,
-                "fill_distance_mm": fill_distance_mm}
-    if fill_distance_mm is not None and fill_distance_mm != "auto":
-        from facegeo.checks import check_positive
+                "fill_distance_mm": fill_distance_mm,
+                "fill_scale": gm.AUTO_FILL_SCALE if fill_scale is None else fill_scale}
+    from facegeo.checks import check_positive
 
+    if fill_distance_mm is not None and fill_distance_mm != "auto":
         check_positive(fill_distance_mm, "fill_distance_mm")
+    check_positive(settings["fill_scale"], "fill_scale")
     cams = [the_rig.camera(n) for n in names]
     extra: dict[str, Any] = {}
     t0 = time.perf_counter()
@@ -439,7 +448,7 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         mesh = gm.poisson_mesh(points, normals, depth=depth, point_weight=point_weight,
                                trim_quantile=trim_quantile, max_distance=max_d, spacing=spacing,
                                min_component=min_component, target_faces=target_faces,
-                               fill_distance=fill)
+                               fill_distance=fill, fill_scale=settings["fill_scale"])
     else:
         mesh = gm.grid_mesh(grid_map.p_world, grid_map.valid, center_world=cams[0].center_world)
     t4 = time.perf_counter()
@@ -495,6 +504,8 @@ def _write_filled(dest: Path, filled) -> dict:
     a = face_areas(filled.vertices, filled.faces)
     total, inferred = float(a.sum()), float(a[filled.inferred_faces].sum())
     return {"fill_distance_mm": round(filled.info["fill_distance_mm"], 4),
+            "fill_scale": filled.info["fill_scale"], "fill_depth": filled.info["fill_depth"],
+            "fill_cell_mm": round(filled.info["fill_cell_mm"], 4),
             "faces": len(filled.faces), "vertices": len(filled.vertices),
             "area_mm2": round(total * 1e6, 3),
             "inferred_faces": int(filled.info["inferred_faces"]),

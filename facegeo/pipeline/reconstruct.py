@@ -410,7 +410,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                                inputs=lambda d: _common_inputs(scan),
                                settings={"rig": use_rig, "method": "poisson", "depth": "auto",
                                          "point_weight": 4.0,
-                                         "trim_quantile": 0.02, "fill_distance_mm": "auto"}))
+                                         "trim_quantile": 0.02, "fill_distance_mm": "auto",
+                                         "fill_scale": None}))
 
     if "fit" in names and "atlas" not in names:  # a single-view scan, fitted in image space
         from facegeo.pipeline._fit_image import IMAGE_FIT_SETTINGS

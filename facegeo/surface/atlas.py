@@ -51,6 +51,7 @@ import numpy as np
 
 from facegeo.checks import as_array, check_positive_int, fmt_value
 from facegeo.errors import InputError, MissingDependencyError, ShapeError
+from facegeo.geometry.mesh import degenerate_faces
 
 log = logging.getLogger(__name__)
 
@@ -67,9 +68,6 @@ DEFAULT_SPLIT_FACES = 12_000
 #: xatlas's cost grows steeply with the faces per chart; 300 measured ≈ 10× less CPU than
 #: unlimited charts on a 100 k-face face at the same utilisation (docs/surface.md).
 DEFAULT_MAX_CHART_FACES = 300
-#: A face is degenerate when |e1 × e2| <= this × max(|e1|², |e2|²) (collinear to float64
-#: working precision; the same test as :mod:`facegeo.surface.visibility`).
-_DEGENERATE_SIN = 1e-12
 #: A texel centre is inside a triangle when every UV barycentric is >= -this.
 _INSIDE_TOL = 1e-9
 #: Candidate texel centres tested per rasterisation batch (bounds temporary memory, ~100 B each).
@@ -132,15 +130,6 @@ def _mesh_arrays(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
     return V, F
 
 
-def _degenerate(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    e1 = V[F[:, 1]] - V[F[:, 0]]
-    e2 = V[F[:, 2]] - V[F[:, 0]]
-    cr = np.linalg.norm(np.cross(e1, e2), axis=1)
-    big = np.maximum(np.einsum("ij,ij->i", e1, e1), np.einsum("ij,ij->i", e2, e2))
-    repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 0] == F[:, 2])
-    return repeated | ~(cr > _DEGENERATE_SIN * big)
-
-
 def _edge_keys(F: np.ndarray, n_vertices: int) -> np.ndarray:
     """(3F,) int64 undirected edge keys, edges of face f at rows f, F + f, 2F + f."""
     a = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
@@ -176,7 +165,7 @@ def check_mesh(vertices: Any, faces: Any, *, repair: bool = False
         edges (the message gives the counts and the first offending face).
     """
     V, F = _mesh_arrays(vertices, faces)
-    degen = np.flatnonzero(_degenerate(V, F))
+    degen = np.flatnonzero(degenerate_faces(V, F))
     if degen.size and not repair:
         raise InputError(
             f"faces: {degen.size} degenerate face(s) (repeated or collinear vertices); first is "
