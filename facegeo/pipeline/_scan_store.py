@@ -16,7 +16,6 @@ files (:func:`relative_files`), so a worker never lists the store.
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 from facegeo.errors import InputError
@@ -103,12 +102,9 @@ def fetch_scan_files(scan, location, rels, local_root) -> object:
         except (FileNotFoundError, OSError) as exc:
             raise InputError(f"{src}: the scan's file {rel} is not in the store (put the scan "
                              "there first: facegeo push SCAN URL)") from exc
-        dst = local_root / rel
+        dst = local_root / rel  # a task's temporary copy: no fsync
         dst.parent.mkdir(parents=True, exist_ok=True)
-        with open(dst, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+        dst.write_bytes(data)
     return scan.relocated(local_root)
 
 
