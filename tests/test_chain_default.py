@@ -34,8 +34,9 @@ TINY_GAIN_COVERED_DB = 0.8
 TINY_GAIN_HEAD_DB = 0.05
 #: Head-mask pixels no surface covers (black), worst view, as a fraction of the head mask: the
 #: filled surface closes what the structured light did not reach within its bound (0.15 × the
-#: points' extent, 32 mm): measured 0.226 at −60° (821 of 3,635 px; +60° 754, ±30° 92 and
-#: 54); on the trimmed mesh 0.41 (1,497; ±30° 545 and 482).
+#: points' extent, 32 mm, measured 0.226 at −60°: 821 of 3,635 px; with its own solve and
+#: 0.28 × extent, 2026-12-03, at most 0.128 on the witness scan); on the trimmed mesh 0.41
+#: (1,497; ±30° 545 and 482).
 TINY_BLACK_HEAD_FRACTION = 0.25
 
 # small preset (240 × 360 px, 512 lights, 30 board views): the calibrated rig (0.20° / 3.56 mm
@@ -43,26 +44,25 @@ TINY_BLACK_HEAD_FRACTION = 0.25
 #: projection (measured 4.08 % on 2026-12-02, 3.93 % on the filled surface's measured texels;
 #: issue 37 quoted 2.87 % before the evaluation moved; stage alone 1.40 %)
 SMALL_PROJECTION_REL_RMSE = 0.05
-#: novel views, covered pixels, worst of the four orbits: issue 37's bar, 3 dB (measured on
-#: the filled surface on 2026-12-02: +3.03 dB at −30°; +30° +4.68, −60° +8.16, +60° +4.75; on
-#: the trimmed mesh −30° read +3.54, +30° +4.71; stage alone +4.15 dB worst). Asserted
-#: 0.1 dB under the bar: the measured −30° meets it by 0.03 dB only, less than a machine's
-#: floating-point differences may move it.
-SMALL_GAIN_COVERED_DB = 2.9
-#: ... over the whole head mask, worst view: measured +0.074 dB at +60° (−30° +0.50, −60°
-#: +1.18, +30° +0.08; on the trimmed mesh +0.014 dB worst). Issue 37's 1 dB there is not met:
-#: the inferred pixels carry the same values in the render and the naive baseline
-#: (docs/render.md, *Surface no point supports*). PSNR went up 2.6–6.6 dB in every view.
-#: Re-measured 2026-12-02 (``facegeo demo``, same figures): the head-mask pixels no ray hits
-#: and the inferred ones hold 73–98 % of the naive render's whole-head squared error, most of
-#: it from the filled surface's shape and extent (docs/render.md, *Where the chain's
-#: whole-head error comes from*); at +30° / +60° even perfect inferred pixels would give
-#: +0.51 / +0.09 dB.
-SMALL_GAIN_HEAD_DB = 0.05
-#: Head-mask pixels left black, worst view, fraction of the mask: measured 0.220 at −60°
-#: (7,054 of 32,099 px; +60° 6,237, −30° 730, +30° 435); on the trimmed mesh 0.415 (13,317;
-#: ±30° 4,954 and 4,545).
-SMALL_BLACK_HEAD_FRACTION = 0.25
+#: novel views, covered pixels, worst of the four orbits: issue 37's bar, 3 dB (measured
+#: 2026-12-03 with the filled surface's own solve, docs/mesh.md: +3.80 dB at −30°; −60° +8.13,
+#: +30° +4.81, +60° +4.94; before it +3.03 dB at −30°; stage alone +4.15 dB worst).
+SMALL_GAIN_COVERED_DB = 3.0
+#: ... over the whole head mask, worst view: measured +0.25 dB at +60° (+30° +0.30; with the
+#: old fill cut from the trimmed mesh's solve +0.074 dB worst). At +30° / +60° the inferred
+#: side of the head and the back of the head beyond the fill's bound hold most of the naive
+#: render's error, the same in both renders (docs/render.md, *Where the chain's whole-head
+#: error comes from*).
+SMALL_GAIN_HEAD_DB = 0.15
+#: ... and at −30° / −60°, where issue 37's 1 dB over the whole head is met: measured +1.10 /
+#: +1.93 dB (the old fill: +0.52 / +1.16). Asserted 0.05 dB under the bar at −30°, whose
+#: margin (0.10 dB) is a few times what a machine's floating-point differences have moved a
+#: view's gain.
+SMALL_GAIN_HEAD_MET_DB = {"front_orbit-30_sky": 0.95, "front_orbit-60_sky": 1.0}
+#: Head-mask pixels left black, worst view, fraction of the mask: measured 0.116 at −60°
+#: (3,733 of 32,099 px; +60° 3,328, +30° 316, −30° 260); the old fill 0.220 (7,054), the
+#: trimmed mesh 0.415 (13,317).
+SMALL_BLACK_HEAD_FRACTION = 0.15
 
 
 @pytest.fixture(scope="module")
@@ -237,5 +237,7 @@ def test_the_chains_figures_on_the_small_preset(tmp_path):
     assert ev["project"]["projection_rel_rmse"] <= SMALL_PROJECTION_REL_RMSE
     assert ev["render"]["psnr_gain_db_covered_min"] >= SMALL_GAIN_COVERED_DB
     assert ev["render"]["psnr_gain_db_min"] >= SMALL_GAIN_HEAD_DB
+    for stem, least in SMALL_GAIN_HEAD_MET_DB.items():
+        assert ev["render"]["views"][stem]["psnr_gain_db"] >= least, stem
     for stem, v in ev["render"]["views"].items():
         assert v["black_head_pixels"] <= SMALL_BLACK_HEAD_FRACTION * v["mask_pixels"], stem
