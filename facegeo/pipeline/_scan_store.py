@@ -23,7 +23,7 @@ from facegeo.errors import InputError
 log = logging.getLogger(__name__)
 
 __all__ = ["SCAN_IN_STORE", "scan_location", "has_scan", "put_scan", "relative_files",
-           "fetch_scan_files", "sl_task_files", "olat_task_files", "put_files", "fetch_files"]
+           "fetch_scan_files", "sl_task_files", "olat_task_files", "put_files"]
 
 #: The folder of a store holding the scan's input files (``URL/scan/``).
 SCAN_IN_STORE = "scan"
@@ -70,10 +70,11 @@ def put_scan(scan, store, *, progress=None) -> dict:
     ``progress(stage, done, total)`` is called per file."""
     from facegeo.surface._zarr_field import put_bytes, store_location
 
-    files = [scan.manifest_path] + [p for p in scan.input_files() if Path(p).is_file()]
-    for p in scan.input_files():  # directories named as such (a reference folder)
-        if Path(p).is_dir():
-            files += sorted(q for q in Path(p).rglob("*") if q.is_file())
+    named = [Path(p) for p in scan.input_files()]  # resolves every frame: once
+    files = [scan.manifest_path] + [p for p in named if p.is_file()]
+    for p in named:  # directories named as such (a reference folder)
+        if p.is_dir():
+            files += sorted(q for q in p.rglob("*") if q.is_file())
     rels = relative_files(scan, files)
     dest = scan_location(store)
     n_bytes = 0
@@ -149,7 +150,8 @@ def olat_task_files(scan, camera: str, *, ground_truth_mesh: bool = False) -> li
 def put_files(paths, location) -> list[str]:
     """Copy the files ``paths`` (from this machine) into the store folder ``location`` by
     their names: the stage products a task reads (the atlas, the mesh), put once by the client
-    for every task. Returns the names."""
+    for every task, which brings them down with
+    :func:`facegeo.surface._zarr_field.copy_files`. Returns the names."""
     from facegeo.surface._zarr_field import put_bytes, store_location
 
     names = []
@@ -158,15 +160,3 @@ def put_files(paths, location) -> list[str]:
         put_bytes(store_location(location, p.name), p.read_bytes())
         names.append(p.name)
     return names
-
-
-def fetch_files(location, names, local_dir) -> Path:
-    """Fetch the files ``names`` of the store folder ``location`` (:func:`put_files`) into
-    ``local_dir``; returns it."""
-    from facegeo.surface._zarr_field import get_bytes, store_location
-
-    local_dir = Path(local_dir)
-    local_dir.mkdir(parents=True, exist_ok=True)
-    for n in names:
-        (local_dir / n).write_bytes(get_bytes(store_location(location, n)))
-    return local_dir

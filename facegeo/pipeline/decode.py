@@ -435,8 +435,9 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     if store is not None:
         import uuid
 
-        from facegeo.pipeline._scan_store import has_scan, scan_location
-        from facegeo.surface._zarr_field import store_location
+        from facegeo.pipeline._scan_store import has_scan, scan_location, sl_task_files
+        from facegeo.surface._zarr_field import (STORE_FILES, copy_files, remove_location,
+                                                 store_location)
 
         run_loc = store_location(store, "decode", f"run-{uuid.uuid4().hex[:12]}")
         frames_from = scan_location(store) if has_scan(store) else None
@@ -449,9 +450,6 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
             continue
         via = None
         if run_loc is not None:
-            from facegeo.pipeline._scan_store import sl_task_files
-            from facegeo.surface._zarr_field import store_location
-
             via = {"store_dir": str(store_location(run_loc, cam)),
                    "frames_from": None if frames_from is None else str(frames_from),
                    "files": (sl_task_files(scan, cam, plans[cam].frames)
@@ -463,14 +461,10 @@ def decode_products(scan, dest: Path, *, cameras: list[str] | None = None,
     try:
         results = engine.map("decode", tasks, progress=progress)
         if run_loc is not None:  # the tasks' products, from the store into the stage folder
-            from facegeo.surface._zarr_field import STORE_FILES, copy_files, store_location
-
             for t in tasks:
                 copy_files(store_location(run_loc, t.name, STORE_FILES), Path(dest) / t.name)
     finally:
         if run_loc is not None:
-            from facegeo.surface._zarr_field import remove_location
-
             remove_location(run_loc)
     per_cam: dict[str, dict] = {}
     pooled = dict.fromkeys(_POOLED, 0)

@@ -517,13 +517,12 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             inputs_loc = store_location(run_loc, STORE_INPUTS)
             atlas_files = [Path(atlas_dir) / f for f in ("atlas.npz", "texels.npz",
                                                          INFERRED_TEXELS)]
-            via = {"inputs": str(inputs_loc),
-                   "atlas": put_files([f for f in atlas_files if f.is_file()],
-                                      store_location(inputs_loc, "atlas"))}
+            put_files([f for f in atlas_files if f.is_file()],
+                      store_location(inputs_loc, "atlas"))
             if mesh != "ground_truth":
-                mesh_files = [Path(mesh), inferred_faces_path(mesh)]
-                via["mesh"] = put_files([f for f in mesh_files if f.is_file()],
-                                        store_location(inputs_loc, "mesh"))
+                put_files([f for f in (Path(mesh), inferred_faces_path(mesh)) if f.is_file()],
+                          store_location(inputs_loc, "mesh"))
+            via = {"inputs": str(inputs_loc)}
     # the loaded scan and rig travel as they are (kilobytes); each task loads the atlas, the
     # texels and the mesh itself (once per process: _camera_inputs)
     tasks = []
@@ -832,15 +831,14 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
 
     with tempfile.TemporaryDirectory(prefix="facegeo-project-") as tmp:
         if via is not None:
-            from facegeo.pipeline._scan_store import fetch_files, fetch_scan_files
+            from facegeo.pipeline._scan_store import fetch_scan_files
 
             scan = fetch_scan_files(scan, via["frames_from"], via["files"], Path(tmp) / "scan")
-            atlas_dir = str(fetch_files(store_location(via["inputs"], "atlas"), via["atlas"],
-                                        Path(tmp) / "atlas"))
+            atlas_dir = str(Path(tmp) / "atlas")
+            copy_files(store_location(via["inputs"], "atlas"), atlas_dir)
             if mesh != "ground_truth":
-                local = fetch_files(store_location(via["inputs"], "mesh"), via["mesh"],
-                                    Path(tmp) / "mesh")
-                mesh = str(local / Path(mesh).name)
+                copy_files(store_location(via["inputs"], "mesh"), Path(tmp) / "mesh")
+                mesh = str(Path(tmp) / "mesh" / Path(mesh).name)
         d = Path(tmp) / name
         out = _project_camera(scan, atlas_dir, d, name, the_rig, mesh, vis_kw, dtype,
                               block_lights, shadow_taps, "zarr", store_dir)
