@@ -526,10 +526,22 @@ def _cmd_project(args) -> int:
     kw.update(gt)
     if args.out is not None:
         _check_output_dir(args.out, "--out")
-    m = run_project(args.scan, args.out, rig=args.rig, mesh=_standalone_mesh(args),
-                    cameras=args.camera, dtype=args.dtype, **kw)
+    with _engine(args) as engine:  # --workers / --scheduler hold for the stage on its own too
+        m = run_project(args.scan, args.out, rig=args.rig, mesh=_standalone_mesh(args),
+                        cameras=args.camera, dtype=args.dtype, engine=engine,
+                        lights_per_task=args.lights_per_task, **kw)
     _print_metrics("project", m)
     return 0
+
+
+def _lights_per_task_option(s) -> None:
+    """``--lights-per-task N`` of the projection (project, reconstruct; docs/scale.md §1)."""
+    s.add_argument("--lights-per-task", type=_pos_int, default=None, metavar="N",
+                   help="project: split each camera's projection into tasks of N lights "
+                        "(rounded up to whole chunks of the field), the same products; default: "
+                        "one task per camera, split automatically on --workers / --scheduler "
+                        "when the scan has fewer cameras than 2 x workers, not a multiple of "
+                        "them (docs/scale.md)")
 
 
 def _store_option(s) -> None:
@@ -563,33 +575,42 @@ def _add_envmap_options(s) -> None:
 def _cmd_relight(args) -> int:
     from facegeo.fsutil import READ_AHEAD_WORKERS
     from facegeo.lighting.envmap import SHIPPED_MAPS
-    from facegeo.pipeline.relight import run_relight
+    from facegeo.pipeline.relight import run_relight_maps
 
     if args.out is not None:
         _check_output_dir(args.out, "--out")
-    if not Path(args.env).exists() and args.env not in SHIPPED_MAPS:
-        raise InputError(f"env: {args.env} is not a file and not a shipped environment map "
-                         f"({', '.join(SHIPPED_MAPS)})")
+    for env in args.env:
+        if not Path(env).exists() and env not in SHIPPED_MAPS:
+            raise InputError(f"env: {env} is not a file, a folder or a shipped environment map "
+                             f"({', '.join(SHIPPED_MAPS)})")
     tick, close = _progress_factory(not args.quiet)
     try:
         with _engine(args) as engine:
-            m = run_relight(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
-                            out_dir=args.out, projection=args.projection,
-                            convention=args.envmap_convention,
-                            solid_angle="exact" if args.exact_solid_angles else "paper",
-                            progress=tick, read_ahead=READ_AHEAD_WORKERS, model=args.model,
-                            engine=engine, store=args.store)
+            run = run_relight_maps(args.scan, args.env, rotate_deg=args.rotate, view=args.view,
+                                   out_dir=args.out, projection=args.projection,
+                                   convention=args.envmap_convention,
+                                   solid_angle="exact" if args.exact_solid_angles else "paper",
+                                   progress=tick, read_ahead=READ_AHEAD_WORKERS,
+                                   model=args.model, engine=engine, store=args.store)
     finally:
         close()
-    what = ("directions of the fitted model" if m.get("model") == "fitted" else "lights lit")
-    print(f"{m['view']}: {m['active_lights']}/{m['n_lights']} {what}, "
-          f"sum(w)/integral(L) = {', '.join(f'{r:.4f}' for r in m['energy_ratio'])}, "
-          f"{m['seconds']['total']:.2f} s")
-    if m.get("energy_note"):
-        print(f"note: {m['energy_note']}")
-    print(f"wrote {m['files']['exr']} and {m['files']['png']}")
-    if "measured" in m["files"]:
-        print(f"measured texels: {m['measured_texels']}/{m['texels']} ({m['files']['measured']})")
+    for m in run["relit"]:
+        what = ("directions of the fitted model" if m.get("model") == "fitted"
+                else "lights lit")
+        name = f"{m['env']}: " if run["maps"] > 1 else ""
+        print(f"{name}{m['view']}: {m['active_lights']}/{m['n_lights']} {what}, "
+              f"sum(w)/integral(L) = {', '.join(f'{r:.4f}' for r in m['energy_ratio'])}, "
+              f"{m['seconds']['total']:.2f} s")
+        if m.get("energy_note"):
+            print(f"note: {m['energy_note']}")
+        print(f"wrote {m['files']['exr']} and {m['files']['png']}")
+        if "measured" in m["files"]:
+            print(f"measured texels: {m['measured_texels']}/{m['texels']} "
+                  f"({m['files']['measured']})")
+    if run["maps"] > 1:
+        print(f"{run['maps']} maps in {run['batches']} batch(es) of up to "
+              f"{run['maps_per_batch']}: relit in {run['seconds']['relight']:.2f} s, "
+              f"{run['seconds']['total']:.2f} s in all")
     return 0
 
 
@@ -637,6 +658,7 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
                                       from_stage=from_stage, only=only, until=until,
                                       progress=tick, engine=engine,
                                       store=getattr(args, "store", None),
+                                      lights_per_task=getattr(args, "lights_per_task", None),
                                       on_stage=lambda r: (close(), print(_stage_line(r))))
     except FacegeoError:
         close()
@@ -677,8 +699,9 @@ def _engine_options(s) -> None:
     """``--workers N`` / ``--scheduler ADDRESS`` / ``--memory-limit SIZE`` (docs/scale.md)."""
     g = s.add_mutually_exclusive_group()
     g.add_argument("--workers", type=_pos_int, default=None, metavar="N",
-                   help="run the stages' tasks (decode, project: one per camera; fit, "
-                        "relight: per chunk of texels) on a local "
+                   help="run the stages' tasks (decode: one per camera; project: per "
+                        "camera or block of lights; fit, relight: per chunk of texels, relight "
+                        "per batch of maps; render: one per view) on a local "
                         "Dask cluster of N worker processes × 1 thread (default: in this "
                         "process)")
     g.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -748,12 +771,15 @@ def _cmd_render(args) -> int:
     _run_reconstruct(scan, args, until="fit")
     tick, close = _progress_factory(not args.quiet)
     try:
-        m = run_render(scan, camera_spec=args.camera, env=args.env,
-                       projection=args.projection, convention=args.envmap_convention,
-                       rotate_deg=args.rotate, supersample=args.supersample,
-                       resynthesis=not args.naive, shrinkage=args.shrinkage,
-                       light_step=args.light_step, shadow_taps=args.shadow_taps,
-                       image_detail=args.image_detail, infer=args.infer, progress=tick)
+        # --workers / --scheduler: the view is one task of the engine, as the render stage's
+        with _engine(args) as engine:
+            m = run_render(scan, camera_spec=args.camera, env=args.env,
+                           projection=args.projection, convention=args.envmap_convention,
+                           rotate_deg=args.rotate, supersample=args.supersample,
+                           resynthesis=not args.naive, shrinkage=args.shrinkage,
+                           light_step=args.light_step, shadow_taps=args.shadow_taps,
+                           image_detail=args.image_detail, infer=args.infer, progress=tick,
+                           engine=engine)
     finally:
         close()
     figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "paper_psnr_db", "psnr_gain_db",
@@ -1132,6 +1158,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--field-format", choices=["npy", "zarr"], default="npy",
                    help="how each camera's field is stored: R.npy (default) or a chunked "
                         "R.zarr (docs/surface.md, docs/scale.md)")
+    _lights_per_task_option(s)
     _store_option(s)
     _engine_options(s)
     s.set_defaults(func=_cmd_project)
@@ -1140,8 +1167,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="relight a camera view of the scan, or its texture atlas (--view texture), "
                             "with an environment map (Eq. 4)")
     s.add_argument("scan", metavar="SCAN", help="scan directory")
-    s.add_argument("--env", required=True, metavar="FILE|NAME",
-                   help=".exr/.hdr environment map, or a shipped map: sky, studio")
+    s.add_argument("--env", required=True, action="append", metavar="FILE|NAME|DIR",
+                   help=".exr/.hdr environment map, a shipped map (sky, studio), or a folder "
+                        "(its .exr/.hdr maps, by name); repeat to relight under several maps, "
+                        "each with its own files, the field read once per batch of maps")
     _add_envmap_options(s)
     s.add_argument("--rotate", type=_rotate_deg, default=0.0, metavar="DEG",
                    help="rotate the environment about +Y (degrees, +Z toward +X)")
@@ -1232,6 +1261,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "docs/render.md)")
     s.add_argument("--mesh", default="auto", help=mesh_help)
     s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)
+    # the stages up to the fit and then the view (one task) run on this engine
+    _engine_options(s)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_render)
 
@@ -1251,6 +1282,7 @@ def build_parser() -> argparse.ArgumentParser:
     _surface_option(s)
     _store_option(s)
     _engine_options(s)
+    _lights_per_task_option(s)
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=_cmd_reconstruct)
 

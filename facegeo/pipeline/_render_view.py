@@ -164,7 +164,8 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     hashes ``texels.npz``, ≈ 10 MB on the small preset: once per stage, keyed by the files'
     size and modification time, not once per view) and the atlas, texel table, ray scene and
     source cameras (:func:`_view_inputs`: read once, the fields' memory maps reopened per
-    view).
+    view), and the rig and the cameras a view may name (:func:`_render_rig`,
+    :func:`_view_cameras`: a view task seeded with them reads no rig or camera file).
 
     ``reference``: with a reference to compare with (synthetic scans), the paper's λ = 1
     render is made beside a shrunk one, for :mod:`facegeo.evaluate.views`; the view never
@@ -177,7 +178,6 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     from facegeo.capture import imageio
     from facegeo.fsutil import atomic_write_text
     from facegeo.lighting import envmap as E
-    from facegeo.pipeline.fit import _camera_table
     from facegeo.evaluate.views import has_view_reference
     from facegeo.pipeline.project import check_projection_atlas
     from facegeo.pipeline.relight import tone_map
@@ -193,14 +193,9 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     out, dest = Path(out), Path(dest)
     shrink_mode = _check_shrinkage(shrinkage)
     supersample = check_positive_int(supersample, "supersample")
-    for need in ("atlas/atlas.npz", "atlas/texels.npz"):
-        if not (out / need).is_file():
-            raise InputError(f"render: {out / need} is missing; run 'facegeo reconstruct SCAN' first")
-    if resynthesis and not (out / "fit").is_dir():
-        raise InputError(f"render: {out / 'fit'} is missing; run 'facegeo fit SCAN' first (or "
-                         "render the naive baseline with resynthesis=False)")
-    project_settings, the_rig, rig_used = _render_rig(scan, out, rig)
-    camera = parse_camera_spec(camera_spec, _camera_table(scan, the_rig))
+    check_view_inputs(out, resynthesis)
+    project_settings, the_rig, rig_used = _render_rig(scan, out, rig, cache)
+    camera = parse_camera_spec(camera_spec, _view_cameras(scan, the_rig, rig_used, cache))
     stage = the_rig.lights
     w = _field_weights(env, stage, projection, rotate_deg, convention, solid_angle)
     # the skin model's light set only where it resynthesises (a naive render needs none)
@@ -357,10 +352,25 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     return metrics
 
 
-def _render_rig(scan, out: Path, rig) -> tuple:
+def check_view_inputs(out: Path, resynthesis) -> None:
+    """Raise the :class:`InputError` :func:`render_one` raises when a stage product a view
+    reads is missing from ``out``: the atlas and texel table, and with ``resynthesis`` the
+    fits' folder."""
+    out = Path(out)
+    for need in ("atlas/atlas.npz", "atlas/texels.npz"):
+        if not (out / need).is_file():
+            raise InputError(f"render: {out / need} is missing; run 'facegeo reconstruct SCAN' first")
+    if resynthesis and not (out / "fit").is_dir():
+        raise InputError(f"render: {out / 'fit'} is missing; run 'facegeo fit SCAN' first (or "
+                         "render the naive baseline with resynthesis=False)")
+
+
+def _render_rig(scan, out: Path, rig, cache: dict | None = None) -> tuple:
     """``(project_settings, rig, rig_used)`` of a view: the ``project`` stage's settings
     (``out/project/stage.json``; {} when unreadable) and :func:`facegeo.pipeline.project.stage_rig`
-    of ``rig`` — by default the rig the projection used."""
+    of ``rig`` — by default the rig the projection used. With a ``cache`` the rig is resolved
+    once (key ``("stage_rig", rig)``): the views of a stage share it, and a view task seeded by
+    its client (:func:`facegeo.pipeline.render.render_products`) reads no rig file of the scan."""
     from facegeo.pipeline.project import stage_rig
 
     try:
@@ -371,8 +381,29 @@ def _render_rig(scan, out: Path, rig) -> tuple:
         project_settings = {}
     if rig is None:
         rig = project_settings.get("rig")
-    the_rig, rig_used = stage_rig(scan, rig)
+    key = ("stage_rig", rig)
+    got = cache.get(key) if cache is not None else None
+    if got is None:
+        got = stage_rig(scan, rig)
+        if cache is not None:
+            cache[key] = got
+    the_rig, rig_used = got
     return project_settings, the_rig, rig_used
+
+
+def _view_cameras(scan, the_rig, rig_used: str, cache: dict | None = None) -> dict:
+    """The cameras a view spec may name (:func:`facegeo.pipeline.fit._camera_table`: the rig's,
+    the generator's novel ones — ``ground_truth/novel_cameras.json`` —, ``front``); with a
+    ``cache`` made once a rig (key ``("camera_table", rig_used)``), as :func:`_render_rig`."""
+    from facegeo.pipeline.fit import _camera_table
+
+    key = ("camera_table", rig_used)
+    if cache is not None and key in cache:
+        return cache[key]
+    table = _camera_table(scan, the_rig)
+    if cache is not None:
+        cache[key] = table
+    return table
 
 
 def _field_weights(env, stage, projection: str, rotate_deg: float, convention: str,
@@ -412,6 +443,14 @@ def _unmeasured_texel_fraction(texels, sources) -> float:
     return round(float(1.0 - seen.mean()), 6) if seen.size else 0.0
 
 
+def source_images_key(w, rig_used: str, names: tuple, keys: tuple) -> tuple:
+    """The ``cache`` key of the relit source captures (:func:`_source_images`) under the
+    weights ``w`` of the cameras ``names`` of the rig ``rig_used`` with the key lights
+    ``keys``: ``("source_images", sha1(w), rig_used, names, keys)``."""
+    return ("source_images", hashlib.sha1(np.ascontiguousarray(w, np.float64).tobytes())
+            .hexdigest(), rig_used, tuple(names), tuple(keys))
+
+
 def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
                    cache: dict | None, disk: Path | None = None) -> tuple:
     """The source cameras' OLAT captures relit with the render's weights ``w``
@@ -430,8 +469,7 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
     from facegeo.render.detail import SourceImage
 
     names = tuple(src.name for src in sources)
-    key = ("source_images", hashlib.sha1(np.ascontiguousarray(w, np.float64).tobytes())
-           .hexdigest(), rig_used, names, keys)
+    key = source_images_key(w, rig_used, names, keys)
     if cache is not None and key in cache:
         return cache[key], 0.0
     path = None
@@ -453,11 +491,7 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
             path = disk / f"{name}.npz"
     if path is not None and path.is_file():
         try:
-            with np.load(path) as z:
-                images = [SourceImage(the_rig.camera(c), z[f"{c}/image"], z[f"{c}/valid"],
-                                      {k: (z[f"{c}/{k}/frame"], z[f"{c}/{k}/valid"])
-                                       for k in keys})
-                          for c in names]
+            images = read_source_images(path, {c: the_rig.camera(c) for c in names}, keys)
             os.utime(path)  # most recently used: kept longest
             if cache is not None:
                 cache[key] = images
@@ -476,19 +510,39 @@ def _source_images(scan, the_rig, rig_used: str, sources, w, keys: tuple,
     if cache is not None:
         cache[key] = images
     if path is not None:
-        arrays = {}
-        for im in images:
-            c = im.camera.name
-            arrays[f"{c}/image"], arrays[f"{c}/valid"] = im.image, im.valid
-            for k, (frame, ok) in im.key_frames.items():
-                arrays[f"{c}/{k}/frame"], arrays[f"{c}/{k}/valid"] = frame, ok
         try:
             with atomic_path(path) as tmp:
-                np.savez(tmp, **arrays)
+                write_source_images(tmp, images)
             _prune(disk, SOURCE_IMAGES_KEEP)
         except OSError as exc:  # the render does not need the cache
             log.warning("%s: could not keep the relit source images (%s)", disk, exc)
     return images, round(time.perf_counter() - t0, 4)
+
+
+def write_source_images(file, images) -> None:
+    """The relit source captures ``images`` (:class:`facegeo.render.detail.SourceImage`, as
+    :func:`_source_images` makes them) as one ``.npz`` into ``file`` (a path or a binary
+    file object): per camera ``<camera>/image``, ``<camera>/valid`` and per key light ``k``
+    ``<camera>/<k>/frame``, ``<camera>/<k>/valid``."""
+    arrays = {}
+    for im in images:
+        c = im.camera.name
+        arrays[f"{c}/image"], arrays[f"{c}/valid"] = im.image, im.valid
+        for k, (frame, ok) in im.key_frames.items():
+            arrays[f"{c}/{k}/frame"], arrays[f"{c}/{k}/valid"] = frame, ok
+    np.savez(file, **arrays)
+
+
+def read_source_images(file, cameras: dict, keys: tuple) -> list:
+    """The relit source captures :func:`write_source_images` wrote into ``file`` (a path or a
+    binary file object), of the cameras ``cameras`` (``{name: Camera}``, in the sources'
+    order) with the frames of the key lights ``keys``."""
+    from facegeo.render.detail import SourceImage
+
+    with np.load(file) as z:
+        return [SourceImage(cam, z[f"{c}/image"], z[f"{c}/valid"],
+                            {k: (z[f"{c}/{k}/frame"], z[f"{c}/{k}/valid"]) for k in keys})
+                for c, cam in cameras.items()]
 
 
 def _prune(folder: Path, keep: int) -> None:
@@ -532,6 +586,38 @@ def _inputs_state(out: Path, with_fit: bool) -> tuple:
     for part in ("project", "fit") if with_fit else ("project",):
         files += sorted(p for p in (out / part).glob("*/*") if p.is_file())
     return tuple((str(f), file_state(f)) for f in files)
+
+
+def view_input_files(out: Path, with_fit: bool) -> list[str]:
+    """Every file under ``out`` a view reads (:func:`render_one`), relative to ``out`` as POSIX
+    paths: the atlas and texel table, the ``project`` stage's settings and atlas fingerprint
+    (when there), per camera folder with a field its texel index, weights, view directions and
+    field — ``R.npy``, the files of a Zarr store ``R.zarr`` in the folder, or the link
+    ``R.zarr.url`` to a field kept in a store (read where it is) — and, when ``with_fit``, the
+    camera's fit (``fit/<camera>/fit.npz``, ``D.npy``). What the view tasks of a render stage
+    without a shared disk fetch (:func:`facegeo.pipeline.render.render_products`)."""
+    from facegeo.pipeline.project import ATLAS_FINGERPRINT
+    from facegeo.render._fitstore import DIFFUSE_FILE, FIT_FILE
+    from facegeo.surface._zarr_field import LINK_SUFFIX, field_location
+    from facegeo.surface.reflectance import field_folders, find_field
+
+    out = Path(out)
+    files = [out / "atlas" / "atlas.npz", out / "atlas" / "texels.npz"]
+    files += [f for f in (out / "project" / "stage.json", out / "project" / ATLAS_FINGERPRINT)
+              if f.is_file()]
+    for d in field_folders(out / "project"):
+        files += [d / n for n in ("texel_index.npy", "weight.npy", "v_world.npy")]
+        kind, loc = find_field(d)
+        if kind == "npy":
+            files.append(Path(loc))
+        elif isinstance(loc, Path) and loc.parent == d:  # a Zarr store in the folder
+            files += sorted(f for f in loc.rglob("*") if f.is_file())
+        else:  # a link to a field in a store
+            files.append(Path(str(field_location(d)) + LINK_SUFFIX))
+        if with_fit:
+            files += [out / "fit" / d.name / FIT_FILE, out / "fit" / d.name / DIFFUSE_FILE]
+    # one missing is not put: the view then raises what it raises reading the stage folder
+    return [f.relative_to(out).as_posix() for f in files if f.is_file()]
 
 
 def _fresh_map(a):

@@ -71,7 +71,11 @@ folder; the products are byte-identical whatever the engine (the blend's values 
 format following the engine and the fields: below), and the metrics gain ``engine``
 (workers, memory limit, each camera's worker, seconds and peak memory) on a cluster. Each
 camera's working set (:func:`project_working_set`) is checked against a worker's memory before
-any task is submitted. The preview follows on the client, in camera order; the blend too in
+any task is submitted. A camera may also be split into tasks by blocks of lights
+(``lights_per_task``; automatically on a Dask engine when the scan has fewer cameras than 2 ×
+the workers and not a whole multiple of them; :mod:`facegeo.pipeline._project_blocks`): its visibility task, then one task per
+block writing its lights' columns of the camera's field — the same bytes; metrics ``tasks``
+and ``lights_per_task``. The preview follows on the client, in camera order; the blend too in
 process, and on a cluster as tasks of whole chunks of texels (:func:`blend_on_engine`: each
 reads only its rows of every camera's field and writes its rows of the blend, the same bits).
 With ``field_format="zarr"`` each camera's field is the Zarr store ``<camera>/R.zarr`` instead
@@ -112,7 +116,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["run_atlas", "run_project", "atlas_products", "project_products", "load_mesh",
            "peak_rss_mb", "project_camera_task", "project_working_set", "stage_rig",
-           "blend_on_engine", "blend_task_rows", "blend_working_set",
+           "blend_on_engine", "blend_task_rows", "blend_working_set", "light_visibility_task",
+           "light_block_task",
            "inferred_faces_path", "load_inferred_faces", "INFERRED_TEXELS", "STAGE_RIGS"]
 
 # The evaluation's comparison that run_project(evaluate=True) returns beside the stage's
@@ -338,7 +343,7 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
                 gt_weight_min: float = GT_WEIGHT_MIN, cameras: list[str] | None = None,
                 atlas_settings: dict | None = None, shadow_taps: bool = True,
                 evaluate: bool = True, field_format: str = "npy", engine=None,
-                progress=None, store=None) -> dict:
+                progress=None, store=None, lights_per_task: int | None = None) -> dict:
     """Project every camera's OLAT frames onto the atlas texels into ``out_dir/project/``.
 
     Parameters
@@ -383,7 +388,19 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         :func:`facegeo.pipeline.engine.make_engine` for ``--workers`` / ``--scheduler``; the
         workers must see the scan and ``out_dir`` at the same paths).
     progress : callable(stage, done, total), optional
-        Called as cameras finish.
+        Called as cameras finish (as lights are projected when cameras are split into light
+        blocks).
+    lights_per_task : int, optional
+        Split each camera's projection into tasks of this many lights (rounded up to whole
+        chunks of the field's ``block_lights``; :mod:`facegeo.pipeline._project_blocks`): a
+        visibility task per camera, then one task per block of lights, writing disjoint
+        columns of the camera's field — the same bytes as one task per camera. None (default):
+        one task per camera in process, and on a Dask engine the automatic rule — split when
+        the scan has fewer cameras than 2 × the workers and not a whole multiple of them, into
+        blocks of at least 256 lights making at least 2 × workers tasks
+        (:func:`facegeo.pipeline._project_blocks.auto_lights_per_task`); at least the scan's
+        lights: one task per camera. Not with ``store``; ``.npy`` fields only with every worker
+        on one machine (the columns are written in place through a memory map).
     evaluate : bool
         After the stage, compare its products with the scan's references
         (:func:`facegeo.evaluate.projection.evaluate_projection`) and return the figures
@@ -397,7 +414,9 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
         ``seconds_visibility``, ``seconds_projection``, ``texels_per_second``,
         ``masked_samples``; with ``evaluate`` on synthetic scans ``visibility_agreement``, the
         ``projection_*`` figures and ``seconds_projection_error``), ``unseen_fraction``,
-        ``blended_texels``, ``seconds_blend``, ``seconds``, ``peak_rss_mb``; with ``evaluate``
+        ``blended_texels``, ``seconds_blend``, ``tasks`` (the projection's tasks, the blend's
+        not counted), ``lights_per_task`` (None: one task per camera), ``seconds``,
+        ``peak_rss_mb``; with ``evaluate``
         ``projection_rel_rmse`` and its companions (synthetic scans,
         :mod:`facegeo.evaluate.projection`).
     """
@@ -413,7 +432,7 @@ def run_project(scan_dir, out_dir=None, *, rig: str | None = None, mesh: str = "
             scan, atlas_dir, tmp, rig=rig, mesh=mesh, min_cos=min_cos, feather_px=feather_px,
             depth_jump=depth_jump, dtype=dtype, block_lights=block_lights, cameras=cameras,
             shadow_taps=shadow_taps, field_format=field_format, engine=engine,
-            progress=progress, store=store)
+            progress=progress, store=store, lights_per_task=lights_per_task)
         _record(out, tmp, "project", settings, metrics)
     if evaluate:
         from facegeo.pipeline.cache import record_metrics
@@ -430,7 +449,8 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
                      dtype: str = "float16", block_lights: int | None = None,
                      cameras: list[str] | None = None, shadow_taps: bool = True,
                      field_format: str = "npy", engine=None,
-                     progress=None, store=None) -> tuple[dict, dict]:
+                     progress=None, store=None,
+                     lights_per_task: int | None = None) -> tuple[dict, dict]:
     """Write the ``project`` products of ``scan`` into ``dest`` from the atlas in ``atlas_dir``.
 
     The work of :func:`run_project` without the staging (the stage cache of
@@ -444,7 +464,10 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
     submitted. The preview runs here afterwards, streaming the cameras' fields chunk by chunk
     in camera order, and so does the blend in process; another engine blends in tasks of
     texel chunks (:func:`blend_on_engine`, the same bits). ``progress(stage, done, total)`` is
-    called as cameras finish.
+    called as cameras finish. With ``lights_per_task`` (or the automatic rule on a Dask
+    engine, :mod:`facegeo.pipeline._project_blocks`) a camera is a visibility task and then
+    one task per block of lights, all checked against a worker's memory first; the products
+    are the same bytes.
 
     With ``store`` (``--store URL``: a folder or an fsspec URL) the fields are Zarr arrays in
     the store, under ``project/run-<id>/<camera>/R.zarr`` (a new ``<id>`` each run, so a
@@ -525,8 +548,36 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             via = {"inputs": str(inputs_loc)}
     # the loaded scan and rig travel as they are (kilobytes); each task loads the atlas, the
     # texels and the mesh itself (once per process: _camera_inputs)
-    tasks = []
+    from facegeo.pipeline import _project_blocks as pb
+
+    chunk = min(block, scan.n_lights)  # the field's lights per chunk
+    lpt = pb.plan_lights_per_task(lights_per_task, engine=engine, n_cameras=len(names),
+                                  n_lights=scan.n_lights, chunk=chunk,
+                                  field_format=field_format, in_store=run_loc is not None)
+    scratch = str(dest / pb.SCRATCH_DIR)
+    whole, visibility, blocks = [], [], []
+    split: dict[str, list[str]] = {}  # camera -> its visibility task and light blocks
     for name in names:
+        camera = the_rig.camera(name)
+        if lpt is not None and scan.camera_frames("olat", name) == list(range(scan.n_lights)):
+            common = (scan, str(atlas_dir), str(dest), name, the_rig, mesh)
+            visibility.append(Task(f"{name} visibility", light_visibility_task,
+                                   (*common, vis_kw, dtype, chunk, use_taps, field_format,
+                                    scratch),
+                                   working_set=project_working_set(camera, len(texels),
+                                                                   n_faces, 0, use_taps),
+                                   size=0))
+            split[name] = [visibility[-1].name]
+            for l0, l1 in pb.light_blocks(scan.n_lights, lpt):
+                blocks.append(Task(f"{name} lights {l0}:{l1}", light_block_task,
+                                   (*common, dtype, (l0, l1), chunk, use_taps, field_format,
+                                    scratch),
+                                   working_set=project_working_set(
+                                       camera, len(texels), n_faces, min(chunk, l1 - l0),
+                                       use_taps),
+                                   size=l1 - l0))
+                split[name].append(blocks[-1].name)
+            continue
         task_via = None
         if via is not None:
             from facegeo.pipeline._scan_store import olat_task_files, scan_location
@@ -534,21 +585,31 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
             task_via = {**via, "frames_from": str(scan_location(store)),
                         "files": olat_task_files(scan, name,
                                                  ground_truth_mesh=mesh == "ground_truth")}
-        tasks.append(Task(name, project_camera_task,
+        whole.append(Task(name, project_camera_task,
                           (scan, str(atlas_dir), str(dest), name, the_rig, mesh, vis_kw, dtype,
                            block, use_taps, field_format,
                            None if run_loc is None else str(store_location(run_loc, name)),
                            task_via),
-                          working_set=project_working_set(the_rig.camera(name), len(texels),
-                                                          n_faces, min(block, scan.n_lights),
-                                                          use_taps)))
+                          working_set=project_working_set(camera, len(texels), n_faces, chunk,
+                                                          use_taps),
+                          size=1 if lpt is None else scan.n_lights))
     try:
-        results = engine.map("project", tasks, progress=progress)
+        results = pb.run_rounds(engine, whole, visibility, blocks, progress)
     finally:  # in process the scenes go with the stage (a worker keeps one set for the next run)
         _INPUTS_CACHE.clear()
+        pb.remove_scratch(dest)
         if inputs_loc is not None:
             remove_location(inputs_loc)
-    per_cam: dict[str, Any] = {t.name: r["metrics"] for t, r in zip(tasks, results)}
+    per_cam: dict[str, Any] = {}
+    for name in names:  # camera order
+        if name in split:
+            vis_task, *block_tasks = split[name]
+            per_cam[name] = pb.camera_block_metrics(
+                results[vis_task]["metrics"], [results[b]["metrics"] for b in block_tasks],
+                scan.n_lights)
+        else:
+            per_cam[name] = results[name]["metrics"]
+    tasks = whole + visibility + blocks
     if run_loc is not None:  # the tasks' small files, from the store into the stage folder
         for name in names:
             copy_files(store_location(run_loc, name, STORE_FILES), dest / name)
@@ -595,6 +656,7 @@ def project_products(scan, atlas_dir: Path, dest: Path, *, rig: str | None = Non
         "unseen_fraction": round(float(1 - seen.mean()) if T else 0.0, 6),
         "blended_texels": int(blended.texel_index.size),
         "seconds_blend": round(seconds_blend, 4),
+        "tasks": len(tasks), "lights_per_task": lpt,
     }
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
@@ -848,6 +910,97 @@ def project_camera_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mes
 
 
 
+def _visible_texels(scan, atlas_dir, name: str, the_rig, mesh: str, vis_kw: dict,
+                    shadow_taps: bool):
+    """One camera's visibility over the atlas, its inferred texels left unmeasured (module
+    docstring): ``(texels, shadow_rays, camera, vis, inferred_seen, seconds)``
+    (``inferred_seen``: the inferred texels the camera saw, None when the atlas marks none).
+    The first step of a whole camera's task and of a light-block projection's visibility
+    task (:mod:`facegeo.pipeline._project_blocks`): the same code, the same bits."""
+    from facegeo.surface import reflectance as rf
+
+    texels, scene, shadow_rays, inferred = _camera_inputs(scan, Path(atlas_dir), mesh,
+                                                          shadow_taps)
+    camera = the_rig.camera(name)
+    t0 = time.perf_counter()
+    vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
+    inferred_seen = None
+    if inferred is not None:  # surface no point supported: not measured (module docstring)
+        inferred_seen = int(np.count_nonzero(vis.weight[inferred] > 0))
+        vis.weight[inferred] = 0.0
+    return texels, shadow_rays, camera, vis, inferred_seen, time.perf_counter() - t0
+
+
+def _camera_taps(shadow_rays, camera, q, texels, sel: np.ndarray, lights):
+    """The shadow-consistent taps of a camera's projected texels ``sel`` read at pixels ``q``
+    (:func:`facegeo.surface.shadows.shadow_taps`), or None without ``shadow_rays``."""
+    if shadow_rays is None:
+        return None
+    from facegeo.surface.shadows import shadow_taps as make_taps
+
+    return make_taps(shadow_rays, camera, q, texels.face[sel], texels.bary[sel], lights)
+
+
+def _save_visibility(d: Path, vis, vis_kw: dict) -> None:
+    """The camera's occlusion decision, for the evaluation's comparison with other
+    visibility (``visibility.npz``, module docstring)."""
+    from facegeo.surface import reflectance as rf
+
+    jump = vis_kw.get("depth_jump", rf.DEFAULT_DEPTH_JUMP)
+    np.savez_compressed(d / VISIBILITY_FILE, in_image=vis.in_image, facing=vis.facing,
+                        unoccluded=vis.unoccluded, depth_jump=np.float64(jump))
+
+
+def light_visibility_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mesh: str,
+                          vis_kw: dict, dtype: str, chunk: int, shadow_taps: bool,
+                          field_format: str, scratch: str) -> dict:
+    """The visibility task of a camera split into blocks of lights
+    (:mod:`facegeo.pipeline._project_blocks`): its visibility (:func:`_visible_texels`, as a
+    whole camera's task), small files, ``visibility.npz`` and empty field in ``dest/<name>``
+    (:func:`~facegeo.pipeline._project_blocks.prepare_split_camera`). Returns
+    ``{"metrics": ...}``."""
+    from facegeo.pipeline import _project_blocks as pb
+
+    scan = _scan(scan)
+    d = Path(dest) / name
+    _, _, _, vis, inferred_seen, t_vis = _visible_texels(scan, atlas_dir, name, the_rig, mesh,
+                                                         vis_kw, shadow_taps)
+    entry = pb.prepare_split_camera(d, vis, scan.n_lights, dtype, chunk, field_format, scratch,
+                                    name)
+    _save_visibility(d, vis, vis_kw)
+    entry["seconds_visibility"] = round(t_vis, 4)
+    if inferred_seen is not None:
+        entry["inferred_texels_unmeasured"] = inferred_seen
+    return {"metrics": entry}
+
+
+def light_block_task(scan, atlas_dir: str, dest: str, name: str, the_rig, mesh: str,
+                     dtype: str, lights: tuple[int, int], chunk: int, shadow_taps: bool,
+                     field_format: str, scratch: str) -> dict:
+    """One block of lights ``(l0, l1)`` of a camera split into blocks
+    (:mod:`facegeo.pipeline._project_blocks`), after its visibility task: the camera's shadow
+    taps rebuilt for the saved texels, then only these lights' OLAT frames projected into
+    their columns of the field (:func:`~facegeo.pipeline._project_blocks.
+    project_light_block`). Returns ``{"metrics": ...}`` with ``seconds_projection``."""
+    from facegeo.pipeline import _project_blocks as pb
+
+    scan = _scan(scan)
+    texels, _, shadow_rays, _ = _camera_inputs(scan, Path(atlas_dir), mesh, shadow_taps)
+    camera = the_rig.camera(name)
+    d = Path(dest) / name
+    sel, q = pb.load_selection(d, scratch, name)
+    t0 = time.perf_counter()
+    taps = _camera_taps(shadow_rays, camera, q, texels, sel, the_rig.lights)
+    frames = scan.iter_olat(name, range(int(lights[0]), int(lights[1])), return_mask=True,
+                            read_ahead=READ_AHEAD_WORKERS, black_clipped="dark")
+    out = pb.project_light_block(frames, d, q, (camera.width, camera.height), name, lights,
+                                 chunk, dtype, taps, field_format)
+    out["seconds_projection"] = round(time.perf_counter() - t0, 4)
+    log.info("project %s: lights %d:%d, %d texels in %.2f s", name, lights[0], lights[1],
+             sel.size, out["seconds_projection"])
+    return {"metrics": out}
+
+
 def _project_camera(scan, atlas_dir: str, d: Path, name: str, the_rig, mesh: str,
                     vis_kw: dict, dtype: str, block_lights: int, shadow_taps: bool,
                     field_format: str, field_store) -> dict:
@@ -855,24 +1008,12 @@ def _project_camera(scan, atlas_dir: str, d: Path, name: str, the_rig, mesh: str
     from facegeo.surface import reflectance as rf
 
     scan = _scan(scan)
-    texels, scene, shadow_rays, inferred = _camera_inputs(scan, Path(atlas_dir), mesh,
-                                                          shadow_taps)
-    camera = the_rig.camera(name)
-    jump = vis_kw.get("depth_jump", rf.DEFAULT_DEPTH_JUMP)
-    t0 = time.perf_counter()
-    vis = rf.camera_visibility(texels, camera, scene, **vis_kw)
-    inferred_seen = 0
-    if inferred is not None:  # surface no point supported: not measured (module docstring)
-        inferred_seen = int(np.count_nonzero(vis.weight[inferred] > 0))
-        vis.weight[inferred] = 0.0
+    texels, shadow_rays, camera, vis, inferred_seen, t_vis = _visible_texels(
+        scan, atlas_dir, name, the_rig, mesh, vis_kw, shadow_taps)
     t1 = time.perf_counter()
-    taps = None
-    if shadow_rays is not None:  # built and applied within seconds_projection
-        from facegeo.surface.shadows import shadow_taps as make_taps
-
-        sel = np.flatnonzero(vis.weight > 0)
-        taps = make_taps(shadow_rays, camera, vis.q[sel], texels.face[sel],
-                         texels.bary[sel], the_rig.lights)
+    # built and applied within seconds_projection
+    sel = np.flatnonzero(vis.weight > 0)
+    taps = _camera_taps(shadow_rays, camera, vis.q[sel], texels, sel, the_rig.lights)
     field = rf.project_camera(
         # black-clipped pixels are the dark samples a one-light frame is mostly made of:
         # measured (below one code value), not masked — masking them left 59 % of a 16-bit
@@ -886,7 +1027,7 @@ def _project_camera(scan, atlas_dir: str, d: Path, name: str, the_rig, mesh: str
     entry = {
         "visible_fraction": round(vis.visible_fraction, 6),
         "weighted_texels": int(field.texel_index.size),
-        "seconds_visibility": round(t1 - t0, 4),
+        "seconds_visibility": round(t_vis, 4),
         "seconds_projection": round(t2 - t1, 4),
         "texels_per_second": round(field.texel_index.size * scan.n_lights
                                    / max(t2 - t1, 1e-9), 1),
@@ -894,12 +1035,10 @@ def _project_camera(scan, atlas_dir: str, d: Path, name: str, the_rig, mesh: str
         "float16_overflow": field.n_overflow,
         "shadow_taps": taps is not None,
     }
-    if inferred is not None:  # inferred texels this camera saw, left unmeasured
+    if inferred_seen is not None:  # inferred texels this camera saw, left unmeasured
         entry["inferred_texels_unmeasured"] = inferred_seen
     if taps is not None:
         entry["shadow_edge_samples"] = round(taps.changed / max(taps.samples, 1), 6)
         entry["seconds_shadow_taps"] = round(taps.seconds, 4)
-    # the occlusion decision, for the evaluation's comparison with other visibility
-    np.savez_compressed(d / VISIBILITY_FILE, in_image=vis.in_image, facing=vis.facing,
-                        unoccluded=vis.unoccluded, depth_jump=np.float64(jump))
+    _save_visibility(d, vis, vis_kw)
     return {"metrics": entry}

@@ -316,7 +316,7 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
                          only: str | None = None, until: str | None = None,
                          engine=None, calibration_error: str | None = None,
                          diagnostic: bool = False, views: list | None = None,
-                         store=None) -> Pipeline:
+                         store=None, lights_per_task: int | None = None) -> Pipeline:
     """The :class:`~facegeo.pipeline.cache.Pipeline` of ``facegeo reconstruct`` for one scan.
 
     Parameters
@@ -336,7 +336,13 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
         camera; ``fit``, ``relight``: chunks; ``render``: one task per view); default in
         process. Not part of any stage's key: the products are the same bytes.
     store : str, optional
-        The ``decode`` stage's tasks write through this store (:func:`run_reconstruct`).
+        The ``decode`` stage's tasks write through this store, the texture ``relight``'s tasks
+        put their relit rows into it, and the ``render`` stage's view tasks read their inputs
+        from it and write their views into it (:func:`run_reconstruct`).
+    lights_per_task : int, optional
+        The ``project`` stage's tasks split a camera into blocks of this many lights
+        (:func:`facegeo.pipeline.project.project_products`; default: its automatic rule on a
+        Dask engine). Not a setting: the products are the same bytes.
     calibration_error : str, optional
         The ``calibrate`` stage's recorded failure, when it failed: ``rig="auto"`` then falls
         back (module docstring; :func:`run_reconstruct` runs the calibration first to know).
@@ -461,15 +467,17 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
         def run_project(ctx: StageContext) -> dict:
             metrics, _ = project_products(scan, ctx.upstream["atlas"], ctx.out_dir,
                                           mesh=mesh_of(ctx), **without_mesh(ctx),
-                                          engine=engine, progress=ctx.progress)
+                                          engine=engine, progress=ctx.progress,
+                                          lights_per_task=lights_per_task)
             return metrics
 
         def run_relight(ctx: StageContext) -> dict:
             from facegeo.pipeline.relight import relight_products
 
+            # with a store the tasks' relit rows go through it (not a setting: the same bytes)
             metrics, _ = relight_products(scan, ctx.upstream["project"], ctx.out_dir,
                                           atlas_dir=ctx.upstream["atlas"], engine=engine,
-                                          **ctx.settings)
+                                          store=store, **ctx.settings)
             return metrics
 
         def env_inputs(env: str) -> list[Path]:
@@ -488,7 +496,8 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             from facegeo.pipeline.render import render_products
 
             return render_products(scan, ctx.upstream["atlas"].parent, ctx.out_dir,
-                                   progress=ctx.progress, engine=engine, **ctx.settings)
+                                   progress=ctx.progress, engine=engine, store=store,
+                                   **ctx.settings)
 
         if views is None:
             views = [f"orbit:{FRONT}:{d:g}" for d in RENDER_ORBITS]
@@ -548,7 +557,8 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
                     until: str | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
                     on_stage: Callable[[StageResult], None] | None = None,
-                    engine=None, store: str | None = None) -> list[StageResult]:
+                    engine=None, store: str | None = None,
+                    lights_per_task: int | None = None) -> list[StageResult]:
     """Run every stage of ``facegeo reconstruct`` whose products are missing or stale.
 
     Parameters
@@ -578,6 +588,8 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
         tasks (they write through the store and, when it holds the scan — ``facegeo push`` —
         read their frames from it; :func:`facegeo.pipeline.decode.decode_products`; not a
         setting: the products are the same) (docs/scale.md §3).
+    lights_per_task : int, optional
+        See :func:`reconstruct_pipeline`.
     """
     from facegeo.capture.scan import Scan, load_scan
 
@@ -621,7 +633,7 @@ def run_reconstruct(scan_dir, *, mesh: str = "auto", rig: str = "auto",
                                   or s == "evaluate")
         pipeline = reconstruct_pipeline(scan, mesh=mesh, rig=rig, only=only, until=until,
                                         engine=engine, calibration_error=calibration_error,
-                                        store=store)
+                                        store=store, lights_per_task=lights_per_task)
         if store is not None:  # the stages with a store setting, where the scan has them
             settings = dict(settings or {})
             for spec in pipeline.stages:

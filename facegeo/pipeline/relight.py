@@ -12,7 +12,10 @@ Two views:
 :func:`relight_products` does the work and returns ``(metrics, settings)`` without writing a
 JSON file (the cached stage of ``facegeo reconstruct``); :func:`run_relight` wraps it for the CLI
 (``facegeo relight SCAN --env FILE|NAME [--rotate DEG] [--view CAMERA|texture]``) and writes the
-metrics beside the images. ``env`` may name a shipped procedural map (``"sky"``, ``"studio"``,
+metrics beside the images. :func:`relight_maps_products` and :func:`run_relight_maps` do the same
+under several maps (``--env A --env B``, or a folder of maps): each map's own files, the field
+(or the camera's OLAT frames) read once per batch of :data:`RELIGHT_MAPS_PER_TASK` maps.
+``env`` may name a shipped procedural map (``"sky"``, ``"studio"``,
 :func:`facegeo.lighting.envmap.shipped_map`). Progress goes through the ``progress`` callback, the
 library only logs.
 """
@@ -36,8 +39,10 @@ from facegeo.checks import check_choice, fmt_value
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_relight", "relight_products", "relight_rows_task", "relight_texture",
-           "relight_fitted", "relight_working_set", "resolve_env", "tone_map", "energy_note"]
+__all__ = ["run_relight", "run_relight_maps", "relight_products", "relight_maps_products",
+           "relight_rows_task", "relight_texture", "relight_fitted", "relight_working_set",
+           "expand_env_maps", "resolve_env", "tone_map", "energy_note",
+           "RELIGHT_MAPS_PER_TASK"]
 
 #: Tone mapping: the 99.5th percentile of luminance maps to this display value before sRGB.
 TONE_MAP_WHITE = 0.9
@@ -94,16 +99,29 @@ RELIGHT_BYTES_PER_SAMPLE = 2
 #: thread on a worker) and the relit rows (12 B a texel, counted per texel below).
 RELIGHT_BYTES_FIXED = 32 << 20
 RELIGHT_BYTES_PER_TEXEL = 3 * 4 + 3 * 8
+#: Environment maps a relight task relights its rows under at once (one GEMM a chunk of rows,
+#: :func:`facegeo.lighting.relight.relight_field` with ``(B, L, 3)`` weights: the rows are read
+#: once for the B maps). Bounds a task's relit rows (B × 36 B a texel) and the client's blend
+#: of a batch. Measured on the tiny scan's texture (80 k texel rows × 128 lights, float16, one
+#: thread; ``docs/scale.md`` §1): batched against one map at a time 1.9× at 4 maps, 2.9–3.2×
+#: at 8, 3.0–3.2× at 16 — little gain past 8 (the GEMM is compute-bound), only larger tasks.
+RELIGHT_MAPS_PER_TASK = 8
 
 
-def relight_working_set(n_texels: int, n_lights: int, itemsize: int = 2) -> int:
+def relight_working_set(n_texels: int, n_lights: int, itemsize: int = 2,
+                        n_maps: int = 1) -> int:
     """Memory (bytes) one relight task needs for ``n_texels`` rows of a field of ``n_lights``
-    lights: the rows (:data:`RELIGHT_BYTES_PER_SAMPLE` × ``itemsize`` / 2 a sample), the relit
-    rows and their float64 blend (:data:`RELIGHT_BYTES_PER_TEXEL`), the relighting's chunk
-    buffers (:data:`RELIGHT_BYTES_FIXED`)."""
-    n, L = int(n_texels), int(n_lights)
+    lights relit under ``n_maps`` environment maps at once::
+
+        n × L × 3 × itemsize  +  n × B × 36 B  +  32 MiB
+
+    the rows (:data:`RELIGHT_BYTES_PER_SAMPLE` × ``itemsize`` / 2 a sample, read once for the
+    B maps), the relit rows of each map and their float64 blend
+    (:data:`RELIGHT_BYTES_PER_TEXEL` a texel and map), the relighting's chunk buffers
+    (:data:`RELIGHT_BYTES_FIXED`)."""
+    n, L, B = int(n_texels), int(n_lights), max(1, int(n_maps))
     return (n * L * 3 * RELIGHT_BYTES_PER_SAMPLE * int(itemsize) // 2
-            + n * RELIGHT_BYTES_PER_TEXEL + RELIGHT_BYTES_FIXED)
+            + n * B * RELIGHT_BYTES_PER_TEXEL + RELIGHT_BYTES_FIXED)
 
 
 def _task_rows(R, w) -> int:
@@ -128,10 +146,12 @@ def relight_rows_task(field: tuple[str, str], relit: str, s0: int, s1: int, weig
     :func:`facegeo.lighting.relight.relight_field`) into rows ``s0:s1`` of ``relit``.
 
     ``field`` is ``(kind, location)`` (:func:`facegeo.surface.reflectance.find_field`: an
-    ``R.npy`` path, or a Zarr store — a folder or an fsspec URL); ``relit`` the ``(T_c, 3)``
-    float32 rows the stage created: a ``.npy`` file, or a Zarr array (a path ending in
-    ``.zarr`` or a URL: workers that share no disk). Tasks write disjoint rows (whole chunks
-    of a Zarr array). Reads only its rows (a memory map, or the Zarr chunks they fall in)."""
+    ``R.npy`` path, or a Zarr store — a folder or an fsspec URL); ``weights`` ``(L, 3)`` (one
+    map) or ``(B, L, 3)`` (a batch of B maps: the rows are read once, one GEMM a chunk);
+    ``relit`` the float32 rows the stage created, ``(T_c, 3)`` for ``(L, 3)`` weights and
+    ``(B, T_c, 3)`` for a batch: a ``.npy`` file, or a Zarr array (a path ending in ``.zarr``
+    or a URL: workers that share no disk). Tasks write disjoint rows (whole chunks of a Zarr
+    array). Reads only its rows (a memory map, or the Zarr chunks they fall in)."""
     from facegeo.lighting.relight import relight_field
     from facegeo.surface._zarr_field import open_zarr_field
 
@@ -143,46 +163,58 @@ def relight_rows_task(field: tuple[str, str], relit: str, s0: int, s1: int, weig
     R = np.load(loc, mmap_mode="r") if kind == "npy" else open_zarr_field(loc)
     rows = R[s0:s1]  # a view of the memory map, or the Zarr chunks read
     out = relight_field(rows, weights, light_color=light_color, workers=1)
+    sel = (slice(s0, s1),) if out.ndim == 2 else (slice(None), slice(s0, s1))
     if _is_zarr_target(relit):
         import zarr
 
-        zarr.open_array(relit, mode="r+")[s0:s1] = out
+        zarr.open_array(relit, mode="r+")[sel] = out
     else:
         dst = np.load(relit, mmap_mode="r+")
-        dst[s0:s1] = out
+        dst[sel] = out
         dst.flush()
         del dst
-    return {"texels": int(s1 - s0), "seconds": time.perf_counter() - t0}
+    return {"texels": int(s1 - s0), "maps": 1 if out.ndim == 2 else int(out.shape[0]),
+            "seconds": time.perf_counter() - t0}
 
 
 def _is_zarr_target(location: str) -> bool:
     return "://" in str(location) or str(location).endswith(".zarr")
 
 
-def _relit_rows_target(parts, cam: str, n: int, step: int) -> str:
-    """Create the ``(n, 3)`` float32 relit rows of camera ``cam`` in ``parts`` (a folder: a
-    ``.npy``; an fsspec URL: a Zarr array chunked by ``step`` rows, one chunk a task)."""
+def _relit_rows_target(parts, name: str, n: int, step: int, n_maps: int) -> str:
+    """Create the ``(n_maps, n, 3)`` float32 relit rows ``name`` (a camera and a batch of
+    maps) in ``parts`` (a folder: a ``.npy``; an fsspec URL: a Zarr array chunked by ``step``
+    rows and the batch's maps, one chunk a task)."""
+    shape = (int(n_maps), int(n), 3)
     if isinstance(parts, str) and "://" in parts and not parts.startswith("file://"):
         import zarr
 
-        loc = f"{parts.rstrip('/')}/{cam}.zarr"
-        zarr.create_array(store=loc, shape=(n, 3), chunks=(max(min(step, n), 1), 3),
+        loc = f"{parts.rstrip('/')}/{name}.zarr"
+        zarr.create_array(store=loc, shape=shape, chunks=(shape[0], max(min(step, n), 1), 3),
                           dtype="float32", fill_value=np.nan, overwrite=True)
         return loc
     folder = Path(parts[len("file://"):] if isinstance(parts, str)
                   and parts.startswith("file://") else parts)
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{cam}.npy"
-    np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(n, 3)).flush()
+    path = folder / f"{name}.npy"
+    np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape).flush()
     return str(path)
 
 
-def _read_relit_rows(location: str) -> np.ndarray:
+def _read_relit_rows(location: str, j: int) -> np.ndarray:
+    """Map ``j``'s ``(n, 3)`` relit rows of a ``(B, n, 3)`` target."""
     if _is_zarr_target(location):
         import zarr
 
-        return np.asarray(zarr.open_array(location, mode="r")[:])
-    return np.load(location)
+        return np.asarray(zarr.open_array(location, mode="r")[j])
+    return np.array(np.load(location, mmap_mode="r")[j])
+
+
+def _map_batches(n_maps: int, per: int | None = None) -> list[tuple[int, int]]:
+    """``[(b0, b1), …]``: maps ``0:n_maps`` in batches of ``per`` (default
+    :data:`RELIGHT_MAPS_PER_TASK`)."""
+    per = max(1, int(per if per is not None else RELIGHT_MAPS_PER_TASK))
+    return [(b0, min(b0 + per, n_maps)) for b0 in range(0, n_maps, per)]
 
 
 def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
@@ -191,9 +223,9 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
                     project_dir: str | os.PathLike | None = None,
                     atlas_dir: str | os.PathLike | None = None,
                     engine=None, parts_dir: str | os.PathLike | None = None,
-                    ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+                    first_map: int = 0) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Relight the surface reflectance field in texture space (Eq. 4 on every camera's field,
-    blended per texel by the camera weights).
+    blended per texel by the camera weights), under one environment or a batch of them.
 
     For texel t seen by cameras c with weights ``w_c(t)`` (light-independent, see
     ``docs/surface.md``)::
@@ -210,33 +242,41 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
     ----------
     field_dir : path or None
         Folder holding ``atlas/texels.npz`` and ``project/<camera>/`` (``SCAN/out``).
-    weights : (L, 3) float
-        Eq. (4) weights (δA included), L the scan's lights.
+    weights : (L, 3) or (B, L, 3) float
+        Eq. (4) weights (δA included), L the scan's lights; ``(B, L, 3)``: B environments,
+        relit in batches of :data:`RELIGHT_MAPS_PER_TASK` — a task reads its rows once for
+        its batch (one GEMM a chunk of rows, :func:`facegeo.lighting.relight.relight_field`).
+        A batch of one map takes the same fused kernel as ``(L, 3)`` (the same bytes); a
+        batch of several agrees with one map at a time to float32 rounding (``docs/scale.md``).
     light_color : (3,) or (L, 3), optional
         Divide the weights by the recording light's colour (see
         :func:`facegeo.lighting.relight.relight_field`).
     progress : callable(done, total), optional
-        Called as each camera's last task finishes (in process: after each camera).
+        Called as the last task of a (camera, batch of maps) finishes: ``total`` is cameras ×
+        batches (one batch for ``(L, 3)`` weights: per camera).
     project_dir, atlas_dir : path, optional
         The ``project`` and ``atlas`` stage folders when they are not ``field_dir/project``
         and ``field_dir/atlas`` (the cached stages of ``facegeo reconstruct``).
     engine : facegeo.pipeline.engine.Engine, optional
         Where the relight tasks run (default in process): each camera's field in tasks of
-        :data:`RELIGHT_TASK_TEXELS` rows (:func:`relight_rows_task`), each checked against a
-        worker's memory (:func:`relight_working_set`) before any runs. The blend runs here,
-        in camera order: the result is the same whatever the engine.
+        :data:`RELIGHT_TASK_TEXELS` rows and one batch of maps (:func:`relight_rows_task`),
+        each checked against a worker's memory (:func:`relight_working_set`) before any runs.
+        The blend runs here, in camera order: the result is the same whatever the engine.
     parts_dir : path or str, optional
-        Where the tasks' relit rows go (``<camera>.npy``, removed afterwards): a folder, on a
-        cluster one the workers share; or an fsspec URL (``s3://bucket/tmp``: a Zarr array
-        per camera, for workers that share no disk — with fields in a store too,
-        :func:`facegeo.surface.reflectance.find_field`). Default: a temporary folder (in
-        process only).
+        Where the tasks' relit rows go (``<camera>.npy``, ``<camera>_maps<b0>.npy`` for a
+        batch; removed afterwards): a folder, on a cluster one the workers share; or an fsspec
+        URL (``s3://bucket/tmp``: a Zarr array per camera and batch, for workers that share no
+        disk — with fields in a store too, :func:`facegeo.surface.reflectance.find_field`).
+        Default: a temporary folder (in process only).
+    first_map : int
+        Index of ``weights[0]`` among the maps of a larger run, in the tasks' names
+        (``"<camera> <s0>:<s1> maps <b0>:<b1>"`` for ``(B, L, 3)`` weights) and the parts'.
 
     Returns
     -------
-    relit : (T, 3) float32
+    relit : (T, 3) float32, or (B, T, 3) for ``(B, L, 3)`` weights
         Relit radiance per texel, NaN where no camera measured it.
-    weight_sum : (T, 3) float64
+    weight_sum : (T, 3) float64, or (B, T, 3)
         ``Σ_c w_c(t)`` over the cameras blended (per channel); 0 where unmeasured.
     cameras : list of str
     """
@@ -251,6 +291,10 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
     proj, texels_path = _texture_dirs(field_dir, project_dir, atlas_dir)
     cams = _project_cameras(proj, texels_path)
     n_t = len(Texels.load(texels_path))
+    batched = np.ndim(weights) == 3
+    w_all = np.asarray(weights) if batched else np.asarray(weights)[None]
+    n_maps = w_all.shape[0]
+    batches = _map_batches(n_maps)
     engine = InProcessEngine() if engine is None else engine
     if parts_dir is None and engine.kind != "in-process":
         raise InputError("relight_texture: parts_dir: a folder the workers share, for their "
@@ -270,46 +314,60 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
                 raise InputError(f"{cam}/texel_index.npy: indices outside the atlas's {n_t} "
                                  f"texels (the atlas was rebuilt after the projection; re-run "
                                  f"'facegeo project')")
-            step = _task_rows(R, normalize_weights(weights, R.shape[1], light_color))
-            relit_path = _relit_rows_target(parts, cam.name, idx.size, step)
-            layout.append((cam, relit_path))
             kind, loc = find_field(cam)  # the field itself: a path, or a store's URL
-            for s0 in range(0, idx.size, step):
-                s1 = min(s0 + step, idx.size)
-                tasks.append(Task(f"{cam.name} {s0}:{s1}", relight_rows_task,
-                                  ((kind, str(loc)), relit_path, s0, s1, weights, light_color),
-                                  working_set=relight_working_set(s1 - s0, R.shape[1],
-                                                                  R.dtype.itemsize),
-                                  size=int(s1 == idx.size)))  # progress: per camera
+            for b0, b1 in batches:
+                wb = w_all[b0:b1]
+                step = _task_rows(R, normalize_weights(wb, R.shape[1], light_color))
+                one = not batched
+                m0, m1 = first_map + b0, first_map + b1
+                name = cam.name if one else f"{cam.name}_maps{m0}"
+                relit_path = _relit_rows_target(parts, name, idx.size, step, b1 - b0)
+                layout.append((cam, b0, b1, relit_path))
+                for s0 in range(0, idx.size, step):
+                    s1 = min(s0 + step, idx.size)
+                    tasks.append(Task(f"{cam.name} {s0}:{s1}" + ("" if one
+                                                                  else f" maps {m0}:{m1}"),
+                                      relight_rows_task,
+                                      ((kind, str(loc)), relit_path, s0, s1, wb, light_color),
+                                      working_set=relight_working_set(
+                                          s1 - s0, R.shape[1], R.dtype.itemsize, b1 - b0),
+                                      size=int(s1 == idx.size)))  # progress: (camera, batch)
         told = [0]
 
-        def tick(stage, k, n):  # (cameras whose last rows are relit, cameras)
+        def tick(stage, k, n):  # ((camera, batch)s whose last rows are relit, their number)
             if k > told[0]:
                 told[0] = k
                 progress(k, n)
 
         engine.map("relight", tasks, progress=tick if progress else None)
-        acc = np.zeros((n_t, 3))
-        wsum = np.zeros((n_t, 3))
-        for cam, relit_path in layout:  # camera order, wherever the tasks ran
-            idx = np.load(cam / "texel_index.npy")
-            wc = np.load(cam / "weight.npy").astype(np.float64)
-            relit = _read_relit_rows(relit_path).astype(np.float64)
-            ok = np.isfinite(relit)
-            # texel_index is unique within a camera: plain fancy-index accumulation is exact
-            acc[idx] += np.where(ok, wc[:, None] * np.where(ok, relit, 0.0), 0.0)
-            wsum[idx] += np.where(ok, wc[:, None], 0.0)
+        out = np.empty((n_maps, n_t, 3), np.float32)
+        wsum_all = np.zeros((n_maps, n_t, 3))
+        for j in range(n_maps):  # per map: the blend's float64 sums of one map at a time
+            acc = np.zeros((n_t, 3))
+            wsum = wsum_all[j]
+            for cam, b0, b1, relit_path in layout:  # camera order, wherever the tasks ran
+                if not b0 <= j < b1:
+                    continue
+                idx = np.load(cam / "texel_index.npy")
+                wc = np.load(cam / "weight.npy").astype(np.float64)
+                relit = _read_relit_rows(relit_path, j - b0).astype(np.float64)
+                ok = np.isfinite(relit)
+                # texel_index is unique within a camera: plain fancy-index accumulation is exact
+                acc[idx] += np.where(ok, wc[:, None] * np.where(ok, relit, 0.0), 0.0)
+                wsum[idx] += np.where(ok, wc[:, None], 0.0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out[j] = np.where(wsum > 0, acc / wsum, np.nan)
     finally:
         if own:
             shutil.rmtree(parts, ignore_errors=True)
         else:
             from facegeo.surface._zarr_field import remove_location
 
-            for _, relit_path in layout:
+            for *_, relit_path in layout:
                 remove_location(relit_path)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(wsum > 0, acc / wsum, np.nan).astype(np.float32)
-    return out, wsum, [c.name for c in cams]
+    if not batched:
+        return out[0], wsum_all[0], [c.name for c in cams]
+    return out, wsum_all, [c.name for c in cams]
 
 
 def _texture_dirs(field_dir, project_dir, atlas_dir) -> tuple[Path, Path]:
@@ -422,17 +480,106 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
     settings : dict
         The settings that determine the products (for the stage cache key).
     """
-    from facegeo.capture import imageio
+    metrics, settings, _ = relight_maps_products(
+        scan, project_dir, dest, envs=[env], rotate=rotate, view=view, atlas_dir=atlas_dir,
+        projection=projection, solid_angle=solid_angle, progress=progress,
+        read_ahead=read_ahead, model=model, fit_dir=fit_dir, convention=convention,
+        engine=engine, store=store)
+    return metrics[0], settings[0]
+
+
+def expand_env_maps(envs) -> list:
+    """The environment maps named by ``envs`` (a path or name, or a sequence of them): each
+    file or shipped map's name as given, each folder replaced by its ``.exr``/``.hdr`` files
+    sorted by name. A folder holding none is an :class:`InputError`."""
+    items = [envs] if isinstance(envs, (str, os.PathLike)) else list(envs)
+    out: list = []
+    for e in items:
+        p = Path(e)
+        if p.is_dir():
+            found = sorted((f for f in p.iterdir()
+                            if f.is_file() and f.suffix.lower() in (".exr", ".hdr")),
+                           key=lambda f: f.name)
+            if not found:
+                raise InputError(f"env: the folder {p} holds no .exr or .hdr environment map")
+            out.extend(found)
+        else:
+            out.append(e)
+    if not out:
+        raise InputError("env: no environment map given")
+    return out
+
+
+def _check_map_stems(envs) -> None:
+    """Each map's files are named by its stem (:func:`_relit_stem`): two maps of one stem would
+    write the same files. Raise an :class:`InputError` naming both."""
+    seen: dict[str, Any] = {}
+    for e in envs:
+        k = _safe_stem(Path(str(e)).stem)
+        if k in seen:
+            raise InputError(f"env: {e} and {seen[k]} have the same name {k!r} and would write "
+                             "the same files; rename one, or relight them in separate runs "
+                             "with different --out folders")
+        seen[k] = e
+
+
+def _relit_stem(env, env_map, rotate, view, solid_angle, lights) -> str:
+    """``<map stem>[_projection][_convention]_rot<deg>_<view>[_rule]`` of a map's files."""
+    rot = f"{float(rotate):g}".replace("-", "m")
+    # the projection and the δA rule are part of the name when they are not the defaults (a
+    # map read as a mirror ball, or an exact-solid-angle relight, does not overwrite the others)
+    rule = ("" if solid_angle == "paper" or not hasattr(lights, "n_theta")  # a list: its own δA
+            else f"_{_safe_stem(solid_angle)}")
+    proj_tag = ("" if env_map.projection == "latlong" else f"_{env_map.projection}") + (
+        "" if env_map.convention == "facegeo" else f"_{env_map.convention}")
+    return f"{_safe_stem(Path(str(env)).stem)}{proj_tag}_rot{rot}_{_safe_stem(view)}{rule}"
+
+
+def relight_maps_products(scan, project_dir: str | os.PathLike | None,
+                          dest: str | os.PathLike, *, envs, rotate: float = 0.0,
+                          view: str = "texture", atlas_dir: str | os.PathLike | None = None,
+                          projection: str = "latlong", solid_angle: str = "paper",
+                          progress: Callable[[str, int, int], None] | None = None,
+                          read_ahead: int = 0, model: str = "measured",
+                          fit_dir: str | os.PathLike | None = None,
+                          convention: str = "facegeo", engine=None,
+                          store: str | os.PathLike | None = None
+                          ) -> tuple[list[dict], list[dict], dict]:
+    """:func:`relight_products` under every map of ``envs`` (Eq. 4 per map), the field read once
+    per batch of :data:`RELIGHT_MAPS_PER_TASK` maps.
+
+    ``envs`` is a sequence of map files, shipped maps' names or folders
+    (:func:`expand_env_maps`); every other argument applies to every map, as in
+    :func:`relight_products`. Each map writes the files a run with it alone writes (named by its
+    stem: two maps of one stem are an :class:`InputError`). The texture view relights a batch
+    in the same tasks (:func:`relight_texture` with ``(B, L, 3)`` weights: one GEMM a chunk of
+    rows); a camera view reads each OLAT frame lit by any map of the batch once and accumulates
+    every map's image in float64 in light order (the same bytes as one map alone). A batch of
+    one map is the one-map path; a texture batch of several agrees with it to float32 rounding
+    (the GEMM's order of sums; ``docs/scale.md``). ``model="fitted"`` relights map by map.
+    ``progress(stage, done, total)``: texture view per (camera, batch), camera view per frame
+    read.
+
+    Returns
+    -------
+    metrics : list of dict
+        Per map, :func:`relight_products`'s metrics; with several maps also ``batch``
+        (``index``, ``maps`` in it, ``batches``, its relight ``seconds``), and each map's
+        ``seconds.relight`` is its batch's divided by the batch's maps.
+    settings : list of dict
+        Per map, the settings that determine its products.
+    batch : dict
+        ``maps``, ``batches``, ``maps_per_batch``, ``view``, ``seconds`` (``env``, ``weights``,
+        ``relight``, ``write``, ``total``).
+    """
     from facegeo.lighting import envmap as E
-    from facegeo.lighting.relight import relight_scan_view
-    from facegeo.surface._zarr_field import store_location
 
     t0 = time.perf_counter()
     check_choice(solid_angle, "solid_angle", ("paper", "exact"))
     check_choice(model, "model", ("measured", "fitted"))
     names = scan.camera_names
     texture = view == "texture"
-    fitted_path = None
+    fitted_path = proj = texels_path = None
     if model == "fitted":
         fitted_path = _fitted_model_path(scan, view, fit_dir)
     elif texture:
@@ -449,89 +596,198 @@ def relight_products(scan, project_dir: str | os.PathLike | None, dest: str | os
         if view not in names:
             raise InputError(f"view: unknown camera {fmt_value(view)}; the scan has "
                              f"{', '.join(names)} (or 'texture')")
-    env_map = resolve_env(env, projection, rotate_deg=rotate, convention=convention)
-    settings = {"env": str(env), "rotate": float(rotate), "view": view,
-                "projection": env_map.projection, "solid_angle": solid_angle,
-                "model": model}
-    if env_map.convention != "facegeo":  # only then: the default keeps the stage's cache key
-        settings["convention"] = env_map.convention
+    envs = expand_env_maps(envs)
+    _check_map_stems(envs)
     lights = scan.rig.lights
-    t_env = time.perf_counter()
-    integral = env_map.integral()
+    jobs: list[dict] = []
+    all_metrics: list[dict] = []
+    all_settings: list[dict] = []
+    t_start = t0
+    for env in envs:  # the maps' weights (each map read, projected and dropped)
+        env_map = resolve_env(env, projection, rotate_deg=rotate, convention=convention)
+        settings = {"env": str(env), "rotate": float(rotate), "view": view,
+                    "projection": env_map.projection, "solid_angle": solid_angle,
+                    "model": model}
+        if env_map.convention != "facegeo":  # only then: the default keeps the cache key
+            settings["convention"] = env_map.convention
+        t_env = time.perf_counter()
+        integral = env_map.integral()
+        if fitted_path is not None:
+            m, s = _relight_fitted_products(scan, view, env_map, fitted_path, Path(dest), env,
+                                            rotate, settings, t_start, integral)
+            all_metrics.append(m)
+            all_settings.append(s)
+            t_start = time.perf_counter()
+            continue
+        w = E.light_weights(env_map, lights, solid_angle=solid_angle)  # a grid or a list
+        t_w = time.perf_counter()
+        jobs.append({"env": env, "settings": settings, "integral": integral, "w": w,
+                     "stem": _relit_stem(env, env_map, rotate, view, solid_angle, lights),
+                     "projection": env_map.projection, "convention": env_map.convention,
+                     "seconds": {"env": t_env - t_start, "weights": t_w - t_env}})
+        del env_map
+        t_start = t_w
+    batches = _map_batches(len(jobs))
+    batch = {"maps": len(envs), "batches": len(batches) if jobs else len(envs),
+             "maps_per_batch": RELIGHT_MAPS_PER_TASK, "view": view,
+             "seconds": {"env": sum(j["seconds"]["env"] for j in jobs),
+                         "weights": sum(j["seconds"]["weights"] for j in jobs),
+                         "relight": 0.0, "write": 0.0}}
     if fitted_path is not None:
-        return _relight_fitted_products(scan, view, env_map, fitted_path, Path(dest), env,
-                                        rotate, settings, t0, integral)
-    w = E.light_weights(env_map, lights, solid_angle=solid_angle)  # a grid or a light list
-    active = int(np.count_nonzero(np.any(w != 0, axis=1)))
-    t_w = time.perf_counter()
-    extra: dict[str, Any] = {}
-    if texture:
-        from facegeo.surface.atlas import Texels
+        batch["seconds"]["total"] = time.perf_counter() - t0
+        return all_metrics, all_settings, batch
+    # progress totals: texture per (camera, batch); camera view per frame read of each batch
+    actives = [int(np.count_nonzero(np.any(np.stack([j["w"] for j in jobs[b0:b1]]) != 0,
+                                           axis=(0, 2)))) for b0, b1 in batches]
+    for i, (b0, b1) in enumerate(batches):
+        group = jobs[b0:b1]
+        t_b = time.perf_counter()
+        if texture:
+            tick = ((lambda k, n, i=i: progress("relight", i * n + k, n * len(batches)))
+                    if progress else None)
+            results, extras = _relight_texture_batch(group, lights, proj, texels_path, dest,
+                                                     tick, engine, store, first_map=b0)
+        else:
+            done = sum(actives[:i])
+            tick = ((lambda k, done=done: progress("relight", done + k + 1, sum(actives)))
+                    if progress else None)
+            results = _relight_camera_batch(scan, view, [j["w"] for j in group], tick,
+                                            read_ahead)
+            extras = [{} for _ in group]
+        t_relit = time.perf_counter() - t_b
+        batch["seconds"]["relight"] += t_relit
+        eng = None
+        if texture and engine is not None and engine.kind != "in-process":
+            eng = engine.stage_metrics(
+                "relight", [r.task for r in engine.records if r.stage == "relight"])
+        for j, (img, mean_src), extra in zip(group, results, extras):
+            t_m = time.perf_counter()
+            m = _write_relit_map(scan, view, j, img, mean_src, extra, Path(dest), rotate,
+                                 solid_angle, model, lights)
+            t_write = time.perf_counter() - t_m
+            batch["seconds"]["write"] += t_write
+            m["seconds"] = {**j["seconds"], "relight": t_relit / len(group)}
+            m["seconds"]["total"] = sum(m["seconds"].values()) + t_write
+            if len(envs) > 1:
+                m["batch"] = {"index": i, "maps": len(group), "batches": len(batches),
+                              "seconds": t_relit}
+            if eng is not None:
+                m["engine"] = eng
+            log.info("relit %s with %s (%d active lights) in %.2f s", view, j["env"],
+                     m["active_lights"], m["seconds"]["total"])
+            all_metrics.append(m)
+            all_settings.append(j["settings"])
+    batch["seconds"]["total"] = time.perf_counter() - t0
+    return all_metrics, all_settings, batch
 
-        tick = (lambda k, n: progress("relight", k, n)) if progress else None
-        # each light's own colour (a list's per-light intensities; a dark light weighs 0)
-        parts = (Path(dest) / ".parts" if store is None
-                 else str(store_location(store, "relight", f"parts-{os.getpid()}")))
-        try:
-            texel_rgb, _, cams = relight_texture(None, E.field_weights(w, lights),
-                                                 progress=tick, project_dir=proj,
-                                                 atlas_dir=texels_path.parent, engine=engine,
-                                                 parts_dir=parts)
-        finally:
-            import shutil
 
-            if store is None:
-                shutil.rmtree(parts, ignore_errors=True)
-        texels = Texels.load(texels_path)
+def _relight_texture_batch(group, lights, proj, texels_path, dest, tick, engine, store,
+                           first_map: int = 0):
+    """The texture view under a batch of maps (:func:`relight_texture`, one task set): per map
+    ``(atlas image, measured texels' radiance)`` and its extra metrics (with the mask image)."""
+    from facegeo.lighting import envmap as E
+    from facegeo.surface._zarr_field import store_location
+    from facegeo.surface.atlas import Texels
+
+    # each light's own colour (a list's per-light intensities; a dark light weighs 0)
+    W = np.stack([E.field_weights(j["w"], lights) for j in group])
+    parts = (Path(dest) / ".parts" if store is None
+             else str(store_location(store, "relight", f"parts-{os.getpid()}")))
+    try:
+        relit, _, cams = relight_texture(None, W if len(group) > 1 else W[0], progress=tick,
+                                         project_dir=proj, atlas_dir=texels_path.parent,
+                                         engine=engine, parts_dir=parts, first_map=first_map)
+    finally:
+        import shutil
+
+        if store is None:
+            shutil.rmtree(parts, ignore_errors=True)
+    relit = relit.reshape(len(group), -1, 3)
+    texels = Texels.load(texels_path)
+    results, extras = [], []
+    for texel_rgb in relit:
         measured = np.isfinite(texel_rgb).all(axis=1)
         img = texels.to_image(np.where(measured[:, None], texel_rgb, 0.0).astype(np.float32),
                               fill=0.0)
-        extra = {"cameras": cams, "texels": int(measured.size),
-                 "measured_texels": int(measured.sum()),
-                 "mask": texels.to_image(measured.astype(np.uint8) * 255, fill=0)}
-        mean_src = texel_rgb[measured]
-        t_relit = time.perf_counter()
-    else:
-        tick = (lambda k: progress("relight", k + 1, active)) if progress else None
-        img = relight_scan_view(scan, view, w, normalize_color=True, progress=tick,
-                                read_ahead=read_ahead)
-        mean_src = img.reshape(-1, 3)
-        t_relit = time.perf_counter()
+        results.append((img, texel_rgb[measured]))
+        extras.append({"cameras": cams, "texels": int(measured.size),
+                       "measured_texels": int(measured.sum()),
+                       "mask": texels.to_image(measured.astype(np.uint8) * 255, fill=0)})
+    return results, extras
 
-    dest = Path(dest)
+
+def _relight_camera_batch(scan, view: str, weights: list, progress, read_ahead: int) -> list:
+    """A camera view under a batch of maps: per map ``(image, its pixels' radiance)``.
+
+    One map: :func:`facegeo.lighting.relight.relight_scan_view`. Several: Eq. 4 from the OLAT
+    frames lit by any map of the batch, each frame read once and added to every map lighting
+    it, ``acc_b += frame · w_b[l]`` in float64 in light order — the arithmetic of
+    :func:`facegeo.lighting.relight.relight_frames`, so each image is the same bytes as the map
+    alone. Holds B float64 images (24 B a pixel and map)."""
+    from facegeo.lighting.envmap import field_weights
+    from facegeo.lighting.relight import (_raise_first_nonfinite_frame, normalize_weights,
+                                          relight_scan_view)
+
+    if len(weights) == 1:
+        img = relight_scan_view(scan, view, weights[0], normalize_color=True,
+                                progress=progress, read_ahead=read_ahead)
+        return [(img, img.reshape(-1, 3))]
+    n_l = scan.n_lights
+    # each light's own colour, as relight_scan_view(normalize_color=True)
+    W = [field_weights(normalize_weights(w, n_l)[0], scan.rig.lights) for w in weights]
+    lit = np.stack([np.any(w != 0, axis=1) for w in W])  # (B, L)
+    active = np.flatnonzero(lit.any(axis=0))
+    acc: list = [None] * len(W)
+    for k, (l, frame) in enumerate(scan.iter_olat(view, active.tolist(),
+                                                  read_ahead=read_ahead)):
+        frame = np.asarray(frame)
+        for b, w in enumerate(W):
+            if lit[b, l]:
+                if acc[b] is None:
+                    acc[b] = np.zeros(frame.shape, np.float64)
+                acc[b] += frame * w[l]
+        if progress:
+            progress(k)
+    cam = scan.camera(view)
+    out = []
+    for b, a in enumerate(acc):
+        img = (np.zeros((cam.height, cam.width, 3), np.float32) if a is None
+               else a.astype(np.float32))
+        if not np.isfinite(img).all():
+            _raise_first_nonfinite_frame(scan, view, np.flatnonzero(lit[b]))
+        out.append((img, img.reshape(-1, 3)))
+    return out
+
+
+def _write_relit_map(scan, view: str, job: dict, img, mean_src, extra: dict, dest: Path,
+                     rotate, solid_angle: str, model: str, lights) -> dict:
+    """Write one map's relit image (EXR, tone-mapped PNG; the texture's measured mask) and
+    return its metrics (without ``seconds``)."""
+    from facegeo.capture import imageio
+
     dest.mkdir(parents=True, exist_ok=True)
-    rot = f"{float(rotate):g}".replace("-", "m")
-    # the projection and the δA rule are part of the name when they are not the defaults (a
-    # map read as a mirror ball, or an exact-solid-angle relight, does not overwrite the others)
-    rule = ("" if solid_angle == "paper" or not hasattr(lights, "n_theta")  # a list: its own δA
-            else f"_{_safe_stem(solid_angle)}")
-    proj_tag = ("" if env_map.projection == "latlong" else f"_{env_map.projection}") + (
-        "" if env_map.convention == "facegeo" else f"_{env_map.convention}")
-    stem = f"{_safe_stem(Path(str(env)).stem)}{proj_tag}_rot{rot}_{_safe_stem(view)}{rule}"
+    stem = job["stem"]
+    extra = dict(extra)
     exr = imageio.write_image(dest / f"{stem}.exr", img)  # atomic (temporary file + rename)
     png_img, exposure = tone_map(img)
     png = imageio.write_image(dest / f"{stem}.png", png_img)
     files = {"exr": str(exr), "png": str(png)}
-    if texture:
+    if "mask" in extra:
         files["measured"] = str(imageio.write_image(dest / f"{stem}_measured.png",
                                                     extra.pop("mask")))
-    metrics = {
-        "scan": str(scan.root), "view": view, "env": str(env),
-        "projection": env_map.projection, "envmap_convention": env_map.convention,
-        "rotate_deg": float(rotate), "solid_angle": solid_angle, "n_lights": int(lights.n_lights), "active_lights": active,
-        "energy_ratio": (ratio := (w.sum(0) / np.where(integral > 0, integral, 1))).tolist(),
-        "energy_note": energy_note(ratio, lights.n_lights), "model": model,
+    w, integral = job["w"], job["integral"]
+    ratio = w.sum(0) / np.where(integral > 0, integral, 1)
+    return {
+        "scan": str(scan.root), "view": view, "env": str(job["env"]),
+        "projection": job["projection"], "envmap_convention": job["convention"],
+        "rotate_deg": float(rotate), "solid_angle": solid_angle,
+        "n_lights": int(lights.n_lights),
+        "active_lights": int(np.count_nonzero(np.any(w != 0, axis=1))),
+        "energy_ratio": ratio.tolist(), "energy_note": energy_note(ratio, lights.n_lights),
+        "model": model,
         "mean_radiance": (mean_src.mean(0) if len(mean_src) else np.zeros(3)).tolist(),
         "tone_map_exposure": exposure, "files": files, **extra,
-        "seconds": {"env": t_env - t0, "weights": t_w - t_env, "relight": t_relit - t_w,
-                    "total": time.perf_counter() - t0},
     }
-    if texture and engine is not None and engine.kind != "in-process":
-        metrics["engine"] = engine.stage_metrics(
-            "relight", [r.task for r in engine.records if r.stage == "relight"])
-    log.info("relit %s with %s (%d active lights) in %.2f s", view, env, active,
-             metrics["seconds"]["total"])
-    return metrics, settings
 
 
 def energy_note(ratio, n_lights: int) -> str | None:
@@ -697,6 +953,32 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
         Metrics: the files written, the view, the environment, the active lights, the energy
         check ``Σ w / ∫ L`` per channel, the image's mean radiance, timings.
     """
+    return run_relight_maps(scan_dir, [env_path], rotate_deg=rotate_deg, view=view,
+                            out_dir=out_dir, projection=projection, solid_angle=solid_angle,
+                            field_dir=field_dir, progress=progress, read_ahead=read_ahead,
+                            model=model, convention=convention, engine=engine,
+                            store=store)["relit"][0]
+
+
+def run_relight_maps(scan_dir: str | os.PathLike, envs, *, rotate_deg: float = 0.0,
+                     view: str | None = None, out_dir: str | os.PathLike | None = None,
+                     projection: str = "latlong", solid_angle: str = "paper",
+                     field_dir: str | os.PathLike | None = None,
+                     progress: Callable[[str, int, int], None] | None = None,
+                     read_ahead: int = 0, model: str = "measured", convention: str = "facegeo",
+                     engine=None, store: str | os.PathLike | None = None) -> dict:
+    """:func:`run_relight` under every map of ``envs`` (files, shipped maps' names, folders of
+    ``.exr``/``.hdr`` maps: :func:`expand_env_maps`), the field read once per batch of
+    :data:`RELIGHT_MAPS_PER_TASK` maps (:func:`relight_maps_products`). Every map writes the
+    files and the metrics JSON a run with it alone writes; the other arguments apply to every
+    map.
+
+    Returns
+    -------
+    dict
+        ``relit``: each map's metrics (:func:`run_relight`'s, in the order of the maps);
+        ``maps``, ``batches``, ``maps_per_batch``, ``view``, ``seconds`` of the whole run.
+    """
     from facegeo.capture.scan import load_scan
     from facegeo.fsutil import atomic_write_text
 
@@ -707,12 +989,12 @@ def run_relight(scan_dir: str | os.PathLike, env_path: str | os.PathLike, *,
         view = scan.camera_names[0]
     fdir = Path(field_dir) if field_dir is not None else scan.out_dir
     out = Path(out_dir) if out_dir is not None else scan.out_dir / "relit"
-    metrics, _ = relight_products(scan, fdir / "project", out, env=env_path, rotate=rotate_deg,
-                                  view=view, atlas_dir=fdir / "atlas", projection=projection,
-                                  solid_angle=solid_angle,
-                                  progress=progress, read_ahead=read_ahead, model=model,
-                                  fit_dir=fdir / "fit", convention=convention,
-                                  engine=engine, store=store)
-    stem = Path(metrics["files"]["exr"]).stem
-    atomic_write_text(out / f"{stem}.json", json.dumps(metrics, indent=2))
-    return metrics
+    metrics, _, batch = relight_maps_products(
+        scan, fdir / "project", out, envs=envs, rotate=rotate_deg, view=view,
+        atlas_dir=fdir / "atlas", projection=projection, solid_angle=solid_angle,
+        progress=progress, read_ahead=read_ahead, model=model, fit_dir=fdir / "fit",
+        convention=convention, engine=engine, store=store)
+    for m in metrics:
+        stem = Path(m["files"]["exr"]).stem
+        atomic_write_text(out / f"{stem}.json", json.dumps(m, indent=2))
+    return {**batch, "relit": metrics}

@@ -53,14 +53,17 @@ lights) (:func:`facegeo.lighting.envmap.shipped_map`).
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import os
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
 
+from facegeo.errors import InputError
 from facegeo.pipeline._render_view import (  # noqa: F401 (re-exported)
     BUILTIN_ENVS,
     CAMERA_HIT_MIN,
@@ -75,11 +78,24 @@ from facegeo.pipeline._render_view import (  # noqa: F401 (re-exported)
     _load_env,
     _render_rig,
     _source_images,
+    _view_cameras,
     _view_inputs,
     _view_shadows,
     builtin_env,
     check_render_args,
+    check_view_inputs,
+    read_source_images,
     render_one,
+    source_images_key,
+    view_input_files,
+    write_source_images,
+)
+from facegeo.surface._zarr_field import (
+    copy_files,
+    get_bytes,
+    put_bytes,
+    remove_location,
+    store_location,
 )
 
 log = logging.getLogger(__name__)
@@ -96,7 +112,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                solid_angle: str = "paper", fill_px: float = 2.0,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
                shadow_taps: bool = True, image_detail: bool = True, progress=None,
-               convention: str = "facegeo", infer: bool = True) -> dict:
+               convention: str = "facegeo", infer: bool = True, engine=None,
+               store=None) -> dict:
     """Render a novel view of a reconstructed scan under an environment; write the images.
 
     Parameters
@@ -157,34 +174,57 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         ``<name>_inferred.png``; covered pixels unchanged bit for bit. False: black (the paper)
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
         each step (rays — with image detail, relighting the source captures too, ≈ 40 s at the
-        paper preset the first time under an environment —, render, naive baseline)
+        paper preset the first time under an environment —, render, naive baseline); on a
+        Dask engine or with a store, as the view's task finishes
+    engine : facegeo.pipeline.engine.Engine, optional — a Dask engine (``--workers`` /
+        ``--scheduler``): the view is one task of it, as the ``render`` stage's views
+        (:func:`render_products`: the λ, the rig and the relit source captures — kept in
+        ``views/.source_images`` as in process — made here, the view on a worker); the same
+        files as in process. None or in process: rendered here
+    store : path-like or str, optional — ``--store URL``: the view's task reads its inputs from
+        and writes its files through this folder or fsspec store, sharing no disk with this
+        process (:func:`render_products`; on any engine)
 
     Returns
     -------
-    dict — the view's metrics (files, timings; with a reference ``psnr_db`` …)
+    dict — the view's metrics (files, timings; with a reference ``psnr_db`` …); as a task
+    without its ``stats``, with ``inputs_from`` and ``engine`` (not merged into
+    ``metrics.json``)
     """
     from facegeo.evaluate.views import evaluate_view, has_view_reference
     from facegeo.pipeline.project import _scan
 
     scan = _scan(scan_dir)
     out = Path(out_dir) if out_dir is not None else scan.out_dir
-    metrics = render_one(scan, out, out / "views", camera_spec=camera_spec, env=env,
-                         rotate_deg=rotate_deg, projection=projection, supersample=supersample,
-                         resynthesis=resynthesis, baseline=baseline, reference=reference,
-                         name=name, blend_power=blend_power, rig=rig, solid_angle=solid_angle,
-                         fill_px=fill_px, shrinkage=shrinkage, light_step=light_step,
-                         shadow_taps=shadow_taps, image_detail=image_detail,
-                         progress=progress, convention=convention, infer=infer)
+    kw = dict(rotate_deg=rotate_deg, projection=projection, supersample=supersample,
+              resynthesis=resynthesis, baseline=baseline, reference=reference, name=name,
+              blend_power=blend_power, rig=rig, solid_angle=solid_angle, fill_px=fill_px,
+              shrinkage=shrinkage, light_step=light_step, shadow_taps=shadow_taps,
+              image_detail=image_detail, convention=convention, infer=infer)
+    as_task = None
+    if store is not None or (engine is not None and engine.kind != "in-process"):
+        if engine is None:
+            from facegeo.pipeline.engine import InProcessEngine
+
+            engine = InProcessEngine()
+        per_view, names, _, inputs_from = _render_views_as_tasks(
+            scan, out, out / "views", [(camera_spec, env)], engine, progress, kw, store=store,
+            source_images_dir=out / "views" / SOURCE_IMAGES_DIR)
+        metrics = next(iter(per_view.values()))
+        as_task = {"inputs_from": inputs_from, "engine": engine.stage_metrics("render", names)}
+    else:
+        metrics = render_one(scan, out, out / "views", camera_spec=camera_spec, env=env,
+                             progress=progress, **kw)
     if reference and has_view_reference(scan):
         figures = evaluate_view(scan, out, out / "views", metrics["name"], out / "views")
         metrics["files"].update(figures.pop("files"))
         metrics.update(figures)
     _merge_metrics(out, metrics["name"], metrics)
-    return metrics
+    return metrics if as_task is None else {**metrics, **as_task}
 
 
 def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_ENV,
-                    progress=None, engine=None, **settings) -> dict:
+                    progress=None, engine=None, store=None, **settings) -> dict:
     """The ``render`` stage of ``facegeo reconstruct``: every view in ``views`` under ``env``
     into ``dest`` (:func:`render_one`); returns the stage's metrics.
 
@@ -198,24 +238,43 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
     (:func:`render_view_task`) writing into its own folder under ``dest``, whose files the
     client moves into ``dest`` in view order. The cross-validated λ is computed once per
     environment on the client first (:func:`_shared_shrinkage`) and handed to the tasks, so
-    every task renders with the λ the in-process stage uses; the source captures of the
-    image-space detail are relit there too, once per environment
-    (:func:`_shared_source_images`), into ``dest/.view_tasks/.source_images``, which the
-    tasks read (their ``seconds_source_images`` are 0; the client's are the stage's
+    every task renders with the λ the in-process stage uses, and so are the rig and the
+    cameras a view may name (the tasks read no rig or camera file of the scan); the source
+    captures of the image-space detail are relit there too, once per environment
+    (:func:`_shared_source_images`), and written one ``.npz`` an environment into
+    ``dest/.view_tasks/.source_images``, which each task loads into its cache (their
+    ``seconds_source_images`` are 0; the client's are the stage's
     ``seconds_source_images``). The files are the same bytes whatever the engine; the folder
     ``dest/.view_tasks`` is removed when the stage ends.
 
+    ``store`` (``--store URL``: a folder or an fsspec URL; issue 38): the view tasks share no
+    disk with the client (on any engine, in process too — one task after another). The client
+    puts what they read into ``URL/render/run-<id>/inputs/``: the files of ``out`` a view
+    reads (:func:`view_input_files`; a field kept in a store by the projection is read where
+    it is, through its link) under ``out/``, and the relit source captures, one ``.npz`` an
+    environment, under ``source_images/``. Each task fetches the files into a temporary
+    folder of its worker, renders from that copy — seeded, as above, with the λ, the rig, the
+    cameras and its environment's captures: it reads nothing of the scan either —, and puts
+    its view's files into ``URL/render/run-<id>/views/<k>/``; the client brings them into
+    ``dest`` in view order and removes the run's folder from the store. The same bytes as
+    without a store.
+
     Metrics: ``views`` (per view, as :func:`render_one`), ``env`` and ``seconds`` (the views'
-    sum); on a cluster ``seconds_source_images`` and ``engine``
+    sum); as tasks ``seconds_source_images``, ``inputs_from`` (``"store"``: the fetched copy;
+    ``"stage folder"``: ``out`` on a shared disk) and ``engine``
     (:meth:`facegeo.pipeline.engine.Engine.stage_metrics`). The
     figures against references (``psnr_db_min`` …, the novel-view goal of issue 14:
     resynthesis at least 3 dB better than the naive baseline) are the ``evaluate`` stage's
     (:mod:`facegeo.evaluate.views`).
     """
     jobs = [(spec, env) for spec in views] + reference_views(scan)
-    if engine is not None and engine.kind != "in-process":
-        per_view, names, t_sources = _render_views_as_tasks(scan, Path(out), Path(dest), jobs,
-                                                            engine, progress, settings)
+    if store is not None or (engine is not None and engine.kind != "in-process"):
+        if engine is None:
+            from facegeo.pipeline.engine import InProcessEngine
+
+            engine = InProcessEngine()
+        per_view, names, t_sources, inputs_from = _render_views_as_tasks(
+            scan, Path(out), Path(dest), jobs, engine, progress, settings, store=store)
     else:
         per_view, names = {}, None
         # the cross-validated λ, the atlas check and the relit source images, once a stage
@@ -230,6 +289,7 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
                "seconds": round(sum(v.get("seconds", 0.0) for v in per_view.values()), 4)}
     if names is not None:
         metrics["seconds_source_images"] = t_sources  # on the client, before the tasks
+        metrics["inputs_from"] = inputs_from
         metrics["engine"] = engine.stage_metrics("render", names)
     return metrics
 
@@ -239,60 +299,170 @@ def render_products(scan, out: Path, dest: Path, *, views, env=RENDER_DEFAULT_EN
 VIEW_TASKS_DIR = ".view_tasks"
 
 
+#: Sub-folders of a render run's place in the ``--store`` (``URL/render/run-<id>/``): the
+#: inputs the client puts there for the view tasks (``out/`` — the stage products —, and
+#: ``source_images/``), and the views' files the tasks put (``views/<k>/``).
+STORE_INPUTS = "inputs"
+STORE_SOURCE_IMAGES = "source_images"
+STORE_VIEWS = "views"
+
+
 def _render_views_as_tasks(scan, out: Path, dest: Path, jobs: list, engine, progress,
-                           settings: dict) -> tuple[dict, list[str], float]:
+                           settings: dict, *, store=None,
+                           source_images_dir=None) -> tuple[dict, list[str], float, str]:
     """The views ``jobs`` (``(camera_spec, env)``) as tasks of ``engine``, one a view
-    (:func:`render_view_task`), each into ``dest/.view_tasks/<k>``; their files moved into
-    ``dest`` in view order (a later view of the same name replaces an earlier one's files, as
-    in process). Returns the per-view metrics, the tasks' names and the seconds the client
-    spent relighting the source captures (:func:`_shared_source_images`)."""
+    (:func:`render_view_task`), each into ``dest/.view_tasks/<k>`` — with ``store``, from
+    and into the store (:func:`render_products`) —; their files moved into ``dest`` in view
+    order (a later view of the same name replaces an earlier one's files, as in process).
+
+    The client relights the source captures once per environment (kept in
+    ``source_images_dir`` too when given: :func:`run_render`'s ``views/.source_images``, as in
+    process) and hands each task its environment's as one ``.npz``
+    (:func:`_put_source_images`), which the task loads into its cache: no task derives the
+    captures' file name from the scan's frames and facegeo's code fingerprint (a worker
+    started after an edit of facegeo's code computes another one, and relit its own).
+    Returns the per-view metrics, the tasks' names, the seconds the client spent relighting
+    the source captures (:func:`_shared_source_images`) and where the tasks read their inputs
+    (``"store"`` or ``"stage folder"``)."""
     import shutil
 
     from facegeo.pipeline.engine import Task
 
     opts = {**_render_one_defaults(), **settings}
-    sizes = _client_inputs(scan, out, opts)
+    if store is not None:  # named here, before anything goes up to the store
+        check_view_inputs(out, opts["resynthesis"])
+    seeds: dict = {}  # the rig and the cameras a view may name, resolved once, here
+    sizes = _client_inputs(scan, out, opts, seeds)
     root = dest / VIEW_TASKS_DIR
-    needs = [0 if sizes is None else _view_working_set(scan, spec, opts, sizes)
+    needs = [0 if sizes is None else _view_working_set(scan, spec, opts, sizes, seeds)
              for spec, _ in jobs]
+    run_loc = None if store is None else store_location(
+        store, "render", f"run-{uuid.uuid4().hex[:12]}")
 
-    def tasks_with(shared: dict) -> list:
+    def task_dir(k: int) -> str:
+        return str(root / f"{k:03d}") if run_loc is None else \
+            str(store_location(run_loc, STORE_VIEWS, f"{k:03d}"))
+
+    def tasks_with(shared: dict, via, captures: list) -> list:
         return [Task(f"{k:03d} {spec if isinstance(spec, str) else 'camera'} "
                      f"{view_env if isinstance(view_env, str) else 'env'}", render_view_task,
-                     (scan, str(out), str(root / f"{k:03d}"), spec, view_env, shared, settings,
-                      str(root / SOURCE_IMAGES_DIR)), working_set=need)
+                     (scan, str(out), task_dir(k), spec, view_env, shared, settings, None, via,
+                      captures[k]),
+                     working_set=need)
                 for k, ((spec, view_env), need) in enumerate(zip(jobs, needs))]
 
-    engine.check_fits("render", tasks_with({}))  # before the client's own work
+    engine.check_fits("render", tasks_with({}, None, [()] * len(jobs)))  # before the client's
     made = not dest.exists()
-    shared, t_sources = {}, 0.0
+    shared, t_sources, via = dict(seeds), 0.0, None
     try:
+        images: dict = {}
         if sizes is not None:
-            shared = _shared_shrinkage(jobs, opts, sizes)
-            t_sources = _shared_source_images(scan, jobs, opts, sizes, root / SOURCE_IMAGES_DIR)
-        sizes = None  # the client's inputs go before the tasks run
-        tasks = tasks_with(shared)
+            shared.update(_shared_shrinkage(jobs, opts, sizes))
+            t_sources = _shared_source_images(
+                scan, jobs, opts, sizes, None if source_images_dir is None
+                else Path(source_images_dir), images)
+        captures = _put_source_images(images, jobs, root / SOURCE_IMAGES_DIR if run_loc is None
+                                      else store_location(run_loc, STORE_INPUTS,
+                                                          STORE_SOURCE_IMAGES))
+        if run_loc is not None:
+            via = _put_view_inputs(out, opts, store_location(run_loc, STORE_INPUTS))
+        sizes = images = None  # the client's inputs go before the tasks run
+        tasks = tasks_with(shared, via, captures)
         results = engine.map("render", tasks, progress=progress)
         dest.mkdir(parents=True, exist_ok=True)
         per_view: dict = {}
         for k, r in enumerate(results):  # in view order, whatever order they finished in
-            for f in sorted((root / f"{k:03d}").iterdir()):
-                os.replace(f, dest / f.name)
+            if run_loc is not None:
+                copy_files(task_dir(k), dest)
+            else:
+                for f in sorted((root / f"{k:03d}").iterdir()):
+                    os.replace(f, dest / f.name)
             m = r["metrics"]
             per_view.pop(m["name"], None)  # a later view of the same name: last, as in process
             per_view[m["name"]] = m
     finally:
         shutil.rmtree(root, ignore_errors=True)
+        if run_loc is not None:
+            remove_location(run_loc)
         if made and dest.is_dir() and not any(dest.iterdir()):
             dest.rmdir()  # a stage that failed leaves no folder it made
-    return per_view, [t.name for t in tasks], t_sources
+    return (per_view, [t.name for t in tasks], t_sources,
+            "stage folder" if run_loc is None else "store")
 
 
-def _client_inputs(scan, out: Path, opts: dict) -> dict | None:
+def _put_source_images(images: dict, jobs: list, location) -> list:
+    """The relit source captures ``images`` (``{environment: (cache key, [SourceImage])}``,
+    :func:`_shared_source_images`) written one ``.npz`` an environment
+    (:func:`write_source_images`) into ``location`` — a folder of the stage's (on the disk the
+    workers share) or of the store. Returns per job of ``jobs`` the captures its task loads
+    (:func:`render_view_task`): ``[(cache key, file, cameras)]``, empty without image
+    detail."""
+    captures = {}
+    for i, (env_id, (key, imgs)) in enumerate(images.items()):
+        buf = io.BytesIO()
+        write_source_images(buf, imgs)
+        f = store_location(location, f"{i:03d}.npz")
+        put_bytes(f, buf.getvalue())
+        captures[env_id] = (key, str(f), {im.camera.name: im.camera for im in imgs})
+    return [[captures[_env_id(env)]] if _env_id(env) in captures else [] for _, env in jobs]
+
+
+def _put_view_inputs(out: Path, opts: dict, location) -> dict:
+    """Put the files of ``out`` a view reads (:func:`view_input_files`) into the store folder
+    ``location/out`` (``URL/render/run-<id>/inputs/out``); returns the tasks' ``via``
+    (:func:`render_view_task`): the store folder and the files."""
+    rels = view_input_files(out, bool(opts["resynthesis"]))
+    _put_files(out, rels, store_location(location, "out"))
+    return {"inputs": str(location), "files": rels}
+
+
+def _put_files(root: Path, rels: list[str], location) -> None:
+    """Copy the files ``rels`` (POSIX paths relative to ``root``) into the store folder
+    ``location`` at the same relative paths, streamed (a field is not read into memory); into
+    a folder store atomically."""
+    import shutil
+
+    from facegeo.fsutil import atomic_path
+    for rel in rels:
+        src, dst = Path(root) / rel, store_location(location, *rel.split("/"))
+        if isinstance(dst, Path):
+            with atomic_path(dst) as tmp:
+                shutil.copyfile(src, tmp)
+        else:
+            import fsspec
+
+            fs, path = fsspec.core.url_to_fs(dst)
+            fs.put_file(str(src), path)
+
+
+def _fetch_files(location, rels: list[str], root: Path) -> None:
+    """Fetch the files ``rels`` of the store folder ``location`` into the folder ``root`` at
+    the same relative paths, streamed (a task's temporary copy: no fsync). A file missing in
+    the store is an :class:`InputError` naming it."""
+    import shutil
+
+    for rel in rels:
+        src, dst = store_location(location, *rel.split("/")), Path(root) / rel
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            if isinstance(src, Path):
+                shutil.copyfile(src, dst)
+            else:
+                import fsspec
+
+                fs, path = fsspec.core.url_to_fs(src)
+                fs.get_file(path, str(dst))
+        except (FileNotFoundError, OSError) as exc:
+            raise InputError(f"{src}: the render's input {rel} is not in the store (removed "
+                             "while the stage ran?)") from exc
+
+
+def _client_inputs(scan, out: Path, opts: dict, seeds: dict | None = None) -> dict | None:
     """What the client of a cluster render stage reads once before the views' tasks: the rig,
     the source cameras (``with_fit`` as the views), the atlas's texel and triangle counts —
     for :func:`_shared_shrinkage` and the tasks' working sets — after the check that the
-    projection indexes this atlas. None when an input is missing (each task then raises
+    projection indexes this atlas; the rig resolved into ``seeds`` (the tasks' caches,
+    :func:`_render_rig`). None when an input is missing (each task then raises
     :func:`render_one`'s error itself)."""
     from facegeo.pipeline.project import check_projection_atlas
 
@@ -300,19 +470,20 @@ def _client_inputs(scan, out: Path, opts: dict) -> dict | None:
     if not all((out / f).is_file() for f in ("atlas/atlas.npz", "atlas/texels.npz")) or (
             with_fit and not (out / "fit").is_dir()):
         return None
-    _, the_rig, rig_used = _render_rig(scan, out, opts["rig"])
+    _, the_rig, rig_used = _render_rig(scan, out, opts["rig"], seeds)
     atlas, texels, scene, sources = _view_inputs(out, with_fit, None, check_projection_atlas)
     return {"rig": the_rig, "rig_used": rig_used, "atlas": atlas, "texels": texels,
             "scene": scene, "sources": sources}
 
 
-def _view_working_set(scan, spec, opts: dict, sizes: dict) -> int:
+def _view_working_set(scan, spec, opts: dict, sizes: dict, seeds: dict | None = None) -> int:
     """:func:`render_working_set` of the view ``spec`` (its camera parsed here: a bad spec
-    raises before any task runs)."""
-    from facegeo.pipeline.fit import _camera_table
+    raises before any task runs; the cameras a view may name kept in ``seeds``,
+    :func:`_view_cameras`)."""
     from facegeo.render import parse_camera_spec
 
-    camera = parse_camera_spec(spec, _camera_table(scan, sizes["rig"]))
+    camera = parse_camera_spec(spec, _view_cameras(scan, sizes["rig"], sizes["rig_used"],
+                                                   seeds))
     detail_px = sum(int(c.width) * int(c.height) for c in (
         sizes["rig"].camera(src.name) for src in sizes["sources"])) if opts["image_detail"] \
         else 0
@@ -400,8 +571,14 @@ def _distinct_envs(jobs: list) -> list:
     (names and paths by value, map objects by identity)."""
     found = {}
     for _, env in jobs:
-        found.setdefault(env if isinstance(env, (str, Path)) else id(env), env)
+        found.setdefault(_env_id(env), env)
     return list(found.values())
+
+
+def _env_id(env):
+    """An environment's identity among a stage's jobs: a name or path by value, a map object
+    by identity."""
+    return env if isinstance(env, (str, Path)) else id(env)
 
 
 def _shared_shrinkage(jobs: list, opts: dict, inputs: dict) -> dict:
@@ -428,14 +605,17 @@ def _shared_shrinkage(jobs: list, opts: dict, inputs: dict) -> dict:
     return cache
 
 
-def _shared_source_images(scan, jobs: list, opts: dict, inputs: dict, disk: Path) -> float:
+def _shared_source_images(scan, jobs: list, opts: dict, inputs: dict, disk: Path | None,
+                          found: dict | None = None) -> float:
     """The source cameras' captures relit under every environment among ``jobs``, with the
     frames of the key lights, as :func:`render_one` makes them for a view
-    (:func:`_source_images`), written into ``disk`` — the folder the view tasks read them from
-    (a task whose set is not there, e.g. one pruned past :data:`SOURCE_IMAGES_KEEP`
-    environments, relights its own). Relit once here rather than once a worker (measured on
-    the small preset: 12 s in process, 19–20 s in each of two one-thread workers at once).
-    Returns the seconds spent; 0 without image detail. ``inputs``: :func:`_client_inputs`."""
+    (:func:`_source_images`), kept in ``disk`` when given (:func:`run_render`'s
+    ``views/.source_images``: read back there while the frames and the code are unchanged)
+    and into ``found``: ``{environment (its :func:`_env_id`): (cache key, images)}``
+    (:func:`source_images_key`), what the view tasks are handed (:func:`_put_source_images`).
+    Relit once here rather than once a worker (measured on the small preset: 12 s in process,
+    19–20 s in each of two one-thread workers at once). Returns the seconds spent; 0 without
+    image detail. ``inputs``: :func:`_client_inputs`."""
     from facegeo.render.novel import key_lights
 
     if not opts["image_detail"]:
@@ -449,26 +629,54 @@ def _shared_source_images(scan, jobs: list, opts: dict, inputs: dict, disk: Path
                            opts["convention"], opts["solid_angle"])
         keys = () if shadows is None else tuple(int(k) for k in key_lights(
             w, shadows.key_share, shadows.max_lights))
-        _, t = _source_images(scan, inputs["rig"], inputs["rig_used"], inputs["sources"], w,
-                              keys, None, disk)
+        got, t = _source_images(scan, inputs["rig"], inputs["rig_used"], inputs["sources"], w,
+                                keys, None, disk)
+        if found is not None:
+            found[_env_id(env)] = (source_images_key(
+                w, inputs["rig_used"], [src.name for src in inputs["sources"]], keys), got)
         seconds += t
     return round(seconds, 4)
 
 
 def render_view_task(scan, out: str, task_dir: str, camera_spec, env, shared: dict,
-                     settings: dict, source_images_dir: str | None = None) -> dict:
+                     settings: dict, source_images_dir: str | None = None,
+                     via: dict | None = None, captures=()) -> dict:
     """One view of the ``render`` stage, run by an engine's worker: :func:`render_one` into
     ``task_dir`` with a cache of its own seeded with ``shared`` (the stage's cross-validated λ,
-    :func:`_shared_shrinkage`), reading the relit source captures of the image-space detail
-    from ``source_images_dir`` (:func:`_shared_source_images`; relit and kept there when
-    missing). Returns ``{"metrics": ...}``: the
-    view's metrics without its ``stats``, small whatever the view's size."""
+    :func:`_shared_shrinkage`; the rig and the cameras a view may name) and with the relit
+    source captures of the image-space detail ``captures`` (``[(cache key, file,
+    cameras)]``, :func:`_put_source_images`: a path or a place in the store); a view whose
+    captures are not among them relights its own, kept in ``source_images_dir`` when given.
+
+    ``via`` (a ``--store``, :func:`render_products`): the task shares no disk with the client.
+    It fetches the files ``via["files"]`` of ``via["inputs"]/out`` into a temporary folder and
+    renders from that copy (``out`` is not read) into a temporary folder whose files it puts
+    into ``task_dir``, a folder of the store. Returns ``{"metrics": ...}``: the view's metrics
+    without its ``stats``, small whatever the view's size."""
     from facegeo.pipeline.project import _scan
 
     cache = dict(shared)
-    m = render_one(_scan(scan), Path(out), Path(task_dir), camera_spec=camera_spec, env=env,
-                   cache=cache, source_images_dir=source_images_dir, **settings)
-    if any(isinstance(k, tuple) and k[0] == "shrinkage" for k in set(cache) - set(shared)):
+    for key, loc, cameras in captures:
+        cache[key] = read_source_images(io.BytesIO(get_bytes(loc)), cameras, key[4])
+    seeded = set(cache)
+    if via is None:
+        m = render_one(_scan(scan), Path(out), Path(task_dir), camera_spec=camera_spec,
+                       env=env, cache=cache, source_images_dir=source_images_dir, **settings)
+    else:
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="facegeo-render-") as tmp:
+            local = Path(tmp) / "out"
+            _fetch_files(store_location(via["inputs"], "out"), via["files"], local)
+            view = Path(tmp) / "view"
+            m = render_one(_scan(scan), local, view, camera_spec=camera_spec, env=env,
+                           cache=cache, source_images_dir=source_images_dir, **settings)
+            copy_files(view, task_dir)
+    added = {k[0] for k in set(cache) - seeded if isinstance(k, tuple)}
+    if "source_images" in added:
+        log.warning("render %s: the task relit the source captures itself from the scan's "
+                    "frames (its key lights or weights differ from the stage's)", m["name"])
+    if "shrinkage" in added:
         log.warning("render %s: the cross-validated λ was computed again in the task (its "
                     "weights differ from the stage's); it may differ from the in-process "
                     "stage's in the last bits", m["name"])
