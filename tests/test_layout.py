@@ -136,7 +136,8 @@ SYNTH_IMPORTS_LEFT: dict[str, str] = {}
 #: the generator's novel cameras as view specs) — stays; ``metrics``: errors computed in the
 #: stage — moves into facegeo.evaluate (issue 37), and the entry with it.
 TRUTH_READS_LEFT = {
-    "facegeo.pipeline.project": "input: stage_rig / load_mesh ('ground_truth' rig and mesh)",
+    "facegeo.pipeline._project_tasks": "input: stage_rig / load_mesh ('ground_truth' rig and "
+                                       "mesh; the project stage's, re-exported there)",
     "facegeo.pipeline.fit": "input: the generator's novel cameras as view specs "
                             "(_camera_table)",
     "facegeo.pipeline.decode": "metrics: decode errors against the true geometry",
@@ -149,8 +150,10 @@ TRUTH_READS_LEFT = {
 #: Stage modules that import facegeo.evaluate, and why (a shim for callers not yet moved).
 EVALUATE_IMPORTS_LEFT = {
     "facegeo.pipeline.project": "run_project(evaluate=True) returns the figures beside the "
-                                "stage's; its gt_lights / gt_weight_min defaults and the "
-                                "visibility file name are the evaluation's",
+                                "stage's; its gt_lights / gt_weight_min defaults are the "
+                                "evaluation's",
+    "facegeo.pipeline._project_tasks": "the visibility file name a camera's task writes is the "
+                                       "evaluation's",
     "facegeo.pipeline.render": "run_render(reference=True) returns the figures beside the "
                                "view's",
     "facegeo.pipeline._render_view": "render_one renders the paper's λ = 1 beside a shrunk "

@@ -611,3 +611,17 @@ def test_projection_and_fit_through_a_store_on_two_workers(projected, tmp_path, 
     assert len(m["engine"]["tasks"]) == 2 * 3
     assert sorted(p.name for p in store.iterdir()) == ["fit", "project"]
     assert not any((store / "fit").iterdir())  # the fit's run folder removed
+
+
+def test_fit_and_relight_tasks_drop_the_projection_inputs_a_worker_kept():
+    """A worker that ran projection tasks keeps their inputs (``_INPUTS_CACHE``) for its next
+    camera; a fit or relight task drops them first (``fit._drop_projection_inputs``)."""
+    from facegeo.pipeline import _project_tasks
+    from facegeo.pipeline.fit import _drop_projection_inputs
+
+    _project_tasks._INPUTS_CACHE["probe"] = object()
+    try:
+        _drop_projection_inputs()
+        assert not _project_tasks._INPUTS_CACHE
+    finally:
+        _project_tasks._INPUTS_CACHE.pop("probe", None)

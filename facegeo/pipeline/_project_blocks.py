@@ -7,7 +7,7 @@ is two kinds of tasks of the same engine, run in two rounds:
 
 1. its **visibility task** (:func:`facegeo.pipeline.project.light_visibility_task`): the
    camera's visibility over the atlas — the very code of a whole camera's task
-   (:func:`facegeo.pipeline.project._visible_texels`) — written as the camera's
+   (:func:`facegeo.pipeline._project_tasks._visible_texels`) — written as the camera's
    ``texel_index.npy``, ``weight.npy``, ``v_world.npy`` and ``visibility.npz``; the camera's
    whole field created empty (``R.npy`` ``(T_c, L, 3)``, or the Zarr store ``R.zarr`` with the
    chunks a whole camera's field has); and the projected texels' pixel positions saved for the
@@ -260,7 +260,7 @@ def project_light_block(frames, d: Path, q: np.ndarray, size: tuple[int, int], n
 
 def camera_block_metrics(vis: dict, blocks: list[dict], n_lights: int) -> dict:
     """A camera's metrics from its visibility task's and its light blocks' (the keys of a whole
-    camera's task, :func:`facegeo.pipeline.project._project_camera`): counts summed, the shadow
+    camera's task, :func:`facegeo.pipeline._project_tasks._project_camera`): counts summed, the shadow
     taps' fraction from the summed counts (the same figure), ``seconds_projection`` the blocks'
     seconds summed (task time, not wall time)."""
     seconds = sum(b["seconds_projection"] for b in blocks)

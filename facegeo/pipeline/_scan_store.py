@@ -11,6 +11,10 @@ camera's frames, the response tables, the ground truth it compares with) into a 
 folder of its worker and reads the scan from there
 (:meth:`facegeo.capture.scan.Scan.relocated`); the client, which loaded the scan, names those
 files (:func:`relative_files`), so a worker never lists the store.
+
+The same two helpers move any stage's input files through a store: :func:`put_files` (by name,
+or at paths relative to a folder: the projection's atlas and mesh, the render's inputs) and
+:func:`fetch_files` (a task's way back, streamed).
 """
 
 from __future__ import annotations
@@ -23,7 +27,8 @@ from facegeo.errors import InputError
 log = logging.getLogger(__name__)
 
 __all__ = ["SCAN_IN_STORE", "scan_location", "has_scan", "put_scan", "relative_files",
-           "fetch_scan_files", "sl_task_files", "olat_task_files", "put_files"]
+           "fetch_scan_files", "sl_task_files", "olat_task_files", "put_files",
+           "fetch_files"]
 
 #: The folder of a store holding the scan's input files (``URL/scan/``).
 SCAN_IN_STORE = "scan"
@@ -90,23 +95,39 @@ def put_scan(scan, store, *, progress=None) -> dict:
 
 def fetch_scan_files(scan, location, rels, local_root) -> object:
     """Fetch the files ``rels`` (relative paths, :func:`relative_files`) of the scan at
-    ``location`` (``store/scan``) into ``local_root`` and return ``scan`` read from there
-    (:meth:`~facegeo.capture.scan.Scan.relocated`). A file missing in the store is an
-    :class:`InputError` naming it."""
-    from facegeo.surface._zarr_field import get_bytes, store_location
+    ``location`` (``store/scan``) into ``local_root`` (:func:`fetch_files`) and return ``scan``
+    read from there (:meth:`~facegeo.capture.scan.Scan.relocated`). A file missing in the store
+    is an :class:`InputError` naming it."""
+    fetch_files(location, rels, local_root, what="the scan's file",
+                hint="put the scan there first: facegeo push SCAN URL")
+    return scan.relocated(Path(local_root))
 
-    local_root = Path(local_root)
+
+def fetch_files(location, rels, root, *, what: str = "the file",
+                hint: str = "removed while the stage ran?") -> None:
+    """Fetch the files ``rels`` (POSIX paths relative to the store folder ``location``) into the
+    folder ``root`` at the same relative paths, streamed (a field is not read into memory; a
+    task's temporary copy: no fsync). The way back of :func:`put_files` with ``root``.
+
+    A file missing in the store is an :class:`InputError`
+    ``"<location>: <what> <rel> is not in the store (<hint>)"``."""
+    import shutil
+
+    from facegeo.surface._zarr_field import store_location
+
     for rel in rels:
-        src = store_location(location, *rel.split("/"))
-        try:
-            data = get_bytes(src)
-        except (FileNotFoundError, OSError) as exc:
-            raise InputError(f"{src}: the scan's file {rel} is not in the store (put the scan "
-                             "there first: facegeo push SCAN URL)") from exc
-        dst = local_root / rel  # a task's temporary copy: no fsync
+        src, dst = store_location(location, *rel.split("/")), Path(root) / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
-        dst.write_bytes(data)
-    return scan.relocated(local_root)
+        try:
+            if isinstance(src, Path):
+                shutil.copyfile(src, dst)
+            else:
+                import fsspec
+
+                fs, path = fsspec.core.url_to_fs(src)
+                fs.get_file(path, str(dst))
+        except (FileNotFoundError, OSError) as exc:
+            raise InputError(f"{src}: {what} {rel} is not in the store ({hint})") from exc
 
 
 def sl_task_files(scan, camera: str, frames) -> list[str]:
@@ -147,16 +168,31 @@ def olat_task_files(scan, camera: str, *, ground_truth_mesh: bool = False) -> li
     return relative_files(scan, paths)
 
 
-def put_files(paths, location) -> list[str]:
-    """Copy the files ``paths`` (from this machine) into the store folder ``location`` by
-    their names: the stage products a task reads (the atlas, the mesh), put once by the client
-    for every task, which brings them down with
-    :func:`facegeo.surface._zarr_field.copy_files`. Returns the names."""
-    from facegeo.surface._zarr_field import put_bytes, store_location
+def put_files(paths, location, *, root=None) -> list[str]:
+    """Copy files of this machine into the store folder ``location``, streamed (a field is not
+    read into memory); into a folder store atomically.
+
+    Without ``root``, ``paths`` are files put by their names: the stage products a task reads
+    (the atlas, the mesh), put once by the client for every task, which brings them down with
+    :func:`facegeo.surface._zarr_field.copy_files`. With ``root``, ``paths`` are POSIX paths
+    relative to ``root``, put at the same relative paths (a render's inputs, brought down by
+    :func:`fetch_files`). Returns the names (relative paths) put."""
+    import shutil
+
+    from facegeo.fsutil import atomic_path
+    from facegeo.surface._zarr_field import store_location
 
     names = []
     for p in paths:
-        p = Path(p)
-        put_bytes(store_location(location, p.name), p.read_bytes())
-        names.append(p.name)
+        src, rel = (Path(p), Path(p).name) if root is None else (Path(root) / p, str(p))
+        dst = store_location(location, *rel.split("/"))
+        if isinstance(dst, Path):
+            with atomic_path(dst) as tmp:
+                shutil.copyfile(src, tmp)
+        else:
+            import fsspec
+
+            fs, path = fsspec.core.url_to_fs(dst)
+            fs.put_file(str(src), path)
+        names.append(rel)
     return names

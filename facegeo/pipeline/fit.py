@@ -704,9 +704,11 @@ def _drop_projection_inputs() -> None:
     :meth:`facegeo.pipeline.engine.DaskEngine._resident_check`.)"""
     import sys
 
-    project = sys.modules.get("facegeo.pipeline.project")
-    if project is not None and project._INPUTS_CACHE:
-        project._INPUTS_CACHE.clear()
+    # the cache lives in _project_tasks (project re-exports it): loaded only where a
+    # projection task ran in this process
+    tasks = sys.modules.get("facegeo.pipeline._project_tasks")
+    if tasks is not None and tasks._INPUTS_CACHE:
+        tasks._INPUTS_CACHE.clear()
 
 
 def fit_chunk_task(field_dir: str, parts_dir: str, diffuse_path: str, a: int, b: int, stage,

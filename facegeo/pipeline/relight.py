@@ -18,6 +18,13 @@ under several maps (``--env A --env B``, or a folder of maps): each map's own fi
 ``env`` may name a shipped procedural map (``"sky"``, ``"studio"``,
 :func:`facegeo.lighting.envmap.shipped_map`). Progress goes through the ``progress`` callback, the
 library only logs.
+
+The steps live in private modules and are re-exported here: the texture relight's tasks and
+their rows (:func:`relight_rows_task`, :func:`relight_working_set`) in
+:mod:`facegeo.pipeline._relight_texture`, ``--model fitted`` (:func:`relight_fitted`) in
+:mod:`facegeo.pipeline._relight_fitted`, a camera view under a batch of maps in
+:mod:`facegeo.pipeline._relight_camera`. :func:`relight_texture` and the task sizes it reads
+(:data:`RELIGHT_TASK_TEXELS`, :data:`RELIGHT_MAPS_PER_TASK`) stay here.
 """
 
 from __future__ import annotations
@@ -36,6 +43,14 @@ import numpy as np
 
 from facegeo.errors import InputError
 from facegeo.checks import check_choice, fmt_value
+# steps in their own modules, re-exported here (module docstring)
+from facegeo.pipeline._relight_camera import _relight_camera_batch
+from facegeo.pipeline._relight_fitted import FITTED_GRID, _fitted_model_path, relight_fitted
+from facegeo.pipeline._relight_texture import (RELIGHT_BYTES_FIXED, RELIGHT_BYTES_PER_SAMPLE,
+                                               RELIGHT_BYTES_PER_TEXEL, _project_cameras,
+                                               _read_relit_rows, _relit_rows_target,
+                                               _texture_dirs, relight_rows_task,
+                                               relight_working_set)
 
 log = logging.getLogger(__name__)
 
@@ -49,9 +64,6 @@ TONE_MAP_WHITE = 0.9
 #: Below this share of the environment's energy (Σ w / ∫ L, any channel) the lights keep, the
 #: metrics and the CLI say so (a dome of the upper hemisphere keeps ≈ 0.79 of a sky).
 DOME_ENERGY_NOTE = 0.95
-#: ``model="fitted"``: the environment is sampled on this (n_θ, n_φ) grid of directions (exact
-#: cell solid angles, every direction of the sphere) and the fitted model evaluated at each.
-FITTED_GRID = (64, 32)
 
 
 def tone_map(img: np.ndarray, *, percentile: float = 99.5) -> tuple[np.ndarray, float]:
@@ -72,33 +84,9 @@ def _safe_stem(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "env"
 
 
-def _project_cameras(project_dir: Path, texels_path: Path) -> list[Path]:
-    """The camera folders of ``project_dir`` that hold a projected field, sorted."""
-    from facegeo.surface.reflectance import field_folders
-
-    cams = field_folders(project_dir)  # R.npy or R.zarr
-    if not cams or not texels_path.is_file():
-        raise InputError(f"{project_dir.parent}: relighting in texture space needs the texture "
-                         f"atlas ({texels_path}) and the surface reflectance field "
-                         f"({project_dir}/<camera>/R.npy); run 'facegeo project SCAN' first")
-    from facegeo.pipeline.project import check_projection_atlas
-
-    check_projection_atlas(project_dir, texels_path)
-    return cams
-
-
 #: Texels (rows of a camera's field) per relight task: 32,768 × 512 lights × 3 float16 =
 #: 96 MiB of field a task at the modern preset's lights (a camera of 174 k texels: 6 tasks).
 RELIGHT_TASK_TEXELS = 32768
-#: Bytes a relight task needs per sample (texel × light × channel) of its rows: the rows read
-#: (float16 from a Zarr store, or the memory map's pages, resident once read: 2 B; 4 B for a
-#: float32 field).
-RELIGHT_BYTES_PER_SAMPLE = 2
-#: ... and once: :func:`facegeo.lighting.relight.relight_field`'s chunk buffers (its
-#: ``FUSED_CHUNK_BYTES`` = 16 MiB of float16, or ``CHUNK_BYTES`` of float32, per thread: one
-#: thread on a worker) and the relit rows (12 B a texel, counted per texel below).
-RELIGHT_BYTES_FIXED = 32 << 20
-RELIGHT_BYTES_PER_TEXEL = 3 * 4 + 3 * 8
 #: Environment maps a relight task relights its rows under at once (one GEMM a chunk of rows,
 #: :func:`facegeo.lighting.relight.relight_field` with ``(B, L, 3)`` weights: the rows are read
 #: once for the B maps). Bounds a task's relit rows (B × 36 B a texel) and the client's blend
@@ -106,22 +94,6 @@ RELIGHT_BYTES_PER_TEXEL = 3 * 4 + 3 * 8
 #: thread; ``docs/scale.md`` §1): batched against one map at a time 1.9× at 4 maps, 2.9–3.2×
 #: at 8, 3.0–3.2× at 16 — little gain past 8 (the GEMM is compute-bound), only larger tasks.
 RELIGHT_MAPS_PER_TASK = 8
-
-
-def relight_working_set(n_texels: int, n_lights: int, itemsize: int = 2,
-                        n_maps: int = 1) -> int:
-    """Memory (bytes) one relight task needs for ``n_texels`` rows of a field of ``n_lights``
-    lights relit under ``n_maps`` environment maps at once::
-
-        n × L × 3 × itemsize  +  n × B × 36 B  +  32 MiB
-
-    the rows (:data:`RELIGHT_BYTES_PER_SAMPLE` × ``itemsize`` / 2 a sample, read once for the
-    B maps), the relit rows of each map and their float64 blend
-    (:data:`RELIGHT_BYTES_PER_TEXEL` a texel and map), the relighting's chunk buffers
-    (:data:`RELIGHT_BYTES_FIXED`)."""
-    n, L, B = int(n_texels), int(n_lights), max(1, int(n_maps))
-    return (n * L * 3 * RELIGHT_BYTES_PER_SAMPLE * int(itemsize) // 2
-            + n * B * RELIGHT_BYTES_PER_TEXEL + RELIGHT_BYTES_FIXED)
 
 
 def _task_rows(R, w) -> int:
@@ -138,76 +110,6 @@ def _task_rows(R, w) -> int:
            else RL.CHUNK_BYTES // (4 * max(n_cols, 1)))
     per = max(1, per)
     return max(per, RELIGHT_TASK_TEXELS - RELIGHT_TASK_TEXELS % per)
-
-
-def relight_rows_task(field: tuple[str, str], relit: str, s0: int, s1: int, weights,
-                      light_color=None) -> dict:
-    """One relight task: rows ``s0:s1`` of a camera's field relit (Eq. 4,
-    :func:`facegeo.lighting.relight.relight_field`) into rows ``s0:s1`` of ``relit``.
-
-    ``field`` is ``(kind, location)`` (:func:`facegeo.surface.reflectance.find_field`: an
-    ``R.npy`` path, or a Zarr store — a folder or an fsspec URL); ``weights`` ``(L, 3)`` (one
-    map) or ``(B, L, 3)`` (a batch of B maps: the rows are read once, one GEMM a chunk);
-    ``relit`` the float32 rows the stage created, ``(T_c, 3)`` for ``(L, 3)`` weights and
-    ``(B, T_c, 3)`` for a batch: a ``.npy`` file, or a Zarr array (a path ending in ``.zarr``
-    or a URL: workers that share no disk). Tasks write disjoint rows (whole chunks of a Zarr
-    array). Reads only its rows (a memory map, or the Zarr chunks they fall in)."""
-    from facegeo.lighting.relight import relight_field
-    from facegeo.surface._zarr_field import open_zarr_field
-
-    from facegeo.pipeline.fit import _drop_projection_inputs
-
-    t0 = time.perf_counter()
-    _drop_projection_inputs()
-    kind, loc = field
-    R = np.load(loc, mmap_mode="r") if kind == "npy" else open_zarr_field(loc)
-    rows = R[s0:s1]  # a view of the memory map, or the Zarr chunks read
-    out = relight_field(rows, weights, light_color=light_color, workers=1)
-    sel = (slice(s0, s1),) if out.ndim == 2 else (slice(None), slice(s0, s1))
-    if _is_zarr_target(relit):
-        import zarr
-
-        zarr.open_array(relit, mode="r+")[sel] = out
-    else:
-        dst = np.load(relit, mmap_mode="r+")
-        dst[sel] = out
-        dst.flush()
-        del dst
-    return {"texels": int(s1 - s0), "maps": 1 if out.ndim == 2 else int(out.shape[0]),
-            "seconds": time.perf_counter() - t0}
-
-
-def _is_zarr_target(location: str) -> bool:
-    return "://" in str(location) or str(location).endswith(".zarr")
-
-
-def _relit_rows_target(parts, name: str, n: int, step: int, n_maps: int) -> str:
-    """Create the ``(n_maps, n, 3)`` float32 relit rows ``name`` (a camera and a batch of
-    maps) in ``parts`` (a folder: a ``.npy``; an fsspec URL: a Zarr array chunked by ``step``
-    rows and the batch's maps, one chunk a task)."""
-    shape = (int(n_maps), int(n), 3)
-    if isinstance(parts, str) and "://" in parts and not parts.startswith("file://"):
-        import zarr
-
-        loc = f"{parts.rstrip('/')}/{name}.zarr"
-        zarr.create_array(store=loc, shape=shape, chunks=(shape[0], max(min(step, n), 1), 3),
-                          dtype="float32", fill_value=np.nan, overwrite=True)
-        return loc
-    folder = Path(parts[len("file://"):] if isinstance(parts, str)
-                  and parts.startswith("file://") else parts)
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{name}.npy"
-    np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape).flush()
-    return str(path)
-
-
-def _read_relit_rows(location: str, j: int) -> np.ndarray:
-    """Map ``j``'s ``(n, 3)`` relit rows of a ``(B, n, 3)`` target."""
-    if _is_zarr_target(location):
-        import zarr
-
-        return np.asarray(zarr.open_array(location, mode="r")[j])
-    return np.array(np.load(location, mmap_mode="r")[j])
 
 
 def _map_batches(n_maps: int, per: int | None = None) -> list[tuple[int, int]]:
@@ -368,15 +270,6 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
     if not batched:
         return out[0], wsum_all[0], [c.name for c in cams]
     return out, wsum_all, [c.name for c in cams]
-
-
-def _texture_dirs(field_dir, project_dir, atlas_dir) -> tuple[Path, Path]:
-    """``(project folder, texels.npz path)`` from ``field_dir`` or the explicit folders."""
-    if field_dir is None and (project_dir is None or atlas_dir is None):
-        raise InputError("relight_texture: give field_dir, or both project_dir and atlas_dir")
-    proj = Path(project_dir) if project_dir is not None else Path(field_dir) / "project"
-    atlas = Path(atlas_dir) if atlas_dir is not None else Path(field_dir) / "atlas"
-    return proj, atlas / "texels.npz"
 
 
 def resolve_env(env: str | os.PathLike, projection: str = "latlong", *, rotate_deg: float = 0.0,
@@ -716,49 +609,6 @@ def _relight_texture_batch(group, lights, proj, texels_path, dest, tick, engine,
     return results, extras
 
 
-def _relight_camera_batch(scan, view: str, weights: list, progress, read_ahead: int) -> list:
-    """A camera view under a batch of maps: per map ``(image, its pixels' radiance)``.
-
-    One map: :func:`facegeo.lighting.relight.relight_scan_view`. Several: Eq. 4 from the OLAT
-    frames lit by any map of the batch, each frame read once and added to every map lighting
-    it, ``acc_b += frame · w_b[l]`` in float64 in light order — the arithmetic of
-    :func:`facegeo.lighting.relight.relight_frames`, so each image is the same bytes as the map
-    alone. Holds B float64 images (24 B a pixel and map)."""
-    from facegeo.lighting.envmap import field_weights
-    from facegeo.lighting.relight import (_raise_first_nonfinite_frame, normalize_weights,
-                                          relight_scan_view)
-
-    if len(weights) == 1:
-        img = relight_scan_view(scan, view, weights[0], normalize_color=True,
-                                progress=progress, read_ahead=read_ahead)
-        return [(img, img.reshape(-1, 3))]
-    n_l = scan.n_lights
-    # each light's own colour, as relight_scan_view(normalize_color=True)
-    W = [field_weights(normalize_weights(w, n_l)[0], scan.rig.lights) for w in weights]
-    lit = np.stack([np.any(w != 0, axis=1) for w in W])  # (B, L)
-    active = np.flatnonzero(lit.any(axis=0))
-    acc: list = [None] * len(W)
-    for k, (l, frame) in enumerate(scan.iter_olat(view, active.tolist(),
-                                                  read_ahead=read_ahead)):
-        frame = np.asarray(frame)
-        for b, w in enumerate(W):
-            if lit[b, l]:
-                if acc[b] is None:
-                    acc[b] = np.zeros(frame.shape, np.float64)
-                acc[b] += frame * w[l]
-        if progress:
-            progress(k)
-    cam = scan.camera(view)
-    out = []
-    for b, a in enumerate(acc):
-        img = (np.zeros((cam.height, cam.width, 3), np.float32) if a is None
-               else a.astype(np.float32))
-        if not np.isfinite(img).all():
-            _raise_first_nonfinite_frame(scan, view, np.flatnonzero(lit[b]))
-        out.append((img, img.reshape(-1, 3)))
-    return out
-
-
 def _write_relit_map(scan, view: str, job: dict, img, mean_src, extra: dict, dest: Path,
                      rotate, solid_angle: str, model: str, lights) -> dict:
     """Write one map's relit image (EXR, tone-mapped PNG; the texture's measured mask) and
@@ -800,68 +650,6 @@ def energy_note(ratio, n_lights: int) -> str | None:
             f"(sum(w)/integral(L) = {r:.2f}): the rest arrives from directions no light covers "
             "(e.g. below a dome) and is missing from the relit image; --model fitted predicts "
             "every direction from a single-view scan's fitted model")
-
-
-def _fitted_model_path(scan, view: str, fit_dir) -> Path:
-    """``fit_dir/photometric.npz`` of an image-space fit of ``view``, or a clear error."""
-    if view == "texture" or view not in scan.camera_names:
-        raise InputError(f"view: --model fitted relights a camera of a single-view scan fitted "
-                         f"in image space; got {fmt_value(view)} (cameras: "
-                         f"{', '.join(scan.camera_names)})")
-    path = (Path(fit_dir) if fit_dir is not None else scan.out_dir / "fit") / "photometric.npz"
-    if not path.is_file():
-        raise InputError(f"{path} is missing: --model fitted needs the image-space fit of a "
-                         f"single-view scan; run 'facegeo fit {scan.root}' first (a scan with a "
-                         "mesh is fitted per texel: relight it with --model measured or render "
-                         "it with 'facegeo render')")
-    return path
-
-
-def relight_fitted(path, env_map, *, grid=FITTED_GRID) -> tuple[np.ndarray, np.ndarray]:
-    """The camera image under an environment predicted by an image-space fit's models.
-
-    Eq. 4 of Debevec et al. 2000 with the fitted per-pixel models in place of measured
-    reflectance functions: ``Σ_k L̄_k δA_k ⊙ f(ω_k)``, ω_k every cell centre of a
-    ``grid = (n_θ, n_φ)`` lat-long grid over the sphere (exact cell solid angles, so
-    ``Σ w = ∫ L``), f the pixel's model evaluated at ω_k
-    (:func:`facegeo.appearance.photometric.predict_environment`: Lambertian, shadow map, and
-    the Torrance–Sparrow lobe from its fitted parameters). A grey fit is relit channel by
-    channel (its albedo times each channel's light).
-
-    Parameters
-    ----------
-    path : path — ``photometric.npz`` with ``rows`` and ``image_size`` (the fit stage's)
-    env_map : EnvironmentMap
-    grid : (int, int)
-
-    Returns
-    -------
-    image : (H, W, 3) float32 — 0 where no pixel was fitted
-    weights : (n_θ n_φ, 3) float64 — the Eq. 4 weights used (δA included)
-    """
-    from facegeo.appearance.photometric import load_photometric, predict_environment
-    from facegeo.appearance.skin import LightSet
-    from facegeo.lighting import envmap as E
-
-    model = load_photometric(path)
-    with np.load(path) as z:
-        if "rows" not in z.files or "image_size" not in z.files:
-            raise InputError(f"{path}: no 'rows' / 'image_size' arrays (not written by the fit "
-                             "stage; re-run 'facegeo fit')")
-        rows = z["rows"].astype(np.int64)
-        W, H = (int(x) for x in z["image_size"])
-    nt, npf = (int(g) for g in grid)
-    w = E.light_stage_weights(env_map, nt, npf, solid_angle="exact")
-    dirs = LightSet.from_grid(nt, npf).directions
-    lit = np.any(w != 0, axis=1)
-    if model.b_lambert.shape[1] == 3:
-        vals = predict_environment(model, dirs[lit], w[lit])
-    else:
-        vals = np.concatenate([predict_environment(model, dirs[lit], w[lit, c])
-                               for c in range(3)], axis=1)
-    img = np.zeros((H * W, 3), np.float32)
-    img[rows] = np.nan_to_num(vals, nan=0.0)
-    return img.reshape(H, W, 3), w
 
 
 def _relight_fitted_products(scan, view, env_map, path, dest: Path, env, rotate, settings, t0,

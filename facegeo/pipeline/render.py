@@ -63,7 +63,6 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.errors import InputError
 from facegeo.pipeline._render_view import (  # noqa: F401 (re-exported)
     BUILTIN_ENVS,
     CAMERA_HIT_MIN,
@@ -411,50 +410,11 @@ def _put_view_inputs(out: Path, opts: dict, location) -> dict:
     """Put the files of ``out`` a view reads (:func:`view_input_files`) into the store folder
     ``location/out`` (``URL/render/run-<id>/inputs/out``); returns the tasks' ``via``
     (:func:`render_view_task`): the store folder and the files."""
+    from facegeo.pipeline._scan_store import put_files
+
     rels = view_input_files(out, bool(opts["resynthesis"]))
-    _put_files(out, rels, store_location(location, "out"))
+    put_files(rels, store_location(location, "out"), root=out)
     return {"inputs": str(location), "files": rels}
-
-
-def _put_files(root: Path, rels: list[str], location) -> None:
-    """Copy the files ``rels`` (POSIX paths relative to ``root``) into the store folder
-    ``location`` at the same relative paths, streamed (a field is not read into memory); into
-    a folder store atomically."""
-    import shutil
-
-    from facegeo.fsutil import atomic_path
-    for rel in rels:
-        src, dst = Path(root) / rel, store_location(location, *rel.split("/"))
-        if isinstance(dst, Path):
-            with atomic_path(dst) as tmp:
-                shutil.copyfile(src, tmp)
-        else:
-            import fsspec
-
-            fs, path = fsspec.core.url_to_fs(dst)
-            fs.put_file(str(src), path)
-
-
-def _fetch_files(location, rels: list[str], root: Path) -> None:
-    """Fetch the files ``rels`` of the store folder ``location`` into the folder ``root`` at
-    the same relative paths, streamed (a task's temporary copy: no fsync). A file missing in
-    the store is an :class:`InputError` naming it."""
-    import shutil
-
-    for rel in rels:
-        src, dst = store_location(location, *rel.split("/")), Path(root) / rel
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            if isinstance(src, Path):
-                shutil.copyfile(src, dst)
-            else:
-                import fsspec
-
-                fs, path = fsspec.core.url_to_fs(src)
-                fs.get_file(path, str(dst))
-        except (FileNotFoundError, OSError) as exc:
-            raise InputError(f"{src}: the render's input {rel} is not in the store (removed "
-                             "while the stage ran?)") from exc
 
 
 def _client_inputs(scan, out: Path, opts: dict, seeds: dict | None = None) -> dict | None:
@@ -665,9 +625,12 @@ def render_view_task(scan, out: str, task_dir: str, camera_spec, env, shared: di
     else:
         import tempfile
 
+        from facegeo.pipeline._scan_store import fetch_files
+
         with tempfile.TemporaryDirectory(prefix="facegeo-render-") as tmp:
             local = Path(tmp) / "out"
-            _fetch_files(store_location(via["inputs"], "out"), via["files"], local)
+            fetch_files(store_location(via["inputs"], "out"), via["files"], local,
+                        what="the render's input")
             view = Path(tmp) / "view"
             m = render_one(_scan(scan), local, view, camera_spec=camera_spec, env=env,
                            cache=cache, source_images_dir=source_images_dir, **settings)
