@@ -247,7 +247,7 @@ def _sample_corners(shared_data, side):
     """OpenCV's calibration sample's corners of ``{side}*.jpg``: ``findChessboardCorners``
     (adaptive threshold, normalise, fast check) then ``cornerSubPix`` 11 × 11, 30 iterations /
     0.01 px; the board 9 × 6 corners of 25 mm, row-major."""
-    from tests.conftest import shared_file
+    from conftest import shared_file
 
     d = shared_file(shared_data, "calibration/opencv_stereo_chessboards")
     obj = np.zeros((54, 3))

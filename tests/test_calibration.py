@@ -362,7 +362,7 @@ def test_rig_start_is_chosen_by_agreement_not_by_the_first_view():
 
 
 def _opencv_chessboards(shared_data, side):
-    from tests.conftest import shared_file
+    from conftest import shared_file
 
     d = shared_file(shared_data, "calibration/opencv_stereo_chessboards")
     files = sorted(d.glob(f"{side}*.jpg"))
@@ -383,7 +383,7 @@ def test_chessboard_fallback_numbers_corners_as_the_sector_detector(shared_data)
     (``left05.jpg``) the classic detector's corners in the sector detector's order — the
     first inner square the light one. Unreordered, that view ran the other way and the
     stereo calibration's RMS went from 0.26 to 15.9 px."""
-    from tests.conftest import shared_file
+    from conftest import shared_file
 
     from facegeo.geometry._calib_detect import _gray8, _light_square_first
     from facegeo.geometry.calibration import detect_chessboard

@@ -549,7 +549,7 @@ def test_real_stereo_chessboard_folder_is_expressible(shared_data, tmp_path):
     import json
 
     from facegeo.capture.importer import import_folder
-    from tests.conftest import shared_file
+    from conftest import shared_file
 
     src = shared_file(shared_data, "calibration/opencv_stereo_chessboards")
     rig = {"format": "facegeo-rig", "version": 1, "projector": None, "lights": None,

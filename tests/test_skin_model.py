@@ -646,7 +646,7 @@ def _voronoi_solid_angles(dirs):
 def test_real_face_yale_b01(shared_data):
     """Diffuse-only fit on half the lights within 50° of the camera, relight the other half;
     compared with a plain least-squares Lambertian fit on the same samples and masks."""
-    from tests.conftest import shared_file
+    from conftest import shared_file
 
     folder = shared_file(shared_data, "olat/yale_b01")
     frames, dirs, ambient = _load_yale(folder)

@@ -39,6 +39,7 @@ from facegeo.appearance._skin_fit import (
     FLAG_BLACK,
     FLAG_GRAZING_VIEW,
     FLAG_MASKED,
+    FLAG_RAMP_REJECTED,
     FLAG_NAMES,
     FLAG_SATURATED,
     FLAG_SHADOWED,
@@ -92,7 +93,7 @@ __all__ = [
     "view_independent",
     "direct_search", "flag_names", "check_mask", "FLAG_NAMES", "FLAG_BLACK", "FLAG_SINGULAR", "FLAG_SHADOWED",
     "FLAG_SATURATED", "FLAG_SINGLE_CHANNEL", "FLAG_GRAZING_VIEW", "FLAG_SPECULAR_IN_SHADOW",
-    "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "FLAG_MASKED", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
+    "FLAG_SPECULAR_SKIPPED", "FLAG_BACKFACING", "FLAG_MASKED", "FLAG_RAMP_REJECTED", "S_WHITE", "SHADOW_THRESHOLD", "normalize",
 ]
 
 #: Samples (functions × lights) per chunk of the analysis. With the compiled kernels
@@ -755,6 +756,8 @@ def _fit_chunk(R, v, lights, shadow, sat, single, eta, depth, threshold, d_0, ro
         for _ in range(max(1, int(rounds))):
             # the polish moves the normal with the ramp; it only serves the ramp fit
             a0, a1, n_ramp, _ = fit_ramp(R, w, lights, n, v, d0, depth)
+            a0, a1, n_ramp, rejected = _skin_fit.physical_ramp(a0, a1, n_ramp, n)
+            flags |= np.where(rejected, FLAG_RAMP_REJECTED, 0)
             # the colour noise the separation turns into μ_s (the chromaticity check)
             c_sig, c_top = _skin_fit.chroma_noise(R, w, d0)
             if _skin_fit.KERNELS:
