@@ -637,9 +637,11 @@ def _stage_line(result) -> str:
 
 
 def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
-                     settings=None) -> list:
+                     settings=None, engine=None) -> list:
     """``run_reconstruct`` with progress bars, one line per stage and the report; ``scan`` is
-    the scan directory or the loaded :class:`~facegeo.capture.scan.Scan`."""
+    the scan directory or the loaded :class:`~facegeo.capture.scan.Scan`; ``engine``: an
+    engine the caller holds open (default: the one of ``--workers`` / ``--scheduler``, started
+    and closed here)."""
     from facegeo.pipeline.reconstruct import run_reconstruct
     from facegeo.pipeline.report import write_report
 
@@ -652,7 +654,7 @@ def _run_reconstruct(scan, args, *, from_stage=None, only=None, until=None,
     out = (Path(scan) if isinstance(scan, (str, os.PathLike)) else scan.root) / "out"
     tick, close = _progress_factory(not args.quiet)
     try:
-        with _engine(args) as engine:
+        with (_engine(args) if engine is None else contextlib.nullcontext(engine)) as engine:
             results = run_reconstruct(scan, mesh=getattr(args, "mesh", "auto"),
                                       rig=getattr(args, "rig", "auto"), settings=settings,
                                       from_stage=from_stage, only=only, until=until,
@@ -768,11 +770,12 @@ def _cmd_render(args) -> int:
                       rotate_deg=args.rotate, shrinkage=args.shrinkage,
                       light_step=args.light_step, resynthesis=not args.naive)
     print(f"render: products of {args.scan} up to the fit (cached):")
-    _run_reconstruct(scan, args, until="fit")
-    tick, close = _progress_factory(not args.quiet)
-    try:
-        # --workers / --scheduler: the view is one task of the engine, as the render stage's
-        with _engine(args) as engine:
+    # --workers / --scheduler: one engine for the stages up to the fit and for the view (one
+    # task of it, as the render stage's views)
+    with _engine(args) as engine:
+        _run_reconstruct(scan, args, until="fit", engine=engine)
+        tick, close = _progress_factory(not args.quiet)
+        try:
             m = run_render(scan, camera_spec=args.camera, env=args.env,
                            projection=args.projection, convention=args.envmap_convention,
                            rotate_deg=args.rotate, supersample=args.supersample,
@@ -780,8 +783,8 @@ def _cmd_render(args) -> int:
                            light_step=args.light_step, shadow_taps=args.shadow_taps,
                            image_detail=args.image_detail, infer=args.infer, progress=tick,
                            engine=engine)
-    finally:
-        close()
+        finally:
+            close()
     figs = {k: m.get(k) for k in ("psnr_db", "naive_psnr_db", "paper_psnr_db", "psnr_gain_db",
                                    "coverage", "inferred_pixel_fraction", "seconds_render")
             if m.get(k) is not None}

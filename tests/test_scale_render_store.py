@@ -193,21 +193,23 @@ def test_standalone_render_on_two_workers_equals_in_process(fitted, tmp_path, cl
 
 def test_render_command_runs_the_view_on_the_engine_of_its_options(fitted, monkeypatch):
     """``facegeo render --memory-limit SIZE`` hands ``run_render`` the engine of its options
-    (in process, with that budget); ``--workers`` and ``--scheduler`` exclude each other."""
+    (in process, with that budget) — the one engine the stages up to the fit ran on, not a
+    second; ``--workers`` and ``--scheduler`` exclude each other."""
     import facegeo.cli as cli
     import facegeo.pipeline.render as PR
 
-    got = {}
+    got, stages = {}, {}
 
     def fake_render(scan, **kw):
         got.update(kw)
         return {"name": "v", "files": {"png": "v.png"}}
 
-    monkeypatch.setattr(cli, "_run_reconstruct", lambda *a, **k: [])
+    monkeypatch.setattr(cli, "_run_reconstruct", lambda *a, **k: stages.update(k) or [])
     monkeypatch.setattr(PR, "run_render", fake_render)
     assert cli.main(["render", str(fitted), "--camera", VIEWS[0], "--memory-limit", "1GiB",
                      "-q"]) == 0
     assert got["engine"].kind == "in-process" and got["engine"].memory_limit == 1 << 30
+    assert stages["until"] == "fit" and stages["engine"] is got["engine"]
     with pytest.raises(SystemExit):
         cli.main(["render", str(fitted), "--camera", VIEWS[0], "--workers", "2",
                   "--scheduler", "tcp://localhost:1"])
