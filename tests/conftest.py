@@ -3,6 +3,8 @@ project); tests that need it skip with a reason when it is absent."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 from pathlib import Path
 
@@ -77,3 +79,52 @@ def projected(tmp_path_factory):
     run_atlas(root)
     run_project(root, evaluate=False)
     return root
+
+
+#: The ``fitted`` fixture's atlas (coarser than the default 1 texel/mm) and fit (an even
+#: subsample of the functions the views need): a fast fixture, as tests/test_fit_stage.py's.
+FITTED_TEXELS_PER_MM = 0.35
+FITTED_MAX_TEXELS = 60
+
+
+@pytest.fixture(scope="module")
+def fitted(request, tmp_path_factory):
+    """A tiny synthetic scan with its atlas, projection and a subsampled fit for the views of
+    the test module's ``VIEWS``, made once per test module."""
+    from facegeo.pipeline.fit import run_fit
+    from facegeo.pipeline.project import run_project
+    from facegeo.synth.capture import generate_scan
+
+    root = tmp_path_factory.mktemp("fitted") / "tiny"
+    generate_scan(root, "tiny")
+    run_project(root, atlas_settings={"texels_per_mm": FITTED_TEXELS_PER_MM}, evaluate=False)
+    run_fit(root, texels="views", views=list(request.module.VIEWS),
+            max_texels=FITTED_MAX_TEXELS, mosaic=4)
+    return root
+
+
+def file_digests(folder: Path, skip=("stage.json",)) -> dict[str, str]:
+    """SHA-256 of every file below ``folder`` by relative path (but names in ``skip``): the
+    byte-for-byte comparison of two runs' products."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(Path(folder).rglob("*")) if p.is_file() and p.name not in skip}
+
+
+def timeless(doc):
+    """``doc`` without the keys naming ``seconds`` (timings), at every depth."""
+    if isinstance(doc, dict):
+        return {k: timeless(v) for k, v in doc.items() if "seconds" not in k}
+    if isinstance(doc, list):
+        return [timeless(v) for v in doc]
+    return doc
+
+
+def stage_metrics_without(metrics: dict, keys) -> dict:
+    """A copy of a stage's metrics without the engine record and the ``keys`` (timings, task
+    counts), at the top and in each of its ``cameras``: what two runs of the stage share."""
+    m = json.loads(json.dumps(metrics))
+    m.pop("engine", None)
+    for part in [m, *m.get("cameras", {}).values()]:
+        for k in keys:
+            part.pop(k, None)
+    return m

@@ -22,8 +22,6 @@ manager) whatever happens.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import subprocess
 import sys
 import tempfile
@@ -32,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from conftest import file_digests, stage_metrics_without
 
 from facegeo.errors import InputError
 from facegeo.pipeline.engine import (
@@ -180,20 +180,8 @@ def tiny(tmp_path_factory):
     return root
 
 
-def _digests(folder: Path) -> dict[str, str]:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "stage.json"}
-
-
 def _without_timings(metrics: dict) -> dict:
-    m = json.loads(json.dumps(metrics))
-    m.pop("engine", None)
-    for k in _TIMINGS:
-        m.pop(k, None)
-    for cam in m["cameras"].values():
-        for k in _TIMINGS:
-            cam.pop(k, None)
-    return m
+    return stage_metrics_without(metrics, _TIMINGS)
 
 
 def test_decode_memory_check_names_the_camera(tiny, tmp_path):
@@ -242,7 +230,7 @@ def test_decode_two_workers_equals_in_process(tiny, tmp_path, cluster):
     ref = run_decode(tiny, tmp_path / "one")
     calls = []
     m = run_decode(tiny, tmp_path / "two", engine=cluster, progress=lambda *a: calls.append(a))
-    a, b = _digests(tmp_path / "one" / "decode"), _digests(tmp_path / "two" / "decode")
+    a, b = file_digests(tmp_path / "one" / "decode"), file_digests(tmp_path / "two" / "decode")
     assert a.keys() == b.keys() and any(k.endswith("decode.npz") for k in a)
     _assert_same_run_on_two_workers("decode", a, b, m, ref, calls)
 
@@ -290,14 +278,14 @@ def test_a_camera_failing_on_a_worker_keeps_the_others(tiny, tmp_path, cluster):
         run_decode(scan, out, engine=cluster)
     record = out / "decode" / ".partial" / "cam_left" / "partial.json"
     assert record.is_file()
-    kept = _digests(record.parent)
+    kept = file_digests(record.parent)
     assert not (out / "decode" / ".partial" / "cam_right").exists()
     assert not (out / "decode" / "stage.json").exists()  # no finished stage
     bad.write_bytes(good)
     m = run_decode(scan, out, engine=cluster)
     assert m["cameras"]["cam_left"].get("reused") is True
     assert "reused" not in m["cameras"]["cam_right"]
-    now = _digests(out / "decode" / "cam_left")
+    now = file_digests(out / "decode" / "cam_left")
     assert now == {k: v for k, v in kept.items() if k != "partial.json"}
     assert not (out / "decode" / ".partial").exists()  # gone with the stage's completion
 
@@ -315,7 +303,7 @@ def test_scheduler_address_runs_the_same_path(tiny, tmp_path, cluster):
         assert eng.memory_limit == cluster.memory_limit
         run_decode(tiny, tmp_path / "sched", engine=eng)
     run_decode(tiny, tmp_path / "local", engine=cluster)  # still running
-    assert _digests(tmp_path / "sched" / "decode") == _digests(tmp_path / "local" / "decode")
+    assert file_digests(tmp_path / "sched" / "decode") == file_digests(tmp_path / "local" / "decode")
     from facegeo.pipeline.engine import DaskEngine
 
     with pytest.raises(InputError, match="cannot connect"):  # nothing listens on port 9
@@ -368,7 +356,7 @@ def test_project_two_workers_equals_in_process(tiny, tmp_path, cluster):
     calls = []
     m = run_project(tiny, tmp_path / "two", engine=cluster, evaluate=False,
                     progress=lambda *a: calls.append(a))
-    a, b = _digests(tmp_path / "one" / "project"), _digests(tmp_path / "two" / "project")
+    a, b = file_digests(tmp_path / "one" / "project"), file_digests(tmp_path / "two" / "project")
     assert a.keys() == b.keys() and "cam_left/R.npy" in a and "preview.png" in a
     _assert_same_run_on_two_workers("project", a, b, m, ref, calls)
 
@@ -447,7 +435,7 @@ def test_decode_through_a_store_reads_the_pushed_scan_and_writes_through_it(tiny
     assert m["frames_from"] == "store"
     assert len(roots) == 2 and all(str(r).startswith(tempfile.gettempdir()) for r in roots)
     assert all(r != scan.root for r in roots)
-    a, b = _digests(tmp_path / "ref" / "decode"), _digests(tmp_path / "via" / "decode")
+    a, b = file_digests(tmp_path / "ref" / "decode"), file_digests(tmp_path / "via" / "decode")
     assert a == b and any(k.endswith("decode.npz") for k in a)
     assert _without_timings({**m, "frames_from": None}) == _without_timings(
         {**ref, "frames_from": None})
@@ -461,7 +449,7 @@ def test_decode_through_a_store_reads_the_pushed_scan_and_writes_through_it(tiny
     roots.clear()
     m2 = run_decode(scan, tmp_path / "plain", store=tmp_path / "empty_store")
     assert m2["frames_from"] == "scan folder" and roots == [scan.root, scan.root]
-    assert _digests(tmp_path / "plain" / "decode") == a
+    assert file_digests(tmp_path / "plain" / "decode") == a
 
 
 @pytest.mark.slow
@@ -476,7 +464,7 @@ def test_decode_through_a_store_on_two_workers(tiny, tmp_path, cluster):
     put_scan(scan, tmp_path / "store")
     m = run_decode(scan, tmp_path / "two", engine=cluster, store=tmp_path / "store")
     assert m["frames_from"] == "store" and set(m["engine"]["tasks"]) == {"cam_left", "cam_right"}
-    assert _digests(tmp_path / "ref" / "decode") == _digests(tmp_path / "two" / "decode")
+    assert file_digests(tmp_path / "ref" / "decode") == file_digests(tmp_path / "two" / "decode")
     assert _without_timings({**m, "frames_from": None}) == _without_timings(
         {**ref, "frames_from": None})
 

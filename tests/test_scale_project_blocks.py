@@ -15,13 +15,14 @@ What is compared, stated with each assertion:
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+
+from conftest import file_digests, stage_metrics_without
 
 from facegeo.errors import InputError
 
@@ -34,20 +35,8 @@ _TIMINGS = ("seconds", "peak_rss_mb", "seconds_visibility", "seconds_projection"
             "lights_per_task")
 
 
-def _digests(folder: Path) -> dict[str, str]:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "stage.json"}
-
-
 def _without_timings(metrics: dict) -> dict:
-    m = json.loads(json.dumps(metrics))
-    m.pop("engine", None)
-    for k in _TIMINGS:
-        m.pop(k, None)
-    for cam in m["cameras"].values():
-        for k in _TIMINGS:
-            cam.pop(k, None)
-    return m
+    return stage_metrics_without(metrics, _TIMINGS)
 
 
 def _project(root: Path, out: Path, **kw) -> dict:
@@ -65,8 +54,8 @@ def test_light_blocks_in_process_equal_one_task_per_camera(projected, tmp_path):
     ref = json.loads((projected / "out" / "project" / "stage.json").read_text())["metrics"]
     calls = []
     m = _project(projected, tmp_path, lights_per_task=50, progress=lambda *a: calls.append(a))
-    a = _digests(projected / "out" / "project")
-    b = _digests(tmp_path / "project")
+    a = file_digests(projected / "out" / "project")
+    b = file_digests(tmp_path / "project")
     assert a.keys() == b.keys() and "cam_left/R.npy" in a
     assert a == b, PRODUCTS_EQUAL
     assert _without_timings(m) == _without_timings(ref)
@@ -81,7 +70,7 @@ def test_light_blocks_on_two_workers_equal_one_task_per_camera(projected, tmp_pa
     through memory maps of one R.npy) and Zarr fields (disjoint whole chunks): the same bytes
     as one task per camera in process; each block ran on a worker within its memory limit."""
     m = _project(projected, tmp_path / "npy", lights_per_task=CHUNK, engine=cluster)
-    assert _digests(projected / "out" / "project") == _digests(tmp_path / "npy" / "project"), \
+    assert file_digests(projected / "out" / "project") == file_digests(tmp_path / "npy" / "project"), \
         PRODUCTS_EQUAL
     tasks = m["engine"]["tasks"]
     assert {"cam_left visibility", "cam_left lights 0:64", "cam_left lights 64:128",
@@ -91,7 +80,7 @@ def test_light_blocks_on_two_workers_equal_one_task_per_camera(projected, tmp_pa
     ref = _project(projected, tmp_path / "zarr_one", field_format="zarr")
     got = _project(projected, tmp_path / "zarr_blocks", field_format="zarr",
                    lights_per_task=CHUNK, engine=cluster)
-    a, b = _digests(tmp_path / "zarr_one" / "project"), _digests(tmp_path / "zarr_blocks"
+    a, b = file_digests(tmp_path / "zarr_one" / "project"), file_digests(tmp_path / "zarr_blocks"
                                                                    / "project")
     assert "cam_left/R.zarr/zarr.json" in a and not any(k.endswith("R.npy") for k in a)
     # the blend follows the engine (R_blend.npy in process, R_blend.zarr on a cluster: the same

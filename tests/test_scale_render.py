@@ -20,42 +20,18 @@ from pathlib import Path
 
 import pytest
 
+from conftest import timeless
+
 from facegeo.errors import InputError
 
 #: Memory limit of each worker of the test cluster (as tests/test_scale_stages.py; a tiny
 #: scan's view task peaks at ≈ 140 MiB over the interpreter).
 WORKER_LIMIT = "800MiB"
-#: The fixture's atlas (coarser than the default 1 texel/mm) and fit (an even subsample of
-#: the functions the views need): a fast fixture, as tests/test_fit_stage.py's.
-TEST_TEXELS_PER_MM = 0.35
-TEST_MAX_TEXELS = 60
-#: The views of the stage under test: two novel orbits of the front camera, supersampled as
-#: the ``render`` stage of ``facegeo reconstruct`` is (2 × 2 here: faster).
+#: The views of the stage under test (the ``fitted`` fixture of tests/conftest.py fits them):
+#: novel orbits of the front camera, supersampled as the ``render`` stage of ``facegeo
+#: reconstruct`` is (2 × 2 here: faster).
 VIEWS = ("orbit:cam_left:30", "orbit:cam_left:-30", "orbit:cam_left:60")
 SETTINGS = {"env": "sky", "supersample": 2}
-
-
-@pytest.fixture(scope="module")
-def fitted(tmp_path_factory):
-    """A tiny synthetic scan with its atlas, projection and a subsampled fit."""
-    from facegeo.pipeline.fit import run_fit
-    from facegeo.pipeline.project import run_project
-    from facegeo.synth.capture import generate_scan
-
-    root = tmp_path_factory.mktemp("scale_render") / "tiny"
-    generate_scan(root, "tiny")
-    run_project(root, atlas_settings={"texels_per_mm": TEST_TEXELS_PER_MM}, evaluate=False)
-    run_fit(root, texels="views", views=list(VIEWS), max_texels=TEST_MAX_TEXELS, mosaic=4)
-    return root
-
-
-def _timeless(doc):
-    """``doc`` without the keys naming ``seconds`` (timings), at every depth."""
-    if isinstance(doc, dict):
-        return {k: _timeless(v) for k, v in doc.items() if "seconds" not in k}
-    if isinstance(doc, list):
-        return [_timeless(v) for v in doc]
-    return doc
 
 
 def _products(folder: Path) -> dict:
@@ -65,7 +41,7 @@ def _products(folder: Path) -> dict:
     for p in sorted(folder.rglob("*")):
         if p.is_file():
             name = str(p.relative_to(folder))
-            out[name] = (_timeless(json.loads(p.read_text())) if p.suffix == ".json"
+            out[name] = (timeless(json.loads(p.read_text())) if p.suffix == ".json"
                          else hashlib.sha256(p.read_bytes()).hexdigest())
     return out
 
@@ -92,7 +68,7 @@ def test_render_views_on_two_workers_equal_in_process(fitted, tmp_path, cluster)
         assert got[name] == want[name], name  # bytes (SHA-256), or JSON without timings
     assert list(two["views"]) == list(one["views"]) == [
         f"cam_left_orbit{d}_sky" for d in ("30", "-30", "60")]
-    assert _timeless(two["views"]) == _timeless(one["views"])
+    assert timeless(two["views"]) == timeless(one["views"])
     assert two["env"] == one["env"] and "engine" not in one
     eng = two["engine"]
     assert eng["kind"] == "local-cluster" and len(eng["tasks"]) == len(VIEWS)

@@ -22,29 +22,15 @@ from pathlib import Path
 
 import pytest
 
+from conftest import timeless
+
 #: Memory limit of each worker of the test cluster (a tiny scan's view task peaks at ≈ 140 MiB
 #: over the interpreter; tests/test_scale_render.py).
 WORKER_LIMIT = "800MiB"
-#: A fast fixture, as tests/test_scale_render.py's: a coarse atlas, a subsampled fit.
-TEST_TEXELS_PER_MM = 0.35
-TEST_MAX_TEXELS = 60
-#: Two novel orbits, supersampled 2 × 2 (the stage's is 3 × 3: slower).
+#: Two novel orbits (the ``fitted`` fixture of tests/conftest.py fits them), supersampled
+#: 2 × 2 (the stage's is 3 × 3: slower).
 VIEWS = ("orbit:cam_left:30", "orbit:cam_left:-30")
 SETTINGS = {"env": "sky", "supersample": 2}
-
-
-@pytest.fixture(scope="module")
-def fitted(tmp_path_factory):
-    """A tiny synthetic scan with its atlas, projection and a subsampled fit."""
-    from facegeo.pipeline.fit import run_fit
-    from facegeo.pipeline.project import run_project
-    from facegeo.synth.capture import generate_scan
-
-    root = tmp_path_factory.mktemp("render_store") / "tiny"
-    generate_scan(root, "tiny")
-    run_project(root, atlas_settings={"texels_per_mm": TEST_TEXELS_PER_MM}, evaluate=False)
-    run_fit(root, texels="views", views=list(VIEWS), max_texels=TEST_MAX_TEXELS, mosaic=4)
-    return root
 
 
 @pytest.fixture(scope="module")
@@ -75,15 +61,6 @@ class _AwayEngine:
             os.rename(away, self._root)
 
 
-def _timeless(doc):
-    """``doc`` without the keys naming ``seconds`` (timings), at every depth."""
-    if isinstance(doc, dict):
-        return {k: _timeless(v) for k, v in doc.items() if "seconds" not in k}
-    if isinstance(doc, list):
-        return [_timeless(v) for v in doc]
-    return doc
-
-
 def _products(folder: Path, skip: str | None = None) -> dict:
     """Every file of ``folder`` (hidden ones included, those under ``skip`` by name only):
     SHA-256 of its bytes, or for a JSON file its parsed content without timings."""
@@ -94,7 +71,7 @@ def _products(folder: Path, skip: str | None = None) -> dict:
             if skip is not None and name.startswith(skip):
                 out[name] = None
             elif p.suffix == ".json":
-                out[name] = _timeless(json.loads(p.read_text()))
+                out[name] = timeless(json.loads(p.read_text()))
             else:
                 out[name] = hashlib.sha256(p.read_bytes()).hexdigest()
     return out
@@ -131,7 +108,7 @@ def test_render_stage_through_a_memory_store_in_process(fitted, in_process, tmp_
     two = _render(fitted, tmp_path / "two", engine=engine, store=store)
     assert engine.moved == 1
     _assert_same(_products(tmp_path / "two"), _products(folder))
-    assert _timeless(two["views"]) == _timeless(one["views"])
+    assert timeless(two["views"]) == timeless(one["views"])
     assert two["inputs_from"] == "store" and "inputs_from" not in one
     assert [v["seconds_source_images"] for v in two["views"].values()] == [0.0] * len(VIEWS)
     fs, path = fsspec.core.url_to_fs(store)
@@ -150,7 +127,7 @@ def test_render_stage_through_a_folder_store_on_two_workers(fitted, in_process, 
     two = _render(fitted, tmp_path / "two", engine=engine, store=tmp_path / "store")
     assert engine.moved == 1
     _assert_same(_products(tmp_path / "two"), _products(folder))
-    assert _timeless(two["views"]) == _timeless(one["views"])
+    assert timeless(two["views"]) == timeless(one["views"])
     assert two["inputs_from"] == "store"
     eng = two["engine"]
     assert eng["kind"] == "local-cluster" and len(eng["tasks"]) == len(VIEWS)
@@ -187,8 +164,8 @@ def test_standalone_render_on_two_workers_equals_in_process(fitted, tmp_path, cl
     assert two["engine"]["kind"] == "local-cluster" and len(two["engine"]["tasks"]) == 1
     assert two["inputs_from"] == "stage folder"
     assert two["psnr_db"] == one["psnr_db"] and two["name"] == one["name"]
-    assert _timeless({k: v for k, v in two.items() if k not in ("engine", "inputs_from")}) \
-        == _timeless({k: v for k, v in one.items() if k != "stats"})
+    assert timeless({k: v for k, v in two.items() if k not in ("engine", "inputs_from")}) \
+        == timeless({k: v for k, v in one.items() if k != "stats"})
 
 
 def test_render_command_runs_the_view_on_the_engine_of_its_options(fitted, monkeypatch):

@@ -229,17 +229,9 @@ def project_light_block(frames, d: Path, q: np.ndarray, size: tuple[int, int], n
         if frame.shape != (H, W, 3) or np.shape(valid) != (H, W):
             raise ShapeError(f"camera {fmt_value(name)}, light {light}: OLAT frame {frame.shape} "
                              f"(mask {np.shape(valid)}), expected ({H}, {W}, 3)")
-        s = rf.sample_frame(frame, sampler, valid)
-        if taps is not None:
-            taps.apply(count, frame, s, valid)
-        if np.isnan(s.sum()):
-            n_masked += int(np.count_nonzero(np.isnan(s).any(axis=1)))
-        if dtype == "float16":
-            big = float(np.abs(s).max(initial=0.0)) if s.size else 0.0
-            if big > rf._F16_MAX:
-                with np.errstate(invalid="ignore"):
-                    n_overflow += int(np.count_nonzero(np.isfinite(s)
-                                                       & (np.abs(s) > rf._F16_MAX)))
+        s, masked, overflow = rf.sample_olat_frame(frame, sampler, valid, taps, count, dtype)
+        n_masked += masked
+        n_overflow += overflow
         buf[count - b0] = s
         count += 1
         if count - b0 == B:

@@ -128,7 +128,8 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
-    "bilinear_taps", "frame_sampler", "sample_frame", "sample_taps", "project_camera",
+    "bilinear_taps", "frame_sampler", "sample_frame", "sample_olat_frame", "sample_taps",
+    "project_camera",
     "open_field", "has_field", "field_folders", "iter_field_chunks", "gather_field_samples",
     "FIELD_FORMATS", "DEFAULT_FIELD_FORMAT", "create_field", "field_chunk_bounds",
     "field_location", "find_field", "open_zarr_field", "write_field", "write_field_chunk",
@@ -640,16 +641,9 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
         if valid is not None and np.shape(valid) != (H, W):
             raise ShapeError(f"camera {fmt_value(vis.camera)}, light {light}: mask has shape "
                              f"{np.shape(valid)}, expected ({H}, {W})")
-        s = sample_frame(frame, sampler, valid)
-        if shadows is not None:
-            shadows.apply(count, frame, s, valid)
-        if np.isnan(s.sum()):  # one cheap reduction; count only when something is missing
-            n_masked += int(np.count_nonzero(np.isnan(s).any(axis=1)))
-        if dtype == "float16":
-            big = float(np.abs(s).max(initial=0.0)) if s.size else 0.0
-            if big > _F16_MAX:
-                with np.errstate(invalid="ignore"):
-                    n_overflow += int(np.count_nonzero(np.isfinite(s) & (np.abs(s) > _F16_MAX)))
+        s, masked, overflow = sample_olat_frame(frame, sampler, valid, shadows, count, dtype)
+        n_masked += masked
+        n_overflow += overflow
         buf[count - l0] = s
         count += 1
         if count - l0 == B:
@@ -670,6 +664,26 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
     return ProjectedField(camera=vis.camera, directory=directory, texel_index=sel,
                           weight=vis.weight[sel], v_world=vis.v_world[sel], n_lights=L,
                           n_masked=n_masked, n_overflow=n_overflow, seconds=seconds)
+
+
+def sample_olat_frame(frame, sampler, valid, shadows, light: int, dtype: str):
+    """One OLAT frame of a camera sampled at its projected texels (Eq. 2, ``R_c[t, l] =
+    L_l(q_c(t))``; :func:`sample_frame`), through the shadow-consistent ``shadows`` taps when
+    given: ``(samples (T_c, 3) float32, masked samples, samples beyond float16's range when
+    ``dtype`` is ``"float16"``)`` — the per-frame step of :func:`project_camera` and of the
+    projection's light-block tasks (:mod:`facegeo.pipeline._project_blocks`)."""
+    s = sample_frame(frame, sampler, valid)
+    if shadows is not None:
+        shadows.apply(light, frame, s, valid)
+    masked = overflow = 0
+    if np.isnan(s.sum()):  # one cheap reduction; count only when something is missing
+        masked = int(np.count_nonzero(np.isnan(s).any(axis=1)))
+    if dtype == "float16":
+        big = float(np.abs(s).max(initial=0.0)) if s.size else 0.0
+        if big > _F16_MAX:
+            with np.errstate(invalid="ignore"):
+                overflow = int(np.count_nonzero(np.isfinite(s) & (np.abs(s) > _F16_MAX)))
+    return s, masked, overflow
 
 
 def field_folders(project_dir) -> list[Path]:
