@@ -34,7 +34,7 @@ from facegeo.errors import InputError, ShapeError
 log = logging.getLogger(__name__)
 
 __all__ = ["CHUNK_BYTES", "FUSED_CHUNK_BYTES", "tint_clothing", "SPARSE_FRACTION", "normalize_weights", "block_weights",
-           "relight_field", "relight_frames", "relight_scan_view"]
+           "relight_field", "relight_frames", "relight_scan_view", "relight_scan_view_maps"]
 
 #: Target size of one float32 chunk of field rows (fits comfortably in the L2/L3 caches).
 CHUNK_BYTES = 4 << 20
@@ -461,6 +461,56 @@ def relight_scan_view(scan, camera: str, weights: Any, *, normalize_color: bool 
     if not np.isfinite(img).all():
         _raise_first_nonfinite_frame(scan, camera, active)
     return img
+
+
+def relight_scan_view_maps(scan, camera: str, weights: list, *,
+                           progress: Callable[[int], None] | None = None,
+                           read_ahead: int = 0) -> list[np.ndarray]:
+    """One camera of a scan relit under a batch of environments (Eq. 4 per map), each OLAT
+    frame read once: ``[(H, W, 3) float32 per map]``, normalised by the rig's light colour
+    (:func:`relight_scan_view` with ``normalize_color=True``).
+
+    One map is :func:`relight_scan_view`. Several: the frames lit by any map of the batch, each
+    read once and added to every map lighting it, ``acc_b += frame · w_b[l]`` in float64 in
+    light order — the arithmetic of :func:`relight_frames`, so each image is the same bytes as
+    the map relit alone. Holds B float64 images (24 B a pixel and map). ``progress(k)`` after
+    each frame read.
+
+    Raises
+    ------
+    InputError
+        A lit frame with a non-finite pixel (named), or weights that overflow float32.
+    """
+    from facegeo.lighting.envmap import field_weights
+
+    if len(weights) == 1:
+        return [relight_scan_view(scan, camera, weights[0], normalize_color=True,
+                                  progress=progress, read_ahead=read_ahead)]
+    n_l = scan.n_lights
+    # each light's own colour, as relight_scan_view(normalize_color=True)
+    W = [field_weights(normalize_weights(w, n_l)[0], scan.rig.lights) for w in weights]
+    lit = np.stack([np.any(w != 0, axis=1) for w in W])  # (B, L)
+    active = np.flatnonzero(lit.any(axis=0))
+    acc: list = [None] * len(W)
+    for k, (l, frame) in enumerate(scan.iter_olat(camera, active.tolist(),
+                                                  read_ahead=read_ahead)):
+        frame = np.asarray(frame)
+        for b, w in enumerate(W):
+            if lit[b, l]:
+                if acc[b] is None:
+                    acc[b] = np.zeros(frame.shape, np.float64)
+                acc[b] += frame * w[l]
+        if progress:
+            progress(k)
+    cam = scan.camera(camera)
+    out = []
+    for b, a in enumerate(acc):
+        img = (np.zeros((cam.height, cam.width, 3), np.float32) if a is None
+               else a.astype(np.float32))
+        if not np.isfinite(img).all():
+            _raise_first_nonfinite_frame(scan, camera, np.flatnonzero(lit[b]))
+        out.append(img)
+    return out
 
 
 def _raise_first_nonfinite_frame(scan, camera: str, lights) -> None:

@@ -22,9 +22,9 @@ library only logs.
 The steps live in private modules and are re-exported here: the texture relight's tasks and
 their rows (:func:`relight_rows_task`, :func:`relight_working_set`) in
 :mod:`facegeo.pipeline._relight_texture`, ``--model fitted`` (:func:`relight_fitted`) in
-:mod:`facegeo.pipeline._relight_fitted`, a camera view under a batch of maps in
-:mod:`facegeo.pipeline._relight_camera`. :func:`relight_texture` and the task sizes it reads
-(:data:`RELIGHT_TASK_TEXELS`, :data:`RELIGHT_MAPS_PER_TASK`) stay here.
+:mod:`facegeo.pipeline._relight_fitted`; a camera view under a batch of maps is
+:func:`facegeo.lighting.relight.relight_scan_view_maps`. :func:`relight_texture` and the task
+sizes it reads (:data:`RELIGHT_TASK_TEXELS`, :data:`RELIGHT_MAPS_PER_TASK`) stay here.
 """
 
 from __future__ import annotations
@@ -44,7 +44,6 @@ import numpy as np
 from facegeo.errors import InputError
 from facegeo.checks import check_choice, fmt_value
 # steps in their own modules, re-exported here (module docstring)
-from facegeo.pipeline._relight_camera import _relight_camera_batch
 from facegeo.pipeline._relight_fitted import FITTED_GRID, _fitted_model_path, relight_fitted
 from facegeo.pipeline._relight_texture import (RELIGHT_BYTES_FIXED, RELIGHT_BYTES_PER_SAMPLE,
                                                RELIGHT_BYTES_PER_TEXEL, _project_cameras,
@@ -544,8 +543,10 @@ def relight_maps_products(scan, project_dir: str | os.PathLike | None,
             done = sum(actives[:i])
             tick = ((lambda k, done=done: progress("relight", done + k + 1, sum(actives)))
                     if progress else None)
-            results = _relight_camera_batch(scan, view, [j["w"] for j in group], tick,
-                                            read_ahead)
+            from facegeo.lighting.relight import relight_scan_view_maps
+
+            results = [(img, img.reshape(-1, 3)) for img in relight_scan_view_maps(
+                scan, view, [j["w"] for j in group], progress=tick, read_ahead=read_ahead)]
             extras = [{} for _ in group]
         t_relit = time.perf_counter() - t_b
         batch["seconds"]["relight"] += t_relit
