@@ -194,7 +194,6 @@ def project_light_block(frames, d: Path, q: np.ndarray, size: tuple[int, int], n
         A frame or mask of the wrong size; a field of another size than the visibility's.
     """
     from facegeo.surface import reflectance as rf
-    from facegeo.surface._field_io import _release_rows
 
     l0, l1 = (int(v) for v in lights)
     B = int(chunk)
@@ -211,37 +210,8 @@ def project_light_block(frames, d: Path, q: np.ndarray, size: tuple[int, int], n
     if R.shape[0] != n or R.shape[1] < l1:
         raise ShapeError(f"camera {fmt_value(name)}: field {R.shape}, expected {n} texels and "
                          f"at least {l1} lights (its visibility task's)")
-    buf = np.empty((min(B, l1 - l0), n, 3), np.float32)
-    n_masked = n_overflow = 0
-    count = b0 = l0
-
-    def flush(upto: int) -> None:  # as rf.project_camera's flush, at light offset b0
-        for t0 in range(0, n, rf._TRANSPOSE_TEXELS):
-            t1 = min(t0 + rf._TRANSPOSE_TEXELS, n)
-            R[t0:t1, b0:upto] = buf[:upto - b0, t0:t1].transpose(1, 0, 2)
-            _release_rows(R, t0, t1, write=True)
-
-    for light, frame, valid in frames:
-        if int(light) != count or count >= l1:
-            raise InputError(f"camera {fmt_value(name)}: expected OLAT frame of light {count} "
-                             f"(block {l0}:{l1}), got light {light}")
-        frame = np.asarray(frame)
-        if frame.shape != (H, W, 3) or np.shape(valid) != (H, W):
-            raise ShapeError(f"camera {fmt_value(name)}, light {light}: OLAT frame {frame.shape} "
-                             f"(mask {np.shape(valid)}), expected ({H}, {W}, 3)")
-        s, masked, overflow = rf.sample_olat_frame(frame, sampler, valid, taps, count, dtype)
-        n_masked += masked
-        n_overflow += overflow
-        buf[count - b0] = s
-        count += 1
-        if count - b0 == B:
-            flush(count)
-            b0 = count
-    if count != l1:
-        raise InputError(f"camera {fmt_value(name)}: got {count - l0} OLAT frames for lights "
-                         f"{l0}:{l1}, expected {l1 - l0}")
-    if count > b0:
-        flush(count)
+    n_masked, n_overflow = rf.fill_light_columns(R, frames, sampler, taps, (l0, l1), B, dtype,
+                                                 name, (W, H))
     del R
     out = {"masked_samples": n_masked, "float16_overflow": n_overflow}
     if taps is not None:

@@ -128,7 +128,8 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "CameraVisibility", "ProjectedField", "FrameSampler", "camera_visibility", "depth_image",
-    "bilinear_taps", "frame_sampler", "sample_frame", "sample_olat_frame", "sample_taps",
+    "bilinear_taps", "frame_sampler", "sample_frame", "sample_olat_frame", "fill_light_columns",
+    "sample_taps",
     "project_camera",
     "open_field", "has_field", "field_folders", "iter_field_chunks", "gather_field_samples",
     "FIELD_FORMATS", "DEFAULT_FIELD_FORMAT", "create_field", "field_chunk_bounds",
@@ -611,49 +612,8 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
     L = int(n_lights)
     B = int(min(block_lights, L))
     R = _new_field(directory, field_format, dtype, (sel.size, L, 3), B, field_store)
-    buf = np.empty((B, sel.size, 3), np.float32)  # frame-major: each frame one contiguous row
-    n_masked = n_overflow = 0
-    count = 0
-    l0 = 0
-
-    def flush(upto: int) -> None:
-        # Blocked transpose (B, T, 3) -> (T, B, 3), a few thousand texels at a time so the
-        # source rows and the destination pages stay in cache; converted to the disk dtype.
-        for t0 in range(0, sel.size, _TRANSPOSE_TEXELS):
-            t1 = min(t0 + _TRANSPOSE_TEXELS, sel.size)
-            R[t0:t1, l0:upto] = buf[:upto - l0, t0:t1].transpose(1, 0, 2)
-            _release_rows(R, t0, t1, write=True)
-
-    for item in frames:
-        if len(item) == 3:
-            light, frame, valid = item
-        else:
-            (light, frame), valid = item, None
-        if int(light) != count:
-            raise InputError(f"camera {fmt_value(vis.camera)}: expected OLAT frame of light {count}, "
-                             f"got light {light} (frames must come in light-index order)")
-        if count >= L:
-            raise InputError(f"camera {fmt_value(vis.camera)}: more OLAT frames than the {L} lights")
-        frame = np.asarray(frame)
-        if frame.shape != (H, W, 3):
-            raise ShapeError(f"camera {fmt_value(vis.camera)}, light {light}: OLAT frame has shape "
-                             f"{frame.shape}, expected ({H}, {W}, 3)")
-        if valid is not None and np.shape(valid) != (H, W):
-            raise ShapeError(f"camera {fmt_value(vis.camera)}, light {light}: mask has shape "
-                             f"{np.shape(valid)}, expected ({H}, {W})")
-        s, masked, overflow = sample_olat_frame(frame, sampler, valid, shadows, count, dtype)
-        n_masked += masked
-        n_overflow += overflow
-        buf[count - l0] = s
-        count += 1
-        if count - l0 == B:
-            flush(count)
-            l0 = count
-    if count != L:
-        raise InputError(f"camera {fmt_value(vis.camera)}: got {count} OLAT frames, expected {L} "
-                         f"(one per light)")
-    if count > l0:
-        flush(count)
+    n_masked, n_overflow = fill_light_columns(R, frames, sampler, shadows, (0, L), B, dtype,
+                                              vis.camera, (W, H))
     del R
     np.save(directory / "texel_index.npy", sel.astype(np.int64))
     np.save(directory / "weight.npy", vis.weight[sel])
@@ -664,6 +624,74 @@ def project_camera(frames: Iterable, vis: CameraVisibility, size: tuple[int, int
     return ProjectedField(camera=vis.camera, directory=directory, texel_index=sel,
                           weight=vis.weight[sel], v_world=vis.v_world[sel], n_lights=L,
                           n_masked=n_masked, n_overflow=n_overflow, seconds=seconds)
+
+
+def fill_light_columns(R, frames, sampler, shadows, lights: tuple[int, int], block: int,
+                       dtype: str, camera: str, size: tuple[int, int]) -> tuple[int, int]:
+    """Columns ``l0:l1`` of a camera's field ``R`` (``(T_c, L, 3)``, a memory map or a Zarr
+    array) from its OLAT ``frames`` (``(light, frame)`` or ``(light, frame, valid)``, lights
+    ``l0 … l1−1`` in order): each frame sampled at the projected texels
+    (:func:`sample_olat_frame`, Eq. 2), ``block`` lights gathered frame-major in RAM, then
+    written with a blocked transpose ``(B, T, 3) → (T, B, 3)`` a few thousand texels at a time
+    (source rows and destination pages stay in cache; converted to the disk dtype) and the
+    written pages released. The loop of :func:`project_camera` (``(0, L)``) and of the
+    projection's light-block tasks (:mod:`facegeo.pipeline._project_blocks`). Returns the
+    masked samples and those beyond float16's range.
+
+    Raises
+    ------
+    InputError
+        Frames out of order, more than ``l1 − l0`` of them, or fewer.
+    ShapeError
+        A frame or mask of another size than ``size`` ``(W, H)``.
+    """
+    l0, l1 = (int(v) for v in lights)
+    W, H = (int(v) for v in size)
+    n = int(R.shape[0])
+    buf = np.empty((min(int(block), l1 - l0), n, 3), np.float32)  # frame-major rows
+    B = buf.shape[0]
+    n_masked = n_overflow = 0
+    count = b0 = l0
+    where = "" if (l0, l1) == (0, R.shape[1]) else f" (block {l0}:{l1})"
+
+    def flush(upto: int) -> None:
+        for t0 in range(0, n, _TRANSPOSE_TEXELS):
+            t1 = min(t0 + _TRANSPOSE_TEXELS, n)
+            R[t0:t1, b0:upto] = buf[:upto - b0, t0:t1].transpose(1, 0, 2)
+            _release_rows(R, t0, t1, write=True)
+
+    for item in frames:
+        if len(item) == 3:
+            light, frame, valid = item
+        else:
+            (light, frame), valid = item, None
+        if int(light) != count:
+            raise InputError(f"camera {fmt_value(camera)}: expected OLAT frame of light {count}"
+                             f"{where}, got light {light} (frames must come in light-index order)")
+        if count >= l1:
+            raise InputError(f"camera {fmt_value(camera)}: more OLAT frames than the "
+                             f"{l1 - l0} lights{where}")
+        frame = np.asarray(frame)
+        if frame.shape != (H, W, 3):
+            raise ShapeError(f"camera {fmt_value(camera)}, light {light}: OLAT frame has shape "
+                             f"{frame.shape}, expected ({H}, {W}, 3)")
+        if valid is not None and np.shape(valid) != (H, W):
+            raise ShapeError(f"camera {fmt_value(camera)}, light {light}: mask has shape "
+                             f"{np.shape(valid)}, expected ({H}, {W})")
+        s, masked, overflow = sample_olat_frame(frame, sampler, valid, shadows, count, dtype)
+        n_masked += masked
+        n_overflow += overflow
+        buf[count - b0] = s
+        count += 1
+        if count - b0 == B:
+            flush(count)
+            b0 = count
+    if count != l1:
+        raise InputError(f"camera {fmt_value(camera)}: got {count - l0} OLAT frames, expected "
+                         f"{l1 - l0}{where} (one per light)")
+    if count > b0:
+        flush(count)
+    return n_masked, n_overflow
 
 
 def sample_olat_frame(frame, sampler, valid, shadows, light: int, dtype: str):
