@@ -203,11 +203,13 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
     own = parts_dir is None
     parts = tempfile.mkdtemp(prefix="facegeo-relight-") if own else parts_dir
     tasks, layout = [], []
+    small: dict = {}  # per camera (texel_index, weight): read once, blended under every map
     try:
         for cam in cams:
             R = open_field(cam)
             idx = np.load(cam / "texel_index.npy")
             wc = np.load(cam / "weight.npy").astype(np.float64)
+            small[cam] = (idx, wc)
             if R.ndim != 3 or R.shape[0] != idx.size or wc.shape != idx.shape:
                 raise InputError(f"{cam}: R.npy {R.shape}, texel_index.npy {idx.shape} and "
                                  f"weight.npy {wc.shape} disagree (re-run 'facegeo project')")
@@ -249,8 +251,7 @@ def relight_texture(field_dir: str | os.PathLike | None, weights: Any, *,
             for cam, b0, b1, relit_path in layout:  # camera order, wherever the tasks ran
                 if not b0 <= j < b1:
                     continue
-                idx = np.load(cam / "texel_index.npy")
-                wc = np.load(cam / "weight.npy").astype(np.float64)
+                idx, wc = small[cam]
                 relit = _read_relit_rows(relit_path, j - b0).astype(np.float64)
                 ok = np.isfinite(relit)
                 # texel_index is unique within a camera: plain fancy-index accumulation is exact
