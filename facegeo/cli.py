@@ -1260,7 +1260,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "docs/render.md)")
     s.add_argument("--no-infer", dest="infer", action="store_false",
                    help="leave surface no camera saw black, the paper's way (default: inferred "
-                        "from its texture-space neighbours, marked in NAME_inferred.png; "
+                        "from its neighbours on the surface, marked in NAME_inferred.png; "
                         "docs/render.md)")
     s.add_argument("--mesh", default="auto", help=mesh_help)
     s.add_argument("--rig", default="auto", choices=RIG_CHOICES, help=rig_help)

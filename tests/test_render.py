@@ -1025,8 +1025,9 @@ def test_inferred_texels_keep_measured_ones_and_follow_the_shading():
     rr, cc = np.mgrid[0:h, 0:w]
     n = np.stack([np.sin(cc / w), np.zeros_like(cc, float), np.cos(cc / w)], -1).reshape(-1, 3)
     tex = Texels(row=rr.ravel(), col=cc.ravel(), face=np.zeros(h * w, np.int64),
-                 bary=np.zeros((h * w, 3)), p_world=np.zeros((h * w, 3)), n_world=n,
-                 n_geom=n, index_map=np.arange(h * w).reshape(h, w))
+                 bary=np.zeros((h * w, 3)),
+                 p_world=np.stack([cc.ravel(), rr.ravel(), 0 * cc.ravel()], 1) * 1e-3,
+                 n_world=n, n_geom=n, index_map=np.arange(h * w).reshape(h, w))
     dirs = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     wts = np.array([[1.0, 0.8, 0.6], [0.3, 0.3, 0.3], [0.0, 0.0, 0.0]])
     e = lambert_irradiance(n, dirs, wts)
@@ -1037,11 +1038,12 @@ def test_inferred_texels_keep_measured_ones_and_follow_the_shading():
     holes = (rr.ravel() >= 3) & (rr.ravel() < 5) & (cc.ravel() >= 4)
     given = colour.copy()
     given[:, holes] = np.nan
-    got, inferred = infer_texel_colours(tex, need, given, shading=e)
-    assert np.array_equal(inferred, holes)
-    assert np.array_equal(got[:, ~holes], colour[:, ~holes])  # bit for bit
-    # float32 colours over float64 shading and back: a few ulps
-    np.testing.assert_allclose(got[:, holes], colour[:, holes], rtol=1e-5)
+    for space in ("surface", "texture"):  # over the texels' positions, or on the atlas
+        got, inferred = infer_texel_colours(tex, need, given, shading=e, space=space)
+        assert np.array_equal(inferred, holes)
+        assert np.array_equal(got[:, ~holes], colour[:, ~holes])  # bit for bit
+        # float32 colours over float64 shading and back: a few ulps
+        np.testing.assert_allclose(got[:, holes], colour[:, holes], rtol=1e-5)
     plain, _ = infer_texel_colours(tex, need, given)
     assert np.isfinite(plain).all()
     # without the shading, the hole takes its neighbours' colours: wrong where the shading varies

@@ -8,7 +8,7 @@ Tiny preset with the calibration-only ``witness`` camera and its reference image
 ground_truth``): the ``render`` stage's four orbits of the frontal camera of the two capture
 cameras under ``sky`` at its 3 × 3 rays per pixel, against the generator's references, and the
 witness camera's view against its reference image, with ``infer`` (the default: what no camera
-saw inferred in texture space). The chain (calibrated rig, reconstructed mesh) is not measured
+saw inferred over the surface). The chain (calibrated rig, reconstructed mesh) is not measured
 here: the tiny preset's board views are too small to calibrate (docs/synth.md) and the small
 preset costs minutes.
 """
@@ -26,14 +26,15 @@ GAIN_COVERED_DB_MIN = 3.0
 GAIN_HEAD_DB_MIN = 1.0
 ORBITS = (-60, -30, 30, 60)
 VIEWS = ORBITS + ("witness",)
-#: Measured (tiny + witness, true rig and mesh, 3 × 3 rays, infer on; 2026-12-02), gain in dB,
-#: and beside it the render with ``infer=False`` (unseen surface black, the paper's):
-#:   view                  covered  whole head  inferred px   whole head, black  black px
-#:   orbit −60° (sky)       9.77    3.43        32.4 %        0.98               814
-#:   orbit −30°             5.41    2.01        13.1 %        0.55               110
-#:   orbit +30°             4.25    1.45        13.0 %        0.20                94
-#:   orbit +60°             7.24    2.02        31.9 %        0.07               799
-#:   witness (axis_lobes)  10.72    1.24        14.9 %        —
+#: Measured (tiny + witness, true rig and mesh, 3 × 3 rays, infer on; 2026-12-03: inferred
+#: over the surface; in brackets 2026-12-02's inference on the atlas), gain in dB, and beside it
+#: the render with ``infer=False`` (unseen surface black, the paper's; 2026-12-02):
+#:   view                  covered  whole head     inferred px   whole head, black  black px
+#:   orbit −60° (sky)       9.77    6.80 (3.43)    32.4 %        0.98               814
+#:   orbit −30°             5.41    2.06 (2.00)    13.1 %        0.55               110
+#:   orbit +30°             4.27    1.47 (1.47)    13.0 %        0.20                94
+#:   orbit +60°             7.27    2.06 (2.04)    31.9 %        0.07               799
+#:   witness (axis_lobes)  10.82    2.24 (1.23)    14.9 %        —
 #: (54 % of the atlas's texels no capture camera measured: two 80 × 120 px cameras, the back of
 #: the head unseen.) The orbits are of the two capture cameras' frontal view (``front_camera``
 #: of cam_left and cam_right). The stage's ``orbit:front:D`` averages every camera of its

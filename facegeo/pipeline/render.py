@@ -33,7 +33,7 @@ reference and error images beside the view.
 Metrics of the view itself: ``coverage``, the fraction of the render's surface pixels (rays
 that hit the atlas mesh) whose texels some source camera measured (pixels outside it are
 filled from the nearest measured pixel within ``fill_px``, then with ``infer``, the default,
-from texels inferred in texture space — :func:`facegeo.render.novel.infer_texel_colours` —,
+from texels inferred over the surface — :func:`facegeo.render.novel.infer_texel_colours` —,
 else black, in every render); ``inferred_pixel_fraction`` (surface pixels holding an inferred
 value), ``inferred_texel_fraction`` (atlas texels no source camera measured),
 ``black_surface_pixels`` and ``surface_pixel_fraction`` (the image's share of surface pixels;
@@ -168,8 +168,8 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
         to it; the texture-space figures are kept as ``texture_*``. False: texture space
         only (the paper)
     infer : bool — cover what no camera saw: surface pixels whose texels no source camera
-        measured take values inferred in texture space (pull–push of colour over Lambertian
-        shading, :func:`facegeo.render.render_view` ``infer``), marked in
+        measured take values inferred over the surface (pull–push of colour over Lambertian
+        shading in space, :func:`facegeo.render.render_view` ``infer``), marked in
         ``<name>_inferred.png``; covered pixels unchanged bit for bit. False: black (the paper)
     progress : callable(stage, done, total), optional — called as stage ``"render"`` after
         each step (rays — with image detail, relighting the source captures too, ≈ 40 s at the

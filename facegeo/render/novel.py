@@ -28,8 +28,8 @@ For a camera the light stage never had, under an environment given as Eq. (4) li
    the nearest pixel with measured samples within that distance (hole filling for display:
    the silhouette ring the projection leaves out) and stay False in ``covered``; with
    ``infer`` (not the paper) every other hit sample takes its texels' values inferred from
-   their measured neighbours in texture space (:func:`infer_texel_colours`: pull–push of
-   colour over Lambertian shading), else the nearest pixel's, and is marked in
+   their measured neighbours on the surface (:func:`infer_texel_colours`: pull–push of
+   colour over Lambertian shading over the texels' positions), else the nearest pixel's, and is marked in
    ``RenderResult.inferred``: no surface pixel is black.
    **Shadow-consistent texel taps** (``shadows=``, :func:`render_shadows`; the paper's §4.4
    shadow maps "using our geometric model", as the projection does them,
@@ -997,8 +997,8 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
         (:func:`facegeo.render.detail.project_source_images`); default the projection's
         defaults
     infer : bool — cover what no camera saw: every hit sample gets a value, those whose texels
-        no source camera measured from their texels inferred in texture space
-        (:func:`infer_texel_colours`, pull–push; after ``fill_px``), a sample with no tap on a
+        no source camera measured from their texels inferred over the surface
+        (:func:`infer_texel_colours`, pull–push in space; after ``fill_px``), a sample with no tap on a
         chart from the nearest pixel with a value; marked in ``RenderResult.inferred``, never
         ``covered``. Covered pixels are the same bit for bit with or without it. False: such
         samples stay black (the paper)
@@ -1179,7 +1179,7 @@ def _view_image(vs: ViewSamples, need, colour, fill_px, stats, t0, t1, t2,
     from_texels = np.zeros(cov.shape, bool)
     nearest = np.zeros(cov.shape, bool)
     if inferred_colour is not None:
-        # samples no measured tap reached: their inferred texels (pull–push in texture space,
+        # samples no measured tap reached: their inferred texels (pull–push over the surface,
         # infer_texel_colours), then whatever has no tap on a chart the nearest pixel's colour
         todo = np.flatnonzero(~cov & ~filled)
         if todo.size and need.size:
