@@ -27,14 +27,15 @@ GAIN_HEAD_DB_MIN = 1.0
 ORBITS = (-60, -30, 30, 60)
 VIEWS = ORBITS + ("witness",)
 #: Measured (tiny + witness, true rig and mesh, 3 × 3 rays, infer on; 2026-12-03: inferred
-#: over the surface; in brackets 2026-12-02's inference on the atlas), gain in dB, and beside it
-#: the render with ``infer=False`` (unseen surface black, the paper's; 2026-12-02):
+#: over the surface, no ``fill_px``; in brackets 2026-12-02's inference on the atlas after a
+#: 2 px ``fill_px``), gain in dB, and beside it the render with ``infer=False`` (unseen surface
+#: black, the paper's; 2026-12-02):
 #:   view                  covered  whole head     inferred px   whole head, black  black px
-#:   orbit −60° (sky)       9.77    6.80 (3.43)    32.4 %        0.98               814
-#:   orbit −30°             5.41    2.06 (2.00)    13.1 %        0.55               110
-#:   orbit +30°             4.27    1.47 (1.47)    13.0 %        0.20                94
-#:   orbit +60°             7.27    2.06 (2.04)    31.9 %        0.07               799
-#:   witness (axis_lobes)  10.82    2.24 (1.23)    14.9 %        —
+#:   orbit −60° (sky)       9.77    8.04 (3.43)    32.4 %        0.98               814
+#:   orbit −30°             5.41    3.67 (2.00)    13.1 %        0.55               110
+#:   orbit +30°             4.27    1.80 (1.47)    13.0 %        0.20                94
+#:   orbit +60°             7.27    2.56 (2.04)    31.9 %        0.07               799
+#:   witness (axis_lobes)  10.82    3.57 (1.23)    14.9 %        —
 #: (54 % of the atlas's texels no capture camera measured: two 80 × 120 px cameras, the back of
 #: the head unseen.) The orbits are of the two capture cameras' frontal view (``front_camera``
 #: of cam_left and cam_right). The stage's ``orbit:front:D`` averages every camera of its

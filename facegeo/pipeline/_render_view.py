@@ -143,11 +143,28 @@ def _safe(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.+-]+", "_", text).strip("_") or "view"
 
 
+#: ``fill_px`` of a render that leaves what no camera saw black (``infer=False``): the
+#: silhouette ring the projection's ``min_cos`` leaves out takes the nearest covered pixel's
+#: colour within this distance (display hole filling).
+FILL_PX_NO_INFER = 2.0
+
+
+def default_fill_px(infer: bool) -> float:
+    """The render's default ``fill_px``: 0 with ``infer`` — the texels of the silhouette ring
+    are inferred over the surface like every unmeasured texel (continuous; copying one covered
+    sample's colour across 2 px made blotches where a few measured samples sat at the grazing
+    edge: tiny preset, true mesh, whole-head gain −60° / −30° / +30° / +60° / witness +6.80 /
+    +2.06 / +1.47 / +2.06 / +2.24 dB with the copy, +8.04 / +3.67 / +1.80 / +2.56 / +3.57
+    without; docs/render.md) — and :data:`FILL_PX_NO_INFER` without."""
+    return 0.0 if infer else FILL_PX_NO_INFER
+
+
 def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
                rotate_deg: float = 0.0, projection: str = "latlong", supersample: int = 1,
                resynthesis: bool | str = True, baseline: bool = True, reference: bool = True,
                name: str | None = None, blend_power: float | None = None,
-               rig: str | None = None, solid_angle: str = "paper", fill_px: float = 2.0,
+               rig: str | None = None, solid_angle: str = "paper",
+               fill_px: float | None = None,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
                shadow_taps: bool = True, image_detail: bool = True, progress=None,
                cache: dict | None = None, convention: str = "facegeo",
@@ -174,7 +191,9 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     With ``image_detail`` the source cameras' relit captures (:func:`_source_images`, once per
     environment weights in ``cache``) join every render of the view (``render_view(detail=)``);
     they are also kept on disk, in ``source_images_dir`` when given (the view tasks of a
-    cluster stage share them so), else without a ``cache`` in ``dest/.source_images``."""
+    cluster stage share them so), else without a ``cache`` in ``dest/.source_images``.
+
+    ``fill_px`` None: :func:`default_fill_px` of ``infer``."""
     from facegeo.capture import imageio
     from facegeo.fsutil import atomic_write_text
     from facegeo.lighting import envmap as E
@@ -190,6 +209,7 @@ def render_one(scan, out: Path, dest: Path, *, camera_spec, env="axis_lobes",
     from facegeo.render.novel import BLEND_POWER
 
     t_start = time.perf_counter()
+    fill_px = default_fill_px(infer) if fill_px is None else fill_px
     out, dest = Path(out), Path(dest)
     shrink_mode = _check_shrinkage(shrinkage)
     supersample = check_positive_int(supersample, "supersample")

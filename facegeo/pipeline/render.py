@@ -32,9 +32,9 @@ reference and error images beside the view.
 
 Metrics of the view itself: ``coverage``, the fraction of the render's surface pixels (rays
 that hit the atlas mesh) whose texels some source camera measured (pixels outside it are
-filled from the nearest measured pixel within ``fill_px``, then with ``infer``, the default,
-from texels inferred over the surface — :func:`facegeo.render.novel.infer_texel_colours` —,
-else black, in every render); ``inferred_pixel_fraction`` (surface pixels holding an inferred
+filled from texels inferred over the surface with ``infer``, the default —
+:func:`facegeo.render.novel.infer_texel_colours` —, else from the nearest measured pixel
+within ``fill_px`` (2 px) and black beyond, in every render); ``inferred_pixel_fraction`` (surface pixels holding an inferred
 value), ``inferred_texel_fraction`` (atlas texels no source camera measured),
 ``black_surface_pixels`` and ``surface_pixel_fraction`` (the image's share of surface pixels;
 under :data:`CAMERA_HIT_MIN` a warning says the camera hardly looks at the surface);
@@ -108,7 +108,7 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
                projection: str = "latlong", supersample: int = 1, resynthesis: bool = True,
                baseline: bool = True, reference: bool = True, name: str | None = None,
                blend_power: float | None = None, rig: str | None = None,
-               solid_angle: str = "paper", fill_px: float = 2.0,
+               solid_angle: str = "paper", fill_px: float | None = None,
                shrinkage: str | float = SHRINKAGE_DEFAULT, light_step: int = 1,
                shadow_taps: bool = True, image_detail: bool = True, progress=None,
                convention: str = "facegeo", infer: bool = True, engine=None,
@@ -144,9 +144,11 @@ def run_render(scan_dir, out_dir=None, *, camera_spec, env="axis_lobes", rotate_
     blend_power : float, optional — view-dependent weight exponent
     rig : str, optional — :func:`facegeo.pipeline.project.stage_rig`; default as the ``project`` stage used
     solid_angle : {"paper", "exact"} — δA rule of the Eq. (4) weights
-    fill_px : float, pixels — hole filling of unmeasured hit samples from the nearest measured
-        pixel within this distance (:func:`facegeo.render.render_view`; 0: off); filled
-        pixels count in ``psnr_db`` / ``rel_rmse`` but not in the ``*_covered`` figures
+    fill_px : float, pixels, optional — hole filling of unmeasured hit samples from the nearest
+        measured pixel within this distance (:func:`facegeo.render.render_view`; 0: off);
+        filled pixels count in ``psnr_db`` / ``rel_rmse`` but not in the ``*_covered`` figures.
+        Default 0 with ``infer`` (those samples' texels are inferred over the surface like any
+        unmeasured texel), 2 without (:func:`facegeo.pipeline._render_view.default_fill_px`)
     shrinkage : {"cross-validated", "none"} or float in [0, 1] — the share λ of the
         resynthesised change applied per source camera
         (:func:`facegeo.render.cross_validated_shrinkage`, a deviation from the paper measured
