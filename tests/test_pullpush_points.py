@@ -104,8 +104,8 @@ def _two_charts():
 
 def test_inference_over_the_surface_takes_the_neighbours_in_space_not_on_the_atlas():
     """The left chart's last 6 columns unmeasured: over the surface they take the red of the
-    texels on both sides of them in space; pull–push on the atlas (``space="texture"``) pulls in the blue
-    of the chart beside them in the atlas (the patches issue 37's renders showed)."""
+    texels on both sides of them in space; pull–push on the atlas (``space="texture"``) pulls
+    in the blue of the chart beside them in the atlas (the patches issue 37's renders showed)."""
     from facegeo.render.novel import infer_texel_colours
 
     tex, x, colour = _two_charts()

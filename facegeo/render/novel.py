@@ -29,8 +29,8 @@ For a camera the light stage never had, under an environment given as Eq. (4) li
    the silhouette ring the projection leaves out) and stay False in ``covered``; with
    ``infer`` (not the paper) every other hit sample takes its texels' values inferred from
    their measured neighbours on the surface (:func:`infer_texel_colours`: pull–push of
-   colour over Lambertian shading over the texels' positions), else the nearest pixel's, and is marked in
-   ``RenderResult.inferred``: no surface pixel is black.
+   colour over Lambertian shading over the texels' positions), else the nearest pixel's, and
+   is marked in ``RenderResult.inferred``: no surface pixel is black.
    **Shadow-consistent texel taps** (``shadows=``, :func:`render_shadows`; the paper's §4.4
    shadow maps "using our geometric model", as the projection does them,
    :mod:`facegeo.surface.shadows`): for each *key light* of the environment (a sun, a studio
@@ -998,10 +998,10 @@ def render_view(camera, scene, atlas, texels, sources, weights, lights, *,
         defaults
     infer : bool — cover what no camera saw: every hit sample gets a value, those whose texels
         no source camera measured from their texels inferred over the surface
-        (:func:`infer_texel_colours`, pull–push in space; after ``fill_px``), a sample with no tap on a
-        chart from the nearest pixel with a value; marked in ``RenderResult.inferred``, never
-        ``covered``. Covered pixels are the same bit for bit with or without it. False: such
-        samples stay black (the paper)
+        (:func:`infer_texel_colours`, pull–push in space; after ``fill_px``), a sample with no
+        tap on a chart from the nearest pixel with a value; marked in
+        ``RenderResult.inferred``, never ``covered``. Covered pixels are the same bit for bit
+        with or without it. False: such samples stay black (the paper)
     light_directions : (L, 3) float64, unit, world frame, optional — toward each light of the
         rig: with ``infer``, the inference is of colour over each texel's Lambertian
         irradiance (:func:`infer_texel_colours`); None: of colour

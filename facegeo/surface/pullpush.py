@@ -180,7 +180,7 @@ def pull_push_points(points, values, known, *, cell: float | None = None,
     w = np.minimum(cnt, 1.0)
     levels = [(keys, w, mean)]
     for _ in range(1, n_levels):
-        keys_f, w_f, mean_f = levels[-1]
+        _, w_f, mean_f = levels[-1]
         cq = coords >> 1
         ck, cinv = np.unique(_cell_keys(cq), return_inverse=True)
         ws = np.bincount(cinv, weights=w_f, minlength=ck.size)
