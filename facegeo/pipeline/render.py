@@ -36,8 +36,9 @@ filled from texels inferred over the surface with ``infer``, the default —
 :func:`facegeo.render.novel.infer_texel_colours` —, else from the nearest measured pixel
 within ``fill_px`` (2 px) and black beyond, in every render); ``inferred_pixel_fraction``
 (surface pixels holding an inferred value), ``inferred_texel_fraction`` (atlas texels no
-source camera measured), ``black_surface_pixels`` and ``surface_pixel_fraction`` (the image's share of surface pixels;
-under :data:`CAMERA_HIT_MIN` a warning says the camera hardly looks at the surface);
+source camera measured), ``black_surface_pixels`` and ``surface_pixel_fraction`` (the image's
+share of surface pixels; under :data:`CAMERA_HIT_MIN` a warning says the camera hardly looks
+at the surface);
 with the cross-validated shrinkage (the default, :func:`facegeo.render.cross_validated_shrinkage`)
 ``shrinkage_factors`` (λ per source camera) and ``shrinkage_cross_validation``; with
 image-space detail (``image_detail``, :mod:`facegeo.render.detail`) ``detail_fraction``
