@@ -698,8 +698,7 @@ def sample_olat_frame(frame, sampler, valid, shadows, light: int, dtype: str):
     """One OLAT frame of a camera sampled at its projected texels (Eq. 2, ``R_c[t, l] =
     L_l(q_c(t))``; :func:`sample_frame`), through the shadow-consistent ``shadows`` taps when
     given: ``(samples (T_c, 3) float32, masked samples, samples beyond float16's range when
-    ``dtype`` is ``"float16"``)`` — the per-frame step of :func:`project_camera` and of the
-    projection's light-block tasks (:mod:`facegeo.pipeline._project_blocks`)."""
+    ``dtype`` is ``"float16"``)`` — the per-frame step of :func:`fill_light_columns`."""
     s = sample_frame(frame, sampler, valid)
     if shadows is not None:
         shadows.apply(light, frame, s, valid)
