@@ -845,7 +845,7 @@ def _cmd_reconstruct(args) -> int:
 
 #: ``facegeo mesh`` / ``reconstruct`` options that are mesh-stage settings of the same name.
 _MESH_OPTIONS = ("depth", "max_distance_mm", "min_angle_deg", "code_interpolation",
-                 "min_confidence", "hole_fill", "fill_distance_mm")
+                 "min_confidence", "hole_fill", "fill_distance_mm", "silhouettes")
 
 
 def _int_or_auto(text: str):
@@ -889,6 +889,10 @@ def _mesh_options(s) -> None:
                    help="mesh: the filled surface (mesh_filled.ply, its own Poisson solve in a "
                         "cube 4 x the points' extent) keeps the surface within this of a point "
                         "(default auto: 0.28 x the points' extent; docs/mesh.md)")
+    s.add_argument("--silhouettes", choices=["auto", "on", "off"], default=None,
+                   help="mesh: shape the filled surface with the cameras' silhouettes in their "
+                        "OLAT frames (rim points; default auto: when the scan has OLAT frames; "
+                        "docs/mesh.md)")
 
 
 def _surface_option(s) -> None:

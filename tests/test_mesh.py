@@ -538,3 +538,49 @@ def test_fill_depth_matches_the_trimmed_cell():
     with pytest.raises(InputError, match="fill_scale"):
         gm.poisson_mesh(*_holed_cap(), depth=6, max_distance=3e-3, fill_distance="auto",
                         fill_scale=-1.0)
+
+
+def test_the_silhouettes_setting(tiny, tmp_path):
+    """``silhouettes``: "off" leaves the filled surface the points' alone; "on" insists (OLAT
+    frames and a filled surface); anything else is refused by name. What the rims do:
+    tests/test_silhouette.py and the chain's figures (tests/test_chain_default.py)."""
+    import shutil
+    from pathlib import Path
+
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.mesh import mesh_products
+
+    dec = tiny.out_dir / "decode"
+    with pytest.raises(InputError, match="silhouettes: expected 'auto', 'on' or 'off'"):
+        mesh_products(tiny, dec, tmp_path, silhouettes="maybe")
+    with pytest.raises(InputError, match="only the Poisson method"):
+        mesh_products(tiny, dec, tmp_path, method="grid", silhouettes="on")
+    (tmp_path / "off").mkdir()
+    m, settings = mesh_products(tiny, dec, tmp_path / "off", depth=6, silhouettes="off")
+    assert settings["silhouettes"] == "off" and "silhouettes" not in m
+    assert m["filled"]["support_points"] == 0
+    (tmp_path / "on").mkdir()
+    m, _ = mesh_products(tiny, dec, tmp_path / "on", depth=6, silhouettes="on")
+    assert m["filled"]["support_points"] == m["silhouettes"]["rim_points"] > 0
+    # the trimmed mesh is the points' alone either way
+    assert (tmp_path / "on" / "mesh.ply").read_bytes() \
+        == (tmp_path / "off" / "mesh.ply").read_bytes()
+    # a camera whose silhouette cannot be found is left out, and said so ("auto"), or refused
+    from facegeo.geometry.mesh import Mesh
+    from facegeo.pipeline.mesh import silhouette_rims
+
+    rig = tiny.rig
+    far = np.full((20, 3), 50.0)  # no point in any camera's image
+    lid = Mesh(np.eye(3), np.array([[0, 1, 2]]), np.eye(3), {})
+    got = silhouette_rims(tiny, rig, tiny.camera_names[:1], far, lid)
+    assert len(got["points"]) == 0 and got["metrics"]["rim_points"] == 0
+    assert "no known subject pixel" in got["metrics"]["cameras"][tiny.camera_names[0]]["error"]
+    with pytest.raises(InputError, match=f"silhouettes, camera {tiny.camera_names[0]}"):
+        silhouette_rims(tiny, rig, tiny.camera_names[:1], far, lid, strict=True)
+    # a scan without OLAT frames has no silhouette to insist on
+    src = Path(__file__).parent / "fixtures" / "scans" / "structured_light_only"
+    shutil.copytree(src, tmp_path / "scan")
+    bare = load_scan(tmp_path / "scan")
+    with pytest.raises(InputError, match="one-light-at-a-time frames"):
+        mesh_products(bare, tmp_path / "decode", tmp_path, rig="scan",
+                      cameras=bare.camera_names, silhouettes="on")

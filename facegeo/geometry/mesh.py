@@ -399,7 +399,8 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
                  spacing: float | None = None, max_depth: int = AUTO_MAX_DEPTH,
                  min_component: float = 0.05, target_faces: int | None = None,
                  fill_distance: float | str | None = None,
-                 fill_scale: float = AUTO_FILL_SCALE) -> Mesh:
+                 fill_scale: float = AUTO_FILL_SCALE, support_points=None,
+                 support_normals=None) -> Mesh:
     """Screened Poisson surface of oriented points, trimmed to where the points are.
 
     Parameters
@@ -449,6 +450,13 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
         solve (its measured faces are then exactly the trimmed mesh's). Its zero-area faces
         (repeated or collinear corners, which the atlas refuses) are dropped
         (``info["degenerate_faces_dropped"]``).
+    support_points, support_normals : (S, 3) float64, optional
+        Oriented points that shape the filled surface only — the cameras' silhouette rims
+        (:func:`facegeo.geometry.silhouette.rim_points`): part of its Poisson solve (then its
+        own, whatever ``fill_scale``) and of its distance bound, but never of the trimmed
+        mesh, its trim, the fill distance ``"auto"`` measures, or which faces count as
+        measured (a face near a rim point alone stays inferred). ``info["support_points"]``
+        counts them.
 
     Returns
     -------
@@ -496,6 +504,17 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
     fill_scale = check_positive(fill_scale, "fill_scale")
     if spacing is not None:
         spacing = check_positive(spacing, "spacing")
+    sp = sn = None
+    if support_points is not None or support_normals is not None:
+        if fill_distance is None:
+            raise InputError("support_points: they shape the filled surface only; give "
+                             "fill_distance too ('auto' or metres)")
+        sp = as_array(support_points, "support_points", shape=(None, 3))
+        sn = as_array(support_normals, "support_normals", shape=(sp.shape[0], 3))
+        if not (np.isfinite(sp).all() and np.isfinite(sn).all()):
+            raise InputError("support_points / support_normals: expected finite values")
+        if not len(sp):
+            sp = sn = None
     t0 = time.perf_counter()
     tree = None
     if max_distance is not None or (spacing is None and depth == "auto"):
@@ -540,15 +559,23 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
         fill_info = info | {"fill_distance_mm": 1e3 * r_fill,
                             "fill_distance_auto": fill_distance == "auto",
                             "fill_scale": fill_scale}
-        if fill_scale == scale:  # cut from this solve
+        fill_info["support_points"] = 0 if sp is None else len(sp)
+        if fill_scale == scale and sp is None:  # cut from this solve
             Vf, Ff, dist_f = V, F, dist
             fill_info.update(fill_depth=int(depth_used), fill_cell_mm=1e3 * cell)
         else:  # its own solve in the larger cube, no coarser a cell
             t_fill = time.perf_counter()
             depth_f = fill_depth_for(_cube_side(p), cell, fill_scale)
-            Vf, Ff, _ = _poisson_solve(p, n, depth_f, fill_scale, samples_per_node,
+            pf, nf = (p, n) if sp is None else (np.vstack([p, sp]), np.vstack([n, sn]))
+            Vf, Ff, _ = _poisson_solve(pf, nf, depth_f, fill_scale, samples_per_node,
                                        point_weight)
+            del pf, nf
             dist_f, _ = tree.query(Vf, k=1, distance_upper_bound=2 * r_fill)
+            if sp is not None and len(Vf):
+                from scipy.spatial import cKDTree
+
+                dist_f = np.minimum(dist_f, cKDTree(sp).query(
+                    Vf, k=1, distance_upper_bound=2 * r_fill)[0])
             fill_info.update(fill_depth=depth_f,
                              fill_cell_mm=1e3 * fill_scale * _cube_side(p) / 2**depth_f,
                              seconds_fill_poisson=round(time.perf_counter() - t_fill, 4))
@@ -686,7 +713,7 @@ def _filled_surface(V, F, keep, min_component, target_faces, tree, r, info) -> M
         inferred = np.zeros(len(F), bool)
     info = {k: info[k] for k in ("depth", "cell_mm", "spacing_mm", "max_distance_mm",
                                  "fill_distance_mm", "fill_distance_auto", "fill_scale",
-                                 "fill_depth", "fill_cell_mm", "min_component",
+                                 "fill_depth", "fill_cell_mm", "support_points", "min_component",
                                  "target_faces", "poisson_vertices", "poisson_faces")}
     info.update({"vertices": len(V), "faces": len(F), "inferred_faces": int(inferred.sum()),
                  "degenerate_faces_dropped": int(flat.sum())})

@@ -16,7 +16,9 @@ of the decode stage) and writes ``out_dir/mesh/``:
                   point, so it closes over what the structured light did not reach (under
                   the jaw, beside the nose, the cheeks and the side of the head past the
                   cameras) — what the atlas and the renders use by default
-                  (:mod:`facegeo.pipeline.reconstruct`, atlas setting ``surface``)
+                  (:mod:`facegeo.pipeline.reconstruct`, atlas setting ``surface``); with
+                  OLAT frames its solve also holds the cameras' silhouette rims
+                  (``silhouettes``, :func:`silhouette_rims`)
     mesh_filled_inferred.npy
                   (F_filled,) bool: its *inferred* faces, those with a vertex farther than
                   the trim distance (``mesh.max_distance_mm``) from every fused point; the
@@ -73,7 +75,7 @@ import numpy as np
 
 from facegeo.checks import fmt_value
 from facegeo.errors import InputError
-from facegeo.fsutil import atomic_path, atomic_write_text, staged_directory
+from facegeo.fsutil import READ_AHEAD_WORKERS, atomic_path, atomic_write_text, staged_directory
 from facegeo.geometry.mesh import inferred_faces_path
 from facegeo.pipeline._mesh_truth import (  # noqa: F401  (re-exported)
     _load_gt_mesh,
@@ -251,7 +253,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                   target_faces: int | None = None,
                   observed_radius_mm: float | None = None,
                   fill_distance_mm: float | str | None = "auto",
-                  fill_scale: float | None = None) -> tuple[dict, dict]:
+                  fill_scale: float | None = None,
+                  silhouettes: str = "auto") -> tuple[dict, dict]:
     """Write ``points.ply`` and ``mesh.ply`` of ``scan`` into ``dest`` from ``decode_dir``.
 
     The work of :func:`run_mesh` without the staging. Returns ``(metrics, settings)``.
@@ -315,6 +318,12 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         extent (:func:`facegeo.geometry.mesh.poisson_mesh` ``fill_scale``; default
         :data:`facegeo.geometry.mesh.AUTO_FILL_SCALE`, 4; ``1.1``, the trimmed mesh's cube, cuts
         the filled surface from the trimmed mesh's solve as before).
+    silhouettes : {"auto", "on", "off"}
+        Shape the filled surface with the cameras' silhouettes (:func:`silhouette_rims`): the
+        rim points of every camera with one-light-at-a-time frames join its Poisson solve as
+        support points. ``"auto"`` (default): when the scan has such frames and there is a
+        filled surface; ``"on"`` insists (an error without OLAT frames); the metrics'
+        ``silhouettes`` count per camera what was found.
 
     Returns
     -------
@@ -340,7 +349,8 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     decode_dir, dest = Path(decode_dir), Path(dest)
     if method not in ("poisson", "grid"):
         raise InputError(f"method: expected 'poisson' or 'grid', got {fmt_value(method)}")
-    for key, v in (("code_interpolation", code_interpolation), ("hole_fill", hole_fill)):
+    for key, v in (("code_interpolation", code_interpolation), ("hole_fill", hole_fill),
+                   ("silhouettes", silhouettes)):
         if v not in ("auto", "on", "off"):
             raise InputError(f"{key}: expected 'auto', 'on' or 'off', got {fmt_value(v)}")
     if not (np.isfinite(fill_min_confidence) and 0.0 <= fill_min_confidence <= 1.0):
@@ -383,11 +393,19 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
                 "max_distance_mm": max_distance_mm, "min_component": min_component,
                 "target_faces": target_faces, "observed_radius_mm": observed_radius_mm,
                 "fill_distance_mm": fill_distance_mm,
-                "fill_scale": gm.AUTO_FILL_SCALE if fill_scale is None else fill_scale}
+                "fill_scale": gm.AUTO_FILL_SCALE if fill_scale is None else fill_scale,
+                "silhouettes": silhouettes}
     from facegeo.checks import check_positive
 
     if fill_distance_mm is not None and fill_distance_mm != "auto":
         check_positive(fill_distance_mm, "fill_distance_mm")
+    sil_cams = silhouette_cameras(scan, the_rig)
+    if silhouettes == "on" and not sil_cams:
+        raise InputError(f"silhouettes 'on': no camera of scan {scan.root} has "
+                         "one-light-at-a-time frames to find its silhouette in")
+    if silhouettes == "on" and (method != "poisson" or fill_distance_mm is None):
+        raise InputError("silhouettes 'on': they shape the filled surface, which only the "
+                         "Poisson method with a fill distance makes")
     check_positive(settings["fill_scale"], "fill_scale")
     cams = [the_rig.camera(n) for n in names]
     extra: dict[str, Any] = {}
@@ -445,10 +463,22 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     fill = None if fill_distance_mm is None else (
         "auto" if fill_distance_mm == "auto" else float(fill_distance_mm) * 1e-3)
     if method == "poisson":
-        mesh = gm.poisson_mesh(points, normals, depth=depth, point_weight=point_weight,
-                               trim_quantile=trim_quantile, max_distance=max_d, spacing=spacing,
-                               min_component=min_component, target_faces=target_faces,
-                               fill_distance=fill, fill_scale=settings["fill_scale"])
+        poisson = dict(depth=depth, point_weight=point_weight, trim_quantile=trim_quantile,
+                       max_distance=max_d, spacing=spacing, min_component=min_component,
+                       target_faces=target_faces, fill_distance=fill,
+                       fill_scale=settings["fill_scale"])
+        mesh = gm.poisson_mesh(points, normals, **poisson)
+        if mesh.filled is not None and sil_cams and silhouettes != "off":
+            t_sil = time.perf_counter()
+            rims = silhouette_rims(scan, the_rig, sil_cams, points, mesh.filled,
+                                   strict=silhouettes == "on")
+            extra["silhouettes"] = rims["metrics"]
+            if len(rims["points"]):  # the fill again, its solve shaped by the rims
+                mesh.filled = gm.poisson_mesh(
+                    points, normals, **poisson, support_points=rims["points"],
+                    support_normals=rims["normals"]).filled
+            extra["silhouettes"]["seconds"] = round(time.perf_counter() - t_sil, 4)
+            del rims
     else:
         mesh = gm.grid_mesh(grid_map.p_world, grid_map.valid, center_world=cams[0].center_world)
     t4 = time.perf_counter()
@@ -482,11 +512,79 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
         metrics["code_interpolation"] = extra["code_interpolation"]
     if extra.get("hole_fill"):
         metrics["hole_fill"] = extra["hole_fill"]
+    if extra.get("silhouettes"):
+        metrics["silhouettes"] = extra["silhouettes"]
     warnings = _geometry_warnings(per_cam, pair_route)
     if warnings:
         metrics["warnings"] = warnings
     metrics["seconds"] = round(time.perf_counter() - t_start, 4)
     return metrics, settings
+
+
+#: Lights whose frames give a camera's silhouette (:func:`silhouette_rims`): at most this many,
+#: spread evenly over its light list — any surface a camera sees faces a few of them.
+SILHOUETTE_LIGHTS = 64
+
+
+def silhouette_cameras(scan, the_rig) -> list[str]:
+    """The cameras of ``the_rig`` with one-light-at-a-time frames in ``scan``: the ones whose
+    silhouettes :func:`silhouette_rims` can find."""
+    if not scan.has("olat"):
+        return []
+    return [n for n in scan.cameras_with_frames("olat") if n in the_rig.camera_names]
+
+
+def silhouette_rims(scan, the_rig, names, points, filled, *, strict: bool = False) -> dict:
+    """Rim points of the cameras ``names``' silhouettes against the filled surface ``filled``
+    (:mod:`facegeo.geometry.silhouette`).
+
+    Each camera's silhouette is :func:`facegeo.geometry.silhouette.silhouette_mask` of the
+    per-pixel brightest value (channel maximum) over :data:`SILHOUETTE_LIGHTS` of its
+    one-light-at-a-time frames, the structured-light ``points`` telling the subject's pixels.
+    A camera whose silhouette cannot be found (no point in its image, its known pixels dark)
+    is left out with a warning and its ``error`` in the metrics; with ``strict`` it raises.
+
+    Returns
+    -------
+    dict
+        ``points``, ``normals`` (M, 3) over every camera; ``metrics``: per camera ``lights``
+        read, ``mask_pixels``, ``edge_pixels``, ``rim_points``, ``outside`` (of them, from
+        rays that passed outside ``filled``) and ``missed`` (edge pixels with no rim point,
+        :func:`facegeo.geometry.silhouette.rim_points`).
+    """
+    from facegeo.geometry.silhouette import rim_points, silhouette_mask
+
+    pts, nrm, per_cam = [], [], {}
+    for name in names:
+        cam = the_rig.camera(name)
+        lights = scan.camera_frames("olat", name)
+        step = max(1, -(-len(lights) // SILHOUETTE_LIGHTS))
+        brightest = None
+        for _, frame in scan.iter_olat(name, lights[::step], read_ahead=READ_AHEAD_WORKERS):
+            f = np.nan_to_num(np.asarray(frame, np.float32), nan=0.0)
+            f = f.max(axis=-1) if f.ndim == 3 else f
+            brightest = f if brightest is None else np.maximum(brightest, f)
+        q, front = cam.project(points)
+        try:
+            mask = silhouette_mask(brightest, q[front])
+        except InputError as e:
+            if strict:
+                raise InputError(f"silhouettes, camera {name}: {e}") from None
+            log.warning("mesh: no silhouette of camera %s (%s); the filled surface goes without "
+                        "it", name, e)
+            per_cam[name] = {"lights": len(lights[::step]), "error": str(e)}
+            continue
+        rim = rim_points(cam, mask, filled.vertices, filled.faces)
+        pts.append(rim["points"])
+        nrm.append(rim["normals"])
+        per_cam[name] = {"lights": len(lights[::step]), "mask_pixels": int(mask.sum()),
+                         "edge_pixels": rim["edge_pixels"], "rim_points": len(rim["points"]),
+                         "outside": rim["outside"], "missed": rim["missed"]}
+    return {"points": np.vstack(pts) if pts else np.zeros((0, 3)),
+            "normals": np.vstack(nrm) if nrm else np.zeros((0, 3)),
+            "metrics": {"cameras": per_cam,
+                        "rim_points": int(sum(v.get("rim_points", 0)
+                                              for v in per_cam.values()))}}
 
 
 #: The filled surface's files in the mesh stage's folder (module docstring).
@@ -506,6 +604,7 @@ def _write_filled(dest: Path, filled) -> dict:
     return {"fill_distance_mm": round(filled.info["fill_distance_mm"], 4),
             "fill_scale": filled.info["fill_scale"], "fill_depth": filled.info["fill_depth"],
             "fill_cell_mm": round(filled.info["fill_cell_mm"], 4),
+            "support_points": int(filled.info.get("support_points", 0)),
             "faces": len(filled.faces), "vertices": len(filled.vertices),
             "area_mm2": round(total * 1e6, 3),
             "inferred_faces": int(filled.info["inferred_faces"]),

@@ -412,8 +412,10 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             metrics, _ = mesh_products(scan, ctx.upstream["decode"], ctx.out_dir, **ctx.settings)
             return metrics
 
+        # the OLAT frames give the cameras' silhouettes (the mesh stage's ``silhouettes``)
         specs.append(StageSpec("mesh", run_mesh, after=("decode",) + rig_after,
-                               inputs=lambda d: _common_inputs(scan),
+                               inputs=lambda d: _group_inputs(scan, "olat")
+                               if scan.has("olat") else _common_inputs(scan),
                                settings={"rig": use_rig, "method": "poisson", "depth": "auto",
                                          "point_weight": 4.0,
                                          "trim_quantile": 0.02, "fill_distance_mm": "auto",

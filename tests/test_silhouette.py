@@ -1,0 +1,155 @@
+"""Silhouette rims (facegeo.geometry.silhouette) and the filled surface's support points
+(facegeo.geometry.mesh.poisson_mesh): against a sphere, whose occluding contour is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facegeo.errors import InputError
+from facegeo.frames import look_at
+from facegeo.geometry.camera import Camera
+from facegeo.geometry.silhouette import rim_points, silhouette_mask
+
+#: The sphere: radius (m) and the provisional surface's outward offset (m) — the filled
+#: surface's drift past the data on the small preset is ≈ 1.5 mm at 10–20 mm (docs/render.md).
+R, DRIFT = 0.08, 0.0015
+#: Rim points' distance from the true sphere, metres: an edge pixel's ray passes within one
+#: pixel of the tangent (0.6 mm here at 0.6 m with f = 1000 px), the icosphere's facets add
+#: ≈ 0.1 mm. The provisional surface itself is DRIFT (1.5 mm) off.
+RIM_RADIUS_TOL = 0.0009
+#: Rim normals against the sphere's, degrees: the direction of a pixelated edge, smoothed over
+#: 1.5 px (measured median 1.9°, worst 7.8° where the staircase turns).
+RIM_NORMAL_MEDIAN_DEG, RIM_NORMAL_MAX_DEG = 2.5, 10.0
+
+
+def _camera():
+    K = np.array([[1000.0, 0.0, 159.5], [0.0, 1000.0, 119.5], [0.0, 0.0, 1.0]])
+    return Camera("c", 320, 240, K, np.zeros(0), look_at([0.1, 0.05, 0.6], [0.0, 0.0, 0.0]))
+
+
+def _sphere_mask(cam, radius=R):
+    """Pixels whose centre ray passes within ``radius`` of the origin."""
+    o, d = cam.pixel_rays()
+    closest = -np.einsum("hwk,hwk->hw", o, d)
+    return np.linalg.norm(o + closest[..., None] * d, axis=-1) < radius
+
+
+def _icosphere(radius, subdivisions=5):
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_icosahedron(1.0).subdivide_loop(subdivisions)
+    V = np.asarray(m.vertices)
+    return radius * V / np.linalg.norm(V, axis=1, keepdims=True), np.asarray(m.triangles)
+
+
+def test_rim_points_lie_on_the_sphere_tangent_to_the_rays():
+    cam = _camera()
+    mask = _sphere_mask(cam)
+    V, F = _icosphere(R + DRIFT)
+    rim = rim_points(cam, mask, V, F)
+    p, n = rim["points"], rim["normals"]
+    assert rim["edge_pixels"] > 100 and rim["missed"] == 0 and len(p) == rim["edge_pixels"]
+    radius = np.linalg.norm(p, axis=1)
+    assert np.abs(radius - R).max() <= RIM_RADIUS_TOL
+    # closer to the truth than the surface they were cut from
+    assert np.abs(radius - R).mean() < DRIFT / 3
+    # unit, perpendicular to the pixel's ray, outward like the sphere's normal
+    _, d = cam.pixel_rays(rim["pixels"])
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+    assert np.abs(np.einsum("ij,ij->i", n, d)).max() < 1e-9
+    cosang = np.einsum("ij,ij->i", n, p / radius[:, None])
+    angle = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+    assert np.median(angle) <= RIM_NORMAL_MEDIAN_DEG and angle.max() <= RIM_NORMAL_MAX_DEG
+
+
+def test_a_surface_inside_the_silhouette_is_pulled_out():
+    """A provisional surface that sagged inside the head: the rays miss it, and their points
+    closest to it are the sphere's tangent points again; within ``max_gap`` only."""
+    cam = _camera()
+    V, F = _icosphere(R - 2 * DRIFT)
+    rim = rim_points(cam, _sphere_mask(cam), V, F)
+    assert rim["outside"] == len(rim["points"]) == rim["edge_pixels"] > 100
+    assert np.abs(np.linalg.norm(rim["points"], axis=1) - R).max() <= RIM_RADIUS_TOL
+    none = rim_points(cam, _sphere_mask(cam), V, F, max_gap=0.0)
+    assert len(none["points"]) == 0 and none["missed"] == none["edge_pixels"]
+    far = rim_points(cam, _sphere_mask(cam), *_icosphere(R / 4), max_gap=0.015)
+    assert len(far["points"]) == 0  # 60 mm from any surface: another object's contour
+
+
+def test_the_image_border_is_no_contour():
+    cam = _camera()
+    mask = np.zeros((cam.height, cam.width), bool)
+    mask[100:, 100:200] = True  # runs off the bottom of the frame
+    V, F = _icosphere(10.0, 2)  # every ray cuts it twice
+    rim = rim_points(cam, mask, V, F)
+    assert rim["edge_pixels"] > 0 and (rim["pixels"][:, 1] < cam.height - 2).all()
+
+
+def test_the_mask_keeps_the_subject_and_its_dark_parts():
+    h, w = 120, 160
+    yy, xx = np.mgrid[:h, :w]
+    img = np.full((h, w), 0.004)  # the light stage's dark background
+    head = (xx - 70) ** 2 + (yy - 60) ** 2 < 30 ** 2
+    img[head] = 0.8
+    hair = (yy < 40) & (np.abs(xx - 70) < 28) & (yy > 20) & ~head
+    img[hair] = 0.06  # dark hair: under a tenth of the skin's brightest
+    img[(xx - 60) ** 2 + (yy - 55) ** 2 < 16] = 0.0  # a dark pupil inside
+    img[10:20, 140:150] = 1.0  # a lit stand, not the subject
+    img[5, 5] = np.nan
+    known = np.stack([xx[head][::7], yy[head][::7]], axis=-1).astype(float)
+    mask = silhouette_mask(img, np.vstack([known, [[-5.0, 3.0], [900.0, 2.0]]]))
+    assert mask[head].all() and mask[hair].all()
+    assert not mask[10:20, 140:150].any() and not mask[0:5, :].any()
+    assert mask.sum() == (head | hair).sum()
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: silhouette_mask(np.ones((4, 4, 3)), np.zeros((1, 2))), "expected an \\(H, W\\)"),
+    (lambda: silhouette_mask(np.ones((4, 4)), np.zeros((1, 2)), rel=1.5), "rel"),
+    (lambda: silhouette_mask(np.ones((4, 4)), np.full((1, 2), 9.0)), "no known subject"),
+    (lambda: silhouette_mask(np.zeros((4, 4)), np.zeros((1, 2))), "dark"),
+    (lambda: rim_points(_camera(), np.zeros((4, 4), bool), np.zeros((3, 3)),
+                        np.zeros((1, 3), int)), "is not camera"),
+])
+def test_bad_input_is_refused(call, message):
+    with pytest.raises(InputError, match=message):
+        call()
+
+
+def test_support_points_shape_the_filled_surface_only():
+    """A cap of points (the face), the rim of the sphere beyond it (a silhouette): the filled
+    surface follows the sphere where the points end, and the trimmed mesh and which faces are
+    measured stay the points' alone."""
+    from facegeo.geometry.mesh import poisson_mesh
+
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(60000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    cap = u[u[:, 2] > 0.55]  # the face: 56° round the front
+    ring = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    rim_dir = np.stack([np.cos(ring), np.sin(ring), np.zeros_like(ring)], axis=-1)
+    kw = dict(depth=7, max_distance=0.004, fill_distance=0.07)
+    bare = poisson_mesh(R * cap, cap, **kw)
+    held = poisson_mesh(R * cap, cap, **kw, support_points=R * rim_dir,
+                        support_normals=rim_dir)
+    np.testing.assert_array_equal(bare.vertices, held.vertices)  # the trimmed mesh
+    assert held.filled.info["support_points"] == 400 and bare.filled.info["support_points"] == 0
+
+    def err_near_equator(m):
+        v = m.filled.vertices
+        band = np.abs(v[:, 2]) < 0.01
+        return np.median(np.abs(np.linalg.norm(v[band], axis=1) - R)), band.sum()
+
+    e_bare, n_bare = err_near_equator(bare)
+    e_held, n_held = err_near_equator(held)
+    assert n_held > 0
+    # the rim holds the surface on the sphere there (without it: the continuation's guess)
+    assert e_held < 0.5e-3 and (n_bare == 0 or e_held < e_bare / 2)
+    # a face is measured by the points alone: near the rim only, it stays inferred
+    v, f = held.filled.vertices, held.filled.faces
+    on_rim = (np.abs(v[f][..., 2]) < 0.005).all(axis=1)
+    assert on_rim.any() and held.filled.inferred_faces[on_rim].all()
+    with pytest.raises(InputError, match="fill_distance"):
+        poisson_mesh(R * cap, cap, depth=6, max_distance=0.004, support_points=R * rim_dir,
+                     support_normals=rim_dir)
