@@ -81,6 +81,42 @@ def projected(tmp_path_factory):
     return root
 
 
+def _run_shared_dir(tmp_path_factory) -> Path:
+    """A folder every test process of this run shares: the parent of the xdist worker's base
+    temp folder under ``pytest -n``, else the base temp folder itself (a fresh one per run)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@pytest.fixture
+def small_witness_scan(tmp_path_factory, tmp_path) -> Path:
+    """The demo's scan (``small`` preset, seed 0) with the calibration-only witness camera and
+    its reference image (``synth --witness``), generated once per test run — minutes of the
+    generator's — and shared by the test processes (a file lock); each test gets its own copy
+    to run stages into: hard links (no stage writes into a scan's input files), but for the
+    record of written files, which the stages append to (a copy of its own)."""
+    import fcntl
+    import shutil
+
+    from facegeo.fsutil import WRITTEN_RECORD
+    from facegeo.synth.capture import generate_scan
+
+    def link_or_copy(src, dst):
+        return (shutil.copy2 if Path(src).name == WRITTEN_RECORD else os.link)(src, dst)
+
+    shared = _run_shared_dir(tmp_path_factory)
+    master = shared / "small_witness_seed0"
+    with open(shared / "small_witness_seed0.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (master / "scan.toml").is_file():
+            shutil.rmtree(master, ignore_errors=True)
+            generate_scan(master, "small", seed=0, witness=True)
+    root = tmp_path / "small"
+    shutil.copytree(master, root, copy_function=link_or_copy,
+                    ignore=shutil.ignore_patterns("out"))
+    return root
+
+
 #: The ``fitted`` fixture's atlas (coarser than the default 1 texel/mm) and fit (an even
 #: subsample of the functions the views need): a fast fixture, as tests/test_fit_stage.py's.
 FITTED_TEXELS_PER_MM = 0.35

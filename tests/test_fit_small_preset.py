@@ -22,17 +22,18 @@ NORMAL_MEDIAN_DEG = 1.342
 
 
 @pytest.mark.slow
-def test_small_preset_fit_stage_meets_issue_13s_bar(tmp_path):
+def test_small_preset_fit_stage_meets_issue_13s_bar(small_witness_scan):
+    """The demo's scan (the one the chain test runs: its witness camera has no OLAT frames and
+    takes no part in the fit)."""
     from facegeo.capture.scan import load_scan
     from facegeo.evaluate.skin_fit import evaluate_skin_fit
     from facegeo.pipeline.reconstruct import run_reconstruct
-    from facegeo.synth.capture import generate_scan
 
-    generate_scan(tmp_path / "small", preset="small", seed=0)
+    root = small_witness_scan
     # the fit stage alone (issue 13's bar): fed the true rig and mesh, not the chain
-    run_reconstruct(tmp_path / "small", until="fit", rig="ground_truth", mesh="ground_truth")
+    run_reconstruct(root, until="fit", rig="ground_truth", mesh="ground_truth")
     # the fit stage reads no truth (issue 37): its figures are the evaluation's
-    m = evaluate_skin_fit(load_scan(tmp_path / "small"), tmp_path / "small" / "out")
+    m = evaluate_skin_fit(load_scan(root), root / "out")
     print({k: m[k] for k in sorted(m) if "error" in k or k.startswith("resynthesis")})
     assert m["albedo_rel_error"] <= ALBEDO_REL
     assert m["normal_median_error_deg"] <= NORMAL_MEDIAN_DEG
