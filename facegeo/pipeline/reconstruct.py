@@ -412,14 +412,17 @@ def reconstruct_pipeline(scan, *, mesh: str = "auto", rig: str = "auto",
             metrics, _ = mesh_products(scan, ctx.upstream["decode"], ctx.out_dir, **ctx.settings)
             return metrics
 
-        # the OLAT frames give the cameras' silhouettes (the mesh stage's ``silhouettes``)
+        # the OLAT frames give the cameras' silhouettes (the mesh stage's ``silhouettes``),
+        # which shape the filled surface: not when the surface stages take another mesh (the
+        # stage-alone pass), where the stage's figures are its points' and trimmed mesh's
+        sil = "auto" if use_mesh in (None, "reconstructed") else "off"
         specs.append(StageSpec("mesh", run_mesh, after=("decode",) + rig_after,
                                inputs=lambda d: _group_inputs(scan, "olat")
-                               if scan.has("olat") else _common_inputs(scan),
+                               if scan.has("olat") and sil != "off" else _common_inputs(scan),
                                settings={"rig": use_rig, "method": "poisson", "depth": "auto",
                                          "point_weight": 4.0,
                                          "trim_quantile": 0.02, "fill_distance_mm": "auto",
-                                         "fill_scale": None}))
+                                         "fill_scale": None, "silhouettes": sil}))
 
     if "fit" in names and "atlas" not in names:  # a single-view scan, fitted in image space
         from facegeo.pipeline._fit_image import IMAGE_FIT_SETTINGS
