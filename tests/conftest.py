@@ -108,7 +108,7 @@ def small_witness_scan(tmp_path_factory, tmp_path) -> Path:
     master = shared / "small_witness_seed0"
     with open(shared / "small_witness_seed0.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (master / "scan.toml").is_file():
+        if not (master / WRITTEN_RECORD).is_file():  # the generator writes it last
             shutil.rmtree(master, ignore_errors=True)
             generate_scan(master, "small", seed=0, witness=True)
     root = tmp_path / "small"

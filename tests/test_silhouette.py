@@ -86,6 +86,17 @@ def test_the_image_border_is_no_contour():
     assert rim["edge_pixels"] > 0 and (rim["pixels"][:, 1] < cam.height - 2).all()
 
 
+def test_no_edge_or_no_surface_gives_no_point_and_the_same_counts():
+    cam = _camera()
+    V, F = _icosphere(R + DRIFT, 2)
+    for mask, faces in ((np.zeros((cam.height, cam.width), bool), F),
+                        (_sphere_mask(cam), np.zeros((0, 3), int))):
+        rim = rim_points(cam, mask, V, faces)
+        assert len(rim["points"]) == len(rim["normals"]) == len(rim["pixels"]) == 0
+        assert rim["outside"] == 0 and rim["missed"] == rim["edge_pixels"]
+        assert set(rim) == {"points", "normals", "pixels", "edge_pixels", "outside", "missed"}
+
+
 def test_the_mask_keeps_the_subject_and_its_dark_parts():
     h, w = 120, 160
     yy, xx = np.mgrid[:h, :w]

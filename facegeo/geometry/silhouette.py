@@ -150,7 +150,7 @@ def rim_points(camera, mask, vertices, faces, *, border_px: int = BORDER_PX,
     V = as_array(vertices, "vertices", shape=(None, 3))
     F = np.asarray(faces, np.int64)
     empty = {"points": np.zeros((0, 3)), "normals": np.zeros((0, 3)),
-             "pixels": np.zeros((0, 2)), "edge_pixels": 0, "missed": 0}
+             "pixels": np.zeros((0, 2)), "edge_pixels": 0, "outside": 0, "missed": 0}
     edge = m & ~ndimage.binary_erosion(m, structure=ndimage.generate_binary_structure(2, 1))
     b = int(border_px)
     if b > 0:

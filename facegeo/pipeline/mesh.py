@@ -541,8 +541,8 @@ def silhouette_rims(scan, the_rig, names, points, filled, *, strict: bool = Fals
     Each camera's silhouette is :func:`facegeo.geometry.silhouette.silhouette_mask` of the
     per-pixel brightest value (channel maximum) over :data:`SILHOUETTE_LIGHTS` of its
     one-light-at-a-time frames, the structured-light ``points`` telling the subject's pixels.
-    A camera whose silhouette cannot be found (no point in its image, its known pixels dark)
-    is left out with a warning and its ``error`` in the metrics; with ``strict`` it raises.
+    A camera whose silhouette cannot be found (no point in its image, its known pixels dark,
+    frames of another size than the rig's camera) is left out with a warning and its ``error`` in the metrics; with ``strict`` it raises.
 
     Returns
     -------
@@ -567,6 +567,7 @@ def silhouette_rims(scan, the_rig, names, points, filled, *, strict: bool = Fals
         q, front = cam.project(points)
         try:
             mask = silhouette_mask(brightest, q[front])
+            rim = rim_points(cam, mask, filled.vertices, filled.faces)
         except InputError as e:
             if strict:
                 raise InputError(f"silhouettes, camera {name}: {e}") from None
@@ -574,7 +575,6 @@ def silhouette_rims(scan, the_rig, names, points, filled, *, strict: bool = Fals
                         "it", name, e)
             per_cam[name] = {"lights": len(lights[::step]), "error": str(e)}
             continue
-        rim = rim_points(cam, mask, filled.vertices, filled.faces)
         pts.append(rim["points"])
         nrm.append(rim["normals"])
         per_cam[name] = {"lights": len(lights[::step]), "mask_pixels": int(mask.sum()),
