@@ -142,8 +142,16 @@ def test_support_points_shape_the_filled_surface_only():
     rim_dir = np.stack([np.cos(ring), np.sin(ring), np.zeros_like(ring)], axis=-1)
     kw = dict(depth=7, max_distance=0.004, fill_distance=0.07)
     bare = poisson_mesh(R * cap, cap, **kw)
-    held = poisson_mesh(R * cap, cap, **kw, support_points=R * rim_dir,
-                        support_normals=rim_dir)
+    seen = []
+
+    def rims(first_fill):
+        seen.append(first_fill)
+        return R * rim_dir, rim_dir
+
+    held = poisson_mesh(R * cap, cap, **kw, support=rims)
+    # asked once, with the filled surface of the points alone
+    assert len(seen) == 1 and seen[0].info["support_points"] == 0
+    np.testing.assert_array_equal(seen[0].vertices, bare.filled.vertices)
     np.testing.assert_array_equal(bare.vertices, held.vertices)  # the trimmed mesh
     assert held.filled.info["support_points"] == 400 and bare.filled.info["support_points"] == 0
 
@@ -162,5 +170,7 @@ def test_support_points_shape_the_filled_surface_only():
     on_rim = (np.abs(v[f][..., 2]) < 0.005).all(axis=1)
     assert on_rim.any() and held.filled.inferred_faces[on_rim].all()
     with pytest.raises(InputError, match="fill_distance"):
-        poisson_mesh(R * cap, cap, depth=6, max_distance=0.004, support_points=R * rim_dir,
-                     support_normals=rim_dir)
+        poisson_mesh(R * cap, cap, depth=6, max_distance=0.004, support=rims)
+    # no support points found: the filled surface stays the points' own
+    none = poisson_mesh(R * cap, cap, **kw, support=lambda f: (np.zeros((0, 3)),) * 2)
+    np.testing.assert_array_equal(none.filled.vertices, bare.filled.vertices)

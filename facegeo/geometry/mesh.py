@@ -399,8 +399,7 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
                  spacing: float | None = None, max_depth: int = AUTO_MAX_DEPTH,
                  min_component: float = 0.05, target_faces: int | None = None,
                  fill_distance: float | str | None = None,
-                 fill_scale: float = AUTO_FILL_SCALE, support_points=None,
-                 support_normals=None) -> Mesh:
+                 fill_scale: float = AUTO_FILL_SCALE, support=None) -> Mesh:
     """Screened Poisson surface of oriented points, trimmed to where the points are.
 
     Parameters
@@ -450,13 +449,15 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
         solve (its measured faces are then exactly the trimmed mesh's). Its zero-area faces
         (repeated or collinear corners, which the atlas refuses) are dropped
         (``info["degenerate_faces_dropped"]``).
-    support_points, support_normals : (S, 3) float64, optional
-        Oriented points that shape the filled surface only — the cameras' silhouette rims
-        (:func:`facegeo.geometry.silhouette.rim_points`): part of its Poisson solve (then its
-        own, whatever ``fill_scale``) and of its distance bound, but never of the trimmed
-        mesh, its trim, the fill distance ``"auto"`` measures, or which faces count as
-        measured (a face near a rim point alone stays inferred). ``info["support_points"]``
-        counts them.
+    support : callable, optional
+        ``support(filled) -> (points, normals)``, (S, 3) float64 each: oriented points that
+        shape the filled surface only, found against the filled surface of the points alone —
+        the cameras' silhouette rims (:func:`facegeo.geometry.silhouette.rim_points`). When it
+        returns any, the filled surface is solved again with them (its own solve, whatever
+        ``fill_scale``; the trimmed mesh's solve is not repeated): they are part of its Poisson
+        solve and of its distance bound, but never of the trimmed mesh, its trim, the fill
+        distance ``"auto"`` measures, or which faces count as measured (a face near a support
+        point alone stays inferred). ``info["support_points"]`` counts them.
 
     Returns
     -------
@@ -504,17 +505,9 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
     fill_scale = check_positive(fill_scale, "fill_scale")
     if spacing is not None:
         spacing = check_positive(spacing, "spacing")
-    sp = sn = None
-    if support_points is not None or support_normals is not None:
-        if fill_distance is None:
-            raise InputError("support_points: they shape the filled surface only; give "
-                             "fill_distance too ('auto' or metres)")
-        sp = as_array(support_points, "support_points", shape=(None, 3))
-        sn = as_array(support_normals, "support_normals", shape=(sp.shape[0], 3))
-        if not (np.isfinite(sp).all() and np.isfinite(sn).all()):
-            raise InputError("support_points / support_normals: expected finite values")
-        if not len(sp):
-            sp = sn = None
+    if support is not None and fill_distance is None:
+        raise InputError("support: its points shape the filled surface only; give "
+                         "fill_distance too ('auto' or metres)")
     t0 = time.perf_counter()
     tree = None
     if max_distance is not None or (spacing is None and depth == "auto"):
@@ -554,12 +547,12 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
     if r is not None and len(V):
         dist, _ = tree.query(V, k=1, distance_upper_bound=2 * max(r, r_fill or 0.0))
         near = dist <= r
-    filled = None
-    if r_fill is not None:  # the filled surface (issue 37)
+    def fill(sp=None, sn=None) -> Mesh:
+        """The filled surface (issue 37), with support points ``sp``/``sn`` in its solve."""
         fill_info = info | {"fill_distance_mm": 1e3 * r_fill,
                             "fill_distance_auto": fill_distance == "auto",
-                            "fill_scale": fill_scale}
-        fill_info["support_points"] = 0 if sp is None else len(sp)
+                            "fill_scale": fill_scale,
+                            "support_points": 0 if sp is None else len(sp)}
         if fill_scale == scale and sp is None:  # cut from this solve
             Vf, Ff, dist_f = V, F, dist
             fill_info.update(fill_depth=int(depth_used), fill_cell_mm=1e3 * cell)
@@ -580,9 +573,18 @@ def poisson_mesh(points, normals, *, depth: int | str = 7, point_weight: float =
                              fill_cell_mm=1e3 * fill_scale * _cube_side(p) / 2**depth_f,
                              seconds_fill_poisson=round(time.perf_counter() - t_fill, 4))
             info["seconds_fill_poisson"] = fill_info["seconds_fill_poisson"]
-        filled = _filled_surface(Vf, Ff, dist_f <= r_fill, min_component, target_faces, tree,
-                                 r, fill_info)
-        del Vf, Ff, dist_f
+        return _filled_surface(Vf, Ff, dist_f <= r_fill, min_component, target_faces, tree,
+                               r, fill_info)
+
+    filled = None
+    if r_fill is not None:
+        filled = fill()
+        if support is not None:
+            sp, sn = support(filled)
+            sp = as_array(sp, "support points", shape=(None, 3))
+            sn = as_array(sn, "support normals", shape=(sp.shape[0], 3))
+            if len(sp):
+                filled = fill(sp, sn)
     del dist, tree
     keep = np.ones(len(V), bool)
     info["density_threshold"] = None

@@ -14,7 +14,7 @@ each edge pixel's ray, the midpoint of the chord a provisional surface cuts (for
 grazes the true surface, the surface's tangent point when the provisional one lies a
 uniform distance outside it: the chord of a parallel surface is bisected by the tangent point),
 oriented by the tangent plane. They are support points of the filled surface's Poisson solve
-(:func:`facegeo.geometry.mesh.poisson_mesh` ``support_points``): they shape it where they are,
+(:func:`facegeo.geometry.mesh.poisson_mesh` ``support``): they shape it where they are,
 never the trimmed mesh, its trim, or which faces count as measured. This is the visual-hull
 constraint (Laurentini 1994) used as data of a smooth surface rather than as a carved volume:
 two cameras' hull is far too loose in depth to be a surface, but each rim is a curve the
@@ -191,9 +191,9 @@ def _rim_depths(V, F, origins, directions, max_gap: float) -> tuple[np.ndarray, 
     distance queries."""
     import open3d as o3d
 
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(V, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(F, np.uint32)))
+    from facegeo.geometry._mesh_measure import _closest_scene
+
+    scene = _closest_scene(V, F)
     rays = o3d.core.Tensor(np.hstack([origins, directions]).astype(np.float32))
     hits = scene.list_intersections(rays)
     splits = hits["ray_splits"].numpy().astype(np.int64)

@@ -463,22 +463,23 @@ def mesh_products(scan, decode_dir, dest, *, rig: str | None = None,
     fill = None if fill_distance_mm is None else (
         "auto" if fill_distance_mm == "auto" else float(fill_distance_mm) * 1e-3)
     if method == "poisson":
-        poisson = dict(depth=depth, point_weight=point_weight, trim_quantile=trim_quantile,
-                       max_distance=max_d, spacing=spacing, min_component=min_component,
-                       target_faces=target_faces, fill_distance=fill,
-                       fill_scale=settings["fill_scale"])
-        mesh = gm.poisson_mesh(points, normals, **poisson)
-        if mesh.filled is not None and sil_cams and silhouettes != "off":
-            t_sil = time.perf_counter()
-            rims = silhouette_rims(scan, the_rig, sil_cams, points, mesh.filled,
-                                   strict=silhouettes == "on")
-            extra["silhouettes"] = rims["metrics"]
-            if len(rims["points"]):  # the fill again, its solve shaped by the rims
-                mesh.filled = gm.poisson_mesh(
-                    points, normals, **poisson, support_points=rims["points"],
-                    support_normals=rims["normals"]).filled
-            extra["silhouettes"]["seconds"] = round(time.perf_counter() - t_sil, 4)
-            del rims
+        support = None
+        if fill is not None and sil_cams and silhouettes != "off":
+            def support(first_fill):
+                """Rim points against the filled surface of the points alone, which
+                poisson_mesh then solves again with them."""
+                t_sil = time.perf_counter()
+                rims = silhouette_rims(scan, the_rig, sil_cams, points, first_fill,
+                                       strict=silhouettes == "on")
+                extra["silhouettes"] = rims["metrics"] | {
+                    "seconds": round(time.perf_counter() - t_sil, 4)}
+                return rims["points"], rims["normals"]
+
+        mesh = gm.poisson_mesh(points, normals, depth=depth, point_weight=point_weight,
+                               trim_quantile=trim_quantile, max_distance=max_d, spacing=spacing,
+                               min_component=min_component, target_faces=target_faces,
+                               fill_distance=fill, fill_scale=settings["fill_scale"],
+                               support=support)
     else:
         mesh = gm.grid_mesh(grid_map.p_world, grid_map.valid, center_world=cams[0].center_world)
     t4 = time.perf_counter()
