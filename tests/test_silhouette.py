@@ -174,3 +174,55 @@ def test_support_points_shape_the_filled_surface_only():
     # no support points found: the filled surface stays the points' own
     none = poisson_mesh(R * cap, cap, **kw, support=lambda f: (np.zeros((0, 3)),) * 2)
     np.testing.assert_array_equal(none.filled.vertices, bare.filled.vertices)
+
+
+def test_the_threshold_rises_above_a_background_that_is_not_black():
+    """A real capture's background is not zero (black level, noise): at 8 % of the subject's
+    level a threshold at 5 % of that level alone took the whole background in."""
+    rng = np.random.default_rng(1)
+    h, w = 120, 160
+    yy, xx = np.mgrid[:h, :w]
+    img = rng.uniform(0.0, 0.08, (h, w))  # the background, up to 8 % of the subject's 1.0
+    head = (xx - 80) ** 2 + (yy - 60) ** 2 < 35 ** 2
+    img[head] = 1.0
+    known = np.stack([xx[head][::9], yy[head][::9]], axis=-1).astype(float)
+    mask = silhouette_mask(img, known)
+    assert (mask == head).all()
+
+
+#: DiLiGenT objects against their reference masks (IoU), and the plain baseline beside them:
+#: Otsu's threshold on the same brightest image (measured 0.985 / 0.990 against 0.810 / 0.783;
+#: the threshold without the background level, 5 % of the objects' level: 0.881 / 0.560).
+DILIGENT_MASK_IOU = 0.95
+
+
+@pytest.mark.parametrize("obj", ["ballPNG", "catPNG"])
+def test_real_olat_frames_give_the_objects_mask(obj, shared_data):
+    """Real one-light-at-a-time frames (DiLiGenT: 8-bit, background 3–6 of 255): the mask
+    against the dataset's own, and against Otsu's threshold on the same image."""
+    import cv2
+    from PIL import Image
+    from scipy import ndimage
+
+    from conftest import shared_file
+
+    d = shared_file(shared_data, f"olat/diligent/{obj}")
+    names = (d / "filenames.txt").read_text().split()
+    ref = np.asarray(Image.open(d / "mask.png"))
+    ref = (ref[..., 0] if ref.ndim == 3 else ref) > 0
+    brightest = None
+    for n in names[::2]:  # 48 of 96 lights, as the mesh stage takes at most 64
+        f = np.asarray(Image.open(d / n)).astype(np.float32).max(axis=-1)
+        brightest = f if brightest is None else np.maximum(brightest, f)
+    # the known subject pixels (the structured-light points' role): inside the mask, sparse
+    rows, cols = np.nonzero(ndimage.binary_erosion(ref, iterations=15))
+    known = np.stack([cols[::50], rows[::50]], axis=-1).astype(float)
+    mask = silhouette_mask(brightest, known)
+    b8 = np.clip(brightest / brightest.max() * 255, 0, 255).astype(np.uint8)
+    otsu = cv2.threshold(b8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)[1] > 0
+
+    def iou(m):
+        return (m & ref).sum() / (m | ref).sum()
+
+    assert iou(mask) >= DILIGENT_MASK_IOU
+    assert iou(mask) > iou(otsu)

@@ -32,12 +32,19 @@ import numpy as np
 from facegeo.checks import as_array
 from facegeo.errors import InputError
 
-__all__ = ["SILHOUETTE_REL", "BORDER_PX", "RIM_MAX_GAP", "silhouette_mask", "rim_points"]
+__all__ = ["SILHOUETTE_REL", "BACKGROUND_FRAME", "BORDER_PX", "RIM_MAX_GAP", "silhouette_mask", "rim_points"]
 
-#: A pixel is the subject's when its brightest light gives at least this fraction of the median
-#: of that maximum over the pixels known to be the subject's (where structured-light points
-#: project): dark hair at a tenth of skin's albedo stays in, a dark background stays out.
+#: A pixel is the subject's when its brightest light rises above the background by at least
+#: this fraction of the way to the median over the pixels known to be the subject's (where
+#: structured-light points project): dark hair at a tenth of skin's albedo stays in, a dark
+#: background stays out.
 SILHOUETTE_REL = 0.05
+
+#: The background level: the 99th percentile of the brightest image over its outer frame, this
+#: fraction of the smaller side wide (at least 2 px) — a light stage's dark background there,
+#: noise and black level included (DiLiGenT's 8-bit frames: 3–6 of 255 against the objects'
+#: 48–61). Capped at half the subject's level: a frame the subject fills is not background.
+BACKGROUND_FRAME = 0.02
 
 #: Edge pixels this close to the image border are left out: there the frame cut the subject,
 #: not its contour.
@@ -71,8 +78,14 @@ def silhouette_mask(brightest, subject_px, *, rel: float = SILHOUETTE_REL) -> np
     Returns
     -------
     (H, W) bool
-        The connected regions above the threshold that hold at least 1 % of ``subject_px``,
-        holes filled (eyes, nostrils and mouth are the subject's too).
+        The connected regions at or above ``background + rel · (level − background)`` —
+        ``level`` the median over the known pixels, ``background`` the image frame's
+        (:data:`BACKGROUND_FRAME`) — that hold at least 1 % of ``subject_px``, holes filled
+        (eyes, nostrils and mouth are the subject's too). On DiLiGenT's ball and cat (48 of
+        their 96 lights, the known pixels a sample of their masks eroded by 15 px) the masks'
+        IoU is 0.985 / 0.990, against 0.810 / 0.783 for Otsu's threshold on the same image and
+        0.881 / 0.560 for ``rel · level`` alone (its background is not black:
+        ``tests/test_silhouette.py``).
 
     Raises
     ------
@@ -97,7 +110,11 @@ def silhouette_mask(brightest, subject_px, *, rel: float = SILHOUETTE_REL) -> np
     if not level > 0.0:
         raise InputError("brightest: the known subject pixels are dark (median 0): no "
                          "silhouette to find")
-    lab, n = ndimage.label(img >= rel * level)
+    b = max(2, int(BACKGROUND_FRAME * min(h, w)))
+    frame = np.concatenate([img[:b].ravel(), img[-b:].ravel(), img[:, :b].ravel(),
+                            img[:, -b:].ravel()])
+    background = min(max(float(np.percentile(frame, 99)), 0.0), 0.5 * level)
+    lab, n = ndimage.label(img >= background + rel * (level - background))
     counts = np.bincount(lab[r[inside], c[inside]], minlength=n + 1)
     keep = np.flatnonzero(counts >= max(1, 0.01 * inside.sum()))
     keep = keep[keep > 0]
