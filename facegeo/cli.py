@@ -199,7 +199,8 @@ def _cmd_synth(args) -> int:
                                 projector_scale=args.projector_scale,
                                 sl_missing=_sl_missing_arg(args.sl_missing),
                                 calib_board=args.calib_board, witness=args.witness,
-                                light_error_deg=args.light_error)
+                                light_error_deg=args.light_error,
+                                backdrop=args.backdrop)
     finally:
         close()
     secs = " ".join(f"{k}={v:.1f}s" for k, v in summary.seconds.items())
@@ -1037,6 +1038,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "direction off by DEG (1 sigma per axis; 0.5 is realistic) and its "
                         "distance by 5 mm x DEG/0.5, as a light list; ground_truth keeps the "
                         "exact grid (default 0: the exact grid)")
+    s.add_argument("--backdrop", type=_nonneg_float, default=0.0, metavar="ALBEDO",
+                   help="albedo of a matte backdrop behind the head in the OLAT frames, lit by "
+                        "each light (0.04 is like DiLiGenT's background; default 0: black; "
+                        "docs/synth.md)")
     s.add_argument("--witness", action="store_true",
                    help="add a calibration-only camera 'witness' (board views only, 40 deg "
                         "from the capture cameras) and its reference images under axis_lobes "

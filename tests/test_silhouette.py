@@ -226,3 +226,47 @@ def test_real_olat_frames_give_the_objects_mask(obj, shared_data):
 
     assert iou(mask) >= DILIGENT_MASK_IOU
     assert iou(mask) > iou(otsu)
+
+
+#: The generator's backdrop (``synth --backdrop``) at DiLiGenT's level: albedo 0.04 glows at
+#: 7 % of the tiny head's median brightest value (0.0125 against 0.17), above the threshold
+#: of 5 % of the subject's level that took DiLiGenT's background in.
+BACKDROP = 0.04
+
+
+def test_a_scan_with_a_lit_backdrop_gives_the_same_silhouettes(tmp_path):
+    """A failure met on real data as a generator condition (issue 37): the OLAT frames'
+    background glows under every light (``generate_scan(backdrop=)``), and the mesh stage's
+    silhouettes are still the head's — the same masks, rim points and filled surface as on the
+    black background, bit for bit."""
+    from facegeo.capture.scan import load_scan
+    from facegeo.pipeline.mesh import ground_truth_decode, mesh_products, write_decode_npz
+    from facegeo.synth.capture import generate_scan
+    from facegeo.synth.render import load_ground_truth
+
+    got = {}
+    for name, level in (("black", 0.0), ("backdrop", BACKDROP)):
+        generate_scan(tmp_path / name, "tiny", backdrop=level)
+        scan = load_scan(tmp_path / name)
+        for c in scan.camera_names:
+            write_decode_npz(scan.out_dir / "decode" / c / "decode.npz",
+                             ground_truth_decode(scan, c, noise_px=0.1, seed=1))
+        (tmp_path / f"{name}_mesh").mkdir()
+        m, _ = mesh_products(scan, scan.out_dir / "decode", tmp_path / f"{name}_mesh", depth=6,
+                             silhouettes="on")
+        got[name] = (scan, m)
+    scan, m = got["backdrop"]
+    assert scan.manifest["scan"]["metadata"]["backdrop"] == BACKDROP
+    assert "backdrop" not in got["black"][0].manifest["scan"].get("metadata", {})
+    # the condition is real: the background glows above 5 % of the subject's level
+    cam = scan.camera_names[0]
+    truth = load_ground_truth(scan)
+    head = truth.surface_view(scan.rig.camera(cam)).mask
+    brightest = np.max([np.asarray(f).max(axis=-1)
+                        for _, f in scan.iter_olat(cam, scan.camera_frames("olat", cam))], axis=0)
+    assert brightest[~head].max() > 0.05 * np.median(brightest[head])
+    # ... and the silhouettes are the head's all the same
+    for c, v in m["silhouettes"]["cameras"].items():
+        assert v == got["black"][1]["silhouettes"]["cameras"][c], c
+    assert (tmp_path / "backdrop_mesh" / "mesh_filled.ply").read_bytes() \
+        == (tmp_path / "black_mesh" / "mesh_filled.ply").read_bytes()

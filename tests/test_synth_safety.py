@@ -251,6 +251,8 @@ def test_directory_with_files_but_no_manifest_is_refused(tmp_path):
     ({"noise": float("nan")}, "noise: expected a finite number"),
     ({"skin": "spectral:green"}, "unknown spectral skin type"),
     ({"olat_format": "tiff"}, "olat_format: unknown"),
+    ({"backdrop": 1.5}, "backdrop: expected an albedo in \\[0, 1\\]"),
+    ({"backdrop": float("nan")}, "backdrop: expected an albedo"),
     ({"preset": "huge"}, "preset: unknown 'huge'"),
 ], ids=lambda v: str(v) if isinstance(v, dict) else "")
 def test_invalid_argument_leaves_old_scan_unchanged(old_scan, kwargs, match):

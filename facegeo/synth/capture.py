@@ -346,6 +346,7 @@ def generate_scan(
     calib_board: str = "charuco",
     witness: bool = False,
     light_error_deg: float = 0.0,
+    backdrop: float = 0.0,
 ) -> SynthSummary:
     """Synthesise a light-stage capture into the scan directory ``out``.
 
@@ -431,6 +432,16 @@ def generate_scan(
         5 mm of distance): ``rig.json``'s lights become that list, ``ground_truth/rig.json``
         keeps the exact grid every frame is rendered with (the frames do not change). 0
         (default): ``rig.json`` has the exact grid, as before.
+    backdrop : float
+        Albedo of a matte backdrop behind the head, facing each camera, in the OLAT frames: a
+        pixel that sees no head records ``backdrop / π · color · max(0, ω_l · v)`` under light
+        ``l`` (``ω_l`` the light's direction from the stage centre, ``v`` the camera's; before
+        the noise), where a light stage's dark cloth or a real capture's floor and walls glow
+        faintly (DiLiGenT's objects stand on a background at 5–10 % of their own level:
+        ``0.04`` is like it). 0 (default): a black background. The structured-light and board
+        frames keep theirs (the projector's patterns fall on the head alone); the ground
+        truth's uniform-environment renders are the head's alone. Recorded in
+        ``scan.metadata.backdrop``.
 
     Returns
     -------
@@ -480,6 +491,10 @@ def generate_scan(
         raise InputError(f"witness: expected True or False, got {fmt_value(witness)}")
     if light_error_deg:  # validated here, before anything is built
         perturbed_lights(build_rig(preset).lights, seed, light_error_deg)
+    if (isinstance(backdrop, bool) or not isinstance(backdrop, numbers.Real)
+            or not 0.0 <= float(backdrop) <= 1.0):
+        raise InputError(f"backdrop: expected an albedo in [0, 1], got {fmt_value(backdrop)}")
+    backdrop = float(backdrop)
     projector_scale = check_projector_scale(projector_scale)
     sl_phase_steps = check_sl_phase_steps(sl_phase_steps)
     if sl_phase_steps is not None:
@@ -503,6 +518,8 @@ def generate_scan(
         skin_field = SkinField.for_mesh(mesh, seed=seed, **skin_kwargs)
     renderer = ReferenceRenderer.from_mesh(mesh, skin_field, parts=mesh.metadata["part_labels"])
     metadata = {}
+    if backdrop > 0:
+        metadata["backdrop"] = backdrop
     if projector_scale is not None:  # cameras that out-resolve the projector (issue 34)
         preset, nominal_rig, rig, metadata["projector_scale"] = _rescale_projector(
             preset, projector_scale, renderer, mesh, seed)
@@ -538,7 +555,7 @@ def generate_scan(
             olat_format=olat_format, mesh=mesh, nominal_rig=nominal_rig, rig=rig,
             skin_field=skin_field, renderer=renderer, board=board, spec=spec,
             sl_names=sl_names, tick=tick, seconds=seconds, sl_effects=sl_effects, lost=lost,
-            metadata=metadata, calibration_only=calibration_only)
+            metadata=metadata, calibration_only=calibration_only, backdrop=backdrop)
         fsutil.write_written_record(tmp, fsutil.list_files(tmp))
         carried: list[str] = []
         if ours is not None:
@@ -563,17 +580,32 @@ def generate_scan(
                         sl_missing=lost)
 
 
+def _backdrop_glow(renderer, cam, lights, backdrop: float):
+    """``(background mask (H, W), per-light RGB level (L, 3) float32)`` of a matte backdrop of
+    albedo ``backdrop`` facing camera ``cam`` (:func:`generate_scan` ``backdrop``), or None."""
+    if backdrop <= 0:
+        return None
+    bg = ~renderer.surface_view(cam).mask
+    v = np.asarray(cam.center_world, float) - np.asarray(lights.center, float)
+    v /= np.linalg.norm(v)
+    d = np.asarray(lights.directions, float)
+    cos = np.clip((d / np.linalg.norm(d, axis=1, keepdims=True)) @ v, 0.0, None)
+    level = backdrop / np.pi * cos[:, None] * np.asarray(lights.color, float)[None, :]
+    return bg, level.astype(np.float32)
+
+
 def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_format, mesh,
                 nominal_rig, rig, skin_field, renderer, board, spec, sl_names, tick,
                 seconds, sl_effects=None, lost=None, metadata=None,
-                calibration_only=()) -> int:
+                calibration_only=(), backdrop: float = 0.0) -> int:
     """Render and write a whole scan into the (empty, staging) directory ``root``; the manifest
     goes last. Returns the number of frames written.
 
     ``lost``: camera → structured-light frames not written (declared missing); ``metadata``:
     entries for ``scan.metadata``; ``calibration_only``: names of cameras that see only the
     camera-calibration views (every other group's frames declared missing) and get reference
-    images (:data:`WITNESS_ENV`)."""
+    images (:data:`WITNESS_ENV`); ``backdrop``: the OLAT frames' background albedo
+    (:func:`generate_scan`)."""
     from facegeo.capture import imageio, scan as scanmod
     from facegeo.geometry.board import render_board, save_board
     from facegeo.geometry.structured_light import pattern_value_at
@@ -724,8 +756,12 @@ def _write_scan(root: Path, *, name, preset, head, skin, seed, noise, olat_forma
     solid = rig.lights.solid_angles
     for cam in capture:
         acc = np.zeros((cam.height, cam.width, 3), np.float64)
+        glow = _backdrop_glow(renderer, cam, rig.lights, backdrop)
         for l, img in renderer.olat_images(cam, rig.lights):
             acc += solid[l] * img  # the uniform-environment reference (Eq. 4), noise-free
+            if glow is not None:
+                bg, level = glow
+                img[bg] += level[l]
             img = _noisy(img, 0.5)
             path = scanmod.frame_path(root, olat_files, camera=cam.name, light=l)
             if olat_format == "png16":
