@@ -37,8 +37,10 @@ _SLOW = {"spectral.forward", "spectral.inverse", "synth.generate", "surface.proj
 
 @pytest.fixture(autouse=True)
 def _small_bandwidth_array(monkeypatch):
-    """64 MiB instead of 512 MiB for the bandwidth figure: these tests check form, not speed."""
+    """64 MiB instead of 512 MiB for the bandwidth figure, and one timed run of anything
+    (``bench.MAX_REPEAT``): these tests check form, not speed."""
     monkeypatch.setattr(bench, "BANDWIDTH_BYTES", 64 << 20)
+    monkeypatch.setattr(bench, "MAX_REPEAT", 1)
 
 
 def _cells(line: str) -> int:
@@ -289,10 +291,33 @@ def _bench_params():
     return out
 
 
+#: ``scale.reconstruct``'s quick rows (the ``modern_tiny`` preset, 16 cameras, through
+#: ``reconstruct`` up to the fit, then the relight, in one process and on clusters of one and
+#: two workers): every stage's products against the in-process run's, the largest relative
+#: difference of any array (measured 0.0: every array equal; one file's bytes differ), as
+#: tests/test_scale_stages.py's ``PRODUCTS_RTOL``. This row is the suite's check that the
+#: whole reconstruction on workers equals the one-process run (it had a run of its own).
+SCALE_RECONSTRUCT_RTOL = 1e-6
+
+
+def _check_scale_reconstruct(rows) -> None:
+    assert [r.case for r in rows] == ["reconstruct, in-process",
+                                      "reconstruct, LocalCluster, 1 worker × 1 thread",
+                                      "reconstruct, LocalCluster, 2 workers × 1 thread"]
+    for r in rows:
+        assert r.extra["files compared"] > 100, r.case  # every stage's products
+        assert r.error <= SCALE_RECONSTRUCT_RTOL, (r.case, r.error)
+    for r in rows[1:]:  # the stages ran as tasks on the cluster's workers
+        tasks = r.extra["tasks per stage"]
+        assert all(tasks[st] > 0 for st in ("decode", "project", "fit", "relight")), tasks
+
+
 @pytest.mark.parametrize("name", _bench_params())
 def test_registered_benchmark_quick_rows_well_formed(name, tmp_path):
     rows = run_benchmarks([name], quick=True)
     _check_rows(name, rows)
+    if name == "scale.reconstruct":
+        _check_scale_reconstruct(rows)
     _, m = write_reports(rows, tmp_path)
     table = [ln for ln in m.read_text().splitlines() if ln.startswith("|")]
     assert len(table) == len(rows) + 2

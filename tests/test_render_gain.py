@@ -172,3 +172,25 @@ def test_inference_keeps_covered_pixels_bit_for_bit(views, tmp_path):
     assert m["black_surface_pixels"] > 0  # without it, unseen surface is black
     doc = json.loads((tmp_path / f"{m['name']}.json").read_text())
     assert doc["infer"] is False and v["metrics"]["infer"] is True
+
+
+def test_a_surface_grown_past_the_head_shows_in_the_silhouette_figures():
+    """``view_figures`` with a head mask: pixels drawn outside it (``outside_head_pixels``),
+    black inside it, and the drawn pixels' IoU with it — what the figures over the mask miss."""
+    from facegeo.evaluate.views import view_figures
+
+    mask = np.zeros((20, 30), bool)
+    mask[5:15, 5:25] = True  # 200 px
+    image = np.zeros((20, 30, 3), np.float32)
+    image[5:15, 5:27] = 0.5  # 20 px drawn past the head's right edge
+    image[14, 5:15] = 0.0  # 10 px of the head left black
+    ref = np.where(mask[..., None], np.float32(0.5), np.float32(0.0))
+    v = {"image": image, "covered": mask, "texture": None, "naive": None,
+         "naive_texture": None, "paper": None}
+    got = view_figures(v, ref, mask, head_mask=True)
+    assert got["outside_head_pixels"] == 20 and got["black_head_pixels"] == 10
+    assert got["silhouette_iou"] == round(190 / 220, 6)
+    # without a head mask (a real reference image's own extent) there is no outside
+    assert "outside_head_pixels" not in view_figures(v, ref, mask)
+    image[5:15, 25:27] = 0.0
+    assert view_figures(v, ref, mask, head_mask=True)["silhouette_iou"] == round(190 / 200, 6)

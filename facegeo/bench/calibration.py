@@ -30,7 +30,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from facegeo.bench import BenchRow, one_blas_thread, register, shared_data_dir
+from facegeo.bench import BenchRow, one_blas_thread, register, repeats, shared_data_dir
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def _interleaved(fns, repeat: int):
     """Best wall time of each function over ``repeat`` interleaved rounds, and its last result."""
     best = [float("inf")] * len(fns)
     out = [None] * len(fns)
-    for _ in range(max(1, repeat)):
+    for _ in range(repeats(repeat)):
         for k, fn in enumerate(fns):
             t0 = time.perf_counter()
             out[k] = fn()

@@ -42,7 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.bench import BenchRow, limit_threads, peak_rss_mb, register, reset_peak_rss
+from facegeo.bench import (BenchRow, limit_threads, peak_rss_mb, register, repeats,
+                           reset_peak_rss)
 
 #: Memory limit of each worker (bytes or a size string).
 WORKER_LIMIT = "1GiB"
@@ -107,7 +108,7 @@ def _timed_runs(scan: Path, out: Path, tag: str, repeat: int, engine=None, stage
     run = _run_decode if stage == "decode" else _run_project
     run(scan, out / f"{tag}-warm", engine)
     best = None
-    for i in range(repeat):
+    for i in range(repeats(repeat)):
         dest = out / f"{tag}-{i}"
         t0 = time.perf_counter()
         m = run(scan, dest, engine)
@@ -160,7 +161,8 @@ def bench_scale_decode(quick: bool) -> list[BenchRow]:
         for case, r in results.items():
             got = _digests(r["dest"])
             differ = sum(got.get(k) != v for k, v in ref.items()) + len(set(got) - set(ref))
-            extra = {"scan": size, "seconds (best of %d)" % repeat: round(r["seconds"], 3)}
+            extra = {"scan": size,
+                     "seconds (best of %d)" % repeats(repeat): round(r["seconds"], 3)}
             ratios, base_threads = {}, {}
             if case.startswith("LocalCluster"):
                 n = r["threads"]
@@ -313,7 +315,7 @@ def bench_scale_project(quick: bool) -> list[BenchRow]:
             got = _digests(r["dest"])
             differ = sum(got.get(k) != v for k, v in ref.items()) + len(set(got) - set(ref))
             extra = {"scan": size, "texels": n_texels,
-                     "seconds (best of %d)" % repeat: round(r["seconds"], 3)}
+                     "seconds (best of %d)" % repeats(repeat): round(r["seconds"], 3)}
             ratios, base_threads = {}, {}
             if case.startswith("LocalCluster"):
                 n = r["threads"]

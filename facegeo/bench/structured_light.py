@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from facegeo.bench import BenchRow, best_of, read_bandwidth, register
+from facegeo.bench import BenchRow, best_of, read_bandwidth, register, repeats
 
 
 def reference_decode_gray(frames, spec, min_contrast: float = 0.01):
@@ -256,7 +256,7 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
     def cpu_ms(fn):  # CPU seconds of the process (all threads), best of ``repeat``: less
         # sensitive than wall time to other jobs on a shared machine
         best = float("inf")
-        for _ in range(repeat):
+        for _ in range(repeats(repeat)):
             c0 = time.process_time()
             fn()
             best = min(best, time.process_time() - c0)
@@ -266,7 +266,7 @@ def bench_decode_stream(quick: bool) -> list[BenchRow]:
         import resource
 
         best = (float("inf"), None, 0)
-        for _ in range(n):
+        for _ in range(repeats(n)):
             f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
             t0 = time.perf_counter()
             out = fn()

@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facegeo.bench import BenchRow, best_of, register
+from facegeo.bench import BenchRow, best_of, register, repeats
 
 _THREADS = (1, 2)
 
@@ -124,7 +124,7 @@ def _interleaved(cases: dict, repeat: int) -> tuple[dict, dict]:
 
     wall: dict = {k: [] for k in cases}
     cpu: dict = {k: [] for k in cases}
-    for _ in range(max(1, repeat)):
+    for _ in range(repeats(repeat)):
         for k, call in cases.items():
             c0, t0 = time.process_time(), time.perf_counter()
             out = call()

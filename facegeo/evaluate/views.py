@@ -22,6 +22,9 @@ renderer integrating the render's own pixel footprint, ``reference_supersample``
 * ``paper_psnr_db`` (``_covered``), ``paper_rel_rmse`` (``_covered``) for the paper's λ = 1;
 * ``head_coverage``: the fraction of the reference's head mask rendered from measured texels;
   ``black_head_pixels``: the mask's pixels the render left black (0 in every channel);
+  ``outside_head_pixels``: pixels outside the mask the render drew (not black), and
+  ``silhouette_iou``: the render's drawn pixels against the mask, intersection over union —
+  what the figures over the mask do not see, a surface grown past the head;
   the ``*_covered`` variants of PSNR / relative RMSE over covered pixels only;
 * with image-space detail: ``texture_*`` and ``texture_naive_*``, the same figures of the
   texture-space renders;
@@ -214,14 +217,16 @@ def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> di
         encode(np.clip(ref * exposure, 0.0, 1.0), "srgb", np.uint8)).name,
         "error_png": imageio.write_image(dest / f"{stem}_error.png",
                                          _error_heatmap(v["image"], ref, mask)).name}
-    metrics.update(view_figures(v, ref, mask))
+    metrics.update(view_figures(v, ref, mask, head_mask=True))
     metrics["files"] = files
     return metrics
 
 
-def view_figures(v: dict, ref, mask) -> dict:
+def view_figures(v: dict, ref, mask, *, head_mask: bool = False) -> dict:
     """The figures of a view's renders ``v`` (:func:`_read_view`) against a reference image
-    ``ref`` ``(H, W, 3)`` over the pixels ``mask`` ``(H, W)`` (module docstring)."""
+    ``ref`` ``(H, W, 3)`` over the pixels ``mask`` ``(H, W)`` (module docstring). With
+    ``head_mask`` (``mask`` is where the reference sees the head, not merely where it is
+    non-black) also ``outside_head_pixels`` and ``silhouette_iou``."""
     metrics: dict[str, Any] = {}
     cov = mask & v["covered"]
     # of the head the generator sees from this camera, the part rendered from measured
@@ -240,8 +245,13 @@ def view_figures(v: dict, ref, mask) -> dict:
     m, mc = figures("", v["image"])
     metrics["mask_pixels"] = m["pixels"]
     # a render that leaves seen head black (surface no camera saw, without infer)
-    metrics["black_head_pixels"] = int((mask & ~(np.isfinite(v["image"])
-                                                 & (v["image"] > 0)).any(axis=2)).sum())
+    drawn = (np.isfinite(v["image"]) & (v["image"] > 0)).any(axis=2)
+    metrics["black_head_pixels"] = int((mask & ~drawn).sum())
+    if head_mask:  # surface drawn where the reference sees none: the figures over the mask
+        # cannot see a surface grown outward, which only ever covers black pixels
+        metrics["outside_head_pixels"] = int((~mask & drawn).sum())
+        metrics["silhouette_iou"] = round(float((mask & drawn).sum()
+                                                / max(int((mask | drawn).sum()), 1)), 6)
     if v["texture"] is not None:  # the texture-space figures (the paper's render path)
         figures("texture_", v["texture"])
     if v["naive"] is not None:
@@ -287,8 +297,8 @@ def evaluate_view_against_image(scan, views_dir, stem: str) -> dict | None:
 
 def views_summary(per_view: dict) -> dict:
     """The figures over several views: ``psnr_db_min`` / ``_mean``, ``naive_psnr_db_mean``,
-    ``psnr_gain_db_min``, ``psnr_gain_db_covered_min``, ``paper_psnr_db_mean`` (each over the
-    views that have it)."""
+    ``psnr_gain_db_min``, ``psnr_gain_db_covered_min``, ``paper_psnr_db_mean``,
+    ``silhouette_iou_min`` (each over the views that have it)."""
     def values(key):
         return [v[key] for v in per_view.values() if v.get(key) is not None]
 
@@ -307,4 +317,7 @@ def views_summary(per_view: dict) -> dict:
     paper = values("paper_psnr_db")
     if paper:
         metrics["paper_psnr_db_mean"] = round(float(np.mean(paper)), 4)
+    iou = values("silhouette_iou")
+    if iou:
+        metrics["silhouette_iou_min"] = round(min(iou), 6)
     return metrics
