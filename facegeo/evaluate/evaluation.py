@@ -50,8 +50,10 @@ HEADLINES: dict[str, tuple[str, ...]] = {
     "project": ("projection_rel_rmse", "visibility_agreement"),
     "fit": ("normal_median_error_deg", "normal_mean_error_deg", "albedo_rel_error",
             "resynthesis_rel_rmse_30", "resynthesis_rel_rmse_60"),
-    "render": ("psnr_db_min", "psnr_gain_db_min", "psnr_gain_db_covered_min"),
-    "views": ("psnr_db_min", "psnr_gain_db_min", "psnr_gain_db_covered_min"),
+    "render": ("psnr_db_min", "psnr_gain_db_min", "psnr_gain_db_covered_min",
+               "silhouette_iou_min"),
+    "views": ("psnr_db_min", "psnr_gain_db_min", "psnr_gain_db_covered_min",
+              "silhouette_iou_min"),
 }
 
 
