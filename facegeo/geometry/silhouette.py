@@ -32,7 +32,8 @@ import numpy as np
 from facegeo.checks import as_array
 from facegeo.errors import InputError
 
-__all__ = ["SILHOUETTE_REL", "BACKGROUND_FRAME", "BORDER_PX", "RIM_MAX_GAP", "silhouette_mask", "rim_points"]
+__all__ = ["SILHOUETTE_REL", "BACKGROUND_FRAME", "BORDER_PX", "RIM_MAX_GAP", "silhouette_mask",
+           "rim_points"]
 
 #: A pixel is the subject's when its brightest light rises above the background by at least
 #: this fraction of the way to the median over the pixels known to be the subject's (where

@@ -543,7 +543,8 @@ def silhouette_rims(scan, the_rig, names, points, filled, *, strict: bool = Fals
     per-pixel brightest value (channel maximum) over :data:`SILHOUETTE_LIGHTS` of its
     one-light-at-a-time frames, the structured-light ``points`` telling the subject's pixels.
     A camera whose silhouette cannot be found (no point in its image, its known pixels dark,
-    frames of another size than the rig's camera) is left out with a warning and its ``error`` in the metrics; with ``strict`` it raises.
+    frames of another size than the rig's camera) is left out with a warning and its ``error``
+    in the metrics; with ``strict`` it raises.
 
     Returns
     -------
