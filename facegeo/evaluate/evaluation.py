@@ -51,9 +51,9 @@ HEADLINES: dict[str, tuple[str, ...]] = {
     "fit": ("normal_median_error_deg", "normal_mean_error_deg", "albedo_rel_error",
             "resynthesis_rel_rmse_30", "resynthesis_rel_rmse_60"),
     "render": ("psnr_db_min", "psnr_gain_db_min", "psnr_gain_db_covered_min",
-               "silhouette_iou_min"),
+               "psnr_gain_db_seen_min", "silhouette_iou_min"),
     "views": ("psnr_db_min", "psnr_gain_db_min", "psnr_gain_db_covered_min",
-              "silhouette_iou_min"),
+              "psnr_gain_db_seen_min", "silhouette_iou_min"),
 }
 
 

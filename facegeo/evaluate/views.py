@@ -9,7 +9,8 @@ when the stage made them, ``<stem>_naive.exr``, ``<stem>_texture.exr``,
 ``<stem>_naive_texture.exr`` (the texture-space renders before the image-space detail) and
 ``<stem>_paper.exr`` (the paper's resynthesis as written, λ = 1). It writes
 ``<stem>_reference.exr/.png``, ``<stem>_reference_mask.png`` (255 where the reference sees
-the head) and ``<stem>_error.png`` into the folder it is given.
+the head), ``<stem>_seen.png`` (:func:`seen_fraction` × 255) and ``<stem>_error.png`` into
+the folder it is given.
 
 Metrics against the generator's reference (same camera, same Eq. (4) weights, its exact
 renderer integrating the render's own pixel footprint, ``reference_supersample``;
@@ -28,6 +29,14 @@ renderer integrating the render's own pixel footprint, ``reference_supersample``
   the ``*_covered`` variants of PSNR / relative RMSE over covered pixels only;
 * with image-space detail: ``texture_*`` and ``texture_naive_*``, the same figures of the
   texture-space renders;
+* against the generator's reference, what the capture could have shown (the co-visibility
+  mask of novel-view benchmarks, Gao et al. 2022, "Monocular Dynamic View Synthesis: A
+  Reality Check", §4: a view's pixels no training view saw are no test of a method):
+  :func:`seen_fraction` of each pixel, the share of its reference rays whose true surface
+  point some source camera (a camera with OLAT frames) sees — facing it, in its image, not
+  occluded; ``seen_pixels`` (every ray seen) and ``unseen_head_pixels`` (none), the gain
+  ``psnr_gain_db_seen`` (``psnr_db_seen``, ``naive_psnr_db_seen``) over the seen pixels, and
+  ``unseen_error_share`` (the render's squared error over the mask on unseen pixels);
 * with a rig other than the true one, the reference is rendered from the camera moved into the
   generator's frame by the gauge alignment of the atlas mesh
   (:func:`facegeo.evaluate.gauge.truth_gauge`; ``gauge_rotation_deg`` /
@@ -56,8 +65,8 @@ from facegeo.errors import InputError
 from facegeo.evaluate.gauge import inferred_atlas_vertices, truth_gauge
 
 __all__ = ["evaluate_view", "evaluate_view_against_image", "has_view_reference",
-           "image_metrics", "reference_image_key", "render_gain", "view_figures",
-           "views_summary"]
+           "image_metrics", "reference_image_key", "render_gain", "seen_fraction",
+           "view_figures", "views_summary"]
 
 
 def has_view_reference(scan) -> bool:
@@ -119,6 +128,44 @@ def render_gain(image, naive, ref, head_mask, covered) -> dict:
     dark = ~(np.isfinite(image) & (image > 0)).any(axis=2)
     return {"gain_covered_db": gain(cov), "gain_head_db": gain(head),
             "black_head_pixels": int((head & dark).sum())}
+
+
+def seen_fraction(view, scene, cameras) -> np.ndarray:
+    """Of each pixel's rays on the surface, the share whose surface point some camera of
+    ``cameras`` sees.
+
+    A point is seen by a camera when its normal faces the camera's centre, it projects inside
+    the camera's image, and the segment to the centre is free of faces (``scene``'s
+    :meth:`~facegeo.surface.visibility.RayScene.segment_visible`, lifted off the surface along
+    the normal). With the generator's surface and true source cameras, a pixel of 0 shows
+    surface no capture camera recorded: no reconstruction from the capture measures its shape
+    or its reflectance (the co-visibility mask of Gao et al. 2022, §4).
+
+    Parameters
+    ----------
+    view : facegeo.synth.render.SurfaceView — a camera's rays on the surface (the reference's)
+    scene : facegeo.surface.visibility.RayScene — of the same surface
+    cameras : sequence of facegeo.geometry.camera.Camera, in the surface's frame
+
+    Returns
+    -------
+    (H, W) float32 in [0, 1] — 0 also off the surface
+    """
+    p, n = view.p_world, view.n_world
+    seen = np.zeros(len(p), bool)
+    for cam in cameras:
+        c = np.asarray(cam.center_world, np.float64).reshape(3)
+        todo = np.flatnonzero(~seen & (np.einsum("ij,ij->i", c - p, n) > 0))
+        if not todo.size:
+            continue
+        q, ok = cam.project(p[todo])
+        inside = ok & cam.in_image(q)
+        todo = todo[inside]
+        if todo.size:
+            seen[todo] = scene.segment_visible(p[todo], c[None, :], normals=n[todo])
+    hit = view.to_image(np.ones(len(p), np.float32))
+    return np.where(hit > 0, view.to_image(seen.astype(np.float32)) / np.maximum(hit, 1e-30),
+                    np.float32(0.0)).astype(np.float32)
 
 
 def _error_heatmap(img, ref, mask) -> np.ndarray:
@@ -204,7 +251,11 @@ def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> di
     # centres with a box-filtered render (or the reverse) would measure the sampling
     ref = renderer.render_lights(ref_camera, renderer.rig.lights, v["weights"],
                                  supersample=supersample)
-    mask = renderer.surface_view(ref_camera, supersample=supersample).mask
+    sv = renderer.surface_view(ref_camera, supersample=supersample)
+    mask = sv.mask
+    sources = set(scan.cameras_with_frames("olat"))
+    seen = seen_fraction(sv, renderer.rays,
+                         [c for c in renderer.rig.cameras if c.name in sources])
     metrics["seconds_reference"] = round(time.perf_counter() - t0, 4)
     metrics["reference_supersample"] = supersample
     dest.mkdir(parents=True, exist_ok=True)
@@ -212,21 +263,24 @@ def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> di
     imageio.write_image(dest / f"{stem}_reference_mask.png",
                         np.where(mask, 255, 0).astype(np.uint8))
     exposure = np.float32(meta.get("exposure", 1.0))
-    files = {"reference_png": imageio.write_image(
+    files = {"seen_png": imageio.write_image(
+        dest / f"{stem}_seen.png", np.round(seen * 255).astype(np.uint8)).name,
+        "reference_png": imageio.write_image(
         dest / f"{stem}_reference.png",
         encode(np.clip(ref * exposure, 0.0, 1.0), "srgb", np.uint8)).name,
         "error_png": imageio.write_image(dest / f"{stem}_error.png",
                                          _error_heatmap(v["image"], ref, mask)).name}
-    metrics.update(view_figures(v, ref, mask, head_mask=True))
+    metrics.update(view_figures(v, ref, mask, head_mask=True, seen=seen))
     metrics["files"] = files
     return metrics
 
 
-def view_figures(v: dict, ref, mask, *, head_mask: bool = False) -> dict:
+def view_figures(v: dict, ref, mask, *, head_mask: bool = False, seen=None) -> dict:
     """The figures of a view's renders ``v`` (:func:`_read_view`) against a reference image
     ``ref`` ``(H, W, 3)`` over the pixels ``mask`` ``(H, W)`` (module docstring). With
     ``head_mask`` (``mask`` is where the reference sees the head, not merely where it is
-    non-black) also ``outside_head_pixels`` and ``silhouette_iou``."""
+    non-black) also ``outside_head_pixels`` and ``silhouette_iou``; with ``seen``
+    (:func:`seen_fraction` ``(H, W)``) the seen and unseen figures."""
     metrics: dict[str, Any] = {}
     cov = mask & v["covered"]
     # of the head the generator sees from this camera, the part rendered from measured
@@ -264,7 +318,28 @@ def view_figures(v: dict, ref, mask, *, head_mask: bool = False) -> dict:
             metrics["psnr_gain_db_covered"] = round(mc["psnr_db"] - nc["psnr_db"], 4)
     if v["paper"] is not None:
         figures("paper_", v["paper"])
+    if seen is not None:
+        metrics.update(_seen_figures(v, ref, mask, np.asarray(seen, np.float32)))
     return metrics
+
+
+def _seen_figures(v: dict, ref, mask, seen) -> dict:
+    """``seen_pixels``, ``unseen_head_pixels``, ``unseen_error_share``, ``psnr_db_seen``,
+    ``naive_psnr_db_seen`` and ``psnr_gain_db_seen`` (module docstring)."""
+    whole, none = mask & (seen >= 1.0), mask & (seen <= 0.0)
+    err = ((v["image"].astype(np.float64) - ref) ** 2).sum(axis=2)
+    total = float(err[mask].sum())
+    out: dict[str, Any] = {
+        "seen_pixels": int(whole.sum()), "unseen_head_pixels": int(none.sum()),
+        "unseen_error_share": round(float(err[none].sum()) / total, 6) if total > 0 else None}
+    a = image_metrics(v["image"], ref, whole)
+    out["psnr_db_seen"] = a["psnr_db"]
+    if v["naive"] is not None:
+        b = image_metrics(v["naive"], ref, whole)
+        out["naive_psnr_db_seen"] = b["psnr_db"]
+        if a["psnr_db"] is not None and b["psnr_db"] is not None:
+            out["psnr_gain_db_seen"] = round(a["psnr_db"] - b["psnr_db"], 4)
+    return out
 
 
 def reference_image_key(camera: str, env: str) -> str:
@@ -298,7 +373,7 @@ def evaluate_view_against_image(scan, views_dir, stem: str) -> dict | None:
 def views_summary(per_view: dict) -> dict:
     """The figures over several views: ``psnr_db_min`` / ``_mean``, ``naive_psnr_db_mean``,
     ``psnr_gain_db_min``, ``psnr_gain_db_covered_min``, ``paper_psnr_db_mean``,
-    ``silhouette_iou_min`` (each over the views that have it)."""
+    ``silhouette_iou_min``, ``psnr_gain_db_seen_min`` (each over the views that have it)."""
     def values(key):
         return [v[key] for v in per_view.values() if v.get(key) is not None]
 
@@ -320,4 +395,7 @@ def views_summary(per_view: dict) -> dict:
     iou = values("silhouette_iou")
     if iou:
         metrics["silhouette_iou_min"] = round(min(iou), 6)
+    gain_seen = values("psnr_gain_db_seen")
+    if gain_seen:
+        metrics["psnr_gain_db_seen_min"] = round(min(gain_seen), 4)
     return metrics
