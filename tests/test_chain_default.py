@@ -342,6 +342,9 @@ def test_the_chains_figures_on_the_small_preset(small_witness_scan):
     assert w["psnr_gain_db_covered"] >= WITNESS_GAIN_COVERED_DB, w
     assert w["psnr_gain_db"] >= WITNESS_GAIN_HEAD_DB, w
     assert w["black_head_pixels"] <= WITNESS_BLACK_HEAD_FRACTION * w["mask_pixels"], w
+    # the seen figures of a reference image the generator wrote (measured +3.24 dB over the
+    # seen pixels, the 1,391 unseen of 25,651 holding 55 % of the error; 2026-12-03)
+    assert w["psnr_gain_db_seen"] > w["psnr_gain_db"] and w["unseen_head_pixels"] > 0, w
     # ... and those are in the reference's outermost ring: no hole inside the head
     ref = read_image(root / "reference" / "witness_axis_lobes.exr")[..., :3]
     head = np.isfinite(ref).all(axis=2) & (np.nan_to_num(ref).max(axis=2) > 0)

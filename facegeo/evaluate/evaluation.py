@@ -89,8 +89,10 @@ def _evaluate_views(scan, out: Path, part: str, dest: Path, renderer: Callable) 
     for stem in _view_stems(folder, listed):
         # a reference image of the view's camera and environment (a real scan's witness
         # camera), else the generator's render of it
-        figures = evaluate_view_against_image(scan, folder, stem)
-        if figures is None and has_view_reference(scan):
+        truth = has_view_reference(scan)
+        figures = evaluate_view_against_image(scan, folder, stem, out=out,
+                                              renderer=renderer() if truth else None)
+        if figures is None and truth:
             figures = evaluate_view(scan, out, folder, stem, dest / part, renderer=renderer())
         if figures is not None:
             per_view[stem] = figures

@@ -47,7 +47,8 @@ are ``[reference] images.<camera>.<env> = "reference/…"`` entries (a linear ``
 ``.hdr`` of the camera's size; ``<env>`` the environment as the view names it: a built-in
 name, or a map file's stem): a view of that camera under that environment is compared with it
 by :func:`evaluate_view_against_image`, the same figures over the pixels where the reference
-is finite and not black (``mask``; the reference's own extent, without a head mask).
+is finite and not black (``mask``; the reference's own extent, without a head mask); on a
+synthetic scan whose generator wrote that image (its witness camera's) also the seen figures.
 """
 
 from __future__ import annotations
@@ -229,23 +230,18 @@ def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> di
     """
     from facegeo.capture import imageio
     from facegeo.capture.response import encode
-    from facegeo.surface.atlas import Atlas
 
     views_dir, dest = Path(views_dir), Path(dest)
     v = _read_view(views_dir, stem)
-    meta, camera = v["meta"], v["camera"]
+    meta = v["meta"]
     supersample = int(meta.get("supersample", 1))
     t0 = time.perf_counter()
     if renderer is None:
         from facegeo.synth.render import load_ground_truth
 
         renderer = load_ground_truth(scan)
-    atlas = Atlas.load(Path(out) / "atlas" / "atlas.npz")
-    T_true, gauge = truth_gauge(renderer, atlas, meta.get("rig"),
-                                skip=inferred_atlas_vertices(out, atlas))
+    ref_camera, gauge = _truth_camera(renderer, out, v)
     metrics: dict[str, Any] = dict(gauge)
-    ref_camera = camera if T_true is None else dataclasses.replace(
-        camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
     # the reference integrates the render's own pixel footprint (s × s box): a point
     # sample of a hard shadow edge is not what a camera records, and comparing pixel
     # centres with a box-filtered render (or the reverse) would measure the sampling
@@ -253,9 +249,7 @@ def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> di
                                  supersample=supersample)
     sv = renderer.surface_view(ref_camera, supersample=supersample)
     mask = sv.mask
-    sources = set(scan.cameras_with_frames("olat"))
-    seen = seen_fraction(sv, renderer.rays,
-                         [c for c in renderer.rig.cameras if c.name in sources])
+    seen = _seen_by_sources(scan, renderer, sv)
     metrics["seconds_reference"] = round(time.perf_counter() - t0, 4)
     metrics["reference_supersample"] = supersample
     dest.mkdir(parents=True, exist_ok=True)
@@ -273,6 +267,28 @@ def evaluate_view(scan, out, views_dir, stem: str, dest, *, renderer=None) -> di
     metrics.update(view_figures(v, ref, mask, head_mask=True, seen=seen))
     metrics["files"] = files
     return metrics
+
+
+def _truth_camera(renderer, out, v: dict):
+    """The view's camera in the generator's frame (moved by the gauge alignment of the atlas
+    mesh when the rig is not the true one) and the alignment's figures."""
+    from facegeo.surface.atlas import Atlas
+
+    atlas = Atlas.load(Path(out) / "atlas" / "atlas.npz")
+    T_true, gauge = truth_gauge(renderer, atlas, v["meta"].get("rig"),
+                                skip=inferred_atlas_vertices(out, atlas))
+    camera = v["camera"]
+    if T_true is not None:
+        camera = dataclasses.replace(camera, T_cam_world=camera.T_cam_world @ T_true.inverse())
+    return camera, gauge
+
+
+def _seen_by_sources(scan, renderer, view) -> np.ndarray:
+    """:func:`seen_fraction` of a view's rays on the generator's surface, by the scan's source
+    cameras (those with OLAT frames) at their true poses."""
+    sources = set(scan.cameras_with_frames("olat"))
+    return seen_fraction(view, renderer.rays,
+                         [c for c in renderer.rig.cameras if c.name in sources])
 
 
 def view_figures(v: dict, ref, mask, *, head_mask: bool = False, seen=None) -> dict:
@@ -348,9 +364,16 @@ def reference_image_key(camera: str, env: str) -> str:
     return f"images.{camera}.{Path(str(env)).stem}"
 
 
-def evaluate_view_against_image(scan, views_dir, stem: str) -> dict | None:
+def evaluate_view_against_image(scan, views_dir, stem: str, *, out=None,
+                                 renderer=None) -> dict | None:
     """One rendered view against the scan's reference image of its camera and environment
-    (module docstring); None when the scan has none for it."""
+    (module docstring); None when the scan has none for it.
+
+    With the generator's truth (``renderer``, and ``out`` holding ``atlas/``: a synthetic
+    scan whose generator wrote the reference image, such as its witness camera's) also the
+    seen figures, the view's camera moved into the generator's frame as :func:`evaluate_view`
+    moves it.
+    """
     from facegeo.capture import imageio
 
     v = _read_view(Path(views_dir), stem)
@@ -367,7 +390,13 @@ def evaluate_view_against_image(scan, views_dir, stem: str) -> dict | None:
                          f"{v['image'].shape[1]} x {v['image'].shape[0]} RGB")
     ref = ref[..., :3]
     mask = np.isfinite(ref).all(axis=2) & (ref.max(axis=2) > 0)
-    return {"reference": f"{key} ({path.name})", **view_figures(v, np.nan_to_num(ref), mask)}
+    seen = None
+    if renderer is not None and out is not None:
+        camera, _ = _truth_camera(renderer, out, v)
+        view = renderer.surface_view(camera, supersample=int(v["meta"].get("supersample", 1)))
+        seen = _seen_by_sources(scan, renderer, view)
+    return {"reference": f"{key} ({path.name})",
+            **view_figures(v, np.nan_to_num(ref), mask, seen=seen)}
 
 
 def views_summary(per_view: dict) -> dict:
