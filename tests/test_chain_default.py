@@ -48,8 +48,9 @@ TINY_SILHOUETTE_IOU = 0.85
 STAGE_ALONE_SILHOUETTE_IOU = 0.999
 #: Gain over naive on the head pixels whose true surface a source camera saw
 #: (``psnr_gain_db_seen``), worst view: measured +0.68 dB at +30° (−30° / −60° / +60° +1.40 /
-#: +3.32 / +0.94; whole head +0.31 / +0.86 / +1.65 / +0.38), the 73–578 unseen pixels holding
-#: 22–60 % of the render's squared error (2026-12-03; stage alone +2.07 dB worst, 4–32 %).
+#: +3.32 / +0.94; over the whole head −30° / −60° / +30° / +60° +0.86 / +1.65 / +0.31 /
+#: +0.38), the 73–578 unseen pixels holding 22–60 % of the render's squared error
+#: (2026-12-03; stage alone +2.07 dB worst, 4–32 %).
 TINY_GAIN_SEEN_DB = 0.5
 
 # small preset (240 × 360 px, 512 lights, 30 board views): the calibrated rig (0.20° / 3.56 mm
